@@ -1,0 +1,62 @@
+"""Status bit flags returned inside jitted state, and host-side decoding.
+
+Inside ``jit`` nothing raises: failures are OR-ed into an ``int32`` status word
+carried in the returned state (the optax / diffrax habit).  On the host,
+:func:`decode` turns a status word into names and :func:`check` raises.
+
+Input validation at the public Python boundary (before ``jit``) raises
+:class:`InputError` with a message that names the offending argument.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = [
+    "OK",
+    "CAPACITY_OVERFLOW",
+    "NON_FINITE",
+    "GATED",
+    "DEGENERATE",
+    "MASKED_INPUT",
+    "NOT_PSD",
+    "FLAG_NAMES",
+    "InputError",
+    "decode",
+    "check",
+]
+
+OK = 0
+CAPACITY_OVERFLOW = 1 << 0  # a landmark could not be registered: no free slot
+NON_FINITE = 1 << 1  # a NaN/Inf appeared in a mean or covariance
+GATED = 1 << 2  # at least one measurement was rejected by the Mahalanobis gate
+DEGENERATE = 1 << 3  # a degenerate geometry (e.g. collinear trilateration) was met
+MASKED_INPUT = 1 << 4  # a non-finite or out-of-range input measurement was masked
+NOT_PSD = 1 << 5  # a covariance failed its Cholesky factorisation
+
+FLAG_NAMES = {
+    CAPACITY_OVERFLOW: "capacity_overflow",
+    NON_FINITE: "non_finite",
+    GATED: "gated",
+    DEGENERATE: "degenerate",
+    MASKED_INPUT: "masked_input",
+    NOT_PSD: "not_psd",
+}
+
+
+class InputError(ValueError):
+    """Bad input detected at a public boundary (shape, dtype, PSD, range)."""
+
+
+def decode(status) -> list[str]:
+    """Names of the flags set in a status word (host side)."""
+    s = int(np.asarray(status))
+    return [name for bit, name in FLAG_NAMES.items() if s & bit]
+
+
+def check(status, allow: int = GATED | MASKED_INPUT) -> None:
+    """Raise ``RuntimeError`` if a status word has a flag outside ``allow``."""
+    s = int(np.bitwise_or.reduce(np.asarray(status).ravel())) if np.ndim(status) else int(status)
+    bad = s & ~allow
+    if bad:
+        raise RuntimeError(f"jaxslam status flags set: {', '.join(decode(bad))}")
