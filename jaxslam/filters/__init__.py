@@ -1,0 +1,1 @@
+"""Generic filters (they never name a paper): EKF core, EKF-SLAM engine."""

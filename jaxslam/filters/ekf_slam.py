@@ -1,0 +1,481 @@
+"""Generic EKF-SLAM engine on a fixed-capacity, padded landmark map.
+
+One engine serves every model (paper 000's 3D LiDAR quadcopter, paper 003's
+range-only UWB, paper 004's line features, 2D range-bearing real data): a model
+is a :class:`SlamModel` of pure functions, the filter never names a paper.
+
+State layout (static shapes, so a change of noise never recompiles and a
+change of capacity recompiles once)::
+
+    x = [s (n_r), l_0 (d_l), l_1 (d_l), ..., l_{cap-1} (d_l)]      n = n_r + cap·d_l
+    P = full (n, n) covariance; inactive slots have zero rows/columns
+
+Inactive slots carry zero mean, zero covariance and zero cross-covariance, so
+they never influence an active quantity: a run at capacity 40 and at capacity
+128 gives the same estimates for the active landmarks, and slot order is
+immaterial.
+
+Speed (STYLE.md lessons, measured on a 2-core CPU):
+
+* prediction touches only the robot block and the robot–landmark
+  cross-covariance (P_rl ← F P_rl; paper 000 eq. 27-29 discretised), so its
+  cost is O(n) in the map size, not O(n²);
+* the update gathers the columns of P that the sparse H touches (robot block
+  plus one landmark block per measurement): P Hᵀ costs O(n·k) for k observed
+  landmarks, and the factored Joseph form
+  (I − K H) P (I − K H)ᵀ + K R Kᵀ = A − (A Hᵀ) Kᵀ + K R Kᵀ,  A = P − K (P Hᵀ)ᵀ
+  costs O(n²·k·d_z) — never a dense n×n product with H;
+* gains come from a Cholesky solve on the (k·d_z)-sized innovation
+  covariance; P is symmetrised once per update.
+
+Measurements are processed in static-size batches of ``K`` with a validity
+mask: absent, non-finite, gated or unmapped measurements contribute nothing.
+Failures never produce silent NaNs: a non-finite update is rejected (prior
+kept) and flagged in ``status``; a landmark that finds no free slot is counted
+in ``overflow`` and flagged ``CAPACITY_OVERFLOW``.
+
+References: paper 000 eq. 21-53 (prediction eq. 26-29, update eq. 37-43,
+registration eq. 44-53).  The paper's update eq. 43 (P − K E Kᵀ) is replaced
+by the factored Joseph form; see docs/papers.md.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, NamedTuple, Optional
+
+import jax
+import jax.numpy as jnp
+
+from .. import errors
+from ..linalg import symmetrize
+
+__all__ = [
+    "SlamModel",
+    "SlamState",
+    "UpdateInfo",
+    "init",
+    "predict",
+    "update",
+    "register",
+    "add_landmark",
+    "associate_known",
+    "associate_nn",
+    "robot",
+    "landmarks",
+    "robot_cov",
+    "landmark_covs",
+    "slot_indices",
+]
+
+
+class SlamModel(NamedTuple):
+    """A SLAM model: sizes plus pure functions (static under ``jit``).
+
+    motion(s, u, params) -> s'           discrete robot motion over one step
+    observe(s, l, params) -> z (d_z,)    measurement of landmark ``l`` from robot ``s``
+    inverse(s, z, params) -> l (d_l,)    inverse observation (registration); may be None
+    residual(z, zhat) -> ν (d_z,)        innovation (wraps angle components)
+    """
+
+    robot_dim: int
+    lm_dim: int
+    meas_dim: int
+    motion: Callable
+    observe: Callable
+    inverse: Optional[Callable] = None
+    residual: Optional[Callable] = None
+
+
+class SlamState(NamedTuple):
+    """EKF-SLAM posterior with a padded map.
+
+    x: (n,) mean; P: (n, n) covariance; active: (cap,) bool slot in use;
+    ids: (cap,) int32 landmark id held by each slot (−1 when free);
+    status: () int32 bit flags (jaxslam.errors) OR-ed since init;
+    overflow: () int32 number of landmarks that found no free slot.
+    """
+
+    x: jax.Array
+    P: jax.Array
+    active: jax.Array
+    ids: jax.Array
+    status: jax.Array
+    overflow: jax.Array
+
+
+class UpdateInfo(NamedTuple):
+    """Per-update diagnostics: joint NIS, its degrees of freedom, used mask."""
+
+    nis: jax.Array  # () joint normalised innovation squared
+    dof: jax.Array  # () number of scalar measurements used
+    used: jax.Array  # (K,) bool measurement used in the update
+    gated: jax.Array  # (K,) bool rejected by the Mahalanobis gate
+
+
+# ---------------------------------------------------------------------------
+# Construction and views
+# ---------------------------------------------------------------------------
+
+def init(robot_mean, robot_cov, capacity: int, lm_dim: int) -> SlamState:
+    """Empty map with ``capacity`` landmark slots of dimension ``lm_dim``."""
+    robot_mean = jnp.asarray(robot_mean)
+    robot_cov = jnp.asarray(robot_cov, dtype=robot_mean.dtype)
+    nr = robot_mean.shape[0]
+    n = nr + capacity * lm_dim
+    x = jnp.zeros((n,), robot_mean.dtype).at[:nr].set(robot_mean)
+    P = jnp.zeros((n, n), robot_mean.dtype).at[:nr, :nr].set(robot_cov)
+    return SlamState(
+        x=x,
+        P=P,
+        active=jnp.zeros((capacity,), bool),
+        ids=jnp.full((capacity,), -1, jnp.int32),
+        status=jnp.zeros((), jnp.int32),
+        overflow=jnp.zeros((), jnp.int32),
+    )
+
+
+def _sizes(state: SlamState, model: SlamModel):
+    nr, dl = model.robot_dim, model.lm_dim
+    cap = state.active.shape[0]
+    return nr, dl, cap
+
+
+def robot(state: SlamState, model: SlamModel):
+    """Robot mean (n_r,)."""
+    return state.x[: model.robot_dim]
+
+
+def robot_cov(state: SlamState, model: SlamModel):
+    """Robot covariance block (n_r, n_r)."""
+    nr = model.robot_dim
+    return state.P[:nr, :nr]
+
+
+def landmarks(state: SlamState, model: SlamModel):
+    """Landmark means (cap, d_l); inactive slots are zero (see ``state.active``)."""
+    nr, dl, cap = _sizes(state, model)
+    return state.x[nr:].reshape(cap, dl)
+
+
+def slot_indices(slots, model: SlamModel):
+    """State indices (K, d_l) of the landmark blocks in ``slots`` (K,)."""
+    return model.robot_dim + slots[:, None] * model.lm_dim + jnp.arange(model.lm_dim)[None, :]
+
+
+def landmark_covs(state: SlamState, model: SlamModel):
+    """Marginal landmark covariances (cap, d_l, d_l)."""
+    cap = state.active.shape[0]
+    idx = slot_indices(jnp.arange(cap), model)
+    return state.P[idx[:, :, None], idx[:, None, :]]
+
+
+def _residual(model: SlamModel):
+    return model.residual if model.residual is not None else (lambda z, zh: z - zh)
+
+
+def _flag_if(cond, bit):
+    return jnp.where(cond, jnp.int32(bit), jnp.int32(0))
+
+
+# ---------------------------------------------------------------------------
+# Prediction (paper 000 eq. 26-29, discretised)
+# ---------------------------------------------------------------------------
+
+def predict(state: SlamState, model: SlamModel, u, Q, params=None) -> SlamState:
+    """Propagate the robot through ``model.motion``; landmarks are static.
+
+    P_rr ← F P_rr Fᵀ + Q,  P_rl ← F P_rl  (P_lr = P_rlᵀ); P_ll untouched.
+    ``Q`` (n_r, n_r) is the discrete process noise of this step.  Cost is
+    O(n_r²·n), independent of the map block.
+    """
+    nr = model.robot_dim
+    s = state.x[:nr]
+    s_new, F = _value_and_jacfwd(lambda s_: model.motion(s_, u, params), s)
+    Prr = state.P[:nr, :nr]
+    Prl = state.P[:nr, nr:]
+    Prr_new = symmetrize(F @ Prr @ F.T + Q)
+    Prl_new = F @ Prl
+    ok = jnp.all(jnp.isfinite(s_new)) & jnp.all(jnp.isfinite(Prr_new))
+    P = state.P
+    P = jax.lax.dynamic_update_slice(P, jnp.concatenate([Prr_new, Prl_new], axis=1), (0, 0))
+    P = jax.lax.dynamic_update_slice(P, Prl_new.T, (nr, 0))
+    x = state.x.at[:nr].set(s_new)
+    x = jnp.where(ok, x, state.x)
+    P = jnp.where(ok, P, state.P)
+    return state._replace(x=x, P=P, status=state.status | _flag_if(~ok, errors.NON_FINITE))
+
+
+def _value_and_jacfwd(fun, x):
+    """(fun(x), ∂fun/∂x) with one forward-mode pass."""
+    y = fun(x)
+    J = jax.jacfwd(fun)(x)
+    return y, J
+
+
+# ---------------------------------------------------------------------------
+# Update of observed, mapped landmarks (paper 000 eq. 37-43)
+# ---------------------------------------------------------------------------
+
+def _observe_batch(model, s, L, params):
+    """ẑ (K, d_z), H_s (K, d_z, n_r), H_l (K, d_z, d_l) for landmark means L (K, d_l)."""
+
+    def one(l):
+        zh = model.observe(s, l, params)
+        Hs, Hl = jax.jacfwd(model.observe, argnums=(0, 1))(s, l, params)
+        return zh, Hs, Hl
+
+    return jax.vmap(one)(L)
+
+
+def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
+           gate: Optional[float] = None):
+    """Joint EKF update with K measurements of mapped landmarks.
+
+    Args:
+      z: (K, d_z) measurements (NaN allowed where masked).
+      slots: (K,) int slot of the landmark each measurement observes.
+      mask: (K,) bool measurement present.  Measurements of inactive slots or
+        with non-finite entries are dropped (counted via ``MASKED_INPUT``).
+      R: (d_z, d_z) or (K, d_z, d_z) measurement covariance.
+      gate: optional chi-square threshold on each measurement's own NIS
+        (d_z dof); gated measurements are dropped and flagged ``GATED``.
+
+    Returns (state, UpdateInfo).  Cost O(n²·K·d_z) through gathered columns.
+    """
+    nr, dl, cap = _sizes(state, model)
+    dz = model.meas_dim
+    K = z.shape[0]
+    dtype = state.x.dtype
+    slots = jnp.clip(slots.astype(jnp.int32), 0, cap - 1)
+    R = jnp.broadcast_to(jnp.asarray(R, dtype), (K, dz, dz))
+
+    finite = jnp.all(jnp.isfinite(z), axis=-1)
+    valid = mask & state.active[slots] & finite
+    bad_input = mask & state.active[slots] & ~finite
+    z_safe = jnp.where(valid[:, None], z, 0.0).astype(dtype)
+
+    s = state.x[:nr]
+    L = state.x[nr:].reshape(cap, dl)[slots]
+    zh, Hs, Hl = _observe_batch(model, s, L, params)
+    res = jax.vmap(_residual(model))(z_safe, zh)
+
+    idx = slot_indices(slots, model)  # (K, dl)
+    P = state.P
+
+    def gather_PHt(M):
+        # M Hᵀ for the sparse H, with M symmetric-access by columns: (n, K, dz)
+        Mr = M[:, :nr]  # (n, nr)
+        Ml = M[:, idx]  # (n, K, dl)
+        return jnp.einsum("ni,kzi->nkz", Mr, Hs) + jnp.einsum("nkj,kzj->nkz", Ml, Hl)
+
+    PHt = gather_PHt(P)  # (n, K, dz)
+
+    def rows(M):
+        # rows of an (n, ...) array at H's support, contracted with H: H M
+        Mr = M[:nr]  # (nr, K, dz)
+        Ml = M[idx]  # (K, dl, K, dz)
+        return jnp.einsum("kzi,imw->kzmw", Hs, Mr) + jnp.einsum("kzj,kjmw->kzmw", Hl, Ml)
+
+    HPHt = rows(PHt)  # (K, dz, K, dz)
+
+    # Individual gating on the marginal innovation covariance of each measurement.
+    S_marg = jnp.einsum("kzkw->kzw", HPHt) + R
+    if gate is not None:
+        nis_each = jax.vmap(_nis_small)(res, S_marg)
+        gated = valid & (nis_each > gate)
+        valid = valid & ~gated
+    else:
+        gated = jnp.zeros_like(valid)
+
+    v = valid.astype(dtype)
+    vv = jnp.repeat(v, dz)  # (K·dz,)
+    m = K * dz
+    PHt_f = PHt.reshape(-1, m) * vv[None, :]
+    R_blk = jnp.zeros((K, dz, K, dz), dtype).at[jnp.arange(K), :, jnp.arange(K), :].set(R)
+    S = HPHt.reshape(m, m) * (vv[:, None] * vv[None, :]) + R_blk.reshape(m, m) * (
+        vv[:, None] * vv[None, :]
+    ) + jnp.diag(1.0 - vv)
+    nu = res.reshape(m) * vv
+
+    Lc = jnp.linalg.cholesky(symmetrize(S))
+    chol_ok = jnp.all(jnp.isfinite(Lc))
+    Kg = jax.scipy.linalg.cho_solve((Lc, True), PHt_f.T).T  # (n, m) = P Hᵀ S⁻¹
+    x_new = state.x + Kg @ nu
+
+    # Factored Joseph form from gathered columns.
+    A = P - Kg @ PHt_f.T  # (I − K H) P
+    AHt = gather_PHt(A).reshape(-1, m) * vv[None, :]  # (I − K H) P Hᵀ
+    R_used = R_blk.reshape(m, m) * (vv[:, None] * vv[None, :])
+    P_new = symmetrize(A - AHt @ Kg.T + Kg @ R_used @ Kg.T)
+
+    w = jax.scipy.linalg.solve_triangular(Lc, nu, lower=True)
+    nis = jnp.sum(w * w)
+    ok = chol_ok & jnp.all(jnp.isfinite(x_new)) & jnp.all(jnp.isfinite(P_new))
+    x_new = jnp.where(ok, x_new, state.x)
+    P_new = jnp.where(ok, P_new, state.P)
+    status = (
+        state.status
+        | _flag_if(~ok, errors.NON_FINITE)
+        | _flag_if(~chol_ok, errors.NOT_PSD)
+        | _flag_if(jnp.any(gated), errors.GATED)
+        | _flag_if(jnp.any(bad_input), errors.MASKED_INPUT)
+    )
+    info = UpdateInfo(
+        nis=jnp.where(ok, nis, 0.0),
+        dof=jnp.where(ok, jnp.sum(valid) * dz, 0),
+        used=valid & ok,
+        gated=gated,
+    )
+    return state._replace(x=x_new, P=P_new, status=status), info
+
+
+def _nis_small(nu, S):
+    L = jnp.linalg.cholesky(symmetrize(S))
+    w = jax.scipy.linalg.solve_triangular(L, nu, lower=True)
+    return jnp.sum(w * w)
+
+
+# ---------------------------------------------------------------------------
+# Registration of new landmarks (paper 000 eq. 44-53)
+# ---------------------------------------------------------------------------
+
+def add_landmark(state: SlamState, model: SlamModel, slot, mean, cov_ll, cov_lx, lm_id, ok=True):
+    """Write a landmark into ``slot``: mean (d_l,), P_ll (d_l, d_l), P_lx (d_l, n).
+
+    ``cov_lx`` is the cross-covariance with the whole state (its own block is
+    overwritten by ``cov_ll``).  Nothing is written where ``ok`` is False.
+    Used by :func:`register` and by systems with their own initialisers
+    (e.g. trilateration for range-only SLAM).
+    """
+    nr, dl, cap = _sizes(state, model)
+    start = nr + slot * dl
+    row = jax.lax.dynamic_update_slice(cov_lx, cov_ll, (0, start))  # (dl, n)
+    P = state.P
+    P_w = jax.lax.dynamic_update_slice(P, row, (start, 0))
+    P_w = jax.lax.dynamic_update_slice(P_w, row.T, (0, start))
+    x_w = jax.lax.dynamic_update_slice(state.x, mean, (start,))
+    P = jnp.where(ok, P_w, P)
+    x = jnp.where(ok, x_w, state.x)
+    active = state.active.at[slot].set(jnp.where(ok, True, state.active[slot]))
+    ids = state.ids.at[slot].set(jnp.where(ok, jnp.int32(lm_id), state.ids[slot]))
+    return state._replace(x=x, P=P, active=active, ids=ids)
+
+
+def register(state: SlamState, model: SlamModel, z, lm_ids, mask, R, params=None) -> SlamState:
+    """Register K candidate landmarks sequentially (paper 000 eq. 44-53).
+
+    For each valid candidate k: l = g(s, z_k) (model.inverse), G_s = ∂g/∂s,
+    G_z = ∂g/∂z, P_ll = G_s P_ss G_sᵀ + G_z R G_zᵀ (eq. 48), P_lx = G_s P_s,:
+    (eq. 50), written into the first free slot.  A candidate with no free slot
+    increments ``overflow`` and sets ``CAPACITY_OVERFLOW`` — never silently lost.
+    Non-finite measurements are skipped and flagged ``MASKED_INPUT``.
+    """
+    if model.inverse is None:
+        raise ValueError("register: this model has no inverse observation; use add_landmark")
+    nr, dl, cap = _sizes(state, model)
+    dtype = state.x.dtype
+    K = z.shape[0]
+    R = jnp.broadcast_to(jnp.asarray(R, dtype), (K,) + (model.meas_dim, model.meas_dim))
+
+    def body(st, inp):
+        zk, idk, mk, Rk = inp
+        finite = jnp.all(jnp.isfinite(zk))
+        zk = jnp.where(finite, zk, 0.0).astype(dtype)
+        free = ~st.active
+        has_free = jnp.any(free)
+        slot = jnp.argmax(free)
+        s = st.x[:nr]
+        l = model.inverse(s, zk, params)
+        Gs, Gz = jax.jacfwd(model.inverse, argnums=(0, 1))(s, zk, params)
+        Pss = st.P[:nr, :nr]
+        Pll = symmetrize(Gs @ Pss @ Gs.T + Gz @ Rk @ Gz.T)
+        Plx = Gs @ st.P[:nr, :]
+        good = mk & finite & has_free & jnp.all(jnp.isfinite(l)) & jnp.all(jnp.isfinite(Pll))
+        st = add_landmark(st, model, slot, l, Pll, Plx, idk, ok=good)
+        over = mk & finite & ~has_free
+        st = st._replace(
+            overflow=st.overflow + over.astype(jnp.int32),
+            status=st.status
+            | _flag_if(over, errors.CAPACITY_OVERFLOW)
+            | _flag_if(mk & ~finite, errors.MASKED_INPUT),
+        )
+        return st, None
+
+    state, _ = jax.lax.scan(body, state, (z, lm_ids.astype(jnp.int32), mask, R))
+    return state
+
+
+# ---------------------------------------------------------------------------
+# Data association
+# ---------------------------------------------------------------------------
+
+def associate_known(state: SlamState, lm_ids, mask):
+    """Known correspondences: slot of each id and whether it is mapped.
+
+    Returns (slots (K,), mapped (K,) bool).  Unmapped valid ids are the
+    candidates for registration (``mask & ~mapped``).
+    """
+    eq = (state.ids[None, :] == lm_ids[:, None]) & state.active[None, :]
+    mapped = jnp.any(eq, axis=1) & mask
+    slots = jnp.argmax(eq, axis=1).astype(jnp.int32)
+    return slots, mapped
+
+
+def associate_nn(state: SlamState, model: SlamModel, z, mask, R, params=None,
+                 gate: float = 11.34, new_threshold: float = 30.0):
+    """Nearest-neighbour association by Mahalanobis distance (ids hidden).
+
+    For each measurement the active landmark with the smallest squared
+    Mahalanobis distance d² (marginal innovation covariance
+    H_s P_ss H_sᵀ + H_s P_sl H_lᵀ + H_l P_ls H_sᵀ + H_l P_ll H_lᵀ + R) is chosen.
+    d² < ``gate`` → matched; d² > ``new_threshold`` (or no landmark mapped)
+    → a new landmark; in between → ambiguous, discarded.  When two
+    measurements choose the same landmark only the closer one keeps it (the
+    other is discarded), so a joint update never uses a landmark twice.
+
+    Returns (slots (K,), matched (K,) bool, new (K,) bool, d2_min (K,)).
+    """
+    nr, dl, cap = _sizes(state, model)
+    dtype = state.x.dtype
+    K = z.shape[0]
+    R = jnp.broadcast_to(jnp.asarray(R, dtype), (K, model.meas_dim, model.meas_dim))
+    s = state.x[:nr]
+    L = state.x[nr:].reshape(cap, dl)
+    idx = slot_indices(jnp.arange(cap), model)  # (cap, dl)
+    Pss = state.P[:nr, :nr]
+    Psl = state.P[:nr, idx]  # (nr, cap, dl)
+    Pll = state.P[idx[:, :, None], idx[:, None, :]]  # (cap, dl, dl)
+    finite = jnp.all(jnp.isfinite(z), axis=-1)
+    z_safe = jnp.where(finite[:, None], z, 0.0).astype(dtype)
+    res_fn = _residual(model)
+
+    def per_landmark(l, Psl_j, Pll_j):
+        zh = model.observe(s, l, params)
+        Hs, Hl = jax.jacfwd(model.observe, argnums=(0, 1))(s, l, params)
+        Sx = Hs @ Pss @ Hs.T + Hs @ Psl_j @ Hl.T + Hl @ Psl_j.T @ Hs.T + Hl @ Pll_j @ Hl.T
+        return zh, Sx
+
+    zh, Sx = jax.vmap(per_landmark, in_axes=(0, 1, 0))(L, Psl, Pll)  # (cap, dz), (cap, dz, dz)
+
+    def d2_one(zk, Rk):
+        def against(zh_j, S_j):
+            nu = res_fn(zk, zh_j)
+            return _nis_small(nu, S_j + Rk)
+
+        return jax.vmap(against)(zh, Sx)
+
+    d2 = jax.vmap(d2_one)(z_safe, R)  # (K, cap)
+    big = jnp.asarray(jnp.inf, dtype)
+    d2 = jnp.where(state.active[None, :] & (mask & finite)[:, None], d2, big)
+    slots = jnp.argmin(d2, axis=1).astype(jnp.int32)
+    d2_min = jnp.min(d2, axis=1)
+    cand = mask & finite & (d2_min < gate)
+    # Mutual exclusion: a landmark keeps only its closest candidate measurement.
+    d2_sel = jnp.where(cand, d2_min, big)
+    best_for_slot = jnp.full((cap,), big, dtype).at[slots].min(d2_sel)
+    matched = cand & (d2_sel <= best_for_slot[slots])
+    # Break exact ties deterministically (first index wins).
+    first = jnp.full((cap,), K, jnp.int32).at[slots].min(jnp.where(matched, jnp.arange(K, dtype=jnp.int32), K))
+    matched = matched & (first[slots] == jnp.arange(K, dtype=jnp.int32))
+    new = mask & finite & (d2_min > new_threshold)
+    return slots, matched, new, d2_min
