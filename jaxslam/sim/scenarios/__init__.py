@@ -1,0 +1,11 @@
+"""Built-in scenarios.
+
+The registry (registry.py) imports the modules named in ``BUILTIN_MODULES``
+lazily, on the first ``get()``/``names()``, so ``jaxslam --help`` stays fast and a
+broken scenario module cannot break the registry import itself.
+"""
+
+BUILTIN_MODULES = (
+    "jaxslam.sim.scenarios.tracking",
+    "jaxslam.sim.scenarios.ekfslam3d",
+)

@@ -1,0 +1,5 @@
+"""``python -m jaxslam``: the same as the ``jaxslam`` console script."""
+
+from jaxslam.cli import main
+
+raise SystemExit(main())

@@ -1,0 +1,585 @@
+"""The ``jaxslam`` command: ``list | run | bench | tune | dataset``.
+
+    jaxslam list [--dir DIR]
+    jaxslam run SCENARIO [--runs N] [--seed S] [--float32] [--json PATH] [--plots DIR]
+                         [--quiet] [--params FILE] [scenario options]
+    jaxslam bench NAME [--dir DIR] [--json PATH] [benchmark options]
+    jaxslam tune ... | jaxslam dataset ...      (reserved; not available yet)
+
+Exit codes: 0 success; 2 usage or input error (one line on stderr, no
+traceback); 1 internal failure (one line plus a hint; ``--debug`` or the
+environment variable ``JAXSLAM_DEBUG=1`` prints the traceback).
+
+Decisions
+- This is the one place where ``jax_enable_x64`` is switched on: ``run`` and
+  ``bench`` enable it before any scenario or benchmark module is imported, so
+  module-level constants get the right dtype.  ``run --float32`` leaves the
+  setting as it is (off in a fresh process) and passes ``float32`` to the scenario.
+- ``--quiet`` silences stdout and the progress bar entirely (no table, no list of
+  written files); errors still go to stderr.
+- JAX, NumPy and the scenario modules are imported only by the commands that use
+  them, so ``jaxslam --help`` and ``--version`` return at once.
+- Each scenario gets its own argument parser built from ``Scenario.options``, so
+  ``jaxslam run NAME --help`` lists that scenario's options with their defaults.
+- Benchmarks live outside the package, in ``benchmarks/bench_<name>.py`` (module
+  attributes ``DESCRIPTION``, ``add_arguments(parser)``, ``run(args) -> dict``).
+  The folder is ``--dir DIR``, else ``./benchmarks``, else the ``benchmarks/``
+  folder beside the package source (editable installs); the first of the last
+  two that holds a ``bench_*.py`` wins.  The folder is put on ``sys.path`` while a
+  benchmark runs so that it can import its NumPy twins from the same folder.
+  ``jaxslam list`` reads ``DESCRIPTION`` without importing the module.
+- ``bench`` fills in ``"benchmark"`` and ``"machine"`` in the JSON when the
+  benchmark's ``run`` leaves them out.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import importlib.util
+import os
+import pathlib
+import sys
+
+from jaxslam import __version__
+from jaxslam.errors import InputError
+
+__all__ = ["main", "find_benchmarks_dir", "list_benchmarks"]
+
+PROG = "jaxslam"
+_DEBUG_ENV = "JAXSLAM_DEBUG"
+_RESERVED_COMMANDS = ("tune", "dataset")
+
+_TOP_EPILOG = """\
+commands:
+  list      scenarios and benchmarks with a one-line description
+  run       run a scenario (Monte Carlo), print metrics, write JSON and plots
+  bench     run a benchmark from the benchmarks/ folder
+  tune      tune filter parameters by gradient descent (not available yet)
+  dataset   run a system on a real dataset (not available yet)
+
+'jaxslam COMMAND --help' shows the options of a command;
+'jaxslam run SCENARIO --help' also shows that scenario's own options.
+
+exit codes: 0 success, 2 usage or input error, 1 internal failure
+(--debug or JAXSLAM_DEBUG=1 prints the traceback of an internal failure)."""
+
+
+class UsageError(Exception):
+    """A command-line usage error (exit code 2)."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """An ArgumentParser whose errors become one-line :class:`UsageError` s."""
+
+    def error(self, message):  # noqa: D401 - argparse API
+        raise UsageError(f"{self.prog}: {message} (see '{self.prog} --help')")
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid int value: {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
+
+
+def _seed(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid int value: {text!r}") from None
+    if not 0 <= value < 2**63:
+        raise argparse.ArgumentTypeError(f"must be in [0, 2**63), got {value}")
+    return value
+
+
+def _out(text: str = "") -> None:
+    print(text, file=sys.stdout, flush=True)
+
+
+# ----------------------------------------------------------------------------- top level
+
+
+def _top_parser() -> _Parser:
+    p = _Parser(
+        prog=PROG,
+        usage=f"{PROG} [--version] [--debug] COMMAND [ARGS ...]",
+        description="jaxslam: differentiable JAX toolkit for quadcopter estimation and control.",
+        epilog=_TOP_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--version", action="version", version=f"{PROG} {__version__}")
+    p.add_argument("--debug", action="store_true",
+                   help="print tracebacks of internal failures (also JAXSLAM_DEBUG=1)")
+    return p
+
+
+def _dispatch(argv: list[str]) -> int:
+    # The command is the first word that is not an option; what precedes it is global options.
+    idx = next((i for i, a in enumerate(argv) if not a.startswith("-")), len(argv))
+    top = _top_parser()
+    top.parse_args(argv[:idx])  # --help / --version exit here; unknown options are errors
+    if idx == len(argv):
+        raise UsageError(f"{PROG}: missing COMMAND (one of list, run, bench, tune, dataset; "
+                         f"see '{PROG} --help')")
+    command, rest = argv[idx], argv[idx + 1:]
+    if command == "list":
+        return _cmd_list(rest)
+    if command == "run":
+        return _cmd_run(rest)
+    if command == "bench":
+        return _cmd_bench(rest)
+    if command in _RESERVED_COMMANDS:
+        print(f"{PROG} {command}: not available yet", file=sys.stderr)
+        return 2
+    raise UsageError(f"{PROG}: unknown command {command!r} (choose from list, run, bench, tune, "
+                     f"dataset; see '{PROG} --help')")
+
+
+# ----------------------------------------------------------------------------- list
+
+
+def _cmd_list(rest: list[str]) -> int:
+    p = _Parser(prog=f"{PROG} list", description="List scenarios and benchmarks.")
+    p.add_argument("--dir", metavar="DIR", help="benchmarks folder (default: see 'jaxslam bench --help')")
+    p.add_argument("--debug", action="store_true", help=argparse.SUPPRESS)
+    args = p.parse_args(rest)
+
+    from jaxslam.sim.scenarios import registry
+
+    scenarios = registry.all_scenarios()
+    _out(f"Scenarios ({PROG} run NAME):")
+    if scenarios:
+        w = max(len(s.name) for s in scenarios)
+        for s in scenarios:
+            _out(f"  {s.name.ljust(w)}  {s.description.strip()}")
+    else:
+        _out("  (none registered)")
+
+    _out()
+    try:
+        bench_dir = find_benchmarks_dir(args.dir)
+    except InputError as e:
+        if args.dir:
+            raise
+        bench_dir, note = None, str(e)
+    benches = list_benchmarks(bench_dir) if bench_dir is not None else {}
+    _out(f"Benchmarks ({PROG} bench NAME)" + (f", in {bench_dir}:" if bench_dir else ":"))
+    if benches:
+        w = max(len(n) for n in benches)
+        for name, desc in benches.items():
+            _out(f"  {name.ljust(w)}  {desc}")
+    else:
+        _out(f"  (none: {note})" if bench_dir is None else "  (none)")
+    return 0
+
+
+# ----------------------------------------------------------------------------- run
+
+
+def _add_run_common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--runs", type=_positive_int, default=1, metavar="N",
+                   help="number of Monte Carlo runs (default: 1)")
+    p.add_argument("--seed", type=_seed, default=0, metavar="S",
+                   help="seed of the first PRNG key; runs are split from it (default: 0)")
+    p.add_argument("--float32", action="store_true",
+                   help="compute in float32 (default: float64, with jax_enable_x64 switched on)")
+    p.add_argument("--json", metavar="PATH", help="write the run JSON here (parent folders are created)")
+    p.add_argument("--plots", metavar="DIR", help="write the scenario's PNG figures into DIR")
+    p.add_argument("--quiet", action="store_true",
+                   help="print nothing on stdout and no progress bar (errors still go to stderr)")
+    p.add_argument("--params", metavar="FILE",
+                   help="JSON object with parameter overrides, passed to the scenario")
+    p.add_argument("--debug", action="store_true",
+                   help="print the traceback of an internal failure (also JAXSLAM_DEBUG=1)")
+
+
+def _scenario_list_text() -> str:
+    from jaxslam.sim.scenarios import registry
+
+    return ", ".join(registry.names()) or "(none registered)"
+
+
+def _escape(text: str) -> str:
+    return text.replace("%", "%%")
+
+
+def _add_option(group, opt) -> None:
+    flags = [opt.flag] + ([f"--{opt.name}"] if "_" in opt.name else [])
+    help_text = _escape(opt.help.strip())
+    if opt.type is bool:
+        if opt.default:
+            group.add_argument(*flags, dest=opt.name, action=argparse.BooleanOptionalAction,
+                               default=True, help=help_text + " (default: on)")
+        else:
+            group.add_argument(*flags, dest=opt.name, action="store_true", default=False,
+                               help=help_text)
+        return
+    kw = dict(dest=opt.name, type=opt.type, default=opt.default, help=help_text + " (default: %(default)s)")
+    if opt.choices is not None:
+        kw["choices"] = opt.choices
+    else:
+        kw["metavar"] = opt.name.upper()
+    group.add_argument(*flags, **kw)
+
+
+def _run_parser(scenario=None) -> _Parser:
+    if scenario is None:
+        p = _Parser(
+            prog=f"{PROG} run",
+            usage=f"{PROG} run SCENARIO [options] [scenario options]",
+            description="Run a scenario: simulate, filter, report metrics over Monte Carlo runs.",
+            epilog=f"scenarios: {_scenario_list_text()}\n"
+                   f"'{PROG} run SCENARIO --help' lists the options of that scenario.",
+            formatter_class=argparse.RawDescriptionHelpFormatter,
+        )
+    else:
+        p = _Parser(prog=f"{PROG} run {scenario.name}", description=scenario.description,
+                    usage=f"{PROG} run {scenario.name} [options] [scenario options]")
+    p.add_argument("scenario", metavar="SCENARIO", help="scenario name (see 'jaxslam list')")
+    _add_run_common(p)
+    if scenario is not None and scenario.options:
+        group = p.add_argument_group(f"options of scenario {scenario.name}")
+        for opt in scenario.options:
+            _add_option(group, opt)
+    return p
+
+
+def _cmd_run(rest: list[str]) -> int:
+    base = _Parser(prog=f"{PROG} run", add_help=False)
+    base.add_argument("scenario", nargs="?")
+    base.add_argument("-h", "--help", action="store_true")
+    _add_run_common(base)
+    pre, _ = base.parse_known_args(rest)
+
+    # x64 before any scenario module is imported (module-level constants take its dtype).
+    import jax
+    import numpy as np
+
+    if not pre.float32:
+        jax.config.update("jax_enable_x64", True)
+
+    from jaxslam import io
+    from jaxslam.progress import Progress
+    from jaxslam.sim.scenarios import registry
+
+    if pre.scenario is None:
+        if pre.help:
+            _run_parser().print_help()
+            return 0
+        raise UsageError(f"{PROG} run: missing SCENARIO; valid scenarios: {_scenario_list_text()}")
+    scenario = registry.get(pre.scenario)
+    args = _run_parser(scenario).parse_args(rest)
+    options = {opt.name: getattr(args, opt.name) for opt in scenario.options}
+    dtype = np.dtype(np.float32 if args.float32 else np.float64)
+
+    params = io.load_params(args.params) if args.params else None
+    json_path = pathlib.Path(args.json) if args.json else None
+    plots_dir = pathlib.Path(args.plots) if args.plots else None
+    # Catch unusable output paths before a long run, not after it.
+    if json_path is not None and json_path.is_dir():
+        raise InputError(f"--json: {str(json_path)!r} is a folder; give a file path")
+    if plots_dir is not None and plots_dir.exists() and not plots_dir.is_dir():
+        raise InputError(f"--plots: {str(plots_dir)!r} exists and is not a folder")
+
+    progress = Progress(args.runs, label=scenario.name, enabled=not args.quiet)
+    try:
+        result = scenario.run(runs=args.runs, seed=args.seed, dtype=dtype, options=options,
+                              progress=progress, params=params)
+    finally:
+        progress.close()
+    if not isinstance(result, registry.ScenarioResult):
+        raise TypeError(f"scenario {scenario.name!r} returned {type(result).__name__}, "
+                        "expected ScenarioResult")
+
+    report = io.run_json(scenario.name, args.runs, args.seed, dtype, result)
+    if not args.quiet:
+        _out(_format_run_report(report))
+    written = []
+    if json_path is not None:
+        written.append(io.write_json(json_path, report))
+    if plots_dir is not None:
+        if result.plot is None:
+            print(f"{PROG} run: scenario {scenario.name!r} has no plots; --plots ignored", file=sys.stderr)
+        else:
+            import matplotlib
+
+            matplotlib.use("Agg")  # files only; never open a window
+            try:
+                plots_dir.mkdir(parents=True, exist_ok=True)
+            except OSError as e:
+                raise InputError(f"--plots: cannot create {str(plots_dir)!r}: {e.strerror or e}") from None
+            written.extend(pathlib.Path(p) for p in (result.plot(plots_dir) or []))
+    if not args.quiet:
+        for path in written:
+            _out(f"wrote {path}")
+    return 0
+
+
+def _fmt(x) -> str:
+    from jaxslam.io import _fmt_num
+
+    return _fmt_num(float("nan") if x is None else float(x))
+
+
+def _format_run_report(report: dict) -> str:
+    from jaxslam.io import format_table
+
+    lines = [
+        f"scenario {report['scenario']}: {report['runs']} run(s), seed {report['seed']}, "
+        f"{report['dtype']}",
+        "",
+        format_table(report["metrics"]),
+    ]
+    cons = report.get("consistency")
+    if cons:
+        parts = []
+        for key, value in cons.items():
+            if key.endswith("_bounds"):
+                continue
+            stem = key[: -len("_mean")] if key.endswith("_mean") else key
+            bounds = cons.get(f"{key}_bounds", cons.get(f"{stem}_bounds"))
+            text = f"{key} {_fmt(value)}"
+            if bounds is not None and len(bounds) == 2:
+                lo, hi = (float("nan") if b is None else float(b) for b in bounds)
+                inside = value is not None and lo <= float(value) <= hi
+                text += f" in [{_fmt(lo)}, {_fmt(hi)}] {'ok' if inside else 'OUTSIDE'}"
+            parts.append(text)
+        lines += ["", "consistency: " + "; ".join(parts)]
+    if report.get("flags"):
+        lines.append("flags: " + ", ".join(f"{k}={v}" for k, v in report["flags"].items()))
+    t = report["timing"]
+    lines.append(f"timing: compile {_fmt(t['compile_s'])} s, run {_fmt(t['run_s'])} s, "
+                 f"{_fmt(t['runs_per_s'])} runs/s")
+    return "\n".join(lines)
+
+
+# ----------------------------------------------------------------------------- bench
+
+
+def find_benchmarks_dir(explicit=None) -> pathlib.Path:
+    """The benchmarks folder: ``explicit``, else ``./benchmarks``, else the one beside the package.
+
+    Raises:
+      InputError: ``explicit`` is not a folder, or no candidate holds a ``bench_*.py``.
+    """
+    if explicit:
+        p = pathlib.Path(explicit)
+        if not p.is_dir():
+            raise InputError(f"--dir: {str(p)!r} is not a folder")
+        return p
+    import jaxslam
+
+    candidates = [pathlib.Path.cwd() / "benchmarks",
+                  pathlib.Path(jaxslam.__file__).resolve().parents[1] / "benchmarks"]
+    for c in candidates:
+        if c.is_dir() and any(c.glob("bench_*.py")):
+            return c
+    looked = " and ".join(repr(str(c)) for c in dict.fromkeys(candidates))
+    raise InputError(f"no benchmarks folder with bench_*.py files found (looked in {looked}); "
+                     "pass --dir DIR")
+
+
+def _description_of(path: pathlib.Path) -> str:
+    """``DESCRIPTION`` of a benchmark file, read with ``ast`` (the module is not run)."""
+    try:
+        tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
+    except (OSError, SyntaxError, UnicodeDecodeError, ValueError):
+        return "(cannot read DESCRIPTION)"
+    for node in tree.body:
+        targets = node.targets if isinstance(node, ast.Assign) else (
+            [node.target] if isinstance(node, ast.AnnAssign) and node.value is not None else [])
+        if any(isinstance(t, ast.Name) and t.id == "DESCRIPTION" for t in targets):
+            try:
+                value = ast.literal_eval(node.value)
+            except ValueError:
+                break
+            if isinstance(value, str):
+                return " ".join(value.split())
+    return "(no DESCRIPTION)"
+
+
+def list_benchmarks(bench_dir) -> dict[str, str]:
+    """``{name: description}`` for the ``bench_<name>.py`` files of ``bench_dir``, sorted."""
+    bench_dir = pathlib.Path(bench_dir)
+    return {p.stem[len("bench_"):]: _description_of(p)
+            for p in sorted(bench_dir.glob("bench_*.py")) if p.stem != "bench_"}
+
+
+def _load_bench_module(path: pathlib.Path):
+    mod_name = f"_jaxslam_bench_{path.stem[len('bench_'):]}"
+    spec = importlib.util.spec_from_file_location(mod_name, path)
+    if spec is None or spec.loader is None:
+        raise InputError(f"cannot load benchmark file {str(path)!r}")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[mod_name] = module  # dataclasses and pickling look modules up here
+    try:
+        spec.loader.exec_module(module)
+    except BaseException:
+        sys.modules.pop(mod_name, None)
+        raise
+    missing = [a for a in ("DESCRIPTION", "add_arguments", "run") if not hasattr(module, a)]
+    if missing:
+        raise InputError(f"benchmark {str(path)!r} lacks {', '.join(missing)} "
+                         "(needs DESCRIPTION, add_arguments(parser), run(args))")
+    return module
+
+
+def _bench_common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--dir", metavar="DIR",
+                   help="benchmarks folder (default: ./benchmarks, else the one beside the "
+                        "jaxslam source)")
+    p.add_argument("--json", metavar="PATH", help="write the bench JSON here")
+    p.add_argument("--debug", action="store_true",
+                   help="print the traceback of an internal failure (also JAXSLAM_DEBUG=1)")
+
+
+def _cmd_bench(rest: list[str]) -> int:
+    base = _Parser(prog=f"{PROG} bench", add_help=False)
+    base.add_argument("name", nargs="?")
+    base.add_argument("-h", "--help", action="store_true")
+    _bench_common(base)
+    pre, _ = base.parse_known_args(rest)
+
+    if pre.name is None:
+        try:
+            bench_dir = find_benchmarks_dir(pre.dir)
+            names = ", ".join(list_benchmarks(bench_dir)) or "(none)"
+        except InputError as e:
+            if not pre.help:
+                raise
+            names = f"(none: {e})"
+        if pre.help:
+            p = _Parser(prog=f"{PROG} bench", usage=f"{PROG} bench NAME [options] [benchmark options]",
+                        description="Run a benchmark (benchmarks/bench_NAME.py) and write its JSON.",
+                        epilog=f"benchmarks: {names}\n'{PROG} bench NAME --help' lists its options.",
+                        formatter_class=argparse.RawDescriptionHelpFormatter)
+            p.add_argument("name", metavar="NAME", help="benchmark name")
+            _bench_common(p)
+            p.print_help()
+            return 0
+        raise UsageError(f"{PROG} bench: missing NAME; available benchmarks: {names}")
+
+    name = pre.name
+    name = name[: -len(".py")] if name.endswith(".py") else name
+    name = name[len("bench_"):] if name.startswith("bench_") else name
+    bench_dir = find_benchmarks_dir(pre.dir)
+    available = list_benchmarks(bench_dir)
+    if name not in available:
+        raise InputError(f"unknown benchmark {pre.name!r} in {str(bench_dir)!r}; available: "
+                         f"{', '.join(available) or '(none)'}")
+
+    import jax
+
+    jax.config.update("jax_enable_x64", True)  # benchmarks choose float32 by passing float32 arrays
+    from jaxslam import io
+
+    path = bench_dir / f"bench_{name}.py"
+    added = str(bench_dir.resolve())
+    sys.path.insert(0, added)  # lets a benchmark import its NumPy twins from the same folder
+    try:
+        module = _load_bench_module(path)
+        p = _Parser(prog=f"{PROG} bench {name}", description=str(module.DESCRIPTION))
+        p.add_argument("name", metavar="NAME", help="benchmark name")
+        _bench_common(p)
+        module.add_arguments(p)
+        args = p.parse_args(rest)
+        result = module.run(args)
+    finally:
+        try:
+            sys.path.remove(added)
+        except ValueError:
+            pass
+    if not isinstance(result, dict) or not isinstance(result.get("results"), list):
+        raise TypeError(f"benchmark {name!r}: run(args) must return a dict with a 'results' list")
+    result = {"benchmark": name, **result}
+    result.setdefault("machine", io.machine_info())
+
+    _out(_format_bench_table(result))
+    if args.json:
+        path = io.write_json(args.json, result)
+        _out(f"wrote {path}")
+    return 0
+
+
+def _format_bench_table(result: dict) -> str:
+    header = ("case", "jaxslam_s", "reference_s", "speedup")
+
+    def cell(row, key):
+        v = row.get(key)
+        if v is None:
+            return "-"
+        if key == "case":
+            return str(v)
+        try:
+            v = float(v)
+        except (TypeError, ValueError):
+            return str(v)
+        return f"{v:.2f}x" if key == "speedup" else f"{v:.4g}"
+
+    rows = [header] + [tuple(cell(r, k) for k in header) for r in result["results"] if isinstance(r, dict)]
+    widths = [max(len(r[i]) for r in rows) for i in range(len(header))]
+    lines = [f"benchmark {result.get('benchmark')}"]
+    for j, r in enumerate(rows):
+        lines.append("  ".join([r[0].ljust(widths[0])] + [c.rjust(w) for c, w in zip(r[1:], widths[1:])]))
+        if j == 0:
+            lines.append("  ".join("-" * w for w in widths))
+    refs = sorted({str(r["reference"]) for r in result["results"] if isinstance(r, dict) and r.get("reference")})
+    if refs:
+        lines.append("reference: " + ", ".join(refs))
+    return "\n".join(lines)
+
+
+# ----------------------------------------------------------------------------- main
+
+
+def _one_line(text: str, limit: int = 400) -> str:
+    first = next((ln.strip() for ln in str(text).splitlines() if ln.strip()), "")
+    return first if len(first) <= limit else first[: limit - 3] + "..."
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``jaxslam`` console script and ``python -m jaxslam``.
+
+    Returns:
+      The exit code: 0 success, 2 usage or input error, 1 internal failure.
+    """
+    argv = list(sys.argv[1:] if argv is None else argv)
+    debug = "--debug" in argv or os.environ.get(_DEBUG_ENV, "").strip().lower() in ("1", "true", "yes", "on")
+    try:
+        return _dispatch(argv)
+    except SystemExit as e:  # argparse --help / --version
+        if e.code is None or isinstance(e.code, int):
+            return int(e.code or 0)
+        print(_one_line(e.code), file=sys.stderr)
+        return 1
+    except (UsageError, InputError) as e:
+        if debug:
+            import traceback
+
+            traceback.print_exc()
+        msg = _one_line(str(e))
+        print(msg if msg.startswith(PROG) else f"{PROG}: error: {msg}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"{PROG}: interrupted", file=sys.stderr)
+        return 130
+    except BrokenPipeError:  # `jaxslam list | head`: the reader left; not our failure
+        try:
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+        except (OSError, ValueError, AttributeError):
+            pass
+        return 0
+    except Exception as e:  # noqa: BLE001 - the last line of defence: one line, no traceback
+        if debug:
+            import traceback
+
+            traceback.print_exc()
+        print(f"{PROG}: internal error: {type(e).__name__}: {_one_line(str(e))}"
+              + ("" if debug else f" (run again with --debug or {_DEBUG_ENV}=1 for the traceback)"),
+              file=sys.stderr)
+        return 1

@@ -1,0 +1,139 @@
+"""A one-line progress bar for long host-side loops (Monte Carlo chunks, tuning steps).
+
+Standard library only.  The bar stays silent for jobs that finish within about a
+second (its first line is printed at the first update after ``delay_s``), so
+quick runs and tests print nothing.  On a terminal the line is redrawn in place
+(at most ``min_interval_s`` apart); on a pipe or file, whole lines are written
+at most every ``log_interval_s`` so logs stay readable.
+
+Updates come from the host between jitted chunks; nothing here is traced.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from typing import TextIO
+
+__all__ = ["Progress"]
+
+
+def _fmt_time(seconds: float) -> str:
+    seconds = max(0, int(round(seconds)))
+    h, rem = divmod(seconds, 3600)
+    m, s = divmod(rem, 60)
+    return f"{h:d}:{m:02d}:{s:02d}" if h else f"{m:02d}:{s:02d}"
+
+
+class Progress:
+    """Progress of a job of ``total`` units, shown as ``label [####....] done/total``.
+
+    Args:
+      total: number of units (runs, steps); ``>= 0``.
+      label: short text in front of the bar.
+      enabled: ``False`` makes every method a no-op.
+      stream: where to print (default ``sys.stderr``).
+      delay_s: print nothing until this much time has passed (s).
+      width: bar width in characters.
+
+    Use ``update(n_done)`` with an absolute count or ``advance(k)`` with an
+    increment, then ``close()`` (or use it as a context manager).
+    """
+
+    def __init__(
+        self,
+        total: int,
+        label: str = "",
+        enabled: bool = True,
+        stream: TextIO | None = None,
+        *,
+        delay_s: float = 1.0,
+        width: int = 30,
+        min_interval_s: float = 0.1,
+        log_interval_s: float = 5.0,
+        clock=time.monotonic,
+    ):
+        self.total = max(0, int(total))
+        self.label = label
+        self.enabled = bool(enabled)
+        self.stream = sys.stderr if stream is None else stream
+        self.delay_s = float(delay_s)
+        self.width = int(width)
+        self._clock = clock
+        self._start = clock()
+        self._done = 0
+        self._last_print = None  # time of the last line written, None if nothing yet
+        self._closed = False
+        try:
+            self._tty = bool(self.stream.isatty())
+        except (AttributeError, ValueError):
+            self._tty = False
+        self._interval = float(min_interval_s) if self._tty else float(log_interval_s)
+
+    @classmethod
+    def null(cls) -> "Progress":
+        """A disabled progress bar (every call is a no-op)."""
+        return cls(0, "", enabled=False)
+
+    @property
+    def n_done(self) -> int:
+        """Units done so far."""
+        return self._done
+
+    def __enter__(self) -> "Progress":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def update(self, n_done: int) -> None:
+        """Set the number of finished units (clipped to ``[0, total]``)."""
+        self._done = min(max(0, int(n_done)), self.total) if self.total else max(0, int(n_done))
+        self._maybe_print()
+
+    def advance(self, k: int = 1) -> None:
+        """Add ``k`` finished units."""
+        self.update(self._done + int(k))
+
+    def close(self) -> None:
+        """Finish the line (only if something was printed)."""
+        if self._closed:
+            return
+        self._closed = True
+        if self.enabled and self._last_print is not None:
+            self._write(self._line(self._clock() - self._start), final=True)
+
+    def _maybe_print(self) -> None:
+        if not self.enabled or self._closed:
+            return
+        now = self._clock()
+        elapsed = now - self._start
+        if elapsed < self.delay_s:
+            return
+        if self._last_print is not None and now - self._last_print < self._interval:
+            return
+        self._last_print = now
+        self._write(self._line(elapsed), final=False)
+
+    def _line(self, elapsed: float) -> str:
+        head = f"{self.label} " if self.label else ""
+        if self.total:
+            frac = self._done / self.total
+            filled = int(round(frac * self.width))
+            bar = "[" + "#" * filled + "." * (self.width - filled) + "]"
+            text = f"{head}{bar} {self._done}/{self.total} {_fmt_time(elapsed)}"
+            if 0 < self._done < self.total:
+                eta = elapsed * (self.total - self._done) / self._done
+                text += f" ETA {_fmt_time(eta)}"
+            return text
+        return f"{head}{self._done} done {_fmt_time(elapsed)}"
+
+    def _write(self, text: str, final: bool) -> None:
+        try:
+            if self._tty:
+                self.stream.write("\r\x1b[K" + text + ("\n" if final else ""))
+            else:
+                self.stream.write(text + "\n")
+            self.stream.flush()
+        except (OSError, ValueError):
+            self.enabled = False  # a closed or broken stream must not kill the run

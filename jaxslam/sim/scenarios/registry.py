@@ -1,0 +1,247 @@
+"""Scenario registry: what ``jaxslam list`` shows and ``jaxslam run NAME`` runs.
+
+A scenario is a named, documented entry point that simulates (or loads) data,
+runs an estimator over ``runs`` Monte Carlo runs and returns a
+:class:`ScenarioResult`: per-run metrics, consistency statistics, status-flag
+counts and timings.  The CLI turns a result into a table, the ``run`` JSON of
+``STYLE.md`` and plots; a user's script can call ``get(name).run(...)`` directly.
+
+Concrete scenarios live in the modules of :mod:`jaxslam.sim.scenarios` and
+register themselves at import time with :func:`register`.  The registry loads
+them lazily (on the first :func:`get`, :func:`names` or :func:`all_scenarios`),
+so ``jaxslam --help`` never pays for importing JAX or the filters.
+
+Decisions
+- Option names are Python identifiers; ``Option("noise_scale", ...)`` becomes
+  ``--noise-scale`` on the command line (``--noise_scale`` is accepted too) and
+  the key ``"noise_scale"`` in the ``options`` dict the scenario receives.
+- A ``bool`` option is a flag: ``--name`` sets it (default ``False``); with a
+  default of ``True`` the CLI offers ``--name/--no-name``.
+- Option names that clash with the common ``run`` options (``runs``, ``seed``,
+  ``float32``, ``json``, ``plots``, ``quiet``, ``params``, ``debug``, ``help``,
+  ``scenario``)
+  are rejected at registration, as are defaults of the wrong type or outside
+  ``choices``: a broken scenario fails when it is defined, not when a user runs it.
+- Registering a second scenario under a taken name raises unless
+  ``replace=True`` (tests and notebooks re-register on purpose).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import keyword
+import pathlib
+from typing import Any, Callable
+
+import numpy as np
+
+from jaxslam.errors import InputError
+
+__all__ = [
+    "Option",
+    "ScenarioResult",
+    "Scenario",
+    "RESERVED_OPTION_NAMES",
+    "register",
+    "unregister",
+    "get",
+    "names",
+    "all_scenarios",
+]
+
+# Names used by the common `jaxslam run` options; a scenario option may not reuse them.
+RESERVED_OPTION_NAMES = frozenset(
+    {"runs", "seed", "float32", "json", "plots", "quiet", "params", "debug", "help", "h", "version",
+     "scenario"}
+)
+
+_OPTION_TYPES = (float, int, str, bool)
+
+
+@dataclasses.dataclass(frozen=True)
+class Option:
+    """A scenario-specific command-line option (e.g. ``--duration``, ``--capacity``).
+
+    Attributes:
+      name: Python identifier; ``"duration"`` -> ``--duration``, ``"noise_scale"``
+        -> ``--noise-scale``.  The key in the ``options`` dict passed to ``run``.
+      type: one of ``float``, ``int``, ``str``, ``bool`` (``bool`` is a flag).
+      default: value used when the option is not given; state units in ``help``.
+      help: one line for ``jaxslam run SCENARIO --help``, with units.
+      choices: allowed values, or ``None`` for any value of ``type``.
+    """
+
+    name: str
+    type: type
+    default: object
+    help: str
+    choices: tuple | None = None
+
+    @property
+    def flag(self) -> str:
+        """The primary command-line spelling, e.g. ``--noise-scale``."""
+        return "--" + self.name.replace("_", "-")
+
+
+@dataclasses.dataclass
+class ScenarioResult:
+    """What a scenario's ``run`` returns (host-side NumPy / plain Python).
+
+    Attributes:
+      config: every parameter used, including the scenario options (JSON-ready).
+      metrics: metric name with units (``"pos_rmse_m"``) -> per-run values, shape (runs,).
+      consistency: ``{"anees", "anees_bounds": [lo, hi], "nis_mean", "nis_bounds": [lo, hi]}``,
+        or ``None`` for a scenario without a filter (the JSON then omits the key).
+      flags: counts summed over runs, e.g. ``{"capacity_overflow", "masked_measurements",
+        "non_finite"}``.
+      timing: ``{"compile_s", "run_s"}`` in seconds; the CLI adds ``runs_per_s``.
+      plot: ``plot(directory) -> [written PNG paths]``, or ``None`` if the scenario has no plots.
+      extra: further top-level JSON sections (must not reuse a standard key).
+    """
+
+    config: dict
+    metrics: dict[str, np.ndarray]
+    consistency: dict | None
+    flags: dict[str, int]
+    timing: dict[str, float]
+    plot: Callable[[pathlib.Path], list[pathlib.Path]] | None = None
+    extra: dict = dataclasses.field(default_factory=dict)
+
+
+@dataclasses.dataclass(frozen=True)
+class Scenario:
+    """A named scenario.
+
+    Attributes:
+      name: what ``jaxslam run NAME`` takes (lower case, ``[a-z0-9_-]``).
+      description: one line for ``jaxslam list``.
+      options: scenario-specific options, shown by ``jaxslam run NAME --help``.
+      run: ``run(runs=int, seed=int, dtype=np.dtype, options=dict, progress=Progress,
+        params=dict | None) -> ScenarioResult``.  ``options`` holds every option of
+        ``options`` (defaults filled in); ``params`` is the parsed ``--params`` JSON file.
+    """
+
+    name: str
+    description: str
+    options: tuple[Option, ...]
+    run: Callable[..., ScenarioResult]
+
+
+_REGISTRY: dict[str, Scenario] = {}
+_BUILTIN_LOADED = False
+
+
+def _check_option(scenario_name: str, opt: Any) -> None:
+    where = f"scenario {scenario_name!r} option"
+    if not isinstance(opt, Option):
+        raise InputError(f"{where}s: expected Option instances, got {type(opt).__name__}")
+    if not (isinstance(opt.name, str) and opt.name.isidentifier() and not keyword.iskeyword(opt.name)):
+        raise InputError(f"{where} name {opt.name!r} is not a Python identifier")
+    if opt.name in RESERVED_OPTION_NAMES:
+        raise InputError(
+            f"{where} {opt.name!r} clashes with a common run option "
+            f"(reserved: {', '.join(sorted(RESERVED_OPTION_NAMES))})"
+        )
+    if opt.type not in _OPTION_TYPES:
+        raise InputError(f"{where} {opt.name!r}: type must be float, int, str or bool, got {opt.type!r}")
+    if opt.type is bool:
+        if not isinstance(opt.default, bool):
+            raise InputError(f"{where} {opt.name!r}: bool option needs a bool default")
+        if opt.choices is not None:
+            raise InputError(f"{where} {opt.name!r}: a bool option takes no choices")
+        return
+    ok_types = (int, float) if opt.type is float else (opt.type,)
+    if opt.default is not None and (
+        not isinstance(opt.default, ok_types) or isinstance(opt.default, bool)
+    ):
+        raise InputError(
+            f"{where} {opt.name!r}: default {opt.default!r} is not of type {opt.type.__name__}"
+        )
+    if opt.choices is not None:
+        if not isinstance(opt.choices, tuple) or not opt.choices:
+            raise InputError(f"{where} {opt.name!r}: choices must be a non-empty tuple")
+        if opt.default is not None and opt.default not in opt.choices:
+            raise InputError(
+                f"{where} {opt.name!r}: default {opt.default!r} is not one of {opt.choices!r}"
+            )
+
+
+def register(scenario: Scenario, *, replace: bool = False) -> Scenario:
+    """Add ``scenario`` to the registry and return it (usable as ``X = register(Scenario(...))``).
+
+    Raises:
+      InputError: the name is malformed or taken (unless ``replace``), an option is
+        malformed, or two options share a name.
+    """
+    if not isinstance(scenario, Scenario):
+        raise InputError(f"register: scenario must be a Scenario, got {type(scenario).__name__}")
+    name = scenario.name
+    if not (isinstance(name, str) and name and all(c.isalnum() or c in "_-" for c in name)
+            and name == name.lower()):
+        raise InputError(f"register: scenario name {name!r} must be lower case [a-z0-9_-]+")
+    if not isinstance(scenario.description, str) or "\n" in scenario.description.strip():
+        raise InputError(f"register: scenario {name!r} description must be one line of text")
+    if not callable(scenario.run):
+        raise InputError(f"register: scenario {name!r} run is not callable")
+    seen: set[str] = set()
+    for opt in tuple(scenario.options):
+        _check_option(name, opt)
+        if opt.name in seen:
+            raise InputError(f"scenario {name!r}: option {opt.name!r} given twice")
+        seen.add(opt.name)
+    if name in _REGISTRY and not replace and _REGISTRY[name] is not scenario:
+        raise InputError(f"register: a scenario named {name!r} is already registered")
+    _REGISTRY[name] = scenario
+    return scenario
+
+
+def unregister(name: str) -> None:
+    """Remove a scenario (no error if absent); meant for tests and notebooks."""
+    _REGISTRY.pop(name, None)
+
+
+def _load_builtin() -> None:
+    """Import the built-in scenario modules once, so that they register.
+
+    ``jaxslam.sim.scenarios`` either imports its scenario modules itself or lists
+    their module names in ``BUILTIN_MODULES`` (then they are imported here, on first
+    use).  Import errors inside a scenario module are real bugs and propagate.
+    """
+    global _BUILTIN_LOADED
+    if _BUILTIN_LOADED:
+        return
+    _BUILTIN_LOADED = True
+    try:
+        pkg = importlib.import_module("jaxslam.sim.scenarios")
+        for mod in getattr(pkg, "BUILTIN_MODULES", ()):
+            importlib.import_module(mod)
+    except BaseException:
+        _BUILTIN_LOADED = False  # let a later call retry and raise the same error again
+        raise
+
+
+def get(name: str) -> Scenario:
+    """The scenario called ``name``.
+
+    Raises:
+      InputError: no such scenario; the message lists the valid names.
+    """
+    _load_builtin()
+    try:
+        return _REGISTRY[name]
+    except KeyError:
+        valid = ", ".join(sorted(_REGISTRY)) or "(none registered)"
+        raise InputError(f"unknown scenario {name!r}; valid scenarios: {valid}") from None
+
+
+def names() -> list[str]:
+    """Sorted names of all registered scenarios."""
+    _load_builtin()
+    return sorted(_REGISTRY)
+
+
+def all_scenarios() -> list[Scenario]:
+    """All registered scenarios, sorted by name."""
+    _load_builtin()
+    return [_REGISTRY[n] for n in sorted(_REGISTRY)]

@@ -1,0 +1,533 @@
+"""Tests of the CLI, the run JSON, the scenario registry and the progress bar.
+
+A dummy scenario defined here (a tiny jnp computation whose per-run metric values
+follow a closed form, ``expected_pos``) stands in for the real scenarios; the
+expected summary statistics are computed with NumPy from that closed form.
+Cases that depend on the process-wide x64 switch run the CLI in a subprocess.
+"""
+
+from __future__ import annotations
+
+import io as _io
+import json
+import math
+import os
+import pathlib
+import subprocess
+import sys
+import textwrap
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxslam import cli
+from jaxslam import io as jio
+from jaxslam.errors import InputError
+from jaxslam.progress import Progress
+from jaxslam.sim.scenarios import registry
+from jaxslam.sim.scenarios.registry import Option, Scenario, ScenarioResult
+
+REPO = pathlib.Path(__file__).resolve().parents[1]
+TESTS_DIR = pathlib.Path(__file__).resolve().parent
+RUN_KEYS = ["scenario", "runs", "seed", "dtype", "config", "metrics", "consistency", "flags",
+            "timing", "versions"]
+STAT_KEYS = {"mean", "median", "p95", "max", "per_run"}
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+CALLS: list[dict] = []  # what the dummy scenario received, newest last
+
+
+def expected_pos(runs: int, seed: int, gain: float) -> np.ndarray:
+    """Closed form of the dummy's per-run position metric (the test oracle)."""
+    return 0.5 * gain * (np.arange(runs) + 1.0) + 0.01 * seed
+
+
+def _dummy_plot(directory: pathlib.Path) -> list[pathlib.Path]:
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(2, 2))
+    fig.add_subplot().plot([0, 1], [1, 0])
+    path = pathlib.Path(directory) / "dummy_pos.png"
+    fig.savefig(path)
+    return [path]
+
+
+def _dummy_run(*, runs, seed, dtype, options, progress, params):
+    CALLS.append(dict(runs=runs, seed=seed, dtype=dtype, options=dict(options), params=params))
+    if options["explode"]:
+        raise RuntimeError("boom\nsecond line of the message")
+    if options["bad_input"]:
+        raise InputError("argument 'q' must be positive")
+    base = jnp.arange(runs, dtype=dtype)
+    pos = 0.5 * jnp.asarray(options["gain"], dtype) * (base + 1) + jnp.asarray(0.01 * seed, dtype)
+    progress.update(runs)
+    pos = np.array(pos)
+    if options["nan_run"]:
+        pos[0] = np.nan
+    return ScenarioResult(
+        config={"gain": options["gain"], "mode": options["mode"], "noise_scale": options["noise_scale"],
+                "x64": bool(jax.config.jax_enable_x64), "array_dtype": str(base.dtype),
+                "params": params},
+        metrics={"pos_rmse_m": pos, "vel_rmse_mps": np.asarray(jnp.square(base) + 1)},
+        consistency=None if options["no_filter"] else
+        {"anees": np.float64(1.1), "anees_bounds": [0.5, 1.5], "nis_mean": 3.1, "nis_bounds": [2.0, 4.0]},
+        flags={"capacity_overflow": np.int64(0), "masked_measurements": 3, "non_finite": 0},
+        timing={"compile_s": 0.25, "run_s": 0.5},
+        plot=_dummy_plot,
+    )
+
+
+DUMMY = Scenario(
+    name="dummy",
+    description="Tiny test scenario (closed-form metrics).",
+    options=(
+        Option("gain", float, 2.0, "scale of the position error (m)"),
+        Option("mode", str, "a", "a test choice", choices=("a", "b")),
+        Option("noise_scale", float, 1.0, "an option with an underscore"),
+        Option("nan_run", bool, False, "make run 0 diverge (NaN)"),
+        Option("no_filter", bool, False, "return no consistency section"),
+        Option("explode", bool, False, "raise an internal error"),
+        Option("bad_input", bool, False, "raise an InputError"),
+    ),
+    run=_dummy_run,
+)
+
+
+def register_dummy() -> None:
+    registry.register(DUMMY, replace=True)
+
+
+@pytest.fixture(autouse=True)
+def dummy_scenario():
+    register_dummy()
+    CALLS.clear()
+    yield
+    registry.unregister("dummy")
+
+
+def _stderr_line(err: str) -> str:
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1, err
+    assert "Traceback" not in err
+    return lines[0]
+
+
+def _strict_json(path) -> dict:
+    def bad(const):
+        raise AssertionError(f"non-strict JSON constant {const}")
+
+    return json.loads(pathlib.Path(path).read_text(), parse_constant=bad)
+
+
+# ----------------------------------------------------------------------------- run
+
+
+def test_list_prints_scenarios_and_benchmarks(tmp_path, capsys):
+    (tmp_path / "bench_fake.py").write_text('DESCRIPTION = "Fake one-line description."\n')
+    assert cli.main(["list", "--dir", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "dummy" in out and "Tiny test scenario (closed-form metrics)." in out
+    assert "fake" in out and "Fake one-line description." in out
+
+
+def test_run_json_plots_and_summary_stats(tmp_path, capsys):
+    runs, seed, gain = 5, 7, 3.0
+    out_json = tmp_path / "sub" / "out.json"
+    plots = tmp_path / "plots"
+    rc = cli.main(["run", "dummy", "--runs", str(runs), "--seed", str(seed), "--gain", str(gain),
+                   "--json", str(out_json), "--plots", str(plots)])
+    captured = capsys.readouterr()
+    assert rc == 0, captured.err
+    rep = _strict_json(out_json)
+    assert list(rep) == RUN_KEYS
+    assert rep["scenario"] == "dummy" and rep["runs"] == runs and rep["seed"] == seed
+    assert rep["dtype"] == "float64"
+    assert CALLS[-1]["dtype"] == np.float64 and CALLS[-1]["params"] is None
+    assert rep["config"]["gain"] == gain and rep["config"]["mode"] == "a"
+
+    want = expected_pos(runs, seed, gain)
+    pos = rep["metrics"]["pos_rmse_m"]
+    assert set(pos) == STAT_KEYS
+    np.testing.assert_allclose(pos["per_run"], want, rtol=1e-12)
+    np.testing.assert_allclose(pos["mean"], np.mean(want), rtol=1e-12)
+    np.testing.assert_allclose(pos["median"], np.median(want), rtol=1e-12)
+    np.testing.assert_allclose(pos["p95"], np.percentile(want, 95), rtol=1e-12)
+    np.testing.assert_allclose(pos["max"], want.max(), rtol=1e-12)
+    # p95 of 5 runs interpolates between the 4th and 5th value: 0.8 of the way.
+    np.testing.assert_allclose(pos["p95"], want[3] + 0.8 * (want[4] - want[3]), rtol=1e-12)
+    vel = np.arange(runs) ** 2 + 1.0
+    np.testing.assert_allclose(rep["metrics"]["vel_rmse_mps"]["per_run"], vel)
+
+    assert rep["consistency"] == {"anees": 1.1, "anees_bounds": [0.5, 1.5], "nis_mean": 3.1,
+                                  "nis_bounds": [2.0, 4.0]}
+    assert rep["flags"] == {"capacity_overflow": 0, "masked_measurements": 3, "non_finite": 0}
+    assert rep["timing"] == {"compile_s": 0.25, "run_s": 0.5, "runs_per_s": runs / 0.5}
+    assert rep["versions"] == {"jaxslam": __import__("jaxslam").__version__, "jax": jax.__version__}
+
+    png = plots / "dummy_pos.png"
+    assert png.read_bytes()[:8] == PNG_MAGIC
+    assert f"wrote {out_json}" in captured.out and f"wrote {png}" in captured.out
+    assert "pos_rmse_m" in captured.out and "anees" in captured.out and "runs/s" in captured.out
+
+
+def test_run_float32_passes_float32(tmp_path, capsys):
+    out_json = tmp_path / "o.json"
+    assert cli.main(["run", "dummy", "--runs", "2", "--float32", "--json", str(out_json), "--quiet"]) == 0
+    assert capsys.readouterr().out == ""  # --quiet prints nothing
+    rep = _strict_json(out_json)
+    assert rep["dtype"] == "float32"
+    assert CALLS[-1]["dtype"] == np.float32
+    assert rep["config"]["array_dtype"] == "float32"
+    np.testing.assert_allclose(rep["metrics"]["pos_rmse_m"]["per_run"], expected_pos(2, 0, 2.0), rtol=1e-6)
+
+
+@pytest.mark.parametrize("float32", [False, True])
+def test_run_x64_switch_in_fresh_process(tmp_path, float32):
+    script = tmp_path / "runner.py"
+    script.write_text(textwrap.dedent(f"""\
+        import sys
+        sys.path.insert(0, {str(TESTS_DIR)!r})
+        import test_cli
+        test_cli.register_dummy()
+        from jaxslam.cli import main
+        raise SystemExit(main(sys.argv[1:]))
+        """))
+    out_json = tmp_path / "o.json"
+    env = {k: v for k, v in os.environ.items() if k != "JAX_ENABLE_X64"}
+    env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
+    cmd = [sys.executable, str(script), "run", "dummy", "--runs", "2", "--json", str(out_json), "--quiet"]
+    proc = subprocess.run(cmd + (["--float32"] if float32 else []), capture_output=True, text=True,
+                          env=env, cwd=tmp_path, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    rep = _strict_json(out_json)
+    assert rep["dtype"] == ("float32" if float32 else "float64")
+    assert rep["config"]["array_dtype"] == rep["dtype"]
+    assert rep["config"]["x64"] is (not float32)
+
+
+def test_unknown_scenario_exit_2_lists_names(capsys):
+    assert cli.main(["run", "nosuch"]) == 2
+    line = _stderr_line(capsys.readouterr().err)
+    assert "nosuch" in line and "dummy" in line
+
+
+def test_scenario_options_in_help_and_reach_options(capsys):
+    assert cli.main(["run", "dummy", "--help"]) == 0
+    out = capsys.readouterr().out
+    for text in ("--gain", "scale of the position error (m)", "--noise-scale", "--nan-run", "{a,b}",
+                 "options of scenario dummy"):
+        assert text in out
+    assert cli.main(["run", "dummy", "--gain", "2.5", "--mode", "b", "--noise_scale", "0.3",
+                     "--no-filter", "--quiet"]) == 0
+    assert CALLS[-1]["options"] == {"gain": 2.5, "mode": "b", "noise_scale": 0.3, "nan_run": False,
+                                    "no_filter": True, "explode": False, "bad_input": False}
+    assert cli.main(["run", "dummy", "--mode", "c"]) == 2
+    assert "invalid choice" in _stderr_line(capsys.readouterr().err)
+
+
+def test_no_consistency_key_when_none(tmp_path):
+    out_json = tmp_path / "o.json"
+    assert cli.main(["run", "dummy", "--no-filter", "--json", str(out_json), "--quiet"]) == 0
+    rep = _strict_json(out_json)
+    assert "consistency" not in rep
+    assert list(rep) == [k for k in RUN_KEYS if k != "consistency"]
+
+
+def test_nan_run_is_reported_not_dropped(tmp_path, capsys):
+    out_json = tmp_path / "o.json"
+    assert cli.main(["run", "dummy", "--runs", "3", "--nan-run", "--json", str(out_json)]) == 0
+    out = capsys.readouterr().out
+    pos = _strict_json(out_json)["metrics"]["pos_rmse_m"]
+    assert pos["mean"] is None and pos["max"] is None and pos["p95"] is None and pos["median"] is None
+    assert pos["per_run"][0] is None
+    np.testing.assert_allclose(pos["per_run"][1:], expected_pos(3, 0, 2.0)[1:])
+    assert "1 of 3 runs non-finite" in out
+
+
+@pytest.mark.parametrize("content, needle", [("{not json", "not valid JSON"), ("[1, 2]", "JSON object")])
+def test_params_bad_file_exit_2(tmp_path, capsys, content, needle):
+    f = tmp_path / "p.json"
+    f.write_text(content)
+    assert cli.main(["run", "dummy", "--params", str(f)]) == 2
+    line = _stderr_line(capsys.readouterr().err)
+    assert needle in line and "p.json" in line
+    assert CALLS == []  # rejected before the scenario ran
+
+
+def test_params_missing_file_exit_2(tmp_path, capsys):
+    assert cli.main(["run", "dummy", "--params", str(tmp_path / "absent.json")]) == 2
+    assert "not found" in _stderr_line(capsys.readouterr().err)
+
+
+def test_params_reach_scenario(tmp_path):
+    f = tmp_path / "p.json"
+    f.write_text('{"q_scale": 2.0, "r": [1, 2]}')
+    assert cli.main(["run", "dummy", "--params", str(f), "--quiet"]) == 0
+    assert CALLS[-1]["params"] == {"q_scale": 2.0, "r": [1, 2]}
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["run", "dummy", "--runs", "0"], "--runs"),
+    (["run", "dummy", "--runs", "x"], "--runs"),
+    (["run", "dummy", "--seed", "-1"], "--seed"),
+    (["run", "dummy", "--bogus"], "--bogus"),
+    (["run"], "dummy"),
+    ([], "COMMAND"),
+    (["frobnicate"], "frobnicate"),
+    (["--nope", "list"], "--nope"),
+    (["tune", "dummy"], "not available yet"),
+    (["dataset", "x"], "not available yet"),
+])
+def test_usage_errors_exit_2_one_line(capsys, argv, needle):
+    assert cli.main(argv) == 2
+    assert needle in _stderr_line(capsys.readouterr().err)
+
+
+def test_input_error_inside_scenario_exit_2(capsys):
+    assert cli.main(["run", "dummy", "--bad-input"]) == 2
+    assert "argument 'q' must be positive" in _stderr_line(capsys.readouterr().err)
+
+
+def test_internal_error_exit_1_traceback_only_with_debug(capsys, monkeypatch):
+    monkeypatch.delenv("JAXSLAM_DEBUG", raising=False)
+    assert cli.main(["run", "dummy", "--explode"]) == 1
+    line = _stderr_line(capsys.readouterr().err)
+    assert "RuntimeError: boom" in line and "--debug" in line and "JAXSLAM_DEBUG=1" in line
+    assert cli.main(["run", "dummy", "--explode", "--debug"]) == 1
+    assert "Traceback" in capsys.readouterr().err
+    monkeypatch.setenv("JAXSLAM_DEBUG", "1")
+    assert cli.main(["run", "dummy", "--explode"]) == 1
+    assert "Traceback" in capsys.readouterr().err
+
+
+def test_version(capsys):
+    assert cli.main(["--version"]) == 0
+    assert capsys.readouterr().out.strip() == f"jaxslam {__import__('jaxslam').__version__}"
+
+
+def test_python_m_jaxslam_help_is_fast_and_jax_free(tmp_path):
+    env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    proc = subprocess.run([sys.executable, "-m", "jaxslam", "--help"], capture_output=True,
+                          text=True, env=env, cwd=tmp_path, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    assert "usage: jaxslam" in proc.stdout and "bench" in proc.stdout
+    code = "import sys; from jaxslam.cli import main; main(['--help']); print('JAX', 'jax' in sys.modules)"
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
+                          cwd=tmp_path, timeout=60)
+    assert proc.stdout.strip().endswith("JAX False")
+
+
+# ----------------------------------------------------------------------------- bench
+
+BENCH_SRC = '''\
+"""A fake benchmark."""
+import helper_twin_cli_test as twin
+
+DESCRIPTION = "Fake benchmark for the CLI tests."
+
+
+def add_arguments(parser):
+    parser.add_argument("--size", type=int, default=3)
+
+
+def run(args):
+    return {"results": [{"case": f"n={args.size}", "params": {"n": args.size},
+                         "jaxslam_s": 0.5, "reference": "numpy", "reference_s": twin.REF_S,
+                         "speedup": twin.REF_S / 0.5}]}
+'''
+
+
+@pytest.fixture
+def bench_dir(tmp_path):
+    d = tmp_path / "benchmarks"
+    d.mkdir()
+    (d / "bench_fake.py").write_text(BENCH_SRC)
+    (d / "helper_twin_cli_test.py").write_text("REF_S = 1.5\n")
+    yield d
+    sys.modules.pop("helper_twin_cli_test", None)
+
+
+def test_bench_with_dir(bench_dir, tmp_path, capsys):
+    out_json = tmp_path / "b.json"
+    assert cli.main(["bench", "fake", "--dir", str(bench_dir), "--size", "7", "--json", str(out_json)]) == 0
+    out = capsys.readouterr().out
+    rep = _strict_json(out_json)
+    assert rep["benchmark"] == "fake"
+    assert isinstance(rep["machine"], dict) and rep["machine"]["cpu_count"] == os.cpu_count()
+    assert rep["results"] == [{"case": "n=7", "params": {"n": 7}, "jaxslam_s": 0.5, "reference": "numpy",
+                               "reference_s": 1.5, "speedup": 3.0}]
+    assert "n=7" in out and "3.00x" in out and "reference_s" in out
+    assert str(bench_dir.resolve()) not in sys.path  # the folder is put on sys.path only while running
+
+
+def test_bench_found_in_cwd_and_help(bench_dir, monkeypatch, capsys):
+    monkeypatch.chdir(bench_dir.parent)
+    assert cli.main(["bench", "fake", "--help"]) == 0
+    out = capsys.readouterr().out
+    assert "--size" in out and "Fake benchmark for the CLI tests." in out
+    assert cli.main(["bench", "bench_fake"]) == 0
+    assert "n=3" in capsys.readouterr().out
+
+
+def test_bench_errors_exit_2(bench_dir, tmp_path, capsys):
+    assert cli.main(["bench", "nosuch", "--dir", str(bench_dir)]) == 2
+    line = _stderr_line(capsys.readouterr().err)
+    assert "nosuch" in line and "fake" in line
+    assert cli.main(["bench", "fake", "--dir", str(tmp_path / "absent")]) == 2
+    assert "not a folder" in _stderr_line(capsys.readouterr().err)
+    (bench_dir / "bench_broken.py").write_text("DESCRIPTION = 'x'\n")
+    assert cli.main(["bench", "broken", "--dir", str(bench_dir)]) == 2
+    assert "add_arguments" in _stderr_line(capsys.readouterr().err)
+
+
+def test_find_benchmarks_dir_missing(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(__import__("jaxslam"), "__file__", str(tmp_path / "src" / "jaxslam" / "__init__.py"))
+    with pytest.raises(InputError, match="--dir"):
+        cli.find_benchmarks_dir()
+
+
+# ----------------------------------------------------------------------------- registry
+
+
+def _noop_run(**kw):
+    raise AssertionError("not run")
+
+
+@pytest.mark.parametrize("options, needle", [
+    ((Option("runs", int, 1, "x"),), "clashes"),
+    ((Option("q", float, "a", "x"),), "not of type float"),
+    ((Option("m", str, "z", "x", choices=("a", "b")),), "not one of"),
+    ((Option("f", bool, 0, "x"),), "bool default"),
+    ((Option("bad-name", int, 1, "x"),), "identifier"),
+    ((Option("q", float, 1.0, "x"), Option("q", float, 2.0, "y")), "twice"),
+    ((Option("c", list, [], "x"),), "type must be"),
+])
+def test_register_rejects_bad_options(options, needle):
+    with pytest.raises(InputError, match=needle):
+        registry.register(Scenario("bad", "d", options, _noop_run))
+    assert "bad" not in registry.names()
+
+
+def test_register_duplicate_get_and_names():
+    other = Scenario("dummy", "another", (), _noop_run)
+    with pytest.raises(InputError, match="already registered"):
+        registry.register(other)
+    assert registry.register(DUMMY) is DUMMY  # the same object again is fine
+    with pytest.raises(InputError, match="valid scenarios: .*dummy"):
+        registry.get("nope")
+    assert registry.get("dummy") is DUMMY
+    assert registry.names() == sorted(registry.names()) and "dummy" in registry.names()
+    assert DUMMY in registry.all_scenarios()
+    with pytest.raises(InputError, match="lower case"):
+        registry.register(Scenario("Bad Name", "d", (), _noop_run))
+
+
+# ----------------------------------------------------------------------------- io
+
+
+def test_summarize_metrics_against_numpy():
+    x = np.array([3.0, 1.0, 4.0, 1.5, 9.0, 2.6])
+    s = jio.summarize_metrics({"a_m": x, "b_m": jnp.asarray([2.0], dtype=jnp.float32), "c_m": 5.0})
+    assert s["a_m"] == {"mean": np.mean(x), "median": np.median(x), "p95": np.percentile(x, 95),
+                        "max": 9.0, "per_run": list(x)}
+    assert s["b_m"]["p95"] == 2.0 and s["c_m"]["per_run"] == [5.0]
+    s = jio.summarize_metrics({"a_m": [1.0, np.nan]})["a_m"]
+    assert all(math.isnan(s[k]) for k in ("mean", "median", "p95", "max"))
+    with pytest.raises(InputError, match="a_m"):
+        jio.summarize_metrics({"a_m": np.zeros((2, 2))})
+    with pytest.raises(InputError, match="a_m"):
+        jio.summarize_metrics({"a_m": []})
+
+
+def test_write_json_converts_numpy_jax_and_nonfinite(tmp_path):
+    obj = {"i": np.int32(3), "f": np.float32(0.5), "b": np.bool_(True), "arr": np.arange(3),
+           "jarr": jnp.ones((2,)), "jscalar": jnp.asarray(2.0), "nan": float("nan"),
+           "inf": np.array([1.0, np.inf]), "t": (1, 2), "p": pathlib.Path("a/b"),
+           "dt": np.dtype("float32"), "ty": np.float64}
+    path = jio.write_json(tmp_path / "x" / "y.json", obj)
+    got = _strict_json(path)
+    assert got == {"i": 3, "f": 0.5, "b": True, "arr": [0, 1, 2], "jarr": [1.0, 1.0], "jscalar": 2.0,
+                   "nan": None, "inf": [1.0, None], "t": [1, 2], "p": "a/b", "dt": "float32",
+                   "ty": "float64"}
+    with pytest.raises(TypeError):
+        jio.write_json(tmp_path / "z.json", {"o": object()})
+    with pytest.raises(InputError, match="cannot write"):
+        jio.write_json(path / "under_a_file.json", {})
+
+
+def test_run_json_rejects_extra_key_clash():
+    res = ScenarioResult(config={}, metrics={"a_m": [1.0]}, consistency=None, flags={},
+                         timing={"compile_s": 0.0, "run_s": 0.0}, extra={"metrics": 1})
+    with pytest.raises(ValueError, match="metrics"):
+        jio.run_json("x", 1, 0, np.float64, res)
+    res.extra = {"trajectory_rmse": {"x": np.float64(1.0)}}
+    rep = jio.run_json("x", 1, 0, np.float64, res)
+    assert rep["trajectory_rmse"] == {"x": 1.0} and math.isnan(rep["timing"]["runs_per_s"])
+
+
+def test_format_table_aligned():
+    s = jio.summarize_metrics({"pos_rmse_m": [1.0, 2.0], "a": [np.nan, 1.0]})
+    lines = jio.format_table(s).splitlines()
+    assert lines[0].split() == ["metric", "mean", "median", "p95", "max"]
+    assert len(lines[0]) == len(lines[1]) == len(lines[2]) == len(lines[3])
+    assert lines[2].split() == ["pos_rmse_m", "1.5000", "1.5000", "1.9500", "2.0000"]
+    assert lines[3].split()[1:] == ["nan"] * 4
+    assert lines[4] == "note: a: 1 of 2 runs non-finite"
+
+
+def test_load_params_ok(tmp_path):
+    f = tmp_path / "p.json"
+    f.write_text('{"a": 1}')
+    assert jio.load_params(f) == {"a": 1}
+
+
+# ----------------------------------------------------------------------------- progress
+
+
+class _Clock:
+    def __init__(self):
+        self.t = 0.0
+
+    def __call__(self):
+        return self.t
+
+
+def test_progress_silent_before_delay_then_bar_with_eta():
+    clock, stream = _Clock(), _io.StringIO()
+    p = Progress(10, "mc", True, stream, clock=clock)
+    p.update(3)
+    clock.t = 0.9
+    p.advance(1)
+    assert stream.getvalue() == ""  # jobs under ~1 s print nothing
+    clock.t = 2.0
+    p.update(4)
+    text = stream.getvalue()
+    # 4 of 10 done in 2 s -> 3 s left.
+    assert "mc [" in text and "4/10" in text and "00:02" in text and "ETA 00:03" in text
+    clock.t = 2.05
+    p.advance(1)  # within the log interval: no new line
+    assert stream.getvalue() == text
+    clock.t = 4.0
+    p.update(10)
+    p.close()
+    assert stream.getvalue().splitlines()[-1].startswith("mc [" + "#" * 30 + "] 10/10 00:04")
+    p.close()  # idempotent
+
+
+def test_progress_quick_job_disabled_and_null_print_nothing():
+    clock, stream = _Clock(), _io.StringIO()
+    p = Progress(5, "x", True, stream, clock=clock)
+    p.update(5)
+    p.close()
+    q = Progress(5, "x", False, stream, clock=clock)
+    clock.t = 10.0
+    q.update(2)
+    q.close()
+    n = Progress.null()
+    n.advance(3)
+    n.close()
+    assert stream.getvalue() == ""
+    assert q.n_done == 2
