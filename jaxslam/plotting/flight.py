@@ -1,0 +1,99 @@
+"""Flight plots: 3D path vs reference, position / attitude / inputs over time.
+
+Matplotlib is imported lazily (Agg backend) so importing jaxslam never pulls it in.
+Every function takes NumPy arrays, returns the Figure, and ``save`` writes PNGs.
+"""
+
+from __future__ import annotations
+
+import pathlib
+
+import numpy as np
+
+__all__ = ["plt", "save", "trajectory_3d", "states_over_time", "inputs_over_time"]
+
+
+def plt():
+    """matplotlib.pyplot with the non-interactive Agg backend."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as _plt
+
+    return _plt
+
+
+def save(fig, directory, name) -> pathlib.Path:
+    """Save ``fig`` as ``directory/name.png`` (directory created) and close it."""
+    d = pathlib.Path(directory)
+    d.mkdir(parents=True, exist_ok=True)
+    path = d / f"{name}.png"
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+    plt().close(fig)
+    return path
+
+
+def _ned_to_enu_up(p):
+    """Plot coordinates: north, east, altitude (−z) so 'up' is up on screen."""
+    return p[..., 0], p[..., 1], -p[..., 2]
+
+
+def trajectory_3d(truth_pos, ref_pos, est_pos=None, landmarks=None, est_landmarks=None,
+                  title="Trajectory"):
+    """3D path: true (solid), desired (dash-dot), estimated (dashed), landmarks."""
+    p = plt()
+    fig = p.figure(figsize=(7, 6))
+    ax = fig.add_subplot(projection="3d")
+    ax.plot(*_ned_to_enu_up(ref_pos), "k-.", lw=1, label="desired")
+    ax.plot(*_ned_to_enu_up(truth_pos), "C0-", lw=1.5, label="true")
+    if est_pos is not None:
+        ax.plot(*_ned_to_enu_up(est_pos), "C1--", lw=1.2, label="estimated")
+    if landmarks is not None and len(landmarks):
+        ax.scatter(*_ned_to_enu_up(landmarks), c="g", marker="^", s=25, label="landmarks (true)")
+    if est_landmarks is not None and len(est_landmarks):
+        ax.scatter(*_ned_to_enu_up(est_landmarks), c="r", marker="x", s=25, label="landmarks (est.)")
+    ax.set_xlabel("north [m]")
+    ax.set_ylabel("east [m]")
+    ax.set_zlabel("altitude [m]")
+    ax.set_title(title)
+    ax.legend(loc="upper left", fontsize=8)
+    return fig
+
+
+def states_over_time(t, truth, ref, title="Tracking"):
+    """Position vs desired, tracking error, Euler angles (deg) over time."""
+    p = plt()
+    fig, axs = p.subplots(3, 1, figsize=(9, 8), sharex=True)
+    names = ["north", "east", "down"]
+    for i in range(3):
+        axs[0].plot(t, truth[:, i], f"C{i}-", label=f"{names[i]} true")
+        axs[0].plot(t, ref[:, i], f"C{i}:", label=f"{names[i]} desired")
+    axs[0].set_ylabel("position [m]")
+    axs[0].legend(ncol=3, fontsize=7)
+    err = np.linalg.norm(truth[:, :3] - ref[:, :3], axis=1)
+    axs[1].semilogy(t, np.maximum(err, 1e-6), "k-")
+    axs[1].set_ylabel("‖ρ − ρ_d‖ [m]")
+    axs[1].grid(True, which="both", alpha=0.3)
+    for i, n in enumerate(["φ", "θ", "ψ"]):
+        axs[2].plot(t, np.degrees(truth[:, 6 + i]), f"C{i}-", label=n)
+    axs[2].plot(t, np.degrees(ref[:, 3]), "C2:", label="ψ desired")
+    axs[2].set_ylabel("attitude [deg]")
+    axs[2].set_xlabel("time [s]")
+    axs[2].legend(ncol=4, fontsize=7)
+    fig.suptitle(title)
+    return fig
+
+
+def inputs_over_time(t, u, title="Inputs"):
+    """Thrust [N] and torques [N m] over time."""
+    p = plt()
+    fig, axs = p.subplots(2, 1, figsize=(9, 5), sharex=True)
+    axs[0].plot(t, u[:, 0], "k-")
+    axs[0].set_ylabel("thrust f_T [N]")
+    for i, n in enumerate(["τ_φ", "τ_θ", "τ_ψ"]):
+        axs[1].plot(t, u[:, 1 + i], f"C{i}-", label=n)
+    axs[1].set_ylabel("torque [N m]")
+    axs[1].set_xlabel("time [s]")
+    axs[1].legend(ncol=3, fontsize=7)
+    fig.suptitle(title)
+    return fig

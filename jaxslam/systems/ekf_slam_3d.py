@@ -1,0 +1,420 @@
+"""Paper 000's 3D EKF-SLAM: IMU-driven 9-state quadcopter + LiDAR [α, β, δ] landmarks.
+
+A *system* module: it chooses the state order, the tabled P0/Q/R and the
+initialisation, and plugs its model into the generic engine
+(:mod:`jaxslam.filters.ekf_slam`).  Nothing here is a filter of its own.
+
+Equations (paper 000; errata in docs/papers.md):
+
+* state s = [ρ (3, NED m), v_B (3, body m/s), Λ = (φ, θ, ψ) (3, rad)]  (eq. 24)
+* input λ = IMU [f_B (3) specific force m/s², ω_B (3) rad/s]; the paper's
+  eq. 25 feeds only a_z = −f_T/m; jaxslam takes the 3-axis specific force
+  (``accel_mode="3axis"``, default) and keeps the a_z-only form
+  (``accel_mode="az"``: f_B = [0, 0, a_z]).
+* ṡ = f_s(s, λ) = [C_NB v_B,  −ω × v_B + C_NBᵀ g n̂3 + f_B,  D(Λ) ω]
+  (eq. 2 with the thrust/mass term replaced by the measured specific force).
+* discretisation: one RK4 step over the IMU interval with the IMU reading
+  interpolated linearly between the two samples (first-order hold; a held
+  sample left a model error larger than the IMU noise, STYLE.md).
+* process noise (eq. 27 integrates a continuous-time Q, so Q is a spectral
+  density): Q_d = (Q_c + G Q_imu Gᵀ) Δt with G = ∂f_s/∂λ.  ``--q paper`` uses
+  Q_c of Tables 6/7 and Q_imu = 0; ``--q imu`` uses Q_c = 0 and
+  Q_imu = diag(ND_a² I₃, ND_g² I₃) from Table 5's noise densities, i.e. white
+  noise on the accelerometer (enters v̇) and gyro (enters v̇ through −ω×v and
+  Λ̇ through D); see docs/papers.md for the derivation.
+* LiDAR update: eq. 30-43 with the corrected eq. 31 (errata), registration
+  eq. 44-53 — both through the engine with autodiff Jacobians.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..errors import InputError
+from ..filters import ekf_slam as es
+from ..geometry.euler import dcm_from_euler, euler_rate_matrix
+from ..linalg import check_psd, wrap_angle
+from ..sensors import lidar3d
+
+__all__ = [
+    "NX",
+    "NoiseParams",
+    "f_cont",
+    "motion",
+    "process_noise",
+    "make_model",
+    "paper_noise",
+    "imu_noise",
+    "TABLE6_P0",
+    "TABLE6_Q",
+    "TABLE7_P0",
+    "TABLE7_Q",
+    "validate_noise",
+]
+
+NX = 9
+
+TABLE6_P0 = (0.01,) * 6 + (0.02,) * 3  # known landmarks, Table 6
+TABLE6_Q = (0.01,) * 6 + (0.02,) * 3
+TABLE7_P0 = (0.001,) * 3 + (0.1,) * 3 + (0.0,) * 3  # unknown landmarks, Table 7
+TABLE7_Q = (0.2, 0.2, 0.05, 0.01, 0.01, 0.01, 0.02, 0.2, 0.2)
+
+
+class NoiseParams(NamedTuple):
+    """Filter noise (traced leaves, so ``grad`` w.r.t. them works).
+
+    P0: (9, 9) initial robot covariance.
+    Qc: (9, 9) additive continuous-time process noise density (Tables 6-7).
+    Qimu: (6, 6) IMU white-noise density [accel (m/s²)²/Hz, gyro (rad/s)²/Hz].
+    R: (3, 3) LiDAR covariance diag(σ_α², σ_β², σ_δ²) (Table 4).
+    """
+
+    P0: jax.Array
+    Qc: jax.Array
+    Qimu: jax.Array
+    R: jax.Array
+
+
+def f_cont(s, imu, g, accel_mode: str = "3axis"):
+    """ṡ = f_s(s, λ) (paper 000 eq. 24 with the IMU as input).  s (9,), imu (6,) -> (9,)."""
+    v = s[3:6]
+    euler = s[6:9]
+    f_b = imu[0:3]
+    if accel_mode == "az":
+        f_b = jnp.zeros_like(f_b).at[2].set(f_b[2])
+    w = imu[3:6]
+    C = dcm_from_euler(euler)
+    g = jnp.asarray(g, s.dtype)
+    pos_dot = C @ v
+    vel_dot = -jnp.cross(w, v) + g * C[2, :] + f_b
+    att_dot = euler_rate_matrix(euler) @ w
+    return jnp.concatenate([pos_dot, vel_dot, att_dot])
+
+
+def motion(s, u, params):
+    """One RK4 step over Δt with a first-order hold of the IMU.
+
+    u: (12,) = [imu at t_k (6), imu at t_k+Δt (6)]; params = (dt, g, accel_mode).
+    """
+    dt, g, accel_mode = params
+    a, b = u[:6], u[6:]
+    dt = jnp.asarray(dt, s.dtype)
+
+    def f(x, tau):
+        return f_cont(x, a + (b - a) * tau, g, accel_mode)
+
+    k1 = f(s, 0.0)
+    k2 = f(s + 0.5 * dt * k1, 0.5)
+    k3 = f(s + 0.5 * dt * k2, 0.5)
+    k4 = f(s + dt * k3, 1.0)
+    s_new = s + dt / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
+    return s_new.at[6:9].set(wrap_angle(s_new[6:9]).at[1].set(s_new[7]))
+
+
+def process_noise(s, imu, noise: NoiseParams, dt, g, accel_mode: str = "3axis"):
+    """Q_d = (Q_c + G Q_imu Gᵀ) Δt, G = ∂f_s/∂λ at (s, λ) (first-order; see module doc)."""
+    G = jax.jacfwd(lambda lam: f_cont(s, lam, g, accel_mode))(imu)
+    return (noise.Qc + G @ noise.Qimu @ G.T) * jnp.asarray(dt, s.dtype)
+
+
+def _observe(s, l, params):
+    return lidar3d.measure_state(s, l)
+
+
+def _inverse(s, z, params):
+    return lidar3d.inverse_state(s, z)
+
+
+def make_model() -> es.SlamModel:
+    """The paper-000 SLAM model for the generic engine (robot 9, landmark 3, meas 3)."""
+    return es.SlamModel(
+        robot_dim=NX,
+        lm_dim=3,
+        meas_dim=3,
+        motion=motion,
+        observe=_observe,
+        inverse=_inverse,
+        residual=lidar3d.innovation,
+    )
+
+
+def _lidar_R(dtype):
+    return lidar3d.measurement_cov(lidar3d.PAPER000_LIDAR, dtype)
+
+
+def paper_noise(mode: str, dtype=jnp.float64) -> NoiseParams:
+    """P0/Q of Table 6 (``mode="known"``) or Table 7 (``"unknown"``); R of Table 4."""
+    if mode == "known":
+        P0, Q = TABLE6_P0, TABLE6_Q
+    elif mode == "unknown":
+        P0, Q = TABLE7_P0, TABLE7_Q
+    else:
+        raise InputError(f"mode: expected 'known' or 'unknown', got {mode!r}")
+    return NoiseParams(
+        P0=jnp.diag(jnp.asarray(P0, dtype)),
+        Qc=jnp.diag(jnp.asarray(Q, dtype)),
+        Qimu=jnp.zeros((6, 6), dtype),
+        R=_lidar_R(dtype),
+    )
+
+
+# Initial uncertainty used with the IMU-derived Q: the flight starts on the ground at a
+# surveyed point, so the initial error is small (1 cm, 1 cm/s, 0.1 deg per axis).
+IMU_P0 = (1e-4,) * 3 + (1e-4,) * 3 + (math.radians(0.1) ** 2,) * 3
+
+
+def imu_noise(imu_spec, dtype=jnp.float64, P0=IMU_P0) -> NoiseParams:
+    """Q from Table 5's noise densities (``--q imu``), R of Table 4, small P0."""
+    nd_a = float(imu_spec.accel_noise_density)
+    nd_g = float(imu_spec.gyro_noise_density)
+    qimu = jnp.asarray([nd_a**2] * 3 + [nd_g**2] * 3, dtype)
+    return NoiseParams(
+        P0=jnp.diag(jnp.asarray(P0, dtype)),
+        Qc=jnp.zeros((NX, NX), dtype),
+        Qimu=jnp.diag(qimu),
+        R=_lidar_R(dtype),
+    )
+
+
+def validate_noise(noise: NoiseParams) -> NoiseParams:
+    """Host-side checks: shapes and PSD of P0, Qc, Qimu; R positive definite."""
+    shapes = {"P0": (NX, NX), "Qc": (NX, NX), "Qimu": (6, 6), "R": (3, 3)}
+    for name, shp in shapes.items():
+        a = np.asarray(getattr(noise, name))
+        if a.shape != shp:
+            raise InputError(f"noise.{name}: expected shape {shp}, got {a.shape}")
+        check_psd(a, f"noise.{name}", strict=(name == "R"))
+    return noise
+
+
+# ---------------------------------------------------------------------------
+# The estimator in the closed loop (jaxslam.sim.simulate.Estimator)
+# ---------------------------------------------------------------------------
+
+class EstimatorConfig(NamedTuple):
+    """Static choices of the paper-000 estimator (hashable; a change recompiles).
+
+    mode: "unknown" (SLAM, landmarks registered on first sight) or "known"
+      (localisation against the true map, held in the padded map with zero covariance).
+    association: "known" (landmark ids, as in the paper) or "nn" (ids hidden,
+      nearest-neighbour Mahalanobis with a new-landmark threshold).
+    capacity: landmark slots.  max_obs: measurements processed per frame (the
+      visible ones are compacted into this many; extras are counted as dropped).
+    accel_mode: "3axis" or "az" (paper eq. 25).  dt: IMU step [s].  g: gravity.
+    gate: chi-square gate for updates (None = off); nn_gate / nn_new: association
+      thresholds on the 3-dof Mahalanobis distance.
+    save_map: store the landmark means at every frame (for plots; memory F·cap·3).
+    """
+
+    mode: str = "unknown"
+    association: str = "known"
+    capacity: int = 64
+    max_obs: int = 16
+    accel_mode: str = "3axis"
+    dt: float = 0.01
+    g: float = 9.81
+    gate: float | None = None
+    nn_gate: float = 11.34  # χ²₃ 99 %
+    nn_new: float = 30.0
+    save_map: bool = False
+
+
+class EstState(NamedTuple):
+    slam: es.SlamState
+    dropped: jax.Array  # () int32 visible measurements beyond max_obs, summed
+    masked: jax.Array  # () int32 measurements masked as non-finite, summed
+
+
+class StepOut(NamedTuple):
+    mean: jax.Array  # (9,) robot mean after the step
+    var: jax.Array  # (9,) robot covariance diagonal
+    nees: jax.Array  # () robot-block NEES against the truth
+
+
+class FrameOut(NamedTuple):
+    nis: jax.Array  # () joint NIS of the frame's update
+    dof: jax.Array  # () its degrees of freedom
+    n_active: jax.Array  # () mapped landmarks after the frame
+    n_visible: jax.Array  # () landmarks in the FOV
+    landmarks: Any  # (cap, 3) means (only with save_map) else None
+    lm_var: Any  # (cap, 3) diagonal variances (only with save_map) else None
+
+
+
+def robot_error(s_hat, x_true):
+    """Estimation error of the 9-state against the 12-state truth, angles wrapped."""
+    e = s_hat - x_true[:NX].astype(s_hat.dtype)
+    return e.at[6:9].set(wrap_angle(e[6:9]))
+
+
+def _nees(e, P):
+    Lc = jnp.linalg.cholesky(0.5 * (P + P.T))
+    w = jax.scipy.linalg.solve_triangular(Lc, e, lower=True)
+    return jnp.sum(w * w)
+
+
+def make_estimator(noise: NoiseParams, cfg: EstimatorConfig, landmarks_true=None):
+    """Build the :class:`jaxslam.sim.simulate.Estimator` of paper 000's EKF-SLAM.
+
+    ``noise`` is traced (differentiable); ``cfg`` static.  In ``mode="known"``
+    ``landmarks_true`` (L, 3) must be given and ``cfg.capacity`` ≥ L.
+    """
+    from ..sim.simulate import Estimator  # local: sim imports systems lazily
+
+    model = make_model()
+    mparams = (cfg.dt, cfg.g, cfg.accel_mode)
+    if cfg.mode not in ("known", "unknown"):
+        raise InputError(f"mode: expected 'known' or 'unknown', got {cfg.mode!r}")
+    if cfg.association not in ("known", "nn"):
+        raise InputError(f"association: expected 'known' or 'nn', got {cfg.association!r}")
+    if cfg.mode == "known":
+        if landmarks_true is None:
+            raise InputError("landmarks_true: required in mode='known'")
+        if landmarks_true.shape[0] > cfg.capacity:
+            raise InputError(
+                f"capacity: {cfg.capacity} slots cannot hold the {landmarks_true.shape[0]} known landmarks"
+            )
+
+    def init(key, x0):
+        dtype = x0.dtype
+        P0 = noise.P0.astype(dtype)
+        # Initial error drawn from P0 (eigen-decomposition: P0 may be singular, Table 7).
+        w, V = jnp.linalg.eigh(0.5 * (P0 + P0.T))
+        e0 = V @ (jnp.sqrt(jnp.clip(w, 0.0)) * jax.random.normal(key, (NX,), dtype))
+        s0 = x0[:NX] + e0
+        st = es.init(s0, P0, cfg.capacity, 3)
+        if cfg.mode == "known":
+            L = landmarks_true.shape[0]
+            idx = jnp.arange(L)
+            x = st.x.at[NX:NX + 3 * L].set(landmarks_true.reshape(-1).astype(dtype))
+            st = st._replace(
+                x=x,
+                active=st.active.at[idx].set(True),
+                ids=st.ids.at[idx].set(idx.astype(jnp.int32)),
+            )
+        z = jnp.zeros((), jnp.int32)
+        return EstState(st, z, z)
+
+    def propagate(est, imu_prev, imu_now):
+        st = est.slam
+        s = st.x[:NX]
+        Qd = process_noise(s, 0.5 * (imu_prev + imu_now), noise, cfg.dt, cfg.g, cfg.accel_mode)
+        st = es.predict(st, model, jnp.concatenate([imu_prev, imu_now]), Qd, mparams)
+        return est._replace(slam=st)
+
+    def correct(est, y, ids, visible):
+        st = est.slam
+        L = y.shape[0]
+        M = min(cfg.max_obs, L)
+        order = jnp.argsort(~visible, stable=True)[:M]
+        y_s, id_s, vis_s = y[order], ids[order], visible[order]
+        dropped = jnp.sum(visible) - jnp.sum(vis_s)
+        finite = jnp.all(jnp.isfinite(y_s), axis=-1)
+        masked = jnp.sum(vis_s & ~finite)
+        R = noise.R.astype(st.x.dtype)
+        if cfg.association == "known":
+            slots, mapped = es.associate_known(st, id_s, vis_s)
+            new = vis_s & ~mapped
+        else:
+            slots, mapped, new, _ = es.associate_nn(
+                st, model, y_s, vis_s, R, mparams, gate=cfg.nn_gate, new_threshold=cfg.nn_new
+            )
+        st, info = es.update(st, model, y_s, slots, mapped, R, mparams, gate=cfg.gate)
+        if cfg.mode == "unknown":
+            st = es.register(st, model, y_s, id_s, new, R, mparams)
+        out = FrameOut(
+            nis=info.nis,
+            dof=info.dof,
+            n_active=jnp.sum(st.active),
+            n_visible=jnp.sum(visible),
+            landmarks=es.landmarks(st, model) if cfg.save_map else None,
+            lm_var=jnp.diagonal(es.landmark_covs(st, model), axis1=-2, axis2=-1) if cfg.save_map else None,
+        )
+        est = EstState(st, est.dropped + dropped.astype(jnp.int32), est.masked + masked.astype(jnp.int32))
+        return est, out
+
+    def ctrl_state(est, imu_now):
+        return jnp.concatenate([est.slam.x[:NX], imu_now[3:6]])
+
+    def step_out(est, x_true):
+        s = est.slam.x[:NX]
+        P = est.slam.P[:NX, :NX]
+        e = robot_error(s, x_true)
+        return StepOut(mean=s, var=jnp.diagonal(P), nees=_nees(e, P))
+
+    return Estimator(init, propagate, correct, ctrl_state, step_out)
+
+
+__all__ += ["EstimatorConfig", "EstState", "StepOut", "FrameOut", "make_estimator", "robot_error"]
+
+
+def noise_to_dict(noise: NoiseParams) -> dict:
+    """JSON-ready form of :class:`NoiseParams` (full matrices as nested lists)."""
+    return {k: np.asarray(v, float).tolist() for k, v in noise._asdict().items()}
+
+
+def noise_from_dict(d: dict, default: NoiseParams, dtype) -> NoiseParams:
+    """Read a (partial) noise dict, e.g. from ``jaxslam tune`` / ``--params``.
+
+    Each entry is a full matrix or a list of diagonal values; missing entries keep
+    ``default``.  Unknown keys are an error naming them.
+    """
+    unknown = set(d) - set(NoiseParams._fields)
+    if unknown:
+        raise InputError(f"params.noise: unknown entries {sorted(unknown)}; expected {list(NoiseParams._fields)}")
+    vals = default._asdict()
+    for k, v in d.items():
+        a = np.asarray(v, float)
+        if a.ndim == 1:
+            a = np.diag(a)
+        vals[k] = jnp.asarray(a, dtype)
+    return NoiseParams(**vals)
+
+
+__all__ += ["noise_to_dict", "noise_from_dict"]
+
+
+def filter_log(noise: NoiseParams, cfg: EstimatorConfig, s0, imu, y, ids, visible,
+               lidar_every: int, landmarks_true=None):
+    """Run the filter on a recorded log (open loop) as one ``lax.scan``.
+
+    Args:
+      noise, cfg: as :func:`make_estimator`.
+      s0: (9,) initial estimate (the covariance is ``noise.P0``).
+      imu: (T + 1, 6) IMU samples at t = 0, Δt, …, TΔt (sample 0 is the one
+        preceding the first prediction).  T = F · lidar_every.
+      y, ids, visible: (F, L, 3), (L,) or (F, L), (F, L) LiDAR frames taken after
+        every ``lidar_every`` predictions.
+
+    Returns (final EstState, means (T, 9), frame outputs).  Used by the benchmark
+    against the NumPy twin and by users who filter their own logs.
+    """
+    est = make_estimator(noise, cfg, landmarks_true)
+    F, L = visible.shape
+    st0 = est.init(jax.random.PRNGKey(0), jnp.concatenate([s0, jnp.zeros(3, s0.dtype)]))
+    st0 = st0._replace(slam=st0.slam._replace(x=st0.slam.x.at[:NX].set(s0)))
+    ids = jnp.broadcast_to(ids, (F, L))
+    imu_prev = imu[:-1].reshape(F, lidar_every, 6)
+    imu_now = imu[1:].reshape(F, lidar_every, 6)
+
+    def frame(e, inp):
+        a, b, yf, idf, vf = inp
+
+        def step(e2, ab):
+            e2 = est.propagate(e2, ab[0], ab[1])
+            return e2, e2.slam.x[:NX]
+
+        e, means = jax.lax.scan(step, e, (a, b))
+        e, out = est.correct(e, yf, idf, vf)
+        return e, (means, out)
+
+    e, (means, outs) = jax.lax.scan(frame, st0, (imu_prev, imu_now, y, ids, visible))
+    return e, means.reshape(-1, NX), outs
+
+
+__all__ += ["filter_log"]
