@@ -1,0 +1,171 @@
+"""3-2-1 (yaw-pitch-roll) Euler angles in the NED convention of paper 000.
+
+Paper 000, Sec. 2.1, eq. 1 and 3.  Frames: N is the inertial North-East-Down
+frame, B the body frame (b̂1 forward, b̂2 right arm, b̂3 down).  The attitude is
+Λ = [φ, θ, ψ] (roll, pitch, yaw, radians) and
+
+    C_NB = C3(ψ) C2(θ) C1(φ)                                   (eq. 1)
+
+maps body components to NED components (v_N = C_NB v_B).  The elementary
+matrices are exactly the ones eq. 1 prints (active rotations about the x, y
+and z axes).  Paper 001 eq. 6 (R_b^w) is the same product; its (1,3) entry is
+misprinted there ("CψSθCφ + SψCφ" must read "CψSθCφ + SψSφ", as its own eq. 3
+uses), so jaxslam uses this one function for both papers.
+
+Decisions (the paper is silent):
+
+* ``euler_from_dcm`` returns φ ∈ (−π, π], θ ∈ [−π/2, π/2], ψ ∈ (−π, π].
+  θ comes from atan2(−C₃₁, ‖(C₃₂, C₃₃)‖) (accurate at every pitch, unlike
+  asin), φ from atan2(C₃₂, C₃₃), and ψ is then solved from the matrix
+  C_NB C1(φ)ᵀ = C3(ψ) C2(θ), whose second column is [−sin ψ, cos ψ, 0] with
+  O(1) entries.  Because ψ is solved *given* the φ already chosen, the pair
+  (φ, ψ) always reproduces C_NB even near gimbal lock, where φ and ψ are
+  individually ill-conditioned (only ψ − φ at θ = +90° and ψ + φ at θ = −90°
+  are defined).
+* Gimbal lock: when cos θ is below machine epsilon of the dtype (θ = ±90° to
+  working precision) φ and ψ are not separable; jaxslam returns **φ = 0** and
+  puts the whole rotation about the vertical into ψ (yaw carries the heading,
+  the usual navigation convention).
+* ``euler_rate_matrix`` is D of eq. 3 (Λ̇ = D ω).  Paper 000 eq. 18 misprints
+  the ψ̇ row; D of eq. 3 is right (see the errata in docs/papers.md).  Paper 001
+  eq. 2 prints θ̇ = cos(θ) q − sin(φ) r; the correct (and eq. 3) form is
+  θ̇ = cos(φ) q − sin(φ) r.  D is singular at cos θ = 0; no guard is added
+  (a filter near ±90° pitch must not use Euler angles).
+
+All functions accept leading batch dimensions (``euler`` of shape (..., 3),
+matrices (..., 3, 3)), are jit/vmap/grad-safe and follow the input dtype.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+__all__ = [
+    "C1",
+    "C2",
+    "C3",
+    "dcm_from_euler",
+    "euler_from_dcm",
+    "euler_rate_matrix",
+    "euler_rates",
+]
+
+
+def _mat(rows):
+    """Stack a nested 3×3 list of (...) arrays into (..., 3, 3)."""
+    return jnp.stack([jnp.stack(r, axis=-1) for r in rows], axis=-2)
+
+
+def C1(phi):
+    """Elementary rotation about x̂ (roll), paper 000 eq. 1.
+
+    ``phi``: (...) radians.  Returns (..., 3, 3)
+    [[1, 0, 0], [0, cφ, −sφ], [0, sφ, cφ]].
+    """
+    phi = jnp.asarray(phi)
+    c, s = jnp.cos(phi), jnp.sin(phi)
+    o, z = jnp.ones_like(c), jnp.zeros_like(c)
+    return _mat([[o, z, z], [z, c, -s], [z, s, c]])
+
+
+def C2(theta):
+    """Elementary rotation about ŷ (pitch), paper 000 eq. 1.
+
+    ``theta``: (...) radians.  Returns (..., 3, 3)
+    [[cθ, 0, sθ], [0, 1, 0], [−sθ, 0, cθ]].
+    """
+    theta = jnp.asarray(theta)
+    c, s = jnp.cos(theta), jnp.sin(theta)
+    o, z = jnp.ones_like(c), jnp.zeros_like(c)
+    return _mat([[c, z, s], [z, o, z], [-s, z, c]])
+
+
+def C3(psi):
+    """Elementary rotation about ẑ (yaw), paper 000 eq. 1.
+
+    ``psi``: (...) radians.  Returns (..., 3, 3)
+    [[cψ, −sψ, 0], [sψ, cψ, 0], [0, 0, 1]].
+    """
+    psi = jnp.asarray(psi)
+    c, s = jnp.cos(psi), jnp.sin(psi)
+    o, z = jnp.ones_like(c), jnp.zeros_like(c)
+    return _mat([[c, -s, z], [s, c, z], [z, z, o]])
+
+
+def dcm_from_euler(euler):
+    """Body-to-NED direction cosine matrix C_NB = C3(ψ) C2(θ) C1(φ).
+
+    Paper 000, eq. 1 (also paper 001 eq. 6 with its (1,3) misprint fixed).
+    ``euler``: (..., 3) = [φ, θ, ψ] in radians.  Returns (..., 3, 3) with
+    v_N = C_NB @ v_B.
+    """
+    euler = jnp.asarray(euler)
+    cf, sf = jnp.cos(euler[..., 0]), jnp.sin(euler[..., 0])
+    ct, st = jnp.cos(euler[..., 1]), jnp.sin(euler[..., 1])
+    cp, sp = jnp.cos(euler[..., 2]), jnp.sin(euler[..., 2])
+    # Expanded product (one fused expression instead of two 3×3 matmuls).
+    return _mat(
+        [
+            [cp * ct, cp * st * sf - sp * cf, cp * st * cf + sp * sf],
+            [sp * ct, sp * st * sf + cp * cf, sp * st * cf - cp * sf],
+            [-st, ct * sf, ct * cf],
+        ]
+    )
+
+
+def euler_from_dcm(C):
+    """3-2-1 Euler angles [φ, θ, ψ] of a body-to-NED DCM (inverse of eq. 1).
+
+    ``C``: (..., 3, 3) rotation matrix C_NB.  Returns (..., 3) radians with
+    φ, ψ ∈ (−π, π], θ ∈ [−π/2, π/2].  Stable at every pitch: the returned
+    angles always reproduce ``C`` through :func:`dcm_from_euler` to working
+    precision.  At gimbal lock (cos θ < eps of the dtype) φ and ψ are not
+    separable and φ = 0 is returned (the rotation about the vertical goes
+    into ψ).  Gradients are finite everywhere (double-``where`` guards).
+    """
+    C = jnp.asarray(C)
+    eps = jnp.finfo(C.dtype).eps
+    c21, c22 = C[..., 2, 1], C[..., 2, 2]
+    n2 = c21 * c21 + c22 * c22  # cos²θ
+    locked = n2 < eps * eps
+    safe_n2 = jnp.where(locked, 1.0, n2)
+    cos_t = jnp.where(locked, 0.0, jnp.sqrt(safe_n2))
+    theta = jnp.arctan2(-C[..., 2, 0], cos_t)
+    phi = jnp.where(
+        locked, 0.0, jnp.arctan2(jnp.where(locked, 0.0, c21), jnp.where(locked, 1.0, c22))
+    )
+    cf, sf = jnp.cos(phi), jnp.sin(phi)
+    # Second column of C C1(φ)ᵀ = C3(ψ) C2(θ) is [−sin ψ, cos ψ, 0].
+    m01 = cf * C[..., 0, 1] - sf * C[..., 0, 2]
+    m11 = cf * C[..., 1, 1] - sf * C[..., 1, 2]
+    psi = jnp.arctan2(-m01, m11)
+    return jnp.stack([phi, theta, psi], axis=-1)
+
+
+def euler_rate_matrix(euler):
+    """D of paper 000 eq. 3: Λ̇ = D(φ, θ) ω_B.
+
+    ``euler``: (..., 3) = [φ, θ, ψ] radians (ψ unused).  Returns (..., 3, 3)
+
+        D = [[1, sφ tθ, cφ tθ],
+             [0, cφ,    −sφ  ],
+             [0, sφ/cθ, cφ/cθ]]
+
+    (eq. 3 written with 1/cos θ factored out).  Singular at θ = ±90°.
+    """
+    euler = jnp.asarray(euler)
+    cf, sf = jnp.cos(euler[..., 0]), jnp.sin(euler[..., 0])
+    ct = jnp.cos(euler[..., 1])
+    tt = jnp.tan(euler[..., 1])
+    o, z = jnp.ones_like(cf), jnp.zeros_like(cf)
+    return _mat([[o, sf * tt, cf * tt], [z, cf, -sf], [z, sf / ct, cf / ct]])
+
+
+def euler_rates(euler, omega):
+    """Euler angle rates Λ̇ = D(Λ) ω, paper 000 eq. 2-3 (third block row).
+
+    ``euler``: (..., 3) [φ, θ, ψ] radians; ``omega``: (..., 3) body angular
+    velocity [p, q, r] in rad/s (body axes).  Returns (..., 3) rad/s.
+    """
+    D = euler_rate_matrix(euler)
+    return jnp.einsum("...ij,...j->...i", D, jnp.asarray(omega))

@@ -1,0 +1,259 @@
+"""Unit quaternions (Hamilton convention, scalar first).
+
+Paper 004 ch. 3.1 and app. A (quaternion algebra, exp/log maps); the attitude
+meaning follows paper 000 eq. 1: a unit quaternion q = [q0, q1, q2, q3]
+represents the body-to-NED rotation C_NB, i.e.
+
+    qrotate(q, v_B) = C_NB v_B = q ⊗ [0, v_B] ⊗ q*,
+    dcm_from_quat(qmul(p, q)) = dcm_from_quat(p) @ dcm_from_quat(q).
+
+Decisions (where the sources are silent or inconsistent):
+
+* Hamilton product, scalar first (SciPy stores scalar last: convert with
+  ``q[..., [1, 2, 3, 0]]``).
+* q and −q are the same rotation (double cover).  ``qlog`` always returns the
+  shortest rotation vector (angle in [0, π]): q and −q give the same result.
+  ``quat_from_dcm`` returns the canonical sign q0 ≥ 0 (``qcanonical``); at
+  q0 = 0 exactly (a rotation by π) the sign Shepperd's branch produced is
+  kept, and either sign is correct.  ``quat_from_euler`` returns the smooth
+  closed form without sign canonicalisation.
+* Singular points use Taylor branches selected with a dtype-dependent
+  threshold (θ² < √eps for ``qexp``, |q_v|²/q0² < √eps for ``qlog``), with the
+  "double where" trick so values and gradients stay finite at the identity;
+  at q0 ≈ 0 ``qlog`` is smooth through atan2.  ``quat_from_dcm`` uses
+  Shepperd's method (pick the largest of 4q_k²) with ``jnp.where`` branches
+  only, so it is jit/vmap-safe and its gradient is finite.
+* ``euler_from_quat`` goes through the DCM, so it inherits the gimbal-lock
+  convention of :func:`jaxslam.geometry.euler.euler_from_dcm` (φ = 0 at
+  θ = ±90°).
+* ``qlog`` accepts non-unit quaternions (the angle is atan2-based, so the
+  norm drops out); ``qrotate`` and ``dcm_from_quat`` assume unit norm.
+
+All functions accept leading batch dimensions (quaternions (..., 4), vectors
+(..., 3), matrices (..., 3, 3)); binary operations broadcast their batch
+dimensions.  Everything is jit/vmap/grad-safe and follows the input dtype.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+from .euler import euler_from_dcm
+
+__all__ = [
+    "qmul",
+    "qconj",
+    "qnormalize",
+    "qrotate",
+    "qcanonical",
+    "quat_from_euler",
+    "euler_from_quat",
+    "dcm_from_quat",
+    "quat_from_dcm",
+    "qexp",
+    "qlog",
+]
+
+
+def _small_threshold(dtype):
+    """Squared-argument threshold below which Taylor branches are used.
+
+    √eps keeps the truncated Taylor series exact to eps^1.5 and keeps the
+    closed form away from the cancellation that spoils its gradient near 0.
+    """
+    return jnp.sqrt(jnp.finfo(dtype).eps)
+
+
+def qmul(p, q):
+    """Hamilton product p ⊗ q, paper 004 app. A.
+
+    ``p``, ``q``: (..., 4) scalar-first, broadcast against each other.
+    Returns (..., 4) = [p0 q0 − p_v·q_v, p0 q_v + q0 p_v + p_v × q_v].
+    The rotation of p ⊗ q is C(p) C(q) (apply q first).
+    """
+    p = jnp.asarray(p)
+    q = jnp.asarray(q)
+    p0, p1, p2, p3 = p[..., 0], p[..., 1], p[..., 2], p[..., 3]
+    q0, q1, q2, q3 = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    return jnp.stack(
+        [
+            p0 * q0 - p1 * q1 - p2 * q2 - p3 * q3,
+            p0 * q1 + p1 * q0 + p2 * q3 - p3 * q2,
+            p0 * q2 - p1 * q3 + p2 * q0 + p3 * q1,
+            p0 * q3 + p1 * q2 - p2 * q1 + p3 * q0,
+        ],
+        axis=-1,
+    )
+
+
+def qconj(q):
+    """Conjugate [q0, −q_v] (the inverse for a unit quaternion).  (..., 4)."""
+    q = jnp.asarray(q)
+    return q * jnp.asarray([1.0, -1.0, -1.0, -1.0], dtype=q.dtype)
+
+
+def qnormalize(q):
+    """q / ‖q‖ along the last axis.  (..., 4); undefined for q = 0."""
+    q = jnp.asarray(q)
+    return q / jnp.linalg.norm(q, axis=-1, keepdims=True)
+
+
+def qcanonical(q):
+    """Sign-canonical representative of ±q with q0 ≥ 0.  (..., 4).
+
+    At q0 = 0 the input sign is kept (both signs are the same rotation).
+    """
+    q = jnp.asarray(q)
+    return jnp.where(q[..., :1] < 0, -q, q)
+
+
+def qrotate(q, v):
+    """Rotate body vectors into the reference frame: C_NB(q) v.
+
+    ``q``: (..., 4) unit quaternion; ``v``: (..., 3) (broadcast).  Returns
+    (..., 3) = q ⊗ [0, v] ⊗ q*, computed as v + q0 t + q_v × t with
+    t = 2 q_v × v (no 3×3 matrix is formed).
+    """
+    q = jnp.asarray(q)
+    v = jnp.asarray(v)
+    qv = q[..., 1:]
+    qv, v = jnp.broadcast_arrays(qv, v)
+    t = 2.0 * jnp.cross(qv, v)
+    return v + q[..., :1] * t + jnp.cross(qv, t)
+
+
+def dcm_from_quat(q):
+    """Rotation matrix C_NB of a unit quaternion (Hamilton, scalar first).
+
+    ``q``: (..., 4).  Returns (..., 3, 3) =
+    (q0² − |q_v|²) I + 2 q_v q_vᵀ + 2 q0 [q_v]×.
+    """
+    q = jnp.asarray(q)
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    ww, xx, yy, zz = w * w, x * x, y * y, z * z
+    xy, xz, yz = x * y, x * z, y * z
+    wx, wy, wz = w * x, w * y, w * z
+    rows = [
+        [ww + xx - yy - zz, 2 * (xy - wz), 2 * (xz + wy)],
+        [2 * (xy + wz), ww - xx + yy - zz, 2 * (yz - wx)],
+        [2 * (xz - wy), 2 * (yz + wx), ww - xx - yy + zz],
+    ]
+    return jnp.stack([jnp.stack(r, axis=-1) for r in rows], axis=-2)
+
+
+def quat_from_dcm(C):
+    """Unit quaternion of a rotation matrix by Shepperd's method.
+
+    ``C``: (..., 3, 3) rotation matrix C_NB.  Returns (..., 4), normalised,
+    with q0 ≥ 0.  The component with the largest 4q_k² (from the trace and
+    the diagonal) is taken from a square root and the other three from
+    off-diagonal sums/differences divided by it, so no branch divides by a
+    small number; branches are selected with ``jnp.where`` (jit/vmap-safe,
+    finite gradients).
+    """
+    C = jnp.asarray(C)
+    c00, c01, c02 = C[..., 0, 0], C[..., 0, 1], C[..., 0, 2]
+    c10, c11, c12 = C[..., 1, 0], C[..., 1, 1], C[..., 1, 2]
+    c20, c21, c22 = C[..., 2, 0], C[..., 2, 1], C[..., 2, 2]
+    tr = c00 + c11 + c22
+    s = jnp.stack([1 + tr, 1 + 2 * c00 - tr, 1 + 2 * c11 - tr, 1 + 2 * c22 - tr], axis=-1)
+    k = jnp.argmax(s, axis=-1)
+    # 4 q_k q_j for every pair, from off-diagonal terms.
+    d01, d02, d03 = c21 - c12, c02 - c20, c10 - c01  # 4 q0 q1, 4 q0 q2, 4 q0 q3
+    d12, d13, d23 = c01 + c10, c02 + c20, c12 + c21  # 4 q1 q2, 4 q1 q3, 4 q2 q3
+    cands = []
+    for i, rows in enumerate(
+        [
+            (None, d01, d02, d03),
+            (d01, None, d12, d13),
+            (d02, d12, None, d23),
+            (d03, d13, d23, None),
+        ]
+    ):
+        chosen = k == i
+        # Double where: unchosen branches get a harmless radicand so neither
+        # their value nor their gradient can be NaN/Inf.
+        r = jnp.sqrt(jnp.where(chosen, s[..., i], 1.0))  # = 2 |q_i|
+        comps = [r * 0.5 if d is None else d / (2.0 * r) for d in rows]
+        cands.append(jnp.where(chosen[..., None], jnp.stack(comps, axis=-1), 0.0))
+    q = cands[0] + cands[1] + cands[2] + cands[3]
+    return qcanonical(qnormalize(q))
+
+
+def quat_from_euler(euler):
+    """Quaternion of the 3-2-1 Euler angles, q = q_z(ψ) ⊗ q_y(θ) ⊗ q_x(φ).
+
+    Paper 000 eq. 1 (C_NB = C3(ψ) C2(θ) C1(φ)); paper 004 eq. 3.4.
+    ``euler``: (..., 3) [φ, θ, ψ] radians.  Returns (..., 4) unit quaternion
+    (smooth closed form, sign not canonicalised).
+    """
+    euler = jnp.asarray(euler)
+    h = 0.5 * euler
+    cf, sf = jnp.cos(h[..., 0]), jnp.sin(h[..., 0])
+    ct, st = jnp.cos(h[..., 1]), jnp.sin(h[..., 1])
+    cp, sp = jnp.cos(h[..., 2]), jnp.sin(h[..., 2])
+    return jnp.stack(
+        [
+            cf * ct * cp + sf * st * sp,
+            sf * ct * cp - cf * st * sp,
+            cf * st * cp + sf * ct * sp,
+            cf * ct * sp - sf * st * cp,
+        ],
+        axis=-1,
+    )
+
+
+def euler_from_quat(q):
+    """3-2-1 Euler angles [φ, θ, ψ] of a unit quaternion.  (..., 4) -> (..., 3).
+
+    Through :func:`dcm_from_quat` and :func:`euler_from_dcm` (same ranges and
+    gimbal-lock convention: φ = 0 at θ = ±90°).
+    """
+    return euler_from_dcm(dcm_from_quat(q))
+
+
+def qexp(rotvec):
+    """Exponential map: rotation vector -> unit quaternion.  Paper 004 app. A.
+
+    ``rotvec``: (..., 3) = θ u (radians, u unit axis).  Returns (..., 4)
+    = [cos(θ/2), sin(θ/2) u].  Near θ = 0 a Taylor branch keeps the value and
+    the gradient (dq/dr = [0; I/2] at 0) exact and finite.
+    """
+    r = jnp.asarray(rotvec)
+    t2 = jnp.sum(r * r, axis=-1)
+    small = t2 < _small_threshold(r.dtype)
+    t2s = jnp.where(small, 1.0, t2)
+    t = jnp.sqrt(t2s)
+    half = 0.5 * t
+    w_big = jnp.cos(half)
+    k_big = jnp.sin(half) / t
+    w_small = 1.0 - t2 / 8.0 + t2 * t2 / 384.0
+    k_small = 0.5 - t2 / 48.0 + t2 * t2 / 3840.0
+    w = jnp.where(small, w_small, w_big)
+    k = jnp.where(small, k_small, k_big)
+    return jnp.concatenate([w[..., None], k[..., None] * r], axis=-1)
+
+
+def qlog(q):
+    """Logarithm map: quaternion -> shortest rotation vector.  Paper 004 app. A.
+
+    ``q``: (..., 4), any non-zero norm.  Returns (..., 3) = θ u with
+    θ = 2 atan2(|q_v|, |q0|) ∈ [0, π] (q and −q give the same result).  A
+    Taylor branch near the identity keeps values and gradients finite; near
+    q0 = 0 (θ ≈ π) the atan2 form is smooth.  At q0 = 0 exactly the result
+    jumps between ±π u (inherent to the double cover).
+    """
+    q = qcanonical(q)
+    w = q[..., 0]
+    v = q[..., 1:]
+    n2 = jnp.sum(v * v, axis=-1)
+    small = n2 < _small_threshold(q.dtype) * w * w
+    n2s = jnp.where(small, 1.0, n2)
+    n = jnp.sqrt(n2s)
+    k_big = 2.0 * jnp.arctan2(n, w) / n
+    ws = jnp.where(small, w, 1.0)
+    x2 = n2 / (ws * ws)
+    # atan(x)/x = 1 − x²/3 + x⁴/5 − …
+    k_small = (2.0 / ws) * (1.0 - x2 / 3.0 + x2 * x2 / 5.0)
+    k = jnp.where(small, k_small, k_big)
+    return k[..., None] * v
