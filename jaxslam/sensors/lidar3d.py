@@ -1,0 +1,294 @@
+"""Body-frame 3D LiDAR: azimuth, elevation, range of point landmarks (paper 000 eq. 30-31, 44-45).
+
+Frames: NED inertial frame N, body frame B (b̂1 along the LiDAR boresight, b̂2 right, b̂3 down),
+C_NB of paper 000 eq. 1 (``jaxslam.geometry.euler.dcm_from_euler``, 3-2-1 Euler angles
+Λ = (φ, θ, ψ)).  A landmark l (N frame, m) seen from position ρ has body coordinates
+c = C_NBᵀ(l − ρ) and measurement y = [α, β, δ]:
+
+* azimuth   α = atan2(c2, c1) ∈ (−π, π]  (positive towards b̂2, to the right),
+* elevation β = atan2(c3, √(c1² + c2²)) ∈ [−π/2, π/2]  (positive **below** the body x-y plane,
+  because b̂3 points down),
+* range     δ = ‖c‖ [m].
+
+Decisions where the paper is silent or wrong (also in docs/papers.md):
+
+* Eq. 31 is inconsistent with eq. 45 (its first row is an elevation and its second uses
+  atan(c1/c2)).  jaxslam uses the model that eq. 44-45 invert (errata in the papers README):
+  the three rows above, in the order y = [α, β, δ] of Sec. 2.3.3.
+* atan2 (not atan) keeps the azimuth right in all four quadrants; the elevation uses atan2 of
+  the horizontal range so its derivative stays finite up to ±90°.
+* Norms use ``jaxslam.linalg.safe_norm`` and the angles double-``where`` guards: the model is
+  smooth wherever δ > 0 and the landmark is not straight above/below the sensor (c1 = c2 = 0,
+  where the azimuth is undefined).  At those degenerate points the undefined angle reads 0 with
+  zero partials, so values and Jacobians stay finite (the range keeps its true gradient
+  wherever δ > 0).
+* FOV (Table 4) boundaries are **inclusive**: a landmark exactly at ±45° azimuth, ±30°
+  elevation or at 0 m / 100 m is visible.  :func:`in_fov` compares in the measurement's dtype.
+* Table 4 σ's are standard deviations of independent Gaussian noise on α, β, δ.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..errors import InputError
+from ..geometry.euler import dcm_from_euler
+from ..linalg import check_shape, safe_norm, wrap_angle
+
+__all__ = [
+    "LidarSpec",
+    "PAPER000_LIDAR",
+    "check_lidar_spec",
+    "spherical_from_cartesian",
+    "cartesian_from_spherical",
+    "measure",
+    "measure_state",
+    "inverse",
+    "inverse_state",
+    "in_fov",
+    "measure_all",
+    "innovation",
+    "measurement_cov",
+    "sample_noise",
+]
+
+
+class LidarSpec(NamedTuple):
+    """LiDAR field of view and noise (paper 000 Table 4).  Angles in rad, ranges in m.
+
+    Fields may be Python floats or scalar arrays.
+    """
+
+    az_min: Any = -math.pi / 4
+    """Azimuth FOV lower bound [rad]; Table 4: −45°."""
+    az_max: Any = math.pi / 4
+    """Azimuth FOV upper bound [rad]; Table 4: +45°."""
+    el_min: Any = -math.pi / 6
+    """Elevation FOV lower bound [rad]; Table 4: −30° (above the body x-y plane)."""
+    el_max: Any = math.pi / 6
+    """Elevation FOV upper bound [rad]; Table 4: +30° (below the body x-y plane)."""
+    range_min: Any = 0.0
+    """Minimum range [m]; Table 4: 0 m."""
+    range_max: Any = 100.0
+    """Maximum range [m]; Table 4: 100 m."""
+    sigma_az: Any = math.radians(0.33)
+    """Azimuth noise std σ_α [rad]; Table 4: 0.33°."""
+    sigma_el: Any = math.radians(0.3)
+    """Elevation noise std σ_β [rad]; Table 4: 0.3°."""
+    sigma_range: Any = 0.1
+    """Range noise std σ_δ [m]; Table 4: 0.1 m."""
+    rate: Any = 10.0
+    """Sampling rate [Hz]; Table 4: 10 Hz."""
+
+
+PAPER000_LIDAR = LidarSpec()
+"""Paper 000 Table 4: FOV ±45° × ±30°, range [0, 100] m, σ = (0.33°, 0.3°, 0.1 m), 10 Hz."""
+
+
+def check_lidar_spec(spec: LidarSpec, name: str = "spec") -> LidarSpec:
+    """Host-side validation (before jit): finite scalars, min ≤ max, σ ≥ 0, rate > 0.
+
+    Raises :class:`~jaxslam.errors.InputError` naming the field.
+    """
+    if not isinstance(spec, LidarSpec):
+        raise InputError(f"{name}: expected a LidarSpec, got {type(spec).__name__}")
+    vals = {}
+    for f in LidarSpec._fields:
+        v = np.asarray(getattr(spec, f), dtype=np.float64)
+        if v.shape != ():
+            raise InputError(f"{name}.{f}: expected a scalar, got shape {v.shape}")
+        if not np.isfinite(v):
+            raise InputError(f"{name}.{f}: must be finite, got {v}")
+        vals[f] = float(v)
+    for lo, hi in (("az_min", "az_max"), ("el_min", "el_max"), ("range_min", "range_max")):
+        if vals[lo] > vals[hi]:
+            raise InputError(f"{name}.{lo}: {vals[lo]} exceeds {name}.{hi} = {vals[hi]}")
+    for f in ("sigma_az", "sigma_el", "sigma_range"):
+        if vals[f] < 0:
+            raise InputError(f"{name}.{f}: must be >= 0, got {vals[f]}")
+    if vals["rate"] <= 0:
+        raise InputError(f"{name}.rate: must be > 0, got {vals['rate']}")
+    if vals["el_min"] < -math.pi / 2 or vals["el_max"] > math.pi / 2:
+        raise InputError(f"{name}.el_min/el_max: elevation bounds must lie in [-pi/2, pi/2]")
+    return spec
+
+
+# ---------------------------------------------------------------------------
+# Spherical <-> Cartesian (shared with range_bearing3d)
+# ---------------------------------------------------------------------------
+
+def spherical_from_cartesian(c):
+    """[α, β, δ] of a vector c (paper 000 eq. 31 per errata; paper 001 eq. 13).
+
+    Args: c: (..., 3) Cartesian vector [m].
+    Returns: (..., 3) [atan2(c2, c1), atan2(c3, √(c1²+c2²)), ‖c‖].
+    """
+    horiz = safe_norm(c[..., :2], axis=-1)
+    rng = safe_norm(c, axis=-1)
+    # Double-where guards: where an angle is undefined (c1 = c2 = 0 for α, c = 0 for β) it is
+    # evaluated as atan2(0, 1) = 0, so no NaN partials leak into the range's gradient.
+    has_h = horiz > 0
+    has_r = rng > 0
+    az = jnp.arctan2(jnp.where(has_h, c[..., 1], 0.0), jnp.where(has_h, c[..., 0], 1.0))
+    el = jnp.arctan2(jnp.where(has_r, c[..., 2], 0.0), jnp.where(has_r, horiz, 1.0))
+    return jnp.stack([az, el, rng], axis=-1)
+
+
+def cartesian_from_spherical(y):
+    """ϱ(y) = δ [cos β cos α, cos β sin α, sin β] (paper 000 eq. 45; paper 001 eq. 15).
+
+    Args: y: (..., 3) [α rad, β rad, δ m].  Returns: (..., 3) [m].
+    """
+    az, el, rng = y[..., 0], y[..., 1], y[..., 2]
+    ce = jnp.cos(el)
+    return jnp.stack([rng * ce * jnp.cos(az), rng * ce * jnp.sin(az), rng * jnp.sin(el)], axis=-1)
+
+
+# ---------------------------------------------------------------------------
+# Measurement model and inverse
+# ---------------------------------------------------------------------------
+
+def measure(pos, euler, landmark):
+    """LiDAR measurement h_o (paper 000 eq. 30-31, corrected per errata).
+
+    Args:
+      pos: (3,) quadcopter position ρ in N (NED) [m].
+      euler: (3,) Λ = (φ, θ, ψ) [rad], 3-2-1.
+      landmark: (3,) or (L, 3) landmark position(s) l in N [m].
+
+    Returns:
+      (3,) or (L, 3) y = [α, β, δ] [rad, rad, m] with c = C_NBᵀ(l − ρ) (module docstring).
+    """
+    check_shape(pos, (3,), "pos")
+    check_shape(euler, (3,), "euler")
+    if np.ndim(landmark) not in (1, 2) or np.shape(landmark)[-1] != 3:
+        raise InputError(f"landmark: expected shape (3,) or (L, 3), got {np.shape(landmark)}")
+    C = dcm_from_euler(euler)
+    # Row-vector form d @ C equals (C_NBᵀ d)ᵀ for every landmark at once.
+    c = (landmark - pos) @ C
+    return spherical_from_cartesian(c)
+
+
+def _split_state(s, name="s"):
+    if np.ndim(s) != 1 or np.shape(s)[0] not in (9, 12):
+        raise InputError(f"{name}: expected shape (9,) or (12,), got {np.shape(s)}")
+    return s[0:3], s[6:9]
+
+
+def measure_state(s, landmark):
+    """h_o(s, l) of paper 000 eq. 30 on the EKF state s = [ρ (3), v_B (3), Λ (3)].
+
+    Args:
+      s: (9,) EKF state (eq. 24); a (12,) state (eq. 2) is accepted too.  Only ρ and Λ are
+        read, so ∂h/∂v_B = 0 (and ∂h/∂ω = 0).
+      landmark: (3,) l in N [m].
+
+    Returns: (3,) [α, β, δ].  Differentiable in s and l (``jax.jacfwd`` gives H of eq. 40).
+    """
+    pos, euler = _split_state(s)
+    check_shape(landmark, (3,), "landmark")
+    return measure(pos, euler, landmark)
+
+
+def inverse(pos, euler, y):
+    """Inverse observation model l = g(s, y) = C_NB ϱ(y) + ρ (paper 000 eq. 44-45).
+
+    Args:
+      pos: (3,) ρ [m].  euler: (3,) Λ [rad].  y: (3,) or (L, 3) [α, β, δ].
+
+    Returns: (3,) or (L, 3) landmark position(s) in N [m].
+    """
+    check_shape(pos, (3,), "pos")
+    check_shape(euler, (3,), "euler")
+    if np.ndim(y) not in (1, 2) or np.shape(y)[-1] != 3:
+        raise InputError(f"y: expected shape (3,) or (L, 3), got {np.shape(y)}")
+    C = dcm_from_euler(euler)
+    return cartesian_from_spherical(y) @ C.T + pos
+
+
+def inverse_state(s, y):
+    """g(s, y_l) of paper 000 eq. 44 on the EKF state s (9,) (or (12,)); y (3,).
+
+    Returns (3,) l in N [m].  ``jax.jacfwd`` w.r.t. s and y gives G_s, G_l of eq. 49.
+    """
+    pos, euler = _split_state(s)
+    check_shape(y, (3,), "y")
+    return inverse(pos, euler, y)
+
+
+# ---------------------------------------------------------------------------
+# Field of view, noise
+# ---------------------------------------------------------------------------
+
+def in_fov(y, spec: LidarSpec = PAPER000_LIDAR):
+    """Visibility mask of measurement(s) y under the FOV of Table 4 (inclusive bounds).
+
+    Args: y: (..., 3) [α, β, δ].  spec: :class:`LidarSpec`.
+    Returns: (...,) bool, True where az_min ≤ α ≤ az_max, el_min ≤ β ≤ el_max and
+    range_min ≤ δ ≤ range_max (bounds cast to y's dtype, so a measurement equal to a bound
+    after rounding counts as visible).
+    """
+    if np.shape(y)[-1:] != (3,):
+        raise InputError(f"y: expected shape (..., 3), got {np.shape(y)}")
+    y = jnp.asarray(y)
+    dt = y.dtype
+
+    def within(v, lo, hi):
+        return (v >= jnp.asarray(lo, dt)) & (v <= jnp.asarray(hi, dt))
+
+    return (within(y[..., 0], spec.az_min, spec.az_max)
+            & within(y[..., 1], spec.el_min, spec.el_max)
+            & within(y[..., 2], spec.range_min, spec.range_max))
+
+
+def measure_all(pos, euler, landmarks, spec: LidarSpec = PAPER000_LIDAR):
+    """Noise-free measurements of every landmark and their visibility (paper 000 Sec. 2.3.3).
+
+    Args:
+      pos: (3,) ρ [m].  euler: (3,) Λ [rad].  landmarks: (L, 3) in N [m].
+      spec: :class:`LidarSpec` (FOV).
+
+    Returns: (y (L, 3) [α, β, δ], visible (L,) bool).  y is returned for every landmark;
+    callers mask with ``visible``.
+    """
+    check_shape(landmarks, (None, 3), "landmarks")
+    y = measure(pos, euler, landmarks)
+    return y, in_fov(y, spec)
+
+
+def innovation(y, y_pred):
+    """Measurement residual y − ŷ with the azimuth wrapped to [−π, π) (for EKF updates).
+
+    Args: y, y_pred: (..., 3) [α, β, δ].  Returns (..., 3).  Elevation lies in [−π/2, π/2]
+    and range is not periodic, so only α is wrapped.
+    """
+    r = y - y_pred
+    return r.at[..., 0].set(wrap_angle(r[..., 0]))
+
+
+def measurement_cov(spec: LidarSpec = PAPER000_LIDAR, dtype=None):
+    """R_ζ = diag(σ_α², σ_β², σ_δ²) (paper 000 eq. 30, Table 4), shape (3, 3)."""
+    dtype = jnp.result_type(float) if dtype is None else jnp.dtype(dtype)
+    s = jnp.stack([jnp.asarray(spec.sigma_az, dtype), jnp.asarray(spec.sigma_el, dtype),
+                   jnp.asarray(spec.sigma_range, dtype)])
+    return jnp.diag(s * s)
+
+
+def sample_noise(key, spec: LidarSpec = PAPER000_LIDAR, shape_prefix=(), dtype=None):
+    """Gaussian measurement noise ζ ~ N(0, R_ζ) (paper 000 eq. 30, Table 4).
+
+    Args: key: PRNG key.  shape_prefix: static leading shape.  dtype: float dtype (default
+    JAX's default float).
+    Returns: (*shape_prefix, 3) with stds (σ_α rad, σ_β rad, σ_δ m).
+    """
+    dtype = jnp.result_type(float) if dtype is None else jnp.dtype(dtype)
+    s = jnp.stack([jnp.asarray(spec.sigma_az, dtype), jnp.asarray(spec.sigma_el, dtype),
+                   jnp.asarray(spec.sigma_range, dtype)])
+    shape = tuple(int(d) for d in shape_prefix) + (3,)
+    # Flat draw + reshape: XLA on CPU compiles it several times faster than an (N, 3) draw.
+    return jax.random.normal(key, (int(np.prod(shape)),), dtype).reshape(shape) * s
