@@ -218,7 +218,6 @@ def run_scenario(name, mode, runs, seed, dtype, options, progress, params=None):
         "masked_measurements": int(np.sum(counts["masked"])),
         "dropped_measurements": int(np.sum(counts["dropped"])),
         "non_finite": int(np.sum(counts["non_finite"])),
-        "status_flags": decode(status_any),
     }
 
     def plot(directory):
@@ -248,7 +247,8 @@ def run_scenario(name, mode, runs, seed, dtype, options, progress, params=None):
         flags=flags,
         timing={"compile_s": mc.compile_s, "run_s": mc.run_s},
         plot=plot,
-        extra={"consistency_detail": {k: v for k, v in cons.items()
+        extra={"status_flags": decode(status_any),
+               "consistency_detail": {k: v for k, v in cons.items()
                                       if k not in ("anees", "anees_bounds", "nis_mean", "nis_bounds")},
                "devices": mc.n_devices},
     )

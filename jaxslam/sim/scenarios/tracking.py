@@ -43,11 +43,13 @@ def paper000_figure8(altitude: float = 3.0, ramp: float = 0.0):
     """The figure-8 of jaxslam's paper-000 scenarios (the paper gives no numbers).
 
     Gerono lemniscate 10 m × 5 m (a_x = 5, a_y = 2.5), period 25 s (two loops in
-    50 s), fixed heading ψ = 0, centre above the origin at ``altitude`` metres
-    (NED z = −altitude).  With ``ramp = 0`` the reference starts on the figure-8
+    50 s), heading along the path (the forward-looking LiDAR sweeps the landmark
+    field; with a fixed heading its ±45° field of view sees only the landmarks to
+    the north), centre above the origin at ``altitude`` metres (NED z = −altitude).  With ``ramp = 0`` the reference starts on the figure-8
     while the vehicle starts at rest at the origin, as in the paper.
     """
-    return trajectories.Figure8(center=(0.0, 0.0, -float(altitude)), ramp_time=float(ramp))
+    return trajectories.Figure8(center=(0.0, 0.0, -float(altitude)), ramp_time=float(ramp),
+                                heading_along_path=1.0)
 
 
 def controller_to_dict(ctrl) -> dict:

@@ -1,0 +1,200 @@
+"""Tests of jaxslam.metrics against NumPy/SciPy oracles and closed forms."""
+
+import json
+
+import jax
+import numpy as np
+import pytest
+from scipy import stats
+from scipy.spatial.transform import Rotation
+
+from jaxslam import metrics
+from jaxslam.errors import InputError
+
+
+# --------------------------------------------------------------------------
+# RMSE
+# --------------------------------------------------------------------------
+
+def test_rmse_definitions_by_hand():
+    err = np.array([[3.0, 4.0, 0.0], [0.0, 0.0, 2.0], [1.0, -2.0, 2.0]])
+    # per axis: sqrt((9+0+1)/3), sqrt((16+0+4)/3), sqrt((0+4+4)/3)
+    np.testing.assert_allclose(np.asarray(metrics.rmse(err)),
+                               np.sqrt([10 / 3, 20 / 3, 8 / 3]), rtol=1e-15)
+    # norm: sqrt((25 + 4 + 9)/3)
+    np.testing.assert_allclose(float(metrics.rmse_norm(err)), np.sqrt(38 / 3), rtol=1e-15)
+    np.testing.assert_allclose(float(metrics.rmse_norm(err)) ** 2,
+                               float(np.sum(np.asarray(metrics.rmse(err)) ** 2)), rtol=1e-14)
+    # batched over runs: (R, T, d) with axis=1
+    errs = np.stack([err, 2 * err])
+    np.testing.assert_allclose(np.asarray(metrics.rmse_norm(errs, axis=1)),
+                               [np.sqrt(38 / 3), 2 * np.sqrt(38 / 3)], rtol=1e-15)
+    np.testing.assert_allclose(np.asarray(metrics.rmse(errs, axis=1))[1],
+                               2 * np.sqrt([10 / 3, 20 / 3, 8 / 3]), rtol=1e-15)
+
+
+# --------------------------------------------------------------------------
+# NEES / NIS
+# --------------------------------------------------------------------------
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_nees_nis_against_numpy(dtype):
+    rng = np.random.default_rng(0)
+    A = rng.normal(size=(7, 5, 4, 4))
+    P = A @ np.swapaxes(A, -1, -2) + 0.5 * np.eye(4)
+    e = rng.normal(size=(7, 5, 4))
+    ref = np.einsum("...i,...i->...", e, np.linalg.solve(P, e[..., None])[..., 0])
+    got = jax.jit(metrics.nees)(e.astype(dtype), P.astype(dtype))
+    assert got.shape == (7, 5) and got.dtype == dtype
+    tol = 1e-4 if dtype == np.float32 else 1e-12
+    np.testing.assert_allclose(np.asarray(got), ref, rtol=tol)
+    # Broadcasting one covariance over many errors; nis is the same statistic.
+    got = metrics.nis(e.astype(dtype), P[0, 0].astype(dtype))
+    ref = np.einsum("...i,...i->...", e, e @ np.linalg.inv(P[0, 0]).T)
+    np.testing.assert_allclose(np.asarray(got), ref, rtol=tol)
+
+
+def test_nees_not_pd_is_nan():
+    assert np.isnan(float(metrics.nees(np.ones(2), -np.eye(2))))
+
+
+# --------------------------------------------------------------------------
+# Chi-square quantiles
+# --------------------------------------------------------------------------
+
+DOFS = np.array([1, 2, 3, 4, 6, 10, 25, 60, 150, 400, 1000, 3000, 10_000, 30_000, 100_000])
+PS = np.array([1e-8, 1e-4, 0.005, 0.025, 0.05, 0.3, 0.5, 0.7, 0.95, 0.975, 0.995, 1 - 1e-6])
+
+
+def test_chi2_ppf_matches_scipy_float64():
+    P, K = np.meshgrid(PS, DOFS)
+    rng = np.random.default_rng(1)
+    # Random probabilities and non-integer dof, including dof < 1.
+    pr = rng.uniform(1e-6, 1 - 1e-6, 500)
+    kr = 10 ** rng.uniform(-1, 5, 500)
+    edges_p = np.array([0.0, 1.0, -0.1, 1.1, 0.5])
+    edges_k = np.array([3.0, 3.0, 3.0, 3.0, 0.0])
+    p = np.concatenate([P.ravel(), pr, edges_p])
+    k = np.concatenate([K.ravel(), kr, edges_k])
+    got = np.asarray(jax.jit(metrics.chi2_ppf)(p, k))  # one compilation
+    n = P.size + pr.size
+    np.testing.assert_allclose(got[:n], stats.chi2.ppf(p[:n], k[:n]), rtol=1e-9)
+    ed = got[n:]
+    assert ed[0] == 0 and ed[1] == np.inf and np.all(np.isnan(ed[2:]))
+
+
+def test_chi2_ppf_float32():
+    P, K = np.meshgrid(PS[1:-1], DOFS)
+    got = jax.jit(metrics.chi2_ppf)(P.astype(np.float32), K.astype(np.int32))
+    assert got.dtype == np.float32 and np.all(np.isfinite(got))
+    # float32 regularised incomplete gamma limits the accuracy at large dof.
+    np.testing.assert_allclose(np.asarray(got), stats.chi2.ppf(P, K), rtol=5e-4)
+
+
+def test_chi2_ppf_np_matches_scipy():
+    for k in (1, 2, 5, 37, 800, 12_345, 100_000):
+        for p in (1e-6, 0.025, 0.5, 0.975, 1 - 1e-6):
+            assert metrics.chi2_ppf_np(p, k) == pytest.approx(stats.chi2.ppf(p, k), rel=1e-10)
+    assert metrics.chi2_ppf_np(0.0, 3) == 0.0 and metrics.chi2_ppf_np(1.0, 3) == np.inf
+    with pytest.raises(InputError):
+        metrics.chi2_ppf_np(1.5, 3)
+
+
+def test_bounds_against_scipy():
+    for n, N in [(3, 1), (4, 50), (9, 200), (15, 1000)]:
+        lo, hi = metrics.anees_bounds(n, N)
+        assert isinstance(lo, float) and isinstance(hi, float)
+        np.testing.assert_allclose(
+            (lo, hi), (stats.chi2.ppf(0.025, n * N) / N, stats.chi2.ppf(0.975, n * N) / N),
+            rtol=1e-10)
+    lo, hi = metrics.mean_chi2_bounds(5000, 1800, alpha=0.01)
+    np.testing.assert_allclose(
+        (lo, hi), (stats.chi2.ppf(0.005, 5000) / 1800, stats.chi2.ppf(0.995, 5000) / 1800),
+        rtol=1e-10)
+    with pytest.raises(InputError, match="n_runs"):
+        metrics.anees_bounds(3, 0)
+    with pytest.raises(InputError, match="alpha"):
+        metrics.mean_chi2_bounds(3, 2, alpha=1.5)
+
+
+# --------------------------------------------------------------------------
+# Windows and summaries
+# --------------------------------------------------------------------------
+
+def test_windowed_mean_against_loop():
+    rng = np.random.default_rng(2)
+    t = np.cumsum(rng.uniform(0.05, 0.15, 103))
+    x = rng.normal(size=(4, 103))
+    x[1, 7] = np.nan  # a missing value is excluded, not zero
+    w = metrics.windowed_mean(x, t, 2.0)
+    t0 = t[0]
+    n_win = int(np.ceil((t[-1] - t0) / 2.0))
+    assert w.mean.shape == (n_win,)
+    for k in range(n_win):
+        sel = (t >= t0 + 2 * k) & ((t < t0 + 2 * (k + 1)) | (k == n_win - 1))
+        vals = x[:, sel].ravel()
+        vals = vals[np.isfinite(vals)]
+        assert w.count[k] == vals.size
+        np.testing.assert_allclose(w.mean[k], vals.mean(), rtol=1e-13)
+        assert w.t_start[k] == pytest.approx(t0 + 2 * k)
+    assert w.count.sum() == x.size - 1
+    # 1-D input and a single window.
+    w1 = metrics.windowed_mean(x[0], t, 1e3)
+    np.testing.assert_allclose(w1.mean, [x[0].mean()], rtol=1e-13)
+    with pytest.raises(InputError, match="t"):
+        metrics.windowed_mean(x, t[:-1], 1.0)
+    with pytest.raises(InputError, match="window_s"):
+        metrics.windowed_mean(x, t, 0.0)
+
+
+def test_summarize_is_json_ready():
+    v = np.array([3.0, 1.0, 2.0, 10.0, 4.0])
+    s = metrics.summarize(v)
+    assert set(s) == {"mean", "median", "p95", "max", "per_run"}
+    assert s["mean"] == 4.0 and s["median"] == 3.0 and s["max"] == 10.0
+    assert s["p95"] == pytest.approx(np.percentile(v, 95))
+    assert s["per_run"] == [3.0, 1.0, 2.0, 10.0, 4.0]
+    assert json.loads(json.dumps(s)) == s
+    assert all(type(s[k]) is float for k in ("mean", "median", "p95", "max"))
+    assert np.isnan(metrics.summarize([1.0, np.nan])["mean"])
+
+
+# --------------------------------------------------------------------------
+# Alignment, ATE, RPE
+# --------------------------------------------------------------------------
+
+def test_umeyama_recovers_similarity_and_ate():
+    rng = np.random.default_rng(3)
+    truth = rng.normal(size=(50, 3)) * 5
+    Rt = Rotation.from_rotvec([0.3, -0.8, 1.2]).as_matrix()
+    t = np.array([1.0, -2.0, 0.5])
+    est = (truth - t) @ Rt / 1.7  # truth = 1.7 R est + t
+    R, tt, s = metrics.umeyama(est, truth, with_scale=True)
+    np.testing.assert_allclose(np.asarray(R), Rt, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(tt), t, atol=1e-12)
+    np.testing.assert_allclose(float(s), 1.7, rtol=1e-12)
+    assert float(metrics.ate(est, truth, align="sim")) < 1e-12
+    # Rigid alignment of a rigidly moved, noisy trajectory: ATE equals the
+    # RMSE of the noise after the least-squares fit, below the raw noise RMSE.
+    noise = 0.01 * rng.normal(size=truth.shape)
+    est2 = (truth + noise - t) @ Rt
+    ate = float(metrics.ate(est2, truth))
+    assert 0.8 * np.sqrt(np.mean(np.sum(noise**2, 1))) < ate
+    assert ate <= np.sqrt(np.mean(np.sum(noise**2, 1)))
+    assert float(metrics.ate(est2, truth, align="none")) > 1.0
+    # Reflection guard: a mirrored point set still yields a proper rotation.
+    R2, _, _ = metrics.umeyama(truth * np.array([1, 1, -1]), truth)
+    assert np.linalg.det(np.asarray(R2)) == pytest.approx(1.0)
+
+
+def test_rpe_by_hand():
+    truth = np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0], [3.0, 0.0]])
+    est = truth + np.array([[5.0, 5.0], [5.0, 5.0], [5.5, 5.0], [5.5, 5.0]])
+    # lag 1 displacement errors: 0, 0.5, 0 -> sqrt(0.25/3)
+    assert float(metrics.rpe(est, truth)) == pytest.approx(np.sqrt(0.25 / 3))
+    # lag 2: 0.5, 0.5 -> 0.5
+    assert float(metrics.rpe(est, truth, lag=2)) == pytest.approx(0.5)
+    with pytest.raises(InputError, match="lag"):
+        metrics.rpe(est, truth, lag=4)
+    with pytest.raises(InputError, match="align"):
+        metrics.ate(est, truth, align="affine")
