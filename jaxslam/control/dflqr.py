@@ -45,6 +45,9 @@ __all__ = [
     "validate",
     "gain",
     "control",
+    "Reference",
+    "reference_at",
+    "control_ref",
 ]
 
 _Q000 = tuple(tuple(float(v) if i == j else 0.0 for j, v in enumerate((0.01,) * 6 + (0.04,)))
@@ -132,30 +135,49 @@ def gain(params: DFLQRParams, dtype=None, *, return_status: bool = False):
     return lqr_gain(A, B, Q, R)[0]
 
 
-def control(x_est, t, traj, K, params: DFLQRParams, *, feedforward: bool = False):
-    """One DF-LQR control step, paper 000 Fig. 2 (eq. 4-5, 7, 12, 14-20).
+class Reference(NamedTuple):
+    """The time-only part of a control step (no state): precompute it along a time grid.
 
-    ``x_est``: (12,) state [ρ (N, m), v_B (m/s), Λ (rad), ω_B (rad/s)] — the estimate when the
-    controller acts on the EKF output; ``t``: time s; ``traj``: trajectory container;
-    ``K``: (4, 7) gain from :func:`gain`; ``params``: :class:`DFLQRParams`;
-    ``feedforward``: static bool, use the flatness feedforward rates and torques (module
-    docstring).  Returns ``(u (4,) = [f_T (N), τ (3,) (N·m)], info: ControlInfo)``.
-    Pure and jit-able (``feedforward`` static); dtype of ``x_est``.
+    r_d: (7,) [ρ_d, ρ̇_d, ψ_d] (eq. 4).  u_d: (4,) [ρ̈_d − g n̂3, ψ̇_d] (eq. 5).
+    omega_ff: (3,) feedforward body rates; tau_ff: (3,) feedforward torques (zeros unless the
+    reference was built with ``feedforward=True``).
     """
+
+    r_d: jnp.ndarray
+    u_d: jnp.ndarray
+    omega_ff: jnp.ndarray
+    tau_ff: jnp.ndarray
+
+
+def reference_at(t, traj, params: DFLQRParams, *, feedforward: bool = False, dtype=None) -> Reference:
+    """:class:`Reference` at time ``t`` (eq. 4-5 and, optionally, the flatness feedforward).
+
+    It depends on time only, so a simulation evaluates it for the whole time grid at once
+    (``jax.vmap`` over t, outside the time scan) instead of once per step inside it: the
+    nested forward-mode derivatives of the trajectory then run vectorised.
+    """
+    dtype = jnp.result_type(float) if dtype is None else dtype
+    t = jnp.asarray(t, dtype)
+    g = jnp.asarray(params.quad.g, dtype)
+    r_d, u_d = reference(traj, t, g)
+    if feedforward:
+        x_ff, u_ff = _feedforward(traj, t, params.quad)
+        omega_ff, tau_ff = x_ff[9:12].astype(dtype), u_ff[1:4].astype(dtype)
+    else:
+        omega_ff = tau_ff = jnp.zeros((3,), dtype)
+    return Reference(r_d.astype(dtype), u_d.astype(dtype), omega_ff, tau_ff)
+
+
+def control_ref(x_est, ref: Reference, K, params: DFLQRParams, *, feedforward: bool = False):
+    """The state-feedback part of :func:`control` given a precomputed :class:`Reference`."""
     x = jnp.asarray(x_est)
     dtype = x.dtype
-    t = jnp.asarray(t, dtype)
     K = jnp.asarray(K, dtype)
-    quad = params.quad
-    mass = jnp.asarray(quad.mass, dtype)
-    g = jnp.asarray(quad.g, dtype)
-
+    mass = jnp.asarray(params.quad.mass, dtype)
     lam = x[6:9]
     C = dcm_from_euler(lam)
     r = jnp.concatenate([x[0:3], C @ x[3:6], lam[2:3]])
-    r_d, u_d = reference(traj, t, g)
-    r_d = r_d.astype(dtype)
-    u_d = u_d.astype(dtype)
+    r_d, u_d = ref.r_d.astype(dtype), ref.u_d.astype(dtype)
     r_err = r - r_d
     r_err = r_err.at[6].set(wrap_angle(r_err[6]))
     u_tilde = -K @ r_err
@@ -164,12 +186,9 @@ def control(x_est, t, traj, K, params: DFLQRParams, *, feedforward: bool = False
     f_T, phi_d, theta_d, rate_d = inverse_map(u, psi_d, mass, jnp.asarray(params.min_accel, dtype))
     euler_d = jnp.stack([phi_d, theta_d, psi_d])
     if feedforward:
-        x_ff, u_ff = _feedforward(traj, t, quad)
-        x_ff = x_ff.astype(dtype)
-        u_ff = u_ff.astype(dtype)
         yaw_fb = u_tilde[3] * jnp.cos(theta_d) / jnp.maximum(jnp.cos(phi_d), 1e-6)
-        omega_d = x_ff[9:12].at[2].add(yaw_fb)
-        tau_ff = u_ff[1:4]
+        omega_d = ref.omega_ff.astype(dtype).at[2].add(yaw_fb)
+        tau_ff = ref.tau_ff.astype(dtype)
     else:
         omega_d = jnp.stack([jnp.zeros_like(rate_d), jnp.zeros_like(rate_d), rate_d])
         tau_ff = None
@@ -177,3 +196,19 @@ def control(x_est, t, traj, K, params: DFLQRParams, *, feedforward: bool = False
     u_out = jnp.concatenate([f_T[None], tau])
     info = ControlInfo(euler_d=euler_d, omega_d=omega_d, thrust=f_T, r_err=r_err, u_lqr=u, r_d=r_d)
     return u_out, info
+
+
+def control(x_est, t, traj, K, params: DFLQRParams, *, feedforward: bool = False):
+    """One DF-LQR control step, paper 000 Fig. 2 (eq. 4-5, 7, 12, 14-20).
+
+    ``x_est``: (12,) state [ρ (N, m), v_B (m/s), Λ (rad), ω_B (rad/s)] — the estimate when the
+    controller acts on the EKF output; ``t``: time s; ``traj``: trajectory container;
+    ``K``: (4, 7) gain from :func:`gain`; ``params``: :class:`DFLQRParams`;
+    ``feedforward``: static bool, use the flatness feedforward rates and torques (module
+    docstring).  Returns ``(u (4,) = [f_T (N), τ (3,) (N·m)], info: ControlInfo)``.
+    Pure and jit-able (``feedforward`` static); dtype of ``x_est``.  Equals
+    ``control_ref(x_est, reference_at(t, ...), ...)``.
+    """
+    x = jnp.asarray(x_est)
+    ref = reference_at(t, traj, params, feedforward=feedforward, dtype=x.dtype)
+    return control_ref(x, ref, K, params, feedforward=feedforward)

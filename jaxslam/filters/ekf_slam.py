@@ -195,13 +195,15 @@ def predict(state: SlamState, model: SlamModel, u, Q, params=None) -> SlamState:
     Prl = state.P[:nr, nr:]
     Prr_new = symmetrize(F @ Prr @ F.T + Q)
     Prl_new = F @ Prl
-    ok = jnp.all(jnp.isfinite(s_new)) & jnp.all(jnp.isfinite(Prr_new))
+    ok = jnp.all(jnp.isfinite(s_new)) & jnp.all(jnp.isfinite(Prr_new)) & jnp.all(jnp.isfinite(F))
+    # Reject a non-finite prediction block-wise: a select over the whole P would cost O(n²).
+    s_new = jnp.where(ok, s_new, state.x[:nr])
+    Prr_new = jnp.where(ok, Prr_new, Prr)
+    Prl_new = jnp.where(ok, Prl_new, Prl)
     P = state.P
     P = jax.lax.dynamic_update_slice(P, jnp.concatenate([Prr_new, Prl_new], axis=1), (0, 0))
     P = jax.lax.dynamic_update_slice(P, Prl_new.T, (nr, 0))
     x = state.x.at[:nr].set(s_new)
-    x = jnp.where(ok, x, state.x)
-    P = jnp.where(ok, P, state.P)
     return state._replace(x=x, P=P, status=state.status | _flag_if(~ok, errors.NON_FINITE))
 
 

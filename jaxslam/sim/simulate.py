@@ -142,13 +142,12 @@ def simulate(setup: FlightSetup, key, n_frame: int, lidar_every: int,
 
     def step(carry, inp):
         x, est, imu_prev = carry
-        k, key_n = inp
-        t = k.astype(dtype) * dt
+        ref, key_n = inp
         if control_on == "estimate":
             x_ctrl = estimator.ctrl_state(est, imu_prev)
         else:
             x_ctrl = x
-        u, _ = dflqr.control(x_ctrl, t, setup.traj, K, setup.ctrl, feedforward=feedforward)
+        u, _ = dflqr.control_ref(x_ctrl, ref, K, setup.ctrl, feedforward=feedforward)
         x_next = rk4_step(f, x, u, dt)
         imu_true = imu_mod.imu_ideal(x_next, f(x_next, u), g)
         imu_meas = imu_true + imu_sigma * jax.random.normal(key_n, (6,), dtype)
@@ -159,11 +158,10 @@ def simulate(setup: FlightSetup, key, n_frame: int, lidar_every: int,
         return (x_next, est, imu_meas), (x_next, u, imu_meas, out_est)
 
     def frame(carry, inp):
-        fi, key_f = inp
+        refs, key_f = inp
         k_steps, k_meas = jax.random.split(key_f)
-        ks = fi * lidar_every + jnp.arange(lidar_every)
         keys = jax.random.split(k_steps, lidar_every)
-        carry, outs = jax.lax.scan(step, carry, (ks, keys))
+        carry, outs = jax.lax.scan(step, carry, (refs, keys))
         x, est, imu_prev = carry
         y, vis = lidar3d.measure_all(x[0:3], x[6:9], setup.landmarks, setup.lidar) if L else (
             jnp.zeros((0, 3), dtype), jnp.zeros((0,), bool))
@@ -175,8 +173,15 @@ def simulate(setup: FlightSetup, key, n_frame: int, lidar_every: int,
         return (x, est, imu_prev), (outs, y, vis, out_frame)
 
     frame_keys = jax.random.split(k_noise, n_frame)
+    # The reference depends on time only: evaluate it on the whole grid at once, vectorised,
+    # outside the scan (the trajectory's nested derivatives would otherwise run every step).
+    T = n_frame * lidar_every
+    t_ctrl = jnp.arange(T, dtype=dtype) * dt
+    refs = jax.vmap(lambda tt: dflqr.reference_at(tt, setup.traj, setup.ctrl,
+                                                  feedforward=feedforward, dtype=dtype))(t_ctrl)
+    refs = jax.tree.map(lambda a: a.reshape((n_frame, lidar_every) + a.shape[1:]), refs)
     (xT, estT, _), (outs, ys, viss, out_frames) = jax.lax.scan(
-        frame, (x0, est0, imu0), (jnp.arange(n_frame), frame_keys)
+        frame, (x0, est0, imu0), (refs, frame_keys)
     )
     xs, us, imus, est_steps = outs
 
@@ -185,7 +190,6 @@ def simulate(setup: FlightSetup, key, n_frame: int, lidar_every: int,
 
     xs, us, imus, est_steps = flat(xs), flat(us), flat(imus), flat(est_steps)
     truth = jnp.concatenate([x0[None], xs], axis=0)
-    T = n_frame * lidar_every
     t = jnp.arange(T + 1, dtype=dtype) * dt
     ref = jax.vmap(lambda tt: flat_output(setup.traj, tt))(t)
     return Flight(
