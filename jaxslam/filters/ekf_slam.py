@@ -350,14 +350,16 @@ def add_landmark(state: SlamState, model: SlamModel, slot, mean, cov_ll, cov_lx,
     (e.g. trilateration for range-only SLAM).
     """
     nr, dl, cap = _sizes(state, model)
+    n = state.x.shape[0]
     start = nr + slot * dl
     row = jax.lax.dynamic_update_slice(cov_lx, cov_ll, (0, start))  # (dl, n)
     P = state.P
-    P_w = jax.lax.dynamic_update_slice(P, row, (start, 0))
-    P_w = jax.lax.dynamic_update_slice(P_w, row.T, (0, start))
-    x_w = jax.lax.dynamic_update_slice(state.x, mean, (start,))
-    P = jnp.where(ok, P_w, P)
-    x = jnp.where(ok, x_w, state.x)
+    # Guard on the written rows/columns only (O(n)); a select over P would be O(n²).
+    row = jnp.where(ok, row, jax.lax.dynamic_slice(P, (start, 0), (dl, n)))
+    mean = jnp.where(ok, mean, jax.lax.dynamic_slice(state.x, (start,), (dl,)))
+    P = jax.lax.dynamic_update_slice(P, row, (start, 0))
+    P = jax.lax.dynamic_update_slice(P, row.T, (0, start))
+    x = jax.lax.dynamic_update_slice(state.x, mean, (start,))
     active = state.active.at[slot].set(jnp.where(ok, True, state.active[slot]))
     ids = state.ids.at[slot].set(jnp.where(ok, jnp.int32(lm_id), state.ids[slot]))
     return state._replace(x=x, P=P, active=active, ids=ids)
