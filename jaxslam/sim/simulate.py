@@ -106,7 +106,9 @@ def simulate(setup: FlightSetup, key, n_frame: int, lidar_every: int,
 
     Args:
       setup: :class:`FlightSetup`.
-      key: PRNG key (split into IMU noise, LiDAR noise and estimator keys).
+      key: PRNG key: ``k_imu, k_lidar, k_est = split(key, 3)``; the IMU noise is
+        ``normal(k_imu, (T·6,))`` reshaped to (T, 6) (times the IMU σ), the LiDAR noise
+        ``normal(k_lidar, (F·L·3,))`` reshaped to (F, L, 3) (times the LiDAR σ).
       n_frame, lidar_every: static sizes (frames, control steps per frame).
       estimator: optional :class:`Estimator` run in the loop.
       control_on: ``"truth"`` or ``"estimate"`` (static): what the DF-LQR sees.
@@ -125,7 +127,9 @@ def simulate(setup: FlightSetup, key, n_frame: int, lidar_every: int,
     dt = jnp.asarray(setup.dt, dtype)
     if K is None:
         K = dflqr.gain(setup.ctrl)
-    k_noise, k_est = jax.random.split(key)
+    # Key schedule (documented so twins can reproduce it): IMU, LiDAR and estimator keys;
+    # all noise is drawn up front as flat arrays (one draw each, outside the scan).
+    k_imu, k_lidar, k_est = jax.random.split(key, 3)
     sig_a, sig_g = imu_mod.white_noise_sigma(setup.imu)
     imu_sigma = jnp.concatenate([sig_a, sig_g]).astype(dtype)
     R_lidar_sqrt = jnp.sqrt(jnp.diag(lidar3d.measurement_cov(setup.lidar, dtype)))
@@ -142,7 +146,7 @@ def simulate(setup: FlightSetup, key, n_frame: int, lidar_every: int,
 
     def step(carry, inp):
         x, est, imu_prev = carry
-        ref, key_n = inp
+        ref, std_n = inp
         if control_on == "estimate":
             x_ctrl = estimator.ctrl_state(est, imu_prev)
         else:
@@ -150,7 +154,7 @@ def simulate(setup: FlightSetup, key, n_frame: int, lidar_every: int,
         u, _ = dflqr.control_ref(x_ctrl, ref, K, setup.ctrl, feedforward=feedforward)
         x_next = rk4_step(f, x, u, dt)
         imu_true = imu_mod.imu_ideal(x_next, f(x_next, u), g)
-        imu_meas = imu_true + imu_sigma * jax.random.normal(key_n, (6,), dtype)
+        imu_meas = imu_true + imu_sigma * std_n
         out_est = None
         if estimator is not None:
             est = estimator.propagate(est, imu_prev, imu_meas)
@@ -158,21 +162,18 @@ def simulate(setup: FlightSetup, key, n_frame: int, lidar_every: int,
         return (x_next, est, imu_meas), (x_next, u, imu_meas, out_est)
 
     def frame(carry, inp):
-        refs, key_f = inp
-        k_steps, k_meas = jax.random.split(key_f)
-        keys = jax.random.split(k_steps, lidar_every)
-        carry, outs = jax.lax.scan(step, carry, (refs, keys))
+        refs, imu_std, lidar_std = inp
+        carry, outs = jax.lax.scan(step, carry, (refs, imu_std))
         x, est, imu_prev = carry
         y, vis = lidar3d.measure_all(x[0:3], x[6:9], setup.landmarks, setup.lidar) if L else (
             jnp.zeros((0, 3), dtype), jnp.zeros((0,), bool))
-        y = y + R_lidar_sqrt * jax.random.normal(k_meas, (L, 3), dtype)
+        y = y + R_lidar_sqrt * lidar_std
         y = y.at[:, 0].set(jnp.mod(y[:, 0] + jnp.pi, 2 * jnp.pi) - jnp.pi)
         out_frame = None
         if estimator is not None:
             est, out_frame = estimator.correct(est, y, ids, vis)
         return (x, est, imu_prev), (outs, y, vis, out_frame)
 
-    frame_keys = jax.random.split(k_noise, n_frame)
     # The reference depends on time only: evaluate it on the whole grid at once, vectorised,
     # outside the scan (the trajectory's nested derivatives would otherwise run every step).
     T = n_frame * lidar_every
@@ -180,8 +181,10 @@ def simulate(setup: FlightSetup, key, n_frame: int, lidar_every: int,
     refs = jax.vmap(lambda tt: dflqr.reference_at(tt, setup.traj, setup.ctrl,
                                                   feedforward=feedforward, dtype=dtype))(t_ctrl)
     refs = jax.tree.map(lambda a: a.reshape((n_frame, lidar_every) + a.shape[1:]), refs)
+    imu_std = jax.random.normal(k_imu, (T * 6,), dtype).reshape(n_frame, lidar_every, 6)
+    lidar_std = jax.random.normal(k_lidar, (n_frame * L * 3,), dtype).reshape(n_frame, L, 3)
     (xT, estT, _), (outs, ys, viss, out_frames) = jax.lax.scan(
-        frame, (x0, est0, imu0), (refs, frame_keys)
+        frame, (x0, est0, imu0), (refs, imu_std, lidar_std)
     )
     xs, us, imus, est_steps = outs
 
