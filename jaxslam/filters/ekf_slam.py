@@ -291,30 +291,34 @@ def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
 
     v = valid.astype(dtype)
     vv = jnp.repeat(v, dz)  # (K·dz,)
+    VV = vv[:, None] * vv[None, :]
     m = K * dz
     PHt_f = PHt.reshape(-1, m) * vv[None, :]
     R_blk = jnp.zeros((K, dz, K, dz), dtype).at[jnp.arange(K), :, jnp.arange(K), :].set(R)
-    S = HPHt.reshape(m, m) * (vv[:, None] * vv[None, :]) + R_blk.reshape(m, m) * (
-        vv[:, None] * vv[None, :]
-    ) + jnp.diag(1.0 - vv)
+    R_used = R_blk.reshape(m, m) * VV
+    S = HPHt.reshape(m, m) * VV + R_used + jnp.diag(1.0 - vv)
     nu = res.reshape(m) * vv
 
+    # Gain through the explicit m×m inverse of S from its Cholesky factor: m is small, and a
+    # triangular solve with n right-hand sides is far slower on CPU than one (n, m)·(m, m) product.
     Lc = jnp.linalg.cholesky(symmetrize(S))
+    Sinv = jax.scipy.linalg.cho_solve((Lc, True), jnp.eye(m, dtype=dtype))
+    Kg = PHt_f @ Sinv  # (n, m) = P Hᵀ S⁻¹
     chol_ok = jnp.all(jnp.isfinite(Lc))
-    Kg = jax.scipy.linalg.cho_solve((Lc, True), PHt_f.T).T  # (n, m) = P Hᵀ S⁻¹
-    x_new = state.x + Kg @ nu
+    # Guard on the small quantities (O(n·m)): with P, P Hᵀ and K finite the products below are
+    # finite, so no O(n²) check or select of the result is needed.  A rejected update zeroes
+    # the gain, which leaves x and P unchanged (P is exactly symmetric).
+    ok = chol_ok & jnp.all(jnp.isfinite(Kg)) & jnp.all(jnp.isfinite(nu))
+    Kg = jnp.where(ok, Kg, 0.0)
+    x_new = state.x + Kg @ jnp.where(ok, nu, 0.0)
 
-    # Factored Joseph form from gathered columns.
+    # Factored Joseph form from gathered columns, grouped as A − (A Hᵀ − K R) Kᵀ.
     A = P - Kg @ PHt_f.T  # (I − K H) P
     AHt = gather_PHt(A).reshape(-1, m) * vv[None, :]  # (I − K H) P Hᵀ
-    R_used = R_blk.reshape(m, m) * (vv[:, None] * vv[None, :])
-    P_new = symmetrize(A - AHt @ Kg.T + Kg @ R_used @ Kg.T)
+    P_new = symmetrize(jax.lax.optimization_barrier(A - (AHt - Kg @ R_used) @ Kg.T))
 
-    w = jax.scipy.linalg.solve_triangular(Lc, nu, lower=True)
-    nis = jnp.sum(w * w)
-    ok = chol_ok & jnp.all(jnp.isfinite(x_new)) & jnp.all(jnp.isfinite(P_new))
-    x_new = jnp.where(ok, x_new, state.x)
-    P_new = jnp.where(ok, P_new, state.P)
+    nu_ok = jnp.where(ok, nu, 0.0)
+    nis = nu_ok @ (Sinv @ nu_ok)
     status = (
         state.status
         | _flag_if(~ok, errors.NON_FINITE)
