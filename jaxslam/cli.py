@@ -38,6 +38,13 @@ import argparse
 import ast
 import importlib.util
 import os
+
+# jaxlib's CPU LAPACK kernels (Cholesky, triangular solves) run on SciPy's OpenBLAS.  Left
+# threaded, its worker threads measured 2-20 ms per small call on a 2-core machine (48×48
+# triangular solve: 9 ms vs 0.04 ms pinned), which made an EKF-SLAM frame 100× slower.
+# The command is an entry point, so it pins OpenBLAS to one thread unless the user chose
+# otherwise; this must happen before NumPy/SciPy load (see README, "Performance").
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import pathlib
 import sys
 

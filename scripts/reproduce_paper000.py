@@ -12,6 +12,10 @@ Every figure comes from the public API (the same code path as ``jaxslam run``).
 
 from __future__ import annotations
 
+import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # before NumPy/SciPy load (README, Performance)
+
 import argparse
 import json
 import pathlib

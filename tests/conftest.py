@@ -11,7 +11,11 @@ tests — and by later runs — be reused.
 import os
 import pathlib
 
-import jax
+# Pin SciPy's OpenBLAS (used by jaxlib's CPU LAPACK kernels) to one thread before it loads:
+# threaded, small Cholesky/triangular solves stall for milliseconds on 2 cores (README).
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 

@@ -26,7 +26,7 @@ def _ellipsoid(ax, c, sig3, color):
     ax.plot_wireframe(x, y, -z, color=color, lw=0.4, alpha=0.6)
 
 
-def plot_all(name, fl, lms, t, anees_per_step, cons, runs, directory, cfg):
+def plot_all(name, fl, lms, t, t_frames, anees_per_frame, cons, runs, directory, cfg):
     """Write the four figures for one flight ``fl`` (NumPy) and the MC NEES; returns paths."""
     p = plt()
     paths = []
@@ -99,8 +99,8 @@ def plot_all(name, fl, lms, t, anees_per_step, cons, runs, directory, cfg):
 
     lo, hi = cons["anees_bounds"]
     fig, ax = p.subplots(figsize=(10, 4))
-    ax.semilogy(t, np.maximum(st.nees, 1e-6), color="0.7", lw=0.5, label="NEES, one run")
-    ax.semilogy(t, anees_per_step, "C0-", lw=1.0, label=f"ANEES over {runs} runs")
+    ax.semilogy(t_frames, np.maximum(fr.nees, 1e-6), color="0.7", lw=0.5, label="NEES, one run")
+    ax.semilogy(t_frames, anees_per_frame, "C0-", lw=1.0, label=f"ANEES over {runs} runs")
     ax.axhline(lo, color="C3", ls="--", lw=1, label="95 % bounds")
     ax.axhline(hi, color="C3", ls="--", lw=1)
     for w in cons.get("anees_windows", []):

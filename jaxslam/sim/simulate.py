@@ -60,7 +60,8 @@ class Estimator(NamedTuple):
 
     init(key, x0_true) -> est
     propagate(est, imu_prev (6,), imu_now (6,)) -> est            every step
-    correct(est, y (L, 3), ids (L,), visible (L,)) -> (est, frame_out)   every LiDAR frame
+    correct(est, y (L, 3), ids (L,), visible (L,), x_true (12,)) -> (est, frame_out)
+                                                     every LiDAR frame (x_true for metrics only)
     ctrl_state(est, imu_now) -> (12,) state the controller sees
     step_out(est, x_true (12,)) -> pytree saved at every step (e.g. mean, NEES)
     """
@@ -171,7 +172,7 @@ def simulate(setup: FlightSetup, key, n_frame: int, lidar_every: int,
         y = y.at[:, 0].set(jnp.mod(y[:, 0] + jnp.pi, 2 * jnp.pi) - jnp.pi)
         out_frame = None
         if estimator is not None:
-            est, out_frame = estimator.correct(est, y, ids, vis)
+            est, out_frame = estimator.correct(est, y, ids, vis, x)
         return (x, est, imu_prev), (outs, y, vis, out_frame)
 
     # The reference depends on time only: evaluate it on the whole grid at once, vectorised,

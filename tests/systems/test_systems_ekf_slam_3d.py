@@ -179,6 +179,30 @@ def test_nan_measurements_are_masked_and_counted(log):
     assert "masked_input" in errors.decode(est.slam.status)
 
 
+def test_out_of_fov_measurements_are_masked_and_counted(log):
+    fl, _, _ = log
+    y = np.array(fl.lidar_y)
+    vis = np.asarray(fl.lidar_mask)
+    f_idx, l_idx = np.nonzero(vis)
+    bad = (f_idx[::5], l_idx[::5])
+    y[bad + (np.zeros(len(bad[0]), int),)] = np.radians(120.0)  # azimuth far outside ±45°
+    est, means, _ = _run(log, s3.EstimatorConfig(capacity=64), y=jnp.asarray(y))
+    assert int(est.masked) == len(bad[0])
+    assert np.all(np.isfinite(np.asarray(means)))
+
+
+def test_log_shapes_are_checked(log):
+    fl, _, imu = log
+    noise = s3.imu_noise(imu_mod.PAPER000_IMU)
+    cfg = s3.EstimatorConfig(capacity=16)
+    with pytest.raises(InputError, match="^y: expected shape"):
+        s3.filter_log(noise, cfg, fl.truth[0, :9], imu, fl.lidar_y[:, :, :2], jnp.arange(40),
+                      fl.lidar_mask, LIDAR_EVERY)
+    with pytest.raises(InputError, match="^imu: expected shape"):
+        s3.filter_log(noise, cfg, fl.truth[0, :9], imu[:-1], fl.lidar_y, jnp.arange(40),
+                      fl.lidar_mask, LIDAR_EVERY)
+
+
 def test_gradient_of_position_error_wrt_log_q_r_matches_finite_differences(log):
     fl, _, imu = log
     F = 30  # the first 3 s keep the compile and the finite differences short
