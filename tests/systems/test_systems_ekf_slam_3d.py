@@ -203,6 +203,24 @@ def test_log_shapes_are_checked(log):
                       fl.lidar_mask, LIDAR_EVERY)
 
 
+def test_float32_filter_stays_within_ten_percent_of_float64(log):
+    """Same log, same filter, float32 vs float64: no NaN, position RMSE within 10 %."""
+    fl, _, imu = log
+    cfg = s3.EstimatorConfig(capacity=32)
+    truth = np.asarray(fl.truth[1:, :3])
+    rmse = {}
+    for dt in (jnp.float64, jnp.float32):
+        noise = jax.tree.map(lambda a: a.astype(dt), s3.imu_noise(imu_mod.PAPER000_IMU))
+        f = jax.jit(lambda noise, s0, imu, y: s3.filter_log(
+            noise, cfg, s0, imu, y, jnp.arange(40), fl.lidar_mask, LIDAR_EVERY))
+        est, means, _ = f(noise, fl.truth[0, :9].astype(dt), imu.astype(dt), fl.lidar_y.astype(dt))
+        assert means.dtype == dt
+        assert np.all(np.isfinite(np.asarray(means))) and np.all(np.isfinite(np.asarray(est.slam.P)))
+        e = np.asarray(means[:, :3], np.float64) - truth
+        rmse[dt] = np.sqrt(np.mean(np.sum(e * e, axis=1)))
+    assert abs(rmse[jnp.float32] - rmse[jnp.float64]) <= 0.1 * rmse[jnp.float64], rmse
+
+
 def test_gradient_of_position_error_wrt_log_q_r_matches_finite_differences(log):
     fl, _, imu = log
     F = 30  # the first 3 s keep the compile and the finite differences short
