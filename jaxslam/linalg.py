@@ -18,12 +18,9 @@ __all__ = [
     "symmetrize",
     "wrap_angle",
     "chol_solve",
-    "psd_solve",
-    "joseph_update",
     "safe_norm",
     "check_psd",
     "check_shape",
-    "mahalanobis_sq",
 ]
 
 
@@ -47,29 +44,6 @@ def chol_solve(S, B):
     ok = jnp.all(jnp.isfinite(L))
     X = jax.scipy.linalg.cho_solve((L, True), B)
     return X, ok
-
-
-def psd_solve(S, B):
-    """Solve S X = B for SPD S (Cholesky); ignores the failure flag."""
-    return chol_solve(S, B)[0]
-
-
-def mahalanobis_sq(r, S):
-    """rᵀ S⁻¹ r through a Cholesky factor (batched over leading axes of r)."""
-    L = jnp.linalg.cholesky(symmetrize(S))
-    z = jax.scipy.linalg.solve_triangular(L, r, lower=True)
-    return jnp.sum(z * z, axis=0)
-
-
-def joseph_update(P, K, H, R):
-    """Factored Joseph form (I − K H) P (I − K H)ᵀ + K R Kᵀ, symmetrised.
-
-    This dense form is the reference used by the generic EKF core; the
-    EKF-SLAM engine uses a column-gathered variant with the same algebra.
-    """
-    n = P.shape[-1]
-    A = jnp.eye(n, dtype=P.dtype) - K @ H
-    return symmetrize(A @ P @ A.T + K @ R @ K.T)
 
 
 def safe_norm(x, axis=-1, keepdims=False):

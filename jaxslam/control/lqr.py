@@ -82,6 +82,8 @@ def _sign_solve(A, G, Q):
 
     def body(state):
         Z, k, _ = state
+        # The sign-function Newton step Z ← (cZ + (cZ)⁻¹)/2 needs the inverse itself of the
+        # (non-symmetric) Hamiltonian iterate; no covariance is inverted here.
         Zi = jnp.linalg.inv(Z)
         _, logdet = jnp.linalg.slogdet(Z)
         c = jnp.exp(-logdet / (2 * n))

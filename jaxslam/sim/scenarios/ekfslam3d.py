@@ -280,18 +280,22 @@ _OPTIONS = (
     Option("chunk", int, None, "Monte Carlo runs per compiled call (default: all, max 256)"),
 )
 
-register(Scenario(
-    name="ekfslam3d-unknown",
-    description="Paper 000: 3D EKF-SLAM (landmarks unknown) with DF-LQR on the estimate, 50 s figure-8",
-    options=_OPTIONS,
-    run=lambda runs, seed, dtype, options, progress, params=None: run_scenario(
-        "ekfslam3d-unknown", "unknown", runs, seed, dtype, options, progress, params),
-))
+_DESCRIPTIONS = {
+    "unknown": "Paper 000: 3D EKF-SLAM (landmarks unknown) with DF-LQR on the estimate, 50 s figure-8",
+    "known": "Paper 000: EKF localisation against the known 40-landmark map, DF-LQR on the estimate",
+}
 
-register(Scenario(
-    name="ekfslam3d-known",
-    description="Paper 000: EKF localisation against the known 40-landmark map, DF-LQR on the estimate",
-    options=_OPTIONS,
-    run=lambda runs, seed, dtype, options, progress, params=None: run_scenario(
-        "ekfslam3d-known", "known", runs, seed, dtype, options, progress, params),
-))
+
+def _register(mode):
+    name = f"ekfslam3d-{mode}"
+    register(Scenario(
+        name=name,
+        description=_DESCRIPTIONS[mode],
+        options=_OPTIONS,
+        run=lambda runs, seed, dtype, options, progress, params=None: run_scenario(
+            name, mode, runs, seed, dtype, options, progress, params),
+    ))
+
+
+for _mode in ("unknown", "known"):
+    _register(_mode)
