@@ -2,9 +2,12 @@
 
 * :mod:`jaxslam.filters.ekf` — EKF core: predict / masked, gated update / whole-sequence scan.
 * :mod:`jaxslam.filters.ekf_slam` — EKF-SLAM engine on a fixed-capacity padded map.
+* :mod:`jaxslam.filters.fastslam` — FastSLAM 1.0 core: vmapped particles, padded landmark EKFs.
+* :mod:`jaxslam.filters.resampling` — log-weight normalisation, ESS, resampling schemes, soft.
 """
 
 from . import ekf, ekf_slam
+from . import fastslam, resampling
 from .ekf import (
     Gaussian,
     Posterior,
@@ -23,6 +26,8 @@ from .ekf import (
 __all__ = [
     "ekf",
     "ekf_slam",
+    "fastslam",
+    "resampling",
     "Gaussian",
     "UpdateInfo",
     "Posterior",

@@ -1,0 +1,882 @@
+"""Generic FastSLAM 1.0 core: particles as stacked arrays, every step vmapped.
+
+A Rao-Blackwellised particle filter (Montemerlo et al. 2002; paper 001,
+Table 2 and eq. 22-29): each particle carries a robot pose, optional per-
+particle auxiliary filter state (``aux``, e.g. paper 001's bias/drift Kalman
+filter, stage 1 of Table 2), and a padded map of independent landmark EKFs
+(``capacity`` slots of dimension ``d``).  The particle set is one pytree of
+arrays with a leading particle axis N; every per-particle operation is a
+``vmap`` and a whole run is a ``lax.scan`` of the caller's step, so nothing
+returns to Python per step.  The module never names a paper's model: a model
+is a :class:`LandmarkModel` of pure functions.
+
+Step order (paper 001, Table 2 steps 1, 3, 5, 6): :func:`propagate` (draw
+poses from the proposal), :func:`observe_update` (per particle and
+measurement: landmark EKF update or registration, log-likelihood of the
+measurement), :func:`reweight` for extra likelihood terms (paper 001's IMU
+term of eq. 28), :func:`maybe_resample` (or :func:`resample_soft`).
+
+Decisions (where paper 001 is silent, or where jaxslam departs from it)
+----------------------------------------------------------------------
+* Landmark EKF update (paper 001 Table 3, "EKF-update"): the textbook EKF,
+  with the factored Joseph form instead of Table 3's ``(I − K H) Σ`` and an
+  angle-wrapping residual (``LandmarkModel.residual``), the same equations
+  as :func:`jaxslam.filters.ekf.update`.  Two numerically
+  equivalent back ends (``solver=``): ``"ekf"`` calls
+  :func:`jaxslam.filters.ekf.update` itself (Cholesky of S); ``"closed"``
+  (the default) writes the same update with a closed-form adjugate inverse of
+  the d_z×d_z innovation covariance (d_z ≤ 3), so that the vmapped update is
+  elementwise kernels instead of N batched LAPACK calls, and it linearises
+  the model once per measurement for both the update and the registration
+  Jacobian.  Both agree to 1e-12 (tested for d = 2 and 3).  Measured once on
+  the 2-core CPU (toy 2D range-bearing model, capacity 8, N = 2000, float64,
+  noisy shared machine): "closed" 260 ns per particle and measurement,
+  "ekf" 530 ns, a vectorised NumPy twin 1.2 µs.  For d_z > 3 ``"closed"``
+  falls back to a Cholesky factorisation.
+* Measurements are processed sequentially per particle (a ``lax.scan`` over
+  the K measurement slots), so two observations of a new landmark in one step
+  register it and then update it.  Only the observed slot is gathered and
+  scattered back: the cost per particle is O(K·(cap + d³)), the O(cap) part
+  being the id lookup (skipped with ``slot_by_id=True``).
+* Weights (paper 001 eq. 26-28): ``weights="exact"`` (default) adds the
+  Rao-Blackwellised log-likelihood ``log N(ν; 0, S)`` with
+  ``S = H Σ Hᵀ + R`` (landmark uncertainty integrated out);
+  ``weights="mean"`` (alias ``"paper"``) replaces the landmark posterior by
+  its mean, as paper 001 eq. 27-28 do: ``log N(ν; 0, R)``.  ``ν`` is the
+  prior innovation of the landmark EKF (the paper computes weights before the
+  map update, Table 2 step 3 before step 5).  A newly registered landmark
+  contributes no likelihood (its first observation carries no information
+  about the pose under an uninformative landmark prior).  A gated or
+  numerically rejected update contributes nothing either.
+* Registration (paper 001 Table 3 "EKF-predict", eq. 15 as the model's inverse):
+  ``μ = inverse(pose, z)``, ``Σ = G⁻¹ R G⁻ᵀ`` with ``G = ∂observe/∂l`` at μ
+  (``jax.jacfwd``), the pose treated as known (FastSLAM 1.0).  This needs
+  ``lm_dim == meas_dim``; a model with a different initialiser gives
+  ``LandmarkModel.init_cov``.  A non-finite result is not registered and is
+  flagged ``NON_FINITE``.
+* Slots: by default a landmark id takes the first free slot of each particle
+  (ids are looked up per particle).  With ``slot_by_id=True`` id ``j`` lives in
+  slot ``j`` (requires ``0 ≤ j < capacity``, otherwise overflow): the lookup
+  is free and the maps of all particles are aligned, which :func:`map_mean`
+  needs.  With known data association and first-free-slot placement, all
+  particles register the same ids in the same order, so the slots align too
+  unless a registration fails in some particles only.
+* Capacity overflow: a valid measurement of an unmapped landmark when no slot
+  is free (or, with ``slot_by_id``, an id ≥ capacity) is dropped, sets
+  ``CAPACITY_OVERFLOW`` and increments ``overflow`` once per such
+  *measurement*; the count is the maximum over particles (with known data
+  association every particle sees the same measurements, so the counts agree).
+* Weight underflow: after adding log-likelihoods, if every particle's
+  log-weight is below ``log(tiny)`` of the dtype (every linear-domain weight
+  would be 0), the event is counted in ``underflow`` and recovered exactly by
+  the log-sum-exp normalisation.  If no weight is finite at all (all −inf or
+  NaN) the weights are reset to uniform, ``underflow`` is counted and
+  ``DEGENERATE`` is set.
+* Resampling (paper 001 Table 2 step 6 resamples at every step): here it is
+  triggered when ``N_eff < threshold·N`` (default 0.5; ``threshold=None``
+  resamples at every call, as the paper does), inside ``lax.cond`` so no
+  host round trip is needed; all per-particle leaves (pose, aux, map) are
+  gathered by the ancestor indices and the weights reset to uniform.
+* Non-finite measurements with ``mask`` True are skipped and flagged
+  ``MASKED_INPUT``; measurements with a negative id are treated as masked.
+* Gradients: the registration and update branches receive their inputs
+  through a ``where(do, x, stop_gradient(x))`` guard, so the unused branch
+  (e.g. a free slot at mean 0, a masked measurement) cannot poison gradients
+  with ``0·inf`` NaNs.  Discrete choices (slots, ancestor indices) carry no
+  gradient; see :func:`jaxslam.filters.resampling.soft`.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Callable, NamedTuple, Optional, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import errors
+from ..errors import InputError
+from ..linalg import symmetrize, wrap_angle
+from . import ekf as _ekf
+from . import resampling as _rs
+
+__all__ = [
+    "LandmarkModel",
+    "Particles",
+    "ObserveInfo",
+    "LandmarkMap",
+    "init",
+    "propagate",
+    "observe_update",
+    "reweight",
+    "neff",
+    "maybe_resample",
+    "resample_soft",
+    "resample_indices",
+    "estimate",
+    "best_map",
+    "map_mean",
+    "step",
+]
+
+Array = Any
+_LOG2PI = math.log(2.0 * math.pi)
+
+
+class LandmarkModel(NamedTuple):
+    """A landmark measurement model (pure functions; static under ``jit``).
+
+    Fields:
+        lm_dim: d, landmark dimension (e.g. 2 for planar points, 3 for poles).
+        meas_dim: d_z, measurement dimension (e.g. 2 for range/bearing).
+        observe: ``observe(pose (n_r,), l (d,), params) -> z (d_z,)``.
+        inverse: ``inverse(pose (n_r,), z (d_z,), params) -> l (d,)``, the
+            inverse observation used to register a new landmark.
+        residual: ``residual(z, zhat) -> ν (d_z,)`` (wraps angles), or None
+            for ``z − ẑ``.  :func:`jaxslam.filters.ekf.angle_residual` builds one.
+        init_cov: optional ``init_cov(pose, z, R (d_z, d_z), params) -> (d, d)``
+            registration covariance; None uses ``G⁻¹ R G⁻ᵀ`` with
+            ``G = ∂observe/∂l`` (needs ``lm_dim == meas_dim``).
+    """
+
+    lm_dim: int
+    meas_dim: int
+    observe: Callable
+    inverse: Callable
+    residual: Optional[Callable] = None
+    init_cov: Optional[Callable] = None
+
+
+class Particles(NamedTuple):
+    """A weighted particle set with per-particle landmark EKFs (padded slots).
+
+    Every per-particle leaf has a leading axis N; the counters are scalars.
+
+    Fields:
+        pose: (N, n_r) robot poses (units of the caller's model).
+        aux: any pytree whose leaves have leading axis N (per-particle extra
+            filter state, e.g. a bias Kalman filter ``Gaussian``), or ``()``.
+        lm_mean: (N, cap, d) landmark means (0 in free slots).
+        lm_cov: (N, cap, d, d) landmark covariances (0 in free slots).
+        active: (N, cap) bool slot in use.
+        ids: (N, cap) int32 landmark id held by each slot (−1 when free).
+        log_w: (N,) normalised log-weights (``logsumexp(log_w) = 0``).
+        status: () int32 bit flags of :mod:`jaxslam.errors`, OR-ed since init.
+        overflow: () int32 measurements of new landmarks that found no slot
+            (max over particles).
+        underflow: () int32 number of weight-underflow recoveries.
+        resamples: () int32 number of resampling events.
+    """
+
+    pose: Array
+    aux: Any
+    lm_mean: Array
+    lm_cov: Array
+    active: Array
+    ids: Array
+    log_w: Array
+    status: Array
+    overflow: Array
+    underflow: Array
+    resamples: Array
+
+
+class ObserveInfo(NamedTuple):
+    """Diagnostics of :func:`observe_update` (N particles, K measurement slots).
+
+    Fields:
+        loglik: (N,) log-likelihood added to each particle's log-weight.
+        log_marginal: () incremental log marginal likelihood estimate
+            ``log Σ_i w̄_i exp(loglik_i)`` (sum it over a run for the particle
+            estimate of ``log p(z_{1:T})``).
+        nis: (N, K) NIS ``νᵀ S⁻¹ ν`` of each landmark update (0 if none).
+        used: (N, K) bool measurement updated an existing landmark.
+        registered: (N, K) bool measurement registered a new landmark.
+        gated: (N, K) bool measurement rejected by the gate.
+        n_used: () int32 ``used`` summed over particles and measurements.
+        n_registered: () int32 ``registered`` summed likewise.
+        status: () int32 flags raised by this update.
+    """
+
+    loglik: Array
+    log_marginal: Array
+    nis: Array
+    used: Array
+    registered: Array
+    gated: Array
+    n_used: Array
+    n_registered: Array
+    status: Array
+
+
+class LandmarkMap(NamedTuple):
+    """One map: mean (cap, d), cov (cap, d, d), active (cap,) bool, ids (cap,) int32."""
+
+    mean: Array
+    cov: Array
+    active: Array
+    ids: Array
+
+
+# ---------------------------------------------------------------------------
+# Small dense helpers (d ≤ 3 in closed form)
+# ---------------------------------------------------------------------------
+
+def _det_small(A):
+    d = A.shape[-1]
+    if d == 1:
+        return A[..., 0, 0]
+    if d == 2:
+        return A[..., 0, 0] * A[..., 1, 1] - A[..., 0, 1] * A[..., 1, 0]
+    if d == 3:
+        return (
+            A[..., 0, 0] * (A[..., 1, 1] * A[..., 2, 2] - A[..., 1, 2] * A[..., 2, 1])
+            - A[..., 0, 1] * (A[..., 1, 0] * A[..., 2, 2] - A[..., 1, 2] * A[..., 2, 0])
+            + A[..., 0, 2] * (A[..., 1, 0] * A[..., 2, 1] - A[..., 1, 1] * A[..., 2, 0])
+        )
+    raise ValueError("closed-form determinant only for d <= 3")
+
+
+def _inv_small(A):
+    """(A⁻¹, det A) by the adjugate for d ≤ 3; Cholesky-free, fuses elementwise."""
+    d = A.shape[-1]
+    det = _det_small(A)
+    if d == 1:
+        adj = jnp.ones_like(A)
+    elif d == 2:
+        adj = jnp.stack(
+            [jnp.stack([A[1, 1], -A[0, 1]]), jnp.stack([-A[1, 0], A[0, 0]])]
+        )
+    else:
+        def c(i, j):
+            r = [k for k in range(3) if k != i]
+            s = [k for k in range(3) if k != j]
+            m = A[r[0], s[0]] * A[r[1], s[1]] - A[r[0], s[1]] * A[r[1], s[0]]
+            return m if (i + j) % 2 == 0 else -m
+
+        # adj = Cᵀ (cofactor transpose)
+        adj = jnp.stack([jnp.stack([c(j, i) for j in range(3)]) for i in range(3)])
+    safe = jnp.where(det != 0, det, jnp.ones((), A.dtype))
+    return adj / safe, det
+
+
+def _spd_inv_logdet(S):
+    """(S⁻¹, log det S, ok) for a small SPD S; closed form for d ≤ 3."""
+    d = S.shape[-1]
+    if d <= 3:
+        inv, det = _inv_small(S)
+        # Sylvester: all leading minors positive ⇔ SPD.
+        ok = det > 0
+        if d >= 2:
+            ok = ok & (S[0, 0] > 0)
+        if d == 3:
+            ok = ok & (S[0, 0] * S[1, 1] - S[0, 1] * S[1, 0] > 0)
+        logdet = jnp.log(jnp.where(ok, det, jnp.ones((), S.dtype)))
+        return inv, logdet, ok & jnp.all(jnp.isfinite(inv))
+    L = jnp.linalg.cholesky(symmetrize(S))
+    ok = jnp.all(jnp.isfinite(L))
+    inv = jax.scipy.linalg.cho_solve((L, True), jnp.eye(d, dtype=S.dtype))
+    logdet = 2.0 * jnp.sum(jnp.log(jnp.abs(jnp.diagonal(L))))
+    return inv, logdet, ok
+
+
+def _logdet_spd(S):
+    return _spd_inv_logdet(S)[1]
+
+
+def _inv_general(G):
+    d = G.shape[-1]
+    if d <= 3:
+        inv, det = _inv_small(G)
+        return inv, det != 0
+    inv = jnp.linalg.solve(G, jnp.eye(d, dtype=G.dtype))
+    return inv, jnp.all(jnp.isfinite(inv))
+
+
+def _value_and_jacfwd(fun, x):
+    def both(v):
+        y = fun(v)
+        return y, y
+
+    jac, val = jax.jacfwd(both, has_aux=True)(x)
+    return val, jac
+
+
+def _guard(do, x):
+    """``x`` forward; its gradient only where ``do`` (see module docstring)."""
+    return jax.tree_util.tree_map(
+        lambda a: jnp.where(do, a, jax.lax.stop_gradient(a))
+        if jnp.issubdtype(jnp.asarray(a).dtype, jnp.inexact) else a,
+        x,
+    )
+
+
+def _flag(cond, bit):
+    return jnp.where(cond, jnp.int32(bit), jnp.int32(0))
+
+
+def _threshold(gate, dof, dtype):
+    if callable(gate):
+        return jnp.asarray(gate(dof), dtype=dtype)
+    return jnp.asarray(gate, dtype=dtype)
+
+
+# ---------------------------------------------------------------------------
+# Construction
+# ---------------------------------------------------------------------------
+
+def init(pose0, n_particles: int, capacity: int, lm_dim: int, aux=None,
+         aux_per_particle: Optional[bool] = None) -> Particles:
+    """An equally weighted particle set with empty maps (paper 001, Table 2 init).
+
+    Args:
+        pose0: (n_r,) initial pose broadcast to every particle, or
+            (N, n_r) one pose per particle.  Its float dtype sets the dtype of
+            the whole set (an integer array becomes the default float).
+        n_particles: N ≥ 1 (static).
+        capacity: landmark slots per particle, ≥ 1 (static).
+        lm_dim: landmark dimension d ≥ 1 (static).
+        aux: per-particle auxiliary pytree or None (stored as ``()``).
+        aux_per_particle: True if every aux leaf already has leading axis N;
+            False to broadcast a single-particle aux to N copies; None
+            (default) decides automatically: batched when every leaf has
+            ndim ≥ 1 and leading size N, else broadcast.  Pass it explicitly
+            when a single-particle leaf could have leading size N.
+
+    Returns:
+        :class:`Particles` with ``log_w = −log N``, zero counters.
+
+    Raises:
+        InputError: n_particles, capacity or lm_dim < 1; pose0 not (n_r,) or
+            (N, n_r), or non-finite; aux leaves of the wrong leading size.
+    """
+    try:
+        N = int(n_particles)
+    except (TypeError, ValueError):
+        raise InputError(f"n_particles: expected an int, got {n_particles!r}") from None
+    if N <= 0:
+        raise InputError(f"n_particles: must be >= 1, got {n_particles}")
+    if int(capacity) <= 0:
+        raise InputError(f"capacity: must be >= 1, got {capacity}")
+    if int(lm_dim) <= 0:
+        raise InputError(f"lm_dim: must be >= 1, got {lm_dim}")
+    cap, d = int(capacity), int(lm_dim)
+    shape = tuple(np.shape(pose0))
+    if len(shape) not in (1, 2) or (len(shape) == 2 and shape[0] != N) or shape[-1] == 0:
+        raise InputError(f"pose0: expected shape (n_r,) or ({N}, n_r), got {shape}")
+    pose0 = jnp.asarray(pose0)
+    if not jnp.issubdtype(pose0.dtype, jnp.number):
+        raise InputError(f"pose0: not numeric (dtype {pose0.dtype})")
+    # Value checks only on concrete input: init may also be called under jit/vmap
+    # (e.g. one filter per Monte Carlo run), where shapes are still checked.
+    if not isinstance(pose0, jax.core.Tracer) and not bool(np.all(np.isfinite(np.asarray(pose0)))):
+        raise InputError("pose0: contains NaN or Inf")
+    dtype = pose0.dtype if jnp.issubdtype(pose0.dtype, jnp.floating) else jnp.result_type(float)
+    pose = jnp.broadcast_to(pose0.astype(dtype), (N, shape[-1]))
+
+    if aux is None:
+        aux = ()
+    leaves = jax.tree_util.tree_leaves(aux)
+    if aux_per_particle is None:
+        aux_per_particle = bool(leaves) and all(
+            np.ndim(x) >= 1 and np.shape(x)[0] == N for x in leaves
+        )
+    if aux_per_particle:
+        for x in leaves:
+            if np.ndim(x) < 1 or np.shape(x)[0] != N:
+                raise InputError(
+                    f"aux: every leaf must have leading axis {N}, got shape {np.shape(x)}"
+                )
+        aux = jax.tree_util.tree_map(jnp.asarray, aux)
+    else:
+        aux = jax.tree_util.tree_map(
+            lambda x: jnp.broadcast_to(jnp.asarray(x), (N,) + tuple(np.shape(x))), aux
+        )
+    i32 = jnp.int32
+    return Particles(
+        pose=pose,
+        aux=aux,
+        lm_mean=jnp.zeros((N, cap, d), dtype),
+        lm_cov=jnp.zeros((N, cap, d, d), dtype),
+        active=jnp.zeros((N, cap), bool),
+        ids=jnp.full((N, cap), -1, i32),
+        log_w=jnp.full((N,), -math.log(N), dtype),
+        status=jnp.zeros((), i32),
+        overflow=jnp.zeros((), i32),
+        underflow=jnp.zeros((), i32),
+        resamples=jnp.zeros((), i32),
+    )
+
+
+# ---------------------------------------------------------------------------
+# Proposal
+# ---------------------------------------------------------------------------
+
+def propagate(p: Particles, key, sample_fn: Callable, *args) -> Particles:
+    """Draw new poses from the proposal (paper 001, Table 2 steps 1-2).
+
+    ``sample_fn(pose (n_r,), aux, key, *args) -> (pose', aux')`` is vmapped
+    over particles with one split key each; ``args`` (e.g. the control of the
+    step) are shared by all particles.  Put per-particle inputs in ``aux``.
+    For gradients use reparametrised noise (``pose' = f + chol(Q) ε``).
+
+    Returns:
+        Particles with pose and aux replaced; weights and maps untouched.
+    """
+    N = p.pose.shape[0]
+    keys = jax.random.split(key, N)
+    in_axes = (0, 0, 0) + (None,) * len(args)
+    pose, aux = jax.vmap(sample_fn, in_axes=in_axes)(p.pose, p.aux, keys, *args)
+    return p._replace(pose=jnp.asarray(pose, p.pose.dtype), aux=aux)
+
+
+# ---------------------------------------------------------------------------
+# Landmark update / registration
+# ---------------------------------------------------------------------------
+
+def _update_closed(m, P, z, zhat, H, R, res, valid, gate):
+    """Same EKF update as :func:`ekf.update` with a closed-form S⁻¹ (d_z ≤ 3).
+
+    ``zhat``/``H`` are the prediction and Jacobian at ``m`` (computed by the
+    caller, which shares them with registration).
+    Returns (mean, cov, nis, logdetS, nu, accepted, status).
+    """
+    dtype = m.dtype
+    dz = z.shape[0]
+    zero = jnp.zeros((), dtype)
+    zhat = zhat.astype(dtype)
+    H = H.astype(dtype)
+    zhat_s = jnp.where(valid, zhat, zero)
+    z_s = jnp.where(valid, z, zhat_s)
+    nu = jnp.where(valid, res(z_s, zhat_s), zero)
+    Hm = jnp.where(valid, H, zero)
+    Rm = jnp.where(valid, R, jnp.eye(dz, dtype=dtype))
+    HP = Hm @ P  # (dz, d)
+    S = symmetrize(HP @ Hm.T + Rm)
+    Sinv, logdet, ok = _spd_inv_logdet(S)
+    K = HP.T @ Sinv  # (d, dz)
+    nis = nu @ (Sinv @ nu)
+    x_post = m + K @ nu
+    A = P - K @ HP
+    P_post = symmetrize(A - (A @ Hm.T) @ K.T + K @ Rm @ K.T)
+    if gate is None:
+        gated = jnp.asarray(False)
+    else:
+        gated = valid & (nis > _threshold(gate, jnp.int32(dz), dtype))
+    finite = jnp.all(jnp.isfinite(x_post)) & jnp.all(jnp.isfinite(P_post))
+    accepted = valid & ~gated & ok & finite
+    mean = jnp.where(accepted, x_post, m)
+    cov = jnp.where(accepted, P_post, P)
+    status = (
+        _flag(gated, errors.GATED)
+        | _flag(valid & ~gated & ~ok, errors.NOT_PSD)
+        | _flag(valid & ~gated & ok & ~finite, errors.NON_FINITE)
+    )
+    nis = jnp.where(valid, nis, zero)
+    logdet = jnp.where(valid, logdet, zero)
+    return mean, cov, nis, logdet, nu, accepted, status
+
+
+def _update_ekf(m, P, z, h, R, res, valid, gate):
+    """The landmark update by :func:`jaxslam.filters.ekf.update` itself."""
+    dz = z.shape[0]
+    post, info = _ekf.update(
+        _ekf.Gaussian(m, P), z, h, R, residual=res,
+        mask=jnp.broadcast_to(valid, (dz,)), gate=gate,
+    )
+    logdet = jnp.where(valid, _logdet_spd(info.S), jnp.zeros((), m.dtype))
+    return post.mean, post.cov, info.nis, logdet, info.innovation, info.accepted, info.status
+
+
+_SOLVERS = ("closed", "ekf")
+
+
+def _register_cov(model: LandmarkModel, pose, z, R, params, l, G):
+    """Σ = G⁻¹ R G⁻ᵀ (or ``model.init_cov``) of a new landmark at ``l``; (Σ, ok)."""
+    if model.init_cov is not None:
+        cov = jnp.asarray(model.init_cov(pose, z, R, params), z.dtype)
+    else:
+        Gi, ok_g = _inv_general(G.astype(z.dtype))
+        cov = Gi @ R @ Gi.T
+        cov = jnp.where(ok_g, cov, jnp.full_like(cov, jnp.nan))
+    cov = symmetrize(cov)
+    ok = jnp.all(jnp.isfinite(l)) & jnp.all(jnp.isfinite(cov))
+    return cov, ok
+
+
+def observe_update(
+    p: Particles,
+    model: LandmarkModel,
+    z,
+    lm_ids,
+    mask,
+    R,
+    params=None,
+    weights: str = "exact",
+    gate=None,
+    slot_by_id: bool = False,
+    solver: str = "closed",
+    chunk: Optional[int] = None,
+):
+    """Landmark EKF updates, registrations and weights for all particles.
+
+    Paper 001, Table 2 steps 3 and 5 (eq. 27-28) and Table 3 (registration);
+    FastSLAM 1.0.  For each particle (vmap) and each measurement k in order
+    (``lax.scan``): if the particle's map holds ``lm_ids[k]``, update that
+    landmark's Gaussian with ``h = l ↦ observe(pose, l, params)`` (EKF,
+    factored Joseph form) and add ``log N(ν; 0, S)`` (``"exact"``) or
+    ``log N(ν; 0, R)`` (``"mean"``) to the log-likelihood; else register it in
+    a free slot (no likelihood).  Then ``log_w += loglik`` and renormalise.
+
+    Args:
+        p: :class:`Particles`.
+        model: :class:`LandmarkModel` (static).
+        z: (K, d_z) measurements (any value where masked).
+        lm_ids: (K,) int landmark ids (known data association); < 0 = masked.
+        mask: (K,) bool measurement present.
+        R: (d_z, d_z) or (K, d_z, d_z) measurement covariance.
+        params: passed to ``observe``/``inverse`` (any pytree, traced).
+        weights: "exact" (default) | "mean" (alias "paper"), static.
+        gate: None, a chi-square threshold on each update's NIS (d_z dof), or
+            a callable ``gate(dof)``; gated measurements change nothing.
+        slot_by_id: static; id j lives in slot j (see module docstring).
+        solver: static; "closed" (default) or "ekf" (see module docstring).
+        chunk: static; None (default) vmaps all N particles at once; an int
+            processes them in chunks of that size (``lax.map``), which may
+            help cache locality for N of many thousands (same results).
+
+    Returns:
+        ``(Particles, ObserveInfo)``.
+    """
+    if weights == "paper":
+        weights = "mean"
+    if weights not in ("exact", "mean"):
+        raise InputError(f"weights: expected 'exact' or 'mean', got {weights!r}")
+    if solver not in _SOLVERS:
+        raise InputError(f"solver: expected one of {_SOLVERS}, got {solver!r}")
+    dtype = p.lm_mean.dtype
+    N, cap, d = p.lm_mean.shape
+    dz = int(model.meas_dim)
+    if int(model.lm_dim) != d:
+        raise InputError(f"model.lm_dim: {model.lm_dim} does not match the particles' d = {d}")
+    if model.init_cov is None and d != dz:
+        raise InputError(
+            f"model: registration by G⁻¹ R G⁻ᵀ needs lm_dim == meas_dim (got {d}, {dz}); "
+            "give LandmarkModel.init_cov"
+        )
+    z = jnp.asarray(z)
+    if z.ndim != 2 or z.shape[1] != dz:
+        raise InputError(f"z: expected shape (K, {dz}), got {z.shape}")
+    K = z.shape[0]
+    lm_ids = jnp.asarray(lm_ids)
+    mask = jnp.asarray(mask)
+    if lm_ids.shape != (K,):
+        raise InputError(f"lm_ids: expected shape ({K},), got {lm_ids.shape}")
+    if mask.shape != (K,):
+        raise InputError(f"mask: expected shape ({K},), got {mask.shape}")
+    R = jnp.asarray(R, dtype)
+    if R.shape not in ((dz, dz), (K, dz, dz)):
+        raise InputError(f"R: expected shape ({dz}, {dz}) or ({K}, {dz}, {dz}), got {R.shape}")
+    z = z.astype(dtype)
+    lm_ids = lm_ids.astype(jnp.int32)
+    Rs = jnp.broadcast_to(R, (K, dz, dz))
+    res = model.residual if model.residual is not None else (lambda a, b: a - b)
+
+    finite_z = jnp.all(jnp.isfinite(z), axis=1)
+    present = mask.astype(bool) & (lm_ids >= 0)
+    valid = present & finite_z
+    bad_input = present & ~finite_z
+    # A harmless value where the measurement is absent (NaN never enters).
+    z = jnp.where(valid[:, None], z, jnp.zeros((), dtype))
+
+    if weights == "mean":
+        # R is shared by all particles: invert it once, outside the vmap.
+        Rinv, logdetR, _ = jax.vmap(_spd_inv_logdet)(Rs)
+    else:
+        Rinv = jnp.zeros_like(Rs)
+        logdetR = jnp.zeros((K,), dtype)
+    half_log2pi = jnp.asarray(0.5 * dz * _LOG2PI, dtype)
+
+    def one_particle(pose, mean, cov, active, ids):
+        def body(carry, x):
+            mean, cov, active, ids = carry
+            z_k, id_k, v_k, R_k, Ri_k, ldR_k = x
+            if slot_by_id:
+                in_range = id_k < cap
+                slot = jnp.clip(id_k, 0, cap - 1)
+                known = in_range & active[slot]
+                can_reg = in_range
+            else:
+                match = (ids == id_k) & active
+                known = jnp.any(match)
+                free = ~active
+                can_reg = jnp.any(free)
+                slot = jnp.where(known, jnp.argmax(match), jnp.argmax(free))
+            do_upd = v_k & known
+            do_reg = v_k & ~known & can_reg
+            ovf = v_k & ~known & ~can_reg
+
+            m_s = mean[slot]
+            P_s = cov[slot]
+            use = do_upd | do_reg
+            # Inputs reach each branch through guards (module docstring: an
+            # unused branch, e.g. a free slot at 0, must not poison gradients).
+            pose_g, prm_g, z_g, R_g = _guard(use, (pose, params, z_k, R_k))
+            l_reg = jnp.asarray(model.inverse(pose_g, z_g, prm_g), dtype)
+            m_u, P_u = _guard(do_upd, (m_s, P_s))
+            obs = lambda l: model.observe(pose_g, l, prm_g)  # noqa: E731
+            if solver == "closed":
+                # One linearisation serves both branches: at the landmark mean
+                # for an update, at the new landmark for a registration (G).
+                lin = jnp.where(do_upd, m_u, l_reg)
+                zhat, H = _value_and_jacfwd(obs, lin)
+                m_new, P_new, nis, logdetS, nu, acc, st = _update_closed(
+                    m_u, P_u, z_g, zhat, H, R_g, res, do_upd, gate)
+                G = H
+            else:
+                m_new, P_new, nis, logdetS, nu, acc, st = _update_ekf(
+                    m_u, P_u, z_g, obs, R_g, res, do_upd, gate)
+                G = jax.jacfwd(obs)(l_reg) if model.init_cov is None else None
+            c_reg, ok_reg = _register_cov(model, pose_g, z_g, R_g, prm_g, l_reg, G)
+            reg = do_reg & ok_reg
+
+            # Pass the untouched slot through unguarded: the guarded copies carry
+            # no gradient, and the slot written back must keep its own.
+            m_out = jnp.where(reg, l_reg, jnp.where(do_upd, m_new, m_s))
+            P_out = jnp.where(reg, c_reg, jnp.where(do_upd, P_new, P_s))
+            mean = mean.at[slot].set(m_out)
+            cov = cov.at[slot].set(P_out)
+            active = active.at[slot].set(active[slot] | reg)
+            ids = ids.at[slot].set(jnp.where(reg, id_k, ids[slot]))
+
+            if weights == "exact":
+                ll = -(0.5 * (nis + logdetS) + half_log2pi)
+            else:
+                ll = -(0.5 * (nu @ (Ri_k @ nu) + ldR_k) + half_log2pi)
+            ll = jnp.where(acc, ll, jnp.zeros((), dtype))
+            st = (
+                st
+                | _flag(ovf, errors.CAPACITY_OVERFLOW)
+                | _flag(do_reg & ~ok_reg, errors.NON_FINITE)
+            )
+            gated = (st & errors.GATED) != 0
+            out = (ll, jnp.where(acc, nis, jnp.zeros((), dtype)), acc, reg, gated, ovf, st)
+            return (mean, cov, active, ids), out
+
+        carry, outs = jax.lax.scan(
+            body, (mean, cov, active, ids), (z, lm_ids, valid, Rs, Rinv, logdetR)
+        )
+        ll, nis, acc, reg, gated, ovf, st = outs
+        st_all = jnp.bitwise_or.reduce(st) if K > 0 else jnp.int32(0)
+        return carry, (jnp.sum(ll), nis, acc, reg, gated, jnp.sum(ovf.astype(jnp.int32)), st_all)
+
+    per = (p.pose, p.lm_mean, p.lm_cov, p.active, p.ids)
+    if chunk is not None and N > int(chunk):
+        # Chunks of particles in a sequential map keep the working set in cache
+        # for very large N (lax.map vmaps each chunk).
+        outs = jax.lax.map(lambda a: one_particle(*a), per, batch_size=int(chunk))
+    else:
+        outs = jax.vmap(one_particle)(*per)
+    (mean, cov, active, ids), (loglik, nis, used, registered, gated, ovf, st) = outs
+
+    status = jnp.bitwise_or.reduce(st) | _flag(jnp.any(bad_input), errors.MASKED_INPUT)
+    n_ovf = jnp.max(ovf).astype(jnp.int32)
+    p = p._replace(
+        lm_mean=mean, lm_cov=cov, active=active, ids=ids,
+        status=p.status | status, overflow=p.overflow + n_ovf,
+    )
+    log_marg = jax.scipy.special.logsumexp(p.log_w + loglik)
+    p2, w_bits = _reweight(p, loglik)
+    info = ObserveInfo(
+        loglik=loglik,
+        log_marginal=log_marg,
+        nis=nis,
+        used=used,
+        registered=registered,
+        gated=gated,
+        n_used=jnp.sum(used).astype(jnp.int32),
+        n_registered=jnp.sum(registered).astype(jnp.int32),
+        status=status | w_bits,
+    )
+    return p2, info
+
+
+# ---------------------------------------------------------------------------
+# Weights and resampling
+# ---------------------------------------------------------------------------
+
+def reweight(p: Particles, loglik) -> Particles:
+    """``log_w += loglik`` and renormalise (paper 001 eq. 28, Table 2 step 3).
+
+    Use it for likelihood terms outside the landmark model (e.g. paper 001's
+    IMU term ``p(z^I | x^D, x̂^B)``).  Underflow is counted and recovered (see
+    the module docstring); an all −inf/NaN result resets to uniform and sets
+    ``DEGENERATE``.
+
+    Args:
+        p: Particles.  loglik: (N,) log-likelihood per particle.
+    """
+    return _reweight(p, loglik)[0]
+
+
+def _reweight(p: Particles, loglik):
+    dtype = p.log_w.dtype
+    lw = p.log_w + jnp.asarray(loglik, dtype)
+    lw_n, ok = _rs.normalize(lw)
+    log_tiny = jnp.log(jnp.asarray(jnp.finfo(dtype).tiny, dtype))
+    top = jnp.max(jnp.where(jnp.isnan(lw), -jnp.inf, lw))
+    under = ~ok | (top < log_tiny)
+    bits = _flag(~ok, errors.DEGENERATE)
+    return p._replace(
+        log_w=lw_n,
+        underflow=p.underflow + under.astype(jnp.int32),
+        status=p.status | bits,
+    ), bits
+
+
+def neff(p: Particles):
+    """Effective sample size ``1/Σ w̄²`` of the particle set, () in [1, N]."""
+    return _rs.ess(p.log_w)
+
+
+def _per_particle(p: Particles):
+    return (p.pose, p.aux, p.lm_mean, p.lm_cov, p.active, p.ids)
+
+
+def resample_indices(p: Particles, idx, log_w=None) -> Particles:
+    """Gather every per-particle leaf by ancestor indices ``idx`` (N,).
+
+    The new log-weights are ``log_w`` (normalised) or uniform when None.
+    """
+    N = p.pose.shape[0]
+    leaves = jax.tree_util.tree_map(lambda x: jnp.take(x, idx, axis=0), _per_particle(p))
+    pose, aux, mean, cov, active, ids = leaves
+    if log_w is None:
+        log_w = jnp.full((N,), -jnp.log(jnp.asarray(N, p.log_w.dtype)), p.log_w.dtype)
+    return p._replace(pose=pose, aux=aux, lm_mean=mean, lm_cov=cov, active=active, ids=ids,
+                      log_w=log_w)
+
+
+def maybe_resample(p: Particles, key, threshold: Optional[float] = 0.5,
+                   scheme="systematic") -> Particles:
+    """Resample when ``N_eff < threshold·N`` (paper 001, Table 2 step 6).
+
+    Inside ``lax.cond`` (no host round trip; under ``vmap`` both branches
+    run).  All per-particle leaves are gathered by the ancestor indices and
+    the weights reset to uniform; ``resamples`` counts the events.
+
+    Args:
+        p: Particles.  key: PRNG key for the draw.
+        threshold: fraction of N (traced), or None to resample at every call
+            (the paper's choice).
+        scheme: name in :data:`jaxslam.filters.resampling.SCHEMES` or a
+            callable ``(key, log_w, n) -> indices`` (static).
+    """
+    fn = _rs._scheme(scheme)
+    N = p.pose.shape[0]
+
+    def do(q):
+        idx = fn(key, q.log_w, N)
+        q = resample_indices(q, idx)
+        return q._replace(resamples=q.resamples + 1)
+
+    if threshold is None:
+        return do(p)
+    thr = jnp.asarray(threshold, p.log_w.dtype) * N
+    return jax.lax.cond(neff(p) < thr, do, lambda q: q, p)
+
+
+def resample_soft(p: Particles, key, alpha, threshold: Optional[float] = None,
+                  scheme="multinomial") -> Particles:
+    """Soft resampling (differentiable weights; :func:`resampling.soft`).
+
+    Ancestors from ``q = α w̄ + (1 − α)/N``, new weights ``w̄/q``.  With
+    ``threshold`` None (default) it resamples at every call, which keeps a
+    run's loss smooth in the parameters (a threshold decision is a jump).
+    """
+    def do(q):
+        idx, lw = _rs.soft(key, q.log_w, alpha, scheme)
+        q = resample_indices(q, idx, lw)
+        return q._replace(resamples=q.resamples + 1)
+
+    if threshold is None:
+        return do(p)
+    N = p.pose.shape[0]
+    thr = jnp.asarray(threshold, p.log_w.dtype) * N
+    return jax.lax.cond(neff(p) < thr, do, lambda q: q, p)
+
+
+# ---------------------------------------------------------------------------
+# Estimates
+# ---------------------------------------------------------------------------
+
+def estimate(p: Particles, angle_mask: Optional[Sequence[bool]] = None):
+    """Weighted pose mean (n_r,) and covariance (n_r, n_r).
+
+    Args:
+        p: Particles.
+        angle_mask: optional (n_r,) static bools; True components are angles
+            (rad): their mean is the circular mean ``atan2(Σ w sin, Σ w cos)``
+            and deviations are wrapped to [−π, π) before the covariance.
+    """
+    w = jnp.exp(p.log_w)
+    x = p.pose
+    mu = w @ x
+    if angle_mask is not None:
+        am = np.asarray(angle_mask, bool)
+        circ = jnp.arctan2(w @ jnp.sin(x), w @ jnp.cos(x))
+        mu = jnp.where(am, circ, mu)
+        dev = x - mu
+        dev = jnp.where(am, wrap_angle(dev), dev)
+    else:
+        dev = x - mu
+    cov = symmetrize((dev * w[:, None]).T @ dev)
+    return mu, cov
+
+
+def best_map(p: Particles) -> LandmarkMap:
+    """Map of the highest-weight particle."""
+    i = jnp.argmax(p.log_w)
+    return LandmarkMap(p.lm_mean[i], p.lm_cov[i], p.active[i], p.ids[i])
+
+
+def map_mean(p: Particles) -> LandmarkMap:
+    """Weighted landmark mean and covariance per slot over particles.
+
+    Per slot, over the particles where it is active (weights renormalised):
+    mean ``Σ w μ``, covariance ``Σ w (Σ_i + (μ_i − μ)(μ_i − μ)ᵀ)`` (law of
+    total covariance).  Meaningful only when a slot holds the same landmark
+    in every particle: known ids with ``slot_by_id=True``, or known ids
+    registered in the same order by every particle.  ``ids`` are those of the
+    highest-weight particle; ``active`` is "active in any particle".
+    """
+    w = jnp.exp(p.log_w)[:, None] * p.active  # (N, cap)
+    tot = jnp.sum(w, axis=0)
+    wn = w / jnp.where(tot > 0, tot, 1.0)
+    mu = jnp.einsum("nc,ncd->cd", wn, p.lm_mean)
+    dev = p.lm_mean - mu[None]
+    cov = jnp.einsum("nc,ncde->cde", wn, p.lm_cov + dev[..., :, None] * dev[..., None, :])
+    i = jnp.argmax(p.log_w)
+    return LandmarkMap(mu, symmetrize(cov), jnp.any(p.active, axis=0), p.ids[i])
+
+
+# ---------------------------------------------------------------------------
+# Convenience
+# ---------------------------------------------------------------------------
+
+def step(p: Particles, key, sample_fn: Callable, sample_args: tuple, model: LandmarkModel,
+         z, lm_ids, mask, R, params=None, weights: str = "exact", gate=None,
+         threshold: Optional[float] = 0.5, scheme="systematic", slot_by_id: bool = False,
+         solver: str = "closed", chunk: Optional[int] = None):
+    """One FastSLAM step: propagate → observe_update → maybe_resample.
+
+    ``key`` is split into a proposal key and a resampling key.  Returns
+    ``(Particles, ObserveInfo)``; scan it over a run.
+    """
+    k_prop, k_res = jax.random.split(key)
+    p = propagate(p, k_prop, sample_fn, *sample_args)
+    p, info = observe_update(p, model, z, lm_ids, mask, R, params, weights=weights, gate=gate,
+                             slot_by_id=slot_by_id, solver=solver, chunk=chunk)
+    p = maybe_resample(p, k_res, threshold, scheme)
+    return p, info

@@ -1,0 +1,633 @@
+"""Tests of the generic FastSLAM core (jaxslam.filters.fastslam).
+
+A toy planar robot (x, y, yaw) with a 2D range-bearing landmark model is
+written here.  Oracles: an independent NumPy EKF with hand-derived Jacobians
+and SciPy Gaussian log-densities, ``jaxslam.filters.ekf.update`` applied
+directly, per-particle Python loops of the same jitted single-particle call,
+and NumPy weighted means.
+"""
+
+import functools
+
+import chex
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy import special, stats
+
+from jaxslam import errors
+from jaxslam.errors import InputError
+from jaxslam.filters import ekf
+from jaxslam.filters import fastslam as fs
+from jaxslam.filters import resampling as rs
+from jaxslam.linalg import wrap_angle
+
+# ---------------------------------------------------------------------------
+# Toy model (JAX) and its NumPy oracle with hand Jacobians
+# ---------------------------------------------------------------------------
+
+
+def observe(pose, l, params):
+    d = l - pose[:2]
+    return jnp.stack([jnp.sqrt(d @ d), wrap_angle(jnp.arctan2(d[1], d[0]) - pose[2])])
+
+
+def inverse(pose, z, params):
+    a = z[1] + pose[2]
+    return pose[:2] + z[0] * jnp.stack([jnp.cos(a), jnp.sin(a)])
+
+
+RESID = ekf.angle_residual([False, True])
+MODEL = fs.LandmarkModel(2, 2, observe, inverse, RESID)
+LMS = np.array([[2.0, 1.0], [-1.0, 3.0], [4.0, -2.0], [0.5, -3.0]])
+R_NP = np.array([[0.02, 0.001], [0.001, 0.003]])
+
+
+def np_wrap(a):
+    return (a + np.pi) % (2 * np.pi) - np.pi
+
+
+def np_h(pose, l):
+    d = l - pose[:2]
+    return np.array([np.hypot(*d), np_wrap(np.arctan2(d[1], d[0]) - pose[2])])
+
+
+def np_H(pose, l):
+    dx, dy = l - pose[:2]
+    q = dx * dx + dy * dy
+    r = np.sqrt(q)
+    return np.array([[dx / r, dy / r], [-dy / q, dx / q]])
+
+
+def np_register(pose, z, R):
+    a = z[1] + pose[2]
+    l = pose[:2] + z[0] * np.array([np.cos(a), np.sin(a)])
+    Gi = np.linalg.inv(np_H(pose, l))
+    return l, Gi @ R @ Gi.T
+
+
+def np_ekf(m, P, z, pose, R):
+    """(m⁺, P⁺, ν, S) of one landmark EKF update, Joseph form."""
+    H = np_H(pose, m)
+    nu = z - np_h(pose, m)
+    nu[1] = np_wrap(nu[1])
+    S = H @ P @ H.T + R
+    K = P @ H.T @ np.linalg.inv(S)
+    A = np.eye(2) - K @ H
+    return m + K @ nu, A @ P @ A.T + K @ R @ K.T, nu, S
+
+
+def poses_path(T):
+    t = np.arange(T) * 0.2
+    return np.stack([1.5 * np.cos(t) - 1.0, 1.5 * np.sin(t), t + np.pi / 2], axis=1)
+
+
+def measure(pose, rng, sigma=(0.1, 0.03)):
+    z = np.stack([np_h(pose, l) for l in LMS])
+    return z + rng.normal(size=z.shape) * np.asarray(sigma)
+
+
+def one(p, i):
+    """Particle i of p as a one-particle set (same counters)."""
+    take = lambda x: x[i:i + 1]  # noqa: E731
+    return p._replace(pose=take(p.pose), aux=jax.tree_util.tree_map(take, p.aux),
+                      lm_mean=take(p.lm_mean), lm_cov=take(p.lm_cov), active=take(p.active),
+                      ids=take(p.ids), log_w=jnp.zeros((1,), p.log_w.dtype))
+
+
+@functools.lru_cache(maxsize=None)
+def _obs_jit(weights, solver, slot_by_id):
+    # The gate is a traced threshold (inf = no gate) so that gating needs no
+    # extra compilation; the no-gate path (gate=None) runs in the scan test.
+    return jax.jit(lambda p, z, ids, mask, R, gate: fs.observe_update(
+        p, MODEL, z, ids, mask, R, None, weights=weights, gate=gate, slot_by_id=slot_by_id,
+        solver=solver))
+
+
+def obs_fn(weights="exact", solver="closed", slot_by_id=False, gate=np.inf):
+    f = _obs_jit(weights, solver, slot_by_id)
+    return lambda p, z, ids, mask, R: f(p, z, ids, mask, R, gate)
+
+
+N_SET = 8  # one particle count for most tests: fewer compilations
+
+
+@jax.jit
+def core_update(g, z, pose):
+    return ekf.update(g, z, lambda l: observe(pose, l, None), R_NP, residual=RESID)[0]
+
+
+def logpdf(nu, S):
+    return stats.multivariate_normal(mean=np.zeros(len(nu)), cov=S).logpdf(nu)
+
+
+# ---------------------------------------------------------------------------
+# One particle, known pose: landmark EKFs = ekf.update = NumPy EKF
+# ---------------------------------------------------------------------------
+
+@pytest.mark.parametrize("solver,dtype", [("closed", np.float64), ("closed", np.float32),
+                                          ("ekf", np.float64)])
+def test_single_particle_equals_ekf_core_and_numpy(solver, dtype):
+    T, K = 12, 4
+    rng = np.random.default_rng(0)
+    poses = poses_path(T)
+    f = obs_fn("exact", solver)
+    p = fs.init(poses[0].astype(dtype), 1, 6, 2)
+    np_maps, core_maps = {}, {}
+    tol = dict(rtol=1e-12, atol=1e-12) if dtype == np.float64 else dict(rtol=2e-4, atol=2e-5)
+    for t in range(T):
+        z = measure(poses[t], rng)
+        mask = np.ones(K, bool)
+        mask[(t + 1) % K] = t % 3 != 0  # some steps miss a landmark
+        ll_np = 0.0
+        for k in range(K):
+            if not mask[k]:
+                continue
+            if k not in np_maps:
+                np_maps[k] = np_register(poses[t], z[k], R_NP)
+                core_maps[k] = ekf.Gaussian(jnp.asarray(np_maps[k][0]), jnp.asarray(np_maps[k][1]))
+            else:
+                m, P, nu, S = np_ekf(*np_maps[k], z[k], poses[t], R_NP)
+                np_maps[k] = (m, P)
+                ll_np += logpdf(nu, S)
+                core_maps[k] = core_update(core_maps[k], z[k], poses[t])
+        p = p._replace(pose=jnp.asarray(poses[t][None], dtype))
+        zt = np.where(mask[:, None], z, np.nan).astype(dtype)
+        p, info = f(p, zt, np.arange(K), mask, R_NP.astype(dtype))
+        assert p.lm_mean.dtype == dtype and info.loglik.dtype == dtype
+        np.testing.assert_allclose(float(info.loglik[0]), ll_np, **tol)
+        for k, (m, P) in np_maps.items():
+            slot = int(np.flatnonzero(np.asarray(p.ids[0]) == k)[0])
+            np.testing.assert_allclose(np.asarray(p.lm_mean[0, slot], float), m, **tol)
+            np.testing.assert_allclose(np.asarray(p.lm_cov[0, slot], float), P, **tol)
+            if dtype == np.float64:
+                np.testing.assert_allclose(np.asarray(p.lm_mean[0, slot]),
+                                           np.asarray(core_maps[k].mean), rtol=1e-12, atol=1e-13)
+                np.testing.assert_allclose(np.asarray(p.lm_cov[0, slot]),
+                                           np.asarray(core_maps[k].cov), rtol=1e-12, atol=1e-13)
+    assert int(p.status) == 0 and int(p.overflow) == 0
+    assert set(np.asarray(p.ids[0])[np.asarray(p.active[0])]) == set(range(K))
+
+
+def test_small_closed_forms_match_numpy():
+    rng = np.random.default_rng(12)
+    for d in (1, 2, 3):
+        A = rng.normal(size=(d, d))
+        S = A @ A.T + 0.1 * np.eye(d)
+        inv, logdet, ok = jax.jit(fs._spd_inv_logdet)(jnp.asarray(S))
+        np.testing.assert_allclose(np.asarray(inv), np.linalg.inv(S), rtol=1e-12, atol=1e-12)
+        assert float(logdet) == pytest.approx(np.linalg.slogdet(S)[1], rel=1e-12)
+        assert bool(ok)
+        _, _, ok_bad = jax.jit(fs._spd_inv_logdet)(jnp.asarray(-S))
+        assert not bool(ok_bad)
+
+
+# A 3D range / azimuth / elevation model (pose = x, y, z, yaw) for the 3×3 closed forms.
+def observe3(pose, l, params):
+    d = l - pose[:3]
+    rho = jnp.sqrt(d[0] ** 2 + d[1] ** 2)
+    return jnp.stack([jnp.sqrt(d @ d), wrap_angle(jnp.arctan2(d[1], d[0]) - pose[3]),
+                      jnp.arctan2(d[2], rho)])
+
+
+def inverse3(pose, z, params):
+    r, az, el = z[0], z[1] + pose[3], z[2]
+    return pose[:3] + r * jnp.stack([jnp.cos(el) * jnp.cos(az), jnp.cos(el) * jnp.sin(az),
+                                     jnp.sin(el)])
+
+
+MODEL3 = fs.LandmarkModel(3, 3, observe3, inverse3, ekf.angle_residual([False, True, False]))
+
+
+def np_H3(pose, l):
+    dx, dy, dz = l - pose[:3]
+    rho2 = dx * dx + dy * dy
+    rho, r2 = np.sqrt(rho2), rho2 + dz * dz
+    r = np.sqrt(r2)
+    return np.array([[dx / r, dy / r, dz / r], [-dy / rho2, dx / rho2, 0.0],
+                     [-dx * dz / (r2 * rho), -dy * dz / (r2 * rho), rho / r2]])
+
+
+def np_h3(pose, l):
+    d = l - pose[:3]
+    return np.array([np.linalg.norm(d), np_wrap(np.arctan2(d[1], d[0]) - pose[3]),
+                     np.arctan2(d[2], np.hypot(d[0], d[1]))])
+
+
+def test_3d_landmarks_closed_and_ekf_solvers_match_numpy():
+    """d = 3: registration G⁻¹RG⁻ᵀ and one update, both solvers, one compilation."""
+    rng = np.random.default_rng(13)
+    lms = np.array([[2.0, 1.0, -1.0], [-1.5, 2.0, 0.5], [0.5, -3.0, -0.8]])
+    pose0, pose1 = np.array([0.1, -0.2, 0.3, 0.4]), np.array([0.3, 0.0, 0.25, 0.5])
+    R = np.diag([0.02, 0.003, 0.004])
+    z0 = np.stack([np_h3(pose0, l) for l in lms]) + rng.normal(size=(3, 3)) * 0.02
+    z1 = np.stack([np_h3(pose1, l) for l in lms]) + rng.normal(size=(3, 3)) * 0.02
+
+    @jax.jit
+    def run(z0, z1):
+        out = []
+        for solver in ("closed", "ekf"):
+            p = fs.init(jnp.asarray(pose0), 1, 4, 3)
+            p, _ = fs.observe_update(p, MODEL3, z0, jnp.arange(3), jnp.ones(3, bool), R,
+                                     solver=solver)
+            p0 = p
+            p = p._replace(pose=jnp.asarray(pose1)[None])
+            p, info = fs.observe_update(p, MODEL3, z1, jnp.arange(3), jnp.ones(3, bool), R,
+                                        solver=solver)
+            out.append((p0, p, info.loglik))
+        return out
+
+    for p0, p, ll in run(z0, z1):
+        ll_ref = 0.0
+        for k in range(3):
+            a = z0[k, 1] + pose0[3]
+            l = pose0[:3] + z0[k, 0] * np.array([np.cos(z0[k, 2]) * np.cos(a),
+                                                 np.cos(z0[k, 2]) * np.sin(a), np.sin(z0[k, 2])])
+            Gi = np.linalg.inv(np_H3(pose0, l))
+            P = Gi @ R @ Gi.T
+            np.testing.assert_allclose(np.asarray(p0.lm_mean[0, k]), l, rtol=1e-12)
+            np.testing.assert_allclose(np.asarray(p0.lm_cov[0, k]), P, rtol=1e-10, atol=1e-14)
+            H = np_H3(pose1, l)
+            nu = z1[k] - np_h3(pose1, l)
+            nu[1] = np_wrap(nu[1])
+            S = H @ P @ H.T + R
+            K = P @ H.T @ np.linalg.inv(S)
+            A = np.eye(3) - K @ H
+            np.testing.assert_allclose(np.asarray(p.lm_mean[0, k]), l + K @ nu, rtol=1e-12)
+            np.testing.assert_allclose(np.asarray(p.lm_cov[0, k]), A @ P @ A.T + K @ R @ K.T,
+                                       rtol=1e-10, atol=1e-14)
+            ll_ref += logpdf(nu, S)
+        assert float(ll[0]) == pytest.approx(ll_ref, rel=1e-12)
+
+
+# ---------------------------------------------------------------------------
+# vmap over particles = per-particle loop of the same jitted call
+# ---------------------------------------------------------------------------
+
+def _spread_particles(n=N_SET, T=4, seed=1, dtype=np.float64):
+    """n particles with different poses and maps after T registration/update steps."""
+    rng = np.random.default_rng(seed)
+    poses = poses_path(T)
+    p = fs.init(poses[0].astype(dtype), n, 6, 2)
+    f = obs_fn()
+    for t in range(T):
+        jit_pose = poses[t] + rng.normal(size=(n, 3)) * [0.05, 0.05, 0.02]
+        p = p._replace(pose=jnp.asarray(jit_pose, dtype))
+        p, _ = f(p, measure(poses[t], rng).astype(dtype), np.arange(4), np.ones(4, bool),
+                 R_NP.astype(dtype))
+    return p, rng
+
+
+def test_vmapped_update_equals_per_particle_loop():
+    p, rng = _spread_particles()
+    z = measure(poses_path(5)[4], rng)
+    mask = np.array([True, True, False, True])
+    f = obs_fn()
+    pv, info = f(p, z, np.arange(4), mask, R_NP)
+    for i in range(p.pose.shape[0]):
+        pi, ii = f(one(p, i), z, np.arange(4), mask, R_NP)
+        for a, b in [(pv.lm_mean[i], pi.lm_mean[0]), (pv.lm_cov[i], pi.lm_cov[0]),
+                     (info.loglik[i], ii.loglik[0]), (info.nis[i], ii.nis[0])]:
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12, atol=1e-14)
+        np.testing.assert_array_equal(np.asarray(pv.ids[i]), np.asarray(pi.ids[0]))
+    # Chunked processing (lax.map over chunks of 3, remainder 2) gives the same.
+    pc, ic = jax.jit(lambda p: fs.observe_update(p, MODEL, z, np.arange(4), mask, R_NP,
+                                                 chunk=3))(p)
+    for a, b in [(pc.lm_mean, pv.lm_mean), (pc.lm_cov, pv.lm_cov), (pc.log_w, pv.log_w),
+                 (ic.loglik, info.loglik)]:
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-13, atol=1e-15)
+    # Weights: log_w + loglik renormalised.
+    ref = np.asarray(p.log_w) + np.asarray(info.loglik)
+    np.testing.assert_allclose(np.asarray(pv.log_w), ref - special.logsumexp(ref), rtol=1e-12)
+
+
+def sample_fn(pose, aux, key, u, sq):
+    v, w = u
+    mean = pose + 0.1 * jnp.stack([v * jnp.cos(pose[2]), v * jnp.sin(pose[2]), w])
+    return mean + sq * jax.random.normal(key, (3,), pose.dtype), aux + 1.0
+
+
+def test_propagate_vmapped_equals_loop():
+    p = fs.init(np.zeros(3), 5, 3, 2, aux=jnp.zeros(2))
+    p = p._replace(pose=jnp.asarray(np.random.default_rng(2).normal(size=(5, 3))))
+    key = jax.random.PRNGKey(3)
+    prop = jax.jit(lambda p, k: fs.propagate(p, k, sample_fn, (1.0, 0.3), 0.05))
+    q = prop(p, key)
+    single = jax.jit(sample_fn)
+    keys = jax.random.split(key, 5)
+    for i in range(5):
+        pose_i, aux_i = single(p.pose[i], p.aux[i], keys[i], (1.0, 0.3), 0.05)
+        np.testing.assert_allclose(np.asarray(q.pose[i]), np.asarray(pose_i), rtol=1e-12)
+        np.testing.assert_allclose(np.asarray(q.aux[i]), np.asarray(aux_i), rtol=1e-12)
+    assert q.aux.shape == (5, 2)
+
+
+# ---------------------------------------------------------------------------
+# Weights: exact vs mean
+# ---------------------------------------------------------------------------
+
+def test_exact_and_mean_weights_match_their_densities():
+    rng = np.random.default_rng(4)
+    pose = poses_path(2)
+    z0, z1 = measure(pose[0], rng), measure(pose[1], rng, sigma=(0.3, 0.1))
+    lls = {}
+    for w in ("exact", "mean"):
+        f = obs_fn(w)
+        p = fs.init(pose[0], 1, 4, 2)
+        p, _ = f(p, z0, np.arange(4), np.ones(4, bool), R_NP)
+        p = p._replace(pose=jnp.asarray(pose[1][None]))
+        p1, info = f(p, z1, np.arange(4), np.ones(4, bool), R_NP)
+        lls[w] = float(info.loglik[0])
+        # The landmark posteriors do not depend on the weighting.
+        lls[w + "_map"] = np.asarray(p1.lm_mean)
+    ref_exact = ref_mean = 0.0
+    for k in range(4):
+        l, P = np_register(pose[0], z0[k], R_NP)
+        _, _, nu, S = np_ekf(l, P, z1[k], pose[1], R_NP)
+        ref_exact += logpdf(nu, S)
+        ref_mean += logpdf(nu, R_NP)
+    assert lls["exact"] == pytest.approx(ref_exact, rel=1e-12)
+    assert lls["mean"] == pytest.approx(ref_mean, rel=1e-12)
+    assert abs(lls["exact"] - lls["mean"]) > 1.0
+    np.testing.assert_array_equal(lls["exact_map"], lls["mean_map"])
+
+
+def test_paper_weights_alias_is_mean():
+    p = fs.init(np.zeros(3), 2, 3, 2)
+    args = (p, MODEL, np.zeros((4, 2)), np.arange(4), np.ones(4, bool), R_NP)
+    jx = [str(jax.make_jaxpr(lambda *a: fs.observe_update(*a[:1], MODEL, *a[1:], weights=w))(
+        p, *args[2:])) for w in ("paper", "mean", "exact")]
+    assert jx[0] == jx[1] != jx[2]
+
+
+# ---------------------------------------------------------------------------
+# Flags and counters
+# ---------------------------------------------------------------------------
+
+def test_capacity_overflow_flagged_and_counted():
+    rng = np.random.default_rng(5)
+    pose = poses_path(1)[0]
+    f = obs_fn()
+    p = fs.init(pose, 1, 6, 2)
+    z = measure(pose, rng)
+    # Ten distinct ids (the measurements repeat: only the ids matter) into 6 slots.
+    for ids in ([0, 1, 2, 3], [4, 5, 6, 7], [8, 9, 0, 1]):
+        p, info = f(p, z, np.array(ids), np.ones(4, bool), R_NP)
+    assert int(p.overflow) == 4  # ids 6, 7, 8, 9: counted per measurement
+    assert int(info.status) & errors.CAPACITY_OVERFLOW
+    assert "capacity_overflow" in errors.decode(p.status)
+    np.testing.assert_array_equal(np.asarray(p.ids), [[0, 1, 2, 3, 4, 5]])
+    np.testing.assert_array_equal(np.asarray(info.used), [[False, False, True, True]])
+    # slot_by_id: an id >= capacity overflows, the others land in their own slot.
+    g = obs_fn(slot_by_id=True)
+    q = fs.init(pose, 1, 6, 2)
+    q, _ = g(q, z, np.array([2, 0, 7, -1]), np.ones(4, bool), R_NP)
+    assert int(q.overflow) == 1 and int(q.status) & errors.CAPACITY_OVERFLOW
+    np.testing.assert_array_equal(np.asarray(q.ids), [[0, -1, 2, -1, -1, -1]])
+
+
+def test_weight_underflow_recovered_and_counted():
+    pose = poses_path(2)
+    rng = np.random.default_rng(6)
+    p, _ = _spread_particles(T=1)
+    lw_before = np.asarray(p.log_w)
+    # A measurement 50 m off with a tight R: every likelihood is ~ exp(-1e6).
+    z = measure(pose[1], rng)
+    z[:, 0] += 50.0
+    p2, info = obs_fn()(p, z, np.arange(4), np.ones(4, bool), R_NP * 1e-2)
+    ll = np.asarray(info.loglik)
+    assert np.all(ll < -1e4) and np.all(np.exp(lw_before + ll) == 0.0)
+    assert int(p2.underflow) == 1 and not int(p2.status) & errors.DEGENERATE
+    lw = np.asarray(p2.log_w)
+    assert np.all(np.isfinite(lw))
+    np.testing.assert_allclose(np.exp(lw), special.softmax(lw_before + ll), rtol=1e-9)
+    # No finite weight at all: uniform reset, counted, DEGENERATE set.
+    p3 = jax.jit(fs.reweight)(p, jnp.full((N_SET,), -jnp.inf))
+    np.testing.assert_allclose(np.asarray(p3.log_w), -np.log(N_SET), rtol=1e-14)
+    assert int(p3.underflow) == 1 and int(p3.status) & errors.DEGENERATE
+
+
+def test_masked_and_bad_measurements_do_nothing():
+    p, rng = _spread_particles(T=2)
+    z = measure(poses_path(3)[2], rng)
+    f = obs_fn()
+    z_nan = np.full_like(z, np.nan)
+    # mask False, negative ids: nothing changes, no flag.
+    for ids, mask in [(np.arange(4), np.zeros(4, bool)), (-np.ones(4, int), np.ones(4, bool))]:
+        q, info = f(p, z_nan, ids, mask, R_NP)
+        for a, b in [(q.lm_mean, p.lm_mean), (q.lm_cov, p.lm_cov), (q.log_w, p.log_w)]:
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+        assert int(q.status) == 0 and int(info.n_used) == 0
+    # mask True but NaN: skipped and flagged MASKED_INPUT.
+    q, info = f(p, z_nan, np.arange(4), np.ones(4, bool), R_NP)
+    np.testing.assert_array_equal(np.asarray(q.lm_mean), np.asarray(p.lm_mean))
+    assert int(q.status) & errors.MASKED_INPUT and int(info.n_used) == 0
+
+
+def test_gate_rejects_outlier():
+    p, rng = _spread_particles(T=2)
+    z = measure(poses_path(3)[2], rng)
+    z[1, 0] += 20.0  # an outlier on landmark 1 only: NIS ~ 2e4, the others < 200
+    q, info = obs_fn(gate=500.0)(p, z, np.arange(4), np.ones(4, bool), R_NP)
+    g = np.asarray(info.gated)
+    assert g[:, 1].all() and not g[:, [0, 2, 3]].any()
+    assert int(q.status) & errors.GATED
+    slot1 = np.asarray(p.ids) == 1
+    np.testing.assert_array_equal(np.asarray(q.lm_mean)[slot1], np.asarray(p.lm_mean)[slot1])
+    assert np.all(np.asarray(info.used)[:, [0, 2, 3]])
+
+
+def test_register_then_update_within_one_step():
+    """Two observations of a new landmark in one step: register, then update."""
+    pose = poses_path(1)[0]
+    rng = np.random.default_rng(7)
+    z = measure(pose, rng)
+    z2 = np.stack([z[0], z[0] + [0.05, -0.01], z[1], z[2]])
+    p = fs.init(pose, 1, 6, 2)
+    q, info = obs_fn()(p, z2, np.array([0, 0, -1, -1]), np.ones(4, bool), R_NP)
+    l, P = np_register(pose, z2[0], R_NP)
+    m, P2, nu, S = np_ekf(l, P, z2[1], pose, R_NP)
+    np.testing.assert_allclose(np.asarray(q.lm_mean[0, 0]), m, rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(q.lm_cov[0, 0]), P2, rtol=1e-12, atol=1e-15)
+    np.testing.assert_array_equal(np.asarray(info.registered[0]), [True, False, False, False])
+    np.testing.assert_array_equal(np.asarray(info.used[0]), [False, True, False, False])
+
+
+def test_bad_inputs_raise():
+    for kw, match in [(dict(n_particles=0), "n_particles"), (dict(n_particles=-3), "n_particles"),
+                      (dict(capacity=0), "capacity"), (dict(lm_dim=0), "lm_dim")]:
+        args = dict(pose0=np.zeros(3), n_particles=4, capacity=3, lm_dim=2)
+        args.update(kw)
+        with pytest.raises(InputError, match=match):
+            fs.init(**args)
+    with pytest.raises(InputError, match="pose0"):
+        fs.init(np.zeros((5, 3)), 4, 3, 2)
+    with pytest.raises(InputError, match="pose0"):
+        fs.init(np.array([0.0, np.nan, 0.0]), 4, 3, 2)
+    with pytest.raises(InputError, match="aux"):
+        fs.init(np.zeros(3), 4, 3, 2, aux=np.zeros((3, 2)), aux_per_particle=True)
+    p = fs.init(np.zeros(3), 2, 3, 2)
+    with pytest.raises(InputError, match="z"):
+        fs.observe_update(p, MODEL, np.zeros((4, 3)), np.arange(4), np.ones(4, bool), R_NP)
+    with pytest.raises(InputError, match="weights"):
+        fs.observe_update(p, MODEL, np.zeros((4, 2)), np.arange(4), np.ones(4, bool), R_NP,
+                          weights="bogus")
+    with pytest.raises(InputError, match="R"):
+        fs.observe_update(p, MODEL, np.zeros((4, 2)), np.arange(4), np.ones(4, bool),
+                          np.eye(3))
+
+
+def test_init_shapes_and_aux_broadcast():
+    g = ekf.Gaussian(np.zeros(4), np.eye(4))
+    p = fs.init(np.zeros(3, np.float32), 5, 7, 3, aux=g)
+    assert p.aux.mean.shape == (5, 4) and p.aux.cov.shape == (5, 4, 4)
+    assert p.lm_mean.shape == (5, 7, 3) and p.lm_cov.shape == (5, 7, 3, 3)
+    assert p.lm_mean.dtype == jnp.float32 and p.log_w.dtype == jnp.float32
+    assert p.ids.dtype == jnp.int32 and bool(jnp.all(p.ids == -1))
+    np.testing.assert_allclose(np.asarray(p.log_w), -np.log(5), rtol=1e-6)
+    q = fs.init(np.zeros((5, 3)), 5, 2, 2, aux=np.arange(5.0))
+    np.testing.assert_array_equal(np.asarray(q.aux), np.arange(5.0))
+
+
+# ---------------------------------------------------------------------------
+# Resampling of the particle set
+# ---------------------------------------------------------------------------
+
+def test_maybe_resample_moves_every_leaf_together():
+    n = N_SET
+    p, _ = _spread_particles(T=2)
+    p = p._replace(aux=jnp.arange(float(n)))
+    rng = np.random.default_rng(8)
+    key = jax.random.PRNGKey(9)
+    res = jax.jit(lambda p, k, thr: fs.maybe_resample(p, k, thr))
+    # Mild weights: N_eff above 0.5 N, nothing happens.
+    mild = jnp.asarray(special.log_softmax(rng.normal(size=n) * 0.1))
+    q = res(p._replace(log_w=mild), key, 0.5)
+    np.testing.assert_array_equal(np.asarray(q.pose), np.asarray(p.pose))
+    assert int(q.resamples) == 0
+    # Peaked weights: resampled by the systematic indices of the same key.
+    peaked = jnp.asarray(special.log_softmax(rng.normal(size=n) * 3.0))
+    assert 1.0 / np.sum(np.exp(2 * np.asarray(peaked))) < n / 2
+    q = res(p._replace(log_w=peaked), key, 0.5)
+    idx = np.asarray(jax.jit(rs.systematic)(key, peaked))
+    assert int(q.resamples) == 1
+    np.testing.assert_allclose(np.asarray(q.log_w), -np.log(n), rtol=1e-14)
+    np.testing.assert_array_equal(np.asarray(q.aux), idx.astype(float))
+    for a, b in [(q.pose, p.pose), (q.lm_mean, p.lm_mean), (q.lm_cov, p.lm_cov),
+                 (q.ids, p.ids), (q.active, p.active)]:
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b)[idx])
+    # threshold=None always resamples; soft resampling keeps w/q weights.
+    always = jax.jit(lambda p, k: fs.maybe_resample(p, k, None))
+    assert int(always(p._replace(log_w=mild), key).resamples) == 1
+    s = jax.jit(fs.resample_soft)(p._replace(log_w=peaked), key, 0.5)
+    sidx, slw = jax.jit(rs.soft)(key, peaked, 0.5)
+    np.testing.assert_array_equal(np.asarray(s.aux), np.asarray(sidx).astype(float))
+    np.testing.assert_allclose(np.asarray(s.log_w), np.asarray(slw), rtol=1e-14)
+    assert int(s.resamples) == 1
+
+
+# ---------------------------------------------------------------------------
+# Estimates
+# ---------------------------------------------------------------------------
+
+def test_estimate_best_and_mean_map():
+    rng = np.random.default_rng(10)
+    n = 9
+    pose = rng.normal(size=(n, 3))
+    pose[:, 2] = np.pi - 0.1 + rng.normal(size=n) * 0.05  # straddles ±π
+    w = special.softmax(rng.normal(size=n))
+    lw = jnp.asarray(np.log(w))
+    p = fs.init(pose, n, 3, 2)._replace(pose=jnp.asarray(np_wrap(pose)), log_w=lw)
+    mu, _ = jax.jit(fs.estimate)(p)
+    np.testing.assert_allclose(np.asarray(mu), w @ np_wrap(pose), rtol=1e-12)
+    mu_a, cov_a = jax.jit(lambda p: fs.estimate(p, angle_mask=[False, False, True]))(p)
+    th = np.arctan2(w @ np.sin(pose[:, 2]), w @ np.cos(pose[:, 2]))
+    ref_mu = np.r_[w @ pose[:, :2], th]
+    np.testing.assert_allclose(np.asarray(mu_a), ref_mu, rtol=1e-12)
+    dev = np_wrap(pose) - ref_mu
+    dev[:, 2] = np_wrap(dev[:, 2])
+    np.testing.assert_allclose(np.asarray(cov_a), (dev * w[:, None]).T @ dev, rtol=1e-12,
+                               atol=1e-15)
+    assert float(cov_a[2, 2]) < 0.01  # the wrapped yaw spread stays small
+    # Maps aligned by id (slot_by_id): weighted mean and total covariance per slot.
+    means = rng.normal(size=(n, 3, 2))
+    covs = np.broadcast_to(np.eye(2) * 0.1, (n, 3, 2, 2)) * rng.uniform(1, 2, (n, 3, 1, 1))
+    active = np.ones((n, 3), bool)
+    active[:4, 2] = False
+    p = p._replace(lm_mean=jnp.asarray(means), lm_cov=jnp.asarray(covs),
+                   active=jnp.asarray(active), ids=jnp.asarray(np.tile(np.arange(3), (n, 1))))
+    mm = jax.jit(fs.map_mean)(p)
+    for s in range(3):
+        ws = w * active[:, s]
+        ws = ws / ws.sum()
+        m = ws @ means[:, s]
+        d = means[:, s] - m
+        C = np.einsum("n,nij->ij", ws, covs[:, s]) + (d * ws[:, None]).T @ d
+        np.testing.assert_allclose(np.asarray(mm.mean[s]), m, rtol=1e-12)
+        np.testing.assert_allclose(np.asarray(mm.cov[s]), C, rtol=1e-12)
+    b = jax.jit(fs.best_map)(p)
+    i = int(np.argmax(w))
+    np.testing.assert_array_equal(np.asarray(b.mean), means[i])
+    assert bool(jnp.all(b.active == active[i]))
+
+
+# ---------------------------------------------------------------------------
+# dtype; a whole filter in one scan (slow: one more full compilation per dtype)
+# ---------------------------------------------------------------------------
+
+def test_float32_stays_float32():
+    """propagate → reweight → maybe_resample → estimates keep float32 (one jit)."""
+    p = fs.init(np.zeros(3, np.float32), N_SET, 3, 2, aux=np.zeros(2, np.float32))
+
+    @jax.jit
+    def run(p, key):
+        k1, k2 = jax.random.split(key)
+        p = fs.propagate(p, k1, sample_fn, (jnp.float32(1.0), jnp.float32(0.3)),
+                         jnp.float32(0.05))
+        p = fs.reweight(p, -jnp.arange(N_SET, dtype=jnp.float32) ** 2)
+        p = fs.maybe_resample(p, k2, 0.5)
+        return p, fs.estimate(p), fs.map_mean(p), fs.neff(p)
+
+    out = run(p, jax.random.PRNGKey(0))
+    for leaf in jax.tree_util.tree_leaves(out):
+        if jnp.issubdtype(leaf.dtype, jnp.floating):
+            assert leaf.dtype == jnp.float32, leaf.dtype
+    assert int(out[0].resamples) == 1
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_scanned_run_tracks_and_keeps_dtype(dtype):
+    T, N = 40, 64
+    rng = np.random.default_rng(11)
+    truth = poses_path(T + 1)
+    u = np.diff(truth, axis=0)
+    zs = np.stack([measure(truth[t + 1], rng, sigma=(0.05, 0.01)) for t in range(T)])
+
+    def sample(pose, aux, key, du):
+        return pose + du + jax.random.normal(key, (3,), pose.dtype) * jnp.asarray(
+            [0.02, 0.02, 0.005], pose.dtype), aux
+
+    R = np.diag([0.05**2, 0.01**2]).astype(dtype)
+
+    @jax.jit
+    def run(p, key):
+        def body(p, x):
+            k, du, z = x
+            p, info = fs.step(p, k, sample, (du,), MODEL, z, jnp.arange(4), jnp.ones(4, bool),
+                              R, slot_by_id=True)
+            return p, (fs.estimate(p, angle_mask=[False, False, True])[0], fs.neff(p))
+        return jax.lax.scan(body, p, (jax.random.split(key, T), u.astype(dtype),
+                                      zs.astype(dtype)))
+
+    p0 = fs.init(truth[0].astype(dtype), N, 4, 2)
+    p, (est, ne) = run(p0, jax.random.PRNGKey(0))
+    for leaf in (p.pose, p.lm_mean, p.lm_cov, p.log_w, est, ne):
+        assert leaf.dtype == dtype
+    err = np.linalg.norm(np.asarray(est, float)[:, :2] - truth[1:, :2], axis=1)
+    assert err.max() < 0.1, err.max()
+    lm = np.asarray(fs.map_mean(p).mean, float)
+    assert np.max(np.linalg.norm(lm - LMS, axis=1)) < 0.1
+    assert int(p.status) == 0 and int(p.resamples) > 0
+    chex.assert_tree_all_finite(p)
