@@ -8,4 +8,6 @@ broken scenario module cannot break the registry import itself.
 BUILTIN_MODULES = (
     "jaxslam.sim.scenarios.tracking",
     "jaxslam.sim.scenarios.ekfslam3d",
+    "jaxslam.sim.scenarios.uwb",
+    "jaxslam.sim.scenarios.fastslam",
 )
