@@ -16,8 +16,11 @@ Two parts, for every batch size M in ``--runs``:
    the package are compared on the first log (max |Δ| of the robot means).
 
 ``mc``      a whole Monte Carlo run (simulate → filter → metrics, what
-   ``jaxslam run uwb-circle`` does): ``jax.jit(jax.vmap(one_run))`` over M keys vs M
-   sequential calls of the jitted single run.
+   ``jaxslam run uwb-circle`` does): ``jax.jit(jax.vmap(one_run))`` over M keys, in
+   chunks of at most ``--mc-chunk`` (250) runs as ``jaxslam.sim.monte_carlo.run`` does,
+   vs M sequential calls of the jitted single run.  (A single 1000-run call of this
+   program hung inside XLA's CPU runtime twice on the shared 2-core machine: all threads
+   idle in futex waits, no CPU time used.)
 
 Medians over ``--repeats`` after one warm-up call; ``block_until_ready`` on every
 JAX result; compile times reported apart.  ``load_average`` records how busy the
@@ -57,6 +60,8 @@ def add_arguments(parser):
     parser.add_argument("--twin-max", type=int, default=10,
                         help="NumPy twin runs actually timed per M (default 10)")
     parser.add_argument("--parts", default="filter,mc", help="comma list: filter, mc")
+    parser.add_argument("--mc-chunk", type=int, default=250,
+                        help="Monte Carlo runs per vmapped call (default 250)")
 
 
 def _progress(msg):
@@ -164,17 +169,25 @@ def run(args):
         batched = jax.jit(jax.vmap(one_run))
         rows = []
         for M in Ms:
+            # Chunks of at most --mc-chunk runs, as jaxslam.sim.monte_carlo.run does (one
+            # 1000-run call of this program hung inside XLA's CPU runtime on the 2-core machine).
+            chunk = min(M, args.mc_chunk)
+            n_chunks = -(-M // chunk)
             km = keys[:M]
+            if n_chunks * chunk > M:  # pad the last chunk (its extra runs are timed too, as in monte_carlo)
+                km = jnp.concatenate([km, jnp.repeat(keys[M - 1:M], n_chunks * chunk - M, axis=0)])
+            parts_k = [km[c * chunk:(c + 1) * chunk] for c in range(n_chunks)]
+            _progress(f"monte carlo: M = {M} (compiling {chunk} runs)")
             t0 = time.perf_counter()
-            jax.block_until_ready(batched(km))
+            jax.block_until_ready(batched(parts_k[0]))
             comp = time.perf_counter() - t0
             _progress(f"monte carlo: M = {M}")
-            t_vmap = _median(lambda: jax.block_until_ready(batched(km)), args.repeats)
+            t_vmap = _median(lambda: [jax.block_until_ready(batched(k_)) for k_ in parts_k], args.repeats)
             n_seq = min(M, args.seq_max)
             t_seq = _median(lambda: [jax.block_until_ready(single(keys[i])) for i in range(n_seq)],
                             args.repeats) / n_seq * M
-            rows.append({"runs": M, "vmap_s": t_vmap, "vmap_runs_per_s": M / t_vmap, "vmap_compile_s": comp,
-                         "sequential_s": t_seq, "sequential_runs_per_s": M / t_seq, "sequential_timed": n_seq,
+            rows.append({"runs": M, "chunk": chunk, "chunks": n_chunks, "vmap_s": t_vmap,
+                         "vmap_runs_per_s": M / t_vmap, "vmap_compile_s": comp, "sequential_s": t_seq, "sequential_runs_per_s": M / t_seq, "sequential_timed": n_seq,
                          "speedup": t_seq / t_vmap})
             results.append({"case": f"monte carlo {case} (simulate+filter+metrics), M={M}", "params": {"runs": M},
                             "jaxslam_s": t_vmap, "reference": "M sequential calls of the jitted single run",
