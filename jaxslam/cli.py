@@ -4,7 +4,8 @@
     jaxslam run SCENARIO [--runs N] [--seed S] [--float32] [--json PATH] [--plots DIR]
                          [--quiet] [--params FILE] [scenario options]
     jaxslam bench NAME [--dir DIR] [--json PATH] [benchmark options]
-    jaxslam tune ... | jaxslam dataset ...      (reserved; not available yet)
+    jaxslam tune SCENARIO [--target noise|lqr] [--loss LOSS] [--steps K] ...  (jaxslam.tuning.cli)
+    jaxslam dataset ...      (reserved; not available yet)
 
 Exit codes: 0 success; 2 usage or input error (one line on stderr, no
 traceback); 1 internal failure (one line plus a hint; ``--debug`` or the
@@ -37,14 +38,15 @@ from __future__ import annotations
 import argparse
 import ast
 import importlib.util
+import math
 import os
 
-# jaxlib's CPU LAPACK kernels (Cholesky, triangular solves) run on SciPy's OpenBLAS.  Left
-# threaded, its worker threads measured 2-20 ms per small call on a 2-core machine (48×48
-# triangular solve: 9 ms vs 0.04 ms pinned), which made an EKF-SLAM frame 100× slower.
-# The command is an entry point, so it pins OpenBLAS to one thread unless the user chose
-# otherwise; this must happen before NumPy/SciPy load (see README, "Performance").
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+from jaxslam import runtime
+
+# The command is an entry point: it pins OpenBLAS to one thread (threaded, a 48×48 triangular
+# solve measured 9 ms vs 0.04 ms pinned on 2 cores) and sets the XLA workaround flags, before
+# NumPy/SciPy load and before JAX starts its backend (see jaxslam.runtime, README "Performance").
+runtime.configure_process()
 import pathlib
 import sys
 
@@ -55,14 +57,15 @@ __all__ = ["main", "find_benchmarks_dir", "list_benchmarks"]
 
 PROG = "jaxslam"
 _DEBUG_ENV = "JAXSLAM_DEBUG"
-_RESERVED_COMMANDS = ("tune", "dataset")
+_RESERVED_COMMANDS = ("dataset",)
 
 _TOP_EPILOG = """\
 commands:
   list      scenarios and benchmarks with a one-line description
   run       run a scenario (Monte Carlo), print metrics, write JSON and plots
   bench     run a benchmark from the benchmarks/ folder
-  tune      tune filter parameters by gradient descent (not available yet)
+  tune      tune noise covariances (Q, R) or LQR weights by gradient descent,
+            with a held-out before/after comparison
   dataset   run a system on a real dataset (not available yet)
 
 'jaxslam COMMAND --help' shows the options of a command;
@@ -83,14 +86,33 @@ class _Parser(argparse.ArgumentParser):
         raise UsageError(f"{self.prog}: {message} (see '{self.prog} --help')")
 
 
-def _positive_int(text: str) -> int:
+def int_at_least(lo: int):
+    """argparse type: an int >= ``lo`` (shared by ``jaxslam tune``)."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"invalid int value: {text!r}") from None
+        if value < lo:
+            raise argparse.ArgumentTypeError(f"must be >= {lo}, got {value}")
+        return value
+
+    return parse
+
+
+def positive_float(text: str) -> float:
+    """argparse type: a finite float > 0 (shared by ``jaxslam tune``)."""
     try:
-        value = int(text)
+        value = float(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"invalid int value: {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+        raise argparse.ArgumentTypeError(f"invalid float value: {text!r}") from None
+    if not (value > 0 and math.isfinite(value)):
+        raise argparse.ArgumentTypeError(f"must be a positive number, got {text}")
     return value
+
+
+_positive_int = int_at_least(1)
 
 
 def _seed(text: str) -> int:
@@ -139,6 +161,10 @@ def _dispatch(argv: list[str]) -> int:
         return _cmd_run(rest)
     if command == "bench":
         return _cmd_bench(rest)
+    if command == "tune":
+        from jaxslam.tuning.cli import main as tune_main
+
+        return tune_main(rest)
     if command in _RESERVED_COMMANDS:
         print(f"{PROG} {command}: not available yet", file=sys.stderr)
         return 2

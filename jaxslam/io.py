@@ -275,6 +275,7 @@ def machine_info() -> dict:
         "python": platform.python_version(),
         "numpy": np.__version__,
         "openblas_num_threads": os.environ.get("OPENBLAS_NUM_THREADS"),
+        "xla_flags": os.environ.get("XLA_FLAGS"),
     }
     try:
         import jax

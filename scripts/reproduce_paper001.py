@@ -26,9 +26,9 @@ Every figure comes from the public API (:mod:`jaxslam.sim.scenarios.fastslam`,
 
 from __future__ import annotations
 
-import os
+from jaxslam import runtime  # noqa: E402
 
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # before NumPy/SciPy load (README, Performance)
+runtime.configure_process()  # OpenBLAS one thread, XLA workaround flags: before NumPy and JAX start
 
 import argparse
 import json

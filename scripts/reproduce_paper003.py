@@ -20,9 +20,9 @@ any run, and the ANEES (position, 2 states; robot block, 10 states) against thei
 
 from __future__ import annotations
 
-import os
+from jaxslam import runtime  # noqa: E402
 
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # before NumPy/SciPy load
+runtime.configure_process()  # OpenBLAS one thread, XLA workaround flags: before NumPy and JAX start
 
 import argparse
 import json

@@ -11,9 +11,11 @@ tests — and by later runs — be reused.
 import os
 import pathlib
 
-# Pin SciPy's OpenBLAS (used by jaxlib's CPU LAPACK kernels) to one thread before it loads:
-# threaded, small Cholesky/triangular solves stall for milliseconds on 2 cores (README).
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+# OpenBLAS pinned to one thread before it loads, and the XLA workaround flags before JAX's
+# backend starts (jaxslam.runtime: small LAPACK calls stall when threaded; a CPU scheduler hang).
+from jaxslam import runtime  # noqa: E402
+
+runtime.configure_process()
 
 import jax  # noqa: E402
 

@@ -277,7 +277,7 @@ def test_params_reach_scenario(tmp_path):
     ([], "COMMAND"),
     (["frobnicate"], "frobnicate"),
     (["--nope", "list"], "--nope"),
-    (["tune", "dummy"], "not available yet"),
+    (["tune", "no-such-scenario"], "no-such-scenario"),
     (["dataset", "x"], "not available yet"),
 ])
 def test_usage_errors_exit_2_one_line(capsys, argv, needle):

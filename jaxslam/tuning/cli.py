@@ -1,0 +1,331 @@
+"""``jaxslam tune SCENARIO --target noise|lqr --loss ...``: gradient tuning from the command line.
+
+    jaxslam tune SCENARIO [--target noise|lqr] [--loss nll|mse|nees|cost] [--steps K]
+                 [--train-runs M] [--test-runs M] [--lr LR] [--seed S] [--json PATH]
+                 [--plots DIR] [--params-out FILE] [--float32] [--quiet] [target options]
+
+What it does: builds the target (:mod:`jaxslam.tuning.targets`: simulates the training
+logs once), runs :func:`jaxslam.tuning.optimize.fit` with a progress line, evaluates the
+starting and the tuned parameters (and the target's references, e.g. ``q_imu``) on
+held-out seeds of the scenario itself, prints the before/after table and the tuned
+parameters, and writes:
+
+* ``--json PATH``: the ``tune`` JSON of STYLE.md (``scenario, target, loss, before, after,
+  params_before, params_after, history``, plus ``references, config, timing, memory,
+  stopped, eval_command, versions``).  Its top level also holds the tuned parameters
+  themselves (``"noise"`` or ``"controller"``), so the same file works as
+  ``jaxslam run SCENARIO --params PATH``;
+* ``--params-out FILE``: only the tuned parameters (the ``--params`` file);
+* ``--plots DIR``: loss curves and parameter trajectories (:mod:`jaxslam.plotting.tuning`).
+
+Exit codes as ``jaxslam``: 0 success (also when the optimisation stopped early on a
+non-finite loss: the message is printed and recorded, the last good parameters are
+evaluated and saved), 2 usage or input error (one line), 1 internal failure.
+x64 is switched on here (before any target module is imported) unless ``--float32``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import pathlib
+import sys
+import time
+
+from jaxslam.cli import int_at_least, positive_float  # configures the process (jaxslam.runtime)
+from jaxslam.errors import InputError
+
+__all__ = ["main", "build_parser", "DEFAULTS"]
+
+PROG = "jaxslam tune"
+
+# Per-target defaults (steps, learning rate, training / evaluation durations) chosen from the
+# measurements in docs/results/tuning (see docs/_parts/tuning.md).
+DEFAULTS = {
+    "noise": {"steps": 100, "lr": 0.5, "loss": "nll"},
+    "lqr": {"steps": 40, "lr": 0.1, "loss": "cost"},
+}
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):  # noqa: D401 - argparse API
+        raise InputError(f"{self.prog}: {message} (see '{self.prog} --help')")
+
+
+def _targets_text():
+    from . import targets
+
+    return "; ".join(f"{s} --target {t} (--loss {'|'.join(ls)})" for (s, t), ls in targets.available().items())
+
+
+def build_parser(with_targets: bool = True) -> _Parser:
+    """The argument parser of ``jaxslam tune`` (``with_targets`` lists the targets in the epilog)."""
+    p = _Parser(
+        prog=PROG,
+        usage=f"{PROG} SCENARIO [--target noise|lqr] [--loss LOSS] [--steps K] [--train-runs M] "
+              f"[--test-runs M] [options]",
+        description="Tune filter noise (Q, R) or DF-LQR weights by gradient descent (optax Adam) on "
+                    "training runs, then compare the start and the result on held-out runs.",
+        epilog=("targets: " + _targets_text()) if with_targets else None,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("scenario", metavar="SCENARIO", help="scenario to tune (see the list below)")
+    p.add_argument("--target", choices=("noise", "lqr"), default=None,
+                   help="what to tune: filter 'noise' (Q, optionally R) or 'lqr' weights "
+                        "(default: the scenario's only target)")
+    p.add_argument("--loss", choices=("nll", "mse", "nees", "cost"), default=None,
+                   help="nll: innovation negative log-likelihood (no truth needed); mse: squared state "
+                        "error vs truth; nees: NEES consistency; cost: closed-loop cost (lqr) "
+                        "(default: nll for noise where offered, else the target's first loss; cost for lqr)")
+    p.add_argument("--steps", type=int_at_least(1), default=None, help="optimisation steps (default: 100 noise, 40 lqr)")
+    p.add_argument("--train-runs", type=int_at_least(1), default=4, metavar="M", help="training runs (default 4)")
+    p.add_argument("--test-runs", type=int_at_least(1), default=8, metavar="M",
+                   help="held-out runs for the before/after table (default 8)")
+    p.add_argument("--lr", type=positive_float, default=None,
+                   help="peak Adam learning rate in log-parameter units (default: 0.5 noise, 0.1 lqr)")
+    p.add_argument("--seed", type=int_at_least(0), default=0,
+                   help="training seed S; held-out runs use seed S+1 (default 0)")
+    p.add_argument("--batch-size", type=int_at_least(1), default=None,
+                   help="minibatch of training runs per step (default: all)")
+    p.add_argument("--clip", type=positive_float, default=1.0, help="gradient clipping, global norm (default 1)")
+    p.add_argument("--b2", type=float, default=0.9,
+                   help="Adam's second-moment decay (default 0.9; see jaxslam.tuning.optimize)")
+    p.add_argument("--eval-every", type=int_at_least(0), default=10,
+                   help="held-out loss every N steps for the loss curve (0: only at the end; default 10)")
+    p.add_argument("--duration", type=positive_float, default=None,
+                   help="training flight duration [s] (default: 10 noise, 25 lqr)")
+    p.add_argument("--eval-duration", type=positive_float, default=50.0,
+                   help="held-out evaluation flight duration [s] (default 50, the scenario's)")
+    p.add_argument("--cov", choices=("diag", "chol"), default="diag",
+                   help="covariance parametrisation: log-diagonal or log-Cholesky (noise; default diag)")
+    p.add_argument("--tune-r", action="store_true", help="also tune the measurement covariance R (noise)")
+    p.add_argument("--no-checkpoint", action="store_true",
+                   help="do not wrap the scan body in jax.checkpoint (more memory, a little faster)")
+    p.add_argument("--float32", action="store_true", help="compute in float32 (default float64)")
+    p.add_argument("--json", metavar="PATH", help="write the tune JSON (also usable as --params)")
+    p.add_argument("--params-out", metavar="FILE", help="write only the tuned parameters (a --params file)")
+    p.add_argument("--plots", metavar="DIR", help="write loss-curve and parameter-trajectory PNGs")
+    p.add_argument("--quiet", action="store_true", help="no progress and no table on stdout")
+    p.add_argument("--debug", action="store_true", help=argparse.SUPPRESS)
+    return p
+
+
+def _fmt(x):
+    from jaxslam.io import _fmt_num
+
+    return _fmt_num(float("nan") if x is None else float(x))
+
+
+def format_comparison(before: dict, after: dict, refs: dict | None = None) -> str:
+    """Text table: metric, before, after, change %, and reference columns (means over runs)."""
+    refs = refs or {}
+    header = ["metric (held-out mean)", "before", "after", "change"] + list(refs)
+    rows = [header]
+    for name in before["metrics"]:
+        b = before["metrics"][name]["mean"]
+        a = after["metrics"][name]["mean"]
+        ch = "-" if not b else f"{100.0 * (a - b) / abs(b):+.1f}%"
+        rows.append([name, _fmt(b), _fmt(a), ch] + [_fmt(r["metrics"][name]["mean"]) for r in refs.values()])
+    cb, ca = before.get("consistency"), after.get("consistency")
+    if cb and ca:
+        for key in ("anees", "nis_mean"):
+            lo, hi = ca.get(f"{key}_bounds", ca.get(f"{key.split('_')[0]}_bounds", [None, None]))
+            rows.append([f"{key} [{_fmt(lo)}, {_fmt(hi)}]", _fmt(cb[key]), _fmt(ca[key]), "-"]
+                        + [_fmt(r["consistency"][key]) for r in refs.values()])
+    w = [max(len(r[i]) for r in rows) for i in range(len(header))]
+    lines = []
+    for j, r in enumerate(rows):
+        lines.append("  ".join([r[0].ljust(w[0])] + [c.rjust(x) for c, x in zip(r[1:], w[1:])]))
+        if j == 0:
+            lines.append("  ".join("-" * x for x in w))
+    return "\n".join(lines)
+
+
+def _summ(res):
+    from jaxslam import io
+
+    out = {"metrics": io.summarize_metrics(res["metrics"])}
+    if res.get("consistency") is not None:
+        out["consistency"] = io.to_jsonable(res["consistency"], nonfinite_to_none=False)
+    return out
+
+
+def run_tuning(args, progress_stream=None) -> dict:
+    """Build, fit, evaluate; returns the tune JSON dict (host-side, JSON-ready)."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    import jaxslam
+    from jaxslam.progress import Progress
+
+    from . import optimize, targets
+
+    avail = targets.available()
+    scen_targets = [t for (s, t) in avail if s == args.scenario]
+    if not scen_targets:
+        names = sorted({s for s, _ in avail})
+        raise InputError(f"no tuning target for scenario {args.scenario!r}; tunable scenarios: {', '.join(names)}")
+    target_name = args.target or scen_targets[0]
+    if target_name not in scen_targets:
+        raise InputError(f"--target: {args.scenario} offers {', '.join(scen_targets)}; got {target_name!r}")
+    d = DEFAULTS.get(target_name, DEFAULTS["noise"])
+    supported = avail[(args.scenario, target_name)]
+    loss = args.loss or (d["loss"] if d["loss"] in supported else supported[0])
+    if loss not in supported:  # checked before the (slow) build, so the error is the only line
+        raise InputError(f"--loss: {args.scenario} --target {target_name} supports {', '.join(supported)}; "
+                         f"got {loss!r}")
+    steps = args.steps or d["steps"]
+    lr = args.lr or d["lr"]
+    dtype = jnp.float32 if args.float32 else jnp.float64
+    kw = dict(train_runs=args.train_runs, test_runs=args.test_runs, seed=args.seed, dtype=dtype,
+              eval_duration=args.eval_duration, checkpoint=not args.no_checkpoint, cov=args.cov,
+              tune_r=args.tune_r)
+    if args.duration is not None:
+        kw["train_duration"] = args.duration
+    quiet = args.quiet
+    stream = progress_stream or sys.stderr
+    try:
+        tty = bool(stream.isatty())
+    except (AttributeError, ValueError):
+        tty = False
+
+    def say(msg):
+        if not quiet:
+            print(msg, file=stream, flush=True)
+
+    t_all = time.perf_counter()
+    say(f"{PROG}: building {args.scenario} --target {target_name} --loss {loss} "
+        f"({args.train_runs} training runs, {args.test_runs} held-out)")
+    tg = targets.get(args.scenario, target_name, loss, **kw)
+    t_build = time.perf_counter() - t_all
+
+    # On a terminal a redrawn bar shows the loss; on a pipe or file, one line every ~10 % of
+    # the steps (and at every skipped update) is the progress.
+    bar = Progress(steps + 1, label="tune", enabled=not quiet and tty, stream=stream, delay_s=0.0)
+    every = max(1, steps // 10)
+
+    def cb(rec):
+        bar.label = f"tune loss {rec['loss']:.5g}"
+        bar.update(rec["step"] + 1)
+        if tty or not (rec["step"] % every == 0 or rec["step"] == steps or rec.get("skipped")):
+            return
+        extra = f"  held-out {rec['test_loss']:.5g}" if rec.get("test_loss") is not None else ""
+        flag = "  (gradient non-finite: update skipped)" if rec.get("skipped") else ""
+        say(f"  step {rec['step']:4d}  loss {rec['loss']:.6g}  |grad| {rec['grad_norm']:.3g}"
+            f"  lr {rec['lr']:.3g}{extra}{flag}")
+
+    say(f"{PROG}: compiling the training step (value and gradient) ...")
+    key = jax.random.PRNGKey(args.seed) if args.batch_size else None
+    try:
+        res = optimize.fit(tg.loss_fn, tg.theta0, tg.train, steps, lr, test=tg.test,
+                           eval_every=args.eval_every, clip=args.clip, batch_size=args.batch_size,
+                           key=key, callback=cb, describe=tg.describe, b2=args.b2,
+                           log_objective=tg.log_objective)
+    finally:
+        bar.close()
+    say(f"{PROG}: compile {res.compile_s:.1f} s, {res.step_s:.3g} s per step")
+    if res.stopped:
+        print(f"{PROG}: warning: {res.stopped}", file=sys.stderr, flush=True)
+    phys0, phys1 = tg.physical(tg.theta0), tg.physical(res.theta)
+    say(f"{PROG}: evaluating start, tuned{''.join(', ' + k for k in tg.references)} on "
+        f"{args.test_runs} held-out runs ...")
+    t0 = time.perf_counter()
+    ev = tg.evaluate({"before": phys0, "after": phys1, **tg.references})
+    t_eval = time.perf_counter() - t0
+    params_after = tg.to_params(phys1)
+    report = {
+        "scenario": tg.scenario,
+        "target": tg.target,
+        "loss": tg.loss,
+        "before": _summ(ev["before"]),
+        "after": _summ(ev["after"]),
+        "params_before": tg.to_params(phys0),
+        "params_after": params_after,
+        "history": res.history,
+        "references": {k: {**_summ(ev[k]), "params": tg.to_params(v)} for k, v in tg.references.items()},
+        "stopped": res.stopped,
+        "n_skipped": res.n_skipped,
+        "steps": steps,
+        "lr": lr,
+        "config": {**tg.config, "steps": steps, "lr": lr, "clip": args.clip, "batch_size": args.batch_size,
+                   "eval_every": args.eval_every, "b2": args.b2, "log_objective": tg.log_objective,
+                   "optimizer": "adam (optax), warmup + cosine decay, clip_by_global_norm"},
+        "timing": {"build_s": t_build, "compile_s": res.compile_s, "step_s": res.step_s,
+                   "eval_s": t_eval, "total_s": time.perf_counter() - t_all},
+        "memory": res.memory,
+        "eval_command": tg.eval_command,
+        "versions": {"jaxslam": jaxslam.__version__, "jax": jax.__version__},
+        **params_after,
+    }
+    report["_tables"] = format_comparison(report["before"], report["after"], report["references"])
+    report["_physical_after"] = tg.describe(res.theta)
+    report["_history_np"] = res.history
+    return report
+
+
+def _print_report(rep):
+    print(f"scenario {rep['scenario']}: tuned {rep['target']} by {rep['loss']} "
+          f"({rep['steps']} steps, lr {rep['lr']:g}); held-out evaluation:")
+    print()
+    print(rep["_tables"])
+    print()
+    print("tuned parameters (diagonals):")
+    for k, v in rep["_physical_after"].items():
+        print(f"  {k}: [" + ", ".join(f"{x:.4g}" for x in v) + "]")
+    if rep.get("stopped"):
+        print(f"stopped early: {rep['stopped']}")
+    if rep.get("eval_command"):
+        print(f"reproduce the 'after' row: {rep['eval_command']}")
+
+
+def main(argv=None) -> int:
+    """Entry point of ``jaxslam tune`` (also callable directly).  Returns the exit code."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    try:
+        if not argv or argv[0] in ("-h", "--help"):
+            build_parser().print_help()
+            return 0 if argv else 2
+        pre = argparse.ArgumentParser(add_help=False)
+        pre.add_argument("--float32", action="store_true")
+        known, _ = pre.parse_known_args(argv)
+        import jax
+
+        if not known.float32:
+            jax.config.update("jax_enable_x64", True)
+        args = build_parser(with_targets="-h" in argv or "--help" in argv).parse_args(argv)
+        json_path = pathlib.Path(args.json) if args.json else None
+        if json_path is not None and json_path.is_dir():
+            raise InputError(f"--json: {str(json_path)!r} is a folder; give a file path")
+        plots = pathlib.Path(args.plots) if args.plots else None
+        if plots is not None and plots.exists() and not plots.is_dir():
+            raise InputError(f"--plots: {str(plots)!r} exists and is not a folder")
+        rep = run_tuning(args)
+    except InputError as e:
+        msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        print(msg if msg.startswith("jaxslam") else f"{PROG}: error: {msg}", file=sys.stderr)
+        return 2
+    from jaxslam import io
+
+    if not args.quiet:
+        _print_report(rep)
+    written = []
+    clean = {k: v for k, v in rep.items() if not k.startswith("_")}
+    if json_path is not None:
+        written.append(io.write_json(json_path, clean))
+    if args.params_out:
+        written.append(io.write_json(args.params_out, rep["params_after"]))
+    if plots is not None:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        from jaxslam.plotting import tuning as tplot
+
+        written += tplot.plot_all(clean, plots)
+    if not args.quiet:
+        for w in written:
+            print(f"wrote {w}")
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,151 @@
+"""Tuning losses: innovation likelihood (no truth), state error (truth), NEES consistency.
+
+All losses are per run (scalars; :mod:`jaxslam.tuning.optimize` averages them over a
+batch of runs) and differentiable in the filter's noise parameters.
+
+* :func:`innovation_nll` — the negative log-likelihood of the innovations (prediction
+  error decomposition): for the filter's innovations ν_k with covariances S_k,
+  −log p(z_1:K) = ½ Σ_k (ν_kᵀ S_k⁻¹ ν_k + log det S_k + m_k log 2π).  It needs neither
+  ground truth nor noise densities, so it works on real logs: the filter scores its own
+  predictions of the next measurements.  For a linear-Gaussian model it is the exact
+  log-likelihood of Q and R, so its minimiser is the maximum-likelihood estimate.
+* :func:`mse` — mean squared state error against the truth (simulation only); weights
+  pick and scale the state components (units of each component squared).
+* :func:`nees_loss` — (log(ANEES / n))², zero when the time-averaged NEES equals the state
+  dimension.  Consistency alone does not identify Q (a large Q with large errors can be
+  consistent), so it is meant as a regulariser or to calibrate one scale factor.
+
+Decisions (no paper covers tuning):
+
+* NLL is normalised by the number of scalar measurements Σ m_k, so its size does not
+  depend on the log length (learning rates transfer between short and long logs); the
+  constant ½ log 2π per measurement is kept, so the value is a true per-measurement
+  negative log density.
+* The EKF-SLAM engine's update reports the NIS but not log det S; :func:`slam_innovation_terms`
+  recomputes the joint S of the mapped measurements from the prior (the same gathered
+  blocks the update uses; a test checks its NIS against the engine's to 1e-9).  Unmapped
+  landmarks (first sightings, registered rather than updated) carry no likelihood term:
+  their measurement is absorbed into the new landmark's mean.
+* The NEES loss uses the log of the time average, so under- and over-confidence by the
+  same factor cost the same.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+
+from ..filters import ekf_slam as es
+from ..linalg import symmetrize
+
+__all__ = [
+    "nll_terms",
+    "slam_innovation_terms",
+    "innovation_nll",
+    "mse",
+    "nees_loss",
+]
+
+
+def nll_terms(nu, S, mask=None):
+    """(NIS, log det S, dof) of one innovation; the pieces of :func:`innovation_nll`.
+
+    ``nu`` (m,), ``S`` (m, m) with invalid components already given an identity
+    row/column (as :func:`jaxslam.filters.ekf.update` reports S) so they add 0 to
+    log det; ``mask`` (m,) bool selects the valid components (default all).
+    Returns three scalars in nu's dtype (dof as float).
+    """
+    dtype = nu.dtype
+    m = nu.shape[-1]
+    mask = jnp.ones((m,), bool) if mask is None else mask
+    nu = jnp.where(mask, nu, 0.0)
+    Lc = jnp.linalg.cholesky(symmetrize(S))
+    w = jax.scipy.linalg.solve_triangular(Lc, nu, lower=True)
+    nis = jnp.sum(w * w)
+    logdet = 2.0 * jnp.sum(jnp.log(jnp.diagonal(Lc)))
+    return nis, logdet, jnp.sum(mask).astype(dtype)
+
+
+def slam_innovation_terms(state: es.SlamState, model: es.SlamModel, z, slots, valid, R, params=None):
+    """(NIS, log det S, dof) of a joint EKF-SLAM update, from the prior ``state``.
+
+    Paper 000 eq. 37-39: S = H P Hᵀ + R over the K measurements (K, d_z) of the landmarks
+    in ``slots`` (K,) where ``valid`` (K,) (only mapped, finite measurements may be
+    valid — the same mask :func:`jaxslam.filters.ekf_slam.update` uses).  H is sparse
+    (robot block and one landmark block per measurement), so S is formed from the gathered
+    (n_r + K·d_l)² block of P, never from the full covariance.  ``R`` (d_z, d_z) or
+    (K, d_z, d_z).  Invalid rows get identity in S (adding 0 to log det) and zero innovation.
+    """
+    nr, dl, dz = model.robot_dim, model.lm_dim, model.meas_dim
+    K = z.shape[0]
+    cap = state.active.shape[0]
+    dtype = state.x.dtype
+    slots = jnp.clip(slots.astype(jnp.int32), 0, cap - 1)
+    R = jnp.broadcast_to(jnp.asarray(R, dtype), (K, dz, dz))
+    z = jnp.where(valid[:, None], z, 0.0).astype(dtype)
+    s = state.x[:nr]
+    L = state.x[nr:].reshape(cap, dl)[slots]
+
+    def one(l):
+        zh = model.observe(s, l, params)
+        Hs, Hl = jax.jacfwd(model.observe, argnums=(0, 1))(s, l, params)
+        return zh, Hs, Hl
+
+    zh, Hs, Hl = jax.vmap(one)(L)
+    res = model.residual if model.residual is not None else (lambda a, b: a - b)
+    nu = jax.vmap(res)(z, zh)
+    idx = jnp.concatenate([jnp.arange(nr), es.slot_indices(slots, model).reshape(-1)])
+    Psub = state.P[idx[:, None], idx[None, :]]  # (nr + K dl)²
+    # H on the gathered block: robot columns, then a block diagonal of the landmark Jacobians.
+    Hl_blk = jnp.einsum("kzj,kq->kzqj", Hl, jnp.eye(K, dtype=dtype)).reshape(K * dz, K * dl)
+    H = jnp.concatenate([Hs.reshape(K * dz, nr), Hl_blk], axis=1)
+    vv = jnp.repeat(valid, dz)
+    H = H * vv[:, None]
+    R_blk = jnp.einsum("kzw,kq->kzqw", R, jnp.eye(K, dtype=dtype)).reshape(K * dz, K * dz)
+    S = H @ Psub @ H.T + R_blk * (vv[:, None] & vv[None, :]) + jnp.diag(jnp.where(vv, 0.0, 1.0))
+    return nll_terms(nu.reshape(-1), S, vv)
+
+
+def innovation_nll(nis, logdet, dof):
+    """Per-measurement innovation NLL of one run: ½ Σ (NIS + log det S + m log 2π) / Σ m.
+
+    ``nis``, ``logdet``, ``dof``: (K,) per update (from :func:`nll_terms` or
+    :func:`slam_innovation_terms`); updates with dof = 0 add nothing.  Units: nats per
+    scalar measurement.  Needs no ground truth.
+    """
+    dtype = nis.dtype
+    tot = jnp.maximum(jnp.sum(dof), 1.0)
+    ll = 0.5 * (nis + logdet + dof * jnp.asarray(math.log(2.0 * math.pi), dtype))
+    return jnp.sum(jnp.where(dof > 0, ll, 0.0)) / tot
+
+
+def mse(err, weights=None, mask=None):
+    """Mean over time of Σ_i w_i e_i² for errors ``err`` (T, n) against the truth.
+
+    ``weights`` (n,) default ones (units: each component's unit squared, so choose
+    weights that make them commensurate); ``mask`` (T,) bool selects the steps counted.
+    """
+    dtype = err.dtype
+    w = jnp.ones(err.shape[-1], dtype) if weights is None else jnp.asarray(weights, dtype)
+    sq = jnp.sum(err * err * w, axis=-1)
+    if mask is None:
+        return jnp.mean(sq)
+    m = mask.astype(dtype)
+    return jnp.sum(sq * m) / jnp.maximum(jnp.sum(m), 1.0)
+
+
+def nees_loss(nees, n: int, mask=None):
+    """(log(mean_t NEES_t / n))² for one run's NEES series (T,) of an n-dimensional state.
+
+    Zero when the time-averaged NEES equals n (a consistent filter); ``mask`` (T,) bool
+    selects the steps counted (e.g. frames after a settling time).
+    """
+    dtype = nees.dtype
+    if mask is None:
+        a = jnp.mean(nees)
+    else:
+        m = mask.astype(dtype)
+        a = jnp.sum(jnp.where(mask, nees, 0.0)) / jnp.maximum(jnp.sum(m), 1.0)
+    return jnp.log(a / jnp.asarray(n, dtype)) ** 2

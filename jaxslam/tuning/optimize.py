@@ -1,0 +1,260 @@
+"""The optimisation loop: optax Adam with a schedule and gradient clipping, vmapped batches.
+
+``fit(loss_fn, theta0, train, ...)`` minimises the batch mean of a per-run loss
+``loss_fn(theta, item)`` over the training runs (``jax.vmap`` over the leading axis of
+``train``), one jitted step per iteration (loss, gradient and the candidate update in
+one call), with the host deciding whether the update is applied:
+
+* a **non-finite loss** stops the optimisation; the parameters of the last step whose
+  loss was finite are returned, and ``FitResult.stopped`` says why and where;
+* a **non-finite gradient** (finite loss) is reported in the history and *skipped*: the
+  candidate update is discarded, parameters and optimiser state stay as they were.  With
+  the full batch every step sees the same data, so the same gradient would recur:
+  after ``max_skips`` consecutive skips the loop stops (last good parameters kept).
+  With ``batch_size`` < runs each step draws a new minibatch (from ``key``) and a skip
+  only loses one step.
+* every ``eval_every`` steps the mean loss on the held-out batch ``test`` is recorded
+  (value only, a separately compiled function) — the test-loss curve.
+* ``callback(record)`` receives each history record (progress bars, logging).
+
+Decisions (no paper covers tuning):
+
+* Schedule: linear warm-up over ``warmup`` steps (default 5 % of the steps), then cosine
+  decay to ``final_lr_frac`` × lr (``schedule="cosine"``); ``"constant"`` keeps lr.
+  Gradient clipping by global norm (``clip``, default 1.0) comes before Adam, which
+  matters on the first steps from a far-off start (Table 7 is 10³-10⁷ too large).
+* Adam's β2 defaults to 0.9, not optax's 0.999.  The batches are deterministic (the same
+  training runs every step) and the gradient shrinks by orders of magnitude on the way from
+  a far-off start to the optimum; with β2 = 0.999 the second-moment estimate remembers the
+  early, large gradients for ~10³ steps and the late steps shrink ~100×: tuning Table 7's Q
+  on EKF-SLAM logs stalled at 2.5× the reachable MSE (measured: 80 steps, β2 = 0.999:
+  MSE 0.0095; β2 = 0.9: 0.0077; β2 = 0.9 with a log objective: 0.0047; the IMU-derived Q
+  0.0038, 2 logs of 10 s).
+* ``log_objective=True`` differentiates log(mean loss) instead of the mean loss (positive
+  losses whose optimum is not 0: MSE, closed-loop costs; not the NEES loss, whose optimum
+  is 0, nor the NLL, which may be negative): a relative decrease then counts the same at every
+  scale, which keeps the steps large when the loss falls by decades.  The history records
+  the plain mean loss either way.
+* The returned ``theta`` is the last good iterate (not the best training loss seen): the
+  training loss is noisy with minibatches, and a held-out evaluation decides anyway.
+  ``best_theta`` (lowest training loss seen) is returned as well.
+* Memory: ``memory`` reports the compiled step's XLA memory analysis (temporary,
+  argument and output bytes — what the backward pass holds) and the process's peak
+  resident memory (``resource.getrusage``, monotone over the process lifetime).
+"""
+
+from __future__ import annotations
+
+import math
+import resource
+import sys
+import time
+from typing import Any, Callable, NamedTuple, Optional
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from ..errors import InputError
+
+__all__ = ["FitResult", "make_optimizer", "batch_loss", "fit", "memory_report", "peak_rss_mb", "FAST_COMPILE"]
+
+# XLA CPU options that trade run time for compile time (LLVM back-end optimisation off);
+# measured by ``jaxslam bench tuning`` (see docs/tuning.md).
+FAST_COMPILE = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
+
+
+class FitResult(NamedTuple):
+    """Result of :func:`fit`.
+
+    theta: last good parameters (finite loss); best_theta: lowest training loss seen.
+    history: list of records ``{"step", "loss", "grad_norm", "lr", "skipped", "time_s",
+      ["test_loss"], ["params"]}``: record k holds the loss at θ_k (before update k); there
+      are ``steps + 1`` records, the last one (no update) checks the final iterate.
+    stopped: None, or a message saying why the loop stopped early.
+    compile_s: compilation time of the training step [s]; step_s: median step time [s].
+    memory: see :func:`memory_report`.
+    n_skipped: number of skipped (non-finite gradient) steps.
+    """
+
+    theta: Any
+    best_theta: Any
+    history: list
+    stopped: Optional[str]
+    compile_s: float
+    step_s: float
+    memory: dict
+    n_skipped: int
+
+
+def make_optimizer(lr: float, steps: int, schedule: str = "cosine", warmup: Optional[int] = None,
+                   clip: Optional[float] = 1.0, final_lr_frac: float = 0.05, b2: float = 0.9):
+    """optax chain: clip_by_global_norm(clip) → Adam(schedule, b2).  Returns (tx, schedule_fn)."""
+    if not (lr > 0 and math.isfinite(lr)):
+        raise InputError(f"--lr: must be a positive number, got {lr}")
+    if steps < 1:
+        raise InputError(f"--steps: must be >= 1, got {steps}")
+    warmup = max(1, int(round(0.05 * steps))) if warmup is None else int(warmup)
+    if schedule == "cosine":
+        sched = optax.warmup_cosine_decay_schedule(
+            init_value=lr * 0.1, peak_value=lr, warmup_steps=max(warmup, 1),
+            decay_steps=max(steps, warmup + 1), end_value=lr * final_lr_frac)
+    elif schedule == "constant":
+        sched = optax.constant_schedule(lr)
+    else:
+        raise InputError(f"schedule: expected 'cosine' or 'constant', got {schedule!r}")
+    parts = []
+    if clip is not None:
+        if not clip > 0:
+            raise InputError(f"clip: must be > 0, got {clip}")
+        parts.append(optax.clip_by_global_norm(clip))
+    if not 0.0 < b2 < 1.0:
+        raise InputError(f"b2: must be in (0, 1), got {b2}")
+    parts.append(optax.adam(sched, b2=b2))
+    return optax.chain(*parts), sched
+
+
+def batch_loss(loss_fn: Callable, theta, batch):
+    """Mean of ``loss_fn(theta, item)`` over the leading axis of ``batch`` (``jax.vmap``)."""
+    return jnp.mean(jax.vmap(loss_fn, in_axes=(None, 0))(theta, batch))
+
+
+def peak_rss_mb() -> float:
+    """Peak resident memory of this process so far [MB] (Linux ru_maxrss is in kB)."""
+    r = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return r / 1e6 if sys.platform == "darwin" else r / 1e3
+
+
+def memory_report(compiled) -> dict:
+    """XLA memory analysis of a compiled function [MB] plus the process peak RSS."""
+    out = {"peak_rss_mb": peak_rss_mb()}
+    try:
+        ma = compiled.memory_analysis()
+    except Exception:  # not every backend reports it
+        ma = None
+    if ma is not None:
+        for k in ("temp_size_in_bytes", "argument_size_in_bytes", "output_size_in_bytes",
+                  "generated_code_size_in_bytes"):
+            v = getattr(ma, k, None)
+            if v is not None:
+                out[k.replace("_size_in_bytes", "_mb")] = float(v) / 1e6
+    return out
+
+
+def _tree_finite(t):
+    return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(t)]))
+
+
+def _global_norm(t):
+    return jnp.sqrt(sum(jnp.sum(jnp.where(jnp.isfinite(x), x, 0.0) ** 2) for x in jax.tree.leaves(t)))
+
+
+def fit(loss_fn: Callable, theta0, train, steps: int, lr: float = 0.1, *, test=None,
+        eval_every: int = 0, schedule: str = "cosine", warmup: Optional[int] = None,
+        clip: Optional[float] = 1.0, batch_size: Optional[int] = None, key=None,
+        max_skips: int = 3, callback: Optional[Callable] = None,
+        describe: Optional[Callable] = None, b2: float = 0.9,
+        log_objective: bool = False, compiler_options: Optional[dict] = None) -> FitResult:
+    """Minimise mean_runs ``loss_fn(theta, item)`` with Adam; see the module docstring.
+
+    Args:
+      loss_fn: per-run loss (jit/vmap/grad-safe).  theta0: pytree of float arrays.
+      train: batch pytree, leading axis = runs.  steps: optimisation steps.
+      lr: peak learning rate (Adam step size in θ units: log-variances for log
+        parametrisations, so 0.1 ≈ 10 % relative change per step at most).
+      test, eval_every: held-out batch and how often its loss is recorded (0: never;
+        the final parameters are always evaluated when ``test`` is given).
+      schedule, warmup, clip, b2: see :func:`make_optimizer`.
+      log_objective: differentiate log(mean loss) (positive losses; module docstring).
+      batch_size, key: minibatches of the training runs drawn per step (key required).
+      max_skips: consecutive non-finite gradients tolerated before stopping.
+      callback: called with each history record.
+      describe: ``describe(theta) -> dict`` stored in each record (parameter trajectories).
+      compiler_options: passed to XLA when the step is compiled (e.g. :data:`FAST_COMPILE`).
+    """
+    leaves = jax.tree.leaves(train)
+    if not leaves:
+        raise InputError("train: empty batch")
+    runs = int(leaves[0].shape[0])
+    if batch_size is not None and not (1 <= batch_size <= runs):
+        raise InputError(f"batch_size: must be in [1, {runs}], got {batch_size}")
+    if batch_size is not None and batch_size < runs and key is None:
+        raise InputError("key: a PRNG key is required for minibatches (batch_size < runs)")
+    if eval_every < 0:
+        raise InputError(f"eval_every: must be >= 0, got {eval_every}")
+    tx, sched = make_optimizer(lr, steps, schedule, warmup, clip, b2=b2)
+    opt_state = tx.init(theta0)
+    mini = batch_size is not None and batch_size < runs
+
+    def objective(th, batch):
+        loss = batch_loss(loss_fn, th, batch)
+        return (jnp.log(loss) if log_objective else loss), loss
+
+    def step(theta, opt_state, batch):
+        (_, loss), g = jax.value_and_grad(objective, has_aux=True)(theta, batch)
+        g_ok = _tree_finite(g)
+        g_safe = jax.tree.map(lambda x: jnp.where(jnp.isfinite(x), x, 0.0), g)
+        upd, new_state = tx.update(g_safe, opt_state, theta)
+        return loss, g_ok, _global_norm(g), optax.apply_updates(theta, upd), new_state
+
+    def take(idx):
+        return jax.tree.map(lambda a: a[idx], train)
+
+    first = take(np.arange(batch_size)) if mini else train
+    t0 = time.perf_counter()
+    step_c = jax.jit(step).lower(theta0, opt_state, first).compile(compiler_options=compiler_options)
+    compile_s = time.perf_counter() - t0
+    memory = memory_report(step_c)
+    test_c = None
+    if test is not None:
+        test_c = jax.jit(lambda th, b: batch_loss(loss_fn, th, b))
+
+    theta, good, best, best_loss = theta0, theta0, theta0, math.inf
+    history, stopped, skips, n_skipped, times = [], None, 0, 0, []
+    rng = np.random.default_rng(None if key is None else np.asarray(jax.random.key_data(key)).ravel().tolist())
+    # Iterate k = 0..steps: step k evaluates the loss (and gradient) at θ_k and, for k < steps,
+    # proposes θ_{k+1}; the last pass only checks that the final iterate has a finite loss.
+    for k in range(steps + 1):
+        last = k == steps
+        batch = take(np.sort(rng.choice(runs, batch_size, replace=False))) if mini else train
+        ts = time.perf_counter()
+        loss, g_ok, gnorm, cand, cand_state = step_c(theta, opt_state, batch)
+        loss = float(loss)
+        g_ok = bool(g_ok)
+        times.append(time.perf_counter() - ts)
+        rec = {"step": k, "loss": loss, "grad_norm": float(gnorm), "lr": float(sched(k)),
+               "skipped": False, "time_s": times[-1]}
+        if describe is not None:
+            rec["params"] = describe(theta)
+        if not math.isfinite(loss):
+            prev = next((h for h in reversed(history) if h.get("loss") is not None), None)
+            stopped = (f"loss became non-finite ({loss}) at step {k}; stopped and kept the "
+                       "parameters of the last step with a finite loss"
+                       + (f" (step {prev['step']}, loss {prev['loss']:.6g})" if prev else " (the starting point)"))
+            rec["skipped"] = True
+            history.append(rec)
+            if callback is not None:
+                callback(rec)
+            break
+        good = theta
+        if loss < best_loss:
+            best, best_loss = theta, loss
+        if not g_ok:
+            rec["skipped"] = True
+            skips += 1
+            n_skipped += 1
+        elif not last:
+            theta, opt_state, skips = cand, cand_state, 0
+        if test_c is not None and ((eval_every and k % eval_every == 0) or last):
+            rec["test_loss"] = float(test_c(good, test))
+        history.append(rec)
+        if callback is not None:
+            callback(rec)
+        if not last and skips >= (max_skips if not mini else 10 * max_skips):
+            stopped = (f"gradient non-finite at {skips} consecutive steps (last: step {k}); "
+                       "those updates were skipped, never applied; stopped with the last good parameters")
+            break
+    return FitResult(theta=good, best_theta=best, history=history, stopped=stopped, compile_s=compile_s,
+                     step_s=float(np.median(times)) if times else math.nan,
+                     memory={**memory, "peak_rss_after_mb": peak_rss_mb()}, n_skipped=n_skipped)

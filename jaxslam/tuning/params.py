@@ -1,0 +1,179 @@
+"""Unconstrained parametrisations of covariance (and weight) matrices.
+
+Gradient descent works on an unconstrained vector θ; the matrix it stands for is
+positive definite for every θ, so no step can leave the feasible set and no
+projection or clipping of eigenvalues is ever needed.
+
+* **log-diagonal** (n parameters): M = diag(exp θ).  For diagonal noise (the papers'
+  tables are all diagonal) and LQR weights.  Adam's steps are then relative changes of
+  each variance, which suits variances spanning many decades (paper 000's Table 7 Q is
+  10³-10⁷ times the IMU-derived one).
+* **log-Cholesky** (n(n+1)/2 parameters): M = L Lᵀ with L = diag(exp θ_diag) · C, C unit
+  lower triangular with strictly lower part θ_off (row-major order of
+  ``numpy.tril_indices(n, -1)``).  L is lower triangular with a positive diagonal, and
+  every symmetric positive-definite M has exactly one such factor (the Cholesky factor),
+  so the map is a bijection onto the PD cone and round trips are exact up to rounding.
+
+Decisions (no paper covers tuning):
+
+* A zero variance (Table 7's P0, an IMU density of 0) has no logarithm.  The
+  constructors raise :class:`~jaxslam.errors.InputError` on a non-positive entry unless a
+  ``floor`` is given, which replaces entries below it (documented in the result); the
+  optimiser may drive an entry back down as far as it likes.
+* The off-diagonal parameters are those of the *unit* factor C (L_ij = exp(θ_ii) θ_ij),
+  not the raw entries of L: they are dimensionless, so one Adam step changes a correlation
+  by the same relative amount whatever the units of M.  With raw entries (the textbook
+  log-Cholesky), a step of 0.1 on an entry of a factor whose diagonal is 0.2 rotated the
+  matrix by tens of percent, and NLL tuning of a correlated R fell into a degenerate local
+  minimum (a near-singular R with a spurious correlation) that the scaled form avoids.
+* Functions follow the dtype of their input; the host-side constructors (``*_from_*``)
+  validate with NumPy and return arrays in the requested dtype.
+
+:class:`CovSpec` names one tuned matrix (its parametrisation and size), so a target can
+hold several (e.g. Q and R) in a dict pytree of θ vectors, which optax handles directly.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax.numpy as jnp
+import numpy as np
+
+from ..errors import InputError
+from ..linalg import check_psd
+
+__all__ = [
+    "CovSpec",
+    "n_params",
+    "log_diag_from_cov",
+    "cov_from_log_diag",
+    "log_chol_from_cov",
+    "cov_from_log_chol",
+    "theta_from_cov",
+    "cov_from_theta",
+    "pack",
+    "unpack",
+]
+
+KINDS = ("diag", "chol")
+
+
+class CovSpec(NamedTuple):
+    """A tuned symmetric positive-definite matrix (static: hashable, not traced).
+
+    kind: ``"diag"`` (log-diagonal, n parameters) or ``"chol"`` (log-Cholesky,
+      n(n+1)/2 parameters).
+    n: matrix size.
+    """
+
+    kind: str
+    n: int
+
+
+def _check_kind(kind):
+    if kind not in KINDS:
+        raise InputError(f"kind: expected one of {KINDS}, got {kind!r}")
+
+
+def n_params(spec: CovSpec) -> int:
+    """Number of unconstrained parameters of ``spec``."""
+    _check_kind(spec.kind)
+    return spec.n if spec.kind == "diag" else spec.n * (spec.n + 1) // 2
+
+
+def _as_matrix(M, name):
+    a = np.asarray(M, dtype=np.float64)
+    if a.ndim == 1:
+        a = np.diag(a)
+    if a.ndim != 2 or a.shape[0] != a.shape[1]:
+        raise InputError(f"{name}: expected a square matrix or a vector of diagonal values, got shape {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise InputError(f"{name}: contains NaN or Inf")
+    return a
+
+
+def log_diag_from_cov(M, floor: float | None = None, dtype=jnp.float64, name: str = "M"):
+    """θ (n,) = log diag(M) for a diagonal matrix (or a vector of variances).
+
+    Off-diagonal entries of ``M`` are ignored (the parametrisation has none); entries
+    ≤ 0 raise :class:`InputError` naming ``name`` unless ``floor`` > 0 is given, which
+    replaces every diagonal entry below it.  Host-side (NumPy in, ``dtype`` out).
+    """
+    d = np.diag(_as_matrix(M, name)).copy()
+    if floor is not None:
+        if not floor > 0:
+            raise InputError(f"floor: must be > 0, got {floor}")
+        d = np.maximum(d, floor)
+    if np.any(d <= 0):
+        raise InputError(f"{name}: log-diagonal parametrisation needs positive diagonal entries, "
+                         f"got {d.tolist()} (pass floor=... to start zero entries at a small value)")
+    return jnp.asarray(np.log(d), dtype)
+
+
+def cov_from_log_diag(theta):
+    """M = diag(exp θ) (n, n); positive definite for every finite θ (n,)."""
+    return jnp.diag(jnp.exp(theta))
+
+
+def _tril(n):
+    return np.tril_indices(n, -1)
+
+
+def log_chol_from_cov(M, floor: float | None = None, dtype=jnp.float64, name: str = "M"):
+    """θ (n(n+1)/2,) = [log diag L, strictly-lower C] of M's Cholesky factor L = diag(L) C.
+
+    ``M`` must be symmetric positive definite; with ``floor`` > 0 a semi-definite M
+    is first lifted to M + floor·I.  Raises :class:`InputError` naming ``name``.
+    """
+    a = _as_matrix(M, name)
+    n = a.shape[0]
+    if floor is not None:
+        if not floor > 0:
+            raise InputError(f"floor: must be > 0, got {floor}")
+        a = a + floor * np.eye(n)
+    check_psd(a, name, strict=True)
+    L = np.linalg.cholesky(0.5 * (a + a.T))
+    r, c = _tril(n)
+    C = L / np.diag(L)[:, None]
+    return jnp.asarray(np.concatenate([np.log(np.diag(L)), C[r, c]]), dtype)
+
+
+def cov_from_log_chol(theta, n: int):
+    """M = L Lᵀ, L = diag(exp θ_d) C (n, n) from θ (n(n+1)/2,); PD for every finite θ."""
+    r, c = _tril(n)
+    C = jnp.eye(n, dtype=theta.dtype).at[r, c].set(theta[n:])
+    L = jnp.exp(theta[:n])[:, None] * C
+    return L @ L.T
+
+
+def theta_from_cov(spec: CovSpec, M, floor: float | None = None, dtype=jnp.float64, name: str = "M"):
+    """θ for ``spec`` from a matrix (host-side; see the two constructors)."""
+    _check_kind(spec.kind)
+    a = _as_matrix(M, name)
+    if a.shape != (spec.n, spec.n):
+        raise InputError(f"{name}: expected shape ({spec.n}, {spec.n}), got {a.shape}")
+    if spec.kind == "diag":
+        return log_diag_from_cov(a, floor, dtype, name)
+    return log_chol_from_cov(a, floor, dtype, name)
+
+
+def cov_from_theta(spec: CovSpec, theta):
+    """The matrix of θ under ``spec`` (jit/vmap/grad-safe; dtype of θ)."""
+    if spec.kind == "diag":
+        return cov_from_log_diag(theta)
+    return cov_from_log_chol(theta, spec.n)
+
+
+def pack(specs: dict, mats: dict, floors: dict | None = None, dtype=jnp.float64) -> dict:
+    """{name: θ} for {name: CovSpec} and {name: matrix} (host-side)."""
+    floors = floors or {}
+    missing = set(specs) - set(mats)
+    if missing:
+        raise InputError(f"mats: no matrix for {sorted(missing)}")
+    return {k: theta_from_cov(s, mats[k], floors.get(k), dtype, name=k) for k, s in specs.items()}
+
+
+def unpack(specs: dict, thetas: dict) -> dict:
+    """{name: matrix} for {name: CovSpec} and {name: θ} (jit/grad-safe)."""
+    return {k: cov_from_theta(s, thetas[k]) for k, s in specs.items()}

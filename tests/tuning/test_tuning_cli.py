@@ -1,0 +1,69 @@
+"""``jaxslam tune`` end to end on the cheap linear-Gaussian target; usage errors exit 2."""
+
+import json
+
+import pytest
+
+from jaxslam import cli
+from jaxslam.tuning import cli as tcli
+
+
+def test_tune_end_to_end_writes_json_params_and_plots(tmp_path, capsys):
+    j, p, d = tmp_path / "t.json", tmp_path / "p.json", tmp_path / "plots"
+    rc = cli.main(["tune", "linear-gaussian", "--loss", "nll", "--steps", "4", "--train-runs", "1",
+                   "--test-runs", "1", "--eval-every", "2", "--json", str(j), "--params-out", str(p),
+                   "--plots", str(d)])
+    out = capsys.readouterr()
+    assert rc == 0, out.err
+    assert "held-out evaluation" in out.out and "after" in out.out and "tuned parameters" in out.out
+    assert "step    0" in out.err  # progress lines on a non-terminal stream
+    rep = json.loads(j.read_text())
+    for key in ("scenario", "target", "loss", "before", "after", "params_before", "params_after", "history"):
+        assert key in rep
+    assert rep["scenario"] == "linear-gaussian" and rep["loss"] == "nll"
+    assert len(rep["history"]) == 5 and rep["history"][-1]["step"] == 4
+    assert [h["step"] for h in rep["history"] if "test_loss" in h] == [0, 2, 4]
+    assert set(rep["before"]["metrics"]["nll"]) >= {"mean", "median", "p95", "max", "per_run"}
+    # The tune JSON doubles as a --params file: the tuned parameters sit at its top level.
+    assert rep["noise"] == rep["params_after"]["noise"] == json.loads(p.read_text())["noise"]
+    assert rep["history"][-1]["loss"] < rep["history"][0]["loss"]
+    pngs = sorted(x.name for x in d.iterdir())
+    assert len(pngs) == 3 and all(n.endswith(".png") for n in pngs)
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["tune", "no-such"], "no-such"),
+    (["tune", "track-figure8", "--target", "noise"], "--target"),
+    (["tune", "track-figure8", "--loss", "nll"], "--loss"),
+    (["tune", "linear-gaussian", "--steps", "0"], "--steps"),
+    (["tune", "linear-gaussian", "--lr", "-1"], "--lr"),
+    (["tune", "linear-gaussian", "--bogus"], "--bogus"),
+])
+def test_usage_errors_exit_2_one_line(capsys, argv, needle):
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and needle in err[0]
+
+
+def test_help_lists_targets(capsys):
+    assert tcli.main(["--help"]) == 0
+    out = capsys.readouterr().out
+    assert "ekfslam3d-unknown --target noise" in out and "track-figure8 --target lqr" in out
+
+
+def test_tuned_lqr_json_reproduces_its_after_row_with_jaxslam_run(tmp_path, capsys):
+    """The tune JSON is a --params file: ``jaxslam run track-figure8 --params`` flies the tuned
+    controller and reproduces the held-out 'after' row of the nominal start."""
+    j, r = tmp_path / "t.json", tmp_path / "r.json"
+    rc = cli.main(["tune", "track-figure8", "--target", "lqr", "--steps", "2", "--train-runs", "1",
+                   "--test-runs", "1", "--duration", "1", "--eval-duration", "2", "--eval-every", "0",
+                   "--json", str(j), "--quiet"])
+    assert rc == 0, capsys.readouterr().err
+    rep = json.loads(j.read_text())
+    assert rep["controller"]["Q"] != rep["params_before"]["controller"]["Q"]  # it moved
+    rc = cli.main(["run", "track-figure8", "--duration", "2", "--params", str(j), "--json", str(r), "--quiet"])
+    assert rc == 0, capsys.readouterr().err
+    run = json.loads(r.read_text())
+    for key in ("track_pos_rmse_m", "track_pos_rmse_settled_m"):
+        after = rep["after"]["metrics"][f"nominal_{key}"]["mean"]
+        assert abs(run["metrics"][key]["mean"] - after) <= 1e-9 * max(1.0, abs(after)), key

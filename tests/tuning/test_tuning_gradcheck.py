@@ -1,0 +1,89 @@
+"""Gradients of every loss against central finite differences (float64, 1e-4 relative).
+
+All three run by default: the linear-Gaussian check of all three losses, the EKF-SLAM log
+filter on a 1 s log (~55 s on 2 cores, most of it compiling the gradient) and the closed-loop
+LQR cost on 2 s.  Longer logs and more directions: ``scripts/reproduce_tuning.py --parts
+gradcheck`` (``docs/results/tuning/gradcheck.json``).
+
+Directional derivatives: for a few random unit directions d, (L(θ + h d) − L(θ − h d)) / 2h
+is compared with ∇L(θ)·d.  One jitted function returns the values of all losses of a target
+and their Jacobian (``jax.jacrev`` with the values as aux), so each target compiles once; the
+finite differences call the same compiled function (its gradient output is ignored there).
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxslam.tuning import losses as L
+from jaxslam.tuning import targets as T
+
+H = 1e-5  # step in θ (log-variance) units; truncation ~h², rounding ~eps/h: both ≪ 1e-4
+
+
+def _check(fn, theta, n_dirs=2, seed=0, rtol=1e-4):
+    """fn(theta) -> (values (k,), aux=values); compares jacrev with central differences."""
+    jf = jax.jit(jax.jacrev(lambda th: (fn(th), fn(th)), has_aux=True))
+    J, v0 = jf(theta)
+    flat, unravel = jax.flatten_util.ravel_pytree(theta)
+    Jflat = np.stack([np.asarray(jax.flatten_util.ravel_pytree(jax.tree.map(lambda a, i=i: a[i], J))[0])
+                      for i in range(v0.shape[0])])
+    rng = np.random.default_rng(seed)
+    worst = 0.0
+    for _ in range(n_dirs):
+        d = rng.normal(size=flat.shape[0])
+        d /= np.linalg.norm(d)
+        vp = np.asarray(jf(unravel(flat + H * d))[1])
+        vm = np.asarray(jf(unravel(flat - H * d))[1])
+        fd = (vp - vm) / (2 * H)
+        an = Jflat @ d
+        scale = np.maximum(np.abs(an), np.linalg.norm(Jflat, axis=1) * 1e-3)
+        rel = np.abs(fd - an) / scale
+        worst = max(worst, float(rel.max()))
+        np.testing.assert_array_less(rel, rtol, err_msg=f"fd {fd} vs grad {an}")
+    return worst, np.asarray(v0)
+
+
+def test_linear_gaussian_losses_match_finite_differences():
+    tg = T.linear_gaussian("nll", train_runs=1, test_runs=1, T=60)
+    item = jax.tree.map(lambda a: a[0], tg.train)
+
+    def all_losses(th):
+        m = tg.physical(th)
+        means, nis, logdet, dof, covs = T.lg_run(m["Q"], m["R"], item["z"])
+        err = means - item["x"]
+        nees = jax.vmap(lambda e, C: e @ jnp.linalg.solve(C, e))(err, covs)
+        return jnp.stack([L.innovation_nll(nis, logdet, dof), L.mse(err), L.nees_loss(nees, 4)])
+
+    worst, v = _check(all_losses, tg.theta0, n_dirs=2)
+    assert np.all(np.isfinite(v))
+
+
+# ~55 s on 2 cores (compiles the EKF-SLAM gradient); full figures in docs/results/tuning/gradcheck.json
+def test_ekfslam3d_log_losses_match_finite_differences():
+    """NLL, MSE and NEES of the filter on a 1 s recorded log (10 LiDAR frames), Q_c and R tuned."""
+    from jaxslam.systems import ekf_slam_3d as sys3d
+
+    logs = T.make_slam_logs(3, 1, 1.0)
+    log = jax.tree.map(lambda a: a[0], logs)
+    cfg = sys3d.EstimatorConfig(capacity=40)
+    ref = sys3d.imu_noise(__import__("jaxslam.sensors.imu", fromlist=["x"]).PAPER000_IMU)
+    theta = {"Qc": jnp.log(jnp.asarray([1e-3, 1e-3, 1e-3, 1e-4, 1e-4, 1e-4, 1e-6, 1e-6, 1e-6])),
+             "R": jnp.log(jnp.diag(ref.R))}
+
+    def all_losses(th):
+        noise = ref._replace(Qc=jnp.diag(jnp.exp(th["Qc"])), R=jnp.diag(jnp.exp(th["R"])))
+        run = T.run_slam_log(noise, cfg, log, with_nll=True, with_nees=True)
+        return jnp.stack([T.slam_loss(run, log, "nll"), T.slam_loss(run, log, "mse"),
+                          T.slam_loss(run, log, "nees")])
+
+    worst, v = _check(all_losses, theta, n_dirs=2)
+    assert np.all(np.isfinite(v))
+
+
+# ~20 s (compiles the closed-loop gradient); full figures in docs/results/tuning/gradcheck.json
+def test_lqr_closed_loop_cost_matches_finite_differences():
+    tg = T.figure8_lqr(train_runs=1, test_runs=1, train_duration=2.0)
+    item = jax.tree.map(lambda a: a[0], tg.train)
+    worst, v = _check(lambda th: tg.loss_fn(th, item)[None], tg.theta0, n_dirs=2)
+    assert np.isfinite(v[0]) and v[0] > 0
