@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """Reproduce the tuning figures (issue 7) into docs/results/tuning/*.json and table.md.
 
-    python scripts/reproduce_tuning.py [--parts oracle,gradcheck,ekf_mse,ekf_nll,lqr] [--out DIR]
+    python scripts/reproduce_tuning.py [--parts oracle,gradcheck,ekf_mse,ekf_nll,ekf_nll_imu,nll_flat,lqr,uwb] [--out DIR]
                                        [--quick] [--plots DIR]
 
 Parts (each writes ``<out>/<part>.json``; ``table.md`` summarises every JSON present):
@@ -17,6 +17,10 @@ Parts (each writes ``<out>/<part>.json``; ``table.md`` summarises every JSON pre
                recorded 10 s logs, evaluated on 16 held-out closed-loop 50 s flights against
                Table 7 and the IMU-derived ``--q imu`` Q (acceptance: held-out position RMSE
                within 15 % (MSE) / 30 % (NLL) of the ``--q imu`` figure; ANEES into its bounds).
+``ekf_nll_imu`` the same NLL tuning with ``--structure imu`` (the 6 IMU densities through G Q_imu Gᵀ,
+               started from Table 7's velocity/attitude entries); ``ekf_<loss>_imu`` in general.
+``nll_flat``   the NLL on the same logs at Table 5's densities, at the ``ekf_nll_imu`` result, and
+               with each one's accelerometer entries scaled by 32: how flat the likelihood is.
 ``lqr``        ``jaxslam tune track-figure8 --target lqr``: held-out closed-loop cost
                (acceptance: lowered by ≥ 10 %).
 ``uwb``        ``jaxslam tune uwb-circle --loss mse``: paper 003's hand-"fine tuned" Q (eq. 27)
@@ -57,7 +61,7 @@ from jaxslam.tuning import losses as L  # noqa: E402
 from jaxslam.tuning import optimize as O  # noqa: E402
 from jaxslam.tuning import targets as T  # noqa: E402
 
-ALL_PARTS = ("oracle", "gradcheck", "ekf_mse", "ekf_nll", "lqr", "uwb")
+ALL_PARTS = ("oracle", "gradcheck", "ekf_mse", "ekf_nll", "ekf_nll_imu", "nll_flat", "lqr", "uwb")
 
 
 def log(msg):
@@ -182,7 +186,14 @@ def _tune(argv, json_path, plots):
     return clean
 
 
-def part_ekf(a, loss, out_dir):
+def _qimu_diag(rep):
+    p = rep["history"][-1].get("params", {})
+    if "Qimu_sensor" in p:
+        return [p["Qimu_sensor"][0]] * 3 + [p["Qimu_sensor"][1]] * 3
+    return p.get("Qimu")
+
+
+def part_ekf(a, loss, out_dir, structure="qc"):
     if a.quick:
         argv = ["ekfslam3d-unknown", "--loss", loss, "--steps", "3", "--train-runs", "1", "--test-runs", "2",
                 "--duration", "2", "--eval-duration", "5", "--eval-every", "1"]
@@ -190,7 +201,9 @@ def part_ekf(a, loss, out_dir):
         argv = ["ekfslam3d-unknown", "--loss", loss, "--steps", str(a.ekf_steps), "--lr", str(a.ekf_lr),
                 "--train-runs", "4", "--test-runs", str(a.test_runs), "--duration", "10", "--eval-every", "10",
                 "--seed", str(a.seed)]
-    rep = _tune(argv, out_dir / f"ekfslam3d-unknown_{loss}_tune.json", a.plots)
+    suffix = "" if structure == "qc" else f"_{structure}"
+    argv += ["--structure", structure]
+    rep = _tune(argv, out_dir / f"ekfslam3d-unknown_{loss}{suffix}_tune.json", a.plots)
     b, af, ref = rep["before"], rep["after"], rep["references"]["q_imu"]
     pos = {k: r["metrics"]["pos_rmse_m"]["mean"] for k, r in (("before", b), ("after", af), ("q_imu", ref))}
     lo, hi = af["consistency"]["anees_bounds"]
@@ -218,15 +231,40 @@ def part_ekf(a, loss, out_dir):
                                   for k, r in (("before", b), ("after", af), ("q_imu", ref))},
         "train_loss": {"first": hist[0]["loss"], "last": hist[-1]["loss"]},
         "held_out_log_loss": {"first": tests[0]["test_loss"], "last": tests[-1]["test_loss"]} if tests else None,
+        "structure": structure,
         "Qc_tuned_diag": rep["history"][-1].get("params", {}).get("Qc"),
+        "Qimu_tuned_diag": _qimu_diag(rep),
+        "Qimu_table5_diag": [nda2] * 3 + [ndg2] * 3,
         "Qc_table7_diag": [float(v) for v in __import__("jaxslam.systems.ekf_slam_3d", fromlist=["x"]).TABLE7_Q],
         "Q_imu_equivalent_diag": [0.0] * 3 + [nda2] * 3 + [ndg2] * 3,
         "note_Q_imu": "the IMU-derived Q is Q_d = G Q_imu G^T dt with Q_imu = diag(ND_a^2 I3, ND_g^2 I3); its "
                       "Q_c-equivalent diagonal is ~[0, 0, 0, ND_a^2 x3, ND_g^2 x3] (small off-diagonal terms "
                       "through -w x v and D(Lambda))",
         "timing": rep["timing"], "memory": rep["memory"], "stopped": rep["stopped"],
-        "tune_json": f"ekfslam3d-unknown_{loss}_tune.json",
+        "tune_json": f"ekfslam3d-unknown_{loss}{suffix}_tune.json",
     }
+
+
+def part_nll_flat(a, out_dir):
+    """How flat is the innovation NLL along the accelerometer density?  Training- and held-out-log
+    NLL of the ``ekf_nll_imu`` result, of Table 5's densities, and of each with the accelerometer
+    entries scaled by 32 (needs ekf_nll_imu.json)."""
+    d = json.loads((out_dir / "ekf_nll_imu.json").read_text())
+    runs, dur = (1, 1.0) if a.quick else (4, 10.0)
+    tg = T.get("ekfslam3d-unknown", "noise", "nll", structure="imu", train_runs=runs, test_runs=runs,
+               seed=a.seed, train_duration=dur, eval_duration=1.0)
+    f = jax.jit(lambda th, b: O.batch_loss(tg.loss_fn, th, b))
+    true, tuned = np.asarray(d["Qimu_table5_diag"]), np.asarray(d["Qimu_tuned_diag"])
+    cases = {"table5": true, "tuned": tuned, "tuned_accel_x32": np.r_[tuned[:3] * 32, tuned[3:]],
+             "table5_accel_div32": np.r_[true[:3] / 32, true[3:]]}
+    out = {"what": "per-measurement innovation NLL [nats] on the training and held-out logs of ekf_nll_imu",
+           "Qimu_diag": {k: v.tolist() for k, v in cases.items()}, "nll_train": {}, "nll_test": {}}
+    for k, q in cases.items():
+        th = {"Qimu": jnp.log(jnp.asarray(q))}
+        out["nll_train"][k] = float(f(th, tg.train))
+        out["nll_test"][k] = float(f(th, tg.test))
+        log(f"nll_flat {k}: train {out['nll_train'][k]:.6f} test {out['nll_test'][k]:.6f}")
+    return out
 
 
 def part_lqr(a, out_dir):
@@ -310,7 +348,7 @@ def write_table(out_dir):
             for k, e in v.items():
                 rows.append(f"| {c} | {k} | {e:.2e} |")
         rows.append("")
-    ekf = [(loss, out_dir / f"ekf_{loss}.json") for loss in ("mse", "nll", "nees")]
+    ekf = [(loss, out_dir / f"ekf_{loss}.json") for loss in ("mse", "nll", "nll_imu", "nll_imu_iso", "mse_imu", "nees")]
     if any(p.exists() for _, p in ekf):
         rows += ["## ekfslam3d-unknown: Q from Table 7, tuned on recorded logs", "",
                  "Held-out: closed-loop 50 s flights (DF-LQR on the estimate), means over the held-out runs.", "",
@@ -321,7 +359,7 @@ def write_table(out_dir):
                 continue
             d = json.loads(p.read_text())
             pr, an = d["held_out_pos_rmse_m"], d["anees"]
-            tgt = {"mse": "≤ 1.15", "nll": "≤ 1.30"}.get(loss, "—")
+            tgt = {"mse": "≤ 1.15", "nll": "≤ 1.30"}.get(loss.split("_")[0], "—")
             met = "" if d["met"] is None else (" met" if d["met"] else " MISSED")
             rows.append(f"| {loss} | {pr['before']:.4f} | {pr['after']:.4f} | {pr['q_imu']:.4f} | "
                         f"{d['pos_rmse_ratio_after_over_q_imu']:.3f} | {tgt}{met} | {an['before']:.2f} | "
@@ -343,6 +381,28 @@ def write_table(out_dir):
                     rows.append(f"| IMU-derived | {trip(d['Q_imu_equivalent_diag'])} |")
                 if d.get("Qc_tuned_diag"):
                     rows.append(f"| tuned ({loss}) | {trip(d['Qc_tuned_diag'])} |")
+        imu = [(loss, json.loads(p.read_text())) for loss, p in ekf if p.exists() and "_imu" in loss]
+        if imu:
+            rows += ["", "`_imu` rows tune the IMU density Q_imu (`--structure imu`: Q_c = 0, noise through the "
+                     "filter's G Q_imu Gᵀ), started from Table 7's velocity/attitude entries:", "",
+                     "| | accelerometer x, y, z [m²/s³] | gyro x, y, z [rad²/s] |", "|---|---|---|",
+                     "| Table 7 start | 0.01, 0.01, 0.01 | 0.02, 0.2, 0.2 |",
+                     "| Table 5 (true) | " + " | ".join(", ".join(f"{x:.3g}" for x in imu[0][1]["Qimu_table5_diag"][i:i + 3])
+                                               for i in (0, 3)) + " |"]
+            for loss, d in imu:
+                if d.get("Qimu_tuned_diag"):
+                    rows.append(f"| tuned ({loss}) | " + " | ".join(
+                        ", ".join(f"{x:.3g}" for x in d["Qimu_tuned_diag"][i:i + 3]) for i in (0, 3)) + " |")
+        rows.append("")
+    p = out_dir / "nll_flat.json"
+    if p.exists():
+        d = json.loads(p.read_text())
+        rows += ["## How flat is the NLL along the accelerometer density?", "",
+                 "Per-measurement innovation NLL [nats] of the ekfslam3d-unknown filter on the 4 training and "
+                 "4 held-out logs (`--structure imu`):", "",
+                 "| Q_imu | accelerometer [m²/s³] | gyro [rad²/s] | NLL train | NLL held-out |", "|---|---|---|---|---|"]
+        for k, q in d["Qimu_diag"].items():
+            rows.append(f"| {k} | {q[0]:.3g} | {q[3]:.3g} | {d['nll_train'][k]:.6f} | {d['nll_test'][k]:.6f} |")
         rows.append("")
     p = out_dir / "lqr.json"
     if p.exists():
@@ -381,7 +441,7 @@ def write_table(out_dir):
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--parts", default=",".join(ALL_PARTS),
-                   help=f"comma list of {', '.join(ALL_PARTS + ('ekf_nees',))} (default: {','.join(ALL_PARTS)})")
+                   help=f"comma list of {', '.join(ALL_PARTS + ('ekf_nees', 'ekf_mse_imu'))} (default: {','.join(ALL_PARTS)})")
     p.add_argument("--out", default=str(ROOT / "docs" / "results" / "tuning"))
     p.add_argument("--plots", default=None, help="also write the tuning plots into this folder")
     p.add_argument("--quick", action="store_true", help="tiny sizes (smoke test; figures not meaningful)")
@@ -407,9 +467,12 @@ def main(argv=None):
         elif part == "gradcheck":
             res = part_gradcheck(a)
         elif part.startswith("ekf_"):
-            res = part_ekf(a, part[4:], out_dir)
+            loss, _, structure = part[4:].partition("_")  # ekf_nll_imu_iso -> ("nll", "imu_iso")
+            res = part_ekf(a, loss, out_dir, structure or "qc")
         elif part == "lqr":
             res = part_lqr(a, out_dir)
+        elif part == "nll_flat":
+            res = part_nll_flat(a, out_dir)
         elif part == "uwb":
             res = part_uwb(a, out_dir)
         else:

@@ -98,6 +98,10 @@ def build_parser(with_targets: bool = True) -> _Parser:
     p.add_argument("--cov", choices=("diag", "chol"), default="diag",
                    help="covariance parametrisation: log-diagonal or log-Cholesky (noise; default diag)")
     p.add_argument("--tune-r", action="store_true", help="also tune the measurement covariance R (noise)")
+    p.add_argument("--structure", choices=("qc", "imu", "imu_iso"), default="qc",
+                   help="ekfslam3d noise: tune the 9x9 process-noise density Q_c (Table 7's form; default), "
+                        "the 6x6 IMU density Q_imu entering through the filter's G Q_imu G^T (imu), or one "
+                        "density per sensor, accelerometer and gyro (imu_iso, Table 5's form)")
     p.add_argument("--no-checkpoint", action="store_true",
                    help="do not wrap the scan body in jax.checkpoint (more memory, a little faster)")
     p.add_argument("--float32", action="store_true", help="compute in float32 (default float64)")
@@ -168,6 +172,10 @@ def run_tuning(args, progress_stream=None) -> dict:
     target_name = args.target or scen_targets[0]
     if target_name not in scen_targets:
         raise InputError(f"--target: {args.scenario} offers {', '.join(scen_targets)}; got {target_name!r}")
+    if not args.scenario.startswith("ekfslam3d"):
+        for flag, used in (("--structure", args.structure != "qc"), ("--tune-r", args.tune_r)):
+            if used:
+                raise InputError(f"{flag}: only the ekfslam3d-* noise targets take it, not {args.scenario}")
     d = DEFAULTS.get(target_name, DEFAULTS["noise"])
     supported = avail[(args.scenario, target_name)]
     loss = args.loss or (d["loss"] if d["loss"] in supported else supported[0])
@@ -179,7 +187,7 @@ def run_tuning(args, progress_stream=None) -> dict:
     dtype = jnp.float32 if args.float32 else jnp.float64
     kw = dict(train_runs=args.train_runs, test_runs=args.test_runs, seed=args.seed, dtype=dtype,
               eval_duration=args.eval_duration, checkpoint=not args.no_checkpoint, cov=args.cov,
-              tune_r=args.tune_r)
+              tune_r=args.tune_r, structure=args.structure)
     if args.duration is not None:
         kw["train_duration"] = args.duration
     quiet = args.quiet

@@ -85,6 +85,9 @@ __all__ = [
 ]
 
 
+STRUCTURES = ("qc", "imu", "imu_iso")  # ekfslam3d noise: what is tuned (see ekfslam3d_noise)
+
+
 class Target(NamedTuple):
     """A tuning problem (host-side container; see the module docstring).
 
@@ -382,11 +385,20 @@ def ekfslam3d_noise(loss: str = "nll", train_runs: int = 4, test_runs: int = 8, 
                     dtype=jnp.float64, mode: str = "unknown", train_duration: float = 10.0,
                     eval_duration: float = 50.0, capacity: int | None = None, tune_r: bool = False,
                     cov: str = "diag", start: str = "paper", mse_weights=None,
-                    checkpoint: bool = True, eval_chunk: int | None = None, **_ignored) -> Target:
+                    checkpoint: bool = True, eval_chunk: int | None = None, structure: str = "qc",
+                    **_ignored) -> Target:
     """Target: Q_c (and optionally R) of paper 000's EKF-SLAM, tuned on recorded logs.
 
-    ``start``: ``"paper"`` (Table 6/7 Q_c, Q_imu = 0) or ``"imu"`` (the IMU-derived Q
-    projected on Q_c's diagonal).  ``cov``: ``"diag"`` (log-diagonal) or ``"chol"``
+    ``structure``: ``"qc"`` tunes the 9×9 process-noise density Q_c directly (Table 7's form,
+    Q_imu = 0); ``"imu"`` tunes the 6×6 IMU density Q_imu that enters through the filter's own
+    G Q_imu Gᵀ (paper 000 eq. 27 with the IMU as the noise input; Q_c = 0): the structure says
+    that position is the integral of velocity and the noise enters through the IMU, leaving 6
+    parameters.  With ``start="paper"`` it starts from Table 7's velocity and attitude entries
+    (0.01 m²/s³ ×3, then 0.02, 0.2, 0.2 rad²/s) read as accelerometer and gyro densities.
+    ``"imu_iso"``: the same with one density per sensor (Table 5's form, 2 parameters: the
+    three axes of a sensor share it), started from the means of those Table 7 entries.
+    ``start``: ``"paper"`` (Table 6/7, as above) or ``"imu"`` (the IMU-derived Q, projected
+    on Q_c's diagonal for ``structure="qc"``).  ``cov``: ``"diag"`` (log-diagonal) or ``"chol"``
     (log-Cholesky, full matrix).  ``capacity``: landmark slots of the training filter
     (default: the number of landmarks, 40, which cannot overflow; estimates do not depend
     on the capacity).  Evaluation: the ``ekfslam3d-{mode}`` scenario, ``eval_duration``
@@ -406,15 +418,26 @@ def ekfslam3d_noise(loss: str = "nll", train_runs: int = 4, test_runs: int = 8, 
         raise InputError(f"--loss: expected nll, mse or nees, got {loss!r}")
     if start not in ("paper", "imu"):
         raise InputError(f"start: expected 'paper' or 'imu', got {start!r}")
+    if structure not in STRUCTURES:
+        raise InputError(f"--structure: expected one of {STRUCTURES}, got {structure!r}")
+    if structure == "imu_iso" and cov != "diag":
+        raise InputError("--structure imu_iso: two densities (accelerometer, gyro); use --cov diag")
     ref = sys3d.imu_noise(imu_mod.PAPER000_IMU, dtype)
-    if start == "paper":
-        Qc0 = np.asarray(sys3d.paper_noise(mode, dtype).Qc)
-    else:
-        nda2 = float(imu_mod.PAPER000_IMU.accel_noise_density) ** 2
-        ndg2 = float(imu_mod.PAPER000_IMU.gyro_noise_density) ** 2
-        Qc0 = np.diag([1e-12] * 3 + [nda2] * 3 + [ndg2] * 3)
-    specs = {"Qc": P.CovSpec(cov, sys3d.NX)}
-    mats = {"Qc": Qc0}
+    nda2 = float(imu_mod.PAPER000_IMU.accel_noise_density) ** 2
+    ndg2 = float(imu_mod.PAPER000_IMU.gyro_noise_density) ** 2
+    Qc_paper = np.asarray(sys3d.paper_noise(mode, dtype).Qc)
+    if structure == "qc":
+        name, n = "Qc", sys3d.NX
+        M0 = Qc_paper if start == "paper" else np.diag([1e-12] * 3 + [nda2] * 3 + [ndg2] * 3)
+    elif structure == "imu":
+        name, n = "Qimu", 6
+        M0 = np.diag(np.diag(Qc_paper)[3:]) if start == "paper" else np.asarray(ref.Qimu)
+    else:  # one density per sensor, the form of Table 5: [accelerometer, gyro]
+        name, n = "Qimu_sensor", 2
+        q7 = np.diag(Qc_paper)
+        M0 = np.diag([np.mean(q7[3:6]), np.mean(q7[6:9])] if start == "paper" else [nda2, ndg2])
+    specs = {name: P.CovSpec(cov, n)}
+    mats = {name: M0}
     if tune_r:
         specs["R"] = P.CovSpec(cov, 3)
         mats["R"] = np.asarray(ref.R)
@@ -427,8 +450,10 @@ def ekfslam3d_noise(loss: str = "nll", train_runs: int = 4, test_runs: int = 8, 
 
     def physical(theta):
         m = P.unpack(specs, theta)
-        return sys3d.NoiseParams(P0=ref.P0.astype(dtype), Qc=m["Qc"],
-                                 Qimu=jnp.zeros((6, 6), dtype), R=m.get("R", ref.R.astype(dtype)))
+        if "Qimu_sensor" in m:
+            m["Qimu"] = jnp.diag(jnp.repeat(jnp.diag(m.pop("Qimu_sensor")), 3))
+        return sys3d.NoiseParams(P0=ref.P0.astype(dtype), Qc=m.get("Qc", jnp.zeros((sys3d.NX, sys3d.NX), dtype)),
+                                 Qimu=m.get("Qimu", jnp.zeros((6, 6), dtype)), R=m.get("R", ref.R.astype(dtype)))
 
     w = None if mse_weights is None else jnp.asarray(mse_weights, dtype)
 
@@ -472,9 +497,10 @@ def ekfslam3d_noise(loss: str = "nll", train_runs: int = 4, test_runs: int = 8, 
     config = {"mode": mode, "train_duration_s": float(train_duration), "eval_duration_s": float(eval_duration),
               "train_seed": int(seed), "test_seed": int(test_seed), "train_runs": int(train_runs),
               "test_runs": int(test_runs), "capacity_train": cap, "cov": cov, "tune_r": bool(tune_r),
-              "start": start, "checkpoint": bool(checkpoint), "dtype": dtype.name,
+              "start": start, "structure": structure, "checkpoint": bool(checkpoint), "dtype": dtype.name,
               "mse_weights": None if mse_weights is None else [float(v) for v in mse_weights],
-              "fixed": {"P0": "--q imu P0 (diag 1e-4 x6, (0.1 deg)^2 x3)", "Qimu": "0",
+              "fixed": {"P0": "--q imu P0 (diag 1e-4 x6, (0.1 deg)^2 x3)",
+                        **({"Qimu": "0"} if structure == "qc" else {"Qc": "0"}),
                         **({} if tune_r else {"R": "Table 4"})},
               "logs": "simulated once, DF-LQR on the truth; filter run open loop on the logs",
               "evaluation": f"ekfslam3d-{mode} scenario (closed loop, DF-LQR on the estimate), "

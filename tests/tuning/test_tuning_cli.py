@@ -67,3 +67,33 @@ def test_tuned_lqr_json_reproduces_its_after_row_with_jaxslam_run(tmp_path, caps
     for key in ("track_pos_rmse_m", "track_pos_rmse_settled_m"):
         after = rep["after"]["metrics"][f"nominal_{key}"]["mean"]
         assert abs(run["metrics"][key]["mean"] - after) <= 1e-9 * max(1.0, abs(after)), key
+
+
+def test_ekfslam3d_only_flags_are_rejected_elsewhere(capsys):
+    assert cli.main(["tune", "linear-gaussian", "--structure", "imu"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--structure" in err[0]
+
+
+def test_float32_tuning_follows_float64(tmp_path, capsys):
+    """--float32 runs in float32 end to end; on the same data (cast), float32 and float64 Adam
+    trajectories agree."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from jaxslam.tuning import optimize, targets
+
+    j = tmp_path / "f32.json"
+    assert cli.main(["tune", "linear-gaussian", "--loss", "nll", "--steps", "6", "--train-runs", "1",
+                     "--test-runs", "1", "--eval-every", "0", "--json", str(j), "--quiet", "--float32"]) == 0
+    rep = json.loads(j.read_text())
+    assert rep["config"]["dtype"] == "float32" and rep["history"][-1]["loss"] < rep["history"][0]["loss"]
+    # Same data in both precisions: the float64 logs cast to float32.
+    tg = targets.linear_gaussian("nll", train_runs=1, test_runs=1, T=2000)
+    f32 = lambda t: jax.tree.map(lambda a: a.astype(jnp.float32) if a.dtype == jnp.float64 else a, t)  # noqa: E731
+    r64 = optimize.fit(tg.loss_fn, tg.theta0, tg.train, 20, 0.3)
+    r32 = optimize.fit(tg.loss_fn, f32(tg.theta0), f32(tg.train), 20, 0.3)
+    assert all(a.dtype == jnp.float32 for a in jax.tree.leaves(r32.theta))
+    for k in ("Q", "R"):
+        np.testing.assert_allclose(np.asarray(r32.theta[k]), np.asarray(r64.theta[k]), rtol=0, atol=2e-3)

@@ -79,3 +79,31 @@ def test_lqr_target_params_round_trip_through_the_scenario_parser():
     # Training starts differ from the nominal hover at the origin (random offsets), held-out ones too.
     assert float(jnp.linalg.norm(tg.train["x0"][0, :3])) > 0
     assert not np.allclose(np.asarray(tg.train["x0"]), np.asarray(tg.test["x0"]))
+
+
+def test_ekfslam3d_structures_start_from_table7_and_map_to_noise_params():
+    """--structure qc tunes Q_c (Q_imu = 0); --structure imu tunes Q_imu (Q_c = 0); both start at Table 7."""
+    kw = dict(train_runs=1, test_runs=1, train_duration=1.0, eval_duration=1.0)
+    qc = T.get("ekfslam3d-unknown", "noise", "mse", **kw)
+    imu = T.get("ekfslam3d-unknown", "noise", "mse", structure="imu", **kw)
+    n0 = qc.physical(qc.theta0)
+    np.testing.assert_allclose(np.diag(np.asarray(n0.Qc)), sys3d.TABLE7_Q, rtol=1e-12)
+    assert not np.any(np.asarray(n0.Qimu))
+    n1 = imu.physical(jax.tree.map(lambda a: a + 1.0, imu.theta0))  # θ moved: e·Table 7
+    np.testing.assert_allclose(np.diag(np.asarray(n1.Qimu)), np.e * np.asarray(sys3d.TABLE7_Q[3:]), rtol=1e-12)
+    assert not np.any(np.asarray(n1.Qc))
+    assert imu.config["structure"] == "imu" and set(imu.specs) == {"Qimu"}
+    # The saved --params form carries both matrices, so the scenario's parser rebuilds the filter.
+    from jaxslam.sim.scenarios import ekfslam3d
+
+    back = ekfslam3d._noise("paper", "unknown", np.float64, imu.to_params(n1))
+    np.testing.assert_allclose(np.asarray(back.Qimu), np.asarray(n1.Qimu), rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(back.Qc), 0.0)
+    iso = T.get("ekfslam3d-unknown", "noise", "mse", structure="imu_iso", **kw)
+    n2 = iso.physical(iso.theta0)  # one density per sensor, the means of Table 7's entries
+    np.testing.assert_allclose(np.diag(np.asarray(n2.Qimu)), [0.01] * 3 + [0.14] * 3, rtol=1e-12)
+    assert iso.describe(iso.theta0)["Qimu_sensor"] == pytest.approx([0.01, 0.14], rel=1e-12)
+    with pytest.raises(InputError, match="--structure"):
+        T.get("ekfslam3d-unknown", "noise", "mse", structure="bogus", **kw)
+    with pytest.raises(InputError, match="--cov diag"):
+        T.get("ekfslam3d-unknown", "noise", "mse", structure="imu_iso", cov="chol", **kw)
