@@ -47,7 +47,7 @@ input (no calibration): x^D_k = RK4 of ṗ = v, v̇ = R a_m − g e3 (specific f
 the paper's kinematic accelerometer form), Λ̇ = D(Λ) ω_m with the IMU interpolated linearly
 between samples, plus Q; ω in the state is the last gyro reading; weights from the LiDAR only.
 
-Decisions (the paper is silent or wrong; also in docs/_parts/fastslam_001.md):
+Decisions (the paper is silent or wrong; also in docs/papers.md, paper 001):
 
 * **Bias KF covariance is shared.**  A^b, Q^b, H_b and R^I do not depend on the particle, and
   the re-initialisation happens at the same sample for every particle, so P_{k|k} is the same
@@ -86,7 +86,7 @@ Decisions (the paper is silent or wrong; also in docs/_parts/fastslam_001.md):
   x^{D1} and x^{D4}).
 
 What stage 2 does to the estimator (measured in docs/results/paper001, derived in
-docs/_parts/fastslam_001.md): regenerating ω from the gyro makes the KF's gyro innovation
+docs/papers.md, paper 001): regenerating ω from the gyro makes the KF's gyro innovation
 independent of the gyro-bias error (the bias stays at its re-initialisation value unless
 particle selection corrects it) and re-injects gyro noise that the next IMU weight chases
 (N_eff collapses, resampling at ~every sample); regenerating the position from the LiDAR

@@ -386,7 +386,7 @@ def paper_params(model: str = "squared", dt: float = 1.0, noise: uwb.UwbNoise = 
 # Matched preset: white-noise acceleration densities that cover the deterministic manoeuvres
 # of the three scenarios (the circle's 0.015 m/s², the square's corners, the rough path's
 # 0.3 m/s jumps; yaw-rate changes up to 0.1 rad/s per step) — tuned on 100 localisation
-# runs with Gaussian noise for a position ANEES inside its bounds (docs/_parts/uwb.md).
+# runs with Gaussian noise for a position ANEES inside its bounds (docs/papers.md, paper 003).
 MATCHED_Q_ACC = 1e-2  # m²/s³
 MATCHED_Q_ANG_ACC = 3e-4  # rad²/s³
 MATCHED_P0 = (0.0, 0.0, 0.3**2, 0.3**2, 0.0, 0.0, 0.0, 0.1**2, 0.1**2, 0.1**2)

@@ -11,7 +11,7 @@
 * :mod:`.cli` — ``jaxslam tune``.
 
 No paper covers tuning; every decision is recorded in the module docstrings and in
-``docs/_parts/tuning.md``.  Nothing here changes JAX's configuration on import.
+``docs/tuning.md``.  Nothing here changes JAX's configuration on import.
 """
 
 from . import losses, optimize, params, targets

@@ -39,7 +39,7 @@ __all__ = ["main", "build_parser", "DEFAULTS"]
 PROG = "jaxslam tune"
 
 # Per-target defaults (steps, learning rate, training / evaluation durations) chosen from the
-# measurements in docs/results/tuning (see docs/_parts/tuning.md).
+# measurements in docs/results/tuning (see docs/tuning.md).
 DEFAULTS = {
     "noise": {"steps": 100, "lr": 0.5, "loss": "nll"},
     "lqr": {"steps": 40, "lr": 0.1, "loss": "cost"},

@@ -1,9 +1,12 @@
 """Gradients of every loss against central finite differences (float64, 1e-4 relative).
 
-All three run by default: the linear-Gaussian check of all three losses, the EKF-SLAM log
-filter on a 1 s log (~55 s on 2 cores, most of it compiling the gradient) and the closed-loop
-LQR cost on 2 s.  Longer logs and more directions: ``scripts/reproduce_tuning.py --parts
-gradcheck`` (``docs/results/tuning/gradcheck.json``).
+The linear-Gaussian check of all three losses runs by default; the EKF-SLAM log filter (1 s
+log) and the closed-loop LQR cost (2 s) are marked slow to keep the default suite under its
+time budget (they mostly compile gradients).  In the default suite the EKF-SLAM filter's
+gradient is checked against finite differences by
+``tests/systems/test_systems_ekf_slam_3d.py`` and the UWB filter's by ``test_tuning_uwb.py``.
+Longer logs and more directions: ``scripts/reproduce_tuning.py --parts gradcheck``
+(``docs/results/tuning/gradcheck.json``: worst relative error 1.9e-7).
 
 Directional derivatives: for a few random unit directions d, (L(θ + h d) − L(θ − h d)) / 2h
 is compared with ∇L(θ)·d.  One jitted function returns the values of all losses of a target
@@ -14,6 +17,7 @@ finite differences call the same compiled function (its gradient output is ignor
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from jaxslam.tuning import losses as L
 from jaxslam.tuning import targets as T
@@ -59,7 +63,7 @@ def test_linear_gaussian_losses_match_finite_differences():
     assert np.all(np.isfinite(v))
 
 
-# ~55 s on 2 cores (compiles the EKF-SLAM gradient); full figures in docs/results/tuning/gradcheck.json
+@pytest.mark.slow  # ~60 s cold (compiles the EKF-SLAM gradient); figures: docs/results/tuning/gradcheck.json
 def test_ekfslam3d_log_losses_match_finite_differences():
     """NLL, MSE and NEES of the filter on a 1 s recorded log (10 LiDAR frames), Q_c and R tuned."""
     from jaxslam.systems import ekf_slam_3d as sys3d
@@ -81,7 +85,7 @@ def test_ekfslam3d_log_losses_match_finite_differences():
     assert np.all(np.isfinite(v))
 
 
-# ~20 s (compiles the closed-loop gradient); full figures in docs/results/tuning/gradcheck.json
+@pytest.mark.slow  # compiles the closed-loop gradient; figures: docs/results/tuning/gradcheck.json
 def test_lqr_closed_loop_cost_matches_finite_differences():
     tg = T.figure8_lqr(train_runs=1, test_runs=1, train_duration=2.0)
     item = jax.tree.map(lambda a: a[0], tg.train)

@@ -4,7 +4,6 @@ import jax
 import jax.flatten_util
 import numpy as np
 
-from jaxslam.tuning import optimize as O
 from jaxslam.tuning import targets as T
 
 
@@ -27,11 +26,12 @@ def test_uwb_mse_gradient_and_descent():
     h = 1e-5
     fd = (float(vg(unravel(flat + h * d), item)[0]) - float(vg(unravel(flat - h * d), item)[0])) / (2 * h)
     assert abs(fd - gf @ d) <= 1e-4 * abs(gf @ d)
-    res = O.fit(tg.loss_fn, tg.theta0, tg.train, 5, 0.3, log_objective=True)
-    assert res.history[-1]["loss"] < res.history[0]["loss"]
+    # A small step against the gradient lowers the loss (the same compiled function).
+    theta1 = unravel(flat - 0.1 * gf / np.linalg.norm(gf))
+    assert float(vg(theta1, item)[0]) < float(v)
     # The saved form is the scenario's own --params form.
     from jaxslam.sim.scenarios import uwb
 
     fp, _ = uwb._filter_params({"model": "squared", "filter": "paper", "dt": 1.0}, np.float64,
-                               tg.to_params(tg.physical(res.theta)))
-    np.testing.assert_allclose(np.asarray(fp.Q), np.asarray(tg.physical(res.theta).Q), rtol=1e-12)
+                               tg.to_params(tg.physical(theta1)))
+    np.testing.assert_allclose(np.asarray(fp.Q), np.asarray(tg.physical(theta1).Q), rtol=1e-12)
