@@ -56,6 +56,7 @@ __all__ = [
     "init",
     "predict",
     "update",
+    "update_robot",
     "register",
     "add_landmark",
     "associate_known",
@@ -331,6 +332,64 @@ def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
         dof=jnp.where(ok, jnp.sum(valid) * dz, 0),
         used=valid & ok,
         gated=gated,
+    )
+    return state._replace(x=x_new, P=P_new, status=status), info
+
+
+def update_robot(state: SlamState, model: SlamModel, observe, z, mask, R, params=None,
+                 residual=None):
+    """EKF update with a measurement of the robot block only, z = h(s) + v.
+
+    For sensors that observe the vehicle and no landmark (paper 004's optical
+    flow and gyro yaw rate, eq. 4.10 state V and ω).  ``observe(s, params)``
+    -> (d_z,); ``z`` (d_z,); ``mask`` (d_z,) bool per component (a masked or
+    non-finite component contributes nothing); ``R`` (d_z, d_z).  H = ∂h/∂s
+    by forward-mode autodiff; the gain uses the gathered robot columns
+    P[:, :n_r] Hᵀ and the factored Joseph form (cost O(n²·d_z)), as
+    :func:`update`.  A failed factorisation or non-finite gain keeps the prior
+    and sets ``NON_FINITE`` / ``NOT_PSD``; non-finite inputs set ``MASKED_INPUT``.
+    Works on any map (also an empty one).  Returns (state, UpdateInfo) with
+    ``used``/``gated`` of shape (d_z,).
+    """
+    nr = model.robot_dim
+    dtype = state.x.dtype
+    z = jnp.asarray(z, dtype)
+    dz = z.shape[0]
+    mask = jnp.broadcast_to(jnp.asarray(mask, bool), (dz,))
+    finite = jnp.isfinite(z)
+    valid = mask & finite
+    z_safe = jnp.where(valid, z, 0.0)
+    s = state.x[:nr]
+    zh, Hs = _value_and_jacfwd(lambda s_: observe(s_, params), s)
+    res = (residual if residual is not None else (lambda a, b: a - b))(z_safe, zh)
+    v = valid.astype(dtype)
+    VV = v[:, None] * v[None, :]
+    R_used = jnp.asarray(R, dtype) * VV
+    PHt = (state.P[:, :nr] @ Hs.T) * v[None, :]  # (n, dz)
+    S = (Hs @ PHt[:nr]) * VV + R_used + jnp.diag(1.0 - v)
+    nu = res * v
+    Lc = jnp.linalg.cholesky(symmetrize(S))
+    Sinv = jax.scipy.linalg.cho_solve((Lc, True), jnp.eye(dz, dtype=dtype))
+    Kg = PHt @ Sinv
+    chol_ok = jnp.all(jnp.isfinite(Lc))
+    ok = chol_ok & jnp.all(jnp.isfinite(Kg)) & jnp.all(jnp.isfinite(nu))
+    Kg = jnp.where(ok, Kg, 0.0)
+    nu_ok = jnp.where(ok, nu, 0.0)
+    x_new = state.x + Kg @ nu_ok
+    A = state.P - Kg @ PHt.T
+    AHt = (A[:, :nr] @ Hs.T) * v[None, :]
+    P_new = symmetrize(A - (AHt - Kg @ R_used) @ Kg.T)
+    status = (
+        state.status
+        | _flag_if(~ok, errors.NON_FINITE)
+        | _flag_if(~chol_ok, errors.NOT_PSD)
+        | _flag_if(jnp.any(mask & ~finite), errors.MASKED_INPUT)
+    )
+    info = UpdateInfo(
+        nis=jnp.where(ok, nu_ok @ (Sinv @ nu_ok), 0.0),
+        dof=jnp.where(ok, jnp.sum(valid), 0),
+        used=valid & ok,
+        gated=jnp.zeros_like(valid),
     )
     return state._replace(x=x_new, P=P_new, status=status), info
 

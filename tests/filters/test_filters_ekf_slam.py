@@ -285,3 +285,39 @@ def test_predict_cost_independent_of_map_block():
     st2 = es.predict(st, MODEL, jnp.array([1.0, 0.1]), jnp.asarray(Q))
     np.testing.assert_array_equal(np.asarray(st2.P[3:, 3:]), np.asarray(st.P[3:, 3:]))
     assert es.robot_cov(st2, MODEL).shape == (3, 3)
+
+
+# ---------------------------------------------------------------- robot-only update
+def test_update_robot_matches_dense_joseph_and_masks():
+    """update_robot (paper 004's flow/gyro rows) equals a dense Joseph update of the robot rows."""
+    st = es.init(jnp.array([0.3, -0.2, 0.4]), jnp.diag(jnp.array([0.2, 0.3, 0.05])), 4, 2)
+    Rr = np.diag([0.1, 0.2])
+    st = es.register(st, MODEL, jnp.array([[2.0, 0.3], [3.0, -0.5]]), jnp.array([0, 1]),
+                     jnp.array([True, True]), jnp.asarray(Rr))
+    obs = lambda s, p: jnp.stack([s[0] + s[1] ** 2, jnp.sin(s[2])])  # noqa: E731
+    z = jnp.array([0.5, 0.2])
+    R = np.array([[0.04, 0.01], [0.01, 0.09]])
+    new, info = es.update_robot(st, MODEL, obs, z, jnp.array([True, True]), jnp.asarray(R))
+    x, P = np.asarray(st.x), np.asarray(st.P)
+    s = x[:3]
+    H = np.zeros((2, x.size))
+    H[0, :3] = [1.0, 2 * s[1], 0.0]
+    H[1, :3] = [0.0, 0.0, np.cos(s[2])]
+    nu = np.asarray(z) - np.array([s[0] + s[1] ** 2, np.sin(s[2])])
+    S = H @ P @ H.T + R
+    K = np.linalg.solve(S, H @ P).T
+    IKH = np.eye(x.size) - K @ H
+    np.testing.assert_allclose(np.asarray(new.x), x + K @ nu, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(new.P), IKH @ P @ IKH.T + K @ R @ K.T, atol=1e-12)
+    np.testing.assert_allclose(float(info.nis), nu @ np.linalg.solve(S, nu), rtol=1e-10)
+    # One row masked (or NaN): the same as the update with the other row alone.
+    one, info1 = es.update_robot(st, MODEL, obs, jnp.array([0.5, jnp.nan]), jnp.array([True, True]),
+                                 jnp.asarray(R))
+    H1, R1 = H[:1], R[:1, :1]
+    K1 = np.linalg.solve(H1 @ P @ H1.T + R1, H1 @ P).T
+    np.testing.assert_allclose(np.asarray(one.x), x + K1 @ nu[:1], atol=1e-12)
+    assert int(info1.dof) == 1 and int(one.status) & errors.MASKED_INPUT
+    # Works on an empty map and keeps P symmetric PSD.
+    e0 = es.init(jnp.zeros(3), jnp.eye(3), 2, 2)
+    e1, _ = es.update_robot(e0, MODEL, obs, z, True, jnp.asarray(R))
+    assert np.all(np.linalg.eigvalsh(np.asarray(e1.P)) > -1e-12)

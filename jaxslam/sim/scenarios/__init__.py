@@ -10,4 +10,6 @@ BUILTIN_MODULES = (
     "jaxslam.sim.scenarios.ekfslam3d",
     "jaxslam.sim.scenarios.uwb",
     "jaxslam.sim.scenarios.fastslam",
+    "jaxslam.sim.scenarios.attitude",
+    "jaxslam.sim.scenarios.lineslam",
 )

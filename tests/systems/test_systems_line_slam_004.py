@@ -1,0 +1,156 @@
+"""Paper 004 line-feature EKF-SLAM: model against hand/thesis Jacobians, the NumPy twin, bad input.
+
+Oracles: hand-derived Jacobians (benchmarks/numpy_lineslam.py, independent of the
+autodiff ones the engine uses), the thesis' eq. 4.11-4.14 entries where they are
+consistent with the real model, and a dense NumPy EKF replaying the recorded
+inputs step by step (1e-9).
+"""
+
+import pathlib
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxslam import errors
+from jaxslam.errors import InputError
+from jaxslam.systems import line_slam_004 as LS
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[2] / "benchmarks"))
+import numpy_lineslam as twin  # noqa: E402
+
+RNG = np.random.default_rng(4)
+S = np.array([1.2, -0.7, 0.4, -0.1, 0.8, 0.05])
+L = np.array([2.5, -2.2])
+DT = 0.1
+
+
+def test_motion_jacobian_hand_and_thesis_eq_4_11():
+    F = np.asarray(jax.jacfwd(lambda s: LS.motion(s, None, DT))(jnp.asarray(S)))
+    np.testing.assert_allclose(F, twin.motion_jac(S, DT), atol=1e-14)
+    c, s = np.cos(S[4]), np.sin(S[4])
+    # eq. 4.11: ∂p/∂V = e^{-θ}Δt (a rotation by the yaw), ∂θ/∂ω = Δt, V and ω constant.
+    np.testing.assert_allclose(F[0:2, 2:4], DT * np.array([[c, -s], [s, c]]), atol=1e-15)
+    assert F[4, 5] == pytest.approx(DT)
+    np.testing.assert_allclose(F[2:4, :], np.eye(6)[2:4], atol=0)
+    np.testing.assert_allclose(F[5], np.eye(6)[5], atol=0)
+    np.testing.assert_allclose(np.asarray(LS.motion(jnp.asarray(S), None, DT)), twin.motion(S, DT), atol=1e-15)
+
+
+def test_observation_jacobian_hand_and_thesis_eq_4_13_4_14():
+    Hs, Hl = jax.jacfwd(LS.observe, argnums=(0, 1))(jnp.asarray(S), jnp.asarray(L))
+    Hs_h, Hl_h = twin.observe_jac(S, L)
+    np.testing.assert_allclose(np.asarray(Hs), Hs_h, atol=1e-14)
+    np.testing.assert_allclose(np.asarray(Hl), Hl_h, atol=1e-14)
+    # Thesis entries consistent with the real model: ∂ρ_s/∂p = −[cos θ_F, sin θ_F]
+    # (−e^{−k θ_F}, without the ½), ∂ρ_s/∂ρ_F = 1 and ∂θ_s/∂θ_F = 1 (the "1" of eq. 4.13).
+    np.testing.assert_allclose(np.asarray(Hs)[0, :2], -np.array([np.cos(L[1]), np.sin(L[1])]), atol=1e-15)
+    assert float(Hl[0, 0]) == 1.0 and float(Hl[1, 1]) == 1.0 and float(Hl[1, 0]) == 0.0
+    np.testing.assert_allclose(np.asarray(LS.observe(jnp.asarray(S), jnp.asarray(L))), twin.observe(S, L),
+                               atol=1e-15)
+
+
+def test_inverse_round_trip_flip_and_jacobians():
+    for s, l in ((S, L), (np.array([3.0, 0.5, 0, 0, -2.5, 0]), np.array([1.0, 0.2]))):
+        z = np.asarray(LS.observe(jnp.asarray(s), jnp.asarray(l)))
+        back = np.asarray(LS.inverse(jnp.asarray(s), jnp.asarray(z)))
+        assert back[0] >= 0
+        np.testing.assert_allclose(back[0], l[0], atol=1e-12)
+        assert abs(np.remainder(back[1] - l[1] + np.pi, 2 * np.pi) - np.pi) < 1e-12
+        Gs, Gz = jax.jacfwd(LS.inverse, argnums=(0, 1))(jnp.asarray(s), jnp.asarray(z))
+        _, Gs_h, Gz_h = twin.inverse(s, z)
+        np.testing.assert_allclose(np.asarray(Gs), Gs_h, atol=1e-13)
+        np.testing.assert_allclose(np.asarray(Gz), Gz_h, atol=1e-13)
+    # The second case puts the robot beyond the line (ρ_s < 0): the map line is still ρ_F ≥ 0.
+    assert float(LS.observe(jnp.array([3.0, 0.5, 0, 0, -2.5, 0]), jnp.array([1.0, 0.2]))[0]) < 0
+
+
+def test_residual_is_smooth_through_the_rho_flip():
+    """A robot crossing the infinite extension of a wall: ρ_s changes sign, the scan fit
+    reports (|ρ|, θ ± π), and the innovation must stay small (no 2π or sign jump)."""
+    l = jnp.array([1.0, 0.3])
+    n = np.array([np.cos(0.3), np.sin(0.3)])
+    for d in (-0.02, -1e-4, 1e-4, 0.02):
+        s = jnp.asarray(np.r_[n * (1.0 - d), 0, 0, 0.2, 0])
+        zh = LS.observe(s, l)
+        from jaxslam.features.lines import hesse_normalize
+
+        zr, zt = hesse_normalize(zh[0] + 0.003, zh[1] - 0.001)
+        assert float(zr) >= 0
+        nu = np.asarray(LS.line_residual(jnp.stack([zr, zt]), zh))
+        np.testing.assert_allclose(nu, [0.003, -0.001], atol=1e-12)
+    # Angle wrapping: θ near ±π.
+    nu = np.asarray(LS.line_residual(jnp.array([2.0, np.pi - 0.01]), jnp.array([2.0, -np.pi + 0.01])))
+    np.testing.assert_allclose(nu, [0.0, -0.02], atol=1e-12)
+
+
+def test_validate_params_and_log_errors():
+    fp = LS.default_params()
+    LS.validate_params(fp)
+    with pytest.raises(InputError, match="R_odo"):
+        LS.validate_params(fp._replace(R_odo=jnp.zeros((2, 2))))
+    with pytest.raises(InputError, match="Q"):
+        LS.validate_params(fp._replace(Q=-jnp.eye(6)))
+    T, n = 3, LS.LineSlamConfig().spec.n_beams
+    log = LS.LineLog(ranges=np.ones((T, n)), valid=np.ones((T, n), bool), tilt=np.zeros((T, 2)),
+                     flow=np.zeros((T, 2)), gyro=np.zeros(T), s0=np.zeros(6))
+    LS.validate_log(log)
+    with pytest.raises(InputError, match="682"):
+        LS.validate_log(log._replace(ranges=np.ones((T, 600))))
+    with pytest.raises(InputError, match="valid"):
+        LS.validate_log(log._replace(valid=np.ones((T, n))))
+    with pytest.raises(InputError, match="s0"):
+        LS.validate_log(log._replace(s0=np.full(6, np.nan)))
+
+
+# --------------------------------------------------------------------------- runs
+@pytest.fixture(scope="module")
+def short_flight():
+    """A recorded 6 s flight of the lineslam-room scenario (float64)."""
+    from jaxslam.sim.scenarios import lineslam as sc
+
+    setup = sc.make_setup(duration=6.0)
+    cfg = LS.LineSlamConfig(record_inputs=True)
+    fp = LS.default_params()
+    key = jax.random.PRNGKey(3)
+    log = jax.jit(lambda k: sc.simulate(k, setup, cfg.spec, jnp.float64))(key)
+    run = jax.jit(LS.run, static_argnums=2)
+    res = run(jax.random.PRNGKey(5), log, cfg, fp)
+    return setup, cfg, fp, log, res, run
+
+
+def test_filter_matches_numpy_twin_step_by_step(short_flight):
+    setup, cfg, fp, log, res, _ = short_flight
+    inp = jax.tree.map(np.asarray, res.steps.inputs)
+    assert inp.used.sum() > 50 and inp.reg.sum() >= 4  # the replay exercises updates and registrations
+    (m, P, lines, act), (x_end, P_end) = twin.replay(
+        np.asarray(log.s0), np.asarray(log.flow), np.asarray(log.gyro), inp, np.asarray(fp.Q),
+        np.asarray(fp.R_odo), np.asarray(fp.P0), cfg.dt, cfg.capacity)
+    st = res.steps
+    np.testing.assert_array_equal(np.asarray(st.active), act)
+    np.testing.assert_allclose(np.asarray(st.mean), m, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(np.asarray(st.cov), P, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(np.asarray(st.lines), lines, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(np.asarray(res.final.P), P_end, rtol=0, atol=1e-9)
+
+
+def test_short_flight_tracks_and_maps(short_flight):
+    setup, cfg, fp, log, res, _ = short_flight
+    st = res.steps
+    e = np.asarray(st.mean)[:, :2] - setup.truth[:, :2]
+    assert np.all(np.isfinite(np.asarray(st.cov)))
+    assert np.sqrt(np.mean(np.sum(e * e, axis=1))) < 0.05
+    assert int(np.asarray(st.active)[-1].sum()) >= 4  # walls in view in the first 6 s (5 measured)
+    assert not int(res.final.status) & (errors.NON_FINITE | errors.NOT_PSD)
+
+
+def test_all_invalid_scans_and_no_walls_in_view_dead_reckon_without_nan(short_flight):
+    setup, cfg, fp, log, res, run = short_flight
+    blind = log._replace(ranges=jnp.full_like(log.ranges, jnp.nan), valid=jnp.zeros_like(log.valid))
+    r2 = run(jax.random.PRNGKey(5), blind, cfg, fp)
+    assert not np.asarray(r2.steps.active).any()
+    assert np.all(np.isfinite(np.asarray(r2.steps.mean))) and np.all(np.isfinite(np.asarray(r2.steps.cov)))
+    # Dead reckoning: the covariance grows.
+    assert np.trace(np.asarray(r2.steps.cov[-1])[:2, :2]) > np.trace(np.asarray(res.steps.cov[-1])[:2, :2])
