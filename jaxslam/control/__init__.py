@@ -3,10 +3,11 @@
 Paper 000 Sec. 2.2 (eq. 4-20): :mod:`.trajectories` (figure-8, helix, circle, square flat
 outputs and their autodiff derivatives), :mod:`.flatness` (linear model eq. 6, references
 eq. 4-5, inverse map eq. 15-19, full feedforward), :mod:`.lqr` (differentiable CARE, eq. 12-13),
-:mod:`.attitude_pd` (eq. 20) and :mod:`.dflqr` (the whole controller of Fig. 2).
+:mod:`.attitude_pd` (eq. 20) and :mod:`.dflqr` (the whole controller of Fig. 2).  Paper 004
+ch. 3.3: :mod:`.smc` (quaternion sliding-mode attitude law, eq. 3.18/3.20, Theorem 3.1).
 """
 
-from . import attitude_pd, dflqr, flatness, lqr, trajectories
+from . import attitude_pd, dflqr, flatness, lqr, smc, trajectories
 from .attitude_pd import PDGains, gains_from_bandwidth, pd_torque
 from .dflqr import ControlInfo, DFLQRParams, control, gain, paper000_params
 from .flatness import (
@@ -25,6 +26,7 @@ __all__ = [
     "lqr",
     "attitude_pd",
     "dflqr",
+    "smc",
     "Figure8",
     "Helix",
     "Circle",

@@ -26,10 +26,10 @@ Decisions (where the thesis is silent or inconsistent):
 * The error q ⊗ q_d* (ch. 6.1, app. B) is a rotation expressed in the inertial frame,
   while ω is in body axes; θ̇_e = C_NB(q) ω, not ω, away from q = I.  The thesis'
   linear model (3.15) neglects this; jaxslam keeps the thesis' definition.
-* Torque model: default ``"exact"`` (eq. 3.15, the law the theory is about; u is in
-  rad/s², and the K1/K2 of ch. 3.4 were designed for it).  ``"direct"`` reproduces app.
-  B, where the same gains act as N m per rad (stiff: J⁻¹K1 ~ 8400 s⁻², so at 1 ms the
-  sampled loop chatters on the saturation).
+* Torque model: the law functions default to ``"exact"`` (eq. 3.15, the law the theory is
+  about; u is in rad/s²).  ``"direct"`` reproduces app. B, where the same gains act as N m
+  per rad (stiff: J⁻¹K1 ~ 8400 s⁻², riding the saturation at the start); it is the code
+  behind the thesis' Figs. 3.2-3.7, so the scenario ``attitude-smc`` defaults to it.
 * Sampling: in :func:`closed_loop` the control and ξ are computed once per step and
   held over it (a 1 kHz digital controller); app. B evaluates both continuously inside
   ``odeint``.  At dt = 1 ms the fastest closed-loop pole of the exact law (≈ 31 s⁻¹) is

@@ -4,6 +4,8 @@
   [f_T, τ].
 * :mod:`.rotor`      paper 001 eq. 1-4: z-up world frame, rotor gyroscopic
   term, rotor-speed mixer, converters to the paper-000 layout.
+* :mod:`.quaternion_quad` paper 004 eq. 3.10-3.16: 13-state quaternion model
+  (NED, same input as euler_ned), RK4 + renormalisation step.
 * :mod:`.params`     parameter containers and paper presets.
 * :mod:`.integrators` RK4 step, ``lax.scan`` rollout, jacfwd linearisation.
 
@@ -11,7 +13,7 @@ Both models have the signature ``f(x, u, params) -> ẋ`` so they plug into
 :func:`rk4_step`, :func:`rollout` and :func:`linearize` unchanged.
 """
 
-from . import euler_ned, integrators, params, rotor
+from . import euler_ned, integrators, params, quaternion_quad, rotor
 from .integrators import check_dt, linearize, rk4_step, rollout
 from .params import (
     PAPER000,
@@ -25,6 +27,7 @@ from .params import (
 
 __all__ = [
     "euler_ned",
+    "quaternion_quad",
     "rotor",
     "params",
     "integrators",

@@ -44,9 +44,19 @@ is invalid as well, otherwise later rounds try again with fresh samples.  The th
 
 **Feature matching** (thesis p. "Feature matching", Alg. 2): :func:`match_predicted` looks for
 each predicted line (from the EKF prior) without random samples: the remaining points within
-``gate`` of the prediction are fitted, inliers re-selected within ``threshold`` of that fit and
-fitted again; the line is matched if it keeps ≥ ``min_inliers`` points, which then leave the
-scan.  :func:`extract_guided` runs RANSAC on what is left to find new lines.
+``gate`` of the prediction are fitted, inliers re-selected within ``threshold`` of that fit,
+fitted and re-selected once more (a second round sheds points of a neighbouring wall that the
+wide gate let in), and fitted again; the line is matched if it keeps ≥ ``min_inliers`` points,
+which then leave the scan.  :func:`extract_guided` runs RANSAC on what is left to find new lines.
+
+**Runs of beams** (jaxslam addition, off by default = the thesis): with ``max_gap > 0`` a line
+keeps only the largest run of its inliers whose consecutive beam indices differ by at most
+``max_gap`` (:func:`largest_run`), and ``trim_ends`` drops that many inliers at each end of the
+run (:func:`trim_run`).  A wall is one run of beams; an infinite line also collects clutter and
+the faces of other objects on its extension (a pillar face nearly collinear with a wall behind
+it), and the few points of the neighbouring wall within the threshold at a corner tilt the fit
+of a short segment.  The line-feature SLAM of paper 004 (``jaxslam.systems.line_slam_004``) uses
+``max_gap = 10``, ``trim_ends = 3``.
 
 **Statics.**  ``RansacConfig`` is a hashable NamedTuple of Python numbers: pass it as a static
 argument (``jax.jit(extract_lines, static_argnames="cfg")``) or close over it; ``n_hyp`` and

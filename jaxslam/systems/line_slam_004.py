@@ -334,8 +334,7 @@ def step(st: es.SlamState, key, ranges, valid, tilt, flow, gyro, cfg: LineSlamCo
     L = es.landmarks(st, model)
     zh = jax.vmap(lambda l: observe(s, l))(L)
     pr, pt = fl.hesse_normalize(zh[:, 0], zh[:, 1])
-    k_new = key
-    matched, new, _ = fl.extract_guided(k_new, pts, pvalid, pr, pt, st.active, cfg.ransac, cfg.match_gate)
+    matched, new, _ = fl.extract_guided(key, pts, pvalid, pr, pt, st.active, cfg.ransac, cfg.match_gate)
 
     R_line = params.R_line.astype(dtype)
     sig_pt = jnp.where(pvalid, laser2d.range_sigma(jnp.where(pvalid, ranges, 1.0), cfg.spec), 0.0)
@@ -350,9 +349,9 @@ def step(st: es.SlamState, key, ranges, valid, tilt, flow, gyro, cfg: LineSlamCo
     R_n = new.cov * q_n.cov_scale[:, None, None] + R_line
     _, _, is_new, _ = es.associate_nn(st, model, z_n, new.valid, R_n, gate=cfg.nis_gate,
                                       new_threshold=cfg.new_threshold)
-    # Clutter in front of the sensor can line up into a "line" through the sensor (ρ ≈ 0): no
-    # wall is that close to a flying vehicle, so such candidates are not mapped.
-    # A new line must also look like one wall: inlier scatter about the fit no larger than the
+    # Clutter in front of the sensor can line up into a "line" through it (ρ ≈ 0): no wall is
+    # that close to a flying vehicle, so such candidates are not mapped.  A new line must also
+    # look like one wall: inlier scatter about the fit no larger than the
     # laser noise predicts (a line across a corner or through clutter scatters up to the
     # RANSAC threshold) and a segment of at least ``min_line_length``.  (With
     # ``ransac.max_gap`` every line is one run of beams: RANSAC cannot string a pillar face and

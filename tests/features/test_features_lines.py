@@ -226,3 +226,24 @@ def _acceptance(n_scans, seed):
 def test_acceptance_1000_scans():
     # One jitted vmapped call, ≈ 10 s on 2 cores: kept in the default suite (measured 99.9 %).
     assert _acceptance(1000, 2024) >= 0.99
+
+
+def test_largest_run_and_trim():
+    from jaxslam.features.lines import largest_run, trim_run
+
+    m = np.zeros(40, bool)
+    m[[1, 2, 3]] = True  # run of 3
+    m[10:20] = True  # run of 10 (with a 1-beam hole below)
+    m[15] = False
+    m[30] = True  # stray point
+    run = np.asarray(largest_run(jnp.asarray(m), 2))
+    expect = np.zeros(40, bool)
+    expect[10:20] = True
+    expect[15] = False
+    np.testing.assert_array_equal(run, expect)
+    # max_gap 1 splits at the hole: the run 10-14 (5 beams) beats 16-19 (4).
+    np.testing.assert_array_equal(np.flatnonzero(np.asarray(largest_run(jnp.asarray(m), 1))), np.arange(10, 15))
+    t = np.asarray(trim_run(jnp.asarray(expect), 2))
+    np.testing.assert_array_equal(np.flatnonzero(t), [12, 13, 14, 16, 17])
+    assert not np.asarray(largest_run(jnp.zeros(5, bool), 3)).any()
+    assert not np.asarray(trim_run(jnp.asarray(expect), 5)).any()

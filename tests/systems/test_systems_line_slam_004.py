@@ -154,3 +154,19 @@ def test_all_invalid_scans_and_no_walls_in_view_dead_reckon_without_nan(short_fl
     assert np.all(np.isfinite(np.asarray(r2.steps.mean))) and np.all(np.isfinite(np.asarray(r2.steps.cov)))
     # Dead reckoning: the covariance grows.
     assert np.trace(np.asarray(r2.steps.cov[-1])[:2, :2]) > np.trace(np.asarray(res.steps.cov[-1])[:2, :2])
+
+
+def test_float32_run_is_finite_and_tracks():
+    from jaxslam.sim.scenarios import lineslam as sc
+
+    setup = sc.make_setup(duration=3.0)
+    cfg = LS.LineSlamConfig()
+    fp = jax.tree.map(lambda a: a.astype(jnp.float32), LS.default_params())
+    log = sc.simulate(jax.random.PRNGKey(3), setup, cfg.spec, jnp.float32)
+    res = jax.jit(LS.run, static_argnums=2)(jax.random.PRNGKey(5), log, cfg, fp)
+    st = res.steps
+    assert st.mean.dtype == jnp.float32 and st.cov.dtype == jnp.float32
+    assert np.all(np.isfinite(np.asarray(st.cov)))
+    e = np.asarray(st.mean)[:, :2] - setup.truth[:, :2]
+    assert np.sqrt(np.mean(np.sum(e * e, axis=1))) < 0.05
+    assert int(np.asarray(st.active)[-1].sum()) >= 3

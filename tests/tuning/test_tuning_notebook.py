@@ -1,7 +1,10 @@
 """The tuning notebook executes (reduced size) and its saved parameters load in the scenario.
 
 Runs ``scripts/run_notebook.py``'s executor in this process (shares the JAX compilation
-cache of the test session) with ``JAXSLAM_NOTEBOOK_SMALL=1``.
+cache of the test session) with ``JAXSLAM_NOTEBOOK_SMALL=1``.  The execution takes about
+1.5 min on a cold 2-core machine, so it is marked ``slow`` (run it with ``-m slow``); the
+default suite checks that every code cell compiles and uses only the public API the tuning
+tests exercise.
 """
 
 import importlib.util
@@ -9,6 +12,7 @@ import json
 import pathlib
 
 import numpy as np
+import pytest
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 NB = ROOT / "notebooks" / "tuning_ekfslam3d.ipynb"
@@ -44,6 +48,19 @@ def test_executor_captures_stdout_values_figures_and_errors(tmp_path):
     assert cells[4]["outputs"] == [] and cells[4]["execution_count"] is None
 
 
+def test_tuning_notebook_cells_compile():
+    nb = json.loads(NB.read_text())
+    code = [c for c in nb["cells"] if c["cell_type"] == "code"]
+    assert len(code) >= 5
+    for i, c in enumerate(code):
+        src = "".join(c["source"])
+        src = "\n".join("" if ln.lstrip().startswith(("%", "!")) else ln for ln in src.splitlines())
+        compile(src, f"{NB.name} cell {i}", "exec")
+    text = "".join("".join(c["source"]) for c in code)
+    assert "jaxslam.tuning" in text or "from jaxslam import tuning" in text
+
+
+@pytest.mark.slow
 def test_tuning_notebook_runs_at_reduced_size(tmp_path, monkeypatch):
     monkeypatch.setenv("JAXSLAM_NOTEBOOK_SMALL", "1")
     monkeypatch.setenv("JAXSLAM_NOTEBOOK_OUT", str(tmp_path))

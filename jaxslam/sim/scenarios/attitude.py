@@ -10,8 +10,8 @@ quaternion renormalisation, control and ξ held over each step.
 
 Options: ``perturbation`` constant | sinusoidal | random | none; ``gains`` thesis (ch. 3.4
 printed K1, K2; P from app. B's LQR) | prototype (eq. 6.1; P from the Lyapunov equation with
-Q = I) | lqr (designed here by :func:`jaxslam.control.smc.lqr_gains`); ``torque`` exact
-(eq. 3.15) | direct (app. B); ``tau_max`` (N m per axis, 0.18 = app. B; ≤ 0: none);
+Q = I) | lqr (designed here by :func:`jaxslam.control.smc.lqr_gains`); ``torque`` direct
+(app. B, τ = u: the code behind Figs. 3.2-3.7, default) | exact (eq. 3.15); ``tau_max`` (N m per axis, 0.18 = app. B; ≤ 0: none);
 ``switching`` tanh | sign; ``eps`` (tanh width); ``duration``; ``dt``;
 ``perturbation_scale``.
 
