@@ -68,12 +68,7 @@ def true_lines(walls) -> np.ndarray:
     """Distinct Hesse lines (ρ ≥ 0, θ) of wall segments (host side; collinear walls merged)."""
     out = []
     for a, b in np.asarray(walls, float):
-        d = b - a
-        n = np.array([d[1], -d[0]]) / np.linalg.norm(d)
-        rho = float(n @ a)
-        if rho < 0:
-            n, rho = -n, -rho
-        th = math.atan2(n[1], n[0])
+        rho, th = (float(v) for v in fl.line_through(a, b))
         if not any(abs(rho - r) < 1e-9 and abs(math.remainder(th - t, 2 * math.pi)) < 1e-9 for r, t in out):
             out.append((rho, th))
     return np.asarray(out)
@@ -150,19 +145,6 @@ def simulate(key, setup: Setup, spec: laser2d.LaserSpec, dtype):
                       s0=jnp.asarray(setup.s0, dtype))
 
 
-def _nees(e, P):
-    Lc = jnp.linalg.cholesky(0.5 * (P + P.T))
-    w = jax.scipy.linalg.solve_triangular(Lc, e, lower=True)
-    return jnp.sum(w * w)
-
-
-def _line_errors(est, true):
-    """(ρ, θ) error of an estimated line against each true line on the double cover: (N, 2)."""
-    d1 = jnp.stack([est[0] - true[:, 0], wrap_angle(est[1] - true[:, 1])], axis=1)
-    d2 = jnp.stack([-est[0] - true[:, 0], wrap_angle(est[1] + jnp.pi - true[:, 1])], axis=1)
-    return jnp.where((jnp.abs(d2[:, 1]) < jnp.abs(d1[:, 1]))[:, None], d2, d1)
-
-
 def evaluate(setup: Setup, res: LS.RunResult):
     """Per-run metrics, per-step NEES/NIS series and counts (jit/vmap-safe)."""
     st = res.steps
@@ -175,12 +157,13 @@ def evaluate(setup: Setup, res: LS.RunResult):
     ep = jnp.concatenate([e[:, :2], e[:, LS.YAW:LS.YAW + 1]], axis=1)
     idx = jnp.array([0, 1, LS.YAW])
     Pp = st.cov[:, idx[:, None], idx[None, :]]
-    nees = jax.vmap(_nees)(ep, Pp)
+    nees = mx.nees(ep, Pp)
 
     tl = jnp.asarray(setup.lines, dtype)
     L = st.lines[-1]
     act = st.active[-1]
-    err = jax.vmap(lambda l: _line_errors(l, tl))(L)  # (cap, N, 2)
+    # (ρ, θ) error of each mapped line against each true line, on the double cover: (cap, N, 2)
+    err = jax.vmap(lambda l: jax.vmap(lambda t: LS.line_residual(l, t))(tl))(L)
     score = jnp.abs(err[..., 0]) / SPURIOUS_RHO_M + jnp.abs(err[..., 1]) * deg / SPURIOUS_THETA_DEG
     best = jnp.argmin(score, axis=1)
     e_best = jnp.take_along_axis(err, best[:, None, None], axis=1)[:, 0]  # (cap, 2)
