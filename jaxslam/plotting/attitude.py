@@ -30,29 +30,14 @@ def db(a):
         return np.maximum(10.0 * np.log10(a), _FLOOR_DB)
 
 
-def _qmul(p, q):
-    p0, pv = p[..., :1], p[..., 1:]
-    q0, qv = q[..., :1], q[..., 1:]
-    w = p0 * q0 - np.sum(pv * qv, axis=-1, keepdims=True)
-    v = p0 * qv + q0 * pv + np.cross(pv, qv)
-    return np.concatenate([w, v], axis=-1)
-
-
-def _euler(q):
-    """3-2-1 Euler angles (eq. 3.4; app. B's q3**3 typo corrected), rad, (..., 3)."""
-    q0, q1, q2, q3 = (q[..., i] for i in range(4))
-    phi = np.arctan2(2 * (q0 * q1 + q2 * q3), q0 ** 2 - q1 ** 2 - q2 ** 2 + q3 ** 2)
-    theta = np.arcsin(np.clip(2 * (q0 * q2 - q3 * q1), -1.0, 1.0))
-    psi = np.arctan2(2 * (q0 * q3 + q1 * q2), q0 ** 2 + q1 ** 2 - q2 ** 2 - q3 ** 2)
-    return np.stack([phi, theta, psi], axis=-1)
-
-
 def plot_all(name, dt, rollout, q_d, directory, tau_max=None, max_points=5000):
     """Write the three figures for one recorded run; returns their paths.
 
     ``rollout``: :class:`jaxslam.control.smc.Rollout` recorded (``record=True``), NumPy;
     ``dt``: step, s; ``q_d``: (4,) desired attitude; ``tau_max``: limit to draw (N m).
     """
+    from ..geometry.quaternion import euler_from_quat, qcanonical, qconj, qmul
+
     p = plt()
     xa = np.asarray(rollout.xa)[:-1]
     x_err = np.asarray(rollout.x_err)
@@ -63,8 +48,8 @@ def plot_all(name, dt, rollout, q_d, directory, tau_max=None, max_points=5000):
     t = (np.arange(T) * dt)[sel]
     q = xa[sel, :4]
     w = xa[sel, 4:]
-    eul = np.degrees(_euler(q))
-    eul_d = np.degrees(_euler(np.asarray(q_d, float)))
+    eul = np.degrees(np.asarray(euler_from_quat(q)))
+    eul_d = np.degrees(np.asarray(euler_from_quat(np.asarray(q_d, float))))
     labels = ("roll", "pitch", "yaw")
     paths = []
 
@@ -105,8 +90,7 @@ def plot_all(name, dt, rollout, q_d, directory, tau_max=None, max_points=5000):
     paths.append(save(fig, directory, f"{name}_state_error"))
 
     # Figs 6.7-6.9: error quaternion, axis-angle error, axis-angle error in dB.
-    qe = _qmul(q, np.asarray(q_d, float) * np.array([1.0, -1.0, -1.0, -1.0]))
-    qe = np.where(qe[:, :1] < 0, -qe, qe)
+    qe = np.asarray(qcanonical(qmul(q, qconj(np.asarray(q_d, float)))))
     th = np.degrees(x_err[sel, :3])
     fig, axs = p.subplots(3, 1, figsize=(9, 10), sharex=True)
     for i in range(4):

@@ -44,6 +44,22 @@ def _walls(ax, walls, **kw):
         ax.plot([a[0], b[0]], [a[1], b[1]], "k-", lw=2.5, label="true walls" if i == 0 else None, **kw)
 
 
+def _lines_and_frame(ax, lines, active, box, label, lw, title):
+    """Draw the active map lines clipped to ``box`` and set up the plan-view axes."""
+    first = True
+    for j in np.flatnonzero(np.asarray(active)):
+        seg = clip_line(lines[j, 0], lines[j, 1], box)
+        if seg is not None:
+            ax.plot(seg[:, 0], seg[:, 1], "C3--", lw=lw, label=label if first else None)
+            first = False
+    ax.set_xlim(box[0], box[1])
+    ax.set_ylim(box[2], box[3])
+    ax.set_aspect("equal")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_title(title)
+
+
 def plot_all(name, setup, cfg, log, res, per_step, bounds, directory, scan_index=None):
     """Write the four figures; returns their paths."""
     from ..sensors import laser2d
@@ -72,40 +88,20 @@ def plot_all(name, setup, cfg, log, res, per_step, bounds, directory, scan_index
     fig, ax = p.subplots(figsize=(7, 6))
     _walls(ax, walls)
     ax.plot(pw[:, 0], pw[:, 1], ".", ms=2, color="C0", label=f"scan {k} (t = {t[k]:.1f} s), ground-projected")
-    act = np.asarray(st.active[k])
-    for j in np.flatnonzero(act):
-        seg = clip_line(st.lines[k, j, 0], st.lines[k, j, 1], box)
-        if seg is not None:
-            ax.plot(seg[:, 0], seg[:, 1], "C3--", lw=1, label="estimated lines" if j == np.flatnonzero(act)[0] else None)
+    _lines_and_frame(ax, st.lines[k], st.active[k], box, "estimated lines", 1.0,
+                     f"{name}: scan and line features")
     ax.plot(s[0], s[1], "C1o", label="estimated pose")
     ax.plot(tr[k, 0], tr[k, 1], "kx", label="true pose")
-    ax.set_xlim(box[0], box[1])
-    ax.set_ylim(box[2], box[3])
-    ax.set_aspect("equal")
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("y [m]")
-    ax.set_title(f"{name}: scan and line features")
     ax.legend(fontsize=7, loc="upper right")
     paths.append(save(fig, directory, f"{name}_scan"))
 
     # --- map
     fig, ax = p.subplots(figsize=(7, 6))
     _walls(ax, walls)
-    actf = np.asarray(st.active[-1])
-    first = True
-    for j in np.flatnonzero(actf):
-        seg = clip_line(st.lines[-1, j, 0], st.lines[-1, j, 1], box)
-        if seg is not None:
-            ax.plot(seg[:, 0], seg[:, 1], "C3--", lw=0.8, label="estimated wall lines" if first else None)
-            first = False
+    _lines_and_frame(ax, st.lines[-1], st.active[-1], box, "estimated wall lines", 0.8,
+                     f"{name}: map ({int(np.asarray(st.active[-1]).sum())} lines) and path")
     ax.plot(tr[:, 0], tr[:, 1], "C0-", lw=1.2, label="true path")
     ax.plot(st.mean[:, 0], st.mean[:, 1], "C1--", lw=1.2, label="estimated path")
-    ax.set_xlim(box[0], box[1])
-    ax.set_ylim(box[2], box[3])
-    ax.set_aspect("equal")
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("y [m]")
-    ax.set_title(f"{name}: map ({int(actf.sum())} lines) and path")
     ax.legend(fontsize=7, loc="upper right")
     paths.append(save(fig, directory, f"{name}_map"))
 
