@@ -1,0 +1,150 @@
+"""Planar ground-vehicle motion models for the real-data systems (issue 9).
+
+Pose ``s = (x, y, φ)`` in metres and radians (φ counter-clockwise from +x).
+Every model is a pure function ``f(s, u, dt, ...) -> s'``; Jacobians come from
+``jax.jacfwd`` in the filters (the hand forms are oracles in the tests only).
+
+* :func:`unicycle` — odometry velocities ``u = (v, ω)`` held over ``dt``
+  (UTIAS MRCLAM: iRobot Create odometry, data README §1).  Exact arc
+  integration: x' = x + v/ω (sin(φ+ωΔt) − sin φ), y' = y − v/ω (cos(φ+ωΔt) − cos φ),
+  φ' = φ + ωΔt, written with sinc-type functions so it is smooth (and
+  differentiable) through ω = 0.  The README's reference dead reckoning uses
+  Euler steps (RMS 2.729 m for robot 1); exact arcs give 2.722 m.
+* :func:`ackermann` — the Victoria Park Ute (data README §2, from RFS-SLAM's
+  ``ProcessModel_Ackerman2D`` after ACFR's model notes): the state is the
+  **laser's** position with the vehicle heading; inputs are the rear-left
+  encoder speed v_e and the steering angle α::
+
+      v_c = v_e / (1 − tan(α)·H/L)
+      ẋ = v_c cos φ − (v_c/L) tan α (a sin φ + b cos φ)
+      ẏ = v_c sin φ + (v_c/L) tan α (a cos φ − b sin φ)
+      φ̇ = (v_c/L) tan α
+
+  integrated with one Euler step per held input (as RFS-SLAM does).
+* :func:`odometry_increment` — a pose increment ``u = (d, dθ)`` composed as
+  ``s ∘ Pose2(d, 0, dθ)``: move forward d, then turn dθ (CMU Plaza ``DR``,
+  as gtsam composes it).
+
+Process noise (:func:`input_noise_cov`): the inputs carry white noise, and the
+discrete covariance is ``Q = J_u M J_uᵀ`` with ``J_u = ∂f/∂u`` by autodiff.
+For held *rates* the input-noise is a density (units (m/s)²·s, (rad/s)²·s):
+over a step of length Δt the averaged input has variance M_c/Δt, so
+``M = M_c / Δt`` and Q scales with Δt (splitting an interval at a measurement
+time leaves the total noise unchanged; Δt = 0 gives Q = 0).  For increments M
+is per increment.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from ..linalg import wrap_angle
+
+__all__ = [
+    "AckermannGeometry",
+    "VICTORIA_PARK",
+    "unicycle",
+    "unicycle_euler",
+    "ackermann",
+    "odometry_increment",
+    "compose",
+    "input_noise_cov",
+    "step_input_cov",
+]
+
+
+class AckermannGeometry(NamedTuple):
+    """Car geometry [m]: wheelbase L, encoder lateral offset H, laser offsets a (forward), b (lateral)."""
+
+    L: float = 2.83
+    H: float = 0.76
+    a: float = 3.78
+    b: float = 0.50
+
+
+#: The Victoria Park Ute (data README §2; RFS-SLAM cfg).
+VICTORIA_PARK = AckermannGeometry()
+
+
+def _sinc_terms(w):
+    """(sin w / w, (1 − cos w) / w), smooth through w = 0 (Taylor branch)."""
+    small = jnp.abs(w) < 1e-4
+    ws = jnp.where(small, 1.0, w)
+    w2 = w * w
+    s = jnp.where(small, 1.0 - w2 / 6.0 + w2 * w2 / 120.0, jnp.sin(ws) / ws)
+    c = jnp.where(small, w / 2.0 - w * w2 / 24.0, (1.0 - jnp.cos(ws)) / ws)
+    return s, c
+
+
+def unicycle(s, u, dt):
+    """Exact-arc unicycle step with ``u = (v, ω)`` held over ``dt``."""
+    x, y, phi = s[0], s[1], s[2]
+    v, om = u[0], u[1]
+    th = om * dt
+    sw, cw = _sinc_terms(th)
+    d = v * dt
+    # forward/lateral displacement in the body frame at the start of the step
+    fx = d * sw
+    fy = d * cw
+    c, sn = jnp.cos(phi), jnp.sin(phi)
+    return jnp.stack([x + c * fx - sn * fy, y + sn * fx + c * fy, wrap_angle(phi + th)])
+
+
+def unicycle_euler(s, u, dt):
+    """Euler unicycle step (the data README's reference dead reckoning)."""
+    x, y, phi = s[0], s[1], s[2]
+    v, om = u[0], u[1]
+    return jnp.stack([x + v * jnp.cos(phi) * dt, y + v * jnp.sin(phi) * dt, wrap_angle(phi + om * dt)])
+
+
+def ackermann(s, u, dt, geom: AckermannGeometry = VICTORIA_PARK):
+    """One Euler step of the Victoria Park Ackermann model (laser-centred state)."""
+    x, y, phi = s[0], s[1], s[2]
+    ve, alpha = u[0], u[1]
+    L, H, a, b = geom.L, geom.H, geom.a, geom.b
+    ta = jnp.tan(alpha)
+    vc = ve / (1.0 - ta * H / L)
+    c, sn = jnp.cos(phi), jnp.sin(phi)
+    k = vc / L * ta
+    return jnp.stack([
+        x + dt * (vc * c - k * (a * sn + b * c)),
+        y + dt * (vc * sn + k * (a * c - b * sn)),
+        wrap_angle(phi + dt * k),
+    ])
+
+
+def compose(s, d):
+    """SE(2) composition ``s ∘ d`` of two poses (x, y, φ)."""
+    c, sn = jnp.cos(s[2]), jnp.sin(s[2])
+    return jnp.stack([s[0] + c * d[0] - sn * d[1], s[1] + sn * d[0] + c * d[1], wrap_angle(s[2] + d[2])])
+
+
+def odometry_increment(s, u, dt=None):
+    """``s ∘ Pose2(d, 0, dθ)`` for ``u = (d, dθ)`` (``dt`` unused; same signature as the others)."""
+    del dt
+    return compose(s, jnp.stack([u[0], jnp.zeros_like(u[0]), u[1]]))
+
+
+def input_noise_cov(f, s, u, dt, M):
+    """Discrete process noise ``J_u M J_uᵀ`` of motion ``f(s, u, dt)`` (J_u by ``jacfwd``).
+
+    ``M`` (d_u, d_u) is the input covariance of this step (for held rates pass
+    ``M_c / Δt``, see the module docstring).
+    """
+    Ju = jax.jacfwd(lambda u_: f(s, u_, dt))(u)
+    return Ju @ M @ Ju.T
+
+
+def step_input_cov(M, dt, input_mode: str = "rate"):
+    """Input covariance of one step: ``M / Δt`` for held rates (M a density), ``M`` for increments.
+
+    ``Δt`` is floored at 1e-9 s; with Δt = 0 the rate Jacobian is 0, so Q = 0.
+    """
+    if input_mode == "rate":
+        return M / jnp.maximum(dt, 1e-9)
+    if input_mode == "increment":
+        return M
+    raise ValueError(f"input_mode: expected 'rate' or 'increment', got {input_mode!r}")

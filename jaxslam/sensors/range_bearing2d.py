@@ -1,0 +1,43 @@
+"""2D range-bearing observation of point landmarks (real-data systems, issue 9).
+
+Robot pose ``s = (x, y, φ, …)`` (only the first three entries are read), landmark
+``l = (l_x, l_y)``; the sensor sits at the pose (Victoria Park's state is the
+laser's position, MRCLAM's camera is at the robot centre)::
+
+    r = ‖l − p‖,   β = wrap(atan2(l_y − y, l_x − x) − φ)            (observe)
+    l = p + r (cos(φ + β), sin(φ + β))                               (inverse)
+
+Bearing is counter-clockwise positive from the sensor's forward axis (MRCLAM:
+data README §1 confirms the sign; Victoria Park: the loader subtracts the
+laser's π/2 offset).  :func:`residual` wraps the bearing component, so a
+measurement at +179° against a prediction at −179° is a 2° innovation, not
+358°.  Jacobians come from ``jax.jacfwd`` in the filters; the range uses
+:func:`jaxslam.linalg.safe_norm` so its derivative at zero distance is finite.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+from ..linalg import safe_norm, wrap_angle
+
+__all__ = ["observe", "inverse", "residual"]
+
+
+def observe(s, l, params=None):
+    """Predicted ``(r, β)`` of landmark ``l`` from pose ``s``."""
+    del params
+    d = l[:2] - s[:2]
+    return jnp.stack([safe_norm(d), wrap_angle(jnp.arctan2(d[1], d[0]) - s[2])])
+
+
+def inverse(s, z, params=None):
+    """Landmark position from pose ``s`` and measurement ``z = (r, β)``."""
+    del params
+    a = s[2] + z[1]
+    return jnp.stack([s[0] + z[0] * jnp.cos(a), s[1] + z[0] * jnp.sin(a)])
+
+
+def residual(z, zhat):
+    """``z − ẑ`` with the bearing wrapped to [−π, π)."""
+    return jnp.stack([z[0] - zhat[0], wrap_angle(z[1] - zhat[1])])
