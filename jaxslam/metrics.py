@@ -43,6 +43,15 @@ Decisions (the papers report RMSE and plots but define neither precisely)
   rigid transform (Umeyama 1991) before the RMSE of the position error; RPE
   here is translational: the RMSE of the error of displacements over a fixed
   step lag (no rotation term), which needs no orientation estimates.
+  ``rpe_se2`` is the pose RPE of Sturm et al. (2012) / evo for planar poses:
+  the relative motion over a lag, ``E_i = (Q_i⁻¹ Q_{i+Δ})⁻¹ (P_i⁻¹ P_{i+Δ})``,
+  with the RMSE of its translation and of its (wrapped) angle; it is
+  invariant to any rigid transform of either trajectory.
+* Map error: landmark positions are compared by id after a rigid transform
+  (the trajectory's ATE alignment, so map and path are judged in one frame,
+  or the map's own Umeyama alignment); the RMSE of the position error.
+* TUM format (for ``evo``): one pose per line, ``t tx ty tz qx qy qz qw``;
+  planar poses get z = 0 and a yaw quaternion.
 """
 
 from __future__ import annotations
@@ -72,6 +81,12 @@ __all__ = [
     "umeyama",
     "ate",
     "rpe",
+    "rpe_se2",
+    "apply_transform",
+    "map_error",
+    "interp_poses",
+    "write_tum",
+    "read_tum",
 ]
 
 
@@ -533,3 +548,154 @@ def rpe(est_pos, true_pos, lag: int = 1):
     de = est[lag:] - est[:-lag]
     dt = tru[lag:] - tru[:-lag]
     return rmse_norm(de - dt)
+
+
+def rpe_se2(est_pose, true_pose, lag: int = 1):
+    """Planar pose RPE (Sturm et al. 2012): RMSE of the relative-motion error over ``lag`` steps.
+
+    Args:
+        est_pose, true_pose: (T, 3) poses (x, y, θ) [m, rad].
+        lag: static step lag ≥ 1, < T.
+
+    Returns:
+        ``(trans_rmse [m], rot_rmse [rad])`` of ``E_i = (Q_i⁻¹ Q_{i+lag})⁻¹ (P_i⁻¹ P_{i+lag})``.
+    """
+    lag = int(lag)
+    est = jnp.asarray(est_pose)
+    tru = jnp.asarray(true_pose)
+    if est.ndim != 2 or est.shape[1] != 3 or est.shape != tru.shape:
+        raise InputError(f"rpe_se2: expected two (T, 3) pose arrays, got {est.shape} and {tru.shape}")
+    if lag < 1 or lag >= est.shape[0]:
+        raise InputError(f"lag: must be in [1, {est.shape[0] - 1}], got {lag}")
+
+    def rel(P):
+        a, b = P[:-lag], P[lag:]
+        c, s = jnp.cos(a[:, 2]), jnp.sin(a[:, 2])
+        dx, dy = b[:, 0] - a[:, 0], b[:, 1] - a[:, 1]
+        return c * dx + s * dy, -s * dx + c * dy, b[:, 2] - a[:, 2]
+
+    ex, ey, eth = rel(est)
+    tx, ty, tth = rel(tru)
+    # E = T_true⁻¹ T_est for the relative motions T = (t, θ).
+    c, s = jnp.cos(tth), jnp.sin(tth)
+    dx, dy = ex - tx, ey - ty
+    etx, ety = c * dx + s * dy, -s * dx + c * dy
+    eang = (eth - tth + jnp.pi) % (2.0 * jnp.pi) - jnp.pi
+    return jnp.sqrt(jnp.mean(etx ** 2 + ety ** 2)), jnp.sqrt(jnp.mean(eang ** 2))
+
+
+def apply_transform(points, R, t, s=1.0):
+    """``s R p + t`` for each row of ``points`` (N, d) — e.g. the ATE alignment of :func:`umeyama`."""
+    return s * jnp.asarray(points) @ jnp.asarray(R).T + jnp.asarray(t)
+
+
+class MapError(NamedTuple):
+    """Landmark map error after alignment: per-landmark errors [m], their RMSE and max, ids compared."""
+
+    errors: np.ndarray
+    rmse: float
+    max: float
+    ids: np.ndarray
+
+
+def map_error(est_lm, est_ids, true_lm, true_ids, transform=None) -> MapError:
+    """Map error of landmarks matched by id, after a rigid alignment.
+
+    Args:
+        est_lm: (M, d) estimated landmark positions; est_ids: (M,) their ids
+            (entries with id < 0 or non-finite positions are ignored).
+        true_lm: (L, d) true positions; true_ids: (L,).
+        transform: ``(R, t)`` or ``(R, t, s)`` to apply to the estimates (e.g.
+            the trajectory's ATE alignment), or None to align the matched
+            landmarks themselves by :func:`umeyama` (needs ≥ d of them).
+
+    Raises:
+        InputError: shapes disagree, or no estimated id is in ``true_ids``.
+    """
+    est = np.asarray(est_lm, np.float64)
+    tru = np.asarray(true_lm, np.float64)
+    eid = np.asarray(est_ids).reshape(-1)
+    tid = np.asarray(true_ids).reshape(-1)
+    if est.ndim != 2 or tru.ndim != 2 or est.shape[1] != tru.shape[1]:
+        raise InputError(f"map_error: expected (M, d) and (L, d) landmarks, got {est.shape} and {tru.shape}")
+    if eid.shape[0] != est.shape[0] or tid.shape[0] != tru.shape[0]:
+        raise InputError("map_error: one id per landmark row expected")
+    lookup = {int(i): k for k, i in enumerate(tid)}
+    pairs = [(k, lookup[int(i)]) for k, i in enumerate(eid)
+             if int(i) >= 0 and int(i) in lookup and np.all(np.isfinite(est[k]))]
+    if not pairs:
+        raise InputError("map_error: no estimated landmark id matches a true id")
+    a = est[[k for k, _ in pairs]]
+    b = tru[[j for _, j in pairs]]
+    if transform is None:
+        if len(pairs) < a.shape[1]:
+            raise InputError(f"map_error: {len(pairs)} matched landmarks cannot fix a {a.shape[1]}-D alignment")
+        R, t, s = umeyama(a, b)
+    else:
+        R, t = transform[0], transform[1]
+        s = transform[2] if len(transform) > 2 else 1.0
+    e = np.linalg.norm(np.asarray(apply_transform(a, R, t, s)) - b, axis=1)
+    return MapError(e, float(np.sqrt(np.mean(e ** 2))), float(np.max(e)),
+                    np.asarray([int(eid[k]) for k, _ in pairs]))
+
+
+def interp_poses(t_query, t, poses):
+    """Linear interpolation of planar poses (x, y, θ) at ``t_query`` (host side, NumPy).
+
+    The heading is interpolated on the unwrapped angle and re-wrapped.  Query
+    times outside ``[t[0], t[-1]]`` give NaN (ground truth must not be
+    extrapolated).
+    """
+    tq = np.asarray(t_query, np.float64)
+    t = np.asarray(t, np.float64)
+    P = np.asarray(poses, np.float64)
+    out = np.empty((tq.shape[0], P.shape[1]))
+    for j in range(P.shape[1]):
+        col = np.unwrap(P[:, j]) if j == 2 and P.shape[1] == 3 else P[:, j]
+        out[:, j] = np.interp(tq, t, col)
+    if P.shape[1] == 3:
+        out[:, 2] = (out[:, 2] + np.pi) % (2.0 * np.pi) - np.pi
+    out[(tq < t[0]) | (tq > t[-1])] = np.nan
+    return out
+
+
+def write_tum(path, t, positions, yaw=None, quat_xyzw=None):
+    """Write a trajectory in TUM format (``t tx ty tz qx qy qz qw`` per line) for ``evo``.
+
+    Args:
+        path: output file (parent folders are created).
+        t: (T,) times [s].
+        positions: (T, 2) or (T, 3) [m]; planar positions get z = 0.
+        yaw: optional (T,) heading [rad] (planar); quat_xyzw: optional (T, 4).
+            With neither, the identity orientation is written.
+    """
+    import pathlib
+
+    t = np.asarray(t, np.float64).reshape(-1)
+    p = np.asarray(positions, np.float64)
+    if p.ndim != 2 or p.shape[0] != t.shape[0] or p.shape[1] not in (2, 3):
+        raise InputError(f"write_tum: positions must be (T, 2|3) with T = {t.shape[0]}, got {p.shape}")
+    if p.shape[1] == 2:
+        p = np.concatenate([p, np.zeros((p.shape[0], 1))], axis=1)
+    if quat_xyzw is not None and yaw is not None:
+        raise InputError("write_tum: give yaw or quat_xyzw, not both")
+    if quat_xyzw is not None:
+        q = np.asarray(quat_xyzw, np.float64).reshape(t.shape[0], 4)
+    else:
+        h = np.zeros_like(t) if yaw is None else np.asarray(yaw, np.float64).reshape(-1)
+        if h.shape != t.shape:
+            raise InputError(f"write_tum: yaw must be (T,) with T = {t.shape[0]}, got {h.shape}")
+        q = np.stack([np.zeros_like(h), np.zeros_like(h), np.sin(h / 2), np.cos(h / 2)], axis=1)
+    path = pathlib.Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savetxt(path, np.concatenate([t[:, None], p, q], axis=1), fmt="%.9f",
+               header="timestamp tx ty tz qx qy qz qw")
+    return path
+
+
+def read_tum(path):
+    """Read a TUM trajectory: ``(t (T,), positions (T, 3), quat_xyzw (T, 4))``."""
+    a = np.loadtxt(path, comments="#", ndmin=2)
+    if a.shape[1] != 8:
+        raise InputError(f"{path}: TUM lines have 8 columns, found {a.shape[1]}")
+    return a[:, 0], a[:, 1:4], a[:, 4:8]

@@ -198,3 +198,87 @@ def test_rpe_by_hand():
         metrics.rpe(est, truth, lag=4)
     with pytest.raises(InputError, match="align"):
         metrics.ate(est, truth, align="affine")
+
+
+def _se2_align_closed_form(src, dst):
+    """Independent 2D oracle: θ = atan2(Σ a×b, Σ a·b) on centred points, then t."""
+    ms, md = src.mean(0), dst.mean(0)
+    a, b = src - ms, dst - md
+    th = np.arctan2(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]), np.sum(a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1]))
+    R = np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])
+    return R, md - R @ ms
+
+
+def test_se2_ate_matches_closed_form_oracle():
+    rng = np.random.default_rng(7)
+    s = np.linspace(0, 6 * np.pi, 300)
+    truth = np.stack([4 * np.cos(s) + 0.3 * s, 2 * np.sin(2 * s)], 1)
+    th, t = 2.4, np.array([-3.0, 7.5])  # beyond ±π/2, where a small-angle fit would fail
+    R = np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])
+    est = (truth + 0.05 * rng.normal(size=truth.shape)) @ R.T + t
+    Ro, to = _se2_align_closed_form(est, truth)
+    expected = np.sqrt(np.mean(np.sum((est @ Ro.T + to - truth) ** 2, 1)))
+    assert float(metrics.ate(est, truth)) == pytest.approx(expected, rel=1e-10)
+    Ru, tu, _ = metrics.umeyama(est, truth)
+    np.testing.assert_allclose(np.asarray(Ru), Ro, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(tu), to, atol=1e-10)
+
+
+def test_rpe_se2_by_hand_and_invariance():
+    truth = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [2.0, 0.0, np.pi / 2], [2.0, 1.0, np.pi / 2]])
+    assert [float(v) for v in metrics.rpe_se2(truth, truth)] == pytest.approx([0.0, 0.0], abs=1e-15)
+    # Same trajectory moved rigidly: no relative error.
+    c, s = np.cos(1.0), np.sin(1.0)
+    moved = np.stack([c * truth[:, 0] - s * truth[:, 1] + 3, s * truth[:, 0] + c * truth[:, 1] - 1,
+                      truth[:, 2] + 1.0], 1)
+    assert [float(v) for v in metrics.rpe_se2(moved, truth)] == pytest.approx([0.0, 0.0], abs=1e-12)
+    # One step too long by 0.3 m (the 2nd → 3rd, along x while heading 0): translation errors
+    # of the three relative motions are 0, 0.3, 0 → RMSE 0.3/√3; a wrong turn at the last
+    # pose, by 3.2 rad (wraps to 3.2 − 2π), gives an angle RMSE of |3.2 − 2π|/√3.
+    est = truth.copy()
+    est[2:, 0] += 0.3
+    est[3, 2] += 3.2
+    tr, rot = metrics.rpe_se2(est, truth)
+    assert float(tr) == pytest.approx(0.3 / np.sqrt(3))
+    assert float(rot) == pytest.approx(abs(3.2 - 2 * np.pi) / np.sqrt(3))
+    with pytest.raises(InputError, match="lag"):
+        metrics.rpe_se2(est, truth, lag=4)
+
+
+def test_map_error_by_id_with_both_alignments():
+    true_lm = np.array([[0.0, 0.0], [4.0, 0.0], [0.0, 3.0], [5.0, 5.0]])
+    true_ids = np.array([10, 11, 12, 13])
+    th = 0.7
+    R = np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])
+    est = (true_lm[[2, 0, 1]] - np.array([1.0, 2.0])) @ R  # ids 12, 10, 11 in another frame
+    est_ids = np.array([12, 10, 11])
+    me = metrics.map_error(np.vstack([est, [[np.nan, 0.0]]]), np.append(est_ids, 13), true_lm, true_ids)
+    assert me.rmse == pytest.approx(0.0, abs=1e-12) and sorted(me.ids.tolist()) == [10, 11, 12]
+    # A given transform (identity) is used as is: every error is that of the raw estimate.
+    me2 = metrics.map_error(est, est_ids, true_lm, true_ids, transform=(np.eye(2), np.zeros(2)))
+    np.testing.assert_allclose(me2.errors, np.linalg.norm(est - true_lm[[2, 0, 1]], axis=1))
+    with pytest.raises(InputError, match="no estimated landmark"):
+        metrics.map_error(est, np.array([1, 2, 3]), true_lm, true_ids)
+
+
+def test_interp_poses_wraps_heading_and_refuses_extrapolation():
+    t = np.array([0.0, 1.0])
+    P = np.array([[0.0, 0.0, np.pi - 0.1], [2.0, 4.0, -np.pi + 0.1]])
+    out = metrics.interp_poses(np.array([0.5, -0.1, 1.1]), t, P)
+    np.testing.assert_allclose(out[0, :2], [1.0, 2.0])
+    assert abs(abs(out[0, 2]) - np.pi) < 1e-12  # through ±π, not through 0
+    assert np.all(np.isnan(out[1:]))
+
+
+def test_tum_round_trip(tmp_path):
+    t = np.array([0.0, 0.5, 1.25])
+    xy = np.array([[0.0, 1.0], [2.0, 3.0], [4.0, 5.0]])
+    yaw = np.array([0.0, np.pi / 2, -3.0])
+    path = metrics.write_tum(tmp_path / "sub" / "traj.txt", t, xy, yaw=yaw)
+    tt, p, q = metrics.read_tum(path)
+    np.testing.assert_allclose(tt, t)
+    np.testing.assert_allclose(p, np.c_[xy, np.zeros(3)])
+    np.testing.assert_allclose(2 * np.arctan2(q[:, 2], q[:, 3]), yaw, atol=1e-8)
+    np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, atol=1e-8)
+    with pytest.raises(InputError, match="positions"):
+        metrics.write_tum(tmp_path / "x.txt", t, xy[:2])
