@@ -1,0 +1,169 @@
+"""CMU Plaza 1 / Plaza 2 range-only SLAM data loader (text files, not the .mat).
+
+Origin: Carnegie Mellon Robotics Institute, range-only SLAM with sensor
+networks (J. Djugash, S. Singh, G. Kantor et al.); original page
+frc.ri.cmu.edu/projects/emergencyresponse/RangeData/ (format in ``log.html``).
+The ``DR``/``TD`` files ship with gtsam (``gtsam/Data/``, Simplified BSD for
+gtsam itself; no licence is stated for the data).  A ground vehicle carries a
+radio that ranges to 4 fixed nodes (ids 0, 1, 5, 6), in the manner of UWB.
+
+Files read (``N`` = 1 or 2; times in s on the vehicle's clock):
+
+==================  ====================================================
+``PlazaN_DR.txt``   time, distance travelled since the previous row d
+                    [m], heading change dθ [rad]: odometry increments,
+                    composed as ``Pose2(d, 0, dθ)`` (forward d, then turn)
+``PlazaN_TD.txt``   time, sender id (2, the robot), node id, range [m]
+``PlazaN_GT.txt``   time, x [m], y [m], heading [rad] (GPS ground truth;
+                    one ``#`` header line; one more row than DR)
+``PlazaN_DRp.txt``  time, x, y, heading: the dead-reckoned path
+``PlazaN_TL.txt``   node id, x [m], y [m] (surveyed node positions)
+==================  ====================================================
+
+``DR``/``TD`` have tab-separated columns with a trailing tab and CRLF line
+ends; both are accepted.
+
+Quirks handled:
+
+* **Plaza 2's heading is offset by π**: its GT heading points opposite to the
+  direction of travel.  ``PlazaData.heading_offset`` is π for Plaza 2 and 0
+  for Plaza 1, and :meth:`PlazaData.start_pose` returns
+  ``(x₀, y₀, θ₀ + heading_offset)`` wrapped to (−π, π] — the pose to start
+  dead reckoning from, as gtsam's examples do (``headingOffset = π``; C++
+  start pose (−34.2086, 45.3008, π − 2.021089)).
+* ``Plaza1_TD.txt`` is not in time order: two blocks of ranges (lines 1989
+  and 2867) jump back by 64 s and 50 s.  The ranges are stably sorted by
+  time; ``report["td_out_of_order_lines"]`` lists the lines where time went
+  backwards.  All other files must be in time order.
+* Ranges are biased (median +2.8 m against GT and TL) and have outliers;
+  nothing is corrected here.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from ..errors import InputError
+from .textfile import int_column, read_table, resolve_dataset_dir
+
+__all__ = ["PlazaData", "load_plaza", "HEADING_OFFSET"]
+
+HEADING_OFFSET = {1: 0.0, 2: float(np.pi)}
+
+
+class PlazaData(NamedTuple):
+    """One CMU Plaza set (NumPy; times in s on the vehicle clock).
+
+    which: 1 or 2.
+    dr_t: (N,); dr: (N, 2) [d m, dθ rad] odometry increments.
+    td_t: (R,) range times (sorted); td_sender: (R,) int; td_node: (R,) int
+      node id; td_range: (R,) [m].
+    gt_t: (N+1,); gt: (N+1, 3) [x, y, heading] ground truth.
+    drp_t: (N+1,); drp: (N+1, 3) the file's dead-reckoned path.
+    node_id: (4,) int; node_xy: (4, 2) surveyed node positions [m].
+    heading_offset: add to GT heading to get the direction of travel (π for
+      Plaza 2, 0 for Plaza 1).
+    report: counts (see :func:`load_plaza`).
+    """
+
+    which: int
+    dr_t: np.ndarray
+    dr: np.ndarray
+    td_t: np.ndarray
+    td_sender: np.ndarray
+    td_node: np.ndarray
+    td_range: np.ndarray
+    gt_t: np.ndarray
+    gt: np.ndarray
+    drp_t: np.ndarray
+    drp: np.ndarray
+    node_id: np.ndarray
+    node_xy: np.ndarray
+    heading_offset: float
+    report: dict
+
+    def start_pose(self) -> np.ndarray:
+        """(3,) start pose for dead reckoning: GT₀ with heading + ``heading_offset``."""
+        x, y, th = self.gt[0]
+        th = th + self.heading_offset
+        th = float(np.arctan2(np.sin(th), np.cos(th)))
+        return np.array([x, y, th])
+
+    def node_positions(self) -> dict:
+        """``{node id: (x, y)}``."""
+        return {int(i): (float(x), float(y)) for i, (x, y) in zip(self.node_id, self.node_xy)}
+
+
+def load_plaza(path, which: int) -> PlazaData:
+    """Load CMU Plaza 1 or 2 from the ``PlazaN_*.txt`` files.
+
+    Args:
+      path: the ``gtsam`` folder holding ``PlazaN_*.txt`` or a parent that
+        contains ``gtsam/``.
+      which: 1 or 2.
+
+    Returns:
+      :class:`PlazaData`; ``report`` holds ``dir``, ``rows`` (per file),
+      ``nodes`` (ids ranged to), ``td_out_of_order`` (count of backward time
+      steps in TD) with ``td_out_of_order_lines`` (``"file:line"``), ``t_start``,
+      ``t_end``.
+
+    Raises:
+      InputError: ``which`` is not 1 or 2.
+      MissingDataError: a file is missing.
+      DataFormatError: a malformed file (``file:line``), time going backwards
+        in DR/GT/DRp, non-integer ids, or a range to a node absent from TL.
+    """
+    if isinstance(which, bool) or which not in (1, 2):
+        raise InputError(f"which: expected 1 or 2 (Plaza 1 or Plaza 2), got {which!r}")
+    which = int(which)
+    names = {k: f"Plaza{which}_{k}.txt" for k in ("DR", "TD", "GT", "DRp", "TL")}
+    d = resolve_dataset_dir(path, "gtsam", list(names.values()), f"CMU Plaza {which}")
+    dr = read_table(d / names["DR"], 3, time_cols=0)
+    td = read_table(d / names["TD"], 4)
+    gt = read_table(d / names["GT"], 4, time_cols=0)
+    drp = read_table(d / names["DRp"], 4, time_cols=0)
+    tl = read_table(d / names["TL"], 3)
+
+    node_id = int_column(tl, 0, "node id", lo=0)
+    sender = int_column(td, 1, "sender id", lo=0)
+    node = int_column(td, 2, "node id", lo=0)
+    known = np.isin(node, node_id)
+    if not known.all():
+        i = int(np.argmax(~known))
+        raise td.error(i, f"range to node {int(node[i])}, which is not in {names['TL']} "
+                          f"(nodes {sorted(node_id.tolist())})")
+    back = np.nonzero(np.diff(td.data[:, 0]) < 0)[0] + 1
+    order = np.argsort(td.data[:, 0], kind="stable")
+    tdd = td.data[order]
+    report = {
+        "dataset": "plaza",
+        "which": which,
+        "dir": str(d),
+        "rows": {k: int(t.data.shape[0]) for k, t in
+                 (("DR", dr), ("TD", td), ("GT", gt), ("DRp", drp), ("TL", tl))},
+        "nodes": sorted(np.unique(node).tolist()),
+        "td_out_of_order": int(back.size),
+        "td_out_of_order_lines": [td.where(int(i)) for i in back],
+        "t_start": float(min(dr.data[0, 0], tdd[0, 0], gt.data[0, 0])),
+        "t_end": float(max(dr.data[-1, 0], tdd[-1, 0], gt.data[-1, 0])),
+    }
+    return PlazaData(
+        which=which,
+        dr_t=dr.data[:, 0].copy(),
+        dr=np.ascontiguousarray(dr.data[:, 1:3]),
+        td_t=tdd[:, 0].copy(),
+        td_sender=sender[order],
+        td_node=node[order],
+        td_range=tdd[:, 3].copy(),
+        gt_t=gt.data[:, 0].copy(),
+        gt=np.ascontiguousarray(gt.data[:, 1:4]),
+        drp_t=drp.data[:, 0].copy(),
+        drp=np.ascontiguousarray(drp.data[:, 1:4]),
+        node_id=node_id,
+        node_xy=np.ascontiguousarray(tl.data[:, 1:3]),
+        heading_offset=HEADING_OFFSET[which],
+        report=report,
+    )

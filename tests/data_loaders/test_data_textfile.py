@@ -1,0 +1,126 @@
+"""jaxslam.data.textfile: the numeric table reader and its file:line errors."""
+
+import gzip
+import pickle
+
+import numpy as np
+import pytest
+
+from jaxslam.data.textfile import (DataFormatError, MissingDataError, int_column, read_table,
+                                   resolve_dataset_dir)
+from jaxslam.errors import InputError
+
+
+def _write(p, text, gz=False):
+    data = text.encode()
+    p.write_bytes(gzip.compress(data) if gz else data)
+    return p
+
+
+def test_whitespace_tabs_crlf_trailing_tab_and_comments(tmp_path):
+    p = _write(tmp_path / "a.txt", "# header\n# more\n 1.0\t 2.0 \t3e0\t\r\n\n4 5 6\r\n# mid comment\n7\t8\t9\n")
+    t = read_table(p, 3, time_cols=0)
+    np.testing.assert_array_equal(t.data, [[1, 2, 3], [4, 5, 6], [7, 8, 9]])
+    np.testing.assert_array_equal(t.lines, [3, 5, 7])
+    assert t.path == str(p)
+    assert t.where(1) == f"{p}:5"
+
+
+def test_csv_header_checked_and_gzip(tmp_path):
+    p = _write(tmp_path / "s.csv.gz", "t,a,b\n0.5,1,2\n0.5,3,4\n", gz=True)
+    t = read_table(p, 3, delimiter=",", header_rows=1, header=("t", "a", "b"), time_cols=0)
+    np.testing.assert_array_equal(t.data, [[0.5, 1, 2], [0.5, 3, 4]])  # equal times allowed
+    np.testing.assert_array_equal(t.lines, [2, 3])
+    with pytest.raises(DataFormatError, match=r"s\.csv\.gz:1: expected header 't,b,a'"):
+        read_table(p, 3, delimiter=",", header_rows=1, header=("t", "b", "a"))
+
+
+def test_trailing_comma_is_not_a_column(tmp_path):
+    p = _write(tmp_path / "c.csv", "1,2,\n3,4,\n")
+    np.testing.assert_array_equal(read_table(p, 2, delimiter=",").data, [[1, 2], [3, 4]])
+
+
+@pytest.mark.parametrize("text, line, pattern", [
+    ("1 2 3\n4 5\n7 8 9\n", 2, "expected 3 columns, got 2$"),
+    ("1 2 3\n4 5 6 7\n", 2, "expected 3 columns, got 4"),
+    ("1 2 3\n4 x5 6\n", 2, "non-numeric field 'x5' in column 2"),
+    ("1 2 3\n4 5 6\n7 8", 3, r"expected 3 columns, got 2 \(truncated line"),
+    ("# h\n1 2 3\n4 nan 6\n", 3, "non-finite value nan in column 2"),
+    ("1 2 3\n4 5 inf\n", 2, "non-finite value inf in column 3"),
+    ("1 2 3\n2 5 6\n1.5 8 9\n", 3, r"time goes backwards in column 1: 1\.5 after 2\.0 \(line 2\)"),
+])
+def test_errors_name_file_and_line(tmp_path, text, line, pattern):
+    p = _write(tmp_path / "bad.dat", text)
+    with pytest.raises(DataFormatError, match=pattern) as ei:
+        read_table(p, 3, time_cols=0)
+    e = ei.value
+    assert e.line == line and e.path == str(p)
+    assert str(e).startswith(f"{p}:{line}: ")
+    assert isinstance(e, InputError) and isinstance(e, ValueError)
+
+
+def test_non_finite_allowed_where_asked(tmp_path):
+    p = _write(tmp_path / "n.dat", "1 nan\n2 3\n")
+    assert np.isnan(read_table(p, 2, finite=False).data[0, 1])
+    assert np.isnan(read_table(p, 2, finite=[0]).data[0, 1])
+    with pytest.raises(DataFormatError, match=":1: non-finite"):
+        read_table(p, 2, finite=[1])
+
+
+def test_second_time_column_checked(tmp_path):
+    p = _write(tmp_path / "t.csv", "0,1,0\n1,2,0.5\n2,3,0.4\n")
+    read_table(p, 3, delimiter=",", time_cols=0)
+    with pytest.raises(DataFormatError, match=r"t\.csv:3: time goes backwards in column 3"):
+        read_table(p, 3, delimiter=",", time_cols=(0, 2))
+
+
+def test_empty_missing_and_corrupt_gzip(tmp_path):
+    p = _write(tmp_path / "e.dat", "# only a header\n")
+    with pytest.raises(DataFormatError, match="no data rows"):
+        read_table(p, 2)
+    assert read_table(p, 2, allow_empty=True).data.shape == (0, 2)
+    with pytest.raises(MissingDataError, match="nope.dat: file not found") as ei:
+        read_table(tmp_path / "nope.dat", 2)
+    assert isinstance(ei.value, FileNotFoundError) and isinstance(ei.value, DataFormatError)
+    assert ei.value.line is None
+    g = tmp_path / "cut.csv.gz"
+    g.write_bytes(gzip.compress(b"1,2\n" * 1000)[:40])
+    with pytest.raises(DataFormatError, match="corrupt or truncated gzip"):
+        read_table(g, 2, delimiter=",")
+
+
+def test_int_column_and_pickling(tmp_path):
+    p = _write(tmp_path / "i.dat", "2.0000000000000000e+000 1\n3 1.5\n")
+    t = read_table(p, 2)
+    np.testing.assert_array_equal(int_column(t, 0, "id"), [2, 3])
+    with pytest.raises(DataFormatError, match=r"i\.dat:2: ok \(column 2\): expected an integer, got 1\.5"):
+        int_column(t, 1, "ok")
+    with pytest.raises(DataFormatError, match=r"i\.dat:2: id \(column 1\): expected an integer in \[0, 2\]"):
+        int_column(t, 0, "id", lo=0, hi=2)
+    e = pickle.loads(pickle.dumps(DataFormatError("f.dat", 7, "boom")))
+    assert str(e) == "f.dat:7: boom" and e.line == 7
+
+
+def test_resolve_dataset_dir(tmp_path):
+    (tmp_path / "ds").mkdir()
+    for f in ("a.dat", "b.dat"):
+        (tmp_path / "ds" / f).write_text("1\n")
+    assert resolve_dataset_dir(tmp_path, "ds", ["a.dat", "b.dat"], "X") == tmp_path / "ds"
+    assert resolve_dataset_dir(tmp_path / "ds", "ds", ["a.dat", "b.dat"], "X") == tmp_path / "ds"
+    with pytest.raises(MissingDataError, match=r"c\.dat: X: missing file\(s\) c\.dat"):
+        resolve_dataset_dir(tmp_path, "ds", ["a.dat", "c.dat"], "X")
+    with pytest.raises(MissingDataError, match="no dataset files found; looked in"):
+        resolve_dataset_dir(tmp_path / "nowhere", "ds", ["a.dat"], "X")
+
+
+def test_large_file_is_fast(tmp_path):
+    import time
+    rng = np.random.default_rng(0)
+    a = np.column_stack([np.arange(70000) * 0.01, rng.normal(size=(70000, 3))])
+    p = tmp_path / "big.dat"
+    np.savetxt(p, a, fmt="%.6f", delimiter="\t", header="t a b c")
+    t0 = time.perf_counter()
+    t = read_table(p, 4, time_cols=0)
+    dt = time.perf_counter() - t0
+    assert t.data.shape == (70000, 4)
+    assert dt < 3.0, dt  # ~0.1 s on one core; generous for a loaded CI machine
