@@ -5,7 +5,7 @@
                          [--quiet] [--params FILE] [scenario options]
     jaxslam bench NAME [--dir DIR] [--json PATH] [benchmark options]
     jaxslam tune SCENARIO [--target noise|lqr] [--loss LOSS] [--steps K] ...  (jaxslam.tuning.cli)
-    jaxslam dataset ...      (reserved; not available yet)
+    jaxslam dataset NAME --data DIR ...   (real logs: mrclam, victoria-park, util-uwb, plaza)
 
 Exit codes: 0 success; 2 usage or input error (one line on stderr, no
 traceback); 1 internal failure (one line plus a hint; ``--debug`` or the
@@ -57,7 +57,6 @@ __all__ = ["main", "find_benchmarks_dir", "list_benchmarks"]
 
 PROG = "jaxslam"
 _DEBUG_ENV = "JAXSLAM_DEBUG"
-_RESERVED_COMMANDS = ("dataset",)
 
 _TOP_EPILOG = """\
 commands:
@@ -66,7 +65,8 @@ commands:
   bench     run a benchmark from the benchmarks/ folder
   tune      tune noise covariances (Q, R) or LQR weights by gradient descent,
             with a held-out before/after comparison
-  dataset   run a system on a real dataset (not available yet)
+  dataset   run EKF-SLAM / FastSLAM on a real log (MRCLAM, Victoria Park, UTIL UWB,
+            CMU Plaza) and report ATE/RPE/map error against ground truth
 
 'jaxslam COMMAND --help' shows the options of a command;
 'jaxslam run SCENARIO --help' also shows that scenario's own options.
@@ -165,9 +165,10 @@ def _dispatch(argv: list[str]) -> int:
         from jaxslam.tuning.cli import main as tune_main
 
         return tune_main(rest)
-    if command in _RESERVED_COMMANDS:
-        print(f"{PROG} {command}: not available yet", file=sys.stderr)
-        return 2
+    if command == "dataset":
+        from jaxslam.data.cli import main as dataset_main
+
+        return dataset_main(rest)
     raise UsageError(f"{PROG}: unknown command {command!r} (choose from list, run, bench, tune, "
                      f"dataset; see '{PROG} --help')")
 

@@ -278,7 +278,9 @@ def test_params_reach_scenario(tmp_path):
     (["frobnicate"], "frobnicate"),
     (["--nope", "list"], "--nope"),
     (["tune", "no-such-scenario"], "no-such-scenario"),
-    (["dataset", "x"], "not available yet"),
+    (["dataset", "x", "--data", "."], "invalid choice: 'x'"),
+    (["dataset", "mrclam"], "--data"),
+    (["dataset", "mrclam", "--data", "/no/such/folder"], "is not a folder"),
 ])
 def test_usage_errors_exit_2_one_line(capsys, argv, needle):
     assert cli.main(argv) == 2

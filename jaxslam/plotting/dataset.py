@@ -1,0 +1,75 @@
+"""Plots of a real-data run (``jaxslam dataset``): path and map, and errors over time.
+
+* ``<name>_path``: the reference path (ground truth, motion capture or GPS),
+  the estimate in the reference frame after the ATE alignment, dead reckoning
+  (aligned the same way, when given), the estimated map (with 3σ ellipses when
+  covariances are given) and the true map (when known);
+* ``<name>_errors``: the position error of the estimate (and of dead reckoning)
+  against the reference over time, with the ATE as a line.
+
+NumPy inputs; matplotlib is imported lazily (Agg).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .flight import plt, save
+from .uwb import ellipse_points
+
+__all__ = ["plot_run"]
+
+
+def plot_run(run, directory, name=None):
+    """Write the figures of a :class:`jaxslam.data.runners.DatasetRun`; returns their paths."""
+    p = plt()
+    name = name or run.dataset.replace("-", "_")
+    ev = run.evaluation
+    paths = []
+    fig, ax = p.subplots(figsize=(8, 7))
+    ref, est = np.asarray(ev["ref_xy"]), np.asarray(ev["est_xy"])
+    ax.plot(ref[:, 0], ref[:, 1], "k-" if ref.shape[0] > 2000 else "k.-", lw=0.8, ms=2,
+            label=ev["ref_label"])
+    ax.plot(est[:, 0], est[:, 1], "C1-", lw=1.0, label=f"{run.config['filter']} estimate "
+            f"(ATE {run.metrics['ate_m']:.3f} m)")
+    if ev.get("dr_xy") is not None:
+        dr = np.asarray(ev["dr_xy"])
+        ax.plot(dr[:, 0], dr[:, 1], "C7:", lw=0.8,
+                label=f"dead reckoning (ATE {run.metrics['dead_reckoning_ate_m']:.2f} m)")
+    lm = ev.get("lm_xy")
+    if lm is not None and len(lm):
+        lm = np.asarray(lm)
+        ax.plot(lm[:, 0], lm[:, 1], "C3+", ms=7, mew=1.2, label=f"estimated map ({lm.shape[0]})")
+        covs = ev.get("lm_cov")
+        if covs is not None and len(lm) <= 400:
+            for m, c in zip(lm, np.asarray(covs)):
+                e = ellipse_points(m, c)
+                ax.plot(e[:, 0], e[:, 1], "C3-", lw=0.5, alpha=0.6)
+    lt = ev.get("lm_true_xy")
+    if lt is not None and len(lt):
+        lt = np.asarray(lt)
+        ax.plot(lt[:, 0], lt[:, 1], "ko", mfc="none", ms=8, label=ev.get("lm_true_label", "true landmarks"))
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_title(f"{run.dataset}: {ev['frame_note']}")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="best", fontsize=8)
+    paths.append(save(fig, directory, f"{name}_path"))
+
+    fig, ax = p.subplots(figsize=(9, 3.5))
+    t = np.asarray(ev["t"])
+    err = np.linalg.norm(est - ref, axis=1)
+    ax.plot(t, err, "C1-", lw=0.8, label="estimate")
+    ax.axhline(run.metrics["ate_m"], color="C1", ls="--", lw=0.8, label=f"ATE {run.metrics['ate_m']:.3f} m")
+    if ev.get("dr_xy") is not None:
+        ax.plot(t, np.linalg.norm(np.asarray(ev["dr_xy"]) - ref, axis=1), "C7:", lw=0.8,
+                label="dead reckoning")
+        ax.set_yscale("log")
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("position error [m]")
+    ax.set_title(f"{run.dataset}: error against {ev['ref_label']} (after alignment)")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(loc="best", fontsize=8)
+    paths.append(save(fig, directory, f"{name}_errors"))
+    return paths

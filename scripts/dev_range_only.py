@@ -1,0 +1,188 @@
+"""Dev/evaluation script: range-only UTIL TWR (known / unknown anchors) and CMU Plaza 1/2.
+
+Usage: .venv/bin/python scripts/dev_range_only.py [util|plaza|all] [--f32]
+Prints the figures reported for issue 9 (RMSE, ATE, anchor/beacon errors, bias, counts).
+Loads the files with NumPy directly (the loaders in jaxslam.data are optional here).
+"""
+
+import sys
+import time
+
+from jaxslam import runtime
+
+runtime.configure_process()
+
+import jax  # noqa: E402
+
+jax.config.update("jax_enable_x64", True)
+
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+from jaxslam import errors, metrics  # noqa: E402
+from jaxslam.systems import range_only as ro  # noqa: E402
+
+DATA = "/work/shared/data/"
+T_UV = np.array([-0.01245, 0.00127, 0.0908])
+
+
+def quat_rot(q):
+    x, y, z, w = q.T
+    R = np.empty((q.shape[0], 3, 3))
+    R[:, 0, 0] = 1 - 2 * (y * y + z * z)
+    R[:, 0, 1] = 2 * (x * y - z * w)
+    R[:, 0, 2] = 2 * (x * z + y * w)
+    R[:, 1, 0] = 2 * (x * y + z * w)
+    R[:, 1, 1] = 1 - 2 * (x * x + z * z)
+    R[:, 1, 2] = 2 * (y * z - x * w)
+    R[:, 2, 0] = 2 * (x * z - y * w)
+    R[:, 2, 1] = 2 * (y * z + x * w)
+    R[:, 2, 2] = 1 - 2 * (x * x + y * y)
+    return R
+
+
+def load_util():
+    d = DATA + "util_uwb/"
+    u = np.loadtxt(d + "twr_obs_log1/uwb_twr.csv", delimiter=",", skiprows=1)
+    g = np.loadtxt(d + "twr_obs_log1/groundtruth.csv", delimiter=",", skiprows=1)
+    a = np.loadtxt(d + "anchors_const3.csv", delimiter=",", skiprows=1)
+    q = g[:, 4:8] / np.linalg.norm(g[:, 4:8], axis=1, keepdims=True)
+    tag = g[:, 1:4] + np.einsum("nij,j->ni", quat_rot(q), T_UV)
+    return u, g[:, 0], tag, a[:, 0].astype(int), a[:, 1:4]
+
+
+def interp(tq, t, X):
+    return np.stack([np.interp(tq, t, X[:, i]) for i in range(X.shape[1])], axis=1)
+
+
+def block(res):
+    return jax.tree_util.tree_map(lambda a: a.block_until_ready() if hasattr(a, "block_until_ready") else a, res)
+
+
+def timed(f):
+    t0 = time.perf_counter()
+    r = block(f())
+    t1 = time.perf_counter()
+    r = block(f())
+    t2 = time.perf_counter()
+    return r, t1 - t0, t2 - t1
+
+
+def util(dtype, gate=9.0, params=ro.UTIL_PARAMS, t_w=30.0):
+    u, gt_t, tag, aid, anchors = load_util()
+    log = ro.util_events(u[:, 0], u[:, 1], u[:, 2])
+    res, tc, tr = timed(lambda: ro.run_util(log, aid, anchors=anchors, params=params, gate=gate,
+                                            dtype=dtype))
+    tt = np.asarray(res.t, np.float64)
+    true = interp(log.t, gt_t, tag)
+    est = np.asarray(res.pos, np.float64)
+    err = np.linalg.norm(est - true, axis=1)
+    air = (log.t >= 9.6) & (log.t <= 59.0)
+    print(f"UTIL known anchors [{np.dtype(dtype).name}]: RMSE airborne {np.sqrt(np.mean(err[air]**2)):.3f} m, "
+          f"whole {np.sqrt(np.mean(err**2)):.3f} m, bias {float(res.bias_final):+.3f} ± "
+          f"{float(res.bias_sigma):.3f} m, used {int(res.n_used)} gated {int(res.n_gated)} "
+          f"status {errors.decode(res.status)}; compile+run {tc:.2f} s, run {tr:.3f} s")
+    late = air & (log.t > t_w)
+    print(f"   known anchors over t > {t_w} s airborne (the SLAM interval): {np.sqrt(np.mean(err[late]**2)):.3f} m")
+    nis = np.asarray(res.nis)[np.asarray(res.dof) > 0]
+    print(f"   mean NIS {nis.mean():.2f} (dof 1); err p95 {np.percentile(err[air], 95):.3f}")
+    # unknown anchors: start-up on the mocap window [0, t_w], then SLAM without mocap
+    tag_at = interp(u[:, 0], gt_t, tag)
+    i_w = np.searchsorted(gt_t, t_w)
+    v0 = (tag[i_w + 20] - tag[i_w - 20]) / (gt_t[i_w + 20] - gt_t[i_w - 20])
+    su = ro.util_startup(jnp.asarray(u[:, 0], dtype), u[:, 1].astype(int), jnp.asarray(u[:, 2], dtype),
+                         jnp.asarray(tag_at, dtype), aid, t_w, v0=jnp.asarray(v0, dtype))
+    a_err0 = np.linalg.norm(np.asarray(su.anchors) - anchors, axis=1)
+    print(f"UTIL start-up window [0, {t_w}] s: anchors err mean {a_err0.mean():.3f} max {a_err0.max():.3f} m, "
+          f"bias {float(su.bias):+.3f} m, used {int(su.n_used)} rejected {int(su.n_rejected)} rms {float(su.rms):.3f}")
+    log2 = ro.util_events(u[:, 0], u[:, 1], u[:, 2], t_start=t_w + 1e-9)
+    res2, tc, tr = timed(lambda: ro.run_util(log2, aid, startup=su, params=params, gate=gate, dtype=dtype))
+    true2 = interp(log2.t, gt_t, tag)
+    est2 = np.asarray(res2.pos, np.float64)
+    err2 = np.linalg.norm(est2 - true2, axis=1)
+    air2 = (log2.t >= 9.6) & (log2.t <= 59.0)
+    A = np.asarray(res2.landmarks, np.float64)[: len(aid)]
+    raw = np.linalg.norm(A - anchors, axis=1)
+    R, t, _ = metrics.umeyama(jnp.asarray(A), jnp.asarray(anchors))
+    Aal = A @ np.asarray(R).T + np.asarray(t)
+    al = np.linalg.norm(Aal - anchors, axis=1)
+    ate = float(metrics.ate(jnp.asarray(est2), jnp.asarray(true2)))
+    print(f"UTIL unknown anchors (t > {t_w} s): pos RMSE raw airborne {np.sqrt(np.mean(err2[air2]**2)):.3f} "
+          f"all {np.sqrt(np.mean(err2**2)):.3f} m, ATE(rigid) {ate:.3f} m; anchor err raw mean {raw.mean():.3f} "
+          f"max {raw.max():.3f}, aligned mean {al.mean():.3f} max {al.max():.3f} m; bias "
+          f"{float(res2.bias_final):+.3f} ± {float(res2.bias_sigma):.3f}; used {int(res2.n_used)} gated "
+          f"{int(res2.n_gated)} status {errors.decode(res2.status)}; run {tr:.3f} s")
+    return res, res2
+
+
+def load_plaza(which):
+    d = DATA + "gtsam/"
+    DR = np.loadtxt(d + f"Plaza{which}_DR.txt")
+    TD = np.loadtxt(d + f"Plaza{which}_TD.txt")
+    GT = np.loadtxt(d + f"Plaza{which}_GT.txt")
+    TL = np.loadtxt(d + f"Plaza{which}_TL.txt")
+    return DR, TD, GT, TL
+
+
+def plaza(which, dtype, params=ro.PLAZA_PARAMS, **kw):
+    DR, TD, GT, TL = load_plaza(which)
+    log = ro.plaza_events(DR[:, 0], DR[:, 1:3], TD[:, 0], TD[:, 2], TD[:, 3])
+    pose0 = GT[0, 1:4].copy()
+    if which == 2:
+        pose0[2] += np.pi
+    ids = np.array([0, 1, 5, 6])
+    res, tc, tr = timed(lambda: ro.run_plaza(log, pose0, ids, params=params, dtype=dtype, **kw))
+    est = np.asarray(res.pos, np.float64)
+    # ground truth at the event times (inside GT's span)
+    inside = (log.t >= GT[0, 0]) & (log.t <= GT[-1, 0])
+    true = interp(log.t[inside], GT[:, 0], GT[:, 1:3])
+    est = est[inside]
+    ate = float(metrics.ate(jnp.asarray(est), jnp.asarray(true)))
+    raw = float(np.sqrt(np.mean(np.sum((est - true) ** 2, axis=1))))
+    R, t, _ = metrics.umeyama(jnp.asarray(est), jnp.asarray(true))
+    # dead reckoning (same composition, from the same start)
+    x, y, th = pose0
+    dr = [(x, y)]
+    for dd, dth in DR[:, 1:3]:
+        x += dd * np.cos(th)
+        y += dd * np.sin(th)
+        th += dth
+        dr.append((x, y))
+    dr = np.asarray(dr)
+    drt = np.concatenate([[GT[0, 0]], DR[:, 0]])
+    gt_dr = interp(drt, GT[:, 0], GT[:, 1:3])
+    dr_rms = float(np.sqrt(np.mean(np.sum((dr - gt_dr) ** 2, axis=1))))
+    dr_ate = float(metrics.ate(jnp.asarray(dr), jnp.asarray(gt_dr)))
+    B = np.asarray(res.landmarks, np.float64)
+    bid = np.asarray(res.landmark_ids)
+    act = np.asarray(res.active)
+    tl = {int(r[0]): r[1:3] for r in TL}
+    rows = [(int(i), B[k]) for k, i in enumerate(bid) if act[k]]
+    berr_raw = {i: float(np.linalg.norm(b - tl[i])) for i, b in rows}
+    # beacon errors after the trajectory alignment, and after aligning the beacons themselves
+    berr_traj = {i: float(np.linalg.norm(np.asarray(R) @ b + np.asarray(t) - tl[i])) for i, b in rows}
+    if len(rows) >= 2:
+        Bs = np.stack([b for _, b in rows])
+        Ts = np.stack([tl[i] for i, _ in rows])
+        R2, t2, _ = metrics.umeyama(jnp.asarray(Bs), jnp.asarray(Ts))
+        berr_self = {i: float(np.linalg.norm(np.asarray(R2) @ b + np.asarray(t2) - tl[i])) for i, b in rows}
+    else:
+        berr_self = {}
+    fmt = lambda d: ", ".join(f"{k}:{v:.2f}" for k, v in d.items())  # noqa: E731
+    print(f"Plaza {which} [{np.dtype(dtype).name}]: ATE(rigid) {ate:.2f} m, raw RMS {raw:.2f} m; DR raw RMS "
+          f"{dr_rms:.2f} m, DR ATE {dr_ate:.2f} m; bias {float(res.bias_final):+.2f} ± {float(res.bias_sigma):.2f} m; "
+          f"used {int(res.n_used)} gated {int(res.n_gated)} unmapped-buffered {int(res.n_unmapped)} "
+          f"registered {int(res.n_registered)}; status {errors.decode(res.status)}; compile+run {tc:.1f} s, run {tr:.2f} s")
+    print(f"   beacon err raw {{{fmt(berr_raw)}}}; after traj. alignment {{{fmt(berr_traj)}}}; "
+          f"after beacon alignment {{{fmt(berr_self)}}}")
+    return res
+
+
+if __name__ == "__main__":
+    what = sys.argv[1] if len(sys.argv) > 1 else "all"
+    dtype = jnp.float32 if "--f32" in sys.argv else jnp.float64
+    if what in ("util", "all"):
+        util(dtype)
+    if what in ("plaza", "all"):
+        plaza(1, dtype)
+        plaza(2, dtype)
