@@ -1,7 +1,9 @@
 """Dev/evaluation script: range-only UTIL TWR (known / unknown anchors) and CMU Plaza 1/2.
 
 Usage: .venv/bin/python scripts/dev_range_only.py [util|plaza|all] [--f32]
-Prints the figures reported for issue 9 (RMSE, ATE, anchor/beacon errors, bias, counts).
+Prints the figures reported for issue 9 (RMSE, ATE, anchor/beacon errors, bias, counts):
+UTIL range-only and range + ToF height (known / unknown anchors), Plaza SLAM and
+localisation with the surveyed (TL) beacons.
 Loads the files with NumPy directly (the loaders in jaxslam.data are optional here).
 """
 
@@ -51,6 +53,19 @@ def load_util():
     return u, g[:, 0], tag, a[:, 0].astype(int), a[:, 1:4]
 
 
+def load_tof():
+    f = np.loadtxt(DATA + "util_uwb/twr_obs_log1/tof.csv", delimiter=",", skiprows=1)
+    return f[:, 0], f[:, 1]
+
+
+def err_report(log_t, est, true, mask_air):
+    """Airborne RMSE (3D, vertical) over the log's range events."""
+    e = est - true
+    a = mask_air
+    return (float(np.sqrt(np.mean(np.sum(e[a] ** 2, axis=1)))), float(np.sqrt(np.mean(e[a, 2] ** 2))),
+            float(np.sqrt(np.mean(np.sum(e[a, :2] ** 2, axis=1)))))
+
+
 def interp(tq, t, X):
     return np.stack([np.interp(tq, t, X[:, i]) for i in range(X.shape[1])], axis=1)
 
@@ -86,6 +101,23 @@ def util(dtype, gate=9.0, params=ro.UTIL_PARAMS, t_w=30.0):
     print(f"   known anchors over t > {t_w} s airborne (the SLAM interval): {np.sqrt(np.mean(err[late]**2)):.3f} m")
     nis = np.asarray(res.nis)[np.asarray(res.dof) > 0]
     print(f"   mean NIS {nis.mean():.2f} (dof 1); err p95 {np.percentile(err[air], 95):.3f}")
+    tof_t, tof = load_tof()
+    rmse, rz, rxy = err_report(log.t, est, true, air)
+    print(f"   range-only airborne: RMSE {rmse:.3f} m, vertical {rz:.3f} m, horizontal {rxy:.3f} m")
+    logh = ro.util_events(u[:, 0], u[:, 1], u[:, 2], tof_t=tof_t, tof=tof)
+    resh, tc, tr = timed(lambda: ro.run_util(logh, aid, anchors=anchors, params=params, gate=gate,
+                                             dtype=dtype))
+    isr = (np.asarray(logh.ids)[:, 0] != ro.HEIGHT_ID)  # evaluate at the range events
+    th = logh.t[isr]
+    esth = np.asarray(resh.pos, np.float64)[isr]
+    trueh = interp(th, gt_t, tag)
+    airh = (th >= 9.6) & (th <= 59.0)
+    rmse, rz, rxy = err_report(th, esth, trueh, airh)
+    print(f"UTIL known anchors + ToF height: airborne RMSE {rmse:.3f} m, vertical {rz:.3f} m, horizontal "
+          f"{rxy:.3f} m; K {logh.stats['K']}; ranges used {int(resh.n_used)} gated {int(resh.n_gated)}; "
+          f"height used {int(resh.n_height_used)} gated {int(resh.n_height_gated)}; bias "
+          f"{float(resh.bias_final):+.3f} ± {float(resh.bias_sigma):.3f} m; status {errors.decode(resh.status)}; "
+          f"compile+run {tc:.2f} s, run {tr:.3f} s")
     # unknown anchors: start-up on the mocap window [0, t_w], then SLAM without mocap
     tag_at = interp(u[:, 0], gt_t, tag)
     i_w = np.searchsorted(gt_t, t_w)
@@ -112,6 +144,23 @@ def util(dtype, gate=9.0, params=ro.UTIL_PARAMS, t_w=30.0):
           f"max {raw.max():.3f}, aligned mean {al.mean():.3f} max {al.max():.3f} m; bias "
           f"{float(res2.bias_final):+.3f} ± {float(res2.bias_sigma):.3f}; used {int(res2.n_used)} gated "
           f"{int(res2.n_gated)} status {errors.decode(res2.status)}; run {tr:.3f} s")
+    rmse, rz, rxy = err_report(log2.t, est2, true2, air2)
+    print(f"   range-only (unknown anchors) airborne: RMSE {rmse:.3f}, vertical {rz:.3f}, horizontal {rxy:.3f} m")
+    logh2 = ro.util_events(u[:, 0], u[:, 1], u[:, 2], t_start=t_w + 1e-9, tof_t=tof_t, tof=tof)
+    resh2, tc, tr = timed(lambda: ro.run_util(logh2, aid, startup=su, params=params, gate=gate, dtype=dtype))
+    isr = (np.asarray(logh2.ids)[:, 0] != ro.HEIGHT_ID)
+    th = logh2.t[isr]
+    esth = np.asarray(resh2.pos, np.float64)[isr]
+    trueh = interp(th, gt_t, tag)
+    airh = (th >= 9.6) & (th <= 59.0)
+    rmse, rz, rxy = err_report(th, esth, trueh, airh)
+    A = np.asarray(resh2.landmarks, np.float64)[: len(aid)]
+    raw = np.linalg.norm(A - anchors, axis=1)
+    print(f"UTIL unknown anchors + ToF height (t > {t_w} s): airborne RMSE {rmse:.3f}, vertical {rz:.3f}, "
+          f"horizontal {rxy:.3f} m; anchor err raw mean {raw.mean():.3f} max {raw.max():.3f} m; bias "
+          f"{float(resh2.bias_final):+.3f} ± {float(resh2.bias_sigma):.3f}; ranges used {int(resh2.n_used)} "
+          f"gated {int(resh2.n_gated)}; height used {int(resh2.n_height_used)} gated "
+          f"{int(resh2.n_height_gated)}; status {errors.decode(resh2.status)}; run {tr:.3f} s")
     return res, res2
 
 
@@ -124,13 +173,16 @@ def load_plaza(which):
     return DR, TD, GT, TL
 
 
-def plaza(which, dtype, params=ro.PLAZA_PARAMS, **kw):
+def plaza(which, dtype, params=ro.PLAZA_PARAMS, known=False, **kw):
     DR, TD, GT, TL = load_plaza(which)
     log = ro.plaza_events(DR[:, 0], DR[:, 1:3], TD[:, 0], TD[:, 2], TD[:, 3])
     pose0 = GT[0, 1:4].copy()
     if which == 2:
         pose0[2] += np.pi
     ids = np.array([0, 1, 5, 6])
+    if known:
+        xy = np.stack([TL[TL[:, 0] == i, 1:3][0] for i in ids])
+        kw = dict(kw, beacons=xy)
     res, tc, tr = timed(lambda: ro.run_plaza(log, pose0, ids, params=params, dtype=dtype, **kw))
     est = np.asarray(res.pos, np.float64)
     # ground truth at the event times (inside GT's span)
@@ -169,6 +221,13 @@ def plaza(which, dtype, params=ro.PLAZA_PARAMS, **kw):
     else:
         berr_self = {}
     fmt = lambda d: ", ".join(f"{k}:{v:.2f}" for k, v in d.items())  # noqa: E731
+    # measured − true range (GT interpolated at the range time, surveyed TL beacons)
+    gxy = interp(TD[:, 0], GT[:, 0], GT[:, 1:3])
+    tlxy = np.stack([TL[TL[:, 0] == n, 1:3][0] for n in TD[:, 2]])
+    rerr = TD[:, 3] - np.linalg.norm(gxy - tlxy, axis=1)
+    mode = "localisation, surveyed beacons" if known else "SLAM"
+    print(f"Plaza {which} ({mode}): median(measured − true range) {np.median(rerr):+.2f} m; "
+          f"bias track: mean over last half {np.mean(np.asarray(res.bias)[len(log.t) // 2:]):+.2f} m")
     print(f"Plaza {which} [{np.dtype(dtype).name}]: ATE(rigid) {ate:.2f} m, raw RMS {raw:.2f} m; DR raw RMS "
           f"{dr_rms:.2f} m, DR ATE {dr_ate:.2f} m; bias {float(res.bias_final):+.2f} ± {float(res.bias_sigma):.2f} m; "
           f"used {int(res.n_used)} gated {int(res.n_gated)} unmapped-buffered {int(res.n_unmapped)} "
@@ -186,3 +245,5 @@ if __name__ == "__main__":
     if what in ("plaza", "all"):
         plaza(1, dtype)
         plaza(2, dtype)
+        plaza(1, dtype, known=True)
+        plaza(2, dtype, known=True)

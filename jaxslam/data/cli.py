@@ -26,9 +26,10 @@ datasets (see docs/datasets.md for downloads, formats and measured figures):
   victoria-park  ACFR Victoria Park: Ackermann car, laser tree detections, unknown
                  association (Mahalanobis gate), GPS as reference
   util-uwb       UTIL UWB TWR flight: constant-velocity range-only EKF with a range-bias
-                 state; --anchors known|unknown
+                 state; --anchors known|unknown, --tof adds the laser height
   plaza          CMU Plaza 1/2 (gtsam files): odometry + range-only SLAM with unknown
-                 beacons and a range-bias state; --robot selects Plaza 1 or 2
+                 beacons and a range-bias state; --robot selects Plaza 1 or 2;
+                 --anchors known localises against the surveyed beacons instead
 
 DIR is the dataset's folder or a parent holding it (e.g. the folder with mrclam6/,
 victoria_park/, util_uwb/ and gtsam/)."""
@@ -50,9 +51,11 @@ def _parser():
     p.add_argument("--ids", choices=("known", "hidden"), default="known",
                    help="MRCLAM: use the barcode ids, or hide them and associate by "
                         "Mahalanobis distance (default: known)")
-    p.add_argument("--anchors", choices=("known", "unknown"), default="known",
-                   help="util-uwb: surveyed anchors, or SLAM with a trilaterated start-up "
-                        "(default: known)")
+    p.add_argument("--anchors", choices=("known", "unknown"), default=None,
+                   help="util-uwb: surveyed anchors (default) or SLAM after a start-up window; "
+                        "plaza: unknown beacons, SLAM (default) or surveyed beacons (localisation)")
+    p.add_argument("--tof", action="store_true",
+                   help="util-uwb: also use the downward laser height (the run is then not range-only)")
     p.add_argument("--particles", type=_positive_int, default=None, metavar="N",
                    help="FastSLAM particle count (default: the dataset's setting)")
     p.add_argument("--seed", type=_seed, default=0, metavar="S", help="FastSLAM PRNG seed (default: 0)")
@@ -94,7 +97,7 @@ def main(argv) -> int:
 
     dtype = np.dtype(np.float32 if args.float32 else np.float64)
     run = runners.run_dataset(args.name, data, robot=args.robot, filter=args.filter, ids=args.ids,
-                              anchors=args.anchors, particles=args.particles, seed=args.seed,
+                              anchors=args.anchors, tof=args.tof, particles=args.particles, seed=args.seed,
                               dtype=dtype, verbose=not args.quiet)
     doc = runners.to_json(run)
     if not args.quiet:

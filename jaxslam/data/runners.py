@@ -208,9 +208,14 @@ def _config(name, filter, dtype, setting, **kw):
 # ---------------------------------------------------------------------------
 
 @_register("util-uwb")
-def run_util_uwb(data_dir, robot=1, filter="ekf", ids="known", anchors="known", particles=None,
-                 seed=0, dtype=np.float64, verbose=False, t_window=30.0):
-    """UTIL TWR flight: constant-velocity range-only EKF with a bias state (``systems.range_only``)."""
+def run_util_uwb(data_dir, robot=1, filter="ekf", ids="known", anchors=None, particles=None,
+                 seed=0, dtype=np.float64, verbose=False, tof=False, t_window=30.0):
+    """UTIL TWR flight: constant-velocity range-only EKF with a bias state (``systems.range_only``).
+
+    ``anchors``: "known" (default, surveyed) or "unknown" (SLAM after a start-up
+    window); ``tof``: also use the downward laser height (then not range-only).
+    """
+    anchors = anchors or "known"
     from ..systems import range_only as ro
     from .util_uwb import load_util, tag_positions
 
@@ -222,10 +227,14 @@ def run_util_uwb(data_dir, robot=1, filter="ekf", ids="known", anchors="known", 
     tag = tag_positions(d.gt_p, d.gt_q, d.tag_offset)
     load_s = time.perf_counter() - t0
     aid = np.asarray(d.anchor_id)
+    hk = dict(tof_t=d.tof_t, tof=d.tof) if tof else {}
+    if tof and np.size(d.tof_t) == 0:
+        raise InputError("util-uwb: --tof given but the flight has no tof.csv")
+    sensors = "ranges + ToF height" if tof else "ranges only"
     if anchors == "known":
-        log = ro.util_events(d.twr_t, d.twr_anchor, d.twr_range)
+        log = ro.util_events(d.twr_t, d.twr_anchor, d.twr_range, **hk)
         res, comp_s, run_s = timed_run(lambda: ro.run_util(log, aid, anchors=d.anchor_p, dtype=dtype))
-        setting = "known surveyed anchors, constant-velocity tag + common range bias"
+        setting = f"known surveyed anchors, constant-velocity tag + common range bias ({sensors})"
         notes = []
     else:
         t_all = np.asarray(d.twr_t)
@@ -235,15 +244,19 @@ def run_util_uwb(data_dir, robot=1, filter="ekf", ids="known", anchors="known", 
         su = ro.util_startup(jnp.asarray(t_all, dtype), np.asarray(d.twr_anchor).astype(int),
                              jnp.asarray(d.twr_range, dtype), jnp.asarray(tag_at, dtype), aid, t_window,
                              v0=jnp.asarray(v0, dtype))
-        log = ro.util_events(d.twr_t, d.twr_anchor, d.twr_range, t_start=t_window + 1e-9)
+        log = ro.util_events(d.twr_t, d.twr_anchor, d.twr_range, t_start=t_window + 1e-9, **hk)
         res, comp_s, run_s = timed_run(lambda: ro.run_util(log, aid, startup=su, dtype=dtype))
         setting = (f"anchors unknown (SLAM); start-up: anchors + bias fitted to the ranges of "
-                   f"[0, {t_window:g}] s with motion-capture positions, then no motion capture")
+                   f"[0, {t_window:g}] s with motion-capture positions, then no motion capture "
+                   f"({sensors})")
         notes = [f"motion capture is used in the start-up window [0, {t_window:g}] s only; metrics cover "
                  f"t > {t_window:g} s"]
     t = np.asarray(log.t)
     true = np.stack([np.interp(t, d.gt_t, tag[:, j]) for j in range(3)], 1)
     est = np.asarray(res.pos, np.float64)
+    # evaluate at range events (height-only events carry the same estimate, denser in z)
+    rng_ev = np.any(log.mask & (log.ids >= 0), axis=1)
+    t, true, est = t[rng_ev], true[rng_ev], est[rng_ev]
     err = np.linalg.norm(est - true, axis=1)
     air = (true[:, 2] > 0.3)
     R, tr, _ = metrics.umeyama(est[air], true[air])
@@ -266,16 +279,20 @@ def run_util_uwb(data_dir, robot=1, filter="ekf", ids="known", anchors="known", 
         m["map_err_m"] = me.rmse
         m["map_err_max_m"] = me.max
         m["map_err_raw_m"] = raw.rmse
-    counts = _counts_common(res.status, {"measurements": int(np.sum(log.mask)), "used": res.n_used,
+    n_h = int(np.sum(log.mask & (log.ids < 0)))
+    counts = _counts_common(res.status, {"measurements": int(np.sum(log.mask)) - n_h, "used": res.n_used,
                                          "gated": res.n_gated, "rejected": 0,
                                          "registered": res.n_registered})
+    if tof:
+        counts.update(height_measurements=n_h, height_used=int(res.n_height_used),
+                      height_gated=int(res.n_height_gated))
     ev = {"t": t[air], "est_xy": est_al[air, :2], "ref_xy": true[air, :2],
           "ref_label": "motion capture (tag)", "dr_xy": None,
           "frame_note": "x-y view, estimate aligned to motion capture (SE(3))",
           "lm_xy": (A[act] @ R.T + tr)[:, :2] if anchors == "unknown" else None,
           "lm_true_xy": np.asarray(d.anchor_p)[:, :2], "lm_true_label": "surveyed anchors"}
     notes.append("pos_rmse_m: no alignment (the anchors define the frame), airborne samples (z > 0.3 m)")
-    return DatasetRun("util-uwb", _config("util-uwb", "ekf", dtype, setting, anchors=anchors,
+    return DatasetRun("util-uwb", _config("util-uwb", "ekf", dtype, setting, anchors=anchors, tof=bool(tof),
                                           flight="twr_obs_log1"),
                       m, counts, {"load_s": load_s, "compile_s": comp_s, "run_s": run_s},
                       dict(d.report), ev, (t, est, None), notes)
@@ -286,9 +303,16 @@ def run_util_uwb(data_dir, robot=1, filter="ekf", ids="known", anchors="known", 
 # ---------------------------------------------------------------------------
 
 @_register("plaza")
-def run_plaza_dataset(data_dir, robot=1, filter="ekf", ids="known", anchors="known", particles=None,
-                      seed=0, dtype=np.float64, verbose=False):
-    """CMU Plaza 1/2 (``--robot`` picks the sequence): odometry + range-only SLAM with a bias state."""
+def run_plaza_dataset(data_dir, robot=1, filter="ekf", ids="known", anchors=None, particles=None,
+                      seed=0, dtype=np.float64, verbose=False, tof=False):
+    """CMU Plaza 1/2 (``--robot`` picks the sequence): odometry + range-only SLAM with a bias state.
+
+    ``anchors``: "unknown" (default: SLAM, beacons initialised by delayed
+    trilateration) or "known" (localisation against the surveyed beacons).
+    """
+    anchors = anchors or "unknown"
+    if tof:
+        raise InputError("plaza: --tof applies to util-uwb only")
     from ..dynamics import planar
     from ..systems import range_only as ro
     from .plaza import load_plaza
@@ -304,7 +328,8 @@ def run_plaza_dataset(data_dir, robot=1, filter="ekf", ids="known", anchors="kno
     load_s = time.perf_counter() - t0
     pose0 = np.asarray(d.start_pose(), np.float64)
     bid = np.asarray(d.node_id)
-    res, comp_s, run_s = timed_run(lambda: ro.run_plaza(log, pose0, bid, dtype=dtype))
+    beacons = np.asarray(d.node_xy, np.float64) if anchors == "known" else None
+    res, comp_s, run_s = timed_run(lambda: ro.run_plaza(log, pose0, bid, dtype=dtype, beacons=beacons))
     est = np.concatenate([np.asarray(res.pos, np.float64), np.asarray(res.heading, np.float64)[:, None]], 1)
     dr = np.asarray(dead_reckoning(planar.odometry_increment, jnp.asarray(pose0), log.u, log.dt))
     gt = np.asarray(d.gt, np.float64).copy()
@@ -315,7 +340,13 @@ def run_plaza_dataset(data_dir, robot=1, filter="ekf", ids="known", anchors="kno
     m, ev = evaluate_planar(log.t, est, d.gt_t, gt, dr_pose=dr, lm=A[act], lm_ids=lid[act],
                             lm_cov=np.asarray(res.landmark_cov)[act], lm_true=d.node_xy,
                             lm_true_ids=bid, ref_label="ground truth (GPS)")
-    if act.sum() >= 2:
+    ev["lm_true_label"] = "surveyed beacons"
+    if anchors == "known":
+        raw = np.linalg.norm(est[:, :2] - metrics.interp_poses(log.t, d.gt_t, gt)[:, :2], axis=1)
+        m["pos_rmse_m"] = float(np.sqrt(np.nanmean(raw ** 2)))
+        for k in ("map_err_m", "map_err_max_m", "landmarks_compared"):
+            m.pop(k, None)
+    elif act.sum() >= 2:
         me = metrics.map_error(A[act], lid[act], d.node_xy, bid)
         m["map_err_self_aligned_m"] = me.rmse
     m["range_bias_m"] = float(res.bias_final)
@@ -326,7 +357,10 @@ def run_plaza_dataset(data_dir, robot=1, filter="ekf", ids="known", anchors="kno
     notes = ["map_err_m: beacons in the trajectory's ATE frame; map_err_self_aligned_m: beacons "
              "aligned to the survey by their own rigid fit",
              "rejected = ranges that arrived while their beacon was not yet initialised (buffered)"]
-    return DatasetRun("plaza", _config("plaza", "ekf", dtype, f"Plaza {robot}: odometry + unknown beacons "
-                                       "+ common range bias", sequence=robot),
+    what = "surveyed beacons (localisation)" if anchors == "known" else "unknown beacons (SLAM)"
+    if anchors == "known":
+        notes = ["pos_rmse_m: no alignment (the survey defines the frame)"]
+    return DatasetRun("plaza", _config("plaza", "ekf", dtype, f"Plaza {robot}: odometry + {what} "
+                                       "+ common range bias", sequence=robot, anchors=anchors),
                       m, counts, {"load_s": load_s, "compile_s": comp_s, "run_s": run_s},
                       dict(d.report), ev, (log.t, est[:, :2], est[:, 2]), notes)

@@ -19,6 +19,8 @@ Layout: ``util_uwb/anchors_const3.csv`` plus one folder per flight holding
                      [**deg/s**]; body frame, about 1 kHz
 ``groundtruth.csv``  t, x, y, z [m], qx, qy, qz, qw (body → Vicon frame),
                      about 200 Hz
+``tof.csv``          t [s], tof [m]: downward laser height, about 23 Hz
+                     (optional: empty arrays when the file is absent)
 ===================  =====================================================
 
 Units converted here: acceleration × :data:`G` (9.81) → m/s², gyro
@@ -59,6 +61,7 @@ _HEADERS = {
     "uwb_tdoa.csv": ("t", "idA", "idB", "tdoa"),
     "imu.csv.gz": ("t_acc", "acc_x", "acc_y", "acc_z", "t_gyro", "gyro_x", "gyro_y", "gyro_z"),
     "groundtruth.csv": ("t", "x", "y", "z", "qx", "qy", "qz", "qw"),
+    "tof.csv": ("t", "tof"),
     ANCHORS_FILE: ("anchor_id", "x", "y", "z", "qx", "qy", "qz", "qw"),
 }
 
@@ -77,6 +80,8 @@ class UtilData(NamedTuple):
     anchor_id: (A,) int32; anchor_p: (A, 3) [m]; anchor_q: (A, 4) (qx, qy, qz, qw).
     tag_offset: (3,) :data:`TAG_OFFSET`.
     report: counts (see :func:`load_util`).
+    tof_t: (F,); tof: (F,) [m] downward laser (ToF) height readings, measured along the
+      body's −z axis from the sensor (empty when ``tof.csv`` is absent).
     """
 
     flight: str
@@ -98,6 +103,8 @@ class UtilData(NamedTuple):
     anchor_q: np.ndarray
     tag_offset: np.ndarray
     report: dict
+    tof_t: np.ndarray = np.zeros(0)
+    tof: np.ndarray = np.zeros(0)
 
     def anchor_positions(self) -> dict:
         """``{anchor id: (x, y, z)}``."""
@@ -152,7 +159,8 @@ def load_util(path, flight: str = "twr_obs_log1") -> UtilData:
     Returns:
       :class:`UtilData`; ``report`` holds ``dir``, ``rows`` (per file),
       ``ranges_per_anchor`` (TWR), ``tdoa_pairs`` (``{(idA, idB): count}``),
-      ``t_end`` (last time of any loaded stream), ``imu_pairing_max_dt``.
+      ``t_end`` (last time of any loaded stream), ``imu_pairing_max_dt``,
+      ``tof_rows`` (rows of the optional ``tof.csv``; 0 when absent).
 
     Raises:
       MissingDataError: the flight folder or a file is missing (the message
@@ -215,6 +223,13 @@ def load_util(path, flight: str = "twr_obs_log1") -> UtilData:
         report["tdoa_pairs"] = {(int(a), int(b)): int(c) for (a, b), c in zip(pairs, cnt)}
         if tdoa_t.size:
             ends.append(tdoa_t[-1])
+    tof_t, tof = np.zeros(0), np.zeros(0)
+    if (fd / "tof.csv").is_file():
+        tf = csv("tof.csv", 2, time_cols=0, allow_empty=True)
+        tof_t, tof = tf.data[:, 0].copy(), tf.data[:, 1].copy()
+        if tof_t.size:
+            ends.append(tof_t[-1])
+    report["tof_rows"] = int(tof_t.size)
     report["rows"] = rows
     report["t_end"] = float(max(ends))
     report["imu_pairing_max_dt"] = float(np.max(np.abs(imu.data[:, 0] - imu.data[:, 4])))
@@ -238,4 +253,6 @@ def load_util(path, flight: str = "twr_obs_log1") -> UtilData:
         anchor_q=np.ascontiguousarray(anc.data[:, 4:8]),
         tag_offset=np.asarray(TAG_OFFSET, dtype=np.float64),
         report=report,
+        tof_t=tof_t,
+        tof=tof,
     )

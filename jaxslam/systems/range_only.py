@@ -32,7 +32,31 @@ line-of-sight tails that the gate removes); q_a = 0.5 m²/s³; q_b = 1e-5 m²/s
 so the choice matters little.  Measured limit: a robust per-window least
 squares over 16 consecutive ranges (0.2 s) with the *true* motion inside the
 window and the true bias gives 0.205 m RMSE (0.18 m of it vertical), so the
-ranges themselves do not support the issue's 0.15 m target with a CV model.
+ranges themselves do not support the issue's 0.15 m target with a CV model
+(the ToF height update below does).
+
+*Optional ToF height update* (the Crazyflie's downward laser, ``tof.csv``, ~23 Hz;
+``util_events(..., tof_t=, tof=)`` merges its rows into the log with id
+:data:`HEIGHT_ID`; :func:`run_util` fuses them with the engine's ``update_robot``
+whenever the log holds such rows, else the run is exactly the range-only filter)::
+
+    h = p_z − t_uv,z + c_tof + v_h,   v_h ~ N(0, σ_h²)                          (H1)
+
+t_uv,z = 0.0908 m the tag's body-frame z offset (p is the tag, the laser sits
+below the body origin).  *Tilt is ignored* twice: (i) the tag offset's vertical
+projection R(q)t_uv·e_z is taken as t_uv,z — on this flight the airborne tilt is
+6.9° median, 13° p95, 20° max (not "a few degrees"), and the projection differs
+from 0.0908 m by 1.5 mm median, 5 mm p95, 9.5 mm max (at 3° it would be < 1 mm);
+(ii) the laser measures along the body −z axis, i.e. a slant range ≈ height /
+cos(tilt): tof·cos(tilt) − z_body has std 0.007 m against 0.014 m for tof − z_body
+(motion capture, TWR flight), so the tilt is the larger part of v_h; the filter
+has no attitude, so it stays in v_h (time-correlated, not white).  c_tof =
+−0.014 m and σ_h = 0.02 m come from the **other** flight (TDOA2, out of sample):
+there tof − z_body airborne has median −0.014 m, std 0.019 m (TWR flight:
+−0.020 m, 0.014 m).  Height rows are gated one by one on their χ²(1) NIS with
+the same ``gate`` (S = P_zz + σ_h², H = e_z) and counted apart (``n_height_used``,
+``n_height_gated``); K = 2 slots arise only where a laser and a range row share
+a time (never on this flight: K = 1).
 
 * *known anchors*: the surveyed anchors are held in the map with zero
   covariance (the engine never moves them).  The initial tag position is a
@@ -53,7 +77,24 @@ ranges themselves do not support the issue's 0.15 m target with a CV model.
   window fixes the map frame, so anchor errors are reported both raw and after
   a rigid (Umeyama) alignment.
 
-**B. Plaza, 2D odometry + beacons** (:func:`run_plaza`).  Robot s = [x, y, θ, b]
+Measured on the TWR flight (``scripts/dev_range_only.py util``, float64; airborne
+9.6–59.0 s, errors at the range events against p_body + R(q)t_uv):
+
+==========================  ===========  ==========  ============  ============================
+run                         RMSE 3D [m]  vertical    horizontal    counts
+==========================  ===========  ==========  ============  ============================
+known anchors, ranges       0.222        0.190       0.115         5469 used, 40 gated
+known anchors, + ToF        0.115        0.016       0.114         + 1551 heights used, 0 gated
+unknown (t > 30 s), ranges  0.185        0.143       0.117         3001 used, 15 gated
+unknown (t > 30 s), + ToF   0.119        0.013       0.118         + 848 heights used, 0 gated
+==========================  ===========  ==========  ============  ============================
+
+(bias: −0.242 ± 0.010 → −0.252 ± 0.008 m known; −0.68 ± 0.22 m unknown, where it is
+tied to the start-up's anchors).  The laser removes nearly all of the vertical error;
+the horizontal 0.11–0.12 m is the ranges' own.
+
+**B. Plaza, 2D odometry + beacons** (:func:`run_plaza`; SLAM by default,
+localisation with ``beacons=`` the surveyed TL positions).  Robot s = [x, y, θ, b]
 (4); input u = (d, dθ), the DR increment, applied at its own event
 (``merge_events(..., input_mode="increment")``)::
 
@@ -75,7 +116,19 @@ and +1.8 m (Plaza 2), with every beacon 2.7–3.1 m (Plaza 1) off its surveyed T
 position: the README's +2.8 m "bias" (median of measured − true distance to TL)
 is, on this geometry, indistinguishable from the beacons sitting ~3 m further
 out, so no filter can be expected to recover +2.8 m; the filter's b and
-beacon errors are reported as they come.
+beacon errors are reported as they come.  SLAM (measured): b = −0.54 ± 0.30 m /
++0.89 ± 0.11 m, ATE(rigid) 0.88 / 1.87 m, raw RMS 1.26 / 4.66 m (Plaza 1 / 2).
+
+*Localisation with surveyed beacons* (``run_plaza(..., beacons=node_xy)``): the
+TL positions are held in the map with zero covariance (as UTIL's known anchors),
+so the bias is observable.  Measured (same noise parameters): b = +2.36 ± 0.10 m
+(Plaza 1; mean over the second half of the log +2.54 m) and +2.60 ± 0.08 m
+(Plaza 2; +2.64 m), against the README's median measured − true +2.84 / +2.80 m
+(the gated-core mean is +2.80 / +2.88 m): the final b lies 4.8 σ_b / 2.5 σ_b
+below that median, so σ_b is optimistic (range errors are correlated in time,
+and per node the median offset runs 2.75–3.04 m on Plaza 1 but 1.9–3.7 m on
+Plaza 2, which one common b cannot absorb).  Position: raw RMS 1.21
+/ 0.95 m, ATE(rigid) 1.19 / 0.89 m; ranges used 3527 / 1758, gated 2 / 58.
 
 *Delayed beacon initialisation* (paper 003's idea, issue 6's buffer): while a
 beacon is unmapped, each of its ranges is stored with the current position
@@ -102,6 +155,7 @@ import numpy as np
 
 from .. import errors
 from ..data.events import EventLog, merge_events
+from ..data.util_uwb import TAG_OFFSET
 from ..errors import InputError
 from ..filters import ekf_slam as es
 from ..filters import trilateration as tri
@@ -109,6 +163,8 @@ from ..linalg import symmetrize
 
 __all__ = [
     "range_observe",
+    "height_observe",
+    "HEIGHT_ID",
     "cv_motion",
     "cv_process_noise",
     "odo_motion",
@@ -130,6 +186,8 @@ __all__ = [
 
 NR3 = 7  # UTIL robot block [p (3), v (3), b]
 NR2 = 4  # Plaza robot block [x, y, θ, b]
+HEIGHT_ID = -2  # id of a ToF height row in a UTIL event log (anchor ids are ≥ 0)
+TAG_Z = float(TAG_OFFSET[2])  # UWB tag offset along the body z axis [m]
 
 
 # ---------------------------------------------------------------------------
@@ -145,6 +203,14 @@ def range_observe(s, l, params=None):
     r = jnp.sqrt(jnp.where(r2 > 0, r2, 1.0))
     r = jnp.where(r2 > 0, r, 0.0)
     return jnp.reshape(r + s[-1], (1,))
+
+
+def height_observe(s, params):
+    """(H1): ToF height h = p_z − t_uv,z + c_tof of the tag state s (7,); returns (1,).
+
+    ``params``: :class:`UtilParams` (uses ``tof_offset`` = c_tof [m]).  Tilt ignored.
+    """
+    return jnp.reshape(s[2] - TAG_Z + params.tof_offset, (1,))
 
 
 def cv_motion(s, u, dt):
@@ -200,7 +266,8 @@ class UtilParams(NamedTuple):
     """UTIL filter noise (floats or traced scalars; module docstring for sources).
 
     sigma_r [m]; q_acc [m²/s³]; q_bias [m²/s]; p0_pos, p0_vel [m, m/s], p0_bias [m]:
-    initial standard deviations (known-anchor mode).
+    initial standard deviations (known-anchor mode).  sigma_h [m], tof_offset [m]: the
+    optional ToF height update (H1) — used only when the log holds height rows.
     """
 
     sigma_r: float = 0.2
@@ -209,6 +276,8 @@ class UtilParams(NamedTuple):
     p0_pos: float = 0.3
     p0_vel: float = 0.1
     p0_bias: float = 0.5
+    sigma_h: float = 0.02
+    tof_offset: float = -0.014
 
 
 class PlazaParams(NamedTuple):
@@ -250,7 +319,10 @@ class RangeResult(NamedTuple):
     landmark_ids: (cap,) id per slot (−1 free); active: (cap,) bool mapped;
     bias_final, bias_sigma: () [m]; n_used, n_gated, n_registered, n_unmapped: () int32
     (ranges used, gated, beacons registered, ranges that arrived for an unmapped beacon);
+    height_used, height_gated: (T,) int32 ToF height rows used / gated per event (UTIL with
+    height rows; zeros otherwise); n_height_used, n_height_gated: () int32 their totals;
     status: () int32 engine status bits (``jaxslam.errors``); final: engine state.
+    ``nis``/``dof`` of an event with a height row add the height update's NIS and dof.
     """
 
     t: jax.Array
@@ -273,16 +345,25 @@ class RangeResult(NamedTuple):
     n_gated: jax.Array
     n_registered: jax.Array
     n_unmapped: jax.Array
+    height_used: jax.Array
+    height_gated: jax.Array
+    n_height_used: jax.Array
+    n_height_gated: jax.Array
     status: jax.Array
     final: es.SlamState
 
 
 def _result(t, outs, st, model, n_reg, n_unm):
-    pos, pos_var, heading, bias, bias_var, nis, dof, used, gated = outs
+    if len(outs) == 9:
+        zi = jnp.zeros_like(outs[7])
+        outs = tuple(outs) + (zi, zi)
+    pos, pos_var, heading, bias, bias_var, nis, dof, used, gated, h_used, h_gated = outs
     nr = model.robot_dim
     return RangeResult(
         t=t, pos=pos, pos_var=pos_var, heading=heading, bias=bias, bias_var=bias_var, nis=nis,
-        dof=dof, used=used, gated=gated,
+        dof=dof, used=used, gated=gated, height_used=h_used, height_gated=h_gated,
+        n_height_used=jnp.sum(h_used).astype(jnp.int32),
+        n_height_gated=jnp.sum(h_gated).astype(jnp.int32),
         landmarks=es.landmarks(st, model), landmark_cov=es.landmark_covs(st, model),
         landmark_ids=st.ids, active=st.active,
         bias_final=st.x[nr - 1], bias_sigma=jnp.sqrt(jnp.maximum(st.P[nr - 1, nr - 1], 0.0)),
@@ -295,14 +376,42 @@ def _result(t, outs, st, model, n_reg, n_unm):
 # Event logs
 # ---------------------------------------------------------------------------
 
-def util_events(t, anchor_id, ranges, t_start=None, t_end=None) -> EventLog:
-    """TWR rows (t [s], anchor id, range [m]) → an :class:`EventLog` with K = 1, no input."""
+def util_events(t, anchor_id, ranges, t_start=None, t_end=None, tof_t=None,
+                tof=None) -> EventLog:
+    """TWR rows (t [s], anchor id, range [m]) → an :class:`EventLog` with K = 1, no input.
+
+    Optional ToF rows (``tof_t`` [s], ``tof`` [m], e.g. ``UtilData.tof_t/tof``) are merged
+    in as rows with id :data:`HEIGHT_ID` (z = the laser height); :func:`run_util` then adds
+    the height update (H1).  Rows are sorted by time (stable, ranges first at equal
+    times); K is the largest number of rows sharing a time (1 on the UTIL flight).
+    Without ToF rows the log is exactly the range-only one.
+    """
     t = np.asarray(t, np.float64).reshape(-1)
     if t.size == 0:
         raise InputError("util_events: no ranges")
-    return merge_events(t[:1], np.zeros((1, 1)), t, np.asarray(ranges, np.float64).reshape(-1, 1),
-                        meas_ids=np.asarray(anchor_id).astype(np.int32), K=1, input_mode="rate",
-                        t_start=t_start, t_end=t_end)
+    z = np.asarray(ranges, np.float64).reshape(-1, 1)
+    ids = np.asarray(anchor_id).astype(np.int32).reshape(-1)
+    if (tof_t is None) != (tof is None):
+        raise InputError("util_events: give both tof_t and tof, or neither")
+    if tof_t is None:
+        return merge_events(t[:1], np.zeros((1, 1)), t, z, meas_ids=ids, K=1,
+                            input_mode="rate", t_start=t_start, t_end=t_end)
+    ht = np.asarray(tof_t, np.float64).reshape(-1)
+    hz = np.asarray(tof, np.float64).reshape(-1, 1)
+    if ht.shape[0] != hz.shape[0]:
+        raise InputError(f"util_events: tof has {hz.shape[0]} rows but tof_t {ht.shape[0]}")
+    if np.any(ids == HEIGHT_ID):
+        raise InputError(f"util_events: anchor id {HEIGHT_ID} is reserved for height rows")
+    if t.size > 1 and np.any(np.diff(t) < 0):
+        raise InputError("util_events: range times decrease")
+    if ht.size > 1 and np.any(np.diff(ht) < 0):
+        raise InputError("util_events: tof times decrease")
+    ta = np.concatenate([t, ht])
+    o = np.argsort(ta, kind="stable")
+    za = np.concatenate([z, hz])[o]
+    ia = np.concatenate([ids, np.full(ht.shape, HEIGHT_ID, np.int32)])[o]
+    return merge_events(t[:1], np.zeros((1, 1)), ta[o], za, meas_ids=ia, K=None,
+                        input_mode="rate", t_start=t_start, t_end=t_end)
 
 
 def plaza_events(dr_t, dr, td_t, td_node, td_range, K: Optional[int] = None) -> EventLog:
@@ -431,19 +540,51 @@ def util_startup(t, anchor_id, ranges, tag_pos, anchor_ids, t_window, v0=None,
                        t0=jnp.asarray(t_window, dtype))
 
 
-def _util_scan(st0, dt, z, ids, mask, params, gate):
+def _height_update(st, z_k, id_k, m_k, params, gate):
+    """(H1) for each of the event's K rows that is a height row (static loop over K).
+
+    Gated like a range: NIS ν²/S > gate, S = P_zz + σ_h² (H = e_z, so H P Hᵀ = P_zz).
+    Returns (state, nis, dof, used (), gated ()) summed over the rows.
+    """
+    model = UTIL_MODEL
+    R = jnp.reshape(params.sigma_h**2, (1, 1))
+    nis = jnp.zeros((), st.x.dtype)
+    dof = jnp.zeros((), jnp.int32)
+    used = jnp.zeros((), jnp.int32)
+    gated = jnp.zeros((), jnp.int32)
+    for k in range(z_k.shape[0]):  # static, K ≤ 2 on UTIL
+        hk = m_k[k] & (id_k[k] == HEIGHT_ID) & jnp.isfinite(z_k[k, 0])
+        nu = z_k[k, 0] - height_observe(st.x[:NR3], params)[0]
+        nis_k = nu * nu / (st.P[2, 2] + params.sigma_h**2)
+        g = (hk & (nis_k > gate)) if gate is not None else jnp.zeros((), bool)
+        st, info = es.update_robot(st, model, height_observe, z_k[k], hk & ~g, R, params=params)
+        nis = nis + info.nis
+        dof = dof + info.dof.astype(jnp.int32)
+        used = used + jnp.sum(info.used).astype(jnp.int32)
+        gated = gated + g.astype(jnp.int32)
+    return st, nis, dof, used, gated
+
+
+def _util_scan(st0, dt, z, ids, mask, params, gate, height=False):
     model = UTIL_MODEL
 
     def step(st, inp):
         dt_k, z_k, id_k, m_k = inp
         Q = cv_process_noise(dt_k, params.q_acc, params.q_bias, st.x.dtype)
         st = es.predict(st, model._replace(motion=lambda s, u, p: cv_motion(s, u, dt_k)), None, Q)
-        slots, mapped = es.associate_known(st, id_k, m_k)
+        m_r = (m_k & (id_k != HEIGHT_ID)) if height else m_k
+        slots, mapped = es.associate_known(st, id_k, m_r)
         R = jnp.reshape(params.sigma_r**2, (1, 1))
         st, info = es.update(st, model, z_k, slots, mapped, R, gate=gate)
+        nis, dof = info.nis, info.dof
+        if height:
+            st, h_nis, h_dof, h_used, h_gated = _height_update(st, z_k, id_k, m_k, params, gate)
+            nis, dof = nis + h_nis, dof + h_dof.astype(jnp.asarray(dof).dtype)
         Pd = jnp.diagonal(st.P)
-        out = (st.x[0:3], Pd[0:3], jnp.zeros((), st.x.dtype), st.x[6], Pd[6], info.nis, info.dof,
+        out = (st.x[0:3], Pd[0:3], jnp.zeros((), st.x.dtype), st.x[6], Pd[6], nis, dof,
                jnp.sum(info.used).astype(jnp.int32), jnp.sum(info.gated).astype(jnp.int32))
+        if height:
+            out = out + (h_used, h_gated)
         return st, out
 
     return jax.lax.scan(step, st0, (dt, z, ids, mask))
@@ -489,9 +630,12 @@ def run_util(log: EventLog, anchor_ids, anchors=None, startup: Optional[UtilStar
     log: :func:`util_events` output (K = 1, no input).  anchor_ids: (N,) int.
     anchors: (N, 3) known anchor positions [m] → localisation; else ``startup`` (from
     :func:`util_startup`, whose window must precede ``log``) → anchors as states.
-    gate: χ²(1) threshold per range (None: off).  n_fix: rows used for the initial fix
-    (known anchors).  dtype: float32/float64 (default: x64 setting).  Returns
-    :class:`RangeResult` (heading zeros).
+    gate: χ²(1) threshold per range and per height row (None: off).  n_fix: ranges used
+    for the initial fix (known anchors; the first ``n_fix`` range rows).  dtype:
+    float32/float64 (default: x64 setting).  If ``log`` holds ToF height rows
+    (``util_events(..., tof_t=, tof=)``) each is fused by (H1) with ``params.sigma_h``;
+    otherwise the run is the range-only filter.  Returns :class:`RangeResult` (heading
+    zeros).
     """
     if (anchors is None) == (startup is None):
         raise InputError("run_util: give exactly one of anchors (known) or startup (SLAM)")
@@ -503,32 +647,46 @@ def run_util(log: EventLog, anchor_ids, anchors=None, startup: Optional[UtilStar
         raise InputError(f"capacity: {cap} < number of anchors {N}")
     dt, _, z, ids, mask = _log_arrays(log, dtype)
     p = _cast_params(params, dtype)
+    is_h = np.asarray(log.mask) & (np.asarray(log.ids) == HEIGHT_ID)
+    height = bool(np.any(is_h))
     if anchors is not None:
         anchors = jnp.asarray(anchors, dtype)
         if anchors.shape != (N, 3):
             raise InputError(f"anchors: expected shape ({N}, 3), got {anchors.shape}")
-        nf = min(int(n_fix), z.shape[0])
-        return _run_util_known(dt, z, ids, mask, anchors, anchor_ids, p, gate, nf, cap,
-                               jnp.asarray(log.t, dtype))
+        if not height:
+            nf = min(int(n_fix), z.shape[0])
+            return _run_util_known(dt, z, ids, mask, anchors, anchor_ids, p, gate, nf, cap,
+                                   jnp.asarray(log.t, dtype))
+        # the fix uses the first n_fix *range* rows (height rows skipped)
+        rr = (np.asarray(log.mask) & ~is_h).reshape(-1)
+        z0 = np.asarray(log.z)[..., 0].reshape(-1)[rr][: int(n_fix)]
+        i0 = np.asarray(log.ids).reshape(-1)[rr][: int(n_fix)]
+        return _run_util_known(dt, z, ids, mask, anchors, anchor_ids, p, gate, int(z0.size), cap,
+                               jnp.asarray(log.t, dtype), z0=jnp.asarray(z0, dtype),
+                               ids0=jnp.asarray(i0, jnp.int32), height=True)
     su = UtilStartup(*[jnp.asarray(a) for a in startup])
-    return _run_util_slam(dt, z, ids, mask, su, anchor_ids, p, gate, cap, jnp.asarray(log.t, dtype))
+    return _run_util_slam(dt, z, ids, mask, su, anchor_ids, p, gate, cap, jnp.asarray(log.t, dtype),
+                          height=height)
 
 
-def _run_util_known_impl(dt, z, ids, mask, anchors, anchor_ids, p, gate, nf, cap, t):
+def _run_util_known_impl(dt, z, ids, mask, anchors, anchor_ids, p, gate, nf, cap, t, z0=None,
+                         ids0=None, height=False):
     dtype = z.dtype
-    st0 = _util_init_known(z[:nf, 0, 0], ids[:nf, 0], anchors, anchor_ids, p, cap, dtype)
-    st, outs = _util_scan(st0, dt, z, ids, mask, p, gate)
+    if z0 is None:
+        z0, ids0 = z[:nf, 0, 0], ids[:nf, 0]
+    st0 = _util_init_known(z0, ids0, anchors, anchor_ids, p, cap, dtype)
+    st, outs = _util_scan(st0, dt, z, ids, mask, p, gate, height)
     return _result(t, outs, st, UTIL_MODEL, anchor_ids.shape[0], 0)
 
 
-def _run_util_slam_impl(dt, z, ids, mask, su, anchor_ids, p, gate, cap, t):
+def _run_util_slam_impl(dt, z, ids, mask, su, anchor_ids, p, gate, cap, t, height=False):
     st0 = _util_init_slam(su, anchor_ids, p, cap, z.dtype)
-    st, outs = _util_scan(st0, dt, z, ids, mask, p, gate)
+    st, outs = _util_scan(st0, dt, z, ids, mask, p, gate, height)
     return _result(t, outs, st, UTIL_MODEL, anchor_ids.shape[0], 0)
 
 
-_run_util_known = jax.jit(_run_util_known_impl, static_argnames=("gate", "nf", "cap"))
-_run_util_slam = jax.jit(_run_util_slam_impl, static_argnames=("gate", "cap"))
+_run_util_known = jax.jit(_run_util_known_impl, static_argnames=("gate", "nf", "cap", "height"))
+_run_util_slam = jax.jit(_run_util_slam_impl, static_argnames=("gate", "cap", "height"))
 
 
 # ---------------------------------------------------------------------------
@@ -557,7 +715,8 @@ def _robust_trilaterate(pos, rng, valid, range_var, min_points, min_spread):
     return r2
 
 
-def _plaza_scan(st0, buf0, dt, u, z, ids, mask, beacon_ids, p, gate, min_points, min_spread):
+def _plaza_scan(st0, buf0, dt, u, z, ids, mask, beacon_ids, p, gate, min_points, min_spread,
+                delayed=True):
     model = PLAZA_MODEL
     N, W = buf0.rng.shape
     K = z.shape[1]
@@ -590,7 +749,8 @@ def _plaza_scan(st0, buf0, dt, u, z, ids, mask, beacon_ids, p, gate, min_points,
             )
         n_unm = n_unm + jnp.sum(new).astype(jnp.int32)
         # delayed initialisation of each unmapped beacon whose buffer is ready
-        for j in range(N):  # static, small
+        # (skipped statically with surveyed beacons: every beacon is mapped from the start)
+        for j in (range(N) if delayed else ()):  # static, small
             bid = beacon_ids[j]
             is_mapped = jnp.any((st.ids == bid) & st.active)
             valid = jnp.arange(W) < buf.count[j]
@@ -623,16 +783,21 @@ def _plaza_scan(st0, buf0, dt, u, z, ids, mask, beacon_ids, p, gate, min_points,
 
 
 def _run_plaza_impl(t, dt, u, z, ids, mask, pose0, beacon_ids, p, gate, window, min_points,
-                    min_spread, cap):
+                    min_spread, cap, beacons=None):
     dtype = z.dtype
     N = beacon_ids.shape[0]
     s0 = jnp.concatenate([pose0, jnp.reshape(p.bias0, (1,))]).astype(dtype)
     P0 = jnp.diag(jnp.stack([p.p0_pos**2, p.p0_pos**2, p.p0_th**2, p.sigma_bias0**2]))
     st0 = es.init(s0, P0, cap, 2)
+    if beacons is not None:  # surveyed beacons: in the map from the start, zero covariance
+        st0 = st0._replace(x=st0.x.at[NR2:NR2 + 2 * N].set(beacons.reshape(-1).astype(dtype)),
+                           active=st0.active.at[:N].set(True), ids=st0.ids.at[:N].set(beacon_ids))
     buf0 = _Buf(pos=jnp.zeros((N, window, 2), dtype), pos_var=jnp.zeros((N, window), dtype),
                 rng=jnp.zeros((N, window), dtype), count=jnp.zeros((N,), jnp.int32))
     st, n_reg, n_unm, outs = _plaza_scan(st0, buf0, dt, u, z, ids, mask, beacon_ids, p, gate,
-                                         min_points, min_spread)
+                                         min_points, min_spread, delayed=beacons is None)
+    if beacons is not None:
+        n_reg = n_reg + N
     return _result(t, outs, st, PLAZA_MODEL, n_reg, n_unm)
 
 
@@ -642,15 +807,22 @@ _run_plaza = jax.jit(_run_plaza_impl, static_argnames=("gate", "window", "min_po
 
 def run_plaza(log: EventLog, pose0, beacon_ids, params: PlazaParams = PLAZA_PARAMS,
               gate: Optional[float] = 6.63, window: int = 60, min_points: int = 20,
-              min_spread: float = 5.0, capacity: Optional[int] = None, dtype=None) -> RangeResult:
-    """2D range-only SLAM with odometry increments and a common range bias (Plaza).
+              min_spread: float = 5.0, capacity: Optional[int] = None, dtype=None,
+              beacons=None) -> RangeResult:
+    """2D range-only SLAM (default) or localisation with surveyed beacons, with odometry
+    increments and a common range bias (Plaza).
 
     log: :func:`plaza_events` output (increment mode, u = (d, dθ)).  pose0: (3,) start
     pose (x, y, θ) [m, rad] (Plaza 2: GT₀ heading + π, the caller's job).  beacon_ids: (N,)
-    ids of the beacons to map (unknown positions); ranges of other ids are ignored.
-    gate: χ²(1) per range.  window, min_points, min_spread: delayed initialisation (ring
-    buffer rows per beacon, rows needed, weakest-direction spread [m]).  Returns
-    :class:`RangeResult` (landmarks = beacons, heading filled).
+    ids of the beacons; ranges of other ids are ignored.  beacons: None (default) → the
+    beacons are unknown and mapped by delayed initialisation (SLAM); an (N, 2) array
+    [m] of surveyed positions, row i for ``beacon_ids[i]`` (e.g. ``PlazaData`` TL
+    ``node_xy``) → localisation: the beacons are held in the map with zero covariance
+    (never moved, as UTIL's known anchors), so only the pose and the bias b are estimated
+    (``n_registered`` = N).  gate: χ²(1) per range.  window, min_points, min_spread:
+    delayed initialisation (ring buffer rows per beacon, rows needed, weakest-direction
+    spread [m]; unused with ``beacons``).  Returns :class:`RangeResult` (landmarks =
+    beacons, heading filled).
     """
     dtype = dtype or jnp.result_type(float)
     beacon_ids = jnp.asarray(beacon_ids, jnp.int32)
@@ -663,7 +835,11 @@ def run_plaza(log: EventLog, pose0, beacon_ids, params: PlazaParams = PLAZA_PARA
         raise InputError(f"pose0: expected shape (3,), got {pose0.shape}")
     if log.u.shape[-1] != 2:
         raise InputError(f"log.u: expected (d, dθ) increments, got width {log.u.shape[-1]}")
+    if beacons is not None:
+        beacons = jnp.asarray(beacons, dtype)
+        if beacons.shape != (N, 2):
+            raise InputError(f"beacons: expected shape ({N}, 2), got {beacons.shape}")
     dt, u, z, ids, mask = _log_arrays(log, dtype)
     return _run_plaza(jnp.asarray(log.t, dtype), dt, u, z, ids, mask, pose0, beacon_ids,
                       _cast_params(params, dtype), gate, int(window), int(min_points),
-                      float(min_spread), cap)
+                      float(min_spread), cap, beacons=beacons)

@@ -279,3 +279,17 @@ def test_loaders_feed_merge_events():
     u = load_util(EXCERPTS)
     log = D.merge_events(u.imu_t, np.hstack([u.acc, u.gyro]), u.twr_t, u.twr_range, u.twr_anchor)
     assert log.stats["n_meas_events"] == log.stats["n_meas"] == 84
+
+
+def test_util_tof_excerpt_optional():
+    u = load_util(EXCERPTS)
+    _, tof = _csv(EXCERPTS / "util_uwb" / "twr_obs_log1" / "tof.csv")
+    assert u.tof.shape == u.tof_t.shape == (len(tof),) == (23,)
+    np.testing.assert_array_equal(u.tof_t, tof[:, 0])
+    np.testing.assert_array_equal(u.tof, tof[:, 1])
+    assert u.report["tof_rows"] == 23 and 20.0 <= u.tof_t[0] and u.tof_t[-1] <= 21.0
+    # airborne excerpt: laser height ≈ body height − 2 cm (data README §4)
+    zb = np.interp(u.tof_t, u.gt_t, u.gt_p[:, 2])
+    assert abs(np.median(u.tof - zb)) < 0.05
+    v = load_util(EXCERPTS / "util_uwb", flight="tdoa2_obs_log1")  # no tof.csv: empty
+    assert v.tof.shape == v.tof_t.shape == (0,) and v.report["tof_rows"] == 0

@@ -1,6 +1,7 @@
 """Range-only systems (issue 9): range model vs hand Jacobians, a 3D CV tag with a common
 bias (bias bound, ANEES and mean NIS in their χ² bounds over vmapped Monte-Carlo runs),
-a Plaza-style 2D odometry + unknown-beacon SLAM with bias and outliers, float32."""
+a Plaza-style 2D odometry + unknown-beacon SLAM with bias and outliers, float32; the UTIL ToF
+height update (H1) and Plaza localisation with surveyed beacons."""
 
 import functools
 
@@ -184,3 +185,63 @@ def test_merge_events_contract_used():
     # util_events: K = 1, one event per range, no input
     log = ro.util_events([0.0, 0.1, 0.2], [0, 1, 2], [1.0, 2.0, 3.0])
     assert log.z.shape == (3, 1, 1) and log.stats["K"] == 1 and merge_events is not None
+
+
+# --- UTIL ToF height update (H1) -------------------------------------------------------------
+
+SIG_H, C_TOF = 0.02, -0.014
+
+
+def test_height_update_reduces_vertical_error():
+    X, R = _sim_tag(jax.random.PRNGKey(7))
+    X, R = np.asarray(X), np.asarray(R)
+    t = np.arange(T3) * DT3
+    aid = np.arange(T3) % 8
+    rng = np.random.default_rng(7)
+    # laser rows at every 4th range time (coincident times: K = 2 slots), 5 outliers (+0.5 m)
+    kh = np.arange(0, T3, 4)
+    h = X[kh, 2] - ro.TAG_Z + C_TOF + SIG_H * rng.normal(size=kh.size)
+    bad = rng.choice(np.arange(20, kh.size), 5, replace=False)
+    h[bad] += 0.5
+    params = ro.UtilParams(sigma_r=SIG_R, q_acc=Q_ACC, q_bias=1e-12, sigma_h=SIG_H, tof_offset=C_TOF)
+    log0 = ro.util_events(t, aid, R)
+    logh = ro.util_events(t, aid, R, tof_t=t[kh], tof=h)
+    assert logh.z.shape == (T3, 2, 1) and logh.stats["n_meas"] == T3 + kh.size
+    r0 = ro.run_util(log0, np.arange(8), anchors=ANCHORS, params=params, gate=9.0)
+    rh = ro.run_util(logh, np.arange(8), anchors=ANCHORS, params=params, gate=9.0)
+    # range-only path: no height rows, counts zero; (almost) every range used in both runs
+    assert int(r0.n_height_used) == 0 and int(r0.n_height_gated) == 0
+    assert min(int(rh.n_used), int(r0.n_used)) >= T3 - 10
+    assert int(rh.n_height_gated) >= 5 and np.all(np.asarray(rh.height_gated)[kh[bad]] == 1)
+    assert int(rh.n_height_used) + int(rh.n_height_gated) == kh.size
+    late = slice(200, None)
+    ez0 = np.asarray(r0.pos)[late, 2] - X[late, 2]
+    ezh = np.asarray(rh.pos)[late, 2] - X[late, 2]
+    rz0, rzh = np.sqrt(np.mean(ez0**2)), np.sqrt(np.mean(ezh**2))
+    assert rzh < 0.6 * rz0, (rzh, rz0)
+    # stated σ bound: vertical errors consistent with the filter's own variance
+    vz = np.asarray(rh.pos_var)[late, 2]
+    assert np.mean(ezh**2 / vz) < 2.0
+    assert np.mean(vz) < np.mean(np.asarray(r0.pos_var)[late, 2])
+    assert not (int(rh.status) & (errors.NON_FINITE | errors.NOT_PSD))
+
+
+# --- Plaza localisation with surveyed beacons ------------------------------------------------
+
+def test_plaza_known_beacons_recover_bias():
+    t_dr, dr, t_r, node, rr, pose, n_out = _sim_plaza(seed=1)
+    log = ro.plaza_events(t_dr, dr, t_r, node, rr)
+    params = ro.PlazaParams(sigma_r=0.4, sigma_bias0=3.0)
+    res = ro.run_plaza(log, pose[0], BIDS, params=params, beacons=BEACONS)
+    k = np.searchsorted(t_dr, log.t)
+    true = pose[k + 1, :2]
+    b, sb = float(res.bias_final), float(res.bias_sigma)
+    assert abs(b - BIAS2) < 3 * sb and sb < 0.3, (b, sb)  # prior σ 3 m; q_b walk sets the floor
+    # beacons held exactly (zero covariance), all counted as registered, none buffered
+    np.testing.assert_array_equal(np.asarray(res.landmarks), BEACONS)
+    assert np.all(np.asarray(res.landmark_cov) == 0) and int(res.n_registered) == 4
+    assert int(res.n_unmapped) == 0
+    err = np.linalg.norm(np.asarray(res.pos) - true, axis=1)
+    assert np.sqrt(np.mean(err**2)) < 0.5  # raw (no alignment): the map frame is the survey's
+    assert int(res.n_gated) >= 0.5 * n_out
+    assert not (int(res.status) & (errors.NON_FINITE | errors.NOT_PSD))

@@ -1,0 +1,267 @@
+"""2D range-bearing EKF-SLAM system (issue 9) on synthetic logs.
+
+Oracles: hand-derived Jacobians of the unicycle (exact arc), the Ackermann step and the
+range-bearing observation against ``jax.jacfwd``; a Monte-Carlo ANEES of the robot pose
+inside Bar-Shalom's two-sided 95 % bounds; known vs nearest-neighbour association on clean
+data; the bearing wrap at ±π; capacity overflow counted and flagged; float32 finite.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxslam import errors, metrics
+from jaxslam.data.events import merge_events
+from jaxslam.dynamics import planar
+from jaxslam.errors import InputError
+from jaxslam.sensors import range_bearing2d as rb
+from jaxslam.systems import planar_ekf_slam as P
+
+DT = 0.1
+T_STEPS = 320  # one loop of the circle (v/ω = 5 m radius, 2π/0.2 ≈ 31.4 s)
+V, W = 1.0, 0.2
+SIG_V, SIG_W = 0.05, 0.02  # input noise densities [(m/s)·√s, (rad/s)·√s]
+SIG_R, SIG_B = 0.1, 0.01
+MAX_RANGE = 6.0
+MEAS_EVERY = 5
+
+
+def _wrap(a):
+    return (a + np.pi) % (2 * np.pi) - np.pi
+
+
+def _scenario(seed=0, n_lm=15):
+    """True trajectory, landmarks, and the visible (step, landmark) pairs."""
+    rng = np.random.default_rng(seed)
+    ang = np.linspace(0, 2 * np.pi, n_lm, endpoint=False) + 0.1
+    rad = np.where(np.arange(n_lm) % 2 == 0, 3.0, 7.0)
+    lms = np.stack([rad * np.cos(ang), 5.0 + rad * np.sin(ang)], 1)  # circle centred at (0, 5)
+    s = np.array([0.0, 0.0, 0.0])
+    traj = [s]
+    for _ in range(T_STEPS):
+        s = np.asarray(planar.unicycle(jnp.asarray(s), jnp.array([V, W]), DT))
+        traj.append(s)
+    traj = np.array(traj)
+    vis = []
+    for k in range(MEAS_EVERY, T_STEPS + 1, MEAS_EVERY):
+        for j, l in enumerate(lms):
+            d = l - traj[k, :2]
+            b = _wrap(np.arctan2(d[1], d[0]) - traj[k, 2])
+            if np.hypot(*d) < MAX_RANGE and abs(b) < 1.2:
+                vis.append((k, j))
+    del rng
+    return traj, lms, vis
+
+
+def _logs(traj, lms, vis, n_runs, seed=1, sig_scale=1.0):
+    """Event structure (shared) and per-run noisy inputs and measurements."""
+    rng = np.random.default_rng(seed)
+    t_in = DT * np.arange(T_STEPS)
+    u_true = np.tile([V, W], (T_STEPS, 1))
+    mt = np.array([DT * k for k, _ in vis])
+    ids = np.array([j for _, j in vis])
+    z_true = np.array([np.asarray(rb.observe(jnp.asarray(traj[k]), jnp.asarray(lms[j]))) for k, j in vis])
+    base = merge_events(t_in, u_true, mt, z_true, ids, K=8)
+    us, zs = [], []
+    for _ in range(n_runs):
+        un = u_true + sig_scale * rng.normal(size=u_true.shape) * np.array([SIG_V, SIG_W]) / np.sqrt(DT)
+        zn = z_true + sig_scale * rng.normal(size=z_true.shape) * np.array([SIG_R, SIG_B])
+        lg = merge_events(t_in, un, mt, zn, ids, K=8)
+        us.append(lg.u)
+        zs.append(lg.z)
+    return base, np.array(us), np.array(zs)
+
+
+def _params(dtype=jnp.float64, p0=1e-8):
+    return P.PlanarParams(
+        M_c=jnp.diag(jnp.asarray([SIG_V**2, SIG_W**2], dtype)),
+        Q_floor=jnp.zeros((3, 3), dtype),
+        R=jnp.diag(jnp.asarray([SIG_R**2, SIG_B**2], dtype)),
+        P0=jnp.eye(3, dtype=dtype) * p0,
+    )
+
+
+# ---------------------------------------------------------------------------
+# Jacobian oracles (hand-derived) against the autodiff the engine uses
+# ---------------------------------------------------------------------------
+
+def test_unicycle_jacobians_hand_vs_jacfwd():
+    s = jnp.array([1.0, -2.0, 0.7])
+    for u, dt in ((jnp.array([0.8, 0.3]), 0.2), (jnp.array([0.5, 0.0]), 0.1)):
+        F, Ju = jax.jacfwd(planar.unicycle, argnums=(0, 1))(s, u, dt)
+        v, w = float(u[0]), float(u[1])
+        phi = float(s[2])
+        if w != 0.0:
+            a = phi + w * dt
+            F_h = np.array([[1, 0, v / w * (np.cos(a) - np.cos(phi))],
+                            [0, 1, v / w * (np.sin(a) - np.sin(phi))], [0, 0, 1]])
+            Ju_h = np.array([
+                [(np.sin(a) - np.sin(phi)) / w, v * (np.cos(a) * dt / w - (np.sin(a) - np.sin(phi)) / w**2)],
+                [-(np.cos(a) - np.cos(phi)) / w, v * (np.sin(a) * dt / w + (np.cos(a) - np.cos(phi)) / w**2)],
+                [0, dt]])
+        else:  # straight line; ∂/∂ω from the limit: (−½ v dt² sin φ, ½ v dt² cos φ)
+            F_h = np.array([[1, 0, -v * dt * np.sin(phi)], [0, 1, v * dt * np.cos(phi)], [0, 0, 1]])
+            Ju_h = np.array([[dt * np.cos(phi), -0.5 * v * dt**2 * np.sin(phi)],
+                             [dt * np.sin(phi), 0.5 * v * dt**2 * np.cos(phi)], [0, dt]])
+        np.testing.assert_allclose(np.asarray(F), F_h, atol=1e-12)
+        np.testing.assert_allclose(np.asarray(Ju), Ju_h, atol=1e-9)
+
+
+def test_ackermann_jacobian_hand_vs_jacfwd():
+    g = planar.VICTORIA_PARK
+    s = jnp.array([3.0, 1.0, -0.4])
+    u = jnp.array([4.0, 0.15])
+    dt = 0.025
+    F = np.asarray(jax.jacfwd(planar.ackermann)(s, u, dt))
+    ve, al = 4.0, 0.15
+    vc = ve / (1 - np.tan(al) * g.H / g.L)
+    k = vc / g.L * np.tan(al)
+    c, sn = np.cos(-0.4), np.sin(-0.4)
+    F_h = np.eye(3)
+    F_h[0, 2] = dt * (-vc * sn - k * (g.a * c - g.b * sn))
+    F_h[1, 2] = dt * (vc * c + k * (-g.a * sn - g.b * c))
+    np.testing.assert_allclose(F, F_h, atol=1e-12)
+
+
+def test_range_bearing_jacobians_hand_vs_jacfwd():
+    s = jnp.array([1.0, 2.0, 0.3])
+    lm = jnp.array([4.0, -1.0])
+    Hs, Hl = jax.jacfwd(P.safe_observe, argnums=(0, 1))(s, lm)
+    dx, dy = 3.0, -3.0
+    q = dx * dx + dy * dy
+    r = np.sqrt(q)
+    Hl_h = np.array([[dx / r, dy / r], [-dy / q, dx / q]])
+    Hs_h = np.concatenate([-Hl_h, np.array([[0.0], [-1.0]])], axis=1)
+    np.testing.assert_allclose(np.asarray(Hs), Hs_h, atol=1e-14)
+    np.testing.assert_allclose(np.asarray(Hl), Hl_h, atol=1e-14)
+    # the coincident point has a finite Jacobian (inactive slots at the origin)
+    J0 = jax.jacfwd(P.safe_observe, argnums=(0, 1))(jnp.zeros(3), jnp.zeros(2))
+    assert all(np.all(np.isfinite(np.asarray(j))) for j in J0)
+
+
+# ---------------------------------------------------------------------------
+# Filter behaviour on simulated logs
+# ---------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def scenario():
+    return _scenario()
+
+
+def _run_batch(base, us, zs, cfg, params, pose0):
+    f = jax.vmap(lambda u, z: P.run_arrays(base.dt, u, z, base.ids, base.mask, pose0, params, cfg))
+    return f(jnp.asarray(us), jnp.asarray(zs))
+
+
+def test_monte_carlo_pose_anees_within_bounds(scenario):
+    traj, lms, vis = scenario
+    n_runs = 12
+    base, us, zs = _logs(traj, lms, vis, n_runs)
+    cfg = P.PlanarConfig(motion="unicycle", capacity=16, K=8, association="known")
+    res = _run_batch(base, us, zs, cfg, _params(), jnp.asarray(traj[0]))
+    # truth at each event (events are the input times; measurement times coincide with them)
+    k_of_event = np.rint(base.t / DT).astype(int)
+    truth = traj[k_of_event]
+    err = np.asarray(res.pose) - truth[None]
+    err[..., 2] = _wrap(err[..., 2])
+    nees = np.asarray(metrics.nees(jnp.asarray(err), res.pose_cov))  # (R, T)
+    assert np.all(np.asarray(res.status) == 0)
+    assert np.all(np.asarray(res.active).sum(axis=1) == len(lms))
+    anees = nees[:, 10:].mean(axis=0)  # per event, across runs
+    lo, hi = metrics.anees_bounds(3, n_runs)
+    mean_anees = float(anees.mean())
+    # the time average of per-step ANEES (each a mean of R χ²(3)/R) must sit well inside
+    assert lo < mean_anees < hi, (mean_anees, lo, hi)
+    # and most individual steps inside the per-step 95 % bounds
+    frac = float(np.mean((anees > lo) & (anees < hi)))
+    assert frac > 0.8, frac
+
+
+def test_known_and_nn_agree_on_clean_data(scenario):
+    traj, lms, vis = scenario
+    base, us, zs = _logs(traj, lms, vis, 1, sig_scale=0.05)
+    prm = _params()
+    pose0 = jnp.asarray(traj[0])
+    rk = P.run_arrays(base.dt, us[0], zs[0], base.ids, base.mask, pose0, prm,
+                      P.PlanarConfig(capacity=16, association="known"))
+    rn = P.run_arrays(base.dt, us[0], zs[0], base.ids, base.mask, pose0, prm,
+                      P.PlanarConfig(capacity=16, association="nn"))
+    assert int(rn.active.sum()) == int(rk.active.sum()) == len(lms)
+    assert int(rn.n_rejected.sum()) == 0 and int(rn.n_used.sum()) == int(rk.n_used.sum())
+    np.testing.assert_allclose(np.asarray(rn.pose), np.asarray(rk.pose), atol=1e-9)
+    # same map up to slot order
+    Lk = np.asarray(rk.landmarks)[np.asarray(rk.active)]
+    Ln = np.asarray(rn.landmarks)[np.asarray(rn.active)]
+    d = np.linalg.norm(Lk[:, None] - Ln[None], axis=-1)
+    assert np.all(d.min(axis=1) < 1e-9)
+    # nn slots carry no log id
+    assert np.all(np.asarray(rn.ids)[np.asarray(rn.active)] == -1)
+
+
+def test_bearing_wrap_landmark_behind():
+    """A landmark straight behind: bearings alternate at +π−ε / −π+ε; innovations stay small."""
+    n = 40
+    t = DT * np.arange(n)
+    u = np.zeros((n, 2))
+    eps = 1e-3
+    z = np.stack([np.full(n, 5.0), np.where(np.arange(n) % 2 == 0, np.pi - eps, -np.pi + eps)], 1)
+    log = merge_events(t, u, t, z, np.zeros(n, int), K=1)
+    for assoc in ("known", "nn"):
+        res = P.run(log, jnp.zeros(3), P.PlanarConfig(capacity=4, K=1, association=assoc), _params(p0=1e-4))
+        assert int(res.status) == 0
+        assert int(res.active.sum()) == 1
+        assert int(res.n_used.sum()) == n - 1
+        nis = np.asarray(res.nis)[1:]
+        assert np.all(nis < 1.0), nis.max()
+        np.testing.assert_allclose(np.asarray(res.landmarks)[0], [-5.0, 0.0], atol=0.02)
+        assert abs(float(res.pose[-1, 2])) < 1e-2
+
+
+def test_capacity_overflow_counted_and_flagged(scenario):
+    traj, lms, vis = scenario
+    base, us, zs = _logs(traj, lms, vis, 1)
+    res = P.run(base._replace(u=us[0], z=zs[0]), jnp.asarray(traj[0]),
+                P.PlanarConfig(capacity=4, association="known"), _params())
+    assert int(res.active.sum()) == 4
+    assert int(res.overflow) > 0
+    assert int(res.status) & errors.CAPACITY_OVERFLOW
+    assert np.all(np.isfinite(np.asarray(res.pose)))
+
+
+def test_float32_run_is_finite_and_close(scenario):
+    traj, lms, vis = scenario
+    base, us, zs = _logs(traj, lms, vis, 1)
+    log = base._replace(u=us[0], z=zs[0])
+    r32 = P.run(log, jnp.asarray(traj[0], jnp.float32), P.PlanarConfig(capacity=16),
+                _params(jnp.float32, p0=1e-6))
+    r64 = P.run(log, jnp.asarray(traj[0]), P.PlanarConfig(capacity=16), _params(p0=1e-6))
+    assert r32.pose.dtype == jnp.float32
+    assert np.all(np.isfinite(np.asarray(r32.pose))) and np.all(np.isfinite(np.asarray(r32.pose_cov)))
+    assert int(r32.status) == 0
+    np.testing.assert_allclose(np.asarray(r32.pose[:, :2]), np.asarray(r64.pose[:, :2]), atol=2e-3)
+
+
+def test_limits_and_k_selection_are_counted():
+    n = 5
+    t = DT * np.arange(n)
+    z = np.array([[2.0, 0.1], [9.0, 0.2], [3.0, -0.2], [4.0, 0.3], [1.0, 0.0]])
+    mt = np.zeros(n)
+    log = merge_events(t, np.zeros((n, 2)), mt, z, np.arange(n), K=5)
+    cfg = P.PlanarConfig(capacity=8, K=2, range_max=5.0, range_min=1.5)
+    res = P.run(log, jnp.zeros(3), cfg, _params(p0=1e-4))
+    assert int(res.n_limited.sum()) == 2  # 9 m and 1 m
+    assert int(res.n_meas.sum()) == 3
+    assert int(res.n_dropped.sum()) == 1  # the 4 m row (the two nearest are kept)
+    assert int(res.n_registered.sum()) == 2
+    assert sorted(np.asarray(res.ids)[np.asarray(res.active)].tolist()) == [0, 2]
+
+
+def test_validation_errors():
+    log = merge_events(np.arange(3.0), np.zeros((3, 2)), np.arange(3.0), np.ones((3, 2)), K=1)
+    with pytest.raises(InputError, match="motion"):
+        P.run(log, jnp.zeros(3), P.PlanarConfig(motion="bike"), _params())
+    with pytest.raises(InputError, match="params.R"):
+        P.run(log, jnp.zeros(3), P.PlanarConfig(), _params()._replace(R=jnp.zeros((2, 2))))
+    with pytest.raises(InputError, match="log.u"):
+        P.run(log._replace(u=np.zeros((3, 3))), jnp.zeros(3), P.PlanarConfig(), _params())
