@@ -32,6 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import metrics
+from .events import merge_events
 from ..errors import InputError
 
 __all__ = ["DatasetRun", "run_dataset", "to_json", "timed_run", "dead_reckoning", "evaluate_planar"]
@@ -122,18 +123,25 @@ def evaluate_planar(t_est, est_pose, t_ref, ref, dr_pose=None, lm=None, lm_ids=N
     e_al = e[:, :2] @ R.T + tr
     out = {"ate_m": float(np.sqrt(np.mean(np.sum((e_al - r[:, :2]) ** 2, 1)))),
            "eval_samples": int(t.size)}
-    # RPE over 1 s on a 10 Hz grid.
-    grid = np.arange(t[0], t[-1], 0.1)
-    if grid.size > 12:
-        eg = _resample(grid, t, e)
-        rg = _resample(grid, t, r) if has_heading else np.stack(
-            [np.interp(grid, t, r[:, j]) for j in range(2)], 1)
-        if has_heading:
-            rt, rr = metrics.rpe_se2(eg, rg, lag=10)
+    # RPE over 1 s: poses on a 10 Hz grid; positions-only references (GPS, with gaps) over
+    # pairs of samples 1 ± 0.1 s apart, never across an interpolated gap.
+    if has_heading:
+        grid = np.arange(t[0], t[-1], 0.1)
+        if grid.size > 12:
+            rt, rr = metrics.rpe_se2(_resample(grid, t, e), _resample(grid, t, r), lag=10)
             out["rpe_m"] = float(rt)
             out["rpe_deg"] = float(np.degrees(rr))
-        else:
-            out["rpe_m"] = float(metrics.rpe(eg[:, :2], rg[:, :2], lag=10))
+    else:
+        j = np.searchsorted(t, t + 1.0)
+        ok = j < t.size
+        i = np.nonzero(ok)[0]
+        j = j[ok]
+        ok = np.abs(t[j] - t[i] - 1.0) <= 0.1
+        i, j = i[ok], j[ok]
+        if i.size:
+            de = (e[j, :2] - e[i, :2]) - (r[j, :2] - r[i, :2])
+            out["rpe_m"] = float(np.sqrt(np.mean(np.sum(de ** 2, 1))))
+            out["rpe_pairs"] = int(i.size)
     dr_al = None
     if d is not None:
         Rd, td, _ = metrics.umeyama(d[:, :2], r[:, :2])
@@ -364,3 +372,142 @@ def run_plaza_dataset(data_dir, robot=1, filter="ekf", ids="known", anchors=None
                                        "+ common range bias", sequence=robot, anchors=anchors),
                       m, counts, {"load_s": load_s, "compile_s": comp_s, "run_s": run_s},
                       dict(d.report), ev, (log.t, est[:, :2], est[:, 2]), notes)
+
+
+# ---------------------------------------------------------------------------
+# Planar range-bearing SLAM: MRCLAM and Victoria Park
+# ---------------------------------------------------------------------------
+
+def _planar_run(log, pose0, filter, cfg_ekf, prm_ekf, fs_kind, particles, seed, dtype, motion):
+    """Run EKF-SLAM or FastSLAM on a planar log; (pose (T,3), map dict, counts, comp_s, run_s, status, extra)."""
+    if filter == "ekf":
+        from ..systems import planar_ekf_slam as pe
+
+        prm = jax.tree_util.tree_map(lambda a: None if a is None else jnp.asarray(a, dtype), prm_ekf)
+        p0 = jnp.asarray(pose0, dtype)
+        res, comp_s, run_s = timed_run(lambda: pe.run(log, p0, cfg_ekf, prm))
+        act = np.asarray(res.active)
+        lm = {"xy": np.asarray(res.landmarks, np.float64)[act], "ids": np.asarray(res.ids)[act],
+              "cov": np.asarray(res.landmark_covs, np.float64)[act]}
+        counts = {"measurements": int(np.sum(np.asarray(res.n_meas)) + np.sum(np.asarray(res.n_limited))),
+                  "used": int(np.sum(np.asarray(res.n_used))), "gated": int(np.sum(np.asarray(res.n_gated))),
+                  "rejected": int(np.sum(np.asarray(res.n_rejected))),
+                  "registered": int(np.sum(np.asarray(res.n_registered))),
+                  "outside_limits": int(np.sum(np.asarray(res.n_limited))),
+                  "dropped_beyond_K": int(np.sum(np.asarray(res.n_dropped))),
+                  "landmarks_mapped": int(act.sum()), "overflow": int(res.overflow)}
+        for k in ("n_pruned",):
+            if hasattr(res, k):
+                counts["pruned"] = int(np.sum(np.asarray(getattr(res, k))))
+        return np.asarray(res.pose, np.float64), lm, counts, comp_s, run_s, res.status
+    from ..systems import planar_fastslam as pf
+
+    cfg, prm = fs_kind(particles)
+    prm = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), prm)
+    key = jax.random.PRNGKey(seed)
+    p0 = jnp.asarray(pose0, dtype)
+    res, comp_s, run_s = timed_run(lambda: pf.run(key, log, p0, cfg, prm))
+    mp = res.map
+    act = np.asarray(mp.active)
+    lm = {"xy": np.asarray(mp.mean, np.float64)[act], "ids": np.asarray(mp.ids)[act],
+          "cov": np.asarray(mp.cov, np.float64)[act]}
+    counts = {"measurements": int(np.sum(log.mask)), "used": int(np.sum(np.asarray(res.used))),
+              "gated": int(np.sum(np.asarray(res.gated))), "rejected": 0,
+              "registered": int(np.sum(np.asarray(res.registered))),
+              "landmarks_mapped": int(act.sum()), "overflow": int(res.overflow),
+              "resamples": int(res.resamples)}
+    return np.asarray(res.pose_mean, np.float64), lm, counts, comp_s, run_s, res.status
+
+
+@_register("mrclam")
+def run_mrclam(data_dir, robot=1, filter="ekf", ids="known", anchors=None, particles=None, seed=0,
+               dtype=np.float64, verbose=False, tof=False):
+    """UTIAS MRCLAM (as shipped: dataset 6): unicycle odometry + range-bearing to barcoded landmarks."""
+    from ..dynamics import planar
+    from ..systems import planar_ekf_slam as pe
+    from .mrclam import load_mrclam
+
+    if anchors is not None or tof:
+        raise InputError("mrclam: --anchors/--tof do not apply (landmarks are mapped by SLAM)")
+    t0 = time.perf_counter()
+    d = load_mrclam(data_dir, robot)
+    # Evaluate (and run) where ground truth exists: robot 1's GT stops at +771.9 s.
+    log = merge_events(d.odom_t, d.odom, d.meas_t, d.meas, d.meas_id, K=8, input_mode="rate",
+                       t_end=float(d.gt_t[-1]))
+    load_s = time.perf_counter() - t0
+    pose0 = metrics.interp_poses(log.t[:1], d.gt_t, d.gt)[0]
+    assoc = "known" if ids == "known" else "nn"
+    pose, lm, counts, comp_s, run_s, status = _planar_run(
+        log, pose0, filter, pe.mrclam_config(association=assoc), pe.mrclam_params(robot, dtype=dtype),
+        lambda n: _mrclam_fastslam(robot, n, assoc), particles, seed, dtype, "unicycle")
+    dr = np.asarray(dead_reckoning(planar.unicycle, jnp.asarray(pose0), log.u, log.dt))
+    m, ev = evaluate_planar(log.t, pose, d.gt_t, d.gt, dr_pose=dr, lm=lm["xy"],
+                            lm_ids=lm["ids"] if assoc == "known" else None, lm_cov=lm["cov"],
+                            lm_true=d.landmark_xy if assoc == "known" else None,
+                            lm_true_ids=d.landmark_id, ref_label="Vicon ground truth", at_ref_times=True)
+    if assoc != "known":
+        ev["lm_true_xy"] = np.asarray(d.landmark_xy)
+    counts = _counts_common(status, counts)
+    setting = (f"robot {robot}, {'known ids' if assoc == 'known' else 'ids hidden (Mahalanobis NN)'}, "
+               f"{log.stats['n_events']} events")
+    cfg = _config("mrclam", filter, dtype, setting, robot=robot, ids=ids,
+                  particles=particles if filter == "fastslam" else None, seed=seed)
+    notes = [f"evaluated at the {m['eval_samples']} ground-truth samples inside the run"]
+    return DatasetRun("mrclam", cfg, m, counts, {"load_s": load_s, "compile_s": comp_s, "run_s": run_s},
+                      dict(d.report), ev, (log.t, pose[:, :2], pose[:, 2]), notes)
+
+
+def _mrclam_fastslam(robot, n, assoc):
+    from ..systems import planar_fastslam as pf
+
+    return pf.mrclam_setup(robot, n_particles=n, association=assoc)
+
+
+@_register("victoria-park")
+def run_victoria_park(data_dir, robot=1, filter="ekf", ids="known", anchors=None, particles=None, seed=0,
+                      dtype=np.float64, verbose=False, tof=False):
+    """ACFR Victoria Park: Ackermann car, laser tree detections, unknown association, GPS reference."""
+    from ..dynamics import planar
+    from ..systems import planar_ekf_slam as pe
+    from .victoria_park import load_victoria_park
+
+    if anchors is not None or tof or ids != "known" or robot != 1:
+        raise InputError("victoria-park: --robot/--ids/--anchors/--tof do not apply "
+                         "(association is always unknown)")
+    t0 = time.perf_counter()
+    d = load_victoria_park(data_dir)
+    log = merge_events(d.input_t, d.inputs, d.det_t, d.det, K=None, input_mode="rate")
+    load_s = time.perf_counter() - t0
+    pose0 = np.zeros(3)
+    pose, lm, counts, comp_s, run_s, status = _planar_run(
+        log, pose0, filter, pe.victoria_park_config(), pe.victoria_park_params(dtype=dtype),
+        lambda n: _vp_fastslam(n), particles, seed, dtype, "ackermann")
+    geom = d.geometry
+    dr = np.asarray(dead_reckoning(lambda s, u, dt: planar.ackermann(s, u, dt, geom), jnp.asarray(pose0),
+                                   log.u, log.dt))
+    m, ev = evaluate_planar(log.t, pose, d.gps_t, d.gps, dr_pose=dr, lm=lm["xy"], lm_cov=lm["cov"],
+                            ref_label="GPS", at_ref_times=True)
+    # GPS quality: a fix that implies a speed above 8 m/s from either neighbour (the car's top
+    # speed is 6.6 m/s, data README §2) is a GPS jump; the ATE over the remaining fixes is
+    # reported beside the ATE over all fixes (which stays the headline figure).
+    tg, gx = np.asarray(ev["t"]), np.asarray(ev["ref_xy"])
+    v = np.hypot(*np.diff(gx, axis=0).T) / np.maximum(np.diff(tg), 1e-3)
+    jump = np.zeros(tg.size, bool)
+    jump[1:] |= v > 8.0
+    jump[:-1] |= v > 8.0
+    m["ate_gps_jumps_removed_m"] = float(metrics.ate(ev["est_xy"][~jump], gx[~jump]))
+    m["gps_fixes_removed"] = int(jump.sum())
+    counts = _counts_common(status, counts)
+    cfg = _config("victoria-park", filter, dtype, f"unknown association, {log.stats['n_events']} events",
+                  particles=particles if filter == "fastslam" else None, seed=seed)
+    notes = [f"ATE against the {m['eval_samples']} GPS fixes (SE(2)-aligned); GPS has no heading, so "
+             "rpe_m is translational, over pairs of fixes 1 ± 0.1 s apart"]
+    return DatasetRun("victoria-park", cfg, m, counts,
+                      {"load_s": load_s, "compile_s": comp_s, "run_s": run_s},
+                      dict(d.report), ev, (log.t, pose[:, :2], pose[:, 2]), notes)
+
+
+def _vp_fastslam(n):
+    from ..systems import planar_fastslam as pf
+
+    return pf.victoria_park_setup(n_particles=n)

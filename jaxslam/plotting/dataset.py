@@ -28,8 +28,9 @@ def plot_run(run, directory, name=None):
     paths = []
     fig, ax = p.subplots(figsize=(8, 7))
     ref, est = np.asarray(ev["ref_xy"]), np.asarray(ev["est_xy"])
-    ax.plot(ref[:, 0], ref[:, 1], "k-" if ref.shape[0] > 2000 else "k.-", lw=0.8, ms=2,
-            label=ev["ref_label"])
+    # Sparse references with gaps (GPS) as dots: a line would invent a path across a dropout.
+    ax.plot(ref[:, 0], ref[:, 1], "k." if "GPS" in ev["ref_label"] and ref.shape[1] == 2 and
+            run.dataset == "victoria-park" else "k-", lw=0.8, ms=1.5, label=ev["ref_label"])
     ax.plot(est[:, 0], est[:, 1], "C1-", lw=1.0, label=f"{run.config['filter']} estimate "
             f"(ATE {run.metrics['ate_m']:.3f} m)")
     if ev.get("dr_xy") is not None:
@@ -52,7 +53,7 @@ def plot_run(run, directory, name=None):
     ax.set_aspect("equal", adjustable="datalim")
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
-    ax.set_title(f"{run.dataset}: {ev['frame_note']}")
+    ax.set_title(f"{run.dataset} ({run.config['setting']})\n{ev['frame_note']}", fontsize=9)
     ax.grid(alpha=0.3)
     ax.legend(loc="best", fontsize=8)
     paths.append(save(fig, directory, f"{name}_path"))

@@ -1,0 +1,83 @@
+"""``jaxslam dataset``: end-to-end on the committed excerpts, bad files, and the JSON/TUM outputs.
+
+The excerpts are seconds long, so these runs check the plumbing (loader → event log →
+system → evaluation → JSON, plots, TUM), not accuracy; the accuracy figures come from the
+full logs (tests/data_loaders/test_data_full.py for the loaders; docs/datasets.md for the
+runs, reproduced by scripts/reproduce_datasets.py).
+"""
+
+import json
+import pathlib
+
+import numpy as np
+import pytest
+
+from jaxslam import cli, metrics
+
+DATA = pathlib.Path(__file__).resolve().parent / "data"
+BAD = DATA / "bad"
+
+
+def _run(argv, capsys):
+    rc = cli.main(argv)
+    out = capsys.readouterr()
+    return rc, out.out, out.err
+
+
+@pytest.mark.parametrize("argv", [
+    ["mrclam", "--robot", "1"],
+    ["plaza", "--robot", "2"],
+    ["util-uwb", "--tof"],
+])
+def test_dataset_runs_on_excerpts_and_writes_outputs(tmp_path, capsys, argv):
+    js = tmp_path / "out.json"
+    tum = tmp_path / "traj.txt"
+    rc, out, err = _run(["dataset", *argv, "--data", str(DATA), "--json", str(js), "--tum", str(tum),
+                         "--plots", str(tmp_path / "plots")], capsys)
+    assert rc == 0, err
+    doc = json.loads(js.read_text())
+    assert doc["dataset"] == argv[0]
+    for key in ("config", "metrics", "counts", "timing"):
+        assert key in doc
+    assert np.isfinite(doc["metrics"]["ate_m"]) and doc["metrics"]["ate_m"] >= 0
+    c = doc["counts"]
+    assert c["measurements"] > 0 and c["used"] + c["gated"] <= c["measurements"]
+    assert doc["timing"]["run_s"] > 0
+    t, p, q = metrics.read_tum(tum)
+    assert np.all(np.diff(t) >= 0) and np.all(np.isfinite(p))
+    np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, atol=1e-6)
+    assert len(list((tmp_path / "plots").glob("*.png"))) == 2
+    assert "ate_m" in out
+
+
+def test_dataset_victoria_park_excerpt(tmp_path, capsys):
+    rc, out, err = _run(["dataset", "victoria-park", "--data", str(DATA), "--float32",
+                         "--json", str(tmp_path / "vp.json")], capsys)
+    assert rc == 0, err
+    doc = json.loads((tmp_path / "vp.json").read_text())
+    assert doc["config"]["dtype"] == "float32"
+    assert doc["counts"]["landmarks_mapped"] > 0
+    assert doc["counts"]["measurements"] >= doc["counts"]["used"]
+
+
+@pytest.mark.parametrize("case, needle", [
+    ("mrclam_truncated", "Robot1_"),
+    ("victoria_park_columns", ".dat:"),
+    ("plaza_backwards", "Plaza"),
+    ("util_nonnumeric", ".csv:"),
+])
+def test_dataset_bad_input_is_one_line_exit_2(capsys, case, needle):
+    name = {"mrclam": "mrclam", "victoria": "victoria-park", "plaza": "plaza", "util": "util-uwb"}[case.split("_")[0]]
+    rc, out, err = _run(["dataset", name, "--data", str(BAD / case)], capsys)
+    assert rc == 2
+    line = err.strip()
+    assert "\n" not in line and needle in line and "Traceback" not in line
+    # the message carries file:line
+    assert any(part.strip().isdigit() for part in line.split(":"))
+
+
+def test_dataset_option_misuse_is_an_input_error(capsys):
+    rc, _, err = _run(["dataset", "plaza", "--data", str(DATA), "--robot", "3"], capsys)
+    assert rc == 2 and "1 or 2" in err
+    rc, _, err = _run(["dataset", "util-uwb", "--data", str(DATA), "--filter", "fastslam"], capsys)
+    assert rc == 2 and "ekf" in err
