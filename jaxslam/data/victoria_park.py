@@ -48,25 +48,12 @@ from typing import NamedTuple
 
 import numpy as np
 
+from ..dynamics.planar import AckermannGeometry  # the model's geometry, one definition
 from .textfile import read_table, resolve_dataset_dir
 
 __all__ = ["AckermannGeometry", "VictoriaParkData", "load_victoria_park", "FILES"]
 
 FILES = {"inputs": "inputs.dat", "measurements": "measurements.dat", "gps": "gps.dat"}
-
-
-class AckermannGeometry(NamedTuple):
-    """Victoria Park vehicle geometry [m] (RFS-SLAM / ACFR Ute model).
-
-    L: wheel base (front to rear axle); H: lateral offset of the rear-left
-    encoder wheel from the centreline; a: forward offset of the laser from the
-    rear-axle centre; b: lateral offset of the laser.
-    """
-
-    L: float = 2.83
-    H: float = 0.76
-    a: float = 3.78
-    b: float = 0.50
 
 
 class VictoriaParkData(NamedTuple):
