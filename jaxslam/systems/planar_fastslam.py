@@ -1,0 +1,481 @@
+"""2D range-bearing FastSLAM 1.0 on real logs (UTIAS MRCLAM, Victoria Park; issue 9).
+
+A *system* module: it plugs the planar motion models (:mod:`jaxslam.dynamics.planar`) and
+the 2D range-bearing sensor (:mod:`jaxslam.sensors.range_bearing2d`) into the one particle
+core (:mod:`jaxslam.filters.fastslam`).  Nothing here is a filter of its own.
+
+A whole log is one jitted ``lax.scan`` over the events of an
+:class:`~jaxslam.data.events.EventLog`.  Event k:
+
+1. **Propagate** every particle over ``dt_k`` with the input ``u_k``
+   (:func:`jaxslam.filters.fastslam.propagate`): ``s' = f(s, u, Δt) + J_u δu + w`` with
+   ``δu ~ N(0, M)``, ``M = M_c/Δt`` for held rates (:func:`planar.step_input_cov`; M_c a
+   density, so the pose noise ``J_u M J_uᵀ`` scales with Δt and splitting an interval at a
+   measurement time leaves it unchanged), ``M = M_c`` on input events of ``"increment"``
+   logs (0 on measurement-only events), and ``w ~ N(0, diag(q)·Δt)`` a pose-noise floor
+   (``q`` a density; per increment for ``"increment"``).  The input noise is pushed through
+   the Jacobian ``J_u = ∂f/∂u`` (``jax.jacfwd``) rather than through ``f`` itself: with
+   ``M = M_c/Δt`` a very short interval draws a very large δu, which ``tan α`` of the
+   Ackermann model would not survive; to first order the two are the same.
+2. Only on events with a measurement (``lax.cond``; on the CPU an always-on update costs
+   the update on every odometry event): **associate**, **update** the landmark EKFs and
+   weights (:func:`fastslam.observe_update`), and **resample** when ``N_eff < threshold·N``
+   (:func:`fastslam.maybe_resample`).
+
+Data association (``Config.association``):
+
+* ``"known"``: the log's ids (MRCLAM barcodes mapped to landmark numbers), shared by all
+  particles, straight into the core.  With ``slot_by_id`` (default) id j lives in slot j
+  (ids ≥ capacity are counted as capacity overflow).
+* ``"ml"``: per-particle maximum likelihood (Montemerlo et al. 2002, FastSLAM 1.0 with
+  unknown association).  Each particle compares each detection of the event with every
+  landmark of *its own* map by the Mahalanobis distance ``d² = νᵀ S⁻¹ ν``,
+  ``S = H Σ Hᵀ + R`` (the same S as the landmark update), against the map as it was before
+  the event: ``d²_min ≤ gate`` → that landmark; ``d²_min > new_threshold`` (or an empty map)
+  → a new landmark with the next id of the particle's own counter; in between → ignored
+  (counted in ``gated``).  Ids are the particle's registration order, so id j lives in slot
+  j (the core's ``slot_by_id``).  The per-particle ids go into the core by ``vmap``-ing
+  :func:`fastslam.observe_update` over particles (each particle a one-particle set); the
+  log-likelihoods it returns are then added to the whole set's weights with
+  :func:`fastslam.reweight`, together with ``Params.log_p_new`` per new landmark (the
+  likelihood charged for "this is a new landmark"; 0 is the core's convention).  No core
+  change was needed.
+
+Each particle also counts how often each of its landmarks was used (``aux``, resampled with
+the particle): the result reports the best particle's counts, so a map can be filtered by
+the number of observations (Victoria Park's tree detector has false positives; no landmark
+is ever deleted here).
+
+Results are pure functions of ``(key, log, pose0, config, params)``; ``config`` is static
+(hashable), ``params`` traced (float32 or float64 follows ``pose0``'s dtype).
+"""
+
+from __future__ import annotations
+
+import math
+
+from typing import Any, NamedTuple, Optional
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..data.events import EventLog
+from ..dynamics import planar
+from ..errors import InputError
+from ..filters import fastslam as fs
+from ..linalg import wrap_angle
+from ..sensors import range_bearing2d as rb
+
+__all__ = [
+    "ANGLE_MASK",
+    "MODEL",
+    "Config",
+    "Params",
+    "Result",
+    "default_params",
+    "mrclam_setup",
+    "victoria_park_setup",
+    "motion_fn",
+    "associate_ml",
+    "run",
+]
+
+Array = Any
+
+ANGLE_MASK = (False, False, True)
+"""Pose (x, y, φ): φ is an angle."""
+
+MODEL = fs.LandmarkModel(lm_dim=2, meas_dim=2, observe=rb.observe, inverse=rb.inverse,
+                         residual=rb.residual)
+"""The 2D range-bearing landmark model of the particle core."""
+
+_MOTIONS = ("unicycle", "ackermann", "increment")
+_ASSOC = ("known", "ml")
+
+
+class Config(NamedTuple):
+    """Static choices (hashable; a change recompiles).
+
+    motion: "unicycle" (u = (v, ω) held rates, MRCLAM) | "ackermann" (u = (v_e, α) held,
+        Victoria Park, ``geometry``) | "increment" (u = (d, dθ) per input event).
+    n_particles: N.
+    capacity: landmark slots per particle.
+    K: measurement rows per event the run expects (must equal the log's K).
+    association: "known" | "ml" (module docstring).
+    gate: chi-square threshold on d² (2 dof).  "ml": association gate (default 9.21, 99 %).
+        "known": the core's NIS gate (None = no gate).
+    new_threshold: "ml" only: d²_min above which a detection starts a new landmark
+        (default 13.8, 99.9 %); must be ≥ gate.
+    resample_threshold: resample when N_eff < threshold·N; None resamples at every update.
+    weights: the core's weights, "exact" (log N(ν; 0, S)) or "mean" (log N(ν; 0, R)).
+    slot_by_id: "known" only: id j in slot j (default); False = first free slot.
+    geometry: Ackermann geometry (``planar.VICTORIA_PARK``).
+    """
+
+    motion: str = "unicycle"
+    n_particles: int = 100
+    capacity: int = 32
+    K: int = 1
+    association: str = "known"
+    gate: Optional[float] = None
+    new_threshold: float = 13.8
+    resample_threshold: Optional[float] = 0.5
+    weights: str = "exact"
+    slot_by_id: bool = True
+    geometry: planar.AckermannGeometry = planar.VICTORIA_PARK
+
+
+class Params(NamedTuple):
+    """Traced numbers (differentiable leaves).
+
+    M_c: (2, 2) input-noise density [(m/s)²·s, (rad/s)²·s] for held rates (for
+        "ackermann": speed (m/s)²·s, steering rad²·s); per-increment covariance for
+        "increment".
+    pose_floor: (3,) pose-noise floor density [m²/s, m²/s, rad²/s] (per increment for
+        "increment").
+    R: (2, 2) range-bearing measurement covariance [m², rad²].
+    P0: (3, 3) covariance of the initial particle cloud around ``pose0``.
+    log_p_new: () log-likelihood charged per new landmark ("ml"; 0 = core convention).
+    """
+
+    M_c: Array
+    pose_floor: Array
+    R: Array
+    P0: Array
+    log_p_new: Array
+
+
+class Result(NamedTuple):
+    """Output of :func:`run` (T events, cap slots).
+
+    pose_mean: (T, 3) weighted mean pose after each event (circular mean of φ).
+    pose_best: (T, 3) pose of the highest-weight particle after each event.
+    neff: (T,) N_eff after each event (before a resampling of that event).
+    map: :class:`jaxslam.filters.fastslam.LandmarkMap` of the final best particle.
+    n_obs: (cap,) int32 updates + registration of each slot of that particle.
+    used, registered, gated: () measurements that updated a landmark / registered one /
+        were gated (or, "ml", fell between gate and new_threshold), summed over the run
+        and averaged over particles.
+    overflow: () int32 measurements of new landmarks that found no slot (max over particles).
+    resamples: () int32 resampling events.  underflow: () int32 weight-underflow recoveries.
+    status: () int32 :mod:`jaxslam.errors` bit flags.
+    log_marginal: () Σ of the core's incremental log marginal likelihoods ("known"; for
+        "ml" the per-particle sum without the new-landmark term).
+    particles: final :class:`jaxslam.filters.fastslam.Particles`.
+    """
+
+    pose_mean: Array
+    pose_best: Array
+    neff: Array
+    map: Any
+    n_obs: Array
+    used: Array
+    registered: Array
+    gated: Array
+    overflow: Array
+    resamples: Array
+    underflow: Array
+    status: Array
+    log_marginal: Array
+    particles: Any
+
+
+def default_params(sigma_r: float = 0.1, sigma_b: float = 0.01, sigma_v: float = 0.05,
+                   sigma_w: float = 0.05, floor: tuple = (1e-6, 1e-6, 1e-6),
+                   pose0_sigma: tuple = (0.01, 0.01, 0.005), log_p_new: float = 0.0,
+                   dtype=None) -> Params:
+    """Params from standard deviations (``sigma_v``/``sigma_w`` are input-noise *density*
+    roots, e.g. m/s·√s; defaults are placeholders, the dev script states its sources)."""
+    f = (lambda x: jnp.asarray(x, dtype)) if dtype is not None else jnp.asarray
+    return Params(
+        M_c=f(np.diag([sigma_v ** 2, sigma_w ** 2])),
+        pose_floor=f(np.asarray(floor, float)),
+        R=f(np.diag([sigma_r ** 2, sigma_b ** 2])),
+        P0=f(np.diag(np.square(np.asarray(pose0_sigma, float)))),
+        log_p_new=f(float(log_p_new)),
+    )
+
+
+def mrclam_setup(robot: int = 1, n_particles: int = 100, association: str = "known", K: int = 8,
+                 dtype=None):
+    """(Config, Params) for UTIAS MRCLAM (dataset 6 figures in docs/datasets.md).
+
+    Known ids use ``slot_by_id``: the caller maps subjects 6–20 to ids 0–14 (capacity 15);
+    hidden ids ("ml") get capacity 32.  R = diag(σ_r², σ_β²) with σ = 1.4826·MAD of the
+    landmark residuals against ground truth (data README §5; the EKF preset's constants);
+    input-noise densities σ_v = 0.03 m/s·√s, σ_ω = 0.05 rad/s·√s and pose floor 1e-4 per s,
+    chosen on robot 1's first 300 s (a sweep over R ×1–16, Q ×1–4 and floors 1e-5–1e-3
+    changed the median ATE by less than the spread between seeds there).
+    """
+    from .planar_ekf_slam import MRCLAM_BEARING_SIGMA, MRCLAM_RANGE_SIGMA
+
+    cap = 15 if association == "known" else 32
+    cfg = Config(motion="unicycle", n_particles=int(n_particles), capacity=cap, K=int(K),
+                 association=association)
+    prm = default_params(sigma_r=MRCLAM_RANGE_SIGMA[int(robot)], sigma_b=MRCLAM_BEARING_SIGMA[int(robot)],
+                         sigma_v=0.03, sigma_w=0.05, floor=(1e-4,) * 3, pose0_sigma=(1e-3, 1e-3, 1e-3),
+                         dtype=dtype)
+    return cfg, prm
+
+
+def victoria_park_setup(n_particles: int = 50, capacity: int = 768, K: int = 17, dtype=None):
+    """(Config, Params) for Victoria Park with per-particle ML association.
+
+    The EKF preset's noise (σ_v 0.7 m/s·√s, σ_α 0.06 rad·√s, σ_r 1 m, σ_β 1.5°, chosen on the
+    first 500 s), gate χ²(2) 99 % = 9.21, new-landmark threshold 13.8 (99.9 %); detections
+    limited to 5–40 m by the caller (K = 17 is the most such detections in one scan).
+    """
+    cfg = Config(motion="ackermann", n_particles=int(n_particles), capacity=int(capacity), K=int(K),
+                 association="ml", gate=9.21, new_threshold=13.8)
+    prm = default_params(sigma_r=1.0, sigma_b=math.radians(1.5), sigma_v=0.7, sigma_w=0.06,
+                         floor=(0.0, 0.0, 0.0), pose0_sigma=(1e-3, 1e-3, 1e-3), dtype=dtype)
+    return cfg, prm
+
+
+def motion_fn(config: Config):
+    """The motion model ``f(s, u, dt)`` of ``config.motion``."""
+    if config.motion == "unicycle":
+        return planar.unicycle
+    if config.motion == "ackermann":
+        geom = config.geometry
+        return lambda s, u, dt: planar.ackermann(s, u, dt, geom)
+    if config.motion == "increment":
+        return planar.odometry_increment
+    raise InputError(f"config.motion: expected one of {_MOTIONS}, got {config.motion!r}")
+
+
+def _validate(config: Config):
+    if config.motion not in _MOTIONS:
+        raise InputError(f"config.motion: expected one of {_MOTIONS}, got {config.motion!r}")
+    if config.association not in _ASSOC:
+        raise InputError(f"config.association: expected one of {_ASSOC}, got {config.association!r}")
+    if int(config.n_particles) < 1 or int(config.capacity) < 1 or int(config.K) < 1:
+        raise InputError("config: n_particles, capacity and K must be >= 1")
+    if config.association == "ml":
+        g = 9.21 if config.gate is None else float(config.gate)
+        if float(config.new_threshold) < g:
+            raise InputError(f"config.new_threshold ({config.new_threshold}) must be >= gate ({g})")
+
+
+# ---------------------------------------------------------------------------
+# Proposal
+# ---------------------------------------------------------------------------
+
+def _sample_fn(f, increment: bool):
+    def sample(pose, aux, key, u, dt, is_in, L_M, floor):
+        dtype = pose.dtype
+        k1, k2 = jax.random.split(key)
+        mean = f(pose, u, dt)
+        Ju = jax.jacfwd(lambda uu: f(pose, uu, dt))(u)
+        e1 = jax.random.normal(k1, (L_M.shape[0],), dtype)
+        e2 = jax.random.normal(k2, (3,), dtype)
+        if increment:
+            s_u = jnp.where(is_in, jnp.ones((), dtype), jnp.zeros((), dtype))
+            s_f = s_u
+        else:
+            pos = dt > 0
+            s_u = jnp.where(pos, jax.lax.rsqrt(jnp.where(pos, dt, jnp.ones((), dtype))),
+                            jnp.zeros((), dtype))
+            s_f = jnp.sqrt(jnp.maximum(dt, jnp.zeros((), dtype)))
+        s = mean + Ju @ (L_M @ e1) * s_u + jnp.sqrt(floor) * s_f * e2
+        return s.at[2].set(wrap_angle(s[2])), aux
+
+    return sample
+
+
+# ---------------------------------------------------------------------------
+# Data association
+# ---------------------------------------------------------------------------
+
+def _inv2(S):
+    det = S[..., 0, 0] * S[..., 1, 1] - S[..., 0, 1] * S[..., 1, 0]
+    adj = jnp.stack([jnp.stack([S[..., 1, 1], -S[..., 0, 1]], -1),
+                     jnp.stack([-S[..., 1, 0], S[..., 0, 0]], -1)], -2)
+    ok = (det > 0) & (S[..., 0, 0] > 0)
+    safe = jnp.where(ok, det, jnp.ones_like(det))
+    return adj / safe[..., None, None], ok
+
+
+def associate_ml(pose, mean, cov, active, counter, z, mask, R, gate, new_threshold):
+    """Maximum-likelihood association of one particle (module docstring).
+
+    Args:
+        pose: (3,).  mean (cap, 2), cov (cap, 2, 2), active (cap,): the particle's map.
+        counter: () int32 next new-landmark id.  z: (K, 2) detections, mask: (K,).
+        R: (2, 2).  gate, new_threshold: d² thresholds.
+
+    Returns:
+        ``(ids (K,) int32 (−1 = not used), counter', is_new (K,), ambiguous (K,))``.
+    """
+    dtype = mean.dtype
+
+    def pred(l):
+        def both(v):
+            y = rb.observe(pose, v)
+            return y, y
+        H, zh = jax.jacfwd(both, has_aux=True)(l)
+        return zh, H
+
+    zhat, H = jax.vmap(pred)(mean)  # (cap, 2), (cap, 2, 2)
+    S = H @ cov @ jnp.swapaxes(H, -1, -2) + R
+    Sinv, ok = _inv2(S)
+    valid = mask & jnp.all(jnp.isfinite(z), axis=1)
+    zs = jnp.where(valid[:, None], z, jnp.zeros((), dtype))
+    nu = jax.vmap(lambda zk: jax.vmap(lambda zh: rb.residual(zk, zh))(zhat))(zs)  # (K, cap, 2)
+    d2 = jnp.einsum("kci,cij,kcj->kc", nu, Sinv, nu)
+    d2 = jnp.where((active & ok)[None, :], d2, jnp.inf)
+    best = jnp.argmin(d2, axis=1).astype(jnp.int32)
+    dmin = jnp.min(d2, axis=1)
+    matched = valid & (dmin <= gate)
+    new = valid & (dmin > new_threshold)
+    amb = valid & ~matched & ~new
+    rank = (jnp.cumsum(new.astype(jnp.int32)) - 1).astype(jnp.int32)
+    ids = jnp.where(matched, best, jnp.where(new, counter + rank, -1)).astype(jnp.int32)
+    return ids, (counter + jnp.sum(new.astype(jnp.int32))).astype(jnp.int32), new, amb
+
+
+def _observe_per_particle(p: fs.Particles, z, ids, mask, R, weights):
+    """The core's observe_update with per-particle ids (N, K): vmap over one-particle sets."""
+    i32 = jnp.int32
+    dtype = p.log_w.dtype
+
+    def one(pose, mean, cov, active, slot_ids, lm_ids):
+        q = fs.Particles(pose=pose[None], aux=(), lm_mean=mean[None], lm_cov=cov[None],
+                         active=active[None], ids=slot_ids[None], log_w=jnp.zeros((1,), dtype),
+                         status=jnp.zeros((), i32), overflow=jnp.zeros((), i32),
+                         underflow=jnp.zeros((), i32), resamples=jnp.zeros((), i32))
+        q2, info = fs.observe_update(q, MODEL, z, lm_ids, mask, R, None, weights=weights,
+                                     gate=None, slot_by_id=True)
+        return (q2.lm_mean[0], q2.lm_cov[0], q2.active[0], q2.ids[0], info.loglik[0],
+                info.used[0], info.registered[0], info.status, q2.overflow)
+
+    mean, cov, active, sids, ll, used, reg, st, ovf = jax.vmap(one)(
+        p.pose, p.lm_mean, p.lm_cov, p.active, p.ids, ids)
+    p = p._replace(lm_mean=mean, lm_cov=cov, active=active, ids=sids,
+                   status=p.status | jnp.bitwise_or.reduce(st),
+                   overflow=p.overflow + jnp.max(ovf))
+    return p, ll, used, reg
+
+
+# ---------------------------------------------------------------------------
+# Run
+# ---------------------------------------------------------------------------
+
+def _log_arrays(log: EventLog, dtype):
+    return (jnp.asarray(log.dt, dtype), jnp.asarray(log.u, dtype),
+            jnp.asarray(log.is_input, bool), jnp.asarray(log.z, dtype),
+            jnp.asarray(log.ids, jnp.int32), jnp.asarray(log.mask, bool))
+
+
+def run(key, log: EventLog, pose0, config: Config, params: Params) -> Result:
+    """A whole log in one jitted ``lax.scan`` (module docstring).
+
+    Args:
+        key: PRNG key.  log: :class:`~jaxslam.data.events.EventLog` with ``u`` (T, 2),
+            ``z`` (T, K, 2) as (range [m], bearing [rad], counter-clockwise from the
+            sensor's forward axis), ``ids`` (T, K) (used by "known" only).
+        pose0: (3,) initial pose (its float dtype sets the run's dtype).
+        config: :class:`Config` (static).  params: :class:`Params`.
+
+    Raises:
+        InputError: bad config, or log shapes that disagree with it.
+    """
+    _validate(config)
+    T = np.shape(log.t)[0]
+    if np.shape(log.u) != (T, 2):
+        raise InputError(f"log.u: expected shape ({T}, 2), got {np.shape(log.u)}")
+    if np.shape(log.z) != (T, int(config.K), 2):
+        raise InputError(f"log.z: expected shape ({T}, {config.K}, 2), got {np.shape(log.z)}")
+    pose0 = jnp.asarray(pose0)
+    if pose0.shape != (3,):
+        raise InputError(f"pose0: expected shape (3,), got {pose0.shape}")
+    dtype = pose0.dtype if jnp.issubdtype(pose0.dtype, jnp.floating) else jnp.result_type(float)
+    params = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), params)
+    return _run(key, _log_arrays(log, dtype), pose0.astype(dtype), params, config)
+
+
+def _run_impl(key, arrays, pose0, params: Params, config: Config) -> Result:
+    dt_a, u_a, isin_a, z_a, ids_a, mask_a = arrays
+    dtype = pose0.dtype
+    N, cap = int(config.n_particles), int(config.capacity)
+    T = dt_a.shape[0]
+    ml = config.association == "ml"
+    f = motion_fn(config)
+    sample = _sample_fn(f, config.motion == "increment")
+    eye2 = jnp.eye(2, dtype=dtype)
+    L_M = jnp.linalg.cholesky(params.M_c + 1e-12 * eye2)
+    L_P0 = jnp.linalg.cholesky(params.P0 + 1e-15 * jnp.eye(3, dtype=dtype))
+    floor = jnp.maximum(params.pose_floor, jnp.zeros((), dtype))
+    R = params.R
+    gate_ml = jnp.asarray(9.21 if config.gate is None else config.gate, dtype)
+    new_thr = jnp.asarray(config.new_threshold, dtype)
+    thr = config.resample_threshold
+
+    k0, k_run = jax.random.split(key)
+    poses0 = pose0[None, :] + jax.random.normal(k0, (N, 3), dtype) @ L_P0.T
+    poses0 = poses0.at[:, 2].set(wrap_angle(poses0[:, 2]))
+    aux0 = (jnp.zeros((N,), jnp.int32), jnp.zeros((N, cap), jnp.int32))
+    p0 = fs.init(poses0, N, cap, 2, aux=aux0, aux_per_particle=True)
+    keys = jax.random.split(k_run, T)
+    zero_i = jnp.zeros((), jnp.int32)
+
+    def update(p, k_res, z, ids, mask):
+        counter, nobs = p.aux
+        if ml:
+            assoc = jax.vmap(associate_ml, in_axes=(0, 0, 0, 0, 0, None, None, None, None, None))
+            pids, counter, _, amb = assoc(p.pose, p.lm_mean, p.lm_cov, p.active, counter,
+                                          z, mask, R, gate_ml, new_thr)
+            p, ll, used, reg = _observe_per_particle(p, z, pids, mask, R, config.weights)
+            n_new = jnp.sum(reg.astype(dtype), axis=1)
+            log_marg = jax.scipy.special.logsumexp(p.log_w + ll)
+            p = fs.reweight(p, ll + n_new * params.log_p_new)
+            gated = amb
+        else:
+            p, info = fs.observe_update(p, MODEL, z, ids, mask, R, None, weights=config.weights,
+                                        gate=config.gate, slot_by_id=config.slot_by_id)
+            pids = jnp.broadcast_to(ids, (N, ids.shape[0]))
+            used, reg, gated = info.used, info.registered, info.gated
+            log_marg = info.log_marginal
+        hit = (used | reg)
+
+        def count(nb, sid_row, slot_row, hit_row):
+            # slot of each measurement: its id with slot_by_id, else look it up
+            if ml or config.slot_by_id:
+                s = jnp.clip(sid_row, 0, cap - 1)
+            else:
+                s = jnp.argmax(slot_row[None, :] == sid_row[:, None], axis=1)
+            return nb.at[s].add(hit_row.astype(jnp.int32))
+
+        nobs = jax.vmap(count)(nobs, pids, p.ids, hit)
+        p = p._replace(aux=(counter, nobs))
+        ne = fs.neff(p)
+        p = fs.maybe_resample(p, k_res, thr)
+        stats = (jnp.sum(used).astype(jnp.int32), jnp.sum(reg).astype(jnp.int32),
+                 jnp.sum(gated).astype(jnp.int32), log_marg)
+        return p, ne, stats
+
+    def skip(p, k_res, z, ids, mask):
+        return p, fs.neff(p), (zero_i, zero_i, zero_i, jnp.zeros((), dtype))
+
+    def body(p, x):
+        dt, u, is_in, z, ids, mask, k = x
+        k_prop, k_res = jax.random.split(k)
+        p = fs.propagate(p, k_prop, sample, u, dt, is_in, L_M, floor)
+        p, ne, stats = jax.lax.cond(jnp.any(mask), update, skip, p, k_res, z, ids, mask)
+        mu, _ = fs.estimate(p, ANGLE_MASK)
+        best = p.pose[jnp.argmax(p.log_w)]
+        return p, (mu, best, ne, stats)
+
+    p, (mu, best, ne, stats) = jax.lax.scan(body, p0, (dt_a, u_a, isin_a, z_a, ids_a, mask_a, keys))
+    n_used, n_reg, n_gated, lm = stats
+    i = jnp.argmax(p.log_w)
+    return Result(
+        pose_mean=mu, pose_best=best, neff=ne, map=fs.best_map(p), n_obs=p.aux[1][i],
+        used=jnp.sum(n_used).astype(dtype) / N, registered=jnp.sum(n_reg).astype(dtype) / N,
+        gated=jnp.sum(n_gated).astype(dtype) / N, overflow=p.overflow, resamples=p.resamples,
+        underflow=p.underflow, status=p.status, log_marginal=jnp.sum(lm), particles=p,
+    )
+
+
+_run = jax.jit(_run_impl, static_argnums=(4,))

@@ -1,0 +1,151 @@
+"""Synthetic tests of the 2D range-bearing FastSLAM system (jaxslam.systems.planar_fastslam)."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxslam import errors
+from jaxslam.data.events import merge_events
+from jaxslam.dynamics import planar
+from jaxslam.errors import InputError
+from jaxslam.sensors import range_bearing2d as rb
+from jaxslam.systems import planar_fastslam as pf
+
+DT_U = 0.05      # odometry period [s]
+DT_Z = 0.25      # measurement period [s]
+DURATION = 40.0  # one loop [s]
+SIG_V, SIG_W = 0.05, 0.05      # per-sample odometry noise (m/s, rad/s)
+SIG_R, SIG_B = 0.05, 0.01      # measurement noise (m, rad)
+MAX_RANGE = 7.0
+
+
+def _landmarks():
+    # 12 landmarks, ≥ 4 m apart, inside and outside a circle of radius ~6.4 m
+    ang = np.linspace(0, 2 * np.pi, 6, endpoint=False)
+    inner = np.stack([3.0 * np.cos(ang), 3.0 * np.sin(ang)], 1)
+    outer = np.stack([10.0 * np.cos(ang + 0.5), 10.0 * np.sin(ang + 0.5)], 1)
+    c = np.array([0.0, 6.37])
+    return np.concatenate([inner, outer]) + c
+
+
+def _simulate(seed, K=12):
+    rng = np.random.default_rng(seed)
+    lms = _landmarks()
+    tu = np.arange(0.0, DURATION, DT_U)
+    u_true = np.stack([np.full(tu.size, 1.0), np.full(tu.size, 2 * np.pi / DURATION)], 1)
+    u_meas = u_true + rng.normal(size=u_true.shape) * [SIG_V, SIG_W]
+    # ground truth at a fine grid (exact arcs with the true inputs)
+    s = np.zeros(3)
+    gt_t, gt = [0.0], [s.copy()]
+    f = jax.jit(planar.unicycle)
+    t_z = np.arange(DT_Z, DURATION, DT_Z)
+    zt, zz, zid = [], [], []
+    all_t = np.union1d(tu, t_z)
+    for k in range(1, all_t.size):
+        j = np.searchsorted(tu, all_t[k - 1], side="right") - 1
+        s = np.asarray(f(jnp.asarray(s), jnp.asarray(u_true[j]), all_t[k] - all_t[k - 1]))
+        gt_t.append(all_t[k])
+        gt.append(s.copy())
+        if np.any(np.isclose(t_z, all_t[k])):
+            for i, l in enumerate(lms):
+                z = np.asarray(rb.observe(jnp.asarray(s), jnp.asarray(l)))
+                if z[0] < MAX_RANGE:
+                    z = z + rng.normal(size=2) * [SIG_R, SIG_B]
+                    zt.append(all_t[k]); zz.append(z); zid.append(i)
+    log = merge_events(tu, u_meas, np.array(zt), np.array(zz), np.array(zid), K=K)
+    return log, np.array(gt_t), np.array(gt), lms, set(zid)
+
+
+@pytest.fixture(scope="module")
+def sim():
+    return _simulate(0)
+
+
+def _params(dtype=None):
+    # M_c = per-sample variance × sample period (density of the held-rate noise)
+    return pf.default_params(sigma_r=SIG_R, sigma_b=SIG_B, sigma_v=SIG_V * np.sqrt(DT_U),
+                             sigma_w=SIG_W * np.sqrt(DT_U), floor=(1e-6, 1e-6, 1e-7),
+                             pose0_sigma=(1e-3, 1e-3, 1e-3), dtype=dtype)
+
+
+def _err(res, log, gt_t, gt):
+    gx = np.interp(log.t, gt_t, gt[:, 0])
+    gy = np.interp(log.t, gt_t, gt[:, 1])
+    est = np.asarray(res.pose_mean)
+    return float(np.sqrt(np.mean((est[:, 0] - gx) ** 2 + (est[:, 1] - gy) ** 2)))
+
+
+def _dead_reckoning_err(log, gt_t, gt):
+    f = jax.jit(planar.unicycle)
+    s, out = jnp.zeros(3), []
+    for k in range(log.t.size):
+        s = f(s, jnp.asarray(log.u[k]), log.dt[k])
+        out.append(np.asarray(s))
+    out = np.array(out)
+    gx = np.interp(log.t, gt_t, gt[:, 0])
+    gy = np.interp(log.t, gt_t, gt[:, 1])
+    return float(np.sqrt(np.mean((out[:, 0] - gx) ** 2 + (out[:, 1] - gy) ** 2)))
+
+
+def test_known_ids_tracks_over_seeds():
+    cfg = pf.Config(motion="unicycle", n_particles=50, capacity=12, K=12, association="known")
+    errs, dr = [], []
+    for seed in range(3):
+        log, gt_t, gt, lms, seen = _simulate(seed)
+        res = pf.run(jax.random.PRNGKey(seed), log, jnp.zeros(3), cfg, _params())
+        errs.append(_err(res, log, gt_t, gt))
+        dr.append(_dead_reckoning_err(log, gt_t, gt))
+        assert int(res.overflow) == 0
+        m = res.map
+        assert int(jnp.sum(m.active)) == len(seen)
+        act = np.asarray(m.active)
+        lm_err = np.linalg.norm(np.asarray(m.mean)[act] - lms[np.asarray(m.ids)[act]], axis=1)
+        assert np.max(lm_err) < 0.3, lm_err
+    assert max(errs) < 0.15, (errs, dr)
+    assert np.median(errs) < 0.5 * np.median(dr), (errs, dr)
+
+
+def test_ml_association_map_size(sim):
+    log, gt_t, gt, lms, seen = sim
+    cfg = pf.Config(motion="unicycle", n_particles=30, capacity=24, K=12, association="ml",
+                    gate=9.21, new_threshold=30.0)
+    res = pf.run(jax.random.PRNGKey(1), log, jnp.zeros(3), cfg, _params())
+    n_map = int(jnp.sum(res.map.active))
+    assert n_map == len(seen), (n_map, len(seen))
+    assert int(res.overflow) == 0
+    assert _err(res, log, gt_t, gt) < 0.2
+    # every mapped landmark lies near a distinct true one
+    act = np.asarray(res.map.active)
+    d = np.linalg.norm(np.asarray(res.map.mean)[act][:, None] - lms[None], axis=2)
+    assert np.max(np.min(d, axis=1)) < 0.3
+    assert len(set(np.argmin(d, axis=1))) == n_map
+    assert int(jnp.sum(res.n_obs)) > 0
+
+
+def test_float32_run_finite(sim):
+    log, gt_t, gt, lms, seen = sim
+    cfg = pf.Config(motion="unicycle", n_particles=20, capacity=12, K=12, association="known")
+    res = pf.run(jax.random.PRNGKey(2), log, jnp.zeros(3, jnp.float32), cfg,
+                 _params(jnp.float32))
+    assert res.pose_mean.dtype == jnp.float32
+    assert bool(jnp.all(jnp.isfinite(res.pose_mean)))
+    assert bool(jnp.all(jnp.isfinite(res.map.mean)))
+    assert _err(res, log, gt_t, gt) < 0.3
+
+
+def test_capacity_overflow_counted(sim):
+    log, gt_t, gt, lms, seen = sim
+    cfg = pf.Config(motion="unicycle", n_particles=10, capacity=4, K=12, association="known")
+    res = pf.run(jax.random.PRNGKey(3), log, jnp.zeros(3), cfg, _params())
+    n_beyond = int(np.sum(log.mask & (log.ids >= 4)))
+    assert int(res.overflow) == n_beyond > 0
+    assert int(res.status) & errors.CAPACITY_OVERFLOW
+
+
+def test_bad_config_rejected(sim):
+    log = sim[0]
+    with pytest.raises(InputError):
+        pf.run(jax.random.PRNGKey(0), log, jnp.zeros(3), pf.Config(K=3), _params())
+    with pytest.raises(InputError):
+        pf.run(jax.random.PRNGKey(0), log, jnp.zeros(3), pf.Config(K=12, motion="bike"), _params())
