@@ -22,7 +22,8 @@ __all__ = ["main"]
 _EPILOG = """\
 datasets (see docs/datasets.md for downloads, formats and measured figures):
   mrclam         UTIAS MRCLAM (dataset 6 as shipped): unicycle odometry, range-bearing to
-                 15 barcoded landmarks, Vicon ground truth; --robot 1..5, --ids known|hidden
+                 15 barcoded landmarks, Vicon ground truth; --robot 1..5, --ids known|hidden,
+                 --calibrated (camera range model + odometry delay from robot 1's first half)
   victoria-park  ACFR Victoria Park: Ackermann car, laser tree detections, unknown
                  association (Mahalanobis gate), GPS as reference
   util-uwb       UTIL UWB TWR flight: constant-velocity range-only EKF with a range-bias
@@ -51,6 +52,10 @@ def _parser():
     p.add_argument("--ids", choices=("known", "hidden"), default="known",
                    help="MRCLAM: use the barcode ids, or hide them and associate by "
                         "Mahalanobis distance (default: known)")
+    p.add_argument("--calibrated", action="store_true",
+                   help="mrclam: correct the camera's bearing-dependent range error and the 0.2 s "
+                        "odometry delay (fitted on the first half of robot 1) and use the matching "
+                        "tight noise")
     p.add_argument("--anchors", choices=("known", "unknown"), default=None,
                    help="util-uwb: surveyed anchors (default) or SLAM after a start-up window; "
                         "plaza: unknown beacons, SLAM (default) or surveyed beacons (localisation)")
@@ -97,7 +102,7 @@ def main(argv) -> int:
 
     dtype = np.dtype(np.float32 if args.float32 else np.float64)
     run = runners.run_dataset(args.name, data, robot=args.robot, filter=args.filter, ids=args.ids,
-                              anchors=args.anchors, tof=args.tof, particles=args.particles, seed=args.seed,
+                              anchors=args.anchors, tof=args.tof, calibrated=args.calibrated, particles=args.particles, seed=args.seed,
                               dtype=dtype, verbose=not args.quiet)
     doc = runners.to_json(run)
     if not args.quiet:

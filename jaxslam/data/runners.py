@@ -222,13 +222,15 @@ def _config(name, filter, dtype, setting, **kw):
 
 @_register("util-uwb")
 def run_util_uwb(data_dir, robot=1, filter="ekf", ids="known", anchors=None, particles=None,
-                 seed=0, dtype=np.float64, verbose=False, tof=False, t_window=30.0):
+                 seed=0, dtype=np.float64, verbose=False, tof=False, t_window=30.0, calibrated=False):
     """UTIL TWR flight: constant-velocity range-only EKF with a bias state (``systems.range_only``).
 
     ``anchors``: "known" (default, surveyed) or "unknown" (SLAM after a start-up
     window); ``tof``: also use the downward laser height (then not range-only).
     """
     anchors = anchors or "known"
+    if calibrated:
+        raise InputError("util-uwb: --calibrated applies to mrclam only")
     from ..systems import range_only as ro
     from .util_uwb import load_util, tag_positions
 
@@ -317,15 +319,15 @@ def run_util_uwb(data_dir, robot=1, filter="ekf", ids="known", anchors=None, par
 
 @_register("plaza")
 def run_plaza_dataset(data_dir, robot=1, filter="ekf", ids="known", anchors=None, particles=None,
-                      seed=0, dtype=np.float64, verbose=False, tof=False):
+                      seed=0, dtype=np.float64, verbose=False, tof=False, calibrated=False):
     """CMU Plaza 1/2 (``--robot`` picks the sequence): odometry + range-only SLAM with a bias state.
 
     ``anchors``: "unknown" (default: SLAM, beacons initialised by delayed
     trilateration) or "known" (localisation against the surveyed beacons).
     """
     anchors = anchors or "unknown"
-    if tof:
-        raise InputError("plaza: --tof applies to util-uwb only")
+    if tof or calibrated:
+        raise InputError("plaza: --tof/--calibrated do not apply")
     from ..dynamics import planar
     from ..systems import range_only as ro
     from .plaza import load_plaza
@@ -428,8 +430,13 @@ def _planar_run(log, pose0, filter, cfg_ekf, prm_ekf, fs_kind, particles, seed, 
 
 @_register("mrclam")
 def run_mrclam(data_dir, robot=1, filter="ekf", ids="known", anchors=None, particles=None, seed=0,
-               dtype=np.float64, verbose=False, tof=False):
-    """UTIAS MRCLAM (as shipped: dataset 6): unicycle odometry + range-bearing to barcoded landmarks."""
+               dtype=np.float64, verbose=False, tof=False, calibrated=False):
+    """UTIAS MRCLAM (as shipped: dataset 6): unicycle odometry + range-bearing to barcoded landmarks.
+
+    ``calibrated``: apply the camera range model and odometry delay fitted on the first half
+    of robot 1 (``planar_ekf_slam.mrclam_log``) with the matching tight noise (EKF preset;
+    FastSLAM keeps its own R).
+    """
     from ..dynamics import planar
     from ..systems import planar_ekf_slam as pe
     from .mrclam import load_mrclam
@@ -438,14 +445,18 @@ def run_mrclam(data_dir, robot=1, filter="ekf", ids="known", anchors=None, parti
         raise InputError("mrclam: --anchors/--tof do not apply (landmarks are mapped by SLAM)")
     t0 = time.perf_counter()
     d = load_mrclam(data_dir, robot)
-    # Evaluate (and run) where ground truth exists: robot 1's GT stops at +771.9 s.
-    log = merge_events(d.odom_t, d.odom, d.meas_t, d.meas, d.meas_id, K=8, input_mode="rate",
-                       t_end=float(d.gt_t[-1]))
+    # Run (and evaluate) where ground truth exists: robot 1's GT stops at +771.9 s.
+    if calibrated:
+        log, _ = pe.mrclam_log(d, K=8)
+    else:
+        log = merge_events(d.odom_t, d.odom, d.meas_t, d.meas, d.meas_id, K=8, input_mode="rate",
+                           t_end=float(d.gt_t[-1]))
     load_s = time.perf_counter() - t0
     pose0 = metrics.interp_poses(log.t[:1], d.gt_t, d.gt)[0]
     assoc = "known" if ids == "known" else "nn"
     pose, lm, counts, comp_s, run_s, status = _planar_run(
-        log, pose0, filter, pe.mrclam_config(association=assoc), pe.mrclam_params(robot, dtype=dtype),
+        log, pose0, filter, pe.mrclam_config(association=assoc, corrected=calibrated),
+        pe.mrclam_params(robot, dtype=dtype, corrected=calibrated),
         lambda n: _mrclam_fastslam(robot, n, assoc), particles, seed, dtype, "unicycle")
     dr = np.asarray(dead_reckoning(planar.unicycle, jnp.asarray(pose0), log.u, log.dt))
     m, ev = evaluate_planar(log.t, pose, d.gt_t, d.gt, dr_pose=dr, lm=lm["xy"],
@@ -456,8 +467,9 @@ def run_mrclam(data_dir, robot=1, filter="ekf", ids="known", anchors=None, parti
         ev["lm_true_xy"] = np.asarray(d.landmark_xy)
     counts = _counts_common(status, counts)
     setting = (f"robot {robot}, {'known ids' if assoc == 'known' else 'ids hidden (Mahalanobis NN)'}, "
+               f"{'calibrated camera/odometry model' if calibrated else 'raw log'}, "
                f"{log.stats['n_events']} events")
-    cfg = _config("mrclam", filter, dtype, setting, robot=robot, ids=ids,
+    cfg = _config("mrclam", filter, dtype, setting, robot=robot, ids=ids, calibrated=bool(calibrated),
                   particles=particles if filter == "fastslam" else None, seed=seed)
     notes = [f"evaluated at the {m['eval_samples']} ground-truth samples inside the run"]
     return DatasetRun("mrclam", cfg, m, counts, {"load_s": load_s, "compile_s": comp_s, "run_s": run_s},
@@ -474,14 +486,14 @@ def _mrclam_fastslam(robot, n, assoc):
 
 @_register("victoria-park")
 def run_victoria_park(data_dir, robot=1, filter="ekf", ids="known", anchors=None, particles=None, seed=0,
-                      dtype=np.float64, verbose=False, tof=False):
+                      dtype=np.float64, verbose=False, tof=False, calibrated=False):
     """ACFR Victoria Park: Ackermann car, laser tree detections, unknown association, GPS reference."""
     from ..dynamics import planar
     from ..systems import planar_ekf_slam as pe
     from .victoria_park import load_victoria_park
 
-    if anchors is not None or tof or ids != "known" or robot != 1:
-        raise InputError("victoria-park: --robot/--ids/--anchors/--tof do not apply "
+    if anchors is not None or tof or calibrated or ids != "known" or robot != 1:
+        raise InputError("victoria-park: --robot/--ids/--anchors/--tof/--calibrated do not apply "
                          "(association is always unknown)")
     t0 = time.perf_counter()
     d = load_victoria_park(data_dir)
