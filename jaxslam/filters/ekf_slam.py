@@ -219,15 +219,43 @@ def _value_and_jacfwd(fun, x):
 # Update of observed, mapped landmarks (paper 000 eq. 37-43)
 # ---------------------------------------------------------------------------
 
-def _observe_batch(model, s, L, params):
-    """ẑ (K, d_z), H_s (K, d_z, n_r), H_l (K, d_z, d_l) for landmark means L (K, d_l)."""
+def _guard_inputs(valid, s, L):
+    """Per-row inputs (s_k, L_k) that carry no derivative where ``valid`` is False.
 
-    def one(l):
-        zh = model.observe(s, l, params)
-        Hs, Hl = jax.jacfwd(model.observe, argnums=(0, 1))(s, l, params)
+    The observation of a masked row or an inactive slot (zero mean) is evaluated but
+    discarded; at a singular point (e.g. the robot exactly on the zero landmark: atan2's
+    derivative at (0, 0)) its value, Jacobian and derivatives are NaN, and NaN × 0 stays
+    NaN.  Routing the invalid rows through ``stop_gradient`` keeps their NaN cotangents /
+    tangents out of the shared robot block and the landmark means (a select, not a product),
+    and :func:`_observe_batch` replaces their outputs by zeros.
+    """
+    K = L.shape[0]
+    S = jnp.broadcast_to(s, (K,) + s.shape)
+    S = jnp.where(valid[:, None], S, jax.lax.stop_gradient(S))
+    L = jnp.where(valid[:, None], L, jax.lax.stop_gradient(L))
+    return S, L
+
+
+def _observe_batch(model, s, L, params, valid=None):
+    """ẑ (K, d_z), H_s (K, d_z, n_r), H_l (K, d_z, d_l) for landmark means L (K, d_l).
+
+    With ``valid`` (K,) bool, rows where it is False are evaluated on derivative-free
+    inputs and returned as zeros (never NaN, also under grad / jvp; see _guard_inputs).
+    """
+    if valid is None:
+        valid = jnp.ones(L.shape[:1], bool)
+    S, L = _guard_inputs(valid, s, L)
+
+    def one(s_k, l):
+        zh = model.observe(s_k, l, params)
+        Hs, Hl = jax.jacfwd(model.observe, argnums=(0, 1))(s_k, l, params)
         return zh, Hs, Hl
 
-    return jax.vmap(one)(L)
+    zh, Hs, Hl = jax.vmap(one)(S, L)
+    zh = jnp.where(valid[:, None], zh, 0.0)
+    Hs = jnp.where(valid[:, None, None], Hs, 0.0)
+    Hl = jnp.where(valid[:, None, None], Hl, 0.0)
+    return zh, Hs, Hl
 
 
 def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
@@ -259,8 +287,8 @@ def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
 
     s = state.x[:nr]
     L = state.x[nr:].reshape(cap, dl)[slots]
-    zh, Hs, Hl = _observe_batch(model, s, L, params)
-    res = jax.vmap(_residual(model))(z_safe, zh)
+    zh, Hs, Hl = _observe_batch(model, s, L, params, valid)
+    res = jnp.where(valid[:, None], jax.vmap(_residual(model))(z_safe, zh), 0.0)
 
     idx = slot_indices(slots, model)  # (K, dl)
     P = state.P
@@ -429,47 +457,85 @@ def add_landmark(state: SlamState, model: SlamModel, slot, mean, cov_ll, cov_lx,
 
 
 def register(state: SlamState, model: SlamModel, z, lm_ids, mask, R, params=None) -> SlamState:
-    """Register K candidate landmarks sequentially (paper 000 eq. 44-53).
+    """Register K candidate landmarks (paper 000 eq. 44-53), written jointly.
 
-    For each valid candidate k: l = g(s, z_k) (model.inverse), G_s = ∂g/∂s,
-    G_z = ∂g/∂z, P_ll = G_s P_ss G_sᵀ + G_z R G_zᵀ (eq. 48), P_lx = G_s P_s,:
-    (eq. 50), written into the first free slot.  A candidate with no free slot
-    increments ``overflow`` and sets ``CAPACITY_OVERFLOW`` — never silently lost.
-    Non-finite measurements are skipped and flagged ``MASKED_INPUT``.
+    For each valid candidate k: l_k = g(s, z_k) (model.inverse), G_s,k = ∂g/∂s,
+    G_z,k = ∂g/∂z, P_{l_k l_k} = G_s,k P_ss G_s,kᵀ + G_z,k R_k G_z,kᵀ (eq. 48),
+    P_{l_k x} = G_s,k P_s,: (eq. 50) and P_{l_j l_k} = G_s,j P_ss G_s,kᵀ (j ≠ k).
+    The k-th valid candidate takes the k-th free slot (lowest index first).  A
+    candidate with no free slot increments ``overflow`` and sets
+    ``CAPACITY_OVERFLOW`` — never silently lost.  Non-finite measurements are
+    skipped and flagged ``MASKED_INPUT``; a candidate whose landmark or
+    covariance is non-finite is skipped and takes no slot.
+
+    All candidates are initialised from the same (unchanged) robot block, so this
+    joint write equals registering them one after another (each seeing the
+    previous ones' cross-covariances) exactly, at the cost of one (K·d_l, n)
+    row block and one scatter of rows and columns: O(K·d_l·n) — no per-candidate
+    pass over P.
     """
     if model.inverse is None:
         raise ValueError("register: this model has no inverse observation; use add_landmark")
     nr, dl, cap = _sizes(state, model)
+    n = state.x.shape[0]
     dtype = state.x.dtype
     K = z.shape[0]
-    R = jnp.broadcast_to(jnp.asarray(R, dtype), (K,) + (model.meas_dim, model.meas_dim))
+    dz = model.meas_dim
+    R = jnp.broadcast_to(jnp.asarray(R, dtype), (K, dz, dz))
+    mask = jnp.asarray(mask, bool)
 
-    def body(st, inp):
-        zk, idk, mk, Rk = inp
-        finite = jnp.all(jnp.isfinite(zk))
-        zk = jnp.where(finite, zk, 0.0).astype(dtype)
-        free = ~st.active
-        has_free = jnp.any(free)
-        slot = jnp.argmax(free)
-        s = st.x[:nr]
-        l = model.inverse(s, zk, params)
-        Gs, Gz = jax.jacfwd(model.inverse, argnums=(0, 1))(s, zk, params)
-        Pss = st.P[:nr, :nr]
+    finite = jnp.all(jnp.isfinite(z), axis=-1)
+    cand = mask & finite
+    zs = jnp.where(cand[:, None], z, 0.0).astype(dtype)
+    s = state.x[:nr]
+    P = state.P
+    Pss = P[:nr, :nr]
+    Psx = P[:nr, :]  # (nr, n)
+
+    def one(s_k, zk, Rk):
+        l = model.inverse(s_k, zk, params)
+        Gs, Gz = jax.jacfwd(model.inverse, argnums=(0, 1))(s_k, zk, params)
         Pll = symmetrize(Gs @ Pss @ Gs.T + Gz @ Rk @ Gz.T)
-        Plx = Gs @ st.P[:nr, :]
-        good = mk & finite & has_free & jnp.all(jnp.isfinite(l)) & jnp.all(jnp.isfinite(Pll))
-        st = add_landmark(st, model, slot, l, Pll, Plx, idk, ok=good)
-        over = mk & finite & ~has_free
-        st = st._replace(
-            overflow=st.overflow + over.astype(jnp.int32),
-            status=st.status
-            | _flag_if(over, errors.CAPACITY_OVERFLOW)
-            | _flag_if(mk & ~finite, errors.MASKED_INPUT),
-        )
-        return st, None
+        return l, Gs, Pll
 
-    state, _ = jax.lax.scan(body, state, (z, lm_ids.astype(jnp.int32), mask, R))
-    return state
+    S_in, z_in = _guard_inputs(cand, s, zs)  # non-candidates carry no derivative
+    L, Gs, Pll = jax.vmap(one)(S_in, z_in, R)  # (K, dl), (K, dl, nr), (K, dl, dl)
+    ok = cand & jnp.all(jnp.isfinite(L), axis=-1) & jnp.all(jnp.isfinite(Pll), axis=(-2, -1))
+
+    # Slot assignment: the k-th ok candidate takes the k-th free slot.
+    free = ~state.active
+    n_free = jnp.sum(free, dtype=jnp.int32)
+    rank = jnp.cumsum(ok, dtype=jnp.int32) - ok.astype(jnp.int32)  # ok candidates before k
+    has_free = rank < n_free
+    good = ok & has_free
+    over = cand & ~has_free
+    free_slots = jnp.nonzero(free, size=K, fill_value=0)[0].astype(jnp.int32)  # first K free slots
+    slot = free_slots[jnp.clip(rank, 0, K - 1)]
+    # Rows of the new landmarks: G_s,k P_s,: with the new–new block replaced by the joint one.
+    idx = slot_indices(slot, model)  # (K, dl)
+    W = jnp.einsum("kai,in->kan", Gs, Psx)  # (K, dl, n)
+    B = jnp.einsum("kai,ij,mbj->kamb", Gs, Pss, Gs)  # (K, dl, K, dl) = G_s,k P_ss G_s,mᵀ
+    B = 0.5 * (B + B.transpose(2, 3, 0, 1))  # exactly symmetric, as the sequential write
+    B = B.at[jnp.arange(K), :, jnp.arange(K), :].set(Pll)
+    # Columns of the candidates not written go out of bounds and are dropped.
+    oob = jnp.int32(n)
+    idx_w = jnp.where(good[:, None], idx, oob)  # (K, dl)
+    W = W.at[:, :, idx_w].set(B, mode="drop")
+    rows = idx_w.reshape(-1)
+    Wf = W.reshape(K * dl, n)
+    P = P.at[rows, :].set(Wf, mode="drop")
+    P = P.at[:, rows].set(Wf.T, mode="drop")
+    x = state.x.at[rows].set(L.reshape(-1), mode="drop")
+    slot_w = jnp.where(good, slot, jnp.int32(cap))
+    active = state.active.at[slot_w].set(True, mode="drop")
+    ids = state.ids.at[slot_w].set(jnp.asarray(lm_ids).astype(jnp.int32), mode="drop")
+    return state._replace(
+        x=x, P=P, active=active, ids=ids,
+        overflow=state.overflow + jnp.sum(over, dtype=jnp.int32),
+        status=state.status
+        | _flag_if(jnp.any(over), errors.CAPACITY_OVERFLOW)
+        | _flag_if(jnp.any(mask & ~finite), errors.MASKED_INPUT),
+    )
 
 
 # ---------------------------------------------------------------------------
@@ -516,13 +582,17 @@ def associate_nn(state: SlamState, model: SlamModel, z, mask, R, params=None,
     z_safe = jnp.where(finite[:, None], z, 0.0).astype(dtype)
     res_fn = _residual(model)
 
-    def per_landmark(l, Psl_j, Pll_j):
-        zh = model.observe(s, l, params)
-        Hs, Hl = jax.jacfwd(model.observe, argnums=(0, 1))(s, l, params)
-        Sx = Hs @ Pss @ Hs.T + Hs @ Psl_j @ Hl.T + Hl @ Psl_j.T @ Hs.T + Hl @ Pll_j @ Hl.T
-        return zh, Sx
+    # Inactive slots (zero mean) are evaluated on derivative-free inputs and replaced by
+    # ẑ = 0, S = I (finite; their d² is masked below): never NaN, also under grad / jvp.
+    act = state.active
+    zh, Hs, Hl = _observe_batch(model, s, L, params, act)  # (cap, dz), (cap, dz, nr), (cap, dz, dl)
 
-    zh, Sx = jax.vmap(per_landmark, in_axes=(0, 1, 0))(L, Psl, Pll)  # (cap, dz), (cap, dz, dz)
+    def per_landmark(Hs_j, Hl_j, Psl_j, Pll_j):
+        return (Hs_j @ Pss @ Hs_j.T + Hs_j @ Psl_j @ Hl_j.T + Hl_j @ Psl_j.T @ Hs_j.T
+                + Hl_j @ Pll_j @ Hl_j.T)
+
+    Sx = jax.vmap(per_landmark, in_axes=(0, 0, 1, 0))(Hs, Hl, Psl, Pll)  # (cap, dz, dz)
+    Sx = jnp.where(act[:, None, None], Sx, jnp.eye(model.meas_dim, dtype=dtype))
 
     def d2_one(zk, Rk):
         def against(zh_j, S_j):

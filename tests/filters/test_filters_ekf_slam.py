@@ -321,3 +321,123 @@ def test_update_robot_matches_dense_joseph_and_masks():
     e0 = es.init(jnp.zeros(3), jnp.eye(3), 2, 2)
     e1, _ = es.update_robot(e0, MODEL, obs, z, True, jnp.asarray(R))
     assert np.all(np.linalg.eigvalsh(np.asarray(e1.P)) > -1e-12)
+
+
+# ---------------------------------------------------------------- batched registration
+def _register_sequential(state, model, z, lm_ids, mask, R, params=None):
+    """The engine's former sequential registration (one add_landmark per candidate): oracle."""
+    nr, dl = model.robot_dim, model.lm_dim
+    dtype = state.x.dtype
+    K = z.shape[0]
+    R = jnp.broadcast_to(jnp.asarray(R, dtype), (K,) + (model.meas_dim, model.meas_dim))
+
+    def body(st, inp):
+        zk, idk, mk, Rk = inp
+        finite = jnp.all(jnp.isfinite(zk))
+        zk = jnp.where(finite, zk, 0.0).astype(dtype)
+        free = ~st.active
+        has_free = jnp.any(free)
+        slot = jnp.argmax(free)
+        s = st.x[:nr]
+        l = model.inverse(s, zk, params)
+        Gs, Gz = jax.jacfwd(model.inverse, argnums=(0, 1))(s, zk, params)
+        Pss = st.P[:nr, :nr]
+        Pll = 0.5 * ((Gs @ Pss @ Gs.T + Gz @ Rk @ Gz.T) + (Gs @ Pss @ Gs.T + Gz @ Rk @ Gz.T).T)
+        Plx = Gs @ st.P[:nr, :]
+        good = mk & finite & has_free & jnp.all(jnp.isfinite(l)) & jnp.all(jnp.isfinite(Pll))
+        st = es.add_landmark(st, model, slot, l, Pll, Plx, idk, ok=good)
+        over = mk & finite & ~has_free
+        st = st._replace(
+            overflow=st.overflow + over.astype(jnp.int32),
+            status=st.status
+            | jnp.where(over, jnp.int32(errors.CAPACITY_OVERFLOW), 0)
+            | jnp.where(mk & ~finite, jnp.int32(errors.MASKED_INPUT), 0),
+        )
+        return st, None
+
+    state, _ = jax.lax.scan(body, state, (z, lm_ids.astype(jnp.int32), mask, R))
+    return state
+
+
+def _random_state(rng, cap, n_active):
+    """A random consistent posterior: robot + n_active landmarks in random slots, P SPD on them."""
+    nr, dl = 3, 2
+    n = nr + cap * dl
+    slots = rng.choice(cap, size=n_active, replace=False)
+    act = np.zeros(cap, bool)
+    act[slots] = True
+    use = np.concatenate([np.arange(nr)] + [nr + dl * s + np.arange(dl) for s in np.sort(slots)])
+    A = rng.normal(size=(use.size, use.size)) * 0.1
+    P = np.zeros((n, n))
+    P[np.ix_(use, use)] = A @ A.T + 0.01 * np.eye(use.size)
+    x = np.zeros(n)
+    x[use] = rng.normal(size=use.size) * 3.0
+    ids = np.where(act, np.arange(cap) + 100, -1).astype(np.int32)
+    return es.SlamState(x=jnp.asarray(x), P=jnp.asarray(P), active=jnp.asarray(act), ids=jnp.asarray(ids),
+                        status=jnp.zeros((), jnp.int32), overflow=jnp.zeros((), jnp.int32))
+
+
+@pytest.mark.parametrize("cap,n_active,K", [(12, 4, 5), (8, 6, 5), (6, 6, 3), (10, 0, 6)])
+def test_batched_register_equals_sequential(cap, n_active, K):
+    """Joint registration == the former sequential one (float64, 1e-12), incl. overflow/masks."""
+    rng = np.random.default_rng(cap * 100 + n_active * 10 + K)
+    reg_b = jax.jit(lambda st, z, i, m, R: es.register(st, MODEL, z, i, m, R))
+    reg_s = jax.jit(lambda st, z, i, m, R: _register_sequential(st, MODEL, z, i, m, R))
+    for trial in range(4):
+        st = _random_state(rng, cap, n_active)
+        z = np.stack([rng.uniform(1, 20, K), rng.uniform(-np.pi, np.pi, K)], 1)
+        m = rng.uniform(size=K) < 0.8
+        if trial >= 2:
+            z[rng.integers(K)] = np.nan  # a non-finite candidate (masked or not)
+            z[rng.integers(K), 1] = np.inf
+        Rk = np.stack([np.diag(rng.uniform(0.01, 0.2, 2)) for _ in range(K)])
+        ids = np.arange(K, dtype=np.int32) + 7
+        args = (st, jnp.asarray(z), jnp.asarray(ids), jnp.asarray(m), jnp.asarray(Rk))
+        b, s = reg_b(*args), reg_s(*args)
+        np.testing.assert_allclose(np.asarray(b.x), np.asarray(s.x), atol=1e-12, rtol=0)
+        np.testing.assert_allclose(np.asarray(b.P), np.asarray(s.P), atol=1e-12, rtol=0)
+        np.testing.assert_array_equal(np.asarray(b.active), np.asarray(s.active))
+        np.testing.assert_array_equal(np.asarray(b.ids), np.asarray(s.ids))
+        assert int(b.overflow) == int(s.overflow) and int(b.status) == int(s.status)
+        np.testing.assert_array_equal(np.asarray(b.P), np.asarray(b.P).T)
+    # the overflow cases really overflow
+    if cap - n_active < K:
+        assert int(b.overflow) > 0 or not np.any(m)
+
+
+# ---------------------------------------------------------------- NaN hazard of unused rows
+def test_masked_rows_and_inactive_slots_never_poison_robot_at_origin():
+    """Robot exactly at the origin, inactive slots at 0: atan2'(0, 0) and √'(0) are NaN/inf.
+
+    The engine evaluates the observation also for masked rows and inactive slots; their
+    values, Jacobians and derivatives must not leak (update, associate_nn, register; value,
+    grad and jvp).
+    """
+    R_ = jnp.asarray(R)
+    st0 = es.init(jnp.zeros(3), jnp.diag(jnp.array([1e-4, 1e-4, 1e-5])), 4, 2)
+    z_reg = jnp.array([[5.0, 0.3], [4.0, -0.2]])
+    z = jnp.array([[5.01, 0.301], [7.0, 1.0], [jnp.nan, 0.0]])
+    slots = jnp.array([0, 3, 2])  # slot 3 and 2 inactive (mean 0 = robot position)
+    mask = jnp.array([True, True, False])
+
+    def step(x0, r_scale):
+        st = st0._replace(x=st0.x.at[:3].set(x0))
+        st = es.register(st, MODEL, z_reg, jnp.array([0, 1]), jnp.array([True, False]), R_ * r_scale)
+        sl, matched, new, d2 = es.associate_nn(st, MODEL, z, mask, R_ * r_scale)
+        st, info = es.update(st, MODEL, z, slots, mask, R_ * r_scale)
+        return st, d2, info
+
+    x0 = jnp.zeros(3)
+    st, d2, info = jax.jit(step)(x0, 1.0)
+    assert np.all(np.isfinite(np.asarray(st.x))) and np.all(np.isfinite(np.asarray(st.P)))
+    assert bool(np.isfinite(np.asarray(d2)[0])) and int(info.dof) == 2
+    assert np.asarray(info.used).tolist() == [True, False, False]
+
+    def loss(x0, r_scale):
+        st, d2, info = step(x0, r_scale)
+        return jnp.sum(st.x) + jnp.sum(st.P) + info.nis + d2[0]
+
+    g = jax.jit(jax.grad(loss, argnums=(0, 1)))(x0, 1.0)
+    assert all(np.all(np.isfinite(np.asarray(a))) for a in g), g
+    _, t = jax.jvp(lambda a: loss(a, 1.0), (x0,), (jnp.array([1.0, -0.5, 0.2]),))
+    assert np.isfinite(float(t))

@@ -265,3 +265,66 @@ def test_validation_errors():
         P.run(log, jnp.zeros(3), P.PlanarConfig(), _params()._replace(R=jnp.zeros((2, 2))))
     with pytest.raises(InputError, match="log.u"):
         P.run(log._replace(u=np.zeros((3, 3))), jnp.zeros(3), P.PlanarConfig(), _params())
+
+
+def test_mrclam_log_applies_range_model_and_odometry_delay():
+    """Synthetic MrclamData: ranges divided by k0 + k2 β², odometry stamps shifted by the delay."""
+    from jaxslam.data.mrclam import MrclamData
+
+    gt_t = np.linspace(0.0, 10.0, 101)
+    gt = np.stack([gt_t * 0.1, np.zeros_like(gt_t), np.full_like(gt_t, 0.3)], 1)
+    odom_t = np.array([1.0, 2.0, 3.0])
+    odom = np.array([[0.1, 0.0], [0.1, 0.01], [0.0, 0.0]])
+    meas_t = np.array([2.5, 2.5, 4.0])
+    meas = np.array([[2.0, 0.0], [3.0, 0.5], [4.0, -0.3]])
+    ids = np.array([6, 7, 8], np.int32)
+    data = MrclamData(robot=1, t0=0.0, odom_t=odom_t, odom=odom, gt_t=gt_t, gt=gt, meas_t=meas_t,
+                      meas=meas, meas_id=ids, landmark_id=ids, landmark_xy=np.zeros((3, 2)),
+                      landmark_std=np.zeros((3, 2)), barcodes=np.zeros((0, 2), np.int32), report={})
+    k = (1.02, -0.5)
+    log, pose0 = P.mrclam_log(data, range_model=k, odometry_delay=0.2)
+    assert np.allclose(log.t[log.is_input], odom_t + 0.2)
+    rows = log.z[log.mask]
+    assert np.allclose(rows[:, 0], meas[:, 0] / (k[0] + k[1] * meas[:, 1] ** 2))
+    assert np.allclose(rows[:, 1], meas[:, 1])
+    assert np.allclose(pose0, [0.12, 0.0, 0.3])  # GT at the first event (t = 1.2 s)
+    raw, _ = P.mrclam_log(data, range_model=None, odometry_delay=0.0)
+    assert np.allclose(raw.z[raw.mask], meas) and np.allclose(raw.t[raw.is_input], odom_t)
+    assert log.t[-1] <= gt_t[-1]
+
+
+def test_tentative_landmark_pruning():
+    """A one-off detection (clutter) is removed after the window; a repeated one is kept.
+
+    Robot at rest; landmark A seen at every event, B only once (t = 0.3 s).  With a 1 s
+    window and 3 matches required, B is pruned (its slot, mean and P rows/columns zeroed)
+    and A stays; with pruning off both stay.  The estimate of A and the pose do not change.
+    """
+    n = 30
+    t = DT * np.arange(n)
+    zA = np.tile([[5.0, 0.2]], (n, 1))
+    mt = list(t)
+    z = list(zA)
+    mt.append(0.3)
+    z.append([8.0, -0.9])
+    order = np.argsort(mt, kind="stable")
+    log = merge_events(t, np.zeros((n, 2)), np.asarray(mt)[order], np.asarray(z)[order], K=2)
+    prm = _params(p0=1e-4)
+    off = P.run(log, jnp.zeros(3), P.PlanarConfig(capacity=4, K=2, association="nn"), prm)
+    on = P.run(log, jnp.zeros(3), P.PlanarConfig(capacity=4, K=2, association="nn", prune_window_s=1.0,
+                                                 prune_min_obs=3), prm)
+    assert int(off.active.sum()) == 2 and int(off.n_pruned.sum()) == 0
+    assert int(on.active.sum()) == 1 and int(on.n_pruned.sum()) == 1
+    # pruned right after the window closes (registered at 0.3 s, window 1 s)
+    k = int(np.flatnonzero(np.asarray(on.n_pruned))[0])
+    assert 1.3 < log.t[k] <= 1.5
+    s = int(np.flatnonzero(~np.asarray(on.active))[0])
+    for res in (on,):
+        assert np.all(np.asarray(res.landmark_covs)[~np.asarray(res.active)] == 0)
+        assert np.all(np.asarray(res.landmarks)[~np.asarray(res.active)] == 0)
+    del s
+    lm_on = np.asarray(on.landmarks)[np.asarray(on.active)]
+    np.testing.assert_allclose(lm_on[0], [5 * np.cos(0.2), 5 * np.sin(0.2)], atol=1e-3)
+    assert int(on.status) == 0 and np.all(np.isfinite(np.asarray(on.pose)))
+    with pytest.raises(InputError, match="prune"):
+        P.run(log, jnp.zeros(3), P.PlanarConfig(prune_window_s=-1.0), prm)
