@@ -25,6 +25,8 @@ import sys
 CASES = [
     ("mrclam_r1_ekf", ["mrclam", "--robot", "1"]),
     ("mrclam_r2_ekf", ["mrclam", "--robot", "2"]),
+    ("mrclam_r1_ekf_calibrated", ["mrclam", "--robot", "1", "--calibrated"]),
+    ("mrclam_r2_ekf_calibrated", ["mrclam", "--robot", "2", "--calibrated"]),
     ("mrclam_r1_ekf_hidden", ["mrclam", "--robot", "1", "--ids", "hidden"]),
     ("mrclam_r2_ekf_hidden", ["mrclam", "--robot", "2", "--ids", "hidden"]),
     ("mrclam_r1_fastslam", ["mrclam", "--robot", "1", "--filter", "fastslam"]),

@@ -53,7 +53,6 @@ Results are pure functions of ``(key, log, pose0, config, params)``; ``config`` 
 from __future__ import annotations
 
 import math
-
 from typing import Any, NamedTuple, Optional
 
 import jax
