@@ -1,10 +1,10 @@
 """Dev/evaluation script: range-only UTIL TWR (known / unknown anchors) and CMU Plaza 1/2.
 
-Usage: .venv/bin/python scripts/dev_range_only.py [util|plaza|all] [--f32]
+Usage: .venv/bin/python scripts/dev_range_only.py [util|plaza|all] [--f32] [--data DIR]
 Prints the figures reported for issue 9 (RMSE, ATE, anchor/beacon errors, bias, counts):
 UTIL range-only and range + ToF height (known / unknown anchors), Plaza SLAM and
 localisation with the surveyed (TL) beacons.
-Loads the files with NumPy directly (the loaders in jaxslam.data are optional here).
+Reads the data with the jaxslam.data loaders (DIR default ../shared/data).
 """
 
 import sys
@@ -22,40 +22,24 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 from jaxslam import errors, metrics  # noqa: E402
+from jaxslam.data import load_plaza as _load_plaza  # noqa: E402
+from jaxslam.data import load_util as _load_util  # noqa: E402
+from jaxslam.data import tag_positions  # noqa: E402
 from jaxslam.systems import range_only as ro  # noqa: E402
 
-DATA = "/work/shared/data/"
-T_UV = np.array([-0.01245, 0.00127, 0.0908])
-
-
-def quat_rot(q):
-    x, y, z, w = q.T
-    R = np.empty((q.shape[0], 3, 3))
-    R[:, 0, 0] = 1 - 2 * (y * y + z * z)
-    R[:, 0, 1] = 2 * (x * y - z * w)
-    R[:, 0, 2] = 2 * (x * z + y * w)
-    R[:, 1, 0] = 2 * (x * y + z * w)
-    R[:, 1, 1] = 1 - 2 * (x * x + z * z)
-    R[:, 1, 2] = 2 * (y * z - x * w)
-    R[:, 2, 0] = 2 * (x * z - y * w)
-    R[:, 2, 1] = 2 * (y * z + x * w)
-    R[:, 2, 2] = 1 - 2 * (x * x + y * y)
-    return R
+DATA = sys.argv[sys.argv.index("--data") + 1] if "--data" in sys.argv else "../shared/data"
 
 
 def load_util():
-    d = DATA + "util_uwb/"
-    u = np.loadtxt(d + "twr_obs_log1/uwb_twr.csv", delimiter=",", skiprows=1)
-    g = np.loadtxt(d + "twr_obs_log1/groundtruth.csv", delimiter=",", skiprows=1)
-    a = np.loadtxt(d + "anchors_const3.csv", delimiter=",", skiprows=1)
-    q = g[:, 4:8] / np.linalg.norm(g[:, 4:8], axis=1, keepdims=True)
-    tag = g[:, 1:4] + np.einsum("nij,j->ni", quat_rot(q), T_UV)
-    return u, g[:, 0], tag, a[:, 0].astype(int), a[:, 1:4]
+    """(TWR rows (t, anchor, range), GT times, GT tag positions, anchor ids, anchors) via the loader."""
+    d = _load_util(DATA)
+    u = np.stack([d.twr_t, d.twr_anchor, d.twr_range], 1)
+    return u, d.gt_t, tag_positions(d.gt_p, d.gt_q, d.tag_offset), np.asarray(d.anchor_id), d.anchor_p
 
 
 def load_tof():
-    f = np.loadtxt(DATA + "util_uwb/twr_obs_log1/tof.csv", delimiter=",", skiprows=1)
-    return f[:, 0], f[:, 1]
+    d = _load_util(DATA)
+    return d.tof_t, d.tof
 
 
 def err_report(log_t, est, true, mask_air):
@@ -165,11 +149,12 @@ def util(dtype, gate=9.0, params=ro.UTIL_PARAMS, t_w=30.0):
 
 
 def load_plaza(which):
-    d = DATA + "gtsam/"
-    DR = np.loadtxt(d + f"Plaza{which}_DR.txt")
-    TD = np.loadtxt(d + f"Plaza{which}_TD.txt")
-    GT = np.loadtxt(d + f"Plaza{which}_GT.txt")
-    TL = np.loadtxt(d + f"Plaza{which}_TL.txt")
+    """(DR rows, TD rows, GT rows, TL rows) via the loader (TD sorted by time)."""
+    d = _load_plaza(DATA, which)
+    DR = np.column_stack([d.dr_t, d.dr])
+    TD = np.column_stack([d.td_t, d.td_sender, d.td_node, d.td_range])
+    GT = np.column_stack([d.gt_t, d.gt])
+    TL = np.column_stack([d.node_id, d.node_xy])
     return DR, TD, GT, TL
 
 

@@ -328,3 +328,45 @@ def test_tentative_landmark_pruning():
     assert int(on.status) == 0 and np.all(np.isfinite(np.asarray(on.pose)))
     with pytest.raises(InputError, match="prune"):
         P.run(log, jnp.zeros(3), P.PlanarConfig(prune_window_s=-1.0), prm)
+
+
+def test_joint_compatibility_drops_the_inconsistent_match():
+    """Heading uncertain (σ_φ 0.1 rad), 3 precise landmarks: rows 0 and 1 are rotated by +0.08
+    rad (a heading error; each d² small), row 2 by −0.08 rad (also small alone).  Jointly only
+    one heading explains them: the check drops row 2 and keeps 0 and 1.  An unrotated scan
+    keeps every row; so does the planar run with ``joint_gate`` on clean data.
+    """
+    from jaxslam.filters import ekf_slam as es
+
+    model = P.make_model(P.PlanarConfig(motion="unicycle", association="nn"))
+    st = es.init(jnp.zeros(3), jnp.diag(jnp.asarray([1e-4, 1e-4, 0.1**2])), 4, 2)
+    R = jnp.diag(jnp.asarray([0.05**2, 0.01**2]))
+    lms = np.array([[10.0, 0.0], [0.0, 10.0], [-7.0, -7.0]])
+    for i, l in enumerate(lms):
+        st = es.add_landmark(st, model, i, jnp.asarray(l), 1e-6 * jnp.eye(2), jnp.zeros((2, 11)), -1)
+    zt = np.stack([np.linalg.norm(lms, axis=1), np.arctan2(lms[:, 1], lms[:, 0])], 1)
+    slots = jnp.arange(3, dtype=jnp.int32)
+    m = jnp.ones(3, bool)
+    thr = P._chi2_table(0.99, 3, 2)
+    for rot, keep in (([0.08, 0.08, -0.08], [True, True, False]), ([0.0, 0.0, 0.0], [True] * 3)):
+        z = jnp.asarray(zt + np.stack([np.zeros(3), rot], 1))
+        _, ok, _, d2 = es.associate_nn(st, model, z, m, R)
+        assert np.all(np.asarray(ok)) and np.all(np.asarray(d2) < 9.21)  # each row alone passes
+        kept, dropped, nis = es.joint_compatibility(st, model, z, slots, m, R, None, thr)
+        assert list(np.asarray(kept)) == keep and list(np.asarray(dropped)) == [not k for k in keep]
+        assert float(nis) < thr[int(np.sum(keep)) - 1]
+
+
+def test_joint_gate_is_a_no_op_on_clean_data(scenario):
+    traj, lms, vis = scenario
+    base, us, zs = _logs(traj, lms, vis, 1, sig_scale=0.05)
+    prm = _params()
+    pose0 = jnp.asarray(traj[0])
+    r0 = P.run_arrays(base.dt, us[0], zs[0], base.ids, base.mask, pose0, prm,
+                      P.PlanarConfig(capacity=16, association="nn"))
+    r1 = P.run_arrays(base.dt, us[0], zs[0], base.ids, base.mask, pose0, prm,
+                      P.PlanarConfig(capacity=16, association="nn", joint_gate=0.99))
+    assert int(r1.n_rejected.sum()) == 0 and int(r1.n_used.sum()) == int(r0.n_used.sum())
+    np.testing.assert_allclose(np.asarray(r1.pose), np.asarray(r0.pose), atol=1e-9)
+    with pytest.raises(InputError, match="joint_gate"):
+        P.validate_config(P.PlanarConfig(association="nn", joint_gate=1.5))
