@@ -53,6 +53,8 @@ __all__ = [
     "compose",
     "input_noise_cov",
     "step_input_cov",
+    "MOTIONS",
+    "motion_model",
 ]
 
 
@@ -148,3 +150,18 @@ def step_input_cov(M, dt, input_mode: str = "rate"):
     if input_mode == "increment":
         return M
     raise ValueError(f"input_mode: expected 'rate' or 'increment', got {input_mode!r}")
+
+
+#: Names accepted by :func:`motion_model` (and the systems' ``config.motion``).
+MOTIONS = ("unicycle", "ackermann", "increment")
+
+
+def motion_model(name: str, geometry: AckermannGeometry = VICTORIA_PARK):
+    """The motion function ``f(s, u, dt)`` called ``name`` (one of :data:`MOTIONS`)."""
+    if name == "unicycle":
+        return unicycle
+    if name == "ackermann":
+        return lambda s, u, dt: ackermann(s, u, dt, geometry)
+    if name == "increment":
+        return odometry_increment
+    raise ValueError(f"motion: expected one of {MOTIONS}, got {name!r}")

@@ -31,7 +31,8 @@ def plot_run(run, directory, name=None):
     # Sparse references with gaps (GPS) as dots: a line would invent a path across a dropout.
     ax.plot(ref[:, 0], ref[:, 1], "k." if "GPS" in ev["ref_label"] and ref.shape[1] == 2 and
             run.dataset == "victoria-park" else "k-", lw=0.8, ms=1.5, label=ev["ref_label"])
-    ax.plot(est[:, 0], est[:, 1], "C1-", lw=1.0, label=f"{run.config['filter']} estimate "
+    path = np.asarray(ev["est_path_xy"]) if ev.get("est_path_xy") is not None else est  # full rate
+    ax.plot(path[:, 0], path[:, 1], "C1-", lw=1.0, label=f"{run.config['filter']} estimate "
             f"(ATE {run.metrics['ate_m']:.3f} m)")
     if ev.get("dr_xy") is not None:
         dr = np.asarray(ev["dr_xy"])

@@ -98,7 +98,7 @@ __all__ = [
     "validate_log",
 ]
 
-MOTIONS = ("unicycle", "ackermann", "increment")
+MOTIONS = planar.MOTIONS
 ASSOCIATIONS = ("known", "nn")
 
 #: MRCLAM dataset 6 landmark residual MADs (data README §5) × 1.4826 ≈ σ, robots 1 and 2.
@@ -232,14 +232,9 @@ class PlanarResult(NamedTuple):
 
 def motion_fn(config: PlanarConfig):
     """``f(s, u, dt)`` of ``config.motion``."""
-    if config.motion == "unicycle":
-        return planar.unicycle
-    if config.motion == "ackermann":
-        geom = config.geometry
-        return lambda s, u, dt: planar.ackermann(s, u, dt, geom)
-    if config.motion == "increment":
-        return planar.odometry_increment
-    raise InputError(f"config.motion: expected one of {MOTIONS}, got {config.motion!r}")
+    if config.motion not in MOTIONS:
+        raise InputError(f"config.motion: expected one of {MOTIONS}, got {config.motion!r}")
+    return planar.motion_model(config.motion, config.geometry)
 
 
 def safe_observe(s, l, params=None):

@@ -89,7 +89,7 @@ MODEL = fs.LandmarkModel(lm_dim=2, meas_dim=2, observe=rb.observe, inverse=rb.in
                          residual=rb.residual)
 """The 2D range-bearing landmark model of the particle core."""
 
-_MOTIONS = ("unicycle", "ackermann", "increment")
+_MOTIONS = planar.MOTIONS
 _ASSOC = ("known", "ml")
 
 
@@ -234,14 +234,9 @@ def victoria_park_setup(n_particles: int = 50, capacity: int = 768, K: int = 17,
 
 def motion_fn(config: Config):
     """The motion model ``f(s, u, dt)`` of ``config.motion``."""
-    if config.motion == "unicycle":
-        return planar.unicycle
-    if config.motion == "ackermann":
-        geom = config.geometry
-        return lambda s, u, dt: planar.ackermann(s, u, dt, geom)
-    if config.motion == "increment":
-        return planar.odometry_increment
-    raise InputError(f"config.motion: expected one of {_MOTIONS}, got {config.motion!r}")
+    if config.motion not in _MOTIONS:
+        raise InputError(f"config.motion: expected one of {_MOTIONS}, got {config.motion!r}")
+    return planar.motion_model(config.motion, config.geometry)
 
 
 def _validate(config: Config):
