@@ -61,6 +61,7 @@ __all__ = [
     "add_landmark",
     "associate_known",
     "associate_nn",
+    "joint_compatibility",
     "robot",
     "landmarks",
     "robot_cov",
