@@ -81,7 +81,6 @@ __all__ = [
     "MRCLAM_BEARING_SIGMA",
     "make_model",
     "calibrated_input",
-    "safe_observe",
     "motion_fn",
     "mrclam_params",
     "victoria_park_params",
@@ -235,26 +234,6 @@ def motion_fn(config: PlanarConfig):
     if config.motion not in MOTIONS:
         raise InputError(f"config.motion: expected one of {MOTIONS}, got {config.motion!r}")
     return planar.motion_model(config.motion, config.geometry)
-
-
-def safe_observe(s, l, params=None):
-    """:func:`jaxslam.sensors.range_bearing2d.observe`, with a finite Jacobian at l = p.
-
-    The engine evaluates the observation (and its Jacobian) also for masked rows and
-    inactive slots (zero mean); where the robot sits exactly at a slot's position — the
-    origin, at the start of a log — atan2's derivative at (0, 0) is NaN, and NaN × 0 (the
-    mask) stays NaN.  A coincident point is replaced by one 1 m ahead before the call
-    (double-``where``), which leaves every other value and Jacobian unchanged.
-
-    No longer needed by :func:`make_model`: the engine now evaluates masked rows and
-    inactive slots on derivative-free inputs and zeroes their outputs
-    (``ekf_slam._observe_batch``), so the plain :func:`range_bearing2d.observe` is used;
-    kept for callers that evaluate the observation at arbitrary points themselves.
-    """
-    d = l[:2] - s[:2]
-    near = jnp.sum(d * d) < 1e-18
-    l_safe = jnp.where(near, s[:2] + jnp.stack([jnp.cos(s[2]), jnp.sin(s[2])]), l[:2])
-    return rb.observe(s, l_safe, params)
 
 
 def calibrated_input(c, u):
