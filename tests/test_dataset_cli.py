@@ -81,3 +81,7 @@ def test_dataset_option_misuse_is_an_input_error(capsys):
     assert rc == 2 and "1 or 2" in err
     rc, _, err = _run(["dataset", "util-uwb", "--data", str(DATA), "--filter", "fastslam"], capsys)
     assert rc == 2 and "ekf" in err
+    rc, _, err = _run(["dataset", "mrclam", "--data", str(DATA), "--robot", "7"], capsys)
+    assert rc == 2 and "1..5" in err
+    rc, _, err = _run(["dataset", "mrclam", "--data", str(DATA), "--robot", "3"], capsys)
+    assert rc == 2 and "Robot3_Odometry.dat" in err  # the excerpts hold robots 1 and 2

@@ -207,12 +207,13 @@ def mrclam_setup(robot: int = 1, n_particles: int = 100, association: str = "kno
     chosen on robot 1's first 300 s (a sweep over R ×1–16, Q ×1–4 and floors 1e-5–1e-3
     changed the median ATE by less than the spread between seeds there).
     """
-    from .planar_ekf_slam import MRCLAM_BEARING_SIGMA, MRCLAM_RANGE_SIGMA
+    from .planar_ekf_slam import mrclam_raw_sigma
 
     cap = 15 if association == "known" else 32
     cfg = Config(motion="unicycle", n_particles=int(n_particles), capacity=cap, K=int(K),
                  association=association)
-    prm = default_params(sigma_r=MRCLAM_RANGE_SIGMA[int(robot)], sigma_b=MRCLAM_BEARING_SIGMA[int(robot)],
+    sr, sb = mrclam_raw_sigma(robot)
+    prm = default_params(sigma_r=sr, sigma_b=sb,
                          sigma_v=0.03, sigma_w=0.05, floor=(1e-4,) * 3, pose0_sigma=(1e-3, 1e-3, 1e-3),
                          dtype=dtype)
     return cfg, prm
