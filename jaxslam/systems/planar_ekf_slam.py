@@ -461,7 +461,6 @@ def _first_of_id(ids, cand):
 
 
 def _measure(st: es.SlamState, z, ids, valid, model, config: PlanarConfig, R):
-    zero = jnp.zeros((), jnp.int32)
     K = z.shape[0]
     zs = jnp.where(valid[:, None], z, 0.0)
     if config.association == "known":
@@ -492,7 +491,6 @@ def _measure(st: es.SlamState, z, ids, valid, model, config: PlanarConfig, R):
         rejected,
         registered,
     ])
-    del zero
     return st, counts, info.nis, info.dof.astype(jnp.int32), slots, info.used
 
 
@@ -507,7 +505,6 @@ def _prune(st: es.SlamState, aux, active_before, slots, used, model, config: Pla
     """
     t, reg_t, n_match, confirmed = aux
     nr, dl = model.robot_dim, model.lm_dim
-    cap = st.active.shape[0]
     new = st.active & ~active_before
     reg_t = jnp.where(new, t, reg_t)
     n_match = jnp.where(new, 0, n_match)
@@ -524,7 +521,6 @@ def _prune(st: es.SlamState, aux, active_before, slots, used, model, config: Pla
                             active=st_.active & ~drop, ids=jnp.where(drop, -1, st_.ids))
 
     st = jax.lax.cond(jnp.any(drop), remove, lambda st_: st_, st)
-    del cap
     return st, (t, reg_t, n_match, confirmed), jnp.sum(drop, dtype=jnp.int32)
 
 
