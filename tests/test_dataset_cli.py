@@ -28,6 +28,7 @@ def _run(argv, capsys):
     ["mrclam", "--robot", "1"],
     ["plaza", "--robot", "2"],
     ["util-uwb", "--tof"],
+    ["mrclam", "--robot", "2", "--filter", "fastslam", "--particles", "16"],
 ])
 def test_dataset_runs_on_excerpts_and_writes_outputs(tmp_path, capsys, argv):
     js = tmp_path / "out.json"
