@@ -65,6 +65,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .errors import InputError
+from .linalg import wrap_angle
 
 __all__ = [
     "rmse",
@@ -580,7 +581,7 @@ def rpe_se2(est_pose, true_pose, lag: int = 1):
     c, s = jnp.cos(tth), jnp.sin(tth)
     dx, dy = ex - tx, ey - ty
     etx, ety = c * dx + s * dy, -s * dx + c * dy
-    eang = (eth - tth + jnp.pi) % (2.0 * jnp.pi) - jnp.pi
+    eang = wrap_angle(eth - tth)
     return jnp.sqrt(jnp.mean(etx ** 2 + ety ** 2)), jnp.sqrt(jnp.mean(eang ** 2))
 
 
@@ -654,7 +655,7 @@ def interp_poses(t_query, t, poses):
         col = np.unwrap(P[:, j]) if j == 2 and P.shape[1] == 3 else P[:, j]
         out[:, j] = np.interp(tq, t, col)
     if P.shape[1] == 3:
-        out[:, 2] = (out[:, 2] + np.pi) % (2.0 * np.pi) - np.pi
+        out[:, 2] = np.asarray(wrap_angle(out[:, 2]), np.float64)
     out[(tq < t[0]) | (tq > t[-1])] = np.nan
     return out
 

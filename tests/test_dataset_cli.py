@@ -81,7 +81,15 @@ def test_dataset_option_misuse_is_an_input_error(capsys):
     rc, _, err = _run(["dataset", "plaza", "--data", str(DATA), "--robot", "3"], capsys)
     assert rc == 2 and "1 or 2" in err
     rc, _, err = _run(["dataset", "util-uwb", "--data", str(DATA), "--filter", "fastslam"], capsys)
-    assert rc == 2 and "ekf" in err
+    assert rc == 2 and "--filter" in err and "EKF only" in err
+    rc, _, err = _run(["dataset", "victoria-park", "--data", str(DATA), "--ids", "hidden"], capsys)
+    assert rc == 2 and "--ids" in err
+    rc, _, err = _run(["dataset", "mrclam", "--data", str(DATA), "--particles", "5"], capsys)
+    assert rc == 2 and "--particles" in err
+    rc, _, err = _run(["dataset", "util-uwb", "--data", str(DATA), "--anchors", "unknown"], capsys)
+    assert rc == 2 and "start-up window" in err  # the excerpt has motion capture over 20-21 s only
+    rc, _, err = _run(["dataset", "plaza", "--data", str(DATA), "--tum", str(DATA)], capsys)
+    assert rc == 2 and "--tum" in err
     rc, _, err = _run(["dataset", "mrclam", "--data", str(DATA), "--robot", "7"], capsys)
     assert rc == 2 and "1..5" in err
     rc, _, err = _run(["dataset", "mrclam", "--data", str(DATA), "--robot", "3"], capsys)

@@ -88,6 +88,9 @@ def main(argv) -> int:
     json_path = pathlib.Path(args.json) if args.json else None
     if json_path is not None and json_path.is_dir():
         raise InputError(f"--json: {str(json_path)!r} is a folder; give a file path")
+    tum_path = pathlib.Path(args.tum) if args.tum else None
+    if tum_path is not None and tum_path.is_dir():
+        raise InputError(f"--tum: {str(tum_path)!r} is a folder; give a file path")
     plots = pathlib.Path(args.plots) if args.plots else None
     if plots is not None and plots.exists() and not plots.is_dir():
         raise InputError(f"--plots: {str(plots)!r} exists and is not a folder")
@@ -103,7 +106,7 @@ def main(argv) -> int:
     dtype = np.dtype(np.float32 if args.float32 else np.float64)
     run = runners.run_dataset(args.name, data, robot=args.robot, filter=args.filter, ids=args.ids,
                               anchors=args.anchors, tof=args.tof, calibrated=args.calibrated, particles=args.particles, seed=args.seed,
-                              dtype=dtype, verbose=not args.quiet)
+                              dtype=dtype)
     doc = runners.to_json(run)
     if not args.quiet:
         out = sys.stdout
@@ -118,11 +121,14 @@ def main(argv) -> int:
         io.write_json(json_path, doc)
         if not args.quiet:
             print(f"wrote {json_path}")
-    if args.tum:
+    if tum_path is not None:
         from ..metrics import write_tum
 
         t, pos, yaw = run.trajectory
-        path = write_tum(args.tum, t, pos, yaw=yaw)
+        try:
+            path = write_tum(tum_path, t, pos, yaw=yaw)
+        except OSError as e:
+            raise InputError(f"--tum: cannot write {str(tum_path)!r}: {e.strerror or e}") from None
         if not args.quiet:
             print(f"wrote {path}")
     if plots is not None:

@@ -49,7 +49,7 @@ class EventLog(NamedTuple):
     measurement labels (landmark/anchor id, −1 when none);
     mask: (T, K) bool row present;
     stats: host-side counts (``n_events``, ``n_input``, ``n_meas``,
-    ``n_meas_events``, ``dropped_overflow``, ``K``).
+    ``n_meas_events``, ``dropped_overflow``, ``outside_window``, ``K``).
     """
 
     t: np.ndarray
@@ -60,15 +60,6 @@ class EventLog(NamedTuple):
     ids: np.ndarray
     mask: np.ndarray
     stats: dict
-
-    def window(self, start: int, stop: int) -> "EventLog":
-        """Events ``start:stop`` (e.g. a tuning part and an evaluation part)."""
-        sl = slice(int(start), int(stop))
-        dt = self.dt[sl].copy()
-        if dt.size:
-            dt[0] = 0.0
-        return EventLog(self.t[sl], dt, self.u[sl], self.is_input[sl], self.z[sl],
-                        self.ids[sl], self.mask[sl], dict(self.stats))
 
 
 def _as_2d(a, name):

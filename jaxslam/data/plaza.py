@@ -91,10 +91,6 @@ class PlazaData(NamedTuple):
         th = float(np.arctan2(np.sin(th), np.cos(th)))
         return np.array([x, y, th])
 
-    def node_positions(self) -> dict:
-        """``{node id: (x, y)}``."""
-        return {int(i): (float(x), float(y)) for i, (x, y) in zip(self.node_id, self.node_xy)}
-
 
 def load_plaza(path, which: int) -> PlazaData:
     """Load CMU Plaza 1 or 2 from the ``PlazaN_*.txt`` files.

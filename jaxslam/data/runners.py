@@ -10,8 +10,8 @@ against the reference with :mod:`jaxslam.metrics`:
   reference exists (ground truth is interpolated linearly at estimate times,
   never extrapolated; GPS is compared at its own fix times);
 * ``rpe_m`` / ``rpe_deg``: the pose RPE over 1 s (Sturm et al.) on a 10 Hz
-  resampling of both trajectories, where headings exist; otherwise the
-  translational RPE over 1 s of positions;
+  resampling of both trajectories, where headings exist; otherwise (GPS, UTIL
+  positions) the translational RPE over pairs of samples 1 ± 0.1 s apart;
 * ``map_err_m``: landmark position RMSE by id, in the trajectory's ATE frame
   (known maps only);
 * ``dead_reckoning_ate_m``: the same ATE for the noise-free motion model
@@ -90,6 +90,24 @@ def dead_reckoning(motion, pose0, u, dt):
     return poses
 
 
+def rpe_pairs(t, est, ref, lag_s: float = 1.0, tol_s: float = 0.1):
+    """Translational RPE over pairs of samples ``lag_s ± tol_s`` apart (no interpolation).
+
+    For references sampled with gaps (GPS, a subset of a flight): a pair never spans a gap.
+    Returns ``(rpe [m], number of pairs)``; (NaN, 0) without any pair.
+    """
+    t = np.asarray(t, np.float64)
+    j = np.searchsorted(t, t + lag_s)
+    i = np.nonzero(j < t.size)[0]
+    j = j[i]
+    ok = np.abs(t[j] - t[i] - lag_s) <= tol_s
+    i, j = i[ok], j[ok]
+    if i.size == 0:
+        return float("nan"), 0
+    de = (est[j] - est[i]) - (ref[j] - ref[i])
+    return float(np.sqrt(np.mean(np.sum(de ** 2, 1)))), int(i.size)
+
+
 def evaluate_planar(t_est, est_pose, t_ref, ref, dr_pose=None, lm=None, lm_ids=None, lm_cov=None,
                     lm_true=None, lm_true_ids=None, ref_label="ground truth", at_ref_times=False):
     """ATE/RPE/map error of a planar estimate against a reference (host side).
@@ -133,16 +151,9 @@ def evaluate_planar(t_est, est_pose, t_ref, ref, dr_pose=None, lm=None, lm_ids=N
             out["rpe_m"] = float(rt)
             out["rpe_deg"] = float(np.degrees(rr))
     else:
-        j = np.searchsorted(t, t + 1.0)
-        ok = j < t.size
-        i = np.nonzero(ok)[0]
-        j = j[ok]
-        ok = np.abs(t[j] - t[i] - 1.0) <= 0.1
-        i, j = i[ok], j[ok]
-        if i.size:
-            de = (e[j, :2] - e[i, :2]) - (r[j, :2] - r[i, :2])
-            out["rpe_m"] = float(np.sqrt(np.mean(np.sum(de ** 2, 1))))
-            out["rpe_pairs"] = int(i.size)
+        rpe, n_pairs = rpe_pairs(t, e[:, :2], r[:, :2])
+        if n_pairs:
+            out["rpe_m"], out["rpe_pairs"] = rpe, n_pairs
     dr_al = None
     if d is not None:
         Rd, td, _ = metrics.umeyama(d[:, :2], r[:, :2])
@@ -178,11 +189,42 @@ def _register(name):
     return deco
 
 
+#: Options of :func:`run_dataset` with their defaults, and the datasets each applies to.
+_DEFAULTS = {"robot": 1, "filter": "ekf", "ids": "known", "anchors": None, "tof": False,
+             "calibrated": False, "particles": None, "seed": 0}
+_APPLIES = {
+    "mrclam": {"robot", "filter", "ids", "calibrated", "particles", "seed"},
+    "victoria-park": {"filter", "particles", "seed"},
+    "util-uwb": {"anchors", "tof"},
+    "plaza": {"robot", "anchors"},
+}
+
+
 def run_dataset(name: str, data_dir, **options) -> DatasetRun:
-    """Run dataset ``name`` (``mrclam``, ``victoria-park``, ``util-uwb``, ``plaza``) from ``data_dir``."""
+    """Run dataset ``name`` (``mrclam``, ``victoria-park``, ``util-uwb``, ``plaza``) from ``data_dir``.
+
+    Options (``_DEFAULTS``): robot, filter ("ekf" | "fastslam"), ids, anchors, tof, calibrated,
+    particles, seed, and dtype.  An option set away from its default for a dataset it does not
+    apply to is an :class:`InputError` (never silently ignored).
+    """
     if name not in _RUNNERS:
         raise InputError(f"dataset: unknown name {name!r} (choose from {', '.join(sorted(_RUNNERS))})")
-    return _RUNNERS[name](data_dir, **options)
+    unknown = set(options) - set(_DEFAULTS) - {"dtype"}
+    if unknown:
+        raise InputError(f"dataset: unknown option(s) {sorted(unknown)}")
+    misplaced = [k for k, v in options.items() if k in _DEFAULTS and v != _DEFAULTS[k]
+                 and k not in _APPLIES[name]]
+    if options.get("filter", "ekf") != "fastslam":
+        misplaced += [k for k in ("particles", "seed") if options.get(k, _DEFAULTS[k]) != _DEFAULTS[k]]
+    if misplaced:
+        flags = ", ".join("--" + k for k in sorted(set(misplaced)))
+        hint = (" (range-only logs run the EKF only: the particle core registers range-bearing "
+                "landmarks)" if "filter" in misplaced else "")
+        raise InputError(f"{name}: {flags} do(es) not apply here; {name} takes "
+                         f"{', '.join('--' + k for k in sorted(_APPLIES[name]))}"
+                         + (" (--particles/--seed with --filter fastslam)" if "particles" in _APPLIES[name] else "")
+                         + hint)
+    return _RUNNERS[name](data_dir, **{**{k: v for k, v in _DEFAULTS.items()}, **options})
 
 
 def to_json(run: DatasetRun) -> dict:
@@ -219,21 +261,16 @@ def _config(name, filter, dtype, setting, **kw):
 
 @_register("util-uwb")
 def run_util_uwb(data_dir, robot=1, filter="ekf", ids="known", anchors=None, particles=None,
-                 seed=0, dtype=np.float64, verbose=False, tof=False, t_window=30.0, calibrated=False):
+                 seed=0, dtype=np.float64, tof=False, t_window=30.0, calibrated=False):
     """UTIL TWR flight: constant-velocity range-only EKF with a bias state (``systems.range_only``).
 
     ``anchors``: "known" (default, surveyed) or "unknown" (SLAM after a start-up
     window); ``tof``: also use the downward laser height (then not range-only).
     """
     anchors = anchors or "known"
-    if calibrated:
-        raise InputError("util-uwb: --calibrated applies to mrclam only")
     from ..systems import range_only as ro
     from .util_uwb import load_util, tag_positions
 
-    if filter != "ekf":
-        raise InputError("util-uwb: only --filter ekf (a range-only EKF; FastSLAM needs "
-                         "range-bearing landmarks)")
     t0 = time.perf_counter()
     d = load_util(data_dir, "twr_obs_log1")
     tag = tag_positions(d.gt_p, d.gt_q, d.tag_offset)
@@ -250,9 +287,14 @@ def run_util_uwb(data_dir, robot=1, filter="ekf", ids="known", anchors=None, par
         notes = []
     else:
         t_all = np.asarray(d.twr_t)
+        if not (d.gt_t[0] + 0.2 < t_window < min(d.gt_t[-1], t_all[-1]) - 1.0):
+            raise InputError(f"util-uwb --anchors unknown: the {t_window:g} s start-up window needs "
+                             f"motion capture around {t_window:g} s and ranges after it; this flight "
+                             f"has motion capture over [{d.gt_t[0]:.1f}, {d.gt_t[-1]:.1f}] s")
         tag_at = np.stack([np.interp(t_all, d.gt_t, tag[:, j]) for j in range(3)], 1)
-        i_w = int(np.searchsorted(d.gt_t, t_window))
-        v0 = (tag[i_w + 20] - tag[i_w - 20]) / (d.gt_t[i_w + 20] - d.gt_t[i_w - 20])
+        # start velocity: central difference of the motion-capture tag over ±0.1 s
+        v0 = np.array([(np.interp(t_window + 0.1, d.gt_t, tag[:, j]) - np.interp(t_window - 0.1, d.gt_t, tag[:, j]))
+                       / 0.2 for j in range(3)])
         su = ro.util_startup(jnp.asarray(t_all, dtype), np.asarray(d.twr_anchor).astype(int),
                              jnp.asarray(d.twr_range, dtype), jnp.asarray(tag_at, dtype), aid, t_window,
                              v0=jnp.asarray(v0, dtype))
@@ -271,6 +313,9 @@ def run_util_uwb(data_dir, robot=1, filter="ekf", ids="known", anchors=None, par
     t, true, est = t[rng_ev], true[rng_ev], est[rng_ev]
     err = np.linalg.norm(est - true, axis=1)
     air = (true[:, 2] > 0.3)
+    if air.sum() < 3:
+        raise InputError("util-uwb: fewer than 3 range events while airborne (z > 0.3 m); "
+                         "nothing to evaluate")
     R, tr, _ = metrics.umeyama(est[air], true[air])
     R, tr = np.asarray(R), np.asarray(tr)
     est_al = est @ R.T + tr
@@ -278,7 +323,7 @@ def run_util_uwb(data_dir, robot=1, filter="ekf", ids="known", anchors=None, par
         "pos_rmse_m": float(np.sqrt(np.mean(err[air] ** 2))),
         "pos_rmse_whole_m": float(np.sqrt(np.mean(err ** 2))),
         "ate_m": float(np.sqrt(np.mean(np.sum((est_al[air] - true[air]) ** 2, 1)))),
-        "rpe_m": float(metrics.rpe(est[air], true[air], lag=80)),
+        "rpe_m": rpe_pairs(t[air], est[air], true[air])[0],
         "range_bias_m": float(res.bias_final),
         "range_bias_sigma_m": float(res.bias_sigma),
     }
@@ -316,22 +361,17 @@ def run_util_uwb(data_dir, robot=1, filter="ekf", ids="known", anchors=None, par
 
 @_register("plaza")
 def run_plaza_dataset(data_dir, robot=1, filter="ekf", ids="known", anchors=None, particles=None,
-                      seed=0, dtype=np.float64, verbose=False, tof=False, calibrated=False):
+                      seed=0, dtype=np.float64, tof=False, calibrated=False):
     """CMU Plaza 1/2 (``--robot`` picks the sequence): odometry + range-only SLAM with a bias state.
 
     ``anchors``: "unknown" (default: SLAM, beacons initialised by delayed
     trilateration) or "known" (localisation against the surveyed beacons).
     """
     anchors = anchors or "unknown"
-    if tof or calibrated:
-        raise InputError("plaza: --tof/--calibrated do not apply")
     from ..dynamics import planar
     from ..systems import range_only as ro
     from .plaza import load_plaza
 
-    if filter != "ekf":
-        raise InputError("plaza: only --filter ekf (range-only beacons need the EKF's delayed "
-                         "trilateration; the FastSLAM core registers range-bearing landmarks)")
     if robot not in (1, 2):
         raise InputError(f"plaza: --robot selects the sequence, 1 or 2 (got {robot})")
     t0 = time.perf_counter()
@@ -382,12 +422,12 @@ def run_plaza_dataset(data_dir, robot=1, filter="ekf", ids="known", anchors=None
 # Planar range-bearing SLAM: MRCLAM and Victoria Park
 # ---------------------------------------------------------------------------
 
-def _planar_run(log, pose0, filter, cfg_ekf, prm_ekf, fs_kind, particles, seed, dtype, motion):
-    """Run EKF-SLAM or FastSLAM on a planar log; (pose (T,3), map dict, counts, comp_s, run_s, status, extra)."""
+def _planar_run(log, pose0, filter, cfg_ekf, prm_ekf, fs_kind, particles, seed, dtype):
+    """Run EKF-SLAM or FastSLAM on a planar log; (pose (T,3), map dict, counts, comp_s, run_s, status)."""
     if filter == "ekf":
         from ..systems import planar_ekf_slam as pe
 
-        prm = jax.tree_util.tree_map(lambda a: None if a is None else jnp.asarray(a, dtype), prm_ekf)
+        prm = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), prm_ekf)
         p0 = jnp.asarray(pose0, dtype)
         res, comp_s, run_s = timed_run(lambda: pe.run(log, p0, cfg_ekf, prm))
         act = np.asarray(res.active)
@@ -400,9 +440,7 @@ def _planar_run(log, pose0, filter, cfg_ekf, prm_ekf, fs_kind, particles, seed, 
                   "outside_limits": int(np.sum(np.asarray(res.n_limited))),
                   "dropped_beyond_K": int(np.sum(np.asarray(res.n_dropped))),
                   "landmarks_mapped": int(act.sum()), "overflow": int(res.overflow)}
-        for k in ("n_pruned",):
-            if hasattr(res, k):
-                counts["pruned"] = int(np.sum(np.asarray(getattr(res, k))))
+        counts["pruned"] = int(np.sum(np.asarray(res.n_pruned)))
         return np.asarray(res.pose, np.float64), lm, counts, comp_s, run_s, res.status
     from ..systems import planar_fastslam as pf
 
@@ -427,7 +465,7 @@ def _planar_run(log, pose0, filter, cfg_ekf, prm_ekf, fs_kind, particles, seed, 
 
 @_register("mrclam")
 def run_mrclam(data_dir, robot=1, filter="ekf", ids="known", anchors=None, particles=None, seed=0,
-               dtype=np.float64, verbose=False, tof=False, calibrated=False):
+               dtype=np.float64, tof=False, calibrated=False):
     """UTIAS MRCLAM (as shipped: dataset 6): unicycle odometry + range-bearing to barcoded landmarks.
 
     ``calibrated``: apply the camera range model and odometry delay fitted on the first half
@@ -438,8 +476,6 @@ def run_mrclam(data_dir, robot=1, filter="ekf", ids="known", anchors=None, parti
     from ..systems import planar_ekf_slam as pe
     from .mrclam import load_mrclam
 
-    if anchors is not None or tof:
-        raise InputError("mrclam: --anchors/--tof do not apply (landmarks are mapped by SLAM)")
     if not 1 <= robot <= 5:
         raise InputError(f"mrclam: --robot must be 1..5 (MRCLAM has five robots), got {robot}")
     t0 = time.perf_counter()
@@ -451,12 +487,14 @@ def run_mrclam(data_dir, robot=1, filter="ekf", ids="known", anchors=None, parti
         log = merge_events(d.odom_t, d.odom, d.meas_t, d.meas, d.meas_id, K=8, input_mode="rate",
                            t_end=float(d.gt_t[-1]))
     load_s = time.perf_counter() - t0
-    pose0 = metrics.interp_poses(log.t[:1], d.gt_t, d.gt)[0]
+    # the robot stands still before its first odometry row: start from GT at the first event,
+    # clamped into the ground-truth span (never extrapolated)
+    pose0 = metrics.interp_poses(np.clip(log.t[:1], d.gt_t[0], d.gt_t[-1]), d.gt_t, d.gt)[0]
     assoc = "known" if ids == "known" else "nn"
     pose, lm, counts, comp_s, run_s, status = _planar_run(
         log, pose0, filter, pe.mrclam_config(association=assoc, corrected=calibrated),
         pe.mrclam_params(robot, dtype=dtype, corrected=calibrated),
-        lambda n: _mrclam_fastslam(robot, n, assoc), particles, seed, dtype, "unicycle")
+        lambda n: _mrclam_fastslam(robot, n, assoc), particles, seed, dtype)
     dr = np.asarray(dead_reckoning(planar.unicycle, jnp.asarray(pose0), log.u, log.dt))
     m, ev = evaluate_planar(log.t, pose, d.gt_t, d.gt, dr_pose=dr, lm=lm["xy"],
                             lm_ids=lm["ids"] if assoc == "known" else None, lm_cov=lm["cov"],
@@ -485,15 +523,12 @@ def _mrclam_fastslam(robot, n, assoc):
 
 @_register("victoria-park")
 def run_victoria_park(data_dir, robot=1, filter="ekf", ids="known", anchors=None, particles=None, seed=0,
-                      dtype=np.float64, verbose=False, tof=False, calibrated=False):
+                      dtype=np.float64, tof=False, calibrated=False):
     """ACFR Victoria Park: Ackermann car, laser tree detections, unknown association, GPS reference."""
     from ..dynamics import planar
     from ..systems import planar_ekf_slam as pe
     from .victoria_park import load_victoria_park
 
-    if anchors is not None or tof or calibrated or ids != "known" or robot != 1:
-        raise InputError("victoria-park: --robot/--ids/--anchors/--tof/--calibrated do not apply "
-                         "(association is always unknown)")
     t0 = time.perf_counter()
     d = load_victoria_park(data_dir)
     det_t, det = d.det_t, d.det
@@ -508,7 +543,7 @@ def run_victoria_park(data_dir, robot=1, filter="ekf", ids="known", anchors=None
     pose0 = np.zeros(3)
     pose, lm, counts, comp_s, run_s, status = _planar_run(
         log, pose0, filter, pe.victoria_park_config(), pe.victoria_park_params(dtype=dtype),
-        lambda n: _vp_fastslam(n), particles, seed, dtype, "ackermann")
+        lambda n: _vp_fastslam(n), particles, seed, dtype)
     geom = d.geometry
     dr = np.asarray(dead_reckoning(lambda s, u, dt: planar.ackermann(s, u, dt, geom), jnp.asarray(pose0),
                                    log.u, log.dt))

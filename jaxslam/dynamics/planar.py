@@ -8,7 +8,7 @@ Every model is a pure function ``f(s, u, dt, ...) -> s'``; Jacobians come from
   (UTIAS MRCLAM: iRobot Create odometry, data README §1).  Exact arc
   integration: x' = x + v/ω (sin(φ+ωΔt) − sin φ), y' = y − v/ω (cos(φ+ωΔt) − cos φ),
   φ' = φ + ωΔt, written with sinc-type functions so it is smooth (and
-  differentiable) through ω = 0.  The README's reference dead reckoning uses
+  differentiable) through ω = 0.  The data README's reference dead reckoning uses
   Euler steps (RMS 2.729 m for robot 1); exact arcs give 2.722 m.
 * :func:`ackermann` — the Victoria Park Ute (data README §2, from RFS-SLAM's
   ``ProcessModel_Ackerman2D`` after ACFR's model notes): the state is the
@@ -47,7 +47,6 @@ __all__ = [
     "AckermannGeometry",
     "VICTORIA_PARK",
     "unicycle",
-    "unicycle_euler",
     "ackermann",
     "odometry_increment",
     "compose",
@@ -93,13 +92,6 @@ def unicycle(s, u, dt):
     fy = d * cw
     c, sn = jnp.cos(phi), jnp.sin(phi)
     return jnp.stack([x + c * fx - sn * fy, y + sn * fx + c * fy, wrap_angle(phi + th)])
-
-
-def unicycle_euler(s, u, dt):
-    """Euler unicycle step (the data README's reference dead reckoning)."""
-    x, y, phi = s[0], s[1], s[2]
-    v, om = u[0], u[1]
-    return jnp.stack([x + v * jnp.cos(phi) * dt, y + v * jnp.sin(phi) * dt, wrap_angle(phi + om * dt)])
 
 
 def ackermann(s, u, dt, geom: AckermannGeometry = VICTORIA_PARK):

@@ -619,8 +619,8 @@ def associate_nn(state: SlamState, model: SlamModel, z, mask, R, params=None,
     return slots, matched, new, d2_min
 
 
-def joint_compatibility(state: SlamState, model: SlamModel, z, slots, matched, R, params=None,
-                        thresholds=None):
+def joint_compatibility(state: SlamState, model: SlamModel, z, slots, matched, R, params,
+                        thresholds):
     """Joint-compatibility check of one scan's matches ("JCBB-lite", greedy).
 
     The joint innovation ν = (ν_1 … ν_m) of the matched rows and its full covariance

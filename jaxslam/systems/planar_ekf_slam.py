@@ -620,7 +620,7 @@ def run(log: EventLog, pose0, config: PlanarConfig, params: PlanarParams, valida
         validate_log(log)
     pose0 = jnp.asarray(pose0)
     if not jnp.issubdtype(pose0.dtype, jnp.floating):
-        pose0 = pose0.astype(jnp.float32)
+        pose0 = pose0.astype(jnp.result_type(float))
     return run_arrays(log.dt, log.u, log.z, log.ids, log.mask, pose0, params, config)
 
 

@@ -222,8 +222,8 @@ def mrclam_setup(robot: int = 1, n_particles: int = 100, association: str = "kno
 def victoria_park_setup(n_particles: int = 50, capacity: int = 768, K: int = 17, dtype=None):
     """(Config, Params) for Victoria Park with per-particle ML association.
 
-    The EKF preset's noise (σ_v 0.7 m/s·√s, σ_α 0.06 rad·√s, σ_r 1 m, σ_β 1.5°, chosen on the
-    first 500 s), gate χ²(2) 99 % = 9.21, new-landmark threshold 13.8 (99.9 %); detections
+    Noise σ_v 0.7 m/s·√s, σ_α 0.06 rad·√s, σ_r 1 m, σ_β 1.5°: the EKF's first grid on the
+    first 500 s (the EKF preset's later, tighter R was not tried with FastSLAM), gate χ²(2) 99 % = 9.21, new-landmark threshold 13.8 (99.9 %); detections
     limited to 5–40 m by the caller (K = 17 is the most such detections in one scan).
     """
     cfg = Config(motion="ackermann", n_particles=int(n_particles), capacity=int(capacity), K=int(K),

@@ -159,7 +159,8 @@ from ..data.util_uwb import TAG_OFFSET
 from ..errors import InputError
 from ..filters import ekf_slam as es
 from ..filters import trilateration as tri
-from ..linalg import symmetrize
+from ..dynamics import planar
+from ..linalg import safe_norm, symmetrize
 
 __all__ = [
     "range_observe",
@@ -197,12 +198,8 @@ TAG_Z = float(TAG_OFFSET[2])  # UWB tag offset along the body z axis [m]
 def range_observe(s, l, params=None):
     """(R1): z = ‖p − l‖ + b with p = s[:d], d = len(l), b = s[-1]; returns (1,)."""
     d = l.shape[0]
-    diff = s[:d] - l
     # safe norm: finite gradient at p = l (never met on real data, but jacfwd must stay finite)
-    r2 = jnp.sum(diff * diff)
-    r = jnp.sqrt(jnp.where(r2 > 0, r2, 1.0))
-    r = jnp.where(r2 > 0, r, 0.0)
-    return jnp.reshape(r + s[-1], (1,))
+    return jnp.reshape(safe_norm(s[:d] - l) + s[-1], (1,))
 
 
 def height_observe(s, params):
@@ -233,10 +230,8 @@ def cv_process_noise(dt, q_acc, q_bias, dtype=None):
 
 
 def odo_motion(s, u, params=None):
-    """(ODO): s = [x, y, θ, b] ∘ Pose2(d, 0, dθ) with u = (d, dθ); b unchanged."""
-    d, dth = u[0], u[1]
-    c, sn = jnp.cos(s[2]), jnp.sin(s[2])
-    return jnp.stack([s[0] + d * c, s[1] + d * sn, s[2] + dth, s[3]])
+    """(ODO): s = [x, y, θ, b] ∘ Pose2(d, 0, dθ) with u = (d, dθ) (``planar.odometry_increment``); b unchanged."""
+    return jnp.concatenate([planar.odometry_increment(s[:3], u), s[3:]])
 
 
 def odo_process_noise(s, u, dt, params: "PlazaParams"):
