@@ -394,14 +394,16 @@ def victoria_park_config(capacity: int = 256, K: int = 8, range_max: float = 40.
 
     RFS-SLAM limits range to 5–70 m; a tighter maximum keeps the far, poorly conditioned
     detections (bearing error × range) out of both the map and the update (30 m was tried:
-    no better, 2.97 m vs 2.83 m whole-run ATE).  Tentative landmarks not matched 4 times
-    within 2 s of registration are pruned (chosen on the first 500 s and the whole run,
-    scripts/dev_victoria_park_ekf.py): without pruning the map filled 384 slots with
-    clutter (overflow); with it 237 landmarks remain (781 registered, 544 pruned, no
-    overflow), so capacity 256 suffices.  Cost per measurement event is O(capacity²·K):
-    capacity 256, K 8 runs the whole log in 7.2 s after compile in float32 on the 2-core
-    dev machine (capacity 384 without pruning: 19.2 s; float32 vs float64 poses differ
-    < 0.2 mm over the first 300 s).
+    no better, 2.97 m vs 2.83 m whole-run ATE with the earlier R of 1 m / 1.5°).  Tentative
+    landmarks not matched 4 times within 2 s of registration are pruned (chosen on the first
+    500 s and the whole run, scripts/dev_victoria_park_ekf.py; with R = 1 m / 1.5° the map
+    then kept 237 landmarks, 781 registered, 544 pruned, no overflow; with the preset's
+    tighter R it exceeds 256 slots: 407 registrations refused, counted and flagged).  K = 8
+    rows per scan, nearest first (t < 500 s: K 4 / 6 / 8 / 10 → 1.62 / 1.54 / 1.43 / 1.42 m).
+    Cost per measurement event is O(capacity²·K): capacity 256, K 8 runs the whole log in
+    6.4–10.9 s (median 8.6 s over 13 runs) after compile in float32 on the 2-core dev
+    machine (capacity 384 without pruning: 19.2 s; float32 vs float64 poses differ < 0.2 mm
+    over the first 300 s).
     """
     base = dict(motion="ackermann", capacity=capacity, K=K, association="nn",
                 range_min=5.0, range_max=range_max, prune_window_s=prune_window_s,
