@@ -28,7 +28,10 @@ def _run(argv, capsys):
     ["mrclam", "--robot", "1"],
     ["plaza", "--robot", "2"],
     ["util-uwb", "--tof"],
-    ["mrclam", "--robot", "2", "--filter", "fastslam", "--particles", "16"],
+    # FastSLAM and the Ackermann/NN path are covered by tests/systems/test_planar_*.py in the
+    # default suite; their CLI plumbing runs in the slow set (compile time).
+    pytest.param(["mrclam", "--robot", "2", "--filter", "fastslam", "--particles", "16"],
+                 marks=pytest.mark.slow),
 ])
 def test_dataset_runs_on_excerpts_and_writes_outputs(tmp_path, capsys, argv):
     js = tmp_path / "out.json"
@@ -51,6 +54,7 @@ def test_dataset_runs_on_excerpts_and_writes_outputs(tmp_path, capsys, argv):
     assert "ate_m" in out
 
 
+@pytest.mark.slow
 def test_dataset_victoria_park_excerpt(tmp_path, capsys):
     rc, out, err = _run(["dataset", "victoria-park", "--data", str(DATA), "--float32",
                          "--json", str(tmp_path / "vp.json")], capsys)

@@ -410,8 +410,8 @@ def test_masked_rows_and_inactive_slots_never_poison_robot_at_origin():
     """Robot exactly at the origin, inactive slots at 0: atan2'(0, 0) and √'(0) are NaN/inf.
 
     The engine evaluates the observation also for masked rows and inactive slots; their
-    values, Jacobians and derivatives must not leak (update, associate_nn, register; value,
-    grad and jvp).
+    values, Jacobians and derivatives must not leak (update, associate_nn, register; value
+    and jvp here, grad in the slow test below).
     """
     R_ = jnp.asarray(R)
     st0 = es.init(jnp.zeros(3), jnp.diag(jnp.array([1e-4, 1e-4, 1e-5])), 4, 2)
@@ -433,11 +433,30 @@ def test_masked_rows_and_inactive_slots_never_poison_robot_at_origin():
     assert bool(np.isfinite(np.asarray(d2)[0])) and int(info.dof) == 2
     assert np.asarray(info.used).tolist() == [True, False, False]
 
-    def loss(x0, r_scale):
-        st, d2, info = step(x0, r_scale)
-        return jnp.sum(st.x) + jnp.sum(st.P) + info.nis + d2[0]
-
-    g = jax.jit(jax.grad(loss, argnums=(0, 1)))(x0, 1.0)
-    assert all(np.all(np.isfinite(np.asarray(a))) for a in g), g
-    _, t = jax.jvp(lambda a: loss(a, 1.0), (x0,), (jnp.array([1.0, -0.5, 0.2]),))
+    _, t = jax.jvp(lambda a: _origin_loss(step, a, 1.0), (x0,), (jnp.array([1.0, -0.5, 0.2]),))
     assert np.isfinite(float(t))
+
+
+def _origin_loss(step, x0, r_scale):
+    st, d2, info = step(x0, r_scale)
+    return jnp.sum(st.x) + jnp.sum(st.P) + info.nis + d2[0]
+
+
+@pytest.mark.slow
+def test_masked_rows_and_inactive_slots_never_poison_the_gradient():
+    """The reverse-mode half of the test above (its compile dominates; jvp runs by default)."""
+    R_ = jnp.asarray(R)
+    st0 = es.init(jnp.zeros(3), jnp.diag(jnp.array([1e-4, 1e-4, 1e-5])), 4, 2)
+    z_reg = jnp.array([[5.0, 0.3], [4.0, -0.2]])
+    z = jnp.array([[5.01, 0.301], [7.0, 1.0], [jnp.nan, 0.0]])
+
+    def step(x0, r_scale):
+        st = st0._replace(x=st0.x.at[:3].set(x0))
+        st = es.register(st, MODEL, z_reg, jnp.array([0, 1]), jnp.array([True, False]), R_ * r_scale)
+        _, _, _, d2 = es.associate_nn(st, MODEL, z, jnp.array([True, True, False]), R_ * r_scale)
+        st, info = es.update(st, MODEL, z, jnp.array([0, 3, 2]), jnp.array([True, True, False]),
+                             R_ * r_scale)
+        return st, d2, info
+
+    g = jax.jit(jax.grad(lambda a, r: _origin_loss(step, a, r), argnums=(0, 1)))(jnp.zeros(3), 1.0)
+    assert all(np.all(np.isfinite(np.asarray(a))) for a in g), g
