@@ -29,11 +29,11 @@ Parts (``--parts``, default ``ransac,slam``):
 from __future__ import annotations
 
 import os
-import statistics
 import sys
 import time
 
 import numpy as np
+from timing import median_s
 
 DESCRIPTION = ("Paper 004 RANSAC line extraction (Alg. 1, eq. 4.1): per-scan time of jitted single and "
                "vmapped extraction vs a NumPy twin; line-feature SLAM runs/s vmapped vs sequential")
@@ -61,15 +61,6 @@ def add_arguments(parser):
 
 def _progress(msg):
     print(f"[bench lines] {msg}", file=sys.stderr, flush=True)
-
-
-def _median(fn, repeats):
-    ts = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t0)
-    return statistics.median(ts)
 
 
 ROOM = [[0.0, 0.0], [5.0, 0.0], [5.0, 3.5], [0.0, 3.5]]
@@ -141,16 +132,16 @@ def _ransac_part(args, out, results):
 
     _progress("timing jitted single-scan extraction")
     scans = [(keys[i], pts[i], valid[i]) for i in range(S)]
-    t_single = _median(lambda: [jax.block_until_ready(single(k, p, v, cfg)) for k, p, v in scans],
+    t_single = median_s(lambda: [jax.block_until_ready(single(k, p, v, cfg)) for k, p, v in scans],
                        args.repeats) / S
     _progress("timing vmapped batch")
-    t_batch = _median(lambda: jax.block_until_ready(batched(keys, pts, valid)), args.repeats) / S
+    t_batch = median_s(lambda: jax.block_until_ready(batched(keys, pts, valid)), args.repeats) / S
     _progress("timing NumPy twin")
     n_tw = min(S, args.twin_max)
     P_np, V_np = np.asarray(pts), np.asarray(valid)
     rng = np.random.default_rng(args.seed + 2)
     kw = dict(n_hyp=cfg.n_hyp, max_lines=cfg.max_lines, threshold=cfg.threshold, min_inliers=cfg.min_inliers)
-    t_twin = _median(lambda: [tw.extract_lines(rng, P_np[i], V_np[i], **kw) for i in range(n_tw)],
+    t_twin = median_s(lambda: [tw.extract_lines(rng, P_np[i], V_np[i], **kw) for i in range(n_tw)],
                      max(1, min(args.repeats, 3))) / n_tw
 
     # Agreement on the twin-timed scans, and recovery of the true walls by each.
@@ -235,14 +226,14 @@ def _slam_part(args, out, results):
         t0 = time.perf_counter()
         jax.block_until_ready(batch(fkeys[:M], sub))
         compile_b = time.perf_counter() - t0
-        t_b = _median(lambda: jax.block_until_ready(batch(fkeys[:M], sub)), args.repeats)
+        t_b = median_s(lambda: jax.block_until_ready(batch(fkeys[:M], sub)), args.repeats)
         n_seq = min(M, args.slam_seq_max)
 
         def seq():
             for i in range(n_seq):
                 jax.block_until_ready(single(fkeys[i], jax.tree.map(lambda a: a[i], sub)))
 
-        t_s = _median(seq, args.repeats) * M / n_seq
+        t_s = median_s(seq, args.repeats) * M / n_seq
         _progress(f"slam M={M}: vmap {t_b:.3f} s, sequential {t_s:.3f} s ({n_seq} timed, scaled)")
         rows.append({"runs": M, "vmap_s": t_b, "sequential_s": t_s, "sequential_timed_runs": n_seq,
                      "vmap_runs_per_s": M / t_b, "sequential_runs_per_s": M / t_s,

@@ -30,11 +30,11 @@ machine was (shared 2-core machines make timings noisy).
 from __future__ import annotations
 
 import os
-import statistics
 import sys
 import time
 
 import numpy as np
+from timing import median_s
 
 DESCRIPTION = ("Paper 003 UWB range-only EKF-SLAM: runs/s of jax.vmap vs sequential jitted runs vs "
                "a NumPy twin (filter alone and whole Monte Carlo runs)")
@@ -66,15 +66,6 @@ def add_arguments(parser):
 
 def _progress(msg):
     print(f"[bench uwb] {msg}", file=sys.stderr, flush=True)
-
-
-def _median(fn, repeats):
-    ts = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t0)
-    return statistics.median(ts)
 
 
 def run(args):
@@ -129,15 +120,15 @@ def run(args):
                 jax.block_until_ready(batched(lm))
                 compiled[M] = time.perf_counter() - t0
             _progress(f"filter: M = {M}")
-            t_vmap = _median(lambda: jax.block_until_ready(batched(lm)), args.repeats)
+            t_vmap = median_s(lambda: jax.block_until_ready(batched(lm)), args.repeats)
             n_seq = min(M, args.seq_max)
             seq_logs = [jax.tree.map(lambda a, i=i: a[i], logs) for i in range(n_seq)]
-            t_seq = _median(lambda: [jax.block_until_ready(single(l_)) for l_ in seq_logs],
+            t_seq = median_s(lambda: [jax.block_until_ready(single(l_)) for l_ in seq_logs],
                             args.repeats) / n_seq * M
             n_tw = min(M, args.twin_max)
             np_logs = [jax.tree.map(np.asarray, l_) for l_ in seq_logs[:n_tw]] if n_tw <= n_seq else \
                 [jax.tree.map(lambda a, i=i: np.asarray(a[i]), logs) for i in range(n_tw)]
-            t_tw = _median(lambda: [tw.run(l_, cfg, fp, np.asarray(anchors)) for l_ in np_logs],
+            t_tw = median_s(lambda: [tw.run(l_, cfg, fp, np.asarray(anchors)) for l_ in np_logs],
                            max(1, min(args.repeats, 2))) / n_tw * M
             row = {"runs": M, "vmap_s": t_vmap, "vmap_runs_per_s": M / t_vmap, "vmap_compile_s": compiled[M],
                    "sequential_s": t_seq, "sequential_runs_per_s": M / t_seq, "sequential_timed": n_seq,
@@ -182,9 +173,9 @@ def run(args):
             jax.block_until_ready(batched(parts_k[0]))
             comp = time.perf_counter() - t0
             _progress(f"monte carlo: M = {M}")
-            t_vmap = _median(lambda: [jax.block_until_ready(batched(k_)) for k_ in parts_k], args.repeats)
+            t_vmap = median_s(lambda: [jax.block_until_ready(batched(k_)) for k_ in parts_k], args.repeats)
             n_seq = min(M, args.seq_max)
-            t_seq = _median(lambda: [jax.block_until_ready(single(keys[i])) for i in range(n_seq)],
+            t_seq = median_s(lambda: [jax.block_until_ready(single(keys[i])) for i in range(n_seq)],
                             args.repeats) / n_seq * M
             rows.append({"runs": M, "chunk": chunk, "chunks": n_chunks, "vmap_s": t_vmap,
                          "vmap_runs_per_s": M / t_vmap, "vmap_compile_s": comp, "sequential_s": t_seq, "sequential_runs_per_s": M / t_seq, "sequential_timed": n_seq,

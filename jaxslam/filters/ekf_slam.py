@@ -652,13 +652,15 @@ def joint_compatibility(state: SlamState, model: SlamModel, z, slots, matched, R
     Sb = Sb + eyeK[:, :, None, None] * R[:, None]
     thr = jnp.asarray(thresholds, dtype)
     eye_dz = jnp.eye(dz, dtype=dtype)
+    eye_KD = jnp.eye(K * dz, dtype=dtype)
 
     def joint(m):
         keep2 = m[:, None] & m[None, :]
         S = jnp.where(keep2[:, :, None, None], Sb, eyeK[:, :, None, None] * eye_dz)
         S = S.transpose(0, 2, 1, 3).reshape(K * dz, K * dz)
         v = jnp.where(m[:, None], nu, 0.0).reshape(K * dz)
-        Si = jnp.linalg.inv(symmetrize(S))
+        # S⁻¹ itself is needed (its diagonal blocks rank the rows): through a Cholesky factor
+        Si = jax.scipy.linalg.cho_solve((jnp.linalg.cholesky(symmetrize(S)), True), eye_KD)
         a = (Si @ v).reshape(K, dz)
         nis = v @ (Si @ v)
         Sii = Si.reshape(K, dz, K, dz)[jnp.arange(K), :, jnp.arange(K), :]  # (K, dz, dz)

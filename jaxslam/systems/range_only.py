@@ -524,7 +524,8 @@ def util_startup(t, anchor_id, ranges, tag_pos, anchor_ids, t_window, v0=None,
     # covariance with the stated σ_r (the post-cut residual RMS underrates correlated errors)
     s2 = jnp.maximum(jnp.sum(r * r) / jnp.maximum(n - theta.shape[0], 1.0),
                      jnp.asarray(sigma_r, dtype) ** 2)
-    cov = s2 * jnp.linalg.inv(J.T @ J + 1e-12 * jnp.eye(theta.shape[0], dtype=dtype))
+    eye = jnp.eye(theta.shape[0], dtype=dtype)
+    cov = s2 * jax.scipy.linalg.cho_solve((jnp.linalg.cholesky(J.T @ J + 1e-12 * eye), True), eye)
     # motion-capture position at t_w: the last window sample's tag position
     last = jnp.argmax(jnp.where(win, t, -jnp.inf))
     return UtilStartup(anchors=theta[:-1].reshape(N, 3), bias=theta[-1], cov=symmetrize(cov),
