@@ -6,6 +6,7 @@
     jaxslam bench NAME [--dir DIR] [--json PATH] [benchmark options]
     jaxslam tune SCENARIO [--target noise|lqr] [--loss LOSS] [--steps K] ...  (jaxslam.tuning.cli)
     jaxslam dataset NAME --data DIR ...   (real logs: mrclam, victoria-park, util-uwb, plaza)
+    jaxslam cache info|clear [--dir DIR] [--json]
 
 Exit codes: 0 success; 2 usage or input error (one line on stderr, no
 traceback); 1 internal failure (one line plus a hint; ``--debug`` or the
@@ -67,6 +68,8 @@ commands:
             with a held-out before/after comparison
   dataset   run EKF-SLAM / FastSLAM on a real log (MRCLAM, Victoria Park, UTIL UWB,
             CMU Plaza) and report ATE/RPE/map error against ground truth
+  cache     info / clear the persistent compilation cache (a second call of any
+            command loads its compiled programs from there)
 
 'jaxslam COMMAND --help' shows the options of a command;
 'jaxslam run SCENARIO --help' also shows that scenario's own options.
@@ -152,7 +155,7 @@ def _dispatch(argv: list[str]) -> int:
     top = _top_parser()
     top.parse_args(argv[:idx])  # --help / --version exit here; unknown options are errors
     if idx == len(argv):
-        raise UsageError(f"{PROG}: missing COMMAND (one of list, run, bench, tune, dataset; "
+        raise UsageError(f"{PROG}: missing COMMAND (one of list, run, bench, tune, dataset, cache; "
                          f"see '{PROG} --help')")
     command, rest = argv[idx], argv[idx + 1:]
     if command == "list":
@@ -169,8 +172,46 @@ def _dispatch(argv: list[str]) -> int:
         from jaxslam.data.cli import main as dataset_main
 
         return dataset_main(rest)
+    if command == "cache":
+        return _cmd_cache(rest)
     raise UsageError(f"{PROG}: unknown command {command!r} (choose from list, run, bench, tune, "
-                     f"dataset; see '{PROG} --help')")
+                     f"dataset, cache; see '{PROG} --help')")
+
+
+# ----------------------------------------------------------------------------- cache
+
+
+def _cmd_cache(rest: list[str]) -> int:
+    from jaxslam import compilation
+
+    p = _Parser(prog=f"{PROG} cache",
+                description="The persistent XLA compilation cache every jaxslam command uses "
+                            f"(folder: ${compilation.CACHE_DIR_ENV}, else $XDG_CACHE_HOME/jaxslam/xla, "
+                            f"else ~/.cache/jaxslam/xla; {compilation.CACHE_ENV}=0 switches it off).")
+    p.add_argument("action", choices=("info", "clear"), help="info: folder, entries, size; clear: delete the entries")
+    p.add_argument("--dir", metavar="DIR", help="the cache folder (default: as above)")
+    p.add_argument("--json", action="store_true", help="print the information as JSON")
+    p.add_argument("--debug", action="store_true", help=argparse.SUPPRESS)
+    args = p.parse_args(rest)
+    if args.action == "info":
+        info = compilation.cache_info(args.dir)
+    else:
+        info = compilation.clear_cache(args.dir)
+        info = {**info, "removed_entries": info.pop("entries"), "removed_bytes": info.pop("bytes")}
+    if args.json:
+        import json
+
+        _out(json.dumps(info, indent=2))
+        return 0
+    state = "on" if info["enabled"] else f"off ({compilation.CACHE_ENV}=0)"
+    if args.action == "info":
+        _out(f"compilation cache: {info['dir']} ({state})")
+        _out(f"  {info['entries']} entries, {info['bytes'] / 2**20:.1f} MiB"
+             + ("" if info["exists"] else " (folder not created yet)"))
+    else:
+        _out(f"cleared {info['dir']}: {info['removed_entries']} entries, "
+             f"{info['removed_bytes'] / 2**20:.1f} MiB removed")
+    return 0
 
 
 # ----------------------------------------------------------------------------- list
@@ -319,17 +360,23 @@ def _cmd_run(rest: list[str]) -> int:
     if plots_dir is not None and plots_dir.exists() and not plots_dir.is_dir():
         raise InputError(f"--plots: {str(plots_dir)!r} exists and is not a folder")
 
+    from jaxslam import compilation
+
     progress = Progress(args.runs, label=scenario.name, enabled=not args.quiet)
-    try:
-        result = scenario.run(runs=args.runs, seed=args.seed, dtype=dtype, options=options,
-                              progress=progress, params=params)
-    finally:
-        progress.close()
+    with compilation.account() as acct:
+        try:
+            kw = {"plots": plots_dir is not None} if _accepts(scenario.run, "plots") else {}
+            result = scenario.run(runs=args.runs, seed=args.seed, dtype=dtype, options=options,
+                                  progress=progress, params=params, **kw)
+        finally:
+            progress.close()
     if not isinstance(result, registry.ScenarioResult):
         raise TypeError(f"scenario {scenario.name!r} returned {type(result).__name__}, "
                         "expected ScenarioResult")
 
     report = io.run_json(scenario.name, args.runs, args.seed, dtype, result)
+    report["timing"]["main_program_compile_s"] = report["timing"]["compile_s"]
+    report["timing"].update(compile_timing(acct.result))
     if not args.quiet:
         _out(_format_run_report(report))
     written = []
@@ -339,6 +386,8 @@ def _cmd_run(rest: list[str]) -> int:
         if result.plot is None:
             print(f"{PROG} run: scenario {scenario.name!r} has no plots; --plots ignored", file=sys.stderr)
         else:
+            import time
+
             import matplotlib
 
             matplotlib.use("Agg")  # files only; never open a window
@@ -346,11 +395,50 @@ def _cmd_run(rest: list[str]) -> int:
                 plots_dir.mkdir(parents=True, exist_ok=True)
             except OSError as e:
                 raise InputError(f"--plots: cannot create {str(plots_dir)!r}: {e.strerror or e}") from None
-            written.extend(pathlib.Path(p) for p in (result.plot(plots_dir) or []))
+            t0 = time.perf_counter()
+            pngs = [pathlib.Path(p) for p in (result.plot(plots_dir) or [])]
+            report["timing"]["plots_s"] = time.perf_counter() - t0
+            written.extend(pngs)
+            if json_path is not None:  # again, now with the plotting time
+                io.write_json(json_path, report)
+            if not args.quiet:
+                _out(f"plots: {len(pngs)} file(s) in {report['timing']['plots_s']:.1f} s")
     if not args.quiet:
         for path in written:
             _out(f"wrote {path}")
     return 0
+
+
+def _accepts(fn, name: str) -> bool:
+    """Whether ``fn`` takes the keyword ``name`` (scenarios registered before ``plots`` existed
+    do not; they plot by themselves)."""
+    import inspect
+
+    try:
+        params = inspect.signature(fn).parameters.values()
+    except (TypeError, ValueError):
+        return False
+    return any(p.name == name or p.kind is p.VAR_KEYWORD for p in params)
+
+
+def compile_timing(acct) -> dict:
+    """The compile part of a command's timing JSON, from a :class:`jaxslam.compilation.CompileAccount`.
+
+    ``compile_s`` = trace + lower + XLA compile of every program the command built (cache loads
+    included); ``cache`` says whether the persistent cache was on and how often it served.
+    """
+    from jaxslam import compilation
+
+    folder = compilation.enabled_dir()
+    return {
+        "compile_s": acct.total_s,
+        "trace_s": acct.trace_s,
+        "lower_s": acct.lower_s,
+        "backend_compile_s": acct.compile_s,
+        "programs": acct.programs,
+        "cache": {"dir": None if folder is None else str(folder), "hits": acct.cache_hits,
+                  "misses": acct.cache_misses},
+    }
 
 
 def _fmt(x) -> str:
@@ -386,8 +474,11 @@ def _format_run_report(report: dict) -> str:
     if report.get("flags"):
         lines.append("flags: " + ", ".join(f"{k}={v}" for k, v in report["flags"].items()))
     t = report["timing"]
-    lines.append(f"timing: compile {_fmt(t['compile_s'])} s, run {_fmt(t['run_s'])} s, "
-                 f"{_fmt(t['runs_per_s'])} runs/s")
+    cache = t.get("cache") or {}
+    served = (f" ({cache.get('hits', 0)} of {cache.get('hits', 0) + cache.get('misses', 0)} programs "
+              "from the compilation cache)") if cache.get("dir") else " (compilation cache off)"
+    lines.append(f"timing: compile {_fmt(t['compile_s'])} s{served if 'cache' in t else ''}, "
+                 f"run {_fmt(t['run_s'])} s, {_fmt(t['runs_per_s'])} runs/s")
     return "\n".join(lines)
 
 

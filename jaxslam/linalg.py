@@ -15,6 +15,7 @@ import numpy as np
 from .errors import InputError
 
 __all__ = [
+    "value_and_jacfwd",
     "symmetrize",
     "wrap_angle",
     "chol_solve",
@@ -22,6 +23,25 @@ __all__ = [
     "check_psd",
     "check_shape",
 ]
+
+
+def value_and_jacfwd(fun, argnums=0):
+    """``fun``'s value and forward-mode Jacobian from one trace of ``fun``.
+
+    ``value_and_jacfwd(f, argnums)(*args) -> (f(*args), jacfwd(f, argnums)(*args))``, but
+    ``f`` is traced once (its primal comes out of the forward pass as ``has_aux``), where
+    calling ``f`` and ``jax.jacfwd(f)`` separately traces, lowers and compiles it twice.
+    """
+
+    def wrapped(*args):
+        def both(*a):
+            y = fun(*a)
+            return y, y
+
+        jac, val = jax.jacfwd(both, argnums=argnums, has_aux=True)(*args)
+        return val, jac
+
+    return wrapped
 
 
 def symmetrize(P):

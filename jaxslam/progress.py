@@ -7,11 +7,20 @@ quick runs and tests print nothing.  On a terminal the line is redrawn in place
 at most every ``log_interval_s`` so logs stay readable.
 
 Updates come from the host between jitted chunks; nothing here is traced.
+
+Compilation blocks the host for seconds before the first chunk, so :meth:`Progress.compiling`
+shows it: ``label compiling… 12 s`` redrawn every half second on a terminal (a background
+ticker; the compile itself is one blocking call), or one line when it starts and one when
+it ends on a pipe.  The ETA counts from the end of compilation and appears only once a unit
+is done, so it never extrapolates from compile time.  A final line that would repeat the
+last one written is not written again.
 """
 
 from __future__ import annotations
 
+import contextlib
 import sys
+import threading
 import time
 from typing import TextIO
 
@@ -61,7 +70,10 @@ class Progress:
         self.width = int(width)
         self._clock = clock
         self._start = clock()
+        self._run_start = None  # end of compilation (``compiling``), else the start
         self._done = 0
+        self._last_text = None
+        self._lock = threading.Lock()
         self._last_print = None  # time of the last line written, None if nothing yet
         self._closed = False
         try:
@@ -101,7 +113,11 @@ class Progress:
             return
         self._closed = True
         if self.enabled and self._last_print is not None:
-            self._write(self._line(self._clock() - self._start), final=True)
+            text = self._line(self._clock() - self._start)
+            if self._tty:
+                self._write(text, final=True)
+            elif text != self._last_text:  # a pipe already holds the last line
+                self._write(text, final=True)
 
     def _maybe_print(self) -> None:
         if not self.enabled or self._closed:
@@ -123,12 +139,55 @@ class Progress:
             bar = "[" + "#" * filled + "." * (self.width - filled) + "]"
             text = f"{head}{bar} {self._done}/{self.total} {_fmt_time(elapsed)}"
             if 0 < self._done < self.total:
-                eta = elapsed * (self.total - self._done) / self._done
-                text += f" ETA {_fmt_time(eta)}"
+                t0 = self._start if self._run_start is None else self._run_start
+                ran = max(0.0, self._clock() - t0)
+                text += f" ETA {_fmt_time(ran * (self.total - self._done) / self._done)}"
             return text
         return f"{head}{self._done} done {_fmt_time(elapsed)}"
 
+    @contextlib.contextmanager
+    def compiling(self, what: str = "compiling"):
+        """Show ``label compiling… N s`` while the block runs (module docstring)."""
+        if not self.enabled or self._closed:
+            yield
+            self._run_start = self._clock()
+            return
+        t0 = self._clock()
+        head = f"{self.label} " if self.label else ""
+        stop = threading.Event()
+        shown = []
+
+        def tick():
+            # On a pipe: one line once the delay has passed; on a terminal: redraw.
+            while not stop.wait(0.5 if self._tty else 0.25):
+                el = self._clock() - t0
+                if el < self.delay_s:
+                    continue
+                if self._tty:
+                    self._write(f"{head}{what}… {el:.0f} s", final=False)
+                    shown.append(True)
+                elif not shown:
+                    self._write(f"{head}{what}…", final=False)
+                    shown.append(True)
+
+        th = threading.Thread(target=tick, name="jaxslam-progress", daemon=True)
+        th.start()
+        try:
+            yield
+        finally:
+            stop.set()
+            th.join()
+            el = self._clock() - t0
+            if shown:
+                self._write(f"{head}compiled in {el:.1f} s", final=True)
+            self._run_start = self._clock()
+
     def _write(self, text: str, final: bool) -> None:
+        with self._lock:
+            self._write_locked(text, final)
+        self._last_text = text
+
+    def _write_locked(self, text: str, final: bool) -> None:
         try:
             if self._tty:
                 self.stream.write("\r\x1b[K" + text + ("\n" if final else ""))

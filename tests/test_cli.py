@@ -163,7 +163,12 @@ def test_run_json_plots_and_summary_stats(tmp_path, capsys):
     assert rep["consistency"] == {"anees": 1.1, "anees_bounds": [0.5, 1.5], "nis_mean": 3.1,
                                   "nis_bounds": [2.0, 4.0]}
     assert rep["flags"] == {"capacity_overflow": 0, "masked_measurements": 3, "non_finite": 0}
-    assert rep["timing"] == {"compile_s": 0.25, "run_s": 0.5, "runs_per_s": runs / 0.5}
+    t = rep["timing"]
+    assert (t["main_program_compile_s"], t["run_s"], t["runs_per_s"]) == (0.25, 0.5, runs / 0.5)
+    # compile_s: trace + lower + compile of every program the command built, measured
+    np.testing.assert_allclose(t["compile_s"], t["trace_s"] + t["lower_s"] + t["backend_compile_s"])
+    assert t["programs"] >= 0 and set(t["cache"]) == {"dir", "hits", "misses"}
+    assert t["plots_s"] > 0
     assert rep["versions"] == {"jaxslam": __import__("jaxslam").__version__, "jax": jax.__version__}
 
     png = plots / "dummy_pos.png"

@@ -14,14 +14,16 @@ def test_configure_process_keeps_user_choices_and_adds_missing_flags(monkeypatch
     # Start JAX's backend first: it reads XLA_FLAGS once, and aborts on flags it does not know.
     jax.numpy.ones(1).block_until_ready()
     monkeypatch.setenv("OPENBLAS_NUM_THREADS", "3")
-    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_enable_concurrency_optimized_scheduler=true --xla_cpu_multi_thread_eigen=true")
-    out = runtime.configure_process()
+    given = ("--xla_cpu_enable_concurrency_optimized_scheduler=true --xla_cpu_use_fusion_emitters=true "
+             "--xla_cpu_multi_thread_eigen=true")
+    monkeypatch.setenv("XLA_FLAGS", given)
+    out = runtime.configure_process(cache=False)
     assert out["OPENBLAS_NUM_THREADS"] == "3"
-    assert os.environ["XLA_FLAGS"] == "--xla_cpu_enable_concurrency_optimized_scheduler=true --xla_cpu_multi_thread_eigen=true"
+    assert os.environ["XLA_FLAGS"] == given
     monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_multi_thread_eigen=true")
     monkeypatch.delenv("OPENBLAS_NUM_THREADS")
     with pytest.warns(RuntimeWarning, match="already started"):
-        runtime.configure_process()
+        runtime.configure_process(cache=False)
     assert os.environ["XLA_FLAGS"].split() == ["--xla_cpu_multi_thread_eigen=true", *runtime.XLA_WORKAROUND_FLAGS]
     assert os.environ["OPENBLAS_NUM_THREADS"] == "1"
 

@@ -28,6 +28,7 @@ host-side ``check_state`` / ``check_input`` (call them before ``jit``).
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -105,9 +106,15 @@ def hover_state(position=(0.0, 0.0, 0.0), yaw=0.0, dtype=None):
     """
     if dtype is None:
         dtype = jnp.result_type(float)
-    x = jnp.zeros(STATE_DIM, dtype)
-    x = x.at[POS].set(jnp.asarray(position, dtype=dtype))
-    return x.at[8].set(jnp.asarray(yaw, dtype=dtype))
+    try:  # concrete numbers (the usual case): built on the host, no program to compile
+        x = np.zeros(STATE_DIM)
+        x[POS] = np.asarray(position, np.float64)
+        x[8] = float(yaw)
+        return jnp.asarray(x, dtype)
+    except (TypeError, jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):
+        x = jnp.zeros(STATE_DIM, dtype)
+        x = x.at[POS].set(jnp.asarray(position, dtype=dtype))
+        return x.at[8].set(jnp.asarray(yaw, dtype=dtype))
 
 
 def _check_vector(a, n, name):

@@ -77,7 +77,7 @@ import numpy as np
 
 from .. import errors
 from ..errors import InputError
-from ..linalg import check_psd, chol_solve, symmetrize, wrap_angle
+from ..linalg import check_psd, chol_solve, symmetrize, value_and_jacfwd, wrap_angle
 from ..metrics import chi2_ppf_np
 
 __all__ = [
@@ -162,17 +162,6 @@ class Posterior(NamedTuple):
 # ---------------------------------------------------------------------------
 # Helpers
 # ---------------------------------------------------------------------------
-
-def _value_and_jacfwd(fun: Callable, x: Array):
-    """Return ``(fun(x), d fun / dx)`` in one forward-mode pass."""
-
-    def both(v):
-        y = fun(v)
-        return y, y
-
-    jac, val = jax.jacfwd(both, has_aux=True)(x)
-    return val, jac
-
 
 def angle_residual(angle_mask) -> Callable[[Array, Array], Array]:
     """Build a residual ``ν(z, ẑ)`` that wraps the chosen components to [−π, π).
@@ -310,7 +299,7 @@ def predict(state: Gaussian, f: Callable, u, Q, *args, noise_jac=None) -> Gaussi
     """
     x, P = state
     dtype = x.dtype
-    xn, F = _value_and_jacfwd(lambda v: f(v, u, *args), x)
+    xn, F = value_and_jacfwd(lambda v: f(v, u, *args))(x)
     xn = xn.astype(dtype)
     F = F.astype(dtype)
     Q = jnp.asarray(Q, dtype=dtype)
@@ -381,7 +370,7 @@ def update(
     mask = jnp.ones((m,), bool) if mask is None else jnp.asarray(mask, bool)
     res = _default_residual if residual is None else residual
 
-    zhat, H = _value_and_jacfwd(lambda v: h(v, *args), x)
+    zhat, H = value_and_jacfwd(lambda v: h(v, *args))(x)
     zhat = zhat.astype(dtype)
     H = H.astype(dtype)
     # Replace invalid components by their prediction before differencing so
@@ -472,7 +461,7 @@ def update_batch(
         return jax.lax.scan(body, state, (zs, Rs, masks, tuple(args)))
 
     def lin(a):
-        return _value_and_jacfwd(lambda v: h(v, *a), x)
+        return value_and_jacfwd(lambda v: h(v, *a))(x)
 
     zhat, H = jax.vmap(lin)(tuple(args))  # (M, m), (M, m, n)
     zhat = zhat.astype(dtype)

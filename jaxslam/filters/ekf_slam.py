@@ -47,7 +47,7 @@ import jax
 import jax.numpy as jnp
 
 from .. import errors
-from ..linalg import symmetrize
+from ..linalg import symmetrize, value_and_jacfwd
 
 __all__ = [
     "SlamModel",
@@ -192,7 +192,7 @@ def predict(state: SlamState, model: SlamModel, u, Q, params=None) -> SlamState:
     """
     nr = model.robot_dim
     s = state.x[:nr]
-    s_new, F = _value_and_jacfwd(lambda s_: model.motion(s_, u, params), s)
+    s_new, F = value_and_jacfwd(lambda s_: model.motion(s_, u, params))(s)
     Prr = state.P[:nr, :nr]
     Prl = state.P[:nr, nr:]
     Prr_new = symmetrize(F @ Prr @ F.T + Q)
@@ -207,13 +207,6 @@ def predict(state: SlamState, model: SlamModel, u, Q, params=None) -> SlamState:
     P = jax.lax.dynamic_update_slice(P, Prl_new.T, (nr, 0))
     x = state.x.at[:nr].set(s_new)
     return state._replace(x=x, P=P, status=state.status | _flag_if(~ok, errors.NON_FINITE))
-
-
-def _value_and_jacfwd(fun, x):
-    """(fun(x), ∂fun/∂x) with one forward-mode pass."""
-    y = fun(x)
-    J = jax.jacfwd(fun)(x)
-    return y, J
 
 
 # ---------------------------------------------------------------------------
@@ -248,8 +241,7 @@ def _observe_batch(model, s, L, params, valid=None):
     S, L = _guard_inputs(valid, s, L)
 
     def one(s_k, l):
-        zh = model.observe(s_k, l, params)
-        Hs, Hl = jax.jacfwd(model.observe, argnums=(0, 1))(s_k, l, params)
+        zh, (Hs, Hl) = value_and_jacfwd(model.observe, argnums=(0, 1))(s_k, l, params)
         return zh, Hs, Hl
 
     zh, Hs, Hl = jax.vmap(one)(S, L)
@@ -389,7 +381,7 @@ def update_robot(state: SlamState, model: SlamModel, observe, z, mask, R, params
     valid = mask & finite
     z_safe = jnp.where(valid, z, 0.0)
     s = state.x[:nr]
-    zh, Hs = _value_and_jacfwd(lambda s_: observe(s_, params), s)
+    zh, Hs = value_and_jacfwd(lambda s_: observe(s_, params))(s)
     res = (residual if residual is not None else (lambda a, b: a - b))(z_safe, zh)
     v = valid.astype(dtype)
     VV = v[:, None] * v[None, :]
@@ -494,8 +486,7 @@ def register(state: SlamState, model: SlamModel, z, lm_ids, mask, R, params=None
     Psx = P[:nr, :]  # (nr, n)
 
     def one(s_k, zk, Rk):
-        l = model.inverse(s_k, zk, params)
-        Gs, Gz = jax.jacfwd(model.inverse, argnums=(0, 1))(s_k, zk, params)
+        l, (Gs, Gz) = value_and_jacfwd(model.inverse, argnums=(0, 1))(s_k, zk, params)
         Pll = symmetrize(Gs @ Pss @ Gs.T + Gz @ Rk @ Gz.T)
         return l, Gs, Pll
 

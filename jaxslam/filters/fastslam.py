@@ -97,7 +97,7 @@ import numpy as np
 
 from .. import errors
 from ..errors import InputError
-from ..linalg import symmetrize, wrap_angle
+from ..linalg import symmetrize, value_and_jacfwd, wrap_angle
 from . import ekf as _ekf
 from . import resampling as _rs
 
@@ -292,15 +292,6 @@ def _inv_general(G):
         return inv, det != 0
     inv = jnp.linalg.solve(G, jnp.eye(d, dtype=G.dtype))
     return inv, jnp.all(jnp.isfinite(inv))
-
-
-def _value_and_jacfwd(fun, x):
-    def both(v):
-        y = fun(v)
-        return y, y
-
-    jac, val = jax.jacfwd(both, has_aux=True)(x)
-    return val, jac
 
 
 def _guard(do, x):
@@ -630,7 +621,7 @@ def observe_update(
                 # One linearisation serves both branches: at the landmark mean
                 # for an update, at the new landmark for a registration (G).
                 lin = jnp.where(do_upd, m_u, l_reg)
-                zhat, H = _value_and_jacfwd(obs, lin)
+                zhat, H = value_and_jacfwd(obs)(lin)
                 m_new, P_new, nis, logdetS, nu, acc, st = _update_closed(
                     m_u, P_u, z_g, zhat, H, R_g, res, do_upd, gate)
                 G = H

@@ -24,11 +24,19 @@ def plt():
 
 
 def save(fig, directory, name) -> pathlib.Path:
-    """Save ``fig`` as ``directory/name.png`` (directory created) and close it."""
+    """Save ``fig`` as ``directory/name.png`` (directory created) and close it.
+
+    The figure is drawn once: ``bbox_inches="tight"`` (and the layout engines) draw it
+    twice to measure it, which was 0.45 s of every figure here; margins are set instead
+    (``subplots_adjust`` with room for a suptitle, unless a layout engine is already set).
+    """
     d = pathlib.Path(directory)
     d.mkdir(parents=True, exist_ok=True)
     path = d / f"{name}.png"
-    fig.savefig(path, dpi=110, bbox_inches="tight")
+    if fig.get_layout_engine() is None:
+        top = 0.90 if fig._suptitle is not None else 0.94
+        fig.subplots_adjust(left=0.08, right=0.97, bottom=0.08, top=top, hspace=0.32, wspace=0.25)
+    fig.savefig(path, dpi=110)
     plt().close(fig)
     return path
 

@@ -274,9 +274,13 @@ def innovation(y, y_pred):
 def measurement_cov(spec: LidarSpec = PAPER000_LIDAR, dtype=None):
     """R_ζ = diag(σ_α², σ_β², σ_δ²) (paper 000 eq. 30, Table 4), shape (3, 3)."""
     dtype = jnp.result_type(float) if dtype is None else jnp.dtype(dtype)
-    s = jnp.stack([jnp.asarray(spec.sigma_az, dtype), jnp.asarray(spec.sigma_el, dtype),
-                   jnp.asarray(spec.sigma_range, dtype)])
-    return jnp.diag(s * s)
+    sig = (spec.sigma_az, spec.sigma_el, spec.sigma_range)
+    try:  # concrete numbers (the usual case): built on the host, no program to compile
+        s = np.asarray(sig, np.float64)
+        return jnp.asarray(np.diag(s * s), dtype)
+    except (TypeError, jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):
+        s = jnp.stack([jnp.asarray(v, dtype) for v in sig])
+        return jnp.diag(s * s)
 
 
 def sample_noise(key, spec: LidarSpec = PAPER000_LIDAR, shape_prefix=(), dtype=None):

@@ -156,9 +156,9 @@ def paper_noise(mode: str, dtype=jnp.float64) -> NoiseParams:
         P0, Q = TABLE7_P0, TABLE7_Q
     else:
         raise InputError(f"mode: expected 'known' or 'unknown', got {mode!r}")
-    return NoiseParams(
-        P0=jnp.diag(jnp.asarray(P0, dtype)),
-        Qc=jnp.diag(jnp.asarray(Q, dtype)),
+    return NoiseParams(  # built on the host: no eager programs to compile
+        P0=jnp.asarray(np.diag(np.asarray(P0, np.float64)), dtype),
+        Qc=jnp.asarray(np.diag(np.asarray(Q, np.float64)), dtype),
         Qimu=jnp.zeros((6, 6), dtype),
         R=_lidar_R(dtype),
     )
@@ -173,11 +173,11 @@ def imu_noise(imu_spec, dtype=jnp.float64, P0=IMU_P0) -> NoiseParams:
     """Q from Table 5's noise densities (``--q imu``), R of Table 4, small P0."""
     nd_a = float(imu_spec.accel_noise_density)
     nd_g = float(imu_spec.gyro_noise_density)
-    qimu = jnp.asarray([nd_a**2] * 3 + [nd_g**2] * 3, dtype)
-    return NoiseParams(
-        P0=jnp.diag(jnp.asarray(P0, dtype)),
+    qimu = np.asarray([nd_a**2] * 3 + [nd_g**2] * 3, np.float64)
+    return NoiseParams(  # built on the host: no eager programs to compile
+        P0=jnp.asarray(np.diag(np.asarray(P0, np.float64)), dtype),
         Qc=jnp.zeros((NX, NX), dtype),
-        Qimu=jnp.diag(qimu),
+        Qimu=jnp.asarray(np.diag(qimu), dtype),
         R=_lidar_R(dtype),
     )
 

@@ -29,14 +29,13 @@ from __future__ import annotations
 
 import math
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
 from ...control import smc
 from ...errors import InputError
 from .. import monte_carlo
-from .registry import Option, Scenario, ScenarioResult, register
+from .registry import Option, Scenario, ScenarioResult, program_key, register
 
 __all__ = ["SETTLE_DEG", "FINAL_WINDOW_S", "resolve_gains", "build", "run_scenario", "metrics"]
 
@@ -118,10 +117,12 @@ def build(options, dtype):
                                switching=options["switching"], model=options["torque"],
                                tau_max=tau_max, record=record)
 
-    def one_run(key):
-        r = rollout(key)
+    def one_run(key, detail=False):
+        r = rollout(key, record=detail)
         m = metrics(r.norms, dt)
         m["non_finite"] = jnp.any(~jnp.isfinite(r.norms)).astype(jnp.int32)
+        if detail:  # run 0's recorded rollout for the plots, from this same program
+            m["detail"] = r
         return m
 
     # ξ reaches (1 − 1e-10) of the bound: that is the (L1, L2) the theorem is checked at
@@ -140,23 +141,23 @@ def build(options, dtype):
     return one_run, rollout, setup
 
 
-def run_scenario(runs, seed, dtype, options, progress, params=None):
+def run_scenario(runs, seed, dtype, options, progress, params=None, plots=False):
     """Monte Carlo over ``runs`` seeds; see the module docstring."""
     if params:
         raise InputError("attitude-smc takes no --params file (use the scenario options)")
     one_run, rollout, setup = build(options, dtype)
-    mc = monte_carlo.run(one_run, seed, runs, progress=progress)
+    mc = monte_carlo.run(lambda k: one_run(k, detail=plots), seed, runs, progress=progress, detail=plots,
+                         program_key=program_key("attitude-smc", options, params, dtype))
     out = dict(mc.out)
+    recorded = out.pop("detail", None)
     non_finite = int(np.sum(out.pop("non_finite")))
     dt = float(options["dt"])
 
     def plot(directory):
         from ...plotting import attitude as aplot
 
-        key = monte_carlo.keys_for(seed, 1)[0]
-        r = jax.tree.map(np.asarray, jax.jit(lambda k: rollout(k, True))(key))
         name = f"attitude-smc_{options['perturbation']}_{options['gains']}"
-        return aplot.plot_all(name, dt, r, np.asarray(smc.QD_CH34), directory,
+        return aplot.plot_all(name, dt, recorded, np.asarray(smc.QD_CH34), directory,
                               tau_max=setup["tau_max_Nm"])
 
     config = {"model": "paper 004 eq. 3.13 attitude, RK4 + renormalisation",
@@ -167,7 +168,7 @@ def run_scenario(runs, seed, dtype, options, progress, params=None):
         consistency=None,
         flags={"capacity_overflow": 0, "masked_measurements": 0, "non_finite": non_finite},
         timing={"compile_s": mc.compile_s, "run_s": mc.run_s},
-        plot=plot,
+        plot=plot if plots else None,
         extra={"theorem31": setup["theorem31"]},
     )
 

@@ -33,14 +33,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from ... import metrics as mx
+from ... import runtime
 from ...control import dflqr
 from ...errors import InputError
 from ...sensors import imu as imu_mod
 from ...sensors import landmarks as lm_mod
 from ...systems import ekf_slam_3d as sys3d
 from .. import monte_carlo
-from ..simulate import n_frames, simulate
-from .registry import Option, Scenario, ScenarioResult, register
+from ..simulate import controls, n_frames, simulate
+from .registry import Option, Scenario, ScenarioResult, program_key, register
 from .tracking import (DT, FRAME_STEPS, SETTLED_AFTER_S, controller_from_dict, make_setup,
                        paper000_figure8, tracking_metrics)
 
@@ -95,6 +96,9 @@ def build(options: dict, mode: str, dtype, params=None):
     ff = not options["no_feedforward"]
     nf = n_frames(duration, DT, FRAME_STEPS)
     control_on = options["control_on"]
+    # Gain and reference are the same for every run: one small program, outside the runs'.
+    K, refs = controls(make_setup(traj, dtype, ctrl=ctrl), nf * FRAME_STEPS, ff,
+                       compiler_options=runtime.compiler_options())
 
     def flight(key, noise, save_map=False):
         k_lm, k_fl = jax.random.split(key)
@@ -103,12 +107,17 @@ def build(options: dict, mode: str, dtype, params=None):
         setup = make_setup(traj, dtype, landmarks=lms, ctrl=ctrl)
         est = sys3d.make_estimator(noise, cfg._replace(save_map=save_map), landmarks_true=lms)
         fl = simulate(setup, k_fl, nf, FRAME_STEPS, estimator=est, control_on=control_on,
-                      feedforward=ff)
+                      K=K, feedforward=ff, refs=refs)
         return fl, lms
 
-    def one_run(key, noise=noise):
-        fl, lms = flight(key, noise)
-        return evaluate(fl, lms, cfg)
+    def one_run(key, noise=noise, detail=False):
+        # detail=True also returns the whole flight (for the plots; Monte Carlo keeps run 0's),
+        # so the plots come from the program that computes the metrics.
+        fl, lms = flight(key, noise, save_map=detail)
+        out = evaluate(fl, lms, cfg)
+        if detail:
+            out["detail"] = {"flight": fl, "landmarks": lms}
+        return out
 
     return one_run, flight, cfg, noise, nf
 
@@ -209,9 +218,11 @@ def consistency(series, t, runs, n=sys3d.NX):
     }, per_step
 
 
-def run_scenario(name, mode, runs, seed, dtype, options, progress, params=None):
+def run_scenario(name, mode, runs, seed, dtype, options, progress, params=None, plots=False):
     one_run, flight, cfg, noise, nf = build(options, mode, dtype, params)
-    mc = monte_carlo.run(one_run, seed, runs, chunk=options.get("chunk"), progress=progress)
+    mc = monte_carlo.run(lambda k: one_run(k, detail=plots), seed, runs, chunk=options.get("chunk"),
+                         progress=progress, cpu_batching="loop", detail=plots,
+                         program_key=program_key(name, options, params, dtype))
     out = mc.out
     t = (np.arange(nf * FRAME_STEPS) + 1) * DT
     t_frames = (np.arange(nf) + 1) * DT * FRAME_STEPS
@@ -230,11 +241,9 @@ def run_scenario(name, mode, runs, seed, dtype, options, progress, params=None):
     def plot(directory):
         from ...plotting import slam3d
 
-        key = monte_carlo.keys_for(seed, 1)[0]
-        fl, lms = jax.jit(lambda k: flight(k, noise, save_map=True))(key)
-        fl = jax.tree.map(np.asarray, fl)
-        return slam3d.plot_all(name, fl, np.asarray(lms), t, t_frames, per_step, cons, runs,
-                               directory, cfg)
+        d = out["detail"]  # run 0, from the same program as the metrics
+        return slam3d.plot_all(name, d["flight"], np.asarray(d["landmarks"]), t, t_frames, per_step,
+                               cons, runs, directory, cfg)
 
     config = {
         "mode": mode,
@@ -254,7 +263,7 @@ def run_scenario(name, mode, runs, seed, dtype, options, progress, params=None):
         consistency={k: cons[k] for k in ("anees", "anees_bounds", "nis_mean", "nis_bounds")},
         flags=flags,
         timing={"compile_s": mc.compile_s, "run_s": mc.run_s},
-        plot=plot,
+        plot=plot if plots else None,
         extra={"status_flags": decode(status_any),
                "consistency_detail": {k: v for k, v in cons.items()
                                       if k not in ("anees", "anees_bounds", "nis_mean", "nis_bounds")},
@@ -292,8 +301,8 @@ def _register(mode):
         name=name,
         description=_DESCRIPTIONS[mode],
         options=_OPTIONS,
-        run=lambda runs, seed, dtype, options, progress, params=None: run_scenario(
-            name, mode, runs, seed, dtype, options, progress, params),
+        run=lambda runs, seed, dtype, options, progress, params=None, plots=False: run_scenario(
+            name, mode, runs, seed, dtype, options, progress, params, plots),
     ))
 
 

@@ -60,7 +60,7 @@ from ...sensors import lidar3d
 from ...sensors import range_bearing3d as rb
 from ...systems import fastslam_001 as fs1
 from .. import monte_carlo
-from .registry import Option, Scenario, ScenarioResult, register
+from .registry import Option, Scenario, ScenarioResult, program_key, register
 
 DT = 0.01
 LIDAR_EVERY = 10
@@ -287,20 +287,28 @@ def build(options: dict, dtype):
         res = fs1.run(k_filt, fl.truth[0], fl.rotor, fl.imu, fl.z, ids, fl.mask, N, cfg, prm)
         return fl, res
 
-    def one_run(key):
-        fl, res = flight(key)
+    def one_run(key, detail=False):
+        # detail=True also returns the flight and the particle history (for the plots;
+        # Monte Carlo keeps run 0's), from the program that computes the metrics.
+        fl, res = flight(key, cfg._replace(save_particles=True) if detail else cfg)
         m, c = evaluate(fl, res, setup.landmarks, float(opts["bias"]))
-        return {"metrics": m, "counts": c}
+        out = {"metrics": m, "counts": c}
+        if detail:
+            out["detail"] = {"flight": fl, "result": res}
+        return out
 
     return one_run, flight, cfg, prm, nf, setup
 
 
-def run_scenario(runs, seed, dtype, options, progress, params=None):
+def run_scenario(runs, seed, dtype, options, progress, params=None, plots=False):
     """``jaxslam run fastslam-helix`` (registry entry point)."""
     from ...errors import decode
 
     one_run, flight, cfg, prm, nf, setup = build(options, dtype)
-    mc = monte_carlo.run(one_run, seed, runs, chunk=options.get("chunk"), progress=progress)
+    # The particle set is vmapped inside a run; on a CPU a second vmap over runs gains nothing.
+    mc = monte_carlo.run(lambda k: one_run(k, detail=plots), seed, runs, chunk=options.get("chunk"),
+                         progress=progress, cpu_batching="loop", detail=plots,
+                         program_key=program_key("fastslam-helix", options, params, dtype))
     out = mc.out
     counts = out["counts"]
     status_any = int(np.bitwise_or.reduce(np.asarray(counts["status"]).ravel()))
@@ -314,12 +322,9 @@ def run_scenario(runs, seed, dtype, options, progress, params=None):
     def plot(directory):
         from ...plotting import fastslam as fp
 
-        key = monte_carlo.keys_for(seed, 1)[0]
-        cfg_p = cfg._replace(save_particles=True)
-        fl, res = jax.jit(lambda k: flight(k, cfg_p))(key)
-        fl = jax.tree_util.tree_map(np.asarray, fl)
-        res = jax.tree_util.tree_map(np.asarray, res)
-        return fp.plot_all("fastslam-helix", fl, res, np.asarray(setup.landmarks), directory)
+        d = out["detail"]
+        return fp.plot_all("fastslam-helix", d["flight"], d["result"], np.asarray(setup.landmarks),
+                           directory)
 
     config = {
         "duration_s": float(options["duration"]),
@@ -339,7 +344,7 @@ def run_scenario(runs, seed, dtype, options, progress, params=None):
         consistency=None,
         flags=flags,
         timing={"compile_s": mc.compile_s, "run_s": mc.run_s},
-        plot=plot,
+        plot=plot if plots else None,
         extra={"status_flags": decode(status_any), "devices": mc.n_devices},
     )
 
@@ -373,6 +378,6 @@ register(Scenario(
     name="fastslam-helix",
     description="Paper 001: dynamics-based two-stage FastSLAM with IMU bias/drift KF on the helix",
     options=OPTIONS,
-    run=lambda runs, seed, dtype, options, progress, params=None: run_scenario(
-        runs, seed, dtype, options, progress, params),
+    run=lambda runs, seed, dtype, options, progress, params=None, plots=False: run_scenario(
+        runs, seed, dtype, options, progress, params, plots),
 ))

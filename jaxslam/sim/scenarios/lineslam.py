@@ -47,7 +47,7 @@ from ...linalg import wrap_angle
 from ...sensors import laser2d
 from ...systems import line_slam_004 as LS
 from .. import monte_carlo
-from .registry import Option, Scenario, ScenarioResult, register
+from .registry import Option, Scenario, ScenarioResult, program_key, register
 
 __all__ = ["ROOM", "PILLAR", "Setup", "room_walls", "make_setup", "simulate", "evaluate", "build",
            "run_scenario", "true_lines"]
@@ -216,17 +216,22 @@ def build(options: dict, dtype, params=None):
         log = simulate(k_sim, setup, cfg.spec, dtype)
         return log, LS.run(k_f, log, cfg, fp)
 
-    def one_run(key, fp=fp):
-        _, res = flight(key, fp)
-        return evaluate(setup, res)
+    def one_run(key, fp=fp, detail=False):
+        log, res = flight(key, fp)
+        out = evaluate(setup, res)
+        if detail:  # run 0's log and filter record for the plots, from this same program
+            out["detail"] = {"log": log, "result": res}
+        return out
 
     return one_run, flight, cfg, fp, setup
 
 
-def run_scenario(runs, seed, dtype, options, progress, params=None):
+def run_scenario(runs, seed, dtype, options, progress, params=None, plots=False):
     """Monte Carlo over ``runs`` seeded flights (see the module docstring)."""
     one_run, flight, cfg, fp, setup = build(options, dtype, params)
-    mc = monte_carlo.run(one_run, seed, runs, chunk=options.get("chunk"), progress=progress)
+    mc = monte_carlo.run(lambda k: one_run(k, detail=plots), seed, runs, chunk=options.get("chunk"),
+                         progress=progress, detail=plots,
+                         program_key=program_key("lineslam-room", options, params, dtype))
     out = mc.out
     nees = np.asarray(out["series"]["nees"], float)  # (runs, T)
     lo, hi = mx.anees_bounds(3, runs)
@@ -248,10 +253,7 @@ def run_scenario(runs, seed, dtype, options, progress, params=None):
     def plot(directory):
         from ...plotting import lines as lplot
 
-        key = monte_carlo.keys_for(seed, 1)[0]
-        log, res = jax.jit(flight)(key)
-        log = jax.tree.map(np.asarray, log)
-        res = jax.tree.map(np.asarray, res)
+        log, res = out["detail"]["log"], out["detail"]["result"]
         return lplot.plot_all("lineslam-room", setup, cfg, log, res, per_step, (lo, hi), directory)
 
     config = {
@@ -277,7 +279,7 @@ def run_scenario(runs, seed, dtype, options, progress, params=None):
                      "nis_bounds": [float(nlo), float(nhi)]},
         flags=flags,
         timing={"compile_s": mc.compile_s, "run_s": mc.run_s},
-        plot=plot,
+        plot=plot if plots else None,
         extra={"status_flags": decode(status_any),
                "consistency_detail": {"pose_dof": 3, "fraction_steps_in_bounds":
                                       float(np.mean((per_step >= lo) & (per_step <= hi)))}},

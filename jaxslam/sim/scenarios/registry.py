@@ -48,6 +48,7 @@ __all__ = [
     "get",
     "names",
     "all_scenarios",
+    "program_key",
 ]
 
 # Names used by the common `jaxslam run` options; a scenario option may not reuse them.
@@ -118,8 +119,10 @@ class Scenario:
       description: one line for ``jaxslam list``.
       options: scenario-specific options, shown by ``jaxslam run NAME --help``.
       run: ``run(runs=int, seed=int, dtype=np.dtype, options=dict, progress=Progress,
-        params=dict | None) -> ScenarioResult``.  ``options`` holds every option of
-        ``options`` (defaults filled in); ``params`` is the parsed ``--params`` JSON file.
+        params=dict | None, plots=bool) -> ScenarioResult``.  ``options`` holds every option of
+        ``options`` (defaults filled in); ``params`` is the parsed ``--params`` JSON file;
+        ``plots`` says the caller will call ``result.plot`` (the scenario then records the
+        first run's flight in the same compiled program, instead of flying it again).
     """
 
     name: str
@@ -245,3 +248,9 @@ def all_scenarios() -> list[Scenario]:
     """All registered scenarios, sorted by name."""
     _load_builtin()
     return [_REGISTRY[n] for n in sorted(_REGISTRY)]
+
+
+def program_key(name: str, options: dict, params, dtype) -> dict:
+    """What determines a scenario's compiled Monte Carlo program besides the code and the
+    PRNG keys (see :func:`jaxslam.compilation.compile_program`)."""
+    return {"scenario": name, "options": dict(options), "params": params, "dtype": str(np.dtype(dtype))}

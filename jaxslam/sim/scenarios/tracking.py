@@ -14,9 +14,7 @@ simulated on the way.  Metrics:
 from __future__ import annotations
 
 import math
-import time
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -28,7 +26,7 @@ from ...sensors import imu as imu_mod
 from ...sensors import lidar3d
 from .. import monte_carlo
 from ..simulate import FlightSetup, n_frames, simulate
-from .registry import Option, Scenario, ScenarioResult, register
+from .registry import Option, Scenario, ScenarioResult, program_key, register
 
 SETTLE_TOL_M = 0.1
 SETTLED_AFTER_S = 10.0
@@ -123,7 +121,7 @@ def _check_duration(duration):
         raise InputError(f"--duration: must be at least {DT * FRAME_STEPS} s, got {duration}")
 
 
-def _run_tracking(name, traj_factory, runs, seed, dtype, options, progress, params=None):
+def _run_tracking(name, traj_factory, runs, seed, dtype, options, progress, params=None, plots=False):
     duration = float(options["duration"])
     _check_duration(duration)
     dtype = jnp.dtype(dtype)
@@ -139,16 +137,18 @@ def _run_tracking(name, traj_factory, runs, seed, dtype, options, progress, para
         fl = simulate(setup, key, nf, FRAME_STEPS, feedforward=ff)
         m = tracking_metrics(fl.t, fl.truth, fl.ref)
         m["non_finite"] = jnp.logical_not(jnp.all(jnp.isfinite(fl.truth))).astype(jnp.int32)
+        if plots:  # run 0's flight for the plots, from this same program
+            m["detail"] = fl
         return m
 
-    mc = monte_carlo.run(one, seed, runs, chunk=options.get("chunk"), progress=progress)
-    metrics = {k: v for k, v in mc.out.items() if k != "non_finite"}
+    mc = monte_carlo.run(one, seed, runs, chunk=options.get("chunk"), progress=progress, detail=plots,
+                         program_key=program_key(name, options, params, dtype))
+    metrics = {k: v for k, v in mc.out.items() if k not in ("non_finite", "detail")}
 
     def plot(directory):
         from ...plotting import flight as fp
 
-        fl = jax.jit(lambda k: simulate(setup, k, nf, FRAME_STEPS, feedforward=ff))(monte_carlo.keys_for(seed, 1)[0])
-        fl = jax.tree.map(np.asarray, fl)
+        fl = mc.out["detail"]
         paths = [
             fp.save(fp.trajectory_3d(fl.truth[:, :3], fl.ref[:, :3], title=f"{name}: 3D path"),
                     directory, f"{name}_trajectory3d"),
@@ -177,7 +177,7 @@ def _run_tracking(name, traj_factory, runs, seed, dtype, options, progress, para
         flags={"capacity_overflow": 0, "masked_measurements": 0,
                "non_finite": int(np.sum(mc.out["non_finite"]))},
         timing={"compile_s": mc.compile_s, "run_s": mc.run_s},
-        plot=plot,
+        plot=plot if plots else None,
         extra={"devices": mc.n_devices},
     )
 
@@ -213,14 +213,14 @@ register(Scenario(
                "take-off blend of the reference from the origin [s]; 0 = the paper's start "
                "(reference starts on the figure-8, the vehicle at the origin)"),
     ),
-    run=lambda runs, seed, dtype, options, progress, params=None: _run_tracking(
-        "track-figure8", _figure8, runs, seed, dtype, options, progress, params),
+    run=lambda runs, seed, dtype, options, progress, params=None, plots=False: _run_tracking(
+        "track-figure8", _figure8, runs, seed, dtype, options, progress, params, plots),
 ))
 
 register(Scenario(
     name="track-helix",
     description="Paper 001: DF-LQR tracks the climbing helix from the origin (true state, no estimator)",
     options=_COMMON,
-    run=lambda runs, seed, dtype, options, progress, params=None: _run_tracking(
-        "track-helix", _helix, runs, seed, dtype, options, progress, params),
+    run=lambda runs, seed, dtype, options, progress, params=None, plots=False: _run_tracking(
+        "track-helix", _helix, runs, seed, dtype, options, progress, params, plots),
 ))

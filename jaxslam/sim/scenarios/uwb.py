@@ -76,7 +76,7 @@ from ...linalg import wrap_angle
 from ...sensors import uwb
 from ...systems import uwb_slam_2d as U
 from .. import monte_carlo
-from .registry import Option, Scenario, ScenarioResult, register
+from .registry import Option, Scenario, ScenarioResult, program_key, register
 
 __all__ = ["ANCHORS", "SCENARIOS", "Setup", "SimOut", "make_setup", "simulate", "startup_frame",
            "evaluate", "build", "run_scenario", "consistency"]
@@ -424,17 +424,22 @@ def build(scenario: str, options: dict, dtype, params=None):
         res = U.run(sim.log, cfg, fp, anchors=anchors_known if mode == "localization" else None)
         return sim, res
 
-    def one_run(key, fp=fp, truth=None):
+    def one_run(key, fp=fp, truth=None, detail=False):
         sim, res = flight(key, fp, truth)
-        return evaluate(sim, res, cfg)
+        out = evaluate(sim, res, cfg)
+        if detail:  # run 0's flight for the plots, from the program that computes the metrics
+            out["detail"] = {"sim": sim, "result": res, "eval": {k: v for k, v in out.items()}}
+        return out
 
     return one_run, flight, cfg, fp, setup
 
 
-def run_scenario(scenario, runs, seed, dtype, options, progress, params=None):
+def run_scenario(scenario, runs, seed, dtype, options, progress, params=None, plots=False):
     """Monte Carlo over ``runs`` seeded flights; see the module docstring."""
     one_run, flight, cfg, fp, setup = build(scenario, options, dtype, params)
-    mc = monte_carlo.run(one_run, seed, runs, chunk=options.get("chunk"), progress=progress)
+    mc = monte_carlo.run(lambda k: one_run(k, detail=plots), seed, runs, chunk=options.get("chunk"),
+                         progress=progress, detail=plots,
+                         program_key=program_key(f"uwb-{scenario}", options, params, dtype))
     out = mc.out
     cons, per_step = consistency(out["series"], setup.ts, runs)
     counts = out["counts"]
@@ -455,11 +460,8 @@ def run_scenario(scenario, runs, seed, dtype, options, progress, params=None):
     def plot(directory):
         from ...plotting import uwb as uplot
 
-        key = monte_carlo.keys_for(seed, 1)[0]
-        sim, res = jax.jit(flight)(key)
-        sim = jax.tree.map(np.asarray, sim)
-        res = jax.tree.map(np.asarray, res)
-        ev = jax.tree.map(np.asarray, jax.jit(lambda s, r: evaluate(s, r, cfg))(sim, res))
+        d = out["detail"]
+        sim, res, ev = d["sim"], d["result"], d["eval"]
         return uplot.plot_all(f"uwb-{scenario}", sim, res, ev, setup, cfg, per_step, cons, runs,
                               directory)
 
@@ -486,7 +488,7 @@ def run_scenario(scenario, runs, seed, dtype, options, progress, params=None):
                      "nis_bounds": cons["nis_bounds"]},
         flags=flags,
         timing={"compile_s": mc.compile_s, "run_s": mc.run_s},
-        plot=plot,
+        plot=plot if plots else None,
         extra={"status_flags": decode(status_any), "consistency_detail": cons,
                "max_pos_err_m": float(np.max(np.asarray(metrics["pos_err_max_m"])))},
     )
@@ -522,8 +524,8 @@ def _register(sc):
         name=f"uwb-{sc}",
         description=_DESC[sc],
         options=_OPTIONS,
-        run=lambda runs, seed, dtype, options, progress, params=None: run_scenario(
-            sc, runs, seed, dtype, options, progress, params),
+        run=lambda runs, seed, dtype, options, progress, params=None, plots=False: run_scenario(
+            sc, runs, seed, dtype, options, progress, params, plots),
     ))
 
 

@@ -1,0 +1,439 @@
+"""Compile time: the persistent XLA compilation cache and an account of where compile time goes.
+
+Compilation is what a user of a jitted library waits for first (the main job compiled 21 s
+for 2.6 s of running before this module existed).  Two tools:
+
+* **The persistent cache** (JAX's ``jax_compilation_cache_dir``): a compiled program is
+  written to disk and a later process that builds the same program loads it instead of
+  compiling again.  :func:`enable_cache` switches it on; every entry point (the ``jaxslam``
+  command, the scripts, the notebook, the tests) calls it through
+  :func:`jaxslam.runtime.configure_process`.  The library never enables it on import.
+
+  Folder, first that applies: the ``path`` argument; ``$JAXSLAM_CACHE_DIR``;
+  ``$XDG_CACHE_HOME/jaxslam/xla``; ``~/.cache/jaxslam/xla`` (the XDG base-directory
+  convention).  ``JAXSLAM_CACHE=0`` (or ``off``, ``false``, ``no``) disables it.
+  Every program is kept, however fast it compiled (JAX's default keeps only those over
+  1 s, which on this project dropped 4046 of 4251 programs of the test suite), so a
+  second call of a runner pays tracing and lowering only.
+
+  Bad input never stops a run: a folder that cannot be created or written warns once
+  (``CacheWarning``) and the process runs uncached; a corrupt or truncated entry is
+  reported by JAX as a warning and compiled again (tested).
+
+* **An account** (:class:`CompileAccount`, :func:`account`): JAX reports the seconds it
+  spends tracing (Python → jaxpr), lowering (jaxpr → StableHLO) and compiling (XLA backend),
+  and every persistent-cache hit and miss, through :mod:`jax.monitoring`.  A listener
+  installed once sums them; ``with account() as acc:`` gives the totals of a block.
+  The CLI reports them in its timing JSON; ``jaxslam bench compile`` tabulates them for
+  every public runner.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import os
+import pathlib
+import shutil
+import sys
+import tempfile
+import threading
+import warnings
+
+__all__ = [
+    "CacheWarning",
+    "CompileAccount",
+    "account",
+    "cache_dir",
+    "enabled_dir",
+    "enable_cache",
+    "cache_info",
+    "clear_cache",
+    "compile_program",
+    "CACHE_ENV",
+    "CACHE_DIR_ENV",
+]
+
+CACHE_ENV = "JAXSLAM_CACHE"  # "0" / "off" / "false" / "no": no persistent cache
+CACHE_DIR_ENV = "JAXSLAM_CACHE_DIR"  # the cache folder
+_OFF = ("0", "off", "false", "no")
+
+
+class CacheWarning(RuntimeWarning):
+    """The persistent compilation cache cannot be used; the process runs uncached."""
+
+
+def cache_disabled() -> bool:
+    """True when ``$JAXSLAM_CACHE`` switches the persistent cache off."""
+    return os.environ.get(CACHE_ENV, "").strip().lower() in _OFF
+
+
+def cache_dir(path=None) -> pathlib.Path:
+    """The cache folder (see the module docstring for the order of precedence)."""
+    if path is not None:
+        return pathlib.Path(path).expanduser()
+    env = os.environ.get(CACHE_DIR_ENV, "").strip()
+    if env:
+        return pathlib.Path(env).expanduser()
+    xdg = os.environ.get("XDG_CACHE_HOME", "").strip()
+    base = pathlib.Path(xdg).expanduser() if xdg else pathlib.Path.home() / ".cache"
+    return base / "jaxslam" / "xla"
+
+
+_warned: set = set()
+_enabled_dir: pathlib.Path | None = None
+
+
+def _warn_once(key: str, message: str) -> None:
+    if key in _warned:
+        return
+    _warned.add(key)
+    warnings.warn(message, CacheWarning, stacklevel=3)
+
+
+def _writable(folder: pathlib.Path) -> str | None:
+    """None if ``folder`` can be created and written, else the reason."""
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(prefix=".probe-", dir=folder)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as e:
+        return e.strerror or str(e)
+    return None
+
+
+def enable_cache(path=None) -> pathlib.Path | None:
+    """Switch JAX's persistent compilation cache on in ``cache_dir(path)``.
+
+    Returns the folder, or None when the cache is disabled (``$JAXSLAM_CACHE``) or the
+    folder cannot be written (one :class:`CacheWarning` per folder, then uncached).
+    Call it before the first compilation; later calls with the same folder are no-ops.
+    """
+    global _enabled_dir
+    if cache_disabled():
+        return None
+    folder = cache_dir(path)
+    if _enabled_dir is not None and folder == _enabled_dir:
+        return folder
+    reason = _writable(folder)
+    if reason is not None:
+        _warn_once(str(folder), f"jaxslam: compilation cache folder {str(folder)!r} cannot be written "
+                                f"({reason}); running without the persistent cache (set "
+                                f"{CACHE_DIR_ENV} to another folder, or {CACHE_ENV}=0 to silence this)")
+        return None
+    settings = {
+        "jax_compilation_cache_dir": str(folder),
+        # Keep every program: most of this project's programs compile in well under JAX's 1 s
+        # default, and a hit costs a file read (tens of µs to a few ms).
+        "jax_persistent_cache_min_compile_time_secs": 0.0,
+        "jax_persistent_cache_min_entry_size_bytes": -1,
+    }
+    if "jax" in sys.modules:
+        import jax
+
+        for name, value in settings.items():
+            jax.config.update(name, value)
+        try:  # JAX decides once, at its first compilation, whether a cache is in use
+            from jax._src import compilation_cache as _cc
+
+            _cc.reset_cache()
+        except Exception:  # private API moved: the setting then applies from the next process
+            pass
+    else:  # before JAX is imported (the CLI at start-up): JAX reads these when it loads
+        for name, value in settings.items():
+            os.environ[name.upper()] = str(value)
+    _enabled_dir = folder
+    return folder
+
+
+def enabled_dir() -> pathlib.Path | None:
+    """The folder :func:`enable_cache` switched on in this process, or None."""
+    return _enabled_dir
+
+
+def cache_info(path=None) -> dict:
+    """``{"dir", "enabled", "exists", "entries", "bytes"}`` of the cache folder (no JAX import)."""
+    folder = cache_dir(path)
+    entries = 0
+    size = 0
+    if folder.is_dir():
+        for p in folder.rglob("*"):
+            if p.is_file() and not p.name.startswith(".probe-"):
+                entries += 1
+                try:
+                    size += p.stat().st_size
+                except OSError:
+                    pass
+    return {"dir": str(folder), "enabled": not cache_disabled(), "exists": folder.is_dir(),
+            "entries": entries, "bytes": size}
+
+
+def clear_cache(path=None) -> dict:
+    """Delete the cache folder's contents; returns :func:`cache_info` of what was removed."""
+    info = cache_info(path)
+    folder = pathlib.Path(info["dir"])
+    if folder.is_dir():
+        for p in folder.iterdir():
+            if p.is_dir() and not p.is_symlink():
+                shutil.rmtree(p, ignore_errors=True)
+            else:
+                try:
+                    p.unlink()
+                except OSError:
+                    pass
+    return info
+
+
+# ---------------------------------------------------------------------------------- account
+
+_TRACE = "/jax/core/compile/jaxpr_trace_duration"
+_LOWER = "/jax/core/compile/jaxpr_to_mlir_module_duration"
+_COMPILE = "/jax/core/compile/backend_compile_duration"
+_HIT = "/jax/compilation_cache/cache_hits"
+_MISS = "/jax/compilation_cache/cache_misses"
+_RETRIEVE = "/jax/compilation_cache/cache_retrieval_time_sec"
+
+
+@dataclasses.dataclass
+class CompileAccount:
+    """Seconds JAX spent tracing, lowering and compiling, and persistent-cache hits/misses.
+
+    ``compile_s`` is XLA backend time, which includes loading a program from the cache
+    (``cache_hits`` > 0: the cache served).  ``total_s`` = trace + lower + compile.
+    ``programs`` counts backend compilations (or cache loads).
+    """
+
+    trace_s: float = 0.0
+    lower_s: float = 0.0
+    compile_s: float = 0.0
+    programs: int = 0
+    cache_hits: int = 0
+    cache_misses: int = 0
+    cache_load_s: float = 0.0
+
+    @property
+    def total_s(self) -> float:
+        return self.trace_s + self.lower_s + self.compile_s
+
+    def as_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["total_s"] = self.total_s
+        return d
+
+    def __sub__(self, other: "CompileAccount") -> "CompileAccount":
+        return CompileAccount(**{f.name: getattr(self, f.name) - getattr(other, f.name)
+                                 for f in dataclasses.fields(self)})
+
+
+_totals = CompileAccount()
+_lock = threading.Lock()
+_installed = False
+
+
+def _on_duration(event: str, duration: float, **_kw) -> None:
+    with _lock:
+        if event == _TRACE:
+            _totals.trace_s += duration
+        elif event == _LOWER:
+            _totals.lower_s += duration
+        elif event == _COMPILE:
+            _totals.compile_s += duration
+            _totals.programs += 1
+        elif event == _RETRIEVE:
+            _totals.cache_load_s += duration
+
+
+def _on_event(event: str, **_kw) -> None:
+    with _lock:
+        if event == _HIT:
+            _totals.cache_hits += 1
+        elif event == _MISS:
+            _totals.cache_misses += 1
+
+
+def _install() -> None:
+    global _installed
+    if _installed:
+        return
+    import jax.monitoring as mon
+
+    mon.register_event_duration_secs_listener(_on_duration)
+    mon.register_event_listener(_on_event)
+    _installed = True
+
+
+def totals() -> CompileAccount:
+    """A copy of the process totals since the listener was installed."""
+    _install()
+    with _lock:
+        return dataclasses.replace(_totals)
+
+
+class _Block:
+    def __init__(self):
+        self._start = None
+        self.result = CompileAccount()
+
+    def __enter__(self) -> "_Block":
+        self._start = totals()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.result = totals() - self._start
+
+    def snapshot(self) -> CompileAccount:
+        """Totals of the block so far (also valid inside it)."""
+        return totals() - self._start if self._start is not None else CompileAccount()
+
+
+def account() -> contextlib.AbstractContextManager:
+    """``with account() as acc: ...`` then ``acc.result`` is the :class:`CompileAccount`
+    of the block (``acc.snapshot()`` inside it)."""
+    return _Block()
+
+
+# ---------------------------------------------------------------------------------- programs
+
+_PROGRAMS = "programs"  # sub-folder of the cache folder holding exported (traced) programs
+_source_digest: dict = {}
+
+
+def _package_digest() -> str:
+    """sha256 of every source file of the installed jaxslam package (any edit changes it)."""
+    if "d" not in _source_digest:
+        import hashlib
+
+        root = pathlib.Path(__file__).resolve().parent
+        h = hashlib.sha256()
+        for p in sorted(root.rglob("*.py")):
+            h.update(str(p.relative_to(root)).encode())
+            h.update(p.read_bytes())
+        _source_digest["d"] = h.hexdigest()
+    return _source_digest["d"]
+
+
+def _program_digest(key, args, compiler_options) -> str:
+    import hashlib
+    import json
+
+    import jax
+    import jaxlib
+
+    avals = [(tuple(a.shape), str(a.dtype), bool(a.weak_type)) for a in jax.tree.leaves(_specs(args))]
+    devices = jax.local_devices()
+    material = {
+        "key": key,
+        "avals": avals,
+        "args_tree": str(jax.tree.structure(args)),
+        "compiler_options": compiler_options,
+        "source": _package_digest(),
+        "jax": jax.__version__,
+        "jaxlib": jaxlib.__version__,
+        "x64": bool(jax.config.jax_enable_x64),
+        "matmul_precision": str(jax.config.jax_default_matmul_precision),
+        "platform": devices[0].platform,
+        "device_kind": devices[0].device_kind,
+    }
+    text = json.dumps(material, sort_keys=True, default=repr)
+    return hashlib.sha256(text.encode()).hexdigest()[:40]
+
+
+def _specs(args):
+    """ShapeDtypeStructs of ``args``' leaves (Python scalars stay weakly typed, as under jit)."""
+    import jax
+    import numpy as np
+
+    def spec(a):
+        if isinstance(a, (bool, int, float, complex)):
+            return jax.ShapeDtypeStruct((), jax.dtypes.result_type(a), weak_type=True)
+        weak = bool(getattr(a, "weak_type", False))
+        return jax.ShapeDtypeStruct(np.shape(a), jax.dtypes.result_type(a), weak_type=weak)
+
+    return jax.tree.map(spec, args)
+
+
+def _export_available() -> bool:
+    try:
+        import flatbuffers  # noqa: F401  (jax.export's serialisation needs it)
+    except ImportError:
+        return False
+    return True
+
+
+def compile_program(fn, args, *, key=None, compiler_options=None):
+    """Compile ``fn(*args)`` once and return ``compiled(*args) -> fn's output pytree``.
+
+    With a ``key`` and the persistent cache on, the *traced* program is kept too (jax.export,
+    StableHLO, in ``<cache folder>/programs``), so a later process skips tracing and lowering
+    — on the main job those took 3-4 s, more than loading the compiled program.  ``key``
+    (JSON-able) must name everything ``fn`` closes over that is not an argument: a scenario's
+    name, options, parameters, dtype.  The stored program is further keyed by the argument
+    shapes and dtypes, the compiler options, a digest of jaxslam's source files, the JAX and
+    jaxlib versions, x64 and the device kind, so an edit of the code or an upgrade never
+    serves a stale program.  A stored program that cannot be read is ignored and replaced
+    (never a crash).  Without a key (or without the ``flatbuffers`` package that
+    ``jax.export`` serialises with) this is ``jax.jit(fn).lower(*args).compile()``.
+    """
+    import jax
+
+    jitted = jax.jit(fn, compiler_options=compiler_options)
+    folder = _enabled_dir
+    if key is None or folder is None or not _export_available() or len(jax.local_devices()) != 1:
+        return jitted.lower(*args).compile()
+    import pickle
+
+    from jax import export
+
+    leaves, in_tree = jax.tree.flatten(args)
+    path = folder / _PROGRAMS / f"{_program_digest(key, args, compiler_options)}.jaxprog"
+    if path.is_file():
+        try:
+            blob = pickle.loads(path.read_bytes())
+            exp = export.deserialize(bytearray(blob["exported"]))
+            tree = pickle.loads(blob["out_tree"])
+            compiled = jax.jit(exp.call, compiler_options=compiler_options).lower(*leaves).compile()
+            return _Flat(compiled, in_tree, tree)
+        except Exception as e:  # noqa: BLE001 - a bad entry must never stop a run
+            _warn_once(f"prog:{path}", f"jaxslam: stored program {path.name} could not be used "
+                                       f"({type(e).__name__}); compiling it again")
+    holder = {}
+
+    def flat(*lv):  # flat in, flat out: the stored program holds no Python types
+        out = fn(*jax.tree.unflatten(in_tree, lv))
+        out_leaves, holder["tree"] = jax.tree.flatten(out)
+        return out_leaves
+
+    try:
+        exp = export.export(jax.jit(flat, compiler_options=compiler_options))(*_specs(leaves))
+        data = pickle.dumps({"exported": bytes(exp.serialize()), "out_tree": pickle.dumps(holder["tree"])})
+    except Exception:  # noqa: BLE001 - not exportable (e.g. a host callback): plain compile
+        return jitted.lower(*args).compile()
+    compiled = jax.jit(exp.call, compiler_options=compiler_options).lower(*leaves).compile()
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=".tmp-", dir=path.parent)
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    except OSError as e:
+        _warn_once(f"progw:{folder}", f"jaxslam: cannot store a program in {str(path.parent)!r} "
+                                      f"({e.strerror or e}); later calls will trace it again")
+    return _Flat(compiled, in_tree, holder["tree"])
+
+
+class _Flat:
+    """A compiled flat-in, flat-out program called with, and returning, the original pytrees."""
+
+    def __init__(self, compiled, in_tree, out_tree):
+        self._compiled = compiled
+        self._in_tree = in_tree
+        self._out_tree = out_tree
+
+    def __call__(self, *args):
+        import jax
+
+        leaves, tree = jax.tree.flatten(args)
+        if tree != self._in_tree:
+            raise TypeError(f"compiled program: arguments of structure {tree}, expected {self._in_tree}")
+        return jax.tree.unflatten(self._out_tree, self._compiled(*leaves))
