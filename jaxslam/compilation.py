@@ -50,6 +50,7 @@ __all__ = [
     "cache_info",
     "clear_cache",
     "compile_program",
+    "clear_programs",
     "CACHE_ENV",
     "CACHE_DIR_ENV",
 ]
@@ -112,6 +113,7 @@ def enable_cache(path=None) -> pathlib.Path | None:
     """
     global _enabled_dir
     if cache_disabled():
+        _disable()
         return None
     folder = cache_dir(path)
     if _enabled_dir is not None and folder == _enabled_dir:
@@ -121,6 +123,7 @@ def enable_cache(path=None) -> pathlib.Path | None:
         _warn_once(str(folder), f"jaxslam: compilation cache folder {str(folder)!r} cannot be written "
                                 f"({reason}); running without the persistent cache (set "
                                 f"{CACHE_DIR_ENV} to another folder, or {CACHE_ENV}=0 to silence this)")
+        _disable()
         return None
     settings = {
         "jax_compilation_cache_dir": str(folder),
@@ -145,6 +148,24 @@ def enable_cache(path=None) -> pathlib.Path | None:
             os.environ[name.upper()] = str(value)
     _enabled_dir = folder
     return folder
+
+
+def _disable() -> None:
+    """No persistent cache in this process (nor one inherited from a parent's environment)."""
+    global _enabled_dir
+    _enabled_dir = None
+    os.environ.pop("JAX_COMPILATION_CACHE_DIR", None)
+    if "jax" in sys.modules:
+        import jax
+
+        if jax.config.jax_compilation_cache_dir is not None:
+            jax.config.update("jax_compilation_cache_dir", None)
+            try:
+                from jax._src import compilation_cache as _cc
+
+                _cc.reset_cache()
+            except Exception:  # private API moved
+                pass
 
 
 def enabled_dir() -> pathlib.Path | None:
@@ -372,21 +393,47 @@ def compile_program(fn, args, *, key=None, compiler_options=None):
     shapes and dtypes, the compiler options, a digest of jaxslam's source files, the JAX and
     jaxlib versions, x64 and the device kind, so an edit of the code or an upgrade never
     serves a stale program.  A stored program that cannot be read is ignored and replaced
-    (never a crash).  Without a key (or without the ``flatbuffers`` package that
-    ``jax.export`` serialises with) this is ``jax.jit(fn).lower(*args).compile()``.
+    (never a crash).  The compiled program is also kept in this process (the 32 most recent),
+    so a second call with the same key — new numbers in the arguments — neither traces nor
+    compiles.  Without a key (or without the ``flatbuffers`` package that ``jax.export``
+    serialises with) this is ``jax.jit(fn).lower(*args).compile()``.
     """
     import jax
 
     jitted = jax.jit(fn, compiler_options=compiler_options)
+    if key is None:
+        return jitted.lower(*args).compile()
+    digest = _program_digest(key, args, compiler_options)
+    if digest in _memo:  # the same program again in this process: no trace at all
+        return _memo[digest]
+    compiled = _compile_keyed(fn, jitted, args, digest, compiler_options)
+    if len(_memo) >= _MEMO_MAX:
+        _memo.pop(next(iter(_memo)))
+    _memo[digest] = compiled
+    return compiled
+
+
+_memo: dict = {}
+_MEMO_MAX = 32
+
+
+def clear_programs() -> None:
+    """Forget the programs :func:`compile_program` keeps in this process (the disk copies stay)."""
+    _memo.clear()
+
+
+def _compile_keyed(fn, jitted, args, digest, compiler_options):
+    import jax
+
     folder = _enabled_dir
-    if key is None or folder is None or not _export_available() or len(jax.local_devices()) != 1:
+    if folder is None or not _export_available() or len(jax.local_devices()) != 1:
         return jitted.lower(*args).compile()
     import pickle
 
     from jax import export
 
     leaves, in_tree = jax.tree.flatten(args)
-    path = folder / _PROGRAMS / f"{_program_digest(key, args, compiler_options)}.jaxprog"
+    path = folder / _PROGRAMS / f"{digest}.jaxprog"
     if path.is_file():
         try:
             blob = pickle.loads(path.read_bytes())

@@ -36,3 +36,42 @@ def test_cli_sets_flags_before_jax_starts():
     assert out.returncode == 0, out.stderr
     assert runtime.XLA_WORKAROUND_FLAGS[0] in out.stdout
     assert "already started" not in out.stderr
+
+
+def _fresh(code, **env_over):
+    """Run ``code`` in a new interpreter with none of the entry points' settings."""
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("XLA_FLAGS", "OPENBLAS_NUM_THREADS", "JAXSLAM_LAPACK_THREADS")}
+    env.update(env_over)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=600)
+    assert out.returncode == 0, out.stderr
+    return out.stdout.strip().splitlines()[-1]
+
+
+def test_import_pins_lapack_pool_and_changes_nothing_else():
+    code = ("import os, jax; before = (os.environ.get('XLA_FLAGS'), jax.config.jax_enable_x64); "
+            "import jaxslam; from jaxslam import runtime; "
+            "print(runtime.lapack_threads(), before == (os.environ.get('XLA_FLAGS'), jax.config.jax_enable_x64))")
+    assert _fresh(code) == "1 True"
+    # A user's own choice stands; JAXSLAM_LAPACK_THREADS=0 opts out, =2 sets two.
+    assert _fresh(code, OPENBLAS_NUM_THREADS="2") == "2 True"
+    assert _fresh(code, JAXSLAM_LAPACK_THREADS="2") == "2 True"
+
+
+def test_vmapped_filter_program_runs_without_configure_process():
+    """The README's library path in a new interpreter, without configure_process(): a vmapped
+    Monte Carlo batch of paper 000's EKF-SLAM (Cholesky and triangular solves on every frame;
+    the kind of program that hung before the LAPACK pool was pinned) runs to the end, and its
+    compiled program got the library's CPU options."""
+    code = (
+        "import jax, jax.numpy as jnp, numpy as np\n"
+        "jax.config.update('jax_enable_x64', True)\n"
+        "from jaxslam.sim.scenarios import ekfslam3d\n"
+        "from jaxslam.sim import monte_carlo\n"
+        "opts = dict(duration=1.0, q='imu', association='known', capacity=40, landmarks=40, max_obs=16,\n"
+        "            control_on='estimate', accel='3axis', altitude=3.0, no_feedforward=False)\n"
+        "one_run, *_ = ekfslam3d.build(opts, mode='unknown', dtype=jnp.float64)\n"
+        "res = monte_carlo.run(one_run, seed=0, runs=4, chunk=4)\n"
+        "m = res.out['metrics']['pos_rmse_m']\n"
+        "print(m.shape[0], bool(np.all(np.isfinite(m))), res.chunk)\n")
+    assert _fresh(code) == "4 True 4"

@@ -146,6 +146,12 @@ def _status(A, B, Q, R, P):
     return finite & (rel <= jnp.sqrt(eps)) & psd
 
 
+# Called on concrete matrices (a scenario's gains, computed on the host) the solver's while
+# loop would be traced again at every call; jitted, it is traced once per shape and dtype
+# (inside another trace it is inlined as before).
+_care_jit = jax.jit(_care)
+
+
 def care(A, B, Q, R, *, return_status: bool = False):
     """Stabilising solution P of AᵀP + PA − PBR⁻¹BᵀP + Q = 0; paper 000 eq. 13.
 
@@ -162,7 +168,7 @@ def care(A, B, Q, R, *, return_status: bool = False):
     A, B, Q, R = (jnp.asarray(x, dtype) for x in (A, B, Q, R))
     Q = symmetrize(Q)
     R = symmetrize(R)
-    P = _care(A, B, Q, R)
+    P = _care_jit(A, B, Q, R)
     finite = jnp.all(jnp.isfinite(P))
     P = jnp.where(finite, P, jnp.zeros_like(P))
     if return_status:

@@ -106,12 +106,19 @@ class SlamState(NamedTuple):
 
 
 class UpdateInfo(NamedTuple):
-    """Per-update diagnostics: joint NIS, its degrees of freedom, used mask."""
+    """Per-update diagnostics: joint NIS, log det S, degrees of freedom, used mask.
+
+    ``nis``, ``logdet`` and ``dof`` are the terms of the update's innovation log-likelihood,
+    −log p(ν) = ½ (NIS + log det S + dof · log 2π), over the measurements used (zero when
+    none is, or the update was rejected); tuning by innovation likelihood reads them here
+    instead of forming S a second time.
+    """
 
     nis: jax.Array  # () joint normalised innovation squared
     dof: jax.Array  # () number of scalar measurements used
     used: jax.Array  # (K,) bool measurement used in the update
     gated: jax.Array  # (K,) bool rejected by the Mahalanobis gate
+    logdet: jax.Array = None  # () log det of the joint innovation covariance of the used rows
 
 
 # ---------------------------------------------------------------------------
@@ -341,6 +348,8 @@ def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
 
     nu_ok = jnp.where(ok, nu, 0.0)
     nis = nu_ok @ (Sinv @ nu_ok)
+    # Unused rows carry 1 on S's diagonal: they add log 1 = 0.
+    logdet = 2.0 * jnp.sum(jnp.log(jnp.where(ok, jnp.diagonal(Lc), 1.0)))
     status = (
         state.status
         | _flag_if(~ok, errors.NON_FINITE)
@@ -353,6 +362,7 @@ def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
         dof=jnp.where(ok, jnp.sum(valid) * dz, 0),
         used=valid & ok,
         gated=gated,
+        logdet=jnp.where(ok, logdet, 0.0),
     )
     return state._replace(x=x_new, P=P_new, status=status), info
 

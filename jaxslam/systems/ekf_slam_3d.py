@@ -243,6 +243,7 @@ class FrameOut(NamedTuple):
     nees: jax.Array  # () robot-block NEES against the truth after the frame's update
     nis: jax.Array  # () joint NIS of the frame's update
     dof: jax.Array  # () its degrees of freedom
+    logdet: jax.Array  # () log det of its joint innovation covariance (innovation likelihood)
     n_active: jax.Array  # () mapped landmarks after the frame
     n_visible: jax.Array  # () landmarks in the FOV
     landmarks: Any  # (cap, 3) means (only with save_map) else None
@@ -350,6 +351,7 @@ def make_estimator(noise: NoiseParams, cfg: EstimatorConfig, landmarks_true=None
             nees=nees,
             nis=info.nis,
             dof=info.dof,
+            logdet=info.logdet,
             n_active=jnp.sum(st.active),
             n_visible=jnp.sum(visible),
             landmarks=es.landmarks(st, model) if cfg.save_map else None,

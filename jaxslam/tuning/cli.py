@@ -307,7 +307,13 @@ def main(argv=None) -> int:
         plots = pathlib.Path(args.plots) if args.plots else None
         if plots is not None and plots.exists() and not plots.is_dir():
             raise InputError(f"--plots: {str(plots)!r} exists and is not a folder")
-        rep = run_tuning(args)
+        from jaxslam import compilation
+        from jaxslam.cli import compile_timing
+
+        with compilation.account() as acct:
+            rep = run_tuning(args)
+        rep["timing"]["step_compile_s"] = rep["timing"].pop("compile_s")
+        rep["timing"].update(compile_timing(acct.result))
     except InputError as e:
         msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
         print(msg if msg.startswith("jaxslam") else f"{PROG}: error: {msg}", file=sys.stderr)

@@ -56,6 +56,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from .. import runtime
 from ..errors import InputError
 
 __all__ = ["FitResult", "make_optimizer", "batch_loss", "fit", "memory_report", "peak_rss_mb", "FAST_COMPILE"]
@@ -171,7 +172,8 @@ def fit(loss_fn: Callable, theta0, train, steps: int, lr: float = 0.1, *, test=N
       max_skips: consecutive non-finite gradients tolerated before stopping.
       callback: called with each history record.
       describe: ``describe(theta) -> dict`` stored in each record (parameter trajectories).
-      compiler_options: passed to XLA when the step is compiled (e.g. :data:`FAST_COMPILE`).
+      compiler_options: passed to XLA when the step is compiled (e.g. :data:`FAST_COMPILE`), over
+        the library's CPU options (:func:`jaxslam.runtime.compiler_options`).
     """
     leaves = jax.tree.leaves(train)
     if not leaves:
@@ -202,13 +204,14 @@ def fit(loss_fn: Callable, theta0, train, steps: int, lr: float = 0.1, *, test=N
         return jax.tree.map(lambda a: a[idx], train)
 
     first = take(np.arange(batch_size)) if mini else train
+    opts = {**(runtime.compiler_options() or {}), **(compiler_options or {})}
     t0 = time.perf_counter()
-    step_c = jax.jit(step).lower(theta0, opt_state, first).compile(compiler_options=compiler_options)
+    step_c = jax.jit(step).lower(theta0, opt_state, first).compile(compiler_options=opts or None)
     compile_s = time.perf_counter() - t0
     memory = memory_report(step_c)
     test_c = None
     if test is not None:
-        test_c = jax.jit(lambda th, b: batch_loss(loss_fn, th, b))
+        test_c = jax.jit(lambda th, b: batch_loss(loss_fn, th, b), compiler_options=opts or None)
 
     theta, good, best, best_loss = theta0, theta0, theta0, math.inf
     history, stopped, skips, n_skipped, times = [], None, 0, 0, []

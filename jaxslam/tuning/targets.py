@@ -35,10 +35,11 @@ Decisions (no paper covers tuning):
   log is the noise-free reading at the initial hover (what :func:`simulate` uses), and the
   initial estimate is drawn from P0.  Seeds: training runs use ``keys_for(seed, M)``, the
   held-out test runs ``keys_for(seed + 1, M)`` — the seeds of ``jaxslam run --seed seed+1``.
-* NLL needs the joint innovation covariance of each frame; it is recomputed from the prior
-  with the same measurement selection as the estimator (visible first, ``max_obs``, finite
-  and inside the FOV, known association); so the NLL target requires known association and
-  no gate (checked).
+* NLL needs the joint innovation covariance of each frame: the engine's update reports its
+  NIS, log det S and degrees of freedom (:class:`jaxslam.filters.ekf_slam.UpdateInfo`), from
+  the prior and the estimator's own measurement selection, so nothing is formed twice; the
+  NLL target requires known association and no gate (checked), so that the update's
+  measurements are the log's.
 * **track-figure8**: with the controller on the truth the scenario's flight is deterministic,
   so training and held-out runs differ by a random initial state (hover at a position offset
   of σ = 0.5 m per axis, yaw σ = 0.1 rad; ``start_sigma``); the nominal start (the flight of
@@ -288,14 +289,6 @@ def make_slam_logs(seed: int, runs: int, duration: float, n_landmarks: int = 40,
     return _log_maker(int(n_landmarks), nf, dtype, altitude)(_keys(seed, runs), sqrtP0)
 
 
-def _fov_tol(sp):
-    # The estimator's own tolerance (jaxslam.systems.ekf_slam_3d.make_estimator): 5σ.
-    return sp._replace(az_min=sp.az_min - 5 * sp.sigma_az, az_max=sp.az_max + 5 * sp.sigma_az,
-                       el_min=sp.el_min - 5 * sp.sigma_el, el_max=sp.el_max + 5 * sp.sigma_el,
-                       range_min=sp.range_min - 5 * sp.sigma_range,
-                       range_max=sp.range_max + 5 * sp.sigma_range)
-
-
 def run_slam_log(noise, cfg, log: SlamLog, lidar_every: int = 10, *, with_nll: bool = False,
                  with_nees: bool = False, checkpoint: bool = True) -> SlamRun:
     """Paper 000's EKF-SLAM on one recorded log, open loop, as one nested ``lax.scan``.
@@ -309,7 +302,6 @@ def run_slam_log(noise, cfg, log: SlamLog, lidar_every: int = 10, *, with_nll: b
     against ``log.truth``), ``checkpoint`` (``jax.checkpoint`` on the per-frame body).
     """
     from ..filters import ekf_slam as es
-    from ..sensors import lidar3d
     from ..systems import ekf_slam_3d as sys3d
 
     if with_nll and (cfg.association != "known" or cfg.gate is not None):
@@ -318,10 +310,6 @@ def run_slam_log(noise, cfg, log: SlamLog, lidar_every: int = 10, *, with_nll: b
     dtype = log.s0.dtype
     F, Lm = log.visible.shape
     est = sys3d.make_estimator(noise, cfg, log.landmarks if cfg.mode == "known" else None)
-    model = sys3d.make_model()
-    mparams = (cfg.dt, cfg.g, cfg.accel_mode)
-    fov = _fov_tol(cfg.lidar)
-    M = min(cfg.max_obs, Lm)
 
     st = es.init(log.s0, noise.P0.astype(dtype), cfg.capacity, 3)
     if cfg.mode == "known":
@@ -344,20 +332,9 @@ def run_slam_log(noise, cfg, log: SlamLog, lidar_every: int = 10, *, with_nll: b
             return e2, e2.slam.x[:nx]
 
         e, means = jax.lax.scan(step, e, (a, b))
-        if with_nll:
-            # The estimator's measurement selection (make_estimator.correct), then the joint
-            # innovation terms from the prior of this update.
-            order = jnp.argsort(~vf, stable=True)[:M]
-            y_s, id_s, vis_s = yf[order], ids[order], vf[order]
-            usable = jnp.all(jnp.isfinite(y_s), axis=-1)
-            if cfg.fov_check:
-                usable = usable & lidar3d.in_fov(jnp.where(jnp.isfinite(y_s), y_s, 0.0), fov)
-            slots, mapped = es.associate_known(e.slam, id_s, vis_s & usable)
-            terms = L.slam_innovation_terms(e.slam, model, y_s, slots, mapped,
-                                            noise.R.astype(dtype), mparams)
-        else:
-            terms = (zero, zero, zero)
         e, out = est.correct(e, yf, ids, vf, xt if with_nees else None)
+        # The update's own innovation terms (prior of this frame, the estimator's selection).
+        terms = (out.nis, out.logdet, out.dof.astype(dtype)) if with_nll else (zero, zero, zero)
         return e, (means, terms, out.nees, out.nis, out.dof)
 
     body = jax.checkpoint(frame) if checkpoint else frame

@@ -10,17 +10,17 @@ from jaxslam.sim.scenarios import attitude, registry
 METRICS = ("att_err_rms_deg", "att_err_final_deg", "rate_err_rms_dps", "max_torque", "settle_time_s")
 
 
-def _run(runs=2, dtype=np.float64, **opts):
+def _run(runs=2, dtype=np.float64, plots=False, **opts):
     options = {o.name: o.default for o in attitude.OPTIONS}
     options["duration"] = 4.0
     options.update(opts)
     return attitude.SCENARIO.run(runs=runs, seed=0, dtype=np.dtype(dtype), options=options,
-                                 progress=Progress.null())
+                                 progress=Progress.null(), plots=plots)
 
 
 @pytest.fixture(scope="module")
 def random_run():
-    return _run(perturbation="random")
+    return _run(perturbation="random", plots=True)
 
 
 def test_registered():

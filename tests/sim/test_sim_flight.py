@@ -65,12 +65,17 @@ def test_monte_carlo_is_independent_of_chunking():
 
     a = monte_carlo.run(fn, seed=5, runs=7, chunk=7)
     b = monte_carlo.run(fn, seed=5, runs=7, chunk=3)
-    np.testing.assert_array_equal(a.out["s"], b.out["s"])
-    np.testing.assert_array_equal(a.out["v"], b.out["v"])
-    assert a.out["v"].shape == (7, 3)
+    c = monte_carlo.run(fn, seed=5, runs=7, cpu_batching="loop")
+    # The same keys give the same draws; programs compiled for different batch sizes may round
+    # the normal's inverse-erf polynomial differently in the last bit (seen: 1 ulp at -O0).
+    ulp = 4 * np.finfo(np.float64).eps
+    for other in (b, c):
+        np.testing.assert_allclose(a.out["s"], other.out["s"], rtol=ulp, atol=0)
+        np.testing.assert_allclose(a.out["v"], other.out["v"], rtol=ulp, atol=0)
+    assert a.out["v"].shape == (7, 3) and c.chunk == 1
     # run i uses fold_in(PRNGKey(seed), i): reproducible one by one
     k3 = jax.random.fold_in(jax.random.PRNGKey(5), 3)
-    np.testing.assert_array_equal(a.out["v"][3], np.asarray(jax.random.normal(k3, (3,))))
+    np.testing.assert_allclose(a.out["v"][3], np.asarray(jax.random.normal(k3, (3,))), rtol=ulp, atol=0)
 
 
 def test_sharded_monte_carlo_equals_single_device(tmp_path):

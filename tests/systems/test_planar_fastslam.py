@@ -29,30 +29,40 @@ def _landmarks():
     return np.concatenate([inner, outer]) + c
 
 
+@jax.jit
+def _integrate(s0, u, dt):
+    """Exact-arc unicycle integrated over steps (u_k held over dt_k): (n, 3) poses after each."""
+    def body(s, inp):
+        s = planar.unicycle(s, inp[0], inp[1])
+        return s, s
+
+    return jax.lax.scan(body, s0, (u, dt))[1]
+
+
+_observe_all = jax.jit(jax.vmap(jax.vmap(rb.observe, in_axes=(None, 0)), in_axes=(0, None)))
+
+
 def _simulate(seed, K=12):
     rng = np.random.default_rng(seed)
     lms = _landmarks()
     tu = np.arange(0.0, DURATION, DT_U)
     u_true = np.stack([np.full(tu.size, 1.0), np.full(tu.size, 2 * np.pi / DURATION)], 1)
     u_meas = u_true + rng.normal(size=u_true.shape) * [SIG_V, SIG_W]
-    # ground truth at a fine grid (exact arcs with the true inputs)
-    s = np.zeros(3)
-    gt_t, gt = [0.0], [s.copy()]
-    f = jax.jit(planar.unicycle)
+    # ground truth at a fine grid (exact arcs with the true inputs), one scan
     t_z = np.arange(DT_Z, DURATION, DT_Z)
-    zt, zz, zid = [], [], []
     all_t = np.union1d(tu, t_z)
-    for k in range(1, all_t.size):
-        j = np.searchsorted(tu, all_t[k - 1], side="right") - 1
-        s = np.asarray(f(jnp.asarray(s), jnp.asarray(u_true[j]), all_t[k] - all_t[k - 1]))
-        gt_t.append(all_t[k])
-        gt.append(s.copy())
-        if np.any(np.isclose(t_z, all_t[k])):
-            for i, l in enumerate(lms):
-                z = np.asarray(rb.observe(jnp.asarray(s), jnp.asarray(l)))
-                if z[0] < MAX_RANGE:
-                    z = z + rng.normal(size=2) * [SIG_R, SIG_B]
-                    zt.append(all_t[k]); zz.append(z); zid.append(i)
+    j = np.searchsorted(tu, all_t[:-1], side="right") - 1
+    poses = np.asarray(_integrate(jnp.zeros(3), jnp.asarray(u_true[j]), jnp.asarray(np.diff(all_t))))
+    gt_t, gt = all_t, np.concatenate([np.zeros((1, 3)), poses])
+    # measurements at the scan times: every landmark in range, noise drawn in the same order
+    at_z = np.isclose(all_t[1:, None], t_z[None, :]).any(axis=1)
+    tz, sz = all_t[1:][at_z], poses[at_z]
+    Z = np.asarray(_observe_all(jnp.asarray(sz), jnp.asarray(lms)))  # (n_z, L, 2)
+    zt, zz, zid = [], [], []
+    for k in range(tz.size):
+        for i in range(len(lms)):
+            if Z[k, i, 0] < MAX_RANGE:
+                zt.append(tz[k]); zz.append(Z[k, i] + rng.normal(size=2) * [SIG_R, SIG_B]); zid.append(i)
     log = merge_events(tu, u_meas, np.array(zt), np.array(zz), np.array(zid), K=K)
     return log, np.array(gt_t), np.array(gt), lms, set(zid)
 
@@ -77,12 +87,7 @@ def _err(res, log, gt_t, gt):
 
 
 def _dead_reckoning_err(log, gt_t, gt):
-    f = jax.jit(planar.unicycle)
-    s, out = jnp.zeros(3), []
-    for k in range(log.t.size):
-        s = f(s, jnp.asarray(log.u[k]), log.dt[k])
-        out.append(np.asarray(s))
-    out = np.array(out)
+    out = np.asarray(_integrate(jnp.zeros(3), jnp.asarray(log.u), jnp.asarray(log.dt)))
     gx = np.interp(log.t, gt_t, gt[:, 0])
     gy = np.interp(log.t, gt_t, gt[:, 1])
     return float(np.sqrt(np.mean((out[:, 0] - gx) ** 2 + (out[:, 1] - gy) ** 2)))

@@ -235,13 +235,13 @@ def test_gradient_of_position_error_wrt_log_q_r_matches_finite_differences(log):
         return jnp.mean(jnp.sum((means[:, :3] - truth) ** 2, axis=1))
 
     theta0 = jnp.log(jnp.concatenate([jnp.diag(base.Qimu), jnp.diag(base.R)]))
-    vg = jax.jit(jax.value_and_grad(loss))
+    vg = jax.jit(jax.value_and_grad(loss))  # one program: the differences use its values
     val, g = vg(theta0)
     g = np.asarray(g)
     assert np.all(np.isfinite(g)) and np.isfinite(float(val))
-    lf = jax.jit(loss)
     h = 1e-4
     for j in (0, 2, 3, 5, 6, 8):
-        e = jnp.zeros(9).at[j].set(h)
-        fd = (float(lf(theta0 + e)) - float(lf(theta0 - e))) / (2 * h)
+        e = np.zeros(9)
+        e[j] = h
+        fd = (float(vg(theta0 + e)[0]) - float(vg(theta0 - e)[0])) / (2 * h)
         assert abs(g[j] - fd) <= 1e-4 * max(abs(fd), 1e-3 * np.abs(g).max()), (j, g[j], fd)

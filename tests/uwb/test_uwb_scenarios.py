@@ -163,7 +163,7 @@ def test_full_reproduction_figures(tmp_path):
         for model in ("range", "squared"):
             r = S.run_scenario(sc, 100, 0, jnp.float64,
                                C.opts(duration=None, mode="localization", model=model, noise="gaussian",
-                                      filter="matched"), None)
+                                      filter="matched"), None, plots=True)
             lo, hi = r.consistency["anees_bounds"]
             assert lo <= r.consistency["anees"] <= hi, (sc, model, r.consistency)
             assert np.max(r.metrics["pos_err_max_m"]) < 1.0

@@ -1,0 +1,162 @@
+"""jaxslam.compilation: the persistent cache (folders, bad folders, corrupt entries), stored
+programs, the compile account, and ``jaxslam cache``.
+
+The end-to-end checks run the ``jaxslam`` command in fresh processes (a cache is per process)
+on a short flight, so each costs one small compile.
+"""
+
+import json
+import os
+import pathlib
+import subprocess
+import sys
+import warnings
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxslam import cli, compilation
+
+# A short scenario: one program of a few seconds' compile.
+RUN = ["run", "track-helix", "--runs", "1", "--duration", "0.5", "--quiet"]
+
+
+def _cli(args, cache, tmp_path, extra_env=None):
+    env = {**os.environ, compilation.CACHE_DIR_ENV: str(cache), **(extra_env or {})}
+    env.pop(compilation.CACHE_ENV, None)
+    js = tmp_path / "out.json"
+    p = subprocess.run([sys.executable, "-m", "jaxslam", *args, "--json", str(js)], capture_output=True,
+                       text=True, env=env, timeout=600)
+    return p, (json.loads(js.read_text()) if p.returncode == 0 else None)
+
+
+@pytest.fixture
+def keep_cache():
+    """Tests that switch this process's cache off get the suite's cache back afterwards."""
+    before = compilation.enabled_dir()
+    yield
+    if before is not None:
+        compilation._enabled_dir = None
+        compilation.enable_cache(before)
+
+
+def test_cache_folder_precedence_and_switch(keep_cache, monkeypatch, tmp_path):
+    monkeypatch.delenv(compilation.CACHE_DIR_ENV, raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    assert compilation.cache_dir() == tmp_path / "xdg" / "jaxslam" / "xla"
+    monkeypatch.delenv("XDG_CACHE_HOME")
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    assert compilation.cache_dir() == tmp_path / "home" / ".cache" / "jaxslam" / "xla"
+    monkeypatch.setenv(compilation.CACHE_DIR_ENV, str(tmp_path / "mine"))
+    assert compilation.cache_dir() == tmp_path / "mine"
+    assert compilation.cache_dir(tmp_path / "arg") == tmp_path / "arg"
+    for off in ("0", "off", "False", "no"):
+        monkeypatch.setenv(compilation.CACHE_ENV, off)
+        assert compilation.enable_cache(tmp_path / "never") is None
+    assert not (tmp_path / "never").exists()
+
+
+def test_unwritable_folder_warns_once_and_runs_uncached(tmp_path, keep_cache):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a folder")
+    with warnings.catch_warnings(record=True) as w:
+        warnings.simplefilter("always")
+        assert compilation.enable_cache(blocker / "cache") is None
+        assert compilation.enable_cache(blocker / "cache") is None
+    assert len([x for x in w if issubclass(x.category, compilation.CacheWarning)]) == 1
+    # The command runs, uncached, with one warning line.
+    p, rep = _cli(RUN, blocker / "cache", tmp_path)
+    assert p.returncode == 0, p.stderr
+    lines = [ln for ln in p.stderr.splitlines() if "cannot be written" in ln]
+    assert len(lines) == 1, p.stderr
+    assert rep["timing"]["cache"]["dir"] is None and rep["timing"]["cache"]["hits"] == 0
+
+
+def test_second_call_is_served_and_corrupt_entries_are_ignored(tmp_path):
+    cache = tmp_path / "cache"
+    p1, cold = _cli(RUN, cache, tmp_path)
+    assert p1.returncode == 0, p1.stderr
+    assert cold["timing"]["cache"]["misses"] > 0 and cold["timing"]["cache"]["hits"] == 0
+    programs = list((cache / "programs").glob("*.jaxprog"))
+    assert programs, "the scenario's traced program is stored"
+    p2, warm = _cli(RUN, cache, tmp_path)
+    assert p2.returncode == 0, p2.stderr
+    t = warm["timing"]
+    assert t["cache"]["misses"] == 0 and t["cache"]["hits"] == t["programs"] > 0
+    assert t["trace_s"] < 0.5 * cold["timing"]["trace_s"]  # the stored program was not traced again
+    assert warm["metrics"] == cold["metrics"]
+    # Corrupt every entry: truncated programs, garbage XLA executables.  Never a crash.
+    for f in cache.rglob("*"):
+        if f.is_file():
+            data = f.read_bytes()
+            f.write_bytes(data[: len(data) // 3] if f.suffix == ".jaxprog" else b"garbage" * 10)
+    p3, again = _cli(RUN, cache, tmp_path)
+    assert p3.returncode == 0, p3.stderr
+    assert again["metrics"] == cold["metrics"]
+    assert "could not be used" in p3.stderr  # the stored program, rebuilt
+
+
+def test_cache_command_info_and_clear(tmp_path, capsys):
+    d = tmp_path / "c"
+    (d / "programs").mkdir(parents=True)
+    (d / "x-cache").write_bytes(b"1" * 1000)
+    (d / "programs" / "p.jaxprog").write_bytes(b"2" * 24)
+    assert cli.main(["cache", "info", "--dir", str(d), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["entries"] == 2 and info["bytes"] == 1024 and info["dir"] == str(d)
+    assert cli.main(["cache", "clear", "--dir", str(d)]) == 0
+    assert "2 entries" in capsys.readouterr().out and not any(d.rglob("*"))
+    assert cli.main(["cache", "wipe"]) == 2
+
+
+def test_compile_program_stores_memoises_and_rebuilds(tmp_path, monkeypatch):
+    monkeypatch.setattr(compilation, "_enabled_dir", tmp_path)
+    compilation.clear_programs()
+    traces = []
+
+    def fn(x, p):
+        traces.append(1)
+        return {"y": jnp.sin(x) * p["a"], "n": jnp.sum(x)}
+
+    args = (jnp.arange(3.0), {"a": 2.0})
+    c1 = compilation.compile_program(fn, args, key={"k": 1})
+    out = c1(*args)
+    np.testing.assert_allclose(out["y"], np.sin(np.arange(3.0)) * 2.0)
+    assert len(traces) == 1 and len(list((tmp_path / "programs").glob("*.jaxprog"))) == 1
+    # Same key in this process: no trace; new numbers run through the same program.
+    c2 = compilation.compile_program(fn, (jnp.arange(3.0) + 1, {"a": 3.0}), key={"k": 1})
+    assert c2 is c1 and len(traces) == 1
+    np.testing.assert_allclose(c2(jnp.arange(3.0) + 1, {"a": 3.0})["y"], np.sin(np.arange(3.0) + 1) * 3.0)
+    # A new process (memo cleared) loads the stored program without tracing fn.
+    compilation.clear_programs()
+    c3 = compilation.compile_program(fn, args, key={"k": 1})
+    assert len(traces) == 1
+    np.testing.assert_allclose(c3(*args)["y"], out["y"])
+    # Another key, another shape: traced again.
+    compilation.compile_program(fn, args, key={"k": 2})
+    compilation.compile_program(fn, (jnp.arange(4.0), {"a": 2.0}), key={"k": 1})
+    assert len(traces) == 3
+    with pytest.raises(TypeError, match="structure"):
+        c3(jnp.arange(3.0), 2.0)
+    compilation.clear_programs()
+
+
+def test_account_splits_trace_lower_compile():
+    with compilation.account() as acc:
+        jax.jit(lambda x: jnp.cos(x) * 3.0 + 1.0).lower(jnp.ones(7)).compile()
+    a = acc.result
+    assert a.programs >= 1 and a.trace_s > 0 and a.lower_s > 0 and a.compile_s > 0
+    assert abs(a.total_s - (a.trace_s + a.lower_s + a.compile_s)) < 1e-12
+    assert set(a.as_dict()) >= {"trace_s", "lower_s", "compile_s", "total_s", "cache_hits", "cache_misses"}
+
+
+def test_cache_dir_default_is_outside_the_checkout():
+    # The suite's own folder is test-local (conftest); a user's default is the XDG one.
+    here = pathlib.Path(__file__).resolve().parents[1]
+    assert here in pathlib.Path(os.environ[compilation.CACHE_DIR_ENV]).resolve().parents
+
+
+def test_the_suites_cache_is_on_after_the_tests_that_switch_it_off():
+    assert compilation.enabled_dir() is not None and jax.config.jax_compilation_cache_dir
