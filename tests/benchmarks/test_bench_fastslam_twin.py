@@ -80,6 +80,11 @@ def _draws(key, n):
             normals(k_s2, 3), jax.random.uniform(k_res2, (), jnp.float64), normals(k_s22, 3))
 
 
+# the filter's parameters from one small compiled program shared by the tests (eager, every
+# primitive of their construction is compiled)
+_default_params = jax.jit(lambda: fs1.default_params("dynamics", dtype=jnp.float64))
+
+
 def _maxdiff(a, b):
     return float(np.max(np.abs(np.asarray(a, float) - np.asarray(b, float))))
 
@@ -87,11 +92,12 @@ def _maxdiff(a, b):
 @pytest.fixture(scope="module")
 def runs():
     cfg = fs1.FilterConfig()
-    prm = fs1.default_params("dynamics", dtype=jnp.float64)
+    prm = _default_params()
     rng = np.random.default_rng(4)
     x0, rot, imu, z, mask = _inputs(rng, prm)
     ids = np.arange(4, dtype=np.int32)
-    st = fs1.init(jax.random.PRNGKey(3), jnp.asarray(x0), N, cfg, prm)
+    # the initial state from one small program (eager, every primitive is compiled)
+    st = jax.jit(lambda k, x: fs1.init(k, x, N, cfg, prm))(jax.random.PRNGKey(3), jnp.asarray(x0))
     inp0 = fs1.StepInputs(jnp.asarray(rot[0]), jnp.asarray(imu[0]), jnp.asarray(z[0]),
                           jnp.asarray(ids), jnp.asarray(mask[0]))
     # One compiled program: the step and the draws it makes from its key.
@@ -168,7 +174,7 @@ def test_hand_jacobians_and_models_match_the_package():
     rng = np.random.default_rng(2)
     c = rng.normal(size=(5, 3)) * 3
     y = np.stack([rng.uniform(-3, 3, 5), rng.uniform(-1.2, 1.2, 5), rng.uniform(1, 9, 5)], 1)
-    prm = fs1.default_params("dynamics", dtype=jnp.float64)
+    prm = _default_params()
     x = np.r_[rng.normal(size=6), rng.uniform(-0.5, 0.5, 3), rng.normal(size=3)]
     w = 380.0 + 20 * rng.random(4)
 

@@ -63,7 +63,7 @@ def test_truth_flight_tracks_helix(flight):
     assert fl.z.shape == (T // sc.LIDAR_EVERY, 4, 3)
     assert np.all(np.isfinite(np.asarray(fl.truth)))
     # Started on the helix: the true position stays within a few cm of the reference (NED).
-    ned = np.asarray(jax.vmap(sc.rotor.state_to_ned)(fl.truth))
+    ned = np.asarray(jax.jit(jax.vmap(sc.rotor.state_to_ned))(fl.truth))
     assert np.max(np.linalg.norm(ned[:, 0:3] - np.asarray(fl.ref)[:, 0:3], axis=1)) < 0.05
     # IMU offset: constant bias 0.005 on every axis plus a small drift.
     off = np.asarray(fl.offset)
@@ -116,18 +116,21 @@ def _lidar_loss_setup(flight):
     cfg = fs1.FilterConfig(resampling="soft", threshold=None, soft_alpha=0.5)
     prm = fs1.default_params("dynamics", dtype=jnp.float64)
     n = 8
-    st = fs1.init(jax.random.PRNGKey(1), fl.truth[10], n, cfg, prm)
-    off = 0.05 * jax.random.normal(jax.random.PRNGKey(5), (n, 4, 3), jnp.float64)
-    p = st.particles._replace(
-        lm_mean=setup.landmarks[None] + off,
-        lm_cov=jnp.broadcast_to(jnp.eye(3) * 4e-3, (n, 4, 3, 3)),
-        active=jnp.ones((n, 4), bool),
-        ids=jnp.broadcast_to(jnp.arange(4, dtype=jnp.int32), (n, 4)))
-    st = st._replace(particles=p)
     ids = jnp.arange(4, dtype=jnp.int32)
-    truth_pos = fl.truth[10, 0:3]
+
+    def state():
+        st = fs1.init(jax.random.PRNGKey(1), fl.truth[10], n, cfg, prm)
+        off = 0.05 * jax.random.normal(jax.random.PRNGKey(5), (n, 4, 3), jnp.float64)
+        p = st.particles._replace(
+            lm_mean=setup.landmarks[None] + off,
+            lm_cov=jnp.broadcast_to(jnp.eye(3) * 4e-3, (n, 4, 3, 3)),
+            active=jnp.ones((n, 4), bool),
+            ids=jnp.broadcast_to(jnp.arange(4, dtype=jnp.int32), (n, 4)))
+        return st._replace(particles=p)
 
     def loss(log_r):
+        # the state is built in the caller's compiled program, not by eager dispatch
+        st, truth_pos = state(), fl.truth[10, 0:3]
         p2 = fs1.with_log_noise(prm, log_r=log_r)
         s, _ = fs1.lidar_stage(st, fl.z[0], ids, fl.mask[0], jax.random.PRNGKey(2), cfg, p2)
         mean, _ = fs1.estimate(s)
@@ -146,7 +149,8 @@ def test_lidar_frame_derivative_matches_finite_differences(flight):
     val, dval = jvp(jnp.zeros(()))
     assert np.isfinite(float(dval)) and float(dval) != 0.0
     h = 1e-5
-    fd = (jvp(jnp.asarray(h))[0] - jvp(jnp.asarray(-h))[0]) / (2 * h)
+    # float64 like the zeros above: a weakly typed Python-float argument would recompile
+    fd = (jvp(jnp.asarray(h, jnp.float64))[0] - jvp(jnp.asarray(-h, jnp.float64))[0]) / (2 * h)
     np.testing.assert_allclose(float(dval), float(fd), rtol=1e-4, atol=1e-9)
 
 

@@ -118,6 +118,13 @@ class DenseSlam:
 
 
 # ------------------------------------------------------------------ scenario
+def _motion_np(s, u):
+    """``motion`` in NumPy (the simulation needs no JAX dispatch per step)."""
+    x, y, th = s
+    v, w = u
+    return np.array([x + DT * v * np.cos(th), y + DT * v * np.sin(th), th + DT * w])
+
+
 def make_log(seed=0, T=60, n_lm=12, K=6):
     rng = np.random.default_rng(seed)
     lms = rng.uniform(-8, 8, size=(n_lm, 2))
@@ -125,7 +132,7 @@ def make_log(seed=0, T=60, n_lm=12, K=6):
     us, zs, ids, masks = [], [], [], []
     for t in range(T):
         u = np.array([1.0, 0.3 * np.sin(0.1 * t)])
-        s = np.array(motion(jnp.asarray(s), jnp.asarray(u), None))
+        s = _motion_np(s, u)
         d = lms - s[:2]
         r = np.hypot(d[:, 0], d[:, 1])
         order = np.argsort(r)[:K]
@@ -215,7 +222,9 @@ def test_capacity_padding_and_slot_permutation_change_nothing():
     sa, _ = engine_run(es.init(jnp.zeros(3), P0, 16, 2), us[:h], zs[:h], ids[:h], masks[:h])
     perm = np.random.default_rng(1).permutation(16)
     idx = np.concatenate([np.arange(3)] + [3 + 2 * p + np.arange(2) for p in perm])
-    sp = sa._replace(x=sa.x[idx], P=sa.P[np.ix_(idx, idx)], active=sa.active[perm], ids=sa.ids[perm])
+    x, P, act, lid = (np.asarray(a) for a in (sa.x, sa.P, sa.active, sa.ids))  # permuted on the host
+    sp = sa._replace(x=jnp.asarray(x[idx]), P=jnp.asarray(P[np.ix_(idx, idx)]), active=jnp.asarray(act[perm]),
+                     ids=jnp.asarray(lid[perm]))
     ea, _ = engine_run(sa, us[h:], zs[h:], ids[h:], masks[h:])
     ep, _ = engine_run(sp, us[h:], zs[h:], ids[h:], masks[h:])
     np.testing.assert_allclose(np.asarray(ea.x[:3]), np.asarray(ep.x[:3]), atol=1e-12)
@@ -249,11 +258,17 @@ def test_nan_measurements_are_masked_and_flagged():
 
 
 def test_gate_rejects_outlier():
-    st = es.init(jnp.zeros(3), jnp.eye(3) * 1e-4, 4, 2)
+    @jax.jit  # one program instead of one eager dispatch (and compile) per primitive
+    def case(z0, zbad):
+        st = es.init(jnp.zeros(3), jnp.eye(3) * 1e-4, 4, 2)
+        st = es.register(st, MODEL, z0, jnp.array([7]), jnp.array([True]), jnp.asarray(R))
+        st2, info = es.update(st, MODEL, zbad, jnp.array([0]), jnp.array([True]), jnp.asarray(R),
+                              gate=9.21)
+        return st, st2, info
+
     z0 = jnp.array([[5.0, 0.2]])
-    st = es.register(st, MODEL, z0, jnp.array([7]), jnp.array([True]), jnp.asarray(R))
     zbad = jnp.array([[7.0, 0.2]])  # 2 m off: hundreds of sigmas
-    st2, info = es.update(st, MODEL, zbad, jnp.array([0]), jnp.array([True]), jnp.asarray(R), gate=9.21)
+    st, st2, info = case(z0, zbad)
     assert bool(info.gated[0]) and not bool(info.used[0])
     np.testing.assert_array_equal(np.asarray(st2.x), np.asarray(st.x))
     assert "gated" in errors.decode(st2.status)
@@ -261,18 +276,21 @@ def test_gate_rejects_outlier():
 
 @pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
 def test_nearest_neighbour_association_recovers_ids(dtype):
+    @jax.jit  # one program instead of one eager dispatch (and compile) per primitive
+    def case(lms, new_l):
+        st = es.init(jnp.zeros(3, dtype), jnp.eye(3, dtype=dtype) * 1e-4, 8, 2)
+        z = jax.vmap(lambda l: observe(jnp.zeros(3, dtype), l, None))(lms)
+        st = es.register(st, MODEL, z, jnp.arange(4), jnp.ones(4, bool), jnp.asarray(R, dtype))
+        # observe landmarks 2, 0, and an unseen one far away
+        zq = jax.vmap(lambda l: observe(jnp.zeros(3, dtype), l, None))(
+            jnp.concatenate([lms[jnp.array([2, 0])], new_l])
+        )
+        zq = zq + jnp.array([[0.01, 0.002], [-0.02, 0.001], [0.0, 0.0]], dtype)
+        return st, es.associate_nn(st, MODEL, zq, jnp.ones(3, bool), jnp.asarray(R, dtype))
+
     lms = jnp.array([[4.0, 0.0], [0.0, 4.0], [-4.0, 1.0], [3.0, 3.5]], dtype)
-    st = es.init(jnp.zeros(3, dtype), jnp.eye(3, dtype=dtype) * 1e-4, 8, 2)
-    z = jax.vmap(lambda l: observe(jnp.zeros(3, dtype), l, None))(lms)
-    st = es.register(st, MODEL, z, jnp.arange(4), jnp.ones(4, bool), jnp.asarray(R, dtype))
+    st, (slots, matched, new, d2) = case(lms, jnp.array([[-6.0, -6.0]], dtype))
     assert st.x.dtype == dtype
-    # observe landmarks 2, 0, and an unseen one far away
-    new_l = jnp.array([[-6.0, -6.0]], dtype)
-    zq = jax.vmap(lambda l: observe(jnp.zeros(3, dtype), l, None))(
-        jnp.concatenate([lms[jnp.array([2, 0])], new_l])
-    )
-    zq = zq + jnp.array([[0.01, 0.002], [-0.02, 0.001], [0.0, 0.0]], dtype)
-    slots, matched, new, d2 = es.associate_nn(st, MODEL, zq, jnp.ones(3, bool), jnp.asarray(R, dtype))
     assert np.asarray(st.ids)[np.asarray(slots)[:2]].tolist() == [2, 0]
     assert np.asarray(matched).tolist() == [True, True, False]
     assert np.asarray(new).tolist() == [False, False, True]
@@ -280,9 +298,10 @@ def test_nearest_neighbour_association_recovers_ids(dtype):
 
 def test_predict_cost_independent_of_map_block():
     """Prediction must leave the landmark-landmark block bit-for-bit untouched."""
-    us, zs, ids, masks = make_log(seed=5, T=20)
+    # T = 30: the same engine_run program as the half-logs of the slot-permutation test
+    us, zs, ids, masks = make_log(seed=5, T=30)
     st, _ = engine_run(es.init(jnp.zeros(3), jnp.eye(3) * 1e-4, 16, 2), us, zs, ids, masks)
-    st2 = es.predict(st, MODEL, jnp.array([1.0, 0.1]), jnp.asarray(Q))
+    st2 = jax.jit(lambda st, u: es.predict(st, MODEL, u, jnp.asarray(Q)))(st, jnp.array([1.0, 0.1]))
     np.testing.assert_array_equal(np.asarray(st2.P[3:, 3:]), np.asarray(st.P[3:, 3:]))
     assert es.robot_cov(st2, MODEL).shape == (3, 3)
 
@@ -290,14 +309,22 @@ def test_predict_cost_independent_of_map_block():
 # ---------------------------------------------------------------- robot-only update
 def test_update_robot_matches_dense_joseph_and_masks():
     """update_robot (paper 004's flow/gyro rows) equals a dense Joseph update of the robot rows."""
-    st = es.init(jnp.array([0.3, -0.2, 0.4]), jnp.diag(jnp.array([0.2, 0.3, 0.05])), 4, 2)
-    Rr = np.diag([0.1, 0.2])
-    st = es.register(st, MODEL, jnp.array([[2.0, 0.3], [3.0, -0.5]]), jnp.array([0, 1]),
-                     jnp.array([True, True]), jnp.asarray(Rr))
     obs = lambda s, p: jnp.stack([s[0] + s[1] ** 2, jnp.sin(s[2])])  # noqa: E731
     z = jnp.array([0.5, 0.2])
     R = np.array([[0.04, 0.01], [0.01, 0.09]])
-    new, info = es.update_robot(st, MODEL, obs, z, jnp.array([True, True]), jnp.asarray(R))
+
+    @jax.jit  # the three updates in one program (eager dispatch compiled every primitive)
+    def case(z, z_nan, R):
+        st = es.init(jnp.array([0.3, -0.2, 0.4]), jnp.diag(jnp.array([0.2, 0.3, 0.05])), 4, 2)
+        st = es.register(st, MODEL, jnp.array([[2.0, 0.3], [3.0, -0.5]]), jnp.array([0, 1]),
+                         jnp.array([True, True]), jnp.asarray(np.diag([0.1, 0.2])))
+        both = jnp.array([True, True])
+        e0 = es.init(jnp.zeros(3), jnp.eye(3), 2, 2)
+        return (st, es.update_robot(st, MODEL, obs, z, both, R),
+                es.update_robot(st, MODEL, obs, z_nan, both, R),
+                es.update_robot(e0, MODEL, obs, z, True, R))
+
+    st, (new, info), (one, info1), (e1, _) = case(z, jnp.array([0.5, jnp.nan]), jnp.asarray(R))
     x, P = np.asarray(st.x), np.asarray(st.P)
     s = x[:3]
     H = np.zeros((2, x.size))
@@ -311,15 +338,11 @@ def test_update_robot_matches_dense_joseph_and_masks():
     np.testing.assert_allclose(np.asarray(new.P), IKH @ P @ IKH.T + K @ R @ K.T, atol=1e-12)
     np.testing.assert_allclose(float(info.nis), nu @ np.linalg.solve(S, nu), rtol=1e-10)
     # One row masked (or NaN): the same as the update with the other row alone.
-    one, info1 = es.update_robot(st, MODEL, obs, jnp.array([0.5, jnp.nan]), jnp.array([True, True]),
-                                 jnp.asarray(R))
     H1, R1 = H[:1], R[:1, :1]
     K1 = np.linalg.solve(H1 @ P @ H1.T + R1, H1 @ P).T
     np.testing.assert_allclose(np.asarray(one.x), x + K1 @ nu[:1], atol=1e-12)
     assert int(info1.dof) == 1 and int(one.status) & errors.MASKED_INPUT
     # Works on an empty map and keeps P symmetric PSD.
-    e0 = es.init(jnp.zeros(3), jnp.eye(3), 2, 2)
-    e1, _ = es.update_robot(e0, MODEL, obs, z, True, jnp.asarray(R))
     assert np.all(np.linalg.eigvalsh(np.asarray(e1.P)) > -1e-12)
 
 
@@ -381,8 +404,9 @@ def _random_state(rng, cap, n_active):
 def test_batched_register_equals_sequential(cap, n_active, K):
     """Joint registration == the former sequential one (float64, 1e-12), incl. overflow/masks."""
     rng = np.random.default_rng(cap * 100 + n_active * 10 + K)
-    reg_b = jax.jit(lambda st, z, i, m, R: es.register(st, MODEL, z, i, m, R))
-    reg_s = jax.jit(lambda st, z, i, m, R: _register_sequential(st, MODEL, z, i, m, R))
+    # both registrations in one compiled program
+    reg = jax.jit(lambda st, z, i, m, R: (es.register(st, MODEL, z, i, m, R),
+                                          _register_sequential(st, MODEL, z, i, m, R)))
     for trial in range(4):
         st = _random_state(rng, cap, n_active)
         z = np.stack([rng.uniform(1, 20, K), rng.uniform(-np.pi, np.pi, K)], 1)
@@ -393,7 +417,7 @@ def test_batched_register_equals_sequential(cap, n_active, K):
         Rk = np.stack([np.diag(rng.uniform(0.01, 0.2, 2)) for _ in range(K)])
         ids = np.arange(K, dtype=np.int32) + 7
         args = (st, jnp.asarray(z), jnp.asarray(ids), jnp.asarray(m), jnp.asarray(Rk))
-        b, s = reg_b(*args), reg_s(*args)
+        b, s = reg(*args)
         np.testing.assert_allclose(np.asarray(b.x), np.asarray(s.x), atol=1e-12, rtol=0)
         np.testing.assert_allclose(np.asarray(b.P), np.asarray(s.P), atol=1e-12, rtol=0)
         np.testing.assert_array_equal(np.asarray(b.active), np.asarray(s.active))
@@ -427,19 +451,26 @@ def test_masked_rows_and_inactive_slots_never_poison_robot_at_origin():
         st, info = es.update(st, MODEL, z, slots, mask, R_ * r_scale)
         return st, d2, info
 
+    def loss_and_value(x0):
+        out = step(x0, 1.0)
+        return _loss_of(*out), out
+
+    # One compiled program: the jvp's primal pass is the value checked first.
     x0 = jnp.zeros(3)
-    st, d2, info = jax.jit(step)(x0, 1.0)
+    _, t, (st, d2, info) = jax.jit(lambda a, ta: jax.jvp(loss_and_value, (a,), (ta,), has_aux=True))(
+        x0, jnp.array([1.0, -0.5, 0.2]))
     assert np.all(np.isfinite(np.asarray(st.x))) and np.all(np.isfinite(np.asarray(st.P)))
     assert bool(np.isfinite(np.asarray(d2)[0])) and int(info.dof) == 2
     assert np.asarray(info.used).tolist() == [True, False, False]
-
-    _, t = jax.jvp(lambda a: _origin_loss(step, a, 1.0), (x0,), (jnp.array([1.0, -0.5, 0.2]),))
     assert np.isfinite(float(t))
 
 
-def _origin_loss(step, x0, r_scale):
-    st, d2, info = step(x0, r_scale)
+def _loss_of(st, d2, info):
     return jnp.sum(st.x) + jnp.sum(st.P) + info.nis + d2[0]
+
+
+def _origin_loss(step, x0, r_scale):
+    return _loss_of(*step(x0, r_scale))
 
 
 @pytest.mark.slow

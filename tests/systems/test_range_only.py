@@ -17,36 +17,42 @@ ANCHORS = np.array([[-3.0, -4.0, 0.2], [-3.2, 3.8, 2.9], [3.7, 3.7, 0.2], [4.1, 
                     [-3.0, -4.4, 3.0], [3.9, -3.8, 0.2], [4.1, 3.9, 3.1], [-3.2, 3.4, 0.2]])
 
 
+# one compiled program per shape (eager jacfwd compiles every primitive it dispatches)
+_range_and_jac = jax.jit(lambda s, l: (ro.range_observe(s, l),
+                                       jax.jacfwd(ro.range_observe, argnums=(0, 1))(s, l)))
+
+
 def test_range_jacobian_matches_hand_oracle():
     rng = np.random.default_rng(0)
     for d, nr in ((3, 7), (2, 4)):
         s = rng.normal(size=nr)
         l = rng.normal(size=d) * 3
-        Hs, Hl = jax.jacfwd(ro.range_observe, argnums=(0, 1))(jnp.asarray(s), jnp.asarray(l))
+        z, (Hs, Hl) = _range_and_jac(jnp.asarray(s), jnp.asarray(l))
         u = (s[:d] - l) / np.linalg.norm(s[:d] - l)
         Hs_hand = np.zeros((1, nr))
         Hs_hand[0, :d] = u
         Hs_hand[0, -1] = 1.0  # ∂z/∂b
         np.testing.assert_allclose(np.asarray(Hs), Hs_hand, atol=1e-14)
         np.testing.assert_allclose(np.asarray(Hl), -u[None, :], atol=1e-14)
-        z = ro.range_observe(jnp.asarray(s), jnp.asarray(l))
         assert float(z[0]) == np.linalg.norm(s[:d] - l) + s[-1]
     # coincident point: finite Jacobian, no NaN
-    Hs, _ = jax.jacfwd(ro.range_observe, argnums=(0, 1))(jnp.zeros(7), jnp.zeros(3))
+    _, (Hs, _) = _range_and_jac(jnp.zeros(7), jnp.zeros(3))
     assert np.all(np.isfinite(np.asarray(Hs)))
 
 
 def test_odometry_jacobians_match_hand_oracle():
     s = np.array([1.0, -2.0, 0.7, 2.5])
     u = np.array([0.4, 0.05])
-    F = np.asarray(jax.jacfwd(ro.odo_motion)(jnp.asarray(s), jnp.asarray(u)))
+    p = ro.PLAZA_PARAMS
+    jac_and_q = jax.jit(lambda s, u, p: (jax.jacfwd(ro.odo_motion)(s, u),
+                                         ro.odo_process_noise(s, u, 0.2, p)))
+    F, Q = jac_and_q(jnp.asarray(s), jnp.asarray(u), ro._cast_params(p, jnp.float64))
+    F, Q = np.asarray(F), np.asarray(Q)
     c, sn = np.cos(s[2]), np.sin(s[2])
     F_hand = np.eye(4)
     F_hand[0, 2] = -u[0] * sn
     F_hand[1, 2] = u[0] * c
     np.testing.assert_allclose(F, F_hand, atol=1e-15)
-    p = ro.PLAZA_PARAMS
-    Q = np.asarray(ro.odo_process_noise(jnp.asarray(s), jnp.asarray(u), 0.2, ro._cast_params(p, jnp.float64)))
     G = np.array([[c, 0], [sn, 0], [0, 1], [0, 0]])
     sd = p.alpha_d * 0.4 + p.sigma_d0 * np.sqrt(0.2)
     st = p.alpha_th * 0.05 + p.beta_th * 0.4 + p.sigma_th0 * np.sqrt(0.2)
@@ -60,6 +66,7 @@ def test_odometry_jacobians_match_hand_oracle():
 DT3, T3, Q_ACC, SIG_R, BIAS = 0.012, 1500, 0.5, 0.1, -0.2
 
 
+@jax.jit  # one program for every run's simulation (eager, it compiled each primitive)
 def _sim_tag(key):
     """WNA constant-velocity truth (exact discretisation) and round-robin biased ranges."""
     k1, k2 = jax.random.split(key)
@@ -84,7 +91,8 @@ def test_cv_tag_bias_and_consistency_monte_carlo():
     t = np.arange(T3) * DT3
     aid = np.arange(T3) % 8
     log = ro.util_events(t, aid, np.ones(T3))
-    X, R = jax.vmap(_sim_tag)(jax.random.split(jax.random.PRNGKey(3), n_runs))
+    # one call of the compiled _sim_tag per run (the draws of vmapping it over the keys)
+    X, R = (jnp.stack(a) for a in zip(*map(_sim_tag, jax.random.split(jax.random.PRNGKey(3), n_runs))))
     p = ro._cast_params(ro.UtilParams(sigma_r=SIG_R, q_acc=Q_ACC, q_bias=1e-12, p0_pos=0.3,
                                       p0_vel=0.1, p0_bias=0.5), jnp.float64)
     run = functools.partial(ro._run_util_known_impl, gate=None, nf=16, cap=8)
@@ -111,6 +119,8 @@ def test_cv_tag_bias_and_consistency_monte_carlo():
 
 
 # --- Plaza-style 2D odometry + beacons, unknown beacons, bias, outliers -------------------
+
+_ate = jax.jit(metrics.ate)  # one program per dtype instead of one per primitive
 
 BEACONS = np.array([[-18.0, 5.0], [12.0, -14.0], [20.0, 12.0], [-5.0, 22.0]])
 BIDS = np.array([0, 1, 5, 6])
@@ -155,7 +165,7 @@ def _plaza_run(dtype):
 def test_plaza_style_slam_converges_with_bias_and_outliers():
     res, true, n_out = _plaza_run(jnp.float64)
     assert int(res.n_registered) == 4 and bool(np.all(np.asarray(res.active)))
-    ate = float(metrics.ate(res.pos, jnp.asarray(true)))
+    ate = float(_ate(res.pos, jnp.asarray(true)))
     assert ate < 1.0, ate
     B = np.asarray(res.landmarks)
     order = [list(BIDS).index(i) for i in np.asarray(res.landmark_ids)]
@@ -171,7 +181,7 @@ def test_float32_runs_finite():
     assert res.pos.dtype == jnp.float32
     assert np.all(np.isfinite(np.asarray(res.pos))) and np.isfinite(float(res.bias_final))
     assert not (int(res.status) & (errors.NON_FINITE | errors.NOT_PSD))
-    assert float(metrics.ate(res.pos, jnp.asarray(true, jnp.float32))) < 1.5
+    assert float(_ate(res.pos, jnp.asarray(true, jnp.float32))) < 1.5
     # UTIL path in float32 as well
     t = np.arange(400) * DT3
     X, R = _sim_tag(jax.random.PRNGKey(0))

@@ -27,8 +27,23 @@ L = np.array([2.5, -2.2])
 DT = 0.1
 
 
+# Model values and Jacobians, each in one compiled program (eager, jacfwd compiled every
+# primitive it dispatched).
+_motion_and_jac = jax.jit(lambda s: (LS.motion(s, None, DT),
+                                     jax.jacfwd(lambda s_: LS.motion(s_, None, DT))(s)))
+_observe_and_jac = jax.jit(lambda s, l: (LS.observe(s, l),
+                                         jax.jacfwd(LS.observe, argnums=(0, 1))(s, l)))
+
+
+@jax.jit
+def _inverse_round_trip(s, l):
+    z = LS.observe(s, l)
+    return z, LS.inverse(s, z), jax.jacfwd(LS.inverse, argnums=(0, 1))(s, z)
+
+
 def test_motion_jacobian_hand_and_thesis_eq_4_11():
-    F = np.asarray(jax.jacfwd(lambda s: LS.motion(s, None, DT))(jnp.asarray(S)))
+    m, F = _motion_and_jac(jnp.asarray(S))
+    F = np.asarray(F)
     np.testing.assert_allclose(F, twin.motion_jac(S, DT), atol=1e-14)
     c, s = np.cos(S[4]), np.sin(S[4])
     # eq. 4.11: ∂p/∂V = e^{-θ}Δt (a rotation by the yaw), ∂θ/∂ω = Δt, V and ω constant.
@@ -36,11 +51,11 @@ def test_motion_jacobian_hand_and_thesis_eq_4_11():
     assert F[4, 5] == pytest.approx(DT)
     np.testing.assert_allclose(F[2:4, :], np.eye(6)[2:4], atol=0)
     np.testing.assert_allclose(F[5], np.eye(6)[5], atol=0)
-    np.testing.assert_allclose(np.asarray(LS.motion(jnp.asarray(S), None, DT)), twin.motion(S, DT), atol=1e-15)
+    np.testing.assert_allclose(np.asarray(m), twin.motion(S, DT), atol=1e-15)
 
 
 def test_observation_jacobian_hand_and_thesis_eq_4_13_4_14():
-    Hs, Hl = jax.jacfwd(LS.observe, argnums=(0, 1))(jnp.asarray(S), jnp.asarray(L))
+    z, (Hs, Hl) = _observe_and_jac(jnp.asarray(S), jnp.asarray(L))
     Hs_h, Hl_h = twin.observe_jac(S, L)
     np.testing.assert_allclose(np.asarray(Hs), Hs_h, atol=1e-14)
     np.testing.assert_allclose(np.asarray(Hl), Hl_h, atol=1e-14)
@@ -48,41 +63,44 @@ def test_observation_jacobian_hand_and_thesis_eq_4_13_4_14():
     # (−e^{−k θ_F}, without the ½), ∂ρ_s/∂ρ_F = 1 and ∂θ_s/∂θ_F = 1 (the "1" of eq. 4.13).
     np.testing.assert_allclose(np.asarray(Hs)[0, :2], -np.array([np.cos(L[1]), np.sin(L[1])]), atol=1e-15)
     assert float(Hl[0, 0]) == 1.0 and float(Hl[1, 1]) == 1.0 and float(Hl[1, 0]) == 0.0
-    np.testing.assert_allclose(np.asarray(LS.observe(jnp.asarray(S), jnp.asarray(L))), twin.observe(S, L),
-                               atol=1e-15)
+    np.testing.assert_allclose(np.asarray(z), twin.observe(S, L), atol=1e-15)
 
 
 def test_inverse_round_trip_flip_and_jacobians():
     for s, l in ((S, L), (np.array([3.0, 0.5, 0, 0, -2.5, 0]), np.array([1.0, 0.2]))):
-        z = np.asarray(LS.observe(jnp.asarray(s), jnp.asarray(l)))
-        back = np.asarray(LS.inverse(jnp.asarray(s), jnp.asarray(z)))
+        z, back, (Gs, Gz) = _inverse_round_trip(jnp.asarray(s), jnp.asarray(l))
+        z, back = np.asarray(z), np.asarray(back)
         assert back[0] >= 0
         np.testing.assert_allclose(back[0], l[0], atol=1e-12)
         assert abs(np.remainder(back[1] - l[1] + np.pi, 2 * np.pi) - np.pi) < 1e-12
-        Gs, Gz = jax.jacfwd(LS.inverse, argnums=(0, 1))(jnp.asarray(s), jnp.asarray(z))
         _, Gs_h, Gz_h = twin.inverse(s, z)
         np.testing.assert_allclose(np.asarray(Gs), Gs_h, atol=1e-13)
         np.testing.assert_allclose(np.asarray(Gz), Gz_h, atol=1e-13)
     # The second case puts the robot beyond the line (ρ_s < 0): the map line is still ρ_F ≥ 0.
-    assert float(LS.observe(jnp.array([3.0, 0.5, 0, 0, -2.5, 0]), jnp.array([1.0, 0.2]))[0]) < 0
+    assert float(z[0]) < 0
 
 
 def test_residual_is_smooth_through_the_rho_flip():
     """A robot crossing the infinite extension of a wall: ρ_s changes sign, the scan fit
     reports (|ρ|, θ ± π), and the innovation must stay small (no 2π or sign jump)."""
+    from jaxslam.features.lines import hesse_normalize
+
+    @jax.jit  # one program for the four crossings
+    def fit_and_residual(s, l):
+        zh = LS.observe(s, l)
+        zr, zt = hesse_normalize(zh[0] + 0.003, zh[1] - 0.001)
+        return zr, LS.line_residual(jnp.stack([zr, zt]), zh)
+
     l = jnp.array([1.0, 0.3])
     n = np.array([np.cos(0.3), np.sin(0.3)])
     for d in (-0.02, -1e-4, 1e-4, 0.02):
         s = jnp.asarray(np.r_[n * (1.0 - d), 0, 0, 0.2, 0])
-        zh = LS.observe(s, l)
-        from jaxslam.features.lines import hesse_normalize
-
-        zr, zt = hesse_normalize(zh[0] + 0.003, zh[1] - 0.001)
+        zr, nu = fit_and_residual(s, l)
         assert float(zr) >= 0
-        nu = np.asarray(LS.line_residual(jnp.stack([zr, zt]), zh))
-        np.testing.assert_allclose(nu, [0.003, -0.001], atol=1e-12)
+        np.testing.assert_allclose(np.asarray(nu), [0.003, -0.001], atol=1e-12)
     # Angle wrapping: θ near ±π.
-    nu = np.asarray(LS.line_residual(jnp.array([2.0, np.pi - 0.01]), jnp.array([2.0, -np.pi + 0.01])))
+    nu = np.asarray(jax.jit(LS.line_residual)(jnp.array([2.0, np.pi - 0.01]),
+                                              jnp.array([2.0, -np.pi + 0.01])))
     np.testing.assert_allclose(nu, [0.0, -0.02], atol=1e-12)
 
 
@@ -162,7 +180,7 @@ def test_float32_run_is_finite_and_tracks():
     setup = sc.make_setup(duration=3.0)
     cfg = LS.LineSlamConfig()
     fp = jax.tree.map(lambda a: a.astype(jnp.float32), LS.default_params())
-    log = sc.simulate(jax.random.PRNGKey(3), setup, cfg.spec, jnp.float32)
+    log = jax.jit(lambda k: sc.simulate(k, setup, cfg.spec, jnp.float32))(jax.random.PRNGKey(3))
     res = jax.jit(LS.run, static_argnums=2)(jax.random.PRNGKey(5), log, cfg, fp)
     st = res.steps
     assert st.mean.dtype == jnp.float32 and st.cov.dtype == jnp.float32

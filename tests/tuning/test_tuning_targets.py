@@ -29,7 +29,7 @@ def test_logs_layout_and_first_imu_sample(logs):
 
 def test_run_slam_log_equals_filter_log_and_nll_terms_match_engine(logs):
     """Same estimates as systems.ekf_slam_3d.filter_log; recomputed NIS = the engine's NIS."""
-    log = jax.tree.map(lambda a: a[0], logs)
+    log = jax.tree.map(lambda a: np.asarray(a)[0], logs)  # run 0 (host slices: no eager dispatch)
     noise = sys3d.imu_noise(imu_mod.PAPER000_IMU)
     cfg = sys3d.EstimatorConfig(capacity=40)
 
@@ -49,7 +49,7 @@ def test_run_slam_log_equals_filter_log_and_nll_terms_match_engine(logs):
 
 
 def test_nll_needs_known_association(logs):
-    log = jax.tree.map(lambda a: a[0], logs)
+    log = jax.tree.map(lambda a: np.asarray(a)[0], logs)  # run 0 (host slices: no eager dispatch)
     cfg = sys3d.EstimatorConfig(capacity=40, association="nn")
     with pytest.raises(InputError, match="nll"):
         T.run_slam_log(sys3d.imu_noise(imu_mod.PAPER000_IMU), cfg, log, with_nll=True)
