@@ -20,6 +20,7 @@ __all__ = [
     "DEGENERATE",
     "MASKED_INPUT",
     "NOT_PSD",
+    "DIVERGED",
     "FLAG_NAMES",
     "InputError",
     "decode",
@@ -33,6 +34,7 @@ GATED = 1 << 2  # at least one measurement was rejected by the Mahalanobis gate
 DEGENERATE = 1 << 3  # a degenerate geometry (e.g. collinear trilateration) was met
 MASKED_INPUT = 1 << 4  # a non-finite or out-of-range input measurement was masked
 NOT_PSD = 1 << 5  # a covariance failed its Cholesky factorisation
+DIVERGED = 1 << 6  # the run stopped being consistent: >10 % of known-landmark rows were outliers
 
 FLAG_NAMES = {
     CAPACITY_OVERFLOW: "capacity_overflow",
@@ -41,6 +43,7 @@ FLAG_NAMES = {
     DEGENERATE: "degenerate",
     MASKED_INPUT: "masked_input",
     NOT_PSD: "not_psd",
+    DIVERGED: "diverged",
 }
 
 

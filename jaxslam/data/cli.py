@@ -66,6 +66,9 @@ def _parser():
     p.add_argument("--seed", type=_seed, default=0, metavar="S", help="FastSLAM PRNG seed (default: 0)")
     p.add_argument("--float32", action="store_true",
                    help="compute in float32 (default: float64, jax_enable_x64 switched on)")
+    p.add_argument("--params", metavar="FILE",
+                   help="noise for the EKF from a 'jaxslam tune NAME' file (--json or --params-out); "
+                        "mrclam only; a file for another dataset or with unknown keys is an error")
     p.add_argument("--json", metavar="PATH", help="write the dataset JSON here")
     p.add_argument("--plots", metavar="DIR", help="write the path/map and error figures into DIR")
     p.add_argument("--tum", metavar="PATH", help="write the estimated trajectory in TUM format (evo)")
@@ -95,12 +98,16 @@ def main(argv) -> int:
     if plots is not None and plots.exists() and not plots.is_dir():
         raise InputError(f"--plots: {str(plots)!r} exists and is not a folder")
 
+    from .. import io
+
+    params = io.load_params(args.params) if args.params else None
+
     import jax
     import numpy as np
 
     if not args.float32:
         jax.config.update("jax_enable_x64", True)
-    from .. import compilation, io
+    from .. import compilation
     from ..cli import compile_timing
     from . import runners
 
@@ -108,11 +115,17 @@ def main(argv) -> int:
     with compilation.account() as acct:
         run = runners.run_dataset(args.name, data, robot=args.robot, filter=args.filter, ids=args.ids,
                                   anchors=args.anchors, tof=args.tof, calibrated=args.calibrated,
-                                  particles=args.particles, seed=args.seed, dtype=dtype)
+                                  particles=args.particles, seed=args.seed, dtype=dtype,
+                                  **({"params": params} if params is not None else {}))
     doc = runners.to_json(run)
     if "compile_s" in doc["timing"]:
         doc["timing"]["main_program_compile_s"] = doc["timing"].pop("compile_s")
     doc["timing"].update(compile_timing(acct.result))
+    if "diverged" in str(run.counts.get("status_flags", "")).split(","):
+        frac = run.metrics.get("outlier_fraction_mapped")
+        print(f"jaxslam dataset: warning: the run DIVERGED ({'' if frac is None else f'{100 * frac:.0f} % of '}"
+              "the sightings of mapped landmarks were outliers, > 10 %): its estimate is not trustworthy",
+              file=sys.stderr, flush=True)
     if not args.quiet:
         out = sys.stdout
         print(f"{run.dataset} ({run.config['filter']}, {run.config['dtype']}): {run.config['setting']}", file=out)

@@ -191,9 +191,9 @@ def _register(name):
 
 #: Options of :func:`run_dataset` with their defaults, and the datasets each applies to.
 _DEFAULTS = {"robot": 1, "filter": "ekf", "ids": "known", "anchors": None, "tof": False,
-             "calibrated": False, "particles": None, "seed": 0}
+             "calibrated": False, "particles": None, "seed": 0, "params": None}
 _APPLIES = {
-    "mrclam": {"robot", "filter", "ids", "calibrated", "particles", "seed"},
+    "mrclam": {"robot", "filter", "ids", "calibrated", "particles", "seed", "params"},
     "victoria-park": {"filter", "particles", "seed"},
     "util-uwb": {"anchors", "tof"},
     "plaza": {"robot", "anchors"},
@@ -216,6 +216,8 @@ def run_dataset(name: str, data_dir, **options) -> DatasetRun:
                  and k not in _APPLIES[name]]
     if options.get("filter", "ekf") != "fastslam":
         misplaced += [k for k in ("particles", "seed") if options.get(k, _DEFAULTS[k]) != _DEFAULTS[k]]
+    elif options.get("params") is not None:
+        raise InputError(f"{name}: --params sets the EKF's noise; it does not apply to --filter fastslam")
     if misplaced:
         flags = ", ".join("--" + k for k in sorted(set(misplaced)))
         hint = (" (range-only logs run the EKF only: the particle core registers range-bearing "
@@ -224,7 +226,43 @@ def run_dataset(name: str, data_dir, **options) -> DatasetRun:
                          f"{', '.join('--' + k for k in sorted(_APPLIES[name]))}"
                          + (" (--particles/--seed with --filter fastslam)" if "particles" in _APPLIES[name] else "")
                          + hint)
-    return _RUNNERS[name](data_dir, **{**{k: v for k, v in _DEFAULTS.items()}, **options})
+    kw = {**_DEFAULTS, **options}
+    if kw["params"] is None:  # only the runners that read a --params file take the argument
+        del kw["params"]
+    return _RUNNERS[name](data_dir, **kw)
+
+
+#: top-level keys of a ``jaxslam tune`` report besides ``dataset`` and ``noise`` (the report is
+#: itself a ``--params`` file; these keys are read by nothing here)
+_TUNE_REPORT_KEYS = {"scenario", "target", "loss", "before", "after", "params_before", "params_after",
+                     "history", "references", "stopped", "n_skipped", "steps", "lr", "config", "timing",
+                     "memory", "eval_command", "versions"}
+
+
+def dataset_params(obj, name: str) -> dict:
+    """The ``noise`` entries of a ``--params`` object for dataset ``name`` (validated keys).
+
+    The object is ``{"dataset": NAME, "noise": {...}}`` (``jaxslam tune NAME`` writes it, alone
+    with ``--params-out`` or inside its report with ``--json``).  A file for another dataset, a
+    missing ``dataset``/``noise`` entry or an unknown top-level key is an :class:`InputError`
+    naming it; the ``noise`` keys are checked by the system's ``params_from_dict``.
+    """
+    if not isinstance(obj, dict):
+        raise InputError(f"--params: expected a JSON object, got {type(obj).__name__}")
+    unknown = sorted(set(obj) - {"dataset", "noise"} - _TUNE_REPORT_KEYS)
+    if unknown:
+        raise InputError(f"--params: unknown key(s) {unknown}; a dataset --params file holds "
+                         "'dataset' and 'noise' (written by 'jaxslam tune')")
+    if "dataset" not in obj or "noise" not in obj:
+        missing = [k for k in ("dataset", "noise") if k not in obj]
+        raise InputError(f"--params: missing key(s) {missing}; a dataset --params file holds "
+                         "'dataset' and 'noise' (written by 'jaxslam tune')")
+    if obj["dataset"] != name:
+        raise InputError(f"--params: key 'dataset' is {obj['dataset']!r}, this run is {name!r}: "
+                         "the file's noise was fitted for another dataset")
+    if not isinstance(obj["noise"], dict):
+        raise InputError(f"--params: key 'noise' must be an object, got {type(obj['noise']).__name__}")
+    return obj["noise"]
 
 
 def to_json(run: DatasetRun) -> dict:
@@ -249,6 +287,32 @@ def _counts_common(status, extra: dict) -> dict:
     out = {k: int(v) for k, v in extra.items()}
     out["status_flags"] = ",".join(decode(status)) or "none"
     return out
+
+
+def _class_fractions(counts: dict) -> dict:
+    """Per landmark class, the fraction of rows cut off or disbelieved (EKF runs).
+
+    mapped: rows of landmarks already in the map — ``outlier_fraction_mapped`` (d² beyond the
+    χ²(2) 99 % gate; more than 10 % sets DIVERGED) and ``gated_fraction_mapped`` (cut off by a
+    hard gate, if the run has one); new: first sightings — ``rejected_fraction_new`` (not
+    registered: ambiguous, or a second row of the same id in one frame).
+    """
+    if "mapped_rows" not in counts:
+        return {}
+    rows = max(counts["mapped_rows"], 1)
+    new = max(counts["registered"] + counts["rejected"], 1)
+    return {"outlier_fraction_mapped": counts["mapped_outliers"] / rows,
+            "gated_fraction_mapped": min(counts["gated"], counts["mapped_rows"]) / rows,
+            "rejected_fraction_new": counts["rejected"] / new}
+
+
+def _divergence_notes(status) -> list:
+    from ..errors import DIVERGED
+
+    if int(status) & DIVERGED:
+        return ["DIVERGED: more than 10 % of the sightings of mapped landmarks were outliers (beyond "
+                "the chi2(2) 99 % gate): the run stopped being consistent with its noise model"]
+    return []
 
 
 def _config(name, filter, dtype, setting, **kw):
@@ -439,7 +503,12 @@ def _planar_run(log, pose0, filter, cfg_ekf, prm_ekf, fs_kind, particles, seed, 
                   "registered": int(np.sum(np.asarray(res.n_registered))),
                   "outside_limits": int(np.sum(np.asarray(res.n_limited))),
                   "dropped_beyond_K": int(np.sum(np.asarray(res.n_dropped))),
-                  "landmarks_mapped": int(act.sum()), "overflow": int(res.overflow)}
+                  "landmarks_mapped": int(act.sum()), "overflow": int(res.overflow),
+                  # rows of landmarks already mapped, and those beyond the χ²(2) 99 % gate (the
+                  # fraction behind DIVERGED; gated or only down-weighted, as the update chose)
+                  "mapped_rows": int(np.sum(np.asarray(res.n_monitored))),
+                  "mapped_outliers": int(np.sum(np.asarray(res.n_outliers))),
+                  "inflations": int(res.inflations)}
         counts["pruned"] = int(np.sum(np.asarray(res.n_pruned)))
         return np.asarray(res.pose, np.float64), lm, counts, comp_s, run_s, res.status
     from ..systems import planar_fastslam as pf
@@ -465,9 +534,11 @@ def _planar_run(log, pose0, filter, cfg_ekf, prm_ekf, fs_kind, particles, seed, 
 
 @_register("mrclam")
 def run_mrclam(data_dir, robot=1, filter="ekf", ids="known", anchors=None, particles=None, seed=0,
-               dtype=np.float64, tof=False, calibrated=False):
+               dtype=np.float64, tof=False, calibrated=False, params=None):
     """UTIAS MRCLAM (as shipped: dataset 6): unicycle odometry + range-bearing to barcoded landmarks.
 
+    The EKF's noise is the one learned from the logs (``planar_ekf_slam.MRCLAM_FITTED``, the same
+    for every robot); ``params``: a ``--params`` object (``jaxslam tune mrclam``) replacing it.
     ``calibrated``: apply the camera range model and odometry delay fitted on the first half
     of robot 1 (``planar_ekf_slam.mrclam_log``) with the matching tight noise (EKF preset;
     FastSLAM keeps its own R).
@@ -491,9 +562,14 @@ def run_mrclam(data_dir, robot=1, filter="ekf", ids="known", anchors=None, parti
     # clamped into the ground-truth span (never extrapolated)
     pose0 = metrics.interp_poses(np.clip(log.t[:1], d.gt_t[0], d.gt_t[-1]), d.gt_t, d.gt)[0]
     assoc = "known" if ids == "known" else "nn"
+    prm = pe.mrclam_params(robot, dtype=dtype, corrected=calibrated)
+    if params is not None:
+        if calibrated:
+            raise InputError("mrclam: --params and --calibrated do not combine (the calibrated log has "
+                             "its own noise preset)")
+        prm = pe.params_from_dict(dataset_params(params, "mrclam"), prm, dtype=dtype, where="--params: noise")
     pose, lm, counts, comp_s, run_s, status = _planar_run(
-        log, pose0, filter, pe.mrclam_config(association=assoc, corrected=calibrated),
-        pe.mrclam_params(robot, dtype=dtype, corrected=calibrated),
+        log, pose0, filter, pe.mrclam_config(association=assoc, corrected=calibrated), prm,
         lambda n: _mrclam_fastslam(robot, n, assoc), particles, seed, dtype)
     dr = np.asarray(dead_reckoning(planar.unicycle, jnp.asarray(pose0), log.u, log.dt))
     m, ev = evaluate_planar(log.t, pose, d.gt_t, d.gt, dr_pose=dr, lm=lm["xy"],
@@ -502,13 +578,17 @@ def run_mrclam(data_dir, robot=1, filter="ekf", ids="known", anchors=None, parti
                             lm_true_ids=d.landmark_id, ref_label="Vicon ground truth", at_ref_times=True)
     if assoc != "known":
         ev["lm_true_xy"] = np.asarray(d.landmark_xy)
+    m.update(_class_fractions(counts))
     counts = _counts_common(status, counts)
     setting = (f"robot {robot}, {'known ids' if assoc == 'known' else 'ids hidden (Mahalanobis NN)'}, "
                f"{'calibrated camera/odometry model' if calibrated else 'raw log'}, "
                f"{log.stats['n_events']} events")
     cfg = _config("mrclam", filter, dtype, setting, robot=robot, ids=ids, calibrated=bool(calibrated),
                   particles=particles if filter == "fastslam" else None, seed=seed)
-    notes = [f"evaluated at the {m['eval_samples']} ground-truth samples inside the run"]
+    notes = [f"evaluated at the {m['eval_samples']} ground-truth samples inside the run"] + _divergence_notes(status)
+    if filter == "ekf":
+        cfg["noise"] = "--params file" if params is not None else (
+            "calibrated preset" if calibrated else "learned: jaxslam tune mrclam on robots 1-5 (docs/datasets.md)")
     return DatasetRun("mrclam", cfg, m, counts, {"load_s": load_s, "compile_s": comp_s, "run_s": run_s},
                       dict(d.report), ev, (log.t, pose[:, :2], pose[:, 2]), notes)
 
@@ -568,11 +648,12 @@ def run_victoria_park(data_dir, robot=1, filter="ekf", ids="known", anchors=None
         counts["measurements"] = int(d.det_t.size)
         counts["outside_limits"] = int(d.det_t.size - det_t.size)
         counts["dropped_beyond_K"] = int(log.stats["dropped_overflow"])
+    m.update(_class_fractions(counts))
     counts = _counts_common(status, counts)
     cfg = _config("victoria-park", filter, dtype, f"unknown association, {log.stats['n_events']} events",
                   particles=particles if filter == "fastslam" else None, seed=seed)
     notes = [f"ATE against the {m['eval_samples']} GPS fixes (SE(2)-aligned); GPS has no heading, so "
-             "rpe_m is translational, over pairs of fixes 1 ± 0.1 s apart"]
+             "rpe_m is translational, over pairs of fixes 1 ± 0.1 s apart"] + _divergence_notes(status)
     if filter == "fastslam" and np.dtype(dtype) == np.float32:
         notes.append("FastSLAM on this log diverged in float32 when measured (ATE 10.7 m, map overflow) "
                      "against 3.86 m in float64: prefer float64")

@@ -119,6 +119,8 @@ class UpdateInfo(NamedTuple):
     used: jax.Array  # (K,) bool measurement used in the update
     gated: jax.Array  # (K,) bool rejected by the Mahalanobis gate
     logdet: jax.Array = None  # () log det of the joint innovation covariance of the used rows
+    d2: jax.Array = None  # (K,) marginal NIS of each valid row, before gating and weighting
+    row_logdet: jax.Array = None  # (K,) log det of each valid row's marginal S_i (R unweighted)
 
 
 # ---------------------------------------------------------------------------
@@ -259,7 +261,7 @@ def _observe_batch(model, s, L, params, valid=None):
 
 
 def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
-           gate: Optional[float] = None):
+           gate: Optional[float] = None, robust=None):
     """Joint EKF update with K measurements of mapped landmarks.
 
     Args:
@@ -270,8 +272,15 @@ def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
       R: (d_z, d_z) or (K, d_z, d_z) measurement covariance.
       gate: optional chi-square threshold on each measurement's own NIS
         (d_z dof); gated measurements are dropped and flagged ``GATED``.
+      robust: optional degrees of freedom ν (scalar, traced) of a Student-t measurement
+        model: each row's R is divided by its EM weight w = (ν + d_z)/(ν + d²) ≤ 1 (d² its
+        marginal NIS), so an outlier pulls the estimate less and less the further out it is,
+        but is never cut off (a filter that has become over-confident still hears its
+        measurements, unlike with a hard gate).  ν → ∞ is the Gaussian update.
 
-    Returns (state, UpdateInfo).  Cost O(n²·K·d_z) through gathered columns.
+    Returns (state, UpdateInfo).  ``UpdateInfo.d2`` and ``row_logdet`` hold each row's
+    marginal NIS and log det S_i before any weighting (the terms of a per-row likelihood).
+    Cost O(n²·K·d_z) through gathered columns.
     """
     nr, dl, cap = _sizes(state, model)
     dz = model.meas_dim
@@ -311,12 +320,19 @@ def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
 
     # Individual gating on the marginal innovation covariance of each measurement.
     S_marg = jnp.einsum("kzkw->kzw", HPHt) + R
+    S_safe = jnp.where(valid[:, None, None], S_marg, jnp.eye(dz, dtype=dtype))
+    d2_each, logdet_each = jax.vmap(_nis_logdet_small)(jnp.where(valid[:, None], res, 0.0), S_safe)
+    d2_each = jnp.where(valid, d2_each, 0.0)
+    logdet_each = jnp.where(valid, logdet_each, 0.0)
     if gate is not None:
-        nis_each = jax.vmap(_nis_small)(res, S_marg)
-        gated = valid & (nis_each > gate)
+        gated = valid & (d2_each > gate)
         valid = valid & ~gated
     else:
         gated = jnp.zeros_like(valid)
+    if robust is not None:
+        nu_t = jnp.asarray(robust, dtype)
+        w = jnp.minimum((nu_t + dz) / (nu_t + d2_each), 1.0)
+        R = R / jnp.where(valid, w, 1.0)[:, None, None]
 
     v = valid.astype(dtype)
     vv = jnp.repeat(v, dz)  # (K·dz,)
@@ -363,6 +379,8 @@ def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
         used=valid & ok,
         gated=gated,
         logdet=jnp.where(ok, logdet, 0.0),
+        d2=d2_each,
+        row_logdet=logdet_each,
     )
     return state._replace(x=x_new, P=P_new, status=status), info
 
@@ -425,10 +443,29 @@ def update_robot(state: SlamState, model: SlamModel, observe, z, mask, R, params
     return state._replace(x=x_new, P=P_new, status=status), info
 
 
+def _nis_logdet_small(nu, S):
+    """(νᵀS⁻¹ν, log det S) of one small (d ≤ 4) SPD block by an unrolled Cholesky: scalar
+    arithmetic that XLA fuses, no LAPACK call (a non-PD block gives NaN, as LAPACK would)."""
+    n = S.shape[-1]
+    if n > 4:
+        L = jnp.linalg.cholesky(symmetrize(S))
+        w = jax.scipy.linalg.solve_triangular(L, nu, lower=True)
+        return jnp.sum(w * w), 2.0 * jnp.sum(jnp.log(jnp.diagonal(L)))
+    S = symmetrize(S)
+    L = [[None] * n for _ in range(n)]
+    for j in range(n):
+        d = S[j, j] - sum(L[j][k] * L[j][k] for k in range(j))
+        L[j][j] = jnp.sqrt(d)
+        for i in range(j + 1, n):
+            L[i][j] = (S[i, j] - sum(L[i][k] * L[j][k] for k in range(j))) / L[j][j]
+    w = []
+    for i in range(n):
+        w.append((nu[i] - sum(L[i][k] * w[k] for k in range(i))) / L[i][i])
+    return sum(wi * wi for wi in w), 2.0 * sum(jnp.log(L[i][i]) for i in range(n))
+
+
 def _nis_small(nu, S):
-    L = jnp.linalg.cholesky(symmetrize(S))
-    w = jax.scipy.linalg.solve_triangular(L, nu, lower=True)
-    return jnp.sum(w * w)
+    return _nis_logdet_small(nu, S)[0]
 
 
 # ---------------------------------------------------------------------------

@@ -44,6 +44,8 @@ DEFAULTS = {
     "noise": {"steps": 100, "lr": 0.5, "loss": "nll"},
     "lqr": {"steps": 40, "lr": 0.1, "loss": "cost"},
 }
+# Real logs (the protocol of docs/datasets.md): 25 Adam steps at 0.1 on 500 s of each log.
+REAL_LOG_DEFAULTS = {"steps": 25, "lr": 0.1, "loss": "nll", "window": 500.0}
 
 
 class _Parser(argparse.ArgumentParser):
@@ -55,6 +57,18 @@ def _targets_text():
     from . import targets
 
     return "; ".join(f"{s} --target {t} (--loss {'|'.join(ls)})" for (s, t), ls in targets.available().items())
+
+
+def _robot_list(text: str) -> tuple:
+    if text.strip().lower() == "none":
+        return ()
+    try:
+        out = tuple(int(t) for t in text.split(",") if t.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated robot numbers such as 1,2,3, got {text!r}")
+    if not out:
+        raise argparse.ArgumentTypeError(f"expected at least one robot, got {text!r}")
+    return out
 
 
 def build_parser(with_targets: bool = True) -> _Parser:
@@ -102,6 +116,16 @@ def build_parser(with_targets: bool = True) -> _Parser:
                    help="ekfslam3d noise: tune the 9x9 process-noise density Q_c (Table 7's form; default), "
                         "the 6x6 IMU density Q_imu entering through the filter's G Q_imu G^T (imu), or one "
                         "density per sensor, accelerometer and gyro (imu_iso, Table 5's form)")
+    real = p.add_argument_group("real logs (jaxslam tune mrclam)")
+    real.add_argument("--data", metavar="DIR", default=None,
+                      help="dataset folder (the one with mrclam6/, or a parent of it)")
+    real.add_argument("--robots", type=_robot_list, default=None, metavar="LIST",
+                      help="training robots, e.g. 1,2,3,4 (default 1,2,3,4)")
+    real.add_argument("--test-robots", type=_robot_list, default=None, metavar="LIST",
+                      help="held-out robots for the before/after table, e.g. 5 (default 5; 'none': no held-out)")
+    real.add_argument("--window", type=positive_float, default=None, metavar="S",
+                      help="fit on the first S seconds of each training log (default 500); the held-out "
+                           "logs are evaluated whole")
     p.add_argument("--no-checkpoint", action="store_true",
                    help="do not wrap the scan body in jax.checkpoint (more memory, a little faster)")
     p.add_argument("--float32", action="store_true", help="compute in float32 (default float64)")
@@ -176,7 +200,14 @@ def run_tuning(args, progress_stream=None) -> dict:
         for flag, used in (("--structure", args.structure != "qc"), ("--tune-r", args.tune_r)):
             if used:
                 raise InputError(f"{flag}: only the ekfslam3d-* noise targets take it, not {args.scenario}")
-    d = DEFAULTS.get(target_name, DEFAULTS["noise"])
+    real = args.scenario in targets.REAL_LOG_SCENARIOS
+    if not real:
+        for flag, used in (("--data", args.data), ("--robots", args.robots), ("--test-robots", args.test_robots),
+                           ("--window", args.window)):
+            if used is not None:
+                raise InputError(f"{flag}: only the real-log targets ({', '.join(targets.REAL_LOG_SCENARIOS)}) "
+                                 f"take it, not {args.scenario}")
+    d = REAL_LOG_DEFAULTS if real else DEFAULTS.get(target_name, DEFAULTS["noise"])
     supported = avail[(args.scenario, target_name)]
     loss = args.loss or (d["loss"] if d["loss"] in supported else supported[0])
     if loss not in supported:  # checked before the (slow) build, so the error is the only line
@@ -190,6 +221,12 @@ def run_tuning(args, progress_stream=None) -> dict:
               tune_r=args.tune_r, structure=args.structure)
     if args.duration is not None:
         kw["train_duration"] = args.duration
+    if real:
+        kw = dict(dtype=dtype, data=args.data, t_max=args.window or REAL_LOG_DEFAULTS["window"])
+        if args.robots is not None:
+            kw["robots"] = args.robots
+        if args.test_robots is not None:
+            kw["test_robots"] = args.test_robots
     quiet = args.quiet
     stream = progress_stream or sys.stderr
     try:
@@ -203,7 +240,7 @@ def run_tuning(args, progress_stream=None) -> dict:
 
     t_all = time.perf_counter()
     say(f"{PROG}: building {args.scenario} --target {target_name} --loss {loss} "
-        f"({args.train_runs} training runs, {args.test_runs} held-out)")
+        + ("(real logs)" if real else f"({args.train_runs} training runs, {args.test_runs} held-out)"))
     tg = targets.get(args.scenario, target_name, loss, **kw)
     t_build = time.perf_counter() - t_all
 
@@ -228,7 +265,7 @@ def run_tuning(args, progress_stream=None) -> dict:
         res = optimize.fit(tg.loss_fn, tg.theta0, tg.train, steps, lr, test=tg.test,
                            eval_every=args.eval_every, clip=args.clip, batch_size=args.batch_size,
                            key=key, callback=cb, describe=tg.describe, b2=args.b2,
-                           log_objective=tg.log_objective)
+                           log_objective=tg.log_objective, sequential=tg.sequential)
     finally:
         bar.close()
     say(f"{PROG}: compile {res.compile_s:.1f} s, {res.step_s:.3g} s per step")
@@ -236,7 +273,7 @@ def run_tuning(args, progress_stream=None) -> dict:
         print(f"{PROG}: warning: {res.stopped}", file=sys.stderr, flush=True)
     phys0, phys1 = tg.physical(tg.theta0), tg.physical(res.theta)
     say(f"{PROG}: evaluating start, tuned{''.join(', ' + k for k in tg.references)} on "
-        f"{args.test_runs} held-out runs ...")
+        + (f"held-out logs {tg.config.get('test_robots')} ..." if real else f"{args.test_runs} held-out runs ..."))
     t0 = time.perf_counter()
     ev = tg.evaluate({"before": phys0, "after": phys1, **tg.references})
     t_eval = time.perf_counter() - t0

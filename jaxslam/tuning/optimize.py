@@ -116,8 +116,15 @@ def make_optimizer(lr: float, steps: int, schedule: str = "cosine", warmup: Opti
     return optax.chain(*parts), sched
 
 
-def batch_loss(loss_fn: Callable, theta, batch):
-    """Mean of ``loss_fn(theta, item)`` over the leading axis of ``batch`` (``jax.vmap``)."""
+def batch_loss(loss_fn: Callable, theta, batch, sequential: bool = False):
+    """Mean of ``loss_fn(theta, item)`` over the leading axis of ``batch``.
+
+    ``jax.vmap`` by default; ``sequential=True`` uses ``lax.map`` (one item after another),
+    for losses whose scans branch per step with ``lax.cond`` (real logs: an update only on
+    events with measurements) — under ``vmap`` both branches would run at every step.
+    """
+    if sequential:
+        return jnp.mean(jax.lax.map(lambda item: loss_fn(theta, item), batch))
     return jnp.mean(jax.vmap(loss_fn, in_axes=(None, 0))(theta, batch))
 
 
@@ -156,7 +163,8 @@ def fit(loss_fn: Callable, theta0, train, steps: int, lr: float = 0.1, *, test=N
         clip: Optional[float] = 1.0, batch_size: Optional[int] = None, key=None,
         max_skips: int = 3, callback: Optional[Callable] = None,
         describe: Optional[Callable] = None, b2: float = 0.9,
-        log_objective: bool = False, compiler_options: Optional[dict] = None) -> FitResult:
+        log_objective: bool = False, compiler_options: Optional[dict] = None,
+        sequential: bool = False) -> FitResult:
     """Minimise mean_runs ``loss_fn(theta, item)`` with Adam; see the module docstring.
 
     Args:
@@ -172,6 +180,7 @@ def fit(loss_fn: Callable, theta0, train, steps: int, lr: float = 0.1, *, test=N
       max_skips: consecutive non-finite gradients tolerated before stopping.
       callback: called with each history record.
       describe: ``describe(theta) -> dict`` stored in each record (parameter trajectories).
+      sequential: evaluate the batch's items one after another (:func:`batch_loss`).
       compiler_options: passed to XLA when the step is compiled (e.g. :data:`FAST_COMPILE`), over
         the library's CPU options (:func:`jaxslam.runtime.compiler_options`).
     """
@@ -190,7 +199,7 @@ def fit(loss_fn: Callable, theta0, train, steps: int, lr: float = 0.1, *, test=N
     mini = batch_size is not None and batch_size < runs
 
     def objective(th, batch):
-        loss = batch_loss(loss_fn, th, batch)
+        loss = batch_loss(loss_fn, th, batch, sequential)
         return (jnp.log(loss) if log_objective else loss), loss
 
     def step(theta, opt_state, batch):
@@ -211,7 +220,7 @@ def fit(loss_fn: Callable, theta0, train, steps: int, lr: float = 0.1, *, test=N
     memory = memory_report(step_c)
     test_c = None
     if test is not None:
-        test_c = jax.jit(lambda th, b: batch_loss(loss_fn, th, b), compiler_options=opts or None)
+        test_c = jax.jit(lambda th, b: batch_loss(loss_fn, th, b, sequential), compiler_options=opts or None)
 
     theta, good, best, best_loss = theta0, theta0, theta0, math.inf
     history, stopped, skips, n_skipped, times = [], None, 0, 0, []

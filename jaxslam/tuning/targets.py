@@ -107,6 +107,7 @@ class Target(NamedTuple):
     config: every setting used (JSON-ready).
     eval_command: the ``jaxslam run`` command that reproduces the held-out "after" row.
     log_objective: optimise log(mean loss) (positive losses; see :func:`~jaxslam.tuning.optimize.fit`).
+    sequential: the loss of each training item runs after the other (``lax.map``), not vmapped.
     """
 
     scenario: str
@@ -125,6 +126,7 @@ class Target(NamedTuple):
     config: dict
     eval_command: str = ""
     log_objective: bool = False
+    sequential: bool = False  # evaluate the training items one after another (real logs)
 
 
 _FACTORIES: dict = {}
@@ -154,8 +156,15 @@ def get(scenario: str, target: str, loss: str, **kw) -> Target:
     return factory(loss=loss, **kw)
 
 
+#: scenarios whose targets learn from real logs (``--data``, ``--robots``, ``--window``)
+REAL_LOG_SCENARIOS = ("mrclam",)
+
+
 def _load_optional():
-    """Register targets of systems that may be absent from an installation (UWB, paper 003)."""
+    """Register targets of systems that may be absent from an installation (UWB, paper 003),
+    and the real-log targets (:mod:`jaxslam.tuning.real_logs`)."""
+    if ("mrclam", "noise") not in _FACTORIES:
+        from . import real_logs  # noqa: F401  (registers mrclam --target noise)
     if ("uwb-circle", "noise") in _FACTORIES:
         return
     try:

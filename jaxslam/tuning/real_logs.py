@@ -1,0 +1,230 @@
+"""Noise learned from real logs: ``jaxslam tune mrclam`` (and the planar logs' machinery).
+
+The loss is the innovation negative log-likelihood of whole logs — every sighting's
+prediction error against the filter's own predicted covariance, through the same jitted scan
+``jaxslam dataset`` runs — differentiated end to end (``jax.checkpoint`` per block of events,
+so memory stays bounded).  No ground truth enters the loss: it is used only to report
+held-out errors.
+
+Parametrisation (physically structured; log-parametrised, so every covariance is PD by
+construction): θ = {"log_sigma": log [σ_v, σ_ω, σ_r, σ_β], "log_floor": log [q_xy, q_φ],
+"range_k2": [k2]} with
+
+* M_c = diag(σ_v², σ_ω²): densities of the odometry's speed and turn-rate noise
+  [(m/s)²·s, (rad/s)²·s];
+* Q_floor = diag(q_xy, q_xy, q_φ): the pose-noise floor density [m²/s, rad²/s] (wheel slip);
+* R = diag(σ_r², σ_β²) [m², rad²] of the camera's range and bearing;
+* the camera range model r_meas = r (1 + k2 β²) (``PlanarParams.range_model`` with k0 = 1):
+  the range error that grows towards the image edges.  The overall range scale k0 is *not*
+  learned: it is confounded with the odometry's scale (docs/datasets.md, "Left open"), and
+  when it was free (the first fit of this target) it went to k0 = 1.31, shrinking the map by
+  a quarter — held-out NLL better, held-out ATE 0.21 → 0.67 m on robot 1.  That measurement
+  on a held-out robot's ground truth is why k0 is fixed; it is disclosed in docs/datasets.md.
+
+The filter trained is the one shipped: Student-t update (ν = 5), NIS monitor with
+covariance inflation (:mod:`jaxslam.filters.consistency`); the likelihood is the sum of the
+rows' Student-t terms.
+
+Protocol (docs/datasets.md): leave one robot out — fit on four robots of MRCLAM dataset 6,
+evaluate on the fifth (held-out NLL and ATE) — and the shipped defaults are the fit on all
+five.  Nothing is fitted per robot or per log.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..errors import InputError
+
+__all__ = ["PlanarLogs", "mrclam_logs", "planar_theta0", "planar_physical", "planar_nll",
+           "mrclam_noise", "mrclam_train_config"]
+
+
+class PlanarLogs(NamedTuple):
+    """Planar event logs padded to one length T (leading axis = logs).
+
+    dt (N, T), u (N, T, 2), z (N, T, K, 2), ids (N, T, K), mask (N, T, K), pose0 (N, 3).
+    Padding events have dt = 0, no input and no rows: they change nothing.
+    """
+
+    dt: np.ndarray
+    u: np.ndarray
+    z: np.ndarray
+    ids: np.ndarray
+    mask: np.ndarray
+    pose0: np.ndarray
+
+
+def _stack(logs, poses, dtype) -> PlanarLogs:
+    T = max(lg.dt.shape[0] for lg in logs)
+    K = logs[0].z.shape[1]
+
+    def pad(a, fill):
+        n = T - a.shape[0]
+        return np.concatenate([a, np.full((n,) + a.shape[1:], fill, a.dtype)]) if n else a
+
+    return PlanarLogs(
+        dt=np.stack([pad(np.asarray(lg.dt), 0.0) for lg in logs]).astype(dtype),
+        u=np.stack([pad(np.asarray(lg.u), 0.0) for lg in logs]).astype(dtype),
+        z=np.stack([pad(np.asarray(lg.z), np.nan) for lg in logs]).astype(dtype),
+        ids=np.stack([pad(np.asarray(lg.ids), -1) for lg in logs]).astype(np.int32),
+        mask=np.stack([pad(np.asarray(lg.mask), False) for lg in logs]),
+        pose0=np.stack([np.asarray(p, np.float64) for p in poses]).astype(dtype),
+    ) if all(lg.z.shape[1] == K for lg in logs) else None
+
+
+def mrclam_logs(data_dir, robots, dtype=np.float64, t_max: float | None = None):
+    """The raw MRCLAM logs of ``robots`` (as ``jaxslam dataset mrclam`` builds them), padded.
+
+    Returns ``(PlanarLogs, [(log, data), ...])``.  The start pose is the ground truth at the
+    first event (the dataset runner's start, not a fit).  ``t_max``: keep the first seconds.
+    """
+    from .. import metrics
+    from ..data import merge_events
+    from ..data.mrclam import load_mrclam
+
+    logs, poses, raw = [], [], []
+    for r in robots:
+        d = load_mrclam(data_dir, int(r))
+        span = float(d.gt_t[-1] - d.gt_t[0])
+        if t_max is not None and t_max > span:
+            raise InputError(f"--window: robot {r}'s log covers {span:.1f} s of ground-truth time, shorter "
+                             f"than the {t_max:g} s fit window; give --window {int(span)} or less")
+        t_end = float(d.gt_t[-1]) if t_max is None else float(d.gt_t[0]) + t_max
+        log = merge_events(d.odom_t, d.odom, d.meas_t, d.meas, d.meas_id, K=8, input_mode="rate",
+                           t_end=t_end)
+        pose0 = metrics.interp_poses(np.clip(log.t[:1], d.gt_t[0], d.gt_t[-1]), d.gt_t, d.gt)[0]
+        logs.append(log)
+        poses.append(pose0)
+        raw.append((log, d))
+    return _stack(logs, poses, dtype), raw
+
+
+def planar_theta0(params) -> dict:
+    """θ of :func:`planar_physical` at ``params`` (a ``PlanarParams`` with diagonal M_c, R, floor)."""
+    M = np.diag(np.asarray(params.M_c, np.float64))
+    R = np.diag(np.asarray(params.R, np.float64))
+    F = np.diag(np.asarray(params.Q_floor, np.float64))
+    rm = np.asarray((1.0, 0.0) if params.range_model is None else params.range_model, np.float64)
+    return {"log_sigma": jnp.asarray(0.5 * np.log(np.concatenate([M, R]))),
+            "log_floor": jnp.asarray(np.log([F[0], F[2]])),
+            "range_k2": jnp.asarray([rm[1]])}
+
+
+def planar_physical(theta, base):
+    """``PlanarParams`` from θ (module docstring); P0 and the rest from ``base``."""
+    dtype = jnp.asarray(base.R).dtype
+    s = jnp.exp(jnp.asarray(theta["log_sigma"], dtype))
+    f = jnp.exp(jnp.asarray(theta["log_floor"], dtype))
+    k2 = jnp.asarray(theta["range_k2"], dtype)[0]
+    return base._replace(M_c=jnp.diag(s[:2] ** 2), R=jnp.diag(s[2:] ** 2),
+                         Q_floor=jnp.diag(jnp.stack([f[0], f[0], f[1]])),
+                         range_model=jnp.stack([jnp.ones((), dtype), k2]))
+
+
+def planar_nll(params, config, item):
+    """Innovation NLL per scalar measurement of one padded log (nats; no ground truth)."""
+    from ..systems import planar_ekf_slam as pe
+
+    res = pe.run_arrays(item.dt, item.u, item.z, item.ids, item.mask, item.pose0, params, config)
+    return jnp.sum(res.nll) / jnp.maximum(jnp.sum(res.nll_dof), 1.0)
+
+
+def mrclam_train_config():
+    """The filter ``jaxslam dataset mrclam`` runs, with checkpoint blocks of 128 events for the
+    gradient (the blocks change the numbers only by rounding; value and gradient of robot 1's first 150 s,
+    8801 events: 2.0 s unblocked, 0.69 s with blocks of 1024, 0.38 s with 128, 0.46 s with 32)."""
+    from ..systems import planar_ekf_slam as pe
+
+    return pe.mrclam_config()._replace(block=128)
+
+
+def mrclam_noise(loss: str = "nll", data=None, robots=(1, 2, 3, 4), test_robots=(5,), dtype=jnp.float64,
+                 t_max: float | None = None, **_ignored):
+    """Target ``jaxslam tune mrclam``: the noise of the planar EKF-SLAM from MRCLAM logs.
+
+    ``robots``: training robots; ``test_robots``: held out (their NLL is the test loss, their
+    ATE the evaluation).  ``data``: the folder with ``mrclam6/`` (or the dataset folder).
+    """
+    from ..data import runners
+    from ..systems import planar_ekf_slam as pe
+    from . import targets as T
+
+    if loss != "nll":
+        raise InputError(f"--loss: the real-log targets learn by innovation likelihood only (nll); got {loss!r}")
+    if data is None:
+        raise InputError("--data: the real-log targets need the dataset folder (e.g. --data ~/data)")
+    robots, test_robots = tuple(int(r) for r in robots), tuple(int(r) for r in test_robots)
+    for r in robots + test_robots:
+        if not 1 <= r <= 5:
+            raise InputError(f"--robots/--test-robots: MRCLAM robots are 1..5, got {r}")
+    if set(robots) & set(test_robots):
+        raise InputError(f"--test-robots: {sorted(set(robots) & set(test_robots))} also in --robots; "
+                         "a held-out robot must not be trained on")
+    train, _ = mrclam_logs(data, robots, dtype, t_max)
+    test, test_raw = mrclam_logs(data, test_robots, dtype) if test_robots else (None, [])
+    # without a held-out robot the table is measured on the training robots' whole logs
+    eval_robots = test_robots or robots
+    ev_logs, ev_raw = (test, test_raw) if test_robots else mrclam_logs(data, robots, dtype)
+    cfg = mrclam_train_config()
+    base = pe.mrclam_params(1, dtype=dtype, preset="hand")  # the start: the hand-set preset
+    theta0 = planar_theta0(base)
+
+    def physical(th):
+        return planar_physical(th, base)
+
+    def loss_fn(th, item):
+        return planar_nll(physical(th), cfg, item)
+
+    def evaluate(labelled):
+        out = {}
+        for label, prm in labelled.items():
+            m = {"ate_m": [], "nll": [], "outlier_fraction": [], "inflations": []}
+            for i, (log, d) in enumerate(ev_raw):
+                res = pe.run(log, jnp.asarray(ev_logs.pose0[i]), pe.mrclam_config(), prm)
+                mm, _ = runners.evaluate_planar(log.t, np.asarray(res.pose, np.float64), d.gt_t, d.gt)
+                m["ate_m"].append(mm["ate_m"])
+                m["nll"].append(float(np.sum(res.nll) / max(np.sum(res.nll_dof), 1)))
+                m["outlier_fraction"].append(float(np.sum(res.n_outliers)) / max(float(np.sum(res.n_monitored)), 1.0))
+                m["inflations"].append(float(res.inflations))
+            out[label] = {"metrics": {k: np.asarray(v, np.float64) for k, v in m.items()}, "consistency": None}
+        return out
+
+    def describe(th):
+        p = physical(th)
+        return {"sigma_v": [float(jnp.sqrt(p.M_c[0, 0]))], "sigma_w": [float(jnp.sqrt(p.M_c[1, 1]))],
+                "sigma_r": [float(jnp.sqrt(p.R[0, 0]))], "sigma_b": [float(jnp.sqrt(p.R[1, 1]))],
+                "floor_xy": [float(p.Q_floor[0, 0])], "floor_phi": [float(p.Q_floor[2, 2])],
+                "range_model": [float(p.range_model[0]), float(p.range_model[1])]}
+
+    def to_params(p):
+        return {"dataset": "mrclam", "noise": pe.params_to_dict(p)}
+
+    batch = jax.tree.map(jnp.asarray, train)
+    return T.Target(
+        scenario="mrclam", target="noise", loss="nll", specs={}, theta0=theta0, loss_fn=loss_fn,
+        train=batch, test=None if test is None else jax.tree.map(jnp.asarray, test),
+        physical=physical, evaluate=evaluate, references={}, to_params=to_params, describe=describe,
+        config={"dataset": "mrclam", "robots": list(robots), "test_robots": list(test_robots),
+                "evaluated_on": (f"held-out robots {list(test_robots)} (whole logs)" if test_robots else
+                                 f"the training robots {list(robots)} (whole logs; nothing held out)"),
+                "t_max_s": t_max, "filter": pe.config_to_dict(cfg),
+                "parametrisation": "log sigma_v, sigma_w, sigma_r, sigma_b; log floor_xy, floor_phi; "
+                                   "camera range model k2 (k0 = 1)",
+                "loss": "Student-t innovation NLL per scalar measurement over the training logs"},
+        eval_command=f"jaxslam dataset mrclam --data DIR --robot {eval_robots[0]} --params FILE",
+        sequential=True,
+    )
+
+
+def _register():
+    from . import targets as T
+
+    T.register_target("mrclam", "noise", mrclam_noise, ("nll",))
+
+
+_register()
