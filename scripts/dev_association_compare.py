@@ -1,7 +1,7 @@
-"""Development: NN vs NN + pairwise joint check vs JCBB on MRCLAM with ids hidden (docs/datasets.md).
+"""Development: NN vs NN + pairwise joint check vs JCBB on MRCLAM with ids hidden and on Victoria Park (docs/datasets.md).
 
     python scripts/dev_association_compare.py mrclam fitted|hand [DATA_DIR]
-    python scripts/dev_association_compare.py vp
+    python scripts/dev_association_compare.py vp - [DATA_DIR]
 
 Prints ATE (at the filter's events), landmarks mapped, rejected rows and run time per robot and
 association; ground truth is used only for the printed ATE.
