@@ -132,3 +132,24 @@ def test_params_do_not_apply_to_other_datasets_or_fastslam(tmp_path, capsys):
     assert rc == 2 and "--params" in err
     rc, _, err = _cli(["dataset", "mrclam", "--data", str(DATA), "--filter", "fastslam", "--params", str(f)], capsys)
     assert rc == 2 and "fastslam" in err
+
+
+def test_a_diverged_run_warns_in_one_line_and_says_so_in_the_json(tmp_path, capsys):
+    # R far below the camera's real noise: most sightings of mapped landmarks become outliers
+    f = tmp_path / "tiny_r.json"
+    f.write_text(json.dumps({"dataset": "mrclam", "noise": {"R": [1e-8, 1e-8]}}))
+    js = tmp_path / "ds.json"
+    rc, out, err = _cli(["dataset", "mrclam", "--data", str(DATA), "--robot", "1", "--params", str(f),
+                         "--json", str(js), "--quiet"], capsys)
+    assert rc == 0
+    lines = [ln for ln in err.strip().splitlines() if "DIVERGED" in ln]
+    assert len(lines) == 1 and "warning" in lines[0]
+    doc = json.loads(js.read_text())
+    assert "diverged" in doc["counts"]["status_flags"]
+    assert doc["metrics"]["outlier_fraction_mapped"] > 0.10
+    assert any(n.startswith("DIVERGED") for n in doc["notes"])
+    # and the default noise on the same excerpt is not flagged
+    rc, out, err = _cli(["dataset", "mrclam", "--data", str(DATA), "--robot", "1", "--json", str(js),
+                         "--quiet"], capsys)
+    assert rc == 0 and "DIVERGED" not in err
+    assert "diverged" not in json.loads(js.read_text())["counts"]["status_flags"]
