@@ -261,7 +261,7 @@ def _observe_batch(model, s, L, params, valid=None):
 
 
 def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
-           gate: Optional[float] = None, robust=None):
+           gate: Optional[float] = None, robust=None, row_stats: bool = False):
     """Joint EKF update with K measurements of mapped landmarks.
 
     Args:
@@ -278,8 +278,12 @@ def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
         but is never cut off (a filter that has become over-confident still hears its
         measurements, unlike with a hard gate).  ν → ∞ is the Gaussian update.
 
+      row_stats: also report each row's marginal NIS and log det (below) when neither a
+        gate nor ``robust`` needs them (static; they cost a small Cholesky per row).
+
     Returns (state, UpdateInfo).  ``UpdateInfo.d2`` and ``row_logdet`` hold each row's
-    marginal NIS and log det S_i before any weighting (the terms of a per-row likelihood).
+    marginal NIS and log det S_i before any weighting (the terms of a per-row likelihood);
+    zeros unless ``gate``, ``robust`` or ``row_stats`` asked for them.
     Cost O(n²·K·d_z) through gathered columns.
     """
     nr, dl, cap = _sizes(state, model)
@@ -320,10 +324,13 @@ def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
 
     # Individual gating on the marginal innovation covariance of each measurement.
     S_marg = jnp.einsum("kzkw->kzw", HPHt) + R
-    S_safe = jnp.where(valid[:, None, None], S_marg, jnp.eye(dz, dtype=dtype))
-    d2_each, logdet_each = jax.vmap(_nis_logdet_small)(jnp.where(valid[:, None], res, 0.0), S_safe)
-    d2_each = jnp.where(valid, d2_each, 0.0)
-    logdet_each = jnp.where(valid, logdet_each, 0.0)
+    if gate is not None or robust is not None or row_stats:
+        S_safe = jnp.where(valid[:, None, None], S_marg, jnp.eye(dz, dtype=dtype))
+        d2_each, logdet_each = jax.vmap(_nis_logdet_small)(jnp.where(valid[:, None], res, 0.0), S_safe)
+        d2_each = jnp.where(valid, d2_each, 0.0)
+        logdet_each = jnp.where(valid, logdet_each, 0.0)
+    else:
+        d2_each = logdet_each = jnp.zeros(valid.shape, dtype)
     if gate is not None:
         gated = valid & (d2_each > gate)
         valid = valid & ~gated

@@ -553,7 +553,8 @@ def _measure(st: es.SlamState, z, ids, valid, model, config: PlanarConfig, R, nu
     robust = nu if config.robust else None
     if config.association == "known":
         slots, mapped = es.associate_known(st, ids, valid)
-        st, info = es.update(st, model, zs, slots, mapped, R, None, gate=config.update_gate, robust=robust)
+        st, info = es.update(st, model, zs, slots, mapped, R, None, gate=config.update_gate, robust=robust,
+                               row_stats=True)
         cand = valid & ~mapped
         new = _first_of_id(ids, cand)
         rejected = jnp.sum(cand & ~new).astype(jnp.int32)
@@ -572,7 +573,8 @@ def _measure(st: es.SlamState, z, ids, valid, model, config: PlanarConfig, R, nu
             if config.joint_gate is not None:
                 matched, _, _ = es.joint_compatibility(st, model, zs, slots, matched, R, None,
                                                        _chi2_table(config.joint_gate, K, 2))
-        st, info = es.update(st, model, zs, slots, matched, R, None, gate=config.update_gate, robust=robust)
+        st, info = es.update(st, model, zs, slots, matched, R, None, gate=config.update_gate, robust=robust,
+                               row_stats=True)
         # ambiguous (between the gates) or losing a landmark to a closer measurement
         rejected = jnp.sum(valid & ~matched & ~new).astype(jnp.int32)
         reg_ids = jnp.full((K,), -1, jnp.int32)
