@@ -11,7 +11,6 @@ from jaxslam import runtime
 runtime.configure_process()
 import jax, jax.numpy as jnp, numpy as np
 jax.config.update("jax_enable_x64", True)
-from jaxslam import metrics
 from jaxslam.data import merge_events
 from jaxslam.data.mrclam import load_mrclam
 from jaxslam.data.runners import evaluate_planar
@@ -24,8 +23,7 @@ def timed(f):
 if which == "mrclam":
     for r in range(1, 6):
         d = load_mrclam(DATA, r)
-        log = merge_events(d.odom_t, d.odom, d.meas_t, d.meas, d.meas_id, K=8, input_mode="rate", t_end=float(d.gt_t[-1]))
-        pose0 = metrics.interp_poses(np.clip(log.t[:1], d.gt_t[0], d.gt_t[-1]), d.gt_t, d.gt)[0]
+        log, pose0 = pe.mrclam_raw_log(d, K=8)
         prm = pe.mrclam_params(r, preset=sys.argv[2])
         for name, kw in (("nn", {}), ("nn+joint", {"joint_gate": 0.99}), ("jcbb", {"association": "jcbb"})):
             cfg = pe.mrclam_config(association="nn")._replace(**kw)

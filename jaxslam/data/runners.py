@@ -552,15 +552,8 @@ def run_mrclam(data_dir, robot=1, filter="ekf", ids="known", anchors=None, parti
     t0 = time.perf_counter()
     d = load_mrclam(data_dir, robot)
     # Run (and evaluate) where ground truth exists: robot 1's GT stops at +771.9 s.
-    if calibrated:
-        log, _ = pe.mrclam_log(d, K=8)
-    else:
-        log = merge_events(d.odom_t, d.odom, d.meas_t, d.meas, d.meas_id, K=8, input_mode="rate",
-                           t_end=float(d.gt_t[-1]))
+    log, pose0 = pe.mrclam_log(d, K=8) if calibrated else pe.mrclam_raw_log(d, K=8)
     load_s = time.perf_counter() - t0
-    # the robot stands still before its first odometry row: start from GT at the first event,
-    # clamped into the ground-truth span (never extrapolated)
-    pose0 = metrics.interp_poses(np.clip(log.t[:1], d.gt_t[0], d.gt_t[-1]), d.gt_t, d.gt)[0]
     assoc = "known" if ids == "known" else "nn"
     prm = pe.mrclam_params(robot, dtype=dtype, corrected=calibrated)
     if params is not None:
@@ -569,7 +562,7 @@ def run_mrclam(data_dir, robot=1, filter="ekf", ids="known", anchors=None, parti
                              "its own noise preset)")
         prm = pe.params_from_dict(dataset_params(params, "mrclam"), prm, dtype=dtype, where="--params: noise")
     pose, lm, counts, comp_s, run_s, status = _planar_run(
-        log, pose0, filter, pe.mrclam_config(association=assoc, corrected=calibrated), prm,
+        log, pose0, filter, pe.mrclam_config(association=assoc), prm,
         lambda n: _mrclam_fastslam(robot, n, assoc), particles, seed, dtype)
     dr = np.asarray(dead_reckoning(planar.unicycle, jnp.asarray(pose0), log.u, log.dt))
     m, ev = evaluate_planar(log.t, pose, d.gt_t, d.gt, dr_pose=dr, lm=lm["xy"],

@@ -36,8 +36,8 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from ..linalg import symmetrize, value_and_jacfwd
-from .ekf_slam import SlamModel, SlamState, slot_indices
+from ..linalg import symmetrize
+from .ekf_slam import SlamModel, SlamState, marginal_d2, slot_indices
 
 __all__ = ["JCBBResult", "jcbb", "individual_compatibility"]
 
@@ -59,46 +59,10 @@ class JCBBResult(NamedTuple):
 
 def individual_compatibility(state: SlamState, model: SlamModel, z, mask, R, params=None):
     """Marginal d² (K, cap) of every measurement against every mapped landmark (inf elsewhere),
-    and the per-pair predictions (ẑ (cap, d_z), H_s (cap, d_z, n_r), H_l (cap, d_z, d_l))."""
-    nr, dl = model.robot_dim, model.lm_dim
-    dz = model.meas_dim
-    cap = state.active.shape[0]
-    dtype = state.x.dtype
-    K = z.shape[0]
-    R = jnp.broadcast_to(jnp.asarray(R, dtype), (K, dz, dz))
-    s = state.x[:nr]
-    L = state.x[nr:].reshape(cap, dl)
-    act = state.active
-    S_in = jnp.where(act[:, None], s[None, :], jax.lax.stop_gradient(s)[None, :])
-    L_in = jnp.where(act[:, None], L, jax.lax.stop_gradient(L))
-
-    def one(s_k, l):
-        zh, (Hs, Hl) = value_and_jacfwd(model.observe, argnums=(0, 1))(s_k, l, params)
-        return zh, Hs, Hl
-
-    zh, Hs, Hl = jax.vmap(one)(S_in, L_in)
-    zh = jnp.where(act[:, None], zh, 0.0)
-    Hs = jnp.where(act[:, None, None], Hs, 0.0)
-    Hl = jnp.where(act[:, None, None], Hl, 0.0)
-    idx = slot_indices(jnp.arange(cap), model)
-    Pss = state.P[:nr, :nr]
-    Psl = state.P[:nr, idx]  # (nr, cap, dl)
-    Pll = state.P[idx[:, :, None], idx[:, None, :]]  # (cap, dl, dl)
-    Sx = (jnp.einsum("jzi,ik,jwk->jzw", Hs, Pss, Hs)
-          + jnp.einsum("jzi,ijk,jwk->jzw", Hs, Psl, Hl)
-          + jnp.einsum("jzk,ijk,jwi->jzw", Hl, Psl, Hs)
-          + jnp.einsum("jzk,jkl,jwl->jzw", Hl, Pll, Hl))
-    Sx = jnp.where(act[:, None, None], Sx, jnp.eye(dz, dtype=dtype))
-    res = model.residual if model.residual is not None else (lambda a, b: a - b)
-    finite = jnp.all(jnp.isfinite(z), axis=-1)
-    zs = jnp.where(finite[:, None], z, 0.0).astype(dtype)
-    nu = jax.vmap(lambda zk: jax.vmap(lambda zj: res(zk, zj))(zh))(zs)  # (K, cap, dz)
-    S = Sx[None] + R[:, None]
-    Lc = jnp.linalg.cholesky(symmetrize(S))
-    w = jax.scipy.linalg.solve_triangular(Lc, nu[..., None], lower=True)[..., 0]
-    d2 = jnp.sum(w * w, axis=-1)
-    ok = act[None, :] & (mask & finite)[:, None] & jnp.isfinite(d2)
-    return jnp.where(ok, d2, jnp.inf), (zh, Hs, Hl, nu)
+    and the per-pair predictions (ẑ (cap, d_z), H_s (cap, d_z, n_r), H_l (cap, d_z, d_l), ν):
+    the engine's :func:`~jaxslam.filters.ekf_slam.marginal_d2`, with non-finite d² excluded."""
+    d2, pred = marginal_d2(state, model, z, mask, R, params)
+    return jnp.where(jnp.isfinite(d2), d2, jnp.inf), pred
 
 
 def jcbb(state: SlamState, model: SlamModel, z, mask, R, params=None, *, gate, thresholds,
@@ -155,10 +119,6 @@ def jcbb(state: SlamState, model: SlamModel, z, mask, R, params=None, *, gate, t
         n = jnp.sum(w * w)
         return jnp.where(jnp.all(jnp.isfinite(Lc)), n, big)
 
-    def compatible(assign, m):
-        n = joint_nis(assign)
-        return (m == 0) | (n <= thr[jnp.maximum(m - 1, 0)]), n
-
     # Depth-first search with an explicit stack: depth d, assignment (K,), choice pointer (K,)
     # (the next branch to try at each depth: candidates 0..C-1, then C = unpaired, then done).
     class S(NamedTuple):
@@ -170,10 +130,12 @@ def jcbb(state: SlamState, model: SlamModel, z, mask, R, params=None, *, gate, t
         best_m: jax.Array
         best_nis: jax.Array
         nodes: jax.Array
+        nis: jax.Array  # (K + 1,) joint NIS of the pairings above each depth (nis[0] = 0)
 
     unassigned = jnp.full((K,), C, jnp.int32)
     s0 = S(d=jnp.int32(0), assign=unassigned, ptr=jnp.zeros((K,), jnp.int32), m=jnp.int32(0),
-           best=unassigned, best_m=jnp.int32(0), best_nis=jnp.asarray(0.0, dtype), nodes=jnp.int32(0))
+           best=unassigned, best_m=jnp.int32(0), best_nis=jnp.asarray(0.0, dtype), nodes=jnp.int32(0),
+           nis=jnp.zeros((K + 1,), dtype))
 
     def used_slot(assign, d, j):
         a = jnp.clip(assign, 0, C - 1)
@@ -185,7 +147,7 @@ def jcbb(state: SlamState, model: SlamModel, z, mask, R, params=None, *, gate, t
         at_leaf = d >= K
 
         def leaf(s):
-            n = joint_nis(s.assign)
+            n = s.nis[K]  # computed on the way down
             better = (s.m > s.best_m) | ((s.m == s.best_m) & (n < s.best_nis))
             return s._replace(best=jnp.where(better, s.assign, s.best),
                               best_m=jnp.where(better, s.m, s.best_m),
@@ -209,13 +171,16 @@ def jcbb(state: SlamState, model: SlamModel, z, mask, R, params=None, *, gate, t
                 assign = s.assign.at[dd].set(jnp.where(pair, p, C))
                 m_new = m_prev + pair.astype(jnp.int32)
                 remaining = (K - 1 - dd).astype(jnp.int32)
-                comp, n = compatible(assign, m_new)
+                # leaving measurement dd unpaired keeps the pairings above: their NIS is known
+                n = jax.lax.cond(pair, lambda: joint_nis(assign), lambda: s.nis[dd])
+                comp = (m_new == 0) | (n <= thr[jnp.maximum(m_new - 1, 0)])
                 # bound: can this branch still beat the best?
                 reach = m_new + remaining
                 hope = (reach > s.best_m) | ((reach == s.best_m) & (n < s.best_nis))
                 go = jnp.where(pair, ok_pair & comp & hope, hope)
                 s = s._replace(ptr=s.ptr.at[dd].set(p + 1))
-                return jax.lax.cond(go, lambda s: s._replace(assign=assign, m=m_new, d=d + 1),
+                return jax.lax.cond(go, lambda s: s._replace(assign=assign, m=m_new, d=d + 1,
+                                                             nis=s.nis.at[dd + 1].set(n)),
                                     lambda s: s._replace(assign=s.assign.at[dd].set(C), m=m_prev), s)
 
             return jax.lax.cond(done, backtrack, try_branch, s)
@@ -227,7 +192,7 @@ def jcbb(state: SlamState, model: SlamModel, z, mask, R, params=None, *, gate, t
         return (s.d >= 0) & (s.nodes < budget)
 
     # The empty hypothesis is always jointly compatible: it is the starting "best".
-    s = jax.lax.while_loop(cond, step, s0._replace(best_nis=jnp.asarray(0.0, dtype)))
+    s = jax.lax.while_loop(cond, step, s0)
     exhausted = s.d >= 0
     best = s.best
     paired = best < C

@@ -18,8 +18,8 @@ P_rl ← √f P_rl) — and restarts the average at 1.  The next sightings then 
 instead of being rejected.  Each inflation is counted.
 
 All numbers (α, threshold, max_factor) are traced; the monitor never names a model.
-``DIVERGED`` (:mod:`jaxslam.errors`) is raised by the system from the counts: see
-:func:`diverged`.
+``DIVERGED`` (:mod:`jaxslam.errors`) is raised by the system from the counts of
+:func:`outliers` over the run: see :func:`status_bits`.
 """
 
 from __future__ import annotations
@@ -32,7 +32,8 @@ import jax.numpy as jnp
 from .. import errors
 from .ekf_slam import SlamModel, SlamState
 
-__all__ = ["MonitorParams", "Monitor", "init", "observe", "inflate_robot", "diverged", "DIVERGED_FRACTION"]
+__all__ = ["MonitorParams", "Monitor", "init", "observe", "inflate_robot", "outliers", "status_bits",
+           "DIVERGED_FRACTION"]
 
 #: a run whose outlier fraction among known-landmark rows exceeds this is DIVERGED
 DIVERGED_FRACTION = 0.10
@@ -51,20 +52,14 @@ class MonitorParams(NamedTuple):
 
 
 class Monitor(NamedTuple):
-    """mean: () the running mean NIS ratio m_k; inflations: () int32 count; rows: () int32 rows
-    seen; outliers: () int32 rows with d² above ``outlier_gate``; last_factor: () last f."""
+    """mean: () the running mean NIS ratio m_k; inflations: () int32 count."""
 
     mean: jax.Array
     inflations: jax.Array
-    rows: jax.Array
-    outliers: jax.Array
-    last_factor: jax.Array
 
 
 def init(dtype) -> Monitor:
-    z = jnp.zeros((), jnp.int32)
-    return Monitor(mean=jnp.ones((), dtype), inflations=z, rows=z, outliers=z,
-                   last_factor=jnp.ones((), dtype))
+    return Monitor(mean=jnp.ones((), dtype), inflations=jnp.zeros((), jnp.int32))
 
 
 def inflate_robot(state: SlamState, model: SlamModel, factor) -> SlamState:
@@ -79,13 +74,11 @@ def inflate_robot(state: SlamState, model: SlamModel, factor) -> SlamState:
     return state._replace(P=P)
 
 
-def observe(mon: Monitor, state: SlamState, model: SlamModel, d2, valid, params: MonitorParams,
-            enabled=True):
+def observe(mon: Monitor, state: SlamState, model: SlamModel, d2, valid, params: MonitorParams):
     """Fold one event's rows into the monitor and inflate the robot covariance if it trips.
 
     d2: (K,) marginal NIS of the rows offered to the update; valid: (K,) bool rows that count
-    (known landmarks, mapped).  Returns (monitor, state, tripped ()).  With ``enabled`` False
-    (static or traced) the counts are kept but nothing is inflated.
+    (known landmarks, mapped).  Returns (monitor, state).
     """
     dtype = mon.mean.dtype
     dz = model.meas_dim
@@ -93,26 +86,22 @@ def observe(mon: Monitor, state: SlamState, model: SlamModel, d2, valid, params:
     r = jnp.sum(jnp.where(valid, d2, 0.0)) / (dz * jnp.maximum(n, 1))
     a = jnp.asarray(params.alpha, dtype)
     mean = jnp.where(n > 0, (1 - a) * mon.mean + a * r, mon.mean)
-    trip = (n > 0) & (mean > jnp.asarray(params.threshold, dtype)) & jnp.asarray(enabled)
+    trip = (n > 0) & (mean > jnp.asarray(params.threshold, dtype))
     f = jnp.clip(mean, 1.0, jnp.asarray(params.max_factor, dtype))
     state = jax.lax.cond(trip, lambda st: inflate_robot(st, model, f), lambda st: st, state)
-    out = jnp.sum(valid & (d2 > jnp.asarray(params.outlier_gate, dtype))).astype(jnp.int32)
-    mon = Monitor(mean=jnp.where(trip, 1.0, mean).astype(dtype),
-                  inflations=mon.inflations + trip.astype(jnp.int32),
-                  rows=mon.rows + n.astype(jnp.int32), outliers=mon.outliers + out,
-                  last_factor=jnp.where(trip, f, mon.last_factor).astype(dtype))
-    return mon, state, trip
+    return Monitor(mean=jnp.where(trip, 1.0, mean).astype(dtype),
+                   inflations=mon.inflations + trip.astype(jnp.int32)), state
 
 
-def diverged(mon: Monitor, fraction=DIVERGED_FRACTION):
-    """() bool: more than ``fraction`` of the monitored rows were outliers (the run stopped
-    being consistent with its own noise model, whatever the monitor did about it)."""
-    return mon.outliers > jnp.asarray(fraction) * jnp.maximum(mon.rows, 1)
+def outliers(d2, valid, params: MonitorParams):
+    """() int32: rows that count with d² above ``params.outlier_gate`` (the gated fraction's
+    numerator, counted whether or not the monitor acts)."""
+    return jnp.sum(valid & (d2 > jnp.asarray(params.outlier_gate, d2.dtype))).astype(jnp.int32)
 
 
-def status_bits(mon: Monitor, fraction=DIVERGED_FRACTION):
-    """``errors.DIVERGED`` where :func:`diverged`, else 0 (int32)."""
-    return jnp.where(diverged(mon, fraction), jnp.int32(errors.DIVERGED), jnp.int32(0))
-
-
-__all__ += ["status_bits"]
+def status_bits(n_outliers, n_rows, fraction=DIVERGED_FRACTION):
+    """``errors.DIVERGED`` (int32) where more than ``fraction`` of the ``n_rows`` monitored rows
+    were outliers (the run stopped being consistent with its own noise model, whatever the
+    monitor did about it), else 0."""
+    div = n_outliers > jnp.asarray(fraction) * jnp.maximum(n_rows, 1)
+    return jnp.where(div, jnp.int32(errors.DIVERGED), jnp.int32(0))

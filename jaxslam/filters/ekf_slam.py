@@ -61,6 +61,7 @@ __all__ = [
     "add_landmark",
     "associate_known",
     "associate_nn",
+    "marginal_d2",
     "joint_compatibility",
     "robot",
     "landmarks",
@@ -600,19 +601,15 @@ def associate_known(state: SlamState, lm_ids, mask):
     return slots, mapped
 
 
-def associate_nn(state: SlamState, model: SlamModel, z, mask, R, params=None,
-                 gate: float = 11.34, new_threshold: float = 30.0):
-    """Nearest-neighbour association by Mahalanobis distance (ids hidden).
+def marginal_d2(state: SlamState, model: SlamModel, z, mask, R, params=None):
+    """Marginal d² (K, cap) of every measurement against every landmark slot, the table both
+    nearest-neighbour and JCBB association read.
 
-    For each measurement the active landmark with the smallest squared
-    Mahalanobis distance d² (marginal innovation covariance
-    H_s P_ss H_sᵀ + H_s P_sl H_lᵀ + H_l P_ls H_sᵀ + H_l P_ll H_lᵀ + R) is chosen.
-    d² < ``gate`` → matched; d² > ``new_threshold`` (or no landmark mapped)
-    → a new landmark; in between → ambiguous, discarded.  When two
-    measurements choose the same landmark only the closer one keeps it (the
-    other is discarded), so a joint update never uses a landmark twice.
-
-    Returns (slots (K,), matched (K,) bool, new (K,) bool, d2_min (K,)).
+    S_kj = H_s P_ss H_sᵀ + H_s P_sl H_lᵀ + H_l P_ls H_sᵀ + H_l P_ll H_lᵀ + R_k for slot j;
+    d²_kj = ν_kjᵀ S_kj⁻¹ ν_kj.  Entries of inactive slots, masked or non-finite rows are
+    +inf.  Inactive slots (zero mean) are evaluated on derivative-free inputs and replaced by
+    ẑ = 0, S = I (finite, never NaN, also under grad / jvp).
+    Returns ``(d2, (zh (cap, d_z), Hs (cap, d_z, n_r), Hl (cap, d_z, d_l), nu (K, cap, d_z)))``.
     """
     nr, dl, cap = _sizes(state, model)
     dtype = state.x.dtype
@@ -627,9 +624,6 @@ def associate_nn(state: SlamState, model: SlamModel, z, mask, R, params=None,
     finite = jnp.all(jnp.isfinite(z), axis=-1)
     z_safe = jnp.where(finite[:, None], z, 0.0).astype(dtype)
     res_fn = _residual(model)
-
-    # Inactive slots (zero mean) are evaluated on derivative-free inputs and replaced by
-    # ẑ = 0, S = I (finite; their d² is masked below): never NaN, also under grad / jvp.
     act = state.active
     zh, Hs, Hl = _observe_batch(model, s, L, params, act)  # (cap, dz), (cap, dz, nr), (cap, dz, dl)
 
@@ -639,17 +633,32 @@ def associate_nn(state: SlamState, model: SlamModel, z, mask, R, params=None,
 
     Sx = jax.vmap(per_landmark, in_axes=(0, 0, 1, 0))(Hs, Hl, Psl, Pll)  # (cap, dz, dz)
     Sx = jnp.where(act[:, None, None], Sx, jnp.eye(model.meas_dim, dtype=dtype))
+    nu = jax.vmap(lambda zk: jax.vmap(lambda zh_j: res_fn(zk, zh_j))(zh))(z_safe)  # (K, cap, dz)
+    d2 = jax.vmap(lambda nu_k, Rk: jax.vmap(lambda n, S_j: _nis_small(n, S_j + Rk))(nu_k, Sx))(nu, R)
+    d2 = jnp.where(act[None, :] & (mask & finite)[:, None], d2, jnp.asarray(jnp.inf, dtype))
+    return d2, (zh, Hs, Hl, nu)
 
-    def d2_one(zk, Rk):
-        def against(zh_j, S_j):
-            nu = res_fn(zk, zh_j)
-            return _nis_small(nu, S_j + Rk)
 
-        return jax.vmap(against)(zh, Sx)
+def associate_nn(state: SlamState, model: SlamModel, z, mask, R, params=None,
+                 gate: float = 11.34, new_threshold: float = 30.0):
+    """Nearest-neighbour association by Mahalanobis distance (ids hidden).
 
-    d2 = jax.vmap(d2_one)(z_safe, R)  # (K, cap)
+    For each measurement the active landmark with the smallest squared
+    Mahalanobis distance d² (marginal innovation covariance
+    H_s P_ss H_sᵀ + H_s P_sl H_lᵀ + H_l P_ls H_sᵀ + H_l P_ll H_lᵀ + R) is chosen.
+    d² < ``gate`` → matched; d² > ``new_threshold`` (or no landmark mapped)
+    → a new landmark; in between → ambiguous, discarded.  When two
+    measurements choose the same landmark only the closer one keeps it (the
+    other is discarded), so a joint update never uses a landmark twice.
+
+    Returns (slots (K,), matched (K,) bool, new (K,) bool, d2_min (K,)).
+    """
+    cap = state.active.shape[0]
+    dtype = state.x.dtype
+    K = z.shape[0]
+    finite = jnp.all(jnp.isfinite(z), axis=-1)
+    d2, _ = marginal_d2(state, model, z, mask, R, params)
     big = jnp.asarray(jnp.inf, dtype)
-    d2 = jnp.where(state.active[None, :] & (mask & finite)[:, None], d2, big)
     slots = jnp.argmin(d2, axis=1).astype(jnp.int32)
     d2_min = jnp.min(d2, axis=1)
     cand = mask & finite & (d2_min < gate)

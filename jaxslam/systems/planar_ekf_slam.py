@@ -386,7 +386,7 @@ def mrclam_params(robot: int = 1, sigma_v: float = 0.01, sigma_w: float = 0.02,
 
 
 def mrclam_config(association: str = "known", capacity: Optional[int] = None, K: int = 8,
-                  update_gate: Optional[float] = None, corrected: bool = False, robust: bool = True,
+                  update_gate: Optional[float] = None, robust: bool = True,
                   monitor: bool = False, **kw) -> PlanarConfig:
     """MRCLAM: unicycle odometry, 15 landmarks, at most 7 rows per camera frame.
 
@@ -396,13 +396,25 @@ def mrclam_config(association: str = "known", capacity: Optional[int] = None, K:
     stretch and ended at 2.45 m; the Student-t update with the same (hand-set) noise: 0.188 m.
     The NIS monitor (``monitor=True``) is off: measured, it did not rescue the hard gate and
     made the robust filter worse on robots 3 and 5 (docs/datasets.md).  ``update_gate`` still
-    adds a hard gate if given; ``corrected`` (the ``--calibrated`` log) changes nothing here.
+    adds a hard gate if given.  The ``--calibrated`` log runs the same filter.
     """
     if capacity is None:
         capacity = 16 if association == "known" else 32
-    del corrected  # the corrected log needs no other filter setting (kept for the call sites)
     return PlanarConfig(motion="unicycle", capacity=capacity, K=K, association=association,
                         update_gate=update_gate, robust=robust, monitor=monitor, **kw)
+
+
+def mrclam_raw_log(data, K: int = 8, t_end=None):
+    """Event log and start pose of one MRCLAM robot's raw log (:func:`mrclam_log` without its
+    corrections), as ``jaxslam dataset mrclam`` and ``jaxslam tune mrclam`` run it."""
+    return mrclam_log(data, K=K, t_end=t_end, range_model=None, odometry_delay=0.0)
+
+
+def mrclam_start_pose(data, log: EventLog):
+    """Ground-truth pose at the first event of ``log``, clamped into the ground-truth span."""
+    from .. import metrics
+
+    return metrics.interp_poses(np.clip(log.t[:1], data.gt_t[0], data.gt_t[-1]), data.gt_t, data.gt)[0]
 
 
 def mrclam_log(data, K: int = 8, t_end=None, range_model=MRCLAM_RANGE_MODEL,
@@ -412,8 +424,8 @@ def mrclam_log(data, K: int = 8, t_end=None, range_model=MRCLAM_RANGE_MODEL,
     Corrections (host side; ``None``/0 turns one off): ranges divided by ``k0 + k2 β²``
     (``range_model``, see ``MRCLAM_RANGE_MODEL``); odometry stamps shifted by
     ``odometry_delay`` [s] (``MRCLAM_ODOMETRY_DELAY``).  ``t_end`` defaults to the last
-    ground-truth time (robot 1 stops there).  The start pose is ground truth interpolated at
-    the first event (the robot stands still before its first odometry row).
+    ground-truth time (robot 1 stops there).  The start pose is ground truth at the first
+    event (:func:`mrclam_start_pose`; the robot stands still before its first odometry row).
     Returns ``(EventLog, pose0 (3,) float64)``; pair it with ``mrclam_params(corrected=True)``.
     """
     from ..data.events import merge_events
@@ -425,11 +437,7 @@ def mrclam_log(data, K: int = 8, t_end=None, range_model=MRCLAM_RANGE_MODEL,
     t_end = float(data.gt_t[-1]) if t_end is None else t_end
     log = merge_events(np.asarray(data.odom_t, np.float64) + float(odometry_delay), data.odom,
                        data.meas_t, z, data.meas_id, K=K, input_mode="rate", t_end=t_end)
-    t0 = log.t[0]
-    th = np.unwrap(np.asarray(data.gt[:, 2], np.float64))
-    pose0 = np.array([np.interp(t0, data.gt_t, data.gt[:, 0]), np.interp(t0, data.gt_t, data.gt[:, 1]),
-                      np.interp(t0, data.gt_t, th)])
-    return log, pose0
+    return log, mrclam_start_pose(data, log)
 
 
 def victoria_park_params(sigma_v: float = 0.7, sigma_a: float = 0.06, floor=(0.0, 0.0, 0.0),
@@ -663,8 +671,7 @@ def run_arrays(dt, u, z, ids, mask, pose0, params: PlanarParams, config: PlanarC
     st0 = es.init(x0, P0, config.capacity, 2)
     K = int(config.K)
     ones = jnp.asarray([1.0, 1.0, 0.0], dtype)
-    k0, k2 = (jnp.asarray((1.0, 0.0) if params.range_model is None else params.range_model, dtype)[i]
-              for i in range(2))
+    rm = None if params.range_model is None else jnp.asarray(params.range_model, dtype)
     nu = jnp.asarray(5.0 if params.robust_nu is None else params.robust_nu, dtype)
     mon_p = cons.MonitorParams(*(jnp.asarray(v, dtype) for v in
                                  (MONITOR_DEFAULT if params.monitor is None else params.monitor)))
@@ -681,10 +688,10 @@ def run_arrays(dt, u, z, ids, mask, pose0, params: PlanarParams, config: PlanarC
             # a row without a log id cannot be associated by id: masked and counted
             limited = limited | (valid & (id_k < 0))
             valid = valid & (id_k >= 0)
-        # the camera range model (identity by default): r = r_meas / (k0 + k2 β²)
-        # (invalid rows zeroed first: a NaN row would poison the gradient through 0 × NaN)
-        z_k = jnp.where(valid[:, None], z_k, 0.0)
-        z_k = jnp.stack([z_k[:, 0] / (k0 + k2 * z_k[:, 1] ** 2), z_k[:, 1]], axis=-1)
+        if rm is not None:  # the camera range model: r = r_meas / (k0 + k2 β²)
+            # (invalid rows zeroed first: a NaN row would poison the gradient through 0 × NaN)
+            z_k = jnp.where(valid[:, None], z_k, 0.0)
+            z_k = jnp.stack([z_k[:, 0] / (rm[0] + rm[1] * z_k[:, 1] ** 2), z_k[:, 1]], axis=-1)
         zk, idk, vk, dropped = _select_k(z_k, id_k, valid, K)
 
         def with_meas(st_):
@@ -699,8 +706,9 @@ def run_arrays(dt, u, z, ids, mask, pose0, params: PlanarParams, config: PlanarC
         st, counts, nis, dof, slots_k, used_k, d2_k, watched, nll, nll_dof = jax.lax.cond(
             jnp.any(vk), with_meas, without, st)
         # consistency: the rows of mapped landmarks, before any gate or weighting
-        mon, st, _ = cons.observe(mon, st, model, d2_k, watched, mon_p, enabled=config.monitor)
-        n_out = jnp.sum(watched & (d2_k > mon_p.outlier_gate)).astype(jnp.int32)
+        if config.monitor:
+            mon, st = cons.observe(mon, st, model, d2_k, watched, mon_p)
+        n_out = cons.outliers(d2_k, watched, mon_p)
         t_k = aux[0] + dt_k
         aux = (t_k,) + aux[1:]
         if config.prune_window_s is not None:
@@ -743,7 +751,7 @@ def run_arrays(dt, u, z, ids, mask, pose0, params: PlanarParams, config: PlanarC
         (st, _, mon), outs = jax.lax.scan(body, carry0, xs)
     (pose, pose_cov, calib, n_meas, n_limited, n_dropped, counts, nis, dof, n_pruned, nll, nll_dof,
      n_out, n_watch) = outs
-    status = st.status | cons.status_bits(mon)
+    status = st.status | cons.status_bits(jnp.sum(n_out), jnp.sum(n_watch))
     return PlanarResult(
         pose=pose, pose_cov=pose_cov, calib=calib,
         landmarks=es.landmarks(st, model), landmark_covs=es.landmark_covs(st, model),
@@ -831,7 +839,8 @@ def config_to_dict(config: PlanarConfig) -> dict:
     return out
 
 
-__all__ += ["params_to_dict", "params_from_dict", "config_to_dict", "MONITOR_DEFAULT"]
+__all__ += ["params_to_dict", "params_from_dict", "config_to_dict", "MONITOR_DEFAULT", "mrclam_raw_log",
+            "mrclam_start_pose", "MRCLAM_FITTED"]
 
 
 # ---------------------------------------------------------------------------

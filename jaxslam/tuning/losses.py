@@ -21,9 +21,11 @@ Decisions (no paper covers tuning):
   depend on the log length (learning rates transfer between short and long logs); the
   constant ½ log 2π per measurement is kept, so the value is a true per-measurement
   negative log density.
-* The EKF-SLAM engine's update reports the NIS but not log det S; :func:`slam_innovation_terms`
-  recomputes the joint S of the mapped measurements from the prior (the same gathered
-  blocks the update uses; a test checks its NIS against the engine's to 1e-9).  Unmapped
+* The EKF-SLAM engine's update reports the NIS and log det S of its joint update
+  (``UpdateInfo.nis``, ``.logdet``), which the tuning targets read;
+  :func:`slam_innovation_terms` recomputes both from the prior independently (the same
+  gathered blocks, a dense joint S) and serves as their check (a test matches it to the
+  engine's to 1e-9).  Unmapped
   landmarks (first sightings, registered rather than updated) carry no likelihood term:
   their measurement is absorbed into the new landmark's mean.
 * The NEES loss uses the log of the time average, so under- and over-confidence by the
