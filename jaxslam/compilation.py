@@ -213,7 +213,6 @@ _LOWER = "/jax/core/compile/jaxpr_to_mlir_module_duration"
 _COMPILE = "/jax/core/compile/backend_compile_duration"
 _HIT = "/jax/compilation_cache/cache_hits"
 _MISS = "/jax/compilation_cache/cache_misses"
-_RETRIEVE = "/jax/compilation_cache/cache_retrieval_time_sec"
 
 
 @dataclasses.dataclass
@@ -231,7 +230,6 @@ class CompileAccount:
     programs: int = 0
     cache_hits: int = 0
     cache_misses: int = 0
-    cache_load_s: float = 0.0
 
     @property
     def total_s(self) -> float:
@@ -261,8 +259,6 @@ def _on_duration(event: str, duration: float, **_kw) -> None:
         elif event == _COMPILE:
             _totals.compile_s += duration
             _totals.programs += 1
-        elif event == _RETRIEVE:
-            _totals.cache_load_s += duration
 
 
 def _on_event(event: str, **_kw) -> None:
@@ -303,14 +299,10 @@ class _Block:
     def __exit__(self, *exc) -> None:
         self.result = totals() - self._start
 
-    def snapshot(self) -> CompileAccount:
-        """Totals of the block so far (also valid inside it)."""
-        return totals() - self._start if self._start is not None else CompileAccount()
-
 
 def account() -> contextlib.AbstractContextManager:
     """``with account() as acc: ...`` then ``acc.result`` is the :class:`CompileAccount`
-    of the block (``acc.snapshot()`` inside it)."""
+    of the block."""
     return _Block()
 
 

@@ -15,6 +15,7 @@ import numpy as np
 from .errors import InputError
 
 __all__ = [
+    "is_concrete",
     "value_and_jacfwd",
     "symmetrize",
     "wrap_angle",
@@ -104,3 +105,9 @@ def check_psd(M, name: str, strict: bool = False, tol: float = 1e-12):
     if lo < -tol * scale:
         raise InputError(f"{name}: not positive semi-definite (smallest eigenvalue {lo:.3g})")
     return M
+
+
+def is_concrete(*xs) -> bool:
+    """True when no leaf of ``xs`` is a tracer: the values are known now, so a helper can build
+    its result on the host (NumPy) instead of compiling a tiny program op by op."""
+    return not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(xs))

@@ -55,13 +55,11 @@ __all__ = [
     "lapack_threads",
 ]
 
-XLA_WORKAROUND_FLAGS = (
-    "--xla_cpu_enable_concurrency_optimized_scheduler=false",
-    "--xla_cpu_use_fusion_emitters=false",
-)
-
 # Per-program options of the library's runners on the CPU backend (see the module docstring).
 CPU_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
+
+XLA_WORKAROUND_FLAGS = ("--xla_cpu_enable_concurrency_optimized_scheduler=false",) + tuple(
+    f"--{k}={str(v).lower()}" for k, v in CPU_COMPILER_OPTIONS.items())
 
 LAPACK_THREADS_ENV = "JAXSLAM_LAPACK_THREADS"
 

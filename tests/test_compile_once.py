@@ -16,7 +16,6 @@ import numpy as np
 import pytest
 
 from jaxslam import compilation
-from jaxslam.data import merge_events
 from jaxslam.data.mrclam import load_mrclam
 from jaxslam.progress import Progress
 from jaxslam.sim.scenarios import registry
@@ -47,10 +46,10 @@ def test_scenario_second_call_with_new_seed_traces_nothing(name):
 
 
 def _mrclam_log():
-    d = load_mrclam(DATA, 1)
-    log = merge_events(d.odom_t, d.odom, d.meas_t, d.meas, d.meas_id, K=8, input_mode="rate",
-                       t_end=float(d.gt_t[-1]))
-    return log, jnp.asarray(d.gt[0])
+    from jaxslam.systems import planar_ekf_slam as pe
+
+    log, pose0 = pe.mrclam_raw_log(load_mrclam(DATA, 1), K=8)
+    return log, jnp.asarray(pose0)
 
 
 def test_planar_ekf_slam_compiles_once_for_new_noise():

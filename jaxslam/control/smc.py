@@ -64,7 +64,7 @@ from ..dynamics import quaternion_quad as qq
 from ..dynamics.params import QuadParams
 from ..errors import InputError
 from ..geometry.quaternion import qconj, qlog, qmul, qnormalize
-from ..linalg import check_shape
+from ..linalg import check_shape, is_concrete
 from .lqr import lqr_gain, lyapunov, validate_weights
 
 __all__ = [
@@ -267,10 +267,6 @@ class LQRDesign(NamedTuple):
         return SMCGains(self.K1, self.K2)
 
 
-def _is_concrete(*xs):
-    return not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(xs))
-
-
 def _as_weight(W):
     W = jnp.asarray(W)
     return jnp.diag(W) if W.ndim == 1 else W
@@ -286,7 +282,7 @@ def lqr_gains(Q1=APPB_WEIGHTS[0], R1=APPB_WEIGHTS[1], Q2=APPB_WEIGHTS[2], R2=APP
     follow JAX's default float).  Validated on the host when called with concrete arrays.
     """
     Ws = [_as_weight(W) for W in (Q1, R1, Q2, R2)]
-    if _is_concrete(*Ws):
+    if is_concrete(*Ws):
         validate_weights(Ws[0], Ws[1], 6, 3, names=("Q1", "R1"))
         validate_weights(Ws[2], Ws[3], 6, 3, names=("Q2", "R2"))
     dtype = jnp.result_type(*Ws)
@@ -362,7 +358,7 @@ def theorem31(K1, K2, L1, L2, P=None, *, key=None, n_samples=4096, r_min=1e-3, r
     (‖ξ‖ = L2 + L1‖x‖ along BᵀPx): V̇ = 2xᵀP[(A − BK1)x − BK2 s(x) + Bξ].
     Returns :class:`Theorem31`.
     """
-    if _is_concrete(K1, K2, L1, L2, P):
+    if is_concrete(K1, K2, L1, L2, P):
         _check_gain_matrix(K1, "K1")
         _check_gain_matrix(K2, "K2")
         for v, nm in ((L1, "L1"), (L2, "L2")):

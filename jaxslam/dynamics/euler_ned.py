@@ -28,13 +28,12 @@ host-side ``check_state`` / ``check_input`` (call them before ``jit``).
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
 from ..errors import InputError
 from ..geometry.euler import dcm_from_euler, euler_rates
-from ..linalg import check_shape
+from ..linalg import check_shape, is_concrete
 from .params import _cast
 
 __all__ = [
@@ -106,15 +105,14 @@ def hover_state(position=(0.0, 0.0, 0.0), yaw=0.0, dtype=None):
     """
     if dtype is None:
         dtype = jnp.result_type(float)
-    try:  # concrete numbers (the usual case): built on the host, no program to compile
+    if is_concrete(position, yaw):  # the usual case: built on the host, no program to compile
         x = np.zeros(STATE_DIM)
         x[POS] = np.asarray(position, np.float64)
         x[8] = float(yaw)
         return jnp.asarray(x, dtype)
-    except (TypeError, jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):
-        x = jnp.zeros(STATE_DIM, dtype)
-        x = x.at[POS].set(jnp.asarray(position, dtype=dtype))
-        return x.at[8].set(jnp.asarray(yaw, dtype=dtype))
+    x = jnp.zeros(STATE_DIM, dtype)
+    x = x.at[POS].set(jnp.asarray(position, dtype=dtype))
+    return x.at[8].set(jnp.asarray(yaw, dtype=dtype))
 
 
 def _check_vector(a, n, name):

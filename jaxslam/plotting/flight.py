@@ -34,7 +34,7 @@ def save(fig, directory, name) -> pathlib.Path:
     d.mkdir(parents=True, exist_ok=True)
     path = d / f"{name}.png"
     if fig.get_layout_engine() is None:
-        top = 0.90 if fig._suptitle is not None else 0.94
+        top = 0.90 if fig.get_suptitle() else 0.94
         fig.subplots_adjust(left=0.08, right=0.97, bottom=0.08, top=top, hspace=0.32, wspace=0.25)
     fig.savefig(path, dpi=110)
     plt().close(fig)

@@ -38,7 +38,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..geometry.euler import dcm_from_euler
-from ..linalg import check_shape, safe_norm, wrap_angle
+from ..linalg import check_shape, is_concrete, safe_norm, wrap_angle
 
 __all__ = [
     "LidarSpec",
@@ -275,12 +275,11 @@ def measurement_cov(spec: LidarSpec = PAPER000_LIDAR, dtype=None):
     """R_ζ = diag(σ_α², σ_β², σ_δ²) (paper 000 eq. 30, Table 4), shape (3, 3)."""
     dtype = jnp.result_type(float) if dtype is None else jnp.dtype(dtype)
     sig = (spec.sigma_az, spec.sigma_el, spec.sigma_range)
-    try:  # concrete numbers (the usual case): built on the host, no program to compile
+    if is_concrete(sig):  # the usual case: built on the host, no program to compile
         s = np.asarray(sig, np.float64)
         return jnp.asarray(np.diag(s * s), dtype)
-    except (TypeError, jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):
-        s = jnp.stack([jnp.asarray(v, dtype) for v in sig])
-        return jnp.diag(s * s)
+    s = jnp.stack([jnp.asarray(v, dtype) for v in sig])
+    return jnp.diag(s * s)
 
 
 def sample_noise(key, spec: LidarSpec = PAPER000_LIDAR, shape_prefix=(), dtype=None):

@@ -57,7 +57,6 @@ class MCResult(NamedTuple):
     run_s: float
     n_devices: int
     chunk: int  # runs per compiled call (1 with "loop" batching)
-    compile_account: object = None  # jaxslam.compilation.CompileAccount of that compilation
 
 
 @jax.jit
@@ -115,26 +114,23 @@ def run(fn: Callable, seed: int, runs: int, chunk: Optional[int] = None,
             key = None if program_key is None else {"mc": program_key, "loop": loop, "detail": has_detail}
             return compilation.compile_program(f, (arg,), key=key, compiler_options=opts)
 
-        with compilation.account() as acc:
-            t0 = time.perf_counter()
-            if compiling is not None:
-                with compiling():
-                    c = build()
-            else:
+        t0 = time.perf_counter()
+        if compiling is not None:
+            with compiling():
                 c = build()
-            dt = time.perf_counter() - t0
-        return c, dt, acc.result
+        else:
+            c = build()
+        return c, time.perf_counter() - t0
 
     if loop:
-        compiled, compile_s, acct = compile_(fn, keys[0])
+        compiled, compile_s = compile_(fn, keys[0])
         outs = []
         t0 = time.perf_counter()
         for i in range(runs):
             res = jax.block_until_ready(compiled(keys[i]))
-            res = jax.tree.map(np.asarray, res)
-            if has_detail and i > 0:
+            if has_detail and i > 0:  # only run 0's detail is kept: never copied to the host
                 res = {k: v for k, v in res.items() if k != "detail"}
-            outs.append(res)
+            outs.append(jax.tree.map(np.asarray, res))
             if progress is not None:
                 progress.update(i + 1)
         run_s = time.perf_counter() - t0
@@ -142,8 +138,7 @@ def run(fn: Callable, seed: int, runs: int, chunk: Optional[int] = None,
         out = jax.tree.map(lambda *a: np.stack(a, axis=0), *outs)
         if has_detail:
             out["detail"] = detail
-        return MCResult(out=out, compile_s=compile_s, run_s=run_s, n_devices=nd, chunk=1,
-                        compile_account=acct)
+        return MCResult(out=out, compile_s=compile_s, run_s=run_s, n_devices=nd, chunk=1)
 
     cap = DETAIL_CHUNK if has_detail else 256
     chunk = min(runs, cap) if chunk is None else max(1, min(int(chunk), runs, cap))
@@ -168,24 +163,22 @@ def run(fn: Callable, seed: int, runs: int, chunk: Optional[int] = None,
     def place(k):
         return jax.device_put(k, shard) if shard is not None else k
 
-    compiled, compile_s, acct = compile_(batched, place(keys[:chunk]), jitted)
+    compiled, compile_s = compile_(batched, place(keys[:chunk]), jitted)
 
     outs = []
     detail = None
     t0 = time.perf_counter()
     for c in range(n_chunks):
         res = compiled(place(keys[c * chunk:(c + 1) * chunk]))
-        res = jax.block_until_ready(res)
-        res = jax.tree.map(np.asarray, res)
-        if has_detail:
+        res = dict(jax.block_until_ready(res)) if has_detail else jax.block_until_ready(res)
+        if has_detail:  # only the first chunk's detail is kept: never copied to the host otherwise
             d = res.pop("detail")
-            detail = d if c == 0 else detail
-        outs.append(res)
+            detail = jax.tree.map(np.asarray, d) if c == 0 else detail
+        outs.append(jax.tree.map(np.asarray, res))
         if progress is not None:
             progress.update(min((c + 1) * chunk, runs))
     run_s = time.perf_counter() - t0
     out = jax.tree.map(lambda *a: np.concatenate(a, axis=0)[:runs], *outs)
     if has_detail:
         out["detail"] = detail
-    return MCResult(out=out, compile_s=compile_s, run_s=run_s, n_devices=nd, chunk=chunk,
-                    compile_account=acct)
+    return MCResult(out=out, compile_s=compile_s, run_s=run_s, n_devices=nd, chunk=chunk)

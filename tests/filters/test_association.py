@@ -115,13 +115,12 @@ def test_jcbb_equals_exhaustive_search(seed, cap, K, clutter, spread):
         np.testing.assert_allclose(float(res.nis), want_nis, rtol=1e-9)
 
 
-@jax.jit
-def _run(st, z, R, thr, n_cand):
+def _jcbb(st, z, R, thr, n_cand):
     return A.jcbb(st, MODEL, z, jnp.ones(z.shape[0], bool), R, gate=GATE, thresholds=thr,
                   n_cand=n_cand, budget=2000)
 
 
-_run = jax.jit(_run.__wrapped__, static_argnums=4)
+_run = jax.jit(_jcbb, static_argnums=4)
 
 
 def test_budget_bounds_the_search_and_is_reported():

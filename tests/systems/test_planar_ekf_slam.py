@@ -31,20 +31,21 @@ def _wrap(a):
     return (a + np.pi) % (2 * np.pi) - np.pi
 
 
-def _scenario(seed=0, n_lm=15):
-    """True trajectory, landmarks, and the visible (step, landmark) pairs."""
+def _scenario(seed=0, n_lm=15, n_steps=T_STEPS):
+    """True trajectory, landmarks, and the visible (step, landmark) pairs (also used by
+    test_planar_divergence.py, with two loops)."""
     rng = np.random.default_rng(seed)
     ang = np.linspace(0, 2 * np.pi, n_lm, endpoint=False) + 0.1
     rad = np.where(np.arange(n_lm) % 2 == 0, 3.0, 7.0)
     lms = np.stack([rad * np.cos(ang), 5.0 + rad * np.sin(ang)], 1)  # circle centred at (0, 5)
     s = np.array([0.0, 0.0, 0.0])
     traj = [s]
-    for _ in range(T_STEPS):
+    for _ in range(n_steps):
         s = np.asarray(planar.unicycle(jnp.asarray(s), jnp.array([V, W]), DT))
         traj.append(s)
     traj = np.array(traj)
     vis = []
-    for k in range(MEAS_EVERY, T_STEPS + 1, MEAS_EVERY):
+    for k in range(MEAS_EVERY, n_steps + 1, MEAS_EVERY):
         for j, l in enumerate(lms):
             d = l - traj[k, :2]
             b = _wrap(np.arctan2(d[1], d[0]) - traj[k, 2])
