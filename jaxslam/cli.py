@@ -1,6 +1,6 @@
 """The ``jaxslam`` command: ``list | run | bench | tune | dataset``.
 
-    jaxslam list [--dir DIR]
+    jaxslam list [--dir DIR] [--data DIR]
     jaxslam run SCENARIO [--runs N] [--seed S] [--float32] [--json PATH] [--plots DIR]
                          [--quiet] [--params FILE] [scenario options]
     jaxslam bench NAME [--dir DIR] [--json PATH] [benchmark options]
@@ -51,7 +51,7 @@ runtime.configure_process()
 import pathlib
 import sys
 
-from jaxslam import __version__
+from jaxslam import __version__, files
 from jaxslam.errors import InputError
 
 __all__ = ["main", "find_benchmarks_dir", "list_benchmarks"]
@@ -61,7 +61,7 @@ _DEBUG_ENV = "JAXSLAM_DEBUG"
 
 _TOP_EPILOG = """\
 commands:
-  list      scenarios and benchmarks with a one-line description
+  list      scenarios, benchmarks and datasets with a one-line description
   run       run a scenario (Monte Carlo), print metrics, write JSON and plots
   bench     run a benchmark from the benchmarks/ folder
   tune      tune noise covariances (Q, R) or LQR weights by gradient descent,
@@ -218,8 +218,10 @@ def _cmd_cache(rest: list[str]) -> int:
 
 
 def _cmd_list(rest: list[str]) -> int:
-    p = _Parser(prog=f"{PROG} list", description="List scenarios and benchmarks.")
+    p = _Parser(prog=f"{PROG} list", description="List scenarios, benchmarks and datasets.")
     p.add_argument("--dir", metavar="DIR", help="benchmarks folder (default: see 'jaxslam bench --help')")
+    p.add_argument("--data", metavar="DIR",
+                   help="data folder whose datasets to show as found / not found (default: $JAXSLAM_DATA_DIR)")
     p.add_argument("--debug", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args(rest)
 
@@ -249,7 +251,30 @@ def _cmd_list(rest: list[str]) -> int:
             _out(f"  {name.ljust(w)}  {desc}")
     else:
         _out(f"  (none: {note})" if bench_dir is None else "  (none)")
+
+    _out()
+    _list_datasets(args.data)
     return 0
+
+
+def _list_datasets(data_arg) -> None:
+    """The datasets of ``jaxslam dataset`` and, when a data folder is known, which it holds."""
+    from jaxslam.data import catalogue
+
+    root = None
+    if data_arg or os.environ.get(catalogue.DATA_ENV, "").strip():
+        root = catalogue.data_root(data_arg)
+    where = f"in {root}" if root is not None else f"give --data DIR or set {catalogue.DATA_ENV} to see which are present"
+    _out(f"Datasets ({PROG} dataset NAME --data DIR; {where}):")
+    w = max(len(d.name) for d in catalogue.DATASETS)
+    for d in catalogue.DATASETS:
+        state = ""
+        if root is not None:
+            folder = catalogue.find(d.name, root)
+            robots = catalogue.robots_found(d.name, root)
+            state = ("  [not found]" if folder is None else
+                     f"  [found: {folder}" + (f", --robot {', '.join(map(str, robots))}" if robots else "") + "]")
+        _out(f"  {d.name.ljust(w)}  {d.description}{state}")
 
 
 # ----------------------------------------------------------------------------- run
@@ -267,7 +292,8 @@ def _add_run_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true",
                    help="print nothing on stdout and no progress bar (errors still go to stderr)")
     p.add_argument("--params", metavar="FILE",
-                   help="JSON object with parameter overrides, passed to the scenario")
+                   help="JSON file of parameter overrides ('jaxslam tune' writes them); its keys "
+                        "are checked before the run and listed by 'jaxslam run SCENARIO --help'")
     p.add_argument("--debug", action="store_true",
                    help="print the traceback of an internal failure (also JAXSLAM_DEBUG=1)")
 
@@ -293,7 +319,9 @@ def _add_option(group, opt) -> None:
             group.add_argument(*flags, dest=opt.name, action="store_true", default=False,
                                help=help_text)
         return
-    kw = dict(dest=opt.name, type=opt.type, default=opt.default, help=help_text + " (default: %(default)s)")
+    # An option whose help already states its default (e.g. "default: all") is not told twice.
+    shown = "" if "default:" in help_text else " (default: %(default)s)"
+    kw = dict(dest=opt.name, type=opt.type, default=opt.default, help=help_text + shown)
     if opt.choices is not None:
         kw["choices"] = opt.choices
     else:
@@ -301,7 +329,7 @@ def _add_option(group, opt) -> None:
     group.add_argument(*flags, **kw)
 
 
-def _run_parser(scenario=None) -> _Parser:
+def _run_parser(scenario=None, help_params: bool = False) -> _Parser:
     if scenario is None:
         p = _Parser(
             prog=f"{PROG} run",
@@ -312,8 +340,23 @@ def _run_parser(scenario=None) -> _Parser:
             formatter_class=argparse.RawDescriptionHelpFormatter,
         )
     else:
+        epilog = None
+        if help_params:  # built only for --help: the schema comes from the scenario's defaults
+            import numpy as np
+
+            from jaxslam import paramfile
+            from jaxslam.sim.scenarios import registry
+
+            if scenario.params is None:
+                epilog = f"--params FILE: {scenario.name} takes no --params file."
+            else:
+                schema = scenario.params(registry.default_options(scenario), np.dtype(np.float64))
+                epilog = ("--params FILE: a JSON object with these sections and keys (matrices as\n"
+                          "nested lists or their diagonals; every key optional; 'jaxslam tune'\n"
+                          "writes such files):\n" + paramfile.describe(schema))
         p = _Parser(prog=f"{PROG} run {scenario.name}", description=scenario.description,
-                    usage=f"{PROG} run {scenario.name} [options] [scenario options]")
+                    usage=f"{PROG} run {scenario.name} [options] [scenario options]", epilog=epilog,
+                    formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("scenario", metavar="SCENARIO", help="scenario name (see 'jaxslam list')")
     _add_run_common(p)
     if scenario is not None and scenario.options:
@@ -337,7 +380,7 @@ def _cmd_run(rest: list[str]) -> int:
     if not pre.float32:
         jax.config.update("jax_enable_x64", True)
 
-    from jaxslam import io
+    from jaxslam import io, paramfile
     from jaxslam.progress import Progress
     from jaxslam.sim.scenarios import registry
 
@@ -347,18 +390,15 @@ def _cmd_run(rest: list[str]) -> int:
             return 0
         raise UsageError(f"{PROG} run: missing SCENARIO; valid scenarios: {_scenario_list_text()}")
     scenario = registry.get(pre.scenario)
-    args = _run_parser(scenario).parse_args(rest)
+    args = _run_parser(scenario, help_params=pre.help).parse_args(rest)
     options = {opt.name: getattr(args, opt.name) for opt in scenario.options}
     dtype = np.dtype(np.float32 if args.float32 else np.float64)
 
-    params = io.load_params(args.params) if args.params else None
-    json_path = pathlib.Path(args.json) if args.json else None
-    plots_dir = pathlib.Path(args.plots) if args.plots else None
-    # Catch unusable output paths before a long run, not after it.
-    if json_path is not None and json_path.is_dir():
-        raise InputError(f"--json: {str(json_path)!r} is a folder; give a file path")
-    if plots_dir is not None and plots_dir.exists() and not plots_dir.is_dir():
-        raise InputError(f"--plots: {str(plots_dir)!r} exists and is not a folder")
+    # Every input, then every output path, checked before anything compiles.
+    params = (registry.check_params(scenario, paramfile.load(args.params), options, dtype)
+              if args.params else None)
+    json_path = files.prepare_file("--json", args.json) if args.json else None
+    plots_dir = files.prepare_dir("--plots", args.plots) if args.plots else None
 
     from jaxslam import compilation
 
@@ -377,11 +417,22 @@ def _cmd_run(rest: list[str]) -> int:
     report = io.run_json(scenario.name, args.runs, args.seed, dtype, result)
     report["timing"]["main_program_compile_s"] = report["timing"]["compile_s"]
     report["timing"].update(compile_timing(acct.result))
+    notes = _run_notes(result, report["runs"])
+    if notes:
+        report["notes"] = notes
     if not args.quiet:
         _out(_format_run_report(report))
+        for note in notes:
+            _out(f"note: {note}")
     written = []
     if json_path is not None:
         written.append(io.write_json(json_path, report))
+    if result.interrupted:  # keep what finished, skip the plots, exit as interrupted
+        where = f"; wrote them to {json_path}" if json_path is not None else " (no --json: not saved)"
+        print(f"{PROG} run: interrupted after {report['runs']} of {args.runs} runs; the table covers "
+              f"the finished runs{where}" + (" (marked \"interrupted\": true)" if json_path else "")
+              + ("; plots skipped" if plots_dir is not None else ""), file=sys.stderr, flush=True)
+        return 130
     if plots_dir is not None:
         if result.plot is None:
             print(f"{PROG} run: scenario {scenario.name!r} has no plots; --plots ignored", file=sys.stderr)
@@ -391,10 +442,6 @@ def _cmd_run(rest: list[str]) -> int:
             import matplotlib
 
             matplotlib.use("Agg")  # files only; never open a window
-            try:
-                plots_dir.mkdir(parents=True, exist_ok=True)
-            except OSError as e:
-                raise InputError(f"--plots: cannot create {str(plots_dir)!r}: {e.strerror or e}") from None
             t0 = time.perf_counter()
             pngs = [pathlib.Path(p) for p in (result.plot(plots_dir) or [])]
             report["timing"]["plots_s"] = time.perf_counter() - t0
@@ -407,6 +454,20 @@ def _cmd_run(rest: list[str]) -> int:
         for path in written:
             _out(f"wrote {path}")
     return 0
+
+
+def _run_notes(result, runs: int) -> list:
+    """Notes for the run report: runs that are identical (the scenario draws no noise)."""
+    import numpy as np
+
+    if runs < 2 or not result.metrics:
+        return []
+    same = all(np.array_equal(v, np.broadcast_to(np.asarray(v).reshape(-1)[:1], np.shape(v)), equal_nan=True)
+               for v in (np.asarray(m) for m in result.metrics.values()))
+    if not same:
+        return []
+    return [f"all {runs} runs gave identical metrics: this scenario has no random draw under these "
+            "options (every run flies the same flight), so the statistics describe one flight"]
 
 
 def _accepts(fn, name: str) -> bool:
@@ -447,30 +508,77 @@ def _fmt(x) -> str:
     return _fmt_num(float("nan") if x is None else float(x))
 
 
+# What a value outside its chi-square bounds means, by kind of statistic (below, above).
+_OUTSIDE_MEANS = {
+    "nees": ("below: conservative (covariance larger than the errors)",
+             "above: over-confident (errors larger than the covariance)"),
+    "nis": ("below: innovations smaller than predicted (R or P too large)",
+            "above: innovations larger than predicted (R or P too small, or outliers)"),
+}
+
+
+def _consistency_lines(cons: dict) -> list:
+    """One line per statistic of the run JSON's ``consistency``: what it covers (``S_block``,
+    ``S_dim``; docs/cli.md), its value against its bounds, and what an OUTSIDE verdict means.
+
+    A statistic ``key`` (a number) finds its companions as ``key_bounds`` / ``key_block`` /
+    ``key_dim`` or under its stem (``nis_mean`` -> ``nis_bounds``); reports written before the
+    ``_block`` entries existed print without them.
+    """
+    out = []
+    for key, value in cons.items():
+        if key.endswith(("_bounds", "_block", "_dim")) or isinstance(value, (str, bool, list, dict)):
+            continue
+        stem = key.removesuffix("_mean")
+
+        def part(suffix, key=key, stem=stem):
+            return cons.get(f"{key}{suffix}", cons.get(f"{stem}{suffix}"))
+
+        bounds, block, dim = part("_bounds"), part("_block"), part("_dim")
+        kind = "nis" if stem.startswith("nis") else "nees" if "nees" in stem else None
+        if block is not None:
+            if kind == "nis":
+                label = f"mean NIS of {block}" + (f", expected {_fmt_dim(dim)}" if dim is not None else "")
+            else:
+                label = f"{'ANEES' if kind == 'nees' else key} of {block}"
+                if dim is not None:
+                    label += f", {_fmt_dim(dim)} state{'' if dim == 1 else 's'}"
+            text = f"{label} [{key}]: {_fmt(value)}"
+        else:
+            text = f"{key} {_fmt(value)}"
+        if bounds is not None and len(bounds) == 2:
+            lo, hi = (float("nan") if b is None else float(b) for b in bounds)
+            v = float("nan") if value is None else float(value)
+            text += f" in [{_fmt(lo)}, {_fmt(hi)}] "
+            if not all(math.isfinite(x) for x in (v, lo, hi)):
+                text += "undefined (no value or no bounds)"
+            elif lo <= v <= hi:
+                text += "ok"
+            else:
+                text += "OUTSIDE"
+                if kind is not None:
+                    text += ", " + _OUTSIDE_MEANS[kind][0 if v < lo else 1]
+        out.append(text)
+    return out
+
+
+def _fmt_dim(dim) -> str:
+    return str(int(dim)) if float(dim).is_integer() else _fmt(dim)
+
+
 def _format_run_report(report: dict) -> str:
     from jaxslam.io import format_table
 
     lines = [
-        f"scenario {report['scenario']}: {report['runs']} run(s), seed {report['seed']}, "
-        f"{report['dtype']}",
+        (f"scenario {report['scenario']}: {report['runs']} run(s), seed {report['seed']}, "
+         f"{report['dtype']}"),
         "",
         format_table(report["metrics"]),
     ]
     cons = report.get("consistency")
     if cons:
-        parts = []
-        for key, value in cons.items():
-            if key.endswith("_bounds"):
-                continue
-            stem = key[: -len("_mean")] if key.endswith("_mean") else key
-            bounds = cons.get(f"{key}_bounds", cons.get(f"{stem}_bounds"))
-            text = f"{key} {_fmt(value)}"
-            if bounds is not None and len(bounds) == 2:
-                lo, hi = (float("nan") if b is None else float(b) for b in bounds)
-                inside = value is not None and lo <= float(value) <= hi
-                text += f" in [{_fmt(lo)}, {_fmt(hi)}] {'ok' if inside else 'OUTSIDE'}"
-            parts.append(text)
-        lines += ["", "consistency: " + "; ".join(parts)]
+        lines += ["", "consistency (two-sided 95 % chi-square bounds):"]
+        lines += ["  " + line for line in _consistency_lines(cons)]
     if report.get("flags"):
         lines.append("flags: " + ", ".join(f"{k}={v}" for k, v in report["flags"].items()))
     t = report["timing"]
@@ -612,6 +720,7 @@ def _cmd_bench(rest: list[str]) -> int:
         _bench_common(p)
         module.add_arguments(p)
         args = p.parse_args(rest)
+        json_path = files.prepare_file("--json", args.json) if args.json else None  # before the run
         result = module.run(args)
     finally:
         try:
@@ -624,8 +733,8 @@ def _cmd_bench(rest: list[str]) -> int:
     result.setdefault("machine", io.machine_info())
 
     _out(_format_bench_table(result))
-    if args.json:
-        path = io.write_json(args.json, result)
+    if json_path is not None:
+        path = io.write_json(json_path, result)
         _out(f"wrote {path}")
     return 0
 

@@ -28,13 +28,13 @@ from typing import Any, Mapping
 import numpy as np
 
 from jaxslam.errors import InputError
+from jaxslam.files import atomic_write
 
 __all__ = [
     "summarize_metrics",
     "run_json",
     "to_jsonable",
     "write_json",
-    "load_params",
     "format_table",
     "machine_info",
     "RUN_JSON_KEYS",
@@ -43,7 +43,7 @@ __all__ = [
 # Top-level keys of the `run` JSON, in STYLE.md order ("consistency" omitted when None).
 RUN_JSON_KEYS = (
     "scenario", "runs", "seed", "dtype", "config", "metrics",
-    "consistency", "flags", "timing", "versions",
+    "consistency", "flags", "timing", "versions", "interrupted", "runs_requested", "notes",
 )
 
 
@@ -89,6 +89,8 @@ def run_json(scenario_name: str, runs: int, seed: int, dtype, result) -> dict:
     Keys, in order: ``scenario, runs, seed, dtype, config, metrics, consistency``
     (omitted if ``result.consistency`` is None)``, flags, timing`` (``compile_s, run_s,
     runs_per_s``)``, versions`` (``jaxslam, jax``), then the sections of ``result.extra``.
+    An interrupted batch (``result.interrupted``) has ``runs`` = the finished runs (what
+    every summary is over), ``runs_requested`` and ``"interrupted": true`` after ``runs``.
 
     The returned dict may hold NaN floats (a diverged run); :func:`write_json`
     writes them as ``null``.
@@ -103,10 +105,15 @@ def run_json(scenario_name: str, runs: int, seed: int, dtype, result) -> dict:
     timing = {k: float(v) for k, v in dict(result.timing).items()}
     compile_s = timing.pop("compile_s", math.nan)
     run_s = timing.pop("run_s", math.nan)
+    interrupted = bool(getattr(result, "interrupted", False))
+    requested = int(runs)
+    if interrupted:  # the summaries are over the finished runs only
+        runs = min((len(np.atleast_1d(v)) for v in dict(result.metrics).values()), default=0)
     runs_per_s = runs / run_s if run_s > 0 else math.nan
     out: dict[str, Any] = {
         "scenario": str(scenario_name),
         "runs": int(runs),
+        **({"runs_requested": requested, "interrupted": True} if interrupted else {}),
         "seed": int(seed),
         "dtype": np.dtype(dtype).name,
         "config": to_jsonable(dict(result.config), nonfinite_to_none=False),
@@ -197,38 +204,10 @@ def write_json(path, obj) -> pathlib.Path:
     path = pathlib.Path(path)
     text = _dumps(to_jsonable(obj)) + "\n"
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.name + ".tmp")
-        tmp.write_text(text, encoding="utf-8")
-        os.replace(tmp, path)  # never leave a half-written JSON behind
+        atomic_write(path, lambda f: f.write(text))  # never leave a half-written JSON behind
     except OSError as e:
         raise InputError(f"cannot write JSON to {str(path)!r}: {e.strerror or e}") from None
     return path
-
-
-def load_params(path) -> dict:
-    """Read a ``--params`` JSON file whose top level is an object.
-
-    Raises:
-      InputError: the file is missing or unreadable, is not valid JSON, or its top
-        level is not an object.
-    """
-    path = pathlib.Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError(f"--params: file {str(path)!r} not found") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise InputError(f"--params: cannot read {str(path)!r}: {getattr(e, 'strerror', None) or e}") from None
-    try:
-        obj = json.loads(text)
-    except json.JSONDecodeError as e:
-        raise InputError(
-            f"--params: {str(path)!r} is not valid JSON (line {e.lineno}, column {e.colno}: {e.msg})"
-        ) from None
-    if not isinstance(obj, dict):
-        raise InputError(f"--params: {str(path)!r} must hold a JSON object, got {type(obj).__name__}")
-    return obj
 
 
 def _fmt_num(x: float) -> str:

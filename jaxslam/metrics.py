@@ -664,14 +664,12 @@ def write_tum(path, t, positions, yaw=None, quat_xyzw=None):
     """Write a trajectory in TUM format (``t tx ty tz qx qy qz qw`` per line) for ``evo``.
 
     Args:
-        path: output file (parent folders are created).
+        path: output file (parent folders are created; written atomically).
         t: (T,) times [s].
         positions: (T, 2) or (T, 3) [m]; planar positions get z = 0.
         yaw: optional (T,) heading [rad] (planar); quat_xyzw: optional (T, 4).
             With neither, the identity orientation is written.
     """
-    import pathlib
-
     t = np.asarray(t, np.float64).reshape(-1)
     p = np.asarray(positions, np.float64)
     if p.ndim != 2 or p.shape[0] != t.shape[0] or p.shape[1] not in (2, 3):
@@ -687,11 +685,11 @@ def write_tum(path, t, positions, yaw=None, quat_xyzw=None):
         if h.shape != t.shape:
             raise InputError(f"write_tum: yaw must be (T,) with T = {t.shape[0]}, got {h.shape}")
         q = np.stack([np.zeros_like(h), np.zeros_like(h), np.sin(h / 2), np.cos(h / 2)], axis=1)
-    path = pathlib.Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    np.savetxt(path, np.concatenate([t[:, None], p, q], axis=1), fmt="%.9f",
-               header="timestamp tx ty tz qx qy qz qw")
-    return path
+    from jaxslam.files import atomic_write
+
+    table = np.concatenate([t[:, None], p, q], axis=1)
+    return atomic_write(path, lambda f: np.savetxt(f, table, fmt="%.9f",
+                                                   header="timestamp tx ty tz qx qy qz qw"))
 
 
 def read_tum(path):

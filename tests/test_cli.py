@@ -64,13 +64,16 @@ def _dummy_run(*, runs, seed, dtype, options, progress, params):
     pos = 0.5 * jnp.asarray(options["gain"], dtype) * (base + 1) + jnp.asarray(0.01 * seed, dtype)
     progress.update(runs)
     pos = np.array(pos)
+    vel = np.asarray(jnp.square(base) + 1)
     if options["nan_run"]:
         pos[0] = np.nan
+    if options["constant"]:
+        pos, vel = np.full(runs, 1.5), np.full(runs, 2.5)
     return ScenarioResult(
         config={"gain": options["gain"], "mode": options["mode"], "noise_scale": options["noise_scale"],
                 "x64": bool(jax.config.jax_enable_x64), "array_dtype": str(base.dtype),
                 "params": params},
-        metrics={"pos_rmse_m": pos, "vel_rmse_mps": np.asarray(jnp.square(base) + 1)},
+        metrics={"pos_rmse_m": pos, "vel_rmse_mps": vel},
         consistency=None if options["no_filter"] else
         {"anees": np.float64(1.1), "anees_bounds": [0.5, 1.5], "nis_mean": 3.1, "nis_bounds": [2.0, 4.0]},
         flags={"capacity_overflow": np.int64(0), "masked_measurements": 3, "non_finite": 0},
@@ -90,8 +93,10 @@ DUMMY = Scenario(
         Option("no_filter", bool, False, "return no consistency section"),
         Option("explode", bool, False, "raise an internal error"),
         Option("bad_input", bool, False, "raise an InputError"),
+        Option("constant", bool, False, "every run returns the same metrics"),
     ),
     run=_dummy_run,
+    params=lambda options, dtype: {"filter": {"q_scale": 1.0, "r": np.ones(2), "R": np.eye(2)}},
 )
 
 
@@ -227,7 +232,8 @@ def test_scenario_options_in_help_and_reach_options(capsys):
     assert cli.main(["run", "dummy", "--gain", "2.5", "--mode", "b", "--noise_scale", "0.3",
                      "--no-filter", "--quiet"]) == 0
     assert CALLS[-1]["options"] == {"gain": 2.5, "mode": "b", "noise_scale": 0.3, "nan_run": False,
-                                    "no_filter": True, "explode": False, "bad_input": False}
+                                    "no_filter": True, "explode": False, "bad_input": False,
+                                    "constant": False}
     assert cli.main(["run", "dummy", "--mode", "c"]) == 2
     assert "invalid choice" in _stderr_line(capsys.readouterr().err)
 
@@ -268,9 +274,60 @@ def test_params_missing_file_exit_2(tmp_path, capsys):
 
 def test_params_reach_scenario(tmp_path):
     f = tmp_path / "p.json"
-    f.write_text('{"q_scale": 2.0, "r": [1, 2]}')
+    f.write_text('{"scenario": "dummy", "filter": {"q_scale": 2.0, "r": [1, 2], "R": [3, 4]}}')
     assert cli.main(["run", "dummy", "--params", str(f), "--quiet"]) == 0
-    assert CALLS[-1]["params"] == {"q_scale": 2.0, "r": [1, 2]}
+    assert CALLS[-1]["params"] == {"filter": {"q_scale": 2.0, "r": [1, 2], "R": [3, 4]}}
+
+
+@pytest.mark.parametrize("doc, needle", [
+    ({"filtr": {}}, "unknown key(s) ['filtr']"),
+    ({"filter": {"q": 1}}, "filter: unknown key(s) ['q']"),
+    ({"filter": {"r": [1, 2, 3]}}, "filter.r: expected 2, got shape 3"),
+    ({"filter": {"R": [[1, 2], [2, 1]]}}, "filter.R: not positive semi-definite (smallest eigenvalue -1)"),
+    ({"filter": {"R": [[1, 0.1], [0, 1]]}}, "filter.R: not symmetric"),
+    ({"filter": {"R": [-1, 1]}}, "filter.R: not positive semi-definite"),
+    ({"filter": {"q_scale": [1, 2]}}, "filter.q_scale: expected a number"),
+    ({"scenario": "other", "filter": {}}, "key 'scenario' is 'other', this run is 'dummy'"),
+    ({"dataset": "mrclam", "noise": {}}, "the file is for dataset 'mrclam'"),
+])
+def test_params_schema_errors_name_the_key(tmp_path, capsys, doc, needle):
+    f = tmp_path / "p.json"
+    f.write_text(json.dumps(doc))
+    assert cli.main(["run", "dummy", "--params", str(f)]) == 2
+    assert needle in _stderr_line(capsys.readouterr().err)
+    assert CALLS == []  # refused before the scenario ran
+
+
+def test_params_of_a_tune_report_are_its_sections(tmp_path):
+    # A whole `jaxslam tune --json` report is a --params file: its sections are read, the
+    # report's own keys are not parameters.
+    f = tmp_path / "tune.json"
+    f.write_text(json.dumps({"scenario": "dummy", "target": "noise", "before": {}, "after": {},
+                             "params_after": {"filter": {"q_scale": 3.0}}, "history": [],
+                             "filter": {"q_scale": 3.0}}))
+    assert cli.main(["run", "dummy", "--params", str(f), "--quiet"]) == 0
+    assert CALLS[-1]["params"] == {"filter": {"q_scale": 3.0}}
+
+
+def test_run_help_lists_the_params_keys(capsys):
+    assert cli.main(["run", "dummy", "--help"]) == 0
+    out = capsys.readouterr().out
+    assert "--params FILE" in out and "filter: q_scale (a number), r (2), R (2×2 symmetric PSD or 2" in out
+
+
+def test_identical_runs_are_said_to_be(tmp_path, capsys):
+    # The dummy's metrics differ per run (closed form); a scenario whose runs are all equal
+    # gets a note, in the console and the JSON.
+    out_json = tmp_path / "o.json"
+    assert cli.main(["run", "dummy", "--runs", "3", "--json", str(out_json)]) == 0
+    assert "note: all" not in capsys.readouterr().out and "notes" not in _strict_json(out_json)
+    assert cli.main(["run", "dummy", "--runs", "3", "--constant", "--json", str(out_json)]) == 0
+    out = capsys.readouterr().out
+    assert "note: all 3 runs gave identical metrics" in out
+    assert _strict_json(out_json)["notes"][0].startswith("all 3 runs gave identical metrics")
+    assert cli.main(["run", "dummy", "--runs", "1", "--constant", "--json", str(out_json)]) == 0
+    assert "note: all" not in capsys.readouterr().out  # one run: nothing to compare
+
 
 
 @pytest.mark.parametrize("argv, needle", [
@@ -287,7 +344,8 @@ def test_params_reach_scenario(tmp_path):
     (["dataset", "mrclam"], "--data"),
     (["dataset", "mrclam", "--data", "/no/such/folder"], "is not a folder"),
 ])
-def test_usage_errors_exit_2_one_line(capsys, argv, needle):
+def test_usage_errors_exit_2_one_line(capsys, monkeypatch, argv, needle):
+    monkeypatch.delenv("JAXSLAM_DATA_DIR", raising=False)  # `dataset` would read it for --data
     assert cli.main(argv) == 2
     assert needle in _stderr_line(capsys.readouterr().err)
 
@@ -486,9 +544,11 @@ def test_format_table_aligned():
 
 
 def test_load_params_ok(tmp_path):
+    from jaxslam import paramfile
+
     f = tmp_path / "p.json"
     f.write_text('{"a": 1}')
-    assert jio.load_params(f) == {"a": 1}
+    assert paramfile.load(f) == {"a": 1}
 
 
 # ----------------------------------------------------------------------------- progress

@@ -83,7 +83,7 @@ def test_dataset_bad_input_is_one_line_exit_2(capsys, case, needle):
 
 def test_dataset_option_misuse_is_an_input_error(capsys):
     rc, _, err = _run(["dataset", "plaza", "--data", str(DATA), "--robot", "3"], capsys)
-    assert rc == 2 and "1 or 2" in err
+    assert rc == 2 and "--robot: Plaza sequence 3 is not in" in err and "(found: 1, 2)" in err
     rc, _, err = _run(["dataset", "util-uwb", "--data", str(DATA), "--filter", "fastslam"], capsys)
     assert rc == 2 and "--filter" in err and "EKF only" in err
     rc, _, err = _run(["dataset", "victoria-park", "--data", str(DATA), "--ids", "hidden"], capsys)
@@ -95,6 +95,6 @@ def test_dataset_option_misuse_is_an_input_error(capsys):
     rc, _, err = _run(["dataset", "plaza", "--data", str(DATA), "--tum", str(DATA)], capsys)
     assert rc == 2 and "--tum" in err
     rc, _, err = _run(["dataset", "mrclam", "--data", str(DATA), "--robot", "7"], capsys)
-    assert rc == 2 and "1..5" in err
+    assert rc == 2 and "--robot: MRCLAM robot 7 is not in" in err and "(found: 1, 2)" in err
     rc, _, err = _run(["dataset", "mrclam", "--data", str(DATA), "--robot", "3"], capsys)
-    assert rc == 2 and "Robot3_Odometry.dat" in err  # the excerpts hold robots 1 and 2
+    assert rc == 2 and "(found: 1, 2)" in err  # the excerpts hold robots 1 and 2

@@ -12,7 +12,6 @@ failure.
 from __future__ import annotations
 
 import argparse
-import pathlib
 import sys
 
 from ..errors import InputError
@@ -33,7 +32,11 @@ datasets (see docs/datasets.md for downloads, formats and measured figures):
                  --anchors known localises against the surveyed beacons instead
 
 DIR is the dataset's folder or a parent holding it (e.g. the folder with mrclam6/,
-victoria_park/, util_uwb/ and gtsam/)."""
+victoria_park/, util_uwb/ and gtsam/); without --data, $JAXSLAM_DATA_DIR names it.
+'jaxslam list' shows which datasets that folder holds.
+
+Ctrl-C: the log is filtered by one compiled scan, so an interrupted run has nothing
+finished to keep; it exits 130 and writes no file (an existing --json is left as it was)."""
 
 
 def _parser():
@@ -44,7 +47,8 @@ def _parser():
                 epilog=_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("name", metavar="NAME", choices=("mrclam", "victoria-park", "util-uwb", "plaza"),
                    help="mrclam | victoria-park | util-uwb | plaza")
-    p.add_argument("--data", metavar="DIR", required=True, help="folder holding the dataset files")
+    p.add_argument("--data", metavar="DIR", default=None,
+                   help="folder holding the dataset files, or a parent of it (default: $JAXSLAM_DATA_DIR)")
     p.add_argument("--robot", type=_positive_int, default=1, metavar="N",
                    help="MRCLAM robot number, or Plaza sequence 1|2 (default: 1)")
     p.add_argument("--filter", choices=("ekf", "fastslam"), default="ekf",
@@ -84,39 +88,42 @@ def _fmt(v):
 
 
 def main(argv) -> int:
+    from .. import files, paramfile
+    from . import catalogue
+
     args = _parser().parse_args(argv)
-    data = pathlib.Path(args.data)
-    if not data.is_dir():
-        raise InputError(f"--data: {str(data)!r} is not a folder")
-    json_path = pathlib.Path(args.json) if args.json else None
-    if json_path is not None and json_path.is_dir():
-        raise InputError(f"--json: {str(json_path)!r} is a folder; give a file path")
-    tum_path = pathlib.Path(args.tum) if args.tum else None
-    if tum_path is not None and tum_path.is_dir():
-        raise InputError(f"--tum: {str(tum_path)!r} is a folder; give a file path")
-    plots = pathlib.Path(args.plots) if args.plots else None
-    if plots is not None and plots.exists() and not plots.is_dir():
-        raise InputError(f"--plots: {str(plots)!r} exists and is not a folder")
-
-    from .. import io
-
-    params = io.load_params(args.params) if args.params else None
+    # Inputs, then outputs, checked before anything is parsed or compiled.
+    data = catalogue.data_root(args.data)
+    if args.name in ("mrclam", "plaza"):
+        catalogue.check_robot(args.name, data, args.robot)
+    params = paramfile.load(args.params) if args.params else None
+    json_path = files.prepare_file("--json", args.json) if args.json else None
+    tum_path = files.prepare_file("--tum", args.tum) if args.tum else None
+    plots = files.prepare_dir("--plots", args.plots) if args.plots else None
 
     import jax
     import numpy as np
 
     if not args.float32:
         jax.config.update("jax_enable_x64", True)
-    from .. import compilation
+    from .. import compilation, io
     from ..cli import compile_timing
     from . import runners
 
     dtype = np.dtype(np.float32 if args.float32 else np.float64)
-    with compilation.account() as acct:
-        run = runners.run_dataset(args.name, data, robot=args.robot, filter=args.filter, ids=args.ids,
-                                  anchors=args.anchors, tof=args.tof, calibrated=args.calibrated,
-                                  particles=args.particles, seed=args.seed, dtype=dtype,
-                                  **({"params": params} if params is not None else {}))
+    if params is not None:
+        runners.dataset_params(params, args.name)  # keys checked before the log is read
+    try:
+        with compilation.account() as acct:
+            run = runners.run_dataset(args.name, data, robot=args.robot, filter=args.filter, ids=args.ids,
+                                      anchors=args.anchors, tof=args.tof, calibrated=args.calibrated,
+                                      particles=args.particles, seed=args.seed, dtype=dtype,
+                                      **({"params": params} if params is not None else {}))
+    except KeyboardInterrupt:
+        print("jaxslam dataset: interrupted before the run finished: nothing to keep, no file written"
+              + (f" ({str(json_path)!r} left as it was)" if json_path is not None and json_path.exists() else ""),
+              file=sys.stderr, flush=True)
+        return 130
     doc = runners.to_json(run)
     if "compile_s" in doc["timing"]:
         doc["timing"]["main_program_compile_s"] = doc["timing"].pop("compile_s")

@@ -35,6 +35,9 @@ Quirks handled:
   and 2867) jump back by 64 s and 50 s.  The ranges are stably sorted by
   time; ``report["td_out_of_order_lines"]`` lists the lines where time went
   backwards.  All other files must be in time order.
+* ``DR`` rows are increments, each applied once at its own time, so a repeated DR time
+  (a duplicated line) would apply that motion twice: it is refused at its line (the
+  shipped files never repeat a DR time).  Repeated times elsewhere are harmless.
 * Ranges are biased (median +2.8 m against GT and TL) and have outliers;
   nothing is corrected here.
 """
@@ -110,7 +113,8 @@ def load_plaza(path, which: int) -> PlazaData:
       InputError: ``which`` is not 1 or 2.
       MissingDataError: a file is missing.
       DataFormatError: a malformed file (``file:line``), time going backwards
-        in DR/GT/DRp, non-integer ids, or a range to a node absent from TL.
+        in DR/GT/DRp, a repeated DR time, non-integer ids, or a range to a node
+        absent from TL.
     """
     if isinstance(which, bool) or which not in (1, 2):
         raise InputError(f"which: expected 1 or 2 (Plaza 1 or Plaza 2), got {which!r}")
@@ -122,6 +126,11 @@ def load_plaza(path, which: int) -> PlazaData:
     gt = read_table(d / names["GT"], 4, time_cols=0)
     drp = read_table(d / names["DRp"], 4, time_cols=0)
     tl = read_table(d / names["TL"], 3)
+    rep = np.nonzero(np.diff(dr.data[:, 0]) == 0)[0] + 1
+    if rep.size:
+        i = int(rep[0])
+        raise dr.error(i, f"time {float(dr.data[i, 0])!r} repeats (line {int(dr.lines[i - 1])}): DR rows "
+                          "are odometry increments, so a repeated row would apply its motion twice")
 
     node_id = int_column(tl, 0, "node id", lo=0)
     sender = int_column(td, 1, "sender id", lo=0)

@@ -34,6 +34,7 @@ import numpy as np
 from .. import metrics
 from .events import merge_events
 from ..errors import InputError
+from ..paramfile import TUNE_REPORT_KEYS
 
 __all__ = ["DatasetRun", "run_dataset", "to_json", "timed_run", "dead_reckoning", "evaluate_planar"]
 
@@ -232,13 +233,6 @@ def run_dataset(name: str, data_dir, **options) -> DatasetRun:
     return _RUNNERS[name](data_dir, **kw)
 
 
-#: top-level keys of a ``jaxslam tune`` report besides ``dataset`` and ``noise`` (the report is
-#: itself a ``--params`` file; these keys are read by nothing here)
-_TUNE_REPORT_KEYS = {"scenario", "target", "loss", "before", "after", "params_before", "params_after",
-                     "history", "references", "stopped", "n_skipped", "steps", "lr", "config", "timing",
-                     "memory", "eval_command", "versions"}
-
-
 def dataset_params(obj, name: str) -> dict:
     """The ``noise`` entries of a ``--params`` object for dataset ``name`` (validated keys).
 
@@ -249,7 +243,7 @@ def dataset_params(obj, name: str) -> dict:
     """
     if not isinstance(obj, dict):
         raise InputError(f"--params: expected a JSON object, got {type(obj).__name__}")
-    unknown = sorted(set(obj) - {"dataset", "noise"} - _TUNE_REPORT_KEYS)
+    unknown = sorted(set(obj) - {"dataset", "noise"} - TUNE_REPORT_KEYS)
     if unknown:
         raise InputError(f"--params: unknown key(s) {unknown}; a dataset --params file holds "
                          "'dataset' and 'noise' (written by 'jaxslam tune')")
@@ -262,6 +256,11 @@ def dataset_params(obj, name: str) -> dict:
                          "the file's noise was fitted for another dataset")
     if not isinstance(obj["noise"], dict):
         raise InputError(f"--params: key 'noise' must be an object, got {type(obj['noise']).__name__}")
+    from ..systems.planar_ekf_slam import PlanarParams  # the keys, checked before any log is read
+
+    unknown = sorted(set(obj["noise"]) - set(PlanarParams._fields))
+    if unknown:
+        raise InputError(f"--params: noise: unknown key(s) {unknown}; expected some of {list(PlanarParams._fields)}")
     return obj["noise"]
 
 
@@ -387,10 +386,12 @@ def run_util_uwb(data_dir, robot=1, filter="ekf", ids="known", anchors=None, par
         "pos_rmse_m": float(np.sqrt(np.mean(err[air] ** 2))),
         "pos_rmse_whole_m": float(np.sqrt(np.mean(err ** 2))),
         "ate_m": float(np.sqrt(np.mean(np.sum((est_al[air] - true[air]) ** 2, 1)))),
-        "rpe_m": rpe_pairs(t[air], est[air], true[air])[0],
         "range_bias_m": float(res.bias_final),
         "range_bias_sigma_m": float(res.bias_sigma),
     }
+    rpe, n_pairs = rpe_pairs(t[air], est[air], true[air])
+    if n_pairs:  # absent (not NaN) without a pair of samples 1 ± 0.1 s apart, as evaluate_planar
+        m["rpe_m"], m["rpe_pairs"] = rpe, n_pairs
     A = np.asarray(res.landmarks, np.float64)
     lid = np.asarray(res.landmark_ids)
     act = np.asarray(res.active)
@@ -403,7 +404,9 @@ def run_util_uwb(data_dir, robot=1, filter="ekf", ids="known", anchors=None, par
     n_h = int(np.sum(log.mask & (log.ids < 0)))
     counts = _counts_common(res.status, {"measurements": int(np.sum(log.mask)) - n_h, "used": res.n_used,
                                          "gated": res.n_gated, "rejected": 0,
-                                         "registered": res.n_registered})
+                                         "registered": res.n_registered,
+                                         # rows sharing a stamp beyond the log's K (1): never silent
+                                         "dropped_beyond_K": log.stats["dropped_overflow"]})
     if tof:
         counts.update(height_measurements=n_h, height_used=int(res.n_height_used),
                       height_gated=int(res.n_height_gated))

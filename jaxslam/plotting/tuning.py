@@ -7,12 +7,14 @@ is imported lazily (Agg).  Every function returns the Figure; :func:`plot_all` w
 from __future__ import annotations
 
 import math
+import textwrap
 
 import numpy as np
 
+from .common import keep_margins
 from .flight import plt, save
 
-__all__ = ["loss_curves", "param_trajectories", "before_after", "plot_all"]
+__all__ = ["before_after", "choose_panels", "loss_curves", "param_trajectories", "plot_all"]
 
 
 def loss_curves(history, title="Tuning loss"):
@@ -67,22 +69,144 @@ def param_trajectories(history, reference=None, title="Parameter trajectories"):
     return fig
 
 
-def before_after(report, metrics=None, title="Held-out evaluation"):
-    """Bars of held-out means (before, after, references) for a few metrics."""
-    before, after = report["before"]["metrics"], report["after"]["metrics"]
+# What the before/after figure shows first (docs/tuning.md): the loss, the scenario's headline
+# position error, the consistency statistics, then these metrics, then the rest alphabetically.
+HEADLINE_METRICS = ("pos_rmse_m", "ate_m", "nominal_track_pos_rmse_settled_m", "nominal_track_pos_rmse_m",
+                    "track_pos_rmse_settled_m", "track_pos_rmse_m")
+CONSISTENCY_PRIORITY = ("anees", "nis_mean", "anees_robot")
+METRIC_PRIORITY = ("nll", "nominal_closed_loop_cost", "closed_loop_cost", "pos_rmse_settled_m",
+                   "landmark_rmse_m", "vel_rmse_mps", "att_rmse_deg", "yaw_rmse_deg", "outlier_fraction")
+MAX_PANELS = 8
+
+
+def _loss_panel(report):
+    hist = [h for h in report.get("history", []) if h.get("loss") is not None]
+    if not hist:
+        return None
+    first, last = hist[0], hist[-1]
+    held = first.get("test_loss") is not None and last.get("test_loss") is not None
+    key = "test_loss" if held else "loss"
+    return {"key": "loss", "kind": "loss", "bounds": None, "values": [first[key], last[key]],
+            "title": f"loss '{report.get('loss', '?')}' ({'held-out' if held else 'training batch'}, "
+                     f"step {first['step']} vs {last['step']})"}
+
+
+def _headline(names):
+    for m in HEADLINE_METRICS:
+        if m in names:
+            return m
+    return next((m for m in names if "pos_rmse" in m or m.startswith("ate")), None)
+
+
+def choose_panels(report, max_panels=MAX_PANELS):
+    """The panels of :func:`before_after`, by priority, and the names left out (pure).
+
+    Order: the loss (first and last recorded step), the headline position metric
+    (:data:`HEADLINE_METRICS`, else the first ``*pos_rmse*`` / ``ate*``), the consistency
+    statistics (:data:`CONSISTENCY_PRIORITY`, then any other), the metrics of
+    :data:`METRIC_PRIORITY`, then the rest alphabetically.
+
+    Returns:
+      ``(panels, left_out)``: panels ``{"key", "kind": "loss" | "consistency" | "metric",
+      "title", "values": [before, after, *references], "bounds": (lo, hi) | None}``; the
+      names of the statistics that did not fit.
+    """
+    before, after = report["before"], report["after"]
+    refs = list(report.get("references", {}).values())
+    cands = []
+    lp = _loss_panel(report)
+    if lp is not None:
+        cands.append(lp)
+    names = list(before["metrics"])
+
+    def metric(m):
+        return {"key": m, "kind": "metric", "title": m, "bounds": None,
+                "values": [before["metrics"][m]["mean"], after["metrics"][m]["mean"]]
+                + [r["metrics"].get(m, {}).get("mean") for r in refs]}
+
+    head = _headline(names)
+    if head is not None:
+        cands.append(metric(head))
+    cb, ca = before.get("consistency") or {}, after.get("consistency") or {}
+    stats = [k for k, v in cb.items() if k in ca and isinstance(v, (int, float)) and not isinstance(v, bool)
+             and not k.endswith(("_bounds", "_block", "_dim"))]
+    stats.sort(key=lambda k: (CONSISTENCY_PRIORITY.index(k) if k in CONSISTENCY_PRIORITY
+                              else len(CONSISTENCY_PRIORITY), k))
+    for k in stats:
+        stem = k.removesuffix("_mean")
+        b = ca.get(f"{k}_bounds", ca.get(f"{stem}_bounds"))
+        block, dim = ca.get(f"{k}_block", ca.get(f"{stem}_block")), ca.get(f"{k}_dim", ca.get(f"{stem}_dim"))
+        title = k
+        if block is not None:
+            what = f"{block}" + (f", {dim} states" if dim is not None and not stem.startswith("nis") else "")
+            title += "\n" + "\n".join(textwrap.wrap(what, 44))
+        cands.append({"key": k, "kind": "consistency", "title": title,
+                      "bounds": tuple(b) if b is not None and len(b) == 2 else None,
+                      "values": [cb[k], ca[k]] + [(r.get("consistency") or {}).get(k) for r in refs]})
+    rest = [m for m in METRIC_PRIORITY if m in names and m != head]
+    rest += sorted(m for m in names if m != head and m not in rest)
+    cands += [metric(m) for m in rest]
+    return cands[:max_panels], [c["key"] for c in cands[max_panels:]]
+
+
+def _num(v):
+    return float("nan") if v is None else float(v)
+
+
+def before_after(report, metrics=None, title="Held-out evaluation", max_panels=MAX_PANELS):
+    """Bars of held-out means (before, after, references): the panels of :func:`choose_panels`
+    (or exactly ``metrics``), each titled with the change after vs before; consistency panels
+    shade their 95 % bounds; a note names what did not fit."""
     refs = report.get("references", {})
-    metrics = metrics or list(before)[:6]
+    if metrics is not None:
+        panels, left_out = choose_panels(report, max_panels=10 ** 6)
+        panels = [q for q in panels if q["key"] in metrics]
+        left_out = []
+    else:
+        panels, left_out = choose_panels(report, max_panels)
     p = plt()
-    fig, axes = p.subplots(1, len(metrics), figsize=(2.6 * len(metrics), 3.4), squeeze=False)
+    ncol = min(4, max(1, len(panels)))
+    nrow = -(-len(panels) // ncol)
+    fig, axes = p.subplots(nrow, ncol, figsize=(2.9 * ncol, 2.9 * nrow + 1.2), squeeze=False)
     labels = ["before", "after"] + list(refs)
-    for ax, m in zip(axes[0], metrics):
-        vals = [before[m]["mean"], after[m]["mean"]] + [r["metrics"][m]["mean"] for r in refs.values()]
-        ax.bar(range(len(vals)), vals, color=[f"C{i}" for i in range(len(vals))])
-        ax.set_xticks(range(len(vals)))
-        ax.set_xticklabels(labels, rotation=30, fontsize=8)
-        ax.set_title(m, fontsize=9)
-    fig.suptitle(title)
-    fig.tight_layout()
+    colors = [f"C{i}" for i in range(len(labels))]
+    for ax, q in zip(axes.ravel(), panels):
+        vals = [_num(v) for v in q["values"]]
+        x = np.arange(len(vals))
+        ax.bar(x, np.nan_to_num(vals), color=colors[:len(vals)])
+        for xi, v in zip(x, vals):
+            ax.text(xi, 0 if not np.isfinite(v) else v, "n/a" if not np.isfinite(v) else f"{v:.3g}",
+                    ha="center", va="bottom", fontsize=7)
+        shown = [v for v in vals if np.isfinite(v)]
+        if q["bounds"] is not None and all(b is not None for b in q["bounds"]):
+            lo, hi = (float(b) for b in q["bounds"])
+            ax.axhspan(lo, hi, color="g", alpha=0.2, zorder=0, label="95 % bounds (after)")
+            ax.legend(fontsize=6, loc="lower right")
+            shown.append(hi)
+        top = max(shown + [0.0])
+        if np.isfinite(top) and top > 0:
+            ax.set_ylim(top=1.15 * top)
+        ax.set_xticks(x)
+        ax.set_xticklabels(labels[:len(vals)], rotation=30, fontsize=8)
+        b, a = vals[0], vals[1]
+        change = f"after {100 * (a - b) / abs(b):+.1f} %" if np.isfinite(a) and np.isfinite(b) and b else ""
+        if q["bounds"] is not None and np.isfinite(a) and all(v is not None for v in q["bounds"]):
+            lo, hi = (float(v) for v in q["bounds"])
+            change += ("; " if change else "") + ("inside the bounds" if lo <= a <= hi else
+                                                  "below the bounds" if a < lo else "above the bounds")
+        ax.set_title(q["title"] + (f"\n{change}" if change else ""), fontsize=8)
+    for ax in axes.ravel()[len(panels):]:
+        ax.axis("off")
+    fig.suptitle(title, fontsize=11)
+    note = ""
+    if left_out:
+        note = (f"showing {len(panels)} of {len(panels) + len(left_out)} statistics by priority (loss, "
+                f"position error, consistency, then the rest); not shown: {', '.join(left_out)} "
+                "(all in the printed table and the tune JSON)")
+        fig.text(0.01, 0.01, "\n".join(textwrap.wrap(note, 170)), fontsize=7, va="bottom", color="0.25")
+    h = 2.9 * nrow + 1.2
+    keep_margins(fig, left=0.06, right=0.98, top=1 - 1.05 / h,
+                 bottom=(0.55 + (0.15 * (1 + len(note) // 170) if note else 0)) / h, hspace=1.1, wspace=0.35)
     return fig
 
 

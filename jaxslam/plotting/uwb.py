@@ -5,10 +5,14 @@
 * ``*_startup``: the forced straight-line run — true positions and the
   positions the start-up assumes, (−d(k), 0) — and the anchors as the start-up
   initialised them, with 3σ ellipses (localisation: the initial LS fix);
-* ``*_errors``: x, y, velocity and attitude errors with ±3σ bands, and each
-  anchor's error over time (SLAM);
-* ``*_nees``: per-step ANEES over the runs (robot block and position) with
-  their 95 % bounds.
+* ``*_errors``: x, y, velocity and heading errors with ±3σ bands (roll and
+  pitch only when the flight has them; a band is omitted, with a note, where it
+  is not finite or wider than ±180° on an angle: see :func:`state_panels`,
+  :func:`band`), the position error norm, the NIS, and each anchor's error over
+  time (SLAM);
+* ``*_nees``: per-step ANEES over the runs of the position (the headline
+  ``consistency.anees``) and of the 10-state robot block (``anees_robot``), named,
+  with their 95 % bounds and the verdict of their time averages.
 
 NumPy inputs; matplotlib is imported lazily (Agg).
 """
@@ -17,9 +21,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from .common import keep_margins, verdict
 from .flight import plt, save
 
-__all__ = ["ellipse_points", "plot_all"]
+__all__ = ["STATE_NAMES", "band", "ellipse_points", "plot_all", "state_panels"]
 
 
 def ellipse_points(mean, cov, k=3.0, n=64):
@@ -29,6 +34,65 @@ def ellipse_points(mean, cov, k=3.0, n=64):
     a = np.linspace(0, 2 * np.pi, n)
     circ = np.stack([np.cos(a), np.sin(a)], axis=1)
     return np.asarray(mean)[None, :] + k * (circ * w[None, :]) @ V.T
+
+
+STATE_NAMES = ("x", "y", "v_x", "v_y", "roll", "pitch", "yaw", "w_roll", "w_pitch", "w_yaw")
+# The NEES figure's panels: block name and where its time average sits in the run JSON.
+NEES_BLOCKS = {"pos": ("position (x, y)", "headline: consistency.anees"),
+               "robot": ("robot block (x, y, v_x, v_y, roll, pitch, yaw, 3 body rates)",
+                         "consistency.anees_robot")}  # the names of sim.scenarios.uwb's JSON
+ANGLE_BAND_LIMIT_DEG = 180.0
+
+
+def state_panels(att_true, tol=1e-9):
+    """State panels of the ``*_errors`` figure and notes on what is left out (pure).
+
+    Args:
+      att_true: (T, 3) true roll, pitch, yaw [rad] in the filter's reference.
+
+    Returns:
+      ``([(ylabel, state indices, unit scale, band limit or None), ...], [note, ...])``:
+      x, y, v_x, v_y [m, m/s] and the heading (yaw) [deg] always; roll and pitch (one panel)
+      only when the flight has roll or pitch motion: in a planar flight they are the
+      integrated noise of two zero gyro rates, and the run's ``att_rmse_deg`` reports them.
+      Angles carry a band limit of ±180° (a wider 3σ constrains nothing).
+    """
+    deg = 180.0 / np.pi
+    lim = ANGLE_BAND_LIMIT_DEG
+    panels = [("x error [m]", (0,), 1.0, None), ("y error [m]", (1,), 1.0, None),
+              ("v_x error [m/s]", (2,), 1.0, None), ("v_y error [m/s]", (3,), 1.0, None),
+              ("heading (yaw) error [deg]", (6,), deg, lim)]
+    notes = []
+    a = np.asarray(att_true, float)
+    if a.size and np.nanmax(np.abs(a[:, :2])) > tol:
+        panels.append(("roll, pitch error [deg]", (4, 5), deg, lim))
+    else:
+        notes.append("roll and pitch not drawn: this flight has no roll or pitch motion "
+                     "(their errors are in att_rmse_deg)")
+    return panels, notes
+
+
+def band(sig3, t, limit=None, name="state"):
+    """The ±3σ half-width to draw and a note when part of it is omitted (pure).
+
+    Entries that are not finite, or (``limit`` given) wider than ``limit``, become NaN: a band
+    wider than ±180° on an angle says the filter does not constrain it, and drawing it
+    (±900° on the paper's Q) only flattens the error line.  Returns ``(band, note or None)``.
+    """
+    b = np.asarray(sig3, float).copy()
+    t = np.asarray(t, float)
+    bad_nf = ~np.isfinite(b)
+    bad_wide = np.zeros_like(bad_nf) if limit is None else (np.isfinite(b) & (b > limit))
+    b[bad_nf | bad_wide] = np.nan
+    notes = []
+    if bad_wide.any():
+        t0 = t[np.argmax(bad_wide)]
+        notes.append(f"{name}: 3σ exceeds ±{limit:g}° at {100 * bad_wide.mean():.0f} % of the steps "
+                     f"(first at t = {t0:g} s): the filter does not constrain it there, band omitted")
+    if bad_nf.any():
+        notes.append(f"{name}: 3σ undefined (non-finite covariance) at {int(bad_nf.sum())} step(s), "
+                     "band omitted there")
+    return b, ("; ".join(notes) or None)
 
 
 def _frame(sim, res, cfg):
@@ -104,55 +168,87 @@ def plot_all(name, sim, res, ev, setup, cfg, per_step, cons, runs, directory):
     ax.legend(fontsize=7)
     paths.append(save(fig, directory, f"{name}_startup"))
 
-    # --- errors with ±3σ
+    # --- errors with ±3σ: the states this flight exercises, bands only where they mean something
     x_t = np.concatenate([pos_t, tr[:, 2:4] @ M.T, tr[:, 4:10]], axis=1)
     err = np.asarray(st.mean) - x_t
     err[:, 4:7] = (err[:, 4:7] + np.pi) % (2 * np.pi) - np.pi
     sig = np.sqrt(np.clip(np.diagonal(np.asarray(st.cov), axis1=1, axis2=2), 0, None))
-    labels = ["x [m]", "y [m]", "v_x [m/s]", "v_y [m/s]", "roll [deg]", "pitch [deg]", "yaw [deg]"]
-    nrow = 4 if cfg.mode == "slam" else 3
-    fig, axs = p.subplots(nrow, 3, figsize=(12, 2.4 * nrow), sharex=True)
+    panels, notes = state_panels(x_t[:, 4:7])
+    n_extra = 3 if cfg.mode == "slam" else 2
+    ncol = 3
+    nrow = -(-(len(panels) + n_extra) // ncol)
+    fig, axs = p.subplots(nrow, ncol, figsize=(12, 2.4 * nrow + 0.4), sharex=True)
     axs = axs.ravel()
-    for i, lab in enumerate(labels):
-        scale = 180 / np.pi if i >= 4 else 1.0
-        axs[i].plot(t, err[:, i] * scale, "C1-", lw=1)
-        axs[i].fill_between(t, -3 * sig[:, i] * scale, 3 * sig[:, i] * scale, color="C0", alpha=0.2,
-                            label="±3σ")
-        axs[i].set_ylabel(lab)
-    axs[7].plot(t, np.asarray(ev["series"]["pos_err_m"]), "k-", lw=1)
-    axs[7].set_ylabel("‖position error‖ [m]")
-    axs[8].plot(t, np.asarray(st.nis), "C2-", lw=0.8)
-    axs[8].set_ylabel("NIS (this run)")
+    for a, (lab, idx, scale, limit) in zip(axs, panels):
+        omitted = False
+        for j, i in enumerate(idx):
+            a.plot(t, err[:, i] * scale, f"C{1 + j}-", lw=1, label=STATE_NAMES[i] if len(idx) > 1 else "error")
+            b, note = band(3 * sig[:, i] * scale, t, limit, STATE_NAMES[i])
+            if np.any(np.isfinite(b)):
+                a.fill_between(t, -b, b, color=f"C{0 if j == 0 else 4}", alpha=0.2 if j == 0 else 0.12,
+                               label="±3σ" if len(idx) == 1 else f"±3σ {STATE_NAMES[i]}")
+            if note:
+                notes.append(note)
+                omitted = True
+        if omitted:  # the y-range fits the errors, not what is left of the band
+            e = np.abs(err[:, list(idx)] * scale)
+            top = 1.3 * float(np.nanmax(e)) if np.any(np.isfinite(e)) else 1.0
+            a.set_ylim(-max(top, 1e-3), max(top, 1e-3))
+            a.text(0.01, 0.97, f"3σ band omitted where wider than ±{limit:g}° (see note)",
+                   transform=a.transAxes, fontsize=6.5, va="top", color="0.3")
+        a.set_ylabel(lab)
+        a.legend(fontsize=6, loc="lower right", ncol=len(idx))
+    k = len(panels)
+    axs[k].plot(t, np.asarray(ev["series"]["pos_err_m"]), "k-", lw=1, label="‖error‖")
+    axs[k].plot(t, 3 * np.sqrt(sig[:, 0] ** 2 + sig[:, 1] ** 2), "C0--", lw=0.8, label="3√(σx² + σy²)")
+    axs[k].set_ylabel("‖position error‖ [m]")
+    axs[k].legend(fontsize=6)
+    axs[k + 1].plot(t, np.asarray(st.nis), "C2-", lw=0.8, label="NIS")
+    axs[k + 1].plot(t, np.asarray(st.dof), "k:", lw=0.8, label="expected (dof)")
+    axs[k + 1].set_ylabel("NIS (this run)")
+    axs[k + 1].legend(fontsize=6)
     if cfg.mode == "slam":
         Ls = np.asarray(st.landmarks)
         acts = np.asarray(st.active)
+        lmc = np.asarray(st.lm_cov)
         for i in range(anc_t.shape[0]):
             e = np.linalg.norm(Ls[:, i] - anc_t[i], axis=1)
-            axs[9].plot(t, np.where(acts[:, i], e, np.nan), lw=1, label=f"anchor {i}")
-            sdev = np.sqrt(np.clip(np.trace(np.asarray(st.lm_cov)[:, i], axis1=1, axis2=2), 0, None))
-            axs[10].plot(t, np.where(acts[:, i], sdev, np.nan), lw=1, label=f"anchor {i}")
-        axs[9].set_ylabel("anchor error [m]")
-        axs[10].set_ylabel("anchor √tr P [m]")
-        axs[9].legend(fontsize=6)
-        axs[11].axis("off")
-    for a in axs[-3:]:
+            axs[k + 2].plot(t, np.where(acts[:, i], e, np.nan), f"C{i}-", lw=1, label=f"anchor {i}")
+            sdev = np.sqrt(np.clip(np.trace(lmc[:, i], axis1=1, axis2=2), 0, None))
+            axs[k + 2].plot(t, np.where(acts[:, i], sdev, np.nan), f"C{i}--", lw=0.8)
+        axs[k + 2].plot([], [], "k--", lw=0.8, label="√tr P (dashed)")
+        axs[k + 2].set_ylabel("anchor error ‖l̂ − l‖ [m]")
+        axs[k + 2].legend(fontsize=6, ncol=2)
+    n_used = len(panels) + n_extra
+    for a in axs[n_used:]:
+        a.axis("off")
+    for a in axs[max(0, n_used - ncol):n_used]:  # the lowest panel of each column
         a.set_xlabel("t [s]")
-    axs[0].legend(fontsize=7)
-    fig.suptitle(f"{name}: errors with ±3σ ({frame})")
-    fig.tight_layout()
+        a.xaxis.set_tick_params(labelbottom=True)
+    fig.suptitle(f"{name}: estimation errors of run 0 with ±3σ ({frame})")
+    if notes:
+        fig.text(0.01, 0.005, "\n".join(notes), fontsize=7, va="bottom", color="0.25")
+    h = 2.4 * nrow + 0.4
+    keep_margins(fig, left=0.07, right=0.98, top=1 - 0.55 / h, bottom=(0.45 + 0.13 * len(notes)) / h,
+                 hspace=0.15, wspace=0.25)
     paths.append(save(fig, directory, f"{name}_errors"))
 
-    # --- Monte Carlo NEES
-    fig, axs = p.subplots(1, 2, figsize=(11, 3.5), sharex=True)
-    for ax, key in zip(axs, ("robot", "pos")):
+    # --- Monte Carlo NEES: both blocks, named; the position block is the headline
+    fig, axs = p.subplots(1, 2, figsize=(11, 4.2), sharex=True)
+    for ax, key in zip(axs, ("pos", "robot")):
         c = cons[key]
-        ax.plot(t, per_step[key], "C0-", lw=1, label=f"ANEES over {runs} runs (mean {c['anees']:.2f})")
-        ax.axhline(c["bounds"][0], color="k", ls="--", lw=0.8, label="95 % bounds")
+        block = NEES_BLOCKS[key]
+        ax.plot(t, per_step[key], "C0-", lw=1, label=f"ANEES per step over {runs} run(s)")
+        ax.axhline(c["bounds"][0], color="k", ls="--", lw=0.8, label="95 % χ² bounds (per step)")
         ax.axhline(c["bounds"][1], color="k", ls="--", lw=0.8)
-        ax.axhline(c["dof"], color="g", ls=":", lw=0.8)
+        ax.axhline(c["dof"], color="g", ls=":", lw=0.8, label=f"expected ({c['dof']})")
         ax.set_yscale("log")
         ax.set_xlabel("t [s]")
-        ax.set_title(f"NEES {key} ({c['dof']} states)")
-        ax.legend(fontsize=7)
+        ax.set_ylabel(f"NEES, {c['dof']} states")
+        ax.set_title(f"{block[0]}, {c['dof']} states\ntime average {c['anees']:.2f} ({block[1]}): "
+                     f"{verdict(c['anees'], c['bounds'])}", fontsize=8.5)
+        ax.legend(fontsize=7, loc="lower right")
+    fig.suptitle(f"{name}: Monte Carlo NEES by state block")
+    keep_margins(fig, left=0.07, right=0.98, bottom=0.12, top=0.80, wspace=0.22)
     paths.append(save(fig, directory, f"{name}_nees"))
     return paths

@@ -27,6 +27,12 @@ than its metrics.  An output ``"detail"`` of ``fn`` is kept for the first run on
 scenario's plots come from the same compiled program as its metrics instead of a second
 compilation (with ``"vmap"`` the chunk is capped at :data:`DETAIL_CHUNK` runs to bound it).
 
+Interrupts: a Ctrl-C (``KeyboardInterrupt``) between chunks keeps the chunks already
+finished: the result holds their runs (``runs`` < the runs asked for, ``interrupted``
+true) and the caller reports them as such.  A Ctrl-C before the first chunk has finished
+propagates.  (The signal is handled when the host regains control, i.e. after the compiled
+call in flight returns.)
+
 Timing separates compilation (trace, lower and compile; :mod:`jaxslam.compilation`
 splits it) from execution, which is measured with ``block_until_ready``.
 """
@@ -57,6 +63,8 @@ class MCResult(NamedTuple):
     run_s: float
     n_devices: int
     chunk: int  # runs per compiled call (1 with "loop" batching)
+    runs: int  # runs finished: the runs asked for, unless interrupted
+    interrupted: bool  # Ctrl-C arrived after at least one chunk (run) had finished
 
 
 @jax.jit
@@ -126,19 +134,24 @@ def run(fn: Callable, seed: int, runs: int, chunk: Optional[int] = None,
         compiled, compile_s = compile_(fn, keys[0])
         outs = []
         t0 = time.perf_counter()
-        for i in range(runs):
-            res = jax.block_until_ready(compiled(keys[i]))
-            if has_detail and i > 0:  # only run 0's detail is kept: never copied to the host
-                res = {k: v for k, v in res.items() if k != "detail"}
-            outs.append(jax.tree.map(np.asarray, res))
-            if progress is not None:
-                progress.update(i + 1)
+        try:
+            for i in range(runs):
+                res = jax.block_until_ready(compiled(keys[i]))
+                if has_detail and i > 0:  # only run 0's detail is kept: never copied to the host
+                    res = {k: v for k, v in res.items() if k != "detail"}
+                outs.append(jax.tree.map(np.asarray, res))
+                if progress is not None:
+                    progress.update(i + 1)
+        except KeyboardInterrupt:
+            if not outs:
+                raise
         run_s = time.perf_counter() - t0
         detail = outs[0].pop("detail") if has_detail else None
         out = jax.tree.map(lambda *a: np.stack(a, axis=0), *outs)
         if has_detail:
             out["detail"] = detail
-        return MCResult(out=out, compile_s=compile_s, run_s=run_s, n_devices=nd, chunk=1)
+        return MCResult(out=out, compile_s=compile_s, run_s=run_s, n_devices=nd, chunk=1,
+                        runs=len(outs), interrupted=len(outs) < runs)
 
     cap = DETAIL_CHUNK if has_detail else 256
     chunk = min(runs, cap) if chunk is None else max(1, min(int(chunk), runs, cap))
@@ -168,17 +181,23 @@ def run(fn: Callable, seed: int, runs: int, chunk: Optional[int] = None,
     outs = []
     detail = None
     t0 = time.perf_counter()
-    for c in range(n_chunks):
-        res = compiled(place(keys[c * chunk:(c + 1) * chunk]))
-        res = dict(jax.block_until_ready(res)) if has_detail else jax.block_until_ready(res)
-        if has_detail:  # only the first chunk's detail is kept: never copied to the host otherwise
-            d = res.pop("detail")
-            detail = jax.tree.map(np.asarray, d) if c == 0 else detail
-        outs.append(jax.tree.map(np.asarray, res))
-        if progress is not None:
-            progress.update(min((c + 1) * chunk, runs))
+    try:
+        for c in range(n_chunks):
+            res = compiled(place(keys[c * chunk:(c + 1) * chunk]))
+            res = dict(jax.block_until_ready(res)) if has_detail else jax.block_until_ready(res)
+            if has_detail:  # only the first chunk's detail is kept: never copied to the host otherwise
+                d = res.pop("detail")
+                detail = jax.tree.map(np.asarray, d) if c == 0 else detail
+            outs.append(jax.tree.map(np.asarray, res))
+            if progress is not None:
+                progress.update(min((c + 1) * chunk, runs))
+    except KeyboardInterrupt:
+        if not outs:
+            raise
     run_s = time.perf_counter() - t0
-    out = jax.tree.map(lambda *a: np.concatenate(a, axis=0)[:runs], *outs)
+    done = min(len(outs) * chunk, runs)
+    out = jax.tree.map(lambda *a: np.concatenate(a, axis=0)[:done], *outs)
     if has_detail:
         out["detail"] = detail
-    return MCResult(out=out, compile_s=compile_s, run_s=run_s, n_devices=nd, chunk=chunk)
+    return MCResult(out=out, compile_s=compile_s, run_s=run_s, n_devices=nd, chunk=chunk,
+                    runs=done, interrupted=done < runs)

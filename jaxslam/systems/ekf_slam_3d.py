@@ -159,7 +159,7 @@ def paper_noise(mode: str, dtype=jnp.float64) -> NoiseParams:
     return NoiseParams(  # built on the host: no eager programs to compile
         P0=jnp.asarray(np.diag(np.asarray(P0, np.float64)), dtype),
         Qc=jnp.asarray(np.diag(np.asarray(Q, np.float64)), dtype),
-        Qimu=jnp.zeros((6, 6), dtype),
+        Qimu=jnp.asarray(np.zeros((6, 6)), dtype),
         R=_lidar_R(dtype),
     )
 
@@ -176,7 +176,7 @@ def imu_noise(imu_spec, dtype=jnp.float64, P0=IMU_P0) -> NoiseParams:
     qimu = np.asarray([nd_a**2] * 3 + [nd_g**2] * 3, np.float64)
     return NoiseParams(  # built on the host: no eager programs to compile
         P0=jnp.asarray(np.diag(np.asarray(P0, np.float64)), dtype),
-        Qc=jnp.zeros((NX, NX), dtype),
+        Qc=jnp.asarray(np.zeros((NX, NX)), dtype),
         Qimu=jnp.asarray(np.diag(qimu), dtype),
         R=_lidar_R(dtype),
     )

@@ -34,7 +34,9 @@ Event k:
 
    a. validity: non-finite rows, rows outside ``[range_min, range_max]`` /
       ``[bearing_min, bearing_max]`` and (``"known"``) rows without an id (< 0)
-      are masked and counted (``n_limited``);
+      are masked and counted (``n_limited``); a present row with a NaN/Inf entry
+      also flags ``MASKED_INPUT`` (the limits are a chosen selection, not bad
+      input, and flag nothing);
    b. at most ``config.K`` rows per event are processed, the nearest first
       (closer detections are the more accurate); the rest are counted
       (``n_dropped``), never silently lost;
@@ -66,6 +68,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import errors
 from ..data.events import EventLog
 from ..dynamics import planar
 from ..errors import InputError
@@ -752,6 +755,9 @@ def run_arrays(dt, u, z, ids, mask, pose0, params: PlanarParams, config: PlanarC
     (pose, pose_cov, calib, n_meas, n_limited, n_dropped, counts, nis, dof, n_pruned, nll, nll_dof,
      n_out, n_watch) = outs
     status = st.status | cons.status_bits(jnp.sum(n_out), jnp.sum(n_watch))
+    # a present row with a NaN/Inf entry is masked by _limits before the engine sees it: flag it here
+    bad_rows = jnp.any(mask & ~jnp.all(jnp.isfinite(z), axis=-1))
+    status = status | jnp.where(bad_rows, jnp.int32(errors.MASKED_INPUT), jnp.int32(0))
     return PlanarResult(
         pose=pose, pose_cov=pose_cov, calib=calib,
         landmarks=es.landmarks(st, model), landmark_covs=es.landmark_covs(st, model),

@@ -346,9 +346,17 @@ def motion(s, u, dt):
     return jnp.concatenate([s[POS] + s[VEL] * dt, s[VEL], s[ANG] + s[RATE] * dt, s[RATE]])
 
 
+def _host(x, dtype):
+    """A device array made from a NumPy value converted on the host: ``device_put`` runs no
+    eager program (``jnp.asarray`` of a scalar, or its first use in a process, compiles one)."""
+    return jax.device_put(np.asarray(x, dtype=np.dtype(dtype)))
+
+
 def paper_process_noise(dt, dtype=jnp.float64, q=PAPER_Q):
-    """Q_d = diag(eq. 27 robot entries) · Δt  (10, 10); equals eq. 27 at Δt = 1."""
-    return jnp.diag(jnp.asarray(q, dtype)) * jnp.asarray(dt, dtype)
+    """Q_d = diag(eq. 27 robot entries) · Δt  (10, 10); equals eq. 27 at Δt = 1.
+
+    Built on the host (NumPy, ``dt`` a number): no eager programs to compile."""
+    return _host(np.diag(np.asarray(q, np.float64)) * float(dt), dtype)
 
 
 def ncv_process_noise(dt, q_acc, q_ang_acc, dtype=jnp.float64):
@@ -358,15 +366,14 @@ def ncv_process_noise(dt, q_acc, q_ang_acc, dtype=jnp.float64):
     [[Δt³/3, Δt²/2], [Δt²/2, Δt]] · q on (position, velocity) and (angle, rate).
     Not in paper 003 (its eq. 27 is diagonal); used by :func:`matched_params`.
     """
-    dt = jnp.asarray(dt, dtype)
-    blk = jnp.asarray([[dt**3 / 3, dt**2 / 2], [dt**2 / 2, dt]], dtype)
-    Q = jnp.zeros((NR, NR), dtype)
+    dt = float(dt)  # built on the host (NumPy): no eager programs to compile
+    blk = np.asarray([[dt**3 / 3, dt**2 / 2], [dt**2 / 2, dt]], np.float64)
+    Q = np.zeros((NR, NR), np.float64)
     pairs = [(0, 2, q_acc), (1, 3, q_acc), (4, 7, q_ang_acc), (5, 8, q_ang_acc), (6, 9, q_ang_acc)]
     for i, j, q in pairs:
-        q = jnp.asarray(q, dtype)
-        idx = jnp.asarray([i, j])
-        Q = Q.at[idx[:, None], idx[None, :]].set(blk * q)
-    return Q
+        idx = np.asarray([i, j])
+        Q[idx[:, None], idx[None, :]] = blk * float(q)
+    return _host(Q, dtype)
 
 
 def paper_params(model: str = "squared", dt: float = 1.0, noise: uwb.UwbNoise = uwb.PAPER003_NOISE,
@@ -374,12 +381,12 @@ def paper_params(model: str = "squared", dt: float = 1.0, noise: uwb.UwbNoise = 
     """Paper 003 preset: Q of eq. 27 (· Δt), R of Sec. IV, P0 = 0 (Sec. III-D-1)."""
     uwb.check_model(model)
     r = PAPER_R_SQUARED if model == "squared" else PAPER_R_RANGE
-    return FilterParams(
+    return FilterParams(  # built on the host: no eager programs to compile
         Q=paper_process_noise(dt, dtype),
-        P0=jnp.zeros((NR, NR), dtype),
-        r_range=jnp.asarray(r, dtype),
-        r_gyro=jnp.asarray(PAPER_R_GYRO, dtype),
-        range_var=jnp.asarray(uwb.uniform_variance(noise.range_half_width), dtype),
+        P0=_host(np.zeros((NR, NR)), dtype),
+        r_range=_host(r, dtype),
+        r_gyro=_host(PAPER_R_GYRO, dtype),
+        range_var=_host(uwb.uniform_variance(noise.range_half_width), dtype),
     )
 
 
@@ -402,12 +409,12 @@ def matched_params(model: str = "squared", dt: float = 1.0, noise: uwb.UwbNoise 
     """
     uwb.check_model(model)
     s2 = uwb.uniform_variance(noise.range_half_width)
-    return FilterParams(
+    return FilterParams(  # built on the host: no eager programs to compile
         Q=ncv_process_noise(dt, q_acc, q_ang_acc, dtype),
-        P0=jnp.diag(jnp.asarray(p0, dtype)),
-        r_range=jnp.asarray(s2 if model == "range" else uwb.squared_range_variance(1.0, s2), dtype),
-        r_gyro=jnp.asarray(uwb.uniform_variance(noise.gyro_half_width), dtype),
-        range_var=jnp.asarray(s2, dtype),
+        P0=_host(np.diag(np.asarray(p0, np.float64)), dtype),
+        r_range=_host(s2 if model == "range" else uwb.squared_range_variance(1.0, s2), dtype),
+        r_gyro=_host(uwb.uniform_variance(noise.gyro_half_width), dtype),
+        range_var=_host(s2, dtype),
     )
 
 

@@ -27,7 +27,6 @@ x64 is switched on here (before any target module is imported) unless ``--float3
 from __future__ import annotations
 
 import argparse
-import pathlib
 import sys
 import time
 
@@ -118,7 +117,7 @@ def build_parser(with_targets: bool = True) -> _Parser:
                         "density per sensor, accelerometer and gyro (imu_iso, Table 5's form)")
     real = p.add_argument_group("real logs (jaxslam tune mrclam)")
     real.add_argument("--data", metavar="DIR", default=None,
-                      help="dataset folder (the one with mrclam6/, or a parent of it)")
+                      help="dataset folder (the one with mrclam6/, or a parent of it; default: $JAXSLAM_DATA_DIR)")
     real.add_argument("--robots", type=_robot_list, default=None, metavar="LIST",
                       help="training robots, e.g. 1,2,3,4 (default 1,2,3,4)")
     real.add_argument("--test-robots", type=_robot_list, default=None, metavar="LIST",
@@ -181,7 +180,6 @@ def run_tuning(args, progress_stream=None) -> dict:
     """Build, fit, evaluate; returns the tune JSON dict (host-side, JSON-ready)."""
     import jax
     import jax.numpy as jnp
-    import numpy as np
 
     import jaxslam
     from jaxslam.progress import Progress
@@ -221,8 +219,13 @@ def run_tuning(args, progress_stream=None) -> dict:
               tune_r=args.tune_r, structure=args.structure)
     if args.duration is not None:
         kw["train_duration"] = args.duration
-    if real:
-        kw = dict(dtype=dtype, data=args.data, t_max=args.window or REAL_LOG_DEFAULTS["window"])
+    if real:  # the folder and the robots checked before the (slow) build says anything
+        from jaxslam.data import catalogue
+
+        data = catalogue.data_root(args.data)
+        for r in (args.robots or ()) + (args.test_robots or ()):
+            catalogue.check_robot(args.scenario, data, r, flag="--robots/--test-robots")
+        kw = dict(dtype=dtype, data=data, t_max=args.window or REAL_LOG_DEFAULTS["window"])
         if args.robots is not None:
             kw["robots"] = args.robots
         if args.test_robots is not None:
@@ -269,6 +272,24 @@ def run_tuning(args, progress_stream=None) -> dict:
     finally:
         bar.close()
     say(f"{PROG}: compile {res.compile_s:.1f} s, {res.step_s:.3g} s per step")
+    if res.interrupted:  # no held-out evaluation: keep the best parameters the finished steps reached
+        phys0, phys1 = tg.physical(tg.theta0), tg.physical(res.best_theta)
+        params_after = {**_params_file(tg, tg.to_params(phys1)), "interrupted": True}
+        report = {
+            "scenario": tg.scenario, "target": tg.target, "loss": tg.loss, "interrupted": True,
+            "stopped": res.stopped, "steps_done": len(res.history), "steps": steps, "lr": lr,
+            "params_before": tg.to_params(phys0), "params_after": params_after,
+            "history": res.history, "n_skipped": res.n_skipped,
+            "config": {**tg.config, "steps": steps, "lr": lr},
+            "timing": {"build_s": t_build, "compile_s": res.compile_s, "step_s": res.step_s,
+                       "total_s": time.perf_counter() - t_all},
+            "memory": res.memory, "eval_command": tg.eval_command,
+            "versions": {"jaxslam": jaxslam.__version__, "jax": jax.__version__},
+            **params_after,
+        }
+        report["stopped"] += " (the saved parameters are those of the lowest training loss)"
+        report["_physical_after"] = tg.describe(res.best_theta)
+        return report
     if res.stopped:
         print(f"{PROG}: warning: {res.stopped}", file=sys.stderr, flush=True)
     phys0, phys1 = tg.physical(tg.theta0), tg.physical(res.theta)
@@ -277,7 +298,7 @@ def run_tuning(args, progress_stream=None) -> dict:
     t0 = time.perf_counter()
     ev = tg.evaluate({"before": phys0, "after": phys1, **tg.references})
     t_eval = time.perf_counter() - t0
-    params_after = tg.to_params(phys1)
+    params_after = _params_file(tg, tg.to_params(phys1))
     report = {
         "scenario": tg.scenario,
         "target": tg.target,
@@ -306,6 +327,12 @@ def run_tuning(args, progress_stream=None) -> dict:
     report["_physical_after"] = tg.describe(res.theta)
     report["_history_np"] = res.history
     return report
+
+
+def _params_file(tg, params: dict) -> dict:
+    """A ``--params`` file's content: the sections, and the scenario they were tuned for (real-log
+    targets name their ``dataset`` themselves), so a file applied elsewhere is refused."""
+    return params if "dataset" in params else {"scenario": tg.scenario, **params}
 
 
 def _print_report(rep):
@@ -338,12 +365,12 @@ def main(argv=None) -> int:
         if not known.float32:
             jax.config.update("jax_enable_x64", True)
         args = build_parser(with_targets="-h" in argv or "--help" in argv).parse_args(argv)
-        json_path = pathlib.Path(args.json) if args.json else None
-        if json_path is not None and json_path.is_dir():
-            raise InputError(f"--json: {str(json_path)!r} is a folder; give a file path")
-        plots = pathlib.Path(args.plots) if args.plots else None
-        if plots is not None and plots.exists() and not plots.is_dir():
-            raise InputError(f"--plots: {str(plots)!r} exists and is not a folder")
+        from jaxslam import files
+
+        # Every output path checked (and its folder created) before the long build and fit.
+        json_path = files.prepare_file("--json", args.json) if args.json else None
+        params_out = files.prepare_file("--params-out", args.params_out) if args.params_out else None
+        plots = files.prepare_dir("--plots", args.plots) if args.plots else None
         from jaxslam import compilation
         from jaxslam.cli import compile_timing
 
@@ -357,14 +384,20 @@ def main(argv=None) -> int:
         return 2
     from jaxslam import io
 
-    if not args.quiet:
+    interrupted = bool(rep.get("interrupted"))
+    if not args.quiet and not interrupted:
         _print_report(rep)
     written = []
     clean = {k: v for k, v in rep.items() if not k.startswith("_")}
     if json_path is not None:
         written.append(io.write_json(json_path, clean))
-    if args.params_out:
-        written.append(io.write_json(args.params_out, rep["params_after"]))
+    if params_out is not None:
+        written.append(io.write_json(params_out, rep["params_after"]))
+    if interrupted:  # what the finished steps reached is saved; no evaluation, no plots
+        print(f"{PROG}: {rep['stopped']}; no held-out evaluation"
+              + (f"; wrote {', '.join(map(str, written))} (marked \"interrupted\": true)" if written
+                 else " (no --json / --params-out: nothing saved)"), file=sys.stderr, flush=True)
+        return 130
     if plots is not None:
         import matplotlib
 

@@ -77,6 +77,8 @@ class FitResult(NamedTuple):
     compile_s: compilation time of the training step [s]; step_s: median step time [s].
     memory: see :func:`memory_report`.
     n_skipped: number of skipped (non-finite gradient) steps.
+    interrupted: a Ctrl-C stopped the loop after at least one step (``stopped`` says when);
+      ``theta`` / ``best_theta`` are those reached so far.
     """
 
     theta: Any
@@ -87,6 +89,7 @@ class FitResult(NamedTuple):
     step_s: float
     memory: dict
     n_skipped: int
+    interrupted: bool = False
 
 
 def make_optimizer(lr: float, steps: int, schedule: str = "cosine", warmup: Optional[int] = None,
@@ -227,46 +230,55 @@ def fit(loss_fn: Callable, theta0, train, steps: int, lr: float = 0.1, *, test=N
     rng = np.random.default_rng(None if key is None else np.asarray(jax.random.key_data(key)).ravel().tolist())
     # Iterate k = 0..steps: step k evaluates the loss (and gradient) at θ_k and, for k < steps,
     # proposes θ_{k+1}; the last pass only checks that the final iterate has a finite loss.
-    for k in range(steps + 1):
-        last = k == steps
-        batch = take(np.sort(rng.choice(runs, batch_size, replace=False))) if mini else train
-        ts = time.perf_counter()
-        loss, g_ok, gnorm, cand, cand_state = step_c(theta, opt_state, batch)
-        loss = float(loss)
-        g_ok = bool(g_ok)
-        times.append(time.perf_counter() - ts)
-        rec = {"step": k, "loss": loss, "grad_norm": float(gnorm), "lr": float(sched(k)),
-               "skipped": False, "time_s": times[-1]}
-        if describe is not None:
-            rec["params"] = describe(theta)
-        if not math.isfinite(loss):
-            prev = next((h for h in reversed(history) if h.get("loss") is not None), None)
-            stopped = (f"loss became non-finite ({loss}) at step {k}; stopped and kept the "
-                       "parameters of the last step with a finite loss"
-                       + (f" (step {prev['step']}, loss {prev['loss']:.6g})" if prev else " (the starting point)"))
-            rec["skipped"] = True
+    interrupted = False
+    try:
+        for k in range(steps + 1):
+            last = k == steps
+            batch = take(np.sort(rng.choice(runs, batch_size, replace=False))) if mini else train
+            ts = time.perf_counter()
+            loss, g_ok, gnorm, cand, cand_state = step_c(theta, opt_state, batch)
+            loss = float(loss)
+            g_ok = bool(g_ok)
+            times.append(time.perf_counter() - ts)
+            rec = {"step": k, "loss": loss, "grad_norm": float(gnorm), "lr": float(sched(k)),
+                   "skipped": False, "time_s": times[-1]}
+            if describe is not None:
+                rec["params"] = describe(theta)
+            if not math.isfinite(loss):
+                prev = next((h for h in reversed(history) if h.get("loss") is not None), None)
+                stopped = (f"loss became non-finite ({loss}) at step {k}; stopped and kept the "
+                           "parameters of the last step with a finite loss"
+                           + (f" (step {prev['step']}, loss {prev['loss']:.6g})" if prev else " (the starting point)"))
+                rec["skipped"] = True
+                history.append(rec)
+                if callback is not None:
+                    callback(rec)
+                break
+            good = theta
+            if loss < best_loss:
+                best, best_loss = theta, loss
+            if not g_ok:
+                rec["skipped"] = True
+                skips += 1
+                n_skipped += 1
+            elif not last:
+                theta, opt_state, skips = cand, cand_state, 0
+            if test_c is not None and ((eval_every and k % eval_every == 0) or last):
+                rec["test_loss"] = float(test_c(good, test))
             history.append(rec)
             if callback is not None:
                 callback(rec)
-            break
-        good = theta
-        if loss < best_loss:
-            best, best_loss = theta, loss
-        if not g_ok:
-            rec["skipped"] = True
-            skips += 1
-            n_skipped += 1
-        elif not last:
-            theta, opt_state, skips = cand, cand_state, 0
-        if test_c is not None and ((eval_every and k % eval_every == 0) or last):
-            rec["test_loss"] = float(test_c(good, test))
-        history.append(rec)
-        if callback is not None:
-            callback(rec)
-        if not last and skips >= (max_skips if not mini else 10 * max_skips):
-            stopped = (f"gradient non-finite at {skips} consecutive steps (last: step {k}); "
-                       "those updates were skipped, never applied; stopped with the last good parameters")
-            break
+            if not last and skips >= (max_skips if not mini else 10 * max_skips):
+                stopped = (f"gradient non-finite at {skips} consecutive steps (last: step {k}); "
+                           "those updates were skipped, never applied; stopped with the last good parameters")
+                break
+    except KeyboardInterrupt:  # Ctrl-C: keep what is done (the caller writes it, marked)
+        if not history:
+            raise
+        interrupted = True
+        stopped = (f"interrupted (Ctrl-C) after {len(history)} of {steps + 1} steps; kept the "
+                   "parameters reached so far")
     return FitResult(theta=good, best_theta=best, history=history, stopped=stopped, compile_s=compile_s,
                      step_s=float(np.median(times)) if times else math.nan,
-                     memory={**memory, "peak_rss_after_mb": peak_rss_mb()}, n_skipped=n_skipped)
+                     memory={**memory, "peak_rss_after_mb": peak_rss_mb()}, n_skipped=n_skipped,
+                     interrupted=interrupted)

@@ -38,6 +38,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..data import catalogue
 from ..errors import InputError
 
 __all__ = ["PlanarLogs", "mrclam_logs", "planar_theta0", "planar_physical", "planar_nll",
@@ -152,12 +153,10 @@ def mrclam_noise(loss: str = "nll", data=None, robots=(1, 2, 3, 4), test_robots=
 
     if loss != "nll":
         raise InputError(f"--loss: the real-log targets learn by innovation likelihood only (nll); got {loss!r}")
-    if data is None:
-        raise InputError("--data: the real-log targets need the dataset folder (e.g. --data ~/data)")
+    data = catalogue.data_root(data)  # --data, else $JAXSLAM_DATA_DIR
     robots, test_robots = tuple(int(r) for r in robots), tuple(int(r) for r in test_robots)
     for r in robots + test_robots:
-        if not 1 <= r <= 5:
-            raise InputError(f"--robots/--test-robots: MRCLAM robots are 1..5, got {r}")
+        catalogue.check_robot("mrclam", data, r, flag="--robots/--test-robots")
     if set(robots) & set(test_robots):
         raise InputError(f"--test-robots: {sorted(set(robots) & set(test_robots))} also in --robots; "
                          "a held-out robot must not be trained on")

@@ -469,8 +469,9 @@ def ekfslam3d_noise(loss: str = "nll", train_runs: int = 4, test_runs: int = 8, 
             out = jax.tree.map(lambda *a: np.concatenate(a, 0), *outs)
             cons, _ = scen.consistency(out["series"], t_frames, test_runs)
             res[label] = {"metrics": out["metrics"],
-                          "consistency": {k: cons[k] for k in ("anees", "anees_bounds", "nis_mean",
-                                                               "nis_bounds", "anees_fraction_in_bounds")}}
+                          "consistency": {**{k: cons[k] for k in ("anees", "anees_bounds", "nis_mean",
+                                                                  "nis_bounds", "anees_fraction_in_bounds")},
+                                          **scen.CONSISTENCY_BLOCKS}}
         return res
 
     def to_params(noise):
@@ -810,8 +811,7 @@ def uwb_noise(loss: str = "mse", train_runs: int = 4, test_runs: int = 8, seed: 
             out = jax.tree.map(np.asarray, fn(keys, fp))
             cons, _ = scen.consistency(out["series"], setup.ts, test_runs)
             res[label] = {"metrics": out["metrics"],
-                          "consistency": {"anees": cons["pos"]["anees"], "anees_bounds": cons["pos"]["bounds"],
-                                          "nis_mean": cons["nis_mean"], "nis_bounds": cons["nis_bounds"]}}
+                          "consistency": scen.consistency_summary(cons)}
         return res
 
     def to_params(fp):

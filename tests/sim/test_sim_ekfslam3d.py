@@ -18,4 +18,7 @@ def test_cli_reports_capacity_overflow_with_hidden_ids(tmp_path, capsys):
     assert res["metrics"]["landmarks_mapped"]["max"] == 8
     assert all(np.isfinite(v) for v in res["metrics"]["pos_rmse_m"]["per_run"])
     assert res["metrics"]["pos_rmse_m"]["max"] < 0.5
-    assert set(res["consistency"]) == {"anees", "anees_bounds", "nis_mean", "nis_bounds"}
+    # STYLE.md's four keys, plus what each covers (docs/cli.md, "consistency")
+    assert set(res["consistency"]) == {"anees", "anees_bounds", "nis_mean", "nis_bounds",
+                                       "anees_block", "anees_dim", "nis_block", "nis_dim"}
+    assert res["consistency"]["anees_dim"] == 9 and "robot block" in res["consistency"]["anees_block"]

@@ -148,6 +148,7 @@ def run_scenario(runs, seed, dtype, options, progress, params=None, plots=False)
     one_run, rollout, setup = build(options, dtype)
     mc = monte_carlo.run(lambda k: one_run(k, detail=plots), seed, runs, progress=progress, detail=plots,
                          program_key=program_key("attitude-smc", options, params, dtype))
+    runs = mc.runs  # the finished runs: fewer than asked when interrupted (Ctrl-C)
     out = dict(mc.out)
     recorded = out.pop("detail", None)
     non_finite = int(np.sum(out.pop("non_finite")))
@@ -168,6 +169,7 @@ def run_scenario(runs, seed, dtype, options, progress, params=None, plots=False)
         consistency=None,
         flags={"capacity_overflow": 0, "masked_measurements": 0, "non_finite": non_finite},
         timing={"compile_s": mc.compile_s, "run_s": mc.run_s},
+        interrupted=mc.interrupted,
         plot=plot if plots else None,
         extra={"theorem31": setup["theorem31"]},
     )

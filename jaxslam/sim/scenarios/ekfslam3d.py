@@ -42,11 +42,17 @@ from ...systems import ekf_slam_3d as sys3d
 from .. import monte_carlo
 from ..simulate import controls, n_frames, simulate
 from .registry import Option, Scenario, ScenarioResult, program_key, register
-from .tracking import (DT, FRAME_STEPS, SETTLED_AFTER_S, controller_from_dict, make_setup,
-                       paper000_figure8, tracking_metrics)
+from .tracking import (DT, FRAME_STEPS, SETTLED_AFTER_S, controller_from_dict, controller_to_dict,
+                       make_setup, paper000_figure8, tracking_metrics)
 
 N_LANDMARKS = 40
 WINDOW_S = 10.0
+# What each statistic of ``consistency`` covers (docs/cli.md, "consistency"): the NEES is of the
+# 9-state robot block, the NIS of every LiDAR row, normalised per degree of freedom.
+CONSISTENCY_BLOCKS = {
+    "anees_block": "robot block (position, body velocity, attitude)", "anees_dim": sys3d.NX,
+    "nis_block": "LiDAR rows (azimuth, elevation, range), per degree of freedom", "nis_dim": 1,
+}
 
 __all__ = ["build", "evaluate", "run_scenario"]
 
@@ -223,6 +229,7 @@ def run_scenario(name, mode, runs, seed, dtype, options, progress, params=None, 
     mc = monte_carlo.run(lambda k: one_run(k, detail=plots), seed, runs, chunk=options.get("chunk"),
                          progress=progress, cpu_batching="loop", detail=plots,
                          program_key=program_key(name, options, params, dtype))
+    runs = mc.runs  # the finished runs: fewer than asked when interrupted (Ctrl-C)
     out = mc.out
     t = (np.arange(nf * FRAME_STEPS) + 1) * DT
     t_frames = (np.arange(nf) + 1) * DT * FRAME_STEPS
@@ -260,9 +267,11 @@ def run_scenario(name, mode, runs, seed, dtype, options, progress, params=None, 
     return ScenarioResult(
         config=config,
         metrics=out["metrics"],
-        consistency={k: cons[k] for k in ("anees", "anees_bounds", "nis_mean", "nis_bounds")},
+        consistency={**{k: cons[k] for k in ("anees", "anees_bounds", "nis_mean", "nis_bounds")},
+                     **CONSISTENCY_BLOCKS},
         flags=flags,
         timing={"compile_s": mc.compile_s, "run_s": mc.run_s},
+        interrupted=mc.interrupted,
         plot=plot if plots else None,
         extra={"status_flags": decode(status_any),
                "consistency_detail": {k: v for k, v in cons.items()
@@ -295,6 +304,13 @@ _DESCRIPTIONS = {
 }
 
 
+def params_schema(mode: str, options: dict, dtype) -> dict:
+    """What a ``--params`` file may set (:mod:`jaxslam.paramfile`): the filter's noise for
+    ``--q`` and the DF-LQR weights and PD gains, with their defaults."""
+    return {"noise": sys3d.noise_to_dict(_noise(options["q"], mode, dtype)),
+            "controller": controller_to_dict(dflqr.paper000_params())}
+
+
 def _register(mode):
     name = f"ekfslam3d-{mode}"
     register(Scenario(
@@ -303,6 +319,7 @@ def _register(mode):
         options=_OPTIONS,
         run=lambda runs, seed, dtype, options, progress, params=None, plots=False: run_scenario(
             name, mode, runs, seed, dtype, options, progress, params, plots),
+        params=lambda options, dtype: params_schema(mode, options, dtype),
     ))
 
 

@@ -304,11 +304,14 @@ def run_scenario(runs, seed, dtype, options, progress, params=None, plots=False)
     """``jaxslam run fastslam-helix`` (registry entry point)."""
     from ...errors import decode
 
+    if params:
+        raise InputError("fastslam-helix takes no --params file (use the scenario options)")
     one_run, flight, cfg, prm, nf, setup = build(options, dtype)
     # The particle set is vmapped inside a run; on a CPU a second vmap over runs gains nothing.
     mc = monte_carlo.run(lambda k: one_run(k, detail=plots), seed, runs, chunk=options.get("chunk"),
                          progress=progress, cpu_batching="loop", detail=plots,
                          program_key=program_key("fastslam-helix", options, params, dtype))
+    runs = mc.runs  # the finished runs: fewer than asked when interrupted (Ctrl-C)
     out = mc.out
     counts = out["counts"]
     status_any = int(np.bitwise_or.reduce(np.asarray(counts["status"]).ravel()))
@@ -344,6 +347,7 @@ def run_scenario(runs, seed, dtype, options, progress, params=None, plots=False)
         consistency=None,
         flags=flags,
         timing={"compile_s": mc.compile_s, "run_s": mc.run_s},
+        interrupted=mc.interrupted,
         plot=plot if plots else None,
         extra={"status_flags": decode(status_any), "devices": mc.n_devices},
     )

@@ -194,11 +194,11 @@ def evaluate(setup: Setup, res: LS.RunResult):
 
 def build(options: dict, dtype, params=None):
     """Scenario pieces ``(one_run, flight, cfg, fp, setup)``; ``one_run(key)`` is jit/vmap-safe."""
+    cap = int(options["capacity"])
+    if cap < 1:  # before the set-up, which computes
+        raise InputError(f"--capacity: must be >= 1, got {cap}")
     setup = make_setup(float(options["duration"]), 0.1, tilt_deg=float(options["tilt_deg"]),
                        outlier_prob=float(options["outlier_prob"]))
-    cap = int(options["capacity"])
-    if cap < 1:
-        raise InputError(f"--capacity: must be >= 1, got {cap}")
     cfg = LS.LineSlamConfig(capacity=cap)
     fp = LS.default_params(cfg.dt, dtype=dtype)
     if params and "filter" in params:
@@ -226,12 +226,19 @@ def build(options: dict, dtype, params=None):
     return one_run, flight, cfg, fp, setup
 
 
+def params_schema(options, dtype) -> dict:
+    """What a ``--params`` file may set (:mod:`jaxslam.paramfile`): the filter's noise."""
+    fp = LS.default_params(LS.LineSlamConfig(capacity=1).dt, dtype=dtype)
+    return {"filter": {k: np.asarray(v) for k, v in fp._asdict().items()}}
+
+
 def run_scenario(runs, seed, dtype, options, progress, params=None, plots=False):
     """Monte Carlo over ``runs`` seeded flights (see the module docstring)."""
     one_run, flight, cfg, fp, setup = build(options, dtype, params)
     mc = monte_carlo.run(lambda k: one_run(k, detail=plots), seed, runs, chunk=options.get("chunk"),
                          progress=progress, detail=plots,
                          program_key=program_key("lineslam-room", options, params, dtype))
+    runs = mc.runs  # the finished runs: fewer than asked when interrupted (Ctrl-C)
     out = mc.out
     nees = np.asarray(out["series"]["nees"], float)  # (runs, T)
     lo, hi = mx.anees_bounds(3, runs)
@@ -276,9 +283,13 @@ def run_scenario(runs, seed, dtype, options, progress, params=None, plots=False)
         metrics=dict(out["metrics"]),
         consistency={"anees": float(np.mean(per_step)), "anees_bounds": [float(lo), float(hi)],
                      "nis_mean": float(nis.sum() / tot) if tot > 0 else math.nan,
-                     "nis_bounds": [float(nlo), float(nhi)]},
+                     "nis_bounds": [float(nlo), float(nhi)],
+                     # what each statistic covers (docs/cli.md, "consistency")
+                     "anees_block": "robot pose (x, y, yaw)", "anees_dim": 3,
+                     "nis_block": "matched wall lines (rho, theta), per degree of freedom", "nis_dim": 1},
         flags=flags,
         timing={"compile_s": mc.compile_s, "run_s": mc.run_s},
+        interrupted=mc.interrupted,
         plot=plot if plots else None,
         extra={"status_flags": decode(status_any),
                "consistency_detail": {"pose_dof": 3, "fraction_steps_in_bounds":
@@ -297,4 +308,5 @@ register(Scenario(
         Option("chunk", int, None, "Monte Carlo runs per compiled call (default: all, max 256)"),
     ),
     run=run_scenario,
+    params=params_schema,
 ))

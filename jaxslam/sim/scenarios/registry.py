@@ -36,6 +36,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from jaxslam import paramfile
 from jaxslam.errors import InputError
 
 __all__ = [
@@ -49,6 +50,8 @@ __all__ = [
     "names",
     "all_scenarios",
     "program_key",
+    "check_params",
+    "default_options",
 ]
 
 # Names used by the common `jaxslam run` options; a scenario option may not reuse them.
@@ -92,13 +95,18 @@ class ScenarioResult:
     Attributes:
       config: every parameter used, including the scenario options (JSON-ready).
       metrics: metric name with units (``"pos_rmse_m"``) -> per-run values, shape (runs,).
-      consistency: ``{"anees", "anees_bounds": [lo, hi], "nis_mean", "nis_bounds": [lo, hi]}``,
+      consistency: ``{"anees", "anees_bounds": [lo, hi], "nis_mean", "nis_bounds": [lo, hi]}``
+        plus, per statistic ``S`` (stem without ``_mean``), ``S_block`` (the state block or
+        measurement rows it covers, text) and ``S_dim`` (the block's dimension = the value
+        expected of a consistent filter; 1 for the NIS normalised per degree of freedom);
+        further statistics (e.g. ``anees_robot``) follow the same pattern (docs/cli.md);
         or ``None`` for a scenario without a filter (the JSON then omits the key).
       flags: counts summed over runs, e.g. ``{"capacity_overflow", "masked_measurements",
         "non_finite"}``.
       timing: ``{"compile_s", "run_s"}`` in seconds; the CLI adds ``runs_per_s``.
       plot: ``plot(directory) -> [written PNG paths]``, or ``None`` if the scenario has no plots.
       extra: further top-level JSON sections (must not reuse a standard key).
+      interrupted: the batch was cut short by Ctrl-C; ``metrics`` hold the finished runs only.
     """
 
     config: dict
@@ -108,6 +116,7 @@ class ScenarioResult:
     timing: dict[str, float]
     plot: Callable[[pathlib.Path], list[pathlib.Path]] | None = None
     extra: dict = dataclasses.field(default_factory=dict)
+    interrupted: bool = False
 
 
 @dataclasses.dataclass(frozen=True)
@@ -120,15 +129,21 @@ class Scenario:
       options: scenario-specific options, shown by ``jaxslam run NAME --help``.
       run: ``run(runs=int, seed=int, dtype=np.dtype, options=dict, progress=Progress,
         params=dict | None, plots=bool) -> ScenarioResult``.  ``options`` holds every option of
-        ``options`` (defaults filled in); ``params`` is the parsed ``--params`` JSON file;
-        ``plots`` says the caller will call ``result.plot`` (the scenario then records the
-        first run's flight in the same compiled program, instead of flying it again).
+        ``options`` (defaults filled in); ``params`` is the ``--params`` file's sections,
+        checked by :func:`check_params`; ``plots`` says the caller will call ``result.plot``
+        (the scenario then records the first run's flight in the same compiled program,
+        instead of flying it again).
+      params: ``params(options, dtype) -> {section: {key: default}}``, the scenario's default
+        values of everything a ``--params`` file may set (host-side, NumPy or un-traced
+        arrays); :mod:`jaxslam.paramfile` checks a file against it.  ``None``: the scenario
+        takes no ``--params`` file.
     """
 
     name: str
     description: str
     options: tuple[Option, ...]
     run: Callable[..., ScenarioResult]
+    params: Callable[[dict, Any], dict] | None = None
 
 
 _REGISTRY: dict[str, Scenario] = {}
@@ -254,3 +269,22 @@ def program_key(name: str, options: dict, params, dtype) -> dict:
     """What determines a scenario's compiled Monte Carlo program besides the code and the
     PRNG keys (see :func:`jaxslam.compilation.compile_program`)."""
     return {"scenario": name, "options": dict(options), "params": params, "dtype": str(np.dtype(dtype))}
+
+
+def default_options(scenario: Scenario) -> dict:
+    """``{option name: default}`` of a scenario (what ``run`` receives when no option is given)."""
+    return {opt.name: opt.default for opt in scenario.options}
+
+
+def check_params(scenario: Scenario, obj, options: dict | None = None, dtype=np.float64) -> dict | None:
+    """The sections of a parsed ``--params`` file for ``scenario``, checked against its schema.
+
+    Unknown keys, wrong shapes, non-PSD matrices, and a file written for another scenario
+    raise :class:`InputError` naming the key (:func:`jaxslam.paramfile.check`).  Returns
+    ``None`` when the file sets nothing.
+    """
+    if obj is None:
+        return None
+    options = default_options(scenario) if options is None else options
+    schema = None if scenario.params is None else scenario.params(options, np.dtype(dtype))
+    return paramfile.check(obj, schema, target=scenario.name) or None

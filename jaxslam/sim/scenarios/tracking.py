@@ -143,6 +143,7 @@ def _run_tracking(name, traj_factory, runs, seed, dtype, options, progress, para
 
     mc = monte_carlo.run(one, seed, runs, chunk=options.get("chunk"), progress=progress, detail=plots,
                          program_key=program_key(name, options, params, dtype))
+    runs = mc.runs  # the finished runs: fewer than asked when interrupted (Ctrl-C)
     metrics = {k: v for k, v in mc.out.items() if k not in ("non_finite", "detail")}
 
     def plot(directory):
@@ -177,6 +178,7 @@ def _run_tracking(name, traj_factory, runs, seed, dtype, options, progress, para
         flags={"capacity_overflow": 0, "masked_measurements": 0,
                "non_finite": int(np.sum(mc.out["non_finite"]))},
         timing={"compile_s": mc.compile_s, "run_s": mc.run_s},
+        interrupted=mc.interrupted,
         plot=plot if plots else None,
         extra={"devices": mc.n_devices},
     )
@@ -200,6 +202,11 @@ def _figure8(options):
     return paper000_figure8(options["altitude"], options["ramp"])
 
 
+def params_schema(options, dtype) -> dict:
+    """What a ``--params`` file may set (:mod:`jaxslam.paramfile`): DF-LQR weights and PD gains."""
+    return {"controller": controller_to_dict(dflqr.paper000_params())}
+
+
 def _helix(options):
     return trajectories.Helix()
 
@@ -215,6 +222,7 @@ register(Scenario(
     ),
     run=lambda runs, seed, dtype, options, progress, params=None, plots=False: _run_tracking(
         "track-figure8", _figure8, runs, seed, dtype, options, progress, params, plots),
+    params=params_schema,
 ))
 
 register(Scenario(
@@ -223,4 +231,5 @@ register(Scenario(
     options=_COMMON,
     run=lambda runs, seed, dtype, options, progress, params=None, plots=False: _run_tracking(
         "track-helix", _helix, runs, seed, dtype, options, progress, params, plots),
+    params=params_schema,
 ))

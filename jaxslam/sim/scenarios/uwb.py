@@ -50,7 +50,8 @@ trilaterated anchor), ``landmarks_mapped``; localisation only:
 ``init_pos_err_m`` (the initial LS fix); ``nees_pos_mean`` / ``nees_robot_mean``
 (time-averaged NEES of the run).  Consistency: per-step ANEES of the position
 (2 states; the headline ``consistency.anees``: what the anchors observe) and of
-the whole robot block (10 states, in ``consistency_detail.robot``) over the runs
+the whole robot block (10 states, ``consistency.anees_robot``; details in
+``consistency_detail.robot``) over the runs
 with two-sided 95 % χ² bounds per step, their time averages, the fraction of
 steps inside, 20 s windows, the NEES spread against χ²'s, and the normalised
 mean NIS.  The robot-block NEES against these *deterministic* manoeuvres
@@ -79,7 +80,7 @@ from .. import monte_carlo
 from .registry import Option, Scenario, ScenarioResult, program_key, register
 
 __all__ = ["ANCHORS", "SCENARIOS", "Setup", "SimOut", "make_setup", "simulate", "startup_frame",
-           "evaluate", "build", "run_scenario", "consistency"]
+           "evaluate", "build", "run_scenario", "consistency", "consistency_summary"]
 
 ANCHORS = ((-3.0, 0.0), (0.0, 0.0), (-1.5, 2.5), (1.0, 2.0), (-4.0, 2.5), (-1.0, -2.0))
 START, END = 0, 1
@@ -352,6 +353,23 @@ def consistency(series, t, runs):
     return out, per_step_all
 
 
+POS_BLOCK = "position (x, y)"
+ROBOT_BLOCK = "robot block (x, y, v_x, v_y, roll, pitch, yaw, 3 body rates)"
+NIS_BLOCK = "UWB ranges and gyro rates, per degree of freedom"
+
+
+def consistency_summary(cons):
+    """The run JSON's ``consistency`` from :func:`consistency`'s first output: the headline
+    position ANEES (``anees``), the 10-state robot-block ANEES (``anees_robot``) and the mean NIS,
+    each with its bounds, ``_block`` and ``_dim`` (docs/cli.md, "consistency")."""
+    return {"anees": cons["pos"]["anees"], "anees_bounds": cons["pos"]["bounds"],
+            "anees_block": POS_BLOCK, "anees_dim": cons["pos"]["dof"],
+            "anees_robot": cons["robot"]["anees"], "anees_robot_bounds": cons["robot"]["bounds"],
+            "anees_robot_block": ROBOT_BLOCK, "anees_robot_dim": cons["robot"]["dof"],
+            "nis_mean": cons["nis_mean"], "nis_bounds": cons["nis_bounds"],
+            "nis_block": NIS_BLOCK, "nis_dim": 1}
+
+
 # ---------------------------------------------------------------------------
 # Building and running
 # ---------------------------------------------------------------------------
@@ -382,6 +400,13 @@ def _filter_params(options, dtype, params=None):
             vals[k] = jnp.asarray(a, dtype)
         fp = U.FilterParams(**vals)
     return U.validate_params(fp), r_scaled
+
+
+def params_schema(options, dtype) -> dict:
+    """What a ``--params`` file may set (:mod:`jaxslam.paramfile`): the filter's parameters for
+    ``--filter`` and ``--model``, and whether R is scaled with distance."""
+    fp, r_scaled = _filter_params(options, dtype)
+    return {"filter": {**{k: np.asarray(v) for k, v in fp._asdict().items()}, "r_scaled": bool(r_scaled)}}
 
 
 def build(scenario: str, options: dict, dtype, params=None):
@@ -440,6 +465,7 @@ def run_scenario(scenario, runs, seed, dtype, options, progress, params=None, pl
     mc = monte_carlo.run(lambda k: one_run(k, detail=plots), seed, runs, chunk=options.get("chunk"),
                          progress=progress, detail=plots,
                          program_key=program_key(f"uwb-{scenario}", options, params, dtype))
+    runs = mc.runs  # the finished runs: fewer than asked when interrupted (Ctrl-C)
     out = mc.out
     cons, per_step = consistency(out["series"], setup.ts, runs)
     counts = out["counts"]
@@ -465,7 +491,6 @@ def run_scenario(scenario, runs, seed, dtype, options, progress, params=None, pl
         return uplot.plot_all(f"uwb-{scenario}", sim, res, ev, setup, cfg, per_step, cons, runs,
                               directory)
 
-    main = cons["pos"]
     config = {
         "scenario": scenario,
         "anchors_world_m": setup.anchors.tolist(),
@@ -484,10 +509,10 @@ def run_scenario(scenario, runs, seed, dtype, options, progress, params=None, pl
     return ScenarioResult(
         config=config,
         metrics=metrics,
-        consistency={"anees": main["anees"], "anees_bounds": main["bounds"], "nis_mean": cons["nis_mean"],
-                     "nis_bounds": cons["nis_bounds"]},
+        consistency=consistency_summary(cons),
         flags=flags,
         timing={"compile_s": mc.compile_s, "run_s": mc.run_s},
+        interrupted=mc.interrupted,
         plot=plot if plots else None,
         extra={"status_flags": decode(status_any), "consistency_detail": cons,
                "max_pos_err_m": float(np.max(np.asarray(metrics["pos_err_max_m"])))},
@@ -526,6 +551,7 @@ def _register(sc):
         options=_OPTIONS,
         run=lambda runs, seed, dtype, options, progress, params=None, plots=False: run_scenario(
             sc, runs, seed, dtype, options, progress, params, plots),
+        params=params_schema,
     ))
 
 

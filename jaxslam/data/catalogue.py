@@ -1,0 +1,123 @@
+"""The real datasets jaxslam runs, where they are, and which of them a folder holds.
+
+One table (:data:`DATASETS`) feeds ``jaxslam list``, ``jaxslam dataset --help`` and the early
+checks of ``jaxslam dataset`` / ``jaxslam tune``: the data root is ``--data DIR``, else the
+environment variable ``JAXSLAM_DATA_DIR``; a ``--robot`` the folder does not hold is refused
+with the robots it does hold, before any file is parsed or anything is compiled.
+
+Standard library only (file names, no parsing); the loaders read the files.
+"""
+
+from __future__ import annotations
+
+import os
+import pathlib
+import re
+from typing import NamedTuple, Optional
+
+from ..errors import InputError
+
+__all__ = ["DATA_ENV", "Dataset", "DATASETS", "data_root", "find", "robots_found", "check_robot"]
+
+#: environment variable naming the data root (the folder with mrclam6/, victoria_park/, ...)
+DATA_ENV = "JAXSLAM_DATA_DIR"
+
+
+class Dataset(NamedTuple):
+    """One dataset: CLI name, the sub-folder it lives in under the data root, a one-line
+    description, and the file-name pattern whose number is ``--robot`` (None: no choice)."""
+
+    name: str
+    subdir: str
+    description: str
+    robot_pattern: Optional[str] = None
+    robot_meaning: str = ""
+
+
+DATASETS = (
+    Dataset("mrclam", "mrclam6",
+            "UTIAS MRCLAM 6: unicycle odometry, range-bearing to 15 barcoded landmarks, Vicon truth",
+            r"Robot(\d+)_Odometry\.dat", "MRCLAM robot"),
+    Dataset("victoria-park", "victoria_park",
+            "ACFR Victoria Park: Ackermann car, laser tree detections, unknown association, GPS"),
+    Dataset("util-uwb", "util_uwb",
+            "UTIL UWB TWR flight: range-only EKF with a range-bias state, Vicon truth"),
+    Dataset("plaza", "gtsam",
+            "CMU Plaza 1/2: odometry + range-only SLAM with unknown beacons",
+            r"Plaza(\d+)_DR\.txt", "Plaza sequence"),
+)
+
+_BY_NAME = {d.name: d for d in DATASETS}
+
+
+def data_root(value, flag: str = "--data") -> pathlib.Path:
+    """The data root: ``value`` (the ``--data`` argument), else ``$JAXSLAM_DATA_DIR``.
+
+    Raises:
+      InputError: neither is given, or the folder does not exist.
+    """
+    source = flag
+    if not value:
+        value, source = os.environ.get(DATA_ENV, "").strip(), f"${DATA_ENV}"
+        if not value:
+            raise InputError(f"{flag}: the dataset folder is required (give {flag} DIR or set "
+                             f"{DATA_ENV}=DIR, the folder holding mrclam6/, victoria_park/, ...)")
+    p = pathlib.Path(value).expanduser()
+    if not p.is_dir():
+        raise InputError(f"{source}: {str(p)!r} is not a folder")
+    return p
+
+
+def find(name: str, root) -> Optional[pathlib.Path]:
+    """The folder of dataset ``name`` under ``root`` (``root`` itself or ``root/subdir``), or None."""
+    d = _BY_NAME[name]
+    root = pathlib.Path(root)
+    for cand in ((root,) if root.name == d.subdir else (root / d.subdir, root)):
+        if cand.is_dir() and _holds(d, cand):
+            return cand
+    return None
+
+
+def _holds(d: Dataset, folder: pathlib.Path) -> bool:
+    if d.robot_pattern is not None:
+        return bool(_robots_in(d, folder))
+    if d.name == "victoria-park":
+        return (folder / "measurements.dat").is_file()
+    if d.name == "util-uwb":
+        return any(folder.glob("*_obs_log*"))
+    return False
+
+
+def _robots_in(d: Dataset, folder: pathlib.Path) -> list:
+    pat = re.compile(d.robot_pattern)
+    found = set()
+    try:
+        for entry in folder.iterdir():
+            m = pat.fullmatch(entry.name)
+            if m:
+                found.add(int(m.group(1)))
+    except OSError:
+        return []
+    return sorted(found)
+
+
+def robots_found(name: str, root) -> list:
+    """The ``--robot`` numbers dataset ``name`` has under ``root`` ([] if none or not applicable)."""
+    d = _BY_NAME[name]
+    folder = find(name, root)
+    return [] if folder is None or d.robot_pattern is None else _robots_in(d, folder)
+
+
+def check_robot(name: str, root, robot: int, flag: str = "--robot") -> None:
+    """Refuse a robot number the folder does not hold, naming those it does hold.
+
+    A dataset without robots, or a folder where the dataset is not found at all (the loader
+    then says which files it looked for), is left to the loader.
+    """
+    d = _BY_NAME[name]
+    if d.robot_pattern is None or find(name, root) is None:
+        return
+    have = robots_found(name, root)
+    if robot not in have:
+        raise InputError(f"{flag}: {d.robot_meaning} {robot} is not in {str(find(name, root))!r} "
+                         f"(found: {', '.join(map(str, have))})")

@@ -1,0 +1,112 @@
+"""Output files: checked before any compute, written atomically.
+
+Every command that writes (``--json``, ``--plots``, ``--tum``, ``--params-out``) calls
+:func:`prepare_file` / :func:`prepare_dir` on its paths while parsing its arguments, before
+JAX is asked to compile anything, so an unusable path costs a second, not the run.  The
+writers then go through :func:`atomic_write`: the bytes land in a temporary file in the
+target's folder and are renamed over the target, so an interrupted or failed write never
+leaves a truncated file (a reader sees the old file or the new one).
+
+Decisions
+- "Usable" is tested, not guessed: the folder is created (with its parents) and a
+  temporary file is created and removed in it.  Permission bits alone are wrong for root,
+  ACLs and read-only mounts.
+- The error names the option and says what is wrong in words (``'out/x' is a file, so
+  'out/x/run.json' cannot be created``), never a bare ``File exists``.
+- Standard library only; nothing here is traced.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import pathlib
+import tempfile
+from typing import Callable, Optional
+
+from jaxslam.errors import InputError
+
+__all__ = ["prepare_file", "prepare_dir", "atomic_write"]
+
+_UMASK = os.umask(0o022)  # read once at import (os.umask can only be read by setting it)
+os.umask(_UMASK)
+
+
+def _blocking_ancestor(path: pathlib.Path) -> Optional[pathlib.Path]:
+    """The first existing ancestor of ``path`` that is not a folder, if any."""
+    for parent in reversed(path.parents):
+        if parent.exists() and not parent.is_dir():
+            return parent
+    return None
+
+
+def _probe_folder(flag: str, folder: pathlib.Path, target: pathlib.Path) -> None:
+    """Create ``folder`` (and its parents) and check that a file can be created in it."""
+    blocker = _blocking_ancestor(folder / "x")
+    if blocker is not None:
+        raise InputError(f"{flag}: {str(blocker)!r} is a file, so {str(target)!r} cannot be created")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(dir=folder, prefix=".jaxslam-probe-")
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as e:
+        reason = e.strerror or str(e)
+        raise InputError(f"{flag}: cannot write into {str(folder)!r} ({reason})") from None
+
+
+def prepare_file(flag: str, path) -> pathlib.Path:
+    """Check, before compute, that the output file ``path`` of option ``flag`` can be written.
+
+    Creates the parent folders.  Raises :class:`InputError` naming ``flag`` when ``path`` is a
+    folder, lies under a file, or its folder is not writable (an existing read-only file is
+    replaced by :func:`atomic_write`, so only the folder's permission matters).
+    """
+    p = pathlib.Path(path)
+    if str(path) == "" or p.name in ("", ".", ".."):
+        raise InputError(f"{flag}: {str(path)!r} is not a file name")
+    if p.is_dir():
+        raise InputError(f"{flag}: {str(p)!r} is a folder; give a file path")
+    _probe_folder(flag, p.parent, p)
+    return p
+
+
+def prepare_dir(flag: str, path) -> pathlib.Path:
+    """Check, before compute, that the output folder ``path`` of option ``flag`` is usable.
+
+    Creates it (with its parents) and checks that files can be created in it; raises
+    :class:`InputError` naming ``flag`` otherwise.
+    """
+    p = pathlib.Path(path)
+    if str(path) == "":
+        raise InputError(f"{flag}: '' is not a folder name")
+    if p.exists() and not p.is_dir():
+        raise InputError(f"{flag}: {str(p)!r} exists and is not a folder")
+    _probe_folder(flag, p, p)
+    return p
+
+
+def atomic_write(path, write: Callable, mode: str = "w") -> pathlib.Path:
+    """Write ``path`` atomically: ``write(f)`` fills a temporary file that is renamed over it.
+
+    Args:
+      path: the target; its folder is created.
+      write: called with the open temporary file (text mode with ``mode="w"``, binary with
+        ``"wb"``).
+    Returns:
+      The target path.  On any exception the temporary file is removed and the target is
+      left as it was.
+    """
+    path = pathlib.Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, mode, **({"encoding": "utf-8"} if "b" not in mode else {})) as f:
+            write(f)
+        os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp makes 0600; give the usual mode
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+    return path

@@ -1,0 +1,199 @@
+"""The ``--params`` file: read it, check it against the target's schema, describe the schema.
+
+A ``--params`` file is a JSON object of *sections* (``"noise"``, ``"controller"``,
+``"filter"``), each an object of named numbers, vectors and matrices.  ``jaxslam tune``
+writes them (``--params-out``, or its whole ``--json`` report, which holds the sections at
+its top level); ``jaxslam run SCENARIO --params`` and ``jaxslam dataset NAME --params`` read
+them.  This module is the one place that says what a valid file is.
+
+A *schema* is ``{section: {key: default}}`` built from the target's own default parameters,
+so it cannot drift from what the target reads: a value is valid when it has the default's
+shape, is finite, and — where the default is a symmetric positive semi-definite matrix (a
+covariance, an LQR weight) — is symmetric PSD too, and may be given as its diagonal.
+Booleans must be booleans.
+
+Decisions
+- Unknown sections, unknown keys, wrong shapes, non-finite entries, non-PSD matrices and a
+  file written for another scenario or dataset are :class:`InputError` s naming the key
+  (``--params: noise.Qc: ...``): a typo never silently falls back to the default.
+- Provenance: a file may say which ``"scenario"`` (or ``"dataset"``) it was made for; a
+  mismatch is an error whose message says how to apply the file anyway (delete the key).
+- The accepted values are returned unchanged (lists as read), so the target converts them
+  exactly as before; this module only decides whether they are acceptable.
+- Host-side NumPy; nothing here is traced.
+"""
+
+from __future__ import annotations
+
+import json
+import pathlib
+import textwrap
+from typing import Any, Mapping
+
+import numpy as np
+
+from jaxslam.errors import InputError
+
+__all__ = ["load", "check", "describe", "TUNE_REPORT_KEYS"]
+
+#: Top-level keys of a ``jaxslam tune --json`` report besides its parameter sections (the report
+#: is itself a ``--params`` file; these keys are read by nothing that takes ``--params``).
+TUNE_REPORT_KEYS = frozenset({
+    "scenario", "dataset", "target", "loss", "before", "after", "params_before", "params_after",
+    "history", "references", "stopped", "n_skipped", "steps", "lr", "config", "timing", "memory",
+    "eval_command", "versions", "interrupted", "steps_done",
+})
+
+# Symmetry and PSD tolerances relative to the matrix's largest magnitude (JSON round trips of
+# float64 matrices are exact; 1e-9 leaves room for hand-written decimals).
+_SYM_RTOL = 1e-9
+_PSD_RTOL = 1e-12
+
+
+def load(path) -> dict:
+    """Read a ``--params`` JSON file whose top level is an object.
+
+    Raises:
+      InputError: the file is missing or unreadable, is not valid JSON, or its top level
+        is not an object.
+    """
+    path = pathlib.Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise InputError(f"--params: file {str(path)!r} not found") from None
+    except IsADirectoryError:
+        raise InputError(f"--params: {str(path)!r} is a folder, not a JSON file") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise InputError(f"--params: cannot read {str(path)!r}: {getattr(e, 'strerror', None) or e}") from None
+    try:
+        obj = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise InputError(
+            f"--params: {str(path)!r} is not valid JSON (line {e.lineno}, column {e.colno}: {e.msg})"
+        ) from None
+    if not isinstance(obj, dict):
+        raise InputError(f"--params: {str(path)!r} must hold a JSON object, got {type(obj).__name__}")
+    return obj
+
+
+def _shape_text(shape) -> str:
+    return "a number" if not shape else "×".join(str(n) for n in shape)
+
+
+def _is_square(d: np.ndarray) -> bool:
+    return d.ndim == 2 and d.shape[0] == d.shape[1]
+
+
+def _symmetric_psd(d: np.ndarray) -> bool:
+    if not _is_square(d) or not np.all(np.isfinite(d)):
+        return False
+    scale = max(float(np.max(np.abs(d))), 1e-300)
+    if np.max(np.abs(d - d.T)) > _SYM_RTOL * scale:
+        return False
+    return float(np.min(np.linalg.eigvalsh(d))) >= -_PSD_RTOL * scale
+
+
+def _check_value(name: str, value: Any, default: Any) -> Any:
+    if isinstance(default, (bool, np.bool_)):
+        if not isinstance(value, bool):
+            raise InputError(f"{name}: expected true or false, got {value!r}")
+        return value
+    d = np.asarray(default, np.float64)
+    try:
+        a = np.asarray(value, np.float64)
+    except (TypeError, ValueError):
+        raise InputError(f"{name}: expected numbers ({_shape_text(d.shape)}), got {value!r}"[:300]) from None
+    if isinstance(value, bool) or a.dtype == object:
+        raise InputError(f"{name}: expected numbers ({_shape_text(d.shape)}), got {value!r}"[:300])
+    psd = _symmetric_psd(d)  # a covariance or weight: diagonal form accepted, PSD required
+    diagonal = psd and a.shape == d.shape[:1]
+    if a.shape != d.shape and not diagonal:
+        want = _shape_text(d.shape) + (f" (or its {d.shape[0]} diagonal values)" if psd else "")
+        raise InputError(f"{name}: expected {want}, got shape {_shape_text(a.shape) if a.ndim else 'a number'}")
+    if not np.all(np.isfinite(a)):
+        raise InputError(f"{name}: holds a non-finite value (NaN or infinity)")
+    if psd:
+        full = np.diag(a) if diagonal else a
+        scale = max(float(np.max(np.abs(full))), 1e-300)
+        if np.max(np.abs(full - full.T)) > _SYM_RTOL * scale:
+            raise InputError(f"{name}: not symmetric (largest |A - Aᵀ| {np.max(np.abs(full - full.T)):.3g})")
+        low = float(np.min(np.linalg.eigvalsh(full)))
+        if low < -_PSD_RTOL * scale:
+            raise InputError(f"{name}: not positive semi-definite (smallest eigenvalue {low:.3g})")
+    return value
+
+
+def check(obj: Mapping, schema: Mapping[str, Mapping[str, Any]] | None, *, target: str,
+          kind: str = "scenario", where: str = "--params") -> dict:
+    """The parameter sections of ``obj``, checked against ``schema``.
+
+    Args:
+      obj: the parsed file (:func:`load`).
+      schema: ``{section: {key: default}}`` of the target, or ``None`` when it takes no file.
+      target: the scenario's (dataset's) name, for provenance and messages.
+      kind: ``"scenario"`` or ``"dataset"``: the provenance key ``obj`` may hold.
+    Returns:
+      ``{section: {key: value}}`` with the sections ``obj`` sets (values as read).
+    Raises:
+      InputError: naming the offending key (module docstring).
+    """
+    if not isinstance(obj, Mapping):
+        raise InputError(f"{where}: expected a JSON object, got {type(obj).__name__}")
+    if kind == "scenario" and obj.get("dataset") is not None:
+        raise InputError(f"{where}: the file is for dataset {obj['dataset']!r} (use it with "
+                         f"'jaxslam dataset {obj['dataset']} --params'), not for scenario {target!r}")
+    if kind == "dataset" and obj.get("dataset") is None and obj.get("scenario") is not None:
+        raise InputError(f"{where}: the file is for scenario {obj['scenario']!r} (use it with "
+                         f"'jaxslam run {obj['scenario']} --params'), not for dataset {target!r}")
+    made_for = obj.get(kind)
+    if made_for is not None and made_for != target:
+        raise InputError(f"{where}: key '{kind}' is {made_for!r}, this run is {target!r}: the file was "
+                         f"made for another {kind} (delete its '{kind}' key to apply it anyway)")
+    report = "params_after" in obj  # a whole `jaxslam tune --json` report
+    extra = TUNE_REPORT_KEYS if report else {kind, "interrupted"}
+    sections = {} if schema is None else dict(schema)
+    unknown = sorted(set(obj) - set(sections) - set(extra))
+    if schema is None:
+        if unknown:
+            raise InputError(f"{where}: {kind} {target!r} takes no --params file (it has no tunable "
+                             f"parameters; the file sets {unknown})")
+        return {}
+    if unknown:
+        raise InputError(f"{where}: unknown key(s) {unknown}; {kind} {target!r} reads "
+                         f"{', '.join(repr(s) for s in sections)}"
+                         + (f" (and '{kind}')" if kind not in sections else ""))
+    out = {}
+    for section, defaults in sections.items():
+        if section not in obj:
+            continue
+        given = obj[section]
+        if not isinstance(given, Mapping):
+            raise InputError(f"{where}: {section}: expected an object of named values, got "
+                             f"{type(given).__name__}")
+        bad = sorted(set(given) - set(defaults))
+        if bad:
+            raise InputError(f"{where}: {section}: unknown key(s) {bad}; expected {', '.join(defaults)}")
+        out[section] = {k: _check_value(f"{where}: {section}.{k}", v, defaults[k]) for k, v in given.items()}
+    return out
+
+
+def describe(schema: Mapping[str, Mapping[str, Any]] | None) -> str:
+    """Lines listing a schema's sections and keys with shapes (for ``--help``)."""
+    if schema is None:
+        return "  (none: this target takes no --params file)"
+    lines = []
+    for section, defaults in schema.items():
+        parts = []
+        for k, d in defaults.items():
+            if isinstance(d, (bool, np.bool_)):
+                parts.append(f"{k} (true/false)")
+                continue
+            a = np.asarray(d, np.float64)
+            text = _shape_text(a.shape)
+            if _symmetric_psd(a):
+                text += f" symmetric PSD or {a.shape[0]} diagonal values"
+            parts.append(f"{k} ({text})")
+        lines.append(textwrap.fill(f"  {section}: " + ", ".join(parts), width=88,
+                                   subsequent_indent="      ", break_on_hyphens=False))
+    return "\n".join(lines)

@@ -1,0 +1,96 @@
+"""Output paths checked before compute (jaxslam.files) and the --params schema (jaxslam.paramfile)."""
+
+from __future__ import annotations
+
+import os
+import pathlib
+
+import numpy as np
+import pytest
+
+from jaxslam import files, paramfile
+from jaxslam.errors import InputError
+
+
+def test_prepare_file_creates_parents_and_refuses_folders_and_files_in_the_way(tmp_path):
+    p = files.prepare_file("--json", tmp_path / "a" / "b" / "r.json")
+    assert p.parent.is_dir() and not p.exists()  # the folder is made, the file is not
+    assert list(p.parent.iterdir()) == []  # the write probe is removed
+    with pytest.raises(InputError, match=r"--json: .* is a folder; give a file path"):
+        files.prepare_file("--json", tmp_path / "a")
+    (tmp_path / "f").write_text("x")
+    with pytest.raises(InputError, match=r"--json: '.*f' is a file, so '.*f/r.json' cannot be created"):
+        files.prepare_file("--json", tmp_path / "f" / "r.json")
+    with pytest.raises(InputError, match=r"--tum: '.*f' is a file"):
+        files.prepare_file("--tum", tmp_path / "f" / "deeper" / "t.txt")
+
+
+def test_prepare_dir(tmp_path):
+    d = files.prepare_dir("--plots", tmp_path / "p" / "q")
+    assert d.is_dir() and list(d.iterdir()) == []
+    (tmp_path / "f").write_text("x")
+    with pytest.raises(InputError, match="--plots: .* exists and is not a folder"):
+        files.prepare_dir("--plots", tmp_path / "f")
+
+
+def _unwritable_folder(tmp_path) -> pathlib.Path:
+    if os.geteuid() != 0:
+        ro = tmp_path / "ro"
+        ro.mkdir()
+        ro.chmod(0o555)
+        return ro
+    sysfs = pathlib.Path("/sys")  # root ignores permission bits; sysfs refuses new files
+    try:
+        (sysfs / ".probe").touch()
+    except OSError:
+        return sysfs
+    pytest.skip("no folder here that this user cannot write into")
+
+
+def test_unwritable_folder_is_refused_naming_the_option(tmp_path):
+    ro = _unwritable_folder(tmp_path)
+    with pytest.raises(InputError, match=r"--json: cannot write into .*\("):
+        files.prepare_file("--json", ro / "r.json")
+    with pytest.raises(InputError, match=r"--plots: cannot write into"):
+        files.prepare_dir("--plots", ro)
+
+
+SCHEMA = {"noise": {"Q": np.diag([1.0, 2.0]), "r": 0.1, "gain": np.ones(3), "flag": False,
+                    "A": np.array([[0.0, 1.0], [-1.0, 0.0]])}}  # A: not symmetric, so any 2×2 passes
+
+
+@pytest.mark.parametrize("value, ok", [
+    ([[1, 0], [0, 1]], True), ([3, 4], True), ([0, 0], True),  # PSD, diagonal, zero (PSD)
+    ([[1, 2], [2, 1]], False), ([-1, 1], False), ([[1, 0.5], [0, 1]], False), ([1, 2, 3], False),
+    ([[1, float("nan")], [float("nan"), 1]], False), ("x", False),
+])
+def test_covariance_values(value, ok):
+    doc = {"noise": {"Q": value}}
+    if ok:
+        assert paramfile.check(doc, SCHEMA, target="t") == doc
+    else:
+        with pytest.raises(InputError, match=r"--params: noise\.Q: "):
+            paramfile.check(doc, SCHEMA, target="t")
+
+
+def test_other_shapes_and_types():
+    assert paramfile.check({"noise": {"A": [[5, 6], [7, 8]], "r": 2, "flag": True}}, SCHEMA, target="t")
+    for doc, needle in (({"noise": {"r": [1]}}, "noise.r: expected a number"),
+                        ({"noise": {"gain": [[1, 2, 3]]}}, "noise.gain: expected 3, got shape 1×3"),
+                        ({"noise": {"flag": 1}}, "noise.flag: expected true or false"),
+                        ({"noise": {"r": True}}, "noise.r: expected numbers"),
+                        ({"noise": {"A": [1, 2]}}, r"noise.A: expected 2×2, got shape 2$")):
+        with pytest.raises(InputError, match=needle):
+            paramfile.check(doc, SCHEMA, target="t")
+
+
+def test_provenance_and_no_schema():
+    assert paramfile.check({"scenario": "t", "noise": {}}, SCHEMA, target="t") == {"noise": {}}
+    with pytest.raises(InputError, match="delete its 'scenario' key"):
+        paramfile.check({"scenario": "u", "noise": {}}, SCHEMA, target="t")
+    with pytest.raises(InputError, match="takes no --params file"):
+        paramfile.check({"noise": {}}, None, target="t")
+    assert paramfile.check({"scenario": "t"}, None, target="t") == {}
+    text = " ".join(paramfile.describe(SCHEMA).split())
+    assert "Q (2×2 symmetric PSD or 2 diagonal values)" in text and "flag (true/false)" in text
+    assert "A (2×2)" in text and "r (a number)" in text
