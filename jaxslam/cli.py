@@ -508,15 +508,6 @@ def _fmt(x) -> str:
     return _fmt_num(float("nan") if x is None else float(x))
 
 
-# What a value outside its chi-square bounds means, by kind of statistic (below, above).
-_OUTSIDE_MEANS = {
-    "nees": ("below: conservative (covariance larger than the errors)",
-             "above: over-confident (errors larger than the covariance)"),
-    "nis": ("below: innovations smaller than predicted (R or P too large)",
-            "above: innovations larger than predicted (R or P too small, or outliers)"),
-}
-
-
 def _consistency_lines(cons: dict) -> list:
     """One line per statistic of the run JSON's ``consistency``: what it covers (``S_block``,
     ``S_dim``; docs/cli.md), its value against its bounds, and what an OUTSIDE verdict means.
@@ -525,6 +516,8 @@ def _consistency_lines(cons: dict) -> list:
     ``key_dim`` or under its stem (``nis_mean`` -> ``nis_bounds``); reports written before the
     ``_block`` entries existed print without them.
     """
+    from jaxslam.metrics import consistency_verdict
+
     out = []
     for key, value in cons.items():
         if key.endswith(("_bounds", "_block", "_dim")) or isinstance(value, (str, bool, list, dict)):
@@ -550,14 +543,8 @@ def _consistency_lines(cons: dict) -> list:
             lo, hi = (float("nan") if b is None else float(b) for b in bounds)
             v = float("nan") if value is None else float(value)
             text += f" in [{_fmt(lo)}, {_fmt(hi)}] "
-            if not all(math.isfinite(x) for x in (v, lo, hi)):
-                text += "undefined (no value or no bounds)"
-            elif lo <= v <= hi:
-                text += "ok"
-            else:
-                text += "OUTSIDE"
-                if kind is not None:
-                    text += ", " + _OUTSIDE_MEANS[kind][0 if v < lo else 1]
+            word = consistency_verdict(v, (lo, hi), kind)
+            text += "undefined (no value or no bounds)" if word == "undefined" else word
         out.append(text)
     return out
 

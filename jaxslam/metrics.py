@@ -378,6 +378,34 @@ def anees_bounds(n_state: int, n_runs: int, alpha: float = 0.05) -> tuple[float,
     return mean_chi2_bounds(int(n_state) * int(n_runs), int(n_runs), alpha)
 
 
+# What a value outside its χ² bounds means, by kind of statistic: (below, above).
+_OUTSIDE_MEANS = {
+    "nees": ("below: conservative (covariance larger than the errors)",
+             "above: over-confident (errors larger than the covariance)"),
+    "nis": ("below: innovations smaller than predicted (R or P too large)",
+            "above: innovations larger than predicted (R or P too small, or outliers)"),
+}
+
+
+def consistency_verdict(value, bounds, kind: str | None = "nees") -> str:
+    """A NEES/NIS statistic against its bounds, in words (the console report and the figures).
+
+    Returns ``"ok"``, ``"OUTSIDE, below: conservative (covariance larger than the errors)"``
+    (what the side means for ``kind`` ``"nees"`` or ``"nis"``; bare ``"OUTSIDE"`` for
+    ``kind=None``), or ``"undefined"`` when the value or a bound is missing or non-finite.
+    """
+    try:
+        v = float(value)
+        lo, hi = (float(b) for b in bounds)
+    except (TypeError, ValueError):
+        return "undefined"
+    if not all(math.isfinite(x) for x in (v, lo, hi)):
+        return "undefined"
+    if lo <= v <= hi:
+        return "ok"
+    return "OUTSIDE" + ("" if kind is None else ", " + _OUTSIDE_MEANS[kind][0 if v < lo else 1])
+
+
 # ---------------------------------------------------------------------------
 # Windows and summaries (host side)
 # ---------------------------------------------------------------------------

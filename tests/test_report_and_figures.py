@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from jaxslam.cli import _format_run_report
-from jaxslam.plotting import common, slam3d, tuning, uwb
+from jaxslam.metrics import consistency_verdict
+from jaxslam.plotting import flight, slam3d, tuning, uwb
 from jaxslam.plotting.flight import plt  # pyplot on the Agg backend
 
 
@@ -68,10 +69,11 @@ def test_uwb_consistency_summary_names_both_blocks():
 
 
 def test_verdict_words():
-    assert common.verdict(1.0, (0.5, 2.0)) == "ok"
-    assert common.verdict(0.1, (0.5, 2.0)).startswith("OUTSIDE (below: conservative")
-    assert common.verdict(3.0, (0.5, 2.0), "nis").startswith("OUTSIDE (above: innovations larger")
-    assert common.verdict(None, (0.5, 2.0)) == "undefined"
+    assert consistency_verdict(1.0, (0.5, 2.0)) == "ok"
+    assert consistency_verdict(0.1, (0.5, 2.0)).startswith("OUTSIDE, below: conservative")
+    assert consistency_verdict(3.0, (0.5, 2.0), "nis").startswith("OUTSIDE, above: innovations larger")
+    assert consistency_verdict(3.0, (0.5, 2.0), None) == "OUTSIDE"
+    assert consistency_verdict(None, (0.5, 2.0)) == "undefined"
 
 
 def _tune_report(n_extra=12, consistency=True):
@@ -154,7 +156,7 @@ def test_slam3d_magnification_and_landmark_summary():
 @pytest.mark.parametrize("margins", [{"left": 0.2, "top": 0.7}])
 def test_keep_margins_survive_the_default_adjust(margins):
     fig, axs = plt().subplots(1, 2)
-    common.keep_margins(fig, **margins)
+    flight.keep_margins(fig, **margins)
     fig.subplots_adjust(left=0.08, top=0.94)  # what jaxslam.plotting.flight.save does
     assert axs[0].get_position().x0 == pytest.approx(0.2)
     assert axs[0].get_position().y1 == pytest.approx(0.7)

@@ -78,7 +78,9 @@ Decisions (where paper 001 is silent, or where jaxslam departs from it)
   host round trip is needed; all per-particle leaves (pose, aux, map) are
   gathered by the ancestor indices and the weights reset to uniform.
 * Non-finite measurements with ``mask`` True are skipped and flagged
-  ``MASKED_INPUT``; measurements with a negative id are treated as masked.
+  ``MASKED_INPUT``; measurements with a negative id are treated as masked.  A proposal
+  that yields a non-finite pose (a NaN input) leaves that particle where it was and sets
+  ``NON_FINITE`` (:func:`propagate`).
 * Gradients: the registration and update branches receive their inputs
   through a ``where(do, x, stop_gradient(x))`` guard, so the unused branch
   (e.g. a free slot at mean 0, a masked measurement) cannot poison gradients
@@ -412,6 +414,10 @@ def propagate(p: Particles, key, sample_fn: Callable, *args) -> Particles:
     step) are shared by all particles.  Put per-particle inputs in ``aux``.
     For gradients use reparametrised noise (``pose' = f + chol(Q) ε``).
 
+    A particle whose new pose is not finite (a NaN/Inf input, an overflowing model) keeps
+    its previous pose and the set's status gets ``NON_FINITE``: a bad input is flagged, never
+    turned into a NaN estimate.
+
     Returns:
         Particles with pose and aux replaced; weights and maps untouched.
     """
@@ -419,7 +425,10 @@ def propagate(p: Particles, key, sample_fn: Callable, *args) -> Particles:
     keys = jax.random.split(key, N)
     in_axes = (0, 0, 0) + (None,) * len(args)
     pose, aux = jax.vmap(sample_fn, in_axes=in_axes)(p.pose, p.aux, keys, *args)
-    return p._replace(pose=jnp.asarray(pose, p.pose.dtype), aux=aux)
+    pose = jnp.asarray(pose, p.pose.dtype)
+    ok = jnp.all(jnp.isfinite(pose), axis=-1)
+    pose = jnp.where(ok[:, None], pose, p.pose)
+    return p._replace(pose=pose, aux=aux, status=p.status | _flag(~jnp.all(ok), errors.NON_FINITE))
 
 
 # ---------------------------------------------------------------------------

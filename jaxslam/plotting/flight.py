@@ -12,7 +12,7 @@ import numpy as np
 
 from jaxslam.files import atomic_write
 
-__all__ = ["plt", "save", "trajectory_3d", "states_over_time", "inputs_over_time"]
+__all__ = ["plt", "save", "keep_margins", "trajectory_3d", "states_over_time", "inputs_over_time"]
 
 
 def plt():
@@ -43,6 +43,23 @@ def save(fig, directory, name) -> pathlib.Path:
     finally:
         plt().close(fig)
     return path
+
+
+def keep_margins(fig, **margins):
+    """Fix the margins of ``fig``'s subplot grids (``left``, ``right``, ``bottom``, ``top``,
+    ``wspace``, ``hspace``) so that :func:`jaxslam.plotting.flight.save`'s default
+    ``subplots_adjust`` leaves them alone: they are set on each grid, which then ignores the
+    figure's.  No layout engine is set, so the figure is still drawn once."""
+    grids = []
+    for ax in fig.axes:
+        spec = ax.get_subplotspec()
+        if spec is not None:
+            gs = spec.get_topmost_subplotspec().get_gridspec()
+            if all(gs is not g for g in grids):
+                grids.append(gs)
+    for gs in grids:
+        gs.update(**margins)
+    return fig
 
 
 def _ned_to_enu_up(p):

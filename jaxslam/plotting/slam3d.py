@@ -22,8 +22,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .common import keep_margins, verdict
-from .flight import _ned_to_enu_up, plt, save
+from ..metrics import consistency_verdict as verdict
+from .flight import _ned_to_enu_up, keep_margins, plt, save
 
 __all__ = ["landmark_errors", "magnification", "plot_all"]
 

@@ -11,8 +11,7 @@ import textwrap
 
 import numpy as np
 
-from .common import keep_margins
-from .flight import plt, save
+from .flight import keep_margins, plt, save
 
 __all__ = ["before_after", "choose_panels", "loss_curves", "param_trajectories", "plot_all"]
 

@@ -21,8 +21,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .common import keep_margins, verdict
-from .flight import plt, save
+from ..metrics import consistency_verdict as verdict
+from .flight import keep_margins, plt, save
 
 __all__ = ["STATE_NAMES", "band", "ellipse_points", "plot_all", "state_panels"]
 

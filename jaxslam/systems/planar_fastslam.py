@@ -382,6 +382,8 @@ def run(key, log: EventLog, pose0, config: Config, params: Params) -> Result:
         raise InputError(f"log.u: expected shape ({T}, 2), got {np.shape(log.u)}")
     if np.shape(log.z) != (T, int(config.K), 2):
         raise InputError(f"log.z: expected shape ({T}, {config.K}, 2), got {np.shape(log.z)}")
+    if not np.all(np.isfinite(np.asarray(log.u))):  # as the planar EKF's run (inside jit: NON_FINITE)
+        raise InputError("log.u: contains NaN or Inf")
     pose0 = jnp.asarray(pose0)
     if pose0.shape != (3,):
         raise InputError(f"pose0: expected shape (3,), got {pose0.shape}")

@@ -63,9 +63,10 @@ set has every cell (``SLOW``).
 
 Array-level faults on the same real logs (``test_array_fault_on_real_log``; the loaders refuse
 these in files, a caller of the systems can pass them): non-finite measurement rows →
-``masked_input`` and an estimate equal to the run without those rows (planar EKF on MRCLAM,
-``range_only`` on UTIL and Plaza); NaN odometry → InputError from the planar ``run``,
-``non_finite`` with a finite estimate from ``run_arrays`` and from Plaza's run.
+``masked_input`` and an estimate equal to the run without those rows (planar EKF and planar
+FastSLAM on MRCLAM, ``range_only`` on UTIL and Plaza); NaN odometry → InputError from the
+planar ``run`` s, ``non_finite`` with a finite estimate inside jit (``run_arrays``, the FastSLAM
+scan — its proposal keeps a particle whose new pose is not finite — and Plaza's run).
 """
 
 import gzip
@@ -634,12 +635,35 @@ def _plaza_system(folder):
     return log, run, lambda res: np.asarray(res.pos), lambda res: res.status
 
 
+def _mrclam_fastslam_system(folder):
+    import jax
+    import jax.numpy as jnp
+
+    from jaxslam.data.mrclam import load_mrclam
+    from jaxslam.systems import planar_ekf_slam as pe
+    from jaxslam.systems import planar_fastslam as pf
+
+    log, pose0 = pe.mrclam_raw_log(load_mrclam(folder, 1), K=8)
+    cfg, prm = pf.mrclam_setup(1, n_particles=50)
+    p0, key = jnp.asarray(pose0, np.float64), jax.random.PRNGKey(3)
+
+    def run(lg, validate=True):
+        if validate:
+            return pf.run(key, lg, p0, cfg, prm)
+        # what run does after its host-side checks (the same jitted program)
+        prm64 = jax.tree_util.tree_map(lambda a: jnp.asarray(a, np.float64), prm)
+        return pf._run(key, pf._log_arrays(lg, np.float64), p0, prm64, cfg)
+
+    return log, run, lambda res: np.asarray(res.pose_mean), lambda res: res.status
+
+
 SYSTEMS = {"mrclam": ("planar_ekf_slam", _mrclam_system), "util-uwb": ("range_only.run_util", _util_system),
-           "plaza": ("range_only.run_plaza", _plaza_system)}
+           "plaza": ("range_only.run_plaza", _plaza_system),
+           "mrclam-fastslam": ("planar_fastslam", _mrclam_fastslam_system)}
 ARRAY_CELLS = [pytest.param(f, n, id=f"{f}-{n}-{SYSTEMS[n][0]}")
-               for f, names in (("nan_rows", ("mrclam", "util-uwb", "plaza")),
-                                ("inf_rows", ("mrclam", "util-uwb")),
-                                ("nan_input", ("mrclam", "plaza")))
+               for f, names in (("nan_rows", ("mrclam", "util-uwb", "plaza", "mrclam-fastslam")),
+                                ("inf_rows", ("mrclam", "util-uwb", "mrclam-fastslam")),
+                                ("nan_input", ("mrclam", "plaza", "mrclam-fastslam")))
                for n in names]
 
 
@@ -647,16 +671,17 @@ ARRAY_CELLS = [pytest.param(f, n, id=f"{f}-{n}-{SYSTEMS[n][0]}")
 def test_array_fault_on_real_log(fault, name, bases):
     """nan_rows / inf_rows: 6 present rows of the middle of the log non-finite → ``masked_input``,
     the estimate equal (1e-12) to the run without those rows; nan_input: 5 odometry samples NaN →
-    the planar ``run`` refuses them (InputError naming log.u), ``run_arrays`` and Plaza refuse
-    each such prediction → ``non_finite``, every estimate finite."""
-    log, run, pos, status = SYSTEMS[name][1](bases[name])
+    the planar ``run`` s refuse them (InputError naming log.u), inside jit (``run_arrays``, the
+    FastSLAM scan, Plaza) each such prediction is refused → ``non_finite``, every estimate
+    finite.  FastSLAM: the same key, so the masked run draws the same particles."""
+    log, run, pos, status = SYSTEMS[name][1](bases[name.removesuffix("-fastslam")])
     assert "masked_input" not in errors.decode(status(run(log)))
     if fault == "nan_input":
         u = log.u.copy()
         moving = np.flatnonzero(np.any(u != 0, axis=1))
         u[moving[len(moving) // 2:][:5]] = np.nan
         bad = log._replace(u=u)
-        if name == "mrclam":
+        if name.startswith("mrclam"):
             with pytest.raises(InputError, match="log.u"):
                 run(bad)
         res = run(bad, validate=False)
