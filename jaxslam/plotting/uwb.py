@@ -19,6 +19,8 @@ NumPy inputs; matplotlib is imported lazily (Agg).
 
 from __future__ import annotations
 
+import textwrap
+
 import numpy as np
 
 from ..metrics import consistency_verdict as verdict
@@ -245,10 +247,11 @@ def plot_all(name, sim, res, ev, setup, cfg, per_step, cons, runs, directory):
         ax.set_yscale("log")
         ax.set_xlabel("t [s]")
         ax.set_ylabel(f"NEES, {c['dof']} states")
-        ax.set_title(f"{block[0]}, {c['dof']} states\ntime average {c['anees']:.2f} ({block[1]}): "
-                     f"{verdict(c['anees'], c['bounds'])}", fontsize=8.5)
+        text = (f"time average {c['anees']:.2f} ({block[1]}): "
+                f"{verdict(c['anees'], c['bounds'])}")
+        ax.set_title(f"{block[0]}, {c['dof']} states\n" + "\n".join(textwrap.wrap(text, 70)), fontsize=8.5)
         ax.legend(fontsize=7, loc="lower right")
     fig.suptitle(f"{name}: Monte Carlo NEES by state block")
-    keep_margins(fig, left=0.07, right=0.98, bottom=0.12, top=0.80, wspace=0.22)
+    keep_margins(fig, left=0.08, right=0.98, bottom=0.12, top=0.74, wspace=0.22)
     paths.append(save(fig, directory, f"{name}_nees"))
     return paths
