@@ -39,12 +39,24 @@ Ctrl-C: the log is filtered by one compiled scan, so an interrupted run has noth
 finished to keep; it exits 130 and writes no file (an existing --json is left as it was)."""
 
 
-def _parser():
+def _params_help() -> str:
+    """The keys a dataset ``--params`` file may set (built only for ``--help``)."""
+    import textwrap
+
+    from ..systems.planar_ekf_slam import PlanarParams
+
+    return ("\n\n--params FILE (mrclam, EKF): {\"dataset\": \"mrclam\", \"noise\": {...}} as 'jaxslam tune\n"
+            "mrclam' writes it; noise keys (each optional, shapes as in PlanarParams):\n"
+            + textwrap.fill(", ".join(PlanarParams._fields), 84, initial_indent="  ", subsequent_indent="  "))
+
+
+def _parser(help_params: bool = False):
     from ..cli import _Parser, _positive_int, _seed
 
     p = _Parser(prog="jaxslam dataset", usage="jaxslam dataset NAME --data DIR [options]",
                 description="Run EKF-SLAM or FastSLAM on a real dataset and evaluate it.",
-                epilog=_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+                epilog=_EPILOG + (_params_help() if help_params else ""),
+                formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("name", metavar="NAME", choices=("mrclam", "victoria-park", "util-uwb", "plaza"),
                    help="mrclam | victoria-park | util-uwb | plaza")
     p.add_argument("--data", metavar="DIR", default=None,
@@ -91,7 +103,7 @@ def main(argv) -> int:
     from .. import files, paramfile
     from . import catalogue
 
-    args = _parser().parse_args(argv)
+    args = _parser(help_params="-h" in argv or "--help" in argv).parse_args(argv)
     # Inputs, then outputs, checked before anything is parsed or compiled.
     data = catalogue.data_root(args.data)
     if args.name in ("mrclam", "plaza"):
