@@ -17,9 +17,9 @@ Cases, the cheapest that draw noise:
 * ``dataset mrclam --filter fastslam`` on the committed excerpt (proposal and resampling
   draws from ``--seed``).
 
-The three command pairs run concurrently two at a time (each pair in order, so the second
-process of a pair finds the first's programs in the cache): ~25 s on an idle 2-core machine
-with an empty cache.
+The command pairs run concurrently two at a time (each pair in order, so the second process
+of a pair finds the first's programs in the cache).  The FastSLAM pair is in the slow set
+(~27 s with an empty cache); the two UWB pairs run by default.
 """
 
 from __future__ import annotations
@@ -75,7 +75,11 @@ def pairs(request, tmp_path_factory):
     pool.shutdown(wait=True, cancel_futures=True)
 
 
-@pytest.mark.parametrize("case", ORDER)
+# The FastSLAM pair costs ~27 s with an empty cache (two processes compiling and running the
+# particle filter): slow set; the default set keeps the two UWB pairs (noise draws, Monte Carlo
+# keys, float64 and float32).
+@pytest.mark.parametrize("case", [pytest.param(c, marks=pytest.mark.slow) if c == "mrclam-fastslam" else c
+                                  for c in ORDER])
 def test_same_command_and_seed_give_identical_json_in_two_fresh_processes(pairs, case):
     first, second = pairs[case].result()
     assert first["metrics"], first

@@ -95,6 +95,11 @@ attitude-free world-frame LiDAR.  In exchange, the filter is insensitive to an i
 mismatch.  ``stage2="none"`` keeps the rotor-driven rates (gyro bias observable, but the
 mismatch then corrupts ω and the bias).
 
+Bad samples: a non-finite IMU sample is skipped (the dynamics model predicts through it; the
+kinematics model keeps its previous sample) and non-finite LiDAR rows are skipped by the update
+and by the position regeneration; both set ``MASKED_INPUT`` in the particles' status
+(``tests/faults/test_faults_slow_systems.py``).  Before, either turned the estimate into NaN.
+
 Which entry point: :func:`run` (one ``lax.scan`` over the whole flight; nested scan: LiDAR
 frames outside, IMU samples inside) for recorded data and Monte Carlo (``vmap`` over keys);
 :func:`step` (one IMU sample plus an optional LiDAR frame) for users driving their own loop.
@@ -111,6 +116,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import errors
 from ..dynamics import rotor
 from ..dynamics.integrators import rk4_step
 from ..dynamics.params import PAPER001, RotorQuadParams, validate_params
@@ -681,6 +687,12 @@ def imu_stage(state: FilterState, rotor_w, imu, key, config: FilterConfig,
     k_prop, k_res, k_s2 = jax.random.split(key, 3)
     first = state.k == 0
     a_b, q_b = bias_model(params, dtype)
+    # A non-finite IMU sample is skipped and flagged MASKED_INPUT, never turned into a NaN state:
+    # the dynamics model predicts through it without the measurement; the kinematics model
+    # (IMU as the input) keeps its poses (fs.propagate) and its previous sample.
+    imu_ok = jnp.all(jnp.isfinite(imu))
+    imu = jnp.where(imu_ok, imu, jnp.where(first, jnp.zeros_like(imu), state.imu_prev))
+    p = p._replace(status=p.status | jnp.where(imu_ok, jnp.int32(0), jnp.int32(errors.MASKED_INPUT)))
 
     if config.model == "kinematics":
         prev = jnp.where(first, imu, state.imu_prev)
@@ -712,6 +724,8 @@ def imu_stage(state: FilterState, rotor_w, imu, key, config: FilterConfig,
     # Table 4 re-initialisation at the first sample: minimum-norm least squares H_b⁺ z̄.
     m_reinit = zbar @ jnp.asarray(_H_B_PINV, dtype).T
     m_post = jnp.where(first, m_reinit, m_post)
+    m_post = jnp.where(imu_ok, m_post, prior.mean)  # a skipped sample: the prediction only
+    P_post = jnp.where(imu_ok, P_post, P_pred)
 
     # Step 3: IMU weight with the predicted bias (k|k−1); none at the re-initialisation.
     half = jnp.asarray(0.5 * 6 * math.log(2 * math.pi), dtype)
@@ -722,7 +736,7 @@ def imu_stage(state: FilterState, rotor_w, imu, key, config: FilterConfig,
     else:
         iv = 1.0 / jnp.asarray(params.imu_var, dtype)
         ll = -0.5 * (jnp.sum(innov * innov * iv, axis=1) - jnp.sum(jnp.log(iv))) - half
-    ll = jnp.where(first, jnp.zeros_like(ll), ll)
+    ll = jnp.where(first | ~imu_ok, jnp.zeros_like(ll), ll)
     p = p._replace(aux=m_post)
     p = fs.reweight(p, ll)
     neff = fs.neff(p)
@@ -737,7 +751,7 @@ def imu_stage(state: FilterState, rotor_w, imu, key, config: FilterConfig,
         keys = jax.random.split(k_s2, p.pose.shape[0])
         pose = jax.vmap(lambda x, b, k: regenerate_rates(
             x, b, k if config.regen_noise else None, imu[3:6], symmetrize(G)))(p.pose, p.aux, keys)
-        p = p._replace(pose=pose)
+        p = p._replace(pose=jnp.where(imu_ok, pose, p.pose))
     st = FilterState(particles=p, bias_cov=P_post, k=state.k + 1,
                      neff_min=jnp.minimum(state.neff_min, neff), imu_prev=imu)
     return st, _step_out(st, neff)
@@ -756,14 +770,17 @@ def lidar_stage(state: FilterState, z, ids, mask, key, config: FilterConfig,
     model = landmark_model(config.lidar)
     R = jnp.diag(jnp.asarray(params.lidar_var, dtype))
     wmode = "exact" if config.weights == "exact" else "mean"
-    p, _ = fs.observe_update(p, model, jnp.asarray(z, dtype), ids, mask, R, None,
-                             weights=wmode, slot_by_id=True)
+    z = jnp.asarray(z, dtype)
+    p, _ = fs.observe_update(p, model, z, ids, mask, R, None, weights=wmode, slot_by_id=True)
+    # The core skipped (and flagged) the non-finite rows; the position regeneration skips them too.
+    used = mask & jnp.all(jnp.isfinite(z), axis=-1)
+    z = jnp.where(used[:, None], z, jnp.zeros((), dtype))
     neff = fs.neff(p)
     p = _resample(p, k_res, config)
     if config.model == "dynamics" and config.stage2 == "paper":
         keys = jax.random.split(k_s2, p.pose.shape[0])
         pose = jax.vmap(lambda x, m, c, a, k: regenerate_position(
-            x, m, c, a, jnp.asarray(z, dtype), ids, mask, k, R, config.lidar,
+            x, m, c, a, z, ids, used, k, R, config.lidar,
             config.weights == "exact"))(p.pose, p.lm_mean, p.lm_cov, p.active, keys)
         p = p._replace(pose=pose)
     st = state._replace(particles=p, neff_min=jnp.minimum(state.neff_min, neff))
