@@ -724,7 +724,7 @@ def imu_stage(state: FilterState, rotor_w, imu, key, config: FilterConfig,
     # Table 4 re-initialisation at the first sample: minimum-norm least squares H_b⁺ z̄.
     m_reinit = zbar @ jnp.asarray(_H_B_PINV, dtype).T
     m_post = jnp.where(first, m_reinit, m_post)
-    m_post = jnp.where(imu_ok, m_post, prior.mean)  # a skipped sample: the prediction only
+    m_post = jnp.where(imu_ok, m_post, p.aux)  # a skipped sample: the prediction (propagate made it)
     P_post = jnp.where(imu_ok, P_post, P_pred)
 
     # Step 3: IMU weight with the predicted bias (k|k−1); none at the re-initialisation.

@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from jaxslam import errors
 from jaxslam.dynamics import rotor
 from jaxslam.dynamics.params import PAPER001
 from jaxslam.systems import fastslam_001 as fs1
@@ -52,8 +53,9 @@ def _imu_samples(seed=3):
     return np.array(zs)
 
 
-def _oracle(zs, weights):
-    """NumPy KF per particle; returns means (K, N, 12), covs (K, 12, 12), loglik sums (N,)."""
+def _oracle(zs, weights, skip=()):
+    """NumPy KF per particle; returns means (K, N, 12), covs (K, 12, 12), loglik sums (N,).
+    Samples ``skip`` are missing: prediction only, no update, no likelihood."""
     I3, Z3 = np.eye(3), np.zeros((3, 3))
     H = np.block([[I3, Z3, I3, Z3], [Z3, I3, Z3, I3]])
     A = np.diag([1.0] * 6 + [A_DRIFT] * 6)
@@ -67,6 +69,11 @@ def _oracle(zs, weights):
     for k, z in enumerate(zs):
         xp = x @ A.T
         Pp = A @ P @ A.T + Q
+        if k in skip:
+            x, P = xp, Pp
+            means.append(x.copy())
+            covs.append(P.copy())
+            continue
         S = H @ Pp @ H.T + R
         K = Pp @ H.T @ np.linalg.inv(S)
         P = (np.eye(12) - K @ H) @ Pp @ (np.eye(12) - K @ H).T + K @ R @ K.T
@@ -150,3 +157,19 @@ def test_imu_weights(runs, weights):
     assert int(final.particles.resamples) == 0
     np.testing.assert_allclose(lw - lw[0], ll - ll[0], rtol=1e-8, atol=1e-6)
     np.testing.assert_allclose(np.log(np.sum(np.exp(lw))), 0.0, atol=1e-12)
+
+
+def test_non_finite_imu_samples_are_skipped_and_flagged():
+    # Samples 10-12 NaN (a dropped-out IMU): the KF predicts through them (the oracle's
+    # prediction-only steps), the weights take no likelihood from them, MASKED_INPUT is set.
+    zs = _imu_samples()
+    bad = zs.copy()
+    bad[10:13] = np.nan
+    final, (means, covs) = jax.jit(lambda z: _bias_kf_run(z, jnp.float64, "exact"))(jnp.asarray(bad))
+    m_ref, P_ref, ll = _oracle(zs, "exact", skip={10, 11, 12})
+    np.testing.assert_allclose(np.asarray(means), m_ref, atol=1e-10 * np.max(np.abs(m_ref)), rtol=0)
+    np.testing.assert_allclose(np.asarray(covs), P_ref, atol=1e-10 * P0, rtol=0)
+    lw = np.asarray(final.particles.log_w)
+    np.testing.assert_allclose(lw - lw[0], ll - ll[0], rtol=1e-8, atol=1e-6)
+    assert "masked_input" in errors.decode(final.particles.status)
+    assert np.all(np.isfinite(np.asarray(final.particles.pose)))
