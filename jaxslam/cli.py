@@ -224,6 +224,11 @@ def _cmd_list(rest: list[str]) -> int:
                    help="data folder whose datasets to show as found / not found (default: $JAXSLAM_DATA_DIR)")
     p.add_argument("--debug", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args(rest)
+    from jaxslam.data import catalogue
+
+    root = None  # checked first: a bad --data costs no JAX import
+    if args.data or os.environ.get(catalogue.DATA_ENV, "").strip():
+        root = catalogue.data_root(args.data)
 
     from jaxslam.sim.scenarios import registry
 
@@ -253,17 +258,14 @@ def _cmd_list(rest: list[str]) -> int:
         _out(f"  (none: {note})" if bench_dir is None else "  (none)")
 
     _out()
-    _list_datasets(args.data)
+    _list_datasets(root)
     return 0
 
 
-def _list_datasets(data_arg) -> None:
+def _list_datasets(root) -> None:
     """The datasets of ``jaxslam dataset`` and, when a data folder is known, which it holds."""
     from jaxslam.data import catalogue
 
-    root = None
-    if data_arg or os.environ.get(catalogue.DATA_ENV, "").strip():
-        root = catalogue.data_root(data_arg)
     where = f"in {root}" if root is not None else f"give --data DIR or set {catalogue.DATA_ENV} to see which are present"
     _out(f"Datasets ({PROG} dataset NAME --data DIR; {where}):")
     w = max(len(d.name) for d in catalogue.DATASETS)
@@ -372,6 +374,15 @@ def _cmd_run(rest: list[str]) -> int:
     base.add_argument("-h", "--help", action="store_true")
     _add_run_common(base)
     pre, _ = base.parse_known_args(rest)
+    from jaxslam import paramfile
+
+    # What needs no scenario is checked before JAX is imported (a second, not three): the
+    # --params file's JSON, then every output path (its folder created, a probe written).
+    raw_params = json_path = plots_dir = None
+    if pre.scenario is not None and not pre.help:
+        raw_params = paramfile.load(pre.params) if pre.params else None
+        json_path = files.prepare_file("--json", pre.json) if pre.json else None
+        plots_dir = files.prepare_dir("--plots", pre.plots) if pre.plots else None
 
     # x64 before any scenario module is imported (module-level constants take its dtype).
     import jax
@@ -380,7 +391,7 @@ def _cmd_run(rest: list[str]) -> int:
     if not pre.float32:
         jax.config.update("jax_enable_x64", True)
 
-    from jaxslam import io, paramfile
+    from jaxslam import io
     from jaxslam.progress import Progress
     from jaxslam.sim.scenarios import registry
 
@@ -394,11 +405,8 @@ def _cmd_run(rest: list[str]) -> int:
     options = {opt.name: getattr(args, opt.name) for opt in scenario.options}
     dtype = np.dtype(np.float32 if args.float32 else np.float64)
 
-    # Every input, then every output path, checked before anything compiles.
-    params = (registry.check_params(scenario, paramfile.load(args.params), options, dtype)
-              if args.params else None)
-    json_path = files.prepare_file("--json", args.json) if args.json else None
-    plots_dir = files.prepare_dir("--plots", args.plots) if args.plots else None
+    # The --params keys against the scenario's own parameters, before anything compiles.
+    params = registry.check_params(scenario, raw_params, options, dtype) if raw_params is not None else None
 
     from jaxslam import compilation
 
@@ -692,6 +700,7 @@ def _cmd_bench(rest: list[str]) -> int:
         raise InputError(f"unknown benchmark {pre.name!r} in {str(bench_dir)!r}; available: "
                          f"{', '.join(available) or '(none)'}")
 
+    json_path = files.prepare_file("--json", pre.json) if pre.json else None  # before anything runs
     import jax
 
     jax.config.update("jax_enable_x64", True)  # benchmarks choose float32 by passing float32 arrays
@@ -707,7 +716,6 @@ def _cmd_bench(rest: list[str]) -> int:
         _bench_common(p)
         module.add_arguments(p)
         args = p.parse_args(rest)
-        json_path = files.prepare_file("--json", args.json) if args.json else None  # before the run
         result = module.run(args)
     finally:
         try:

@@ -22,14 +22,27 @@ folder raises :class:`MissingDataError` (also a ``FileNotFoundError``).
 fixed-shape :class:`EventLog`.
 """
 
+from .catalogue import DATASETS as _CATALOGUE
 from .events import EventLog, merge_events
 from .mrclam import MrclamData, load_mrclam
 from .plaza import PlazaData, load_plaza
 from .textfile import DataFormatError, MissingDataError, read_table
 from .util_uwb import TAG_OFFSET, UtilData, load_util, tag_positions
-from .victoria_park import AckermannGeometry, VictoriaParkData, load_victoria_park
 
-DATASETS = ("mrclam", "victoria-park", "util-uwb", "plaza")
+DATASETS = tuple(d.name for d in _CATALOGUE)
+
+# The Victoria Park loader shares the Ackermann geometry of the motion model (a JAX module):
+# imported on first use, so that the CLI's early checks (``jaxslam.data.catalogue``) run
+# before JAX is imported.
+_LAZY = {"AckermannGeometry", "VictoriaParkData", "load_victoria_park"}
+
+
+def __getattr__(name):
+    if name in _LAZY:
+        from . import victoria_park
+
+        return getattr(victoria_park, name)
+    raise AttributeError(f"module 'jaxslam.data' has no attribute {name!r}")
 
 __all__ = [
     "DATASETS",

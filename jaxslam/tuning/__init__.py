@@ -14,21 +14,32 @@ No paper covers tuning; every decision is recorded in the module docstrings and 
 ``docs/tuning.md``.  Nothing here changes JAX's configuration on import.
 """
 
-from . import losses, optimize, params, targets
-from .losses import innovation_nll, mse, nees_loss, nll_terms, slam_innovation_terms
-from .optimize import FitResult, batch_loss, fit, make_optimizer, memory_report
-from .params import (
-    CovSpec,
-    cov_from_log_chol,
-    cov_from_log_diag,
-    cov_from_theta,
-    log_chol_from_cov,
-    log_diag_from_cov,
-    pack,
-    theta_from_cov,
-    unpack,
-)
-from .targets import SlamLog, SlamRun, Target, make_slam_logs, run_slam_log, slam_loss
+import importlib
+
+# Names are loaded on first use (PEP 562), so importing ``jaxslam.tuning.cli`` imports no JAX
+# and no target module: ``jaxslam tune`` checks its arguments and output paths first, then
+# switches x64 on, then imports the targets (their module constants take that dtype).
+_SOURCES = {
+    "losses": ("innovation_nll", "mse", "nees_loss", "nll_terms", "slam_innovation_terms"),
+    "optimize": ("FitResult", "batch_loss", "fit", "make_optimizer", "memory_report"),
+    "params": ("CovSpec", "cov_from_log_chol", "cov_from_log_diag", "cov_from_theta",
+               "log_chol_from_cov", "log_diag_from_cov", "pack", "theta_from_cov", "unpack"),
+    "targets": ("SlamLog", "SlamRun", "Target", "make_slam_logs", "run_slam_log", "slam_loss"),
+}
+_WHERE = {name: mod for mod, names in _SOURCES.items() for name in names}
+
+
+def __getattr__(name):
+    if name in _SOURCES:
+        return importlib.import_module(f"{__name__}.{name}")
+    if name in _WHERE:
+        return getattr(importlib.import_module(f"{__name__}.{_WHERE[name]}"), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(set(globals()) | set(__all__))
+
 
 __all__ = [
     "params",

@@ -357,20 +357,17 @@ def main(argv=None) -> int:
         if not argv or argv[0] in ("-h", "--help"):
             build_parser().print_help()
             return 0 if argv else 2
-        pre = argparse.ArgumentParser(add_help=False)
-        pre.add_argument("--float32", action="store_true")
-        known, _ = pre.parse_known_args(argv)
-        import jax
-
-        if not known.float32:
-            jax.config.update("jax_enable_x64", True)
         args = build_parser(with_targets="-h" in argv or "--help" in argv).parse_args(argv)
         from jaxslam import files
 
-        # Every output path checked (and its folder created) before the long build and fit.
+        # Every output path checked (and its folder created) before JAX is even imported.
         json_path = files.prepare_file("--json", args.json) if args.json else None
         params_out = files.prepare_file("--params-out", args.params_out) if args.params_out else None
         plots = files.prepare_dir("--plots", args.plots) if args.plots else None
+        import jax  # x64 before any target module is imported (module constants take its dtype)
+
+        if not args.float32:
+            jax.config.update("jax_enable_x64", True)
         from jaxslam import compilation
         from jaxslam.cli import compile_timing
 
