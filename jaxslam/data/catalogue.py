@@ -17,7 +17,8 @@ from typing import NamedTuple, Optional
 
 from ..errors import InputError
 
-__all__ = ["DATA_ENV", "Dataset", "DATASETS", "data_root", "find", "robots_found", "check_robot"]
+__all__ = ["DATA_ENV", "Dataset", "DATASETS", "OPTION_DEFAULTS", "APPLIES", "data_root", "find",
+           "robots_found", "check_robot", "check_options"]
 
 #: environment variable naming the data root (the folder with mrclam6/, victoria_park/, ...)
 DATA_ENV = "JAXSLAM_DATA_DIR"
@@ -48,6 +49,39 @@ DATASETS = (
 )
 
 _BY_NAME = {d.name: d for d in DATASETS}
+
+#: The options of ``jaxslam dataset`` / :func:`jaxslam.data.runners.run_dataset` with their
+#: defaults, and the datasets each applies to.
+OPTION_DEFAULTS = {"robot": 1, "filter": "ekf", "ids": "known", "anchors": None, "tof": False,
+                   "calibrated": False, "particles": None, "seed": 0, "params": None}
+APPLIES = {
+    "mrclam": {"robot", "filter", "ids", "calibrated", "particles", "seed", "params"},
+    "victoria-park": {"filter", "particles", "seed"},
+    "util-uwb": {"anchors", "tof"},
+    "plaza": {"robot", "anchors"},
+}
+
+
+def check_options(name: str, options: dict) -> None:
+    """Refuse an option set away from its default for a dataset it does not apply to (never
+    silently ignored), ``--particles`` / ``--seed`` without ``--filter fastslam``, and
+    ``--params`` with it.  Raises :class:`InputError` naming the options."""
+    unknown = set(options) - set(OPTION_DEFAULTS)
+    if unknown:
+        raise InputError(f"dataset: unknown option(s) {sorted(unknown)}")
+    misplaced = [k for k, v in options.items() if v != OPTION_DEFAULTS[k] and k not in APPLIES[name]]
+    if options.get("filter", "ekf") != "fastslam":
+        misplaced += [k for k in ("particles", "seed") if options.get(k, OPTION_DEFAULTS[k]) != OPTION_DEFAULTS[k]]
+    elif options.get("params") is not None:
+        raise InputError(f"{name}: --params sets the EKF's noise; it does not apply to --filter fastslam")
+    if misplaced:
+        flags = ", ".join("--" + k for k in sorted(set(misplaced)))
+        hint = (" (range-only logs run the EKF only: the particle core registers range-bearing "
+                "landmarks)" if "filter" in misplaced else "")
+        raise InputError(f"{name}: {flags} do(es) not apply here; {name} takes "
+                         f"{', '.join('--' + k for k in sorted(APPLIES[name]))}"
+                         + (" (--particles/--seed with --filter fastslam)" if "particles" in APPLIES[name] else "")
+                         + hint)
 
 
 def data_root(value, flag: str = "--data") -> pathlib.Path:

@@ -106,9 +106,11 @@ def main(argv) -> int:
     args = _parser(help_params="-h" in argv or "--help" in argv).parse_args(argv)
     # Inputs, then outputs, checked before anything is parsed or compiled.
     data = catalogue.data_root(args.data)
-    if args.name in ("mrclam", "plaza"):
-        catalogue.check_robot(args.name, data, args.robot)
     params = paramfile.load(args.params) if args.params else None
+    catalogue.check_options(args.name, dict(robot=args.robot, filter=args.filter, ids=args.ids,
+                                            anchors=args.anchors, tof=args.tof, calibrated=args.calibrated,
+                                            particles=args.particles, seed=args.seed, params=params))
+    catalogue.check_robot(args.name, data, args.robot)
     json_path = files.prepare_file("--json", args.json) if args.json else None
     tum_path = files.prepare_file("--tum", args.tum) if args.tum else None
     plots = files.prepare_dir("--plots", args.plots) if args.plots else None

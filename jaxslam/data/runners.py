@@ -32,6 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import metrics
+from . import catalogue
 from .events import merge_events
 from ..errors import InputError
 from ..paramfile import TUNE_REPORT_KEYS
@@ -190,44 +191,18 @@ def _register(name):
     return deco
 
 
-#: Options of :func:`run_dataset` with their defaults, and the datasets each applies to.
-_DEFAULTS = {"robot": 1, "filter": "ekf", "ids": "known", "anchors": None, "tof": False,
-             "calibrated": False, "particles": None, "seed": 0, "params": None}
-_APPLIES = {
-    "mrclam": {"robot", "filter", "ids", "calibrated", "particles", "seed", "params"},
-    "victoria-park": {"filter", "particles", "seed"},
-    "util-uwb": {"anchors", "tof"},
-    "plaza": {"robot", "anchors"},
-}
-
-
 def run_dataset(name: str, data_dir, **options) -> DatasetRun:
     """Run dataset ``name`` (``mrclam``, ``victoria-park``, ``util-uwb``, ``plaza``) from ``data_dir``.
 
-    Options (``_DEFAULTS``): robot, filter ("ekf" | "fastslam"), ids, anchors, tof, calibrated,
-    particles, seed, and dtype.  An option set away from its default for a dataset it does not
-    apply to is an :class:`InputError` (never silently ignored).
+    Options (:data:`jaxslam.data.catalogue.OPTION_DEFAULTS`): robot, filter ("ekf" |
+    "fastslam"), ids, anchors, tof, calibrated, particles, seed, params, and dtype.  An option
+    set away from its default for a dataset it does not apply to is an :class:`InputError`
+    (never silently ignored; :func:`jaxslam.data.catalogue.check_options`).
     """
     if name not in _RUNNERS:
         raise InputError(f"dataset: unknown name {name!r} (choose from {', '.join(sorted(_RUNNERS))})")
-    unknown = set(options) - set(_DEFAULTS) - {"dtype"}
-    if unknown:
-        raise InputError(f"dataset: unknown option(s) {sorted(unknown)}")
-    misplaced = [k for k, v in options.items() if k in _DEFAULTS and v != _DEFAULTS[k]
-                 and k not in _APPLIES[name]]
-    if options.get("filter", "ekf") != "fastslam":
-        misplaced += [k for k in ("particles", "seed") if options.get(k, _DEFAULTS[k]) != _DEFAULTS[k]]
-    elif options.get("params") is not None:
-        raise InputError(f"{name}: --params sets the EKF's noise; it does not apply to --filter fastslam")
-    if misplaced:
-        flags = ", ".join("--" + k for k in sorted(set(misplaced)))
-        hint = (" (range-only logs run the EKF only: the particle core registers range-bearing "
-                "landmarks)" if "filter" in misplaced else "")
-        raise InputError(f"{name}: {flags} do(es) not apply here; {name} takes "
-                         f"{', '.join('--' + k for k in sorted(_APPLIES[name]))}"
-                         + (" (--particles/--seed with --filter fastslam)" if "particles" in _APPLIES[name] else "")
-                         + hint)
-    kw = {**_DEFAULTS, **options}
+    catalogue.check_options(name, {k: v for k, v in options.items() if k != "dtype"})
+    kw = {**catalogue.OPTION_DEFAULTS, **options}
     if kw["params"] is None:  # only the runners that read a --params file take the argument
         del kw["params"]
     return _RUNNERS[name](data_dir, **kw)
