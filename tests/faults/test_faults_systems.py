@@ -43,6 +43,9 @@ outlier_burst    anchor 0's ranges +3 m (30 σ): ``gated``; pose = the pose with
                  (1e-9)
 frozen_sensor    anchor 0's ranges frozen: last-quarter RMS ≤ 2·clean + 0.05 m
 nan_gyro         gyro NaN: ``masked_input``; masked = samples; pose finite
+out_of_range     anchor 1 reads 500 m: ``gated``; pose = the run without those rows (1e-9)
+anchor_lost      anchor 2 silent all flight: |e| ≤ 3√tr P at ≥ 90 % of the last quarter's
+                 steps, and a larger covariance than the clean run's
 ===============  ============================================================================
 
 Paper 000's 3D EKF-SLAM (``ekf_slam_3d.filter_log``, slow set: its flight and filter compile
@@ -355,9 +358,34 @@ def uwb_nan_gyro(c):
     assert np.all(np.isfinite(np.asarray(res.steps.mean))) and np.all(np.isfinite(np.asarray(res.steps.cov)))
 
 
+def uwb_out_of_range(c):
+    # One anchor reads 500 m (an impossible range in a 12 m square) in the window: beyond the
+    # gate, so the run equals the run without those rows.
+    bad = c.rows & (np.arange(4) == 1)[None, :]
+    res = c.go(c.log._replace(ranges=np.where(bad, 500.0, c.log.ranges)))
+    assert "gated" in _flags(res.final.slam.status)
+    drop = c.go(c.log._replace(range_mask=c.log.range_mask & ~bad))
+    np.testing.assert_allclose(np.asarray(res.steps.mean), np.asarray(drop.steps.mean), rtol=0, atol=1e-9)
+
+
+def uwb_anchor_lost(c):
+    # One anchor silent for the whole flight: three anchors still fix a 2D position, so the run
+    # stays consistent with its own, larger covariance: |e| <= 3 sqrt(tr P) at >= 90 % of the
+    # last quarter's steps (for a consistent 2D Gaussian error that fails with p ~ 1e-4 per step).
+    res = c.go(c.log._replace(range_mask=c.log.range_mask & (np.arange(4) != 2)[None, :]))
+    assert np.all(np.isfinite(np.asarray(res.steps.mean)))
+    cov = np.asarray(res.steps.cov)
+    sig = np.sqrt(cov[:, 0, 0] + cov[:, 1, 1])
+    e = np.linalg.norm(_uwb_err(res, c.truth), axis=1)
+    q = slice(3 * len(e) // 4, None)
+    assert np.mean(e[q] <= 3 * sig[q]) >= 0.9
+    clean_cov = np.asarray(c.ref["clean"].steps.cov)
+    assert np.mean(sig[q]) > np.mean(np.sqrt(clean_cov[q, 0, 0] + clean_cov[q, 1, 1]))
+
+
 UWB = {f.__name__[len("uwb_"):]: f for f in (
     uwb_dropout, uwb_nan_burst, uwb_inf_values, uwb_nonpositive, uwb_outlier_burst, uwb_frozen_sensor,
-    uwb_nan_gyro)}
+    uwb_nan_gyro, uwb_out_of_range, uwb_anchor_lost)}
 
 
 @pytest.mark.parametrize("fault", list(UWB))
