@@ -227,8 +227,13 @@ def _cmd_list(rest: list[str]) -> int:
     from jaxslam.data import catalogue
 
     root = None  # checked first: a bad --data costs no JAX import
-    if args.data or os.environ.get(catalogue.DATA_ENV, "").strip():
+    if args.data:
         root = catalogue.data_root(args.data)
+    elif os.environ.get(catalogue.DATA_ENV, "").strip():
+        try:  # a stale variable does not stop the listing
+            root = catalogue.data_root(None)
+        except InputError as e:
+            root = f"{e}, so found / not found is not shown"
 
     from jaxslam.sim.scenarios import registry
 
@@ -266,6 +271,12 @@ def _list_datasets(root) -> None:
     """The datasets of ``jaxslam dataset`` and, when a data folder is known, which it holds."""
     from jaxslam.data import catalogue
 
+    if isinstance(root, str):  # the environment's folder is not usable: say so, list the rest
+        _out(f"Datasets ({PROG} dataset NAME --data DIR; {root}):")
+        w = max(len(d.name) for d in catalogue.DATASETS)
+        for d in catalogue.DATASETS:
+            _out(f"  {d.name.ljust(w)}  {d.description}")
+        return
     where = f"in {root}" if root is not None else f"give --data DIR or set {catalogue.DATA_ENV} to see which are present"
     _out(f"Datasets ({PROG} dataset NAME --data DIR; {where}):")
     w = max(len(d.name) for d in catalogue.DATASETS)
@@ -470,6 +481,8 @@ def _run_notes(result, runs: int) -> list:
 
     if runs < 2 or not result.metrics:
         return []
+    if not any(np.isfinite(np.asarray(m, float)).any() for m in result.metrics.values()):
+        return []  # every run diverged: equal NaNs say nothing about random draws
     same = all(np.array_equal(v, np.broadcast_to(np.asarray(v).reshape(-1)[:1], np.shape(v)), equal_nan=True)
                for v in (np.asarray(m) for m in result.metrics.values()))
     if not same:

@@ -3,8 +3,10 @@
 A ``--params`` file is a JSON object of *sections* (``"noise"``, ``"controller"``,
 ``"filter"``), each an object of named numbers, vectors and matrices.  ``jaxslam tune``
 writes them (``--params-out``, or its whole ``--json`` report, which holds the sections at
-its top level); ``jaxslam run SCENARIO --params`` and ``jaxslam dataset NAME --params`` read
-them.  This module is the one place that says what a valid file is.
+its top level); ``jaxslam run SCENARIO --params`` reads them, checked here against the
+scenario's schema.  (A ``jaxslam dataset NAME --params`` file, ``{"dataset": NAME, "noise":
+{...}}``, is read with :func:`load`; its keys are checked by
+:func:`jaxslam.data.runners.dataset_params` and its values by the system's ``params_from_dict``.)
 
 A *schema* is ``{section: {key: default}}`` built from the target's own default parameters,
 so it cannot drift from what the target reads: a value is valid when it has the default's
@@ -143,9 +145,6 @@ def check(obj: Mapping, schema: Mapping[str, Mapping[str, Any]] | None, *, targe
     if kind == "scenario" and obj.get("dataset") is not None:
         raise InputError(f"{where}: the file is for dataset {obj['dataset']!r} (use it with "
                          f"'jaxslam dataset {obj['dataset']} --params'), not for scenario {target!r}")
-    if kind == "dataset" and obj.get("dataset") is None and obj.get("scenario") is not None:
-        raise InputError(f"{where}: the file is for scenario {obj['scenario']!r} (use it with "
-                         f"'jaxslam run {obj['scenario']} --params'), not for dataset {target!r}")
     made_for = obj.get(kind)
     if made_for is not None and made_for != target:
         raise InputError(f"{where}: key '{kind}' is {made_for!r}, this run is {target!r}: the file was "

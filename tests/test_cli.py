@@ -598,3 +598,16 @@ def test_progress_quick_job_disabled_and_null_print_nothing():
     n.close()
     assert stream.getvalue() == ""
     assert q.n_done == 2
+
+
+def test_list_shows_datasets_and_survives_a_stale_data_variable(capsys, monkeypatch):
+    data = str(TESTS_DIR / "data")
+    monkeypatch.setenv("JAXSLAM_DATA_DIR", data)
+    assert cli.main(["list"]) == 0
+    out = capsys.readouterr().out
+    assert "mrclam" in out and "[found:" in out and "--robot 1, 2" in out
+    monkeypatch.setenv("JAXSLAM_DATA_DIR", "/no/such/folder")
+    assert cli.main(["list"]) == 0  # the listing still works; the folder's problem is said
+    out = capsys.readouterr().out
+    assert "$JAXSLAM_DATA_DIR: '/no/such/folder' is not a folder" in out and "plaza" in out
+    assert cli.main(["list", "--data", "/no/such/folder"]) == 2  # an explicit --data must be usable

@@ -415,8 +415,9 @@ def propagate(p: Particles, key, sample_fn: Callable, *args) -> Particles:
     For gradients use reparametrised noise (``pose' = f + chol(Q) ε``).
 
     A particle whose new pose is not finite (a NaN/Inf input, an overflowing model) keeps
-    its previous pose and the set's status gets ``NON_FINITE``: a bad input is flagged, never
-    turned into a NaN estimate.
+    its previous pose (and per-particle ``aux``) and the set's status gets ``NON_FINITE``: a
+    bad input is flagged, never turned into a NaN estimate.  (Gradients through such a step
+    are not meaningful; the flag says so.)
 
     Returns:
         Particles with pose and aux replaced; weights and maps untouched.
@@ -428,6 +429,10 @@ def propagate(p: Particles, key, sample_fn: Callable, *args) -> Particles:
     pose = jnp.asarray(pose, p.pose.dtype)
     ok = jnp.all(jnp.isfinite(pose), axis=-1)
     pose = jnp.where(ok[:, None], pose, p.pose)
+    if p.aux is not None and jax.tree_util.tree_leaves(p.aux):  # the particle's aux reverts with it
+        aux = jax.tree_util.tree_map(
+            lambda new, old: jnp.where(ok.reshape((-1,) + (1,) * (jnp.ndim(old) - 1)), new, old)
+            if jnp.ndim(old) >= 1 and jnp.shape(old)[0] == N else new, aux, p.aux)
     return p._replace(pose=pose, aux=aux, status=p.status | _flag(~jnp.all(ok), errors.NON_FINITE))
 
 

@@ -685,21 +685,25 @@ def imu_stage(state: FilterState, rotor_w, imu, key, config: FilterConfig,
     dt = jnp.asarray(config.dt, dtype)
     imu = jnp.asarray(imu, dtype)
     k_prop, k_res, k_s2 = jax.random.split(key, 3)
-    first = state.k == 0
+    # "first": no finite sample seen yet (init sets imu_prev to NaN) -> the Table 4 re-initialisation.
+    first = ~jnp.all(jnp.isfinite(state.imu_prev))
     a_b, q_b = bias_model(params, dtype)
     # A non-finite IMU sample is skipped and flagged MASKED_INPUT, never turned into a NaN state:
-    # the dynamics model predicts through it without the measurement; the kinematics model
-    # (IMU as the input) keeps its poses (fs.propagate) and its previous sample.
+    # the dynamics model predicts through it without the measurement (and a skipped first sample
+    # leaves the re-initialisation to the next finite one); the kinematics model (IMU as the
+    # input) holds its previous sample, or keeps its poses before any finite sample.
     imu_ok = jnp.all(jnp.isfinite(imu))
+    imu_next_prev = jnp.where(imu_ok, imu, state.imu_prev)  # NaN until a finite sample arrives
     imu = jnp.where(imu_ok, imu, jnp.where(first, jnp.zeros_like(imu), state.imu_prev))
     p = p._replace(status=p.status | jnp.where(imu_ok, jnp.int32(0), jnp.int32(errors.MASKED_INPUT)))
 
     if config.model == "kinematics":
         prev = jnp.where(first, imu, state.imu_prev)
-        p = fs.propagate(p, k_prop, lambda x, a, k, u0, u1: kinematics_sample(
+        moved = fs.propagate(p, k_prop, lambda x, a, k, u0, u1: kinematics_sample(
             x, a, k, u0, u1, params, dt, config.accel_mode), prev, imu)
+        p = moved._replace(pose=jnp.where(imu_ok | ~first, moved.pose, p.pose))
         neff = fs.neff(p)
-        st = state._replace(particles=p, k=state.k + 1, imu_prev=imu)
+        st = state._replace(particles=p, k=state.k + 1, imu_prev=imu_next_prev)
         return st, _step_out(st, neff)
 
     rotor_w = jnp.asarray(rotor_w, dtype)
@@ -723,7 +727,7 @@ def imu_stage(state: FilterState, rotor_w, imu, key, config: FilterConfig,
     P_post = post0.cov
     # Table 4 re-initialisation at the first sample: minimum-norm least squares H_b⁺ z̄.
     m_reinit = zbar @ jnp.asarray(_H_B_PINV, dtype).T
-    m_post = jnp.where(first, m_reinit, m_post)
+    m_post = jnp.where(first & imu_ok, m_reinit, m_post)
     m_post = jnp.where(imu_ok, m_post, p.aux)  # a skipped sample: the prediction (propagate made it)
     P_post = jnp.where(imu_ok, P_post, P_pred)
 
@@ -753,7 +757,7 @@ def imu_stage(state: FilterState, rotor_w, imu, key, config: FilterConfig,
             x, b, k if config.regen_noise else None, imu[3:6], symmetrize(G)))(p.pose, p.aux, keys)
         p = p._replace(pose=jnp.where(imu_ok, pose, p.pose))
     st = FilterState(particles=p, bias_cov=P_post, k=state.k + 1,
-                     neff_min=jnp.minimum(state.neff_min, neff), imu_prev=imu)
+                     neff_min=jnp.minimum(state.neff_min, neff), imu_prev=imu_next_prev)
     return st, _step_out(st, neff)
 
 

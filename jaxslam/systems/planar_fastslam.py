@@ -382,7 +382,8 @@ def run(key, log: EventLog, pose0, config: Config, params: Params) -> Result:
         raise InputError(f"log.u: expected shape ({T}, 2), got {np.shape(log.u)}")
     if np.shape(log.z) != (T, int(config.K), 2):
         raise InputError(f"log.z: expected shape ({T}, {config.K}, 2), got {np.shape(log.z)}")
-    if not np.all(np.isfinite(np.asarray(log.u))):  # as the planar EKF's run (inside jit: NON_FINITE)
+    if not np.all(np.isfinite(np.asarray(log.u))):  # as the planar EKF's run (the jitted scan
+        # itself keeps a particle whose proposal is not finite and flags NON_FINITE)
         raise InputError("log.u: contains NaN or Inf")
     pose0 = jnp.asarray(pose0)
     if pose0.shape != (3,):

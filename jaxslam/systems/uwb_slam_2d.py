@@ -113,7 +113,7 @@ from .. import errors
 from ..errors import InputError
 from ..filters import ekf_slam as es
 from ..filters import trilateration as tri
-from ..linalg import check_psd
+from ..linalg import check_psd, is_concrete
 from ..sensors import uwb
 
 __all__ = [
@@ -347,16 +347,20 @@ def motion(s, u, dt):
 
 
 def _host(x, dtype):
-    """A device array made from a NumPy value converted on the host: ``device_put`` runs no
-    eager program (``jnp.asarray`` of a scalar, or its first use in a process, compiles one)."""
-    return jax.device_put(np.asarray(x, dtype=np.dtype(dtype)))
+    """``x`` as an array of ``dtype``: made on the host when ``x`` is known now (``device_put``
+    runs no eager program, while ``jnp.asarray`` of a scalar, or its first use in a process,
+    compiles one), traced otherwise (the presets stay usable under ``jit`` / ``grad``)."""
+    if is_concrete(x):
+        return jax.device_put(np.asarray(x, dtype=np.dtype(dtype)))
+    return jnp.asarray(x, dtype)
 
 
 def paper_process_noise(dt, dtype=jnp.float64, q=PAPER_Q):
     """Q_d = diag(eq. 27 robot entries) · Δt  (10, 10); equals eq. 27 at Δt = 1.
 
-    Built on the host (NumPy, ``dt`` a number): no eager programs to compile."""
-    return _host(np.diag(np.asarray(q, np.float64)) * float(dt), dtype)
+    Built on the host (NumPy) when ``dt`` and ``q`` are known now: no eager programs to compile."""
+    xp = np if is_concrete(dt, q) else jnp
+    return _host(xp.diag(xp.asarray(q, np.float64)) * dt, dtype)
 
 
 def ncv_process_noise(dt, q_acc, q_ang_acc, dtype=jnp.float64):
@@ -366,13 +370,11 @@ def ncv_process_noise(dt, q_acc, q_ang_acc, dtype=jnp.float64):
     [[Δt³/3, Δt²/2], [Δt²/2, Δt]] · q on (position, velocity) and (angle, rate).
     Not in paper 003 (its eq. 27 is diagonal); used by :func:`matched_params`.
     """
-    dt = float(dt)  # built on the host (NumPy): no eager programs to compile
-    blk = np.asarray([[dt**3 / 3, dt**2 / 2], [dt**2 / 2, dt]], np.float64)
-    Q = np.zeros((NR, NR), np.float64)
+    xp = np if is_concrete(dt, q_acc, q_ang_acc) else jnp  # host-built when known now
+    blk = xp.asarray([[dt**3 / 3, dt**2 / 2], [dt**2 / 2, dt]])
     pairs = [(0, 2, q_acc), (1, 3, q_acc), (4, 7, q_ang_acc), (5, 8, q_ang_acc), (6, 9, q_ang_acc)]
-    for i, j, q in pairs:
-        idx = np.asarray([i, j])
-        Q[idx[:, None], idx[None, :]] = blk * float(q)
+    eye = np.eye(NR)
+    Q = sum(q * (eye[[i, j]].T @ blk @ eye[[i, j]]) for i, j, q in pairs)  # blk on rows/cols (i, j)
     return _host(Q, dtype)
 
 
