@@ -105,7 +105,7 @@ def run_json(scenario_name: str, runs: int, seed: int, dtype, result) -> dict:
     timing = {k: float(v) for k, v in dict(result.timing).items()}
     compile_s = timing.pop("compile_s", math.nan)
     run_s = timing.pop("run_s", math.nan)
-    interrupted = bool(getattr(result, "interrupted", False))
+    interrupted = bool(result.interrupted)
     requested = int(runs)
     if interrupted:  # the summaries are over the finished runs only
         runs = min((len(np.atleast_1d(v)) for v in dict(result.metrics).values()), default=0)

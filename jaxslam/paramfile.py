@@ -127,14 +127,13 @@ def _check_value(name: str, value: Any, default: Any) -> Any:
 
 
 def check(obj: Mapping, schema: Mapping[str, Mapping[str, Any]] | None, *, target: str,
-          kind: str = "scenario", where: str = "--params") -> dict:
+          where: str = "--params") -> dict:
     """The parameter sections of ``obj``, checked against ``schema``.
 
     Args:
       obj: the parsed file (:func:`load`).
       schema: ``{section: {key: default}}`` of the target, or ``None`` when it takes no file.
-      target: the scenario's (dataset's) name, for provenance and messages.
-      kind: ``"scenario"`` or ``"dataset"``: the provenance key ``obj`` may hold.
+      target: the scenario's name, for provenance (the file's ``"scenario"`` key) and messages.
     Returns:
       ``{section: {key: value}}`` with the sections ``obj`` sets (values as read).
     Raises:
@@ -142,7 +141,8 @@ def check(obj: Mapping, schema: Mapping[str, Mapping[str, Any]] | None, *, targe
     """
     if not isinstance(obj, Mapping):
         raise InputError(f"{where}: expected a JSON object, got {type(obj).__name__}")
-    if kind == "scenario" and obj.get("dataset") is not None:
+    kind = "scenario"  # the provenance key a file may hold
+    if obj.get("dataset") is not None:
         raise InputError(f"{where}: the file is for dataset {obj['dataset']!r} (use it with "
                          f"'jaxslam dataset {obj['dataset']} --params'), not for scenario {target!r}")
     made_for = obj.get(kind)

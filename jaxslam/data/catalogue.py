@@ -18,7 +18,7 @@ from typing import NamedTuple, Optional
 from ..errors import InputError
 
 __all__ = ["DATA_ENV", "Dataset", "DATASETS", "OPTION_DEFAULTS", "APPLIES", "data_root", "find",
-           "robots_found", "check_robot", "check_options"]
+           "robots_found", "check_robot", "check_robots", "check_options"]
 
 #: environment variable naming the data root (the folder with mrclam6/, victoria_park/, ...)
 DATA_ENV = "JAXSLAM_DATA_DIR"
@@ -140,6 +140,12 @@ def robots_found(name: str, root) -> list:
     d = _BY_NAME[name]
     folder = find(name, root)
     return [] if folder is None or d.robot_pattern is None else _robots_in(d, folder)
+
+
+def check_robots(name: str, root, robots, flag: str = "--robots") -> None:
+    """:func:`check_robot` for each of ``robots`` (a training / held-out list)."""
+    for r in robots:
+        check_robot(name, root, r, flag=flag)
 
 
 def check_robot(name: str, root, robot: int, flag: str = "--robot") -> None:

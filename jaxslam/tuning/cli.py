@@ -223,8 +223,8 @@ def run_tuning(args, progress_stream=None) -> dict:
         from jaxslam.data import catalogue
 
         data = catalogue.data_root(args.data)
-        for r in (args.robots or ()) + (args.test_robots or ()):
-            catalogue.check_robot(args.scenario, data, r, flag="--robots/--test-robots")
+        catalogue.check_robots(args.scenario, data, (args.robots or ()) + (args.test_robots or ()),
+                               flag="--robots/--test-robots")
         kw = dict(dtype=dtype, data=data, t_max=args.window or REAL_LOG_DEFAULTS["window"])
         if args.robots is not None:
             kw["robots"] = args.robots

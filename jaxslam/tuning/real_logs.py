@@ -155,8 +155,7 @@ def mrclam_noise(loss: str = "nll", data=None, robots=(1, 2, 3, 4), test_robots=
         raise InputError(f"--loss: the real-log targets learn by innovation likelihood only (nll); got {loss!r}")
     data = catalogue.data_root(data)  # --data, else $JAXSLAM_DATA_DIR
     robots, test_robots = tuple(int(r) for r in robots), tuple(int(r) for r in test_robots)
-    for r in robots + test_robots:
-        catalogue.check_robot("mrclam", data, r, flag="--robots/--test-robots")
+    catalogue.check_robots("mrclam", data, robots + test_robots, flag="--robots/--test-robots")
     if set(robots) & set(test_robots):
         raise InputError(f"--test-robots: {sorted(set(robots) & set(test_robots))} also in --robots; "
                          "a held-out robot must not be trained on")

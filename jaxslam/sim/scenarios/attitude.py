@@ -148,7 +148,6 @@ def run_scenario(runs, seed, dtype, options, progress, params=None, plots=False)
     one_run, rollout, setup = build(options, dtype)
     mc = monte_carlo.run(lambda k: one_run(k, detail=plots), seed, runs, progress=progress, detail=plots,
                          program_key=program_key("attitude-smc", options, params, dtype))
-    runs = mc.runs  # the finished runs: fewer than asked when interrupted (Ctrl-C)
     out = dict(mc.out)
     recorded = out.pop("detail", None)
     non_finite = int(np.sum(out.pop("non_finite")))

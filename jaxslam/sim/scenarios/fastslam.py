@@ -311,7 +311,6 @@ def run_scenario(runs, seed, dtype, options, progress, params=None, plots=False)
     mc = monte_carlo.run(lambda k: one_run(k, detail=plots), seed, runs, chunk=options.get("chunk"),
                          progress=progress, cpu_batching="loop", detail=plots,
                          program_key=program_key("fastslam-helix", options, params, dtype))
-    runs = mc.runs  # the finished runs: fewer than asked when interrupted (Ctrl-C)
     out = mc.out
     counts = out["counts"]
     status_any = int(np.bitwise_or.reduce(np.asarray(counts["status"]).ravel()))

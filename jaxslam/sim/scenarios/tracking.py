@@ -143,7 +143,6 @@ def _run_tracking(name, traj_factory, runs, seed, dtype, options, progress, para
 
     mc = monte_carlo.run(one, seed, runs, chunk=options.get("chunk"), progress=progress, detail=plots,
                          program_key=program_key(name, options, params, dtype))
-    runs = mc.runs  # the finished runs: fewer than asked when interrupted (Ctrl-C)
     metrics = {k: v for k, v in mc.out.items() if k not in ("non_finite", "detail")}
 
     def plot(directory):
