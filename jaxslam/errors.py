@@ -21,6 +21,7 @@ __all__ = [
     "MASKED_INPUT",
     "NOT_PSD",
     "DIVERGED",
+    "NOT_CONVERGED",
     "FLAG_NAMES",
     "InputError",
     "decode",
@@ -35,6 +36,7 @@ DEGENERATE = 1 << 3  # a degenerate geometry (e.g. collinear trilateration) was 
 MASKED_INPUT = 1 << 4  # a non-finite or out-of-range input measurement was masked
 NOT_PSD = 1 << 5  # a covariance failed its Cholesky factorisation
 DIVERGED = 1 << 6  # the run stopped being consistent: >10 % of known-landmark rows were outliers
+NOT_CONVERGED = 1 << 7  # an iterated update/smoother stopped at its iteration limit before converging
 
 FLAG_NAMES = {
     CAPACITY_OVERFLOW: "capacity_overflow",
@@ -44,6 +46,7 @@ FLAG_NAMES = {
     MASKED_INPUT: "masked_input",
     NOT_PSD: "not_psd",
     DIVERGED: "diverged",
+    NOT_CONVERGED: "not_converged",
 }
 
 

@@ -69,7 +69,7 @@ over jitted steps pays 50-100 µs per call).
 
 from __future__ import annotations
 
-from typing import Any, Callable, NamedTuple, Optional, Union
+from typing import Any, Callable, Optional, Union
 
 import jax
 import jax.numpy as jnp
@@ -77,8 +77,19 @@ import numpy as np
 
 from .. import errors
 from ..errors import InputError
-from ..linalg import check_psd, chol_solve, symmetrize, value_and_jacfwd, wrap_angle
+from ..linalg import check_psd, symmetrize, value_and_jacfwd, wrap_angle
 from ..metrics import chi2_ppf_np
+from . import gaussian as _g
+from .gaussian import (
+    Gaussian,
+    GaussianFilter,
+    Posterior,
+    UpdateInfo,
+    finalize as _finalize,
+    innovation_solve,
+    masked_innovation,
+    threshold as _threshold,
+)
 
 __all__ = [
     "Gaussian",
@@ -89,6 +100,9 @@ __all__ = [
     "update",
     "update_batch",
     "filter_scan",
+    "make_filter",
+    "linear_update",
+    "GaussianFilter",
     "angle_residual",
     "chi2_gate",
     "validate_gaussian",
@@ -97,66 +111,6 @@ __all__ = [
 
 Array = Any
 Gate = Union[None, float, Array, Callable[[Array], Array]]
-
-
-class Gaussian(NamedTuple):
-    """A Gaussian belief.
-
-    Fields:
-        mean: (n,) state mean, in the units of the model's state.
-        cov: (n, n) symmetric positive semi-definite covariance.
-    """
-
-    mean: Array  # (n,)
-    cov: Array  # (n, n)
-
-
-class UpdateInfo(NamedTuple):
-    """Diagnostics of one update (or, from :func:`update_batch`, per measurement).
-
-    Shapes are given for :func:`update`; :func:`update_batch` adds a leading
-    measurement axis M to every field.
-
-    Fields:
-        nis: () normalised innovation squared ``νᵀ S⁻¹ ν`` over the valid
-            components (0 when none is valid).
-        dof: () int32, number of valid components (the NIS degrees of freedom).
-        innovation: (m,) residual ``ν`` (0 on invalid components).
-        S: (m, m) innovation covariance ``H P Hᵀ + R`` on the valid block,
-            identity on invalid rows/columns.
-        accepted: () bool, True when the update changed the state.
-        status: () int32 bit flags from :mod:`jaxslam.errors` (``GATED``,
-            ``NOT_PSD``, ``NON_FINITE``).
-    """
-
-    nis: Array
-    dof: Array
-    innovation: Array
-    S: Array
-    accepted: Array
-    status: Array
-
-
-class Posterior(NamedTuple):
-    """Output of :func:`filter_scan` over T steps.
-
-    Fields:
-        means: (T, n) filtered means.
-        cov_diags: (T, n) diagonals of the filtered covariances (variances).
-        covs: (T, n, n) filtered covariances when ``save_cov=True``, else None.
-        nis: (T,) NIS of each step's update (0 when nothing was valid).
-        dof: (T,) int32 number of valid measurement components per step.
-        status: (T,) int32 status bit flags per step.
-        final: :class:`Gaussian` after the last step (full covariance).
-    """
-
-    means: Array
-    cov_diags: Array
-    covs: Optional[Array]
-    nis: Array
-    dof: Array
-    status: Array
-    final: Gaussian
 
 
 # ---------------------------------------------------------------------------
@@ -218,22 +172,19 @@ def _default_residual(z, zhat):
     return z - zhat
 
 
-def _threshold(gate: Gate, dof, dtype):
-    if callable(gate):
-        return jnp.asarray(gate(dof), dtype=dtype)
-    return jnp.asarray(gate, dtype=dtype)
+def linear_update(x, P, nu, H, R, mask):
+    """Kalman correction for a given Jacobian ``H`` and residual ``ν``, invalid components neutralised.
 
-
-def _masked_update(x, P, nu, H, R, mask):
-    """Kalman correction with invalid components neutralised.
+    The algebra of :func:`update` without the model: the iterated update and the
+    iterated smoother call it with their own linearisation.
 
     Args:
         x: (n,) prior mean.  P: (n, n) prior covariance.
-        nu: (m,) residual.  H: (m, n) measurement Jacobian.  R: (m, m).
-        mask: (m,) bool validity.
+        nu: (m,) residual (0 on invalid components).  H: (m, n) measurement
+        Jacobian.  R: (m, m).  mask: (m,) bool validity.
 
     Returns:
-        (x_post, P_post, S, nu_m, nis, ok) with ``ok`` the Cholesky flag.
+        (x_post, P_post, S, nu_m, nis, ok, logdet) with ``ok`` the Cholesky flag.
     """
     dtype = x.dtype
     m = nu.shape[0]
@@ -244,7 +195,7 @@ def _masked_update(x, P, nu, H, R, mask):
     Rm = jnp.where(mm, R, jnp.eye(m, dtype=dtype))
     HP = Hm @ P  # (m, n): the only product with the full P on the gain path
     S = symmetrize(HP @ Hm.T + Rm)
-    X, ok = chol_solve(S, jnp.concatenate([HP, num[:, None]], axis=1))
+    X, ok, logdet = innovation_solve(S, jnp.concatenate([HP, num[:, None]], axis=1))
     K = X[:, :n].T  # (n, m) = P Hᵀ S⁻¹ (P symmetric)
     w = X[:, n]  # S⁻¹ ν
     nis = jnp.dot(num, w)
@@ -253,23 +204,7 @@ def _masked_update(x, P, nu, H, R, mask):
     # A − (A Hᵀ) Kᵀ + K R Kᵀ with A = P − K (H P): O(n² m), same product.
     A = P - K @ HP
     P_post = symmetrize(A - (A @ Hm.T) @ K.T + K @ Rm @ K.T)
-    return x_post, P_post, S, num, nis, ok
-
-
-def _finalize(prior: Gaussian, x_post, P_post, ok, gated, dof):
-    """Select posterior or prior and assemble status bits."""
-    finite = jnp.all(jnp.isfinite(x_post)) & jnp.all(jnp.isfinite(P_post))
-    has = dof > 0
-    accepted = has & ~gated & ok & finite
-    mean = jnp.where(accepted, x_post, prior.mean)
-    cov = jnp.where(accepted, P_post, prior.cov)
-    i32 = jnp.int32
-    status = (
-        jnp.where(gated, i32(errors.GATED), i32(0))
-        | jnp.where(has & ~gated & ~ok, i32(errors.NOT_PSD), i32(0))
-        | jnp.where(has & ~gated & ~finite, i32(errors.NON_FINITE), i32(0))
-    )
-    return Gaussian(mean, cov), accepted, status
+    return x_post, P_post, S, num, nis, ok, logdet
 
 
 # ---------------------------------------------------------------------------
@@ -333,8 +268,10 @@ def update(
     residual: Optional[Callable] = None,
     mask=None,
     gate: Gate = None,
+    num_iter: int = 1,
+    tol=None,
 ):
-    """EKF measurement update with masks and a chi-square gate.
+    """EKF measurement update with masks, a chi-square gate and optional iterations.
 
     Paper 003 eq. 6-9 and paper 000 eq. 37-42; the covariance uses the
     factored Joseph form instead of paper 000 eq. 43 / paper 003 eq. 10.
@@ -342,6 +279,17 @@ def update(
     ``ẑ = h(x, *args)``, ``H = ∂h/∂x`` (``jax.jacfwd``), ``ν = residual(z, ẑ)``,
     ``S = H P Hᵀ + R``, ``K = P Hᵀ S⁻¹`` (Cholesky), ``x⁺ = x + K ν``,
     ``P⁺ = (I − K H) P (I − K H)ᵀ + K R Kᵀ`` (symmetrised).
+
+    **Iterated EKF** (``num_iter > 1``): Gauss–Newton on the measurement.  From
+    ``x₀ = x``, iterate ``x_{i+1} = x + K_i (residual(z, h(x_i)) − H_i (x − x_i))``
+    with ``H_i = ∂h/∂x (x_i)`` and ``K_i`` the gain for ``H_i``; this minimises
+    ``‖z − h(x')‖²_{R⁻¹} + ‖x' − x‖²_{P⁻¹}`` (the MAP of one update).  The
+    covariance uses the last linearisation.  ``num_iter`` is static (the
+    number of linearisations, 1 = the plain EKF, as dynamax's ``num_iter``).
+    The NIS, ``S`` and the gate use the linearisation at the prior (so gating
+    is the same with or without iterations).  ``errors.NOT_CONVERGED`` is set
+    when the last step still moved a component by more than ``tol`` prior
+    standard deviations (default 1e-6 in float64, 1e-3 in float32).
 
     Args:
         state: prior :class:`Gaussian`, mean (n,), cov (n, n).
@@ -356,12 +304,16 @@ def update(
         gate: None (no gate), a chi-square threshold on the NIS, or a callable
             ``gate(dof) -> threshold``.  When the NIS exceeds it the state is
             returned unchanged and ``errors.GATED`` is set.
+        num_iter: static int ≥ 1, linearisations (iterated EKF when > 1).
+        tol: convergence tolerance of the iterations, in prior σ (traced).
 
     Returns:
         ``(posterior Gaussian, UpdateInfo)``.  On a failed Cholesky
         (``NOT_PSD``) or a non-finite posterior (``NON_FINITE``) the prior is
         returned unchanged.
     """
+    if int(num_iter) < 1:
+        raise InputError(f"num_iter: must be >= 1 (1 = plain EKF), got {num_iter}")
     x, P = state
     dtype = x.dtype
     z = jnp.asarray(z, dtype=dtype)
@@ -370,25 +322,40 @@ def update(
     mask = jnp.ones((m,), bool) if mask is None else jnp.asarray(mask, bool)
     res = _default_residual if residual is None else residual
 
-    zhat, H = value_and_jacfwd(lambda v: h(v, *args))(x)
-    zhat = zhat.astype(dtype)
-    H = H.astype(dtype)
-    # Replace invalid components by their prediction before differencing so
-    # NaN garbage never enters the arithmetic (nor its gradient).
-    zhat_safe = jnp.where(mask, zhat, jnp.zeros((), dtype))
-    z_safe = jnp.where(mask, z, zhat_safe)
-    nu = res(z_safe, zhat_safe)
+    def linearise(v):
+        zhat, H = value_and_jacfwd(lambda w: h(w, *args))(v)
+        return zhat.astype(dtype), H.astype(dtype)
 
+    zhat, H = linearise(x)
+    nu = masked_innovation(z, zhat, mask, res)
     dof = jnp.sum(mask).astype(jnp.int32)
     # The NIS (hence the gate) does not depend on whether the update is
     # finally applied, so one correction serves both.
-    x_post, P_post, S, num, nis, ok = _masked_update(x, P, nu, H, R, mask)
+    x_post, P_post, S, num, nis, ok, logdet = linear_update(x, P, nu, H, R, mask)
+    extra = None
+    if int(num_iter) > 1:
+        def gn(carry, _):
+            xi, _, _, _ = carry
+            zi, Hi = linearise(xi)
+            nui = masked_innovation(z, zi, mask, res) - jnp.where(
+                mask, Hi @ (x - xi), jnp.zeros((), dtype))
+            xn, Pn, _, _, _, oki, _ = linear_update(x, P, nui, Hi, R, mask)
+            return (xn, Pn, oki, xi), None
+
+        (x_post, P_post, ok_it, x_prev), _ = jax.lax.scan(
+            gn, (x_post, P_post, ok, x), None, length=int(num_iter) - 1)
+        ok = ok & ok_it
+        tol_v = jnp.asarray((1e-6 if dtype == jnp.float64 else 1e-3) if tol is None else tol, dtype)
+        sig = jnp.sqrt(jnp.maximum(jnp.diagonal(P), jnp.finfo(dtype).tiny))
+        moved = jnp.max(jnp.abs(x_post - x_prev) / sig)
+        extra = jnp.where(moved > tol_v, jnp.int32(errors.NOT_CONVERGED), jnp.int32(0))
     if gate is None:
         gated = jnp.asarray(False)
     else:
         gated = (dof > 0) & (nis > _threshold(gate, dof, dtype))
-    post, accepted, status = _finalize(state, x_post, P_post, ok, gated, dof)
-    return post, UpdateInfo(nis, dof, num, S, accepted, status)
+    post, accepted, status = _finalize(state, x_post, P_post, ok, gated, dof, extra)
+    return post, UpdateInfo(nis, dof, num, S, accepted, status,
+                            jnp.where(ok & (dof > 0), logdet, jnp.zeros((), dtype)))
 
 
 def update_batch(
@@ -481,7 +448,7 @@ def update_batch(
     S_ii = symmetrize(
         jnp.einsum("kil,kjl->kij", HP, Hm) + jnp.where(mm, Rs, eye_m)
     )
-    w, ok_i = jax.vmap(chol_solve)(S_ii, nu)
+    w, ok_i, logdet_i = jax.vmap(innovation_solve)(S_ii, nu)
     nis = jnp.sum(nu * w, axis=1)
     valid = dof > 0
     if gate is None:
@@ -492,7 +459,7 @@ def update_batch(
 
     keep = masks & ~gated[:, None]
     R_blk = jnp.einsum("ab,aij->aibj", jnp.eye(M, dtype=dtype), Rs).reshape(M * m, M * m)
-    x_post, P_post, _, _, _, ok = _masked_update(
+    x_post, P_post, _, _, _, ok, _ = linear_update(
         x, P, nu.reshape(M * m), Hm.reshape(M * m, n), R_blk,
         keep.reshape(M * m)
     )
@@ -507,15 +474,64 @@ def update_batch(
     )
     # A failed marginal factorisation is a symptom of the same problem.
     status = status | jnp.where(valid & ~ok_i, jnp.int32(errors.NOT_PSD), jnp.int32(0))
-    return post, UpdateInfo(nis, dof, nu, S_ii, accepted, status)
+    logdet_i = jnp.where(valid & ok_i, logdet_i, jnp.zeros((), dtype))
+    return post, UpdateInfo(nis, dof, nu, S_ii, accepted, status, logdet_i)
 
 
 # ---------------------------------------------------------------------------
 # Whole run
 # ---------------------------------------------------------------------------
 
+def make_filter(
+    f: Optional[Callable],
+    h: Callable,
+    *args,
+    residual: Optional[Callable] = None,
+    gate: Gate = None,
+    noise_jac=None,
+    num_iter: int = 1,
+    h_takes_input: bool = False,
+) -> GaussianFilter:
+    """The EKF as a :class:`jaxslam.filters.gaussian.GaussianFilter` for :func:`gaussian.run`.
+
+    Args:
+        f: transition ``f(x, u, *args) -> (n,)``, or None for a model whose
+            state does not move (identity, ``P' = P + Q``).
+        h: measurement model ``h(x, *args)``, or ``h(x, c, *args)`` with the
+            step's input ``c`` when ``h_takes_input``.
+        *args: shared extra arguments of both ``f`` and ``h``.
+        residual, gate, num_iter: as in :func:`update`.  noise_jac: as in :func:`predict`.
+        h_takes_input: static; ``h`` receives the per-step ``h_inputs`` of the run.
+
+    Returns:
+        ``GaussianFilter(predict, update)``; ``predict`` returns the cross-covariance
+        ``P Fᵀ`` beside the predicted belief (what the RTS smoother needs).
+    """
+    fm = (lambda x, u, *a: x) if f is None else f
+
+    def pred(state, u, Q):
+        x, P = state
+        dtype = x.dtype
+        xn, F = value_and_jacfwd(lambda v: fm(v, u, *args))(x)
+        F = F.astype(dtype)
+        Qd = jnp.asarray(Q, dtype)
+        if noise_jac is not None:
+            L = noise_jac(x, u, *args) if callable(noise_jac) else noise_jac
+            L = jnp.asarray(L, dtype)
+            Qd = L @ Qd @ L.T
+        PFt = P @ F.T
+        return Gaussian(xn.astype(dtype), symmetrize(F @ PFt + Qd)), PFt
+
+    def upd(state, z, mask, R, c):
+        hh = (lambda x, *a: h(x, c, *a)) if h_takes_input else h
+        return update(state, z, hh, R, *args, residual=residual, mask=mask, gate=gate,
+                      num_iter=num_iter)
+
+    return GaussianFilter(pred, upd)
+
+
 def filter_scan(
-    f: Callable,
+    f: Optional[Callable],
     h: Callable,
     x0,
     P0,
@@ -530,74 +546,44 @@ def filter_scan(
     save_cov: bool = False,
     predict_first: bool = True,
     noise_jac=None,
+    num_iter: int = 1,
+    h_inputs=None,
+    save_smoother: bool = False,
 ) -> Posterior:
     """Run predict + update over a whole sequence as one ``lax.scan``.
 
     Step t (``predict_first=True``): predict with ``u_t`` (:func:`predict`),
     then update with ``z_t`` under ``masks[t]`` (:func:`update`).  Jit it with
-    ``f``, ``h``, ``residual``, a callable ``gate``, ``save_cov`` and
-    ``predict_first`` static; vmap it over runs.
+    ``f``, ``h``, ``residual``, a callable ``gate``, ``save_cov``,
+    ``predict_first``, ``num_iter`` and ``save_smoother`` static; vmap it over runs.
+    The same run as ``gaussian.run(make_filter(f, h, ...), ...)``.
 
     Args:
-        f: transition ``f(x, u, *args) -> (n,)``.
-        h: measurement model ``h(x, *args) -> (m,)``.
+        f: transition ``f(x, u, *args) -> (n,)`` (None: the state does not move).
+        h: measurement model ``h(x, *args) -> (m,)``, or ``h(x, c_t, *args)``
+            when ``h_inputs`` is given.
         x0: (n,) initial mean.  P0: (n, n) initial covariance.
         us: controls with leading axis T (array or pytree; None if unused).
         zs: (T, m) measurements.
         masks: (T, m) bool validity (None: all valid).
-        Q: (n, n) (or (q, q) with ``noise_jac``) process noise.  R: (m, m).
+        Q: (n, n) (or (q, q) with ``noise_jac``) process noise, or one per step
+            (T, n, n).  R: (m, m) or (T, m, m).
         *args: shared extra arguments of both ``f`` and ``h``.
-        residual, gate: as in :func:`update`.
+        residual, gate, num_iter: as in :func:`update`.
         save_cov: static; also stack full covariances (T, n, n).  Off by
             default to spare memory: the diagonals are always saved.
         predict_first: static; step order, see the module docstring.
         noise_jac: as in :func:`predict`.
+        h_inputs: per-step inputs of the measurement model (leading axis T).
+        save_smoother: static; save what :func:`jaxslam.filters.smoother.rts` needs.
 
     Returns:
-        :class:`Posterior` in the dtype of ``x0``.
+        :class:`Posterior` in the dtype of ``x0`` (``log_likelihood`` per step included).
     """
-    x0 = jnp.asarray(x0)
-    dtype = x0.dtype if jnp.issubdtype(x0.dtype, jnp.floating) else jnp.result_type(float)
-    x0 = x0.astype(dtype)
-    P0 = jnp.asarray(P0, dtype=dtype)
-    zs = jnp.asarray(zs, dtype=dtype)
-    Q = jnp.asarray(Q, dtype=dtype)
-    R = jnp.asarray(R, dtype=dtype)
-    T, m = zs.shape
-    masks = jnp.ones((T, m), bool) if masks is None else jnp.asarray(masks, bool)
-
-    def pred(s, u):
-        return predict(s, f, u, Q, *args, noise_jac=noise_jac)
-
-    def upd(s, z, mk):
-        return update(s, z, h, R, *args, residual=residual, mask=mk, gate=gate)
-
-    def step(carry, inp):
-        state, _ = carry
-        u, z, mk = inp
-        if predict_first:
-            post, info = upd(pred(state, u), z, mk)
-            nxt = post
-        else:
-            post, info = upd(state, z, mk)
-            nxt = pred(post, u)
-        out = (
-            post.mean,
-            jnp.diagonal(post.cov),
-            post.cov if save_cov else None,
-            info.nis,
-            info.dof,
-            info.status,
-        )
-        # The second carry slot holds the last filtered estimate, which with
-        # predict_first=False differs from the (predicted) first slot.
-        return (nxt, post), out
-
-    init = Gaussian(x0, P0)
-    (_, final), (means, diags, covs, nis, dof, status) = jax.lax.scan(
-        step, (init, init), (us, zs, masks)
-    )
-    return Posterior(means, diags, covs, nis, dof, status, final)
+    flt = make_filter(f, h, *args, residual=residual, gate=gate, noise_jac=noise_jac,
+                      num_iter=num_iter, h_takes_input=h_inputs is not None)
+    return _g.run(flt, x0, P0, us, zs, masks, Q, R, h_inputs=h_inputs,
+                  predict_first=predict_first, save_cov=save_cov, save_smoother=save_smoother)
 
 
 # ---------------------------------------------------------------------------

@@ -600,3 +600,52 @@ def test_validators_name_the_argument():
         ekf.validate_noise_cov(np.zeros((2, 2)), 2, "R", strict=True)
     with pytest.raises(InputError, match="Q"):
         ekf.validate_noise_cov(np.eye(3), 2, "Q")
+
+
+# --------------------------------------------------------------------------
+# Iterated EKF update
+# --------------------------------------------------------------------------
+
+def test_iterated_update_linear_is_kf():
+    rng = np.random.default_rng(11)
+    T = 15
+    us = rng.normal(0, 0.3, (T, 2))
+    zs = rng.normal(0, 1.0, (T, 2))
+    masks = rng.random((T, 2)) > 0.3
+    post = ekf.filter_scan(f_cv, h_pos, X0_CV, P0_CV, us, zs, masks, Q_CV, R_CV, num_iter=3)
+    want = np_kf(X0_CV, P0_CV, us, zs, masks)
+    np.testing.assert_allclose(np.asarray(post.means), want[0], atol=1e-10)
+    assert not np.any(np.asarray(post.status) & errors.NOT_CONVERGED)
+
+
+def test_iterated_update_is_map_of_one_update():
+    """num_iter Gauss-Newton steps reach argmin ‖z − h(x)‖²_R⁻¹ + ‖x − m‖²_P⁻¹ (NumPy GN)."""
+    m = np.array([1.0, 0.5, 0.2, -0.1])
+    P = np.diag([0.8, 0.6, 0.1, 0.1])
+    R = np.diag([0.01, 0.001])
+    beacon = np.array([0.2, -0.4])
+
+    def h(x):
+        d = x[:2] - jnp.asarray(beacon, x.dtype)
+        return jnp.stack([jnp.sqrt(d @ d), jnp.arctan2(d[1], d[0])])
+
+    z = np.array([1.6, 1.2])
+    x = m.copy()
+    Pi, Ri = np.linalg.inv(P), np.linalg.inv(R)
+    for _ in range(100):
+        d = x[:2] - beacon
+        r2 = d @ d
+        H = np.array([[d[0] / np.sqrt(r2), d[1] / np.sqrt(r2), 0, 0],
+                      [-d[1] / r2, d[0] / r2, 0, 0]])
+        res = z - np.array([np.sqrt(r2), np.arctan2(d[1], d[0])])
+        g = -H.T @ Ri @ res + Pi @ (x - m)
+        x = x - np.linalg.solve(H.T @ Ri @ H + Pi, g)
+    post, info = ekf.update(ekf.Gaussian(jnp.asarray(m), jnp.asarray(P)), z, h, R, num_iter=12)
+    np.testing.assert_allclose(np.asarray(post.mean), x, atol=1e-10)
+    assert int(info.status) == 0
+    plain, _ = ekf.update(ekf.Gaussian(jnp.asarray(m), jnp.asarray(P)), z, h, R)
+    assert np.max(np.abs(np.asarray(plain.mean) - x)) > 1e-3  # one linearisation is not the MAP
+    few, info2 = ekf.update(ekf.Gaussian(jnp.asarray(m), jnp.asarray(P)), z, h, R, num_iter=2)
+    assert int(info2.status) & errors.NOT_CONVERGED
+    with pytest.raises(InputError, match="num_iter"):
+        ekf.update(ekf.Gaussian(jnp.asarray(m), jnp.asarray(P)), z, h, R, num_iter=0)

@@ -1,0 +1,393 @@
+"""Gaussian filtering, the part every Gaussian filter shares: beliefs, the masked
+correction, and one runner over a whole sequence.
+
+The extended (:mod:`jaxslam.filters.ekf`) and sigma-point
+(:mod:`jaxslam.filters.ukf`) filters differ only in how they compute the
+predicted moments and the measurement moments.  What follows is common to both
+and lives here once:
+
+* **Beliefs and diagnostics**: :class:`Gaussian`, :class:`UpdateInfo`.
+* **The masked, gated correction** from a prior ``(x, P)``, an innovation ``ν``,
+  the cross-covariance ``C = Cov(x, z)`` and the innovation covariance
+  ``S = Cov(z) + R`` (:func:`innovation_solve`, :func:`finalize`): invalid
+  components get a zero row of ``C``, a zero innovation and a unit row/column of
+  ``S``, so their gain columns are exactly zero; the NIS and ``log det S`` are
+  taken over the valid block (identity elsewhere contributes 0 to both).
+* **A filter as two functions** (:class:`GaussianFilter`, the
+  ``init/update`` pair of optax or cuthbert's ``Filter`` object): ``predict(state,
+  u, Q) -> (Gaussian, cross)`` with ``cross = Cov(x_prev, x_pred)`` and
+  ``update(state, z, mask, R, c) -> (Gaussian, UpdateInfo)`` with ``c`` the
+  step's input of the measurement model (or None).  :func:`run` drives either
+  through one ``lax.scan``; :mod:`jaxslam.filters.smoother` consumes what it saves.
+
+Decisions
+---------
+* Step order is an explicit, static argument of :func:`run`: ``predict_first=True``
+  predicts with ``u_t`` then updates with ``z_t`` (``(x0, P0)`` is the belief
+  *before* the first input); ``predict_first=False`` updates with ``z_t`` first
+  (``(x0, P0)`` is the prior at the time of ``z_0``), stores the filtered
+  belief, then predicts with ``u_t``.
+* Per-step noise: ``Q`` may be ``(n, n)`` (or ``(q, q)``) or one matrix per step,
+  ``(T, n, n)``; ``R`` likewise ``(m, m)`` or ``(T, m, m)``.  The choice is made
+  from the rank, which is static under ``jit``.
+* The per-step log-likelihood ``−½ (νᵀ S⁻¹ ν + log det S + d log 2π)`` is over
+  the valid components (``d`` of them) and is reported whether or not the gate
+  then rejected the update (it is the model's density of what was measured).
+* Saved outputs are selectable: the diagonals of the filtered covariances
+  always; full filtered covariances with ``save_cov``; the predicted moments and
+  cross-covariances with ``save_smoother`` (what the RTS smoother needs).  With
+  ``predict_first=False`` the entry ``t`` of the predicted moments is the prior
+  that step ``t`` updated, and ``cross_covs[0]`` is zero (no prediction made it).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable, NamedTuple, Optional, Union
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import errors
+from ..errors import InputError
+from ..linalg import check_psd, is_concrete, symmetrize
+
+__all__ = [
+    "Gaussian",
+    "UpdateInfo",
+    "Posterior",
+    "GaussianFilter",
+    "run",
+    "innovation_solve",
+    "finalize",
+    "masked_innovation",
+    "threshold",
+    "LOG_2PI",
+]
+
+Array = Any
+Gate = Union[None, float, Array, Callable[[Array], Array]]
+LOG_2PI = float(np.log(2.0 * np.pi))
+
+
+class Gaussian(NamedTuple):
+    """A Gaussian belief.
+
+    Fields:
+        mean: (n,) state mean, in the units of the model's state.
+        cov: (n, n) symmetric positive semi-definite covariance.
+    """
+
+    mean: Array  # (n,)
+    cov: Array  # (n, n)
+
+
+class UpdateInfo(NamedTuple):
+    """Diagnostics of one update (or, from a batch update, per measurement).
+
+    Fields:
+        nis: () normalised innovation squared ``νᵀ S⁻¹ ν`` over the valid
+            components (0 when none is valid).
+        dof: () int32, number of valid components (the NIS degrees of freedom).
+        innovation: (m,) residual ``ν`` (0 on invalid components).
+        S: (m, m) innovation covariance on the valid block, identity on invalid
+            rows/columns.
+        accepted: () bool, True when the update changed the state.
+        status: () int32 bit flags from :mod:`jaxslam.errors` (``GATED``,
+            ``NOT_PSD``, ``NON_FINITE``, ``NOT_CONVERGED``).
+        logdet: () ``log det S`` over the valid block (0 when none is valid or
+            the factorisation failed).
+    """
+
+    nis: Array
+    dof: Array
+    innovation: Array
+    S: Array
+    accepted: Array
+    status: Array
+    logdet: Array = None
+
+
+class Posterior(NamedTuple):
+    """Output of a whole run (:func:`run`, ``ekf.filter_scan``, ``ukf.filter_scan``).
+
+    Fields:
+        means: (T, n) filtered means.
+        cov_diags: (T, n) diagonals of the filtered covariances (variances).
+        covs: (T, n, n) filtered covariances (``save_cov`` or ``save_smoother``), else None.
+        nis: (T,) NIS of each step's update (0 when nothing was valid).
+        dof: (T,) int32 number of valid measurement components per step.
+        status: (T,) int32 status bit flags per step.
+        final: :class:`Gaussian` after the last step (full covariance).
+        log_likelihood: (T,) per-step innovation log-likelihood (0 when nothing
+            was valid); its sum is the marginal log-likelihood of the run.
+        pred_means: (T, n) predicted means (``save_smoother``), else None.
+        pred_covs: (T, n, n) predicted covariances (``save_smoother``), else None.
+        cross_covs: (T, n, n) ``Cov(x_{t−1|t−1}, x_{t|t−1})`` of the prediction that
+            produced ``pred_*[t]`` (``save_smoother``), else None.
+    """
+
+    means: Array
+    cov_diags: Array
+    covs: Optional[Array]
+    nis: Array
+    dof: Array
+    status: Array
+    final: Gaussian
+    log_likelihood: Array = None
+    pred_means: Optional[Array] = None
+    pred_covs: Optional[Array] = None
+    cross_covs: Optional[Array] = None
+
+
+class GaussianFilter(NamedTuple):
+    """A Gaussian filter as two pure functions (closures over the model).
+
+    ``predict(state, u, Q) -> (Gaussian, cross)``: time update with the step's
+    input ``u`` and process noise ``Q``; ``cross`` (n, n) is ``Cov(x, x')`` of
+    the prior and the predicted state (``P Fᵀ`` for an EKF).
+
+    ``update(state, z, mask, R, c) -> (Gaussian, UpdateInfo)``: measurement
+    update with validity ``mask`` (m,), noise ``R`` (m, m) and ``c`` the step's
+    input of the measurement model (None when the model takes none).
+
+    Build one with ``jaxslam.filters.ekf.make_filter`` or
+    ``jaxslam.filters.ukf.make_filter``; run it with :func:`run`.
+    """
+
+    predict: Callable
+    update: Callable
+
+
+# ---------------------------------------------------------------------------
+# The shared correction
+# ---------------------------------------------------------------------------
+
+def threshold(gate: Gate, dof, dtype):
+    """The gate's χ² threshold for ``dof`` valid components (number or callable)."""
+    if callable(gate):
+        return jnp.asarray(gate(dof), dtype=dtype)
+    return jnp.asarray(gate, dtype=dtype)
+
+
+def masked_innovation(z, zhat, mask, residual):
+    """``ν = residual(z, ẑ)`` with invalid components replaced *before* differencing.
+
+    NaN/Inf garbage in an invalid component never reaches the arithmetic (nor
+    its gradient); the invalid components of the result are 0.
+    """
+    zero = jnp.zeros((), zhat.dtype)
+    zhat_safe = jnp.where(mask, zhat, zero)
+    z_safe = jnp.where(mask, z, zhat_safe)
+    return jnp.where(mask, residual(z_safe, zhat_safe), zero)
+
+
+def innovation_solve(S, B):
+    """Solve ``S X = B`` by Cholesky; return ``(X, ok, logdet S)``.
+
+    ``ok`` is False when the factor is not finite (``S`` not PD); ``logdet`` is
+    then 0.  ``S`` must already be masked (identity on invalid rows/columns).
+    """
+    L = jnp.linalg.cholesky(symmetrize(S))
+    ok = jnp.all(jnp.isfinite(L))
+    X = jax.scipy.linalg.cho_solve((L, True), B)
+    d = jnp.where(ok, jnp.diagonal(L), jnp.ones((), L.dtype))
+    logdet = 2.0 * jnp.sum(jnp.log(jnp.abs(d)))
+    return X, ok, logdet
+
+
+def finalize(prior: Gaussian, x_post, P_post, ok, gated, dof, extra_status=None):
+    """Select posterior or prior and assemble the status bits.
+
+    Returns ``(Gaussian, accepted, status)``: the posterior only when at least
+    one component was valid, the gate passed, the factorisation held and the
+    result is finite; else the prior, with ``GATED`` / ``NOT_PSD`` /
+    ``NON_FINITE`` set.  ``extra_status`` (int32) is OR-ed in (e.g.
+    ``NOT_CONVERGED`` from an iterated update).
+    """
+    finite = jnp.all(jnp.isfinite(x_post)) & jnp.all(jnp.isfinite(P_post))
+    has = dof > 0
+    accepted = has & ~gated & ok & finite
+    mean = jnp.where(accepted, x_post, prior.mean)
+    cov = jnp.where(accepted, P_post, prior.cov)
+    i32 = jnp.int32
+    status = (
+        jnp.where(gated, i32(errors.GATED), i32(0))
+        | jnp.where(has & ~gated & ~ok, i32(errors.NOT_PSD), i32(0))
+        | jnp.where(has & ~gated & ~finite, i32(errors.NON_FINITE), i32(0))
+    )
+    if extra_status is not None:
+        status = status | jnp.where(has, extra_status, i32(0))
+    return Gaussian(mean, cov), accepted, status
+
+
+def step_log_likelihood(info: UpdateInfo):
+    """``−½ (NIS + log det S + dof log 2π)`` of one update (0 with no valid component)."""
+    dtype = info.nis.dtype
+    dof = info.dof.astype(dtype)
+    ll = -0.5 * (info.nis + info.logdet + dof * jnp.asarray(LOG_2PI, dtype))
+    return jnp.where(info.dof > 0, ll, jnp.zeros((), dtype))
+
+
+# ---------------------------------------------------------------------------
+# Whole run
+# ---------------------------------------------------------------------------
+
+def _per_step(M, T, name, dims):
+    """Broadcast a noise matrix to per-step form; ``dims`` is its trailing rank 2."""
+    if M.ndim == 2:
+        return M, False
+    if M.ndim == 3:
+        if M.shape[0] != T:
+            raise InputError(f"{name}: per-step noise must have {T} matrices (one per step), "
+                             f"got {M.shape[0]}")
+        return M, True
+    raise InputError(f"{name}: expected a matrix or one matrix per step (rank 2 or 3), "
+                     f"got shape {M.shape}")
+
+
+def check_run_inputs(x0, P0, zs, masks, Q, R, name_prefix=""):
+    """Host-side checks of a whole run's arrays (shapes; PSD where concrete).
+
+    Raises :class:`InputError` naming the argument.  Under ``jit`` only the
+    shapes are checked (values are abstract).
+    """
+    pre = name_prefix
+    xs = np.shape(x0)
+    if len(xs) != 1:
+        raise InputError(f"{pre}x0: expected shape (n,), got {tuple(xs)}")
+    n = xs[0]
+    if np.shape(P0) != (n, n):
+        raise InputError(f"{pre}P0: expected shape ({n}, {n}), got {tuple(np.shape(P0))}")
+    zsh = np.shape(zs)
+    if len(zsh) != 2:
+        raise InputError(f"{pre}zs: expected shape (T, m), got {tuple(zsh)}")
+    T, m = zsh
+    if masks is not None and np.shape(masks) != (T, m):
+        raise InputError(f"{pre}masks: expected shape ({T}, {m}) like zs, got "
+                         f"{tuple(np.shape(masks))}")
+    rs = np.shape(R)
+    if rs[-2:] != (m, m) or len(rs) not in (2, 3):
+        raise InputError(f"{pre}R: expected shape ({m}, {m}) or ({T}, {m}, {m}), got {tuple(rs)}")
+    qs = np.shape(Q)
+    if len(qs) not in (2, 3) or qs[-1] != qs[-2]:
+        raise InputError(f"{pre}Q: expected a square matrix or one per step, got shape {tuple(qs)}")
+    for M, nm, strict in ((P0, "P0", False), (Q, "Q", False), (R, "R", True)):
+        if not is_concrete(M):
+            continue
+        A = np.asarray(M)
+        for k, Ak in enumerate(A.reshape((-1,) + A.shape[-2:])):
+            check_psd(Ak, f"{pre}{nm}" + (f"[{k}]" if A.ndim == 3 else ""), strict=strict)
+    return T, m
+
+
+def init_carry(x0, P0):
+    """The scan carry of :func:`make_step` at the start of a run."""
+    init = Gaussian(x0, P0)
+    return (init, init, jnp.zeros(P0.shape, P0.dtype))
+
+
+def make_step(flt: GaussianFilter, Q, R, q_step: bool, r_step: bool, predict_first: bool):
+    """One step of a run as a scan body: ``step(carry, inp) -> (carry, (post, prior, cross, info))``.
+
+    ``inp = (u, z, mask, Q_t, R_t, c)`` (``Q_t``/``R_t`` used when ``q_step``/``r_step``,
+    else the shared ``Q``/``R``); ``prior`` is the belief that was updated and
+    ``cross`` the cross-covariance of the prediction that produced it.  Shared by
+    :func:`run` and the fixed-lag smoother so that both filter identically.
+    """
+
+    def step(carry, inp):
+        state, _, cross_in = carry
+        u, z, mk, Qt, Rt, c = inp
+        Qt = Qt if q_step else Q
+        Rt = Rt if r_step else R
+        if predict_first:
+            prior, cross = flt.predict(state, u, Qt)
+            post, info = flt.update(prior, z, mk, Rt, c)
+            nxt, cross_next = post, cross_in
+        else:
+            prior, cross = state, cross_in
+            post, info = flt.update(state, z, mk, Rt, c)
+            nxt, cross_next = flt.predict(post, u, Qt)
+        # The second carry slot holds the last filtered estimate, which with
+        # predict_first=False differs from the (predicted) first slot.
+        return (nxt, post, cross_next), (post, prior, cross, info)
+
+    return step
+
+
+def prepare_run(x0, P0, zs, masks, Q, R):
+    """Cast and check a run's arrays; ``(x0, P0, zs, masks, Q, R, q_step, r_step, T)``."""
+    x0 = jnp.asarray(x0)
+    dtype = x0.dtype if jnp.issubdtype(x0.dtype, jnp.floating) else jnp.result_type(float)
+    x0 = x0.astype(dtype)
+    P0 = jnp.asarray(P0, dtype=dtype)
+    zs = jnp.asarray(zs, dtype=dtype)
+    T, m = check_run_inputs(x0, P0, zs, masks, Q, R)
+    Q, q_step = _per_step(jnp.asarray(Q, dtype=dtype), T, "Q", 2)
+    R, r_step = _per_step(jnp.asarray(R, dtype=dtype), T, "R", 2)
+    masks = jnp.ones((T, m), bool) if masks is None else jnp.asarray(masks, bool)
+    return x0, P0, zs, masks, Q, R, q_step, r_step, T
+
+
+def run(
+    flt: GaussianFilter,
+    x0,
+    P0,
+    us,
+    zs,
+    masks,
+    Q,
+    R,
+    *,
+    h_inputs=None,
+    predict_first: bool = True,
+    save_cov: bool = False,
+    save_smoother: bool = False,
+) -> Posterior:
+    """Run a :class:`GaussianFilter` over a whole sequence as one ``lax.scan``.
+
+    Args:
+        flt: the filter (``ekf.make_filter`` / ``ukf.make_filter``).
+        x0: (n,) initial mean.  P0: (n, n) initial covariance.
+        us: inputs with leading axis T (array or pytree), or None for a model
+            without inputs.
+        zs: (T, m) measurements.
+        masks: (T, m) bool validity, or None (all valid).
+        Q: (q, q) process noise, or (T, q, q) one per step.
+        R: (m, m) measurement noise, or (T, m, m) one per step.
+        h_inputs: None, or a pytree with leading axis T passed to the
+            measurement model as its per-step input ``c_t``.
+        predict_first: static; the step order (module docstring).
+        save_cov: static; also stack the filtered covariances (T, n, n).
+        save_smoother: static; also save the predicted moments and
+            cross-covariances (and the filtered covariances) for
+            :func:`jaxslam.filters.smoother.rts`.
+
+    Returns:
+        :class:`Posterior` in the dtype of ``x0``.
+    """
+    x0, P0, zs, masks, Q, R, q_step, r_step, T = prepare_run(x0, P0, zs, masks, Q, R)
+    keep_cov = save_cov or save_smoother
+    step_fn = make_step(flt, Q, R, q_step, r_step, predict_first)
+
+    def step(carry, inp):
+        carry, (post, prior, cross, info) = step_fn(carry, inp)
+        out = (
+            post.mean,
+            jnp.diagonal(post.cov),
+            post.cov if keep_cov else None,
+            info.nis,
+            info.dof,
+            info.status,
+            step_log_likelihood(info),
+            prior.mean if save_smoother else None,
+            prior.cov if save_smoother else None,
+            cross if save_smoother else None,
+        )
+        return carry, out
+
+    xs = (us, zs, masks, Q if q_step else None, R if r_step else None, h_inputs)
+    (_, final, _), outs = jax.lax.scan(step, init_carry(x0, P0), xs, length=T)
+    means, diags, covs, nis, dof, status, ll, pm, pc, cc = outs
+    return Posterior(means, diags, covs, nis, dof, status, final, ll, pm, pc, cc)
