@@ -262,7 +262,8 @@ def _observe_batch(model, s, L, params, valid=None):
 
 
 def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
-           gate: Optional[float] = None, robust=None, row_stats: bool = False):
+           gate: Optional[float] = None, robust=None, row_stats: bool = False,
+           num_iter: int = 1, tol=None):
     """Joint EKF update with K measurements of mapped landmarks.
 
     Args:
@@ -281,6 +282,13 @@ def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
 
       row_stats: also report each row's marginal NIS and log det (below) when neither a
         gate nor ``robust`` needs them (static; they cost a small Cholesky per row).
+      num_iter: static number of linearisations (1 = EKF; > 1 = iterated EKF, Gauss–Newton
+        on the joint update as :func:`jaxslam.filters.ekf.update`): each iteration
+        re-linearises ``observe`` at the current robot and landmark estimates and re-solves
+        from the prior; gating, weights, NIS and log det stay those of the prior's
+        linearisation; the covariance uses the last one.  ``NOT_CONVERGED`` is set when the
+        last iteration still moved a component by more than ``tol`` prior σ (default 1e-6
+        float64, 1e-3 float32).
 
     Returns (state, UpdateInfo).  ``UpdateInfo.d2`` and ``row_logdet`` hold each row's
     marginal NIS and log det S_i before any weighting (the terms of a per-row likelihood);
@@ -307,21 +315,20 @@ def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
     idx = slot_indices(slots, model)  # (K, dl)
     P = state.P
 
-    def gather_PHt(M):
+    def gather_PHt(M, Hs, Hl):
         # M Hᵀ for the sparse H, with M symmetric-access by columns: (n, K, dz)
         Mr = M[:, :nr]  # (n, nr)
         Ml = M[:, idx]  # (n, K, dl)
         return jnp.einsum("ni,kzi->nkz", Mr, Hs) + jnp.einsum("nkj,kzj->nkz", Ml, Hl)
 
-    PHt = gather_PHt(P)  # (n, K, dz)
-
-    def rows(M):
+    def rows(M, Hs, Hl):
         # rows of an (n, ...) array at H's support, contracted with H: H M
         Mr = M[:nr]  # (nr, K, dz)
         Ml = M[idx]  # (K, dl, K, dz)
         return jnp.einsum("kzi,imw->kzmw", Hs, Mr) + jnp.einsum("kzj,kjmw->kzmw", Hl, Ml)
 
-    HPHt = rows(PHt)  # (K, dz, K, dz)
+    PHt = gather_PHt(P, Hs, Hl)  # (n, K, dz)
+    HPHt = rows(PHt, Hs, Hl)  # (K, dz, K, dz)
 
     # Individual gating on the marginal innovation covariance of each measurement.
     S_marg = jnp.einsum("kzkw->kzw", HPHt) + R
@@ -346,28 +353,60 @@ def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
     vv = jnp.repeat(v, dz)  # (K·dz,)
     VV = vv[:, None] * vv[None, :]
     m = K * dz
-    PHt_f = PHt.reshape(-1, m) * vv[None, :]
     R_blk = jnp.zeros((K, dz, K, dz), dtype).at[jnp.arange(K), :, jnp.arange(K), :].set(R)
     R_used = R_blk.reshape(m, m) * VV
-    S = HPHt.reshape(m, m) * VV + R_used + jnp.diag(1.0 - vv)
-    nu = res.reshape(m) * vv
 
-    # Gain through the explicit m×m inverse of S from its Cholesky factor: m is small, and a
-    # triangular solve with n right-hand sides is far slower on CPU than one (n, m)·(m, m) product.
-    Lc = jnp.linalg.cholesky(symmetrize(S))
-    Sinv = jax.scipy.linalg.cho_solve((Lc, True), jnp.eye(m, dtype=dtype))
-    Kg = PHt_f @ Sinv  # (n, m) = P Hᵀ S⁻¹
-    chol_ok = jnp.all(jnp.isfinite(Lc))
-    # Guard on the small quantities (O(n·m)): with P, P Hᵀ and K finite the products below are
-    # finite, so no O(n²) check or select of the result is needed.  A rejected update zeroes
-    # the gain, which leaves x and P unchanged (P is exactly symmetric).
-    ok = chol_ok & jnp.all(jnp.isfinite(Kg)) & jnp.all(jnp.isfinite(nu))
-    Kg = jnp.where(ok, Kg, 0.0)
-    x_new = state.x + Kg @ jnp.where(ok, nu, 0.0)
+    def solve(PHt_, HPHt_, res_):
+        PHt_f = PHt_.reshape(-1, m) * vv[None, :]
+        S = HPHt_.reshape(m, m) * VV + R_used + jnp.diag(1.0 - vv)
+        nu = res_.reshape(m) * vv
+        # Gain through the explicit m×m inverse of S from its Cholesky factor: m is small, and
+        # a triangular solve with n right-hand sides is far slower on CPU than one (n, m)·(m, m)
+        # product.
+        Lc = jnp.linalg.cholesky(symmetrize(S))
+        Sinv = jax.scipy.linalg.cho_solve((Lc, True), jnp.eye(m, dtype=dtype))
+        Kg = PHt_f @ Sinv  # (n, m) = P Hᵀ S⁻¹
+        chol_ok = jnp.all(jnp.isfinite(Lc))
+        # Guard on the small quantities (O(n·m)): with P, P Hᵀ and K finite the products below
+        # are finite, so no O(n²) check or select of the result is needed.  A rejected update
+        # zeroes the gain, which leaves x and P unchanged (P is exactly symmetric).
+        ok = chol_ok & jnp.all(jnp.isfinite(Kg)) & jnp.all(jnp.isfinite(nu))
+        Kg = jnp.where(ok, Kg, 0.0)
+        x_new = state.x + Kg @ jnp.where(ok, nu, 0.0)
+        return PHt_f, nu, Lc, Sinv, Kg, chol_ok, ok, x_new
+
+    PHt_f, nu, Lc, Sinv, Kg, chol_ok, ok, x_new = solve(PHt, HPHt, res)
+    Hs_f, Hl_f = Hs, Hl
+    not_conv = jnp.asarray(False)
+    if int(num_iter) > 1:
+        x0 = state.x
+
+        def gn(carry, _):
+            xi, _, _, _, _, _, ok_i = carry
+            si = xi[:nr]
+            Li = xi[nr:].reshape(cap, dl)[slots]
+            zi, Hs_i, Hl_i = _observe_batch(model, si, Li, params, valid)
+            lin = (jnp.einsum("kzi,i->kz", Hs_i, x0[:nr] - si)
+                   + jnp.einsum("kzj,kj->kz", Hl_i, L - Li))
+            res_i = jnp.where(valid[:, None], jax.vmap(_residual(model))(z_safe, zi) - lin, 0.0)
+            PHt_i = gather_PHt(P, Hs_i, Hl_i)
+            PHt_fi, _, _, _, Kg_i, _, ok_n, x_n = solve(PHt_i, rows(PHt_i, Hs_i, Hl_i), res_i)
+            return (x_n, PHt_fi, Kg_i, Hs_i, Hl_i, xi, ok_i & ok_n), None
+
+        (x_new, PHt_f, Kg, Hs_f, Hl_f, x_prev, ok_it), _ = jax.lax.scan(
+            gn, (x_new, PHt_f, Kg, Hs, Hl, x0, ok), None, length=int(num_iter) - 1)
+        tol_v = jnp.asarray((1e-6 if dtype == jnp.float64 else 1e-3) if tol is None else tol, dtype)
+        sig = jnp.sqrt(jnp.maximum(jnp.diagonal(P), jnp.finfo(dtype).tiny))
+        moved = jnp.max(jnp.where(jnp.diagonal(P) > 0, jnp.abs(x_new - x_prev) / sig, 0.0))
+        # a failed iteration keeps the prior (as a failed first solve does)
+        x_new = jnp.where(ok_it, x_new, x0)
+        Kg = jnp.where(ok_it, Kg, 0.0)
+        ok = ok & ok_it
+        not_conv = ok & jnp.any(valid) & (moved > tol_v)
 
     # Factored Joseph form from gathered columns, grouped as A − (A Hᵀ − K R) Kᵀ.
     A = P - Kg @ PHt_f.T  # (I − K H) P
-    AHt = gather_PHt(A).reshape(-1, m) * vv[None, :]  # (I − K H) P Hᵀ
+    AHt = gather_PHt(A, Hs_f, Hl_f).reshape(-1, m) * vv[None, :]  # (I − K H) P Hᵀ
     P_new = symmetrize(jax.lax.optimization_barrier(A - (AHt - Kg @ R_used) @ Kg.T))
 
     nu_ok = jnp.where(ok, nu, 0.0)
@@ -380,6 +419,7 @@ def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
         | _flag_if(~chol_ok, errors.NOT_PSD)
         | _flag_if(jnp.any(gated), errors.GATED)
         | _flag_if(jnp.any(bad_input), errors.MASKED_INPUT)
+        | _flag_if(not_conv, errors.NOT_CONVERGED)
     )
     info = UpdateInfo(
         nis=jnp.where(ok, nis, 0.0),
