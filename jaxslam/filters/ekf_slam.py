@@ -68,6 +68,9 @@ __all__ = [
     "robot_cov",
     "landmark_covs",
     "slot_indices",
+    "SmootherTerms",
+    "smoother_terms",
+    "smooth_robot",
 ]
 
 
@@ -771,3 +774,114 @@ def joint_compatibility(state: SlamState, model: SlamModel, z, slots, matched, R
     m = jax.lax.fori_loop(0, K, step, matched)
     nis, _ = joint(m)
     return m, matched & ~m, nis
+
+
+# ---------------------------------------------------------------------------
+# Smoothing: RTS on the robot trajectory, the map being static
+# ---------------------------------------------------------------------------
+
+class SmootherTerms(NamedTuple):
+    """What the RTS pass needs from one filtered step (:func:`smoother_terms`).
+
+    robot: (n_r,) filtered robot mean; lm: (cap·d_l,) filtered map means;
+    W: (n_r, cap·d_l) regression of the robot on the map, ``P_rm P_mm⁺`` over the
+    mapped slots (0 on free or zero-variance ones); P_cond: (n_r, n_r)
+    ``P_rr − W P_mr``, the robot covariance given the map; ids: (cap,) int32 the
+    landmark id in each slot (−1 free), so a slot re-used after pruning is not
+    mistaken for the landmark it held before.
+    """
+
+    robot: jax.Array
+    lm: jax.Array
+    W: jax.Array
+    P_cond: jax.Array
+    ids: jax.Array
+
+
+def smoother_terms(state: SlamState, model: SlamModel) -> SmootherTerms:
+    """The per-step terms of :func:`smooth_robot` from a filtered state (record them in the scan).
+
+    Storage O(n_r · cap · d_l) per step instead of the O(n²) of a full covariance;
+    cost one Cholesky of the map block (O((cap·d_l)³)), so it suits maps of tens of
+    landmarks (a 200-landmark map costs ~10⁸ flops per step).
+    """
+    nr, dl, cap = _sizes(state, model)
+    dtype = state.x.dtype
+    Pmm = state.P[nr:, nr:]
+    Prm = state.P[:nr, nr:]
+    live = jnp.repeat(state.active, dl) & (jnp.diagonal(Pmm) > 0)
+    Pmm_m = jnp.where(live[:, None] & live[None, :], Pmm, jnp.eye(cap * dl, dtype=dtype))
+    Prm_m = jnp.where(live[None, :], Prm, 0.0)
+    Lc = jnp.linalg.cholesky(symmetrize(Pmm_m))
+    Wt = jax.scipy.linalg.cho_solve((Lc, True), Prm_m.T)
+    ok = jnp.all(jnp.isfinite(Wt))
+    W = jnp.where(ok, Wt.T, 0.0)
+    P_cond = symmetrize(state.P[:nr, :nr] - W @ Prm_m.T)
+    return SmootherTerms(state.x[:nr], state.x[nr:], W, P_cond,
+                         jnp.where(state.active, state.ids, -1).astype(jnp.int32))
+
+
+def smooth_robot(model: SlamModel, terms: SmootherTerms, us, Qs, final: SlamState,
+                 params=None, difference: Optional[Callable] = None):
+    """RTS-smoothed robot trajectory of an EKF-SLAM run whose map is static.
+
+    With the state ``[r; m]``, ``r' = f(r, u) + w`` (``Q``) and ``m' = m``, the RTS
+    gain's map rows are ``[0, I]`` (so the smoothed map is the final filtered map at
+    every step) and its robot rows are
+
+        G_rr = P_r|m Fᵀ (F P_r|m Fᵀ + Q)⁻¹,   G_rm = (I − G_rr F) W,
+
+    with ``P_r|m`` and ``W`` of :class:`SmootherTerms`; hence
+
+        r̂_t = r_t + G_rr (r̂_{t+1} − f(r_t, u_{t+1})) + G_rm (m_T − m_t),
+
+    which is the full-state RTS mean exactly (tests/filters/test_filters_ekf_slam.py),
+    at O(n_r² · cap · d_l) per step.  A landmark not yet mapped at step t has W = 0
+    there (the limit of an infinitely wide prior); a landmark removed before the end
+    (or whose slot holds another landmark at the end) contributes nothing.  Only means are smoothed (the smoothed covariance would need
+    the map block of every step).
+
+    Args:
+        model: the run's :class:`SlamModel`.
+        terms: :class:`SmootherTerms` stacked over T steps (filtered, after step t).
+        us: (T, …) the inputs of each step's prediction (step t predicted with ``us[t]``).
+        Qs: (T, n_r, n_r) each step's process noise, as given to :func:`predict`.
+        final: the last filtered state (its map is the smoothed map).
+        params: None, or per-step motion parameters with leading axis T (e.g. dt).
+        difference: ``difference(a, b)`` of robot states (wrap headings), default ``a − b``.
+
+    Returns:
+        ``(robot_means (T, n_r), status (T,) int32)`` with ``NOT_PSD`` where a gain
+        could not be formed (that step keeps its filtered robot mean plus the map term).
+    """
+    nr = model.robot_dim
+    dtype = terms.robot.dtype
+    diff = (lambda a, b: a - b) if difference is None else difference
+    dl = model.lm_dim
+    ids_T = jnp.where(final.active, final.ids, -1)
+    T = terms.robot.shape[0]
+    eye = jnp.eye(nr, dtype=dtype)
+    p_seq = params
+
+    def body(rs_next, inp):
+        r, lm, W, Pc, ids_t, u_n, Q_n, p_n = inp
+        r_pred, F = value_and_jacfwd(lambda v: model.motion(v, u_n, p_n))(r)
+        A = symmetrize(F @ Pc @ F.T + Q_n)
+        La = jnp.linalg.cholesky(A)
+        Grr_t = jax.scipy.linalg.cho_solve((La, True), F @ Pc)  # A⁻¹ F P_r|m = G_rrᵀ
+        ok = jnp.all(jnp.isfinite(Grr_t))
+        Grr = jnp.where(ok, Grr_t.T, 0.0)
+        Grm = (eye - Grr @ F) @ W
+        same = jnp.repeat((ids_t >= 0) & (ids_t == ids_T), dl)  # held the same landmark at the end
+        rs = r + Grr @ diff(rs_next, r_pred) + Grm @ jnp.where(same, final.x[nr:] - lm, 0.0)
+        st = jnp.where(ok, jnp.int32(0), jnp.int32(errors.NOT_PSD))
+        return rs, (rs, st)
+
+    if T == 1:
+        return terms.robot, jnp.zeros((1,), jnp.int32)
+    nxt = jax.tree_util.tree_map(lambda a: a[1:], (us, Qs, p_seq))
+    xs = (terms.robot[:-1], terms.lm[:-1], terms.W[:-1], terms.P_cond[:-1], terms.ids[:-1]) + tuple(nxt)
+    _, (rs, st) = jax.lax.scan(body, terms.robot[-1], xs, reverse=True)
+    rs = jnp.concatenate([rs, terms.robot[-1:]], 0)
+    st = jnp.concatenate([st, jnp.zeros((1,), jnp.int32)], 0)
+    return rs, st

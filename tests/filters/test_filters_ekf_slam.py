@@ -524,3 +524,64 @@ def test_iterated_update_equals_generic_iterated_ekf(num_iter):
     np.testing.assert_allclose(float(info.nis), float(ginfo.nis), rtol=1e-10)
     conv = bool(int(post.status) & errors.NOT_CONVERGED)
     assert conv == bool(int(ginfo.status) & errors.NOT_CONVERGED)
+
+
+def test_smooth_robot_equals_full_state_rts():
+    """Map static: the engine's robot-only RTS pass = the generic RTS smoother on [s; map]."""
+    from jaxslam.filters import ekf, smoother
+
+    n_lm, K, T = 5, 3, 40
+    us, zs, ids, masks = make_log(seed=3, T=T, n_lm=n_lm, K=K)
+    rng = np.random.default_rng(4)
+    lm0 = np.random.default_rng(3).uniform(-8, 8, size=(n_lm, 2)) + rng.normal(0, 0.5, (n_lm, 2))
+    cap = n_lm + 2  # two free slots: they must change nothing
+    x0 = np.concatenate([np.zeros(3), lm0.reshape(-1), np.zeros(4)])
+    P0 = np.zeros((3 + 2 * cap,) * 2)
+    P0[:3, :3] = np.diag([1e-2, 1e-2, 1e-3])
+    P0[3:3 + 2 * n_lm, 3:3 + 2 * n_lm] = 0.25 * np.eye(2 * n_lm)
+    st0 = es.SlamState(x=jnp.asarray(x0), P=jnp.asarray(P0),
+                       active=jnp.asarray(np.arange(cap) < n_lm),
+                       ids=jnp.asarray(np.where(np.arange(cap) < n_lm, np.arange(cap), -1), jnp.int32),
+                       status=jnp.zeros((), jnp.int32), overflow=jnp.zeros((), jnp.int32))
+
+    def body(st, inp):
+        u, z, i, m = inp
+        st = es.predict(st, MODEL, u, jnp.asarray(Q))
+        slots, mapped = es.associate_known(st, i, m)
+        st, _ = es.update(st, MODEL, z, slots, mapped, jnp.asarray(R))
+        return st, (es.smoother_terms(st, MODEL), st.x[:3])
+
+    final, (terms, filt) = jax.lax.scan(body, st0, (us, zs, ids, masks))
+    Qs = jnp.broadcast_to(jnp.asarray(Q), (T, 3, 3))
+
+    def diff(a, b):
+        d = a - b
+        return d.at[2].set(wrap_angle(d[2]))
+
+    rs, st = es.smooth_robot(MODEL, terms, us, Qs, final, difference=diff)
+    assert not np.any(np.asarray(st))
+
+    # oracle: the generic EKF + RTS on the dense state (landmarks n_lm, no free slots)
+    n = 3 + 2 * n_lm
+
+    def f_full(x, u):
+        return jnp.concatenate([motion(x[:3], u, None), x[3:]])
+
+    def h_full(x, c):
+        L = x[3:].reshape(n_lm, 2)[c]
+        return jax.vmap(lambda l: observe(x[:3], l, None))(L).reshape(-1)
+
+    Qf = np.zeros((n, n))
+    Qf[:3, :3] = Q
+    res = ekf.angle_residual([False, True] * K)
+    mk = np.repeat(masks, 2, axis=1)
+    post = ekf.filter_scan(f_full, h_full, x0[:n], P0[:n, :n], us, zs.reshape(T, -1), mk, Qf,
+                           np.kron(np.eye(K), R), residual=res, h_inputs=jnp.asarray(ids),
+                           save_smoother=True)
+    np.testing.assert_allclose(np.asarray(filt), np.asarray(post.means[:, :3]), atol=1e-10)
+    sm = smoother.rts(post, difference=lambda a, b: diff(a, b))
+    np.testing.assert_allclose(np.asarray(rs), np.asarray(sm.means[:, :3]), atol=1e-9)
+    # the smoothed map is the final filtered map at every step
+    np.testing.assert_allclose(np.asarray(sm.means[:, 3:]),
+                               np.broadcast_to(np.asarray(final.x[3:n]), (T, n - 3)), atol=1e-9)
+    assert np.max(np.abs(np.asarray(rs) - np.asarray(filt))) > 1e-3  # smoothing did something
