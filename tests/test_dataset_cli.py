@@ -26,8 +26,8 @@ def _run(argv, capsys):
 
 @pytest.mark.parametrize("argv", [
     ["mrclam", "--robot", "1"],
-    ["plaza", "--robot", "2"],
-    ["util-uwb", "--tof"],
+    ["plaza", "--robot", "2", "--smooth"],
+    ["util-uwb", "--tof", "--smooth"],
     # FastSLAM and the Ackermann/NN path are covered by tests/systems/test_planar_*.py in the
     # default suite; their CLI plumbing runs in the slow set (compile time).
     pytest.param(["mrclam", "--robot", "2", "--filter", "fastslam", "--particles", "16"],
@@ -52,6 +52,12 @@ def test_dataset_runs_on_excerpts_and_writes_outputs(tmp_path, capsys, argv):
     np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, atol=1e-6)
     assert len(list((tmp_path / "plots").glob("*.png"))) == 2
     assert "ate_m" in out
+    if "--smooth" in argv:  # the smoother's figures beside the filter's
+        assert doc["config"]["smooth"] is True and "RTS" in doc["config"]["smoother"]
+        assert np.isfinite(doc["metrics"]["smoothed_ate_m"]) and "smoothed_ate_m" in out
+        assert doc["counts"]["smoother_failed_steps"] == 0
+    else:
+        assert "smooth" not in doc["config"] and not any(k.startswith("smoothed_") for k in doc["metrics"])
 
 
 @pytest.mark.slow
@@ -90,6 +96,10 @@ def test_dataset_option_misuse_is_an_input_error(capsys):
     assert rc == 2 and "--ids" in err
     rc, _, err = _run(["dataset", "mrclam", "--data", str(DATA), "--particles", "5"], capsys)
     assert rc == 2 and "--particles" in err
+    rc, _, err = _run(["dataset", "victoria-park", "--data", str(DATA), "--smooth"], capsys)
+    assert rc == 2 and "--smooth" in err
+    rc, _, err = _run(["dataset", "mrclam", "--data", str(DATA), "--filter", "fastslam", "--smooth"], capsys)
+    assert rc == 2 and "--smooth" in err and "fastslam" in err
     rc, _, err = _run(["dataset", "util-uwb", "--data", str(DATA), "--anchors", "unknown"], capsys)
     assert rc == 2 and "start-up window" in err  # the excerpt has motion capture over 20-21 s only
     rc, _, err = _run(["dataset", "plaza", "--data", str(DATA), "--tum", str(DATA)], capsys)

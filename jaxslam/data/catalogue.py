@@ -53,12 +53,12 @@ _BY_NAME = {d.name: d for d in DATASETS}
 #: The options of ``jaxslam dataset`` / :func:`jaxslam.data.runners.run_dataset` with their
 #: defaults, and the datasets each applies to.
 OPTION_DEFAULTS = {"robot": 1, "filter": "ekf", "ids": "known", "anchors": None, "tof": False,
-                   "calibrated": False, "particles": None, "seed": 0, "params": None}
+                   "calibrated": False, "particles": None, "seed": 0, "params": None, "smooth": False}
 APPLIES = {
-    "mrclam": {"robot", "filter", "ids", "calibrated", "particles", "seed", "params"},
+    "mrclam": {"robot", "filter", "ids", "calibrated", "particles", "seed", "params", "smooth"},
     "victoria-park": {"filter", "particles", "seed"},
-    "util-uwb": {"anchors", "tof"},
-    "plaza": {"robot", "anchors"},
+    "util-uwb": {"anchors", "tof", "smooth"},
+    "plaza": {"robot", "anchors", "smooth"},
 }
 
 
@@ -74,6 +74,8 @@ def check_options(name: str, options: dict) -> None:
         misplaced += [k for k in ("particles", "seed") if options.get(k, OPTION_DEFAULTS[k]) != OPTION_DEFAULTS[k]]
     elif options.get("params") is not None:
         raise InputError(f"{name}: --params sets the EKF's noise; it does not apply to --filter fastslam")
+    elif options.get("smooth"):
+        raise InputError(f"{name}: --smooth smooths the EKF's run; it does not apply to --filter fastslam")
     if misplaced:
         flags = ", ".join("--" + k for k in sorted(set(misplaced)))
         hint = (" (range-only logs run the EKF only: the particle core registers range-bearing "

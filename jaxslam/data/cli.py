@@ -80,6 +80,10 @@ def _parser(help_params: bool = False):
     p.add_argument("--particles", type=_positive_int, default=None, metavar="N",
                    help="FastSLAM particle count (default: the dataset's setting)")
     p.add_argument("--seed", type=_seed, default=0, metavar="S", help="FastSLAM PRNG seed (default: 0)")
+    p.add_argument("--smooth", action="store_true",
+                   help="also smooth the EKF run (RTS backward pass over the robot trajectory, the map "
+                        "held static) and report its figures beside the filter's as smoothed_* "
+                        "(mrclam with --filter ekf, util-uwb, plaza)")
     p.add_argument("--float32", action="store_true",
                    help="compute in float32 (default: float64, jax_enable_x64 switched on)")
     p.add_argument("--params", metavar="FILE",
@@ -109,7 +113,8 @@ def main(argv) -> int:
     params = paramfile.load(args.params) if args.params else None
     catalogue.check_options(args.name, dict(robot=args.robot, filter=args.filter, ids=args.ids,
                                             anchors=args.anchors, tof=args.tof, calibrated=args.calibrated,
-                                            particles=args.particles, seed=args.seed, params=params))
+                                            particles=args.particles, seed=args.seed, params=params,
+                                            smooth=args.smooth))
     catalogue.check_robot(args.name, data, args.robot)
     json_path = files.prepare_file("--json", args.json) if args.json else None
     tum_path = files.prepare_file("--tum", args.tum) if args.tum else None
@@ -132,6 +137,7 @@ def main(argv) -> int:
             run = runners.run_dataset(args.name, data, robot=args.robot, filter=args.filter, ids=args.ids,
                                       anchors=args.anchors, tof=args.tof, calibrated=args.calibrated,
                                       particles=args.particles, seed=args.seed, dtype=dtype,
+                                      smooth=args.smooth,
                                       **({"params": params} if params is not None else {}))
     except KeyboardInterrupt:
         print("jaxslam dataset: interrupted before the run finished: nothing to keep, no file written"

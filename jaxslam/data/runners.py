@@ -297,9 +297,27 @@ def _config(name, filter, dtype, setting, **kw):
 # UTIL UWB (range-only, 3D)
 # ---------------------------------------------------------------------------
 
+SMOOTHER_RTS = ("RTS over the EKF run: the robot trajectory smoothed backwards with the map held "
+                "static (jaxslam.filters.ekf_slam.smooth_robot)")
+
+
+def _smooth_config(smooth, what):
+    """The config entries of ``--smooth`` (none without it, so the JSON is unchanged)."""
+    return {"smooth": True, "smoother": what} if smooth else {}
+
+
+def _add_smoothed(m, ev, ms, evs):
+    """Put the smoother's figures beside the filter's: ``smoothed_<metric>`` keys, plot arrays."""
+    for k in ("ate_m", "rpe_m", "rpe_deg", "pos_rmse_m", "pos_rmse_whole_m"):
+        if k in ms:
+            m["smoothed_" + k] = ms[k]
+    ev["smooth_xy"] = evs["est_xy"]
+    ev["smooth_path_xy"] = evs.get("est_path_xy", evs["est_xy"])
+
+
 @_register("util-uwb")
 def run_util_uwb(data_dir, robot=1, filter="ekf", ids="known", anchors=None, particles=None,
-                 seed=0, dtype=np.float64, tof=False, t_window=30.0, calibrated=False):
+                 seed=0, dtype=np.float64, tof=False, t_window=30.0, calibrated=False, smooth=False):
     """UTIL TWR flight: constant-velocity range-only EKF with a bias state (``systems.range_only``).
 
     ``anchors``: "known" (default, surveyed) or "unknown" (SLAM after a start-up
@@ -320,7 +338,8 @@ def run_util_uwb(data_dir, robot=1, filter="ekf", ids="known", anchors=None, par
     sensors = "ranges + ToF height" if tof else "ranges only"
     if anchors == "known":
         log = ro.util_events(d.twr_t, d.twr_anchor, d.twr_range, **hk)
-        res, comp_s, run_s = timed_run(lambda: ro.run_util(log, aid, anchors=d.anchor_p, dtype=dtype))
+        res, comp_s, run_s = timed_run(lambda: ro.run_util(log, aid, anchors=d.anchor_p, dtype=dtype,
+                                                           smooth=smooth))
         setting = f"known surveyed anchors, constant-velocity tag + common range bias ({sensors})"
         notes = []
     else:
@@ -337,7 +356,8 @@ def run_util_uwb(data_dir, robot=1, filter="ekf", ids="known", anchors=None, par
                              jnp.asarray(d.twr_range, dtype), jnp.asarray(tag_at, dtype), aid, t_window,
                              v0=jnp.asarray(v0, dtype))
         log = ro.util_events(d.twr_t, d.twr_anchor, d.twr_range, t_start=t_window + 1e-9, **hk)
-        res, comp_s, run_s = timed_run(lambda: ro.run_util(log, aid, startup=su, dtype=dtype))
+        res, comp_s, run_s = timed_run(lambda: ro.run_util(log, aid, startup=su, dtype=dtype,
+                                                           smooth=smooth))
         setting = (f"anchors unknown (SLAM); start-up: anchors + bias fitted to the ranges of "
                    f"[0, {t_window:g}] s with motion-capture positions, then no motion capture "
                    f"({sensors})")
@@ -349,24 +369,27 @@ def run_util_uwb(data_dir, robot=1, filter="ekf", ids="known", anchors=None, par
     # evaluate at range events (height-only events carry the same estimate, denser in z)
     rng_ev = np.any(log.mask & (log.ids >= 0), axis=1)
     t, true, est = t[rng_ev], true[rng_ev], est[rng_ev]
-    err = np.linalg.norm(est - true, axis=1)
     air = (true[:, 2] > 0.3)
     if air.sum() < 3:
         raise InputError("util-uwb: fewer than 3 range events while airborne (z > 0.3 m); "
                          "nothing to evaluate")
-    R, tr, _ = metrics.umeyama(est[air], true[air])
-    R, tr = np.asarray(R), np.asarray(tr)
-    est_al = est @ R.T + tr
-    m = {
-        "pos_rmse_m": float(np.sqrt(np.mean(err[air] ** 2))),
-        "pos_rmse_whole_m": float(np.sqrt(np.mean(err ** 2))),
-        "ate_m": float(np.sqrt(np.mean(np.sum((est_al[air] - true[air]) ** 2, 1)))),
-        "range_bias_m": float(res.bias_final),
-        "range_bias_sigma_m": float(res.bias_sigma),
-    }
-    rpe, n_pairs = rpe_pairs(t[air], est[air], true[air])
-    if n_pairs:  # absent (not NaN) without a pair of samples 1 ± 0.1 s apart, as evaluate_planar
-        m["rpe_m"], m["rpe_pairs"] = rpe, n_pairs
+
+    def position_metrics(est):
+        err = np.linalg.norm(est - true, axis=1)
+        R, tr, _ = metrics.umeyama(est[air], true[air])
+        R, tr = np.asarray(R), np.asarray(tr)
+        est_al = est @ R.T + tr
+        out = {"pos_rmse_m": float(np.sqrt(np.mean(err[air] ** 2))),
+               "pos_rmse_whole_m": float(np.sqrt(np.mean(err ** 2))),
+               "ate_m": float(np.sqrt(np.mean(np.sum((est_al[air] - true[air]) ** 2, 1))))}
+        rpe, n_pairs = rpe_pairs(t[air], est[air], true[air])
+        if n_pairs:  # absent (not NaN) without a pair of samples 1 ± 0.1 s apart, as evaluate_planar
+            out["rpe_m"], out["rpe_pairs"] = rpe, n_pairs
+        return out, R, tr, est_al
+
+    m, R, tr, est_al = position_metrics(est)
+    rp = {k: m.pop(k) for k in ("rpe_m", "rpe_pairs") if k in m}
+    m.update(range_bias_m=float(res.bias_final), range_bias_sigma_m=float(res.bias_sigma), **rp)
     A = np.asarray(res.landmarks, np.float64)
     lid = np.asarray(res.landmark_ids)
     act = np.asarray(res.active)
@@ -390,9 +413,14 @@ def run_util_uwb(data_dir, robot=1, filter="ekf", ids="known", anchors=None, par
           "frame_note": "x-y view, estimate aligned to motion capture (SE(3))",
           "lm_xy": (A[act] @ R.T + tr)[:, :2] if anchors == "unknown" else None,
           "lm_true_xy": np.asarray(d.anchor_p)[:, :2], "lm_true_label": "surveyed anchors"}
+    if smooth:
+        sm = np.asarray(res.smoothed, np.float64)[:, :3][rng_ev]
+        ms, _, _, sm_al = position_metrics(sm)
+        _add_smoothed(m, ev, ms, {"est_xy": sm_al[air, :2]})
+        counts["smoother_failed_steps"] = int(np.sum(np.asarray(res.smooth_status) != 0))
     notes.append("pos_rmse_m: no alignment (the anchors define the frame), airborne samples (z > 0.3 m)")
     return DatasetRun("util-uwb", _config("util-uwb", "ekf", dtype, setting, anchors=anchors, tof=bool(tof),
-                                          flight="twr_obs_log1"),
+                                          flight="twr_obs_log1", **_smooth_config(smooth, SMOOTHER_RTS)),
                       m, counts, {"load_s": load_s, "compile_s": comp_s, "run_s": run_s},
                       dict(d.report), ev, (t, est, None), notes)
 
@@ -403,7 +431,7 @@ def run_util_uwb(data_dir, robot=1, filter="ekf", ids="known", anchors=None, par
 
 @_register("plaza")
 def run_plaza_dataset(data_dir, robot=1, filter="ekf", ids="known", anchors=None, particles=None,
-                      seed=0, dtype=np.float64, tof=False, calibrated=False):
+                      seed=0, dtype=np.float64, tof=False, calibrated=False, smooth=False):
     """CMU Plaza 1/2 (``--robot`` picks the sequence): odometry + range-only SLAM with a bias state.
 
     ``anchors``: "unknown" (default: SLAM, beacons initialised by delayed
@@ -423,7 +451,8 @@ def run_plaza_dataset(data_dir, robot=1, filter="ekf", ids="known", anchors=None
     pose0 = np.asarray(d.start_pose(), np.float64)
     bid = np.asarray(d.node_id)
     beacons = np.asarray(d.node_xy, np.float64) if anchors == "known" else None
-    res, comp_s, run_s = timed_run(lambda: ro.run_plaza(log, pose0, bid, dtype=dtype, beacons=beacons))
+    res, comp_s, run_s = timed_run(lambda: ro.run_plaza(log, pose0, bid, dtype=dtype, beacons=beacons,
+                                                        smooth=smooth))
     est = np.concatenate([np.asarray(res.pos, np.float64), np.asarray(res.heading, np.float64)[:, None]], 1)
     dr = np.asarray(dead_reckoning(planar.odometry_increment, jnp.asarray(pose0), log.u, log.dt))
     gt = np.asarray(d.gt, np.float64).copy()
@@ -435,6 +464,13 @@ def run_plaza_dataset(data_dir, robot=1, filter="ekf", ids="known", anchors=None
                             lm_cov=np.asarray(res.landmark_cov)[act], lm_true=d.node_xy,
                             lm_true_ids=bid, ref_label="ground truth (GPS)")
     ev["lm_true_label"] = "surveyed beacons"
+    if smooth:
+        sm = np.asarray(res.smoothed, np.float64)[:, :3]
+        ms, evs = evaluate_planar(log.t, sm, d.gt_t, gt, ref_label="ground truth (GPS)")
+        if anchors == "known":
+            raw_s = np.linalg.norm(sm[:, :2] - metrics.interp_poses(log.t, d.gt_t, gt)[:, :2], axis=1)
+            ms["pos_rmse_m"] = float(np.sqrt(np.nanmean(raw_s ** 2)))
+        _add_smoothed(m, ev, ms, evs)
     if anchors == "known":
         raw = np.linalg.norm(est[:, :2] - metrics.interp_poses(log.t, d.gt_t, gt)[:, :2], axis=1)
         m["pos_rmse_m"] = float(np.sqrt(np.nanmean(raw ** 2)))
@@ -454,8 +490,11 @@ def run_plaza_dataset(data_dir, robot=1, filter="ekf", ids="known", anchors=None
     what = "surveyed beacons (localisation)" if anchors == "known" else "unknown beacons (SLAM)"
     if anchors == "known":
         notes = ["pos_rmse_m: no alignment (the survey defines the frame)"]
+    if smooth:
+        counts["smoother_failed_steps"] = int(np.sum(np.asarray(res.smooth_status) != 0))
     return DatasetRun("plaza", _config("plaza", "ekf", dtype, f"Plaza {robot}: odometry + {what} "
-                                       "+ common range bias", sequence=robot, anchors=anchors),
+                                       "+ common range bias", sequence=robot, anchors=anchors,
+                                       **_smooth_config(smooth, SMOOTHER_RTS)),
                       m, counts, {"load_s": load_s, "compile_s": comp_s, "run_s": run_s},
                       dict(d.report), ev, (log.t, est[:, :2], est[:, 2]), notes)
 
@@ -464,14 +503,18 @@ def run_plaza_dataset(data_dir, robot=1, filter="ekf", ids="known", anchors=None
 # Planar range-bearing SLAM: MRCLAM and Victoria Park
 # ---------------------------------------------------------------------------
 
-def _planar_run(log, pose0, filter, cfg_ekf, prm_ekf, fs_kind, particles, seed, dtype):
-    """Run EKF-SLAM or FastSLAM on a planar log; (pose (T,3), map dict, counts, comp_s, run_s, status)."""
+def _planar_run(log, pose0, filter, cfg_ekf, prm_ekf, fs_kind, particles, seed, dtype, smooth=False):
+    """Run EKF-SLAM or FastSLAM on a planar log.
+
+    Returns (pose (T,3), map dict, counts, comp_s, run_s, status, smoothed pose (T, 3) or None).
+    """
     if filter == "ekf":
         from ..systems import planar_ekf_slam as pe
 
         prm = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), prm_ekf)
         p0 = jnp.asarray(pose0, dtype)
-        res, comp_s, run_s = timed_run(lambda: pe.run(log, p0, cfg_ekf, prm))
+        cfg_run = cfg_ekf._replace(smooth=bool(smooth))
+        res, comp_s, run_s = timed_run(lambda: pe.run(log, p0, cfg_run, prm))
         act = np.asarray(res.active)
         lm = {"xy": np.asarray(res.landmarks, np.float64)[act], "ids": np.asarray(res.ids)[act],
               "cov": np.asarray(res.landmark_covs, np.float64)[act]}
@@ -488,7 +531,10 @@ def _planar_run(log, pose0, filter, cfg_ekf, prm_ekf, fs_kind, particles, seed, 
                   "mapped_outliers": int(np.sum(np.asarray(res.n_outliers))),
                   "inflations": int(res.inflations)}
         counts["pruned"] = int(np.sum(np.asarray(res.n_pruned)))
-        return np.asarray(res.pose, np.float64), lm, counts, comp_s, run_s, res.status
+        sm = None if res.smoothed is None else np.asarray(res.smoothed, np.float64)
+        if sm is not None:
+            counts["smoother_failed_steps"] = int(np.sum(np.asarray(res.smooth_status) != 0))
+        return np.asarray(res.pose, np.float64), lm, counts, comp_s, run_s, res.status, sm
     from ..systems import planar_fastslam as pf
 
     cfg, prm, id_offset, twice = fs_kind(particles)
@@ -507,12 +553,12 @@ def _planar_run(log, pose0, filter, cfg_ekf, prm_ekf, fs_kind, particles, seed, 
               "registered": int(np.sum(np.asarray(res.registered))),
               "landmarks_mapped": int(act.sum()), "overflow": int(res.overflow),
               "resamples": int(res.resamples)}
-    return np.asarray(res.pose_mean, np.float64), lm, counts, comp_s, run_s, res.status
+    return np.asarray(res.pose_mean, np.float64), lm, counts, comp_s, run_s, res.status, None
 
 
 @_register("mrclam")
 def run_mrclam(data_dir, robot=1, filter="ekf", ids="known", anchors=None, particles=None, seed=0,
-               dtype=np.float64, tof=False, calibrated=False, params=None):
+               dtype=np.float64, tof=False, calibrated=False, params=None, smooth=False):
     """UTIAS MRCLAM (as shipped: dataset 6): unicycle odometry + range-bearing to barcoded landmarks.
 
     The EKF's noise is the one learned from the logs (``planar_ekf_slam.MRCLAM_FITTED``, the same
@@ -539,9 +585,9 @@ def run_mrclam(data_dir, robot=1, filter="ekf", ids="known", anchors=None, parti
             raise InputError("mrclam: --params and --calibrated do not combine (the calibrated log has "
                              "its own noise preset)")
         prm = pe.params_from_dict(dataset_params(params, "mrclam"), prm, dtype=dtype, where="--params: noise")
-    pose, lm, counts, comp_s, run_s, status = _planar_run(
+    pose, lm, counts, comp_s, run_s, status, smoothed = _planar_run(
         log, pose0, filter, pe.mrclam_config(association=assoc), prm,
-        lambda n: _mrclam_fastslam(robot, n, assoc), particles, seed, dtype)
+        lambda n: _mrclam_fastslam(robot, n, assoc), particles, seed, dtype, smooth=smooth)
     dr = np.asarray(dead_reckoning(planar.unicycle, jnp.asarray(pose0), log.u, log.dt))
     m, ev = evaluate_planar(log.t, pose, d.gt_t, d.gt, dr_pose=dr, lm=lm["xy"],
                             lm_ids=lm["ids"] if assoc == "known" else None, lm_cov=lm["cov"],
@@ -549,13 +595,18 @@ def run_mrclam(data_dir, robot=1, filter="ekf", ids="known", anchors=None, parti
                             lm_true_ids=d.landmark_id, ref_label="Vicon ground truth", at_ref_times=True)
     if assoc != "known":
         ev["lm_true_xy"] = np.asarray(d.landmark_xy)
+    if smoothed is not None:
+        ms, evs = evaluate_planar(log.t, smoothed, d.gt_t, d.gt, ref_label="Vicon ground truth",
+                                  at_ref_times=True)
+        _add_smoothed(m, ev, ms, evs)
     m.update(_class_fractions(counts))
     counts = _counts_common(status, counts)
     setting = (f"robot {robot}, {'known ids' if assoc == 'known' else 'ids hidden (Mahalanobis NN)'}, "
                f"{'calibrated camera/odometry model' if calibrated else 'raw log'}, "
                f"{log.stats['n_events']} events")
     cfg = _config("mrclam", filter, dtype, setting, robot=robot, ids=ids, calibrated=bool(calibrated),
-                  particles=particles if filter == "fastslam" else None, seed=seed)
+                  particles=particles if filter == "fastslam" else None, seed=seed,
+                  **_smooth_config(smooth, SMOOTHER_RTS))
     notes = [f"evaluated at the {m['eval_samples']} ground-truth samples inside the run"] + _divergence_notes(status)
     if filter == "ekf":
         cfg["noise"] = "--params file" if params is not None else (
@@ -574,7 +625,7 @@ def _mrclam_fastslam(robot, n, assoc):
 
 @_register("victoria-park")
 def run_victoria_park(data_dir, robot=1, filter="ekf", ids="known", anchors=None, particles=None, seed=0,
-                      dtype=np.float64, tof=False, calibrated=False):
+                      dtype=np.float64, tof=False, calibrated=False, smooth=False):
     """ACFR Victoria Park: Ackermann car, laser tree detections, unknown association, GPS reference."""
     from ..dynamics import planar
     from ..systems import planar_ekf_slam as pe
@@ -592,7 +643,7 @@ def run_victoria_park(data_dir, robot=1, filter="ekf", ids="known", anchors=None
                        input_mode="rate")
     load_s = time.perf_counter() - t0
     pose0 = np.zeros(3)
-    pose, lm, counts, comp_s, run_s, status = _planar_run(
+    pose, lm, counts, comp_s, run_s, status, _ = _planar_run(
         log, pose0, filter, pe.victoria_park_config(), pe.victoria_park_params(dtype=dtype),
         lambda n: _vp_fastslam(n), particles, seed, dtype)
     geom = d.geometry

@@ -34,6 +34,10 @@ def plot_run(run, directory, name=None):
     path = np.asarray(ev["est_path_xy"]) if ev.get("est_path_xy") is not None else est  # full rate
     ax.plot(path[:, 0], path[:, 1], "C1-", lw=1.0, label=f"{run.config['filter']} estimate "
             f"(ATE {run.metrics['ate_m']:.3f} m)")
+    if ev.get("smooth_path_xy") is not None:
+        sp = np.asarray(ev["smooth_path_xy"])
+        ax.plot(sp[:, 0], sp[:, 1], "C0-", lw=1.0,
+                label=f"smoothed (ATE {run.metrics['smoothed_ate_m']:.3f} m)")
     if ev.get("dr_xy") is not None:
         dr = np.asarray(ev["dr_xy"])
         ax.plot(dr[:, 0], dr[:, 1], "C7:", lw=0.8,
@@ -64,6 +68,10 @@ def plot_run(run, directory, name=None):
     err = np.linalg.norm(est - ref, axis=1)
     ax.plot(t, err, "C1-", lw=0.8, label="estimate")
     ax.axhline(run.metrics["ate_m"], color="C1", ls="--", lw=0.8, label=f"ATE {run.metrics['ate_m']:.3f} m")
+    if ev.get("smooth_xy") is not None:
+        ax.plot(t, np.linalg.norm(np.asarray(ev["smooth_xy"]) - ref, axis=1), "C0-", lw=0.8, label="smoothed")
+        ax.axhline(run.metrics["smoothed_ate_m"], color="C0", ls="--", lw=0.8,
+                   label=f"smoothed ATE {run.metrics['smoothed_ate_m']:.3f} m")
     if ev.get("dr_xy") is not None:
         ax.plot(t, np.linalg.norm(np.asarray(ev["dr_xy"]) - ref, axis=1), "C7:", lw=0.8,
                 label="dead reckoning")

@@ -75,7 +75,7 @@ from ..errors import InputError
 from ..filters import association as assoc
 from ..filters import consistency as cons
 from ..filters import ekf_slam as es
-from ..linalg import check_psd
+from ..linalg import check_psd, wrap_angle
 from ..sensors import range_bearing2d as rb
 
 __all__ = [
@@ -164,6 +164,12 @@ class PlanarConfig(NamedTuple):
     block: events per checkpointed block of the scan (0: none).  With a block, the reverse
       pass stores one state per block and recomputes the block's events: memory of a
       gradient over a whole log grows with the number of blocks, not of events.
+    smooth: also return the RTS-smoothed robot trajectory (``PlanarResult.smoothed``,
+      :func:`jaxslam.filters.ekf_slam.smooth_robot`: the map held static).  It records
+      O(3·2·capacity) numbers per event and one Cholesky of the map block per event, so it
+      suits maps of tens of landmarks; pruned landmarks and monitor inflations are not
+      modelled by the backward pass (it treats the filtered map as static from each
+      landmark's registration on).
     """
 
     motion: str = "unicycle"
@@ -188,6 +194,7 @@ class PlanarConfig(NamedTuple):
     jcbb_cand: int = 3
     jcbb_budget: int = 64
     block: int = 0
+    smooth: bool = False
 
 
 class PlanarParams(NamedTuple):
@@ -270,6 +277,8 @@ class PlanarResult(NamedTuple):
     n_outliers: Optional[jax.Array] = None
     n_monitored: Optional[jax.Array] = None
     inflations: Optional[jax.Array] = None
+    smoothed: Optional[jax.Array] = None
+    smooth_status: Optional[jax.Array] = None
 
 
 # ---------------------------------------------------------------------------
@@ -721,7 +730,8 @@ def run_arrays(dt, u, z, ids, mask, pose0, params: PlanarParams, config: PlanarC
         cal = st.x[3:6] if config.calibrate else ones
         out = (st.x[:3], st.P[:3, :3], cal, jnp.sum(valid).astype(jnp.int32),
                jnp.sum(limited).astype(jnp.int32), dropped, counts, nis, dof, n_pr, nll, nll_dof, n_out,
-               jnp.sum(watched).astype(jnp.int32))
+               jnp.sum(watched).astype(jnp.int32),
+               (es.smoother_terms(st, model), Q) if config.smooth else None)
         return (st, aux, mon), out
 
     cap = int(config.capacity)
@@ -753,7 +763,13 @@ def run_arrays(dt, u, z, ids, mask, pose0, params: PlanarParams, config: PlanarC
     else:
         (st, _, mon), outs = jax.lax.scan(body, carry0, xs)
     (pose, pose_cov, calib, n_meas, n_limited, n_dropped, counts, nis, dof, n_pruned, nll, nll_dof,
-     n_out, n_watch) = outs
+     n_out, n_watch, sm) = outs
+    smoothed = smooth_status = None
+    if config.smooth:
+        terms, Qs = sm
+        rs, smooth_status = es.smooth_robot(model, terms, u, Qs, st, params=dt,
+                                            difference=_pose_difference)
+        smoothed = rs[:, :3]
     status = st.status | cons.status_bits(jnp.sum(n_out), jnp.sum(n_watch))
     # a present row with a NaN/Inf entry is masked by _limits before the engine sees it: flag it here
     bad_rows = jnp.any(mask & ~jnp.all(jnp.isfinite(z), axis=-1))
@@ -766,7 +782,14 @@ def run_arrays(dt, u, z, ids, mask, pose0, params: PlanarParams, config: PlanarC
         n_used=counts[:, 0], n_gated=counts[:, 1], n_rejected=counts[:, 2], n_registered=counts[:, 3],
         nis=nis, dof=dof, overflow=st.overflow, status=status, n_pruned=n_pruned,
         nll=nll, nll_dof=nll_dof, n_outliers=n_out, n_monitored=n_watch, inflations=mon.inflations,
+        smoothed=smoothed, smooth_status=smooth_status,
     )
+
+
+def _pose_difference(a, b):
+    """Robot-state difference with the heading (index 2) wrapped."""
+    d = a - b
+    return d.at[2].set(wrap_angle(d[2]))
 
 
 def run(log: EventLog, pose0, config: PlanarConfig, params: PlanarParams, validate: bool = True) -> PlanarResult:

@@ -160,7 +160,7 @@ from ..errors import InputError
 from ..filters import ekf_slam as es
 from ..filters import trilateration as tri
 from ..dynamics import planar
-from ..linalg import safe_norm, symmetrize
+from ..linalg import safe_norm, symmetrize, wrap_angle
 
 __all__ = [
     "range_observe",
@@ -318,6 +318,8 @@ class RangeResult(NamedTuple):
     height rows; zeros otherwise); n_height_used, n_height_gated: () int32 their totals;
     status: () int32 engine status bits (``jaxslam.errors``); final: engine state.
     ``nis``/``dof`` of an event with a height row add the height update's NIS and dof.
+    smoothed: (T, n_r) RTS-smoothed robot states (``smooth=True``; the map held static,
+    :func:`jaxslam.filters.ekf_slam.smooth_robot`), else None; smooth_status: (T,) int32.
     """
 
     t: jax.Array
@@ -346,9 +348,11 @@ class RangeResult(NamedTuple):
     n_height_gated: jax.Array
     status: jax.Array
     final: es.SlamState
+    smoothed: Optional[jax.Array] = None
+    smooth_status: Optional[jax.Array] = None
 
 
-def _result(t, outs, st, model, n_reg, n_unm):
+def _result(t, outs, st, model, n_reg, n_unm, smoothed=None, smooth_status=None):
     if len(outs) == 9:
         zi = jnp.zeros_like(outs[7])
         outs = tuple(outs) + (zi, zi)
@@ -364,7 +368,17 @@ def _result(t, outs, st, model, n_reg, n_unm):
         bias_final=st.x[nr - 1], bias_sigma=jnp.sqrt(jnp.maximum(st.P[nr - 1, nr - 1], 0.0)),
         n_used=jnp.sum(used).astype(jnp.int32), n_gated=jnp.sum(gated).astype(jnp.int32),
         n_registered=jnp.asarray(n_reg, jnp.int32), n_unmapped=jnp.asarray(n_unm, jnp.int32),
-        status=st.status, final=st)
+        status=st.status, final=st, smoothed=smoothed, smooth_status=smooth_status)
+
+
+def _util_motion(s, u, dt):
+    return cv_motion(s, u, dt)
+
+
+def _heading_difference(a, b):
+    """Robot-state difference with the heading (index 2) wrapped (Plaza)."""
+    d = a - b
+    return d.at[2].set(wrap_angle(d[2]))
 
 
 # ---------------------------------------------------------------------------
@@ -561,13 +575,13 @@ def _height_update(st, z_k, id_k, m_k, params, gate):
     return st, nis, dof, used, gated
 
 
-def _util_scan(st0, dt, z, ids, mask, params, gate, height=False):
-    model = UTIL_MODEL
+def _util_scan(st0, dt, z, ids, mask, params, gate, height=False, smooth=False):
+    model = UTIL_MODEL._replace(motion=_util_motion)
 
     def step(st, inp):
         dt_k, z_k, id_k, m_k = inp
         Q = cv_process_noise(dt_k, params.q_acc, params.q_bias, st.x.dtype)
-        st = es.predict(st, model._replace(motion=lambda s, u, p: cv_motion(s, u, dt_k)), None, Q)
+        st = es.predict(st, model, None, Q, dt_k)
         m_r = (m_k & (id_k != HEIGHT_ID)) if height else m_k
         slots, mapped = es.associate_known(st, id_k, m_r)
         R = jnp.reshape(params.sigma_r**2, (1, 1))
@@ -581,9 +595,14 @@ def _util_scan(st0, dt, z, ids, mask, params, gate, height=False):
                jnp.sum(info.used).astype(jnp.int32), jnp.sum(info.gated).astype(jnp.int32))
         if height:
             out = out + (h_used, h_gated)
-        return st, out
+        return st, (out, (es.smoother_terms(st, model), Q) if smooth else None)
 
-    return jax.lax.scan(step, st0, (dt, z, ids, mask))
+    st, (outs, sm) = jax.lax.scan(step, st0, (dt, z, ids, mask))
+    if not smooth:
+        return st, outs, None, None
+    terms, Qs = sm
+    rs, sst = es.smooth_robot(model, terms, None, Qs, st, params=dt)
+    return st, outs, rs, sst
 
 
 def _util_init_known(z0, ids0, anchors, anchor_ids, params, cap, dtype):
@@ -620,7 +639,7 @@ def _util_init_slam(su: UtilStartup, anchor_ids, params, cap, dtype):
 
 def run_util(log: EventLog, anchor_ids, anchors=None, startup: Optional[UtilStartup] = None,
              params: UtilParams = UTIL_PARAMS, gate: Optional[float] = 9.0, n_fix: int = 16,
-             capacity: Optional[int] = None, dtype=None) -> RangeResult:
+             capacity: Optional[int] = None, dtype=None, smooth: bool = False) -> RangeResult:
     """Range-only CV tracking (known ``anchors``) or SLAM (``startup``) over a UTIL TWR log.
 
     log: :func:`util_events` output (K = 1, no input).  anchor_ids: (N,) int.
@@ -630,8 +649,9 @@ def run_util(log: EventLog, anchor_ids, anchors=None, startup: Optional[UtilStar
     for the initial fix (known anchors; the first ``n_fix`` range rows).  dtype:
     float32/float64 (default: x64 setting).  If ``log`` holds ToF height rows
     (``util_events(..., tof_t=, tof=)``) each is fused by (H1) with ``params.sigma_h``;
-    otherwise the run is the range-only filter.  Returns :class:`RangeResult` (heading
-    zeros).
+    otherwise the run is the range-only filter.  smooth: also return the RTS-smoothed
+    tag states (``RangeResult.smoothed``; the anchors held static).  Returns
+    :class:`RangeResult` (heading zeros).
     """
     if (anchors is None) == (startup is None):
         raise InputError("run_util: give exactly one of anchors (known) or startup (SLAM)")
@@ -652,37 +672,39 @@ def run_util(log: EventLog, anchor_ids, anchors=None, startup: Optional[UtilStar
         if not height:
             nf = min(int(n_fix), z.shape[0])
             return _run_util_known(dt, z, ids, mask, anchors, anchor_ids, p, gate, nf, cap,
-                                   jnp.asarray(log.t, dtype))
+                                   jnp.asarray(log.t, dtype), smooth=bool(smooth))
         # the fix uses the first n_fix *range* rows (height rows skipped)
         rr = (np.asarray(log.mask) & ~is_h).reshape(-1)
         z0 = np.asarray(log.z)[..., 0].reshape(-1)[rr][: int(n_fix)]
         i0 = np.asarray(log.ids).reshape(-1)[rr][: int(n_fix)]
         return _run_util_known(dt, z, ids, mask, anchors, anchor_ids, p, gate, int(z0.size), cap,
                                jnp.asarray(log.t, dtype), z0=jnp.asarray(z0, dtype),
-                               ids0=jnp.asarray(i0, jnp.int32), height=True)
+                               ids0=jnp.asarray(i0, jnp.int32), height=True, smooth=bool(smooth))
     su = UtilStartup(*[jnp.asarray(a) for a in startup])
     return _run_util_slam(dt, z, ids, mask, su, anchor_ids, p, gate, cap, jnp.asarray(log.t, dtype),
-                          height=height)
+                          height=height, smooth=bool(smooth))
 
 
 def _run_util_known_impl(dt, z, ids, mask, anchors, anchor_ids, p, gate, nf, cap, t, z0=None,
-                         ids0=None, height=False):
+                         ids0=None, height=False, smooth=False):
     dtype = z.dtype
     if z0 is None:
         z0, ids0 = z[:nf, 0, 0], ids[:nf, 0]
     st0 = _util_init_known(z0, ids0, anchors, anchor_ids, p, cap, dtype)
-    st, outs = _util_scan(st0, dt, z, ids, mask, p, gate, height)
-    return _result(t, outs, st, UTIL_MODEL, anchor_ids.shape[0], 0)
+    st, outs, rs, sst = _util_scan(st0, dt, z, ids, mask, p, gate, height, smooth)
+    return _result(t, outs, st, UTIL_MODEL, anchor_ids.shape[0], 0, rs, sst)
 
 
-def _run_util_slam_impl(dt, z, ids, mask, su, anchor_ids, p, gate, cap, t, height=False):
+def _run_util_slam_impl(dt, z, ids, mask, su, anchor_ids, p, gate, cap, t, height=False,
+                        smooth=False):
     st0 = _util_init_slam(su, anchor_ids, p, cap, z.dtype)
-    st, outs = _util_scan(st0, dt, z, ids, mask, p, gate, height)
-    return _result(t, outs, st, UTIL_MODEL, anchor_ids.shape[0], 0)
+    st, outs, rs, sst = _util_scan(st0, dt, z, ids, mask, p, gate, height, smooth)
+    return _result(t, outs, st, UTIL_MODEL, anchor_ids.shape[0], 0, rs, sst)
 
 
-_run_util_known = jax.jit(_run_util_known_impl, static_argnames=("gate", "nf", "cap", "height"))
-_run_util_slam = jax.jit(_run_util_slam_impl, static_argnames=("gate", "cap", "height"))
+_run_util_known = jax.jit(_run_util_known_impl,
+                          static_argnames=("gate", "nf", "cap", "height", "smooth"))
+_run_util_slam = jax.jit(_run_util_slam_impl, static_argnames=("gate", "cap", "height", "smooth"))
 
 
 # ---------------------------------------------------------------------------
@@ -712,7 +734,7 @@ def _robust_trilaterate(pos, rng, valid, range_var, min_points, min_spread):
 
 
 def _plaza_scan(st0, buf0, dt, u, z, ids, mask, beacon_ids, p, gate, min_points, min_spread,
-                delayed=True):
+                delayed=True, smooth=False):
     model = PLAZA_MODEL
     N, W = buf0.rng.shape
     K = z.shape[1]
@@ -771,15 +793,20 @@ def _plaza_scan(st0, buf0, dt, u, z, ids, mask, beacon_ids, p, gate, min_points,
         Pd = jnp.diagonal(st.P)
         out = (st.x[0:2], Pd[0:2], st.x[2], st.x[3], Pd[3], info.nis, info.dof,
                jnp.sum(info.used).astype(jnp.int32), jnp.sum(info.gated).astype(jnp.int32))
-        return (st, buf, n_reg, n_unm), out
+        return (st, buf, n_reg, n_unm), (out, (es.smoother_terms(st, model), Q) if smooth else None)
 
     zero = jnp.zeros((), jnp.int32)
-    (st, buf, n_reg, n_unm), outs = jax.lax.scan(step, (st0, buf0, zero, zero), (dt, u, z, ids, mask))
-    return st, n_reg, n_unm, outs
+    (st, buf, n_reg, n_unm), (outs, sm) = jax.lax.scan(step, (st0, buf0, zero, zero),
+                                                       (dt, u, z, ids, mask))
+    rs = sst = None
+    if smooth:
+        terms, Qs = sm
+        rs, sst = es.smooth_robot(model, terms, u, Qs, st, difference=_heading_difference)
+    return st, n_reg, n_unm, outs, rs, sst
 
 
 def _run_plaza_impl(t, dt, u, z, ids, mask, pose0, beacon_ids, p, gate, window, min_points,
-                    min_spread, cap, beacons=None):
+                    min_spread, cap, beacons=None, smooth=False):
     dtype = z.dtype
     N = beacon_ids.shape[0]
     s0 = jnp.concatenate([pose0, jnp.reshape(p.bias0, (1,))]).astype(dtype)
@@ -790,21 +817,22 @@ def _run_plaza_impl(t, dt, u, z, ids, mask, pose0, beacon_ids, p, gate, window, 
                            active=st0.active.at[:N].set(True), ids=st0.ids.at[:N].set(beacon_ids))
     buf0 = _Buf(pos=jnp.zeros((N, window, 2), dtype), pos_var=jnp.zeros((N, window), dtype),
                 rng=jnp.zeros((N, window), dtype), count=jnp.zeros((N,), jnp.int32))
-    st, n_reg, n_unm, outs = _plaza_scan(st0, buf0, dt, u, z, ids, mask, beacon_ids, p, gate,
-                                         min_points, min_spread, delayed=beacons is None)
+    st, n_reg, n_unm, outs, rs, sst = _plaza_scan(st0, buf0, dt, u, z, ids, mask, beacon_ids, p,
+                                                  gate, min_points, min_spread,
+                                                  delayed=beacons is None, smooth=smooth)
     if beacons is not None:
         n_reg = n_reg + N
-    return _result(t, outs, st, PLAZA_MODEL, n_reg, n_unm)
+    return _result(t, outs, st, PLAZA_MODEL, n_reg, n_unm, rs, sst)
 
 
 _run_plaza = jax.jit(_run_plaza_impl, static_argnames=("gate", "window", "min_points",
-                                                       "min_spread", "cap"))
+                                                       "min_spread", "cap", "smooth"))
 
 
 def run_plaza(log: EventLog, pose0, beacon_ids, params: PlazaParams = PLAZA_PARAMS,
               gate: Optional[float] = 6.63, window: int = 60, min_points: int = 20,
               min_spread: float = 5.0, capacity: Optional[int] = None, dtype=None,
-              beacons=None) -> RangeResult:
+              beacons=None, smooth: bool = False) -> RangeResult:
     """2D range-only SLAM (default) or localisation with surveyed beacons, with odometry
     increments and a common range bias (Plaza).
 
@@ -817,8 +845,10 @@ def run_plaza(log: EventLog, pose0, beacon_ids, params: PlazaParams = PLAZA_PARA
     (never moved, as UTIL's known anchors), so only the pose and the bias b are estimated
     (``n_registered`` = N).  gate: χ²(1) per range.  window, min_points, min_spread:
     delayed initialisation (ring buffer rows per beacon, rows needed, weakest-direction
-    spread [m]; unused with ``beacons``).  Returns :class:`RangeResult` (landmarks =
-    beacons, heading filled).
+    spread [m]; unused with ``beacons``).  smooth: also return the RTS-smoothed robot
+    states [x, y, θ, b] (``RangeResult.smoothed``; beacons held static, a beacon counts
+    from its initialisation on).  Returns :class:`RangeResult` (landmarks = beacons,
+    heading filled).
     """
     dtype = dtype or jnp.result_type(float)
     beacon_ids = jnp.asarray(beacon_ids, jnp.int32)
@@ -838,4 +868,4 @@ def run_plaza(log: EventLog, pose0, beacon_ids, params: PlazaParams = PLAZA_PARA
     dt, u, z, ids, mask = _log_arrays(log, dtype)
     return _run_plaza(jnp.asarray(log.t, dtype), dt, u, z, ids, mask, pose0, beacon_ids,
                       _cast_params(params, dtype), gate, int(window), int(min_points),
-                      float(min_spread), cap, beacons=beacons)
+                      float(min_spread), cap, beacons=beacons, smooth=bool(smooth))

@@ -1,0 +1,591 @@
+"""Square-root (Cholesky-factor) extended Kalman filter: predict, masked/gated update, scan.
+
+The same filter as :mod:`jaxslam.filters.ekf`, but the belief carries a lower-triangular
+factor ``L`` of the covariance, ``P = L Lᵀ``, instead of ``P`` itself, and ``P`` is never
+formed.  Use it for float32 runs (GPU) of poorly observable or very precisely measured
+systems, where a stored float32 covariance of large dynamic range (condition number
+beyond ~1/eps ≈ 10⁷) rounds to a matrix that is singular or indefinite: a variance that
+should be tiny comes out zero or negative, and the next innovation covariance can fail its
+Cholesky factorisation.  A factor ``L`` represents a positive semi-definite matrix by
+construction, and its entries carry the square root of the covariance's dynamic range.
+
+State equations (identical to :mod:`jaxslam.filters.ekf`; units are the model's)::
+
+    predict:  x' = f(x, u, *args),             P' = F P Fᵀ + G Q Gᵀ       (G = I by default)
+    update:   ẑ = h(x, *args),  ν = residual(z, ẑ),  S = H P Hᵀ + R,
+              K = P Hᵀ S⁻¹,  x⁺ = x + K ν,  P⁺ = P − K S Kᵀ
+
+with ``F = ∂f/∂x`` and ``H = ∂h/∂x`` from :func:`jax.jacfwd` at the prior mean.
+
+Decisions
+---------
+* **Orthogonal triangularisation (QR), not factor up/down-dates.**  Every step builds a
+  *pre-array* ``A`` whose Gram matrix ``A Aᵀ`` holds the wanted covariances, and one
+  Householder QR of ``Aᵀ`` turns it into a lower-triangular *post-array* ``B = A Θ``
+  (``Θ`` orthogonal, so ``B Bᵀ = A Aᵀ``).  Householder QR is backward stable column by
+  column, so the result is the exact factor of a pre-array perturbed by a few eps per
+  column; ``B Bᵀ`` is positive semi-definite whatever the rounding.  It is one library
+  call of fixed shape (jit/vmap/grad friendly), where rank-one Cholesky up/down-dates
+  are sequential loops and a down-date can fail.
+
+  - predict: ``A = [F L, G L_Q]`` (n × (n + k)), ``B = [L', 0]``, so ``L' L'ᵀ = F P Fᵀ + G Q Gᵀ``.
+  - update (array algorithm)::
+
+        A = [[L_R, H L],        B = A Θ = [[S^½,  0 ],
+             [ 0,    L ]]                    [K̄,   L⁺]]
+
+    Matching ``A Aᵀ = B Bᵀ`` block by block: ``S^½ S^½ᵀ = R + H P Hᵀ = S``,
+    ``K̄ = P Hᵀ S^{-½ᵀ}`` (so the gain is ``K = K̄ S^{-½}``), and
+    ``L⁺ L⁺ᵀ = P − K̄ K̄ᵀ = P − K S Kᵀ``.  The mean is ``x⁺ = x + K̄ w`` with
+    ``w = S^{-½} ν`` (one triangular solve) and the NIS is ``νᵀ S⁻¹ ν = ‖w‖²``.
+    The factor of ``S``, the gain and the posterior factor come out of one QR.
+
+* **Sign convention.**  A triangular factor is unique only up to the signs of its columns;
+  every factor returned here (of the predicted, updated, ``S`` and noise covariances) has a
+  non-negative diagonal: the rows of the QR's ``R`` whose diagonal entry is negative are
+  negated (a zero diagonal keeps its sign), which changes neither ``B Bᵀ`` nor the
+  triangularity.  Results are therefore reproducible and comparable entry by entry.
+* **Masks, in the array algorithm.**  As in :func:`jaxslam.filters.ekf.update`, an invalid
+  component ``j`` gets a zero row of ``H``, a zero innovation and a unit ``R`` block (zero
+  cross terms).  The factor ``L_R`` of that masked ``R`` then has unit row and column ``j``
+  (Cholesky keeps the block structure), so row ``j`` of the pre-array is the unit vector
+  ``e_j``.  Householder QR leaves such a row and column untouched (its reflectors have a
+  zero in that position), so ``S^½`` has unit row/column ``j`` and column ``j`` of ``K̄``
+  is ``P Hᵀ S^{-½ᵀ} e_j = P H_jᵀ = 0``: the update equals the update with the valid rows
+  only.  The structure is also written explicitly after the QR (unit row/column of
+  ``S^½``, zero gain column), so it holds exactly on any backend.  The measurement of an
+  invalid component is replaced by its prediction *before* the residual is formed, so
+  NaN/Inf garbage there never reaches the arithmetic (nor its gradient).
+* **Noise covariances are given as covariances** (like :mod:`jaxslam.filters.ekf`) and
+  factored inside: ``R`` per update (its masked version changes with the mask) by
+  Cholesky, so ``R`` must be positive definite on the valid block (otherwise the update
+  reports ``errors.NOT_PSD`` and keeps the prior; the covariance form would accept a
+  singular ``R`` when ``H P Hᵀ`` is PD); ``Q`` and covariances passed to
+  :func:`from_gaussian` by :func:`psd_factor` (Cholesky, with an eigen-decomposition
+  fallback for singular PSD matrices such as ``Q = diag(q, q, 0)``).  A concrete (non-traced)
+  covariance is factored on the host in float64 before the cast to the filter's dtype, so a
+  float32 filter starts from the most accurate float32 factor.  :func:`predict` and
+  :func:`filter_scan` also accept ``Q_chol=``, any ``(·, k)`` square root ``C`` with
+  ``Q = C Cᵀ``, which skips the factorisation; :func:`filter_scan` factors ``Q`` once for
+  the whole run.
+* **Gating and failures** follow :func:`jaxslam.filters.ekf.update`: the NIS is compared
+  with a number or ``gate(dof)``; a gated update keeps the prior and sets
+  ``errors.GATED``.  If the factor of ``S`` is not finite or has a zero diagonal (``S``
+  singular) the prior is kept and ``errors.NOT_PSD`` is set; if the posterior is not
+  finite, ``errors.NON_FINITE``.  ``UpdateInfo.accepted`` is True exactly when the state
+  changed.
+* ``filter_scan`` ordering and outputs follow :func:`jaxslam.filters.ekf.filter_scan`
+  (``predict_first``); the variances ``cov_diags`` are the squared row norms of ``L``.
+* dtype: every function computes in the dtype of the mean; ``Q``, ``R``, ``z`` and the
+  factor are cast to it.
+
+Cost: the update QR is of an (m + n) square matrix, O((m + n)³), against the covariance
+form's O(n² m); worth it where the float32 covariance form is not reliable, or where the
+factor itself is wanted (sampling, log-determinants).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable, NamedTuple, Optional, Union
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import errors
+from ..errors import InputError
+from ..linalg import check_psd, is_concrete, symmetrize, value_and_jacfwd
+from .ekf import Gaussian, UpdateInfo
+
+__all__ = [
+    "SqrtGaussian",
+    "SqrtPosterior",
+    "from_gaussian",
+    "to_gaussian",
+    "psd_factor",
+    "predict",
+    "update",
+    "filter_scan",
+]
+
+Array = Any
+Gate = Union[None, float, Array, Callable[[Array], Array]]
+
+_HAS_LOGDET = "logdet" in UpdateInfo._fields
+_HIGHEST = jax.lax.Precision.HIGHEST
+
+
+def _mm(a, b):
+    """Matrix product at full working precision (no TF32/bf16 passes on accelerators)."""
+    return jnp.matmul(a, b, precision=_HIGHEST)
+
+
+class SqrtGaussian(NamedTuple):
+    """A Gaussian belief held as a Cholesky factor.
+
+    Fields:
+        mean: (n,) state mean, in the units of the model's state.
+        chol: (n, n) lower-triangular ``L`` with non-negative diagonal, ``P = L Lᵀ``.
+    """
+
+    mean: Array  # (n,)
+    chol: Array  # (n, n)
+
+
+class SqrtPosterior(NamedTuple):
+    """Output of :func:`filter_scan` over T steps.
+
+    Fields:
+        means: (T, n) filtered means.
+        cov_diags: (T, n) diagonals of the filtered covariances (squared row norms of ``L``).
+        chols: (T, n, n) filtered factors when ``save_chol=True``, else None.
+        nis: (T,) NIS of each step's update (0 when nothing was valid).
+        dof: (T,) int32 number of valid measurement components per step.
+        status: (T,) int32 status bit flags per step (:mod:`jaxslam.errors`).
+        final: :class:`SqrtGaussian` after the last step.
+    """
+
+    means: Array
+    cov_diags: Array
+    chols: Optional[Array]
+    nis: Array
+    dof: Array
+    status: Array
+    final: SqrtGaussian
+
+
+# ---------------------------------------------------------------------------
+# Factors
+# ---------------------------------------------------------------------------
+
+def _sign_fix(R):
+    """Negate the rows of an upper-triangular ``R`` whose diagonal is negative."""
+    d = jnp.diagonal(R)
+    return R * jnp.where(d < 0, -1, 1).astype(R.dtype)[:, None]
+
+
+def _tria(A):
+    """Lower-triangular ``B`` (n, n), diagonal ≥ 0, with ``B Bᵀ = A Aᵀ``; ``A`` is (n, k).
+
+    One QR of ``Aᵀ = Θ U`` gives ``A Aᵀ = Uᵀ U``, so ``B = Uᵀ`` (sign-fixed).
+    """
+    n, k = A.shape
+    At = A.T
+    if k < n:  # a wide pre-array: pad with zero columns (rows of Aᵀ), same Gram matrix
+        At = jnp.concatenate([At, jnp.zeros((n - k, n), A.dtype)], axis=0)
+    U = jnp.linalg.qr(At, mode="r")
+    return _sign_fix(U).T
+
+
+def _tria_np(A):
+    n, k = A.shape
+    At = A.T if k >= n else np.concatenate([A.T, np.zeros((n - k, n))], axis=0)
+    U = np.linalg.qr(At, mode="r")
+    d = np.diagonal(U)
+    return (U * np.where(d < 0, -1.0, 1.0)[:, None]).T
+
+
+def _clip_tol(n, dtype):
+    """Relative size of the negative eigenvalues that count as rounding: 10 n eps."""
+    return 10.0 * n * float(jnp.finfo(dtype).eps)
+
+
+def psd_factor(A, dtype=None):
+    """Lower-triangular factor ``L`` (diagonal ≥ 0) of a symmetric PSD matrix, ``A = L Lᵀ``.
+
+    Cholesky when ``A`` is positive definite.  A singular PSD ``A`` (Cholesky fails: a
+    zero pivot) is factored from its eigen-decomposition ``V diag(w) Vᵀ`` as the
+    triangularisation of ``V diag(√w)``; eigenvalues in ``[−10 n eps |w|_max, 0)``
+    (rounding) count as 0, a more negative one (``A`` indefinite) gives a NaN factor, which
+    the next update reports (``errors.NOT_PSD``) rather than hiding.
+
+    Args:
+        A: (n, n) symmetric positive semi-definite matrix (it is symmetrised first).
+        dtype: dtype of the result; default ``A``'s floating dtype.
+
+    Returns:
+        (n, n) lower-triangular factor.  A concrete ``A`` is factored on the host in
+        float64 (NumPy) and cast; a traced one with ``jnp.linalg.cholesky`` and, only when
+        that fails, ``eigh`` (``lax.cond``).  Gradients are those of the Cholesky factor
+        for a positive definite ``A``.  Through a singular ``A`` they are not reliable
+        (``eigh``'s derivative is singular at repeated eigenvalues, as in
+        ``diag(q, q, 0)``): to differentiate with respect to a singular process noise,
+        pass its square root as ``Q_chol`` (e.g. ``exp(θ / 2) · C``).
+    """
+    return _root(A, dtype, triangular=True)
+
+
+def _root(A, dtype=None, triangular=True):
+    """``psd_factor``; with ``triangular=False`` a singular ``A`` gives ``V diag(√w)``."""
+    if dtype is None:
+        dt = jnp.asarray(A).dtype
+        dtype = dt if jnp.issubdtype(dt, jnp.floating) else jnp.result_type(float)
+    if is_concrete(A):
+        M = np.asarray(A, dtype=np.float64)
+        M = 0.5 * (M + M.T)
+        n = M.shape[0]
+        if not np.all(np.isfinite(M)):
+            L = np.full((n, n), np.nan)
+        else:
+            try:
+                L = np.linalg.cholesky(M)
+            except np.linalg.LinAlgError:
+                w, V = np.linalg.eigh(M)
+                if w.size and w.min() < -_clip_tol(n, dtype) * np.max(np.abs(w)):
+                    L = np.full((n, n), np.nan)
+                else:
+                    L = _tria_np(V * np.sqrt(np.clip(w, 0.0, None)))
+        return jnp.asarray(L.astype(dtype))
+
+    M = symmetrize(jnp.asarray(A, dtype))
+    n = M.shape[0]
+    ok = jnp.all(jnp.isfinite(jnp.linalg.cholesky(M)))
+    # Under vmap the cond becomes a select that evaluates both branches; each branch gets a
+    # harmless input where it is not the one chosen, so no NaN/inf reaches the other's
+    # gradient (eigh's derivative is singular at repeated eigenvalues, Cholesky's at a
+    # singular matrix, √w's at w = 0).
+    eye = jnp.eye(n, dtype=dtype)
+    spread = jnp.diag(jnp.arange(1, n + 1, dtype=dtype))
+
+    def chol_factor(M):
+        return jnp.linalg.cholesky(jnp.where(ok, M, eye))
+
+    def eig_factor(M):
+        w, V = jnp.linalg.eigh(jnp.where(ok, spread, M))
+        bad = jnp.min(w) < -_clip_tol(n, dtype) * jnp.max(jnp.abs(w))
+        pos = w > 0
+        B = V * jnp.where(pos, jnp.sqrt(jnp.where(pos, w, 1.0)), 0.0)
+        if triangular:
+            B = _tria(B)
+        return jnp.where(bad, jnp.nan, B)
+
+    return jax.lax.cond(ok, chol_factor, eig_factor, M)
+
+
+def from_gaussian(g: Gaussian) -> SqrtGaussian:
+    """:class:`SqrtGaussian` of a :class:`~jaxslam.filters.ekf.Gaussian` (``psd_factor`` of its cov)."""
+    x = jnp.asarray(g.mean)
+    dtype = x.dtype if jnp.issubdtype(x.dtype, jnp.floating) else jnp.result_type(float)
+    return SqrtGaussian(x.astype(dtype), psd_factor(g.cov, dtype))
+
+
+def to_gaussian(s: SqrtGaussian) -> Gaussian:
+    """:class:`~jaxslam.filters.ekf.Gaussian` with ``cov = L Lᵀ`` (symmetrised)."""
+    L = jnp.asarray(s.chol)
+    return Gaussian(s.mean, symmetrize(_mm(L, L.T)))
+
+
+# ---------------------------------------------------------------------------
+# Predict
+# ---------------------------------------------------------------------------
+
+def predict(state: SqrtGaussian, f: Callable, u, Q=None, *args, noise_jac=None,
+            Q_chol=None) -> SqrtGaussian:
+    """Square-root time update: ``x' = f(x, u, *args)``, ``L' L'ᵀ = F P Fᵀ + G Q Gᵀ``.
+
+    ``F = ∂f/∂x`` at the prior mean (``jax.jacfwd``, one trace of ``f``).  The new factor
+    is the triangularisation (one QR, diagonal made non-negative) of the n × (n + k)
+    pre-array ``[F L, G C]``, ``C`` a square root of ``Q``; ``P`` is never formed.
+
+    Args:
+        state: prior :class:`SqrtGaussian`, mean (n,), chol (n, n).
+        f: discrete transition ``f(x (n,), u, *args) -> (n,)`` over one step (it integrates
+            the dynamics; a continuous model must be discretised by the caller).
+        u: control/input of the step (any pytree).
+        Q: (n, n) discrete process-noise covariance, or (q, q) with ``noise_jac``; factored
+            here by :func:`psd_factor` (Cholesky; singular PSD allowed).  Ignored when
+            ``Q_chol`` is given (pass None).
+        *args: extra arguments of ``f`` (and of a callable ``noise_jac``).
+        noise_jac: None, an (n, q) matrix ``G``, or a callable ``G(x, u, *args) -> (n, q)``
+            evaluated at the prior mean.
+        Q_chol: optional (n, k) (or (q, k) with ``noise_jac``) square root ``C`` of the
+            process noise, ``Q = C Cᵀ``; need not be triangular.
+
+    Returns:
+        Predicted :class:`SqrtGaussian` in the dtype of ``state.mean``.
+    """
+    x = jnp.asarray(state.mean)
+    dtype = x.dtype
+    L = jnp.asarray(state.chol, dtype)
+    xn, F = value_and_jacfwd(lambda v: f(v, u, *args))(x)
+    xn = xn.astype(dtype)
+    F = F.astype(dtype)
+    if Q_chol is not None:
+        C = jnp.asarray(Q_chol, dtype)
+    elif Q is None:
+        raise InputError("Q: a process-noise covariance (or Q_chol=) is required")
+    else:
+        C = _root(Q, dtype, triangular=False)
+    if noise_jac is not None:
+        G = noise_jac(x, u, *args) if callable(noise_jac) else noise_jac
+        C = _mm(jnp.asarray(G, dtype), C)
+    return SqrtGaussian(xn, _tria(jnp.concatenate([_mm(F, L), C], axis=1)))
+
+
+# ---------------------------------------------------------------------------
+# Update
+# ---------------------------------------------------------------------------
+
+def _threshold(gate: Gate, dof, dtype):
+    if callable(gate):
+        return jnp.asarray(gate(dof), dtype=dtype)
+    return jnp.asarray(gate, dtype=dtype)
+
+
+def _default_residual(z, zhat):
+    return z - zhat
+
+
+def update(
+    state: SqrtGaussian,
+    z,
+    h: Callable,
+    R,
+    *args,
+    residual: Optional[Callable] = None,
+    mask=None,
+    gate: Gate = None,
+):
+    """Square-root measurement update with masks and a chi-square gate.
+
+    ``ẑ = h(x, *args)``, ``H = ∂h/∂x`` (``jax.jacfwd``), ``ν = residual(z, ẑ)``.  One QR
+    of the (m + n) square pre-array ``[[L_R, H L], [0, L]]`` gives ``[[S^½, 0], [K̄, L⁺]]``
+    (module docstring): ``S = S^½ S^½ᵀ = H P Hᵀ + R``, ``w = S^{-½} ν``,
+    ``x⁺ = x + K̄ w``, ``L⁺ L⁺ᵀ = P − K S Kᵀ``, NIS ``= ‖w‖²``.  Same semantics as
+    :func:`jaxslam.filters.ekf.update`.
+
+    Args:
+        state: prior :class:`SqrtGaussian`, mean (n,), chol (n, n).
+        z: (m,) measurement, in the units of ``h``'s output.
+        h: measurement model ``h(x (n,), *args) -> (m,)``.
+        R: (m, m) measurement-noise covariance, positive definite on the valid block
+            (factored here by Cholesky; a failure is reported as ``errors.NOT_PSD``).
+        *args: extra arguments of ``h``.
+        residual: ``residual(z, ẑ) -> (m,)``; default ``z − ẑ``
+            (:func:`jaxslam.filters.ekf.angle_residual` for angles).
+        mask: (m,) bool, True for valid components (default all valid).  Invalid
+            components contribute nothing, whatever ``z`` holds there.
+        gate: None, a chi-square threshold on the NIS, or a callable
+            ``gate(dof) -> threshold`` (:func:`jaxslam.filters.ekf.chi2_gate`).  When the
+            NIS exceeds it the prior is kept and ``errors.GATED`` is set.
+
+    Returns:
+        ``(posterior SqrtGaussian, UpdateInfo)``; ``UpdateInfo.S`` is ``S^½ S^½ᵀ`` (identity
+        on invalid rows/columns) and, where the field exists, ``logdet`` is
+        ``log det S`` over the valid block (``2 Σ log diag S^½``).  On a singular or
+        non-finite ``S^½`` (``NOT_PSD``) or a non-finite posterior (``NON_FINITE``) the prior
+        is returned unchanged.
+    """
+    x = jnp.asarray(state.mean)
+    dtype = x.dtype
+    L = jnp.asarray(state.chol, dtype)
+    z = jnp.asarray(z, dtype=dtype)
+    R = jnp.asarray(R, dtype=dtype)
+    m = z.shape[-1]
+    n = x.shape[0]
+    mask = jnp.ones((m,), bool) if mask is None else jnp.asarray(mask, bool)
+    res = _default_residual if residual is None else residual
+    zero = jnp.zeros((), dtype)
+    eye_m = jnp.eye(m, dtype=dtype)
+
+    zhat, H = value_and_jacfwd(lambda v: h(v, *args))(x)
+    zhat = zhat.astype(dtype)
+    H = H.astype(dtype)
+    # Replace invalid components by their prediction before differencing so NaN garbage
+    # never enters the arithmetic (nor its gradient).
+    zhat_safe = jnp.where(mask, zhat, zero)
+    z_safe = jnp.where(mask, z, zhat_safe)
+    nu = jnp.where(mask, res(z_safe, zhat_safe), zero)
+    Hm = jnp.where(mask[:, None], H, zero)
+    mm = mask[:, None] & mask[None, :]
+    L_R = jnp.linalg.cholesky(symmetrize(jnp.where(mm, R, eye_m)))
+    dof = jnp.sum(mask).astype(jnp.int32)
+
+    pre = jnp.block([[L_R, _mm(Hm, L)], [jnp.zeros((n, m), dtype), L]])
+    B = _tria(pre)
+    S_half = jnp.where(mm, B[:m, :m], eye_m)  # exact mask structure (module docstring)
+    Kbar = jnp.where(mask[None, :], B[m:, :m], zero)
+    L_post = B[m:, m:]
+
+    d = jnp.diagonal(S_half)
+    ok = jnp.all(jnp.isfinite(S_half)) & jnp.all(d > 0)
+    S_safe = jnp.where(ok, S_half, eye_m)  # no inf/NaN on the rejected path (nor its grad)
+    w = jax.scipy.linalg.solve_triangular(S_safe, nu, lower=True)
+    nis = jnp.dot(w, w)
+    x_post = x + _mm(Kbar, w)
+    S = symmetrize(_mm(S_half, S_half.T))
+
+    if gate is None:
+        gated = jnp.asarray(False)
+    else:
+        gated = (dof > 0) & (nis > _threshold(gate, dof, dtype))
+    finite = jnp.all(jnp.isfinite(x_post)) & jnp.all(jnp.isfinite(L_post))
+    has = dof > 0
+    accepted = has & ~gated & ok & finite
+    i32 = jnp.int32
+    status = (
+        jnp.where(gated, i32(errors.GATED), i32(0))
+        | jnp.where(has & ~gated & ~ok, i32(errors.NOT_PSD), i32(0))
+        | jnp.where(has & ~gated & ok & ~finite, i32(errors.NON_FINITE), i32(0))
+    )
+    post = SqrtGaussian(jnp.where(accepted, x_post, x), jnp.where(accepted, L_post, L))
+    extra = {}
+    if _HAS_LOGDET:
+        pos = mask & (d > 0)
+        logd = jnp.where(pos, jnp.log(jnp.where(pos, d, jnp.ones((), dtype))), zero)
+        logd = jnp.where(mask & ~(d > 0) & ~jnp.isnan(d), -jnp.inf, logd)
+        logd = jnp.where(mask & jnp.isnan(d), jnp.nan, logd)
+        extra["logdet"] = 2.0 * jnp.sum(logd)
+    return post, UpdateInfo(nis, dof, nu, S, accepted, status, **extra)
+
+
+# ---------------------------------------------------------------------------
+# Whole run
+# ---------------------------------------------------------------------------
+
+def _validate_scan(x0, P0, us, zs, masks, Q, R, noise_jac, Q_chol):
+    """Shapes always (they are static under jit); values only when concrete."""
+    xs = np.shape(x0)
+    if len(xs) != 1:
+        raise InputError(f"x0: expected shape (n,), got {tuple(xs)}")
+    n = xs[0]
+    if is_concrete(x0) and not np.all(np.isfinite(np.asarray(x0, dtype=np.float64))):
+        raise InputError("x0: contains NaN or Inf")
+    if np.shape(P0) != (n, n):
+        raise InputError(f"P0: expected shape ({n}, {n}), got {tuple(np.shape(P0))}")
+    if is_concrete(P0):
+        check_psd(P0, "P0")
+    zsh = np.shape(zs)
+    if len(zsh) != 2:
+        raise InputError(f"zs: expected shape (T, m), got {tuple(zsh)}")
+    T, m = zsh
+    if masks is not None and np.shape(masks) != (T, m):
+        raise InputError(f"masks: expected shape ({T}, {m}), got {tuple(np.shape(masks))}")
+    if np.shape(R) != (m, m):
+        raise InputError(f"R: expected shape ({m}, {m}), got {tuple(np.shape(R))}")
+    if is_concrete(R):
+        check_psd(R, "R", strict=True)
+    if us is not None:
+        for leaf in jax.tree_util.tree_leaves(us):
+            if np.ndim(leaf) < 1 or np.shape(leaf)[0] != T:
+                raise InputError(f"us: expected leading axis T = {T}, got shape {tuple(np.shape(leaf))}")
+    q = n
+    if noise_jac is not None and not callable(noise_jac):
+        gs = np.shape(noise_jac)
+        if len(gs) != 2 or gs[0] != n:
+            raise InputError(f"noise_jac: expected shape ({n}, q), got {tuple(gs)}")
+        q = gs[1]
+    if Q_chol is not None:
+        cs = np.shape(Q_chol)
+        if len(cs) != 2 or (noise_jac is None and cs[0] != n) or (
+                noise_jac is not None and not callable(noise_jac) and cs[0] != q):
+            raise InputError(f"Q_chol: expected shape ({'q' if noise_jac is not None else n}, k), "
+                             f"got {tuple(cs)}")
+        if is_concrete(Q_chol) and not np.all(np.isfinite(np.asarray(Q_chol, dtype=np.float64))):
+            raise InputError("Q_chol: contains NaN or Inf")
+        return
+    if Q is None:
+        raise InputError("Q: a process-noise covariance (or Q_chol=) is required")
+    qs = np.shape(Q)
+    if noise_jac is not None and callable(noise_jac):
+        if len(qs) != 2 or qs[0] != qs[1]:
+            raise InputError(f"Q: expected a square (q, q) matrix, got shape {tuple(qs)}")
+    elif qs != (q, q):
+        raise InputError(f"Q: expected shape ({q}, {q}), got {tuple(qs)}")
+    if is_concrete(Q):
+        check_psd(Q, "Q")
+
+
+def filter_scan(
+    f: Callable,
+    h: Callable,
+    x0,
+    P0,
+    us,
+    zs,
+    masks,
+    Q,
+    R,
+    *args,
+    residual: Optional[Callable] = None,
+    gate: Gate = None,
+    predict_first: bool = True,
+    noise_jac=None,
+    save_chol: bool = False,
+    Q_chol=None,
+) -> SqrtPosterior:
+    """Run square-root predict + update over a whole sequence as one ``lax.scan``.
+
+    Step t (``predict_first=True``): :func:`predict` with ``u_t``, then :func:`update` with
+    ``z_t`` under ``masks[t]``; ``(x0, P0)`` is the estimate before the first control.
+    With ``predict_first=False`` the step updates with ``z_t`` first (``(x0, P0)`` is the
+    prior at the time of ``z_0``), stores the filtered estimate, then predicts with ``u_t``.
+    ``P0`` and ``Q`` are factored once, before the scan (:func:`psd_factor`).  Jit it with
+    ``f``, ``h``, ``residual``, a callable ``gate``, ``noise_jac`` if callable,
+    ``predict_first`` and ``save_chol`` static; vmap it over runs.
+
+    Inputs are checked at this boundary (``InputError`` naming the argument): shapes
+    always, finiteness and definiteness (``P0``, ``Q`` PSD, ``R`` PD) when the values are
+    concrete (not traced).
+
+    Args:
+        f: transition ``f(x, u, *args) -> (n,)``.
+        h: measurement model ``h(x, *args) -> (m,)``.
+        x0: (n,) initial mean.  P0: (n, n) initial covariance (PSD).
+        us: controls with leading axis T (array or pytree; None if unused).
+        zs: (T, m) measurements.
+        masks: (T, m) bool validity (None: all valid).
+        Q: (n, n) (or (q, q) with ``noise_jac``) process-noise covariance (PSD), or None
+            with ``Q_chol``.
+        R: (m, m) measurement-noise covariance (PD).
+        *args: shared extra arguments of both ``f`` and ``h``.
+        residual, gate: as in :func:`update`.
+        predict_first: static; step order (above).
+        noise_jac: as in :func:`predict`.
+        save_chol: static; also stack the filtered factors (T, n, n).
+        Q_chol: optional square root of ``Q`` (as in :func:`predict`).
+
+    Returns:
+        :class:`SqrtPosterior` in the dtype of ``x0``.
+    """
+    _validate_scan(x0, P0, us, zs, masks, Q, R, noise_jac, Q_chol)
+    x0 = jnp.asarray(x0)
+    dtype = x0.dtype if jnp.issubdtype(x0.dtype, jnp.floating) else jnp.result_type(float)
+    x0 = x0.astype(dtype)
+    L0 = psd_factor(P0, dtype)
+    C = jnp.asarray(Q_chol, dtype) if Q_chol is not None else _root(Q, dtype, triangular=False)
+    zs = jnp.asarray(zs, dtype=dtype)
+    R = jnp.asarray(R, dtype=dtype)
+    T, m = zs.shape
+    masks = jnp.ones((T, m), bool) if masks is None else jnp.asarray(masks, bool)
+
+    def pred(s, u):
+        return predict(s, f, u, None, *args, noise_jac=noise_jac, Q_chol=C)
+
+    def upd(s, z, mk):
+        return update(s, z, h, R, *args, residual=residual, mask=mk, gate=gate)
+
+    def step(carry, inp):
+        state, _ = carry
+        u, z, mk = inp
+        if predict_first:
+            post, info = upd(pred(state, u), z, mk)
+            nxt = post
+        else:
+            post, info = upd(state, z, mk)
+            nxt = pred(post, u)
+        out = (
+            post.mean,
+            jnp.sum(post.chol * post.chol, axis=1),
+            post.chol if save_chol else None,
+            info.nis,
+            info.dof,
+            info.status,
+        )
+        return (nxt, post), out
+
+    init = SqrtGaussian(x0, L0)
+    (_, final), (means, diags, chols, nis, dof, status) = jax.lax.scan(
+        step, (init, init), (us, zs, masks)
+    )
+    return SqrtPosterior(means, diags, chols, nis, dof, status, final)
