@@ -86,7 +86,8 @@ factor itself is wanted (sampling, log-determinants).
 
 from __future__ import annotations
 
-from typing import Any, Callable, NamedTuple, Optional, Union
+from collections.abc import Callable
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -100,16 +101,16 @@ from .ekf import Gaussian, UpdateInfo
 __all__ = [
     "SqrtGaussian",
     "SqrtPosterior",
-    "from_gaussian",
-    "to_gaussian",
-    "psd_factor",
-    "predict",
-    "update",
     "filter_scan",
+    "from_gaussian",
+    "predict",
+    "psd_factor",
+    "to_gaussian",
+    "update",
 ]
 
 Array = Any
-Gate = Union[None, float, Array, Callable[[Array], Array]]
+Gate = None | float | Array | Callable[[Array], Array]
 
 _HAS_LOGDET = "logdet" in UpdateInfo._fields
 _HIGHEST = jax.lax.Precision.HIGHEST
@@ -147,7 +148,7 @@ class SqrtPosterior(NamedTuple):
 
     means: Array
     cov_diags: Array
-    chols: Optional[Array]
+    chols: Array | None
     nis: Array
     dof: Array
     status: Array
@@ -342,7 +343,7 @@ def update(
     h: Callable,
     R,
     *args,
-    residual: Optional[Callable] = None,
+    residual: Callable | None = None,
     mask=None,
     gate: Gate = None,
 ):
@@ -507,7 +508,7 @@ def filter_scan(
     Q,
     R,
     *args,
-    residual: Optional[Callable] = None,
+    residual: Callable | None = None,
     gate: Gate = None,
     predict_first: bool = True,
     noise_jac=None,

@@ -425,7 +425,7 @@ def _mc_consistency(runs, T, seed0=100):
     return e_f, e_s, nees_f, nees_s
 
 
-def _anees_bounds(runs, dim=4, p=0.95):
+def _anees_bounds(runs, dim=4, p=0.99):
     lo, hi = stats.chi2.ppf([(1 - p) / 2, (1 + p) / 2], runs * dim) / runs
     return lo, hi
 
@@ -434,6 +434,7 @@ def test_smoother_consistency_and_rmse():
     """ANEES of the EKF-RTS smoother inside χ² bounds over 100 runs; RMSE below the filter's."""
     runs, T = 100, 40
     e_f, e_s, nees_f, nees_s = _mc_consistency(runs, T)
+    # five checks, each at 99 % (family-wise false-alarm rate ≈ 5 %, Bonferroni)
     lo, hi = _anees_bounds(runs)
     for t in (0, 5, 20, 39):  # per time step across runs (early and late, not only a run mean)
         assert lo <= nees_s[:, t].mean() <= hi, (t, nees_s[:, t].mean(), lo, hi)

@@ -71,7 +71,7 @@ def np_kf(x0, P0, us, zs, masks=None, gate=None, predict_first=True):
     x, P = x0.astype(float).copy(), P0.astype(float).copy()
     means, covs, nis_all, gated_all = [], [], [], []
     for t in range(zs.shape[0]):
-        def upd(x, P):
+        def upd(x, P, t=t):
             mk = np.ones(zs.shape[1], bool) if masks is None else masks[t]
             if not mk.any():
                 return x, P, 0.0, False
@@ -110,7 +110,7 @@ def simulate_cv(seed, T=T_CV):
     return us, np.array(zs)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def cv_runner(predict_first=True, callable_gate=False):
     """One jitted square-root CV filter per static option set (masks, numeric gate traced)."""
     gfun = ekf.chi2_gate(GATE_P, 2) if callable_gate else None
@@ -160,7 +160,7 @@ def test_linear_model_equals_numpy_kalman_filter(case, predict_first, dtype):
     if case == "gated":
         gate = thr
     elif case == "masked_gated":
-        gate = lambda d: stats.chi2.ppf(GATE_P, d)  # noqa: E731
+        gate = lambda d: stats.chi2.ppf(GATE_P, d)
     ref_m, ref_P, ref_nis, ref_gated = np_kf(X0_CV, P0_CV, us, zs, masks, gate, predict_first)
 
     assert post.means.dtype == dtype and post.chols.dtype == dtype and post.nis.dtype == dtype
@@ -211,7 +211,7 @@ def h_rb_all(x):
 RES_ALL = ekf.angle_residual([False, True] * len(LANDMARKS))
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def step_pair():
     """Both filters' predict + update on a batch of states (vmapped, one compile per dtype)."""
 
@@ -245,7 +245,7 @@ def test_nonlinear_steps_equal_covariance_form(dtype):
     z = np.where(mask, z, np.nan)
     gate = np.full(B, stats.chi2.ppf(0.95, 2))
     gate[: B // 2] = np.inf  # half ungated: more accepted updates to compare
-    c = lambda a: np.asarray(a, dtype)  # noqa: E731
+    c = lambda a: np.asarray(a, dtype)
     gp, sp, gp2, sp2, gu, gi, su, si = step_pair()(c(x), c(A), c(u), c(z), c(lm), mask, c(gate))
 
     tol = 1e-10 if dtype == np.float64 else 1e-4
@@ -265,10 +265,10 @@ def test_nonlinear_steps_equal_covariance_form(dtype):
     assert np.all(np.triu(L, 1) == 0) and np.all(np.diagonal(L, 0, 1, 2) >= 0)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def rb_runners():
     gate = ekf.chi2_gate(0.999, 2 * len(LANDMARKS))
-    kw = dict(residual=RES_ALL, gate=gate, noise_jac=g_uni)
+    kw = {"residual": RES_ALL, "gate": gate, "noise_jac": g_uni}
     run_c = jax.jit(lambda x0, P0, us, zs, mk: ekf.filter_scan(
         f_uni, h_rb_all, x0, P0, us, zs, mk, Q_UNI, np.kron(np.eye(3), R_RB), **kw))
     run_s = jax.jit(lambda x0, P0, us, zs, mk: se.filter_scan(
@@ -295,7 +295,7 @@ def test_nonlinear_scan_equals_covariance_form(dtype):
     x0 = np.array([0.05, -0.05, 0.25])
     P0 = np.diag([0.1, 0.1, 0.05])
     run_c, run_s = rb_runners()
-    c = lambda a: np.asarray(a, dtype)  # noqa: E731
+    c = lambda a: np.asarray(a, dtype)
     pc = run_c(c(x0), c(P0), c(us), c(zs), masks)
     ps = run_s(c(x0), c(P0), c(us), c(zs), masks)
     tol = 1e-9 if dtype == np.float64 else 1e-4
@@ -331,7 +331,7 @@ def h_lr(x):
     return x[:1] + C_LR * x[1:]
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def long_runners():
     def args(zs):
         dt = zs.dtype
@@ -449,7 +449,7 @@ def test_factors_roundtrip_and_singular_psd():
     assert se.psd_factor(P, np.float32).dtype == np.float32
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def jit_update(gate_callable=False):
     g = ekf.chi2_gate(0.99, 2) if gate_callable else None
     return jax.jit(lambda s, z, R, mask: se.update(s, z, h_rb, R, jnp.asarray(LANDMARKS[0], s.mean.dtype),
@@ -536,25 +536,25 @@ def test_gradient_equals_covariance_form():
 
 def _scan(**over):
     us, zs = simulate_cv(8, T=5)
-    kw = dict(x0=X0_CV, P0=P0_CV, us=us, zs=zs, masks=None, Q=Q_CV, R=R_CV)
+    kw = {"x0": X0_CV, "P0": P0_CV, "us": us, "zs": zs, "masks": None, "Q": Q_CV, "R": R_CV}
     kw.update(over)
     return se.filter_scan(f_cv, h_pos, kw["x0"], kw["P0"], kw["us"], kw["zs"], kw["masks"],
                           kw["Q"], kw["R"])
 
 
 @pytest.mark.parametrize("over, name", [
-    (dict(zs=np.zeros(5)), "zs"),
-    (dict(zs=np.zeros((5, 2, 1))), "zs"),
-    (dict(Q=-Q_CV), "Q"),
-    (dict(Q=np.eye(3)), "Q"),
-    (dict(x0=np.zeros((4, 1))), "x0"),
-    (dict(x0=np.array([0.0, np.nan, 0.0, 0.0])), "x0"),
-    (dict(P0=np.eye(3)), "P0"),
-    (dict(P0=np.diag([1.0, 1.0, -1.0, 1.0])), "P0"),
-    (dict(R=np.zeros((2, 2))), "R"),
-    (dict(R=np.eye(3)), "R"),
-    (dict(masks=np.ones((5, 3), bool)), "masks"),
-    (dict(us=np.zeros((4, 2))), "us"),
+    ({"zs": np.zeros(5)}, "zs"),
+    ({"zs": np.zeros((5, 2, 1))}, "zs"),
+    ({"Q": -Q_CV}, "Q"),
+    ({"Q": np.eye(3)}, "Q"),
+    ({"x0": np.zeros((4, 1))}, "x0"),
+    ({"x0": np.array([0.0, np.nan, 0.0, 0.0])}, "x0"),
+    ({"P0": np.eye(3)}, "P0"),
+    ({"P0": np.diag([1.0, 1.0, -1.0, 1.0])}, "P0"),
+    ({"R": np.zeros((2, 2))}, "R"),
+    ({"R": np.eye(3)}, "R"),
+    ({"masks": np.ones((5, 3), bool)}, "masks"),
+    ({"us": np.zeros((4, 2))}, "us"),
 ])
 def test_bad_input_raises_input_error_naming_argument(over, name):
     with pytest.raises(InputError, match=rf"^{name}:"):

@@ -1,0 +1,159 @@
+"""Filter family benchmark: EKF, UKF (unscented, cubature), iterated EKF, RTS and fixed-lag
+smoothing, and the iterated smoother, in one run on one model.
+
+Run with ``python -m jaxslam bench filters [--json benchmarks/results/filters.json] [options]``.
+
+Model: a 4-state constant-velocity target seen by range and bearing from a beacon
+(``T`` steps, default 1000; the same model as ``tests/filters/test_smoother.py``), float64.
+Each case is one jitted whole run (``lax.scan``), timed as the median of ``--repeats``
+calls after a warm-up call, ``block_until_ready`` on the outputs; compile time is reported
+apart.  Ratios are against the EKF run (``filter_scan``) in the same process:
+``rts_pass`` is the backward pass alone over a saved run, ``filter+rts`` the run that saves
+what the smoother needs plus the pass.  The issue's target: RTS pass ≤ 2× the filter's run.
+``numpy_ekf`` is a plain NumPy loop of the same EKF (hand Jacobians) as the outside reference.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+
+import numpy as np
+from timing import median_s
+
+DESCRIPTION = ("Filter family on one model: EKF / UKF / cubature / iterated EKF steps, RTS, "
+               "fixed-lag and iterated smoothers, against the EKF run and a NumPy EKF loop")
+
+TARGETS = {"rts_pass_vs_filter_max": 2.0}
+
+
+def add_arguments(parser):
+    parser.add_argument("--steps", type=int, default=1000, help="time steps T (default 1000)")
+    parser.add_argument("--repeats", type=int, default=7, help="timed repeats (median; default 7)")
+    parser.add_argument("--lag", type=int, default=20, help="fixed-lag smoother lag (default 20)")
+    parser.add_argument("--iters", type=int, default=5, help="iterated smoother iterations (default 5)")
+
+
+DT = 0.1
+F = np.array([[1, 0, DT, 0], [0, 1, 0, DT], [0, 0, 1, 0], [0, 0, 0, 1]], float)
+G = np.array([[0.5 * DT**2, 0], [0, 0.5 * DT**2], [DT, 0], [0, DT]], float)
+Q = 0.05 * G @ G.T + 1e-6 * np.eye(4)
+R = np.diag([0.05**2, 0.02**2])
+P0 = np.diag([1.0, 1.0, 0.5, 0.5])
+X0 = np.array([0.0, 0.0, 1.0, -0.5])
+BEACON = np.array([10.0, 8.0])
+
+
+def _simulate(T, seed=0):
+    rng = np.random.default_rng(seed)
+    us = rng.normal(0, 0.5, (T, 2))
+    x = X0.copy()
+    zs = []
+    for t in range(T):
+        x = F @ x + G @ us[t] + rng.multivariate_normal(np.zeros(4), Q)
+        d = x[:2] - BEACON
+        zs.append([np.hypot(*d), np.arctan2(d[1], d[0])] + rng.normal(0, [0.05, 0.02]))
+    return us, np.array(zs)
+
+
+def _numpy_ekf(us, zs):
+    x, P = X0.copy(), P0.copy()
+    out = np.empty((len(zs), 4))
+    for t in range(len(zs)):
+        x = F @ x + G @ us[t]
+        P = F @ P @ F.T + Q
+        d = x[:2] - BEACON
+        r2 = d @ d
+        r = np.sqrt(r2)
+        H = np.array([[d[0] / r, d[1] / r, 0, 0], [-d[1] / r2, d[0] / r2, 0, 0]])
+        nu = zs[t] - np.array([r, np.arctan2(d[1], d[0])])
+        nu[1] = (nu[1] + np.pi) % (2 * np.pi) - np.pi
+        S = H @ P @ H.T + R
+        K = np.linalg.solve(S, H @ P).T
+        x = x + K @ nu
+        A = np.eye(4) - K @ H
+        P = A @ P @ A.T + K @ R @ K.T
+        out[t] = x
+    return out
+
+
+def run(args):
+    import jax
+    import jax.numpy as jnp
+
+    if not jax.config.jax_enable_x64:
+        jax.config.update("jax_enable_x64", True)
+    from jaxslam.errors import InputError
+    from jaxslam.filters import ekf, gaussian, smoother, ukf
+
+    if args.steps < 2 or args.repeats < 1:
+        raise InputError("--steps must be >= 2 and --repeats >= 1")
+    T = int(args.steps)
+    us_np, zs_np = _simulate(T)
+    us, zs = jnp.asarray(us_np), jnp.asarray(zs_np)
+    Fj, Gj, Bj = jnp.asarray(F), jnp.asarray(G), jnp.asarray(BEACON)
+
+    def f(x, u):
+        return Fj @ x + Gj @ u
+
+    def h(x):
+        d = x[:2] - Bj
+        return jnp.stack([jnp.sqrt(d @ d), jnp.arctan2(d[1], d[0])])
+
+    res = ekf.angle_residual([False, True])
+    load = {"before": list(os.getloadavg())}
+
+    cases = {
+        "ekf": lambda: ekf.filter_scan(f, h, X0, P0, us, zs, None, Q, R, residual=res).means,
+        "iterated_ekf_3": lambda: ekf.filter_scan(f, h, X0, P0, us, zs, None, Q, R, residual=res,
+                                                  num_iter=3).means,
+        "ukf": lambda: ukf.filter_scan(f, h, X0, P0, us, zs, None, Q, R, residual=res).means,
+        "cubature": lambda: ukf.filter_scan(f, h, X0, P0, us, zs, None, Q, R, residual=res,
+                                            points=ukf.cubature()).means,
+        "ekf_saving_for_smoother": lambda: ekf.filter_scan(f, h, X0, P0, us, zs, None, Q, R, residual=res,
+                                                           save_smoother=True),
+        "ekf+rts": lambda: smoother.rts(ekf.filter_scan(f, h, X0, P0, us, zs, None, Q, R, residual=res,
+                                                        save_smoother=True), save_cov=False).means,
+        "ukf+rts": lambda: smoother.rts(ukf.filter_scan(f, h, X0, P0, us, zs, None, Q, R, residual=res,
+                                                        save_smoother=True), save_cov=False).means,
+        f"fixed_lag_{args.lag}": lambda: smoother.fixed_lag(ekf.make_filter(f, h, residual=res), X0, P0, us,
+                                                            zs, None, Q, R, lag=args.lag).means,
+        f"iterated_smoother_{args.iters}": lambda: smoother.iterated(
+            f, h, X0, P0, us, zs, None, Q, R, residual=res, num_iter=args.iters).means,
+    }
+    del gaussian
+    results, times = [], {}
+    saved = None
+    for name, fn in cases.items():
+        jf = jax.jit(fn)
+        t0 = time.perf_counter()
+        out = jax.block_until_ready(jf())
+        comp = time.perf_counter() - t0
+        if name == "ekf_saving_for_smoother":
+            saved = out
+        times[name] = median_s(lambda: jax.block_until_ready(jf()), args.repeats)
+        results.append({"case": name, "params": {"T": T}, "jaxslam_s": times[name],
+                        "compile_s": comp})
+    rts_pass = jax.jit(lambda p: smoother.rts(p, save_cov=False).means)
+    jax.block_until_ready(rts_pass(saved))
+    times["rts_pass"] = median_s(lambda: jax.block_until_ready(rts_pass(saved)), args.repeats)
+    results.append({"case": "rts_pass", "params": {"T": T, "what": "backward pass over a saved run"},
+                    "jaxslam_s": times["rts_pass"]})
+    t_np = median_s(lambda: _numpy_ekf(us_np, zs_np), max(1, args.repeats // 2))
+    ekf_means = np.asarray(jax.jit(cases["ekf"])())
+    agree = float(np.max(np.abs(ekf_means - _numpy_ekf(us_np, zs_np))))
+    base = times["ekf"]
+    for r in results:
+        r["reference"] = "jaxslam ekf.filter_scan (same process)"
+        r["reference_s"] = base
+        r["speedup"] = base / r["jaxslam_s"]
+        r["ratio_to_ekf"] = r["jaxslam_s"] / base
+        r["us_per_step"] = 1e6 * r["jaxslam_s"] / T
+    results.append({"case": "numpy_ekf_loop", "params": {"T": T}, "jaxslam_s": base,
+                    "reference": "NumPy loop, hand Jacobians", "reference_s": t_np,
+                    "speedup": t_np / base, "max_abs_diff_means": agree})
+    ratio = times["rts_pass"] / base
+    load["after"] = list(os.getloadavg())
+    return {"results": results, "load_average": load,
+            "targets": [{"name": "rts_pass_vs_filter", "value": ratio, "target_max": 2.0,
+                         "met": ratio <= 2.0}]}
