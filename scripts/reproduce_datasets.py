@@ -50,9 +50,20 @@ CASES = [
     ("plaza2_slam", ["plaza", "--robot", "2"]),
     ("plaza1_surveyed", ["plaza", "--robot", "1", "--anchors", "known"]),
     ("plaza2_surveyed", ["plaza", "--robot", "2", "--anchors", "known"]),
+    # --smooth: the filter's figures and the RTS smoother's (smoothed_*) from one run
+    ("mrclam_r1_ekf_smooth", ["mrclam", "--robot", "1", "--smooth"]),
+    ("mrclam_r2_ekf_smooth", ["mrclam", "--robot", "2", "--smooth"]),
+    ("mrclam_r3_ekf_smooth", ["mrclam", "--robot", "3", "--smooth"]),
+    ("mrclam_r4_ekf_smooth", ["mrclam", "--robot", "4", "--smooth"]),
+    ("mrclam_r5_ekf_smooth", ["mrclam", "--robot", "5", "--smooth"]),
+    ("util_known_smooth", ["util-uwb", "--smooth"]),
+    ("util_unknown_smooth", ["util-uwb", "--anchors", "unknown", "--smooth"]),
+    ("plaza1_slam_smooth", ["plaza", "--robot", "1", "--smooth"]),
+    ("plaza2_slam_smooth", ["plaza", "--robot", "2", "--smooth"]),
 ]
 
-SHOW = ["ate_m", "pos_rmse_m", "dead_reckoning_ate_m", "rpe_m", "map_err_m", "range_bias_m"]
+SHOW = ["ate_m", "smoothed_ate_m", "pos_rmse_m", "smoothed_pos_rmse_m", "dead_reckoning_ate_m", "rpe_m",
+        "map_err_m", "range_bias_m"]
 
 
 def _cell(v):
