@@ -6,13 +6,14 @@
   whole-sequence scan.
 * :mod:`jaxslam.filters.ukf` — sigma-point filter (unscented, cubature), the EKF's signatures.
 * :mod:`jaxslam.filters.sqrt_ekf` — square-root (Cholesky-factor) EKF for float32 runs.
+* :mod:`jaxslam.filters.sqrt_ukf` — square-root sigma-point filter (same rules as ``ukf``).
 * :mod:`jaxslam.filters.smoother` — RTS, fixed-lag and iterated (Gauss–Newton) smoothers.
 * :mod:`jaxslam.filters.ekf_slam` — EKF-SLAM engine on a fixed-capacity padded map.
 * :mod:`jaxslam.filters.fastslam` — FastSLAM 1.0 core: vmapped particles, padded landmark EKFs.
 * :mod:`jaxslam.filters.resampling` — log-weight normalisation, ESS, resampling schemes, soft.
 """
 
-from . import ekf, ekf_slam, gaussian, smoother, sqrt_ekf, ukf
+from . import ekf, ekf_slam, gaussian, smoother, sqrt_ekf, sqrt_ukf, ukf
 from . import fastslam, resampling
 from .ekf import (
     Gaussian,
@@ -36,6 +37,7 @@ __all__ = [
     "gaussian",
     "ukf",
     "sqrt_ekf",
+    "sqrt_ukf",
     "smoother",
     "fastslam",
     "resampling",

@@ -1,42 +1,97 @@
-"""Sigma-point (unscented / cubature) Gaussian filter with the EKF's signatures, masks and gate.
+"""Sigma-point Gaussian filter (unscented; cubature as an option) with the EKF's signatures,
+masks and gate.
 
 Generic: the model enters through ``f(x, u, *args)`` and ``h(x, *args)`` exactly as in
-:mod:`jaxslam.filters.ekf`, and a run is the same :func:`jaxslam.filters.gaussian.run`, so a
-sigma-point filter is usable wherever the EKF is (whole-run scans, vmapped Monte Carlo,
-``jax.grad`` of the log-likelihood, the RTS smoother of :mod:`jaxslam.filters.smoother`).
+:mod:`jaxslam.filters.ekf`, the correction is the shared masked one of
+:mod:`jaxslam.filters.gaussian`, and a run is the same :func:`jaxslam.filters.gaussian.run`.
+So a sigma-point filter is usable wherever the EKF is: single steps, whole-run scans, ``vmap``
+over Monte Carlo runs, ``jax.grad`` of the log-likelihood, and the RTS / fixed-lag smoothers of
+:mod:`jaxslam.filters.smoother` (with ``save_smoother`` the saved cross-covariances are the
+sigma-point ones, so ``smoother.rts`` is then the unscented RTS smoother).
 
 Equations
 ---------
-Sigma points of ``N(x̄, P)`` with ``P = L Lᵀ`` (Cholesky): ``χ_i = x̄ + c L e_i``,
-``χ_{n+i} = x̄ − c L e_i`` and, for the unscented rule, ``χ_0 = x̄``; weights ``W^m``, ``W^c``.
+**Sigma points** of ``N(x̄, P)``, ``x̄`` (n,), from the lower Cholesky factor ``P = L Lᵀ``
+(:class:`SigmaPoints`, :func:`sigma_points`)::
 
-*Unscented* (scaled UT, Wan & van der Merwe 2000): ``λ = α² (n + κ) − n``, ``c = √(n + λ)``,
-``W^m_0 = λ / (n + λ)``, ``W^c_0 = W^m_0 + 1 − α² + β``, ``W_i = 1 / (2 (n + λ))``.
-*Cubature* (Arasaratnam & Haykin 2009): ``2n`` points, ``c = √n``, ``W_i = 1 / (2n)``.
+    χ_i     = x̄ + c L e_i,   χ_{n+i} = x̄ − c L e_i      (i = 1..n)
+    χ_0     = x̄                                          (unscented rule only)
 
-Predict: ``X_i = f(χ_i, u)``, ``x̄' = Σ W^m X_i``, ``P' = Σ W^c (X_i − x̄')(X_i − x̄')ᵀ + Q``,
-and the cross-covariance ``C = Σ W^c (χ_i − x̄)(X_i − x̄')ᵀ`` (what the RTS smoother needs).
-Update: ``Z_i = h(χ_i)``, ``ẑ = Σ W^m Z_i``, ``S = Σ W^c (Z_i − ẑ)(Z_i − ẑ)ᵀ + R``,
-``C_xz = Σ W^c (χ_i − x̄)(Z_i − ẑ)ᵀ``, ``K = C_xz S⁻¹`` (Cholesky), ``x⁺ = x̄ + K ν``,
-``P⁺ = P − K S Kᵀ`` (symmetrised).
+*Unscented* (:func:`unscented`; the scaled unscented transform in the α, β, κ
+parametrisation, the one of filterpy's ``MerweScaledSigmaPoints``), 2n + 1 points::
+
+    λ = α² (n + κ) − n,  c = √(n + λ)
+    W^m_0 = λ / (n + λ),  W^c_0 = W^m_0 + 1 − α² + β,  W^m_i = W^c_i = 1 / (2 (n + λ))
+
+*Cubature* (:func:`cubature`; third-degree spherical-radial rule), 2n points, ``c = √n``,
+``W^m_i = W^c_i = 1 / (2n)``.
+
+**Predict** (:func:`predict`, :func:`predict_with_cross`), ``X_i = f(χ_i, u, *args)``::
+
+    x̄' = Σ W^m_i X_i
+    P'  = Σ W^c_i (X_i − x̄')(X_i − x̄')ᵀ + Q           (or + L Q Lᵀ with ``noise_jac``)
+    C   = Σ W^c_i (χ_i − x̄)(X_i − x̄')ᵀ  = Cov(x, x')   (n, n), what the RTS smoother needs
+
+**Update** (:func:`update`), ``Z_i = h(χ_i, *args)``, ``r = residual``::
+
+    ẑ    = Z_ref + Σ W^m_i r(Z_i, Z_ref)          (Z_ref = h(x̄); = Σ W^m_i Z_i for r = z − ẑ)
+    ΔZ_i = r(Z_i, ẑ),   ν = r(z, ẑ)
+    S    = Σ W^c_i ΔZ_i ΔZ_iᵀ + R                 (m, m)
+    C_xz = Σ W^c_i (χ_i − x̄) ΔZ_iᵀ               (n, m)
+    K    = C_xz S⁻¹   (one Cholesky solve with [C_xzᵀ | ν]: gain and NIS share the factor)
+    x⁺   = x̄ + K ν,   P⁺ = P − K S Kᵀ (symmetrised)
 
 Decisions
 ---------
-* Default rule: unscented with ``α = 1, β = 2, κ = 0``: ``λ = 0``, so ``W^m_0 = 0``,
-  ``W^c_0 = 2`` and the other points sit at ±√n standard deviations.  The often quoted
-  ``α = 1e-3`` makes ``W_0 ≈ −10⁶``: the covariance is then a difference of huge terms and
-  loses definiteness in float32; filterpy's ``MerweScaledSigmaPoints`` asks the user for
-  α (its docs suggest 1e-3 too).  We follow Wan & van der Merwe's formulas; the values are
-  arguments of :func:`unscented`.
-* Residuals: the user's ``residual(z, ẑ)`` is used for the innovation *and* for the spread
-  ``Z_i − ẑ``, so angle components wrap in both.  The sigma-point mean of an angle is the
-  weighted mean of the raw values (fine away from ±π, as the EKF's ``h`` is).
-* Additive noise: ``Q`` and ``R`` are added, not augmented into the sigma points; with
-  ``noise_jac`` L the predict adds ``L Q Lᵀ`` evaluated at the prior mean.
-* Masks and gate exactly as the EKF (:mod:`jaxslam.filters.gaussian`): invalid components get
-  zero rows of ``C_xz`` and a unit row/column of ``S``, so their gain columns vanish.
-* Failures never produce NaN: a non-finite Cholesky factor of ``P`` (``NOT_PSD``) or a
-  non-finite result (``NON_FINITE``) keeps the prior and sets the status bit.
+* **Default rule**: unscented with ``α = 1, β = 2, κ = 0``.  Then ``λ = 0``: ``W^m_0 = 0``,
+  ``W^c_0 = 2``, the other 2n points sit at ±√n standard deviations with weight 1/(2n), and
+  *every* covariance weight is ≥ 0, so ``P'`` and ``S`` are sums of PSD terms plus the noise.
+  The weight formulas are the α, β, κ ones above (``W^c_0 = W^m_0 + 1 − α² + β``), but the
+  default α departs from the small value (α = 1e-3, κ = 0) usually recommended with them:
+  that gives ``λ ≈ −n``, ``W_0 ≈ −10⁶/n`` and points at ±1e-3·√n σ, so the covariance is a
+  difference of terms of size 10⁶ P — cancellation costs six digits (all of float32's) and
+  ``P'`` easily loses definiteness.  filterpy has no default (``MerweScaledSigmaPoints``
+  requires α, β, κ; its documentation suggests α = 1e-3, β = 2, κ = 0 or 3 − n); its
+  ``JulierSigmaPoints`` default (κ = 0) has our points and mean weights but ``W^c_0 = 0``.
+  Every value is an argument of :func:`unscented`.
+* **Spread from a Cholesky factor** of ``P`` (lower, ``jnp.linalg.cholesky``; the columns of
+  ``L`` give the points).  If the factor is not finite (``P`` not PD, or not finite), the step
+  keeps the prior, sets ``errors.NOT_PSD`` and produces no NaN: the points are then built from
+  an identity factor and every result computed from them is discarded.  Consequently the
+  sigma-point filter needs a positive-*definite* covariance where the EKF accepts a
+  semi-definite one.
+* **Residuals**: the user's ``residual(z, ẑ)`` forms the innovation *and* the spread
+  ``ΔZ_i = residual(Z_i, ẑ)``; the predicted measurement is anchored at ``h(x̄)``, so with
+  :func:`jaxslam.filters.ekf.angle_residual` a bearing near ±π has a correct ``ẑ``, spread
+  and innovation (a plain weighted mean of values either side of ±π would not).  State means
+  in the predict are plain weighted means (the EKF's ``f`` has no state difference either).
+* **Noise is additive**, not augmented into the sigma points: ``Q`` (and ``R``) are added to
+  the sigma-point covariances.  With ``noise_jac`` ``L`` (n, q), ``L Q Lᵀ`` is added, ``L``
+  evaluated at the prior mean (a callable ``L(x̄, u, *args)``).  Noise entering ``f``
+  nonlinearly is therefore linearised at the mean.
+* ``f = None`` is the identity: ``x̄' = x̄``, ``P' = P + Q``, ``C = P`` exactly (no points).
+* **Masks and gate exactly as the EKF** (:mod:`jaxslam.filters.gaussian`): invalid components
+  get a zero ``ΔZ`` column (so zero rows/columns of ``S`` and zero columns of ``C_xz``), a
+  unit diagonal in ``S`` and a zero innovation, so their gain columns are exactly zero and a
+  fully masked update returns the prior unchanged; NaN/Inf in an invalid component of ``z``
+  or of ``h``'s output never reaches the arithmetic.  The gate compares the NIS over the
+  valid components with a number or ``gate(dof)`` (e.g. ``ekf.chi2_gate``); a gated update
+  keeps the prior and sets ``errors.GATED``.
+* Covariance update ``P − K S Kᵀ`` (not the Joseph form: there is no ``H``).  It can lose
+  definiteness by rounding after a very informative update; the next step's factorisation
+  then flags ``NOT_PSD`` rather than proceeding with NaN.
+* **Failures of a predict**: a non-finite factor of ``P`` (``NOT_PSD``) or a non-finite
+  predicted moment (``NON_FINITE``) keeps the prior moments (cross-covariance ``P``).  The
+  ``GaussianFilter`` protocol has no status output for the predict, so inside a run the flag
+  surfaces through the next update (whose own factorisation of the kept ``P`` fails again);
+  :func:`predict` and :func:`predict_with_cross` return the status with ``return_status``.
+* dtype: every function computes in the dtype of ``state.mean``; weights, ``Q``, ``R``, ``z``
+  and the model outputs are cast to it.
+* Cost per step: 2n + 1 (or 2n) evaluations of ``f`` and ``h`` (``vmap``-ed), one n×n and one
+  m×m Cholesky; no Jacobians, so ``f`` and ``h`` need not be differentiable except under
+  ``jax.grad`` of the run.
+* The rule is static: build it once (``unscented(...)``, ``cubature()``) and close over it or
+  pass it as a static argument; it is a ``NamedTuple`` of Python numbers and a string.
 """
 
 from __future__ import annotations
@@ -45,7 +100,9 @@ from typing import Any, Callable, NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
+from .. import errors
 from ..errors import InputError
 from ..linalg import symmetrize
 from . import gaussian as _g
@@ -62,7 +119,8 @@ from .gaussian import (
 )
 
 __all__ = [
-    "SigmaRule",
+    "SigmaPoints",
+    "SigmaSet",
     "unscented",
     "cubature",
     "sigma_points",
@@ -76,168 +134,409 @@ __all__ = [
 Array = Any
 
 
-class SigmaRule(NamedTuple):
-    """A sigma-point rule (static): ``kind`` "unscented" | "cubature" and its parameters."""
+class SigmaSet(NamedTuple):
+    """Sigma points of one Gaussian and their weights.
+
+    Fields:
+        points: (N, n) sigma points, N = 2n + 1 (unscented, ``points[0]`` the mean) or 2n
+            (cubature); rows ``1..n`` (resp. ``0..n−1``) are ``x̄ + c L e_i``, the next n
+            ``x̄ − c L e_i``.
+        wm: (N,) mean weights (sum 1).
+        wc: (N,) covariance weights.
+        ok: () bool, False when the Cholesky factor of the covariance is not finite; the
+            points are then built from an identity factor and must not be used.
+    """
+
+    points: Array
+    wm: Array
+    wc: Array
+    ok: Array
+
+
+class SigmaPoints(NamedTuple):
+    """A sigma-point rule: a static description, callable on a Gaussian.
+
+    Build it with :func:`unscented` or :func:`cubature`.  ``rule(mean, cov)`` returns a
+    :class:`SigmaSet` (points (N, n), weights ``wm``, ``wc`` (N,), factorisation flag) in the
+    dtype of ``mean``.
+
+    Fields:
+        kind: "unscented" (2n + 1 points) or "cubature" (2n points).
+        alpha, beta, kappa: the scaled unscented parameters (ignored by "cubature").
+    """
 
     kind: str = "unscented"
     alpha: float = 1.0
     beta: float = 2.0
     kappa: float = 0.0
 
+    @property
+    def has_center(self) -> bool:
+        """True when the rule includes the mean as a point (unscented)."""
+        return self.kind == "unscented"
 
-def unscented(alpha: float = 1.0, beta: float = 2.0, kappa: float = 0.0) -> SigmaRule:
-    """The scaled unscented rule (2n + 1 points; module docstring)."""
-    if not alpha > 0:
-        raise InputError(f"alpha: must be > 0, got {alpha}")
-    return SigmaRule("unscented", float(alpha), float(beta), float(kappa))
+    def num_points(self, n: int) -> int:
+        """N, the number of points for an n-dimensional Gaussian."""
+        return 2 * n + 1 if self.has_center else 2 * n
+
+    def weights(self, n: int):
+        """Host-side float64 ``(wm (N,), wc (N,), c)`` with ``c`` the spread in σ units.
+
+        Raises :class:`InputError` for an unknown rule or for ``n + λ ≤ 0``.
+        """
+        if self.kind == "cubature":
+            w = np.full((2 * n,), 1.0 / (2 * n))
+            return w, w.copy(), float(np.sqrt(n))
+        if self.kind != "unscented":
+            raise InputError(f"points: unknown sigma-point rule {self.kind!r} "
+                             "(unscented or cubature)")
+        a, b, k = float(self.alpha), float(self.beta), float(self.kappa)
+        lam = a * a * (n + k) - n
+        if not n + lam > 0:
+            raise InputError(f"points: n + λ = α²(n + κ) = {n + lam:g} must be > 0 for n = {n} "
+                             "(raise alpha or kappa)")
+        wm = np.full((2 * n + 1,), 1.0 / (2.0 * (n + lam)))
+        wm[0] = lam / (n + lam)
+        wc = wm.copy()
+        wc[0] += 1.0 - a * a + b
+        return wm, wc, float(np.sqrt(n + lam))
+
+    def __call__(self, mean, cov) -> SigmaSet:
+        return sigma_points(mean, cov, self)
 
 
-def cubature() -> SigmaRule:
-    """The third-degree spherical-radial cubature rule (2n points, equal weights)."""
-    return SigmaRule("cubature")
+def unscented(alpha: float = 1.0, beta: float = 2.0, kappa: float = 0.0) -> SigmaPoints:
+    """The scaled unscented rule, 2n + 1 points (weights in the module docstring).
 
+    Args:
+        alpha: spread, > 0; the points sit at ±α√(n + κ) σ.  Default 1 (module docstring:
+            α = 1e-3 with κ = 0 makes ``W_0 ≈ −10⁶/n`` and is numerically fragile).
+        beta: prior knowledge of the distribution; 2 is optimal for a Gaussian.  Enters only
+            ``W^c_0``.
+        kappa: secondary scaling; ``α²(n + κ)`` must be > 0 (checked when n is known).
 
-def _weights(rule: SigmaRule, n: int, dtype):
-    if rule.kind == "cubature":
-        w = jnp.full((2 * n,), 1.0 / (2 * n), dtype)
-        return w, w, float(n) ** 0.5
-    if rule.kind != "unscented":
-        raise InputError(f"points: unknown sigma-point rule {rule.kind!r} (unscented, cubature)")
-    lam = rule.alpha**2 * (n + rule.kappa) - n
-    if n + lam <= 0:
-        raise InputError(f"points: n + λ = {n + lam:g} must be > 0 (raise alpha or kappa)")
-    wi = 1.0 / (2.0 * (n + lam))
-    wm = jnp.concatenate([jnp.asarray([lam / (n + lam)], dtype), jnp.full((2 * n,), wi, dtype)])
-    wc = wm.at[0].add(1.0 - rule.alpha**2 + rule.beta)
-    return wm, wc, (n + lam) ** 0.5
-
-
-def sigma_points(mean, cov, rule: SigmaRule = SigmaRule()):
-    """Sigma points and weights of ``N(mean, cov)``.
-
-    Returns ``(points (N, n), Wm (N,), Wc (N,), ok)``; ``ok`` is False when the Cholesky
-    factor of ``cov`` is not finite (the points are then computed from an identity factor
-    and must not be used).
+    Returns:
+        :class:`SigmaPoints` (static; hashable).
     """
-    n = mean.shape[0]
+    for v, nm in ((alpha, "alpha"), (beta, "beta"), (kappa, "kappa")):
+        if not np.isfinite(float(v)):
+            raise InputError(f"{nm}: must be finite, got {v}")
+    if not float(alpha) > 0:
+        raise InputError(f"alpha: must be > 0, got {alpha}")
+    return SigmaPoints("unscented", float(alpha), float(beta), float(kappa))
+
+
+def cubature() -> SigmaPoints:
+    """The third-degree spherical-radial cubature rule: 2n points at ±√n σ, weights 1/(2n)."""
+    return SigmaPoints("cubature", 1.0, 0.0, 0.0)
+
+
+def _rule(points: Optional[SigmaPoints]) -> SigmaPoints:
+    if points is None:
+        return unscented()
+    if not isinstance(points, SigmaPoints):
+        raise InputError(f"points: expected a SigmaPoints rule (ukf.unscented() or "
+                         f"ukf.cubature()), got {type(points).__name__}")
+    return points
+
+
+def sigma_points(mean, cov, points: Optional[SigmaPoints] = None) -> SigmaSet:
+    """Sigma points and weights of ``N(mean, cov)`` under a rule (default :func:`unscented`).
+
+    Args:
+        mean: (n,) mean; its dtype is the dtype of the result.
+        cov: (n, n) covariance, factored as ``L Lᵀ`` (lower Cholesky, after symmetrising).
+        points: the rule.
+
+    Returns:
+        :class:`SigmaSet` ``(points (N, n), wm (N,), wc (N,), ok)``.
+    """
+    rule = _rule(points)
+    mean = jnp.asarray(mean)
     dtype = mean.dtype
-    wm, wc, c = _weights(rule, n, dtype)
-    L = jnp.linalg.cholesky(symmetrize(cov))
+    n = mean.shape[0]
+    wm, wc, c = rule.weights(n)
+    L = jnp.linalg.cholesky(symmetrize(jnp.asarray(cov, dtype)))
     ok = jnp.all(jnp.isfinite(L))
     L = jnp.where(ok, L, jnp.eye(n, dtype=dtype))
-    D = c * L.T  # rows: c L e_i
-    pts = jnp.concatenate([mean + D, mean - D], 0)
-    if rule.kind == "unscented":
-        pts = jnp.concatenate([mean[None], pts], 0)
-    return pts, wm, wc, ok
+    D = jnp.asarray(c, dtype) * L.T  # row i: c L e_i
+    pts = jnp.concatenate([mean + D, mean - D], axis=0)
+    if rule.has_center:
+        pts = jnp.concatenate([mean[None], pts], axis=0)
+    return SigmaSet(pts, jnp.asarray(wm, dtype), jnp.asarray(wc, dtype), ok)
 
 
-def predict_with_cross(state: Gaussian, f: Optional[Callable], u, Q, *args,
-                       points: SigmaRule = SigmaRule(), noise_jac=None):
-    """Sigma-point time update; returns ``(Gaussian, cross)`` with ``cross = Cov(x, x')`` (n, n)."""
+# ---------------------------------------------------------------------------
+# Predict
+# ---------------------------------------------------------------------------
+
+def _process_noise(x, u, Q, args, noise_jac, dtype):
+    Qd = jnp.asarray(Q, dtype)
+    if noise_jac is not None:
+        L = noise_jac(x, u, *args) if callable(noise_jac) else noise_jac
+        L = jnp.asarray(L, dtype)
+        Qd = L @ Qd @ L.T
+    return Qd
+
+
+def _predict(state: Gaussian, f: Optional[Callable], u, Q, args, rule: SigmaPoints, noise_jac):
+    """``(Gaussian, cross, status)`` of one sigma-point time update."""
     x, P = state
     dtype = x.dtype
-    fm = (lambda v, u_, *a: v) if f is None else f
-    pts, wm, wc, ok = sigma_points(x, P, points)
-    X = jax.vmap(lambda p: fm(p, u, *args))(pts).astype(dtype)
+    P = jnp.asarray(P, dtype)
+    Qd = _process_noise(x, u, Q, args, noise_jac, dtype)
+    if f is None:
+        return Gaussian(x, symmetrize(P + Qd)), P, jnp.int32(errors.OK)
+    pts, wm, wc, ok = sigma_points(x, P, rule)
+    X = jax.vmap(lambda p: f(p, u, *args))(pts).astype(dtype)  # (N, n)
     xm = wm @ X
     dX = X - xm
     dx = pts - x
-    Qd = jnp.asarray(Q, dtype)
-    if noise_jac is not None:
-        Lm = noise_jac(x, u, *args) if callable(noise_jac) else noise_jac
-        Lm = jnp.asarray(Lm, dtype)
-        Qd = Lm @ Qd @ Lm.T
     Pn = symmetrize((dX * wc[:, None]).T @ dX + Qd)
-    C = (dx * wc[:, None]).T @ dX
-    good = ok & jnp.all(jnp.isfinite(xm)) & jnp.all(jnp.isfinite(Pn))
-    # A failed prediction keeps the prior moments (flagged by the next update's status).
-    return Gaussian(jnp.where(good, xm, x), jnp.where(good, Pn, P)), jnp.where(good, C, P)
+    C = (dx * wc[:, None]).T @ dX  # Cov(x, x')
+    finite = jnp.all(jnp.isfinite(xm)) & jnp.all(jnp.isfinite(Pn)) & jnp.all(jnp.isfinite(C))
+    good = ok & finite
+    i32 = jnp.int32
+    status = jnp.where(~ok, i32(errors.NOT_PSD), i32(0)) | jnp.where(
+        ok & ~finite, i32(errors.NON_FINITE), i32(0))
+    out = Gaussian(jnp.where(good, xm, x), jnp.where(good, Pn, P))
+    return out, jnp.where(good, C, P), status
+
+
+def predict_with_cross(state: Gaussian, f: Optional[Callable], u, Q, *args,
+                       points: Optional[SigmaPoints] = None, noise_jac=None,
+                       return_status: bool = False):
+    """Sigma-point time update that also returns ``C = Cov(x, x')``.
+
+    ``X_i = f(χ_i, u, *args)``, ``x̄' = Σ W^m X_i``, ``P' = Σ W^c (X_i − x̄')(X_i − x̄')ᵀ + Q``
+    (symmetrised), ``C = Σ W^c (χ_i − x̄)(X_i − x̄')ᵀ`` — the predict of
+    :func:`make_filter`'s ``GaussianFilter`` (``C`` is what the RTS smoother consumes).
+
+    Args:
+        state, f, u, Q, *args, noise_jac: as in :func:`predict`.
+        points: the rule (default :func:`unscented`), static.
+        return_status: static; also return the int32 status (``NOT_PSD`` / ``NON_FINITE``).
+
+    Returns:
+        ``(Gaussian, C (n, n))`` or ``(Gaussian, C, status)``.  On failure the prior moments
+        and ``C = P`` (no NaN).
+    """
+    g, C, status = _predict(state, f, u, Q, args, _rule(points), noise_jac)
+    return (g, C, status) if return_status else (g, C)
 
 
 def predict(state: Gaussian, f: Optional[Callable], u, Q, *args,
-            points: SigmaRule = SigmaRule(), noise_jac=None) -> Gaussian:
-    """Sigma-point time update (module docstring); same arguments as ``ekf.predict`` plus ``points``."""
-    return predict_with_cross(state, f, u, Q, *args, points=points, noise_jac=noise_jac)[0]
+            points: Optional[SigmaPoints] = None, noise_jac=None,
+            return_status: bool = False):
+    """Sigma-point time update (module docstring); the arguments of ``ekf.predict`` plus ``points``.
 
+    ``x̄' = Σ W^m f(χ_i, u, *args)``, ``P' = Σ W^c (X_i − x̄')(X_i − x̄')ᵀ + Q`` or
+    ``+ L Q Lᵀ`` with a noise Jacobian; the result is symmetrised.
+
+    Args:
+        state: prior :class:`Gaussian`, mean (n,), cov (n, n) positive definite.
+        f: discrete transition ``f(x (n,), u, *args) -> (n,)`` over one step, or None
+            (identity: ``P' = P + Q``).
+        u: control/input of the step (any pytree).
+        Q: (n, n) discrete process-noise covariance, or (q, q) with ``noise_jac``.
+        *args: extra arguments passed to ``f`` (and ``noise_jac``).
+        points: the rule (default :func:`unscented`), static.
+        noise_jac: None, an (n, q) matrix ``L``, or a callable ``L(x, u, *args) -> (n, q)``
+            evaluated at the prior mean (the noise is not augmented into the points).
+        return_status: static; also return the int32 status word.
+
+    Returns:
+        Predicted :class:`Gaussian` in the dtype of ``state.mean`` (and the status).  If the
+        factor of ``P`` is not finite (``NOT_PSD``) or the prediction is not finite
+        (``NON_FINITE``) the prior is returned unchanged.
+    """
+    g, _, status = _predict(state, f, u, Q, args, _rule(points), noise_jac)
+    return (g, status) if return_status else g
+
+
+# ---------------------------------------------------------------------------
+# Update
+# ---------------------------------------------------------------------------
 
 def _default_residual(z, zhat):
     return z - zhat
 
 
-def update(state: Gaussian, z, h: Callable, R, *args, residual: Optional[Callable] = None,
-           mask=None, gate: Gate = None, points: SigmaRule = SigmaRule()):
-    """Sigma-point measurement update with masks and a χ² gate (module docstring).
+def update(
+    state: Gaussian,
+    z,
+    h: Callable,
+    R,
+    *args,
+    residual: Optional[Callable] = None,
+    mask=None,
+    gate: Gate = None,
+    points: Optional[SigmaPoints] = None,
+):
+    """Sigma-point measurement update with masks and a chi-square gate.
 
-    Same arguments and returns as :func:`jaxslam.filters.ekf.update` (``points`` picks the
-    rule): ``(posterior Gaussian, UpdateInfo)``; on a failed factorisation (``NOT_PSD``) or a
-    non-finite posterior (``NON_FINITE``) the prior is returned unchanged.
+    ``Z_i = h(χ_i, *args)``, ``ẑ = Σ W^m Z_i`` (anchored at ``h(x̄)``), ``ν = residual(z, ẑ)``,
+    ``S = Σ W^c ΔZ_i ΔZ_iᵀ + R``, ``C = Σ W^c (χ_i − x̄) ΔZ_iᵀ`` with
+    ``ΔZ_i = residual(Z_i, ẑ)``, ``K = C S⁻¹`` (Cholesky), ``x⁺ = x + K ν``,
+    ``P⁺ = P − K S Kᵀ`` (symmetrised).
+
+    Args:
+        state: prior :class:`Gaussian`, mean (n,), cov (n, n) positive definite.
+        z: (m,) measurement, in the units of ``h``'s output.
+        h: measurement model ``h(x (n,), *args) -> (m,)``.
+        R: (m, m) measurement-noise covariance.
+        *args: extra arguments of ``h`` (e.g. a landmark position).
+        residual: ``residual(z, ẑ) -> (m,)``; default ``z − ẑ``.  Use
+            :func:`jaxslam.filters.ekf.angle_residual` for components in radians (it also
+            wraps the sigma-point spread).
+        mask: (m,) bool, True for valid components (default: all valid).  Invalid
+            components contribute nothing, whatever ``z`` (or ``h``) holds there.
+        gate: None (no gate), a chi-square threshold on the NIS, or a callable
+            ``gate(dof) -> threshold``.  When the NIS exceeds it the state is returned
+            unchanged and ``errors.GATED`` is set.
+        points: the rule (default :func:`unscented`), static.
+
+    Returns:
+        ``(posterior Gaussian, UpdateInfo)``.  If the factor of ``P`` or of ``S`` is not
+        finite (``NOT_PSD``; NIS and ``logdet`` then 0) or the posterior is not finite
+        (``NON_FINITE``), the prior is returned unchanged.
     """
+    rule = _rule(points)
     x, P = state
     dtype = x.dtype
+    P = jnp.asarray(P, dtype)
     z = jnp.asarray(z, dtype)
     R = jnp.asarray(R, dtype)
     m = z.shape[-1]
     n = x.shape[0]
     mask = jnp.ones((m,), bool) if mask is None else jnp.asarray(mask, bool)
     res = _default_residual if residual is None else residual
-    pts, wm, wc, ok_pts = sigma_points(x, P, points)
-    Z = jax.vmap(lambda p: h(p, *args))(pts).astype(dtype)
-    zhat = wm @ Z
-    dZ = jax.vmap(lambda zi: res(zi, zhat))(Z)
     zero = jnp.zeros((), dtype)
-    dZ = jnp.where(mask[None, :], dZ, zero)
-    dx = pts - x
+
+    pts, wm, wc, ok_pts = sigma_points(x, P, rule)
+    Z = jax.vmap(lambda p: h(p, *args))(pts).astype(dtype)  # (N, m)
+    zref = Z[0] if rule.has_center else jnp.asarray(h(x, *args), dtype)
+    Z = jnp.where(mask[None, :], Z, zero)  # invalid outputs never reach the arithmetic
+    zref = jnp.where(mask, zref, zero)
+    zhat = zref + wm @ jax.vmap(lambda zi: res(zi, zref))(Z)
+    dZ = jnp.where(mask[None, :], jax.vmap(lambda zi: res(zi, zhat))(Z), zero)  # (N, m)
+    dx = pts - x  # (N, n)
     mm = mask[:, None] & mask[None, :]
     S = symmetrize(jnp.where(mm, (dZ * wc[:, None]).T @ dZ + R, jnp.eye(m, dtype=dtype)))
-    Cxz = (dx * wc[:, None]).T @ dZ  # (n, m), zero columns where masked
+    Cxz = (dx * wc[:, None]).T @ dZ  # (n, m); zero columns on invalid components
     nu = masked_innovation(z, zhat, mask, res)
-    X, ok, logdet = innovation_solve(S, jnp.concatenate([Cxz.T, nu[:, None]], axis=1))
+    X, ok_s, logdet = innovation_solve(S, jnp.concatenate([Cxz.T, nu[:, None]], axis=1))
     K = X[:, :n].T  # C S⁻¹
-    nis = jnp.dot(nu, X[:, n])
+    ok = ok_s & ok_pts
+    nis = jnp.where(ok, jnp.dot(nu, X[:, n]), zero)
     x_post = x + K @ nu
     P_post = symmetrize(P - K @ S @ K.T)
     dof = jnp.sum(mask).astype(jnp.int32)
-    ok = ok & ok_pts
-    gated = (dof > 0) & (nis > threshold(gate, dof, dtype)) if gate is not None else jnp.asarray(False)
-    post, accepted, status = finalize(state, x_post, P_post, ok, gated, dof)
+    if gate is None:
+        gated = jnp.asarray(False)
+    else:
+        gated = (dof > 0) & (nis > threshold(gate, dof, dtype))
+    post, accepted, status = finalize(Gaussian(x, P), x_post, P_post, ok, gated, dof)
     logdet = jnp.where(ok & (dof > 0), logdet, zero)
     return post, UpdateInfo(nis, dof, nu, S, accepted, status, logdet)
 
 
-def make_filter(f: Optional[Callable], h: Callable, *args, residual: Optional[Callable] = None,
-                gate: Gate = None, noise_jac=None, points: Optional[SigmaRule] = None,
-                h_takes_input: bool = False) -> GaussianFilter:
+# ---------------------------------------------------------------------------
+# Whole run
+# ---------------------------------------------------------------------------
+
+def make_filter(
+    f: Optional[Callable],
+    h: Callable,
+    *args,
+    residual: Optional[Callable] = None,
+    gate: Gate = None,
+    noise_jac=None,
+    points: Optional[SigmaPoints] = None,
+    h_takes_input: bool = False,
+) -> GaussianFilter:
     """The sigma-point filter as a :class:`jaxslam.filters.gaussian.GaussianFilter`.
 
-    Same arguments as :func:`jaxslam.filters.ekf.make_filter` (``points``: the rule, default
-    :func:`unscented`).
+    Args:
+        f: transition ``f(x, u, *args) -> (n,)``, or None for a model whose state does not
+            move (identity, ``P' = P + Q``).
+        h: measurement model ``h(x, *args)``, or ``h(x, c, *args)`` with the step's input
+            ``c`` when ``h_takes_input``.
+        *args: shared extra arguments of both ``f`` and ``h``.
+        residual, gate: as in :func:`update`.  noise_jac: as in :func:`predict`.
+        points: the rule (default :func:`unscented`), static.
+        h_takes_input: static; ``h`` receives the per-step ``h_inputs`` of the run.
+
+    Returns:
+        ``GaussianFilter(predict, update)``; ``predict`` returns the sigma-point
+        cross-covariance ``Cov(x, x')`` beside the predicted belief (what the RTS smoother
+        needs).
     """
-    rule = SigmaRule() if points is None else points
+    rule = _rule(points)
 
     def pred(state, u, Q):
-        return predict_with_cross(state, f, u, Q, *args, points=rule, noise_jac=noise_jac)
+        g, C, _ = _predict(state, f, u, Q, args, rule, noise_jac)
+        return g, C
 
     def upd(state, z, mask, R, c):
         hh = (lambda x, *a: h(x, c, *a)) if h_takes_input else h
-        return update(state, z, hh, R, *args, residual=residual, mask=mask, gate=gate, points=rule)
+        return update(state, z, hh, R, *args, residual=residual, mask=mask, gate=gate,
+                      points=rule)
 
     return GaussianFilter(pred, upd)
 
 
-def filter_scan(f: Optional[Callable], h: Callable, x0, P0, us, zs, masks, Q, R, *args,
-                residual: Optional[Callable] = None, gate: Gate = None, save_cov: bool = False,
-                predict_first: bool = True, noise_jac=None, points: Optional[SigmaRule] = None,
-                h_inputs=None, save_smoother: bool = False) -> Posterior:
-    """Sigma-point filter over a whole sequence as one ``lax.scan``.
+def filter_scan(
+    f: Optional[Callable],
+    h: Callable,
+    x0,
+    P0,
+    us,
+    zs,
+    masks,
+    Q,
+    R,
+    *args,
+    residual: Optional[Callable] = None,
+    gate: Gate = None,
+    save_cov: bool = False,
+    predict_first: bool = True,
+    noise_jac=None,
+    points: Optional[SigmaPoints] = None,
+    h_inputs=None,
+    save_smoother: bool = False,
+) -> Posterior:
+    """Run sigma-point predict + update over a whole sequence as one ``lax.scan``.
 
-    The arguments and the :class:`~jaxslam.filters.gaussian.Posterior` are those of
-    :func:`jaxslam.filters.ekf.filter_scan`; ``points`` picks the rule (static).  With
-    ``save_smoother`` the cross-covariances are the sigma-point ones, so
-    :func:`jaxslam.filters.smoother.rts` is then the unscented RTS smoother.
+    Step t (``predict_first=True``): predict with ``u_t`` (:func:`predict`), then update with
+    ``z_t`` under ``masks[t]`` (:func:`update`).  Jit it with ``f``, ``h``, ``residual``, a
+    callable ``gate``, ``save_cov``, ``predict_first``, ``points`` and ``save_smoother``
+    static; vmap it over runs.  The same run as ``gaussian.run(make_filter(f, h, ...), ...)``.
+
+    Args:
+        f: transition ``f(x, u, *args) -> (n,)`` (None: the state does not move).
+        h: measurement model ``h(x, *args) -> (m,)``, or ``h(x, c_t, *args)`` when
+            ``h_inputs`` is given.
+        x0: (n,) initial mean.  P0: (n, n) initial covariance (positive definite).
+        us: controls with leading axis T (array or pytree; None if unused).
+        zs: (T, m) measurements.
+        masks: (T, m) bool validity (None: all valid).
+        Q: (n, n) (or (q, q) with ``noise_jac``) process noise, or one per step (T, n, n).
+            R: (m, m) or (T, m, m).
+        *args: shared extra arguments of both ``f`` and ``h``.
+        residual, gate: as in :func:`update`.
+        save_cov: static; also stack full covariances (T, n, n).
+        predict_first: static; step order (see :mod:`jaxslam.filters.gaussian`).
+        noise_jac: as in :func:`predict`.
+        points: the rule (default :func:`unscented`), static.
+        h_inputs: per-step inputs of the measurement model (leading axis T).
+        save_smoother: static; save what :func:`jaxslam.filters.smoother.rts` needs (with
+            the sigma-point cross-covariances: the unscented RTS smoother).
+
+    Returns:
+        :class:`Posterior` in the dtype of ``x0`` (``log_likelihood`` per step included).
     """
     flt = make_filter(f, h, *args, residual=residual, gate=gate, noise_jac=noise_jac,
                       points=points, h_takes_input=h_inputs is not None)
-    return _g.run(flt, x0, P0, us, zs, masks, Q, R, h_inputs=h_inputs, predict_first=predict_first,
-                  save_cov=save_cov, save_smoother=save_smoother)
-
+    return _g.run(flt, x0, P0, us, zs, masks, Q, R, h_inputs=h_inputs,
+                  predict_first=predict_first, save_cov=save_cov, save_smoother=save_smoother)

@@ -1,0 +1,177 @@
+"""Square-root sigma-point filter: the UKF / cubature filter propagating a Cholesky factor.
+
+The beliefs are :class:`jaxslam.filters.sqrt_ekf.SqrtGaussian` (``P = L Lᵀ``) and ``P`` is
+never formed; the moments are those of :mod:`jaxslam.filters.ukf` (same rules, same masks,
+gate and status flags), so in exact arithmetic both filters give the same estimates.
+
+Equations (weights ``W^c_i ≥ 0`` required: the cubature rule, or the unscented rule with
+``W^c_0 ≥ 0``, e.g. the default α = 1, β = 2, κ = 0)::
+
+    X = [√W^c_i (χ_i − x̄)]  (n × N),   Y = [√W^c_i (Z_i − ẑ)]  (m × N)
+    predict:  L' = tria([√W^c_i (f(χ_i) − x̄'),  L_Q])
+    update:   A = Y Xᵀ (L Lᵀ)⁻¹ (the statistical linearisation of h; X Xᵀ = P exactly)
+              E = Y − A X        (its residual; E Eᵀ = Σ_z − A P Aᵀ, the linearisation error)
+              tria([[L_R, E, A L], [0, 0, L]]) = [[S^½, 0, 0], [K̄, L⁺, 0]]
+              x⁺ = x̄ + K̄ S^{-½} ν,  NIS = ‖S^{-½} ν‖²
+
+With ``R' = R + E Eᵀ`` the update is the linear square-root update of
+:func:`jaxslam.filters.sqrt_ekf.update` with ``H = A``: ``A P Aᵀ + R' = Σ_z + R = S`` and
+``P Aᵀ = X Yᵀ = C``, so the gain and the posterior are the sigma-point filter's, obtained from
+one QR without the subtraction ``P − K S Kᵀ`` that can lose definiteness in float32.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable, Optional
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import errors
+from ..errors import InputError
+from ..linalg import symmetrize
+from .gaussian import Gate, UpdateInfo, masked_innovation, threshold
+from .sqrt_ekf import SqrtGaussian, SqrtPosterior, _mm, _root, _tria
+from .ukf import SigmaPoints, unscented
+
+__all__ = ["predict", "update", "filter_scan"]
+
+Array = Any
+
+
+def _points(state: SqrtGaussian, rule: SigmaPoints):
+    """Points from the factor itself (no Cholesky of P): ``(points, x − x̄, W^m, √W^c)``."""
+    x = state.mean
+    L = state.chol
+    n = x.shape[0]
+    wm, wc, c = rule.weights(n)
+    if wc.min() < 0:
+        raise InputError(f"points: the square-root form needs every covariance weight >= 0, got "
+                         f"W^c_0 = {wc[0]:.3g} (use alpha=1, beta=2, kappa=0, or ukf.cubature())")
+    D = jnp.asarray(c, x.dtype) * L.T
+    dx = jnp.concatenate([D, -D], 0)
+    if rule.has_center:
+        dx = jnp.concatenate([jnp.zeros((1, n), x.dtype), dx], 0)
+    return x + dx, dx, jnp.asarray(wm, x.dtype), jnp.asarray(np.sqrt(wc), x.dtype)
+
+
+def predict(state: SqrtGaussian, f: Optional[Callable], u, Q, *args,
+            points: Optional[SigmaPoints] = None, Q_chol=None) -> SqrtGaussian:
+    """Square-root sigma-point time update (module docstring); ``Q`` a covariance or ``Q_chol`` a root."""
+    x = state.mean
+    dtype = x.dtype
+    fm = (lambda v, u_, *a: v) if f is None else f
+    pts, _, wm, sw = _points(state, unscented() if points is None else points)
+    X = jax.vmap(lambda p: fm(p, u, *args))(pts).astype(dtype)
+    xm = wm @ X
+    C = jnp.asarray(Q_chol, dtype) if Q_chol is not None else _root(Q, dtype, triangular=False)
+    L = _tria(jnp.concatenate([((X - xm) * sw[:, None]).T, C], axis=1))
+    good = jnp.all(jnp.isfinite(xm)) & jnp.all(jnp.isfinite(L))
+    return SqrtGaussian(jnp.where(good, xm, x), jnp.where(good, L, state.chol))
+
+
+def update(state: SqrtGaussian, z, h: Callable, R, *args, residual: Optional[Callable] = None,
+           mask=None, gate: Gate = None, points: Optional[SigmaPoints] = None):
+    """Square-root sigma-point measurement update; same semantics as :func:`jaxslam.filters.ukf.update`.
+
+    Returns ``(posterior SqrtGaussian, UpdateInfo)`` (``S`` formed from its factor, ``logdet``
+    over the valid block).  A singular factor (``NOT_PSD``) or a non-finite posterior
+    (``NON_FINITE``) keeps the prior.
+    """
+    x = state.mean
+    dtype = x.dtype
+    L = jnp.asarray(state.chol, dtype)
+    z = jnp.asarray(z, dtype)
+    R = jnp.asarray(R, dtype)
+    m = z.shape[-1]
+    n = x.shape[0]
+    mask = jnp.ones((m,), bool) if mask is None else jnp.asarray(mask, bool)
+    res = (lambda a, b: a - b) if residual is None else residual
+    zero = jnp.zeros((), dtype)
+    eye_m = jnp.eye(m, dtype=dtype)
+    pts, dx, wm, sw = _points(SqrtGaussian(x, L), unscented() if points is None else points)
+    Z = jax.vmap(lambda p: h(p, *args))(pts).astype(dtype)
+    zhat = wm @ Z
+    dZ = jnp.where(mask[None, :], jax.vmap(lambda zi: res(zi, zhat))(Z), zero)
+    Xs = (dx * sw[:, None]).T  # (n, N)
+    Ys = (dZ * sw[:, None]).T  # (m, N)
+    # A = Y Xᵀ P⁻¹ by two triangular solves with L (P = L Lᵀ = X Xᵀ)
+    d_ok = jnp.all(jnp.diagonal(L) > 0) & jnp.all(jnp.isfinite(L))
+    Ls = jnp.where(d_ok, L, jnp.eye(n, dtype=dtype))
+    YXt = _mm(Ys, Xs.T)  # (m, n) = Cᵀ
+    tmp = jax.scipy.linalg.solve_triangular(Ls, YXt.T, lower=True)  # L⁻¹ C
+    A = jax.scipy.linalg.solve_triangular(Ls.T, tmp, lower=False).T  # C P⁻¹... as (m, n)
+    E = Ys - _mm(A, Xs)
+    mm = mask[:, None] & mask[None, :]
+    L_R = jnp.linalg.cholesky(symmetrize(jnp.where(mm, R, eye_m)))
+    pre = jnp.block([[L_R, E, _mm(A, Ls)],
+                     [jnp.zeros((n, m), dtype), jnp.zeros((n, E.shape[1]), dtype), Ls]])
+    B = _tria(pre)
+    S_half = jnp.where(mm, B[:m, :m], eye_m)
+    Kbar = jnp.where(mask[None, :], B[m:, :m], zero)
+    L_post = B[m:, m:m + n]
+    d = jnp.diagonal(S_half)
+    ok = d_ok & jnp.all(jnp.isfinite(S_half)) & jnp.all(d > 0)
+    S_safe = jnp.where(ok, S_half, eye_m)
+    nu = masked_innovation(z, zhat, mask, res)
+    w = jax.scipy.linalg.solve_triangular(S_safe, nu, lower=True)
+    nis = jnp.dot(w, w)
+    x_post = x + _mm(Kbar, w)
+    dof = jnp.sum(mask).astype(jnp.int32)
+    gated = ((dof > 0) & (nis > threshold(gate, dof, dtype))) if gate is not None else jnp.asarray(False)
+    finite = jnp.all(jnp.isfinite(x_post)) & jnp.all(jnp.isfinite(L_post))
+    has = dof > 0
+    accepted = has & ~gated & ok & finite
+    i32 = jnp.int32
+    status = (jnp.where(gated, i32(errors.GATED), i32(0))
+              | jnp.where(has & ~gated & ~ok, i32(errors.NOT_PSD), i32(0))
+              | jnp.where(has & ~gated & ok & ~finite, i32(errors.NON_FINITE), i32(0)))
+    post = SqrtGaussian(jnp.where(accepted, x_post, x), jnp.where(accepted, L_post, L))
+    logdet = jnp.where(ok & has, 2.0 * jnp.sum(jnp.log(jnp.where(mask, jnp.abs(jnp.diagonal(S_safe)), 1.0))),
+                       zero)
+    return post, UpdateInfo(nis, dof, nu, symmetrize(_mm(S_half, S_half.T)), accepted, status, logdet)
+
+
+def filter_scan(f: Optional[Callable], h: Callable, x0, P0, us, zs, masks, Q, R, *args,
+                residual: Optional[Callable] = None, gate: Gate = None, predict_first: bool = True,
+                points: Optional[SigmaPoints] = None, save_chol: bool = False) -> SqrtPosterior:
+    """Square-root sigma-point filter over a whole sequence (one ``lax.scan``).
+
+    Arguments as :func:`jaxslam.filters.sqrt_ekf.filter_scan` (``Q`` (n, n) or (T, n, n) is
+    factored once per matrix before the scan) plus ``points`` (static).  Returns
+    :class:`~jaxslam.filters.sqrt_ekf.SqrtPosterior`.
+    """
+    from .gaussian import check_run_inputs
+
+    rule = unscented() if points is None else points
+    x0 = jnp.asarray(x0)
+    dtype = x0.dtype if jnp.issubdtype(x0.dtype, jnp.floating) else jnp.result_type(float)
+    x0 = x0.astype(dtype)
+    zs = jnp.asarray(zs, dtype)
+    T, m = check_run_inputs(x0, P0, zs, masks, Q, R)
+    masks = jnp.ones((T, m), bool) if masks is None else jnp.asarray(masks, bool)
+    L0 = _root(jnp.asarray(P0, dtype), dtype)
+    Qa = jnp.asarray(Q, dtype)
+    q_step = Qa.ndim == 3
+    CQ = jax.vmap(lambda q: _root(q, dtype, triangular=False))(Qa) if q_step else _root(Qa, dtype, triangular=False)
+    Ra = jnp.asarray(R, dtype)
+    r_step = Ra.ndim == 3
+
+    def step(carry, inp):
+        state, _ = carry
+        u, z, mk, cq, rt = inp
+        cq = cq if q_step else CQ
+        rt = rt if r_step else Ra
+        if predict_first:
+            state = predict(state, f, u, None, *args, points=rule, Q_chol=cq)
+        post, info = update(state, z, h, rt, *args, residual=residual, mask=mk, gate=gate, points=rule)
+        nxt = post if predict_first else predict(post, f, u, None, *args, points=rule, Q_chol=cq)
+        out = (post.mean, jnp.sum(post.chol**2, axis=1), post.chol if save_chol else None,
+               info.nis, info.dof, info.status)
+        return (nxt, post), out
+
+    xs = (us, zs, masks, CQ if q_step else None, Ra if r_step else None)
+    init = SqrtGaussian(x0, L0)
+    (_, final), (means, diags, chols, nis, dof, status) = jax.lax.scan(step, (init, init), xs, length=T)
+    return SqrtPosterior(means, diags, chols, nis, dof, status, final)
