@@ -69,7 +69,7 @@ over jitted steps pays 50-100 µs per call).
 
 from __future__ import annotations
 
-from typing import Any, Callable, Optional, Union
+from typing import Any, Callable, Optional
 
 import jax
 import jax.numpy as jnp
@@ -81,6 +81,7 @@ from ..linalg import check_psd, symmetrize, value_and_jacfwd, wrap_angle
 from ..metrics import chi2_ppf_np
 from . import gaussian as _g
 from .gaussian import (
+    Gate,
     Gaussian,
     GaussianFilter,
     Posterior,
@@ -110,7 +111,6 @@ __all__ = [
 ]
 
 Array = Any
-Gate = Union[None, float, Array, Callable[[Array], Array]]
 
 
 # ---------------------------------------------------------------------------
