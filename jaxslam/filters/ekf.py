@@ -354,6 +354,8 @@ def update(
     else:
         gated = (dof > 0) & (nis > _threshold(gate, dof, dtype))
     post, accepted, status = _finalize(state, x_post, P_post, ok, gated, dof, extra)
+    # a failed factorisation reports NIS 0 (not NaN), so a run's log-likelihood stays finite
+    nis = jnp.where(ok, nis, jnp.zeros((), dtype))
     return post, UpdateInfo(nis, dof, num, S, accepted, status,
                             jnp.where(ok & (dof > 0), logdet, jnp.zeros((), dtype)))
 

@@ -74,7 +74,8 @@ Decisions
   get a zero ``ΔZ`` column (so zero rows/columns of ``S`` and zero columns of ``C_xz``), a
   unit diagonal in ``S`` and a zero innovation, so their gain columns are exactly zero and a
   fully masked update returns the prior unchanged; NaN/Inf in an invalid component of ``z``
-  or of ``h``'s output never reaches the arithmetic.  The gate compares the NIS over the
+  never reaches the arithmetic nor its gradient (in ``h``'s output it is replaced before the
+  arithmetic too, but a NaN there would still poison ``jax.grad`` through ``h``).  The gate compares the NIS over the
   valid components with a number or ``gate(dof)`` (e.g. ``ekf.chi2_gate``); a gated update
   keeps the prior and sets ``errors.GATED``.
 * Covariance update ``P − K S Kᵀ`` (not the Joseph form: there is no ``H``).  It can lose
