@@ -19,22 +19,7 @@ from jaxslam.errors import InputError
 from jaxslam.filters import ekf
 from jaxslam.metrics import anees_bounds, mean_chi2_bounds, windowed_mean
 
-DT = 0.1
-F_CV = np.array([[1, 0, DT, 0], [0, 1, 0, DT], [0, 0, 1, 0], [0, 0, 0, 1]], float)
-G_CV = np.array([[0.5 * DT**2, 0], [0, 0.5 * DT**2], [DT, 0], [0, DT]], float)
-H_CV = np.array([[1.0, 0, 0, 0], [0, 1.0, 0, 0]])
-Q_CV = 0.05 * G_CV @ G_CV.T + 1e-6 * np.eye(4)
-R_CV = np.array([[0.04, 0.01], [0.01, 0.09]])
-P0_CV = np.diag([1.0, 1.0, 0.5, 0.5])
-X0_CV = np.array([0.0, 0.0, 1.0, -0.5])
-
-
-def f_cv(x, u):
-    return jnp.asarray(F_CV, x.dtype) @ x + jnp.asarray(G_CV, x.dtype) @ u
-
-
-def h_pos(x):
-    return x[:2]
+from cv_model import DT, F_CV, G_CV, H_CV, P0_CV, Q_CV, R_CV, X0_CV, f_cv, h_pos  # noqa: F401
 
 
 # --------------------------------------------------------------------------
