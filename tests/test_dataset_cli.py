@@ -100,6 +100,8 @@ def test_dataset_option_misuse_is_an_input_error(capsys):
     assert rc == 2 and "--smooth" in err
     rc, _, err = _run(["dataset", "mrclam", "--data", str(DATA), "--filter", "fastslam", "--smooth"], capsys)
     assert rc == 2 and "--smooth" in err and "fastslam" in err
+    rc, _, err = _run(["dataset", "mrclam", "--data", str(DATA), "--ids", "hidden", "--smooth"], capsys)
+    assert rc == 2 and "--smooth" in err and "--ids hidden" in err
     rc, _, err = _run(["dataset", "util-uwb", "--data", str(DATA), "--anchors", "unknown"], capsys)
     assert rc == 2 and "start-up window" in err  # the excerpt has motion capture over 20-21 s only
     rc, _, err = _run(["dataset", "plaza", "--data", str(DATA), "--tum", str(DATA)], capsys)

@@ -76,6 +76,10 @@ def check_options(name: str, options: dict) -> None:
         raise InputError(f"{name}: --params sets the EKF's noise; it does not apply to --filter fastslam")
     elif options.get("smooth"):
         raise InputError(f"{name}: --smooth smooths the EKF's run; it does not apply to --filter fastslam")
+    if options.get("smooth") and options.get("ids") == "hidden":
+        # nearest-neighbour registrations carry no landmark id, which the map-static smoother
+        # needs to pair a step's map with the final one
+        raise InputError(f"{name}: --smooth needs known landmark ids; it does not combine with --ids hidden")
     if misplaced:
         flags = ", ".join("--" + k for k in sorted(set(misplaced)))
         hint = (" (range-only logs run the EKF only: the particle core registers range-bearing "

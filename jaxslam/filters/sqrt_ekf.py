@@ -412,7 +412,7 @@ def update(
     ok = jnp.all(jnp.isfinite(S_half)) & jnp.all(d > 0)
     S_safe = jnp.where(ok, S_half, eye_m)  # no inf/NaN on the rejected path (nor its grad)
     w = jax.scipy.linalg.solve_triangular(S_safe, nu, lower=True)
-    nis = jnp.dot(w, w)
+    nis = jnp.where(ok, jnp.dot(w, w), zero)  # a failed factor is NOT_PSD, never GATED
     x_post = x + _mm(Kbar, w)
     S = symmetrize(_mm(S_half, S_half.T))
 

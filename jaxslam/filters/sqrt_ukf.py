@@ -33,7 +33,7 @@ from ..errors import InputError
 from ..linalg import symmetrize
 from .gaussian import Gate, UpdateInfo, masked_innovation, threshold
 from .sqrt_ekf import SqrtGaussian, SqrtPosterior, _mm, _root, _tria
-from .ukf import SigmaPoints, unscented
+from .ukf import SigmaPoints, measurement_mean, unscented
 
 __all__ = ["predict", "update", "filter_scan"]
 
@@ -92,7 +92,9 @@ def update(state: SqrtGaussian, z, h: Callable, R, *args, residual: Optional[Cal
     eye_m = jnp.eye(m, dtype=dtype)
     pts, dx, wm, sw = _points(SqrtGaussian(x, L), unscented() if points is None else points)
     Z = jax.vmap(lambda p: h(p, *args))(pts).astype(dtype)
-    zhat = wm @ Z
+    rule = unscented() if points is None else points
+    zref = Z[0] if rule.has_center else jnp.asarray(h(x, *args), dtype)
+    Z, zhat = measurement_mean(Z, zref, wm, mask, res)
     dZ = jnp.where(mask[None, :], jax.vmap(lambda zi: res(zi, zhat))(Z), zero)
     Xs = (dx * sw[:, None]).T  # (n, N)
     Ys = (dZ * sw[:, None]).T  # (m, N)
@@ -116,7 +118,7 @@ def update(state: SqrtGaussian, z, h: Callable, R, *args, residual: Optional[Cal
     S_safe = jnp.where(ok, S_half, eye_m)
     nu = masked_innovation(z, zhat, mask, res)
     w = jax.scipy.linalg.solve_triangular(S_safe, nu, lower=True)
-    nis = jnp.dot(w, w)
+    nis = jnp.where(ok, jnp.dot(w, w), zero)  # a failed factor is NOT_PSD, never GATED
     x_post = x + _mm(Kbar, w)
     dof = jnp.sum(mask).astype(jnp.int32)
     gated = ((dof > 0) & (nis > threshold(gate, dof, dtype))) if gate is not None else jnp.asarray(False)

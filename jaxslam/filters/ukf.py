@@ -359,6 +359,19 @@ def predict(state: Gaussian, f: Optional[Callable], u, Q, *args,
 # Update
 # ---------------------------------------------------------------------------
 
+def measurement_mean(Z, zref, wm, mask, residual):
+    """Masked sigma-point measurements and their angle-safe mean ``ẑ = z_ref + Σ W^m r(Z_i, z_ref)``.
+
+    ``Z`` (N, m) the transformed points, ``z_ref`` (m,) ``h(x̄)``; invalid components are
+    zeroed first (NaN there never reaches the arithmetic).  Returns ``(Z_masked, ẑ)``;
+    shared by :func:`update` and :func:`jaxslam.filters.sqrt_ukf.update`.
+    """
+    zero = jnp.zeros((), Z.dtype)
+    Z = jnp.where(mask[None, :], Z, zero)
+    zref = jnp.where(mask, zref, zero)
+    return Z, zref + wm @ jax.vmap(lambda zi: residual(zi, zref))(Z)
+
+
 def _default_residual(z, zhat):
     return z - zhat
 
@@ -417,9 +430,7 @@ def update(
     pts, wm, wc, ok_pts = sigma_points(x, P, rule)
     Z = jax.vmap(lambda p: h(p, *args))(pts).astype(dtype)  # (N, m)
     zref = Z[0] if rule.has_center else jnp.asarray(h(x, *args), dtype)
-    Z = jnp.where(mask[None, :], Z, zero)  # invalid outputs never reach the arithmetic
-    zref = jnp.where(mask, zref, zero)
-    zhat = zref + wm @ jax.vmap(lambda zi: res(zi, zref))(Z)
+    Z, zhat = measurement_mean(Z, zref, wm, mask, res)
     dZ = jnp.where(mask[None, :], jax.vmap(lambda zi: res(zi, zhat))(Z), zero)  # (N, m)
     dx = pts - x  # (N, n)
     mm = mask[:, None] & mask[None, :]

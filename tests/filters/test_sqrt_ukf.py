@@ -137,3 +137,28 @@ def test_float32_long_poorly_observable_run():
     hph_ref = float(np.asarray(ref.final.chol @ ref.final.chol.T) @ H_LR @ H_LR)
     err = np.abs((np.asarray(s32.means, np.float64) - np.asarray(ref.means)) @ H_LR) / np.sqrt(hph_ref)
     assert float(np.max(err[1000:])) < 0.1
+
+
+def test_bearing_near_pi_and_failed_factor_flag():
+    """The sigma mean is angle-safe as in ukf.update; a failed S factor is NOT_PSD, not GATED."""
+    from jaxslam.filters import ekf
+
+    def h_bearing(x):
+        return jnp.arctan2(x[1:2], x[:1])
+
+    x = np.array([-1.0, 1e-3])
+    P = np.diag([0.01, 0.01])
+    z = np.array([np.pi - 0.005])
+    res = ekf.angle_residual([True])
+    a, ia = su.update(se.from_gaussian(ukf.Gaussian(jnp.asarray(x), jnp.asarray(P))), z, h_bearing,
+                      np.array([[1e-4]]), residual=res)
+    b, ib = ukf.update(ukf.Gaussian(jnp.asarray(x), jnp.asarray(P)), z, h_bearing, np.array([[1e-4]]),
+                       residual=res)
+    np.testing.assert_allclose(np.asarray(a.mean), np.asarray(b.mean), atol=1e-10)
+    np.testing.assert_allclose(float(ia.nis), float(ib.nis), rtol=1e-8)
+    st = se.from_gaussian(ukf.Gaussian(jnp.asarray(X0_CV), jnp.asarray(P0_CV)))
+    for upd in (lambda: se.update(st, np.array([5.0]), lambda v: v[:1], np.array([[-1.0]]), gate=3.84),
+                lambda: su.update(st, np.array([5.0]), lambda v: v[:1], np.array([[-1.0]]), gate=3.84)):
+        _, info = upd()
+        assert int(info.status) & errors.NOT_PSD and not int(info.status) & errors.GATED
+        assert float(info.nis) == 0.0
