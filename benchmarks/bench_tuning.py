@@ -11,7 +11,8 @@ x64).  Cases (one recorded log of paper 000's ``ekfslam3d-unknown`` flight, Q_c 
   (``benchmarks/numpy_ekfslam3d.py``, hand Jacobians): 2p + 1 = 19 twin runs; the row also
   reports how far the two values and gradients agree.
 * ``compile``: compilation of the tuning step that :func:`jaxslam.tuning.optimize.fit` runs
-  (loss, gradient and the Adam update, ``vmap`` over ``--runs`` logs), as ``fit`` reports it,
+  (loss, gradient and the Adam update over ``--runs`` logs, one after another as the
+  ``jaxslam tune`` target runs them), as ``fit`` reports it,
   with XLA's default options and with :data:`jaxslam.tuning.optimize.FAST_COMPILE` (LLVM
   optimisation off: faster to compile, slower per step).  Target ≤ 10 s.
 * ``memory``: XLA's memory analysis (temporaries) of value+grad on a ``--memory-steps`` log
@@ -167,14 +168,15 @@ def run(args):
     results.append(_numpy_fd_row(args, _mse_loss(T, ref, cfg), theta, log0, ref, cfg))
 
     print(f"[bench tuning] compile of the tuning step (fit, {args.runs} logs)", flush=True)
-    res = O.fit(loss_fn, theta, logs, steps=args.repeats, lr=0.1)
-    results.append(_row(f"tuning step compile (value_and_grad + Adam, vmap over {args.runs} logs)",
+    res = O.fit(loss_fn, theta, logs, steps=args.repeats, lr=0.1, sequential=True)
+    results.append(_row(f"tuning step compile (value_and_grad + Adam, {args.runs} logs one after another)",
                         {**p, "runs": args.runs}, res.compile_s, None, None, step_s=res.step_s,
                         memory=res.memory, compiler_options="default"))
     targets.append({"name": "compile time of the tuning step", "target": "<= 10 s", "value": res.compile_s,
                     "met": bool(res.compile_s <= TARGETS["compile_s"])})
     print("[bench tuning] the same step compiled with optimize.FAST_COMPILE", flush=True)
-    fast = O.fit(loss_fn, theta, logs, steps=args.repeats, lr=0.1, compiler_options=O.FAST_COMPILE)
+    fast = O.fit(loss_fn, theta, logs, steps=args.repeats, lr=0.1, compiler_options=O.FAST_COMPILE,
+                 sequential=True)
     same = float(np.max(np.abs(np.asarray(fast.theta["Qc"]) - np.asarray(res.theta["Qc"]))))
     results.append(_row(f"tuning step compile with FAST_COMPILE ({O.FAST_COMPILE})",
                         {**p, "runs": args.runs}, fast.compile_s, "default compile", res.compile_s,

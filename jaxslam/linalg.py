@@ -8,6 +8,8 @@ dtype.
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -17,6 +19,8 @@ from .errors import InputError
 __all__ = [
     "is_concrete",
     "value_and_jacfwd",
+    "take",
+    "put",
     "symmetrize",
     "wrap_angle",
     "chol_solve",
@@ -34,15 +38,100 @@ def value_and_jacfwd(fun, argnums=0):
     calling ``f`` and ``jax.jacfwd(f)`` separately traces, lowers and compiles it twice.
     """
 
-    def wrapped(*args):
-        def both(*a):
-            y = fun(*a)
-            return y, y
+    nums = (argnums,) if isinstance(argnums, int) else tuple(argnums)
 
-        jac, val = jax.jacfwd(both, argnums=argnums, has_aux=True)(*args)
-        return val, jac
+    def both(*a):
+        y = fun(*a)
+        return y, y
+
+    def wrapped(*args):
+        def lin(*diff):
+            full = list(args)
+            for i, v in zip(nums, diff):
+                full[i] = v
+            jac, val = jax.jacfwd(both, argnums=argnums, has_aux=True)(*full)
+            return val, jac
+
+        # Rematerialised under reverse mode: the backward pass recomputes the linearisation
+        # from its inputs instead of the forward pass storing every intermediate of the
+        # forward-mode Jacobian (hundreds of small arrays per call, each a kernel per step of a
+        # scan); without autodiff it costs nothing.
+        return jax.checkpoint(lin)(*[args[i] for i in nums])
 
     return wrapped
+
+
+# ---------------------------------------------------------------------------
+# Indexing with scatter-free derivatives
+# ---------------------------------------------------------------------------
+#
+# XLA's CPU backend has no scatter kernel: it expands every scatter into a while loop with one
+# iteration per index (a few small kernels each).  Reverse mode turns each gather into a
+# scatter-add and each scatter into a scatter plus a gather, so the gradient of an EKF-SLAM
+# frame held ~20 such loops (16-48 iterations each): they dominated both its run time and its
+# compile time.  ``take`` and ``put`` keep the gather/scatter for the primal but define their
+# derivatives as products with one-hot matrices, which transpose to products again.  A
+# derivative then costs O(N·k) per gathered row instead of a loop over k indices; with N the
+# size of the indexed axis (the state dimension) this is the cost class of the update itself.
+
+
+def _one_hot(idx, N, dtype):
+    """(k, N) one-hot rows of the flat indices ``idx``; an index outside [0, N) gives a zero row."""
+    return (idx.reshape(-1)[:, None] == jnp.arange(N, dtype=idx.dtype)[None, :]).astype(dtype)
+
+
+def _place(d, axis, nd):
+    """Move the leading ``nd`` axes of ``d`` to position ``axis``."""
+    return jnp.moveaxis(d, tuple(range(nd)), tuple(range(axis, axis + nd)))
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(2,))
+def take(a, idx, axis: int = 0):
+    """``jnp.take(a, idx, axis)`` (indices clipped into range) with a scatter-free derivative.
+
+    The result has shape ``a.shape[:axis] + idx.shape + a.shape[axis+1:]``.  Its tangent and
+    cotangent are products with the one-hot matrix of ``idx`` (see the comment above), so
+    ``jax.grad`` through it never builds a scatter.
+    """
+    return jnp.take(a, idx, axis=axis, mode="clip")
+
+
+@take.defjvp
+def _take_jvp(axis, primals, tangents):
+    a, idx = primals
+    da = tangents[0]
+    N = a.shape[axis]
+    idx_c = jnp.clip(idx, 0, N - 1)
+    E = _one_hot(idx_c, N, da.dtype)  # (k, N)
+    d = jnp.tensordot(E, jnp.moveaxis(da, axis, 0), axes=(1, 0))  # (k, *rest)
+    d = d.reshape(idx.shape + d.shape[1:])
+    return take(a, idx, axis), _place(d, axis, idx.ndim)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(3,))
+def put(a, idx, values, axis: int = 0):
+    """``a`` with the slices at the 1-D indices ``idx`` along ``axis`` set to ``values``.
+
+    ``values`` has ``a``'s shape with ``axis`` of length ``len(idx)``.  Indices outside
+    ``[0, a.shape[axis])`` are dropped (nothing written), so a caller masks a write by giving
+    it an out-of-range index.  Indices in range must be distinct.  The derivative is a masked
+    copy plus a one-hot product (no scatter under ``jax.grad``; see the comment above).
+    """
+    where = (slice(None),) * axis + (idx,)
+    return jnp.asarray(a).at[where].set(jnp.asarray(values).astype(a.dtype), mode="drop")
+
+
+@put.defjvp
+def _put_jvp(axis, primals, tangents):
+    a, idx, values = primals
+    da, _, dv = tangents
+    N = a.shape[axis]
+    E = _one_hot(idx, N, da.dtype)  # (k, N); dropped indices are zero rows
+    keep = 1.0 - jnp.max(E, axis=0)  # (N,): 0 where a slice is overwritten
+    shape = [1] * a.ndim
+    shape[axis] = N
+    d = jnp.moveaxis(jnp.tensordot(E.T, jnp.moveaxis(dv.astype(da.dtype), axis, 0), axes=(1, 0)), 0, axis)
+    return put(a, idx, values, axis), da * keep.reshape(shape) + d
 
 
 def symmetrize(P):

@@ -47,7 +47,7 @@ import jax
 import jax.numpy as jnp
 
 from .. import errors
-from ..linalg import symmetrize, value_and_jacfwd
+from ..linalg import put, symmetrize, take, value_and_jacfwd
 
 __all__ = [
     "SlamModel",
@@ -311,7 +311,7 @@ def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
     z_safe = jnp.where(valid[:, None], z, 0.0).astype(dtype)
 
     s = state.x[:nr]
-    L = state.x[nr:].reshape(cap, dl)[slots]
+    L = take(state.x[nr:].reshape(cap, dl), slots, 0)
     zh, Hs, Hl = _observe_batch(model, s, L, params, valid)
     res = jnp.where(valid[:, None], jax.vmap(_residual(model))(z_safe, zh), 0.0)
 
@@ -321,13 +321,13 @@ def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
     def gather_PHt(M, Hs, Hl):
         # M Hᵀ for the sparse H, with M symmetric-access by columns: (n, K, dz)
         Mr = M[:, :nr]  # (n, nr)
-        Ml = M[:, idx]  # (n, K, dl)
+        Ml = take(M, idx, 1)  # (n, K, dl)
         return jnp.einsum("ni,kzi->nkz", Mr, Hs) + jnp.einsum("nkj,kzj->nkz", Ml, Hl)
 
     def rows(M, Hs, Hl):
         # rows of an (n, ...) array at H's support, contracted with H: H M
         Mr = M[:nr]  # (nr, K, dz)
-        Ml = M[idx]  # (K, dl, K, dz)
+        Ml = take(M, idx, 0)  # (K, dl, K, dz)
         return jnp.einsum("kzi,imw->kzmw", Hs, Mr) + jnp.einsum("kzj,kjmw->kzmw", Hl, Ml)
 
     PHt = gather_PHt(P, Hs, Hl)  # (n, K, dz)
@@ -356,7 +356,7 @@ def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
     vv = jnp.repeat(v, dz)  # (K·dz,)
     VV = vv[:, None] * vv[None, :]
     m = K * dz
-    R_blk = jnp.zeros((K, dz, K, dz), dtype).at[jnp.arange(K), :, jnp.arange(K), :].set(R)
+    R_blk = jnp.einsum("kzw,kj->kzjw", R, jnp.eye(K, dtype=dtype))  # block diagonal, no scatter
     R_used = R_blk.reshape(m, m) * VV
 
     def solve(PHt_, HPHt_, res_):
@@ -606,16 +606,17 @@ def register(state: SlamState, model: SlamModel, z, lm_ids, mask, R, params=None
     W = jnp.einsum("kai,in->kan", Gs, Psx)  # (K, dl, n)
     B = jnp.einsum("kai,ij,mbj->kamb", Gs, Pss, Gs)  # (K, dl, K, dl) = G_s,k P_ss G_s,mᵀ
     B = 0.5 * (B + B.transpose(2, 3, 0, 1))  # exactly symmetric, as the sequential write
-    B = B.at[jnp.arange(K), :, jnp.arange(K), :].set(Pll)
+    eyeK = jnp.eye(K, dtype=dtype)[:, None, :, None]
+    B = B * (1.0 - eyeK) + jnp.einsum("kab,km->kamb", Pll, eyeK[:, 0, :, 0])  # joint diagonal blocks
     # Columns of the candidates not written go out of bounds and are dropped.
     oob = jnp.int32(n)
     idx_w = jnp.where(good[:, None], idx, oob)  # (K, dl)
-    W = W.at[:, :, idx_w].set(B, mode="drop")
     rows = idx_w.reshape(-1)
+    W = put(W, rows, B.reshape(K, dl, K * dl), 2)
     Wf = W.reshape(K * dl, n)
-    P = P.at[rows, :].set(Wf, mode="drop")
-    P = P.at[:, rows].set(Wf.T, mode="drop")
-    x = state.x.at[rows].set(L.reshape(-1), mode="drop")
+    P = put(P, rows, Wf, 0)
+    P = put(P, rows, Wf.T, 1)
+    x = put(state.x, rows, L.reshape(-1), 0)
     slot_w = jnp.where(good, slot, jnp.int32(cap))
     active = state.active.at[slot_w].set(True, mode="drop")
     ids = state.ids.at[slot_w].set(jnp.asarray(lm_ids).astype(jnp.int32), mode="drop")

@@ -100,9 +100,11 @@ def dcm_from_euler(euler):
     v_N = C_NB @ v_B.
     """
     euler = jnp.asarray(euler)
-    cf, sf = jnp.cos(euler[..., 0]), jnp.sin(euler[..., 0])
-    ct, st = jnp.cos(euler[..., 1]), jnp.sin(euler[..., 1])
-    cp, sp = jnp.cos(euler[..., 2]), jnp.sin(euler[..., 2])
+    # One sine and one cosine of the whole vector: under autodiff a scalar sin/cos per angle
+    # became a kernel of its own for every derivative term that reads it.
+    c, s = jnp.cos(euler[..., :3]), jnp.sin(euler[..., :3])
+    cf, ct, cp = c[..., 0], c[..., 1], c[..., 2]
+    sf, st, sp = s[..., 0], s[..., 1], s[..., 2]
     # Expanded product (one fused expression instead of two 3×3 matmuls).
     return _mat(
         [
@@ -154,8 +156,9 @@ def euler_rate_matrix(euler):
     (eq. 3 written with 1/cos θ factored out).  Singular at θ = ±90°.
     """
     euler = jnp.asarray(euler)
-    cf, sf = jnp.cos(euler[..., 0]), jnp.sin(euler[..., 0])
-    ct = jnp.cos(euler[..., 1])
+    c, s = jnp.cos(euler[..., :2]), jnp.sin(euler[..., :2])  # one kernel each (see dcm_from_euler)
+    cf, ct = c[..., 0], c[..., 1]
+    sf = s[..., 0]
     tt = jnp.tan(euler[..., 1])
     o, z = jnp.ones_like(cf), jnp.zeros_like(cf)
     return _mat([[o, sf * tt, cf * tt], [z, cf, -sf], [z, sf / ct, cf / ct]])

@@ -268,7 +268,7 @@ def innovation(y, y_pred):
     and range is not periodic, so only α is wrapped.
     """
     r = y - y_pred
-    return r.at[..., 0].set(wrap_angle(r[..., 0]))
+    return jnp.concatenate([wrap_angle(r[..., :1]), r[..., 1:]], axis=-1)  # no scatter (vmapped)
 
 
 def measurement_cov(spec: LidarSpec = PAPER000_LIDAR, dtype=None):

@@ -201,12 +201,20 @@ def fit(loss_fn: Callable, theta0, train, steps: int, lr: float = 0.1, *, test=N
     opt_state = tx.init(theta0)
     mini = batch_size is not None and batch_size < runs
 
-    def objective(th, batch):
-        loss = batch_loss(loss_fn, th, batch, sequential)
-        return (jnp.log(loss) if log_objective else loss), loss
+    def loss_and_grad(th, batch):
+        if sequential:
+            # Each item's value and gradient one after another: the reverse pass of one log ends
+            # before the next log starts, so memory holds one log's residuals, not the batch's.
+            ls, gs = jax.lax.map(lambda item: jax.value_and_grad(loss_fn)(th, item), batch)
+            loss, g = jnp.mean(ls), jax.tree.map(lambda a: jnp.mean(a, axis=0), gs)
+        else:
+            loss, g = jax.value_and_grad(lambda t: batch_loss(loss_fn, t, batch))(th)
+        if log_objective:  # d log(mean L) = d(mean L) / mean L
+            g = jax.tree.map(lambda a: a / loss, g)
+        return loss, g
 
     def step(theta, opt_state, batch):
-        (_, loss), g = jax.value_and_grad(objective, has_aux=True)(theta, batch)
+        loss, g = loss_and_grad(theta, batch)
         g_ok = _tree_finite(g)
         g_safe = jax.tree.map(lambda x: jnp.where(jnp.isfinite(x), x, 0.0), g)
         upd, new_state = tx.update(g_safe, opt_state, theta)

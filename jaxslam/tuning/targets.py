@@ -107,7 +107,9 @@ class Target(NamedTuple):
     config: every setting used (JSON-ready).
     eval_command: the ``jaxslam run`` command that reproduces the held-out "after" row.
     log_objective: optimise log(mean loss) (positive losses; see :func:`~jaxslam.tuning.optimize.fit`).
-    sequential: the loss of each training item runs after the other (``lax.map``), not vmapped.
+    sequential: the loss and gradient of each training item run after the other (``lax.map``),
+      not vmapped: the compiled step is smaller (one log's program, not a batched one) and, for
+      the EKF-SLAM logs, faster per step too (4 logs: compile 19.0 → 14.6 s, step 1.57 → 1.36 s).
     """
 
     scenario: str
@@ -126,7 +128,7 @@ class Target(NamedTuple):
     config: dict
     eval_command: str = ""
     log_objective: bool = False
-    sequential: bool = False  # evaluate the training items one after another (real logs)
+    sequential: bool = False  # evaluate the training items one after another (lax.map)
 
 
 _FACTORIES: dict = {}
@@ -497,7 +499,7 @@ def ekfslam3d_noise(loss: str = "nll", train_runs: int = 4, test_runs: int = 8, 
     return Target(scenario=f"ekfslam3d-{mode}", target="noise", loss=loss, specs=specs, theta0=theta0,
                   loss_fn=loss_fn, train=train, test=test, physical=physical, evaluate=evaluate,
                   references={"q_imu": ref}, to_params=to_params, describe=describe, config=config,
-                  eval_command=cmd, log_objective=loss == "mse")
+                  eval_command=cmd, log_objective=loss == "mse", sequential=True)
 
 
 for _m in ("unknown", "known"):

@@ -1,0 +1,101 @@
+"""jaxslam.linalg.take / put: NumPy oracles for values, plain-indexing and finite-difference
+oracles for derivatives, and the property they exist for (no scatter in a derivative)."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax.test_util import check_grads
+
+from jaxslam.linalg import put, take
+
+
+def _prims(jaxpr):
+    """Names of every primitive in a (closed) jaxpr, sub-jaxprs included."""
+    out = []
+
+    def walk(j):
+        for e in j.eqns:
+            out.append(e.primitive.name)
+            for p in e.params.values():
+                for q in p if isinstance(p, (list, tuple)) else [p]:
+                    if hasattr(q, "jaxpr") and hasattr(q.jaxpr, "eqns"):
+                        walk(q.jaxpr)
+                    elif hasattr(q, "eqns"):
+                        walk(q)
+
+    walk(jaxpr.jaxpr)
+    return out
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+@pytest.mark.parametrize("axis", [0, 1, 2])
+def test_take_equals_numpy(dtype, axis):
+    rng = np.random.default_rng(axis)
+    a = rng.normal(size=(5, 6, 7)).astype(dtype)
+    idx = rng.integers(0, a.shape[axis], size=(3, 2)).astype(np.int32)
+    got = np.asarray(jax.jit(take, static_argnums=2)(jnp.asarray(a), jnp.asarray(idx), axis))
+    assert got.dtype == dtype
+    np.testing.assert_array_equal(got, np.take(a, idx, axis=axis))
+
+
+@pytest.mark.parametrize("axis", [0, 1])
+def test_put_equals_numpy_and_drops_out_of_range(axis):
+    rng = np.random.default_rng(1 + axis)
+    a = rng.normal(size=(6, 5))
+    idx = np.array([4, 0, 99], np.int32)  # 99: out of range, dropped
+    vals = rng.normal(size=(3, 5) if axis == 0 else (6, 3))
+    want = a.copy()
+    for j, i in enumerate(idx):
+        if i < a.shape[axis]:
+            if axis == 0:
+                want[i] = vals[j]
+            else:
+                want[:, i] = vals[:, j]
+    got = np.asarray(put(jnp.asarray(a), jnp.asarray(idx), jnp.asarray(vals), axis))
+    np.testing.assert_array_equal(got, want)
+
+
+def test_take_put_derivatives_equal_plain_indexing_and_fd():
+    rng = np.random.default_rng(7)
+    a = jnp.asarray(rng.normal(size=(7, 7)))
+    v = jnp.asarray(rng.normal(size=(7, 3)))
+    idx = jnp.asarray([5, 1, 3], jnp.int32)
+    w = jnp.asarray(rng.normal(size=(7, 7)))
+
+    def f(a, v):  # both helpers, nonlinear around them
+        cols = take(a, idx, 1)  # (7, 3)
+        b = put(a, idx, jnp.sin(cols) * v, 1)
+        return jnp.sum(w * b * b) + jnp.sum(take(b, jnp.asarray([[2, 6]]), 0) ** 3)
+
+    def f_plain(a, v):
+        cols = a[:, idx]
+        b = a.at[:, idx].set(jnp.sin(cols) * v)
+        return jnp.sum(w * b * b) + jnp.sum(b[jnp.asarray([[2, 6]])] ** 3)
+
+    np.testing.assert_allclose(f(a, v), f_plain(a, v), rtol=1e-14)
+    for g, gp in zip(jax.grad(f, (0, 1))(a, v), jax.grad(f_plain, (0, 1))(a, v)):
+        np.testing.assert_allclose(g, gp, rtol=1e-12, atol=1e-12)
+    check_grads(f, (a, v), order=2, modes=("fwd", "rev"), atol=1e-6, rtol=1e-6)
+
+
+def test_derivatives_hold_no_scatter():
+    """The point of the helpers: the linearised and the transposed programs gather and scatter
+    nothing (XLA's CPU backend runs every scatter as a loop over its indices)."""
+    rng = np.random.default_rng(3)
+    a = jnp.asarray(rng.normal(size=(9, 9)))
+    v = jnp.asarray(rng.normal(size=(9, 2)))
+    idx = jnp.asarray([2, 7], jnp.int32)
+
+    def f(a, v):
+        return put(a, idx, take(a, idx, 1) * v, 1)
+
+    _, f_lin = jax.linearize(f, a, v)
+    lin = _prims(jax.make_jaxpr(f_lin)(a, v))
+    f_t = jax.linear_transpose(f_lin, a, v)
+    tr = _prims(jax.make_jaxpr(f_t)(a))
+    for prims in (lin, tr):
+        assert not [p for p in prims if "scatter" in p or p == "gather"], prims
+    # ... whereas plain indexing transposes into a scatter-add
+    _, p_lin = jax.linearize(lambda a: a[:, idx], a)
+    assert any("scatter" in p for p in _prims(jax.make_jaxpr(jax.linear_transpose(p_lin, a))(a[:, idx])))
