@@ -45,9 +45,11 @@ def _params_help() -> str:
 
     from ..systems.planar_ekf_slam import PlanarParams
 
-    return ("\n\n--params FILE (mrclam, EKF): {\"dataset\": \"mrclam\", \"noise\": {...}} as 'jaxslam tune\n"
-            "mrclam' writes it; noise keys (each optional, shapes as in PlanarParams):\n"
-            + textwrap.fill(", ".join(PlanarParams._fields), 84, initial_indent="  ", subsequent_indent="  "))
+    return ("\n\n--params FILE (mrclam, EKF): {\"dataset\": \"mrclam\", \"noise\": {...}, \"log\": {...}} as\n"
+            "'jaxslam tune mrclam' writes it; noise keys (each optional, shapes as in PlanarParams):\n"
+            + textwrap.fill(", ".join(PlanarParams._fields), 84, initial_indent="  ", subsequent_indent="  ")
+            + "\nlog keys (optional): odometry_delay (s, the odometry stamps' lag the noise was fitted with;\n"
+              "  absent: 0, the stamps as logged)")
 
 
 def _parser(help_params: bool = False):
@@ -132,6 +134,7 @@ def main(argv) -> int:
     dtype = np.dtype(np.float32 if args.float32 else np.float64)
     if params is not None:
         runners.dataset_params(params, args.name)  # keys checked before the log is read
+        runners.dataset_log_options(params, args.name)
     try:
         with compilation.account() as acct:
             run = runners.run_dataset(args.name, data, robot=args.robot, filter=args.filter, ids=args.ids,

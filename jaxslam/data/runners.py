@@ -218,10 +218,10 @@ def dataset_params(obj, name: str) -> dict:
     """
     if not isinstance(obj, dict):
         raise InputError(f"--params: expected a JSON object, got {type(obj).__name__}")
-    unknown = sorted(set(obj) - {"dataset", "noise"} - TUNE_REPORT_KEYS)
+    unknown = sorted(set(obj) - {"dataset", "noise", "log"} - TUNE_REPORT_KEYS)
     if unknown:
         raise InputError(f"--params: unknown key(s) {unknown}; a dataset --params file holds "
-                         "'dataset' and 'noise' (written by 'jaxslam tune')")
+                         "'dataset', 'noise' and optionally 'log' (written by 'jaxslam tune')")
     if "dataset" not in obj or "noise" not in obj:
         missing = [k for k in ("dataset", "noise") if k not in obj]
         raise InputError(f"--params: missing key(s) {missing}; a dataset --params file holds "
@@ -237,6 +237,34 @@ def dataset_params(obj, name: str) -> dict:
     if unknown:
         raise InputError(f"--params: noise: unknown key(s) {unknown}; expected some of {list(PlanarParams._fields)}")
     return obj["noise"]
+
+
+#: ``"log"`` entries of a dataset ``--params`` file: how the log was built for the noise it holds.
+LOG_OPTIONS = {"mrclam": {"odometry_delay": (0.0, 2.0)}}
+
+
+def dataset_log_options(obj, name: str) -> dict:
+    """The ``"log"`` entries of a (validated, :func:`dataset_params`) ``--params`` object.
+
+    A file without them was fitted on the log as stamped: ``{}``.  An entry the dataset does not
+    have, or a value outside its range, is an :class:`InputError` naming it.
+    """
+    opts = obj.get("log", {})
+    if not isinstance(opts, dict):
+        raise InputError(f"--params: key 'log' must be an object, got {type(opts).__name__}")
+    allowed = LOG_OPTIONS.get(name, {})
+    unknown = sorted(set(opts) - set(allowed))
+    if unknown:
+        raise InputError(f"--params: log: unknown key(s) {unknown}; {name} takes "
+                         f"{sorted(allowed) or 'none'}")
+    out = {}
+    for k, (lo, hi) in allowed.items():
+        if k in opts:
+            v = opts[k]
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (lo <= float(v) <= hi):
+                raise InputError(f"--params: log.{k}: expected a number in [{lo:g}, {hi:g}], got {v!r}")
+            out[k] = float(v)
+    return out
 
 
 def to_json(run: DatasetRun) -> dict:
@@ -573,17 +601,20 @@ def run_mrclam(data_dir, robot=1, filter="ekf", ids="known", anchors=None, parti
 
     if not 1 <= robot <= 5:
         raise InputError(f"mrclam: --robot must be 1..5 (MRCLAM has five robots), got {robot}")
+    if params is not None and calibrated:
+        raise InputError("mrclam: --params and --calibrated do not combine (the calibrated log has "
+                         "its own noise preset)")
+    # the log the noise was learned on: the shipped noise's, or the --params file's
+    delay = (pe.MRCLAM_FITTED["odometry_delay"] if params is None
+             else dataset_log_options(params, "mrclam").get("odometry_delay", 0.0))
     t0 = time.perf_counter()
     d = load_mrclam(data_dir, robot)
     # Run (and evaluate) where ground truth exists: robot 1's GT stops at +771.9 s.
-    log, pose0 = pe.mrclam_log(d, K=8) if calibrated else pe.mrclam_raw_log(d, K=8)
+    log, pose0 = pe.mrclam_log(d, K=8) if calibrated else pe.mrclam_raw_log(d, K=8, odometry_delay=delay)
     load_s = time.perf_counter() - t0
     assoc = "known" if ids == "known" else "nn"
     prm = pe.mrclam_params(robot, dtype=dtype, corrected=calibrated)
     if params is not None:
-        if calibrated:
-            raise InputError("mrclam: --params and --calibrated do not combine (the calibrated log has "
-                             "its own noise preset)")
         prm = pe.params_from_dict(dataset_params(params, "mrclam"), prm, dtype=dtype, where="--params: noise")
     pose, lm, counts, comp_s, run_s, status, smoothed = _planar_run(
         log, pose0, filter, pe.mrclam_config(association=assoc), prm,
@@ -605,6 +636,7 @@ def run_mrclam(data_dir, robot=1, filter="ekf", ids="known", anchors=None, parti
                f"{'calibrated camera/odometry model' if calibrated else 'raw log'}, "
                f"{log.stats['n_events']} events")
     cfg = _config("mrclam", filter, dtype, setting, robot=robot, ids=ids, calibrated=bool(calibrated),
+                  odometry_delay_s=None if calibrated else delay,
                   particles=particles if filter == "fastslam" else None, seed=seed,
                   **_smooth_config(smooth, SMOOTHER_RTS))
     notes = [f"evaluated at the {m['eval_samples']} ground-truth samples inside the run"] + _divergence_notes(status)

@@ -207,9 +207,17 @@ class PlanarParams(NamedTuple):
     calib0: (3,) prior mean of the input calibration (default (1, 1, 0)); calib_P0: (3, 3)
       its prior covariance; calib_Q: (3, 3) its random-walk density [per s] (defaults 0).
       Read only with ``config.calibrate``.
-    range_model: (2,) (k0, k2) of a camera range model r_meas = r (k0 + k2 β²), β the
-      measured bearing: each measured range is divided by k0 + k2 β² before the update
-      (default (1, 0): none).  Learnt from the innovations (``jaxslam tune mrclam``).
+    range_model: (2,) (k0, k2) or (3,) (k0, k2, a) of a camera range model
+      r_meas = r (k0 + k2 β²) + a, β the measured bearing, a [m] a range offset (default 0):
+      each measured range becomes (r_meas − a)/(k0 + k2 β²) before the update, and the
+      likelihood (``PlanarResult.nll``) is that of the measured range (it adds log(k0 + k2 β²)
+      per used row).  Default: none.  Learnt from the innovations (``jaxslam tune mrclam``).
+    input_model: (3,) (c_0, c_1, c_2) of a fixed input correction: the filter moves with
+      (c_0 u_0, c_1 u_1 + c_2) for the logged input u (odometry speed scale, turn-rate or
+      steering scale and bias), and the input noise M_c is that of the corrected input.  The
+      systematic part of the odometry error, where ``config.calibrate`` estimates a per-run
+      calibration online.  Default: none (1, 1, 0).  Learnt from the innovations (``jaxslam
+      tune mrclam``).
     robust_nu: () Student-t degrees of freedom (``config.robust``; default 5).
     monitor: :class:`jaxslam.filters.consistency.MonitorParams` (``config.monitor``;
       default :data:`MONITOR_DEFAULT`).
@@ -224,6 +232,7 @@ class PlanarParams(NamedTuple):
     calib_Q: Optional[jax.Array] = None
     range_model: Optional[jax.Array] = None
     robust_nu: Optional[jax.Array] = None
+    input_model: Optional[jax.Array] = None
     monitor: Optional[cons.MonitorParams] = None
 
 
@@ -336,13 +345,14 @@ def mrclam_raw_sigma(robot: int):
 #: of the same protocol, leaving each robot out in turn, are in docs/datasets.md.  The same
 #: values for every robot: nothing is fitted per robot or per log.
 MRCLAM_FITTED = {
-    "sigma_v": 0.01590126230999993,       # (m/s)·√s, odometry speed noise density
-    "sigma_w": 0.025273122218503065,      # (rad/s)·√s, odometry turn-rate noise density
-    "sigma_r": 0.042827776087332875,      # m, camera range
-    "sigma_b": 0.006110852535197515,      # rad, camera bearing
-    "floor_xy": 0.00022601790535136166,   # m²/s, pose-noise floor density (x, y)
-    "floor_phi": 0.00013675036345176499,  # rad²/s, pose-noise floor density (heading)
-    "range_model": (1.0, -0.41510901628553937),  # (k0, k2) of r_meas = r (k0 + k2 β²); k0 not fitted
+    "sigma_v": 0.019145173462632434,       # (m/s)·√s, odometry speed noise density
+    "sigma_w": 0.014749026410274545,      # (rad/s)·√s, odometry turn-rate noise density
+    "sigma_r": 0.042998877069353916,      # m, camera range
+    "sigma_b": 0.0060840249649226335,     # rad, camera bearing
+    "floor_xy": 0.00023077754547199983,   # m²/s, pose-noise floor density (x, y)
+    "floor_phi": 8.211613343114346e-05,  # rad²/s, pose-noise floor density (heading)
+    "range_model": (1.0, -0.42121578402091764),  # (k0, k2) of r_meas = r (k0 + k2 β²); k0 not fitted
+    "odometry_delay": 0.25,  # s, lag of the odometry stamps (mrclam_raw_log), chosen by the training NLL
 }
 
 
@@ -416,10 +426,12 @@ def mrclam_config(association: str = "known", capacity: Optional[int] = None, K:
                         update_gate=update_gate, robust=robust, monitor=monitor, **kw)
 
 
-def mrclam_raw_log(data, K: int = 8, t_end=None):
-    """Event log and start pose of one MRCLAM robot's raw log (:func:`mrclam_log` without its
-    corrections), as ``jaxslam dataset mrclam`` and ``jaxslam tune mrclam`` run it."""
-    return mrclam_log(data, K=K, t_end=t_end, range_model=None, odometry_delay=0.0)
+def mrclam_raw_log(data, K: int = 8, t_end=None, odometry_delay: float = 0.0):
+    """Event log and start pose of one MRCLAM robot's raw log (:func:`mrclam_log` without the
+    ground-truth-fitted range correction), as ``jaxslam dataset mrclam`` and ``jaxslam tune
+    mrclam`` run it.  ``odometry_delay`` [s]: the odometry stamps' lag (``MRCLAM_FITTED`` holds
+    the value chosen by the innovation likelihood; 0 = the stamps as logged)."""
+    return mrclam_log(data, K=K, t_end=t_end, range_model=None, odometry_delay=float(odometry_delay))
 
 
 def mrclam_start_pose(data, log: EventLog):
@@ -557,6 +569,11 @@ def _first_of_id(ids, cand):
     return cand & ~jnp.any(same, axis=1)
 
 
+def _range_gain(rm, bearing):
+    """g = k0 + k2 β² of the camera range model (``PlanarParams.range_model``)."""
+    return rm[0] + rm[1] * bearing ** 2
+
+
 def _t_nll(d2, logdet, nu, dz):
     """Per-row Student-t negative log density with scale S_i: ½ log det S_i +
     (ν + d)/2 · log(1 + d²/ν) + log Γ(ν/2) − log Γ((ν + d)/2) + (d/2) log(νπ)."""
@@ -684,6 +701,10 @@ def run_arrays(dt, u, z, ids, mask, pose0, params: PlanarParams, config: PlanarC
     K = int(config.K)
     ones = jnp.asarray([1.0, 1.0, 0.0], dtype)
     rm = None if params.range_model is None else jnp.asarray(params.range_model, dtype)
+    if params.input_model is not None:  # the corrected inputs, for the filter and the smoother
+        im = jnp.asarray(params.input_model, dtype)
+        u = jnp.stack([im[0] * u[:, 0], im[1] * u[:, 1] + im[2]], axis=-1)
+    rm_a = None if rm is None else (rm[2] if rm.shape[0] > 2 else jnp.zeros((), dtype))
     nu = jnp.asarray(5.0 if params.robust_nu is None else params.robust_nu, dtype)
     mon_p = cons.MonitorParams(*(jnp.asarray(v, dtype) for v in
                                  (MONITOR_DEFAULT if params.monitor is None else params.monitor)))
@@ -700,10 +721,10 @@ def run_arrays(dt, u, z, ids, mask, pose0, params: PlanarParams, config: PlanarC
             # a row without a log id cannot be associated by id: masked and counted
             limited = limited | (valid & (id_k < 0))
             valid = valid & (id_k >= 0)
-        if rm is not None:  # the camera range model: r = r_meas / (k0 + k2 β²)
+        if rm is not None:  # the camera range model: r = (r_meas − a) / (k0 + k2 β²)
             # (invalid rows zeroed first: a NaN row would poison the gradient through 0 × NaN)
             z_k = jnp.where(valid[:, None], z_k, 0.0)
-            z_k = jnp.stack([z_k[:, 0] / (rm[0] + rm[1] * z_k[:, 1] ** 2), z_k[:, 1]], axis=-1)
+            z_k = jnp.stack([(z_k[:, 0] - rm_a) / _range_gain(rm, z_k[:, 1]), z_k[:, 1]], axis=-1)
         zk, idk, vk, dropped = _select_k(z_k, id_k, valid, K)
 
         def with_meas(st_):
@@ -717,6 +738,12 @@ def run_arrays(dt, u, z, ids, mask, pose0, params: PlanarParams, config: PlanarC
         active_before = st.active
         st, counts, nis, dof, slots_k, used_k, d2_k, watched, nll, nll_dof = jax.lax.cond(
             jnp.any(vk), with_meas, without, st)
+        if rm is not None:
+            # The filter sees r = (r_meas − a)/g: the density of the measured range carries the
+            # change of variables, −log p(r_meas) = −log p(r) + log g.  Without it the likelihood
+            # rewards any g < 1 (it shrinks the residuals it is scored on): a free k0 went to 1.31.
+            nll = nll + jnp.sum(jnp.where(used_k, jnp.log(jnp.abs(_range_gain(rm, jnp.where(vk, zk[:, 1], 0.0)))),
+                                          0.0))
         # consistency: the rows of mapped landmarks, before any gate or weighting
         if config.monitor:
             mon, st = cons.observe(mon, st, model, d2_k, watched, mon_p)
@@ -917,8 +944,13 @@ def validate_params(params: PlanarParams) -> PlanarParams:
         check_psd(a, f"params.{name}", strict=(name == "R"))
     if params.range_model is not None:
         a = np.asarray(params.range_model, np.float64)
-        if a.shape != (2,) or not np.all(np.isfinite(a)) or a[0] <= 0:
-            raise InputError(f"params.range_model: expected finite (k0, k2) with k0 > 0, got {a.tolist()}")
+        if a.shape not in ((2,), (3,)) or not np.all(np.isfinite(a)) or a[0] <= 0:
+            raise InputError(f"params.range_model: expected finite (k0, k2) or (k0, k2, a) with k0 > 0, "
+                             f"got {a.tolist()}")
+    if params.input_model is not None:
+        a = np.asarray(params.input_model, np.float64)
+        if a.shape != (3,) or not np.all(np.isfinite(a)):
+            raise InputError(f"params.input_model: expected finite (c_0, c_1, c_2), got {a.tolist()}")
     if params.robust_nu is not None:
         v = np.asarray(params.robust_nu, np.float64)
         if v.shape != () or not np.isfinite(v) or v <= 0:

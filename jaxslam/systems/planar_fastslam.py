@@ -200,19 +200,24 @@ def mrclam_setup(robot: int = 1, n_particles: int = 100, association: str = "kno
                  dtype=None):
     """(Config, Params) for UTIAS MRCLAM (dataset 6 figures in docs/datasets.md).
 
-    Known ids use ``slot_by_id``: the caller maps subjects 6–20 to ids 0–14 (capacity 15);
-    hidden ids ("ml") get capacity 32.  R = diag(σ_r², σ_β²) with σ = 1.4826·MAD of the
-    landmark residuals against ground truth (data README §5; the EKF preset's constants);
-    input-noise densities σ_v = 0.03 m/s·√s, σ_ω = 0.05 rad/s·√s and pose floor 1e-4 per s,
-    chosen on robot 1's first 300 s (a sweep over R ×1–16, Q ×1–4 and floors 1e-5–1e-3
-    changed the median ATE by less than the spread between seeds there).
+    The same for every robot (``robot`` is not read: nothing is set per robot, the command also
+    runs on MRCLAM robots this project has not seen).  Known ids use ``slot_by_id``: the caller
+    maps subjects 6–20 to ids 0–14 (capacity 15), with the core's per-particle χ²(2) 99.9 %
+    gate (13.82) — without one, a single wrong range (a camera false positive, a 500 m
+    reading) moves that landmark in every particle; hidden ids ("ml") get capacity 32.
+    R = diag(σ_r², σ_β²) with σ = 1.4826·MAD of robot 2's landmark residuals (data README §5),
+    the larger of the two robots' spreads; input-noise densities σ_v = 0.03 m/s·√s,
+    σ_ω = 0.05 rad/s·√s and pose floor 1e-4 per s, chosen on robot 1's first 300 s (a sweep
+    over R ×1–16, Q ×1–4 and floors 1e-5–1e-3 changed the median ATE by less than the spread
+    between seeds there).
     """
     from .planar_ekf_slam import mrclam_raw_sigma
 
+    del robot  # one setting for every robot
     cap = 15 if association == "known" else 32
     cfg = Config(motion="unicycle", n_particles=int(n_particles), capacity=cap, K=int(K),
-                 association=association)
-    sr, sb = mrclam_raw_sigma(robot)
+                 association=association, gate=13.82 if association == "known" else None)
+    sr, sb = mrclam_raw_sigma(2)
     prm = default_params(sigma_r=sr, sigma_b=sb,
                          sigma_v=0.03, sigma_w=0.05, floor=(1e-4,) * 3, pose0_sigma=(1e-3, 1e-3, 1e-3),
                          dtype=dtype)

@@ -32,6 +32,7 @@ five.  Nothing is fitted per robot or per log.
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import jax
@@ -42,7 +43,7 @@ from ..data import catalogue
 from ..errors import InputError
 
 __all__ = ["PlanarLogs", "mrclam_logs", "planar_theta0", "planar_physical", "planar_nll",
-           "mrclam_noise", "mrclam_train_config"]
+           "mrclam_noise", "mrclam_train_config", "select_odometry_delay", "DELAY_GRID"]
 
 
 class PlanarLogs(NamedTuple):
@@ -60,8 +61,8 @@ class PlanarLogs(NamedTuple):
     pose0: np.ndarray
 
 
-def _stack(logs, poses, dtype) -> PlanarLogs:
-    T = max(lg.dt.shape[0] for lg in logs)
+def _stack(logs, poses, dtype, T: int | None = None) -> PlanarLogs:
+    T = max(lg.dt.shape[0] for lg in logs) if T is None else T
     K = logs[0].z.shape[1]
 
     def pad(a, fill):
@@ -78,11 +79,14 @@ def _stack(logs, poses, dtype) -> PlanarLogs:
     ) if all(lg.z.shape[1] == K for lg in logs) else None
 
 
-def mrclam_logs(data_dir, robots, dtype=np.float64, t_max: float | None = None):
+def mrclam_logs(data_dir, robots, dtype=np.float64, t_max: float | None = None, odometry_delay: float = 0.0,
+                T: int | None = None):
     """The raw MRCLAM logs of ``robots`` (as ``jaxslam dataset mrclam`` builds them), padded.
 
     Returns ``(PlanarLogs, [(log, data), ...])``.  The start pose is the ground truth at the
     first event (the dataset runner's start, not a fit).  ``t_max``: keep the first seconds.
+    ``odometry_delay``: the odometry stamps' lag [s] (``planar_ekf_slam.mrclam_raw_log``).
+    ``T``: pad to this many events (default: the longest log).
     """
     from ..data.mrclam import load_mrclam
     from ..systems import planar_ekf_slam as pe
@@ -94,11 +98,49 @@ def mrclam_logs(data_dir, robots, dtype=np.float64, t_max: float | None = None):
         if t_max is not None and t_max > span:
             raise InputError(f"--window: robot {r}'s log covers {span:.1f} s of ground-truth time, shorter "
                              f"than the {t_max:g} s fit window; give --window {int(span)} or less")
-        log, pose0 = pe.mrclam_raw_log(d, K=8, t_end=None if t_max is None else float(d.gt_t[0]) + t_max)
+        log, pose0 = pe.mrclam_raw_log(d, K=8, t_end=None if t_max is None else float(d.gt_t[0]) + t_max,
+                                       odometry_delay=odometry_delay)
         logs.append(log)
         poses.append(pose0)
         raw.append((log, d))
-    return _stack(logs, poses, dtype), raw
+    return _stack(logs, poses, dtype, T), raw
+
+
+#: Odometry delays [s] compared by :func:`select_odometry_delay` (``--odometry-delay auto``).
+DELAY_GRID = tuple(round(0.05 * i, 2) for i in range(9))  # 0, 0.05, ..., 0.4
+
+
+def select_odometry_delay(data_dir, robots, params, config, dtype=np.float64, t_max: float | None = None,
+                          grid=DELAY_GRID):
+    """The odometry delay of ``grid`` with the lowest innovation NLL of ``robots``' logs at ``params``.
+
+    A time shift of the odometry stamps is not a differentiable parameter of the event-ordered
+    scan, so it is chosen by the same likelihood the fit minimises, evaluated (value only, no
+    ground truth) at the fit's starting point on the training logs; every delay's logs are
+    padded to one length, so this compiles one program.  Returns ``(delay, {delay: nll})``.
+    """
+    built = [mrclam_logs(data_dir, robots, dtype, t_max, odometry_delay=d)[0] for d in grid]
+    T = max(b.dt.shape[1] for b in built)
+    built = [b if b.dt.shape[1] == T else mrclam_logs(data_dir, robots, dtype, t_max, odometry_delay=d, T=T)[0]
+             for b, d in zip(built, grid)]
+    cfg = config._replace(block=0)
+    def terms(p, it):
+        res = _run(p, cfg, it)
+        return jnp.stack([jnp.sum(res.nll), jnp.sum(res.nll_dof)])
+
+    nll_fn = jax.jit(lambda p, logs: jax.lax.map(lambda it: terms(p, it), logs))
+    table = {}
+    for d, b in zip(grid, built):
+        tot = np.asarray(nll_fn(params, jax.tree.map(jnp.asarray, b)))
+        table[float(d)] = float(tot[:, 0].sum() / max(tot[:, 1].sum(), 1.0))
+    best = min(table, key=table.get)
+    return best, table
+
+
+def _run(params, config, item):
+    from ..systems import planar_ekf_slam as pe
+
+    return pe.run_arrays(item.dt, item.u, item.z, item.ids, item.mask, item.pose0, params, config)
 
 
 def planar_theta0(params) -> dict:
@@ -125,9 +167,7 @@ def planar_physical(theta, base):
 
 def planar_nll(params, config, item):
     """Innovation NLL per scalar measurement of one padded log (nats; no ground truth)."""
-    from ..systems import planar_ekf_slam as pe
-
-    res = pe.run_arrays(item.dt, item.u, item.z, item.ids, item.mask, item.pose0, params, config)
+    res = _run(params, config, item)
     return jnp.sum(res.nll) / jnp.maximum(jnp.sum(res.nll_dof), 1.0)
 
 
@@ -141,11 +181,14 @@ def mrclam_train_config():
 
 
 def mrclam_noise(loss: str = "nll", data=None, robots=(1, 2, 3, 4), test_robots=(5,), dtype=jnp.float64,
-                 t_max: float | None = None, **_ignored):
+                 t_max: float | None = None, odometry_delay="auto", **_ignored):
     """Target ``jaxslam tune mrclam``: the noise of the planar EKF-SLAM from MRCLAM logs.
 
     ``robots``: training robots; ``test_robots``: held out (their NLL is the test loss, their
     ATE the evaluation).  ``data``: the folder with ``mrclam6/`` (or the dataset folder).
+    ``odometry_delay``: the odometry stamps' lag [s], or ``"auto"``: the delay of
+    :data:`DELAY_GRID` with the lowest training NLL at the starting point
+    (:func:`select_odometry_delay`).  The fitted file carries it (``"log"``).
     """
     from ..data import runners
     from ..systems import planar_ekf_slam as pe
@@ -159,17 +202,29 @@ def mrclam_noise(loss: str = "nll", data=None, robots=(1, 2, 3, 4), test_robots=
     if set(robots) & set(test_robots):
         raise InputError(f"--test-robots: {sorted(set(robots) & set(test_robots))} also in --robots; "
                          "a held-out robot must not be trained on")
-    train, _ = mrclam_logs(data, robots, dtype, t_max)
-    test, test_raw = mrclam_logs(data, test_robots, dtype) if test_robots else (None, [])
-    # without a held-out robot the table is measured on the training robots' whole logs
-    eval_robots = test_robots or robots
-    ev_logs, ev_raw = (test, test_raw) if test_robots else mrclam_logs(data, robots, dtype)
     cfg = mrclam_train_config()
     base = pe.mrclam_params(1, dtype=dtype, preset="hand")  # the start: the hand-set preset
     theta0 = planar_theta0(base)
 
     def physical(th):
         return planar_physical(th, base)
+
+    delay_table = None
+    if odometry_delay == "auto":
+        odometry_delay, delay_table = select_odometry_delay(data, robots, physical(theta0), cfg, dtype, t_max)
+    else:
+        try:
+            odometry_delay = float(odometry_delay)
+        except (TypeError, ValueError):
+            raise InputError(f"--odometry-delay: expected seconds or 'auto', got {odometry_delay!r}") from None
+        if not (math.isfinite(odometry_delay) and 0.0 <= odometry_delay <= 2.0):
+            raise InputError(f"--odometry-delay: expected 0 to 2 s, got {odometry_delay}")
+    train, _ = mrclam_logs(data, robots, dtype, t_max, odometry_delay)
+    test, test_raw = mrclam_logs(data, test_robots, dtype, odometry_delay=odometry_delay) if test_robots else (None, [])
+    # without a held-out robot the table is measured on the training robots' whole logs
+    eval_robots = test_robots or robots
+    ev_logs, ev_raw = (test, test_raw) if test_robots else mrclam_logs(data, robots, dtype,
+                                                                        odometry_delay=odometry_delay)
 
     def loss_fn(th, item):
         return planar_nll(physical(th), cfg, item)
@@ -196,7 +251,7 @@ def mrclam_noise(loss: str = "nll", data=None, robots=(1, 2, 3, 4), test_robots=
                 "range_model": [float(p.range_model[0]), float(p.range_model[1])]}
 
     def to_params(p):
-        return {"dataset": "mrclam", "noise": pe.params_to_dict(p)}
+        return {"dataset": "mrclam", "noise": pe.params_to_dict(p), "log": {"odometry_delay": odometry_delay}}
 
     batch = jax.tree.map(jnp.asarray, train)
     return T.Target(
@@ -207,6 +262,9 @@ def mrclam_noise(loss: str = "nll", data=None, robots=(1, 2, 3, 4), test_robots=
                 "evaluated_on": (f"held-out robots {list(test_robots)} (whole logs)" if test_robots else
                                  f"the training robots {list(robots)} (whole logs; nothing held out)"),
                 "t_max_s": t_max, "filter": pe.config_to_dict(cfg),
+                "odometry_delay_s": odometry_delay,
+                "odometry_delay_nll": None if delay_table is None else
+                {f"{k:g}": v for k, v in delay_table.items()},
                 "parametrisation": "log sigma_v, sigma_w, sigma_r, sigma_b; log floor_xy, floor_phi; "
                                    "camera range model k2 (k0 = 1)",
                 "loss": "Student-t innovation NLL per scalar measurement over the training logs"},

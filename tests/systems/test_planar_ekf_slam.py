@@ -396,3 +396,39 @@ def test_online_input_calibration_recovers_odometry_scale(scenario):
     e_off = np.linalg.norm(np.asarray(off.pose)[:, :2] - traj[k, :2], axis=1)
     assert np.sqrt(np.mean(e_on[len(k) // 2:] ** 2)) < np.sqrt(np.mean(e_off[len(k) // 2:] ** 2))
     assert int(on.status) == 0
+
+
+def test_range_model_likelihood_is_that_of_the_measured_range(scenario):
+    """Oracle: the filter on ranges transformed by hand, (r_meas − a)/k0, with the change of
+    variables added by hand: −log p(r_meas) = −log p(r) + log k0 per used range row."""
+    traj, lms, vis = scenario
+    base, us, zs = _logs(traj, lms, vis, 1)
+    k0, a = 1.07, 0.05
+    z_meas = np.array(zs[0])
+    z_meas[..., 0] = z_meas[..., 0] * k0 + a  # a camera with scale k0 and offset a
+    cfg = P.PlanarConfig(capacity=16, association="known", robust=True)
+    pose0 = jnp.asarray(traj[0])
+    with_model = P.run_arrays(base.dt, us[0], z_meas, base.ids, base.mask, pose0,
+                              _params()._replace(range_model=jnp.asarray([k0, 0.0, a])), cfg)
+    by_hand = P.run_arrays(base.dt, us[0], zs[0], base.ids, base.mask, pose0, _params(), cfg)
+    np.testing.assert_allclose(np.asarray(with_model.pose), np.asarray(by_hand.pose), rtol=0, atol=1e-9)
+    used_rows = float(np.sum(np.asarray(by_hand.n_used)))
+    assert used_rows > 100
+    np.testing.assert_allclose(float(np.sum(with_model.nll)), float(np.sum(by_hand.nll)) + used_rows * np.log(k0),
+                               rtol=1e-10)
+
+
+def test_input_model_equals_corrected_inputs(scenario):
+    traj, lms, vis = scenario
+    base, us, zs = _logs(traj, lms, vis, 1)
+    c = np.array([0.96, 1.08, -0.004])
+    u_corr = np.stack([c[0] * us[0][:, 0], c[1] * us[0][:, 1] + c[2]], -1)
+    cfg = P.PlanarConfig(capacity=16, association="known")
+    pose0 = jnp.asarray(traj[0])
+    a = P.run_arrays(base.dt, us[0], zs[0], base.ids, base.mask, pose0,
+                     _params()._replace(input_model=jnp.asarray(c)), cfg)
+    b = P.run_arrays(base.dt, u_corr, zs[0], base.ids, base.mask, pose0, _params(), cfg)
+    np.testing.assert_allclose(np.asarray(a.pose), np.asarray(b.pose), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(a.nll), np.asarray(b.nll), rtol=1e-12, atol=1e-12)
+    with pytest.raises(InputError, match="params.input_model"):
+        P.validate_params(_params()._replace(input_model=jnp.asarray([1.0, 1.0])))

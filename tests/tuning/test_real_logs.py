@@ -154,3 +154,33 @@ def test_a_diverged_run_warns_in_one_line_and_says_so_in_the_json(tmp_path, caps
                          "--quiet"], capsys)
     assert rc == 0 and "DIVERGED" not in err
     assert "diverged" not in json.loads(js.read_text())["counts"]["status_flags"]
+
+
+def test_odometry_delay_is_the_argmin_of_the_training_nll():
+    base = pe.mrclam_params(1, dtype=jnp.float64, preset="hand")
+    grid = (0.0, 0.1, 0.25)
+    best, table = RL.select_odometry_delay(DATA, [1], base, RL.mrclam_train_config(), t_max=10.0, grid=grid)
+    assert set(table) == set(grid) and best == min(table, key=table.get)
+    # each entry is the NLL of the log built with that delay (value oracle: the scan itself)
+    logs, _ = RL.mrclam_logs(DATA, [1], np.float64, 10.0, odometry_delay=0.1)
+    it = _item(logs)
+    res = pe.run_arrays(it.dt, it.u, it.z, it.ids, it.mask, it.pose0, base, pe.mrclam_config())
+    np.testing.assert_allclose(table[0.1], float(np.sum(res.nll) / np.sum(res.nll_dof)), rtol=1e-9)
+
+
+@pytest.mark.parametrize("log, match", [
+    ({"odometry_delay": "x"}, r"log.odometry_delay: expected a number in \[0, 2\]"),
+    ({"odometry_delay": 5.0}, r"log.odometry_delay: expected a number in \[0, 2\]"),
+    ({"delay": 0.1}, r"log: unknown key\(s\) \['delay'\]"),
+])
+def test_params_log_options_errors_name_the_key(tmp_path, capsys, log, match):
+    f = tmp_path / "p.json"
+    f.write_text(json.dumps({"dataset": "mrclam", "noise": {}, "log": log}))
+    rc, out, err = _cli(["dataset", "mrclam", "--data", str(DATA), "--params", str(f)], capsys)
+    assert rc == 2 and len(err.strip().splitlines()) == 1 and re_search(match, err), err
+
+
+def re_search(pattern, text):
+    import re
+
+    return re.search(pattern, text) is not None
