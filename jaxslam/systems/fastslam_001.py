@@ -98,7 +98,7 @@ mismatch then corrupts ω and the bias).
 Bad samples: a non-finite IMU sample is skipped (the dynamics model predicts through it; the
 kinematics model keeps its previous sample) and non-finite LiDAR rows are skipped by the update
 and by the position regeneration; both set ``MASKED_INPUT`` in the particles' status
-(``tests/faults/test_faults_slow_systems.py``).  Before, either turned the estimate into NaN.
+(``tests/faults/test_faults_flight_systems.py``).  Before, either turned the estimate into NaN.
 
 Which entry point: :func:`run` (one ``lax.scan`` over the whole flight; nested scan: LiDAR
 frames outside, IMU samples inside) for recorded data and Monte Carlo (``vmap`` over keys);

@@ -52,6 +52,15 @@ out_of_range    mapped_outliers = clean + 1;   outside_limits = clean + n;   ``g
 5000 m Plaza)
 ==============  =============================  ============================  ==========================  ==========================
 
+``mrclam-fastslam`` is the same files through the FastSLAM runner (``--filter fastslam``, 100
+particles, seed 0, known ids with the per-particle χ²(2) 99.9 % gate): as mrclam for the
+loader's refusals (nan_burst, inf_value, out_of_order), the counts of duplicate_line,
+unknown_id and frozen_sensor, and the error bounds of dropout (slow), time_jump,
+duplicate_line, frozen_sensor and unknown_id; duplicate_input: estimate identical (the same
+seed draws the same particles); outlier_burst: ``gated``, gated > clean, ATE ≤ 2·clean +
+0.05 m; out_of_range: ``gated``, gated ≥ clean + 1, ATE ≤ 1.2·clean + 0.005 m.  (Its gated
+count is a mean over particles.)
+
 Measured, not asserted: the MRCLAM time jump also sets ``diverged`` (0.3 m of false motion puts
 more than 10 % of the later sightings beyond the χ²(2) 99 % gate).
 
@@ -174,7 +183,7 @@ class Stream(NamedTuple):
 
 
 class Spec(NamedTuple):
-    name: str
+    name: str  # the dataset run_dataset runs
     folder: str  # under tests/data and the temporary copy
     files: tuple  # glob patterns copied from tests/data/<folder>
     options: dict
@@ -187,6 +196,13 @@ _UTIL_CSV = {"header_rows": 1, "delimiter": ","}
 SPECS = {
     "mrclam": Spec(
         "mrclam", "mrclam6", ("Robot1_*", "Barcodes.dat", "Landmark_Groundtruth.dat"), {},
+        meas=Stream("Robot1_Measurement.dat", id_col=1, value_col=2),
+        inp=Stream("Robot1_Odometry.dat"),
+        timed=(Stream("Robot1_Measurement.dat"), Stream("Robot1_Odometry.dat"),
+               Stream("Robot1_Groundtruth.dat"))),
+    # the same files through the FastSLAM runner (``jaxslam dataset mrclam --filter fastslam``)
+    "mrclam-fastslam": Spec(
+        "mrclam", "mrclam6", ("Robot1_*", "Barcodes.dat", "Landmark_Groundtruth.dat"), {"filter": "fastslam"},
         meas=Stream("Robot1_Measurement.dat", id_col=1, value_col=2),
         inp=Stream("Robot1_Odometry.dat"),
         timed=(Stream("Robot1_Measurement.dat"), Stream("Robot1_Odometry.dat"),
@@ -241,7 +257,7 @@ def clean(bases):
     """Clean run of a dataset (computed once per module, on first use)."""
     def get(name):
         if name not in _CLEAN:
-            _CLEAN[name] = run_dataset(name, bases[name], **SPECS[name].options)
+            _CLEAN[name] = run_dataset(SPECS[name].name, bases[name], **SPECS[name].options)
         return _CLEAN[name]
 
     yield get
@@ -255,7 +271,7 @@ def _copy(bases, name, tmp_path) -> Path:
 
 
 def _run(name, folder):
-    run = run_dataset(name, folder, **SPECS[name].options)
+    run = run_dataset(SPECS[name].name, folder, **SPECS[name].options)
     _check_finite(run)
     return run
 
@@ -282,7 +298,7 @@ def _err(run) -> float:
 
 def _rejects(name, folder, stream: Stream, line: int, pattern: str):
     with pytest.raises(DataFormatError, match=pattern) as ei:
-        run_dataset(name, folder, **SPECS[name].options)
+        run_dataset(SPECS[name].name, folder, **SPECS[name].options)
     e = ei.value
     assert e.path == str(folder / stream.file) and e.line == line, (e.path, e.line, str(e))
     assert str(e).startswith(f"{folder / stream.file}:{line}: ")
@@ -302,6 +318,11 @@ def _mid_rows(tab: Table, spec: Spec, n: int, start_frac=0.4, mapped=None):
         if len(rows) == n:
             return rows
     raise AssertionError("excerpt too short for the fault")
+
+
+def _mr(name) -> bool:
+    """The MRCLAM files (EKF or FastSLAM runner)."""
+    return SPECS[name].name == "mrclam"
 
 
 #: barcodes of the landmarks MRCLAM robot 1 maps in its first camera frames (subjects 11-13)
@@ -328,7 +349,8 @@ def fault_dropout(name, d, clean):
         assert _err(run) <= 2 * max(_err(ref), ref.metrics["dead_reckoning_ate_m"]) + 0.02
 
 
-OUTLIER_OFFSET = {"mrclam": 3.0, "victoria-park": 8.0, "util-uwb": 2.0, "plaza": 30.0}  # m
+OUTLIER_OFFSET = {"mrclam": 3.0, "mrclam-fastslam": 3.0, "victoria-park": 8.0, "util-uwb": 2.0,
+                  "plaza": 30.0}  # m
 N_BURST = 8
 
 
@@ -340,7 +362,7 @@ def fault_outlier_burst(name, d, clean):
         scans = sorted({tab.get(r, 0) for r in range(tab.n())}, key=float)[20:23]
         rows = [r for r in range(tab.n()) if tab.get(r, 0) in scans and 5.0 <= tab.value(r, j) <= 32.0]
     else:
-        rows = _mid_rows(tab, spec, N_BURST, 0.25, MRCLAM_MAPPED if name == "mrclam" else None)
+        rows = _mid_rows(tab, spec, N_BURST, 0.25, MRCLAM_MAPPED if _mr(name) else None)
     for r in rows:
         tab.set(r, j, f"{tab.value(r, j) + OUTLIER_OFFSET[name]:.5f}")
     tab.save()
@@ -349,6 +371,11 @@ def fault_outlier_burst(name, d, clean):
     if name == "mrclam":
         assert c["mapped_outliers"] >= c0["mapped_outliers"] + N_BURST
         assert N_BURST / c["mapped_rows"] > 0.10 and "diverged" in _flags(run)
+        assert _err(run) <= 2 * _err(ref) + 0.05
+    elif name == "mrclam-fastslam":  # the per-particle χ²(2) gate of known ids
+        # (first stated as gated ≥ clean + n like UTIL; the count is a mean over particles whose
+        # other rows' gate decisions depend on their state: the run gated 7 more, not 8)
+        assert "gated" in _flags(run) and c["gated"] > c0["gated"]
         assert _err(run) <= 2 * _err(ref) + 0.05
     elif name == "victoria-park":
         assert len(rows) >= 10
@@ -385,7 +412,7 @@ def fault_inf_value(name, d, clean):
     _rejects(name, d, spec.inp, tab.line(r), f"non-finite value inf in column {spec.inp.value_col + 1}$")
 
 
-TIME_JUMP = {"mrclam": "5", "victoria-park": "1", "util-uwb": "0.3", "plaza": "30"}  # s
+TIME_JUMP = {"mrclam": "5", "mrclam-fastslam": "5", "victoria-park": "1", "util-uwb": "0.3", "plaza": "30"}  # s
 
 
 def fault_time_jump(name, d, clean):
@@ -425,14 +452,14 @@ def fault_duplicate_line(name, d, clean):
         r = next(r for r in range(tab.n() // 2, tab.n())
                  if t.count(t[r]) < max(map(t.count, set(t))) and 5.0 <= tab.value(r, 1) <= 40.0)
     else:
-        r = _mid_rows(tab, spec, 1, 0.5, MRCLAM_MAPPED if name == "mrclam" else None)[0]
+        r = _mid_rows(tab, spec, 1, 0.5, MRCLAM_MAPPED if _mr(name) else None)[0]
     tab.duplicate(r)
     tab.save()
     if name == "plaza":
         _rejects(name, d, st, tab.line(r + 1), r"repeats \(line \d+\): DR rows are odometry increments")
         return
     run, ref = _run(name, d), clean(name)
-    if name == "mrclam":
+    if _mr(name):
         assert run.report["duplicate_rows"] == ref.report["duplicate_rows"] + 1
         assert run.counts["measurements"] == ref.counts["measurements"] + 1
         assert _err(run) <= 2 * _err(ref) + 0.02
@@ -452,7 +479,7 @@ def fault_duplicate_input(name, d, clean):
     tab.save()
     run, ref = _run(name, d), clean(name)
     _same_estimate(run, ref)  # a held rate sample repeated at its own stamp changes nothing
-    if name == "mrclam":
+    if _mr(name):
         assert run.report["odometry_duplicate_lines"] == [f"{d / spec.inp.file}:{tab.line(r + 1)}"]
 
 
@@ -474,15 +501,15 @@ def fault_frozen_sensor(name, d, clean):
     spec = SPECS[name]
     tab = spec.meas.open(d)
     ic, j = spec.meas.id_col, spec.meas.value_col
-    r0 = _mid_rows(tab, spec, 1, 0.3, ("54",) if name == "mrclam" else None)[0]
+    r0 = _mid_rows(tab, spec, 1, 0.3, ("54",) if _mr(name) else None)[0]
     same = [r for r in range(r0, tab.n()) if tab.get(r, ic) == tab.get(r0, ic)][:6]
     assert len(same) == 6
     for r in same[1:]:  # the reading sticks at its first value while the stamps go on
-        for col in (j, j + 1) if name == "mrclam" else (j,):
+        for col in (j, j + 1) if _mr(name) else (j,):
             tab.set(r, col, tab.get(r0, col))
     tab.save()
     run, ref = _run(name, d), clean(name)
-    if name == "mrclam":
+    if _mr(name):
         assert run.report["repeated_readings"] >= ref.report["repeated_readings"] + 5
         assert _err(run) <= 2 * _err(ref) + 0.05
     elif name == "util-uwb":
@@ -491,13 +518,13 @@ def fault_frozen_sensor(name, d, clean):
         assert _err(run) <= 1.5 * _err(ref) + 0.1
 
 
-UNKNOWN_ID = {"mrclam": "99", "util-uwb": "9", "plaza": "3.0000000000000000e+000"}
+UNKNOWN_ID = {"mrclam": "99", "mrclam-fastslam": "99", "util-uwb": "9", "plaza": "3.0000000000000000e+000"}
 
 
 def fault_unknown_id(name, d, clean):
     spec = SPECS[name]
     tab = spec.meas.open(d)
-    if name == "mrclam":  # a row in a camera frame with other rows: the event stays
+    if _mr(name):  # a row in a camera frame with other rows: the event stays
         r = next(r for r in range(tab.n() // 2, tab.n() - 1)
                  if tab.get(r, 0) == tab.get(r + 1, 0) and tab.get(r, 1) in MRCLAM_MAPPED)
     else:
@@ -525,7 +552,7 @@ def fault_out_of_range(name, d, clean):
     if name == "victoria-park":
         rows = [r for r in range(tab.n() // 2, tab.n()) if 5.0 <= tab.value(r, j) <= 40.0][:5]
     else:
-        rows = _mid_rows(tab, spec, 1, 0.5, MRCLAM_MAPPED if name == "mrclam" else None)
+        rows = _mid_rows(tab, spec, 1, 0.5, MRCLAM_MAPPED if _mr(name) else None)
     for r in rows:
         tab.set(r, j, "5000.0" if name == "plaza" else "500.0")
     tab.save()
@@ -533,6 +560,9 @@ def fault_out_of_range(name, d, clean):
     c, c0 = run.counts, ref.counts
     if name == "mrclam":  # no gate: the Student-t update gives the row a weight ~1e-7
         assert c["mapped_outliers"] == c0["mapped_outliers"] + 1
+        assert _err(run) <= 1.2 * _err(ref) + 0.005
+    elif name == "mrclam-fastslam":  # the per-particle χ²(2) gate of known ids
+        assert "gated" in _flags(run) and c["gated"] >= c0["gated"] + 1
         assert _err(run) <= 1.2 * _err(ref) + 0.005
     elif name == "victoria-park":
         assert c["outside_limits"] == c0["outside_limits"] + len(rows)
@@ -546,8 +576,9 @@ FAULTS = {f.__name__[len("fault_"):]: f for f in (
     fault_duplicate_line, fault_duplicate_input, fault_out_of_order, fault_frozen_sensor,
     fault_unknown_id, fault_out_of_range)}
 
-ALL = ("mrclam", "victoria-park", "util-uwb", "plaza")
-#: (fault, datasets); Victoria Park cells listed in SLOW_VP run in the slow set only
+ALL = ("mrclam", "mrclam-fastslam", "victoria-park", "util-uwb", "plaza")
+MR = ("mrclam", "mrclam-fastslam")
+#: (fault, runners); the cells listed in SLOW run in the slow set only
 MATRIX = {
     "dropout": ALL,
     "outlier_burst": ALL,
@@ -555,16 +586,16 @@ MATRIX = {
     "inf_value": ALL,
     "time_jump": ALL,
     "duplicate_line": ALL,
-    "duplicate_input": ("mrclam", "victoria-park"),
+    "duplicate_input": MR + ("victoria-park",),
     "out_of_order": ALL,
-    "frozen_sensor": ("mrclam", "util-uwb", "plaza"),
-    "unknown_id": ("mrclam", "util-uwb", "plaza"),
+    "frozen_sensor": MR + ("util-uwb", "plaza"),
+    "unknown_id": MR + ("util-uwb", "plaza"),
     "out_of_range": ALL,
 }
 #: cells in the slow set only: those that compile a second program (dropout changes the number
 #: of events) and Victoria Park runs beyond two (about 1 s each); a reduced default keeps one
 #: dropout (UTIL, the cheapest program) and Victoria Park's outlier and out-of-range cells
-SLOW = {("dropout", "mrclam"), ("dropout", "victoria-park"), ("dropout", "plaza"),
+SLOW = {("dropout", "mrclam"), ("dropout", "mrclam-fastslam"), ("dropout", "victoria-park"), ("dropout", "plaza"),
         ("time_jump", "victoria-park"), ("duplicate_line", "victoria-park"),
         ("duplicate_input", "victoria-park")}
 CELLS = [pytest.param(f, n, id=f"{f}-{n}", marks=[pytest.mark.slow] if (f, n) in SLOW else [])

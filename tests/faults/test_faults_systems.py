@@ -48,8 +48,8 @@ anchor_lost      anchor 2 silent all flight: |e| ≤ 3√tr P at ≥ 90 % of the
                  steps, and a larger covariance than the clean run's
 ===============  ============================================================================
 
-Paper 000's 3D EKF-SLAM (``ekf_slam_3d.filter_log``, slow set: its flight and filter compile
-for ~10 s): LiDAR NaN burst → ``masked_input``, means = the dropout run's; IMU NaN →
+Paper 000's 3D EKF-SLAM (``ekf_slam_3d.filter_log``; its flight and filter compile in a few
+seconds): LiDAR NaN burst → ``masked_input``, means = the dropout run's; IMU NaN →
 ``non_finite``, means finite.  The real-log systems (MRCLAM planar, UTIL/Plaza range-only) are
 fault-injected at array level in test_faults_datasets.py, where their programs are compiled.
 """
@@ -394,7 +394,7 @@ def test_uwb_slam_2d_fault(fault, uwb):
 
 
 # ---------------------------------------------------------------------------
-# Paper 000's 3D EKF-SLAM (slow: the flight and the filter compile for ~10 s)
+# Paper 000's 3D EKF-SLAM (the flight and the filter compile once for every fault)
 # ---------------------------------------------------------------------------
 
 LIDAR_EVERY = 10
@@ -424,7 +424,6 @@ def flight3d():
     return fl, imu, run
 
 
-@pytest.mark.slow
 def test_ekf_slam_3d_lidar_nan_burst_is_masked_like_a_dropout(flight3d):
     fl, imu, run = flight3d
     y, vis = np.array(fl.lidar_y), np.asarray(fl.lidar_mask)
@@ -436,7 +435,6 @@ def test_ekf_slam_3d_lidar_nan_burst_is_masked_like_a_dropout(flight3d):
     np.testing.assert_allclose(np.asarray(means), np.asarray(means_d), rtol=0, atol=1e-12)
 
 
-@pytest.mark.slow
 def test_ekf_slam_3d_imu_nan_is_flagged_and_finite(flight3d):
     fl, imu, run = flight3d
     bad = np.array(imu)
@@ -451,7 +449,6 @@ def _pos_rmse_3d(means, fl):
     return float(np.sqrt(np.mean(np.sum(e * e, axis=1))))
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("fault", ["inf_lidar", "lidar_dropout", "lidar_outlier_burst", "lidar_frozen",
                                    "lidar_out_of_range", "inf_imu"])
 def test_ekf_slam_3d_fault(flight3d, fault):

@@ -1,0 +1,78 @@
+"""Bad-input latency: every case of the CLI's bad-input catalogue as its own fresh process.
+
+Run with ``python -m jaxslam bench bad_inputs [--json PATH]``.  The cases are those of
+``tests/test_cli_bad_inputs.py`` (the test asserts the exit code, the one line naming the
+argument and that nothing compiles; it runs them in one interpreter, so it does not measure
+what a user waits for).  Here each case is a new ``jaxslam`` process, as a user types it:
+wall time from start to exit, the median of ``--repeats`` runs.  Target (issue 22): every
+case within 2 s.  A case that needs a scenario's options or parameter schema imports JAX
+(1.4-1.9 s alone on the 2-core development machine: ``python -c "import jax"``), so those
+cases set the floor; the reference column is that import, measured the same way.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import pathlib
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+DESCRIPTION = "Bad-input latency: each CLI bad-input case as a fresh process (target: every case within 2 s)"
+
+TARGETS = {"max_case_s": 2.0}
+_HERE = pathlib.Path(__file__).resolve().parent
+
+
+def add_arguments(parser):
+    parser.add_argument("--repeats", type=int, default=3, help="runs per case (median; default 3)")
+
+
+def _catalogue():
+    path = _HERE.parent / "tests" / "test_cli_bad_inputs.py"
+    spec = importlib.util.spec_from_file_location("_bad_inputs_cases", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _wall(cmd, env, cwd, repeats):
+    ts, rc = [], None
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        rc = subprocess.run(cmd, capture_output=True, env=env, cwd=cwd).returncode
+        ts.append(time.perf_counter() - t0)
+    return float(np.median(ts)), rc
+
+
+def run(args):
+    cat = _catalogue()
+    tmp = pathlib.Path(tempfile.mkdtemp(prefix="jaxslam-bench-bad-"))
+    load0 = list(os.getloadavg())
+    try:
+        cat._files(tmp)
+        base_env = {k: v for k, v in os.environ.items() if k != "JAXSLAM_DATA_DIR"}
+        jax_s, _ = _wall([sys.executable, "-c", "import jax"], base_env, str(tmp), args.repeats)
+        results = []
+        for argv, needle, env in cat._cases(tmp):
+            e = {**base_env, **(env or {})}
+            s, rc = _wall([sys.executable, "-m", "jaxslam", *argv], e, str(tmp), args.repeats)
+            results.append({"case": " ".join(argv).replace(str(tmp), "TMP").replace(str(cat.DATA), "tests/data"), "params": {"needle": needle},
+                            "jaxslam_s": s, "exit_code": rc, "reference": "python -c 'import jax'",
+                            "reference_s": jax_s, "speedup": jax_s / s})
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    worst = max(r["jaxslam_s"] for r in results)
+    bad_rc = [r["case"] for r in results if r["exit_code"] != 2]
+    targets = [{"name": "slowest bad-input case, fresh process", "target": "<= 2 s", "value": worst,
+                "met": bool(worst <= TARGETS["max_case_s"] and not bad_rc)}]
+    print(f"  {len(results)} cases: median {np.median([r['jaxslam_s'] for r in results]):.2f} s, "
+          f"max {worst:.2f} s, over 2 s: {sum(r['jaxslam_s'] > 2 for r in results)}; import jax alone "
+          f"{jax_s:.2f} s" + (f"; exit code not 2: {bad_rc}" if bad_rc else ""))
+    return {"results": results, "targets": targets,
+            "load_average": {"before": load0, "after": list(os.getloadavg())}}
