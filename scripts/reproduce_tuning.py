@@ -56,7 +56,7 @@ import numpy as np  # noqa: E402
 jax.config.update("jax_enable_x64", True)
 
 from jaxslam import io  # noqa: E402
-from jaxslam.tuning import cli as tcli  # noqa: E402
+from jaxslam.cli import tune as tcli  # noqa: E402
 from jaxslam.tuning import losses as L  # noqa: E402
 from jaxslam.tuning import optimize as O  # noqa: E402
 from jaxslam.tuning import targets as T  # noqa: E402

@@ -10,7 +10,7 @@ import types
 import numpy as np
 import pytest
 
-from jaxslam.cli import _format_run_report
+from jaxslam.cli.run import format_run_report as _format_run_report
 from jaxslam.metrics import consistency_verdict
 from jaxslam.plotting import flight, slam3d, tuning, uwb
 from jaxslam.plotting.flight import plt  # pyplot on the Agg backend

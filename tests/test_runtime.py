@@ -29,7 +29,11 @@ def test_configure_process_keeps_user_choices_and_adds_missing_flags(monkeypatch
 
 
 def test_cli_sets_flags_before_jax_starts():
-    code = ("import os; os.environ.pop('XLA_FLAGS', None); import jaxslam.cli, jax; "
+    """Importing the CLI package changes nothing; calling its ``main`` configures the process
+    before JAX's backend starts."""
+    code = ("import os; os.environ.pop('XLA_FLAGS', None); import jaxslam.cli; "
+            "assert 'XLA_FLAGS' not in os.environ, 'import-time side effect'; "
+            "jaxslam.cli.main(['cache', 'info', '--json']); "
             "import jax.numpy as jnp; jnp.ones(1).block_until_ready(); print(os.environ['XLA_FLAGS'])")
     env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)

@@ -101,7 +101,7 @@ def landmark_errors(fl, lms, cfg):
 
 def plot_all(name, fl, lms, t, t_frames, anees_per_frame, cons, runs, directory, cfg):
     """Write the figures for one flight ``fl`` (NumPy) and the MC NEES; returns paths."""
-    from ..sim.scenarios.ekfslam3d import CONSISTENCY_BLOCKS
+    from ..systems.ekf_slam_3d import CONSISTENCY_BLOCKS
 
     p = plt()
     paths = []

@@ -1,6 +1,6 @@
 """Tuning plots: loss curves, parameter trajectories, held-out before/after.
 
-Input is the ``tune`` JSON dict (:mod:`jaxslam.tuning.cli`) or its pieces; matplotlib
+Input is the ``tune`` JSON dict (:mod:`jaxslam.cli.tune`) or its pieces; matplotlib
 is imported lazily (Agg).  Every function returns the Figure; :func:`plot_all` writes PNGs.
 """
 

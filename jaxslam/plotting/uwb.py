@@ -98,7 +98,7 @@ def band(sig3, t, limit=None, name="state"):
 
 
 def _frame(sim, res, cfg):
-    from ..sim.scenarios.uwb import startup_frame
+    from ..systems.uwb_slam_2d import startup_frame
 
     if cfg.mode == "slam":
         M, o = startup_frame(sim.anchors, res.startup.ref_anchor, cfg.start_anchor, cfg.end_anchor)

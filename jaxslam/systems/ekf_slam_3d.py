@@ -251,6 +251,14 @@ class FrameOut(NamedTuple):
 
 
 
+#: What the consistency statistics of this estimator cover (run JSON ``*_block`` / ``*_dim``):
+#: the NEES of the robot block, the NIS of the LiDAR rows per degree of freedom.
+CONSISTENCY_BLOCKS = {
+    "anees_block": "robot block (position, body velocity, attitude)", "anees_dim": NX,
+    "nis_block": "LiDAR rows (azimuth, elevation, range), per degree of freedom", "nis_dim": 1,
+}
+
+
 def robot_error(s_hat, x_true):
     """Estimation error of the 9-state against the 12-state truth, angles wrapped."""
     e = s_hat - x_true[:NX].astype(s_hat.dtype)
@@ -372,7 +380,8 @@ def make_estimator(noise: NoiseParams, cfg: EstimatorConfig, landmarks_true=None
     return Estimator(init, propagate, correct, ctrl_state, step_out)
 
 
-__all__ += ["EstimatorConfig", "EstState", "StepOut", "FrameOut", "make_estimator", "robot_error"]
+__all__ += ["EstimatorConfig", "EstState", "StepOut", "FrameOut", "make_estimator", "robot_error",
+            "CONSISTENCY_BLOCKS"]
 
 
 def noise_to_dict(noise: NoiseParams) -> dict:

@@ -143,6 +143,7 @@ __all__ = [
     "make_model",
     "make_gyro_model",
     "startup",
+    "startup_frame",
     "init_slam",
     "init_localization",
     "step",
@@ -444,6 +445,24 @@ def make_gyro_model() -> es.SlamModel:
 # ---------------------------------------------------------------------------
 # Start-up and initial states
 # ---------------------------------------------------------------------------
+
+def startup_frame(anchors, ref, start: int = 0, end: int = 1):
+    """World → start-up frame of the trilateration start-up: p_S = M (p_W − origin).
+
+    ``anchors`` (N, 2) world positions; ``ref`` the anchor that fixed the side (from
+    :class:`StartupResult`); ``start``/``end`` the anchors of the straight-line start-up
+    (``UwbConfig.start_anchor``/``end_anchor``).  Returns (M (2, 2), origin (2,)): origin at the
+    end anchor, +x from the start to the end anchor, +y on the side of anchor ``ref`` (det M = −1
+    when that needs a reflection; ``ref`` < 0: no reflection).
+    """
+    a, b = anchors[start], anchors[end]
+    u = (b - a) / jnp.linalg.norm(b - a)
+    v = jnp.stack([-u[1], u[0]])
+    c = anchors[jnp.clip(ref, 0, anchors.shape[0] - 1)]
+    side = jnp.sign(jnp.dot(v, c - b))
+    side = jnp.where((ref < 0) | (side == 0), 1.0, side).astype(anchors.dtype)
+    return jnp.stack([u, side * v]), b
+
 
 def startup(startup_ranges, startup_mask, cfg: UwbConfig, params: FilterParams) -> StartupResult:
     """Forced straight-line start-up and LS trilateration (paper 003 Sec. III-D, eq. 22-26).

@@ -16,7 +16,7 @@ No paper covers tuning; every decision is recorded in the module docstrings and 
 
 import importlib
 
-# Names are loaded on first use (PEP 562), so importing ``jaxslam.tuning.cli`` imports no JAX
+# Names are loaded on first use (PEP 562), so importing ``jaxslam.cli.tune`` imports no JAX
 # and no target module: ``jaxslam tune`` checks its arguments and output paths first, then
 # switches x64 on, then imports the targets (their module constants take that dtype).
 _SOURCES = {

@@ -5,7 +5,7 @@ import json
 import pytest
 
 from jaxslam import cli
-from jaxslam.tuning import cli as tcli
+from jaxslam.cli import tune as tcli
 
 
 def test_tune_end_to_end_writes_json_params_and_plots(tmp_path, capsys):

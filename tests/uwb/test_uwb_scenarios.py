@@ -22,6 +22,7 @@ from jaxslam import metrics as mx
 from jaxslam.sim import monte_carlo
 from jaxslam.sim.scenarios import registry
 from jaxslam.sim.scenarios import uwb as S
+from jaxslam.systems import uwb_slam_2d as U
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 import uwb_cases as C  # noqa: E402
@@ -67,7 +68,7 @@ def test_paths_are_the_papers():
 
 def test_startup_frame_handles_rotation_and_reflection():
     A = jnp.asarray([[1.0, 1.0], [1.0, 4.0], [3.0, 2.0]])  # start→end along +y; C to the right
-    M, o = S.startup_frame(A, jnp.asarray(2))
+    M, o = U.startup_frame(A, jnp.asarray(2))
     P = (np.asarray(A) - np.asarray(o)) @ np.asarray(M).T
     np.testing.assert_allclose(P[1], [0, 0], atol=1e-15)
     np.testing.assert_allclose(P[0], [-3, 0], atol=1e-15)

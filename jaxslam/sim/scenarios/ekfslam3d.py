@@ -49,10 +49,7 @@ N_LANDMARKS = 40
 WINDOW_S = 10.0
 # What each statistic of ``consistency`` covers (docs/cli.md, "consistency"): the NEES is of the
 # 9-state robot block, the NIS of every LiDAR row, normalised per degree of freedom.
-CONSISTENCY_BLOCKS = {
-    "anees_block": "robot block (position, body velocity, attitude)", "anees_dim": sys3d.NX,
-    "nis_block": "LiDAR rows (azimuth, elevation, range), per degree of freedom", "nis_dim": 1,
-}
+CONSISTENCY_BLOCKS = sys3d.CONSISTENCY_BLOCKS
 
 __all__ = ["build", "evaluate", "run_scenario"]
 

@@ -79,7 +79,7 @@ from ...systems import uwb_slam_2d as U
 from .. import monte_carlo
 from .registry import Option, Scenario, ScenarioResult, program_key, register
 
-__all__ = ["ANCHORS", "SCENARIOS", "Setup", "SimOut", "make_setup", "simulate", "startup_frame",
+__all__ = ["ANCHORS", "SCENARIOS", "Setup", "SimOut", "make_setup", "simulate",
            "evaluate", "build", "run_scenario", "consistency", "consistency_summary"]
 
 ANCHORS = ((-3.0, 0.0), (0.0, 0.0), (-1.5, 2.5), (1.0, 2.0), (-4.0, 2.5), (-1.0, -2.0))
@@ -226,21 +226,6 @@ def simulate(key, setup: Setup, dtype) -> SimOut:
     return SimOut(truth=truth, log=log, anchors=anchors)
 
 
-def startup_frame(anchors, ref, start: int = START, end: int = END):
-    """World → start-up frame: p_S = M (p_W − origin).  Returns (M (2, 2), origin (2,)).
-
-    Origin at the end anchor, +x from the start to the end anchor, +y on the side of
-    anchor ``ref`` (det M = −1 when that needs a reflection; ``ref`` < 0: no reflection).
-    """
-    a, b = anchors[start], anchors[end]
-    u = (b - a) / jnp.linalg.norm(b - a)
-    v = jnp.stack([-u[1], u[0]])
-    c = anchors[jnp.clip(ref, 0, anchors.shape[0] - 1)]
-    side = jnp.sign(jnp.dot(v, c - b))
-    side = jnp.where((ref < 0) | (side == 0), 1.0, side).astype(anchors.dtype)
-    return jnp.stack([u, side * v]), b
-
-
 def _nees(e, P):
     Lc = jnp.linalg.cholesky(0.5 * (P + P.T))
     w = jax.scipy.linalg.solve_triangular(Lc, e, lower=True)
@@ -253,7 +238,7 @@ def evaluate(sim: SimOut, res: U.RunResult, cfg: U.UwbConfig):
     anchors = sim.anchors
     dtype = res.steps.mean.dtype
     if cfg.mode == "slam":
-        M, o = startup_frame(anchors, res.startup.ref_anchor, cfg.start_anchor, cfg.end_anchor)
+        M, o = U.startup_frame(anchors, res.startup.ref_anchor, cfg.start_anchor, cfg.end_anchor)
     else:
         M, o = jnp.eye(2, dtype=dtype), jnp.zeros((2,), dtype)
     pos_t = (truth[:, :2] - o) @ M.T

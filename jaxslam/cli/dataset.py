@@ -14,7 +14,9 @@ from __future__ import annotations
 import argparse
 import sys
 
-from ..errors import InputError
+from jaxslam.errors import InputError
+
+from .common import Parser, compile_timing, positive_int, seed_int
 
 __all__ = ["main"]
 
@@ -43,7 +45,7 @@ def _params_help() -> str:
     """The keys a dataset ``--params`` file may set (built only for ``--help``)."""
     import textwrap
 
-    from ..systems.planar_ekf_slam import PlanarParams
+    from jaxslam.systems.planar_ekf_slam import PlanarParams
 
     return ("\n\n--params FILE (mrclam, EKF): {\"dataset\": \"mrclam\", \"noise\": {...}, \"log\": {...}} as\n"
             "'jaxslam tune mrclam' writes it; noise keys (each optional, shapes as in PlanarParams):\n"
@@ -53,9 +55,7 @@ def _params_help() -> str:
 
 
 def _parser(help_params: bool = False):
-    from ..cli import _Parser, _positive_int, _seed
-
-    p = _Parser(prog="jaxslam dataset", usage="jaxslam dataset NAME --data DIR [options]",
+    p = Parser(prog="jaxslam dataset", usage="jaxslam dataset NAME --data DIR [options]",
                 description="Run EKF-SLAM or FastSLAM on a real dataset and evaluate it.",
                 epilog=_EPILOG + (_params_help() if help_params else ""),
                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -63,7 +63,7 @@ def _parser(help_params: bool = False):
                    help="mrclam | victoria-park | util-uwb | plaza")
     p.add_argument("--data", metavar="DIR", default=None,
                    help="folder holding the dataset files, or a parent of it (default: $JAXSLAM_DATA_DIR)")
-    p.add_argument("--robot", type=_positive_int, default=1, metavar="N",
+    p.add_argument("--robot", type=positive_int, default=1, metavar="N",
                    help="MRCLAM robot number, or Plaza sequence 1|2 (default: 1)")
     p.add_argument("--filter", choices=("ekf", "fastslam"), default="ekf",
                    help="EKF-SLAM or FastSLAM 1.0 (default: ekf)")
@@ -79,9 +79,9 @@ def _parser(help_params: bool = False):
                         "plaza: unknown beacons, SLAM (default) or surveyed beacons (localisation)")
     p.add_argument("--tof", action="store_true",
                    help="util-uwb: also use the downward laser height (the run is then not range-only)")
-    p.add_argument("--particles", type=_positive_int, default=None, metavar="N",
+    p.add_argument("--particles", type=positive_int, default=None, metavar="N",
                    help="FastSLAM particle count (default: the dataset's setting)")
-    p.add_argument("--seed", type=_seed, default=0, metavar="S", help="FastSLAM PRNG seed (default: 0)")
+    p.add_argument("--seed", type=seed_int, default=0, metavar="S", help="FastSLAM PRNG seed (default: 0)")
     p.add_argument("--smooth", action="store_true",
                    help="also smooth the EKF run (RTS backward pass over the robot trajectory, the map "
                         "held static) and report its figures beside the filter's as smoothed_* "
@@ -106,8 +106,8 @@ def _fmt(v):
 
 
 def main(argv) -> int:
-    from .. import files, paramfile
-    from . import catalogue
+    from jaxslam import files, paramfile
+    from jaxslam.data import catalogue
 
     args = _parser(help_params="-h" in argv or "--help" in argv).parse_args(argv)
     # Inputs, then outputs, checked before anything is parsed or compiled.
@@ -127,9 +127,8 @@ def main(argv) -> int:
 
     if not args.float32:
         jax.config.update("jax_enable_x64", True)
-    from .. import compilation, io
-    from ..cli import compile_timing
-    from . import runners
+    from jaxslam import compilation, io
+    from jaxslam.data import runners
 
     dtype = np.dtype(np.float32 if args.float32 else np.float64)
     if params is not None:
@@ -171,7 +170,7 @@ def main(argv) -> int:
         if not args.quiet:
             print(f"wrote {json_path}")
     if tum_path is not None:
-        from ..metrics import write_tum
+        from jaxslam.metrics import write_tum
 
         t, pos, yaw = run.trajectory
         try:
@@ -181,7 +180,7 @@ def main(argv) -> int:
         if not args.quiet:
             print(f"wrote {path}")
     if plots is not None:
-        from ..plotting.dataset import plot_run
+        from jaxslam.plotting.dataset import plot_run
 
         for path in plot_run(run, plots):
             if not args.quiet:

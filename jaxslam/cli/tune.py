@@ -31,8 +31,9 @@ import math
 import sys
 import time
 
-from jaxslam.cli import int_at_least, positive_float  # configures the process (jaxslam.runtime)
 from jaxslam.errors import InputError
+
+from .common import Parser, UsageError, compile_timing, int_at_least, positive_float
 
 __all__ = ["main", "build_parser", "DEFAULTS"]
 
@@ -48,13 +49,8 @@ DEFAULTS = {
 REAL_LOG_DEFAULTS = {"steps": 25, "lr": 0.1, "loss": "nll", "window": 500.0}
 
 
-class _Parser(argparse.ArgumentParser):
-    def error(self, message):  # noqa: D401 - argparse API
-        raise InputError(f"{self.prog}: {message} (see '{self.prog} --help')")
-
-
 def _targets_text():
-    from . import targets
+    from jaxslam.tuning import targets
 
     return "; ".join(f"{s} --target {t} (--loss {'|'.join(ls)})" for (s, t), ls in targets.available().items())
 
@@ -71,9 +67,9 @@ def _robot_list(text: str) -> tuple:
     return out
 
 
-def build_parser(with_targets: bool = True) -> _Parser:
+def build_parser(with_targets: bool = True) -> Parser:
     """The argument parser of ``jaxslam tune`` (``with_targets`` lists the targets in the epilog)."""
-    p = _Parser(
+    p = Parser(
         prog=PROG,
         usage=f"{PROG} SCENARIO [--target noise|lqr] [--loss LOSS] [--steps K] [--train-runs M] "
               f"[--test-runs M] [options]",
@@ -188,7 +184,7 @@ def run_tuning(args, progress_stream=None) -> dict:
     import jaxslam
     from jaxslam.progress import Progress
 
-    from . import optimize, targets
+    from jaxslam.tuning import optimize, targets
 
     avail = targets.available()
     scen_targets = [t for (s, t) in avail if s == args.scenario]
@@ -381,13 +377,12 @@ def main(argv=None) -> int:
         if not args.float32:
             jax.config.update("jax_enable_x64", True)
         from jaxslam import compilation
-        from jaxslam.cli import compile_timing
 
         with compilation.account() as acct:
             rep = run_tuning(args)
         rep["timing"]["step_compile_s"] = rep["timing"].pop("compile_s")
         rep["timing"].update(compile_timing(acct.result))
-    except InputError as e:
+    except (InputError, UsageError) as e:
         msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
         print(msg if msg.startswith("jaxslam") else f"{PROG}: error: {msg}", file=sys.stderr)
         return 2

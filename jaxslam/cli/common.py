@@ -1,0 +1,107 @@
+"""Shared pieces of the ``jaxslam`` command: the argument parser that turns errors into exit
+code 2, argparse value types, output, and the compile part of every timing JSON.
+
+No import-time side effects, and nothing heavier than the standard library at import.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+
+__all__ = ["PROG", "DEBUG_ENV", "UsageError", "Parser", "int_at_least", "positive_float", "positive_int",
+           "seed_int", "echo", "compile_timing", "fmt", "one_line"]
+
+PROG = "jaxslam"
+DEBUG_ENV = "JAXSLAM_DEBUG"
+
+
+class UsageError(Exception):
+    """A command-line usage error (exit code 2)."""
+
+
+class Parser(argparse.ArgumentParser):
+    """An ArgumentParser whose errors become one-line :class:`UsageError` s."""
+
+    def error(self, message):  # noqa: D401 - argparse API
+        raise UsageError(f"{self.prog}: {message} (see '{self.prog} --help')")
+
+
+def int_at_least(lo: int):
+    """argparse type: an int >= ``lo`` (shared by ``jaxslam tune``)."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"invalid int value: {text!r}") from None
+        if value < lo:
+            raise argparse.ArgumentTypeError(f"must be >= {lo}, got {value}")
+        return value
+
+    return parse
+
+
+def positive_float(text: str) -> float:
+    """argparse type: a finite float > 0 (shared by ``jaxslam tune``)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid float value: {text!r}") from None
+    if not (value > 0 and math.isfinite(value)):
+        raise argparse.ArgumentTypeError(f"must be a positive number, got {text}")
+    return value
+
+
+positive_int = int_at_least(1)
+
+
+def seed_int(text: str) -> int:
+    """argparse type: a PRNG seed, an int in [0, 2**63)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid int value: {text!r}") from None
+    if not 0 <= value < 2**63:
+        raise argparse.ArgumentTypeError(f"must be in [0, 2**63), got {value}")
+    return value
+
+
+def echo(text: str = "") -> None:
+    """One line on stdout, flushed (the progress bar writes to stderr)."""
+    print(text, file=sys.stdout, flush=True)
+
+
+def compile_timing(acct) -> dict:
+    """The compile part of a command's timing JSON, from a :class:`jaxslam.compilation.CompileAccount`.
+
+    ``compile_s`` = trace + lower + XLA compile of every program the command built (cache loads
+    included); ``cache`` says whether the persistent cache was on and how often it served.
+    """
+    from jaxslam import compilation
+
+    folder = compilation.enabled_dir()
+    return {
+        "compile_s": acct.total_s,
+        "trace_s": acct.trace_s,
+        "lower_s": acct.lower_s,
+        "backend_compile_s": acct.compile_s,
+        "programs": acct.programs,
+        "cache": {"dir": None if folder is None else str(folder), "hits": acct.cache_hits,
+                  "misses": acct.cache_misses},
+    }
+
+
+def fmt(x) -> str:
+    """A metric value as the tables print it (None: nan)."""
+    from jaxslam.io import _fmt_num
+
+    return _fmt_num(float("nan") if x is None else float(x))
+
+
+def one_line(text: str, limit: int = 400) -> str:
+    """The first non-empty line of ``text``, cut at ``limit`` characters (error messages)."""
+    first = next((ln.strip() for ln in str(text).splitlines() if ln.strip()), "")
+    return first if len(first) <= limit else first[: limit - 3] + "..."
+

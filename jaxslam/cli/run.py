@@ -1,0 +1,300 @@
+"""``jaxslam run SCENARIO``: a scenario's Monte Carlo runs, its table, JSON and plots.
+
+x64 is switched on here (unless ``--float32``) before any scenario module is imported, so
+module-level constants get the right dtype; each scenario gets its own parser built from
+``Scenario.options``, so ``jaxslam run NAME --help`` lists that scenario's options and
+``--params`` keys.
+"""
+
+from __future__ import annotations
+
+import argparse
+import pathlib
+import sys
+
+from jaxslam import files
+
+from .common import PROG, Parser, UsageError, compile_timing, echo, fmt, positive_int, seed_int
+
+__all__ = ["command", "format_run_report"]
+
+
+def _add_run_common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--runs", type=positive_int, default=1, metavar="N",
+                   help="number of Monte Carlo runs (default: 1)")
+    p.add_argument("--seed", type=seed_int, default=0, metavar="S",
+                   help="seed of the first PRNG key; runs are split from it (default: 0)")
+    p.add_argument("--float32", action="store_true",
+                   help="compute in float32 (default: float64, with jax_enable_x64 switched on)")
+    p.add_argument("--json", metavar="PATH", help="write the run JSON here (parent folders are created)")
+    p.add_argument("--plots", metavar="DIR", help="write the scenario's PNG figures into DIR")
+    p.add_argument("--quiet", action="store_true",
+                   help="print nothing on stdout and no progress bar (errors still go to stderr)")
+    p.add_argument("--params", metavar="FILE",
+                   help="JSON file of parameter overrides ('jaxslam tune' writes them); its keys "
+                        "are checked before the run and listed by 'jaxslam run SCENARIO --help'")
+    p.add_argument("--debug", action="store_true",
+                   help="print the traceback of an internal failure (also JAXSLAM_DEBUG=1)")
+
+
+def _scenario_list_text() -> str:
+    from jaxslam.sim.scenarios import registry
+
+    return ", ".join(registry.names()) or "(none registered)"
+
+
+def _escape(text: str) -> str:
+    return text.replace("%", "%%")
+
+
+def _add_option(group, opt) -> None:
+    flags = [opt.flag] + ([f"--{opt.name}"] if "_" in opt.name else [])
+    help_text = _escape(opt.help.strip())
+    if opt.type is bool:
+        if opt.default:
+            group.add_argument(*flags, dest=opt.name, action=argparse.BooleanOptionalAction,
+                               default=True, help=help_text + " (default: on)")
+        else:
+            group.add_argument(*flags, dest=opt.name, action="store_true", default=False,
+                               help=help_text)
+        return
+    # An option whose help already states its default (e.g. "default: all") is not told twice.
+    shown = "" if "default:" in help_text else " (default: %(default)s)"
+    kw = dict(dest=opt.name, type=opt.type, default=opt.default, help=help_text + shown)
+    if opt.choices is not None:
+        kw["choices"] = opt.choices
+    else:
+        kw["metavar"] = opt.name.upper()
+    group.add_argument(*flags, **kw)
+
+
+def _run_parser(scenario=None, help_params: bool = False) -> Parser:
+    if scenario is None:
+        p = Parser(
+            prog=f"{PROG} run",
+            usage=f"{PROG} run SCENARIO [options] [scenario options]",
+            description="Run a scenario: simulate, filter, report metrics over Monte Carlo runs.",
+            epilog=f"scenarios: {_scenario_list_text()}\n"
+                   f"'{PROG} run SCENARIO --help' lists the options of that scenario.",
+            formatter_class=argparse.RawDescriptionHelpFormatter,
+        )
+    else:
+        epilog = None
+        if help_params:  # built only for --help: the schema comes from the scenario's defaults
+            import numpy as np
+
+            from jaxslam import paramfile
+            from jaxslam.sim.scenarios import registry
+
+            if scenario.params is None:
+                epilog = f"--params FILE: {scenario.name} takes no --params file."
+            else:
+                schema = scenario.params(registry.default_options(scenario), np.dtype(np.float64))
+                epilog = ("--params FILE: a JSON object with these sections and keys (matrices as\n"
+                          "nested lists or their diagonals; every key optional; 'jaxslam tune'\n"
+                          "writes such files):\n" + paramfile.describe(schema))
+        p = Parser(prog=f"{PROG} run {scenario.name}", description=scenario.description,
+                    usage=f"{PROG} run {scenario.name} [options] [scenario options]", epilog=epilog,
+                    formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("scenario", metavar="SCENARIO", help="scenario name (see 'jaxslam list')")
+    _add_run_common(p)
+    if scenario is not None and scenario.options:
+        group = p.add_argument_group(f"options of scenario {scenario.name}")
+        for opt in scenario.options:
+            _add_option(group, opt)
+    return p
+
+
+def command(rest: list[str]) -> int:
+    """``jaxslam run SCENARIO [options]``."""
+    base = Parser(prog=f"{PROG} run", add_help=False)
+    base.add_argument("scenario", nargs="?")
+    base.add_argument("-h", "--help", action="store_true")
+    _add_run_common(base)
+    pre, _ = base.parse_known_args(rest)
+    from jaxslam import paramfile
+
+    # What needs no scenario is checked before JAX is imported (a second, not three): the
+    # --params file's JSON, then every output path (its folder created, a probe written).
+    raw_params = json_path = plots_dir = None
+    if pre.scenario is not None and not pre.help:
+        raw_params = paramfile.load(pre.params) if pre.params else None
+        json_path = files.prepare_file("--json", pre.json) if pre.json else None
+        plots_dir = files.prepare_dir("--plots", pre.plots) if pre.plots else None
+
+    # x64 before any scenario module is imported (module-level constants take its dtype).
+    import jax
+    import numpy as np
+
+    if not pre.float32:
+        jax.config.update("jax_enable_x64", True)
+
+    from jaxslam import io
+    from jaxslam.progress import Progress
+    from jaxslam.sim.scenarios import registry
+
+    if pre.scenario is None:
+        if pre.help:
+            _run_parser().print_help()
+            return 0
+        raise UsageError(f"{PROG} run: missing SCENARIO; valid scenarios: {_scenario_list_text()}")
+    scenario = registry.get(pre.scenario)
+    args = _run_parser(scenario, help_params=pre.help).parse_args(rest)
+    options = {opt.name: getattr(args, opt.name) for opt in scenario.options}
+    dtype = np.dtype(np.float32 if args.float32 else np.float64)
+
+    # The --params keys against the scenario's own parameters, before anything compiles.
+    params = registry.check_params(scenario, raw_params, options, dtype) if raw_params is not None else None
+
+    from jaxslam import compilation
+
+    progress = Progress(args.runs, label=scenario.name, enabled=not args.quiet)
+    with compilation.account() as acct:
+        try:
+            kw = {"plots": plots_dir is not None} if _accepts(scenario.run, "plots") else {}
+            result = scenario.run(runs=args.runs, seed=args.seed, dtype=dtype, options=options,
+                                  progress=progress, params=params, **kw)
+        finally:
+            progress.close()
+    if not isinstance(result, registry.ScenarioResult):
+        raise TypeError(f"scenario {scenario.name!r} returned {type(result).__name__}, "
+                        "expected ScenarioResult")
+
+    report = io.run_json(scenario.name, args.runs, args.seed, dtype, result)
+    report["timing"]["main_program_compile_s"] = report["timing"]["compile_s"]
+    report["timing"].update(compile_timing(acct.result))
+    notes = _run_notes(result, report["runs"])
+    if notes:
+        report["notes"] = notes
+    if not args.quiet:
+        echo(format_run_report(report))
+        for note in notes:
+            echo(f"note: {note}")
+    written = []
+    if json_path is not None:
+        written.append(io.write_json(json_path, report))
+    if result.interrupted:  # keep what finished, skip the plots, exit as interrupted
+        where = f"; wrote them to {json_path}" if json_path is not None else " (no --json: not saved)"
+        print(f"{PROG} run: interrupted after {report['runs']} of {args.runs} runs; the table covers "
+              f"the finished runs{where}" + (" (marked \"interrupted\": true)" if json_path else "")
+              + ("; plots skipped" if plots_dir is not None else ""), file=sys.stderr, flush=True)
+        return 130
+    if plots_dir is not None:
+        if result.plot is None:
+            print(f"{PROG} run: scenario {scenario.name!r} has no plots; --plots ignored", file=sys.stderr)
+        else:
+            import time
+
+            import matplotlib
+
+            matplotlib.use("Agg")  # files only; never open a window
+            t0 = time.perf_counter()
+            pngs = [pathlib.Path(p) for p in (result.plot(plots_dir) or [])]
+            report["timing"]["plots_s"] = time.perf_counter() - t0
+            written.extend(pngs)
+            if json_path is not None:  # again, now with the plotting time
+                io.write_json(json_path, report)
+            if not args.quiet:
+                echo(f"plots: {len(pngs)} file(s) in {report['timing']['plots_s']:.1f} s")
+    if not args.quiet:
+        for path in written:
+            echo(f"wrote {path}")
+    return 0
+
+
+def _run_notes(result, runs: int) -> list:
+    """Notes for the run report: runs that are identical (the scenario draws no noise)."""
+    import numpy as np
+
+    if runs < 2 or not result.metrics:
+        return []
+    if not any(np.isfinite(np.asarray(m, float)).any() for m in result.metrics.values()):
+        return []  # every run diverged: equal NaNs say nothing about random draws
+    same = all(np.array_equal(v, np.broadcast_to(np.asarray(v).reshape(-1)[:1], np.shape(v)), equal_nan=True)
+               for v in (np.asarray(m) for m in result.metrics.values()))
+    if not same:
+        return []
+    return [f"all {runs} runs gave identical metrics: this scenario has no random draw under these "
+            "options (every run flies the same flight), so the statistics describe one flight"]
+
+
+def _accepts(fn, name: str) -> bool:
+    """Whether ``fn`` takes the keyword ``name`` (scenarios registered before ``plots`` existed
+    do not; they plot by themselves)."""
+    import inspect
+
+    try:
+        params = inspect.signature(fn).parameters.values()
+    except (TypeError, ValueError):
+        return False
+    return any(p.name == name or p.kind is p.VAR_KEYWORD for p in params)
+
+
+
+def _consistency_lines(cons: dict) -> list:
+    """One line per statistic of the run JSON's ``consistency``: what it covers (``S_block``,
+    ``S_dim``; docs/cli.md), its value against its bounds, and what an OUTSIDE verdict means.
+
+    A statistic ``key`` (a number) finds its companions as ``key_bounds`` / ``key_block`` /
+    ``key_dim`` or under its stem (``nis_mean`` -> ``nis_bounds``); reports written before the
+    ``_block`` entries existed print without them.
+    """
+    from jaxslam.metrics import consistency_verdict
+
+    out = []
+    for key, value in cons.items():
+        if key.endswith(("_bounds", "_block", "_dim")) or isinstance(value, (str, bool, list, dict)):
+            continue
+        stem = key.removesuffix("_mean")
+
+        def part(suffix, key=key, stem=stem):
+            return cons.get(f"{key}{suffix}", cons.get(f"{stem}{suffix}"))
+
+        bounds, block, dim = part("_bounds"), part("_block"), part("_dim")
+        kind = "nis" if stem.startswith("nis") else "nees" if "nees" in stem else None
+        if block is not None:
+            if kind == "nis":
+                label = f"mean NIS of {block}" + (f", expected {_fmt_dim(dim)}" if dim is not None else "")
+            else:
+                label = f"{'ANEES' if kind == 'nees' else key} of {block}"
+                if dim is not None:
+                    label += f", {_fmt_dim(dim)} state{'' if dim == 1 else 's'}"
+            text = f"{label} [{key}]: {fmt(value)}"
+        else:
+            text = f"{key} {fmt(value)}"
+        if bounds is not None and len(bounds) == 2:
+            lo, hi = (float("nan") if b is None else float(b) for b in bounds)
+            v = float("nan") if value is None else float(value)
+            text += f" in [{fmt(lo)}, {fmt(hi)}] "
+            word = consistency_verdict(v, (lo, hi), kind)
+            text += "undefined (no value or no bounds)" if word == "undefined" else word
+        out.append(text)
+    return out
+
+
+def _fmt_dim(dim) -> str:
+    return str(int(dim)) if float(dim).is_integer() else fmt(dim)
+
+
+def format_run_report(report: dict) -> str:
+    from jaxslam.io import format_table
+
+    lines = [
+        (f"scenario {report['scenario']}: {report['runs']} run(s), seed {report['seed']}, "
+         f"{report['dtype']}"),
+        "",
+        format_table(report["metrics"]),
+    ]
+    cons = report.get("consistency")
+    if cons:
+        lines += ["", "consistency (two-sided 95 % chi-square bounds):"]
+        lines += ["  " + line for line in _consistency_lines(cons)]
+    if report.get("flags"):
+        lines.append("flags: " + ", ".join(f"{k}={v}" for k, v in report["flags"].items()))
+    t = report["timing"]
+    cache = t.get("cache") or {}
+    served = (f" ({cache.get('hits', 0)} of {cache.get('hits', 0) + cache.get('misses', 0)} programs "
+              "from the compilation cache)") if cache.get("dir") else " (compilation cache off)"
+    lines.append(f"timing: compile {fmt(t['compile_s'])} s{served if 'cache' in t else ''}, "
+                 f"run {fmt(t['run_s'])} s, {fmt(t['runs_per_s'])} runs/s")
+    return "\n".join(lines)
