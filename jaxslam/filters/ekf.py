@@ -36,7 +36,7 @@ Decisions (where the papers are silent or where jaxslam departs from them)
   threshold is either a number (same for every call, traced under ``jit``) or
   a callable ``gate(dof) -> threshold``, useful when masks change the number
   of valid components: :func:`chi2_gate` builds one from a host-computed
-  float64 table (``lambda d: jaxslam.metrics.chi2_ppf(0.99, d)`` also works
+  float64 table (``lambda d: jaxslam.stats.chi2_ppf(0.99, d)`` also works
   but adds about 2 s of compilation per runner for the incomplete gamma).
   A gated update leaves the state unchanged and sets ``errors.GATED``.
 * Failures never produce silent NaNs: if the Cholesky factor of ``S`` is not
@@ -78,7 +78,7 @@ import numpy as np
 from .. import errors
 from ..errors import InputError
 from ..linalg import check_psd, symmetrize, value_and_jacfwd, wrap_angle
-from ..metrics import chi2_ppf_np
+from ..stats import chi2_ppf_np
 from . import gaussian as _g
 from .gaussian import (
     Gate,
@@ -144,8 +144,8 @@ def chi2_gate(prob: float, max_dof: int) -> Callable[[Array], Array]:
 
     Pass it as ``gate=`` to :func:`update`, :func:`update_batch` or
     :func:`filter_scan` when masks change the number of valid components.
-    The table (float64, :func:`jaxslam.metrics.chi2_ppf_np`) costs nothing
-    inside ``jit``, unlike evaluating :func:`jaxslam.metrics.chi2_ppf` there.
+    The table (float64, :func:`jaxslam.stats.chi2_ppf_np`) costs nothing
+    inside ``jit``, unlike evaluating :func:`jaxslam.stats.chi2_ppf` there.
 
     Args:
         prob: gate probability, e.g. 0.99 (a consistent measurement is

@@ -19,7 +19,7 @@ flight; sizes (steps, landmark count, capacity) are static.
 
 from __future__ import annotations
 
-from typing import Any, Callable, NamedTuple, Optional
+from typing import Any, NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
@@ -30,6 +30,7 @@ from ..dynamics import euler_ned
 from ..dynamics.integrators import rk4_step
 from ..sensors import imu as imu_mod
 from ..sensors import lidar3d
+from ..systems.estimator import Estimator
 
 __all__ = ["FlightSetup", "Estimator", "Flight", "simulate", "n_frames", "reference_grid", "controls"]
 
@@ -53,24 +54,6 @@ class FlightSetup(NamedTuple):
     landmarks: jax.Array
     x0: jax.Array
     dt: Any
-
-
-class Estimator(NamedTuple):
-    """An estimator plugged into the closed loop (all pure functions).
-
-    init(key, x0_true) -> est
-    propagate(est, imu_prev (6,), imu_now (6,)) -> est            every step
-    correct(est, y (L, 3), ids (L,), visible (L,), x_true (12,)) -> (est, frame_out)
-                                                     every LiDAR frame (x_true for metrics only)
-    ctrl_state(est, imu_now) -> (12,) state the controller sees
-    step_out(est, x_true (12,)) -> pytree saved at every step (e.g. mean, NEES)
-    """
-
-    init: Callable
-    propagate: Callable
-    correct: Callable
-    ctrl_state: Callable
-    step_out: Callable
 
 
 class Flight(NamedTuple):

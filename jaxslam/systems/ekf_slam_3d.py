@@ -194,7 +194,7 @@ def validate_noise(noise: NoiseParams) -> NoiseParams:
 
 
 # ---------------------------------------------------------------------------
-# The estimator in the closed loop (jaxslam.sim.simulate.Estimator)
+# The estimator in the closed loop (jaxslam.systems.estimator.Estimator)
 # ---------------------------------------------------------------------------
 
 class EstimatorConfig(NamedTuple):
@@ -272,12 +272,12 @@ def _nees(e, P):
 
 
 def make_estimator(noise: NoiseParams, cfg: EstimatorConfig, landmarks_true=None):
-    """Build the :class:`jaxslam.sim.simulate.Estimator` of paper 000's EKF-SLAM.
+    """Build the :class:`jaxslam.systems.estimator.Estimator` of paper 000's EKF-SLAM.
 
     ``noise`` is traced (differentiable); ``cfg`` static.  In ``mode="known"``
     ``landmarks_true`` (L, 3) must be given and ``cfg.capacity`` ≥ L.
     """
-    from ..sim.simulate import Estimator  # local: sim imports systems lazily
+    from .estimator import Estimator
 
     model = make_model()
     mparams = (cfg.dt, cfg.g, cfg.accel_mode)

@@ -557,7 +557,7 @@ def _select_k(z, ids, valid, K: int):
 
 def _chi2_table(p: float, K: int, dz: int):
     """χ²(dz·m) p-quantiles for m = 1 … K (host side, static; SciPy is not a run-time dependency)."""
-    from ..metrics import chi2_ppf_np
+    from ..stats import chi2_ppf_np
 
     return np.asarray([chi2_ppf_np(float(p), dz * m) for m in range(1, K + 1)])
 
