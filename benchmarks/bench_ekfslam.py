@@ -15,16 +15,12 @@ Run with ``python -m jaxslam bench ekfslam [--json PATH] [--plots DIR] [options]
    one jitted call per operation with the state donated (what a user who calls
    the step from Python pays, dispatch included), and ``scan`` — the same
    operation repeated inside one ``lax.fori_loop`` and divided (what it costs
-   inside ``filter_log``'s scan).  The reference is the NumPy twin's same
+   inside the filter's scan).  The reference is the NumPy twin's same
    operation (``numpy_ekfslam3d``), each call on a fresh copy of the same state.
 
 ``full``   a whole flight (default 50 s: 5000 IMU steps, 500 LiDAR frames) as ONE
-   jitted ``filter_log`` scan vs the NumPy twin on the same log, at capacities
-   16, 64, 256; both filters' estimates are compared (max |Δ|).  Also timed:
-   the prototype engine of ``proto_ekfslam_fast.py`` (proposed changes to
-   ``jaxslam/filters/ekf_slam.py``, same filter), and its leading-active-block
-   update against the NumPy twin doing the same (``active_block=True``), a
-   like-for-like comparison of a cost that no longer grows with the capacity.
+   jitted :func:`jaxslam.systems.ekf_slam_3d.run` scan vs the NumPy twin on the same log, at
+   capacities 16, 64, 256; both filters' estimates are compared (max |Δ|).
 
 ``mc``     Monte Carlo throughput: ``jax.vmap`` of the closed-loop flight
    (``jaxslam.sim.scenarios.ekfslam3d.build(...)[0]``: simulate with the
@@ -50,7 +46,6 @@ the machine was.
 
 from __future__ import annotations
 
-import functools
 import json
 import math
 import os
@@ -118,8 +113,6 @@ def add_arguments(parser):
                         help="runs per vmapped call (memory bound; default 100)")
     parser.add_argument("--mc-seq-max", type=int, default=20,
                         help="sequential single-run calls actually timed per M (default 20)")
-    parser.add_argument("--no-proto", action="store_true",
-                        help="skip the prototype engine (benchmarks/proto_ekfslam_fast.py) rows")
     parser.add_argument("--plots", metavar="DIR", default=None,
                         help="write bench_ekfslam_fig12.png into DIR")
 
@@ -415,9 +408,9 @@ def run_study(args, noise, results, out):
     _progress(f"study: full frame, {Nf} mapped")
     cap = Nf + 16
     x, P, active, ids = _study_state(Nf, cap, args.seed + 2000)
-    cfg = sys3d.EstimatorConfig(mode="unknown", capacity=cap, max_obs=16)
-    est = sys3d.make_estimator(noise, cfg)
-    e0 = sys3d.EstState(slam_state(x, P, active, ids), jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32))
+    cfg = sys3d.Config(mode="unknown", capacity=cap, max_obs=16)
+    est = sys3d.make_estimator(cfg, noise)
+    e0 = sys3d.State(slam_state(x, P, active, ids), jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32))
     Ltot = Nf + 16
     lm_all = np.concatenate([x[9:9 + 3 * Nf].reshape(Nf, 3), np.zeros((16, 3))])
     sel_mapped = np.sort(rng.choice(Nf, size=12, replace=False))
@@ -455,40 +448,10 @@ def run_study(args, noise, results, out):
                "predictions": LIDAR_EVERY, "max_obs": 16}
     for mode, t in (("call", t_call), ("scan", t_scan)):
         results.append(_row(f"frame/{mode} N={Nf}", fparams, t, "numpy twin (1 call)", t_np))
-    if not args.no_proto:
-        import proto_ekfslam_fast as pf
-
-        pmodel = pf.make_model_fused()
-        order_m = 16
-
-        def pframe(st_, ia, ib, y_, id_, v_):
-            def step(c, ab):
-                Qd = pf.process_noise_fused(c.x[:9], 0.5 * (ab[0] + ab[1]), noise, DT, G)
-                return pf.predict_fast(c, pmodel, jnp.concatenate([ab[0], ab[1]]), Qd, mparams), None
-
-            st_, _ = jax.lax.scan(step, st_, (ia, ib))
-            order = jnp.argsort(~v_, stable=True)[:order_m]
-            ys, ids_s, vs = y_[order], id_[order], v_[order]
-            slots, mapped = es.associate_known(st_, ids_s, vs)
-            st_ = pf.update_fast(st_, pmodel, ys, slots, mapped, R, mparams)
-            return pf.register_fast(st_, pmodel, ys, ids_s, vs & ~mapped, R, mparams)
-
-        s0 = slam_state(x, P, active, ids)
-        p_call = _median_call(jax.jit(pframe, donate_argnums=0), lambda: (fresh(s0),) + fa, calls)
-        p_scan = _median_call(looped(pframe), lambda: (s0,) + fa, max(5, calls // 10)) / reps
-        study["frame"].update(proto_call_s=p_call, proto_scan_s=p_scan)
-        for mode, t in (("call", p_call), ("scan", p_scan)):
-            results.append(_row(f"frame/{mode} N={Nf} prototype", fparams, t, "numpy twin (1 call)", t_np,
-                                implementation="prototype (benchmarks/proto_ekfslam_fast.py)"))
     out["study"] = study
     out["targets"].append({"name": f"frame step (10 predicts + update + registration), {Nf} mapped, "
                                    "one jitted call", "target": f"<= {TARGETS['frame_step_call_s'] * 1e3:g} ms",
                            "value_ms": t_call * 1e3, "met": bool(t_call <= TARGETS["frame_step_call_s"])})
-    if "proto_call_s" in study["frame"]:
-        pc = study["frame"]["proto_call_s"]
-        out["targets"].append({"name": f"frame step, {Nf} mapped, one jitted call, prototype engine (not "
-                                       "the package)", "target": f"<= {TARGETS['frame_step_call_s'] * 1e3:g} ms",
-                               "value_ms": pc * 1e3, "met": bool(pc <= TARGETS["frame_step_call_s"])})
 
     if args.plots:
         out["plots"] = [_plot_study(study, args.plots)]
@@ -537,10 +500,9 @@ def _plot_study(study, directory):
 # Part b: full run
 # ---------------------------------------------------------------------------
 
-def _run_twin(tw, log, noise, cap, active_block=False):
+def _run_twin(tw, log, noise, cap):
     return tw.run_log(noise, log["s0"], log["imu"], log["y"], log["ids"], log["visible"],
-                      log["lidar_every"], capacity=cap, max_obs=16, dt=log["dt"], g=G,
-                      active_block=active_block)
+                      log["lidar_every"], capacity=cap, max_obs=16, dt=log["dt"], g=G)
 
 
 def _get_log(args):
@@ -555,8 +517,8 @@ def _get_log(args):
     return log, note
 
 
-def run_full(args, noise, results, out, threads_label, with_proto):
-    """Whole-flight filter_log (and the prototype) vs the NumPy twin, in this process."""
+def run_full(args, noise, results, out, threads_label):
+    """Whole-flight ``ekf_slam_3d.run`` vs the NumPy twin, in this process."""
     import jax
     import jax.numpy as jnp
 
@@ -571,23 +533,13 @@ def run_full(args, noise, results, out, threads_label, with_proto):
     rows = []
     for cap in caps:
         _progress(f"full run: capacity {cap} ({threads_label})")
-        cfg = sys3d.EstimatorConfig(mode="unknown", capacity=cap, max_obs=16)
+        cfg = sys3d.Config(mode="unknown", capacity=cap, max_obs=16)
 
         def engine(s0, imu, y, vis, cfg=cfg):
-            e, means, _ = sys3d.filter_log(noise, cfg, s0, imu, y, ids, vis, log["lidar_every"])
-            return e.slam.x, e.slam.P, means
+            res = sys3d.run(sys3d.Log(s0=s0, imu=imu, y=y, visible=vis, ids=ids), cfg, noise)
+            return res.final.slam.x, res.final.slam.P, res.means
 
         runners = {"jaxslam": jax.jit(engine)}
-        if with_proto:
-            import proto_ekfslam_fast as pf
-
-            def proto(s0, imu, y, vis, cfg=cfg, variant=None):
-                st, means = pf.filter_log_fast(noise, cfg, s0, imu, y, ids, vis, log["lidar_every"],
-                                               buckets=variant, fused=True)
-                return st.x, st.P, means
-
-            runners["prototype"] = jax.jit(proto)
-            runners["prototype_active_block"] = jax.jit(functools.partial(proto, variant="active"))
         timed = {}
         for name, fn in runners.items():
             t0 = time.perf_counter()
@@ -599,20 +551,14 @@ def run_full(args, noise, results, out, threads_label, with_proto):
                 jax.block_until_ready(fn(*inputs))
                 ts.append(time.perf_counter() - t0)
             timed[name] = (float(np.median(ts)), float(np.min(ts)), comp, res)
-        tn, tb = [], []
+        tn = []
         for _ in range(args.repeats):
             t0 = time.perf_counter()
             flt, means = _run_twin(tw, log, noise, cap)
             tn.append(time.perf_counter() - t0)
-            if with_proto:
-                t0 = time.perf_counter()
-                _run_twin(tw, log, noise, cap, active_block=True)
-                tb.append(time.perf_counter() - t0)
         t_np = float(np.median(tn))
         row = {"capacity": cap, "numpy_s": t_np, "numpy_min_s": float(np.min(tn)),
                "mapped_final": int(flt.active.sum()), "overflow": int(flt.overflow)}
-        if tb:
-            row["numpy_active_block_s"] = float(np.median(tb))
         params = {"capacity": cap, "duration_s": args.duration, "imu_steps": F * log["lidar_every"],
                   "frames": F, "max_obs": 16, "mode": "unknown", "log": log["source"],
                   "openblas_threads": threads_label}
@@ -620,19 +566,11 @@ def run_full(args, noise, results, out, threads_label, with_proto):
             agree = {"max_abs_means": float(np.max(np.abs(np.asarray(res[2]) - means))),
                      "max_abs_x": float(np.max(np.abs(np.asarray(res[0]) - flt.x))),
                      "max_abs_P": float(np.max(np.abs(np.asarray(res[1]) - flt.P)))}
-            blockwise = name.endswith("active_block")
-            ref_s = row["numpy_active_block_s"] if blockwise else t_np
-            row[name] = {"median_s": med, "min_s": mn, "compile_s": comp, "speedup": ref_s / med,
+            row[name] = {"median_s": med, "min_s": mn, "compile_s": comp, "speedup": t_np / med,
                          "agreement_with_twin": agree}
-            if blockwise:
-                row[name]["speedup_vs_padded_numpy"] = t_np / med
-            label = {"jaxslam": "jaxslam filter_log",
-                     "prototype": "prototype (benchmarks/proto_ekfslam_fast.py)",
-                     "prototype_active_block": "prototype with the leading-active-block update"}[name]
-            ref = (f"numpy twin{' (leading-active-block update)' if blockwise else ''}, "
-                   f"OpenBLAS {threads_label}")
             results.append(_row(f"full run cap={cap} {name} [OpenBLAS {threads_label}]", params, med,
-                                ref, ref_s, jaxslam_compile_s=comp, implementation=label, agreement=agree))
+                                f"numpy twin, OpenBLAS {threads_label}", t_np, jaxslam_compile_s=comp,
+                                implementation="jaxslam.systems.ekf_slam_3d.run", agreement=agree))
         rows.append(row)
     return {"log": log["source"], "log_note": log_note, "duration_s": args.duration,
             "visible_per_frame_mean": float(log["visible"].sum(1).mean()),
@@ -644,13 +582,9 @@ def _full_targets(full, out, duration):
         tgt = TARGETS["full_speedup"].get(r["capacity"])
         if tgt is None:
             continue
-        for name in ("jaxslam", "prototype", "prototype_active_block"):
-            if name not in r:
-                continue
+        for name in ("jaxslam",):
             sp = r[name]["speedup"]
-            what = {"jaxslam": "filter_log", "prototype": "prototype engine (not the package)",
-                    "prototype_active_block": "prototype with active-block update vs the NumPy twin "
-                                              "doing the same"}[name]
+            what = "ekf_slam_3d.run"
             out["targets"].append({"name": f"full {duration:g} s run, capacity {r['capacity']}, {what} "
                                            f"speedup vs NumPy ({full['openblas_threads']})",
                                    "target": f">= {tgt:g}x", "value": sp, "met": bool(sp >= tgt)})
@@ -733,7 +667,7 @@ def run_mc(args, results, out):
 
 _OPTION_DESTS = ("parts", "seed", "calls", "scan_reps", "study_maps", "study_obs", "study_map_size",
                  "frame_mapped", "capacities", "duration", "repeats", "log", "mc_runs", "mc_duration",
-                 "mc_capacity", "mc_chunk", "mc_seq_max", "plots", "no_proto")
+                 "mc_capacity", "mc_chunk", "mc_seq_max", "plots")
 
 
 def _progress(msg):
@@ -756,7 +690,7 @@ def _run_parts(args, parts, threads_label):
     if "study" in parts:
         run_study(args, noise, results, out)
     if "full" in parts:
-        full = run_full(args, noise, results, out, threads_label, with_proto=not args.no_proto)
+        full = run_full(args, noise, results, out, threads_label)
         out["full_run"] = full
         _full_targets(full, out, args.duration)
     if "mc" in parts:
@@ -769,7 +703,7 @@ def _run_parts(args, parts, threads_label):
     return results, out
 
 
-def _spawn(args, parts, threads, label, with_proto):
+def _spawn(args, parts, threads, label):
     """Run the parts in a fresh process with OPENBLAS_NUM_THREADS=threads (None: unset).
 
     The variable acts only before NumPy loads OpenBLAS, hence a fresh process.
@@ -781,7 +715,7 @@ def _spawn(args, parts, threads, label, with_proto):
     with tempfile.TemporaryDirectory() as td:
         a_path, o_path = os.path.join(td, "args.json"), os.path.join(td, "out.json")
         opts = {k: getattr(args, k) for k in _OPTION_DESTS}
-        opts.update(parts=",".join(sorted(parts)), no_proto=not with_proto, _label=label)
+        opts.update(parts=",".join(sorted(parts)), _label=label)
         with open(a_path, "w") as fh:
             json.dump(opts, fh)
         env = dict(os.environ)
@@ -837,16 +771,15 @@ def run(args):
         out["openblas_pinning"] = "threadpoolctl.threadpool_limits(1, 'blas')"
         default = ("this process, OPENBLAS_NUM_THREADS=" + (env_threads or "unset"), "here")
     else:
-        results, out = _spawn(args, parts, 1, pinned, with_proto=not args.no_proto)
+        results, out = _spawn(args, parts, 1, pinned)
         out["openblas_pinning"] = "fresh process with OPENBLAS_NUM_THREADS=1 (threadpoolctl not installed)"
         default = ("this process, OPENBLAS_NUM_THREADS=" + (env_threads or "unset"), "here")
     if "full" in parts:
         label = f"default threads ({default[0]})"
         if default[1] == "here":
-            out["full_run_default_threads"] = run_full(args, _filter_noise(), results, out, label,
-                                                       with_proto=False)
+            out["full_run_default_threads"] = run_full(args, _filter_noise(), results, out, label)
         else:
-            res_d, out_d = _spawn(args, {"full"}, None, label, with_proto=False)
+            res_d, out_d = _spawn(args, {"full"}, None, label)
             results += res_d
             out["full_run_default_threads"] = out_d.get("full_run")
     out.update({
@@ -856,9 +789,6 @@ def run(args):
                   "'scan' rows: the operation repeated inside one fori_loop, per-iteration cost",
                   "the NumPy twin processes only the measurements present; jaxslam's update in the "
                   "filter always processes max_obs = 16 (static shape, masked)",
-                  "'prototype' rows run benchmarks/proto_ekfslam_fast.py (proposed engine changes), "
-                  "not the package; 'prototype_active_block' is compared with the NumPy twin doing "
-                  "the same leading-active-block update",
                   "timings depend on the machine's load: see load_average"]})
     _print_targets(out)
     return {"results": results, **out}

@@ -75,9 +75,11 @@ def _row(case, params, jax_s, ref_name, ref_s, **extra):
 def _mse_loss(T, ref, cfg):
     import jax.numpy as jnp
 
+    from jaxslam.systems import ekf_slam_3d as sys3d
+
     def loss(th, log):
         noise = ref._replace(Qc=jnp.diag(jnp.exp(th["Qc"])))
-        return T.slam_loss(T.run_slam_log(noise, cfg, log), log, "mse")
+        return T.slam_loss(sys3d.run(log._replace(truth=None), cfg._replace(checkpoint=False), noise), log, "mse")
 
     return loss
 
@@ -135,20 +137,21 @@ def run(args):
     from jaxslam.sensors import imu as imu_mod
     from jaxslam.systems import ekf_slam_3d as sys3d
     from jaxslam.tuning import optimize as O
-    from jaxslam.tuning import targets as T
+    from jaxslam.tuning.targets import ekfslam3d as T
+    from jaxslam.tuning.targets import figure8 as T8
 
     load = {"before": list(os.getloadavg())}
     results, targets = [], []
     dur = args.steps / 100.0
     logs = T.make_slam_logs(args.seed, max(args.runs, 1), dur)
     ref = sys3d.imu_noise(imu_mod.PAPER000_IMU)
-    cfg = sys3d.EstimatorConfig(capacity=40)
+    cfg = sys3d.Config(capacity=40)
     theta = {"Qc": jnp.log(jnp.asarray(sys3d.TABLE7_Q))}
 
     def loss_fn(th, log, checkpoint=True):
         noise = ref._replace(Qc=jnp.diag(jnp.exp(th["Qc"])))
-        run = T.run_slam_log(noise, cfg, log, with_nll=True, checkpoint=checkpoint)
-        return T.slam_loss(run, log, "nll")
+        res = sys3d.run(log._replace(truth=None), cfg._replace(checkpoint=checkpoint), noise)
+        return T.slam_loss(res, log, "nll")
 
     log0 = jax.tree.map(lambda a: a[0], logs)
     print(f"[bench tuning] value and value+grad of a {args.steps}-step filter NLL", flush=True)
@@ -199,7 +202,7 @@ def run(args):
 
     if not args.no_lqr:
         print("[bench tuning] DF-LQR closed-loop cost", flush=True)
-        tl = T.figure8_lqr(train_runs=1, test_runs=1, train_duration=args.steps / 100.0)
+        tl = T8.figure8_lqr(train_runs=1, test_runs=1, train_duration=args.steps / 100.0)
         it = jax.tree.map(lambda a: a[0], tl.train)
         lv, lvc = _compile(jax.jit(tl.loss_fn), tl.theta0, it)
         lg, lgc = _compile(jax.jit(jax.value_and_grad(tl.loss_fn)), tl.theta0, it)

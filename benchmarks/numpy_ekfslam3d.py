@@ -1,6 +1,6 @@
 """Vectorised NumPy twin of paper 000's EKF-SLAM (the reference of ``bench_ekfslam``).
 
-It runs exactly the filter of :func:`jaxslam.systems.ekf_slam_3d.filter_log`
+It runs exactly the filter of :func:`jaxslam.systems.ekf_slam_3d.run`
 (engine :mod:`jaxslam.filters.ekf_slam`), written the way a careful NumPy
 programmer would, with **hand-derived Jacobians** (no autodiff anywhere), so
 that it is both the timing reference and an independent oracle of the JAX
@@ -34,8 +34,8 @@ Model (paper 000 eq. 1-3, 24-53, errata of docs/papers.md):
 The padded layout is the JAX one (n = 9 + 3·capacity, inactive slots zero), so
 costs are comparable; blocks are written in place.  ``active_block=True`` makes
 the update work on the leading block that holds every active slot (exact, since
-slots fill first-free and inactive ones have zero covariance) — the NumPy side
-of the prototype's ``update_active_block``, for a like-for-like comparison.  NumPy's natural advantage
+slots fill first-free and inactive ones have zero covariance): the NumPy side of an
+active-block engine, for a like-for-like comparison.  NumPy's natural advantage
 is kept: it processes only the measurements actually present (no static
 padding), and the Joseph form is grouped as A − (A Hᵀ − K R) Kᵀ (one n²·m
 product fewer, same algebra).  Numerical guards mirror the JAX engine: a
@@ -286,7 +286,7 @@ class NumpyEkfSlam3D:
     """Padded-capacity EKF-SLAM state (x (n,), P (n, n), active, ids) with in-place steps.
 
     noise: anything with P0 (9, 9), Qc (9, 9), Qimu (6, 6), R (3, 3) (e.g.
-    ``jaxslam.systems.ekf_slam_3d.NoiseParams``; converted to float64 NumPy).
+    ``jaxslam.systems.ekf_slam_3d.Params``; converted to float64 NumPy).
     """
 
     def __init__(self, noise, s0, capacity, *, max_obs=16, dt=0.01, g=9.81,
@@ -455,7 +455,7 @@ class NumpyEkfSlam3D:
 def run_log(noise, s0, imu, y, ids, visible, lidar_every, *, capacity, max_obs=16, dt=0.01,
             g=9.81, accel_mode="3axis", mode="unknown", landmarks_true=None, fov=PAPER000_FOV,
             active_block=False):
-    """Run the twin over a log with the layout of ``filter_log``.
+    """Run the twin over a log with the layout of :class:`jaxslam.systems.ekf_slam_3d.Log`.
 
     imu: (T + 1, 6); y: (F, L, 3); ids: (L,) or (F, L); visible: (F, L); T = F·lidar_every.
     Returns (filter, means (T, 9)).

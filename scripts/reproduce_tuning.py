@@ -60,6 +60,9 @@ from jaxslam.cli import tune as tcli  # noqa: E402
 from jaxslam.tuning import losses as L  # noqa: E402
 from jaxslam.tuning import optimize as O  # noqa: E402
 from jaxslam.tuning import targets as T  # noqa: E402
+from jaxslam.tuning.targets import ekfslam3d as T3  # noqa: E402
+from jaxslam.tuning.targets import figure8 as T8  # noqa: E402
+from jaxslam.tuning.targets import linear_gaussian as TL  # noqa: E402
 
 ALL_PARTS = ("oracle", "gradcheck", "ekf_mse", "ekf_nll", "ekf_nll_imu", "nll_flat", "lqr", "uwb")
 
@@ -72,11 +75,11 @@ def log(msg):
 
 def part_oracle(a):
     T_len, runs, steps = (500, 2, 40) if a.quick else (5000, 4, 400)
-    tg = T.linear_gaussian("nll", train_runs=runs, test_runs=2, T=T_len, seed=a.seed)
+    tg = TL.linear_gaussian("nll", train_runs=runs, test_runs=2, T=T_len, seed=a.seed)
     t0 = time.perf_counter()
     res = O.fit(tg.loss_fn, tg.theta0, tg.train, steps, 0.3, describe=tg.describe)
     m = tg.physical(res.theta)
-    Qt, Rt = np.diag(T.LG_Q_TRUE), np.asarray(T.LG_R_TRUE)
+    Qt, Rt = np.diag(TL.LG_Q_TRUE), np.asarray(TL.LG_R_TRUE)
     Q, R = np.asarray(m["Q"]), np.asarray(m["R"])
     q_rel = (np.diag(Q) - np.diag(Qt)) / np.diag(Qt)
     nz = Rt != 0
@@ -129,12 +132,12 @@ def part_gradcheck(a):
     out = {"what": "max over random unit directions d of |FD - grad.d| / |grad.d| (central differences, "
                    "h = 1e-5 in log-parameter units, float64)", "acceptance": "<= 1e-4", "cases": {}}
     n_dirs = 2 if a.quick else 4
-    tg = T.linear_gaussian("nll", train_runs=1, test_runs=1, T=300)
+    tg = TL.linear_gaussian("nll", train_runs=1, test_runs=1, T=300)
     item = jax.tree.map(lambda x: x[0], tg.train)
 
     def lg(th):
         m = tg.physical(th)
-        means, nis, logdet, dof, covs = T.lg_run(m["Q"], m["R"], item["z"])
+        means, nis, logdet, dof, covs = TL.lg_run(m["Q"], m["R"], item["z"])
         err = means - item["x"]
         nees = jax.vmap(lambda e, C: e @ jnp.linalg.solve(C, e))(err, covs)
         return jnp.stack([L.innovation_nll(nis, logdet, dof), L.mse(err), L.nees_loss(nees, 4)])
@@ -146,22 +149,22 @@ def part_gradcheck(a):
     from jaxslam.systems import ekf_slam_3d as sys3d
 
     dur = 1.0 if a.quick else 3.0
-    logs = T.make_slam_logs(a.seed + 7, 1, dur)
+    logs = T3.make_slam_logs(a.seed + 7, 1, dur)
     lg1 = jax.tree.map(lambda x: x[0], logs)
     ref = sys3d.imu_noise(imu_mod.PAPER000_IMU)
-    cfg = sys3d.EstimatorConfig(capacity=40)
+    cfg = sys3d.Config(capacity=40, checkpoint=True)
     theta = {"Qc": jnp.log(jnp.asarray(sys3d.TABLE7_Q)) - 4.0, "R": jnp.log(jnp.diag(ref.R))}
 
     def ekf(th):
         noise = ref._replace(Qc=jnp.diag(jnp.exp(th["Qc"])), R=jnp.diag(jnp.exp(th["R"])))
-        run = T.run_slam_log(noise, cfg, lg1, with_nll=True, with_nees=True)
-        return jnp.stack([T.slam_loss(run, lg1, k) for k in ("nll", "mse", "nees")])
+        res = sys3d.run(lg1, cfg, noise)
+        return jnp.stack([T3.slam_loss(res, lg1, k) for k in ("nll", "mse", "nees")])
 
     log(f"gradcheck: EKF-SLAM on a {dur:g} s log (compiles the gradient: minutes)")
     w, v = _fd_check(ekf, theta, n_dirs)
     out["cases"][f"ekfslam3d_log_{dur:g}s"] = dict(zip(("nll", "mse", "nees"), w))
     log("gradcheck: LQR closed-loop cost")
-    tl = T.figure8_lqr(train_runs=1, test_runs=1, train_duration=2.0 if a.quick else 5.0)
+    tl = T8.figure8_lqr(train_runs=1, test_runs=1, train_duration=2.0 if a.quick else 5.0)
     it = jax.tree.map(lambda x: x[0], tl.train)
     w, v = _fd_check(lambda th: tl.loss_fn(th, it)[None], tl.theta0, n_dirs)
     out["cases"]["track_figure8_lqr_cost"] = {"cost": w[0]}

@@ -54,6 +54,7 @@ __all__ = [
     "SlamState",
     "UpdateInfo",
     "init",
+    "preload",
     "predict",
     "update",
     "update_robot",
@@ -147,6 +148,38 @@ def init(robot_mean, robot_cov, capacity: int, lm_dim: int) -> SlamState:
         status=jnp.zeros((), jnp.int32),
         overflow=jnp.zeros((), jnp.int32),
     )
+
+
+def preload(state: SlamState, model: SlamModel, means, covs=None, ids=None, mask=None) -> SlamState:
+    """A known (or previously mapped) landmark set in the first N slots.
+
+    ``means`` (N, d_l); ``covs`` (N, d_l, d_l) their marginal covariances (default zero: a
+    surveyed map the filter never moves); ``ids`` (N,) int32 (default 0…N−1); ``mask`` (N,)
+    bool: which to write (default all; a slot left out keeps its contents).  Each written
+    slot gets no cross-covariance with the robot or any other slot, and is marked active.
+    Static slices only (no scatter); N ≤ capacity is checked at trace time.
+    """
+    nr, dl, cap = _sizes(state, model)
+    means = jnp.asarray(means, state.x.dtype)
+    N = means.shape[0]
+    if N > cap:
+        raise ValueError(f"preload: {N} landmarks do not fit {cap} slots")
+    covs = jnp.zeros((N, dl, dl), state.x.dtype) if covs is None else jnp.asarray(covs, state.x.dtype)
+    ids = jnp.arange(N, dtype=jnp.int32) if ids is None else jnp.asarray(ids, jnp.int32)
+    mask = jnp.ones((N,), bool) if mask is None else jnp.asarray(mask, bool)
+    lo, hi = nr, nr + N * dl
+    m_rows = jnp.repeat(mask, dl)  # (N·d_l,)
+    x = state.x.at[lo:hi].set(jnp.where(m_rows, means.reshape(-1), state.x[lo:hi]))
+    blk = jnp.einsum("iab,ij->iajb", covs, jnp.eye(N, dtype=state.x.dtype)).reshape(N * dl, N * dl)
+    P = state.P
+    keep = ~m_rows
+    rows = jnp.where(keep[:, None], P[lo:hi, :], 0.0)  # written slots: no cross-covariance
+    P = P.at[lo:hi, :].set(rows).at[:, lo:hi].set(rows.T)
+    both = m_rows[:, None] & m_rows[None, :]
+    P = P.at[lo:hi, lo:hi].set(jnp.where(both, blk, P[lo:hi, lo:hi]))
+    active = state.active.at[:N].set(state.active[:N] | mask)
+    new_ids = state.ids.at[:N].set(jnp.where(mask, ids, state.ids[:N]))
+    return state._replace(x=x, P=P, active=active, ids=new_ids)
 
 
 def _sizes(state: SlamState, model: SlamModel):

@@ -28,6 +28,7 @@ Equations (paper 000; errata in docs/papers.md):
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Any, NamedTuple
 
@@ -39,12 +40,15 @@ from .. import errors
 from ..errors import InputError
 from ..filters import ekf_slam as es
 from ..geometry.euler import dcm_from_euler, euler_rate_matrix
-from ..linalg import check_psd, wrap_angle
+from ..linalg import check_psd, is_concrete, wrap_angle
 from ..sensors import lidar3d
+from ..stats import nees as _nees
 
 __all__ = [
     "NX",
-    "NoiseParams",
+    "Config",
+    "Params",
+    "State",
     "f_cont",
     "motion",
     "process_noise",
@@ -55,7 +59,7 @@ __all__ = [
     "TABLE6_Q",
     "TABLE7_P0",
     "TABLE7_Q",
-    "validate_noise",
+    "validate_params",
 ]
 
 NX = 9
@@ -66,7 +70,7 @@ TABLE7_P0 = (0.001,) * 3 + (0.1,) * 3 + (0.0,) * 3  # unknown landmarks, Table 7
 TABLE7_Q = (0.2, 0.2, 0.05, 0.01, 0.01, 0.01, 0.02, 0.2, 0.2)
 
 
-class NoiseParams(NamedTuple):
+class Params(NamedTuple):
     """Filter noise (traced leaves, so ``grad`` w.r.t. them works).
 
     P0: (9, 9) initial robot covariance.
@@ -117,7 +121,7 @@ def motion(s, u, params):
     return s_new.at[6:9].set(wrap_angle(s_new[6:9]).at[1].set(s_new[7]))
 
 
-def process_noise(s, imu, noise: NoiseParams, dt, g, accel_mode: str = "3axis"):
+def process_noise(s, imu, noise: Params, dt, g, accel_mode: str = "3axis"):
     """Q_d = (Q_c + G Q_imu Gᵀ) Δt, G = ∂f_s/∂λ at (s, λ) (first-order; see module doc)."""
     G = jax.jacfwd(lambda lam: f_cont(s, lam, g, accel_mode))(imu)
     return (noise.Qc + G @ noise.Qimu @ G.T) * jnp.asarray(dt, s.dtype)
@@ -148,7 +152,7 @@ def _lidar_R(dtype):
     return lidar3d.measurement_cov(lidar3d.PAPER000_LIDAR, dtype)
 
 
-def paper_noise(mode: str, dtype=jnp.float64) -> NoiseParams:
+def paper_noise(mode: str, dtype=jnp.float64) -> Params:
     """P0/Q of Table 6 (``mode="known"``) or Table 7 (``"unknown"``); R of Table 4."""
     if mode == "known":
         P0, Q = TABLE6_P0, TABLE6_Q
@@ -156,7 +160,7 @@ def paper_noise(mode: str, dtype=jnp.float64) -> NoiseParams:
         P0, Q = TABLE7_P0, TABLE7_Q
     else:
         raise InputError(f"mode: expected 'known' or 'unknown', got {mode!r}")
-    return NoiseParams(  # built on the host: no eager programs to compile
+    return Params(  # built on the host: no eager programs to compile
         P0=jnp.asarray(np.diag(np.asarray(P0, np.float64)), dtype),
         Qc=jnp.asarray(np.diag(np.asarray(Q, np.float64)), dtype),
         Qimu=jnp.asarray(np.zeros((6, 6)), dtype),
@@ -169,12 +173,12 @@ def paper_noise(mode: str, dtype=jnp.float64) -> NoiseParams:
 IMU_P0 = (1e-4,) * 3 + (1e-4,) * 3 + (math.radians(0.1) ** 2,) * 3
 
 
-def imu_noise(imu_spec, dtype=jnp.float64, P0=IMU_P0) -> NoiseParams:
+def imu_noise(imu_spec, dtype=jnp.float64, P0=IMU_P0) -> Params:
     """Q from Table 5's noise densities (``--q imu``), R of Table 4, small P0."""
     nd_a = float(imu_spec.accel_noise_density)
     nd_g = float(imu_spec.gyro_noise_density)
     qimu = np.asarray([nd_a**2] * 3 + [nd_g**2] * 3, np.float64)
-    return NoiseParams(  # built on the host: no eager programs to compile
+    return Params(  # built on the host: no eager programs to compile
         P0=jnp.asarray(np.diag(np.asarray(P0, np.float64)), dtype),
         Qc=jnp.asarray(np.zeros((NX, NX)), dtype),
         Qimu=jnp.asarray(np.diag(qimu), dtype),
@@ -182,22 +186,22 @@ def imu_noise(imu_spec, dtype=jnp.float64, P0=IMU_P0) -> NoiseParams:
     )
 
 
-def validate_noise(noise: NoiseParams) -> NoiseParams:
+def validate_params(params: Params) -> Params:
     """Host-side checks: shapes and PSD of P0, Qc, Qimu; R positive definite."""
     shapes = {"P0": (NX, NX), "Qc": (NX, NX), "Qimu": (6, 6), "R": (3, 3)}
     for name, shp in shapes.items():
-        a = np.asarray(getattr(noise, name))
+        a = np.asarray(getattr(params, name))
         if a.shape != shp:
-            raise InputError(f"noise.{name}: expected shape {shp}, got {a.shape}")
-        check_psd(a, f"noise.{name}", strict=(name == "R"))
-    return noise
+            raise InputError(f"params.{name}: expected shape {shp}, got {a.shape}")
+        check_psd(a, f"params.{name}", strict=(name == "R"))
+    return params
 
 
 # ---------------------------------------------------------------------------
 # The estimator in the closed loop (jaxslam.systems.estimator.Estimator)
 # ---------------------------------------------------------------------------
 
-class EstimatorConfig(NamedTuple):
+class Config(NamedTuple):
     """Static choices of the paper-000 estimator (hashable; a change recompiles).
 
     mode: "unknown" (SLAM, landmarks registered on first sight) or "known"
@@ -211,6 +215,8 @@ class EstimatorConfig(NamedTuple):
       thresholds on the 3-dof Mahalanobis distance.
     save_map: store the landmark means at every frame (for plots; memory F·cap·3).
     fov_check: mask (and count) measurements outside ``lidar``'s field of view by more than 5σ.
+    checkpoint: :func:`run` wraps its per-frame body in ``jax.checkpoint`` (a gradient through
+      a log then stores one state per frame and recomputes the frame's IMU steps).
     """
 
     mode: str = "unknown"
@@ -226,9 +232,10 @@ class EstimatorConfig(NamedTuple):
     save_map: bool = False
     fov_check: bool = True
     lidar: lidar3d.LidarSpec = lidar3d.PAPER000_LIDAR
+    checkpoint: bool = False
 
 
-class EstState(NamedTuple):
+class State(NamedTuple):
     slam: es.SlamState
     dropped: jax.Array  # () int32 visible measurements beyond max_obs, summed
     masked: jax.Array  # () int32 measurements masked (non-finite or outside the FOV), summed
@@ -265,18 +272,13 @@ def robot_error(s_hat, x_true):
     return e.at[6:9].set(wrap_angle(e[6:9]))
 
 
-def _nees(e, P):
-    Lc = jnp.linalg.cholesky(0.5 * (P + P.T))
-    w = jax.scipy.linalg.solve_triangular(Lc, e, lower=True)
-    return jnp.sum(w * w)
-
-
-def make_estimator(noise: NoiseParams, cfg: EstimatorConfig, landmarks_true=None):
+def make_estimator(config: Config, params: Params, landmarks_true=None):
     """Build the :class:`jaxslam.systems.estimator.Estimator` of paper 000's EKF-SLAM.
 
-    ``noise`` is traced (differentiable); ``cfg`` static.  In ``mode="known"``
-    ``landmarks_true`` (L, 3) must be given and ``cfg.capacity`` ≥ L.
+    ``params`` is traced (differentiable); ``config`` static.  In ``mode="known"``
+    ``landmarks_true`` (L, 3) must be given and ``config.capacity`` ≥ L.
     """
+    noise, cfg = params, config
     from .estimator import Estimator
 
     model = make_model()
@@ -309,16 +311,9 @@ def make_estimator(noise: NoiseParams, cfg: EstimatorConfig, landmarks_true=None
         s0 = x0[:NX] + e0
         st = es.init(s0, P0, cfg.capacity, 3)
         if cfg.mode == "known":
-            L = landmarks_true.shape[0]
-            idx = jnp.arange(L)
-            x = st.x.at[NX:NX + 3 * L].set(landmarks_true.reshape(-1).astype(dtype))
-            st = st._replace(
-                x=x,
-                active=st.active.at[idx].set(True),
-                ids=st.ids.at[idx].set(idx.astype(jnp.int32)),
-            )
+            st = es.preload(st, model, landmarks_true)
         z = jnp.zeros((), jnp.int32)
-        return EstState(st, z, z)
+        return State(st, z, z)
 
     def propagate(est, imu_prev, imu_now):
         st = est.slam
@@ -366,7 +361,7 @@ def make_estimator(noise: NoiseParams, cfg: EstimatorConfig, landmarks_true=None
             lm_var=jnp.diagonal(es.landmark_covs(st, model), axis1=-2, axis2=-1) if cfg.save_map else None,
         )
         st = st._replace(status=st.status | jnp.where(masked > 0, jnp.int32(errors.MASKED_INPUT), 0))
-        est = EstState(st, est.dropped + dropped.astype(jnp.int32), est.masked + masked.astype(jnp.int32))
+        est = State(st, est.dropped + dropped.astype(jnp.int32), est.masked + masked.astype(jnp.int32))
         return est, out
 
     def ctrl_state(est, imu_now):
@@ -380,83 +375,151 @@ def make_estimator(noise: NoiseParams, cfg: EstimatorConfig, landmarks_true=None
     return Estimator(init, propagate, correct, ctrl_state, step_out)
 
 
-__all__ += ["EstimatorConfig", "EstState", "StepOut", "FrameOut", "make_estimator", "robot_error",
-            "CONSISTENCY_BLOCKS"]
+__all__ += ["StepOut", "FrameOut", "make_estimator", "robot_error", "CONSISTENCY_BLOCKS"]
 
 
-def noise_to_dict(noise: NoiseParams) -> dict:
-    """JSON-ready form of :class:`NoiseParams` (full matrices as nested lists)."""
+def params_to_dict(noise: Params) -> dict:
+    """JSON-ready form of :class:`Params` (full matrices as nested lists)."""
     return {k: np.asarray(v, float).tolist() for k, v in noise._asdict().items()}
 
 
-def noise_from_dict(d: dict, default: NoiseParams, dtype) -> NoiseParams:
+def params_from_dict(d: dict, default: Params, dtype) -> Params:
     """Read a (partial) noise dict, e.g. from ``jaxslam tune`` / ``--params``.
 
     Each entry is a full matrix or a list of diagonal values; missing entries keep
     ``default``.  Unknown keys are an error naming them.
     """
-    unknown = set(d) - set(NoiseParams._fields)
+    unknown = set(d) - set(Params._fields)
     if unknown:
-        raise InputError(f"params.noise: unknown entries {sorted(unknown)}; expected {list(NoiseParams._fields)}")
+        raise InputError(f"params.noise: unknown entries {sorted(unknown)}; expected {list(Params._fields)}")
     vals = default._asdict()
     for k, v in d.items():
         a = np.asarray(v, float)
         if a.ndim == 1:
             a = np.diag(a)
         vals[k] = jnp.asarray(a, dtype)
-    return NoiseParams(**vals)
+    return Params(**vals)
 
 
-__all__ += ["noise_to_dict", "noise_from_dict"]
+__all__ += ["params_to_dict", "params_from_dict"]
 
 
-def filter_log(noise: NoiseParams, cfg: EstimatorConfig, s0, imu, y, ids, visible,
-               lidar_every: int, landmarks_true=None):
-    """Run the filter on a recorded log (open loop) as one ``lax.scan``.
+class Log(NamedTuple):
+    """A recorded flight (one run; a batch adds a leading axis).  T = F · k IMU steps, k the
+    IMU steps per LiDAR frame (read from the shapes).
 
-    Args:
-      noise, cfg: as :func:`make_estimator`.
-      s0: (9,) initial estimate (the covariance is ``noise.P0``).
-      imu: (T + 1, 6) IMU samples at t = 0, Δt, …, TΔt (sample 0 is the one
-        preceding the first prediction).  T = F · lidar_every.
-      y, ids, visible: (F, L, 3), (L,) or (F, L), (F, L) LiDAR frames taken after
-        every ``lidar_every`` predictions.
-
-    Returns (final EstState, means (T, 9), frame outputs).  Used by the benchmark
-    against the NumPy twin and by users who filter their own logs.
+    s0: (9,) initial estimate [ρ m, v_B m/s, Λ rad] (its covariance is ``params.P0``).
+    imu: (T + 1, 6) IMU samples at t = 0, Δt, …, TΔt [m/s², rad/s] (sample 0 precedes the
+      first prediction).
+    y: (F, L, 3) LiDAR [α, β, δ] per frame, taken after every k predictions; visible: (F, L)
+      bool; ids: (L,) or (F, L) int32 landmark ids.
+    truth: optional (T + 1, 12) true states: the frames' NEES are computed against it (a real
+      log has none).
+    landmarks: (L, 3) the known map [m] (``config.mode == "known"``; else unused).
     """
-    if np.ndim(visible) != 2:
-        raise InputError(f"visible: expected shape (F, L), got {np.shape(visible)}")
-    F, L = np.shape(visible)
-    if np.shape(y) != (F, L, 3):
-        raise InputError(f"y: expected shape ({F}, {L}, 3) to match visible, got {np.shape(y)}")
-    if np.shape(imu) != (F * lidar_every + 1, 6):
-        raise InputError(f"imu: expected shape ({F * lidar_every + 1}, 6) for {F} frames of "
-                         f"{lidar_every} steps, got {np.shape(imu)}")
-    if np.shape(s0) != (NX,):
-        raise InputError(f"s0: expected shape ({NX},), got {np.shape(s0)}")
-    if np.ndim(ids) not in (1, 2) or np.shape(ids)[-1] != L:
-        raise InputError(f"ids: expected shape ({L},) or ({F}, {L}), got {np.shape(ids)}")
-    est = make_estimator(noise, cfg, landmarks_true)
-    st0 = est.init(jax.random.PRNGKey(0), jnp.concatenate([s0, jnp.zeros(3, s0.dtype)]))
-    st0 = st0._replace(slam=st0.slam._replace(x=st0.slam.x.at[:NX].set(s0)))
-    ids = jnp.broadcast_to(ids, (F, L))
-    imu_prev = imu[:-1].reshape(F, lidar_every, 6)
-    imu_now = imu[1:].reshape(F, lidar_every, 6)
+
+    s0: jax.Array
+    imu: jax.Array
+    y: jax.Array
+    visible: jax.Array
+    ids: jax.Array
+    truth: Any = None
+    landmarks: Any = None
+
+
+class Result(NamedTuple):
+    """What :func:`run` returns (one run).
+
+    means: (T, 9) robot mean after every prediction step (the last step of a frame: before the
+      frame's LiDAR update; ``final`` holds the state after the last update).
+    frames: :class:`FrameOut` of every LiDAR frame (leading axis F): NEES (NaN without
+      ``log.truth``), the update's joint NIS, degrees of freedom and log det S (the terms of
+      the innovation likelihood), landmark counts.
+    final: the final :class:`State`.
+    """
+
+    means: jax.Array
+    frames: FrameOut
+    final: State
+
+
+def _check_log(log: Log) -> int:
+    """Shapes of ``log`` (static, also under tracing); returns k (IMU steps per frame)."""
+    if np.ndim(log.visible) != 2:
+        raise InputError(f"log.visible: expected shape (F, L), got {np.shape(log.visible)}")
+    F, L = np.shape(log.visible)
+    if np.shape(log.y) != (F, L, 3):
+        raise InputError(f"log.y: expected shape ({F}, {L}, 3) to match log.visible, got {np.shape(log.y)}")
+    T1 = np.shape(log.imu)[0] if np.ndim(log.imu) == 2 else -1
+    if np.ndim(log.imu) != 2 or np.shape(log.imu)[1] != 6 or F == 0 or (T1 - 1) % F or T1 < F + 1:
+        raise InputError(f"log.imu: expected shape (F·k + 1, 6) for {F} frames of k IMU steps, "
+                         f"got {np.shape(log.imu)}")
+    if np.shape(log.s0) != (NX,):
+        raise InputError(f"log.s0: expected shape ({NX},), got {np.shape(log.s0)}")
+    if np.ndim(log.ids) not in (1, 2) or np.shape(log.ids)[-1] != L:
+        raise InputError(f"log.ids: expected shape ({L},) or ({F}, {L}), got {np.shape(log.ids)}")
+    if log.truth is not None and np.shape(log.truth) != (T1, 12):
+        raise InputError(f"log.truth: expected shape ({T1}, 12), got {np.shape(log.truth)}")
+    return (T1 - 1) // F
+
+
+def run(log: Log, config: Config, params: Params, *, key=None) -> Result:
+    """Paper 000's EKF-SLAM on one recorded log, open loop, as one nested ``lax.scan``.
+
+    The estimator of the closed loop (:func:`make_estimator`, paper 000 eq. 24-53), driven by
+    the log: k predictions (one per IMU interval) then the frame's LiDAR update.  Differentiable
+    in every leaf of ``params`` (P0 included: the initial state is ``log.s0`` with covariance
+    ``params.P0``, no random draw) and of ``log``; ``config`` static (``config.checkpoint``:
+    ``jax.checkpoint`` on the per-frame body, so a gradient stores one state per frame).
+    ``key`` is not used (the filter draws nothing); it is accepted as every system's ``run``
+    accepts it.  Shapes are checked here, values (PSD covariances) by :func:`validate_params`
+    when they are concrete.  Jitted (``config`` static); compose under ``jit``/``vmap``/``grad``.
+    """
+    del key
+    _check_log(log)
+    if config.mode == "known":
+        if log.landmarks is None:
+            raise InputError("log.landmarks: required with config.mode 'known'")
+        if np.shape(log.landmarks)[0] > config.capacity:
+            raise InputError(f"config.capacity: {config.capacity} slots cannot hold the "
+                             f"{np.shape(log.landmarks)[0]} known landmarks")
+    if is_concrete(params):
+        validate_params(params)
+    return _run(log, config, params)
+
+
+@functools.partial(jax.jit, static_argnums=1)
+def _run(log: Log, cfg: Config, params: Params) -> Result:
+    k = _check_log(log)
+    F = log.visible.shape[0]
+    dtype = log.s0.dtype
+    model = make_model()
+    est = make_estimator(cfg, params, log.landmarks if cfg.mode == "known" else None)
+    st = es.init(log.s0, params.P0.astype(dtype), cfg.capacity, 3)
+    if cfg.mode == "known":
+        st = es.preload(st, model, log.landmarks)
+    z0 = jnp.zeros((), jnp.int32)
+    e0 = State(st, z0, z0)
+    ids = jnp.broadcast_to(log.ids, log.visible.shape)
+    imu_prev = log.imu[:-1].reshape(F, k, 6)
+    imu_now = log.imu[1:].reshape(F, k, 6)
+    with_truth = log.truth is not None
+    x_frames = log.truth[k::k] if with_truth else jnp.zeros((F, 12), dtype)
 
     def frame(e, inp):
-        a, b, yf, idf, vf = inp
+        a, b, yf, idf, vf, xt = inp
 
         def step(e2, ab):
             e2 = est.propagate(e2, ab[0], ab[1])
             return e2, e2.slam.x[:NX]
 
         e, means = jax.lax.scan(step, e, (a, b))
-        e, out = est.correct(e, yf, idf, vf)
+        e, out = est.correct(e, yf, idf, vf, xt if with_truth else None)
         return e, (means, out)
 
-    e, (means, outs) = jax.lax.scan(frame, st0, (imu_prev, imu_now, y, ids, visible))
-    return e, means.reshape(-1, NX), outs
+    body = jax.checkpoint(frame) if cfg.checkpoint else frame
+    e, (means, frames) = jax.lax.scan(body, e0, (imu_prev, imu_now, log.y, ids, log.visible, x_frames))
+    return Result(means=means.reshape(-1, NX), frames=frames, final=e)
 
 
-__all__ += ["filter_log"]
+__all__ += ["Log", "Result", "run"]

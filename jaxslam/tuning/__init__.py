@@ -5,10 +5,12 @@
   NEES consistency loss; the EKF-SLAM joint innovation terms.
 * :mod:`.optimize` — optax Adam with warm-up + cosine schedule and gradient clipping,
   ``vmap`` over training runs, held-out loss curve, NaN-safe host loop, memory report.
-* :mod:`.targets` — what is tuned on which data: paper 000's EKF-SLAM noise on recorded
-  logs, the DF-LQR weights on ``track-figure8``, the linear-Gaussian oracle, paper 003's
-  UWB noise; held-out evaluation on the scenarios themselves.
-* :mod:`.cli` — ``jaxslam tune``.
+* :mod:`.targets` — what is tuned on which data, one module per target: paper 000's
+  EKF-SLAM noise on recorded logs, the DF-LQR weights on ``track-figure8``, the
+  linear-Gaussian oracle, paper 003's UWB noise, the planar EKF-SLAM's noise from MRCLAM logs;
+  held-out evaluation on the scenarios themselves.
+
+``jaxslam tune`` is :mod:`jaxslam.cli.tune`.
 
 No paper covers tuning; every decision is recorded in the module docstrings and in
 ``docs/tuning.md``.  Nothing here changes JAX's configuration on import.
@@ -24,7 +26,7 @@ _SOURCES = {
     "optimize": ("FitResult", "batch_loss", "fit", "make_optimizer", "memory_report"),
     "params": ("CovSpec", "cov_from_log_chol", "cov_from_log_diag", "cov_from_theta",
                "log_chol_from_cov", "log_diag_from_cov", "pack", "theta_from_cov", "unpack"),
-    "targets": ("SlamLog", "SlamRun", "Target", "make_slam_logs", "run_slam_log", "slam_loss"),
+    "targets": ("Target",),
 }
 _WHERE = {name: mod for mod, names in _SOURCES.items() for name in names}
 
@@ -66,9 +68,4 @@ __all__ = [
     "fit",
     "memory_report",
     "Target",
-    "SlamLog",
-    "SlamRun",
-    "make_slam_logs",
-    "run_slam_log",
-    "slam_loss",
 ]

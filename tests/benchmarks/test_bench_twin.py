@@ -4,7 +4,7 @@ The twin is the reference of ``jaxslam bench ekfslam``; a speed comparison means
 something only if both do the same work.  Oracle: the twin is written
 independently in NumPy with hand-derived Jacobians (RK4 chained through the
 stages, LiDAR H, registration G_s/G_y); here it must reproduce
-``jaxslam.systems.ekf_slam_3d.filter_log`` to 1e-8 on a 5 s log (means at
+``jaxslam.systems.ekf_slam_3d.run`` to 1e-8 on a 5 s log (means at
 every IMU step, final state and full covariance, map bookkeeping), with
 landmark registration (mode unknown, including a capacity overflow) and
 against a known map.  The hand Jacobians are also checked against
@@ -113,9 +113,9 @@ CASES = [
 
 
 @pytest.mark.parametrize("mode,q,capacity,max_obs", CASES)
-def test_twin_reproduces_filter_log(log, mode, q, capacity, max_obs):
+def test_twin_reproduces_the_system_run(log, mode, q, capacity, max_obs):
     noise = sys3d.imu_noise(imu_mod.PAPER000_IMU) if q == "imu" else sys3d.paper_noise(mode)
-    cfg = sys3d.EstimatorConfig(mode=mode, capacity=capacity, max_obs=max_obs)
+    cfg = sys3d.Config(mode=mode, capacity=capacity, max_obs=max_obs)
     if max_obs < 16:
         assert log["visible"].sum(1).max() > max_obs  # the compaction drops some
     # start off the truth so the updates have work to do
@@ -128,11 +128,10 @@ def test_twin_reproduces_filter_log(log, mode, q, capacity, max_obs):
         f1, f2 = 7, 23
         log["y"][f1, np.flatnonzero(log["visible"][f1])[0], 2] = np.nan
         log["y"][f2, np.flatnonzero(log["visible"][f2])[0], 0] = 1.5  # first: survives max_obs
-    run = jax.jit(lambda s0_, imu, y, vis: sys3d.filter_log(
-        noise, cfg, s0_, imu, y, jnp.asarray(log["ids"]), vis, log["lidar_every"],
-        None if lt is None else jnp.asarray(lt)))
-    est, means, _ = run(jnp.asarray(s0), jnp.asarray(log["imu"]), jnp.asarray(log["y"]),
-                        jnp.asarray(log["visible"]))
+    res = sys3d.run(sys3d.Log(s0=jnp.asarray(s0), imu=jnp.asarray(log["imu"]), y=jnp.asarray(log["y"]),
+                              visible=jnp.asarray(log["visible"]), ids=jnp.asarray(log["ids"]),
+                              landmarks=None if lt is None else jnp.asarray(lt)), cfg, noise)
+    est, means = res.final, res.means
     flt, means_np = tw.run_log(noise, s0, log["imu"], log["y"], log["ids"], log["visible"],
                                log["lidar_every"], capacity=capacity, max_obs=max_obs, mode=mode,
                                landmarks_true=lt)
@@ -158,24 +157,3 @@ def test_twin_reproduces_filter_log(log, mode, q, capacity, max_obs):
     err = means_np[-1] - log["truth"][-1]
     err[6:9] = np.mod(err[6:9] + np.pi, 2 * np.pi) - np.pi
     assert np.max(np.abs(err)) < 0.5
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize("buckets", [None, "active", (4, 8, 16)])
-def test_prototype_engine_computes_the_same_filter(log, buckets):
-    """benchmarks/proto_ekfslam_fast.py (proposed engine changes) against the twin, mode unknown."""
-    import proto_ekfslam_fast as pf
-
-    noise = sys3d.imu_noise(imu_mod.PAPER000_IMU)
-    cfg = sys3d.EstimatorConfig(mode="unknown", capacity=16, max_obs=16)
-    s0 = log["s0"] + np.r_[0.05, -0.05, 0.02, 0.02, 0.0, -0.02, 0.003, -0.003, 0.01]
-    run = jax.jit(lambda s0_, imu, y, vis: pf.filter_log_fast(
-        noise, cfg, s0_, imu, y, jnp.asarray(log["ids"]), vis, log["lidar_every"], buckets=buckets))
-    st, means = run(jnp.asarray(s0), jnp.asarray(log["imu"]), jnp.asarray(log["y"]),
-                    jnp.asarray(log["visible"]))
-    flt, means_np = tw.run_log(noise, s0, log["imu"], log["y"], log["ids"], log["visible"],
-                               log["lidar_every"], capacity=16, max_obs=16)
-    np.testing.assert_array_equal(np.asarray(st.active), flt.active)
-    np.testing.assert_array_equal(np.asarray(st.ids), flt.ids)
-    np.testing.assert_allclose(np.asarray(means), means_np, rtol=0, atol=TOL)
-    np.testing.assert_allclose(np.asarray(st.P), flt.P, rtol=0, atol=TOL)

@@ -48,7 +48,7 @@ anchor_lost      anchor 2 silent all flight: |e| ≤ 3√tr P at ≥ 90 % of the
                  steps, and a larger covariance than the clean run's
 ===============  ============================================================================
 
-Paper 000's 3D EKF-SLAM (``ekf_slam_3d.filter_log``; its flight and filter compile in a few
+Paper 000's 3D EKF-SLAM (``ekf_slam_3d.run``; its flight and filter compile in a few
 seconds): LiDAR NaN burst → ``masked_input``, means = the dropout run's; IMU NaN →
 ``non_finite``, means finite.  The real-log systems (MRCLAM planar, UTIL/Plaza range-only) are
 fault-injected at array level in test_faults_datasets.py, where their programs are compiled.
@@ -398,7 +398,7 @@ def test_uwb_slam_2d_fault(fault, uwb):
 # ---------------------------------------------------------------------------
 
 LIDAR_EVERY = 10
-# Paper 000's filter has no gate (EstimatorConfig.gate=None, the reproduced figures use none); a
+# Paper 000's filter has no gate (Config.gate=None, the reproduced figures use none); a
 # user who expects corrupted LiDAR frames switches on a χ²(3) 99.9 % gate (16.27).
 GATE_3D = 16.27
 
@@ -417,10 +417,13 @@ def flight3d():
     fl = jax.jit(lambda k: simulate(setup, k, 60, LIDAR_EVERY))(jax.random.PRNGKey(1))
     imu = jnp.concatenate([jnp.array([[0.0, 0.0, -9.81, 0.0, 0.0, 0.0]]), fl.imu])
     noise = s3.imu_noise(imu_mod.PAPER000_IMU)
-    cfg = s3.EstimatorConfig(capacity=48)
-    run = jax.jit(lambda imu, y, vis, gate=False: s3.filter_log(
-        noise, cfg._replace(gate=GATE_3D) if gate else cfg, fl.truth[0, :9], imu, y, jnp.arange(40), vis,
-        LIDAR_EVERY), static_argnums=3)
+    cfg = s3.Config(capacity=48)
+
+    def run(imu, y, vis, gate=False):
+        res = s3.run(s3.Log(s0=fl.truth[0, :9], imu=imu, y=y, visible=vis, ids=jnp.arange(40)),
+                     cfg._replace(gate=GATE_3D) if gate else cfg, noise)
+        return res.final, res.means, res.frames
+
     return fl, imu, run
 
 

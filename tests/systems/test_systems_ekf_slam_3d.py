@@ -35,13 +35,18 @@ def log():
     return fl, lms, imu
 
 
+def _log(fl, imu, y=None, F=None):
+    """The flight as a system Log (the first F frames)."""
+    F = fl.lidar_mask.shape[0] if F is None else F
+    return s3.Log(s0=fl.truth[0, :9], imu=imu[:F * LIDAR_EVERY + 1], y=(fl.lidar_y if y is None else y)[:F],
+                  visible=fl.lidar_mask[:F], ids=jnp.arange(40))
+
+
 def _run(log, cfg, noise=None, y=None):
     fl, lms, imu = log
     noise = s3.imu_noise(imu_mod.PAPER000_IMU) if noise is None else noise
-    y = fl.lidar_y if y is None else y
-    f = jax.jit(lambda noise, y: s3.filter_log(noise, cfg, fl.truth[0, :9], imu, y,
-                                               jnp.arange(40), fl.lidar_mask, LIDAR_EVERY))
-    return f(noise, y)
+    res = s3.run(_log(fl, imu, y), cfg, noise)
+    return res.final, res.means, res.frames
 
 
 # ----------------------------------------------------------------- model pieces
@@ -127,15 +132,15 @@ def test_dead_reckoning_with_exact_imu_follows_truth():
     assert err < 3e-4, err
 
 
-def test_validate_noise_rejects_bad_matrices():
+def test_validate_params_rejects_bad_matrices():
     good = s3.imu_noise(imu_mod.PAPER000_IMU)
-    s3.validate_noise(good)
-    with pytest.raises(InputError, match="noise.R"):
-        s3.validate_noise(good._replace(R=jnp.diag(jnp.array([1.0, -1.0, 1.0]))))
-    with pytest.raises(InputError, match="noise.Qc"):
-        s3.validate_noise(good._replace(Qc=jnp.ones((9, 9)) - 2 * jnp.eye(9)))
-    with pytest.raises(InputError, match="noise.P0: expected shape"):
-        s3.validate_noise(good._replace(P0=jnp.eye(8)))
+    s3.validate_params(good)
+    with pytest.raises(InputError, match="params.R"):
+        s3.validate_params(good._replace(R=jnp.diag(jnp.array([1.0, -1.0, 1.0]))))
+    with pytest.raises(InputError, match="params.Qc"):
+        s3.validate_params(good._replace(Qc=jnp.ones((9, 9)) - 2 * jnp.eye(9)))
+    with pytest.raises(InputError, match="params.P0: expected shape"):
+        s3.validate_params(good._replace(P0=jnp.eye(8)))
 
 
 # ---------------------------------------------------------------- filter on a log
@@ -147,8 +152,8 @@ def _landmark_dict(est):
 
 
 def test_capacity_padding_changes_nothing(log):
-    e40, m40, _ = _run(log, s3.EstimatorConfig(capacity=40))
-    e128, m128, _ = _run(log, s3.EstimatorConfig(capacity=128))
+    e40, m40, _ = _run(log, s3.Config(capacity=40))
+    e128, m128, _ = _run(log, s3.Config(capacity=128))
     np.testing.assert_allclose(np.asarray(m40), np.asarray(m128), atol=1e-10)
     a, b = _landmark_dict(e40), _landmark_dict(e128)
     assert sorted(a) == sorted(b) and len(a) > 8
@@ -158,7 +163,7 @@ def test_capacity_padding_changes_nothing(log):
 
 
 def test_overflow_is_flagged_and_counted(log):
-    e8, m8, _ = _run(log, s3.EstimatorConfig(capacity=8))
+    e8, m8, _ = _run(log, s3.Config(capacity=8))
     assert int(e8.slam.active.sum()) == 8
     assert int(e8.slam.overflow) > 0
     assert "capacity_overflow" in errors.decode(e8.slam.status)
@@ -172,7 +177,7 @@ def test_nan_measurements_are_masked_and_counted(log):
     f_idx, l_idx = np.nonzero(vis)
     bad = (f_idx[::7], l_idx[::7])
     y[bad] = np.nan
-    est, means, _ = _run(log, s3.EstimatorConfig(capacity=64), y=jnp.asarray(y))
+    est, means, _ = _run(log, s3.Config(capacity=64), y=jnp.asarray(y))
     assert np.all(np.isfinite(np.asarray(means)))
     assert np.all(np.isfinite(np.asarray(est.slam.P)))
     assert int(est.masked) == len(bad[0])
@@ -186,7 +191,7 @@ def test_out_of_fov_measurements_are_masked_and_counted(log):
     f_idx, l_idx = np.nonzero(vis)
     bad = (f_idx[::5], l_idx[::5])
     y[bad + (np.zeros(len(bad[0]), int),)] = np.radians(120.0)  # azimuth far outside ±45°
-    est, means, _ = _run(log, s3.EstimatorConfig(capacity=64), y=jnp.asarray(y))
+    est, means, _ = _run(log, s3.Config(capacity=64), y=jnp.asarray(y))
     assert int(est.masked) == len(bad[0])
     assert np.all(np.isfinite(np.asarray(means)))
 
@@ -194,26 +199,27 @@ def test_out_of_fov_measurements_are_masked_and_counted(log):
 def test_log_shapes_are_checked(log):
     fl, _, imu = log
     noise = s3.imu_noise(imu_mod.PAPER000_IMU)
-    cfg = s3.EstimatorConfig(capacity=16)
-    with pytest.raises(InputError, match="^y: expected shape"):
-        s3.filter_log(noise, cfg, fl.truth[0, :9], imu, fl.lidar_y[:, :, :2], jnp.arange(40),
-                      fl.lidar_mask, LIDAR_EVERY)
-    with pytest.raises(InputError, match="^imu: expected shape"):
-        s3.filter_log(noise, cfg, fl.truth[0, :9], imu[:-1], fl.lidar_y, jnp.arange(40),
-                      fl.lidar_mask, LIDAR_EVERY)
+    cfg = s3.Config(capacity=16)
+    with pytest.raises(InputError, match="^log.y: expected shape"):
+        s3.run(_log(fl, imu)._replace(y=fl.lidar_y[:, :, :2]), cfg, noise)
+    with pytest.raises(InputError, match="^log.imu: expected shape"):
+        s3.run(_log(fl, imu)._replace(imu=imu[:-1]), cfg, noise)
+    with pytest.raises(InputError, match="^log.landmarks: required"):
+        s3.run(_log(fl, imu), cfg._replace(mode="known"), noise)
 
 
 def test_float32_filter_stays_within_ten_percent_of_float64(log):
     """Same log, same filter, float32 vs float64: no NaN, position RMSE within 10 %."""
     fl, _, imu = log
-    cfg = s3.EstimatorConfig(capacity=32)
+    cfg = s3.Config(capacity=32)
     truth = np.asarray(fl.truth[1:, :3])
     rmse = {}
     for dt in (jnp.float64, jnp.float32):
         noise = jax.tree.map(lambda a: a.astype(dt), s3.imu_noise(imu_mod.PAPER000_IMU))
-        f = jax.jit(lambda noise, s0, imu, y: s3.filter_log(
-            noise, cfg, s0, imu, y, jnp.arange(40), fl.lidar_mask, LIDAR_EVERY))
-        est, means, _ = f(noise, fl.truth[0, :9].astype(dt), imu.astype(dt), fl.lidar_y.astype(dt))
+        lg = _log(fl, imu)
+        lg = lg._replace(s0=lg.s0.astype(dt), imu=lg.imu.astype(dt), y=lg.y.astype(dt))
+        res = s3.run(lg, cfg, noise)
+        est, means = res.final, res.means
         assert means.dtype == dt
         assert np.all(np.isfinite(np.asarray(means))) and np.all(np.isfinite(np.asarray(est.slam.P)))
         e = np.asarray(means[:, :3], np.float64) - truth
@@ -225,13 +231,12 @@ def test_gradient_of_position_error_wrt_log_q_r_matches_finite_differences(log):
     fl, _, imu = log
     F = 30  # the first 3 s keep the compile and the finite differences short
     base = s3.imu_noise(imu_mod.PAPER000_IMU)
-    cfg = s3.EstimatorConfig(capacity=16)
+    cfg = s3.Config(capacity=16)
     truth = fl.truth[1:F * LIDAR_EVERY + 1, :3]
 
     def loss(theta):
         noise = base._replace(Qimu=jnp.diag(jnp.exp(theta[:6])), R=jnp.diag(jnp.exp(theta[6:])))
-        _, means, _ = s3.filter_log(noise, cfg, fl.truth[0, :9], imu[:F * LIDAR_EVERY + 1],
-                                    fl.lidar_y[:F], jnp.arange(40), fl.lidar_mask[:F], LIDAR_EVERY)
+        means = s3.run(_log(fl, imu, F=F), cfg, noise).means
         return jnp.mean(jnp.sum((means[:, :3] - truth) ** 2, axis=1))
 
     theta0 = jnp.log(jnp.concatenate([jnp.diag(base.Qimu), jnp.diag(base.R)]))

@@ -17,7 +17,7 @@ import pytest
 from jaxslam import cli
 from jaxslam.errors import InputError
 from jaxslam.systems import planar_ekf_slam as pe
-from jaxslam.tuning import real_logs as RL
+from jaxslam.tuning.targets import mrclam as RL
 
 DATA = pathlib.Path(__file__).resolve().parents[1] / "data"
 

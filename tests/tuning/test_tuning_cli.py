@@ -82,7 +82,8 @@ def test_float32_tuning_follows_float64(tmp_path, capsys):
     import jax.numpy as jnp
     import numpy as np
 
-    from jaxslam.tuning import optimize, targets
+    from jaxslam.tuning import optimize
+    from jaxslam.tuning.targets import linear_gaussian as lg
 
     j = tmp_path / "f32.json"
     assert cli.main(["tune", "linear-gaussian", "--loss", "nll", "--steps", "6", "--train-runs", "1",
@@ -90,7 +91,7 @@ def test_float32_tuning_follows_float64(tmp_path, capsys):
     rep = json.loads(j.read_text())
     assert rep["config"]["dtype"] == "float32" and rep["history"][-1]["loss"] < rep["history"][0]["loss"]
     # Same data in both precisions: the float64 logs cast to float32.
-    tg = targets.linear_gaussian("nll", train_runs=1, test_runs=1, T=2000)
+    tg = lg.linear_gaussian("nll", train_runs=1, test_runs=1, T=2000)
     f32 = lambda t: jax.tree.map(lambda a: a.astype(jnp.float32) if a.dtype == jnp.float64 else a, t)  # noqa: E731
     r64 = optimize.fit(tg.loss_fn, tg.theta0, tg.train, 20, 0.3)
     r32 = optimize.fit(tg.loss_fn, f32(tg.theta0), f32(tg.train), 20, 0.3)

@@ -20,7 +20,9 @@ import numpy as np
 import pytest
 
 from jaxslam.tuning import losses as L
-from jaxslam.tuning import targets as T
+from jaxslam.tuning.targets import ekfslam3d as T3
+from jaxslam.tuning.targets import figure8 as T8
+from jaxslam.tuning.targets import linear_gaussian as TL
 
 H = 1e-5  # step in θ (log-variance) units; truncation ~h², rounding ~eps/h: both ≪ 1e-4
 
@@ -49,12 +51,12 @@ def _check(fn, theta, n_dirs=2, seed=0, rtol=1e-4):
 
 
 def test_linear_gaussian_losses_match_finite_differences():
-    tg = T.linear_gaussian("nll", train_runs=1, test_runs=1, T=60)
+    tg = TL.linear_gaussian("nll", train_runs=1, test_runs=1, T=60)
     item = jax.tree.map(lambda a: a[0], tg.train)
 
     def all_losses(th):
         m = tg.physical(th)
-        means, nis, logdet, dof, covs = T.lg_run(m["Q"], m["R"], item["z"])
+        means, nis, logdet, dof, covs = TL.lg_run(m["Q"], m["R"], item["z"])
         err = means - item["x"]
         nees = jax.vmap(lambda e, C: e @ jnp.linalg.solve(C, e))(err, covs)
         return jnp.stack([L.innovation_nll(nis, logdet, dof), L.mse(err), L.nees_loss(nees, 4)])
@@ -68,18 +70,18 @@ def test_ekfslam3d_log_losses_match_finite_differences():
     """NLL, MSE and NEES of the filter on a 1 s recorded log (10 LiDAR frames), Q_c and R tuned."""
     from jaxslam.systems import ekf_slam_3d as sys3d
 
-    logs = T.make_slam_logs(3, 1, 1.0)
+    logs = T3.make_slam_logs(3, 1, 1.0)
     log = jax.tree.map(lambda a: a[0], logs)
-    cfg = sys3d.EstimatorConfig(capacity=40)
+    cfg = sys3d.Config(capacity=40, checkpoint=True)
     ref = sys3d.imu_noise(__import__("jaxslam.sensors.imu", fromlist=["x"]).PAPER000_IMU)
     theta = {"Qc": jnp.log(jnp.asarray([1e-3, 1e-3, 1e-3, 1e-4, 1e-4, 1e-4, 1e-6, 1e-6, 1e-6])),
              "R": jnp.log(jnp.diag(ref.R))}
 
     def all_losses(th):
         noise = ref._replace(Qc=jnp.diag(jnp.exp(th["Qc"])), R=jnp.diag(jnp.exp(th["R"])))
-        run = T.run_slam_log(noise, cfg, log, with_nll=True, with_nees=True)
-        return jnp.stack([T.slam_loss(run, log, "nll"), T.slam_loss(run, log, "mse"),
-                          T.slam_loss(run, log, "nees")])
+        res = sys3d.run(log, cfg, noise)
+        return jnp.stack([T3.slam_loss(res, log, "nll"), T3.slam_loss(res, log, "mse"),
+                          T3.slam_loss(res, log, "nees")])
 
     worst, v = _check(all_losses, theta, n_dirs=2)
     assert np.all(np.isfinite(v))
@@ -87,7 +89,7 @@ def test_ekfslam3d_log_losses_match_finite_differences():
 
 @pytest.mark.slow  # compiles the closed-loop gradient; figures: docs/results/tuning/gradcheck.json
 def test_lqr_closed_loop_cost_matches_finite_differences():
-    tg = T.figure8_lqr(train_runs=1, test_runs=1, train_duration=2.0)
+    tg = T8.figure8_lqr(train_runs=1, test_runs=1, train_duration=2.0)
     item = jax.tree.map(lambda a: a[0], tg.train)
     worst, v = _check(lambda th: tg.loss_fn(th, item)[None], tg.theta0, n_dirs=2)
     assert np.isfinite(v[0]) and v[0] > 0

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from jaxslam.tuning import optimize as O
-from jaxslam.tuning import targets as T
+from jaxslam.tuning.targets import linear_gaussian as T
 
 
 def _numpy_nll(Q, R, zs, dt=T.LG_DT):

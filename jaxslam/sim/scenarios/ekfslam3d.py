@@ -62,8 +62,8 @@ def _noise(q: str, mode: str, dtype, params=None):
     else:
         raise InputError(f"--q: expected 'paper' or 'imu', got {q!r}")
     if params and "noise" in params:
-        noise = sys3d.noise_from_dict(params["noise"], noise, dtype)
-    return sys3d.validate_noise(noise)
+        noise = sys3d.params_from_dict(params["noise"], noise, dtype)
+    return sys3d.validate_params(noise)
 
 
 def build(options: dict, mode: str, dtype, params=None):
@@ -84,7 +84,7 @@ def build(options: dict, mode: str, dtype, params=None):
     ctrl = dflqr.paper000_params()
     if params and "controller" in params:
         ctrl = controller_from_dict(params["controller"], ctrl)
-    cfg = sys3d.EstimatorConfig(
+    cfg = sys3d.Config(
         mode=mode,
         association=options["association"],
         capacity=cap,
@@ -108,7 +108,7 @@ def build(options: dict, mode: str, dtype, params=None):
         lms = lm_mod.generate_landmarks(k_lm, n_lm,
                                         center=center, dtype=dtype)
         setup = make_setup(traj, dtype, landmarks=lms, ctrl=ctrl)
-        est = sys3d.make_estimator(noise, cfg._replace(save_map=save_map), landmarks_true=lms)
+        est = sys3d.make_estimator(cfg._replace(save_map=save_map), noise, landmarks_true=lms)
         fl = simulate(setup, k_fl, nf, FRAME_STEPS, estimator=est, control_on=control_on,
                       K=K, feedforward=ff, refs=refs)
         return fl, lms
@@ -256,7 +256,7 @@ def run_scenario(name, mode, runs, seed, dtype, options, progress, params=None, 
         "imu_rate_hz": 1.0 / DT,
         "lidar_rate_hz": 1.0 / (DT * FRAME_STEPS),
         "landmark_centre_ned_m": [0.0, 0.0, -float(options["altitude"])],
-        "noise": sys3d.noise_to_dict(noise),
+        "noise": sys3d.params_to_dict(noise),
         "estimator": cfg._asdict(),
         "anees_window_s": WINDOW_S,
         **options,
@@ -304,7 +304,7 @@ _DESCRIPTIONS = {
 def params_schema(mode: str, options: dict, dtype) -> dict:
     """What a ``--params`` file may set (:mod:`jaxslam.paramfile`): the filter's noise for
     ``--q`` and the DF-LQR weights and PD gains, with their defaults."""
-    return {"noise": sys3d.noise_to_dict(_noise(options["q"], mode, dtype)),
+    return {"noise": sys3d.params_to_dict(_noise(options["q"], mode, dtype)),
             "controller": controller_to_dict(dflqr.paper000_params())}
 
 

@@ -75,6 +75,7 @@ from ...control.trajectories_2d import CirclePath, PolylinePath, RateProfile, pl
 from ...errors import InputError
 from ...linalg import wrap_angle
 from ...sensors import uwb
+from ...stats import nees as _nees
 from ...systems import uwb_slam_2d as U
 from .. import monte_carlo
 from .registry import Option, Scenario, ScenarioResult, program_key, register
@@ -224,12 +225,6 @@ def simulate(key, setup: Setup, dtype) -> SimOut:
     log = U.UwbLog(startup_ranges=jnp.where(m_s, z_s, jnp.nan), startup_mask=m_s,
                    ranges=jnp.where(m, z, jnp.nan), range_mask=m, gyro=g)
     return SimOut(truth=truth, log=log, anchors=anchors)
-
-
-def _nees(e, P):
-    Lc = jnp.linalg.cholesky(0.5 * (P + P.T))
-    w = jax.scipy.linalg.solve_triangular(Lc, e, lower=True)
-    return jnp.sum(w * w)
 
 
 def evaluate(sim: SimOut, res: U.RunResult, cfg: U.UwbConfig):

@@ -1,4 +1,4 @@
-"""Noise learned from real logs: ``jaxslam tune mrclam`` (and the planar logs' machinery).
+"""Tuning target: noise learned from real logs, ``jaxslam tune mrclam`` (and the planar logs' machinery).
 
 The loss is the innovation negative log-likelihood of whole logs — every sighting's
 prediction error against the filter's own predicted covariance, through the same jitted scan
@@ -39,8 +39,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..data import catalogue
-from ..errors import InputError
+from ...data import catalogue
+from ...errors import InputError
+from . import Target, register_target
 
 __all__ = ["PlanarLogs", "mrclam_logs", "planar_theta0", "planar_physical", "planar_nll",
            "mrclam_noise", "mrclam_train_config", "select_odometry_delay", "DELAY_GRID"]
@@ -88,8 +89,8 @@ def mrclam_logs(data_dir, robots, dtype=np.float64, t_max: float | None = None, 
     ``odometry_delay``: the odometry stamps' lag [s] (``planar_ekf_slam.mrclam_raw_log``).
     ``T``: pad to this many events (default: the longest log).
     """
-    from ..data.mrclam import load_mrclam
-    from ..systems import planar_ekf_slam as pe
+    from ...data.mrclam import load_mrclam
+    from ...systems import planar_ekf_slam as pe
 
     logs, poses, raw = [], [], []
     for r in robots:
@@ -138,7 +139,7 @@ def select_odometry_delay(data_dir, robots, params, config, dtype=np.float64, t_
 
 
 def _run(params, config, item):
-    from ..systems import planar_ekf_slam as pe
+    from ...systems import planar_ekf_slam as pe
 
     return pe.run_arrays(item.dt, item.u, item.z, item.ids, item.mask, item.pose0, params, config)
 
@@ -175,7 +176,7 @@ def mrclam_train_config():
     """The filter ``jaxslam dataset mrclam`` runs, with checkpoint blocks of 128 events for the
     gradient (the blocks change the numbers only by rounding; value and gradient of robot 1's first 150 s,
     8801 events: 2.0 s unblocked, 0.69 s with blocks of 1024, 0.38 s with 128, 0.46 s with 32)."""
-    from ..systems import planar_ekf_slam as pe
+    from ...systems import planar_ekf_slam as pe
 
     return pe.mrclam_config()._replace(block=128)
 
@@ -190,10 +191,8 @@ def mrclam_noise(loss: str = "nll", data=None, robots=(1, 2, 3, 4), test_robots=
     :data:`DELAY_GRID` with the lowest training NLL at the starting point
     (:func:`select_odometry_delay`).  The fitted file carries it (``"log"``).
     """
-    from ..data import runners
-    from ..systems import planar_ekf_slam as pe
-    from . import targets as T
-
+    from ...data import runners
+    from ...systems import planar_ekf_slam as pe
     if loss != "nll":
         raise InputError(f"--loss: the real-log targets learn by innovation likelihood only (nll); got {loss!r}")
     data = catalogue.data_root(data)  # --data, else $JAXSLAM_DATA_DIR
@@ -254,7 +253,7 @@ def mrclam_noise(loss: str = "nll", data=None, robots=(1, 2, 3, 4), test_robots=
         return {"dataset": "mrclam", "noise": pe.params_to_dict(p), "log": {"odometry_delay": odometry_delay}}
 
     batch = jax.tree.map(jnp.asarray, train)
-    return T.Target(
+    return Target(
         scenario="mrclam", target="noise", loss="nll", specs={}, theta0=theta0, loss_fn=loss_fn,
         train=batch, test=None if test is None else jax.tree.map(jnp.asarray, test),
         physical=physical, evaluate=evaluate, references={}, to_params=to_params, describe=describe,
@@ -273,10 +272,4 @@ def mrclam_noise(loss: str = "nll", data=None, robots=(1, 2, 3, 4), test_robots=
     )
 
 
-def _register():
-    from . import targets as T
-
-    T.register_target("mrclam", "noise", mrclam_noise, ("nll",))
-
-
-_register()
+register_target("mrclam", "noise", mrclam_noise, ("nll",))
