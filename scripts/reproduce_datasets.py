@@ -95,6 +95,9 @@ def main(argv=None):
             print(f"  failed with exit code {r.returncode}", flush=True)
             rows.append((name, cli_args, None))
             continue
+        # the data folder as "$DATA": the shipped results name no folder of the machine they ran on
+        root = str(pathlib.Path(args.data).resolve())
+        js.write_text(js.read_text().replace(root, "$DATA"))
         rows.append((name, cli_args, json.loads(js.read_text())))
     # The table covers every case with a JSON in --out (cases not rerun keep their last figures).
     done = {name for name, _, _ in rows}

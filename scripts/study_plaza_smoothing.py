@@ -806,7 +806,8 @@ HEADER = ("log name                ATE  beac  beacS  bias(end)±σ   s_d    s_θ
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--data", default="../shared/data")
+    ap.add_argument("--data", default=__import__("os").environ.get("JAXSLAM_DATA_DIR"),
+                    help="folder holding gtsam/ (default: $JAXSLAM_DATA_DIR)")
     ap.add_argument("--robot", type=int, nargs="*", default=[1, 2])
     ap.add_argument("--configs", nargs="*", default=None, help=f"subset of {list(CFG)}")
     ap.add_argument("--all", action="store_true", help="every configuration (default: QUICK)")

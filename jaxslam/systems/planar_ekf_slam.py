@@ -114,7 +114,7 @@ MRCLAM_BEARING_SIGMA = {1: 0.0074 * 1.4826, 2: 0.0062 * 1.4826}  # rad
 #: too long at the image centre and too short at its edges (README §5 residuals binned by
 #: bearing: robot 1 +0.085 m at |β| < 0.15, −0.18 to −0.27 m at |β| > 0.45).  Least squares of
 #: r_meas/r_true on the FIRST HALF of robot 1's log (t < 386 s) against GT + surveyed
-#: landmarks (scripts/dev_mrclam_diagnostics.py).  Robot 1 range MAD 0.053 → 0.019 m (its
+#: landmarks (scripts/study_mrclam_diagnostics.py).  Robot 1 range MAD 0.053 → 0.019 m (its
 #: held-out second half: 0.056 → 0.019 m).  Robot 2's camera differs in k0 (its own fit:
 #: 1.050, −0.503): with these values robot 2 keeps a +0.075 m range bias (MAD 0.121 → 0.030 m).
 MRCLAM_RANGE_MODEL = (1.0246, -0.4624)
@@ -374,11 +374,11 @@ def mrclam_params(robot: int = 1, sigma_v: float = 0.01, sigma_w: float = 0.02,
     ground truth (data README §5: robot 1 range MAD 0.053 m, bearing 0.0074 rad; robot 2
     0.121 m, 0.0062 rad; full runs).  r_scale 4 chosen on robot 1 (×1 was worse: 0.23 m gated,
     0.136 m ungated).  M_c = diag(σ_v², σ_ω²) [(m/s)²·s, (rad/s)²·s] and the pose floor
-    density are tuned on the first 300 s of robot 1 (scripts/dev_mrclam_diagnostics.py; not in the
+    density are tuned on the first 300 s of robot 1 (scripts/study_mrclam_diagnostics.py; not in the
     dataset paper).  P0 small: the run starts at the first ground-truth pose.  The ``calib_*``
     values (read only with ``config.calibrate``) are not recommended for MRCLAM: online input
     calibration converges near the GT-fitted turn scale/bias but raised the ATE
-    (scripts/dev_mrclam_diagnostics.py).
+    (scripts/study_mrclam_diagnostics.py).
     """
     if preset not in ("fitted", "hand"):
         raise InputError(f"preset: expected 'fitted' or 'hand', got {preset!r}")
@@ -503,7 +503,7 @@ def victoria_park_config(capacity: int = 256, K: int = 8, range_max: float = 40.
     detections (bearing error × range) out of both the map and the update (30 m was tried:
     no better, 2.97 m vs 2.83 m whole-run ATE with the earlier R of 1 m / 1.5°).  Tentative
     landmarks not matched 4 times within 2 s of registration are pruned (chosen on the first
-    500 s and the whole run, scripts/dev_victoria_park_ekf.py; with R = 1 m / 1.5° the map
+    500 s and the whole run, scripts/study_victoria_park_ekf.py; with R = 1 m / 1.5° the map
     then kept 237 landmarks, 781 registered, 544 pruned, no overflow; with the preset's
     tighter R it exceeds 256 slots: 407 registrations refused, counted and flagged).  K = 8
     rows per scan, nearest first (t < 500 s: K 4 / 6 / 8 / 10 → 1.62 / 1.54 / 1.43 / 1.42 m).

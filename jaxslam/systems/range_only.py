@@ -77,7 +77,7 @@ a time (never on this flight: K = 1).
   window fixes the map frame, so anchor errors are reported both raw and after
   a rigid (Umeyama) alignment.
 
-Measured on the TWR flight (``scripts/dev_range_only.py util``, float64; airborne
+Measured on the TWR flight (``scripts/study_range_only.py util``, float64; airborne
 9.6–59.0 s, errors at the range events against p_body + R(q)t_uv):
 
 ==========================  ===========  ==========  ============  ============================

@@ -1,7 +1,9 @@
 """Development: NN vs NN + pairwise joint check vs JCBB on MRCLAM with ids hidden and on Victoria Park (docs/datasets.md).
 
-    python scripts/dev_association_compare.py mrclam fitted|hand [DATA_DIR]
-    python scripts/dev_association_compare.py vp - [DATA_DIR]
+    python scripts/study_association_compare.py mrclam fitted|hand [DATA_DIR]
+    python scripts/study_association_compare.py vp - [DATA_DIR]
+
+DATA_DIR: the folder holding mrclam6/ and victoria_park/ (default: $JAXSLAM_DATA_DIR).
 
 Prints ATE (at the filter's events), landmarks mapped, rejected rows and run time per robot and
 association; ground truth is used only for the printed ATE.
@@ -16,7 +18,7 @@ from jaxslam.data.mrclam import load_mrclam
 from jaxslam.data.runners import evaluate_planar
 from jaxslam.systems import planar_ekf_slam as pe
 which = sys.argv[1]
-DATA = sys.argv[3] if len(sys.argv) > 3 else "../shared/data"
+DATA = sys.argv[3] if len(sys.argv) > 3 else __import__("os").environ["JAXSLAM_DATA_DIR"]
 out = {}
 def timed(f):
     r = f(); jax.block_until_ready(r.pose); t = time.time(); r = f(); jax.block_until_ready(r.pose); return r, time.time() - t

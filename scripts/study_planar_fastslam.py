@@ -2,7 +2,7 @@
 
 Prints SE(2)-aligned ATE, run time after compile (second call, block_until_ready), counts.
 
-    .venv/bin/python scripts/dev_planar_fastslam.py [--data /work/shared/data] [--only mrclam|vp]
+    python scripts/study_planar_fastslam.py [--data DIR] [--only mrclam|vp]
         [--particles 100] [--seeds 5] [--vp-particles 50] [--vp-capacity 512] [--vp-t-end T]
         [--f32]
 
@@ -157,7 +157,8 @@ def victoria(root, n_particles, capacity, seeds, dtype, t_end=None, sv=0.7, sa=0
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("--data", default="/work/shared/data")
+    ap.add_argument("--data", default=__import__("os").environ.get("JAXSLAM_DATA_DIR"),
+                    help="folder holding mrclam6/ and victoria_park/ (default: $JAXSLAM_DATA_DIR)")
     ap.add_argument("--only", choices=["mrclam", "vp"], default=None)
     ap.add_argument("--particles", type=int, default=100)
     ap.add_argument("--seeds", type=int, default=5)

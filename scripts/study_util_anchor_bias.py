@@ -1,6 +1,6 @@
 """Development: per-anchor UWB range bias as a 4th landmark coordinate (UTIL, known anchors, ranges only).
 
-    python scripts/dev_util_anchor_bias.py SIGMA_AB NU|none GATE|none [SIGMA_R] [DATA_DIR]
+    python scripts/study_util_anchor_bias.py SIGMA_AB NU|none GATE|none [SIGMA_R] [DATA_DIR]
 
 SIGMA_AB: prior σ of each anchor's own bias (0: the shipped common-bias filter, 0.222 m);
 NU: Student-t update; GATE: χ²(1) gate.  Prints the airborne position RMSE and the biases.
@@ -17,7 +17,7 @@ from jaxslam.data.util_uwb import load_util, tag_positions
 from jaxslam.linalg import safe_norm
 sig_ab = float(sys.argv[1]); nu = None if sys.argv[2] == "none" else float(sys.argv[2]); gate = None if sys.argv[3] == "none" else float(sys.argv[3])
 sigma_r = float(sys.argv[4]) if len(sys.argv) > 4 else 0.2
-DATA = sys.argv[5] if len(sys.argv) > 5 else "../shared/data"
+DATA = sys.argv[5] if len(sys.argv) > 5 else __import__("os").environ["JAXSLAM_DATA_DIR"]
 def obs4(s, l, params=None):
     return jnp.reshape(safe_norm(s[:3] - l[:3]) + s[-1] + l[3], (1,))
 M4 = es.SlamModel(robot_dim=7, lm_dim=4, meas_dim=1, motion=None, observe=obs4)

@@ -1,6 +1,8 @@
 """Diagnostics of what limits the MRCLAM dataset 6 EKF-SLAM ATE (issue 9).
 
-    .venv/bin/python scripts/dev_mrclam_diagnostics.py [--data /work/shared/data] [--part all|resid|odo|loc|slam]
+    python scripts/study_mrclam_diagnostics.py [--data DIR] [--part all|resid|odo|loc|slam]
+
+DIR: the folder holding mrclam6/ (default: $JAXSLAM_DATA_DIR).
 
 Parts (all use ground truth and are *diagnostics*; the protocol of any fitted constant is
 printed with it):
@@ -47,7 +49,7 @@ from jaxslam.dynamics import planar  # noqa: E402
 from jaxslam.filters import ekf_slam as es  # noqa: E402
 from jaxslam.systems import planar_ekf_slam as P  # noqa: E402
 
-DATA = "/work/shared/data"
+DATA = __import__("os").environ.get("JAXSLAM_DATA_DIR")
 
 
 def wrap(a):

@@ -1,6 +1,6 @@
 """Dev/evaluation: Victoria Park EKF-SLAM (issue 9): ATE vs GPS, counts, run time.
 
-    .venv/bin/python scripts/dev_victoria_park_ekf.py
+    python scripts/study_victoria_park_ekf.py  (the data folder: $JAXSLAM_DATA_DIR)
 
 ATE: SE(2)-aligned, estimate interpolated at GPS times; ``ate_raw`` uses every fix,
 ``ate_all``/``ate_first`` (t < 500 s)/``ate_rest`` (t ≥ 500 s) drop the GPS fixes that are
@@ -18,7 +18,7 @@ from jaxslam import metrics
 from jaxslam.data import load_victoria_park, merge_events
 from jaxslam.systems import planar_ekf_slam as P
 
-D = load_victoria_park('/work/shared/data')
+D = load_victoria_park(__import__('os').environ['JAXSLAM_DATA_DIR'])
 
 def make_log(t_end=None, min_diam=None, max_diam=None):
     keep = np.ones(len(D.det_t), bool)

@@ -1,10 +1,10 @@
 """Dev/evaluation script: range-only UTIL TWR (known / unknown anchors) and CMU Plaza 1/2.
 
-Usage: .venv/bin/python scripts/dev_range_only.py [util|plaza|all] [--f32] [--data DIR]
+Usage: python scripts/study_range_only.py [util|plaza|all] [--f32] [--data DIR]
 Prints the figures reported for issue 9 (RMSE, ATE, anchor/beacon errors, bias, counts):
 UTIL range-only and range + ToF height (known / unknown anchors), Plaza SLAM and
 localisation with the surveyed (TL) beacons.
-Reads the data with the jaxslam.data loaders (DIR default ../shared/data).
+Reads the data with the jaxslam.data loaders (DIR default: $JAXSLAM_DATA_DIR).
 """
 
 import sys
@@ -27,7 +27,7 @@ from jaxslam.data import load_util as _load_util  # noqa: E402
 from jaxslam.data import tag_positions  # noqa: E402
 from jaxslam.systems import range_only as ro  # noqa: E402
 
-DATA = sys.argv[sys.argv.index("--data") + 1] if "--data" in sys.argv else "../shared/data"
+DATA = sys.argv[sys.argv.index("--data") + 1] if "--data" in sys.argv else __import__("os").environ["JAXSLAM_DATA_DIR"]
 
 
 def load_util():
