@@ -29,7 +29,7 @@ if which == "mrclam":
         prm = pe.mrclam_params(r, preset=sys.argv[2])
         for name, kw in (("nn", {}), ("nn+joint", {"joint_gate": 0.99}), ("jcbb", {"association": "jcbb"})):
             cfg = pe.mrclam_config(association="nn")._replace(**kw)
-            res, rt = timed(lambda: pe.run(log, jnp.asarray(pose0), cfg, prm))
+            res, rt = timed(lambda: pe.run(pe.log_from_events(log, jnp.asarray(pose0)), cfg, prm))
             m, _ = evaluate_planar(log.t, np.asarray(res.pose), d.gt_t, d.gt)
             print(f"mrclam r{r} {name:9s} ATE {m['ate_m']:.3f} m  landmarks {int(np.sum(res.active))}  rejected {int(np.sum(res.n_rejected))}  run {rt:.2f} s", flush=True)
             out[f"r{r}_{name}"] = {"ate_m": m["ate_m"], "landmarks": int(np.sum(res.active)), "run_s": rt}
@@ -41,7 +41,7 @@ else:
     for name, kw in (("nn", {}), ("nn+joint", {"joint_gate": 0.99}), ("jcbb", {"association": "jcbb"})):
         cfg = pe.victoria_park_config()._replace(**kw)
         prm32 = jax.tree.map(lambda a: jnp.asarray(a, jnp.float32), prm)
-        res, rt = timed(lambda: pe.run(log, jnp.zeros(3, jnp.float32), cfg, prm32))
+        res, rt = timed(lambda: pe.run(pe.log_from_events(log, jnp.zeros(3, jnp.float32)), cfg, prm32))
         m, _ = evaluate_planar(log.t, np.asarray(res.pose, np.float64), d.gps_t, d.gps, at_ref_times=True)
         print(f"vp {name:9s} ATE {m['ate_m']:.3f} m landmarks {int(np.sum(res.active))} status {int(res.status)} run {rt:.2f} s", flush=True)
         out[name] = {"ate_m": m["ate_m"], "landmarks": int(np.sum(res.active)), "run_s": rt, "status": int(res.status)}

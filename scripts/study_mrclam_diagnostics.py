@@ -288,9 +288,9 @@ def part_loc(Ds, range_k, odo_cal, base_params=None):
 
 def slam(D, log, pose0, params, config):
     params = jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float64), params)
-    P.run(log, jnp.asarray(pose0), config, params).pose.block_until_ready()
+    P.run(P.log_from_events(log, jnp.asarray(pose0)), config, params).pose.block_until_ready()
     t1 = time.perf_counter()
-    res = P.run(log, jnp.asarray(pose0), config, params)
+    res = P.run(P.log_from_events(log, jnp.asarray(pose0)), config, params)
     res.pose.block_until_ready()
     t_run = time.perf_counter() - t1
     return res, evaluate(D, log, np.asarray(res.pose)), t_run

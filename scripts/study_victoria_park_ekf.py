@@ -42,10 +42,10 @@ def ate(t_est, xy, t0=None, t1=None, clean=True):
 def run(cfg, prm, log, dtype=jnp.float32, time_it=True, quiet=False):
     prm = jax.tree_util.tree_map(lambda a: None if a is None else jnp.asarray(a, dtype), prm)
     p0 = jnp.zeros(3, dtype)
-    t0 = time.perf_counter(); r = P.run(log, p0, cfg, prm); jax.block_until_ready(r); t1 = time.perf_counter()
+    t0 = time.perf_counter(); r = P.run(P.log_from_events(log, p0), cfg, prm); jax.block_until_ready(r); t1 = time.perf_counter()
     trun = None
     if time_it:
-        r = P.run(log, p0, cfg, prm); jax.block_until_ready(r); trun = time.perf_counter() - t1
+        r = P.run(P.log_from_events(log, p0), cfg, prm); jax.block_until_ready(r); trun = time.perf_counter() - t1
     xy = np.asarray(r.pose[:, :2], np.float64)
     out = dict(ate_raw=ate(log.t, xy, clean=False)[0], ate_all=ate(log.t, xy)[0], ate_first=ate(log.t, xy, t1=500.0)[0],
                ate_rest=ate(log.t, xy, t0=500.0)[0] if log.t[-1] > 600 else None,

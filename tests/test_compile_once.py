@@ -58,10 +58,10 @@ def test_planar_ekf_slam_compiles_once_for_new_noise():
     log, pose0 = _mrclam_log()
     cfg = pe.mrclam_config(association="known")
     prm = pe.mrclam_params(1, dtype=np.float64)
-    n0 = pe.run_arrays._cache_size()
-    a = pe.run(log, pose0, cfg, prm)
-    b = pe.run(log, pose0, cfg, prm._replace(R=prm.R * 1.7, M_c=prm.M_c * 0.5))
-    assert pe.run_arrays._cache_size() == n0 + 1
+    n0 = pe._run._cache_size()
+    a = pe.run(pe.log_from_events(log, pose0), cfg, prm)
+    b = pe.run(pe.log_from_events(log, pose0), cfg, prm._replace(R=prm.R * 1.7, M_c=prm.M_c * 0.5))
+    assert pe._run._cache_size() == n0 + 1
     assert not np.allclose(np.asarray(a.pose), np.asarray(b.pose))
 
 
@@ -75,9 +75,9 @@ def test_planar_fastslam_compiles_once_for_new_noise_and_key():
         log = log._replace(ids=np.where(log.mask, log.ids - id_offset, -1).astype(np.int32))
     prm = jax.tree_util.tree_map(lambda v: jnp.asarray(v, jnp.float64), prm)
     n0 = pf._run._cache_size()
-    pf.run(jax.random.PRNGKey(0), log, pose0, cfg, prm)
+    pf.run(pf.log_from_events(log, pose0), cfg, prm, key=jax.random.PRNGKey(0))
     scaled = prm._replace(**{f: getattr(prm, f) * 1.3 for f in prm._fields[:1]})
-    pf.run(jax.random.PRNGKey(1), log, pose0, cfg, scaled)
+    pf.run(pf.log_from_events(log, pose0), cfg, scaled, key=jax.random.PRNGKey(1))
     assert pf._run._cache_size() == n0 + 1
 
 

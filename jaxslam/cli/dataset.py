@@ -45,11 +45,11 @@ def _params_help() -> str:
     """The keys a dataset ``--params`` file may set (built only for ``--help``)."""
     import textwrap
 
-    from jaxslam.systems.planar_ekf_slam import PlanarParams
+    from jaxslam.systems.planar_ekf_slam import Params
 
     return ("\n\n--params FILE (mrclam, EKF): {\"dataset\": \"mrclam\", \"noise\": {...}, \"log\": {...}} as\n"
-            "'jaxslam tune mrclam' writes it; noise keys (each optional, shapes as in PlanarParams):\n"
-            + textwrap.fill(", ".join(PlanarParams._fields), 84, initial_indent="  ", subsequent_indent="  ")
+            "'jaxslam tune mrclam' writes it; noise keys (each optional, shapes as in planar_ekf_slam.Params):\n"
+            + textwrap.fill(", ".join(Params._fields), 84, initial_indent="  ", subsequent_indent="  ")
             + "\nlog keys (optional): odometry_delay (s, the odometry stamps' lag the noise was fitted with;\n"
               "  absent: 0, the stamps as logged)")
 

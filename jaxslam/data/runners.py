@@ -231,11 +231,11 @@ def dataset_params(obj, name: str) -> dict:
                          "the file's noise was fitted for another dataset")
     if not isinstance(obj["noise"], dict):
         raise InputError(f"--params: key 'noise' must be an object, got {type(obj['noise']).__name__}")
-    from ..systems.planar_ekf_slam import PlanarParams  # the keys, checked before any log is read
+    from ..systems.planar_ekf_slam import Params  # the keys, checked before any log is read
 
-    unknown = sorted(set(obj["noise"]) - set(PlanarParams._fields))
+    unknown = sorted(set(obj["noise"]) - set(Params._fields))
     if unknown:
-        raise InputError(f"--params: noise: unknown key(s) {unknown}; expected some of {list(PlanarParams._fields)}")
+        raise InputError(f"--params: noise: unknown key(s) {unknown}; expected some of {list(Params._fields)}")
     return obj["noise"]
 
 
@@ -542,7 +542,7 @@ def _planar_run(log, pose0, filter, cfg_ekf, prm_ekf, fs_kind, particles, seed, 
         prm = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), prm_ekf)
         p0 = jnp.asarray(pose0, dtype)
         cfg_run = cfg_ekf._replace(smooth=bool(smooth))
-        res, comp_s, run_s = timed_run(lambda: pe.run(log, p0, cfg_run, prm))
+        res, comp_s, run_s = timed_run(lambda: pe.run(pe.log_from_events(log, p0), cfg_run, prm))
         act = np.asarray(res.active)
         lm = {"xy": np.asarray(res.landmarks, np.float64)[act], "ids": np.asarray(res.ids)[act],
               "cov": np.asarray(res.landmark_covs, np.float64)[act]}
@@ -571,7 +571,7 @@ def _planar_run(log, pose0, filter, cfg_ekf, prm_ekf, fs_kind, particles, seed, 
     p0 = jnp.asarray(pose0, dtype)
     if id_offset:
         log = log._replace(ids=np.where(log.mask, log.ids - id_offset, -1).astype(np.int32))
-    res, comp_s, run_s = timed_run(lambda: pf.run(key, log, p0, cfg, prm), twice=twice)
+    res, comp_s, run_s = timed_run(lambda: pf.run(pf.log_from_events(log, p0), cfg, prm, key=key), twice=twice)
     mp = res.map
     act = np.asarray(mp.active)
     lm = {"xy": np.asarray(mp.mean, np.float64)[act], "ids": np.asarray(mp.ids)[act] + id_offset,

@@ -62,7 +62,7 @@ from __future__ import annotations
 
 import functools
 import math
-from typing import NamedTuple, Optional
+from typing import Any, NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
@@ -75,13 +75,20 @@ from ..errors import InputError
 from ..filters import association as assoc
 from ..filters import consistency as cons
 from ..filters import ekf_slam as es
-from ..linalg import check_psd, wrap_angle
+from ..linalg import check_psd, is_concrete, wrap_angle
 from ..sensors import range_bearing2d as rb
 
 __all__ = [
-    "PlanarConfig",
-    "PlanarParams",
-    "PlanarResult",
+    "Config",
+    "Params",
+    "Log",
+    "Event",
+    "State",
+    "StepOut",
+    "Result",
+    "init",
+    "step",
+    "log_from_events",
     "MRCLAM_RANGE_SIGMA",
     "MRCLAM_BEARING_SIGMA",
     "mrclam_raw_sigma",
@@ -97,7 +104,6 @@ __all__ = [
     "MRCLAM_CORRECTED_SIGMA",
     "MRCLAM_ODOMETRY_DELAY",
     "run",
-    "run_arrays",
     "validate_config",
     "validate_params",
     "validate_log",
@@ -126,7 +132,7 @@ MRCLAM_CORRECTED_SIGMA = (0.0242, 0.0120)
 MRCLAM_ODOMETRY_DELAY = 0.2
 
 
-class PlanarConfig(NamedTuple):
+class Config(NamedTuple):
     """Static choices (hashable; a change recompiles).
 
     motion: "unicycle" | "ackermann" | "increment".
@@ -164,7 +170,7 @@ class PlanarConfig(NamedTuple):
     block: events per checkpointed block of the scan (0: none).  With a block, the reverse
       pass stores one state per block and recomputes the block's events: memory of a
       gradient over a whole log grows with the number of blocks, not of events.
-    smooth: also return the RTS-smoothed robot trajectory (``PlanarResult.smoothed``,
+    smooth: also return the RTS-smoothed robot trajectory (``Result.smoothed``,
       :func:`jaxslam.filters.ekf_slam.smooth_robot`: the map held static).  It records
       O(3·2·capacity) numbers per event and one Cholesky of the map block per event, so it
       suits maps of tens of landmarks; pruned landmarks and monitor inflations are not
@@ -197,7 +203,7 @@ class PlanarConfig(NamedTuple):
     smooth: bool = False
 
 
-class PlanarParams(NamedTuple):
+class Params(NamedTuple):
     """Tunable noise (traced leaves: no recompilation, ``grad`` works).
 
     M_c: (2, 2) input noise — a density [(u-units)²·s] for rate inputs, per increment otherwise.
@@ -210,7 +216,7 @@ class PlanarParams(NamedTuple):
     range_model: (2,) (k0, k2) or (3,) (k0, k2, a) of a camera range model
       r_meas = r (k0 + k2 β²) + a, β the measured bearing, a [m] a range offset (default 0):
       each measured range becomes (r_meas − a)/(k0 + k2 β²) before the update, and the
-      likelihood (``PlanarResult.nll``) is that of the measured range (it adds log(k0 + k2 β²)
+      likelihood (``Result.nll``) is that of the measured range (it adds log(k0 + k2 β²)
       per used row).  Default: none.  Learnt from the innovations (``jaxslam tune mrclam``).
     input_model: (3,) (c_0, c_1, c_2) of a fixed input correction: the filter moves with
       (c_0 u_0, c_1 u_1 + c_2) for the logged input u (odometry speed scale, turn-rate or
@@ -241,7 +247,7 @@ class PlanarParams(NamedTuple):
 MONITOR_DEFAULT = cons.MonitorParams(alpha=0.05, threshold=3.0, max_factor=10.0, outlier_gate=9.21)
 
 
-class PlanarResult(NamedTuple):
+class Result(NamedTuple):
     """Whole-log result (T events, cap slots).
 
     pose: (T, 3) pose mean after event k; pose_cov: (T, 3, 3);
@@ -294,7 +300,7 @@ class PlanarResult(NamedTuple):
 # Models
 # ---------------------------------------------------------------------------
 
-def motion_fn(config: PlanarConfig):
+def motion_fn(config: Config):
     """``f(s, u, dt)`` of ``config.motion``."""
     if config.motion not in MOTIONS:
         raise InputError(f"config.motion: expected one of {MOTIONS}, got {config.motion!r}")
@@ -306,7 +312,7 @@ def calibrated_input(c, u):
     return jnp.stack([c[0] * u[0], c[1] * u[1] + c[2]])
 
 
-def make_model(config: PlanarConfig) -> es.SlamModel:
+def make_model(config: Config) -> es.SlamModel:
     """Engine model: motion(s, u, dt), range-bearing observe/inverse/residual.
 
     With ``config.calibrate`` the robot block is s = (x, y, φ, c_0, c_1, c_2); the pose moves
@@ -359,7 +365,7 @@ MRCLAM_FITTED = {
 def mrclam_params(robot: int = 1, sigma_v: float = 0.01, sigma_w: float = 0.02,
                   floor=(1e-4, 1e-4, 1e-4), r_scale: float = 4.0, p0=(1e-6, 1e-6, 1e-6),
                   calib_sigma=(0.1, 0.15, 0.01), calib_rw=(0.0, 0.0, 0.0),
-                  dtype=jnp.float64, corrected: bool = False, preset: str = "fitted") -> PlanarParams:
+                  dtype=jnp.float64, corrected: bool = False, preset: str = "fitted") -> Params:
     """MRCLAM dataset 6 preset (units: m, rad, s).
 
     ``preset="fitted"`` (default, raw log): :data:`MRCLAM_FITTED`, learned from the innovations of
@@ -387,7 +393,7 @@ def mrclam_params(robot: int = 1, sigma_v: float = 0.01, sigma_w: float = 0.02,
                   calib_Q=jnp.diag(jnp.asarray(calib_rw, dtype) ** 2))
     if preset == "fitted" and not corrected:
         f = MRCLAM_FITTED
-        return PlanarParams(
+        return Params(
             M_c=jnp.diag(jnp.asarray([f["sigma_v"] ** 2, f["sigma_w"] ** 2], dtype)),
             Q_floor=jnp.diag(jnp.asarray([f["floor_xy"], f["floor_xy"], f["floor_phi"]], dtype)),
             R=jnp.diag(jnp.asarray([f["sigma_r"] ** 2, f["sigma_b"] ** 2], dtype)),
@@ -396,7 +402,7 @@ def mrclam_params(robot: int = 1, sigma_v: float = 0.01, sigma_w: float = 0.02,
         sr, sb = MRCLAM_CORRECTED_SIGMA
     else:
         sr, sb = mrclam_raw_sigma(robot)
-    return PlanarParams(
+    return Params(
         M_c=jnp.diag(jnp.asarray([sigma_v**2, sigma_w**2], dtype)),
         Q_floor=jnp.diag(jnp.asarray(floor, dtype)),
         R=jnp.diag(jnp.asarray([sr**2, sb**2], dtype)) * r_scale,
@@ -409,7 +415,7 @@ def mrclam_params(robot: int = 1, sigma_v: float = 0.01, sigma_w: float = 0.02,
 
 def mrclam_config(association: str = "known", capacity: Optional[int] = None, K: int = 8,
                   update_gate: Optional[float] = None, robust: bool = True,
-                  monitor: bool = False, **kw) -> PlanarConfig:
+                  monitor: bool = False, **kw) -> Config:
     """MRCLAM: unicycle odometry, 15 landmarks, at most 7 rows per camera frame.
 
     Capacity 16 with known ids; 32 with nn or jcbb (spurious new landmarks).  The update is
@@ -422,7 +428,7 @@ def mrclam_config(association: str = "known", capacity: Optional[int] = None, K:
     """
     if capacity is None:
         capacity = 16 if association == "known" else 32
-    return PlanarConfig(motion="unicycle", capacity=capacity, K=K, association=association,
+    return Config(motion="unicycle", capacity=capacity, K=K, association=association,
                         update_gate=update_gate, robust=robust, monitor=monitor, **kw)
 
 
@@ -466,7 +472,7 @@ def mrclam_log(data, K: int = 8, t_end=None, range_model=MRCLAM_RANGE_MODEL,
 
 def victoria_park_params(sigma_v: float = 0.7, sigma_a: float = 0.06, floor=(0.0, 0.0, 0.0),
                          sigma_r: float = 0.25, sigma_b: float = math.radians(0.375),
-                         p0=(1e-6, 1e-6, 1e-6), dtype=jnp.float64) -> PlanarParams:
+                         p0=(1e-6, 1e-6, 1e-6), dtype=jnp.float64) -> Params:
     """Victoria Park preset (units: m, rad, s); chosen on t < 500 s of the log only.
 
     Sources: RFS-SLAM's ``cfg/*_VictoriaPark.xml`` gives speed variance 0.2 (m/s)², steering
@@ -486,7 +492,7 @@ def victoria_park_params(sigma_v: float = 0.7, sigma_a: float = 0.06, floor=(0.0
     a diameter filter or ``joint_gate``: fragile single-hypothesis association, not noise
     tuning.  Start pose (0, 0, 0).
     """
-    return PlanarParams(
+    return Params(
         M_c=jnp.diag(jnp.asarray([sigma_v**2, sigma_a**2], dtype)),
         Q_floor=jnp.diag(jnp.asarray(floor, dtype)),
         R=jnp.diag(jnp.asarray([sigma_r**2, sigma_b**2], dtype)),
@@ -496,7 +502,7 @@ def victoria_park_params(sigma_v: float = 0.7, sigma_a: float = 0.06, floor=(0.0
 
 def victoria_park_config(capacity: int = 256, K: int = 8, range_max: float = 40.0,
                          prune_window_s: Optional[float] = 2.0, prune_min_obs: int = 4,
-                         **kw) -> PlanarConfig:
+                         **kw) -> Config:
     """Victoria Park: Ackermann, nn association, range limits 5 m – ``range_max``, pruning.
 
     RFS-SLAM limits range to 5–70 m; a tighter maximum keeps the far, poorly conditioned
@@ -516,14 +522,14 @@ def victoria_park_config(capacity: int = 256, K: int = 8, range_max: float = 40.
                 range_min=5.0, range_max=range_max, prune_window_s=prune_window_s,
                 prune_min_obs=prune_min_obs)
     base.update(kw)
-    return PlanarConfig(**base)
+    return Config(**base)
 
 
 # ---------------------------------------------------------------------------
 # The run
 # ---------------------------------------------------------------------------
 
-def _limits(z, mask, config: PlanarConfig):
+def _limits(z, mask, config: Config):
     finite = jnp.all(jnp.isfinite(z), axis=-1)
     zr = jnp.where(finite, z[:, 0], 0.0)
     zb = jnp.where(finite, z[:, 1], 0.0)
@@ -570,7 +576,7 @@ def _first_of_id(ids, cand):
 
 
 def _range_gain(rm, bearing):
-    """g = k0 + k2 β² of the camera range model (``PlanarParams.range_model``)."""
+    """g = k0 + k2 β² of the camera range model (``Params.range_model``)."""
     return rm[0] + rm[1] * bearing ** 2
 
 
@@ -583,7 +589,7 @@ def _t_nll(d2, logdet, nu, dz):
             - gammaln(0.5 * (nu + dz)) + 0.5 * dz * jnp.log(nu * jnp.pi))
 
 
-def _measure(st: es.SlamState, z, ids, valid, model, config: PlanarConfig, R, nu):
+def _measure(st: es.SlamState, z, ids, valid, model, config: Config, R, nu):
     K = z.shape[0]
     dz = model.meas_dim
     zs = jnp.where(valid[:, None], z, 0.0)
@@ -637,7 +643,7 @@ def _measure(st: es.SlamState, z, ids, valid, model, config: PlanarConfig, R, nu
     return st, counts, info.nis, info.dof.astype(jnp.int32), slots, info.used, info.d2, watched, nll, nll_dof
 
 
-def _prune(st: es.SlamState, aux, active_before, slots, used, model, config: PlanarConfig):
+def _prune(st: es.SlamState, aux, active_before, slots, used, model, config: Config):
     """Tentative-landmark bookkeeping and pruning after one event (``config.prune_window_s``).
 
     aux = (t, reg_t (cap,), n_match (cap,), confirmed (cap,)).  Slots registered in this
@@ -667,114 +673,231 @@ def _prune(st: es.SlamState, aux, active_before, slots, used, model, config: Pla
     return st, (t, reg_t, n_match, confirmed), jnp.sum(drop, dtype=jnp.int32)
 
 
-@functools.partial(jax.jit, static_argnames=("config",))
-def run_arrays(dt, u, z, ids, mask, pose0, params: PlanarParams, config: PlanarConfig) -> PlanarResult:
-    """The jitted scan on raw arrays (vmap-able over runs): see :func:`run`.
+class Log(NamedTuple):
+    """One run's inputs as arrays (T events; a batch adds a leading axis).
 
-    dt (T,), u (T, 2), z (T, K_log, 2), ids (T, K_log) int, mask (T, K_log) bool, pose0 (3,).
-    The computation dtype is ``pose0``'s (float32 or float64).
+    dt: (T,) s since the previous event; u: (T, 2) held input (rates) or increment;
+    z: (T, K, 2) [range m, bearing rad] rows; ids: (T, K) int32 landmark id of each row (−1:
+    none); mask: (T, K) bool row present; pose0: (3,) initial pose [m, m, rad] at the first
+    event — its dtype (float32/float64) is the computation dtype; is_input: optional (T,) bool,
+    the events that carry an input (increments are applied there only; the EKF reads ``u``,
+    which is zero elsewhere, and ignores it).  Padding events (dt = 0, no input, no rows) change
+    nothing.  :func:`log_from_events` builds it from an :class:`~jaxslam.data.events.EventLog`.
+    The planar systems (this EKF-SLAM, :mod:`jaxslam.systems.planar_fastslam`) share it.
     """
-    model = make_model(config)
-    f = model.motion
+
+    dt: jax.Array
+    u: jax.Array
+    z: jax.Array
+    ids: jax.Array
+    mask: jax.Array
+    pose0: jax.Array
+    is_input: Any = None
+
+
+class Event(NamedTuple):
+    """One event of a :class:`Log` (the slice :func:`step` takes)."""
+
+    dt: jax.Array  # ()
+    u: jax.Array  # (2,)
+    z: jax.Array  # (K, 2)
+    ids: jax.Array  # (K,)
+    mask: jax.Array  # (K,)
+
+
+class State(NamedTuple):
+    """The filter state between events.
+
+    slam: the EKF-SLAM posterior (:class:`~jaxslam.filters.ekf_slam.SlamState`);
+    t: () s since the first event; reg_t, n_match, confirmed: (cap,) tentative-landmark
+    bookkeeping (registration time, matches, confirmed; ``config.prune_window_s``);
+    monitor: the NIS monitor (:mod:`jaxslam.filters.consistency`).
+    """
+
+    slam: es.SlamState
+    t: jax.Array
+    reg_t: jax.Array
+    n_match: jax.Array
+    confirmed: jax.Array
+    monitor: cons.Monitor
+
+
+class StepOut(NamedTuple):
+    """What :func:`step` reports for its event (stacked by :func:`run` into :class:`Result`)."""
+
+    pose: jax.Array  # (3,)
+    pose_cov: jax.Array  # (3, 3)
+    calib: jax.Array  # (3,)
+    n_meas: jax.Array
+    n_limited: jax.Array
+    n_dropped: jax.Array
+    counts: jax.Array  # (4,) used, gated, rejected, registered
+    nis: jax.Array
+    dof: jax.Array
+    n_pruned: jax.Array
+    nll: jax.Array
+    nll_dof: jax.Array
+    n_outliers: jax.Array
+    n_monitored: jax.Array
+    smoother: Any = None  # (SmootherTerms, Q) with config.smooth
+
+
+def log_from_events(events: EventLog, pose0) -> Log:
+    """The :class:`Log` of an :class:`~jaxslam.data.events.EventLog` and a start pose (3,).
+
+    The pose's dtype (float32/float64; an integer pose becomes the default float) sets the
+    computation dtype; the log's arrays are cast to it.
+    """
     pose0 = jnp.asarray(pose0)
+    if not jnp.issubdtype(pose0.dtype, jnp.floating):
+        pose0 = pose0.astype(jnp.result_type(float))
     dtype = pose0.dtype
-    dt = jnp.asarray(dt, dtype)
-    u = jnp.asarray(u, dtype)
-    z = jnp.asarray(z, dtype)
-    ids = jnp.asarray(ids, jnp.int32)
-    mask = jnp.asarray(mask, bool)
-    M_c = jnp.asarray(params.M_c, dtype)
-    Q_floor = jnp.asarray(params.Q_floor, dtype)
-    R = jnp.asarray(params.R, dtype)
-    nr = model.robot_dim
+    return Log(dt=jnp.asarray(events.dt, dtype), u=jnp.asarray(events.u, dtype), z=jnp.asarray(events.z, dtype),
+               ids=jnp.asarray(events.ids, jnp.int32), mask=jnp.asarray(events.mask, bool), pose0=pose0,
+               is_input=jnp.asarray(events.is_input, bool))
+
+
+def _input_correction(params: Params, u, dtype):
+    if params.input_model is None:
+        return u
+    im = jnp.asarray(params.input_model, dtype)
+    return jnp.stack([im[0] * u[..., 0], im[1] * u[..., 1] + im[2]], axis=-1)
+
+
+def init(log: Log, config: Config, params: Params, *, key=None) -> State:
+    """The state before the first event: the robot at ``log.pose0`` with covariance ``params.P0``
+    (and the input calibration's prior with ``config.calibrate``), an empty map."""
+    del key
+    pose0 = jnp.asarray(log.pose0)
+    dtype = pose0.dtype
     P0 = jnp.asarray(params.P0, dtype)
     if config.calibrate:
         c0 = jnp.asarray([1.0, 1.0, 0.0] if params.calib0 is None else params.calib0, dtype)
         cP0 = jnp.zeros((3, 3), dtype) if params.calib_P0 is None else jnp.asarray(params.calib_P0, dtype)
-        cQ = jnp.zeros((3, 3), dtype) if params.calib_Q is None else jnp.asarray(params.calib_Q, dtype)
         x0 = jnp.concatenate([pose0, c0])
         P0 = jax.scipy.linalg.block_diag(P0, cP0)
-        Q_add = jax.scipy.linalg.block_diag(Q_floor, cQ)
     else:
-        x0, Q_add = pose0, Q_floor
-    st0 = es.init(x0, P0, config.capacity, 2)
+        x0 = pose0
+    cap = int(config.capacity)
+    return State(slam=es.init(x0, P0, cap, 2), t=jnp.zeros((), dtype), reg_t=jnp.zeros((cap,), dtype),
+                 n_match=jnp.zeros((cap,), jnp.int32), confirmed=jnp.zeros((cap,), bool),
+                 monitor=cons.init(dtype))
+
+
+def step(state: State, event: Event, config: Config, params: Params, *, key=None):
+    """One event (prediction over ``event.dt``, then the update with its rows): returns
+    ``(state, StepOut)``.  See the module docstring for the two stages."""
+    del key
+    model = make_model(config)
+    f = model.motion
+    st = state.slam
+    dtype = st.x.dtype
+    nr = model.robot_dim
     K = int(config.K)
-    ones = jnp.asarray([1.0, 1.0, 0.0], dtype)
+    dt_k = jnp.asarray(event.dt, dtype)
+    u_k = _input_correction(params, jnp.asarray(event.u, dtype), dtype)
+    z_k = jnp.asarray(event.z, dtype)
+    id_k = jnp.asarray(event.ids, jnp.int32)
+    m_k = jnp.asarray(event.mask, bool)
+    M_c = jnp.asarray(params.M_c, dtype)
+    Q_add = jnp.asarray(params.Q_floor, dtype)
+    if config.calibrate:
+        cQ = jnp.zeros((3, 3), dtype) if params.calib_Q is None else jnp.asarray(params.calib_Q, dtype)
+        Q_add = jax.scipy.linalg.block_diag(Q_add, cQ)
+    R = jnp.asarray(params.R, dtype)
     rm = None if params.range_model is None else jnp.asarray(params.range_model, dtype)
-    if params.input_model is not None:  # the corrected inputs, for the filter and the smoother
-        im = jnp.asarray(params.input_model, dtype)
-        u = jnp.stack([im[0] * u[:, 0], im[1] * u[:, 1] + im[2]], axis=-1)
     rm_a = None if rm is None else (rm[2] if rm.shape[0] > 2 else jnp.zeros((), dtype))
     nu = jnp.asarray(5.0 if params.robust_nu is None else params.robust_nu, dtype)
     mon_p = cons.MonitorParams(*(jnp.asarray(v, dtype) for v in
                                  (MONITOR_DEFAULT if params.monitor is None else params.monitor)))
 
-    def body(carry, inp):
-        st, aux, mon = carry  # aux: (t, registration time (cap,), match count (cap,), confirmed (cap,))
-        dt_k, u_k, z_k, id_k, m_k = inp
-        s = st.x[:nr]
-        M = planar.step_input_cov(M_c, dt_k, config.input_mode)
-        Q = planar.input_noise_cov(f, s, u_k, dt_k, M) + Q_add * dt_k
-        st = es.predict(st, model, u_k, Q, dt_k)
-        valid, limited = _limits(z_k, m_k, config)
-        if config.association == "known":
-            # a row without a log id cannot be associated by id: masked and counted
-            limited = limited | (valid & (id_k < 0))
-            valid = valid & (id_k >= 0)
-        if rm is not None:  # the camera range model: r = (r_meas − a) / (k0 + k2 β²)
-            # (invalid rows zeroed first: a NaN row would poison the gradient through 0 × NaN)
-            z_k = jnp.where(valid[:, None], z_k, 0.0)
-            z_k = jnp.stack([(z_k[:, 0] - rm_a) / _range_gain(rm, z_k[:, 1]), z_k[:, 1]], axis=-1)
-        zk, idk, vk, dropped = _select_k(z_k, id_k, valid, K)
+    s = st.x[:nr]
+    M = planar.step_input_cov(M_c, dt_k, config.input_mode)
+    Q = planar.input_noise_cov(f, s, u_k, dt_k, M) + Q_add * dt_k
+    st = es.predict(st, model, u_k, Q, dt_k)
+    valid, limited = _limits(z_k, m_k, config)
+    if config.association == "known":
+        # a row without a log id cannot be associated by id: masked and counted
+        limited = limited | (valid & (id_k < 0))
+        valid = valid & (id_k >= 0)
+    if rm is not None:  # the camera range model: r = (r_meas − a) / (k0 + k2 β²)
+        # (invalid rows zeroed first: a NaN row would poison the gradient through 0 × NaN)
+        z_k = jnp.where(valid[:, None], z_k, 0.0)
+        z_k = jnp.stack([(z_k[:, 0] - rm_a) / _range_gain(rm, z_k[:, 1]), z_k[:, 1]], axis=-1)
+    zk, idk, vk, dropped = _select_k(z_k, id_k, valid, K)
 
-        def with_meas(st_):
-            return _measure(st_, zk, idk, vk, model, config, R, nu)
+    def with_meas(st_):
+        return _measure(st_, zk, idk, vk, model, config, R, nu)
 
-        def without(st_):
-            zi, zb = jnp.zeros((), jnp.int32), jnp.zeros((K,), bool)
-            return (st_, jnp.zeros((4,), jnp.int32), jnp.zeros((), dtype), zi, jnp.zeros((K,), jnp.int32),
-                    zb, jnp.zeros((K,), dtype), zb, jnp.zeros((), dtype), jnp.zeros((), dtype))
+    def without(st_):
+        zi, zb = jnp.zeros((), jnp.int32), jnp.zeros((K,), bool)
+        return (st_, jnp.zeros((4,), jnp.int32), jnp.zeros((), dtype), zi, jnp.zeros((K,), jnp.int32),
+                zb, jnp.zeros((K,), dtype), zb, jnp.zeros((), dtype), jnp.zeros((), dtype))
 
-        active_before = st.active
-        st, counts, nis, dof, slots_k, used_k, d2_k, watched, nll, nll_dof = jax.lax.cond(
-            jnp.any(vk), with_meas, without, st)
-        if rm is not None:
-            # The filter sees r = (r_meas − a)/g: the density of the measured range carries the
-            # change of variables, −log p(r_meas) = −log p(r) + log g.  Without it the likelihood
-            # rewards any g < 1 (it shrinks the residuals it is scored on): a free k0 went to 1.31.
-            nll = nll + jnp.sum(jnp.where(used_k, jnp.log(jnp.abs(_range_gain(rm, jnp.where(vk, zk[:, 1], 0.0)))),
-                                          0.0))
-        # consistency: the rows of mapped landmarks, before any gate or weighting
-        if config.monitor:
-            mon, st = cons.observe(mon, st, model, d2_k, watched, mon_p)
-        n_out = cons.outliers(d2_k, watched, mon_p)
-        t_k = aux[0] + dt_k
-        aux = (t_k,) + aux[1:]
-        if config.prune_window_s is not None:
-            st, aux, n_pr = _prune(st, aux, active_before, slots_k, used_k, model, config)
-        else:
-            n_pr = jnp.zeros((), jnp.int32)
-        cal = st.x[3:6] if config.calibrate else ones
-        out = (st.x[:3], st.P[:3, :3], cal, jnp.sum(valid).astype(jnp.int32),
-               jnp.sum(limited).astype(jnp.int32), dropped, counts, nis, dof, n_pr, nll, nll_dof, n_out,
-               jnp.sum(watched).astype(jnp.int32),
-               (es.smoother_terms(st, model), Q) if config.smooth else None)
-        return (st, aux, mon), out
+    active_before = st.active
+    st, counts, nis, dof, slots_k, used_k, d2_k, watched, nll, nll_dof = jax.lax.cond(
+        jnp.any(vk), with_meas, without, st)
+    if rm is not None:
+        # The filter sees r = (r_meas − a)/g: the density of the measured range carries the
+        # change of variables, −log p(r_meas) = −log p(r) + log g.  Without it the likelihood
+        # rewards any g < 1 (it shrinks the residuals it is scored on): a free k0 went to 1.31.
+        nll = nll + jnp.sum(jnp.where(used_k, jnp.log(jnp.abs(_range_gain(rm, jnp.where(vk, zk[:, 1], 0.0)))),
+                                      0.0))
+    # consistency: the rows of mapped landmarks, before any gate or weighting
+    mon = state.monitor
+    if config.monitor:
+        mon, st = cons.observe(mon, st, model, d2_k, watched, mon_p)
+    n_out = cons.outliers(d2_k, watched, mon_p)
+    t_k = state.t + dt_k
+    aux = (t_k, state.reg_t, state.n_match, state.confirmed)
+    if config.prune_window_s is not None:
+        st, aux, n_pr = _prune(st, aux, active_before, slots_k, used_k, model, config)
+    else:
+        n_pr = jnp.zeros((), jnp.int32)
+    cal = st.x[3:6] if config.calibrate else jnp.asarray([1.0, 1.0, 0.0], dtype)
+    out = StepOut(pose=st.x[:3], pose_cov=st.P[:3, :3], calib=cal, n_meas=jnp.sum(valid).astype(jnp.int32),
+                  n_limited=jnp.sum(limited).astype(jnp.int32), n_dropped=dropped, counts=counts, nis=nis,
+                  dof=dof, n_pruned=n_pr, nll=nll, nll_dof=nll_dof, n_outliers=n_out,
+                  n_monitored=jnp.sum(watched).astype(jnp.int32),
+                  smoother=(es.smoother_terms(st, model), Q) if config.smooth else None)
+    return State(slam=st, t=aux[0], reg_t=aux[1], n_match=aux[2], confirmed=aux[3], monitor=mon), out
 
-    cap = int(config.capacity)
-    aux0 = (jnp.zeros((), dtype), jnp.zeros((cap,), dtype), jnp.zeros((cap,), jnp.int32),
-            jnp.zeros((cap,), bool))
-    carry0 = (st0, aux0, cons.init(dtype))
-    xs = (dt, u, z, ids, mask)
+
+def run(log: Log, config: Config, params: Params, *, key=None) -> Result:
+    """EKF-SLAM over a whole log as one jitted ``lax.scan`` of :func:`step` (``config`` static,
+    ``params`` and ``log`` traced: jit/vmap/grad-safe).  ``key`` is not used (the filter draws
+    nothing; accepted as every system's ``run`` accepts it).  The config is checked here, and the
+    params and log too when their values are concrete (an :class:`InputError` names the problem).
+    """
+    del key
+    validate_config(config)
+    if is_concrete(params):
+        validate_params(params)
+    if is_concrete(log):
+        validate_log(log)
+    return _run(log, config, params)
+
+
+@functools.partial(jax.jit, static_argnums=1)
+def _run(log: Log, config: Config, params: Params) -> Result:
+    model = make_model(config)
+    dtype = jnp.asarray(log.pose0).dtype
+    state0 = init(log, config, params)
+    xs = Event(dt=jnp.asarray(log.dt, dtype), u=jnp.asarray(log.u, dtype), z=jnp.asarray(log.z, dtype),
+               ids=jnp.asarray(log.ids, jnp.int32), mask=jnp.asarray(log.mask, bool))
+
+    def body(state, ev):
+        return step(state, ev, config, params)
+
     B = int(config.block)
-    T = dt.shape[0]
+    T = xs.dt.shape[0]
     if B > 0 and T > B:
         # checkpointed blocks: padded events (dt 0, no input, no rows) change nothing; the
         # blocked program rounds differently (~1e-15 relative, tests/tuning/test_real_logs.py)
         nb = -(-T // B)
         pad = nb * B - T
-        xs = tuple(jnp.concatenate([a, jnp.zeros((pad,) + a.shape[1:], a.dtype)]) if pad else a for a in xs)
-        xs = jax.tree.map(lambda a: a.reshape((nb, B) + a.shape[1:]), xs)
+        xb = jax.tree.map(lambda a: jnp.concatenate([a, jnp.zeros((pad,) + a.shape[1:], a.dtype)]) if pad else a, xs)
+        xb = jax.tree.map(lambda a: a.reshape((nb, B) + a.shape[1:]), xb)
 
         # and each event checkpointed inside its block: the reverse pass then keeps one carry
         # per event instead of the residuals of both branches of every ``cond`` (measured on
@@ -782,34 +905,35 @@ def run_arrays(dt, u, z, ids, mask, pose0, params: PlanarParams, config: PlanarC
         body_ckpt = jax.checkpoint(body)
 
         @jax.checkpoint
-        def block(c, xb):
-            return jax.lax.scan(body_ckpt, c, xb)
+        def block(c, x):
+            return jax.lax.scan(body_ckpt, c, x)
 
-        (st, _, mon), outs = jax.lax.scan(block, carry0, xs)
+        state, outs = jax.lax.scan(block, state0, xb)
         outs = jax.tree.map(lambda a: a.reshape((nb * B,) + a.shape[2:])[:T], outs)
     else:
-        (st, _, mon), outs = jax.lax.scan(body, carry0, xs)
-    (pose, pose_cov, calib, n_meas, n_limited, n_dropped, counts, nis, dof, n_pruned, nll, nll_dof,
-     n_out, n_watch, sm) = outs
+        state, outs = jax.lax.scan(body, state0, xs)
+    st, mon = state.slam, state.monitor
     smoothed = smooth_status = None
     if config.smooth:
-        terms, Qs = sm
-        rs, smooth_status = es.smooth_robot(model, terms, u, Qs, st, params=dt,
+        terms, Qs = outs.smoother
+        u_c = _input_correction(params, xs.u, dtype)
+        rs, smooth_status = es.smooth_robot(model, terms, u_c, Qs, st, params=xs.dt,
                                             difference=_pose_difference)
         smoothed = rs[:, :3]
-    status = st.status | cons.status_bits(jnp.sum(n_out), jnp.sum(n_watch))
+    status = st.status | cons.status_bits(jnp.sum(outs.n_outliers), jnp.sum(outs.n_monitored))
     # a present row with a NaN/Inf entry is masked by _limits before the engine sees it: flag it here
-    bad_rows = jnp.any(mask & ~jnp.all(jnp.isfinite(z), axis=-1))
+    bad_rows = jnp.any(xs.mask & ~jnp.all(jnp.isfinite(xs.z), axis=-1))
     status = status | jnp.where(bad_rows, jnp.int32(errors.MASKED_INPUT), jnp.int32(0))
-    return PlanarResult(
-        pose=pose, pose_cov=pose_cov, calib=calib,
+    c = outs.counts
+    return Result(
+        pose=outs.pose, pose_cov=outs.pose_cov, calib=outs.calib,
         landmarks=es.landmarks(st, model), landmark_covs=es.landmark_covs(st, model),
         active=st.active, ids=st.ids,
-        n_meas=n_meas, n_limited=n_limited, n_dropped=n_dropped,
-        n_used=counts[:, 0], n_gated=counts[:, 1], n_rejected=counts[:, 2], n_registered=counts[:, 3],
-        nis=nis, dof=dof, overflow=st.overflow, status=status, n_pruned=n_pruned,
-        nll=nll, nll_dof=nll_dof, n_outliers=n_out, n_monitored=n_watch, inflations=mon.inflations,
-        smoothed=smoothed, smooth_status=smooth_status,
+        n_meas=outs.n_meas, n_limited=outs.n_limited, n_dropped=outs.n_dropped,
+        n_used=c[:, 0], n_gated=c[:, 1], n_rejected=c[:, 2], n_registered=c[:, 3],
+        nis=outs.nis, dof=outs.dof, overflow=st.overflow, status=status, n_pruned=outs.n_pruned,
+        nll=outs.nll, nll_dof=outs.nll_dof, n_outliers=outs.n_outliers, n_monitored=outs.n_monitored,
+        inflations=mon.inflations, smoothed=smoothed, smooth_status=smooth_status,
     )
 
 
@@ -819,23 +943,6 @@ def _pose_difference(a, b):
     return d.at[2].set(wrap_angle(d[2]))
 
 
-def run(log: EventLog, pose0, config: PlanarConfig, params: PlanarParams, validate: bool = True) -> PlanarResult:
-    """EKF-SLAM over a whole :class:`EventLog` as one jitted ``lax.scan``.
-
-    ``pose0`` (3,) initial pose [m, m, rad] at ``log.t[0]``; its dtype (float32/float64)
-    sets the computation dtype.  ``config`` static; ``params`` traced.  With ``validate``
-    the config, params and log are checked on the host first (InputError names the problem).
-    """
-    if validate:
-        validate_config(config)
-        validate_params(params)
-        validate_log(log)
-    pose0 = jnp.asarray(pose0)
-    if not jnp.issubdtype(pose0.dtype, jnp.floating):
-        pose0 = pose0.astype(jnp.result_type(float))
-    return run_arrays(log.dt, log.u, log.z, log.ids, log.mask, pose0, params, config)
-
-
 # ---------------------------------------------------------------------------
 # Parameter files (``jaxslam tune`` writes them, ``jaxslam dataset --params`` reads them)
 # ---------------------------------------------------------------------------
@@ -843,7 +950,7 @@ def run(log: EventLog, pose0, config: PlanarConfig, params: PlanarParams, valida
 _MATRIX_FIELDS = ("M_c", "Q_floor", "R", "P0", "calib_P0", "calib_Q")
 
 
-def params_to_dict(params: PlanarParams) -> dict:
+def params_to_dict(params: Params) -> dict:
     """JSON-ready ``{field: value}`` of the set fields (matrices as nested lists)."""
     out = {}
     for k, v in params._asdict().items():
@@ -857,14 +964,14 @@ def params_to_dict(params: PlanarParams) -> dict:
     return out
 
 
-def params_from_dict(d: dict, base: PlanarParams, dtype=np.float64, where: str = "params.noise") -> PlanarParams:
+def params_from_dict(d: dict, base: Params, dtype=np.float64, where: str = "params.noise") -> Params:
     """``base`` with the entries of ``d`` (a :func:`params_to_dict` dict, possibly partial).
 
     Unknown keys are an :class:`InputError` naming them; a matrix may be given as its diagonal.
     """
     if not isinstance(d, dict):
         raise InputError(f"{where}: expected an object, got {type(d).__name__}")
-    fields = PlanarParams._fields
+    fields = Params._fields
     unknown = sorted(set(d) - set(fields))
     if unknown:
         raise InputError(f"{where}: unknown key(s) {unknown}; expected some of {list(fields)}")
@@ -885,11 +992,11 @@ def params_from_dict(d: dict, base: PlanarParams, dtype=np.float64, where: str =
         if k in _MATRIX_FIELDS and a.ndim == 1:
             a = np.diag(a)
         vals[k] = jnp.asarray(a, dtype)
-    return validate_params(PlanarParams(**vals))
+    return validate_params(Params(**vals))
 
 
-def config_to_dict(config: PlanarConfig) -> dict:
-    """JSON-ready form of a :class:`PlanarConfig` (the Ackermann geometry as a dict)."""
+def config_to_dict(config: Config) -> dict:
+    """JSON-ready form of a :class:`Config` (the Ackermann geometry as a dict)."""
     out = config._asdict()
     out["geometry"] = config.geometry._asdict()
     return out
@@ -903,7 +1010,7 @@ __all__ += ["params_to_dict", "params_from_dict", "config_to_dict", "MONITOR_DEF
 # Host-side validation
 # ---------------------------------------------------------------------------
 
-def validate_config(config: PlanarConfig) -> PlanarConfig:
+def validate_config(config: Config) -> Config:
     """Known motion/association/input mode; positive capacity, K and gates."""
     if config.motion not in MOTIONS:
         raise InputError(f"config.motion: expected one of {MOTIONS}, got {config.motion!r}")
@@ -928,7 +1035,7 @@ def validate_config(config: PlanarConfig) -> PlanarConfig:
     return config
 
 
-def validate_params(params: PlanarParams) -> PlanarParams:
+def validate_params(params: Params) -> Params:
     """Shapes (M_c (2,2), Q_floor (3,3), R (2,2), P0 (3,3)); PSD, R positive definite."""
     for name, shp in (("M_c", (2, 2)), ("Q_floor", (3, 3)), ("R", (2, 2)), ("P0", (3, 3)),
                       ("calib0", (3,)), ("calib_P0", (3, 3)), ("calib_Q", (3, 3))):
@@ -963,9 +1070,12 @@ def validate_params(params: PlanarParams) -> PlanarParams:
     return params
 
 
-def validate_log(log: EventLog) -> EventLog:
-    """Shapes of an EventLog for the 2D system: u (T, 2), z (T, K, 2), ids/mask (T, K); dt ≥ 0 finite."""
-    T = np.shape(log.dt)[0]
+def validate_log(log: Log) -> Log:
+    """Shapes of a :class:`Log`: u (T, 2), z (T, K, 2), ids/mask (T, K), pose0 (3,); dt ≥ 0 finite,
+    inputs and the start pose finite."""
+    T = np.shape(log.dt)[0] if np.ndim(log.dt) == 1 else -1
+    if T < 0:
+        raise InputError(f"log.dt: expected shape (T,), got {np.shape(log.dt)}")
     if np.shape(log.u) != (T, 2):
         raise InputError(f"log.u: expected shape ({T}, 2), got {np.shape(log.u)}")
     zs = np.shape(log.z)
@@ -974,9 +1084,13 @@ def validate_log(log: EventLog) -> EventLog:
     for name in ("ids", "mask"):
         if np.shape(getattr(log, name)) != zs[:2]:
             raise InputError(f"log.{name}: expected shape {zs[:2]}, got {np.shape(getattr(log, name))}")
+    if np.shape(log.pose0) != (3,):
+        raise InputError(f"log.pose0: expected shape (3,), got {np.shape(log.pose0)}")
     dt = np.asarray(log.dt)
     if not np.all(np.isfinite(dt)) or np.any(dt < 0):
         raise InputError("log.dt: must be finite and >= 0")
     if not np.all(np.isfinite(np.asarray(log.u))):
         raise InputError("log.u: contains NaN or Inf")
+    if not np.all(np.isfinite(np.asarray(log.pose0))):
+        raise InputError("log.pose0: contains NaN or Inf")
     return log

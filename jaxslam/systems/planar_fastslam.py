@@ -52,6 +52,7 @@ Results are pure functions of ``(key, log, pose0, config, params)``; ``config`` 
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Any, NamedTuple, Optional
 
@@ -59,19 +60,26 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..data.events import EventLog
 from ..dynamics import planar
 from ..errors import InputError
 from ..filters import fastslam as fs
-from ..linalg import wrap_angle
+from ..linalg import is_concrete, wrap_angle
 from ..sensors import range_bearing2d as rb
+from .planar_ekf_slam import Log, log_from_events
 
 __all__ = [
     "ANGLE_MASK",
     "MODEL",
     "Config",
     "Params",
+    "Log",
+    "Event",
+    "State",
+    "StepOut",
     "Result",
+    "init",
+    "step",
+    "log_from_events",
     "default_params",
     "mrclam_setup",
     "victoria_park_setup",
@@ -362,65 +370,77 @@ def _observe_per_particle(p: fs.Particles, z, ids, mask, R, weights):
 # Run
 # ---------------------------------------------------------------------------
 
-def _log_arrays(log: EventLog, dtype):
-    return (jnp.asarray(log.dt, dtype), jnp.asarray(log.u, dtype),
-            jnp.asarray(log.is_input, bool), jnp.asarray(log.z, dtype),
-            jnp.asarray(log.ids, jnp.int32), jnp.asarray(log.mask, bool))
+class Event(NamedTuple):
+    """One event of a :class:`Log` (the slice :func:`step` takes)."""
+
+    dt: Array  # ()
+    u: Array  # (2,)
+    is_input: Array  # () bool
+    z: Array  # (K, 2)
+    ids: Array  # (K,)
+    mask: Array  # (K,)
 
 
-def run(key, log: EventLog, pose0, config: Config, params: Params) -> Result:
-    """A whole log in one jitted ``lax.scan`` (module docstring).
+#: The state between events: the particle set (:class:`jaxslam.filters.fastslam.Particles`;
+#: ``aux`` holds each particle's new-landmark counter and per-slot observation counts).
+State = fs.Particles
 
-    Args:
-        key: PRNG key.  log: :class:`~jaxslam.data.events.EventLog` with ``u`` (T, 2),
-            ``z`` (T, K, 2) as (range [m], bearing [rad], counter-clockwise from the
-            sensor's forward axis), ``ids`` (T, K) (used by "known" only).
-        pose0: (3,) initial pose (its float dtype sets the run's dtype).
-        config: :class:`Config` (static).  params: :class:`Params`.
 
-    Raises:
-        InputError: bad config, or log shapes that disagree with it.
-    """
-    _validate(config)
-    T = np.shape(log.t)[0]
+class StepOut(NamedTuple):
+    """What :func:`step` reports for its event (stacked by :func:`run`)."""
+
+    pose_mean: Array  # (3,) weighted mean pose (circular mean of φ)
+    pose_best: Array  # (3,) pose of the highest-weight particle
+    neff: Array  # () N_eff before this event's resampling
+    used: Array  # () int32 rows that updated a landmark, summed over particles
+    registered: Array  # () int32
+    gated: Array  # () int32
+    log_marginal: Array  # () incremental log marginal likelihood
+
+
+def _validate_log(log: Log, config: Config):
+    T = np.shape(log.dt)[0] if np.ndim(log.dt) == 1 else -1
+    if T < 0:
+        raise InputError(f"log.dt: expected shape (T,), got {np.shape(log.dt)}")
     if np.shape(log.u) != (T, 2):
         raise InputError(f"log.u: expected shape ({T}, 2), got {np.shape(log.u)}")
     if np.shape(log.z) != (T, int(config.K), 2):
         raise InputError(f"log.z: expected shape ({T}, {config.K}, 2), got {np.shape(log.z)}")
-    if not np.all(np.isfinite(np.asarray(log.u))):  # as the planar EKF's run (the jitted scan
-        # itself keeps a particle whose proposal is not finite and flags NON_FINITE)
+    if np.shape(log.pose0) != (3,):
+        raise InputError(f"log.pose0: expected shape (3,), got {np.shape(log.pose0)}")
+    if is_concrete(log.u) and not np.all(np.isfinite(np.asarray(log.u))):
+        # as the planar EKF's run (the jitted scan itself keeps a particle whose proposal is
+        # not finite and flags NON_FINITE)
         raise InputError("log.u: contains NaN or Inf")
-    pose0 = jnp.asarray(pose0)
-    if pose0.shape != (3,):
-        raise InputError(f"pose0: expected shape (3,), got {pose0.shape}")
-    dtype = pose0.dtype if jnp.issubdtype(pose0.dtype, jnp.floating) else jnp.result_type(float)
-    params = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), params)
-    return _run(key, _log_arrays(log, dtype), pose0.astype(dtype), params, config)
 
 
-def _run_impl(key, arrays, pose0, params: Params, config: Config) -> Result:
-    dt_a, u_a, isin_a, z_a, ids_a, mask_a = arrays
-    dtype = pose0.dtype
+def init(log: Log, config: Config, params: Params, *, key) -> State:
+    """N particles drawn around ``log.pose0`` with covariance ``params.P0`` (``key``), empty maps."""
+    dtype = jnp.asarray(log.pose0).dtype
     N, cap = int(config.n_particles), int(config.capacity)
-    T = dt_a.shape[0]
+    L_P0 = jnp.linalg.cholesky(params.P0 + 1e-15 * jnp.eye(3, dtype=dtype))
+    poses0 = log.pose0[None, :] + jax.random.normal(key, (N, 3), dtype) @ L_P0.T
+    poses0 = poses0.at[:, 2].set(wrap_angle(poses0[:, 2]))
+    aux0 = (jnp.zeros((N,), jnp.int32), jnp.zeros((N, cap), jnp.int32))
+    return fs.init(poses0, N, cap, 2, aux=aux0, aux_per_particle=True)
+
+
+def step(state: State, event: Event, config: Config, params: Params, *, key):
+    """One event: every particle's proposal over ``event.dt``, then (when the event has rows)
+    association, landmark updates, reweighting and resampling.  Returns ``(state, StepOut)``."""
+    p = state
+    dtype = p.pose.dtype
+    N, cap = int(config.n_particles), int(config.capacity)
     ml = config.association == "ml"
     f = motion_fn(config)
     sample = _sample_fn(f, config.motion == "increment")
     eye2 = jnp.eye(2, dtype=dtype)
     L_M = jnp.linalg.cholesky(params.M_c + 1e-12 * eye2)
-    L_P0 = jnp.linalg.cholesky(params.P0 + 1e-15 * jnp.eye(3, dtype=dtype))
     floor = jnp.maximum(params.pose_floor, jnp.zeros((), dtype))
     R = params.R
     gate_ml = jnp.asarray(9.21 if config.gate is None else config.gate, dtype)
     new_thr = jnp.asarray(config.new_threshold, dtype)
     thr = config.resample_threshold
-
-    k0, k_run = jax.random.split(key)
-    poses0 = pose0[None, :] + jax.random.normal(k0, (N, 3), dtype) @ L_P0.T
-    poses0 = poses0.at[:, 2].set(wrap_angle(poses0[:, 2]))
-    aux0 = (jnp.zeros((N,), jnp.int32), jnp.zeros((N, cap), jnp.int32))
-    p0 = fs.init(poses0, N, cap, 2, aux=aux0, aux_per_particle=True)
-    keys = jax.random.split(k_run, T)
     zero_i = jnp.zeros((), jnp.int32)
 
     def update(p, k_res, z, ids, mask):
@@ -461,24 +481,62 @@ def _run_impl(key, arrays, pose0, params: Params, config: Config) -> Result:
     def skip(p, k_res, z, ids, mask):
         return p, fs.neff(p), (zero_i, zero_i, zero_i, jnp.zeros((), dtype))
 
-    def body(p, x):
-        dt, u, is_in, z, ids, mask, k = x
-        k_prop, k_res = jax.random.split(k)
-        p = fs.propagate(p, k_prop, sample, u, dt, is_in, L_M, floor)
-        p, ne, stats = jax.lax.cond(jnp.any(mask), update, skip, p, k_res, z, ids, mask)
-        mu, _ = fs.estimate(p, ANGLE_MASK)
-        best = p.pose[jnp.argmax(p.log_w)]
-        return p, (mu, best, ne, stats)
+    k_prop, k_res = jax.random.split(key)
+    p = fs.propagate(p, k_prop, sample, event.u, event.dt, event.is_input, L_M, floor)
+    p, ne, stats = jax.lax.cond(jnp.any(event.mask), update, skip, p, k_res, event.z, event.ids, event.mask)
+    mu, _ = fs.estimate(p, ANGLE_MASK)
+    best = p.pose[jnp.argmax(p.log_w)]
+    return p, StepOut(pose_mean=mu, pose_best=best, neff=ne, used=stats[0], registered=stats[1],
+                      gated=stats[2], log_marginal=stats[3])
 
-    p, (mu, best, ne, stats) = jax.lax.scan(body, p0, (dt_a, u_a, isin_a, z_a, ids_a, mask_a, keys))
-    n_used, n_reg, n_gated, lm = stats
+
+def run(log: Log, config: Config, params: Params, *, key) -> Result:
+    """A whole log in one jitted ``lax.scan`` of :func:`step` (module docstring).
+
+    Args:
+        log: :class:`Log` with ``u`` (T, 2), ``z`` (T, K, 2) as (range [m], bearing [rad],
+            counter-clockwise from the sensor's forward axis), ``ids`` (T, K) (used by "known"
+            only), ``pose0`` (3,) (its float dtype sets the run's dtype), ``is_input`` (T,)
+            (increments; default: every event).
+        config: :class:`Config` (static).  params: :class:`Params`.  key: PRNG key (required).
+
+    Raises:
+        InputError: bad config, or log shapes that disagree with it.
+    """
+    if key is None:
+        raise InputError("key: planar FastSLAM draws particles; give a PRNG key")
+    _validate(config)
+    _validate_log(log, config)
+    pose0 = jnp.asarray(log.pose0)
+    dtype = pose0.dtype if jnp.issubdtype(pose0.dtype, jnp.floating) else jnp.result_type(float)
+    params = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), params)
+    T = np.shape(log.dt)[0]
+    is_in = jnp.ones((T,), bool) if log.is_input is None else jnp.asarray(log.is_input, bool)
+    log = Log(dt=jnp.asarray(log.dt, dtype), u=jnp.asarray(log.u, dtype), z=jnp.asarray(log.z, dtype),
+              ids=jnp.asarray(log.ids, jnp.int32), mask=jnp.asarray(log.mask, bool), pose0=pose0.astype(dtype),
+              is_input=is_in)
+    return _run(key, log, params, config)
+
+
+@functools.partial(jax.jit, static_argnums=(3,))
+def _run(key, log: Log, params: Params, config: Config) -> Result:
+    dtype = log.pose0.dtype
+    N = int(config.n_particles)
+    T = log.dt.shape[0]
+    k0, k_run = jax.random.split(key)
+    p0 = init(log, config, params, key=k0)
+    keys = jax.random.split(k_run, T)
+    events = Event(dt=log.dt, u=log.u, is_input=log.is_input, z=log.z, ids=log.ids, mask=log.mask)
+
+    def body(p, x):
+        ev, k = x
+        return step(p, ev, config, params, key=k)
+
+    p, out = jax.lax.scan(body, p0, (events, keys))
     i = jnp.argmax(p.log_w)
     return Result(
-        pose_mean=mu, pose_best=best, neff=ne, map=fs.best_map(p), n_obs=p.aux[1][i],
-        used=jnp.sum(n_used).astype(dtype) / N, registered=jnp.sum(n_reg).astype(dtype) / N,
-        gated=jnp.sum(n_gated).astype(dtype) / N, overflow=p.overflow, resamples=p.resamples,
-        underflow=p.underflow, status=p.status, log_marginal=jnp.sum(lm), particles=p,
+        pose_mean=out.pose_mean, pose_best=out.pose_best, neff=out.neff, map=fs.best_map(p), n_obs=p.aux[1][i],
+        used=jnp.sum(out.used).astype(dtype) / N, registered=jnp.sum(out.registered).astype(dtype) / N,
+        gated=jnp.sum(out.gated).astype(dtype) / N, overflow=p.overflow, resamples=p.resamples,
+        underflow=p.underflow, status=p.status, log_marginal=jnp.sum(out.log_marginal), particles=p,
     )
-
-
-_run = jax.jit(_run_impl, static_argnums=(4,))

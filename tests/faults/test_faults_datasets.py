@@ -74,7 +74,7 @@ Array-level faults on the same real logs (``test_array_fault_on_real_log``; the 
 these in files, a caller of the systems can pass them): non-finite measurement rows →
 ``masked_input`` and an estimate equal to the run without those rows (planar EKF and planar
 FastSLAM on MRCLAM, ``range_only`` on UTIL and Plaza); NaN odometry → InputError from the
-planar ``run`` s, ``non_finite`` with a finite estimate inside jit (``run_arrays``, the FastSLAM
+planar ``run`` s, ``non_finite`` with a finite estimate inside jit (``run`` under ``jit``, the FastSLAM
 scan — its proposal keeps a particle whose new pose is not finite — and Plaza's run).
 """
 
@@ -631,10 +631,12 @@ def _mrclam_system(folder):
     cfg = pe.mrclam_config(association="known")
     p0 = jnp.asarray(pose0, np.float64)
 
+    run_jit = jax.jit(pe.run, static_argnums=1)
+
     def run(lg, validate=True):
         if validate:
-            return pe.run(lg, p0, cfg, prm)
-        return pe.run_arrays(lg.dt, lg.u, lg.z, lg.ids, lg.mask, p0, prm, cfg)
+            return pe.run(pe.log_from_events(lg, p0), cfg, prm)
+        return run_jit(pe.log_from_events(lg, p0), cfg, prm)  # traced: the in-jit path
 
     return log, run, lambda res: np.asarray(res.pose), lambda res: res.status
 
@@ -680,10 +682,10 @@ def _mrclam_fastslam_system(folder):
 
     def run(lg, validate=True):
         if validate:
-            return pf.run(key, lg, p0, cfg, prm)
+            return pf.run(pf.log_from_events(lg, p0), cfg, prm, key=key)
         # what run does after its host-side checks (the same jitted program)
         prm64 = jax.tree_util.tree_map(lambda a: jnp.asarray(a, np.float64), prm)
-        return pf._run(key, pf._log_arrays(lg, np.float64), p0, prm64, cfg)
+        return jax.jit(pf.run, static_argnums=1)(pf.log_from_events(lg, p0), cfg, prm64, key=key)
 
     return log, run, lambda res: np.asarray(res.pose_mean), lambda res: res.status
 
@@ -702,7 +704,7 @@ ARRAY_CELLS = [pytest.param(f, n, id=f"{f}-{n}-{SYSTEMS[n][0]}")
 def test_array_fault_on_real_log(fault, name, bases):
     """nan_rows / inf_rows: 6 present rows of the middle of the log non-finite → ``masked_input``,
     the estimate equal (1e-12) to the run without those rows; nan_input: 5 odometry samples NaN →
-    the planar ``run`` s refuse them (InputError naming log.u), inside jit (``run_arrays``, the
+    the planar ``run`` s refuse them (InputError naming log.u), inside jit (``run`` under ``jit``, the
     FastSLAM scan, Plaza) each such prediction is refused → ``non_finite``, every estimate
     finite.  FastSLAM: the same key, so the masked run draws the same particles."""
     log, run, pos, status = SYSTEMS[name][1](bases[name.removesuffix("-fastslam")])

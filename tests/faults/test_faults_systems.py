@@ -5,7 +5,7 @@ arrays keep their shapes (one compiled program per system serves every case).  O
 stated from the design before running (``drop`` = the same log with the window's rows
 removed from the mask, i.e. a sensor dropout; ``clean`` = no fault):
 
-Planar range-bearing EKF-SLAM (``planar_ekf_slam.run_arrays``; 32 s loop, 15 landmarks,
+Planar range-bearing EKF-SLAM (``planar_ekf_slam.run`` under ``jit``; 32 s loop, 15 landmarks,
 known ids, χ²(2) 99.9 % update gate 13.82, range limit 20 m; window 10–14 s):
 
 ===============  ============================================================================
@@ -26,7 +26,7 @@ frozen_sensor    each landmark's rows frozen at their first value in the window:
                  RMS ≤ 2·clean + 0.05 m
 time_jump        one stamp 2 s late (Δt 2.1 s, input held: 2 m of false motion): the gate
                  rejects every later sighting of the mapped landmarks → ``diverged``
-nan_input        odometry NaN: ``run`` refuses it (InputError naming log.u); ``run_arrays``
+nan_input        odometry NaN: ``run`` refuses it (InputError naming log.u); ``run`` under jit
                  refuses each such prediction → ``non_finite``, every pose finite
 ===============  ============================================================================
 
@@ -88,7 +88,7 @@ def _rms(e):
 DT, T_STEPS, V, W = 0.1, 320, 1.0, 0.2
 SIG_V, SIG_W, SIG_R, SIG_B = 0.05, 0.02, 0.1, 0.01
 WINDOW = (10.0, 14.0)  # s
-CFG = P.PlanarConfig(motion="unicycle", capacity=16, K=8, association="known", update_gate=13.82,
+CFG = P.Config(motion="unicycle", capacity=16, K=8, association="known", update_gate=13.82,
                      range_max=20.0)
 
 
@@ -128,10 +128,12 @@ def planar():
     z = np.asarray(z) + rng.normal(size=(len(z), 2)) * [SIG_R, SIG_B]
     log = merge_events(DT * np.arange(T_STEPS), u, np.asarray(mt), z, np.asarray(ids), K=8)
     truth = traj[np.rint(log.t / DT).astype(int)]
-    prm = P.PlanarParams(M_c=jnp.diag(jnp.asarray([SIG_V**2, SIG_W**2])), Q_floor=jnp.zeros((3, 3)),
+    prm = P.Params(M_c=jnp.diag(jnp.asarray([SIG_V**2, SIG_W**2])), Q_floor=jnp.zeros((3, 3)),
                          R=jnp.diag(jnp.asarray([SIG_R**2, SIG_B**2])), P0=jnp.eye(3) * 1e-8)
+    run_jit = jax.jit(P.run, static_argnums=1)  # traced inputs: the in-jit path, no host checks
+
     def go(lg):
-        return P.run_arrays(lg.dt, lg.u, lg.z, lg.ids, lg.mask, jnp.asarray(traj[0]), prm, CFG)
+        return run_jit(P.Log(lg.dt, lg.u, lg.z, lg.ids, lg.mask, jnp.asarray(traj[0])), CFG, prm)
 
     win = (log.t >= WINDOW[0]) & (log.t < WINDOW[1])
     rows = log.mask & win[:, None]
@@ -238,7 +240,7 @@ def planar_time_jump(c):
 def planar_nan_input(c):
     u = np.where(c.win[:, None], np.nan, c.log.u)
     with pytest.raises(InputError, match="log.u"):
-        P.run(c.log._replace(u=u), jnp.asarray(c.truth[0]), CFG, c.prm)
+        P.run(P.log_from_events(c.log._replace(u=u), jnp.asarray(c.truth[0])), CFG, c.prm)
     res = c.go(c.log._replace(u=u))
     assert "non_finite" in _flags(res.status)
     assert np.all(np.isfinite(np.asarray(res.pose))) and np.all(np.isfinite(np.asarray(res.pose_cov)))

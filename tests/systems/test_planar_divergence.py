@@ -50,7 +50,7 @@ def log():
 
 
 def _run(lg, truth, **cfg):
-    res = P.run(lg, jnp.asarray(truth[0]), P.PlanarConfig(capacity=16, association="known", **cfg), _params())
+    res = P.run(P.log_from_events(lg, jnp.asarray(truth[0])), P.Config(capacity=16, association="known", **cfg), _params())
     err = np.hypot(*(np.asarray(res.pose)[:, :2] - truth[:, :2]).T)
     frac = float(np.sum(res.n_outliers)) / float(np.sum(res.n_monitored))
     return res, err, frac

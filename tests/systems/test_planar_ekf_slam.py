@@ -75,7 +75,7 @@ def _logs(traj, lms, vis, n_runs, seed=1, sig_scale=1.0):
 
 
 def _params(dtype=jnp.float64, p0=1e-8):
-    return P.PlanarParams(
+    return P.Params(
         M_c=jnp.diag(jnp.asarray([SIG_V**2, SIG_W**2], dtype)),
         Q_floor=jnp.zeros((3, 3), dtype),
         R=jnp.diag(jnp.asarray([SIG_R**2, SIG_B**2], dtype)),
@@ -148,7 +148,7 @@ def scenario():
 
 
 def _run_batch(base, us, zs, cfg, params, pose0):
-    f = jax.vmap(lambda u, z: P.run_arrays(base.dt, u, z, base.ids, base.mask, pose0, params, cfg))
+    f = jax.vmap(lambda u, z: P.run(P.Log(base.dt, u, z, base.ids, base.mask, pose0), cfg, params))
     return f(jnp.asarray(us), jnp.asarray(zs))
 
 
@@ -156,7 +156,7 @@ def test_monte_carlo_pose_anees_within_bounds(scenario):
     traj, lms, vis = scenario
     n_runs = 12
     base, us, zs = _logs(traj, lms, vis, n_runs)
-    cfg = P.PlanarConfig(motion="unicycle", capacity=16, K=8, association="known")
+    cfg = P.Config(motion="unicycle", capacity=16, K=8, association="known")
     res = _run_batch(base, us, zs, cfg, _params(), jnp.asarray(traj[0]))
     # truth at each event (events are the input times; measurement times coincide with them)
     k_of_event = np.rint(base.t / DT).astype(int)
@@ -181,10 +181,8 @@ def test_known_and_nn_agree_on_clean_data(scenario):
     base, us, zs = _logs(traj, lms, vis, 1, sig_scale=0.05)
     prm = _params()
     pose0 = jnp.asarray(traj[0])
-    rk = P.run_arrays(base.dt, us[0], zs[0], base.ids, base.mask, pose0, prm,
-                      P.PlanarConfig(capacity=16, association="known"))
-    rn = P.run_arrays(base.dt, us[0], zs[0], base.ids, base.mask, pose0, prm,
-                      P.PlanarConfig(capacity=16, association="nn"))
+    rk = P.run(P.Log(base.dt, us[0], zs[0], base.ids, base.mask, pose0), P.Config(capacity=16, association="known"), prm)
+    rn = P.run(P.Log(base.dt, us[0], zs[0], base.ids, base.mask, pose0), P.Config(capacity=16, association="nn"), prm)
     assert int(rn.active.sum()) == int(rk.active.sum()) == len(lms)
     assert int(rn.n_rejected.sum()) == 0 and int(rn.n_used.sum()) == int(rk.n_used.sum())
     np.testing.assert_allclose(np.asarray(rn.pose), np.asarray(rk.pose), atol=1e-9)
@@ -206,7 +204,7 @@ def test_bearing_wrap_landmark_behind():
     z = np.stack([np.full(n, 5.0), np.where(np.arange(n) % 2 == 0, np.pi - eps, -np.pi + eps)], 1)
     log = merge_events(t, u, t, z, np.zeros(n, int), K=1)
     for assoc in ("known", "nn"):
-        res = P.run(log, jnp.zeros(3), P.PlanarConfig(capacity=4, K=1, association=assoc), _params(p0=1e-4))
+        res = P.run(P.log_from_events(log, jnp.zeros(3)), P.Config(capacity=4, K=1, association=assoc), _params(p0=1e-4))
         assert int(res.status) == 0
         assert int(res.active.sum()) == 1
         assert int(res.n_used.sum()) == n - 1
@@ -219,8 +217,7 @@ def test_bearing_wrap_landmark_behind():
 def test_capacity_overflow_counted_and_flagged(scenario):
     traj, lms, vis = scenario
     base, us, zs = _logs(traj, lms, vis, 1)
-    res = P.run(base._replace(u=us[0], z=zs[0]), jnp.asarray(traj[0]),
-                P.PlanarConfig(capacity=4, association="known"), _params())
+    res = P.run(P.log_from_events(base._replace(u=us[0], z=zs[0]), jnp.asarray(traj[0])), P.Config(capacity=4, association="known"), _params())
     assert int(res.active.sum()) == 4
     assert int(res.overflow) > 0
     assert int(res.status) & errors.CAPACITY_OVERFLOW
@@ -231,9 +228,8 @@ def test_float32_run_is_finite_and_close(scenario):
     traj, lms, vis = scenario
     base, us, zs = _logs(traj, lms, vis, 1)
     log = base._replace(u=us[0], z=zs[0])
-    r32 = P.run(log, jnp.asarray(traj[0], jnp.float32), P.PlanarConfig(capacity=16),
-                _params(jnp.float32, p0=1e-6))
-    r64 = P.run(log, jnp.asarray(traj[0]), P.PlanarConfig(capacity=16), _params(p0=1e-6))
+    r32 = P.run(P.log_from_events(log, jnp.asarray(traj[0], jnp.float32)), P.Config(capacity=16), _params(jnp.float32, p0=1e-6))
+    r64 = P.run(P.log_from_events(log, jnp.asarray(traj[0])), P.Config(capacity=16), _params(p0=1e-6))
     assert r32.pose.dtype == jnp.float32
     assert np.all(np.isfinite(np.asarray(r32.pose))) and np.all(np.isfinite(np.asarray(r32.pose_cov)))
     assert int(r32.status) == 0
@@ -246,8 +242,8 @@ def test_limits_and_k_selection_are_counted():
     z = np.array([[2.0, 0.1], [9.0, 0.2], [3.0, -0.2], [4.0, 0.3], [1.0, 0.0]])
     mt = np.zeros(n)
     log = merge_events(t, np.zeros((n, 2)), mt, z, np.arange(n), K=5)
-    cfg = P.PlanarConfig(capacity=8, K=2, range_max=5.0, range_min=1.5)
-    res = P.run(log, jnp.zeros(3), cfg, _params(p0=1e-4))
+    cfg = P.Config(capacity=8, K=2, range_max=5.0, range_min=1.5)
+    res = P.run(P.log_from_events(log, jnp.zeros(3)), cfg, _params(p0=1e-4))
     assert int(res.n_limited.sum()) == 2  # 9 m and 1 m
     assert int(res.n_meas.sum()) == 3
     assert int(res.n_dropped.sum()) == 1  # the 4 m row (the two nearest are kept)
@@ -258,11 +254,11 @@ def test_limits_and_k_selection_are_counted():
 def test_validation_errors():
     log = merge_events(np.arange(3.0), np.zeros((3, 2)), np.arange(3.0), np.ones((3, 2)), K=1)
     with pytest.raises(InputError, match="motion"):
-        P.run(log, jnp.zeros(3), P.PlanarConfig(motion="bike"), _params())
+        P.run(P.log_from_events(log, jnp.zeros(3)), P.Config(motion="bike"), _params())
     with pytest.raises(InputError, match="params.R"):
-        P.run(log, jnp.zeros(3), P.PlanarConfig(), _params()._replace(R=jnp.zeros((2, 2))))
+        P.run(P.log_from_events(log, jnp.zeros(3)), P.Config(), _params()._replace(R=jnp.zeros((2, 2))))
     with pytest.raises(InputError, match="log.u"):
-        P.run(log._replace(u=np.zeros((3, 3))), jnp.zeros(3), P.PlanarConfig(), _params())
+        P.run(P.log_from_events(log._replace(u=np.zeros((3, 3))), jnp.zeros(3)), P.Config(), _params())
 
 
 def test_mrclam_log_applies_range_model_and_odometry_delay():
@@ -308,8 +304,8 @@ def test_tentative_landmark_pruning():
     order = np.argsort(mt, kind="stable")
     log = merge_events(t, np.zeros((n, 2)), np.asarray(mt)[order], np.asarray(z)[order], K=2)
     prm = _params(p0=1e-4)
-    off = P.run(log, jnp.zeros(3), P.PlanarConfig(capacity=4, K=2, association="nn"), prm)
-    on = P.run(log, jnp.zeros(3), P.PlanarConfig(capacity=4, K=2, association="nn", prune_window_s=1.0,
+    off = P.run(P.log_from_events(log, jnp.zeros(3)), P.Config(capacity=4, K=2, association="nn"), prm)
+    on = P.run(P.log_from_events(log, jnp.zeros(3)), P.Config(capacity=4, K=2, association="nn", prune_window_s=1.0,
                                                  prune_min_obs=3), prm)
     assert int(off.active.sum()) == 2 and int(off.n_pruned.sum()) == 0
     assert int(on.active.sum()) == 1 and int(on.n_pruned.sum()) == 1
@@ -325,7 +321,7 @@ def test_tentative_landmark_pruning():
     np.testing.assert_allclose(lm_on[0], [5 * np.cos(0.2), 5 * np.sin(0.2)], atol=1e-3)
     assert int(on.status) == 0 and np.all(np.isfinite(np.asarray(on.pose)))
     with pytest.raises(InputError, match="prune"):
-        P.run(log, jnp.zeros(3), P.PlanarConfig(prune_window_s=-1.0), prm)
+        P.run(P.log_from_events(log, jnp.zeros(3)), P.Config(prune_window_s=-1.0), prm)
 
 
 def test_joint_compatibility_drops_the_inconsistent_match():
@@ -336,7 +332,7 @@ def test_joint_compatibility_drops_the_inconsistent_match():
     """
     from jaxslam.filters import ekf_slam as es
 
-    model = P.make_model(P.PlanarConfig(motion="unicycle", association="nn"))
+    model = P.make_model(P.Config(motion="unicycle", association="nn"))
     st = es.init(jnp.zeros(3), jnp.diag(jnp.asarray([1e-4, 1e-4, 0.1**2])), 4, 2)
     R = jnp.diag(jnp.asarray([0.05**2, 0.01**2]))
     lms = np.array([[10.0, 0.0], [0.0, 10.0], [-7.0, -7.0]])
@@ -360,14 +356,12 @@ def test_joint_gate_is_a_no_op_on_clean_data(scenario):
     base, us, zs = _logs(traj, lms, vis, 1, sig_scale=0.05)
     prm = _params()
     pose0 = jnp.asarray(traj[0])
-    r0 = P.run_arrays(base.dt, us[0], zs[0], base.ids, base.mask, pose0, prm,
-                      P.PlanarConfig(capacity=16, association="nn"))
-    r1 = P.run_arrays(base.dt, us[0], zs[0], base.ids, base.mask, pose0, prm,
-                      P.PlanarConfig(capacity=16, association="nn", joint_gate=0.99))
+    r0 = P.run(P.Log(base.dt, us[0], zs[0], base.ids, base.mask, pose0), P.Config(capacity=16, association="nn"), prm)
+    r1 = P.run(P.Log(base.dt, us[0], zs[0], base.ids, base.mask, pose0), P.Config(capacity=16, association="nn", joint_gate=0.99), prm)
     assert int(r1.n_rejected.sum()) == 0 and int(r1.n_used.sum()) == int(r0.n_used.sum())
     np.testing.assert_allclose(np.asarray(r1.pose), np.asarray(r0.pose), atol=1e-9)
     with pytest.raises(InputError, match="joint_gate"):
-        P.validate_config(P.PlanarConfig(association="nn", joint_gate=1.5))
+        P.validate_config(P.Config(association="nn", joint_gate=1.5))
 
 
 def test_online_input_calibration_recovers_odometry_scale(scenario):
@@ -384,10 +378,8 @@ def test_online_input_calibration_recovers_odometry_scale(scenario):
     prm = _params()._replace(calib0=jnp.asarray([1.0, 1.0, 0.0]),
                              calib_P0=jnp.diag(jnp.asarray([0.2, 0.2, 0.05]) ** 2),
                              calib_Q=jnp.zeros((3, 3)))
-    on = P.run_arrays(base.dt, u_log, zs[0], base.ids, base.mask, pose0, prm,
-                      P.PlanarConfig(capacity=16, association="known", calibrate=True))
-    off = P.run_arrays(base.dt, u_log, zs[0], base.ids, base.mask, pose0, _params(p0=1e-8),
-                       P.PlanarConfig(capacity=16, association="known"))
+    on = P.run(P.Log(base.dt, u_log, zs[0], base.ids, base.mask, pose0), P.Config(capacity=16, association="known", calibrate=True), prm)
+    off = P.run(P.Log(base.dt, u_log, zs[0], base.ids, base.mask, pose0), P.Config(capacity=16, association="known"), _params(p0=1e-8))
     c = np.asarray(on.calib[-1])
     assert abs(c[0] - c_true[0]) < 0.02, c
     assert abs(c[1] * W / c_true[1] + c[2] - W) < 0.02 * abs(W), c  # c_1 ω_log + c_2 = ω
@@ -406,11 +398,10 @@ def test_range_model_likelihood_is_that_of_the_measured_range(scenario):
     k0, a = 1.07, 0.05
     z_meas = np.array(zs[0])
     z_meas[..., 0] = z_meas[..., 0] * k0 + a  # a camera with scale k0 and offset a
-    cfg = P.PlanarConfig(capacity=16, association="known", robust=True)
+    cfg = P.Config(capacity=16, association="known", robust=True)
     pose0 = jnp.asarray(traj[0])
-    with_model = P.run_arrays(base.dt, us[0], z_meas, base.ids, base.mask, pose0,
-                              _params()._replace(range_model=jnp.asarray([k0, 0.0, a])), cfg)
-    by_hand = P.run_arrays(base.dt, us[0], zs[0], base.ids, base.mask, pose0, _params(), cfg)
+    with_model = P.run(P.Log(base.dt, us[0], z_meas, base.ids, base.mask, pose0), cfg, _params()._replace(range_model=jnp.asarray([k0, 0.0, a])))
+    by_hand = P.run(P.Log(base.dt, us[0], zs[0], base.ids, base.mask, pose0), cfg, _params())
     np.testing.assert_allclose(np.asarray(with_model.pose), np.asarray(by_hand.pose), rtol=0, atol=1e-9)
     used_rows = float(np.sum(np.asarray(by_hand.n_used)))
     assert used_rows > 100
@@ -423,11 +414,10 @@ def test_input_model_equals_corrected_inputs(scenario):
     base, us, zs = _logs(traj, lms, vis, 1)
     c = np.array([0.96, 1.08, -0.004])
     u_corr = np.stack([c[0] * us[0][:, 0], c[1] * us[0][:, 1] + c[2]], -1)
-    cfg = P.PlanarConfig(capacity=16, association="known")
+    cfg = P.Config(capacity=16, association="known")
     pose0 = jnp.asarray(traj[0])
-    a = P.run_arrays(base.dt, us[0], zs[0], base.ids, base.mask, pose0,
-                     _params()._replace(input_model=jnp.asarray(c)), cfg)
-    b = P.run_arrays(base.dt, u_corr, zs[0], base.ids, base.mask, pose0, _params(), cfg)
+    a = P.run(P.Log(base.dt, us[0], zs[0], base.ids, base.mask, pose0), cfg, _params()._replace(input_model=jnp.asarray(c)))
+    b = P.run(P.Log(base.dt, u_corr, zs[0], base.ids, base.mask, pose0), cfg, _params())
     np.testing.assert_allclose(np.asarray(a.pose), np.asarray(b.pose), rtol=0, atol=1e-12)
     np.testing.assert_allclose(np.asarray(a.nll), np.asarray(b.nll), rtol=1e-12, atol=1e-12)
     with pytest.raises(InputError, match="params.input_model"):

@@ -98,7 +98,7 @@ def test_known_ids_tracks_over_seeds():
     errs, dr = [], []
     for seed in range(3):
         log, gt_t, gt, lms, seen = _simulate(seed)
-        res = pf.run(jax.random.PRNGKey(seed), log, jnp.zeros(3), cfg, _params())
+        res = pf.run(pf.log_from_events(log, jnp.zeros(3)), cfg, _params(), key=jax.random.PRNGKey(seed))
         errs.append(_err(res, log, gt_t, gt))
         dr.append(_dead_reckoning_err(log, gt_t, gt))
         assert int(res.overflow) == 0
@@ -115,7 +115,7 @@ def test_ml_association_map_size(sim):
     log, gt_t, gt, lms, seen = sim
     cfg = pf.Config(motion="unicycle", n_particles=30, capacity=24, K=12, association="ml",
                     gate=9.21, new_threshold=30.0)
-    res = pf.run(jax.random.PRNGKey(1), log, jnp.zeros(3), cfg, _params())
+    res = pf.run(pf.log_from_events(log, jnp.zeros(3)), cfg, _params(), key=jax.random.PRNGKey(1))
     n_map = int(jnp.sum(res.map.active))
     assert n_map == len(seen), (n_map, len(seen))
     assert int(res.overflow) == 0
@@ -131,8 +131,7 @@ def test_ml_association_map_size(sim):
 def test_float32_run_finite(sim):
     log, gt_t, gt, lms, seen = sim
     cfg = pf.Config(motion="unicycle", n_particles=20, capacity=12, K=12, association="known")
-    res = pf.run(jax.random.PRNGKey(2), log, jnp.zeros(3, jnp.float32), cfg,
-                 _params(jnp.float32))
+    res = pf.run(pf.log_from_events(log, jnp.zeros(3, jnp.float32)), cfg, _params(jnp.float32), key=jax.random.PRNGKey(2))
     assert res.pose_mean.dtype == jnp.float32
     assert bool(jnp.all(jnp.isfinite(res.pose_mean)))
     assert bool(jnp.all(jnp.isfinite(res.map.mean)))
@@ -142,7 +141,7 @@ def test_float32_run_finite(sim):
 def test_capacity_overflow_counted(sim):
     log, gt_t, gt, lms, seen = sim
     cfg = pf.Config(motion="unicycle", n_particles=10, capacity=4, K=12, association="known")
-    res = pf.run(jax.random.PRNGKey(3), log, jnp.zeros(3), cfg, _params())
+    res = pf.run(pf.log_from_events(log, jnp.zeros(3)), cfg, _params(), key=jax.random.PRNGKey(3))
     n_beyond = int(np.sum(log.mask & (log.ids >= 4)))
     assert int(res.overflow) == n_beyond > 0
     assert int(res.status) & errors.CAPACITY_OVERFLOW
@@ -151,6 +150,6 @@ def test_capacity_overflow_counted(sim):
 def test_bad_config_rejected(sim):
     log = sim[0]
     with pytest.raises(InputError):
-        pf.run(jax.random.PRNGKey(0), log, jnp.zeros(3), pf.Config(K=3), _params())
+        pf.run(pf.log_from_events(log, jnp.zeros(3)), pf.Config(K=3), _params(), key=jax.random.PRNGKey(0))
     with pytest.raises(InputError):
-        pf.run(jax.random.PRNGKey(0), log, jnp.zeros(3), pf.Config(K=12, motion="bike"), _params())
+        pf.run(pf.log_from_events(log, jnp.zeros(3)), pf.Config(K=12, motion="bike"), _params(), key=jax.random.PRNGKey(0))

@@ -57,8 +57,8 @@ def test_nll_gradient_matches_central_differences(excerpt):
 def test_checkpoint_blocks_change_no_number(excerpt):
     it = _item(excerpt)
     prm = pe.mrclam_params(dtype=jnp.float64)
-    a = pe.run_arrays(it.dt, it.u, it.z, it.ids, it.mask, it.pose0, prm, pe.mrclam_config())
-    b = pe.run_arrays(it.dt, it.u, it.z, it.ids, it.mask, it.pose0, prm, pe.mrclam_config()._replace(block=50))
+    a = pe.run(pe.Log(it.dt, it.u, it.z, it.ids, it.mask, it.pose0), pe.mrclam_config(), prm)
+    b = pe.run(pe.Log(it.dt, it.u, it.z, it.ids, it.mask, it.pose0), pe.mrclam_config()._replace(block=50), prm)
     # the blocked scan is another XLA program (other fusion, other rounding): equal up to
     # rounding, measured at <= 2.2e-15 relative; a wrong block boundary would differ by far more
     np.testing.assert_allclose(np.asarray(a.pose), np.asarray(b.pose), rtol=1e-12, atol=1e-12)
@@ -164,7 +164,7 @@ def test_odometry_delay_is_the_argmin_of_the_training_nll():
     # each entry is the NLL of the log built with that delay (value oracle: the scan itself)
     logs, _ = RL.mrclam_logs(DATA, [1], np.float64, 10.0, odometry_delay=0.1)
     it = _item(logs)
-    res = pe.run_arrays(it.dt, it.u, it.z, it.ids, it.mask, it.pose0, base, pe.mrclam_config())
+    res = pe.run(pe.Log(it.dt, it.u, it.z, it.ids, it.mask, it.pose0), pe.mrclam_config(), base)
     np.testing.assert_allclose(table[0.1], float(np.sum(res.nll) / np.sum(res.nll_dof)), rtol=1e-9)
 
 

@@ -14,7 +14,7 @@ construction): θ = {"log_sigma": log [σ_v, σ_ω, σ_r, σ_β], "log_floor": l
   [(m/s)²·s, (rad/s)²·s];
 * Q_floor = diag(q_xy, q_xy, q_φ): the pose-noise floor density [m²/s, rad²/s] (wheel slip);
 * R = diag(σ_r², σ_β²) [m², rad²] of the camera's range and bearing;
-* the camera range model r_meas = r (1 + k2 β²) (``PlanarParams.range_model`` with k0 = 1):
+* the camera range model r_meas = r (1 + k2 β²) (``planar_ekf_slam.Params.range_model`` with k0 = 1):
   the range error that grows towards the image edges.  The overall range scale k0 is *not*
   learned: it is confounded with the odometry's scale (docs/datasets.md, "Left open"), and
   when it was free (the first fit of this target) it went to k0 = 1.31, shrinking the map by
@@ -33,8 +33,6 @@ five.  Nothing is fitted per robot or per log.
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -43,26 +41,15 @@ from ...data import catalogue
 from ...errors import InputError
 from . import Target, register_target
 
-__all__ = ["PlanarLogs", "mrclam_logs", "planar_theta0", "planar_physical", "planar_nll",
+__all__ = ["mrclam_logs", "planar_theta0", "planar_physical", "planar_nll",
            "mrclam_noise", "mrclam_train_config", "select_odometry_delay", "DELAY_GRID"]
 
 
-class PlanarLogs(NamedTuple):
-    """Planar event logs padded to one length T (leading axis = logs).
+def _stack(logs, poses, dtype, T: int | None = None):
+    """The logs as one :class:`jaxslam.systems.planar_ekf_slam.Log` batch (leading axis = logs),
+    padded to T events: padding events have dt = 0, no input and no rows (they change nothing)."""
+    from ...systems.planar_ekf_slam import Log
 
-    dt (N, T), u (N, T, 2), z (N, T, K, 2), ids (N, T, K), mask (N, T, K), pose0 (N, 3).
-    Padding events have dt = 0, no input and no rows: they change nothing.
-    """
-
-    dt: np.ndarray
-    u: np.ndarray
-    z: np.ndarray
-    ids: np.ndarray
-    mask: np.ndarray
-    pose0: np.ndarray
-
-
-def _stack(logs, poses, dtype, T: int | None = None) -> PlanarLogs:
     T = max(lg.dt.shape[0] for lg in logs) if T is None else T
     K = logs[0].z.shape[1]
 
@@ -70,7 +57,7 @@ def _stack(logs, poses, dtype, T: int | None = None) -> PlanarLogs:
         n = T - a.shape[0]
         return np.concatenate([a, np.full((n,) + a.shape[1:], fill, a.dtype)]) if n else a
 
-    return PlanarLogs(
+    return Log(
         dt=np.stack([pad(np.asarray(lg.dt), 0.0) for lg in logs]).astype(dtype),
         u=np.stack([pad(np.asarray(lg.u), 0.0) for lg in logs]).astype(dtype),
         z=np.stack([pad(np.asarray(lg.z), np.nan) for lg in logs]).astype(dtype),
@@ -84,7 +71,7 @@ def mrclam_logs(data_dir, robots, dtype=np.float64, t_max: float | None = None, 
                 T: int | None = None):
     """The raw MRCLAM logs of ``robots`` (as ``jaxslam dataset mrclam`` builds them), padded.
 
-    Returns ``(PlanarLogs, [(log, data), ...])``.  The start pose is the ground truth at the
+    Returns ``(Log batch, [(EventLog, data), ...])``.  The start pose is the ground truth at the
     first event (the dataset runner's start, not a fit).  ``t_max``: keep the first seconds.
     ``odometry_delay``: the odometry stamps' lag [s] (``planar_ekf_slam.mrclam_raw_log``).
     ``T``: pad to this many events (default: the longest log).
@@ -141,11 +128,11 @@ def select_odometry_delay(data_dir, robots, params, config, dtype=np.float64, t_
 def _run(params, config, item):
     from ...systems import planar_ekf_slam as pe
 
-    return pe.run_arrays(item.dt, item.u, item.z, item.ids, item.mask, item.pose0, params, config)
+    return pe.run(item, config, params)
 
 
 def planar_theta0(params) -> dict:
-    """θ of :func:`planar_physical` at ``params`` (a ``PlanarParams`` with diagonal M_c, R, floor)."""
+    """θ of :func:`planar_physical` at ``params`` (a ``planar_ekf_slam.Params`` with diagonal M_c, R, floor)."""
     M = np.diag(np.asarray(params.M_c, np.float64))
     R = np.diag(np.asarray(params.R, np.float64))
     F = np.diag(np.asarray(params.Q_floor, np.float64))
@@ -156,7 +143,7 @@ def planar_theta0(params) -> dict:
 
 
 def planar_physical(theta, base):
-    """``PlanarParams`` from θ (module docstring); P0 and the rest from ``base``."""
+    """``planar_ekf_slam.Params`` from θ (module docstring); P0 and the rest from ``base``."""
     dtype = jnp.asarray(base.R).dtype
     s = jnp.exp(jnp.asarray(theta["log_sigma"], dtype))
     f = jnp.exp(jnp.asarray(theta["log_floor"], dtype))
@@ -233,7 +220,7 @@ def mrclam_noise(loss: str = "nll", data=None, robots=(1, 2, 3, 4), test_robots=
         for label, prm in labelled.items():
             m = {"ate_m": [], "nll": [], "outlier_fraction": [], "inflations": []}
             for i, (log, d) in enumerate(ev_raw):
-                res = pe.run(log, jnp.asarray(ev_logs.pose0[i]), pe.mrclam_config(), prm)
+                res = pe.run(pe.log_from_events(log, jnp.asarray(ev_logs.pose0[i])), pe.mrclam_config(), prm)
                 mm, _ = runners.evaluate_planar(log.t, np.asarray(res.pose, np.float64), d.gt_t, d.gt)
                 m["ate_m"].append(mm["ate_m"])
                 m["nll"].append(float(np.sum(res.nll) / max(np.sum(res.nll_dof), 1)))
