@@ -4,10 +4,10 @@ docs/datasets.md "Smoothing Plaza".
     python scripts/reproduce_plaza_smoothing.py --data DIR [--robot 1 2] [--iters 30] [--start rts|ekf] [--damping L] [--json PATH]
 
 ``DIR`` holds ``gtsam/PlazaN_*.txt`` (docs/datasets.md).  Three estimates per log, all on
-jaxslam's Plaza model (``systems.range_only`` section B, ``PLAZA_PARAMS`` unchanged):
+jaxslam's Plaza model (``systems.plaza_range``, ``PARAMS`` unchanged):
 
-1. the EKF (``run_plaza``, beacons unknown, delayed initialisation);
-2. its map-static RTS smoother (``run_plaza(..., smooth=True)``, what ``jaxslam dataset plaza
+1. the EKF (``plaza_range.run``, beacons unknown, delayed initialisation);
+2. its map-static RTS smoother (``plaza_range.Config(smooth=True)``, what ``jaxslam dataset plaza
    --smooth`` reports);
 3. the MAP of the whole log by ``jaxslam.filters.smoother.iterated`` (Gauss–Newton) with Huber
    IRLS weights (k = 1.345, the 95 %-efficiency constant) on the state
@@ -50,21 +50,21 @@ from jaxslam.data.runners import evaluate_planar  # noqa: E402
 from jaxslam.filters import smoother  # noqa: E402
 from jaxslam.linalg import wrap_angle  # noqa: E402
 from jaxslam.metrics import map_error  # noqa: E402
-from jaxslam.systems import range_only as ro  # noqa: E402
+from jaxslam.systems import plaza_range as pr  # noqa: E402
 
 NB = 4
 N = 4 + 2 * NB
 
 
 def f_batch(x, u):
-    """(ODO) on the pose, bias and beacons unchanged (``ro.odo_motion`` on the first 4)."""
-    return jnp.concatenate([ro.odo_motion(x[:4], u), x[4:]])
+    """(ODO) on the pose, bias and beacons unchanged (``pr.odo_motion`` on the first 4)."""
+    return jnp.concatenate([pr.odo_motion(x[:4], u), x[4:]])
 
 
 def h_batch(x, slots):
     """(R1) for each of the event's K rows: ‖p − l_slot‖ + b."""
     L = x[4:].reshape(NB, 2)[slots]
-    return jax.vmap(lambda lm: ro.range_observe(x[:4], lm)[0])(L)
+    return jax.vmap(lambda lm: pr.range_observe(x[:4], lm)[0])(L)
 
 
 def difference(a, b):
@@ -73,14 +73,14 @@ def difference(a, b):
 
 
 def smooth_log(d, iters, damping, start_from):
-    log = ro.plaza_events(d.dr_t, d.dr, d.td_t, d.td_node, d.td_range)
+    log = pr.plaza_events(d.dr_t, d.dr, d.td_t, d.td_node, d.td_range)
     pose0 = np.asarray(d.start_pose(), np.float64)
     bid = np.asarray(d.node_id)
     t0 = time.perf_counter()
-    res = ro.run_plaza(log, pose0, bid, smooth=True)
+    res = pr.run(pr.log_from_events(log, pose0, bid), pr.Config(smooth=True))
     jax.block_until_ready(res.smoothed)
     t_ekf = time.perf_counter() - t0
-    p = ro.PLAZA_PARAMS
+    p = pr.PARAMS
     act = np.asarray(res.active)
     lm = np.asarray(res.landmarks)
     ids = np.asarray(res.landmark_ids)
@@ -96,7 +96,7 @@ def smooth_log(d, iters, damping, start_from):
                           np.asarray(res.bias)[:, None]], 1)
     prev = np.concatenate([np.concatenate([pose0, [p.bias0]])[None], est[:-1]], 0)
     dt = np.asarray(log.dt, np.float64)
-    Qr = np.asarray(jax.vmap(lambda s, uu, dd: ro.odo_process_noise(s, uu, dd, p))(
+    Qr = np.asarray(jax.vmap(lambda s, uu, dd: pr.odo_process_noise(s, uu, dd, p))(
         jnp.asarray(prev), jnp.asarray(u), jnp.asarray(dt)))
     Q = np.zeros((len(u), N, N))
     Q[:, :4, :4] = Qr

@@ -13,7 +13,7 @@ noise fit.
 
 Method
 ------
-* **State.** There is one state per event of ``ro.plaza_events``: Plaza 1 has 13 183
+* **State.** There is one state per event of ``pr.plaza_events``: Plaza 1 has 13 183
   events (3529 of them ranges) and Plaza 2 has 5906 (1816 ranges). Each state is
   z = [x, y, θ, b, s_d, s_θ, l_1 … l_4] (14). The four beacons are static states from
   t = 0, so every range is used, including the 232/230 that reach the EKF before it has
@@ -39,10 +39,10 @@ Method
 Constants and where each comes from (ground truth is used only to score the finished
 estimates)
 -----------------------------------------------------------------------------------------
-* **Odometry noise.** ``PLAZA_PARAMS``: α_d 0.05, σ_d0 0.01 m/√s, α_θ 0.05, β_θ 0.002
+* **Odometry noise.** ``plaza_range.PARAMS``: α_d 0.05, σ_d0 0.01 m/√s, α_θ 0.05, β_θ 0.002
   rad/m, σ_θ0 0.003 rad/√s.
 * **Range noise and bias.** σ_r = 1.2 m; bias prior 0 ± 5 m; q_b = 1e-4 m²/s. All from
-  ``PLAZA_PARAMS``. The start pose is GT₀ ± (0.1 m, 0.02 rad) (``p0_pos``, ``p0_th``);
+  ``plaza_range.PARAMS``. The start pose is GT₀ ± (0.1 m, 0.02 rad) (``p0_pos``, ``p0_th``);
   for Plaza 2 the heading gets + π (``start_pose``).
 * **Beacon prior.** Mean = the jaxslam EKF SLAM run's final beacons, σ = 1000 m per axis.
   The 1000 m is GTSAM's ``looseNoise``. With so wide a prior the mean only picks the
@@ -148,24 +148,24 @@ import numpy as np
 from jaxslam import metrics
 from jaxslam.data.plaza import load_plaza
 from jaxslam.data.runners import evaluate_planar
-from jaxslam.systems import range_only as ro
+from jaxslam.systems import plaza_range as pr
 
 NB = 4  # beacons
 IB, ISD, IST, IL = 3, 4, 5, 6  # bias, distance scale, heading scale, first beacon
 NX = IL + 2 * NB  # [x, y, θ, b, s_d, s_θ, l_1 (2), ..., l_4 (2)] = 14
-GATE_K = float(np.sqrt(6.63))  # the EKF's χ²(1) 99 % gate (run_plaza default), in σ
+GATE_K = float(np.sqrt(6.63))  # the EKF's χ²(1) 99 % gate (plaza_range.Config default), in σ
 HUBER_K = 1.345  # Huber's 95 %-efficiency constant (σ units)
 TUKEY_C = 4.685  # Tukey's 95 %-efficiency constant (σ units)
 
 
 # ---------------------------------------------------------------------------
-# Model: jaxslam's Plaza model (range_only section B), beacons in the state from t = 0
+# Model: jaxslam's Plaza model (``systems.plaza_range``), beacons in the state from t = 0
 # ---------------------------------------------------------------------------
 
 class Noise(NamedTuple):
     """Noise of one configuration (a pytree of floats).
 
-    alpha_d … sigma_th0, q_bias: as ``PlazaParams`` (input noise σ_d = α_d|d| + σ_d0√Δt,
+    alpha_d … sigma_th0, q_bias: as ``plaza_range.Params`` (input noise σ_d = α_d|d| + σ_d0√Δt,
     σ_θ = α_θ|dθ| + β_θ|d| + σ_θ0√Δt; bias walk q_b [m²/s]).  gsig: GTSAM-style Between
     sigmas (forward, lateral, heading) per DR row, used when qkind == "gtsam"."""
 
@@ -178,8 +178,8 @@ class Noise(NamedTuple):
     gsig: tuple
 
 
-def noise_from(p: ro.PlazaParams, kd=1.0, kt=1.0, q_bias=None, gsig=(1.0, 1.0, 1.0)) -> Noise:
-    """``PlazaParams`` odometry noise, σ_d scaled by kd and σ_θ by kt."""
+def noise_from(p: pr.Params, kd=1.0, kt=1.0, q_bias=None, gsig=(1.0, 1.0, 1.0)) -> Noise:
+    """``plaza_range.Params`` odometry noise, σ_d scaled by kd and σ_θ by kt."""
     return Noise(p.alpha_d * kd, p.sigma_d0 * kd, p.alpha_th * kt, p.beta_th * kt,
                  p.sigma_th0 * kt, p.q_bias if q_bias is None else q_bias, tuple(gsig))
 
@@ -187,7 +187,7 @@ def noise_from(p: ro.PlazaParams, kd=1.0, kt=1.0, q_bias=None, gsig=(1.0, 1.0, 1
 def f_aug(z, u):
     """(ODO) pose ∘ Pose2(s_d d, 0, s_θ dθ); bias, scales, beacons unchanged.
 
-    With s_d = s_θ = 1 this is ``ro.odo_motion`` except that the heading is **not wrapped**
+    With s_d = s_θ = 1 this is ``pr.odo_motion`` except that the heading is **not wrapped**
     (``planar.compose`` wraps θ to (−π, π]; a smoother that forms x_k − f(x_{k−1}) or
     linearises f(x̄) + F(x − x̄) across a wrap sees 2π jumps — that alone made the first
     Gauss–Newton runs blow up).  The state carries an unwrapped θ."""
@@ -198,9 +198,9 @@ def f_aug(z, u):
 
 
 def h_range(z, j):
-    """(R1) z = ‖p − l_j‖ + b for beacon slot j (traced int); ``ro.range_observe``."""
+    """(R1) z = ‖p − l_j‖ + b for beacon slot j (traced int); ``pr.range_observe``."""
     l = jax.lax.dynamic_slice(z, (IL + 2 * j,), (2,))
-    return ro.range_observe(jnp.stack([z[0], z[1], z[2], z[IB]]), l)[0]
+    return pr.range_observe(jnp.stack([z[0], z[1], z[2], z[IB]]), l)[0]
 
 
 def input_sigmas(u, dt, nz: Noise):
@@ -215,7 +215,7 @@ def input_sigmas(u, dt, nz: Noise):
 def q_step(z, u, dt, nz: Noise, qkind):
     """Per-step process covariance Q_k (NX, NX) at the linearisation point z.
 
-    "jaxslam": G_u diag(σ_d², σ_θ²) G_uᵀ ⊕ q_b Δt (``ro.odo_process_noise``; rank 2 in the
+    "jaxslam": G_u diag(σ_d², σ_θ²) G_uᵀ ⊕ q_b Δt (``pr.odo_process_noise``; rank 2 in the
     pose: no sideways slip).  "gtsam": R(θ) diag(σ_f², σ_l²) R(θ)ᵀ ⊕ σ_h² on DR rows (u ≠ 0),
     zero pose noise on range-only events; bias walk as above.  Static states: zero."""
     if qkind == "gtsam":
@@ -573,11 +573,11 @@ def prepare(data_dir, which):
     """Load one log, run jaxslam's EKF SLAM (the CLI's run), build the smoother's arrays and
     the first nominal trajectory (the EKF's per-event estimate, its final beacons)."""
     d = load_plaza(data_dir, which)
-    log = ro.plaza_events(d.dr_t, d.dr, d.td_t, d.td_node, d.td_range)
+    log = pr.plaza_events(d.dr_t, d.dr, d.td_t, d.td_node, d.td_range)
     pose0 = np.asarray(d.start_pose(), np.float64)
     bid = np.asarray(d.node_id)
     t0 = time.perf_counter()
-    res = ro.run_plaza(log, pose0, bid, dtype=jnp.float64)
+    res = pr.run(pr.log_from_events(log, pose0, bid, dtype=jnp.float64))
     jax.block_until_ready(res.pos)
     ekf_s = time.perf_counter() - t0
     ids = np.asarray(log.ids)
@@ -590,7 +590,7 @@ def prepare(data_dir, which):
     beac = np.stack([L[np.nonzero((lid == b) & act)[0][0]] for b in bid])
     rob = np.concatenate([np.asarray(res.pos), np.asarray(res.heading)[:, None],
                           np.asarray(res.bias)[:, None]], 1)
-    rob = np.concatenate([np.concatenate([pose0, [ro.PLAZA_PARAMS.bias0]])[None], rob])
+    rob = np.concatenate([np.concatenate([pose0, [pr.PARAMS.bias0]])[None], rob])
     rob[:, 2] = np.unwrap(rob[:, 2])
     T1 = rob.shape[0]
     z_init = np.concatenate([rob, np.ones((T1, 2)), np.tile(beac.reshape(-1), (T1, 1))], 1)
@@ -600,8 +600,8 @@ def prepare(data_dir, which):
             "z_init": z_init, "ekf_beacons": beac}
 
 
-def problem(prep, nz: Noise, start_sig=(ro.PLAZA_PARAMS.p0_pos, ro.PLAZA_PARAMS.p0_th),
-            bias="rw", sigma_bias0=ro.PLAZA_PARAMS.sigma_bias0, calib=0.0, sigma_l=1000.0):
+def problem(prep, nz: Noise, start_sig=(pr.PARAMS.p0_pos, pr.PARAMS.p0_th),
+            bias="rw", sigma_bias0=pr.PARAMS.sigma_bias0, calib=0.0, sigma_l=1000.0):
     """Prior and bookkeeping.  Start pose GT₀ (Plaza 2 heading + π) ± start_sig; bias 0 ±
     sigma_bias0 ("rw": random walk q_b, "const": q_b = 0, "none": b ≡ 0); scales 1 ± calib
     (0: fixed at 1); beacons: mean = the EKF's final beacons, σ = sigma_l per axis (diffuse:
@@ -659,7 +659,7 @@ def evaluate(prep, zs, Ps=None):
 # Configurations
 # ---------------------------------------------------------------------------
 
-P = ro.PLAZA_PARAMS
+P = pr.PARAMS
 NZ = noise_from(P)
 GTSAM_GSIG = (0.05, 0.01, 0.1)  # RangeISAMExample_plaza2.cpp odoSigmas (x, y, θ) per DR row
 GTSAM_SIGMA_R = 100.0  # its sigmaR
@@ -689,7 +689,7 @@ GTSAM = dict(qkind="gtsam", nz=noise_from(P, gsig=GTSAM_GSIG), sigma_r=GTSAM_SIG
 CONFIGS = [
     Cfg("gn-plain", "undamped IEKS (textbook GN) from the EKF estimate, Gaussian", start="ekf",
         damped=False, max_iter=40),
-    Cfg("lm-gauss", "LM-IEKS from the (projected) EKF estimate, Gaussian σ_r 1.2, PLAZA_PARAMS, "
+    Cfg("lm-gauss", "LM-IEKS from the (projected) EKF estimate, Gaussian σ_r 1.2, plaza_range.PARAMS, "
         "bias random walk", start="ekf"),
     Cfg("lm-gauss-eks", "as lm-gauss, started from the EKS pass instead"),
     Cfg("huber", "Huber k 1.345σ (IRLS)", "huber", HUBER_K, start="lm-gauss"),

@@ -25,7 +25,8 @@ from jaxslam import errors, metrics  # noqa: E402
 from jaxslam.data import load_plaza as _load_plaza  # noqa: E402
 from jaxslam.data import load_util as _load_util  # noqa: E402
 from jaxslam.data import tag_positions  # noqa: E402
-from jaxslam.systems import range_only as ro  # noqa: E402
+from jaxslam.systems import plaza_range as pr  # noqa: E402
+from jaxslam.systems import util_range as ur  # noqa: E402
 
 DATA = sys.argv[sys.argv.index("--data") + 1] if "--data" in sys.argv else __import__("os").environ["JAXSLAM_DATA_DIR"]
 
@@ -67,12 +68,10 @@ def timed(f):
     return r, t1 - t0, t2 - t1
 
 
-def util(dtype, gate=9.0, params=ro.UTIL_PARAMS, t_w=30.0):
+def util(dtype, gate=9.0, params=ur.PARAMS, t_w=30.0):
     u, gt_t, tag, aid, anchors = load_util()
-    log = ro.util_events(u[:, 0], u[:, 1], u[:, 2])
-    res, tc, tr = timed(lambda: ro.run_util(log, aid, anchors=anchors, params=params, gate=gate,
-                                            dtype=dtype))
-    tt = np.asarray(res.t, np.float64)
+    log = ur.util_events(u[:, 0], u[:, 1], u[:, 2])
+    res, tc, tr = timed(lambda: ur.run(ur.log_from_events(log, aid, anchors=anchors, dtype=dtype), ur.Config(gate=gate), params))
     true = interp(log.t, gt_t, tag)
     est = np.asarray(res.pos, np.float64)
     err = np.linalg.norm(est - true, axis=1)
@@ -88,10 +87,9 @@ def util(dtype, gate=9.0, params=ro.UTIL_PARAMS, t_w=30.0):
     tof_t, tof = load_tof()
     rmse, rz, rxy = err_report(log.t, est, true, air)
     print(f"   range-only airborne: RMSE {rmse:.3f} m, vertical {rz:.3f} m, horizontal {rxy:.3f} m")
-    logh = ro.util_events(u[:, 0], u[:, 1], u[:, 2], tof_t=tof_t, tof=tof)
-    resh, tc, tr = timed(lambda: ro.run_util(logh, aid, anchors=anchors, params=params, gate=gate,
-                                             dtype=dtype))
-    isr = (np.asarray(logh.ids)[:, 0] != ro.HEIGHT_ID)  # evaluate at the range events
+    logh = ur.util_events(u[:, 0], u[:, 1], u[:, 2], tof_t=tof_t, tof=tof)
+    resh, tc, tr = timed(lambda: ur.run(ur.log_from_events(logh, aid, anchors=anchors, dtype=dtype), ur.Config(gate=gate), params))
+    isr = (np.asarray(logh.ids)[:, 0] != ur.HEIGHT_ID)  # evaluate at the range events
     th = logh.t[isr]
     esth = np.asarray(resh.pos, np.float64)[isr]
     trueh = interp(th, gt_t, tag)
@@ -106,13 +104,13 @@ def util(dtype, gate=9.0, params=ro.UTIL_PARAMS, t_w=30.0):
     tag_at = interp(u[:, 0], gt_t, tag)
     i_w = np.searchsorted(gt_t, t_w)
     v0 = (tag[i_w + 20] - tag[i_w - 20]) / (gt_t[i_w + 20] - gt_t[i_w - 20])
-    su = ro.util_startup(jnp.asarray(u[:, 0], dtype), u[:, 1].astype(int), jnp.asarray(u[:, 2], dtype),
+    su = ur.startup(jnp.asarray(u[:, 0], dtype), u[:, 1].astype(int), jnp.asarray(u[:, 2], dtype),
                          jnp.asarray(tag_at, dtype), aid, t_w, v0=jnp.asarray(v0, dtype))
     a_err0 = np.linalg.norm(np.asarray(su.anchors) - anchors, axis=1)
     print(f"UTIL start-up window [0, {t_w}] s: anchors err mean {a_err0.mean():.3f} max {a_err0.max():.3f} m, "
           f"bias {float(su.bias):+.3f} m, used {int(su.n_used)} rejected {int(su.n_rejected)} rms {float(su.rms):.3f}")
-    log2 = ro.util_events(u[:, 0], u[:, 1], u[:, 2], t_start=t_w + 1e-9)
-    res2, tc, tr = timed(lambda: ro.run_util(log2, aid, startup=su, params=params, gate=gate, dtype=dtype))
+    log2 = ur.util_events(u[:, 0], u[:, 1], u[:, 2], t_start=t_w + 1e-9)
+    res2, tc, tr = timed(lambda: ur.run(ur.log_from_events(log2, aid, startup=su, dtype=dtype), ur.Config(gate=gate), params))
     true2 = interp(log2.t, gt_t, tag)
     est2 = np.asarray(res2.pos, np.float64)
     err2 = np.linalg.norm(est2 - true2, axis=1)
@@ -130,9 +128,9 @@ def util(dtype, gate=9.0, params=ro.UTIL_PARAMS, t_w=30.0):
           f"{int(res2.n_gated)} status {errors.decode(res2.status)}; run {tr:.3f} s")
     rmse, rz, rxy = err_report(log2.t, est2, true2, air2)
     print(f"   range-only (unknown anchors) airborne: RMSE {rmse:.3f}, vertical {rz:.3f}, horizontal {rxy:.3f} m")
-    logh2 = ro.util_events(u[:, 0], u[:, 1], u[:, 2], t_start=t_w + 1e-9, tof_t=tof_t, tof=tof)
-    resh2, tc, tr = timed(lambda: ro.run_util(logh2, aid, startup=su, params=params, gate=gate, dtype=dtype))
-    isr = (np.asarray(logh2.ids)[:, 0] != ro.HEIGHT_ID)
+    logh2 = ur.util_events(u[:, 0], u[:, 1], u[:, 2], t_start=t_w + 1e-9, tof_t=tof_t, tof=tof)
+    resh2, tc, tr = timed(lambda: ur.run(ur.log_from_events(logh2, aid, startup=su, dtype=dtype), ur.Config(gate=gate), params))
+    isr = (np.asarray(logh2.ids)[:, 0] != ur.HEIGHT_ID)
     th = logh2.t[isr]
     esth = np.asarray(resh2.pos, np.float64)[isr]
     trueh = interp(th, gt_t, tag)
@@ -158,17 +156,17 @@ def load_plaza(which):
     return DR, TD, GT, TL
 
 
-def plaza(which, dtype, params=ro.PLAZA_PARAMS, known=False, **kw):
+def plaza(which, dtype, params=pr.PARAMS, known=False, **kw):
     DR, TD, GT, TL = load_plaza(which)
-    log = ro.plaza_events(DR[:, 0], DR[:, 1:3], TD[:, 0], TD[:, 2], TD[:, 3])
+    log = pr.plaza_events(DR[:, 0], DR[:, 1:3], TD[:, 0], TD[:, 2], TD[:, 3])
     pose0 = GT[0, 1:4].copy()
     if which == 2:
         pose0[2] += np.pi
     ids = np.array([0, 1, 5, 6])
     if known:
         xy = np.stack([TL[TL[:, 0] == i, 1:3][0] for i in ids])
-        kw = dict(kw, beacons=xy)
-    res, tc, tr = timed(lambda: ro.run_plaza(log, pose0, ids, params=params, dtype=dtype, **kw))
+    rlog = pr.log_from_events(log, pose0, ids, beacons=xy if known else None, dtype=dtype)
+    res, tc, tr = timed(lambda: pr.run(rlog, pr.Config(**kw), params))
     est = np.asarray(res.pos, np.float64)
     # ground truth at the event times (inside GT's span)
     inside = (log.t >= GT[0, 0]) & (log.t <= GT[-1, 0])

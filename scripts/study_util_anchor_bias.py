@@ -10,7 +10,8 @@ constant-velocity tag they absorb position error instead of the non-line-of-sigh
 import sys
 import jax, jax.numpy as jnp, numpy as np
 jax.config.update("jax_enable_x64", True)
-from jaxslam.systems import range_only as ro
+from jaxslam.systems import util_range as ur
+from jaxslam.systems.biased_range import _cast_params
 from jaxslam.filters import ekf_slam as es
 from jaxslam.filters import trilateration as tri
 from jaxslam.data.util_uwb import load_util, tag_positions
@@ -23,11 +24,12 @@ def obs4(s, l, params=None):
 M4 = es.SlamModel(robot_dim=7, lm_dim=4, meas_dim=1, motion=None, observe=obs4)
 d = load_util(DATA, "twr_obs_log1")
 tag = tag_positions(d.gt_p, d.gt_q, d.tag_offset)
-log = ro.util_events(d.twr_t, d.twr_anchor, d.twr_range)
+log = ur.util_events(d.twr_t, d.twr_anchor, d.twr_range)
 aid = jnp.asarray(d.anchor_id, jnp.int32); N = aid.shape[0]
 anchors = jnp.asarray(d.anchor_p)
-p = ro._cast_params(ro.UTIL_PARAMS._replace(sigma_r=sigma_r), jnp.float64)
-dt, _, z, ids, mask = ro._log_arrays(log, jnp.float64)
+p = _cast_params(ur.PARAMS._replace(sigma_r=sigma_r), jnp.float64)
+rl = ur.log_from_events(log, aid, anchors=anchors, dtype=jnp.float64)
+dt, z, ids, mask = rl.dt, rl.z, rl.ids, rl.mask
 nf = 16
 z0, ids0 = z[:nf, 0, 0], ids[:nf, 0]
 eq = ids0[:, None] == aid[None, :]
@@ -43,8 +45,8 @@ st = st._replace(x=x, P=jnp.diag(Pd), active=st.active.at[:N].set(True), ids=st.
 def run(st):
     def step(st, inp):
         dt_k, z_k, id_k, m_k = inp
-        Q = ro.cv_process_noise(dt_k, p.q_acc, p.q_bias, st.x.dtype)
-        st = es.predict(st, M4._replace(motion=lambda s, u, pp: ro.cv_motion(s, u, dt_k)), None, Q)
+        Q = ur.cv_process_noise(dt_k, p.q_acc, p.q_bias, st.x.dtype)
+        st = es.predict(st, M4._replace(motion=lambda s, u, pp: ur.cv_motion(s, u, dt_k)), None, Q)
         slots, mapped = es.associate_known(st, id_k, m_k)
         st, info = es.update(st, M4, z_k, slots, mapped, jnp.reshape(p.sigma_r**2, (1, 1)), gate=gate, robust=nu)
         return st, st.x[:3]

@@ -83,15 +83,16 @@ def test_planar_fastslam_compiles_once_for_new_noise_and_key():
 
 def test_range_only_runners_compile_once():
     from jaxslam.data.util_uwb import load_util
-    from jaxslam.systems import range_only as ro
+    from jaxslam.systems import util_range as ur
 
     d = load_util(DATA, "twr_obs_log1")
-    log = ro.util_events(d.twr_t, d.twr_anchor, d.twr_range)
+    log = ur.util_events(d.twr_t, d.twr_anchor, d.twr_range)
     aid = np.asarray(d.anchor_id)
-    n0 = ro._run_util_known._cache_size()
-    ro.run_util(log, aid, anchors=d.anchor_p)
-    p = ro.UTIL_PARAMS
+    n0 = ur._run._cache_size()
+    ur.run(ur.log_from_events(log, aid, anchors=d.anchor_p))
+    p = ur.PARAMS
     other = p._replace(**{f: np.asarray(getattr(p, f)) * 1.5 for f in p._fields
                           if np.asarray(getattr(p, f)).dtype.kind == "f"})
-    ro.run_util(log, aid, anchors=np.asarray(d.anchor_p) + 0.05, params=other)  # other numbers
-    assert ro._run_util_known._cache_size() == n0 + 1
+    # other numbers (anchors, noise): the same program
+    ur.run(ur.log_from_events(log, aid, anchors=np.asarray(d.anchor_p) + 0.05), ur.Config(), other)
+    assert ur._run._cache_size() == n0 + 1

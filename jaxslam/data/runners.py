@@ -346,13 +346,13 @@ def _add_smoothed(m, ev, ms, evs):
 @_register("util-uwb")
 def run_util_uwb(data_dir, robot=1, filter="ekf", ids="known", anchors=None, particles=None,
                  seed=0, dtype=np.float64, tof=False, t_window=30.0, calibrated=False, smooth=False):
-    """UTIL TWR flight: constant-velocity range-only EKF with a bias state (``systems.range_only``).
+    """UTIL TWR flight: constant-velocity range-only EKF with a bias state (``systems.util_range``).
 
     ``anchors``: "known" (default, surveyed) or "unknown" (SLAM after a start-up
     window); ``tof``: also use the downward laser height (then not range-only).
     """
     anchors = anchors or "known"
-    from ..systems import range_only as ro
+    from ..systems import util_range as ur
     from .util_uwb import load_util, tag_positions
 
     t0 = time.perf_counter()
@@ -365,9 +365,9 @@ def run_util_uwb(data_dir, robot=1, filter="ekf", ids="known", anchors=None, par
         raise InputError("util-uwb: --tof given but the flight has no tof.csv")
     sensors = "ranges + ToF height" if tof else "ranges only"
     if anchors == "known":
-        log = ro.util_events(d.twr_t, d.twr_anchor, d.twr_range, **hk)
-        res, comp_s, run_s = timed_run(lambda: ro.run_util(log, aid, anchors=d.anchor_p, dtype=dtype,
-                                                           smooth=smooth))
+        log = ur.util_events(d.twr_t, d.twr_anchor, d.twr_range, **hk)
+        rlog = ur.log_from_events(log, aid, anchors=d.anchor_p, dtype=dtype)
+        res, comp_s, run_s = timed_run(lambda: ur.run(rlog, ur.Config(smooth=smooth)))
         setting = f"known surveyed anchors, constant-velocity tag + common range bias ({sensors})"
         notes = []
     else:
@@ -380,12 +380,12 @@ def run_util_uwb(data_dir, robot=1, filter="ekf", ids="known", anchors=None, par
         # start velocity: central difference of the motion-capture tag over ±0.1 s
         v0 = np.array([(np.interp(t_window + 0.1, d.gt_t, tag[:, j]) - np.interp(t_window - 0.1, d.gt_t, tag[:, j]))
                        / 0.2 for j in range(3)])
-        su = ro.util_startup(jnp.asarray(t_all, dtype), np.asarray(d.twr_anchor).astype(int),
+        su = ur.startup(jnp.asarray(t_all, dtype), np.asarray(d.twr_anchor).astype(int),
                              jnp.asarray(d.twr_range, dtype), jnp.asarray(tag_at, dtype), aid, t_window,
                              v0=jnp.asarray(v0, dtype))
-        log = ro.util_events(d.twr_t, d.twr_anchor, d.twr_range, t_start=t_window + 1e-9, **hk)
-        res, comp_s, run_s = timed_run(lambda: ro.run_util(log, aid, startup=su, dtype=dtype,
-                                                           smooth=smooth))
+        log = ur.util_events(d.twr_t, d.twr_anchor, d.twr_range, t_start=t_window + 1e-9, **hk)
+        rlog = ur.log_from_events(log, aid, startup=su, dtype=dtype)
+        res, comp_s, run_s = timed_run(lambda: ur.run(rlog, ur.Config(smooth=smooth)))
         setting = (f"anchors unknown (SLAM); start-up: anchors + bias fitted to the ranges of "
                    f"[0, {t_window:g}] s with motion-capture positions, then no motion capture "
                    f"({sensors})")
@@ -467,20 +467,20 @@ def run_plaza_dataset(data_dir, robot=1, filter="ekf", ids="known", anchors=None
     """
     anchors = anchors or "unknown"
     from ..dynamics import planar
-    from ..systems import range_only as ro
+    from ..systems import plaza_range as pr
     from .plaza import load_plaza
 
     if robot not in (1, 2):
         raise InputError(f"plaza: --robot selects the sequence, 1 or 2 (got {robot})")
     t0 = time.perf_counter()
     d = load_plaza(data_dir, robot)
-    log = ro.plaza_events(d.dr_t, d.dr, d.td_t, d.td_node, d.td_range)
+    log = pr.plaza_events(d.dr_t, d.dr, d.td_t, d.td_node, d.td_range)
     load_s = time.perf_counter() - t0
     pose0 = np.asarray(d.start_pose(), np.float64)
     bid = np.asarray(d.node_id)
     beacons = np.asarray(d.node_xy, np.float64) if anchors == "known" else None
-    res, comp_s, run_s = timed_run(lambda: ro.run_plaza(log, pose0, bid, dtype=dtype, beacons=beacons,
-                                                        smooth=smooth))
+    rlog = pr.log_from_events(log, pose0, bid, beacons=beacons, dtype=dtype)
+    res, comp_s, run_s = timed_run(lambda: pr.run(rlog, pr.Config(smooth=smooth)))
     est = np.concatenate([np.asarray(res.pos, np.float64), np.asarray(res.heading, np.float64)[:, None]], 1)
     dr = np.asarray(dead_reckoning(planar.odometry_increment, jnp.asarray(pose0), log.u, log.dt))
     gt = np.asarray(d.gt, np.float64).copy()

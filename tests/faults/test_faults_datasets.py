@@ -73,7 +73,7 @@ set has every cell (``SLOW``).
 Array-level faults on the same real logs (``test_array_fault_on_real_log``; the loaders refuse
 these in files, a caller of the systems can pass them): non-finite measurement rows →
 ``masked_input`` and an estimate equal to the run without those rows (planar EKF and planar
-FastSLAM on MRCLAM, ``range_only`` on UTIL and Plaza); NaN odometry → InputError from the
+FastSLAM on MRCLAM, ``util_range`` on UTIL, ``plaza_range`` on Plaza); NaN odometry → InputError from the
 planar ``run`` s, ``non_finite`` with a finite estimate inside jit (``run`` under ``jit``, the FastSLAM
 scan — its proposal keeps a particle whose new pose is not finite — and Plaza's run).
 """
@@ -643,27 +643,27 @@ def _mrclam_system(folder):
 
 def _util_system(folder):
     from jaxslam.data.util_uwb import load_util
-    from jaxslam.systems import range_only as ro
+    from jaxslam.systems import util_range as ur
 
     d = load_util(folder, "twr_obs_log1")
-    log = ro.util_events(d.twr_t, d.twr_anchor, d.twr_range)
+    log = ur.util_events(d.twr_t, d.twr_anchor, d.twr_range)
 
     def run(lg, validate=True):
-        return ro.run_util(lg, np.asarray(d.anchor_id), anchors=d.anchor_p, dtype=np.float64)
+        return ur.run(ur.log_from_events(lg, np.asarray(d.anchor_id), anchors=d.anchor_p, dtype=np.float64))
 
     return log, run, lambda res: np.asarray(res.pos), lambda res: res.status
 
 
 def _plaza_system(folder):
     from jaxslam.data.plaza import load_plaza
-    from jaxslam.systems import range_only as ro
+    from jaxslam.systems import plaza_range as pr
 
     d = load_plaza(folder, 2)
-    log = ro.plaza_events(d.dr_t, d.dr, d.td_t, d.td_node, d.td_range)
+    log = pr.plaza_events(d.dr_t, d.dr, d.td_t, d.td_node, d.td_range)
 
     def run(lg, validate=True):
-        return ro.run_plaza(lg, np.asarray(d.start_pose(), np.float64), np.asarray(d.node_id),
-                            dtype=np.float64, beacons=np.asarray(d.node_xy, np.float64))
+        return pr.run(pr.log_from_events(lg, np.asarray(d.start_pose(), np.float64), np.asarray(d.node_id),
+                                         beacons=np.asarray(d.node_xy, np.float64), dtype=np.float64))
 
     return log, run, lambda res: np.asarray(res.pos), lambda res: res.status
 
@@ -690,8 +690,8 @@ def _mrclam_fastslam_system(folder):
     return log, run, lambda res: np.asarray(res.pose_mean), lambda res: res.status
 
 
-SYSTEMS = {"mrclam": ("planar_ekf_slam", _mrclam_system), "util-uwb": ("range_only.run_util", _util_system),
-           "plaza": ("range_only.run_plaza", _plaza_system),
+SYSTEMS = {"mrclam": ("planar_ekf_slam", _mrclam_system), "util-uwb": ("util_range", _util_system),
+           "plaza": ("plaza_range", _plaza_system),
            "mrclam-fastslam": ("planar_fastslam", _mrclam_fastslam_system)}
 ARRAY_CELLS = [pytest.param(f, n, id=f"{f}-{n}-{SYSTEMS[n][0]}")
                for f, names in (("nan_rows", ("mrclam", "util-uwb", "plaza", "mrclam-fastslam")),

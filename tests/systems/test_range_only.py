@@ -3,23 +3,23 @@ bias (bias bound, ANEES and mean NIS in their χ² bounds over vmapped Monte-Car
 a Plaza-style 2D odometry + unknown-beacon SLAM with bias and outliers, float32; the UTIL ToF
 height update (H1) and Plaza localisation with surveyed beacons."""
 
-import functools
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from jaxslam import errors, metrics
 from jaxslam.data.events import merge_events
-from jaxslam.systems import range_only as ro
+from jaxslam.systems import plaza_range as pr
+from jaxslam.systems import util_range as ur
+from jaxslam.systems.biased_range import _cast_params, range_observe
 
 ANCHORS = np.array([[-3.0, -4.0, 0.2], [-3.2, 3.8, 2.9], [3.7, 3.7, 0.2], [4.1, -4.3, 3.2],
                     [-3.0, -4.4, 3.0], [3.9, -3.8, 0.2], [4.1, 3.9, 3.1], [-3.2, 3.4, 0.2]])
 
 
 # one compiled program per shape (eager jacfwd compiles every primitive it dispatches)
-_range_and_jac = jax.jit(lambda s, l: (ro.range_observe(s, l),
-                                       jax.jacfwd(ro.range_observe, argnums=(0, 1))(s, l)))
+_range_and_jac = jax.jit(lambda s, l: (range_observe(s, l),
+                                       jax.jacfwd(range_observe, argnums=(0, 1))(s, l)))
 
 
 def test_range_jacobian_matches_hand_oracle():
@@ -43,10 +43,10 @@ def test_range_jacobian_matches_hand_oracle():
 def test_odometry_jacobians_match_hand_oracle():
     s = np.array([1.0, -2.0, 0.7, 2.5])
     u = np.array([0.4, 0.05])
-    p = ro.PLAZA_PARAMS
-    jac_and_q = jax.jit(lambda s, u, p: (jax.jacfwd(ro.odo_motion)(s, u),
-                                         ro.odo_process_noise(s, u, 0.2, p)))
-    F, Q = jac_and_q(jnp.asarray(s), jnp.asarray(u), ro._cast_params(p, jnp.float64))
+    p = pr.PARAMS
+    jac_and_q = jax.jit(lambda s, u, p: (jax.jacfwd(pr.odo_motion)(s, u),
+                                         pr.odo_process_noise(s, u, 0.2, p)))
+    F, Q = jac_and_q(jnp.asarray(s), jnp.asarray(u), _cast_params(p, jnp.float64))
     F, Q = np.asarray(F), np.asarray(Q)
     c, sn = np.cos(s[2]), np.sin(s[2])
     F_hand = np.eye(4)
@@ -70,9 +70,9 @@ DT3, T3, Q_ACC, SIG_R, BIAS = 0.012, 1500, 0.5, 0.1, -0.2
 def _sim_tag(key):
     """WNA constant-velocity truth (exact discretisation) and round-robin biased ranges."""
     k1, k2 = jax.random.split(key)
-    Qd = ro.cv_process_noise(DT3, Q_ACC, 0.0, jnp.float64)[:6, :6]
+    Qd = ur.cv_process_noise(DT3, Q_ACC, 0.0, jnp.float64)[:6, :6]
     Lq = jnp.linalg.cholesky(Qd + 1e-18 * jnp.eye(6))
-    F = jax.jacfwd(lambda x: ro.cv_motion(jnp.concatenate([x, jnp.zeros(1)]), None, DT3)[:6])(jnp.zeros(6))
+    F = jax.jacfwd(lambda x: ur.cv_motion(jnp.concatenate([x, jnp.zeros(1)]), None, DT3)[:6])(jnp.zeros(6))
     x0 = jnp.array([0.5, -0.5, 1.2, 0.0, 0.0, 0.0])
 
     def step(x, w):
@@ -90,15 +90,15 @@ def test_cv_tag_bias_and_consistency_monte_carlo():
     n_runs = 24
     t = np.arange(T3) * DT3
     aid = np.arange(T3) % 8
-    log = ro.util_events(t, aid, np.ones(T3))
+    log = ur.log_from_events(ur.util_events(t, aid, np.ones(T3)), np.arange(8), anchors=ANCHORS,
+                             dtype=jnp.float64)
     # one call of the compiled _sim_tag per run (the draws of vmapping it over the keys)
     X, R = (jnp.stack(a) for a in zip(*map(_sim_tag, jax.random.split(jax.random.PRNGKey(3), n_runs))))
-    p = ro._cast_params(ro.UtilParams(sigma_r=SIG_R, q_acc=Q_ACC, q_bias=1e-12, p0_pos=0.3,
-                                      p0_vel=0.1, p0_bias=0.5), jnp.float64)
-    run = functools.partial(ro._run_util_known_impl, gate=None, nf=16, cap=8)
-    dt, _, _, ids, mask = ro._log_arrays(log, jnp.float64)
-    res = jax.jit(jax.vmap(lambda z: run(dt, z[:, None, None], ids, mask, jnp.asarray(ANCHORS),
-                                         jnp.arange(8, dtype=jnp.int32), p, t=jnp.asarray(t))))(R)
+    p = _cast_params(ur.Params(sigma_r=SIG_R, q_acc=Q_ACC, q_bias=1e-12, p0_pos=0.3,
+                               p0_vel=0.1, p0_bias=0.5), jnp.float64)
+    cfg = ur.Config(gate=None, height=False)
+    # the public run under an outer jit + vmap (the Monte Carlo runs batch the ranges)
+    res = jax.jit(jax.vmap(lambda z: ur.run(log._replace(z=z[:, None, None]), cfg, p)))(R)
     x_true = np.concatenate([np.asarray(X[:, -1]), np.full((n_runs, 1), BIAS)], axis=1)
     x_est = np.asarray(res.final.x[:, :7])
     P_est = np.asarray(res.final.P[:, :7, :7])
@@ -153,10 +153,10 @@ def _sim_plaza(seed=0, n=3000, dt=0.2):
 
 def _plaza_run(dtype):
     t_dr, dr, t_r, node, rr, pose, n_out = _sim_plaza()
-    log = ro.plaza_events(t_dr, dr, t_r, node, rr)
-    params = ro.PlazaParams(sigma_r=0.4, sigma_bias0=3.0)
-    res = ro.run_plaza(log, pose[0], BIDS, params=params, window=60, min_points=20,
-                       min_spread=4.0, dtype=dtype)
+    log = pr.plaza_events(t_dr, dr, t_r, node, rr)
+    params = pr.Params(sigma_r=0.4, sigma_bias0=3.0)
+    res = pr.run(pr.log_from_events(log, pose[0], BIDS, dtype=dtype),
+                 pr.Config(window=60, min_points=20, min_spread=4.0), params)
     # truth at the events: DR-event poses (ranges share DR times)
     k = np.searchsorted(t_dr, log.t)
     return res, pose[k + 1, :2], n_out
@@ -185,15 +185,15 @@ def test_float32_runs_finite():
     # UTIL path in float32 as well
     t = np.arange(400) * DT3
     X, R = _sim_tag(jax.random.PRNGKey(0))
-    log = ro.util_events(t, np.arange(400) % 8, np.asarray(R[:400]))
-    r = ro.run_util(log, np.arange(8), anchors=ANCHORS, dtype=jnp.float32)
+    log = ur.util_events(t, np.arange(400) % 8, np.asarray(R[:400]))
+    r = ur.run(ur.log_from_events(log, np.arange(8), anchors=ANCHORS, dtype=jnp.float32))
     assert r.pos.dtype == jnp.float32 and np.all(np.isfinite(np.asarray(r.pos)))
     assert not (int(r.status) & (errors.NON_FINITE | errors.NOT_PSD))
 
 
 def test_merge_events_contract_used():
     # util_events: K = 1, one event per range, no input
-    log = ro.util_events([0.0, 0.1, 0.2], [0, 1, 2], [1.0, 2.0, 3.0])
+    log = ur.util_events([0.0, 0.1, 0.2], [0, 1, 2], [1.0, 2.0, 3.0])
     assert log.z.shape == (3, 1, 1) and log.stats["K"] == 1 and merge_events is not None
 
 
@@ -210,15 +210,16 @@ def test_height_update_reduces_vertical_error():
     rng = np.random.default_rng(7)
     # laser rows at every 4th range time (coincident times: K = 2 slots), 5 outliers (+0.5 m)
     kh = np.arange(0, T3, 4)
-    h = X[kh, 2] - ro.TAG_Z + C_TOF + SIG_H * rng.normal(size=kh.size)
+    h = X[kh, 2] - ur.TAG_Z + C_TOF + SIG_H * rng.normal(size=kh.size)
     bad = rng.choice(np.arange(20, kh.size), 5, replace=False)
     h[bad] += 0.5
-    params = ro.UtilParams(sigma_r=SIG_R, q_acc=Q_ACC, q_bias=1e-12, sigma_h=SIG_H, tof_offset=C_TOF)
-    log0 = ro.util_events(t, aid, R)
-    logh = ro.util_events(t, aid, R, tof_t=t[kh], tof=h)
+    params = ur.Params(sigma_r=SIG_R, q_acc=Q_ACC, q_bias=1e-12, sigma_h=SIG_H, tof_offset=C_TOF)
+    log0 = ur.util_events(t, aid, R)
+    logh = ur.util_events(t, aid, R, tof_t=t[kh], tof=h)
     assert logh.z.shape == (T3, 2, 1) and logh.stats["n_meas"] == T3 + kh.size
-    r0 = ro.run_util(log0, np.arange(8), anchors=ANCHORS, params=params, gate=9.0)
-    rh = ro.run_util(logh, np.arange(8), anchors=ANCHORS, params=params, gate=9.0)
+    cfg = ur.Config(gate=9.0)
+    r0 = ur.run(ur.log_from_events(log0, np.arange(8), anchors=ANCHORS), cfg, params)
+    rh = ur.run(ur.log_from_events(logh, np.arange(8), anchors=ANCHORS), cfg, params)
     # range-only path: no height rows, counts zero; (almost) every range used in both runs
     assert int(r0.n_height_used) == 0 and int(r0.n_height_gated) == 0
     assert min(int(rh.n_used), int(r0.n_used)) >= T3 - 10
@@ -240,9 +241,9 @@ def test_height_update_reduces_vertical_error():
 
 def test_plaza_known_beacons_recover_bias():
     t_dr, dr, t_r, node, rr, pose, n_out = _sim_plaza(seed=1)
-    log = ro.plaza_events(t_dr, dr, t_r, node, rr)
-    params = ro.PlazaParams(sigma_r=0.4, sigma_bias0=3.0)
-    res = ro.run_plaza(log, pose[0], BIDS, params=params, beacons=BEACONS)
+    log = pr.plaza_events(t_dr, dr, t_r, node, rr)
+    params = pr.Params(sigma_r=0.4, sigma_bias0=3.0)
+    res = pr.run(pr.log_from_events(log, pose[0], BIDS, beacons=BEACONS), pr.Config(), params)
     k = np.searchsorted(t_dr, log.t)
     true = pose[k + 1, :2]
     b, sb = float(res.bias_final), float(res.bias_sigma)

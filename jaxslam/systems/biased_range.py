@@ -1,0 +1,103 @@
+"""The biased range model and the result shared by the range-only systems (UTIL, Plaza).
+
+Range model of :mod:`jaxslam.systems.util_range` and :mod:`jaxslam.systems.plaza_range` (the robot
+state ends with the bias b)::
+
+    z = ‖p − l‖ + b + v,   v ~ N(0, σ_r²)                                     (R1)
+
+p the tag/robot position (first d entries of the robot state), l the anchor or
+beacon (d = 3 UTIL, 2 Plaza), b a range bias common to all anchors, modelled
+as a slow random walk ḃ = w_b, E[w_b²] = q_b [m²/s].  Ranges are gated one by
+one on their own χ²(1) NIS (``gate``); gated rows are counted, never used.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple, Optional
+
+import jax
+import jax.numpy as jnp
+
+from ..filters import ekf_slam as es
+from ..linalg import safe_norm
+
+__all__ = ["range_observe", "Result"]
+
+
+def range_observe(s, l, params=None):
+    """(R1): z = ‖p − l‖ + b with p = s[:d], d = len(l), b = s[-1]; returns (1,)."""
+    d = l.shape[0]
+    # safe norm: finite gradient at p = l (never met on real data, but jacfwd must stay finite)
+    return jnp.reshape(safe_norm(s[:d] - l) + s[-1], (1,))
+
+
+def _cast_params(p, dtype):
+    return type(p)(*[jnp.asarray(v, dtype) for v in p])
+
+
+class Result(NamedTuple):
+    """Whole-log result of the range-only systems' ``run`` (JAX arrays).
+
+    t: (T,) event times [s]; pos: (T, d) position estimates [m] after each event;
+    pos_var: (T, d) their variances [m²]; heading: (T,) [rad] (Plaza; zeros for UTIL);
+    bias: (T,) [m]; bias_var: (T,) [m²]; nis: (T,) joint NIS of the event's update;
+    dof: (T,) its degrees of freedom; used: (T,) ranges used; gated: (T,) ranges gated;
+    landmarks: (cap, d) final anchor/beacon means [m]; landmark_cov: (cap, d, d);
+    landmark_ids: (cap,) id per slot (−1 free); active: (cap,) bool mapped;
+    bias_final, bias_sigma: () [m]; n_used, n_gated, n_registered, n_unmapped: () int32
+    (ranges used, gated, beacons registered, ranges that arrived for an unmapped beacon);
+    height_used, height_gated: (T,) int32 ToF height rows used / gated per event (UTIL with
+    height rows; zeros otherwise); n_height_used, n_height_gated: () int32 their totals;
+    status: () int32 engine status bits (``jaxslam.errors``); final: engine state.
+    ``nis``/``dof`` of an event with a height row add the height update's NIS and dof.
+    smoothed: (T, n_r) RTS-smoothed robot states (``smooth=True``; the map held static,
+    :func:`jaxslam.filters.ekf_slam.smooth_robot`), else None; smooth_status: (T,) int32.
+    """
+
+    t: jax.Array
+    pos: jax.Array
+    pos_var: jax.Array
+    heading: jax.Array
+    bias: jax.Array
+    bias_var: jax.Array
+    nis: jax.Array
+    dof: jax.Array
+    used: jax.Array
+    gated: jax.Array
+    landmarks: jax.Array
+    landmark_cov: jax.Array
+    landmark_ids: jax.Array
+    active: jax.Array
+    bias_final: jax.Array
+    bias_sigma: jax.Array
+    n_used: jax.Array
+    n_gated: jax.Array
+    n_registered: jax.Array
+    n_unmapped: jax.Array
+    height_used: jax.Array
+    height_gated: jax.Array
+    n_height_used: jax.Array
+    n_height_gated: jax.Array
+    status: jax.Array
+    final: es.SlamState
+    smoothed: Optional[jax.Array] = None
+    smooth_status: Optional[jax.Array] = None
+
+
+def _result(t, outs, st, model, n_reg, n_unm, smoothed=None, smooth_status=None):
+    if len(outs) == 9:
+        zi = jnp.zeros_like(outs[7])
+        outs = tuple(outs) + (zi, zi)
+    pos, pos_var, heading, bias, bias_var, nis, dof, used, gated, h_used, h_gated = outs
+    nr = model.robot_dim
+    return Result(
+        t=t, pos=pos, pos_var=pos_var, heading=heading, bias=bias, bias_var=bias_var, nis=nis,
+        dof=dof, used=used, gated=gated, height_used=h_used, height_gated=h_gated,
+        n_height_used=jnp.sum(h_used).astype(jnp.int32),
+        n_height_gated=jnp.sum(h_gated).astype(jnp.int32),
+        landmarks=es.landmarks(st, model), landmark_cov=es.landmark_covs(st, model),
+        landmark_ids=st.ids, active=st.active,
+        bias_final=st.x[nr - 1], bias_sigma=jnp.sqrt(jnp.maximum(st.P[nr - 1, nr - 1], 0.0)),
+        n_used=jnp.sum(used).astype(jnp.int32), n_gated=jnp.sum(gated).astype(jnp.int32),
+        n_registered=jnp.asarray(n_reg, jnp.int32), n_unmapped=jnp.asarray(n_unm, jnp.int32),
+        status=st.status, final=st, smoothed=smoothed, smooth_status=smooth_status)
