@@ -41,13 +41,15 @@ by the factored Joseph form; see docs/papers.md.
 
 from __future__ import annotations
 
-from typing import Callable, NamedTuple, Optional
+from typing import Any, Callable, NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .. import errors
-from ..linalg import put, symmetrize, take, value_and_jacfwd
+from ..errors import InputError
+from ..linalg import check_psd, is_concrete, put, symmetrize, take, value_and_jacfwd
 
 __all__ = [
     "SlamModel",
@@ -919,3 +921,167 @@ def smooth_robot(model: SlamModel, terms: SmootherTerms, us, Qs, final: SlamStat
     rs = jnp.concatenate([rs, terms.robot[-1:]], 0)
     st = jnp.concatenate([st, jnp.zeros((1,), jnp.int32)], 0)
     return rs, st
+
+
+# ---------------------------------------------------------------------------
+# A whole sequence: the runner every simple model can use as is
+# ---------------------------------------------------------------------------
+
+class SlamLog(NamedTuple):
+    """The inputs of :func:`run`: T steps, each a prediction then up to K measurement rows.
+
+    u: inputs with leading axis T (an array or a pytree), or None for a model whose motion
+      takes none (``motion(s, None, params)``).
+    z: (T, K, d_z) measurements (NaN allowed where masked).
+    ids: (T, K) int landmark id of each row (known association; −1 or masked: none); None
+      with ``association="nn"``.
+    mask: (T, K) bool row present, or None (all present).
+    params: None, or a pytree with leading axis T handed to the model's functions as their
+      ``params`` at that step (e.g. a per-step Δt).
+    """
+
+    u: Any
+    z: jax.Array
+    ids: Any = None
+    mask: Any = None
+    params: Any = None
+
+
+class SlamRun(NamedTuple):
+    """What :func:`run` returns (leading axis T: one entry per step, after its update).
+
+    robot: (T, n_r) robot means; robot_cov: (T, n_r, n_r) with ``save_cov`` else None;
+    landmarks: (T, cap, d_l) map means with ``save_map`` else None; nis, logdet: (T,) joint NIS
+    and log det S of the step's update; dof: (T,) scalar measurements used; log_likelihood:
+    (T,) −½ (NIS + log det S + dof · log 2π), the innovation log-likelihood (sum it for the
+    sequence's; its gradient tunes Q and R); n_used, n_gated, n_new: (T,) int32 rows used,
+    gated, registered as new landmarks; final: the last :class:`SlamState`.
+    """
+
+    robot: jax.Array
+    robot_cov: Any
+    landmarks: Any
+    nis: jax.Array
+    logdet: jax.Array
+    dof: jax.Array
+    log_likelihood: jax.Array
+    n_used: jax.Array
+    n_gated: jax.Array
+    n_new: jax.Array
+    final: SlamState
+
+
+def _check_run(state: SlamState, model: SlamModel, log: SlamLog, Q, R, association: str):
+    if not isinstance(model, SlamModel):
+        raise InputError(f"model: expected a SlamModel, got {type(model).__name__}")
+    if not isinstance(state, SlamState):
+        raise InputError(f"state: expected a SlamState (ekf_slam.init), got {type(state).__name__}")
+    if not isinstance(log, SlamLog):
+        raise InputError(f"log: expected a SlamLog, got {type(log).__name__}")
+    if association not in ("known", "nn"):
+        raise InputError(f"association: expected 'known' or 'nn', got {association!r}")
+    nr, dz = model.robot_dim, model.meas_dim
+    if jnp.shape(state.x)[0] != nr + state.active.shape[0] * model.lm_dim:
+        raise InputError(f"state: its size {jnp.shape(state.x)[0]} is not robot_dim {nr} + capacity "
+                         f"{state.active.shape[0]} × lm_dim {model.lm_dim}")
+    zs = jnp.shape(log.z)
+    if len(zs) != 3 or zs[2] != dz:
+        raise InputError(f"log.z: expected shape (T, K, {dz}), got {tuple(zs)}")
+    T, K = zs[0], zs[1]
+    if association == "known":
+        if log.ids is None or jnp.shape(log.ids) != (T, K):
+            raise InputError(f"log.ids: expected shape ({T}, {K}) with association 'known', got "
+                             f"{None if log.ids is None else tuple(jnp.shape(log.ids))}")
+    if log.mask is not None and jnp.shape(log.mask) != (T, K):
+        raise InputError(f"log.mask: expected shape ({T}, {K}) like log.z, got {tuple(jnp.shape(log.mask))}")
+    for nm, tree in (("log.u", log.u), ("log.params", log.params)):
+        for a in jax.tree_util.tree_leaves(tree):
+            if jnp.ndim(a) == 0 or jnp.shape(a)[0] != T:
+                raise InputError(f"{nm}: every leaf needs a leading axis of {T} steps, got shape "
+                                 f"{tuple(jnp.shape(a))}")
+    if not callable(Q):
+        if jnp.shape(Q)[-2:] != (nr, nr) or jnp.ndim(Q) not in (2, 3) or (jnp.ndim(Q) == 3 and jnp.shape(Q)[0] != T):
+            raise InputError(f"Q: expected shape ({nr}, {nr}) or ({T}, {nr}, {nr}) or a function "
+                             f"Q(s, u, params), got {tuple(jnp.shape(Q))}")
+    if jnp.shape(R)[-2:] != (dz, dz) or jnp.ndim(R) not in (2, 3) or (jnp.ndim(R) == 3 and jnp.shape(R)[0] != T):
+        raise InputError(f"R: expected shape ({dz}, {dz}) or ({T}, {dz}, {dz}), got {tuple(jnp.shape(R))}")
+    for M, nm, strict in ((Q, "Q", False), (R, "R", True)):
+        if callable(M) or not is_concrete(M):
+            continue
+        A = np.asarray(M)
+        for k, Ak in enumerate(A.reshape((-1,) + A.shape[-2:])):
+            check_psd(Ak, nm + (f"[{k}]" if A.ndim == 3 else ""), strict=strict)
+    return T, K
+
+
+def run(model: SlamModel, state: SlamState, log: SlamLog, Q, R, *, association: str = "known",
+        gate=None, nn_gate=11.34, nn_new=30.0, register_new: bool = True, save_cov: bool = False,
+        save_map: bool = False) -> SlamRun:
+    """EKF-SLAM over a whole sequence as one ``lax.scan``: at each step :func:`predict`, associate
+    (:func:`associate_known` by id, or :func:`associate_nn`), :func:`update` with the mapped rows,
+    then :func:`register` the new ones (``register_new`` and a model with ``inverse``).
+
+    Args:
+        model: the :class:`SlamModel`.
+        state: the start (:func:`init`, optionally :func:`preload` for a known or prior map).
+        log: the :class:`SlamLog`.
+        Q: (n_r, n_r), (T, n_r, n_r), or a function ``Q(s, u, params) -> (n_r, n_r)`` of the
+            robot mean before the prediction (input-dependent noise).
+        R: (d_z, d_z) or (T, d_z, d_z).
+        association: static, "known" (``log.ids``) or "nn" (nearest neighbour, ids hidden,
+            ``nn_gate`` / ``nn_new`` on the 3-σ scale of :func:`associate_nn`).
+        gate: χ²(d_z) threshold on each row's NIS (None: off).  Traced: changing it never
+            recompiles.
+        save_cov, save_map: static; also stack the robot covariances / the map means.
+
+    Shapes and (when concrete) Q, R are checked here: a bad argument is an
+    :class:`~jaxslam.errors.InputError` naming it.  Jit-, vmap- and grad-safe (jit it with
+    ``static_argnames=("model", "association", "register_new", "save_cov", "save_map")``).
+    """
+    _check_run(state, model, log, Q, R, association)
+    dtype = state.x.dtype
+    nr = model.robot_dim
+    z = jnp.asarray(log.z, dtype)
+    T, K = z.shape[0], z.shape[1]
+    mask = jnp.ones((T, K), bool) if log.mask is None else jnp.asarray(log.mask, bool)
+    ids = jnp.full((T, K), -1, jnp.int32) if log.ids is None else jnp.asarray(log.ids, jnp.int32)
+    q_fn = Q if callable(Q) else None
+    Qa = None if q_fn else jnp.asarray(Q, dtype)
+    Ra = jnp.asarray(R, dtype)
+    q_step, r_step = Qa is not None and Qa.ndim == 3, Ra.ndim == 3
+    can_register = register_new and model.inverse is not None
+
+    def body(st, inp):
+        u, z_t, id_t, m_t, p_t, Q_t, R_t = inp
+        if q_fn is not None:
+            Q_t = q_fn(st.x[:nr], u, p_t)
+        elif not q_step:
+            Q_t = Qa
+        R_t = R_t if r_step else Ra
+        st = predict(st, model, u, jnp.asarray(Q_t, dtype), p_t)
+        if association == "known":
+            slots, mapped = associate_known(st, id_t, m_t)
+            new = m_t & ~mapped & (id_t >= 0)
+        else:
+            slots, mapped, new, _ = associate_nn(st, model, z_t, m_t, R_t, p_t, gate=nn_gate,
+                                                 new_threshold=nn_new)
+        st, info = update(st, model, z_t, slots, mapped, R_t, p_t, gate=gate)
+        if can_register:
+            n_before = jnp.sum(st.active)
+            st = register(st, model, z_t, id_t, new, R_t, p_t)
+            n_new = (jnp.sum(st.active) - n_before).astype(jnp.int32)
+        else:
+            n_new = jnp.zeros((), jnp.int32)
+        logdet = jnp.asarray(info.logdet, dtype)
+        ll = -0.5 * (info.nis + logdet + info.dof * jnp.log(2.0 * jnp.pi).astype(dtype))
+        out = (st.x[:nr], st.P[:nr, :nr] if save_cov else None,
+               landmarks(st, model) if save_map else None, info.nis, logdet, info.dof, ll,
+               jnp.sum(info.used).astype(jnp.int32), jnp.sum(info.gated).astype(jnp.int32), n_new)
+        return st, out
+
+    xs = (log.u, z, ids, mask, log.params, Qa if q_step else None, Ra if r_step else None)
+    final, outs = jax.lax.scan(body, state, xs, length=T)
+    return SlamRun(*outs, final=final)
+
+
+__all__ += ["SlamLog", "SlamRun", "run"]

@@ -272,97 +272,115 @@ def robot_error(s_hat, x_true):
     return e.at[6:9].set(wrap_angle(e[6:9]))
 
 
+def _fov_tolerance(sp: lidar3d.LidarSpec) -> lidar3d.LidarSpec:
+    # Visibility is decided on the true geometry; noise can push a genuine measurement a little
+    # past the FOV edge, so the check allows 5σ before calling a measurement impossible.
+    return sp._replace(az_min=sp.az_min - 5 * sp.sigma_az, az_max=sp.az_max + 5 * sp.sigma_az,
+                       el_min=sp.el_min - 5 * sp.sigma_el, el_max=sp.el_max + 5 * sp.sigma_el,
+                       range_min=sp.range_min - 5 * sp.sigma_range,
+                       range_max=sp.range_max + 5 * sp.sigma_range)
+
+
+def _check_config(config: Config, n_known=None, name: str = "log.landmarks"):
+    if config.mode not in ("known", "unknown"):
+        raise InputError(f"config.mode: expected 'known' or 'unknown', got {config.mode!r}")
+    if config.association not in ("known", "nn"):
+        raise InputError(f"config.association: expected 'known' or 'nn', got {config.association!r}")
+    if config.mode == "known":
+        if n_known is None:
+            raise InputError(f"{name}: required with config.mode 'known' (the known map)")
+        if n_known > config.capacity:
+            raise InputError(f"config.capacity: {config.capacity} slots cannot hold the {n_known} known landmarks")
+
+
+def initial_state(s0, config: Config, params: Params, landmarks=None) -> State:
+    """The filter state at ``s0`` (9,) with covariance ``params.P0``; the known map preloaded with
+    zero covariance in ``config.mode == "known"`` (``landmarks`` (L, 3))."""
+    dtype = s0.dtype
+    st = es.init(s0, params.P0.astype(dtype), config.capacity, 3)
+    if config.mode == "known":
+        st = es.preload(st, make_model(), landmarks)
+    z = jnp.zeros((), jnp.int32)
+    return State(st, z, z)
+
+
+def propagate(state: State, imu_prev, imu_now, config: Config, params: Params) -> State:
+    """One IMU interval (eq. 24-29): RK4 prediction with the interpolated IMU, Q_d by autodiff."""
+    st = state.slam
+    s = st.x[:NX]
+    Qd = process_noise(s, 0.5 * (imu_prev + imu_now), params, config.dt, config.g, config.accel_mode)
+    st = es.predict(st, make_model(), jnp.concatenate([imu_prev, imu_now]), Qd,
+                    (config.dt, config.g, config.accel_mode))
+    return state._replace(slam=st)
+
+
+def correct(state: State, y, ids, visible, config: Config, params: Params, x_true=None):
+    """One LiDAR frame (eq. 30-53): the visible rows compacted to ``config.max_obs``, non-finite
+    and out-of-FOV rows masked and counted, association, update, registration (``"unknown"``).
+    ``x_true`` (12,): for the frame's NEES only (None: NaN).  Returns ``(state, FrameOut)``."""
+    cfg = config
+    model = make_model()
+    mparams = (cfg.dt, cfg.g, cfg.accel_mode)
+    st = state.slam
+    L = y.shape[0]
+    M = min(cfg.max_obs, L)
+    order = jnp.argsort(~visible, stable=True)[:M]
+    y_s, id_s, vis_s = y[order], ids[order], visible[order]
+    dropped = jnp.sum(visible) - jnp.sum(vis_s)
+    # Non-finite or out-of-FOV measurements are masked and counted, never used.
+    usable = jnp.all(jnp.isfinite(y_s), axis=-1)
+    if cfg.fov_check:
+        usable = usable & lidar3d.in_fov(jnp.where(jnp.isfinite(y_s), y_s, 0.0), _fov_tolerance(cfg.lidar))
+    masked = jnp.sum(vis_s & ~usable)
+    vis_s = vis_s & usable
+    R = params.R.astype(st.x.dtype)
+    if cfg.association == "known":
+        slots, mapped = es.associate_known(st, id_s, vis_s)
+        new = vis_s & ~mapped
+    else:
+        slots, mapped, new, _ = es.associate_nn(
+            st, model, y_s, vis_s, R, mparams, gate=cfg.nn_gate, new_threshold=cfg.nn_new
+        )
+    st, info = es.update(st, model, y_s, slots, mapped, R, mparams, gate=cfg.gate)
+    if cfg.mode == "unknown":
+        st = es.register(st, model, y_s, id_s, new, R, mparams)
+    if x_true is None:
+        nees = jnp.asarray(jnp.nan, st.x.dtype)
+    else:
+        nees = _nees(robot_error(st.x[:NX], x_true), st.P[:NX, :NX])
+    out = FrameOut(
+        nees=nees,
+        nis=info.nis,
+        dof=info.dof,
+        logdet=info.logdet,
+        n_active=jnp.sum(st.active),
+        n_visible=jnp.sum(visible),
+        landmarks=es.landmarks(st, model) if cfg.save_map else None,
+        lm_var=jnp.diagonal(es.landmark_covs(st, model), axis1=-2, axis2=-1) if cfg.save_map else None,
+    )
+    st = st._replace(status=st.status | jnp.where(masked > 0, jnp.int32(errors.MASKED_INPUT), 0))
+    return State(st, state.dropped + dropped.astype(jnp.int32), state.masked + masked.astype(jnp.int32)), out
+
+
 def make_estimator(config: Config, params: Params, landmarks_true=None):
-    """Build the :class:`jaxslam.systems.estimator.Estimator` of paper 000's EKF-SLAM.
+    """Build the :class:`jaxslam.systems.estimator.Estimator` of paper 000's EKF-SLAM (the closed
+    loop's view of :func:`propagate` and :func:`correct`; its ``init`` draws the initial error
+    from ``params.P0``).
 
     ``params`` is traced (differentiable); ``config`` static.  In ``mode="known"``
     ``landmarks_true`` (L, 3) must be given and ``config.capacity`` ≥ L.
     """
-    noise, cfg = params, config
     from .estimator import Estimator
 
-    model = make_model()
-    mparams = (cfg.dt, cfg.g, cfg.accel_mode)
-    sp = cfg.lidar
-    # Visibility is decided on the true geometry; noise can push a genuine measurement a little
-    # past the FOV edge, so the check allows 5σ before calling a measurement impossible.
-    fov_tol = sp._replace(az_min=sp.az_min - 5 * sp.sigma_az, az_max=sp.az_max + 5 * sp.sigma_az,
-                          el_min=sp.el_min - 5 * sp.sigma_el, el_max=sp.el_max + 5 * sp.sigma_el,
-                          range_min=sp.range_min - 5 * sp.sigma_range,
-                          range_max=sp.range_max + 5 * sp.sigma_range)
-    if cfg.mode not in ("known", "unknown"):
-        raise InputError(f"mode: expected 'known' or 'unknown', got {cfg.mode!r}")
-    if cfg.association not in ("known", "nn"):
-        raise InputError(f"association: expected 'known' or 'nn', got {cfg.association!r}")
-    if cfg.mode == "known":
-        if landmarks_true is None:
-            raise InputError("landmarks_true: required in mode='known'")
-        if landmarks_true.shape[0] > cfg.capacity:
-            raise InputError(
-                f"capacity: {cfg.capacity} slots cannot hold the {landmarks_true.shape[0]} known landmarks"
-            )
+    _check_config(config, None if landmarks_true is None else landmarks_true.shape[0], "landmarks_true")
 
     def init(key, x0):
         dtype = x0.dtype
-        P0 = noise.P0.astype(dtype)
+        P0 = params.P0.astype(dtype)
         # Initial error drawn from P0 (eigen-decomposition: P0 may be singular, Table 7).
         w, V = jnp.linalg.eigh(0.5 * (P0 + P0.T))
         e0 = V @ (jnp.sqrt(jnp.clip(w, 0.0)) * jax.random.normal(key, (NX,), dtype))
-        s0 = x0[:NX] + e0
-        st = es.init(s0, P0, cfg.capacity, 3)
-        if cfg.mode == "known":
-            st = es.preload(st, model, landmarks_true)
-        z = jnp.zeros((), jnp.int32)
-        return State(st, z, z)
-
-    def propagate(est, imu_prev, imu_now):
-        st = est.slam
-        s = st.x[:NX]
-        Qd = process_noise(s, 0.5 * (imu_prev + imu_now), noise, cfg.dt, cfg.g, cfg.accel_mode)
-        st = es.predict(st, model, jnp.concatenate([imu_prev, imu_now]), Qd, mparams)
-        return est._replace(slam=st)
-
-    def correct(est, y, ids, visible, x_true=None):
-        st = est.slam
-        L = y.shape[0]
-        M = min(cfg.max_obs, L)
-        order = jnp.argsort(~visible, stable=True)[:M]
-        y_s, id_s, vis_s = y[order], ids[order], visible[order]
-        dropped = jnp.sum(visible) - jnp.sum(vis_s)
-        # Non-finite or out-of-FOV measurements are masked and counted, never used.
-        usable = jnp.all(jnp.isfinite(y_s), axis=-1)
-        if cfg.fov_check:
-            usable = usable & lidar3d.in_fov(jnp.where(jnp.isfinite(y_s), y_s, 0.0), fov_tol)
-        masked = jnp.sum(vis_s & ~usable)
-        vis_s = vis_s & usable
-        R = noise.R.astype(st.x.dtype)
-        if cfg.association == "known":
-            slots, mapped = es.associate_known(st, id_s, vis_s)
-            new = vis_s & ~mapped
-        else:
-            slots, mapped, new, _ = es.associate_nn(
-                st, model, y_s, vis_s, R, mparams, gate=cfg.nn_gate, new_threshold=cfg.nn_new
-            )
-        st, info = es.update(st, model, y_s, slots, mapped, R, mparams, gate=cfg.gate)
-        if cfg.mode == "unknown":
-            st = es.register(st, model, y_s, id_s, new, R, mparams)
-        if x_true is None:
-            nees = jnp.asarray(jnp.nan, st.x.dtype)
-        else:
-            nees = _nees(robot_error(st.x[:NX], x_true), st.P[:NX, :NX])
-        out = FrameOut(
-            nees=nees,
-            nis=info.nis,
-            dof=info.dof,
-            logdet=info.logdet,
-            n_active=jnp.sum(st.active),
-            n_visible=jnp.sum(visible),
-            landmarks=es.landmarks(st, model) if cfg.save_map else None,
-            lm_var=jnp.diagonal(es.landmark_covs(st, model), axis1=-2, axis2=-1) if cfg.save_map else None,
-        )
-        st = st._replace(status=st.status | jnp.where(masked > 0, jnp.int32(errors.MASKED_INPUT), 0))
-        est = State(st, est.dropped + dropped.astype(jnp.int32), est.masked + masked.astype(jnp.int32))
-        return est, out
+        return initial_state(x0[:NX] + e0, config, params, landmarks_true)
 
     def ctrl_state(est, imu_now):
         return jnp.concatenate([est.slam.x[:NX], imu_now[3:6]])
@@ -372,10 +390,13 @@ def make_estimator(config: Config, params: Params, landmarks_true=None):
         # factor, is taken once per LiDAR frame in ``correct``.
         return StepOut(mean=est.slam.x[:NX], var=jnp.diagonal(est.slam.P[:NX, :NX]))
 
-    return Estimator(init, propagate, correct, ctrl_state, step_out)
+    return Estimator(init, functools.partial(propagate, config=config, params=params),
+                     lambda est, y, ids, visible, x_true=None: correct(est, y, ids, visible, config, params, x_true),
+                     ctrl_state, step_out)
 
 
-__all__ += ["StepOut", "FrameOut", "make_estimator", "robot_error", "CONSISTENCY_BLOCKS"]
+__all__ += ["StepOut", "FrameOut", "make_estimator", "robot_error", "CONSISTENCY_BLOCKS", "initial_state",
+            "propagate", "correct"]
 
 
 def params_to_dict(noise: Params) -> dict:
@@ -463,63 +484,76 @@ def _check_log(log: Log) -> int:
     return (T1 - 1) // F
 
 
-def run(log: Log, config: Config, params: Params, *, key=None) -> Result:
-    """Paper 000's EKF-SLAM on one recorded log, open loop, as one nested ``lax.scan``.
+class Event(NamedTuple):
+    """One LiDAR frame of a :class:`Log` (the slice :func:`step` takes): its k IMU intervals,
+    then the frame.  imu_prev, imu_now: (k, 6) the samples at each interval's ends; y: (L, 3);
+    ids: (L,); visible: (L,); x_true: (12,) the truth at the frame (None: no NEES)."""
 
-    The estimator of the closed loop (:func:`make_estimator`, paper 000 eq. 24-53), driven by
-    the log: k predictions (one per IMU interval) then the frame's LiDAR update.  Differentiable
-    in every leaf of ``params`` (P0 included: the initial state is ``log.s0`` with covariance
-    ``params.P0``, no random draw) and of ``log``; ``config`` static (``config.checkpoint``:
-    ``jax.checkpoint`` on the per-frame body, so a gradient stores one state per frame).
-    ``key`` is not used (the filter draws nothing); it is accepted as every system's ``run``
-    accepts it.  Shapes are checked here, values (PSD covariances) by :func:`validate_params`
-    when they are concrete.  Jitted (``config`` static); compose under ``jit``/``vmap``/``grad``.
+    imu_prev: jax.Array
+    imu_now: jax.Array
+    y: jax.Array
+    ids: jax.Array
+    visible: jax.Array
+    x_true: Any = None
+
+
+def init(log: Log, config: Config, params: Params, *, key=None) -> State:
+    """The state before the first IMU interval: ``log.s0`` with covariance ``params.P0`` (no random
+    draw), the known map ``log.landmarks`` preloaded in ``config.mode == "known"``."""
+    del key
+    return initial_state(jnp.asarray(log.s0), config, params,
+                         log.landmarks if config.mode == "known" else None)
+
+
+def step(state: State, event: Event, config: Config, params: Params, *, key=None):
+    """One frame: k predictions (:func:`propagate`) then the LiDAR update (:func:`correct`).
+    Returns ``(state, (means (k, 9) after each prediction, FrameOut))``."""
+    del key
+
+    def imu_step(e, ab):
+        e = propagate(e, ab[0], ab[1], config, params)
+        return e, e.slam.x[:NX]
+
+    state, means = jax.lax.scan(imu_step, state, (event.imu_prev, event.imu_now))
+    state, out = correct(state, event.y, event.ids, event.visible, config, params, event.x_true)
+    return state, (means, out)
+
+
+def _events(log: Log, k: int) -> Event:
+    F = log.visible.shape[0]
+    x_frames = log.truth[k::k] if log.truth is not None else None
+    return Event(imu_prev=log.imu[:-1].reshape(F, k, 6), imu_now=log.imu[1:].reshape(F, k, 6), y=log.y,
+                 ids=jnp.broadcast_to(log.ids, log.visible.shape), visible=log.visible, x_true=x_frames)
+
+
+def run(log: Log, config: Config, params: Params, *, key=None) -> Result:
+    """Paper 000's EKF-SLAM on one recorded log, open loop: one ``lax.scan`` of :func:`step` over
+    the frames (the estimator of the closed loop, :func:`make_estimator`, paper 000 eq. 24-53).
+
+    Differentiable in every leaf of ``params`` (P0 included: the initial state is ``log.s0`` with
+    covariance ``params.P0``, no random draw) and of ``log``; ``config`` static
+    (``config.checkpoint``: ``jax.checkpoint`` on the per-frame body, so a gradient stores one
+    state per frame).  ``key`` is not used (the filter draws nothing); it is accepted as every
+    system's ``run`` accepts it.  Shapes are checked here, values (PSD covariances) by
+    :func:`validate_params` when they are concrete.  Jitted (``config`` static); compose under
+    ``jit``/``vmap``/``grad``.
     """
     del key
     _check_log(log)
-    if config.mode == "known":
-        if log.landmarks is None:
-            raise InputError("log.landmarks: required with config.mode 'known'")
-        if np.shape(log.landmarks)[0] > config.capacity:
-            raise InputError(f"config.capacity: {config.capacity} slots cannot hold the "
-                             f"{np.shape(log.landmarks)[0]} known landmarks")
+    _check_config(config, None if log.landmarks is None else int(np.shape(log.landmarks)[0]))
     if is_concrete(params):
         validate_params(params)
     return _run(log, config, params)
 
 
 @functools.partial(jax.jit, static_argnums=1)
-def _run(log: Log, cfg: Config, params: Params) -> Result:
+def _run(log: Log, config: Config, params: Params) -> Result:
     k = _check_log(log)
-    F = log.visible.shape[0]
-    dtype = log.s0.dtype
-    model = make_model()
-    est = make_estimator(cfg, params, log.landmarks if cfg.mode == "known" else None)
-    st = es.init(log.s0, params.P0.astype(dtype), cfg.capacity, 3)
-    if cfg.mode == "known":
-        st = es.preload(st, model, log.landmarks)
-    z0 = jnp.zeros((), jnp.int32)
-    e0 = State(st, z0, z0)
-    ids = jnp.broadcast_to(log.ids, log.visible.shape)
-    imu_prev = log.imu[:-1].reshape(F, k, 6)
-    imu_now = log.imu[1:].reshape(F, k, 6)
-    with_truth = log.truth is not None
-    x_frames = log.truth[k::k] if with_truth else jnp.zeros((F, 12), dtype)
-
-    def frame(e, inp):
-        a, b, yf, idf, vf, xt = inp
-
-        def step(e2, ab):
-            e2 = est.propagate(e2, ab[0], ab[1])
-            return e2, e2.slam.x[:NX]
-
-        e, means = jax.lax.scan(step, e, (a, b))
-        e, out = est.correct(e, yf, idf, vf, xt if with_truth else None)
-        return e, (means, out)
-
-    body = jax.checkpoint(frame) if cfg.checkpoint else frame
-    e, (means, frames) = jax.lax.scan(body, e0, (imu_prev, imu_now, log.y, ids, log.visible, x_frames))
+    body = functools.partial(step, config=config, params=params)
+    if config.checkpoint:
+        body = jax.checkpoint(body)
+    e, (means, frames) = jax.lax.scan(body, init(log, config, params), _events(log, k))
     return Result(means=means.reshape(-1, NX), frames=frames, final=e)
 
 
-__all__ += ["Log", "Result", "run"]
+__all__ += ["Log", "Event", "Result", "init", "step", "run"]

@@ -85,6 +85,7 @@ class DenseSlam:
             rows.append(H)
             nus.append(nu)
         if not rows:
+            self.last_logdet, self.last_dof = 0.0, 0
             return 0.0
         H = np.vstack(rows)
         nu = np.concatenate(nus)
@@ -95,6 +96,7 @@ class DenseSlam:
         A = np.eye(n) - K @ H
         self.P = A @ self.P @ A.T + K @ Rb @ K.T
         self.P = 0.5 * (self.P + self.P.T)
+        self.last_logdet, self.last_dof = float(np.linalg.slogdet(S)[1]), len(nu)
         return float(nu @ np.linalg.solve(S, nu))
 
     def register(self, z, i, R):
@@ -170,14 +172,17 @@ def engine_run(st, us, zs, ids, masks):
 
 def oracle_run(us, zs, ids, masks):
     o = DenseSlam(np.zeros(3), np.diag([1e-4, 1e-4, 1e-5]))
-    nis = []
+    nis, ll, track = [], [], []
     for u, z, i, m in zip(us, zs, ids, masks):
         o.predict(u, Q)
         mapped = [k for k in range(len(i)) if m[k] and i[k] in o.ids]
         new = [k for k in range(len(i)) if m[k] and i[k] not in o.ids]
         nis.append(o.update(z[mapped], i[mapped], R))
+        ll.append(-0.5 * (nis[-1] + o.last_logdet + o.last_dof * np.log(2 * np.pi)))
         for k in new:
             o.register(z[k], i[k], R)
+        track.append(o.x[:3].copy())
+    o.ll, o.track = np.array(ll), np.array(track)
     return o, np.array(nis)
 
 
@@ -585,3 +590,57 @@ def test_smooth_robot_equals_full_state_rts():
     np.testing.assert_allclose(np.asarray(sm.means[:, 3:]),
                                np.broadcast_to(np.asarray(final.x[3:n]), (T, n - 3)), atol=1e-9)
     assert np.max(np.abs(np.asarray(rs) - np.asarray(filt))) > 1e-3  # smoothing did something
+
+
+# ------------------------------------------------------- the whole-sequence runner (es.run)
+P0_RUN = np.diag([1e-4, 1e-4, 1e-5])
+
+
+def test_run_matches_dense_numpy_oracle():
+    """``ekf_slam.run`` (predict, associate by id, update, register) = the dense oracle, step by
+    step: robot track, NIS, innovation log-likelihood, map; per-step and function-valued Q give
+    the same run as the constant matrix."""
+    us, zs, ids, masks = make_log(seed=5)
+    T = len(us)
+    log = es.SlamLog(u=jnp.asarray(us), z=jnp.asarray(zs), ids=jnp.asarray(ids), mask=jnp.asarray(masks))
+    st0 = es.init(jnp.zeros(3), jnp.asarray(P0_RUN), 16, 2)
+    run = jax.jit(es.run, static_argnames=("model", "association", "register_new", "save_cov", "save_map"))
+    out = run(MODEL, st0, log, jnp.asarray(Q), jnp.asarray(R), save_cov=True)
+    o, nis_o = oracle_run(us, zs, ids, masks)
+    np.testing.assert_allclose(np.asarray(out.robot), o.track, atol=1e-10)
+    np.testing.assert_allclose(np.asarray(out.nis), nis_o, rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(np.asarray(out.log_likelihood), o.ll, rtol=1e-9, atol=1e-9)
+    L = engine_landmarks(out.final)
+    assert sorted(L) == sorted(o.ids)
+    for j, i in enumerate(o.ids):
+        np.testing.assert_allclose(L[i], o.x[3 + 2 * j: 5 + 2 * j], atol=1e-10)
+    assert int(np.sum(out.n_new)) == len(o.ids) and out.robot_cov.shape == (T, 3, 3)
+    per_step = run(MODEL, st0, log, jnp.broadcast_to(jnp.asarray(Q), (T, 3, 3)), jnp.asarray(R))
+    as_fn = es.run(MODEL, st0, log, lambda s, u, p: jnp.asarray(Q), jnp.asarray(R))
+    for other in (per_step, as_fn):
+        np.testing.assert_allclose(np.asarray(other.robot), np.asarray(out.robot), atol=1e-13)
+
+
+def test_run_bad_inputs_name_the_argument():
+    from jaxslam.errors import InputError
+
+    us, zs, ids, masks = make_log(seed=5, T=5)
+    log = es.SlamLog(u=us, z=zs, ids=ids, mask=masks)
+    st0 = es.init(jnp.zeros(3), jnp.asarray(P0_RUN), 16, 2)
+    cases = [
+        (dict(log=log._replace(z=zs[..., 0])), "^log.z: expected shape"),
+        (dict(log=log._replace(ids=ids[:, :2])), "^log.ids: expected shape"),
+        (dict(log=log._replace(mask=masks[:3])), "^log.mask: expected shape"),
+        (dict(log=log._replace(u=us[:4])), "^log.u: every leaf needs a leading axis of 5"),
+        (dict(Q=np.eye(2)), "^Q: expected shape"),
+        (dict(Q=-np.eye(3)), "^Q"),
+        (dict(R=np.zeros((2, 2))), "^R"),
+        (dict(R=np.broadcast_to(R, (4, 2, 2))), "^R: expected shape"),
+        (dict(association="ml"), "^association"),
+        (dict(state=st0._replace(x=st0.x[:10])), "^state"),
+    ]
+    for over, pat in cases:
+        kw = dict(model=MODEL, state=st0, log=log, Q=Q, R=R)
+        kw.update(over)
+        with pytest.raises(InputError, match=pat):
+            es.run(**kw)
