@@ -59,6 +59,7 @@ class Monitor(NamedTuple):
 
 
 def init(dtype) -> Monitor:
+    """A fresh monitor: running NIS ratio 1, no inflation yet."""
     return Monitor(mean=jnp.ones((), dtype), inflations=jnp.zeros((), jnp.int32))
 
 

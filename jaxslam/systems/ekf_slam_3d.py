@@ -236,17 +236,24 @@ class Config(NamedTuple):
 
 
 class State(NamedTuple):
+    """The filter between events: the engine's posterior and the running counts of measurements
+    dropped (beyond ``max_obs``) and masked (non-finite or outside the field of view)."""
+
     slam: es.SlamState
     dropped: jax.Array  # () int32 visible measurements beyond max_obs, summed
     masked: jax.Array  # () int32 measurements masked (non-finite or outside the FOV), summed
 
 
 class StepOut(NamedTuple):
+    """What every IMU step reports: the robot mean and covariance diagonal after it."""
+
     mean: jax.Array  # (9,) robot mean after the step
     var: jax.Array  # (9,) robot covariance diagonal
 
 
 class FrameOut(NamedTuple):
+    """What every LiDAR frame reports: NEES against the truth (when given), NIS and counts."""
+
     nees: jax.Array  # () robot-block NEES against the truth after the frame's update
     nis: jax.Array  # () joint NIS of the frame's update
     dof: jax.Array  # () its degrees of freedom

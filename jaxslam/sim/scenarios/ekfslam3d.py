@@ -222,6 +222,8 @@ def consistency(series, t, runs, n=sys3d.NX):
 
 
 def run_scenario(name, mode, runs, seed, dtype, options, progress, params=None, plots=False):
+    """``jaxslam run ekfslam3d-*``: build the flight, run ``runs`` vmapped Monte Carlo seeds
+    (chunked, with progress) and return the scenario result (metrics, consistency, flags)."""
     one_run, flight, cfg, noise, nf = build(options, mode, dtype, params)
     mc = monte_carlo.run(lambda k: one_run(k, detail=plots), seed, runs, chunk=options.get("chunk"),
                          progress=progress, cpu_batching="loop", detail=plots,
