@@ -96,3 +96,58 @@ def test_range_only_runners_compile_once():
     # other numbers (anchors, noise): the same program
     ur.run(ur.log_from_events(log, aid, anchors=np.asarray(d.anchor_p) + 0.05), ur.Config(), other)
     assert ur._run._cache_size() == n0 + 1
+
+
+def test_plaza_range_runner_compiles_once():
+    from jaxslam.data.plaza import load_plaza
+    from jaxslam.systems import plaza_range as pr
+
+    d = load_plaza(DATA, 1)
+    events = pr.plaza_events(d.dr_t, d.dr, d.td_t, d.td_node, d.td_range)
+    bid = np.asarray(d.node_id)
+    log = pr.log_from_events(events, np.asarray(d.start_pose()), bid, beacons=np.asarray(d.node_xy),
+                             dtype=jnp.float64)
+    n0 = pr._run._cache_size()
+    a = pr.run(log, pr.Config(), pr.PARAMS)
+    b = pr.run(log._replace(pose0=log.pose0 + 0.1), pr.Config(), pr.PARAMS._replace(sigma_r=pr.PARAMS.sigma_r * 2))
+    assert pr._run._cache_size() == n0 + 1
+    assert not np.allclose(np.asarray(a.pos), np.asarray(b.pos))
+
+
+def test_ekf_slam_3d_runner_compiles_once():
+    from jaxslam.sensors import imu as imu_mod
+    from jaxslam.sim.scenarios import tracking
+    from jaxslam.sim.simulate import simulate
+    from jaxslam.sensors import landmarks as lm_mod
+    from jaxslam.systems import ekf_slam_3d as s3
+
+    lms = lm_mod.generate_landmarks(jax.random.PRNGKey(3), 12, center=(0.0, 0.0, -3.0), dtype=jnp.float64)
+    setup = tracking.make_setup(tracking.paper000_figure8(), jnp.float64, landmarks=lms)
+    fl = jax.jit(lambda k: simulate(setup, k, 20, 10))(jax.random.PRNGKey(1))
+    imu = jnp.concatenate([jnp.array([[0.0, 0.0, -9.81, 0.0, 0.0, 0.0]]), fl.imu])
+    log = s3.Log(s0=fl.truth[0, :9], imu=imu, y=fl.lidar_y, visible=fl.lidar_mask, ids=jnp.arange(12))
+    noise = s3.imu_noise(imu_mod.PAPER000_IMU)
+    cfg = s3.Config(mode="unknown", capacity=12, max_obs=12)
+    n0 = s3._run._cache_size()
+    a = s3.run(log, cfg, noise)
+    b = s3.run(log._replace(y=log.y + 0.01), cfg, jax.tree_util.tree_map(lambda v: v * 1.5, noise))
+    assert s3._run._cache_size() == n0 + 1
+    assert not np.allclose(np.asarray(a.means), np.asarray(b.means))
+
+
+def test_generic_ekf_slam_runner_under_the_callers_jit_compiles_once():
+    """The generic runner leaves jit to the caller: new noise and new data reuse the program."""
+    from jaxslam.filters import ekf_slam as es
+
+    model = es.SlamModel(robot_dim=2, lm_dim=2, meas_dim=2, motion=lambda s, u, p=None: s + u,
+                         observe=lambda s, l, p=None: l - s, inverse=lambda s, z, p=None: s + z)
+    T, K = 20, 3
+    rng = np.random.default_rng(0)
+    log = es.SlamLog(u=jnp.asarray(rng.normal(size=(T, 2)) * 0.1), z=jnp.asarray(rng.normal(size=(T, K, 2))),
+                     ids=jnp.tile(jnp.arange(K), (T, 1)), mask=jnp.ones((T, K), bool))
+    run = jax.jit(lambda log, q, r: es.run(model, es.init(jnp.zeros(2), jnp.eye(2), 4, 2), log,
+                                           q * jnp.eye(2), r * jnp.eye(2)).robot)
+    a = run(log, 0.01, 0.1)
+    b = run(log._replace(z=log.z * 1.1), 0.02, 0.3)
+    assert run._cache_size() == 1
+    assert not np.allclose(np.asarray(a), np.asarray(b))
