@@ -206,14 +206,21 @@ def _advance_fn(cfg, prm):
 
         def body(i, carry):
             s, ob = carry
-            s, out = fs1.step(s, fs1.StepInputs(rotor[i], imu[i], z[i], ids, mask[i]), keys[i],
-                              cfg, prm)
+            s, out = fs1.step(s, fs1.Event(rotor[i], imu[i], z[i], ids, mask[i]), cfg, prm,
+                              key=keys[i])
             ob = jax.tree_util.tree_map(lambda b, o: b.at[i].set(o), ob, out)
             return s, ob
 
         return jax.lax.fori_loop(start, start + count, body, (state, outbuf))
 
     return jax.jit(advance, donate_argnums=(0, 1))
+
+
+def _log0(x0):
+    """A ``fastslam_001.Log`` for ``init`` (which reads only ``x0``)."""
+    from jaxslam.systems import fastslam_001 as fs1
+
+    return fs1.Log(x0=x0, rotor_w=None, imu=None, z=None, ids=None, mask=None)
 
 
 def _outbuf(T, dtype):
@@ -262,7 +269,8 @@ def _step_jobs(args, cfg, prm, inputs_dev, ids_dev, keys_dev, x0, T):
     for N in _ints(args.particles):
         def job(N=N):
             adv = _advance_fn(cfg, prm)
-            st = fs1.init(jax.random.PRNGKey(args.seed + 1), jnp.asarray(x0), N, cfg, prm)
+            st = fs1.init(_log0(jnp.asarray(x0)), cfg._replace(n_particles=N), prm,
+                          key=jax.random.PRNGKey(args.seed + 1))
             ob = _outbuf(T, jnp.float64)
             st, ob = adv(st, ob, inputs_dev, ids_dev, keys_dev, jnp.int32(0),
                          jnp.int32(args.warmup))
@@ -459,8 +467,11 @@ def _mc_jobs(args, cfg, prm, fl, ids):
     Ms = _ints(args.mc_runs)
     M_max = max(Ms)
 
+    cfg_n = cfg._replace(n_particles=N)
+
     def one(key, x0, rw, imu, z, mask):
-        return fs1.run(key, x0, rw, imu, z, ids_d, mask, N, cfg, prm)
+        log = fs1.Log(x0=x0, rotor_w=rw, imu=imu, z=z, ids=ids_d, mask=mask)
+        return fs1.run(log, cfg_n, prm, key=key)
 
     win = tuple(jnp.asarray(a) for a in _mc_windows(fl, M_max, F))
     keys = jax.random.split(jax.random.PRNGKey(args.seed + 7), M_max)
@@ -589,7 +600,7 @@ def _imu_stage_proposed(state, rotor_w, imu, key, cfg, prm):
     e3 = jax.random.normal(k_s2, (n * 3,), dtype).reshape(n, 3)
     rates = imu[3:6] - p.aux[:, 3:6] - p.aux[:, 9:12] + e3 @ Lg.T
     p = p._replace(pose=p.pose.at[:, 9:12].set(rates))
-    st = fs1.FilterState(p, P_post, state.k + 1, jnp.minimum(state.neff_min, neff), imu)
+    st = fs1.State(p, P_post, state.k + 1, jnp.minimum(state.neff_min, neff), imu)
     w = jnp.exp(p.log_w)
     x = p.pose
     mu = w @ x
@@ -731,7 +742,7 @@ def _print_targets(out):
 
 
 def _filter_state(ts, imu_prev):
-    """A ``fastslam_001.FilterState`` holding a twin state (counters 0)."""
+    """A ``fastslam_001.State`` holding a twin state (counters 0)."""
     import jax.numpy as jnp
 
     from jaxslam.filters import fastslam as fs
@@ -741,8 +752,8 @@ def _filter_state(ts, imu_prev):
     p = fs.Particles(jnp.asarray(ts.pose), jnp.asarray(ts.aux), jnp.asarray(ts.lm_mean),
                      jnp.asarray(ts.lm_cov), jnp.asarray(ts.active), i32(ts.ids),
                      jnp.asarray(ts.log_w), i32(0), i32(0), i32(0), i32(ts.resamples))
-    return fs1.FilterState(p, jnp.asarray(ts.bias_cov), i32(ts.k), jnp.asarray(ts.neff_min),
-                           jnp.asarray(imu_prev))
+    return fs1.State(p, jnp.asarray(ts.bias_cov), i32(ts.k), jnp.asarray(ts.neff_min),
+                     jnp.asarray(imu_prev))
 
 
 def _run_here(args, parts):
@@ -782,8 +793,8 @@ def _run_here(args, parts):
         # The profile's warmed-up state comes from the twin (no compilation needed).
         Np = int(args.profile_particles)
         P = tw.params_from(prm, cfg.dt, cfg.threshold)
-        ts = tw.state_from(fs1.init(jax.random.PRNGKey(args.seed + 1), jnp.asarray(fl.truth[0]),
-                                    Np, cfg, prm))
+        ts = tw.state_from(fs1.init(_log0(jnp.asarray(fl.truth[0])), cfg._replace(n_particles=Np),
+                                    prm, key=jax.random.PRNGKey(args.seed + 1)))
         rng = np.random.default_rng(args.seed)
         for i in range(args.warmup):
             ts, _ = tw.step(ts, inputs_np[0][i], inputs_np[1][i], inputs_np[2][i], ids,

@@ -2,7 +2,7 @@
 
 The reference of ``jaxslam bench fastslam`` and an independent oracle of
 ``tests/benchmarks/test_bench_fastslam_twin.py``.  It runs the SAME filter step
-as the package with ``FilterConfig(model="dynamics", lidar="world",
+as the package with ``Config(model="dynamics", lidar="world",
 weights="exact", stage2="paper", accel_mode="specific_force",
 resampling="systematic")`` and a resampling threshold (default N_eff < 0.5 N,
 or ``None`` = every weight update):
@@ -126,7 +126,7 @@ class StepOut(NamedTuple):
 
 
 def params_from(fp, dt, threshold=0.5) -> Params:
-    """:class:`Params` from a ``fastslam_001.FilterParams`` (any array types)."""
+    """:class:`Params` from a ``fastslam_001.Params`` (any array types)."""
     q = fp.quad
     f = lambda v: float(np.asarray(v))  # noqa: E731
     drift_a = np.asarray(fp.drift_a, np.float64)
@@ -141,7 +141,7 @@ def params_from(fp, dt, threshold=0.5) -> Params:
 
 
 def state_from(fs) -> State:
-    """:class:`State` (NumPy copies) from a ``fastslam_001.FilterState``."""
+    """:class:`State` (NumPy copies) from a ``fastslam_001.State``."""
     p = fs.particles
     a = lambda v: np.array(v)  # noqa: E731
     return State(a(p.pose), a(p.aux), a(p.lm_mean), a(p.lm_cov), a(p.active), a(p.ids),

@@ -137,8 +137,9 @@ def main(argv=None):
             cfg, prm = sc.make_filter(opts, dtype)
 
             def one(k, fl, cfg=cfg, prm=prm):
-                res = fs1.run(k, fl.truth[0], fl.rotor, fl.imu, fl.z, ids, fl.mask,
-                              args.particles, cfg, prm)
+                log = fs1.Log(x0=fl.truth[0], rotor_w=fl.rotor, imu=fl.imu, z=fl.z, ids=ids,
+                              mask=fl.mask)
+                res = fs1.run(log, cfg, prm, key=k)  # cfg.n_particles = args.particles
                 return sc.evaluate(fl, res, setup.landmarks, bias)
 
             batched = jax.jit(jax.vmap(one))

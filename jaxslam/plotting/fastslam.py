@@ -7,7 +7,7 @@
 * ``*_neff``: effective sample size after every IMU and LiDAR weight update.
 
 All functions take NumPy arrays (a :class:`~jaxslam.sim.scenarios.fastslam.Flight001` and a
-:class:`~jaxslam.systems.fastslam_001.RunResult` converted with ``np.asarray``), return Figures,
+:class:`~jaxslam.systems.fastslam_001.Result` converted with ``np.asarray``), return Figures,
 and :func:`plot_all` writes PNGs.  Paper 001's world frame is z-up, so z is plotted as is.
 """
 
@@ -33,7 +33,7 @@ def particle_clouds(fl, res, landmarks, frames=None, title="particle cloud and m
     p = plt()
     fr = res.frames
     if fr.particles is None:
-        raise ValueError("particle positions were not saved (FilterConfig.save_particles=False)")
+        raise ValueError("particle positions were not saved (Config.save_particles=False)")
     F = fr.particles.shape[0]
     frames = _frame_times(F) if frames is None else list(frames)
     every = (fl.truth.shape[0] - 1) // F

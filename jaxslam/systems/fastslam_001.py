@@ -18,7 +18,7 @@ One IMU sample (100 Hz, :func:`imu_stage`), the dynamics-based filter (Table 2):
 
 1. Step 1: x^D_k ~ N(RK4(f, x^D_{k−1}, ω_rotor,k−1), Q) with f of eq. 1-4 driven by the four
    rotor speeds (mixer and gyroscopic Ω_r of :mod:`jaxslam.dynamics.rotor`) and the filter's
-   own physical parameters (``FilterParams.quad``; the inertia-mismatch test changes them).
+   own physical parameters (``Params.quad``; the inertia-mismatch test changes them).
 2. Step 2: bias KF prediction x̂^B = A^b x̂^B, P = A^b P A^bᵀ + Q^b (eq. 11, Table 4) through
    :func:`jaxslam.filters.ekf.predict`.
 3. Step 3: IMU weight p(z^I | x^D, x̂^B_{k|k−1}) (eq. 26, 28): ``weights="exact"`` integrates
@@ -52,11 +52,11 @@ Decisions (the paper is silent or wrong; also in docs/papers.md, paper 001):
 * **Bias KF covariance is shared.**  A^b, Q^b, H_b and R^I do not depend on the particle, and
   the re-initialisation happens at the same sample for every particle, so P_{k|k} is the same
   for all particles (a Riccati recursion that ignores the data).  It is stored once
-  (``FilterState.bias_cov`` (12, 12)) and only the means are per particle (``aux`` (N, 12));
+  (``State.bias_cov`` (12, 12)) and only the means are per particle (``aux`` (N, 12));
   the per-particle means still go through :func:`jaxslam.filters.ekf.update` (vmapped; XLA
   drops the unused per-particle covariances).  Exactly equal to N separate KFs.
 * **Re-initialisation covariance** (Table 4 gives only the mean): the KF posterior covariance
-  of the first update from ``FilterParams.bias_p0``.  The first IMU sample carries no weight
+  of the first update from ``Params.bias_p0``.  The first IMU sample carries no weight
   (the bias prior is uninformative there; the paper re-initialises at k = 1).
 * **Weights ``"paper"``** = the paper's delta approximations everywhere: eq. 26 (bias mean),
   eq. 27 (landmark mean, the core's ``weights="mean"``) and eq. 34 (stage 2 samples ignore
@@ -109,6 +109,7 @@ the noise variances works; :func:`with_log_noise` maps log-variances onto them).
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Any, NamedTuple, Optional
 
@@ -124,7 +125,7 @@ from ..errors import InputError
 from ..filters import ekf
 from ..filters import fastslam as fs
 from ..geometry.euler import dcm_from_euler, euler_rates
-from ..linalg import chol_solve, symmetrize
+from ..linalg import chol_solve, is_concrete, symmetrize
 from ..sensors import imu as imu_mod
 from ..sensors import lidar3d
 
@@ -139,13 +140,14 @@ __all__ = [
     "H_B",
     "DEFAULT_DYN_SIGMA",
     "DEFAULT_POSE0_SIGMA",
-    "FilterConfig",
-    "FilterParams",
-    "FilterState",
-    "StepInputs",
+    "Config",
+    "Params",
+    "Log",
+    "Event",
+    "State",
     "StepOut",
     "FrameOut",
-    "RunResult",
+    "Result",
     "default_params",
     "validate_config",
     "validate_params_001",
@@ -196,11 +198,12 @@ _STAGE2 = ("paper", "rates", "none")
 _ACCEL = ("specific_force", "kinematic")
 
 
-class FilterConfig(NamedTuple):
+class Config(NamedTuple):
     """Static choices of the filter (hashable; a change recompiles).
 
     model: "dynamics" (paper 001, rotor-input proposal + bias KF) | "kinematics" (baseline,
         IMU-driven FastSLAM 1.0 without calibration).
+    n_particles: N (paper: 500).
     lidar: "world" (eq. 13-15, default) | "body" (paper 000's body-frame bearing model).
     weights: "exact" (default) | "paper" (eq. 26-28 mean approximations).
     stage2: "paper" (Step 8: regenerate position and rates, default) | "rates" (rates only) |
@@ -220,6 +223,7 @@ class FilterConfig(NamedTuple):
     """
 
     model: str = "dynamics"
+    n_particles: int = 500
     lidar: str = "world"
     weights: str = "exact"
     stage2: str = "paper"
@@ -234,7 +238,7 @@ class FilterConfig(NamedTuple):
     regen_noise: bool = True
 
 
-class FilterParams(NamedTuple):
+class Params(NamedTuple):
     """Traced numbers of the filter (differentiate w.r.t. any leaf).
 
     quad: :class:`~jaxslam.dynamics.params.RotorQuadParams` of the filter's model (mass kg,
@@ -258,7 +262,7 @@ class FilterParams(NamedTuple):
     pose0_var: Array
 
 
-class FilterState(NamedTuple):
+class State(NamedTuple):
     """Filter state (pytree).
 
     particles: :class:`jaxslam.filters.fastslam.Particles`; ``pose`` (N, 12), ``aux`` the
@@ -276,8 +280,28 @@ class FilterState(NamedTuple):
     imu_prev: Array
 
 
-class StepInputs(NamedTuple):
-    """Inputs of one :func:`step`.
+class Log(NamedTuple):
+    """Everything :func:`run` needs: one flight (T IMU samples, F = T / lidar_every frames).
+
+    x0: (12,) start state the particle cloud is centred on (its float dtype sets the run's).
+    rotor_w: (T, 4) rotor speeds [rad/s] over each step (the dynamics model's input).
+    imu: (T, 6) IMU samples (sample k at the end of step k) [accel m/s², gyro rad/s].
+    z: (F, L, 3) LiDAR frames [α, β, r]; frame f is taken with IMU sample
+        (f + 1)·lidar_every − 1.
+    ids: (L,) int32 landmark ids (known association, id j in slot j).
+    mask: (F, L) bool.
+    """
+
+    x0: Array
+    rotor_w: Array
+    imu: Array
+    z: Array
+    ids: Array
+    mask: Array
+
+
+class Event(NamedTuple):
+    """Inputs of one :func:`step` (one IMU sample and the LiDAR frame taken with it, if any).
 
     rotor: (4,) rotor speeds ω_1..ω_4 applied over the step [rad/s] (dynamics model input).
     imu: (6,) IMU sample at the end of the step [accel m/s², gyro rad/s] (body frame, z up).
@@ -319,8 +343,8 @@ class FrameOut(NamedTuple):
     log_w: Any
 
 
-class RunResult(NamedTuple):
-    """Output of :func:`run`: final :class:`FilterState`, ``steps`` (:class:`StepOut` with a
+class Result(NamedTuple):
+    """Output of :func:`run`: final :class:`State`, ``steps`` (:class:`StepOut` with a
     leading T axis), ``frames`` (:class:`FrameOut` with a leading F axis)."""
 
     final: Any
@@ -332,7 +356,7 @@ class RunResult(NamedTuple):
 # Parameters
 # ---------------------------------------------------------------------------
 
-def bias_model(params: FilterParams, dtype):
+def bias_model(params: Params, dtype):
     """(A^b (12,), Q^b (12,)) diagonals of eq. 11: A = blkdiag(I, I, a_a I, a_ω I),
     Q = blkdiag(0, 0, q_a I, q_ω I) in the order [b0a, b0ω, b1a, b1ω]."""
     one = jnp.ones((6,), dtype)
@@ -349,7 +373,7 @@ def _imu_noise_sigma(spec, dtype):
 def default_params(model: str = "dynamics", imu_spec=None, lidar_spec=None,
                    quad: RotorQuadParams = PAPER001, dt: float = 0.01, dtype=None,
                    drift_method: str = "euler", bias_prior_sigma: float = 0.01,
-                   dyn_sigma=DEFAULT_DYN_SIGMA, pose0_sigma=DEFAULT_POSE0_SIGMA) -> FilterParams:
+                   dyn_sigma=DEFAULT_DYN_SIGMA, pose0_sigma=DEFAULT_POSE0_SIGMA) -> Params:
     """Filter parameters of paper 001's system (jaxslam's choices where the paper is silent).
 
     Args:
@@ -366,7 +390,7 @@ def default_params(model: str = "dynamics", imu_spec=None, lidar_spec=None,
       pose0_sigma: (12,) std of the initial particle cloud.
 
     Returns:
-      :class:`FilterParams`.
+      :class:`Params`.
     """
     from ..sensors import range_bearing3d as rb
 
@@ -390,7 +414,7 @@ def default_params(model: str = "dynamics", imu_spec=None, lidar_spec=None,
         var = var + jnp.concatenate([(0.5 * sa * h * h) ** 2, (sa * h) ** 2 + (sb * h) ** 2,
                                      (sg * h) ** 2 + (sb * h) ** 2, sg ** 2 + sb ** 2])
     lv = jnp.diag(rb.measurement_cov(lidar_spec, dtype))
-    return FilterParams(
+    return Params(
         quad=type(quad)(*(jnp.asarray(v, dtype) for v in quad)),
         proposal_var=var,
         imu_var=sig * sig,
@@ -402,7 +426,7 @@ def default_params(model: str = "dynamics", imu_spec=None, lidar_spec=None,
     )
 
 
-def with_log_noise(params: FilterParams, log_q=None, log_r=None) -> FilterParams:
+def with_log_noise(params: Params, log_q=None, log_r=None) -> Params:
     """Replace Q (``proposal_var``) by exp(log_q) (12,) and R^S (``lidar_var``) by exp(log_r)
     (3,) — the unconstrained parametrisation for ``grad`` / tuning."""
     if log_q is not None:
@@ -412,10 +436,10 @@ def with_log_noise(params: FilterParams, log_q=None, log_r=None) -> FilterParams
     return params
 
 
-def validate_config(cfg: FilterConfig) -> FilterConfig:
-    """Host-side check of a :class:`FilterConfig`; raises InputError naming the field."""
-    if not isinstance(cfg, FilterConfig):
-        raise InputError(f"config: expected FilterConfig, got {type(cfg).__name__}")
+def validate_config(cfg: Config) -> Config:
+    """Host-side check of a :class:`Config`; raises InputError naming the field."""
+    if not isinstance(cfg, Config):
+        raise InputError(f"config: expected Config, got {type(cfg).__name__}")
     for name, allowed in (("model", _MODELS), ("lidar", _LIDARS), ("weights", _WEIGHTS),
                           ("stage2", _STAGE2), ("accel_mode", _ACCEL)):
         if getattr(cfg, name) not in allowed:
@@ -429,6 +453,11 @@ def validate_config(cfg: FilterConfig) -> FilterConfig:
         raise InputError(f"config.threshold: expected None or a fraction in (0, 1], got {cfg.threshold}")
     if not (0.0 <= float(cfg.soft_alpha) <= 1.0):
         raise InputError(f"config.soft_alpha: expected a value in [0, 1], got {cfg.soft_alpha}")
+    n = cfg.n_particles
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)):
+        raise InputError(f"config.n_particles: expected a positive integer, got {n!r}")
+    if int(n) <= 0:
+        raise InputError(f"config.n_particles: must be >= 1, got {n}")
     if int(cfg.capacity) < 1:
         raise InputError(f"config.capacity: must be >= 1, got {cfg.capacity}")
     if int(cfg.lidar_every) < 1:
@@ -438,10 +467,10 @@ def validate_config(cfg: FilterConfig) -> FilterConfig:
     return cfg
 
 
-def validate_params_001(params: FilterParams) -> FilterParams:
-    """Host-side check of :class:`FilterParams` (shapes, finite, variances ≥ 0, R > 0)."""
-    if not isinstance(params, FilterParams):
-        raise InputError(f"params: expected FilterParams, got {type(params).__name__}")
+def validate_params_001(params: Params) -> Params:
+    """Host-side check of :class:`Params` (shapes, finite, variances ≥ 0, R > 0)."""
+    if not isinstance(params, Params):
+        raise InputError(f"params: expected Params, got {type(params).__name__}")
     try:
         validate_params(params.quad)
     except InputError as e:
@@ -518,7 +547,7 @@ def landmark_model(lidar: str = "world") -> fs.LandmarkModel:
     raise InputError(f"lidar: expected one of {_LIDARS}, got {lidar!r}")
 
 
-def dynamics_sample(pose, aux, key, rotor_w, params: FilterParams, dt, drift_a):
+def dynamics_sample(pose, aux, key, rotor_w, params: Params, dt, drift_a):
     """Table 2 Step 1-2 for one particle: x^D ~ N(RK4(f, x^D, ω_rotor), Q) (eq. 4) and the
     bias-mean prediction A^b x̂^B (eq. 11) through :func:`jaxslam.filters.ekf.predict`.
 
@@ -543,7 +572,7 @@ def _f_kin(x, imu, g, accel_mode):
     return jnp.concatenate([x[VEL], a, euler_rates(x[ATT], imu[3:6]), jnp.zeros((3,), x.dtype)])
 
 
-def kinematics_sample(pose, aux, key, imu_prev, imu_now, params: FilterParams, dt,
+def kinematics_sample(pose, aux, key, imu_prev, imu_now, params: Params, dt,
                       accel_mode: str = "specific_force"):
     """Kinematics (IMU-driven) proposal of the baseline for one particle.
 
@@ -632,21 +661,21 @@ def regenerate_position(pose, lm_mean, lm_cov, active, z, ids, mask, key, R, lid
 # Filter
 # ---------------------------------------------------------------------------
 
-def init(key, x0, n_particles: int, config: FilterConfig, params: FilterParams) -> FilterState:
-    """Initial particle set (Table 2 "Initialization"): N poses ~ N(x0, diag(pose0_var)),
-    bias means 0, shared bias covariance diag(bias_p0), equal weights, empty maps.
+def init(log: Log, config: Config, params: Params, *, key) -> State:
+    """Initial particle set (Table 2 "Initialization"): ``config.n_particles`` poses
+    ~ N(log.x0, diag(pose0_var)) drawn with ``key`` (required), bias means 0, shared bias
+    covariance diag(bias_p0), equal weights, empty maps.  Only ``log.x0`` is read.
 
-    Raises InputError when ``n_particles`` ≤ 0 (or not an integer) or x0 is not (12,) finite.
+    Raises InputError when ``key`` is None, the config is bad (``n_particles`` ≤ 0 or not an
+    integer, ...) or ``log.x0`` is not (12,).
     """
-    if isinstance(n_particles, bool) or not isinstance(n_particles, (int, np.integer)):
-        raise InputError(f"n_particles: expected a positive integer, got {n_particles!r}")
-    if int(n_particles) <= 0:
-        raise InputError(f"n_particles: must be >= 1, got {n_particles}")
-    if np.shape(x0) != (NX,):
-        raise InputError(f"x0: expected shape (12,), got {np.shape(x0)}")
+    if key is None:
+        raise InputError("key: FastSLAM draws particles; give a PRNG key")
     validate_config(config)
-    N = int(n_particles)
-    x0 = jnp.asarray(x0)
+    if np.shape(log.x0) != (NX,):
+        raise InputError(f"log.x0: expected shape (12,), got {np.shape(log.x0)}")
+    N = int(config.n_particles)
+    x0 = jnp.asarray(log.x0)
     dtype = x0.dtype if jnp.issubdtype(x0.dtype, jnp.floating) else jnp.result_type(float)
     x0 = x0.astype(dtype)
     eps = jax.random.normal(key, (N * NX,), dtype).reshape(N, NX)
@@ -656,7 +685,7 @@ def init(key, x0, n_particles: int, config: FilterConfig, params: FilterParams) 
     p = fs.init(np.zeros((N, NX), np.dtype(dtype)), N, int(config.capacity), 3,
                 aux=np.zeros((N, NB), np.dtype(dtype)), aux_per_particle=True)
     p = p._replace(pose=poses, aux=jnp.zeros((N, NB), dtype))
-    return FilterState(
+    return State(
         particles=p,
         bias_cov=jnp.diag(jnp.asarray(params.bias_p0, dtype)),
         k=jnp.zeros((), jnp.int32),
@@ -665,7 +694,7 @@ def init(key, x0, n_particles: int, config: FilterConfig, params: FilterParams) 
     )
 
 
-def _resample(p, key, config: FilterConfig):
+def _resample(p, key, config: Config):
     if config.resampling == "soft":
         return fs.resample_soft(p, key, config.soft_alpha, threshold=config.threshold)
     return fs.maybe_resample(p, key, config.threshold, config.resampling)
@@ -675,11 +704,11 @@ def _h_lin(b):
     return jnp.asarray(H_B, b.dtype) @ b
 
 
-def imu_stage(state: FilterState, rotor_w, imu, key, config: FilterConfig,
-              params: FilterParams):
+def imu_stage(state: State, rotor_w, imu, key, config: Config,
+              params: Params):
     """One IMU sample (Table 2 Steps 1-4, 6 and the rates part of Step 8); see module
     docstring.  rotor_w (4,) rad/s applied over the step; imu (6,) sample at its end.
-    Returns (FilterState, StepOut)."""
+    Returns (State, StepOut)."""
     p = state.particles
     dtype = p.pose.dtype
     dt = jnp.asarray(config.dt, dtype)
@@ -756,17 +785,17 @@ def imu_stage(state: FilterState, rotor_w, imu, key, config: FilterConfig,
         pose = jax.vmap(lambda x, b, k: regenerate_rates(
             x, b, k if config.regen_noise else None, imu[3:6], symmetrize(G)))(p.pose, p.aux, keys)
         p = p._replace(pose=jnp.where(imu_ok, pose, p.pose))
-    st = FilterState(particles=p, bias_cov=P_post, k=state.k + 1,
+    st = State(particles=p, bias_cov=P_post, k=state.k + 1,
                      neff_min=jnp.minimum(state.neff_min, neff), imu_prev=imu_next_prev)
     return st, _step_out(st, neff)
 
 
-def lidar_stage(state: FilterState, z, ids, mask, key, config: FilterConfig,
-                params: FilterParams):
+def lidar_stage(state: State, z, ids, mask, key, config: Config,
+                params: Params):
     """One LiDAR frame (Table 2 Steps 3, 5, 6 and the position part of Step 8).
 
     z (L, 3) [α, β, r]; ids (L,) int32 known landmark ids (slot = id); mask (L,) bool.
-    Returns (FilterState, FrameOut).
+    Returns (State, FrameOut).
     """
     p = state.particles
     dtype = p.pose.dtype
@@ -791,7 +820,7 @@ def lidar_stage(state: FilterState, z, ids, mask, key, config: FilterConfig,
     return st, _frame_out(st, neff, config)
 
 
-def _step_out(state: FilterState, neff) -> StepOut:
+def _step_out(state: State, neff) -> StepOut:
     mean, cov = estimate(state)
     bm, bv = bias_estimate(state)
     H = jnp.asarray(H_B, bm.dtype)
@@ -801,7 +830,7 @@ def _step_out(state: FilterState, neff) -> StepOut:
     return StepOut(mean, jnp.diagonal(cov), bm, bv, ov, neff)
 
 
-def _frame_out(state: FilterState, neff, config: FilterConfig) -> FrameOut:
+def _frame_out(state: State, neff, config: Config) -> FrameOut:
     mp = fs.map_mean(state.particles)
     var = jnp.diagonal(mp.cov, axis1=-2, axis2=-1)
     if config.save_particles:
@@ -809,12 +838,12 @@ def _frame_out(state: FilterState, neff, config: FilterConfig) -> FrameOut:
     return FrameOut(neff, mp.mean, var, None, None)
 
 
-def estimate(state: FilterState):
+def estimate(state: State):
     """Weighted pose mean (12,) (circular mean for the Euler angles) and covariance (12, 12)."""
     return fs.estimate(state.particles, ANGLE_MASK)
 
 
-def bias_estimate(state: FilterState):
+def bias_estimate(state: State):
     """Weighted bias/drift mean (12,) and variance (12,) = diag(shared P) + spread of means."""
     p = state.particles
     w = jnp.exp(p.log_w)
@@ -823,56 +852,88 @@ def bias_estimate(state: FilterState):
     return m, jnp.diagonal(state.bias_cov) + spread
 
 
-def step(state: FilterState, inputs: StepInputs, key, config: FilterConfig,
-         params: FilterParams):
-    """One IMU sample and, when ``inputs.mask`` has any True entry, the LiDAR frame taken at
+def step(state: State, event: Event, config: Config, params: Params, *, key):
+    """One IMU sample and, when ``event.mask`` has any True entry, the LiDAR frame taken at
     its end (:func:`imu_stage` then :func:`lidar_stage` under ``lax.cond``).
 
-    Returns (FilterState, StepOut).  Equal to what :func:`run` does at each sample; use
-    :func:`run` for whole flights (one scan, no per-step dispatch).
+    Returns (State, StepOut).  Equal to what :func:`run` does at each sample; use
+    :func:`run` for whole flights (one scan, no per-step dispatch).  ``key`` is required.
     """
+    if key is None:
+        raise InputError("key: FastSLAM draws particles; give a PRNG key")
     k_imu, k_lid = jax.random.split(key)
-    state, out = imu_stage(state, inputs.rotor, inputs.imu, k_imu, config, params)
+    state, out = imu_stage(state, event.rotor, event.imu, k_imu, config, params)
 
     def with_lidar(s):
-        return lidar_stage(s, inputs.z, inputs.ids, inputs.mask, k_lid, config, params)[0]
+        return lidar_stage(s, event.z, event.ids, event.mask, k_lid, config, params)[0]
 
-    state = jax.lax.cond(jnp.any(inputs.mask), with_lidar, lambda s: s, state)
+    state = jax.lax.cond(jnp.any(event.mask), with_lidar, lambda s: s, state)
     return state, out
 
 
-def run(key, x0, rotor_w, imu, z, ids, mask, n_particles: int, config: FilterConfig,
-        params: FilterParams) -> RunResult:
-    """A whole flight in one nested ``lax.scan`` (LiDAR frames outside, IMU samples inside).
+def _check_log(log: Log, config: Config):
+    """Host-side shape checks of a :class:`Log` (and, when concrete, finite ``x0``)."""
+    E = int(config.lidar_every)
+    if np.shape(log.x0) != (NX,):
+        raise InputError(f"log.x0: expected shape (12,), got {np.shape(log.x0)}")
+    if np.ndim(log.imu) != 2 or np.shape(log.imu)[1:] != (6,):
+        raise InputError(f"log.imu: expected shape (T, 6), got {np.shape(log.imu)}")
+    T = np.shape(log.imu)[0]
+    if np.shape(log.rotor_w) != (T, 4):
+        raise InputError(f"log.rotor_w: expected shape ({T}, 4), got {np.shape(log.rotor_w)}")
+    if np.ndim(log.z) != 3 or np.shape(log.z)[2:] != (3,):
+        raise InputError(f"log.z: expected shape (F, L, 3), got {np.shape(log.z)}")
+    F, L = np.shape(log.z)[:2]
+    if np.shape(log.ids) != (L,):
+        raise InputError(f"log.ids: expected shape ({L},), got {np.shape(log.ids)}")
+    if np.shape(log.mask) != (F, L):
+        raise InputError(f"log.mask: expected shape ({F}, {L}), got {np.shape(log.mask)}")
+    if T != F * E:
+        raise InputError(f"log.imu: {T} samples do not make {F} frames of lidar_every = {E}")
+    if is_concrete(log.x0) and not np.all(np.isfinite(np.asarray(log.x0))):
+        raise InputError("log.x0: contains NaN or Inf")
+
+
+def run(log: Log, config: Config, params: Params, *, key) -> Result:
+    """A whole flight in one jitted nested ``lax.scan`` (LiDAR frames outside, IMU samples
+    inside).
 
     Args:
-      key: PRNG key (split into the initial-cloud key and one key per IMU sample).
-      x0: (12,) start state the particle cloud is centred on.
-      rotor_w: (T, 4) rotor speeds [rad/s] over each step (the dynamics model's input).
-      imu: (T, 6) IMU samples (sample k at the end of step k).
-      z: (F, L, 3) LiDAR frames; frame f is taken with IMU sample (f + 1)·lidar_every − 1.
-      ids: (L,) int32 landmark ids (known association).  mask: (F, L) bool.
-      n_particles: N (static).  config: :class:`FilterConfig` (static).
-      params: :class:`FilterParams`.
-    Returns :class:`RunResult`.  T must equal F · lidar_every.
+      log: :class:`Log` (``x0`` (12,), ``rotor_w`` (T, 4), ``imu`` (T, 6), ``z`` (F, L, 3),
+        ``ids`` (L,), ``mask`` (F, L)); T must equal F · lidar_every.  Non-finite IMU samples
+        and LiDAR rows are skipped and flagged (module docstring), not rejected.
+      config: :class:`Config` (static).  params: :class:`Params` (traced).
+      key: PRNG key (required; split into the initial-cloud key and one key per IMU sample).
+    Returns :class:`Result`.  Works under an outer ``jit`` / ``vmap`` (traced log, key).
+
+    Raises:
+      InputError: no key, a bad config, log shapes that disagree with it, a non-finite
+        ``log.x0`` or bad params (values checked when concrete).
     """
+    if key is None:
+        raise InputError("key: FastSLAM draws particles; give a PRNG key")
+    validate_config(config)
+    _check_log(log, config)
+    if is_concrete(params):
+        validate_params_001(params)
+    log = log._replace(ids=jnp.asarray(log.ids, jnp.int32), mask=jnp.asarray(log.mask, bool))
+    return _run(log, config, params, key)
+
+
+@functools.partial(jax.jit, static_argnums=1)
+def _run(log: Log, config: Config, params: Params, key) -> Result:
     E = int(config.lidar_every)
-    T = np.shape(imu)[0]
-    F = np.shape(z)[0]
-    if np.shape(rotor_w) != (T, 4):
-        raise InputError(f"rotor_w: expected shape ({T}, 4), got {np.shape(rotor_w)}")
-    if np.shape(imu)[1:] != (6,):
-        raise InputError(f"imu: expected shape (T, 6), got {np.shape(imu)}")
-    if T != F * E:
-        raise InputError(f"imu: {T} samples do not make {F} frames of lidar_every = {E}")
+    T = log.imu.shape[0]
+    F = log.z.shape[0]
     k_init, k_run = jax.random.split(key)
-    state = init(k_init, x0, n_particles, config, params)
+    state = init(log, config, params, key=k_init)
     dtype = state.particles.pose.dtype
     # One key per IMU sample, split as in :func:`step` (IMU stage, LiDAR stage).
     keys = jax.vmap(lambda k: jnp.stack(jax.random.split(k)))(jax.random.split(k_run, T))
     keys = keys.reshape((F, E) + keys.shape[1:])
-    rw = jnp.asarray(rotor_w, dtype).reshape(F, E, 4)
-    im = jnp.asarray(imu, dtype).reshape(F, E, 6)
+    rw = jnp.asarray(log.rotor_w, dtype).reshape(F, E, 4)
+    im = jnp.asarray(log.imu, dtype).reshape(F, E, 6)
+    ids = log.ids
 
     def frame(s, inp):
         rws, ims, ks, zf, mf = inp
@@ -885,8 +946,7 @@ def run(key, x0, rotor_w, imu, z, ids, mask, n_particles: int, config: FilterCon
         s, fo = lidar_stage(s, zf, ids, mf, ks[-1, 1], config, params)
         return s, (outs, fo)
 
-    final, (outs, frames) = jax.lax.scan(frame, state, (rw, im, keys, jnp.asarray(z, dtype),
-                                                        jnp.asarray(mask, bool)))
+    final, (outs, frames) = jax.lax.scan(frame, state, (rw, im, keys, jnp.asarray(log.z, dtype),
+                                                        jnp.asarray(log.mask, bool)))
     steps = jax.tree_util.tree_map(lambda a: a.reshape((T,) + a.shape[2:]), outs)
-    return RunResult(final, steps, frames)
-
+    return Result(final, steps, frames)

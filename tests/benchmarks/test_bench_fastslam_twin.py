@@ -91,17 +91,21 @@ def _maxdiff(a, b):
 
 @pytest.fixture(scope="module")
 def runs():
-    cfg = fs1.FilterConfig()
+    cfg = fs1.Config(n_particles=N)
     prm = _default_params()
     rng = np.random.default_rng(4)
     x0, rot, imu, z, mask = _inputs(rng, prm)
     ids = np.arange(4, dtype=np.int32)
     # the initial state from one small program (eager, every primitive is compiled)
-    st = jax.jit(lambda k, x: fs1.init(k, x, N, cfg, prm))(jax.random.PRNGKey(3), jnp.asarray(x0))
-    inp0 = fs1.StepInputs(jnp.asarray(rot[0]), jnp.asarray(imu[0]), jnp.asarray(z[0]),
-                          jnp.asarray(ids), jnp.asarray(mask[0]))
+    def init(k, x):  # init reads only log.x0
+        log = fs1.Log(x0=x, rotor_w=None, imu=None, z=None, ids=None, mask=None)
+        return fs1.init(log, cfg, prm, key=k)
+
+    st = jax.jit(init)(jax.random.PRNGKey(3), jnp.asarray(x0))
+    inp0 = fs1.Event(jnp.asarray(rot[0]), jnp.asarray(imu[0]), jnp.asarray(z[0]),
+                     jnp.asarray(ids), jnp.asarray(mask[0]))
     # One compiled program: the step and the draws it makes from its key.
-    step = jax.jit(lambda s, i, k: (fs1.step(s, i, k, cfg, prm), _draws(k, N)),
+    step = jax.jit(lambda s, i, k: (fs1.step(s, i, cfg, prm, key=k), _draws(k, N)),
                    compiler_options=FAST_COMPILE)
     P = tw.params_from(prm, cfg.dt, cfg.threshold)
     ts = tw.state_from(st)

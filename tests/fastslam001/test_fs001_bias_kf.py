@@ -97,13 +97,14 @@ CASES = ((jnp.float64, "exact"), (jnp.float64, "paper"), (jnp.float32, "exact"))
 
 def _bias_kf_run(zs, dtype, weights):
     """The IMU stage alone over ``zs``, from the set-up of the module docstring (traced)."""
-    cfg = fs1.FilterConfig(stage2="none", weights=weights, threshold=1e-9)
+    cfg = fs1.Config(n_particles=3, stage2="none", weights=weights, threshold=1e-9)
     prm = _params(dtype)
     x0 = np.zeros((3, 12))
     x0[:, 2] = 0.5
     x0[:, 11] = RATES
     w = rotor.hover_rotor_speeds(PAPER001, dtype)
-    st = fs1.init(jax.random.PRNGKey(0), jnp.zeros(12, dtype), 3, cfg, prm)
+    log = fs1.Log(x0=jnp.zeros(12, dtype), rotor_w=None, imu=None, z=None, ids=None, mask=None)
+    st = fs1.init(log, cfg, prm, key=jax.random.PRNGKey(0))
     st = st._replace(particles=st.particles._replace(pose=jnp.asarray(x0, dtype)))
 
     def body(s, x):

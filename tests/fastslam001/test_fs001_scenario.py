@@ -49,7 +49,8 @@ def _result(flight, model):
 
         @jax.jit
         def go(key, fl):
-            res = fs1.run(key, fl.truth[0], fl.rotor, fl.imu, fl.z, ids, fl.mask, N, cfg, prm)
+            log = fs1.Log(x0=fl.truth[0], rotor_w=fl.rotor, imu=fl.imu, z=fl.z, ids=ids, mask=fl.mask)
+            res = fs1.run(log, cfg, prm, key=key)  # cfg.n_particles = N
             return res, sc.evaluate(fl, res, setup.landmarks, 0.005)
 
         _RESULTS[model] = go(jax.random.PRNGKey(3), fl)
@@ -99,13 +100,22 @@ def test_registered_and_bad_input():
     for bad in (0, -3):
         with pytest.raises(InputError, match="particles"):
             sc.build(_opts(particles=bad), jnp.float64)
+    log0 = fs1.Log(x0=jnp.zeros(12), rotor_w=None, imu=None, z=None, ids=None, mask=None)
     with pytest.raises(InputError, match="n_particles"):
-        fs1.init(jax.random.PRNGKey(0), jnp.zeros(12), 0, fs1.FilterConfig(),
-                 fs1.default_params())
+        fs1.init(log0, fs1.Config(n_particles=0), fs1.default_params(), key=jax.random.PRNGKey(0))
+    with pytest.raises(InputError, match="key"):
+        fs1.init(log0, fs1.Config(), fs1.default_params(), key=None)
+    log1 = fs1.Log(x0=np.zeros(12), rotor_w=np.zeros((20, 4)), imu=np.zeros((20, 5)),
+                   z=np.zeros((2, 4, 3)), ids=np.arange(4), mask=np.ones((2, 4), bool))
+    with pytest.raises(InputError, match=r"log\.imu: expected shape \(T, 6\)"):
+        fs1.run(log1, fs1.Config(), fs1.default_params(), key=jax.random.PRNGKey(0))
+    with pytest.raises(InputError, match=r"log\.mask"):
+        fs1.run(log1._replace(imu=np.zeros((20, 6)), mask=np.ones((3, 4), bool)), fs1.Config(),
+                fs1.default_params(), key=jax.random.PRNGKey(0))
     with pytest.raises(InputError, match="duration"):
         sc.build(_opts(duration=0.0), jnp.float64)
     with pytest.raises(InputError, match="model"):
-        fs1.validate_config(fs1.FilterConfig(model="odometry"))
+        fs1.validate_config(fs1.Config(model="odometry"))
     with pytest.raises(InputError, match="proposal_var"):
         fs1.validate_params_001(fs1.default_params()._replace(proposal_var=-jnp.ones(12)))
 
@@ -113,13 +123,14 @@ def test_registered_and_bad_input():
 def _lidar_loss_setup(flight):
     """Loss of one LiDAR frame (update of a mapped landmark set, soft resampling, stage 2)."""
     setup, fl = flight
-    cfg = fs1.FilterConfig(resampling="soft", threshold=None, soft_alpha=0.5)
-    prm = fs1.default_params("dynamics", dtype=jnp.float64)
     n = 8
+    cfg = fs1.Config(n_particles=n, resampling="soft", threshold=None, soft_alpha=0.5)
+    prm = fs1.default_params("dynamics", dtype=jnp.float64)
     ids = jnp.arange(4, dtype=jnp.int32)
 
     def state():
-        st = fs1.init(jax.random.PRNGKey(1), fl.truth[10], n, cfg, prm)
+        log = fs1.Log(x0=fl.truth[10], rotor_w=None, imu=None, z=None, ids=None, mask=None)
+        st = fs1.init(log, cfg, prm, key=jax.random.PRNGKey(1))
         off = 0.05 * jax.random.normal(jax.random.PRNGKey(5), (n, 4, 3), jnp.float64)
         p = st.particles._replace(
             lm_mean=setup.landmarks[None] + off,
@@ -157,22 +168,23 @@ def test_lidar_frame_derivative_matches_finite_differences(flight):
 @pytest.mark.slow
 def test_step_loop_equals_run(flight):
     setup, fl = flight
-    cfg, prm = sc.make_filter(_opts(), jnp.float64)
+    cfg, prm = sc.make_filter(_opts(particles=16), jnp.float64)
     ids = jnp.arange(4, dtype=jnp.int32)
     E, F = sc.LIDAR_EVERY, 3
     T = E * F
     key = jax.random.PRNGKey(4)
-    res = jax.jit(lambda k: fs1.run(k, fl.truth[0], fl.rotor[:T], fl.imu[:T], fl.z[:F], ids,
-                                    fl.mask[:F], 16, cfg, prm))(key)
+    log = fs1.Log(x0=fl.truth[0], rotor_w=fl.rotor[:T], imu=fl.imu[:T], z=fl.z[:F], ids=ids,
+                  mask=fl.mask[:F])
+    res = jax.jit(lambda k: fs1.run(log, cfg, prm, key=k))(key)
     k_init, k_run = jax.random.split(key)
-    st = fs1.init(k_init, fl.truth[0], 16, cfg, prm)
-    step = jax.jit(lambda s, i, k: fs1.step(s, i, k, cfg, prm))
+    st = fs1.init(log, cfg, prm, key=k_init)
+    step = jax.jit(lambda s, i, k: fs1.step(s, i, cfg, prm, key=k))
     keys = jax.random.split(k_run, T)
     no = jnp.zeros((4,), bool)
     for k in range(T):
         f = k // E
         last = (k + 1) % E == 0
-        inp = fs1.StepInputs(fl.rotor[k], fl.imu[k], fl.z[f], ids, fl.mask[f] if last else no)
+        inp = fs1.Event(fl.rotor[k], fl.imu[k], fl.z[f], ids, fl.mask[f] if last else no)
         st, out = step(st, inp, keys[k])
         np.testing.assert_allclose(np.asarray(out.pose_mean), np.asarray(res.steps.pose_mean[k]),
                                    rtol=0, atol=1e-12)
@@ -185,15 +197,17 @@ def test_step_loop_equals_run(flight):
 @pytest.mark.slow
 def test_whole_run_gradient_wrt_log_q_and_log_r(flight):
     setup, fl = flight
-    cfg, prm = sc.make_filter(_opts(resampling="soft", resample_threshold=1.0), jnp.float64)
+    cfg, prm = sc.make_filter(_opts(resampling="soft", resample_threshold=1.0, particles=8),
+                              jnp.float64)
     ids = jnp.arange(4, dtype=jnp.int32)
     E, F = sc.LIDAR_EVERY, 2
     T = E * F
 
     def loss(theta):
         p2 = fs1.with_log_noise(prm, theta[:12], theta[12:])
-        res = fs1.run(jax.random.PRNGKey(9), fl.truth[0], fl.rotor[:T], fl.imu[:T], fl.z[:F],
-                      ids, fl.mask[:F], 8, cfg, p2)
+        log = fs1.Log(x0=fl.truth[0], rotor_w=fl.rotor[:T], imu=fl.imu[:T], z=fl.z[:F], ids=ids,
+                      mask=fl.mask[:F])
+        res = fs1.run(log, cfg, p2, key=jax.random.PRNGKey(9))
         e = res.steps.pose_mean[:, 0:3] - fl.truth[1:T + 1, 0:3]
         return jnp.mean(jnp.sum(e * e, axis=1))
 

@@ -188,11 +188,11 @@ def bias_prior_sigma(bias: float) -> float:
 
 
 def make_filter(options: dict, dtype):
-    """(FilterConfig, FilterParams) of the scenario options."""
+    """(Config, Params) of the scenario options."""
     model = options["model"]
     thr = float(options["resample_threshold"])
-    cfg = fs1.FilterConfig(
-        model=model, lidar=options["lidar"], weights=options["weights"],
+    cfg = fs1.Config(
+        model=model, n_particles=int(options["particles"]), lidar=options["lidar"], weights=options["weights"],
         stage2=options["stage2"], accel_mode=options["accel"],
         resampling=options["resampling"], threshold=None if thr >= 1.0 else thr,
         soft_alpha=float(options["soft_alpha"]), capacity=4, lidar_every=LIDAR_EVERY, dt=DT,
@@ -271,20 +271,20 @@ def _check_options(options):
 
 
 def build(options: dict, dtype):
-    """(one_run(key) -> (metrics, counts), flight(key) -> (Flight001, RunResult), cfg, prm, nf)."""
+    """(one_run(key) -> (metrics, counts), flight(key) -> (Flight001, Result), cfg, prm, nf)."""
     _check_options(options)
     dtype = jnp.dtype(dtype)
     opts = dict(options)
     cfg, prm = make_filter(opts, dtype)
     setup = truth_setup(float(opts["bias"]), dtype)
     nf = int(round(float(opts["duration"]) / (DT * LIDAR_EVERY)))
-    N = int(opts["particles"])
     ids = jnp.arange(setup.landmarks.shape[0], dtype=jnp.int32)
 
     def flight(key, cfg=cfg):
         k_truth, k_filt = jax.random.split(key)
         fl = fly(setup, k_truth, nf, LIDAR_EVERY, cfg.lidar, cfg.accel_mode)
-        res = fs1.run(k_filt, fl.truth[0], fl.rotor, fl.imu, fl.z, ids, fl.mask, N, cfg, prm)
+        log = fs1.Log(x0=fl.truth[0], rotor_w=fl.rotor, imu=fl.imu, z=fl.z, ids=ids, mask=fl.mask)
+        res = fs1.run(log, cfg, prm, key=k_filt)
         return fl, res
 
     def one_run(key, detail=False):
