@@ -10,6 +10,8 @@
 * :mod:`jaxslam.filters.smoother` — RTS, fixed-lag and iterated (Gauss–Newton) smoothers.
 * :mod:`jaxslam.filters.ekf_slam` — EKF-SLAM engine on a fixed-capacity padded map.
 * :mod:`jaxslam.filters.fastslam` — FastSLAM 1.0 core: vmapped particles, padded landmark EKFs.
+* :mod:`jaxslam.filters.trilateration` — least-squares trilateration (ranges to known points).
+* :mod:`jaxslam.filters.delayed_init` — landmarks from buffered ranges (range-only SLAM).
 * :mod:`jaxslam.filters.resampling` — log-weight normalisation, ESS, resampling schemes, soft.
 """
 

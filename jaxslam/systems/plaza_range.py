@@ -46,10 +46,10 @@ beacon is unmapped, each of its ranges is stored with the current position
 estimate and that position's variance in a per-beacon ring buffer (W rows).
 Once ≥ ``min_points`` rows are stored and the buffered positions spread
 ≥ ``min_spread`` m in their weakest direction (:func:`trilateration.point_spread`),
-the beacon is trilaterated from the ranges minus the current bias estimate
-(``trilaterate``), refitted once without the rows whose residual exceeds
-max(3·1.4826·MAD, 1 m) (the outliers), and added with
-P_ll = Σ_LS(σ_r²) + mean position variance · I + G_b σ_b² G_bᵀ and the
+the beacon is trilaterated from the ranges minus the current bias estimate,
+refitted once without the rows whose residual exceeds max(3·1.4826·MAD, 1 m)
+(the outliers) (:func:`jaxslam.filters.delayed_init.from_buffer`, robust, eq. D1),
+and added with P_ll = Σ_LS(σ_r²) + mean position variance · I + G_b σ_b² G_bᵀ and the
 cross-covariance P_lx = G_b P_b,: with the whole state, G_b = ∂l/∂b by
 ``jacfwd`` through the (fixed-mask) trilateration — so the filter knows the
 beacon moves with the bias.  Cross-covariances with the buffered poses are
@@ -70,7 +70,7 @@ from ..data.events import EventLog, merge_events
 from ..dynamics import planar
 from ..errors import InputError
 from ..filters import ekf_slam as es
-from ..filters import trilateration as tri
+from ..filters import delayed_init
 from ..linalg import symmetrize, wrap_angle
 from .biased_range import Result, _cast_params, _result, range_observe
 
@@ -246,21 +246,6 @@ def _heading_difference(a, b):
     return d.at[2].set(wrap_angle(d[2]))
 
 
-def _robust_trilaterate(pos, rng, valid, range_var, min_points, min_spread):
-    """Two-pass trilateration: fit, drop |residual| > max(3·1.4826·MAD, 1 m), refit."""
-    r1 = tri.trilaterate(pos, rng, mask=valid)
-    res = jnp.sqrt(jnp.sum((pos - r1.position) ** 2, axis=1)) - rng
-    resn = jnp.where(valid, res, jnp.nan)
-    med = jnp.nanmedian(resn)
-    mad = jnp.nanmedian(jnp.abs(resn - med))
-    cut = jnp.maximum(3.0 * 1.4826 * mad, 1.0)
-    keep = valid & (jnp.abs(res - med) <= cut)
-    keep = jax.lax.stop_gradient(keep)
-    r2 = tri.trilaterate(pos, rng, mask=keep, range_var=range_var, min_points=min_points,
-                         min_spread=min_spread)
-    return r2
-
-
 def init(log: Log, config: Config, params: Params, *, key=None) -> State:
     """The state before the first event: the robot at ``log.pose0`` with the bias prior
     (``params.bias0`` ± ``sigma_bias0``), the surveyed beacons in the map (localisation) or
@@ -323,16 +308,15 @@ def step(state: State, event: Event, config: Config, params: Params, *, key=None
         valid = jnp.arange(W) < buf.count[j]
         bias = st.x[NR - 1]
 
-        def tri_of(bias_):
-            return _robust_trilaterate(buf.pos[j], buf.rng[j] - bias_, valid,
-                                       p.sigma_r**2, int(config.min_points), float(config.min_spread))
+        def fit(bias_):  # (D1), robust, on the bias-corrected ranges
+            return delayed_init.from_buffer(buf.pos[j], buf.pos_var[j], buf.rng[j] - bias_, valid,
+                                            p.sigma_r**2, int(config.min_points), float(config.min_spread),
+                                            robust=True)
 
-        r = tri_of(bias)
-        Gb = jax.jacfwd(lambda b_: tri_of(b_).position)(bias)  # (2,)
-        n_valid = jnp.maximum(jnp.sum(valid), 1).astype(st.x.dtype)
-        mpv = jnp.sum(jnp.where(valid, buf.pos_var[j], 0.0)) / n_valid
+        r, Pl = fit(bias)
+        Gb = jax.jacfwd(lambda b_: fit(b_)[0].position)(bias)  # (2,)
         Pbb = st.P[NR - 1, NR - 1]
-        Pll = r.cov + mpv * jnp.eye(2, dtype=st.x.dtype) + Pbb * jnp.outer(Gb, Gb)
+        Pll = Pl + Pbb * jnp.outer(Gb, Gb)
         Plx = Gb[:, None] * st.P[NR - 1][None, :]
         free = ~st.active
         ready = (~is_mapped) & r.ok & jnp.any(free) & jnp.all(jnp.isfinite(Pll))
