@@ -109,7 +109,6 @@ def _close(r1, t1, r2, t2, tol_rho=0.02, tol_th=np.radians(0.5)):
 
 def _ransac_part(args, out, results):
     import jax
-    import jax.numpy as jnp
     import numpy_lines as tw
 
     from jaxslam.features import lines as F
@@ -214,8 +213,8 @@ def _slam_part(args, out, results):
     sim = jax.jit(jax.vmap(lambda k: sc.simulate(k, setup, cfg.spec, jnp.float64)))
     logs = jax.block_until_ready(sim(keys))
     fkeys = jax.random.split(jax.random.PRNGKey(args.seed + 1), M_max)
-    single = jax.jit(lambda k, log: LS.run(k, log, cfg, fp))
-    batch = jax.jit(jax.vmap(lambda k, log: LS.run(k, log, cfg, fp)))
+    single = jax.jit(lambda k, log: LS.run(log, cfg, fp, key=k))
+    batch = jax.jit(jax.vmap(lambda k, log: LS.run(log, cfg, fp, key=k)))
     first = jax.tree.map(lambda a: a[0], logs)
     t0 = time.perf_counter()
     jax.block_until_ready(single(fkeys[0], first))

@@ -4,7 +4,7 @@ An independent implementation of the filter equations with hand-derived
 Jacobians and the textbook dense Joseph form, used two ways:
 
 * as a test oracle: :func:`replay` consumes the EKF inputs a jaxslam run
-  recorded (``LineSlamConfig(record_inputs=True)``: odometry, matched line
+  recorded (``Config(record_inputs=True)``: odometry, matched line
   measurements with their covariances and gate decisions, registered new lines)
   and must reproduce the robot mean/covariance and the map at every step;
 * as the NumPy reference for ``jaxslam bench lines``.

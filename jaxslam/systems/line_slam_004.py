@@ -49,11 +49,19 @@ ground with the IMU roll and pitch; predicted lines searched first
 (joint update, χ² gate); RANSAC on the remaining points proposes new lines,
 which are registered when their Mahalanobis distance to every mapped line
 exceeds ``new_threshold`` (so a mapped line the prior-guided search missed is
-not mapped twice).  Everything is one ``lax.scan``; vmap over runs.
+not mapped twice).
+
+The system follows the package convention (:mod:`jaxslam.systems`): :class:`Config` (static),
+:class:`Params` (traced), :class:`Log` (one flight), :class:`Event` (one scan of it),
+``State`` (the engine's :class:`jaxslam.filters.ekf_slam.SlamState`), :class:`StepOut`,
+:class:`Result`; :func:`init`, :func:`step` and :func:`run`.  RANSAC draws random numbers, so
+``step`` and ``run`` require ``key``; ``run`` splits it into one key per scan.  A whole log is
+one jitted ``lax.scan``; vmap over runs.
 """
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple, Optional
 
 import jax
@@ -63,7 +71,7 @@ import numpy as np
 from ..errors import InputError
 from ..features import lines as fl
 from ..filters import ekf_slam as es
-from ..linalg import wrap_angle
+from ..linalg import is_concrete, wrap_angle
 from ..sensors import laser2d
 
 __all__ = [
@@ -72,12 +80,14 @@ __all__ = [
     "VEL",
     "YAW",
     "RATE",
-    "LineSlamConfig",
-    "FilterParams",
-    "LineLog",
-    "StepInputs",
+    "Config",
+    "Params",
+    "Log",
+    "Event",
+    "State",
+    "EkfInputs",
     "StepOut",
-    "RunResult",
+    "Result",
     "motion",
     "observe",
     "inverse",
@@ -99,7 +109,7 @@ YAW = 4
 RATE = 5
 
 
-class LineSlamConfig(NamedTuple):
+class Config(NamedTuple):
     """Static settings (hashable; a change recompiles).
 
     dt: scan period [s] (URG-04LX: 0.1); capacity: line slots; ransac: RANSAC
@@ -132,7 +142,7 @@ class LineSlamConfig(NamedTuple):
     record_inputs: bool = False
 
 
-class FilterParams(NamedTuple):
+class Params(NamedTuple):
     """Tunable (traced) filter parameters.
 
     Q: (6, 6) discrete process noise per step; R_odo: (3, 3) optical flow
@@ -147,8 +157,8 @@ class FilterParams(NamedTuple):
     P0: jax.Array
 
 
-class LineLog(NamedTuple):
-    """One flight's sensor log (T steps; ranges NaN where invalid).
+class Log(NamedTuple):
+    """One flight's sensor log (T scans; ranges NaN where invalid; a batch adds a leading axis).
 
     ranges: (T, n_beams) [m]; valid: (T, n_beams) bool; tilt: (T, 2) IMU roll
     and pitch [rad] (for the ground projection); flow: (T, 2) body velocity
@@ -164,7 +174,27 @@ class LineLog(NamedTuple):
     s0: jax.Array
 
 
-class StepInputs(NamedTuple):
+class Event(NamedTuple):
+    """One scan of a :class:`Log` (the slice :func:`step` takes).
+
+    ranges: (n_beams,) [m]; valid: (n_beams,) bool; tilt: (2,) roll, pitch [rad]; flow: (2,)
+    body velocity [m/s]; gyro: () yaw rate [rad/s]; index: () int32 the scan's number k
+    (0, 1, …; new lines get the ids k·M + j, M = ``config.ransac.max_lines``).
+    """
+
+    ranges: jax.Array
+    valid: jax.Array
+    tilt: jax.Array
+    flow: jax.Array
+    gyro: jax.Array
+    index: jax.Array
+
+
+#: The state between scans: the engine's posterior (robot block and line map).
+State = es.SlamState
+
+
+class EkfInputs(NamedTuple):
     """What the EKF consumed at one step (``record_inputs``): enough to replay it.
 
     z_match (cap, 2), R_match (cap, 2, 2), used (cap,) after the gate;
@@ -196,12 +226,15 @@ class StepOut(NamedTuple):
     n_gated: jax.Array
     n_new: jax.Array
     status: jax.Array
-    inputs: Optional[StepInputs] = None
+    inputs: Optional[EkfInputs] = None
 
 
-class RunResult(NamedTuple):
+class Result(NamedTuple):
+    """What :func:`run` returns: steps, the :class:`StepOut` of every scan (leading axis T);
+    final, the :data:`State` after the last scan."""
+
     steps: StepOut
-    final: es.SlamState
+    final: State
 
 
 # ---------------------------------------------------------------------------
@@ -253,7 +286,7 @@ def make_model() -> es.SlamModel:
 def default_params(dt: float = 0.1, sigma_flow: float = 0.05, sigma_gyro: float = 0.005,
                    sigma_acc: float = 0.2, sigma_yaw_acc: float = 0.1, sigma_pos: float = 0.005,
                    sigma_line_rho: float = 0.005, sigma_line_theta_deg: float = 0.15,
-                   dtype=jnp.float64) -> FilterParams:
+                   dtype=jnp.float64) -> Params:
     """Filter parameters matched to the ``lineslam-room`` simulation (stated there).
 
     Q per step from continuous white-noise accelerations: the yaw/yaw-rate block is the
@@ -269,7 +302,7 @@ def default_params(dt: float = 0.1, sigma_flow: float = 0.05, sigma_gyro: float 
     q[YAW, YAW] = qy * dt ** 3 / 3
     q[YAW, RATE] = q[RATE, YAW] = qy * dt ** 2 / 2
     q[RATE, RATE] = qy * dt
-    return FilterParams(
+    return Params(
         Q=jnp.asarray(q, dtype),
         R_odo=jnp.asarray(np.diag([sigma_flow ** 2, sigma_flow ** 2, sigma_gyro ** 2]), dtype),
         R_line=jnp.asarray(np.diag([sigma_line_rho ** 2, np.deg2rad(sigma_line_theta_deg) ** 2]), dtype),
@@ -309,46 +342,51 @@ def _fit_quality(lines: fl.Lines, pts, sig_pt, point_sigma, max_ratio: float = 2
                       length=length)
 
 
-def init(s0, cfg: LineSlamConfig, params: FilterParams) -> es.SlamState:
-    """Empty map, robot at ``s0`` with covariance ``params.P0``."""
-    s0 = jnp.asarray(s0)
-    return es.init(s0, params.P0.astype(s0.dtype), cfg.capacity, 2)
+def init(log: Log, config: Config, params: Params, *, key=None) -> State:
+    """The state before the first scan: empty map, robot at ``log.s0`` with covariance
+    ``params.P0`` (in the dtype of ``log.s0``; no random draw, ``key`` unused)."""
+    del key
+    s0 = jnp.asarray(log.s0)
+    return es.init(s0, params.P0.astype(s0.dtype), config.capacity, 2)
 
 
-def step(st: es.SlamState, key, ranges, valid, tilt, flow, gyro, cfg: LineSlamConfig,
-         params: FilterParams, counter):
-    """One scan of Algorithm 2.  Returns (state, StepOut).  ``counter`` numbers new line ids."""
+def step(state: State, event: Event, config: Config, params: Params, *, key) -> tuple[State, StepOut]:
+    """One scan of Algorithm 2.  ``key`` (required) drives the scan's RANSAC sampling.
+    Returns ``(state, StepOut)``."""
+    if key is None:
+        raise InputError("key: line SLAM samples RANSAC hypotheses; give a PRNG key")
+    st = state
     model = make_model()
     dtype = st.x.dtype
-    cap = cfg.capacity
-    st = es.predict(st, model, None, params.Q.astype(dtype), cfg.dt)
-    z_odo = jnp.concatenate([jnp.asarray(flow, dtype), jnp.asarray(gyro, dtype)[None]])
+    cap = config.capacity
+    st = es.predict(st, model, None, params.Q.astype(dtype), config.dt)
+    z_odo = jnp.concatenate([jnp.asarray(event.flow, dtype), jnp.asarray(event.gyro, dtype)[None]])
     st, _ = es.update_robot(st, model, odometry_observe, z_odo, jnp.ones((3,), bool),
                             params.R_odo.astype(dtype))
 
-    ranges = jnp.asarray(ranges, dtype)
-    pvalid = valid & jnp.isfinite(ranges)
-    pts, pvalid = laser2d.scan_points(ranges, pvalid, cfg.spec, tilt)
+    ranges = jnp.asarray(event.ranges, dtype)
+    pvalid = event.valid & jnp.isfinite(ranges)
+    pts, pvalid = laser2d.scan_points(ranges, pvalid, config.spec, event.tilt)
 
     s = st.x[:NR]
     L = es.landmarks(st, model)
     zh = jax.vmap(lambda l: observe(s, l))(L)
     pr, pt = fl.hesse_normalize(zh[:, 0], zh[:, 1])
-    matched, new, _ = fl.extract_guided(key, pts, pvalid, pr, pt, st.active, cfg.ransac, cfg.match_gate)
+    matched, new, _ = fl.extract_guided(key, pts, pvalid, pr, pt, st.active, config.ransac, config.match_gate)
 
     R_line = params.R_line.astype(dtype)
-    sig_pt = jnp.where(pvalid, laser2d.range_sigma(jnp.where(pvalid, ranges, 1.0), cfg.spec), 0.0)
-    q_m = _fit_quality(matched, pts, sig_pt, cfg.ransac.point_sigma)
+    sig_pt = jnp.where(pvalid, laser2d.range_sigma(jnp.where(pvalid, ranges, 1.0), config.spec), 0.0)
+    q_m = _fit_quality(matched, pts, sig_pt, config.ransac.point_sigma)
     z_m = jnp.stack([matched.rho, matched.theta], axis=-1)
     R_m = matched.cov * q_m.cov_scale[:, None, None] + R_line
-    m_mask = matched.valid & st.active & (matched.n_inliers >= cfg.min_update_inliers)
-    st, info = es.update(st, model, z_m, jnp.arange(cap), m_mask, R_m, gate=cfg.nis_gate)
+    m_mask = matched.valid & st.active & (matched.n_inliers >= config.min_update_inliers)
+    st, info = es.update(st, model, z_m, jnp.arange(cap), m_mask, R_m, gate=config.nis_gate)
 
-    q_n = _fit_quality(new, pts, sig_pt, cfg.ransac.point_sigma, cfg.max_scatter_ratio)
+    q_n = _fit_quality(new, pts, sig_pt, config.ransac.point_sigma, config.max_scatter_ratio)
     z_n = jnp.stack([new.rho, new.theta], axis=-1)
     R_n = new.cov * q_n.cov_scale[:, None, None] + R_line
-    _, _, is_new, _ = es.associate_nn(st, model, z_n, new.valid, R_n, gate=cfg.nis_gate,
-                                      new_threshold=cfg.new_threshold)
+    _, _, is_new, _ = es.associate_nn(st, model, z_n, new.valid, R_n, gate=config.nis_gate,
+                                      new_threshold=config.new_threshold)
     # Clutter in front of the sensor can line up into a "line" through it (ρ ≈ 0): no wall is
     # that close to a flying vehicle, so such candidates are not mapped.  A new line must also
     # look like one wall: inlier scatter about the fit no larger than the
@@ -356,16 +394,16 @@ def step(st: es.SlamState, key, ranges, valid, tilt, flow, gyro, cfg: LineSlamCo
     # RANSAC threshold) and a segment of at least ``min_line_length``.  (With
     # ``ransac.max_gap`` every line is one run of beams: RANSAC cannot string a pillar face and
     # a nearly collinear wall behind it, or clutter on a line's extension, into one line.)
-    reg = (new.valid & is_new & (new.rho >= cfg.min_line_rho) & q_n.wall_like
-           & (q_n.length >= cfg.min_line_length))
+    reg = (new.valid & is_new & (new.rho >= config.min_line_rho) & q_n.wall_like
+           & (q_n.length >= config.min_line_length))
     M = z_n.shape[0]
-    ids = counter * M + jnp.arange(M, dtype=jnp.int32)
+    ids = jnp.asarray(event.index, jnp.int32) * M + jnp.arange(M, dtype=jnp.int32)
     n_act0 = jnp.sum(st.active)
     st = es.register(st, model, z_n, ids, reg, R_n)
     n_new = jnp.sum(st.active) - n_act0
 
-    inputs = (StepInputs(z_match=z_m, R_match=R_m, used=info.used, z_new=z_n, R_new=R_n, reg=reg)
-              if cfg.record_inputs else None)
+    inputs = (EkfInputs(z_match=z_m, R_match=R_m, used=info.used, z_new=z_n, R_new=R_n, reg=reg)
+              if config.record_inputs else None)
     out = StepOut(
         mean=st.x[:NR],
         cov=st.P[:NR, :NR],
@@ -383,33 +421,69 @@ def step(st: es.SlamState, key, ranges, valid, tilt, flow, gyro, cfg: LineSlamCo
     return st, out
 
 
-def run(key, log: LineLog, cfg: LineSlamConfig, params: FilterParams) -> RunResult:
-    """A whole log as one ``lax.scan``; ``cfg`` static (``jax.jit(run, static_argnums=2)``).
+def _check_log(log: Log, spec: laser2d.LaserSpec) -> int:
+    """Shapes and dtypes of ``log`` (static, also under tracing); returns T."""
+    n = spec.n_beams
+    shp = np.shape(log.ranges)
+    if len(shp) != 2 or shp[0] < 1 or shp[1] != n:
+        raise InputError(f"log.ranges: expected shape (T, {n}) (T >= 1 scans of {n} beams for this "
+                         f"laser), got {shp}")
+    T = shp[0]
+    for name, want in (("valid", (T, n)), ("tilt", (T, 2)), ("flow", (T, 2)), ("gyro", (T,)), ("s0", (NR,))):
+        got = np.shape(getattr(log, name))
+        if got != want:
+            raise InputError(f"log.{name}: expected shape {want}, got {got}")
+    vdt = getattr(log.valid, "dtype", None)
+    vdt = np.asarray(log.valid).dtype if vdt is None else vdt
+    if vdt != bool:
+        raise InputError(f"log.valid: expected a bool mask, got dtype {vdt}")
+    return T
 
-    ``key`` drives the RANSAC sampling (deterministic given the key).  Check a log
-    from outside with :func:`validate_log` first.
+
+def run(log: Log, config: Config = Config(), params: Optional[Params] = None, *, key) -> Result:
+    """Algorithm 2 over a whole log: one jitted ``lax.scan`` of :func:`step` (``config`` static).
+
+    ``key`` (required) drives the RANSAC sampling: it is split into one key per scan
+    (deterministic given the key).  ``params`` None: :func:`default_params` for ``config.dt``
+    in the dtype of ``log.s0``.  Shapes are checked here, also under tracing; values
+    (finite ``log.s0``, PSD covariances) when they are concrete, else check a log from outside
+    with :func:`validate_log` first.  Composes under ``jit`` / ``vmap``.
     """
-    dtype = jnp.asarray(log.s0).dtype
-    st = init(jnp.asarray(log.s0, dtype), cfg, params)
+    if key is None:
+        raise InputError("key: line SLAM samples RANSAC hypotheses; give a PRNG key")
+    if int(config.capacity) < 1:
+        raise InputError(f"config.capacity: must be >= 1, got {config.capacity}")
+    _check_log(log, config.spec)
+    if params is None:
+        params = default_params(config.dt, dtype=jnp.asarray(log.s0).dtype)
+    if is_concrete(log.s0) and not np.all(np.isfinite(np.asarray(log.s0, float))):
+        raise InputError("log.s0: contains non-finite values")
+    if is_concrete(params):
+        validate_params(params)
+    return _run(log, config, params, key)
+
+
+@functools.partial(jax.jit, static_argnums=1)
+def _run(log: Log, config: Config, params: Params, key) -> Result:
+    st = init(log, config, params)
     T = log.ranges.shape[0]
     keys = jax.random.split(key, T)
+    events = Event(ranges=log.ranges, valid=log.valid, tilt=log.tilt, flow=log.flow, gyro=log.gyro,
+                   index=jnp.arange(T, dtype=jnp.int32))
 
-    def body(c, inp):
-        st, k = c
-        kk, r, v, tl, fw, g = inp
-        st, out = step(st, kk, r, v, tl, fw, g, cfg, params, k)
-        return (st, k + 1), out
+    def body(st, ev_k):
+        ev, k = ev_k
+        return step(st, ev, config, params, key=k)
 
-    (final, _), steps = jax.lax.scan(
-        body, (st, jnp.int32(0)), (keys, log.ranges, log.valid, log.tilt, log.flow, log.gyro))
-    return RunResult(steps=steps, final=final)
+    final, steps = jax.lax.scan(body, st, (events, keys))
+    return Result(steps=steps, final=final)
 
 
 # ---------------------------------------------------------------------------
 # Host-side validation
 # ---------------------------------------------------------------------------
 
-def validate_params(params: FilterParams) -> FilterParams:
+def validate_params(params: Params) -> Params:
     """Shapes, finiteness and positive (semi-)definiteness of every covariance."""
     from ..linalg import check_psd
 
@@ -424,25 +498,10 @@ def validate_params(params: FilterParams) -> FilterParams:
     return params
 
 
-def validate_log(log: LineLog, spec: laser2d.LaserSpec = laser2d.URG04LX) -> LineLog:
-    """Shapes of a log; a scan of the wrong length raises InputError naming the step."""
-    r = np.asarray(log.ranges)
-    if r.ndim != 2:
-        raise InputError(f"log.ranges: expected (T, {spec.n_beams}), got shape {r.shape}")
-    T = r.shape[0]
-    if T < 1:
-        raise InputError("log.ranges: empty log (T = 0)")
-    if r.shape[1] != spec.n_beams:
-        raise InputError(f"log.ranges: each scan must have {spec.n_beams} beams "
-                         f"({spec.n_beams} for this laser), got {r.shape[1]}")
-    for name, shp in (("valid", (T, spec.n_beams)), ("tilt", (T, 2)), ("flow", (T, 2)), ("gyro", (T,)),
-                      ("s0", (NR,))):
-        a = np.asarray(getattr(log, name))
-        if a.shape != shp:
-            raise InputError(f"log.{name}: expected shape {shp}, got {a.shape}")
-    if np.asarray(log.valid).dtype != bool:
-        raise InputError(f"log.valid: expected a bool mask, got dtype {np.asarray(log.valid).dtype}")
+def validate_log(log: Log, spec: laser2d.LaserSpec = laser2d.URG04LX) -> Log:
+    """Host-side checks of a concrete log: shapes (a scan of the wrong length raises InputError
+    naming the beam count), the bool ``valid`` mask and a finite ``s0``."""
+    _check_log(log, spec)
     if not np.all(np.isfinite(np.asarray(log.s0, float))):
         raise InputError("log.s0: contains non-finite values")
     return log
-

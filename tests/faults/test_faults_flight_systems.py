@@ -39,11 +39,11 @@ def line_slam():
     from jaxslam.systems import line_slam_004 as LS
 
     setup = sc.make_setup(duration=6.0)
-    cfg = LS.LineSlamConfig()
+    cfg = LS.Config()
     fp = LS.default_params()
     log = jax.jit(lambda k: sc.simulate(k, setup, cfg.spec, jnp.float64))(jax.random.PRNGKey(3))
-    run = jax.jit(LS.run, static_argnums=2)
-    clean = run(jax.random.PRNGKey(5), log, cfg, fp)
+    run = LS.run  # jitted itself (config static)
+    clean = run(log, cfg, fp, key=jax.random.PRNGKey(5))
     return setup, cfg, fp, log, run, clean
 
 
@@ -80,7 +80,7 @@ def test_line_slam_fault(line_slam, fault):
     setup, cfg, fp, log, run, clean = line_slam
     base = _rmse(clean.steps.mean, setup.truth)
     assert not {"masked_input", "non_finite", "not_psd"} & set(errors.decode(int(clean.final.status)))
-    res = run(jax.random.PRNGKey(5), _line_fault(log, fault), cfg, fp)
+    res = run(_line_fault(log, fault), cfg, fp, key=jax.random.PRNGKey(5))
     flags = errors.decode(int(res.final.status))
     assert np.all(np.isfinite(np.asarray(res.steps.mean))) and np.all(np.isfinite(np.asarray(res.steps.cov)))
     assert "non_finite" not in flags and "not_psd" not in flags, flags
@@ -105,7 +105,8 @@ def fastslam_001():
 
     @jax.jit
     def go(key, imu, z, mask):
-        return fs1.run(key, fl.truth[0], fl.rotor, imu, z, ids, mask, n, cfg, prm)
+        log = fs1.Log(x0=fl.truth[0], rotor_w=fl.rotor, imu=imu, z=z, ids=ids, mask=mask)
+        return fs1.run(log, cfg, prm, key=key)  # cfg.n_particles = n
 
     clean = go(jax.random.PRNGKey(3), fl.imu, fl.z, fl.mask)
     return fl, go, clean

@@ -111,9 +111,9 @@ def test_validate_params_and_log_errors():
         LS.validate_params(fp._replace(R_odo=jnp.zeros((2, 2))))
     with pytest.raises(InputError, match="Q"):
         LS.validate_params(fp._replace(Q=-jnp.eye(6)))
-    T, n = 3, LS.LineSlamConfig().spec.n_beams
-    log = LS.LineLog(ranges=np.ones((T, n)), valid=np.ones((T, n), bool), tilt=np.zeros((T, 2)),
-                     flow=np.zeros((T, 2)), gyro=np.zeros(T), s0=np.zeros(6))
+    T, n = 3, LS.Config().spec.n_beams
+    log = LS.Log(ranges=np.ones((T, n)), valid=np.ones((T, n), bool), tilt=np.zeros((T, 2)),
+                 flow=np.zeros((T, 2)), gyro=np.zeros(T), s0=np.zeros(6))
     LS.validate_log(log)
     with pytest.raises(InputError, match="682"):
         LS.validate_log(log._replace(ranges=np.ones((T, 600))))
@@ -130,17 +130,16 @@ def short_flight():
     from jaxslam.sim.scenarios import lineslam as sc
 
     setup = sc.make_setup(duration=6.0)
-    cfg = LS.LineSlamConfig(record_inputs=True)
+    cfg = LS.Config(record_inputs=True)
     fp = LS.default_params()
     key = jax.random.PRNGKey(3)
     log = jax.jit(lambda k: sc.simulate(k, setup, cfg.spec, jnp.float64))(key)
-    run = jax.jit(LS.run, static_argnums=2)
-    res = run(jax.random.PRNGKey(5), log, cfg, fp)
-    return setup, cfg, fp, log, res, run
+    res = LS.run(log, cfg, fp, key=jax.random.PRNGKey(5))
+    return setup, cfg, fp, log, res
 
 
 def test_filter_matches_numpy_twin_step_by_step(short_flight):
-    setup, cfg, fp, log, res, _ = short_flight
+    setup, cfg, fp, log, res = short_flight
     inp = jax.tree.map(np.asarray, res.steps.inputs)
     assert inp.used.sum() > 50 and inp.reg.sum() >= 4  # the replay exercises updates and registrations
     (m, P, lines, act), (x_end, P_end) = twin.replay(
@@ -155,7 +154,7 @@ def test_filter_matches_numpy_twin_step_by_step(short_flight):
 
 
 def test_short_flight_tracks_and_maps(short_flight):
-    setup, cfg, fp, log, res, _ = short_flight
+    setup, cfg, fp, log, res = short_flight
     st = res.steps
     e = np.asarray(st.mean)[:, :2] - setup.truth[:, :2]
     assert np.all(np.isfinite(np.asarray(st.cov)))
@@ -165,9 +164,9 @@ def test_short_flight_tracks_and_maps(short_flight):
 
 
 def test_all_invalid_scans_and_no_walls_in_view_dead_reckon_without_nan(short_flight):
-    setup, cfg, fp, log, res, run = short_flight
+    setup, cfg, fp, log, res = short_flight
     blind = log._replace(ranges=jnp.full_like(log.ranges, jnp.nan), valid=jnp.zeros_like(log.valid))
-    r2 = run(jax.random.PRNGKey(5), blind, cfg, fp)
+    r2 = LS.run(blind, cfg, fp, key=jax.random.PRNGKey(5))
     assert not np.asarray(r2.steps.active).any()
     assert np.all(np.isfinite(np.asarray(r2.steps.mean))) and np.all(np.isfinite(np.asarray(r2.steps.cov)))
     # Dead reckoning: the covariance grows.
@@ -178,13 +177,32 @@ def test_float32_run_is_finite_and_tracks():
     from jaxslam.sim.scenarios import lineslam as sc
 
     setup = sc.make_setup(duration=3.0)
-    cfg = LS.LineSlamConfig()
+    cfg = LS.Config()
     fp = jax.tree.map(lambda a: a.astype(jnp.float32), LS.default_params())
     log = jax.jit(lambda k: sc.simulate(k, setup, cfg.spec, jnp.float32))(jax.random.PRNGKey(3))
-    res = jax.jit(LS.run, static_argnums=2)(jax.random.PRNGKey(5), log, cfg, fp)
+    res = LS.run(log, cfg, fp, key=jax.random.PRNGKey(5))
     st = res.steps
     assert st.mean.dtype == jnp.float32 and st.cov.dtype == jnp.float32
     assert np.all(np.isfinite(np.asarray(st.cov)))
     e = np.asarray(st.mean)[:, :2] - setup.truth[:, :2]
     assert np.sqrt(np.mean(np.sum(e * e, axis=1))) < 0.05
     assert int(np.asarray(st.active)[-1].sum()) >= 3
+
+
+def test_run_and_step_require_a_key_and_check_the_log():
+    T, n = 3, LS.Config().spec.n_beams
+    log = LS.Log(ranges=np.ones((T, n)), valid=np.ones((T, n), bool), tilt=np.zeros((T, 2)),
+                 flow=np.zeros((T, 2)), gyro=np.zeros(T), s0=np.zeros(6))
+    key = jax.random.PRNGKey(0)
+    with pytest.raises(InputError, match="key"):
+        LS.run(log, key=None)
+    with pytest.raises(InputError, match="key"):
+        LS.step(None, None, LS.Config(), None, key=None)
+    with pytest.raises(InputError, match=r"log\.ranges.*682"):
+        LS.run(log._replace(ranges=np.ones((T, 600))), key=key)
+    with pytest.raises(InputError, match=r"log\.gyro"):
+        LS.run(log._replace(gyro=np.zeros((T, 1))), key=key)
+    with pytest.raises(InputError, match=r"log\.s0"):
+        LS.run(log._replace(s0=np.full(6, np.nan)), key=key)
+    with pytest.raises(InputError, match=r"params\.R_odo"):
+        LS.run(log, params=LS.default_params()._replace(R_odo=jnp.zeros((3, 3))), key=key)

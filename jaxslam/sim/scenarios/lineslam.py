@@ -123,7 +123,7 @@ def make_setup(duration: float = 60.0, dt: float = 0.1, period: float = 30.0, ti
 
 
 def simulate(key, setup: Setup, spec: laser2d.LaserSpec, dtype):
-    """One flight's log (jit/vmap-safe in ``key``).  Returns :class:`LS.LineLog`."""
+    """One flight's log (jit/vmap-safe in ``key``).  Returns :class:`LS.Log`."""
     dtype = jnp.dtype(dtype)
     truth = jnp.asarray(setup.truth, dtype)
     tilt = jnp.asarray(setup.tilt, dtype)
@@ -141,11 +141,11 @@ def simulate(key, setup: Setup, spec: laser2d.LaserSpec, dtype):
     ranges, valid = jax.vmap(one)(keys, truth, tilt)
     flow = truth[:, LS.VEL] + setup.sigma_flow * jax.random.normal(k_flow, (T, 2), dtype)
     gyro = truth[:, LS.RATE] + setup.sigma_gyro * jax.random.normal(k_gyro, (T,), dtype)
-    return LS.LineLog(ranges=ranges, valid=valid, tilt=tilt, flow=flow, gyro=gyro,
-                      s0=jnp.asarray(setup.s0, dtype))
+    return LS.Log(ranges=ranges, valid=valid, tilt=tilt, flow=flow, gyro=gyro,
+                  s0=jnp.asarray(setup.s0, dtype))
 
 
-def evaluate(setup: Setup, res: LS.RunResult):
+def evaluate(setup: Setup, res: LS.Result):
     """Per-run metrics, per-step NEES/NIS series and counts (jit/vmap-safe)."""
     st = res.steps
     dtype = st.mean.dtype
@@ -199,7 +199,7 @@ def build(options: dict, dtype, params=None):
         raise InputError(f"--capacity: must be >= 1, got {cap}")
     setup = make_setup(float(options["duration"]), 0.1, tilt_deg=float(options["tilt_deg"]),
                        outlier_prob=float(options["outlier_prob"]))
-    cfg = LS.LineSlamConfig(capacity=cap)
+    cfg = LS.Config(capacity=cap)
     fp = LS.default_params(cfg.dt, dtype=dtype)
     if params and "filter" in params:
         vals = fp._asdict()
@@ -208,13 +208,13 @@ def build(options: dict, dtype, params=None):
                 raise InputError(f"params.filter: unknown entry {k!r}; expected {list(vals)}")
             a = np.asarray(v, float)
             vals[k] = jnp.asarray(np.diag(a) if a.ndim == 1 else a, dtype)
-        fp = LS.FilterParams(**vals)
+        fp = LS.Params(**vals)
     fp = LS.validate_params(fp)
 
     def flight(key, fp=fp):
         k_sim, k_f = jax.random.split(key)
         log = simulate(k_sim, setup, cfg.spec, dtype)
-        return log, LS.run(k_f, log, cfg, fp)
+        return log, LS.run(log, cfg, fp, key=k_f)
 
     def one_run(key, fp=fp, detail=False):
         log, res = flight(key, fp)
@@ -228,7 +228,7 @@ def build(options: dict, dtype, params=None):
 
 def params_schema(options, dtype) -> dict:
     """What a ``--params`` file may set (:mod:`jaxslam.paramfile`): the filter's noise."""
-    fp = LS.default_params(LS.LineSlamConfig(capacity=1).dt, dtype=dtype)
+    fp = LS.default_params(LS.Config(capacity=1).dt, dtype=dtype)
     return {"filter": {k: np.asarray(v) for k, v in fp._asdict().items()}}
 
 
