@@ -102,9 +102,11 @@ def run(args):
         _progress(f"simulating {Mmax} logs")
         logs = jax.jit(jax.vmap(lambda k: S.simulate(k, setup, jnp.float64).log))(keys)
         logs = jax.block_until_ready(logs)
-        single = jax.jit(lambda log: U.run(log, cfg, fp, anchors if cfg.mode == "localization" else None))
-        batched = jax.jit(jax.vmap(lambda log: U.run(log, cfg, fp,
-                                                     anchors if cfg.mode == "localization" else None)))
+        def with_anchors(log):
+            return log._replace(anchors=anchors) if cfg.mode == "localization" else log
+
+        single = jax.jit(lambda log: U.run(with_anchors(log), cfg, fp))
+        batched = jax.jit(jax.vmap(lambda log: U.run(with_anchors(log), cfg, fp)))
         log0 = jax.tree.map(lambda a: a[0], logs)
         t0 = time.perf_counter()
         res0 = jax.block_until_ready(single(log0))

@@ -135,6 +135,22 @@ def test_ekf_slam_3d_runner_compiles_once():
     assert not np.allclose(np.asarray(a.means), np.asarray(b.means))
 
 
+def test_uwb_slam_2d_runner_compiles_once():
+    from jaxslam.sim.scenarios import uwb as S
+    from jaxslam.systems import uwb_slam_2d as U
+
+    setup = S.make_setup("circle", duration=10.0)
+    log = jax.jit(lambda k: S.simulate(k, setup, jnp.float64).log)(jax.random.PRNGKey(0))
+    cfg = U.Config(mode="localization", model="range")
+    fp = U.matched_params("range")
+    n0 = U._run._cache_size()
+    a = U.run(log._replace(anchors=jnp.asarray(setup.anchors)), cfg, fp)
+    b = U.run(log._replace(anchors=jnp.asarray(setup.anchors) + 0.05, ranges=log.ranges + 0.01), cfg,
+              fp._replace(r_range=fp.r_range * 1.5, Q=fp.Q * 2.0))
+    assert U._run._cache_size() == n0 + 1
+    assert not np.allclose(np.asarray(a.steps.mean), np.asarray(b.steps.mean))
+
+
 def test_generic_ekf_slam_runner_under_the_callers_jit_compiles_once():
     """The generic runner leaves jit to the caller: new noise and new data reuse the program."""
     from jaxslam.filters import ekf_slam as es

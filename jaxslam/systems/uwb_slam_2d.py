@@ -5,6 +5,12 @@ the tabled Q and R, the trilateration start-up and the localisation mode, and
 plugs them into :mod:`jaxslam.filters.ekf_slam` (``init``/``predict``/
 ``update``/``add_landmark``).  It is not a filter of its own.
 
+Interface (every system's): :class:`Config` (static), :class:`Params` (traced noise),
+:class:`Log` (one flight; ``anchors`` known in localisation mode, None for SLAM),
+:class:`Event` (one step's slice), :class:`State`, :class:`StepOut`, :class:`Result`;
+:func:`init`, :func:`step`, and :func:`run` (host-side checks, then one jitted
+``lax.scan`` of :func:`step`).
+
 State (engine order; paper 003 eq. 14 with a documented permutation)::
 
     engine  x = [x, y, v_x, v_y, α, β, θ, w_α, w_β, w_θ | l_1x, l_1y, ..., l_Nx, l_Ny]
@@ -102,8 +108,9 @@ Equations (paper 003; errata in docs/papers.md):
 
 from __future__ import annotations
 
+import functools
 import math
-from typing import NamedTuple, Optional
+from typing import Any, NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
@@ -122,14 +129,15 @@ __all__ = [
     "PAPER_R_SQUARED",
     "PAPER_R_RANGE",
     "PAPER_R_GYRO",
-    "UwbConfig",
-    "FilterParams",
-    "UwbLog",
+    "Config",
+    "Params",
+    "Log",
+    "Event",
     "StartupResult",
     "InitBuffer",
-    "FilterState",
+    "State",
     "StepOut",
-    "RunResult",
+    "Result",
     "paper_permutation",
     "to_paper_order",
     "motion",
@@ -146,6 +154,7 @@ __all__ = [
     "startup_frame",
     "init_slam",
     "init_localization",
+    "init",
     "step",
     "run",
     "validate_params",
@@ -163,7 +172,7 @@ PAPER_R_RANGE = 0.04  # m², jaxslam's reading for eq. 16 (module docstring)
 PAPER_R_GYRO = 0.01  # (rad/s)², Sec. IV
 
 
-class UwbConfig(NamedTuple):
+class Config(NamedTuple):
     """Static choices (hashable; a change recompiles).
 
     model: "squared" (eq. 17, paper) or "range" (eq. 16).
@@ -205,7 +214,7 @@ class UwbConfig(NamedTuple):
     near_gate: Optional[float] = 3.0
 
 
-class FilterParams(NamedTuple):
+class Params(NamedTuple):
     """Filter noise (traced leaves, so ``grad`` w.r.t. them works).
 
     Q: (10, 10) discrete process noise per step (engine order; units² of the state per step).
@@ -223,8 +232,8 @@ class FilterParams(NamedTuple):
     range_var: jax.Array
 
 
-class UwbLog(NamedTuple):
-    """Measurements of one flight (simulated or real), N anchors.
+class Log(NamedTuple):
+    """Everything :func:`run` needs: one flight (simulated or real), N anchors.
 
     startup_ranges: (Ts, N) ranges [m] during the forced straight-line run, sample 0 at the
       start anchor, sample Ts−1 at the end anchor at t = 0 (where the EKF starts).
@@ -232,6 +241,8 @@ class UwbLog(NamedTuple):
     ranges: (T, N) ranges [m] at t_k = k Δt, k = 1..T.
     range_mask: (T, N) bool range received (False: no measurement, e.g. out of range).
     gyro: (T, 3) gyro rates [rad/s] at t_k (non-finite = masked and counted).
+    anchors: (N, 2) known anchor positions [m] for ``mode="localization"`` (the known map, in
+      the frame the estimates are wanted in); None for ``mode="slam"``.
     """
 
     startup_ranges: jax.Array
@@ -239,6 +250,15 @@ class UwbLog(NamedTuple):
     ranges: jax.Array
     range_mask: jax.Array
     gyro: jax.Array
+    anchors: Any = None
+
+
+class Event(NamedTuple):
+    """One step of a :class:`Log` (the slice :func:`step` takes)."""
+
+    ranges: jax.Array  # (N,) [m]
+    range_mask: jax.Array  # (N,) bool received
+    gyro: jax.Array  # (3,) [rad/s]
 
 
 class StartupResult(NamedTuple):
@@ -278,7 +298,7 @@ class InitBuffer(NamedTuple):
     count: jax.Array
 
 
-class FilterState(NamedTuple):
+class State(NamedTuple):
     """Scan carry: engine state, delayed-init buffer, step counter, measurement counts."""
 
     slam: es.SlamState
@@ -308,11 +328,12 @@ class StepOut(NamedTuple):
     status: jax.Array
 
 
-class RunResult(NamedTuple):
-    """Whole-log result: per-step records (T leading), final state, start-up result."""
+class Result(NamedTuple):
+    """Output of :func:`run`: per-step records (:class:`StepOut`, T leading), final
+    :class:`State`, and the :class:`StartupResult` (start-up map or initial fix)."""
 
     steps: StepOut
-    final: FilterState
+    final: State
     startup: StartupResult
 
 
@@ -380,11 +401,11 @@ def ncv_process_noise(dt, q_acc, q_ang_acc, dtype=jnp.float64):
 
 
 def paper_params(model: str = "squared", dt: float = 1.0, noise: uwb.UwbNoise = uwb.PAPER003_NOISE,
-                 dtype=jnp.float64) -> FilterParams:
+                 dtype=jnp.float64) -> Params:
     """Paper 003 preset: Q of eq. 27 (· Δt), R of Sec. IV, P0 = 0 (Sec. III-D-1)."""
     uwb.check_model(model)
     r = PAPER_R_SQUARED if model == "squared" else PAPER_R_RANGE
-    return FilterParams(  # built on the host: no eager programs to compile
+    return Params(  # built on the host: no eager programs to compile
         Q=paper_process_noise(dt, dtype),
         P0=_host(np.zeros((NR, NR)), dtype),
         r_range=_host(r, dtype),
@@ -404,15 +425,15 @@ MATCHED_P0 = (0.0, 0.0, 0.3**2, 0.3**2, 0.0, 0.0, 0.0, 0.1**2, 0.1**2, 0.1**2)
 
 def matched_params(model: str = "squared", dt: float = 1.0, noise: uwb.UwbNoise = uwb.PAPER003_NOISE,
                    q_acc: float = MATCHED_Q_ACC, q_ang_acc: float = MATCHED_Q_ANG_ACC,
-                   p0=MATCHED_P0, dtype=jnp.float64) -> FilterParams:
+                   p0=MATCHED_P0, dtype=jnp.float64) -> Params:
     """Preset matched to the simulated noise: R from σ² = a²/3, NCV process noise.
 
-    Use with ``UwbConfig(r_scaled=True, debias=True)`` for the squared model
+    Use with ``Config(r_scaled=True, debias=True)`` for the squared model
     (R_k = 4 d̂² σ² + 2σ⁴, measurements z² − σ²).
     """
     uwb.check_model(model)
     s2 = uwb.uniform_variance(noise.range_half_width)
-    return FilterParams(  # built on the host: no eager programs to compile
+    return Params(  # built on the host: no eager programs to compile
         Q=ncv_process_noise(dt, q_acc, q_ang_acc, dtype),
         P0=_host(np.diag(np.asarray(p0, np.float64)), dtype),
         r_range=_host(s2 if model == "range" else uwb.squared_range_variance(1.0, s2), dtype),
@@ -451,7 +472,7 @@ def startup_frame(anchors, ref, start: int = 0, end: int = 1):
 
     ``anchors`` (N, 2) world positions; ``ref`` the anchor that fixed the side (from
     :class:`StartupResult`); ``start``/``end`` the anchors of the straight-line start-up
-    (``UwbConfig.start_anchor``/``end_anchor``).  Returns (M (2, 2), origin (2,)): origin at the
+    (``Config.start_anchor``/``end_anchor``).  Returns (M (2, 2), origin (2,)): origin at the
     end anchor, +x from the start to the end anchor, +y on the side of anchor ``ref`` (det M = −1
     when that needs a reflection; ``ref`` < 0: no reflection).
     """
@@ -464,10 +485,10 @@ def startup_frame(anchors, ref, start: int = 0, end: int = 1):
     return jnp.stack([u, side * v]), b
 
 
-def startup(startup_ranges, startup_mask, cfg: UwbConfig, params: FilterParams) -> StartupResult:
+def startup(startup_ranges, startup_mask, config: Config, params: Params) -> StartupResult:
     """Forced straight-line start-up and LS trilateration (paper 003 Sec. III-D, eq. 22-26).
 
-    startup_ranges: (Ts, N) [m]; startup_mask: (Ts, N) bool.  Jit-able (``cfg`` static).
+    startup_ranges: (Ts, N) [m]; startup_mask: (Ts, N) bool.  Jit-able (``config`` static).
     Frame (the *start-up frame*): origin at the end anchor, +x from the start anchor to
     the end anchor, +y towards the anchor with the largest offset from the line.
     See the module docstring for the variances.  Returns :class:`StartupResult`.
@@ -476,7 +497,7 @@ def startup(startup_ranges, startup_mask, cfg: UwbConfig, params: FilterParams) 
     z = jnp.asarray(startup_ranges, dtype)
     Ts, N = z.shape
     ok = startup_mask & uwb.valid_ranges(z)
-    a, b = cfg.start_anchor, cfg.end_anchor
+    a, b = config.start_anchor, config.end_anchor
     d_end = jnp.where(ok[:, b], z[:, b], 0.0)
     xs = -d_end
     first = jnp.argmax(ok[:, b])
@@ -486,7 +507,7 @@ def startup(startup_ranges, startup_mask, cfg: UwbConfig, params: FilterParams) 
 
     def one(zi, oki):
         return tri.trilaterate_line(xs, zi, oki & ok[:, b], side=1.0,
-                                    min_points=cfg.startup_min_points)
+                                    min_points=config.startup_min_points)
 
     res = jax.vmap(one, in_axes=(1, 1))(z, ok)
     others = (jnp.arange(N) != a) & (jnp.arange(N) != b)
@@ -523,8 +544,8 @@ def startup(startup_ranges, startup_mask, cfg: UwbConfig, params: FilterParams) 
     )
 
 
-def _empty_buffer(cfg: UwbConfig, n_anchors: int, dtype) -> InitBuffer:
-    W = cfg.buffer_size
+def _empty_buffer(config: Config, n_anchors: int, dtype) -> InitBuffer:
+    W = config.buffer_size
     return InitBuffer(
         pos=jnp.zeros((W, 2), dtype),
         pos_var=jnp.zeros((W,), dtype),
@@ -546,19 +567,19 @@ def _with_map(st: es.SlamState, model: es.SlamModel, means, covs, ok):
     return jax.lax.fori_loop(0, N, body, st)
 
 
-def init_slam(start: StartupResult, cfg: UwbConfig, params: FilterParams) -> FilterState:
+def init_slam(start: StartupResult, config: Config, params: Params) -> State:
     """EKF-SLAM state after the start-up: robot at the end anchor, mapped anchors written."""
     dtype = params.P0.dtype
     N = start.landmarks.shape[0]
-    model = make_model(cfg.model)
+    model = make_model(config.model)
     st = es.init(jnp.zeros((NR,), dtype), params.P0, N, 2)
     st = _with_map(st, model, start.landmarks, start.cov, start.initialised)
     st = st._replace(status=st.status | start.status)
     z = jnp.zeros((), jnp.int32)
-    return FilterState(st, _empty_buffer(cfg, N, dtype), z, z, z)
+    return State(st, _empty_buffer(config, N, dtype), z, z, z)
 
 
-def init_localization(anchors, startup_ranges, startup_mask, cfg: UwbConfig, params: FilterParams):
+def init_localization(anchors, startup_ranges, startup_mask, config: Config, params: Params):
     """Localisation with known anchors (N, 2): robot fixed by LS trilateration at t = 0.
 
     startup_ranges, startup_mask: (Ts, N) ranges [m] of the start-up samples; the last
@@ -566,9 +587,9 @@ def init_localization(anchors, startup_ranges, startup_mask, cfg: UwbConfig, par
     position and its propagated covariance.  If the t = 0 fix is degenerate (fewer than
     three valid ranges — e.g. a range ≤ 0 on top of an anchor — or collinear anchors), the
     latest non-degenerate start-up fix j is used, its covariance inflated by
-    (``cfg.init_speed_bound`` · (Ts − 1 − j) Δt)² per axis for the motion since; with no
+    (``config.init_speed_bound`` · (Ts − 1 − j) Δt)² per axis for the motion since; with no
     usable fix at all ``DEGENERATE`` is set and the anchors' centroid is used with a
-    variance of the anchors' squared extent.  Returns (FilterState, StartupResult).
+    variance of the anchors' squared extent.  Returns (State, StartupResult).
     """
     dtype = params.P0.dtype
     anchors = jnp.asarray(anchors, dtype)
@@ -579,7 +600,7 @@ def init_localization(anchors, startup_ranges, startup_mask, cfg: UwbConfig, par
         z, startup_mask)
     any_ok = jnp.any(fixes.ok)
     j = Ts - 1 - jnp.argmax(fixes.ok[::-1])
-    lag = (Ts - 1 - j).astype(dtype) * jnp.asarray(cfg.dt * cfg.init_speed_bound, dtype)
+    lag = (Ts - 1 - j).astype(dtype) * jnp.asarray(config.dt * config.init_speed_bound, dtype)
     eye = jnp.eye(2, dtype=dtype)
     centre = jnp.mean(anchors, axis=0)
     extent2 = jnp.max(jnp.sum((anchors - centre) ** 2, axis=1))
@@ -587,7 +608,7 @@ def init_localization(anchors, startup_ranges, startup_mask, cfg: UwbConfig, par
     pcov = jnp.where(any_ok, fixes.cov[j] + lag * lag * eye, extent2 * eye)
     P0 = params.P0.at[POS, POS].set(pcov).at[POS, 2:].set(0.0).at[2:, POS].set(0.0)
     s0 = jnp.zeros((NR,), dtype).at[POS].set(pos)
-    model = make_model(cfg.model)
+    model = make_model(config.model)
     st = es.init(s0, P0, N, 2)
     st = _with_map(st, model, anchors, jnp.zeros((N, 2, 2), dtype), jnp.ones((N,), bool))
     status = (jnp.where(any_ok, 0, errors.DEGENERATE)
@@ -606,7 +627,7 @@ def init_localization(anchors, startup_ranges, startup_mask, cfg: UwbConfig, par
         status=status,
     )
     z0 = jnp.zeros((), jnp.int32)
-    return FilterState(st, _empty_buffer(cfg, N, dtype), z0, z0, z0), start
+    return State(st, _empty_buffer(config, N, dtype), z0, z0, z0), start
 
 
 # ---------------------------------------------------------------------------
@@ -631,11 +652,10 @@ def _near_anchor(st, N, k, range_var):
     return d2 < (k * k) * range_var
 
 
-def _delayed_init(fs: FilterState, z, ok, cfg: UwbConfig, params: FilterParams, model):
+def _delayed_init(fs: State, z, ok, cfg: Config, params: Params, model):
     st = fs.slam
     buf = fs.buffer
     W = cfg.buffer_size
-    N = z.shape[0]
     dtype = st.x.dtype
     push = (fs.k % cfg.buffer_stride) == 0
     i = buf.count % W
@@ -662,13 +682,17 @@ def _delayed_init(fs: FilterState, z, ok, cfg: UwbConfig, params: FilterParams, 
     return fs._replace(slam=st, buffer=buf)
 
 
-def step(fs: FilterState, z, zmask, gyro_z, cfg: UwbConfig, params: FilterParams):
+def step(state: State, event: Event, config: Config, params: Params, *, key=None):
     """One EKF step at t_k: predict over Δt, UWB update, gyro update, delayed init.
 
     Paper 003 eq. 4-9 with eq. 12/15 (motion), eq. 16/17 + 19 (observations), Joseph form.
-    z: (N,) ranges [m]; zmask: (N,) bool received; gyro_z: (3,) rad/s.  ``cfg`` static.
-    Returns (FilterState, StepOut).  Jit-able; use :func:`run` for a whole log.
+    ``event``: the step's :class:`Event` (ranges (N,) [m], range_mask (N,) bool received,
+    gyro (3,) rad/s).  ``config`` static; ``key`` unused (every system's ``step`` takes it).
+    Returns (State, StepOut).  Jit-able; use :func:`run` for a whole log.
     """
+    del key
+    fs, cfg = state, config
+    z, zmask, gyro_z = event.ranges, event.range_mask, event.gyro
     model = make_model(cfg.model)
     gmodel = make_gyro_model()
     st = fs.slam
@@ -727,36 +751,94 @@ def step(fs: FilterState, z, zmask, gyro_z, cfg: UwbConfig, params: FilterParams
     return fs, out
 
 
-def run(log: UwbLog, cfg: UwbConfig, params: FilterParams, anchors=None) -> RunResult:
-    """Whole log as one ``lax.scan`` (start-up or known-anchor fix, then T filter steps).
+def _init(log: Log, config: Config, params: Params):
+    """(State, StartupResult) before the first step (:func:`init`; :func:`run` keeps both)."""
+    if config.mode == "slam":
+        start = startup(log.startup_ranges, log.startup_mask, config, params)
+        return init_slam(start, config, params), start
+    if config.mode == "localization":
+        if log.anchors is None:
+            raise InputError("log.anchors: required in mode='localization'")
+        return init_localization(log.anchors, log.startup_ranges, log.startup_mask, config, params)
+    raise InputError(f"config.mode: expected 'slam' or 'localization', got {config.mode!r}")
 
-    ``cfg`` static; ``anchors`` (N, 2) required in localisation mode (the known map, in
-    the frame the estimates are wanted in).  Jit/vmap-safe: ``jax.jit(run, static_argnums=1)``.
-    Check a real log first with :func:`validate_log`.
-    """
-    if cfg.mode == "slam":
-        start = startup(log.startup_ranges, log.startup_mask, cfg, params)
-        fs = init_slam(start, cfg, params)
-    elif cfg.mode == "localization":
-        if anchors is None:
-            raise InputError("anchors: required in mode='localization'")
-        fs, start = init_localization(anchors, log.startup_ranges, log.startup_mask, cfg, params)
+
+def init(log: Log, config: Config, params: Params, *, key=None) -> State:
+    """The state before the first step (t = 0).  SLAM: the straight-line start-up
+    (:func:`startup`) mapped by :func:`init_slam`; localisation: the known ``log.anchors`` and
+    the LS fix of :func:`init_localization`.  ``key`` unused."""
+    del key
+    return _init(log, config, params)[0]
+
+
+def _check(log: Log, config: Config, params: Params) -> None:
+    """Host-side checks of :func:`run`'s inputs (shapes always; values when concrete)."""
+    if config.mode not in ("slam", "localization"):
+        raise InputError(f"config.mode: expected 'slam' or 'localization', got {config.mode!r}")
+    if config.model not in uwb.MODELS:
+        raise InputError(f"config.model: expected one of {uwb.MODELS}, got {config.model!r}")
+    shp = np.shape(log.startup_ranges)
+    if len(shp) != 2 or shp[0] < 1:
+        raise InputError(f"log.startup_ranges: expected shape (Ts, N), got {shp}")
+    Ts, N = shp
+    if np.ndim(log.ranges) != 2 or np.shape(log.ranges)[1] != N:
+        raise InputError(f"log.ranges: expected shape (T, {N}), got {np.shape(log.ranges)}")
+    T = np.shape(log.ranges)[0]
+    for name, shape in (("startup_mask", (Ts, N)), ("range_mask", (T, N)), ("gyro", (T, 3))):
+        if np.shape(getattr(log, name)) != shape:
+            raise InputError(f"log.{name}: expected shape {shape}, got {np.shape(getattr(log, name))}")
+    if config.mode == "slam":
+        if log.anchors is not None:
+            raise InputError("log.anchors: known anchors are for mode='localization'; give None in mode='slam'")
+        a, b = config.start_anchor, config.end_anchor
+        if not (0 <= a < N and 0 <= b < N) or a == b:
+            raise InputError(f"config.start_anchor/end_anchor: need two distinct anchors in [0, {N}), got {a}, {b}")
     else:
-        raise InputError(f"mode: expected 'slam' or 'localization', got {cfg.mode!r}")
+        if log.anchors is None:
+            raise InputError("log.anchors: required in mode='localization'")
+        if np.shape(log.anchors) != (N, 2):
+            raise InputError(f"log.anchors: expected shape ({N}, 2), got {np.shape(log.anchors)}")
+        if is_concrete(log.anchors):
+            validate_anchors(log.anchors, "log.anchors")
+    for name, shape in (("Q", (NR, NR)), ("P0", (NR, NR)), ("r_range", ()), ("r_gyro", ()), ("range_var", ())):
+        if np.shape(getattr(params, name)) != shape:
+            raise InputError(f"params.{name}: expected shape {shape}, got {np.shape(getattr(params, name))}")
+    if is_concrete(params):
+        validate_params(params)
 
-    def body(c, inp):
-        z, m, g = inp
-        return step(c, z, m, g, cfg, params)
 
-    final, steps = jax.lax.scan(body, fs, (log.ranges, log.range_mask, log.gyro))
-    return RunResult(steps=steps, final=final, startup=start)
+def run(log: Log, config: Config = Config(), params: Optional[Params] = None, *, key=None) -> Result:
+    """Whole log as one jitted ``lax.scan`` of :func:`step` (start-up or known-anchor fix first).
+
+    ``config`` static (``config.mode`` "localization" needs ``log.anchors``, "slam" needs
+    None); ``params`` default: :func:`paper_params` of ``config.model`` and ``config.dt``;
+    ``key`` unused.  Inputs are checked on the host (shapes; values when concrete) and
+    raise InputError naming the argument; data problems that the filter flags instead
+    (masked samples, a degenerate start-up) are :func:`validate_log`'s.  Works under an outer
+    ``jax.jit`` / ``jax.vmap`` (traced log and params).
+    """
+    del key
+    if params is None:
+        if config.model not in uwb.MODELS:
+            raise InputError(f"config.model: expected one of {uwb.MODELS}, got {config.model!r}")
+        params = paper_params(config.model, config.dt, dtype=jnp.result_type(log.ranges, float))
+    _check(log, config, params)
+    return _run(log, config, params)
+
+
+@functools.partial(jax.jit, static_argnums=1)
+def _run(log: Log, config: Config, params: Params) -> Result:
+    fs, start = _init(log, config, params)
+    events = Event(ranges=log.ranges, range_mask=log.range_mask, gyro=log.gyro)
+    final, steps = jax.lax.scan(lambda c, ev: step(c, ev, config, params), fs, events)
+    return Result(steps=steps, final=final, startup=start)
 
 
 # ---------------------------------------------------------------------------
 # Host-side validation (public boundary, before jit)
 # ---------------------------------------------------------------------------
 
-def validate_params(params: FilterParams) -> FilterParams:
+def validate_params(params: Params) -> Params:
     """Shapes and PSD of Q, P0; positive r_range, r_gyro, range_var."""
     for name, shp in (("Q", (NR, NR)), ("P0", (NR, NR))):
         a = np.asarray(getattr(params, name))
@@ -791,13 +873,13 @@ def validate_anchors(anchors, name: str = "anchors", min_separation: float = 1e-
     return A
 
 
-def validate_log(log: UwbLog, cfg: UwbConfig, anchors=None, strict: bool = False) -> UwbLog:
+def validate_log(log: Log, config: Config, strict: bool = False) -> Log:
     """Host-side checks of a log before :func:`run` (raises InputError naming the problem).
 
     Shapes; N ≥ 3 anchors; in SLAM mode: start ≠ end anchor, a range to the end anchor
     at the first start-up sample, and at least three anchors in range during the start-up
     (end anchor, start anchor, and one more with ``startup_min_points`` valid samples);
-    in localisation mode: valid ``anchors`` (:func:`validate_anchors`).  With ``strict``
+    in localisation mode: valid ``log.anchors`` (:func:`validate_anchors`).  With ``strict``
     a received range that is NaN/Inf or ≤ 0, or a non-finite gyro sample, is an error;
     otherwise such samples are masked and counted by the filter.
     """
@@ -831,10 +913,12 @@ def validate_log(log: UwbLog, cfg: UwbConfig, anchors=None, strict: bool = False
         g = np.asarray(log.gyro, dtype=np.float64)
         if not np.all(np.isfinite(g)):
             raise InputError("log.gyro: contains NaN or Inf")
-    if cfg.mode == "slam":
-        a, b = cfg.start_anchor, cfg.end_anchor
+    if config.mode == "slam":
+        if log.anchors is not None:
+            raise InputError("log.anchors: known anchors are for mode='localization'; give None in mode='slam'")
+        a, b = config.start_anchor, config.end_anchor
         if not (0 <= a < N and 0 <= b < N) or a == b:
-            raise InputError(f"cfg.start_anchor/end_anchor: need two distinct anchors in [0, {N}), got {a}, {b}")
+            raise InputError(f"config.start_anchor/end_anchor: need two distinct anchors in [0, {N}), got {a}, {b}")
         if not s_ok[0, b]:
             raise InputError(f"log.startup_ranges: no valid range to the end anchor {b} at the start "
                              "of the forced run (the start anchor's position −D needs it)")
@@ -842,18 +926,18 @@ def validate_log(log: UwbLog, cfg: UwbConfig, anchors=None, strict: bool = False
             raise InputError(f"log.startup_ranges: start and end anchors coincide (D = {sr[0, b]:.3g} m)")
         on_line = s_ok & s_ok[:, b:b + 1]
         n_pts = on_line.sum(axis=0)
-        others = [i for i in range(N) if i not in (a, b) and n_pts[i] >= cfg.startup_min_points]
+        others = [i for i in range(N) if i not in (a, b) and n_pts[i] >= config.startup_min_points]
         if len(others) < 1:
             raise InputError(
                 "log.startup_ranges: fewer than three anchors in range during the start-up: "
-                f"besides the start/end anchors ({a}, {b}) no anchor has {cfg.startup_min_points} "
+                f"besides the start/end anchors ({a}, {b}) no anchor has {config.startup_min_points} "
                 f"valid ranges (counts per anchor: {n_pts.tolist()})")
-    elif cfg.mode == "localization":
-        if anchors is None:
-            raise InputError("anchors: required in mode='localization'")
-        A = validate_anchors(anchors)
+    elif config.mode == "localization":
+        if log.anchors is None:
+            raise InputError("log.anchors: required in mode='localization'")
+        A = validate_anchors(log.anchors, "log.anchors")
         if A.shape[0] != N:
-            raise InputError(f"anchors: expected {N} anchors (the log's), got {A.shape[0]}")
+            raise InputError(f"log.anchors: expected {N} anchors (the log's), got {A.shape[0]}")
     else:
-        raise InputError(f"cfg.mode: expected 'slam' or 'localization', got {cfg.mode!r}")
+        raise InputError(f"config.mode: expected 'slam' or 'localization', got {config.mode!r}")
     return log

@@ -264,7 +264,7 @@ U_DT, U_T = 1.0, 80
 ANCHORS = np.array([[-6.0, -6.0], [6.0, -6.0], [6.0, 6.0], [-6.0, 6.0]])
 U_SIGMA = 0.1  # m, Gaussian range noise
 U_WINDOW = (30, 45)  # steps
-U_CFG = U.UwbConfig(model="range", mode="localization", dt=U_DT, gate=9.0)
+U_CFG = U.Config(model="range", mode="localization", dt=U_DT, gate=9.0)
 
 
 @pytest.fixture(scope="module")
@@ -277,12 +277,12 @@ def uwb():
     rng_true = np.linalg.norm(pos[:, None, :] - ANCHORS[None], axis=-1)
     r = rng_true + U_SIGMA * rng.normal(size=rng_true.shape)
     gyro = np.tile([0.0, 0.0, w], (U_T, 1)) + 0.001 * rng.normal(size=(U_T, 3))
-    log = U.UwbLog(startup_ranges=r[:1], startup_mask=np.ones((1, 4), bool), ranges=r[1:],
-                   range_mask=np.ones((U_T, 4), bool), gyro=gyro)
+    log = U.Log(startup_ranges=r[:1], startup_mask=np.ones((1, 4), bool), ranges=r[1:],
+                range_mask=np.ones((U_T, 4), bool), gyro=gyro, anchors=ANCHORS)
     prm = U.matched_params("range", dt=U_DT)._replace(range_var=jnp.asarray(U_SIGMA**2),
                                                       r_range=jnp.asarray(U_SIGMA**2))
-    U.validate_log(log, U_CFG, ANCHORS)
-    run = jax.jit(lambda lg: U.run(lg, U_CFG, prm, jnp.asarray(ANCHORS)))
+    U.validate_log(log, U_CFG)
+    run = jax.jit(lambda lg: U.run(lg, U_CFG, prm))
     win = np.zeros(U_T, bool)
     win[U_WINDOW[0]:U_WINDOW[1]] = True
     rows = win[:, None] & np.ones((1, 4), bool)

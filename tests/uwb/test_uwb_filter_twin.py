@@ -123,7 +123,7 @@ def test_startup_noise_free_geometry():
     anchors = np.asarray(S.ANCHORS[:4])
     setup = S.make_setup("circle", duration=5.0, n_anchors=4)
     d = np.linalg.norm(setup.startup_pos[:, None] - anchors[None], axis=-1)
-    cfg = U.UwbConfig()
+    cfg = U.Config()
     fp = U.paper_params("squared")
     st = jax.jit(lambda z, m: U.startup(z, m, cfg, fp))(jnp.asarray(d), jnp.ones(d.shape, bool))
     ref = int(st.ref_anchor)
@@ -138,10 +138,10 @@ def test_startup_noise_free_geometry():
 
 
 def test_boundary_errors():
-    cfg = U.UwbConfig()
+    cfg = U.Config()
     T, Ts = 5, 4
-    good = U.UwbLog(jnp.ones((Ts, 3)), jnp.ones((Ts, 3), bool), jnp.ones((T, 3)), jnp.ones((T, 3), bool),
-                    jnp.zeros((T, 3)))
+    good = U.Log(jnp.ones((Ts, 3)), jnp.ones((Ts, 3), bool), jnp.ones((T, 3)), jnp.ones((T, 3), bool),
+                 jnp.zeros((T, 3)))
     with pytest.raises(InputError, match="at least 3 anchors"):
         U.validate_log(good._replace(startup_ranges=jnp.ones((Ts, 2)), startup_mask=jnp.ones((Ts, 2), bool),
                                      ranges=jnp.ones((T, 2)), range_mask=jnp.ones((T, 2), bool)), cfg)
@@ -156,8 +156,8 @@ def test_boundary_errors():
     with pytest.raises(InputError, match="collinear"):
         U.validate_anchors([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0]])
     with pytest.raises(InputError, match="anchors"):
-        U.validate_log(good, cfg._replace(mode="localization"),
-                       anchors=[[0.0, 0.0], [0.0, 0.0], [1.0, 1.0]])
+        U.validate_log(good._replace(anchors=[[0.0, 0.0], [0.0, 0.0], [1.0, 1.0]]),
+                       cfg._replace(mode="localization"))
     with pytest.raises(InputError, match="r_range"):
         U.validate_params(U.paper_params()._replace(r_range=jnp.asarray(-1.0)))
     with pytest.raises(InputError, match="max-range"):

@@ -32,7 +32,8 @@ def case(mode="slam", model="squared", filt="paper", anchors=3, duration=DURATIO
 def _case(mode, model, filt, anchors, duration):
     _, _, cfg, fp, setup = S.build("circle", opts(mode=mode, model=model, filter=filt, anchors=anchors,
                                                   duration=duration), jnp.float64)
-    run = jax.jit(lambda log, fp, anchors: U.run(log, cfg, fp, anchors if cfg.mode == "localization" else None))
+    run = jax.jit(lambda log, fp, anchors: U.run(log._replace(anchors=anchors) if cfg.mode == "localization"
+                                                 else log, cfg, fp))
     sims = {d: jax.jit(lambda k, truth, d=d: S.simulate(k, setup._replace(truth=truth, dist=d), jnp.float64))
             for d in ("uniform", "gaussian")}
 

@@ -152,10 +152,11 @@ class Setup(NamedTuple):
 
 
 class SimOut(NamedTuple):
-    """One simulated flight: truth (T, 10) world, the log, anchors (N, 2) world."""
+    """One simulated flight: truth (T, 10) world, the log (``log.anchors`` None; a
+    localisation run uses ``log._replace(anchors=anchors)``), anchors (N, 2) world."""
 
     truth: jax.Array
-    log: U.UwbLog
+    log: U.Log
     anchors: jax.Array
 
 
@@ -222,12 +223,12 @@ def simulate(key, setup: Setup, dtype) -> SimOut:
     g = truth[:, 7:10] + uwb.sample_noise(k_g, (truth.shape[0], 3), n.gyro_half_width, setup.dist, dtype)
     m_s = d_s <= setup.max_range
     m = d <= setup.max_range
-    log = U.UwbLog(startup_ranges=jnp.where(m_s, z_s, jnp.nan), startup_mask=m_s,
-                   ranges=jnp.where(m, z, jnp.nan), range_mask=m, gyro=g)
+    log = U.Log(startup_ranges=jnp.where(m_s, z_s, jnp.nan), startup_mask=m_s,
+                ranges=jnp.where(m, z, jnp.nan), range_mask=m, gyro=g)
     return SimOut(truth=truth, log=log, anchors=anchors)
 
 
-def evaluate(sim: SimOut, res: U.RunResult, cfg: U.UwbConfig):
+def evaluate(sim: SimOut, res: U.Result, cfg: U.Config):
     """Per-run metrics, per-step NEES series and counts (jit/vmap-safe)."""
     truth = sim.truth
     anchors = sim.anchors
@@ -367,10 +368,10 @@ def _filter_params(options, dtype, params=None):
         raise InputError(f"--filter: expected 'paper' or 'matched', got {options['filter']!r}")
     if params and "filter" in params:
         d = dict(params["filter"])
-        unknown = set(d) - set(U.FilterParams._fields) - {"r_scaled"}
+        unknown = set(d) - set(U.Params._fields) - {"r_scaled"}
         if unknown:
             raise InputError(f"params.filter: unknown entries {sorted(unknown)}; expected "
-                             f"{list(U.FilterParams._fields) + ['r_scaled']}")
+                             f"{list(U.Params._fields) + ['r_scaled']}")
         r_scaled = bool(d.pop("r_scaled", r_scaled))
         vals = fp._asdict()
         for k, v in d.items():
@@ -378,7 +379,7 @@ def _filter_params(options, dtype, params=None):
             if k in ("Q", "P0") and a.ndim == 1:
                 a = np.diag(a)
             vals[k] = jnp.asarray(a, dtype)
-        fp = U.FilterParams(**vals)
+        fp = U.Params(**vals)
     return U.validate_params(fp), r_scaled
 
 
@@ -393,7 +394,7 @@ def build(scenario: str, options: dict, dtype, params=None):
     """Scenario pieces: ``(one_run, flight, cfg, filter_params, setup)``.
 
     ``one_run(key, fp=default, truth=None)`` -> metrics/series/counts of one flight
-    (jit/vmap-safe); ``flight(key, fp, truth)`` -> (SimOut, RunResult).  ``fp`` (the
+    (jit/vmap-safe); ``flight(key, fp, truth)`` -> (SimOut, Result).  ``fp`` (the
     filter parameters) and ``truth`` are traced, so neither recompiles.
     """
     dtype = jnp.dtype(dtype)
@@ -406,9 +407,9 @@ def build(scenario: str, options: dict, dtype, params=None):
                        float(options["startup_speed"]), options["noise"],
                        max_range=math.inf if mr <= 0 else mr)
     fp, r_scaled = _filter_params(options, dtype, params)
-    cfg = U.UwbConfig(model=options["model"], mode=mode, dt=float(options["dt"]), r_scaled=r_scaled,
-                      debias=r_scaled, start_anchor=START, end_anchor=END,
-                      delayed_init=setup.anchors.shape[0] > 3)
+    cfg = U.Config(model=options["model"], mode=mode, dt=float(options["dt"]), r_scaled=r_scaled,
+                   debias=r_scaled, start_anchor=START, end_anchor=END,
+                   delayed_init=setup.anchors.shape[0] > 3)
     if mode == "slam" and math.isfinite(setup.max_range):
         # A layout where the start-up cannot see three anchors is a usage error, not a NaN.
         d = np.linalg.norm(setup.startup_pos[:, None, :] - setup.anchors[None], axis=-1)
@@ -426,7 +427,8 @@ def build(scenario: str, options: dict, dtype, params=None):
         # traced): one compiled function then serves every scenario of that length.
         stp = setup if truth is None else setup._replace(truth=truth)
         sim = simulate(key, stp, dtype)
-        res = U.run(sim.log, cfg, fp, anchors=anchors_known if mode == "localization" else None)
+        log = sim.log._replace(anchors=anchors_known) if mode == "localization" else sim.log
+        res = U.run(log, cfg, fp)
         return sim, res
 
     def one_run(key, fp=fp, truth=None, detail=False):

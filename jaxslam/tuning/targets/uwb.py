@@ -48,7 +48,8 @@ def uwb_noise(loss: str = "mse", train_runs: int = 4, test_runs: int = 8, seed: 
     test = sim_batch(keys(seed + 1, test_runs))
 
     def loss_fn(theta, sim):
-        res = U.run(sim.log, cfg, physical(theta))
+        log = sim.log._replace(anchors=sim.anchors) if cfg.mode == "localization" else sim.log
+        res = U.run(log, cfg, physical(theta))
         ev = scen.evaluate(sim, res, cfg)
         if loss == "mse":
             return ev["metrics"]["pos_rmse_m"] ** 2
