@@ -21,7 +21,6 @@ import json
 import pathlib
 import sys
 
-import numpy as np
 
 PAPER = {  # paper 000, Sec. 3 (one run): average RMSE
     "known": {"pos_rmse_m": 0.012, "vel_rmse_mps": 0.03, "att_rmse_deg": 0.17},

@@ -216,7 +216,6 @@ def dr_ate(D, log, pose0):
 def localise(D, log, pose0, params, config):
     """EKF with the 15 surveyed landmarks preloaded (covariance 1e-10 m², no cross terms)."""
     model = P.make_model(config)
-    nr = model.robot_dim
     dtype = jnp.float64
     cap = 16
     x0 = jnp.asarray(pose0, dtype)

@@ -6,7 +6,7 @@ ATE: SE(2)-aligned, estimate interpolated at GPS times; ``ate_raw`` uses every f
 ``ate_all``/``ate_first`` (t < 500 s)/``ate_rest`` (t ≥ 500 s) drop the GPS fixes that are
 > 15 m/s away from both neighbours (2 fixes: 270.7 s and 1223.3 s, a 141 m jump).
 """
-import sys, time, json, argparse
+import sys, time, json
 import pathlib
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 from jaxslam import runtime

@@ -25,7 +25,7 @@ cache, ``block_until_ready``), ``compile_s`` the first call's extra time;
 from __future__ import annotations
 
 import time
-from typing import Any, Callable, NamedTuple, Optional
+from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp

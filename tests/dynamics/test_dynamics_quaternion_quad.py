@@ -9,7 +9,7 @@ from jaxslam.dynamics import euler_ned, quaternion_quad as qq
 from jaxslam.dynamics.integrators import rk4_step
 from jaxslam.dynamics.params import QuadParams
 from jaxslam.errors import InputError
-from jaxslam.geometry.quaternion import qexp, qlog, qmul, quat_from_euler
+from jaxslam.geometry.quaternion import qexp, qlog, qmul
 
 PARAMS = QuadParams(1.3, (0.0119, 0.0131, 0.0219), 9.81)
 DT = 1e-3

@@ -354,7 +354,7 @@ def test_update_robot_matches_dense_joseph_and_masks():
 # ---------------------------------------------------------------- batched registration
 def _register_sequential(state, model, z, lm_ids, mask, R, params=None):
     """The engine's former sequential registration (one add_landmark per candidate): oracle."""
-    nr, dl = model.robot_dim, model.lm_dim
+    nr = model.robot_dim
     dtype = state.x.dtype
     K = z.shape[0]
     R = jnp.broadcast_to(jnp.asarray(R, dtype), (K,) + (model.meas_dim, model.meas_dim))

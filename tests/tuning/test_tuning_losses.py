@@ -50,7 +50,7 @@ def test_masked_components_add_nothing():
 
 def test_innovation_nll_is_mean_negative_log_density():
     rng = np.random.default_rng(2)
-    terms, tot, dofs = [], 0.0, []
+    terms, tot = [], 0.0
     want = 0.0
     for k in range(5):
         m = [3, 0, 2, 3, 1][k]
