@@ -723,7 +723,7 @@ def _spawn(args, parts, threads, label):
             env.pop(var, None)
             if threads is not None:
                 env[var] = str(threads)
-        env["PYTHONPATH"] = os.pathsep.join([root, str(HERE)] + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
+        env["PYTHONPATH"] = os.pathsep.join([root, str(HERE), str(HERE.parent / "tests" / "oracles")] + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
         _progress(f"running {', '.join(sorted(parts))} in a fresh process ({label})")
         subprocess.run([sys.executable, str(HERE / "bench_ekfslam.py"), "--child", a_path, o_path],
                        env=env, check=True, stdout=sys.stderr)

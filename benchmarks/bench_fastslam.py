@@ -834,7 +834,7 @@ def _spawn(args, parts):
         env = dict(os.environ)
         for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
             env[var] = "1"
-        env["PYTHONPATH"] = os.pathsep.join([root, str(HERE)] + ([env["PYTHONPATH"]]
+        env["PYTHONPATH"] = os.pathsep.join([root, str(HERE), str(HERE.parent / "tests" / "oracles")] + ([env["PYTHONPATH"]]
                                                                    if env.get("PYTHONPATH") else []))
         _progress("OPENBLAS_NUM_THREADS is not 1 here: running in a fresh process with it set")
         subprocess.run([sys.executable, str(HERE / "bench_fastslam.py"), "--child", a_path, o_path],

@@ -180,7 +180,7 @@ def _time_numpy(fn, repeats):
 def _openblas1_numpy(n_steps, repeats):
     """Median seconds of the NumPy loop in a fresh process with OPENBLAS_NUM_THREADS=1."""
     env = dict(os.environ, OPENBLAS_NUM_THREADS="1")
-    res = subprocess.run([sys.executable, str(HERE / "numpy_flight.py"), str(n_steps),
+    res = subprocess.run([sys.executable, str(numpy_flight.__file__), str(n_steps),
                           str(repeats)], env=env, capture_output=True, text=True, timeout=3600)
     if res.returncode != 0:
         return {"error": res.stderr.strip().splitlines()[-1:]}

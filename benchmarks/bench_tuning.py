@@ -8,7 +8,7 @@ x64).  Cases (one recorded log of paper 000's ``ekfslam3d-unknown`` flight, Q_c 
   same.  Target: value+grad ≤ 5× value (``ratio``).
 * ``numpy``: the MSE loss's value and gradient by autodiff against what a NumPy user would do —
   central differences on the vectorised NumPy twin of the same filter
-  (``benchmarks/numpy_ekfslam3d.py``, hand Jacobians): 2p + 1 = 19 twin runs; the row also
+  (``tests/oracles/numpy_ekfslam3d.py``, hand Jacobians): 2p + 1 = 19 twin runs; the row also
   reports how far the two values and gradients agree.
 * ``compile``: compilation of the tuning step that :func:`jaxslam.tuning.optimize.fit` runs
   (loss, gradient and the Adam update over ``--runs`` logs, one after another as the
@@ -86,7 +86,7 @@ def _mse_loss(T, ref, cfg):
 
 def _numpy_fd_row(args, loss_fn, theta, log, ref, cfg):
     """Autodiff value+grad of the MSE loss vs what a NumPy user does: central differences on
-    the vectorised NumPy twin (benchmarks/numpy_ekfslam3d.py, hand Jacobians), 2p + 1 runs."""
+    the vectorised NumPy twin (tests/oracles/numpy_ekfslam3d.py, hand Jacobians), 2p + 1 runs."""
     import jax
 
     import numpy_ekfslam3d as tw

@@ -4,8 +4,8 @@ Benchmarks live outside the package, in ``benchmarks/bench_<name>.py`` (module a
 ``DESCRIPTION``, ``add_arguments(parser)``, ``run(args) -> dict``).  The folder is ``--dir
 DIR``, else ``./benchmarks``, else the ``benchmarks/`` folder beside the package source
 (editable installs); the first of the last two that holds a ``bench_*.py`` wins.  The folder
-is put on ``sys.path`` while a benchmark runs so that it can import its NumPy twins from the
-same folder.  ``jaxslam list`` reads ``DESCRIPTION`` without importing the module; ``bench``
+and the test oracles beside it (``../tests/oracles``: the NumPy twins the benchmarks time
+against) are put on ``sys.path`` while a benchmark runs.  ``jaxslam list`` reads ``DESCRIPTION`` without importing the module; ``bench``
 fills in ``"benchmark"`` and ``"machine"`` in the JSON when the benchmark leaves them out.
 """
 
@@ -145,8 +145,11 @@ def command(rest: list[str]) -> int:
     from jaxslam import io
 
     path = bench_dir / f"bench_{name}.py"
-    added = str(bench_dir.resolve())
-    sys.path.insert(0, added)  # lets a benchmark import its NumPy twins from the same folder
+    added = [str(bench_dir.resolve())]
+    oracles = bench_dir.resolve().parent / "tests" / "oracles"  # the NumPy twins
+    if oracles.is_dir():
+        added.append(str(oracles))
+    sys.path[:0] = added
     try:
         module = _load_bench_module(path)
         p = Parser(prog=f"{PROG} bench {name}", description=str(module.DESCRIPTION))
@@ -156,10 +159,11 @@ def command(rest: list[str]) -> int:
         args = p.parse_args(rest)
         result = module.run(args)
     finally:
-        try:
-            sys.path.remove(added)
-        except ValueError:
-            pass
+        for a in added:
+            try:
+                sys.path.remove(a)
+            except ValueError:
+                pass
     if not isinstance(result, dict) or not isinstance(result.get("results"), list):
         raise TypeError(f"benchmark {name!r}: run(args) must return a dict with a 'results' list")
     result = {"benchmark": name, **result}

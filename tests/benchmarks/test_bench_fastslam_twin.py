@@ -1,4 +1,4 @@
-"""The NumPy twin of paper 001's FastSLAM step (benchmarks/numpy_fastslam.py) runs the same filter.
+"""The NumPy twin of paper 001's FastSLAM step (tests/oracles/numpy_fastslam.py) runs the same filter.
 
 The twin is the reference of ``jaxslam bench fastslam``; a speed comparison means
 something only if both do the same work.  Oracle: the twin is written

@@ -1,4 +1,4 @@
-"""The NumPy twin of the closed-loop flight (benchmarks/numpy_flight.py) vs jaxslam's simulate.
+"""The NumPy twin of the closed-loop flight (tests/oracles/numpy_flight.py) vs jaxslam's simulate.
 
 The twin is the oracle that ``bench sim`` compares like with like: it is written without
 autodiff (closed-form trajectory derivatives, hand chain rule / jets for the feedforward,

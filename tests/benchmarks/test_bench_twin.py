@@ -1,4 +1,4 @@
-"""The NumPy twin of paper 000's EKF-SLAM (benchmarks/numpy_ekfslam3d.py) runs the same filter.
+"""The NumPy twin of paper 000's EKF-SLAM (tests/oracles/numpy_ekfslam3d.py) runs the same filter.
 
 The twin is the reference of ``jaxslam bench ekfslam``; a speed comparison means
 something only if both do the same work.  Oracle: the twin is written

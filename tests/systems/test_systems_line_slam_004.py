@@ -1,13 +1,11 @@
 """Paper 004 line-feature EKF-SLAM: model against hand/thesis Jacobians, the NumPy twin, bad input.
 
-Oracles: hand-derived Jacobians (benchmarks/numpy_lineslam.py, independent of the
+Oracles: hand-derived Jacobians (tests/oracles/numpy_lineslam.py, independent of the
 autodiff ones the engine uses), the thesis' eq. 4.11-4.14 entries where they are
 consistent with the real model, and a dense NumPy EKF replaying the recorded
 inputs step by step (1e-9).
 """
 
-import pathlib
-import sys
 
 import jax
 import jax.numpy as jnp
@@ -18,7 +16,6 @@ from jaxslam import errors
 from jaxslam.errors import InputError
 from jaxslam.systems import line_slam_004 as LS
 
-sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[2] / "benchmarks"))
 import numpy_lineslam as twin  # noqa: E402
 
 RNG = np.random.default_rng(4)

@@ -1,8 +1,6 @@
 """Losses against SciPy / NumPy oracles; the EKF-SLAM innovation terms against hand Jacobians."""
 
 import math
-import pathlib
-import sys
 
 import jax
 import jax.numpy as jnp
@@ -14,7 +12,6 @@ from jaxslam.filters import ekf_slam as es
 from jaxslam.systems import ekf_slam_3d as sys3d
 from jaxslam.tuning import losses as L
 
-sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "sensors"))
 import sensors_oracle_np as ref  # noqa: E402  (hand-derived LiDAR Jacobians)
 
 

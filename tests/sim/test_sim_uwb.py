@@ -10,8 +10,6 @@ written here), metrics and NEES recomputed in NumPy, χ² bounds
 are behind the ``slow`` marker.
 """
 
-import pathlib
-import sys
 
 import jax
 import jax.numpy as jnp
@@ -24,7 +22,6 @@ from jaxslam.sim.scenarios import registry
 from jaxslam.sim.scenarios import uwb as S
 from jaxslam.systems import uwb_slam_2d as U
 
-sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 import uwb_cases as C  # noqa: E402
 
 

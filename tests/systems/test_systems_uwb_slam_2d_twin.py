@@ -1,6 +1,6 @@
 """The UWB EKF-SLAM on the engine equals an independent NumPy EKF of paper 003, step by step.
 
-Oracle: ``benchmarks/numpy_uwb.py`` — written from the paper in its own state
+Oracle: ``tests/oracles/numpy_uwb.py`` — written from the paper in its own state
 order (eq. 14), F of eq. 15, hand Jacobians (eq. 18 / the range gradient), the
 joint eq. 20 update with ``numpy.linalg.solve`` and the Joseph form, start-up by
 ``numpy.linalg.lstsq``.  The package runs the engine with autodiff Jacobians,
@@ -12,8 +12,6 @@ Also: start-up geometry on noise-free ranges, bad input at the boundary
 (InputError) and inside jit (flags, never NaN), float32 against float64.
 """
 
-import pathlib
-import sys
 
 import jax
 import jax.numpy as jnp
@@ -25,9 +23,6 @@ from jaxslam.errors import InputError
 from jaxslam.sim.scenarios import uwb as S
 from jaxslam.systems import uwb_slam_2d as U
 
-BENCH = pathlib.Path(__file__).resolve().parents[2] / "benchmarks"
-sys.path.insert(0, str(BENCH))
-sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 import numpy_uwb as tw  # noqa: E402
 import uwb_cases as C  # noqa: E402
 

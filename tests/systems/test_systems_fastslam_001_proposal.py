@@ -1,21 +1,16 @@
 """Paper 001 proposals and stage 2: dynamics (eq. 1-4, Table 2 Step 1), kinematics baseline,
 inverse-sensor regeneration (Step 8, eq. 9, 15, 32-34), IMU model h^d (eq. 12) and the
 world/body LiDAR models (eq. 13-15).  Oracles: NumPy re-implementations written from the
-papers (tests/dynamics/dyn_oracles_np.py, tests/sensors/sensors_oracle_np.py), the NED IMU
+papers (tests/oracles/dyn_oracles_np.py, tests/oracles/sensors_oracle_np.py), the NED IMU
 model of jaxslam.sensors.imu (an independent code path), sample moments.
 """
 
-import pathlib
-import sys
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-_T = pathlib.Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(_T / "dynamics"))
-sys.path.insert(0, str(_T / "sensors"))
 import dyn_oracles_np as dyn  # noqa: E402
 import sensors_oracle_np as sen  # noqa: E402
 

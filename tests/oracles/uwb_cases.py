@@ -1,4 +1,4 @@
-"""Shared, compiled-once UWB test cases (imported by several test files of tests/uwb).
+"""Shared, compiled-once UWB test cases (imported by the UWB system and scenario tests).
 
 Compilation dominates these tests, so each filter configuration is jitted once per
 process and the true path is passed as data: one compiled ``run`` serves every
