@@ -16,6 +16,7 @@ jax.config.update("jax_enable_x64", True)
 from jaxslam.data import merge_events
 from jaxslam.data.mrclam import load_mrclam
 from jaxslam.data.runners import evaluate_planar
+from jaxslam.data import presets
 from jaxslam.systems import planar_ekf_slam as pe
 which = sys.argv[1]
 DATA = sys.argv[3] if len(sys.argv) > 3 else __import__("os").environ["JAXSLAM_DATA_DIR"]
@@ -25,10 +26,10 @@ def timed(f):
 if which == "mrclam":
     for r in range(1, 6):
         d = load_mrclam(DATA, r)
-        log, pose0 = pe.mrclam_raw_log(d, K=8)
-        prm = pe.mrclam_params(r, preset=sys.argv[2])
+        log, pose0 = presets.mrclam_raw_log(d, K=8)
+        prm = presets.mrclam_params(r, preset=sys.argv[2])
         for name, kw in (("nn", {}), ("nn+joint", {"joint_gate": 0.99}), ("jcbb", {"association": "jcbb"})):
-            cfg = pe.mrclam_config(association="nn")._replace(**kw)
+            cfg = presets.mrclam_config(association="nn")._replace(**kw)
             res, rt = timed(lambda: pe.run(pe.log_from_events(log, jnp.asarray(pose0)), cfg, prm))
             m, _ = evaluate_planar(log.t, np.asarray(res.pose), d.gt_t, d.gt)
             print(f"mrclam r{r} {name:9s} ATE {m['ate_m']:.3f} m  landmarks {int(np.sum(res.active))}  rejected {int(np.sum(res.n_rejected))}  run {rt:.2f} s", flush=True)
@@ -37,9 +38,9 @@ else:
     from jaxslam.data.victoria_park import load_victoria_park
     d = load_victoria_park(DATA)
     log = merge_events(d.input_t, d.inputs, d.det_t, d.det, K=None, input_mode="rate")
-    prm = pe.victoria_park_params(dtype=jnp.float32)
+    prm = presets.victoria_park_params(dtype=jnp.float32)
     for name, kw in (("nn", {}), ("nn+joint", {"joint_gate": 0.99}), ("jcbb", {"association": "jcbb"})):
-        cfg = pe.victoria_park_config()._replace(**kw)
+        cfg = presets.victoria_park_config()._replace(**kw)
         prm32 = jax.tree.map(lambda a: jnp.asarray(a, jnp.float32), prm)
         res, rt = timed(lambda: pe.run(pe.log_from_events(log, jnp.zeros(3, jnp.float32)), cfg, prm32))
         m, _ = evaluate_planar(log.t, np.asarray(res.pose, np.float64), d.gps_t, d.gps, at_ref_times=True)

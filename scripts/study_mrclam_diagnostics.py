@@ -42,6 +42,7 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
+from jaxslam.data import presets  # noqa: E402
 from jaxslam.data.events import merge_events  # noqa: E402
 from jaxslam.data.mrclam import load_mrclam  # noqa: E402
 from jaxslam.data.runners import dead_reckoning, evaluate_planar  # noqa: E402
@@ -249,7 +250,7 @@ def _loc_scan_impl(st0, dt, u, z, ids, mask, params, config):
         slots, mapped = es.associate_known(st, id_k, m_k)
 
         def upd(st_):
-            return es.update(st_, model, z_k, slots, mapped, params.R, None, gate=config.update_gate)[0]
+            return es.update(st_, model, z_k, slots, mapped, params.R, None, gate=params.update_gate)[0]
 
         st = jax.lax.cond(jnp.any(mapped), upd, lambda st_: st_, st)
         return st, st.x[:nr]
@@ -262,9 +263,9 @@ _loc_scan = jax.jit(_loc_scan_impl, static_argnames=("config",))
 
 def part_loc(Ds, range_k, odo_cal, base_params=None):
     print("== localisation on the surveyed map (ATE over the whole GT span) ==")
-    cfg = P.mrclam_config()
+    cfg = presets.mrclam_config()
     for robot, D in Ds.items():
-        prm = P.mrclam_params(robot) if base_params is None else base_params(robot)
+        prm = presets.mrclam_params(robot) if base_params is None else base_params(robot)
         cases = [
             ("raw", {}),
             ("meas shift −0.04", dict(meas_shift=-0.04)),
@@ -300,18 +301,17 @@ def part_slam(Ds):
     for robot, D in Ds.items():
         for nm, corr in (("raw log, old preset", False), ("corrected preset", True)):
             if corr:
-                log, pose0 = P.mrclam_log(D)
+                log, pose0 = presets.mrclam_log(D)
             else:
-                log, pose0 = P.mrclam_log(D, range_model=None, odometry_delay=0.0)
-            prm = P.mrclam_params(robot, corrected=corr)
-            for assoc, cfgs in (("known", [P.mrclam_config(update_gate=13.8 if corr else 9.21)]),
-                                ("nn", [P.mrclam_config("nn", update_gate=13.8 if corr else 9.21),
-                                        P.mrclam_config("nn", capacity=48, update_gate=13.8 if corr else 9.21),
-                                        P.mrclam_config("nn", capacity=48, new_threshold=60.0,
-                                                        update_gate=13.8 if corr else 9.21)])):
-                for cfg in cfgs:
-                    res, m, tr = slam(D, log, pose0, prm, cfg)
-                    print(f"   robot {robot} {nm:20s} {assoc:5s} cap {cfg.capacity} new_thr {cfg.new_threshold}: "
+                log, pose0 = presets.mrclam_log(D, range_model=None, odometry_delay=0.0)
+            prm = presets.mrclam_params(robot, corrected=corr)._replace(update_gate=13.8 if corr else 9.21)
+            for assoc, cfgs in (("known", [(presets.mrclam_config(), prm)]),
+                                ("nn", [(presets.mrclam_config("nn"), prm),
+                                        (presets.mrclam_config("nn", capacity=48), prm),
+                                        (presets.mrclam_config("nn", capacity=48), prm._replace(new_threshold=60.0))])):
+                for cfg, prm_c in cfgs:
+                    res, m, tr = slam(D, log, pose0, prm_c, cfg)
+                    print(f"   robot {robot} {nm:20s} {assoc:5s} cap {cfg.capacity} new_thr {prm_c.new_threshold}: "
                           f"ATE {m['ate_m']:.4f} m, run {tr:.2f} s after compile, mapped "
                           f"{int(np.sum(np.asarray(res.active)))}, overflow {int(res.overflow)}, "
                           f"gated {int(res.n_gated.sum())}, rejected {int(res.n_rejected.sum())}")

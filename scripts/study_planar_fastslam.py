@@ -11,9 +11,9 @@ Noise values and their sources:
   robot 1 range 0.053 m → 0.0786 m, bearing 0.0074 rad → 0.0110 rad; robot 2 0.121 m →
   0.179 m, 0.0062 rad → 0.0092 rad.
 * MRCLAM input-noise density and pose floor: the EKF counterpart's preset
-  (``planar_ekf_slam.mrclam_params``: σ_v 0.03 m/s·√s, σ_ω 0.05 rad/s·√s, floor 1e-4 per s,
+  (``jaxslam.data.presets.mrclam_params``: σ_v 0.03 m/s·√s, σ_ω 0.05 rad/s·√s, floor 1e-4 per s,
   tuned there on the first 300 s of robot 1), unchanged.
-* Victoria Park: the EKF counterpart's preset (``planar_ekf_slam.victoria_park_params``:
+* Victoria Park: the EKF counterpart's preset (``jaxslam.data.presets.victoria_park_params``:
   σ_v 0.7 m/s·√s, σ_α 0.06 rad·√s, σ_r 1.0 m, σ_β 1.5°, range 5–40 m; RFS-SLAM's cfg for
   reference: R = 75·diag(0.025 m², 2.5e-5 rad²)), unchanged unless a flag says otherwise.
 """
@@ -129,9 +129,10 @@ def victoria(root, n_particles, capacity, seeds, dtype, t_end=None, sv=0.7, sa=0
              sr=1.0, sb=math.radians(1.5), log_p_new=0.0, new_thr=13.8, gate=9.21, range_max=40.0):
     D, log, K, n_det = vp_log(root, range_max=range_max, t_end=t_end)
     cfg = PF.Config(motion="ackermann", n_particles=n_particles, capacity=capacity, K=K,
-                    association="ml", gate=gate, new_threshold=new_thr)
+                    association="ml")
     prm = PF.default_params(sigma_r=sr, sigma_b=sb, sigma_v=sv, sigma_w=sa, floor=(0.0, 0.0, 0.0),
-                            pose0_sigma=(1e-3, 1e-3, 1e-3), log_p_new=log_p_new, dtype=dtype)
+                            pose0_sigma=(1e-3, 1e-3, 1e-3), log_p_new=log_p_new,
+                            dtype=dtype)._replace(gate=gate, new_threshold=new_thr)
     first = None
     for s in seeds:
         key = jax.random.PRNGKey(s)

@@ -153,7 +153,7 @@ from jaxslam.systems import plaza_range as pr
 NB = 4  # beacons
 IB, ISD, IST, IL = 3, 4, 5, 6  # bias, distance scale, heading scale, first beacon
 NX = IL + 2 * NB  # [x, y, θ, b, s_d, s_θ, l_1 (2), ..., l_4 (2)] = 14
-GATE_K = float(np.sqrt(6.63))  # the EKF's χ²(1) 99 % gate (plaza_range.Config default), in σ
+GATE_K = float(np.sqrt(6.63))  # the EKF's χ²(1) 99 % gate (plaza_range.Params default), in σ
 HUBER_K = 1.345  # Huber's 95 %-efficiency constant (σ units)
 TUKEY_C = 4.685  # Tukey's 95 %-efficiency constant (σ units)
 

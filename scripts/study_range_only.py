@@ -71,7 +71,7 @@ def timed(f):
 def util(dtype, gate=9.0, params=ur.PARAMS, t_w=30.0):
     u, gt_t, tag, aid, anchors = load_util()
     log = ur.util_events(u[:, 0], u[:, 1], u[:, 2])
-    res, tc, tr = timed(lambda: ur.run(ur.log_from_events(log, aid, anchors=anchors, dtype=dtype), ur.Config(gate=gate), params))
+    res, tc, tr = timed(lambda: ur.run(ur.log_from_events(log, aid, anchors=anchors, dtype=dtype), ur.Config(), params._replace(gate=gate)))
     true = interp(log.t, gt_t, tag)
     est = np.asarray(res.pos, np.float64)
     err = np.linalg.norm(est - true, axis=1)
@@ -88,7 +88,7 @@ def util(dtype, gate=9.0, params=ur.PARAMS, t_w=30.0):
     rmse, rz, rxy = err_report(log.t, est, true, air)
     print(f"   range-only airborne: RMSE {rmse:.3f} m, vertical {rz:.3f} m, horizontal {rxy:.3f} m")
     logh = ur.util_events(u[:, 0], u[:, 1], u[:, 2], tof_t=tof_t, tof=tof)
-    resh, tc, tr = timed(lambda: ur.run(ur.log_from_events(logh, aid, anchors=anchors, dtype=dtype), ur.Config(gate=gate), params))
+    resh, tc, tr = timed(lambda: ur.run(ur.log_from_events(logh, aid, anchors=anchors, dtype=dtype), ur.Config(), params._replace(gate=gate)))
     isr = (np.asarray(logh.ids)[:, 0] != ur.HEIGHT_ID)  # evaluate at the range events
     th = logh.t[isr]
     esth = np.asarray(resh.pos, np.float64)[isr]
@@ -110,7 +110,7 @@ def util(dtype, gate=9.0, params=ur.PARAMS, t_w=30.0):
     print(f"UTIL start-up window [0, {t_w}] s: anchors err mean {a_err0.mean():.3f} max {a_err0.max():.3f} m, "
           f"bias {float(su.bias):+.3f} m, used {int(su.n_used)} rejected {int(su.n_rejected)} rms {float(su.rms):.3f}")
     log2 = ur.util_events(u[:, 0], u[:, 1], u[:, 2], t_start=t_w + 1e-9)
-    res2, tc, tr = timed(lambda: ur.run(ur.log_from_events(log2, aid, startup=su, dtype=dtype), ur.Config(gate=gate), params))
+    res2, tc, tr = timed(lambda: ur.run(ur.log_from_events(log2, aid, startup=su, dtype=dtype), ur.Config(), params._replace(gate=gate)))
     true2 = interp(log2.t, gt_t, tag)
     est2 = np.asarray(res2.pos, np.float64)
     err2 = np.linalg.norm(est2 - true2, axis=1)
@@ -129,7 +129,7 @@ def util(dtype, gate=9.0, params=ur.PARAMS, t_w=30.0):
     rmse, rz, rxy = err_report(log2.t, est2, true2, air2)
     print(f"   range-only (unknown anchors) airborne: RMSE {rmse:.3f}, vertical {rz:.3f}, horizontal {rxy:.3f} m")
     logh2 = ur.util_events(u[:, 0], u[:, 1], u[:, 2], t_start=t_w + 1e-9, tof_t=tof_t, tof=tof)
-    resh2, tc, tr = timed(lambda: ur.run(ur.log_from_events(logh2, aid, startup=su, dtype=dtype), ur.Config(gate=gate), params))
+    resh2, tc, tr = timed(lambda: ur.run(ur.log_from_events(logh2, aid, startup=su, dtype=dtype), ur.Config(), params._replace(gate=gate)))
     isr = (np.asarray(logh2.ids)[:, 0] != ur.HEIGHT_ID)
     th = logh2.t[isr]
     esth = np.asarray(resh2.pos, np.float64)[isr]

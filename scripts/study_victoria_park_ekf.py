@@ -16,6 +16,7 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp, numpy as np
 from jaxslam import metrics
 from jaxslam.data import load_victoria_park, merge_events
+from jaxslam.data import presets
 from jaxslam.systems import planar_ekf_slam as P
 
 D = load_victoria_park(__import__('os').environ['JAXSLAM_DATA_DIR'])
@@ -61,4 +62,4 @@ def run(cfg, prm, log, dtype=jnp.float32, time_it=True, quiet=False):
 
 if __name__ == "__main__":
     log = make_log()
-    run(P.victoria_park_config(), P.victoria_park_params(), log, jnp.float32)
+    run(presets.victoria_park_config(), presets.victoria_park_params(), log, jnp.float32)

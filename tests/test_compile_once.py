@@ -46,18 +46,19 @@ def test_scenario_second_call_with_new_seed_traces_nothing(name):
 
 
 def _mrclam_log():
-    from jaxslam.systems import planar_ekf_slam as pe
+    from jaxslam.data import presets
 
-    log, pose0 = pe.mrclam_raw_log(load_mrclam(DATA, 1), K=8)
+    log, pose0 = presets.mrclam_raw_log(load_mrclam(DATA, 1), K=8)
     return log, jnp.asarray(pose0)
 
 
 def test_planar_ekf_slam_compiles_once_for_new_noise():
+    from jaxslam.data import presets
     from jaxslam.systems import planar_ekf_slam as pe
 
     log, pose0 = _mrclam_log()
-    cfg = pe.mrclam_config(association="known")
-    prm = pe.mrclam_params(1, dtype=np.float64)
+    cfg = presets.mrclam_config(association="known")
+    prm = presets.mrclam_params(1, dtype=np.float64)
     n0 = pe._run._cache_size()
     a = pe.run(pe.log_from_events(log, pose0), cfg, prm)
     b = pe.run(pe.log_from_events(log, pose0), cfg, prm._replace(R=prm.R * 1.7, M_c=prm.M_c * 0.5))
@@ -167,3 +168,109 @@ def test_generic_ekf_slam_runner_under_the_callers_jit_compiles_once():
     b = run(log._replace(z=log.z * 1.1), 0.02, 0.3)
     assert run._cache_size() == 1
     assert not np.allclose(np.asarray(a), np.asarray(b))
+
+
+# Thresholds and gates are Params fields (traced): a new value reuses the program, and the value
+# is really used (the second run differs), so the tests cannot pass vacuously.
+
+def test_uwb_slam_2d_new_thresholds_neither_retrace_nor_recompile():
+    from jaxslam.sim.scenarios import uwb as S
+    from jaxslam.systems import uwb_slam_2d as U
+
+    setup = S.make_setup("circle", duration=10.0)
+    log = jax.jit(lambda k: S.simulate(k, setup, jnp.float64).log)(jax.random.PRNGKey(0))
+    log = log._replace(anchors=jnp.asarray(setup.anchors))
+    cfg = U.Config(mode="localization", model="range")
+    fp = U.matched_params("range")._replace(gate=9.0)
+    a = U.run(log, cfg, fp)
+    n1 = U._run._cache_size()  # (an earlier test may have compiled the same program)
+    tight = fp._replace(gate=0.05, near_gate=40.0, init_speed_bound=2.0, min_spread=0.1,
+                        startup_min_points=4, delayed_min_points=3)
+    with compilation.account() as acc:
+        b = U.run(log, cfg, tight)
+    assert acc.result.trace_s == 0.0 and acc.result.programs == 0, acc.result
+    assert U._run._cache_size() == n1
+    # the much tighter χ² gate and near-anchor gate drop range rows: fewer update dofs, more skipped
+    assert int(np.sum(b.steps.dof)) < int(np.sum(a.steps.dof))
+    assert int(b.final.near) > int(a.final.near)
+    assert not np.allclose(np.asarray(a.steps.mean), np.asarray(b.steps.mean))
+
+
+def test_util_range_new_gate_neither_retraces_nor_recompiles():
+    from jaxslam.data.util_uwb import load_util
+    from jaxslam.systems import util_range as ur
+
+    d = load_util(DATA, "twr_obs_log1")
+    log = ur.log_from_events(ur.util_events(d.twr_t, d.twr_anchor, d.twr_range), np.asarray(d.anchor_id),
+                             anchors=d.anchor_p, dtype=jnp.float64)
+    a = ur.run(log, ur.Config(), ur.PARAMS)
+    n1 = ur._run._cache_size()
+    with compilation.account() as acc:
+        b = ur.run(log, ur.Config(), ur.PARAMS._replace(gate=0.5))
+    assert acc.result.trace_s == 0.0 and acc.result.programs == 0, acc.result
+    assert ur._run._cache_size() == n1
+    assert int(b.n_gated) > int(a.n_gated) and int(b.n_used) < int(a.n_used)
+
+
+def test_plaza_range_new_gate_and_init_thresholds_neither_retrace_nor_recompile():
+    from jaxslam.data.plaza import load_plaza
+    from jaxslam.systems import plaza_range as pr
+
+    d = load_plaza(DATA, 2)
+    events = pr.plaza_events(d.dr_t, d.dr, d.td_t, d.td_node, d.td_range)
+    log = pr.log_from_events(events, np.asarray(d.start_pose()), np.asarray(d.node_id), dtype=jnp.float64)
+    a = pr.run(log, pr.Config(), pr.PARAMS)  # SLAM: the excerpt is too short for the defaults
+    n1 = pr._run._cache_size()
+    with compilation.account() as acc:
+        b = pr.run(log, pr.Config(), pr.PARAMS._replace(min_points=5, min_spread=0.5))
+        c = pr.run(log, pr.Config(), pr.PARAMS._replace(min_points=5, min_spread=0.5, gate=1e-4))
+    assert acc.result.trace_s == 0.0 and acc.result.programs == 0, acc.result
+    assert pr._run._cache_size() == n1
+    # looser delayed-init thresholds map beacons the defaults leave unmapped; a tight gate gates ranges
+    assert int(a.n_registered) == 0 and int(b.n_registered) > 0 and int(b.n_used) > 0
+    assert int(c.n_gated) > int(b.n_gated)
+
+
+def test_planar_ekf_slam_new_gates_and_limits_neither_retrace_nor_recompile():
+    from jaxslam.data import presets
+    from jaxslam.systems import planar_ekf_slam as pe
+
+    log, pose0 = _mrclam_log()
+    cfg = presets.mrclam_config(association="nn")  # ids hidden: the gate and new_threshold are read
+    prm = presets.mrclam_params(1, dtype=np.float64)._replace(range_max=100.0)
+    a = pe.run(pe.log_from_events(log, pose0), cfg, prm)
+    n1 = pe._run._cache_size()
+    tight = prm._replace(gate=0.5, new_threshold=60.0, range_max=1.7)
+    with compilation.account() as acc:
+        b = pe.run(pe.log_from_events(log, pose0), cfg, tight)
+    assert acc.result.trace_s == 0.0 and acc.result.programs == 0, acc.result
+    assert pe._run._cache_size() == n1
+    # the shorter range limit masks rows; the much tighter gate (with a higher new-landmark
+    # threshold) leaves more sightings ambiguous: fewer used, more rejected
+    assert int(np.sum(b.n_limited)) > int(np.sum(a.n_limited))
+    assert int(np.sum(b.n_used)) < int(np.sum(a.n_used))
+    assert int(np.sum(b.n_rejected)) > int(np.sum(a.n_rejected))
+    assert not np.allclose(np.asarray(a.pose), np.asarray(b.pose))
+
+
+def test_planar_fastslam_new_gate_and_thresholds_neither_retrace_nor_recompile():
+    from jaxslam.data import presets
+    from jaxslam.systems import planar_fastslam as pf
+
+    log, pose0 = _mrclam_log()
+    cfg, prm = presets.mrclam_fastslam_setup(1, n_particles=16, association="ml")
+    prm = jax.tree_util.tree_map(lambda v: jnp.asarray(v, jnp.float64), prm._replace(gate=9.21))
+    key = jax.random.PRNGKey(0)
+    a = pf.run(pf.log_from_events(log, pose0), cfg, prm, key=key)
+    n1 = pf._run._cache_size()
+    with compilation.account() as acc:
+        b = pf.run(pf.log_from_events(log, pose0), cfg, prm._replace(gate=0.05, new_threshold=200.0), key=key)
+        c = pf.run(pf.log_from_events(log, pose0), cfg, prm._replace(resample_threshold=0.99), key=key)
+    assert acc.result.trace_s == 0.0 and acc.result.programs == 0, acc.result
+    assert pf._run._cache_size() == n1
+    # same key, other thresholds: more detections fall between the gate and the new-landmark
+    # threshold (ignored, counted as gated) and fewer start landmarks; a higher resampling
+    # threshold resamples more often
+    assert float(b.gated) > float(a.gated)
+    assert float(b.registered) < float(a.registered)
+    assert int(c.resamples) > int(a.resamples)

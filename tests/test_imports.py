@@ -9,7 +9,8 @@ the package's ``__init__`` by construction).  Layers, lowest first:
 1 models          geometry, dynamics, sensors, features, metrics, data (loaders, events, catalogue)
 2 generic         filters, control
 3 systems         systems
-4 applications    sim, tuning, plotting, cli, data.runners, io, paramfile, progress, __main__
+4 applications    sim, tuning, plotting, cli, data.runners, data.presets, io, paramfile, progress,
+                  __main__
 
 A module may import its own layer or any lower one; ``filters`` never imports ``metrics``,
 ``systems``, ``data``, ``sim``, ``tuning``, ``plotting`` or ``cli`` (generic algorithms name no
@@ -34,7 +35,7 @@ LAYER_OF = {
     "sim": 4, "tuning": 4, "plotting": 4, "cli": 4, "io": 4, "paramfile": 4, "progress": 4,
     "__main__": 4,
 }
-APP_MODULES = {"data.runners": 4}  # an application module inside a models-level package
+APP_MODULES = {"data.runners": 4, "data.presets": 4}  # application modules inside a models-level package
 FILTERS_NEVER = ("metrics", "systems", "data", "sim", "tuning", "plotting", "cli")
 
 

@@ -48,7 +48,8 @@ def _params_help() -> str:
     from jaxslam.systems.planar_ekf_slam import Params
 
     return ("\n\n--params FILE (mrclam, EKF): {\"dataset\": \"mrclam\", \"noise\": {...}, \"log\": {...}} as\n"
-            "'jaxslam tune mrclam' writes it; noise keys (each optional, shapes as in planar_ekf_slam.Params):\n"
+            "'jaxslam tune mrclam' writes it; noise keys (each optional, absent: the preset's value;\n"
+            "shapes as in planar_ekf_slam.Params; the thresholds gate ... prune_min_obs are scalars, null: off):\n"
             + textwrap.fill(", ".join(Params._fields), 84, initial_indent="  ", subsequent_indent="  ")
             + "\nlog keys (optional): odometry_delay (s, the odometry stamps' lag the noise was fitted with;\n"
               "  absent: 0, the stamps as logged)")

@@ -19,7 +19,9 @@ folder raises :class:`MissingDataError` (also a ``FileNotFoundError``).
 ============================  ==================================================
 
 :func:`merge_events` turns an input stream and a measurement stream into one
-fixed-shape :class:`EventLog`.
+fixed-shape :class:`EventLog`.  The application modules :mod:`jaxslam.data.runners` (``jaxslam
+dataset``) and :mod:`jaxslam.data.presets` (the MRCLAM / Victoria Park presets and log adapters
+of the planar systems) import the systems and are loaded only by name.
 """
 
 from .catalogue import DATASETS as _CATALOGUE

@@ -589,14 +589,15 @@ def run_mrclam(data_dir, robot=1, filter="ekf", ids="known", anchors=None, parti
                dtype=np.float64, tof=False, calibrated=False, params=None, smooth=False):
     """UTIAS MRCLAM (as shipped: dataset 6): unicycle odometry + range-bearing to barcoded landmarks.
 
-    The EKF's noise is the one learned from the logs (``planar_ekf_slam.MRCLAM_FITTED``, the same
+    The EKF's noise is the one learned from the logs (``presets.MRCLAM_FITTED``, the same
     for every robot); ``params``: a ``--params`` object (``jaxslam tune mrclam``) replacing it.
     ``calibrated``: apply the camera range model and odometry delay fitted on the first half
-    of robot 1 (``planar_ekf_slam.mrclam_log``) with the matching tight noise (EKF preset;
+    of robot 1 (``presets.mrclam_log``) with the matching tight noise (EKF preset;
     FastSLAM keeps its own R).
     """
     from ..dynamics import planar
     from ..systems import planar_ekf_slam as pe
+    from . import presets
     from .mrclam import load_mrclam
 
     if not 1 <= robot <= 5:
@@ -605,19 +606,19 @@ def run_mrclam(data_dir, robot=1, filter="ekf", ids="known", anchors=None, parti
         raise InputError("mrclam: --params and --calibrated do not combine (the calibrated log has "
                          "its own noise preset)")
     # the log the noise was learned on: the shipped noise's, or the --params file's
-    delay = (pe.MRCLAM_FITTED["odometry_delay"] if params is None
+    delay = (presets.MRCLAM_FITTED["odometry_delay"] if params is None
              else dataset_log_options(params, "mrclam").get("odometry_delay", 0.0))
     t0 = time.perf_counter()
     d = load_mrclam(data_dir, robot)
     # Run (and evaluate) where ground truth exists: robot 1's GT stops at +771.9 s.
-    log, pose0 = pe.mrclam_log(d, K=8) if calibrated else pe.mrclam_raw_log(d, K=8, odometry_delay=delay)
+    log, pose0 = presets.mrclam_log(d, K=8) if calibrated else presets.mrclam_raw_log(d, K=8, odometry_delay=delay)
     load_s = time.perf_counter() - t0
     assoc = "known" if ids == "known" else "nn"
-    prm = pe.mrclam_params(robot, dtype=dtype, corrected=calibrated)
+    prm = presets.mrclam_params(robot, dtype=dtype, corrected=calibrated)
     if params is not None:
         prm = pe.params_from_dict(dataset_params(params, "mrclam"), prm, dtype=dtype, where="--params: noise")
     pose, lm, counts, comp_s, run_s, status, smoothed = _planar_run(
-        log, pose0, filter, pe.mrclam_config(association=assoc), prm,
+        log, pose0, filter, presets.mrclam_config(association=assoc), prm,
         lambda n: _mrclam_fastslam(robot, n, assoc), particles, seed, dtype, smooth=smooth)
     dr = np.asarray(dead_reckoning(planar.unicycle, jnp.asarray(pose0), log.u, log.dt))
     m, ev = evaluate_planar(log.t, pose, d.gt_t, d.gt, dr_pose=dr, lm=lm["xy"],
@@ -639,6 +640,7 @@ def run_mrclam(data_dir, robot=1, filter="ekf", ids="known", anchors=None, parti
                   odometry_delay_s=None if calibrated else delay,
                   particles=particles if filter == "fastslam" else None, seed=seed,
                   **_smooth_config(smooth, SMOOTHER_RTS))
+    cfg["thresholds"] = _planar_thresholds(filter, prm, lambda n: _mrclam_fastslam(robot, n, assoc), particles)
     notes = [f"evaluated at the {m['eval_samples']} ground-truth samples inside the run"] + _divergence_notes(status)
     if filter == "ekf":
         cfg["noise"] = "--params file" if params is not None else (
@@ -647,10 +649,20 @@ def run_mrclam(data_dir, robot=1, filter="ekf", ids="known", anchors=None, parti
                       dict(d.report), ev, (log.t, pose[:, :2], pose[:, 2]), notes)
 
 
-def _mrclam_fastslam(robot, n, assoc):
+def _planar_thresholds(filter, prm_ekf, fs_kind, particles) -> dict:
+    """The run's gates, limits and pruning/resampling thresholds (the system's ``Params`` fields
+    named in its ``THRESHOLDS``): the report's ``config.thresholds`` (None: off)."""
+    from ..systems import planar_ekf_slam as pe
     from ..systems import planar_fastslam as pf
 
-    cfg, prm = pf.mrclam_setup(robot, n_particles=n or 100, association="known" if assoc == "known" else "ml")
+    prm, names = (prm_ekf, pe.THRESHOLDS) if filter == "ekf" else (fs_kind(particles)[1], pf.THRESHOLDS)
+    return {k: None if getattr(prm, k) is None else float(np.asarray(getattr(prm, k))) for k in names}
+
+
+def _mrclam_fastslam(robot, n, assoc):
+    from .presets import mrclam_fastslam_setup
+
+    cfg, prm = mrclam_fastslam_setup(robot, n_particles=n or 100, association="known" if assoc == "known" else "ml")
     # known ids live in slot id − 6 (subjects 6–20 → 0–14, the core's slot_by_id)
     return cfg, prm, 6 if assoc == "known" else 0, True
 
@@ -660,7 +672,7 @@ def run_victoria_park(data_dir, robot=1, filter="ekf", ids="known", anchors=None
                       dtype=np.float64, tof=False, calibrated=False, smooth=False):
     """ACFR Victoria Park: Ackermann car, laser tree detections, unknown association, GPS reference."""
     from ..dynamics import planar
-    from ..systems import planar_ekf_slam as pe
+    from . import presets
     from .victoria_park import load_victoria_park
 
     t0 = time.perf_counter()
@@ -675,9 +687,9 @@ def run_victoria_park(data_dir, robot=1, filter="ekf", ids="known", anchors=None
                        input_mode="rate")
     load_s = time.perf_counter() - t0
     pose0 = np.zeros(3)
+    prm = presets.victoria_park_params(dtype=dtype)
     pose, lm, counts, comp_s, run_s, status, _ = _planar_run(
-        log, pose0, filter, pe.victoria_park_config(), pe.victoria_park_params(dtype=dtype),
-        lambda n: _vp_fastslam(n), particles, seed, dtype)
+        log, pose0, filter, presets.victoria_park_config(), prm, lambda n: _vp_fastslam(n), particles, seed, dtype)
     geom = d.geometry
     dr = np.asarray(dead_reckoning(lambda s, u, dt: planar.ackermann(s, u, dt, geom), jnp.asarray(pose0),
                                    log.u, log.dt))
@@ -706,6 +718,7 @@ def run_victoria_park(data_dir, robot=1, filter="ekf", ids="known", anchors=None
     counts = _counts_common(status, counts)
     cfg = _config("victoria-park", filter, dtype, f"unknown association, {log.stats['n_events']} events",
                   particles=particles if filter == "fastslam" else None, seed=seed)
+    cfg["thresholds"] = _planar_thresholds(filter, prm, _vp_fastslam, particles)
     notes = [f"ATE against the {m['eval_samples']} GPS fixes (SE(2)-aligned); GPS has no heading, so "
              "rpe_m is translational, over pairs of fixes 1 ± 0.1 s apart"] + _divergence_notes(status)
     if filter == "fastslam" and np.dtype(dtype) == np.float32:
@@ -717,7 +730,7 @@ def run_victoria_park(data_dir, robot=1, filter="ekf", ids="known", anchors=None
 
 
 def _vp_fastslam(n):
-    from ..systems import planar_fastslam as pf
+    from .presets import victoria_park_fastslam_setup
 
-    cfg, prm = pf.victoria_park_setup(n_particles=n or 50)
+    cfg, prm = victoria_park_fastslam_setup(n_particles=n or 50)
     return cfg, prm, 0, False  # minutes per run: timed once, compilation included

@@ -61,7 +61,8 @@ def from_buffer(points, point_var, ranges, valid, range_var, min_points: Optiona
       valid: (W,) bool rows to fit.
       range_var: σ_r² [m²] of one range.
       min_points, min_spread: :func:`~jaxslam.filters.trilateration.trilaterate`'s
-        readiness conditions (static count, spread [m]).
+        readiness conditions (count, spread [m]); numbers or traced scalars (both are only
+        compared, so a system may keep them in its traced parameters).
       robust: two-pass fit (:func:`robust_trilaterate`).
       var_rows: (W,) bool rows whose variances are averaged (default ``valid``; a shared buffer
         averages every filled row).

@@ -172,7 +172,7 @@ def trilaterate(points, ranges, mask=None, range_var=None, min_points: Optional[
       ranges: (K,) measured distances d_k [m]; non-finite or ≤ 0 entries are dropped.
       mask: optional (K,) bool, False drops a sample.
       range_var: optional σ² [m²] of each range, for the covariance (module docstring).
-      min_points: static minimum of valid samples for ``ok`` (default d + 1).
+      min_points: minimum of valid samples for ``ok`` (default d + 1; may be traced: only compared).
       min_spread: smallest principal standard deviation of the valid points
         required for ``ok`` [m] (0: only rank is checked).
       rcond: relative singular-value cut-off of the solve (default eps · max(K, d),
@@ -234,7 +234,7 @@ def trilaterate_line(xs, ranges, mask=None, side=1.0, min_points: int = 3,
       ranges: (K,) measured distances to the unknown point [m].
       mask: optional (K,) bool.
       side: ±1, sign of the returned y (the reflection gauge of the map).
-      min_points: static minimum of valid samples (two unknowns u, y²: ≥ 2; default 3).
+      min_points: minimum of valid samples (two unknowns u, y²: ≥ 2; default 3; may be traced).
       min_baseline: minimum standard deviation of the valid x_k [m] (0: only
         distinct points are required).
 

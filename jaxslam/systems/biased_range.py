@@ -32,7 +32,8 @@ def range_observe(s, l, params=None):
 
 
 def _cast_params(p, dtype):
-    return type(p)(*[jnp.asarray(v, dtype) for v in p])
+    # None (a gate switched off) stays None: an empty pytree node, not a number
+    return type(p)(*[None if v is None else jnp.asarray(v, dtype) for v in p])
 
 
 class Result(NamedTuple):

@@ -32,8 +32,8 @@ Event k:
        z = (r, β),  r = ‖l − p‖,  β = wrap(atan2(l_y − y, l_x − x) − φ)
        R = params.R (2×2) [m², rad²]
 
-   a. validity: non-finite rows, rows outside ``[range_min, range_max]`` /
-      ``[bearing_min, bearing_max]`` and (``"known"``) rows without an id (< 0)
+   a. validity: non-finite rows, rows outside ``params.[range_min, range_max]`` /
+      ``params.[bearing_min, bearing_max]`` and (``"known"``) rows without an id (< 0)
       are masked and counted (``n_limited``); a present row with a NaN/Inf entry
       also flags ``MASKED_INPUT`` (the limits are a chosen selection, not bad
       input, and flag nothing);
@@ -45,17 +45,19 @@ Event k:
       unmapped id in one event registers once, the repeats are counted as
       rejected).  ``"nn"`` (ids hidden): :func:`~jaxslam.filters.ekf_slam.associate_nn`,
       squared Mahalanobis distance d² on the marginal innovation covariance:
-      d² < ``gate`` → matched (one measurement per landmark), d² >
-      ``new_threshold`` → new landmark, otherwise ambiguous → discarded
+      d² < ``params.gate`` → matched (one measurement per landmark), d² >
+      ``params.new_threshold`` → new landmark, otherwise ambiguous → discarded
       (counted as rejected);
    d. one joint engine update (factored Joseph form) with the matched rows,
-      an optional per-measurement χ² ``update_gate`` (counted as gated);
+      an optional per-measurement χ² ``params.update_gate`` (counted as gated);
    e. registration of the new landmarks at the posterior pose
       (:func:`~jaxslam.filters.ekf_slam.register`); a landmark without a free
       slot is counted in ``overflow`` and flags ``CAPACITY_OVERFLOW``.
 
-Noise values and their sources are with the presets (:func:`mrclam_params`,
-:func:`victoria_park_params`).
+The numbers of the gates and limits are :class:`Params` fields (traced: a new value never
+recompiles); :class:`Config` holds sizes and switches only.  The dataset presets (MRCLAM,
+Victoria Park: noise values and their sources, configs, log adapters) are in
+:mod:`jaxslam.data.presets`.
 """
 
 from __future__ import annotations
@@ -89,20 +91,9 @@ __all__ = [
     "init",
     "step",
     "log_from_events",
-    "MRCLAM_RANGE_SIGMA",
-    "MRCLAM_BEARING_SIGMA",
-    "mrclam_raw_sigma",
     "make_model",
     "calibrated_input",
     "motion_fn",
-    "mrclam_params",
-    "victoria_park_params",
-    "victoria_park_config",
-    "mrclam_config",
-    "mrclam_log",
-    "MRCLAM_RANGE_MODEL",
-    "MRCLAM_CORRECTED_SIGMA",
-    "MRCLAM_ODOMETRY_DELAY",
     "run",
     "validate_config",
     "validate_params",
@@ -112,52 +103,28 @@ __all__ = [
 MOTIONS = planar.MOTIONS
 ASSOCIATIONS = ("known", "nn", "jcbb")
 
-#: MRCLAM dataset 6 landmark residual MADs (data README §5) × 1.4826 ≈ σ, robots 1 and 2.
-MRCLAM_RANGE_SIGMA = {1: 0.053 * 1.4826, 2: 0.121 * 1.4826}  # m
-MRCLAM_BEARING_SIGMA = {1: 0.0074 * 1.4826, 2: 0.0062 * 1.4826}  # rad
-
-#: MRCLAM camera range model r_meas = r_true·(k0 + k2 β²) (β the measured bearing): ranges are
-#: too long at the image centre and too short at its edges (README §5 residuals binned by
-#: bearing: robot 1 +0.085 m at |β| < 0.15, −0.18 to −0.27 m at |β| > 0.45).  Least squares of
-#: r_meas/r_true on the FIRST HALF of robot 1's log (t < 386 s) against GT + surveyed
-#: landmarks (scripts/study_mrclam_diagnostics.py).  Robot 1 range MAD 0.053 → 0.019 m (its
-#: held-out second half: 0.056 → 0.019 m).  Robot 2's camera differs in k0 (its own fit:
-#: 1.050, −0.503): with these values robot 2 keeps a +0.075 m range bias (MAD 0.121 → 0.030 m).
-MRCLAM_RANGE_MODEL = (1.0246, -0.4624)
-#: σ [m, rad] of the corrected residuals, 1.4826·MAD on the first half of robot 1 (same script).
-MRCLAM_CORRECTED_SIGMA = (0.0242, 0.0120)
-#: Odometry (commanded velocity) delay [s]: the sample stamped τ describes the motion at
-#: τ + delay.  GT heading change vs ∫ω over 1 s windows: residual RMS minimal near 0.2–0.25 s
-#: on robot 1's first half (0.032 rad at 0 s → 0.023 rad) and on robot 2.
-MRCLAM_ODOMETRY_DELAY = 0.2
-
-
 class Config(NamedTuple):
-    """Static choices (hashable; a change recompiles).
+    """Static choices (hashable; a change recompiles): sizes, counts and switches.  The numbers
+    of the gates, limits and pruning are :class:`Params` fields (``gate``, ``new_threshold``,
+    ``update_gate``, ``range_min`` … ``bearing_max``, ``prune_window_s``, ``prune_min_obs``).
 
     motion: "unicycle" | "ackermann" | "increment".
     capacity: landmark slots (state size n = 3 + 2·capacity; update cost O(n²·K)).
     K: measurement rows processed per event (nearest first; extra rows counted).
-    association: "known" (log ids) | "nn" (ids ignored; Mahalanobis nearest neighbour).
-    gate: χ²(2) threshold of an nn match (default 9.21 = 99 %).
-    new_threshold: nn d² above which a measurement starts a new landmark.
-    update_gate: optional χ²(2) gate on each used measurement's NIS in the update.
+    association: "known" (log ids) | "nn" (ids ignored; Mahalanobis nearest neighbour) |
+      "jcbb" (joint compatibility branch and bound).
     input_mode: "rate" (M_c a density, divided by Δt) | "increment" (M_c per increment).
-    range_min, range_max [m], bearing_min, bearing_max [rad]: validity limits (None: off).
     geometry: Ackermann geometry (motion "ackermann").
     calibrate: augment the robot block with input calibration c = (c_0, c_1, c_2), the true
       input being (c_0 u_0, c_1 u_1 + c_2) (odometry speed scale, turn-rate / steering scale
       and bias), estimated online (robot block 6 instead of 3).
-    prune_window_s, prune_min_obs: tentative-landmark pruning (None: off).  A landmark
-      that has not been matched (used in an update) at least ``prune_min_obs`` times
-      within ``prune_window_s`` seconds of its registration is removed (mean, rows and
-      columns of P zeroed, slot freed) and counted in ``n_pruned``; one that has is
-      confirmed for good.  Clutter (a detection of a bush, a car, a person) rarely
-      repeats; a tree does.
     joint_gate: optional probability p (e.g. 0.99) of a joint-compatibility check of one
       event's nn matches (:func:`~jaxslam.filters.ekf_slam.joint_compatibility`): while the
       joint NIS of the m matched rows exceeds the χ²(2m) p-quantile the row that lowers it
-      most is dropped (counted as rejected; it neither updates nor registers).
+      most is dropped (counted as rejected; it neither updates nor registers).  It stays
+      here, a switch with its probability: the table of χ²(2m) quantiles, m = 1 … K, is built
+      on the host at trace time (``stats.chi2_ppf_np``; JAX has no χ² inverse CDF and SciPy
+      is not a run-time dependency), so a new p compiles a new program.
     robust: Student-t measurement model with ``params.robust_nu`` degrees of freedom in the
       update (:func:`~jaxslam.filters.ekf_slam.update`, ``robust``): outliers are
       down-weighted, never cut off.
@@ -166,7 +133,7 @@ class Config(NamedTuple):
       mapped landmarks were outliers (d² > ``params.monitor.outlier_gate``).
     jcbb_cand, jcbb_budget: association ``"jcbb"`` (:func:`jaxslam.filters.association.jcbb`):
       candidates kept per measurement and search nodes per event; the joint test is at
-      ``joint_gate`` (default 0.99).
+      ``joint_gate`` (default 0.99) and the individual gate at ``params.gate``.
     block: events per checkpointed block of the scan (0: none).  With a block, the reverse
       pass stores one state per block and recomputes the block's events: memory of a
       gradient over a whole log grows with the number of blocks, not of events.
@@ -182,18 +149,9 @@ class Config(NamedTuple):
     capacity: int = 16
     K: int = 8
     association: str = "known"
-    gate: float = 9.21
-    new_threshold: float = 30.0
-    update_gate: Optional[float] = None
     input_mode: str = "rate"
-    range_min: Optional[float] = None
-    range_max: Optional[float] = None
-    bearing_min: Optional[float] = None
-    bearing_max: Optional[float] = None
     geometry: planar.AckermannGeometry = planar.VICTORIA_PARK
     calibrate: bool = False
-    prune_window_s: Optional[float] = None
-    prune_min_obs: int = 2
     joint_gate: Optional[float] = None
     robust: bool = False
     monitor: bool = False
@@ -204,7 +162,7 @@ class Config(NamedTuple):
 
 
 class Params(NamedTuple):
-    """Tunable noise (traced leaves: no recompilation, ``grad`` works).
+    """Tunable noise and thresholds (traced leaves: no recompilation, ``grad`` works).
 
     M_c: (2, 2) input noise — a density [(u-units)²·s] for rate inputs, per increment otherwise.
     Q_floor: (3, 3) additive pose-noise density [m²/s, m²/s, rad²/s].
@@ -227,6 +185,25 @@ class Params(NamedTuple):
     robust_nu: () Student-t degrees of freedom (``config.robust``; default 5).
     monitor: :class:`jaxslam.filters.consistency.MonitorParams` (``config.monitor``;
       default :data:`MONITOR_DEFAULT`).
+
+    Thresholds (:data:`THRESHOLDS`; traced like the noise, so a new value never recompiles; an
+    optional one is off at None, and None ↔ a number changes the pytree — a switch that traces
+    once more):
+
+    gate: () χ²(2) threshold of an nn / jcbb individual match, d² < gate (default 9.21 = 99 %).
+    new_threshold: () nn / jcbb d² above which a measurement starts a new landmark (default
+      30.0; need 0 < gate ≤ new_threshold).
+    update_gate: () optional χ²(2) gate on each used measurement's NIS in the update
+      (default None: off).
+    range_min, range_max [m], bearing_min, bearing_max [rad]: () optional validity limits of
+      a row (default None: off).
+    prune_window_s: () optional tentative-landmark pruning window [s] (default None: off).  A
+      landmark that has not been matched (used in an update) at least ``prune_min_obs`` times
+      within ``prune_window_s`` seconds of its registration is removed (mean, rows and
+      columns of P zeroed, slot freed) and counted in ``n_pruned``; one that has is confirmed
+      for good.  Clutter (a detection of a bush, a car, a person) rarely repeats; a tree does.
+    prune_min_obs: () matches a tentative landmark needs within the window (default 2; a
+      count, only compared, so it is held as a float like every other leaf).
     """
 
     M_c: jax.Array
@@ -240,6 +217,20 @@ class Params(NamedTuple):
     robust_nu: Optional[jax.Array] = None
     input_model: Optional[jax.Array] = None
     monitor: Optional[cons.MonitorParams] = None
+    gate: Any = 9.21
+    new_threshold: Any = 30.0
+    update_gate: Optional[Any] = None
+    range_min: Optional[Any] = None
+    range_max: Optional[Any] = None
+    bearing_min: Optional[Any] = None
+    bearing_max: Optional[Any] = None
+    prune_window_s: Optional[Any] = None
+    prune_min_obs: Any = 2.0
+
+
+#: The :class:`Params` fields that are thresholds (scalars; the rest is noise).
+THRESHOLDS = ("gate", "new_threshold", "update_gate", "range_min", "range_max", "bearing_min", "bearing_max",
+              "prune_window_s", "prune_min_obs")
 
 
 #: NIS monitor defaults: average over ~20 events with sightings, inflate when the mean NIS
@@ -260,7 +251,7 @@ class Result(NamedTuple):
     n_rejected: (T,) nn ambiguous rows (gate < d² ≤ new_threshold) and repeated new ids;
     n_registered: (T,) landmarks added; nis: (T,) joint NIS of the update; dof: (T,) its dof.
     overflow: () landmarks that found no free slot; status: () int32 OR-ed flags (jaxslam.errors).
-    n_pruned: (T,) tentative landmarks removed after event k (``config.prune_window_s``).
+    n_pruned: (T,) tentative landmarks removed after event k (``params.prune_window_s``).
     nll: (T,) negative log-likelihood of event k's used rows (Gaussian joint, or the sum of
     the rows' Student-t terms with ``config.robust``; nats); nll_dof: (T,) their scalar count.
     n_outliers: (T,) rows of mapped landmarks with d² > ``monitor.outlier_gate``;
@@ -331,217 +322,29 @@ def make_model(config: Config) -> es.SlamModel:
 
 
 # ---------------------------------------------------------------------------
-# Presets
-# ---------------------------------------------------------------------------
-
-def mrclam_raw_sigma(robot: int):
-    """(σ_r [m], σ_β [rad]) of the raw MRCLAM camera measurements of ``robot``.
-
-    Robots 1 and 2: 1.4826·MAD of their dataset-6 residuals (data README §5).  Other robots
-    (other datasets) have no measured figure here: robot 2's, the larger range spread, is used.
-    """
-    r = int(robot) if int(robot) in MRCLAM_RANGE_SIGMA else 2
-    return MRCLAM_RANGE_SIGMA[r], MRCLAM_BEARING_SIGMA[r]
-
-
-#: The MRCLAM noise shipped as the default of ``jaxslam dataset mrclam`` (EKF): the outcome of
-#: ``jaxslam tune mrclam --robots 1,2,3,4,5 --test-robots none`` (innovation NLL of the first
-#: 500 s of each of the five robots of dataset 6, 25 Adam steps at lr 0.1 from the hand-set
-#: preset ``mrclam_params(1, preset="hand")``; no ground truth in the loss).  Held-out figures
-#: of the same protocol, leaving each robot out in turn, are in docs/datasets.md.  The same
-#: values for every robot: nothing is fitted per robot or per log.
-MRCLAM_FITTED = {
-    "sigma_v": 0.019145173462632434,       # (m/s)·√s, odometry speed noise density
-    "sigma_w": 0.014749026410274545,      # (rad/s)·√s, odometry turn-rate noise density
-    "sigma_r": 0.042998877069353916,      # m, camera range
-    "sigma_b": 0.0060840249649226335,     # rad, camera bearing
-    "floor_xy": 0.00023077754547199983,   # m²/s, pose-noise floor density (x, y)
-    "floor_phi": 8.211613343114346e-05,  # rad²/s, pose-noise floor density (heading)
-    "range_model": (1.0, -0.42121578402091764),  # (k0, k2) of r_meas = r (k0 + k2 β²); k0 not fitted
-    "odometry_delay": 0.25,  # s, lag of the odometry stamps (mrclam_raw_log), chosen by the training NLL
-}
-
-
-def mrclam_params(robot: int = 1, sigma_v: float = 0.01, sigma_w: float = 0.02,
-                  floor=(1e-4, 1e-4, 1e-4), r_scale: float = 4.0, p0=(1e-6, 1e-6, 1e-6),
-                  calib_sigma=(0.1, 0.15, 0.01), calib_rw=(0.0, 0.0, 0.0),
-                  dtype=jnp.float64, corrected: bool = False, preset: str = "fitted") -> Params:
-    """MRCLAM dataset 6 preset (units: m, rad, s).
-
-    ``preset="fitted"`` (default, raw log): :data:`MRCLAM_FITTED`, learned from the innovations of
-    the five robots' logs, the same for every robot (``robot``, ``sigma_*``, ``floor`` and
-    ``r_scale`` are then not read).  ``preset="hand"``: the earlier hand-set values below,
-    kept as the fit's starting point and for comparison.
-
-    ``corrected=True``: for a log built by :func:`mrclam_log` with its corrections (camera
-    range model and odometry delay applied).  R = diag(σ_r², σ_β²)·r_scale with σ = ``MRCLAM_CORRECTED_SIGMA``
-    (1.4826·MAD of the corrected residuals on the first half of robot 1), the same for both
-    robots.  ``corrected=False`` (default): for the raw log, σ = 1.4826·MAD of the raw residuals against
-    ground truth (data README §5: robot 1 range MAD 0.053 m, bearing 0.0074 rad; robot 2
-    0.121 m, 0.0062 rad; full runs).  r_scale 4 chosen on robot 1 (×1 was worse: 0.23 m gated,
-    0.136 m ungated).  M_c = diag(σ_v², σ_ω²) [(m/s)²·s, (rad/s)²·s] and the pose floor
-    density are tuned on the first 300 s of robot 1 (scripts/study_mrclam_diagnostics.py; not in the
-    dataset paper).  P0 small: the run starts at the first ground-truth pose.  The ``calib_*``
-    values (read only with ``config.calibrate``) are not recommended for MRCLAM: online input
-    calibration converges near the GT-fitted turn scale/bias but raised the ATE
-    (scripts/study_mrclam_diagnostics.py).
-    """
-    if preset not in ("fitted", "hand"):
-        raise InputError(f"preset: expected 'fitted' or 'hand', got {preset!r}")
-    common = dict(P0=jnp.diag(jnp.asarray(p0, dtype)), calib0=jnp.asarray([1.0, 1.0, 0.0], dtype),
-                  calib_P0=jnp.diag(jnp.asarray(calib_sigma, dtype) ** 2),
-                  calib_Q=jnp.diag(jnp.asarray(calib_rw, dtype) ** 2))
-    if preset == "fitted" and not corrected:
-        f = MRCLAM_FITTED
-        return Params(
-            M_c=jnp.diag(jnp.asarray([f["sigma_v"] ** 2, f["sigma_w"] ** 2], dtype)),
-            Q_floor=jnp.diag(jnp.asarray([f["floor_xy"], f["floor_xy"], f["floor_phi"]], dtype)),
-            R=jnp.diag(jnp.asarray([f["sigma_r"] ** 2, f["sigma_b"] ** 2], dtype)),
-            range_model=jnp.asarray(f["range_model"], dtype), **common)
-    if corrected:
-        sr, sb = MRCLAM_CORRECTED_SIGMA
-    else:
-        sr, sb = mrclam_raw_sigma(robot)
-    return Params(
-        M_c=jnp.diag(jnp.asarray([sigma_v**2, sigma_w**2], dtype)),
-        Q_floor=jnp.diag(jnp.asarray(floor, dtype)),
-        R=jnp.diag(jnp.asarray([sr**2, sb**2], dtype)) * r_scale,
-        P0=jnp.diag(jnp.asarray(p0, dtype)),
-        calib0=jnp.asarray([1.0, 1.0, 0.0], dtype),
-        calib_P0=jnp.diag(jnp.asarray(calib_sigma, dtype) ** 2),
-        calib_Q=jnp.diag(jnp.asarray(calib_rw, dtype) ** 2),
-    )
-
-
-def mrclam_config(association: str = "known", capacity: Optional[int] = None, K: int = 8,
-                  update_gate: Optional[float] = None, robust: bool = True,
-                  monitor: bool = False, **kw) -> Config:
-    """MRCLAM: unicycle odometry, 15 landmarks, at most 7 rows per camera frame.
-
-    Capacity 16 with known ids; 32 with nn or jcbb (spurious new landmarks).  The update is
-    robust (Student-t, ν = ``params.robust_nu``) with no hard gate: with the hard χ²(2) 99 %
-    gate of earlier versions, robot 3 gated 3132 of its 4348 sightings after an over-confident
-    stretch and ended at 2.45 m; the Student-t update with the same (hand-set) noise: 0.188 m.
-    The NIS monitor (``monitor=True``) is off: measured, it did not rescue the hard gate and
-    made the robust filter worse on robots 3 and 5 (docs/datasets.md).  ``update_gate`` still
-    adds a hard gate if given.  The ``--calibrated`` log runs the same filter.
-    """
-    if capacity is None:
-        capacity = 16 if association == "known" else 32
-    return Config(motion="unicycle", capacity=capacity, K=K, association=association,
-                        update_gate=update_gate, robust=robust, monitor=monitor, **kw)
-
-
-def mrclam_raw_log(data, K: int = 8, t_end=None, odometry_delay: float = 0.0):
-    """Event log and start pose of one MRCLAM robot's raw log (:func:`mrclam_log` without the
-    ground-truth-fitted range correction), as ``jaxslam dataset mrclam`` and ``jaxslam tune
-    mrclam`` run it.  ``odometry_delay`` [s]: the odometry stamps' lag (``MRCLAM_FITTED`` holds
-    the value chosen by the innovation likelihood; 0 = the stamps as logged)."""
-    return mrclam_log(data, K=K, t_end=t_end, range_model=None, odometry_delay=float(odometry_delay))
-
-
-def mrclam_start_pose(data, log: EventLog):
-    """Ground-truth pose at the first event of ``log``, clamped into the ground-truth span."""
-    from .. import metrics
-
-    return metrics.interp_poses(np.clip(log.t[:1], data.gt_t[0], data.gt_t[-1]), data.gt_t, data.gt)[0]
-
-
-def mrclam_log(data, K: int = 8, t_end=None, range_model=MRCLAM_RANGE_MODEL,
-               odometry_delay: float = MRCLAM_ODOMETRY_DELAY):
-    """Event log and start pose of one MRCLAM robot (:class:`jaxslam.data.mrclam.MrclamData`).
-
-    Corrections (host side; ``None``/0 turns one off): ranges divided by ``k0 + k2 β²``
-    (``range_model``, see ``MRCLAM_RANGE_MODEL``); odometry stamps shifted by
-    ``odometry_delay`` [s] (``MRCLAM_ODOMETRY_DELAY``).  ``t_end`` defaults to the last
-    ground-truth time (robot 1 stops there).  The start pose is ground truth at the first
-    event (:func:`mrclam_start_pose`; the robot stands still before its first odometry row).
-    Returns ``(EventLog, pose0 (3,) float64)``; pair it with ``mrclam_params(corrected=True)``.
-    """
-    from ..data.events import merge_events
-
-    z = np.array(data.meas, np.float64)
-    if range_model is not None:
-        k0, k2 = (float(c) for c in range_model)
-        z[:, 0] = z[:, 0] / (k0 + k2 * z[:, 1] ** 2)
-    t_end = float(data.gt_t[-1]) if t_end is None else t_end
-    log = merge_events(np.asarray(data.odom_t, np.float64) + float(odometry_delay), data.odom,
-                       data.meas_t, z, data.meas_id, K=K, input_mode="rate", t_end=t_end)
-    return log, mrclam_start_pose(data, log)
-
-
-def victoria_park_params(sigma_v: float = 0.7, sigma_a: float = 0.06, floor=(0.0, 0.0, 0.0),
-                         sigma_r: float = 0.25, sigma_b: float = math.radians(0.375),
-                         p0=(1e-6, 1e-6, 1e-6), dtype=jnp.float64) -> Params:
-    """Victoria Park preset (units: m, rad, s); chosen on t < 500 s of the log only.
-
-    Sources: RFS-SLAM's ``cfg/*_VictoriaPark.xml`` gives speed variance 0.2 (m/s)², steering
-    0.025 rad² (per 40 Hz input, ×15 inflation) and R = diag(0.025 m², 2.5e-5 rad²) ×75
-    inflation (σ_r ≈ 1.37 m, σ_β ≈ 0.043 rad).  Input noise σ_v = 0.7 (m/s)·√s, σ_α = 0.06
-    rad·√s: a grid on t < 500 s (σ_v ∈ {0.3, 0.7}, σ_α ∈ {0.02, 0.06}; ATE vs GPS 1.58–1.74 m
-    across it, input noise ×1/4 was worse: 1.70 m there, 3.40 m whole run).  Range-bearing
-    noise σ_r = 0.25 m, σ_β = 0.375°: an R grid on t < 500 s with :func:`victoria_park_config`
-    (float32): (σ_r, σ_β) = (1 m, 1.5°) 1.67 m, (0.5, 0.75°) 1.59, (0.25, 0.375°) 1.43,
-    (0.177, 0.265°) 1.36, (0.125, 0.1875°) 1.32, (0.088, 0.133°) 1.30, (0.0625, 0.094°)
-    17.2 m (diverges).  The chosen value stays a factor 4 in variance away from that cliff
-    (the last 0.1 m of the grid is not worth the risk on unseen data).  Held-out part
-    (t ≥ 500 s) and whole run: see docs/datasets.md (the map then exceeds capacity 256 —
-    counted and flagged ``CAPACITY_OVERFLOW``; capacity 384 gives the same ATE without
-    overflow at about twice the run time).  The 1000–1100 s window (new ground, 8 m RMS at
-    R ×16) flips between ~2 and ~8 m under small changes of gate, new-landmark threshold, R,
-    a diameter filter or ``joint_gate``: fragile single-hypothesis association, not noise
-    tuning.  Start pose (0, 0, 0).
-    """
-    return Params(
-        M_c=jnp.diag(jnp.asarray([sigma_v**2, sigma_a**2], dtype)),
-        Q_floor=jnp.diag(jnp.asarray(floor, dtype)),
-        R=jnp.diag(jnp.asarray([sigma_r**2, sigma_b**2], dtype)),
-        P0=jnp.diag(jnp.asarray(p0, dtype)),
-    )
-
-
-def victoria_park_config(capacity: int = 256, K: int = 8, range_max: float = 40.0,
-                         prune_window_s: Optional[float] = 2.0, prune_min_obs: int = 4,
-                         **kw) -> Config:
-    """Victoria Park: Ackermann, nn association, range limits 5 m – ``range_max``, pruning.
-
-    RFS-SLAM limits range to 5–70 m; a tighter maximum keeps the far, poorly conditioned
-    detections (bearing error × range) out of both the map and the update (30 m was tried:
-    no better, 2.97 m vs 2.83 m whole-run ATE with the earlier R of 1 m / 1.5°).  Tentative
-    landmarks not matched 4 times within 2 s of registration are pruned (chosen on the first
-    500 s and the whole run, scripts/study_victoria_park_ekf.py; with R = 1 m / 1.5° the map
-    then kept 237 landmarks, 781 registered, 544 pruned, no overflow; with the preset's
-    tighter R it exceeds 256 slots: 407 registrations refused, counted and flagged).  K = 8
-    rows per scan, nearest first (t < 500 s: K 4 / 6 / 8 / 10 → 1.62 / 1.54 / 1.43 / 1.42 m).
-    Cost per measurement event is O(capacity²·K): capacity 256, K 8 runs the whole log in
-    6.4–10.9 s (median 8.6 s over 13 runs) after compile in float32 on the 2-core dev
-    machine (capacity 384 without pruning: 19.2 s; float32 vs float64 poses differ < 0.2 mm
-    over the first 300 s).
-    """
-    base = dict(motion="ackermann", capacity=capacity, K=K, association="nn",
-                range_min=5.0, range_max=range_max, prune_window_s=prune_window_s,
-                prune_min_obs=prune_min_obs)
-    base.update(kw)
-    return Config(**base)
-
-
-# ---------------------------------------------------------------------------
 # The run
 # ---------------------------------------------------------------------------
 
-def _limits(z, mask, config: Config):
+def _cast_thresholds(params: Params, dtype) -> Params:
+    """``params`` with its :data:`THRESHOLDS` as arrays of ``dtype`` (None stays None): a Python
+    number and an array of the same value then share one compiled program."""
+    return params._replace(**{f: None if getattr(params, f) is None else jnp.asarray(getattr(params, f), dtype)
+                              for f in THRESHOLDS})
+
+
+def _limits(z, mask, params: Params):
     finite = jnp.all(jnp.isfinite(z), axis=-1)
     zr = jnp.where(finite, z[:, 0], 0.0)
     zb = jnp.where(finite, z[:, 1], 0.0)
     ok = finite
-    if config.range_min is not None:
-        ok = ok & (zr >= config.range_min)
-    if config.range_max is not None:
-        ok = ok & (zr <= config.range_max)
-    if config.bearing_min is not None:
-        ok = ok & (zb >= config.bearing_min)
-    if config.bearing_max is not None:
-        ok = ok & (zb <= config.bearing_max)
+    if params.range_min is not None:
+        ok = ok & (zr >= params.range_min)
+    if params.range_max is not None:
+        ok = ok & (zr <= params.range_max)
+    if params.bearing_min is not None:
+        ok = ok & (zb >= params.bearing_min)
+    if params.bearing_max is not None:
+        ok = ok & (zb <= params.bearing_max)
     return mask & ok, mask & ~ok
 
 
@@ -589,14 +392,14 @@ def _t_nll(d2, logdet, nu, dz):
             - gammaln(0.5 * (nu + dz)) + 0.5 * dz * jnp.log(nu * jnp.pi))
 
 
-def _measure(st: es.SlamState, z, ids, valid, model, config: Config, R, nu):
+def _measure(st: es.SlamState, z, ids, valid, model, config: Config, R, nu, thr: Params):
     K = z.shape[0]
     dz = model.meas_dim
     zs = jnp.where(valid[:, None], z, 0.0)
     robust = nu if config.robust else None
     if config.association == "known":
         slots, mapped = es.associate_known(st, ids, valid)
-        st, info = es.update(st, model, zs, slots, mapped, R, None, gate=config.update_gate, robust=robust,
+        st, info = es.update(st, model, zs, slots, mapped, R, None, gate=thr.update_gate, robust=robust,
                                row_stats=True)
         cand = valid & ~mapped
         new = _first_of_id(ids, cand)
@@ -605,18 +408,18 @@ def _measure(st: es.SlamState, z, ids, valid, model, config: Config, R, nu):
         watched = mapped
     else:
         if config.association == "jcbb":
-            jc = assoc.jcbb(st, model, zs, valid, R, None, gate=config.gate,
+            jc = assoc.jcbb(st, model, zs, valid, R, None, gate=thr.gate,
                             thresholds=_chi2_table(config.joint_gate or 0.99, K, 2),
                             n_cand=config.jcbb_cand, budget=config.jcbb_budget)
             slots, matched = jnp.maximum(jc.slots, 0), jc.paired
-            new = valid & ~matched & (jc.d2 > config.new_threshold)
+            new = valid & ~matched & (jc.d2 > thr.new_threshold)
         else:
-            slots, matched, new, _ = es.associate_nn(st, model, zs, valid, R, None, gate=config.gate,
-                                                     new_threshold=config.new_threshold)
+            slots, matched, new, _ = es.associate_nn(st, model, zs, valid, R, None, gate=thr.gate,
+                                                     new_threshold=thr.new_threshold)
             if config.joint_gate is not None:
                 matched, _, _ = es.joint_compatibility(st, model, zs, slots, matched, R, None,
                                                        _chi2_table(config.joint_gate, K, 2))
-        st, info = es.update(st, model, zs, slots, matched, R, None, gate=config.update_gate, robust=robust,
+        st, info = es.update(st, model, zs, slots, matched, R, None, gate=thr.update_gate, robust=robust,
                                row_stats=True)
         # ambiguous (between the gates) or losing a landmark to a closer measurement
         rejected = jnp.sum(valid & ~matched & ~new).astype(jnp.int32)
@@ -643,8 +446,8 @@ def _measure(st: es.SlamState, z, ids, valid, model, config: Config, R, nu):
     return st, counts, info.nis, info.dof.astype(jnp.int32), slots, info.used, info.d2, watched, nll, nll_dof
 
 
-def _prune(st: es.SlamState, aux, active_before, slots, used, model, config: Config):
-    """Tentative-landmark bookkeeping and pruning after one event (``config.prune_window_s``).
+def _prune(st: es.SlamState, aux, active_before, slots, used, model, thr: Params):
+    """Tentative-landmark bookkeeping and pruning after one event (``params.prune_window_s``).
 
     aux = (t, reg_t (cap,), n_match (cap,), confirmed (cap,)).  Slots registered in this
     event start their window at t; matched slots count one more match.  A tentative slot
@@ -659,8 +462,8 @@ def _prune(st: es.SlamState, aux, active_before, slots, used, model, config: Con
     n_match = jnp.where(new, 0, n_match)
     confirmed = confirmed & ~new
     n_match = n_match.at[slots].add(used.astype(jnp.int32))
-    due = st.active & ~confirmed & (t - reg_t > config.prune_window_s)
-    drop = due & (n_match < int(config.prune_min_obs))
+    due = st.active & ~confirmed & (t - reg_t > thr.prune_window_s)
+    drop = due & (n_match < thr.prune_min_obs)
     confirmed = confirmed | (due & ~drop)
 
     def remove(st_):
@@ -710,7 +513,7 @@ class State(NamedTuple):
 
     slam: the EKF-SLAM posterior (:class:`~jaxslam.filters.ekf_slam.SlamState`);
     t: () s since the first event; reg_t, n_match, confirmed: (cap,) tentative-landmark
-    bookkeeping (registration time, matches, confirmed; ``config.prune_window_s``);
+    bookkeeping (registration time, matches, confirmed; ``params.prune_window_s``);
     monitor: the NIS monitor (:mod:`jaxslam.filters.consistency`).
     """
 
@@ -815,7 +618,8 @@ def step(state: State, event: Event, config: Config, params: Params, *, key=None
     M = planar.step_input_cov(M_c, dt_k, config.input_mode)
     Q = planar.input_noise_cov(f, s, u_k, dt_k, M) + Q_add * dt_k
     st = es.predict(st, model, u_k, Q, dt_k)
-    valid, limited = _limits(z_k, m_k, config)
+    thr = _cast_thresholds(params, dtype)
+    valid, limited = _limits(z_k, m_k, thr)
     if config.association == "known":
         # a row without a log id cannot be associated by id: masked and counted
         limited = limited | (valid & (id_k < 0))
@@ -827,7 +631,7 @@ def step(state: State, event: Event, config: Config, params: Params, *, key=None
     zk, idk, vk, dropped = _select_k(z_k, id_k, valid, K)
 
     def with_meas(st_):
-        return _measure(st_, zk, idk, vk, model, config, R, nu)
+        return _measure(st_, zk, idk, vk, model, config, R, nu, thr)
 
     def without(st_):
         zi, zb = jnp.zeros((), jnp.int32), jnp.zeros((K,), bool)
@@ -850,8 +654,8 @@ def step(state: State, event: Event, config: Config, params: Params, *, key=None
     n_out = cons.outliers(d2_k, watched, mon_p)
     t_k = state.t + dt_k
     aux = (t_k, state.reg_t, state.n_match, state.confirmed)
-    if config.prune_window_s is not None:
-        st, aux, n_pr = _prune(st, aux, active_before, slots_k, used_k, model, config)
+    if thr.prune_window_s is not None:
+        st, aux, n_pr = _prune(st, aux, active_before, slots_k, used_k, model, thr)
     else:
         n_pr = jnp.zeros((), jnp.int32)
     cal = st.x[3:6] if config.calibrate else jnp.asarray([1.0, 1.0, 0.0], dtype)
@@ -875,7 +679,7 @@ def run(log: Log, config: Config, params: Params, *, key=None) -> Result:
         validate_params(params)
     if is_concrete(log):
         validate_log(log)
-    return _run(log, config, params)
+    return _run(log, config, _cast_thresholds(params, jnp.asarray(log.pose0).dtype))
 
 
 @functools.partial(jax.jit, static_argnums=1)
@@ -968,6 +772,8 @@ def params_from_dict(d: dict, base: Params, dtype=np.float64, where: str = "para
     """``base`` with the entries of ``d`` (a :func:`params_to_dict` dict, possibly partial).
 
     Unknown keys are an :class:`InputError` naming them; a matrix may be given as its diagonal.
+    Keys absent from ``d`` keep ``base``'s value (a file written before the thresholds were
+    :class:`Params` fields loads unchanged); an optional threshold given as null is off.
     """
     if not isinstance(d, dict):
         raise InputError(f"{where}: expected an object, got {type(d).__name__}")
@@ -984,6 +790,9 @@ def params_from_dict(d: dict, base: Params, dtype=np.float64, where: str = "para
             cur = (MONITOR_DEFAULT if vals["monitor"] is None else vals["monitor"])._asdict()
             cur.update({f: float(x) for f, x in v.items()})
             vals[k] = cons.MonitorParams(**cur)
+            continue
+        if v is None and k in THRESHOLDS:  # an optional threshold switched off (JSON null)
+            vals[k] = None
             continue
         try:
             a = np.asarray(v, np.float64)
@@ -1002,8 +811,7 @@ def config_to_dict(config: Config) -> dict:
     return out
 
 
-__all__ += ["params_to_dict", "params_from_dict", "config_to_dict", "MONITOR_DEFAULT", "mrclam_raw_log",
-            "mrclam_start_pose", "MRCLAM_FITTED"]
+__all__ += ["params_to_dict", "params_from_dict", "config_to_dict", "MONITOR_DEFAULT", "THRESHOLDS"]
 
 
 # ---------------------------------------------------------------------------
@@ -1011,7 +819,7 @@ __all__ += ["params_to_dict", "params_from_dict", "config_to_dict", "MONITOR_DEF
 # ---------------------------------------------------------------------------
 
 def validate_config(config: Config) -> Config:
-    """Known motion/association/input mode; positive capacity, K and gates."""
+    """Known motion/association/input mode; positive capacity, K and search sizes."""
     if config.motion not in MOTIONS:
         raise InputError(f"config.motion: expected one of {MOTIONS}, got {config.motion!r}")
     if config.association not in ASSOCIATIONS:
@@ -1020,23 +828,19 @@ def validate_config(config: Config) -> Config:
         raise InputError(f"config.input_mode: expected 'rate' or 'increment', got {config.input_mode!r}")
     if int(config.capacity) < 1 or int(config.K) < 1:
         raise InputError(f"config.capacity and config.K must be >= 1, got {config.capacity}, {config.K}")
-    if not (0 < config.gate <= config.new_threshold):
-        raise InputError(f"config.gate/new_threshold: need 0 < gate <= new_threshold, got "
-                         f"{config.gate}, {config.new_threshold}")
     if config.association == "jcbb" and not (int(config.jcbb_cand) >= 1 and int(config.jcbb_budget) >= 1):
         raise InputError(f"config.jcbb_cand/jcbb_budget: need >= 1, got {config.jcbb_cand}, {config.jcbb_budget}")
     if int(config.block) < 0:
         raise InputError(f"config.block: need >= 0, got {config.block}")
     if config.joint_gate is not None and not (0.0 < config.joint_gate < 1.0):
         raise InputError(f"config.joint_gate: need a probability in (0, 1), got {config.joint_gate}")
-    if config.prune_window_s is not None and not (config.prune_window_s > 0 and int(config.prune_min_obs) >= 1):
-        raise InputError(f"config.prune_window_s/prune_min_obs: need > 0 and >= 1, got "
-                         f"{config.prune_window_s}, {config.prune_min_obs}")
     return config
 
 
 def validate_params(params: Params) -> Params:
-    """Shapes (M_c (2,2), Q_floor (3,3), R (2,2), P0 (3,3)); PSD, R positive definite."""
+    """Shapes (M_c (2,2), Q_floor (3,3), R (2,2), P0 (3,3)); PSD, R positive definite; the
+    thresholds scalars (not NaN) with 0 < gate ≤ new_threshold and, with pruning, a positive
+    window and prune_min_obs ≥ 1."""
     for name, shp in (("M_c", (2, 2)), ("Q_floor", (3, 3)), ("R", (2, 2)), ("P0", (3, 3)),
                       ("calib0", (3,)), ("calib_P0", (3, 3)), ("calib_Q", (3, 3))):
         if getattr(params, name) is None and name.startswith("calib"):
@@ -1062,6 +866,24 @@ def validate_params(params: Params) -> Params:
         v = np.asarray(params.robust_nu, np.float64)
         if v.shape != () or not np.isfinite(v) or v <= 0:
             raise InputError(f"params.robust_nu: expected a positive number, got {v!r}")
+    thr = {}
+    for f in THRESHOLDS:
+        v = getattr(params, f)
+        if v is None:
+            continue
+        a = np.asarray(v, np.float64)
+        if a.shape != () or np.isnan(a):
+            raise InputError(f"params.{f}: expected a number, got {v!r}")
+        thr[f] = float(a)
+    for f in ("gate", "new_threshold"):
+        if f not in thr:
+            raise InputError(f"params.{f}: expected a number, got None")
+    if not (0 < thr["gate"] <= thr["new_threshold"]):
+        raise InputError(f"params.gate/new_threshold: need 0 < gate <= new_threshold, got "
+                         f"{thr['gate']}, {thr['new_threshold']}")
+    if "prune_window_s" in thr and not (thr["prune_window_s"] > 0 and thr.get("prune_min_obs", 0.0) >= 1):
+        raise InputError(f"params.prune_window_s/prune_min_obs: need > 0 and >= 1, got "
+                         f"{thr['prune_window_s']}, {thr['prune_min_obs']}")
     if params.monitor is not None:
         m = cons.MonitorParams(*(np.asarray(v, np.float64) for v in params.monitor))
         if not (0 < m.alpha <= 1 and m.threshold > 1 and m.max_factor >= 1 and m.outlier_gate > 0):

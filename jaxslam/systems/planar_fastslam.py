@@ -19,7 +19,8 @@ A whole log is one jitted ``lax.scan`` over the events of an
    Ackermann model would not survive; to first order the two are the same.
 2. Only on events with a measurement (``lax.cond``; on the CPU an always-on update costs
    the update on every odometry event): **associate**, **update** the landmark EKFs and
-   weights (:func:`fastslam.observe_update`), and **resample** when ``N_eff < threshold·N``
+   weights (:func:`fastslam.observe_update`), and **resample** when
+   ``N_eff < params.resample_threshold·N``
    (:func:`fastslam.maybe_resample`).
 
 Data association (``Config.association``):
@@ -31,7 +32,7 @@ Data association (``Config.association``):
   unknown association).  Each particle compares each detection of the event with every
   landmark of *its own* map by the Mahalanobis distance ``d² = νᵀ S⁻¹ ν``,
   ``S = H Σ Hᵀ + R`` (the same S as the landmark update), against the map as it was before
-  the event: ``d²_min ≤ gate`` → that landmark; ``d²_min > new_threshold`` (or an empty map)
+  the event: ``d²_min ≤ params.gate`` → that landmark; ``d²_min > params.new_threshold`` (or an empty map)
   → a new landmark with the next id of the particle's own counter; in between → ignored
   (counted in ``gated``).  Ids are the particle's registration order, so id j lives in slot
   j (the core's ``slot_by_id``).  The per-particle ids go into the core by ``vmap``-ing
@@ -47,13 +48,15 @@ the number of observations (Victoria Park's tree detector has false positives; n
 is ever deleted here).
 
 Results are pure functions of ``(key, log, pose0, config, params)``; ``config`` is static
-(hashable), ``params`` traced (float32 or float64 follows ``pose0``'s dtype).
+(hashable: sizes and switches), ``params`` traced — the noise and the thresholds (gate,
+new-landmark threshold, resampling threshold), so a new value never recompiles (float32 or
+float64 follows ``pose0``'s dtype).  The dataset settings (MRCLAM, Victoria Park) are in
+:mod:`jaxslam.data.presets`.
 """
 
 from __future__ import annotations
 
 import functools
-import math
 from typing import Any, NamedTuple, Optional
 
 import jax
@@ -81,8 +84,7 @@ __all__ = [
     "step",
     "log_from_events",
     "default_params",
-    "mrclam_setup",
-    "victoria_park_setup",
+    "THRESHOLDS",
     "motion_fn",
     "associate_ml",
     "run",
@@ -102,7 +104,8 @@ _ASSOC = ("known", "ml")
 
 
 class Config(NamedTuple):
-    """Static choices (hashable; a change recompiles).
+    """Static choices (hashable; a change recompiles): sizes, counts and switches (the gate,
+    new-landmark and resampling thresholds are :class:`Params` fields).
 
     motion: "unicycle" (u = (v, ω) held rates, MRCLAM) | "ackermann" (u = (v_e, α) held,
         Victoria Park, ``geometry``) | "increment" (u = (d, dθ) per input event).
@@ -110,11 +113,6 @@ class Config(NamedTuple):
     capacity: landmark slots per particle.
     K: measurement rows per event the run expects (must equal the log's K).
     association: "known" | "ml" (module docstring).
-    gate: chi-square threshold on d² (2 dof).  "ml": association gate (default 9.21, 99 %).
-        "known": the core's NIS gate (None = no gate).
-    new_threshold: "ml" only: d²_min above which a detection starts a new landmark
-        (default 13.8, 99.9 %); must be ≥ gate.
-    resample_threshold: resample when N_eff < threshold·N; None resamples at every update.
     weights: the core's weights, "exact" (log N(ν; 0, S)) or "mean" (log N(ν; 0, R)).
     slot_by_id: "known" only: id j in slot j (default); False = first free slot.
     geometry: Ackermann geometry (``planar.VICTORIA_PARK``).
@@ -125,16 +123,15 @@ class Config(NamedTuple):
     capacity: int = 32
     K: int = 1
     association: str = "known"
-    gate: Optional[float] = None
-    new_threshold: float = 13.8
-    resample_threshold: Optional[float] = 0.5
     weights: str = "exact"
     slot_by_id: bool = True
     geometry: planar.AckermannGeometry = planar.VICTORIA_PARK
 
 
 class Params(NamedTuple):
-    """Traced numbers (differentiable leaves).
+    """Traced numbers (differentiable leaves): the noise, then the thresholds (:data:`THRESHOLDS`;
+    an optional one is off at None, and None ↔ a number changes the pytree — a switch that
+    traces once more; a new number does not).
 
     M_c: (2, 2) input-noise density [(m/s)²·s, (rad/s)²·s] for held rates (for
         "ackermann": speed (m/s)²·s, steering rad²·s); per-increment covariance for
@@ -144,6 +141,12 @@ class Params(NamedTuple):
     R: (2, 2) range-bearing measurement covariance [m², rad²].
     P0: (3, 3) covariance of the initial particle cloud around ``pose0``.
     log_p_new: () log-likelihood charged per new landmark ("ml"; 0 = core convention).
+    gate: () optional chi-square threshold on d² (2 dof).  "ml": the association gate (None:
+        9.21, 99 %).  "known": the core's NIS gate (default None: no gate).
+    new_threshold: () "ml" only: d²_min above which a detection starts a new landmark
+        (default 13.8, 99.9 %); must be ≥ the gate.
+    resample_threshold: () resample when N_eff < threshold·N (default 0.5); None resamples at
+        every update.
     """
 
     M_c: Array
@@ -151,6 +154,13 @@ class Params(NamedTuple):
     R: Array
     P0: Array
     log_p_new: Array
+    gate: Optional[Array] = None
+    new_threshold: Array = 13.8
+    resample_threshold: Optional[Array] = 0.5
+
+
+#: The :class:`Params` fields that are thresholds (scalars; the rest is noise).
+THRESHOLDS = ("gate", "new_threshold", "resample_threshold")
 
 
 class Result(NamedTuple):
@@ -204,53 +214,30 @@ def default_params(sigma_r: float = 0.1, sigma_b: float = 0.01, sigma_v: float =
     )
 
 
-def mrclam_setup(robot: int = 1, n_particles: int = 100, association: str = "known", K: int = 8,
-                 dtype=None):
-    """(Config, Params) for UTIAS MRCLAM (dataset 6 figures in docs/datasets.md).
-
-    The same for every robot (``robot`` is not read: nothing is set per robot, the command also
-    runs on MRCLAM robots this project has not seen).  Known ids use ``slot_by_id``: the caller
-    maps subjects 6–20 to ids 0–14 (capacity 15), with the core's per-particle χ²(2) 99.9 %
-    gate (13.82) — without one, a single wrong range (a camera false positive, a 500 m
-    reading) moves that landmark in every particle; hidden ids ("ml") get capacity 32.
-    R = diag(σ_r², σ_β²) with σ = 1.4826·MAD of robot 2's landmark residuals (data README §5),
-    the larger of the two robots' spreads; input-noise densities σ_v = 0.03 m/s·√s,
-    σ_ω = 0.05 rad/s·√s and pose floor 1e-4 per s, chosen on robot 1's first 300 s (a sweep
-    over R ×1–16, Q ×1–4 and floors 1e-5–1e-3 changed the median ATE by less than the spread
-    between seeds there).
-    """
-    from .planar_ekf_slam import mrclam_raw_sigma
-
-    del robot  # one setting for every robot
-    cap = 15 if association == "known" else 32
-    cfg = Config(motion="unicycle", n_particles=int(n_particles), capacity=cap, K=int(K),
-                 association=association, gate=13.82 if association == "known" else None)
-    sr, sb = mrclam_raw_sigma(2)
-    prm = default_params(sigma_r=sr, sigma_b=sb,
-                         sigma_v=0.03, sigma_w=0.05, floor=(1e-4,) * 3, pose0_sigma=(1e-3, 1e-3, 1e-3),
-                         dtype=dtype)
-    return cfg, prm
-
-
-def victoria_park_setup(n_particles: int = 50, capacity: int = 768, K: int = 17, dtype=None):
-    """(Config, Params) for Victoria Park with per-particle ML association.
-
-    Noise σ_v 0.7 m/s·√s, σ_α 0.06 rad·√s, σ_r 1 m, σ_β 1.5°: the EKF's first grid on the
-    first 500 s (the EKF preset's later, tighter R was not tried with FastSLAM), gate χ²(2) 99 % = 9.21, new-landmark threshold 13.8 (99.9 %); detections
-    limited to 5–40 m by the caller (K = 17 is the most such detections in one scan).
-    """
-    cfg = Config(motion="ackermann", n_particles=int(n_particles), capacity=int(capacity), K=int(K),
-                 association="ml", gate=9.21, new_threshold=13.8)
-    prm = default_params(sigma_r=1.0, sigma_b=math.radians(1.5), sigma_v=0.7, sigma_w=0.06,
-                         floor=(0.0, 0.0, 0.0), pose0_sigma=(1e-3, 1e-3, 1e-3), dtype=dtype)
-    return cfg, prm
-
-
 def motion_fn(config: Config):
     """The motion model ``f(s, u, dt)`` of ``config.motion``."""
     if config.motion not in _MOTIONS:
         raise InputError(f"config.motion: expected one of {_MOTIONS}, got {config.motion!r}")
     return planar.motion_model(config.motion, config.geometry)
+
+
+def _validate_params(params: Params, config: Config):
+    """Concrete thresholds: numbers (not NaN), new_threshold ≥ the gate ("ml")."""
+    thr = {}
+    for f in THRESHOLDS:
+        v = getattr(params, f)
+        if v is None:
+            continue
+        a = np.asarray(v, np.float64)
+        if a.shape != () or np.isnan(a):
+            raise InputError(f"params.{f}: expected a number, got {v!r}")
+        thr[f] = float(a)
+    if "new_threshold" not in thr:
+        raise InputError("params.new_threshold: expected a number, got None")
+    if config.association == "ml":
+        g = thr.get("gate", 9.21)
+        if thr["new_threshold"] < g:
+            raise InputError(f"params.new_threshold ({thr['new_threshold']}) must be >= gate ({g})")
 
 
 def _validate(config: Config):
@@ -260,10 +247,6 @@ def _validate(config: Config):
         raise InputError(f"config.association: expected one of {_ASSOC}, got {config.association!r}")
     if int(config.n_particles) < 1 or int(config.capacity) < 1 or int(config.K) < 1:
         raise InputError("config: n_particles, capacity and K must be >= 1")
-    if config.association == "ml":
-        g = 9.21 if config.gate is None else float(config.gate)
-        if float(config.new_threshold) < g:
-            raise InputError(f"config.new_threshold ({config.new_threshold}) must be >= gate ({g})")
 
 
 # ---------------------------------------------------------------------------
@@ -438,9 +421,9 @@ def step(state: State, event: Event, config: Config, params: Params, *, key):
     L_M = jnp.linalg.cholesky(params.M_c + 1e-12 * eye2)
     floor = jnp.maximum(params.pose_floor, jnp.zeros((), dtype))
     R = params.R
-    gate_ml = jnp.asarray(9.21 if config.gate is None else config.gate, dtype)
-    new_thr = jnp.asarray(config.new_threshold, dtype)
-    thr = config.resample_threshold
+    gate_ml = jnp.asarray(9.21 if params.gate is None else params.gate, dtype)
+    new_thr = jnp.asarray(params.new_threshold, dtype)
+    thr = params.resample_threshold
     zero_i = jnp.zeros((), jnp.int32)
 
     def update(p, k_res, z, ids, mask):
@@ -456,7 +439,7 @@ def step(state: State, event: Event, config: Config, params: Params, *, key):
             gated = amb
         else:
             p, info = fs.observe_update(p, MODEL, z, ids, mask, R, None, weights=config.weights,
-                                        gate=config.gate, slot_by_id=config.slot_by_id)
+                                        gate=params.gate, slot_by_id=config.slot_by_id)
             pids = jnp.broadcast_to(ids, (N, ids.shape[0]))
             used, reg, gated = info.used, info.registered, info.gated
             log_marg = info.log_marginal
@@ -506,6 +489,8 @@ def run(log: Log, config: Config, params: Params, *, key) -> Result:
     if key is None:
         raise InputError("key: planar FastSLAM draws particles; give a PRNG key")
     _validate(config)
+    if is_concrete(params):
+        _validate_params(params, config)
     _validate_log(log, config)
     pose0 = jnp.asarray(log.pose0)
     dtype = pose0.dtype if jnp.issubdtype(pose0.dtype, jnp.floating) else jnp.result_type(float)

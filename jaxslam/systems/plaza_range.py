@@ -44,8 +44,8 @@ Plaza 2, which one common b cannot absorb).  Position: raw RMS 1.21
 *Delayed beacon initialisation* (paper 003's idea, issue 6's buffer): while a
 beacon is unmapped, each of its ranges is stored with the current position
 estimate and that position's variance in a per-beacon ring buffer (W rows).
-Once ≥ ``min_points`` rows are stored and the buffered positions spread
-≥ ``min_spread`` m in their weakest direction (:func:`trilateration.point_spread`),
+Once ≥ ``params.min_points`` rows are stored and the buffered positions spread
+≥ ``params.min_spread`` m in their weakest direction (:func:`trilateration.point_spread`),
 the beacon is trilaterated from the ranges minus the current bias estimate,
 refitted once without the rows whose residual exceeds max(3·1.4826·MAD, 1 m)
 (the outliers) (:func:`jaxslam.filters.delayed_init.from_buffer`, robust, eq. D1),
@@ -105,7 +105,18 @@ MODEL = es.SlamModel(robot_dim=NR, lm_dim=2, meas_dim=1, motion=odo_motion, obse
 
 
 class Params(NamedTuple):
-    """Plaza filter noise (module docstring for values and sources)."""
+    """Plaza filter noise and thresholds (module docstring for values and sources); every field is
+    traced, so a new value never recompiles.
+
+    sigma_r [m]; alpha_d, alpha_th [-], beta_th [rad/m], sigma_d0 [m/√s], sigma_th0 [rad/√s]:
+    odometry noise (ODO); q_bias [m²/s]; bias0, sigma_bias0 [m]: bias prior; p0_pos [m],
+    p0_th [rad]: initial pose standard deviations.
+    gate: χ²(1) threshold per range (default 6.63, 99 %; None: off — None ↔ a number changes the
+    pytree, a switch that traces once more; another number does not).
+    min_points: buffered rows a beacon needs before its delayed initialisation (default 20; a
+    count, only compared).  min_spread: weakest-direction spread of those rows' positions [m]
+    (default 5.0).  Both unused with surveyed beacons.
+    """
 
     sigma_r: float = 1.2
     alpha_d: float = 0.05
@@ -118,27 +129,27 @@ class Params(NamedTuple):
     sigma_bias0: float = 5.0
     p0_pos: float = 0.1
     p0_th: float = 0.02
+    gate: Optional[float] = 6.63
+    min_points: float = 20.0
+    min_spread: float = 5.0
 
 
 PARAMS = Params()
 
 
 class Config(NamedTuple):
-    """Static choices (hashable; a change recompiles).
+    """Static choices (hashable; a change recompiles): sizes and switches.
 
-    gate: χ²(1) threshold per range (None: off).  window, min_points, min_spread: delayed
-    initialisation (ring-buffer rows per beacon, rows needed, weakest-direction spread [m];
-    unused with surveyed beacons).  capacity: beacon slots (None: the number of beacons).
+    window: delayed-initialisation ring-buffer rows per beacon (a shape; unused with surveyed
+    beacons; the gate and the initialisation thresholds are :class:`Params` fields).
+    capacity: beacon slots (None: the number of beacons).
     smooth: also return the RTS-smoothed robot states [x, y, θ, b] (``Result.smoothed``;
     beacons held static, a beacon counts from its initialisation on).  delayed: run the delayed
     initialisation in :func:`step` (None: when the log has no surveyed beacons; with them every
     beacon is mapped from the start and the step skips it statically).
     """
 
-    gate: Optional[float] = 6.63
     window: int = 60
-    min_points: int = 20
-    min_spread: float = 5.0
     capacity: Optional[int] = None
     smooth: bool = False
     delayed: Optional[bool] = None
@@ -281,7 +292,7 @@ def step(state: State, event: Event, config: Config, params: Params, *, key=None
     st = es.predict(st, MODEL, event.u, Q)
     slots, mapped = es.associate_known(st, event.ids, event.mask)
     R = jnp.reshape(p.sigma_r**2, (1, 1))
-    st, info = es.update(st, MODEL, event.z, slots, mapped, R, gate=config.gate)
+    st, info = es.update(st, MODEL, event.z, slots, mapped, R, gate=p.gate)
     # buffer ranges of unmapped beacons with the current position estimate
     s = st.x[:NR]
     pv = 0.5 * (st.P[0, 0] + st.P[1, 1])
@@ -310,7 +321,7 @@ def step(state: State, event: Event, config: Config, params: Params, *, key=None
 
         def fit(bias_):  # (D1), robust, on the bias-corrected ranges
             return delayed_init.from_buffer(buf.pos[j], buf.pos_var[j], buf.rng[j] - bias_, valid,
-                                            p.sigma_r**2, int(config.min_points), float(config.min_spread),
+                                            p.sigma_r**2, p.min_points, p.min_spread,
                                             robust=True)
 
         r, Pl = fit(bias)
@@ -349,8 +360,7 @@ def run(log: Log, config: Config = Config(), params: Params = PARAMS, *, key=Non
     if log.beacons is not None and np.shape(log.beacons) != (N, 2):
         raise InputError(f"log.beacons: expected shape ({N}, 2), got {np.shape(log.beacons)}")
     dtype = jnp.asarray(log.z).dtype
-    config = config._replace(capacity=cap, window=int(config.window), min_points=int(config.min_points),
-                             min_spread=float(config.min_spread), smooth=bool(config.smooth),
+    config = config._replace(capacity=cap, window=int(config.window), smooth=bool(config.smooth),
                              delayed=log.beacons is None if config.delayed is None else bool(config.delayed))
     return _run(log, config, _cast_params(params, dtype))
 

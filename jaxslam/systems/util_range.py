@@ -17,7 +17,7 @@ p is the **UWB tag position** (not the Vicon body origin; the evaluation
 compares it with p_body + R(q) t_uv).  Noise (``PARAMS``): σ_r = 0.2 m
 (data README: 0.18 m overall about the median, per anchor 0.06–0.29 m, heavy
 line-of-sight tails that the gate removes); q_a = 0.5 m²/s³; q_b = 1e-5 m²/s
-(a nearly constant bias); gate χ²(1) = 9 (3σ).  σ_r and q_a were picked from a
+(a nearly constant bias); gate χ²(1) = 9 (3σ, ``Params.gate``).  σ_r and q_a were picked from a
 3 × 3 grid (σ_r 0.1/0.15/0.25, q_a 0.5/2/8, gate 4/9) **on this flight itself**
 (the only TWR log; in-sample): airborne RMSE 0.22–0.29 m over the whole grid,
 so the choice matters little.  Measured limit: a robust per-window least
@@ -145,11 +145,13 @@ MODEL = es.SlamModel(robot_dim=NR, lm_dim=3, meas_dim=1, motion=cv_motion, obser
 
 
 class Params(NamedTuple):
-    """UTIL filter noise (floats or traced scalars; module docstring for sources).
+    """UTIL filter noise and gate (floats or traced scalars; module docstring for sources).
 
     sigma_r [m]; q_acc [m²/s³]; q_bias [m²/s]; p0_pos, p0_vel [m, m/s], p0_bias [m]:
     initial standard deviations (known-anchor mode).  sigma_h [m], tof_offset [m]: the
     optional ToF height update (H1) — used only when the log holds height rows.
+    gate: χ²(1) threshold per range and per height row (default 9.0; None: off — None ↔ a
+    number changes the pytree, a switch that traces once more; another number does not).
     """
 
     sigma_r: float = 0.2
@@ -160,23 +162,24 @@ class Params(NamedTuple):
     p0_bias: float = 0.5
     sigma_h: float = 0.02
     tof_offset: float = -0.014
+    gate: Optional[float] = 9.0
 
 
 PARAMS = Params()
 
 
 class Config(NamedTuple):
-    """Static choices (hashable; a change recompiles).
+    """Static choices (hashable; a change recompiles): sizes and switches (the gate is
+    :attr:`Params.gate`, traced).
 
-    gate: χ²(1) threshold per range and per height row (None: off).  n_fix: range rows of the
-    initial fix (known anchors; the first ``n_fix`` range rows, the drone at rest).
+    n_fix: range rows of the initial fix (known anchors; the first ``n_fix`` range rows, the
+    drone at rest; static: it sizes the fix's arrays).
     capacity: anchor slots (None: the number of anchors).  height: the log holds ToF height
     rows to fuse (H1); None: read it from the log (which must then be concrete, not traced).
     smooth: also return the RTS-smoothed tag states (``Result.smoothed``; the anchors held
     static).
     """
 
-    gate: Optional[float] = 9.0
     n_fix: int = 16
     capacity: Optional[int] = None
     height: Optional[bool] = None
@@ -461,7 +464,7 @@ def step(state: State, event: Event, config: Config, params: Params, *, key=None
     on its χ²(1) NIS), then the height rows (H1) when ``config.height``.  ``(state, StepOut)``."""
     del key
     st = state
-    gate = config.gate
+    gate = params.gate
     height = bool(config.height)
     Q = cv_process_noise(event.dt, params.q_acc, params.q_bias, st.x.dtype)
     st = es.predict(st, MODEL, None, Q, event.dt)

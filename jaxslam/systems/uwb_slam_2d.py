@@ -5,7 +5,7 @@ the tabled Q and R, the trilateration start-up and the localisation mode, and
 plugs them into :mod:`jaxslam.filters.ekf_slam` (``init``/``predict``/
 ``update``/``add_landmark``).  It is not a filter of its own.
 
-Interface (every system's): :class:`Config` (static), :class:`Params` (traced noise),
+Interface (every system's): :class:`Config` (static), :class:`Params` (traced noise and thresholds),
 :class:`Log` (one flight; ``anchors`` known in localisation mode, None for SLAM),
 :class:`Event` (one step's slice), :class:`State`, :class:`StepOut`, :class:`Result`;
 :func:`init`, :func:`step`, and :func:`run` (host-side checks, then one jitted
@@ -64,8 +64,8 @@ Equations (paper 003; errata in docs/papers.md):
   ``buffer_stride`` steps); an anchor not yet mapped is trilaterated from the
   buffer (:func:`jaxslam.filters.trilateration.trilaterate`, the general
   multi-point least-squares initialiser) once the buffered poses spread at
-  least ``min_spread`` metres in their weakest direction and at least
-  ``delayed_min_points`` ranges are valid.  Collinear poses therefore never
+  least ``params.min_spread`` metres in their weakest direction and at least
+  ``params.delayed_min_points`` ranges are valid.  Collinear poses therefore never
   produce a garbage landmark: the anchor stays unmapped and the step's
   ``pending`` flag says so.  Its covariance is the LS covariance (from σ²)
   plus the mean robot position variance of the buffered poses on both axes;
@@ -131,6 +131,7 @@ __all__ = [
     "PAPER_R_GYRO",
     "Config",
     "Params",
+    "NOISE_FIELDS",
     "Log",
     "Event",
     "StartupResult",
@@ -173,27 +174,24 @@ PAPER_R_GYRO = 0.01  # (rad/s)², Sec. IV
 
 
 class Config(NamedTuple):
-    """Static choices (hashable; a change recompiles).
+    """Static choices (hashable; a change recompiles): sizes, indices and switches.
 
     model: "squared" (eq. 17, paper) or "range" (eq. 16).
     mode: "slam" (anchors unknown, trilateration start-up) or "localization" (known anchors).
     dt: filter step Δt [s] (paper: 1 iteration).
     r_scaled: squared model only — R_k = 4 z_k² σ² + 2σ⁴ at the measured range z_k instead
       of the constant ``params.r_range``; the range model always uses ``params.r_range``.
-    start_anchor, end_anchor: anchor indices of the forced straight-line start-up.
-    startup_min_points: valid samples an anchor needs in the start-up to be trilaterated.
+    start_anchor, end_anchor: anchor indices of the forced straight-line start-up (static: they
+      pick columns of the start-up ranges and are checked on the host against the log).
     delayed_init: buffer poses and map the remaining anchors later (SLAM mode).
-    buffer_size, buffer_stride: delayed-initialisation buffer (samples, steps between samples).
-    min_spread: weakest-direction spread of the buffered poses required [m].
-    delayed_min_points: valid ranges an anchor needs in the buffer.
-    gate: optional χ² gate (1 dof) on each range; None = off (paper).
-    init_speed_bound: localisation — speed bound [m/s] that inflates an initial fix taken
-      before t = 0 (see :func:`init_localization`).
+    buffer_size, buffer_stride: delayed-initialisation buffer (samples, steps between samples;
+      the size is a shape, the stride the buffer's sampling period).
     debias: squared model only — subtract σ² (``params.range_var``) from each measured
       squared range, whose mean is d² + σ² (not in the paper; the matched preset uses it).
-    near_gate: plain range model only — skip a range whose predicted distance d̂ is below
-      ``near_gate`` · σ_r (σ_r² = ``params.range_var``): there the direction of ∂d/∂p is
-      set by the estimation error, not the geometry (None: off).
+
+    The thresholds (start-up and delayed-init point counts and spread, the χ² gate, the
+    near-anchor gate, the localisation speed bound) are :class:`Params` fields: traced, so a
+    new value never recompiles.
     """
 
     model: str = "squared"
@@ -202,20 +200,16 @@ class Config(NamedTuple):
     r_scaled: bool = False
     start_anchor: int = 0
     end_anchor: int = 1
-    startup_min_points: int = 3
     delayed_init: bool = True
     buffer_size: int = 24
     buffer_stride: int = 2
-    min_spread: float = 0.5
-    delayed_min_points: int = 6
-    gate: Optional[float] = None
-    init_speed_bound: float = 0.5
     debias: bool = False
-    near_gate: Optional[float] = 3.0
 
 
 class Params(NamedTuple):
-    """Filter noise (traced leaves, so ``grad`` w.r.t. them works).
+    """Filter noise and thresholds (traced leaves: a new value never recompiles, and ``grad``
+    w.r.t. the noise works).  The presets (:func:`paper_params`, :func:`matched_params`) set the
+    noise; the thresholds keep their defaults unless replaced (``params._replace(gate=9.0)``).
 
     Q: (10, 10) discrete process noise per step (engine order; units² of the state per step).
     P0: (10, 10) initial robot covariance (SLAM mode; localisation replaces the position
@@ -223,6 +217,19 @@ class Params(NamedTuple):
     r_range: () variance of one UWB row when not scaled [m⁴ squared model, m² range model].
     r_gyro: () variance of one gyro row [(rad/s)²].
     range_var: () σ² of one measured range [m²] (start-up and delayed-init variances, r_scaled).
+    startup_min_points: valid samples an anchor needs in the start-up to be trilaterated
+      (default 3; a count that is only compared, so a float works and ``grad`` over the whole
+      Params stays legal).
+    min_spread: weakest-direction spread of the buffered poses required by the delayed
+      initialisation [m] (default 0.5).
+    delayed_min_points: valid ranges an anchor needs in the delayed-init buffer (default 6).
+    gate: optional χ² gate (1 dof) on each range; None = off (default, paper).  None ↔ a number
+      changes the pytree (a switch: one more trace); another number does not.
+    init_speed_bound: localisation — speed bound [m/s] that inflates an initial fix taken
+      before t = 0 (see :func:`init_localization`; default 0.5).
+    near_gate: plain range model only — skip a range whose predicted distance d̂ is below
+      ``near_gate`` · σ_r (σ_r² = ``range_var``): there the direction of ∂d/∂p is set by the
+      estimation error, not the geometry (default 3.0; None: off).
     """
 
     Q: jax.Array
@@ -230,6 +237,17 @@ class Params(NamedTuple):
     r_range: jax.Array
     r_gyro: jax.Array
     range_var: jax.Array
+    startup_min_points: Any = 3.0
+    min_spread: Any = 0.5
+    delayed_min_points: Any = 6.0
+    gate: Optional[Any] = None
+    init_speed_bound: Any = 0.5
+    near_gate: Optional[Any] = 3.0
+
+
+#: The :class:`Params` fields that are filter noise (set by the presets; what a scenario's
+#: ``--params`` file sets); the remaining fields are the thresholds.
+NOISE_FIELDS = ("Q", "P0", "r_range", "r_gyro", "range_var")
 
 
 class Log(NamedTuple):
@@ -400,6 +418,11 @@ def ncv_process_noise(dt, q_acc, q_ang_acc, dtype=jnp.float64):
     return _host(Q, dtype)
 
 
+def _default_thresholds(dtype) -> dict:
+    """The threshold fields of :class:`Params` at their defaults, as arrays of ``dtype`` (None stays)."""
+    return {k: None if v is None else _host(v, dtype) for k, v in Params._field_defaults.items()}
+
+
 def paper_params(model: str = "squared", dt: float = 1.0, noise: uwb.UwbNoise = uwb.PAPER003_NOISE,
                  dtype=jnp.float64) -> Params:
     """Paper 003 preset: Q of eq. 27 (· Δt), R of Sec. IV, P0 = 0 (Sec. III-D-1)."""
@@ -411,6 +434,7 @@ def paper_params(model: str = "squared", dt: float = 1.0, noise: uwb.UwbNoise = 
         r_range=_host(r, dtype),
         r_gyro=_host(PAPER_R_GYRO, dtype),
         range_var=_host(uwb.uniform_variance(noise.range_half_width), dtype),
+        **_default_thresholds(dtype),
     )
 
 
@@ -439,6 +463,7 @@ def matched_params(model: str = "squared", dt: float = 1.0, noise: uwb.UwbNoise 
         r_range=_host(s2 if model == "range" else uwb.squared_range_variance(1.0, s2), dtype),
         r_gyro=_host(uwb.uniform_variance(noise.gyro_half_width), dtype),
         range_var=_host(s2, dtype),
+        **_default_thresholds(dtype),
     )
 
 
@@ -507,7 +532,7 @@ def startup(startup_ranges, startup_mask, config: Config, params: Params) -> Sta
 
     def one(zi, oki):
         return tri.trilaterate_line(xs, zi, oki & ok[:, b], side=1.0,
-                                    min_points=config.startup_min_points)
+                                    min_points=params.startup_min_points)
 
     res = jax.vmap(one, in_axes=(1, 1))(z, ok)
     others = (jnp.arange(N) != a) & (jnp.arange(N) != b)
@@ -587,7 +612,7 @@ def init_localization(anchors, startup_ranges, startup_mask, config: Config, par
     position and its propagated covariance.  If the t = 0 fix is degenerate (fewer than
     three valid ranges — e.g. a range ≤ 0 on top of an anchor — or collinear anchors), the
     latest non-degenerate start-up fix j is used, its covariance inflated by
-    (``config.init_speed_bound`` · (Ts − 1 − j) Δt)² per axis for the motion since; with no
+    (``params.init_speed_bound`` · (Ts − 1 − j) Δt)² per axis for the motion since; with no
     usable fix at all ``DEGENERATE`` is set and the anchors' centroid is used with a
     variance of the anchors' squared extent.  Returns (State, StartupResult).
     """
@@ -600,7 +625,8 @@ def init_localization(anchors, startup_ranges, startup_mask, config: Config, par
         z, startup_mask)
     any_ok = jnp.any(fixes.ok)
     j = Ts - 1 - jnp.argmax(fixes.ok[::-1])
-    lag = (Ts - 1 - j).astype(dtype) * jnp.asarray(config.dt * config.init_speed_bound, dtype)
+    lag = (Ts - 1 - j).astype(dtype) * (jnp.asarray(config.dt, dtype)
+                                        * jnp.asarray(params.init_speed_bound, dtype))
     eye = jnp.eye(2, dtype=dtype)
     centre = jnp.mean(anchors, axis=0)
     extent2 = jnp.max(jnp.sum((anchors - centre) ** 2, axis=1))
@@ -671,7 +697,7 @@ def _delayed_init(fs: State, z, ok, cfg: Config, params: Params, model):
 
     def one(zi, vi):
         return tri.trilaterate(buf.pos, zi, vi & filled, range_var=params.range_var,
-                               min_points=cfg.delayed_min_points, min_spread=cfg.min_spread)
+                               min_points=params.delayed_min_points, min_spread=params.min_spread)
 
     res = jax.vmap(one, in_axes=(1, 1))(buf.ranges, buf.valid)
     new = res.ok & ~st.active
@@ -707,8 +733,9 @@ def step(state: State, event: Event, config: Config, params: Params, *, key=None
     ok = zmask & valid
     received_ok = ok  # the delayed-init buffer keeps near-anchor ranges (LS has no linearisation)
     bad = zmask & ~valid
-    if cfg.model == "range" and cfg.near_gate is not None:
-        near = _near_anchor(st, N, cfg.near_gate, params.range_var.astype(dtype)) & ok & st.active
+    if cfg.model == "range" and params.near_gate is not None:
+        near = (_near_anchor(st, N, jnp.asarray(params.near_gate, dtype), params.range_var.astype(dtype))
+                & ok & st.active)
         ok = ok & ~near
     else:
         near = jnp.zeros_like(ok)
@@ -719,7 +746,7 @@ def step(state: State, event: Event, config: Config, params: Params, *, key=None
     else:
         meas = zz
     R = _range_R(z, ok, cfg, params, N, dtype)
-    st, info_r = es.update(st, model, meas[:, None], jnp.arange(N), ok, R, None, gate=cfg.gate)
+    st, info_r = es.update(st, model, meas[:, None], jnp.arange(N), ok, R, None, gate=params.gate)
 
     g_ok = jnp.all(jnp.isfinite(gyro_z)) & jnp.any(st.active)
     g_bad = ~jnp.all(jnp.isfinite(gyro_z))
@@ -803,6 +830,10 @@ def _check(log: Log, config: Config, params: Params) -> None:
     for name, shape in (("Q", (NR, NR)), ("P0", (NR, NR)), ("r_range", ()), ("r_gyro", ()), ("range_var", ())):
         if np.shape(getattr(params, name)) != shape:
             raise InputError(f"params.{name}: expected shape {shape}, got {np.shape(getattr(params, name))}")
+    for name in Params._fields:
+        v = getattr(params, name)
+        if name not in NOISE_FIELDS and v is not None and np.shape(v) != ():
+            raise InputError(f"params.{name}: expected a scalar, got shape {np.shape(v)}")
     if is_concrete(params):
         validate_params(params)
 
@@ -823,7 +854,15 @@ def run(log: Log, config: Config = Config(), params: Optional[Params] = None, *,
             raise InputError(f"config.model: expected one of {uwb.MODELS}, got {config.model!r}")
         params = paper_params(config.model, config.dt, dtype=jnp.result_type(log.ranges, float))
     _check(log, config, params)
-    return _run(log, config, params)
+    return _run(log, config, _thresholds_as_arrays(params))
+
+
+def _thresholds_as_arrays(params: Params) -> Params:
+    """The threshold fields as arrays of the noise's dtype (None stays None): a Python number and
+    an array of the same value then reach ``_run`` with the same type, so neither retraces."""
+    dtype = jnp.result_type(params.range_var)
+    return params._replace(**{k: None if getattr(params, k) is None else _host(getattr(params, k), dtype)
+                              for k in Params._fields if k not in NOISE_FIELDS})
 
 
 @functools.partial(jax.jit, static_argnums=1)
@@ -839,7 +878,8 @@ def _run(log: Log, config: Config, params: Params) -> Result:
 # ---------------------------------------------------------------------------
 
 def validate_params(params: Params) -> Params:
-    """Shapes and PSD of Q, P0; positive r_range, r_gyro, range_var."""
+    """Shapes and PSD of Q, P0; positive r_range, r_gyro, range_var; finite non-negative scalar
+    thresholds (``gate`` and ``near_gate`` may be None: off)."""
     for name, shp in (("Q", (NR, NR)), ("P0", (NR, NR))):
         a = np.asarray(getattr(params, name))
         if a.shape != shp:
@@ -849,6 +889,12 @@ def validate_params(params: Params) -> Params:
         v = np.asarray(getattr(params, name))
         if v.shape != () or not np.isfinite(v) or not v > 0:
             raise InputError(f"params.{name}: expected a positive finite scalar, got {v!r}")
+    for name in Params._fields:
+        if name in NOISE_FIELDS or getattr(params, name) is None:
+            continue
+        v = np.asarray(getattr(params, name))
+        if v.shape != () or not np.isfinite(v) or not v >= 0:
+            raise InputError(f"params.{name}: expected a non-negative finite scalar, got {v!r}")
     return params
 
 
@@ -873,12 +919,13 @@ def validate_anchors(anchors, name: str = "anchors", min_separation: float = 1e-
     return A
 
 
-def validate_log(log: Log, config: Config, strict: bool = False) -> Log:
+def validate_log(log: Log, config: Config, strict: bool = False, params: Optional[Params] = None) -> Log:
     """Host-side checks of a log before :func:`run` (raises InputError naming the problem).
 
     Shapes; N ≥ 3 anchors; in SLAM mode: start ≠ end anchor, a range to the end anchor
     at the first start-up sample, and at least three anchors in range during the start-up
-    (end anchor, start anchor, and one more with ``startup_min_points`` valid samples);
+    (end anchor, start anchor, and one more with ``params.startup_min_points`` valid samples;
+    ``params`` None: the default, 3);
     in localisation mode: valid ``log.anchors`` (:func:`validate_anchors`).  With ``strict``
     a received range that is NaN/Inf or ≤ 0, or a non-finite gyro sample, is an error;
     otherwise such samples are masked and counted by the filter.
@@ -926,11 +973,13 @@ def validate_log(log: Log, config: Config, strict: bool = False) -> Log:
             raise InputError(f"log.startup_ranges: start and end anchors coincide (D = {sr[0, b]:.3g} m)")
         on_line = s_ok & s_ok[:, b:b + 1]
         n_pts = on_line.sum(axis=0)
-        others = [i for i in range(N) if i not in (a, b) and n_pts[i] >= config.startup_min_points]
+        n_min = Params._field_defaults["startup_min_points"] if params is None else params.startup_min_points
+        n_min = float(np.asarray(n_min))
+        others = [i for i in range(N) if i not in (a, b) and n_pts[i] >= n_min]
         if len(others) < 1:
             raise InputError(
                 "log.startup_ranges: fewer than three anchors in range during the start-up: "
-                f"besides the start/end anchors ({a}, {b}) no anchor has {config.startup_min_points} "
+                f"besides the start/end anchors ({a}, {b}) no anchor has {n_min:g} "
                 f"valid ranges (counts per anchor: {n_pts.tolist()})")
     elif config.mode == "localization":
         if log.anchors is None:

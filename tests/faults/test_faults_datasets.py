@@ -623,12 +623,13 @@ def _mrclam_system(folder):
     import jax
     import jax.numpy as jnp
 
+    from jaxslam.data import presets
     from jaxslam.data.mrclam import load_mrclam
     from jaxslam.systems import planar_ekf_slam as pe
 
-    log, pose0 = pe.mrclam_raw_log(load_mrclam(folder, 1), K=8)
-    prm = jax.tree_util.tree_map(lambda a: jnp.asarray(a, np.float64), pe.mrclam_params(1, dtype=np.float64))
-    cfg = pe.mrclam_config(association="known")
+    log, pose0 = presets.mrclam_raw_log(load_mrclam(folder, 1), K=8)
+    prm = jax.tree_util.tree_map(lambda a: jnp.asarray(a, np.float64), presets.mrclam_params(1, dtype=np.float64))
+    cfg = presets.mrclam_config(association="known")
     p0 = jnp.asarray(pose0, np.float64)
 
     run_jit = jax.jit(pe.run, static_argnums=1)
@@ -672,12 +673,12 @@ def _mrclam_fastslam_system(folder):
     import jax
     import jax.numpy as jnp
 
+    from jaxslam.data import presets
     from jaxslam.data.mrclam import load_mrclam
-    from jaxslam.systems import planar_ekf_slam as pe
     from jaxslam.systems import planar_fastslam as pf
 
-    log, pose0 = pe.mrclam_raw_log(load_mrclam(folder, 1), K=8)
-    cfg, prm = pf.mrclam_setup(1, n_particles=50)
+    log, pose0 = presets.mrclam_raw_log(load_mrclam(folder, 1), K=8)
+    cfg, prm = presets.mrclam_fastslam_setup(1, n_particles=50)
     p0, key = jnp.asarray(pose0, np.float64), jax.random.PRNGKey(3)
 
     def run(lg, validate=True):

@@ -88,8 +88,8 @@ def _rms(e):
 DT, T_STEPS, V, W = 0.1, 320, 1.0, 0.2
 SIG_V, SIG_W, SIG_R, SIG_B = 0.05, 0.02, 0.1, 0.01
 WINDOW = (10.0, 14.0)  # s
-CFG = P.Config(motion="unicycle", capacity=16, K=8, association="known", update_gate=13.82,
-                     range_max=20.0)
+CFG = P.Config(motion="unicycle", capacity=16, K=8, association="known")
+THRESHOLDS = dict(update_gate=13.82, range_max=20.0)  # Params fields (traced)
 
 
 class Case(NamedTuple):
@@ -129,7 +129,7 @@ def planar():
     log = merge_events(DT * np.arange(T_STEPS), u, np.asarray(mt), z, np.asarray(ids), K=8)
     truth = traj[np.rint(log.t / DT).astype(int)]
     prm = P.Params(M_c=jnp.diag(jnp.asarray([SIG_V**2, SIG_W**2])), Q_floor=jnp.zeros((3, 3)),
-                         R=jnp.diag(jnp.asarray([SIG_R**2, SIG_B**2])), P0=jnp.eye(3) * 1e-8)
+                         R=jnp.diag(jnp.asarray([SIG_R**2, SIG_B**2])), P0=jnp.eye(3) * 1e-8, **THRESHOLDS)
     run_jit = jax.jit(P.run, static_argnums=1)  # traced inputs: the in-jit path, no host checks
 
     def go(lg):
@@ -264,7 +264,7 @@ U_DT, U_T = 1.0, 80
 ANCHORS = np.array([[-6.0, -6.0], [6.0, -6.0], [6.0, 6.0], [-6.0, 6.0]])
 U_SIGMA = 0.1  # m, Gaussian range noise
 U_WINDOW = (30, 45)  # steps
-U_CFG = U.Config(model="range", mode="localization", dt=U_DT, gate=9.0)
+U_CFG = U.Config(model="range", mode="localization", dt=U_DT)
 
 
 @pytest.fixture(scope="module")
@@ -280,7 +280,7 @@ def uwb():
     log = U.Log(startup_ranges=r[:1], startup_mask=np.ones((1, 4), bool), ranges=r[1:],
                 range_mask=np.ones((U_T, 4), bool), gyro=gyro, anchors=ANCHORS)
     prm = U.matched_params("range", dt=U_DT)._replace(range_var=jnp.asarray(U_SIGMA**2),
-                                                      r_range=jnp.asarray(U_SIGMA**2))
+                                                      r_range=jnp.asarray(U_SIGMA**2), gate=9.0)
     U.validate_log(log, U_CFG)
     run = jax.jit(lambda lg: U.run(lg, U_CFG, prm))
     win = np.zeros(U_T, bool)

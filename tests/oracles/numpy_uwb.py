@@ -96,7 +96,7 @@ def startup(zs, ms, cfg, params):
             continue
         v = ok[:, i] & ok[:, b]
         idx = np.flatnonzero(v)
-        if idx.size < cfg.startup_min_points:
+        if idx.size < params.startup_min_points:
             continue
         x1, d1 = xs[idx[0]], zs[idx[0], i]
         rest = idx[1:]
@@ -156,7 +156,7 @@ def run(log, cfg, params, anchors=None):
         for j in range(zs.shape[0] - 1, -1, -1):  # latest usable fix, inflated for the lag
             p0, c0, ok = trilaterate(A, zs[j], _valid(zs[j], ms[j]), s2)
             if ok:
-                lag = (zs.shape[0] - 1 - j) * cfg.dt * cfg.init_speed_bound
+                lag = (zs.shape[0] - 1 - j) * cfg.dt * params.init_speed_bound
                 c0 = c0 + lag * lag * np.eye(2)
                 break
         if not ok:
@@ -192,9 +192,9 @@ def run(log, cfg, params, anchors=None):
         ok = _valid(Z[k], Mk[k]) & active
         rows_h, rows_H, rows_z, rows_R = [], [], [], []
         p = x[ix["pos"]]
-        if cfg.model == "range" and cfg.near_gate is not None:  # near-anchor gate (package docs)
+        if cfg.model == "range" and params.near_gate is not None:  # near-anchor gate (package docs)
             for i in np.flatnonzero(ok):
-                if np.sum((x[ix["lm"](i)] - p) ** 2) < cfg.near_gate ** 2 * s2:
+                if np.sum((x[ix["lm"](i)] - p) ** 2) < params.near_gate ** 2 * s2:
                     ok[i] = False
         for i in np.flatnonzero(ok):
             li = ix["lm"](i)
@@ -251,8 +251,8 @@ def run(log, cfg, params, anchors=None):
                 if active[i]:
                     continue
                 li_ok = buf_v[:, i] & filled
-                pos_i, cov_i, ok_i = trilaterate(buf_pos, buf_r[:, i], li_ok, s2, cfg.delayed_min_points,
-                                                 cfg.min_spread)
+                pos_i, cov_i, ok_i = trilaterate(buf_pos, buf_r[:, i], li_ok, s2, params.delayed_min_points,
+                                                 params.min_spread)
                 if ok_i:
                     li = ix["lm"](i)
                     x[li] = pos_i

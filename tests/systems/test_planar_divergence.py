@@ -49,8 +49,9 @@ def log():
     return lg, truth
 
 
-def _run(lg, truth, **cfg):
-    res = P.run(P.log_from_events(lg, jnp.asarray(truth[0])), P.Config(capacity=16, association="known", **cfg), _params())
+def _run(lg, truth, update_gate=None, **cfg):
+    res = P.run(P.log_from_events(lg, jnp.asarray(truth[0])), P.Config(capacity=16, association="known", **cfg),
+                _params()._replace(update_gate=update_gate))
     err = np.hypot(*(np.asarray(res.pose)[:, :2] - truth[:, :2]).T)
     frac = float(np.sum(res.n_outliers)) / float(np.sum(res.n_monitored))
     return res, err, frac

@@ -242,8 +242,8 @@ def test_limits_and_k_selection_are_counted():
     z = np.array([[2.0, 0.1], [9.0, 0.2], [3.0, -0.2], [4.0, 0.3], [1.0, 0.0]])
     mt = np.zeros(n)
     log = merge_events(t, np.zeros((n, 2)), mt, z, np.arange(n), K=5)
-    cfg = P.Config(capacity=8, K=2, range_max=5.0, range_min=1.5)
-    res = P.run(P.log_from_events(log, jnp.zeros(3)), cfg, _params(p0=1e-4))
+    cfg = P.Config(capacity=8, K=2)
+    res = P.run(P.log_from_events(log, jnp.zeros(3)), cfg, _params(p0=1e-4)._replace(range_max=5.0, range_min=1.5))
     assert int(res.n_limited.sum()) == 2  # 9 m and 1 m
     assert int(res.n_meas.sum()) == 3
     assert int(res.n_dropped.sum()) == 1  # the 4 m row (the two nearest are kept)
@@ -263,6 +263,7 @@ def test_validation_errors():
 
 def test_mrclam_log_applies_range_model_and_odometry_delay():
     """Synthetic MrclamData: ranges divided by k0 + k2 β², odometry stamps shifted by the delay."""
+    from jaxslam.data import presets
     from jaxslam.data.mrclam import MrclamData
 
     gt_t = np.linspace(0.0, 10.0, 101)
@@ -276,13 +277,13 @@ def test_mrclam_log_applies_range_model_and_odometry_delay():
                       meas=meas, meas_id=ids, landmark_id=ids, landmark_xy=np.zeros((3, 2)),
                       landmark_std=np.zeros((3, 2)), barcodes=np.zeros((0, 2), np.int32), report={})
     k = (1.02, -0.5)
-    log, pose0 = P.mrclam_log(data, range_model=k, odometry_delay=0.2)
+    log, pose0 = presets.mrclam_log(data, range_model=k, odometry_delay=0.2)
     assert np.allclose(log.t[log.is_input], odom_t + 0.2)
     rows = log.z[log.mask]
     assert np.allclose(rows[:, 0], meas[:, 0] / (k[0] + k[1] * meas[:, 1] ** 2))
     assert np.allclose(rows[:, 1], meas[:, 1])
     assert np.allclose(pose0, [0.12, 0.0, 0.3])  # GT at the first event (t = 1.2 s)
-    raw, _ = P.mrclam_log(data, range_model=None, odometry_delay=0.0)
+    raw, _ = presets.mrclam_log(data, range_model=None, odometry_delay=0.0)
     assert np.allclose(raw.z[raw.mask], meas) and np.allclose(raw.t[raw.is_input], odom_t)
     assert log.t[-1] <= gt_t[-1]
 
@@ -305,8 +306,8 @@ def test_tentative_landmark_pruning():
     log = merge_events(t, np.zeros((n, 2)), np.asarray(mt)[order], np.asarray(z)[order], K=2)
     prm = _params(p0=1e-4)
     off = P.run(P.log_from_events(log, jnp.zeros(3)), P.Config(capacity=4, K=2, association="nn"), prm)
-    on = P.run(P.log_from_events(log, jnp.zeros(3)), P.Config(capacity=4, K=2, association="nn", prune_window_s=1.0,
-                                                 prune_min_obs=3), prm)
+    on = P.run(P.log_from_events(log, jnp.zeros(3)), P.Config(capacity=4, K=2, association="nn"),
+               prm._replace(prune_window_s=1.0, prune_min_obs=3))
     assert int(off.active.sum()) == 2 and int(off.n_pruned.sum()) == 0
     assert int(on.active.sum()) == 1 and int(on.n_pruned.sum()) == 1
     # pruned right after the window closes (registered at 0.3 s, window 1 s)
@@ -321,7 +322,7 @@ def test_tentative_landmark_pruning():
     np.testing.assert_allclose(lm_on[0], [5 * np.cos(0.2), 5 * np.sin(0.2)], atol=1e-3)
     assert int(on.status) == 0 and np.all(np.isfinite(np.asarray(on.pose)))
     with pytest.raises(InputError, match="prune"):
-        P.run(P.log_from_events(log, jnp.zeros(3)), P.Config(prune_window_s=-1.0), prm)
+        P.run(P.log_from_events(log, jnp.zeros(3)), P.Config(), prm._replace(prune_window_s=-1.0))
 
 
 def test_joint_compatibility_drops_the_inconsistent_match():

@@ -113,9 +113,9 @@ def test_known_ids_tracks_over_seeds():
 
 def test_ml_association_map_size(sim):
     log, gt_t, gt, lms, seen = sim
-    cfg = pf.Config(motion="unicycle", n_particles=30, capacity=24, K=12, association="ml",
-                    gate=9.21, new_threshold=30.0)
-    res = pf.run(pf.log_from_events(log, jnp.zeros(3)), cfg, _params(), key=jax.random.PRNGKey(1))
+    cfg = pf.Config(motion="unicycle", n_particles=30, capacity=24, K=12, association="ml")
+    prm = _params()._replace(gate=9.21, new_threshold=30.0)
+    res = pf.run(pf.log_from_events(log, jnp.zeros(3)), cfg, prm, key=jax.random.PRNGKey(1))
     n_map = int(jnp.sum(res.map.active))
     assert n_map == len(seen), (n_map, len(seen))
     assert int(res.overflow) == 0

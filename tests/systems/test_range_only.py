@@ -95,8 +95,8 @@ def test_cv_tag_bias_and_consistency_monte_carlo():
     # one call of the compiled _sim_tag per run (the draws of vmapping it over the keys)
     X, R = (jnp.stack(a) for a in zip(*map(_sim_tag, jax.random.split(jax.random.PRNGKey(3), n_runs))))
     p = _cast_params(ur.Params(sigma_r=SIG_R, q_acc=Q_ACC, q_bias=1e-12, p0_pos=0.3,
-                               p0_vel=0.1, p0_bias=0.5), jnp.float64)
-    cfg = ur.Config(gate=None, height=False)
+                               p0_vel=0.1, p0_bias=0.5, gate=None), jnp.float64)
+    cfg = ur.Config(height=False)
     # the public run under an outer jit + vmap (the Monte Carlo runs batch the ranges)
     res = jax.jit(jax.vmap(lambda z: ur.run(log._replace(z=z[:, None, None]), cfg, p)))(R)
     x_true = np.concatenate([np.asarray(X[:, -1]), np.full((n_runs, 1), BIAS)], axis=1)
@@ -154,9 +154,8 @@ def _sim_plaza(seed=0, n=3000, dt=0.2):
 def _plaza_run(dtype):
     t_dr, dr, t_r, node, rr, pose, n_out = _sim_plaza()
     log = pr.plaza_events(t_dr, dr, t_r, node, rr)
-    params = pr.Params(sigma_r=0.4, sigma_bias0=3.0)
-    res = pr.run(pr.log_from_events(log, pose[0], BIDS, dtype=dtype),
-                 pr.Config(window=60, min_points=20, min_spread=4.0), params)
+    params = pr.Params(sigma_r=0.4, sigma_bias0=3.0, min_points=20, min_spread=4.0)
+    res = pr.run(pr.log_from_events(log, pose[0], BIDS, dtype=dtype), pr.Config(window=60), params)
     # truth at the events: DR-event poses (ranges share DR times)
     k = np.searchsorted(t_dr, log.t)
     return res, pose[k + 1, :2], n_out
@@ -213,11 +212,11 @@ def test_height_update_reduces_vertical_error():
     h = X[kh, 2] - ur.TAG_Z + C_TOF + SIG_H * rng.normal(size=kh.size)
     bad = rng.choice(np.arange(20, kh.size), 5, replace=False)
     h[bad] += 0.5
-    params = ur.Params(sigma_r=SIG_R, q_acc=Q_ACC, q_bias=1e-12, sigma_h=SIG_H, tof_offset=C_TOF)
+    params = ur.Params(sigma_r=SIG_R, q_acc=Q_ACC, q_bias=1e-12, sigma_h=SIG_H, tof_offset=C_TOF, gate=9.0)
     log0 = ur.util_events(t, aid, R)
     logh = ur.util_events(t, aid, R, tof_t=t[kh], tof=h)
     assert logh.z.shape == (T3, 2, 1) and logh.stats["n_meas"] == T3 + kh.size
-    cfg = ur.Config(gate=9.0)
+    cfg = ur.Config()
     r0 = ur.run(ur.log_from_events(log0, np.arange(8), anchors=ANCHORS), cfg, params)
     rh = ur.run(ur.log_from_events(logh, np.arange(8), anchors=ANCHORS), cfg, params)
     # range-only path: no height rows, counts zero; (almost) every range used in both runs

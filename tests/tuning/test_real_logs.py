@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from jaxslam import cli
+from jaxslam.data import presets
 from jaxslam.errors import InputError
 from jaxslam.systems import planar_ekf_slam as pe
 from jaxslam.tuning.targets import mrclam as RL
@@ -34,7 +35,7 @@ def _item(logs):
 
 def test_nll_gradient_matches_central_differences(excerpt):
     item = _item(excerpt)
-    base = pe.mrclam_params(1, dtype=jnp.float64, preset="hand")
+    base = presets.mrclam_params(1, dtype=jnp.float64, preset="hand")
     theta0 = RL.planar_theta0(base)
     cfg = RL.mrclam_train_config()._replace(block=64)  # several blocks on the excerpt
 
@@ -56,9 +57,9 @@ def test_nll_gradient_matches_central_differences(excerpt):
 
 def test_checkpoint_blocks_change_no_number(excerpt):
     it = _item(excerpt)
-    prm = pe.mrclam_params(dtype=jnp.float64)
-    a = pe.run(pe.Log(it.dt, it.u, it.z, it.ids, it.mask, it.pose0), pe.mrclam_config(), prm)
-    b = pe.run(pe.Log(it.dt, it.u, it.z, it.ids, it.mask, it.pose0), pe.mrclam_config()._replace(block=50), prm)
+    prm = presets.mrclam_params(dtype=jnp.float64)
+    a = pe.run(pe.Log(it.dt, it.u, it.z, it.ids, it.mask, it.pose0), presets.mrclam_config(), prm)
+    b = pe.run(pe.Log(it.dt, it.u, it.z, it.ids, it.mask, it.pose0), presets.mrclam_config()._replace(block=50), prm)
     # the blocked scan is another XLA program (other fusion, other rounding): equal up to
     # rounding, measured at <= 2.2e-15 relative; a wrong block boundary would differ by far more
     np.testing.assert_allclose(np.asarray(a.pose), np.asarray(b.pose), rtol=1e-12, atol=1e-12)
@@ -157,14 +158,14 @@ def test_a_diverged_run_warns_in_one_line_and_says_so_in_the_json(tmp_path, caps
 
 
 def test_odometry_delay_is_the_argmin_of_the_training_nll():
-    base = pe.mrclam_params(1, dtype=jnp.float64, preset="hand")
+    base = presets.mrclam_params(1, dtype=jnp.float64, preset="hand")
     grid = (0.0, 0.1, 0.25)
     best, table = RL.select_odometry_delay(DATA, [1], base, RL.mrclam_train_config(), t_max=10.0, grid=grid)
     assert set(table) == set(grid) and best == min(table, key=table.get)
     # each entry is the NLL of the log built with that delay (value oracle: the scan itself)
     logs, _ = RL.mrclam_logs(DATA, [1], np.float64, 10.0, odometry_delay=0.1)
     it = _item(logs)
-    res = pe.run(pe.Log(it.dt, it.u, it.z, it.ids, it.mask, it.pose0), pe.mrclam_config(), base)
+    res = pe.run(pe.Log(it.dt, it.u, it.z, it.ids, it.mask, it.pose0), presets.mrclam_config(), base)
     np.testing.assert_allclose(table[0.1], float(np.sum(res.nll) / np.sum(res.nll_dof)), rtol=1e-9)
 
 

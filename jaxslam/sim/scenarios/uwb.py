@@ -355,6 +355,13 @@ def consistency_summary(cons):
 # Building and running
 # ---------------------------------------------------------------------------
 
+def _json_threshold(name, v):
+    """A threshold of :class:`~jaxslam.systems.uwb_slam_2d.Params` for the run JSON (counts as ints)."""
+    if v is None:
+        return None
+    return int(np.asarray(v)) if name.endswith("_points") else float(np.asarray(v))
+
+
 def _filter_params(options, dtype, params=None):
     model = options["model"]
     noise = uwb.PAPER003_NOISE
@@ -368,10 +375,10 @@ def _filter_params(options, dtype, params=None):
         raise InputError(f"--filter: expected 'paper' or 'matched', got {options['filter']!r}")
     if params and "filter" in params:
         d = dict(params["filter"])
-        unknown = set(d) - set(U.Params._fields) - {"r_scaled"}
+        unknown = set(d) - set(U.NOISE_FIELDS) - {"r_scaled"}
         if unknown:
             raise InputError(f"params.filter: unknown entries {sorted(unknown)}; expected "
-                             f"{list(U.Params._fields) + ['r_scaled']}")
+                             f"{list(U.NOISE_FIELDS) + ['r_scaled']}")
         r_scaled = bool(d.pop("r_scaled", r_scaled))
         vals = fp._asdict()
         for k, v in d.items():
@@ -387,7 +394,7 @@ def params_schema(options, dtype) -> dict:
     """What a ``--params`` file may set (:mod:`jaxslam.paramfile`): the filter's parameters for
     ``--filter`` and ``--model``, and whether R is scaled with distance."""
     fp, r_scaled = _filter_params(options, dtype)
-    return {"filter": {**{k: np.asarray(v) for k, v in fp._asdict().items()}, "r_scaled": bool(r_scaled)}}
+    return {"filter": {**{k: np.asarray(getattr(fp, k)) for k in U.NOISE_FIELDS}, "r_scaled": bool(r_scaled)}}
 
 
 def build(scenario: str, options: dict, dtype, params=None):
@@ -416,7 +423,7 @@ def build(scenario: str, options: dict, dtype, params=None):
         seen = (d <= setup.max_range) & (d[:, END:END + 1] <= setup.max_range)
         n_pts = seen.sum(axis=0)
         if not seen[0, END] or sum(1 for i in range(len(n_pts)) if i not in (START, END)
-                                   and n_pts[i] >= cfg.startup_min_points) < 1:
+                                   and n_pts[i] >= fp.startup_min_points) < 1:
             raise InputError(f"--max-range: fewer than three anchors in range during the start-up "
                              f"(samples in range per anchor: {n_pts.tolist()})")
 
@@ -484,8 +491,10 @@ def run_scenario(scenario, runs, seed, dtype, options, progress, params=None, pl
                   "anchor)" if cfg.mode == "slam" else "anchors' (world) frame"),
         "noise_half_widths": {"range_m": setup.noise.range_half_width,
                               "gyro_radps": setup.noise.gyro_half_width},
-        "filter_params": {k: np.asarray(v, float).tolist() for k, v in fp._asdict().items()},
-        "estimator": cfg._asdict(),
+        "filter_params": {k: np.asarray(getattr(fp, k), float).tolist() for k in U.NOISE_FIELDS},
+        # the thresholds are Params fields (traced) but are reported with the static choices
+        "estimator": {**cfg._asdict(), **{k: _json_threshold(k, getattr(fp, k)) for k in U.Params._fields
+                                          if k not in U.NOISE_FIELDS}},
         **options,
     }
     return ScenarioResult(

@@ -22,7 +22,7 @@ construction): θ = {"log_sigma": log [σ_v, σ_ω, σ_r, σ_β], "log_floor": l
   on a held-out robot's ground truth is why k0 is fixed; it is disclosed in docs/datasets.md.
 
 The filter trained is the one shipped: Student-t update (ν = 5), no hard gate, the NIS
-monitor off (:func:`jaxslam.systems.planar_ekf_slam.mrclam_config`); the likelihood is the
+monitor off (:func:`jaxslam.data.presets.mrclam_config`); the likelihood is the
 sum of the rows' Student-t terms.
 
 Protocol (docs/datasets.md): leave one robot out — fit on four robots of MRCLAM dataset 6,
@@ -73,11 +73,11 @@ def mrclam_logs(data_dir, robots, dtype=np.float64, t_max: float | None = None, 
 
     Returns ``(Log batch, [(EventLog, data), ...])``.  The start pose is the ground truth at the
     first event (the dataset runner's start, not a fit).  ``t_max``: keep the first seconds.
-    ``odometry_delay``: the odometry stamps' lag [s] (``planar_ekf_slam.mrclam_raw_log``).
+    ``odometry_delay``: the odometry stamps' lag [s] (``presets.mrclam_raw_log``).
     ``T``: pad to this many events (default: the longest log).
     """
+    from ...data import presets
     from ...data.mrclam import load_mrclam
-    from ...systems import planar_ekf_slam as pe
 
     logs, poses, raw = [], [], []
     for r in robots:
@@ -86,8 +86,8 @@ def mrclam_logs(data_dir, robots, dtype=np.float64, t_max: float | None = None, 
         if t_max is not None and t_max > span:
             raise InputError(f"--window: robot {r}'s log covers {span:.1f} s of ground-truth time, shorter "
                              f"than the {t_max:g} s fit window; give --window {int(span)} or less")
-        log, pose0 = pe.mrclam_raw_log(d, K=8, t_end=None if t_max is None else float(d.gt_t[0]) + t_max,
-                                       odometry_delay=odometry_delay)
+        log, pose0 = presets.mrclam_raw_log(d, K=8, t_end=None if t_max is None else float(d.gt_t[0]) + t_max,
+                                            odometry_delay=odometry_delay)
         logs.append(log)
         poses.append(pose0)
         raw.append((log, d))
@@ -143,7 +143,8 @@ def planar_theta0(params) -> dict:
 
 
 def planar_physical(theta, base):
-    """``planar_ekf_slam.Params`` from θ (module docstring); P0 and the rest from ``base``."""
+    """``planar_ekf_slam.Params`` from θ (module docstring); P0 and the rest from ``base`` (the
+    thresholds — gate, new_threshold, … — are ``base``'s and are never fitted)."""
     dtype = jnp.asarray(base.R).dtype
     s = jnp.exp(jnp.asarray(theta["log_sigma"], dtype))
     f = jnp.exp(jnp.asarray(theta["log_floor"], dtype))
@@ -163,9 +164,9 @@ def mrclam_train_config():
     """The filter ``jaxslam dataset mrclam`` runs, with checkpoint blocks of 128 events for the
     gradient (the blocks change the numbers only by rounding; value and gradient of robot 1's first 150 s,
     8801 events: 2.0 s unblocked, 0.69 s with blocks of 1024, 0.38 s with 128, 0.46 s with 32)."""
-    from ...systems import planar_ekf_slam as pe
+    from ...data import presets
 
-    return pe.mrclam_config()._replace(block=128)
+    return presets.mrclam_config()._replace(block=128)
 
 
 def mrclam_noise(loss: str = "nll", data=None, robots=(1, 2, 3, 4), test_robots=(5,), dtype=jnp.float64,
@@ -178,7 +179,7 @@ def mrclam_noise(loss: str = "nll", data=None, robots=(1, 2, 3, 4), test_robots=
     :data:`DELAY_GRID` with the lowest training NLL at the starting point
     (:func:`select_odometry_delay`).  The fitted file carries it (``"log"``).
     """
-    from ...data import runners
+    from ...data import presets, runners
     from ...systems import planar_ekf_slam as pe
     if loss != "nll":
         raise InputError(f"--loss: the real-log targets learn by innovation likelihood only (nll); got {loss!r}")
@@ -189,7 +190,7 @@ def mrclam_noise(loss: str = "nll", data=None, robots=(1, 2, 3, 4), test_robots=
         raise InputError(f"--test-robots: {sorted(set(robots) & set(test_robots))} also in --robots; "
                          "a held-out robot must not be trained on")
     cfg = mrclam_train_config()
-    base = pe.mrclam_params(1, dtype=dtype, preset="hand")  # the start: the hand-set preset
+    base = presets.mrclam_params(1, dtype=dtype, preset="hand")  # the start: the hand-set preset
     theta0 = planar_theta0(base)
 
     def physical(th):
@@ -220,7 +221,7 @@ def mrclam_noise(loss: str = "nll", data=None, robots=(1, 2, 3, 4), test_robots=
         for label, prm in labelled.items():
             m = {"ate_m": [], "nll": [], "outlier_fraction": [], "inflations": []}
             for i, (log, d) in enumerate(ev_raw):
-                res = pe.run(pe.log_from_events(log, jnp.asarray(ev_logs.pose0[i])), pe.mrclam_config(), prm)
+                res = pe.run(pe.log_from_events(log, jnp.asarray(ev_logs.pose0[i])), presets.mrclam_config(), prm)
                 mm, _ = runners.evaluate_planar(log.t, np.asarray(res.pose, np.float64), d.gt_t, d.gt)
                 m["ate_m"].append(mm["ate_m"])
                 m["nll"].append(float(np.sum(res.nll) / max(np.sum(res.nll_dof), 1)))
@@ -248,6 +249,7 @@ def mrclam_noise(loss: str = "nll", data=None, robots=(1, 2, 3, 4), test_robots=
                 "evaluated_on": (f"held-out robots {list(test_robots)} (whole logs)" if test_robots else
                                  f"the training robots {list(robots)} (whole logs; nothing held out)"),
                 "t_max_s": t_max, "filter": pe.config_to_dict(cfg),
+                "thresholds": {k: v for k, v in pe.params_to_dict(base).items() if k in pe.THRESHOLDS},
                 "odometry_delay_s": odometry_delay,
                 "odometry_delay_nll": None if delay_table is None else
                 {f"{k:g}": v for k, v in delay_table.items()},
