@@ -347,7 +347,7 @@ def _med(pairs):
 
 def run_step(args, tw, cfg, prm, compiled, inputs_np, inputs_dev, ids_np, ids_dev, keys_dev,
              results, out):
-    P = tw.params_from(prm, cfg.dt, cfg.threshold)
+    P = tw.params_from(prm, cfg.dt, prm.resample_threshold)
     W = args.warmup
     rows = []
     loop_pp = None
@@ -595,7 +595,7 @@ def _imu_stage_proposed(state, rotor_w, imu, key, cfg, prm):
     ll = -0.5 * (nis + 2.0 * jnp.sum(jnp.log(jnp.diagonal(L)))) - 3 * math.log(2 * math.pi)
     p = fs.reweight(p._replace(pose=pose, aux=m_post), jnp.where(first, 0.0, ll))
     neff = fs.neff(p)
-    p = fs.maybe_resample(p, k_res, cfg.threshold, cfg.resampling)
+    p = fs.maybe_resample(p, k_res, prm.resample_threshold, cfg.resampling)
     Lg = jnp.linalg.cholesky(symmetrize(jnp.diag(prm.imu_var[3:6]) + H[3:6] @ P_post @ H[3:6].T))
     e3 = jax.random.normal(k_s2, (n * 3,), dtype).reshape(n, 3)
     rates = imu[3:6] - p.aux[:, 3:6] - p.aux[:, 9:12] + e3 @ Lg.T
@@ -697,7 +697,7 @@ def run_profile(args, tw, cfg, prm, compiled, twin_state, inputs_np, out):
         rows.append({"piece": name[len("profile "):], "wall_s": wall, "cpu_s": cpu,
                      "cpu_per_particle_ns": cpu / N * 1e9, "wall_per_particle_ns": wall / N * 1e9,
                      "compile_s": compiled[name][1]})
-    P = tw.params_from(prm, cfg.dt, cfg.threshold)
+    P = tw.params_from(prm, cfg.dt, prm.resample_threshold)
     rotor, imu, z, mask = inputs_np
     rng = np.random.default_rng(args.seed)
     k_imu, k_lid = args.warmup, args.warmup + LIDAR_EVERY - 1
@@ -792,7 +792,7 @@ def _run_here(args, parts):
     if "profile" in parts:
         # The profile's warmed-up state comes from the twin (no compilation needed).
         Np = int(args.profile_particles)
-        P = tw.params_from(prm, cfg.dt, cfg.threshold)
+        P = tw.params_from(prm, cfg.dt, prm.resample_threshold)
         ts = tw.state_from(fs1.init(_log0(jnp.asarray(fl.truth[0])), cfg._replace(n_particles=Np),
                                     prm, key=jax.random.PRNGKey(args.seed + 1)))
         rng = np.random.default_rng(args.seed)

@@ -17,6 +17,7 @@ import numpy as np
 from .errors import InputError
 
 __all__ = [
+    "host_array",
     "is_concrete",
     "value_and_jacfwd",
     "take",
@@ -200,3 +201,12 @@ def is_concrete(*xs) -> bool:
     """True when no leaf of ``xs`` is a tracer: the values are known now, so a helper can build
     its result on the host (NumPy) instead of compiling a tiny program op by op."""
     return not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(xs))
+
+
+def host_array(x, dtype):
+    """``x`` as an array of ``dtype``: made on the host when ``x`` is known now (``device_put``
+    runs no eager program, while ``jnp.asarray(scalar, dtype)`` compiles a conversion), traced
+    otherwise, so callers stay usable under ``jit`` / ``grad``."""
+    if is_concrete(x):
+        return jax.device_put(np.asarray(x, dtype=np.dtype(dtype)))
+    return jnp.asarray(x, dtype)

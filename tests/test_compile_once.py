@@ -274,3 +274,69 @@ def test_planar_fastslam_new_gate_and_thresholds_neither_retrace_nor_recompile()
     assert float(b.gated) > float(a.gated)
     assert float(b.registered) < float(a.registered)
     assert int(c.resamples) > int(a.resamples)
+
+
+def test_ekf_slam_3d_new_gate_and_association_thresholds_neither_retrace_nor_recompile():
+    from jaxslam.sensors import imu as imu_mod
+    from jaxslam.sensors import landmarks as lm_mod
+    from jaxslam.sim.scenarios import tracking
+    from jaxslam.sim.simulate import simulate
+    from jaxslam.systems import ekf_slam_3d as s3
+
+    lms = lm_mod.generate_landmarks(jax.random.PRNGKey(3), 12, center=(0.0, 0.0, -3.0), dtype=jnp.float64)
+    setup = tracking.make_setup(tracking.paper000_figure8(), jnp.float64, landmarks=lms)
+    fl = jax.jit(lambda k: simulate(setup, k, 20, 10))(jax.random.PRNGKey(1))
+    imu = jnp.concatenate([jnp.array([[0.0, 0.0, -9.81, 0.0, 0.0, 0.0]]), fl.imu])
+    log = s3.Log(s0=fl.truth[0, :9], imu=imu, y=fl.lidar_y, visible=fl.lidar_mask, ids=jnp.arange(12))
+    cfg = s3.Config(mode="unknown", association="nn", capacity=24, max_obs=12)
+    loose = s3.imu_noise(imu_mod.PAPER000_IMU)._replace(gate=16.27)
+    a = s3.run(log, cfg, loose)
+    n1 = s3._run._cache_size()
+    with compilation.account() as acc:
+        b = s3.run(log, cfg, loose._replace(gate=0.05, nn_gate=0.5, nn_new=1.0))
+    assert acc.result.trace_s == 0.0 and acc.result.programs == 0, acc.result
+    assert s3._run._cache_size() == n1
+    # the new numbers did act: a tight gate uses fewer rows, a low new-landmark threshold maps more
+    assert int(np.sum(b.frames.dof)) < int(np.sum(a.frames.dof))
+    assert int(b.frames.n_active[-1]) > int(a.frames.n_active[-1])
+
+
+def test_line_slam_004_new_gates_and_thresholds_neither_retrace_nor_recompile():
+    from jaxslam.sim.scenarios import lineslam as sc
+    from jaxslam.systems import line_slam_004 as LS
+
+    setup = sc.make_setup(duration=3.0)
+    cfg = LS.Config()
+    log = jax.jit(lambda k: sc.simulate(k, setup, cfg.spec, jnp.float64))(jax.random.PRNGKey(3))
+    fp = LS.default_params()
+    key = jax.random.PRNGKey(5)
+    a = LS.run(log, cfg, fp, key=key)
+    n1 = LS._run._cache_size()
+    with compilation.account() as acc:
+        b = LS.run(log, cfg, fp._replace(nis_gate=0.01, new_threshold=1e6, min_update_inliers=5.0), key=key)
+    assert acc.result.trace_s == 0.0 and acc.result.programs == 0, acc.result
+    assert LS._run._cache_size() == n1
+    # the new numbers did act: the tight gate gates matched lines, the huge threshold maps none
+    assert int(np.sum(b.steps.n_gated)) > int(np.sum(a.steps.n_gated))
+    assert int(np.sum(b.steps.n_new)) < int(np.sum(a.steps.n_new))
+
+
+def test_fastslam_001_new_resampling_numbers_neither_retrace_nor_recompile():
+    from jaxslam.sim.scenarios import fastslam as sc
+    from jaxslam.systems import fastslam_001 as fs1
+
+    opts = {o.name: o.default for o in sc.OPTIONS}
+    opts["particles"] = 16
+    cfg, prm = sc.make_filter(opts, jnp.float64)
+    setup = sc.truth_setup(float(opts["bias"]), jnp.float64)
+    fl = jax.jit(lambda k: sc.fly(setup, k, 3, sc.LIDAR_EVERY, cfg.lidar, cfg.accel_mode))(jax.random.PRNGKey(1))
+    log = fs1.Log(x0=fl.truth[0], rotor_w=fl.rotor, imu=fl.imu, z=fl.z, ids=jnp.arange(4, dtype=jnp.int32),
+                  mask=fl.mask)
+    key = jax.random.PRNGKey(2)
+    a = fs1.run(log, cfg, prm._replace(resample_threshold=0.1), key=key)
+    n1 = fs1._run._cache_size()
+    with compilation.account() as acc:
+        b = fs1.run(log, cfg, prm._replace(resample_threshold=1.0), key=key)
+    assert acc.result.trace_s == 0.0 and acc.result.programs == 0, acc.result
+    assert fs1._run._cache_size() == n1
+    assert not np.allclose(np.asarray(a.steps.pose_mean), np.asarray(b.steps.pose_mean))  # the new threshold acted

@@ -120,6 +120,8 @@ __all__ = [
     "best_map",
     "map_mean",
     "step",
+    "run",
+    "FastSlamRun",
 ]
 
 Array = Any
@@ -880,8 +882,87 @@ def step(p: Particles, key, sample_fn: Callable, sample_args: tuple, model: Land
     ``(Particles, ObserveInfo)``; scan it over a run.
     """
     k_prop, k_res = jax.random.split(key)
-    p = propagate(p, k_prop, sample_fn, *sample_args)
-    p, info = observe_update(p, model, z, lm_ids, mask, R, params, weights=weights, gate=gate,
-                             slot_by_id=slot_by_id, solver=solver, chunk=chunk)
+    p, info = _propagate_update(p, k_prop, sample_fn, sample_args, model, z, lm_ids, mask, R, params,
+                                weights, gate, slot_by_id, solver, chunk)
     p = maybe_resample(p, k_res, threshold, scheme)
     return p, info
+
+
+def _propagate_update(p, k_prop, sample_fn, sample_args, model, z, lm_ids, mask, R, params, weights,
+                      gate, slot_by_id, solver, chunk):
+    p = propagate(p, k_prop, sample_fn, *sample_args)
+    return observe_update(p, model, z, lm_ids, mask, R, params, weights=weights, gate=gate,
+                          slot_by_id=slot_by_id, solver=solver, chunk=chunk)
+
+
+class FastSlamRun(NamedTuple):
+    """Output of :func:`run` over T events.
+
+    final: :class:`Particles` after the last event.
+    pose_mean: (T, n_r) weighted pose mean after each event (:func:`estimate`).
+    neff: (T,) effective sample size after each event's update, before resampling.
+    log_marginal: (T,) incremental log marginal likelihood (sum it for ``log p(z_{1:T})``).
+    n_used, n_registered, n_gated: (T,) measurements used / registered / gated, summed over
+      the particles.
+    """
+
+    final: Particles
+    pose_mean: jax.Array
+    neff: jax.Array
+    log_marginal: jax.Array
+    n_used: jax.Array
+    n_registered: jax.Array
+    n_gated: jax.Array
+
+
+def run(p0: Particles, key, sample_fn: Callable, inputs, model: LandmarkModel, zs, lm_ids, masks, R,
+        params=None, *, angle_mask: Optional[Sequence[bool]] = None, weights: str = "exact", gate=None,
+        threshold: Optional[float] = 0.5, scheme="systematic", slot_by_id: bool = False,
+        solver: str = "closed") -> FastSlamRun:
+    """FastSLAM over a log: one ``lax.scan`` of :func:`step` (propagate → update → resample).
+
+    Args:
+      p0: the initial particle set (:func:`init`).  key: PRNG key, split into one key per event.
+      sample_fn: ``sample_fn(pose, aux, key, *inputs_t) -> (pose, aux)``, one particle's proposal.
+      inputs: tuple of arrays with a leading T axis; event t passes their t-th slices to
+        ``sample_fn``.
+      zs: (T, K, d_z) measurements; lm_ids: (T, K) or (K,) landmark ids; masks: (T, K) bool.
+      R: (d_z, d_z) measurement covariance (or (T, d_z, d_z), one per event).
+      The rest as :func:`step`; ``angle_mask`` as :func:`estimate`.
+    Returns :class:`FastSlamRun`.  Shapes are checked here (InputError naming the argument);
+    works under ``jit`` / ``vmap`` / ``grad`` (the caller jits).
+    """
+    zs = jnp.asarray(zs)
+    if zs.ndim != 3:
+        raise InputError(f"zs: expected shape (T, K, d_z), got {zs.shape}")
+    T, K = zs.shape[:2]
+    masks = jnp.asarray(masks)
+    if masks.shape != (T, K):
+        raise InputError(f"masks: expected shape {(T, K)}, got {masks.shape}")
+    lm_ids = jnp.asarray(lm_ids, jnp.int32)
+    if lm_ids.shape not in ((K,), (T, K)):
+        raise InputError(f"lm_ids: expected shape ({K},) or {(T, K)}, got {lm_ids.shape}")
+    if lm_ids.ndim == 1:
+        lm_ids = jnp.broadcast_to(lm_ids, (T, K))
+    if not isinstance(inputs, tuple):
+        raise InputError(f"inputs: expected a tuple of arrays with a leading T axis, got {type(inputs).__name__}")
+    for i, a in enumerate(jax.tree_util.tree_leaves(inputs)):
+        if jnp.shape(a)[:1] != (T,):
+            raise InputError(f"inputs[{i}]: expected a leading axis of length T = {T}, got shape {jnp.shape(a)}")
+    R = jnp.asarray(R)
+    if R.shape != (zs.shape[2],) * 2 and R.shape != (T,) + (zs.shape[2],) * 2:
+        raise InputError(f"R: expected shape {(zs.shape[2],) * 2} or {(T,) + (zs.shape[2],) * 2}, got {R.shape}")
+    R_t = jnp.broadcast_to(R, (T,) + (zs.shape[2],) * 2)
+
+    def body(p, x):  # step(), with N_eff read between the update and the resampling
+        k, u, z, ids, mask, R_k = x
+        k_prop, k_res = jax.random.split(k)
+        p, info = _propagate_update(p, k_prop, sample_fn, u, model, z, ids, mask, R_k, params, weights,
+                                    gate, slot_by_id, solver, None)
+        ne = neff(p)
+        p = maybe_resample(p, k_res, threshold, scheme)
+        return p, (estimate(p, angle_mask)[0], ne, info.log_marginal, info.n_used, info.n_registered,
+                   jnp.sum(info.gated).astype(jnp.int32))
+
+    p, outs = jax.lax.scan(body, p0, (jax.random.split(key, T), inputs, zs, lm_ids, masks, R_t))
+    return FastSlamRun(p, *outs)

@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import functools
 import math
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
@@ -40,7 +40,7 @@ from .. import errors
 from ..errors import InputError
 from ..filters import ekf_slam as es
 from ..geometry.euler import dcm_from_euler, euler_rate_matrix
-from ..linalg import check_psd, is_concrete, wrap_angle
+from ..linalg import check_psd, host_array, is_concrete, wrap_angle
 from ..sensors import lidar3d
 from ..stats import nees as _nees
 
@@ -71,18 +71,32 @@ TABLE7_Q = (0.2, 0.2, 0.05, 0.01, 0.01, 0.01, 0.02, 0.2, 0.2)
 
 
 class Params(NamedTuple):
-    """Filter noise (traced leaves, so ``grad`` w.r.t. them works).
+    """Filter numbers (traced leaves: a new value never recompiles, ``grad`` w.r.t. them works).
 
     P0: (9, 9) initial robot covariance.
     Qc: (9, 9) additive continuous-time process noise density (Tables 6-7).
     Qimu: (6, 6) IMU white-noise density [accel (m/s²)²/Hz, gyro (rad/s)²/Hz].
     R: (3, 3) LiDAR covariance diag(σ_α², σ_β², σ_δ²) (Table 4).
+    gate: χ²(3) gate of each mapped-landmark update (None: off, as in the paper; switching it
+      on or off changes the program, a new value does not).
+    nn_gate, nn_new: nearest-neighbour association thresholds on the 3-dof Mahalanobis
+      distance (``config.association == "nn"``): match below ``nn_gate`` (χ²₃ 99 % = 11.34),
+      new landmark above ``nn_new`` (30).
+    The noise matrices are :data:`NOISE_FIELDS` (what ``--params`` files and
+    :func:`params_to_dict` carry); the thresholds keep their defaults there.
     """
 
     P0: jax.Array
     Qc: jax.Array
     Qimu: jax.Array
     R: jax.Array
+    gate: Optional[jax.Array] = None
+    nn_gate: jax.Array = 11.34  # χ²₃ 99 %
+    nn_new: jax.Array = 30.0
+
+
+#: The noise fields of :class:`Params` (the rest are thresholds).
+NOISE_FIELDS = ("P0", "Qc", "Qimu", "R")
 
 
 def f_cont(s, imu, g, accel_mode: str = "3axis"):
@@ -148,6 +162,12 @@ def make_model() -> es.SlamModel:
     )
 
 
+def _thresholds(dtype) -> dict:
+    """The default thresholds of :class:`Params` as arrays of ``dtype`` (so a ``tree_map``
+    over the parameters, e.g. ``astype``, reaches them; ``gate`` None stays None)."""
+    return {f: host_array(Params._field_defaults[f], dtype) for f in ("nn_gate", "nn_new")}
+
+
 def _lidar_R(dtype):
     return lidar3d.measurement_cov(lidar3d.PAPER000_LIDAR, dtype)
 
@@ -165,6 +185,7 @@ def paper_noise(mode: str, dtype=jnp.float64) -> Params:
         Qc=jnp.asarray(np.diag(np.asarray(Q, np.float64)), dtype),
         Qimu=jnp.asarray(np.zeros((6, 6)), dtype),
         R=_lidar_R(dtype),
+        **_thresholds(dtype),
     )
 
 
@@ -183,17 +204,26 @@ def imu_noise(imu_spec, dtype=jnp.float64, P0=IMU_P0) -> Params:
         Qc=jnp.asarray(np.zeros((NX, NX)), dtype),
         Qimu=jnp.asarray(np.diag(qimu), dtype),
         R=_lidar_R(dtype),
+        **_thresholds(dtype),
     )
 
 
 def validate_params(params: Params) -> Params:
-    """Host-side checks: shapes and PSD of P0, Qc, Qimu; R positive definite."""
+    """Host-side checks: shapes and PSD of P0, Qc, Qimu; R positive definite; the thresholds
+    positive scalars (``gate`` may be None)."""
     shapes = {"P0": (NX, NX), "Qc": (NX, NX), "Qimu": (6, 6), "R": (3, 3)}
     for name, shp in shapes.items():
         a = np.asarray(getattr(params, name))
         if a.shape != shp:
             raise InputError(f"params.{name}: expected shape {shp}, got {a.shape}")
         check_psd(a, f"params.{name}", strict=(name == "R"))
+    for name in ("gate", "nn_gate", "nn_new"):
+        v = getattr(params, name)
+        if v is None and name == "gate":
+            continue
+        a = np.asarray(v, float)
+        if a.shape != () or not np.isfinite(a) or a <= 0:
+            raise InputError(f"params.{name}: expected a positive finite scalar, got {v!r}")
     return params
 
 
@@ -211,8 +241,7 @@ class Config(NamedTuple):
     capacity: landmark slots.  max_obs: measurements processed per frame (the
       visible ones are compacted into this many; extras are counted as dropped).
     accel_mode: "3axis" or "az" (paper eq. 25).  dt: IMU step [s].  g: gravity.
-    gate: chi-square gate for updates (None = off); nn_gate / nn_new: association
-      thresholds on the 3-dof Mahalanobis distance.
+    (The update gate and the association thresholds are numbers: :class:`Params`.)
     save_map: store the landmark means at every frame (for plots; memory F·cap·3).
     fov_check: mask (and count) measurements outside ``lidar``'s field of view by more than 5σ.
     checkpoint: :func:`run` wraps its per-frame body in ``jax.checkpoint`` (a gradient through
@@ -226,9 +255,6 @@ class Config(NamedTuple):
     accel_mode: str = "3axis"
     dt: float = 0.01
     g: float = 9.81
-    gate: float | None = None
-    nn_gate: float = 11.34  # χ²₃ 99 %
-    nn_new: float = 30.0
     save_map: bool = False
     fov_check: bool = True
     lidar: lidar3d.LidarSpec = lidar3d.PAPER000_LIDAR
@@ -346,9 +372,11 @@ def correct(state: State, y, ids, visible, config: Config, params: Params, x_tru
         new = vis_s & ~mapped
     else:
         slots, mapped, new, _ = es.associate_nn(
-            st, model, y_s, vis_s, R, mparams, gate=cfg.nn_gate, new_threshold=cfg.nn_new
+            st, model, y_s, vis_s, R, mparams, gate=jnp.asarray(params.nn_gate, st.x.dtype),
+            new_threshold=jnp.asarray(params.nn_new, st.x.dtype),
         )
-    st, info = es.update(st, model, y_s, slots, mapped, R, mparams, gate=cfg.gate)
+    gate = None if params.gate is None else jnp.asarray(params.gate, st.x.dtype)
+    st, info = es.update(st, model, y_s, slots, mapped, R, mparams, gate=gate)
     if cfg.mode == "unknown":
         st = es.register(st, model, y_s, id_s, new, R, mparams)
     if x_true is None:
@@ -407,8 +435,9 @@ __all__ += ["StepOut", "FrameOut", "make_estimator", "robot_error", "CONSISTENCY
 
 
 def params_to_dict(noise: Params) -> dict:
-    """JSON-ready form of :class:`Params` (full matrices as nested lists)."""
-    return {k: np.asarray(v, float).tolist() for k, v in noise._asdict().items()}
+    """JSON-ready form of the noise of :class:`Params` (:data:`NOISE_FIELDS`, full matrices as
+    nested lists)."""
+    return {k: np.asarray(getattr(noise, k), float).tolist() for k in NOISE_FIELDS}
 
 
 def params_from_dict(d: dict, default: Params, dtype) -> Params:
@@ -417,9 +446,9 @@ def params_from_dict(d: dict, default: Params, dtype) -> Params:
     Each entry is a full matrix or a list of diagonal values; missing entries keep
     ``default``.  Unknown keys are an error naming them.
     """
-    unknown = set(d) - set(Params._fields)
+    unknown = set(d) - set(NOISE_FIELDS)
     if unknown:
-        raise InputError(f"params.noise: unknown entries {sorted(unknown)}; expected {list(Params._fields)}")
+        raise InputError(f"params.noise: unknown entries {sorted(unknown)}; expected {list(NOISE_FIELDS)}")
     vals = default._asdict()
     for k, v in d.items():
         a = np.asarray(v, float)
@@ -429,7 +458,7 @@ def params_from_dict(d: dict, default: Params, dtype) -> Params:
     return Params(**vals)
 
 
-__all__ += ["params_to_dict", "params_from_dict"]
+__all__ += ["params_to_dict", "params_from_dict", "NOISE_FIELDS"]
 
 
 class Log(NamedTuple):
@@ -550,6 +579,9 @@ def run(log: Log, config: Config, params: Params, *, key=None) -> Result:
     _check_config(config, None if log.landmarks is None else int(np.shape(log.landmarks)[0]))
     if is_concrete(params):
         validate_params(params)
+    dtype = jnp.asarray(log.s0).dtype  # thresholds as arrays: a Python number and an array share one program
+    params = params._replace(**{f: None if getattr(params, f) is None else host_array(getattr(params, f), dtype)
+                                for f in ("gate", "nn_gate", "nn_new")})
     return _run(log, config, params)
 
 

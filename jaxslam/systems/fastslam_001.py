@@ -125,7 +125,7 @@ from ..errors import InputError
 from ..filters import ekf
 from ..filters import fastslam as fs
 from ..geometry.euler import dcm_from_euler, euler_rates
-from ..linalg import chol_solve, is_concrete, symmetrize
+from ..linalg import chol_solve, host_array, is_concrete, symmetrize
 from ..sensors import imu as imu_mod
 from ..sensors import lidar3d
 
@@ -210,10 +210,7 @@ class Config(NamedTuple):
         "none" (stage 1 only).  Ignored by the kinematics baseline.
     accel_mode: "specific_force" (default) | "kinematic" (paper eq. 7).
     resampling: scheme name of :data:`jaxslam.filters.resampling.SCHEMES` or "soft".
-    threshold: resample when N_eff < threshold·N; None resamples at every weight update
-        (the paper's Step 6; also the right choice for soft resampling, whose loss is then
-        smooth in the parameters).
-    soft_alpha: mixture weight α of soft resampling (used when resampling == "soft").
+    (The resampling threshold and the soft-resampling mixture weight are numbers: :class:`Params`.)
     capacity: landmark slots per particle (ids 0..capacity−1, id j in slot j).
     lidar_every: IMU samples per LiDAR frame (static; 10 = 10 Hz at T = 0.01 s).
     dt: IMU / control step T [s] (paper: 0.01 s).
@@ -229,8 +226,6 @@ class Config(NamedTuple):
     stage2: str = "paper"
     accel_mode: str = "specific_force"
     resampling: str = "systematic"
-    threshold: Optional[float] = 0.5
-    soft_alpha: float = 0.5
     capacity: int = 4
     lidar_every: int = 10
     dt: float = 0.01
@@ -250,6 +245,10 @@ class Params(NamedTuple):
     drift_q: (6,) drift process-noise variance per step T² σ_b1² (eq. 11).
     bias_p0: (12,) initial bias/drift KF variances (Table 4 P_{0|0}, diagonal).
     pose0_var: (12,) variance of the initial particle cloud.
+    resample_threshold: () resample when N_eff < threshold·N; None resamples at every weight
+        update (the paper's Step 6; also the right choice for soft resampling, whose loss is
+        then smooth in the parameters; None ↔ a number is a switch and retraces once).
+    soft_alpha: () mixture weight α of soft resampling (used when ``config.resampling == "soft"``).
     """
 
     quad: Any
@@ -260,6 +259,8 @@ class Params(NamedTuple):
     drift_q: Array
     bias_p0: Array
     pose0_var: Array
+    resample_threshold: Optional[Array] = 0.5
+    soft_alpha: Array = 0.5
 
 
 class State(NamedTuple):
@@ -423,6 +424,9 @@ def default_params(model: str = "dynamics", imu_spec=None, lidar_spec=None,
         drift_q=q,
         bias_p0=jnp.full((NB,), float(bias_prior_sigma) ** 2, dtype),
         pose0_var=jnp.asarray(pose0_sigma, dtype) ** 2,
+        # the default resampling numbers as arrays of dtype (a tree_map over the parameters reaches them)
+        resample_threshold=host_array(Params._field_defaults["resample_threshold"], dtype),
+        soft_alpha=host_array(Params._field_defaults["soft_alpha"], dtype),
     )
 
 
@@ -449,10 +453,6 @@ def validate_config(cfg: Config) -> Config:
     if cfg.resampling != "soft" and cfg.resampling not in rs.SCHEMES:
         raise InputError(f"config.resampling: expected 'soft' or one of {sorted(rs.SCHEMES)}, "
                          f"got {cfg.resampling!r}")
-    if cfg.threshold is not None and not (0.0 < float(cfg.threshold) <= 1.0):
-        raise InputError(f"config.threshold: expected None or a fraction in (0, 1], got {cfg.threshold}")
-    if not (0.0 <= float(cfg.soft_alpha) <= 1.0):
-        raise InputError(f"config.soft_alpha: expected a value in [0, 1], got {cfg.soft_alpha}")
     n = cfg.n_particles
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)):
         raise InputError(f"config.n_particles: expected a positive integer, got {n!r}")
@@ -486,6 +486,11 @@ def validate_params_001(params: Params) -> Params:
             raise InputError(f"params.{name}: contains NaN or Inf")
         if np.any(v < 0) or (strict and np.any(v <= 0)):
             raise InputError(f"params.{name}: must be {'> 0' if strict else '>= 0'}, got {v.tolist()}")
+    thr = params.resample_threshold
+    if thr is not None and not (np.shape(thr) == () and 0.0 < float(thr) <= 1.0):
+        raise InputError(f"params.resample_threshold: expected None or a fraction in (0, 1], got {thr!r}")
+    if not (np.shape(params.soft_alpha) == () and 0.0 <= float(params.soft_alpha) <= 1.0):
+        raise InputError(f"params.soft_alpha: expected a value in [0, 1], got {params.soft_alpha!r}")
     return params
 
 
@@ -694,10 +699,10 @@ def init(log: Log, config: Config, params: Params, *, key) -> State:
     )
 
 
-def _resample(p, key, config: Config):
+def _resample(p, key, config: Config, params: Params):
     if config.resampling == "soft":
-        return fs.resample_soft(p, key, config.soft_alpha, threshold=config.threshold)
-    return fs.maybe_resample(p, key, config.threshold, config.resampling)
+        return fs.resample_soft(p, key, params.soft_alpha, threshold=params.resample_threshold)
+    return fs.maybe_resample(p, key, params.resample_threshold, config.resampling)
 
 
 def _h_lin(b):
@@ -773,7 +778,7 @@ def imu_stage(state: State, rotor_w, imu, key, config: Config,
     p = p._replace(aux=m_post)
     p = fs.reweight(p, ll)
     neff = fs.neff(p)
-    p = _resample(p, k_res, config)
+    p = _resample(p, k_res, config, params)
 
     # Step 8 (rates): gyroscope inverse sensor model with the updated bias.
     if config.stage2 in ("paper", "rates"):
@@ -809,7 +814,7 @@ def lidar_stage(state: State, z, ids, mask, key, config: Config,
     used = mask & jnp.all(jnp.isfinite(z), axis=-1)
     z = jnp.where(used[:, None], z, jnp.zeros((), dtype))
     neff = fs.neff(p)
-    p = _resample(p, k_res, config)
+    p = _resample(p, k_res, config, params)
     if config.model == "dynamics" and config.stage2 == "paper":
         keys = jax.random.split(k_s2, p.pose.shape[0])
         pose = jax.vmap(lambda x, m, c, a, k: regenerate_position(
@@ -917,6 +922,10 @@ def run(log: Log, config: Config, params: Params, *, key) -> Result:
     if is_concrete(params):
         validate_params_001(params)
     log = log._replace(ids=jnp.asarray(log.ids, jnp.int32), mask=jnp.asarray(log.mask, bool))
+    dtype = jnp.asarray(log.x0).dtype  # the numbers as arrays: a Python number and an array share one program
+    thr = params.resample_threshold
+    params = params._replace(resample_threshold=None if thr is None else host_array(thr, dtype),
+                             soft_alpha=host_array(params.soft_alpha, dtype))
     return _run(log, config, params, key)
 
 

@@ -71,7 +71,7 @@ import numpy as np
 from ..errors import InputError
 from ..features import lines as fl
 from ..filters import ekf_slam as es
-from ..linalg import is_concrete, wrap_angle
+from ..linalg import host_array, is_concrete, wrap_angle
 from ..sensors import laser2d
 
 __all__ = [
@@ -82,6 +82,8 @@ __all__ = [
     "RATE",
     "Config",
     "Params",
+    "NOISE_FIELDS",
+    "THRESHOLDS",
     "Log",
     "Event",
     "State",
@@ -113,17 +115,9 @@ class Config(NamedTuple):
     """Static settings (hashable; a change recompiles).
 
     dt: scan period [s] (URG-04LX: 0.1); capacity: line slots; ransac: RANSAC
-    settings (``max_lines`` = new lines sought per scan); match_gate: distance
-    [m] within which scan points support a predicted line; min_update_inliers: a
-    matched line updates the filter only with at least this many points; nis_gate: χ²(2)
-    threshold of each matched line's NIS (99.9 %: 13.82); new_threshold: a
-    RANSAC line is new only if its squared Mahalanobis distance to every mapped
-    line exceeds this; min_line_rho: new lines closer than this [m] to the sensor
-    are not mapped (clutter lining up through the sensor); min_line_length [m] and
-    max_scatter_ratio: a new line is mapped only if its inlier segment is at least
-    this long and its residual variance is at most this multiple of the laser's
-    predicted point variance (:func:`_fit_quality`); spec: the laser; record_inputs: also return the EKF
-    inputs of every step (for the NumPy twin and debugging).
+    settings (``max_lines`` = new lines sought per scan); spec: the laser; record_inputs:
+    also return the EKF inputs of every step (for the NumPy twin and debugging).  The gates
+    and thresholds are numbers: :class:`Params`.
     """
 
     dt: float = 0.1
@@ -131,13 +125,6 @@ class Config(NamedTuple):
     ransac: fl.RansacConfig = fl.RansacConfig(n_hyp=128, max_lines=3, threshold=0.05,
                                               min_inliers=20, point_sigma=0.02, max_gap=10,
                                               trim_ends=3)
-    match_gate: float = 0.08
-    nis_gate: float = 13.82
-    new_threshold: float = 50.0
-    min_line_rho: float = 0.25
-    min_update_inliers: int = 20
-    min_line_length: float = 0.3
-    max_scatter_ratio: float = 2.0
     spec: laser2d.LaserSpec = laser2d.URG04LX
     record_inputs: bool = False
 
@@ -148,13 +135,36 @@ class Params(NamedTuple):
     Q: (6, 6) discrete process noise per step; R_odo: (3, 3) optical flow
     (2 rows, [m/s]²) and gyro yaw rate ([rad/s]²); R_line: (2, 2) added to each
     line fit's own covariance ([m², rad²]: model error floor); P0: (6, 6)
-    initial robot covariance.
+    initial robot covariance (the noise: :data:`NOISE_FIELDS`).
+
+    Thresholds (scalars; traced too, so a new value never recompiles): match_gate:
+    distance [m] within which scan points support a predicted line; min_update_inliers: a
+    matched line updates the filter only with at least this many points; nis_gate: χ²(2)
+    threshold of each matched line's NIS (99.9 %: 13.82); new_threshold: a RANSAC line is
+    new only if its squared Mahalanobis distance to every mapped line exceeds this;
+    min_line_rho: new lines closer than this [m] to the sensor are not mapped (clutter lining
+    up through the sensor); min_line_length [m] and max_scatter_ratio: a new line is mapped
+    only if its inlier segment is at least this long and its residual variance is at most
+    this multiple of the laser's predicted point variance (:func:`_fit_quality`).
     """
 
     Q: jax.Array
     R_odo: jax.Array
     R_line: jax.Array
     P0: jax.Array
+    match_gate: jax.Array = 0.08
+    nis_gate: jax.Array = 13.82
+    new_threshold: jax.Array = 50.0
+    min_line_rho: jax.Array = 0.25
+    min_update_inliers: jax.Array = 20.0
+    min_line_length: jax.Array = 0.3
+    max_scatter_ratio: jax.Array = 2.0
+
+
+#: The noise fields of :class:`Params` (the rest are the thresholds, :data:`THRESHOLDS`).
+NOISE_FIELDS = ("Q", "R_odo", "R_line", "P0")
+THRESHOLDS = ("match_gate", "nis_gate", "new_threshold", "min_line_rho", "min_update_inliers",
+              "min_line_length", "max_scatter_ratio")
 
 
 class Log(NamedTuple):
@@ -308,6 +318,8 @@ def default_params(dt: float = 0.1, sigma_flow: float = 0.05, sigma_gyro: float 
         R_line=jnp.asarray(np.diag([sigma_line_rho ** 2, np.deg2rad(sigma_line_theta_deg) ** 2]), dtype),
         P0=jnp.asarray(np.diag([1e-8, 1e-8, sigma_flow ** 2, sigma_flow ** 2, 1e-8, sigma_gyro ** 2]),
                        dtype),
+        # the default thresholds as arrays of dtype (a tree_map over the parameters reaches them)
+        **{f: host_array(Params._field_defaults[f], dtype) for f in THRESHOLDS},
     )
 
 
@@ -372,21 +384,22 @@ def step(state: State, event: Event, config: Config, params: Params, *, key) -> 
     L = es.landmarks(st, model)
     zh = jax.vmap(lambda l: observe(s, l))(L)
     pr, pt = fl.hesse_normalize(zh[:, 0], zh[:, 1])
-    matched, new, _ = fl.extract_guided(key, pts, pvalid, pr, pt, st.active, config.ransac, config.match_gate)
+    thr = {f: host_array(getattr(params, f), dtype) for f in THRESHOLDS}
+    matched, new, _ = fl.extract_guided(key, pts, pvalid, pr, pt, st.active, config.ransac, thr["match_gate"])
 
     R_line = params.R_line.astype(dtype)
     sig_pt = jnp.where(pvalid, laser2d.range_sigma(jnp.where(pvalid, ranges, 1.0), config.spec), 0.0)
     q_m = _fit_quality(matched, pts, sig_pt, config.ransac.point_sigma)
     z_m = jnp.stack([matched.rho, matched.theta], axis=-1)
     R_m = matched.cov * q_m.cov_scale[:, None, None] + R_line
-    m_mask = matched.valid & st.active & (matched.n_inliers >= config.min_update_inliers)
-    st, info = es.update(st, model, z_m, jnp.arange(cap), m_mask, R_m, gate=config.nis_gate)
+    m_mask = matched.valid & st.active & (matched.n_inliers >= thr["min_update_inliers"])
+    st, info = es.update(st, model, z_m, jnp.arange(cap), m_mask, R_m, gate=thr["nis_gate"])
 
-    q_n = _fit_quality(new, pts, sig_pt, config.ransac.point_sigma, config.max_scatter_ratio)
+    q_n = _fit_quality(new, pts, sig_pt, config.ransac.point_sigma, thr["max_scatter_ratio"])
     z_n = jnp.stack([new.rho, new.theta], axis=-1)
     R_n = new.cov * q_n.cov_scale[:, None, None] + R_line
-    _, _, is_new, _ = es.associate_nn(st, model, z_n, new.valid, R_n, gate=config.nis_gate,
-                                      new_threshold=config.new_threshold)
+    _, _, is_new, _ = es.associate_nn(st, model, z_n, new.valid, R_n, gate=thr["nis_gate"],
+                                      new_threshold=thr["new_threshold"])
     # Clutter in front of the sensor can line up into a "line" through it (ρ ≈ 0): no wall is
     # that close to a flying vehicle, so such candidates are not mapped.  A new line must also
     # look like one wall: inlier scatter about the fit no larger than the
@@ -394,8 +407,8 @@ def step(state: State, event: Event, config: Config, params: Params, *, key) -> 
     # RANSAC threshold) and a segment of at least ``min_line_length``.  (With
     # ``ransac.max_gap`` every line is one run of beams: RANSAC cannot string a pillar face and
     # a nearly collinear wall behind it, or clutter on a line's extension, into one line.)
-    reg = (new.valid & is_new & (new.rho >= config.min_line_rho) & q_n.wall_like
-           & (q_n.length >= config.min_line_length))
+    reg = (new.valid & is_new & (new.rho >= thr["min_line_rho"]) & q_n.wall_like
+           & (q_n.length >= thr["min_line_length"]))
     M = z_n.shape[0]
     ids = jnp.asarray(event.index, jnp.int32) * M + jnp.arange(M, dtype=jnp.int32)
     n_act0 = jnp.sum(st.active)
@@ -460,6 +473,8 @@ def run(log: Log, config: Config = Config(), params: Optional[Params] = None, *,
         raise InputError("log.s0: contains non-finite values")
     if is_concrete(params):
         validate_params(params)
+    dtype = jnp.asarray(log.s0).dtype  # thresholds as arrays: a Python number and an array share one program
+    params = params._replace(**{f: host_array(getattr(params, f), dtype) for f in THRESHOLDS})
     return _run(log, config, params, key)
 
 
@@ -484,7 +499,8 @@ def _run(log: Log, config: Config, params: Params, key) -> Result:
 # ---------------------------------------------------------------------------
 
 def validate_params(params: Params) -> Params:
-    """Shapes, finiteness and positive (semi-)definiteness of every covariance."""
+    """Shapes, finiteness and positive (semi-)definiteness of every covariance; the thresholds
+    finite, non-negative scalars."""
     from ..linalg import check_psd
 
     shapes = {"Q": (NR, NR), "R_odo": (3, 3), "R_line": (2, 2), "P0": (NR, NR)}
@@ -495,6 +511,10 @@ def validate_params(params: Params) -> Params:
         if not np.all(np.isfinite(a)):
             raise InputError(f"params.{name}: contains non-finite values")
         check_psd(a, f"params.{name}", strict=name in ("R_odo",))
+    for name in THRESHOLDS:
+        a = np.asarray(getattr(params, name), float)
+        if a.shape != () or not np.isfinite(a) or a < 0:
+            raise InputError(f"params.{name}: expected a finite, non-negative scalar, got {getattr(params, name)!r}")
     return params
 
 

@@ -120,7 +120,7 @@ from .. import errors
 from ..errors import InputError
 from ..filters import ekf_slam as es
 from ..filters import trilateration as tri
-from ..linalg import check_psd, is_concrete
+from ..linalg import check_psd, host_array, is_concrete
 from ..sensors import uwb
 
 __all__ = [
@@ -386,21 +386,12 @@ def motion(s, u, dt):
     return jnp.concatenate([s[POS] + s[VEL] * dt, s[VEL], s[ANG] + s[RATE] * dt, s[RATE]])
 
 
-def _host(x, dtype):
-    """``x`` as an array of ``dtype``: made on the host when ``x`` is known now (``device_put``
-    runs no eager program, while ``jnp.asarray`` of a scalar, or its first use in a process,
-    compiles one), traced otherwise (the presets stay usable under ``jit`` / ``grad``)."""
-    if is_concrete(x):
-        return jax.device_put(np.asarray(x, dtype=np.dtype(dtype)))
-    return jnp.asarray(x, dtype)
-
-
 def paper_process_noise(dt, dtype=jnp.float64, q=PAPER_Q):
     """Q_d = diag(eq. 27 robot entries) · Δt  (10, 10); equals eq. 27 at Δt = 1.
 
     Built on the host (NumPy) when ``dt`` and ``q`` are known now: no eager programs to compile."""
     xp = np if is_concrete(dt, q) else jnp
-    return _host(xp.diag(xp.asarray(q, np.float64)) * dt, dtype)
+    return host_array(xp.diag(xp.asarray(q, np.float64)) * dt, dtype)
 
 
 def ncv_process_noise(dt, q_acc, q_ang_acc, dtype=jnp.float64):
@@ -415,12 +406,12 @@ def ncv_process_noise(dt, q_acc, q_ang_acc, dtype=jnp.float64):
     pairs = [(0, 2, q_acc), (1, 3, q_acc), (4, 7, q_ang_acc), (5, 8, q_ang_acc), (6, 9, q_ang_acc)]
     eye = np.eye(NR)
     Q = sum(q * (eye[[i, j]].T @ blk @ eye[[i, j]]) for i, j, q in pairs)  # blk on rows/cols (i, j)
-    return _host(Q, dtype)
+    return host_array(Q, dtype)
 
 
 def _default_thresholds(dtype) -> dict:
     """The threshold fields of :class:`Params` at their defaults, as arrays of ``dtype`` (None stays)."""
-    return {k: None if v is None else _host(v, dtype) for k, v in Params._field_defaults.items()}
+    return {k: None if v is None else host_array(v, dtype) for k, v in Params._field_defaults.items()}
 
 
 def paper_params(model: str = "squared", dt: float = 1.0, noise: uwb.UwbNoise = uwb.PAPER003_NOISE,
@@ -430,10 +421,10 @@ def paper_params(model: str = "squared", dt: float = 1.0, noise: uwb.UwbNoise = 
     r = PAPER_R_SQUARED if model == "squared" else PAPER_R_RANGE
     return Params(  # built on the host: no eager programs to compile
         Q=paper_process_noise(dt, dtype),
-        P0=_host(np.zeros((NR, NR)), dtype),
-        r_range=_host(r, dtype),
-        r_gyro=_host(PAPER_R_GYRO, dtype),
-        range_var=_host(uwb.uniform_variance(noise.range_half_width), dtype),
+        P0=host_array(np.zeros((NR, NR)), dtype),
+        r_range=host_array(r, dtype),
+        r_gyro=host_array(PAPER_R_GYRO, dtype),
+        range_var=host_array(uwb.uniform_variance(noise.range_half_width), dtype),
         **_default_thresholds(dtype),
     )
 
@@ -459,10 +450,10 @@ def matched_params(model: str = "squared", dt: float = 1.0, noise: uwb.UwbNoise 
     s2 = uwb.uniform_variance(noise.range_half_width)
     return Params(  # built on the host: no eager programs to compile
         Q=ncv_process_noise(dt, q_acc, q_ang_acc, dtype),
-        P0=_host(np.diag(np.asarray(p0, np.float64)), dtype),
-        r_range=_host(s2 if model == "range" else uwb.squared_range_variance(1.0, s2), dtype),
-        r_gyro=_host(uwb.uniform_variance(noise.gyro_half_width), dtype),
-        range_var=_host(s2, dtype),
+        P0=host_array(np.diag(np.asarray(p0, np.float64)), dtype),
+        r_range=host_array(s2 if model == "range" else uwb.squared_range_variance(1.0, s2), dtype),
+        r_gyro=host_array(uwb.uniform_variance(noise.gyro_half_width), dtype),
+        range_var=host_array(s2, dtype),
         **_default_thresholds(dtype),
     )
 
@@ -861,7 +852,7 @@ def _thresholds_as_arrays(params: Params) -> Params:
     """The threshold fields as arrays of the noise's dtype (None stays None): a Python number and
     an array of the same value then reach ``_run`` with the same type, so neither retraces."""
     dtype = jnp.result_type(params.range_var)
-    return params._replace(**{k: None if getattr(params, k) is None else _host(getattr(params, k), dtype)
+    return params._replace(**{k: None if getattr(params, k) is None else host_array(getattr(params, k), dtype)
                               for k in Params._fields if k not in NOISE_FIELDS})
 
 

@@ -107,7 +107,7 @@ def runs():
     # One compiled program: the step and the draws it makes from its key.
     step = jax.jit(lambda s, i, k: (fs1.step(s, i, cfg, prm, key=k), _draws(k, N)),
                    compiler_options=FAST_COMPILE)
-    P = tw.params_from(prm, cfg.dt, cfg.threshold)
+    P = tw.params_from(prm, cfg.dt, prm.resample_threshold)
     ts = tw.state_from(st)
     worst, resampled, seen = {}, [], []
     states = []

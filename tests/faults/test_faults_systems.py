@@ -400,7 +400,7 @@ def test_uwb_slam_2d_fault(fault, uwb):
 # ---------------------------------------------------------------------------
 
 LIDAR_EVERY = 10
-# Paper 000's filter has no gate (Config.gate=None, the reproduced figures use none); a
+# Paper 000's filter has no gate (Params.gate=None, the reproduced figures use none); a
 # user who expects corrupted LiDAR frames switches on a χ²(3) 99.9 % gate (16.27).
 GATE_3D = 16.27
 
@@ -423,7 +423,7 @@ def flight3d():
 
     def run(imu, y, vis, gate=False):
         res = s3.run(s3.Log(s0=fl.truth[0, :9], imu=imu, y=y, visible=vis, ids=jnp.arange(40)),
-                     cfg._replace(gate=GATE_3D) if gate else cfg, noise)
+                     cfg, noise._replace(gate=GATE_3D) if gate else noise)
         return res.final, res.means, res.frames
 
     return fl, imu, run

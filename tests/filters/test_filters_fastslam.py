@@ -631,3 +631,57 @@ def test_scanned_run_tracks_and_keeps_dtype(dtype):
     assert np.max(np.linalg.norm(lm - LMS, axis=1)) < 0.1
     assert int(p.status) == 0 and int(p.resamples) > 0
     chex.assert_tree_all_finite(p)
+
+
+# ---------------------------------------------------------------------------
+# The generic runner: fs.run is a scan of fs.step
+# ---------------------------------------------------------------------------
+
+def _run_case(T=8, N=16, seed=12):
+    rng = np.random.default_rng(seed)
+    truth = poses_path(T + 1)
+    u = np.diff(truth, axis=0)
+    zs = np.stack([measure(truth[t + 1], rng, sigma=(0.05, 0.01)) for t in range(T)])
+    masks = rng.random((T, 4)) > 0.2
+
+    def sample(pose, aux, key, du):
+        return pose + du + jax.random.normal(key, (3,), pose.dtype) * jnp.asarray([0.02, 0.02, 0.005],
+                                                                                 pose.dtype), aux
+
+    R = np.diag([0.05**2, 0.01**2])
+    return truth, u, zs, masks, sample, R, fs.init(truth[0], N, 4, 2)
+
+
+def test_generic_run_equals_a_loop_of_step():
+    truth, u, zs, masks, sample, R, p0 = _run_case()
+    key = jax.random.PRNGKey(4)
+    out = jax.jit(lambda p, k: fs.run(p, k, sample, (u,), MODEL, zs, np.arange(4), masks, R,
+                                      angle_mask=[False, False, True], slot_by_id=True, threshold=0.7))(p0, key)
+    step = jax.jit(lambda p, k, du, z, m: fs.step(p, k, sample, (du,), MODEL, z, jnp.arange(4), m, R,
+                                                   slot_by_id=True, threshold=0.7))
+    p = p0
+    for t, k in enumerate(jax.random.split(key, len(u))):
+        p, info = step(p, k, u[t], zs[t], masks[t])
+        np.testing.assert_allclose(np.asarray(out.pose_mean[t]),
+                                   np.asarray(fs.estimate(p, angle_mask=[False, False, True])[0]), rtol=1e-12)
+        assert float(out.log_marginal[t]) == pytest.approx(float(info.log_marginal), rel=1e-12)
+        assert int(out.n_used[t]) == int(info.n_used) and int(out.n_gated[t]) == int(np.sum(info.gated))
+    np.testing.assert_allclose(np.asarray(out.final.pose), np.asarray(p.pose), rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(out.final.lm_mean), np.asarray(p.lm_mean), rtol=1e-12)
+    assert int(out.final.resamples) == int(p.resamples) > 0
+    assert np.all(np.asarray(out.neff) <= 16.0 + 1e-9) and out.pose_mean.shape == (len(u), 3)
+
+
+def test_generic_run_names_the_bad_argument():
+    truth, u, zs, masks, sample, R, p0 = _run_case(T=3)
+    key = jax.random.PRNGKey(0)
+    with pytest.raises(InputError, match=r"zs: expected shape \(T, K, d_z\)"):
+        fs.run(p0, key, sample, (u,), MODEL, zs[0], np.arange(4), masks, R)
+    with pytest.raises(InputError, match="masks"):
+        fs.run(p0, key, sample, (u,), MODEL, zs, np.arange(4), masks[:2], R)
+    with pytest.raises(InputError, match="lm_ids"):
+        fs.run(p0, key, sample, (u,), MODEL, zs, np.arange(3), masks, R)
+    with pytest.raises(InputError, match=r"inputs\[0\]"):
+        fs.run(p0, key, sample, (u[:2],), MODEL, zs, np.arange(4), masks, R)
+    with pytest.raises(InputError, match="R: expected shape"):
+        fs.run(p0, key, sample, (u,), MODEL, zs, np.arange(4), masks, np.eye(3))

@@ -124,8 +124,8 @@ def _lidar_loss_setup(flight):
     """Loss of one LiDAR frame (update of a mapped landmark set, soft resampling, stage 2)."""
     setup, fl = flight
     n = 8
-    cfg = fs1.Config(n_particles=n, resampling="soft", threshold=None, soft_alpha=0.5)
-    prm = fs1.default_params("dynamics", dtype=jnp.float64)
+    cfg = fs1.Config(n_particles=n, resampling="soft")
+    prm = fs1.default_params("dynamics", dtype=jnp.float64)._replace(resample_threshold=None, soft_alpha=0.5)
     ids = jnp.arange(4, dtype=jnp.int32)
 
     def state():

@@ -97,8 +97,8 @@ CASES = ((jnp.float64, "exact"), (jnp.float64, "paper"), (jnp.float32, "exact"))
 
 def _bias_kf_run(zs, dtype, weights):
     """The IMU stage alone over ``zs``, from the set-up of the module docstring (traced)."""
-    cfg = fs1.Config(n_particles=3, stage2="none", weights=weights, threshold=1e-9)
-    prm = _params(dtype)
+    cfg = fs1.Config(n_particles=3, stage2="none", weights=weights)
+    prm = _params(dtype)._replace(resample_threshold=1e-9)
     x0 = np.zeros((3, 12))
     x0[:, 2] = 0.5
     x0[:, 11] = RATES

@@ -259,7 +259,9 @@ def run_scenario(name, mode, runs, seed, dtype, options, progress, params=None, 
         "lidar_rate_hz": 1.0 / (DT * FRAME_STEPS),
         "landmark_centre_ned_m": [0.0, 0.0, -float(options["altitude"])],
         "noise": sys3d.params_to_dict(noise),
-        "estimator": cfg._asdict(),
+        "estimator": {**cfg._asdict(),  # the thresholds are Params, reported beside the switches
+                      **{f: None if getattr(noise, f) is None else float(getattr(noise, f))
+                         for f in ("gate", "nn_gate", "nn_new")}},
         "anees_window_s": WINDOW_S,
         **options,
     }

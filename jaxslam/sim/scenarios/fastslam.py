@@ -194,14 +194,14 @@ def make_filter(options: dict, dtype):
     cfg = fs1.Config(
         model=model, n_particles=int(options["particles"]), lidar=options["lidar"], weights=options["weights"],
         stage2=options["stage2"], accel_mode=options["accel"],
-        resampling=options["resampling"], threshold=None if thr >= 1.0 else thr,
-        soft_alpha=float(options["soft_alpha"]), capacity=4, lidar_every=LIDAR_EVERY, dt=DT,
+        resampling=options["resampling"], capacity=4, lidar_every=LIDAR_EVERY, dt=DT,
     )
     quad = PAPER001_MISMATCH if options["inertia_mismatch"] else PAPER001
     bias = float(options["bias"])
     spec = imu_mod.PAPER001_IMU(bias, rate=1.0 / DT)
     prm = fs1.default_params(model, spec, quad=quad, dt=DT, dtype=dtype,
                              bias_prior_sigma=bias_prior_sigma(bias))
+    prm = prm._replace(resample_threshold=None if thr >= 1.0 else thr, soft_alpha=float(options["soft_alpha"]))
     return fs1.validate_config(cfg), prm
 
 

@@ -204,8 +204,8 @@ def build(options: dict, dtype, params=None):
     if params and "filter" in params:
         vals = fp._asdict()
         for k, v in dict(params["filter"]).items():
-            if k not in vals:
-                raise InputError(f"params.filter: unknown entry {k!r}; expected {list(vals)}")
+            if k not in LS.NOISE_FIELDS:
+                raise InputError(f"params.filter: unknown entry {k!r}; expected {list(LS.NOISE_FIELDS)}")
             a = np.asarray(v, float)
             vals[k] = jnp.asarray(np.diag(a) if a.ndim == 1 else a, dtype)
         fp = LS.Params(**vals)
@@ -229,7 +229,7 @@ def build(options: dict, dtype, params=None):
 def params_schema(options, dtype) -> dict:
     """What a ``--params`` file may set (:mod:`jaxslam.paramfile`): the filter's noise."""
     fp = LS.default_params(LS.Config(capacity=1).dt, dtype=dtype)
-    return {"filter": {k: np.asarray(v) for k, v in fp._asdict().items()}}
+    return {"filter": {k: np.asarray(getattr(fp, k)) for k in LS.NOISE_FIELDS}}
 
 
 def run_scenario(runs, seed, dtype, options, progress, params=None, plots=False):
@@ -270,12 +270,12 @@ def run_scenario(runs, seed, dtype, options, progress, params=None, plots=False)
         "dt_s": cfg.dt,
         "laser": cfg.spec._asdict(),
         "ransac": cfg.ransac._asdict(),
-        "match_gate_m": cfg.match_gate,
-        "nis_gate": cfg.nis_gate,
-        "new_threshold": cfg.new_threshold,
+        "match_gate_m": float(fp.match_gate),
+        "nis_gate": float(fp.nis_gate),
+        "new_threshold": float(fp.new_threshold),
         "sigma_flow_mps": setup.sigma_flow,
         "sigma_gyro_radps": setup.sigma_gyro,
-        "filter_params": {k: np.asarray(v, float).tolist() for k, v in fp._asdict().items()},
+        "filter_params": {k: np.asarray(getattr(fp, k), float).tolist() for k in LS.NOISE_FIELDS},
         **options,
     }
     return ScenarioResult(

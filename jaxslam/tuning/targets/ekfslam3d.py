@@ -24,8 +24,8 @@ Decisions (no paper covers tuning):
 * NLL needs the joint innovation covariance of each frame: the engine's update reports its
   NIS, log det S and degrees of freedom (:class:`jaxslam.filters.ekf_slam.UpdateInfo`), from
   the prior and the estimator's own measurement selection, so nothing is formed twice; the
-  NLL target requires known association and no gate (checked), so that the update's
-  measurements are the log's.
+  NLL target uses known association and no gate (its ``Params`` carry none), so that the
+  update's measurements are the log's.
 * ``jax.checkpoint`` wraps the body of the outer (per LiDAR frame) scan (``Config.checkpoint``), so the backward
   pass stores one carry per frame and recomputes the ten inner steps: memory grows with the
   number of frames, not of IMU steps.
@@ -206,9 +206,6 @@ def ekfslam3d_noise(loss: str = "nll", train_runs: int = 4, test_runs: int = 8, 
                                  Qimu=m.get("Qimu", jnp.zeros((6, 6), dtype)), R=m.get("R", ref.R.astype(dtype)))
 
     w = None if mse_weights is None else jnp.asarray(mse_weights, dtype)
-
-    if loss == "nll" and cfg.gate is not None:
-        raise InputError("loss 'nll': needs the filter without a gate (the update's rows are the log's)")
 
     def loss_fn(theta, log):
         # the frames' NEES (a Cholesky each) only when the loss reads it
