@@ -34,11 +34,15 @@ DESCRIPTION = ("Compile time (trace / lower / XLA compile) of every public runne
                "each dataset runner, the tuning steps; cold (empty cache) and warm, in fresh processes")
 
 TARGETS = {"main_job_cold_s": 8.0, "main_job_warm_s": 1.5, "tune_step_cold_s": 10.0}
-# (label, case name prefix, cold|warm, TARGETS key)
+# (label, case name prefix, cold|warm, timing field, TARGETS key).  The tuning step is the jitted
+# value_and_grad + Adam step alone (``timing.step_compile_s`` of ``jaxslam tune``), the figure the
+# target was set on; the command's whole compile (log simulation, evaluation) is the row's compile_s.
 _TARGET_ROWS = (
-    ("README main job, compile cold", "run ekfslam3d-unknown (README", "cold", "main_job_cold_s"),
-    ("README main job, compile warm (second call)", "run ekfslam3d-unknown (README", "warm", "main_job_warm_s"),
-    ("tuning step, compile cold", "tune ekfslam3d", "cold", "tune_step_cold_s"),
+    ("README main job, compile cold", "run ekfslam3d-unknown (README", "cold", "compile_s", "main_job_cold_s"),
+    ("README main job, compile warm (second call)", "run ekfslam3d-unknown (README", "warm", "compile_s",
+     "main_job_warm_s"),
+    ("tuning step (value_and_grad + Adam), compile cold", "tune ekfslam3d", "cold", "step_compile_s",
+     "tune_step_cold_s"),
 )
 
 _HERE = pathlib.Path(__file__).resolve().parent
@@ -84,7 +88,8 @@ def _cases(data: pathlib.Path):
 
 def _timing(doc: dict) -> dict:
     t = doc.get("timing") or {}
-    return {k: t.get(k) for k in ("compile_s", "trace_s", "lower_s", "backend_compile_s", "programs")} | {
+    return {k: t.get(k) for k in ("compile_s", "trace_s", "lower_s", "backend_compile_s", "programs",
+                                  "step_compile_s") if k in t or k != "step_compile_s"} | {
         "cache_hits": (t.get("cache") or {}).get("hits"), "run_s": t.get("run_s", t.get("step_s"))}
 
 
@@ -125,9 +130,9 @@ def run(args):
                "speedup": (cold["compile_s"] / warm["compile_s"]) if cold.get("compile_s") and warm.get("compile_s")
                else None, "cold": cold, "warm": warm}
         results.append(row)
-        for label, case_prefix, which, key in _TARGET_ROWS:
+        for label, case_prefix, which, field, key in _TARGET_ROWS:
             if name.startswith(case_prefix):
-                v = (cold if which == "cold" else warm).get("compile_s")
+                v = (cold if which == "cold" else warm).get(field)
                 targets.append({"name": label, "target": f"<= {TARGETS[key]:g} s", "value": v,
                                 "met": bool((v or 1e9) <= TARGETS[key])})
     for t in targets:

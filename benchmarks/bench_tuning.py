@@ -140,6 +140,9 @@ def run(args):
     from jaxslam.tuning.targets import ekfslam3d as T
     from jaxslam.tuning.targets import figure8 as T8
 
+    from jaxslam import compilation
+
+    compilation.disable_cache()  # compile times are cold: no program may come from an earlier run
     load = {"before": list(os.getloadavg())}
     results, targets = [], []
     dur = args.steps / 100.0

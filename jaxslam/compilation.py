@@ -45,6 +45,7 @@ __all__ = [
     "CompileAccount",
     "account",
     "cache_dir",
+    "disable_cache",
     "enabled_dir",
     "enable_cache",
     "cache_info",
@@ -113,7 +114,7 @@ def enable_cache(path=None) -> pathlib.Path | None:
     """
     global _enabled_dir
     if cache_disabled():
-        _disable()
+        disable_cache()
         return None
     folder = cache_dir(path)
     if _enabled_dir is not None and folder == _enabled_dir:
@@ -123,7 +124,7 @@ def enable_cache(path=None) -> pathlib.Path | None:
         _warn_once(str(folder), f"jaxslam: compilation cache folder {str(folder)!r} cannot be written "
                                 f"({reason}); running without the persistent cache (set "
                                 f"{CACHE_DIR_ENV} to another folder, or {CACHE_ENV}=0 to silence this)")
-        _disable()
+        disable_cache()
         return None
     settings = {
         "jax_compilation_cache_dir": str(folder),
@@ -150,8 +151,9 @@ def enable_cache(path=None) -> pathlib.Path | None:
     return folder
 
 
-def _disable() -> None:
-    """No persistent cache in this process (nor one inherited from a parent's environment)."""
+def disable_cache() -> None:
+    """No persistent cache in this process (nor one inherited from a parent's environment): for
+    measuring cold compile times in a process that enabled it (``jaxslam bench tuning``)."""
     global _enabled_dir
     _enabled_dir = None
     os.environ.pop("JAX_COMPILATION_CACHE_DIR", None)

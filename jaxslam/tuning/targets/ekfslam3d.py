@@ -103,19 +103,24 @@ def make_slam_logs(seed: int, runs: int, duration: float, n_landmarks: int = 40,
     ``--q imu`` P0).  Returns a :class:`jaxslam.systems.ekf_slam_3d.Log` batch (leading axis
     runs, with the true states and landmarks) in ``dtype``.
     """
-    from ...sim.scenarios.tracking import FRAME_STEPS
-    from ...sim.simulate import n_frames
-
     dtype = jnp.dtype(dtype)
     if not (duration >= 0.1 and math.isfinite(duration)):
         raise InputError(f"duration: must be at least 0.1 s, got {duration}")
     if int(runs) < 1:
         raise InputError(f"runs: must be >= 1, got {runs}")
+    return _logs(keys(seed, runs), duration, n_landmarks, P0, dtype, altitude)
+
+
+def _logs(ks, duration, n_landmarks, P0, dtype, altitude):
+    """The logs of the runs keyed by ``ks`` (runs, ...) in one call of the vmapped recorder."""
+    from ...sim.scenarios.tracking import FRAME_STEPS
+    from ...sim.simulate import n_frames
+
     P0 = np.diag(sys3d.IMU_P0) if P0 is None else np.asarray(P0, float)
     w, V = np.linalg.eigh(0.5 * (P0 + P0.T))
     sqrtP0 = jnp.asarray(V * np.sqrt(np.clip(w, 0, None)), dtype)
     nf = n_frames(duration, 0.01, FRAME_STEPS)
-    return _log_maker(int(n_landmarks), nf, dtype, altitude)(keys(seed, runs), sqrtP0)
+    return _log_maker(int(n_landmarks), nf, jnp.dtype(dtype), altitude)(ks, sqrtP0)
 
 
 def slam_loss(res, log, loss: str, weights=None):
@@ -212,8 +217,16 @@ def ekfslam3d_noise(loss: str = "nll", train_runs: int = 4, test_runs: int = 8, 
         res = sys3d.run(log if loss == "nees" else log._replace(truth=None), cfg, physical(theta))
         return slam_loss(res, log, loss, w)
 
-    train = make_slam_logs(seed, train_runs, train_duration, n_lm, np.asarray(ref.P0), dtype)
-    test = make_slam_logs(seed + 1, test_runs, train_duration, n_lm, np.asarray(ref.P0), dtype)
+    # Training and held-out logs from one call of the recorder (one program, not one per batch size).
+    if int(train_runs) < 1 or int(test_runs) < 1:
+        raise InputError(f"runs: --train-runs and --test-runs must be >= 1, got {train_runs}, {test_runs}")
+    if not (train_duration >= 0.1 and math.isfinite(train_duration)):
+        raise InputError(f"duration: must be at least 0.1 s, got {train_duration}")
+    both = _logs(np.concatenate([keys(seed, train_runs), keys(seed + 1, test_runs)]), train_duration, n_lm,
+                 np.asarray(ref.P0), dtype, 3.0)
+    both = jax.tree.map(np.asarray, both)  # split on the host: slicing device arrays compiles per leaf
+    train = jax.tree.map(lambda a: jax.device_put(a[:train_runs]), both)
+    test = jax.tree.map(lambda a: jax.device_put(a[train_runs:]), both)
 
     opts = _scenario_options(mode, duration=float(eval_duration))
     one_run, _, ecfg, _, nf = scen.build(opts, mode, dtype)
