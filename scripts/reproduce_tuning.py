@@ -23,6 +23,12 @@ Parts (each writes ``<out>/<part>.json``; ``table.md`` summarises every JSON pre
                with each one's accelerometer entries scaled by 32: how flat the likelihood is.
 ``lqr``        ``jaxslam tune track-figure8 --target lqr``: held-out closed-loop cost
                (acceptance: lowered by ≥ 10 %).
+``loop_lqr``   ``jaxslam tune ekfslam3d-unknown --target loop --tune lqr``: the DF-LQR weights through
+               the closed loop with the EKF-SLAM estimator in it; held-out objective against Table 2
+               (acceptance: ≥ 20 % lower) and against the truth-tuned weights of ``lqr`` evaluated the
+               same way (``--compare``; acceptance: lower).  Needs ``lqr`` first (its tune JSON).
+``loop_both``  ``--tune both --w-nees 10 --train-runs 16``: weights and Q_imu jointly, with the NEES term
+               (acceptance: held-out ANEES inside its χ² bounds, position RMSE no worse than ``--q imu``).
 ``uwb``        ``jaxslam tune uwb-circle --loss mse``: paper 003's hand-"fine tuned" Q (eq. 27)
                tuned on simulated logs, held-out position RMSE and ANEES before/after.
 
@@ -64,7 +70,8 @@ from jaxslam.tuning.targets import ekfslam3d as T3  # noqa: E402
 from jaxslam.tuning.targets import figure8 as T8  # noqa: E402
 from jaxslam.tuning.targets import linear_gaussian as TL  # noqa: E402
 
-ALL_PARTS = ("oracle", "gradcheck", "ekf_mse", "ekf_nll", "ekf_nll_imu", "nll_flat", "lqr", "uwb")
+ALL_PARTS = ("oracle", "gradcheck", "ekf_mse", "ekf_nll", "ekf_nll_imu", "nll_flat", "lqr", "loop_lqr",
+             "loop_both", "uwb")
 
 
 def log(msg):
@@ -294,6 +301,47 @@ def part_lqr(a, out_dir):
     }
 
 
+LOOP_ARGV = {"lqr": ["--tune", "lqr", "--steps", "60", "--lr", "0.2", "--train-runs", "4"],
+             "both": ["--tune", "both", "--w-nees", "10", "--steps", "60", "--lr", "0.2", "--train-runs", "16"]}
+
+
+def part_loop(a, out_dir, tune):
+    truth_tuned = out_dir / "track-figure8_lqr_tune.json"
+    if a.quick:
+        argv = ["ekfslam3d-unknown", "--target", "loop", "--tune", tune, "--steps", "2", "--train-runs", "1",
+                "--test-runs", "2", "--duration", "1", "--eval-duration", "2"]
+    else:
+        argv = ["ekfslam3d-unknown", "--target", "loop", *LOOP_ARGV[tune],
+                "--test-runs", str(a.test_runs), "--seed", str(a.seed)]
+    if truth_tuned.exists():
+        argv += ["--compare", str(truth_tuned)]
+    name = f"ekfslam3d-unknown_loop_{tune}_tune.json"
+    rep = _tune(argv, out_dir / name, a.plots)
+    rows = ["before", "after", *rep["references"]]
+    ev = {k: (rep[k] if k in ("before", "after") else rep["references"][k]) for k in rows}
+    obj = {k: ev[k]["metrics"]["objective"]["mean"] for k in rows}
+    red = 1 - obj["after"] / obj["before"]
+    anees = {k: ev[k]["consistency"]["anees"] for k in rows}
+    bounds = ev["after"]["consistency"]["anees_bounds"]
+    pos = {k: ev[k]["metrics"]["pos_rmse_m"]["mean"] for k in rows}
+    res = {
+        "command": "jaxslam tune " + " ".join(argv).replace(str(ROOT) + "/", ""),
+        "held_out_objective": obj, "reduction_vs_table2": red,
+        "held_out_metrics_mean": {k: {m: v["mean"] for m, v in ev[k]["metrics"].items()} for k in rows},
+        "anees": anees, "anees_bounds": bounds, "pos_rmse_m": pos,
+        "tuned_diag": rep["history"][-1].get("params"),
+        "timing": rep["timing"], "memory": rep["memory"], "stopped": rep["stopped"], "tune_json": name,
+    }
+    if tune == "lqr":
+        res["acceptance"] = ("held-out objective >= 20 % below Table 2, and below the truth-tuned weights "
+                             "evaluated the same way")
+        res["met"] = bool(red >= 0.20 and "compare" in obj and obj["after"] < obj["compare"])
+    else:
+        res["acceptance"] = "held-out ANEES inside its chi2 bounds; position RMSE no worse than --q imu"
+        res["met"] = bool(bounds[0] <= anees["after"] <= bounds[1] and pos["after"] <= pos["q_imu_table2"])
+    return res
+
+
 def part_uwb(a, out_dir):
     if a.quick:
         argv = ["uwb-circle", "--loss", "mse", "--steps", "3", "--train-runs", "1", "--test-runs", "2"]
@@ -423,6 +471,23 @@ def write_table(out_dir):
                     + "; R̃ diag tuned: " + ", ".join(f"{x:.3g}" for x in d["R_tuned_diag"])
                     + " (Table 2: Q̃ 0.01 ×6, 0.04; R̃ 0.2, 0.2, 0.32, 0.1).")
         rows.append("")
+    for tune in ("lqr", "both"):
+        p = out_dir / f"loop_{tune}.json"
+        if not p.exists():
+            continue
+        d = json.loads(p.read_text())
+        rows += [f"## ekfslam3d-unknown --target loop --tune {tune}: estimator in the loop", "",
+                 f"`{d['command']}`", "",
+                 f"Acceptance: {d['acceptance']} — {'met' if d['met'] else 'MISSED'}.", "",
+                 "| held-out mean | " + " | ".join(d["held_out_objective"]) + " |",
+                 "|---|" + "---|" * len(d["held_out_objective"])]
+        for m in ("objective", "closed_loop_cost", "tracking_ms_m2", "effort_ms", "max_tilt_deg", "pos_rmse_m"):
+            rows.append(f"| {m} | " + " | ".join(f"{d['held_out_metrics_mean'][k][m]:.4g}"
+                                                  for k in d["held_out_objective"]) + " |")
+        rows.append(f"| ANEES [{d['anees_bounds'][0]:.2f}, {d['anees_bounds'][1]:.2f}] | "
+                    + " | ".join(f"{d['anees'][k]:.3g}" for k in d["held_out_objective"]) + " |")
+        rows += ["", "Tuned diagonals: " + "; ".join(f"{k} " + ", ".join(f"{x:.3g}" for x in v)
+                                                      for k, v in (d["tuned_diag"] or {}).items()) + ".", ""]
     p = out_dir / "uwb.json"
     if p.exists():
         d = json.loads(p.read_text())
@@ -474,6 +539,8 @@ def main(argv=None):
             res = part_ekf(a, loss, out_dir, structure or "qc")
         elif part == "lqr":
             res = part_lqr(a, out_dir)
+        elif part in ("loop_lqr", "loop_both"):
+            res = part_loop(a, out_dir, part[5:])
         elif part == "nll_flat":
             res = part_nll_flat(a, out_dir)
         elif part == "uwb":

@@ -10,7 +10,7 @@ import argparse
 import math
 import sys
 
-__all__ = ["PROG", "DEBUG_ENV", "UsageError", "Parser", "int_at_least", "positive_float", "positive_int",
+__all__ = ["PROG", "DEBUG_ENV", "UsageError", "Parser", "int_at_least", "nonnegative_float", "positive_float", "positive_int",
            "seed_int", "echo", "compile_timing", "fmt", "one_line"]
 
 PROG = "jaxslam"
@@ -51,6 +51,17 @@ def positive_float(text: str) -> float:
         raise argparse.ArgumentTypeError(f"invalid float value: {text!r}") from None
     if not (value > 0 and math.isfinite(value)):
         raise argparse.ArgumentTypeError(f"must be a positive number, got {text}")
+    return value
+
+
+def nonnegative_float(text: str) -> float:
+    """argparse type: a finite float >= 0 (a weight that may be switched off)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid float value: {text!r}") from None
+    if not (value >= 0 and math.isfinite(value)):
+        raise argparse.ArgumentTypeError(f"must be a number >= 0, got {text}")
     return value
 
 

@@ -33,7 +33,7 @@ import time
 
 from jaxslam.errors import InputError
 
-from .common import Parser, UsageError, compile_timing, int_at_least, positive_float
+from .common import Parser, UsageError, compile_timing, int_at_least, nonnegative_float, positive_float
 
 __all__ = ["main", "build_parser", "DEFAULTS"]
 
@@ -44,6 +44,7 @@ PROG = "jaxslam tune"
 DEFAULTS = {
     "noise": {"steps": 100, "lr": 0.5, "loss": "nll"},
     "lqr": {"steps": 40, "lr": 0.1, "loss": "cost"},
+    "loop": {"steps": 30, "lr": 0.1, "loss": "cost"},
 }
 # Real logs (the protocol of docs/datasets.md): 25 Adam steps at 0.1 on 500 s of each log.
 REAL_LOG_DEFAULTS = {"steps": 25, "lr": 0.1, "loss": "nll", "window": 500.0}
@@ -79,9 +80,10 @@ def build_parser(with_targets: bool = True) -> Parser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("scenario", metavar="SCENARIO", help="scenario to tune (see the list below)")
-    p.add_argument("--target", choices=("noise", "lqr"), default=None,
-                   help="what to tune: filter 'noise' (Q, optionally R) or 'lqr' weights "
-                        "(default: the scenario's only target)")
+    p.add_argument("--target", choices=("noise", "lqr", "loop"), default=None,
+                   help="what to tune: filter 'noise' (Q, optionally R), 'lqr' weights, or 'loop' "
+                        "(ekfslam3d-*: LQR weights and/or filter noise through the closed loop with the "
+                        "estimator in it; see --tune) (default: the scenario's first target)")
     p.add_argument("--loss", choices=("nll", "mse", "nees", "cost"), default=None,
                    help="nll: innovation negative log-likelihood (no truth needed); mse: squared state "
                         "error vs truth; nees: NEES consistency; cost: closed-loop cost (lqr) "
@@ -112,6 +114,17 @@ def build_parser(with_targets: bool = True) -> Parser:
                    help="ekfslam3d noise: tune the 9x9 process-noise density Q_c (Table 7's form; default), "
                         "the 6x6 IMU density Q_imu entering through the filter's G Q_imu G^T (imu), or one "
                         "density per sensor, accelerometer and gyro (imu_iso, Table 5's form)")
+    loop = p.add_argument_group("closed loop with the estimator in it (ekfslam3d-* --target loop)")
+    loop.add_argument("--tune", choices=("lqr", "noise", "both"), default=None,
+                      help="what the loop target tunes: the DF-LQR weights (default), the filter's IMU "
+                           "noise density Q_imu, or both jointly")
+    loop.add_argument("--w-mse", type=nonnegative_float, default=None, metavar="W",
+                      help="weight of the estimator's position MSE in the objective (default 0)")
+    loop.add_argument("--w-nees", type=nonnegative_float, default=None, metavar="W",
+                      help="weight of the NEES consistency term (log(ANEES/9))^2 (default 0)")
+    loop.add_argument("--compare", metavar="FILE", default=None,
+                      help="also evaluate the controller of FILE (a --params file or a 'jaxslam tune "
+                           "track-figure8 --target lqr' report) with the estimator in the loop")
     real = p.add_argument_group("real logs (jaxslam tune mrclam)")
     real.add_argument("--data", metavar="DIR", default=None,
                       help="dataset folder (the one with mrclam6/, or a parent of it; default: $JAXSLAM_DATA_DIR)")
@@ -198,6 +211,16 @@ def run_tuning(args, progress_stream=None) -> dict:
         for flag, used in (("--structure", args.structure != "qc"), ("--tune-r", args.tune_r)):
             if used:
                 raise InputError(f"{flag}: only the ekfslam3d-* noise targets take it, not {args.scenario}")
+    if target_name != "loop":
+        for flag, used in (("--tune", args.tune), ("--w-mse", args.w_mse), ("--w-nees", args.w_nees),
+                           ("--compare", args.compare)):
+            if used is not None:
+                raise InputError(f"{flag}: only the loop target (ekfslam3d-* --target loop) takes it")
+    elif args.compare is not None:  # read before the (slow) build: a bad file is the only line
+        from jaxslam.tuning.targets import loop as loop_target
+        from jaxslam.control import dflqr
+
+        loop_target._controller_file(args.compare, dflqr.paper000_params())
     real = args.scenario in targets.REAL_LOG_SCENARIOS
     if not real:
         for flag, used in (("--data", args.data), ("--robots", args.robots), ("--test-robots", args.test_robots),
@@ -217,6 +240,9 @@ def run_tuning(args, progress_stream=None) -> dict:
     kw = dict(train_runs=args.train_runs, test_runs=args.test_runs, seed=args.seed, dtype=dtype,
               eval_duration=args.eval_duration, checkpoint=not args.no_checkpoint, cov=args.cov,
               tune_r=args.tune_r, structure=args.structure)
+    if target_name == "loop":
+        kw.update(tune=args.tune or "lqr", w_mse=args.w_mse or 0.0, w_nees=args.w_nees or 0.0,
+                  compare=args.compare)
     if args.duration is not None:
         kw["train_duration"] = args.duration
     if real:  # the folder and the robots checked before the (slow) build says anything

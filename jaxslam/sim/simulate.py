@@ -119,7 +119,7 @@ def controls(setup: FlightSetup, n_steps: int, feedforward: bool = True, compile
 
 def simulate(setup: FlightSetup, key, n_frame: int, lidar_every: int,
              estimator: Optional[Estimator] = None, control_on: str = "truth",
-             K=None, feedforward: bool = True, refs=None) -> Flight:
+             K=None, feedforward: bool = True, refs=None, checkpoint: bool = False) -> Flight:
     """Fly ``n_frame · lidar_every`` control steps in one nested ``lax.scan``.
 
     Args:
@@ -136,6 +136,9 @@ def simulate(setup: FlightSetup, key, n_frame: int, lidar_every: int,
         torques (jaxslam's default); False is the paper's eq. 19 (p_d = q_d = 0).
       refs: optional precomputed :func:`reference_grid` (n_frame · lidar_every steps, the same
         ``feedforward``); computed here if None (differentiable in the trajectory either way).
+      checkpoint: static; ``jax.checkpoint`` on the per-frame body, so a gradient through the
+        flight stores one carry per frame and recomputes the frame's steps (memory grows with
+        the frames, not the control steps).  The values are unchanged.
     """
     if control_on not in ("truth", "estimate"):
         raise ValueError(f"control_on: expected 'truth' or 'estimate', got {control_on!r}")
@@ -203,7 +206,7 @@ def simulate(setup: FlightSetup, key, n_frame: int, lidar_every: int,
     imu_std = jax.random.normal(k_imu, (T * 6,), dtype).reshape(n_frame, lidar_every, 6)
     lidar_std = jax.random.normal(k_lidar, (n_frame * L * 3,), dtype).reshape(n_frame, L, 3)
     (xT, estT, _), (outs, ys, viss, out_frames) = jax.lax.scan(
-        frame, (x0, est0, imu0), (refs, imu_std, lidar_std)
+        jax.checkpoint(frame) if checkpoint else frame, (x0, est0, imu0), (refs, imu_std, lidar_std)
     )
     xs, us, imus, est_steps = outs
 

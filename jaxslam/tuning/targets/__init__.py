@@ -12,6 +12,8 @@ registry imports them on first use, so ``jaxslam tune --help`` pays for none of 
 * :mod:`.ekfslam3d` — ``("ekfslam3d-unknown" | "ekfslam3d-known", "noise")``: paper 000's
   EKF-SLAM noise on recorded logs;
 * :mod:`.figure8` — ``("track-figure8", "lqr")``: the DF-LQR weights through the closed loop;
+* :mod:`.loop` — ``("ekfslam3d-unknown" | "ekfslam3d-known", "loop")``: the DF-LQR weights and/or
+  the filter's noise through the closed loop with the EKF-SLAM estimator in it;
 * :mod:`.linear_gaussian` — ``("linear-gaussian", "noise")``: the oracle (known Q, R);
 * :mod:`.uwb` — ``("uwb-circle" | "uwb-square" | "uwb-rough", "noise")``: paper 003's Q;
 * :mod:`.mrclam` — ``("mrclam", "noise")``: the planar EKF-SLAM's noise from real logs.
@@ -34,7 +36,7 @@ __all__ = ["Target", "register_target", "get", "available", "REAL_LOG_SCENARIOS"
            "keys", "diag_list"]
 
 #: the target modules the registry imports on first use
-BUILTIN_MODULES = ("ekfslam3d", "figure8", "linear_gaussian", "uwb", "mrclam")
+BUILTIN_MODULES = ("ekfslam3d", "figure8", "linear_gaussian", "uwb", "mrclam", "loop")
 
 #: scenarios whose targets learn from real logs (``--data``, ``--robots``, ``--window``)
 REAL_LOG_SCENARIOS = ("mrclam",)

@@ -21,7 +21,25 @@ from ...errors import InputError
 from .. import params as P
 from . import Target, diag_list, keys, register_target
 
-__all__ = ['figure8_lqr']
+__all__ = ['figure8_lqr', 'tracking_and_effort']
+
+
+def tracking_and_effort(fl, ctrl, traj, K, feedforward: bool):
+    """(mean_t ‖ρ − ρ_d‖², mean_t ‖ũ‖²) of a flight: ũ the LQR correction recomputed from the flown
+    true states with gain ``K`` (the yardstick both closed-loop targets score weights by)."""
+    from ...control import dflqr
+
+    dtype = fl.truth.dtype
+    T = fl.u.shape[0]
+    refs = jax.vmap(lambda tt: dflqr.reference_at(tt, traj, ctrl, feedforward=feedforward, dtype=dtype))(fl.t[:T])
+
+    def utilde(x, ref):
+        _, info = dflqr.control_ref(x, ref, K, ctrl, feedforward=feedforward)
+        return info.u_lqr - ref.u_d
+
+    ut = jax.vmap(utilde)(fl.truth[:T], refs)
+    e = fl.truth[:, :3] - fl.ref[:, :3]
+    return jnp.mean(jnp.sum(e * e, axis=1)), jnp.mean(jnp.sum(ut * ut, axis=1))
 
 
 def _lqr_run(ctrl, x0, key, traj, nf, feedforward, w_u, checkpoint):
@@ -34,18 +52,7 @@ def _lqr_run(ctrl, x0, key, traj, nf, feedforward, w_u, checkpoint):
     setup = make_setup(traj, dtype, ctrl=ctrl, x0=x0)
     K = dflqr.gain(ctrl, dtype)
     fl = simulate(setup, key, nf, FRAME_STEPS, K=K, feedforward=feedforward)
-    T = fl.u.shape[0]
-    t = fl.t[:T]
-    refs = jax.vmap(lambda tt: dflqr.reference_at(tt, traj, ctrl, feedforward=feedforward, dtype=dtype))(t)
-
-    def utilde(x, ref):
-        _, info = dflqr.control_ref(x, ref, K, ctrl, feedforward=feedforward)
-        return info.u_lqr - ref.u_d
-
-    ut = jax.vmap(utilde)(fl.truth[:T], refs)
-    e = fl.truth[:, :3] - fl.ref[:, :3]
-    track = jnp.mean(jnp.sum(e * e, axis=1))
-    effort = jnp.mean(jnp.sum(ut * ut, axis=1))
+    track, effort = tracking_and_effort(fl, ctrl, traj, K, feedforward)
     m = tracking_metrics(fl.t, fl.truth, fl.ref)
     m = {k: m[k] for k in ("track_pos_rmse_m", "track_pos_rmse_settled_m", "track_yaw_rmse_deg", "max_tilt_deg")}
     m.update(closed_loop_cost=track + jnp.asarray(w_u, dtype) * effort, tracking_ms_m2=track,
