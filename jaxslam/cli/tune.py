@@ -220,7 +220,7 @@ def run_tuning(args, progress_stream=None) -> dict:
         from jaxslam.tuning.targets import loop as loop_target
         from jaxslam.control import dflqr
 
-        loop_target._controller_file(args.compare, dflqr.paper000_params())
+        loop_target.controller_file(args.compare, dflqr.paper000_params())
     real = args.scenario in targets.REAL_LOG_SCENARIOS
     if not real:
         for flag, used in (("--data", args.data), ("--robots", args.robots), ("--test-robots", args.test_robots),

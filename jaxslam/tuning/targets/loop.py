@@ -51,7 +51,7 @@ from .. import losses as L
 from .. import params as P
 from . import Target, diag_list, keys, register_target
 
-__all__ = ["TUNE", "closed_loop_objective", "ekfslam3d_loop", "tilt_angle"]
+__all__ = ["TUNE", "closed_loop_objective", "controller_file", "ekfslam3d_loop", "tilt_angle"]
 
 TUNE = ("lqr", "noise", "both")
 
@@ -86,7 +86,7 @@ def closed_loop_objective(fl, ctrl, traj, K, feedforward: bool, w: dict):
             "est_pos_ms_m2": mse, "nees_term": nees_term}
 
 
-def _controller_file(path, default):
+def controller_file(path, default):
     """The DF-LQR weights of a ``--params`` file or a whole ``jaxslam tune`` report."""
     from ... import paramfile
     from ...sim.scenarios.tracking import controller_from_dict
@@ -141,7 +141,7 @@ def ekfslam3d_loop(loss: str = "cost", train_runs: int = 4, test_runs: int = 16,
         raise InputError(f"runs: --train-runs and --test-runs must be >= 1, got {train_runs}, {test_runs}")
 
     base = dflqr.paper000_params()
-    cmp_ctrl = None if compare is None else _controller_file(compare, base)
+    cmp_ctrl = None if compare is None else controller_file(compare, base)
     ref_noise = sys3d.imu_noise(imu_mod.PAPER000_IMU, dtype)
     opts = {o.name: o.default for o in registry.get(f"ekfslam3d-{mode}").options}
     n_lm = int(opts["landmarks"])
