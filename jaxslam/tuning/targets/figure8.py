@@ -24,14 +24,18 @@ from . import Target, diag_list, keys, register_target
 __all__ = ['figure8_lqr', 'tracking_and_effort']
 
 
-def tracking_and_effort(fl, ctrl, traj, K, feedforward: bool):
+def tracking_and_effort(fl, ctrl, traj, K, feedforward: bool, refs=None):
     """(mean_t ‖ρ − ρ_d‖², mean_t ‖ũ‖²) of a flight: ũ the LQR correction recomputed from the flown
-    true states with gain ``K`` (the yardstick both closed-loop targets score weights by)."""
+    true states with gain ``K`` (the yardstick both closed-loop targets score weights by).
+    ``refs``: the flight's reference grid (:func:`jaxslam.sim.simulate.reference_grid`, flat over
+    the T control steps) when the caller has it; computed here otherwise."""
     from ...control import dflqr
 
     dtype = fl.truth.dtype
     T = fl.u.shape[0]
-    refs = jax.vmap(lambda tt: dflqr.reference_at(tt, traj, ctrl, feedforward=feedforward, dtype=dtype))(fl.t[:T])
+    if refs is None:
+        refs = jax.vmap(lambda tt: dflqr.reference_at(tt, traj, ctrl, feedforward=feedforward,
+                                                      dtype=dtype))(fl.t[:T])
 
     def utilde(x, ref):
         _, info = dflqr.control_ref(x, ref, K, ctrl, feedforward=feedforward)

@@ -45,6 +45,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ... import runtime
 from ...errors import InputError
 from ...linalg import safe_norm
 from .. import losses as L
@@ -63,15 +64,16 @@ def tilt_angle(phi, theta):
     return jnp.arctan2(s_t, jnp.cos(phi) * jnp.cos(theta))
 
 
-def closed_loop_objective(fl, ctrl, traj, K, feedforward: bool, w: dict):
+def closed_loop_objective(fl, ctrl, traj, K, feedforward: bool, w: dict, refs=None):
     """The terms of the per-run objective (module docstring) of one flight ``fl`` flown with
     the estimator in the loop.  ``w``: weights ``w_u``, ``w_tilt``, ``tilt_max_rad``, ``w_mse``,
-    ``w_nees``.  Returns a dict of scalars with ``objective`` (J) and its terms."""
+    ``w_nees``; ``refs``: the flight's reference grid, if at hand.  Returns a dict of scalars with
+    ``objective`` (J) and its terms."""
     from ...systems import ekf_slam_3d as sys3d
     from .figure8 import tracking_and_effort
 
     dtype = fl.truth.dtype
-    track, effort = tracking_and_effort(fl, ctrl, traj, K, feedforward)
+    track, effort = tracking_and_effort(fl, ctrl, traj, K, feedforward, refs)
     phi, theta = fl.truth[1:, 6], fl.truth[1:, 7]
     tilt = tilt_angle(phi, theta)
     over = jnp.maximum(tilt - jnp.asarray(w["tilt_max_rad"], dtype), 0.0)
@@ -119,7 +121,7 @@ def ekfslam3d_loop(loss: str = "cost", train_runs: int = 4, test_runs: int = 16,
     from ...sim.scenarios import ekfslam3d as scen
     from ...sim.scenarios import registry
     from ...sim.scenarios.tracking import DT, FRAME_STEPS, controller_to_dict, make_setup, paper000_figure8
-    from ...sim.simulate import n_frames, simulate
+    from ...sim.simulate import controls, n_frames, simulate
     from ...systems import ekf_slam_3d as sys3d
 
     dtype = jnp.dtype(dtype)
@@ -170,6 +172,12 @@ def ekfslam3d_loop(loss: str = "cost", train_runs: int = 4, test_runs: int = 16,
         noise = ref_noise._replace(Qimu=m["Qimu"]) if "Qimu" in m else ref_noise
         return ctrl, noise
 
+    # The reference depends on time and the quadcopter only, not on Q̃, R̃ or the noise: one small
+    # program per duration, outside the differentiated flight (whose compile it would otherwise
+    # carry, with the trajectory's nested derivatives).
+    refs_for = {nf: controls(make_setup(traj, dtype, ctrl=base), nf * FRAME_STEPS, feedforward,
+                             compiler_options=runtime.compiler_options())[1] for nf in {nf_train, nf_eval}}
+
     def fly(ctrl, noise, key, nf, ck):
         k_lm, k_fl = jax.random.split(key)  # the split of the ekfslam3d scenario's flights
         lms = lm_mod.generate_landmarks(k_lm, n_lm, center=center, dtype=dtype)
@@ -177,13 +185,13 @@ def ekfslam3d_loop(loss: str = "cost", train_runs: int = 4, test_runs: int = 16,
         K = dflqr.gain(ctrl, dtype)
         est = sys3d.make_estimator(cfg, noise, landmarks_true=lms)
         fl = simulate(setup, k_fl, nf, FRAME_STEPS, estimator=est, control_on="estimate", K=K,
-                      feedforward=feedforward, checkpoint=ck)
+                      feedforward=feedforward, refs=refs_for[nf], checkpoint=ck)
         return fl, lms, K
 
     def loss_fn(theta, key):
         ctrl, noise = physical(theta)
         fl, _, K = fly(ctrl, noise, key, nf_train, checkpoint)
-        return closed_loop_objective(fl, ctrl, traj, K, feedforward, w)["objective"]
+        return closed_loop_objective(fl, ctrl, traj, K, feedforward, w, refs_for[nf_train])["objective"]
 
     train = keys(seed, train_runs)
     test = keys(seed + 1, test_runs)
@@ -193,7 +201,7 @@ def ekfslam3d_loop(loss: str = "cost", train_runs: int = 4, test_runs: int = 16,
         def one(k):
             fl, lms, K = fly(ctrl, noise, k, nf_eval, False)
             out = scen.evaluate(fl, lms, cfg)
-            terms = closed_loop_objective(fl, ctrl, traj, K, feedforward, w)
+            terms = closed_loop_objective(fl, ctrl, traj, K, feedforward, w, refs_for[nf_eval])
             return {"metrics": {**out["metrics"], **terms}, "series": out["series"],
                     "non_finite": out["counts"]["non_finite"]}
 
@@ -204,6 +212,8 @@ def ekfslam3d_loop(loss: str = "cost", train_runs: int = 4, test_runs: int = 16,
     def evaluate(physicals: dict) -> dict:
         res = {}
         for label, (ctrl, noise) in physicals.items():
+            # Q̃, R̃ as arrays first (Table 2's are nested tuples): one program for every row
+            ctrl = ctrl._replace(Q=jnp.asarray(ctrl.Q, dtype), R=jnp.asarray(ctrl.R, dtype))
             ctrl = jax.tree.map(lambda a: jnp.asarray(a, dtype), ctrl)
             noise = jax.tree.map(lambda a: jnp.asarray(a, dtype), noise)
             out = jax.tree.map(np.asarray, _eval(ctrl, noise, test))
