@@ -104,7 +104,7 @@ def build_parser(with_targets: bool = True) -> Parser:
     p.add_argument("--eval-every", type=int_at_least(0), default=10,
                    help="held-out loss every N steps for the loss curve (0: only at the end; default 10)")
     p.add_argument("--duration", type=positive_float, default=None,
-                   help="training flight duration [s] (default: 10 noise, 25 lqr)")
+                   help="training flight duration [s] (default: 10 noise and loop, 25 lqr)")
     p.add_argument("--eval-duration", type=positive_float, default=50.0,
                    help="held-out evaluation flight duration [s] (default 50, the scenario's)")
     p.add_argument("--cov", choices=("diag", "chol"), default="diag",
