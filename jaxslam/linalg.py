@@ -27,6 +27,7 @@ __all__ = [
     "chol_solve",
     "safe_norm",
     "check_psd",
+    "check_scalar",
     "check_shape",
 ]
 
@@ -168,6 +169,29 @@ def safe_norm(x, axis=-1, keepdims=False):
 # ---------------------------------------------------------------------------
 # Host-side validation (raise InputError before jit)
 # ---------------------------------------------------------------------------
+
+def check_scalar(value, name: str, *, finite: bool = True, lower=None, strict: bool = False) -> float:
+    """``value`` as a float when it is a scalar (never NaN; finite when ``finite``; above ``lower``,
+    strictly when ``strict``); else :class:`InputError` naming ``name``.  Host-side, for the
+    numbers systems keep in their ``Params`` (gates, thresholds, variances)."""
+    if lower == 0 and finite:
+        want = "a positive finite scalar" if strict else "a non-negative finite scalar"
+    elif lower is None and not finite:
+        want = "a number"
+    else:
+        want = ("a finite scalar" if finite else "a scalar") + (
+            "" if lower is None else f" {'>' if strict else '>='} {lower:g}")
+    try:
+        a = np.asarray(value, np.float64)
+    except (TypeError, ValueError):
+        raise InputError(f"{name}: expected {want}, got {value!r}") from None
+    ok = a.shape == () and not np.isnan(a) and (not finite or np.isfinite(a))
+    if ok and lower is not None:
+        ok = bool(a > lower) if strict else bool(a >= lower)
+    if not ok:
+        raise InputError(f"{name}: expected {want}, got {value!r}")
+    return float(a)
+
 
 def check_shape(x, shape, name: str):
     """Raise InputError unless ``x`` has ``shape`` (``None`` entries match any size)."""

@@ -99,3 +99,26 @@ def test_derivatives_hold_no_scatter():
     # ... whereas plain indexing transposes into a scatter-add
     _, p_lin = jax.linearize(lambda a: a[:, idx], a)
     assert any("scatter" in p for p in _prims(jax.make_jaxpr(jax.linear_transpose(p_lin, a))(a[:, idx])))
+
+
+def test_check_scalar_accepts_and_names_the_argument():
+    import numpy as np
+    import pytest
+
+    from jaxslam.errors import InputError
+    from jaxslam.linalg import check_scalar
+
+    assert check_scalar(3, "p.x") == 3.0 and isinstance(check_scalar(np.float32(2.5), "p.x"), float)
+    assert check_scalar(float("inf"), "p.gate", finite=False) == float("inf")
+    assert check_scalar(0.0, "p.t", lower=0) == 0.0
+    for value, kw, needle in [
+        (float("nan"), {"finite": False}, "p.v: expected a number"),
+        ([1.0, 2.0], {}, "p.v: expected a finite scalar"),
+        (float("inf"), {}, "p.v: expected a finite scalar"),
+        (0.0, {"lower": 0, "strict": True}, "p.v: expected a positive finite scalar"),
+        (-1e-9, {"lower": 0}, "p.v: expected a non-negative finite scalar"),
+        ("abc", {}, "p.v: expected a finite scalar"),
+        (0.5, {"lower": 1.0}, "p.v: expected a finite scalar >= 1"),
+    ]:
+        with pytest.raises(InputError, match=needle):
+            check_scalar(value, "p.v", **kw)

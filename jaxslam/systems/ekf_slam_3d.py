@@ -40,7 +40,7 @@ from .. import errors
 from ..errors import InputError
 from ..filters import ekf_slam as es
 from ..geometry.euler import dcm_from_euler, euler_rate_matrix
-from ..linalg import check_psd, host_array, is_concrete, wrap_angle
+from ..linalg import check_psd, check_scalar, host_array, is_concrete, wrap_angle
 from ..sensors import lidar3d
 from ..stats import nees as _nees
 
@@ -218,12 +218,8 @@ def validate_params(params: Params) -> Params:
             raise InputError(f"params.{name}: expected shape {shp}, got {a.shape}")
         check_psd(a, f"params.{name}", strict=(name == "R"))
     for name in ("gate", "nn_gate", "nn_new"):
-        v = getattr(params, name)
-        if v is None and name == "gate":
-            continue
-        a = np.asarray(v, float)
-        if a.shape != () or not np.isfinite(a) or a <= 0:
-            raise InputError(f"params.{name}: expected a positive finite scalar, got {v!r}")
+        if getattr(params, name) is not None or name != "gate":
+            check_scalar(getattr(params, name), f"params.{name}", lower=0, strict=True)
     return params
 
 

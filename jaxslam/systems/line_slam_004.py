@@ -71,7 +71,7 @@ import numpy as np
 from ..errors import InputError
 from ..features import lines as fl
 from ..filters import ekf_slam as es
-from ..linalg import host_array, is_concrete, wrap_angle
+from ..linalg import check_scalar, host_array, is_concrete, wrap_angle
 from ..sensors import laser2d
 
 __all__ = [
@@ -512,9 +512,7 @@ def validate_params(params: Params) -> Params:
             raise InputError(f"params.{name}: contains non-finite values")
         check_psd(a, f"params.{name}", strict=name in ("R_odo",))
     for name in THRESHOLDS:
-        a = np.asarray(getattr(params, name), float)
-        if a.shape != () or not np.isfinite(a) or a < 0:
-            raise InputError(f"params.{name}: expected a finite, non-negative scalar, got {getattr(params, name)!r}")
+        check_scalar(getattr(params, name), f"params.{name}", lower=0)
     return params
 
 

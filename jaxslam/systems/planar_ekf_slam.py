@@ -77,7 +77,7 @@ from ..errors import InputError
 from ..filters import association as assoc
 from ..filters import consistency as cons
 from ..filters import ekf_slam as es
-from ..linalg import check_psd, is_concrete, wrap_angle
+from ..linalg import check_scalar, check_psd, is_concrete, wrap_angle
 from ..sensors import range_bearing2d as rb
 
 __all__ = [
@@ -866,15 +866,8 @@ def validate_params(params: Params) -> Params:
         v = np.asarray(params.robust_nu, np.float64)
         if v.shape != () or not np.isfinite(v) or v <= 0:
             raise InputError(f"params.robust_nu: expected a positive number, got {v!r}")
-    thr = {}
-    for f in THRESHOLDS:
-        v = getattr(params, f)
-        if v is None:
-            continue
-        a = np.asarray(v, np.float64)
-        if a.shape != () or np.isnan(a):
-            raise InputError(f"params.{f}: expected a number, got {v!r}")
-        thr[f] = float(a)
+    thr = {f: check_scalar(getattr(params, f), f"params.{f}", finite=False)
+           for f in THRESHOLDS if getattr(params, f) is not None}
     for f in ("gate", "new_threshold"):
         if f not in thr:
             raise InputError(f"params.{f}: expected a number, got None")

@@ -66,7 +66,7 @@ import numpy as np
 from ..dynamics import planar
 from ..errors import InputError
 from ..filters import fastslam as fs
-from ..linalg import is_concrete, wrap_angle
+from ..linalg import check_scalar, is_concrete, wrap_angle
 from ..sensors import range_bearing2d as rb
 from .planar_ekf_slam import Log, log_from_events
 
@@ -223,15 +223,8 @@ def motion_fn(config: Config):
 
 def _validate_params(params: Params, config: Config):
     """Concrete thresholds: numbers (not NaN), new_threshold ≥ the gate ("ml")."""
-    thr = {}
-    for f in THRESHOLDS:
-        v = getattr(params, f)
-        if v is None:
-            continue
-        a = np.asarray(v, np.float64)
-        if a.shape != () or np.isnan(a):
-            raise InputError(f"params.{f}: expected a number, got {v!r}")
-        thr[f] = float(a)
+    thr = {f: check_scalar(getattr(params, f), f"params.{f}", finite=False)
+           for f in THRESHOLDS if getattr(params, f) is not None}
     if "new_threshold" not in thr:
         raise InputError("params.new_threshold: expected a number, got None")
     if config.association == "ml":

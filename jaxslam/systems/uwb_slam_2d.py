@@ -120,7 +120,7 @@ from .. import errors
 from ..errors import InputError
 from ..filters import ekf_slam as es
 from ..filters import trilateration as tri
-from ..linalg import check_psd, host_array, is_concrete
+from ..linalg import check_psd, check_scalar, host_array, is_concrete
 from ..sensors import uwb
 
 __all__ = [
@@ -877,15 +877,11 @@ def validate_params(params: Params) -> Params:
             raise InputError(f"params.{name}: expected shape {shp}, got {a.shape}")
         check_psd(a, f"params.{name}")
     for name in ("r_range", "r_gyro", "range_var"):
-        v = np.asarray(getattr(params, name))
-        if v.shape != () or not np.isfinite(v) or not v > 0:
-            raise InputError(f"params.{name}: expected a positive finite scalar, got {v!r}")
+        check_scalar(getattr(params, name), f"params.{name}", lower=0, strict=True)
     for name in Params._fields:
         if name in NOISE_FIELDS or getattr(params, name) is None:
             continue
-        v = np.asarray(getattr(params, name))
-        if v.shape != () or not np.isfinite(v) or not v >= 0:
-            raise InputError(f"params.{name}: expected a non-negative finite scalar, got {v!r}")
+        check_scalar(getattr(params, name), f"params.{name}", lower=0)
     return params
 
 

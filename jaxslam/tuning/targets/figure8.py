@@ -55,7 +55,7 @@ def _lqr_run(ctrl, x0, key, traj, nf, feedforward, w_u, checkpoint):
     dtype = x0.dtype
     setup = make_setup(traj, dtype, ctrl=ctrl, x0=x0)
     K = dflqr.gain(ctrl, dtype)
-    fl = simulate(setup, key, nf, FRAME_STEPS, K=K, feedforward=feedforward)
+    fl = simulate(setup, key, nf, FRAME_STEPS, K=K, feedforward=feedforward, checkpoint=checkpoint)
     track, effort = tracking_and_effort(fl, ctrl, traj, K, feedforward)
     m = tracking_metrics(fl.t, fl.truth, fl.ref)
     m = {k: m[k] for k in ("track_pos_rmse_m", "track_pos_rmse_settled_m", "track_yaw_rmse_deg", "max_tilt_deg")}
