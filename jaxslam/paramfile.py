@@ -42,7 +42,7 @@ __all__ = ["load", "check", "describe", "TUNE_REPORT_KEYS"]
 #: is itself a ``--params`` file; these keys are read by nothing that takes ``--params``).
 TUNE_REPORT_KEYS = frozenset({
     "scenario", "dataset", "target", "loss", "before", "after", "params_before", "params_after",
-    "history", "references", "stopped", "n_skipped", "steps", "lr", "config", "timing", "memory",
+    "history", "references", "stopped", "n_skipped", "n_dropped_runs", "steps", "lr", "config", "timing", "memory",
     "eval_command", "versions", "interrupted", "steps_done",
 })
 

@@ -107,6 +107,19 @@ class Progress:
         """Add ``k`` finished units."""
         self.update(self._done + int(k))
 
+    def note(self, text: str) -> None:
+        """Print a line of its own; on a terminal the bar is cleared first (redrawn at the next
+        update), on a pipe it is one more line."""
+        if not self.enabled or self._closed:
+            return
+        with self._lock:
+            try:
+                self.stream.write(("\r\x1b[K" if self._tty else "") + text + "\n")
+                self.stream.flush()
+            except (OSError, ValueError):
+                self.enabled = False
+        self._last_print = None if self._tty else self._last_print
+
     def close(self) -> None:
         """Finish the line (only if something was printed)."""
         if self._closed:

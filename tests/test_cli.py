@@ -584,6 +584,32 @@ def test_progress_silent_before_delay_then_bar_with_eta():
     p.close()  # idempotent
 
 
+class _TtyStream(_io.StringIO):
+    def isatty(self):
+        return True
+
+
+def test_progress_note_is_a_line_of_its_own_and_the_bar_comes_back():
+    clock = _Clock()
+    pipe, tty = _io.StringIO(), _TtyStream()
+    for stream in (pipe, tty):
+        p = Progress(10, "tune", True, stream, clock=clock, delay_s=0.0)
+        clock.t += 1.0
+        p.update(2)
+        p.note("  step 2: run 0 left out")
+        clock.t += 10.0
+        p.update(3)
+        p.close()
+    assert pipe.getvalue().splitlines()[1] == "  step 2: run 0 left out"
+    assert "3/10" in pipe.getvalue().splitlines()[2]
+    # on a terminal the bar's line is cleared first, and the bar is redrawn after the note
+    text = tty.getvalue()
+    assert "\r\x1b[K  step 2: run 0 left out\n" in text
+    assert "3/10" in text.split("left out\n", 1)[1]
+    Progress(3, "x", False, pipe).note("nothing")  # disabled: prints nothing
+    assert "nothing" not in pipe.getvalue()
+
+
 def test_progress_quick_job_disabled_and_null_print_nothing():
     clock, stream = _Clock(), _io.StringIO()
     p = Progress(5, "x", True, stream, clock=clock)

@@ -1,6 +1,6 @@
-"""``jaxslam tune SCENARIO --target noise|lqr --loss ...``: gradient tuning from the command line.
+"""``jaxslam tune SCENARIO --target noise|lqr|loop --loss ...``: gradient tuning from the command line.
 
-    jaxslam tune SCENARIO [--target noise|lqr] [--loss nll|mse|nees|cost] [--steps K]
+    jaxslam tune SCENARIO [--target noise|lqr|loop] [--loss nll|mse|nees|cost] [--steps K]
                  [--train-runs M] [--test-runs M] [--lr LR] [--seed S] [--json PATH]
                  [--plots DIR] [--params-out FILE] [--float32] [--quiet] [target options]
 
@@ -48,6 +48,9 @@ DEFAULTS = {
 }
 # Real logs (the protocol of docs/datasets.md): 25 Adam steps at 0.1 on 500 s of each log.
 REAL_LOG_DEFAULTS = {"steps": 25, "lr": 0.1, "loss": "nll", "window": 500.0}
+# A training run whose (positive) loss exceeds this many times the batch's lower median is an
+# exploding flight, left out of that step like a non-finite one (optimize.fit, explode_ratio).
+EXPLODE_RATIO = 1e3
 
 
 def _targets_text():
@@ -72,7 +75,7 @@ def build_parser(with_targets: bool = True) -> Parser:
     """The argument parser of ``jaxslam tune`` (``with_targets`` lists the targets in the epilog)."""
     p = Parser(
         prog=PROG,
-        usage=f"{PROG} SCENARIO [--target noise|lqr] [--loss LOSS] [--steps K] [--train-runs M] "
+        usage=f"{PROG} SCENARIO [--target noise|lqr|loop] [--loss LOSS] [--steps K] [--train-runs M] "
               f"[--test-runs M] [options]",
         description="Tune filter noise (Q, R) or DF-LQR weights by gradient descent (optax Adam) on "
                     "training runs, then compare the start and the result on held-out runs.",
@@ -83,7 +86,8 @@ def build_parser(with_targets: bool = True) -> Parser:
     p.add_argument("--target", choices=("noise", "lqr", "loop"), default=None,
                    help="what to tune: filter 'noise' (Q, optionally R), 'lqr' weights, or 'loop' "
                         "(ekfslam3d-*: LQR weights and/or filter noise through the closed loop with the "
-                        "estimator in it; see --tune) (default: the scenario's first target)")
+                        "estimator in it; see --tune) (default: 'noise' where the scenario has it, else its "
+                        "only target)")
     p.add_argument("--loss", choices=("nll", "mse", "nees", "cost"), default=None,
                    help="nll: innovation negative log-likelihood (no truth needed); mse: squared state "
                         "error vs truth; nees: NEES consistency; cost: closed-loop cost (lqr) "
@@ -204,7 +208,7 @@ def run_tuning(args, progress_stream=None) -> dict:
     if not scen_targets:
         names = sorted({s for s, _ in avail})
         raise InputError(f"no tuning target for scenario {args.scenario!r}; tunable scenarios: {', '.join(names)}")
-    target_name = args.target or scen_targets[0]
+    target_name = args.target or targets.default_target(args.scenario)
     if target_name not in scen_targets:
         raise InputError(f"--target: {args.scenario} offers {', '.join(scen_targets)}; got {target_name!r}")
     if not args.scenario.startswith("ekfslam3d"):
@@ -289,6 +293,13 @@ def run_tuning(args, progress_stream=None) -> dict:
     def cb(rec):
         bar.label = f"tune loss {rec['loss']:.5g}"
         bar.update(rec["step"] + 1)
+        if rec.get("dropped_runs"):  # said at every such step: a run diverged at these parameters
+            msg = (f"  step {rec['step']:4d}: training run(s) {', '.join(map(str, rec['dropped_runs']))} "
+                   "non-finite or exploding: left out of this step's loss and gradient")
+            if tty:
+                bar.note(msg)
+            else:
+                say(msg)
         if tty or not (rec["step"] % every == 0 or rec["step"] == steps or rec.get("skipped")):
             return
         extra = f"  held-out {rec['test_loss']:.5g}" if rec.get("test_loss") is not None else ""
@@ -302,7 +313,8 @@ def run_tuning(args, progress_stream=None) -> dict:
         res = optimize.fit(tg.loss_fn, tg.theta0, tg.train, steps, lr, test=tg.test,
                            eval_every=args.eval_every, clip=args.clip, batch_size=args.batch_size,
                            key=key, callback=cb, describe=tg.describe, b2=args.b2,
-                           log_objective=tg.log_objective, sequential=tg.sequential)
+                           log_objective=tg.log_objective, sequential=tg.sequential,
+                           explode_ratio=EXPLODE_RATIO if tg.log_objective else None)
     finally:
         bar.close()
     say(f"{PROG}: compile {res.compile_s:.1f} s, {res.step_s:.3g} s per step")
@@ -313,7 +325,7 @@ def run_tuning(args, progress_stream=None) -> dict:
             "scenario": tg.scenario, "target": tg.target, "loss": tg.loss, "interrupted": True,
             "stopped": res.stopped, "steps_done": len(res.history), "steps": steps, "lr": lr,
             "params_before": tg.to_params(phys0), "params_after": params_after,
-            "history": res.history, "n_skipped": res.n_skipped,
+            "history": res.history, "n_skipped": res.n_skipped, "n_dropped_runs": res.n_dropped,
             "config": {**tg.config, "steps": steps, "lr": lr},
             "timing": {"build_s": t_build, "compile_s": res.compile_s, "step_s": res.step_s,
                        "total_s": time.perf_counter() - t_all},
@@ -326,6 +338,11 @@ def run_tuning(args, progress_stream=None) -> dict:
         return report
     if res.stopped:
         print(f"{PROG}: warning: {res.stopped}", file=sys.stderr, flush=True)
+    if res.n_dropped:
+        steps_hit = sum(1 for h in res.history if h.get("dropped_runs"))
+        print(f"{PROG}: warning: {res.n_dropped} training run(s) non-finite or exploding (loss above "
+              f"{EXPLODE_RATIO:g}x the batch median) at {steps_hit} step(s), left out of those steps "
+              "(history: dropped_runs)", file=sys.stderr, flush=True)
     phys0, phys1 = tg.physical(tg.theta0), tg.physical(res.theta)
     say(f"{PROG}: evaluating start, tuned{''.join(', ' + k for k in tg.references)} on "
         + (f"held-out logs {tg.config.get('test_robots')} ..." if real else f"{args.test_runs} held-out runs ..."))
@@ -345,6 +362,7 @@ def run_tuning(args, progress_stream=None) -> dict:
         "references": {k: {**_summ(ev[k]), "params": tg.to_params(v)} for k, v in tg.references.items()},
         "stopped": res.stopped,
         "n_skipped": res.n_skipped,
+        "n_dropped_runs": res.n_dropped,
         "steps": steps,
         "lr": lr,
         "config": {**tg.config, "steps": steps, "lr": lr, "clip": args.clip, "batch_size": args.batch_size,

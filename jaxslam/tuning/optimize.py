@@ -5,14 +5,20 @@
 ``train``), one jitted step per iteration (loss, gradient and the candidate update in
 one call), with the host deciding whether the update is applied:
 
-* a **non-finite loss** stops the optimisation; the parameters of the last step whose
-  loss was finite are returned, and ``FitResult.stopped`` says why and where;
-* a **non-finite gradient** (finite loss) is reported in the history and *skipped*: the
-  candidate update is discarded, parameters and optimiser state stay as they were.  With
-  the full batch every step sees the same data, so the same gradient would recur:
-  after ``max_skips`` consecutive skips the loop stops (last good parameters kept).
-  With ``batch_size`` < runs each step draws a new minibatch (from ``key``) and a skip
-  only loses one step.
+* every training run's loss and gradient are computed on their own; a run whose loss or
+  gradient is non-finite, or (with ``explode_ratio``) whose loss exceeds ``explode_ratio`` ×
+  the batch's lower median — a diverged or exploding flight — is **left out** of that step's
+  mean loss and gradient, never averaged in; the record names it (``dropped_runs``) and
+  ``FitResult.n_dropped`` counts it;
+* when no run is left, a **non-finite loss** (the mean over all runs) stops the optimisation;
+  the parameters of the last step whose loss was finite are returned, and
+  ``FitResult.stopped`` says why and where;
+* otherwise (finite losses, every gradient non-finite or exploding) the step is reported in
+  the history and *skipped*: the candidate update is discarded, parameters and optimiser
+  state stay as they were.  With the full batch every step sees the same data, so the same
+  gradient would recur: after ``max_skips`` consecutive skips the loop stops (last good
+  parameters kept).  With ``batch_size`` < runs each step draws a new minibatch (from
+  ``key``) and a skip only loses one step.
 * every ``eval_every`` steps the mean loss on the held-out batch ``test`` is recorded
   (value only, a separately compiled function) — the test-loss curve.
 * ``callback(record)`` receives each history record (progress bars, logging).
@@ -71,12 +77,14 @@ class FitResult(NamedTuple):
 
     theta: last good parameters (finite loss); best_theta: lowest training loss seen.
     history: list of records ``{"step", "loss", "grad_norm", "lr", "skipped", "time_s",
-      ["test_loss"], ["params"]}``: record k holds the loss at θ_k (before update k); there
-      are ``steps + 1`` records, the last one (no update) checks the final iterate.
+      ["dropped_runs"], ["test_loss"], ["params"]}``: record k holds the loss at θ_k (mean over
+      the runs kept; before update k); there are ``steps + 1`` records, the last one (no
+      update) checks the final iterate.  ``dropped_runs``: training-run indices left out.
     stopped: None, or a message saying why the loop stopped early.
     compile_s: compilation time of the training step [s]; step_s: median step time [s].
     memory: see :func:`memory_report`.
     n_skipped: number of skipped (non-finite gradient) steps.
+    n_dropped: number of (step, run) pairs left out of a step's mean (``dropped_runs``).
     interrupted: a Ctrl-C stopped the loop after at least one step (``stopped`` says when);
       ``theta`` / ``best_theta`` are those reached so far.
     """
@@ -90,6 +98,7 @@ class FitResult(NamedTuple):
     memory: dict
     n_skipped: int
     interrupted: bool = False
+    n_dropped: int = 0
 
 
 def make_optimizer(lr: float, steps: int, schedule: str = "cosine", warmup: Optional[int] = None,
@@ -157,6 +166,19 @@ def _tree_finite(t):
     return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(t)]))
 
 
+def _kept_runs(losses, grads, explode_ratio):
+    """Per run: loss and gradient finite and, with ``explode_ratio``, the loss at most that
+    many times the lower median of the batch's finite losses (positive losses only)."""
+    per_run = [jnp.all(jnp.isfinite(a).reshape(a.shape[0], -1), axis=1) for a in jax.tree.leaves(grads)]
+    finite = jnp.isfinite(losses)
+    keep = finite & jnp.all(jnp.stack(per_run), axis=0) if per_run else finite
+    if explode_ratio is not None:
+        n_fin = jnp.sum(finite)
+        med = jnp.sort(jnp.where(finite, losses, jnp.inf))[jnp.maximum((n_fin - 1) // 2, 0)]
+        keep = keep & ~((med > 0) & (losses > explode_ratio * med))
+    return keep
+
+
 def _global_norm(t):
     return jnp.sqrt(sum(jnp.sum(jnp.where(jnp.isfinite(x), x, 0.0) ** 2) for x in jax.tree.leaves(t)))
 
@@ -167,7 +189,7 @@ def fit(loss_fn: Callable, theta0, train, steps: int, lr: float = 0.1, *, test=N
         max_skips: int = 3, callback: Optional[Callable] = None,
         describe: Optional[Callable] = None, b2: float = 0.9,
         log_objective: bool = False, compiler_options: Optional[dict] = None,
-        sequential: bool = False) -> FitResult:
+        sequential: bool = False, explode_ratio: Optional[float] = None) -> FitResult:
     """Minimise mean_runs ``loss_fn(theta, item)`` with Adam; see the module docstring.
 
     Args:
@@ -184,6 +206,8 @@ def fit(loss_fn: Callable, theta0, train, steps: int, lr: float = 0.1, *, test=N
       callback: called with each history record.
       describe: ``describe(theta) -> dict`` stored in each record (parameter trajectories).
       sequential: evaluate the batch's items one after another (:func:`batch_loss`).
+      explode_ratio: leave out a run whose loss exceeds this many times the batch's lower
+        median (positive losses only; None: only non-finite runs are left out).
       compiler_options: passed to XLA when the step is compiled (e.g. :data:`FAST_COMPILE`), over
         the library's CPU options (:func:`jaxslam.runtime.compiler_options`).
     """
@@ -197,6 +221,8 @@ def fit(loss_fn: Callable, theta0, train, steps: int, lr: float = 0.1, *, test=N
         raise InputError("key: a PRNG key is required for minibatches (batch_size < runs)")
     if eval_every < 0:
         raise InputError(f"eval_every: must be >= 0, got {eval_every}")
+    if explode_ratio is not None and not (math.isfinite(explode_ratio) and explode_ratio > 1):
+        raise InputError(f"explode_ratio: expected a finite number > 1 or None, got {explode_ratio}")
     tx, sched = make_optimizer(lr, steps, schedule, warmup, clip, b2=b2)
     opt_state = tx.init(theta0)
     mini = batch_size is not None and batch_size < runs
@@ -206,19 +232,26 @@ def fit(loss_fn: Callable, theta0, train, steps: int, lr: float = 0.1, *, test=N
             # Each item's value and gradient one after another: the reverse pass of one log ends
             # before the next log starts, so memory holds one log's residuals, not the batch's.
             ls, gs = jax.lax.map(lambda item: jax.value_and_grad(loss_fn)(th, item), batch)
-            loss, g = jnp.mean(ls), jax.tree.map(lambda a: jnp.mean(a, axis=0), gs)
         else:
-            loss, g = jax.value_and_grad(lambda t: batch_loss(loss_fn, t, batch))(th)
+            ls, gs = jax.vmap(jax.value_and_grad(loss_fn), in_axes=(None, 0))(th, batch)
+        keep = _kept_runs(ls, gs, explode_ratio)
+        n_keep = jnp.sum(keep)
+        denom = jnp.maximum(n_keep, 1).astype(ls.dtype)
+        # No run left: the plain mean (non-finite if any loss is) decides stop or skip.
+        loss = jnp.where(n_keep > 0, jnp.sum(jnp.where(keep, ls, 0.0)) / denom, jnp.mean(ls))
+        g = jax.tree.map(lambda a: jnp.sum(jnp.where(keep.reshape((-1,) + (1,) * (a.ndim - 1)), a, 0.0),
+                                           axis=0) / denom, gs)
+        g = jax.tree.map(lambda a: jnp.where(n_keep > 0, a, jnp.nan), g)
         if log_objective:  # d log(mean L) = d(mean L) / mean L
             g = jax.tree.map(lambda a: a / loss, g)
-        return loss, g
+        return loss, g, keep
 
     def step(theta, opt_state, batch):
-        loss, g = loss_and_grad(theta, batch)
+        loss, g, keep = loss_and_grad(theta, batch)
         g_ok = _tree_finite(g)
         g_safe = jax.tree.map(lambda x: jnp.where(jnp.isfinite(x), x, 0.0), g)
         upd, new_state = tx.update(g_safe, opt_state, theta)
-        return loss, g_ok, _global_norm(g), optax.apply_updates(theta, upd), new_state
+        return loss, g_ok, _global_norm(g), optax.apply_updates(theta, upd), new_state, keep
 
     def take(idx):
         return jax.tree.map(lambda a: a[idx], train)
@@ -234,7 +267,7 @@ def fit(loss_fn: Callable, theta0, train, steps: int, lr: float = 0.1, *, test=N
         test_c = jax.jit(lambda th, b: batch_loss(loss_fn, th, b, sequential), compiler_options=opts or None)
 
     theta, good, best, best_loss = theta0, theta0, theta0, math.inf
-    history, stopped, skips, n_skipped, times = [], None, 0, 0, []
+    history, stopped, skips, n_skipped, n_dropped, times = [], None, 0, 0, 0, []
     rng = np.random.default_rng(None if key is None else np.asarray(jax.random.key_data(key)).ravel().tolist())
     # Iterate k = 0..steps: step k evaluates the loss (and gradient) at θ_k and, for k < steps,
     # proposes θ_{k+1}; the last pass only checks that the final iterate has a finite loss.
@@ -242,14 +275,19 @@ def fit(loss_fn: Callable, theta0, train, steps: int, lr: float = 0.1, *, test=N
     try:
         for k in range(steps + 1):
             last = k == steps
-            batch = take(np.sort(rng.choice(runs, batch_size, replace=False))) if mini else train
+            idx = np.sort(rng.choice(runs, batch_size, replace=False)) if mini else np.arange(runs)
+            batch = take(idx) if mini else train
             ts = time.perf_counter()
-            loss, g_ok, gnorm, cand, cand_state = step_c(theta, opt_state, batch)
+            loss, g_ok, gnorm, cand, cand_state, keep = step_c(theta, opt_state, batch)
             loss = float(loss)
             g_ok = bool(g_ok)
+            keep = np.asarray(keep)
             times.append(time.perf_counter() - ts)
             rec = {"step": k, "loss": loss, "grad_norm": float(gnorm), "lr": float(sched(k)),
                    "skipped": False, "time_s": times[-1]}
+            if keep.any() and not keep.all():  # some runs left out, the rest applied
+                rec["dropped_runs"] = [int(i) for i in idx[~keep]]
+                n_dropped += int((~keep).sum())
             if describe is not None:
                 rec["params"] = describe(theta)
             if not math.isfinite(loss):
@@ -289,4 +327,4 @@ def fit(loss_fn: Callable, theta0, train, steps: int, lr: float = 0.1, *, test=N
     return FitResult(theta=good, best_theta=best, history=history, stopped=stopped, compile_s=compile_s,
                      step_s=float(np.median(times)) if times else math.nan,
                      memory={**memory, "peak_rss_after_mb": peak_rss_mb()}, n_skipped=n_skipped,
-                     interrupted=interrupted)
+                     interrupted=interrupted, n_dropped=n_dropped)

@@ -2,6 +2,7 @@
 
 import json
 
+import jax
 import pytest
 
 from jaxslam import cli
@@ -31,10 +32,47 @@ def test_tune_end_to_end_writes_json_params_and_plots(tmp_path, capsys):
     assert len(pngs) == 3 and all(n.endswith(".png") for n in pngs)
 
 
+def test_a_diverged_training_run_is_named_counted_and_left_out(tmp_path, capsys, monkeypatch):
+    """A target whose first training run is NaN at every step: the tune goes on with the other
+    runs, says so at every step and at the end, and the JSON counts and names the run."""
+    import jax.numpy as jnp
+
+    from jaxslam.tuning import targets
+
+    targets.available()  # the built-in targets registered
+    base, losses = targets._FACTORIES[("linear-gaussian", "noise")]
+
+    def poisoned(**kw):
+        tg = base(**kw)
+        n_tr, n_te = (jax.tree.leaves(b)[0].shape[0] for b in (tg.train, tg.test))
+
+        def loss_fn(theta, item):
+            i, log = item
+            return jnp.where(i == 0, jnp.nan, tg.loss_fn(theta, log))
+
+        return tg._replace(loss_fn=loss_fn, train=(jnp.arange(n_tr), tg.train),
+                           test=(jnp.full(n_te, -1), tg.test))
+
+    monkeypatch.setitem(targets._FACTORIES, ("lg-poisoned", "noise"), (poisoned, losses))
+    j = tmp_path / "t.json"
+    rc = cli.main(["tune", "lg-poisoned", "--loss", "nll", "--steps", "3", "--train-runs", "3",
+                   "--test-runs", "1", "--json", str(j)])
+    out = capsys.readouterr()
+    assert rc == 0, out.err
+    rep = json.loads(j.read_text())
+    assert rep["n_dropped_runs"] == 4 and rep["n_skipped"] == 0 and rep["stopped"] is None
+    assert [h["dropped_runs"] for h in rep["history"]] == [[0]] * 4
+    assert rep["history"][-1]["loss"] < rep["history"][0]["loss"]  # the other two runs still train
+    assert out.err.count("training run(s) 0 non-finite or exploding") == 4
+    assert "warning: 4 training run(s)" in out.err
+
+
 @pytest.mark.parametrize("argv, needle", [
     (["tune", "no-such"], "no-such"),
     (["tune", "track-figure8", "--target", "noise"], "--target"),
     (["tune", "track-figure8", "--loss", "nll"], "--loss"),
+    # without --target a scenario with a noise target tunes the noise (not the loop target)
+    (["tune", "ekfslam3d-unknown", "--loss", "cost"], "ekfslam3d-unknown --target noise supports"),
     (["tune", "linear-gaussian", "--steps", "0"], "--steps"),
     (["tune", "linear-gaussian", "--lr", "-1"], "--lr"),
     (["tune", "linear-gaussian", "--bogus"], "--bogus"),
@@ -43,6 +81,15 @@ def test_usage_errors_exit_2_one_line(capsys, argv, needle):
     assert cli.main(argv) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and needle in err[0]
+
+
+def test_default_target_is_noise_where_offered():
+    from jaxslam.tuning import targets
+
+    assert targets.default_target("ekfslam3d-unknown") == "noise"
+    assert targets.default_target("ekfslam3d-known") == "noise"
+    assert targets.default_target("track-figure8") == "lqr"
+    assert targets.default_target("no-such") is None
 
 
 def test_help_lists_targets(capsys):

@@ -54,6 +54,43 @@ def test_non_finite_gradient_is_skipped_never_applied():
     assert "never applied" in res.stopped
 
 
+def _diverging(theta, item):
+    """Item 9 is a diverged run: NaN loss at every θ; item 7 explodes once a > 0.5 (1e6 × its
+    loss); the others are plain quadratics."""
+    q = _quad(theta, item)
+    q = jnp.where((item[0] == 7.0) & (theta["a"][0] > 0.5), 1e6 * (1.0 + q), q)
+    return jnp.where(item[0] == 9.0, jnp.nan, q)
+
+
+@pytest.mark.parametrize("sequential", [False, True])
+def test_a_diverged_run_is_left_out_and_counted_never_averaged(sequential):
+    """One NaN run in the batch: every step goes on with the other runs (same iterates as a fit
+    on those runs alone, the oracle), the run is named in each record and counted."""
+    good = jnp.asarray([[1.0, -2.0], [3.0, 0.0]])
+    items = jnp.concatenate([good, jnp.asarray([[9.0, 9.0]])])
+    ref = O.fit(_quad, {"a": jnp.zeros(2)}, good, steps=30, lr=0.2, sequential=sequential)
+    res = O.fit(_diverging, {"a": jnp.zeros(2)}, items, steps=30, lr=0.2, sequential=sequential)
+    assert res.stopped is None and res.n_skipped == 0
+    assert res.n_dropped == 31 and all(h["dropped_runs"] == [2] for h in res.history)
+    np.testing.assert_allclose(np.asarray(res.theta["a"]), np.asarray(ref.theta["a"]), rtol=1e-12)
+    np.testing.assert_allclose([h["loss"] for h in res.history], [h["loss"] for h in ref.history], rtol=1e-12)
+    # Without the other runs nothing is left: the NaN mean stops the fit at once.
+    alone = O.fit(_diverging, {"a": jnp.zeros(2)}, items[2:], steps=5, lr=0.2, sequential=sequential)
+    assert alone.stopped is not None and "non-finite" in alone.stopped and alone.n_dropped == 0
+
+
+def test_an_exploding_run_is_left_out_only_with_explode_ratio():
+    items = jnp.asarray([[1.0, -2.0], [3.0, 0.0], [7.0, 0.0]])
+    res = O.fit(_diverging, {"a": jnp.zeros(2)}, items, steps=40, lr=0.2, explode_ratio=1e3)
+    dropped = [h["step"] for h in res.history if h.get("dropped_runs")]
+    assert dropped and all(h["dropped_runs"] == [2] for h in res.history if h.get("dropped_runs"))
+    assert res.n_dropped == len(dropped) and res.history[0].get("dropped_runs") is None  # a = 0: not exploding
+    for h in res.history:  # the recorded loss never contains the exploding run
+        assert h["loss"] < 1e3
+    plain = O.fit(_diverging, {"a": jnp.zeros(2)}, items, steps=40, lr=0.2)
+    assert plain.n_dropped == 0 and max(h["loss"] for h in plain.history) > 1e5
+
+
 def test_minibatches_need_a_key_and_converge():
     items = jnp.arange(8.0)[:, None] * jnp.ones((1, 2))
     with pytest.raises(InputError, match="key"):
@@ -64,7 +101,8 @@ def test_minibatches_need_a_key_and_converge():
 
 @pytest.mark.parametrize("kw, needle", [
     (dict(lr=-1.0), "--lr"), (dict(steps=0), "--steps"), (dict(batch_size=9), "batch_size"),
-    (dict(eval_every=-1), "eval_every"), (dict(clip=0.0), "clip"),
+    (dict(eval_every=-1), "eval_every"), (dict(clip=0.0), "clip"), (dict(explode_ratio=1.0), "explode_ratio"),
+    (dict(explode_ratio=float("nan")), "explode_ratio"),
 ])
 def test_bad_arguments(kw, needle):
     args = dict(steps=2, lr=0.1)

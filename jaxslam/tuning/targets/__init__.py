@@ -32,7 +32,7 @@ import numpy as np
 
 from ...errors import InputError
 
-__all__ = ["Target", "register_target", "get", "available", "REAL_LOG_SCENARIOS", "BUILTIN_MODULES",
+__all__ = ["Target", "register_target", "get", "available", "default_target", "REAL_LOG_SCENARIOS", "BUILTIN_MODULES",
            "keys", "diag_list"]
 
 #: the target modules the registry imports on first use
@@ -111,6 +111,14 @@ def available() -> dict:
     """{(scenario, target): losses} of every registered target."""
     _load()
     return {k: v[1] for k, v in sorted(_FACTORIES.items())}
+
+
+def default_target(scenario: str):
+    """The target ``jaxslam tune SCENARIO`` builds without ``--target``: ``"noise"`` where the
+    scenario has it, else its first registered one; None for a scenario with no target."""
+    _load()
+    names = [t for (s, t) in _FACTORIES if s == scenario]
+    return "noise" if "noise" in names else (names[0] if names else None)
 
 
 def get(scenario: str, target: str, loss: str, **kw) -> Target:
