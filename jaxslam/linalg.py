@@ -202,22 +202,49 @@ def check_shape(x, shape, name: str):
     return x
 
 
-def check_psd(M, name: str, strict: bool = False, tol: float = 1e-12):
-    """Raise InputError unless ``M`` is a finite symmetric PSD (PD if strict) matrix."""
+def check_psd(M, name: str, strict: bool = False, tol: float = 1e-12, valid=None, stack: bool = False):
+    """Raise InputError unless ``M`` is a finite symmetric PSD (PD if strict) matrix or, with
+    ``stack``, a stack of them (``(K, n, n)`` also accepted: the first bad one is named
+    ``name[k]``, all checked at once).
+
+    Tolerances, relative to the largest magnitude (at least 1): symmetry 1e-9, eigenvalues
+    ``tol``; a lower-precision input (float32) may also be off by 100 ulp of its own dtype
+    (relative to its largest entry) in symmetry and below zero, so a matrix that is symmetric
+    and PSD to its working precision passes.  ``valid`` (``(..., n)`` bool):
+    only the rows and columns in use are checked (a masked measurement's row of a per-step R
+    may hold anything, NaN included).
+    """
+    dt = np.asarray(M).dtype
     A = np.asarray(M, dtype=np.float64)
-    if A.ndim != 2 or A.shape[0] != A.shape[1]:
+    if A.ndim not in ((2, 3) if stack else (2,)) or A.shape[-1] != A.shape[-2]:
         raise InputError(f"{name}: expected a square matrix, got shape {A.shape}")
-    if not np.all(np.isfinite(A)):
-        raise InputError(f"{name}: contains NaN or Inf")
-    scale = max(1.0, float(np.max(np.abs(A)))) if A.size else 1.0
-    if not np.allclose(A, A.T, atol=1e-9 * scale, rtol=0):
-        raise InputError(f"{name}: not symmetric")
-    w = np.linalg.eigvalsh(0.5 * (A + A.T)) if A.size else np.zeros(0)
-    lo = w.min() if w.size else 0.0
-    if strict and lo <= tol * scale:
-        raise InputError(f"{name}: not positive definite (smallest eigenvalue {lo:.3g})")
-    if lo < -tol * scale:
-        raise InputError(f"{name}: not positive semi-definite (smallest eigenvalue {lo:.3g})")
+    # rounding room of a lower-precision input: 100 ulp of its dtype, relative to its magnitude
+    ulp = 100 * np.finfo(dt).eps if np.issubdtype(dt, np.floating) and np.finfo(dt).bits < 64 else 0.0
+    S = A.reshape((-1,) + A.shape[-2:])
+    if valid is not None:
+        v = np.broadcast_to(np.asarray(valid, bool), A.shape[:-1]).reshape(S.shape[:2])
+        S = np.where(v[:, :, None] & v[:, None, :], S, np.eye(A.shape[-1])[None])  # unused rows: identity
+    if S.size == 0:
+        return M
+
+    def where(bad):
+        k = int(np.argmax(bad))
+        return name + (f"[{k}]" if A.ndim == 3 else "")
+
+    bad = ~np.all(np.isfinite(S), axis=(1, 2))
+    if bad.any():
+        raise InputError(f"{where(bad)}: contains NaN or Inf")
+    mag = np.max(np.abs(S), axis=(1, 2))
+    scale = np.maximum(1.0, mag)
+    bad = np.max(np.abs(S - S.transpose(0, 2, 1)), axis=(1, 2)) > np.maximum(1e-9 * scale, ulp * mag)
+    if bad.any():
+        raise InputError(f"{where(bad)}: not symmetric")
+    lo = np.linalg.eigvalsh(0.5 * (S + S.transpose(0, 2, 1))).min(axis=1)
+    bad = lo <= tol * scale if strict else lo < -np.maximum(tol * scale, ulp * mag)
+    if bad.any():
+        k = int(np.argmax(bad))
+        what = "positive definite" if strict else "positive semi-definite"
+        raise InputError(f"{where(bad)}: not {what} (smallest eigenvalue {lo[k]:.3g})")
     return M
 
 

@@ -335,12 +335,12 @@ def update(
     extra = None
     if int(num_iter) > 1:
         def gn(carry, _):
-            xi, _, _, _ = carry
+            xi, _, ok_so_far, _ = carry
             zi, Hi = linearise(xi)
             nui = masked_innovation(z, zi, mask, res) - jnp.where(
                 mask, Hi @ (x - xi), jnp.zeros((), dtype))
             xn, Pn, _, _, _, oki, _ = linear_update(x, P, nui, Hi, R, mask)
-            return (xn, Pn, oki, xi), None
+            return (xn, Pn, ok_so_far & oki, xi), None  # one failed linearisation fails the update
 
         (x_post, P_post, ok_it, x_prev), _ = jax.lax.scan(
             gn, (x_post, P_post, ok, x), None, length=int(num_iter) - 1)
@@ -354,7 +354,8 @@ def update(
     else:
         gated = (dof > 0) & (nis > _threshold(gate, dof, dtype))
     post, accepted, status = _finalize(state, x_post, P_post, ok, gated, dof, extra)
-    # a failed factorisation reports NIS 0 (not NaN), so a run's log-likelihood stays finite
+    # a failed factorisation reports NIS 0 (not NaN); its step's log-likelihood is NaN, with
+    # the status saying why (gaussian.step_log_likelihood)
     nis = jnp.where(ok, nis, jnp.zeros((), dtype))
     return post, UpdateInfo(nis, dof, num, S, accepted, status,
                             jnp.where(ok & (dof > 0), logdet, jnp.zeros((), dtype)))

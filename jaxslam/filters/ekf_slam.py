@@ -824,7 +824,9 @@ class SmootherTerms(NamedTuple):
     mapped slots (0 on free or zero-variance ones); P_cond: (n_r, n_r)
     ``P_rr − W P_mr``, the robot covariance given the map; ids: (cap,) int32 the
     landmark id in each slot (−1 free), so a slot re-used after pruning is not
-    mistaken for the landmark it held before.
+    mistaken for the landmark it held before; status: () int32, ``NOT_PSD`` where the
+    map block did not factor (W is then 0: that step's map term is dropped, and
+    :func:`smooth_robot` reports the flag), else 0.
     """
 
     robot: jax.Array
@@ -832,6 +834,7 @@ class SmootherTerms(NamedTuple):
     W: jax.Array
     P_cond: jax.Array
     ids: jax.Array
+    status: Any = None
 
 
 def smoother_terms(state: SlamState, model: SlamModel) -> SmootherTerms:
@@ -854,7 +857,8 @@ def smoother_terms(state: SlamState, model: SlamModel) -> SmootherTerms:
     W = jnp.where(ok, Wt.T, 0.0)
     P_cond = symmetrize(state.P[:nr, :nr] - W @ Prm_m.T)
     return SmootherTerms(state.x[:nr], state.x[nr:], W, P_cond,
-                         jnp.where(state.active, state.ids, -1).astype(jnp.int32))
+                         jnp.where(state.active, state.ids, -1).astype(jnp.int32),
+                         jnp.where(ok, jnp.int32(0), jnp.int32(errors.NOT_PSD)))
 
 
 def smooth_robot(model: SlamModel, terms: SmootherTerms, us, Qs, final: SlamState,
@@ -888,7 +892,8 @@ def smooth_robot(model: SlamModel, terms: SmootherTerms, us, Qs, final: SlamStat
 
     Returns:
         ``(robot_means (T, n_r), status (T,) int32)`` with ``NOT_PSD`` where a gain
-        could not be formed (that step keeps its filtered robot mean plus the map term).
+        could not be formed (that step keeps its filtered robot mean plus the map term) or
+        where the step's terms say the map block did not factor (``terms.status``).
     """
     nr = model.robot_dim
     dtype = terms.robot.dtype
@@ -913,14 +918,15 @@ def smooth_robot(model: SlamModel, terms: SmootherTerms, us, Qs, final: SlamStat
         st = jnp.where(ok, jnp.int32(0), jnp.int32(errors.NOT_PSD))
         return rs, (rs, st)
 
+    st_terms = jnp.zeros((T,), jnp.int32) if terms.status is None else terms.status
     if T == 1:
-        return terms.robot, jnp.zeros((1,), jnp.int32)
+        return terms.robot, st_terms
     nxt = jax.tree_util.tree_map(lambda a: a[1:], (us, Qs, p_seq))
     xs = (terms.robot[:-1], terms.lm[:-1], terms.W[:-1], terms.P_cond[:-1], terms.ids[:-1]) + tuple(nxt)
     _, (rs, st) = jax.lax.scan(body, terms.robot[-1], xs, reverse=True)
     rs = jnp.concatenate([rs, terms.robot[-1:]], 0)
     st = jnp.concatenate([st, jnp.zeros((1,), jnp.int32)], 0)
-    return rs, st
+    return rs, st | st_terms
 
 
 # ---------------------------------------------------------------------------

@@ -96,7 +96,8 @@ class UpdateInfo(NamedTuple):
         status: () int32 bit flags from :mod:`jaxslam.errors` (``GATED``,
             ``NOT_PSD``, ``NON_FINITE``, ``NOT_CONVERGED``).
         logdet: () ``log det S`` over the valid block (0 when none is valid or
-            the factorisation failed).
+            the factorisation failed); None in a user-written filter's info:
+            :func:`step_log_likelihood` then takes it from ``S``.
     """
 
     nis: Array
@@ -120,7 +121,8 @@ class Posterior(NamedTuple):
         status: (T,) int32 status bit flags per step.
         final: :class:`Gaussian` after the last step (full covariance).
         log_likelihood: (T,) per-step innovation log-likelihood (0 when nothing
-            was valid); its sum is the marginal log-likelihood of the run.
+            was valid, NaN where the update failed: see :func:`step_log_likelihood`);
+            its sum is the marginal log-likelihood of the run.
         pred_means: (T, n) predicted means (``save_smoother``), else None.
         pred_covs: (T, n, n) predicted covariances (``save_smoother``), else None.
         cross_covs: (T, n, n) ``Cov(x_{t−1|t−1}, x_{t|t−1})`` of the prediction that
@@ -222,10 +224,19 @@ def finalize(prior: Gaussian, x_post, P_post, ok, gated, dof, extra_status=None)
 
 
 def step_log_likelihood(info: UpdateInfo):
-    """``−½ (NIS + log det S + dof log 2π)`` of one update (0 with no valid component)."""
+    """``−½ (NIS + log det S + dof log 2π)`` of one update: 0 with no valid component, NaN where
+    the update failed (``NOT_PSD`` / ``NON_FINITE`` in ``info.status``: S did not factor or the
+    result was not finite, so the likelihood is undefined and a run's sum must not hide it).
+    An ``UpdateInfo`` without ``logdet`` (a user-written filter) gets it from ``info.S``."""
     dtype = info.nis.dtype
     dof = info.dof.astype(dtype)
-    ll = -0.5 * (info.nis + info.logdet + dof * jnp.asarray(LOG_2PI, dtype))
+    logdet = info.logdet
+    if logdet is None:
+        L = jnp.linalg.cholesky(symmetrize(jnp.asarray(info.S, dtype)))
+        logdet = 2.0 * jnp.sum(jnp.log(jnp.abs(jnp.diagonal(L))))
+    ll = -0.5 * (info.nis + logdet + dof * jnp.asarray(LOG_2PI, dtype))
+    failed = (info.status & jnp.int32(errors.NOT_PSD | errors.NON_FINITE)) != 0
+    ll = jnp.where(failed, jnp.asarray(jnp.nan, dtype), ll)
     return jnp.where(info.dof > 0, ll, jnp.zeros((), dtype))
 
 
@@ -267,7 +278,9 @@ def check_run_inputs(x0, P0, zs, masks, Q, R, name_prefix=""):
         raise InputError(f"{pre}masks: expected shape ({T}, {m}) like zs, got "
                          f"{tuple(np.shape(masks))}")
     rs = np.shape(R)
-    if rs[-2:] != (m, m) or len(rs) not in (2, 3):
+    if m == 1 and len(rs) == 0:
+        R = np.reshape(R, (1, 1)) if is_concrete(R) else R  # a scalar variance of one measurement
+    elif rs[-2:] != (m, m) or len(rs) not in (2, 3):
         raise InputError(f"{pre}R: expected shape ({m}, {m}) or ({T}, {m}, {m}), got {tuple(rs)}")
     qs = np.shape(Q)
     if len(qs) not in (2, 3) or qs[-1] != qs[-2]:
@@ -275,9 +288,11 @@ def check_run_inputs(x0, P0, zs, masks, Q, R, name_prefix=""):
     for M, nm, strict in ((P0, "P0", False), (Q, "Q", False), (R, "R", True)):
         if not is_concrete(M):
             continue
-        A = np.asarray(M)
-        for k, Ak in enumerate(A.reshape((-1,) + A.shape[-2:])):
-            check_psd(Ak, f"{pre}{nm}" + (f"[{k}]" if A.ndim == 3 else ""), strict=strict)
+        # per-step R: only the rows of the measurements in use at that step (masked rows may
+        # hold anything); every matrix of a stack is checked at once
+        valid = np.asarray(masks, bool) if (nm == "R" and np.ndim(M) == 3 and masks is not None
+                                            and is_concrete(masks)) else None
+        check_psd(M, f"{pre}{nm}", strict=strict, valid=valid, stack=True)
     return T, m
 
 
@@ -325,7 +340,8 @@ def prepare_run(x0, P0, zs, masks, Q, R):
     zs = jnp.asarray(zs, dtype=dtype)
     T, m = check_run_inputs(x0, P0, zs, masks, Q, R)
     Q, q_step = _per_step(jnp.asarray(Q, dtype=dtype), T, "Q", 2)
-    R, r_step = _per_step(jnp.asarray(R, dtype=dtype), T, "R", 2)
+    R = jnp.asarray(R, dtype=dtype)
+    R, r_step = _per_step(R.reshape(1, 1) if R.ndim == 0 else R, T, "R", 2)
     masks = jnp.ones((T, m), bool) if masks is None else jnp.asarray(masks, bool)
     return x0, P0, zs, masks, Q, R, q_step, r_step, T
 

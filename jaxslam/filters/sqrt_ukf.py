@@ -158,6 +158,7 @@ def filter_scan(f: Optional[Callable], h: Callable, x0, P0, us, zs, masks, Q, R,
     q_step = Qa.ndim == 3
     CQ = jax.vmap(lambda q: _root(q, dtype, triangular=False))(Qa) if q_step else _root(Qa, dtype, triangular=False)
     Ra = jnp.asarray(R, dtype)
+    Ra = Ra.reshape(1, 1) if Ra.ndim == 0 else Ra  # a scalar variance of one measurement
     r_step = Ra.ndim == 3
 
     def step(carry, inp):

@@ -587,6 +587,92 @@ def test_validators_name_the_argument():
         ekf.validate_noise_cov(np.eye(3), 2, "Q")
 
 
+def test_run_inputs_that_ran_before_the_filter_core_are_accepted():
+    """Per-step R with NaN on masked rows, a float32 P0 symmetric to float32 precision and a
+    scalar R for one measurement are accepted (the run checks only what it uses, at the input's
+    precision); what is used stays checked, naming the step."""
+    rng = np.random.default_rng(7)
+    _, us, zs = simulate_cv(rng, 30)
+    masks = rng.random(zs.shape) > 0.3
+    Rs = np.broadcast_to(R_CV, (30, 2, 2)).copy()
+    Rnan = Rs.copy()
+    for t in range(30):
+        Rnan[t][~masks[t], :] = np.nan
+        Rnan[t][:, ~masks[t]] = np.nan
+    a = ekf.filter_scan(f_cv, h_pos, X0_CV, P0_CV, us, zs, masks, Q_CV, Rs, save_cov=True)
+    b = ekf.filter_scan(f_cv, h_pos, X0_CV, P0_CV, us, zs, masks, Q_CV, Rnan, save_cov=True)
+    ref_m, ref_P = np_kf(X0_CV, P0_CV, us, zs, masks)
+    assert_close(a.means, ref_m)
+    np.testing.assert_array_equal(np.asarray(b.means), np.asarray(a.means))
+    np.testing.assert_array_equal(np.asarray(b.covs), np.asarray(a.covs))
+    t0 = int(np.argmax(masks[:, 0]))
+    Rbad = Rs.copy()
+    Rbad[t0, 0, 0] = np.nan
+    with pytest.raises(InputError, match=rf"R\[{t0}\]: contains NaN"):
+        ekf.filter_scan(f_cv, h_pos, X0_CV, P0_CV, us, zs, masks, Q_CV, Rbad)
+    Rneg = Rs.copy()
+    Rneg[-1] = -np.eye(2)
+    with pytest.raises(InputError, match=r"R\[29\]: not positive definite"):
+        ekf.filter_scan(f_cv, h_pos, X0_CV, P0_CV, us, zs, masks, Q_CV, Rneg)
+    # float32 P0 asymmetric at its own precision: accepted; the same asymmetry in float64 is not
+    P_asym = P0_CV.copy()
+    P_asym[0, 1] += 2e-7
+    p32 = ekf.filter_scan(f_cv, h_pos, X0_CV.astype(np.float32), P_asym.astype(np.float32), us, zs, masks,
+                          Q_CV, R_CV)
+    assert np.all(np.isfinite(np.asarray(p32.means)))
+    with pytest.raises(InputError, match="P0: not symmetric"):
+        ekf.filter_scan(f_cv, h_pos, X0_CV, P_asym, us, zs, masks, Q_CV, R_CV)
+    # a scalar variance for one measurement equals the (1, 1) matrix, and the closed-form KF
+    one = ekf.filter_scan(f_cv, lambda x: x[:1], X0_CV, P0_CV, us, zs[:, :1], masks[:, :1], Q_CV, 0.04)
+    ref_m1, _ = np_kf(X0_CV, P0_CV, us, zs[:, :1], masks[:, :1], H=H_CV[:1], R=np.array([[0.04]]))
+    assert_close(one.means, ref_m1)
+
+
+def test_step_log_likelihood_is_nan_where_the_update_failed_and_takes_logdet_from_S():
+    from jaxslam.filters import gaussian as G
+
+    info = G.UpdateInfo(nis=jnp.asarray(1.5), dof=jnp.asarray(2, jnp.int32), innovation=jnp.zeros(2),
+                        S=jnp.asarray(R_CV), accepted=jnp.asarray(True), status=jnp.int32(0))  # no logdet
+    want = -0.5 * (1.5 + np.log(np.linalg.det(R_CV)) + 2 * np.log(2 * np.pi))
+    np.testing.assert_allclose(float(G.step_log_likelihood(info)), want, rtol=1e-12)
+    with_ld = info._replace(logdet=jnp.asarray(np.log(np.linalg.det(R_CV))))
+    np.testing.assert_allclose(float(G.step_log_likelihood(with_ld)), want, rtol=1e-12)
+    gated = with_ld._replace(status=jnp.int32(errors.GATED), accepted=jnp.asarray(False))
+    np.testing.assert_allclose(float(G.step_log_likelihood(gated)), want, rtol=1e-12)  # defined: kept
+    for bit in (errors.NOT_PSD, errors.NON_FINITE):
+        failed = with_ld._replace(status=jnp.int32(bit), logdet=jnp.asarray(0.0))
+        assert np.isnan(float(G.step_log_likelihood(failed)))
+    assert float(G.step_log_likelihood(failed._replace(dof=jnp.asarray(0, jnp.int32)))) == 0.0
+
+    # a user-written filter whose UpdateInfo has no logdet runs, with the EKF's likelihood
+    rng = np.random.default_rng(5)
+    _, us, zs = simulate_cv(rng, 20)
+    flt = ekf.make_filter(f_cv, h_pos)
+
+    def update(state, z, mask, R, c):
+        post, inf = flt.update(state, z, mask, R, c)
+        return post, inf._replace(logdet=None)
+
+    ref = G.run(flt, X0_CV, P0_CV, us, zs, None, Q_CV, R_CV)
+    mine = G.run(G.GaussianFilter(flt.predict, update), X0_CV, P0_CV, us, zs, None, Q_CV, R_CV)
+    np.testing.assert_allclose(np.asarray(mine.log_likelihood), np.asarray(ref.log_likelihood), rtol=1e-12)
+
+
+def test_check_psd_stack_names_the_first_bad_matrix():
+    from jaxslam.linalg import check_psd
+
+    A = np.broadcast_to(np.eye(3), (5, 3, 3)).copy()
+    check_psd(A, "Q", stack=True)
+    with pytest.raises(InputError, match="expected a square matrix"):
+        check_psd(A, "Q")  # a stack only where asked for
+    A[3, 2, 2] = -1.0
+    with pytest.raises(InputError, match=r"Q\[3\]: not positive semi-definite"):
+        check_psd(A, "Q", stack=True)
+    valid = np.ones((5, 3), bool)
+    valid[3, 2] = False  # that row unused at step 3
+    check_psd(A, "Q", stack=True, valid=valid)
+
+
 # --------------------------------------------------------------------------
 # Iterated EKF update
 # --------------------------------------------------------------------------

@@ -592,6 +592,30 @@ def test_smooth_robot_equals_full_state_rts():
     assert np.max(np.abs(np.asarray(rs) - np.asarray(filt))) > 1e-3  # smoothing did something
 
 
+def test_smoother_terms_flag_a_map_block_that_does_not_factor():
+    """An indefinite map block (e.g. float32 round-off): W = 0 for that step, and the flag
+    reaches smooth_robot's status instead of vanishing."""
+    cap = 2
+    P = np.eye(3 + 2 * cap) * 0.1
+    P[3:, 3:] = np.array([[1.0, 0, 2.0, 0], [0, 1.0, 0, 2.0], [2.0, 0, 1.0, 0], [0, 2.0, 0, 1.0]])
+    P[0, 3] = P[3, 0] = 0.05
+    good = np.eye(3 + 2 * cap) * 0.1
+    good[0, 3] = good[3, 0] = 0.05
+
+    def state(P):
+        return es.SlamState(x=jnp.zeros(3 + 2 * cap), P=jnp.asarray(P), active=jnp.ones(cap, bool),
+                            ids=jnp.arange(cap, dtype=jnp.int32), status=jnp.zeros((), jnp.int32),
+                            overflow=jnp.zeros((), jnp.int32))
+
+    bad_t, good_t = es.smoother_terms(state(P), MODEL), es.smoother_terms(state(good), MODEL)
+    assert int(bad_t.status) == errors.NOT_PSD and not np.any(np.asarray(bad_t.W))
+    assert int(good_t.status) == 0 and np.asarray(good_t.W)[0, 0] == pytest.approx(0.5)
+    terms = jax.tree.map(lambda a, b, c: jnp.stack([a, b, c]), good_t, bad_t, good_t)
+    us = jnp.zeros((3,) + np.shape(make_log(seed=0, T=1, n_lm=1, K=1)[0])[1:])
+    _, st = es.smooth_robot(MODEL, terms, us, jnp.broadcast_to(jnp.asarray(Q), (3, 3, 3)), state(good))
+    assert [int(v) & errors.NOT_PSD for v in np.asarray(st)] == [0, errors.NOT_PSD, 0]
+
+
 # ------------------------------------------------------- the whole-sequence runner (es.run)
 P0_RUN = np.diag([1e-4, 1e-4, 1e-5])
 
