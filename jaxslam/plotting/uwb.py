@@ -122,6 +122,9 @@ def plot_all(name, sim, res, ev, setup, cfg, per_step, cons, runs, directory):
     fig, ax = p.subplots(figsize=(7, 6))
     ax.plot(pos_t[:, 0], pos_t[:, 1], "C0-", lw=1.5, label="true")
     ax.plot(st.mean[:, 0], st.mean[:, 1], "C1--", lw=1.2, label="estimated")
+    sm = None if res.smoothed is None else np.asarray(res.smoothed)
+    if sm is not None:
+        ax.plot(sm[:, 0], sm[:, 1], "C4-", lw=1.0, label="smoothed (RTS)")
     su = (setup.startup_pos - o) @ M.T
     ax.plot(su[:, 0], su[:, 1], "k:", lw=1, label="start-up run")
     ax.scatter(anc_t[:, 0], anc_t[:, 1], c="g", marker="^", s=60, label="anchors (true)", zorder=3)
@@ -202,6 +205,8 @@ def plot_all(name, sim, res, ev, setup, cfg, per_step, cons, runs, directory):
         a.legend(fontsize=6, loc="lower right", ncol=len(idx))
     k = len(panels)
     axs[k].plot(t, np.asarray(ev["series"]["pos_err_m"]), "k-", lw=1, label="‖error‖")
+    if sm is not None:
+        axs[k].plot(t, np.linalg.norm(sm[:, :2] - pos_t, axis=1), "C4-", lw=1, label="‖error‖ smoothed")
     axs[k].plot(t, 3 * np.sqrt(sig[:, 0] ** 2 + sig[:, 1] ** 2), "C0--", lw=0.8, label="3√(σx² + σy²)")
     axs[k].set_ylabel("‖position error‖ [m]")
     axs[k].legend(fontsize=6)

@@ -120,7 +120,7 @@ from .. import errors
 from ..errors import InputError
 from ..filters import ekf_slam as es
 from ..filters import trilateration as tri
-from ..linalg import check_psd, check_scalar, host_array, is_concrete
+from ..linalg import check_psd, check_scalar, host_array, is_concrete, wrap_angle
 from ..sensors import uwb
 
 __all__ = [
@@ -188,6 +188,10 @@ class Config(NamedTuple):
       the size is a shape, the stride the buffer's sampling period).
     debias: squared model only — subtract σ² (``params.range_var``) from each measured
       squared range, whose mean is d² + σ² (not in the paper; the matched preset uses it).
+    smooth: also the RTS-smoothed robot trajectory (``Result.smoothed``, ``smooth_status``):
+      the backward pass of :func:`jaxslam.filters.ekf_slam.smooth_robot` over the run, the map
+      held static (an anchor mapped late has no map term before it was mapped).  Offline: each
+      step records O(10 · 2N) extra numbers.
 
     The thresholds (start-up and delayed-init point counts and spread, the χ² gate, the
     near-anchor gate, the localisation speed bound) are :class:`Params` fields: traced, so a
@@ -204,6 +208,7 @@ class Config(NamedTuple):
     buffer_size: int = 24
     buffer_stride: int = 2
     debias: bool = False
+    smooth: bool = False
 
 
 class Params(NamedTuple):
@@ -332,7 +337,9 @@ class StepOut(NamedTuple):
     mean: (10,) robot mean; cov: (10, 10) robot covariance; landmarks: (N, 2) map means;
     lm_cov: (N, 2, 2) marginal map covariances; active: (N,) bool mapped;
     nis: () joint NIS of the step's updates; dof: () its degrees of freedom;
-    pending: () bool some anchor still unmapped; status: () int32 OR-ed status so far.
+    pending: () bool some anchor still unmapped; status: () int32 OR-ed status so far;
+    smoother: the step's :class:`~jaxslam.filters.ekf_slam.SmootherTerms` (``config.smooth``),
+    else None.
     """
 
     mean: jax.Array
@@ -344,15 +351,20 @@ class StepOut(NamedTuple):
     dof: jax.Array
     pending: jax.Array
     status: jax.Array
+    smoother: Any = None
 
 
 class Result(NamedTuple):
     """Output of :func:`run`: per-step records (:class:`StepOut`, T leading), final
-    :class:`State`, and the :class:`StartupResult` (start-up map or initial fix)."""
+    :class:`State`, and the :class:`StartupResult` (start-up map or initial fix); with
+    ``config.smooth`` also ``smoothed`` (T, 10) robot means and ``smooth_status`` (T,) int32
+    (``NOT_PSD`` where a gain could not be formed), else None."""
 
     steps: StepOut
     final: State
     startup: StartupResult
+    smoothed: Any = None
+    smooth_status: Any = None
 
 
 # ---------------------------------------------------------------------------
@@ -765,6 +777,7 @@ def step(state: State, event: Event, config: Config, params: Params, *, key=None
         dof=info_r.dof + info_g.dof,
         pending=pending,
         status=st.status,
+        smoother=es.smoother_terms(st, model) if cfg.smooth else None,
     )
     return fs, out
 
@@ -861,7 +874,20 @@ def _run(log: Log, config: Config, params: Params) -> Result:
     fs, start = _init(log, config, params)
     events = Event(ranges=log.ranges, range_mask=log.range_mask, gyro=log.gyro)
     final, steps = jax.lax.scan(lambda c, ev: step(c, ev, config, params), fs, events)
-    return Result(steps=steps, final=final, startup=start)
+    if not config.smooth:
+        return Result(steps=steps, final=final, startup=start)
+    T = steps.mean.shape[0]
+    dtype = steps.mean.dtype
+    Qs = jnp.broadcast_to(params.Q.astype(dtype), (T, NR, NR))
+
+    def difference(a, b):  # robot states: the three angles wrapped
+        d = a - b
+        return d.at[ANG].set(wrap_angle(d[ANG]))
+
+    rs, sst = es.smooth_robot(make_model(config.model), steps.smoother, None, Qs, final.slam,
+                              params=jnp.full((T,), config.dt, dtype), difference=difference)
+    return Result(steps=steps._replace(smoother=None), final=final, startup=start, smoothed=rs,
+                  smooth_status=sst)
 
 
 # ---------------------------------------------------------------------------

@@ -276,6 +276,14 @@ def evaluate(sim: SimOut, res: U.Result, cfg: U.Config):
         out["landmarks_mapped"] = jnp.sum(act).astype(dtype)
     else:
         out["init_pos_err_m"] = jnp.sqrt(jnp.sum((res.startup.robot_pos - _pos0(sim, M, o)) ** 2))
+    if res.smoothed is not None:  # the RTS-smoothed trajectory, scored like the filter's
+        es_ = res.smoothed - x_t
+        es_ = es_.at[:, 4:7].set(wrap_angle(es_[:, 4:7]))
+        out["smoothed_pos_rmse_m"] = rmse(es_[:, :2])
+        out["smoothed_pos_err_max_m"] = jnp.max(jnp.sqrt(jnp.sum(es_[:, :2] ** 2, axis=1)))
+        out["smoothed_vel_rmse_mps"] = rmse(es_[:, 2:4])
+        out["smoothed_yaw_rmse_deg"] = rmse(es_[:, 6:7]) * deg
+        out["smoothed_att_rmse_deg"] = rmse(es_[:, 4:7]) * deg
     nees_robot = jax.vmap(_nees)(e, st.cov)
     nees_pos = jax.vmap(_nees)(e[:, :2], st.cov[:, :2, :2])
     out["nees_pos_mean"] = jnp.mean(nees_pos)
@@ -292,6 +300,8 @@ def evaluate(sim: SimOut, res: U.Result, cfg: U.Config):
         "unmapped_at_end": jnp.sum(~res.final.slam.active).astype(jnp.int32),
         "startup_status": res.startup.status,
     }
+    if res.smooth_status is not None:
+        counts["smoother_failed"] = jnp.sum(res.smooth_status != 0).astype(jnp.int32)
     return {"metrics": out, "series": series, "counts": counts}
 
 
@@ -416,7 +426,7 @@ def build(scenario: str, options: dict, dtype, params=None):
     fp, r_scaled = _filter_params(options, dtype, params)
     cfg = U.Config(model=options["model"], mode=mode, dt=float(options["dt"]), r_scaled=r_scaled,
                    debias=r_scaled, start_anchor=START, end_anchor=END,
-                   delayed_init=setup.anchors.shape[0] > 3)
+                   delayed_init=setup.anchors.shape[0] > 3, smooth=bool(options.get("smooth", False)))
     if mode == "slam" and math.isfinite(setup.max_range):
         # A layout where the start-up cannot see three anchors is a usage error, not a NaN.
         d = np.linalg.norm(setup.startup_pos[:, None, :] - setup.anchors[None], axis=-1)
@@ -470,6 +480,8 @@ def run_scenario(scenario, runs, seed, dtype, options, progress, params=None, pl
         "runs_with_unmapped_anchors": int(np.sum(np.asarray(counts["unmapped_at_end"]) > 0)),
         "degenerate_startups": int(np.sum((np.asarray(counts["startup_status"]) & 8) > 0)),
     }
+    if cfg.smooth:
+        flags["smoother_failed_steps"] = int(np.sum(counts["smoother_failed"]))
     metrics = dict(out["metrics"])
 
     def plot(directory):
@@ -526,6 +538,8 @@ _OPTIONS = (
     Option("startup_speed", float, 0.15, "speed of the forced straight-line start-up [m/s]"),
     Option("max_range", float, 0.0, "UWB range limit [m] (0: unlimited)"),
     Option("chunk", int, None, "Monte Carlo runs per compiled call (default: all, max 256)"),
+    Option("smooth", bool, False, "also RTS-smooth each run's robot trajectory (backward pass, the map "
+           "held static) and report smoothed_* metrics beside the filter's"),
 )
 
 _DESC = {
