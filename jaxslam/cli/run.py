@@ -14,7 +14,8 @@ import sys
 
 from jaxslam import files
 
-from .common import PROG, Parser, UsageError, compile_timing, echo, fmt, positive_int, seed_int
+from .common import (PROG, Parser, UsageError, compile_timing, echo, fmt, int_at_least, positive_int,
+                     seed_int)
 
 __all__ = ["command", "format_run_report"]
 
@@ -35,6 +36,16 @@ def _add_run_common(p: argparse.ArgumentParser) -> None:
                         "are checked before the run and listed by 'jaxslam run SCENARIO --help'")
     p.add_argument("--debug", action="store_true",
                    help="print the traceback of an internal failure (also JAXSLAM_DEBUG=1)")
+    g = p.add_argument_group("several processes (jax.distributed; the runs split in blocks, results "
+                             "gathered; process 0 prints and writes)")
+    g.add_argument("--processes", type=positive_int, default=None, metavar="P",
+                   help="start P processes on this machine (loopback coordinator) and split the runs")
+    g.add_argument("--coordinator", metavar="HOST:PORT",
+                   help="a cluster: the coordinator's address (process 0 listens there)")
+    g.add_argument("--num-processes", type=positive_int, default=None, metavar="P",
+                   help="a cluster: the number of processes in the group")
+    g.add_argument("--process-id", type=int_at_least(0), default=None, metavar="I",
+                   help="a cluster: this process's index, 0 to P-1")
 
 
 def _scenario_list_text() -> str:
@@ -114,13 +125,17 @@ def command(rest: list[str]) -> int:
     pre, _ = base.parse_known_args(rest)
     from jaxslam import paramfile
 
+    group = _process_group(pre)
+    if group == "launch":
+        return _launch_local(rest, pre.processes)
+    leader = group is None or group[2] == 0
     # What needs no scenario is checked before JAX is imported (a second, not three): the
     # --params file's JSON, then every output path (its folder created, a probe written).
     raw_params = json_path = plots_dir = None
     if pre.scenario is not None and not pre.help:
         raw_params = paramfile.load(pre.params) if pre.params else None
-        json_path = files.prepare_file("--json", pre.json) if pre.json else None
-        plots_dir = files.prepare_dir("--plots", pre.plots) if pre.plots else None
+        json_path = files.prepare_file("--json", pre.json) if pre.json and leader else None
+        plots_dir = files.prepare_dir("--plots", pre.plots) if pre.plots and leader else None
 
     # x64 before any scenario module is imported (module-level constants take its dtype).
     import jax
@@ -128,6 +143,10 @@ def command(rest: list[str]) -> int:
 
     if not pre.float32:
         jax.config.update("jax_enable_x64", True)
+    if group is not None:  # join the group before any JAX computation
+        from jaxslam.sim import distributed
+
+        distributed.initialize(*group)
 
     from jaxslam import io
     from jaxslam.progress import Progress
@@ -140,6 +159,8 @@ def command(rest: list[str]) -> int:
         raise UsageError(f"{PROG} run: missing SCENARIO; valid scenarios: {_scenario_list_text()}")
     scenario = registry.get(pre.scenario)
     args = _run_parser(scenario, help_params=pre.help).parse_args(rest)
+    if not leader:
+        args.quiet = True  # process 0 prints and writes
     options = {opt.name: getattr(args, opt.name) for opt in scenario.options}
     dtype = np.dtype(np.float32 if args.float32 else np.float64)
 
@@ -161,6 +182,8 @@ def command(rest: list[str]) -> int:
                         "expected ScenarioResult")
 
     report = io.run_json(scenario.name, args.runs, args.seed, dtype, result)
+    if group is not None:
+        report["config"]["processes"] = group[1]  # the runs were split over this many processes
     report["timing"]["main_program_compile_s"] = report["timing"]["compile_s"]
     report["timing"].update(compile_timing(acct.result))
     notes = _run_notes(result, report["runs"])
@@ -200,6 +223,60 @@ def command(rest: list[str]) -> int:
         for path in written:
             echo(f"wrote {path}")
     return 0
+
+
+def _process_group(pre):
+    """None (one process), "launch" (--processes P > 1: start a group here), or the
+    ``(coordinator, num_processes, process_id)`` this process joins."""
+    cluster = (pre.coordinator, pre.num_processes, pre.process_id)
+    if pre.processes is not None and any(v is not None for v in cluster):
+        raise UsageError(f"{PROG} run: --processes starts its own group; it does not take --coordinator, "
+                         "--num-processes or --process-id")
+    if pre.processes is not None:
+        return "launch" if pre.processes > 1 else None
+    if all(v is None for v in cluster):
+        return None
+    if any(v is None for v in cluster):
+        raise UsageError(f"{PROG} run: a process group needs all of --coordinator, --num-processes and "
+                         "--process-id")
+    if pre.process_id >= pre.num_processes:
+        raise UsageError(f"{PROG} run: --process-id: expected 0 to {pre.num_processes - 1}, got {pre.process_id}")
+    return cluster if pre.num_processes > 1 else None
+
+
+def _launch_local(rest, processes: int) -> int:
+    """``--processes P``: P copies of this command on this machine, one group on the loopback
+    (process 0 in the foreground prints and writes; its exit code is returned, or the first
+    failing worker's)."""
+    import subprocess
+
+    from jaxslam.sim import distributed
+
+    argv = []
+    skip = False
+    for a in rest:  # drop --processes P / --processes=P
+        if skip:
+            skip = False
+        elif a == "--processes":
+            skip = True
+        elif not a.startswith("--processes="):
+            argv.append(a)
+    coord = f"127.0.0.1:{distributed.free_port()}"
+
+    def cmd(i):
+        return [sys.executable, "-m", "jaxslam", "run", *argv, "--coordinator", coord,
+                "--num-processes", str(processes), "--process-id", str(i)]
+
+    workers = [subprocess.Popen(cmd(i), stdout=subprocess.DEVNULL) for i in range(1, processes)]
+    try:
+        rc = subprocess.call(cmd(0))
+    finally:
+        codes = [w.wait() for w in workers]
+    bad = [(i + 1, c) for i, c in enumerate(codes) if c != 0]
+    if rc == 0 and bad:
+        print(f"{PROG} run: process {bad[0][0]} of {processes} exited with {bad[0][1]}", file=sys.stderr)
+        return bad[0][1]
+    return rc
 
 
 def _run_notes(result, runs: int) -> list:

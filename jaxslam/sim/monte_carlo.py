@@ -14,7 +14,10 @@ the device count).  Across hosts, start each process with
 ``jax.distributed.initialize()`` and pass ``devices=jax.devices()`` (global
 devices): the same mesh then spans hosts — every process must call ``run``
 with the same arguments.  On a CPU the sharding can be exercised with
-``XLA_FLAGS=--xla_force_host_platform_device_count=N`` (tested).
+``XLA_FLAGS=--xla_force_host_platform_device_count=N`` (tested).  A group of processes
+(``jax.distributed``, :mod:`jaxslam.sim.distributed`) splits the runs instead: with the
+default ``devices``, each process runs one contiguous block on its own devices and the blocks
+are gathered to every process (tested with two processes on this machine).
 
 Batching: on an accelerator, runs are always vmapped.  On a CPU the scenario chooses
 (``cpu_batching``): ``"vmap"`` pays where a run's state is small (UWB: 7.6× over sequential
@@ -107,9 +110,28 @@ def run(fn: Callable, seed: int, runs: int, chunk: Optional[int] = None,
         raise ValueError(f"runs: must be >= 1, got {runs}")
     if cpu_batching not in ("vmap", "loop"):
         raise ValueError(f"cpu_batching: expected 'vmap' or 'loop', got {cpu_batching!r}")
+    if devices is None and jax.process_count() > 1:  # a group of processes: one block each
+        from . import distributed
+
+        start, size = distributed.block(runs)
+        # every block has the same length (the collective needs it): the last blocks run the
+        # next indices' keys, whose results are dropped
+        keys = keys_for(seed, jax.process_count() * size)[start:start + size]
+        res = _run_keys(fn, keys, chunk, progress, jax.local_devices(), cpu_batching, detail, program_key)
+        out = dict(res.out) if detail else res.out
+        det = out.pop("detail") if detail else None
+        out = distributed.gather(out, runs)
+        if detail:
+            out["detail"] = det  # run 0's record: process 0's (the one that plots)
+        return res._replace(out=out, runs=runs, interrupted=False)
     devices = list(devices) if devices is not None else jax.local_devices()
+    return _run_keys(fn, keys_for(seed, runs), chunk, progress, devices, cpu_batching, detail, program_key)
+
+
+def _run_keys(fn, keys, chunk, progress, devices, cpu_batching, detail, program_key) -> MCResult:
+    """:func:`run` over the given keys (one per run) on ``devices``."""
+    runs = int(keys.shape[0])
     nd = len(devices)
-    keys = keys_for(seed, runs)
     has_detail = bool(detail)
     loop = nd == 1 and devices[0].platform == "cpu" and cpu_batching == "loop"
     opts = runtime.compiler_options()

@@ -1,0 +1,89 @@
+"""Monte Carlo over several processes with JAX's own distributed runtime.
+
+``jax.distributed.initialize`` joins this process to a group (one coordinator address, the
+group size, this process's index); :func:`jaxslam.sim.monte_carlo.run` then gives each process
+a contiguous block of the runs, runs it on its own devices exactly as a single process would
+(run i still uses ``fold_in(PRNGKey(seed), i)``, so a run's result does not depend on how many
+processes share the batch) and gathers every block to every process with
+``multihost_utils.process_allgather``.  Nothing is scheduled by hand: JAX's coordination service
+starts the group and its collectives move the results (on CPUs the ``gloo`` collectives,
+selected by :func:`initialize` before the backend starts).
+
+Usage: ``jaxslam run SCENARIO --runs N --processes P`` starts P processes on this machine
+(loopback coordinator, a free port); on a cluster start one process per host with
+``--coordinator HOST:PORT --num-processes P --process-id I`` (process 0 prints and writes the
+JSON and plots; the others only compute).  From Python, call :func:`initialize` first in every
+process, then ``monte_carlo.run`` with the same arguments in each.
+
+Decisions: blocks, not strides (the first run, whose record feeds the plots, is process 0's);
+each block is padded to the same length with repeats of its last key (the collective needs
+equal shapes; the padding is computed and dropped); a Ctrl-C is not handled per block (the
+group would wait on the interrupted process): the distributed run is all or nothing.
+"""
+
+from __future__ import annotations
+
+import math
+import socket
+from typing import Optional
+
+import jax
+import numpy as np
+
+from ..errors import InputError
+
+__all__ = ["initialize", "active", "is_leader", "block", "gather", "free_port"]
+
+
+def initialize(coordinator: str, num_processes: int, process_id: int) -> None:
+    """Join the group (``jax.distributed.initialize``); call before any JAX computation.
+
+    ``coordinator`` "HOST:PORT" (process 0 listens there); ``num_processes`` ≥ 1;
+    ``process_id`` in [0, num_processes).  Selects the gloo CPU collectives first, so CPU-only
+    machines can gather results."""
+    if not isinstance(num_processes, int) or num_processes < 1:
+        raise InputError(f"--num-processes: expected an integer >= 1, got {num_processes!r}")
+    if not isinstance(process_id, int) or not 0 <= process_id < num_processes:
+        raise InputError(f"--process-id: expected 0 to {num_processes - 1}, got {process_id!r}")
+    host, _, port = str(coordinator).rpartition(":")
+    if not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise InputError(f"--coordinator: expected HOST:PORT, got {coordinator!r}")
+    jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    jax.distributed.initialize(coordinator_address=str(coordinator), num_processes=num_processes,
+                               process_id=process_id)
+
+
+def active() -> bool:
+    """True when this process belongs to a group of more than one."""
+    return jax.process_count() > 1
+
+
+def is_leader() -> bool:
+    """Process 0 (or a single process): the one that prints and writes."""
+    return jax.process_index() == 0
+
+
+def block(runs: int, num_processes: Optional[int] = None, index: Optional[int] = None) -> tuple:
+    """``(start, size)``: this process's contiguous block of ``runs`` run indices, ``size`` the
+    common (padded) block length ``ceil(runs / P)``; ``start`` may pass ``runs`` for the last
+    processes of a small batch (their block is all padding)."""
+    P = jax.process_count() if num_processes is None else int(num_processes)
+    i = jax.process_index() if index is None else int(index)
+    size = int(math.ceil(runs / P))
+    return i * size, size
+
+
+def gather(out, runs: int):
+    """Every process's block of per-run outputs (a pytree of NumPy arrays, leading axis = the
+    block) gathered into the whole batch, in run order, trimmed to ``runs``."""
+    from jax.experimental import multihost_utils
+
+    g = multihost_utils.process_allgather(out, tiled=False)  # (P, size, ...) per leaf
+    return jax.tree.map(lambda a: np.asarray(a).reshape((-1,) + a.shape[2:])[:runs], g)
+
+
+def free_port() -> int:
+    """A TCP port free on the loopback interface now (for a one-machine group)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
