@@ -114,6 +114,9 @@ def build_parser(with_targets: bool = True) -> Parser:
     p.add_argument("--cov", choices=("diag", "chol"), default="diag",
                    help="covariance parametrisation: log-diagonal or log-Cholesky (noise; default diag)")
     p.add_argument("--tune-r", action="store_true", help="also tune the measurement covariance R (noise)")
+    p.add_argument("--filter", choices=("ekf", "ukf", "cubature"), default=None,
+                   help="linear-gaussian: the filter the loss runs through, the EKF (default) or the "
+                        "sigma-point filter with unscented or cubature points")
     p.add_argument("--structure", choices=("qc", "imu", "imu_iso"), default="qc",
                    help="ekfslam3d noise: tune the 9x9 process-noise density Q_c (Table 7's form; default), "
                         "the 6x6 IMU density Q_imu entering through the filter's G Q_imu G^T (imu), or one "
@@ -211,6 +214,8 @@ def run_tuning(args, progress_stream=None) -> dict:
     target_name = args.target or targets.default_target(args.scenario)
     if target_name not in scen_targets:
         raise InputError(f"--target: {args.scenario} offers {', '.join(scen_targets)}; got {target_name!r}")
+    if args.filter is not None and args.scenario != "linear-gaussian":
+        raise InputError(f"--filter: only the linear-gaussian target takes it, not {args.scenario}")
     if not args.scenario.startswith("ekfslam3d"):
         for flag, used in (("--structure", args.structure != "qc"), ("--tune-r", args.tune_r)):
             if used:
@@ -243,7 +248,7 @@ def run_tuning(args, progress_stream=None) -> dict:
     dtype = jnp.float32 if args.float32 else jnp.float64
     kw = dict(train_runs=args.train_runs, test_runs=args.test_runs, seed=args.seed, dtype=dtype,
               eval_duration=args.eval_duration, checkpoint=not args.no_checkpoint, cov=args.cov,
-              tune_r=args.tune_r, structure=args.structure)
+              tune_r=args.tune_r, structure=args.structure, filter=args.filter or "ekf")
     if target_name == "loop":
         kw.update(tune=args.tune or "lqr", w_mse=args.w_mse or 0.0, w_nees=args.w_nees or 0.0,
                   compare=args.compare)

@@ -3,6 +3,7 @@
 import json
 
 import jax
+import numpy as np
 import pytest
 
 from jaxslam import cli
@@ -73,6 +74,8 @@ def test_a_diverged_training_run_is_named_counted_and_left_out(tmp_path, capsys,
     (["tune", "track-figure8", "--loss", "nll"], "--loss"),
     # without --target a scenario with a noise target tunes the noise (not the loop target)
     (["tune", "ekfslam3d-unknown", "--loss", "cost"], "ekfslam3d-unknown --target noise supports"),
+    (["tune", "uwb-circle", "--filter", "ukf"], "--filter"),
+    (["tune", "linear-gaussian", "--filter", "pf"], "--filter"),
     (["tune", "linear-gaussian", "--steps", "0"], "--steps"),
     (["tune", "linear-gaussian", "--lr", "-1"], "--lr"),
     (["tune", "linear-gaussian", "--bogus"], "--bogus"),
@@ -81,6 +84,29 @@ def test_usage_errors_exit_2_one_line(capsys, argv, needle):
     assert cli.main(argv) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and needle in err[0]
+
+
+def test_sigma_point_filters_tune_like_the_kf_on_the_linear_oracle(tmp_path, capsys):
+    """``--filter ukf|cubature``: on the linear-Gaussian oracle both sigma-point filters are the
+    Kalman filter, so NLL tuning through them (gradient through the sigma points) follows the
+    EKF's iterates to rounding; the CLI records the filter."""
+    from jaxslam.tuning import optimize, targets
+
+    res = {}
+    for f in ("ekf", "ukf", "cubature"):
+        tg = targets.get("linear-gaussian", "noise", "nll", train_runs=2, test_runs=1, T=300, filter=f)
+        res[f] = optimize.fit(tg.loss_fn, tg.theta0, tg.train, 15, 0.3)
+    for f in ("ukf", "cubature"):
+        for k in res["ekf"].theta:
+            np.testing.assert_allclose(np.asarray(res[f].theta[k]), np.asarray(res["ekf"].theta[k]),
+                                       rtol=1e-8, atol=1e-10)
+        np.testing.assert_allclose([h["loss"] for h in res[f].history], [h["loss"] for h in res["ekf"].history],
+                                   rtol=1e-10)
+    assert res["ukf"].history[-1]["loss"] < res["ukf"].history[0]["loss"]
+    j = tmp_path / "u.json"
+    assert cli.main(["tune", "linear-gaussian", "--filter", "ukf", "--steps", "2", "--train-runs", "1",
+                     "--test-runs", "1", "--json", str(j), "--quiet"]) == 0, capsys.readouterr().err
+    assert json.loads(j.read_text())["config"]["filter"] == "ukf"
 
 
 def test_default_target_is_noise_where_offered():

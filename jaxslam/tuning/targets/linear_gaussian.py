@@ -16,7 +16,7 @@ from .. import losses as L
 from .. import params as P
 from . import Target, diag_list, keys, register_target
 
-__all__ = ['lg_simulate', 'lg_run', 'linear_gaussian', 'LG_DT', 'LG_Q_TRUE', 'LG_R_TRUE']
+__all__ = ['lg_simulate', 'lg_run', 'linear_gaussian', 'LG_DT', 'LG_Q_TRUE', 'LG_R_TRUE', 'FILTERS']
 
 
 def _lg_model(dt):
@@ -59,18 +59,33 @@ def lg_simulate(key, T: int, Q, R, dt: float = LG_DT, dtype=jnp.float64):
     return {"z": z, "x": x}
 
 
-def lg_run(Q, R, z, dt: float = LG_DT, P0=None):
-    """Kalman filter of the oracle over z (T, 4) with :mod:`jaxslam.filters.ekf`.
+#: the filters the oracle target runs (``--filter``); on this linear model each is the KF
+FILTERS = ("ekf", "ukf", "cubature")
+
+
+def lg_run(Q, R, z, dt: float = LG_DT, P0=None, filter: str = "ekf"):
+    """Kalman filter of the oracle over z (T, 4) with :mod:`jaxslam.filters.ekf` (``filter``
+    "ekf") or the sigma-point filter of :mod:`jaxslam.filters.ukf` ("ukf": unscented points;
+    "cubature"), which on this linear model is the same Kalman filter.
 
     Returns (means (T, 4), nis (T,), logdet (T,), dof (T,), nees-ready covs (T, 4, 4)).
     """
+    from ...filters import ukf as ukf_mod
+
+    if filter not in FILTERS:
+        raise InputError(f"--filter: expected one of {', '.join(FILTERS)}, got {filter!r}")
     dtype = z.dtype
     A, H = (jnp.asarray(a, dtype) for a in _lg_model(dt))
     P0 = jnp.eye(4, dtype=dtype) if P0 is None else P0
+    pts = None if filter == "ekf" else (ukf_mod.unscented() if filter == "ukf" else ukf_mod.cubature())
 
     def step(g, zk):
-        g = ekf_mod.predict(g, lambda x, u: A @ x, None, Q)
-        g, info = ekf_mod.update(g, zk, lambda x: H @ x, R)
+        if pts is None:
+            g = ekf_mod.predict(g, lambda x, u: A @ x, None, Q)
+            g, info = ekf_mod.update(g, zk, lambda x: H @ x, R)
+        else:
+            g = ukf_mod.predict(g, lambda x, u: A @ x, None, Q, points=pts)
+            g, info = ukf_mod.update(g, zk, lambda x: H @ x, R, points=pts)
         nis, logdet, dof = L.nll_terms(info.innovation, info.S)
         return g, (g.mean, nis, logdet, dof, g.cov)
 
@@ -80,10 +95,13 @@ def lg_run(Q, R, z, dt: float = LG_DT, P0=None):
 
 def linear_gaussian(loss: str = "nll", train_runs: int = 4, test_runs: int = 4, seed: int = 0,
                     dtype=jnp.float64, T: int = 2000, q0_scale: float = 4.0, r0_scale: float = 0.25,
-                    **_ignored) -> Target:
+                    filter: str = "ekf", **_ignored) -> Target:
     """Oracle target: diag Q (log-diagonal) and full R (log-Cholesky) of a 2D constant-velocity
     Kalman filter measuring position and velocity, with known truth (:data:`LG_Q_TRUE`, :data:`LG_R_TRUE`), started at
-    ``q0_scale``·Q and ``r0_scale``·diag(R) (a diagonal first guess).  Losses nll / mse / nees on the filtered state."""
+    ``q0_scale``·Q and ``r0_scale``·diag(R) (a diagonal first guess).  Losses nll / mse / nees on the filtered state.
+    ``filter``: one of :data:`FILTERS`; the loss and its gradient run through that filter."""
+    if filter not in FILTERS:
+        raise InputError(f"--filter: expected one of {', '.join(FILTERS)}, got {filter!r}")
     dtype = jnp.dtype(dtype)
     if loss not in ("nll", "mse", "nees"):
         raise InputError(f"--loss: expected nll, mse or nees, got {loss!r}")
@@ -100,7 +118,7 @@ def linear_gaussian(loss: str = "nll", train_runs: int = 4, test_runs: int = 4, 
 
     def loss_fn(theta, item):
         m = physical(theta)
-        means, nis, logdet, dof, covs = lg_run(m["Q"], m["R"], item["z"])
+        means, nis, logdet, dof, covs = lg_run(m["Q"], m["R"], item["z"], filter=filter)
         if loss == "nll":
             return L.innovation_nll(nis, logdet, dof)
         err = means - item["x"]
@@ -116,7 +134,7 @@ def linear_gaussian(loss: str = "nll", train_runs: int = 4, test_runs: int = 4, 
         for label, m in physicals.items():
             def per(item, m=m):
                 means, nis, logdet, dof, covs = lg_run(jnp.asarray(m["Q"], dtype), jnp.asarray(m["R"], dtype),
-                                                       item["z"])
+                                                       item["z"], filter=filter)
                 err = means - item["x"]
                 return {"nll": L.innovation_nll(nis, logdet, dof),
                         "pos_rmse_m": jnp.sqrt(jnp.mean(jnp.sum(err[:, :2] ** 2, 1))),
@@ -131,7 +149,7 @@ def linear_gaussian(loss: str = "nll", train_runs: int = 4, test_runs: int = 4, 
 
     config = {"T": int(T), "train_runs": int(train_runs), "test_runs": int(test_runs), "seed": int(seed),
               "Q_true": list(LG_Q_TRUE), "R_true": [list(r) for r in LG_R_TRUE],
-              "q0_scale": float(q0_scale), "r0_scale": float(r0_scale), "dtype": dtype.name}
+              "q0_scale": float(q0_scale), "r0_scale": float(r0_scale), "dtype": dtype.name, "filter": filter}
     return Target(scenario="linear-gaussian", target="noise", loss=loss, specs=specs, theta0=theta0,
                   loss_fn=loss_fn, train=train, test=test, physical=physical, evaluate=evaluate,
                   references={"true": {"Q": Qt, "R": Rt}},
