@@ -50,6 +50,13 @@ def test_group_usage_errors_exit_2(capsys, argv, needle):
     assert len(err) == 1 and needle in err[0]
 
 
+def test_a_bad_output_path_fails_before_the_group_starts(tmp_path, capsys):
+    (tmp_path / "f").write_text("a file, not a folder")
+    assert cli.main(["run", "uwb-circle", "--processes", "2", "--json", str(tmp_path / "f" / "x.json")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--json" in err[0]
+
+
 def test_blocks_cover_the_runs_in_order():
     assert [distributed.block(5, 2, i) for i in range(2)] == [(0, 3), (3, 3)]
     assert [distributed.block(4, 4, i) for i in range(4)] == [(0, 1), (1, 1), (2, 1), (3, 1)]

@@ -126,9 +126,7 @@ def command(rest: list[str]) -> int:
     from jaxslam import paramfile
 
     group = _process_group(pre)
-    if group == "launch":
-        return _launch_local(rest, pre.processes)
-    leader = group is None or group[2] == 0
+    leader = group in (None, "launch") or group[2] == 0
     # What needs no scenario is checked before JAX is imported (a second, not three): the
     # --params file's JSON, then every output path (its folder created, a probe written).
     raw_params = json_path = plots_dir = None
@@ -136,6 +134,8 @@ def command(rest: list[str]) -> int:
         raw_params = paramfile.load(pre.params) if pre.params else None
         json_path = files.prepare_file("--json", pre.json) if pre.json and leader else None
         plots_dir = files.prepare_dir("--plots", pre.plots) if pre.plots and leader else None
+    if group == "launch":  # after those checks: a bad path fails here, not in one of the group
+        return _launch_local(rest, pre.processes)
 
     # x64 before any scenario module is imported (module-level constants take its dtype).
     import jax
@@ -268,9 +268,13 @@ def _launch_local(rest, processes: int) -> int:
                 "--num-processes", str(processes), "--process-id", str(i)]
 
     workers = [subprocess.Popen(cmd(i), stdout=subprocess.DEVNULL) for i in range(1, processes)]
+    rc = 1
     try:
         rc = subprocess.call(cmd(0))
     finally:
+        if rc != 0:  # process 0 failed or was interrupted: the others would wait for it
+            for w in workers:
+                w.terminate()
         codes = [w.wait() for w in workers]
     bad = [(i + 1, c) for i, c in enumerate(codes) if c != 0]
     if rc == 0 and bad:
