@@ -27,9 +27,10 @@ Parts (each writes ``<out>/<part>.json``; ``table.md`` summarises every JSON pre
                the closed loop with the EKF-SLAM estimator in it; held-out objective against Table 2
                (acceptance: ≥ 20 % lower) and against the truth-tuned weights of ``lqr`` evaluated the
                same way (``--compare``; acceptance: lower).  Needs ``lqr`` first (its tune JSON).
-``loop_both``  ``--tune both --w-nees 10 --w-mse 300 --train-runs 16``: weights and Q_imu jointly, with
-               the NEES and MSE terms (acceptance: held-out ANEES inside its χ² bounds, position RMSE no
-               worse than ``--q imu``; the MSE weight was chosen on validation seeds, docs/tuning.md).
+``loop_both``  ``--tune both --w-nees 10 --w-mse 300 --train-runs 16 --duration 25``: weights and Q_imu
+               jointly, with the NEES and MSE terms (acceptance: held-out ANEES inside its χ² bounds,
+               position RMSE no worse than ``--q imu``; the MSE weight and the 25 s training flights
+               were chosen on validation seeds, docs/tuning.md).
 ``uwb``        ``jaxslam tune uwb-circle --loss mse``: paper 003's hand-"fine tuned" Q (eq. 27)
                tuned on simulated logs, held-out position RMSE and ANEES before/after.
 
@@ -304,7 +305,7 @@ def part_lqr(a, out_dir):
 
 LOOP_ARGV = {"lqr": ["--tune", "lqr", "--steps", "60", "--lr", "0.2", "--train-runs", "4"],
              "both": ["--tune", "both", "--w-nees", "10", "--w-mse", "300", "--steps", "60", "--lr", "0.2",
-                      "--train-runs", "16"]}
+                      "--train-runs", "16", "--duration", "25"]}
 
 
 def part_loop(a, out_dir, tune):
