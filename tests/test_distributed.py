@@ -57,6 +57,28 @@ def test_a_bad_output_path_fails_before_the_group_starts(tmp_path, capsys):
     assert len(err) == 1 and "--json" in err[0]
 
 
+def test_an_error_every_process_meets_is_said_once():
+    r = _run(["no-such", "--processes", "2"])
+    assert r.returncode == 2
+    lines = [ln for ln in r.stderr.splitlines() if "error" in ln]
+    assert len(lines) == 1 and "no-such" in lines[0]
+
+
+def test_process_0_shows_the_group_s_progress():
+    from jaxslam.sim.monte_carlo import _GroupProgress
+
+    seen = []
+
+    class P:
+        def update(self, n):
+            seen.append(n)
+
+    g = _GroupProgress(P(), 2, 5)
+    for n in (1, 2, 3):  # process 0's block of 3 runs
+        g.update(n)
+    assert seen == [2, 4, 5] and g.compiling is None
+
+
 def test_blocks_cover_the_runs_in_order():
     assert [distributed.block(5, 2, i) for i in range(2)] == [(0, 3), (3, 3)]
     assert [distributed.block(4, 4, i) for i in range(4)] == [(0, 1), (1, 1), (2, 1), (3, 1)]

@@ -267,7 +267,12 @@ def _launch_local(rest, processes: int) -> int:
         return [sys.executable, "-m", "jaxslam", "run", *argv, "--coordinator", coord,
                 "--num-processes", str(processes), "--process-id", str(i)]
 
-    workers = [subprocess.Popen(cmd(i), stdout=subprocess.DEVNULL) for i in range(1, processes)]
+    import tempfile
+
+    # the workers' stderr is kept aside: process 0 says what they would repeat, and a worker's
+    # own failure is printed after the run
+    errs = [tempfile.TemporaryFile(mode="w+") for _ in range(1, processes)]
+    workers = [subprocess.Popen(cmd(i), stdout=subprocess.DEVNULL, stderr=e) for i, e in zip(range(1, processes), errs)]
     rc = 1
     try:
         rc = subprocess.call(cmd(0))
@@ -276,10 +281,16 @@ def _launch_local(rest, processes: int) -> int:
             for w in workers:
                 w.terminate()
         codes = [w.wait() for w in workers]
-    bad = [(i + 1, c) for i, c in enumerate(codes) if c != 0]
+    bad = [(i, c) for i, c in enumerate(codes) if c != 0]
     if rc == 0 and bad:
-        print(f"{PROG} run: process {bad[0][0]} of {processes} exited with {bad[0][1]}", file=sys.stderr)
-        return bad[0][1]
+        i, c = bad[0]
+        errs[i].seek(0)
+        tail = [ln for ln in errs[i].read().splitlines() if ln.strip()][-1:]
+        print(f"{PROG} run: process {i + 1} of {processes} exited with {c}"
+              + (f": {tail[0]}" if tail else ""), file=sys.stderr)
+        rc = c
+    for e in errs:
+        e.close()
     return rc
 
 

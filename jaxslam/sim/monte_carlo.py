@@ -117,7 +117,8 @@ def run(fn: Callable, seed: int, runs: int, chunk: Optional[int] = None,
         # every block has the same length (the collective needs it): the last blocks run the
         # next indices' keys, whose results are dropped
         keys = keys_for(seed, jax.process_count() * size)[start:start + size]
-        res = _run_keys(fn, keys, chunk, progress, jax.local_devices(), cpu_batching, detail, program_key)
+        res = _run_keys(fn, keys, chunk, _GroupProgress(progress, jax.process_count(), runs),
+                        jax.local_devices(), cpu_batching, detail, program_key)
         out = dict(res.out) if detail else res.out
         det = out.pop("detail") if detail else None
         out = distributed.gather(out, runs)
@@ -126,6 +127,19 @@ def run(fn: Callable, seed: int, runs: int, chunk: Optional[int] = None,
         return res._replace(out=out, runs=runs, interrupted=False)
     devices = list(devices) if devices is not None else jax.local_devices()
     return _run_keys(fn, keys_for(seed, runs), chunk, progress, devices, cpu_batching, detail, program_key)
+
+
+class _GroupProgress:
+    """A process's progress over its block shown as the group's (every process runs its block
+    at about the same pace): ``update(n)`` reports ``min(n · processes, runs)``."""
+
+    def __init__(self, progress, processes: int, runs: int):
+        self._p, self._k, self._runs = progress, processes, runs
+        self.compiling = getattr(progress, "compiling", None)
+
+    def update(self, n: int) -> None:
+        if self._p is not None:
+            self._p.update(min(n * self._k, self._runs))
 
 
 def _run_keys(fn, keys, chunk, progress, devices, cpu_batching, detail, program_key) -> MCResult:
