@@ -863,9 +863,7 @@ def validate_params(params: Params) -> Params:
         if a.shape != (3,) or not np.all(np.isfinite(a)):
             raise InputError(f"params.input_model: expected finite (c_0, c_1, c_2), got {a.tolist()}")
     if params.robust_nu is not None:
-        v = np.asarray(params.robust_nu, np.float64)
-        if v.shape != () or not np.isfinite(v) or v <= 0:
-            raise InputError(f"params.robust_nu: expected a positive number, got {v!r}")
+        check_scalar(params.robust_nu, "params.robust_nu", lower=0, strict=True)
     thr = {f: check_scalar(getattr(params, f), f"params.{f}", finite=False)
            for f in THRESHOLDS if getattr(params, f) is not None}
     for f in ("gate", "new_threshold"):

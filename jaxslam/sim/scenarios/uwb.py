@@ -277,13 +277,13 @@ def evaluate(sim: SimOut, res: U.Result, cfg: U.Config):
     else:
         out["init_pos_err_m"] = jnp.sqrt(jnp.sum((res.startup.robot_pos - _pos0(sim, M, o)) ** 2))
     if res.smoothed is not None:  # the RTS-smoothed trajectory, scored like the filter's
-        es_ = res.smoothed - x_t
-        es_ = es_.at[:, 4:7].set(wrap_angle(es_[:, 4:7]))
-        out["smoothed_pos_rmse_m"] = rmse(es_[:, :2])
-        out["smoothed_pos_err_max_m"] = jnp.max(jnp.sqrt(jnp.sum(es_[:, :2] ** 2, axis=1)))
-        out["smoothed_vel_rmse_mps"] = rmse(es_[:, 2:4])
-        out["smoothed_yaw_rmse_deg"] = rmse(es_[:, 6:7]) * deg
-        out["smoothed_att_rmse_deg"] = rmse(es_[:, 4:7]) * deg
+        e_s = res.smoothed - x_t
+        e_s = e_s.at[:, 4:7].set(wrap_angle(e_s[:, 4:7]))
+        out["smoothed_pos_rmse_m"] = rmse(e_s[:, :2])
+        out["smoothed_pos_err_max_m"] = jnp.max(jnp.sqrt(jnp.sum(e_s[:, :2] ** 2, axis=1)))
+        out["smoothed_vel_rmse_mps"] = rmse(e_s[:, 2:4])
+        out["smoothed_yaw_rmse_deg"] = rmse(e_s[:, 6:7]) * deg
+        out["smoothed_att_rmse_deg"] = rmse(e_s[:, 4:7]) * deg
     nees_robot = jax.vmap(_nees)(e, st.cov)
     nees_pos = jax.vmap(_nees)(e[:, :2], st.cov[:, :2, :2])
     out["nees_pos_mean"] = jnp.mean(nees_pos)

@@ -45,7 +45,7 @@ from .. import losses as L
 from .. import params as P
 from . import Target, diag_list, keys, register_target
 
-__all__ = ["STRUCTURES", "make_slam_logs", "slam_loss", "ekfslam3d_noise"]
+__all__ = ["STRUCTURES", "make_slam_logs", "slam_loss", "ekfslam3d_noise", "eval_command"]
 
 STRUCTURES = ("qc", "imu", "imu_iso")  # what is tuned (see ekfslam3d_noise)
 
@@ -103,9 +103,6 @@ def make_slam_logs(seed: int, runs: int, duration: float, n_landmarks: int = 40,
     ``--q imu`` P0).  Returns a :class:`jaxslam.systems.ekf_slam_3d.Log` batch (leading axis
     runs, with the true states and landmarks) in ``dtype``.
     """
-    dtype = jnp.dtype(dtype)
-    if not (duration >= 0.1 and math.isfinite(duration)):
-        raise InputError(f"duration: must be at least 0.1 s, got {duration}")
     if int(runs) < 1:
         raise InputError(f"runs: must be >= 1, got {runs}")
     return _logs(keys(seed, runs), duration, n_landmarks, P0, dtype, altitude)
@@ -116,11 +113,20 @@ def _logs(ks, duration, n_landmarks, P0, dtype, altitude):
     from ...sim.scenarios.tracking import FRAME_STEPS
     from ...sim.simulate import n_frames
 
+    if not (duration >= 0.1 and math.isfinite(duration)):
+        raise InputError(f"duration: must be at least 0.1 s, got {duration}")
+
     P0 = np.diag(sys3d.IMU_P0) if P0 is None else np.asarray(P0, float)
     w, V = np.linalg.eigh(0.5 * (P0 + P0.T))
     sqrtP0 = jnp.asarray(V * np.sqrt(np.clip(w, 0, None)), dtype)
     nf = n_frames(duration, 0.01, FRAME_STEPS)
     return _log_maker(int(n_landmarks), nf, jnp.dtype(dtype), altitude)(ks, sqrtP0)
+
+
+def eval_command(mode: str, runs: int, seed: int, duration: float) -> str:
+    """The ``jaxslam run ekfslam3d-{mode}`` command that flies a target's held-out 'after' row."""
+    return (f"jaxslam run ekfslam3d-{mode} --runs {runs} --seed {seed}"
+            f"{'' if duration == 50.0 else f' --duration {duration:g}'} --params TUNED.json")
 
 
 def slam_loss(res, log, loss: str, weights=None):
@@ -220,8 +226,6 @@ def ekfslam3d_noise(loss: str = "nll", train_runs: int = 4, test_runs: int = 8, 
     # Training and held-out logs from one call of the recorder (one program, not one per batch size).
     if int(train_runs) < 1 or int(test_runs) < 1:
         raise InputError(f"runs: --train-runs and --test-runs must be >= 1, got {train_runs}, {test_runs}")
-    if not (train_duration >= 0.1 and math.isfinite(train_duration)):
-        raise InputError(f"duration: must be at least 0.1 s, got {train_duration}")
     both = _logs(np.concatenate([keys(seed, train_runs), keys(seed + 1, test_runs)]), train_duration, n_lm,
                  np.asarray(ref.P0), dtype, 3.0)
     both = jax.tree.map(np.asarray, both)  # split on the host: slicing device arrays compiles per leaf
@@ -269,8 +273,7 @@ def ekfslam3d_noise(loss: str = "nll", train_runs: int = 4, test_runs: int = 8, 
               "logs": "simulated once, DF-LQR on the truth; filter run open loop on the logs",
               "evaluation": f"ekfslam3d-{mode} scenario (closed loop, DF-LQR on the estimate), "
                             f"{eval_duration:g} s, seeds keys_for({test_seed}, {test_runs})"}
-    cmd = (f"jaxslam run ekfslam3d-{mode} --runs {test_runs} --seed {test_seed}"
-           f"{'' if eval_duration == 50.0 else f' --duration {eval_duration:g}'} --params TUNED.json")
+    cmd = eval_command(mode, test_runs, test_seed, eval_duration)
     return Target(scenario=f"ekfslam3d-{mode}", target="noise", loss=loss, specs=specs, theta0=theta0,
                   loss_fn=loss_fn, train=train, test=test, physical=physical, evaluate=evaluate,
                   references={"q_imu": ref}, to_params=to_params, describe=describe, config=config,

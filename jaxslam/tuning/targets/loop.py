@@ -47,10 +47,11 @@ import numpy as np
 
 from ... import runtime
 from ...errors import InputError
-from ...linalg import safe_norm
+from ...linalg import check_scalar, safe_norm
 from .. import losses as L
 from .. import params as P
 from . import Target, diag_list, keys, register_target
+from .ekfslam3d import eval_command
 
 __all__ = ["TUNE", "closed_loop_objective", "controller_file", "ekfslam3d_loop", "tilt_angle"]
 
@@ -132,8 +133,7 @@ def ekfslam3d_loop(loss: str = "cost", train_runs: int = 4, test_runs: int = 16,
     if tune not in TUNE:
         raise InputError(f"--tune: expected one of {', '.join(TUNE)}, got {tune!r}")
     for name, v in (("--w-u", w_u), ("--w-tilt", w_tilt), ("--w-mse", w_mse), ("--w-nees", w_nees)):
-        if not (math.isfinite(v) and v >= 0):
-            raise InputError(f"{name}: expected a finite weight >= 0, got {v}")
+        check_scalar(v, name, lower=0)
     if not (0 < tilt_max_deg < 90):
         raise InputError(f"tilt_max_deg: expected (0, 90) degrees, got {tilt_max_deg}")
     for name, v in (("--duration", train_duration), ("--eval-duration", eval_duration)):
@@ -248,8 +248,7 @@ def ekfslam3d_loop(loss: str = "cost", train_runs: int = 4, test_runs: int = 16,
                         **({} if tune != "lqr" else {"Qimu": "--q imu (Table 5 densities)"})},
               "evaluation": f"ekfslam3d-{mode} flights (DF-LQR on the estimate), {eval_duration:g} s, "
                             f"seeds keys_for({seed + 1}, {test_runs})"}
-    cmd = (f"jaxslam run ekfslam3d-{mode} --runs {test_runs} --seed {seed + 1}"
-           f"{'' if eval_duration == 50.0 else f' --duration {eval_duration:g}'} --params TUNED.json")
+    cmd = eval_command(mode, test_runs, seed + 1, eval_duration)
     return Target(scenario=f"ekfslam3d-{mode}", target="loop", loss=loss, specs=specs, theta0=theta0,
                   loss_fn=loss_fn, train=train, test=test, physical=physical, evaluate=evaluate,
                   references=references, to_params=to_params, describe=describe, config=config,
