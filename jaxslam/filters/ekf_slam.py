@@ -26,7 +26,12 @@ Speed (STYLE.md lessons, measured on a 2-core CPU):
   (I − K H) P (I − K H)ᵀ + K R Kᵀ = A − (A Hᵀ) Kᵀ + K R Kᵀ,  A = P − K (P Hᵀ)ᵀ
   costs O(n²·k·d_z) — never a dense n×n product with H;
 * gains come from a Cholesky solve on the (k·d_z)-sized innovation
-  covariance; P is symmetrised once per update.
+  covariance; P is symmetrised once per update;
+* with ``update(..., active_only=True)`` the update works on the leading block that holds
+  the map (inactive slots are zero, and registration fills the lowest free slot): the gain
+  on the smallest of four static block sizes (``lax.switch``, P not an operand: a
+  conditional that writes P makes XLA copy it) and the covariance correction in 64-tiles up
+  to the highest active slot — cost set by the mapped landmarks, not the capacity.
 
 Measurements are processed in static-size batches of ``K`` with a validity
 mask: absent, non-finite, gated or unmapped measurements contribute nothing.
@@ -41,11 +46,13 @@ by the factored Joseph form; see docs/papers.md.
 
 from __future__ import annotations
 
+import functools
 from typing import Any, Callable, NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.custom_batching import custom_vmap
 
 from .. import errors
 from ..errors import InputError
@@ -59,6 +66,7 @@ __all__ = [
     "preload",
     "predict",
     "update",
+    "sym_rank_update",
     "update_robot",
     "register",
     "add_landmark",
@@ -301,7 +309,7 @@ def _observe_batch(model, s, L, params, valid=None):
 
 def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
            gate: Optional[float] = None, robust=None, row_stats: bool = False,
-           num_iter: int = 1, tol=None):
+           num_iter: int = 1, tol=None, active_only: bool = False):
     """Joint EKF update with K measurements of mapped landmarks.
 
     Args:
@@ -328,10 +336,22 @@ def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
         last iteration still moved a component by more than ``tol`` prior σ (default 1e-6
         float64, 1e-3 float32).
 
-    Returns (state, UpdateInfo).  ``UpdateInfo.d2`` and ``row_logdet`` hold each row's
-    marginal NIS and log det S_i before any weighting (the terms of a per-row likelihood);
-    zeros unless ``gate``, ``robust`` or ``row_stats`` asked for them.
-    Cost O(n²·K·d_z) through gathered columns.
+      active_only: static; compute the gain on the smallest leading block (capacity, /2, /4,
+        /8 slots) that holds every active slot (``lax.switch``) and apply the covariance
+        correction only to the rows and columns up to the highest active slot
+        (:func:`sym_rank_update`).  Inactive slots have no covariance with anything, so this
+        is the same update (the same estimates, to rounding) at a cost set by the mapped
+        landmarks, not the capacity.  Differentiable in forward and reverse mode (the
+        covariance correction's derivative is the dense one); under ``vmap`` the batch shares
+        the block of its fullest map (a custom batching rule), so no branch or tile is run
+        for one run and selected away for another.
+
+    Returns (state, UpdateInfo).
+    ``UpdateInfo.d2`` and ``row_logdet`` hold each row's marginal NIS and log det S_i before
+    any weighting (the terms of a per-row likelihood); zeros unless ``gate``, ``robust`` or
+    ``row_stats`` asked for them.
+    Cost O(n²·K·d_z) through gathered columns (with ``active_only``, n of the leading block
+    that holds the map for the correction of P, and O(n·(K·d_z)²) for the gain).
     """
     nr, dl, cap = _sizes(state, model)
     dz = model.meas_dim
@@ -352,11 +372,14 @@ def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
 
     idx = slot_indices(slots, model)  # (K, dl)
     P = state.P
+    n = P.shape[0]
+    # The columns of P that the sparse H touches: all the update needs of P besides the
+    # final correction, O(n·K·d_l).
+    Pr, Pl = P[:, :nr], take(P, idx, 1)  # (n, n_r), (n, K, d_l)
+    m = K * dz
 
-    def gather_PHt(M, Hs, Hl):
-        # M Hᵀ for the sparse H, with M symmetric-access by columns: (n, K, dz)
-        Mr = M[:, :nr]  # (n, nr)
-        Ml = take(M, idx, 1)  # (n, K, dl)
+    def gather_PHt(Mr, Ml, Hs, Hl):
+        # M Hᵀ for the sparse H from M's columns at H's support: (rows, K, dz)
         return jnp.einsum("ni,kzi->nkz", Mr, Hs) + jnp.einsum("nkj,kzj->nkz", Ml, Hl)
 
     def rows(M, Hs, Hl):
@@ -365,87 +388,119 @@ def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
         Ml = take(M, idx, 0)  # (K, dl, K, dz)
         return jnp.einsum("kzi,imw->kzmw", Hs, Mr) + jnp.einsum("kzj,kjmw->kzmw", Hl, Ml)
 
-    PHt = gather_PHt(P, Hs, Hl)  # (n, K, dz)
-    HPHt = rows(PHt, Hs, Hl)  # (K, dz, K, dz)
+    def factors(nb, R):
+        """Gain and correction factors on the leading ``nb`` rows (static; rows beyond hold
+        no covariance with the measured blocks when ``nb`` covers every active slot)."""
+        Pr_b, Pl_b, x_b = Pr[:nb], Pl[:nb], state.x[:nb]
+        PHt = gather_PHt(Pr_b, Pl_b, Hs, Hl)  # (nb, K, dz)
+        HPHt = rows(PHt, Hs, Hl)  # (K, dz, K, dz)
+        valid_ = valid
+        # Individual gating on the marginal innovation covariance of each measurement.
+        S_marg = jnp.einsum("kzkw->kzw", HPHt) + R
+        if gate is not None or robust is not None or row_stats:
+            S_safe = jnp.where(valid_[:, None, None], S_marg, jnp.eye(dz, dtype=dtype))
+            d2_each, logdet_each = jax.vmap(_nis_logdet_small)(
+                jnp.where(valid_[:, None], res, 0.0), S_safe)
+            d2_each = jnp.where(valid_, d2_each, 0.0)
+            logdet_each = jnp.where(valid_, logdet_each, 0.0)
+        else:
+            d2_each = logdet_each = jnp.zeros(valid_.shape, dtype)
+        if gate is not None:
+            gated = valid_ & (d2_each > gate)
+            valid_ = valid_ & ~gated
+        else:
+            gated = jnp.zeros_like(valid_)
+        if robust is not None:
+            nu_t = jnp.asarray(robust, dtype)
+            w = jnp.minimum((nu_t + dz) / (nu_t + d2_each), 1.0)
+            R = R / jnp.where(valid_, w, 1.0)[:, None, None]
 
-    # Individual gating on the marginal innovation covariance of each measurement.
-    S_marg = jnp.einsum("kzkw->kzw", HPHt) + R
-    if gate is not None or robust is not None or row_stats:
-        S_safe = jnp.where(valid[:, None, None], S_marg, jnp.eye(dz, dtype=dtype))
-        d2_each, logdet_each = jax.vmap(_nis_logdet_small)(jnp.where(valid[:, None], res, 0.0), S_safe)
-        d2_each = jnp.where(valid, d2_each, 0.0)
-        logdet_each = jnp.where(valid, logdet_each, 0.0)
+        vv = jnp.repeat(valid_.astype(dtype), dz)  # (K·dz,)
+        VV = vv[:, None] * vv[None, :]
+        R_blk = jnp.einsum("kzw,kj->kzjw", R, jnp.eye(K, dtype=dtype))  # block diagonal, no scatter
+        R_used = R_blk.reshape(m, m) * VV
+
+        def solve(PHt_, HPHt_, res_):
+            PHt_f = PHt_.reshape(-1, m) * vv[None, :]
+            S = HPHt_.reshape(m, m) * VV + R_used + jnp.diag(1.0 - vv)
+            nu = res_.reshape(m) * vv
+            # Gain through the explicit m×m inverse of S from its Cholesky factor: m is small,
+            # and a triangular solve with n right-hand sides is far slower on CPU than one
+            # (n, m)·(m, m) product.
+            Lc = jnp.linalg.cholesky(symmetrize(S))
+            Sinv = jax.scipy.linalg.cho_solve((Lc, True), jnp.eye(m, dtype=dtype))
+            Kg = PHt_f @ Sinv  # (nb, m) = P Hᵀ S⁻¹
+            chol_ok = jnp.all(jnp.isfinite(Lc))
+            # Guard on the small quantities (O(n·m)): with P, P Hᵀ and K finite the correction
+            # is finite, so no O(n²) check or select of it is needed.  A rejected update zeroes
+            # the gain, which leaves x and P unchanged.
+            ok = chol_ok & jnp.all(jnp.isfinite(Kg)) & jnp.all(jnp.isfinite(nu))
+            Kg = jnp.where(ok, Kg, 0.0)
+            x_new = x_b + Kg @ jnp.where(ok, nu, 0.0)
+            return PHt_f, nu, Lc, Sinv, Kg, chol_ok, ok, x_new
+
+        PHt_f, nu, Lc, Sinv, Kg, chol_ok, ok, x_new = solve(PHt, HPHt, res)
+        Hs_f, Hl_f = Hs, Hl
+        not_conv = jnp.asarray(False)
+        if int(num_iter) > 1:
+            c = (nb - nr) // dl
+
+            def gn(carry, _):
+                xi, _, _, _, _, _, ok_i = carry
+                si = xi[:nr]
+                Li = take(xi[nr:].reshape(c, dl), slots, 0)
+                zi, Hs_i, Hl_i = _observe_batch(model, si, Li, params, valid_)
+                lin = (jnp.einsum("kzi,i->kz", Hs_i, x_b[:nr] - si)
+                       + jnp.einsum("kzj,kj->kz", Hl_i, L - Li))
+                res_i = jnp.where(valid_[:, None], jax.vmap(_residual(model))(z_safe, zi) - lin, 0.0)
+                PHt_i = gather_PHt(Pr_b, Pl_b, Hs_i, Hl_i)
+                PHt_fi, _, _, _, Kg_i, _, ok_n, x_n = solve(PHt_i, rows(PHt_i, Hs_i, Hl_i), res_i)
+                return (x_n, PHt_fi, Kg_i, Hs_i, Hl_i, xi, ok_i & ok_n), None
+
+            (x_new, PHt_f, Kg, Hs_f, Hl_f, x_prev, ok_it), _ = jax.lax.scan(
+                gn, (x_new, PHt_f, Kg, Hs, Hl, x_b, ok), None, length=int(num_iter) - 1)
+            tol_v = jnp.asarray((1e-6 if dtype == jnp.float64 else 1e-3) if tol is None else tol, dtype)
+            dP = jnp.diagonal(P)[:nb]
+            sig = jnp.sqrt(jnp.maximum(dP, jnp.finfo(dtype).tiny))
+            moved = jnp.max(jnp.where(dP > 0, jnp.abs(x_new - x_prev) / sig, 0.0))
+            # a failed iteration keeps the prior (as a failed first solve does)
+            x_new = jnp.where(ok_it, x_new, x_b)
+            Kg = jnp.where(ok_it, Kg, 0.0)
+            ok = ok & ok_it
+            not_conv = ok & jnp.any(valid_) & (moved > tol_v)
+
+        # Factored Joseph form (I − K H) P (I − K H)ᵀ + K R Kᵀ = A − (A Hᵀ − K R) Kᵀ with
+        # A = P − K (P Hᵀ)ᵀ, as a symmetric rank-2m correction P − ½ (K Gᵀ + G Kᵀ),
+        # G = P Hᵀ + A Hᵀ − K R.  A's columns at H's support come without forming A.
+        Ar = Pr_b - Kg @ PHt_f[:nr].T  # (nb, n_r)
+        Al = Pl_b - jnp.einsum("nm,kjm->nkj", Kg, take(PHt_f, idx, 0))  # (nb, K, d_l)
+        AHt = gather_PHt(Ar, Al, Hs_f, Hl_f).reshape(-1, m) * vv[None, :]
+        G = PHt_f + AHt - Kg @ R_used
+
+        def pad(a):  # rows beyond nb: no correction
+            return jnp.concatenate([a, jnp.zeros((n - nb,) + a.shape[1:], a.dtype)]) if nb < n else a
+
+        x_full = jnp.concatenate([x_new, state.x[nb:]]) if nb < n else x_new
+        return (x_full, pad(Kg), pad(G), nu, Lc, Sinv, chol_ok, ok, not_conv, valid_, gated,
+                d2_each, logdet_each)
+
+    if active_only:
+        # The factors on the smallest leading block (capacity, /2, /4, /8) holding every active
+        # slot, chosen at run time; P itself stays out of the switch (a conditional that
+        # writes P would copy it) and its correction visits only the mapped rows' tiles.
+        # (under vmap: the batch's largest, so one branch runs for the whole batch)
+        top = _batch_max(jnp.max(jnp.where(state.active, jnp.arange(1, cap + 1), 0)))
+        sizes = sorted({-(-cap // (2 ** i)) for i in range(4)} | {cap})
+        which = jnp.minimum(jnp.searchsorted(jnp.asarray(sizes), top, side="left"), len(sizes) - 1)
+        out = jax.lax.switch(which, [functools.partial(factors, nr + c * dl) for c in sizes], R)
     else:
-        d2_each = logdet_each = jnp.zeros(valid.shape, dtype)
-    if gate is not None:
-        gated = valid & (d2_each > gate)
-        valid = valid & ~gated
+        out = factors(n, R)
+    x_new, Kg, G, nu, Lc, Sinv, chol_ok, ok, not_conv, valid, gated, d2_each, logdet_each = out
+    if active_only:
+        # nothing to correct (no row used, or the update rejected): no tile is visited
+        P_new = sym_rank_update(P, Kg, G, jnp.where(ok & jnp.any(valid), nr + top * dl, 0))
     else:
-        gated = jnp.zeros_like(valid)
-    if robust is not None:
-        nu_t = jnp.asarray(robust, dtype)
-        w = jnp.minimum((nu_t + dz) / (nu_t + d2_each), 1.0)
-        R = R / jnp.where(valid, w, 1.0)[:, None, None]
-
-    v = valid.astype(dtype)
-    vv = jnp.repeat(v, dz)  # (K·dz,)
-    VV = vv[:, None] * vv[None, :]
-    m = K * dz
-    R_blk = jnp.einsum("kzw,kj->kzjw", R, jnp.eye(K, dtype=dtype))  # block diagonal, no scatter
-    R_used = R_blk.reshape(m, m) * VV
-
-    def solve(PHt_, HPHt_, res_):
-        PHt_f = PHt_.reshape(-1, m) * vv[None, :]
-        S = HPHt_.reshape(m, m) * VV + R_used + jnp.diag(1.0 - vv)
-        nu = res_.reshape(m) * vv
-        # Gain through the explicit m×m inverse of S from its Cholesky factor: m is small, and
-        # a triangular solve with n right-hand sides is far slower on CPU than one (n, m)·(m, m)
-        # product.
-        Lc = jnp.linalg.cholesky(symmetrize(S))
-        Sinv = jax.scipy.linalg.cho_solve((Lc, True), jnp.eye(m, dtype=dtype))
-        Kg = PHt_f @ Sinv  # (n, m) = P Hᵀ S⁻¹
-        chol_ok = jnp.all(jnp.isfinite(Lc))
-        # Guard on the small quantities (O(n·m)): with P, P Hᵀ and K finite the products below
-        # are finite, so no O(n²) check or select of the result is needed.  A rejected update
-        # zeroes the gain, which leaves x and P unchanged (P is exactly symmetric).
-        ok = chol_ok & jnp.all(jnp.isfinite(Kg)) & jnp.all(jnp.isfinite(nu))
-        Kg = jnp.where(ok, Kg, 0.0)
-        x_new = state.x + Kg @ jnp.where(ok, nu, 0.0)
-        return PHt_f, nu, Lc, Sinv, Kg, chol_ok, ok, x_new
-
-    PHt_f, nu, Lc, Sinv, Kg, chol_ok, ok, x_new = solve(PHt, HPHt, res)
-    Hs_f, Hl_f = Hs, Hl
-    not_conv = jnp.asarray(False)
-    if int(num_iter) > 1:
-        x0 = state.x
-
-        def gn(carry, _):
-            xi, _, _, _, _, _, ok_i = carry
-            si = xi[:nr]
-            Li = xi[nr:].reshape(cap, dl)[slots]
-            zi, Hs_i, Hl_i = _observe_batch(model, si, Li, params, valid)
-            lin = (jnp.einsum("kzi,i->kz", Hs_i, x0[:nr] - si)
-                   + jnp.einsum("kzj,kj->kz", Hl_i, L - Li))
-            res_i = jnp.where(valid[:, None], jax.vmap(_residual(model))(z_safe, zi) - lin, 0.0)
-            PHt_i = gather_PHt(P, Hs_i, Hl_i)
-            PHt_fi, _, _, _, Kg_i, _, ok_n, x_n = solve(PHt_i, rows(PHt_i, Hs_i, Hl_i), res_i)
-            return (x_n, PHt_fi, Kg_i, Hs_i, Hl_i, xi, ok_i & ok_n), None
-
-        (x_new, PHt_f, Kg, Hs_f, Hl_f, x_prev, ok_it), _ = jax.lax.scan(
-            gn, (x_new, PHt_f, Kg, Hs, Hl, x0, ok), None, length=int(num_iter) - 1)
-        tol_v = jnp.asarray((1e-6 if dtype == jnp.float64 else 1e-3) if tol is None else tol, dtype)
-        sig = jnp.sqrt(jnp.maximum(jnp.diagonal(P), jnp.finfo(dtype).tiny))
-        moved = jnp.max(jnp.where(jnp.diagonal(P) > 0, jnp.abs(x_new - x_prev) / sig, 0.0))
-        # a failed iteration keeps the prior (as a failed first solve does)
-        x_new = jnp.where(ok_it, x_new, x0)
-        Kg = jnp.where(ok_it, Kg, 0.0)
-        ok = ok & ok_it
-        not_conv = ok & jnp.any(valid) & (moved > tol_v)
-
-    # Factored Joseph form from gathered columns, grouped as A − (A Hᵀ − K R) Kᵀ.
-    A = P - Kg @ PHt_f.T  # (I − K H) P
-    AHt = gather_PHt(A, Hs_f, Hl_f).reshape(-1, m) * vv[None, :]  # (I − K H) P Hᵀ
-    P_new = symmetrize(jax.lax.optimization_barrier(A - (AHt - Kg @ R_used) @ Kg.T))
+        P_new = symmetrize(jax.lax.optimization_barrier(_sym_rank_update_dense(P, Kg, G)))
 
     nu_ok = jnp.where(ok, nu, 0.0)
     nis = nu_ok @ (Sinv @ nu_ok)
@@ -469,6 +524,90 @@ def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
         row_logdet=logdet_each,
     )
     return state._replace(x=x_new, P=P_new, status=status), info
+
+
+#: Tile size (rows and columns) of :func:`sym_rank_update`.
+TILE = 64
+
+
+def _sym_rank_update_dense(P, U, V):
+    return P - 0.5 * (U @ V.T + V @ U.T)
+
+
+@jax.custom_jvp
+def sym_rank_update(P, U, V, hi):
+    """P − ½ (U Vᵀ + V Uᵀ) for symmetric P (n, n) and U, V (n, r) whose rows from ``hi`` on
+    are zero: only the leading ``hi`` rows and columns are visited, in :data:`TILE`-sized
+    tiles of the upper triangle (a loop whose length is set by the traced ``hi``), each
+    subtracted with its mirror, so a P symmetric to the bit stays so; beyond ``hi``, P is
+    untouched.  Costs O(hi²·r) instead of O(n²·r); the derivative (custom JVP) is the dense
+    formula's.  Under ``vmap`` every run visits the tiles of the batch's largest ``hi``
+    (a custom batching rule: per-run loop lengths would select all of P at every tile)."""
+    return _tiled_rank_update(P, U, V, hi)
+
+
+@custom_vmap
+def _batch_max(a):
+    """``a``; under ``vmap``, the batch's maximum, unbatched (so that a block size or a loop
+    length chosen from it is one for the whole batch, not a select between per-run ones)."""
+    return a
+
+
+@_batch_max.def_vmap
+def _batch_max_vmap(axis_size, in_batched, a):
+    return (jnp.max(a, axis=0) if in_batched[0] else a), False
+
+
+@custom_vmap
+def _tiled_rank_update(P, U, V, hi):
+    return _tiles(P, U, V, hi)
+
+
+@_tiled_rank_update.def_vmap
+def _tiled_rank_update_vmap(axis_size, in_batched, P, U, V, hi):
+    P, U, V = (a if b else jnp.broadcast_to(a, (axis_size,) + a.shape)
+               for a, b in zip((P, U, V), in_batched[:3]))
+    h = jnp.max(hi, axis=0) if in_batched[3] else hi
+    return jax.vmap(lambda P_, U_, V_: _tiles(P_, U_, V_, h))(P, U, V), True
+
+
+def _tiles(P, U, V, hi):
+    n = P.shape[0]
+    t = min(TILE, n)
+    nt = (jnp.asarray(hi, jnp.int32) + t - 1) // t
+    rows = jnp.arange(t)
+
+    def tile(i, P):
+        def inner(j, P):
+            a, b = (i * t).astype(jnp.int32), (j * t).astype(jnp.int32)
+            sa, sb = jnp.minimum(a, n - t), jnp.minimum(b, n - t)  # the last tile is clamped
+            # rows of a clamped tile already covered by the previous tile get no correction
+            mu = (sa + rows >= a)[:, None]
+            Ua = jnp.where(mu, jax.lax.dynamic_slice_in_dim(U, sa, t), 0.0)
+            Va = jnp.where(mu, jax.lax.dynamic_slice_in_dim(V, sa, t), 0.0)
+            mv = (sb + rows >= b)[:, None]
+            Ub = jnp.where(mv, jax.lax.dynamic_slice_in_dim(U, sb, t), 0.0)
+            Vb = jnp.where(mv, jax.lax.dynamic_slice_in_dim(V, sb, t), 0.0)
+            D = jnp.concatenate([Ua, Va], axis=1) @ jnp.concatenate([Vb, Ub], axis=1).T
+            diag = i == j
+            D = jnp.where(diag, 0.5 * (D + D.T), D)
+            # Each write reads its own tile (a read of one tile and a write of another would
+            # make XLA copy P); the mirror tile gets Dᵀ, the diagonal tile nothing more.
+            P = jax.lax.dynamic_update_slice(
+                P, jax.lax.dynamic_slice(P, (sa, sb), (t, t)) - 0.5 * D, (sa, sb))
+            return jax.lax.dynamic_update_slice(
+                P, jax.lax.dynamic_slice(P, (sb, sa), (t, t)) - jnp.where(diag, 0.0, 0.5 * D.T), (sb, sa))
+        return jax.lax.fori_loop(i, nt, inner, P)
+
+    return jax.lax.fori_loop(jnp.int32(0), nt, tile, P)
+
+
+@sym_rank_update.defjvp
+def _sym_rank_update_jvp(primals, tangents):
+    P, U, V, hi = primals
+    dP, dU, dV, _ = tangents
+    out = sym_rank_update(P, U, V, hi)
+    return out, dP - 0.5 * (dU @ V.T + U @ dV.T + dV @ U.T + V @ dU.T)
 
 
 def update_robot(state: SlamState, model: SlamModel, observe, z, mask, R, params=None,

@@ -242,6 +242,9 @@ class Config(NamedTuple):
     fov_check: mask (and count) measurements outside ``lidar``'s field of view by more than 5σ.
     checkpoint: :func:`run` wraps its per-frame body in ``jax.checkpoint`` (a gradient through
       a log then stores one state per frame and recomputes the frame's IMU steps).
+    active_only: the update works on the leading block of slots that holds the map
+      (:func:`jaxslam.filters.ekf_slam.update`): it costs what the mapped landmarks need, not
+      the capacity; the same estimates to rounding.  False: the whole state.
     """
 
     mode: str = "unknown"
@@ -255,6 +258,7 @@ class Config(NamedTuple):
     fov_check: bool = True
     lidar: lidar3d.LidarSpec = lidar3d.PAPER000_LIDAR
     checkpoint: bool = False
+    active_only: bool = True
 
 
 class State(NamedTuple):
@@ -372,7 +376,8 @@ def correct(state: State, y, ids, visible, config: Config, params: Params, x_tru
             new_threshold=jnp.asarray(params.nn_new, st.x.dtype),
         )
     gate = None if params.gate is None else jnp.asarray(params.gate, st.x.dtype)
-    st, info = es.update(st, model, y_s, slots, mapped, R, mparams, gate=gate)
+    st, info = es.update(st, model, y_s, slots, mapped, R, mparams, gate=gate,
+                          active_only=cfg.active_only)
     if cfg.mode == "unknown":
         st = es.register(st, model, y_s, id_s, new, R, mparams)
     if x_true is None:

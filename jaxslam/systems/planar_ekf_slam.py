@@ -143,6 +143,9 @@ class Config(NamedTuple):
       suits maps of tens of landmarks; pruned landmarks and monitor inflations are not
       modelled by the backward pass (it treats the filtered map as static from each
       landmark's registration on).
+    active_only: the update works on the leading block of slots that holds the map
+      (:func:`jaxslam.filters.ekf_slam.update`): it costs what the mapped landmarks need, not
+      the capacity; the same estimates to rounding.  False: the whole state.
     """
 
     motion: str = "unicycle"
@@ -159,6 +162,7 @@ class Config(NamedTuple):
     jcbb_budget: int = 64
     block: int = 0
     smooth: bool = False
+    active_only: bool = True
 
 
 class Params(NamedTuple):
@@ -400,7 +404,7 @@ def _measure(st: es.SlamState, z, ids, valid, model, config: Config, R, nu, thr:
     if config.association == "known":
         slots, mapped = es.associate_known(st, ids, valid)
         st, info = es.update(st, model, zs, slots, mapped, R, None, gate=thr.update_gate, robust=robust,
-                               row_stats=True)
+                             row_stats=True, active_only=config.active_only)
         cand = valid & ~mapped
         new = _first_of_id(ids, cand)
         rejected = jnp.sum(cand & ~new).astype(jnp.int32)
@@ -420,7 +424,7 @@ def _measure(st: es.SlamState, z, ids, valid, model, config: Config, R, nu, thr:
                 matched, _, _ = es.joint_compatibility(st, model, zs, slots, matched, R, None,
                                                        _chi2_table(config.joint_gate, K, 2))
         st, info = es.update(st, model, zs, slots, matched, R, None, gate=thr.update_gate, robust=robust,
-                               row_stats=True)
+                             row_stats=True, active_only=config.active_only)
         # ambiguous (between the gates) or losing a landmark to a closer measurement
         rejected = jnp.sum(valid & ~matched & ~new).astype(jnp.int32)
         reg_ids = jnp.full((K,), -1, jnp.int32)

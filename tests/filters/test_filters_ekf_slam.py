@@ -6,6 +6,8 @@ range-bearing model, and uses the plain (dense) Joseph form.  The engine uses
 autodiff Jacobians, padded slots and gathered columns; both must agree.
 """
 
+import functools
+
 import numpy as np
 import jax
 import jax.numpy as jnp
@@ -153,18 +155,18 @@ Q = np.diag([0.01, 0.01, 0.001])
 R = np.diag([0.05**2, 0.01**2])
 
 
-def engine_step(st, u, z, ids, m):
+def engine_step(st, u, z, ids, m, active_only=False):
     st = es.predict(st, MODEL, u, jnp.asarray(Q))
     slots, mapped = es.associate_known(st, ids, m)
-    st, info = es.update(st, MODEL, z, slots, mapped, jnp.asarray(R))
+    st, info = es.update(st, MODEL, z, slots, mapped, jnp.asarray(R), active_only=active_only)
     st = es.register(st, MODEL, z, ids, m & ~mapped, jnp.asarray(R))
     return st, info
 
 
-@jax.jit
-def engine_run(st, us, zs, ids, masks):
+@functools.partial(jax.jit, static_argnames="active_only")
+def engine_run(st, us, zs, ids, masks, active_only=False):
     def body(st, inp):
-        st, info = engine_step(st, *inp)
+        st, info = engine_step(st, *inp, active_only=active_only)
         return st, info.nis
 
     return jax.lax.scan(body, st, (us, zs, ids, masks))
@@ -193,10 +195,13 @@ def engine_landmarks(st):
     return dict(zip(ids.tolist(), L))
 
 
-def test_engine_matches_dense_numpy_oracle():
+@pytest.mark.parametrize("cap,active_only", [(16, False), (16, True), (100, True)])
+def test_engine_matches_dense_numpy_oracle(cap, active_only):
+    # capacity 100 with the active-block update: n = 203 spans four 64-tiles (the last one
+    # clamped) while the map fills only the first of them
     us, zs, ids, masks = make_log()
-    st0 = es.init(jnp.zeros(3), jnp.diag(jnp.array([1e-4, 1e-4, 1e-5])), 16, 2)
-    st, nis = engine_run(st0, us, zs, ids, masks)
+    st0 = es.init(jnp.zeros(3), jnp.diag(jnp.array([1e-4, 1e-4, 1e-5])), cap, 2)
+    st, nis = engine_run(st0, us, zs, ids, masks, active_only=active_only)
     o, nis_o = oracle_run(us, zs, ids, masks)
     np.testing.assert_allclose(np.asarray(st.x[:3]), o.x[:3], atol=1e-10)
     np.testing.assert_allclose(np.asarray(nis), nis_o, rtol=1e-8, atol=1e-10)
@@ -236,6 +241,11 @@ def test_capacity_padding_and_slot_permutation_change_nothing():
     la, lp = engine_landmarks(ea), engine_landmarks(ep)
     for i in la:
         np.testing.assert_allclose(la[i], lp[i], atol=1e-12)
+    # The active-block update on the permuted map (active slots spread up to the last one,
+    # with free slots between them) equals the whole-state update.
+    eb, _ = engine_run(sp, us[h:], zs[h:], ids[h:], masks[h:], active_only=True)
+    np.testing.assert_allclose(np.asarray(eb.x), np.asarray(ep.x), atol=1e-12)
+    np.testing.assert_allclose(np.asarray(eb.P), np.asarray(ep.P), atol=1e-12)
 
 
 def test_capacity_overflow_is_flagged_and_counted():
@@ -668,3 +678,111 @@ def test_run_bad_inputs_name_the_argument():
         kw.update(over)
         with pytest.raises(InputError, match=pat):
             es.run(**kw)
+
+
+# ------------------------------------------------------------ active-block update
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+@pytest.mark.parametrize("n,hi", [(10, 4), (57, 57), (130, 64), (130, 65), (203, 203), (203, 150), (203, 0)])
+def test_sym_rank_update_matches_numpy(n, hi, dtype):
+    """Tiles (64, the last clamped) against P − ½ (U Vᵀ + V Uᵀ) in NumPy: equal where the rows
+    are live, untouched beyond ``hi``, symmetric to the bit."""
+    rng = np.random.default_rng(n + hi)
+    A = rng.normal(size=(n, n))
+    P = A @ A.T
+    U, V = rng.normal(size=(n, 5)), rng.normal(size=(n, 5))
+    U[hi:], V[hi:] = 0.0, 0.0
+    P[hi:, hi:] = rng.normal(size=(n - hi, n - hi))  # garbage beyond hi: must stay as it is
+    P[hi:, hi:] = P[hi:, hi:] + P[hi:, hi:].T
+    want = P - 0.5 * (U @ V.T + V @ U.T)
+    out = np.asarray(jax.jit(es.sym_rank_update)(*(jnp.asarray(a, dtype) for a in (P, U, V)), hi))
+    assert out.dtype == dtype
+    tol = 1e-12 if dtype == np.float64 else 2e-4
+    np.testing.assert_allclose(out, want, atol=tol * max(1.0, np.abs(want).max()))
+    np.testing.assert_array_equal(out, out.T)
+    np.testing.assert_array_equal(out[hi:, hi:], P[hi:, hi:].astype(dtype))
+
+
+def test_sym_rank_update_derivatives_and_vmap():
+    """JVP equals the closed-form linear map; reverse mode and vmap (batched ``hi``: every run
+    gets the batch's largest) agree with the dense formula."""
+    rng = np.random.default_rng(0)
+    n, r = 90, 3
+    A = rng.normal(size=(n, n))
+    P, U, V = A @ A.T, rng.normal(size=(n, r)), rng.normal(size=(n, r))
+    dP, dU, dV = rng.normal(size=(n, n)), rng.normal(size=(n, r)), rng.normal(size=(n, r))
+    dP = dP + dP.T
+    _, t = jax.jvp(lambda P_, U_, V_: es.sym_rank_update(P_, U_, V_, n), (P, U, V), (dP, dU, dV))
+    np.testing.assert_allclose(t, dP - 0.5 * (dU @ V.T + U @ dV.T + dV @ U.T + V @ dU.T), atol=1e-12)
+    W = rng.normal(size=(n, n))
+    g = jax.grad(lambda U_: jnp.sum(W * es.sym_rank_update(P, U_, V, n)))(U)
+    np.testing.assert_allclose(g, -0.5 * (W @ V + W.T @ V), atol=1e-12)
+    his = np.array([40, 90, 0])
+    Us, Vs = np.stack([U] * 3), np.stack([V] * 3)
+    for k, h in enumerate(his):
+        Us[k, h:], Vs[k, h:] = 0.0, 0.0
+    out = jax.jit(jax.vmap(es.sym_rank_update, in_axes=(None, 0, 0, 0)))(P, Us, Vs, his)
+    for k in range(3):
+        want = P - 0.5 * (Us[k] @ Vs[k].T + Vs[k] @ Us[k].T)
+        np.testing.assert_allclose(out[k], want, atol=1e-12)
+
+
+def _holey_state(seed, cap=24):
+    """A map with free slots between active ones (a pruned landmark) and its log."""
+    us, zs, ids, masks = make_log(seed=seed)
+    st, _ = engine_run(es.init(jnp.zeros(3), jnp.diag(jnp.array([1e-4, 1e-4, 1e-5])), cap, 2),
+                       us, zs, ids, masks)
+    act = np.asarray(st.active)
+    drop = int(np.flatnonzero(act)[1])
+    keep = np.ones(st.x.shape[0], bool)
+    keep[3 + 2 * drop: 5 + 2 * drop] = False
+    st = st._replace(x=jnp.where(keep, st.x, 0.0), P=jnp.where(keep[:, None] & keep[None, :], st.P, 0.0),
+                     active=st.active.at[drop].set(False), ids=st.ids.at[drop].set(-1))
+    return st
+
+
+@pytest.mark.parametrize("kw", [{}, {"gate": 5.99}, {"robust": 4.0}, {"num_iter": 3}],
+                         ids=["plain", "gate", "robust", "iterated"])
+def test_active_only_update_equals_whole_state_update(kw):
+    st = _holey_state(5)
+    act = np.flatnonzero(np.asarray(st.active))
+    K = 6
+    slots = jnp.asarray(np.concatenate([act[:4], [0, 23]]), jnp.int32)  # two rows of free slots
+    rng = np.random.default_rng(2)
+    lm = np.asarray(es.landmarks(st, MODEL))[np.asarray(slots)]
+    z = jax.vmap(lambda l: observe(st.x[:3], l, None))(jnp.asarray(lm))
+    z = z + jnp.asarray(rng.normal(size=(K, 2)) * np.array([0.05, 0.01]))
+    z = z.at[1].set(z[1] + jnp.array([1.0, 0.0]))  # an outlier for the gate / robust weights
+    mask = jnp.ones(K, bool).at[2].set(False)
+    a, ia = es.update(st, MODEL, z, slots, mask, jnp.asarray(R), **kw)
+    b, ib = es.update(st, MODEL, z, slots, mask, jnp.asarray(R), active_only=True, **kw)
+    np.testing.assert_allclose(np.asarray(b.x), np.asarray(a.x), atol=1e-12)
+    np.testing.assert_allclose(np.asarray(b.P), np.asarray(a.P), atol=1e-12)
+    np.testing.assert_array_equal(np.asarray(b.P), np.asarray(b.P).T)
+    for f in ("nis", "logdet", "dof", "used", "gated", "d2"):
+        np.testing.assert_allclose(np.asarray(getattr(ib, f)), np.asarray(getattr(ia, f)), atol=1e-10)
+    assert int(a.status) == int(b.status)
+
+
+def test_active_only_update_derivatives_and_vmap():
+    """grad, jacfwd and vmap (two runs with different maps; and vmap of grad) of the
+    active-block update equal the whole-state update's."""
+    sts = [_holey_state(5), _holey_state(6)]
+    S = jax.tree.map(lambda a, b: jnp.stack([a, b]), *sts)
+    slots = jnp.arange(6, dtype=jnp.int32)
+    z = jnp.tile(jnp.array([[3.0, 0.1]]), (6, 1))
+
+    def loss(logr, st, active_only):
+        Rm = jnp.diag(jnp.exp(logr))
+        out, info = es.update(st, MODEL, z, slots, jnp.ones(6, bool), Rm, active_only=active_only,
+                              gate=50.0)
+        return jnp.sum(out.P ** 2) + jnp.sum(out.x) + info.nis
+
+    lr = jnp.log(jnp.array([0.05**2, 0.01**2]))
+    for d in (jax.grad, jax.jacfwd):
+        np.testing.assert_allclose(d(loss)(lr, sts[0], True), d(loss)(lr, sts[0], False), rtol=1e-10)
+    vg = jax.jit(jax.vmap(jax.grad(loss), in_axes=(None, 0, None)), static_argnums=2)
+    np.testing.assert_allclose(vg(lr, S, True), vg(lr, S, False), rtol=1e-10)
+    vP = jax.vmap(lambda st, ao: es.update(st, MODEL, z, slots, jnp.ones(6, bool), jnp.asarray(R),
+                                           active_only=ao)[0].P, in_axes=(0, None))
+    np.testing.assert_allclose(vP(S, True), vP(S, False), atol=1e-12)

@@ -15,6 +15,7 @@ finite differences call the same compiled function (its gradient output is ignor
 """
 
 import jax
+import jax.flatten_util
 import jax.numpy as jnp
 import numpy as np
 import pytest
