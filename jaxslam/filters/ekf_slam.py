@@ -67,6 +67,7 @@ __all__ = [
     "predict",
     "update",
     "sym_rank_update",
+    "robot_cross_update",
     "update_robot",
     "register",
     "add_landmark",
@@ -239,12 +240,14 @@ def _flag_if(cond, bit):
 # Prediction (paper 000 eq. 26-29, discretised)
 # ---------------------------------------------------------------------------
 
-def predict(state: SlamState, model: SlamModel, u, Q, params=None) -> SlamState:
+def predict(state: SlamState, model: SlamModel, u, Q, params=None, *,
+            active_only: bool = False) -> SlamState:
     """Propagate the robot through ``model.motion``; landmarks are static.
 
     P_rr ← F P_rr Fᵀ + Q,  P_rl ← F P_rl  (P_lr = P_rlᵀ); P_ll untouched.
     ``Q`` (n_r, n_r) is the discrete process noise of this step.  Cost is
-    O(n_r²·n), independent of the map block.
+    O(n_r²·n), independent of the map block; with ``active_only`` (static) O(n_r²·n_a), n_a
+    the columns up to the highest active slot (:func:`robot_cross_update`).
     """
     nr = model.robot_dim
     s = state.x[:nr]
@@ -252,17 +255,83 @@ def predict(state: SlamState, model: SlamModel, u, Q, params=None) -> SlamState:
     Prr = state.P[:nr, :nr]
     Prl = state.P[:nr, nr:]
     Prr_new = symmetrize(F @ Prr @ F.T + Q)
-    Prl_new = F @ Prl
     ok = jnp.all(jnp.isfinite(s_new)) & jnp.all(jnp.isfinite(Prr_new)) & jnp.all(jnp.isfinite(F))
     # Reject a non-finite prediction block-wise: a select over the whole P would cost O(n²).
     s_new = jnp.where(ok, s_new, state.x[:nr])
     Prr_new = jnp.where(ok, Prr_new, Prr)
-    Prl_new = jnp.where(ok, Prl_new, Prl)
+    x = state.x.at[:nr].set(s_new)
+    status = state.status | _flag_if(~ok, errors.NON_FINITE)
+    if active_only:
+        cap, dl = state.active.shape[0], model.lm_dim
+        top = _batch_max(jnp.max(jnp.where(state.active, jnp.arange(1, cap + 1), 0)))
+        P = jax.lax.dynamic_update_slice(state.P, Prr_new, (0, 0))
+        P = robot_cross_update(P, jnp.where(ok, F, jnp.eye(nr, dtype=F.dtype)), nr + top * dl)
+        return state._replace(x=x, P=P, status=status)
+    Prl_new = jnp.where(ok, F @ Prl, Prl)
     P = state.P
     P = jax.lax.dynamic_update_slice(P, jnp.concatenate([Prr_new, Prl_new], axis=1), (0, 0))
     P = jax.lax.dynamic_update_slice(P, Prl_new.T, (nr, 0))
-    x = state.x.at[:nr].set(s_new)
-    return state._replace(x=x, P=P, status=state.status | _flag_if(~ok, errors.NON_FINITE))
+    return state._replace(x=x, P=P, status=status)
+
+
+@jax.custom_jvp
+def robot_cross_update(P, F, hi):
+    """P with its robot–map blocks P_rl ← F P_rl and P_lr ← P_rlᵀ (n_r = F's size) over the
+    columns n_r … ``hi`` − 1, in :data:`TILE`-wide strips (a loop whose length is set by the
+    traced ``hi``); columns from ``hi`` on are untouched (zero for inactive slots).  Both
+    strips are sums over k in one order, so a P symmetric to the bit stays so.  The
+    derivative (custom JVP) is the dense formula's; under ``vmap`` the batch visits the
+    strips of its largest ``hi``."""
+    return _cross_tiled(P, F, hi)
+
+
+@custom_vmap
+def _cross_tiled(P, F, hi):
+    return _cross_strips(P, F, hi)
+
+
+@_cross_tiled.def_vmap
+def _cross_tiled_vmap(axis_size, in_batched, P, F, hi):
+    P, F = (a if b else jnp.broadcast_to(a, (axis_size,) + a.shape)
+            for a, b in zip((P, F), in_batched[:2]))
+    h = jnp.max(hi, axis=0) if in_batched[2] else hi
+    return jax.vmap(lambda P_, F_: _cross_strips(P_, F_, h))(P, F), True
+
+
+def _cross_strips(P, F, hi):
+    nr, n = F.shape[0], P.shape[0]
+    if n == nr:
+        return P
+    t = min(TILE, n - nr)
+    nt = (jnp.maximum(jnp.asarray(hi, jnp.int32) - nr, 0) + t - 1) // t
+    cols = jnp.arange(t)
+
+    def strip(j, P):
+        b = (nr + j * t).astype(jnp.int32)
+        sb = jnp.minimum(b, n - t)  # the last strip is clamped
+        new = (sb + cols >= b)  # columns of a clamped strip already done keep their values
+        # Each write reads its own strip (no read of one region and write of another).
+        z0 = jnp.int32(0)
+        Rw = jax.lax.dynamic_slice(P, (z0, sb), (nr, t))  # P_rl strip (nr, t)
+        Rn = sum(F[:, k, None] * Rw[k][None, :] for k in range(nr))
+        P = jax.lax.dynamic_update_slice(P, jnp.where(new[None, :], Rn, Rw), (z0, sb))
+        Cl = jax.lax.dynamic_slice(P, (sb, z0), (t, nr))  # P_lr strip (t, nr)
+        Cn = sum(Cl[:, k, None] * F[None, :, k] for k in range(nr))
+        return jax.lax.dynamic_update_slice(P, jnp.where(new[:, None], Cn, Cl), (sb, z0))
+
+    return jax.lax.fori_loop(jnp.int32(0), nt, strip, P)
+
+
+@robot_cross_update.defjvp
+def _robot_cross_update_jvp(primals, tangents):
+    P, F, hi = primals
+    dP, dF, _ = tangents
+    nr, n = F.shape[0], P.shape[0]
+    out = robot_cross_update(P, F, hi)
+    moved = (jnp.arange(nr, n) < hi)[None, :]
+    dRl = jnp.where(moved, dF @ P[:nr, nr:] + F @ dP[:nr, nr:], dP[:nr, nr:])
+    dout = jax.lax.dynamic_update_slice(dP, dRl, (0, nr))
+    return out, jax.lax.dynamic_update_slice(dout, dRl.T, (nr, 0))
 
 
 # ---------------------------------------------------------------------------
@@ -366,32 +435,35 @@ def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
     z_safe = jnp.where(valid[:, None], z, 0.0).astype(dtype)
 
     s = state.x[:nr]
-    L = take(state.x[nr:].reshape(cap, dl), slots, 0)
-    zh, Hs, Hl = _observe_batch(model, s, L, params, valid)
-    res = jnp.where(valid[:, None], jax.vmap(_residual(model))(z_safe, zh), 0.0)
-
-    idx = slot_indices(slots, model)  # (K, dl)
     P = state.P
     n = P.shape[0]
-    # The columns of P that the sparse H touches: all the update needs of P besides the
-    # final correction, O(n·K·d_l).
-    Pr, Pl = P[:, :nr], take(P, idx, 1)  # (n, n_r), (n, K, d_l)
-    m = K * dz
+    K_all, m_all = K, K * dz
 
     def gather_PHt(Mr, Ml, Hs, Hl):
         # M Hᵀ for the sparse H from M's columns at H's support: (rows, K, dz)
         return jnp.einsum("ni,kzi->nkz", Mr, Hs) + jnp.einsum("nkj,kzj->nkz", Ml, Hl)
 
-    def rows(M, Hs, Hl):
-        # rows of an (n, ...) array at H's support, contracted with H: H M
-        Mr = M[:nr]  # (nr, K, dz)
-        Ml = take(M, idx, 0)  # (K, dl, K, dz)
-        return jnp.einsum("kzi,imw->kzmw", Hs, Mr) + jnp.einsum("kzj,kjmw->kzmw", Hl, Ml)
+    def factors(nb, K, rows_in):
+        """Gain and correction factors on the leading ``nb`` rows and the first ``K`` rows of
+        ``rows_in`` (both static; rows of P beyond ``nb`` hold no covariance with the measured
+        blocks when ``nb`` covers every active slot, rows of ``rows_in`` beyond ``K`` are not
+        valid).  Outputs padded to n rows and the K_all measurement rows."""
+        z_safe, slots, valid, R = (a[:K] for a in rows_in)
+        m = K * dz
+        L = take(state.x[nr:].reshape(cap, dl), slots, 0)
+        zh, Hs, Hl = _observe_batch(model, s, L, params, valid)
+        res = jnp.where(valid[:, None], jax.vmap(_residual(model))(z_safe, zh), 0.0)
+        idx = slot_indices(slots, model)  # (K, dl)
 
-    def factors(nb, R):
-        """Gain and correction factors on the leading ``nb`` rows (static; rows beyond hold
-        no covariance with the measured blocks when ``nb`` covers every active slot)."""
-        Pr_b, Pl_b, x_b = Pr[:nb], Pl[:nb], state.x[:nb]
+        def rows(M, Hs, Hl):
+            # rows of an (n, ...) array at H's support, contracted with H: H M
+            Mr = M[:nr]  # (nr, K, dz)
+            Ml = take(M, idx, 0)  # (K, dl, K, dz)
+            return jnp.einsum("kzi,imw->kzmw", Hs, Mr) + jnp.einsum("kzj,kjmw->kzmw", Hl, Ml)
+
+        # The columns of P's leading rows that the sparse H touches: all the update needs of
+        # P besides the final correction, O(nb·K·d_l).
+        Pr_b, Pl_b, x_b = P[:nb, :nr], take(P[:nb], idx, 1), state.x[:nb]
         PHt = gather_PHt(Pr_b, Pl_b, Hs, Hl)  # (nb, K, dz)
         HPHt = rows(PHt, Hs, Hl)  # (K, dz, K, dz)
         valid_ = valid
@@ -477,24 +549,46 @@ def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
         AHt = gather_PHt(Ar, Al, Hs_f, Hl_f).reshape(-1, m) * vv[None, :]
         G = PHt_f + AHt - Kg @ R_used
 
-        def pad(a):  # rows beyond nb: no correction
-            return jnp.concatenate([a, jnp.zeros((n - nb,) + a.shape[1:], a.dtype)]) if nb < n else a
+        def pad(a):  # rows beyond nb: no correction; columns beyond m: none
+            a = jnp.concatenate([a, jnp.zeros((n - nb,) + a.shape[1:], a.dtype)]) if nb < n else a
+            return jnp.pad(a, ((0, 0), (0, m_all - m))) if m < m_all else a
+
+        def pad_k(a, v):  # measurement rows beyond K: invalid
+            return jnp.concatenate([a, jnp.full((K_all - K,) + a.shape[1:], v, a.dtype)]) if K < K_all else a
+
+        def pad_s(a, v):  # the joint innovation terms: identity rows for the missing ones
+            if m == m_all:
+                return a
+            return jax.scipy.linalg.block_diag(a, v * jnp.eye(m_all - m, dtype=a.dtype))
 
         x_full = jnp.concatenate([x_new, state.x[nb:]]) if nb < n else x_new
-        return (x_full, pad(Kg), pad(G), nu, Lc, Sinv, chol_ok, ok, not_conv, valid_, gated,
-                d2_each, logdet_each)
+        return (x_full, pad(Kg), pad(G), pad_k(nu.reshape(K, dz), 0.0).reshape(-1), pad_s(Lc, 1.0),
+                pad_s(Sinv, 1.0), chol_ok, ok, not_conv, pad_k(valid_, False), pad_k(gated, False),
+                pad_k(d2_each, 0.0), pad_k(logdet_each, 0.0))
 
+    rows_in = (z_safe, slots, valid, R)
     if active_only:
         # The factors on the smallest leading block (capacity, /2, /4, /8) holding every active
-        # slot, chosen at run time; P itself stays out of the switch (a conditional that
+        # slot and the smallest count (K/4, K/2, K) holding the valid rows (moved to the front,
+        # order kept), chosen at run time; P itself stays out of the switch (a conditional that
         # writes P would copy it) and its correction visits only the mapped rows' tiles.
         # (under vmap: the batch's largest, so one branch runs for the whole batch)
         top = _batch_max(jnp.max(jnp.where(state.active, jnp.arange(1, cap + 1), 0)))
-        sizes = sorted({-(-cap // (2 ** i)) for i in range(4)} | {cap})
+        sizes = sorted({-(-cap // 8), -(-cap // 2), cap})
         which = jnp.minimum(jnp.searchsorted(jnp.asarray(sizes), top, side="left"), len(sizes) - 1)
-        out = jax.lax.switch(which, [functools.partial(factors, nr + c * dl) for c in sizes], R)
+        counts = sorted({max(1, -(-K_all // 2)), K_all})
+        order = jnp.argsort(~valid, stable=True)
+        n_valid = _batch_max(jnp.sum(valid, dtype=jnp.int32))
+        which_k = jnp.minimum(jnp.searchsorted(jnp.asarray(counts), n_valid, side="left"), len(counts) - 1)
+        branches = [functools.partial(factors, nr + c * dl, k) for k in counts for c in sizes]
+        out = jax.lax.switch(which_k * len(sizes) + which, branches,
+                             tuple(take(a, order, 0) for a in rows_in))
+        # the per-row outputs back in the caller's row order (ν, L and S⁻¹ stay compacted:
+        # NIS and log det do not depend on the order)
+        inv = jnp.argsort(order)
+        out = out[:9] + tuple(take(a, inv, 0) for a in out[9:])
     else:
-        out = factors(n, R)
+        out = factors(n, K_all, rows_in)
     x_new, Kg, G, nu, Lc, Sinv, chol_ok, ok, not_conv, valid, gated, d2_each, logdet_each = out
     if active_only:
         # nothing to correct (no row used, or the update rejected): no tile is visited
@@ -737,10 +831,17 @@ def register(state: SlamState, model: SlamModel, z, lm_ids, mask, R, params=None
     joint write equals registering them one after another (each seeing the
     previous ones' cross-covariances) exactly, at the cost of one (K·d_l, n)
     row block and one scatter of rows and columns: O(K·d_l·n) — no per-candidate
-    pass over P.
+    pass over P.  A call with no candidate (``mask`` all False) skips the work (``lax.cond``;
+    under ``vmap`` the batch skips it when no run has one).
     """
     if model.inverse is None:
         raise ValueError("register: this model has no inverse observation; use add_landmark")
+    mask = jnp.asarray(mask, bool)
+    return jax.lax.cond(_batch_max(jnp.any(mask).astype(jnp.int32)) > 0,
+                        lambda st: _register(st, model, z, lm_ids, mask, R, params), lambda st: st, state)
+
+
+def _register(state: SlamState, model: SlamModel, z, lm_ids, mask, R, params) -> SlamState:
     nr, dl, cap = _sizes(state, model)
     n = state.x.shape[0]
     dtype = state.x.dtype

@@ -343,7 +343,7 @@ def propagate(state: State, imu_prev, imu_now, config: Config, params: Params) -
     s = st.x[:NX]
     Qd = process_noise(s, 0.5 * (imu_prev + imu_now), params, config.dt, config.g, config.accel_mode)
     st = es.predict(st, make_model(), jnp.concatenate([imu_prev, imu_now]), Qd,
-                    (config.dt, config.g, config.accel_mode))
+                    (config.dt, config.g, config.accel_mode), active_only=config.active_only)
     return state._replace(slam=st)
 
 

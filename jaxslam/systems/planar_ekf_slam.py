@@ -621,7 +621,7 @@ def step(state: State, event: Event, config: Config, params: Params, *, key=None
     s = st.x[:nr]
     M = planar.step_input_cov(M_c, dt_k, config.input_mode)
     Q = planar.input_noise_cov(f, s, u_k, dt_k, M) + Q_add * dt_k
-    st = es.predict(st, model, u_k, Q, dt_k)
+    st = es.predict(st, model, u_k, Q, dt_k, active_only=config.active_only)
     thr = _cast_thresholds(params, dtype)
     valid, limited = _limits(z_k, m_k, thr)
     if config.association == "known":

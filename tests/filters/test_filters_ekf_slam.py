@@ -786,3 +786,66 @@ def test_active_only_update_derivatives_and_vmap():
     vP = jax.vmap(lambda st, ao: es.update(st, MODEL, z, slots, jnp.ones(6, bool), jnp.asarray(R),
                                            active_only=ao)[0].P, in_axes=(0, None))
     np.testing.assert_allclose(vP(S, True), vP(S, False), atol=1e-12)
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+@pytest.mark.parametrize("n,hi", [(9, 9), (57, 57), (57, 20), (203, 203), (203, 140), (203, 3)])
+def test_robot_cross_update_matches_numpy(n, hi, dtype):
+    """Strips (64 wide, the last clamped) against F P_rl in NumPy: the robot rows and columns
+    up to ``hi`` moved, the rest untouched, symmetric to the bit."""
+    nr = 3
+    rng = np.random.default_rng(n + hi)
+    A = rng.normal(size=(n, n))
+    P = A @ A.T
+    P[:nr, hi:], P[hi:, :nr] = 0.0, 0.0
+    F = rng.normal(size=(nr, nr))
+    want = P.copy()
+    want[:nr, nr:] = F @ P[:nr, nr:]
+    want[nr:, :nr] = want[:nr, nr:].T
+    out = np.asarray(jax.jit(es.robot_cross_update)(jnp.asarray(P, dtype), jnp.asarray(F, dtype), hi))
+    tol = 1e-12 if dtype == np.float64 else 1e-4
+    np.testing.assert_allclose(out, want, atol=tol * np.abs(want).max())
+    np.testing.assert_array_equal(out, out.T)
+    np.testing.assert_array_equal(out[nr:, nr:], P[nr:, nr:].astype(dtype))
+
+
+def test_robot_cross_update_derivatives_and_vmap():
+    rng = np.random.default_rng(3)
+    n, nr = 150, 3
+    A = rng.normal(size=(n, n))
+    P, F = A @ A.T, rng.normal(size=(nr, nr))
+    dP, dF = rng.normal(size=(n, n)), rng.normal(size=(nr, nr))
+    dP = dP + dP.T
+    _, t = jax.jvp(lambda P_, F_: es.robot_cross_update(P_, F_, n), (P, F), (dP, dF))
+    want = dP.copy()
+    want[:nr, nr:] = dF @ P[:nr, nr:] + F @ dP[:nr, nr:]
+    want[nr:, :nr] = want[:nr, nr:].T
+    np.testing.assert_allclose(t, want, atol=1e-12)
+    W = rng.normal(size=(n, n))
+    g = jax.grad(lambda F_: jnp.sum(W * es.robot_cross_update(P, F_, n)))(F)
+    np.testing.assert_allclose(g, (W[:nr, nr:] + W[nr:, :nr].T) @ P[nr:, :nr], atol=1e-10)
+    his = np.array([60, 150, 3])
+    Ps = np.stack([P] * 3)
+    for k, h in enumerate(his):
+        Ps[k, :nr, h:], Ps[k, h:, :nr] = 0.0, 0.0
+    out = jax.jit(jax.vmap(es.robot_cross_update, in_axes=(0, None, 0)))(Ps, F, his)
+    for k in range(3):
+        want = Ps[k].copy()
+        want[:nr, nr:] = F @ Ps[k][:nr, nr:]
+        want[nr:, :nr] = want[:nr, nr:].T
+        np.testing.assert_allclose(out[k], want, atol=1e-10)
+
+
+def test_active_only_predict_equals_whole_state_predict():
+    st = _holey_state(5, cap=100)
+    u, Qm = jnp.array([1.0, 0.3]), jnp.asarray(Q)
+    a = es.predict(st, MODEL, u, Qm)
+    b = es.predict(st, MODEL, u, Qm, active_only=True)
+    np.testing.assert_allclose(np.asarray(b.x), np.asarray(a.x), atol=0)
+    np.testing.assert_allclose(np.asarray(b.P), np.asarray(a.P), atol=1e-14)
+    np.testing.assert_array_equal(np.asarray(b.P), np.asarray(b.P).T)
+    # a non-finite prediction is rejected block-wise in both
+    bad = jnp.array([jnp.nan, 0.0])
+    a, b = es.predict(st, MODEL, bad, Qm), es.predict(st, MODEL, bad, Qm, active_only=True)
+    np.testing.assert_array_equal(np.asarray(b.P), np.asarray(st.P))
+    assert int(a.status) == int(b.status) != 0
