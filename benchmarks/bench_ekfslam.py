@@ -840,7 +840,7 @@ def run(args):
                   "'call' rows: one jitted call per operation (dispatch included, state donated); "
                   "'scan' rows: the operation repeated inside one fori_loop, per-iteration cost",
                   "the NumPy twin processes only the measurements present; jaxslam's update in the "
-                  "filter always processes max_obs = 16 (static shape, masked)",
+                  "filter processes max_obs / 2 or max_obs rows (static shapes, masked; active_only)",
                   "timings depend on the machine's load: see load_average"]})
     _print_targets(out)
     return {"results": results, **out}

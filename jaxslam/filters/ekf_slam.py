@@ -23,15 +23,17 @@ Speed (STYLE.md lessons, measured on a 2-core CPU):
 * the update gathers the columns of P that the sparse H touches (robot block
   plus one landmark block per measurement): P Hᵀ costs O(n·k) for k observed
   landmarks, and the factored Joseph form
-  (I − K H) P (I − K H)ᵀ + K R Kᵀ = A − (A Hᵀ) Kᵀ + K R Kᵀ,  A = P − K (P Hᵀ)ᵀ
-  costs O(n²·k·d_z) — never a dense n×n product with H;
+  (I − K H) P (I − K H)ᵀ + K R Kᵀ = A − (A Hᵀ − K R) Kᵀ,  A = P − K (P Hᵀ)ᵀ,
+  written as the symmetric rank-2m correction P − ½ (K Gᵀ + G Kᵀ), G = P Hᵀ + A Hᵀ − K R
+  (A's columns at H's support only), costs O(n²·k·d_z) — never a dense n×n product with H;
 * gains come from a Cholesky solve on the (k·d_z)-sized innovation
   covariance; P is symmetrised once per update;
-* with ``update(..., active_only=True)`` the update works on the leading block that holds
-  the map (inactive slots are zero, and registration fills the lowest free slot): the gain
-  on the smallest of four static block sizes (``lax.switch``, P not an operand: a
-  conditional that writes P makes XLA copy it) and the covariance correction in 64-tiles up
-  to the highest active slot — cost set by the mapped landmarks, not the capacity.
+* with ``active_only=True`` (``update`` and ``predict``) the cost is set by the mapped
+  landmarks, not the capacity (inactive slots are zero, and registration fills the lowest
+  free slot): the gain on the smallest of three leading blocks and two row counts
+  (``lax.switch``; P is not an operand, since a conditional that writes P makes XLA copy
+  it), the covariance correction in 64-tiles and the prediction's P_rl in 64-wide strips up
+  to the highest active slot (:func:`sym_rank_update`, :func:`robot_cross_update`).
 
 Measurements are processed in static-size batches of ``K`` with a validity
 mask: absent, non-finite, gated or unmapped measurements contribute nothing.
@@ -405,9 +407,10 @@ def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
         last iteration still moved a component by more than ``tol`` prior σ (default 1e-6
         float64, 1e-3 float32).
 
-      active_only: static; compute the gain on the smallest leading block (capacity, /2, /4,
-        /8 slots) that holds every active slot (``lax.switch``) and apply the covariance
-        correction only to the rows and columns up to the highest active slot
+      active_only: static; compute the gain on the smallest leading block (capacity/8, /2 or
+        all slots) that holds every active slot, with the valid rows moved to the front and
+        the smaller of K/2 and K rows that holds them (one ``lax.switch``), and apply the
+        covariance correction only to the rows and columns up to the highest active slot
         (:func:`sym_rank_update`).  Inactive slots have no covariance with anything, so this
         is the same update (the same estimates, to rounding) at a cost set by the mapped
         landmarks, not the capacity.  Differentiable in forward and reverse mode (the
@@ -568,25 +571,33 @@ def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
 
     rows_in = (z_safe, slots, valid, R)
     if active_only:
-        # The factors on the smallest leading block (capacity, /2, /4, /8) holding every active
-        # slot and the smallest count (K/4, K/2, K) holding the valid rows (moved to the front,
-        # order kept), chosen at run time; P itself stays out of the switch (a conditional that
+        # The factors on the smallest leading block (capacity/8, /2, /1) holding every active
+        # slot and the smaller count (K/2, K) holding the valid rows (moved to the front, order
+        # kept), chosen at run time; P itself stays out of the switch (a conditional that
         # writes P would copy it) and its correction visits only the mapped rows' tiles.
-        # (under vmap: the batch's largest, so one branch runs for the whole batch)
+        # (under vmap: the batch's largest, so one branch runs for the whole batch.)  Twelve
+        # branches (with /4 and K/4) took the paper-000 run's compile from 3.1 to 5.1 s for
+        # 0.005-0.02 s less run time.
         top = _batch_max(jnp.max(jnp.where(state.active, jnp.arange(1, cap + 1), 0)))
-        sizes = sorted({-(-cap // 8), -(-cap // 2), cap})
+        # (sizes below 32 slots and row counts of fewer than 24 scalars save less than their
+        # branch costs to compile: a small problem gets fewer branches, or none)
+        sizes = sorted({c for c in (-(-cap // 8), -(-cap // 2), cap) if c >= min(cap, 32)})
         which = jnp.minimum(jnp.searchsorted(jnp.asarray(sizes), top, side="left"), len(sizes) - 1)
-        counts = sorted({max(1, -(-K_all // 2)), K_all})
-        order = jnp.argsort(~valid, stable=True)
-        n_valid = _batch_max(jnp.sum(valid, dtype=jnp.int32))
-        which_k = jnp.minimum(jnp.searchsorted(jnp.asarray(counts), n_valid, side="left"), len(counts) - 1)
+        counts = sorted({max(1, -(-K_all // 2)), K_all}) if m_all >= 24 else [K_all]
         branches = [functools.partial(factors, nr + c * dl, k) for k in counts for c in sizes]
-        out = jax.lax.switch(which_k * len(sizes) + which, branches,
-                             tuple(take(a, order, 0) for a in rows_in))
-        # the per-row outputs back in the caller's row order (ν, L and S⁻¹ stay compacted:
-        # NIS and log det do not depend on the order)
-        inv = jnp.argsort(order)
-        out = out[:9] + tuple(take(a, inv, 0) for a in out[9:])
+        if len(counts) == 1:
+            out = jax.lax.switch(which, branches, rows_in)
+        else:
+            order = jnp.argsort(~valid, stable=True)
+            n_valid = _batch_max(jnp.sum(valid, dtype=jnp.int32))
+            which_k = jnp.minimum(jnp.searchsorted(jnp.asarray(counts), n_valid, side="left"),
+                                  len(counts) - 1)
+            out = jax.lax.switch(which_k * len(sizes) + which, branches,
+                                 tuple(take(a, order, 0) for a in rows_in))
+            # the per-row outputs back in the caller's row order (ν, L and S⁻¹ stay
+            # compacted: NIS and log det do not depend on the order)
+            inv = jnp.argsort(order)
+            out = out[:9] + tuple(take(a, inv, 0) for a in out[9:])
     else:
         out = factors(n, K_all, rows_in)
     x_new, Kg, G, nu, Lc, Sinv, chol_ok, ok, not_conv, valid, gated, d2_each, logdet_each = out

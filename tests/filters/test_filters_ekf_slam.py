@@ -195,11 +195,13 @@ def engine_landmarks(st):
     return dict(zip(ids.tolist(), L))
 
 
-@pytest.mark.parametrize("cap,active_only", [(16, False), (16, True), (100, True)])
-def test_engine_matches_dense_numpy_oracle(cap, active_only):
+@pytest.mark.parametrize("cap,active_only,K", [(16, False, 6), (16, True, 6), (100, True, 6),
+                                               (100, True, 12)])
+def test_engine_matches_dense_numpy_oracle(cap, active_only, K):
     # capacity 100 with the active-block update: n = 203 spans four 64-tiles (the last one
-    # clamped) while the map fills only the first of them
-    us, zs, ids, masks = make_log()
+    # clamped) while the map fills only the first of them, and the gain runs on the 50-slot
+    # block; with K = 12 rows (24 scalars) the valid rows are compacted into 6 or 12
+    us, zs, ids, masks = make_log(K=K, n_lm=max(12, 2 * K))
     st0 = es.init(jnp.zeros(3), jnp.diag(jnp.array([1e-4, 1e-4, 1e-5])), cap, 2)
     st, nis = engine_run(st0, us, zs, ids, masks, active_only=active_only)
     o, nis_o = oracle_run(us, zs, ids, masks)
@@ -727,9 +729,10 @@ def test_sym_rank_update_derivatives_and_vmap():
         np.testing.assert_allclose(out[k], want, atol=1e-12)
 
 
-def _holey_state(seed, cap=24):
-    """A map with free slots between active ones (a pruned landmark) and its log."""
-    us, zs, ids, masks = make_log(seed=seed)
+def _holey_state(seed, cap=24, spread=False):
+    """A map with free slots between active ones (a pruned landmark); ``spread``: the slots
+    permuted so that active ones sit up to the last slot."""
+    us, zs, ids, masks = make_log(seed=seed, n_lm=16, K=12)
     st, _ = engine_run(es.init(jnp.zeros(3), jnp.diag(jnp.array([1e-4, 1e-4, 1e-5])), cap, 2),
                        us, zs, ids, masks)
     act = np.asarray(st.active)
@@ -738,22 +741,43 @@ def _holey_state(seed, cap=24):
     keep[3 + 2 * drop: 5 + 2 * drop] = False
     st = st._replace(x=jnp.where(keep, st.x, 0.0), P=jnp.where(keep[:, None] & keep[None, :], st.P, 0.0),
                      active=st.active.at[drop].set(False), ids=st.ids.at[drop].set(-1))
+    if spread:
+        perm = np.random.default_rng(seed).permutation(cap)
+        perm = np.concatenate([perm[perm >= cap - 4], perm[perm < cap - 4]])  # an active slot near the end
+        idx = np.concatenate([np.arange(3)] + [3 + 2 * p + np.arange(2) for p in perm])
+        x, P, act_, lid = (np.asarray(a) for a in (st.x, st.P, st.active, st.ids))
+        inv = np.argsort(perm)
+        idx_inv = np.concatenate([np.arange(3)] + [3 + 2 * p + np.arange(2) for p in inv])
+        st = st._replace(x=jnp.asarray(x[idx_inv]), P=jnp.asarray(P[np.ix_(idx_inv, idx_inv)]),
+                         active=jnp.asarray(act_[inv]), ids=jnp.asarray(lid[inv]))
+        del idx
     return st
 
 
-@pytest.mark.parametrize("kw", [{}, {"gate": 5.99}, {"robust": 4.0}, {"num_iter": 3}],
-                         ids=["plain", "gate", "robust", "iterated"])
-def test_active_only_update_equals_whole_state_update(kw):
-    st = _holey_state(5)
+@pytest.mark.parametrize("spread", [False, True], ids=["leading", "spread"])
+@pytest.mark.parametrize("kw,n_rows", [({}, 7), ({}, 3), ({"gate": 5.99}, 7), ({"robust": 4.0}, 7),
+                                       ({"num_iter": 3}, 7)],
+                         ids=["plain", "few-rows", "gate", "robust", "iterated"])
+def test_active_only_update_equals_whole_state_update(kw, n_rows, spread):
+    # capacity 100: gain blocks of 50 / 100 slots (spread: the active slots reach the end);
+    # 12 rows of 2 scalars: the valid ones compacted into 6 (few-rows) or 12
+    cap, K = 100, 12
+    st = _holey_state(5, cap=cap, spread=spread)
     act = np.flatnonzero(np.asarray(st.active))
-    K = 6
-    slots = jnp.asarray(np.concatenate([act[:4], [0, 23]]), jnp.int32)  # two rows of free slots
+    free = np.flatnonzero(~np.asarray(st.active))
+    # rows: n_rows + 1 active slots (one masked), two free slots, the rest free too; shuffled
+    rows = np.concatenate([act[:n_rows + 1], free[:K - n_rows - 1]])
+    rows = rows[np.random.default_rng(1).permutation(K)]
+    slots = jnp.asarray(rows, jnp.int32)
     rng = np.random.default_rng(2)
-    lm = np.asarray(es.landmarks(st, MODEL))[np.asarray(slots)]
+    lm = np.asarray(es.landmarks(st, MODEL))[rows]
     z = jax.vmap(lambda l: observe(st.x[:3], l, None))(jnp.asarray(lm))
     z = z + jnp.asarray(rng.normal(size=(K, 2)) * np.array([0.05, 0.01]))
-    z = z.at[1].set(z[1] + jnp.array([1.0, 0.0]))  # an outlier for the gate / robust weights
-    mask = jnp.ones(K, bool).at[2].set(False)
+    first = int(np.flatnonzero(np.isin(rows, act))[0])
+    z = z.at[first].set(z[first] + jnp.array([1.0, 0.0]))  # an outlier for the gate / robust weights
+    masked = int(np.flatnonzero(np.isin(rows, act))[1])
+    mask = jnp.ones(K, bool).at[masked].set(False)
+    assert int(np.sum(np.isin(rows, act))) - 1 == n_rows
     a, ia = es.update(st, MODEL, z, slots, mask, jnp.asarray(R), **kw)
     b, ib = es.update(st, MODEL, z, slots, mask, jnp.asarray(R), active_only=True, **kw)
     np.testing.assert_allclose(np.asarray(b.x), np.asarray(a.x), atol=1e-12)

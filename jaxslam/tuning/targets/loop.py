@@ -149,7 +149,7 @@ def ekfslam3d_loop(loss: str = "cost", train_runs: int = 4, test_runs: int = 16,
     n_lm = int(opts["landmarks"])
     cfg = sys3d.Config(mode=mode, association=opts["association"], capacity=int(opts["capacity"]),
                        max_obs=int(opts["max_obs"]), accel_mode=opts["accel"], dt=DT, g=float(base.quad.g),
-                       save_map=False)
+                       save_map=False, active_only=False)  # a gradient: see targets.ekfslam3d
     traj = paper000_figure8(float(opts["altitude"]), 0.0)
     center = np.asarray(traj.center, float)
     nf_train = n_frames(train_duration, DT, FRAME_STEPS)
