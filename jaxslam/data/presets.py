@@ -225,10 +225,10 @@ def victoria_park_params(sigma_v: float = 0.7, sigma_a: float = 0.06, floor=(0.0
     17.2 m (diverges).  The chosen value stays a factor 4 in variance away from that cliff
     (the last 0.1 m of the grid is not worth the risk on unseen data).  Held-out part
     (t ≥ 500 s) and whole run: see docs/datasets.md (the map then exceeds 256 slots, so
-    :func:`victoria_park_config` holds 512: the same ATE with no registration refused).  The 1000–1100 s window (new ground, 8 m RMS at
-    R ×16) flips between ~2 and ~8 m under small changes of gate, new-landmark threshold, R,
-    a diameter filter or ``joint_gate``: fragile single-hypothesis association, not noise
-    tuning.  Start pose (0, 0, 0).
+    :func:`victoria_park_config` holds 512: the same ATE with no registration refused).  The
+    1000–1100 s window (new ground, 8 m RMS at R ×16) flips between ~2 and ~8 m under small
+    changes of gate, new-landmark threshold, R, a diameter filter or ``joint_gate``: fragile
+    single-hypothesis association, not noise tuning.  Start pose (0, 0, 0).
 
     The range limits and the pruning (their reasons with :func:`victoria_park_config`): rows
     outside ``range_min`` – ``range_max`` [m] are masked; tentative landmarks not matched

@@ -242,9 +242,10 @@ class Config(NamedTuple):
     fov_check: mask (and count) measurements outside ``lidar``'s field of view by more than 5σ.
     checkpoint: :func:`run` wraps its per-frame body in ``jax.checkpoint`` (a gradient through
       a log then stores one state per frame and recomputes the frame's IMU steps).
-    active_only: the update works on the leading block of slots that holds the map
-      (:func:`jaxslam.filters.ekf_slam.update`): it costs what the mapped landmarks need, not
-      the capacity; the same estimates to rounding.  False: the whole state.
+    active_only: the update and the prediction work on the leading block of slots that holds
+      the map (:func:`jaxslam.filters.ekf_slam.update`, ``predict``): they cost what the mapped
+      landmarks need, not the capacity; the same estimates to rounding.  False: the whole state
+      (cheaper to compile; the tuning targets' gradients use it).
     """
 
     mode: str = "unknown"

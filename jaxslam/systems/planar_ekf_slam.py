@@ -143,9 +143,10 @@ class Config(NamedTuple):
       suits maps of tens of landmarks; pruned landmarks and monitor inflations are not
       modelled by the backward pass (it treats the filtered map as static from each
       landmark's registration on).
-    active_only: the update works on the leading block of slots that holds the map
-      (:func:`jaxslam.filters.ekf_slam.update`): it costs what the mapped landmarks need, not
-      the capacity; the same estimates to rounding.  False: the whole state.
+    active_only: the update and the prediction work on the leading block of slots that holds
+      the map (:func:`jaxslam.filters.ekf_slam.update`, ``predict``): they cost what the mapped
+      landmarks need, not the capacity; the same estimates to rounding.  False: the whole state
+      (cheaper to compile; the tuning targets' gradients use it).
     """
 
     motion: str = "unicycle"
