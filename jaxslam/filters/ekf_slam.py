@@ -264,16 +264,47 @@ def predict(state: SlamState, model: SlamModel, u, Q, params=None, *,
     x = state.x.at[:nr].set(s_new)
     status = state.status | _flag_if(~ok, errors.NON_FINITE)
     if active_only:
-        cap, dl = state.active.shape[0], model.lm_dim
-        top = _batch_max(jnp.max(jnp.where(state.active, jnp.arange(1, cap + 1), 0)))
         P = jax.lax.dynamic_update_slice(state.P, Prr_new, (0, 0))
-        P = robot_cross_update(P, jnp.where(ok, F, jnp.eye(nr, dtype=F.dtype)), nr + top * dl)
+        P = robot_cross_update(P, jnp.where(ok, F, jnp.eye(nr, dtype=F.dtype)),
+                               nr + _active_top(state) * model.lm_dim)
         return state._replace(x=x, P=P, status=status)
     Prl_new = jnp.where(ok, F @ Prl, Prl)
     P = state.P
     P = jax.lax.dynamic_update_slice(P, jnp.concatenate([Prr_new, Prl_new], axis=1), (0, 0))
     P = jax.lax.dynamic_update_slice(P, Prl_new.T, (nr, 0))
     return state._replace(x=x, P=P, status=status)
+
+
+def _active_top(state: SlamState):
+    """Slots in use from the front: 1 + the highest active slot (0 for an empty map); under
+    ``vmap`` the batch's largest (see :func:`_batch_max`)."""
+    cap = state.active.shape[0]
+    return _batch_max(jnp.max(jnp.where(state.active, jnp.arange(1, cap + 1), 0)))
+
+
+def _clamped_tile(k, t: int, n: int, lo: int = 0):
+    """Start of the k-th ``t``-wide tile of [lo, n), the last one clamped to end at n, and which
+    of its t entries are its own (not already covered by the tile before a clamped one)."""
+    a = (lo + k * t).astype(jnp.int32)
+    start = jnp.minimum(a, n - t)
+    return start, start + jnp.arange(t) >= a
+
+
+def _shared_bound(fn):
+    """``fn(*arrays, bound)`` whose loop length is set by the traced ``bound``, with a batching
+    rule: a vmapped batch runs every member's loop to the batch's largest bound (per-run loop
+    lengths would make the loop select all of its carry at every iteration)."""
+    wrapped = custom_vmap(fn)
+
+    @wrapped.def_vmap
+    def _rule(axis_size, in_batched, *args):
+        *arrays, bound = args
+        arrays = [a if b else jnp.broadcast_to(a, (axis_size,) + a.shape)
+                  for a, b in zip(arrays, in_batched[:-1])]
+        h = jnp.max(bound, axis=0) if in_batched[-1] else bound
+        return jax.vmap(lambda *a: fn(*a, h))(*arrays), True
+
+    return wrapped
 
 
 @jax.custom_jvp
@@ -287,31 +318,15 @@ def robot_cross_update(P, F, hi):
     return _cross_tiled(P, F, hi)
 
 
-@custom_vmap
-def _cross_tiled(P, F, hi):
-    return _cross_strips(P, F, hi)
-
-
-@_cross_tiled.def_vmap
-def _cross_tiled_vmap(axis_size, in_batched, P, F, hi):
-    P, F = (a if b else jnp.broadcast_to(a, (axis_size,) + a.shape)
-            for a, b in zip((P, F), in_batched[:2]))
-    h = jnp.max(hi, axis=0) if in_batched[2] else hi
-    return jax.vmap(lambda P_, F_: _cross_strips(P_, F_, h))(P, F), True
-
-
 def _cross_strips(P, F, hi):
     nr, n = F.shape[0], P.shape[0]
     if n == nr:
         return P
     t = min(TILE, n - nr)
     nt = (jnp.maximum(jnp.asarray(hi, jnp.int32) - nr, 0) + t - 1) // t
-    cols = jnp.arange(t)
 
     def strip(j, P):
-        b = (nr + j * t).astype(jnp.int32)
-        sb = jnp.minimum(b, n - t)  # the last strip is clamped
-        new = (sb + cols >= b)  # columns of a clamped strip already done keep their values
+        sb, new = _clamped_tile(j, t, n, nr)  # columns of a clamped strip already done keep theirs
         # Each write reads its own strip (no read of one region and write of another).
         z0 = jnp.int32(0)
         Rw = jax.lax.dynamic_slice(P, (z0, sb), (nr, t))  # P_rl strip (nr, t)
@@ -322,6 +337,9 @@ def _cross_strips(P, F, hi):
         return jax.lax.dynamic_update_slice(P, jnp.where(new[:, None], Cn, Cl), (sb, z0))
 
     return jax.lax.fori_loop(jnp.int32(0), nt, strip, P)
+
+
+_cross_tiled = _shared_bound(_cross_strips)
 
 
 @robot_cross_update.defjvp
@@ -578,7 +596,7 @@ def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
         # (under vmap: the batch's largest, so one branch runs for the whole batch.)  Twelve
         # branches (with /4 and K/4) took the paper-000 run's compile from 3.1 to 5.1 s for
         # 0.005-0.02 s less run time.
-        top = _batch_max(jnp.max(jnp.where(state.active, jnp.arange(1, cap + 1), 0)))
+        top = _active_top(state)
         # (sizes below 32 slots and row counts of fewer than 24 scalars save less than their
         # branch costs to compile: a small problem gets fewer branches, or none)
         sizes = sorted({c for c in (-(-cap // 8), -(-cap // 2), cap) if c >= min(cap, 32)})
@@ -663,34 +681,19 @@ def _batch_max_vmap(axis_size, in_batched, a):
     return (jnp.max(a, axis=0) if in_batched[0] else a), False
 
 
-@custom_vmap
-def _tiled_rank_update(P, U, V, hi):
-    return _tiles(P, U, V, hi)
-
-
-@_tiled_rank_update.def_vmap
-def _tiled_rank_update_vmap(axis_size, in_batched, P, U, V, hi):
-    P, U, V = (a if b else jnp.broadcast_to(a, (axis_size,) + a.shape)
-               for a, b in zip((P, U, V), in_batched[:3]))
-    h = jnp.max(hi, axis=0) if in_batched[3] else hi
-    return jax.vmap(lambda P_, U_, V_: _tiles(P_, U_, V_, h))(P, U, V), True
-
-
 def _tiles(P, U, V, hi):
     n = P.shape[0]
     t = min(TILE, n)
     nt = (jnp.asarray(hi, jnp.int32) + t - 1) // t
-    rows = jnp.arange(t)
 
     def tile(i, P):
         def inner(j, P):
-            a, b = (i * t).astype(jnp.int32), (j * t).astype(jnp.int32)
-            sa, sb = jnp.minimum(a, n - t), jnp.minimum(b, n - t)  # the last tile is clamped
             # rows of a clamped tile already covered by the previous tile get no correction
-            mu = (sa + rows >= a)[:, None]
+            sa, mu = _clamped_tile(i, t, n)
+            sb, mv = _clamped_tile(j, t, n)
+            mu, mv = mu[:, None], mv[:, None]
             Ua = jnp.where(mu, jax.lax.dynamic_slice_in_dim(U, sa, t), 0.0)
             Va = jnp.where(mu, jax.lax.dynamic_slice_in_dim(V, sa, t), 0.0)
-            mv = (sb + rows >= b)[:, None]
             Ub = jnp.where(mv, jax.lax.dynamic_slice_in_dim(U, sb, t), 0.0)
             Vb = jnp.where(mv, jax.lax.dynamic_slice_in_dim(V, sb, t), 0.0)
             D = jnp.concatenate([Ua, Va], axis=1) @ jnp.concatenate([Vb, Ub], axis=1).T
@@ -705,6 +708,9 @@ def _tiles(P, U, V, hi):
         return jax.lax.fori_loop(i, nt, inner, P)
 
     return jax.lax.fori_loop(jnp.int32(0), nt, tile, P)
+
+
+_tiled_rank_update = _shared_bound(_tiles)
 
 
 @sym_rank_update.defjvp
