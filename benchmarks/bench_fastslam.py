@@ -39,9 +39,7 @@ Parts (``--parts``):
 ``profile`` (opt-in) the step's cost broken into pieces at
    ``--profile-particles`` (the IMU and LiDAR stages, proposal RK4 and random
    draws, bias KF update, step output, landmark updates, position
-   regeneration; the twin's stages), in wall and CPU time, plus
-   :func:`_imu_stage_proposed`, a prototype of the changes this benchmark
-   proposes for ``fastslam_001`` (see docs/_parts/fastslam_bench.md).
+   regeneration; the twin's stages), in wall and CPU time.
 
 Every repeat runs the methods one after the other (interleaved), so a change of
 the machine's load hits all of them alike, and every time is also recorded in
@@ -98,7 +96,7 @@ def add_arguments(parser):
     programs; --quick ~2.5 min)."""
     parser.add_argument("--parts", default="step,mc",
                         help="comma list of step, mc, profile (default step,mc; profile is a "
-                             "breakdown of the step's cost with a prototype of proposed changes)")
+                             "breakdown of the step's cost)")
     parser.add_argument("--quick", action="store_true",
                         help="smaller run: N = 500, 2000; fewer steps and repeats; M = 1, 8 "
                              "over 1 s (explicit options still win)")
@@ -544,76 +542,6 @@ def run_mc(args, compiled, data, N, F, results, out):
 # Part: profile (opt-in)
 # ---------------------------------------------------------------------------
 
-def _imu_stage_proposed(state, rotor_w, imu, key, cfg, prm):
-    """PROTOTYPE (not the package): ``fastslam_001.imu_stage`` with the changes this
-    benchmark proposes, same filter up to the random-number layout:
-
-    1. the bias/drift KF gain is shared by all particles (A^b, Q^b, H_b, R^I and P are), so it
-       is computed once and the means are updated by one (N, 6) × (6, 12) product — instead
-       of ``vmap(ekf.update)``, whose batched right-hand side [H P, ν] makes XLA solve one
-       triangular system per particle (LAPACK calls in a loop);
-    2. one flat ``normal(key, (N·12,))`` draw for the proposal and one (N·3,) for the rates
-       instead of ``split(key, N)`` and one small draw per particle;
-    3. the step output's weighted estimate takes sin/cos of the three angle columns only and
-       the diagonal of the weighted covariance only (``_step_out`` uses nothing else).
-    """
-    import math
-
-    import jax
-    import jax.numpy as jnp
-
-    from jaxslam.dynamics import rotor
-    from jaxslam.dynamics.integrators import rk4_step
-    from jaxslam.filters import fastslam as fs
-    from jaxslam.linalg import symmetrize
-    from jaxslam.systems import fastslam_001 as fs1
-
-    p = state.particles
-    dtype = p.pose.dtype
-    n = p.pose.shape[0]
-    H = jnp.asarray(fs1.H_B, dtype)
-    dt = jnp.asarray(cfg.dt, dtype)
-    k_prop, k_res, k_s2 = jax.random.split(key, 3)
-    first = state.k == 0
-    a_b, q_b = fs1.bias_model(prm, dtype)
-    eps = jax.random.normal(k_prop, (n * 12,), dtype).reshape(n, 12)
-    pose = jax.vmap(lambda x: rk4_step(rotor.f, x, rotor_w, dt, prm.quad))(p.pose)
-    pose = pose + jnp.sqrt(prm.proposal_var) * eps
-    aux = p.aux * a_b
-    P_pred = symmetrize(a_b[:, None] * state.bias_cov * a_b[None, :] + jnp.diag(q_b))
-    R_I = jnp.diag(prm.imu_var)
-    zbar = imu - jax.vmap(lambda x: fs1.h_imu(x, rotor_w, prm.quad, cfg.accel_mode))(pose)
-    HP = H @ P_pred
-    L = jnp.linalg.cholesky(symmetrize(HP @ H.T + R_I))
-    K = jax.scipy.linalg.cho_solve((L, True), HP).T
-    nu = zbar - aux @ H.T
-    nis = jnp.sum(nu * jax.scipy.linalg.cho_solve((L, True), nu.T).T, axis=1)
-    A = P_pred - K @ HP
-    P_post = symmetrize(A - (A @ H.T) @ K.T + K @ R_I @ K.T)
-    m_post = jnp.where(first, zbar @ jnp.asarray(np.linalg.pinv(fs1.H_B), dtype).T,
-                       aux + nu @ K.T)
-    ll = -0.5 * (nis + 2.0 * jnp.sum(jnp.log(jnp.diagonal(L)))) - 3 * math.log(2 * math.pi)
-    p = fs.reweight(p._replace(pose=pose, aux=m_post), jnp.where(first, 0.0, ll))
-    neff = fs.neff(p)
-    p = fs.maybe_resample(p, k_res, prm.resample_threshold, cfg.resampling)
-    Lg = jnp.linalg.cholesky(symmetrize(jnp.diag(prm.imu_var[3:6]) + H[3:6] @ P_post @ H[3:6].T))
-    e3 = jax.random.normal(k_s2, (n * 3,), dtype).reshape(n, 3)
-    rates = imu[3:6] - p.aux[:, 3:6] - p.aux[:, 9:12] + e3 @ Lg.T
-    p = p._replace(pose=p.pose.at[:, 9:12].set(rates))
-    st = fs1.State(p, P_post, state.k + 1, jnp.minimum(state.neff_min, neff), imu)
-    w = jnp.exp(p.log_w)
-    x = p.pose
-    mu = w @ x
-    mu = mu.at[6:9].set(jnp.arctan2(w @ jnp.sin(x[:, 6:9]), w @ jnp.cos(x[:, 6:9])))
-    dev = x - mu
-    dev = dev.at[:, 6:9].set((dev[:, 6:9] + jnp.pi) % (2 * jnp.pi) - jnp.pi)
-    bm = w @ p.aux
-    off = p.aux @ H.T
-    return st, fs1.StepOut(mu, w @ (dev * dev), bm,
-                           jnp.diagonal(P_post) + w @ ((p.aux - bm) ** 2),
-                           jnp.diagonal(H @ P_post @ H.T) + w @ ((off - H @ bm) ** 2), neff)
-
-
 def _profile_jobs(args, cfg, prm, compiled_state_fn, inputs_np):
     """(name, make) pairs: make() compiles one piece and returns (fn, args)."""
     import jax
@@ -621,6 +549,7 @@ def _profile_jobs(args, cfg, prm, compiled_state_fn, inputs_np):
 
     from jaxslam.filters import ekf
     from jaxslam.filters import fastslam as fs
+    from jaxslam.linalg import cholesky_small
     from jaxslam.systems import fastslam_001 as fs1
 
     rotor, imu, z, mask = inputs_np
@@ -630,42 +559,39 @@ def _profile_jobs(args, cfg, prm, compiled_state_fn, inputs_np):
     zf, mf = jnp.asarray(z[k_lidar]), jnp.asarray(mask[k_lidar])
     ids = jnp.arange(zf.shape[0], dtype=jnp.int32)
     N = int(args.profile_particles)
-    a_b, _ = fs1.bias_model(prm, jnp.float64)
     R = jnp.diag(prm.lidar_var)
     model = fs1.landmark_model(cfg.lidar)
 
     def bias_update(st):
-        P_pred = st.bias_cov
-        zb = jnp.zeros((N, 6)) + u
-
-        def upd(m, zz):
-            post, info = ekf.update(ekf.Gaussian(m, P_pred), zz, fs1._h_lin,
-                                    jnp.diag(prm.imu_var))
-            return post.mean, info.nis
-
-        return jax.vmap(upd)(st.particles.aux, zb)
+        H = jnp.asarray(fs1.H_B, jnp.float64)
+        nu = u - st.particles.aux @ H.T
+        out = ekf.linear_update_shared(st.particles.aux, st.bias_cov, nu, H,
+                                       jnp.diag(prm.imu_var), jnp.ones((6,), bool))
+        return out[0], out[4]
 
     def regen_pos(st, k):
         p = st.particles
-        return jax.vmap(lambda x, m, c, a, kk: fs1.regenerate_position(
-            x, m, c, a, zf, ids, mf, kk, R, cfg.lidar, True))(
-            p.pose, p.lm_mean, p.lm_cov, p.active, jax.random.split(k, N))
+        m, P, ok = jax.vmap(lambda x, mu, c, a: fs1.position_posterior(
+            x, mu, c, a, zf, ids, mf, R, cfg.lidar, True))(p.pose, p.lm_mean, p.lm_cov, p.active)
+        eps = jax.random.normal(k, m.shape, jnp.float64)
+        return jnp.where(ok[:, None], m + jnp.einsum("nij,nj->ni", cholesky_small(P), eps), 0.0)
 
     pieces = [
-        ("imu_stage (package)", lambda s, k: fs1.imu_stage(s, w, u, k, cfg, prm)),
-        ("imu_stage (proposed prototype)", lambda s, k: _imu_stage_proposed(s, w, u, k, cfg, prm)),
-        ("lidar_stage (package)", lambda s, k: fs1.lidar_stage(s, zf, ids, mf, k, cfg, prm)[0]),
+        ("imu_stage", lambda s, k: fs1.imu_stage(s, w, u, k, cfg, prm)),
+        ("lidar_stage", lambda s, k: fs1.lidar_stage(s, zf, ids, mf, k, cfg, prm)[0]),
         ("  proposal: RK4 of eq. 1-4 only", lambda s, k: jax.vmap(
             lambda x: fs1.rk4_step(fs1.rotor.f, x, w, cfg.dt, prm.quad))(s.particles.pose)),
-        ("  proposal: split(key, N) + normal(12) each", lambda s, k: jax.vmap(
-            lambda kk: jax.random.normal(kk, (12,), jnp.float64))(jax.random.split(k, N))),
         ("  proposal: one normal(N*12) draw", lambda s, k: jax.random.normal(
             k, (N * 12,), jnp.float64)),
-        ("  bias KF: vmap(ekf.update) as imu_stage", lambda s, k: bias_update(s)),
+        ("  IMU prediction h^d(x) (eq. 12)", lambda s, k: jax.vmap(
+            lambda x: fs1.h_imu(x, w, prm.quad, cfg.accel_mode))(s.particles.pose)),
+        ("  bias KF: ekf.linear_update_shared", lambda s, k: bias_update(s)),
+        ("  resampling (systematic, forced)", lambda s, k: fs.maybe_resample(
+            s.particles, k, None, cfg.resampling).pose),
         ("  step output: _step_out (estimate)", lambda s, k: fs1._step_out(s, 1.0)),
         ("  landmarks: observe_update", lambda s, k: fs.observe_update(
             s.particles, model, zf, ids, mf, R, None, slot_by_id=True)[0].log_w),
-        ("  landmarks: regenerate_position", regen_pos),
+        ("  landmarks: position_posterior + draw", regen_pos),
     ]
     jobs = []
     for name, fn in pieces:
@@ -715,10 +641,8 @@ def run_profile(args, tw, cfg, prm, compiled, twin_state, inputs_np, out):
                      "cpu_per_particle_ns": cpu / N * 1e9, "wall_per_particle_ns": wall / N * 1e9})
     out["profile"] = {"particles": N, "repeats": reps, "rows": rows,
                       "note": ("each piece jitted alone on the warmed-up state, median of "
-                               "'repeats' calls; indented pieces are parts of the stage above; "
-                               "'imu_stage (proposed prototype)' is bench_fastslam."
-                               "_imu_stage_proposed (changes proposed to fastslam_001), not the "
-                               "package; per-particle times are per call (one IMU sample or one "
+                               "'repeats' calls; indented pieces are parts of the stages above; "
+                               "per-particle times are per call (one IMU sample or one "
                                "LiDAR frame of 4 landmarks)")}
     for r in rows:
         _progress(f"profile N={N}: {r['piece']:45s} {r['cpu_per_particle_ns']:8.0f} ns/particle "

@@ -25,6 +25,9 @@ __all__ = [
     "symmetrize",
     "wrap_angle",
     "chol_solve",
+    "det_small",
+    "inv_small",
+    "cholesky_small",
     "safe_norm",
     "check_psd",
     "check_scalar",
@@ -156,6 +159,72 @@ def chol_solve(S, B):
     ok = jnp.all(jnp.isfinite(L))
     X = jax.scipy.linalg.cho_solve((L, True), B)
     return X, ok
+
+
+def det_small(A):
+    """Determinant of (..., d, d) matrices, d ≤ 3, in closed form (elementwise, fuses)."""
+    d = A.shape[-1]
+    if d == 1:
+        return A[..., 0, 0]
+    if d == 2:
+        return A[..., 0, 0] * A[..., 1, 1] - A[..., 0, 1] * A[..., 1, 0]
+    if d == 3:
+        return (
+            A[..., 0, 0] * (A[..., 1, 1] * A[..., 2, 2] - A[..., 1, 2] * A[..., 2, 1])
+            - A[..., 0, 1] * (A[..., 1, 0] * A[..., 2, 2] - A[..., 1, 2] * A[..., 2, 0])
+            + A[..., 0, 2] * (A[..., 1, 0] * A[..., 2, 1] - A[..., 1, 1] * A[..., 2, 0])
+        )
+    raise ValueError("closed-form determinant only for d <= 3")
+
+
+def inv_small(A):
+    """``(A⁻¹, det A)`` of (..., d, d) matrices, d ≤ 3, by the adjugate.
+
+    No LAPACK call: under ``vmap`` a batched ``jnp.linalg`` factorisation of tiny
+    matrices becomes one library call per matrix, this stays elementwise.  A
+    singular ``A`` gives the adjugate (divided by 1) and ``det == 0``: callers test
+    ``det``.
+    """
+    d = A.shape[-1]
+    det = det_small(A)
+    e = lambda i, j: A[..., i, j]  # noqa: E731
+    if d == 1:
+        adj = jnp.ones_like(A)
+    elif d == 2:
+        adj = jnp.stack([jnp.stack([e(1, 1), -e(0, 1)], -1),
+                         jnp.stack([-e(1, 0), e(0, 0)], -1)], -2)
+    else:
+        def c(i, j):  # cofactor (i, j)
+            r = [k for k in range(3) if k != i]
+            s = [k for k in range(3) if k != j]
+            m = e(r[0], s[0]) * e(r[1], s[1]) - e(r[0], s[1]) * e(r[1], s[0])
+            return m if (i + j) % 2 == 0 else -m
+
+        adj = jnp.stack([jnp.stack([c(j, i) for j in range(3)], -1) for i in range(3)], -2)
+    safe = jnp.where(det != 0, det, jnp.ones((), A.dtype))
+    return adj / safe[..., None, None], det
+
+
+def cholesky_small(S):
+    """Lower Cholesky factor of (..., d, d) symmetric positive-definite matrices, d ≤ 3,
+    in closed form (elementwise, no LAPACK call per matrix).  Reads the lower triangle;
+    a matrix that is not positive definite gives NaN entries, as ``jnp.linalg.cholesky``."""
+    d = S.shape[-1]
+    if d > 3:
+        raise ValueError("closed-form Cholesky only for d <= 3")
+    z = jnp.zeros(S.shape[:-2], S.dtype)
+    l00 = jnp.sqrt(S[..., 0, 0])
+    if d == 1:
+        return l00[..., None, None]
+    l10 = S[..., 1, 0] / l00
+    l11 = jnp.sqrt(S[..., 1, 1] - l10 * l10)
+    if d == 2:
+        return jnp.stack([jnp.stack([l00, z], -1), jnp.stack([l10, l11], -1)], -2)
+    l20 = S[..., 2, 0] / l00
+    l21 = (S[..., 2, 1] - l20 * l10) / l11
+    l22 = jnp.sqrt(S[..., 2, 2] - l20 * l20 - l21 * l21)
+    return jnp.stack([jnp.stack([l00, z, z], -1), jnp.stack([l10, l11, z], -1),
+                      jnp.stack([l20, l21, l22], -1)], -2)
 
 
 def safe_norm(x, axis=-1, keepdims=False):

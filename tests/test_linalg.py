@@ -122,3 +122,41 @@ def test_check_scalar_accepts_and_names_the_argument():
     ]:
         with pytest.raises(InputError, match=needle):
             check_scalar(value, "p.v", **kw)
+
+
+# ---------------------------------------------------------------------------
+# Closed-form small inverses and Cholesky factors (NumPy oracles)
+# ---------------------------------------------------------------------------
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+@pytest.mark.parametrize("d", [1, 2, 3])
+def test_small_inverse_determinant_and_cholesky_equal_numpy(dtype, d):
+    from jaxslam.linalg import cholesky_small, det_small, inv_small
+
+    rng = np.random.default_rng(d)
+    A = rng.normal(size=(7, d, d))
+    S = A @ np.swapaxes(A, -1, -2) + 0.1 * np.eye(d)  # SPD batch
+    tol = 1e-10 if dtype == np.float64 else 2e-3
+    inv, det = jax.jit(inv_small)(jnp.asarray(S, dtype))
+    np.testing.assert_allclose(np.asarray(inv), np.linalg.inv(S), rtol=tol, atol=tol)
+    np.testing.assert_allclose(np.asarray(det), np.linalg.det(S), rtol=tol)
+    np.testing.assert_allclose(np.asarray(jax.jit(det_small)(jnp.asarray(A, dtype))),
+                               np.linalg.det(A), rtol=tol, atol=tol)
+    L = np.asarray(jax.jit(cholesky_small)(jnp.asarray(S, dtype)))
+    np.testing.assert_allclose(L, np.linalg.cholesky(S), rtol=tol, atol=tol)
+    assert L.dtype == dtype
+    # one matrix (no batch axis), as called inside vmap
+    inv1, _ = inv_small(jnp.asarray(S[0], dtype))
+    np.testing.assert_allclose(np.asarray(inv1), np.linalg.inv(S[0]), rtol=tol, atol=tol)
+    np.testing.assert_allclose(np.asarray(cholesky_small(jnp.asarray(S[0], dtype))),
+                               np.linalg.cholesky(S[0]), rtol=tol, atol=tol)
+
+
+def test_small_cholesky_of_an_indefinite_matrix_is_nan_and_singular_inverse_flags_det():
+    from jaxslam.linalg import cholesky_small, inv_small
+
+    assert np.isnan(np.asarray(cholesky_small(jnp.asarray(-np.eye(3))))).any()
+    inv, det = inv_small(jnp.ones((3, 3)))
+    assert float(det) == 0.0 and np.all(np.isfinite(np.asarray(inv)))
+    with pytest.raises(ValueError, match="d <= 3"):
+        cholesky_small(jnp.eye(4))

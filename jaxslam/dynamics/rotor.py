@@ -70,6 +70,7 @@ __all__ = [
     "f",
     "f_wrench",
     "f_input",
+    "specific_force",
     "hover_input",
     "hover_rotor_speeds",
     "state_to_ned",
@@ -192,6 +193,19 @@ def f(x, rotor_speeds, params):
     x = jnp.asarray(x)
     w = jnp.asarray(rotor_speeds, dtype=x.dtype)
     return f_wrench(x, mixer(w, params), net_rotor_speed(w), params)
+
+
+def specific_force(rotor_speeds, params, dtype=None):
+    """What an accelerometer reads in body axes: the non-gravitational force per unit mass
+    of eq. 3, [0, 0, u1/m] (3,) m/s² with u1 = :func:`mixer` (ω)[0] (z up).
+
+    Equal to R_b^wᵀ(ẍ + g e3) for :func:`f` (the model has no drag), without the rotation:
+    it does not depend on the state.
+    """
+    w = jnp.asarray(rotor_speeds) if dtype is None else jnp.asarray(rotor_speeds, dtype)
+    p = _cast(params, w.dtype)
+    zero = jnp.zeros((), w.dtype)
+    return jnp.stack([zero, zero, mixer(w, params)[0] / p.mass])
 
 
 def f_input(x, u, params):

@@ -103,6 +103,7 @@ __all__ = [
     "filter_scan",
     "make_filter",
     "linear_update",
+    "linear_update_shared",
     "GaussianFilter",
     "angle_residual",
     "chi2_gate",
@@ -186,25 +187,48 @@ def linear_update(x, P, nu, H, R, mask):
     Returns:
         (x_post, P_post, S, nu_m, nis, ok, logdet) with ``ok`` the Cholesky flag.
     """
-    dtype = x.dtype
-    m = nu.shape[0]
-    n = x.shape[0]
+    xs, P_post, S, num, nis, ok, logdet = linear_update_shared(x[None], P, nu[None], H, R, mask)
+    return xs[0], P_post, S, num[0], nis[0], ok, logdet
+
+
+def linear_update_shared(xs, P, nus, H, R, mask):
+    """:func:`linear_update` of B means that share one prior covariance and one model.
+
+    When the covariance does not depend on the data (a linear-Gaussian sub-state
+    carried by every particle of a Rao-Blackwellised filter: same A, Q, H, R for
+    all), the gain and the posterior covariance are the same for every mean.  One
+    Cholesky factorisation and one solve with B + n right-hand sides serve all of
+    them, and the means move by one (B, m) × (m, n) product; ``vmap(update)``
+    would solve one triangular system per mean instead.  Equal to B separate
+    updates.
+
+    Args:
+        xs: (B, n) prior means.  P: (n, n) shared prior covariance.
+        nus: (B, m) residuals.  H: (m, n).  R: (m, m).  mask: (m,) bool, shared.
+
+    Returns:
+        ``(xs_post (B, n), P_post, S, nus_m (B, m), nis (B,), ok, logdet)``: the
+        covariance, ``S``, ``ok`` and ``log det S`` are shared.
+    """
+    dtype = xs.dtype
+    m = nus.shape[-1]
+    n = xs.shape[-1]
     mm = mask[:, None] & mask[None, :]
     Hm = jnp.where(mask[:, None], H, jnp.zeros((), dtype))
-    num = jnp.where(mask, nu, jnp.zeros((), dtype))
+    num = jnp.where(mask, nus, jnp.zeros((), dtype))
     Rm = jnp.where(mm, R, jnp.eye(m, dtype=dtype))
     HP = Hm @ P  # (m, n): the only product with the full P on the gain path
     S = symmetrize(HP @ Hm.T + Rm)
-    X, ok, logdet = innovation_solve(S, jnp.concatenate([HP, num[:, None]], axis=1))
+    X, ok, logdet = innovation_solve(S, jnp.concatenate([HP, num.T], axis=1))
     K = X[:, :n].T  # (n, m) = P Hᵀ S⁻¹ (P symmetric)
-    w = X[:, n]  # S⁻¹ ν
-    nis = jnp.dot(num, w)
-    x_post = x + K @ num
+    W = X[:, n:]  # (m, B) = S⁻¹ νᵀ
+    nis = jnp.sum(num.T * W, axis=0)
+    xs_post = xs + num @ K.T
     # Factored Joseph form (I − KH) P (I − KH)ᵀ + K R Kᵀ, associated as
     # A − (A Hᵀ) Kᵀ + K R Kᵀ with A = P − K (H P): O(n² m), same product.
     A = P - K @ HP
     P_post = symmetrize(A - (A @ Hm.T) @ K.T + K @ Rm @ K.T)
-    return x_post, P_post, S, num, nis, ok, logdet
+    return xs_post, P_post, S, num, nis, ok, logdet
 
 
 # ---------------------------------------------------------------------------

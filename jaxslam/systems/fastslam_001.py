@@ -125,7 +125,7 @@ from ..errors import InputError
 from ..filters import ekf
 from ..filters import fastslam as fs
 from ..geometry.euler import dcm_from_euler, euler_rates
-from ..linalg import chol_solve, host_array, is_concrete, symmetrize
+from ..linalg import cholesky_small, host_array, inv_small, is_concrete, symmetrize
 from ..sensors import imu as imu_mod
 from ..sensors import lidar3d
 
@@ -156,9 +156,12 @@ __all__ = [
     "h_imu",
     "imu_ideal_zup",
     "landmark_model",
+    "dynamics_mean",
     "dynamics_sample",
+    "kinematics_mean",
     "kinematics_sample",
     "regenerate_rates",
+    "position_posterior",
     "regenerate_position",
     "init",
     "imu_stage",
@@ -516,7 +519,14 @@ def imu_ideal_zup(x, xdot, g, accel_mode: str = "specific_force"):
 
 def h_imu(x, rotor_w, quad, accel_mode: str = "specific_force"):
     """h^d(x^D) of eq. 12 for the dynamics filter: IMU predicted from the particle's state and
-    the rotor input of the step (filter model ``quad``).  Returns (6,)."""
+    the rotor input of the step (filter model ``quad``).  Returns (6,).
+
+    With ``accel_mode="specific_force"`` the accelerometer row is
+    :func:`jaxslam.dynamics.rotor.specific_force` (thrust over mass along b̂3, equal to
+    R_b^wᵀ(ẍ + g e3) for the drag-free model of eq. 1-4, without evaluating it).
+    """
+    if accel_mode == "specific_force":
+        return jnp.concatenate([rotor.specific_force(rotor_w, quad, x.dtype), x[RATE]])
     xdot = rotor.f(x, rotor_w, quad)
     return imu_ideal_zup(x, xdot, quad.g, accel_mode)
 
@@ -552,21 +562,29 @@ def landmark_model(lidar: str = "world") -> fs.LandmarkModel:
     raise InputError(f"lidar: expected one of {_LIDARS}, got {lidar!r}")
 
 
-def dynamics_sample(pose, aux, key, rotor_w, params: Params, dt, drift_a):
-    """Table 2 Step 1-2 for one particle: x^D ~ N(RK4(f, x^D, ω_rotor), Q) (eq. 4) and the
-    bias-mean prediction A^b x̂^B (eq. 11) through :func:`jaxslam.filters.ekf.predict`.
+def dynamics_mean(pose, aux, rotor_w, params: Params, dt, drift_a):
+    """The noise-free part of Table 2 Steps 1-2 for one particle: RK4(f, x^D, ω_rotor) (eq. 4)
+    and the bias-mean prediction A^b x̂^B (eq. 11) through :func:`jaxslam.filters.ekf.predict`.
 
-    pose (12,), aux (12,) bias mean, key, rotor_w (4,) rad/s, params, dt s, drift_a (12,)
-    diagonal of A^b.  Returns (pose', aux').  Reparametrised noise (differentiable in Q).
+    pose (12,), aux (12,) bias mean, rotor_w (4,) rad/s, params, dt s, drift_a (12,) diagonal
+    of A^b.  Returns (pose', aux').  :func:`imu_stage` adds the proposal noise to a whole
+    particle set at once (:func:`jaxslam.filters.fastslam.propagate_additive`).
     """
     dtype = pose.dtype
     xn = rk4_step(rotor.f, pose, jnp.asarray(rotor_w, dtype), dt, params.quad)
-    eps = jax.random.normal(key, (NX,), dtype)
-    xn = xn + jnp.sqrt(jnp.asarray(params.proposal_var, dtype)) * eps
     # Only the mean is kept (the shared covariance is predicted once, see imu_stage).
     m = ekf.predict(ekf.Gaussian(aux, jnp.zeros((NB, NB), dtype)),
                     lambda b, u: drift_a * b, None, jnp.zeros((NB, NB), dtype)).mean
     return xn, m
+
+
+def dynamics_sample(pose, aux, key, rotor_w, params: Params, dt, drift_a):
+    """Table 2 Step 1-2 for one particle: x^D ~ N(RK4(f, x^D, ω_rotor), Q) (eq. 4) and the
+    bias-mean prediction A^b x̂^B (eq. 11): :func:`dynamics_mean` plus √Q ε, ε ~ N(0, I)
+    drawn with ``key`` (reparametrised, differentiable in Q).  Returns (pose', aux')."""
+    xn, m = dynamics_mean(pose, aux, rotor_w, params, dt, drift_a)
+    eps = jax.random.normal(key, (NX,), pose.dtype)
+    return xn + jnp.sqrt(jnp.asarray(params.proposal_var, pose.dtype)) * eps, m
 
 
 def _f_kin(x, imu, g, accel_mode):
@@ -577,14 +595,14 @@ def _f_kin(x, imu, g, accel_mode):
     return jnp.concatenate([x[VEL], a, euler_rates(x[ATT], imu[3:6]), jnp.zeros((3,), x.dtype)])
 
 
-def kinematics_sample(pose, aux, key, imu_prev, imu_now, params: Params, dt,
-                      accel_mode: str = "specific_force"):
-    """Kinematics (IMU-driven) proposal of the baseline for one particle.
+def kinematics_mean(pose, aux, imu_prev, imu_now, params: Params, dt,
+                    accel_mode: str = "specific_force"):
+    """Noise-free kinematics (IMU-driven) proposal of the baseline for one particle.
 
     RK4 of ṗ = v, v̇ = R a_m − g e3 (or R a_m, paper eq. 7 form), Λ̇ = D(Λ) ω_m with the IMU
     interpolated linearly between ``imu_prev`` and ``imu_now`` (first-order hold, STYLE.md),
-    then ω := ω_m(now), plus N(0, Q).  No bias compensation (the paper's baseline "without
-    calibration").  Returns (pose', aux unchanged).
+    then ω := ω_m(now).  No bias compensation (the paper's baseline "without calibration").
+    Returns (pose', aux unchanged).
     """
     dtype = pose.dtype
     h = jnp.asarray(dt, dtype)
@@ -596,36 +614,51 @@ def kinematics_sample(pose, aux, key, imu_prev, imu_now, params: Params, dt,
     k3 = _f_kin(pose + 0.5 * h * k2, um, g, accel_mode)
     k4 = _f_kin(pose + h * k3, u1, g, accel_mode)
     xn = pose + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
-    xn = xn.at[RATE].set(u1[3:6])
-    eps = jax.random.normal(key, (NX,), dtype)
-    xn = xn + jnp.sqrt(jnp.asarray(params.proposal_var, dtype)) * eps
-    return xn, aux
+    return xn.at[RATE].set(u1[3:6]), aux
+
+
+def kinematics_sample(pose, aux, key, imu_prev, imu_now, params: Params, dt,
+                      accel_mode: str = "specific_force"):
+    """Kinematics proposal of the baseline for one particle: :func:`kinematics_mean` plus
+    N(0, Q) drawn with ``key``.  Returns (pose', aux unchanged)."""
+    xn, aux = kinematics_mean(pose, aux, imu_prev, imu_now, params, dt, accel_mode)
+    eps = jax.random.normal(key, (NX,), pose.dtype)
+    return xn + jnp.sqrt(jnp.asarray(params.proposal_var, pose.dtype)) * eps, aux
+
+
+def _rates_mean(bias_mean, gyro):
+    """ω_m − (b̂0ω + b̂1ω): the mean of the gyroscope's inverse model (eq. 32-34); (..., 12)
+    bias means → (..., 3)."""
+    return gyro - bias_mean[..., 3:6] - bias_mean[..., 9:12]
 
 
 def regenerate_rates(pose, bias_mean, key, gyro, gyro_cov):
     """Stage 2, Step 8 (eq. 32-34): ω ~ N(ω_m − (b̂0ω + b̂1ω), gyro_cov) for one particle.
 
     pose (12,), bias_mean (12,), gyro (3,) rad/s, gyro_cov (3, 3) (R_ω, plus H_ω P H_ωᵀ for
-    exact weights).  Returns the pose with its rates replaced.
+    exact weights); ``key`` None sets the mean.  Returns the pose with its rates replaced.
+    (:func:`imu_stage` does the same for a whole set with one draw and one factor.)
     """
-    dtype = pose.dtype
-    mean = gyro - bias_mean[3:6] - bias_mean[9:12]
-    L = jnp.linalg.cholesky(gyro_cov)
-    w = mean + L @ jax.random.normal(key, (3,), dtype) if key is not None else mean
-    return pose.at[RATE].set(w)
+    mean = _rates_mean(bias_mean, gyro)
+    if key is None:
+        return pose.at[RATE].set(mean)
+    L = cholesky_small(gyro_cov)
+    return pose.at[RATE].set(mean + L @ jax.random.normal(key, (3,), pose.dtype))
 
 
-def regenerate_position(pose, lm_mean, lm_cov, active, z, ids, mask, key, R, lidar="world",
-                        exact=True):
-    """Stage 2, Step 8: x^{D1} ~ p(x^{D1} | z^S, μ) from the LiDAR inverse model (eq. 15).
+def position_posterior(pose, lm_mean, lm_cov, active, z, ids, mask, R, lidar="world",
+                       exact=True):
+    """Stage 2, Step 8: the Gaussian p(x^{D1} | z^S, μ) of the LiDAR inverse model (eq. 15).
 
     For each observed, mapped landmark j: p_j = μ_j − ϱ(z_j) (world) or μ_j − R_b^w ϱ(z_j)
     (body), covariance C_j = J R Jᵀ (+ Σ_j when ``exact``), J = ∂p_j/∂z_j (``jax.jacfwd``);
-    fused as P = (Σ C_j⁻¹)⁻¹, m = P Σ C_j⁻¹ p_j, and one draw m + chol(P) ε.
+    fused as P = (Σ C_j⁻¹)⁻¹, m = P Σ C_j⁻¹ p_j.  The 3×3 inverses are closed forms
+    (:func:`jaxslam.linalg.inv_small`): no LAPACK call per particle under ``vmap``.
 
     Args: pose (12,); lm_mean (cap, 3), lm_cov (cap, 3, 3), active (cap,) — the particle's
-    map (id j in slot j); z (L, 3), ids (L,), mask (L,); key; R (3, 3) R^S.
-    Returns the pose with the regenerated position (unchanged if nothing was usable).
+    map (id j in slot j); z (L, 3), ids (L,), mask (L,); R (3, 3) R^S.
+    Returns (m (3,), P (3, 3), any_ok): ``any_ok`` False when no observed landmark is mapped
+    (m, P are then meaningless: the position is kept).
     """
     dtype = pose.dtype
     cap = lm_mean.shape[0]
@@ -648,17 +681,25 @@ def regenerate_position(pose, lm_mean, lm_cov, active, z, ids, mask, key, R, lid
     pj, C = jax.vmap(one)(z.astype(dtype), lm_mean[slot], lm_cov[slot])
     eye = jnp.eye(3, dtype=dtype)
     C = jnp.where(ok[:, None, None], C, eye)
-    Ci, _ = jax.vmap(lambda c: chol_solve(c, eye))(C)
-    Ci = Ci * ok[:, None, None]
+    Ci = inv_small(C)[0] * ok[:, None, None]
     info = jnp.sum(Ci, axis=0)
     eta = jnp.einsum("lij,lj->i", Ci, jnp.where(ok[:, None], pj, 0.0))
     any_ok = jnp.any(ok)
     info = jnp.where(any_ok, info, eye)
-    P, _ = chol_solve(info, eye)
-    P = symmetrize(P)
-    m = P @ eta
-    L = jnp.linalg.cholesky(P)
-    sample = m + L @ jax.random.normal(key, (3,), dtype)
+    P = symmetrize(inv_small(info)[0])
+    return P @ eta, P, any_ok
+
+
+def regenerate_position(pose, lm_mean, lm_cov, active, z, ids, mask, key, R, lidar="world",
+                        exact=True):
+    """Stage 2, Step 8: x^{D1} ~ p(x^{D1} | z^S, μ) (:func:`position_posterior`), one draw
+    m + chol(P) ε with ``key``.  Arguments as :func:`position_posterior`.
+
+    Returns the pose with the regenerated position (unchanged if nothing was usable).
+    (:func:`lidar_stage` does the same for a whole set with one draw.)
+    """
+    m, P, any_ok = position_posterior(pose, lm_mean, lm_cov, active, z, ids, mask, R, lidar, exact)
+    sample = m + cholesky_small(P) @ jax.random.normal(key, (3,), pose.dtype)
     return pose.at[POS].set(jnp.where(any_ok, sample, pose[POS]))
 
 
@@ -705,10 +746,6 @@ def _resample(p, key, config: Config, params: Params):
     return fs.maybe_resample(p, key, params.resample_threshold, config.resampling)
 
 
-def _h_lin(b):
-    return jnp.asarray(H_B, b.dtype) @ b
-
-
 def imu_stage(state: State, rotor_w, imu, key, config: Config,
               params: Params):
     """One IMU sample (Table 2 Steps 1-4, 6 and the rates part of Step 8); see module
@@ -733,17 +770,19 @@ def imu_stage(state: State, rotor_w, imu, key, config: Config,
 
     if config.model == "kinematics":
         prev = jnp.where(first, imu, state.imu_prev)
-        moved = fs.propagate(p, k_prop, lambda x, a, k, u0, u1: kinematics_sample(
-            x, a, k, u0, u1, params, dt, config.accel_mode), prev, imu)
+        moved = fs.propagate_additive(p, k_prop, lambda x, a, u0, u1: kinematics_mean(
+            x, a, u0, u1, params, dt, config.accel_mode),
+            jnp.sqrt(jnp.asarray(params.proposal_var, dtype)), prev, imu)
         p = moved._replace(pose=jnp.where(imu_ok | ~first, moved.pose, p.pose))
         neff = fs.neff(p)
         st = state._replace(particles=p, k=state.k + 1, imu_prev=imu_next_prev)
         return st, _step_out(st, neff)
 
     rotor_w = jnp.asarray(rotor_w, dtype)
-    # Steps 1-2: poses from the dynamics, bias means predicted (per particle) ...
-    p = fs.propagate(p, k_prop, lambda x, a, k, w: dynamics_sample(x, a, k, w, params, dt, a_b),
-                     rotor_w)
+    # Steps 1-2: poses from the dynamics (one (N, 12) noise draw), bias means predicted (per
+    # particle) ...
+    p = fs.propagate_additive(p, k_prop, lambda x, a, w: dynamics_mean(x, a, w, params, dt, a_b),
+                              jnp.sqrt(jnp.asarray(params.proposal_var, dtype)), rotor_w)
     # ... and the shared bias covariance predicted once.
     Q_b = jnp.diag(q_b)
     prior = ekf.predict(ekf.Gaussian(p.aux[0], state.bias_cov), lambda b, u: a_b * b, None, Q_b)
@@ -751,14 +790,16 @@ def imu_stage(state: State, rotor_w, imu, key, config: Config,
     R_I = jnp.diag(jnp.asarray(params.imu_var, dtype))
     zbar = imu - jax.vmap(lambda x: h_imu(x, rotor_w, params.quad, config.accel_mode))(p.pose)
 
-    # Step 4 (KF update, per particle means; shared covariance from one call).
-    def upd(m, zb):
-        post, info = ekf.update(ekf.Gaussian(m, P_pred), zb, _h_lin, R_I)
-        return post.mean, info.nis, info.innovation
-
-    m_post, nis, innov = jax.vmap(upd)(p.aux, zbar)
-    post0, info0 = ekf.update(ekf.Gaussian(p.aux[0], P_pred), zbar[0], _h_lin, R_I)
-    P_post = post0.cov
+    # Step 4 (KF update): A^b, Q^b, H_b and R^I are the same for every particle, so the gain
+    # and the posterior covariance are too: one factorisation for the set, the means moved by
+    # one product (ekf.linear_update_shared; equal to N separate ekf.update calls).
+    H = jnp.asarray(H_B, dtype)
+    innov = zbar - p.aux @ H.T
+    m_post, P_post, _, _, nis, kf_ok, logdet = ekf.linear_update_shared(
+        p.aux, P_pred, innov, H, R_I, jnp.ones((6,), bool))
+    # A failed factorisation (R^I > 0 makes S PD, so only overflow) keeps the prediction.
+    m_post = jnp.where(kf_ok, m_post, p.aux)
+    P_post = jnp.where(kf_ok, P_post, P_pred)
     # Table 4 re-initialisation at the first sample: minimum-norm least squares H_b⁺ z̄.
     m_reinit = zbar @ jnp.asarray(_H_B_PINV, dtype).T
     m_post = jnp.where(first & imu_ok, m_reinit, m_post)
@@ -768,8 +809,6 @@ def imu_stage(state: State, rotor_w, imu, key, config: Config,
     # Step 3: IMU weight with the predicted bias (k|k−1); none at the re-initialisation.
     half = jnp.asarray(0.5 * 6 * math.log(2 * math.pi), dtype)
     if config.weights == "exact":
-        S = info0.S
-        logdet = 2.0 * jnp.sum(jnp.log(jnp.diagonal(jnp.linalg.cholesky(S))))
         ll = -0.5 * (nis + logdet) - half
     else:
         iv = 1.0 / jnp.asarray(params.imu_var, dtype)
@@ -780,16 +819,18 @@ def imu_stage(state: State, rotor_w, imu, key, config: Config,
     neff = fs.neff(p)
     p = _resample(p, k_res, config, params)
 
-    # Step 8 (rates): gyroscope inverse sensor model with the updated bias.
+    # Step 8 (rates): gyroscope inverse sensor model with the updated bias; its covariance is
+    # shared, so one 3×3 factor and one (N, 3) draw serve the set.
     if config.stage2 in ("paper", "rates"):
-        Hw = jnp.asarray(H_B[3:6], dtype)
+        Hw = H[3:6]
         G = jnp.diag(jnp.asarray(params.imu_var, dtype)[3:6])
         if config.weights == "exact":
             G = G + Hw @ P_post @ Hw.T
-        keys = jax.random.split(k_s2, p.pose.shape[0])
-        pose = jax.vmap(lambda x, b, k: regenerate_rates(
-            x, b, k if config.regen_noise else None, imu[3:6], symmetrize(G)))(p.pose, p.aux, keys)
-        p = p._replace(pose=jnp.where(imu_ok, pose, p.pose))
+        rates = _rates_mean(p.aux, imu[3:6])
+        if config.regen_noise:
+            eps = jax.random.normal(k_s2, rates.shape, dtype)
+            rates = rates + eps @ cholesky_small(symmetrize(G)).T
+        p = p._replace(pose=jnp.where(imu_ok, p.pose.at[:, RATE].set(rates), p.pose))
     st = State(particles=p, bias_cov=P_post, k=state.k + 1,
                      neff_min=jnp.minimum(state.neff_min, neff), imu_prev=imu_next_prev)
     return st, _step_out(st, neff)
@@ -816,23 +857,25 @@ def lidar_stage(state: State, z, ids, mask, key, config: Config,
     neff = fs.neff(p)
     p = _resample(p, k_res, config, params)
     if config.model == "dynamics" and config.stage2 == "paper":
-        keys = jax.random.split(k_s2, p.pose.shape[0])
-        pose = jax.vmap(lambda x, m, c, a, k: regenerate_position(
-            x, m, c, a, z, ids, used, k, R, config.lidar,
-            config.weights == "exact"))(p.pose, p.lm_mean, p.lm_cov, p.active, keys)
-        p = p._replace(pose=pose)
+        m, P, any_ok = jax.vmap(lambda x, mu, c, a: position_posterior(
+            x, mu, c, a, z, ids, used, R, config.lidar, config.weights == "exact"))(
+            p.pose, p.lm_mean, p.lm_cov, p.active)
+        eps = jax.random.normal(k_s2, m.shape, dtype)  # one (N, 3) draw for the set
+        sample = m + jnp.einsum("nij,nj->ni", cholesky_small(P), eps)
+        p = p._replace(pose=p.pose.at[:, POS].set(jnp.where(any_ok[:, None], sample,
+                                                             p.pose[:, POS])))
     st = state._replace(particles=p, neff_min=jnp.minimum(state.neff_min, neff))
     return st, _frame_out(st, neff, config)
 
 
 def _step_out(state: State, neff) -> StepOut:
-    mean, cov = estimate(state)
+    mean, var = fs.estimate_var(state.particles, ANGLE_MASK)
     bm, bv = bias_estimate(state)
     H = jnp.asarray(H_B, bm.dtype)
     w = jnp.exp(state.particles.log_w)
     off = state.particles.aux @ H.T
     ov = jnp.diagonal(H @ state.bias_cov @ H.T) + w @ ((off - H @ bm) ** 2)
-    return StepOut(mean, jnp.diagonal(cov), bm, bv, ov, neff)
+    return StepOut(mean, var, bm, bv, ov, neff)
 
 
 def _frame_out(state: State, neff, config: Config) -> FrameOut:

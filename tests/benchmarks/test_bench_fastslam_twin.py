@@ -6,7 +6,7 @@ independently in NumPy with hand-derived Jacobians (spherical map and its
 inverse), closed-form 3×3 inverses and Cholesky factors, and the rotor dynamics
 written out component by component.  Both filters get the same random numbers:
 the test reproduces jaxslam's key splitting (``step`` → IMU / LiDAR keys →
-proposal, resampling and regeneration keys, one per particle) to extract the
+proposal, resampling and regeneration keys, one draw per set) to extract the
 proposal noise, the systematic-resampling uniforms and the regeneration noise,
 and injects them into the twin.  Over 30 steps (three LiDAR frames: landmark
 registration, then updates; the bias re-initialisation at k = 0; resampling
@@ -68,13 +68,14 @@ def _inputs(rng, prm):
 
 def _draws(key, n):
     """jaxslam's random numbers of one ``fastslam_001.step`` call with key ``key`` (its key
-    splitting reproduced: step → IMU/LiDAR keys → proposal, resampling, regeneration)."""
+    splitting reproduced: step → IMU/LiDAR keys → proposal, resampling, regeneration; each
+    noise is one draw for the whole set)."""
     k_imu, k_lid = jax.random.split(key)
     k_prop, k_res, k_s2 = jax.random.split(k_imu, 3)
     k_res2, k_s22 = jax.random.split(k_lid)
 
     def normals(k, m):
-        return jax.vmap(lambda kk: jax.random.normal(kk, (m,), jnp.float64))(jax.random.split(k, n))
+        return jax.random.normal(k, (n, m), jnp.float64)
 
     return (normals(k_prop, 12), jax.random.uniform(k_res, (), jnp.float64),
             normals(k_s2, 3), jax.random.uniform(k_res2, (), jnp.float64), normals(k_s22, 3))

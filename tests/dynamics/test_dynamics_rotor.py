@@ -1,6 +1,7 @@
 """Paper 001 eq. 1-4 model with rotor gyroscopic term, mixer and converters."""
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -184,3 +185,22 @@ def test_bad_rotor_speeds_raise():
         ro.check_rotor_speeds(np.zeros(3))
     with pytest.raises(InputError, match="^w:"):
         ro.check_rotor_speeds(np.array([1.0, np.inf, 1.0, 1.0]), name="w")
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_specific_force_equals_rotated_acceleration_plus_gravity(dtype):
+    """Oracle: R_b^wᵀ (ẍ + g e3) from f's own acceleration, for random attitudes."""
+    from jaxslam.geometry.euler import dcm_from_euler
+
+    rng = np.random.default_rng(5)
+    w = jnp.asarray(380.0 + 30.0 * rng.random(4), dtype)
+    tol = 1e-10 if dtype == np.float64 else 1e-4
+    for _ in range(4):
+        x = jnp.asarray(np.r_[rng.normal(size=6), rng.uniform(-1, 1, 3), rng.normal(size=3)],
+                        dtype)
+        xd = ro.f(x, w, PAPER001)
+        ref = np.asarray(dcm_from_euler(x[6:9])).T @ (np.asarray(xd[3:6], float)
+                                                      + np.r_[0, 0, PAPER001.g])
+        sf = ro.specific_force(w, PAPER001)
+        assert sf.dtype == dtype
+        np.testing.assert_allclose(np.asarray(sf, float), ref, rtol=tol, atol=tol)

@@ -720,3 +720,42 @@ def test_iterated_update_is_map_of_one_update():
     assert int(info2.status) & errors.NOT_CONVERGED
     with pytest.raises(InputError, match="num_iter"):
         ekf.update(ekf.Gaussian(jnp.asarray(m), jnp.asarray(P)), z, h, R, num_iter=0)
+
+
+# --------------------------------------------------------------------------
+# Many means, one covariance
+# --------------------------------------------------------------------------
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_linear_update_shared_equals_separate_numpy_kalman_updates(dtype):
+    """Oracle: a NumPy Kalman update (explicit inverse, Joseph form) of each mean alone."""
+    rng = np.random.default_rng(21)
+    B, n, m = 6, 5, 3
+    A = rng.normal(size=(n, n))
+    P = A @ A.T + 0.5 * np.eye(n)
+    H = rng.normal(size=(m, n))
+    R = np.diag(rng.uniform(0.1, 0.5, m))
+    xs = rng.normal(size=(B, n))
+    nus = rng.normal(size=(B, m))
+    mask = np.array([True, False, True])
+    out = jax.jit(ekf.linear_update_shared)(*(jnp.asarray(a, dtype) for a in (xs, P, nus, H, R)),
+                                            jnp.asarray(mask))
+    xs_post, P_post, S, num, nis, ok, logdet = (np.asarray(o) for o in out)
+    Hm, num_ref = H[mask], nus[:, mask]
+    S_ref = Hm @ P @ Hm.T + R[np.ix_(mask, mask)]
+    K = P @ Hm.T @ np.linalg.inv(S_ref)
+    IKH = np.eye(n) - K @ Hm
+    P_ref = IKH @ P @ IKH.T + K @ R[np.ix_(mask, mask)] @ K.T
+    tol = 1e-10 if dtype == np.float64 else 2e-4
+    assert bool(ok) and xs_post.dtype == dtype
+    for b in range(B):
+        np.testing.assert_allclose(xs_post[b], xs[b] + K @ num_ref[b], rtol=tol, atol=tol)
+        np.testing.assert_allclose(nis[b], num_ref[b] @ np.linalg.solve(S_ref, num_ref[b]),
+                                   rtol=tol)
+    np.testing.assert_allclose(P_post, P_ref, rtol=tol, atol=tol)
+    np.testing.assert_allclose(logdet, np.log(np.linalg.det(S_ref)), rtol=tol, atol=tol)
+    assert np.all(num[:, 1] == 0)
+    # B = 1 is linear_update (the EKF's own correction)
+    one = ekf.linear_update(*(jnp.asarray(a, dtype) for a in (xs[0], P, nus[0], H, R)),
+                            jnp.asarray(mask))
+    np.testing.assert_allclose(np.asarray(one[0]), xs_post[0], rtol=tol, atol=tol)

@@ -685,3 +685,47 @@ def test_generic_run_names_the_bad_argument():
         fs.run(p0, key, sample, (u[:2],), MODEL, zs, np.arange(4), masks, R)
     with pytest.raises(InputError, match="R: expected shape"):
         fs.run(p0, key, sample, (u,), MODEL, zs, np.arange(4), masks, np.eye(3))
+
+
+def test_propagate_additive_is_the_mean_plus_one_draw_and_keeps_bad_particles():
+    """Oracle: the mean function called per particle plus σ ⊙ ε with ε = normal(key, (N, 3))
+    (one draw for the set); a factor L gives L ε; a non-finite mean keeps the old pose."""
+    def mean_fn(pose, aux, u):
+        v, w = u
+        return pose + 0.1 * jnp.stack([v * jnp.cos(pose[2]), v * jnp.sin(pose[2]), w]), aux + 1.0
+
+    p = fs.init(np.zeros(3), 5, 3, 2, aux=jnp.zeros(2))
+    p = p._replace(pose=jnp.asarray(np.random.default_rng(2).normal(size=(5, 3))))
+    key = jax.random.PRNGKey(3)
+    sig = jnp.asarray([0.05, 0.02, 0.01])
+    q = jax.jit(lambda p, k: fs.propagate_additive(p, k, mean_fn, sig, (1.0, 0.3)))(p, key)
+    eps = np.asarray(jax.random.normal(key, (5, 3), p.pose.dtype))
+    for i in range(5):
+        m, a = mean_fn(p.pose[i], p.aux[i], (1.0, 0.3))
+        np.testing.assert_allclose(np.asarray(q.pose[i]), np.asarray(m) + np.asarray(sig) * eps[i],
+                                   rtol=1e-12)
+        np.testing.assert_allclose(np.asarray(q.aux[i]), np.asarray(a), rtol=1e-12)
+    L = jnp.asarray([[0.05, 0.0, 0.0], [0.01, 0.02, 0.0], [0.0, 0.005, 0.01]])
+    qL = fs.propagate_additive(p, key, mean_fn, L, (1.0, 0.3))
+    m0, _ = mean_fn(p.pose[0], p.aux[0], (1.0, 0.3))
+    np.testing.assert_allclose(np.asarray(qL.pose[0]), np.asarray(m0) + np.asarray(L) @ eps[0],
+                               rtol=1e-12)
+    bad = p._replace(pose=p.pose.at[2, 0].set(jnp.inf))
+    qb = fs.propagate_additive(bad, key, mean_fn, sig, (1.0, 0.3))
+    np.testing.assert_array_equal(np.asarray(qb.pose[2]), np.asarray(bad.pose[2]))
+    np.testing.assert_array_equal(np.asarray(qb.aux[2]), np.asarray(bad.aux[2]))
+    assert int(qb.status) & errors.NON_FINITE and not int(q.status) & errors.NON_FINITE
+
+
+def test_estimate_var_is_the_diagonal_of_estimate():
+    rng = np.random.default_rng(11)
+    n = 9
+    pose = rng.normal(size=(n, 3))
+    pose[:, 2] = np.pi - 0.1 + rng.normal(size=n) * 0.05  # straddles ±π
+    lw = jnp.asarray(np.log(special.softmax(rng.normal(size=n))))
+    p = fs.init(pose, n, 3, 2)._replace(pose=jnp.asarray(np_wrap(pose)), log_w=lw)
+    for am in (None, [False, False, True]):
+        mu, cov = fs.estimate(p, am)
+        mu2, var = fs.estimate_var(p, am)
+        np.testing.assert_allclose(np.asarray(mu2), np.asarray(mu), rtol=1e-14)
+        np.testing.assert_allclose(np.asarray(var), np.diagonal(np.asarray(cov)), rtol=1e-12)
