@@ -81,7 +81,8 @@ DESCRIPTION = ("Paper 001 FastSLAM: time per step per particle (N = 100-10000) o
 HERE = pathlib.Path(__file__).resolve().parent
 LIDAR_EVERY = 10
 
-TARGETS = {"twin_speedup_at_2000": 2.0, "loop_speedup_at_2000": 50.0, "flat_ratio_max": 1.5}
+TARGETS = {"twin_speedup_at_2000": 3.0, "loop_speedup_at_2000": 50.0, "flat_ratio_max": 1.5}
+"""Issue 19 asks for 3x the vectorised twin at N = 2000 (the first target, 2x, was missed at 0.59x)."""
 
 _QUICK = {"particles": "500,2000", "steps": 50, "call_steps": 10, "twin_steps": 10,
           "repeats": 3, "mc_runs": "1,8", "mc_duration": 0.5}

@@ -456,7 +456,7 @@ def match_predicted(points, valid, pred_rho, pred_theta, pred_mask, cfg=DEFAULT_
     thr = jnp.asarray(cfg.threshold, dt)
     gate = jnp.asarray(gate, dt)
 
-    def body(remaining, pred):
+    def match(remaining, pred):
         r0, t0, m = pred
         gated = remaining & (point_line_distance(pts, r0, t0) <= gate) & m
         r1, t1 = fit_line(pts, gated)
@@ -468,6 +468,13 @@ def match_predicted(points, valid, pred_rho, pred_theta, pred_mask, cfg=DEFAULT_
         ok = m & (jnp.sum(gated) >= 2) & (jnp.sum(inl) >= cfg.min_inliers)
         rec = _record(pts, inl, ok, cfg)
         return remaining & ~rec.inliers, rec
+
+    def skip(remaining, pred):
+        return remaining, jax.tree.map(jnp.zeros_like, jax.eval_shape(match, remaining, pred)[1])
+
+    def body(remaining, pred):
+        # An unused prediction slot costs nothing (under vmap both branches run, as before).
+        return jax.lax.cond(pred[2], match, skip, remaining, pred)
 
     remaining, lines = jax.lax.scan(body, remaining, (pred_rho, pred_theta, pred_mask))
     return lines, remaining

@@ -24,9 +24,10 @@ One IMU sample (100 Hz, :func:`imu_stage`), the dynamics-based filter (Table 2):
 3. Step 3: IMU weight p(z^I | x^D, x̂^B_{k|k−1}) (eq. 26, 28): ``weights="exact"`` integrates
    the bias posterior out, N(z̄; H_b x̂, H_b P H_bᵀ + R^I); ``weights="paper"`` uses the mean
    (eq. 26's delta approximation), N(z̄; H_b x̂, R^I).  z̄ = z^I − h^d(x^D) (eq. 12, Table 4).
-4. Step 4: bias KF update with z̄ (:func:`jaxslam.filters.ekf.update`); on the first sample the
-   mean is re-initialised by the least-squares minimum-norm solution H_b⁺ z̄ (Table 4 per the
-   errata: H_bᵀH_b is singular, so the pseudo-inverse replaces (H_bᵀH_b)⁻¹H_bᵀ).
+4. Step 4: bias KF update with z̄ (:func:`jaxslam.filters.ekf.linear_update_shared`); on the
+   first sample the mean is re-initialised by the least-squares minimum-norm solution H_b⁺ z̄
+   (Table 4 per the errata: H_bᵀH_b is singular, so the pseudo-inverse replaces
+   (H_bᵀH_b)⁻¹H_bᵀ).
 5. Step 6: resample (ESS threshold or every step) — poses, bias means and maps together.
 6. Step 8 (stage 2, rates): ω^i ~ p(ω | ω_m, x̂^B_{k|k}) = N(ω_m − H_ω x̂^B, R_ω [+ H_ω P H_ωᵀ])
    — the gyroscope's inverse sensor model (eq. 9, 32-34).
@@ -52,9 +53,12 @@ Decisions (the paper is silent or wrong; also in docs/papers.md, paper 001):
 * **Bias KF covariance is shared.**  A^b, Q^b, H_b and R^I do not depend on the particle, and
   the re-initialisation happens at the same sample for every particle, so P_{k|k} is the same
   for all particles (a Riccati recursion that ignores the data).  It is stored once
-  (``State.bias_cov`` (12, 12)) and only the means are per particle (``aux`` (N, 12));
-  the per-particle means still go through :func:`jaxslam.filters.ekf.update` (vmapped; XLA
-  drops the unused per-particle covariances).  Exactly equal to N separate KFs.
+  (``State.bias_cov`` (12, 12)) and only the means are per particle (``aux`` (N, 12)); the
+  gain is the same for all of them, so one factorisation updates the whole set
+  (:func:`jaxslam.filters.ekf.linear_update_shared`).  Exactly equal to N separate KFs.
+* **Random numbers**: each noise of a step (proposal, rates, position) is one draw for the
+  whole set ((N, 12), (N, 3), (N, 3)), not one key per particle (on a CPU the key split cost
+  as much as the draw).
 * **Re-initialisation covariance** (Table 4 gives only the mean): the KF posterior covariance
   of the first update from ``Params.bias_p0``.  The first IMU sample carries no weight
   (the bias prior is uninformative there; the paper re-initialises at k = 1).

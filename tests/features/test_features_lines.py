@@ -174,6 +174,25 @@ def test_match_predicted_finds_present_and_rejects_absent(room_scan):
     assert np.all(inl.sum(0) <= 1) and not np.any(inl.any(0) & np.asarray(rem))
 
 
+def test_unused_prediction_slots_are_empty_and_vmap_agrees(room_scan):
+    """An unused slot is skipped (lax.cond) alone and selected away under vmap: both give the
+    empty record and leave every point to the later slots."""
+    p, m, _, true = room_scan
+    pr, pt = jnp.asarray(true[:, 0]), jnp.asarray(true[:, 1])
+    masks = jnp.asarray([[True, False, True, False], [False, True, False, True]])
+    single = [_MATCH(p, m, pr, pt, mk, CFG, 0.2) for mk in masks]
+    batch = jax.jit(jax.vmap(lambda mk: F.match_predicted(p, m, pr, pt, mk, CFG, 0.2)))(masks)
+    for b, (lines, rem) in enumerate(single):
+        for f in lines._fields:  # floats to rounding (a batched reduction sums in its own order)
+            np.testing.assert_allclose(np.asarray(getattr(batch[0], f)[b]),
+                                       np.asarray(getattr(lines, f)), rtol=1e-9, atol=1e-15)
+        np.testing.assert_array_equal(np.asarray(batch[1][b]), np.asarray(rem))
+        off = ~np.asarray(masks[b])
+        assert not np.asarray(lines.valid)[off].any() and not np.asarray(lines.inliers)[off].any()
+        for f in ("rho", "theta", "cov", "endpoints", "n_inliers"):
+            assert not np.asarray(getattr(lines, f))[off].any(), f
+
+
 def test_bad_config_is_rejected_on_the_host():
     p = jnp.zeros((10, 2))
     with pytest.raises(InputError, match="min_inliers"):
