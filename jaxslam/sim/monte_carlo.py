@@ -8,13 +8,17 @@ compiled ``jit(vmap(fn))`` call, padded to the chunk size so the last one does
 not recompile.
 
 Devices: the chunk's leading (runs) axis is sharded over all local devices with
-a 1-D ``jax.sharding.Mesh``; XLA partitions the vmapped computation, so the
-same call uses every GPU a machine has (the chunk is padded to a multiple of
-the device count).  Across hosts, start each process with
+a 1-D ``jax.sharding.Mesh`` and each device vmaps its own block (``shard_map``: the runs
+are independent, nothing crosses devices), so the same call uses every GPU a machine has
+(the chunk is padded to a multiple of the device count).  Across hosts, start each process with
 ``jax.distributed.initialize()`` and pass ``devices=jax.devices()`` (global
 devices): the same mesh then spans hosts — every process must call ``run``
 with the same arguments.  On a CPU the sharding can be exercised with
-``XLA_FLAGS=--xla_force_host_platform_device_count=N`` (tested).  A group of processes
+``XLA_FLAGS=--xla_force_host_platform_device_count=N`` (tested; known problem, 2026-12-04:
+with two forced host devices on a 2-core machine, 40 runs of ``ekfslam3d-unknown`` stopped
+making progress inside XLA's CPU runtime, with and without ``shard_map``, while 16 finished
+and generic programs with Cholesky factors and triangular solves did not stop; it is a CPU-only
+test set-up, so one device is the default there).  A group of processes
 (``jax.distributed``, :mod:`jaxslam.sim.distributed`) splits the runs instead: with the
 default ``devices``, each process runs one contiguous block on its own devices and the blocks
 are gathered to every process (tested with two processes on this machine).
@@ -142,6 +146,32 @@ class _GroupProgress:
             self._p.update(min(n * self._k, self._runs))
 
 
+def _program(fn, devices, has_detail, opts):
+    """``(batched, jitted, sharding)``: ``vmap(fn)`` over a chunk of keys, and with several
+    devices its jitted form that splits the chunk over them (``jitted``, ``sharding`` None for
+    one device).  Only the first run's ``detail`` leaves the program."""
+    def first_detail(o, keep):
+        return {**o, "detail": jax.tree.map(keep, o["detail"])} if has_detail else o
+
+    if len(devices) == 1:
+        return (lambda k: first_detail(jax.vmap(fn)(k), lambda a: a[0])), None, None
+    mesh = Mesh(np.array(devices), ("runs",))
+    spec = PartitionSpec("runs")
+    shard = NamedSharding(mesh, spec)
+    # Each device runs its own block of runs under shard_map: the runs are independent, so no
+    # value crosses devices.  A plain jit(vmap) with sharded keys let the partitioner turn a
+    # reduction over the runs axis inside fn (the shared loop bound of a batched EKF-SLAM
+    # update) into a cross-device all-reduce inside the scan, one per step.  check_vma off: a
+    # run's scan may start its carry from constants that only its outputs make per-device.
+    block = jax.shard_map(lambda k: first_detail(jax.vmap(fn)(k), lambda a: a[:1]),
+                          mesh=mesh, in_specs=spec, out_specs=spec, check_vma=False)
+
+    def batched(k):
+        return first_detail(block(k), lambda a: a[0])
+
+    return batched, jax.jit(batched, in_shardings=shard, compiler_options=opts), shard
+
+
 def _run_keys(fn, keys, chunk, progress, devices, cpu_batching, detail, program_key) -> MCResult:
     """:func:`run` over the given keys (one per run) on ``devices``."""
     runs = int(keys.shape[0])
@@ -197,17 +227,7 @@ def _run_keys(fn, keys, chunk, progress, devices, cpu_batching, detail, program_
     if pad:
         keys = np.concatenate([keys, np.repeat(keys[-1:], pad, axis=0)], axis=0)
 
-    batched = jax.vmap(fn)
-    if has_detail:  # only the first run's detail leaves the program
-        def batched(k, _f=batched):
-            o = _f(k)
-            return {**o, "detail": jax.tree.map(lambda a: a[0], o["detail"])}
-    if nd > 1:
-        mesh = Mesh(np.array(devices), ("runs",))
-        shard = NamedSharding(mesh, PartitionSpec("runs"))
-        jitted = jax.jit(batched, in_shardings=shard, compiler_options=opts)
-    else:
-        shard = jitted = None
+    batched, jitted, shard = _program(fn, devices, has_detail, opts)
 
     def place(k):
         return jax.device_put(k, shard) if shard is not None else k

@@ -101,3 +101,43 @@ def test_sharded_monte_carlo_equals_single_device(tmp_path):
         outs.append(json.loads(p.stdout.strip().splitlines()[-1]))
     assert outs[0]["n"] == 1 and outs[1]["n"] == 2
     np.testing.assert_allclose(outs[0]["out"], outs[1]["out"], rtol=0, atol=1e-13)
+
+
+def test_sharded_monte_carlo_sends_nothing_between_devices():
+    """Runs are independent, so the sharded program holds no cross-device collective, even when
+    the run reduces over the batch (the active-block engine's shared loop bound, here a
+    custom_vmap batch maximum inside a scan), and its results equal one device's."""
+    code = textwrap.dedent("""
+        import json, re
+        import jax, jax.numpy as jnp, numpy as np
+        jax.config.update("jax_enable_x64", True)
+        from jaxslam.filters import ekf_slam
+        from jaxslam.sim import monte_carlo
+        def fn(key):
+            n = jax.random.randint(key, (), 1, 9)
+            def body(c, i):
+                hi = ekf_slam._batch_max(n + i)  # the engine's batch-wide loop bound
+                own = jax.lax.fori_loop(0, hi, lambda j, a: a + jnp.where(j < n + i, 1.0, 0.0),
+                                        jnp.zeros(()))  # depends on the run's n only
+                return c + own, None
+            c, _ = jax.lax.scan(body, jnp.zeros(()), jnp.arange(5))
+            return c
+        devs = jax.local_devices()
+        keys = jax.device_put(monte_carlo.keys_for(0, 8), None)
+        _, jitted, shard = monte_carlo._program(fn, devs, False, {})
+        hlo = jitted.lower(jax.device_put(keys, shard)).compile().as_text()
+        coll = re.findall(r"(all-reduce|all-gather|collective-permute|all-to-all|reduce-scatter)\\(", hlo)
+        two = monte_carlo.run(fn, seed=0, runs=8)
+        one = monte_carlo.run(fn, seed=0, runs=8, devices=devs[:1])
+        print(json.dumps({"n": len(devs), "coll": coll, "two": [float(v) for v in two.out],
+                          "one": [float(v) for v in one.out]}))
+    """)
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2",
+               JAX_PLATFORMS="cpu")
+    p = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                       timeout=300)
+    assert p.returncode == 0, p.stderr[-3000:]
+    res = json.loads(p.stdout.strip().splitlines()[-1])
+    assert res["n"] == 2 and res["coll"] == [], res
+    # Per-device bound vs one device's bound over all 8: the loop extent differs, the values not.
+    np.testing.assert_allclose(res["two"], res["one"], rtol=0, atol=0)
