@@ -16,9 +16,10 @@ devices): the same mesh then spans hosts — every process must call ``run``
 with the same arguments.  On a CPU the sharding can be exercised with
 ``XLA_FLAGS=--xla_force_host_platform_device_count=N`` (tested; known problem, 2026-12-04:
 with two forced host devices on a 2-core machine, 40 runs of ``ekfslam3d-unknown`` stopped
-making progress inside XLA's CPU runtime, with and without ``shard_map``, while 16 finished
-and generic programs with Cholesky factors and triangular solves did not stop; it is a CPU-only
-test set-up, so one device is the default there).  A group of processes
+making progress inside XLA's CPU runtime (no collective in the program), while 16 finished
+(before ``shard_map``, 12-16 runs already stopped, not every time) and generic programs with
+Cholesky factors and triangular solves did not stop; it is a CPU-only test set-up, so one
+device is the default there).  A group of processes
 (``jax.distributed``, :mod:`jaxslam.sim.distributed`) splits the runs instead: with the
 default ``devices``, each process runs one contiguous block on its own devices and the blocks
 are gathered to every process (tested with two processes on this machine).
