@@ -408,10 +408,13 @@ def propagate_additive(p: Particles, key, mean_fn: Callable, std, *args) -> Part
     """
     N, n = p.pose.shape
     dtype = p.pose.dtype
+    std = jnp.asarray(std, dtype)
+    if std.shape not in ((n,), (n, n)):
+        raise InputError(f"std: expected shape ({n},) (a diagonal noise) or ({n}, {n}) (a "
+                         f"lower-triangular factor), got {std.shape}")
     in_axes = (0, 0) + (None,) * len(args)
     mean, aux = jax.vmap(mean_fn, in_axes=in_axes)(p.pose, p.aux, *args)
     eps = jax.random.normal(key, (N, n), dtype)
-    std = jnp.asarray(std, dtype)
     pose = jnp.asarray(mean, dtype) + (eps * std if std.ndim == 1 else eps @ std.T)
     return _moved(p, pose, aux)
 

@@ -715,6 +715,8 @@ def test_propagate_additive_is_the_mean_plus_one_draw_and_keeps_bad_particles():
     np.testing.assert_array_equal(np.asarray(qb.pose[2]), np.asarray(bad.pose[2]))
     np.testing.assert_array_equal(np.asarray(qb.aux[2]), np.asarray(bad.aux[2]))
     assert int(qb.status) & errors.NON_FINITE and not int(q.status) & errors.NON_FINITE
+    with pytest.raises(InputError, match=r"std: expected shape \(3,\)"):
+        fs.propagate_additive(p, key, mean_fn, jnp.ones(2), (1.0, 0.3))
 
 
 def test_estimate_var_is_the_diagonal_of_estimate():
