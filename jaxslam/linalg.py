@@ -206,25 +206,20 @@ def inv_small(A):
 
 
 def cholesky_small(S):
-    """Lower Cholesky factor of (..., d, d) symmetric positive-definite matrices, d ≤ 3,
-    in closed form (elementwise, no LAPACK call per matrix).  Reads the lower triangle;
-    a matrix that is not positive definite gives NaN entries, as ``jnp.linalg.cholesky``."""
+    """Lower Cholesky factor of (..., d, d) symmetric positive-definite matrices, d ≤ 4, unrolled
+    at trace time into scalar arithmetic that XLA fuses (no LAPACK call per matrix under
+    ``vmap``).  Reads the lower triangle; a matrix that is not positive definite gives NaN
+    entries, as ``jnp.linalg.cholesky``."""
     d = S.shape[-1]
-    if d > 3:
-        raise ValueError("closed-form Cholesky only for d <= 3")
-    z = jnp.zeros(S.shape[:-2], S.dtype)
-    l00 = jnp.sqrt(S[..., 0, 0])
-    if d == 1:
-        return l00[..., None, None]
-    l10 = S[..., 1, 0] / l00
-    l11 = jnp.sqrt(S[..., 1, 1] - l10 * l10)
-    if d == 2:
-        return jnp.stack([jnp.stack([l00, z], -1), jnp.stack([l10, l11], -1)], -2)
-    l20 = S[..., 2, 0] / l00
-    l21 = (S[..., 2, 1] - l20 * l10) / l11
-    l22 = jnp.sqrt(S[..., 2, 2] - l20 * l20 - l21 * l21)
-    return jnp.stack([jnp.stack([l00, z, z], -1), jnp.stack([l10, l11, z], -1),
-                      jnp.stack([l20, l21, l22], -1)], -2)
+    if d > 4:
+        raise ValueError("closed-form Cholesky only for d <= 4")
+    zero = jnp.zeros(S.shape[:-2], S.dtype)
+    L = [[zero] * d for _ in range(d)]
+    for j in range(d):
+        L[j][j] = jnp.sqrt(S[..., j, j] - sum(L[j][k] * L[j][k] for k in range(j)))
+        for i in range(j + 1, d):
+            L[i][j] = (S[..., i, j] - sum(L[i][k] * L[j][k] for k in range(j))) / L[j][j]
+    return jnp.stack([jnp.stack(row, -1) for row in L], -2)
 
 
 def safe_norm(x, axis=-1, keepdims=False):

@@ -158,5 +158,14 @@ def test_small_cholesky_of_an_indefinite_matrix_is_nan_and_singular_inverse_flag
     assert np.isnan(np.asarray(cholesky_small(jnp.asarray(-np.eye(3))))).any()
     inv, det = inv_small(jnp.ones((3, 3)))
     assert float(det) == 0.0 and np.all(np.isfinite(np.asarray(inv)))
-    with pytest.raises(ValueError, match="d <= 3"):
-        cholesky_small(jnp.eye(4))
+    with pytest.raises(ValueError, match="d <= 4"):
+        cholesky_small(jnp.eye(5))
+
+
+def test_small_cholesky_of_4x4_equals_numpy():
+    from jaxslam.linalg import cholesky_small
+
+    A = np.random.default_rng(4).normal(size=(5, 4, 4))
+    S = A @ np.swapaxes(A, -1, -2) + 0.1 * np.eye(4)
+    np.testing.assert_allclose(np.asarray(cholesky_small(jnp.asarray(S))), np.linalg.cholesky(S),
+                               rtol=1e-10, atol=1e-12)

@@ -58,7 +58,7 @@ from jax.custom_batching import custom_vmap
 
 from .. import errors
 from ..errors import InputError
-from ..linalg import check_psd, is_concrete, put, symmetrize, take, value_and_jacfwd
+from ..linalg import check_psd, cholesky_small, is_concrete, put, symmetrize, take, value_and_jacfwd
 
 __all__ = [
     "SlamModel",
@@ -780,24 +780,19 @@ def update_robot(state: SlamState, model: SlamModel, observe, z, mask, R, params
 
 
 def _nis_logdet_small(nu, S):
-    """(νᵀS⁻¹ν, log det S) of one small (d ≤ 4) SPD block by an unrolled Cholesky: scalar
-    arithmetic that XLA fuses, no LAPACK call (a non-PD block gives NaN, as LAPACK would)."""
+    """(νᵀS⁻¹ν, log det S) of one small (d ≤ 4) SPD block by an unrolled Cholesky
+    (:func:`jaxslam.linalg.cholesky_small`): no LAPACK call (a non-PD block gives NaN, as
+    LAPACK would)."""
     n = S.shape[-1]
     if n > 4:
         L = jnp.linalg.cholesky(symmetrize(S))
         w = jax.scipy.linalg.solve_triangular(L, nu, lower=True)
         return jnp.sum(w * w), 2.0 * jnp.sum(jnp.log(jnp.diagonal(L)))
-    S = symmetrize(S)
-    L = [[None] * n for _ in range(n)]
-    for j in range(n):
-        d = S[j, j] - sum(L[j][k] * L[j][k] for k in range(j))
-        L[j][j] = jnp.sqrt(d)
-        for i in range(j + 1, n):
-            L[i][j] = (S[i, j] - sum(L[i][k] * L[j][k] for k in range(j))) / L[j][j]
-    w = []
+    L = cholesky_small(symmetrize(S))
+    w = []  # forward substitution L w = ν, unrolled
     for i in range(n):
-        w.append((nu[i] - sum(L[i][k] * w[k] for k in range(i))) / L[i][i])
-    return sum(wi * wi for wi in w), 2.0 * sum(jnp.log(L[i][i]) for i in range(n))
+        w.append((nu[i] - sum(L[i, k] * w[k] for k in range(i))) / L[i, i])
+    return sum(wi * wi for wi in w), 2.0 * sum(jnp.log(L[i, i]) for i in range(n))
 
 
 def _nis_small(nu, S):

@@ -587,8 +587,12 @@ def dynamics_sample(pose, aux, key, rotor_w, params: Params, dt, drift_a):
     bias-mean prediction A^b x̂^B (eq. 11): :func:`dynamics_mean` plus √Q ε, ε ~ N(0, I)
     drawn with ``key`` (reparametrised, differentiable in Q).  Returns (pose', aux')."""
     xn, m = dynamics_mean(pose, aux, rotor_w, params, dt, drift_a)
-    eps = jax.random.normal(key, (NX,), pose.dtype)
-    return xn + jnp.sqrt(jnp.asarray(params.proposal_var, pose.dtype)) * eps, m
+    return xn + _proposal_noise(key, params, pose.dtype), m
+
+
+def _proposal_noise(key, params: Params, dtype):
+    """√Q ε, ε ~ N(0, I) (12,) for one particle (a set draws (N, 12) at once in imu_stage)."""
+    return jnp.sqrt(jnp.asarray(params.proposal_var, dtype)) * jax.random.normal(key, (NX,), dtype)
 
 
 def _f_kin(x, imu, g, accel_mode):
@@ -626,8 +630,7 @@ def kinematics_sample(pose, aux, key, imu_prev, imu_now, params: Params, dt,
     """Kinematics proposal of the baseline for one particle: :func:`kinematics_mean` plus
     N(0, Q) drawn with ``key``.  Returns (pose', aux unchanged)."""
     xn, aux = kinematics_mean(pose, aux, imu_prev, imu_now, params, dt, accel_mode)
-    eps = jax.random.normal(key, (NX,), pose.dtype)
-    return xn + jnp.sqrt(jnp.asarray(params.proposal_var, pose.dtype)) * eps, aux
+    return xn + _proposal_noise(key, params, pose.dtype), aux
 
 
 def _rates_mean(bias_mean, gyro):
@@ -703,8 +706,12 @@ def regenerate_position(pose, lm_mean, lm_cov, active, z, ids, mask, key, R, lid
     (:func:`lidar_stage` does the same for a whole set with one draw.)
     """
     m, P, any_ok = position_posterior(pose, lm_mean, lm_cov, active, z, ids, mask, R, lidar, exact)
-    sample = m + cholesky_small(P) @ jax.random.normal(key, (3,), pose.dtype)
-    return pose.at[POS].set(jnp.where(any_ok, sample, pose[POS]))
+    return _position_draw(pose, m, P, any_ok, jax.random.normal(key, (3,), pose.dtype))
+
+
+def _position_draw(pose, m, P, any_ok, eps):
+    """The pose with position m + chol(P) ε, or unchanged when ``any_ok`` is False."""
+    return pose.at[POS].set(jnp.where(any_ok, m + cholesky_small(P) @ eps, pose[POS]))
 
 
 # ---------------------------------------------------------------------------
@@ -865,9 +872,7 @@ def lidar_stage(state: State, z, ids, mask, key, config: Config,
             x, mu, c, a, z, ids, used, R, config.lidar, config.weights == "exact"))(
             p.pose, p.lm_mean, p.lm_cov, p.active)
         eps = jax.random.normal(k_s2, m.shape, dtype)  # one (N, 3) draw for the set
-        sample = m + jnp.einsum("nij,nj->ni", cholesky_small(P), eps)
-        p = p._replace(pose=p.pose.at[:, POS].set(jnp.where(any_ok[:, None], sample,
-                                                             p.pose[:, POS])))
+        p = p._replace(pose=jax.vmap(_position_draw)(p.pose, m, P, any_ok, eps))
     st = state._replace(particles=p, neff_min=jnp.minimum(state.neff_min, neff))
     return st, _frame_out(st, neff, config)
 
