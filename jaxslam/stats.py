@@ -35,7 +35,8 @@ import jax.numpy as jnp
 
 from .errors import InputError
 
-__all__ = ["nees", "nis", "chi2_ppf", "chi2_ppf_np", "mean_chi2_bounds", "anees_bounds"]
+__all__ = ["nees", "nis", "student_t_nll", "student_t_d2_ppf_np", "chi2_ppf", "chi2_ppf_np", "mean_chi2_bounds",
+           "anees_bounds"]
 
 
 # ---------------------------------------------------------------------------
@@ -82,6 +83,22 @@ def nis(innovation, S):
 # ---------------------------------------------------------------------------
 
 _NEWTON_ITERS = 8  # 5 reach 1e-12 from the Wilson–Hilferty start
+
+
+def student_t_nll(d2, logdet, nu, dim):
+    """Negative log density of a d-variate Student-t with ν degrees of freedom and scale S at a
+    point of squared Mahalanobis distance ``d2`` (νᵀ S⁻¹ ν) and ``logdet`` = log det S::
+
+        ½ log det S + (ν + d)/2 · log(1 + d²/ν) + log Γ(ν/2) − log Γ((ν + d)/2) + (d/2) log(νπ)
+
+    (elementwise over arrays of rows; ``dim`` = d, static).  ν → ∞ is the Gaussian's
+    ½ (d² + log det S + d log 2π).  The robust EKF updates (``robust=ν`` of
+    :func:`jaxslam.filters.ekf_slam.update`) are the EM steps of this likelihood.
+    """
+    from jax.scipy.special import gammaln
+
+    return (0.5 * logdet + 0.5 * (nu + dim) * jnp.log1p(d2 / nu) + gammaln(0.5 * nu)
+            - gammaln(0.5 * (nu + dim)) + 0.5 * dim * jnp.log(nu * jnp.pi))
 
 
 def chi2_ppf(p, dof):
@@ -199,6 +216,58 @@ def _log_gammainc_np(a: float, x: float) -> tuple[float, float]:
     Q = math.exp(logQ)
     logP = math.log1p(-Q) if Q < 0.5 else math.log(max(-math.expm1(logQ), 1e-320))
     return logP, logQ
+
+
+def _betainc_np(a: float, b: float, x: float) -> float:
+    """Regularised incomplete beta I_x(a, b) in float64 Python (modified Lentz continued
+    fraction, on the side of x where it converges fast)."""
+    if x <= 0.0:
+        return 0.0
+    if x >= 1.0:
+        return 1.0
+    if x > (a + 1.0) / (a + b + 2.0):
+        return 1.0 - _betainc_np(b, a, 1.0 - x)
+    log_front = a * math.log(x) + b * math.log1p(-x) - (math.lgamma(a) + math.lgamma(b) - math.lgamma(a + b)) - math.log(a)
+    tiny, eps = 1e-300, 1e-16
+    c, d = 1.0, 1.0 - (a + b) * x / (a + 1.0)
+    d = 1.0 / (d if abs(d) > tiny else tiny)
+    f = d
+    for m in range(1, 100000):
+        for num in (m * (b - m) * x / ((a + 2 * m - 1) * (a + 2 * m)),
+                    -(a + m) * (a + b + m) * x / ((a + 2 * m) * (a + 2 * m + 1))):
+            d = 1.0 + num * d
+            d = 1.0 / (d if abs(d) > tiny else tiny)
+            c = 1.0 + num / c
+            c = c if abs(c) > tiny else tiny
+            f *= c * d
+        if abs(c * d - 1.0) < eps:
+            break
+    return math.exp(log_front) * f
+
+
+def student_t_d2_ppf_np(p: float, nu: float) -> float:
+    """Quantile of d² = t² for a one-dimensional Student-t with ν degrees of freedom (an F(1, ν)
+    variable; χ²(1) as ν → ∞), in float64 on the host (pure Python, no SciPy).
+
+    P(t² ≤ x) = 1 − I_{ν/(ν+x)}(ν/2, ½); solved by bisection in w = ν/(ν + x) to double
+    precision.  The outlier gate of a Student-t range model at probability ``p``.
+    """
+    p, nu = float(p), float(nu)
+    if not (nu > 0) or not (0.0 <= p < 1.0):
+        raise InputError(f"student_t_d2_ppf_np: need 0 <= p < 1 and nu > 0, got p={p}, nu={nu}")
+    if p == 0.0:
+        return 0.0
+    lo, hi = 0.0, 1.0  # I_w(ν/2, ½) rises with w from 0 to 1; the root: I = 1 − p
+    for _ in range(200):
+        w = 0.5 * (lo + hi)
+        if _betainc_np(0.5 * nu, 0.5, w) < 1.0 - p:
+            lo = w
+        else:
+            hi = w
+        if hi - lo < 1e-17:
+            break
+    w = 0.5 * (lo + hi)
+    return nu * (1.0 - w) / w
 
 
 def chi2_ppf_np(p: float, dof: float) -> float:

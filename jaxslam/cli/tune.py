@@ -132,16 +132,20 @@ def build_parser(with_targets: bool = True) -> Parser:
     loop.add_argument("--compare", metavar="FILE", default=None,
                       help="also evaluate the controller of FILE (a --params file or a 'jaxslam tune "
                            "track-figure8 --target lqr' report) with the estimator in the loop")
-    real = p.add_argument_group("real logs (jaxslam tune mrclam)")
+    real = p.add_argument_group("real logs (jaxslam tune mrclam | util-uwb)")
     real.add_argument("--data", metavar="DIR", default=None,
-                      help="dataset folder (the one with mrclam6/, or a parent of it; default: $JAXSLAM_DATA_DIR)")
+                      help="dataset folder (the one with mrclam6/ or util_uwb/, or a parent of it; default: "
+                           "$JAXSLAM_DATA_DIR)")
     real.add_argument("--robots", type=_robot_list, default=None, metavar="LIST",
                       help="training robots, e.g. 1,2,3,4 (default 1,2,3,4)")
     real.add_argument("--test-robots", type=_robot_list, default=None, metavar="LIST",
                       help="held-out robots for the before/after table, e.g. 5 (default 5; 'none': no held-out)")
     real.add_argument("--window", type=positive_float, default=None, metavar="S",
-                      help="fit on the first S seconds of each training log (default 500); the held-out "
-                           "logs are evaluated whole")
+                      help="fit on the first S seconds of each training log (mrclam: default 500 s, the "
+                           "held-out robots are evaluated whole; util-uwb: default half the flight, the rest "
+                           "is held out)")
+    real.add_argument("--anchor-offsets", action="store_true", default=None,
+                      help="util-uwb: also learn a range offset per anchor (mean removed)")
     real.add_argument("--odometry-delay", default=None, metavar="S|auto",
                       help="lag of the odometry stamps [s], or 'auto' (default): the delay of 0, 0.05, "
                            "..., 0.4 s with the lowest training NLL at the starting point")
@@ -233,10 +237,16 @@ def run_tuning(args, progress_stream=None) -> dict:
     real = args.scenario in targets.REAL_LOG_SCENARIOS
     if not real:
         for flag, used in (("--data", args.data), ("--robots", args.robots), ("--test-robots", args.test_robots),
-                           ("--window", args.window), ("--odometry-delay", args.odometry_delay)):
+                           ("--window", args.window), ("--odometry-delay", args.odometry_delay),
+                           ("--anchor-offsets", args.anchor_offsets)):
             if used is not None:
                 raise InputError(f"{flag}: only the real-log targets ({', '.join(targets.REAL_LOG_SCENARIOS)}) "
                                  f"take it, not {args.scenario}")
+    own = {"mrclam": ("--robots", "--test-robots", "--odometry-delay"), "util-uwb": ("--anchor-offsets",)}
+    for scen, flags in own.items():
+        for flag in flags:
+            if args.scenario != scen and getattr(args, flag[2:].replace("-", "_")) is not None:
+                raise InputError(f"{flag}: only 'jaxslam tune {scen}' takes it, not {args.scenario}")
     d = REAL_LOG_DEFAULTS if real else DEFAULTS.get(target_name, DEFAULTS["noise"])
     supported = avail[(args.scenario, target_name)]
     loss = args.loss or (d["loss"] if d["loss"] in supported else supported[0])
@@ -254,7 +264,12 @@ def run_tuning(args, progress_stream=None) -> dict:
                   compare=args.compare)
     if args.duration is not None:
         kw["train_duration"] = args.duration
-    if real:  # the folder and the robots checked before the (slow) build says anything
+    if args.scenario == "util-uwb":
+        from jaxslam.data import catalogue
+
+        kw = dict(dtype=dtype, data=catalogue.data_root(args.data), t_max=args.window,
+                  anchor_offsets=bool(args.anchor_offsets))
+    elif real:  # the folder and the robots checked before the (slow) build says anything
         from jaxslam.data import catalogue
 
         data = catalogue.data_root(args.data)
@@ -350,7 +365,7 @@ def run_tuning(args, progress_stream=None) -> dict:
               "(history: dropped_runs)", file=sys.stderr, flush=True)
     phys0, phys1 = tg.physical(tg.theta0), tg.physical(res.theta)
     say(f"{PROG}: evaluating start, tuned{''.join(', ' + k for k in tg.references)} on "
-        + (f"held-out logs {tg.config.get('test_robots')} ..." if real else f"{args.test_runs} held-out runs ..."))
+        + (f"{tg.config.get('evaluated_on')} ..." if real else f"{args.test_runs} held-out runs ..."))
     t0 = time.perf_counter()
     ev = tg.evaluate({"before": phys0, "after": phys1, **tg.references})
     t_eval = time.perf_counter() - t0

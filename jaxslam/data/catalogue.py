@@ -57,7 +57,7 @@ OPTION_DEFAULTS = {"robot": 1, "filter": "ekf", "ids": "known", "anchors": None,
 APPLIES = {
     "mrclam": {"robot", "filter", "ids", "calibrated", "particles", "seed", "params", "smooth"},
     "victoria-park": {"filter", "particles", "seed"},
-    "util-uwb": {"anchors", "tof", "smooth"},
+    "util-uwb": {"anchors", "tof", "smooth", "params"},
     "plaza": {"robot", "anchors", "smooth"},
 }
 

@@ -11,7 +11,10 @@ only the filters; the dataset-specific choices live here, beside the loaders:
   the log adapters (:func:`mrclam_raw_log`, :func:`mrclam_log`, :func:`mrclam_start_pose`) and
   the FastSLAM setting (:func:`mrclam_fastslam_setup`);
 * Victoria Park (ACFR): the EKF preset (:func:`victoria_park_params`,
-  :func:`victoria_park_config`) and the FastSLAM setting (:func:`victoria_park_fastslam_setup`).
+  :func:`victoria_park_config`) and the FastSLAM setting (:func:`victoria_park_fastslam_setup`);
+* UTIL (TWR flight): the fitted range-only noise shipped as the default of ``jaxslam dataset
+  util-uwb`` (:data:`UTIL_FITTED`, :func:`util_params`) and its ``--params`` file entries
+  (:func:`util_params_to_dict`, :func:`util_params_from_dict`).
 
 Following the systems' convention, sizes and switches go into each ``Config``, the numbers —
 noise, and the gates, limits and pruning thresholds — into each ``Params``.
@@ -28,6 +31,7 @@ import numpy as np
 from ..errors import InputError
 from ..systems import planar_ekf_slam as pe
 from ..systems import planar_fastslam as pf
+from ..systems import util_range as ur
 from .events import EventLog
 
 __all__ = [
@@ -47,6 +51,10 @@ __all__ = [
     "victoria_park_params",
     "victoria_park_config",
     "victoria_park_fastslam_setup",
+    "UTIL_FITTED",
+    "util_params",
+    "util_params_to_dict",
+    "util_params_from_dict",
 ]
 
 #: MRCLAM dataset 6 landmark residual MADs (data README §5) × 1.4826 ≈ σ, robots 1 and 2.
@@ -309,3 +317,71 @@ def victoria_park_fastslam_setup(n_particles: int = 50, capacity: int = 768, K: 
     prm = pf.default_params(sigma_r=1.0, sigma_b=math.radians(1.5), sigma_v=0.7, sigma_w=0.06,
                             floor=(0.0, 0.0, 0.0), pose0_sigma=(1e-3, 1e-3, 1e-3), dtype=dtype)
     return cfg, prm._replace(gate=9.21, new_threshold=13.8)
+
+
+#: The UTIL noise shipped as the default of ``jaxslam dataset util-uwb``: the outcome of
+#: ``jaxslam tune util-uwb`` (Student-t innovation NLL, ν = 5, of the TWR flight's ranges before
+#: its midpoint, 33.08 s; 25 Adam steps at lr 0.1 from the hand-set ``util_range.PARAMS``; no
+#: ground truth in the loss).  Held-out figures (the ranges after 33.08 s) in docs/datasets.md.
+UTIL_FITTED = {
+    "sigma_r": 0.05915858979596808,  # m, range (Student-t scale)
+    "q_acc": 0.13901207275449143,  # m²/s³, white-noise acceleration density
+    "q_bias": 3.387056901117973e-05,  # m²/s, range-bias random-walk density
+    "nu": 5.0,  # Student-t degrees of freedom (fixed, not fitted)
+    "gate": None,  # no hard gate (the Student-t weights replace it)
+}
+
+
+def util_params(preset: str = "fitted") -> ur.Params:
+    """UTIL preset: ``"fitted"`` (default of ``jaxslam dataset util-uwb``) is :data:`UTIL_FITTED`;
+    ``"hand"`` is ``util_range.PARAMS`` (Gaussian ranges, χ²(1) gate 9; its sources in
+    :mod:`jaxslam.systems.util_range`), the fit's starting point.  Plain floats (cast to the
+    run's dtype by ``util_range.run``)."""
+    if preset == "hand":
+        return ur.PARAMS
+    if preset != "fitted":
+        raise InputError(f"preset: expected 'fitted' or 'hand', got {preset!r}")
+    return ur.PARAMS._replace(**UTIL_FITTED)
+
+
+#: ``util_range.Params`` fields a ``--params`` file may set (the start-up σ and ToF entries included)
+UTIL_NOISE_KEYS = ("sigma_r", "q_acc", "q_bias", "nu", "gate", "anchor_offset", "outlier_gate", "p0_pos",
+                   "p0_vel", "p0_bias", "sigma_h", "tof_offset")
+
+
+def util_params_to_dict(p: ur.Params) -> dict:
+    """The ``noise`` entries of a ``--params`` file for ``util-uwb`` (JSON-ready floats/lists)."""
+    out = {}
+    for k in UTIL_NOISE_KEYS:
+        v = getattr(p, k)
+        out[k] = None if v is None else ([float(x) for x in np.asarray(v).reshape(-1)] if np.ndim(v) else float(v))
+    return out
+
+
+def util_params_from_dict(noise: dict, n_anchors: Optional[int] = None) -> ur.Params:
+    """``util_range.Params`` from a ``--params`` file's ``noise`` (the fitted preset for keys
+    left out).  Unknown keys, non-finite or non-positive σ/densities, a wrong-length
+    ``anchor_offset`` are :class:`InputError` naming the key."""
+    if not isinstance(noise, dict):
+        raise InputError(f"--params: noise must be an object, got {type(noise).__name__}")
+    unknown = sorted(set(noise) - set(UTIL_NOISE_KEYS))
+    if unknown:
+        raise InputError(f"--params: noise: unknown key(s) {unknown}; util-uwb takes {list(UTIL_NOISE_KEYS)}")
+    kw = {}
+    for k, v in noise.items():
+        if v is None and k in ("nu", "gate", "anchor_offset", "outlier_gate"):
+            kw[k] = None
+            continue
+        if k == "anchor_offset":
+            a = np.asarray(v, np.float64) if isinstance(v, list) else None
+            if a is None or a.ndim != 1 or not np.all(np.isfinite(a)) or (n_anchors is not None and a.size != n_anchors):
+                raise InputError(f"--params: noise.anchor_offset: expected a list of {n_anchors or 'N'} finite "
+                                 f"offsets [m], got {v!r}")
+            kw[k] = a
+            continue
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            raise InputError(f"--params: noise.{k}: expected a finite number, got {v!r}")
+        if k not in ("tof_offset",) and not v > 0:
+            raise InputError(f"--params: noise.{k}: expected a positive number, got {v!r}")
+        kw[k] = float(v)
+    return util_params("fitted")._replace(**kw)

@@ -231,7 +231,12 @@ def dataset_params(obj, name: str) -> dict:
                          "the file's noise was fitted for another dataset")
     if not isinstance(obj["noise"], dict):
         raise InputError(f"--params: key 'noise' must be an object, got {type(obj['noise']).__name__}")
-    from ..systems.planar_ekf_slam import Params  # the keys, checked before any log is read
+    if name == "util-uwb":  # every key and value checked before any log is read
+        from .presets import util_params_from_dict
+
+        util_params_from_dict(obj["noise"])
+        return obj["noise"]
+    from ..systems.planar_ekf_slam import Params
 
     unknown = sorted(set(obj["noise"]) - set(Params._fields))
     if unknown:
@@ -345,15 +350,23 @@ def _add_smoothed(m, ev, ms, evs):
 
 @_register("util-uwb")
 def run_util_uwb(data_dir, robot=1, filter="ekf", ids="known", anchors=None, particles=None,
-                 seed=0, dtype=np.float64, tof=False, t_window=30.0, calibrated=False, smooth=False):
+                 seed=0, dtype=np.float64, tof=False, t_window=30.0, calibrated=False, smooth=False,
+                 params=None):
     """UTIL TWR flight: constant-velocity range-only EKF with a bias state (``systems.util_range``).
 
     ``anchors``: "known" (default, surveyed) or "unknown" (SLAM after a start-up
-    window); ``tof``: also use the downward laser height (then not range-only).
+    window); ``tof``: also use the downward laser height (then not range-only).  Noise: the
+    fitted preset (``presets.UTIL_FITTED``, ``jaxslam tune util-uwb``); ``params``: a
+    ``--params`` object replacing it.
     """
     anchors = anchors or "known"
+    from ..errors import DIVERGED
     from ..systems import util_range as ur
+    from . import presets
     from .util_uwb import load_util, tag_positions
+
+    prm = (presets.util_params() if params is None else
+           presets.util_params_from_dict(dataset_params(params, "util-uwb")))
 
     t0 = time.perf_counter()
     d = load_util(data_dir, "twr_obs_log1")
@@ -367,7 +380,7 @@ def run_util_uwb(data_dir, robot=1, filter="ekf", ids="known", anchors=None, par
     if anchors == "known":
         log = ur.util_events(d.twr_t, d.twr_anchor, d.twr_range, **hk)
         rlog = ur.log_from_events(log, aid, anchors=d.anchor_p, dtype=dtype)
-        res, comp_s, run_s = timed_run(lambda: ur.run(rlog, ur.Config(smooth=smooth)))
+        res, comp_s, run_s = timed_run(lambda: ur.run(rlog, ur.Config(smooth=smooth), prm))
         setting = f"known surveyed anchors, constant-velocity tag + common range bias ({sensors})"
         notes = []
     else:
@@ -385,7 +398,7 @@ def run_util_uwb(data_dir, robot=1, filter="ekf", ids="known", anchors=None, par
                              v0=jnp.asarray(v0, dtype))
         log = ur.util_events(d.twr_t, d.twr_anchor, d.twr_range, t_start=t_window + 1e-9, **hk)
         rlog = ur.log_from_events(log, aid, startup=su, dtype=dtype)
-        res, comp_s, run_s = timed_run(lambda: ur.run(rlog, ur.Config(smooth=smooth)))
+        res, comp_s, run_s = timed_run(lambda: ur.run(rlog, ur.Config(smooth=smooth), prm))
         setting = (f"anchors unknown (SLAM); start-up: anchors + bias fitted to the ranges of "
                    f"[0, {t_window:g}] s with motion-capture positions, then no motion capture "
                    f"({sensors})")
@@ -432,7 +445,9 @@ def run_util_uwb(data_dir, robot=1, filter="ekf", ids="known", anchors=None, par
                                          "gated": res.n_gated, "rejected": 0,
                                          "registered": res.n_registered,
                                          # rows sharing a stamp beyond the log's K (1): never silent
-                                         "dropped_beyond_K": log.stats["dropped_overflow"]})
+                                         "dropped_beyond_K": log.stats["dropped_overflow"],
+                                         "mapped_rows": int(np.sum(np.asarray(res.n_monitored))),
+                                         "mapped_outliers": int(np.sum(np.asarray(res.n_outliers)))})
     if tof:
         counts.update(height_measurements=n_h, height_used=int(res.n_height_used),
                       height_gated=int(res.n_height_gated))
@@ -446,9 +461,18 @@ def run_util_uwb(data_dir, robot=1, filter="ekf", ids="known", anchors=None, par
         ms, _, _, sm_al = position_metrics(sm)
         _add_smoothed(m, ev, ms, {"est_xy": sm_al[air, :2]})
         counts["smoother_failed_steps"] = int(np.sum(np.asarray(res.smooth_status) != 0))
+    m["outlier_fraction_mapped"] = counts["mapped_outliers"] / max(counts["mapped_rows"], 1)
+    m["gated_fraction_mapped"] = min(counts["gated"], counts["mapped_rows"]) / max(counts["mapped_rows"], 1)
     notes.append("pos_rmse_m: no alignment (the anchors define the frame), airborne samples (z > 0.3 m)")
-    return DatasetRun("util-uwb", _config("util-uwb", "ekf", dtype, setting, anchors=anchors, tof=bool(tof),
-                                          flight="twr_obs_log1", **_smooth_config(smooth, SMOOTHER_RTS)),
+    if int(res.status) & DIVERGED:
+        notes.append("DIVERGED: more than 10 % of the ranges were outliers (beyond the chi2(1) 99 % gate): "
+                     "the run stopped being consistent with its noise model")
+    cfg = _config("util-uwb", "ekf", dtype, setting, anchors=anchors, tof=bool(tof), flight="twr_obs_log1",
+                  **_smooth_config(smooth, SMOOTHER_RTS))
+    cfg["noise"] = "--params file" if params is not None else (
+        "learned: jaxslam tune util-uwb on the flight's first half (docs/datasets.md)")
+    cfg["noise_values"] = presets.util_params_to_dict(prm)
+    return DatasetRun("util-uwb", cfg,
                       m, counts, {"load_s": load_s, "compile_s": comp_s, "run_s": run_s},
                       dict(d.report), ev, (t, est, None), notes)
 

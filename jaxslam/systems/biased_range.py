@@ -13,6 +13,7 @@ one on their own χ²(1) NIS (``gate``); gated rows are counted, never used.
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple, Optional
 
 import jax
@@ -20,8 +21,23 @@ import jax.numpy as jnp
 
 from ..filters import ekf_slam as es
 from ..linalg import safe_norm
+from ..stats import student_t_nll
 
-__all__ = ["range_observe", "Result"]
+__all__ = ["range_observe", "range_nll", "Result"]
+
+
+def range_nll(info, nu=None):
+    """Innovation NLL of one update's used range rows (d_z = 1) from its
+    :class:`~jaxslam.filters.ekf_slam.UpdateInfo`: the Gaussian ½ (NIS + log det S + m log 2π),
+    or with ``nu`` the sum of the rows' Student-t terms (:func:`jaxslam.stats.student_t_nll`;
+    the update must then be the ``robust=nu`` one, which reports each row's d² and log S_i).
+    Returns ``(nll, count)``."""
+    dtype = info.nis.dtype
+    if nu is None:
+        nll = 0.5 * (info.nis + info.logdet + info.dof.astype(dtype) * math.log(2 * math.pi))
+    else:
+        nll = jnp.sum(jnp.where(info.used, student_t_nll(info.d2, info.row_logdet, nu, 1), 0.0))
+    return nll, jnp.sum(info.used).astype(dtype)
 
 
 def range_observe(s, l, params=None):
@@ -53,6 +69,12 @@ class Result(NamedTuple):
     ``nis``/``dof`` of an event with a height row add the height update's NIS and dof.
     smoothed: (T, n_r) RTS-smoothed robot states (``smooth=True``; the map held static,
     :func:`jaxslam.filters.ekf_slam.smooth_robot`), else None; smooth_status: (T,) int32.
+    nll: (T,) innovation negative log-likelihood of the event's used ranges (nats; Gaussian,
+    or the rows' Student-t terms when the system's ``Params.nu`` is set; height rows not
+    included); nll_dof: (T,) the number of those ranges (None where a system does not report it).
+    n_outliers: (T,) int32 ranges of mapped anchors whose marginal d² (before any gate or
+    weighting) exceeds the system's outlier gate; n_monitored: (T,) those offered to the update;
+    more than 10 % outliers over the run sets ``DIVERGED`` in ``status`` (UTIL; None elsewhere).
     """
 
     t: jax.Array
@@ -83,9 +105,14 @@ class Result(NamedTuple):
     final: es.SlamState
     smoothed: Optional[jax.Array] = None
     smooth_status: Optional[jax.Array] = None
+    nll: Optional[jax.Array] = None
+    nll_dof: Optional[jax.Array] = None
+    n_outliers: Optional[jax.Array] = None
+    n_monitored: Optional[jax.Array] = None
 
 
-def _result(t, outs, st, model, n_reg, n_unm, smoothed=None, smooth_status=None):
+def _result(t, outs, st, model, n_reg, n_unm, smoothed=None, smooth_status=None, nll=None, nll_dof=None,
+            n_outliers=None, n_monitored=None):
     if len(outs) == 9:
         zi = jnp.zeros_like(outs[7])
         outs = tuple(outs) + (zi, zi)
@@ -101,4 +128,5 @@ def _result(t, outs, st, model, n_reg, n_unm, smoothed=None, smooth_status=None)
         bias_final=st.x[nr - 1], bias_sigma=jnp.sqrt(jnp.maximum(st.P[nr - 1, nr - 1], 0.0)),
         n_used=jnp.sum(used).astype(jnp.int32), n_gated=jnp.sum(gated).astype(jnp.int32),
         n_registered=jnp.asarray(n_reg, jnp.int32), n_unmapped=jnp.asarray(n_unm, jnp.int32),
-        status=st.status, final=st, smoothed=smoothed, smooth_status=smooth_status)
+        status=st.status, final=st, smoothed=smoothed, smooth_status=smooth_status, nll=nll, nll_dof=nll_dof,
+        n_outliers=n_outliers, n_monitored=n_monitored)

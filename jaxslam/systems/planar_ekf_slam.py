@@ -78,6 +78,7 @@ from ..filters import association as assoc
 from ..filters import consistency as cons
 from ..filters import ekf_slam as es
 from ..linalg import check_scalar, check_psd, is_concrete, wrap_angle
+from ..stats import student_t_nll
 from ..sensors import range_bearing2d as rb
 
 __all__ = [
@@ -388,15 +389,6 @@ def _range_gain(rm, bearing):
     return rm[0] + rm[1] * bearing ** 2
 
 
-def _t_nll(d2, logdet, nu, dz):
-    """Per-row Student-t negative log density with scale S_i: ½ log det S_i +
-    (ν + d)/2 · log(1 + d²/ν) + log Γ(ν/2) − log Γ((ν + d)/2) + (d/2) log(νπ)."""
-    from jax.scipy.special import gammaln
-
-    return (0.5 * logdet + 0.5 * (nu + dz) * jnp.log1p(d2 / nu) + gammaln(0.5 * nu)
-            - gammaln(0.5 * (nu + dz)) + 0.5 * dz * jnp.log(nu * jnp.pi))
-
-
 def _measure(st: es.SlamState, z, ids, valid, model, config: Config, R, nu, thr: Params):
     K = z.shape[0]
     dz = model.meas_dim
@@ -444,7 +436,7 @@ def _measure(st: es.SlamState, z, ids, valid, model, config: Config, R, nu, thr:
     dtype = st.x.dtype
     if config.robust:
         rows = info.used
-        nll = jnp.sum(jnp.where(rows, _t_nll(info.d2, info.row_logdet, nu, dz), 0.0))
+        nll = jnp.sum(jnp.where(rows, student_t_nll(info.d2, info.row_logdet, nu, dz), 0.0))
     else:
         nll = 0.5 * (info.nis + info.logdet + info.dof * jnp.asarray(math.log(2 * math.pi), dtype))
     nll_dof = (jnp.sum(info.used) * dz).astype(dtype)

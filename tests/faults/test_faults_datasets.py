@@ -380,8 +380,12 @@ def fault_outlier_burst(name, d, clean):
     elif name == "victoria-park":
         assert len(rows) >= 10
         assert _err(run) <= 2 * _err(ref) + 0.5
-    elif name == "util-uwb":
-        assert "gated" in _flags(run) and c["gated"] >= c0["gated"] + N_BURST
+    elif name == "util-uwb":  # the shipped Student-t update has no gate: the burst is counted as
+        # outliers (d² beyond the model's F(1, 5) 99 % quantile) and down-weighted, not cut off.
+        # One burst row (file row 26, anchor 5) is an outlier in the clean excerpt too — that
+        # anchor's ranges are every 8th row and each is one (measured: clean rows 8, 15, 26, 31, ...)
+        # — so the burst adds N_BURST − 1 to the count, not N_BURST.
+        assert c["gated"] == 0 and c["mapped_outliers"] >= c0["mapped_outliers"] + N_BURST - 1
         assert _err(run) <= 1.5 * _err(ref) + 0.05
     else:
         # Stated first as gated = clean + n; the run gated one uncorrupted row more (range 115 of
@@ -567,6 +571,11 @@ def fault_out_of_range(name, d, clean):
     elif name == "victoria-park":
         assert c["outside_limits"] == c0["outside_limits"] + len(rows)
         assert _err(run) <= 1.5 * _err(ref) + 0.2
+    elif name == "util-uwb":  # no gate (Student-t update): counted as an outlier, weight ~1e-6
+        # (the 84-range excerpt's clean run has 8 outliers, 9.5 %: the 9th sets DIVERGED, as stated)
+        assert c["gated"] == 0 and c["mapped_outliers"] == c0["mapped_outliers"] + 1
+        assert "diverged" not in _flags(ref) and "diverged" in _flags(run)
+        assert _err(run) <= 1.2 * _err(ref) + 0.005
     else:
         assert "gated" in _flags(run) and c["gated"] == c0["gated"] + 1
 
