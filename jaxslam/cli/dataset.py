@@ -45,7 +45,7 @@ def _params_help() -> str:
     """The keys a dataset ``--params`` file may set (built only for ``--help``)."""
     import textwrap
 
-    from jaxslam.data.presets import UTIL_NOISE_KEYS
+    from jaxslam.data.presets import PLAZA_NOISE_KEYS, UTIL_NOISE_KEYS
     from jaxslam.systems.planar_ekf_slam import Params
 
     return ("\n\n--params FILE (mrclam, EKF): {\"dataset\": \"mrclam\", \"noise\": {...}, \"log\": {...}} as\n"
@@ -57,7 +57,10 @@ def _params_help() -> str:
             + "\n\n--params FILE (util-uwb): {\"dataset\": \"util-uwb\", \"noise\": {...}} as 'jaxslam tune util-uwb'\n"
               "writes it; noise keys (each optional, absent: the shipped fit's value; null switches nu, gate or\n"
               "anchor_offset off, and makes outlier_gate the model's own 99 % quantile):\n"
-            + textwrap.fill(", ".join(UTIL_NOISE_KEYS), 84, initial_indent="  ", subsequent_indent="  "))
+            + textwrap.fill(", ".join(UTIL_NOISE_KEYS), 84, initial_indent="  ", subsequent_indent="  ")
+            + "\n\n--params FILE (plaza): {\"dataset\": \"plaza\", \"noise\": {...}} as 'jaxslam tune plaza' writes it;\n"
+              "noise keys (each optional, absent: the preset's value):\n"
+            + textwrap.fill(", ".join(PLAZA_NOISE_KEYS), 84, initial_indent="  ", subsequent_indent="  "))
 
 
 def _parser(help_params: bool = False):
@@ -96,7 +99,7 @@ def _parser(help_params: bool = False):
                    help="compute in float32 (default: float64, jax_enable_x64 switched on)")
     p.add_argument("--params", metavar="FILE",
                    help="noise for the EKF from a 'jaxslam tune NAME' file (--json or --params-out); "
-                        "mrclam and util-uwb; a file for another dataset or with unknown keys is an error")
+                        "mrclam, util-uwb and plaza; a file for another dataset or with unknown keys is an error")
     p.add_argument("--json", metavar="PATH", help="write the dataset JSON here")
     p.add_argument("--plots", metavar="DIR", help="write the path/map and error figures into DIR")
     p.add_argument("--tum", metavar="PATH", help="write the estimated trajectory in TUM format (evo)")

@@ -132,18 +132,19 @@ def build_parser(with_targets: bool = True) -> Parser:
     loop.add_argument("--compare", metavar="FILE", default=None,
                       help="also evaluate the controller of FILE (a --params file or a 'jaxslam tune "
                            "track-figure8 --target lqr' report) with the estimator in the loop")
-    real = p.add_argument_group("real logs (jaxslam tune mrclam | util-uwb)")
+    real = p.add_argument_group("real logs (jaxslam tune mrclam | util-uwb | plaza)")
     real.add_argument("--data", metavar="DIR", default=None,
-                      help="dataset folder (the one with mrclam6/ or util_uwb/, or a parent of it; default: "
+                      help="dataset folder (the one with mrclam6/, util_uwb/ or gtsam/, or a parent of it; default: "
                            "$JAXSLAM_DATA_DIR)")
     real.add_argument("--robots", type=_robot_list, default=None, metavar="LIST",
-                      help="training robots, e.g. 1,2,3,4 (default 1,2,3,4)")
+                      help="training robots, e.g. 1,2,3,4 (mrclam, default 1,2,3,4; plaza: sequences, default 1)")
     real.add_argument("--test-robots", type=_robot_list, default=None, metavar="LIST",
-                      help="held-out robots for the before/after table, e.g. 5 (default 5; 'none': no held-out)")
+                      help="held-out robots for the before/after table, e.g. 5 (mrclam, default 5; plaza: "
+                           "default 2; 'none': no held-out)")
     real.add_argument("--window", type=positive_float, default=None, metavar="S",
                       help="fit on the first S seconds of each training log (mrclam: default 500 s, the "
                            "held-out robots are evaluated whole; util-uwb: default half the flight, the rest "
-                           "is held out)")
+                           "is held out; plaza: default the whole log)")
     real.add_argument("--anchor-offsets", action="store_true", default=None,
                       help="util-uwb: also learn a range offset per anchor (mean removed)")
     real.add_argument("--odometry-delay", default=None, metavar="S|auto",
@@ -242,11 +243,11 @@ def run_tuning(args, progress_stream=None) -> dict:
             if used is not None:
                 raise InputError(f"{flag}: only the real-log targets ({', '.join(targets.REAL_LOG_SCENARIOS)}) "
                                  f"take it, not {args.scenario}")
-    own = {"mrclam": ("--robots", "--test-robots", "--odometry-delay"), "util-uwb": ("--anchor-offsets",)}
-    for scen, flags in own.items():
-        for flag in flags:
-            if args.scenario != scen and getattr(args, flag[2:].replace("-", "_")) is not None:
-                raise InputError(f"{flag}: only 'jaxslam tune {scen}' takes it, not {args.scenario}")
+    own = {"--robots": ("mrclam", "plaza"), "--test-robots": ("mrclam", "plaza"), "--odometry-delay": ("mrclam",),
+           "--anchor-offsets": ("util-uwb",)}
+    for flag, scens in own.items():
+        if args.scenario not in scens and getattr(args, flag[2:].replace("-", "_")) is not None:
+            raise InputError(f"{flag}: only 'jaxslam tune {' | '.join(scens)}' takes it, not {args.scenario}")
     d = REAL_LOG_DEFAULTS if real else DEFAULTS.get(target_name, DEFAULTS["noise"])
     supported = avail[(args.scenario, target_name)]
     loss = args.loss or (d["loss"] if d["loss"] in supported else supported[0])
@@ -264,11 +265,14 @@ def run_tuning(args, progress_stream=None) -> dict:
                   compare=args.compare)
     if args.duration is not None:
         kw["train_duration"] = args.duration
-    if args.scenario == "util-uwb":
+    if args.scenario in ("util-uwb", "plaza"):
         from jaxslam.data import catalogue
 
-        kw = dict(dtype=dtype, data=catalogue.data_root(args.data), t_max=args.window,
-                  anchor_offsets=bool(args.anchor_offsets))
+        kw = dict(dtype=dtype, data=catalogue.data_root(args.data), t_max=args.window)
+        if args.scenario == "util-uwb":
+            kw["anchor_offsets"] = bool(args.anchor_offsets)
+        else:
+            kw.update({k: v for k, v in (("robots", args.robots), ("test_robots", args.test_robots)) if v is not None})
     elif real:  # the folder and the robots checked before the (slow) build says anything
         from jaxslam.data import catalogue
 

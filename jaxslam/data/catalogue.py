@@ -58,7 +58,7 @@ APPLIES = {
     "mrclam": {"robot", "filter", "ids", "calibrated", "particles", "seed", "params", "smooth"},
     "victoria-park": {"filter", "particles", "seed"},
     "util-uwb": {"anchors", "tof", "smooth", "params"},
-    "plaza": {"robot", "anchors", "smooth"},
+    "plaza": {"robot", "anchors", "smooth", "params"},
 }
 
 

@@ -14,7 +14,9 @@ only the filters; the dataset-specific choices live here, beside the loaders:
   :func:`victoria_park_config`) and the FastSLAM setting (:func:`victoria_park_fastslam_setup`);
 * UTIL (TWR flight): the fitted range-only noise shipped as the default of ``jaxslam dataset
   util-uwb`` (:data:`UTIL_FITTED`, :func:`util_params`) and its ``--params`` file entries
-  (:func:`util_params_to_dict`, :func:`util_params_from_dict`).
+  (:func:`util_params_to_dict`, :func:`util_params_from_dict`);
+* CMU Plaza: the same for ``jaxslam dataset plaza`` (:data:`PLAZA_FITTED`, :func:`plaza_params`,
+  :func:`plaza_params_to_dict`, :func:`plaza_params_from_dict`).
 
 Following the systems' convention, sizes and switches go into each ``Config``, the numbers —
 noise, and the gates, limits and pruning thresholds — into each ``Params``.
@@ -31,6 +33,7 @@ import numpy as np
 from ..errors import InputError
 from ..systems import planar_ekf_slam as pe
 from ..systems import planar_fastslam as pf
+from ..systems import plaza_range as pr
 from ..systems import util_range as ur
 from .events import EventLog
 
@@ -55,6 +58,10 @@ __all__ = [
     "util_params",
     "util_params_to_dict",
     "util_params_from_dict",
+    "PLAZA_FITTED",
+    "plaza_params",
+    "plaza_params_to_dict",
+    "plaza_params_from_dict",
 ]
 
 #: MRCLAM dataset 6 landmark residual MADs (data README §5) × 1.4826 ≈ σ, robots 1 and 2.
@@ -347,41 +354,82 @@ def util_params(preset: str = "fitted") -> ur.Params:
 #: ``util_range.Params`` fields a ``--params`` file may set (the start-up σ and ToF entries included)
 UTIL_NOISE_KEYS = ("sigma_r", "q_acc", "q_bias", "nu", "gate", "anchor_offset", "outlier_gate", "p0_pos",
                    "p0_vel", "p0_bias", "sigma_h", "tof_offset")
+#: fields that may be null in a range-only ``--params`` file (a switch off, or a default)
+_NULLABLE = ("nu", "gate", "anchor_offset", "outlier_gate")
+#: fields that may be zero or negative (offsets, means)
+_SIGNED = ("tof_offset", "bias0")
 
 
-def util_params_to_dict(p: ur.Params) -> dict:
-    """The ``noise`` entries of a ``--params`` file for ``util-uwb`` (JSON-ready floats/lists)."""
+def _range_params_to_dict(p, keys) -> dict:
     out = {}
-    for k in UTIL_NOISE_KEYS:
+    for k in keys:
         v = getattr(p, k)
         out[k] = None if v is None else ([float(x) for x in np.asarray(v).reshape(-1)] if np.ndim(v) else float(v))
     return out
 
 
-def util_params_from_dict(noise: dict, n_anchors: Optional[int] = None) -> ur.Params:
-    """``util_range.Params`` from a ``--params`` file's ``noise`` (the fitted preset for keys
-    left out).  Unknown keys, non-finite or non-positive σ/densities, a wrong-length
-    ``anchor_offset`` are :class:`InputError` naming the key."""
+def _range_params_from_dict(noise, base, keys, name: str):
     if not isinstance(noise, dict):
         raise InputError(f"--params: noise must be an object, got {type(noise).__name__}")
-    unknown = sorted(set(noise) - set(UTIL_NOISE_KEYS))
+    unknown = sorted(set(noise) - set(keys))
     if unknown:
-        raise InputError(f"--params: noise: unknown key(s) {unknown}; util-uwb takes {list(UTIL_NOISE_KEYS)}")
+        raise InputError(f"--params: noise: unknown key(s) {unknown}; {name} takes {list(keys)}")
     kw = {}
     for k, v in noise.items():
-        if v is None and k in ("nu", "gate", "anchor_offset", "outlier_gate"):
+        if v is None and k in _NULLABLE:
             kw[k] = None
             continue
         if k == "anchor_offset":
             a = np.asarray(v, np.float64) if isinstance(v, list) else None
-            if a is None or a.ndim != 1 or not np.all(np.isfinite(a)) or (n_anchors is not None and a.size != n_anchors):
-                raise InputError(f"--params: noise.anchor_offset: expected a list of {n_anchors or 'N'} finite "
-                                 f"offsets [m], got {v!r}")
+            if a is None or a.ndim != 1 or not np.all(np.isfinite(a)):
+                raise InputError(f"--params: noise.anchor_offset: expected a list of finite offsets [m], got {v!r}")
             kw[k] = a
             continue
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
             raise InputError(f"--params: noise.{k}: expected a finite number, got {v!r}")
-        if k not in ("tof_offset",) and not v > 0:
+        if k not in _SIGNED and not v > 0:
             raise InputError(f"--params: noise.{k}: expected a positive number, got {v!r}")
         kw[k] = float(v)
-    return util_params("fitted")._replace(**kw)
+    return base._replace(**kw)
+
+
+def util_params_to_dict(p: ur.Params) -> dict:
+    """The ``noise`` entries of a ``--params`` file for ``util-uwb`` (JSON-ready floats/lists)."""
+    return _range_params_to_dict(p, UTIL_NOISE_KEYS)
+
+
+def util_params_from_dict(noise: dict) -> ur.Params:
+    """``util_range.Params`` from a ``--params`` file's ``noise`` (the fitted preset for keys
+    left out).  Unknown keys, non-finite or non-positive σ/densities, a malformed
+    ``anchor_offset`` are :class:`InputError` naming the key (its length is checked by the run)."""
+    return _range_params_from_dict(noise, util_params("fitted"), UTIL_NOISE_KEYS, "util-uwb")
+
+
+#: The Plaza noise shipped as the default of ``jaxslam dataset plaza``: None while no fit is
+#: shipped (the hand-set ``plaza_range.PARAMS`` then stays the default; docs/datasets.md says why).
+PLAZA_FITTED = None
+
+#: ``plaza_range.Params`` fields a ``--params`` file may set
+PLAZA_NOISE_KEYS = ("sigma_r", "alpha_d", "alpha_th", "beta_th", "sigma_d0", "sigma_th0", "q_bias", "nu", "gate",
+                    "outlier_gate", "bias0", "sigma_bias0", "p0_pos", "p0_th", "min_points", "min_spread")
+
+
+def plaza_params(preset: str = "fitted") -> pr.Params:
+    """Plaza preset: ``"fitted"`` (the default of ``jaxslam dataset plaza``) is :data:`PLAZA_FITTED`
+    — the hand-set ``plaza_range.PARAMS`` while it is None; ``"hand"``: ``plaza_range.PARAMS``."""
+    if preset not in ("fitted", "hand"):
+        raise InputError(f"preset: expected 'fitted' or 'hand', got {preset!r}")
+    if preset == "hand" or PLAZA_FITTED is None:
+        return pr.PARAMS
+    return pr.PARAMS._replace(**PLAZA_FITTED)
+
+
+def plaza_params_to_dict(p: pr.Params) -> dict:
+    """The ``noise`` entries of a ``--params`` file for ``plaza``."""
+    return _range_params_to_dict(p, PLAZA_NOISE_KEYS)
+
+
+def plaza_params_from_dict(noise: dict) -> pr.Params:
+    """``plaza_range.Params`` from a ``--params`` file's ``noise`` (the preset for keys left out);
+    errors as :func:`util_params_from_dict`."""
+    return _range_params_from_dict(noise, plaza_params("fitted"), PLAZA_NOISE_KEYS, "plaza")

@@ -231,10 +231,10 @@ def dataset_params(obj, name: str) -> dict:
                          "the file's noise was fitted for another dataset")
     if not isinstance(obj["noise"], dict):
         raise InputError(f"--params: key 'noise' must be an object, got {type(obj['noise']).__name__}")
-    if name == "util-uwb":  # every key and value checked before any log is read
-        from .presets import util_params_from_dict
+    if name in ("util-uwb", "plaza"):  # every key and value checked before any log is read
+        from . import presets
 
-        util_params_from_dict(obj["noise"])
+        (presets.util_params_from_dict if name == "util-uwb" else presets.plaza_params_from_dict)(obj["noise"])
         return obj["noise"]
     from ..systems.planar_ekf_slam import Params
 
@@ -313,13 +313,25 @@ def _class_fractions(counts: dict) -> dict:
             "rejected_fraction_new": counts["rejected"] / new}
 
 
-def _divergence_notes(status) -> list:
+def _divergence_notes(status, rows="the sightings of mapped landmarks", gate="the chi2(2) 99 % gate") -> list:
     from ..errors import DIVERGED
 
     if int(status) & DIVERGED:
-        return ["DIVERGED: more than 10 % of the sightings of mapped landmarks were outliers (beyond "
-                "the chi2(2) 99 % gate): the run stopped being consistent with its noise model"]
+        return [f"DIVERGED: more than 10 % of {rows} were outliers (beyond {gate}): the run stopped being "
+                "consistent with its noise model"]
     return []
+
+
+def _range_outliers(res, counts: dict, m: dict, notes: list) -> None:
+    """The range-only runs' outlier counts (rows of mapped anchors/beacons whose d² exceeds the
+    range model's own 99 % quantile), their fractions, and the DIVERGED note."""
+    counts["mapped_rows"] = int(np.sum(np.asarray(res.n_monitored)))
+    counts["mapped_outliers"] = int(np.sum(np.asarray(res.n_outliers)))
+    rows = max(counts["mapped_rows"], 1)
+    m["outlier_fraction_mapped"] = counts["mapped_outliers"] / rows
+    m["gated_fraction_mapped"] = min(counts["gated"], counts["mapped_rows"]) / rows
+    notes.extend(_divergence_notes(res.status, "the ranges of mapped anchors",
+                                   "the range model's own 99 % quantile"))
 
 
 def _config(name, filter, dtype, setting, **kw):
@@ -360,7 +372,6 @@ def run_util_uwb(data_dir, robot=1, filter="ekf", ids="known", anchors=None, par
     ``--params`` object replacing it.
     """
     anchors = anchors or "known"
-    from ..errors import DIVERGED
     from ..systems import util_range as ur
     from . import presets
     from .util_uwb import load_util, tag_positions
@@ -445,9 +456,7 @@ def run_util_uwb(data_dir, robot=1, filter="ekf", ids="known", anchors=None, par
                                          "gated": res.n_gated, "rejected": 0,
                                          "registered": res.n_registered,
                                          # rows sharing a stamp beyond the log's K (1): never silent
-                                         "dropped_beyond_K": log.stats["dropped_overflow"],
-                                         "mapped_rows": int(np.sum(np.asarray(res.n_monitored))),
-                                         "mapped_outliers": int(np.sum(np.asarray(res.n_outliers)))})
+                                         "dropped_beyond_K": log.stats["dropped_overflow"]})
     if tof:
         counts.update(height_measurements=n_h, height_used=int(res.n_height_used),
                       height_gated=int(res.n_height_gated))
@@ -461,12 +470,8 @@ def run_util_uwb(data_dir, robot=1, filter="ekf", ids="known", anchors=None, par
         ms, _, _, sm_al = position_metrics(sm)
         _add_smoothed(m, ev, ms, {"est_xy": sm_al[air, :2]})
         counts["smoother_failed_steps"] = int(np.sum(np.asarray(res.smooth_status) != 0))
-    m["outlier_fraction_mapped"] = counts["mapped_outliers"] / max(counts["mapped_rows"], 1)
-    m["gated_fraction_mapped"] = min(counts["gated"], counts["mapped_rows"]) / max(counts["mapped_rows"], 1)
     notes.append("pos_rmse_m: no alignment (the anchors define the frame), airborne samples (z > 0.3 m)")
-    if int(res.status) & DIVERGED:
-        notes.append("DIVERGED: more than 10 % of the ranges were outliers (beyond the chi2(1) 99 % gate): "
-                     "the run stopped being consistent with its noise model")
+    _range_outliers(res, counts, m, notes)
     cfg = _config("util-uwb", "ekf", dtype, setting, anchors=anchors, tof=bool(tof), flight="twr_obs_log1",
                   **_smooth_config(smooth, SMOOTHER_RTS))
     cfg["noise"] = "--params file" if params is not None else (
@@ -483,16 +488,21 @@ def run_util_uwb(data_dir, robot=1, filter="ekf", ids="known", anchors=None, par
 
 @_register("plaza")
 def run_plaza_dataset(data_dir, robot=1, filter="ekf", ids="known", anchors=None, particles=None,
-                      seed=0, dtype=np.float64, tof=False, calibrated=False, smooth=False):
+                      seed=0, dtype=np.float64, tof=False, calibrated=False, smooth=False, params=None):
     """CMU Plaza 1/2 (``--robot`` picks the sequence): odometry + range-only SLAM with a bias state.
 
     ``anchors``: "unknown" (default: SLAM, beacons initialised by delayed
-    trilateration) or "known" (localisation against the surveyed beacons).
+    trilateration) or "known" (localisation against the surveyed beacons).  Noise:
+    ``presets.plaza_params()``; ``params``: a ``--params`` object (``jaxslam tune plaza``) replacing it.
     """
     anchors = anchors or "unknown"
     from ..dynamics import planar
     from ..systems import plaza_range as pr
+    from . import presets
     from .plaza import load_plaza
+
+    prm = (presets.plaza_params() if params is None else
+           presets.plaza_params_from_dict(dataset_params(params, "plaza")))
 
     if robot not in (1, 2):
         raise InputError(f"plaza: --robot selects the sequence, 1 or 2 (got {robot})")
@@ -504,7 +514,7 @@ def run_plaza_dataset(data_dir, robot=1, filter="ekf", ids="known", anchors=None
     bid = np.asarray(d.node_id)
     beacons = np.asarray(d.node_xy, np.float64) if anchors == "known" else None
     rlog = pr.log_from_events(log, pose0, bid, beacons=beacons, dtype=dtype)
-    res, comp_s, run_s = timed_run(lambda: pr.run(rlog, pr.Config(smooth=smooth)))
+    res, comp_s, run_s = timed_run(lambda: pr.run(rlog, pr.Config(smooth=smooth), prm))
     est = np.concatenate([np.asarray(res.pos, np.float64), np.asarray(res.heading, np.float64)[:, None]], 1)
     dr = np.asarray(dead_reckoning(planar.odometry_increment, jnp.asarray(pose0), log.u, log.dt))
     gt = np.asarray(d.gt, np.float64).copy()
@@ -542,11 +552,16 @@ def run_plaza_dataset(data_dir, robot=1, filter="ekf", ids="known", anchors=None
     what = "surveyed beacons (localisation)" if anchors == "known" else "unknown beacons (SLAM)"
     if anchors == "known":
         notes = ["pos_rmse_m: no alignment (the survey defines the frame)"]
+    _range_outliers(res, counts, m, notes)
     if smooth:
         counts["smoother_failed_steps"] = int(np.sum(np.asarray(res.smooth_status) != 0))
-    return DatasetRun("plaza", _config("plaza", "ekf", dtype, f"Plaza {robot}: odometry + {what} "
-                                       "+ common range bias", sequence=robot, anchors=anchors,
-                                       **_smooth_config(smooth, SMOOTHER_RTS)),
+    cfg = _config("plaza", "ekf", dtype, f"Plaza {robot}: odometry + {what} + common range bias",
+                  sequence=robot, anchors=anchors, **_smooth_config(smooth, SMOOTHER_RTS))
+    cfg["noise"] = "--params file" if params is not None else (
+        "hand-set (plaza_range.PARAMS; docs/datasets.md)" if presets.PLAZA_FITTED is None else
+        "learned: jaxslam tune plaza (docs/datasets.md)")
+    cfg["noise_values"] = presets.plaza_params_to_dict(prm)
+    return DatasetRun("plaza", cfg,
                       m, counts, {"load_s": load_s, "compile_s": comp_s, "run_s": run_s},
                       dict(d.report), ev, (log.t, est[:, :2], est[:, 2]), notes)
 

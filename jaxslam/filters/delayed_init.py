@@ -27,6 +27,7 @@ from typing import Optional
 import jax
 import jax.numpy as jnp
 
+from ..linalg import safe_norm
 from . import trilateration as tri
 
 __all__ = ["robust_trilaterate", "from_buffer"]
@@ -40,7 +41,7 @@ def robust_trilaterate(points, ranges, valid, range_var, min_points: Optional[in
     differentiation (``stop_gradient``).  Returns the second fit's
     :class:`~jaxslam.filters.trilateration.TrilaterationResult`."""
     r1 = tri.trilaterate(points, ranges, mask=valid)
-    res = jnp.sqrt(jnp.sum((points - r1.position) ** 2, axis=1)) - ranges
+    res = safe_norm(points - r1.position, axis=1) - ranges
     resn = jnp.where(valid, res, jnp.nan)
     med = jnp.nanmedian(resn)
     mad = jnp.nanmedian(jnp.abs(resn - med))

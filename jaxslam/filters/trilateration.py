@@ -39,6 +39,14 @@ Decisions (paper silent or wrong):
   reference's; so Σ_b = v_1 𝟙𝟙ᵀ + diag(v_k) and cov(x̂) = A⁺ Σ_b A⁺ᵀ (linear
   propagation; the known points are taken as exact — a caller adds their
   uncertainty).
+* **Derivatives.**  A filter differentiates through its trilaterations (noise tuning through a
+  delayed initialisation), also through those that are not ready.  A well-conditioned system
+  is solved through its QR factors (the same solution as the SVD's, to rounding), whose
+  derivative is finite wherever A has full rank — an SVD's divides by s_i² − s_j², NaN for
+  equal singular values (three points at a right angle).  A degenerate one is solved by the
+  SVD of A held constant, on an identity in place of A for the QR, and distances use a norm
+  with a finite derivative at 0; ``spread`` is held constant (it is only compared).  No
+  derivative is NaN, whatever the input.
 * **Points on a line** (:func:`trilaterate_line`, paper 003's forced
   straight-line start-up, positions (−d(k), 0)): A of eq. 26 then has a zero
   second column, so eq. 26 fixes only the along-line coordinate u (MATLAB's
@@ -59,6 +67,7 @@ import jax
 import jax.numpy as jnp
 
 from .. import errors
+from ..linalg import safe_norm
 
 __all__ = [
     "TrilaterationResult",
@@ -150,14 +159,28 @@ def point_spread(points, weights):
     return jnp.sqrt(jnp.clip(lam[0], 0.0))
 
 
-def _lstsq_svd(A, b, rcond, cond_tol):
-    """Minimum-norm least squares by SVD; returns (x, pinv (d, K), well_conditioned)."""
-    U, s, Vt = jnp.linalg.svd(A, full_matrices=False)
+def _lstsq(A, b, rcond, cond_tol):
+    """Least squares; returns (x, pinv (d, K), well_conditioned).
+
+    Well conditioned (smallest singular value > ``cond_tol`` · largest): x = R⁻¹ Qᵀ b from the
+    QR factors of A — the same solution as the SVD's to rounding, with a derivative that is
+    finite wherever A has full rank (the SVD's divides by s_i² − s_j², infinite for equal
+    singular values).  Otherwise: the minimum-norm solution by the SVD (singular values ≤
+    ``rcond`` · largest cut) of A held constant under differentiation (a degenerate fit, flagged
+    by the caller; its derivative with respect to b stays).  The QR runs on an identity in
+    place of a degenerate A, so neither branch's derivative is ever NaN.
+    """
+    K, d = A.shape
+    s = jnp.linalg.svd(jax.lax.stop_gradient(A), compute_uv=False)
     smax = s[0]
-    keep = s > rcond * smax
-    s_inv = jnp.where(keep, 1.0 / jnp.where(keep, s, 1.0), 0.0)
-    pinv = (Vt.T * s_inv[None, :]) @ U.T
-    return pinv @ b, pinv, (s[-1] > cond_tol * smax) & (smax > 0)
+    good = (s[-1] > cond_tol * smax) & (smax > 0)
+    Q, R = jnp.linalg.qr(jnp.where(good, A, jnp.eye(K, d, dtype=A.dtype)))
+    pinv_qr = jax.scipy.linalg.solve_triangular(R, Q.T, lower=False)
+    U, sv, Vt = jnp.linalg.svd(jax.lax.stop_gradient(A), full_matrices=False)
+    keep = sv > rcond * smax
+    s_inv = jnp.where(keep, 1.0 / jnp.where(keep, sv, 1.0), 0.0)
+    pinv = jnp.where(good, pinv_qr, (Vt.T * s_inv[None, :]) @ U.T)
+    return pinv @ b, pinv, good
 
 
 def trilaterate(points, ranges, mask=None, range_var=None, min_points: Optional[int] = None,
@@ -196,14 +219,15 @@ def trilaterate(points, ranges, mask=None, range_var=None, min_points: Optional[
     if cond_tol is None:
         cond_tol = eps ** 0.5
     A, b, valid, ref = linear_system(points, ranges, mask)
-    x, pinv, full_rank = _lstsq_svd(A, b, jnp.asarray(rcond, dtype), jnp.asarray(cond_tol, dtype))
+    x, pinv, full_rank = _lstsq(A, b, jnp.asarray(rcond, dtype), jnp.asarray(cond_tol, dtype))
     n_used = jnp.sum(valid).astype(jnp.int32)
-    spread = point_spread(jnp.where(valid[:, None], points, 0.0), valid)
+    # only compared (ok): held constant, so its eigenvalue derivative (NaN for equal ones) never enters
+    spread = point_spread(jax.lax.stop_gradient(jnp.where(valid[:, None], points, 0.0)), valid)
     ok = (n_used >= min_points) & full_rank & (spread >= jnp.asarray(min_spread, dtype))
     ok = ok & jnp.all(jnp.isfinite(x))
     x = jnp.where(jnp.isfinite(x), x, 0.0)
     rng = jnp.where(valid, ranges, 0.0)
-    dist = jnp.sqrt(jnp.sum((x[None, :] - points) ** 2, axis=1))
+    dist = safe_norm(x[None, :] - points, axis=1)
     residual_max = jnp.max(jnp.where(valid, jnp.abs(dist - rng), 0.0))
     if range_var is None:
         cov = jnp.zeros((d, d), dtype)

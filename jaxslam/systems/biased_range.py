@@ -20,10 +20,11 @@ import jax
 import jax.numpy as jnp
 
 from ..filters import ekf_slam as es
+from ..errors import InputError
 from ..linalg import safe_norm
-from ..stats import student_t_nll
+from ..stats import chi2_ppf_np, student_t_d2_ppf_np, student_t_nll
 
-__all__ = ["range_observe", "range_nll", "Result"]
+__all__ = ["range_observe", "range_nll", "update_ranges", "resolve_outlier_gate", "Result", "OUTLIER_P"]
 
 
 def range_nll(info, nu=None):
@@ -38,6 +39,43 @@ def range_nll(info, nu=None):
     else:
         nll = jnp.sum(jnp.where(info.used, student_t_nll(info.d2, info.row_logdet, nu, 1), 0.0))
     return nll, jnp.sum(info.used).astype(dtype)
+
+
+#: probability of the range model's own d² distribution below the outlier gate
+OUTLIER_P = 0.99
+
+
+def resolve_outlier_gate(params):
+    """``params`` with ``outlier_gate`` filled where it is None: the 99 % quantile of the range
+    model's own d² — χ²(1) (6.63) for Gaussian ranges (``nu`` None), F(1, ν) for Student-t
+    ranges (16.26 at ν = 5) — computed on the host, so ``nu`` must then be a number, not traced.
+    Also checks ν > 0 when it is a number."""
+    from ..linalg import is_concrete
+
+    nu = params.nu
+    if nu is not None and is_concrete(nu) and not float(nu) > 0:
+        raise InputError(f"params.nu: Student-t degrees of freedom must be > 0, got {nu}")
+    if params.outlier_gate is not None:
+        return params
+    if nu is None:
+        return params._replace(outlier_gate=chi2_ppf_np(OUTLIER_P, 1))
+    if not is_concrete(nu):
+        raise InputError("params.outlier_gate: give it when params.nu is traced (its default is computed on "
+                         "the host from nu)")
+    return params._replace(outlier_gate=student_t_d2_ppf_np(OUTLIER_P, float(nu)))
+
+
+def update_ranges(st, model, z, slots, mapped, params):
+    """The engine's update with the event's ranges of mapped anchors/beacons, as the range-only
+    systems run it: R = σ_r², the hard χ²(1) ``params.gate`` (None: off), Student-t rows with
+    ``params.nu`` (None: Gaussian).  Returns ``(state, info, nll, nll_dof, n_outliers)``:
+    :func:`range_nll`'s terms and the rows offered whose marginal d² exceeds
+    ``params.outlier_gate`` (filled by :func:`resolve_outlier_gate`)."""
+    R = jnp.reshape(params.sigma_r ** 2, (1, 1))
+    st, info = es.update(st, model, z, slots, mapped, R, gate=params.gate, robust=params.nu, row_stats=True)
+    nll, cnt = range_nll(info, params.nu)
+    n_out = jnp.sum(mapped & (info.d2 > params.outlier_gate)).astype(jnp.int32)
+    return st, info, nll, cnt, n_out
 
 
 def range_observe(s, l, params=None):
@@ -74,7 +112,7 @@ class Result(NamedTuple):
     included); nll_dof: (T,) the number of those ranges (None where a system does not report it).
     n_outliers: (T,) int32 ranges of mapped anchors whose marginal d² (before any gate or
     weighting) exceeds the system's outlier gate; n_monitored: (T,) those offered to the update;
-    more than 10 % outliers over the run sets ``DIVERGED`` in ``status`` (UTIL; None elsewhere).
+    more than 10 % outliers over the run sets ``DIVERGED`` in ``status``.
     """
 
     t: jax.Array

@@ -69,10 +69,11 @@ import numpy as np
 from ..data.events import EventLog, merge_events
 from ..dynamics import planar
 from ..errors import InputError
+from ..filters import consistency as cons
 from ..filters import ekf_slam as es
 from ..filters import delayed_init
 from ..linalg import symmetrize, wrap_angle
-from .biased_range import Result, _cast_params, _result, range_observe
+from .biased_range import Result, _cast_params, _result, range_observe, resolve_outlier_gate, update_ranges
 
 __all__ = [
     "Config", "Params", "PARAMS", "Log", "Event", "State", "StepOut", "Result", "init", "step", "run",
@@ -116,6 +117,10 @@ class Params(NamedTuple):
     min_points: buffered rows a beacon needs before its delayed initialisation (default 20; a
     count, only compared).  min_spread: weakest-direction spread of those rows' positions [m]
     (default 5.0).  Both unused with surveyed beacons.
+    nu: Student-t degrees of freedom of the ranges (None: Gaussian; as ``util_range.Params.nu``).
+    outlier_gate: marginal d² above which a range of a mapped beacon counts as an outlier (None:
+    the range model's own 99 % quantile, :func:`biased_range.resolve_outlier_gate`); more than
+    10 % of them sets ``DIVERGED``.
     """
 
     sigma_r: float = 1.2
@@ -132,6 +137,8 @@ class Params(NamedTuple):
     gate: Optional[float] = 6.63
     min_points: float = 20.0
     min_spread: float = 5.0
+    nu: Optional[float] = None
+    outlier_gate: Optional[float] = None
 
 
 PARAMS = Params()
@@ -219,6 +226,10 @@ class StepOut(NamedTuple):
     dof: jax.Array
     used: jax.Array
     gated: jax.Array
+    nll: jax.Array  # () innovation NLL of the event's ranges (biased_range.range_nll)
+    nll_dof: jax.Array  # () ranges in it
+    outliers: jax.Array  # () int32 ranges of mapped beacons with d² > params.outlier_gate
+    monitored: jax.Array  # () int32 ranges of mapped beacons offered to the update
     smoother: Any = None
 
 
@@ -291,8 +302,7 @@ def step(state: State, event: Event, config: Config, params: Params, *, key=None
     Q = odo_process_noise(s, event.u, event.dt, p)
     st = es.predict(st, MODEL, event.u, Q)
     slots, mapped = es.associate_known(st, event.ids, event.mask)
-    R = jnp.reshape(p.sigma_r**2, (1, 1))
-    st, info = es.update(st, MODEL, event.z, slots, mapped, R, gate=p.gate)
+    st, info, nll, nll_dof, n_out = update_ranges(st, MODEL, event.z, slots, mapped, p)
     # buffer ranges of unmapped beacons with the current position estimate
     s = st.x[:NR]
     pv = 0.5 * (st.P[0, 0] + st.P[1, 1])
@@ -336,6 +346,7 @@ def step(state: State, event: Event, config: Config, params: Params, *, key=None
     Pd = jnp.diagonal(st.P)
     out = StepOut(pos=st.x[0:2], pos_var=Pd[0:2], heading=st.x[2], bias=st.x[3], bias_var=Pd[3], nis=info.nis,
                   dof=info.dof, used=jnp.sum(info.used).astype(jnp.int32), gated=jnp.sum(info.gated).astype(jnp.int32),
+                  nll=nll, nll_dof=nll_dof, outliers=n_out, monitored=jnp.sum(mapped).astype(jnp.int32),
                   smoother=(es.smoother_terms(st, MODEL), Q) if config.smooth else None)
     return State(st, buf, n_reg, n_unm, beacon_ids), out
 
@@ -360,6 +371,7 @@ def run(log: Log, config: Config = Config(), params: Params = PARAMS, *, key=Non
     if log.beacons is not None and np.shape(log.beacons) != (N, 2):
         raise InputError(f"log.beacons: expected shape ({N}, 2), got {np.shape(log.beacons)}")
     dtype = jnp.asarray(log.z).dtype
+    params = resolve_outlier_gate(params)
     config = config._replace(capacity=cap, window=int(config.window), smooth=bool(config.smooth),
                              delayed=log.beacons is None if config.delayed is None else bool(config.delayed))
     return _run(log, config, _cast_params(params, dtype))
@@ -378,4 +390,7 @@ def _run(log: Log, config: Config, params: Params) -> Result:
     n_reg = state.n_registered + (0 if log.beacons is None else N)
     fields = (outs.pos, outs.pos_var, outs.heading, outs.bias, outs.bias_var, outs.nis, outs.dof, outs.used,
               outs.gated)
-    return _result(log.t, fields, state.slam, MODEL, n_reg, state.n_unmapped, rs, sst)
+    slam = state.slam._replace(status=state.slam.status | cons.status_bits(jnp.sum(outs.outliers),
+                                                                           jnp.sum(outs.monitored)))
+    return _result(log.t, fields, slam, MODEL, n_reg, state.n_unmapped, rs, sst, outs.nll, outs.nll_dof,
+                   outs.outliers, outs.monitored)

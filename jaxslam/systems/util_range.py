@@ -98,7 +98,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import errors, stats
+from .. import errors
 from ..data.events import EventLog, merge_events
 from ..data.util_uwb import TAG_OFFSET
 from ..errors import InputError
@@ -106,7 +106,7 @@ from ..filters import consistency as cons
 from ..filters import ekf_slam as es
 from ..filters import trilateration as tri
 from ..linalg import is_concrete, symmetrize
-from .biased_range import Result, _cast_params, _result, range_nll, range_observe
+from .biased_range import Result, _cast_params, _result, range_observe, resolve_outlier_gate, update_ranges
 
 __all__ = [
     "Config", "Params", "PARAMS", "Log", "Event", "State", "StepOut", "Result", "Startup",
@@ -117,8 +117,6 @@ __all__ = [
 NR = 7  # robot block [p (3), v (3), b]
 HEIGHT_ID = -2  # id of a ToF height row in a UTIL event log (anchor ids are ≥ 0)
 TAG_Z = float(TAG_OFFSET[2])  # UWB tag offset along the body z axis [m]
-#: probability of the range model's own d² distribution below the outlier gate (``Params.outlier_gate``)
-OUTLIER_P = 0.99
 
 
 def height_observe(s, params):
@@ -500,14 +498,11 @@ def step(state: State, event: Event, config: Config, params: Params, *, key=None
     st = es.predict(st, MODEL, None, Q, event.dt)
     m_r = (event.mask & (event.ids != HEIGHT_ID)) if height else event.mask
     slots, mapped = es.associate_known(st, event.ids, m_r)
-    R = jnp.reshape(params.sigma_r**2, (1, 1))
     z = event.z
     if params.anchor_offset is not None:  # anchor i sits in map slot i (init)
         off = jnp.take(params.anchor_offset, slots, mode="clip")
         z = z - jnp.where(mapped, off, 0.0)[:, None]
-    st, info = es.update(st, MODEL, z, slots, mapped, R, gate=gate, robust=params.nu, row_stats=True)
-    nll, nll_dof = range_nll(info, params.nu)
-    n_out = jnp.sum(mapped & (info.d2 > params.outlier_gate)).astype(jnp.int32)
+    st, info, nll, nll_dof, n_out = update_ranges(st, MODEL, z, slots, mapped, params)
     nis, dof = info.nis, info.dof
     zi = jnp.zeros((), jnp.int32)
     h_used = h_gated = zi
@@ -543,16 +538,7 @@ def run(log: Log, config: Config = Config(), params: Params = PARAMS, *, key=Non
     if params.anchor_offset is not None and np.shape(params.anchor_offset) != (N,):
         raise InputError(f"params.anchor_offset: expected shape ({N},) (one offset per anchor), "
                          f"got {np.shape(params.anchor_offset)}")
-    if params.nu is not None and is_concrete(params.nu) and not float(params.nu) > 0:
-        raise InputError(f"params.nu: Student-t degrees of freedom must be > 0, got {params.nu}")
-    if params.outlier_gate is None:
-        if params.nu is None:
-            params = params._replace(outlier_gate=stats.chi2_ppf_np(OUTLIER_P, 1))
-        elif is_concrete(params.nu):
-            params = params._replace(outlier_gate=stats.student_t_d2_ppf_np(OUTLIER_P, float(params.nu)))
-        else:
-            raise InputError("params.outlier_gate: give it when params.nu is traced (its default is "
-                             "computed on the host from nu)")
+    params = resolve_outlier_gate(params)
     if config.height is None:
         if not is_concrete(log.ids, log.mask):
             raise InputError("config.height: give True or False when the log is traced")

@@ -149,7 +149,7 @@ def test_tune_util_writes_a_params_file_that_dataset_reads(tmp_path, capsys):
     assert doc["config"]["noise_values"]["sigma_r"] == pytest.approx(p["noise"]["sigma_r"], rel=1e-15)
     # the flags of other real-log targets are refused by name
     rc, out, err = _cli(["tune", "util-uwb", "--data", str(DATA), "--robots", "1"], capsys)
-    assert rc == 2 and "--robots: only 'jaxslam tune mrclam'" in err
+    assert rc == 2 and "--robots: only 'jaxslam tune mrclam | plaza'" in err
     rc, out, err = _cli(["tune", "mrclam", "--data", str(DATA), "--anchor-offsets"], capsys)
     assert rc == 2 and "--anchor-offsets: only 'jaxslam tune util-uwb'" in err
 

@@ -17,7 +17,8 @@ registry imports them on first use, so ``jaxslam tune --help`` pays for none of 
 * :mod:`.linear_gaussian` — ``("linear-gaussian", "noise")``: the oracle (known Q, R);
 * :mod:`.uwb` — ``("uwb-circle" | "uwb-square" | "uwb-rough", "noise")``: paper 003's Q;
 * :mod:`.mrclam` — ``("mrclam", "noise")``: the planar EKF-SLAM's noise from real logs;
-* :mod:`.util_uwb` — ``("util-uwb", "noise")``: the UTIL range-only filter's noise from its flight.
+* :mod:`.util_uwb` — ``("util-uwb", "noise")``: the UTIL range-only filter's noise from its flight;
+* :mod:`.plaza` — ``("plaza", "noise")``: the Plaza range-only SLAM's noise from its logs.
 
 No paper covers tuning; each module states its decisions, and ``docs/tuning.md`` collects them.
 Seeds: training runs use ``keys_for(seed, M)``, the held-out test runs ``keys_for(seed + 1, M)``
@@ -37,10 +38,10 @@ __all__ = ["Target", "register_target", "get", "available", "default_target", "R
            "keys", "diag_list"]
 
 #: the target modules the registry imports on first use
-BUILTIN_MODULES = ("ekfslam3d", "figure8", "linear_gaussian", "uwb", "mrclam", "util_uwb", "loop")
+BUILTIN_MODULES = ("ekfslam3d", "figure8", "linear_gaussian", "uwb", "mrclam", "util_uwb", "plaza", "loop")
 
-#: scenarios whose targets learn from real logs (``--data``, ``--window``; MRCLAM also ``--robots``)
-REAL_LOG_SCENARIOS = ("mrclam", "util-uwb")
+#: scenarios whose targets learn from real logs (``--data``, ``--window``; MRCLAM and Plaza also ``--robots``)
+REAL_LOG_SCENARIOS = ("mrclam", "util-uwb", "plaza")
 
 
 class Target(NamedTuple):
