@@ -48,8 +48,8 @@ def _params_help() -> str:
     from jaxslam.data.presets import PLAZA_NOISE_KEYS, UTIL_NOISE_KEYS
     from jaxslam.systems.planar_ekf_slam import Params
 
-    return ("\n\n--params FILE (mrclam, EKF): {\"dataset\": \"mrclam\", \"noise\": {...}, \"log\": {...}} as\n"
-            "'jaxslam tune mrclam' writes it; noise keys (each optional, absent: the preset's value;\n"
+    return ("\n\n--params FILE (mrclam or victoria-park, EKF): {\"dataset\": \"mrclam\", \"noise\": {...}, \"log\": {...}}\n"
+            "as 'jaxslam tune mrclam|victoria-park' writes it (victoria-park: no \"log\"); noise keys (each optional, absent: the preset's value;\n"
             "shapes as in planar_ekf_slam.Params; the thresholds gate ... prune_min_obs are scalars, null: off):\n"
             + textwrap.fill(", ".join(Params._fields), 84, initial_indent="  ", subsequent_indent="  ")
             + "\nlog keys (optional): odometry_delay (s, the odometry stamps' lag the noise was fitted with;\n"
@@ -99,7 +99,8 @@ def _parser(help_params: bool = False):
                    help="compute in float32 (default: float64, jax_enable_x64 switched on)")
     p.add_argument("--params", metavar="FILE",
                    help="noise for the EKF from a 'jaxslam tune NAME' file (--json or --params-out); "
-                        "mrclam, util-uwb and plaza; a file for another dataset or with unknown keys is an error")
+                        "the EKF of mrclam and victoria-park, util-uwb, plaza; a file for another dataset or with unknown "
+                        "keys is an error")
     p.add_argument("--json", metavar="PATH", help="write the dataset JSON here")
     p.add_argument("--plots", metavar="DIR", help="write the path/map and error figures into DIR")
     p.add_argument("--tum", metavar="PATH", help="write the estimated trajectory in TUM format (evo)")

@@ -132,10 +132,10 @@ def build_parser(with_targets: bool = True) -> Parser:
     loop.add_argument("--compare", metavar="FILE", default=None,
                       help="also evaluate the controller of FILE (a --params file or a 'jaxslam tune "
                            "track-figure8 --target lqr' report) with the estimator in the loop")
-    real = p.add_argument_group("real logs (jaxslam tune mrclam | util-uwb | plaza)")
+    real = p.add_argument_group("real logs (jaxslam tune mrclam | util-uwb | plaza | victoria-park)")
     real.add_argument("--data", metavar="DIR", default=None,
-                      help="dataset folder (the one with mrclam6/, util_uwb/ or gtsam/, or a parent of it; default: "
-                           "$JAXSLAM_DATA_DIR)")
+                      help="dataset folder (the one with mrclam6/, util_uwb/, gtsam/ or victoria_park/, or a "
+                           "parent of it; default: $JAXSLAM_DATA_DIR)")
     real.add_argument("--robots", type=_robot_list, default=None, metavar="LIST",
                       help="training robots, e.g. 1,2,3,4 (mrclam, default 1,2,3,4; plaza: sequences, default 1)")
     real.add_argument("--test-robots", type=_robot_list, default=None, metavar="LIST",
@@ -144,7 +144,8 @@ def build_parser(with_targets: bool = True) -> Parser:
     real.add_argument("--window", type=positive_float, default=None, metavar="S",
                       help="fit on the first S seconds of each training log (mrclam: default 500 s, the "
                            "held-out robots are evaluated whole; util-uwb: default half the flight, the rest "
-                           "is held out; plaza: default the whole log)")
+                           "is held out; plaza: default the whole log; victoria-park: default 500 s, the rest "
+                           "is held out)")
     real.add_argument("--anchor-offsets", action="store_true", default=None,
                       help="util-uwb: also learn a range offset per anchor (mean removed)")
     real.add_argument("--odometry-delay", default=None, metavar="S|auto",
@@ -265,7 +266,7 @@ def run_tuning(args, progress_stream=None) -> dict:
                   compare=args.compare)
     if args.duration is not None:
         kw["train_duration"] = args.duration
-    if args.scenario in ("util-uwb", "plaza"):
+    if args.scenario in ("util-uwb", "plaza", "victoria-park"):
         from jaxslam.data import catalogue
 
         kw = dict(dtype=dtype, data=catalogue.data_root(args.data), t_max=args.window)

@@ -56,7 +56,7 @@ OPTION_DEFAULTS = {"robot": 1, "filter": "ekf", "ids": "known", "anchors": None,
                    "calibrated": False, "particles": None, "seed": 0, "params": None, "smooth": False}
 APPLIES = {
     "mrclam": {"robot", "filter", "ids", "calibrated", "particles", "seed", "params", "smooth"},
-    "victoria-park": {"filter", "particles", "seed"},
+    "victoria-park": {"filter", "particles", "seed", "params"},
     "util-uwb": {"anchors", "tof", "smooth", "params"},
     "plaza": {"robot", "anchors", "smooth", "params"},
 }

@@ -18,7 +18,8 @@ registry imports them on first use, so ``jaxslam tune --help`` pays for none of 
 * :mod:`.uwb` — ``("uwb-circle" | "uwb-square" | "uwb-rough", "noise")``: paper 003's Q;
 * :mod:`.mrclam` — ``("mrclam", "noise")``: the planar EKF-SLAM's noise from real logs;
 * :mod:`.util_uwb` — ``("util-uwb", "noise")``: the UTIL range-only filter's noise from its flight;
-* :mod:`.plaza` — ``("plaza", "noise")``: the Plaza range-only SLAM's noise from its logs.
+* :mod:`.plaza` — ``("plaza", "noise")``: the Plaza range-only SLAM's noise from its logs;
+* :mod:`.victoria_park` — ``("victoria-park", "noise")``: Victoria Park's input and laser noise.
 
 No paper covers tuning; each module states its decisions, and ``docs/tuning.md`` collects them.
 Seeds: training runs use ``keys_for(seed, M)``, the held-out test runs ``keys_for(seed + 1, M)``
@@ -38,10 +39,10 @@ __all__ = ["Target", "register_target", "get", "available", "default_target", "R
            "keys", "diag_list"]
 
 #: the target modules the registry imports on first use
-BUILTIN_MODULES = ("ekfslam3d", "figure8", "linear_gaussian", "uwb", "mrclam", "util_uwb", "plaza", "loop")
+BUILTIN_MODULES = ("ekfslam3d", "figure8", "linear_gaussian", "uwb", "mrclam", "util_uwb", "plaza", "victoria_park", "loop")
 
 #: scenarios whose targets learn from real logs (``--data``, ``--window``; MRCLAM and Plaza also ``--robots``)
-REAL_LOG_SCENARIOS = ("mrclam", "util-uwb", "plaza")
+REAL_LOG_SCENARIOS = ("mrclam", "util-uwb", "plaza", "victoria-park")
 
 
 class Target(NamedTuple):
