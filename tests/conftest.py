@@ -91,3 +91,16 @@ if os.environ.get("JAXSLAM_TEST_RSS_LOG"):  # development aid: resident memory a
             rss = next(int(line.split()[1]) for line in f if line.startswith("VmRSS"))
         with open(os.environ["JAXSLAM_TEST_RSS_LOG"] + f".{os.getpid()}", "a") as f:
             f.write(f"{rss // 1024} {item.nodeid}\n")
+
+
+@pytest.fixture
+def run_cli(capsys):
+    """``run_cli(argv) -> (exit code, stdout, stderr)`` of ``jaxslam`` called in this process."""
+    from jaxslam import cli
+
+    def run(argv):
+        rc = cli.main(argv)
+        out = capsys.readouterr()
+        return rc, out.out, out.err
+
+    return run

@@ -13,8 +13,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from central_differences import assert_gradient_matches
 
-from jaxslam import cli
 from jaxslam.data import presets
 from jaxslam.errors import InputError
 from jaxslam.systems import planar_ekf_slam as pe
@@ -42,17 +42,7 @@ def test_nll_gradient_matches_central_differences(excerpt):
     def loss(th):
         return RL.planar_nll(RL.planar_physical(th, base), cfg, item)
 
-    f = jax.jit(loss)
-    g = jax.jit(jax.grad(loss))(theta0)
-    h = 1e-5
-    for name in theta0:
-        for i in range(theta0[name].shape[0]):
-            e = jnp.zeros_like(theta0[name]).at[i].set(h)
-            up = {**theta0, name: theta0[name] + e}
-            dn = {**theta0, name: theta0[name] - e}
-            fd = (float(f(up)) - float(f(dn))) / (2 * h)
-            ad = float(g[name][i])
-            assert abs(ad - fd) <= 1e-4 * max(abs(fd), 1e-2), (name, i, ad, fd)
+    assert_gradient_matches(jax.jit(loss), jax.jit(jax.grad(loss))(theta0), theta0)
 
 
 def test_checkpoint_blocks_change_no_number(excerpt):
@@ -81,16 +71,10 @@ def test_mrclam_target_rejects_overlapping_and_bad_robots(monkeypatch):
         RL.mrclam_noise(data=None)
 
 
-def _cli(argv, capsys):
-    rc = cli.main(argv)
-    out = capsys.readouterr()
-    return rc, out.out, out.err
-
-
-def test_tune_mrclam_writes_a_params_file_that_dataset_reads(tmp_path, capsys):
+def test_tune_mrclam_writes_a_params_file_that_dataset_reads(tmp_path, run_cli):
     js, po = tmp_path / "tune.json", tmp_path / "noise.json"
-    rc, out, err = _cli(["tune", "mrclam", "--data", str(DATA), "--robots", "1", "--test-robots", "2",
-                         "--window", "10", "--steps", "2", "--json", str(js), "--params-out", str(po)], capsys)
+    rc, out, err = run_cli(["tune", "mrclam", "--data", str(DATA), "--robots", "1", "--test-robots", "2",
+                            "--window", "10", "--steps", "2", "--json", str(js), "--params-out", str(po)])
     assert rc == 0, err
     rep = json.loads(js.read_text())
     assert rep["scenario"] == "mrclam" and rep["config"]["test_robots"] == [2]
@@ -100,8 +84,8 @@ def test_tune_mrclam_writes_a_params_file_that_dataset_reads(tmp_path, capsys):
     p = json.loads(po.read_text())
     assert p["dataset"] == "mrclam" and {"M_c", "R", "Q_floor", "range_model"} <= set(p["noise"])
     for f in (po, js):  # the params file alone, and the whole report
-        rc, out, err = _cli(["dataset", "mrclam", "--data", str(DATA), "--robot", "2", "--params", str(f),
-                             "--json", str(tmp_path / "ds.json")], capsys)
+        rc, out, err = run_cli(["dataset", "mrclam", "--data", str(DATA), "--robot", "2", "--params", str(f),
+                             "--json", str(tmp_path / "ds.json")])
         assert rc == 0, err
         ds = json.loads((tmp_path / "ds.json").read_text())
         assert ds["config"]["noise"] == "--params file"
@@ -116,10 +100,10 @@ def test_tune_mrclam_writes_a_params_file_that_dataset_reads(tmp_path, capsys):
     ({"noise": {}}, r"missing key\(s\) \['dataset'\]"),
     ({"dataset": "mrclam", "noise": {"R": [0.1, -1.0]}}, "params.R"),
 ])
-def test_dataset_params_errors_name_the_key(tmp_path, capsys, doc, match):
+def test_dataset_params_errors_name_the_key(tmp_path, run_cli, doc, match):
     f = tmp_path / "p.json"
     f.write_text(json.dumps(doc))
-    rc, out, err = _cli(["dataset", "mrclam", "--data", str(DATA), "--params", str(f)], capsys)
+    rc, out, err = run_cli(["dataset", "mrclam", "--data", str(DATA), "--params", str(f)])
     assert rc == 2
     assert len(err.strip().splitlines()) == 1
     import re
@@ -127,22 +111,22 @@ def test_dataset_params_errors_name_the_key(tmp_path, capsys, doc, match):
     assert re.search(match, err), err
 
 
-def test_params_do_not_apply_to_other_datasets_or_fastslam(tmp_path, capsys):
+def test_params_do_not_apply_to_other_datasets_or_fastslam(tmp_path, run_cli):
     f = tmp_path / "p.json"
     f.write_text(json.dumps({"dataset": "mrclam", "noise": {}}))
-    rc, _, err = _cli(["dataset", "plaza", "--data", str(DATA), "--params", str(f)], capsys)
+    rc, _, err = run_cli(["dataset", "plaza", "--data", str(DATA), "--params", str(f)])
     assert rc == 2 and "--params" in err
-    rc, _, err = _cli(["dataset", "mrclam", "--data", str(DATA), "--filter", "fastslam", "--params", str(f)], capsys)
+    rc, _, err = run_cli(["dataset", "mrclam", "--data", str(DATA), "--filter", "fastslam", "--params", str(f)])
     assert rc == 2 and "fastslam" in err
 
 
-def test_a_diverged_run_warns_in_one_line_and_says_so_in_the_json(tmp_path, capsys):
+def test_a_diverged_run_warns_in_one_line_and_says_so_in_the_json(tmp_path, run_cli):
     # R far below the camera's real noise: most sightings of mapped landmarks become outliers
     f = tmp_path / "tiny_r.json"
     f.write_text(json.dumps({"dataset": "mrclam", "noise": {"R": [1e-8, 1e-8]}}))
     js = tmp_path / "ds.json"
-    rc, out, err = _cli(["dataset", "mrclam", "--data", str(DATA), "--robot", "1", "--params", str(f),
-                         "--json", str(js), "--quiet"], capsys)
+    rc, out, err = run_cli(["dataset", "mrclam", "--data", str(DATA), "--robot", "1", "--params", str(f),
+                            "--json", str(js), "--quiet"])
     assert rc == 0
     lines = [ln for ln in err.strip().splitlines() if "DIVERGED" in ln]
     assert len(lines) == 1 and "warning" in lines[0]
@@ -151,8 +135,8 @@ def test_a_diverged_run_warns_in_one_line_and_says_so_in_the_json(tmp_path, caps
     assert doc["metrics"]["outlier_fraction_mapped"] > 0.10
     assert any(n.startswith("DIVERGED") for n in doc["notes"])
     # and the default noise on the same excerpt is not flagged
-    rc, out, err = _cli(["dataset", "mrclam", "--data", str(DATA), "--robot", "1", "--json", str(js),
-                         "--quiet"], capsys)
+    rc, out, err = run_cli(["dataset", "mrclam", "--data", str(DATA), "--robot", "1", "--json", str(js),
+                            "--quiet"])
     assert rc == 0 and "DIVERGED" not in err
     assert "diverged" not in json.loads(js.read_text())["counts"]["status_flags"]
 
@@ -174,10 +158,10 @@ def test_odometry_delay_is_the_argmin_of_the_training_nll():
     ({"odometry_delay": 5.0}, r"log.odometry_delay: expected a number in \[0, 2\]"),
     ({"delay": 0.1}, r"log: unknown key\(s\) \['delay'\]"),
 ])
-def test_params_log_options_errors_name_the_key(tmp_path, capsys, log, match):
+def test_params_log_options_errors_name_the_key(tmp_path, run_cli, log, match):
     f = tmp_path / "p.json"
     f.write_text(json.dumps({"dataset": "mrclam", "noise": {}, "log": log}))
-    rc, out, err = _cli(["dataset", "mrclam", "--data", str(DATA), "--params", str(f)], capsys)
+    rc, out, err = run_cli(["dataset", "mrclam", "--data", str(DATA), "--params", str(f)])
     assert rc == 2 and len(err.strip().splitlines()) == 1 and re_search(match, err), err
 
 

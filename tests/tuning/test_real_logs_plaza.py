@@ -9,12 +9,13 @@ are in docs/datasets.md (protocol there).
 
 import json
 import pathlib
+import re
 
 import jax
 import jax.numpy as jnp
 import pytest
+from central_differences import assert_gradient_matches
 
-from jaxslam import cli
 from jaxslam.errors import InputError
 from jaxslam.systems import plaza_range as pr
 from jaxslam.tuning.targets import plaza as PT
@@ -33,12 +34,7 @@ def test_nll_gradient_through_the_delayed_initialisation_matches_central_differe
 
     (v, n_reg), g = jax.jit(jax.value_and_grad(loss, has_aux=True))(th0)
     assert int(n_reg) == 4  # every beacon initialised inside the excerpt: the path is exercised
-    f = jax.jit(lambda th: loss(th)[0])
-    h = 1e-5
-    for i in range(th0.shape[0]):
-        e = jnp.zeros_like(th0).at[i].set(h)
-        fd = (float(f(th0 + e)) - float(f(th0 - e))) / (2 * h)
-        assert abs(float(g[i]) - fd) <= 1e-4 * max(abs(fd), 1e-2), (PT.NOISE_FIELDS[i], float(g[i]), fd)
+    assert_gradient_matches(jax.jit(lambda th: loss(th)[0]), g, th0)
 
 
 def test_plaza_target_refuses_bad_and_overlapping_sequences():
@@ -50,16 +46,10 @@ def test_plaza_target_refuses_bad_and_overlapping_sequences():
         PT.plaza_logs(DATA, [1], t_max=1e6)
 
 
-def _cli(argv, capsys):
-    rc = cli.main(argv)
-    out = capsys.readouterr()
-    return rc, out.out, out.err
-
-
-def test_tune_plaza_writes_a_params_file_that_dataset_reads(tmp_path, capsys):
+def test_tune_plaza_writes_a_params_file_that_dataset_reads(tmp_path, run_cli):
     js, po = tmp_path / "tune.json", tmp_path / "noise.json"
-    rc, out, err = _cli(["tune", "plaza", "--data", str(DATA), "--robots", "2", "--test-robots", "1", "--steps", "1",
-                         "--json", str(js), "--params-out", str(po)], capsys)
+    rc, out, err = run_cli(["tune", "plaza", "--data", str(DATA), "--robots", "2", "--test-robots", "1", "--steps", "1",
+                            "--json", str(js), "--params-out", str(po)])
     assert rc == 0, err
     rep = json.loads(js.read_text())
     assert rep["scenario"] == "plaza" and rep["config"]["robots"] == [2] and rep["config"]["test_robots"] == [1]
@@ -68,8 +58,8 @@ def test_tune_plaza_writes_a_params_file_that_dataset_reads(tmp_path, capsys):
     p = json.loads(po.read_text())
     assert p["dataset"] == "plaza" and p["noise"]["nu"] == PT.NU and p["noise"]["gate"] is None
     ds = tmp_path / "ds.json"
-    rc, out, err = _cli(["dataset", "plaza", "--data", str(DATA), "--robot", "1", "--params", str(po),
-                         "--json", str(ds)], capsys)
+    rc, out, err = run_cli(["dataset", "plaza", "--data", str(DATA), "--robot", "1", "--params", str(po),
+                            "--json", str(ds)])
     assert rc == 0, err
     doc = json.loads(ds.read_text())
     assert doc["config"]["noise"] == "--params file" and doc["config"]["noise_values"]["nu"] == PT.NU
@@ -78,8 +68,6 @@ def test_tune_plaza_writes_a_params_file_that_dataset_reads(tmp_path, capsys):
                        ({"dataset": "plaza", "noise": {"alpha": 1.0}}, "unknown key\\(s\\) \\['alpha'\\]")):
         f = tmp_path / "bad.json"
         f.write_text(json.dumps(bad))
-        rc, out, err = _cli(["dataset", "plaza", "--data", str(DATA), "--params", str(f)], capsys)
+        rc, out, err = run_cli(["dataset", "plaza", "--data", str(DATA), "--params", str(f)])
         assert rc == 2 and len(err.strip().splitlines()) == 1
-        import re
-
         assert re.search(match, err), err

@@ -14,13 +14,14 @@ import json
 import pathlib
 import re
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 from scipy import stats as sps
 
-from jaxslam import cli, stats
+from central_differences import assert_target_gradient
+
+from jaxslam import stats
 from jaxslam.data import presets
 from jaxslam.errors import InputError
 from jaxslam.systems import util_range as ur
@@ -105,17 +106,7 @@ def test_outlier_gate_defaults_to_the_model_quantile(flight):
 
 def test_nll_gradient_matches_central_differences():
     tg = UT.util_noise(data=DATA, anchor_offsets=True)
-    item = jax.tree.map(lambda a: a[0], tg.train)
-    th0 = {**tg.theta0, "anchor_offset": jnp.linspace(-0.05, 0.05, 8)}
-    f = jax.jit(lambda th: tg.loss_fn(th, item))
-    g = jax.jit(jax.grad(lambda th: tg.loss_fn(th, item)))(th0)
-    h = 1e-5
-    for name in th0:
-        for i in range(th0[name].shape[0]):
-            e = jnp.zeros_like(th0[name]).at[i].set(h)
-            fd = (float(f({**th0, name: th0[name] + e})) - float(f({**th0, name: th0[name] - e}))) / (2 * h)
-            ad = float(g[name][i])
-            assert abs(ad - fd) <= 1e-4 * max(abs(fd), 1e-2), (name, i, ad, fd)
+    assert_target_gradient(tg, {**tg.theta0, "anchor_offset": jnp.linspace(-0.05, 0.05, 8)})
 
 
 def test_fit_window_leaving_too_few_ranges_is_a_clear_error():
@@ -123,16 +114,10 @@ def test_fit_window_leaving_too_few_ranges_is_a_clear_error():
         UT.util_noise(data=DATA, t_max=20.05)
 
 
-def _cli(argv, capsys):
-    rc = cli.main(argv)
-    out = capsys.readouterr()
-    return rc, out.out, out.err
-
-
-def test_tune_util_writes_a_params_file_that_dataset_reads(tmp_path, capsys):
+def test_tune_util_writes_a_params_file_that_dataset_reads(tmp_path, run_cli):
     js, po = tmp_path / "tune.json", tmp_path / "noise.json"
-    rc, out, err = _cli(["tune", "util-uwb", "--data", str(DATA), "--steps", "3", "--json", str(js),
-                         "--params-out", str(po)], capsys)
+    rc, out, err = run_cli(["tune", "util-uwb", "--data", str(DATA), "--steps", "3", "--json", str(js),
+                            "--params-out", str(po)])
     assert rc == 0, err
     rep = json.loads(js.read_text())
     assert rep["scenario"] == "util-uwb" and rep["config"]["nu"] == UT.NU
@@ -142,15 +127,15 @@ def test_tune_util_writes_a_params_file_that_dataset_reads(tmp_path, capsys):
     p = json.loads(po.read_text())
     assert p["dataset"] == "util-uwb" and p["noise"]["nu"] == UT.NU and p["noise"]["gate"] is None
     ds = tmp_path / "ds.json"
-    rc, out, err = _cli(["dataset", "util-uwb", "--data", str(DATA), "--params", str(po), "--json", str(ds)], capsys)
+    rc, out, err = run_cli(["dataset", "util-uwb", "--data", str(DATA), "--params", str(po), "--json", str(ds)])
     assert rc == 0, err
     doc = json.loads(ds.read_text())
     assert doc["config"]["noise"] == "--params file"
     assert doc["config"]["noise_values"]["sigma_r"] == pytest.approx(p["noise"]["sigma_r"], rel=1e-15)
     # the flags of other real-log targets are refused by name
-    rc, out, err = _cli(["tune", "util-uwb", "--data", str(DATA), "--robots", "1"], capsys)
+    rc, out, err = run_cli(["tune", "util-uwb", "--data", str(DATA), "--robots", "1"])
     assert rc == 2 and "--robots: only 'jaxslam tune mrclam | plaza'" in err
-    rc, out, err = _cli(["tune", "mrclam", "--data", str(DATA), "--anchor-offsets"], capsys)
+    rc, out, err = run_cli(["tune", "mrclam", "--data", str(DATA), "--anchor-offsets"])
     assert rc == 2 and "--anchor-offsets: only 'jaxslam tune util-uwb'" in err
 
 
@@ -160,10 +145,10 @@ def test_tune_util_writes_a_params_file_that_dataset_reads(tmp_path, capsys):
     ({"dataset": "util-uwb", "noise": {"sigma_r": -0.1}}, r"noise.sigma_r: expected a positive number"),
     ({"dataset": "util-uwb", "noise": {"anchor_offset": "x"}}, r"noise.anchor_offset"),
 ])
-def test_util_params_errors_name_the_key(tmp_path, capsys, doc, match):
+def test_util_params_errors_name_the_key(tmp_path, run_cli, doc, match):
     f = tmp_path / "p.json"
     f.write_text(json.dumps(doc))
-    rc, out, err = _cli(["dataset", "util-uwb", "--data", str(DATA), "--params", str(f)], capsys)
+    rc, out, err = run_cli(["dataset", "util-uwb", "--data", str(DATA), "--params", str(f)])
     assert rc == 2 and len(err.strip().splitlines()) == 1
     assert re.search(match, err), err
 
