@@ -28,7 +28,8 @@ Speed (STYLE.md lessons, measured on a 2-core CPU):
   (A's columns at H's support only), costs O(n²·k·d_z) — never a dense n×n product with H;
 * gains come from a Cholesky solve on the (k·d_z)-sized innovation
   covariance; P is symmetrised once per update;
-* with ``active_only=True`` (``update`` and ``predict``) the cost is set by the mapped
+* with ``active_only=True`` (``update``, ``predict`` and the nearest-neighbour d² table,
+  :func:`marginal_d2`) the cost is set by the mapped
   landmarks, not the capacity (inactive slots are zero, and registration fills the lowest
   free slot): the gain on the smallest of three leading blocks and two row counts
   (``lax.switch``; P is not an operand, since a conditional that writes P makes XLA copy
@@ -932,7 +933,7 @@ def associate_known(state: SlamState, lm_ids, mask):
     return slots, mapped
 
 
-def marginal_d2(state: SlamState, model: SlamModel, z, mask, R, params=None):
+def marginal_d2(state: SlamState, model: SlamModel, z, mask, R, params=None, active_only: bool = False):
     """Marginal d² (K, cap) of every measurement against every landmark slot, the table both
     nearest-neighbour and JCBB association read.
 
@@ -940,38 +941,65 @@ def marginal_d2(state: SlamState, model: SlamModel, z, mask, R, params=None):
     d²_kj = ν_kjᵀ S_kj⁻¹ ν_kj.  Entries of inactive slots, masked or non-finite rows are
     +inf.  Inactive slots (zero mean) are evaluated on derivative-free inputs and replaced by
     ẑ = 0, S = I (finite, never NaN, also under grad / jvp).
-    Returns ``(d2, (zh (cap, d_z), Hs (cap, d_z, n_r), Hl (cap, d_z, d_l), nu (K, cap, d_z)))``.
+    ``active_only`` (static): evaluate only the smallest leading block of slots (capacity/8, /2
+    or all, as :func:`update`) that holds every active slot (one ``lax.switch``; under ``vmap``
+    the batch's fullest map decides); the slots beyond it are inactive, so the table is the
+    same (to rounding: another program), at a cost set by the mapped landmarks instead of the
+    capacity.
+    Returns ``(d2, (zh (cap, d_z), Hs (cap, d_z, n_r), Hl (cap, d_z, d_l), nu (K, cap, d_z)))``
+    (the slots beyond the evaluated block: ẑ = 0, H = 0, ν = 0).
     """
+    nr, dl, cap = _sizes(state, model)
+    if not active_only:
+        return _marginal_d2_block(state, model, z, mask, R, params, cap)
+    sizes = sorted({c for c in (-(-cap // 8), -(-cap // 2), cap) if c >= min(cap, 32)})
+    if len(sizes) == 1:
+        return _marginal_d2_block(state, model, z, mask, R, params, cap)
+    which = jnp.minimum(jnp.searchsorted(jnp.asarray(sizes), _active_top(state), side="left"), len(sizes) - 1)
+    return jax.lax.switch(which, [functools.partial(_marginal_d2_block, state, model, z, mask, R, params, c)
+                                  for c in sizes])
+
+
+def _marginal_d2_block(state: SlamState, model: SlamModel, z, mask, R, params, c: int):
+    """:func:`marginal_d2` evaluated on the first ``c`` slots (static), padded to the capacity."""
     nr, dl, cap = _sizes(state, model)
     dtype = state.x.dtype
     K = z.shape[0]
-    R = jnp.broadcast_to(jnp.asarray(R, dtype), (K, model.meas_dim, model.meas_dim))
+    dz = model.meas_dim
+    R = jnp.broadcast_to(jnp.asarray(R, dtype), (K, dz, dz))
     s = state.x[:nr]
-    L = state.x[nr:].reshape(cap, dl)
-    idx = slot_indices(jnp.arange(cap), model)  # (cap, dl)
+    L = state.x[nr:nr + c * dl].reshape(c, dl)
+    idx = slot_indices(jnp.arange(c), model)  # (c, dl)
     Pss = state.P[:nr, :nr]
-    Psl = state.P[:nr, idx]  # (nr, cap, dl)
-    Pll = state.P[idx[:, :, None], idx[:, None, :]]  # (cap, dl, dl)
+    Psl = state.P[:nr, idx]  # (nr, c, dl)
+    Pll = state.P[idx[:, :, None], idx[:, None, :]]  # (c, dl, dl)
     finite = jnp.all(jnp.isfinite(z), axis=-1)
     z_safe = jnp.where(finite[:, None], z, 0.0).astype(dtype)
     res_fn = _residual(model)
-    act = state.active
-    zh, Hs, Hl = _observe_batch(model, s, L, params, act)  # (cap, dz), (cap, dz, nr), (cap, dz, dl)
+    act = state.active[:c]
+    zh, Hs, Hl = _observe_batch(model, s, L, params, act)  # (c, dz), (c, dz, nr), (c, dz, dl)
 
     def per_landmark(Hs_j, Hl_j, Psl_j, Pll_j):
         return (Hs_j @ Pss @ Hs_j.T + Hs_j @ Psl_j @ Hl_j.T + Hl_j @ Psl_j.T @ Hs_j.T
                 + Hl_j @ Pll_j @ Hl_j.T)
 
-    Sx = jax.vmap(per_landmark, in_axes=(0, 0, 1, 0))(Hs, Hl, Psl, Pll)  # (cap, dz, dz)
-    Sx = jnp.where(act[:, None, None], Sx, jnp.eye(model.meas_dim, dtype=dtype))
-    nu = jax.vmap(lambda zk: jax.vmap(lambda zh_j: res_fn(zk, zh_j))(zh))(z_safe)  # (K, cap, dz)
+    Sx = jax.vmap(per_landmark, in_axes=(0, 0, 1, 0))(Hs, Hl, Psl, Pll)  # (c, dz, dz)
+    Sx = jnp.where(act[:, None, None], Sx, jnp.eye(dz, dtype=dtype))
+    nu = jax.vmap(lambda zk: jax.vmap(lambda zh_j: res_fn(zk, zh_j))(zh))(z_safe)  # (K, c, dz)
     d2 = jax.vmap(lambda nu_k, Rk: jax.vmap(lambda n, S_j: _nis_small(n, S_j + Rk))(nu_k, Sx))(nu, R)
     d2 = jnp.where(act[None, :] & (mask & finite)[:, None], d2, jnp.asarray(jnp.inf, dtype))
+    if c < cap:  # the slots beyond the block are inactive: +inf, and zeros in the aux arrays
+        pad = cap - c
+        d2 = jnp.concatenate([d2, jnp.full((K, pad), jnp.inf, dtype)], axis=1)
+        zh = jnp.concatenate([zh, jnp.zeros((pad, dz), dtype)])
+        Hs = jnp.concatenate([Hs, jnp.zeros((pad, dz, nr), dtype)])
+        Hl = jnp.concatenate([Hl, jnp.zeros((pad, dz, dl), dtype)])
+        nu = jnp.concatenate([nu, jnp.zeros((K, pad, dz), dtype)], axis=1)
     return d2, (zh, Hs, Hl, nu)
 
 
 def associate_nn(state: SlamState, model: SlamModel, z, mask, R, params=None,
-                 gate: float = 11.34, new_threshold: float = 30.0):
+                 gate: float = 11.34, new_threshold: float = 30.0, active_only: bool = False):
     """Nearest-neighbour association by Mahalanobis distance (ids hidden).
 
     For each measurement the active landmark with the smallest squared
@@ -980,7 +1008,9 @@ def associate_nn(state: SlamState, model: SlamModel, z, mask, R, params=None,
     d² < ``gate`` → matched; d² > ``new_threshold`` (or no landmark mapped)
     → a new landmark; in between → ambiguous, discarded.  When two
     measurements choose the same landmark only the closer one keeps it (the
-    other is discarded), so a joint update never uses a landmark twice.
+    other is discarded), so a joint update never uses a landmark twice.  ``active_only``
+    (static): the d² table on the leading block of slots that holds the map
+    (:func:`marginal_d2`); the same association (d² to rounding).
 
     Returns (slots (K,), matched (K,) bool, new (K,) bool, d2_min (K,)).
     """
@@ -988,7 +1018,7 @@ def associate_nn(state: SlamState, model: SlamModel, z, mask, R, params=None,
     dtype = state.x.dtype
     K = z.shape[0]
     finite = jnp.all(jnp.isfinite(z), axis=-1)
-    d2, _ = marginal_d2(state, model, z, mask, R, params)
+    d2, _ = marginal_d2(state, model, z, mask, R, params, active_only=active_only)
     big = jnp.asarray(jnp.inf, dtype)
     slots = jnp.argmin(d2, axis=1).astype(jnp.int32)
     d2_min = jnp.min(d2, axis=1)

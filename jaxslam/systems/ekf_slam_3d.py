@@ -374,7 +374,7 @@ def correct(state: State, y, ids, visible, config: Config, params: Params, x_tru
     else:
         slots, mapped, new, _ = es.associate_nn(
             st, model, y_s, vis_s, R, mparams, gate=jnp.asarray(params.nn_gate, st.x.dtype),
-            new_threshold=jnp.asarray(params.nn_new, st.x.dtype),
+            new_threshold=jnp.asarray(params.nn_new, st.x.dtype), active_only=cfg.active_only,
         )
     gate = None if params.gate is None else jnp.asarray(params.gate, st.x.dtype)
     st, info = es.update(st, model, y_s, slots, mapped, R, mparams, gate=gate,

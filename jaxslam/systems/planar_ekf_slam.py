@@ -412,7 +412,8 @@ def _measure(st: es.SlamState, z, ids, valid, model, config: Config, R, nu, thr:
             new = valid & ~matched & (jc.d2 > thr.new_threshold)
         else:
             slots, matched, new, _ = es.associate_nn(st, model, zs, valid, R, None, gate=thr.gate,
-                                                     new_threshold=thr.new_threshold)
+                                                     new_threshold=thr.new_threshold,
+                                                     active_only=config.active_only)
             if config.joint_gate is not None:
                 matched, _, _ = es.joint_compatibility(st, model, zs, slots, matched, R, None,
                                                        _chi2_table(config.joint_gate, K, 2))

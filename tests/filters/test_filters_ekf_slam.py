@@ -812,6 +812,44 @@ def test_active_only_update_derivatives_and_vmap():
     np.testing.assert_allclose(vP(S, True), vP(S, False), atol=1e-12)
 
 
+@pytest.mark.parametrize("spread", [False, True], ids=["leading", "spread"])
+def test_active_only_association_equals_the_whole_table(spread):
+    """Nearest-neighbour association on the leading block of slots (capacity 100: blocks of 32,
+    50, 100) equals the whole table's, alone and vmapped over two maps of different fill: the
+    same slots, matches and new rows, d² to rounding (another XLA program: 1 ulp measured)."""
+    sts = [_holey_state(5, cap=100, spread=spread), _holey_state(6, cap=100, spread=spread)]
+    K = 8
+    rng = np.random.default_rng(3)
+
+    def rows_of(st):
+        act = np.flatnonzero(np.asarray(st.active))[:K - 2]
+        lm = np.asarray(es.landmarks(st, MODEL))[act]
+        z = jax.vmap(lambda l: observe(st.x[:3], l, None))(jnp.asarray(lm))
+        z = z + jnp.asarray(rng.normal(size=z.shape) * np.array([0.05, 0.01]))
+        return jnp.concatenate([z, jnp.array([[40.0, 1.0], [25.0, -1.2]])])  # two far: new
+
+    zs = [rows_of(st) for st in sts]
+    mask = jnp.ones(K, bool).at[2].set(False)
+    for st, z in zip(sts, zs):
+        a = es.associate_nn(st, MODEL, z, mask, jnp.asarray(R))
+        b = es.associate_nn(st, MODEL, z, mask, jnp.asarray(R), active_only=True)
+        for x, y in zip(a[:3], b[:3]):
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+        np.testing.assert_allclose(np.asarray(b[3]), np.asarray(a[3]), rtol=1e-12)
+        assert bool(np.asarray(a[2])[-1])  # the far rows are new landmarks
+    S = jax.tree.map(lambda a, b: jnp.stack([a, b]), *sts)
+    Z = jnp.stack(zs)
+    va = jax.vmap(lambda st, z: es.associate_nn(st, MODEL, z, mask, jnp.asarray(R)))(S, Z)
+    vb = jax.vmap(lambda st, z: es.associate_nn(st, MODEL, z, mask, jnp.asarray(R), active_only=True))(S, Z)
+    for x, y in zip(va[:3], vb[:3]):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    np.testing.assert_allclose(np.asarray(vb[3]), np.asarray(va[3]), rtol=1e-12)
+    d2a, _ = es.marginal_d2(sts[0], MODEL, zs[0], mask, jnp.asarray(R))
+    d2b, (zh, _, _, _) = es.marginal_d2(sts[0], MODEL, zs[0], mask, jnp.asarray(R), active_only=True)
+    np.testing.assert_allclose(np.asarray(d2b), np.asarray(d2a), rtol=1e-12)  # inf where inf
+    assert zh.shape == (100, 2)
+
+
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
 @pytest.mark.parametrize("n,hi", [(9, 9), (57, 57), (57, 20), (203, 203), (203, 140), (203, 3)])
 def test_robot_cross_update_matches_numpy(n, hi, dtype):
