@@ -13,6 +13,7 @@ import re
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import pytest
 from central_differences import assert_gradient_matches
 
@@ -71,3 +72,16 @@ def test_tune_plaza_writes_a_params_file_that_dataset_reads(tmp_path, run_cli):
         rc, out, err = run_cli(["dataset", "plaza", "--data", str(DATA), "--params", str(f)])
         assert rc == 2 and len(err.strip().splitlines()) == 1
         assert re.search(match, err), err
+
+
+def test_student_t_slam_in_float32_follows_float64():
+    """The Student-t Plaza SLAM (the excerpt, thresholds lowered so its beacons initialise) in
+    float32 and float64: positions to 1 cm, the NLL per range to 1e-3 nats, the same beacons."""
+    out = {}
+    for dt in (jnp.float32, jnp.float64):
+        (log, _, _), = PT.plaza_logs(DATA, [2], dt)
+        r = pr.run(log, pr.Config(), pr.PARAMS._replace(min_points=8.0, min_spread=0.3, gate=None, nu=PT.NU))
+        assert r.pos.dtype == dt and int(r.n_registered) == 4
+        out[dt] = (np.asarray(r.pos, np.float64), float(jnp.sum(r.nll) / jnp.sum(r.nll_dof)))
+    np.testing.assert_allclose(out[jnp.float32][0], out[jnp.float64][0], atol=1e-2)
+    assert abs(out[jnp.float32][1] - out[jnp.float64][1]) < 1e-3

@@ -169,3 +169,17 @@ def test_shipped_fit_improves_held_out_nll_and_rmse_on_the_full_flight():
     # held-out NLL per range (the hand-set run's covers only the ranges its gate let through,
     # which flatters it; the fit wins anyway)
     assert out["fitted"][1] < out["hand"][1]
+
+
+def test_student_t_ranges_in_float32_follow_float64():
+    """The shipped Student-t UTIL filter and its likelihood in float32 and float64 on the excerpt
+    (positions to 1 mm, the NLL per range to 1e-3 nats)."""
+    out = {}
+    for dt in (jnp.float32, jnp.float64):
+        log = UT.util_flight(DATA, dt)[0]
+        r = ur.run(log, ur.Config(height=False), presets.util_params())
+        assert r.pos.dtype == dt and r.nll.dtype == dt
+        assert not (int(r.status) & (ur.errors.NON_FINITE | ur.errors.NOT_PSD))
+        out[dt] = (np.asarray(r.pos, np.float64), float(np.sum(r.nll) / np.sum(r.nll_dof)))
+    np.testing.assert_allclose(out[jnp.float32][0], out[jnp.float64][0], atol=1e-3)
+    assert abs(out[jnp.float32][1] - out[jnp.float64][1]) < 1e-3
