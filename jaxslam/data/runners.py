@@ -306,11 +306,15 @@ def _class_fractions(counts: dict) -> dict:
     """
     if "mapped_rows" not in counts:
         return {}
-    rows = max(counts["mapped_rows"], 1)
     new = max(counts["registered"] + counts["rejected"], 1)
+    return {**_mapped_fractions(counts), "rejected_fraction_new": counts["rejected"] / new}
+
+
+def _mapped_fractions(counts: dict) -> dict:
+    """outlier_fraction_mapped and gated_fraction_mapped of :func:`_class_fractions`."""
+    rows = max(counts["mapped_rows"], 1)
     return {"outlier_fraction_mapped": counts["mapped_outliers"] / rows,
-            "gated_fraction_mapped": min(counts["gated"], counts["mapped_rows"]) / rows,
-            "rejected_fraction_new": counts["rejected"] / new}
+            "gated_fraction_mapped": min(counts["gated"], counts["mapped_rows"]) / rows}
 
 
 def _divergence_notes(status, rows="the sightings of mapped landmarks", gate="the chi2(2) 99 % gate") -> list:
@@ -327,9 +331,7 @@ def _range_outliers(res, counts: dict, m: dict, notes: list) -> None:
     range model's own 99 % quantile), their fractions, and the DIVERGED note."""
     counts["mapped_rows"] = int(np.sum(np.asarray(res.n_monitored)))
     counts["mapped_outliers"] = int(np.sum(np.asarray(res.n_outliers)))
-    rows = max(counts["mapped_rows"], 1)
-    m["outlier_fraction_mapped"] = counts["mapped_outliers"] / rows
-    m["gated_fraction_mapped"] = min(counts["gated"], counts["mapped_rows"]) / rows
+    m.update(_mapped_fractions(counts))
     notes.extend(_divergence_notes(res.status, "the ranges of mapped anchors",
                                    "the range model's own 99 % quantile"))
 

@@ -283,6 +283,17 @@ def _active_top(state: SlamState):
     return _batch_max(jnp.max(jnp.where(state.active, jnp.arange(1, cap + 1), 0)))
 
 
+def _block_sizes(cap: int) -> list:
+    """The leading slot blocks the active-block update and association choose from: capacity/8,
+    /2 and all (sizes below 32 slots save less than their branch costs to compile)."""
+    return sorted({c for c in (-(-cap // 8), -(-cap // 2), cap) if c >= min(cap, 32)})
+
+
+def _block_index(sizes, top):
+    """Index of the smallest of ``sizes`` that holds ``top`` slots (traced)."""
+    return jnp.minimum(jnp.searchsorted(jnp.asarray(sizes), top, side="left"), len(sizes) - 1)
+
+
 def _clamped_tile(k, t: int, n: int, lo: int = 0):
     """Start of the k-th ``t``-wide tile of [lo, n), the last one clamped to end at n, and which
     of its t entries are its own (not already covered by the tile before a clamped one)."""
@@ -598,10 +609,10 @@ def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
         # branches (with /4 and K/4) took the paper-000 run's compile from 3.1 to 5.1 s for
         # 0.005-0.02 s less run time.
         top = _active_top(state)
-        # (sizes below 32 slots and row counts of fewer than 24 scalars save less than their
-        # branch costs to compile: a small problem gets fewer branches, or none)
-        sizes = sorted({c for c in (-(-cap // 8), -(-cap // 2), cap) if c >= min(cap, 32)})
-        which = jnp.minimum(jnp.searchsorted(jnp.asarray(sizes), top, side="left"), len(sizes) - 1)
+        # (row counts of fewer than 24 scalars save less than their branch costs to compile:
+        # a small problem gets fewer branches, or none; the same for blocks, _block_sizes)
+        sizes = _block_sizes(cap)
+        which = _block_index(sizes, top)
         counts = sorted({max(1, -(-K_all // 2)), K_all}) if m_all >= 24 else [K_all]
         branches = [functools.partial(factors, nr + c * dl, k) for k in counts for c in sizes]
         if len(counts) == 1:
@@ -952,11 +963,10 @@ def marginal_d2(state: SlamState, model: SlamModel, z, mask, R, params=None, act
     nr, dl, cap = _sizes(state, model)
     if not active_only:
         return _marginal_d2_block(state, model, z, mask, R, params, cap)
-    sizes = sorted({c for c in (-(-cap // 8), -(-cap // 2), cap) if c >= min(cap, 32)})
+    sizes = _block_sizes(cap)
     if len(sizes) == 1:
         return _marginal_d2_block(state, model, z, mask, R, params, cap)
-    which = jnp.minimum(jnp.searchsorted(jnp.asarray(sizes), _active_top(state), side="left"), len(sizes) - 1)
-    return jax.lax.switch(which, [functools.partial(_marginal_d2_block, state, model, z, mask, R, params, c)
+    return jax.lax.switch(_block_index(sizes, _active_top(state)), [functools.partial(_marginal_d2_block, state, model, z, mask, R, params, c)
                                   for c in sizes])
 
 

@@ -21,7 +21,7 @@ import jax.numpy as jnp
 
 from ..filters import ekf_slam as es
 from ..errors import InputError
-from ..linalg import safe_norm
+from ..linalg import is_concrete, safe_norm
 from ..stats import chi2_ppf_np, student_t_d2_ppf_np, student_t_nll
 
 __all__ = ["range_observe", "range_nll", "update_ranges", "resolve_outlier_gate", "Result", "OUTLIER_P"]
@@ -50,8 +50,6 @@ def resolve_outlier_gate(params):
     model's own d² — χ²(1) (6.63) for Gaussian ranges (``nu`` None), F(1, ν) for Student-t
     ranges (16.26 at ν = 5) — computed on the host, so ``nu`` must then be a number, not traced.
     Also checks ν > 0 when it is a number."""
-    from ..linalg import is_concrete
-
     nu = params.nu
     if nu is not None and is_concrete(nu) and not float(nu) > 0:
         raise InputError(f"params.nu: Student-t degrees of freedom must be > 0, got {nu}")

@@ -66,7 +66,7 @@ import numpy as np
 from ..dynamics import planar
 from ..errors import InputError
 from ..filters import fastslam as fs
-from ..linalg import check_scalar, is_concrete, wrap_angle
+from ..linalg import check_scalar, inv_small, is_concrete, wrap_angle
 from ..sensors import range_bearing2d as rb
 from .planar_ekf_slam import Log, log_from_events
 
@@ -272,15 +272,6 @@ def _sample_fn(f, increment: bool):
 # Data association
 # ---------------------------------------------------------------------------
 
-def _inv2(S):
-    det = S[..., 0, 0] * S[..., 1, 1] - S[..., 0, 1] * S[..., 1, 0]
-    adj = jnp.stack([jnp.stack([S[..., 1, 1], -S[..., 0, 1]], -1),
-                     jnp.stack([-S[..., 1, 0], S[..., 0, 0]], -1)], -2)
-    ok = (det > 0) & (S[..., 0, 0] > 0)
-    safe = jnp.where(ok, det, jnp.ones_like(det))
-    return adj / safe[..., None, None], ok
-
-
 def associate_ml(pose, mean, cov, active, counter, z, mask, R, gate, new_threshold):
     """Maximum-likelihood association of one particle (module docstring).
 
@@ -303,7 +294,8 @@ def associate_ml(pose, mean, cov, active, counter, z, mask, R, gate, new_thresho
 
     zhat, H = jax.vmap(pred)(mean)  # (cap, 2), (cap, 2, 2)
     S = H @ cov @ jnp.swapaxes(H, -1, -2) + R
-    Sinv, ok = _inv2(S)
+    Sinv, det = inv_small(S)
+    ok = (det > 0) & (S[..., 0, 0] > 0)  # positive definite (Sylvester); the rest is +inf below
     valid = mask & jnp.all(jnp.isfinite(z), axis=1)
     zs = jnp.where(valid[:, None], z, jnp.zeros((), dtype))
     nu = jax.vmap(lambda zk: jax.vmap(lambda zh: rb.residual(zk, zh))(zhat))(zs)  # (K, cap, 2)

@@ -140,7 +140,7 @@ def plaza_noise(loss: str = "nll", data=None, robots=(1,), test_robots=(2,), dty
 
     return Target(
         scenario="plaza", target="noise", loss="nll", specs={}, theta0=theta0, loss_fn=loss_fn,
-        train=batch(train), test=batch(plaza_logs(data, test_robots, dtype)) if test_robots else None,
+        train=batch(train), test=batch(ev_logs) if test_robots else None,
         physical=physical, evaluate=evaluate, references={"hand_gaussian_gated": base},
         to_params=to_params, describe=describe,
         config={"dataset": "plaza", "robots": list(robots), "test_robots": list(test_robots),

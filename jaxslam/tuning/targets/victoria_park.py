@@ -38,12 +38,22 @@ from . import Target, register_target
 __all__ = ["victoria_park_noise"]
 
 
-def _log(data, t_end=None):
+def _logs(data, t_split: float):
+    """The whole Victoria Park event log (as the EKF runner builds it) and its first
+    ``t_split`` seconds (its start + t_split; checked against the log's span), from one load."""
     from ...data.events import merge_events
     from ...data.victoria_park import load_victoria_park
 
     d = load_victoria_park(data)
-    return merge_events(d.input_t, d.inputs, d.det_t, d.det, K=None, input_mode="rate", t_end=t_end)
+
+    def build(t_end=None):
+        return merge_events(d.input_t, d.inputs, d.det_t, d.det, K=None, input_mode="rate", t_end=t_end)
+
+    whole = build()
+    span = float(whole.t[-1] - whole.t[0])
+    if not 0.0 < t_split < span:
+        raise InputError(f"--window: the fit window must end inside the log (0 - {span:.0f} s), got {t_split:g} s")
+    return whole, build(float(whole.t[0]) + t_split)
 
 
 def victoria_park_noise(loss: str = "nll", data=None, dtype=jnp.float64, t_max: float | None = None, **_ignored):
@@ -58,11 +68,7 @@ def victoria_park_noise(loss: str = "nll", data=None, dtype=jnp.float64, t_max: 
         raise InputError(f"--loss: the real-log targets learn by innovation likelihood only (nll); got {loss!r}")
     data = catalogue.data_root(data)
     t_split = 500.0 if t_max is None else float(t_max)
-    whole = _log(data)
-    span = float(whole.t[-1] - whole.t[0])
-    if not 0.0 < t_split < span:
-        raise InputError(f"--window: the fit window must end inside the log (0 - {span:.0f} s), got {t_split:g} s")
-    fit_log = _log(data, t_end=float(whole.t[0]) + t_split)
+    whole, fit_log = _logs(data, t_split)
     base = presets.victoria_park_params(dtype=dtype)
     s0 = np.sqrt(np.concatenate([np.diag(np.asarray(base.M_c, np.float64)), np.diag(np.asarray(base.R, np.float64))]))
     theta0 = {"log_sigma": jnp.asarray(np.log(s0), dtype)}
