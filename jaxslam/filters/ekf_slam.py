@@ -26,6 +26,8 @@ Speed (STYLE.md lessons, measured on a 2-core CPU):
   (I − K H) P (I − K H)ᵀ + K R Kᵀ = A − (A Hᵀ − K R) Kᵀ,  A = P − K (P Hᵀ)ᵀ,
   written as the symmetric rank-2m correction P − ½ (K Gᵀ + G Kᵀ), G = P Hᵀ + A Hᵀ − K R
   (A's columns at H's support only), costs O(n²·k·d_z) — never a dense n×n product with H;
+  ``joseph=False`` uses the standard form P − K S Kᵀ = P − (K L)(K L)ᵀ instead (S = L Lᵀ),
+  a rank-m correction with half the products (:func:`sym_outer_update`);
 * gains come from a Cholesky solve on the (k·d_z)-sized innovation
   covariance; P is symmetrised once per update;
 * with ``active_only=True`` (``update``, ``predict`` and the nearest-neighbour d² table,
@@ -44,7 +46,7 @@ in ``overflow`` and flagged ``CAPACITY_OVERFLOW``.
 
 References: paper 000 eq. 21-53 (prediction eq. 26-29, update eq. 37-43,
 registration eq. 44-53).  The paper's update eq. 43 (P − K E Kᵀ) is replaced
-by the factored Joseph form; see docs/papers.md.
+by the factored Joseph form by default (eq. 43 itself is ``joseph=False``); see docs/papers.md.
 """
 
 from __future__ import annotations
@@ -70,6 +72,7 @@ __all__ = [
     "predict",
     "update",
     "sym_rank_update",
+    "sym_outer_update",
     "robot_cross_update",
     "update_robot",
     "register",
@@ -305,7 +308,8 @@ def _clamped_tile(k, t: int, n: int, lo: int = 0):
 def _shared_bound(fn):
     """``fn(*arrays, bound)`` whose loop length is set by the traced ``bound``, with a batching
     rule: a vmapped batch runs every member's loop to the batch's largest bound (per-run loop
-    lengths would make the loop select all of its carry at every iteration)."""
+    lengths would make the loop select all of its carry at every iteration).  ``fn`` takes
+    arrays with any leading batch axes (the rule passes the batched arrays as they are)."""
     wrapped = custom_vmap(fn)
 
     @wrapped.def_vmap
@@ -314,7 +318,10 @@ def _shared_bound(fn):
         arrays = [a if b else jnp.broadcast_to(a, (axis_size,) + a.shape)
                   for a, b in zip(arrays, in_batched[:-1])]
         h = jnp.max(bound, axis=0) if in_batched[-1] else bound
-        return jax.vmap(lambda *a: fn(*a, h))(*arrays), True
+        # ``fn`` takes the batch axis itself: under ``jax.vmap`` its slices and in-place
+        # writes would become gathers and scatters.  Calling ``wrapped`` again lets an outer
+        # vmap use this rule too.
+        return wrapped(*arrays, h), True
 
     return wrapped
 
@@ -331,22 +338,24 @@ def robot_cross_update(P, F, hi):
 
 
 def _cross_strips(P, F, hi):
-    nr, n = F.shape[0], P.shape[0]
+    nr, n = F.shape[-1], P.shape[-1]  # P (..., n, n), F (..., nr, nr): leading axes a batch
     if n == nr:
         return P
     t = min(TILE, n - nr)
     nt = (jnp.maximum(jnp.asarray(hi, jnp.int32) - nr, 0) + t - 1) // t
+    lead = P.shape[:-2]
+    zl = (jnp.int32(0),) * len(lead)
 
     def strip(j, P):
         sb, new = _clamped_tile(j, t, n, nr)  # columns of a clamped strip already done keep theirs
         # Each write reads its own strip (no read of one region and write of another).
         z0 = jnp.int32(0)
-        Rw = jax.lax.dynamic_slice(P, (z0, sb), (nr, t))  # P_rl strip (nr, t)
-        Rn = sum(F[:, k, None] * Rw[k][None, :] for k in range(nr))
-        P = jax.lax.dynamic_update_slice(P, jnp.where(new[None, :], Rn, Rw), (z0, sb))
-        Cl = jax.lax.dynamic_slice(P, (sb, z0), (t, nr))  # P_lr strip (t, nr)
-        Cn = sum(Cl[:, k, None] * F[None, :, k] for k in range(nr))
-        return jax.lax.dynamic_update_slice(P, jnp.where(new[:, None], Cn, Cl), (sb, z0))
+        Rw = jax.lax.dynamic_slice(P, zl + (z0, sb), lead + (nr, t))  # P_rl strip (nr, t)
+        Rn = sum(F[..., :, k, None] * Rw[..., k, None, :] for k in range(nr))
+        P = jax.lax.dynamic_update_slice(P, jnp.where(new[None, :], Rn, Rw), zl + (z0, sb))
+        Cl = jax.lax.dynamic_slice(P, zl + (sb, z0), lead + (t, nr))  # P_lr strip (t, nr)
+        Cn = sum(Cl[..., :, k, None] * F[..., None, :, k] for k in range(nr))
+        return jax.lax.dynamic_update_slice(P, jnp.where(new[:, None], Cn, Cl), zl + (sb, z0))
 
     return jax.lax.fori_loop(jnp.int32(0), nt, strip, P)
 
@@ -410,7 +419,7 @@ def _observe_batch(model, s, L, params, valid=None):
 
 def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
            gate: Optional[float] = None, robust=None, row_stats: bool = False,
-           num_iter: int = 1, tol=None, active_only: bool = False):
+           num_iter: int = 1, tol=None, active_only: bool = False, joseph: bool = True):
     """Joint EKF update with K measurements of mapped landmarks.
 
     Args:
@@ -447,6 +456,12 @@ def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
         covariance correction's derivative is the dense one); under ``vmap`` the batch shares
         the block of its fullest map (a custom batching rule), so no branch or tile is run
         for one run and selected away for another.
+
+      joseph: static; True (default): the covariance by the factored Joseph form
+        (I − K H) P (I − K H)ᵀ + K R Kᵀ, a symmetric rank-2m correction of P.  False: the
+        standard form P − K S Kᵀ = P − (K L)(K L)ᵀ (L the Cholesky factor of S), a rank-m
+        correction with half the products — the same in exact arithmetic, PD only as long as
+        rounding keeps it so (docs/papers.md measures both over 10⁵ steps).
 
     Returns (state, UpdateInfo).
     ``UpdateInfo.d2`` and ``row_logdet`` hold each row's marginal NIS and log det S_i before
@@ -545,13 +560,13 @@ def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
             return PHt_f, nu, Lc, Sinv, Kg, chol_ok, ok, x_new
 
         PHt_f, nu, Lc, Sinv, Kg, chol_ok, ok, x_new = solve(PHt, HPHt, res)
-        Hs_f, Hl_f = Hs, Hl
+        Hs_f, Hl_f, Lc_f = Hs, Hl, Lc
         not_conv = jnp.asarray(False)
         if int(num_iter) > 1:
             c = (nb - nr) // dl
 
             def gn(carry, _):
-                xi, _, _, _, _, _, ok_i = carry
+                xi, _, _, _, _, _, _, ok_i = carry
                 si = xi[:nr]
                 Li = take(xi[nr:].reshape(c, dl), slots, 0)
                 zi, Hs_i, Hl_i = _observe_batch(model, si, Li, params, valid_)
@@ -559,11 +574,11 @@ def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
                        + jnp.einsum("kzj,kj->kz", Hl_i, L - Li))
                 res_i = jnp.where(valid_[:, None], jax.vmap(_residual(model))(z_safe, zi) - lin, 0.0)
                 PHt_i = gather_PHt(Pr_b, Pl_b, Hs_i, Hl_i)
-                PHt_fi, _, _, _, Kg_i, _, ok_n, x_n = solve(PHt_i, rows(PHt_i, Hs_i, Hl_i), res_i)
-                return (x_n, PHt_fi, Kg_i, Hs_i, Hl_i, xi, ok_i & ok_n), None
+                PHt_fi, _, Lc_i, _, Kg_i, _, ok_n, x_n = solve(PHt_i, rows(PHt_i, Hs_i, Hl_i), res_i)
+                return (x_n, PHt_fi, Kg_i, Hs_i, Hl_i, Lc_i, xi, ok_i & ok_n), None
 
-            (x_new, PHt_f, Kg, Hs_f, Hl_f, x_prev, ok_it), _ = jax.lax.scan(
-                gn, (x_new, PHt_f, Kg, Hs, Hl, x_b, ok), None, length=int(num_iter) - 1)
+            (x_new, PHt_f, Kg, Hs_f, Hl_f, Lc_f, x_prev, ok_it), _ = jax.lax.scan(
+                gn, (x_new, PHt_f, Kg, Hs, Hl, Lc, x_b, ok), None, length=int(num_iter) - 1)
             tol_v = jnp.asarray((1e-6 if dtype == jnp.float64 else 1e-3) if tol is None else tol, dtype)
             dP = jnp.diagonal(P)[:nb]
             sig = jnp.sqrt(jnp.maximum(dP, jnp.finfo(dtype).tiny))
@@ -574,13 +589,17 @@ def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
             ok = ok & ok_it
             not_conv = ok & jnp.any(valid_) & (moved > tol_v)
 
-        # Factored Joseph form (I − K H) P (I − K H)ᵀ + K R Kᵀ = A − (A Hᵀ − K R) Kᵀ with
-        # A = P − K (P Hᵀ)ᵀ, as a symmetric rank-2m correction P − ½ (K Gᵀ + G Kᵀ),
-        # G = P Hᵀ + A Hᵀ − K R.  A's columns at H's support come without forming A.
-        Ar = Pr_b - Kg @ PHt_f[:nr].T  # (nb, n_r)
-        Al = Pl_b - jnp.einsum("nm,kjm->nkj", Kg, take(PHt_f, idx, 0))  # (nb, K, d_l)
-        AHt = gather_PHt(Ar, Al, Hs_f, Hl_f).reshape(-1, m) * vv[None, :]
-        G = PHt_f + AHt - Kg @ R_used
+        if joseph:
+            # Factored Joseph form (I − K H) P (I − K H)ᵀ + K R Kᵀ = A − (A Hᵀ − K R) Kᵀ with
+            # A = P − K (P Hᵀ)ᵀ, as a symmetric rank-2m correction P − ½ (K Gᵀ + G Kᵀ),
+            # G = P Hᵀ + A Hᵀ − K R.  A's columns at H's support come without forming A.
+            Ar = Pr_b - Kg @ PHt_f[:nr].T  # (nb, n_r)
+            Al = Pl_b - jnp.einsum("nm,kjm->nkj", Kg, take(PHt_f, idx, 0))  # (nb, K, d_l)
+            AHt = gather_PHt(Ar, Al, Hs_f, Hl_f).reshape(-1, m) * vv[None, :]
+            G = PHt_f + AHt - Kg @ R_used
+        else:
+            # Standard form P − K S Kᵀ = P − U Uᵀ, U = K L (S = L Lᵀ; zero where rejected).
+            G = Kg @ Lc_f
 
         def pad(a):  # rows beyond nb: no correction; columns beyond m: none
             a = jnp.concatenate([a, jnp.zeros((n - nb,) + a.shape[1:], a.dtype)]) if nb < n else a
@@ -633,9 +652,11 @@ def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
     x_new, Kg, G, nu, Lc, Sinv, chol_ok, ok, not_conv, valid, gated, d2_each, logdet_each = out
     if active_only:
         # nothing to correct (no row used, or the update rejected): no tile is visited
-        P_new = sym_rank_update(P, Kg, G, jnp.where(ok & jnp.any(valid), nr + top * dl, 0))
+        hi = jnp.where(ok & jnp.any(valid), nr + top * dl, 0)
+        P_new = sym_rank_update(P, Kg, G, hi) if joseph else sym_outer_update(P, G, hi)
     else:
-        P_new = symmetrize(jax.lax.optimization_barrier(_sym_rank_update_dense(P, Kg, G)))
+        P_new = symmetrize(jax.lax.optimization_barrier(
+            _sym_rank_update_dense(P, Kg, G) if joseph else P - G @ G.T))
 
     nu_ok = jnp.where(ok, nu, 0.0)
     nis = nu_ok @ (Sinv @ nu_ok)
@@ -681,6 +702,22 @@ def sym_rank_update(P, U, V, hi):
     return _tiled_rank_update(P, U, V, hi)
 
 
+@jax.custom_jvp
+def sym_outer_update(P, U, hi):
+    """P − U Uᵀ for symmetric P (n, n) and U (n, r) whose rows from ``hi`` on are zero, in the
+    tiles of :func:`sym_rank_update` (half its products for the same r); the same symmetry,
+    cost bound, derivative (the dense formula's, a custom JVP) and batching rule."""
+    return _tiled_outer_update(P, U, hi)
+
+
+@sym_outer_update.defjvp
+def _sym_outer_update_jvp(primals, tangents):
+    P, U, hi = primals
+    dP, dU, _ = tangents
+    dUUt = dU @ U.T
+    return sym_outer_update(P, U, hi), dP - (dUUt + dUUt.T)
+
+
 @custom_vmap
 def _batch_max(a):
     """``a``; under ``vmap``, the batch's maximum, unbatched (so that a block size or a loop
@@ -693,36 +730,46 @@ def _batch_max_vmap(axis_size, in_batched, a):
     return (jnp.max(a, axis=0) if in_batched[0] else a), False
 
 
-def _tiles(P, U, V, hi):
-    n = P.shape[0]
+def _tile_loop(P, As, Bs, scale, hi):
+    # P − scale · A Bᵀ (A = [As...], B = [Bs...] side by side; A Bᵀ symmetric) on the upper
+    # triangle's tiles, each with its mirror; the factors are sliced per tile and joined there
+    # (joining them whole would copy (n, r) arrays on every call, even one with no tile).
+    # P (..., n, n), As and Bs (..., n, r): leading axes a batch (see _shared_bound).
+    n = P.shape[-1]
     t = min(TILE, n)
     nt = (jnp.asarray(hi, jnp.int32) + t - 1) // t
+    lead = P.shape[:-2]
+    zl = (jnp.int32(0),) * len(lead)
+
+    def mT(a):
+        return jnp.swapaxes(a, -1, -2)
+
+    def rows(fs, s, m):
+        return jnp.concatenate([jnp.where(m, jax.lax.dynamic_slice_in_dim(f, s, t, axis=-2), 0.0) for f in fs],
+                               axis=-1)
 
     def tile(i, P):
         def inner(j, P):
             # rows of a clamped tile already covered by the previous tile get no correction
             sa, mu = _clamped_tile(i, t, n)
             sb, mv = _clamped_tile(j, t, n)
-            mu, mv = mu[:, None], mv[:, None]
-            Ua = jnp.where(mu, jax.lax.dynamic_slice_in_dim(U, sa, t), 0.0)
-            Va = jnp.where(mu, jax.lax.dynamic_slice_in_dim(V, sa, t), 0.0)
-            Ub = jnp.where(mv, jax.lax.dynamic_slice_in_dim(U, sb, t), 0.0)
-            Vb = jnp.where(mv, jax.lax.dynamic_slice_in_dim(V, sb, t), 0.0)
-            D = jnp.concatenate([Ua, Va], axis=1) @ jnp.concatenate([Vb, Ub], axis=1).T
+            D = rows(As, sa, mu[:, None]) @ mT(rows(Bs, sb, mv[:, None]))
             diag = i == j
-            D = jnp.where(diag, 0.5 * (D + D.T), D)
+            D = jnp.where(diag, 0.5 * (D + mT(D)), D)
             # Each write reads its own tile (a read of one tile and a write of another would
             # make XLA copy P); the mirror tile gets Dᵀ, the diagonal tile nothing more.
             P = jax.lax.dynamic_update_slice(
-                P, jax.lax.dynamic_slice(P, (sa, sb), (t, t)) - 0.5 * D, (sa, sb))
+                P, jax.lax.dynamic_slice(P, zl + (sa, sb), lead + (t, t)) - scale * D, zl + (sa, sb))
             return jax.lax.dynamic_update_slice(
-                P, jax.lax.dynamic_slice(P, (sb, sa), (t, t)) - jnp.where(diag, 0.0, 0.5 * D.T), (sb, sa))
+                P, jax.lax.dynamic_slice(P, zl + (sb, sa), lead + (t, t)) - jnp.where(diag, 0.0, scale * mT(D)),
+                zl + (sb, sa))
         return jax.lax.fori_loop(i, nt, inner, P)
 
     return jax.lax.fori_loop(jnp.int32(0), nt, tile, P)
 
 
-_tiled_rank_update = _shared_bound(_tiles)
+_tiled_rank_update = _shared_bound(lambda P, U, V, hi: _tile_loop(P, (U, V), (V, U), 0.5, hi))
+_tiled_outer_update = _shared_bound(lambda P, U, hi: _tile_loop(P, (U,), (U,), 1.0, hi))
 
 
 @sym_rank_update.defjvp

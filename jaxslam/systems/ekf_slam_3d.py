@@ -246,6 +246,9 @@ class Config(NamedTuple):
       the map (:func:`jaxslam.filters.ekf_slam.update`, ``predict``): they cost what the mapped
       landmarks need, not the capacity; the same estimates to rounding.  False: the whole state
       (cheaper to compile; the tuning targets' gradients use it).
+    joseph: the update's covariance by the factored Joseph form (default); False: the standard
+      form P − K S Kᵀ, half the products of the correction, PD only while rounding allows
+      (``joseph`` of :func:`jaxslam.filters.ekf_slam.update`; docs/papers.md compares them).
     """
 
     mode: str = "unknown"
@@ -260,6 +263,7 @@ class Config(NamedTuple):
     lidar: lidar3d.LidarSpec = lidar3d.PAPER000_LIDAR
     checkpoint: bool = False
     active_only: bool = True
+    joseph: bool = True
 
 
 class State(NamedTuple):
@@ -378,7 +382,7 @@ def correct(state: State, y, ids, visible, config: Config, params: Params, x_tru
         )
     gate = None if params.gate is None else jnp.asarray(params.gate, st.x.dtype)
     st, info = es.update(st, model, y_s, slots, mapped, R, mparams, gate=gate,
-                          active_only=cfg.active_only)
+                          active_only=cfg.active_only, joseph=cfg.joseph)
     if cfg.mode == "unknown":
         st = es.register(st, model, y_s, id_s, new, R, mparams)
     if x_true is None:

@@ -104,18 +104,20 @@ def test_hand_jacobians_of_the_lidar_model_and_its_inverse_match_autodiff():
 
 
 CASES = [
-    # mode, noise, capacity, max_obs: registration with room and more visible landmarks
-    # than max_obs (compaction); registration overflowing; known map
-    ("unknown", "imu", 16, 4),
-    pytest.param("unknown", "imu", 5, 16, marks=pytest.mark.slow),
-    ("known", "paper", 48, 16),
+    # mode, noise, capacity, max_obs, joseph: registration with room and more visible landmarks
+    # than max_obs (compaction); registration overflowing; known map; the engine's standard
+    # covariance form (P − K S Kᵀ) against the twin's Joseph form
+    ("unknown", "imu", 16, 4, True),
+    pytest.param("unknown", "imu", 5, 16, True, marks=pytest.mark.slow),
+    ("known", "paper", 48, 16, True),
+    ("unknown", "imu", 16, 4, False),
 ]
 
 
-@pytest.mark.parametrize("mode,q,capacity,max_obs", CASES)
-def test_twin_reproduces_the_system_run(log, mode, q, capacity, max_obs):
+@pytest.mark.parametrize("mode,q,capacity,max_obs,joseph", CASES)
+def test_twin_reproduces_the_system_run(log, mode, q, capacity, max_obs, joseph):
     noise = sys3d.imu_noise(imu_mod.PAPER000_IMU) if q == "imu" else sys3d.paper_noise(mode)
-    cfg = sys3d.Config(mode=mode, capacity=capacity, max_obs=max_obs)
+    cfg = sys3d.Config(mode=mode, capacity=capacity, max_obs=max_obs, joseph=joseph)
     if max_obs < 16:
         assert log["visible"].sum(1).max() > max_obs  # the compaction drops some
     # start off the truth so the updates have work to do
