@@ -148,6 +148,9 @@ class Config(NamedTuple):
       the map (:func:`jaxslam.filters.ekf_slam.update`, ``predict``): they cost what the mapped
       landmarks need, not the capacity; the same estimates to rounding.  False: the whole state
       (cheaper to compile; the tuning targets' gradients use it).
+    joseph: the update's covariance by the factored Joseph form (default); False: the standard
+      form P − K S Kᵀ, half the products of the correction (``joseph`` of
+      :func:`jaxslam.filters.ekf_slam.update`; docs/papers.md compares them).
     """
 
     motion: str = "unicycle"
@@ -165,6 +168,7 @@ class Config(NamedTuple):
     block: int = 0
     smooth: bool = False
     active_only: bool = True
+    joseph: bool = True
 
 
 class Params(NamedTuple):
@@ -397,7 +401,7 @@ def _measure(st: es.SlamState, z, ids, valid, model, config: Config, R, nu, thr:
     if config.association == "known":
         slots, mapped = es.associate_known(st, ids, valid)
         st, info = es.update(st, model, zs, slots, mapped, R, None, gate=thr.update_gate, robust=robust,
-                             row_stats=True, active_only=config.active_only)
+                             row_stats=True, active_only=config.active_only, joseph=config.joseph)
         cand = valid & ~mapped
         new = _first_of_id(ids, cand)
         rejected = jnp.sum(cand & ~new).astype(jnp.int32)
@@ -418,7 +422,7 @@ def _measure(st: es.SlamState, z, ids, valid, model, config: Config, R, nu, thr:
                 matched, _, _ = es.joint_compatibility(st, model, zs, slots, matched, R, None,
                                                        _chi2_table(config.joint_gate, K, 2))
         st, info = es.update(st, model, zs, slots, matched, R, None, gate=thr.update_gate, robust=robust,
-                             row_stats=True, active_only=config.active_only)
+                             row_stats=True, active_only=config.active_only, joseph=config.joseph)
         # ambiguous (between the gates) or losing a landmark to a closer measurement
         rejected = jnp.sum(valid & ~matched & ~new).astype(jnp.int32)
         reg_ids = jnp.full((K,), -1, jnp.int32)
@@ -444,14 +448,38 @@ def _measure(st: es.SlamState, z, ids, valid, model, config: Config, R, nu, thr:
     return st, counts, info.nis, info.dof.astype(jnp.int32), slots, info.used, info.d2, watched, nll, nll_dof
 
 
+@functools.partial(jax.custom_jvp, nondiff_argnums=(2, 3))
+def _zero_slots(P, drop, nr: int, dl: int):
+    """P with the rows and columns of the slots in ``drop`` (cap,) zeroed, in place: a loop over
+    the dropped slots, O(n) each (a select over P would be O(n²) on every event that prunes).
+    The derivative (custom JVP: the loop's length is traced) is the same mask on the tangent."""
+    n = P.shape[0]
+    gone = jnp.nonzero(drop, size=drop.shape[0], fill_value=0)[0]  # the dropped slots first
+    z0 = jnp.int32(0)
+
+    def zero(k, P):
+        r = (nr + gone[k] * dl).astype(jnp.int32)
+        P = jax.lax.dynamic_update_slice(P, jnp.zeros((dl, n), P.dtype), (r, z0))
+        return jax.lax.dynamic_update_slice(P, jnp.zeros((n, dl), P.dtype), (z0, r))
+
+    return jax.lax.fori_loop(jnp.int32(0), jnp.sum(drop, dtype=jnp.int32), zero, P)
+
+
+@_zero_slots.defjvp
+def _zero_slots_jvp(nr, dl, primals, tangents):
+    P, drop = primals
+    keep = jnp.concatenate([jnp.ones((nr,), bool), jnp.repeat(~drop, dl)])
+    return _zero_slots(P, drop, nr, dl), jnp.where(keep[:, None] & keep[None, :], tangents[0], 0.0)
+
+
 def _prune(st: es.SlamState, aux, active_before, slots, used, model, thr: Params):
     """Tentative-landmark bookkeeping and pruning after one event (``params.prune_window_s``).
 
     aux = (t, reg_t (cap,), n_match (cap,), confirmed (cap,)).  Slots registered in this
     event start their window at t; matched slots count one more match.  A tentative slot
     older than the window is confirmed (≥ ``prune_min_obs`` matches) or removed: mean and
-    rows/columns of P zeroed, slot freed, id −1 — one O(n²) select under ``lax.cond``, run
-    only on events that remove something.  Returns (state, aux, number removed).
+    rows/columns of P zeroed in place (O(n) per removed slot), slot freed, id −1, under
+    ``lax.cond``: run only on events that remove something.  Returns (state, aux, number removed).
     """
     t, reg_t, n_match, confirmed = aux
     nr, dl = model.robot_dim, model.lm_dim
@@ -466,8 +494,7 @@ def _prune(st: es.SlamState, aux, active_before, slots, used, model, thr: Params
 
     def remove(st_):
         keep = jnp.concatenate([jnp.ones((nr,), bool), jnp.repeat(~drop, dl)])
-        return st_._replace(x=jnp.where(keep, st_.x, 0.0),
-                            P=jnp.where(keep[:, None] & keep[None, :], st_.P, 0.0),
+        return st_._replace(x=jnp.where(keep, st_.x, 0.0), P=_zero_slots(st_.P, drop, nr, dl),
                             active=st_.active & ~drop, ids=jnp.where(drop, -1, st_.ids))
 
     st = jax.lax.cond(jnp.any(drop), remove, lambda st_: st_, st)

@@ -423,3 +423,24 @@ def test_input_model_equals_corrected_inputs(scenario):
     np.testing.assert_allclose(np.asarray(a.nll), np.asarray(b.nll), rtol=1e-12, atol=1e-12)
     with pytest.raises(InputError, match="params.input_model"):
         P.validate_params(_params()._replace(input_model=jnp.asarray([1.0, 1.0])))
+
+
+def test_pruning_zeroes_rows_and_columns_in_place_with_a_masked_derivative():
+    """_zero_slots (the pruning's write of P) against NumPy: the dropped slots' rows and columns
+    zero, the rest bit-equal; its JVP is the same mask on the tangent; reverse mode works
+    through the loop of traced length (custom JVP)."""
+    rng = np.random.default_rng(0)
+    n = 3 + 2 * 6
+    A = rng.normal(size=(n, n))
+    Pm = A @ A.T
+    drop = np.array([False, True, False, False, True, False])
+    keep = np.r_[np.ones(3, bool), np.repeat(~drop, 2)]
+    want = np.where(keep[:, None] & keep[None, :], Pm, 0.0)
+    out = jax.jit(P._zero_slots, static_argnums=(2, 3))(jnp.asarray(Pm), jnp.asarray(drop), 3, 2)
+    np.testing.assert_array_equal(np.asarray(out), want)
+    dP = rng.normal(size=(n, n))
+    _, t = jax.jvp(lambda M: P._zero_slots(M, jnp.asarray(drop), 3, 2), (jnp.asarray(Pm),), (jnp.asarray(dP),))
+    np.testing.assert_array_equal(np.asarray(t), np.where(keep[:, None] & keep[None, :], dP, 0.0))
+    W = rng.normal(size=(n, n))
+    g = jax.grad(lambda M: jnp.sum(W * P._zero_slots(M, jnp.asarray(drop), 3, 2)))(jnp.asarray(Pm))
+    np.testing.assert_array_equal(np.asarray(g), np.where(keep[:, None] & keep[None, :], W, 0.0))
