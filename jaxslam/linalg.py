@@ -28,6 +28,7 @@ __all__ = [
     "det_small",
     "inv_small",
     "cholesky_small",
+    "small_matmul",
     "safe_norm",
     "check_psd",
     "check_scalar",
@@ -137,6 +138,16 @@ def _put_jvp(axis, primals, tangents):
     shape[axis] = N
     d = jnp.moveaxis(jnp.tensordot(E.T, jnp.moveaxis(dv.astype(da.dtype), axis, 0), axes=(1, 0)), 0, axis)
     return put(a, idx, values, axis), da * keep.reshape(shape) + d
+
+
+def small_matmul(A, B, limit: int = 16):
+    """``A @ B`` for 2-D operands; when every dimension is at most ``limit`` (static), as a
+    broadcast multiply and a sum, which XLA fuses with the operations around it — on the CPU a
+    dot is a kernel call of its own, and a filter step's few 9×9 products cost more in calls
+    than in arithmetic.  Larger operands use ``@``."""
+    if max(A.shape + B.shape) > limit:
+        return A @ B
+    return jnp.sum(A[:, :, None] * B[None, :, :], axis=1)
 
 
 def symmetrize(P):

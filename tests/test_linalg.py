@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from jax.test_util import check_grads
 
-from jaxslam.linalg import put, take
+from jaxslam.linalg import put, small_matmul, take
 
 
 def _prims(jaxpr):
@@ -169,3 +169,19 @@ def test_small_cholesky_of_4x4_equals_numpy():
     S = A @ np.swapaxes(A, -1, -2) + 0.1 * np.eye(4)
     np.testing.assert_allclose(np.asarray(cholesky_small(jnp.asarray(S))), np.linalg.cholesky(S),
                                rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+@pytest.mark.parametrize("shapes", [((9, 9), (9, 9)), ((9, 6), (6, 9)), ((3, 1), (1, 4)), ((20, 9), (9, 20))])
+def test_small_matmul_equals_numpy_product_and_its_derivative(shapes, dtype):
+    """small_matmul against NumPy's A @ B (broadcast-sum below the limit, ``@`` above), and its
+    JVP against the product rule."""
+    rng = np.random.default_rng(sum(shapes[0]) + sum(shapes[1]))
+    A, B = rng.normal(size=shapes[0]), rng.normal(size=shapes[1])
+    out = np.asarray(small_matmul(jnp.asarray(A, dtype), jnp.asarray(B, dtype)))
+    assert out.dtype == dtype
+    tol = 1e-13 if dtype == np.float64 else 1e-5
+    np.testing.assert_allclose(out, A @ B, atol=tol * max(1.0, np.abs(A @ B).max()))
+    dA, dB = rng.normal(size=A.shape), rng.normal(size=B.shape)
+    _, t = jax.jvp(small_matmul, (jnp.asarray(A), jnp.asarray(B)), (jnp.asarray(dA), jnp.asarray(dB)))
+    np.testing.assert_allclose(np.asarray(t), dA @ B + A @ dB, atol=1e-12)

@@ -61,7 +61,7 @@ from jax.custom_batching import custom_vmap
 
 from .. import errors
 from ..errors import InputError
-from ..linalg import check_psd, cholesky_small, is_concrete, put, symmetrize, take, value_and_jacfwd
+from ..linalg import check_psd, cholesky_small, is_concrete, put, small_matmul, symmetrize, take, value_and_jacfwd
 
 __all__ = [
     "SlamModel",
@@ -260,7 +260,7 @@ def predict(state: SlamState, model: SlamModel, u, Q, params=None, *,
     s_new, F = value_and_jacfwd(lambda s_: model.motion(s_, u, params))(s)
     Prr = state.P[:nr, :nr]
     Prl = state.P[:nr, nr:]
-    Prr_new = symmetrize(F @ Prr @ F.T + Q)
+    Prr_new = symmetrize(small_matmul(small_matmul(F, Prr), F.T) + Q)
     ok = jnp.all(jnp.isfinite(s_new)) & jnp.all(jnp.isfinite(Prr_new)) & jnp.all(jnp.isfinite(F))
     # Reject a non-finite prediction block-wise: a select over the whole P would cost O(n²).
     s_new = jnp.where(ok, s_new, state.x[:nr])

@@ -40,7 +40,7 @@ from .. import errors
 from ..errors import InputError
 from ..filters import ekf_slam as es
 from ..geometry.euler import dcm_from_euler, euler_rate_matrix
-from ..linalg import check_psd, check_scalar, host_array, is_concrete, wrap_angle
+from ..linalg import check_psd, check_scalar, host_array, is_concrete, small_matmul, wrap_angle
 from ..sensors import lidar3d
 from ..stats import nees as _nees
 
@@ -109,9 +109,11 @@ def f_cont(s, imu, g, accel_mode: str = "3axis"):
     w = imu[3:6]
     C = dcm_from_euler(euler)
     g = jnp.asarray(g, s.dtype)
-    pos_dot = C @ v
+    # 3×3 products as multiply-and-sum: they fuse with their neighbours (a dot is a kernel
+    # of its own per product, and the step's Jacobians hold ~16 of them)
+    pos_dot = jnp.sum(C * v, axis=-1)
     vel_dot = -jnp.cross(w, v) + g * C[2, :] + f_b
-    att_dot = euler_rate_matrix(euler) @ w
+    att_dot = jnp.sum(euler_rate_matrix(euler) * w, axis=-1)
     return jnp.concatenate([pos_dot, vel_dot, att_dot])
 
 
@@ -138,7 +140,7 @@ def motion(s, u, params):
 def process_noise(s, imu, noise: Params, dt, g, accel_mode: str = "3axis"):
     """Q_d = (Q_c + G Q_imu Gᵀ) Δt, G = ∂f_s/∂λ at (s, λ) (first-order; see module doc)."""
     G = jax.jacfwd(lambda lam: f_cont(s, lam, g, accel_mode))(imu)
-    return (noise.Qc + G @ noise.Qimu @ G.T) * jnp.asarray(dt, s.dtype)
+    return (noise.Qc + small_matmul(small_matmul(G, noise.Qimu), G.T)) * jnp.asarray(dt, s.dtype)
 
 
 def _observe(s, l, params):
