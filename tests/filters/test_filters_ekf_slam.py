@@ -684,11 +684,13 @@ def test_run_bad_inputs_name_the_argument():
 
 # ------------------------------------------------------------ active-block update
 
+@pytest.mark.parametrize("form", ["joseph", "standard"])
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
 @pytest.mark.parametrize("n,hi", [(10, 4), (57, 57), (130, 64), (130, 65), (203, 203), (203, 150), (203, 0)])
-def test_sym_rank_update_matches_numpy(n, hi, dtype):
-    """Tiles (64, the last clamped) against P − ½ (U Vᵀ + V Uᵀ) in NumPy: equal where the rows
-    are live, untouched beyond ``hi``, symmetric to the bit."""
+def test_tiled_corrections_match_numpy(n, hi, dtype, form):
+    """Tiles (64, the last clamped) of sym_rank_update against P − ½ (U Vᵀ + V Uᵀ) and of
+    sym_outer_update against P − U Uᵀ in NumPy: equal where the rows are live, untouched beyond
+    ``hi``, symmetric to the bit."""
     rng = np.random.default_rng(n + hi)
     A = rng.normal(size=(n, n))
     P = A @ A.T
@@ -696,8 +698,13 @@ def test_sym_rank_update_matches_numpy(n, hi, dtype):
     U[hi:], V[hi:] = 0.0, 0.0
     P[hi:, hi:] = rng.normal(size=(n - hi, n - hi))  # garbage beyond hi: must stay as it is
     P[hi:, hi:] = P[hi:, hi:] + P[hi:, hi:].T
-    want = P - 0.5 * (U @ V.T + V @ U.T)
-    out = np.asarray(jax.jit(es.sym_rank_update)(*(jnp.asarray(a, dtype) for a in (P, U, V)), hi))
+    if form == "joseph":
+        want = P - 0.5 * (U @ V.T + V @ U.T)
+        out = jax.jit(es.sym_rank_update)(*(jnp.asarray(a, dtype) for a in (P, U, V)), hi)
+    else:
+        want = P - U @ U.T
+        out = jax.jit(es.sym_outer_update)(jnp.asarray(P, dtype), jnp.asarray(U, dtype), hi)
+    out = np.asarray(out)
     assert out.dtype == dtype
     tol = 1e-12 if dtype == np.float64 else 2e-4
     np.testing.assert_allclose(out, want, atol=tol * max(1.0, np.abs(want).max()))
@@ -705,9 +712,10 @@ def test_sym_rank_update_matches_numpy(n, hi, dtype):
     np.testing.assert_array_equal(out[hi:, hi:], P[hi:, hi:].astype(dtype))
 
 
-def test_sym_rank_update_derivatives_and_vmap():
-    """JVP equals the closed-form linear map; reverse mode and vmap (batched ``hi``: every run
-    gets the batch's largest) agree with the dense formula."""
+def test_tiled_corrections_derivatives_and_vmap():
+    """JVPs of sym_rank_update and sym_outer_update equal their closed-form linear maps; reverse
+    mode and vmap (batched ``hi``: every run gets the batch's largest) and nested vmap (the
+    batching rule at both levels) agree with the dense formulas."""
     rng = np.random.default_rng(0)
     n, r = 90, 3
     A = rng.normal(size=(n, n))
@@ -716,64 +724,25 @@ def test_sym_rank_update_derivatives_and_vmap():
     dP = dP + dP.T
     _, t = jax.jvp(lambda P_, U_, V_: es.sym_rank_update(P_, U_, V_, n), (P, U, V), (dP, dU, dV))
     np.testing.assert_allclose(t, dP - 0.5 * (dU @ V.T + U @ dV.T + dV @ U.T + V @ dU.T), atol=1e-12)
+    _, t = jax.jvp(lambda P_, U_: es.sym_outer_update(P_, U_, n), (P, U), (dP, dU))
+    np.testing.assert_allclose(t, dP - dU @ U.T - U @ dU.T, atol=1e-12)
     W = rng.normal(size=(n, n))
     g = jax.grad(lambda U_: jnp.sum(W * es.sym_rank_update(P, U_, V, n)))(U)
     np.testing.assert_allclose(g, -0.5 * (W @ V + W.T @ V), atol=1e-12)
+    g = jax.grad(lambda U_: jnp.sum(W * es.sym_outer_update(P, U_, n)))(U)
+    np.testing.assert_allclose(g, -(W + W.T) @ U, atol=1e-12)
     his = np.array([40, 90, 0])
     Us, Vs = np.stack([U] * 3), np.stack([V] * 3)
     for k, h in enumerate(his):
         Us[k, h:], Vs[k, h:] = 0.0, 0.0
     out = jax.jit(jax.vmap(es.sym_rank_update, in_axes=(None, 0, 0, 0)))(P, Us, Vs, his)
-    for k in range(3):
-        want = P - 0.5 * (Us[k] @ Vs[k].T + Vs[k] @ Us[k].T)
-        np.testing.assert_allclose(out[k], want, atol=1e-12)
-
-
-@pytest.mark.parametrize("dtype", [np.float64, np.float32])
-@pytest.mark.parametrize("n,hi", [(57, 57), (130, 65), (203, 150), (203, 0)])
-def test_sym_outer_update_matches_numpy(n, hi, dtype):
-    """P − U Uᵀ in the same tiles against NumPy: equal where the rows are live, untouched beyond
-    ``hi``, symmetric to the bit."""
-    rng = np.random.default_rng(n + hi)
-    A = rng.normal(size=(n, n))
-    P = A @ A.T
-    U = rng.normal(size=(n, 5))
-    U[hi:] = 0.0
-    P[hi:, hi:] = 7.0  # beyond hi: must stay as it is
-    want = P - U @ U.T
-    out = np.asarray(jax.jit(es.sym_outer_update)(jnp.asarray(P, dtype), jnp.asarray(U, dtype), hi))
-    assert out.dtype == dtype
-    tol = 1e-12 if dtype == np.float64 else 2e-4
-    np.testing.assert_allclose(out, want, atol=tol * max(1.0, np.abs(want).max()))
-    np.testing.assert_array_equal(out, out.T)
-    np.testing.assert_array_equal(out[hi:, hi:], P[hi:, hi:].astype(dtype))
-
-
-def test_sym_outer_update_derivatives_and_vmap():
-    """JVP and gradient equal the closed forms; vmap with per-run ``hi`` equals the dense formula."""
-    rng = np.random.default_rng(1)
-    n, r = 90, 3
-    A = rng.normal(size=(n, n))
-    P, U = A @ A.T, rng.normal(size=(n, r))
-    dP, dU = rng.normal(size=(n, n)), rng.normal(size=(n, r))
-    dP = dP + dP.T
-    _, t = jax.jvp(lambda P_, U_: es.sym_outer_update(P_, U_, n), (P, U), (dP, dU))
-    np.testing.assert_allclose(t, dP - dU @ U.T - U @ dU.T, atol=1e-12)
-    W = rng.normal(size=(n, n))
-    g = jax.grad(lambda U_: jnp.sum(W * es.sym_outer_update(P, U_, n)))(U)
-    np.testing.assert_allclose(g, -(W + W.T) @ U, atol=1e-12)
-    his = np.array([40, 90, 0])
-    Us = np.stack([U] * 3)
-    for k, h in enumerate(his):
-        Us[k, h:] = 0.0
-    out = jax.jit(jax.vmap(es.sym_outer_update, in_axes=(None, 0, 0)))(P, Us, his)
-    for k in range(3):
-        np.testing.assert_allclose(out[k], P - Us[k] @ Us[k].T, atol=1e-12)
-    # nested vmap: the batching rule applies at both levels (the factors take the batch axes)
-    out2 = jax.jit(jax.vmap(jax.vmap(es.sym_outer_update, in_axes=(None, 0, 0)), in_axes=(None, 0, 0)))(
+    outer = jax.jit(jax.vmap(es.sym_outer_update, in_axes=(None, 0, 0)))(P, Us, his)
+    nested = jax.jit(jax.vmap(jax.vmap(es.sym_outer_update, in_axes=(None, 0, 0)), in_axes=(None, 0, 0)))(
         P, np.stack([Us, Us[::-1]]), np.stack([his, his[::-1]]))
     for k in range(3):
-        np.testing.assert_allclose(out2[1, k], P - Us[2 - k] @ Us[2 - k].T, atol=1e-12)
+        np.testing.assert_allclose(out[k], P - 0.5 * (Us[k] @ Vs[k].T + Vs[k] @ Us[k].T), atol=1e-12)
+        np.testing.assert_allclose(outer[k], P - Us[k] @ Us[k].T, atol=1e-12)
+        np.testing.assert_allclose(nested[1, k], P - Us[2 - k] @ Us[2 - k].T, atol=1e-12)
 
 
 @pytest.mark.parametrize("active_only", [False, True], ids=["whole", "active_only"])
