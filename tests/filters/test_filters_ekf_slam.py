@@ -745,8 +745,10 @@ def test_tiled_corrections_derivatives_and_vmap():
         np.testing.assert_allclose(nested[1, k], P - Us[2 - k] @ Us[2 - k].T, atol=1e-12)
 
 
-@pytest.mark.parametrize("active_only", [False, True], ids=["whole", "active_only"])
-@pytest.mark.parametrize("kw", [{}, {"robust": 4.0}, {"num_iter": 3}], ids=["plain", "robust", "iterated"])
+# the dense correction (whole state) and the tiled one (active block; plain updates of it also
+# in tests/benchmarks/test_bench_twin.py against the NumPy twin)
+@pytest.mark.parametrize("kw,active_only", [({}, False), ({"robust": 4.0}, True), ({"num_iter": 3}, True)],
+                         ids=["plain-whole", "robust-active_only", "iterated-active_only"])
 def test_standard_form_update_equals_joseph(kw, active_only):
     """joseph=False (P − K S Kᵀ) gives the Joseph form's estimates: the same x to rounding and P
     to 1e-12 (they differ in exact arithmetic only through K's optimality), exactly symmetric."""
