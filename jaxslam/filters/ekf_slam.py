@@ -61,7 +61,8 @@ from jax.custom_batching import custom_vmap
 
 from .. import errors
 from ..errors import InputError
-from ..linalg import check_psd, cholesky_small, is_concrete, put, small_matmul, symmetrize, take, value_and_jacfwd
+from ..linalg import (check_psd, cholesky_small, is_concrete, put, small_matmul, symmetrize, take,
+                      value_and_jacfwd)
 
 __all__ = [
     "SlamModel",
