@@ -52,6 +52,7 @@ by the factored Joseph form by default (eq. 43 itself is ``joseph=False``); see 
 from __future__ import annotations
 
 import functools
+import math
 from typing import Any, Callable, NamedTuple, Optional
 
 import jax
@@ -63,6 +64,7 @@ from .. import errors
 from ..errors import InputError
 from ..linalg import (check_psd, cholesky_small, is_concrete, put, small_matmul, symmetrize, take,
                       value_and_jacfwd)
+from ..stats import student_t_nll
 
 __all__ = [
     "SlamModel",
@@ -72,6 +74,7 @@ __all__ = [
     "preload",
     "predict",
     "update",
+    "update_nll",
     "sym_rank_update",
     "sym_outer_update",
     "robot_cross_update",
@@ -855,6 +858,20 @@ def _nis_logdet_small(nu, S):
     return sum(wi * wi for wi in w), 2.0 * sum(jnp.log(L[i, i]) for i in range(n))
 
 
+def update_nll(info: UpdateInfo, dz: int, nu=None):
+    """Innovation NLL of one :func:`update` from its :class:`UpdateInfo`: the Gaussian
+    ½ (NIS + log det S + m log 2π) of the joint innovation, or with ``nu`` the sum of the used
+    rows' Student-t terms (:func:`jaxslam.stats.student_t_nll`; the update must then be the
+    ``robust=nu`` one, which reports each row's d² and log det S_i).  ``dz``: scalars per row.
+    Returns ``(nll, scalars used)``."""
+    dtype = info.nis.dtype
+    if nu is None:
+        nll = 0.5 * (info.nis + info.logdet + info.dof.astype(dtype) * math.log(2 * math.pi))
+    else:
+        nll = jnp.sum(jnp.where(info.used, student_t_nll(info.d2, info.row_logdet, nu, dz), 0.0))
+    return nll, (jnp.sum(info.used) * dz).astype(dtype)
+
+
 def _nis_small(nu, S):
     return _nis_logdet_small(nu, S)[0]
 
@@ -1008,14 +1025,12 @@ def marginal_d2(state: SlamState, model: SlamModel, z, mask, R, params=None, act
     Returns ``(d2, (zh (cap, d_z), Hs (cap, d_z, n_r), Hl (cap, d_z, d_l), nu (K, cap, d_z)))``
     (the slots beyond the evaluated block: ẑ = 0, H = 0, ν = 0).
     """
-    nr, dl, cap = _sizes(state, model)
-    if not active_only:
-        return _marginal_d2_block(state, model, z, mask, R, params, cap)
-    sizes = _block_sizes(cap)
-    if len(sizes) == 1:
-        return _marginal_d2_block(state, model, z, mask, R, params, cap)
-    return jax.lax.switch(_block_index(sizes, _active_top(state)), [functools.partial(_marginal_d2_block, state, model, z, mask, R, params, c)
-                                  for c in sizes])
+    cap = state.active.shape[0]
+    sizes = _block_sizes(cap) if active_only else [cap]
+    blocks = [functools.partial(_marginal_d2_block, state, model, z, mask, R, params, c) for c in sizes]
+    if len(blocks) == 1:
+        return blocks[0]()
+    return jax.lax.switch(_block_index(sizes, _active_top(state)), blocks)
 
 
 def _marginal_d2_block(state: SlamState, model: SlamModel, z, mask, R, params, c: int):

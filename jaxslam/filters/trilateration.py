@@ -171,12 +171,11 @@ def _lstsq(A, b, rcond, cond_tol):
     place of a degenerate A, so neither branch's derivative is ever NaN.
     """
     K, d = A.shape
-    s = jnp.linalg.svd(jax.lax.stop_gradient(A), compute_uv=False)
-    smax = s[0]
-    good = (s[-1] > cond_tol * smax) & (smax > 0)
+    U, sv, Vt = jnp.linalg.svd(jax.lax.stop_gradient(A), full_matrices=False)
+    smax = sv[0]
+    good = (sv[-1] > cond_tol * smax) & (smax > 0)
     Q, R = jnp.linalg.qr(jnp.where(good, A, jnp.eye(K, d, dtype=A.dtype)))
     pinv_qr = jax.scipy.linalg.solve_triangular(R, Q.T, lower=False)
-    U, sv, Vt = jnp.linalg.svd(jax.lax.stop_gradient(A), full_matrices=False)
     keep = sv > rcond * smax
     s_inv = jnp.where(keep, 1.0 / jnp.where(keep, sv, 1.0), 0.0)
     pinv = jnp.where(good, pinv_qr, (Vt.T * s_inv[None, :]) @ U.T)

@@ -13,32 +13,18 @@ one on their own χ²(1) NIS (``gate``); gated rows are counted, never used.
 
 from __future__ import annotations
 
-import math
 from typing import NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
 
+from ..filters import consistency as cons
 from ..filters import ekf_slam as es
 from ..errors import InputError
 from ..linalg import is_concrete, safe_norm
-from ..stats import chi2_ppf_np, student_t_d2_ppf_np, student_t_nll
+from ..stats import chi2_ppf_np, student_t_d2_ppf_np
 
-__all__ = ["range_observe", "range_nll", "update_ranges", "resolve_outlier_gate", "Result", "OUTLIER_P"]
-
-
-def range_nll(info, nu=None):
-    """Innovation NLL of one update's used range rows (d_z = 1) from its
-    :class:`~jaxslam.filters.ekf_slam.UpdateInfo`: the Gaussian ½ (NIS + log det S + m log 2π),
-    or with ``nu`` the sum of the rows' Student-t terms (:func:`jaxslam.stats.student_t_nll`;
-    the update must then be the ``robust=nu`` one, which reports each row's d² and log S_i).
-    Returns ``(nll, count)``."""
-    dtype = info.nis.dtype
-    if nu is None:
-        nll = 0.5 * (info.nis + info.logdet + info.dof.astype(dtype) * math.log(2 * math.pi))
-    else:
-        nll = jnp.sum(jnp.where(info.used, student_t_nll(info.d2, info.row_logdet, nu, 1), 0.0))
-    return nll, jnp.sum(info.used).astype(dtype)
+__all__ = ["range_observe", "update_ranges", "resolve_outlier_gate", "Result", "OUTLIER_P"]
 
 
 #: probability of the range model's own d² distribution below the outlier gate
@@ -67,12 +53,12 @@ def update_ranges(st, model, z, slots, mapped, params):
     """The engine's update with the event's ranges of mapped anchors/beacons, as the range-only
     systems run it: R = σ_r², the hard χ²(1) ``params.gate`` (None: off), Student-t rows with
     ``params.nu`` (None: Gaussian).  Returns ``(state, info, nll, nll_dof, n_outliers)``:
-    :func:`range_nll`'s terms and the rows offered whose marginal d² exceeds
-    ``params.outlier_gate`` (filled by :func:`resolve_outlier_gate`)."""
+    :func:`jaxslam.filters.ekf_slam.update_nll`'s terms (d_z = 1) and the rows offered whose
+    marginal d² exceeds ``params.outlier_gate`` (filled by :func:`resolve_outlier_gate`)."""
     R = jnp.reshape(params.sigma_r ** 2, (1, 1))
     st, info = es.update(st, model, z, slots, mapped, R, gate=params.gate, robust=params.nu, row_stats=True)
-    nll, cnt = range_nll(info, params.nu)
-    n_out = jnp.sum(mapped & (info.d2 > params.outlier_gate)).astype(jnp.int32)
+    nll, cnt = es.update_nll(info, 1, params.nu)
+    n_out = cons.outliers(info.d2, mapped, params)
     return st, info, nll, cnt, n_out
 
 

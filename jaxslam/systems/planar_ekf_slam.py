@@ -63,7 +63,6 @@ Victoria Park: noise values and their sources, configs, log adapters) are in
 from __future__ import annotations
 
 import functools
-import math
 from typing import Any, NamedTuple, Optional
 
 import jax
@@ -78,7 +77,6 @@ from ..filters import association as assoc
 from ..filters import consistency as cons
 from ..filters import ekf_slam as es
 from ..linalg import check_scalar, check_psd, is_concrete, wrap_angle
-from ..stats import student_t_nll
 from ..sensors import range_bearing2d as rb
 
 __all__ = [
@@ -438,13 +436,7 @@ def _measure(st: es.SlamState, z, ids, valid, model, config: Config, R, nu, thr:
         rejected,
         registered,
     ])
-    dtype = st.x.dtype
-    if config.robust:
-        rows = info.used
-        nll = jnp.sum(jnp.where(rows, student_t_nll(info.d2, info.row_logdet, nu, dz), 0.0))
-    else:
-        nll = 0.5 * (info.nis + info.logdet + info.dof * jnp.asarray(math.log(2 * math.pi), dtype))
-    nll_dof = (jnp.sum(info.used) * dz).astype(dtype)
+    nll, nll_dof = es.update_nll(info, dz, nu if config.robust else None)
     return st, counts, info.nis, info.dof.astype(jnp.int32), slots, info.used, info.d2, watched, nll, nll_dof
 
 

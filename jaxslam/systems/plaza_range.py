@@ -226,15 +226,16 @@ class StepOut(NamedTuple):
     dof: jax.Array
     used: jax.Array
     gated: jax.Array
-    nll: jax.Array  # () innovation NLL of the event's ranges (biased_range.range_nll)
+    nll: jax.Array  # () innovation NLL of the event's ranges (filters.ekf_slam.update_nll)
     nll_dof: jax.Array  # () ranges in it
     outliers: jax.Array  # () int32 ranges of mapped beacons with d² > params.outlier_gate
     monitored: jax.Array  # () int32 ranges of mapped beacons offered to the update
     smoother: Any = None
 
 
-def plaza_events(dr_t, dr, td_t, td_node, td_range, K: Optional[int] = None) -> EventLog:
-    """DR increments (t, (d, dθ)) and TD ranges (t, node, range) → an increment-mode EventLog.
+def plaza_events(dr_t, dr, td_t, td_node, td_range, K: Optional[int] = None, t_end=None) -> EventLog:
+    """DR increments (t, (d, dθ)) and TD ranges (t, node, range) → an increment-mode EventLog
+    (``t_end``: the events up to that time [s], inclusive).
 
     Range rows are sorted by time first (stable): Plaza 1's TD file is not in time order
     (row 1988 jumps back from 5103.6 s to 5039.3 s).
@@ -244,7 +245,7 @@ def plaza_events(dr_t, dr, td_t, td_node, td_range, K: Optional[int] = None) -> 
     return merge_events(np.asarray(dr_t, np.float64), np.asarray(dr, np.float64).reshape(-1, 2),
                         td_t[o], np.asarray(td_range, np.float64).reshape(-1, 1)[o],
                         meas_ids=np.asarray(td_node).astype(np.int32).reshape(-1)[o], K=K,
-                        input_mode="increment")
+                        input_mode="increment", t_end=t_end)
 
 
 def log_from_events(events: EventLog, pose0, beacon_ids, beacons=None, dtype=None) -> Log:

@@ -276,7 +276,7 @@ class StepOut(NamedTuple):
     gated: jax.Array
     height_used: jax.Array
     height_gated: jax.Array
-    nll: jax.Array  # () innovation NLL of the event's ranges (biased_range.range_nll)
+    nll: jax.Array  # () innovation NLL of the event's ranges (filters.ekf_slam.update_nll)
     nll_dof: jax.Array  # () ranges in it
     outliers: jax.Array  # () int32 ranges of mapped anchors with d² > OUTLIER_GATE
     monitored: jax.Array  # () int32 ranges of mapped anchors offered to the update

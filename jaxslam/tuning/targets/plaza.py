@@ -57,8 +57,7 @@ def plaza_logs(data, sequences, dtype=jnp.float64, t_max: float | None = None):
             if t_max > span:
                 raise InputError(f"--window: Plaza {r}'s log covers {span:.1f} s, shorter than the {t_max:g} s "
                                  f"fit window; give --window {int(span)} or less")
-            keep = np.asarray(ev.t) <= ev.t[0] + t_max
-            ev = ev._replace(**{k: np.asarray(getattr(ev, k))[keep] for k in ("t", "dt", "u", "z", "ids", "mask")})
+            ev = pr.plaza_events(d.dr_t, d.dr, d.td_t, d.td_node, d.td_range, t_end=float(ev.t[0]) + t_max)
         log = pr.log_from_events(ev, np.asarray(d.start_pose(), np.float64), np.asarray(d.node_id), dtype=dtype)
         gt = np.asarray(d.gt, np.float64).copy()
         gt[:, 2] = gt[:, 2] + d.heading_offset

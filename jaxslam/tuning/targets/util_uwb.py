@@ -46,19 +46,19 @@ NU = 5.0
 MIN_RANGES = 20
 
 
-def util_flight(data, dtype=jnp.float64):
+def util_flight(data, dtype=jnp.float64, t_end=None):
     """The UTIL TWR flight as ``jaxslam dataset util-uwb`` runs it (known anchors, ranges only).
 
     Returns ``(log, t, true, airborne)``: the :class:`jaxslam.systems.util_range.Log`, the event
     times (T,), the motion-capture tag position at each event (T, 3), and the airborne mask
-    (z > 0.3 m, the runner's evaluation set).
+    (z > 0.3 m, the runner's evaluation set).  ``t_end``: keep the ranges up to that time [s].
     """
     from ...data.util_uwb import load_util, tag_positions
     from ...systems import util_range as ur
 
     d = load_util(data, "twr_obs_log1")
     tag = tag_positions(d.gt_p, d.gt_q, d.tag_offset)
-    ev = ur.util_events(d.twr_t, d.twr_anchor, d.twr_range)
+    ev = ur.util_events(d.twr_t, d.twr_anchor, d.twr_range, t_end=t_end)
     log = ur.log_from_events(ev, np.asarray(d.anchor_id), anchors=d.anchor_p, dtype=dtype)
     t = np.asarray(ev.t, np.float64)
     true = np.stack([np.interp(t, d.gt_t, tag[:, j]) for j in range(3)], 1)
@@ -104,14 +104,16 @@ def util_noise(loss: str = "nll", data=None, dtype=jnp.float64, t_max: float | N
         off = None if off is None else off - jnp.mean(off)
         return base._replace(sigma_r=s[0], q_acc=s[1], q_bias=s[2], gate=None, nu=NU, anchor_offset=off)
 
-    w_train = jnp.asarray(~held, dtype)
+    # The filter is causal: the fit window's NLL needs only the log up to t_split.
+    fit_log, t_fit, _, _ = util_flight(data, dtype, t_end=t_split)
+    w_train = jnp.asarray(t_fit < t_split, dtype)
     w_test = jnp.asarray(held, dtype)
 
     def loss_fn(th, item):
         return _window_nll(ur.run(item["log"], cfg, physical(th)), item["w"])
 
-    def batch(w):
-        return {"log": jax.tree.map(lambda a: a[None], log), "w": w[None]}
+    def batch(lg, w):
+        return {"log": jax.tree.map(lambda a: a[None], lg), "w": w[None]}
 
     def evaluate(labelled):
         out = {}
@@ -139,7 +141,7 @@ def util_noise(loss: str = "nll", data=None, dtype=jnp.float64, t_max: float | N
 
     return Target(
         scenario="util-uwb", target="noise", loss="nll", specs={}, theta0=theta0, loss_fn=loss_fn,
-        train=batch(w_train), test=batch(w_test), physical=physical, evaluate=evaluate,
+        train=batch(fit_log, w_train), test=batch(log, w_test), physical=physical, evaluate=evaluate,
         references={"hand_gaussian_gated": base},
         to_params=to_params, describe=describe,
         config={"dataset": "util-uwb", "flight": "twr_obs_log1", "fit_window_s": [float(t[0]), t_split],
