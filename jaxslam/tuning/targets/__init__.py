@@ -36,7 +36,30 @@ import numpy as np
 from ...errors import InputError
 
 __all__ = ["Target", "register_target", "get", "available", "default_target", "REAL_LOG_SCENARIOS", "BUILTIN_MODULES",
-           "keys", "diag_list"]
+           "keys", "diag_list", "STUDENT_T_NU", "window_nll", "heldout_nll", "metrics_entry"]
+
+#: ν of the Student-t range likelihood the range-only real-log targets (UTIL, Plaza) fit with (fixed).
+STUDENT_T_NU = 5.0
+
+
+def window_nll(res, weights=None):
+    """Innovation NLL per scalar of a run's per-event ``res.nll`` / ``res.nll_dof`` (nats; no
+    ground truth), over the events with weight 1 (``weights`` None: all); traceable."""
+    import jax.numpy as jnp
+
+    w = 1.0 if weights is None else weights
+    return jnp.sum(w * res.nll) / jnp.maximum(jnp.sum(w * res.nll_dof), 1.0)
+
+
+def heldout_nll(res, held) -> float:
+    """:func:`window_nll` on the host over the events where ``held`` (a NumPy bool mask)."""
+    nl, nd = np.asarray(res.nll, np.float64), np.asarray(res.nll_dof, np.float64)
+    return float(nl[held].sum() / max(nd[held].sum(), 1.0))
+
+
+def metrics_entry(m: dict) -> dict:
+    """One label of an ``evaluate`` result from its metric lists (no consistency block)."""
+    return {"metrics": {k: np.asarray(v, np.float64) for k, v in m.items()}, "consistency": None}
 
 #: the target modules the registry imports on first use
 BUILTIN_MODULES = ("ekfslam3d", "figure8", "linear_gaussian", "uwb", "mrclam", "util_uwb", "plaza", "victoria_park", "loop")

@@ -39,7 +39,7 @@ import numpy as np
 
 from ...data import catalogue
 from ...errors import InputError
-from . import Target, register_target
+from . import Target, register_target, metrics_entry, window_nll
 
 __all__ = ["mrclam_logs", "planar_theta0", "planar_physical", "planar_nll",
            "mrclam_noise", "mrclam_train_config", "select_odometry_delay", "DELAY_GRID"]
@@ -156,8 +156,7 @@ def planar_physical(theta, base):
 
 def planar_nll(params, config, item):
     """Innovation NLL per scalar measurement of one padded log (nats; no ground truth)."""
-    res = _run(params, config, item)
-    return jnp.sum(res.nll) / jnp.maximum(jnp.sum(res.nll_dof), 1.0)
+    return window_nll(_run(params, config, item))
 
 
 def mrclam_train_config():
@@ -228,7 +227,7 @@ def mrclam_noise(loss: str = "nll", data=None, robots=(1, 2, 3, 4), test_robots=
                 m["nll"].append(float(np.sum(res.nll) / max(np.sum(res.nll_dof), 1)))
                 m["outlier_fraction"].append(float(np.sum(res.n_outliers)) / max(float(np.sum(res.n_monitored)), 1.0))
                 m["inflations"].append(float(res.inflations))
-            out[label] = {"metrics": {k: np.asarray(v, np.float64) for k, v in m.items()}, "consistency": None}
+            out[label] = metrics_entry(m)
         return out
 
     def describe(th):

@@ -28,14 +28,14 @@ import numpy as np
 
 from ...data import catalogue
 from ...errors import InputError
-from . import Target, register_target
+from . import Target, register_target, STUDENT_T_NU, heldout_nll, metrics_entry
 
 __all__ = ["plaza_logs", "plaza_noise", "NOISE_FIELDS", "NU"]
 
 #: the learned fields of ``plaza_range.Params``, in θ's order
 NOISE_FIELDS = ("sigma_r", "alpha_d", "alpha_th", "beta_th", "sigma_d0", "sigma_th0", "q_bias")
 #: Student-t degrees of freedom of the fitted range likelihood (fixed)
-NU = 5.0
+NU = STUDENT_T_NU
 
 
 def plaza_logs(data, sequences, dtype=jnp.float64, t_max: float | None = None):
@@ -124,10 +124,10 @@ def plaza_noise(loss: str = "nll", data=None, robots=(1,), test_robots=(2,), dty
                                                 lm_true_ids=np.asarray(d.node_id))
                 m["ate_m"].append(mm["ate_m"])
                 m["map_err_m"].append(mm.get("map_err_m", np.nan))
-                m["nll"].append(float(np.sum(res.nll) / max(float(np.sum(res.nll_dof)), 1.0)))
+                m["nll"].append(heldout_nll(res, slice(None)))
                 m["range_bias_m"].append(float(res.bias_final))
                 m["outlier_fraction"].append(float(np.sum(res.n_outliers)) / max(float(np.sum(res.n_monitored)), 1.0))
-            out[label] = {"metrics": {k: np.asarray(v, np.float64) for k, v in m.items()}, "consistency": None}
+            out[label] = metrics_entry(m)
         return out
 
     def describe(th):

@@ -36,12 +36,12 @@ import numpy as np
 
 from ...data import catalogue
 from ...errors import InputError
-from . import Target, register_target
+from . import Target, register_target, STUDENT_T_NU, heldout_nll, metrics_entry, window_nll
 
 __all__ = ["util_flight", "util_noise", "NU"]
 
 #: Student-t degrees of freedom of the fitted range likelihood (fixed; module docstring).
-NU = 5.0
+NU = STUDENT_T_NU
 #: airborne ranges needed on each side of the fit window's end
 MIN_RANGES = 20
 
@@ -63,11 +63,6 @@ def util_flight(data, dtype=jnp.float64, t_end=None):
     t = np.asarray(ev.t, np.float64)
     true = np.stack([np.interp(t, d.gt_t, tag[:, j]) for j in range(3)], 1)
     return log, t, true, true[:, 2] > 0.3
-
-
-def _window_nll(res, weights):
-    """Innovation NLL per range over the events with weight 1 (nats; no ground truth)."""
-    return jnp.sum(weights * res.nll) / jnp.maximum(jnp.sum(weights * res.nll_dof), 1.0)
 
 
 def util_noise(loss: str = "nll", data=None, dtype=jnp.float64, t_max: float | None = None,
@@ -110,7 +105,7 @@ def util_noise(loss: str = "nll", data=None, dtype=jnp.float64, t_max: float | N
     w_test = jnp.asarray(held, dtype)
 
     def loss_fn(th, item):
-        return _window_nll(ur.run(item["log"], cfg, physical(th)), item["w"])
+        return window_nll(ur.run(item["log"], cfg, physical(th)), item["w"])
 
     def batch(lg, w):
         return {"log": jax.tree.map(lambda a: a[None], lg), "w": w[None]}
@@ -121,12 +116,11 @@ def util_noise(loss: str = "nll", data=None, dtype=jnp.float64, t_max: float | N
         for label, prm in labelled.items():
             res = ur.run(log, cfg, prm)
             err = np.linalg.norm(np.asarray(res.pos, np.float64) - true, axis=1)
-            nl, nd = np.asarray(res.nll, np.float64), np.asarray(res.nll_dof, np.float64)
             m = {"pos_rmse_m": [float(np.sqrt(np.mean(err[ev] ** 2)))],
                  "pos_rmse_fit_window_m": [float(np.sqrt(np.mean(err[~held & air] ** 2)))],
-                 "nll": [float(nl[held].sum() / max(nd[held].sum(), 1.0))],
+                 "nll": [heldout_nll(res, held)],
                  "gated_fraction": [float(res.n_gated) / max(float(np.sum(np.asarray(log.mask))), 1.0)]}
-            out[label] = {"metrics": {k: np.asarray(v, np.float64) for k, v in m.items()}, "consistency": None}
+            out[label] = metrics_entry(m)
         return out
 
     def describe(th):

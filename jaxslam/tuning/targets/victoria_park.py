@@ -33,7 +33,7 @@ import numpy as np
 
 from ...data import catalogue
 from ...errors import InputError
-from . import Target, register_target
+from . import Target, register_target, heldout_nll, metrics_entry, window_nll
 
 __all__ = ["victoria_park_noise"]
 
@@ -95,10 +95,8 @@ def victoria_park_noise(loss: str = "nll", data=None, dtype=jnp.float64, t_max: 
 
     def loss_fn(th, item):
         if "w" in item:  # the held-out events of the whole log (dataset capacity)
-            r = pe.run(item["log"], cfg_eval, physical(th))
-            return jnp.sum(item["w"] * r.nll) / jnp.maximum(jnp.sum(item["w"] * r.nll_dof), 1.0)
-        r = pe.run(item["log"], cfg, physical(th))
-        return jnp.sum(r.nll) / jnp.maximum(jnp.sum(r.nll_dof), 1.0)
+            return window_nll(pe.run(item["log"], cfg_eval, physical(th)), item["w"])
+        return window_nll(pe.run(item["log"], cfg, physical(th)))
 
     def evaluate(labelled):
         out = {}
@@ -106,14 +104,13 @@ def victoria_park_noise(loss: str = "nll", data=None, dtype=jnp.float64, t_max: 
             run = runners.run_dataset("victoria-park", data, dtype=np.dtype(dtype),
                                       params={"dataset": "victoria-park", "noise": pe.params_to_dict(prm)})
             r = pe.run(test_item, cfg_eval, prm)
-            nl, nd = np.asarray(r.nll, np.float64), np.asarray(r.nll_dof, np.float64)
             m = {"ate_m": [run.metrics["ate_m"]], "ate_t_ge_500s_m": [run.metrics.get("ate_t_ge_500s_m", np.nan)],
                  "ate_t_lt_500s_m": [run.metrics.get("ate_t_lt_500s_m", np.nan)],
-                 "nll": [float(nl[held].sum() / max(nd[held].sum(), 1.0))],
+                 "nll": [heldout_nll(r, held)],
                  "landmarks_mapped": [float(run.counts["landmarks_mapped"])],
                  "refused_in_fit_window": [float(pe.run(train_item, cfg, prm).overflow)],
                  "outlier_fraction": [float(run.metrics.get("outlier_fraction_mapped", np.nan))]}
-            out[label] = {"metrics": {k: np.asarray(v, np.float64) for k, v in m.items()}, "consistency": None}
+            out[label] = metrics_entry(m)
         return out
 
     def describe(th):
