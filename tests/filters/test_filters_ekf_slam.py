@@ -844,12 +844,13 @@ def test_active_only_update_derivatives_and_vmap():
         return jnp.sum(out.P ** 2) + jnp.sum(out.x) + info.nis
 
     lr = jnp.log(jnp.array([0.05**2, 0.01**2]))
-    for d in (jax.grad, jax.jacfwd):
-        np.testing.assert_allclose(d(loss)(lr, sts[0], True), d(loss)(lr, sts[0], False), rtol=1e-10)
+    for d in (jax.grad, jax.jacfwd):  # jitted: one program each, not one per operation
+        dj = jax.jit(d(loss), static_argnums=2)
+        np.testing.assert_allclose(dj(lr, sts[0], True), dj(lr, sts[0], False), rtol=1e-10)
     vg = jax.jit(jax.vmap(jax.grad(loss), in_axes=(None, 0, None)), static_argnums=2)
     np.testing.assert_allclose(vg(lr, S, True), vg(lr, S, False), rtol=1e-10)
-    vP = jax.vmap(lambda st, ao: es.update(st, MODEL, z, slots, jnp.ones(6, bool), jnp.asarray(R),
-                                           active_only=ao)[0].P, in_axes=(0, None))
+    vP = jax.jit(jax.vmap(lambda st, ao: es.update(st, MODEL, z, slots, jnp.ones(6, bool), jnp.asarray(R),
+                                                   active_only=ao)[0].P, in_axes=(0, None)), static_argnums=1)
     np.testing.assert_allclose(vP(S, True), vP(S, False), atol=1e-12)
 
 
@@ -871,17 +872,19 @@ def test_active_only_association_equals_the_whole_table(spread):
 
     zs = [rows_of(st) for st in sts]
     mask = jnp.ones(K, bool).at[2].set(False)
+    assoc = jax.jit(lambda st, z, ao: es.associate_nn(st, MODEL, z, mask, jnp.asarray(R), active_only=ao),
+                    static_argnums=2)  # one program each, not one per operation
     for st, z in zip(sts, zs):
-        a = es.associate_nn(st, MODEL, z, mask, jnp.asarray(R))
-        b = es.associate_nn(st, MODEL, z, mask, jnp.asarray(R), active_only=True)
+        a = assoc(st, z, False)
+        b = assoc(st, z, True)
         for x, y in zip(a[:3], b[:3]):
             np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
         np.testing.assert_allclose(np.asarray(b[3]), np.asarray(a[3]), rtol=1e-12)
         assert bool(np.asarray(a[2])[-1])  # the far rows are new landmarks
     S = jax.tree.map(lambda a, b: jnp.stack([a, b]), *sts)
     Z = jnp.stack(zs)
-    va = jax.vmap(lambda st, z: es.associate_nn(st, MODEL, z, mask, jnp.asarray(R)))(S, Z)
-    vb = jax.vmap(lambda st, z: es.associate_nn(st, MODEL, z, mask, jnp.asarray(R), active_only=True))(S, Z)
+    vassoc = jax.jit(jax.vmap(assoc, in_axes=(0, 0, None)), static_argnums=2)
+    va, vb = vassoc(S, Z, False), vassoc(S, Z, True)
     for x, y in zip(va[:3], vb[:3]):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
     np.testing.assert_allclose(np.asarray(vb[3]), np.asarray(va[3]), rtol=1e-12)
