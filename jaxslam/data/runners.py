@@ -753,10 +753,7 @@ def run_victoria_park(data_dir, robot=1, filter="ekf", ids="known", anchors=None
     m["ate_gps_jumps_removed_m"] = float(metrics.ate(ev["est_xy"][~jump], gx[~jump]))
     m["gps_fixes_removed"] = int(jump.sum())
     # The presets were chosen on t < 500 s: the error of each part (whole-run alignment).
-    e2 = np.sum((np.asarray(ev["est_xy"]) - gx) ** 2, 1)
-    for key, part in (("ate_t_lt_500s_m", tg < 500.0), ("ate_t_ge_500s_m", tg >= 500.0)):
-        if part.any():  # a short log (an excerpt) may lie on one side only
-            m[key] = float(np.sqrt(np.mean(e2[part])))
+    m.update(split_ate(ev, 500.0, "500"))
     if filter == "fastslam":
         counts["measurements"] = int(d.det_t.size)
         counts["outside_limits"] = int(d.det_t.size - det_t.size)
@@ -776,6 +773,18 @@ def run_victoria_park(data_dir, robot=1, filter="ekf", ids="known", anchors=None
     return DatasetRun("victoria-park", cfg, m, counts,
                       {"load_s": load_s, "compile_s": comp_s, "run_s": run_s},
                       dict(d.report), ev, (log.t, pose[:, :2], pose[:, 2]), notes)
+
+
+def split_ate(ev, t_cut: float, label: str) -> dict:
+    """The position error of a run's reference fixes before and from ``t_cut`` [s, the log's
+    clock], under the whole run's alignment (``ev``: :func:`evaluate_planar`'s arrays):
+    ``{"ate_t_lt_<label>s_m": ..., "ate_t_ge_<label>s_m": ...}``; a side without a fix (a short
+    log, an excerpt) is left out."""
+    tg = np.asarray(ev["t"])
+    e2 = np.sum((np.asarray(ev["est_xy"]) - np.asarray(ev["ref_xy"])) ** 2, 1)
+    return {key: float(np.sqrt(np.mean(e2[part])))
+            for key, part in ((f"ate_t_lt_{label}s_m", tg < t_cut), (f"ate_t_ge_{label}s_m", tg >= t_cut))
+            if part.any()}
 
 
 def _vp_fastslam(n):
