@@ -260,12 +260,12 @@ def student_t_d2_ppf_np(p: float, nu: float) -> float:
     lo, hi = 0.0, 1.0  # I_w(ν/2, ½) rises with w from 0 to 1; the root: I = 1 − p
     for _ in range(200):
         w = 0.5 * (lo + hi)
+        if not lo < w < hi:  # lo and hi are adjacent doubles: the bracket cannot shrink further
+            break
         if _betainc_np(0.5 * nu, 0.5, w) < 1.0 - p:
             lo = w
         else:
             hi = w
-        if hi - lo < 1e-17:
-            break
     w = 0.5 * (lo + hi)
     return nu * (1.0 - w) / w
 
