@@ -129,6 +129,12 @@ def build_parser(with_targets: bool = True) -> Parser:
                       help="weight of the estimator's position MSE in the objective (default 0)")
     loop.add_argument("--w-nees", type=nonnegative_float, default=None, metavar="W",
                       help="weight of the NEES consistency term (log(ANEES/9))^2 (default 0)")
+    loop.add_argument("--w-u", type=nonnegative_float, default=None, metavar="W",
+                      help="weight of the control effort mean|u~|^2 in the objective (default 0.1)")
+    loop.add_argument("--w-tilt", type=nonnegative_float, default=None, metavar="W",
+                      help="weight of the soft tilt limit, per rad^2 above --tilt-max (default 10)")
+    loop.add_argument("--tilt-max", type=positive_float, default=None, metavar="DEG",
+                      help="tilt [deg, below 90] above which the soft limit acts (default 12)")
     loop.add_argument("--compare", metavar="FILE", default=None,
                       help="also evaluate the controller of FILE (a --params file or a 'jaxslam tune "
                            "track-figure8 --target lqr' report) with the estimator in the loop")
@@ -228,9 +234,12 @@ def run_tuning(args, progress_stream=None) -> dict:
                 raise InputError(f"{flag}: only the ekfslam3d-* noise targets take it, not {args.scenario}")
     if target_name != "loop":
         for flag, used in (("--tune", args.tune), ("--w-mse", args.w_mse), ("--w-nees", args.w_nees),
+                           ("--w-u", args.w_u), ("--w-tilt", args.w_tilt), ("--tilt-max", args.tilt_max),
                            ("--compare", args.compare)):
             if used is not None:
                 raise InputError(f"{flag}: only the loop target (ekfslam3d-* --target loop) takes it")
+    elif args.tilt_max is not None and not args.tilt_max < 90:  # before the build: the only line
+        raise InputError(f"--tilt-max: expected (0, 90) degrees, got {args.tilt_max}")
     elif args.compare is not None:  # read before the (slow) build: a bad file is the only line
         from jaxslam.tuning.targets import loop as loop_target
         from jaxslam.control import dflqr
@@ -264,6 +273,8 @@ def run_tuning(args, progress_stream=None) -> dict:
     if target_name == "loop":
         kw.update(tune=args.tune or "lqr", w_mse=args.w_mse or 0.0, w_nees=args.w_nees or 0.0,
                   compare=args.compare)
+        kw.update({k: v for k, v in (("w_u", args.w_u), ("w_tilt", args.w_tilt), ("tilt_max_deg", args.tilt_max))
+                   if v is not None})  # the target's defaults otherwise
     if args.duration is not None:
         kw["train_duration"] = args.duration
     if args.scenario in ("util-uwb", "plaza", "victoria-park"):

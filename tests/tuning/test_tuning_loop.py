@@ -78,12 +78,15 @@ def test_float32_loss_and_gradient_finite_and_close_to_float64(short_target):
 def test_cli_loop_end_to_end_and_tuned_file_flies(tmp_path, capsys):
     j, p = tmp_path / "t.json", tmp_path / "p.json"
     rc = cli.main(["tune", "ekfslam3d-known", "--target", "loop", "--tune", "both", "--w-nees", "0.1",
+                   "--w-u", "0.2", "--w-tilt", "5", "--tilt-max", "10",
                    "--steps", "2", "--train-runs", "1", "--test-runs", "2", "--duration", "1",
                    "--eval-duration", "2", "--quiet", "--json", str(j), "--params-out", str(p)])
     err = capsys.readouterr().err
     assert rc == 0, err
     rep = json.loads(j.read_text())
     assert rep["target"] == "loop" and rep["config"]["tune"] == "both"
+    w = rep["config"]["weights"]
+    assert (w["w_u"], w["w_tilt"], w["tilt_max_deg"], w["w_nees"], w["w_mse"]) == (0.2, 5.0, 10.0, 0.1, 0.0)
     assert set(rep["references"]) == {"q_imu_table2"}
     for label in ("before", "after"):
         m = rep[label]["metrics"]
@@ -107,6 +110,10 @@ def test_cli_loop_end_to_end_and_tuned_file_flies(tmp_path, capsys):
     (["tune", "ekfslam3d-unknown", "--target", "loop", "--tune", "gains"], "--tune"),
     (["tune", "ekfslam3d-unknown", "--target", "loop", "--loss", "nll"], "--loss"),
     (["tune", "ekfslam3d-unknown", "--target", "loop", "--compare", "/no/such/file.json"], "--compare"),
+    (["tune", "track-figure8", "--target", "lqr", "--tilt-max", "5"], "--tilt-max"),
+    (["tune", "ekfslam3d-unknown", "--target", "noise", "--w-tilt", "1"], "--w-tilt"),
+    (["tune", "ekfslam3d-unknown", "--target", "loop", "--w-u", "-1"], "--w-u"),
+    (["tune", "ekfslam3d-unknown", "--target", "loop", "--tilt-max", "95"], "--tilt-max"),
 ])
 def test_cli_loop_usage_errors_exit_2_naming_the_flag(argv, needle, capsys):
     assert cli.main(argv) == 2

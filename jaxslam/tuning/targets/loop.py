@@ -135,7 +135,7 @@ def ekfslam3d_loop(loss: str = "cost", train_runs: int = 4, test_runs: int = 16,
     for name, v in (("--w-u", w_u), ("--w-tilt", w_tilt), ("--w-mse", w_mse), ("--w-nees", w_nees)):
         check_scalar(v, name, lower=0)
     if not (0 < tilt_max_deg < 90):
-        raise InputError(f"tilt_max_deg: expected (0, 90) degrees, got {tilt_max_deg}")
+        raise InputError(f"--tilt-max: expected (0, 90) degrees, got {tilt_max_deg}")
     for name, v in (("--duration", train_duration), ("--eval-duration", eval_duration)):
         if not (math.isfinite(v) and v >= DT * FRAME_STEPS):
             raise InputError(f"{name}: must be at least {DT * FRAME_STEPS:g} s, got {v}")
