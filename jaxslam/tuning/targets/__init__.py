@@ -51,10 +51,13 @@ def window_nll(res, weights=None):
     return jnp.sum(w * res.nll) / jnp.maximum(jnp.sum(w * res.nll_dof), 1.0)
 
 
-def heldout_nll(res, held) -> float:
-    """:func:`window_nll` on the host over the events where ``held`` (a NumPy bool mask)."""
+def heldout_nll(res, held=None) -> float:
+    """:func:`window_nll` on the host (float64) over the events where ``held`` (a NumPy bool
+    mask; None: every event)."""
     nl, nd = np.asarray(res.nll, np.float64), np.asarray(res.nll_dof, np.float64)
-    return float(nl[held].sum() / max(nd[held].sum(), 1.0))
+    if held is not None:
+        nl, nd = nl[held], nd[held]
+    return float(nl.sum() / max(nd.sum(), 1.0))
 
 
 def metrics_entry(m: dict) -> dict:

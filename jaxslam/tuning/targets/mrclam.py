@@ -39,7 +39,7 @@ import numpy as np
 
 from ...data import catalogue
 from ...errors import InputError
-from . import Target, register_target, metrics_entry, window_nll
+from . import Target, register_target, heldout_nll, metrics_entry, window_nll
 
 __all__ = ["mrclam_logs", "planar_theta0", "planar_physical", "planar_nll",
            "mrclam_noise", "mrclam_train_config", "select_odometry_delay", "DELAY_GRID"]
@@ -224,7 +224,7 @@ def mrclam_noise(loss: str = "nll", data=None, robots=(1, 2, 3, 4), test_robots=
                 res = pe.run(pe.log_from_events(log, jnp.asarray(ev_logs.pose0[i])), presets.mrclam_config(), prm)
                 mm, _ = runners.evaluate_planar(log.t, np.asarray(res.pose, np.float64), d.gt_t, d.gt)
                 m["ate_m"].append(mm["ate_m"])
-                m["nll"].append(float(np.sum(res.nll) / max(np.sum(res.nll_dof), 1)))
+                m["nll"].append(heldout_nll(res))
                 m["outlier_fraction"].append(float(np.sum(res.n_outliers)) / max(float(np.sum(res.n_monitored)), 1.0))
                 m["inflations"].append(float(res.inflations))
             out[label] = metrics_entry(m)

@@ -124,7 +124,7 @@ def plaza_noise(loss: str = "nll", data=None, robots=(1,), test_robots=(2,), dty
                                                 lm_true_ids=np.asarray(d.node_id))
                 m["ate_m"].append(mm["ate_m"])
                 m["map_err_m"].append(mm.get("map_err_m", np.nan))
-                m["nll"].append(heldout_nll(res, slice(None)))
+                m["nll"].append(heldout_nll(res))
                 m["range_bias_m"].append(float(res.bias_final))
                 m["outlier_fraction"].append(float(np.sum(res.n_outliers)) / max(float(np.sum(res.n_monitored)), 1.0))
             out[label] = metrics_entry(m)
