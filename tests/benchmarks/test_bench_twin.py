@@ -9,7 +9,8 @@ every IMU step, final state and full covariance, map bookkeeping), with
 landmark registration (mode unknown, including a capacity overflow) and
 against a known map.  The hand Jacobians are also checked against
 ``jax.jacfwd`` of the package's model one by one, so a failure points at the
-culprit.  Not a timing test.
+culprit.  The benchmark's capacity-ratio harness (alternating calls) is checked on a fake
+clock.  Not a timing test.
 """
 
 import pathlib
@@ -159,3 +160,30 @@ def test_twin_reproduces_the_system_run(log, mode, q, capacity, max_obs, joseph)
     err = means_np[-1] - log["truth"][-1]
     err[6:9] = np.mod(err[6:9] + np.pi, 2 * np.pi) - np.pi
     assert np.max(np.abs(err)) < 0.5
+
+
+def test_capacity_ratio_comes_from_alternating_calls(monkeypatch):
+    # The harness, not a timing: a fake clock in which a call of ``fa`` takes 1 and of ``fb``
+    # 1.5 (plus 0.25 on the 3rd pair, a load spike hitting both alike); the calls must
+    # alternate, and the target's ratio is the ratio of the two medians, 1.5.
+    clock, calls = [0.0], []
+
+    def fake(name, cost):
+        def f(*args):
+            calls.append(name)
+            clock[0] += cost + (0.25 if len(calls) in (5, 6) else 0.0)
+            return np.zeros(1)
+        return f
+
+    monkeypatch.setattr(bench_ekfslam.time, "perf_counter", lambda: clock[0])
+    pairs = bench_ekfslam._paired_times(fake("a", 1.0), fake("b", 1.5), (), 5)
+    assert calls == ["a", "b"] * 5
+    assert pairs["times_64_s"] == [1.0, 1.0, 1.25, 1.0, 1.0] and pairs["ratio"] == 1.5
+    row = {"mapped_final": 31, "jaxslam-standard-form": {"speedup": 9.0}}
+    full = {"openblas_threads": "1 thread", "capacity_pairs": pairs,
+            "rows": [dict(row, capacity=64, jaxslam={"median_s": 1.0, "speedup": 9.0}),
+                     dict(row, capacity=256, jaxslam={"median_s": 2.0, "speedup": 9.0})]}
+    out = {"targets": []}
+    bench_ekfslam._full_targets(full, out, 50.0)
+    (t,) = [t for t in out["targets"] if "256 vs 64" in t["name"]]
+    assert t["value"] == 1.5 and not t["met"] and t["ratio_of_the_separate_medians"] == 2.0
