@@ -259,6 +259,36 @@ def test_capacity_overflow_is_flagged_and_counted():
     assert np.all(np.isfinite(np.asarray(st.P)))
 
 
+def test_register_on_a_full_map_only_counts_and_equals_the_whole_registration():
+    # A full map takes the short branch (nothing written, candidates counted); it must give
+    # what the whole registration gives there, field by field — also under vmap with a batch
+    # in which one run still has a free slot (that batch runs the whole registration).
+    z = jnp.array([[5.0, 0.2], [4.0, -0.3], [jnp.nan, 0.1], [3.0, 1.0]])
+    mask = jnp.array([True, True, True, False])
+
+    @jax.jit
+    def case(z, mask):
+        st = es.init(jnp.zeros(3), jnp.eye(3) * 1e-4, 2, 2)
+        st = es.register(st, MODEL, z[:2], jnp.array([7, 8]), jnp.array([True, True]), jnp.asarray(R))
+        return (st, es.register(st, MODEL, z, jnp.arange(4), mask, jnp.asarray(R)),
+                es._register(st, MODEL, z, jnp.arange(4), mask, jnp.asarray(R), None))
+
+    full, short, whole = case(z, mask)
+    assert bool(full.active.all()) and int(short.overflow) == 2 and int(full.overflow) == 0
+    assert errors.decode(short.status) == errors.decode(whole.status)
+    assert {"capacity_overflow", "masked_input"} <= set(errors.decode(short.status))
+    for a, b in zip(jax.tree.leaves(short), jax.tree.leaves(whole)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    # batched: run 0 full, run 1 with its second slot free
+    free = full._replace(active=full.active.at[1].set(False))
+    both = jax.tree.map(lambda a, b: jnp.stack([a, b]), full, free)
+    reg = jax.jit(jax.vmap(lambda st: es.register(st, MODEL, z, jnp.arange(4), mask, jnp.asarray(R))))
+    out = reg(both)
+    for a, b in zip(jax.tree.leaves(jax.tree.map(lambda a: a[0], out)), jax.tree.leaves(short)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert bool(out.active[1].all()) and int(out.overflow[1]) == 1
+
+
 def test_nan_measurements_are_masked_and_flagged():
     us, zs, ids, masks = make_log(seed=4)
     zs_bad = zs.copy()
