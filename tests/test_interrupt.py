@@ -82,7 +82,11 @@ def test_monte_carlo_interrupt_before_any_chunk_propagates(batching):
 
 
 _SLOW_SCENARIO = textwrap.dedent("""
-    import sys
+    import signal, sys
+    # Ctrl-C as a terminal delivers it: a suite started as a background job without job control
+    # ((cmd &) in a script) has SIGINT ignored, this process inherits that, and Python then
+    # installs no KeyboardInterrupt handler at all.
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     import jax, jax.numpy as jnp, numpy as np
     from jaxslam import cli
     from jaxslam.sim import monte_carlo
