@@ -18,6 +18,7 @@ one-core profile), so:
   speed (speed is ``benchmarks/``'s job).  ``JAXSLAM_TEST_OPT=1`` compiles as users do.
 """
 
+import collections
 import os
 import pathlib
 
@@ -116,7 +117,7 @@ _LONGEST_FIRST = (
 def pytest_collection_modifyitems(config, items):
     rank = {f: i for i, f in enumerate(_LONGEST_FIRST)}
     files = [it.nodeid.split("::")[0] for it in items]
-    count = {f: files.count(f) for f in set(files)}
+    count = collections.Counter(files)
     order = {id(it): (rank.get(f, len(rank)), -count[f], f) for it, f in zip(items, files)}
     items.sort(key=lambda it: order[id(it)])  # stable: a file's own order is kept
 

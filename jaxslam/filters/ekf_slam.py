@@ -941,12 +941,18 @@ def _refuse_all(state: SlamState, z, mask) -> SlamState:
     candidate is refused (counted in ``overflow``), nothing is written — the same state,
     without its O(K·d_l·n) work."""
     finite = jnp.all(jnp.isfinite(z), axis=-1)
-    over = mask & finite
+    return _count_refused(state, mask & finite, mask & ~finite)
+
+
+def _count_refused(state: SlamState, over, bad) -> SlamState:
+    """``state`` with the candidates refused for want of a slot (``over``) counted in
+    ``overflow`` and flagged ``CAPACITY_OVERFLOW``, and non-finite ones (``bad``) flagged
+    ``MASKED_INPUT``."""
     return state._replace(
         overflow=state.overflow + jnp.sum(over, dtype=jnp.int32),
         status=state.status
         | _flag_if(jnp.any(over), errors.CAPACITY_OVERFLOW)
-        | _flag_if(jnp.any(mask & ~finite), errors.MASKED_INPUT),
+        | _flag_if(jnp.any(bad), errors.MASKED_INPUT),
     )
 
 
@@ -1004,13 +1010,7 @@ def _register(state: SlamState, model: SlamModel, z, lm_ids, mask, R, params) ->
     slot_w = jnp.where(good, slot, jnp.int32(cap))
     active = state.active.at[slot_w].set(True, mode="drop")
     ids = state.ids.at[slot_w].set(jnp.asarray(lm_ids).astype(jnp.int32), mode="drop")
-    return state._replace(
-        x=x, P=P, active=active, ids=ids,
-        overflow=state.overflow + jnp.sum(over, dtype=jnp.int32),
-        status=state.status
-        | _flag_if(jnp.any(over), errors.CAPACITY_OVERFLOW)
-        | _flag_if(jnp.any(mask & ~finite), errors.MASKED_INPUT),
-    )
+    return _count_refused(state._replace(x=x, P=P, active=active, ids=ids), over, mask & ~finite)
 
 
 # ---------------------------------------------------------------------------

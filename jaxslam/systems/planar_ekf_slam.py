@@ -426,9 +426,8 @@ def _measure(st: es.SlamState, z, ids, valid, model, config: Config, R, nu, thr:
         reg_ids = jnp.full((K,), -1, jnp.int32)
         watched = matched
     n_before = jnp.sum(st.active).astype(jnp.int32)
-    # registration writes rows/columns of P per candidate: skipped (cond) when nothing is new
-    st = jax.lax.cond(jnp.any(new), lambda st_: es.register(st_, model, zs, reg_ids, new, R, None),
-                      lambda st_: st_, st)
+    # (the engine's register skips its work when nothing is new, also for a vmapped batch)
+    st = es.register(st, model, zs, reg_ids, new, R, None)
     registered = jnp.sum(st.active).astype(jnp.int32) - n_before
     counts = jnp.stack([
         jnp.sum(info.used).astype(jnp.int32),
