@@ -324,26 +324,31 @@ def step(state: State, event: Event, config: Config, params: Params, *, key=None
     n_unm = n_unm + jnp.sum(new).astype(jnp.int32)
     # delayed initialisation of each unmapped beacon whose buffer is ready
     # (skipped statically with surveyed beacons: every beacon is mapped from the start)
-    for j in (range(N) if config.delayed is not False else ()):  # static, small
-        bid = beacon_ids[j]
-        is_mapped = jnp.any((st.ids == bid) & st.active)
-        valid = jnp.arange(W) < buf.count[j]
+    if config.delayed is not False:
         bias = st.x[NR - 1]
 
-        def fit(bias_):  # (D1), robust, on the bias-corrected ranges
-            return delayed_init.from_buffer(buf.pos[j], buf.pos_var[j], buf.rng[j] - bias_, valid,
-                                            p.sigma_r**2, p.min_points, p.min_spread,
-                                            robust=True)
+        def fit_one(pos, pos_var, rng, valid):
+            def fit(bias_):  # (D1), robust, on the bias-corrected ranges
+                return delayed_init.from_buffer(pos, pos_var, rng - bias_, valid, p.sigma_r**2, p.min_points,
+                                                p.min_spread, robust=True)
 
-        r, Pl = fit(bias)
-        Gb = jax.jacfwd(lambda b_: fit(b_)[0].position)(bias)  # (2,)
+            # the fit and its derivative in the bias in one pass (one copy of the fit in the program)
+            (r, Pl), (dr, _) = jax.jvp(fit, (bias,), (jnp.ones_like(bias),))
+            return r, Pl, dr.position
+
+        # every beacon's fit at once; the registrations below stay in turn (each takes a free slot)
+        fits, Pls, Gbs = jax.vmap(fit_one)(buf.pos, buf.pos_var, buf.rng, jnp.arange(W)[None, :] < buf.count[:, None])
         Pbb = st.P[NR - 1, NR - 1]
-        Pll = Pl + Pbb * jnp.outer(Gb, Gb)
-        Plx = Gb[:, None] * st.P[NR - 1][None, :]
-        free = ~st.active
-        ready = (~is_mapped) & r.ok & jnp.any(free) & jnp.all(jnp.isfinite(Pll))
-        st = es.add_landmark(st, MODEL, jnp.argmax(free), r.position, symmetrize(Pll), Plx, bid, ok=ready)
-        n_reg = n_reg + ready.astype(jnp.int32)
+        for j in range(N):  # static, small
+            bid = beacon_ids[j]
+            is_mapped = jnp.any((st.ids == bid) & st.active)
+            Gb = Gbs[j]  # (2,) ∂position/∂bias
+            Pll = Pls[j] + Pbb * jnp.outer(Gb, Gb)
+            Plx = Gb[:, None] * st.P[NR - 1][None, :]
+            free = ~st.active
+            ready = (~is_mapped) & fits.ok[j] & jnp.any(free) & jnp.all(jnp.isfinite(Pll))
+            st = es.add_landmark(st, MODEL, jnp.argmax(free), fits.position[j], symmetrize(Pll), Plx, bid, ok=ready)
+            n_reg = n_reg + ready.astype(jnp.int32)
     Pd = jnp.diagonal(st.P)
     out = StepOut(pos=st.x[0:2], pos_var=Pd[0:2], heading=st.x[2], bias=st.x[3], bias_var=Pd[3], nis=info.nis,
                   dof=info.dof, used=jnp.sum(info.used).astype(jnp.int32), gated=jnp.sum(info.gated).astype(jnp.int32),
