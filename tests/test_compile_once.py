@@ -23,7 +23,7 @@ from jaxslam.sim.scenarios import registry
 DATA = pathlib.Path(__file__).resolve().parent / "data"
 
 SCENARIOS = {  # short flights: one program each (the seed changes the noise, not the program)
-    "ekfslam3d-unknown": {"duration": 0.5},
+    "ekfslam3d-known": {"duration": 0.5},  # (ekfslam3d-unknown flies in tests/sim, tests/tuning)
     "uwb-circle": {"duration": 20.0},
     "attitude-smc": {"duration": 0.2, "perturbation": "random"},
     "lineslam-room": {"duration": 2.0},
