@@ -142,10 +142,11 @@ def test_masked_rows_and_unmapped_slots_are_never_paired():
                       ids=jnp.arange(cap, dtype=jnp.int32), status=jnp.int32(0), overflow=jnp.int32(0))
     thr = jnp.asarray([chi2_ppf_np(0.99, 2 * m) for m in range(1, K + 1)])
     mask = jnp.asarray([True, False, True])
-    res = A.jcbb(st, MODEL, jnp.asarray(z), mask, jnp.asarray(R), gate=GATE, thresholds=thr,
-                 n_cand=3, budget=200)
+    def search(zz):
+        return A.jcbb(st, MODEL, zz, mask, jnp.asarray(R), gate=GATE, thresholds=thr, n_cand=3, budget=200)
+
+    res = jax.jit(search)(jnp.asarray(z))  # jitted: one program, not one per operation
     slots = np.asarray(res.slots)
     assert slots[1] == -1 and not np.any(slots == 1)
-    zero = jax.vmap(lambda zz: A.jcbb(st, MODEL, zz, mask, jnp.asarray(R), gate=GATE, thresholds=thr,
-                                      n_cand=3, budget=200).n_paired)(jnp.stack([jnp.asarray(z)] * 2))
+    zero = jax.jit(jax.vmap(lambda zz: search(zz).n_paired))(jnp.stack([jnp.asarray(z)] * 2))
     assert zero.shape == (2,)  # vmappable

@@ -556,16 +556,18 @@ def test_iterated_update_equals_generic_iterated_ekf(num_iter):
     z = np.stack([np.asarray(observe(jnp.asarray(x[:3]), jnp.asarray(x[3 + 2 * k:5 + 2 * k]), None))
                   for k in slots]) + np.array([[0.8, 0.3], [9.0, 9.0], [-0.6, -0.25]])
     R = np.diag([0.05**2, 0.03**2])
-    post, info = es.update(st, MODEL, jnp.asarray(z), jnp.asarray(slots), jnp.asarray(mask), R,
-                           num_iter=num_iter)
+    # jitted: one program each, not one per operation
+    post, info = jax.jit(lambda st, z: es.update(st, MODEL, z, jnp.asarray(slots), jnp.asarray(mask), R,
+                                                 num_iter=num_iter))(st, jnp.asarray(z))
     use = slots[mask]
 
     def h_full(v):
         return jnp.concatenate([observe(v[:3], v[3 + 2 * k:5 + 2 * k], None) for k in use])
 
     res = ekf.angle_residual([False, True] * len(use))
-    g, ginfo = ekf.update(ekf.Gaussian(st.x, st.P), z[mask].reshape(-1), h_full,
-                          np.kron(np.eye(len(use)), R), residual=res, num_iter=num_iter)
+    g, ginfo = jax.jit(lambda m, c: ekf.update(ekf.Gaussian(m, c), z[mask].reshape(-1), h_full,
+                                               np.kron(np.eye(len(use)), R), residual=res,
+                                               num_iter=num_iter))(st.x, st.P)
     np.testing.assert_allclose(np.asarray(post.x), np.asarray(g.mean), atol=1e-10)
     np.testing.assert_allclose(np.asarray(post.P), np.asarray(g.cov), atol=1e-10)
     np.testing.assert_allclose(float(info.nis), float(ginfo.nis), rtol=1e-10)
@@ -790,8 +792,10 @@ def test_standard_form_update_equals_joseph(kw, active_only):
     z = jax.vmap(lambda l: observe(st.x[:3], l, None))(jnp.asarray(lm))
     z = z + jnp.asarray(np.random.default_rng(2).normal(size=z.shape) * np.array([0.05, 0.01]))
     mask = jnp.ones(len(act), bool)
-    a, ia = es.update(st, MODEL, z, slots, mask, jnp.asarray(R), active_only=active_only, **kw)
-    b, ib = es.update(st, MODEL, z, slots, mask, jnp.asarray(R), active_only=active_only, joseph=False, **kw)
+    upd = jax.jit(lambda st, z, joseph: es.update(st, MODEL, z, slots, mask, jnp.asarray(R), active_only=active_only,
+                                                  joseph=joseph, **kw), static_argnums=2)  # one program each
+    a, ia = upd(st, z, True)
+    b, ib = upd(st, z, False)
     np.testing.assert_allclose(np.asarray(b.x), np.asarray(a.x), atol=1e-12)
     np.testing.assert_allclose(np.asarray(b.P), np.asarray(a.P), atol=1e-12)
     assert np.abs(np.asarray(b.P) - np.asarray(st.P)).max() > 1e-4  # the update did move P

@@ -202,8 +202,8 @@ def test_gradient_matches_numpy_finite_differences_and_is_finite_when_degenerate
     h = 1e-6
     for P in (pts, pts[:3]):  # pts[:3]: A = diag(8, 8)
         r = np.linalg.norm(P - target, axis=1) + np.array([0.01, -0.02, 0.015, 0.0, 0.005])[:len(P)]
-        Jp, Jr = jax.jacfwd(lambda pp, rr: tri.trilaterate(pp, rr).position, argnums=(0, 1))(
-            jnp.asarray(P), jnp.asarray(r))
+        Jp, Jr = jax.jit(jax.jacfwd(lambda pp, rr: tri.trilaterate(pp, rr).position, argnums=(0, 1)))(
+            jnp.asarray(P), jnp.asarray(r))  # jitted: one program, not one per operation
         fd_r = np.stack([(_oracle(P, r + h * e) - _oracle(P, r - h * e)) / (2 * h) for e in np.eye(len(r))], 1)
         np.testing.assert_allclose(np.asarray(Jr), fd_r, rtol=1e-6, atol=1e-8)
         for k in range(len(P)):
@@ -221,5 +221,5 @@ def test_gradient_matches_numpy_finite_differences_and_is_finite_when_degenerate
                                  (jnp.ones((6, 2)), jnp.full(6, 2.0), jnp.ones(6, bool)),  # one point
                                  (jnp.stack([jnp.arange(6.0), jnp.zeros(6)], 1), jnp.full(6, 3.0),
                                   jnp.ones(6, bool))):  # collinear
-        g = jax.grad(loss, argnums=(0, 1))(points, ranges, mask)
+        g = jax.jit(jax.grad(loss, argnums=(0, 1)))(points, ranges, mask)
         assert all(np.all(np.isfinite(np.asarray(a))) for a in g)

@@ -337,17 +337,20 @@ def test_joint_compatibility_drops_the_inconsistent_match():
     st = es.init(jnp.zeros(3), jnp.diag(jnp.asarray([1e-4, 1e-4, 0.1**2])), 4, 2)
     R = jnp.diag(jnp.asarray([0.05**2, 0.01**2]))
     lms = np.array([[10.0, 0.0], [0.0, 10.0], [-7.0, -7.0]])
-    for i, l in enumerate(lms):
-        st = es.add_landmark(st, model, i, jnp.asarray(l), 1e-6 * jnp.eye(2), jnp.zeros((2, 11)), -1)
+    add = jax.jit(lambda st, i, l: es.add_landmark(st, model, i, l, 1e-6 * jnp.eye(2), jnp.zeros((2, 11)), -1))
+    for i, l in enumerate(lms):  # jitted here and below: one program each, not one per operation
+        st = add(st, i, jnp.asarray(l))
     zt = np.stack([np.linalg.norm(lms, axis=1), np.arctan2(lms[:, 1], lms[:, 0])], 1)
     slots = jnp.arange(3, dtype=jnp.int32)
     m = jnp.ones(3, bool)
     thr = P._chi2_table(0.99, 3, 2)
+    assoc = jax.jit(lambda st, z: es.associate_nn(st, model, z, m, R))
+    joint = jax.jit(lambda st, z: es.joint_compatibility(st, model, z, slots, m, R, None, thr))
     for rot, keep in (([0.08, 0.08, -0.08], [True, True, False]), ([0.0, 0.0, 0.0], [True] * 3)):
         z = jnp.asarray(zt + np.stack([np.zeros(3), rot], 1))
-        _, ok, _, d2 = es.associate_nn(st, model, z, m, R)
+        _, ok, _, d2 = assoc(st, z)
         assert np.all(np.asarray(ok)) and np.all(np.asarray(d2) < 9.21)  # each row alone passes
-        kept, dropped, nis = es.joint_compatibility(st, model, z, slots, m, R, None, thr)
+        kept, dropped, nis = joint(st, z)
         assert list(np.asarray(kept)) == keep and list(np.asarray(dropped)) == [not k for k in keep]
         assert float(nis) < thr[int(np.sum(keep)) - 1]
 

@@ -14,6 +14,7 @@ import json
 import pathlib
 import re
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -54,7 +55,8 @@ def test_first_update_nll_matches_a_hand_computation(flight):
     for nu in (None, 5.0):
         p = ur.PARAMS._replace(nu=nu, gate=None)
         res = ur.run(log, ur.Config(height=False), p)
-        st0 = ur.init(log, ur.Config(capacity=8, height=False), ur._cast_params(p, jnp.float64))
+        st0 = jax.jit(ur.init, static_argnums=1)(log, ur.Config(capacity=8, height=False),  # one program
+                                                 ur._cast_params(p, jnp.float64))
         # prediction over the first event by hand (CV, WNA), then the range's innovation
         dt = float(log.dt[0])
         F = np.eye(ur.NR + 24)
