@@ -51,8 +51,8 @@ refitted once without the rows whose residual exceeds max(3·1.4826·MAD, 1 m)
 (the outliers) (:func:`jaxslam.filters.delayed_init.from_buffer`, robust, eq. D1),
 and added with P_ll = Σ_LS(σ_r²) + mean position variance · I + G_b σ_b² G_bᵀ and the
 cross-covariance P_lx = G_b P_b,: with the whole state, G_b = ∂l/∂b by
-``jacfwd`` through the (fixed-mask) trilateration — so the filter knows the
-beacon moves with the bias.  Cross-covariances with the buffered poses are
+``jax.jvp`` through the (fixed-mask) trilateration, with the fit itself in the same pass
+(every beacon's fit in one ``vmap``) — so the filter knows the beacon moves with the bias.  Cross-covariances with the buffered poses are
 not formed (as paper 003's start-up).
 "
 """
