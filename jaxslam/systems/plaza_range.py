@@ -52,8 +52,9 @@ refitted once without the rows whose residual exceeds max(3·1.4826·MAD, 1 m)
 and added with P_ll = Σ_LS(σ_r²) + mean position variance · I + G_b σ_b² G_bᵀ and the
 cross-covariance P_lx = G_b P_b,: with the whole state, G_b = ∂l/∂b by
 ``jax.jvp`` through the (fixed-mask) trilateration, with the fit itself in the same pass
-(every beacon's fit in one ``vmap``) — so the filter knows the beacon moves with the bias.  Cross-covariances with the buffered poses are
-not formed (as paper 003's start-up).
+(every beacon's fit in one ``vmap``, the registrations in one ``lax.scan`` over the beacons) —
+so the filter knows the beacon moves with the bias.  Cross-covariances with the buffered poses
+are not formed (as paper 003's start-up).
 "
 """
 
@@ -339,16 +340,19 @@ def step(state: State, event: Event, config: Config, params: Params, *, key=None
         # every beacon's fit at once; the registrations below stay in turn (each takes a free slot)
         fits, Pls, Gbs = jax.vmap(fit_one)(buf.pos, buf.pos_var, buf.rng, jnp.arange(W)[None, :] < buf.count[:, None])
         Pbb = st.P[NR - 1, NR - 1]
-        for j in range(N):  # static, small
-            bid = beacon_ids[j]
+
+        def register(carry, b):  # one beacon; in turn, since each takes a free slot
+            st, n_reg = carry
+            bid, ok, position, Pl, Gb = b  # Gb (2,): ∂position/∂bias
             is_mapped = jnp.any((st.ids == bid) & st.active)
-            Gb = Gbs[j]  # (2,) ∂position/∂bias
-            Pll = Pls[j] + Pbb * jnp.outer(Gb, Gb)
+            Pll = Pl + Pbb * jnp.outer(Gb, Gb)
             Plx = Gb[:, None] * st.P[NR - 1][None, :]
             free = ~st.active
-            ready = (~is_mapped) & fits.ok[j] & jnp.any(free) & jnp.all(jnp.isfinite(Pll))
-            st = es.add_landmark(st, MODEL, jnp.argmax(free), fits.position[j], symmetrize(Pll), Plx, bid, ok=ready)
-            n_reg = n_reg + ready.astype(jnp.int32)
+            ready = (~is_mapped) & ok & jnp.any(free) & jnp.all(jnp.isfinite(Pll))
+            st = es.add_landmark(st, MODEL, jnp.argmax(free), position, symmetrize(Pll), Plx, bid, ok=ready)
+            return (st, n_reg + ready.astype(jnp.int32)), None
+
+        (st, n_reg), _ = jax.lax.scan(register, (st, n_reg), (beacon_ids, fits.ok, fits.position, Pls, Gbs))
     Pd = jnp.diagonal(st.P)
     out = StepOut(pos=st.x[0:2], pos_var=Pd[0:2], heading=st.x[2], bias=st.x[3], bias_var=Pd[3], nis=info.nis,
                   dof=info.dof, used=jnp.sum(info.used).astype(jnp.int32), gated=jnp.sum(info.gated).astype(jnp.int32),
