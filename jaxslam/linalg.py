@@ -22,6 +22,8 @@ __all__ = [
     "value_and_jacfwd",
     "take",
     "put",
+    "take_blocks",
+    "put_blocks",
     "symmetrize",
     "wrap_angle",
     "chol_solve",
@@ -138,6 +140,99 @@ def _put_jvp(axis, primals, tangents):
     shape[axis] = N
     d = jnp.moveaxis(jnp.tensordot(E.T, jnp.moveaxis(dv.astype(da.dtype), axis, 0), axes=(1, 0)), 0, axis)
     return put(a, idx, values, axis), da * keep.reshape(shape) + d
+
+
+def _block_layout(n: int, size: int, offset: int, name: str) -> int:
+    """Number of ``size``-long blocks from ``offset`` on an axis of length ``n`` (static check)."""
+    if size < 1 or offset < 0 or (n - offset) % size:
+        raise ValueError(f"{name}: an axis of length {n} from offset {offset} is not a whole number "
+                         f"of blocks of size {size}")
+    return (n - offset) // size
+
+
+def _block_region(a, offset: int, nb: int, size: int, axis: int):
+    """``a``'s blocks along ``axis`` as two axes (..., nb, size, ...)."""
+    body = jax.lax.slice_in_dim(a, offset, offset + nb * size, axis=axis)
+    return body.reshape(a.shape[:axis] + (nb, size) + a.shape[axis + 1:])
+
+
+def _unblock(d, a_shape, offset: int, axis: int):
+    """(..., nb, size, ...) back to one axis, zero-padded before ``offset`` to ``a_shape``."""
+    d = d.reshape(a_shape[:axis] + (-1,) + a_shape[axis + 1:])
+    pad = [(0, 0)] * d.ndim
+    pad[axis] = (offset, a_shape[axis] - offset - d.shape[axis])
+    return jnp.pad(d, pad) if offset or pad[axis][1] else d
+
+
+def _block_indices(blocks, size: int, offset: int, nb: int, n: int, clip: bool):
+    """Element indices (K, size) of the blocks; clipped into range, or ``n`` (dropped) outside."""
+    b = jnp.asarray(blocks, jnp.int32)
+    if clip:
+        b = jnp.clip(b, 0, nb - 1)
+    idx = offset + size * b[:, None] + jnp.arange(size, dtype=jnp.int32)[None, :]
+    return idx if clip else jnp.where(((b >= 0) & (b < nb))[:, None], idx, jnp.int32(n))
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(2, 3, 4))
+def take_blocks(a, blocks, size: int, offset: int = 0, axis: int = 0):
+    """The ``size``-long blocks of ``a`` along ``axis`` that start at ``offset + size·b`` for
+    each ``b`` in ``blocks`` (K,), block indices clipped into range: shape
+    ``a.shape[:axis] + (K, size) + a.shape[axis+1:]`` (static ``size``, ``offset``, ``axis``;
+    ``a.shape[axis] − offset`` a multiple of ``size``).
+
+    The value is :func:`take`'s at the blocks' element indices; the derivative is a one-hot
+    product over the blocks (K × blocks) instead of over the elements (K·size × length): for a
+    filter's landmark blocks of size d, d² times fewer operations in a gradient, and no
+    scatter either.
+    """
+    nb = _block_layout(a.shape[axis], size, offset, "take_blocks")
+    idx = _block_indices(blocks, size, offset, nb, a.shape[axis], clip=True)
+    return jnp.take(a, idx, axis=axis, mode="clip")
+
+
+@take_blocks.defjvp
+def _take_blocks_jvp(size, offset, axis, primals, tangents):
+    a, blocks = primals
+    da = tangents[0]
+    nb = _block_layout(a.shape[axis], size, offset, "take_blocks")
+    E = _one_hot(jnp.clip(jnp.asarray(blocks, jnp.int32), 0, nb - 1), nb, da.dtype)  # (K, nb)
+    body = jnp.moveaxis(_block_region(da, offset, nb, size, axis), axis, 0)  # (nb, ..., size, ...)
+    d = jnp.tensordot(E, body, axes=(1, 0))  # (K, ..., size, ...)
+    return take_blocks(a, blocks, size, offset, axis), _place(d, axis, 1)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(3, 4, 5))
+def put_blocks(a, blocks, values, size: int, offset: int = 0, axis: int = 0):
+    """``a`` with its ``size``-long blocks along ``axis`` at ``offset + size·b`` (``b`` in
+    ``blocks`` (K,)) set to ``values`` (``a.shape[:axis] + (K, size) + a.shape[axis+1:]``).
+
+    Block indices outside ``[0, blocks)`` are dropped (nothing written); those in range must
+    be distinct.  The value is :func:`put`'s at the blocks' element indices; the derivative is
+    a masked copy plus a one-hot product over the blocks, d² times cheaper than :func:`put`'s
+    over the elements for blocks of size d (see :func:`take_blocks`).
+    """
+    n = a.shape[axis]
+    nb = _block_layout(n, size, offset, "put_blocks")
+    idx = _block_indices(blocks, size, offset, nb, n, clip=False).reshape(-1)
+    v = jnp.asarray(values).astype(a.dtype)
+    v = v.reshape(v.shape[:axis] + (-1,) + v.shape[axis + 2:])
+    return put(a, idx, v, axis)
+
+
+@put_blocks.defjvp
+def _put_blocks_jvp(size, offset, axis, primals, tangents):
+    a, blocks, values = primals
+    da, _, dv = tangents
+    n = a.shape[axis]
+    nb = _block_layout(n, size, offset, "put_blocks")
+    E = _one_hot(jnp.asarray(blocks, jnp.int32), nb, da.dtype)  # (K, nb); dropped blocks: zero rows
+    keep_b = 1.0 - jnp.max(E, axis=0)  # (nb,)
+    keep = jnp.concatenate([jnp.ones((offset,), da.dtype), jnp.repeat(keep_b, size)])
+    shape = [1] * a.ndim
+    shape[axis] = n
+    dv = jnp.moveaxis(jnp.asarray(dv).astype(da.dtype), axis, 0)  # (K, ..., size, ...)
+    d = _place(jnp.tensordot(E.T, dv, axes=(1, 0)), axis, 1)  # (..., nb, size, ...)
+    return put_blocks(a, blocks, values, size, offset, axis), da * keep.reshape(shape) + _unblock(d, a.shape, offset, axis)
 
 
 def small_matmul(A, B, limit: int = 16):

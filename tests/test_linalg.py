@@ -1,5 +1,6 @@
-"""jaxslam.linalg.take / put: NumPy oracles for values, plain-indexing and finite-difference
-oracles for derivatives, and the property they exist for (no scatter in a derivative)."""
+"""jaxslam.linalg.take / put and their block forms take_blocks / put_blocks: NumPy oracles for
+values, plain-indexing and finite-difference oracles for derivatives, and the property they
+exist for (no scatter in a derivative)."""
 
 import jax
 import jax.numpy as jnp
@@ -7,7 +8,7 @@ import numpy as np
 import pytest
 from jax.test_util import check_grads
 
-from jaxslam.linalg import put, small_matmul, take
+from jaxslam.linalg import put, put_blocks, small_matmul, take, take_blocks
 
 
 def _prims(jaxpr):
@@ -186,3 +187,98 @@ def test_small_matmul_equals_numpy_product_and_its_derivative(shapes, dtype):
     dA, dB = rng.normal(size=A.shape), rng.normal(size=B.shape)
     _, t = jax.jvp(small_matmul, (jnp.asarray(A), jnp.asarray(B)), (jnp.asarray(dA), jnp.asarray(dB)))
     np.testing.assert_allclose(np.asarray(t), dA @ B + A @ dB, atol=1e-12)
+
+
+# --- block forms: blocks of `size` from `offset` (a filter's landmark blocks after the robot) ---
+
+def _np_blocks(a, blocks, size, offset, axis):
+    """NumPy oracle of take_blocks: the blocks stacked on a new axis at ``axis``."""
+    nb = (a.shape[axis] - offset) // size
+    b = np.clip(blocks, 0, nb - 1)
+    idx = offset + size * b[:, None] + np.arange(size)[None, :]
+    return np.take(a, idx, axis=axis)
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+@pytest.mark.parametrize("axis", [0, 1, 2])
+def test_take_blocks_equals_numpy(dtype, axis):
+    rng = np.random.default_rng(10 + axis)
+    a = rng.normal(size=(11, 8, 5)).astype(dtype)
+    size, offset = {0: (3, 2), 1: (2, 0), 2: (2, 1)}[axis]
+    blocks = np.array([2, 0, 7, -1], np.int32)  # 7 and -1 out of range: clipped, as take clips
+    got = np.asarray(jax.jit(take_blocks, static_argnums=(2, 3, 4))(jnp.asarray(a), jnp.asarray(blocks),
+                                                                     size, offset, axis))
+    assert got.dtype == dtype
+    np.testing.assert_array_equal(got, _np_blocks(a, blocks, size, offset, axis))
+
+
+@pytest.mark.parametrize("axis", [0, 1])
+def test_put_blocks_equals_numpy_and_drops_out_of_range(axis):
+    rng = np.random.default_rng(20 + axis)
+    a = rng.normal(size=(11, 11))
+    size, offset = 3, 2  # blocks 0..2 at rows 2-4, 5-7, 8-10
+    blocks = np.array([2, 3, 0, -1], np.int32)  # 3 and -1 out of range: dropped
+    vals = rng.normal(size=(4, 3, 11) if axis == 0 else (11, 4, 3))
+    want = a.copy()
+    for j, b in enumerate(blocks):
+        if 0 <= b < 3:
+            sl = slice(offset + size * b, offset + size * (b + 1))
+            if axis == 0:
+                want[sl] = vals[j]
+            else:
+                want[:, sl] = vals[:, j]
+    got = np.asarray(put_blocks(jnp.asarray(a), jnp.asarray(blocks), jnp.asarray(vals), size, offset, axis))
+    np.testing.assert_array_equal(got, want)
+
+
+def test_block_forms_reject_a_ragged_layout():
+    with pytest.raises(ValueError, match="size 3"):
+        take_blocks(jnp.zeros((10, 4)), jnp.asarray([0]), 3, 0, 0)
+    with pytest.raises(ValueError, match="offset 2"):
+        put_blocks(jnp.zeros((4, 10)), jnp.asarray([0]), jnp.zeros((4, 1, 3)), 3, 2, 1)
+
+
+@pytest.mark.parametrize("axis", [0, 1])
+def test_block_form_derivatives_equal_plain_indexing(axis):
+    """Values and gradients equal plain indexing at the blocks' element indices (the one-hot
+    products over blocks are exact), and the derivatives pass finite differences, both modes,
+    second order."""
+    rng = np.random.default_rng(30 + axis)
+    a = jnp.asarray(rng.normal(size=(11, 11)))
+    size, offset = 3, 2
+    blocks = jnp.asarray([2, 0], jnp.int32)
+    wblocks = jnp.asarray([1, 5], jnp.int32)  # 5: dropped
+    v = jnp.asarray(rng.normal(size=(2, 3, 11) if axis == 0 else (11, 2, 3)))
+    w = jnp.asarray(rng.normal(size=(11, 11)))
+    idx = offset + size * blocks[:, None] + jnp.arange(size)
+    widx = jnp.where((wblocks < 3)[:, None], offset + size * wblocks[:, None] + jnp.arange(size), 11).reshape(-1)
+    flat = (lambda t: t.reshape(t.shape[:axis] + (-1,) + t.shape[axis + 2:]))
+
+    def f(a, v):
+        got = take_blocks(a, blocks, size, offset, axis)
+        b = put_blocks(a, wblocks, jnp.sin(got) * v, size, offset, axis)
+        return jnp.sum(w * b * b)
+
+    def f_plain(a, v):
+        got = jnp.take(a, idx, axis=axis)
+        where = (slice(None),) * axis + (widx,)
+        b = a.at[where].set(flat(jnp.sin(got) * v), mode="drop")
+        return jnp.sum(w * b * b)
+
+    f, f_plain = jax.jit(f), jax.jit(f_plain)
+    np.testing.assert_allclose(f(a, v), f_plain(a, v), rtol=1e-14)
+    for g, gp in zip(jax.jit(jax.grad(f, (0, 1)))(a, v), jax.jit(jax.grad(f_plain, (0, 1)))(a, v)):
+        np.testing.assert_allclose(g, gp, rtol=1e-12, atol=1e-12)
+    check_grads(f, (a, v), order=2, modes=("fwd", "rev"), atol=1e-6, rtol=1e-6)
+
+
+def test_block_form_derivatives_hold_no_scatter():
+    a = jnp.asarray(np.random.default_rng(4).normal(size=(8, 8)))
+    blocks = jnp.asarray([2, 0], jnp.int32)
+
+    def f(a):
+        return put_blocks(a, blocks, take_blocks(a, blocks, 2, 2, 1) * 2.0, 2, 2, 1)
+
+    _, f_lin = jax.linearize(f, a)
+    for prims in (_prims(jax.make_jaxpr(f_lin)(a)), _prims(jax.make_jaxpr(jax.linear_transpose(f_lin, a))(a))):
+        assert not [p for p in prims if "scatter" in p or p == "gather"], prims

@@ -62,8 +62,8 @@ from jax.custom_batching import custom_vmap
 
 from .. import errors
 from ..errors import InputError
-from ..linalg import (check_psd, cholesky_small, is_concrete, put, small_matmul, symmetrize, take,
-                      value_and_jacfwd)
+from ..linalg import (check_psd, cholesky_small, is_concrete, put_blocks, small_matmul, symmetrize, take,
+                      take_blocks, value_and_jacfwd)
 from ..stats import student_t_nll
 
 __all__ = [
@@ -505,17 +505,15 @@ def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
         L = take(state.x[nr:].reshape(cap, dl), slots, 0)
         zh, Hs, Hl = _observe_batch(model, s, L, params, valid)
         res = jnp.where(valid[:, None], jax.vmap(_residual(model))(z_safe, zh), 0.0)
-        idx = slot_indices(slots, model)  # (K, dl)
-
         def rows(M, Hs, Hl):
             # rows of an (n, ...) array at H's support, contracted with H: H M
             Mr = M[:nr]  # (nr, K, dz)
-            Ml = take(M, idx, 0)  # (K, dl, K, dz)
+            Ml = take_blocks(M, slots, dl, nr, 0)  # (K, dl, K, dz)
             return jnp.einsum("kzi,imw->kzmw", Hs, Mr) + jnp.einsum("kzj,kjmw->kzmw", Hl, Ml)
 
         # The columns of P's leading rows that the sparse H touches: all the update needs of
         # P besides the final correction, O(nb·K·d_l).
-        Pr_b, Pl_b, x_b = P[:nb, :nr], take(P[:nb], idx, 1), state.x[:nb]
+        Pr_b, Pl_b, x_b = P[:nb, :nr], take_blocks(P[:nb], slots, dl, nr, 1), state.x[:nb]
         PHt = gather_PHt(Pr_b, Pl_b, Hs, Hl)  # (nb, K, dz)
         HPHt = rows(PHt, Hs, Hl)  # (K, dz, K, dz)
         valid_ = valid
@@ -598,7 +596,7 @@ def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
             # A = P − K (P Hᵀ)ᵀ, as a symmetric rank-2m correction P − ½ (K Gᵀ + G Kᵀ),
             # G = P Hᵀ + A Hᵀ − K R.  A's columns at H's support come without forming A.
             Ar = Pr_b - Kg @ PHt_f[:nr].T  # (nb, n_r)
-            Al = Pl_b - jnp.einsum("nm,kjm->nkj", Kg, take(PHt_f, idx, 0))  # (nb, K, d_l)
+            Al = Pl_b - jnp.einsum("nm,kjm->nkj", Kg, take_blocks(PHt_f, slots, dl, nr, 0))  # (nb, K, d_l)
             AHt = gather_PHt(Ar, Al, Hs_f, Hl_f).reshape(-1, m) * vv[None, :]
             G = PHt_f + AHt - Kg @ R_used
         else:
@@ -659,8 +657,7 @@ def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
         hi = jnp.where(ok & jnp.any(valid), nr + top * dl, 0)
         P_new = sym_rank_update(P, Kg, G, hi) if joseph else sym_outer_update(P, G, hi)
     else:
-        P_new = symmetrize(jax.lax.optimization_barrier(
-            _sym_rank_update_dense(P, Kg, G) if joseph else P - G @ G.T))
+        P_new = symmetrize(_sym_rank_update_dense(P, Kg, G) if joseph else _sym_outer_update_dense(P, G))
 
     nu_ok = jnp.where(ok, nu, 0.0)
     nis = nu_ok @ (Sinv @ nu_ok)
@@ -691,7 +688,23 @@ TILE = 64
 
 
 def _sym_rank_update_dense(P, U, V):
-    return P - 0.5 * (U @ V.T + V @ U.T)
+    # one product: V Uᵀ = (U Vᵀ)ᵀ; its reverse-mode derivative is two products (the
+    # cotangent of T + Tᵀ is symmetric), where U Vᵀ + V Uᵀ would give four
+    T = U @ V.T
+    return P - 0.5 * (T + T.T)
+
+
+@jax.custom_jvp
+def _sym_outer_update_dense(P, U):
+    return P - U @ U.T
+
+
+@_sym_outer_update_dense.defjvp
+def _sym_outer_update_dense_jvp(primals, tangents):
+    P, U = primals
+    dP, dU = tangents
+    dUUt = dU @ U.T  # the tangent as T + Tᵀ: its transpose is one product, not two
+    return _sym_outer_update_dense(P, U), dP - (dUUt + dUUt.T)
 
 
 @jax.custom_jvp
@@ -781,7 +794,8 @@ def _sym_rank_update_jvp(primals, tangents):
     P, U, V, hi = primals
     dP, dU, dV, _ = tangents
     out = sym_rank_update(P, U, V, hi)
-    return out, dP - 0.5 * (dU @ V.T + U @ dV.T + dV @ U.T + V @ dU.T)
+    T = dU @ V.T + dV @ U.T  # the tangent as T + Tᵀ: two products, and two in its transpose
+    return out, dP - 0.5 * (T + T.T)
 
 
 def update_robot(state: SlamState, model: SlamModel, observe, z, mask, R, params=None,
@@ -958,7 +972,6 @@ def _count_refused(state: SlamState, over, bad) -> SlamState:
 
 def _register(state: SlamState, model: SlamModel, z, lm_ids, mask, R, params) -> SlamState:
     nr, dl, cap = _sizes(state, model)
-    n = state.x.shape[0]
     dtype = state.x.dtype
     K = z.shape[0]
     dz = model.meas_dim
@@ -992,22 +1005,17 @@ def _register(state: SlamState, model: SlamModel, z, lm_ids, mask, R, params) ->
     free_slots = jnp.nonzero(free, size=K, fill_value=0)[0].astype(jnp.int32)  # first K free slots
     slot = free_slots[jnp.clip(rank, 0, K - 1)]
     # Rows of the new landmarks: G_s,k P_s,: with the new–new block replaced by the joint one.
-    idx = slot_indices(slot, model)  # (K, dl)
     W = jnp.einsum("kai,in->kan", Gs, Psx)  # (K, dl, n)
     B = jnp.einsum("kai,ij,mbj->kamb", Gs, Pss, Gs)  # (K, dl, K, dl) = G_s,k P_ss G_s,mᵀ
     B = 0.5 * (B + B.transpose(2, 3, 0, 1))  # exactly symmetric, as the sequential write
     eyeK = jnp.eye(K, dtype=dtype)[:, None, :, None]
     B = B * (1.0 - eyeK) + jnp.einsum("kab,km->kamb", Pll, eyeK[:, 0, :, 0])  # joint diagonal blocks
-    # Columns of the candidates not written go out of bounds and are dropped.
-    oob = jnp.int32(n)
-    idx_w = jnp.where(good[:, None], idx, oob)  # (K, dl)
-    rows = idx_w.reshape(-1)
-    W = put(W, rows, B.reshape(K, dl, K * dl), 2)
-    Wf = W.reshape(K * dl, n)
-    P = put(P, rows, Wf, 0)
-    P = put(P, rows, Wf.T, 1)
-    x = put(state.x, rows, L.reshape(-1), 0)
+    # The blocks of the candidates not written get an out-of-range slot and are dropped.
     slot_w = jnp.where(good, slot, jnp.int32(cap))
+    W = put_blocks(W, slot_w, B, dl, nr, 2)
+    P = put_blocks(P, slot_w, W, dl, nr, 0)
+    P = put_blocks(P, slot_w, W.transpose(2, 0, 1), dl, nr, 1)
+    x = put_blocks(state.x, slot_w, L, dl, nr, 0)
     active = state.active.at[slot_w].set(True, mode="drop")
     ids = state.ids.at[slot_w].set(jnp.asarray(lm_ids).astype(jnp.int32), mode="drop")
     return _count_refused(state._replace(x=x, P=P, active=active, ids=ids), over, mask & ~finite)
