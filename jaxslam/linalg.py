@@ -211,12 +211,18 @@ def put_blocks(a, blocks, values, size: int, offset: int = 0, axis: int = 0):
     a masked copy plus a one-hot product over the blocks, d² times cheaper than :func:`put`'s
     over the elements for blocks of size d (see :func:`take_blocks`).
     """
+    a = jnp.asarray(a)
     n = a.shape[axis]
     nb = _block_layout(n, size, offset, "put_blocks")
-    idx = _block_indices(blocks, size, offset, nb, n, clip=False).reshape(-1)
-    v = jnp.asarray(values).astype(a.dtype)
-    v = v.reshape(v.shape[:axis] + (-1,) + v.shape[axis + 2:])
-    return put(a, idx, v, axis)
+    b = jnp.asarray(blocks, jnp.int32)
+    # one write per block, a window of the block's extent (XLA's CPU backend runs a scatter as
+    # a loop over its indices: K iterations, not K·size); a block out of range starts past the
+    # end, and its window is dropped
+    start = jnp.where((b >= 0) & (b < nb), offset + size * b, n)
+    upd = jnp.moveaxis(jnp.asarray(values).astype(a.dtype), axis, 0)  # (K, ..., size, ...)
+    dnums = jax.lax.ScatterDimensionNumbers(update_window_dims=tuple(range(1, a.ndim + 1)),
+                                            inserted_window_dims=(), scatter_dims_to_operand_dims=(axis,))
+    return jax.lax.scatter(a, start[:, None], upd, dnums, mode=jax.lax.GatherScatterMode.FILL_OR_DROP)
 
 
 @put_blocks.defjvp
