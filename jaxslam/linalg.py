@@ -164,15 +164,6 @@ def _unblock(d, a_shape, offset: int, axis: int):
     return jnp.pad(d, pad) if offset or pad[axis][1] else d
 
 
-def _block_indices(blocks, size: int, offset: int, nb: int, n: int, clip: bool):
-    """Element indices (K, size) of the blocks; clipped into range, or ``n`` (dropped) outside."""
-    b = jnp.asarray(blocks, jnp.int32)
-    if clip:
-        b = jnp.clip(b, 0, nb - 1)
-    idx = offset + size * b[:, None] + jnp.arange(size, dtype=jnp.int32)[None, :]
-    return idx if clip else jnp.where(((b >= 0) & (b < nb))[:, None], idx, jnp.int32(n))
-
-
 @functools.partial(jax.custom_jvp, nondiff_argnums=(2, 3, 4))
 def take_blocks(a, blocks, size: int, offset: int = 0, axis: int = 0):
     """The ``size``-long blocks of ``a`` along ``axis`` that start at ``offset + size·b`` for
@@ -186,7 +177,8 @@ def take_blocks(a, blocks, size: int, offset: int = 0, axis: int = 0):
     scatter either.
     """
     nb = _block_layout(a.shape[axis], size, offset, "take_blocks")
-    idx = _block_indices(blocks, size, offset, nb, a.shape[axis], clip=True)
+    b = jnp.clip(jnp.asarray(blocks, jnp.int32), 0, nb - 1)
+    idx = offset + size * b[:, None] + jnp.arange(size, dtype=jnp.int32)[None, :]  # (K, size)
     return jnp.take(a, idx, axis=axis, mode="clip")
 
 
@@ -206,18 +198,18 @@ def put_blocks(a, blocks, values, size: int, offset: int = 0, axis: int = 0):
     """``a`` with its ``size``-long blocks along ``axis`` at ``offset + size·b`` (``b`` in
     ``blocks`` (K,)) set to ``values`` (``a.shape[:axis] + (K, size) + a.shape[axis+1:]``).
 
-    Block indices outside ``[0, blocks)`` are dropped (nothing written); those in range must
-    be distinct.  The value is :func:`put`'s at the blocks' element indices; the derivative is
-    a masked copy plus a one-hot product over the blocks, d² times cheaper than :func:`put`'s
-    over the elements for blocks of size d (see :func:`take_blocks`).
+    Block indices outside ``[0, (a.shape[axis] − offset) / size)`` are dropped (nothing
+    written); those in range must be distinct.  The value is :func:`put`'s at the blocks'
+    element indices, written as one scatter window per block (XLA's CPU backend loops over a
+    scatter's indices: K iterations, not K·size); the derivative is a masked copy plus a one-hot
+    product over the blocks, d² times cheaper than :func:`put`'s over the elements for blocks
+    of size d (see :func:`take_blocks`).
     """
     a = jnp.asarray(a)
     n = a.shape[axis]
     nb = _block_layout(n, size, offset, "put_blocks")
     b = jnp.asarray(blocks, jnp.int32)
-    # one write per block, a window of the block's extent (XLA's CPU backend runs a scatter as
-    # a loop over its indices: K iterations, not K·size); a block out of range starts past the
-    # end, and its window is dropped
+    # a block out of range starts past the end: its window is dropped
     start = jnp.where((b >= 0) & (b < nb), offset + size * b, n)
     upd = jnp.moveaxis(jnp.asarray(values).astype(a.dtype), axis, 0)  # (K, ..., size, ...)
     dnums = jax.lax.ScatterDimensionNumbers(update_window_dims=tuple(range(1, a.ndim + 1)),
