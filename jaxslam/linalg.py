@@ -144,9 +144,11 @@ def _put_jvp(axis, primals, tangents):
 
 def _block_layout(n: int, size: int, offset: int, name: str) -> int:
     """Number of ``size``-long blocks from ``offset`` on an axis of length ``n`` (static check)."""
-    if size < 1 or offset < 0 or (n - offset) % size:
-        raise ValueError(f"{name}: an axis of length {n} from offset {offset} is not a whole number "
-                         f"of blocks of size {size}")
+    if size < 1:
+        raise InputError(f"{name}: size must be >= 1, got {size}")
+    if not 0 <= offset <= n or (n - offset) % size:
+        raise InputError(f"{name}: offset {offset} and size {size} do not cut an axis of length {n} "
+                         f"into whole blocks")
     return (n - offset) // size
 
 

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from jax.test_util import check_grads
 
+from jaxslam.errors import InputError
 from jaxslam.linalg import put, put_blocks, small_matmul, take, take_blocks
 
 
@@ -231,11 +232,15 @@ def test_put_blocks_equals_numpy_and_drops_out_of_range(axis):
     np.testing.assert_array_equal(got, want)
 
 
-def test_block_forms_reject_a_ragged_layout():
-    with pytest.raises(ValueError, match="size 3"):
+def test_block_forms_reject_a_ragged_layout_naming_the_argument():
+    with pytest.raises(InputError, match="take_blocks: offset 0 and size 3"):
         take_blocks(jnp.zeros((10, 4)), jnp.asarray([0]), 3, 0, 0)
-    with pytest.raises(ValueError, match="offset 2"):
+    with pytest.raises(InputError, match="put_blocks: offset 2 and size 3"):
         put_blocks(jnp.zeros((4, 10)), jnp.asarray([0]), jnp.zeros((4, 1, 3)), 3, 2, 1)
+    with pytest.raises(InputError, match="take_blocks: size must be >= 1, got 0"):
+        take_blocks(jnp.zeros((10, 4)), jnp.asarray([0]), 0, 0, 0)
+    with pytest.raises(InputError, match="offset -1"):
+        take_blocks(jnp.zeros((10, 4)), jnp.asarray([0]), 1, -1, 0)
 
 
 @pytest.mark.parametrize("axis", [0, 1])
