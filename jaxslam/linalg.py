@@ -116,30 +116,16 @@ def _take_jvp(axis, primals, tangents):
     return take(a, idx, axis), _place(d, axis, idx.ndim)
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(3,))
 def put(a, idx, values, axis: int = 0):
     """``a`` with the slices at the 1-D indices ``idx`` along ``axis`` set to ``values``.
 
     ``values`` has ``a``'s shape with ``axis`` of length ``len(idx)``.  Indices outside
     ``[0, a.shape[axis])`` are dropped (nothing written), so a caller masks a write by giving
     it an out-of-range index.  Indices in range must be distinct.  The derivative is a masked
-    copy plus a one-hot product (no scatter under ``jax.grad``; see the comment above).
+    copy plus a one-hot product (no scatter under ``jax.grad``; see the comment above): this is
+    :func:`put_blocks` with blocks of one.
     """
-    where = (slice(None),) * axis + (idx,)
-    return jnp.asarray(a).at[where].set(jnp.asarray(values).astype(a.dtype), mode="drop")
-
-
-@put.defjvp
-def _put_jvp(axis, primals, tangents):
-    a, idx, values = primals
-    da, _, dv = tangents
-    N = a.shape[axis]
-    E = _one_hot(idx, N, da.dtype)  # (k, N); dropped indices are zero rows
-    keep = 1.0 - jnp.max(E, axis=0)  # (N,): 0 where a slice is overwritten
-    shape = [1] * a.ndim
-    shape[axis] = N
-    d = jnp.moveaxis(jnp.tensordot(E.T, jnp.moveaxis(dv.astype(da.dtype), axis, 0), axes=(1, 0)), 0, axis)
-    return put(a, idx, values, axis), da * keep.reshape(shape) + d
+    return put_blocks(a, idx, jnp.expand_dims(jnp.asarray(values), axis + 1), 1, 0, axis)
 
 
 def _block_layout(n: int, size: int, offset: int, name: str) -> int:
@@ -201,11 +187,11 @@ def put_blocks(a, blocks, values, size: int, offset: int = 0, axis: int = 0):
     ``blocks`` (K,)) set to ``values`` (``a.shape[:axis] + (K, size) + a.shape[axis+1:]``).
 
     Block indices outside ``[0, (a.shape[axis] − offset) / size)`` are dropped (nothing
-    written); those in range must be distinct.  The value is :func:`put`'s at the blocks'
-    element indices, written as one scatter window per block (XLA's CPU backend loops over a
-    scatter's indices: K iterations, not K·size); the derivative is a masked copy plus a one-hot
-    product over the blocks, d² times cheaper than :func:`put`'s over the elements for blocks
-    of size d (see :func:`take_blocks`).
+    written); those in range must be distinct.  The value is a scatter of one window per block
+    (XLA's CPU backend loops over a scatter's indices: K iterations, not K·size); the derivative
+    is a masked copy plus a one-hot product over the blocks, d² times cheaper than the same write
+    element by element (:func:`put`, the blocks-of-one case) for blocks of size d (see
+    :func:`take_blocks`).
     """
     a = jnp.asarray(a)
     n = a.shape[axis]
