@@ -749,40 +749,49 @@ def _batch_max_vmap(axis_size, in_batched, a):
 
 def _tile_loop(P, As, Bs, scale, hi):
     # P − scale · A Bᵀ (A = [As...], B = [Bs...] side by side; A Bᵀ symmetric) on the upper
-    # triangle's tiles, each with its mirror; the factors are sliced per tile and joined there
-    # (joining them whole would copy (n, r) arrays on every call, even one with no tile).
+    # triangle's tiles: one loop over the diagonal tiles, then one flat loop over the tile
+    # pairs above it, each written with its mirror (no nested loop, no per-tile test for the
+    # diagonal); the factors are sliced per tile and joined there (joining them whole would
+    # copy (n, r) arrays on every call, even one with no tile).
     # P (..., n, n), As and Bs (..., n, r): leading axes a batch (see _shared_bound).
     n = P.shape[-1]
     t = min(TILE, n)
     nt = (jnp.asarray(hi, jnp.int32) + t - 1) // t
+    # the pairs (i < j) ordered by j, so the first nt (nt − 1) / 2 are those of the first nt tiles
+    ii, jj = np.tril_indices(-(-n // t), -1)[::-1]  # (i, j) = (col, row) of the lower triangle
+    pair_i, pair_j = jnp.asarray(ii, jnp.int32), jnp.asarray(jj, jnp.int32)
     lead = P.shape[:-2]
     zl = (jnp.int32(0),) * len(lead)
 
     def mT(a):
         return jnp.swapaxes(a, -1, -2)
 
-    def rows(fs, s, m):
-        return jnp.concatenate([jnp.where(m, jax.lax.dynamic_slice_in_dim(f, s, t, axis=-2), 0.0) for f in fs],
-                               axis=-1)
+    def rows(fs, k):
+        # rows of a clamped tile already covered by the previous tile get no correction
+        s, m = _clamped_tile(k, t, n)
+        return s, jnp.concatenate([jnp.where(m[:, None], jax.lax.dynamic_slice_in_dim(f, s, t, axis=-2), 0.0)
+                                   for f in fs], axis=-1)
 
-    def tile(i, P):
-        def inner(j, P):
-            # rows of a clamped tile already covered by the previous tile get no correction
-            sa, mu = _clamped_tile(i, t, n)
-            sb, mv = _clamped_tile(j, t, n)
-            D = rows(As, sa, mu[:, None]) @ mT(rows(Bs, sb, mv[:, None]))
-            diag = i == j
-            D = jnp.where(diag, 0.5 * (D + mT(D)), D)
-            # Each write reads its own tile (a read of one tile and a write of another would
-            # make XLA copy P); the mirror tile gets Dᵀ, the diagonal tile nothing more.
-            P = jax.lax.dynamic_update_slice(
-                P, jax.lax.dynamic_slice(P, zl + (sa, sb), lead + (t, t)) - scale * D, zl + (sa, sb))
-            return jax.lax.dynamic_update_slice(
-                P, jax.lax.dynamic_slice(P, zl + (sb, sa), lead + (t, t)) - jnp.where(diag, 0.0, scale * mT(D)),
-                zl + (sb, sa))
-        return jax.lax.fori_loop(i, nt, inner, P)
+    # Each write reads its own tile (a read of one tile and a write of another would make XLA
+    # copy P).
+    def sub(P, D, sa, sb):
+        return jax.lax.dynamic_update_slice(
+            P, jax.lax.dynamic_slice(P, zl + (sa, sb), lead + (t, t)) - scale * D, zl + (sa, sb))
 
-    return jax.lax.fori_loop(jnp.int32(0), nt, tile, P)
+    def diagonal(i, P):
+        s, A = rows(As, i)
+        D = A @ mT(rows(Bs, i)[1])
+        return sub(P, 0.5 * (D + mT(D)), s, s)  # symmetric to the bit
+
+    def pair(p, P):
+        (sa, A), (sb, B) = rows(As, pair_i[p]), rows(Bs, pair_j[p])
+        D = A @ mT(B)
+        return sub(sub(P, D, sa, sb), mT(D), sb, sa)
+
+    P = jax.lax.fori_loop(jnp.int32(0), nt, diagonal, P)
+    if ii.size == 0:  # one tile holds P
+        return P
+    return jax.lax.fori_loop(jnp.int32(0), nt * (nt - 1) // 2, pair, P)
 
 
 _tiled_rank_update = _shared_bound(lambda P, U, V, hi: _tile_loop(P, (U, V), (V, U), 0.5, hi))
