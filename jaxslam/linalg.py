@@ -93,27 +93,18 @@ def _place(d, axis, nd):
     return jnp.moveaxis(d, tuple(range(nd)), tuple(range(axis, axis + nd)))
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(2,))
 def take(a, idx, axis: int = 0):
     """``jnp.take(a, idx, axis)`` (indices clipped into range) with a scatter-free derivative.
 
     The result has shape ``a.shape[:axis] + idx.shape + a.shape[axis+1:]``.  Its tangent and
     cotangent are products with the one-hot matrix of ``idx`` (see the comment above), so
-    ``jax.grad`` through it never builds a scatter.
+    ``jax.grad`` through it never builds a scatter: this is :func:`take_blocks` with blocks of
+    one.
     """
-    return jnp.take(a, idx, axis=axis, mode="clip")
-
-
-@take.defjvp
-def _take_jvp(axis, primals, tangents):
-    a, idx = primals
-    da = tangents[0]
-    N = a.shape[axis]
-    idx_c = jnp.clip(idx, 0, N - 1)
-    E = _one_hot(idx_c, N, da.dtype)  # (k, N)
-    d = jnp.tensordot(E, jnp.moveaxis(da, axis, 0), axes=(1, 0))  # (k, *rest)
-    d = d.reshape(idx.shape + d.shape[1:])
-    return take(a, idx, axis), _place(d, axis, idx.ndim)
+    a = jnp.asarray(a)
+    idx = jnp.asarray(idx)
+    out = take_blocks(a, idx.reshape(-1), 1, 0, axis)  # (..., k, 1, ...)
+    return out.reshape(a.shape[:axis] + idx.shape + a.shape[axis + 1:])
 
 
 def put(a, idx, values, axis: int = 0):
