@@ -9,6 +9,10 @@ see STYLE.md) pass a function of x that closes over the interpolation.
 ``rollout`` runs a whole input sequence in one ``lax.scan`` (no Python loop,
 one compilation); ``linearize`` returns the continuous-time Jacobians
 A = ∂f/∂x, B = ∂f/∂u by ``jax.jacfwd`` (forward mode: n is small).
+``rk4_field`` / ``rk4_linearized`` take the vector field as ``field(x, c)``, c the
+stage's fraction of the step (an input interpolated over the step closes over c);
+``rk4_linearized`` also returns the step's exact Jacobian, by the chain rule through
+the four stages from the field's Jacobians (autodiff or the model's own).
 
 All functions are pure and jit/vmap/grad-safe; ``f``'s extra ``*args``
 (e.g. parameters) may be traced arrays.  ``dt`` is cast to the dtype of the
@@ -22,8 +26,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import InputError
+from ..linalg import small_matmul
 
-__all__ = ["rk4_step", "rollout", "linearize", "check_dt"]
+__all__ = ["rk4_step", "rk4_field", "rk4_linearized", "rollout", "linearize", "check_dt"]
 
 
 def rk4_step(f, x, u, dt, *args):
@@ -32,13 +37,63 @@ def rk4_step(f, x, u, dt, *args):
     ``x``: (n,); ``u``: (m,); ``dt``: scalar step, s.  Returns x(t + dt) (n,)
     in the dtype of ``x``.  Local error O(dt⁵), global O(dt⁴).
     """
+    return rk4_field(lambda x_, c: f(x_, u, *args), x, dt)
+
+
+def rk4_field(field, x, dt):
+    """One classical RK4 step of ẋ = field(x, c), c ∈ {0, ½, 1} the stage's fraction of the
+    step (an input held or interpolated over the step closes over c).
+
+    ``x``: (n,); ``dt``: scalar step, s.  Returns x(t + dt) (n,) in the dtype of ``x``.
+    """
     x = jnp.asarray(x)
     h = jnp.asarray(dt, dtype=x.dtype)
-    k1 = f(x, u, *args)
-    k2 = f(x + 0.5 * h * k1, u, *args)
-    k3 = f(x + 0.5 * h * k2, u, *args)
-    k4 = f(x + h * k3, u, *args)
+    k1 = field(x, 0.0)
+    k2 = field(x + 0.5 * h * k1, 0.5)
+    k3 = field(x + 0.5 * h * k2, 0.5)
+    k4 = field(x + h * k3, 1.0)
     return x + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+
+
+def rk4_linearized(field, x, dt, *, jacobian=None, skip: int = 0):
+    """One RK4 step of ẋ = field(x, c) (as :func:`rk4_field`) and its Jacobian F = ∂x(t+dt)/∂x.
+
+    F is the exact derivative of the RK4 map, formed by the chain rule through its stages from
+    the field's Jacobians A_i = ∂field/∂x at the four stage points:
+
+        K₁ = A₁,  K₂ = A₂ (I + h/2 K₁),  K₃ = A₃ (I + h/2 K₂),  K₄ = A₄ (I + h K₃),
+        F = I + h/6 (K₁ + 2 K₂ + 2 K₃ + K₄).
+
+    ``jacobian(x, c) -> (ẋ, A)``: the field and its Jacobian with respect to ``x[skip:]``
+    ((n, n − skip)); None: forward-mode autodiff of ``field``.  ``skip`` (static): the field
+    does not depend on ``x[:skip]`` (the positions of a kinematic model), so only the other
+    n − skip columns are carried (F's first ``skip`` columns are the identity's).  Equal to
+    ``jax.jacfwd`` of :func:`rk4_field` (tests); a model's closed-form ``jacobian`` gives the
+    same F with far fewer kernels in its second derivatives (a gradient through a filter
+    differentiates F).  Returns ``(x(t + dt) (n,), F (n, n))``.
+    """
+    x = jnp.asarray(x)
+    n = x.shape[0]
+    skip = int(skip)
+    if not 0 <= skip < n:
+        raise InputError(f"skip: expected 0 <= skip < {n} (the state's size), got {skip}")
+    h = jnp.asarray(dt, dtype=x.dtype)
+    if jacobian is None:
+        def jacobian(y, c):
+            def g(q):
+                return field(jnp.concatenate([y[:skip], q]), c)
+            return g(y[skip:]), jax.jacfwd(g)(y[skip:])
+    eye = jnp.eye(n - skip, dtype=x.dtype)
+    k1, K1 = jacobian(x, 0.0)
+    k2, A2 = jacobian(x + 0.5 * h * k1, 0.5)
+    K2 = small_matmul(A2, eye + 0.5 * h * K1[skip:])
+    k3, A3 = jacobian(x + 0.5 * h * k2, 0.5)
+    K3 = small_matmul(A3, eye + 0.5 * h * K2[skip:])
+    k4, A4 = jacobian(x + h * k3, 1.0)
+    K4 = small_matmul(A4, eye + h * K3[skip:])
+    x_new = x + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+    F = jnp.eye(n, dtype=x.dtype).at[:, skip:].add((h / 6.0) * (K1 + 2.0 * K2 + 2.0 * K3 + K4))
+    return x_new, F
 
 
 def rollout(f, x0, us, dt, *args):
@@ -60,8 +115,8 @@ def rollout(f, x0, us, dt, *args):
 def linearize(f, x, u, *args):
     """Continuous-time Jacobians (A, B) = (∂f/∂x, ∂f/∂u) at (x, u) by jacfwd.
 
-    ``x``: (n,), ``u``: (m,).  Returns A (n, n), B (n, m).  Paper 000 eq. 28
-    (F = ∂f_s/∂s) uses this on the filter model.
+    ``x``: (n,), ``u``: (m,).  Returns A (n, n), B (n, m).  (Paper 000's filter model has
+    eq. 28, F = ∂f_s/∂s, in closed form: ``systems.ekf_slam_3d.state_jacobian``.)
     """
     return jax.jacfwd(f, argnums=(0, 1))(x, u, *args)
 

@@ -73,6 +73,7 @@ __all__ = [
     "init",
     "preload",
     "predict",
+    "motion_and_jacobian",
     "update",
     "update_nll",
     "sym_rank_update",
@@ -103,6 +104,13 @@ class SlamModel(NamedTuple):
     observe(s, l, params) -> z (d_z,)    measurement of landmark ``l`` from robot ``s``
     inverse(s, z, params) -> l (d_l,)    inverse observation (registration); may be None
     residual(z, zhat) -> ν (d_z,)        innovation (wraps angle components)
+    motion_jacobian(s, u, params) -> (s', F)   optional: the motion and F = ∂s'/∂s in one call
+                                         (e.g. a closed form); None: forward-mode autodiff
+    observe_jacobian(s, l, params) -> (z, H_s, H_l)   optional, likewise for ``observe``
+    inverse_jacobian(s, z, params) -> (l, G_s, G_z)   optional, likewise for ``inverse``
+    A model that gives a closed form should test it against ``jax.jacfwd`` of the plain function
+    (paper 000's does: a gradient through the filter differentiates these Jacobians, and the
+    closed forms' derivatives take far fewer kernels than autodiff's).
     """
 
     robot_dim: int
@@ -112,6 +120,17 @@ class SlamModel(NamedTuple):
     observe: Callable
     inverse: Optional[Callable] = None
     residual: Optional[Callable] = None
+    motion_jacobian: Optional[Callable] = None
+    observe_jacobian: Optional[Callable] = None
+    inverse_jacobian: Optional[Callable] = None
+
+
+def motion_and_jacobian(model: SlamModel, s, u, params=None):
+    """``(model.motion(s, u, params), ∂/∂s of it)``: the model's ``motion_jacobian`` when it has
+    one, else forward-mode autodiff of ``motion``."""
+    if model.motion_jacobian is not None:
+        return model.motion_jacobian(s, u, params)
+    return value_and_jacfwd(lambda s_: model.motion(s_, u, params))(s)
 
 
 class SlamState(NamedTuple):
@@ -261,7 +280,7 @@ def predict(state: SlamState, model: SlamModel, u, Q, params=None, *,
     """
     nr = model.robot_dim
     s = state.x[:nr]
-    s_new, F = value_and_jacfwd(lambda s_: model.motion(s_, u, params))(s)
+    s_new, F = motion_and_jacobian(model, s, u, params)
     Prr = state.P[:nr, :nr]
     Prl = state.P[:nr, nr:]
     Prr_new = symmetrize(small_matmul(small_matmul(F, Prr), F.T) + Q)
@@ -411,6 +430,8 @@ def _observe_batch(model, s, L, params, valid=None):
     S, L = _guard_inputs(valid, s, L)
 
     def one(s_k, l):
+        if model.observe_jacobian is not None:
+            return model.observe_jacobian(s_k, l, params)
         zh, (Hs, Hl) = value_and_jacfwd(model.observe, argnums=(0, 1))(s_k, l, params)
         return zh, Hs, Hl
 
@@ -996,7 +1017,10 @@ def _register(state: SlamState, model: SlamModel, z, lm_ids, mask, R, params) ->
     Psx = P[:nr, :]  # (nr, n)
 
     def one(s_k, zk, Rk):
-        l, (Gs, Gz) = value_and_jacfwd(model.inverse, argnums=(0, 1))(s_k, zk, params)
+        if model.inverse_jacobian is not None:
+            l, Gs, Gz = model.inverse_jacobian(s_k, zk, params)
+        else:
+            l, (Gs, Gz) = value_and_jacfwd(model.inverse, argnums=(0, 1))(s_k, zk, params)
         Pll = symmetrize(Gs @ Pss @ Gs.T + Gz @ Rk @ Gz.T)
         return l, Gs, Pll
 
@@ -1298,7 +1322,7 @@ def smooth_robot(model: SlamModel, terms: SmootherTerms, us, Qs, final: SlamStat
 
     def body(rs_next, inp):
         r, lm, W, Pc, ids_t, u_n, Q_n, p_n = inp
-        r_pred, F = value_and_jacfwd(lambda v: model.motion(v, u_n, p_n))(r)
+        r_pred, F = motion_and_jacobian(model, r, u_n, p_n)
         A = symmetrize(F @ Pc @ F.T + Q_n)
         La = jnp.linalg.cholesky(A)
         Grr_t = jax.scipy.linalg.cho_solve((La, True), F @ Pc)  # A⁻¹ F P_r|m = G_rrᵀ

@@ -48,6 +48,8 @@ __all__ = [
     "euler_from_dcm",
     "euler_rate_matrix",
     "euler_rates",
+    "rotate_jacobian",
+    "unrotate_jacobian",
 ]
 
 
@@ -193,3 +195,32 @@ def euler_rates(euler, omega):
     """
     D = euler_rate_matrix(euler)
     return jnp.einsum("...ij,...j->...i", D, jnp.asarray(omega))
+
+
+def rotate_jacobian(euler, v, C=None):
+    """∂(C_NB v)/∂(φ, θ, ψ) (3, 3) in closed form, for one ``euler`` (3,) and ``v`` (3,).
+
+    C = C₃(ψ) C₂(θ) C₁(φ), so ∂C/∂φ = C [e₁]×, ∂C/∂θ = C [a]× with a = C₁(φ)ᵀ e₂ = [0, cφ, −sφ],
+    ∂C/∂ψ = [e₃]× C; the columns are C (e₁ × v), C (a × v), e₃ × C v.  ``C``: the DCM if the
+    caller has it (else formed here).  Equal to ``jax.jacfwd`` (tests).
+    """
+    C = dcm_from_euler(euler) if C is None else C
+    sf, cf = jnp.sin(euler[0]), jnp.cos(euler[0])
+    z = jnp.zeros_like(sf)
+    Cv = jnp.sum(C * v, axis=-1)
+    e1_v = jnp.stack([z, -v[2], v[1]])
+    a_v = jnp.stack([cf * v[2] + sf * v[1], -sf * v[0], -cf * v[0]])
+    return jnp.concatenate([jnp.sum(C[:, None, :] * jnp.stack([e1_v, a_v])[None], axis=-1),
+                            jnp.stack([-Cv[1], Cv[0], z])[:, None]], axis=1)
+
+
+def unrotate_jacobian(euler, d, C=None):
+    """∂(C_NBᵀ d)/∂(φ, θ, ψ) (3, 3) in closed form: with c = Cᵀ d the columns are c × e₁,
+    c × a and Cᵀ (d × e₃) (a as in :func:`rotate_jacobian`).  Equal to ``jax.jacfwd`` (tests)."""
+    C = dcm_from_euler(euler) if C is None else C
+    sf, cf = jnp.sin(euler[0]), jnp.cos(euler[0])
+    z = jnp.zeros_like(sf)
+    c = jnp.sum(C * d[:, None], axis=0)
+    return jnp.stack([jnp.stack([z, c[2], -c[1]]),
+                      jnp.stack([-c[1] * sf - c[2] * cf, c[0] * sf, c[0] * cf]),
+                      jnp.sum(C * jnp.stack([d[1], -d[0], z])[:, None], axis=0)], axis=1)

@@ -37,7 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import InputError
-from ..geometry.euler import dcm_from_euler
+from ..geometry.euler import dcm_from_euler, rotate_jacobian, unrotate_jacobian
 from ..linalg import check_shape, is_concrete, safe_norm, wrap_angle
 
 __all__ = [
@@ -48,6 +48,8 @@ __all__ = [
     "cartesian_from_spherical",
     "measure",
     "measure_state",
+    "measure_state_and_jacobians",
+    "inverse_state_and_jacobians",
     "inverse",
     "inverse_state",
     "in_fov",
@@ -195,6 +197,45 @@ def measure_state(s, landmark):
     return measure(pos, euler, landmark)
 
 
+def measure_state_and_jacobians(s, landmark):
+    """h_o(s, l) with H_s = ∂h/∂s (3, 9) and H_l = ∂h/∂l (3, 3) in closed form (paper 000 eq. 40).
+
+    With d = l − ρ, c = C_NBᵀ d, h = ‖c₁,₂‖, r = ‖c‖ and a = C₁(φ)ᵀ e₂ = [0, cφ, −sφ]:
+
+        J = ∂y/∂c = [[−c₂/h², c₁/h², 0], [−c₁c₃/(h r²), −c₂c₃/(h r²), h/r²], cᵀ/r]
+        H_l = J Cᵀ,  H_ρ = −H_l,  H_v = 0,  H_Λ = J [c × e₁,  c × a,  Cᵀ [d₂, −d₁, 0]]
+
+    Where an angle is undefined (h = 0, r = 0) its row is zero, as autodiff of the guarded
+    :func:`spherical_from_cartesian` gives.  Equal to ``jax.jacfwd`` of :func:`measure_state`
+    (tests); the engine's update uses it (``SlamModel.observe_jacobian``) because a gradient
+    through the filter differentiates H, and the closed form's derivatives take far fewer
+    kernels than autodiff's.  s: (9,) (or (12,)); landmark: (3,).  Returns (y, H_s, H_l).
+    """
+    pos, euler = _split_state(s)
+    check_shape(landmark, (3,), "landmark")
+    C = dcm_from_euler(euler)
+    d = landmark - pos
+    c = d @ C  # Cᵀ d, as measure() forms it
+    y = spherical_from_cartesian(c)
+    c1, c2, c3 = c[0], c[1], c[2]
+    h2 = c1 * c1 + c2 * c2
+    r2 = h2 + c3 * c3
+    h2s = jnp.where(h2 > 0, h2, 1.0)
+    r2s = jnp.where(r2 > 0, r2, 1.0)
+    hs, rs = jnp.sqrt(h2s), jnp.sqrt(r2s)
+    t = c3 / (hs * r2s)
+    z = jnp.zeros_like(c1)
+    J = jnp.stack([jnp.stack([-c2 / h2s, c1 / h2s, z]),
+                   jnp.stack([-c1 * t, -c2 * t, jnp.where(h2 > 0, hs, 0.0) / r2s]),
+                   c / rs])
+    Hl = jnp.sum(J[:, None, :] * C[None, :, :], axis=-1)  # J Cᵀ
+    dc = unrotate_jacobian(euler, d, C)
+    Ha = jnp.sum(J[:, :, None] * dc[None, :, :], axis=1)
+    Hs = jnp.concatenate([-Hl, jnp.zeros((3, 3), Hl.dtype), Ha] + ([jnp.zeros((3, 3), Hl.dtype)] if s.shape[0] == 12 else []),
+                         axis=1)
+    return y, Hs, Hl
+
+
 def inverse(pos, euler, y):
     """Inverse observation model l = g(s, y) = C_NB ϱ(y) + ρ (paper 000 eq. 44-45).
 
@@ -209,6 +250,35 @@ def inverse(pos, euler, y):
         raise InputError(f"y: expected shape (3,) or (L, 3), got {np.shape(y)}")
     C = dcm_from_euler(euler)
     return cartesian_from_spherical(y) @ C.T + pos
+
+
+def inverse_state_and_jacobians(s, y):
+    """g(s, y) of paper 000 eq. 44 with G_s = ∂g/∂s (3, 9) and G_y = ∂g/∂y (3, 3) in closed form
+    (eq. 49): with ϱ = δ [cβ cα, cβ sα, sβ],
+
+        G_ρ = I,  G_v = 0,  G_Λ = ∂(C ϱ)/∂Λ (``geometry.euler.rotate_jacobian``),
+        G_y = C [δ cβ [−sα, cα, 0],  δ [−sβ cα, −sβ sα, cβ],  [cβ cα, cβ sα, sβ]]  (columns)
+
+    Equal to ``jax.jacfwd`` of :func:`inverse_state` (tests); the engine's registration uses it
+    (``SlamModel.inverse_jacobian``).  s: (9,) (or (12,)); y: (3,).  Returns (l, G_s, G_y).
+    """
+    pos, euler = _split_state(s)
+    check_shape(y, (3,), "y")
+    C = dcm_from_euler(euler)
+    rho = cartesian_from_spherical(y)
+    l = rho @ C.T + pos
+    sa, ca = jnp.sin(y[0]), jnp.cos(y[0])
+    sb, cb = jnp.sin(y[1]), jnp.cos(y[1])
+    r = y[2]
+    z = jnp.zeros_like(sa)
+    drho = jnp.stack([jnp.stack([-r * cb * sa, -r * sb * ca, cb * ca]),
+                      jnp.stack([r * cb * ca, -r * sb * sa, cb * sa]),
+                      jnp.stack([z, r * cb, sb])])
+    Gy = jnp.sum(C[:, :, None] * drho[None, :, :], axis=1)
+    eye = jnp.eye(3, dtype=Gy.dtype)
+    z3 = jnp.zeros((3, 3), Gy.dtype)
+    Gs = jnp.concatenate([eye, z3, rotate_jacobian(euler, rho, C)] + ([z3] if s.shape[0] == 12 else []), axis=1)
+    return l, Gs, Gy
 
 
 def inverse_state(s, y):

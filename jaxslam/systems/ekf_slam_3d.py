@@ -37,9 +37,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import errors
+from ..dynamics.integrators import rk4_field, rk4_linearized
 from ..errors import InputError
 from ..filters import ekf_slam as es
-from ..geometry.euler import dcm_from_euler, euler_rate_matrix
+from ..geometry.euler import dcm_from_euler, euler_rate_matrix, rotate_jacobian
 from ..linalg import check_psd, check_scalar, host_array, is_concrete, small_matmul, wrap_angle
 from ..sensors import lidar3d
 from ..stats import nees as _nees
@@ -51,6 +52,9 @@ __all__ = [
     "State",
     "f_cont",
     "motion",
+    "motion_and_jacobian",
+    "state_jacobian",
+    "input_jacobian",
     "process_noise",
     "make_model",
     "paper_noise",
@@ -100,21 +104,86 @@ NOISE_FIELDS = ("P0", "Qc", "Qimu", "R")
 
 
 def f_cont(s, imu, g, accel_mode: str = "3axis"):
-    """ṡ = f_s(s, λ) (paper 000 eq. 24 with the IMU as input).  s (9,), imu (6,) -> (9,)."""
+    """ṡ = f_s(s, λ) (paper 000 eq. 24 with the IMU as input).  s (9,), imu (6,) -> (9,).
+
+        ṡ = [C v,  −ω × v + g C₃,:ᵀ + f_B,  D(Λ) ω],  D(Λ) ω = [p + α tθ,  β,  α / cθ]
+
+    with α = sφ q + cφ r, β = cφ q − sφ r (ω = [p, q, r]; eq. 3).  Written once, with its
+    Jacobian, in :func:`state_jacobian`'s helper (under ``jit`` the unused Jacobian is removed).
+    """
+    return _field_and_jacobian(s, imu, g, accel_mode)[0]
+
+
+def state_jacobian(s, imu, g, accel_mode: str = "3axis"):
+    """F = ∂f_s/∂s (paper 000 eq. 28) in closed form.  s (9,), imu (6,) -> (9, 9).
+
+    With a = C₁(φ)ᵀ e₂ = [0, cφ, −sφ] and α, β as in :func:`f_cont`:
+
+        ∂(C v)/∂v = C,  ∂(C v)/∂(φ, θ, ψ) = [C (e₁ × v),  C (a × v),  e₃ × C v]  (``geometry.euler.rotate_jacobian``)
+        ∂v̇/∂v = −[ω]×,  ∂v̇/∂(φ, θ) = g ∂(C₃,:)/∂(φ, θ) = g [[0, cφcθ, −sφcθ], [−cθ, −sφsθ, −cφsθ]]ᵀ
+        ∂Λ̇/∂(φ, θ) = [[β tθ, α/cθ²], [−α, 0], [β/cθ, α sθ/cθ²]]
+
+    f_s does not depend on ρ (zero columns) or on ψ through v̇ and Λ̇.  Equal to ``jax.jacfwd``
+    of :func:`f_cont` (tests); the closed form is what the prediction's second derivatives
+    (a gradient through the filter) go through, at a fraction of the kernels of autodiff's.
+    """
+    _, A = _field_and_jacobian(s, imu, g, accel_mode)
+    return jnp.concatenate([jnp.zeros((NX, 3), A.dtype), A], axis=1)
+
+
+def _field_and_jacobian(s, imu, g, accel_mode):
+    """(f_s (9,), ∂f_s/∂[v_B, Λ] (9, 6)): :func:`f_cont` and :func:`state_jacobian` without ρ's
+    zero columns, from one set of trigonometric terms."""
     v = s[3:6]
-    euler = s[6:9]
+    # 3×3 products as multiply-and-sum: they fuse with their neighbours (a dot is a kernel
+    # of its own per product)
+    C = dcm_from_euler(s[6:9])
+    sn, cs = jnp.sin(s[6:8]), jnp.cos(s[6:8])
+    sf, st, cf, ct = sn[0], sn[1], cs[0], cs[1]
     f_b = imu[0:3]
     if accel_mode == "az":
         f_b = jnp.zeros_like(f_b).at[2].set(f_b[2])
     w = imu[3:6]
-    C = dcm_from_euler(euler)
+    p, q, r = w[0], w[1], w[2]
     g = jnp.asarray(g, s.dtype)
-    # 3×3 products as multiply-and-sum: they fuse with their neighbours (a dot is a kernel
-    # of its own per product, and the step's Jacobians hold ~16 of them)
+    z = jnp.zeros_like(sf)
+    al, be = sf * q + cf * r, cf * q - sf * r
+    tt, ic = st / ct, 1.0 / ct
     pos_dot = jnp.sum(C * v, axis=-1)
-    vel_dot = -jnp.cross(w, v) + g * C[2, :] + f_b
-    att_dot = jnp.sum(euler_rate_matrix(euler) * w, axis=-1)
-    return jnp.concatenate([pos_dot, vel_dot, att_dot])
+    xdot = jnp.concatenate([pos_dot, -jnp.cross(w, v) + g * C[2, :] + f_b,
+                            jnp.stack([p + al * tt, be, al * ic])])
+    d_pos = rotate_jacobian(s[6:9], v, C)
+    d_vel = g * jnp.stack([jnp.stack([z, -ct, z]), jnp.stack([cf * ct, -sf * st, z]),
+                           jnp.stack([-sf * ct, -cf * st, z])])
+    d_att = jnp.stack([jnp.stack([be * tt, al * ic * ic, z]), jnp.stack([-al, z, z]),
+                       jnp.stack([be * ic, al * st * ic * ic, z])])
+    neg_skew_w = jnp.stack([jnp.stack([z, r, -q]), jnp.stack([-r, z, p]), jnp.stack([q, -p, z])])
+    A = jnp.concatenate([jnp.concatenate([C, d_pos], axis=1),
+                         jnp.concatenate([neg_skew_w, d_vel], axis=1),
+                         jnp.concatenate([jnp.zeros((3, 3), s.dtype), d_att], axis=1)], axis=0)
+    return xdot, A
+
+
+def input_jacobian(s, accel_mode: str = "3axis"):
+    """G = ∂f_s/∂λ in closed form (the IMU's entry into Q_d).  s (9,) -> (9, 6):
+    ∂v̇/∂f_B = I (``"az"``: e₃e₃ᵀ), ∂v̇/∂ω = [v]× (−ω × v = v × ω), ∂Λ̇/∂ω = D(Λ) (eq. 3)."""
+    v = s[3:6]
+    z = jnp.zeros_like(v[0])
+    skew_v = jnp.stack([jnp.stack([z, -v[2], v[1]]), jnp.stack([v[2], z, -v[0]]),
+                        jnp.stack([-v[1], v[0], z])])
+    acc = jnp.eye(3, dtype=s.dtype) if accel_mode != "az" else jnp.diag(jnp.asarray([0.0, 0.0, 1.0], s.dtype))
+    z3 = jnp.zeros((3, 3), s.dtype)
+    return jnp.concatenate([jnp.concatenate([z3, z3], axis=1), jnp.concatenate([acc, skew_v], axis=1),
+                            jnp.concatenate([z3, euler_rate_matrix(s[6:9])], axis=1)], axis=0)
+
+
+def _stage_input(u, c):
+    a, b = u[:6], u[6:]
+    return a + (b - a) * c
+
+
+def _wrap_attitude(s):
+    return s.at[6:9].set(wrap_angle(s[6:9]).at[1].set(s[7]))
 
 
 def motion(s, u, params):
@@ -123,23 +192,29 @@ def motion(s, u, params):
     u: (12,) = [imu at t_k (6), imu at t_k+Δt (6)]; params = (dt, g, accel_mode).
     """
     dt, g, accel_mode = params
-    a, b = u[:6], u[6:]
-    dt = jnp.asarray(dt, s.dtype)
+    s_new = rk4_field(lambda x, c: f_cont(x, _stage_input(u, c), g, accel_mode), s, jnp.asarray(dt, s.dtype))
+    return _wrap_attitude(s_new)
 
-    def f(x, tau):
-        return f_cont(x, a + (b - a) * tau, g, accel_mode)
 
-    k1 = f(s, 0.0)
-    k2 = f(s + 0.5 * dt * k1, 0.5)
-    k3 = f(s + 0.5 * dt * k2, 0.5)
-    k4 = f(s + dt * k3, 1.0)
-    s_new = s + dt / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
-    return s_new.at[6:9].set(wrap_angle(s_new[6:9]).at[1].set(s_new[7]))
+def motion_and_jacobian(s, u, params):
+    """:func:`motion` and its Jacobian ∂s'/∂s (9, 9): the RK4 step's exact derivative, by the chain
+    rule through its stages from the closed-form eq. 28 (:func:`state_jacobian`;
+    ``dynamics.integrators.rk4_linearized``).  The engine's prediction uses it in place of
+    forward-mode autodiff of :func:`motion` (``SlamModel.motion_jacobian``); equal to
+    ``jax.jacfwd(motion)`` to rounding (tests)."""
+    dt, g, accel_mode = params
+    s_new, F = rk4_linearized(lambda x, c: f_cont(x, _stage_input(u, c), g, accel_mode), s,
+                              jnp.asarray(dt, s.dtype),
+                              jacobian=lambda x, c: _field_and_jacobian(x, _stage_input(u, c), g, accel_mode),
+                              skip=3)
+    return _wrap_attitude(s_new), F
 
 
 def process_noise(s, imu, noise: Params, dt, g, accel_mode: str = "3axis"):
-    """Q_d = (Q_c + G Q_imu Gᵀ) Δt, G = ∂f_s/∂λ at (s, λ) (first-order; see module doc)."""
-    G = jax.jacfwd(lambda lam: f_cont(s, lam, g, accel_mode))(imu)
+    """Q_d = (Q_c + G Q_imu Gᵀ) Δt, G = ∂f_s/∂λ at (s, λ) (first-order; see module doc;
+    G in closed form, :func:`input_jacobian`)."""
+    del imu, g  # G does not depend on the IMU reading or on gravity
+    G = input_jacobian(s, accel_mode)
     return (noise.Qc + small_matmul(small_matmul(G, noise.Qimu), G.T)) * jnp.asarray(dt, s.dtype)
 
 
@@ -147,8 +222,16 @@ def _observe(s, l, params):
     return lidar3d.measure_state(s, l)
 
 
+def _observe_and_jacobians(s, l, params):
+    return lidar3d.measure_state_and_jacobians(s, l)
+
+
 def _inverse(s, z, params):
     return lidar3d.inverse_state(s, z)
+
+
+def _inverse_and_jacobians(s, z, params):
+    return lidar3d.inverse_state_and_jacobians(s, z)
 
 
 def make_model() -> es.SlamModel:
@@ -159,6 +242,9 @@ def make_model() -> es.SlamModel:
         meas_dim=3,
         motion=motion,
         observe=_observe,
+        motion_jacobian=motion_and_jacobian,
+        observe_jacobian=_observe_and_jacobians,
+        inverse_jacobian=_inverse_and_jacobians,
         inverse=_inverse,
         residual=lidar3d.innovation,
     )

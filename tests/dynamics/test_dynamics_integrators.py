@@ -8,6 +8,7 @@ from scipy.integrate import solve_ivp
 
 import dyn_oracles_np as orc
 from jaxslam.dynamics import PAPER000, check_dt, linearize, rk4_step, rollout
+from jaxslam.dynamics import rk4_field, rk4_linearized
 from jaxslam.dynamics import euler_ned as en
 from jaxslam.errors import InputError
 
@@ -89,3 +90,44 @@ def test_check_dt():
         check_dt(np.array([0.1, 0.2]))
     with pytest.raises(InputError, match="^step:"):
         check_dt(-1.0, name="step")
+
+
+def _field(x, c):
+    # a kinematic car: position (2) does not enter the field; heading, speed, steering do,
+    # with an input that varies over the step through c
+    th, v, d = x[2], x[3], x[4]
+    return jnp.stack([v * jnp.cos(th), v * jnp.sin(th), v * jnp.tan(d) / 2.5, -0.3 * v + c, jnp.sin(c + d)])
+
+
+@pytest.mark.parametrize("skip", [0, 2])
+def test_rk4_linearized_is_the_exact_jacobian_of_the_step(skip):
+    x = jnp.asarray([0.3, -1.2, 0.7, 2.0, 0.2])
+    dt = 0.05
+    xn, F = jax.jit(lambda y: rk4_linearized(_field, y, dt, skip=skip))(x)
+    np.testing.assert_array_equal(np.asarray(xn), np.asarray(rk4_field(_field, x, dt)))
+    F_ad = jax.jacfwd(lambda y: rk4_field(_field, y, dt))(x)
+    np.testing.assert_allclose(np.asarray(F), np.asarray(F_ad), rtol=1e-13, atol=1e-15)
+    # central differences as the independent oracle
+    h = 1e-6
+    fd = np.stack([(np.asarray(rk4_field(_field, x + h * e, dt)) - np.asarray(rk4_field(_field, x - h * e, dt))) / (2 * h)
+                   for e in np.eye(5)], axis=1)
+    np.testing.assert_allclose(np.asarray(F), fd, rtol=1e-7, atol=1e-9)
+    # its derivative (what a gradient through a filter needs) equals autodiff's
+    W = jnp.asarray(np.random.default_rng(0).normal(size=(5, 5)))
+    g1 = jax.grad(lambda y: jnp.sum(W * rk4_linearized(_field, y, dt, skip=skip)[1]))(x)
+    g0 = jax.grad(lambda y: jnp.sum(W * jax.jacfwd(lambda z: rk4_field(_field, z, dt))(y)))(x)
+    np.testing.assert_allclose(np.asarray(g1), np.asarray(g0), rtol=1e-11, atol=1e-13)
+
+
+def test_rk4_linearized_with_a_given_jacobian_and_float32():
+    def jac(y, c):
+        return _field(y, c), jax.jacfwd(lambda q: _field(jnp.concatenate([y[:2], q]), c))(y[2:])
+    x = jnp.asarray([0.3, -1.2, 0.7, 2.0, 0.2], jnp.float32)
+    xn, F = rk4_linearized(_field, x, 0.05, jacobian=jac, skip=2)
+    assert xn.dtype == F.dtype == jnp.float32
+    F64 = jax.jacfwd(lambda y: rk4_field(_field, y, 0.05))(x.astype(jnp.float64))
+    np.testing.assert_allclose(np.asarray(F), np.asarray(F64), rtol=1e-5, atol=1e-6)
+    np.testing.assert_array_equal(np.asarray(rk4_step(lambda y, u: _field(y, u), x, 0.25, 0.05)),
+                                  np.asarray(rk4_field(lambda y, c: _field(y, 0.25), x, 0.05)))
+    with pytest.raises(InputError, match="skip"):
+        rk4_linearized(_field, x, 0.05, skip=5)

@@ -162,3 +162,22 @@ def test_vmap_matches_batch():
     np.testing.assert_allclose(C, dcm_j(e), atol=1e-15)
     np.testing.assert_allclose(D, D_j(e), atol=1e-15)
     np.testing.assert_allclose(back, inv_j(dcm_j(e)), atol=1e-15)
+
+
+def test_rotate_and_unrotate_jacobians_match_central_differences_and_autodiff():
+    import jax.numpy as jnp
+    rng = np.random.default_rng(11)
+    h = 1e-6
+    for e, v in zip(random_euler(rng, 5), rng.normal(size=(5, 3)) * 4):
+        for fn, jac in ((lambda a: np.asarray(eu.dcm_from_euler(a)) @ v, eu.rotate_jacobian),
+                        (lambda a: np.asarray(eu.dcm_from_euler(a)).T @ v, eu.unrotate_jacobian)):
+            J = np.asarray(jac(jnp.asarray(e), jnp.asarray(v)))
+            fd = np.stack([(fn(e + h * d) - fn(e - h * d)) / (2 * h) for d in np.eye(3)], axis=1)
+            np.testing.assert_allclose(J, fd, rtol=1e-7, atol=1e-8)
+        np.testing.assert_allclose(np.asarray(eu.rotate_jacobian(jnp.asarray(e), jnp.asarray(v))),
+                                   np.asarray(jax.jacfwd(lambda a: eu.dcm_from_euler(a) @ jnp.asarray(v))(jnp.asarray(e))),
+                                   rtol=1e-12, atol=1e-13)
+        Jf = eu.unrotate_jacobian(jnp.asarray(e, jnp.float32), jnp.asarray(v, jnp.float32))
+        assert Jf.dtype == jnp.float32
+        np.testing.assert_allclose(np.asarray(Jf), np.asarray(eu.unrotate_jacobian(jnp.asarray(e), jnp.asarray(v))),
+                                   rtol=1e-4, atol=1e-4)

@@ -250,3 +250,109 @@ def test_gradient_of_position_error_wrt_log_q_r_matches_finite_differences(log):
         e[j] = h
         fd = (float(vg(theta0 + e)[0]) - float(vg(theta0 - e)[0])) / (2 * h)
         assert abs(g[j] - fd) <= 1e-4 * max(abs(fd), 1e-3 * np.abs(g).max()), (j, g[j], fd)
+
+
+# The closed-form eq. 28 and the RK4 step's Jacobian built from it, against the hand-derived
+# NumPy twin (tests/oracles/numpy_ekfslam3d.py) and against forward-mode autodiff of the model.
+import numpy_ekfslam3d as np3d  # noqa: E402
+from jaxslam.filters import ekf_slam as es_engine  # noqa: E402
+from jaxslam.linalg import value_and_jacfwd  # noqa: E402
+
+
+def _cases(n=4, seed=3):
+    rng = np.random.default_rng(seed)
+    for _ in range(n):
+        s = rng.normal(size=9) * np.array([5, 5, 5, 2, 2, 2, 0.6, 0.6, 3.0])
+        yield s, rng.normal(size=12) * np.array([3, 3, 12, 1, 1, 1] * 2)
+
+
+@pytest.mark.parametrize("accel_mode", ["3axis", "az"])
+def test_closed_form_jacobians_match_hand_twin_and_autodiff(accel_mode):
+    for s, u in _cases():
+        imu = u[:6]
+        A = np.asarray(s3.state_jacobian(jnp.asarray(s), jnp.asarray(imu), 9.81, accel_mode))
+        np.testing.assert_allclose(A, np3d.jac_state(s, imu, 9.81, accel_mode), rtol=1e-12, atol=1e-12)
+        A_ad = jax.jacfwd(s3.f_cont)(jnp.asarray(s), jnp.asarray(imu), 9.81, accel_mode)
+        np.testing.assert_allclose(A, np.asarray(A_ad), rtol=1e-12, atol=1e-12)
+        G = np.asarray(s3.input_jacobian(jnp.asarray(s), accel_mode))
+        np.testing.assert_allclose(G, np3d.jac_input(s, imu, accel_mode), rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(np.asarray(s3.f_cont(jnp.asarray(s), jnp.asarray(imu), 9.81, accel_mode)),
+                                   np3d.f_cont(s, imu, 9.81, accel_mode), rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("accel_mode", ["3axis", "az"])
+def test_motion_and_jacobian_is_the_rk4_steps_derivative(accel_mode):
+    p = (0.01, 9.81, accel_mode)
+    W = np.random.default_rng(7).normal(size=(9, 9))
+    for s, u in _cases():
+        sj, uj = jnp.asarray(s), jnp.asarray(u)
+        x1, F1 = s3.motion_and_jacobian(sj, uj, p)
+        x0, F0 = value_and_jacfwd(lambda x: s3.motion(x, uj, p))(sj)
+        np.testing.assert_array_equal(np.asarray(x1), np.asarray(x0))
+        np.testing.assert_allclose(np.asarray(F1), np.asarray(F0), rtol=1e-12, atol=1e-13)
+        xt, Ft = np3d.rk4_step(s.copy(), u[:6], u[6:], 0.01, 9.81, accel_mode)
+        np.testing.assert_allclose(np.asarray(F1), Ft, rtol=1e-11, atol=1e-13)
+        # second derivatives (what a gradient through the filter differentiates): the closed
+        # form's against autodiff of autodiff, and against central differences of F
+        def g_of(fn):
+            return jax.grad(lambda x: jnp.sum(jnp.asarray(W) * fn(x)))(sj)
+        d1 = g_of(lambda x: s3.motion_and_jacobian(x, uj, p)[1])
+        d0 = g_of(lambda x: value_and_jacfwd(lambda y: s3.motion(y, uj, p))(x)[1])
+        np.testing.assert_allclose(np.asarray(d1), np.asarray(d0), rtol=1e-10, atol=1e-12)
+        h = 1e-6
+        fd = np.array([np.sum(W * (np3d.rk4_step(s + h * e, u[:6], u[6:], 0.01, 9.81, accel_mode)[1]
+                                   - np3d.rk4_step(s - h * e, u[:6], u[6:], 0.01, 9.81, accel_mode)[1])) / (2 * h)
+                       for e in np.eye(9)])
+        np.testing.assert_allclose(np.asarray(d1), fd, rtol=1e-6, atol=1e-8)
+
+
+def test_motion_and_jacobian_float32():
+    p = (0.01, 9.81, "3axis")
+    for s, u in _cases(2):
+        x1, F1 = s3.motion_and_jacobian(jnp.asarray(s, jnp.float32), jnp.asarray(u, jnp.float32), p)
+        assert x1.dtype == F1.dtype == jnp.float32
+        _, Ft = np3d.rk4_step(s.copy(), u[:6], u[6:], 0.01, 9.81)
+        np.testing.assert_allclose(np.asarray(F1), Ft, rtol=1e-4, atol=1e-5)
+
+
+def test_engine_prediction_uses_the_models_jacobian():
+    model = s3.make_model()
+    assert model.motion_jacobian is s3.motion_and_jacobian
+    st = es_engine.init(jnp.asarray(next(_cases(1))[0]), jnp.eye(9) * 0.1, 4, 3)
+    st = st._replace(P=st.P + 0.01 * jnp.ones_like(st.P) + 0.1 * jnp.eye(st.P.shape[0]))
+    u = jnp.asarray(next(_cases(1, seed=5))[1])
+    p = (0.01, 9.81, "3axis")
+    Q = jnp.eye(9) * 1e-3
+    auto = es_engine.predict(st, model._replace(motion_jacobian=None), u, Q, p)
+    hand = es_engine.predict(st, model, u, Q, p)
+    np.testing.assert_allclose(np.asarray(hand.P), np.asarray(auto.P), rtol=1e-12, atol=1e-14)
+    # the hook is what the prediction reads: a doubled F gives P_rr = 4 F P Fᵀ + Q
+    doubled = model._replace(motion_jacobian=lambda s, u_, q: (lambda r: (r[0], 2.0 * r[1]))(s3.motion_and_jacobian(s, u_, q)))
+    P2 = es_engine.predict(st, doubled, u, Q, p).P[:9, :9]
+    _, F = s3.motion_and_jacobian(st.x[:9], u, p)
+    np.testing.assert_allclose(np.asarray(P2), np.asarray(4 * F @ st.P[:9, :9] @ F.T + Q), rtol=1e-10)
+
+
+def test_engine_update_and_registration_use_the_models_jacobians():
+    # the closed-form H and G (lidar3d.*_and_jacobians) in the engine give the autodiff path's
+    # update and registration; a model without the hooks is the oracle
+    model = s3.make_model()
+    assert model.observe_jacobian is not None and model.inverse_jacobian is not None
+    plain = model._replace(motion_jacobian=None, observe_jacobian=None, inverse_jacobian=None)
+    rng = np.random.default_rng(2)
+    s = jnp.asarray([1.0, -2.0, -3.0, 0.5, 0.2, -0.1, 0.05, -0.08, 0.7])
+    lms = jnp.asarray(rng.normal(size=(4, 3)) * 6 + np.array([10.0, 0, 0]))
+    st = es_engine.init(s, jnp.eye(9) * 0.05, 6, 3)
+    R = lidar3d.measurement_cov(lidar3d.PAPER000_LIDAR, jnp.float64) * 4
+    y = jax.vmap(lambda l: lidar3d.measure_state(s, l))(lms) + jnp.asarray(rng.normal(size=(4, 3)) * 0.01)
+    ids = jnp.arange(4, dtype=jnp.int32)
+    new = jnp.asarray([True, True, True, False])
+    p = (0.01, 9.81, "3axis")
+    regs = [es_engine.register(st, m, y, ids, new, R, p) for m in (model, plain)]
+    np.testing.assert_allclose(np.asarray(regs[0].x), np.asarray(regs[1].x), rtol=1e-12, atol=1e-13)
+    np.testing.assert_allclose(np.asarray(regs[0].P), np.asarray(regs[1].P), rtol=1e-10, atol=1e-14)
+    slots = jnp.asarray([0, 1, 2, 0], jnp.int32)
+    mask = jnp.asarray([True, True, True, False])
+    ups = [es_engine.update(regs[1], m, y, slots, mask, R, p)[0] for m in (model, plain)]
+    np.testing.assert_allclose(np.asarray(ups[0].x), np.asarray(ups[1].x), rtol=1e-11, atol=1e-13)
+    np.testing.assert_allclose(np.asarray(ups[0].P), np.asarray(ups[1].P), rtol=1e-9, atol=1e-14)
