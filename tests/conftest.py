@@ -69,8 +69,10 @@ def _rss_mb() -> int:
 def _release():
     jax.clear_caches()
     from jaxslam import compilation
+    from jaxslam.sim import monte_carlo
 
     compilation.clear_programs()
+    monte_carlo.clear_programs()
     if _malloc_trim is not None:  # hand the freed compiler memory back (glibc keeps it otherwise)
         _malloc_trim(0)
 

@@ -41,6 +41,10 @@ true) and the caller reports them as such.  A Ctrl-C before the first chunk has 
 propagates.  (The signal is handled when the host regains control, i.e. after the compiled
 call in flight returns.)
 
+Programs: the compiled batch of each ``fn`` is kept for as long as ``fn`` lives, so a second
+``run`` of the same function (a new seed, more runs) neither traces nor compiles
+(:func:`clear_programs` forgets them; with a ``program_key`` the persistent cache keeps them).
+
 Timing separates compilation (trace, lower and compile; :mod:`jaxslam.compilation`
 splits it) from execution, which is measured with ``block_until_ready``.
 """
@@ -49,6 +53,7 @@ from __future__ import annotations
 
 import math
 import time
+import weakref
 from typing import Callable, NamedTuple, Optional, Sequence
 
 import jax
@@ -57,7 +62,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from .. import compilation, runtime
 
-__all__ = ["MCResult", "run", "keys_for", "DETAIL_CHUNK"]
+__all__ = ["MCResult", "run", "keys_for", "clear_programs", "DETAIL_CHUNK"]
 
 DETAIL_CHUNK = 16  # runs per vmapped chunk when fn returns a "detail" output
 
@@ -73,6 +78,27 @@ class MCResult(NamedTuple):
     chunk: int  # runs per compiled call (1 with "loop" batching)
     runs: int  # runs finished: the runs asked for, unless interrupted
     interrupted: bool  # Ctrl-C arrived after at least one chunk (run) had finished
+
+
+# fn -> {signature: compiled}: a second run() of the same fn (a new seed, more runs) neither
+# traces nor compiles; entries go when fn does.  (With a program_key the programs are kept by
+# compilation.compile_program instead, across processes too.)
+_programs: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
+def clear_programs() -> None:
+    """Forget the compiled programs :func:`run` keeps for the functions it was given."""
+    _programs.clear()
+
+
+def _remembered(fn, signature, build):
+    try:
+        per_fn = _programs.setdefault(fn, {})
+    except TypeError:  # not weak-referenceable: compile every time
+        return build()
+    if signature not in per_fn:
+        per_fn[signature] = build()
+    return per_fn[signature]
 
 
 @jax.jit
@@ -189,12 +215,19 @@ def _run_keys(fn, keys, chunk, progress, devices, cpu_batching, detail, program_
             key = None if program_key is None else {"mc": program_key, "loop": loop, "detail": has_detail}
             return compilation.compile_program(f, (arg,), key=key, compiler_options=opts)
 
+        def remembered():
+            if program_key is not None:  # compile_program keeps it
+                return build()
+            sig = (loop, has_detail, tuple(d.id for d in devices), tuple(np.shape(arg)), str(np.asarray(arg).dtype),
+                   tuple(sorted((opts or {}).items())), bool(jax.config.jax_enable_x64))
+            return _remembered(fn, sig, build)
+
         t0 = time.perf_counter()
         if compiling is not None:
             with compiling():
-                c = build()
+                c = remembered()
         else:
-            c = build()
+            c = remembered()
         return c, time.perf_counter() - t0
 
     if loop:

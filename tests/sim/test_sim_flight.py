@@ -78,6 +78,28 @@ def test_monte_carlo_is_independent_of_chunking():
     np.testing.assert_allclose(a.out["v"][3], np.asarray(jax.random.normal(k3, (3,))), rtol=ulp, atol=0)
 
 
+@pytest.mark.parametrize("batching", ["vmap", "loop"])
+def test_monte_carlo_compiles_a_function_once(batching):
+    # a second run() of the same fn (new seed, the same chunk) neither traces nor compiles
+    traces = []
+
+    def fn(key):
+        traces.append(1)
+        return jnp.sum(jax.random.normal(key, (3,)) ** 2)
+
+    a = monte_carlo.run(fn, seed=1, runs=4, chunk=2, cpu_batching=batching)
+    b = monte_carlo.run(fn, seed=2, runs=4, chunk=2, cpu_batching=batching)
+    assert len(traces) == 1, len(traces)
+    assert b.compile_s < a.compile_s
+    fresh = monte_carlo.run(lambda k: fn(k), seed=2, runs=4, chunk=2, cpu_batching=batching)
+    np.testing.assert_array_equal(b.out, fresh.out)
+    assert len(traces) == 2  # another function object: its own program
+    monte_carlo.clear_programs()  # with JAX's own caches (which hold the loop's jit(fn) trace)
+    jax.clear_caches()
+    monte_carlo.run(fn, seed=3, runs=4, chunk=2, cpu_batching=batching)
+    assert len(traces) == 3
+
+
 def test_sharded_monte_carlo_equals_single_device(tmp_path):
     """Two forced host devices (subprocess) give the same results as one device."""
     code = textwrap.dedent("""
