@@ -86,6 +86,8 @@ from .gaussian import (
     GaussianFilter,
     Posterior,
     UpdateInfo,
+    check_measurement,
+    check_process_noise,
     finalize as _finalize,
     innovation_solve,
     masked_innovation,
@@ -262,9 +264,12 @@ def predict(state: Gaussian, f: Callable, u, Q, *args, noise_jac=None) -> Gaussi
     xn = xn.astype(dtype)
     F = F.astype(dtype)
     Q = jnp.asarray(Q, dtype=dtype)
+    L = None
     if noise_jac is not None:
         L = noise_jac(x, u, *args) if callable(noise_jac) else noise_jac
         L = jnp.asarray(L, dtype=dtype)
+    check_process_noise(Q, x.shape[0], L)
+    if L is not None:
         Q = L @ Q @ L.T
     return Gaussian(xn, symmetrize(F @ P @ F.T + Q))
 
@@ -351,6 +356,7 @@ def update(
         return zhat.astype(dtype), H.astype(dtype)
 
     zhat, H = linearise(x)
+    check_measurement(z, zhat, R)
     nu = masked_innovation(z, zhat, mask, res)
     dof = jnp.sum(mask).astype(jnp.int32)
     # The NIS (hence the gate) does not depend on whether the update is
@@ -542,9 +548,12 @@ def make_filter(
         xn, F = value_and_jacfwd(lambda v: fm(v, u, *args))(x)
         F = F.astype(dtype)
         Qd = jnp.asarray(Q, dtype)
+        L = None
         if noise_jac is not None:
             L = noise_jac(x, u, *args) if callable(noise_jac) else noise_jac
             L = jnp.asarray(L, dtype)
+        check_process_noise(Qd, x.shape[0], L)
+        if L is not None:
             Qd = L @ Qd @ L.T
         PFt = P @ F.T
         return Gaussian(xn.astype(dtype), symmetrize(F @ PFt + Qd)), PFt

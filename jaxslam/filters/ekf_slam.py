@@ -83,6 +83,7 @@ __all__ = [
     "register",
     "add_landmark",
     "associate_known",
+    "first_of_each_id",
     "associate_nn",
     "marginal_d2",
     "joint_compatibility",
@@ -166,6 +167,7 @@ class UpdateInfo(NamedTuple):
     logdet: jax.Array = None  # () log det of the joint innovation covariance of the used rows
     d2: jax.Array = None  # (K,) marginal NIS of each valid row, before gating and weighting
     row_logdet: jax.Array = None  # (K,) log det of each valid row's marginal S_i (R unweighted)
+    rejected: jax.Array = None  # () True when rows were to be used but the update was rejected
 
 
 # ---------------------------------------------------------------------------
@@ -173,10 +175,29 @@ class UpdateInfo(NamedTuple):
 # ---------------------------------------------------------------------------
 
 def init(robot_mean, robot_cov, capacity: int, lm_dim: int) -> SlamState:
-    """Empty map with ``capacity`` landmark slots of dimension ``lm_dim``."""
+    """Empty map with ``capacity`` landmark slots of dimension ``lm_dim``.
+
+    ``robot_mean`` (n_r,) (an integer mean is cast to JAX's default float, as the generic
+    filters do); ``robot_cov`` (n_r, n_r), checked finite, symmetric and PSD when concrete.
+    A bad argument is an :class:`~jaxslam.errors.InputError` naming it."""
     robot_mean = jnp.asarray(robot_mean)
-    robot_cov = jnp.asarray(robot_cov, dtype=robot_mean.dtype)
+    if not jnp.issubdtype(robot_mean.dtype, jnp.floating):
+        robot_mean = robot_mean.astype(jnp.result_type(float))
+    if robot_mean.ndim != 1:
+        raise InputError(f"robot_mean: expected shape (n_r,), got {tuple(robot_mean.shape)}")
     nr = robot_mean.shape[0]
+    if jnp.shape(robot_cov) != (nr, nr):
+        raise InputError(f"robot_cov: expected shape ({nr}, {nr}) (robot_mean's size), got "
+                         f"{tuple(jnp.shape(robot_cov))}")
+    if isinstance(capacity, bool) or not isinstance(capacity, (int, np.integer)) or capacity < 1:
+        raise InputError(f"capacity: expected an int >= 1, got {capacity!r}")
+    if isinstance(lm_dim, bool) or not isinstance(lm_dim, (int, np.integer)) or lm_dim < 1:
+        raise InputError(f"lm_dim: expected an int >= 1, got {lm_dim!r}")
+    if is_concrete(robot_mean) and not np.all(np.isfinite(np.asarray(robot_mean))):
+        raise InputError("robot_mean: contains NaN or Inf")
+    if is_concrete(robot_cov):
+        check_psd(robot_cov, "robot_cov")
+    robot_cov = jnp.asarray(robot_cov, dtype=robot_mean.dtype)
     n = nr + capacity * lm_dim
     x = jnp.zeros((n,), robot_mean.dtype).at[:nr].set(robot_mean)
     P = jnp.zeros((n, n), robot_mean.dtype).at[:nr, :nr].set(robot_cov)
@@ -279,6 +300,8 @@ def predict(state: SlamState, model: SlamModel, u, Q, params=None, *,
     the columns up to the highest active slot (:func:`robot_cross_update`).
     """
     nr = model.robot_dim
+    if jnp.shape(Q) != (nr, nr):
+        raise InputError(f"Q: expected shape ({nr}, {nr}) (the model's robot_dim), got {tuple(jnp.shape(Q))}")
     s = state.x[:nr]
     s_new, F = motion_and_jacobian(model, s, u, params)
     Prr = state.P[:nr, :nr]
@@ -449,7 +472,9 @@ def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
 
     Args:
       z: (K, d_z) measurements (NaN allowed where masked).
-      slots: (K,) int slot of the landmark each measurement observes.
+      slots: (K,) int slot of the landmark each measurement observes; a slot outside
+        [0, capacity) (−1: none) is no landmark, and a row with its mask set there is dropped
+        and counted (``MASKED_INPUT``).
       mask: (K,) bool measurement present.  Measurements of inactive slots or
         with non-finite entries are dropped (counted via ``MASKED_INPUT``).
       R: (d_z, d_z) or (K, d_z, d_z) measurement covariance.
@@ -499,12 +524,14 @@ def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
     dz = model.meas_dim
     K = z.shape[0]
     dtype = state.x.dtype
-    slots = jnp.clip(slots.astype(jnp.int32), 0, cap - 1)
+    slots = slots.astype(jnp.int32)
+    in_range = (slots >= 0) & (slots < cap)  # −1 (or any slot outside the map): no landmark
+    slots = jnp.clip(slots, 0, cap - 1)
     R = jnp.broadcast_to(jnp.asarray(R, dtype), (K, dz, dz))
 
     finite = jnp.all(jnp.isfinite(z), axis=-1)
-    valid = mask & state.active[slots] & finite
-    bad_input = mask & state.active[slots] & ~finite
+    valid = mask & in_range & state.active[slots] & finite
+    bad_input = (mask & in_range & state.active[slots] & ~finite) | (mask & ~in_range)
     z_safe = jnp.where(valid[:, None], z, 0.0).astype(dtype)
 
     s = state.x[:nr]
@@ -700,6 +727,7 @@ def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
         logdet=jnp.where(ok, logdet, 0.0),
         d2=d2_each,
         row_logdet=logdet_each,
+        rejected=~ok & jnp.any(valid),
     )
     return state._replace(x=x_new, P=P_new, status=status), info
 
@@ -882,6 +910,7 @@ def update_robot(state: SlamState, model: SlamModel, observe, z, mask, R, params
         dof=jnp.where(ok, jnp.sum(valid), 0),
         used=valid & ok,
         gated=jnp.zeros_like(valid),
+        rejected=~ok & jnp.any(valid),
     )
     return state._replace(x=x_new, P=P_new, status=status), info
 
@@ -1057,6 +1086,18 @@ def _register(state: SlamState, model: SlamModel, z, lm_ids, mask, R, params) ->
 # ---------------------------------------------------------------------------
 # Data association
 # ---------------------------------------------------------------------------
+
+def first_of_each_id(lm_ids, mask):
+    """``mask`` with only the first row of each id kept (ids compared among the masked rows):
+    a landmark seen in several rows of one step before it is mapped is registered once, not
+    into one slot per row.  (K,) int ids, (K,) bool mask; O(K²), K the rows of one step."""
+    lm_ids = jnp.asarray(lm_ids)
+    mask = jnp.asarray(mask, bool)
+    K = lm_ids.shape[0]
+    same = (lm_ids[:, None] == lm_ids[None, :]) & mask[None, :]
+    earlier = jnp.tril(jnp.ones((K, K), bool), -1)
+    return mask & ~jnp.any(same & earlier, axis=1)
+
 
 def associate_known(state: SlamState, lm_ids, mask):
     """Known correspondences: slot of each id and whether it is mapped.
@@ -1376,7 +1417,8 @@ class SlamRun(NamedTuple):
     landmarks: (T, cap, d_l) map means with ``save_map`` else None; nis, logdet: (T,) joint NIS
     and log det S of the step's update; dof: (T,) scalar measurements used; log_likelihood:
     (T,) −½ (NIS + log det S + dof · log 2π), the innovation log-likelihood (sum it for the
-    sequence's; its gradient tunes Q and R); n_used, n_gated, n_new: (T,) int32 rows used,
+    sequence's; its gradient tunes Q and R), NaN at a step whose update was rejected
+    (``NON_FINITE`` / ``NOT_PSD`` in the status), so a sum cannot hide it; n_used, n_gated, n_new: (T,) int32 rows used,
     gated, registered as new landmarks; final: the last :class:`SlamState`.
     """
 
@@ -1430,9 +1472,15 @@ def _check_run(state: SlamState, model: SlamModel, log: SlamLog, Q, R, associati
     for M, nm, strict in ((Q, "Q", False), (R, "R", True)):
         if callable(M) or not is_concrete(M):
             continue
-        A = np.asarray(M)
-        for k, Ak in enumerate(A.reshape((-1,) + A.shape[-2:])):
-            check_psd(Ak, nm + (f"[{k}]" if A.ndim == 3 else ""), strict=strict)
+        valid = None
+        if nm == "R" and jnp.ndim(M) == 3 and log.mask is not None and is_concrete(log.mask):
+            # a step with every row masked uses no R: its matrix may hold anything
+            valid = np.broadcast_to(np.any(np.asarray(log.mask, bool), axis=1)[:, None], (T, dz))
+        check_psd(M, nm, strict=strict, valid=valid, stack=True)
+    if is_concrete(state.x) and not np.all(np.isfinite(np.asarray(state.x))):
+        raise InputError("state.x: contains NaN or Inf")
+    if is_concrete(state.P):
+        check_psd(np.asarray(state.P)[:nr, :nr], "state.P (robot block)")
     return T, K
 
 
@@ -1483,7 +1531,7 @@ def run(model: SlamModel, state: SlamState, log: SlamLog, Q, R, *, association: 
         st = predict(st, model, u, jnp.asarray(Q_t, dtype), p_t)
         if association == "known":
             slots, mapped = associate_known(st, id_t, m_t)
-            new = m_t & ~mapped & (id_t >= 0)
+            new = first_of_each_id(id_t, m_t & ~mapped & (id_t >= 0))
         else:
             slots, mapped, new, _ = associate_nn(st, model, z_t, m_t, R_t, p_t, gate=nn_gate,
                                                  new_threshold=nn_new)
@@ -1496,6 +1544,9 @@ def run(model: SlamModel, state: SlamState, log: SlamLog, Q, R, *, association: 
             n_new = jnp.zeros((), jnp.int32)
         logdet = jnp.asarray(info.logdet, dtype)
         ll = -0.5 * (info.nis + logdet + info.dof * jnp.log(2.0 * jnp.pi).astype(dtype))
+        # a rejected update (NON_FINITE / NOT_PSD in the status) has no likelihood: NaN, as in
+        # the generic filters, so that a sum over the run (an NLL loss) cannot hide it
+        ll = jnp.where(info.rejected, jnp.asarray(jnp.nan, dtype), ll)
         out = (st.x[:nr], st.P[:nr, :nr] if save_cov else None,
                landmarks(st, model) if save_map else None, info.nis, logdet, info.dof, ll,
                jnp.sum(info.used).astype(jnp.int32), jnp.sum(info.gated).astype(jnp.int32), n_new)

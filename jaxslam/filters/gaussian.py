@@ -62,6 +62,8 @@ __all__ = [
     "finalize",
     "masked_innovation",
     "threshold",
+    "check_process_noise",
+    "check_measurement",
     "LOG_2PI",
 ]
 
@@ -184,6 +186,36 @@ def masked_innovation(z, zhat, mask, residual):
     return jnp.where(mask, residual(z_safe, zhat_safe), zero)
 
 
+def check_process_noise(Q, n: int, L=None):
+    """Shape check of one prediction's noise (static shapes: free under ``jit``): ``Q`` (n, n),
+    or (q, q) with a noise Jacobian ``L`` (n, q).  Raises :class:`InputError` naming it
+    (a (1, 1) ``Q`` would otherwise broadcast onto every entry of an (n, n) covariance)."""
+    qs = tuple(np.shape(Q))
+    if L is None:
+        if qs != (n, n):
+            raise InputError(f"Q: expected shape ({n}, {n}) (the state's size), got {qs}")
+        return
+    ls = tuple(np.shape(L))
+    if len(ls) != 2 or ls[0] != n:
+        raise InputError(f"noise_jac: expected shape ({n}, q) (the state's size rows), got {ls}")
+    if qs != (ls[1], ls[1]):
+        raise InputError(f"Q: expected shape ({ls[1]}, {ls[1]}) (noise_jac's columns), got {qs}")
+
+
+def check_measurement(z, zhat, R):
+    """Shape check of one update (static shapes: free under ``jit``): the model's output
+    ``zhat`` like ``z`` (m,), ``R`` (m, m) or a scalar when m = 1.  Raises :class:`InputError`
+    naming the argument (a size mismatch would otherwise broadcast silently)."""
+    zs, hs, rs = tuple(np.shape(z)), tuple(np.shape(zhat)), tuple(np.shape(R))
+    if len(zs) != 1:
+        raise InputError(f"z: expected shape (m,), got {zs}")
+    m = zs[0]
+    if hs != zs:
+        raise InputError(f"h: the measurement model returned shape {hs}, but z has shape {zs}")
+    if not (rs == (m, m) or (m == 1 and rs in ((), (1,)))):
+        raise InputError(f"R: expected shape ({m}, {m}) (z's size), got {rs}")
+
+
 def innovation_solve(S, B):
     """Solve ``S X = B`` by Cholesky; return ``(X, ok, logdet S)``.
 
@@ -268,6 +300,8 @@ def check_run_inputs(x0, P0, zs, masks, Q, R, name_prefix=""):
     if len(xs) != 1:
         raise InputError(f"{pre}x0: expected shape (n,), got {tuple(xs)}")
     n = xs[0]
+    if is_concrete(x0) and not np.all(np.isfinite(np.asarray(x0))):
+        raise InputError(f"{pre}x0: contains NaN or Inf")
     if np.shape(P0) != (n, n):
         raise InputError(f"{pre}P0: expected shape ({n}, {n}), got {tuple(np.shape(P0))}")
     zsh = np.shape(zs)
@@ -294,6 +328,17 @@ def check_run_inputs(x0, P0, zs, masks, Q, R, name_prefix=""):
                                             and is_concrete(masks)) else None
         check_psd(M, f"{pre}{nm}", strict=strict, valid=valid, stack=True)
     return T, m
+
+
+def check_leading(tree, T: int, name: str):
+    """Every leaf of ``tree`` (None: nothing) has the run's T steps on its leading axis, else an
+    :class:`InputError` naming ``name`` (``lax.scan`` would say only that lengths disagree)."""
+    for path, leaf in jax.tree_util.tree_leaves_with_path(tree):
+        shp = np.shape(leaf)
+        if len(shp) == 0 or shp[0] != T:
+            where = jax.tree_util.keystr(path)
+            raise InputError(f"{name}{where}: expected a leading axis of {T} steps (zs has {T}), "
+                             f"got shape {tuple(shp)}")
 
 
 def init_carry(x0, P0):
@@ -384,6 +429,8 @@ def run(
         :class:`Posterior` in the dtype of ``x0``.
     """
     x0, P0, zs, masks, Q, R, q_step, r_step, T = prepare_run(x0, P0, zs, masks, Q, R)
+    check_leading(us, T, "us")
+    check_leading(h_inputs, T, "h_inputs")
     keep_cov = save_cov or save_smoother
     step_fn = make_step(flt, Q, R, q_step, r_step, predict_first)
 

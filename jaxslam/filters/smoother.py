@@ -210,6 +210,8 @@ def fixed_lag(
         raise InputError(f"lag: must be >= 0, got {lag}")
     diff = _sub if difference is None else difference
     x0, P0, zs, masks, Q, R, q_step, r_step, T = _g.prepare_run(x0, P0, zs, masks, Q, R)
+    _g.check_leading(us, T, "us")
+    _g.check_leading(h_inputs, T, "h_inputs")
     L = min(lag, T - 1)
     n = x0.shape[0]
     dtype = x0.dtype
@@ -348,6 +350,7 @@ def iterated(
     if num_iter < 1:
         raise InputError(f"num_iter: must be >= 1, got {num_iter}")
     x0, P0, zs, masks, Q, R, q_step, r_step, T = _g.prepare_run(x0, P0, zs, masks, Q, R)
+    _g.check_leading(us, T, "us")
     dtype = x0.dtype
     n = x0.shape[0]
     m = zs.shape[1]

@@ -549,6 +549,8 @@ def filter_scan(
     Returns:
         :class:`SqrtPosterior` in the dtype of ``x0``.
     """
+    if np.ndim(R) == 0 and np.shape(zs)[-1:] == (1,):
+        R = jnp.reshape(jnp.asarray(R), (1, 1))  # a scalar: the variance of one measurement
     _validate_scan(x0, P0, us, zs, masks, Q, R, noise_jac, Q_chol)
     x0 = jnp.asarray(x0)
     dtype = x0.dtype if jnp.issubdtype(x0.dtype, jnp.floating) else jnp.result_type(float)

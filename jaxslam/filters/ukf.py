@@ -113,6 +113,8 @@ from .gaussian import (
     GaussianFilter,
     Posterior,
     UpdateInfo,
+    check_measurement,
+    check_process_noise,
     finalize,
     innovation_solve,
     masked_innovation,
@@ -273,9 +275,12 @@ def sigma_points(mean, cov, points: Optional[SigmaPoints] = None) -> SigmaSet:
 
 def _process_noise(x, u, Q, args, noise_jac, dtype):
     Qd = jnp.asarray(Q, dtype)
+    L = None
     if noise_jac is not None:
         L = noise_jac(x, u, *args) if callable(noise_jac) else noise_jac
         L = jnp.asarray(L, dtype)
+    check_process_noise(Qd, x.shape[0], L)
+    if L is not None:
         Qd = L @ Qd @ L.T
     return Qd
 
@@ -430,6 +435,7 @@ def update(
     pts, wm, wc, ok_pts = sigma_points(x, P, rule)
     Z = jax.vmap(lambda p: h(p, *args))(pts).astype(dtype)  # (N, m)
     zref = Z[0] if rule.has_center else jnp.asarray(h(x, *args), dtype)
+    check_measurement(z, zref, R)
     Z, zhat = measurement_mean(Z, zref, wm, mask, res)
     dZ = jnp.where(mask[None, :], jax.vmap(lambda zi: res(zi, zhat))(Z), zero)  # (N, m)
     dx = pts - x  # (N, n)

@@ -61,6 +61,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from .. import compilation, runtime
+from ..errors import InputError
 
 __all__ = ["MCResult", "run", "keys_for", "clear_programs", "DETAIL_CHUNK"]
 
@@ -137,8 +138,10 @@ def run(fn: Callable, seed: int, runs: int, chunk: Optional[int] = None,
         persistent cache and a later process skips tracing
         (:func:`jaxslam.compilation.compile_program`).
     """
-    if runs < 1:
-        raise ValueError(f"runs: must be >= 1, got {runs}")
+    if isinstance(runs, bool) or not isinstance(runs, (int, np.integer)) or runs < 1:
+        raise InputError(f"runs: expected an int >= 1, got {runs!r}")
+    if chunk is not None and (isinstance(chunk, bool) or not isinstance(chunk, (int, np.integer)) or chunk < 1):
+        raise InputError(f"chunk: expected None or an int >= 1, got {chunk!r}")
     if cpu_batching not in ("vmap", "loop"):
         raise ValueError(f"cpu_batching: expected 'vmap' or 'loop', got {cpu_batching!r}")
     if devices is None and jax.process_count() > 1:  # a group of processes: one block each
@@ -173,12 +176,20 @@ class _GroupProgress:
             self._p.update(min(n * self._k, self._runs))
 
 
+def _with_detail(o):
+    """``o``, the output of ``fn`` when ``detail=True``: a dict holding ``"detail"``."""
+    if not isinstance(o, dict) or "detail" not in o:
+        got = f"keys {sorted(o)}" if isinstance(o, dict) else type(o).__name__
+        raise InputError(f"fn: with detail=True it must return a dict holding a 'detail' entry, got {got}")
+    return o
+
+
 def _program(fn, devices, has_detail, opts):
     """``(batched, jitted, sharding)``: ``vmap(fn)`` over a chunk of keys, and with several
     devices its jitted form that splits the chunk over them (``jitted``, ``sharding`` None for
     one device).  Only the first run's ``detail`` leaves the program."""
     def first_detail(o, keep):
-        return {**o, "detail": jax.tree.map(keep, o["detail"])} if has_detail else o
+        return {**_with_detail(o), "detail": jax.tree.map(keep, o["detail"])} if has_detail else o
 
     if len(devices) == 1:
         return (lambda k: first_detail(jax.vmap(fn)(k), lambda a: a[0])), None, None
@@ -237,6 +248,8 @@ def _run_keys(fn, keys, chunk, progress, devices, cpu_batching, detail, program_
         try:
             for i in range(runs):
                 res = jax.block_until_ready(compiled(keys[i]))
+                if has_detail and i == 0:
+                    _with_detail(res)
                 if has_detail and i > 0:  # only run 0's detail is kept: never copied to the host
                     res = {k: v for k, v in res.items() if k != "detail"}
                 outs.append(jax.tree.map(np.asarray, res))

@@ -462,7 +462,7 @@ def correct(state: State, y, ids, visible, config: Config, params: Params, x_tru
     R = params.R.astype(st.x.dtype)
     if cfg.association == "known":
         slots, mapped = es.associate_known(st, id_s, vis_s)
-        new = vis_s & ~mapped
+        new = es.first_of_each_id(id_s, vis_s & ~mapped)  # a repeated new id registers once
     else:
         slots, mapped, new, _ = es.associate_nn(
             st, model, y_s, vis_s, R, mparams, gate=jnp.asarray(params.nn_gate, st.x.dtype),

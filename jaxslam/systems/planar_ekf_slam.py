@@ -379,13 +379,6 @@ def _chi2_table(p: float, K: int, dz: int):
     return np.asarray([chi2_ppf_np(float(p), dz * m) for m in range(1, K + 1)])
 
 
-def _first_of_id(ids, cand):
-    """cand & no earlier candidate with the same id (a repeated new id registers once)."""
-    K = ids.shape[0]
-    same = (ids[:, None] == ids[None, :]) & cand[None, :] & (jnp.arange(K)[None, :] < jnp.arange(K)[:, None])
-    return cand & ~jnp.any(same, axis=1)
-
-
 def _range_gain(rm, bearing):
     """g = k0 + k2 β² of the camera range model (``Params.range_model``)."""
     return rm[0] + rm[1] * bearing ** 2
@@ -401,7 +394,7 @@ def _measure(st: es.SlamState, z, ids, valid, model, config: Config, R, nu, thr:
         st, info = es.update(st, model, zs, slots, mapped, R, None, gate=thr.update_gate, robust=robust,
                              row_stats=True, active_only=config.active_only, joseph=config.joseph)
         cand = valid & ~mapped
-        new = _first_of_id(ids, cand)
+        new = es.first_of_each_id(ids, cand)  # a repeated new id registers once
         rejected = jnp.sum(cand & ~new).astype(jnp.int32)
         reg_ids = ids
         watched = mapped

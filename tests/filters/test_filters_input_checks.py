@@ -1,0 +1,174 @@
+"""Bad input to the filters and the EKF-SLAM engine: an early InputError naming the argument,
+or, inside a run, a flag (never a silent broadcast, a clamped index or a hidden failure).
+
+The expected results are written by hand (shapes, counts, flags) or come from the same call
+with the well-formed argument; none is computed by the path under test alone.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxslam import errors
+from jaxslam.errors import InputError
+from jaxslam.filters import ekf, ekf_slam as es, sqrt_ekf, ukf
+from jaxslam.sim import monte_carlo
+
+F = np.array([[1.0, 0.1], [0.0, 1.0]])
+
+
+def f(x, u):
+    return jnp.asarray(F, x.dtype) @ x
+
+
+def h(x):
+    return x[:1]
+
+
+ZS = np.random.default_rng(0).normal(size=(12, 1))
+Q2 = 0.01 * np.eye(2)
+R1 = 0.1 * np.eye(1)
+
+
+@pytest.mark.parametrize("mod", [ekf, ukf], ids=["ekf", "ukf"])
+@pytest.mark.parametrize("Q", [0.01 * np.eye(1), np.eye(3)], ids=["1x1", "3x3"])
+def test_process_noise_of_the_wrong_size_is_named(mod, Q):
+    # a (1, 1) Q used to broadcast onto every entry of the (2, 2) covariance
+    with pytest.raises(InputError, match=r"^Q: expected shape \(2, 2\)"):
+        mod.filter_scan(f, h, np.zeros(2), np.eye(2), None, ZS, None, Q, R1)
+
+
+def test_noise_jacobian_and_q_must_agree():
+    L = np.array([[0.0], [1.0]])
+    ekf.filter_scan(f, h, np.zeros(2), np.eye(2), None, ZS, None, 0.01 * np.eye(1), R1, noise_jac=L)
+    with pytest.raises(InputError, match=r"^Q: expected shape \(1, 1\) \(noise_jac's columns\)"):
+        ekf.filter_scan(f, h, np.zeros(2), np.eye(2), None, ZS, None, Q2, R1, noise_jac=L)
+    with pytest.raises(InputError, match=r"^noise_jac: expected shape \(2, q\)"):
+        ekf.filter_scan(f, h, np.zeros(2), np.eye(2), None, ZS, None, Q2, R1, noise_jac=np.eye(3))
+
+
+@pytest.mark.parametrize("mod", [ekf, ukf], ids=["ekf", "ukf"])
+def test_measurement_model_and_z_must_agree(mod):
+    # h returns 2 values, z and R have 1: used to broadcast R onto a (2, 2) S, status 0
+    with pytest.raises(InputError, match=r"^h: the measurement model returned shape \(2,\)"):
+        mod.filter_scan(f, lambda x: x, np.zeros(2), np.eye(2), None, ZS, None, Q2, R1)
+    with pytest.raises(InputError, match=r"^h: "):
+        mod.update(ekf.Gaussian(jnp.zeros(2), jnp.eye(2)), jnp.zeros(1), lambda x: x, R1)
+    with pytest.raises(InputError, match=r"^R: expected shape \(1, 1\)"):
+        mod.update(ekf.Gaussian(jnp.zeros(2), jnp.eye(2)), jnp.zeros(1), h, np.eye(2))
+
+
+def test_non_finite_start_mean_and_short_inputs_are_named():
+    with pytest.raises(InputError, match=r"^x0: contains NaN or Inf"):
+        ekf.filter_scan(f, h, np.array([np.nan, 0.0]), np.eye(2), None, ZS, None, Q2, R1)
+
+    def fu(x, u):
+        return f(x, None) + u
+
+    with pytest.raises(InputError, match=r"^us: expected a leading axis of 12 steps"):
+        ekf.filter_scan(fu, h, np.zeros(2), np.eye(2), np.zeros((11, 2)), ZS, None, Q2, R1)
+    ekf.filter_scan(fu, h, np.zeros(2), np.eye(2), np.zeros((12, 2)), ZS, None, Q2, R1)
+
+
+def test_square_root_filter_takes_a_scalar_variance_for_one_measurement():
+    a = sqrt_ekf.filter_scan(f, h, np.zeros(2), np.eye(2), None, ZS, None, Q2, 0.1)
+    b = sqrt_ekf.filter_scan(f, h, np.zeros(2), np.eye(2), None, ZS, None, Q2, R1)
+    np.testing.assert_array_equal(np.asarray(a.means), np.asarray(b.means))
+
+
+# --------------------------------------------------------------------------- EKF-SLAM engine
+
+def _model():
+    # 1-D robot, 1-D landmarks, relative position measurement
+    return es.SlamModel(1, 1, 1, lambda s, u, p=None: s + u, lambda s, l, p=None: l - s,
+                        lambda s, z, p=None: s + z)
+
+
+def _log(T=12, K=3, seed=1):
+    rng = np.random.default_rng(seed)
+    lm = np.array([2.0, 5.0, -3.0, 7.0])
+    ids = np.stack([rng.permutation(4)[:K] for _ in range(T)])
+    x = np.cumsum(np.full(T, 0.2))
+    z = (lm[ids] - x[:, None])[..., None] + 0.05 * rng.normal(size=(T, K, 1))
+    return es.SlamLog(u=np.full((T, 1), 0.2), z=z, ids=ids.astype(np.int32), mask=np.ones((T, K), bool),
+                      params=None)
+
+
+def test_init_checks_its_arguments_and_casts_an_integer_mean():
+    with pytest.raises(InputError, match=r"^robot_cov: expected shape \(3, 3\)"):
+        es.init(jnp.zeros(3), jnp.eye(2), 8, 2)
+    with pytest.raises(InputError, match=r"^robot_cov: "):
+        es.init(jnp.zeros(2), -jnp.eye(2), 8, 2)
+    with pytest.raises(InputError, match=r"^robot_mean: contains NaN"):
+        es.init(jnp.array([np.nan, 0.0]), jnp.eye(2), 8, 2)
+    with pytest.raises(InputError, match=r"^capacity: expected an int >= 1"):
+        es.init(jnp.zeros(2), jnp.eye(2), 0, 2)
+    st = es.init(np.array([0, -3, 0]), np.eye(3), 4, 2)
+    assert jnp.issubdtype(st.x.dtype, jnp.floating) and st.x.shape == (11,)
+
+
+def test_run_checks_its_start_state_and_predict_its_q():
+    m = _model()
+    st = es.init(jnp.zeros(1), jnp.eye(1), 8, 1)
+    bad = st._replace(P=st.P.at[0, 0].set(-1.0))
+    with pytest.raises(InputError, match=r"^state.P \(robot block\)"):
+        es.run(m, bad, _log(), 0.04 * jnp.eye(1), 0.01 * jnp.eye(1))
+    with pytest.raises(InputError, match=r"^Q: expected shape \(1, 1\)"):
+        es.predict(st, m, jnp.ones(1), 0.04 * jnp.eye(2))
+
+
+def test_a_new_id_in_several_rows_of_one_step_registers_once():
+    log = _log()
+    ids = np.array(log.ids)
+    ids[0] = [7, 7, 7]  # first sighting of landmark 7, three rows of one step
+    z = np.array(log.z)
+    z[0, :, 0] = [4.0, 4.05, 3.95]
+    log = log._replace(ids=ids, z=z)
+    st = es.init(jnp.zeros(1), 0.01 * jnp.eye(1), 8, 1)
+    out = es.run(_model(), st, log, 0.04 * jnp.eye(1), 0.01 * jnp.eye(1))
+    final_ids = np.asarray(out.final.ids)
+    assert np.sum(final_ids == 7) == 1  # was three slots holding the same landmark
+    assert int(out.n_new[0]) == 1
+
+
+def test_update_drops_rows_whose_slot_is_outside_the_map():
+    m = _model()
+    st = es.init(jnp.zeros(1), 0.01 * jnp.eye(1), 4, 1)
+    st = es.preload(st, m, jnp.array([[2.0], [5.0]]), 0.1 * jnp.ones((2, 1, 1)))
+    z = jnp.array([[2.1], [4.9]])
+    R = 0.01 * jnp.eye(1)
+    ref, ref_info = es.update(st, m, z[1:], jnp.array([1]), jnp.array([True]), R)
+    for bad_slot in (-1, 99):
+        post, info = es.update(st, m, z, jnp.array([bad_slot, 1]), jnp.array([True, True]), R)
+        assert np.asarray(info.used).tolist() == [False, True]  # slot −1 used to update slot 0
+        np.testing.assert_allclose(np.asarray(post.x), np.asarray(ref.x), rtol=0, atol=1e-12)
+        assert "masked_input" in errors.decode(post.status)
+
+
+def test_a_rejected_update_has_no_likelihood():
+    log = _log(T=20)
+    Rs = np.tile(0.01 * np.eye(1), (20, 1, 1))
+    Rs[10] = -50.0  # S not PD at step 10 (traced, so the host check cannot see it)
+    st = es.init(jnp.zeros(1), 0.01 * jnp.eye(1), 8, 1)
+    run = jax.jit(lambda R: es.run(_model(), st, log, 0.04 * jnp.eye(1), R))
+    ll = np.asarray(run(jnp.asarray(Rs)).log_likelihood)
+    assert np.isnan(ll[10])  # was 0: a sum over the run hid the failure
+    assert np.all(np.isfinite(np.delete(ll, 10)))
+    good = np.asarray(run(jnp.asarray(np.tile(0.01 * np.eye(1), (20, 1, 1)))).log_likelihood)
+    np.testing.assert_array_equal(ll[:10], good[:10])
+
+
+# --------------------------------------------------------------------------- Monte Carlo runner
+
+def test_monte_carlo_checks_chunk_and_the_detail_entry():
+    def fn(key):
+        return {"x": jax.random.normal(key, ())}
+
+    for bad in (0, -1, 2.5):
+        with pytest.raises(InputError, match=r"^chunk: expected None or an int >= 1"):
+            monte_carlo.run(fn, 0, 4, chunk=bad)
+    with pytest.raises(InputError, match=r"^runs: expected an int >= 1"):
+        monte_carlo.run(fn, 0, 0)
+    with pytest.raises(InputError, match=r"^fn: with detail=True it must return a dict holding a 'detail'"):
+        monte_carlo.run(fn, 0, 2, detail=True)
