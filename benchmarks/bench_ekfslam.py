@@ -103,8 +103,10 @@ def _matmul_floor(n, m, reps=200):
     return float(np.median(ts)), 2.0 * n * n * m
 
 
-def _ints(text):
-    return [int(v) for v in str(text).split(",") if v.strip()]
+def _ints(text, flag="option"):
+    from timing import int_list
+
+    return int_list(text, flag)
 
 
 def add_arguments(parser):
@@ -380,7 +382,7 @@ def run_study(args, noise, results, out):
     # -- prediction vs mapped landmarks ------------------------------------
     f_pred = jax.jit(prop, donate_argnums=0)
     f_pred_loop = looped(prop)
-    for N in _ints(args.study_maps):
+    for N in _ints(args.study_maps, "--study-maps"):
         _progress(f"study: prediction, {N} mapped")
         x, P, active, ids = _study_state(N, N, args.seed + N)
         st = slam_state(x, P, active, ids)
@@ -399,7 +401,7 @@ def run_study(args, noise, results, out):
     x, P, active, ids = _study_state(M0, M0 + 16, args.seed + 1000)
     st = slam_state(x, P, active, ids)
     twin = twin_from(x, P, active, ids, M0 + 16)
-    for k in _ints(args.study_obs):
+    for k in _ints(args.study_obs, "--study-obs"):
         _progress(f"study: update and registration, {k} observed")
         slots = np.sort(rng.choice(M0, size=min(k, M0), replace=False))
         zh, _, _ = tw.observe(x[:9], x[9:9 + 3 * M0].reshape(M0, 3)[slots])
@@ -601,7 +603,7 @@ def run_full(args, noise, results, out, threads_label):
     from jaxslam.systems import ekf_slam_3d as sys3d
 
     log, log_note = _get_log(args)
-    caps = _ints(args.capacities)
+    caps = _ints(args.capacities, "--capacities")
     F = log["visible"].shape[0]
     inputs = tuple(jnp.asarray(log[k]) for k in ("s0", "imu", "y", "visible"))
     ids = jnp.asarray(log["ids"])
@@ -732,7 +734,7 @@ def run_mc(args, results, out):
     single = jax.jit(one_run)
     batched = {}
     rows = []
-    Ms = _ints(args.mc_runs)
+    Ms = _ints(args.mc_runs, "--mc-runs")
     keys_all = monte_carlo.keys_for(args.seed, max(Ms))
     _progress("monte carlo: compiling the single run")
     t0 = time.perf_counter()

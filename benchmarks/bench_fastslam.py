@@ -88,8 +88,10 @@ _QUICK = {"particles": "500,2000", "steps": 50, "call_steps": 10, "twin_steps": 
           "repeats": 3, "mc_runs": "1,8", "mc_duration": 0.5}
 
 
-def _ints(text):
-    return [int(v) for v in str(text).split(",") if v.strip()]
+def _ints(text, flag="option"):
+    from timing import int_list
+
+    return int_list(text, flag)
 
 
 def add_arguments(parser):
@@ -265,7 +267,7 @@ def _step_jobs(args, cfg, prm, inputs_dev, ids_dev, keys_dev, x0, T):
     from jaxslam.systems import fastslam_001 as fs1
 
     jobs = []
-    for N in _ints(args.particles):
+    for N in _ints(args.particles, "--particles"):
         def job(N=N):
             adv = _advance_fn(cfg, prm)
             st = fs1.init(_log0(jnp.asarray(x0)), cfg._replace(n_particles=N), prm,
@@ -350,7 +352,7 @@ def run_step(args, tw, cfg, prm, compiled, inputs_np, inputs_dev, ids_np, ids_de
     W = args.warmup
     rows = []
     loop_pp = None
-    for N in _ints(args.particles):
+    for N in _ints(args.particles, "--particles"):
         adv, warm = compiled[f"step N={N}"][0]
         comp_s = compiled[f"step N={N}"][1]
         ts0 = tw.state_from(warm[0])
@@ -463,7 +465,7 @@ def _mc_jobs(args, cfg, prm, fl, ids):
     N = int(args.mc_particles)
     F = max(1, int(round(args.mc_duration / (cfg.dt * LIDAR_EVERY))))
     ids_d = jnp.asarray(ids)
-    Ms = _ints(args.mc_runs)
+    Ms = _ints(args.mc_runs, "--mc-runs")
     M_max = max(Ms)
 
     cfg_n = cfg._replace(n_particles=N)
@@ -492,7 +494,7 @@ def run_mc(args, compiled, data, N, F, results, out):
     keys, win = data
     single = compiled["mc batch=1"][0]
     rows = []
-    for M in _ints(args.mc_runs):
+    for M in _ints(args.mc_runs, "--mc-runs"):
         B = min(M, int(args.mc_chunk))
         f, comp = compiled[f"mc batch={B}"]
         n_chunks = -(-M // B)
@@ -691,10 +693,10 @@ def _run_here(args, parts):
     t_start = time.perf_counter()
     results, out = [], {"targets": []}
     load = {"before": list(os.getloadavg())}
-    if "mc" in parts and 1 not in _ints(args.mc_runs):
+    if "mc" in parts and 1 not in _ints(args.mc_runs, "--mc-runs"):
         args.mc_runs = "1," + args.mc_runs  # M = 1 is the sequential single run
     F_mc = max(1, int(round(args.mc_duration / 0.1)))
-    M_max = max(_ints(args.mc_runs)) if "mc" in parts else 1
+    M_max = max(_ints(args.mc_runs, "--mc-runs")) if "mc" in parts else 1
     need_steps = args.warmup + max(args.steps, args.call_steps, args.twin_steps, LIDAR_EVERY)
     n_frames = max(need_steps // LIDAR_EVERY, (M_max - 1) + F_mc if "mc" in parts else 0) + 1
     _progress(f"simulating a {n_frames * LIDAR_EVERY * 0.01:g} s helix flight (scenario "

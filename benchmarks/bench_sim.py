@@ -63,8 +63,10 @@ LIDAR_EVERY = 10
 TARGET_SINGLE_SPEEDUP = 30.0
 
 
-def _ints(text):
-    return [int(v) for v in str(text).split(",") if v.strip()]
+def _ints(text, flag="option"):
+    from timing import int_list
+
+    return int_list(text, flag)
 
 
 def add_arguments(parser):
@@ -306,7 +308,7 @@ def run(args) -> dict:
         raise ValueError(f"--duration: at least {dt * LIDAR_EVERY} s, got {duration}")
     n_steps = n_frame * LIDAR_EVERY
     ff = not args.no_feedforward
-    batches = _ints(args.batches)
+    batches = _ints(args.batches, "--batches")
     traj_np, ctrl_np, sigma, _ = numpy_inputs(setup)
     fn = jax_runner(setup, n_frame, LIDAR_EVERY, ff)
     base_key = jax.random.PRNGKey(args.seed)

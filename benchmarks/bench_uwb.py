@@ -42,8 +42,10 @@ DESCRIPTION = ("Paper 003 UWB range-only EKF-SLAM: runs/s of jax.vmap vs sequent
 TARGETS = {"vmap_vs_twin_at_100": 10.0, "vmap_vs_sequential_at_100": 2.0}
 
 
-def _ints(text):
-    return [int(v) for v in str(text).split(",") if v.strip()]
+def _ints(text, flag="option"):
+    from timing import int_list
+
+    return int_list(text, flag)
 
 
 def add_arguments(parser):
@@ -85,7 +87,10 @@ def run(args):
     parts = {p.strip() for p in args.parts.split(",") if p.strip()}
     if parts - {"filter", "mc"}:
         raise InputError(f"--parts: unknown part(s) {sorted(parts - {'filter', 'mc'})}; choose filter, mc")
-    Ms = _ints(args.runs)
+    Ms = _ints(args.runs, "--runs")
+    for flag, v in (("--repeats", args.repeats), ("--seq-max", args.seq_max), ("--twin-max", args.twin_max)):
+        if v < 1:
+            raise InputError(f"{flag}: must be >= 1, got {v}")
     if not Ms or min(Ms) < 1:
         raise InputError(f"--runs: expected positive batch sizes, got {args.runs!r}")
     opts = dict(mode=args.mode, model=args.model, noise="uniform", filter=args.filter, duration=None, dt=1.0,

@@ -9,7 +9,7 @@ from __future__ import annotations
 import statistics
 import time
 
-__all__ = ["median_s"]
+__all__ = ["median_s", "int_list"]
 
 
 def median_s(fn, repeats: int) -> float:
@@ -20,3 +20,17 @@ def median_s(fn, repeats: int) -> float:
         fn()
         ts.append(time.perf_counter() - t0)
     return statistics.median(ts)
+
+
+def int_list(text, flag: str = "option") -> list:
+    """A comma list of integers >= 1 (batch sizes, particle counts; an empty text: none), or an
+    ``InputError`` naming ``flag`` (the CLI's exit 2, not an internal error)."""
+    from jaxslam.errors import InputError
+
+    try:
+        values = [int(v) for v in str(text).split(",") if v.strip()]
+    except ValueError:
+        values = [0]
+    if values and min(values) < 1:
+        raise InputError(f"{flag}: expected comma-separated integers >= 1, got {text!r}")
+    return values

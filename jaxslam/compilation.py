@@ -34,11 +34,12 @@ import contextlib
 import dataclasses
 import os
 import pathlib
-import shutil
 import sys
 import tempfile
 import threading
 import warnings
+
+from .errors import InputError
 
 __all__ = [
     "CacheWarning",
@@ -175,36 +176,69 @@ def enabled_dir() -> pathlib.Path | None:
     return _enabled_dir
 
 
+def _cache_files(folder: pathlib.Path):
+    """The files of ``folder`` that this cache wrote: JAX's entries (``<name>-<hash>-cache`` and
+    their ``-atime`` stamps), leftover ``.probe-`` files, and the exported programs in
+    ``programs/`` (``*.jaxprog`` and their ``.tmp-`` leftovers).  Nothing else is counted or
+    removed, so a cache folder pointed at a folder of other files never loses them."""
+    if not folder.is_dir():
+        return
+    for p in folder.iterdir():
+        if p.is_file() and not p.is_symlink() and (p.name.endswith(("-cache", "-atime"))
+                                                   or p.name.startswith(".probe-")):
+            yield p
+    prog = folder / _PROGRAMS
+    if prog.is_dir() and not prog.is_symlink():
+        for p in prog.iterdir():
+            if p.is_file() and not p.is_symlink() and (p.suffix == ".jaxprog" or p.name.startswith(".tmp-")):
+                yield p
+
+
 def cache_info(path=None) -> dict:
-    """``{"dir", "enabled", "exists", "entries", "bytes"}`` of the cache folder (no JAX import)."""
+    """``{"dir", "enabled", "exists", "entries", "bytes", "other"}`` of the cache folder (no JAX
+    import); ``other``: entries of the folder that are not this cache's (never counted or
+    removed)."""
     folder = cache_dir(path)
+    if folder.exists() and not folder.is_dir():
+        raise InputError(f"cache folder {folder}: exists and is not a folder")
     entries = 0
     size = 0
+    ours = set()
+    for p in _cache_files(folder):
+        ours.add(p)
+        if not p.name.startswith(".probe-"):
+            entries += 1
+            try:
+                size += p.stat().st_size
+            except OSError:
+                pass
+    other = 0
     if folder.is_dir():
-        for p in folder.rglob("*"):
-            if p.is_file() and not p.name.startswith(".probe-"):
-                entries += 1
-                try:
-                    size += p.stat().st_size
-                except OSError:
-                    pass
+        other = sum(1 for p in folder.iterdir() if p not in ours and p.name != _PROGRAMS)
+        prog = folder / _PROGRAMS
+        if prog.is_dir() and not prog.is_symlink():
+            other += sum(1 for p in prog.iterdir() if p not in ours)
     return {"dir": str(folder), "enabled": not cache_disabled(), "exists": folder.is_dir(),
-            "entries": entries, "bytes": size}
+            "entries": entries, "bytes": size, "other": other}
 
 
 def clear_cache(path=None) -> dict:
-    """Delete the cache folder's contents; returns :func:`cache_info` of what was removed."""
+    """Delete the cache's own files (:func:`cache_info` says which; anything else in the folder
+    is left where it is and counted in ``other``); returns :func:`cache_info` of what was
+    removed."""
     info = cache_info(path)
     folder = pathlib.Path(info["dir"])
-    if folder.is_dir():
-        for p in folder.iterdir():
-            if p.is_dir() and not p.is_symlink():
-                shutil.rmtree(p, ignore_errors=True)
-            else:
-                try:
-                    p.unlink()
-                except OSError:
-                    pass
+    for p in list(_cache_files(folder)):
+        try:
+            p.unlink()
+        except OSError:
+            pass
+    prog = folder / _PROGRAMS
+    if prog.is_dir() and not prog.is_symlink():
+        try:
+            prog.rmdir()  # only when nothing else is in it
+        except OSError:
+            pass
     return info
 
 

@@ -26,7 +26,7 @@ from typing import Callable, Optional
 
 from jaxslam.errors import InputError
 
-__all__ = ["prepare_file", "prepare_dir", "atomic_write"]
+__all__ = ["prepare_file", "prepare_dir", "distinct_outputs", "atomic_write"]
 
 _UMASK = os.umask(0o022)  # read once at import (os.umask can only be read by setting it)
 os.umask(_UMASK)
@@ -84,6 +84,21 @@ def prepare_dir(flag: str, path) -> pathlib.Path:
         raise InputError(f"{flag}: {str(p)!r} exists and is not a folder")
     _probe_folder(flag, p, p)
     return p
+
+
+def distinct_outputs(**paths) -> None:
+    """No two output options name the same file (``flag=path``, underscores for dashes, None:
+    not asked for); else an :class:`InputError` naming both (the later write would replace the
+    earlier's)."""
+    seen = {}
+    for name, path in paths.items():
+        if path is None:
+            continue
+        flag = "--" + name.replace("_", "-")
+        key = pathlib.Path(path).resolve()
+        if key in seen:
+            raise InputError(f"{flag}: {str(path)!r} is also {seen[key]}'s file; give each output its own path")
+        seen[key] = flag
 
 
 def atomic_write(path, write: Callable, mode: str = "w") -> pathlib.Path:

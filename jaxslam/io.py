@@ -1,4 +1,4 @@
-"""Reports: metric summaries, the ``run`` JSON of STYLE.md, JSON files, text tables.
+"""Reports: metric summaries, the ``run`` JSON of docs/cli.md, JSON files, text tables.
 
 Host-side only (NumPy and the standard library); nothing here is traced.
 
@@ -40,7 +40,7 @@ __all__ = [
     "RUN_JSON_KEYS",
 ]
 
-# Top-level keys of the `run` JSON, in STYLE.md order ("consistency" omitted when None).
+# Top-level keys of the `run` JSON, in the order docs/cli.md gives ("consistency" omitted when None).
 RUN_JSON_KEYS = (
     "scenario", "runs", "seed", "dtype", "config", "metrics",
     "consistency", "flags", "timing", "versions", "interrupted", "runs_requested", "notes",
@@ -84,7 +84,7 @@ def summarize_metrics(metrics: Mapping[str, Any]) -> dict[str, dict]:
 
 
 def run_json(scenario_name: str, runs: int, seed: int, dtype, result) -> dict:
-    """The ``run`` JSON of STYLE.md for a :class:`~jaxslam.sim.scenarios.registry.ScenarioResult`.
+    """The ``run`` JSON (docs/cli.md) for a :class:`~jaxslam.sim.scenarios.registry.ScenarioResult`.
 
     Keys, in order: ``scenario, runs, seed, dtype, config, metrics, consistency``
     (omitted if ``result.consistency`` is None)``, flags, timing`` (``compile_s, run_s,

@@ -57,6 +57,8 @@ def _files(tmp: pathlib.Path) -> None:
         "qc": {"noise": {"Qc": [1, 2, 3]}},
         "strings": {"controller": {"kp": ["a", "b", "c"]}},
         "dskey": {"dataset": "mrclam", "noise": {"sigma_nope": 1}},
+        "inverted": {"dataset": "mrclam", "noise": {"range_min": 5, "range_max": 1}},
+        "prunefrac": {"dataset": "mrclam", "noise": {"prune_window_s": 2, "prune_min_obs": 2.5}},
     }
     for name, doc in docs.items():
         (tmp / f"{name}.json").write_text(doc if isinstance(doc, str) else json.dumps(doc))
@@ -83,6 +85,10 @@ def _cases(t: pathlib.Path) -> list:
         (run8 + ["--duration", "nan"], "--duration", None),
         (["run", "lineslam-room", "--capacity", "0"], "--capacity", None),
         (["run", "uwb-circle", "--model", "cubic"], "--model", None),
+        (run8 + ["--altitude", "nan"], "--altitude", None),  # every float option is finite
+        (["run", "ekfslam3d-unknown", "--max-obs", "0"], "--max-obs", None),
+        (["run", "uwb-circle", "--chunk", "0"], "--chunk", None),
+        (run8 + ["--json", ""], "--json", None),  # an empty path is not "no file"
         # output paths, checked before the run
         (run8 + ["--json", str(t / "afile" / "x.json")], "--json", None),
         (run8 + ["--json", str(t / "folder")], "--json", None),
@@ -124,6 +130,10 @@ def _cases(t: pathlib.Path) -> list:
         (["dataset", "mrclam", "--data", d, "--params", p("dsother")], "dataset", None),
         (["dataset", "mrclam", "--data", d, "--params", p("scenfile")], "--params", None),
         (["dataset", "mrclam", "--data", d, "--params", p("dskey")], "sigma_nope", None),
+        (["dataset", "mrclam", "--data", d, "--params", p("inverted")], "range_min", None),
+        (["dataset", "mrclam", "--data", d, "--params", p("prunefrac")], "prune_min_obs", None),
+        (["dataset", "util-uwb", "--data", d, "--json", str(t / "same.out"), "--tum", str(t / "same.out")],
+         "--tum", None),  # two outputs on one file: the later would replace the earlier
         (["dataset", "mrclam", "--data", d, "--filter", "fastslam", "--params", p("dsfile")], "--params", None),
         (["dataset", "mrclam", "--data", str(bad / "mrclam_truncated")], "Robot1_", None),
         (["dataset", "victoria-park", "--data", str(bad / "victoria_park_columns")], ".dat:", None),
@@ -138,11 +148,13 @@ def _cases(t: pathlib.Path) -> list:
         (["tune", "track-figure8", "--data", d], "--data", None),
         (["tune", "mrclam", "--data", d, "--robots", "1,9"], "--robots", None),
         (["tune", "mrclam"], "--data", {"JAXSLAM_DATA_DIR": ""}),
+        (["tune", "util-uwb", "--data", d, "--train-runs", "3"], "--train-runs", None),  # simulation only
         # bench, cache, list
         (["bench", "no-such-bench", "--dir", str(BENCH)], "no-such-bench", None),
         (["bench", "ekfslam", "--dir", "/no/such/folder"], "--dir", None),
         (["bench", "ekfslam", "--dir", str(BENCH), "--json", str(t / "afile" / "z.json")], "--json", None),
         (["cache", "explode"], "action", None),
+        (["cache", "info", "--dir", str(t / "afile")], "cache folder", None),
         (["list", "--data", "/no/such/folder"], "--data", None),
     ]
     if _RO.is_dir() and not _can_create_in(_RO):  # a truly read-only folder (root cannot write either)

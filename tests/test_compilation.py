@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 
 from jaxslam import cli, compilation
+from jaxslam.errors import InputError
 
 # A short scenario: one program of a few seconds' compile.
 RUN = ["run", "track-helix", "--runs", "1", "--duration", "0.5", "--quiet"]
@@ -165,3 +166,23 @@ def test_the_suites_cache_folder_is_inside_the_checkout():
 @pytest.mark.skipif(os.environ.get("JAXSLAM_TEST_NO_CACHE") == "1", reason="the suite runs uncached")
 def test_the_suites_cache_is_on_after_the_tests_that_switch_it_off():
     assert compilation.enabled_dir() is not None and jax.config.jax_compilation_cache_dir
+
+
+def test_clear_removes_only_the_caches_own_files(tmp_path):
+    # a cache folder pointed at a folder of other files (a mistyped --dir) must not lose them
+    folder = tmp_path / "mixed"
+    (folder / "sub").mkdir(parents=True)
+    (folder / "programs").mkdir()
+    mine = [folder / "jit_f-0123abcd-cache", folder / "jit_f-0123abcd-atime", folder / "programs" / "ab12.jaxprog"]
+    theirs = [folder / "thesis.tex", folder / "sub" / "notes.txt", folder / "programs" / "readme.md",
+              folder / "cache"]
+    for p in mine + theirs:
+        p.write_text("x")
+    info = compilation.cache_info(folder)
+    assert info["entries"] == 3 and info["other"] == 4  # thesis.tex, sub, cache, programs/readme.md
+    removed = compilation.clear_cache(folder)
+    assert removed["entries"] == 3
+    assert not any(p.exists() for p in mine)
+    assert all(p.exists() for p in theirs)
+    with pytest.raises(InputError, match="is not a folder"):
+        compilation.cache_info(folder / "thesis.tex")

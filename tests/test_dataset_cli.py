@@ -60,6 +60,29 @@ def test_dataset_runs_on_excerpts_and_writes_outputs(tmp_path, capsys, argv):
         assert "smooth" not in doc["config"] and not any(k.startswith("smoothed_") for k in doc["metrics"])
 
 
+def test_measurements_outside_the_run_are_counted_and_said(tmp_path, capsys):
+    # the second half of robot 1's sightings stamped 10^5 s late (clocks that disagree): they are
+    # dropped, and the run says how many instead of looking like a run that saw little
+    data = tmp_path / "mrclam6"
+    data.mkdir()
+    for f in (DATA / "mrclam6").iterdir():
+        (data / f.name).write_bytes(f.read_bytes())
+    lines = (data / "Robot1_Measurement.dat").read_text().splitlines()
+    rows = [i for i, ln in enumerate(lines) if ln.strip() and not ln.startswith("#")]
+    late = rows[len(rows) // 2:]
+    for i in late:
+        parts = lines[i].split()
+        lines[i] = "\t".join([f"{float(parts[0]) + 1e5:.3f}"] + parts[1:])
+    (data / "Robot1_Measurement.dat").write_text("\n".join(lines) + "\n")
+    js = tmp_path / "out.json"
+    rc, out, err = _run(["dataset", "mrclam", "--robot", "1", "--data", str(data), "--json", str(js)], capsys)
+    assert rc == 0, err
+    doc = json.loads(js.read_text())
+    # every late row is a landmark sighting or another robot's (the loader keeps the landmarks')
+    assert 0 < doc["counts"]["outside_window"] <= len(late)
+    assert f"{doc['counts']['outside_window']} of" in out and "outside the run's time span" in out
+
+
 @pytest.mark.slow
 def test_dataset_victoria_park_excerpt(tmp_path, capsys):
     rc, out, err = _run(["dataset", "victoria-park", "--data", str(DATA), "--float32",

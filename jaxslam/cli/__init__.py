@@ -68,7 +68,7 @@ commands:
 'jaxslam COMMAND --help' shows the options of a command;
 'jaxslam run SCENARIO --help' also shows that scenario's own options.
 
-exit codes: 0 success, 2 usage or input error, 1 internal failure
+exit codes: 0 success, 2 usage or input error, 1 internal failure, 130 interrupted (Ctrl-C)
 (--debug or JAXSLAM_DEBUG=1 prints the traceback of an internal failure)."""
 
 
@@ -128,7 +128,7 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``jaxslam`` console script and ``python -m jaxslam``.
 
     Returns:
-      The exit code: 0 success, 2 usage or input error, 1 internal failure.
+      The exit code: 0 success, 2 usage or input error, 1 internal failure, 130 interrupted.
     """
     # An entry point configures the process (OpenBLAS pinned, XLA workaround flags, the persistent
     # compilation cache) before NumPy/SciPy load and JAX starts its backend; importing this package

@@ -138,7 +138,7 @@ def command(rest: list[str]) -> int:
         raise InputError(f"unknown benchmark {pre.name!r} in {str(bench_dir)!r}; available: "
                          f"{', '.join(available) or '(none)'}")
 
-    json_path = files.prepare_file("--json", pre.json) if pre.json else None  # before anything runs
+    json_path = files.prepare_file("--json", pre.json) if pre.json is not None else None  # before anything runs
     import jax
 
     jax.config.update("jax_enable_x64", True)  # benchmarks choose float32 by passing float32 arrays

@@ -17,7 +17,7 @@ def command(rest: list[str]) -> int:
                 description="The persistent XLA compilation cache every jaxslam command uses "
                             f"(folder: ${compilation.CACHE_DIR_ENV}, else $XDG_CACHE_HOME/jaxslam/xla, "
                             f"else ~/.cache/jaxslam/xla; {compilation.CACHE_ENV}=0 switches it off).")
-    p.add_argument("action", choices=("info", "clear"), help="info: folder, entries, size; clear: delete the entries")
+    p.add_argument("action", choices=("info", "clear"), help="info: folder, entries, size; clear: delete the cache's own entries (other files in the folder are left alone)")
     p.add_argument("--dir", metavar="DIR", help="the cache folder (default: as above)")
     p.add_argument("--json", action="store_true", help="print the information as JSON")
     p.add_argument("--debug", action="store_true", help=argparse.SUPPRESS)
@@ -37,7 +37,10 @@ def command(rest: list[str]) -> int:
         echo(f"compilation cache: {info['dir']} ({state})")
         echo(f"  {info['entries']} entries, {info['bytes'] / 2**20:.1f} MiB"
              + ("" if info["exists"] else " (folder not created yet)"))
+        if info["other"]:
+            echo(f"  {info['other']} other entries in the folder (not this cache's; never removed)")
     else:
         echo(f"cleared {info['dir']}: {info['removed_entries']} entries, "
-             f"{info['removed_bytes'] / 2**20:.1f} MiB removed")
+             f"{info['removed_bytes'] / 2**20:.1f} MiB removed"
+             + (f"; {info['other']} other entries left in place (not this cache's)" if info["other"] else ""))
     return 0

@@ -43,6 +43,17 @@ def int_at_least(lo: int):
     return parse
 
 
+def finite_float(text: str) -> float:
+    """argparse type: a finite float (NaN and ±inf are never a meaningful option value)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid float value: {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be a finite number, got {text}")
+    return value
+
+
 def positive_float(text: str) -> float:
     """argparse type: a finite float > 0 (shared by ``jaxslam tune``)."""
     try:

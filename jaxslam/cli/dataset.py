@@ -2,7 +2,7 @@
 
 Prints ATE / RPE / map error (with dead reckoning beside), the measurement
 counts (used, gated, rejected, registered) and the run time after
-compilation; writes the ``dataset`` JSON of STYLE.md (``--json``), the
+compilation; writes the ``dataset`` JSON of docs/cli.md (``--json``), the
 figures (``--plots``) and the estimated trajectory in TUM format (``--tum``,
 for ``evo``).  Exit code 2 with a one-line message on a usage or input error
 (missing folder, malformed file with its line number), 1 on an internal
@@ -128,9 +128,10 @@ def main(argv) -> int:
                                             particles=args.particles, seed=args.seed, params=params,
                                             smooth=args.smooth))
     catalogue.check_robot(args.name, data, args.robot)
-    json_path = files.prepare_file("--json", args.json) if args.json else None
-    tum_path = files.prepare_file("--tum", args.tum) if args.tum else None
-    plots = files.prepare_dir("--plots", args.plots) if args.plots else None
+    json_path = files.prepare_file("--json", args.json) if args.json is not None else None
+    tum_path = files.prepare_file("--tum", args.tum) if args.tum is not None else None
+    files.distinct_outputs(json=json_path, tum=tum_path)
+    plots = files.prepare_dir("--plots", args.plots) if args.plots is not None else None
 
     import jax
     import numpy as np

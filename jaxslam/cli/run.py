@@ -14,7 +14,7 @@ import sys
 
 from jaxslam import files
 
-from .common import (PROG, Parser, UsageError, compile_timing, echo, fmt, int_at_least, positive_int,
+from .common import (PROG, Parser, UsageError, compile_timing, echo, finite_float, fmt, int_at_least, positive_int,
                      seed_int)
 
 __all__ = ["command", "format_run_report"]
@@ -71,7 +71,13 @@ def _add_option(group, opt) -> None:
         return
     # An option whose help already states its default (e.g. "default: all") is not told twice.
     shown = "" if "default:" in help_text else " (default: %(default)s)"
-    kw = dict(dest=opt.name, type=opt.type, default=opt.default, help=help_text + shown)
+    # a float option is finite (a scenario that checks its own range still gets no NaN)
+    kind = opt.type
+    if opt.type is float:
+        kind = finite_float
+    elif opt.type is int and opt.lower is not None:
+        kind = int_at_least(opt.lower)
+    kw = dict(dest=opt.name, type=kind, default=opt.default, help=help_text + shown)
     if opt.choices is not None:
         kw["choices"] = opt.choices
     else:
@@ -132,8 +138,8 @@ def command(rest: list[str]) -> int:
     raw_params = json_path = plots_dir = None
     if pre.scenario is not None and not pre.help:
         raw_params = paramfile.load(pre.params) if pre.params else None
-        json_path = files.prepare_file("--json", pre.json) if pre.json and leader else None
-        plots_dir = files.prepare_dir("--plots", pre.plots) if pre.plots and leader else None
+        json_path = files.prepare_file("--json", pre.json) if pre.json is not None and leader else None
+        plots_dir = files.prepare_dir("--plots", pre.plots) if pre.plots is not None and leader else None
     if group == "launch":  # after those checks: a bad path fails here, not in one of the group
         return _launch_local(rest, pre.processes)
 

@@ -10,7 +10,7 @@ starting and the tuned parameters (and the target's references, e.g. ``q_imu``) 
 held-out seeds of the scenario itself, prints the before/after table and the tuned
 parameters, and writes:
 
-* ``--json PATH``: the ``tune`` JSON of STYLE.md (``scenario, target, loss, before, after,
+* ``--json PATH``: the ``tune`` JSON of docs/cli.md (``scenario, target, loss, before, after,
   params_before, params_after, history``, plus ``references, config, timing, memory,
   stopped, eval_command, versions``).  Its top level also holds the tuned parameters
   themselves (``"noise"`` or ``"controller"``), so the same file works as
@@ -253,6 +253,16 @@ def run_tuning(args, progress_stream=None) -> dict:
             if used is not None:
                 raise InputError(f"{flag}: only the real-log targets ({', '.join(targets.REAL_LOG_SCENARIOS)}) "
                                  f"take it, not {args.scenario}")
+    else:  # the simulation-only options would be ignored on a real log: refused by name
+        defaults = build_parser(with_targets=False)
+        sim_only = ["--train-runs", "--test-runs", "--duration", "--eval-duration", "--cov", "--no-checkpoint"]
+        if args.batch_size is None:
+            sim_only.append("--seed")  # it seeds the minibatches of --batch-size, nothing else here
+        for flag in sim_only:
+            dest = flag[2:].replace("-", "_")
+            if getattr(args, dest) != defaults.get_default(dest):
+                raise InputError(f"{flag}: the real-log target {args.scenario} does not use it (simulation "
+                                 "targets only)")
     own = {"--robots": ("mrclam", "plaza"), "--test-robots": ("mrclam", "plaza"), "--odometry-delay": ("mrclam",),
            "--anchor-offsets": ("util-uwb",)}
     for flag, scens in own.items():
@@ -435,7 +445,7 @@ def _print_report(rep):
     if rep.get("stopped"):
         print(f"stopped early: {rep['stopped']}")
     if rep.get("eval_command"):
-        print(f"reproduce the 'after' row: {rep['eval_command']}")
+        print(f"run the tuned noise on the dataset: {rep['eval_command']}")
 
 
 def main(argv=None) -> int:
@@ -449,9 +459,10 @@ def main(argv=None) -> int:
         from jaxslam import files
 
         # Every output path checked (and its folder created) before JAX is even imported.
-        json_path = files.prepare_file("--json", args.json) if args.json else None
-        params_out = files.prepare_file("--params-out", args.params_out) if args.params_out else None
-        plots = files.prepare_dir("--plots", args.plots) if args.plots else None
+        json_path = files.prepare_file("--json", args.json) if args.json is not None else None
+        params_out = files.prepare_file("--params-out", args.params_out) if args.params_out is not None else None
+        files.distinct_outputs(json=json_path, params_out=params_out)
+        plots = files.prepare_dir("--plots", args.plots) if args.plots is not None else None
         import jax  # x64 before any target module is imported (module constants take its dtype)
 
         if not args.float32:

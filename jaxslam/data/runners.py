@@ -236,11 +236,12 @@ def dataset_params(obj, name: str) -> dict:
 
         (presets.util_params_from_dict if name == "util-uwb" else presets.plaza_params_from_dict)(obj["noise"])
         return obj["noise"]
-    from ..systems.planar_ekf_slam import Params
+    from ..systems.planar_ekf_slam import Params, check_thresholds
 
     unknown = sorted(set(obj["noise"]) - set(Params._fields))
     if unknown:
         raise InputError(f"--params: noise: unknown key(s) {unknown}; expected some of {list(Params._fields)}")
+    check_thresholds(obj["noise"])  # gates, limits, pruning: before any log is read or compiled
     return obj["noise"]
 
 
@@ -273,7 +274,7 @@ def dataset_log_options(obj, name: str) -> dict:
 
 
 def to_json(run: DatasetRun) -> dict:
-    """The ``dataset`` JSON of STYLE.md."""
+    """The ``dataset`` JSON (docs/cli.md)."""
     from .. import __version__
 
     return {
@@ -673,6 +674,7 @@ def run_mrclam(data_dir, robot=1, filter="ekf", ids="known", anchors=None, parti
                                   at_ref_times=True)
         _add_smoothed(m, ev, ms, evs)
     m.update(_class_fractions(counts))
+    counts["outside_window"] = int(log.stats["outside_window"])
     counts = _counts_common(status, counts)
     setting = (f"robot {robot}, {'known ids' if assoc == 'known' else 'ids hidden (Mahalanobis NN)'}, "
                f"{'calibrated camera/odometry model' if calibrated else 'raw log'}, "
@@ -682,12 +684,24 @@ def run_mrclam(data_dir, robot=1, filter="ekf", ids="known", anchors=None, parti
                   particles=particles if filter == "fastslam" else None, seed=seed,
                   **_smooth_config(smooth, SMOOTHER_RTS))
     cfg["thresholds"] = _planar_thresholds(filter, prm, lambda n: _mrclam_fastslam(robot, n, assoc), particles)
-    notes = [f"evaluated at the {m['eval_samples']} ground-truth samples inside the run"] + _divergence_notes(status)
+    notes = ([f"evaluated at the {m['eval_samples']} ground-truth samples inside the run"]
+             + _window_notes(log) + _divergence_notes(status))
     if filter == "ekf":
         cfg["noise"] = "--params file" if params is not None else (
             "calibrated preset" if calibrated else "learned: jaxslam tune mrclam on robots 1-5 (docs/datasets.md)")
     return DatasetRun("mrclam", cfg, m, counts, {"load_s": load_s, "compile_s": comp_s, "run_s": run_s},
                       dict(d.report), ev, (log.t, pose[:, :2], pose[:, 2]), notes)
+
+
+def _window_notes(log) -> list:
+    """A note when measurements fell outside the run's time span (odometry and ground truth)
+    and were dropped: counted in ``counts.outside_window``, and said, since a log whose clocks
+    disagree would otherwise look like a run that saw nothing."""
+    n = int(log.stats.get("outside_window", 0))
+    if not n:
+        return []
+    return [f"{n} of {n + int(log.stats['n_meas'])} measurements lie outside the run's time span "
+            "(odometry / ground truth) and were dropped: check the files' clocks"]
 
 
 def _planar_thresholds(filter, prm_ekf, fs_kind, particles) -> dict:

@@ -96,6 +96,7 @@ __all__ = [
     "run",
     "validate_config",
     "validate_params",
+    "check_thresholds",
     "validate_log",
 ]
 
@@ -873,23 +874,40 @@ def validate_params(params: Params) -> Params:
             raise InputError(f"params.input_model: expected finite (c_0, c_1, c_2), got {a.tolist()}")
     if params.robust_nu is not None:
         check_scalar(params.robust_nu, "params.robust_nu", lower=0, strict=True)
-    thr = {f: check_scalar(getattr(params, f), f"params.{f}", finite=False)
-           for f in THRESHOLDS if getattr(params, f) is not None}
     for f in ("gate", "new_threshold"):
-        if f not in thr:
+        if getattr(params, f) is None:
             raise InputError(f"params.{f}: expected a number, got None")
-    if not (0 < thr["gate"] <= thr["new_threshold"]):
-        raise InputError(f"params.gate/new_threshold: need 0 < gate <= new_threshold, got "
-                         f"{thr['gate']}, {thr['new_threshold']}")
-    if "prune_window_s" in thr and not (thr["prune_window_s"] > 0 and thr.get("prune_min_obs", 0.0) >= 1):
-        raise InputError(f"params.prune_window_s/prune_min_obs: need > 0 and >= 1, got "
-                         f"{thr['prune_window_s']}, {thr['prune_min_obs']}")
+    check_thresholds({f: getattr(params, f) for f in THRESHOLDS})
     if params.monitor is not None:
         m = cons.MonitorParams(*(np.asarray(v, np.float64) for v in params.monitor))
         if not (0 < m.alpha <= 1 and m.threshold > 1 and m.max_factor >= 1 and m.outlier_gate > 0):
             raise InputError(f"params.monitor: need 0 < alpha <= 1, threshold > 1, max_factor >= 1, "
                              f"outlier_gate > 0; got {tuple(float(v) for v in m)}")
     return params
+
+
+def check_thresholds(values: dict) -> dict:
+    """The :data:`THRESHOLDS` among ``values`` (name -> number or None: off) as floats, checked
+    alone and against each other (0 < gate <= new_threshold, range_min < range_max, bearing_min <
+    bearing_max, a positive pruning window with a whole number of matches >= 1); the relations
+    are checked where both sides are given.  Host-side (a ``--params`` file is checked with it
+    before any log is read); raises :class:`InputError` naming the key."""
+    thr = {f: check_scalar(values[f], f"params.{f}", finite=False)
+           for f in THRESHOLDS if values.get(f) is not None}
+    if "gate" in thr and "new_threshold" in thr and not (0 < thr["gate"] <= thr["new_threshold"]):
+        raise InputError(f"params.gate/new_threshold: need 0 < gate <= new_threshold, got "
+                         f"{thr['gate']}, {thr['new_threshold']}")
+    if "prune_window_s" in thr and not (thr["prune_window_s"] > 0 and thr.get("prune_min_obs", 2.0) >= 1):
+        raise InputError(f"params.prune_window_s/prune_min_obs: need > 0 and >= 1, got "
+                         f"{thr['prune_window_s']}, {thr.get('prune_min_obs')}")
+    if "prune_min_obs" in thr and not (thr["prune_min_obs"] >= 1 and thr["prune_min_obs"] == np.floor(thr["prune_min_obs"])):
+        raise InputError(f"params.prune_min_obs: a count of matches, expected a whole number >= 1, got "
+                         f"{thr['prune_min_obs']}")
+    for lo, hi in (("range_min", "range_max"), ("bearing_min", "bearing_max")):
+        if lo in thr and hi in thr and not thr[lo] < thr[hi]:
+            # an empty interval would drop every measurement as outside the limits
+            raise InputError(f"params.{lo}/{hi}: need {lo} < {hi}, got {thr[lo]}, {thr[hi]}")
+    return thr
 
 
 def validate_log(log: Log) -> Log:

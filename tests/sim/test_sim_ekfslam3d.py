@@ -18,6 +18,9 @@ def test_cli_reports_capacity_overflow_with_hidden_ids(tmp_path, capsys):
     assert res["metrics"]["landmarks_mapped"]["max"] == 8
     assert all(np.isfinite(v) for v in res["metrics"]["pos_rmse_m"]["per_run"])
     assert res["metrics"]["pos_rmse_m"]["max"] < 0.5
+    # a 6 s flight has nothing in the settled window (t > 10 s): no figure (null), not 0.0
+    for k in ("pos_rmse_settled_m", "vel_rmse_settled_mps", "att_rmse_settled_deg", "track_pos_rmse_settled_m"):
+        assert res["metrics"][k]["per_run"] == [None, None], (k, res["metrics"][k])
     # STYLE.md's four keys, plus what each covers (docs/cli.md, "consistency")
     assert set(res["consistency"]) == {"anees", "anees_bounds", "nis_mean", "nis_bounds",
                                        "anees_block", "anees_dim", "nis_block", "nis_dim"}

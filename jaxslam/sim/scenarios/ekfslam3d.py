@@ -78,6 +78,8 @@ def build(options: dict, mode: str, dtype, params=None):
     n_lm = int(options["landmarks"])
     if n_lm < 1:
         raise InputError(f"--landmarks: must be >= 1, got {n_lm}")
+    if int(options["max_obs"]) < 1:
+        raise InputError(f"--max-obs: must be >= 1, got {options['max_obs']}")
     if mode == "known" and cap < n_lm:
         raise InputError(f"--capacity: {cap} slots cannot hold the {n_lm} known landmarks")
     noise = _noise(options["q"], mode, dtype, params)
@@ -137,7 +139,8 @@ def evaluate(fl, lms, cfg):
         sq = jnp.sum(err * err, axis=1)
         if w is None:
             return jnp.sqrt(jnp.mean(sq))
-        return jnp.sqrt(jnp.sum(sq * w) / jnp.maximum(jnp.sum(w), 1))
+        # an empty window (a flight shorter than it) has no RMSE: NaN, not 0
+        return jnp.where(jnp.sum(w) > 0, jnp.sqrt(jnp.sum(sq * w) / jnp.maximum(jnp.sum(w), 1)), jnp.nan)
 
     def rmse_axis(err):
         return jnp.mean(jnp.sqrt(jnp.mean(err * err, axis=0)))
@@ -289,14 +292,14 @@ _OPTIONS = (
            ("known", "nn")),
     Option("capacity", int, 64, "landmark slots in the padded map"),
     Option("landmarks", int, N_LANDMARKS, "number of true landmarks (Table 3: 40)"),
-    Option("max_obs", int, 16, "LiDAR measurements processed per frame (extras counted as dropped)"),
+    Option("max_obs", int, 16, "LiDAR measurements processed per frame (extras counted as dropped)", lower=1),
     Option("control_on", str, "estimate", "what the DF-LQR acts on: 'estimate' (paper) or 'truth'",
            ("estimate", "truth")),
     Option("accel", str, "3axis", "IMU input: '3axis' specific force or 'az' (paper eq. 25)",
            ("3axis", "az")),
     Option("altitude", float, 3.0, "figure-8 altitude above the start point [m]; landmarks centred on it"),
     Option("no_feedforward", bool, False, "paper's eq. 19 attitude references instead of the flatness feedforward"),
-    Option("chunk", int, None, "Monte Carlo runs per compiled call (default: all, max 256)"),
+    Option("chunk", int, None, "Monte Carlo runs per compiled call (default: all, max 256)", lower=1),
 )
 
 _DESCRIPTIONS = {

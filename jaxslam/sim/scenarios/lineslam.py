@@ -305,7 +305,7 @@ register(Scenario(
         Option("capacity", int, 16, "line slots of the map"),
         Option("outlier_prob", float, 0.05, "fraction of laser returns replaced by clutter"),
         Option("tilt_deg", float, 2.0, "roll/pitch amplitude [deg] (known to the filter)"),
-        Option("chunk", int, None, "Monte Carlo runs per compiled call (default: all, max 256)"),
+        Option("chunk", int, None, "Monte Carlo runs per compiled call (default: all, max 256)", lower=1),
     ),
     run=run_scenario,
     params=params_schema,

@@ -4,7 +4,7 @@ A scenario is a named, documented entry point that simulates (or loads) data,
 runs an estimator over ``runs`` Monte Carlo runs and returns a
 :class:`ScenarioResult`: per-run metrics, consistency statistics, status-flag
 counts and timings.  The CLI turns a result into a table, the ``run`` JSON of
-``STYLE.md`` and plots; a user's script can call ``get(name).run(...)`` directly.
+``docs/cli.md`` and plots; a user's script can call ``get(name).run(...)`` directly.
 
 Concrete scenarios live in the modules of :mod:`jaxslam.sim.scenarios` and
 register themselves at import time with :func:`register`.  The registry loads
@@ -74,6 +74,8 @@ class Option:
       default: value used when the option is not given; state units in ``help``.
       help: one line for ``jaxslam run SCENARIO --help``, with units.
       choices: allowed values, or ``None`` for any value of ``type``.
+      lower: smallest allowed value of an ``int`` option (the command line refuses less), or
+        ``None``.
     """
 
     name: str
@@ -81,6 +83,7 @@ class Option:
     default: object
     help: str
     choices: tuple | None = None
+    lower: int | None = None
 
     @property
     def flag(self) -> str:

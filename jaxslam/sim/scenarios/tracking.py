@@ -91,7 +91,9 @@ def tracking_metrics(t, truth, ref):
     settle = jnp.where(last_out == t.shape[0] - 1, t[-1], settle)
     return {
         "track_pos_rmse_m": jnp.sqrt(jnp.mean(e2)),
-        "track_pos_rmse_settled_m": jnp.sqrt(jnp.sum(e2 * settled) / jnp.maximum(jnp.sum(settled), 1)),
+        "track_pos_rmse_settled_m": jnp.where(jnp.sum(settled) > 0,  # empty window: NaN, not 0
+                                              jnp.sqrt(jnp.sum(e2 * settled) / jnp.maximum(jnp.sum(settled), 1)),
+                                              jnp.nan),
         "track_yaw_rmse_deg": jnp.degrees(jnp.sqrt(jnp.mean(yaw * yaw))),
         "max_tilt_deg": jnp.degrees(jnp.max(tilt)),
         "settle_time_s": settle,
@@ -193,7 +195,7 @@ _COMMON = (
     Option("no_feedforward", bool, False,
            "paper's eq. 19 attitude references (p_d = q_d = 0, no torque feedforward) instead of "
            "jaxslam's full flatness feedforward"),
-    Option("chunk", int, None, "Monte Carlo runs per compiled call (default: all, max 256)"),
+    Option("chunk", int, None, "Monte Carlo runs per compiled call (default: all, max 256)", lower=1),
 )
 
 

@@ -537,7 +537,7 @@ _OPTIONS = (
     Option("anchors", int, 3, "number of anchors, 3 (paper) to 6; beyond 3 mapped by delayed init"),
     Option("startup_speed", float, 0.15, "speed of the forced straight-line start-up [m/s]"),
     Option("max_range", float, 0.0, "UWB range limit [m] (0: unlimited)"),
-    Option("chunk", int, None, "Monte Carlo runs per compiled call (default: all, max 256)"),
+    Option("chunk", int, None, "Monte Carlo runs per compiled call (default: all, max 256)", lower=1),
     Option("smooth", bool, False, "also RTS-smooth each run's robot trajectory (backward pass, the map "
            "held static) and report smoothed_* metrics beside the filter's"),
 )
