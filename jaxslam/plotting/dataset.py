@@ -21,9 +21,17 @@ __all__ = ["plot_run"]
 
 
 def plot_run(run, directory, name=None):
-    """Write the figures of a :class:`jaxslam.data.runners.DatasetRun`; returns their paths."""
+    """Write the figures of a :class:`jaxslam.data.runners.DatasetRun`; returns their paths.
+
+    ``name`` (default: the dataset, with the robot or sequence of a dataset that has several,
+    e.g. ``mrclam_robot3``, so runs of different robots can share a folder) prefixes the files.
+    """
     p = plt()
-    name = name or run.dataset.replace("-", "_")
+    if name is None:
+        name = run.dataset.replace("-", "_")
+        which = run.config.get("robot", run.config.get("sequence"))
+        if run.dataset in ("mrclam", "plaza") and which is not None:
+            name += f"_robot{which}" if run.dataset == "mrclam" else f"{which}"
     ev = run.evaluation
     paths = []
     fig, ax = p.subplots(figsize=(8, 7))
