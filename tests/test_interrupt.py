@@ -160,7 +160,7 @@ def test_tune_interrupt_keeps_the_steps_done(tmp_path, capsys, monkeypatch):
                    "--test-runs", "1", "--json", str(j), "--params-out", str(p)])
     err = capsys.readouterr().err
     assert rc == 130, err
-    assert "interrupted (Ctrl-C) after 3 of 21 steps" in err and "no held-out evaluation" in err
+    assert "interrupted (Ctrl-C) at step 2 of 20 (3 of 21 evaluations" in err and "no held-out evaluation" in err
     rep = json.loads(j.read_text())
     assert rep["interrupted"] is True and rep["steps_done"] == 3 and len(rep["history"]) == 3
     assert "before" not in rep and "after" not in rep  # no evaluation was run

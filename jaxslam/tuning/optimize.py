@@ -322,8 +322,9 @@ def fit(loss_fn: Callable, theta0, train, steps: int, lr: float = 0.1, *, test=N
         if not history:
             raise
         interrupted = True
-        stopped = (f"interrupted (Ctrl-C) after {len(history)} of {steps + 1} steps; kept the "
-                   "parameters reached so far")
+        # history holds the evaluations at steps 0 … k (step 0: the start)
+        stopped = (f"interrupted (Ctrl-C) at step {len(history) - 1} of {steps} ({len(history)} of "
+                   f"{steps + 1} evaluations, step 0 the start); kept the parameters reached so far")
     return FitResult(theta=good, best_theta=best, history=history, stopped=stopped, compile_s=compile_s,
                      step_s=float(np.median(times)) if times else math.nan,
                      memory={**memory, "peak_rss_after_mb": peak_rss_mb()}, n_skipped=n_skipped,
