@@ -1456,6 +1456,12 @@ def _check_run(state: SlamState, model: SlamModel, log: SlamLog, Q, R, associati
         if log.ids is None or jnp.shape(log.ids) != (T, K):
             raise InputError(f"log.ids: expected shape ({T}, {K}) with association 'known', got "
                              f"{None if log.ids is None else tuple(jnp.shape(log.ids))}")
+        if is_concrete(log.ids):
+            a = np.asarray(log.ids)
+            if not (np.issubdtype(a.dtype, np.integer) or (np.issubdtype(a.dtype, np.floating)
+                                                          and np.all(a == np.round(a)))):
+                raise InputError("log.ids: expected integer landmark ids (a fractional id would be "
+                                 "truncated onto another landmark)")
     if log.mask is not None and jnp.shape(log.mask) != (T, K):
         raise InputError(f"log.mask: expected shape ({T}, {K}) like log.z, got {tuple(jnp.shape(log.mask))}")
     for nm, tree in (("log.u", log.u), ("log.params", log.params)):

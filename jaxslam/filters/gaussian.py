@@ -191,6 +191,8 @@ def check_process_noise(Q, n: int, L=None):
     or (q, q) with a noise Jacobian ``L`` (n, q).  Raises :class:`InputError` naming it
     (a (1, 1) ``Q`` would otherwise broadcast onto every entry of an (n, n) covariance)."""
     qs = tuple(np.shape(Q))
+    if is_concrete(Q) and len(qs) == 2:
+        check_psd(Q, "Q")  # a concrete Q (an eager call; traced under jit: shapes only)
     if L is None:
         if qs != (n, n):
             raise InputError(f"Q: expected shape ({n}, {n}) (the state's size), got {qs}")

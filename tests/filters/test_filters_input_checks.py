@@ -59,6 +59,14 @@ def test_measurement_model_and_z_must_agree(mod):
         mod.update(ekf.Gaussian(jnp.zeros(2), jnp.eye(2)), jnp.zeros(1), h, np.eye(2))
 
 
+def test_an_eager_prediction_checks_a_concrete_q():
+    g = ekf.Gaussian(jnp.zeros(2), jnp.eye(2))
+    with pytest.raises(InputError, match=r"^Q: "):
+        ekf.predict(g, f, None, -np.eye(2))  # used to return an indefinite covariance, unflagged
+    out = jax.jit(lambda Q: ekf.predict(g, f, None, Q))(0.01 * jnp.eye(2))  # traced: shapes only
+    np.testing.assert_allclose(np.asarray(out.cov), F @ F.T + 0.01 * np.eye(2), rtol=1e-12)
+
+
 def test_non_finite_start_mean_and_short_inputs_are_named():
     with pytest.raises(InputError, match=r"^x0: contains NaN or Inf"):
         ekf.filter_scan(f, h, np.array([np.nan, 0.0]), np.eye(2), None, ZS, None, Q2, R1)
@@ -130,6 +138,15 @@ def test_a_new_id_in_several_rows_of_one_step_registers_once():
     final_ids = np.asarray(out.final.ids)
     assert np.sum(final_ids == 7) == 1  # was three slots holding the same landmark
     assert int(out.n_new[0]) == 1
+
+
+def test_fractional_landmark_ids_are_refused():
+    log = _log()
+    ids = np.asarray(log.ids, float)
+    ids[3, 0] = 1.5
+    st = es.init(jnp.zeros(1), 0.01 * jnp.eye(1), 8, 1)
+    with pytest.raises(InputError, match=r"^log.ids: expected integer"):
+        es.run(_model(), st, log._replace(ids=ids), 0.04 * jnp.eye(1), 0.01 * jnp.eye(1))
 
 
 def test_update_drops_rows_whose_slot_is_outside_the_map():
