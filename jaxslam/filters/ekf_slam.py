@@ -1418,8 +1418,9 @@ class SlamRun(NamedTuple):
     and log det S of the step's update; dof: (T,) scalar measurements used; log_likelihood:
     (T,) −½ (NIS + log det S + dof · log 2π), the innovation log-likelihood (sum it for the
     sequence's; its gradient tunes Q and R), NaN at a step whose update was rejected
-    (``NON_FINITE`` / ``NOT_PSD`` in the status), so a sum cannot hide it; n_used, n_gated, n_new: (T,) int32 rows used,
-    gated, registered as new landmarks; final: the last :class:`SlamState`.
+    (``NON_FINITE`` / ``NOT_PSD`` in the status), so a sum cannot hide it; n_used, n_gated,
+    n_new: (T,) int32 rows used, gated, registered as new landmarks; final: the last
+    :class:`SlamState`.
     """
 
     robot: jax.Array
