@@ -103,10 +103,10 @@ def _matmul_floor(n, m, reps=200):
     return float(np.median(ts)), 2.0 * n * n * m
 
 
-def _ints(text, flag="option"):
+def _ints(text, flag="option", allow_empty=False):
     from timing import int_list
 
-    return int_list(text, flag)
+    return int_list(text, flag, allow_empty)
 
 
 def add_arguments(parser):
@@ -880,6 +880,9 @@ def run(args):
         from jaxslam.errors import InputError
 
         raise InputError(f"--parts: unknown part(s) {sorted(unknown)}; choose from study, full, mc")
+    for flag, text in (("--study-maps", args.study_maps), ("--study-obs", args.study_obs),
+                       ("--capacities", args.capacities), ("--mc-runs", args.mc_runs)):
+        _ints(text, flag)  # every list checked before anything runs (the mc part records its errors)
     if getattr(args, "_label", None):  # a child started by _spawn
         results, out = _run_parts(args, parts, args._label)
         return {"results": results, **out}

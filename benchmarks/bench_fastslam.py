@@ -88,10 +88,10 @@ _QUICK = {"particles": "500,2000", "steps": 50, "call_steps": 10, "twin_steps": 
           "repeats": 3, "mc_runs": "1,8", "mc_duration": 0.5}
 
 
-def _ints(text, flag="option"):
+def _ints(text, flag="option", allow_empty=False):
     from timing import int_list
 
-    return int_list(text, flag)
+    return int_list(text, flag, allow_empty)
 
 
 def add_arguments(parser):

@@ -63,10 +63,10 @@ LIDAR_EVERY = 10
 TARGET_SINGLE_SPEEDUP = 30.0
 
 
-def _ints(text, flag="option"):
+def _ints(text, flag="option", allow_empty=False):
     from timing import int_list
 
-    return int_list(text, flag)
+    return int_list(text, flag, allow_empty)
 
 
 def add_arguments(parser):
@@ -308,7 +308,7 @@ def run(args) -> dict:
         raise ValueError(f"--duration: at least {dt * LIDAR_EVERY} s, got {duration}")
     n_steps = n_frame * LIDAR_EVERY
     ff = not args.no_feedforward
-    batches = _ints(args.batches, "--batches")
+    batches = _ints(args.batches, "--batches", allow_empty=True)  # "": no vmapped batches
     traj_np, ctrl_np, sigma, _ = numpy_inputs(setup)
     fn = jax_runner(setup, n_frame, LIDAR_EVERY, ff)
     base_key = jax.random.PRNGKey(args.seed)

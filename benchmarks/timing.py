@@ -22,15 +22,16 @@ def median_s(fn, repeats: int) -> float:
     return statistics.median(ts)
 
 
-def int_list(text, flag: str = "option") -> list:
-    """A comma list of integers >= 1 (batch sizes, particle counts; an empty text: none), or an
-    ``InputError`` naming ``flag`` (the CLI's exit 2, not an internal error)."""
+def int_list(text, flag: str = "option", allow_empty: bool = False) -> list:
+    """A comma list of integers >= 1 (batch sizes, particle counts; an empty text: none, where
+    ``allow_empty``), or an ``InputError`` naming ``flag`` (the CLI's exit 2, not an internal
+    error)."""
     from jaxslam.errors import InputError
 
     try:
         values = [int(v) for v in str(text).split(",") if v.strip()]
     except ValueError:
         values = [0]
-    if values and min(values) < 1:
+    if (not values and not allow_empty) or (values and min(values) < 1):
         raise InputError(f"{flag}: expected comma-separated integers >= 1, got {text!r}")
     return values

@@ -34,6 +34,8 @@ import contextlib
 import dataclasses
 import os
 import pathlib
+import re
+import shutil
 import sys
 import tempfile
 import threading
@@ -176,16 +178,23 @@ def enabled_dir() -> pathlib.Path | None:
     return _enabled_dir
 
 
+_JAX_ENTRY = re.compile(r"-[0-9a-f]{64}-(cache|atime)$")  # <module>-<sha256>-cache / -atime
+# what JAX/XLA may also keep in the folder (GPU autotuning and kernel caches, the LRU lock)
+_JAX_EXTRAS = ("xla_gpu_per_fusion_autotune_cache_dir", "xla_gpu_kernel_cache_file", ".lockfile")
+
+
 def _cache_files(folder: pathlib.Path):
-    """The files of ``folder`` that this cache wrote: JAX's entries (``<name>-<hash>-cache`` and
-    their ``-atime`` stamps), leftover ``.probe-`` files, and the exported programs in
-    ``programs/`` (``*.jaxprog`` and their ``.tmp-`` leftovers).  Nothing else is counted or
-    removed, so a cache folder pointed at a folder of other files never loses them."""
+    """The entries of ``folder`` that this cache wrote: JAX's entries (``<name>-<sha256>-cache``
+    and their ``-atime`` stamps), XLA's GPU autotune / kernel caches and JAX's lock file,
+    leftover ``.probe-`` files, and the exported programs in ``programs/`` (``*.jaxprog`` and
+    their ``.tmp-`` leftovers).  Nothing else is counted or removed, so a cache folder pointed
+    at a folder of other files never loses them."""
     if not folder.is_dir():
         return
     for p in folder.iterdir():
-        if p.is_file() and not p.is_symlink() and (p.name.endswith(("-cache", "-atime"))
-                                                   or p.name.startswith(".probe-")):
+        if p.is_symlink():
+            continue
+        if p.name in _JAX_EXTRAS or (p.is_file() and (_JAX_ENTRY.search(p.name) or p.name.startswith(".probe-"))):
             yield p
     prog = folder / _PROGRAMS
     if prog.is_dir() and not prog.is_symlink():
@@ -230,7 +239,10 @@ def clear_cache(path=None) -> dict:
     folder = pathlib.Path(info["dir"])
     for p in list(_cache_files(folder)):
         try:
-            p.unlink()
+            if p.is_dir():
+                shutil.rmtree(p)
+            else:
+                p.unlink()
         except OSError:
             pass
     prog = folder / _PROGRAMS

@@ -102,7 +102,7 @@ def test_second_call_is_served_and_corrupt_entries_are_ignored(tmp_path):
 def test_cache_command_info_and_clear(tmp_path, capsys):
     d = tmp_path / "c"
     (d / "programs").mkdir(parents=True)
-    (d / "x-cache").write_bytes(b"1" * 1000)
+    (d / ("jit_x-" + "ab" * 32 + "-cache")).write_bytes(b"1" * 1000)  # JAX's <name>-<sha256>-cache
     (d / "programs" / "p.jaxprog").write_bytes(b"2" * 24)
     assert cli.main(["cache", "info", "--dir", str(d), "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
@@ -173,15 +173,19 @@ def test_clear_removes_only_the_caches_own_files(tmp_path):
     folder = tmp_path / "mixed"
     (folder / "sub").mkdir(parents=True)
     (folder / "programs").mkdir()
-    mine = [folder / "jit_f-0123abcd-cache", folder / "jit_f-0123abcd-atime", folder / "programs" / "ab12.jaxprog"]
+    h = "0123abcd" * 8
+    (folder / "xla_gpu_per_fusion_autotune_cache_dir").mkdir()  # XLA's GPU autotuning, in JAX's folder
+    mine = [folder / f"jit_f-{h}-cache", folder / f"jit_f-{h}-atime", folder / "programs" / "ab12.jaxprog",
+            folder / "xla_gpu_per_fusion_autotune_cache_dir" / "k.textproto"]
     theirs = [folder / "thesis.tex", folder / "sub" / "notes.txt", folder / "programs" / "readme.md",
-              folder / "cache"]
+              folder / "cache", folder / "my-notes-cache"]
     for p in mine + theirs:
         p.write_text("x")
     info = compilation.cache_info(folder)
-    assert info["entries"] == 3 and info["other"] == 4  # thesis.tex, sub, cache, programs/readme.md
+    # thesis.tex, sub, cache, my-notes-cache, programs/readme.md
+    assert info["entries"] == 4 and info["other"] == 5, info
     removed = compilation.clear_cache(folder)
-    assert removed["entries"] == 3
+    assert removed["entries"] == 4
     assert not any(p.exists() for p in mine)
     assert all(p.exists() for p in theirs)
     with pytest.raises(InputError, match="is not a folder"):

@@ -268,7 +268,7 @@ def predict(state: Gaussian, f: Callable, u, Q, *args, noise_jac=None) -> Gaussi
     if noise_jac is not None:
         L = noise_jac(x, u, *args) if callable(noise_jac) else noise_jac
         L = jnp.asarray(L, dtype=dtype)
-    check_process_noise(Q, x.shape[0], L)
+    Q = check_process_noise(Q, x.shape[0], L)
     if L is not None:
         Q = L @ Q @ L.T
     return Gaussian(xn, symmetrize(F @ P @ F.T + Q))
@@ -552,7 +552,7 @@ def make_filter(
         if noise_jac is not None:
             L = noise_jac(x, u, *args) if callable(noise_jac) else noise_jac
             L = jnp.asarray(L, dtype)
-        check_process_noise(Qd, x.shape[0], L)
+        Qd = check_process_noise(Qd, x.shape[0], L)
         if L is not None:
             Qd = L @ Qd @ L.T
         PFt = P @ F.T

@@ -475,8 +475,8 @@ def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
       slots: (K,) int slot of the landmark each measurement observes; a slot outside
         [0, capacity) (−1: none) is no landmark, and a row with its mask set there is dropped
         and counted (``MASKED_INPUT``).
-      mask: (K,) bool measurement present.  Measurements of inactive slots or
-        with non-finite entries are dropped (counted via ``MASKED_INPUT``).
+      mask: (K,) bool measurement present.  Measurements of inactive slots are dropped;
+        those with non-finite entries too, counted via ``MASKED_INPUT``.
       R: (d_z, d_z) or (K, d_z, d_z) measurement covariance.
       gate: optional chi-square threshold on each measurement's own NIS
         (d_z dof); gated measurements are dropped and flagged ``GATED``.
@@ -1457,12 +1457,13 @@ def _check_run(state: SlamState, model: SlamModel, log: SlamLog, Q, R, associati
         if log.ids is None or jnp.shape(log.ids) != (T, K):
             raise InputError(f"log.ids: expected shape ({T}, {K}) with association 'known', got "
                              f"{None if log.ids is None else tuple(jnp.shape(log.ids))}")
-        if is_concrete(log.ids):
+        if is_concrete(log.ids) and np.issubdtype(np.asarray(log.ids).dtype, np.floating):
             a = np.asarray(log.ids)
-            if not (np.issubdtype(a.dtype, np.integer) or (np.issubdtype(a.dtype, np.floating)
-                                                          and np.all(a == np.round(a)))):
-                raise InputError("log.ids: expected integer landmark ids (a fractional id would be "
-                                 "truncated onto another landmark)")
+            used = np.ones(a.shape, bool) if log.mask is None else np.asarray(log.mask, bool)
+            a = a[used]  # a masked row's id may hold anything, NaN included
+            if not np.all(np.isfinite(a)) or np.any(a != np.round(a)):
+                raise InputError("log.ids: expected whole-number landmark ids on the rows in use (a "
+                                 "fractional or non-finite id would be truncated onto another landmark)")
     if log.mask is not None and jnp.shape(log.mask) != (T, K):
         raise InputError(f"log.mask: expected shape ({T}, {K}) like log.z, got {tuple(jnp.shape(log.mask))}")
     for nm, tree in (("log.u", log.u), ("log.params", log.params)):
@@ -1487,6 +1488,7 @@ def _check_run(state: SlamState, model: SlamModel, log: SlamLog, Q, R, associati
     if is_concrete(state.x) and not np.all(np.isfinite(np.asarray(state.x))):
         raise InputError("state.x: contains NaN or Inf")
     if is_concrete(state.P):
+        # (sliced on the host: under a trace even a concrete array's slice would be traced)
         check_psd(np.asarray(state.P)[:nr, :nr], "state.P (robot block)")
     return T, K
 
@@ -1521,7 +1523,10 @@ def run(model: SlamModel, state: SlamState, log: SlamLog, Q, R, *, association: 
     z = jnp.asarray(log.z, dtype)
     T, K = z.shape[0], z.shape[1]
     mask = jnp.ones((T, K), bool) if log.mask is None else jnp.asarray(log.mask, bool)
-    ids = jnp.full((T, K), -1, jnp.int32) if log.ids is None else jnp.asarray(log.ids, jnp.int32)
+    ids = log.ids
+    if ids is not None and is_concrete(ids) and np.issubdtype(np.asarray(ids).dtype, np.floating):
+        ids = np.where(np.isfinite(np.asarray(ids)), np.asarray(ids), -1)  # a masked row's NaN id: none
+    ids = jnp.full((T, K), -1, jnp.int32) if ids is None else jnp.asarray(ids, jnp.int32)
     q_fn = Q if callable(Q) else None
     Qa = None if q_fn else jnp.asarray(Q, dtype)
     Ra = jnp.asarray(R, dtype)
@@ -1538,7 +1543,8 @@ def run(model: SlamModel, state: SlamState, log: SlamLog, Q, R, *, association: 
         st = predict(st, model, u, jnp.asarray(Q_t, dtype), p_t)
         if association == "known":
             slots, mapped = associate_known(st, id_t, m_t)
-            new = first_of_each_id(id_t, m_t & ~mapped & (id_t >= 0))
+            # (a non-finite row registers nothing: it must not hide a good row of its id)
+            new = first_of_each_id(id_t, m_t & ~mapped & (id_t >= 0) & jnp.all(jnp.isfinite(z_t), axis=-1))
         else:
             slots, mapped, new, _ = associate_nn(st, model, z_t, m_t, R_t, p_t, gate=nn_gate,
                                                  new_threshold=nn_new)

@@ -188,20 +188,25 @@ def masked_innovation(z, zhat, mask, residual):
 
 def check_process_noise(Q, n: int, L=None):
     """Shape check of one prediction's noise (static shapes: free under ``jit``): ``Q`` (n, n),
-    or (q, q) with a noise Jacobian ``L`` (n, q).  Raises :class:`InputError` naming it
+    or (q, q) with a noise Jacobian ``L`` (n, q); a scalar is the variance of a single noise
+    input (n = 1, or q = 1).  Returns ``Q`` as a matrix; raises :class:`InputError` naming it
     (a (1, 1) ``Q`` would otherwise broadcast onto every entry of an (n, n) covariance)."""
+    q1 = n if L is None else (np.shape(L)[-1] if np.ndim(L) == 2 else None)
+    if q1 == 1 and np.shape(Q) in ((), (1,)):
+        Q = jnp.reshape(Q, (1, 1))
     qs = tuple(np.shape(Q))
     if is_concrete(Q) and len(qs) == 2:
         check_psd(Q, "Q")  # a concrete Q (an eager call; traced under jit: shapes only)
     if L is None:
         if qs != (n, n):
             raise InputError(f"Q: expected shape ({n}, {n}) (the state's size), got {qs}")
-        return
+        return Q
     ls = tuple(np.shape(L))
     if len(ls) != 2 or ls[0] != n:
         raise InputError(f"noise_jac: expected shape ({n}, q) (the state's size rows), got {ls}")
     if qs != (ls[1], ls[1]):
         raise InputError(f"Q: expected shape ({ls[1]}, {ls[1]}) (noise_jac's columns), got {qs}")
+    return Q
 
 
 def check_measurement(z, zhat, R):

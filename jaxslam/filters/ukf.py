@@ -279,7 +279,7 @@ def _process_noise(x, u, Q, args, noise_jac, dtype):
     if noise_jac is not None:
         L = noise_jac(x, u, *args) if callable(noise_jac) else noise_jac
         L = jnp.asarray(L, dtype)
-    check_process_noise(Qd, x.shape[0], L)
+    Qd = check_process_noise(Qd, x.shape[0], L)
     if L is not None:
         Qd = L @ Qd @ L.T
     return Qd

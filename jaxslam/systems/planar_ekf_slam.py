@@ -212,7 +212,7 @@ class Params(NamedTuple):
       columns of P zeroed, slot freed) and counted in ``n_pruned``; one that has is confirmed
       for good.  Clutter (a detection of a bush, a car, a person) rarely repeats; a tree does.
     prune_min_obs: () matches a tentative landmark needs within the window (default 2; a
-      count, only compared, so it is held as a float like every other leaf).
+      whole-number count, held as a float like every other leaf).
     """
 
     M_c: jax.Array
@@ -849,8 +849,9 @@ def validate_config(config: Config) -> Config:
 
 def validate_params(params: Params) -> Params:
     """Shapes (M_c (2,2), Q_floor (3,3), R (2,2), P0 (3,3)); PSD, R positive definite; the
-    thresholds scalars (not NaN) with 0 < gate ≤ new_threshold and, with pruning, a positive
-    window and prune_min_obs ≥ 1."""
+    thresholds as :func:`check_thresholds` (scalars, not NaN; 0 < gate ≤ new_threshold,
+    range_min < range_max, bearing_min < bearing_max; with pruning a positive window and a whole
+    prune_min_obs ≥ 1)."""
     for name, shp in (("M_c", (2, 2)), ("Q_floor", (3, 3)), ("R", (2, 2)), ("P0", (3, 3)),
                       ("calib0", (3,)), ("calib_P0", (3, 3)), ("calib_Q", (3, 3))):
         if getattr(params, name) is None and name.startswith("calib"):
@@ -894,6 +895,8 @@ def check_thresholds(values: dict) -> dict:
     before any log is read); raises :class:`InputError` naming the key."""
     thr = {f: check_scalar(values[f], f"params.{f}", finite=False)
            for f in THRESHOLDS if values.get(f) is not None}
+    if values.get("prune_window_s") is not None and "prune_min_obs" in values and values["prune_min_obs"] is None:
+        raise InputError("params.prune_min_obs: pruning (prune_window_s) needs a count of matches, got None")
     if "gate" in thr and "new_threshold" in thr and not (0 < thr["gate"] <= thr["new_threshold"]):
         raise InputError(f"params.gate/new_threshold: need 0 < gate <= new_threshold, got "
                          f"{thr['gate']}, {thr['new_threshold']}")

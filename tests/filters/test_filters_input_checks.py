@@ -67,6 +67,15 @@ def test_an_eager_prediction_checks_a_concrete_q():
     np.testing.assert_allclose(np.asarray(out.cov), F @ F.T + 0.01 * np.eye(2), rtol=1e-12)
 
 
+@pytest.mark.parametrize("mod", [ekf, ukf], ids=["ekf", "ukf"])
+def test_a_scalar_q_is_the_variance_of_one_state(mod):
+    g = ekf.Gaussian(jnp.zeros(1), jnp.eye(1))
+    a = mod.predict(g, lambda x, u: x, None, 0.1)
+    b = mod.predict(g, lambda x, u: x, None, 0.1 * jnp.eye(1))
+    np.testing.assert_allclose(np.asarray(a.cov), np.asarray(b.cov), rtol=0, atol=1e-15)
+    np.testing.assert_allclose(np.asarray(a.cov), [[1.1]], rtol=1e-12)
+
+
 def test_non_finite_start_mean_and_short_inputs_are_named():
     with pytest.raises(InputError, match=r"^x0: contains NaN or Inf"):
         ekf.filter_scan(f, h, np.array([np.nan, 0.0]), np.eye(2), None, ZS, None, Q2, R1)
@@ -138,15 +147,23 @@ def test_a_new_id_in_several_rows_of_one_step_registers_once():
     final_ids = np.asarray(out.final.ids)
     assert np.sum(final_ids == 7) == 1  # was three slots holding the same landmark
     assert int(out.n_new[0]) == 1
+    # a non-finite first row of the id registers nothing and must not hide the good ones
+    z[0, 0, 0] = np.nan
+    out = es.run(_model(), st, log._replace(z=z), 0.04 * jnp.eye(1), 0.01 * jnp.eye(1))
+    assert np.sum(np.asarray(out.final.ids) == 7) == 1 and int(out.n_new[0]) == 1
 
 
-def test_fractional_landmark_ids_are_refused():
+def test_fractional_landmark_ids_are_refused_on_the_rows_in_use():
     log = _log()
-    ids = np.asarray(log.ids, float)
-    ids[3, 0] = 1.5
     st = es.init(jnp.zeros(1), 0.01 * jnp.eye(1), 8, 1)
-    with pytest.raises(InputError, match=r"^log.ids: expected integer"):
-        es.run(_model(), st, log._replace(ids=ids), 0.04 * jnp.eye(1), 0.01 * jnp.eye(1))
+    ids = np.asarray(log.ids, float)
+    mask = np.array(log.mask)
+    ids[2, 1], mask[2, 1] = np.nan, False  # a masked row's id may hold anything
+    out = es.run(_model(), st, log._replace(ids=ids, mask=mask), 0.04 * jnp.eye(1), 0.01 * jnp.eye(1))
+    assert np.all(np.isfinite(np.asarray(out.log_likelihood)))
+    ids[3, 0] = 1.5
+    with pytest.raises(InputError, match=r"^log.ids: expected whole-number"):
+        es.run(_model(), st, log._replace(ids=ids, mask=mask), 0.04 * jnp.eye(1), 0.01 * jnp.eye(1))
 
 
 def test_update_drops_rows_whose_slot_is_outside_the_map():
