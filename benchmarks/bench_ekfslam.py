@@ -65,6 +65,7 @@ import tempfile
 import time
 
 import numpy as np
+from timing import int_list
 
 DESCRIPTION = ("Paper 000 EKF-SLAM: Fig. 12 cost study (predict/update/registration), full 50 s "
                "run as one jitted scan vs a NumPy twin, vmap Monte Carlo throughput")
@@ -101,12 +102,6 @@ def _matmul_floor(n, m, reps=200):
         jax.block_until_ready(f(a, b))
         ts.append(time.perf_counter() - t0)
     return float(np.median(ts)), 2.0 * n * n * m
-
-
-def _ints(text, flag="option", allow_empty=False):
-    from timing import int_list
-
-    return int_list(text, flag, allow_empty)
 
 
 def add_arguments(parser):
@@ -382,7 +377,7 @@ def run_study(args, noise, results, out):
     # -- prediction vs mapped landmarks ------------------------------------
     f_pred = jax.jit(prop, donate_argnums=0)
     f_pred_loop = looped(prop)
-    for N in _ints(args.study_maps, "--study-maps"):
+    for N in int_list(args.study_maps, "--study-maps"):
         _progress(f"study: prediction, {N} mapped")
         x, P, active, ids = _study_state(N, N, args.seed + N)
         st = slam_state(x, P, active, ids)
@@ -401,7 +396,7 @@ def run_study(args, noise, results, out):
     x, P, active, ids = _study_state(M0, M0 + 16, args.seed + 1000)
     st = slam_state(x, P, active, ids)
     twin = twin_from(x, P, active, ids, M0 + 16)
-    for k in _ints(args.study_obs, "--study-obs"):
+    for k in int_list(args.study_obs, "--study-obs"):
         _progress(f"study: update and registration, {k} observed")
         slots = np.sort(rng.choice(M0, size=min(k, M0), replace=False))
         zh, _, _ = tw.observe(x[:9], x[9:9 + 3 * M0].reshape(M0, 3)[slots])
@@ -603,7 +598,7 @@ def run_full(args, noise, results, out, threads_label):
     from jaxslam.systems import ekf_slam_3d as sys3d
 
     log, log_note = _get_log(args)
-    caps = _ints(args.capacities, "--capacities")
+    caps = int_list(args.capacities, "--capacities")
     F = log["visible"].shape[0]
     inputs = tuple(jnp.asarray(log[k]) for k in ("s0", "imu", "y", "visible"))
     ids = jnp.asarray(log["ids"])
@@ -734,7 +729,7 @@ def run_mc(args, results, out):
     single = jax.jit(one_run)
     batched = {}
     rows = []
-    Ms = _ints(args.mc_runs, "--mc-runs")
+    Ms = int_list(args.mc_runs, "--mc-runs")
     keys_all = monte_carlo.keys_for(args.seed, max(Ms))
     _progress("monte carlo: compiling the single run")
     t0 = time.perf_counter()
@@ -882,7 +877,7 @@ def run(args):
         raise InputError(f"--parts: unknown part(s) {sorted(unknown)}; choose from study, full, mc")
     for flag, text in (("--study-maps", args.study_maps), ("--study-obs", args.study_obs),
                        ("--capacities", args.capacities), ("--mc-runs", args.mc_runs)):
-        _ints(text, flag)  # every list checked before anything runs (the mc part records its errors)
+        int_list(text, flag)  # every list checked before anything runs (the mc part records its errors)
     if getattr(args, "_label", None):  # a child started by _spawn
         results, out = _run_parts(args, parts, args._label)
         return {"results": results, **out}

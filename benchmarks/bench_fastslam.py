@@ -73,6 +73,7 @@ import tempfile
 import time
 
 import numpy as np
+from timing import int_list
 
 DESCRIPTION = ("Paper 001 FastSLAM: time per step per particle (N = 100-10000) of the jitted "
                "step (in a loop and per call) vs a vectorised NumPy twin and a per-particle "
@@ -86,12 +87,6 @@ TARGETS = {"twin_speedup_at_2000": 3.0, "loop_speedup_at_2000": 50.0, "flat_rati
 
 _QUICK = {"particles": "500,2000", "steps": 50, "call_steps": 10, "twin_steps": 10,
           "repeats": 3, "mc_runs": "1,8", "mc_duration": 0.5}
-
-
-def _ints(text, flag="option", allow_empty=False):
-    from timing import int_list
-
-    return int_list(text, flag, allow_empty)
 
 
 def add_arguments(parser):
@@ -267,7 +262,7 @@ def _step_jobs(args, cfg, prm, inputs_dev, ids_dev, keys_dev, x0, T):
     from jaxslam.systems import fastslam_001 as fs1
 
     jobs = []
-    for N in _ints(args.particles, "--particles"):
+    for N in int_list(args.particles, "--particles"):
         def job(N=N):
             adv = _advance_fn(cfg, prm)
             st = fs1.init(_log0(jnp.asarray(x0)), cfg._replace(n_particles=N), prm,
@@ -352,7 +347,7 @@ def run_step(args, tw, cfg, prm, compiled, inputs_np, inputs_dev, ids_np, ids_de
     W = args.warmup
     rows = []
     loop_pp = None
-    for N in _ints(args.particles, "--particles"):
+    for N in int_list(args.particles, "--particles"):
         adv, warm = compiled[f"step N={N}"][0]
         comp_s = compiled[f"step N={N}"][1]
         ts0 = tw.state_from(warm[0])
@@ -465,7 +460,7 @@ def _mc_jobs(args, cfg, prm, fl, ids):
     N = int(args.mc_particles)
     F = max(1, int(round(args.mc_duration / (cfg.dt * LIDAR_EVERY))))
     ids_d = jnp.asarray(ids)
-    Ms = _ints(args.mc_runs, "--mc-runs")
+    Ms = int_list(args.mc_runs, "--mc-runs")
     M_max = max(Ms)
 
     cfg_n = cfg._replace(n_particles=N)
@@ -494,7 +489,7 @@ def run_mc(args, compiled, data, N, F, results, out):
     keys, win = data
     single = compiled["mc batch=1"][0]
     rows = []
-    for M in _ints(args.mc_runs, "--mc-runs"):
+    for M in int_list(args.mc_runs, "--mc-runs"):
         B = min(M, int(args.mc_chunk))
         f, comp = compiled[f"mc batch={B}"]
         n_chunks = -(-M // B)
@@ -693,10 +688,10 @@ def _run_here(args, parts):
     t_start = time.perf_counter()
     results, out = [], {"targets": []}
     load = {"before": list(os.getloadavg())}
-    if "mc" in parts and 1 not in _ints(args.mc_runs, "--mc-runs"):
+    if "mc" in parts and 1 not in int_list(args.mc_runs, "--mc-runs"):
         args.mc_runs = "1," + args.mc_runs  # M = 1 is the sequential single run
     F_mc = max(1, int(round(args.mc_duration / 0.1)))
-    M_max = max(_ints(args.mc_runs, "--mc-runs")) if "mc" in parts else 1
+    M_max = max(int_list(args.mc_runs, "--mc-runs")) if "mc" in parts else 1
     need_steps = args.warmup + max(args.steps, args.call_steps, args.twin_steps, LIDAR_EVERY)
     n_frames = max(need_steps // LIDAR_EVERY, (M_max - 1) + F_mc if "mc" in parts else 0) + 1
     _progress(f"simulating a {n_frames * LIDAR_EVERY * 0.01:g} s helix flight (scenario "

@@ -52,6 +52,7 @@ import sys
 import time
 
 import numpy as np
+from timing import int_list
 
 import numpy_flight
 
@@ -61,12 +62,6 @@ DESCRIPTION = ("Closed-loop DF-LQR flight (track-figure8, 50 s): jitted simulate
 HERE = pathlib.Path(__file__).resolve().parent
 LIDAR_EVERY = 10
 TARGET_SINGLE_SPEEDUP = 30.0
-
-
-def _ints(text, flag="option", allow_empty=False):
-    from timing import int_list
-
-    return int_list(text, flag, allow_empty)
 
 
 def add_arguments(parser):
@@ -308,7 +303,7 @@ def run(args) -> dict:
         raise ValueError(f"--duration: at least {dt * LIDAR_EVERY} s, got {duration}")
     n_steps = n_frame * LIDAR_EVERY
     ff = not args.no_feedforward
-    batches = _ints(args.batches, "--batches", allow_empty=True)  # "": no vmapped batches
+    batches = int_list(args.batches, "--batches", allow_empty=True)  # "": no vmapped batches
     traj_np, ctrl_np, sigma, _ = numpy_inputs(setup)
     fn = jax_runner(setup, n_frame, LIDAR_EVERY, ff)
     base_key = jax.random.PRNGKey(args.seed)

@@ -34,18 +34,12 @@ import sys
 import time
 
 import numpy as np
-from timing import median_s
+from timing import int_list, median_s
 
 DESCRIPTION = ("Paper 003 UWB range-only EKF-SLAM: runs/s of jax.vmap vs sequential jitted runs vs "
                "a NumPy twin (filter alone and whole Monte Carlo runs)")
 
 TARGETS = {"vmap_vs_twin_at_100": 10.0, "vmap_vs_sequential_at_100": 2.0}
-
-
-def _ints(text, flag="option", allow_empty=False):
-    from timing import int_list
-
-    return int_list(text, flag, allow_empty)
 
 
 def add_arguments(parser):
@@ -87,7 +81,7 @@ def run(args):
     parts = {p.strip() for p in args.parts.split(",") if p.strip()}
     if parts - {"filter", "mc"}:
         raise InputError(f"--parts: unknown part(s) {sorted(parts - {'filter', 'mc'})}; choose filter, mc")
-    Ms = _ints(args.runs, "--runs")
+    Ms = int_list(args.runs, "--runs")
     for flag, v in (("--repeats", args.repeats), ("--seq-max", args.seq_max), ("--twin-max", args.twin_max)):
         if v < 1:
             raise InputError(f"{flag}: must be >= 1, got {v}")

@@ -34,6 +34,7 @@ __all__ = [
     "safe_norm",
     "check_psd",
     "check_scalar",
+    "check_int",
     "check_shape",
 ]
 
@@ -338,6 +339,15 @@ def check_scalar(value, name: str, *, finite: bool = True, lower=None, strict: b
     if not ok:
         raise InputError(f"{name}: expected {want}, got {value!r}")
     return float(a)
+
+
+def check_int(value, name: str, lower: int = 1, what: str = "an int") -> int:
+    """``value`` as an int when it is a Python or NumPy integer ≥ ``lower`` (a bool is not a
+    count); else :class:`InputError` naming ``name`` ("expected {what} >= {lower}").  Host-side,
+    for sizes and counts."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < lower:
+        raise InputError(f"{name}: expected {what} >= {lower}, got {value!r}")
+    return int(value)
 
 
 def check_shape(x, shape, name: str):

@@ -46,6 +46,7 @@ from .stats import anees_bounds, chi2_ppf, chi2_ppf_np, mean_chi2_bounds, nees, 
 __all__ = [
     "rmse",
     "rmse_norm",
+    "rmse_norm_where",
     "nees",
     "nis",
     "chi2_ppf",
@@ -102,6 +103,18 @@ def rmse_norm(err, axis=0):
     """
     err = jnp.asarray(err)
     return jnp.sqrt(jnp.mean(jnp.sum(err * err, axis=-1), axis=axis))
+
+
+def rmse_norm_where(err, where):
+    """:func:`rmse_norm` over the steps where ``where`` holds: ``sqrt(Σ_t w_t ‖err_t‖² / Σ_t w_t)``.
+
+    ``err`` (T, d), ``where`` (T,) bool (e.g. a settled window).  NaN when no step is selected
+    (a flight shorter than its window has no figure there, not 0).  jit/vmap-safe.
+    """
+    err = jnp.asarray(err)
+    w = jnp.asarray(where, err.dtype)
+    n = jnp.sum(w)
+    return jnp.where(n > 0, jnp.sqrt(jnp.sum(jnp.sum(err * err, axis=-1) * w) / jnp.maximum(n, 1)), jnp.nan)
 
 
 # What a value outside its χ² bounds means, by kind of statistic: (below, above).

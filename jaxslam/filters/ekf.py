@@ -87,10 +87,10 @@ from .gaussian import (
     Posterior,
     UpdateInfo,
     check_measurement,
-    check_process_noise,
     finalize as _finalize,
     innovation_solve,
     masked_innovation,
+    process_noise,
     threshold as _threshold,
 )
 
@@ -263,14 +263,7 @@ def predict(state: Gaussian, f: Callable, u, Q, *args, noise_jac=None) -> Gaussi
     xn, F = value_and_jacfwd(lambda v: f(v, u, *args))(x)
     xn = xn.astype(dtype)
     F = F.astype(dtype)
-    Q = jnp.asarray(Q, dtype=dtype)
-    L = None
-    if noise_jac is not None:
-        L = noise_jac(x, u, *args) if callable(noise_jac) else noise_jac
-        L = jnp.asarray(L, dtype=dtype)
-    Q = check_process_noise(Q, x.shape[0], L)
-    if L is not None:
-        Q = L @ Q @ L.T
+    Q = process_noise(Q, x, u, args, noise_jac)
     return Gaussian(xn, symmetrize(F @ P @ F.T + Q))
 
 
@@ -547,14 +540,7 @@ def make_filter(
         dtype = x.dtype
         xn, F = value_and_jacfwd(lambda v: fm(v, u, *args))(x)
         F = F.astype(dtype)
-        Qd = jnp.asarray(Q, dtype)
-        L = None
-        if noise_jac is not None:
-            L = noise_jac(x, u, *args) if callable(noise_jac) else noise_jac
-            L = jnp.asarray(L, dtype)
-        Qd = check_process_noise(Qd, x.shape[0], L)
-        if L is not None:
-            Qd = L @ Qd @ L.T
+        Qd = process_noise(Q, x, u, args, noise_jac)
         PFt = P @ F.T
         return Gaussian(xn.astype(dtype), symmetrize(F @ PFt + Qd)), PFt
 

@@ -62,7 +62,7 @@ from jax.custom_batching import custom_vmap
 
 from .. import errors
 from ..errors import InputError
-from ..linalg import (check_psd, cholesky_small, is_concrete, put_blocks, small_matmul, symmetrize, take,
+from ..linalg import (check_int, check_psd, cholesky_small, is_concrete, put_blocks, small_matmul, symmetrize, take,
                       take_blocks, value_and_jacfwd)
 from ..stats import student_t_nll
 
@@ -189,10 +189,7 @@ def init(robot_mean, robot_cov, capacity: int, lm_dim: int) -> SlamState:
     if jnp.shape(robot_cov) != (nr, nr):
         raise InputError(f"robot_cov: expected shape ({nr}, {nr}) (robot_mean's size), got "
                          f"{tuple(jnp.shape(robot_cov))}")
-    if isinstance(capacity, bool) or not isinstance(capacity, (int, np.integer)) or capacity < 1:
-        raise InputError(f"capacity: expected an int >= 1, got {capacity!r}")
-    if isinstance(lm_dim, bool) or not isinstance(lm_dim, (int, np.integer)) or lm_dim < 1:
-        raise InputError(f"lm_dim: expected an int >= 1, got {lm_dim!r}")
+    capacity, lm_dim = check_int(capacity, "capacity"), check_int(lm_dim, "lm_dim")
     if is_concrete(robot_mean) and not np.all(np.isfinite(np.asarray(robot_mean))):
         raise InputError("robot_mean: contains NaN or Inf")
     if is_concrete(robot_cov):

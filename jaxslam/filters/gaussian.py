@@ -63,6 +63,7 @@ __all__ = [
     "masked_innovation",
     "threshold",
     "check_process_noise",
+    "process_noise",
     "check_measurement",
     "LOG_2PI",
 ]
@@ -207,6 +208,19 @@ def check_process_noise(Q, n: int, L=None):
     if qs != (ls[1], ls[1]):
         raise InputError(f"Q: expected shape ({ls[1]}, {ls[1]}) (noise_jac's columns), got {qs}")
     return Q
+
+
+def process_noise(Q, x, u, args, noise_jac):
+    """One prediction's additive noise, checked (:func:`check_process_noise`): ``Q`` (n, n), or
+    ``L Q Lᵀ`` with the noise Jacobian ``noise_jac`` (an (n, q) matrix or ``L(x, u, *args)``),
+    in the dtype of ``x``."""
+    dtype = x.dtype
+    Q = jnp.asarray(Q, dtype)
+    L = None
+    if noise_jac is not None:
+        L = jnp.asarray(noise_jac(x, u, *args) if callable(noise_jac) else noise_jac, dtype)
+    Q = check_process_noise(Q, x.shape[0], L)
+    return Q if L is None else L @ Q @ L.T
 
 
 def check_measurement(z, zhat, R):

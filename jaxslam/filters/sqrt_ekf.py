@@ -97,6 +97,7 @@ from .. import errors
 from ..errors import InputError
 from ..linalg import check_psd, is_concrete, symmetrize, value_and_jacfwd
 from .ekf import Gaussian, UpdateInfo
+from .gaussian import check_leading
 
 __all__ = [
     "SqrtGaussian",
@@ -466,10 +467,7 @@ def _validate_scan(x0, P0, us, zs, masks, Q, R, noise_jac, Q_chol):
         raise InputError(f"R: expected shape ({m}, {m}), got {tuple(np.shape(R))}")
     if is_concrete(R):
         check_psd(R, "R", strict=True)
-    if us is not None:
-        for leaf in jax.tree_util.tree_leaves(us):
-            if np.ndim(leaf) < 1 or np.shape(leaf)[0] != T:
-                raise InputError(f"us: expected leading axis T = {T}, got shape {tuple(np.shape(leaf))}")
+    check_leading(us, T, "us")
     q = n
     if noise_jac is not None and not callable(noise_jac):
         gs = np.shape(noise_jac)

@@ -114,10 +114,10 @@ from .gaussian import (
     Posterior,
     UpdateInfo,
     check_measurement,
-    check_process_noise,
     finalize,
     innovation_solve,
     masked_innovation,
+    process_noise,
     threshold,
 )
 
@@ -273,24 +273,12 @@ def sigma_points(mean, cov, points: Optional[SigmaPoints] = None) -> SigmaSet:
 # Predict
 # ---------------------------------------------------------------------------
 
-def _process_noise(x, u, Q, args, noise_jac, dtype):
-    Qd = jnp.asarray(Q, dtype)
-    L = None
-    if noise_jac is not None:
-        L = noise_jac(x, u, *args) if callable(noise_jac) else noise_jac
-        L = jnp.asarray(L, dtype)
-    Qd = check_process_noise(Qd, x.shape[0], L)
-    if L is not None:
-        Qd = L @ Qd @ L.T
-    return Qd
-
-
 def _predict(state: Gaussian, f: Optional[Callable], u, Q, args, rule: SigmaPoints, noise_jac):
     """``(Gaussian, cross, status)`` of one sigma-point time update."""
     x, P = state
     dtype = x.dtype
     P = jnp.asarray(P, dtype)
-    Qd = _process_noise(x, u, Q, args, noise_jac, dtype)
+    Qd = process_noise(Q, x, u, args, noise_jac)
     if f is None:
         return Gaussian(x, symmetrize(P + Qd)), P, jnp.int32(errors.OK)
     pts, wm, wc, ok = sigma_points(x, P, rule)

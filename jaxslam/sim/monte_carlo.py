@@ -62,6 +62,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from .. import compilation, runtime
 from ..errors import InputError
+from ..linalg import check_int
 
 __all__ = ["MCResult", "run", "keys_for", "clear_programs", "DETAIL_CHUNK"]
 
@@ -138,10 +139,8 @@ def run(fn: Callable, seed: int, runs: int, chunk: Optional[int] = None,
         persistent cache and a later process skips tracing
         (:func:`jaxslam.compilation.compile_program`).
     """
-    if isinstance(runs, bool) or not isinstance(runs, (int, np.integer)) or runs < 1:
-        raise InputError(f"runs: expected an int >= 1, got {runs!r}")
-    if chunk is not None and (isinstance(chunk, bool) or not isinstance(chunk, (int, np.integer)) or chunk < 1):
-        raise InputError(f"chunk: expected None or an int >= 1, got {chunk!r}")
+    runs = check_int(runs, "runs")
+    chunk = None if chunk is None else check_int(chunk, "chunk", what="None or an int")
     if cpu_batching not in ("vmap", "loop"):
         raise ValueError(f"cpu_batching: expected 'vmap' or 'loop', got {cpu_batching!r}")
     if devices is None and jax.process_count() > 1:  # a group of processes: one block each
@@ -267,7 +266,7 @@ def _run_keys(fn, keys, chunk, progress, devices, cpu_batching, detail, program_
                         runs=len(outs), interrupted=len(outs) < runs)
 
     cap = DETAIL_CHUNK if has_detail else 256
-    chunk = min(runs, cap) if chunk is None else max(1, min(int(chunk), runs, cap))
+    chunk = min(runs, cap) if chunk is None else min(chunk, runs, cap)
     chunk = int(math.ceil(chunk / nd) * nd)
     n_chunks = int(math.ceil(runs / chunk))
     pad = n_chunks * chunk - runs

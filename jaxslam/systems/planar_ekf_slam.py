@@ -900,9 +900,8 @@ def check_thresholds(values: dict) -> dict:
     if "gate" in thr and "new_threshold" in thr and not (0 < thr["gate"] <= thr["new_threshold"]):
         raise InputError(f"params.gate/new_threshold: need 0 < gate <= new_threshold, got "
                          f"{thr['gate']}, {thr['new_threshold']}")
-    if "prune_window_s" in thr and not (thr["prune_window_s"] > 0 and thr.get("prune_min_obs", 2.0) >= 1):
-        raise InputError(f"params.prune_window_s/prune_min_obs: need > 0 and >= 1, got "
-                         f"{thr['prune_window_s']}, {thr.get('prune_min_obs')}")
+    if "prune_window_s" in thr and not thr["prune_window_s"] > 0:
+        raise InputError(f"params.prune_window_s: need > 0, got {thr['prune_window_s']}")
     if "prune_min_obs" in thr and not (thr["prune_min_obs"] >= 1 and thr["prune_min_obs"] == np.floor(thr["prune_min_obs"])):
         raise InputError(f"params.prune_min_obs: a count of matches, expected a whole number >= 1, got "
                          f"{thr['prune_min_obs']}")

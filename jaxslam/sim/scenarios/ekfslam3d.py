@@ -136,11 +136,7 @@ def evaluate(fl, lms, cfg):
     settled = t > SETTLED_AFTER_S
 
     def rmse_norm(err, w=None):
-        sq = jnp.sum(err * err, axis=1)
-        if w is None:
-            return jnp.sqrt(jnp.mean(sq))
-        # an empty window (a flight shorter than it) has no RMSE: NaN, not 0
-        return jnp.where(jnp.sum(w) > 0, jnp.sqrt(jnp.sum(sq * w) / jnp.maximum(jnp.sum(w), 1)), jnp.nan)
+        return mx.rmse_norm(err) if w is None else mx.rmse_norm_where(err, w)
 
     def rmse_axis(err):
         return jnp.mean(jnp.sqrt(jnp.mean(err * err, axis=0)))

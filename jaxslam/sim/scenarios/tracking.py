@@ -18,6 +18,7 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
+from ... import metrics
 from ...control import dflqr, trajectories
 from ...dynamics import euler_ned
 from ...errors import InputError
@@ -91,9 +92,7 @@ def tracking_metrics(t, truth, ref):
     settle = jnp.where(last_out == t.shape[0] - 1, t[-1], settle)
     return {
         "track_pos_rmse_m": jnp.sqrt(jnp.mean(e2)),
-        "track_pos_rmse_settled_m": jnp.where(jnp.sum(settled) > 0,  # empty window: NaN, not 0
-                                              jnp.sqrt(jnp.sum(e2 * settled) / jnp.maximum(jnp.sum(settled), 1)),
-                                              jnp.nan),
+        "track_pos_rmse_settled_m": metrics.rmse_norm_where(e, settled),  # empty window: NaN
         "track_yaw_rmse_deg": jnp.degrees(jnp.sqrt(jnp.mean(yaw * yaw))),
         "max_tilt_deg": jnp.degrees(jnp.max(tilt)),
         "settle_time_s": settle,
