@@ -45,8 +45,10 @@ kept) and flagged in ``status``; a landmark that finds no free slot is counted
 in ``overflow`` and flagged ``CAPACITY_OVERFLOW``.
 
 References: paper 000 eq. 21-53 (prediction eq. 26-29, update eq. 37-43,
-registration eq. 44-53).  The paper's update eq. 43 (P − K E Kᵀ) is replaced
-by the factored Joseph form by default (eq. 43 itself is ``joseph=False``); see docs/papers.md.
+registration eq. 44-53).  The engine's default covariance update is the factored
+Joseph form; the paper's eq. 43 (P − K E Kᵀ) is ``joseph=False``, the default of
+the paper-000 system (``ekf_slam_3d.Config``), where it was measured as safe as the
+Joseph form; see docs/papers.md.
 """
 
 from __future__ import annotations

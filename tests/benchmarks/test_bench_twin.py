@@ -179,7 +179,7 @@ def test_capacity_ratio_comes_from_alternating_calls(monkeypatch):
     pairs = bench_ekfslam._paired_times(fake("a", 1.0), fake("b", 1.5), (), 5)
     assert calls == ["a", "b"] * 5
     assert pairs["times_64_s"] == [1.0, 1.0, 1.25, 1.0, 1.0] and pairs["ratio"] == 1.5
-    row = {"mapped_final": 31, "jaxslam-standard-form": {"speedup": 9.0}}
+    row = {"mapped_final": 31, "jaxslam-joseph-form": {"speedup": 9.0}}
     full = {"openblas_threads": "1 thread", "capacity_pairs": pairs,
             "rows": [dict(row, capacity=64, jaxslam={"median_s": 1.0, "speedup": 9.0}),
                      dict(row, capacity=256, jaxslam={"median_s": 2.0, "speedup": 9.0})]}
