@@ -390,10 +390,11 @@ def run_tuning(args, progress_stream=None) -> dict:
               f"{EXPLODE_RATIO:g}x the batch median) at {steps_hit} step(s), left out of those steps "
               "(history: dropped_runs)", file=sys.stderr, flush=True)
     phys0, phys1 = tg.physical(tg.theta0), tg.physical(res.theta)
-    say(f"{PROG}: evaluating start, tuned{''.join(', ' + k for k in tg.references)} on "
+    refs = {**tg.references, **(tg.after_references(phys1) if tg.after_references is not None else {})}
+    say(f"{PROG}: evaluating start, tuned{''.join(', ' + k for k in refs)} on "
         + (f"{tg.config.get('evaluated_on')} ..." if real else f"{args.test_runs} held-out runs ..."))
     t0 = time.perf_counter()
-    ev = tg.evaluate({"before": phys0, "after": phys1, **tg.references})
+    ev = tg.evaluate({"before": phys0, "after": phys1, **refs})
     t_eval = time.perf_counter() - t0
     params_after = _params_file(tg, tg.to_params(phys1))
     report = {
@@ -405,7 +406,7 @@ def run_tuning(args, progress_stream=None) -> dict:
         "params_before": tg.to_params(phys0),
         "params_after": params_after,
         "history": res.history,
-        "references": {k: {**_summ(ev[k]), "params": tg.to_params(v)} for k, v in tg.references.items()},
+        "references": {k: {**_summ(ev[k]), "params": tg.to_params(v)} for k, v in refs.items()},
         "stopped": res.stopped,
         "n_skipped": res.n_skipped,
         "n_dropped_runs": res.n_dropped,

@@ -92,7 +92,11 @@ def test_cli_loop_end_to_end_and_tuned_file_flies(tmp_path, capsys):
     assert rep["target"] == "loop" and rep["config"]["tune"] == "both" and rep["config"]["mode"] == "unknown"
     w = rep["config"]["weights"]
     assert (w["w_u"], w["w_tilt"], w["tilt_max_deg"], w["w_nees"], w["w_mse"]) == (0.2, 5.0, 2.0, 0.5, 1.0)
-    assert set(rep["references"]) == {"q_imu_table2"}
+    assert set(rep["references"]) == {"q_imu_table2", "after_weights_q_imu"}
+    # the result's weights with the --q imu filter: the controller of the result, the noise of the start
+    aw = rep["references"]["after_weights_q_imu"]["params"]
+    assert aw["controller"] == rep["params_after"]["controller"]
+    assert aw["noise"] == rep["references"]["q_imu_table2"]["params"]["noise"] != rep["params_after"]["noise"]
     for label in ("before", "after"):
         m = rep[label]["metrics"]
         assert {"objective", "closed_loop_cost", "max_tilt_deg", "pos_rmse_m", "diverged_flights"} <= set(m)

@@ -29,7 +29,7 @@ Seeds: training runs use ``keys_for(seed, M)``, the held-out test runs ``keys_fo
 from __future__ import annotations
 
 import importlib
-from typing import Any, Callable, NamedTuple
+from typing import Any, Callable, NamedTuple, Optional
 
 import numpy as np
 
@@ -92,6 +92,9 @@ class Target(NamedTuple):
     sequential: the loss and gradient of each training item run after the other (``lax.map``),
       not vmapped: the compiled step is smaller (one log's program, not a batched one) and, for
       the EKF-SLAM logs, faster per step too (4 logs: compile 19.0 → 14.6 s, step 1.57 → 1.36 s).
+    after_references: optional ``after_references(physical_after) -> {label: physical}``: rows
+      built from the result and evaluated beside it (e.g. the tuned weights flown with the
+      reference noise, which separates what each tuned part did).
     """
 
     scenario: str
@@ -111,6 +114,7 @@ class Target(NamedTuple):
     eval_command: str = ""
     log_objective: bool = False
     sequential: bool = False  # evaluate the training items one after another (lax.map)
+    after_references: Optional[Callable] = None
 
 
 _FACTORIES: dict = {}

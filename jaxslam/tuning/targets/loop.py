@@ -31,7 +31,9 @@ Decisions (no paper covers this):
   ``jax.checkpoint`` per LiDAR frame bounds the gradient's memory; the training flights run one
   after another (``lax.map``).
 * **Evaluation** (held out, estimator in the loop, ``eval_duration`` s): the start, the result,
-  the ``--q imu`` filter with Table 2's weights, and, with ``compare``, a controller read from a
+  the ``--q imu`` filter with Table 2's weights, with ``tune="both"`` the result's weights flown
+  with the ``--q imu`` filter (``after_weights_q_imu``: what the tuned controller's flights do
+  to the estimator, apart from the tuned noise), and, with ``compare``, a controller read from a
   file (e.g. the truth-tuned weights of ``jaxslam tune track-figure8 --target lqr``), each with
   the closed-loop cost, its terms, peak tilt, the estimator's RMSE and ANEES with χ² bounds.
 """
@@ -236,6 +238,10 @@ def ekfslam3d_loop(loss: str = "cost", train_runs: int = 4, test_runs: int = 16,
     references = {"q_imu_table2": (base, ref_noise)}
     if cmp_ctrl is not None:
         references["compare"] = (cmp_ctrl, ref_noise)
+
+    def after_references(phys):  # --tune both: the tuned weights flown with the --q imu filter
+        return {"after_weights_q_imu": (phys[0], ref_noise)} if tune == "both" else {}
+
     config = {"mode": mode, "tune": tune, "train_duration_s": float(train_duration),
               "eval_duration_s": float(eval_duration), "train_seed": int(seed), "test_seed": int(seed + 1),
               "train_runs": int(train_runs), "test_runs": int(test_runs), "weights": dict(w, tilt_max_deg=tilt_max_deg),
@@ -252,7 +258,7 @@ def ekfslam3d_loop(loss: str = "cost", train_runs: int = 4, test_runs: int = 16,
     return Target(scenario=f"ekfslam3d-{mode}", target="loop", loss=loss, specs=specs, theta0=theta0,
                   loss_fn=loss_fn, train=train, test=test, physical=physical, evaluate=evaluate,
                   references=references, to_params=to_params, describe=describe, config=config,
-                  eval_command=cmd, log_objective=True, sequential=True)
+                  eval_command=cmd, log_objective=True, sequential=True, after_references=after_references)
 
 
 for _m in ("unknown", "known"):
