@@ -136,3 +136,30 @@ def test_dataset_option_misuse_is_an_input_error(capsys):
     assert rc == 2 and "--robot: MRCLAM robot 7 is not in" in err and "(found: 1, 2)" in err
     rc, _, err = _run(["dataset", "mrclam", "--data", str(DATA), "--robot", "3"], capsys)
     assert rc == 2 and "(found: 1, 2)" in err  # the excerpts hold robots 1 and 2
+
+
+class _Captured(Exception):
+    pass
+
+
+@pytest.mark.parametrize("params, window", [(None, 2.0), ({"prune_window_s": None}, None), (None, "known")])
+def test_mrclam_hidden_ids_prune_at_capacity_64_unless_params_say_otherwise(tmp_path, monkeypatch, params, window):
+    # ids hidden: capacity 64 and Victoria Park's pruning rule (docs/datasets.md); a --params file
+    # that sets prune_window_s keeps its own; known ids: neither
+    from jaxslam.data import presets, runners
+
+    def capture(log, pose0, filter, config, prm, *a, **k):
+        raise _Captured(config, prm)
+
+    monkeypatch.setattr(runners, "_planar_run", capture)
+    obj = None if params is None else {"dataset": "mrclam", "noise": params}
+    with pytest.raises(_Captured) as e:
+        runners.run_mrclam(DATA, robot=1, ids="known" if window == "known" else "hidden", params=obj)
+    config, prm = e.value.args
+    if window == "known":
+        assert config.capacity == 16 and prm.prune_window_s is None
+        return
+    assert config.capacity == 64 and config.association == "nn"
+    assert prm.prune_window_s == window
+    if window is not None:
+        assert (prm.prune_window_s, prm.prune_min_obs) == presets.MRCLAM_NN_PRUNING == (2.0, 4.0)

@@ -78,7 +78,8 @@ def _parser(help_params: bool = False):
                    help="EKF-SLAM or FastSLAM 1.0 (default: ekf)")
     p.add_argument("--ids", choices=("known", "hidden"), default="known",
                    help="MRCLAM: use the barcode ids, or hide them and associate by "
-                        "Mahalanobis distance (default: known)")
+                        "Mahalanobis distance (EKF: capacity 64, tentative landmarks not matched "
+                        "4 times within 2 s pruned; default: known)")
     p.add_argument("--calibrated", action="store_true",
                    help="mrclam: correct the camera's bearing-dependent range error and the 0.2 s "
                         "odometry delay (fitted on the first half of robot 1) and use the matching "

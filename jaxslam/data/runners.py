@@ -635,7 +635,8 @@ def run_mrclam(data_dir, robot=1, filter="ekf", ids="known", anchors=None, parti
     for every robot); ``params``: a ``--params`` object (``jaxslam tune mrclam``) replacing it.
     ``calibrated``: apply the camera range model and odometry delay fitted on the first half
     of robot 1 (``presets.mrclam_log``) with the matching tight noise (EKF preset;
-    FastSLAM keeps its own R).
+    FastSLAM keeps its own R).  The EKF with ids hidden prunes tentative landmarks
+    (``presets.MRCLAM_NN_PRUNING``) unless ``params`` sets ``prune_window_s``.
     """
     from ..dynamics import planar
     from ..systems import planar_ekf_slam as pe
@@ -657,10 +658,14 @@ def run_mrclam(data_dir, robot=1, filter="ekf", ids="known", anchors=None, parti
     load_s = time.perf_counter() - t0
     assoc = "known" if ids == "known" else "nn"
     prm = presets.mrclam_params(robot, dtype=dtype, corrected=calibrated)
+    noise = {} if params is None else dataset_params(params, "mrclam")
+    if assoc != "known" and "prune_window_s" not in noise:  # ids hidden: spurious landmarks pruned
+        prm = prm._replace(prune_window_s=presets.MRCLAM_NN_PRUNING[0], prune_min_obs=presets.MRCLAM_NN_PRUNING[1])
     if params is not None:
-        prm = pe.params_from_dict(dataset_params(params, "mrclam"), prm, dtype=dtype, where="--params: noise")
+        prm = pe.params_from_dict(noise, prm, dtype=dtype, where="--params: noise")
+    config = presets.mrclam_config(association=assoc)
     pose, lm, counts, comp_s, run_s, status, smoothed = _planar_run(
-        log, pose0, filter, presets.mrclam_config(association=assoc), prm,
+        log, pose0, filter, config, prm,
         lambda n: _mrclam_fastslam(robot, n, assoc), particles, seed, dtype, smooth=smooth)
     dr = np.asarray(dead_reckoning(planar.unicycle, jnp.asarray(pose0), log.u, log.dt))
     m, ev = evaluate_planar(log.t, pose, d.gt_t, d.gt, dr_pose=dr, lm=lm["xy"],
@@ -687,6 +692,7 @@ def run_mrclam(data_dir, robot=1, filter="ekf", ids="known", anchors=None, parti
     notes = ([f"evaluated at the {m['eval_samples']} ground-truth samples inside the run"]
              + _window_notes(log) + _divergence_notes(status))
     if filter == "ekf":
+        cfg["capacity"] = int(config.capacity)
         cfg["noise"] = "--params file" if params is not None else (
             "calibrated preset" if calibrated else "learned: jaxslam tune mrclam on robots 1-5 (docs/datasets.md)")
     return DatasetRun("mrclam", cfg, m, counts, {"load_s": load_s, "compile_s": comp_s, "run_s": run_s},
