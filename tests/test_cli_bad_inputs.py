@@ -59,6 +59,7 @@ def _files(tmp: pathlib.Path) -> None:
         "dskey": {"dataset": "mrclam", "noise": {"sigma_nope": 1}},
         "inverted": {"dataset": "mrclam", "noise": {"range_min": 5, "range_max": 1}},
         "prunefrac": {"dataset": "mrclam", "noise": {"prune_window_s": 2, "prune_min_obs": 2.5}},
+        "dsnotpd": {"dataset": "mrclam", "noise": {"R": [-1, 1]}},
     }
     for name, doc in docs.items():
         (tmp / f"{name}.json").write_text(doc if isinstance(doc, str) else json.dumps(doc))
@@ -132,6 +133,7 @@ def _cases(t: pathlib.Path) -> list:
         (["dataset", "mrclam", "--data", d, "--params", p("dskey")], "sigma_nope", None),
         (["dataset", "mrclam", "--data", d, "--params", p("inverted")], "range_min", None),
         (["dataset", "mrclam", "--data", d, "--params", p("prunefrac")], "prune_min_obs", None),
+        (["dataset", "mrclam", "--data", d, "--params", p("dsnotpd")], "--params: noise.R", None),
         (["dataset", "util-uwb", "--data", d, "--json", str(t / "same.out"), "--tum", str(t / "same.out")],
          "--tum", None),  # two outputs on one file: the later would replace the earlier
         (["dataset", "mrclam", "--data", d, "--filter", "fastslam", "--params", p("dsfile")], "--params", None),

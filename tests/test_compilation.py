@@ -72,6 +72,9 @@ def test_unwritable_folder_warns_once_and_runs_uncached(tmp_path, keep_cache):
     assert p.returncode == 0, p.stderr
     lines = [ln for ln in p.stderr.splitlines() if "cannot be written" in ln]
     assert len(lines) == 1, p.stderr
+    # one line in all (no file:line header, no source line), said as a warning
+    assert lines[0].startswith("jaxslam: warning: compilation cache folder"), p.stderr
+    assert not [ln for ln in p.stderr.splitlines() if "CacheWarning" in ln or "enable_cache" in ln], p.stderr
     assert rep["timing"]["cache"]["dir"] is None and rep["timing"]["cache"]["hits"] == 0
 
 

@@ -124,12 +124,33 @@ def _dispatch(argv: list[str]) -> int:
                      f"dataset, cache; see '{PROG} --help')")
 
 
+def _one_line_warnings() -> None:
+    """On the command line, jaxslam's own warnings (their text starts with ``jaxslam:``, e.g. an
+    unwritable cache folder) print as one ``jaxslam: warning: ...`` line on stderr, not as
+    Python's file:line header plus a source line; other warnings keep Python's format."""
+    import warnings
+
+    if getattr(warnings.showwarning, "_jaxslam", False):
+        return
+    default = warnings.showwarning
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        text = str(message)
+        if not text.startswith(PROG + ":"):
+            return default(message, category, filename, lineno, file, line)
+        print(f"{PROG}: warning:{text[len(PROG) + 1:]}", file=sys.stderr if file is None else file)
+
+    show._jaxslam = True
+    warnings.showwarning = show
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``jaxslam`` console script and ``python -m jaxslam``.
 
     Returns:
       The exit code: 0 success, 2 usage or input error, 1 internal failure, 130 interrupted.
     """
+    _one_line_warnings()
     # An entry point configures the process (OpenBLAS pinned, XLA workaround flags, the persistent
     # compilation cache) before NumPy/SciPy load and JAX starts its backend; importing this package
     # does nothing of the kind (see jaxslam.runtime, README "Performance").

@@ -236,12 +236,13 @@ def dataset_params(obj, name: str) -> dict:
 
         (presets.util_params_from_dict if name == "util-uwb" else presets.plaza_params_from_dict)(obj["noise"])
         return obj["noise"]
-    from ..systems.planar_ekf_slam import Params, check_thresholds
+    from ..systems.planar_ekf_slam import Params, check_matrices, check_thresholds
 
     unknown = sorted(set(obj["noise"]) - set(Params._fields))
     if unknown:
         raise InputError(f"--params: noise: unknown key(s) {unknown}; expected some of {list(Params._fields)}")
     check_thresholds(obj["noise"])  # gates, limits, pruning: before any log is read or compiled
+    check_matrices(obj["noise"], "--params: noise")  # shapes and definiteness, likewise
     return obj["noise"]
 
 

@@ -761,7 +761,6 @@ def _pose_difference(a, b):
 # Parameter files (``jaxslam tune`` writes them, ``jaxslam dataset --params`` reads them)
 # ---------------------------------------------------------------------------
 
-_MATRIX_FIELDS = ("M_c", "Q_floor", "R", "P0", "calib_P0", "calib_Q")
 
 
 def params_to_dict(params: Params) -> dict:
@@ -808,10 +807,14 @@ def params_from_dict(d: dict, base: Params, dtype=np.float64, where: str = "para
             a = np.asarray(v, np.float64)
         except (TypeError, ValueError):
             raise InputError(f"{where}.{k}: expected numbers, got {v!r}") from None
-        if k in _MATRIX_FIELDS and a.ndim == 1:
+        if k in _MATRIX_SHAPES and a.ndim == 1:
             a = np.diag(a)
         vals[k] = jnp.asarray(a, dtype)
-    return validate_params(Params(**vals))
+    try:
+        return validate_params(Params(**vals))
+    except InputError as e:  # name the entry where it came from (e.g. "--params: noise.R")
+        msg = str(e)
+        raise InputError(where + msg[len("params"):] if msg.startswith("params.") else msg) from None
 
 
 def config_to_dict(config: Config) -> dict:
@@ -847,23 +850,40 @@ def validate_config(config: Config) -> Config:
     return config
 
 
+#: shapes of the matrix fields of :class:`Params` (R positive definite, the rest PSD)
+_MATRIX_SHAPES = {"M_c": (2, 2), "Q_floor": (3, 3), "R": (2, 2), "P0": (3, 3), "calib_P0": (3, 3),
+                  "calib_Q": (3, 3)}
+
+
+def check_matrices(values: dict, where: str = "params", diagonal_ok: bool = True) -> None:
+    """The matrix fields among ``values`` (name -> matrix, with ``diagonal_ok`` also its diagonal
+    as a list, as a ``--params`` file may give it; None for an optional calibration matrix):
+    shape and positive (semi-)definiteness, in NumPy on the host, so a ``--params`` file is
+    checked before any log is read or any program compiles; raises :class:`InputError` naming
+    ``where.name``."""
+    for name, shp in _MATRIX_SHAPES.items():
+        if name not in values or (values[name] is None and name.startswith("calib")):
+            continue
+        try:
+            a = np.asarray(values[name], np.float64)
+        except (TypeError, ValueError):
+            raise InputError(f"{where}.{name}: expected numbers, got {values[name]!r}") from None
+        if diagonal_ok and a.ndim == 1 and a.shape == shp[:1]:
+            a = np.diag(a)
+        if a.shape != shp:
+            raise InputError(f"{where}.{name}: expected shape {shp}, got {a.shape}")
+        check_psd(a, f"{where}.{name}", strict=(name == "R"))
+
+
 def validate_params(params: Params) -> Params:
     """Shapes (M_c (2,2), Q_floor (3,3), R (2,2), P0 (3,3)); PSD, R positive definite; the
     thresholds as :func:`check_thresholds` (scalars, not NaN; 0 < gate ≤ new_threshold,
     range_min < range_max, bearing_min < bearing_max; with pruning a positive window and a whole
     prune_min_obs ≥ 1)."""
-    for name, shp in (("M_c", (2, 2)), ("Q_floor", (3, 3)), ("R", (2, 2)), ("P0", (3, 3)),
-                      ("calib0", (3,)), ("calib_P0", (3, 3)), ("calib_Q", (3, 3))):
-        if getattr(params, name) is None and name.startswith("calib"):
-            continue
-        a = np.asarray(getattr(params, name))
-        if name == "calib0":
-            if a.shape != shp or not np.all(np.isfinite(a)):
-                raise InputError(f"params.calib0: expected a finite shape {shp}, got {a!r}")
-            continue
-        if a.shape != shp:
-            raise InputError(f"params.{name}: expected shape {shp}, got {a.shape}")
-        check_psd(a, f"params.{name}", strict=(name == "R"))
+    a = params.calib0
+    if a is not None and (np.shape(a) != (3,) or not np.all(np.isfinite(np.asarray(a)))):
+        raise InputError(f"params.calib0: expected a finite shape (3,), got {np.asarray(a)!r}")
+    check_matrices({k: getattr(params, k) for k in _MATRIX_SHAPES}, "params", diagonal_ok=False)
     if params.range_model is not None:
         a = np.asarray(params.range_model, np.float64)
         if a.shape not in ((2,), (3,)) or not np.all(np.isfinite(a)) or a[0] <= 0:
