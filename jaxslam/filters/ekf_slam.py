@@ -526,12 +526,14 @@ def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
     slots = slots.astype(jnp.int32)
     in_range = (slots >= 0) & (slots < cap)  # −1 (or any slot outside the map): no landmark
     slots = jnp.clip(slots, 0, cap - 1)
-    R = jnp.broadcast_to(jnp.asarray(R, dtype), (K, dz, dz))
+    R = _rows_R(R, mask, K, dz, dtype)
 
     finite = jnp.all(jnp.isfinite(z), axis=-1)
     valid = mask & in_range & state.active[slots] & finite
     bad_input = (mask & in_range & state.active[slots] & ~finite) | (mask & ~in_range)
     z_safe = jnp.where(valid[:, None], z, 0.0).astype(dtype)
+    # a row not used may carry any R, NaN included: it must not reach the joint S (0 · NaN)
+    R = jnp.where(valid[:, None, None], R, jnp.eye(dz, dtype=dtype))
 
     s = state.x[:nr]
     P = state.P
@@ -883,7 +885,7 @@ def update_robot(state: SlamState, model: SlamModel, observe, z, mask, R, params
     res = (residual if residual is not None else (lambda a, b: a - b))(z_safe, zh)
     v = valid.astype(dtype)
     VV = v[:, None] * v[None, :]
-    R_used = jnp.asarray(R, dtype) * VV
+    R_used = jnp.where(VV > 0, jnp.asarray(R, dtype), 0.0)  # a masked component's R (NaN too) unread
     PHt = (state.P[:, :nr] @ Hs.T) * v[None, :]  # (n, dz)
     S = (Hs @ PHt[:nr]) * VV + R_used + jnp.diag(1.0 - v)
     nu = res * v
@@ -999,6 +1001,7 @@ def register(state: SlamState, model: SlamModel, z, lm_ids, mask, R, params=None
     if model.inverse is None:
         raise ValueError("register: this model has no inverse observation; use add_landmark")
     mask = jnp.asarray(mask, bool)
+    R = _rows_R(R, mask, z.shape[0], model.meas_dim, state.x.dtype)
     any_cand = _batch_max(jnp.any(mask).astype(jnp.int32)) > 0
     any_free = _batch_max(jnp.any(~state.active).astype(jnp.int32)) > 0
     # Two branches, P untouched in the second (no candidate: it counts none).  A three-way
@@ -1026,6 +1029,21 @@ def _count_refused(state: SlamState, over, bad) -> SlamState:
         | _flag_if(jnp.any(over), errors.CAPACITY_OVERFLOW)
         | _flag_if(jnp.any(bad), errors.MASKED_INPUT),
     )
+
+
+def _rows_R(R, mask, K: int, dz: int, dtype):
+    """R as one (dz, dz) matrix per measurement row, (K, dz, dz).  Called eagerly (R and the mask
+    concrete), a shape that does not fit, or a matrix of a row in use that is not symmetric
+    positive definite, is an :class:`InputError` naming ``R`` (under ``jit`` a bad R shows as a
+    failed Cholesky: the update is rejected and flagged ``NOT_PSD``)."""
+    shape = tuple(jnp.shape(R))
+    if shape not in ((), (dz, dz), (K, dz, dz)):
+        raise InputError(f"R: expected shape ({dz}, {dz}) or ({K}, {dz}, {dz}), got {shape}")
+    R = jnp.broadcast_to(jnp.asarray(R, dtype), (K, dz, dz))
+    if is_concrete(R) and is_concrete(mask):
+        check_psd(R, "R", strict=True, stack=True,
+                  valid=np.broadcast_to(np.asarray(mask, bool)[:, None], (K, dz)))
+    return R
 
 
 def _register(state: SlamState, model: SlamModel, z, lm_ids, mask, R, params) -> SlamState:

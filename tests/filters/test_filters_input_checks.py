@@ -206,3 +206,25 @@ def test_monte_carlo_checks_chunk_and_the_detail_entry():
         monte_carlo.run(fn, 0, 0)
     with pytest.raises(InputError, match=r"^fn: with detail=True it must return a dict holding a 'detail'"):
         monte_carlo.run(fn, 0, 2, detail=True)
+
+
+def test_eager_update_and_register_name_a_bad_r_and_jit_flags_it():
+    m = _model()
+    st = es.init(jnp.zeros(1), 0.01 * jnp.eye(1), 4, 1)
+    st = es.preload(st, m, jnp.array([[2.0], [5.0]]), 0.1 * jnp.ones((2, 1, 1)))
+    z, slots, on = jnp.array([[2.1], [4.9]]), jnp.array([0, 1]), jnp.array([True, True])
+    for R, needle in ((-0.01 * jnp.eye(1), "R[0]: not positive definite"),
+                      (jnp.ones((3, 1, 1)), "R: expected shape (1, 1) or (2, 1, 1)"),
+                      (jnp.array([[[0.01]], [[jnp.nan]]]), "R[1]")):
+        with pytest.raises(InputError, match=needle.replace("(", r"\(").replace(")", r"\)").replace("[", r"\[")):
+            es.update(st, m, z, slots, on, R)
+        with pytest.raises(InputError, match=needle.replace("(", r"\(").replace(")", r"\)").replace("[", r"\[")):
+            es.register(st, m, z, jnp.array([7, 8]), on, R)
+    # a masked row's R is not read: NaN there is fine
+    R = jnp.array([[[0.01]], [[jnp.nan]]])
+    post, info = es.update(st, m, z, slots, jnp.array([True, False]), R)
+    assert np.asarray(info.used).tolist() == [True, False] and np.all(np.isfinite(np.asarray(post.P)))
+    # under jit R is not concrete: a non-PD R rejects the update and flags it
+    post, info = jax.jit(lambda R: es.update(st, m, z, slots, on, R))(-0.5 * jnp.eye(1))
+    assert "not_psd" in errors.decode(post.status)
+    np.testing.assert_array_equal(np.asarray(post.x), np.asarray(st.x))
