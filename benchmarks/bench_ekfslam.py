@@ -12,7 +12,8 @@ Run with ``python -m jaxslam bench ekfslam [--json PATH] [--plots DIR] [options]
    * one full frame (10 predictions + ``correct`` with max_obs = 16: update of
      the mapped, registration of the unmapped) at 200 mapped landmarks, with the
      default covariance form of ``ekf_slam_3d.Config`` (eq. 43, P − K S Kᵀ) and with
-     the factored Joseph form (``Config(joseph=True)``: twice the correction's products).
+     the factored Joseph form (``Config(joseph=True)``: twice the correction's products),
+     each against the twin doing the same form.
    Each JAX operation is jitted in isolation and timed two ways: ``call`` —
    one jitted call per operation with the state donated (what a user who calls
    the step from Python pays, dispatch included), and ``scan`` — the same
@@ -23,10 +24,11 @@ Run with ``python -m jaxslam bench ekfslam [--json PATH] [--plots DIR] [options]
 ``full``   a whole flight (default 50 s: 5000 IMU steps, 500 LiDAR frames) as ONE
    jitted :func:`jaxslam.systems.ekf_slam_3d.run` scan vs the NumPy twin on the same log, at
    capacities 16, 64, 256, with the default form (eq. 43, P − K S Kᵀ) and the Joseph form
-   (``jaxslam-joseph-form``); both filters' estimates are compared (max |Δ|).  A second reference:
+   (``jaxslam-joseph-form``), each timed against the twin doing the same form (the twin's
+   ``joseph``); both filters' estimates are compared (max |Δ|).  A second reference:
    the twin doing the same leading-active-block update; each run's FLOP count (per frame
    2 n² m for the mapped state, per step 2 n_r² n) is in the JSON, and the frame case of the
-   study reports its floor, its own n²·m product timed.  The repeats of the four methods are
+   study reports its floor, its own n²·m product timed.  The repeats of the five methods are
    interleaved; the capacity 256 / 64 time ratio comes from ``--pairs`` alternating calls of
    the two compiled runs (the ratio of two medians taken minutes apart moved by ±0.1 with the
    machine's load).
@@ -357,8 +359,9 @@ def run_study(args, noise, results, out):
     def fresh(st):
         return jax.tree.map(jnp.copy, st)
 
-    def twin_from(x, P, active, ids, cap):
-        return tw.NumpyEkfSlam3D(noise, x[:9], cap, max_obs=16, dt=DT, g=G).set_state(x, P, active, ids)
+    def twin_from(x, P, active, ids, cap, joseph=False):  # the twin in the system's form (eq. 43)
+        return tw.NumpyEkfSlam3D(noise, x[:9], cap, max_obs=16, dt=DT, g=G,
+                                 joseph=joseph).set_state(x, P, active, ids)
 
     def prop(st, a, b):
         Qd = sys3d.process_noise(st.x[:9], 0.5 * (a + b), noise, DT, G)
@@ -494,6 +497,8 @@ def run_study(args, noise, results, out):
         t.correct(y, idl, vis)
 
     t_np = _median_np(np_frame, lambda: (twin.copy(),), calls)
+    twin_j = twin_from(x, P, active, ids, cap, joseph=True)
+    t_np_jos = _median_np(np_frame, lambda: (twin_j.copy(),), calls)
     # The floor (issue 19): one n²·m product, n the mapped state, m the mapped rows' scalars.
     n_f, m_f = 9 + 3 * Nf, 3 * k_m
     floor_s, floor_flops = _matmul_floor(n_f, m_f)
@@ -501,7 +506,7 @@ def run_study(args, noise, results, out):
                       "rows_matched": rows_matched,
                       "max_obs": 16, "predictions": LIDAR_EVERY, "jax_call_s": t_call, "jax_scan_s": t_scan,
                       "jax_call_joseph_form_s": t_call_jos, "jax_scan_joseph_form_s": t_scan_jos,
-                      "numpy_s": t_np, "floor": {
+                      "numpy_s": t_np, "numpy_joseph_form_s": t_np_jos, "floor": {
                           "what": f"one ({n_f}, {m_f}) @ ({m_f}, {n_f}) float64 product, jitted, median",
                           "flops": floor_flops, "s": floor_s, "gflops": floor_flops / floor_s / 1e9,
                           "fraction_call": floor_s / t_call, "fraction_scan": floor_s / t_scan}}
@@ -511,7 +516,7 @@ def run_study(args, noise, results, out):
         results.append(_row(f"frame/{mode} N={Nf}", fparams, t, "numpy twin (1 call)", t_np))
     for mode, t in (("call", t_call_jos), ("scan", t_scan_jos)):
         results.append(_row(f"frame/{mode} N={Nf} Joseph form (joseph=True)", fparams, t,
-                            "numpy twin (1 call)", t_np))
+                            "numpy twin, Joseph form (1 call)", t_np_jos))
     out["study"] = study
     out["targets"].append({"name": f"frame step (10 predicts + update + registration), {Nf} mapped, "
                                    f"one jitted call, default form P − K S Kᵀ (the floor's product: "
@@ -571,10 +576,10 @@ def _plot_study(study, directory):
 # Part b: full run
 # ---------------------------------------------------------------------------
 
-def _run_twin(tw, log, noise, cap, active_block=False):
+def _run_twin(tw, log, noise, cap, active_block=False, joseph=False):
     return tw.run_log(noise, log["s0"], log["imu"], log["y"], log["ids"], log["visible"],
                       log["lidar_every"], capacity=cap, max_obs=16, dt=log["dt"], g=G,
-                      active_block=active_block)
+                      active_block=active_block, joseph=joseph)
 
 
 def _get_log(args):
@@ -622,7 +627,7 @@ def run_full(args, noise, results, out, threads_label):
         # Repeats interleaved (both forms, the twin, the active-block twin, in turn), so a change
         # of the machine's load hits every method alike and the speedups compare like with like.
         ts = {name: [] for name in runners}
-        tn, ta = [], []
+        tn, tj, ta = [], [], []
         for _ in range(args.repeats):
             for name, fn in runners.items():
                 t0 = time.perf_counter()
@@ -631,6 +636,9 @@ def run_full(args, noise, results, out, threads_label):
             t0 = time.perf_counter()
             flt, means = _run_twin(tw, log, noise, cap)
             tn.append(time.perf_counter() - t0)
+            t0 = time.perf_counter()  # the twin in the Joseph form: the reference of that row
+            _run_twin(tw, log, noise, cap, joseph=True)
+            tj.append(time.perf_counter() - t0)
             t0 = time.perf_counter()  # the twin doing the same leading-active-block work
             _run_twin(tw, log, noise, cap, active_block=True)
             ta.append(time.perf_counter() - t0)
@@ -638,12 +646,14 @@ def run_full(args, noise, results, out, threads_label):
                  for name in runners}
         t_np = float(np.median(tn))
         row = {"capacity": cap, "numpy_s": t_np, "numpy_min_s": float(np.min(tn)),
+               "numpy_joseph_form_s": float(np.median(tj)),
                "numpy_active_block_s": float(np.median(ta)),
                "mapped_final": int(flt.active.sum()), "overflow": int(flt.overflow)}
         params = {"capacity": cap, "duration_s": args.duration, "imu_steps": F * log["lidar_every"],
                   "frames": F, "max_obs": 16, "mode": "unknown", "log": log["source"],
                   "openblas_threads": threads_label}
         for name, (med, mn, comp, res) in timed.items():
+            ref = t_np if name == "jaxslam" else row["numpy_joseph_form_s"]  # the twin doing the same form
             agree = {"max_abs_means": float(np.max(np.abs(np.asarray(res[2]) - means))),
                      "max_abs_x": float(np.max(np.abs(np.asarray(res[0]) - flt.x))),
                      "max_abs_P": float(np.max(np.abs(np.asarray(res[1]) - flt.P)))}
@@ -653,11 +663,12 @@ def run_full(args, noise, results, out, threads_label):
             n_st = 9.0 + 3.0 * n_act
             flops = float(np.sum(2.0 * n_st ** 2 * np.asarray(res[4], float))
                           + np.sum(2.0 * 81.0 * n_st) * log["lidar_every"])
-            row[name] = {"median_s": med, "min_s": mn, "compile_s": comp, "speedup": t_np / med,
+            row[name] = {"median_s": med, "min_s": mn, "compile_s": comp, "speedup": ref / med,
                          "speedup_vs_active_block_twin": row["numpy_active_block_s"] / med,
                          "floor_flops": flops, "agreement_with_twin": agree}
             results.append(_row(f"full run cap={cap} {name} [OpenBLAS {threads_label}]", params, med,
-                                f"numpy twin, OpenBLAS {threads_label}", t_np, jaxslam_compile_s=comp,
+                                f"numpy twin{'' if name == 'jaxslam' else ', Joseph form'}, OpenBLAS "
+                                f"{threads_label}", ref, jaxslam_compile_s=comp,
                                 implementation="jaxslam.systems.ekf_slam_3d.run"
                                 + ("" if name == "jaxslam" else ", Config(joseph=True)"), agreement=agree))
         rows.append(row)

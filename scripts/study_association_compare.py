@@ -29,7 +29,7 @@ if which == "mrclam":
         log, pose0 = presets.mrclam_raw_log(d, K=8)
         prm = presets.mrclam_params(r, preset=sys.argv[2])
         for name, kw in (("nn", {}), ("nn+joint", {"joint_gate": 0.99}), ("jcbb", {"association": "jcbb"})):
-            cfg = presets.mrclam_config(association="nn")._replace(**kw)
+            cfg = presets.mrclam_config(association="nn", capacity=32)._replace(**kw)  # the table's capacity
             res, rt = timed(lambda: pe.run(pe.log_from_events(log, jnp.asarray(pose0)), cfg, prm))
             m, _ = evaluate_planar(log.t, np.asarray(res.pose), d.gt_t, d.gt)
             print(f"mrclam r{r} {name:9s} ATE {m['ate_m']:.3f} m  landmarks {int(np.sum(res.active))}  rejected {int(np.sum(res.n_rejected))}  run {rt:.2f} s", flush=True)

@@ -306,7 +306,7 @@ def part_slam(Ds):
                 log, pose0 = presets.mrclam_log(D, range_model=None, odometry_delay=0.0)
             prm = presets.mrclam_params(robot, corrected=corr)._replace(update_gate=13.8 if corr else 9.21)
             for assoc, cfgs in (("known", [(presets.mrclam_config(), prm)]),
-                                ("nn", [(presets.mrclam_config("nn"), prm),
+                                ("nn", [(presets.mrclam_config("nn", capacity=32), prm),
                                         (presets.mrclam_config("nn", capacity=48), prm),
                                         (presets.mrclam_config("nn", capacity=48), prm._replace(new_threshold=60.0))])):
                 for cfg, prm_c in cfgs:

@@ -43,6 +43,7 @@ Decisions
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
 
@@ -124,14 +125,14 @@ def _dispatch(argv: list[str]) -> int:
                      f"dataset, cache; see '{PROG} --help')")
 
 
-def _one_line_warnings() -> None:
-    """On the command line, jaxslam's own warnings (their text starts with ``jaxslam:``, e.g. an
+@contextlib.contextmanager
+def _one_line_warnings():
+    """While a command runs, jaxslam's own warnings (their text starts with ``jaxslam:``, e.g. an
     unwritable cache folder) print as one ``jaxslam: warning: ...`` line on stderr, not as
-    Python's file:line header plus a source line; other warnings keep Python's format."""
+    Python's file:line header plus a source line; other warnings keep Python's format.  The
+    previous handler is restored afterwards (``main`` may be called in-process)."""
     import warnings
 
-    if getattr(warnings.showwarning, "_jaxslam", False):
-        return
     default = warnings.showwarning
 
     def show(message, category, filename, lineno, file=None, line=None):
@@ -140,8 +141,12 @@ def _one_line_warnings() -> None:
             return default(message, category, filename, lineno, file, line)
         print(f"{PROG}: warning:{text[len(PROG) + 1:]}", file=sys.stderr if file is None else file)
 
-    show._jaxslam = True
     warnings.showwarning = show
+    try:
+        yield
+    finally:
+        if warnings.showwarning is show:
+            warnings.showwarning = default
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -150,7 +155,11 @@ def main(argv: list[str] | None = None) -> int:
     Returns:
       The exit code: 0 success, 2 usage or input error, 1 internal failure, 130 interrupted.
     """
-    _one_line_warnings()
+    with _one_line_warnings():
+        return _main(argv)
+
+
+def _main(argv):
     # An entry point configures the process (OpenBLAS pinned, XLA workaround flags, the persistent
     # compilation cache) before NumPy/SciPy load and JAX starts its backend; importing this package
     # does nothing of the kind (see jaxslam.runtime, README "Performance").

@@ -476,7 +476,9 @@ def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
         and counted (``MASKED_INPUT``).
       mask: (K,) bool measurement present.  Measurements of inactive slots are dropped;
         those with non-finite entries too, counted via ``MASKED_INPUT``.
-      R: (d_z, d_z) or (K, d_z, d_z) measurement covariance.
+      R: (d_z, d_z) or (K, d_z, d_z) measurement covariance (a row the mask leaves out is not
+        read, NaN included); called eagerly, a wrong shape or a selected row's R that is not
+        symmetric PSD is an :class:`InputError` naming ``R[k]``.
       gate: optional chi-square threshold on each measurement's own NIS
         (d_z dof); gated measurements are dropped and flagged ``GATED``.
       robust: optional degrees of freedom ν (scalar, traced) of a Student-t measurement
@@ -986,7 +988,8 @@ def register(state: SlamState, model: SlamModel, z, lm_ids, mask, R, params=None
     P_{l_k x} = G_s,k P_s,: (eq. 50) and P_{l_j l_k} = G_s,j P_ss G_s,kᵀ (j ≠ k).
     The k-th valid candidate takes the k-th free slot (lowest index first).  A
     candidate with no free slot increments ``overflow`` and sets
-    ``CAPACITY_OVERFLOW`` — never silently lost.  Non-finite measurements are
+    ``CAPACITY_OVERFLOW`` — never silently lost.  ``R`` as :func:`update`'s (checked the same
+    way when called eagerly).  Non-finite measurements are
     skipped and flagged ``MASKED_INPUT``; a candidate whose landmark or
     covariance is non-finite is skipped and takes no slot.
 
@@ -1032,17 +1035,24 @@ def _count_refused(state: SlamState, over, bad) -> SlamState:
 
 
 def _rows_R(R, mask, K: int, dz: int, dtype):
-    """R as one (dz, dz) matrix per measurement row, (K, dz, dz).  Called eagerly (R and the mask
-    concrete), a shape that does not fit, or a matrix of a row in use that is not symmetric
-    positive definite, is an :class:`InputError` naming ``R`` (under ``jit`` a bad R shows as a
-    failed Cholesky: the update is rejected and flagged ``NOT_PSD``)."""
+    """R as one (dz, dz) matrix per measurement row, (K, dz, dz), from (dz, dz), (1 or K, dz, dz)
+    or, for dz = 1, a scalar.  A shape that does not fit is an :class:`InputError` naming ``R``;
+    called eagerly (R and the mask concrete), so is a matrix of a row the mask selects that is not
+    symmetric positive semi-definite (under ``jit`` such an R is not caught here: the update is
+    rejected and flagged ``NOT_PSD`` only if the innovation covariance fails its Cholesky)."""
     shape = tuple(jnp.shape(R))
-    if shape not in ((), (dz, dz), (K, dz, dz)):
-        raise InputError(f"R: expected shape ({dz}, {dz}) or ({K}, {dz}, {dz}), got {shape}")
+    if not (shape in ((dz, dz), (1, dz, dz), (K, dz, dz)) or (dz == 1 and shape in ((), (1,), (K, 1)))):
+        raise InputError(f"R: expected shape ({dz}, {dz}) or ({K}, {dz}, {dz})"
+                         + (" or a scalar" if dz == 1 else "") + f", got {shape}")
+    if dz == 1 and len(shape) < 3:
+        R = jnp.reshape(jnp.asarray(R), (-1, 1, 1))
     R = jnp.broadcast_to(jnp.asarray(R, dtype), (K, dz, dz))
     if is_concrete(R) and is_concrete(mask):
-        check_psd(R, "R", strict=True, stack=True,
-                  valid=np.broadcast_to(np.asarray(mask, bool)[:, None], (K, dz)))
+        try:
+            rows = np.broadcast_to(np.asarray(mask, bool), (K,))
+        except ValueError:
+            raise InputError(f"mask: expected shape ({K},), got {tuple(np.shape(mask))}") from None
+        check_psd(R, "R", stack=True, valid=np.broadcast_to(rows[:, None], (K, dz)))
     return R
 
 

@@ -762,7 +762,6 @@ def _pose_difference(a, b):
 # ---------------------------------------------------------------------------
 
 
-
 def params_to_dict(params: Params) -> dict:
     """JSON-ready ``{field: value}`` of the set fields (matrices as nested lists)."""
     out = {}
@@ -864,8 +863,9 @@ def check_matrices(values: dict, where: str = "params", diagonal_ok: bool = True
     for name, shp in _MATRIX_SHAPES.items():
         if name not in values or (values[name] is None and name.startswith("calib")):
             continue
-        try:
-            a = np.asarray(values[name], np.float64)
+        try:  # in its own floating dtype: check_psd allows a float32 matrix its rounding
+            a = np.asarray(values[name])
+            a = a if np.issubdtype(a.dtype, np.floating) else a.astype(np.float64)
         except (TypeError, ValueError):
             raise InputError(f"{where}.{name}: expected numbers, got {values[name]!r}") from None
         if diagonal_ok and a.ndim == 1 and a.shape == shp[:1]:

@@ -106,8 +106,9 @@ def test_hand_jacobians_of_the_lidar_model_and_its_inverse_match_autodiff():
 
 CASES = [
     # mode, noise, capacity, max_obs, joseph: registration with room and more visible landmarks
-    # than max_obs (compaction); registration overflowing; known map; the engine's standard
-    # covariance form (P − K S Kᵀ) against the twin's Joseph form
+    # than max_obs (compaction); registration overflowing; known map; the system's default
+    # covariance form (eq. 43, P − K S Kᵀ); each against the twin's same form, and the twin's
+    # two forms against each other
     ("unknown", "imu", 16, 4, True),
     pytest.param("unknown", "imu", 5, 16, True, marks=pytest.mark.slow),
     ("known", "paper", 48, 16, True),
@@ -137,7 +138,7 @@ def test_twin_reproduces_the_system_run(log, mode, q, capacity, max_obs, joseph)
     est, means = res.final, res.means
     flt, means_np = tw.run_log(noise, s0, log["imu"], log["y"], log["ids"], log["visible"],
                                log["lidar_every"], capacity=capacity, max_obs=max_obs, mode=mode,
-                               landmarks_true=lt)
+                               landmarks_true=lt, joseph=joseph)
     slam = est.slam
     if mode == "unknown":
         assert int(est.masked) == 2
@@ -154,9 +155,15 @@ def test_twin_reproduces_the_system_run(log, mode, q, capacity, max_obs, joseph)
     # the twin's leading-active-block update (a benchmark option) is the same filter
     flt_b, means_b = tw.run_log(noise, s0, log["imu"], log["y"], log["ids"], log["visible"],
                                 log["lidar_every"], capacity=capacity, max_obs=max_obs, mode=mode,
-                                landmarks_true=lt, active_block=True)
+                                landmarks_true=lt, active_block=True, joseph=joseph)
     np.testing.assert_allclose(means_b, means_np, rtol=0, atol=TOL)
     np.testing.assert_allclose(flt_b.P, flt.P, rtol=0, atol=TOL)
+    if not joseph:  # the twin's two covariance forms are the same filter to rounding
+        flt_j, means_j = tw.run_log(noise, s0, log["imu"], log["y"], log["ids"], log["visible"],
+                                    log["lidar_every"], capacity=capacity, max_obs=max_obs, mode=mode,
+                                    landmarks_true=lt, joseph=True)
+        np.testing.assert_allclose(means_j, means_np, rtol=0, atol=TOL)
+        np.testing.assert_allclose(flt_j.P, flt.P, rtol=0, atol=TOL)
     err = means_np[-1] - log["truth"][-1]
     err[6:9] = np.mod(err[6:9] + np.pi, 2 * np.pi) - np.pi
     assert np.max(np.abs(err)) < 0.5

@@ -213,13 +213,18 @@ def test_eager_update_and_register_name_a_bad_r_and_jit_flags_it():
     st = es.init(jnp.zeros(1), 0.01 * jnp.eye(1), 4, 1)
     st = es.preload(st, m, jnp.array([[2.0], [5.0]]), 0.1 * jnp.ones((2, 1, 1)))
     z, slots, on = jnp.array([[2.1], [4.9]]), jnp.array([0, 1]), jnp.array([True, True])
-    for R, needle in ((-0.01 * jnp.eye(1), "R[0]: not positive definite"),
+    for R, needle in ((-0.01 * jnp.eye(1), "R[0]: not positive semi-definite"),
                       (jnp.ones((3, 1, 1)), "R: expected shape (1, 1) or (2, 1, 1)"),
                       (jnp.array([[[0.01]], [[jnp.nan]]]), "R[1]")):
         with pytest.raises(InputError, match=needle.replace("(", r"\(").replace(")", r"\)").replace("[", r"\[")):
             es.update(st, m, z, slots, on, R)
         with pytest.raises(InputError, match=needle.replace("(", r"\(").replace(")", r"\)").replace("[", r"\[")):
             es.register(st, m, z, jnp.array([7, 8]), on, R)
+    # R broadcast from (1, dz, dz) or, for dz = 1, a scalar; R = 0 (a noise-free row) is allowed
+    for R in (0.01 * jnp.ones((1, 1, 1)), 0.01, jnp.zeros((1, 1))):
+        es.update(st, m, z, slots, on, R)
+    with pytest.raises(InputError, match=r"mask: expected shape \(2,\)"):
+        es.update(st, m, z, slots, jnp.array([True, False, True]), 0.01 * jnp.eye(1))
     # a masked row's R is not read: NaN there is fine
     R = jnp.array([[[0.01]], [[jnp.nan]]])
     post, info = es.update(st, m, z, slots, jnp.array([True, False]), R)

@@ -1,7 +1,7 @@
 """Vectorised NumPy twin of paper 000's EKF-SLAM (the reference of ``bench_ekfslam``).
 
 It runs exactly the filter of :func:`jaxslam.systems.ekf_slam_3d.run`
-(engine :mod:`jaxslam.filters.ekf_slam`), written the way a careful NumPy
+(engine :mod:`jaxslam.filters.ekf_slam`; ``joseph`` as ``Config.joseph``), written the way a careful NumPy
 programmer would, with **hand-derived Jacobians** (no autodiff anywhere), so
 that it is both the timing reference and an independent oracle of the JAX
 filter (``tests/benchmarks/test_bench_twin.py`` checks agreement to 1e-8).
@@ -24,8 +24,9 @@ Model (paper 000 eq. 1-3, 24-53, errata of docs/papers.md):
   β = atan2(c₃, √(c₁² + c₂²)), δ = ‖c‖), residual with α wrapped;
 * per LiDAR frame: the first ``max_obs`` visible measurements (in landmark
   order — the stable compaction of the JAX ``correct``), known-id association,
-  ONE joint update of the mapped ones from the gathered columns of P with the
-  factored Joseph form A − (A Hᵀ) Kᵀ + K R Kᵀ, A = P − K (P Hᵀ)ᵀ, symmetrised,
+  ONE joint update of the mapped ones from the gathered columns of P with
+  paper 000's eq. 43, P − K S Kᵀ = P − (K L)(K L)ᵀ (S = L Lᵀ; the system's default), or with
+  ``joseph=True`` the factored Joseph form A − (A Hᵀ) Kᵀ + K R Kᵀ, A = P − K (P Hᵀ)ᵀ, symmetrised,
   then sequential registration (eq. 44-53) of the unmapped ones into the first
   free slot: l = C ϱ(y) + ρ, P_ll = G_s P_ss G_sᵀ + G_y R G_yᵀ, P_lx = G_s P_s,: ;
   measurements outside the Table 4 FOV widened by 5σ (after the compaction)
@@ -38,7 +39,7 @@ slots fill first-free and inactive ones have zero covariance): the NumPy side of
 active-block engine, for a like-for-like comparison.  NumPy's natural advantage
 is kept: it processes only the measurements actually present (no static
 padding), and the Joseph form is grouped as A − (A Hᵀ − K R) Kᵀ (one n²·m
-product fewer, same algebra).  Numerical guards mirror the JAX engine: a
+product fewer, same algebra).  (``joseph`` defaults to False, the system's default.)  Numerical guards mirror the JAX engine: a
 non-finite prediction or update keeps the prior; non-finite measurements are
 skipped; a landmark with no free slot is counted in ``overflow``.
 """
@@ -291,8 +292,9 @@ class NumpyEkfSlam3D:
 
     def __init__(self, noise, s0, capacity, *, max_obs=16, dt=0.01, g=9.81,
                  accel_mode="3axis", mode="unknown", landmarks_true=None, fov=PAPER000_FOV,
-                 active_block=False):
+                 active_block=False, joseph=False):
         self.capacity = int(capacity)
+        self.joseph = bool(joseph)
         self.fov = fov
         self.active_block = bool(active_block)
         self.max_obs = int(max_obs)
@@ -397,10 +399,14 @@ class NumpyEkfSlam3D:
             return
         Kg = cho_solve(cf, PHt.T, check_finite=False).T  # (n, m) = P Hᵀ S⁻¹
         x_new = x + Kg @ nu
-        A = P - Kg @ PHt.T  # (I − K H) P
-        AHt = gather_ht(A)  # (I − K H) P Hᵀ
-        KR = (Kg.reshape(-1, k, 3) @ self.R).reshape(-1, m)
-        A -= (AHt - KR) @ Kg.T  # A − (A Hᵀ) Kᵀ + K R Kᵀ
+        if self.joseph:
+            A = P - Kg @ PHt.T  # (I − K H) P
+            AHt = gather_ht(A)  # (I − K H) P Hᵀ
+            KR = (Kg.reshape(-1, k, 3) @ self.R).reshape(-1, m)
+            A -= (AHt - KR) @ Kg.T  # A − (A Hᵀ) Kᵀ + K R Kᵀ
+        else:
+            U = Kg @ np.tril(cf[0])  # K L, S = L Lᵀ
+            A = P - U @ U.T  # eq. 43: P − K S Kᵀ (one n²·m product)
         if not (np.all(np.isfinite(x_new)) and np.all(np.isfinite(A))):
             return
         np.add(A, A.T, out=P)  # P may be a view of the leading block: written in place
@@ -454,7 +460,7 @@ class NumpyEkfSlam3D:
 
 def run_log(noise, s0, imu, y, ids, visible, lidar_every, *, capacity, max_obs=16, dt=0.01,
             g=9.81, accel_mode="3axis", mode="unknown", landmarks_true=None, fov=PAPER000_FOV,
-            active_block=False):
+            active_block=False, joseph=False):
     """Run the twin over a log with the layout of :class:`jaxslam.systems.ekf_slam_3d.Log`.
 
     imu: (T + 1, 6); y: (F, L, 3); ids: (L,) or (F, L); visible: (F, L); T = F·lidar_every.
@@ -466,7 +472,8 @@ def run_log(noise, s0, imu, y, ids, visible, lidar_every, *, capacity, max_obs=1
     F, L = visible.shape
     ids = np.broadcast_to(np.asarray(ids), (F, L))
     flt = NumpyEkfSlam3D(noise, s0, capacity, max_obs=max_obs, dt=dt, g=g, accel_mode=accel_mode,
-                         mode=mode, landmarks_true=landmarks_true, fov=fov, active_block=active_block)
+                         mode=mode, landmarks_true=landmarks_true, fov=fov, active_block=active_block,
+                         joseph=joseph)
     means = np.empty((F * lidar_every, NX))
     t = 0
     for f in range(F):

@@ -98,7 +98,7 @@ def test_tune_mrclam_writes_a_params_file_that_dataset_reads(tmp_path, run_cli):
     ({"dataset": "mrclam", "noise": {"R_typo": [1.0, 1.0]}}, r"unknown key\(s\) \['R_typo'\]"),
     ({"dataset": "mrclam", "noise": {}, "sigma": 1}, r"unknown key\(s\) \['sigma'\]"),
     ({"noise": {}}, r"missing key\(s\) \['dataset'\]"),
-    ({"dataset": "mrclam", "noise": {"R": [0.1, -1.0]}}, "params.R"),
+    ({"dataset": "mrclam", "noise": {"R": [0.1, -1.0]}}, "--params: noise.R"),
 ])
 def test_dataset_params_errors_name_the_key(tmp_path, run_cli, doc, match):
     f = tmp_path / "p.json"
