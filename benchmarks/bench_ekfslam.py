@@ -57,6 +57,7 @@ the machine was.
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import os
@@ -576,6 +577,10 @@ def _plot_study(study, directory):
 # Part b: full run
 # ---------------------------------------------------------------------------
 
+#: the full runs' jaxslam rows: name -> ``Config.joseph`` (the default form first)
+FORMS = {"jaxslam": False, "jaxslam-joseph-form": True}
+
+
 def _run_twin(tw, log, noise, cap, active_block=False, joseph=False):
     return tw.run_log(noise, log["s0"], log["imu"], log["y"], log["ids"], log["visible"],
                       log["lidar_every"], capacity=cap, max_obs=16, dt=log["dt"], g=G,
@@ -616,44 +621,43 @@ def run_full(args, noise, results, out, threads_label):
             res = sys3d.run(sys3d.Log(s0=s0, imu=imu, y=y, visible=vis, ids=ids), cfg, noise)
             return res.final.slam.x, res.final.slam.P, res.means, res.frames.n_active, res.frames.dof
 
-        def engine_jos(s0, imu, y, vis, cfg=cfg._replace(joseph=True)):
-            return engine(s0, imu, y, vis, cfg)
-
-        runners = {"jaxslam": jax.jit(engine), "jaxslam-joseph-form": jax.jit(engine_jos)}
+        runners = {name: jax.jit(functools.partial(engine, cfg=cfg._replace(joseph=j)))
+                   for name, j in FORMS.items()}
         compiled = {}
         for name, fn in runners.items():
             t0 = time.perf_counter()
             compiled[name] = (jax.block_until_ready(fn(*inputs)), time.perf_counter() - t0)
-        # Repeats interleaved (both forms, the twin, the active-block twin, in turn), so a change
+        # Repeats interleaved (both forms, the twin in both forms, the active-block twin), so a change
         # of the machine's load hits every method alike and the speedups compare like with like.
         ts = {name: [] for name in runners}
-        tn, tj, ta = [], [], []
+        tt = {j: [] for j in (False, True)}  # the twin in each covariance form
+        ta = []
         for _ in range(args.repeats):
             for name, fn in runners.items():
                 t0 = time.perf_counter()
                 jax.block_until_ready(fn(*inputs))
                 ts[name].append(time.perf_counter() - t0)
-            t0 = time.perf_counter()
-            flt, means = _run_twin(tw, log, noise, cap)
-            tn.append(time.perf_counter() - t0)
-            t0 = time.perf_counter()  # the twin in the Joseph form: the reference of that row
-            _run_twin(tw, log, noise, cap, joseph=True)
-            tj.append(time.perf_counter() - t0)
+            for j in (False, True):
+                t0 = time.perf_counter()
+                twin_out = _run_twin(tw, log, noise, cap, joseph=j)
+                tt[j].append(time.perf_counter() - t0)
+                if not j:
+                    flt, means = twin_out
             t0 = time.perf_counter()  # the twin doing the same leading-active-block work
             _run_twin(tw, log, noise, cap, active_block=True)
             ta.append(time.perf_counter() - t0)
         timed = {name: (float(np.median(ts[name])), float(np.min(ts[name])), compiled[name][1], compiled[name][0])
                  for name in runners}
-        t_np = float(np.median(tn))
-        row = {"capacity": cap, "numpy_s": t_np, "numpy_min_s": float(np.min(tn)),
-               "numpy_joseph_form_s": float(np.median(tj)),
+        t_twin = {j: float(np.median(v)) for j, v in tt.items()}
+        row = {"capacity": cap, "numpy_s": t_twin[False], "numpy_min_s": float(np.min(tt[False])),
+               "numpy_joseph_form_s": t_twin[True],
                "numpy_active_block_s": float(np.median(ta)),
                "mapped_final": int(flt.active.sum()), "overflow": int(flt.overflow)}
         params = {"capacity": cap, "duration_s": args.duration, "imu_steps": F * log["lidar_every"],
                   "frames": F, "max_obs": 16, "mode": "unknown", "log": log["source"],
                   "openblas_threads": threads_label}
         for name, (med, mn, comp, res) in timed.items():
-            ref = t_np if name == "jaxslam" else row["numpy_joseph_form_s"]  # the twin doing the same form
+            ref = t_twin[FORMS[name]]  # the twin doing the same form
             agree = {"max_abs_means": float(np.max(np.abs(np.asarray(res[2]) - means))),
                      "max_abs_x": float(np.max(np.abs(np.asarray(res[0]) - flt.x))),
                      "max_abs_P": float(np.max(np.abs(np.asarray(res[1]) - flt.P)))}
@@ -667,10 +671,10 @@ def run_full(args, noise, results, out, threads_label):
                          "speedup_vs_active_block_twin": row["numpy_active_block_s"] / med,
                          "floor_flops": flops, "agreement_with_twin": agree}
             results.append(_row(f"full run cap={cap} {name} [OpenBLAS {threads_label}]", params, med,
-                                f"numpy twin{'' if name == 'jaxslam' else ', Joseph form'}, OpenBLAS "
+                                f"numpy twin{', Joseph form' if FORMS[name] else ''}, OpenBLAS "
                                 f"{threads_label}", ref, jaxslam_compile_s=comp,
                                 implementation="jaxslam.systems.ekf_slam_3d.run"
-                                + ("" if name == "jaxslam" else ", Config(joseph=True)"), agreement=agree))
+                                + (", Config(joseph=True)" if FORMS[name] else ""), agreement=agree))
         rows.append(row)
         kept[cap] = runners["jaxslam"]
     full = {"log": log["source"], "log_note": log_note, "duration_s": args.duration,
@@ -716,9 +720,9 @@ def _full_targets(full, out, duration):
         tgt = TARGETS["full_speedup"].get(r["capacity"])
         if tgt is None:
             continue
-        for name in ("jaxslam", "jaxslam-joseph-form"):
+        for name, joseph in FORMS.items():
             sp = r[name]["speedup"]
-            what = "ekf_slam_3d.run" + (" (joseph=True)" if name != "jaxslam" else "")
+            what = "ekf_slam_3d.run" + (" (joseph=True)" if joseph else "")
             out["targets"].append({"name": f"full {duration:g} s run, capacity {r['capacity']}, {what} "
                                            f"speedup vs NumPy ({full['openblas_threads']})",
                                    "target": f">= {tgt:g}x", "value": sp, "met": bool(sp >= tgt)})

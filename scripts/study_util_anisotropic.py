@@ -1,9 +1,10 @@
 """Development (issue 16): UTIL TWR, known anchors, ranges only -- one white-noise acceleration
 density q_acc (shipped) against a horizontal/vertical pair (q_h for x and y, q_v for z), each
-learned the same way (Student-t innovation NLL on the first half of the flight, 25 Adam steps,
-lr 0.1 with warm-up and cosine decay, clipped, from the hand-set values), judged on the held-out
-second half (docs/datasets.md, UTIL).  The rule fixed before the run: the pair ships if its
-held-out NLL per range beats the single density's; the position RMSE is reported, not read.
+learned the same way (Student-t innovation NLL on the first half of the flight, 25 steps of
+``jaxslam.tuning.optimize.fit`` at lr 0.1 from the hand-set values, as ``jaxslam tune util-uwb``
+fits: the single density reproduces the shipped fit), judged on the held-out second half
+(docs/datasets.md, UTIL).  The rule fixed before the run: the pair ships if its held-out NLL
+per range beats the single density's; the position RMSE is reported, not read.
 
     python scripts/study_util_anisotropic.py [DATA_DIR] [--json PATH]
 """
@@ -13,10 +14,10 @@ runtime.configure_process(cache=False)
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-import optax  # noqa: E402
 jax.config.update("jax_enable_x64", True)
 from jaxslam.systems import util_range as ur  # noqa: E402
 from jaxslam.data import presets  # noqa: E402
+from jaxslam.tuning import optimize  # noqa: E402
 from jaxslam.tuning.targets import window_nll, heldout_nll  # noqa: E402
 from jaxslam.tuning.targets.util_uwb import util_flight, NU  # noqa: E402
 
@@ -37,6 +38,7 @@ log, t, true, air = util_flight(data)
 t_split = float(t[0] + 0.5 * (t[-1] - t[0])); held = t >= t_split
 fit_log, t_fit, _, _ = util_flight(data, t_end=t_split)
 w = jnp.asarray(t_fit < t_split, jnp.float64)
+train = {"log": jax.tree.map(lambda a: a[None], fit_log), "w": w[None]}
 base = presets.util_params(preset="hand")
 cfg = ur.Config(height=False)
 out = {}
@@ -48,13 +50,10 @@ for name in ("shipped_3", "aniso_4"):
         th0 = jnp.log(jnp.asarray([base.sigma_r, base.q_acc, base.q_acc, base.q_bias]))
         phys = lambda th: base._replace(sigma_r=jnp.exp(th[0]), q_acc=jnp.exp(jnp.stack([th[1], th[1], th[2]])),
                                         q_bias=jnp.exp(th[3]), gate=None, nu=NU)
-    loss = jax.jit(jax.value_and_grad(lambda th: window_nll(ur.run(fit_log, cfg, phys(th)), w)))
-    sched = optax.warmup_cosine_decay_schedule(0.0, 0.1, 2, 25)
-    opt = optax.chain(optax.clip_by_global_norm(1.0), optax.adam(sched))
-    th, st = th0, opt.init(th0)
-    for k in range(25):
-        v, g = loss(th)
-        u, st = opt.update(g, st, th); th = optax.apply_updates(th, u)
+    # the fit of `jaxslam tune util-uwb` (optimize.fit with its defaults, the target's batch)
+    fit = optimize.fit(lambda t, item: window_nll(ur.run(item["log"], cfg, phys(t["th"])), item["w"]),
+                       {"th": th0}, train, steps=25, lr=0.1, sequential=True)
+    th, v = fit.theta["th"], fit.history[-1]["loss"]
     res = ur.run(log, cfg, phys(th))
     err = np.linalg.norm(np.asarray(res.pos) - true, axis=1)
     ev = held & air

@@ -41,8 +41,8 @@ def test_two_processes_give_the_single_process_runs(tmp_path):
 def test_quiet_group_member_silences_its_stdout_descriptor():
     # --quiet in a group points file descriptor 1 at the null device, so what C++ prints there
     # (gloo's 'Rank 0 is connected ...') goes too; stderr stays
-    code = ("import os, sys; from jaxslam.cli.run import _silence_stdout; print('before', flush=True); "
-            "_silence_stdout(); os.write(1, b'c-level'); print('python'); sys.stdout.flush(); "
+    code = ("import os, sys; from jaxslam.cli.common import silence_stdout; print('before', flush=True); "
+            "silence_stdout(); os.write(1, b'c-level'); print('python'); sys.stdout.flush(); "
             "os.write(2, b'still on stderr')")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr

@@ -50,7 +50,7 @@ import sys
 from jaxslam import __version__, runtime
 from jaxslam.errors import InputError
 
-from .common import DEBUG_ENV, PROG, Parser, UsageError, one_line
+from .common import DEBUG_ENV, PROG, Parser, UsageError, one_line, silence_stdout
 
 __all__ = ["main", "find_benchmarks_dir", "list_benchmarks"]
 
@@ -186,8 +186,7 @@ def _main(argv):
         return 130
     except BrokenPipeError:  # `jaxslam list | head`: the reader left; not our failure
         try:
-            devnull = os.open(os.devnull, os.O_WRONLY)
-            os.dup2(devnull, sys.stdout.fileno())
+            silence_stdout(sys.stdout.fileno())
         except (OSError, ValueError, AttributeError):
             pass
         return 0

@@ -11,7 +11,7 @@ import math
 import sys
 
 __all__ = ["PROG", "DEBUG_ENV", "UsageError", "Parser", "int_at_least", "nonnegative_float", "positive_float", "positive_int",
-           "seed_int", "echo", "compile_timing", "fmt", "one_line"]
+           "seed_int", "echo", "compile_timing", "fmt", "one_line", "silence_stdout"]
 
 PROG = "jaxslam"
 DEBUG_ENV = "JAXSLAM_DEBUG"
@@ -127,3 +127,14 @@ def one_line(text: str, limit: int = 400) -> str:
     first = next((ln.strip() for ln in str(text).splitlines() if ln.strip()), "")
     return first if len(first) <= limit else first[: limit - 3] + "..."
 
+
+def silence_stdout(fd: int = 1) -> None:
+    """Point file descriptor ``fd`` (stdout) at the null device, so that what C++ libraries print
+    there (gloo's 'Rank 0 is connected ...') goes too, and writes to a closed pipe are dropped."""
+    import os
+
+    null = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(null, fd)
+    finally:
+        os.close(null)

@@ -15,7 +15,7 @@ import sys
 from jaxslam import files
 
 from .common import (PROG, Parser, UsageError, compile_timing, echo, finite_float, fmt, int_at_least, positive_int,
-                     seed_int)
+                     seed_int, silence_stdout)
 
 __all__ = ["command", "format_run_report"]
 
@@ -153,7 +153,8 @@ def command(rest: list[str]) -> int:
         from jaxslam.sim import distributed
 
         if pre.quiet:  # nothing on stdout, not even what the CPU collectives (gloo) print there
-            _silence_stdout()
+            sys.stdout.flush()
+            silence_stdout()
         distributed.initialize(*group)
 
     from jaxslam import io
@@ -250,19 +251,6 @@ def _process_group(pre):
     if pre.process_id >= pre.num_processes:
         raise UsageError(f"{PROG} run: --process-id: expected 0 to {pre.num_processes - 1}, got {pre.process_id}")
     return cluster if pre.num_processes > 1 else None
-
-
-def _silence_stdout() -> None:
-    """Point this process's file descriptor 1 at the null device: C++ libraries that print on
-    stdout (gloo's 'Rank 0 is connected ...') go quiet along with Python."""
-    import os
-
-    sys.stdout.flush()
-    null = os.open(os.devnull, os.O_WRONLY)
-    try:
-        os.dup2(null, 1)
-    finally:
-        os.close(null)
 
 
 def _launch_local(rest, processes: int) -> int:

@@ -390,7 +390,7 @@ def run_tuning(args, progress_stream=None) -> dict:
               f"{EXPLODE_RATIO:g}x the batch median) at {steps_hit} step(s), left out of those steps "
               "(history: dropped_runs)", file=sys.stderr, flush=True)
     phys0, phys1 = tg.physical(tg.theta0), tg.physical(res.theta)
-    refs = {**tg.references, **(tg.after_references(phys1) if tg.after_references is not None else {})}
+    refs = tg.references_for(phys1)
     say(f"{PROG}: evaluating start, tuned{''.join(', ' + k for k in refs)} on "
         + (f"{tg.config.get('evaluated_on')} ..." if real else f"{args.test_runs} held-out runs ..."))
     t0 = time.perf_counter()

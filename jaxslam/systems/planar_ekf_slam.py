@@ -809,11 +809,7 @@ def params_from_dict(d: dict, base: Params, dtype=np.float64, where: str = "para
         if k in _MATRIX_SHAPES and a.ndim == 1:
             a = np.diag(a)
         vals[k] = jnp.asarray(a, dtype)
-    try:
-        return validate_params(Params(**vals))
-    except InputError as e:  # name the entry where it came from (e.g. "--params: noise.R")
-        msg = str(e)
-        raise InputError(where + msg[len("params"):] if msg.startswith("params.") else msg) from None
+    return validate_params(Params(**vals), where)  # errors name the entry, e.g. "--params: noise.R"
 
 
 def config_to_dict(config: Config) -> dict:
@@ -875,60 +871,60 @@ def check_matrices(values: dict, where: str = "params", diagonal_ok: bool = True
         check_psd(a, f"{where}.{name}", strict=(name == "R"))
 
 
-def validate_params(params: Params) -> Params:
+def validate_params(params: Params, where: str = "params") -> Params:
     """Shapes (M_c (2,2), Q_floor (3,3), R (2,2), P0 (3,3)); PSD, R positive definite; the
     thresholds as :func:`check_thresholds` (scalars, not NaN; 0 < gate ≤ new_threshold,
     range_min < range_max, bearing_min < bearing_max; with pruning a positive window and a whole
-    prune_min_obs ≥ 1)."""
+    prune_min_obs ≥ 1).  Errors name ``where.field`` (e.g. ``--params: noise.R``)."""
     a = params.calib0
     if a is not None and (np.shape(a) != (3,) or not np.all(np.isfinite(np.asarray(a)))):
-        raise InputError(f"params.calib0: expected a finite shape (3,), got {np.asarray(a)!r}")
-    check_matrices({k: getattr(params, k) for k in _MATRIX_SHAPES}, "params", diagonal_ok=False)
+        raise InputError(f"{where}.calib0: expected a finite shape (3,), got {np.asarray(a)!r}")
+    check_matrices({k: getattr(params, k) for k in _MATRIX_SHAPES}, where, diagonal_ok=False)
     if params.range_model is not None:
         a = np.asarray(params.range_model, np.float64)
         if a.shape not in ((2,), (3,)) or not np.all(np.isfinite(a)) or a[0] <= 0:
-            raise InputError(f"params.range_model: expected finite (k0, k2) or (k0, k2, a) with k0 > 0, "
+            raise InputError(f"{where}.range_model: expected finite (k0, k2) or (k0, k2, a) with k0 > 0, "
                              f"got {a.tolist()}")
     if params.input_model is not None:
         a = np.asarray(params.input_model, np.float64)
         if a.shape != (3,) or not np.all(np.isfinite(a)):
-            raise InputError(f"params.input_model: expected finite (c_0, c_1, c_2), got {a.tolist()}")
+            raise InputError(f"{where}.input_model: expected finite (c_0, c_1, c_2), got {a.tolist()}")
     if params.robust_nu is not None:
-        check_scalar(params.robust_nu, "params.robust_nu", lower=0, strict=True)
+        check_scalar(params.robust_nu, f"{where}.robust_nu", lower=0, strict=True)
     for f in ("gate", "new_threshold"):
         if getattr(params, f) is None:
-            raise InputError(f"params.{f}: expected a number, got None")
-    check_thresholds({f: getattr(params, f) for f in THRESHOLDS})
+            raise InputError(f"{where}.{f}: expected a number, got None")
+    check_thresholds({f: getattr(params, f) for f in THRESHOLDS}, where)
     if params.monitor is not None:
         m = cons.MonitorParams(*(np.asarray(v, np.float64) for v in params.monitor))
         if not (0 < m.alpha <= 1 and m.threshold > 1 and m.max_factor >= 1 and m.outlier_gate > 0):
-            raise InputError(f"params.monitor: need 0 < alpha <= 1, threshold > 1, max_factor >= 1, "
+            raise InputError(f"{where}.monitor: need 0 < alpha <= 1, threshold > 1, max_factor >= 1, "
                              f"outlier_gate > 0; got {tuple(float(v) for v in m)}")
     return params
 
 
-def check_thresholds(values: dict) -> dict:
+def check_thresholds(values: dict, where: str = "params") -> dict:
     """The :data:`THRESHOLDS` among ``values`` (name -> number or None: off) as floats, checked
     alone and against each other (0 < gate <= new_threshold, range_min < range_max, bearing_min <
     bearing_max, a positive pruning window with a whole number of matches >= 1); the relations
     are checked where both sides are given.  Host-side (a ``--params`` file is checked with it
-    before any log is read); raises :class:`InputError` naming the key."""
-    thr = {f: check_scalar(values[f], f"params.{f}", finite=False)
+    before any log is read); raises :class:`InputError` naming ``where.key``."""
+    thr = {f: check_scalar(values[f], f"{where}.{f}", finite=False)
            for f in THRESHOLDS if values.get(f) is not None}
     if values.get("prune_window_s") is not None and "prune_min_obs" in values and values["prune_min_obs"] is None:
-        raise InputError("params.prune_min_obs: pruning (prune_window_s) needs a count of matches, got None")
+        raise InputError(f"{where}.prune_min_obs: pruning (prune_window_s) needs a count of matches, got None")
     if "gate" in thr and "new_threshold" in thr and not (0 < thr["gate"] <= thr["new_threshold"]):
-        raise InputError(f"params.gate/new_threshold: need 0 < gate <= new_threshold, got "
+        raise InputError(f"{where}.gate/new_threshold: need 0 < gate <= new_threshold, got "
                          f"{thr['gate']}, {thr['new_threshold']}")
     if "prune_window_s" in thr and not thr["prune_window_s"] > 0:
-        raise InputError(f"params.prune_window_s: need > 0, got {thr['prune_window_s']}")
+        raise InputError(f"{where}.prune_window_s: need > 0, got {thr['prune_window_s']}")
     if "prune_min_obs" in thr and not (thr["prune_min_obs"] >= 1 and thr["prune_min_obs"] == np.floor(thr["prune_min_obs"])):
-        raise InputError(f"params.prune_min_obs: a count of matches, expected a whole number >= 1, got "
+        raise InputError(f"{where}.prune_min_obs: a count of matches, expected a whole number >= 1, got "
                          f"{thr['prune_min_obs']}")
     for lo, hi in (("range_min", "range_max"), ("bearing_min", "bearing_max")):
         if lo in thr and hi in thr and not thr[lo] < thr[hi]:
             # an empty interval would drop every measurement as outside the limits
-            raise InputError(f"params.{lo}/{hi}: need {lo} < {hi}, got {thr[lo]}, {thr[hi]}")
+            raise InputError(f"{where}.{lo}/{hi}: need {lo} < {hi}, got {thr[lo]}, {thr[hi]}")
     return thr
 
 

@@ -116,6 +116,12 @@ class Target(NamedTuple):
     sequential: bool = False  # evaluate the training items one after another (lax.map)
     after_references: Optional[Callable] = None
 
+    def references_for(self, physical_after) -> dict:
+        """Every reference row of the evaluation of ``physical_after``: :attr:`references` and
+        those :attr:`after_references` builds from the result."""
+        extra = {} if self.after_references is None else self.after_references(physical_after)
+        return {**self.references, **extra}
+
 
 _FACTORIES: dict = {}
 _LOADED = False
