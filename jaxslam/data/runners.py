@@ -624,6 +624,11 @@ def _planar_run(log, pose0, filter, cfg_ekf, prm_ekf, fs_kind, particles, seed, 
               "registered": int(np.sum(np.asarray(res.registered))),
               "landmarks_mapped": int(act.sum()), "overflow": int(res.overflow),
               "resamples": int(res.resamples)}
+    if cfg.association == "known" and prm.gate is not None:
+        # the rows behind DIVERGED (planar_fastslam.Result.status): sightings of mapped
+        # landmarks, used or gated (per-particle means)
+        counts["mapped_rows"] = counts["used"] + counts["gated"]
+        counts["mapped_outliers"] = counts["gated"]
     return np.asarray(res.pose_mean, np.float64), lm, counts, comp_s, run_s, res.status, None
 
 
@@ -691,7 +696,8 @@ def run_mrclam(data_dir, robot=1, filter="ekf", ids="known", anchors=None, parti
                   **_smooth_config(smooth, SMOOTHER_RTS))
     cfg["thresholds"] = _planar_thresholds(filter, prm, lambda n: _mrclam_fastslam(robot, n, assoc), particles)
     notes = ([f"evaluated at the {m['eval_samples']} ground-truth samples inside the run"]
-             + _window_notes(log) + _divergence_notes(status))
+             + _window_notes(log) + _divergence_notes(status, gate=(
+                 "the chi2(2) 99 % gate" if filter == "ekf" else "the particles' chi2(2) gate, where they were cut off")))
     if filter == "ekf":
         cfg["capacity"] = int(config.capacity)
         cfg["noise"] = "--params file" if params is not None else (

@@ -65,6 +65,7 @@ import numpy as np
 
 from ..dynamics import planar
 from ..errors import InputError
+from ..filters import consistency as cons
 from ..filters import fastslam as fs
 from ..linalg import check_scalar, inv_small, is_concrete, wrap_angle
 from ..sensors import range_bearing2d as rb
@@ -176,7 +177,9 @@ class Result(NamedTuple):
         and averaged over particles.
     overflow: () int32 measurements of new landmarks that found no slot (max over particles).
     resamples: () int32 resampling events.  underflow: () int32 weight-underflow recoveries.
-    status: () int32 :mod:`jaxslam.errors` bit flags.
+    status: () int32 :mod:`jaxslam.errors` bit flags; "known" with ``params.gate``: ``DIVERGED``
+        when more than 10 % of the sightings of mapped landmarks were gated (used + gated rows,
+        summed over particles; :data:`jaxslam.filters.consistency.DIVERGED_FRACTION`), the EKF's rule.
     log_marginal: () Σ of the core's incremental log marginal likelihoods ("known"; for
         "ml" the per-particle sum without the new-landmark term).
     particles: final :class:`jaxslam.filters.fastslam.Particles`.
@@ -504,9 +507,16 @@ def _run(key, log: Log, params: Params, config: Config) -> Result:
 
     p, out = jax.lax.scan(body, p0, (events, keys))
     i = jnp.argmax(p.log_w)
+    status = p.status
+    if config.association == "known" and params.gate is not None:
+        # Known ids behind a gate: the same rule as the EKF's (jaxslam.filters.consistency):
+        # more than 10 % of the sightings of mapped landmarks gated (summed over particles)
+        # means the particle set stopped being consistent with its noise model.
+        n_gated = jnp.sum(out.gated)
+        status = status | cons.status_bits(n_gated, jnp.sum(out.used) + n_gated)
     return Result(
         pose_mean=out.pose_mean, pose_best=out.pose_best, neff=out.neff, map=fs.best_map(p), n_obs=p.aux[1][i],
         used=jnp.sum(out.used).astype(dtype) / N, registered=jnp.sum(out.registered).astype(dtype) / N,
         gated=jnp.sum(out.gated).astype(dtype) / N, overflow=p.overflow, resamples=p.resamples,
-        underflow=p.underflow, status=p.status, log_marginal=jnp.sum(out.log_marginal), particles=p,
+        underflow=p.underflow, status=status, log_marginal=jnp.sum(out.log_marginal), particles=p,
     )

@@ -153,3 +153,32 @@ def test_bad_config_rejected(sim):
         pf.run(pf.log_from_events(log, jnp.zeros(3)), pf.Config(K=3), _params(), key=jax.random.PRNGKey(0))
     with pytest.raises(InputError):
         pf.run(pf.log_from_events(log, jnp.zeros(3)), pf.Config(K=12, motion="bike"), _params(), key=jax.random.PRNGKey(0))
+
+
+def test_gated_known_sightings_raise_diverged(sim):
+    """Known ids behind a gate: the EKF's rule — more than 10 % of the sightings of mapped
+    landmarks gated sets DIVERGED.  A clean log gates few and is not flagged; a stretch of
+    corrupted odometry (turn rate off by 2 rad/s for 1 s: 2 rad of heading the particles do
+    not spread over) makes the particles' maps disagree with every later sighting.  Oracle: the
+    fraction recomputed here from the run's own used/gated counts, and the truth of the
+    simulation for which log is corrupted."""
+    log, gt_t, gt, lms, seen = sim
+    cfg = pf.Config(motion="unicycle", n_particles=30, capacity=12, K=12, association="known")
+    prm = _params()._replace(gate=13.82)
+    key = jax.random.PRNGKey(4)
+    clean = pf.run(pf.log_from_events(log, jnp.zeros(3)), cfg, prm, key=key)
+    frac = float(clean.gated) / (float(clean.used) + float(clean.gated))
+    assert frac < 0.10, frac
+    assert not int(clean.status) & errors.DIVERGED
+    u = np.array(log.u)
+    bad = (log.t >= 15.0) & (log.t < 16.0)
+    u[bad, 1] += 2.0
+    res = pf.run(pf.log_from_events(log._replace(u=u), jnp.zeros(3)), cfg, prm, key=key)
+    frac_bad = float(res.gated) / (float(res.used) + float(res.gated))
+    assert frac_bad > 0.10, frac_bad
+    assert int(res.status) & errors.DIVERGED
+    assert int(res.status) & errors.GATED
+    # no gate, or ids unknown: the rule does not apply (nothing is cut off as an outlier of a
+    # known landmark)
+    ungated = pf.run(pf.log_from_events(log._replace(u=u), jnp.zeros(3)), cfg, _params(), key=key)
+    assert not int(ungated.status) & errors.DIVERGED
