@@ -624,11 +624,12 @@ def _planar_run(log, pose0, filter, cfg_ekf, prm_ekf, fs_kind, particles, seed, 
               "registered": int(np.sum(np.asarray(res.registered))),
               "landmarks_mapped": int(act.sum()), "overflow": int(res.overflow),
               "resamples": int(res.resamples)}
-    if cfg.association == "known" and prm.gate is not None:
+    if cfg.association == "known" and (prm.gate is not None or cfg.robust):
         # the rows behind DIVERGED (planar_fastslam.Result.status): sightings of mapped
-        # landmarks, used or gated (per-particle means)
+        # landmarks, used or gated, and those gated or beyond the Student-t's 99 % quantile
+        # (per-particle means)
         counts["mapped_rows"] = counts["used"] + counts["gated"]
-        counts["mapped_outliers"] = counts["gated"]
+        counts["mapped_outliers"] = counts["gated"] + int(res.outliers)
     return np.asarray(res.pose_mean, np.float64), lm, counts, comp_s, run_s, res.status, None
 
 

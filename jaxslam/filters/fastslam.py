@@ -47,7 +47,9 @@ Decisions (where paper 001 is silent, or where jaxslam departs from it)
   map update, Table 2 step 3 before step 5).  A newly registered landmark
   contributes no likelihood (its first observation carries no information
   about the pose under an uninformative landmark prior).  A gated or
-  numerically rejected update contributes nothing either.
+  numerically rejected update contributes nothing either.  With ``robust=ν``
+  the weight is the Student-t density (ν, scale S or R) and the landmark
+  update divides R by its EM weight: heavy tails instead of a hard gate.
 * Registration (paper 001 Table 3 "EKF-predict", eq. 15 as the model's inverse):
   ``μ = inverse(pose, z)``, ``Σ = G⁻¹ R G⁻ᵀ`` with ``G = ∂observe/∂l`` at μ
   (``jax.jacfwd``), the pose treated as known (FastSLAM 1.0).  This needs
@@ -100,6 +102,7 @@ import numpy as np
 from .. import errors
 from ..errors import InputError
 from ..linalg import inv_small, symmetrize, value_and_jacfwd, wrap_angle
+from ..stats import student_t_nll
 from . import ekf as _ekf
 from . import resampling as _rs
 
@@ -437,11 +440,14 @@ def _moved(p: Particles, pose, aux) -> Particles:
 # Landmark update / registration
 # ---------------------------------------------------------------------------
 
-def _update_closed(m, P, z, zhat, H, R, res, valid, gate):
+def _update_closed(m, P, z, zhat, H, R, res, valid, gate, robust=None):
     """Same EKF update as :func:`ekf.update` with a closed-form S⁻¹ (d_z ≤ 3).
 
     ``zhat``/``H`` are the prediction and Jacobian at ``m`` (computed by the
-    caller, which shares them with registration).
+    caller, which shares them with registration).  ``robust``: Student-t ν —
+    R is divided by the EM weight w = min((ν + d_z)/(ν + d²), 1) of the prior
+    NIS d² (as :func:`jaxslam.filters.ekf_slam.update` does); the returned NIS
+    and log det are those of the prior S = H P Hᵀ + R (the Student-t's scale).
     Returns (mean, cov, nis, logdetS, nu, accepted, status).
     """
     dtype = m.dtype
@@ -455,10 +461,19 @@ def _update_closed(m, P, z, zhat, H, R, res, valid, gate):
     Hm = jnp.where(valid, H, zero)
     Rm = jnp.where(valid, R, jnp.eye(dz, dtype=dtype))
     HP = Hm @ P  # (dz, d)
-    S = symmetrize(HP @ Hm.T + Rm)
+    HPH = HP @ Hm.T
+    S = symmetrize(HPH + Rm)
     Sinv, logdet, ok = _spd_inv_logdet(S)
-    K = HP.T @ Sinv  # (d, dz)
     nis = nu @ (Sinv @ nu)
+    if robust is not None:
+        nu_t = jnp.asarray(robust, dtype)
+        w = jnp.minimum((nu_t + dz) / (nu_t + nis), 1.0)
+        Rm = Rm / jnp.where(valid, w, 1.0)
+        Sinv_w, _, ok_w = _spd_inv_logdet(symmetrize(HPH + Rm))
+        K = HP.T @ Sinv_w
+        ok = ok & ok_w
+    else:
+        K = HP.T @ Sinv  # (d, dz)
     x_post = m + K @ nu
     A = P - K @ HP
     P_post = symmetrize(A - (A @ Hm.T) @ K.T + K @ Rm @ K.T)
@@ -520,6 +535,7 @@ def observe_update(
     slot_by_id: bool = False,
     solver: str = "closed",
     chunk: Optional[int] = None,
+    robust=None,
 ):
     """Landmark EKF updates, registrations and weights for all particles.
 
@@ -547,6 +563,11 @@ def observe_update(
         chunk: static; None (default) vmaps all N particles at once; an int
             processes them in chunks of that size (``lax.map``), which may
             help cache locality for N of many thousands (same results).
+        robust: optional Student-t degrees of freedom ν (scalar, traced): the
+            landmark update divides R by its EM weight (ν + d_z)/(ν + d²) and
+            the weight is the Student-t density of ν with scale S (``"mean"``:
+            R) — an outlier is down-weighted, never cut off (use it without a
+            gate).  ν → ∞ is the Gaussian.  ``solver="closed"`` only.
 
     Returns:
         ``(Particles, ObserveInfo)``.
@@ -557,6 +578,8 @@ def observe_update(
         raise InputError(f"weights: expected 'exact' or 'mean', got {weights!r}")
     if solver not in _SOLVERS:
         raise InputError(f"solver: expected one of {_SOLVERS}, got {solver!r}")
+    if robust is not None and solver != "closed":
+        raise InputError(f"robust: the Student-t update needs solver='closed', got solver={solver!r}")
     dtype = p.lm_mean.dtype
     N, cap, d = p.lm_mean.shape
     dz = int(model.meas_dim)
@@ -634,7 +657,7 @@ def observe_update(
                 lin = jnp.where(do_upd, m_u, l_reg)
                 zhat, H = value_and_jacfwd(obs)(lin)
                 m_new, P_new, nis, logdetS, nu, acc, st = _update_closed(
-                    m_u, P_u, z_g, zhat, H, R_g, res, do_upd, gate)
+                    m_u, P_u, z_g, zhat, H, R_g, res, do_upd, gate, robust)
                 G = H
             else:
                 m_new, P_new, nis, logdetS, nu, acc, st = _update_ekf(
@@ -652,10 +675,11 @@ def observe_update(
             active = active.at[slot].set(active[slot] | reg)
             ids = ids.at[slot].set(jnp.where(reg, id_k, ids[slot]))
 
-            if weights == "exact":
-                ll = -(0.5 * (nis + logdetS) + half_log2pi)
+            d2_w, ld_w = (nis, logdetS) if weights == "exact" else (nu @ (Ri_k @ nu), ldR_k)
+            if robust is None:
+                ll = -(0.5 * (d2_w + ld_w) + half_log2pi)
             else:
-                ll = -(0.5 * (nu @ (Ri_k @ nu) + ldR_k) + half_log2pi)
+                ll = -student_t_nll(d2_w, ld_w, jnp.asarray(robust, dtype), dz)
             ll = jnp.where(acc, ll, jnp.zeros((), dtype))
             st = (
                 st

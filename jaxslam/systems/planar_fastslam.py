@@ -115,6 +115,9 @@ class Config(NamedTuple):
     K: measurement rows per event the run expects (must equal the log's K).
     association: "known" | "ml" (module docstring).
     weights: the core's weights, "exact" (log N(ν; 0, S)) or "mean" (log N(ν; 0, R)).
+    robust: Student-t measurement model with ``params.robust_nu`` degrees of freedom (default 5)
+        in each particle's landmark update and weight (the core's ``robust``): an outlier is
+        down-weighted, never cut off; use it without ``params.gate``.
     slot_by_id: "known" only: id j in slot j (default); False = first free slot.
     geometry: Ackermann geometry (``planar.VICTORIA_PARK``).
     """
@@ -125,6 +128,7 @@ class Config(NamedTuple):
     K: int = 1
     association: str = "known"
     weights: str = "exact"
+    robust: bool = False
     slot_by_id: bool = True
     geometry: planar.AckermannGeometry = planar.VICTORIA_PARK
 
@@ -148,6 +152,7 @@ class Params(NamedTuple):
         (default 13.8, 99.9 %); must be ≥ the gate.
     resample_threshold: () resample when N_eff < threshold·N (default 0.5); None resamples at
         every update.
+    robust_nu: () Student-t degrees of freedom (``config.robust``; default None: 5).
     """
 
     M_c: Array
@@ -158,6 +163,7 @@ class Params(NamedTuple):
     gate: Optional[Array] = None
     new_threshold: Array = 13.8
     resample_threshold: Optional[Array] = 0.5
+    robust_nu: Optional[Array] = None
 
 
 #: The :class:`Params` fields that are thresholds (scalars; the rest is noise).
@@ -175,11 +181,15 @@ class Result(NamedTuple):
     used, registered, gated: () measurements that updated a landmark / registered one /
         were gated (or, "ml", fell between gate and new_threshold), summed over the run
         and averaged over particles.
+    outliers: () "known" with ``config.robust``: used rows whose d² exceeds the Student-t's
+        own 99 % quantile (d = 2: ν (0.01^(−2/ν) − 1), 26.5 at ν = 5), averaged over
+        particles; else 0.
     overflow: () int32 measurements of new landmarks that found no slot (max over particles).
     resamples: () int32 resampling events.  underflow: () int32 weight-underflow recoveries.
-    status: () int32 :mod:`jaxslam.errors` bit flags; "known" with ``params.gate``: ``DIVERGED``
-        when more than 10 % of the sightings of mapped landmarks were gated (used + gated rows,
-        summed over particles; :data:`jaxslam.filters.consistency.DIVERGED_FRACTION`), the EKF's rule.
+    status: () int32 :mod:`jaxslam.errors` bit flags; "known" with ``params.gate`` or
+        ``config.robust``: ``DIVERGED`` when more than 10 % of the sightings of mapped landmarks
+        were gated or outliers (over used + gated rows, summed over particles;
+        :data:`jaxslam.filters.consistency.DIVERGED_FRACTION`), the EKF's rule.
     log_marginal: () Σ of the core's incremental log marginal likelihoods ("known"; for
         "ml" the per-particle sum without the new-landmark term).
     particles: final :class:`jaxslam.filters.fastslam.Particles`.
@@ -193,6 +203,7 @@ class Result(NamedTuple):
     used: Array
     registered: Array
     gated: Array
+    outliers: Array
     overflow: Array
     resamples: Array
     underflow: Array
@@ -230,6 +241,8 @@ def _validate_params(params: Params, config: Config):
            for f in THRESHOLDS if getattr(params, f) is not None}
     if "new_threshold" not in thr:
         raise InputError("params.new_threshold: expected a number, got None")
+    if params.robust_nu is not None:
+        check_scalar(params.robust_nu, "params.robust_nu", lower=0, strict=True)
     if config.association == "ml":
         g = thr.get("gate", 9.21)
         if thr["new_threshold"] < g:
@@ -314,7 +327,7 @@ def associate_ml(pose, mean, cov, active, counter, z, mask, R, gate, new_thresho
     return ids, (counter + jnp.sum(new.astype(jnp.int32))).astype(jnp.int32), new, amb
 
 
-def _observe_per_particle(p: fs.Particles, z, ids, mask, R, weights):
+def _observe_per_particle(p: fs.Particles, z, ids, mask, R, weights, robust=None):
     """The core's observe_update with per-particle ids (N, K): vmap over one-particle sets."""
     i32 = jnp.int32
     dtype = p.log_w.dtype
@@ -325,7 +338,7 @@ def _observe_per_particle(p: fs.Particles, z, ids, mask, R, weights):
                          status=jnp.zeros((), i32), overflow=jnp.zeros((), i32),
                          underflow=jnp.zeros((), i32), resamples=jnp.zeros((), i32))
         q2, info = fs.observe_update(q, MODEL, z, lm_ids, mask, R, None, weights=weights,
-                                     gate=None, slot_by_id=True)
+                                     gate=None, slot_by_id=True, robust=robust)
         return (q2.lm_mean[0], q2.lm_cov[0], q2.active[0], q2.ids[0], info.loglik[0],
                 info.used[0], info.registered[0], info.status, q2.overflow)
 
@@ -367,6 +380,7 @@ class StepOut(NamedTuple):
     registered: Array  # () int32
     gated: Array  # () int32
     log_marginal: Array  # () incremental log marginal likelihood
+    outliers: Array  # () int32 used rows beyond the Student-t's 99 % quantile ("known", robust)
 
 
 def _validate_log(log: Log, config: Config):
@@ -413,6 +427,12 @@ def step(state: State, event: Event, config: Config, params: Params, *, key):
     new_thr = jnp.asarray(params.new_threshold, dtype)
     thr = params.resample_threshold
     zero_i = jnp.zeros((), jnp.int32)
+    if config.robust:
+        nu_t = jnp.asarray(5.0 if params.robust_nu is None else params.robust_nu, dtype)
+        # the Student-t's own 99 % quantile of d² in two dimensions: P(d² > x) = (1 + x/ν)^(−ν/2)
+        out_gate = nu_t * (jnp.asarray(0.01, dtype) ** (-2.0 / nu_t) - 1.0)
+    else:
+        nu_t = None
 
     def update(p, k_res, z, ids, mask):
         counter, nobs = p.aux
@@ -420,16 +440,18 @@ def step(state: State, event: Event, config: Config, params: Params, *, key):
             assoc = jax.vmap(associate_ml, in_axes=(0, 0, 0, 0, 0, None, None, None, None, None))
             pids, counter, _, amb = assoc(p.pose, p.lm_mean, p.lm_cov, p.active, counter,
                                           z, mask, R, gate_ml, new_thr)
-            p, ll, used, reg = _observe_per_particle(p, z, pids, mask, R, config.weights)
+            p, ll, used, reg = _observe_per_particle(p, z, pids, mask, R, config.weights, nu_t)
             n_new = jnp.sum(reg.astype(dtype), axis=1)
             log_marg = jax.scipy.special.logsumexp(p.log_w + ll)
             p = fs.reweight(p, ll + n_new * params.log_p_new)
             gated = amb
+            outl = jnp.zeros_like(used)
         else:
             p, info = fs.observe_update(p, MODEL, z, ids, mask, R, None, weights=config.weights,
-                                        gate=params.gate, slot_by_id=config.slot_by_id)
+                                        gate=params.gate, slot_by_id=config.slot_by_id, robust=nu_t)
             pids = jnp.broadcast_to(ids, (N, ids.shape[0]))
             used, reg, gated = info.used, info.registered, info.gated
+            outl = used & (info.nis > out_gate) if config.robust else jnp.zeros_like(used)
             log_marg = info.log_marginal
         hit = (used | reg)
 
@@ -446,11 +468,11 @@ def step(state: State, event: Event, config: Config, params: Params, *, key):
         ne = fs.neff(p)
         p = fs.maybe_resample(p, k_res, thr)
         stats = (jnp.sum(used).astype(jnp.int32), jnp.sum(reg).astype(jnp.int32),
-                 jnp.sum(gated).astype(jnp.int32), log_marg)
+                 jnp.sum(gated).astype(jnp.int32), log_marg, jnp.sum(outl).astype(jnp.int32))
         return p, ne, stats
 
     def skip(p, k_res, z, ids, mask):
-        return p, fs.neff(p), (zero_i, zero_i, zero_i, jnp.zeros((), dtype))
+        return p, fs.neff(p), (zero_i, zero_i, zero_i, jnp.zeros((), dtype), zero_i)
 
     k_prop, k_res = jax.random.split(key)
     p = fs.propagate(p, k_prop, sample, event.u, event.dt, event.is_input, L_M, floor)
@@ -458,7 +480,7 @@ def step(state: State, event: Event, config: Config, params: Params, *, key):
     mu, _ = fs.estimate(p, ANGLE_MASK)
     best = p.pose[jnp.argmax(p.log_w)]
     return p, StepOut(pose_mean=mu, pose_best=best, neff=ne, used=stats[0], registered=stats[1],
-                      gated=stats[2], log_marginal=stats[3])
+                      gated=stats[2], log_marginal=stats[3], outliers=stats[4])
 
 
 def run(log: Log, config: Config, params: Params, *, key) -> Result:
@@ -508,15 +530,16 @@ def _run(key, log: Log, params: Params, config: Config) -> Result:
     p, out = jax.lax.scan(body, p0, (events, keys))
     i = jnp.argmax(p.log_w)
     status = p.status
-    if config.association == "known" and params.gate is not None:
-        # Known ids behind a gate: the same rule as the EKF's (jaxslam.filters.consistency):
-        # more than 10 % of the sightings of mapped landmarks gated (summed over particles)
-        # means the particle set stopped being consistent with its noise model.
+    if config.association == "known" and (params.gate is not None or config.robust):
+        # Known ids behind a gate or a Student-t model: the same rule as the EKF's
+        # (jaxslam.filters.consistency): more than 10 % of the sightings of mapped landmarks
+        # gated or beyond the model's 99 % quantile (summed over particles) means the particle
+        # set stopped being consistent with its noise model.
         n_gated = jnp.sum(out.gated)
-        status = status | cons.status_bits(n_gated, jnp.sum(out.used) + n_gated)
+        status = status | cons.status_bits(n_gated + jnp.sum(out.outliers), jnp.sum(out.used) + n_gated)
     return Result(
         pose_mean=out.pose_mean, pose_best=out.pose_best, neff=out.neff, map=fs.best_map(p), n_obs=p.aux[1][i],
         used=jnp.sum(out.used).astype(dtype) / N, registered=jnp.sum(out.registered).astype(dtype) / N,
-        gated=jnp.sum(out.gated).astype(dtype) / N, overflow=p.overflow, resamples=p.resamples,
+        gated=jnp.sum(out.gated).astype(dtype) / N, outliers=jnp.sum(out.outliers).astype(dtype) / N, overflow=p.overflow, resamples=p.resamples,
         underflow=p.underflow, status=status, log_marginal=jnp.sum(out.log_marginal), particles=p,
     )

@@ -731,3 +731,53 @@ def test_estimate_var_is_the_diagonal_of_estimate():
         mu2, var = fs.estimate_var(p, am)
         np.testing.assert_allclose(np.asarray(mu2), np.asarray(mu), rtol=1e-14)
         np.testing.assert_allclose(np.asarray(var), np.diagonal(np.asarray(cov)), rtol=1e-12)
+
+
+def test_robust_update_and_weight_match_numpy_student_t():
+    """``robust=ν``: each landmark update divides R by the EM weight min((ν + 2)/(ν + d²), 1) of
+    its prior NIS and the weight is the Student-t density with scale S ("exact") or R ("mean").
+    Oracle: the update written out in NumPy and SciPy's multivariate_t; ν → ∞ is the Gaussian."""
+    rng = np.random.default_rng(7)
+    pose = poses_path(2)
+    z0, z1 = measure(pose[0], rng), measure(pose[1], rng)
+    z1[1, 0] += 3.0  # an outlier on landmark 1: its weight w ≪ 1
+    nu_t = 5.0
+    obs = jax.jit(lambda p, z, R, nu, weights: fs.observe_update(
+        p, MODEL, z, jnp.arange(4), jnp.ones(4, bool), R, None, weights=weights, robust=nu),
+        static_argnames="weights")
+    for weights in ("exact", "mean"):
+        p = fs.init(pose[0], 1, 4, 2)
+        p, _ = obs(p, z0, R_NP, nu_t, weights)
+        p = p._replace(pose=jnp.asarray(pose[1][None]))
+        q, info = obs(p, z1, R_NP, nu_t, weights)
+        ll_ref, ws = 0.0, []
+        for k in range(4):
+            l, P = np_register(pose[0], z0[k], R_NP)
+            H = np_H(pose[1], l)
+            nu = z1[k] - np_h(pose[1], l)
+            nu[1] = np_wrap(nu[1])
+            S = H @ P @ H.T + R_NP
+            d2 = nu @ np.linalg.solve(S, nu)
+            w = min((nu_t + 2) / (nu_t + d2), 1.0)
+            ws.append(w)
+            Rw = R_NP / w
+            K = P @ H.T @ np.linalg.inv(H @ P @ H.T + Rw)
+            A = np.eye(2) - K @ H
+            np.testing.assert_allclose(np.asarray(q.lm_mean)[0, k], l + K @ nu, rtol=1e-12, atol=1e-14)
+            np.testing.assert_allclose(np.asarray(q.lm_cov)[0, k], A @ P @ A.T + K @ Rw @ K.T, rtol=1e-10,
+                                       atol=1e-16)
+            scale = S if weights == "exact" else R_NP
+            ll_ref += stats.multivariate_t(loc=np.zeros(2), shape=scale, df=nu_t).logpdf(nu)
+        assert float(info.loglik[0]) == pytest.approx(ll_ref, rel=1e-12)
+        assert ws[1] < 0.1 and min(ws[0], ws[2], ws[3]) > 0.5  # the outlier is the one down-weighted
+        # ν → ∞ (1e8, without the outlier: the terms left are O(d⁴/ν), and the log-gamma terms
+        # of the density cancel to ~1e-8): the Gaussian update and weight
+        z1c = z1.copy()
+        z1c[1, 0] -= 3.0
+        qg, ig = obs(p, z1c, R_NP, 1e8, weights)
+        qn, in_ = fs.observe_update(p, MODEL, z1c, jnp.arange(4), jnp.ones(4, bool), R_NP, None, weights=weights)
+        np.testing.assert_allclose(np.asarray(qg.lm_mean), np.asarray(qn.lm_mean), rtol=1e-8)
+        np.testing.assert_allclose(np.asarray(qg.lm_cov), np.asarray(qn.lm_cov), rtol=1e-7)
+        assert float(ig.loglik[0]) == pytest.approx(float(in_.loglik[0]), rel=1e-7)
+    with pytest.raises(InputError, match="robust"):
+        fs.observe_update(p, MODEL, z1, jnp.arange(4), jnp.ones(4, bool), R_NP, None, solver="ekf", robust=5.0)
