@@ -300,23 +300,42 @@ def victoria_park_config(capacity: int = 512, K: int = 8, **kw) -> pe.Config:
 
 
 def mrclam_fastslam_setup(robot: int = 1, n_particles: int = 100, association: str = "known", K: int = 8,
-                          dtype=None):
+                          dtype=None, preset: str = "fitted"):
     """(Config, Params) of :mod:`jaxslam.systems.planar_fastslam` for UTIAS MRCLAM (dataset 6
     figures in docs/datasets.md).
 
     The same for every robot (``robot`` is not read: nothing is set per robot, the command also
     runs on MRCLAM robots this project has not seen).  Known ids use ``slot_by_id``: the caller
-    maps subjects 6–20 to ids 0–14 (capacity 15), with the core's per-particle χ²(2) 99.9 %
-    gate (``Params.gate`` 13.82) — without one, a single wrong range (a camera false positive, a 500 m
-    reading) moves that landmark in every particle; hidden ids ("ml") get capacity 32.
-    R = diag(σ_r², σ_β²) with σ = 1.4826·MAD of robot 2's landmark residuals (data README §5),
-    the larger of the two robots' spreads; input-noise densities σ_v = 0.03 m/s·√s,
-    σ_ω = 0.05 rad/s·√s and pose floor 1e-4 per s, chosen on robot 1's first 300 s (a sweep
-    over R ×1–16, Q ×1–4 and floors 1e-5–1e-3 changed the median ATE by less than the spread
-    between seeds there).
+    maps subjects 6–20 to ids 0–14 (capacity 15); hidden ids ("ml") get capacity 32 and the
+    hand-set setting below whatever ``preset`` says.
+
+    ``preset="fitted"`` (default, known ids): the FastSLAM 2.0 proposal
+    (``Config.proposal="optimal"``) on the EKF's model learned from the logs
+    (:data:`MRCLAM_FITTED`: input-noise densities, pose floors, and the Student-t range and
+    bearing scales, ν = 5, ``Config.robust``, no gate); pair it with the log the EKF's range
+    model corrects (:func:`mrclam_log` with ``MRCLAM_FITTED["range_model"]`` and its delay).
+    Chosen on 2026-12-05 by a rule written down before the runs (no ground truth: no run
+    inconsistent with its noise model, then the higher marginal likelihood;
+    ``scripts/study_mrclam_fastslam.py``, docs/datasets.md).
+
+    ``preset="hand"``: FastSLAM 1.0 with R = diag(σ_r², σ_β²), σ = 1.4826·MAD of robot 2's
+    landmark residuals (data README §5), input-noise densities σ_v = 0.03 m/s·√s,
+    σ_ω = 0.05 rad/s·√s and pose floor 1e-4 per s, chosen on robot 1's first 300 s, and (known
+    ids) the core's per-particle χ²(2) 99.9 % gate 13.82 — without one, a single wrong range (a
+    camera false positive, a 500 m reading) moves that landmark in every particle.
     """
+    if preset not in ("fitted", "hand"):
+        raise InputError(f"preset: expected 'fitted' or 'hand', got {preset!r}")
     del robot  # one setting for every robot
     cap = 15 if association == "known" else 32
+    if association == "known" and preset == "fitted":
+        f = MRCLAM_FITTED
+        cfg = pf.Config(motion="unicycle", n_particles=int(n_particles), capacity=cap, K=int(K),
+                        association=association, proposal="optimal", robust=True)
+        prm = pf.default_params(sigma_r=f["sigma_r"], sigma_b=f["sigma_b"], sigma_v=f["sigma_v"],
+                                sigma_w=f["sigma_w"], floor=(f["floor_xy"], f["floor_xy"], f["floor_phi"]),
+                                pose0_sigma=(1e-3, 1e-3, 1e-3), dtype=dtype)
+        return cfg, prm
     cfg = pf.Config(motion="unicycle", n_particles=int(n_particles), capacity=cap, K=int(K),
                     association=association)
     sr, sb = mrclam_raw_sigma(2)

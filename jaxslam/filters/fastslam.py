@@ -101,7 +101,7 @@ import numpy as np
 
 from .. import errors
 from ..errors import InputError
-from ..linalg import inv_small, symmetrize, value_and_jacfwd, wrap_angle
+from ..linalg import cholesky_small, inv_small, symmetrize, value_and_jacfwd, wrap_angle
 from ..stats import student_t_nll
 from . import ekf as _ekf
 from . import resampling as _rs
@@ -115,6 +115,7 @@ __all__ = [
     "propagate",
     "propagate_additive",
     "observe_update",
+    "propose_optimal",
     "reweight",
     "neff",
     "maybe_resample",
@@ -276,6 +277,18 @@ def _guard(do, x):
 
 def _flag(cond, bit):
     return jnp.where(cond, jnp.int32(bit), jnp.int32(0))
+
+
+def _slot(active, ids, id_k, cap: int, slot_by_id: bool):
+    """(slot, known, can_register) of landmark id ``id_k`` in one particle's map."""
+    if slot_by_id:
+        in_range = id_k < cap
+        slot = jnp.clip(id_k, 0, cap - 1)
+        return slot, in_range & active[slot], in_range
+    match = (ids == id_k) & active
+    known = jnp.any(match)
+    free = ~active
+    return jnp.where(known, jnp.argmax(match), jnp.argmax(free)), known, jnp.any(free)
 
 
 def _threshold(gate, dof, dtype):
@@ -555,7 +568,8 @@ def observe_update(
         mask: (K,) bool measurement present.
         R: (d_z, d_z) or (K, d_z, d_z) measurement covariance.
         params: passed to ``observe``/``inverse`` (any pytree, traced).
-        weights: "exact" (default) | "mean" (alias "paper"), static.
+        weights: "exact" (default) | "mean" (alias "paper") | "none" (the landmark
+            updates alone, loglik 0: the weights of :func:`propose_optimal`), static.
         gate: None, a chi-square threshold on each update's NIS (d_z dof), or
             a callable ``gate(dof)``; gated measurements change nothing.
         slot_by_id: static; id j lives in slot j (see module docstring).
@@ -574,8 +588,8 @@ def observe_update(
     """
     if weights == "paper":
         weights = "mean"
-    if weights not in ("exact", "mean"):
-        raise InputError(f"weights: expected 'exact' or 'mean', got {weights!r}")
+    if weights not in ("exact", "mean", "none"):
+        raise InputError(f"weights: expected 'exact', 'mean' or 'none', got {weights!r}")
     if solver not in _SOLVERS:
         raise InputError(f"solver: expected one of {_SOLVERS}, got {solver!r}")
     if robust is not None and solver != "closed":
@@ -627,17 +641,7 @@ def observe_update(
         def body(carry, x):
             mean, cov, active, ids = carry
             z_k, id_k, v_k, R_k, Ri_k, ldR_k = x
-            if slot_by_id:
-                in_range = id_k < cap
-                slot = jnp.clip(id_k, 0, cap - 1)
-                known = in_range & active[slot]
-                can_reg = in_range
-            else:
-                match = (ids == id_k) & active
-                known = jnp.any(match)
-                free = ~active
-                can_reg = jnp.any(free)
-                slot = jnp.where(known, jnp.argmax(match), jnp.argmax(free))
+            slot, known, can_reg = _slot(active, ids, id_k, cap, slot_by_id)
             do_upd = v_k & known
             do_reg = v_k & ~known & can_reg
             ovf = v_k & ~known & ~can_reg
@@ -680,7 +684,8 @@ def observe_update(
                 ll = -(0.5 * (d2_w + ld_w) + half_log2pi)
             else:
                 ll = -student_t_nll(d2_w, ld_w, jnp.asarray(robust, dtype), dz)
-            ll = jnp.where(acc, ll, jnp.zeros((), dtype))
+            keep = acc if weights != "none" else jnp.zeros_like(acc)  # "none": propose_optimal weighs
+            ll = jnp.where(keep, ll, jnp.zeros((), dtype))
             st = (
                 st
                 | _flag(ovf, errors.CAPACITY_OVERFLOW)
@@ -726,6 +731,127 @@ def observe_update(
         status=status | w_bits,
     )
     return p2, info
+
+
+def propose_optimal(p: Particles, model: LandmarkModel, z, lm_ids, mask, R, pose_cov, key,
+                    params=None, slot_by_id: bool = False, angle_mask: Optional[Sequence[bool]] = None,
+                    gate=None, robust=None):
+    """The measurement-informed proposal of FastSLAM 2.0 (Montemerlo et al., IJCAI 2003).
+
+    Each particle's pose is Gaussian before the draw: mean ``p.pose``, covariance ``pose_cov``
+    (the linearised motion noise accumulated since its last draw).  For each row k whose
+    landmark the particle has mapped (in order, as :func:`observe_update`), with G_s = ∂h/∂s
+    and G_l = ∂h/∂l at the current pose mean and the landmark mean μ_l:
+
+        Z = R + G_l Σ_l G_lᵀ,   S = G_s Σ_s G_sᵀ + Z,   K = Σ_s G_sᵀ S⁻¹,
+        s̄ ← s̄ + K ν,   Σ_s ← (I − K G_s) Σ_s (I − K G_s)ᵀ + K Z Kᵀ,
+
+    and the particle's log-weight gains log N(ν; 0, S) — the predictive density of the row
+    given the particle's past (FastSLAM 2.0's importance weight, by the chain rule over the
+    rows).  Then s ~ N(s̄, Σ_s).  Rows of unmapped landmarks (registrations) inform neither.
+    ``gate``: a row whose NIS νᵀS⁻¹ν exceeds it informs nothing and adds nothing (as in
+    :func:`observe_update`); ``robust=ν``: Z divided by the EM weight min((ν + d_z)/(ν + d²),
+    1) and the row's weight the Student-t density with scale S.
+
+    Follow it with :func:`observe_update` at the drawn poses with ``weights="none"`` and
+    :func:`reweight` with the returned ``loglik``.
+
+    Args:
+        p: :class:`Particles` whose ``pose`` holds each particle's pose mean.
+        model: :class:`LandmarkModel` (static).  z, lm_ids, mask, R, params, slot_by_id, gate:
+            as :func:`observe_update`.
+        pose_cov: (N, n_r, n_r) each particle's pose covariance.
+        key: PRNG key of the draws (one normal(N·n_r) draw).
+        angle_mask: static; components of the pose wrapped to (−π, π] after the update and
+            the draw.
+
+    Returns:
+        ``(Particles with the drawn poses, loglik (N,), log_marginal (), status ())``; the
+        particles' weights are not touched.  A particle whose proposal is not finite keeps
+        its prior mean as the draw and the status gets ``NON_FINITE``.
+    """
+    dtype = p.pose.dtype
+    N, n_r = p.pose.shape
+    cap = p.lm_mean.shape[1]
+    dz = int(model.meas_dim)
+    z = jnp.asarray(z)
+    K_rows = z.shape[0]
+    if z.ndim != 2 or z.shape[1] != dz:
+        raise InputError(f"z: expected shape (K, {dz}), got {z.shape}")
+    if np.shape(pose_cov) != (N, n_r, n_r):
+        raise InputError(f"pose_cov: expected shape ({N}, {n_r}, {n_r}), got {np.shape(pose_cov)}")
+    R = jnp.asarray(R, dtype)
+    if R.shape not in ((dz, dz), (K_rows, dz, dz)):
+        raise InputError(f"R: expected shape ({dz}, {dz}) or ({K_rows}, {dz}, {dz}), got {R.shape}")
+    wrap = None if angle_mask is None else np.asarray(angle_mask, bool)
+    if wrap is not None and wrap.shape != (n_r,):
+        raise InputError(f"angle_mask: expected {n_r} flags, got {len(wrap)}")
+    Rs = jnp.broadcast_to(R, (K_rows, dz, dz))
+    lm_ids = jnp.asarray(lm_ids).astype(jnp.int32)
+    valid = jnp.asarray(mask).astype(bool) & (lm_ids >= 0) & jnp.all(jnp.isfinite(z), axis=1)
+    z = jnp.where(valid[:, None], z.astype(dtype), jnp.zeros((), dtype))
+    res = model.residual if model.residual is not None else (lambda a, b: a - b)
+    half_log2pi = jnp.asarray(0.5 * dz * _LOG2PI, dtype)
+    eye = jnp.eye(n_r, dtype=dtype)
+
+    def wrapped(x):
+        return x if wrap is None else jnp.where(wrap, wrap_angle(x), x)
+
+    def one_particle(s0, P0, mean, cov, active, ids):
+        def body(carry, x):
+            s, P, ll = carry
+            z_k, id_k, v_k, R_k = x
+            slot, known, _ = _slot(active, ids, id_k, cap, slot_by_id)
+            do = v_k & known
+            s_g, l_g, z_g = _guard(do, (s, mean[slot], z_k))
+            zhat, (Gs, Gl) = value_and_jacfwd(lambda a, b: model.observe(a, b, params), argnums=(0, 1))(s_g, l_g)
+            Z = symmetrize(Gl @ cov[slot] @ Gl.T + R_k)
+            nu = res(z_g, zhat)
+            GP = Gs @ P
+            S = symmetrize(GP @ Gs.T + Z)
+            Sinv, logdet, ok = _spd_inv_logdet(S)
+            d2 = nu @ (Sinv @ nu)
+            gated = do & (d2 > _threshold(gate, jnp.int32(dz), dtype)) if gate is not None else jnp.asarray(False)
+            if robust is not None:
+                nu_t = jnp.asarray(robust, dtype)
+                w = jnp.minimum((nu_t + dz) / (nu_t + d2), 1.0)
+                Zw = Z / w
+                Sinv_w, _, ok_w = _spd_inv_logdet(symmetrize(GP @ Gs.T + Zw))
+                Kg = GP.T @ Sinv_w
+                ok = ok & ok_w
+                ll_k = -student_t_nll(d2, logdet, nu_t, dz)
+            else:
+                Zw = Z
+                Kg = GP.T @ Sinv
+                ll_k = -(0.5 * (d2 + logdet) + half_log2pi)
+            A = eye - Kg @ Gs
+            s_new = wrapped(s + Kg @ nu)
+            P_new = symmetrize(A @ P @ A.T + Kg @ Zw @ Kg.T)
+            use = do & ~gated & ok & jnp.all(jnp.isfinite(s_new)) & jnp.all(jnp.isfinite(P_new))
+            s = jnp.where(use, s_new, s)
+            P = jnp.where(use, P_new, P)
+            ll = ll + jnp.where(use, ll_k, jnp.zeros((), dtype))
+            return (s, P, ll), None
+
+        (s, P, ll), _ = jax.lax.scan(body, (s0, P0, jnp.zeros((), dtype)), (z, lm_ids, valid, Rs))
+        return s, P, ll
+
+    pose_cov = jnp.asarray(pose_cov, dtype)
+    s_mean, s_cov, loglik = jax.vmap(one_particle)(p.pose, pose_cov, p.lm_mean, p.lm_cov, p.active, p.ids)
+    # s ~ N(s̄, Σ_s): a closed-form factor (n_r ≤ 4) with a jitter at the dtype's resolution, so
+    # that a zero covariance (no motion since the last draw) draws the mean
+    jit = jnp.finfo(dtype).eps * (1.0 + jnp.trace(s_cov, axis1=1, axis2=2))
+    S_j = s_cov + jit[:, None, None] * eye
+    L = cholesky_small(S_j) if n_r <= 4 else jnp.linalg.cholesky(S_j)
+    eps = jax.random.normal(key, (N, n_r), dtype)
+    draw = s_mean + jnp.einsum("nij,nj->ni", L, eps)
+    draw = jax.vmap(wrapped)(draw)
+    ok = jnp.all(jnp.isfinite(draw), axis=1) & jnp.isfinite(loglik)
+    draw = jnp.where(ok[:, None], draw, p.pose)
+    loglik = jnp.where(ok, loglik, jnp.zeros((), dtype))
+    log_marg = jax.scipy.special.logsumexp(p.log_w + loglik)
+    status = _flag(~jnp.all(ok), errors.NON_FINITE)
+    return p._replace(pose=draw, status=p.status | status), loglik, log_marg, status
 
 
 # ---------------------------------------------------------------------------

@@ -64,10 +64,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..dynamics import planar
+from .. import errors
 from ..errors import InputError
 from ..filters import consistency as cons
 from ..filters import fastslam as fs
-from ..linalg import check_scalar, inv_small, is_concrete, wrap_angle
+from ..linalg import check_scalar, inv_small, is_concrete, symmetrize, value_and_jacfwd, wrap_angle
 from ..sensors import range_bearing2d as rb
 from .planar_ekf_slam import Log, log_from_events
 
@@ -102,6 +103,7 @@ MODEL = fs.LandmarkModel(lm_dim=2, meas_dim=2, observe=rb.observe, inverse=rb.in
 
 _MOTIONS = planar.MOTIONS
 _ASSOC = ("known", "ml")
+_PROPOSALS = ("motion", "optimal")
 
 
 class Config(NamedTuple):
@@ -115,6 +117,11 @@ class Config(NamedTuple):
     K: measurement rows per event the run expects (must equal the log's K).
     association: "known" | "ml" (module docstring).
     weights: the core's weights, "exact" (log N(ν; 0, S)) or "mean" (log N(ν; 0, R)).
+    proposal: "motion" (default; FastSLAM 1.0: each particle moved by a draw of the motion
+        noise at every event) | "optimal" (FastSLAM 2.0, known ids: each particle carries its
+        pose mean and the linearised motion covariance since its last draw, and on an event
+        with rows draws its pose from the Gaussian given the sightings of its mapped landmarks,
+        weighted by their predictive density; :func:`jaxslam.filters.fastslam.propose_optimal`).
     robust: Student-t measurement model with ``params.robust_nu`` degrees of freedom (default 5)
         in each particle's landmark update and weight (the core's ``robust``): an outlier is
         down-weighted, never cut off; use it without ``params.gate``.
@@ -128,6 +135,7 @@ class Config(NamedTuple):
     K: int = 1
     association: str = "known"
     weights: str = "exact"
+    proposal: str = "motion"
     robust: bool = False
     slot_by_id: bool = True
     geometry: planar.AckermannGeometry = planar.VICTORIA_PARK
@@ -256,6 +264,11 @@ def _validate(config: Config):
         raise InputError(f"config.association: expected one of {_ASSOC}, got {config.association!r}")
     if int(config.n_particles) < 1 or int(config.capacity) < 1 or int(config.K) < 1:
         raise InputError("config: n_particles, capacity and K must be >= 1")
+    if config.proposal not in _PROPOSALS:
+        raise InputError(f"config.proposal: expected one of {_PROPOSALS}, got {config.proposal!r}")
+    if config.proposal == "optimal" and config.association != "known":
+        raise InputError("config.proposal: 'optimal' (FastSLAM 2.0) needs association='known', got "
+                         f"{config.association!r}")
 
 
 # ---------------------------------------------------------------------------
@@ -282,6 +295,28 @@ def _sample_fn(f, increment: bool):
         return s.at[2].set(wrap_angle(s[2])), aux
 
     return sample
+
+
+def _moment_fn(f, increment: bool):
+    """The "optimal" proposal's prediction: the pose mean moved by ``f`` and its covariance by
+    the same noise model as :func:`_sample_fn` draws from, linearised:
+    Σ' = F Σ Fᵀ + J_u M Jᵤᵀ·s_u² + diag(floor)·s_f² (aux[2] holds Σ)."""
+    def moments(pose, aux, key, u, dt, is_in, L_M, floor):
+        del key
+        dtype = pose.dtype
+        mean, (F, Ju) = value_and_jacfwd(lambda s, uu: f(s, uu, dt), argnums=(0, 1))(pose, u)
+        if increment:
+            s_u2 = jnp.where(is_in, jnp.ones((), dtype), jnp.zeros((), dtype))
+            s_f2 = s_u2
+        else:
+            pos = dt > 0
+            s_u2 = jnp.where(pos, 1.0 / jnp.where(pos, dt, jnp.ones((), dtype)), jnp.zeros((), dtype))
+            s_f2 = jnp.maximum(dt, jnp.zeros((), dtype))
+        JL = Ju @ L_M
+        cov = F @ aux[2] @ F.T + (JL @ JL.T) * s_u2 + jnp.diag(floor) * s_f2
+        return mean.at[2].set(wrap_angle(mean[2])), aux[:2] + (symmetrize(cov),)
+
+    return moments
 
 
 # ---------------------------------------------------------------------------
@@ -407,6 +442,8 @@ def init(log: Log, config: Config, params: Params, *, key) -> State:
     poses0 = log.pose0[None, :] + jax.random.normal(key, (N, 3), dtype) @ L_P0.T
     poses0 = poses0.at[:, 2].set(wrap_angle(poses0[:, 2]))
     aux0 = (jnp.zeros((N,), jnp.int32), jnp.zeros((N, cap), jnp.int32))
+    if config.proposal == "optimal":  # each particle's pose covariance since its last draw
+        aux0 = aux0 + (jnp.zeros((N, 3, 3), dtype),)
     return fs.init(poses0, N, cap, 2, aux=aux0, aux_per_particle=True)
 
 
@@ -418,7 +455,8 @@ def step(state: State, event: Event, config: Config, params: Params, *, key):
     N, cap = int(config.n_particles), int(config.capacity)
     ml = config.association == "ml"
     f = motion_fn(config)
-    sample = _sample_fn(f, config.motion == "increment")
+    optimal = config.proposal == "optimal"
+    sample = (_moment_fn if optimal else _sample_fn)(f, config.motion == "increment")
     eye2 = jnp.eye(2, dtype=dtype)
     L_M = jnp.linalg.cholesky(params.M_c + 1e-12 * eye2)
     floor = jnp.maximum(params.pose_floor, jnp.zeros((), dtype))
@@ -435,7 +473,7 @@ def step(state: State, event: Event, config: Config, params: Params, *, key):
         nu_t = None
 
     def update(p, k_res, z, ids, mask):
-        counter, nobs = p.aux
+        counter, nobs = p.aux[:2]
         if ml:
             assoc = jax.vmap(associate_ml, in_axes=(0, 0, 0, 0, 0, None, None, None, None, None))
             pids, counter, _, amb = assoc(p.pose, p.lm_mean, p.lm_cov, p.active, counter,
@@ -447,12 +485,22 @@ def step(state: State, event: Event, config: Config, params: Params, *, key):
             gated = amb
             outl = jnp.zeros_like(used)
         else:
-            p, info = fs.observe_update(p, MODEL, z, ids, mask, R, None, weights=config.weights,
+            if optimal:
+                k_res, k_draw = jax.random.split(k_res)
+                p, ll_prop, log_marg, _ = fs.propose_optimal(
+                    p, MODEL, z, ids, mask, R, p.aux[2], k_draw, slot_by_id=config.slot_by_id,
+                    angle_mask=ANGLE_MASK, gate=params.gate, robust=nu_t)
+                p = p._replace(aux=p.aux[:2] + (jnp.zeros_like(p.aux[2]),))
+            p, info = fs.observe_update(p, MODEL, z, ids, mask, R, None,
+                                        weights="none" if optimal else config.weights,
                                         gate=params.gate, slot_by_id=config.slot_by_id, robust=nu_t)
+            if optimal:
+                p = fs.reweight(p, ll_prop)
+            else:
+                log_marg = info.log_marginal
             pids = jnp.broadcast_to(ids, (N, ids.shape[0]))
             used, reg, gated = info.used, info.registered, info.gated
             outl = used & (info.nis > out_gate) if config.robust else jnp.zeros_like(used)
-            log_marg = info.log_marginal
         hit = (used | reg)
 
         def count(nb, sid_row, slot_row, hit_row):
@@ -464,7 +512,7 @@ def step(state: State, event: Event, config: Config, params: Params, *, key):
             return nb.at[s].add(hit_row.astype(jnp.int32))
 
         nobs = jax.vmap(count)(nobs, pids, p.ids, hit)
-        p = p._replace(aux=(counter, nobs))
+        p = p._replace(aux=(counter, nobs) + p.aux[2:])
         ne = fs.neff(p)
         p = fs.maybe_resample(p, k_res, thr)
         stats = (jnp.sum(used).astype(jnp.int32), jnp.sum(reg).astype(jnp.int32),
@@ -476,7 +524,13 @@ def step(state: State, event: Event, config: Config, params: Params, *, key):
 
     k_prop, k_res = jax.random.split(key)
     p = fs.propagate(p, k_prop, sample, event.u, event.dt, event.is_input, L_M, floor)
-    p, ne, stats = jax.lax.cond(jnp.any(event.mask), update, skip, p, k_res, event.z, event.ids, event.mask)
+    # Only rows with finite values make an event an update (the "optimal" proposal redraws every
+    # particle at one): non-finite rows are masked out, as the core would, and flagged here.
+    finite = jnp.all(jnp.isfinite(event.z), axis=-1)
+    p = p._replace(status=p.status | jnp.where(jnp.any(event.mask & ~finite), jnp.int32(errors.MASKED_INPUT),
+                                                 jnp.int32(0)))
+    mask = event.mask & finite
+    p, ne, stats = jax.lax.cond(jnp.any(mask), update, skip, p, k_res, event.z, event.ids, mask)
     mu, _ = fs.estimate(p, ANGLE_MASK)
     best = p.pose[jnp.argmax(p.log_w)]
     return p, StepOut(pose_mean=mu, pose_best=best, neff=ne, used=stats[0], registered=stats[1],

@@ -781,3 +781,89 @@ def test_robust_update_and_weight_match_numpy_student_t():
         assert float(ig.loglik[0]) == pytest.approx(float(in_.loglik[0]), rel=1e-7)
     with pytest.raises(InputError, match="robust"):
         fs.observe_update(p, MODEL, z1, jnp.arange(4), jnp.ones(4, bool), R_NP, None, solver="ekf", robust=5.0)
+
+
+def np_Hs(pose, l):
+    """∂h/∂s of the range-bearing toy model at pose s = (x, y, θ), by hand."""
+    dx, dy = l - pose[:2]
+    q = dx * dx + dy * dy
+    r = np.sqrt(q)
+    return np.array([[-dx / r, -dy / r, 0.0], [dy / q, -dx / q, -1.0]])
+
+
+def test_optimal_proposal_matches_numpy():
+    """FastSLAM 2.0's proposal (``propose_optimal``): per particle, a sequential EKF update of
+    the pose (mean, covariance) with each mapped row, noise Z = R + G_l Σ_l G_lᵀ, the weight the
+    sum of the rows' predictive log-densities, then one draw s̄ + chol(Σ) ε.  Oracle: the same
+    written in NumPy with hand Jacobians (∂h/∂s, ∂h/∂l), SciPy's normal log-density, and the
+    core's own ε (one normal(N·3) draw of the key).  A masked row, a row of an unmapped
+    landmark and (with a gate) a gross outlier inform nothing."""
+    rng = np.random.default_rng(11)
+    N = 3
+    pose = poses_path(2)
+    p = fs.init(np.asarray(pose[0])[None] + 0.05 * rng.normal(size=(N, 3)), N, 6, 2)
+    z0 = measure(pose[0], rng)
+    p, _ = fs.observe_update(p, MODEL, z0[:3], np.arange(3), np.ones(3, bool), R_NP)  # landmarks 0-2
+    p = p._replace(pose=jnp.asarray(np.asarray(pose[1])[None] + 0.05 * rng.normal(size=(N, 3))))
+    A = rng.normal(size=(N, 3, 3)) * 0.05
+    P0 = A @ np.transpose(A, (0, 2, 1)) + np.diag([1e-3, 1e-3, 1e-4])
+    z1 = measure(pose[1], rng)
+    mask = np.array([True, True, False, True])  # row 2 masked; row 3: landmark 3 is not mapped
+    key = jax.random.PRNGKey(21)
+    for gate in (None, 100.0):
+        z = z1.copy()
+        skipped = 0
+        if gate is not None:
+            z[1, 0] += 50.0  # a gross outlier on row 1, beyond the gate in every particle
+        q, ll, log_marg, st = fs.propose_optimal(p, MODEL, z, np.arange(4), mask, R_NP, P0, key, gate=gate,
+                                                angle_mask=(False, False, True))
+        eps = np.asarray(jax.random.normal(key, (N, 3), jnp.float64))
+        lm_mean, lm_cov, poses = np.asarray(p.lm_mean), np.asarray(p.lm_cov), np.asarray(p.pose)
+        ll_ref, draws = [], []
+        for i in range(N):
+            s, P, lli = poses[i].copy(), P0[i].copy(), 0.0
+            for k in range(4):
+                if not mask[k] or k == 3:
+                    continue
+                l, Sl = lm_mean[i, k], lm_cov[i, k]
+                Gs, Gl = np_Hs(s, l), np_H(s, l)
+                Z = R_NP + Gl @ Sl @ Gl.T
+                nu = z[k] - np_h(s, l)
+                nu[1] = np_wrap(nu[1])
+                S = Gs @ P @ Gs.T + Z
+                if gate is not None and nu @ np.linalg.solve(S, nu) > gate:
+                    skipped += 1
+                    continue
+                K = P @ Gs.T @ np.linalg.inv(S)
+                IKG = np.eye(3) - K @ Gs
+                s = s + K @ nu
+                s[2] = np_wrap(s[2])
+                P = IKG @ P @ IKG.T + K @ Z @ K.T
+                lli += logpdf(nu, S)
+            jit = np.finfo(np.float64).eps * (1.0 + np.trace(P))
+            d = s + np.linalg.cholesky(P + jit * np.eye(3)) @ eps[i]
+            d[2] = np_wrap(d[2])
+            ll_ref.append(lli)
+            draws.append(d)
+        np.testing.assert_allclose(np.asarray(ll), ll_ref, rtol=1e-10)
+        np.testing.assert_allclose(np.asarray(q.pose), draws, rtol=0, atol=1e-10)
+        assert float(log_marg) == pytest.approx(float(special.logsumexp(np.asarray(p.log_w) + ll_ref)), rel=1e-12)
+        assert int(st) == 0
+        np.testing.assert_array_equal(np.asarray(q.log_w), np.asarray(p.log_w))  # weights untouched
+        assert skipped == (0 if gate is None else N)
+    with pytest.raises(InputError, match="pose_cov"):
+        fs.propose_optimal(p, MODEL, z1, np.arange(4), mask, R_NP, P0[:2], key)
+
+
+def test_observe_update_weights_none_updates_maps_only():
+    rng = np.random.default_rng(3)
+    pose = poses_path(2)
+    p = fs.init(pose[0], 2, 4, 2)
+    p, _ = fs.observe_update(p, MODEL, measure(pose[0], rng), np.arange(4), np.ones(4, bool), R_NP)
+    z1 = measure(pose[1], rng)
+    p = p._replace(pose=jnp.asarray(np.tile(pose[1], (2, 1))))
+    qe, ie = fs.observe_update(p, MODEL, z1, np.arange(4), np.ones(4, bool), R_NP)
+    qn, in_ = fs.observe_update(p, MODEL, z1, np.arange(4), np.ones(4, bool), R_NP, weights="none")
+    np.testing.assert_array_equal(np.asarray(qn.lm_mean), np.asarray(qe.lm_mean))
+    np.testing.assert_array_equal(np.asarray(qn.lm_cov), np.asarray(qe.lm_cov))
+    assert np.all(np.asarray(in_.loglik) == 0.0) and np.all(np.asarray(ie.loglik) != 0.0)
