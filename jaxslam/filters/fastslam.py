@@ -1034,24 +1034,25 @@ def map_mean(p: Particles) -> LandmarkMap:
 def step(p: Particles, key, sample_fn: Callable, sample_args: tuple, model: LandmarkModel,
          z, lm_ids, mask, R, params=None, weights: str = "exact", gate=None,
          threshold: Optional[float] = 0.5, scheme="systematic", slot_by_id: bool = False,
-         solver: str = "closed", chunk: Optional[int] = None):
+         solver: str = "closed", chunk: Optional[int] = None, robust=None):
     """One FastSLAM step: propagate → observe_update → maybe_resample.
 
     ``key`` is split into a proposal key and a resampling key.  Returns
-    ``(Particles, ObserveInfo)``; scan it over a run.
+    ``(Particles, ObserveInfo)``; scan it over a run.  (FastSLAM 2.0: :func:`run` with
+    ``proposal="optimal"``, or :func:`propose_optimal` in a loop of your own.)
     """
     k_prop, k_res = jax.random.split(key)
     p, info = _propagate_update(p, k_prop, sample_fn, sample_args, model, z, lm_ids, mask, R, params,
-                                weights, gate, slot_by_id, solver, chunk)
+                                weights, gate, slot_by_id, solver, chunk, robust)
     p = maybe_resample(p, k_res, threshold, scheme)
     return p, info
 
 
 def _propagate_update(p, k_prop, sample_fn, sample_args, model, z, lm_ids, mask, R, params, weights,
-                      gate, slot_by_id, solver, chunk):
+                      gate, slot_by_id, solver, chunk, robust=None):
     p = propagate(p, k_prop, sample_fn, *sample_args)
     return observe_update(p, model, z, lm_ids, mask, R, params, weights=weights, gate=gate,
-                          slot_by_id=slot_by_id, solver=solver, chunk=chunk)
+                          slot_by_id=slot_by_id, solver=solver, chunk=chunk, robust=robust)
 
 
 class FastSlamRun(NamedTuple):
@@ -1074,23 +1075,38 @@ class FastSlamRun(NamedTuple):
     n_gated: jax.Array
 
 
-def run(p0: Particles, key, sample_fn: Callable, inputs, model: LandmarkModel, zs, lm_ids, masks, R,
+def run(p0: Particles, key, sample_fn: Optional[Callable], inputs, model: LandmarkModel, zs, lm_ids, masks, R,
         params=None, *, angle_mask: Optional[Sequence[bool]] = None, weights: str = "exact", gate=None,
         threshold: Optional[float] = 0.5, scheme="systematic", slot_by_id: bool = False,
-        solver: str = "closed") -> FastSlamRun:
+        solver: str = "closed", robust=None, proposal: str = "motion",
+        moment_fn: Optional[Callable] = None) -> FastSlamRun:
     """FastSLAM over a log: one ``lax.scan`` of :func:`step` (propagate → update → resample).
 
     Args:
       p0: the initial particle set (:func:`init`).  key: PRNG key, split into one key per event.
-      sample_fn: ``sample_fn(pose, aux, key, *inputs_t) -> (pose, aux)``, one particle's proposal.
+      sample_fn: ``sample_fn(pose, aux, key, *inputs_t) -> (pose, aux)``, one particle's proposal
+        (``proposal="motion"``; None with ``"optimal"``).
       inputs: tuple of arrays with a leading T axis; event t passes their t-th slices to
-        ``sample_fn``.
+        ``sample_fn`` (or ``moment_fn``).
       zs: (T, K, d_z) measurements; lm_ids: (T, K) or (K,) landmark ids; masks: (T, K) bool.
       R: (d_z, d_z) measurement covariance (or (T, d_z, d_z), one per event).
-      The rest as :func:`step`; ``angle_mask`` as :func:`estimate`.
+      proposal: "motion" (FastSLAM 1.0, default) | "optimal" (FastSLAM 2.0): each particle
+        carries a Gaussian pose — mean ``pose``, covariance started at 0 —, moved at every
+        event by ``moment_fn(pose, aux, cov, *inputs_t) -> (mean, aux, cov)`` (the motion
+        model and its linearised noise), and on an event with rows drawn by
+        :func:`propose_optimal` (its weights replace ``weights``; the covariance restarts at 0).
+      robust: Student-t ν of the landmark model (:func:`observe_update`).
+      The rest as :func:`step`; ``angle_mask`` as :func:`estimate` (and the wrapped pose
+      components of the optimal proposal).
     Returns :class:`FastSlamRun`.  Shapes are checked here (InputError naming the argument);
     works under ``jit`` / ``vmap`` / ``grad`` (the caller jits).
     """
+    if proposal not in ("motion", "optimal"):
+        raise InputError(f"proposal: expected 'motion' or 'optimal', got {proposal!r}")
+    if proposal == "optimal" and moment_fn is None:
+        raise InputError("moment_fn: proposal='optimal' needs moment_fn(pose, aux, cov, *inputs_t)")
+    if proposal == "motion" and sample_fn is None:
+        raise InputError("sample_fn: proposal='motion' needs sample_fn(pose, aux, key, *inputs_t)")
     zs = jnp.asarray(zs)
     if zs.ndim != 3:
         raise InputError(f"zs: expected shape (T, K, d_z), got {zs.shape}")
@@ -1113,15 +1129,39 @@ def run(p0: Particles, key, sample_fn: Callable, inputs, model: LandmarkModel, z
         raise InputError(f"R: expected shape {(zs.shape[2],) * 2} or {(T,) + (zs.shape[2],) * 2}, got {R.shape}")
     R_t = jnp.broadcast_to(R, (T,) + (zs.shape[2],) * 2)
 
+    if proposal == "optimal":
+        # the pose covariances ride in aux, so that resampling moves them with their particles
+        n_r = p0.pose.shape[1]
+        p0 = p0._replace(aux=(p0.aux, jnp.zeros((p0.pose.shape[0], n_r, n_r), p0.pose.dtype)))
+
     def body(p, x):  # step(), with N_eff read between the update and the resampling
         k, u, z, ids, mask, R_k = x
         k_prop, k_res = jax.random.split(k)
-        p, info = _propagate_update(p, k_prop, sample_fn, u, model, z, ids, mask, R_k, params, weights,
-                                    gate, slot_by_id, solver, None)
+        if proposal == "motion":
+            p, info = _propagate_update(p, k_prop, sample_fn, u, model, z, ids, mask, R_k, params, weights,
+                                        gate, slot_by_id, solver, None, robust)
+            log_marg = info.log_marginal
+        else:
+            aux, cov = p.aux
+            pose, aux, cov = jax.vmap(moment_fn, in_axes=(0, 0, 0) + (None,) * len(u))(p.pose, aux, cov, *u)
+            p = _moved(p, pose, (aux, cov))
+            q, ll, log_marg, _ = propose_optimal(p, model, z, ids, mask, R_k, p.aux[1], k_prop, params=params,
+                                                 slot_by_id=slot_by_id, angle_mask=angle_mask, gate=gate,
+                                                 robust=robust)
+            # an event without rows keeps the Gaussian (no draw); one with rows restarts it at 0
+            rows = jnp.any(jnp.asarray(mask, bool) & (ids >= 0) & jnp.all(jnp.isfinite(z), axis=1))
+            p = jax.tree_util.tree_map(lambda a, b: jnp.where(rows, a, b), q, p)
+            p = p._replace(aux=(p.aux[0], jnp.where(rows, jnp.zeros_like(p.aux[1]), p.aux[1])))
+            log_marg = jnp.where(rows, log_marg, jnp.zeros_like(log_marg))
+            p, info = observe_update(p, model, z, ids, mask, R_k, params, weights="none", gate=gate,
+                                     slot_by_id=slot_by_id, solver=solver, robust=robust)
+            p = reweight(p, jnp.where(rows, ll, jnp.zeros_like(ll)))
         ne = neff(p)
         p = maybe_resample(p, k_res, threshold, scheme)
-        return p, (estimate(p, angle_mask)[0], ne, info.log_marginal, info.n_used, info.n_registered,
+        return p, (estimate(p, angle_mask)[0], ne, log_marg, info.n_used, info.n_registered,
                    jnp.sum(info.gated).astype(jnp.int32))
 
     p, outs = jax.lax.scan(body, p0, (jax.random.split(key, T), inputs, zs, lm_ids, masks, R_t))
+    if proposal == "optimal":
+        p = p._replace(aux=p.aux[0])
     return FastSlamRun(p, *outs)

@@ -867,3 +867,56 @@ def test_observe_update_weights_none_updates_maps_only():
     np.testing.assert_array_equal(np.asarray(qn.lm_mean), np.asarray(qe.lm_mean))
     np.testing.assert_array_equal(np.asarray(qn.lm_cov), np.asarray(qe.lm_cov))
     assert np.all(np.asarray(in_.loglik) == 0.0) and np.all(np.asarray(ie.loglik) != 0.0)
+
+
+def test_generic_run_optimal_proposal_tracks_with_four_particles():
+    """``run(..., proposal="optimal", moment_fn=...)``: the toy model's Gaussian pose moved by
+    ``moment_fn`` (mean + Δ, covariance + Q) and drawn at events with rows.  With 4 particles it
+    tracks the truth (as the motion proposal does with 64 in the test above); an event whose
+    rows are all masked draws nothing (the covariance keeps growing), which the loop written
+    here checks against the runner's own output step by step."""
+    T, N = 40, 4
+    rng = np.random.default_rng(11)
+    truth = poses_path(T + 1)
+    u = np.diff(truth, axis=0)
+    zs = np.stack([measure(truth[t + 1], rng, sigma=(0.05, 0.01)) for t in range(T)])
+    masks = np.ones((T, 4), bool)
+    masks[5:9] = False  # four events without rows
+    Q = np.diag([0.02, 0.02, 0.005]) ** 2
+    R = np.diag([0.05**2, 0.01**2])
+    ang = [False, False, True]
+
+    def moments(pose, aux, cov, du):
+        return pose + du, aux, cov + jnp.asarray(Q, pose.dtype)
+
+    p0 = fs.init(truth[0], N, 4, 2)
+    key = jax.random.PRNGKey(2)
+    out = jax.jit(lambda p, k: fs.run(p, k, None, (u,), MODEL, zs, np.arange(4), masks, R, angle_mask=ang,
+                                      slot_by_id=True, proposal="optimal", moment_fn=moments))(p0, key)
+    err = np.linalg.norm(np.asarray(out.pose_mean)[:, :2] - truth[1:, :2], axis=1)
+    assert err.max() < 0.1, err.max()
+    assert int(out.final.status) == 0
+    # the same events by hand: moments, then (rows only) draw, landmark updates, weights, resampling
+    @jax.jit
+    def draw_update(p, cov, k_prop, z, m):
+        p, ll, _, _ = fs.propose_optimal(p, MODEL, z, np.arange(4), m, R, cov, k_prop, slot_by_id=True,
+                                         angle_mask=ang)
+        p, _ = fs.observe_update(p, MODEL, z, np.arange(4), m, R, weights="none", slot_by_id=True)
+        return fs.reweight(p, ll)
+
+    resample = jax.jit(lambda p, k: fs.maybe_resample(p, k, 0.5))
+    p, cov = p0, np.zeros((N, 3, 3))
+    for t, k in enumerate(jax.random.split(key, T)):
+        k_prop, k_res = jax.random.split(k)
+        p = p._replace(pose=p.pose + u[t])
+        cov = cov + Q
+        if masks[t].any():
+            p = draw_update(p, cov, k_prop, zs[t], masks[t])
+            cov = np.zeros_like(cov)
+        p = resample(p, k_res)
+        np.testing.assert_allclose(np.asarray(out.pose_mean[t]), np.asarray(fs.estimate(p, ang)[0]),
+                                   rtol=1e-10, atol=1e-12)
+    with pytest.raises(InputError, match="moment_fn"):
+        fs.run(p0, key, None, (u,), MODEL, zs, np.arange(4), masks, R, proposal="optimal")
+    with pytest.raises(InputError, match="proposal"):
+        fs.run(p0, key, None, (u,), MODEL, zs, np.arange(4), masks, R, proposal="fastslam2")
