@@ -758,8 +758,10 @@ def propose_optimal(p: Particles, model: LandmarkModel, z, lm_ids, mask, R, pose
 
     Args:
         p: :class:`Particles` whose ``pose`` holds each particle's pose mean.
-        model: :class:`LandmarkModel` (static).  z, lm_ids, mask, R, params, slot_by_id, gate:
-            as :func:`observe_update`.
+        model: :class:`LandmarkModel` (static).  z, mask, R, params, slot_by_id, gate: as
+            :func:`observe_update`.
+        lm_ids: (K,) landmark ids shared by the particles, or (N, K) one row per particle
+            (an association made per particle).
         pose_cov: (N, n_r, n_r) each particle's pose covariance.
         key: PRNG key of the draws (one normal(N·n_r) draw).
         angle_mask: static; components of the pose wrapped to (−π, π] after the update and
@@ -788,8 +790,11 @@ def propose_optimal(p: Particles, model: LandmarkModel, z, lm_ids, mask, R, pose
         raise InputError(f"angle_mask: expected {n_r} flags, got {len(wrap)}")
     Rs = jnp.broadcast_to(R, (K_rows, dz, dz))
     lm_ids = jnp.asarray(lm_ids).astype(jnp.int32)
-    valid = jnp.asarray(mask).astype(bool) & (lm_ids >= 0) & jnp.all(jnp.isfinite(z), axis=1)
-    z = jnp.where(valid[:, None], z.astype(dtype), jnp.zeros((), dtype))
+    if lm_ids.shape not in ((K_rows,), (N, K_rows)):
+        raise InputError(f"lm_ids: expected shape ({K_rows},) or ({N}, {K_rows}), got {lm_ids.shape}")
+    lm_ids = jnp.broadcast_to(lm_ids, (N, K_rows))
+    finite = jnp.asarray(mask).astype(bool) & jnp.all(jnp.isfinite(z), axis=1)
+    z = jnp.where(finite[:, None], z.astype(dtype), jnp.zeros((), dtype))
     res = model.residual if model.residual is not None else (lambda a, b: a - b)
     half_log2pi = jnp.asarray(0.5 * dz * _LOG2PI, dtype)
     eye = jnp.eye(n_r, dtype=dtype)
@@ -797,7 +802,9 @@ def propose_optimal(p: Particles, model: LandmarkModel, z, lm_ids, mask, R, pose
     def wrapped(x):
         return x if wrap is None else jnp.where(wrap, wrap_angle(x), x)
 
-    def one_particle(s0, P0, mean, cov, active, ids):
+    def one_particle(s0, P0, mean, cov, active, ids, row_ids):
+        valid = finite & (row_ids >= 0)
+
         def body(carry, x):
             s, P, ll = carry
             z_k, id_k, v_k, R_k = x
@@ -833,11 +840,11 @@ def propose_optimal(p: Particles, model: LandmarkModel, z, lm_ids, mask, R, pose
             ll = ll + jnp.where(use, ll_k, jnp.zeros((), dtype))
             return (s, P, ll), None
 
-        (s, P, ll), _ = jax.lax.scan(body, (s0, P0, jnp.zeros((), dtype)), (z, lm_ids, valid, Rs))
+        (s, P, ll), _ = jax.lax.scan(body, (s0, P0, jnp.zeros((), dtype)), (z, row_ids, valid, Rs))
         return s, P, ll
 
     pose_cov = jnp.asarray(pose_cov, dtype)
-    s_mean, s_cov, loglik = jax.vmap(one_particle)(p.pose, pose_cov, p.lm_mean, p.lm_cov, p.active, p.ids)
+    s_mean, s_cov, loglik = jax.vmap(one_particle)(p.pose, pose_cov, p.lm_mean, p.lm_cov, p.active, p.ids, lm_ids)
     # s ~ N(s̄, Σ_s): a closed-form factor (n_r ≤ 4) with a jitter at the dtype's resolution, so
     # that a zero covariance (no motion since the last draw) draws the mean
     jit = jnp.finfo(dtype).eps * (1.0 + jnp.trace(s_cov, axis1=1, axis2=2))

@@ -118,10 +118,11 @@ class Config(NamedTuple):
     association: "known" | "ml" (module docstring).
     weights: the core's weights, "exact" (log N(ν; 0, S)) or "mean" (log N(ν; 0, R)).
     proposal: "motion" (default; FastSLAM 1.0: each particle moved by a draw of the motion
-        noise at every event) | "optimal" (FastSLAM 2.0, known ids: each particle carries its
-        pose mean and the linearised motion covariance since its last draw, and on an event
-        with rows draws its pose from the Gaussian given the sightings of its mapped landmarks,
-        weighted by their predictive density; :func:`jaxslam.filters.fastslam.propose_optimal`).
+        noise at every event) | "optimal" (FastSLAM 2.0: each particle carries its pose mean
+        and the linearised motion covariance since its last draw, and on an event with rows
+        draws its pose from the Gaussian given the sightings of its mapped landmarks, weighted
+        by their predictive density; :func:`jaxslam.filters.fastslam.propose_optimal`; "ml"
+        associates with the pose covariance in S before the draw).
     robust: Student-t measurement model with ``params.robust_nu`` degrees of freedom (default 5)
         in each particle's landmark update and weight (the core's ``robust``): an outlier is
         down-weighted, never cut off; use it without ``params.gate``.
@@ -266,9 +267,6 @@ def _validate(config: Config):
         raise InputError("config: n_particles, capacity and K must be >= 1")
     if config.proposal not in _PROPOSALS:
         raise InputError(f"config.proposal: expected one of {_PROPOSALS}, got {config.proposal!r}")
-    if config.proposal == "optimal" and config.association != "known":
-        raise InputError("config.proposal: 'optimal' (FastSLAM 2.0) needs association='known', got "
-                         f"{config.association!r}")
 
 
 # ---------------------------------------------------------------------------
@@ -323,13 +321,15 @@ def _moment_fn(f, increment: bool):
 # Data association
 # ---------------------------------------------------------------------------
 
-def associate_ml(pose, mean, cov, active, counter, z, mask, R, gate, new_threshold):
+def associate_ml(pose, mean, cov, active, counter, z, mask, R, gate, new_threshold, pose_cov=None):
     """Maximum-likelihood association of one particle (module docstring).
 
     Args:
         pose: (3,).  mean (cap, 2), cov (cap, 2, 2), active (cap,): the particle's map.
         counter: () int32 next new-landmark id.  z: (K, 2) detections, mask: (K,).
         R: (2, 2).  gate, new_threshold: d² thresholds.
+        pose_cov: optional (3, 3) covariance of the particle's pose (the "optimal" proposal's
+            Gaussian before its draw): S gains G_s Σ_s G_sᵀ, G_s = ∂h/∂pose.
 
     Returns:
         ``(ids (K,) int32 (−1 = not used), counter', is_new (K,), ambiguous (K,))``.
@@ -337,14 +337,13 @@ def associate_ml(pose, mean, cov, active, counter, z, mask, R, gate, new_thresho
     dtype = mean.dtype
 
     def pred(l):
-        def both(v):
-            y = rb.observe(pose, v)
-            return y, y
-        H, zh = jax.jacfwd(both, has_aux=True)(l)
-        return zh, H
+        zh, (Gs, H) = value_and_jacfwd(rb.observe, argnums=(0, 1))(pose, l)
+        return zh, H, Gs
 
-    zhat, H = jax.vmap(pred)(mean)  # (cap, 2), (cap, 2, 2)
+    zhat, H, Gs = jax.vmap(pred)(mean)  # (cap, 2), (cap, 2, 2), (cap, 2, 3)
     S = H @ cov @ jnp.swapaxes(H, -1, -2) + R
+    if pose_cov is not None:
+        S = S + Gs @ pose_cov @ jnp.swapaxes(Gs, -1, -2)
     Sinv, det = inv_small(S)
     ok = (det > 0) & (S[..., 0, 0] > 0)  # positive definite (Sylvester); the rest is +inf below
     valid = mask & jnp.all(jnp.isfinite(z), axis=1)
@@ -475,10 +474,19 @@ def step(state: State, event: Event, config: Config, params: Params, *, key):
     def update(p, k_res, z, ids, mask):
         counter, nobs = p.aux[:2]
         if ml:
-            assoc = jax.vmap(associate_ml, in_axes=(0, 0, 0, 0, 0, None, None, None, None, None))
+            assoc = jax.vmap(associate_ml, in_axes=(0, 0, 0, 0, 0, None, None, None, None, None,
+                                                    0 if optimal else None))
             pids, counter, _, amb = assoc(p.pose, p.lm_mean, p.lm_cov, p.active, counter,
-                                          z, mask, R, gate_ml, new_thr)
-            p, ll, used, reg = _observe_per_particle(p, z, pids, mask, R, config.weights, nu_t)
+                                          z, mask, R, gate_ml, new_thr, p.aux[2] if optimal else None)
+            if optimal:
+                k_res, k_draw = jax.random.split(k_res)
+                p, ll_prop, _, _ = fs.propose_optimal(p, MODEL, z, pids, mask, R, p.aux[2], k_draw, slot_by_id=True,
+                                                      angle_mask=ANGLE_MASK, robust=nu_t)
+                p = p._replace(aux=p.aux[:2] + (jnp.zeros_like(p.aux[2]),))
+            p, ll, used, reg = _observe_per_particle(p, z, pids, mask, R, "none" if optimal else config.weights,
+                                                     nu_t)
+            if optimal:
+                ll = ll_prop
             n_new = jnp.sum(reg.astype(dtype), axis=1)
             log_marg = jax.scipy.special.logsumexp(p.log_w + ll)
             p = fs.reweight(p, ll + n_new * params.log_p_new)

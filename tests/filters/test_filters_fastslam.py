@@ -851,8 +851,21 @@ def test_optimal_proposal_matches_numpy():
         assert int(st) == 0
         np.testing.assert_array_equal(np.asarray(q.log_w), np.asarray(p.log_w))  # weights untouched
         assert skipped == (0 if gate is None else N)
+    # ids per particle (an association made per particle): the shared row tiled gives the same
+    # draws; dropping a row for particle 0 only changes particle 0
+    q1, ll1, _, _ = fs.propose_optimal(p, MODEL, z1, np.arange(4), mask, R_NP, P0, key)
+    ids = np.tile(np.arange(4), (N, 1))
+    q2, ll2, _, _ = fs.propose_optimal(p, MODEL, z1, ids, mask, R_NP, P0, key)
+    np.testing.assert_array_equal(np.asarray(q2.pose), np.asarray(q1.pose))
+    ids[0, 0] = -1
+    q3, ll3, _, _ = fs.propose_optimal(p, MODEL, z1, ids, mask, R_NP, P0, key)
+    assert not np.allclose(np.asarray(q3.pose)[0], np.asarray(q1.pose)[0])
+    np.testing.assert_array_equal(np.asarray(q3.pose)[1:], np.asarray(q1.pose)[1:])
+    np.testing.assert_array_equal(np.asarray(ll3)[1:], np.asarray(ll1)[1:])
     with pytest.raises(InputError, match="pose_cov"):
         fs.propose_optimal(p, MODEL, z1, np.arange(4), mask, R_NP, P0[:2], key)
+    with pytest.raises(InputError, match="lm_ids"):
+        fs.propose_optimal(p, MODEL, z1, ids[:2], mask, R_NP, P0, key)
 
 
 def test_observe_update_weights_none_updates_maps_only():

@@ -128,6 +128,22 @@ def test_ml_association_map_size(sim):
     assert int(jnp.sum(res.n_obs)) > 0
 
 
+def test_ml_association_with_the_optimal_proposal(sim):
+    """Ids unknown, FastSLAM 2.0: each particle associates with its pose covariance in S, then
+    draws; with 10 particles the map has one landmark per true one seen and the loop is
+    tracked.  Oracle: the truth of the simulation."""
+    log, gt_t, gt, lms, seen = sim
+    cfg = pf.Config(motion="unicycle", n_particles=10, capacity=24, K=12, association="ml", proposal="optimal")
+    res = pf.run(pf.log_from_events(log, jnp.zeros(3)), cfg, _params()._replace(gate=9.21, new_threshold=30.0),
+                 key=jax.random.PRNGKey(1))
+    n_map = int(jnp.sum(res.map.active))
+    assert n_map == len(seen) and int(res.overflow) == 0
+    assert _err(res, log, gt_t, gt) < 0.1
+    act = np.asarray(res.map.active)
+    d = np.linalg.norm(np.asarray(res.map.mean)[act][:, None] - lms[None], axis=2)
+    assert np.max(np.min(d, axis=1)) < 0.2 and len(set(np.argmin(d, axis=1))) == n_map
+
+
 @pytest.mark.parametrize("proposal,robust", [("motion", False), ("optimal", True)])
 def test_float32_run_finite(sim, proposal, robust):
     log, gt_t, gt, lms, seen = sim
@@ -223,7 +239,7 @@ def test_optimal_proposal_tracks_with_few_particles():
     """``Config(proposal="optimal")`` (FastSLAM 2.0): with 5 particles it tracks the loop as well
     as the motion proposal does with 50, resamples far less often, and its sightings agree
     with the particles' maps (few gated at 99.9 %), on three seeds.  Oracle: the truth of the
-    simulation.  The proposal needs known ids (an InputError naming config.proposal)."""
+    simulation.  An unknown proposal is an InputError naming config.proposal."""
     errs, gated, res_opt, res_mot = [], [], [], []
     for seed in range(3):
         log, gt_t, gt, lms, seen = _simulate(seed)
@@ -243,9 +259,6 @@ def test_optimal_proposal_tracks_with_few_particles():
     assert max(gated) < 0.01, gated
     assert max(res_opt) < 0.5 * min(res_mot), (res_opt, res_mot)
     log = _simulate(0)[0]
-    with pytest.raises(InputError, match="config.proposal"):
-        pf.run(pf.log_from_events(log, jnp.zeros(3)), pf.Config(K=12, association="ml", proposal="optimal"),
-               _params(), key=jax.random.PRNGKey(0))
     with pytest.raises(InputError, match="config.proposal"):
         pf.run(pf.log_from_events(log, jnp.zeros(3)), pf.Config(K=12, proposal="fastslam2"), _params(),
                key=jax.random.PRNGKey(0))
