@@ -291,6 +291,14 @@ def _slot(active, ids, id_k, cap: int, slot_by_id: bool):
     return jnp.where(known, jnp.argmax(match), jnp.argmax(free)), known, jnp.any(free)
 
 
+def _check_robust(robust):
+    """A concrete Student-t ν must be a finite number > 0 (None: Gaussian)."""
+    if robust is not None and not isinstance(robust, jax.core.Tracer):
+        v = np.asarray(robust)
+        if v.shape != () or not np.isfinite(v) or not v > 0:
+            raise InputError(f"robust: expected a finite Student-t ν > 0 (None for the Gaussian), got {robust!r}")
+
+
 def _threshold(gate, dof, dtype):
     if callable(gate):
         return jnp.asarray(gate(dof), dtype=dtype)
@@ -592,6 +600,7 @@ def observe_update(
         raise InputError(f"weights: expected 'exact', 'mean' or 'none', got {weights!r}")
     if solver not in _SOLVERS:
         raise InputError(f"solver: expected one of {_SOLVERS}, got {solver!r}")
+    _check_robust(robust)
     if robust is not None and solver != "closed":
         raise InputError(f"robust: the Student-t update needs solver='closed', got solver={solver!r}")
     dtype = p.lm_mean.dtype
@@ -772,6 +781,7 @@ def propose_optimal(p: Particles, model: LandmarkModel, z, lm_ids, mask, R, pose
         particles' weights are not touched.  A particle whose proposal is not finite keeps
         its prior mean as the draw and the status gets ``NON_FINITE``.
     """
+    _check_robust(robust)
     dtype = p.pose.dtype
     N, n_r = p.pose.shape
     cap = p.lm_mean.shape[1]
@@ -810,11 +820,13 @@ def propose_optimal(p: Particles, model: LandmarkModel, z, lm_ids, mask, R, pose
             z_k, id_k, v_k, R_k = x
             slot, known, _ = _slot(active, ids, id_k, cap, slot_by_id)
             do = v_k & known
-            s_g, l_g, z_g = _guard(do, (s, mean[slot], z_k))
-            zhat, (Gs, Gl) = value_and_jacfwd(lambda a, b: model.observe(a, b, params), argnums=(0, 1))(s_g, l_g)
-            Z = symmetrize(Gl @ cov[slot] @ Gl.T + R_k)
+            # every input of the row through the guard: an unused row (a free slot at the pose)
+            # must not put 0·inf into the gradient; the carry itself passes through unguarded
+            s_g, l_g, z_g, C_g, R_g, P_g, prm_g = _guard(do, (s, mean[slot], z_k, cov[slot], R_k, P, params))
+            zhat, (Gs, Gl) = value_and_jacfwd(lambda a, b: model.observe(a, b, prm_g), argnums=(0, 1))(s_g, l_g)
+            Z = symmetrize(Gl @ C_g @ Gl.T + R_g)
             nu = res(z_g, zhat)
-            GP = Gs @ P
+            GP = Gs @ P_g
             S = symmetrize(GP @ Gs.T + Z)
             Sinv, logdet, ok = _spd_inv_logdet(S)
             d2 = nu @ (Sinv @ nu)
@@ -832,8 +844,8 @@ def propose_optimal(p: Particles, model: LandmarkModel, z, lm_ids, mask, R, pose
                 Kg = GP.T @ Sinv
                 ll_k = -(0.5 * (d2 + logdet) + half_log2pi)
             A = eye - Kg @ Gs
-            s_new = wrapped(s + Kg @ nu)
-            P_new = symmetrize(A @ P @ A.T + Kg @ Zw @ Kg.T)
+            s_new = wrapped(s_g + Kg @ nu)
+            P_new = symmetrize(A @ P_g @ A.T + Kg @ Zw @ Kg.T)
             use = do & ~gated & ok & jnp.all(jnp.isfinite(s_new)) & jnp.all(jnp.isfinite(P_new))
             s = jnp.where(use, s_new, s)
             P = jnp.where(use, P_new, P)

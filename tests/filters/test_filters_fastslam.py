@@ -933,3 +933,31 @@ def test_generic_run_optimal_proposal_tracks_with_four_particles():
         fs.run(p0, key, None, (u,), MODEL, zs, np.arange(4), masks, R, proposal="optimal")
     with pytest.raises(InputError, match="proposal"):
         fs.run(p0, key, None, (u,), MODEL, zs, np.arange(4), masks, R, proposal="fastslam2")
+
+
+def test_optimal_proposal_gradient_finite_with_a_free_slot_at_the_pose():
+    """A row of an unmapped landmark (free slot, mean 0) with the particle at the origin: the
+    unused row's Jacobian is infinite, and must not reach the gradient (0·inf).  Oracle: central
+    differences of the same loss.  Also: a non-finite or non-positive ν is refused by name."""
+    p = fs.init(np.zeros(3), 2, 4, 2)
+    z0 = np.array([[2.0, 0.3], [1.5, -0.4]])
+    p, _ = fs.observe_update(p, MODEL, z0[1:], np.array([1]), np.ones(1, bool), R_NP)  # slot 1 mapped
+    p = p._replace(pose=jnp.asarray([[0.0, 0.0, 0.0], [0.1, 0.0, 0.05]]))
+    z = np.array([[2.0, 0.3], [1.52, -0.38]])  # row 0: landmark 0, not mapped
+
+    def loss(q):
+        cov = jnp.broadcast_to(q * jnp.eye(3), (2, 3, 3))
+        _, ll, lm, _ = fs.propose_optimal(p, MODEL, z, np.array([0, 1]), np.ones(2, bool), R_NP, cov,
+                                           jax.random.PRNGKey(0))
+        return lm
+
+    g = float(jax.grad(loss)(0.01))
+    h = 1e-6
+    fd = (float(loss(0.01 + h)) - float(loss(0.01 - h))) / (2 * h)
+    assert np.isfinite(g) and g == pytest.approx(fd, rel=1e-5)
+    for bad in (np.inf, 0.0, -1.0):
+        with pytest.raises(InputError, match="robust"):
+            fs.propose_optimal(p, MODEL, z, np.array([0, 1]), np.ones(2, bool), R_NP, np.zeros((2, 3, 3)),
+                               jax.random.PRNGKey(0), robust=bad)
+        with pytest.raises(InputError, match="robust"):
+            fs.observe_update(p, MODEL, z, np.array([0, 1]), np.ones(2, bool), R_NP, robust=bad)
