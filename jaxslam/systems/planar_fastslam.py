@@ -471,6 +471,15 @@ def step(state: State, event: Event, config: Config, params: Params, *, key):
     else:
         nu_t = None
 
+    def draw(p, k_res, z, row_ids, mask):
+        """The "optimal" proposal's draw at an event with rows; the pose covariance restarts at 0.
+        Returns (p, resampling key, proposal log-likelihoods, log marginal)."""
+        k_res, k_draw = jax.random.split(k_res)
+        p, ll, log_marg, _ = fs.propose_optimal(p, MODEL, z, row_ids, mask, R, p.aux[2], k_draw,
+                                                slot_by_id=config.slot_by_id or ml, angle_mask=ANGLE_MASK,
+                                                gate=None if ml else params.gate, robust=nu_t)
+        return p._replace(aux=p.aux[:2] + (jnp.zeros_like(p.aux[2]),)), k_res, ll, log_marg
+
     def update(p, k_res, z, ids, mask):
         counter, nobs = p.aux[:2]
         if ml:
@@ -479,10 +488,7 @@ def step(state: State, event: Event, config: Config, params: Params, *, key):
             pids, counter, _, amb = assoc(p.pose, p.lm_mean, p.lm_cov, p.active, counter,
                                           z, mask, R, gate_ml, new_thr, p.aux[2] if optimal else None)
             if optimal:
-                k_res, k_draw = jax.random.split(k_res)
-                p, ll_prop, _, _ = fs.propose_optimal(p, MODEL, z, pids, mask, R, p.aux[2], k_draw, slot_by_id=True,
-                                                      angle_mask=ANGLE_MASK, robust=nu_t)
-                p = p._replace(aux=p.aux[:2] + (jnp.zeros_like(p.aux[2]),))
+                p, k_res, ll_prop, _ = draw(p, k_res, z, pids, mask)
             p, ll, used, reg = _observe_per_particle(p, z, pids, mask, R, "none" if optimal else config.weights,
                                                      nu_t)
             if optimal:
@@ -494,11 +500,7 @@ def step(state: State, event: Event, config: Config, params: Params, *, key):
             outl = jnp.zeros_like(used)
         else:
             if optimal:
-                k_res, k_draw = jax.random.split(k_res)
-                p, ll_prop, log_marg, _ = fs.propose_optimal(
-                    p, MODEL, z, ids, mask, R, p.aux[2], k_draw, slot_by_id=config.slot_by_id,
-                    angle_mask=ANGLE_MASK, gate=params.gate, robust=nu_t)
-                p = p._replace(aux=p.aux[:2] + (jnp.zeros_like(p.aux[2]),))
+                p, k_res, ll_prop, log_marg = draw(p, k_res, z, ids, mask)
             p, info = fs.observe_update(p, MODEL, z, ids, mask, R, None,
                                         weights="none" if optimal else config.weights,
                                         gate=params.gate, slot_by_id=config.slot_by_id, robust=nu_t)
