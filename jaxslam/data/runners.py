@@ -642,7 +642,7 @@ def run_mrclam(data_dir, robot=1, filter="ekf", ids="known", anchors=None, parti
     for every robot); ``params``: a ``--params`` object (``jaxslam tune mrclam``) replacing it.
     ``calibrated``: apply the camera range model and odometry delay fitted on the first half
     of robot 1 (``presets.mrclam_log``) with the matching tight noise (EKF preset;
-    FastSLAM keeps its own R).  The EKF with ids hidden prunes tentative landmarks
+    FastSLAM keeps its own setting, ``presets.mrclam_fastslam_setup``).  The EKF with ids hidden prunes tentative landmarks
     (``presets.MRCLAM_NN_PRUNING``) unless ``params`` sets ``prune_window_s``.
     """
     from ..dynamics import planar
@@ -695,7 +695,8 @@ def run_mrclam(data_dir, robot=1, filter="ekf", ids="known", anchors=None, parti
     counts["outside_window"] = int(log.stats["outside_window"])
     counts = _counts_common(status, counts)
     setting = (f"robot {robot}, {'known ids' if assoc == 'known' else 'ids hidden (Mahalanobis NN)'}, "
-               f"{'calibrated camera/odometry model' if calibrated else 'learned range model applied to the log, FastSLAM 2.0 proposal, Student-t' if fs_learned else 'raw log'}, "
+               f"{'calibrated camera/odometry model' if calibrated else 'learned range model applied to the log' if fs_learned else 'raw log'}, "
+               f"{'FastSLAM 2.0 proposal, Student-t, ' if fs_learned else ''}"
                f"{log.stats['n_events']} events")
     cfg = _config("mrclam", filter, dtype, setting, robot=robot, ids=ids, calibrated=bool(calibrated),
                   odometry_delay_s=None if calibrated else delay,

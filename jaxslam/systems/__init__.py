@@ -23,7 +23,7 @@ module                   system
 ``uwb_slam_2d``          paper 003: 2D range-only UWB EKF-SLAM with trilateration start-up
 ``line_slam_004``        paper 004: RANSAC line features, line-feature EKF-SLAM
 ``planar_ekf_slam``      planar range-bearing EKF-SLAM (MRCLAM, Victoria Park)
-``planar_fastslam``      planar range-bearing FastSLAM 1.0 (MRCLAM)
+``planar_fastslam``      planar range-bearing FastSLAM 1.0 and 2.0 (MRCLAM, Victoria Park)
 ``util_range``           UTIL UWB TWR: 3D range-only tag tracking / SLAM with a range bias
 ``plaza_range``          Plaza: 2D range-only SLAM with a range bias and delayed initialisation
 =======================  ====================================================================

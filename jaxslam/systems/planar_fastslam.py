@@ -1,4 +1,4 @@
-"""2D range-bearing FastSLAM 1.0 on real logs (UTIAS MRCLAM, Victoria Park; issue 9).
+"""2D range-bearing FastSLAM 1.0 and 2.0 on real logs (UTIAS MRCLAM, Victoria Park; issue 9).
 
 A *system* module: it plugs the planar motion models (:mod:`jaxslam.dynamics.planar`) and
 the 2D range-bearing sensor (:mod:`jaxslam.sensors.range_bearing2d`) into the one particle
@@ -22,6 +22,12 @@ A whole log is one jitted ``lax.scan`` over the events of an
    weights (:func:`fastslam.observe_update`), and **resample** when
    ``N_eff < params.resample_threshold·N``
    (:func:`fastslam.maybe_resample`).
+
+With ``Config.proposal="optimal"`` (FastSLAM 2.0) step 1 moves each particle's Gaussian
+instead of drawing (mean ``f(s, u, Δt)``, covariance ``F Σ Fᵀ + J_u M J_uᵀ + diag(q)·Δt``,
+:func:`_moment_fn`), and step 2 draws the pose from that Gaussian updated by the sightings of
+the particle's mapped landmarks (:func:`fastslam.propose_optimal`), then updates the landmark
+EKFs at the drawn pose (``weights="none"``: the weight is the proposal's predictive density).
 
 Data association (``Config.association``):
 

@@ -868,6 +868,55 @@ def test_optimal_proposal_matches_numpy():
         fs.propose_optimal(p, MODEL, z1, ids[:2], mask, R_NP, P0, key)
 
 
+def test_robust_optimal_proposal_matches_numpy():
+    """``propose_optimal(robust=ν)``: the pose update of each mapped row uses
+    Z_w = (R + G_l Σ_l G_lᵀ) / w with the EM weight w = min((ν + 2)/(ν + d²), 1) of the row's NIS
+    under S = G_s Σ_s G_sᵀ + R + G_l Σ_l G_lᵀ (the whole row's noise scaled, the docstring's
+    choice), and the row's weight is the Student-t density with scale S.
+    Oracle: written out in NumPy with hand Jacobians and SciPy's multivariate_t; an outlier
+    row must be the one down-weighted."""
+    rng = np.random.default_rng(5)
+    N, nu_t = 2, 5.0
+    pose = poses_path(2)
+    p = fs.init(np.asarray(pose[0])[None] + 0.05 * rng.normal(size=(N, 3)), N, 4, 2)
+    p, _ = fs.observe_update(p, MODEL, measure(pose[0], rng), np.arange(4), np.ones(4, bool), R_NP)
+    p = p._replace(pose=jnp.asarray(np.asarray(pose[1])[None] + 0.05 * rng.normal(size=(N, 3))))
+    A = rng.normal(size=(N, 3, 3)) * 0.05
+    P0 = A @ np.transpose(A, (0, 2, 1)) + np.diag([1e-3, 1e-3, 1e-4])
+    z = measure(pose[1], rng)
+    z[2, 0] += 2.0  # an outlier on row 2
+    key = jax.random.PRNGKey(4)
+    q, ll, _, st = fs.propose_optimal(p, MODEL, z, np.arange(4), np.ones(4, bool), R_NP, P0, key,
+                                      robust=nu_t, angle_mask=(False, False, True))
+    eps = np.asarray(jax.random.normal(key, (N, 3), jnp.float64))
+    lm_mean, lm_cov, poses = np.asarray(p.lm_mean), np.asarray(p.lm_cov), np.asarray(p.pose)
+    for i in range(N):
+        s, P, lli, ws = poses[i].copy(), P0[i].copy(), 0.0, []
+        for k in range(4):
+            l, Sl = lm_mean[i, k], lm_cov[i, k]
+            Gs, Gl = np_Hs(s, l), np_H(s, l)
+            nu = z[k] - np_h(s, l)
+            nu[1] = np_wrap(nu[1])
+            S = Gs @ P @ Gs.T + R_NP + Gl @ Sl @ Gl.T
+            d2 = nu @ np.linalg.solve(S, nu)
+            w = min((nu_t + 2) / (nu_t + d2), 1.0)
+            ws.append(w)
+            Zw = (R_NP + Gl @ Sl @ Gl.T) / w
+            K = P @ Gs.T @ np.linalg.inv(Gs @ P @ Gs.T + Zw)
+            IKG = np.eye(3) - K @ Gs
+            s = s + K @ nu
+            s[2] = np_wrap(s[2])
+            P = IKG @ P @ IKG.T + K @ Zw @ K.T
+            lli += stats.multivariate_t(loc=np.zeros(2), shape=S, df=nu_t).logpdf(nu)
+        jit = np.finfo(np.float64).eps * (1.0 + np.trace(P))
+        d = s + np.linalg.cholesky(P + jit * np.eye(3)) @ eps[i]
+        d[2] = np_wrap(d[2])
+        assert float(ll[i]) == pytest.approx(lli, rel=1e-10)
+        np.testing.assert_allclose(np.asarray(q.pose)[i], d, rtol=0, atol=1e-10)
+        assert ws[2] < 0.1 and min(ws[0], ws[1], ws[3]) > 0.3, ws
+    assert int(st) == 0
+
+
 def test_observe_update_weights_none_updates_maps_only():
     rng = np.random.default_rng(3)
     pose = poses_path(2)

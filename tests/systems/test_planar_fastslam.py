@@ -309,3 +309,80 @@ def test_optimal_moments_match_the_motion_samplers_spread(motion):
     np.testing.assert_allclose(np.diag(emp), np.diag(cov), rtol=0.05)
     corr = lambda c: c / np.sqrt(np.outer(np.diag(c), np.diag(c)))  # noqa: E731
     np.testing.assert_allclose(corr(emp), corr(cov), atol=0.03)
+
+
+def _fd_jac(fun, x, h=1e-6):
+    """Central differences of a vector function (the oracle of the Jacobians below)."""
+    x = np.asarray(x, float)
+    cols = []
+    for i in range(x.size):
+        e = np.zeros_like(x)
+        e[i] = h
+        cols.append((np.asarray(fun(x + e)) - np.asarray(fun(x - e))) / (2 * h))
+    return np.stack(cols, axis=1)
+
+
+@pytest.mark.parametrize("increment", [False, True])
+def test_optimal_moments_equal_the_linearised_propagation(increment):
+    """The moment function's covariance, term by term: Σ' = F Σ Fᵀ + J_u M J_uᵀ·s_u² +
+    diag(floor)·s_f², F and J_u by central differences of the motion model (the oracle), with
+    s_u² = 1/Δt, s_f² = Δt for held rates (0 and 0 at Δt = 0) and 1 / 0 on input / non-input
+    events of increment logs.  Each term is checked to move the result."""
+    f = pf.motion_fn(pf.Config(motion="increment" if increment else "unicycle"))
+    moments = jax.jit(pf._moment_fn(f, increment), static_argnums=())
+    s = np.array([1.0, -2.0, 0.7])
+    u = np.array([0.3, 0.1] if increment else [2.0, 0.3])
+    L_M = np.linalg.cholesky(np.diag([0.04, 0.01]))
+    floor = np.array([1e-3, 2e-3, 5e-4])
+    S0 = np.array([[1e-2, 2e-3, 1e-3], [2e-3, 2e-2, -1e-3], [1e-3, -1e-3, 5e-3]])
+    for dt, is_in in ((0.05, True), (0.0, True), (0.05, False)):
+        mean, aux = moments(jnp.asarray(s), ((), (), jnp.asarray(S0)), None, jnp.asarray(u), jnp.asarray(dt),
+                            jnp.asarray(is_in), jnp.asarray(L_M), jnp.asarray(floor))
+        F = _fd_jac(lambda x: f(jnp.asarray(x), jnp.asarray(u), jnp.asarray(dt)), s)
+        Ju = _fd_jac(lambda v: f(jnp.asarray(s), jnp.asarray(v), jnp.asarray(dt)), u)
+        if increment:
+            su2 = sf2 = 1.0 if is_in else 0.0
+        else:
+            su2, sf2 = (1.0 / dt, dt) if dt > 0 else (0.0, 0.0)
+        ref = F @ S0 @ F.T + Ju @ L_M @ L_M.T @ Ju.T * su2 + np.diag(floor) * sf2
+        np.testing.assert_allclose(np.asarray(aux[2]), ref, rtol=1e-7, atol=1e-12)
+        np.testing.assert_allclose(np.asarray(mean)[:2], np.asarray(f(s, u, dt))[:2], rtol=1e-12)
+        if su2 > 0:  # neither the floor nor the input term is negligible here
+            assert np.abs(Ju @ L_M @ L_M.T @ Ju.T * su2).max() > 1e-4
+            assert np.abs(np.diag(floor) * sf2).max() > 1e-5
+
+
+def test_ml_association_puts_the_pose_covariance_in_S():
+    """``associate_ml(pose_cov=Σ_s)``: S = H Σ_l Hᵀ + R + G_s Σ_s G_sᵀ (NumPy oracle with
+    Jacobians by central differences).  A detection whose d² is between the gate and the
+    new-landmark threshold without Σ_s (ignored) matches the landmark once the pose is uncertain
+    enough; the same d² in NumPy decides both."""
+    pose = np.array([0.0, 0.0, 0.1])
+    lm = np.array([4.0, 1.0])
+    C = np.diag([1e-3, 1e-3])
+    R = np.diag([0.05**2, 0.01**2])
+    zhat = np.asarray(rb.observe(jnp.asarray(pose), jnp.asarray(lm)))
+    z = zhat + np.array([0.0, 0.06])  # a bearing off by 0.06 rad
+    mean = np.zeros((4, 2)); mean[0] = lm
+    cov = np.tile(np.eye(2), (4, 1, 1)); cov[0] = C
+    active = np.array([True, False, False, False])
+    Sig = np.diag([0.01, 0.01, 0.01**2 * 4])
+    H = _fd_jac(lambda l: rb.observe(jnp.asarray(pose), jnp.asarray(l)), lm)
+    Gs = _fd_jac(lambda x: rb.observe(jnp.asarray(x), jnp.asarray(lm)), pose)
+    nu = z - zhat
+    gate, new_thr = 9.21, 30.0
+    assoc = jax.jit(pf.associate_ml)
+    for pc in (None, Sig):
+        S = H @ C @ H.T + R + (0 if pc is None else Gs @ pc @ Gs.T)
+        d2 = nu @ np.linalg.solve(S, nu)
+        want = 0 if d2 <= gate else (1 if d2 > new_thr else -1)  # id 1 = counter of a new landmark
+        ids, counter, new, amb = assoc(jnp.asarray(pose), jnp.asarray(mean), jnp.asarray(cov), jnp.asarray(active),
+                                       jnp.asarray(1, jnp.int32), jnp.asarray(z[None]), jnp.asarray([True]),
+                                       jnp.asarray(R), gate, new_thr,
+                                       None if pc is None else jnp.asarray(pc))
+        assert int(ids[0]) == want, (pc is None, d2)
+        assert bool(amb[0]) == (want == -1)
+        if pc is None:
+            assert gate < d2 < new_thr  # the case is the one the docstring describes
+        else:
+            assert d2 <= gate
