@@ -624,6 +624,8 @@ def _planar_run(log, pose0, filter, cfg_ekf, prm_ekf, fs_kind, particles, seed, 
               "registered": int(np.sum(np.asarray(res.registered))),
               "landmarks_mapped": int(act.sum()), "overflow": int(res.overflow),
               "resamples": int(res.resamples)}
+    if prm.prune_window_s is not None:  # tentative landmarks removed (per-particle mean)
+        counts["pruned"] = int(round(float(res.pruned)))
     if cfg.association == "known" and (prm.gate is not None or cfg.robust):
         # the rows behind DIVERGED (planar_fastslam.Result.status): sightings of mapped
         # landmarks, used or gated, and those gated or beyond the Student-t's 99 % quantile

@@ -168,6 +168,13 @@ class Params(NamedTuple):
     resample_threshold: () resample when N_eff < threshold·N (default 0.5); None resamples at
         every update.
     robust_nu: () Student-t degrees of freedom (``config.robust``; default None: 5).
+    prune_window_s: () "ml" only: optional tentative-landmark pruning window [s] (default None:
+        off; the planar EKF's rule, per particle).  A landmark of a particle's map that this
+        particle has not matched (used in an update) at least ``prune_min_obs`` times within
+        ``prune_window_s`` seconds of registering it is removed from that particle's map
+        (slot freed for a later landmark) and counted in ``Result.pruned``; one that has is
+        confirmed and never removed.
+    prune_min_obs: () matches a tentative landmark needs within the window (default 2).
     """
 
     M_c: Array
@@ -179,10 +186,12 @@ class Params(NamedTuple):
     new_threshold: Array = 13.8
     resample_threshold: Optional[Array] = 0.5
     robust_nu: Optional[Array] = None
+    prune_window_s: Optional[Array] = None
+    prune_min_obs: Array = 2.0
 
 
 #: The :class:`Params` fields that are thresholds (scalars; the rest is noise).
-THRESHOLDS = ("gate", "new_threshold", "resample_threshold")
+THRESHOLDS = ("gate", "new_threshold", "resample_threshold", "prune_window_s", "prune_min_obs")
 
 
 class Result(NamedTuple):
@@ -199,6 +208,7 @@ class Result(NamedTuple):
     outliers: () "known" with ``config.robust``: used rows whose d² exceeds the Student-t's
         own 99 % quantile (d = 2: ν (0.01^(−2/ν) − 1), 26.5 at ν = 5), averaged over
         particles; else 0.
+    pruned: () tentative landmarks removed (``params.prune_window_s``), averaged over particles.
     overflow: () int32 measurements of new landmarks that found no slot (max over particles).
     resamples: () int32 resampling events.  underflow: () int32 weight-underflow recoveries.
     status: () int32 :mod:`jaxslam.errors` bit flags; "known" with ``params.gate`` or
@@ -219,6 +229,7 @@ class Result(NamedTuple):
     registered: Array
     gated: Array
     outliers: Array
+    pruned: Array
     overflow: Array
     resamples: Array
     underflow: Array
@@ -258,6 +269,15 @@ def _validate_params(params: Params, config: Config):
         raise InputError("params.new_threshold: expected a number, got None")
     if params.robust_nu is not None:
         check_scalar(params.robust_nu, "params.robust_nu", lower=0, strict=True)
+    if params.prune_window_s is not None:
+        if config.association != "ml":
+            raise InputError("params.prune_window_s: tentative-landmark pruning needs association='ml' "
+                             f"(got {config.association!r}: known ids need no pruning)")
+        if not thr["prune_window_s"] > 0:
+            raise InputError(f"params.prune_window_s: need > 0, got {thr['prune_window_s']}")
+        m = thr.get("prune_min_obs")
+        if m is None or not (m >= 1 and m == np.floor(m)):
+            raise InputError(f"params.prune_min_obs: a count of matches, expected a whole number >= 1, got {m}")
     if config.association == "ml":
         g = thr.get("gate", 9.21)
         if thr["new_threshold"] < g:
@@ -318,7 +338,7 @@ def _moment_fn(f, increment: bool):
             s_f2 = jnp.maximum(dt, jnp.zeros((), dtype))
         JL = Ju @ L_M
         cov = F @ aux[2] @ F.T + (JL @ JL.T) * s_u2 + jnp.diag(floor) * s_f2
-        return mean.at[2].set(wrap_angle(mean[2])), aux[:2] + (symmetrize(cov),)
+        return mean.at[2].set(wrap_angle(mean[2])), aux[:2] + (symmetrize(cov),) + aux[3:]
 
     return moments
 
@@ -327,7 +347,8 @@ def _moment_fn(f, increment: bool):
 # Data association
 # ---------------------------------------------------------------------------
 
-def associate_ml(pose, mean, cov, active, counter, z, mask, R, gate, new_threshold, pose_cov=None):
+def associate_ml(pose, mean, cov, active, counter, z, mask, R, gate, new_threshold, pose_cov=None,
+                 free_slots: bool = False):
     """Maximum-likelihood association of one particle (module docstring).
 
     Args:
@@ -336,6 +357,10 @@ def associate_ml(pose, mean, cov, active, counter, z, mask, R, gate, new_thresho
         R: (2, 2).  gate, new_threshold: d² thresholds.
         pose_cov: optional (3, 3) covariance of the particle's pose (the "optimal" proposal's
             Gaussian before its draw): S gains G_s Σ_s G_sᵀ, G_s = ∂h/∂pose.
+        free_slots: static; new landmarks take the particle's free slots in order (pruning
+            frees slots) instead of the ids ``counter``, ``counter + 1``, …; a new landmark
+            beyond the free slots gets id ``cap`` (capacity overflow).  ``counter'`` still
+            counts the new landmarks.
 
     Returns:
         ``(ids (K,) int32 (−1 = not used), counter', is_new (K,), ambiguous (K,))``.
@@ -363,7 +388,13 @@ def associate_ml(pose, mean, cov, active, counter, z, mask, R, gate, new_thresho
     new = valid & (dmin > new_threshold)
     amb = valid & ~matched & ~new
     rank = (jnp.cumsum(new.astype(jnp.int32)) - 1).astype(jnp.int32)
-    ids = jnp.where(matched, best, jnp.where(new, counter + rank, -1)).astype(jnp.int32)
+    if free_slots:
+        cap = mean.shape[0]
+        free = jnp.nonzero(~active, size=z.shape[0], fill_value=cap)[0].astype(jnp.int32)
+        new_ids = free[jnp.clip(rank, 0, z.shape[0] - 1)]
+    else:
+        new_ids = counter + rank
+    ids = jnp.where(matched, best, jnp.where(new, new_ids, -1)).astype(jnp.int32)
     return ids, (counter + jnp.sum(new.astype(jnp.int32))).astype(jnp.int32), new, amb
 
 
@@ -421,6 +452,7 @@ class StepOut(NamedTuple):
     gated: Array  # () int32
     log_marginal: Array  # () incremental log marginal likelihood
     outliers: Array  # () int32 used rows beyond the Student-t's 99 % quantile ("known", robust)
+    pruned: Array  # () int32 tentative landmarks removed, summed over particles
 
 
 def _validate_log(log: Log, config: Config):
@@ -449,7 +481,39 @@ def init(log: Log, config: Config, params: Params, *, key) -> State:
     aux0 = (jnp.zeros((N,), jnp.int32), jnp.zeros((N, cap), jnp.int32))
     if config.proposal == "optimal":  # each particle's pose covariance since its last draw
         aux0 = aux0 + (jnp.zeros((N, 3, 3), dtype),)
+    if params.prune_window_s is not None:  # per slot: age since registration, matches, confirmed
+        aux0 = aux0 + (jnp.zeros((N, cap), dtype), jnp.zeros((N, cap), jnp.int32), jnp.zeros((N, cap), bool))
     return fs.init(poses0, N, cap, 2, aux=aux0, aux_per_particle=True)
+
+
+def _prune(p: fs.Particles, active_before, pids, used, ip: int, params: Params):
+    """Tentative-landmark bookkeeping and pruning of every particle after an update (the planar
+    EKF's rule, ``params.prune_window_s``).  aux[ip:ip + 3] = (age since registration (N, cap),
+    matches within the window (N, cap), confirmed (N, cap)).  A slot registered in this event
+    starts at age 0 with no match; a row used on a slot no older than the window counts one
+    match; a tentative slot older than the window is confirmed (≥ ``prune_min_obs`` matches) or
+    removed (inactive, id −1, its counts cleared; the slot is free for the next new landmark).
+    Returns (particles, landmarks removed summed over particles)."""
+    age, n_match, confirmed = p.aux[ip:ip + 3]
+    cap = age.shape[1]
+    new = p.active & ~active_before
+    age = jnp.where(new, jnp.zeros((), age.dtype), age)
+    n_match = jnp.where(new, 0, n_match)
+    confirmed = confirmed & ~new
+    win = jnp.asarray(params.prune_window_s, age.dtype)
+
+    def add(nm, a, sid, u):
+        s = jnp.clip(sid, 0, cap - 1)
+        return nm.at[s].add((u & (sid >= 0) & (sid < cap) & (a[s] <= win)).astype(jnp.int32))
+
+    n_match = jax.vmap(add)(n_match, age, pids, used)
+    due = p.active & ~confirmed & (age > win)
+    drop = due & (n_match < jnp.asarray(params.prune_min_obs, age.dtype))
+    confirmed = confirmed | (due & ~drop)
+    nobs = jnp.where(drop, 0, p.aux[1])
+    aux = (p.aux[0], nobs) + p.aux[2:ip] + (age, jnp.where(drop, 0, n_match), confirmed) + p.aux[ip + 3:]
+    p = p._replace(active=p.active & ~drop, ids=jnp.where(drop, -1, p.ids), aux=aux)
+    return p, jnp.sum(drop, dtype=jnp.int32)
 
 
 def step(state: State, event: Event, config: Config, params: Params, *, key):
@@ -470,6 +534,8 @@ def step(state: State, event: Event, config: Config, params: Params, *, key):
     new_thr = jnp.asarray(params.new_threshold, dtype)
     thr = params.resample_threshold
     zero_i = jnp.zeros((), jnp.int32)
+    prune = params.prune_window_s is not None
+    ip = 3 if optimal else 2  # first of the pruning entries of aux (init)
     if config.robust:
         nu_t = jnp.asarray(5.0 if params.robust_nu is None else params.robust_nu, dtype)
         # the Student-t's own 99 % quantile of d² in two dimensions: P(d² > x) = (1 + x/ν)^(−ν/2)
@@ -484,13 +550,14 @@ def step(state: State, event: Event, config: Config, params: Params, *, key):
         p, ll, log_marg, _ = fs.propose_optimal(p, MODEL, z, row_ids, mask, R, p.aux[2], k_draw,
                                                 slot_by_id=config.slot_by_id or ml, angle_mask=ANGLE_MASK,
                                                 gate=None if ml else params.gate, robust=nu_t)
-        return p._replace(aux=p.aux[:2] + (jnp.zeros_like(p.aux[2]),)), k_res, ll, log_marg
+        return p._replace(aux=p.aux[:2] + (jnp.zeros_like(p.aux[2]),) + p.aux[3:]), k_res, ll, log_marg
 
     def update(p, k_res, z, ids, mask):
         counter, nobs = p.aux[:2]
+        active_before = p.active
         if ml:
-            assoc = jax.vmap(associate_ml, in_axes=(0, 0, 0, 0, 0, None, None, None, None, None,
-                                                    0 if optimal else None))
+            assoc = jax.vmap(functools.partial(associate_ml, free_slots=prune),
+                             in_axes=(0, 0, 0, 0, 0, None, None, None, None, None, 0 if optimal else None))
             pids, counter, _, amb = assoc(p.pose, p.lm_mean, p.lm_cov, p.active, counter,
                                           z, mask, R, gate_ml, new_thr, p.aux[2] if optimal else None)
             if optimal:
@@ -527,19 +594,27 @@ def step(state: State, event: Event, config: Config, params: Params, *, key):
                 s = jnp.argmax(slot_row[None, :] == sid_row[:, None], axis=1)
             return nb.at[s].add(hit_row.astype(jnp.int32))
 
+        if prune:  # a slot registered in this event starts afresh (a freed slot can be reused)
+            nobs = jnp.where(p.active & ~active_before, 0, nobs)
         nobs = jax.vmap(count)(nobs, pids, p.ids, hit)
         p = p._replace(aux=(counter, nobs) + p.aux[2:])
+        n_pruned = zero_i
+        if prune:
+            p, n_pruned = _prune(p, active_before, pids, used, ip, params)
         ne = fs.neff(p)
         p = fs.maybe_resample(p, k_res, thr)
         stats = (jnp.sum(used).astype(jnp.int32), jnp.sum(reg).astype(jnp.int32),
-                 jnp.sum(gated).astype(jnp.int32), log_marg, jnp.sum(outl).astype(jnp.int32))
+                 jnp.sum(gated).astype(jnp.int32), log_marg, jnp.sum(outl).astype(jnp.int32), n_pruned)
         return p, ne, stats
 
     def skip(p, k_res, z, ids, mask):
-        return p, fs.neff(p), (zero_i, zero_i, zero_i, jnp.zeros((), dtype), zero_i)
+        return p, fs.neff(p), (zero_i, zero_i, zero_i, jnp.zeros((), dtype), zero_i, zero_i)
 
     k_prop, k_res = jax.random.split(key)
     p = fs.propagate(p, k_prop, sample, event.u, event.dt, event.is_input, L_M, floor)
+    if prune:  # the age of every mapped landmark since its registration
+        age = jnp.where(p.active, p.aux[ip] + jnp.maximum(event.dt, 0), p.aux[ip])
+        p = p._replace(aux=p.aux[:ip] + (age,) + p.aux[ip + 1:])
     # Only rows with finite values make an event an update (the "optimal" proposal redraws every
     # particle at one): non-finite rows are masked out, as the core would, and flagged here.
     finite = jnp.all(jnp.isfinite(event.z), axis=-1)
@@ -550,7 +625,7 @@ def step(state: State, event: Event, config: Config, params: Params, *, key):
     mu, _ = fs.estimate(p, ANGLE_MASK)
     best = p.pose[jnp.argmax(p.log_w)]
     return p, StepOut(pose_mean=mu, pose_best=best, neff=ne, used=stats[0], registered=stats[1],
-                      gated=stats[2], log_marginal=stats[3], outliers=stats[4])
+                      gated=stats[2], log_marginal=stats[3], outliers=stats[4], pruned=stats[5])
 
 
 def run(log: Log, config: Config, params: Params, *, key) -> Result:
@@ -610,6 +685,7 @@ def _run(key, log: Log, params: Params, config: Config) -> Result:
     return Result(
         pose_mean=out.pose_mean, pose_best=out.pose_best, neff=out.neff, map=fs.best_map(p), n_obs=p.aux[1][i],
         used=jnp.sum(out.used).astype(dtype) / N, registered=jnp.sum(out.registered).astype(dtype) / N,
-        gated=jnp.sum(out.gated).astype(dtype) / N, outliers=jnp.sum(out.outliers).astype(dtype) / N, overflow=p.overflow, resamples=p.resamples,
+        gated=jnp.sum(out.gated).astype(dtype) / N, outliers=jnp.sum(out.outliers).astype(dtype) / N,
+        pruned=jnp.sum(out.pruned).astype(dtype) / N, overflow=p.overflow, resamples=p.resamples,
         underflow=p.underflow, status=status, log_marginal=jnp.sum(out.log_marginal), particles=p,
     )

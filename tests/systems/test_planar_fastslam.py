@@ -386,3 +386,74 @@ def test_ml_association_puts_the_pose_covariance_in_S():
             assert gate < d2 < new_thr  # the case is the one the docstring describes
         else:
             assert d2 <= gate
+
+
+def test_prune_bookkeeping_by_hand():
+    """``_prune`` on one particle, cases written out: window 2 s, 2 matches needed.  Slot 0:
+    tentative, 3 s old, one match in its window and one more row now (too late to count) →
+    removed; slot 1: 3 s old with 2 matches → confirmed and kept; slot 2: 1 s old → matched
+    now, stays tentative; slot 3: registered in this event → age 0, no match."""
+    from jaxslam.filters import fastslam as fs
+
+    p = fs.init(jnp.zeros(3), 1, 4, 2, aux=(jnp.zeros((1,), jnp.int32), jnp.asarray([[5, 3, 1, 1]], jnp.int32),
+                                             jnp.asarray([[3.0, 3.0, 1.0, 7.0]]), jnp.asarray([[1, 2, 0, 9]], jnp.int32),
+                                             jnp.zeros((1, 4), bool)), aux_per_particle=True)
+    p = p._replace(active=jnp.asarray([[True, True, True, True]]), ids=jnp.asarray([[0, 1, 2, 3]], jnp.int32))
+    before = jnp.asarray([[True, True, True, False]])
+    pids = jnp.asarray([[0, 2, 3, -1]], jnp.int32)
+    used = jnp.asarray([[True, True, False, False]])
+    prm = pf.default_params()._replace(prune_window_s=2.0, prune_min_obs=2.0)
+    q, n = pf._prune(p, before, pids, used, 2, prm)
+    age, n_match, confirmed = (np.asarray(a)[0] for a in q.aux[2:5])
+    assert int(n) == 1
+    np.testing.assert_array_equal(np.asarray(q.active)[0], [False, True, True, True])
+    np.testing.assert_array_equal(np.asarray(q.ids)[0], [-1, 1, 2, 3])
+    np.testing.assert_array_equal(age, [3.0, 3.0, 1.0, 0.0])
+    np.testing.assert_array_equal(n_match, [0, 2, 1, 0])
+    np.testing.assert_array_equal(confirmed, [False, True, False, False])
+    np.testing.assert_array_equal(np.asarray(q.aux[1])[0], [0, 3, 1, 1])  # the removed slot's count cleared
+
+
+def test_ml_pruning_removes_clutter_and_frees_slots(sim):
+    """Ids unknown with clutter: one spurious detection in 30 % of the scans (seen once each).
+    Without pruning every clutter row takes a slot and the map overflows; with the planar EKF's
+    pruning rule (2 matches within 2 s) each particle removes the clutter landmarks, reuses
+    their slots, and keeps one landmark per true one seen.  Oracle: the simulation's truth and
+    the count of clutter rows added."""
+    log, gt_t, gt, lms, seen = sim
+    L = pf.log_from_events(log, jnp.zeros(3))
+    rng = np.random.default_rng(3)
+    z, mask = np.asarray(L.z).copy(), np.asarray(L.mask).copy()
+    n_clutter = 0
+    for t in np.flatnonzero(mask.any(axis=1)):
+        free = np.flatnonzero(~mask[t])
+        if free.size and rng.random() < 0.3:
+            z[t, free[0]] = (rng.uniform(2.0, 6.0), rng.uniform(-1.0, 1.0))
+            mask[t, free[0]] = True
+            n_clutter += 1
+    L = L._replace(z=jnp.asarray(z), mask=jnp.asarray(mask))
+    cfg = pf.Config(motion="unicycle", n_particles=10, capacity=24, K=12, association="ml", proposal="optimal")
+    prm = _params()._replace(gate=9.21, new_threshold=30.0)
+    run = jax.jit(pf.run, static_argnames="config")
+    plain = run(L, config=cfg, params=prm, key=jax.random.PRNGKey(1))
+    assert int(plain.overflow) > 0 and int(plain.status) & errors.CAPACITY_OVERFLOW
+    res = run(L, config=cfg, params=prm._replace(prune_window_s=2.0, prune_min_obs=2.0), key=jax.random.PRNGKey(1))
+    assert int(res.overflow) == 0
+    act = np.asarray(res.map.active)
+    d = np.linalg.norm(np.asarray(res.map.mean)[act][:, None] - lms[None], axis=2)
+    assert act.sum() == len(seen) and np.max(np.min(d, axis=1)) < 0.2 and len(set(np.argmin(d, axis=1))) == act.sum()
+    assert 0.9 * n_clutter <= float(res.pruned) <= n_clutter, (float(res.pruned), n_clutter)
+    assert _err(res, log, gt_t, gt) < 0.1
+    assert float(plain.pruned) == 0.0
+
+
+def test_pruning_needs_ml_and_sane_numbers(sim):
+    log = pf.log_from_events(sim[0], jnp.zeros(3))
+    prm = _params()._replace(prune_window_s=2.0)
+    with pytest.raises(InputError, match="prune_window_s.*ml"):
+        pf.run(log, pf.Config(K=12, association="known"), prm, key=jax.random.PRNGKey(0))
+    cfg = pf.Config(K=12, association="ml")
+    with pytest.raises(InputError, match="prune_window_s"):
+        pf.run(log, cfg, prm._replace(prune_window_s=-1.0), key=jax.random.PRNGKey(0))
+    with pytest.raises(InputError, match="prune_min_obs"):
+        pf.run(log, cfg, prm._replace(prune_min_obs=1.5), key=jax.random.PRNGKey(0))
