@@ -350,6 +350,20 @@ def check_int(value, name: str, lower: int = 1, what: str = "an int") -> int:
     return int(value)
 
 
+def check_whole_ids(ids, name: str, used=None):
+    """Raise InputError when a concrete floating ``ids`` holds a non-finite or fractional value
+    on the entries in ``used`` (bool, broadcast to ``ids``; default all): casting it to int would
+    truncate it onto another id.  Integer arrays and traced values pass (nothing to check)."""
+    if not is_concrete(ids) or not np.issubdtype(np.asarray(ids).dtype, np.floating):
+        return
+    a = np.asarray(ids)
+    if used is not None:
+        a = a[np.broadcast_to(np.asarray(used, bool), a.shape)]  # unused entries may hold anything
+    if not np.all(np.isfinite(a)) or np.any(a != np.round(a)):
+        raise InputError(f"{name}: expected whole-number landmark ids on the rows in use (a fractional "
+                         "or non-finite id would be truncated onto another landmark)")
+
+
 def check_shape(x, shape, name: str):
     """Raise InputError unless ``x`` has ``shape`` (``None`` entries match any size)."""
     xs = np.shape(x)

@@ -349,7 +349,7 @@ def update(
         return zhat.astype(dtype), H.astype(dtype)
 
     zhat, H = linearise(x)
-    check_measurement(z, zhat, R)
+    check_measurement(z, zhat, R, mask)
     nu = masked_innovation(z, zhat, mask, res)
     dof = jnp.sum(mask).astype(jnp.int32)
     # The NIS (hence the gate) does not depend on whether the update is

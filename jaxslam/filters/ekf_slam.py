@@ -64,7 +64,7 @@ from jax.custom_batching import custom_vmap
 
 from .. import errors
 from ..errors import InputError
-from ..linalg import (check_int, check_psd, cholesky_small, is_concrete, put_blocks, small_matmul, symmetrize, take,
+from ..linalg import (check_int, check_psd, check_whole_ids, cholesky_small, is_concrete, put_blocks, small_matmul, symmetrize, take,
                       take_blocks, value_and_jacfwd)
 from ..stats import student_t_nll
 
@@ -223,7 +223,9 @@ def preload(state: SlamState, model: SlamModel, means, covs=None, ids=None, mask
     means = jnp.asarray(means, state.x.dtype)
     N = means.shape[0]
     if N > cap:
-        raise ValueError(f"preload: {N} landmarks do not fit {cap} slots")
+        raise InputError(f"means: {N} landmarks do not fit the map's {cap} slots")
+    if covs is not None and is_concrete(covs):
+        check_psd(np.asarray(covs), "covs", stack=True)  # a marginal covariance must be one
     covs = jnp.zeros((N, dl, dl), state.x.dtype) if covs is None else jnp.asarray(covs, state.x.dtype)
     ids = jnp.arange(N, dtype=jnp.int32) if ids is None else jnp.asarray(ids, jnp.int32)
     mask = jnp.ones((N,), bool) if mask is None else jnp.asarray(mask, bool)
@@ -296,8 +298,15 @@ def predict(state: SlamState, model: SlamModel, u, Q, params=None, *,
     P_rr ← F P_rr Fᵀ + Q,  P_rl ← F P_rl  (P_lr = P_rlᵀ); P_ll untouched.
     ``Q`` (n_r, n_r) is the discrete process noise of this step.  Cost is
     O(n_r²·n), independent of the map block; with ``active_only`` (static) O(n_r²·n_a), n_a
-    the columns up to the highest active slot (:func:`robot_cross_update`).
+    the columns up to the highest active slot (:func:`robot_cross_update`).  A non-finite
+    prediction keeps the prior and sets ``NON_FINITE`` in ``state.status``.
     """
+    return _predict(state, model, u, Q, params, active_only)[0]
+
+
+def _predict(state: SlamState, model: SlamModel, u, Q, params, active_only: bool):
+    """:func:`predict` and whether this prediction was finite (the state's status is sticky,
+    so a run needs the step's own verdict)."""
     nr = model.robot_dim
     if jnp.shape(Q) != (nr, nr):
         raise InputError(f"Q: expected shape ({nr}, {nr}) (the model's robot_dim), got {tuple(jnp.shape(Q))}")
@@ -316,12 +325,12 @@ def predict(state: SlamState, model: SlamModel, u, Q, params=None, *,
         P = jax.lax.dynamic_update_slice(state.P, Prr_new, (0, 0))
         P = robot_cross_update(P, jnp.where(ok, F, jnp.eye(nr, dtype=F.dtype)),
                                nr + _active_top(state) * model.lm_dim)
-        return state._replace(x=x, P=P, status=status)
+        return state._replace(x=x, P=P, status=status), ok
     Prl_new = jnp.where(ok, F @ Prl, Prl)
     P = state.P
     P = jax.lax.dynamic_update_slice(P, jnp.concatenate([Prr_new, Prl_new], axis=1), (0, 0))
     P = jax.lax.dynamic_update_slice(P, Prl_new.T, (nr, 0))
-    return state._replace(x=x, P=P, status=status)
+    return state._replace(x=x, P=P, status=status), ok
 
 
 def _active_top(state: SlamState):
@@ -1444,8 +1453,8 @@ class SlamRun(NamedTuple):
     landmarks: (T, cap, d_l) map means with ``save_map`` else None; nis, logdet: (T,) joint NIS
     and log det S of the step's update; dof: (T,) scalar measurements used; log_likelihood:
     (T,) −½ (NIS + log det S + dof · log 2π), the innovation log-likelihood (sum it for the
-    sequence's; its gradient tunes Q and R), NaN at a step whose update was rejected
-    (``NON_FINITE`` / ``NOT_PSD`` in the status), so a sum cannot hide it; n_used, n_gated,
+    sequence's; its gradient tunes Q and R), NaN at a step whose update or prediction was
+    rejected (``NON_FINITE`` / ``NOT_PSD`` in the status), so a sum cannot hide it; n_used, n_gated,
     n_new: (T,) int32 rows used, gated, registered as new landmarks; final: the last
     :class:`SlamState`.
     """
@@ -1484,13 +1493,7 @@ def _check_run(state: SlamState, model: SlamModel, log: SlamLog, Q, R, associati
         if log.ids is None or jnp.shape(log.ids) != (T, K):
             raise InputError(f"log.ids: expected shape ({T}, {K}) with association 'known', got "
                              f"{None if log.ids is None else tuple(jnp.shape(log.ids))}")
-        if is_concrete(log.ids) and np.issubdtype(np.asarray(log.ids).dtype, np.floating):
-            a = np.asarray(log.ids)
-            used = np.ones(a.shape, bool) if log.mask is None else np.asarray(log.mask, bool)
-            a = a[used]  # a masked row's id may hold anything, NaN included
-            if not np.all(np.isfinite(a)) or np.any(a != np.round(a)):
-                raise InputError("log.ids: expected whole-number landmark ids on the rows in use (a "
-                                 "fractional or non-finite id would be truncated onto another landmark)")
+        check_whole_ids(log.ids, "log.ids", None if log.mask is None or not is_concrete(log.mask) else log.mask)
     if log.mask is not None and jnp.shape(log.mask) != (T, K):
         raise InputError(f"log.mask: expected shape ({T}, {K}) like log.z, got {tuple(jnp.shape(log.mask))}")
     for nm, tree in (("log.u", log.u), ("log.params", log.params)):
@@ -1567,7 +1570,7 @@ def run(model: SlamModel, state: SlamState, log: SlamLog, Q, R, *, association: 
         elif not q_step:
             Q_t = Qa
         R_t = R_t if r_step else Ra
-        st = predict(st, model, u, jnp.asarray(Q_t, dtype), p_t)
+        st, pred_ok = _predict(st, model, u, jnp.asarray(Q_t, dtype), p_t, False)
         if association == "known":
             slots, mapped = associate_known(st, id_t, m_t)
             # (a non-finite row registers nothing: it must not hide a good row of its id)
@@ -1584,9 +1587,10 @@ def run(model: SlamModel, state: SlamState, log: SlamLog, Q, R, *, association: 
             n_new = jnp.zeros((), jnp.int32)
         logdet = jnp.asarray(info.logdet, dtype)
         ll = -0.5 * (info.nis + logdet + info.dof * jnp.log(2.0 * jnp.pi).astype(dtype))
-        # a rejected update (NON_FINITE / NOT_PSD in the status) has no likelihood: NaN, as in
-        # the generic filters, so that a sum over the run (an NLL loss) cannot hide it
-        ll = jnp.where(info.rejected, jnp.asarray(jnp.nan, dtype), ll)
+        # a rejected update (NON_FINITE / NOT_PSD in the status) or prediction has no
+        # likelihood: NaN, as in the generic filters, so that a sum over the run (an NLL
+        # loss) cannot hide it
+        ll = jnp.where(info.rejected | ~pred_ok, jnp.asarray(jnp.nan, dtype), ll)
         out = (st.x[:nr], st.P[:nr, :nr] if save_cov else None,
                landmarks(st, model) if save_map else None, info.nis, logdet, info.dof, ll,
                jnp.sum(info.used).astype(jnp.int32), jnp.sum(info.gated).astype(jnp.int32), n_new)

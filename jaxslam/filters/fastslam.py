@@ -106,7 +106,8 @@ import numpy as np
 
 from .. import errors
 from ..errors import InputError
-from ..linalg import cholesky_small, inv_small, symmetrize, value_and_jacfwd, wrap_angle
+from ..linalg import (check_psd, check_whole_ids, cholesky_small, inv_small, is_concrete, symmetrize,
+                      value_and_jacfwd, wrap_angle)
 from ..stats import student_t_nll
 from . import ekf as _ekf
 from . import resampling as _rs
@@ -1150,9 +1151,11 @@ def run(p0: Particles, key, sample_fn: Optional[Callable], inputs, model: Landma
     masks = jnp.asarray(masks)
     if masks.shape != (T, K):
         raise InputError(f"masks: expected shape {(T, K)}, got {masks.shape}")
+    if np.shape(lm_ids) not in ((K,), (T, K)):
+        raise InputError(f"lm_ids: expected shape ({K},) or {(T, K)}, got {np.shape(lm_ids)}")
+    check_whole_ids(lm_ids, "lm_ids", (masks if np.ndim(lm_ids) == 2 else jnp.any(masks, axis=0))
+                    if is_concrete(masks) else None)
     lm_ids = jnp.asarray(lm_ids, jnp.int32)
-    if lm_ids.shape not in ((K,), (T, K)):
-        raise InputError(f"lm_ids: expected shape ({K},) or {(T, K)}, got {lm_ids.shape}")
     if lm_ids.ndim == 1:
         lm_ids = jnp.broadcast_to(lm_ids, (T, K))
     if not isinstance(inputs, tuple):
@@ -1163,6 +1166,8 @@ def run(p0: Particles, key, sample_fn: Optional[Callable], inputs, model: Landma
     R = jnp.asarray(R)
     if R.shape != (zs.shape[2],) * 2 and R.shape != (T,) + (zs.shape[2],) * 2:
         raise InputError(f"R: expected shape {(zs.shape[2],) * 2} or {(T,) + (zs.shape[2],) * 2}, got {R.shape}")
+    if is_concrete(R):  # traced: a covariance that does not factor is flagged NOT_PSD at run time
+        check_psd(np.asarray(R), "R", strict=True, stack=R.ndim == 3)
     R_t = jnp.broadcast_to(R, (T,) + (zs.shape[2],) * 2)
 
     if proposal == "optimal":
@@ -1179,7 +1184,12 @@ def run(p0: Particles, key, sample_fn: Optional[Callable], inputs, model: Landma
             log_marg = info.log_marginal
         else:
             aux, cov = p.aux
+            pose_in = p.pose
             pose, aux, cov = jax.vmap(moment_fn, in_axes=(0, 0, 0) + (None,) * len(u))(p.pose, aux, cov, *u)
+            if pose.shape != pose_in.shape or cov.shape != pose_in.shape + pose_in.shape[1:]:
+                n_r = pose_in.shape[1]
+                raise InputError(f"moment_fn: expected (mean ({n_r},), aux, cov ({n_r}, {n_r})) per particle, got "
+                                 f"mean {pose.shape[1:]} and cov {cov.shape[1:]}")
             p = _moved(p, pose, (aux, cov))
             q, ll, log_marg, _ = propose_optimal(p, model, z, ids, mask, R_k, p.aux[1], k_prop, params=params,
                                                  slot_by_id=slot_by_id, angle_mask=angle_mask, gate=gate,

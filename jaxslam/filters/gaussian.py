@@ -148,9 +148,12 @@ class Posterior(NamedTuple):
 class GaussianFilter(NamedTuple):
     """A Gaussian filter as two pure functions (closures over the model).
 
-    ``predict(state, u, Q) -> (Gaussian, cross)``: time update with the step's
-    input ``u`` and process noise ``Q``; ``cross`` (n, n) is ``Cov(x, x')`` of
-    the prior and the predicted state (``P Fᵀ`` for an EKF).
+    ``predict(state, u, Q) -> (Gaussian, cross)`` or ``(Gaussian, cross, status)``:
+    time update with the step's input ``u`` and process noise ``Q``; ``cross`` (n, n)
+    is ``Cov(x, x')`` of the prior and the predicted state (``P Fᵀ`` for an EKF).  A
+    predict that keeps its prior on a failure (the sigma-point filter) returns the
+    failure's ``status`` bits: :func:`run` adds them to the step's status, and a
+    ``NOT_PSD`` / ``NON_FINITE`` predict makes the step's log-likelihood NaN.
 
     ``update(state, z, mask, R, c) -> (Gaussian, UpdateInfo)``: measurement
     update with validity ``mask`` (m,), noise ``R`` (m, m) and ``c`` the step's
@@ -223,10 +226,11 @@ def process_noise(Q, x, u, args, noise_jac):
     return Q if L is None else L @ Q @ L.T
 
 
-def check_measurement(z, zhat, R):
+def check_measurement(z, zhat, R, mask=None):
     """Shape check of one update (static shapes: free under ``jit``): the model's output
-    ``zhat`` like ``z`` (m,), ``R`` (m, m) or a scalar when m = 1.  Raises :class:`InputError`
-    naming the argument (a size mismatch would otherwise broadcast silently)."""
+    ``zhat`` like ``z`` (m,), ``R`` (m, m) or a scalar when m = 1, ``mask`` (m,) when given.
+    Raises :class:`InputError` naming the argument (a size mismatch would otherwise broadcast
+    silently)."""
     zs, hs, rs = tuple(np.shape(z)), tuple(np.shape(zhat)), tuple(np.shape(R))
     if len(zs) != 1:
         raise InputError(f"z: expected shape (m,), got {zs}")
@@ -235,6 +239,8 @@ def check_measurement(z, zhat, R):
         raise InputError(f"h: the measurement model returned shape {hs}, but z has shape {zs}")
     if not (rs == (m, m) or (m == 1 and rs in ((), (1,)))):
         raise InputError(f"R: expected shape ({m}, {m}) (z's size), got {rs}")
+    if mask is not None and tuple(np.shape(mask)) != (m,):
+        raise InputError(f"mask: expected shape ({m},) (z's size), got {tuple(np.shape(mask))}")
 
 
 def innovation_solve(S, B):
@@ -278,8 +284,9 @@ def finalize(prior: Gaussian, x_post, P_post, ok, gated, dof, extra_status=None)
 
 def step_log_likelihood(info: UpdateInfo):
     """``−½ (NIS + log det S + dof log 2π)`` of one update: 0 with no valid component, NaN where
-    the update failed (``NOT_PSD`` / ``NON_FINITE`` in ``info.status``: S did not factor or the
-    result was not finite, so the likelihood is undefined and a run's sum must not hide it).
+    the step failed (``NOT_PSD`` / ``NON_FINITE`` in ``info.status``: S did not factor, the
+    result was not finite, or the step's predict failed — also with no valid component — so
+    the likelihood is undefined and a run's sum must not hide it).
     An ``UpdateInfo`` without ``logdet`` (a user-written filter) gets it from ``info.S``."""
     dtype = info.nis.dtype
     dof = info.dof.astype(dtype)
@@ -289,8 +296,7 @@ def step_log_likelihood(info: UpdateInfo):
         logdet = 2.0 * jnp.sum(jnp.log(jnp.abs(jnp.diagonal(L))))
     ll = -0.5 * (info.nis + logdet + dof * jnp.asarray(LOG_2PI, dtype))
     failed = (info.status & jnp.int32(errors.NOT_PSD | errors.NON_FINITE)) != 0
-    ll = jnp.where(failed, jnp.asarray(jnp.nan, dtype), ll)
-    return jnp.where(info.dof > 0, ll, jnp.zeros((), dtype))
+    return jnp.where(failed, jnp.asarray(jnp.nan, dtype), jnp.where(info.dof > 0, ll, jnp.zeros((), dtype)))
 
 
 # ---------------------------------------------------------------------------
@@ -377,19 +383,25 @@ def make_step(flt: GaussianFilter, Q, R, q_step: bool, r_step: bool, predict_fir
     :func:`run` and the fixed-lag smoother so that both filter identically.
     """
 
+    def predict(state, u, Qt):
+        out = flt.predict(state, u, Qt)
+        return out if len(out) == 3 else (*out, None)
+
     def step(carry, inp):
         state, _, cross_in = carry
         u, z, mk, Qt, Rt, c = inp
         Qt = Qt if q_step else Q
         Rt = Rt if r_step else R
         if predict_first:
-            prior, cross = flt.predict(state, u, Qt)
+            prior, cross, p_status = predict(state, u, Qt)
             post, info = flt.update(prior, z, mk, Rt, c)
             nxt, cross_next = post, cross_in
         else:
             prior, cross = state, cross_in
             post, info = flt.update(state, z, mk, Rt, c)
-            nxt, cross_next = flt.predict(post, u, Qt)
+            nxt, cross_next, p_status = predict(post, u, Qt)
+        if p_status is not None:  # the step's predict failed and kept its prior: say so
+            info = info._replace(status=info.status | jnp.asarray(p_status, jnp.int32))
         # The second carry slot holds the last filtered estimate, which with
         # predict_first=False differs from the (predicted) first slot.
         return (nxt, post, cross_next), (post, prior, cross, info)

@@ -66,7 +66,7 @@ import jax.numpy as jnp
 
 from .. import errors
 from ..errors import InputError
-from ..linalg import symmetrize, value_and_jacfwd
+from ..linalg import check_int, check_scalar, is_concrete, symmetrize, value_and_jacfwd
 from . import ekf as _ekf
 from . import gaussian as _g
 from .gaussian import Gaussian, GaussianFilter, Posterior, innovation_solve
@@ -205,9 +205,7 @@ def fixed_lag(
     Returns:
         :class:`Smoothed` (``covs`` None: only the diagonals are kept, to bound memory).
     """
-    lag = int(lag)
-    if lag < 0:
-        raise InputError(f"lag: must be >= 0, got {lag}")
+    lag = check_int(lag, "lag", lower=0, what="a whole number of steps")  # 2.5 or True is not a lag
     diff = _sub if difference is None else difference
     x0, P0, zs, masks, Q, R, q_step, r_step, T = _g.prepare_run(x0, P0, zs, masks, Q, R)
     _g.check_leading(us, T, "us")
@@ -259,6 +257,9 @@ def huber_weight(k: float = 1.345) -> Callable[[Array], Array]:
 
     ``k = 1.345`` gives 95 % efficiency at the Gaussian (Huber 1981).
     """
+    if is_concrete(k):
+        check_scalar(k, "k", lower=0, strict=True)
+
     def w(r):
         a = jnp.abs(r)
         return jnp.where(a <= k, jnp.ones_like(a), k / jnp.maximum(a, k))
@@ -268,6 +269,9 @@ def huber_weight(k: float = 1.345) -> Callable[[Array], Array]:
 
 def cauchy_weight(c: float = 2.3849) -> Callable[[Array], Array]:
     """Cauchy (Lorentzian) IRLS weight ``w(r) = 1 / (1 + (r / c)²)`` (c = 2.3849: 95 % efficiency)."""
+    if is_concrete(c):
+        check_scalar(c, "c", lower=0, strict=True)
+
     def w(r):
         return 1.0 / (1.0 + (r / c) ** 2)
 
@@ -280,6 +284,9 @@ def tukey_weight(c: float = 4.6851) -> Callable[[Array], Array]:
     Components with weight 0 are masked (a redescending kernel: far outliers
     have no influence at all, so a good starting trajectory matters).
     """
+    if is_concrete(c):
+        check_scalar(c, "c", lower=0, strict=True)
+
     def w(r):
         u = (r / c) ** 2
         return jnp.where(u < 1.0, (1.0 - u) ** 2, jnp.zeros_like(u))
@@ -432,6 +439,8 @@ def iterated(
         info = _g.UpdateInfo(nis, dof, num, S, acc, status, logdet)
         return post, info
 
+    if damping is not None and is_concrete(damping):
+        check_scalar(damping, "damping", lower=0, strict=True)  # λ > 0 (a negative one fails later, NOT_PSD)
     lam = None if damping is None else jnp.asarray(damping, dtype)
     flt = GaussianFilter(lin_predict, lin_update)
 

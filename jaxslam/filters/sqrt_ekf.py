@@ -97,7 +97,7 @@ from .. import errors
 from ..errors import InputError
 from ..linalg import check_psd, is_concrete, symmetrize, value_and_jacfwd
 from .ekf import Gaussian, UpdateInfo
-from .gaussian import check_leading
+from .gaussian import check_leading, check_measurement
 
 __all__ = [
     "SqrtGaussian",
@@ -198,8 +198,8 @@ def psd_factor(A, dtype=None):
     Cholesky when ``A`` is positive definite.  A singular PSD ``A`` (Cholesky fails: a
     zero pivot) is factored from its eigen-decomposition ``V diag(w) Vᵀ`` as the
     triangularisation of ``V diag(√w)``; eigenvalues in ``[−10 n eps |w|_max, 0)``
-    (rounding) count as 0, a more negative one (``A`` indefinite) gives a NaN factor, which
-    the next update reports (``errors.NOT_PSD``) rather than hiding.
+    (rounding) count as 0, a more negative one (``A`` indefinite) or a NaN/Inf entry gives a
+    NaN factor, which the next update reports (``errors.NOT_PSD``) rather than hiding.
 
     Args:
         A: (n, n) symmetric positive semi-definite matrix (it is symmetrised first).
@@ -241,6 +241,7 @@ def _root(A, dtype=None, triangular=True):
 
     M = symmetrize(jnp.asarray(A, dtype))
     n = M.shape[0]
+    finite = jnp.all(jnp.isfinite(M))  # a NaN/Inf entry gives a NaN factor, never a silent 0
     ok = jnp.all(jnp.isfinite(jnp.linalg.cholesky(M)))
     # Under vmap the cond becomes a select that evaluates both branches; each branch gets a
     # harmless input where it is not the one chosen, so no NaN/inf reaches the other's
@@ -253,8 +254,8 @@ def _root(A, dtype=None, triangular=True):
         return jnp.linalg.cholesky(jnp.where(ok, M, eye))
 
     def eig_factor(M):
-        w, V = jnp.linalg.eigh(jnp.where(ok, spread, M))
-        bad = jnp.min(w) < -_clip_tol(n, dtype) * jnp.max(jnp.abs(w))
+        w, V = jnp.linalg.eigh(jnp.where(ok | ~finite, spread, M))
+        bad = (jnp.min(w) < -_clip_tol(n, dtype) * jnp.max(jnp.abs(w))) | ~finite
         pos = w > 0
         B = V * jnp.where(pos, jnp.sqrt(jnp.where(pos, w, 1.0)), 0.0)
         if triangular:
@@ -292,7 +293,8 @@ def predict(state: SqrtGaussian, f: Callable, u, Q=None, *args, noise_jac=None,
     Args:
         state: prior :class:`SqrtGaussian`, mean (n,), chol (n, n).
         f: discrete transition ``f(x (n,), u, *args) -> (n,)`` over one step (it integrates
-            the dynamics; a continuous model must be discretised by the caller).
+            the dynamics; a continuous model must be discretised by the caller), or None for
+            a state that does not move (``L' L'ᵀ = P + G Q Gᵀ``).
         u: control/input of the step (any pytree).
         Q: (n, n) discrete process-noise covariance, or (q, q) with ``noise_jac``; factored
             here by :func:`psd_factor` (Cholesky; singular PSD allowed).  Ignored when
@@ -309,7 +311,10 @@ def predict(state: SqrtGaussian, f: Callable, u, Q=None, *args, noise_jac=None,
     x = jnp.asarray(state.mean)
     dtype = x.dtype
     L = jnp.asarray(state.chol, dtype)
-    xn, F = value_and_jacfwd(lambda v: f(v, u, *args))(x)
+    if f is None:  # a state that does not move: x' = x, F = I
+        xn, F = x, jnp.eye(x.shape[0], dtype=dtype)
+    else:
+        xn, F = value_and_jacfwd(lambda v: f(v, u, *args))(x)
     xn = xn.astype(dtype)
     F = F.astype(dtype)
     if Q_chol is not None:
@@ -391,6 +396,7 @@ def update(
     eye_m = jnp.eye(m, dtype=dtype)
 
     zhat, H = value_and_jacfwd(lambda v: h(v, *args))(x)
+    check_measurement(z, zhat, R, mask)
     zhat = zhat.astype(dtype)
     H = H.astype(dtype)
     # Replace invalid components by their prediction before differencing so NaN garbage
@@ -463,10 +469,10 @@ def _validate_scan(x0, P0, us, zs, masks, Q, R, noise_jac, Q_chol):
     T, m = zsh
     if masks is not None and np.shape(masks) != (T, m):
         raise InputError(f"masks: expected shape ({T}, {m}), got {tuple(np.shape(masks))}")
-    if np.shape(R) != (m, m):
-        raise InputError(f"R: expected shape ({m}, {m}), got {tuple(np.shape(R))}")
+    if np.shape(R) not in ((m, m), (T, m, m)):
+        raise InputError(f"R: expected shape ({m}, {m}) or ({T}, {m}, {m}), got {tuple(np.shape(R))}")
     if is_concrete(R):
-        check_psd(R, "R", strict=True)
+        check_psd(R, "R", strict=True, stack=np.ndim(R) == 3)
     check_leading(us, T, "us")
     q = n
     if noise_jac is not None and not callable(noise_jac):
@@ -485,14 +491,16 @@ def _validate_scan(x0, P0, us, zs, masks, Q, R, noise_jac, Q_chol):
         return
     if Q is None:
         raise InputError("Q: a process-noise covariance (or Q_chol=) is required")
-    qs = np.shape(Q)
+    qs = tuple(np.shape(Q))
+    if len(qs) == 3 and qs[0] != T:
+        raise InputError(f"Q: one matrix per step needs {T} of them (zs has {T} steps), got shape {qs}")
     if noise_jac is not None and callable(noise_jac):
-        if len(qs) != 2 or qs[0] != qs[1]:
-            raise InputError(f"Q: expected a square (q, q) matrix, got shape {tuple(qs)}")
-    elif qs != (q, q):
-        raise InputError(f"Q: expected shape ({q}, {q}), got {tuple(qs)}")
+        if len(qs) not in (2, 3) or qs[-1] != qs[-2]:
+            raise InputError(f"Q: expected a square (q, q) matrix or ({T}, q, q), got shape {qs}")
+    elif qs[-2:] != (q, q) or len(qs) not in (2, 3):
+        raise InputError(f"Q: expected shape ({q}, {q}) or ({T}, {q}, {q}), got {qs}")
     if is_concrete(Q):
-        check_psd(Q, "Q")
+        check_psd(Q, "Q", stack=len(qs) == 3)
 
 
 def filter_scan(
@@ -528,15 +536,15 @@ def filter_scan(
     concrete (not traced).
 
     Args:
-        f: transition ``f(x, u, *args) -> (n,)``.
+        f: transition ``f(x, u, *args) -> (n,)``, or None (the state does not move).
         h: measurement model ``h(x, *args) -> (m,)``.
         x0: (n,) initial mean.  P0: (n, n) initial covariance (PSD).
         us: controls with leading axis T (array or pytree; None if unused).
         zs: (T, m) measurements.
         masks: (T, m) bool validity (None: all valid).
-        Q: (n, n) (or (q, q) with ``noise_jac``) process-noise covariance (PSD), or None
-            with ``Q_chol``.
-        R: (m, m) measurement-noise covariance (PD).
+        Q: (n, n) (or (q, q) with ``noise_jac``) process-noise covariance (PSD), one per
+            step (T, n, n) (each factored before the scan), or None with ``Q_chol``.
+        R: (m, m) measurement-noise covariance (PD), or one per step (T, m, m).
         *args: shared extra arguments of both ``f`` and ``h``.
         residual, gate: as in :func:`update`.
         predict_first: static; step order (above).
@@ -554,27 +562,36 @@ def filter_scan(
     dtype = x0.dtype if jnp.issubdtype(x0.dtype, jnp.floating) else jnp.result_type(float)
     x0 = x0.astype(dtype)
     L0 = psd_factor(P0, dtype)
-    C = jnp.asarray(Q_chol, dtype) if Q_chol is not None else _root(Q, dtype, triangular=False)
+    q_step = Q_chol is None and np.ndim(Q) == 3
+    if Q_chol is not None:
+        C = jnp.asarray(Q_chol, dtype)
+    elif q_step:
+        C = jax.vmap(lambda q: _root(q, dtype, triangular=False))(jnp.asarray(Q, dtype))
+    else:
+        C = _root(Q, dtype, triangular=False)
     zs = jnp.asarray(zs, dtype=dtype)
     R = jnp.asarray(R, dtype=dtype)
+    r_step = R.ndim == 3
     T, m = zs.shape
     masks = jnp.ones((T, m), bool) if masks is None else jnp.asarray(masks, bool)
 
-    def pred(s, u):
-        return predict(s, f, u, None, *args, noise_jac=noise_jac, Q_chol=C)
+    def pred(s, u, c):
+        return predict(s, f, u, None, *args, noise_jac=noise_jac, Q_chol=c)
 
-    def upd(s, z, mk):
-        return update(s, z, h, R, *args, residual=residual, mask=mk, gate=gate)
+    def upd(s, z, mk, r):
+        return update(s, z, h, r, *args, residual=residual, mask=mk, gate=gate)
 
     def step(carry, inp):
         state, _ = carry
-        u, z, mk = inp
+        u, z, mk, c, r = inp
+        c = c if q_step else C
+        r = r if r_step else R
         if predict_first:
-            post, info = upd(pred(state, u), z, mk)
+            post, info = upd(pred(state, u, c), z, mk, r)
             nxt = post
         else:
-            post, info = upd(state, z, mk)
-            nxt = pred(post, u)
+            post, info = upd(state, z, mk, r)
+            nxt = pred(post, u, c)
         out = (
             post.mean,
             jnp.sum(post.chol * post.chol, axis=1),
@@ -587,6 +604,6 @@ def filter_scan(
 
     init = SqrtGaussian(x0, L0)
     (_, final), (means, diags, chols, nis, dof, status) = jax.lax.scan(
-        step, (init, init), (us, zs, masks)
+        step, (init, init), (us, zs, masks, C if q_step else None, R if r_step else None)
     )
     return SqrtPosterior(means, diags, chols, nis, dof, status, final)

@@ -31,7 +31,7 @@ import numpy as np
 from .. import errors
 from ..errors import InputError
 from ..linalg import symmetrize
-from .gaussian import Gate, UpdateInfo, masked_innovation, threshold
+from .gaussian import Gate, UpdateInfo, check_measurement, masked_innovation, threshold
 from .sqrt_ekf import SqrtGaussian, SqrtPosterior, _mm, _root, _tria
 from .ukf import SigmaPoints, measurement_mean, unscented
 
@@ -57,18 +57,35 @@ def _points(state: SqrtGaussian, rule: SigmaPoints):
 
 
 def predict(state: SqrtGaussian, f: Optional[Callable], u, Q, *args,
-            points: Optional[SigmaPoints] = None, Q_chol=None) -> SqrtGaussian:
-    """Square-root sigma-point time update (module docstring); ``Q`` a covariance or ``Q_chol`` a root."""
+            points: Optional[SigmaPoints] = None, Q_chol=None, return_status: bool = False):
+    """Square-root sigma-point time update (module docstring); ``Q`` a covariance or ``Q_chol`` a root.
+
+    A non-finite predicted mean or factor (a NaN/Inf in ``Q`` or ``f``'s output) keeps the
+    prior and, with ``return_status`` (static), returns ``NON_FINITE`` beside it:
+    ``(SqrtGaussian, status)``; :func:`filter_scan` adds it to the step's status.
+    """
     x = state.mean
     dtype = x.dtype
+    n = x.shape[0]
     fm = (lambda v, u_, *a: v) if f is None else f
+    if Q_chol is None:
+        qs = tuple(np.shape(Q))
+        if qs != (n, n):
+            raise InputError(f"Q: expected shape ({n}, {n}) (the state's size), got {qs}")
+    elif np.ndim(Q_chol) != 2 or np.shape(Q_chol)[0] != n:
+        raise InputError(f"Q_chol: expected shape ({n}, k), got {tuple(np.shape(Q_chol))}")
     pts, _, wm, sw = _points(state, unscented() if points is None else points)
     X = jax.vmap(lambda p: fm(p, u, *args))(pts).astype(dtype)
+    if X.shape != (pts.shape[0], n):
+        raise InputError(f"f: the transition returned shape {X.shape[1:]}, expected ({n},)")
     xm = wm @ X
     C = jnp.asarray(Q_chol, dtype) if Q_chol is not None else _root(Q, dtype, triangular=False)
     L = _tria(jnp.concatenate([((X - xm) * sw[:, None]).T, C], axis=1))
     good = jnp.all(jnp.isfinite(xm)) & jnp.all(jnp.isfinite(L))
-    return SqrtGaussian(jnp.where(good, xm, x), jnp.where(good, L, state.chol))
+    out = SqrtGaussian(jnp.where(good, xm, x), jnp.where(good, L, state.chol))
+    if return_status:
+        return out, jnp.where(good, jnp.int32(0), jnp.int32(errors.NON_FINITE))
+    return out
 
 
 def update(state: SqrtGaussian, z, h: Callable, R, *args, residual: Optional[Callable] = None,
@@ -94,6 +111,7 @@ def update(state: SqrtGaussian, z, h: Callable, R, *args, residual: Optional[Cal
     Z = jax.vmap(lambda p: h(p, *args))(pts).astype(dtype)
     rule = unscented() if points is None else points
     zref = Z[0] if rule.has_center else jnp.asarray(h(x, *args), dtype)
+    check_measurement(z, zref, R, mask)
     Z, zhat = measurement_mean(Z, zref, wm, mask, res)
     dZ = jnp.where(mask[None, :], jax.vmap(lambda zi: res(zi, zhat))(Z), zero)
     Xs = (dx * sw[:, None]).T  # (n, N)
@@ -141,10 +159,11 @@ def filter_scan(f: Optional[Callable], h: Callable, x0, P0, us, zs, masks, Q, R,
     """Square-root sigma-point filter over a whole sequence (one ``lax.scan``).
 
     Arguments as :func:`jaxslam.filters.sqrt_ekf.filter_scan` (``Q`` (n, n) or (T, n, n) is
-    factored once per matrix before the scan) plus ``points`` (static).  Returns
-    :class:`~jaxslam.filters.sqrt_ekf.SqrtPosterior`.
+    factored once per matrix before the scan; ``R`` (m, m) or (T, m, m)) plus ``points``
+    (static).  A predict that fails (non-finite) keeps its prior and sets ``NON_FINITE`` in
+    the step's status.  Returns :class:`~jaxslam.filters.sqrt_ekf.SqrtPosterior`.
     """
-    from .gaussian import check_run_inputs
+    from .gaussian import check_leading, check_run_inputs
 
     rule = unscented() if points is None else points
     x0 = jnp.asarray(x0)
@@ -152,6 +171,10 @@ def filter_scan(f: Optional[Callable], h: Callable, x0, P0, us, zs, masks, Q, R,
     x0 = x0.astype(dtype)
     zs = jnp.asarray(zs, dtype)
     T, m = check_run_inputs(x0, P0, zs, masks, Q, R)
+    n = x0.shape[0]
+    if np.shape(Q)[-2:] != (n, n) or (np.ndim(Q) == 3 and np.shape(Q)[0] != T):
+        raise InputError(f"Q: expected shape ({n}, {n}) or ({T}, {n}, {n}), got {tuple(np.shape(Q))}")
+    check_leading(us, T, "us")
     masks = jnp.ones((T, m), bool) if masks is None else jnp.asarray(masks, bool)
     L0 = _root(jnp.asarray(P0, dtype), dtype)
     Qa = jnp.asarray(Q, dtype)
@@ -167,11 +190,14 @@ def filter_scan(f: Optional[Callable], h: Callable, x0, P0, us, zs, masks, Q, R,
         cq = cq if q_step else CQ
         rt = rt if r_step else Ra
         if predict_first:
-            state = predict(state, f, u, None, *args, points=rule, Q_chol=cq)
+            state, p_status = predict(state, f, u, None, *args, points=rule, Q_chol=cq, return_status=True)
         post, info = update(state, z, h, rt, *args, residual=residual, mask=mk, gate=gate, points=rule)
-        nxt = post if predict_first else predict(post, f, u, None, *args, points=rule, Q_chol=cq)
+        if predict_first:
+            nxt = post
+        else:
+            nxt, p_status = predict(post, f, u, None, *args, points=rule, Q_chol=cq, return_status=True)
         out = (post.mean, jnp.sum(post.chol**2, axis=1), post.chol if save_chol else None,
-               info.nis, info.dof, info.status)
+               info.nis, info.dof, info.status | p_status)
         return (nxt, post), out
 
     xs = (us, zs, masks, CQ if q_step else None, Ra if r_step else None)

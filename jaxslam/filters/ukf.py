@@ -83,9 +83,10 @@ Decisions
   then flags ``NOT_PSD`` rather than proceeding with NaN.
 * **Failures of a predict**: a non-finite factor of ``P`` (``NOT_PSD``) or a non-finite
   predicted moment (``NON_FINITE``) keeps the prior moments (cross-covariance ``P``).  The
-  ``GaussianFilter`` protocol has no status output for the predict, so inside a run the flag
-  surfaces through the next update (whose own factorisation of the kept ``P`` fails again);
-  :func:`predict` and :func:`predict_with_cross` return the status with ``return_status``.
+  filter's predict returns that status (the ``GaussianFilter`` protocol's optional third
+  output), so inside a run the step carries the flag and a NaN log-likelihood (a summed NLL
+  cannot hide it); :func:`predict` and :func:`predict_with_cross` return the status with
+  ``return_status``.
 * dtype: every function computes in the dtype of ``state.mean``; weights, ``Q``, ``R``, ``z``
   and the model outputs are cast to it.
 * Cost per step: 2n + 1 (or 2n) evaluations of ``f`` and ``h`` (``vmap``-ed), one n×n and one
@@ -280,7 +281,10 @@ def _predict(state: Gaussian, f: Optional[Callable], u, Q, args, rule: SigmaPoin
     P = jnp.asarray(P, dtype)
     Qd = process_noise(Q, x, u, args, noise_jac)
     if f is None:
-        return Gaussian(x, symmetrize(P + Qd)), P, jnp.int32(errors.OK)
+        Pn = symmetrize(P + Qd)
+        finite = jnp.all(jnp.isfinite(Pn))
+        return (Gaussian(x, jnp.where(finite, Pn, P)), P,
+                jnp.where(finite, jnp.int32(errors.OK), jnp.int32(errors.NON_FINITE)))
     pts, wm, wc, ok = sigma_points(x, P, rule)
     X = jax.vmap(lambda p: f(p, u, *args))(pts).astype(dtype)  # (N, n)
     xm = wm @ X
@@ -423,7 +427,7 @@ def update(
     pts, wm, wc, ok_pts = sigma_points(x, P, rule)
     Z = jax.vmap(lambda p: h(p, *args))(pts).astype(dtype)  # (N, m)
     zref = Z[0] if rule.has_center else jnp.asarray(h(x, *args), dtype)
-    check_measurement(z, zref, R)
+    check_measurement(z, zref, R, mask)
     Z, zhat = measurement_mean(Z, zref, wm, mask, res)
     dZ = jnp.where(mask[None, :], jax.vmap(lambda zi: res(zi, zhat))(Z), zero)  # (N, m)
     dx = pts - x  # (N, n)
@@ -476,13 +480,12 @@ def make_filter(
     Returns:
         ``GaussianFilter(predict, update)``; ``predict`` returns the sigma-point
         cross-covariance ``Cov(x, x')`` beside the predicted belief (what the RTS smoother
-        needs).
+        needs) and the predict's status bits.
     """
     rule = _rule(points)
 
     def pred(state, u, Q):
-        g, C, _ = _predict(state, f, u, Q, args, rule, noise_jac)
-        return g, C
+        return _predict(state, f, u, Q, args, rule, noise_jac)  # (Gaussian, cross, status)
 
     def upd(state, z, mask, R, c):
         hh = (lambda x, *a: h(x, c, *a)) if h_takes_input else h

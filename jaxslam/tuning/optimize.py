@@ -105,9 +105,9 @@ def make_optimizer(lr: float, steps: int, schedule: str = "cosine", warmup: Opti
                    clip: Optional[float] = 1.0, final_lr_frac: float = 0.05, b2: float = 0.9):
     """optax chain: clip_by_global_norm(clip) → Adam(schedule, b2).  Returns (tx, schedule_fn)."""
     if not (lr > 0 and math.isfinite(lr)):
-        raise InputError(f"--lr: must be a positive number, got {lr}")
+        raise InputError(f"lr (--lr): must be a positive number, got {lr}")
     if steps < 1:
-        raise InputError(f"--steps: must be >= 1, got {steps}")
+        raise InputError(f"steps (--steps): must be >= 1, got {steps}")
     warmup = max(1, int(round(0.05 * steps))) if warmup is None else int(warmup)
     if schedule == "cosine":
         sched = optax.warmup_cosine_decay_schedule(

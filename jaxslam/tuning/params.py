@@ -35,6 +35,8 @@ hold several (e.g. Q and R) in a dict pytree of θ vectors, which optax handles 
 
 from __future__ import annotations
 
+import warnings
+
 from typing import NamedTuple
 
 import jax.numpy as jnp
@@ -93,14 +95,22 @@ def _as_matrix(M, name):
     return a
 
 
-def log_diag_from_cov(M, floor: float | None = None, dtype=jnp.float64, name: str = "M"):
+def log_diag_from_cov(M, floor: float | None = None, dtype=None, name: str = "M"):
     """θ (n,) = log diag(M) for a diagonal matrix (or a vector of variances).
 
-    Off-diagonal entries of ``M`` are ignored (the parametrisation has none); entries
-    ≤ 0 raise :class:`InputError` naming ``name`` unless ``floor`` > 0 is given, which
-    replaces every diagonal entry below it.  Host-side (NumPy in, ``dtype`` out).
+    Off-diagonal entries of ``M`` are dropped (the parametrisation has none), with a
+    ``UserWarning`` naming ``name`` when one is not negligible (above 1e-12 of the largest
+    diagonal entry); entries ≤ 0 raise :class:`InputError` naming ``name`` unless ``floor`` > 0
+    is given, which replaces every diagonal entry below it.  Host-side (NumPy in, ``dtype``
+    out; default JAX's default float, float64 with ``jax_enable_x64``).
     """
-    d = np.diag(_as_matrix(M, name)).copy()
+    a = _as_matrix(M, name)
+    off = np.abs(a - np.diag(np.diag(a)))
+    if off.size and off.max() > 1e-12 * max(np.abs(np.diag(a)).max(), np.finfo(float).tiny):
+        warnings.warn(f"{name}: the log-diagonal parametrisation drops the off-diagonal entries "
+                      f"(largest |{name}_ij| = {off.max():.3g}); use CovSpec('chol', n) to keep them",
+                      UserWarning, stacklevel=2)
+    d = np.diag(a).copy()
     if floor is not None:
         if not floor > 0:
             raise InputError(f"floor: must be > 0, got {floor}")
@@ -120,7 +130,7 @@ def _tril(n):
     return np.tril_indices(n, -1)
 
 
-def log_chol_from_cov(M, floor: float | None = None, dtype=jnp.float64, name: str = "M"):
+def log_chol_from_cov(M, floor: float | None = None, dtype=None, name: str = "M"):
     """θ (n(n+1)/2,) = [log diag L, strictly-lower C] of M's Cholesky factor L = diag(L) C.
 
     ``M`` must be symmetric positive definite; with ``floor`` > 0 a semi-definite M
@@ -147,7 +157,7 @@ def cov_from_log_chol(theta, n: int):
     return L @ L.T
 
 
-def theta_from_cov(spec: CovSpec, M, floor: float | None = None, dtype=jnp.float64, name: str = "M"):
+def theta_from_cov(spec: CovSpec, M, floor: float | None = None, dtype=None, name: str = "M"):
     """θ for ``spec`` from a matrix (host-side; see the two constructors)."""
     _check_kind(spec.kind)
     a = _as_matrix(M, name)
@@ -165,7 +175,7 @@ def cov_from_theta(spec: CovSpec, theta):
     return cov_from_log_chol(theta, spec.n)
 
 
-def pack(specs: dict, mats: dict, floors: dict | None = None, dtype=jnp.float64) -> dict:
+def pack(specs: dict, mats: dict, floors: dict | None = None, dtype=None) -> dict:
     """{name: θ} for {name: CovSpec} and {name: matrix} (host-side)."""
     floors = floors or {}
     missing = set(specs) - set(mats)

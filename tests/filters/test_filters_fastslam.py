@@ -685,6 +685,21 @@ def test_generic_run_names_the_bad_argument():
         fs.run(p0, key, sample, (u[:2],), MODEL, zs, np.arange(4), masks, R)
     with pytest.raises(InputError, match="R: expected shape"):
         fs.run(p0, key, sample, (u,), MODEL, zs, np.arange(4), masks, np.eye(3))
+    # a fractional id used to be truncated onto another landmark; a concrete R that is not a
+    # covariance used to surface only as a run-time flag
+    with pytest.raises(InputError, match="lm_ids: expected whole-number"):
+        fs.run(p0, key, sample, (u,), MODEL, zs, np.array([0.0, 1.5, 2.0, 3.0]), masks, R)
+    fs.run(p0, key, sample, (u,), MODEL, zs, np.array([0.0, 1.0, 2.0, 3.0]), masks, R)  # whole floats: fine
+    with pytest.raises(InputError, match="^R"):
+        fs.run(p0, key, sample, (u,), MODEL, zs, np.arange(4), masks, np.asarray(R) * np.array([[1.0, 0.0], [0.0, -1.0]]))
+    with pytest.raises(InputError, match="^R"):
+        fs.run(p0, key, sample, (u,), MODEL, zs, np.arange(4), masks, np.full((2, 2), np.nan))
+
+    def bad_moments(pose, aux, cov, du):
+        return pose + du, aux, cov[:2, :2]
+
+    with pytest.raises(InputError, match="moment_fn: expected"):
+        fs.run(p0, key, None, (u,), MODEL, zs, np.arange(4), masks, R, proposal="optimal", moment_fn=bad_moments)
 
 
 def test_propagate_additive_is_the_mean_plus_one_draw_and_keeps_bad_particles():

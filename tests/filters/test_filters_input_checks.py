@@ -12,7 +12,7 @@ import pytest
 
 from jaxslam import errors
 from jaxslam.errors import InputError
-from jaxslam.filters import ekf, ekf_slam as es, sqrt_ekf, ukf
+from jaxslam.filters import ekf, ekf_slam as es, sqrt_ekf, sqrt_ukf, ukf
 from jaxslam.sim import monte_carlo
 
 F = np.array([[1.0, 0.1], [0.0, 1.0]])
@@ -31,12 +31,15 @@ Q2 = 0.01 * np.eye(2)
 R1 = 0.1 * np.eye(1)
 
 
-@pytest.mark.parametrize("mod", [ekf, ukf], ids=["ekf", "ukf"])
+@pytest.mark.parametrize("mod", [ekf, ukf, sqrt_ekf, sqrt_ukf], ids=["ekf", "ukf", "sqrt_ekf", "sqrt_ukf"])
 @pytest.mark.parametrize("Q", [0.01 * np.eye(1), np.eye(3)], ids=["1x1", "3x3"])
 def test_process_noise_of_the_wrong_size_is_named(mod, Q):
     # a (1, 1) Q used to broadcast onto every entry of the (2, 2) covariance
     with pytest.raises(InputError, match=r"^Q: expected shape \(2, 2\)"):
         mod.filter_scan(f, h, np.zeros(2), np.eye(2), None, ZS, None, Q, R1)
+    if mod is sqrt_ukf:
+        with pytest.raises(InputError, match=r"^Q: expected shape \(2, 2\)"):
+            mod.predict(sqrt_ekf.SqrtGaussian(jnp.zeros(2), jnp.eye(2)), f, None, Q)
 
 
 def test_noise_jacobian_and_q_must_agree():
@@ -48,15 +51,21 @@ def test_noise_jacobian_and_q_must_agree():
         ekf.filter_scan(f, h, np.zeros(2), np.eye(2), None, ZS, None, Q2, R1, noise_jac=np.eye(3))
 
 
-@pytest.mark.parametrize("mod", [ekf, ukf], ids=["ekf", "ukf"])
+@pytest.mark.parametrize("mod", [ekf, ukf, sqrt_ekf, sqrt_ukf], ids=["ekf", "ukf", "sqrt_ekf", "sqrt_ukf"])
 def test_measurement_model_and_z_must_agree(mod):
     # h returns 2 values, z and R have 1: used to broadcast R onto a (2, 2) S, status 0
+    g = (sqrt_ekf.SqrtGaussian if mod in (sqrt_ekf, sqrt_ukf) else ekf.Gaussian)(jnp.zeros(2), jnp.eye(2))
     with pytest.raises(InputError, match=r"^h: the measurement model returned shape \(2,\)"):
         mod.filter_scan(f, lambda x: x, np.zeros(2), np.eye(2), None, ZS, None, Q2, R1)
     with pytest.raises(InputError, match=r"^h: "):
-        mod.update(ekf.Gaussian(jnp.zeros(2), jnp.eye(2)), jnp.zeros(1), lambda x: x, R1)
+        mod.update(g, jnp.zeros(1), lambda x: x, R1)
     with pytest.raises(InputError, match=r"^R: expected shape \(1, 1\)"):
-        mod.update(ekf.Gaussian(jnp.zeros(2), jnp.eye(2)), jnp.zeros(1), h, np.eye(2))
+        mod.update(g, jnp.zeros(1), h, np.eye(2))
+    # a mask of another size used to broadcast the innovation onto it (S (2, 2), dof 1)
+    with pytest.raises(InputError, match=r"^mask: expected shape \(1,\)"):
+        mod.update(g, jnp.zeros(1), h, R1, mask=jnp.array([True, False]))
+    with pytest.raises(InputError, match=r"^us: expected a leading axis of 12 steps"):
+        mod.filter_scan(f, h, np.zeros(2), np.eye(2), np.zeros((11, 1)), ZS, None, Q2, R1)
 
 
 def test_an_eager_prediction_checks_a_concrete_q():
@@ -193,6 +202,22 @@ def test_a_rejected_update_has_no_likelihood():
     np.testing.assert_array_equal(ll[:10], good[:10])
 
 
+def test_a_rejected_prediction_has_no_likelihood():
+    # a NaN Q at step 10 (traced): the prediction keeps its prior and sets NON_FINITE in the
+    # sticky state status; the step's log-likelihood must say so too (it used to be finite)
+    log = _log(T=20)
+    Qs = np.tile(0.04 * np.eye(1), (20, 1, 1))
+    Qs[10] = np.nan
+    st = es.init(jnp.zeros(1), 0.01 * jnp.eye(1), 8, 1)
+    run = jax.jit(lambda Q: es.run(_model(), st, log, Q, 0.01 * jnp.eye(1)))
+    out = run(jnp.asarray(Qs))
+    ll = np.asarray(out.log_likelihood)
+    assert np.isnan(ll[10]) and np.all(np.isfinite(np.delete(ll, 10)))
+    assert int(out.final.status) & errors.NON_FINITE
+    good = np.asarray(run(jnp.asarray(np.tile(0.04 * np.eye(1), (20, 1, 1)))).log_likelihood)
+    np.testing.assert_array_equal(ll[:10], good[:10])
+
+
 # --------------------------------------------------------------------------- Monte Carlo runner
 
 def test_monte_carlo_checks_chunk_and_the_detail_entry():
@@ -233,3 +258,40 @@ def test_eager_update_and_register_name_a_bad_r_and_jit_flags_it():
     post, info = jax.jit(lambda R: es.update(st, m, z, slots, on, R))(-0.5 * jnp.eye(1))
     assert "not_psd" in errors.decode(post.status)
     np.testing.assert_array_equal(np.asarray(post.x), np.asarray(st.x))
+
+
+def _bad_q_run(mod, Q):
+    """A jitted run whose (traced) Q is not finite: (status (T,), log-likelihood (T,) or None)."""
+    run = jax.jit(lambda q: mod.filter_scan(f, h, jnp.zeros(2), jnp.eye(2), None, ZS, None, q, R1))
+    post = run(jnp.asarray(Q))
+    return np.asarray(post.status), (np.asarray(post.log_likelihood) if hasattr(post, "log_likelihood") else None)
+
+
+@pytest.mark.parametrize("mod", [ekf, ukf, sqrt_ekf, sqrt_ukf], ids=["ekf", "ukf", "sqrt_ekf", "sqrt_ukf"])
+def test_a_non_finite_traced_q_is_flagged_never_a_silent_answer(mod):
+    """Q = diag(1e-3, inf) or a NaN entry under jit: every filter flags the run (NOT_PSD or
+    NON_FINITE) and, where it reports one, the log-likelihood is NaN.  Before, the sigma-point
+    filters froze the state with status 0 (a finite, wrong NLL), and the square-root filters
+    read the NaN as 0."""
+    bad = np.int32(errors.NOT_PSD | errors.NON_FINITE)
+    for Q in (np.diag([1e-3, np.inf]), np.array([[np.nan, 0.0], [0.0, 1e-3]])):
+        status, ll = _bad_q_run(mod, Q)
+        assert np.all(status & bad), status
+        if ll is not None:
+            assert np.all(np.isnan(ll)), ll
+    # one bad step of a per-step Q: that step says so, the steps before it are untouched
+    Qs = np.tile(Q2, (12, 1, 1))
+    Qs[7, 0, 0] = np.nan
+    status, ll = _bad_q_run(mod, Qs)
+    assert status[7] & bad and not np.any(status[:7])
+    if ll is not None:
+        assert np.isnan(ll[7]) and np.all(np.isfinite(ll[:7]))
+
+
+def test_psd_factor_of_a_non_finite_matrix_is_nan_under_jit():
+    A = jnp.array([[jnp.nan, 0.0], [0.0, 1e-3]])
+    assert np.all(np.isnan(np.asarray(jax.jit(sqrt_ekf.psd_factor)(A))))
+    assert np.all(np.isnan(np.asarray(sqrt_ekf.psd_factor(np.asarray(A)))))  # eager, as before
+    # a finite singular PSD matrix still factors (the eigen branch)
+    L = np.asarray(jax.jit(sqrt_ekf.psd_factor)(jnp.diag(jnp.array([1.0, 0.0]))))
+    np.testing.assert_allclose(L @ L.T, np.diag([1.0, 0.0]), atol=1e-12)

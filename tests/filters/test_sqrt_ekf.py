@@ -567,3 +567,29 @@ def test_filter_scan_compiles_once():
     b = run(X0_CV + 1, 2 * P0_CV, us * 2, zs + 1, ~m, 2 * Q_CV, 3 * R_CV, 5.0)
     assert np.all(np.isfinite(np.asarray(a.means))) and np.all(np.isfinite(np.asarray(b.means)))
     assert np.all(np.asarray(b.dof) == 0)
+
+
+@pytest.mark.parametrize("moving", [True, False], ids=["cv", "f_none"])
+def test_per_step_noise_and_a_still_state_equal_numpy(moving):
+    """``Q`` (T, n, n) and ``R`` (T, m, m), each step's own, and ``f=None`` (a state that does
+    not move: P' = P + Q_t), against the closed-form Kalman filter written here."""
+    us, zs = simulate_cv(4, T=20)
+    rng = np.random.default_rng(2)
+    Qs = Q_CV[None] * rng.uniform(0.5, 2.0, size=(20, 1, 1))
+    Rs = R_CV[None] * rng.uniform(0.5, 2.0, size=(20, 1, 1))
+    post = se.filter_scan(f_cv if moving else None, h_pos, X0_CV, P0_CV, us, zs, None, Qs, Rs, save_chol=True)
+    x, P = X0_CV.astype(float), P0_CV.astype(float)
+    F = F_CV if moving else np.eye(4)
+    for t in range(20):
+        x = F @ x + (G_CV @ us[t] if moving else 0.0)
+        P = F @ P @ F.T + Qs[t]
+        S = H_CV @ P @ H_CV.T + Rs[t]
+        K = np.linalg.solve(S, H_CV @ P).T
+        x, P = x + K @ (zs[t] - H_CV @ x), P - K @ S @ K.T
+        assert_close(post.means[t], x, 1e-10)
+        assert_close(covs_of(post.chols[t]), P, 1e-10)
+    assert not np.any(np.asarray(post.status))
+    with pytest.raises(InputError, match=r"^Q: one matrix per step needs 20"):
+        se.filter_scan(f_cv, h_pos, X0_CV, P0_CV, us, zs, None, Qs[:19], R_CV)
+    with pytest.raises(InputError, match=r"^R: expected shape \(2, 2\) or \(20, 2, 2\)"):
+        se.filter_scan(f_cv, h_pos, X0_CV, P0_CV, us, zs, None, Q_CV, Rs[:19])
