@@ -86,6 +86,88 @@ def test_measurements_outside_the_run_are_counted_and_said(tmp_path, capsys):
     assert f"{doc['counts']['outside_window']} of" in out and "outside the run's time span" in out
 
 
+def _mrclam_other_dataset(root: pathlib.Path) -> pathlib.Path:
+    """Robot 1's excerpt laid out as another MRCLAM dataset might be: unpacked as
+    ``root/MRCLAM_Dataset9/``, landmark subjects renumbered 6–20 → 31–45 and five more (46–50,
+    new barcodes) sighted twice each in the first frame (10 rows in one camera frame), and the
+    three rows of the frame before it stamped 1000 s early (a clock offset: before any odometry)."""
+    d = root / "MRCLAM_Dataset9"
+    d.mkdir(parents=True)
+    src = DATA / "mrclam6"
+    for name in ("Robot1_Odometry.dat", "Robot1_Groundtruth.dat"):
+        (d / name).write_bytes((src / name).read_bytes())
+
+    def body(name):
+        return [ln for ln in (src / name).read_text().splitlines() if ln.strip() and not ln.startswith("#")]
+
+    bc = [ln.split() for ln in body("Barcodes.dat")]
+    bc = [(int(a) + 25 if int(a) > 5 else int(a), int(b)) for a, b in bc] + [(45 + k, 100 + k) for k in range(1, 6)]
+    (d / "Barcodes.dat").write_text("\n".join(f"{a}\t{b}" for a, b in bc) + "\n")
+    lm = [ln.split() for ln in body("Landmark_Groundtruth.dat")]
+    lm = [[str(int(r[0]) + 25)] + r[1:] for r in lm] + [[str(45 + k), f"{k}.0", "1.0", "0.001", "0.001"]
+                                                        for k in range(1, 6)]
+    (d / "Landmark_Groundtruth.dat").write_text("\n".join("\t".join(r) for r in lm) + "\n")
+    rows = [ln.split() for ln in body("Robot1_Measurement.dat")]
+    t0 = rows[0][0]
+    extra = [[t0, str(100 + k), "3.0", "0.1"] for k in range(1, 6)] * 2  # 5 new landmarks, twice each
+    rows = rows[:3] + extra + rows[3:]
+    for r in rows[:3]:  # the first frame's three rows: two landmark sightings and one of robot 3
+        r[0] = f"{float(r[0]) - 1000:.3f}"
+    (d / "Robot1_Measurement.dat").write_text("\n".join("\t".join(r) for r in rows) + "\n")
+    return d
+
+
+def test_mrclam_from_another_dataset_maps_every_landmark_and_says_what_it_dropped(tmp_path, capsys):
+    """A MRCLAM folder laid out as another dataset might be (``_mrclam_other_dataset``): the
+    parent folder is enough, the known-id capacity follows the landmark table (20 subjects, none
+    refused), a frame of 10 rows loses none (K follows the log), and the sightings stamped before
+    the odometry are counted and said (they used to be applied to a robot that had not moved)."""
+    d = _mrclam_other_dataset(tmp_path / "parent")
+    js = tmp_path / "out.json"
+    rc, out, err = _run(["dataset", "mrclam", "--robot", "1", "--data", str(tmp_path / "parent"), "--json", str(js)],
+                        capsys)
+    assert rc == 0, err
+    doc = json.loads(js.read_text())
+    c, rep = doc["counts"], doc["loader_report"]
+    assert rep["dir"] == str(d)
+    assert c["overflow"] == 0 and "capacity_overflow" not in c["status_flags"] and "CAPACITY" not in err
+    assert c["outside_window"] == 2 and "outside the run's time span" in out
+    # every landmark row is in the run or counted outside it (none dropped beyond K)
+    assert c["measurements"] + c["outside_window"] == rep["landmark_rows"]
+    assert c["dropped_beyond_K"] == 0 and "beyond" not in " ".join(doc["notes"])
+    # one slot per subject of the table (20, five more than dataset 6), every landmark seen mapped
+    assert doc["config"]["capacity"] == 20 and c["landmarks_mapped"] == rep["landmarks_seen"] == 8
+
+
+@pytest.mark.slow
+def test_mrclam_from_another_dataset_fastslam_maps_its_landmarks(tmp_path, capsys):
+    # the end-to-end FastSLAM run of the folder above (slow: its compile); with dataset 6's fixed
+    # subject offset every sighting overflowed and the run was dead reckoning
+    _mrclam_other_dataset(tmp_path / "parent")
+    js = tmp_path / "out.json"
+    rc, out, err = _run(["dataset", "mrclam", "--robot", "1", "--filter", "fastslam", "--particles", "16",
+                         "--data", str(tmp_path / "parent"), "--json", str(js)], capsys)
+    assert rc == 0, err
+    doc = json.loads(js.read_text())
+    assert doc["counts"]["overflow"] == 0 and doc["counts"]["landmarks_mapped"] == doc["loader_report"]["landmarks_seen"]
+
+
+def test_fastslam_known_ids_slots_follow_the_landmark_table():
+    """FastSLAM's known-id slots come from the table's subjects (id_map[j] in slot j), not from
+    dataset 6's 6–20: renumbered subjects map onto 0… and an id outside the table is refused
+    (slot = capacity, counted as overflow by the core), never folded onto another landmark."""
+    from jaxslam.data import runners
+
+    subjects = np.array([31, 32, 40, 45], np.int32)
+    cfg, prm, id_map, _ = runners._mrclam_fastslam(1, 8, "known", subjects, 9)
+    assert cfg.capacity == 4 and cfg.K == 9 and id_map is subjects
+    _, _, none_map, _ = runners._mrclam_fastslam(1, 8, "hidden", subjects, 9)
+    assert none_map is None
+    ids = np.array([[31, 45, 7, -1], [40, 32, 46, 31]])
+    mask = np.array([[True, True, True, False], [True, True, True, True]])
+    np.testing.assert_array_equal(runners._known_slots(ids, mask, subjects), [[0, 3, 4, 4], [2, 1, 4, 0]])
+
+
 @pytest.mark.slow
 def test_dataset_victoria_park_excerpt(tmp_path, capsys):
     rc, out, err = _run(["dataset", "victoria-park", "--data", str(DATA), "--float32",

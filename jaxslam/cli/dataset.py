@@ -34,7 +34,8 @@ datasets (see docs/datasets.md for downloads, formats and measured figures):
                  --anchors known localises against the surveyed beacons instead
 
 DIR is the dataset's folder or a parent holding it (e.g. the folder with mrclam6/,
-victoria_park/, util_uwb/ and gtsam/); without --data, $JAXSLAM_DATA_DIR names it.
+victoria_park/, util_uwb/ and gtsam/, or the one with an unpacked MRCLAM_Dataset9/: a
+single subfolder holding the files is found); without --data, $JAXSLAM_DATA_DIR names it.
 'jaxslam list' shows which datasets that folder holds.
 
 Ctrl-C: the log is filtered by one compiled scan, so an interrupted run has nothing
@@ -75,7 +76,8 @@ def _parser(help_params: bool = False):
     p.add_argument("--robot", type=positive_int, default=1, metavar="N",
                    help="MRCLAM robot number, or Plaza sequence 1|2 (default: 1)")
     p.add_argument("--filter", choices=("ekf", "fastslam"), default="ekf",
-                   help="EKF-SLAM or FastSLAM 1.0 (default: ekf)")
+                   help="EKF-SLAM or FastSLAM (the dataset's setting: FastSLAM 2.0 for mrclam known ids "
+                        "and victoria-park, 1.0 for mrclam ids hidden; default: ekf)")
     p.add_argument("--ids", choices=("known", "hidden"), default="known",
                    help="MRCLAM: use the barcode ids, or hide them and associate by "
                         "Mahalanobis distance (EKF: capacity 64, tentative landmarks not matched "
@@ -167,6 +169,9 @@ def main(argv) -> int:
         print(f"jaxslam dataset: warning: the run DIVERGED ({'' if frac is None else f'{100 * frac:.0f} % of '}"
               "the sightings of mapped landmarks were outliers, > 10 %): its estimate is not trustworthy",
               file=sys.stderr, flush=True)
+    if "capacity_overflow" in str(run.counts.get("status_flags", "")).split(","):
+        print(f"jaxslam dataset: warning: CAPACITY_OVERFLOW: {run.counts.get('overflow', 0)} sightings of new "
+              "landmarks found no free slot and were not mapped", file=sys.stderr, flush=True)
     if not args.quiet:
         out = sys.stdout
         print(f"{run.dataset} ({run.config['filter']}, {run.config['dtype']}): {run.config['setting']}", file=out)

@@ -167,9 +167,11 @@ def mrclam_params(robot: int = 1, sigma_v: float = 0.01, sigma_w: float = 0.02,
 
 def mrclam_config(association: str = "known", capacity: Optional[int] = None, K: int = 8,
                   robust: bool = True, monitor: bool = False, **kw) -> pe.Config:
-    """MRCLAM: unicycle odometry, 15 landmarks, at most 7 rows per camera frame.
+    """MRCLAM: unicycle odometry, 15 landmarks in dataset 6, at most 8 rows per camera frame
+    there (``K``: :func:`mrclam_rows`).
 
-    Capacity 16 with known ids; 64 with nn or jcbb (spurious new landmarks; with ids hidden
+    Capacity 16 with known ids (the runner raises it to the landmark table's size, for a dataset
+    with more landmarks: :func:`mrclam_subjects`); 64 with nn or jcbb (spurious new landmarks; with ids hidden
     the runner also prunes tentative landmarks, :data:`MRCLAM_NN_PRUNING`).  The update is
     robust (Student-t, ν = ``params.robust_nu``) with no hard gate: with the hard χ²(2) 99 %
     gate of earlier versions, robot 3 gated 3132 of its 4348 sightings after an over-confident
@@ -195,6 +197,22 @@ def mrclam_config(association: str = "known", capacity: Optional[int] = None, K:
 MRCLAM_NN_PRUNING = (2.0, 4.0)
 
 
+def mrclam_subjects(data) -> np.ndarray:
+    """The landmark subjects a MRCLAM run can meet, sorted: those of ``Landmark_Groundtruth.dat``
+    and any other landmark subject the measurements name (through ``Barcodes.dat``).  Dataset 6
+    has subjects 6–20; another dataset may number or count them differently, so known-id slots
+    and capacities come from here, not from constants."""
+    return np.union1d(np.asarray(data.landmark_id), np.asarray(data.meas_id)).astype(np.int32)
+
+
+def mrclam_rows(data, K: int = 8) -> int:
+    """Rows per event for a MRCLAM log: ``K`` (8, dataset 6's most landmark rows at one camera
+    time), or more when another log has more, so that no sighting is dropped."""
+    t = np.asarray(data.meas_t)
+    most = int(np.max(np.unique(t, return_counts=True)[1])) if t.size else 0
+    return max(int(K), most)
+
+
 def mrclam_raw_log(data, K: int = 8, t_end=None, odometry_delay: float = 0.0):
     """Event log and start pose of one MRCLAM robot's raw log (:func:`mrclam_log` without the
     ground-truth-fitted range correction), as ``jaxslam dataset mrclam`` and ``jaxslam tune
@@ -216,9 +234,11 @@ def mrclam_log(data, K: int = 8, t_end=None, range_model=MRCLAM_RANGE_MODEL,
 
     Corrections (host side; ``None``/0 turns one off): ranges divided by ``k0 + k2 β²``
     (``range_model``, see ``MRCLAM_RANGE_MODEL``); odometry stamps shifted by
-    ``odometry_delay`` [s] (``MRCLAM_ODOMETRY_DELAY``).  ``t_end`` defaults to the last
-    ground-truth time (robot 1 stops there).  The start pose is ground truth at the first
-    event (:func:`mrclam_start_pose`; the robot stands still before its first odometry row).
+    ``odometry_delay`` [s] (``MRCLAM_ODOMETRY_DELAY``).  The run spans the first (shifted)
+    odometry sample to ``t_end`` (default the last ground-truth time: robot 1 stops there);
+    measurements outside it are dropped and counted in ``log.stats["outside_window"]`` (a
+    sighting before any odometry would be taken from a robot that has not started moving).
+    The start pose is ground truth at the first event (:func:`mrclam_start_pose`).
     Returns ``(EventLog, pose0 (3,) float64)``; pair it with ``mrclam_params(corrected=True)``.
     """
     from .events import merge_events
@@ -228,8 +248,9 @@ def mrclam_log(data, K: int = 8, t_end=None, range_model=MRCLAM_RANGE_MODEL,
         k0, k2 = (float(c) for c in range_model)
         z[:, 0] = z[:, 0] / (k0 + k2 * z[:, 1] ** 2)
     t_end = float(data.gt_t[-1]) if t_end is None else t_end
-    log = merge_events(np.asarray(data.odom_t, np.float64) + float(odometry_delay), data.odom,
-                       data.meas_t, z, data.meas_id, K=K, input_mode="rate", t_end=t_end)
+    odom_t = np.asarray(data.odom_t, np.float64) + float(odometry_delay)
+    log = merge_events(odom_t, data.odom, data.meas_t, z, data.meas_id, K=K, input_mode="rate",
+                       t_start=float(odom_t[0]), t_end=t_end)
     return log, mrclam_start_pose(data, log)
 
 
@@ -300,14 +321,15 @@ def victoria_park_config(capacity: int = 512, K: int = 8, **kw) -> pe.Config:
 
 
 def mrclam_fastslam_setup(robot: int = 1, n_particles: int = 100, association: str = "known", K: int = 8,
-                          dtype=None, preset: str = "fitted"):
+                          dtype=None, preset: str = "fitted", capacity: Optional[int] = None):
     """(Config, Params) of :mod:`jaxslam.systems.planar_fastslam` for UTIAS MRCLAM (dataset 6
     figures in docs/datasets.md).
 
     The same for every robot (``robot`` is not read: nothing is set per robot, the command also
     runs on MRCLAM robots this project has not seen).  Known ids use ``slot_by_id``: the caller
-    maps subjects 6–20 to ids 0–14 (capacity 15); hidden ids ("ml") get capacity 32 and the
-    hand-set setting below whatever ``preset`` says.
+    maps the landmark subjects to ids 0, 1, … (dataset 6: 6–20 to 0–14, capacity 15; pass
+    ``capacity`` for another table, :func:`mrclam_subjects`); hidden ids ("ml") get capacity 32
+    and the hand-set setting below whatever ``preset`` says.
 
     ``preset="fitted"`` (default, known ids): the FastSLAM 2.0 proposal
     (``Config.proposal="optimal"``) on the EKF's model learned from the logs
@@ -327,7 +349,7 @@ def mrclam_fastslam_setup(robot: int = 1, n_particles: int = 100, association: s
     if preset not in ("fitted", "hand"):
         raise InputError(f"preset: expected 'fitted' or 'hand', got {preset!r}")
     del robot  # one setting for every robot
-    cap = 15 if association == "known" else 32
+    cap = (15 if association == "known" else 32) if capacity is None else int(capacity)
     if association == "known" and preset == "fitted":
         f = MRCLAM_FITTED
         cfg = pf.Config(motion="unicycle", n_particles=int(n_particles), capacity=cap, K=int(K),

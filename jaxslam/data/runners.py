@@ -24,6 +24,7 @@ cache, ``block_until_ready``), ``compile_s`` the first call's extra time;
 
 from __future__ import annotations
 
+import functools
 import time
 from typing import Callable, NamedTuple
 
@@ -608,16 +609,17 @@ def _planar_run(log, pose0, filter, cfg_ekf, prm_ekf, fs_kind, particles, seed, 
         return np.asarray(res.pose, np.float64), lm, counts, comp_s, run_s, res.status, sm
     from ..systems import planar_fastslam as pf
 
-    cfg, prm, id_offset, twice = fs_kind(particles)
+    cfg, prm, id_map, twice = fs_kind(particles)
     prm = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), prm)
     key = jax.random.PRNGKey(seed)
     p0 = jnp.asarray(pose0, dtype)
-    if id_offset:
-        log = log._replace(ids=np.where(log.mask, log.ids - id_offset, -1).astype(np.int32))
+    if id_map is not None:  # known ids: subject id_map[j] lives in slot j (the core's slot_by_id)
+        log = log._replace(ids=_known_slots(log.ids, log.mask, id_map))
     res, comp_s, run_s = timed_run(lambda: pf.run(pf.log_from_events(log, p0), cfg, prm, key=key), twice=twice)
     mp = res.map
     act = np.asarray(mp.active)
-    lm = {"xy": np.asarray(mp.mean, np.float64)[act], "ids": np.asarray(mp.ids)[act] + id_offset,
+    ids_out = np.asarray(mp.ids)[act]
+    lm = {"xy": np.asarray(mp.mean, np.float64)[act], "ids": id_map[ids_out] if id_map is not None else ids_out,
           "cov": np.asarray(mp.cov, np.float64)[act]}
     counts = {"measurements": int(np.sum(log.mask)), "used": int(np.sum(np.asarray(res.used))),
               "gated": int(np.sum(np.asarray(res.gated))), "rejected": 0,
@@ -664,12 +666,14 @@ def run_mrclam(data_dir, robot=1, filter="ekf", ids="known", anchors=None, parti
     d = load_mrclam(data_dir, robot)
     # Run (and evaluate) where ground truth exists: robot 1's GT stops at +771.9 s.
     fs_learned = filter == "fastslam" and ids == "known"  # FastSLAM's default: the EKF's learned model
+    K = presets.mrclam_rows(d)  # 8, or more for a log with more sightings in one frame: none dropped
+    subjects = presets.mrclam_subjects(d)  # the landmark table's subjects (dataset 6: 6–20)
     if calibrated:
-        log, pose0 = presets.mrclam_log(d, K=8)
+        log, pose0 = presets.mrclam_log(d, K=K)
     elif fs_learned:  # the range model on the host (the EKF applies it inside the filter)
-        log, pose0 = presets.mrclam_log(d, K=8, range_model=presets.MRCLAM_FITTED["range_model"], odometry_delay=delay)
+        log, pose0 = presets.mrclam_log(d, K=K, range_model=presets.MRCLAM_FITTED["range_model"], odometry_delay=delay)
     else:
-        log, pose0 = presets.mrclam_raw_log(d, K=8, odometry_delay=delay)
+        log, pose0 = presets.mrclam_raw_log(d, K=K, odometry_delay=delay)
     load_s = time.perf_counter() - t0
     assoc = "known" if ids == "known" else "nn"
     prm = presets.mrclam_params(robot, dtype=dtype, corrected=calibrated)
@@ -678,10 +682,12 @@ def run_mrclam(data_dir, robot=1, filter="ekf", ids="known", anchors=None, parti
         prm = prm._replace(prune_window_s=presets.MRCLAM_NN_PRUNING[0], prune_min_obs=presets.MRCLAM_NN_PRUNING[1])
     if params is not None:
         prm = pe.params_from_dict(noise, prm, dtype=dtype, where="--params: noise")
-    config = presets.mrclam_config(association=assoc)
+    # known ids: one slot per landmark subject (16 for dataset 6's 15; more for a larger table)
+    config = presets.mrclam_config(association=assoc, K=K,
+                                   capacity=max(16, int(subjects.size)) if assoc == "known" else None)
+    fs_kind = functools.partial(_mrclam_fastslam, robot, assoc=assoc, subjects=subjects, K=K)
     pose, lm, counts, comp_s, run_s, status, smoothed = _planar_run(
-        log, pose0, filter, config, prm,
-        lambda n: _mrclam_fastslam(robot, n, assoc), particles, seed, dtype, smooth=smooth)
+        log, pose0, filter, config, prm, fs_kind, particles, seed, dtype, smooth=smooth)
     dr = np.asarray(dead_reckoning(planar.unicycle, jnp.asarray(pose0), log.u, log.dt))
     m, ev = evaluate_planar(log.t, pose, d.gt_t, d.gt, dr_pose=dr, lm=lm["xy"],
                             lm_ids=lm["ids"] if assoc == "known" else None, lm_cov=lm["cov"],
@@ -704,9 +710,10 @@ def run_mrclam(data_dir, robot=1, filter="ekf", ids="known", anchors=None, parti
                   odometry_delay_s=None if calibrated else delay,
                   particles=particles if filter == "fastslam" else None, seed=seed,
                   **_smooth_config(smooth, SMOOTHER_RTS))
-    cfg["thresholds"] = _planar_thresholds(filter, prm, lambda n: _mrclam_fastslam(robot, n, assoc), particles)
+    cfg["thresholds"] = _planar_thresholds(filter, prm, fs_kind, particles)
     notes = ([f"evaluated at the {m['eval_samples']} ground-truth samples inside the run"]
-             + _window_notes(log) + _divergence_notes(status, gate=(
+             + _window_notes(log) + _mrclam_notes(d, log, pose0) + _capacity_notes(status, counts)
+             + _divergence_notes(status, gate=(
                  "the chi2(2) 99 % gate" if filter == "ekf" else "the particles' Student-t model's own 99 % quantile")))
     if filter == "ekf":
         cfg["capacity"] = int(config.capacity)
@@ -714,6 +721,44 @@ def run_mrclam(data_dir, robot=1, filter="ekf", ids="known", anchors=None, parti
             "calibrated preset" if calibrated else "learned: jaxslam tune mrclam on robots 1-5 (docs/datasets.md)")
     return DatasetRun("mrclam", cfg, m, counts, {"load_s": load_s, "compile_s": comp_s, "run_s": run_s},
                       dict(d.report), ev, (log.t, pose[:, :2], pose[:, 2]), notes)
+
+
+def _mrclam_notes(d, log, pose0) -> list:
+    """What a MRCLAM log from another dataset could hide, said: sightings beyond the rows per
+    event (none with the runner's K), unknown barcodes, no landmark sighting at all, odometry
+    gaps (the last rate is held through them), ground truth that starts after the run (the
+    start pose is then taken later than the run starts)."""
+    notes = []
+    n = int(log.stats.get("dropped_overflow", 0))
+    if n:
+        notes.append(f"{n} landmark sightings beyond {log.z.shape[1]} rows in one camera frame were dropped")
+    n = int(d.report.get("unknown_barcode_rows", 0))
+    if n:
+        notes.append(f"{n} measurement rows name barcodes that Barcodes.dat does not list; they were not used "
+                     "(loader_report.unknown_barcode_lines)")
+    if not np.any(log.mask):
+        notes.append("no landmark sighting in the run: its estimate is dead reckoning")
+    t_in = np.asarray(log.t)[np.asarray(log.is_input, bool)]
+    gaps = np.diff(t_in)
+    long = gaps > 2.0
+    if np.any(long):
+        i = int(np.argmax(gaps))
+        notes.append(f"the odometry has {int(long.sum())} gap(s) longer than 2 s (longest {gaps[i]:.1f} s after "
+                     f"t = {t_in[i]:.1f} s); the last rate is held through each")
+    late = float(d.gt_t[0]) - float(log.t[0])
+    if late > 1.0:
+        notes.append(f"ground truth starts {late:.1f} s after the run's first event: the start pose is the first "
+                     "ground-truth pose, taken that much later")
+    return notes
+
+
+def _capacity_notes(status, counts) -> list:
+    from ..errors import CAPACITY_OVERFLOW
+
+    if int(status) & CAPACITY_OVERFLOW:
+        return [f"CAPACITY_OVERFLOW: {counts.get('overflow', 0)} sightings of new landmarks found no free slot "
+                "and were not mapped"]
+    return []
 
 
 def _window_notes(log) -> list:
@@ -737,12 +782,24 @@ def _planar_thresholds(filter, prm_ekf, fs_kind, particles) -> dict:
     return {k: None if getattr(prm, k) is None else float(np.asarray(getattr(prm, k))) for k in names}
 
 
-def _mrclam_fastslam(robot, n, assoc):
+def _known_slots(ids, mask, id_map):
+    """Slot of each row for FastSLAM's known ids: j where ``id_map[j]`` is the row's subject;
+    ``len(id_map)`` (past the capacity: the core counts it as overflow) for a masked row or a
+    subject not in the table."""
+    id_map = np.asarray(id_map)
+    slot = np.searchsorted(id_map, ids)
+    found = np.asarray(mask, bool) & (slot < id_map.size) & (id_map[np.minimum(slot, id_map.size - 1)] == ids)
+    return np.where(found, slot, id_map.size).astype(np.int32)
+
+
+def _mrclam_fastslam(robot, n, assoc, subjects, K):
     from .presets import mrclam_fastslam_setup
 
-    cfg, prm = mrclam_fastslam_setup(robot, n_particles=n or 100, association="known" if assoc == "known" else "ml")
-    # known ids live in slot id − 6 (subjects 6–20 → 0–14, the core's slot_by_id)
-    return cfg, prm, 6 if assoc == "known" else 0, True
+    known = assoc == "known"
+    cfg, prm = mrclam_fastslam_setup(robot, n_particles=n or 100, association="known" if known else "ml",
+                                     K=K, capacity=int(subjects.size) if known else None)
+    # known ids: subject subjects[j] lives in slot j (dataset 6: subjects 6–20 → 0–14)
+    return cfg, prm, subjects if known else None, True
 
 
 @_register("victoria-park")
@@ -828,4 +885,4 @@ def _vp_fastslam(n):
     from .presets import victoria_park_fastslam_setup
 
     cfg, prm = victoria_park_fastslam_setup(n_particles=n or 50)
-    return cfg, prm, 0, False  # minutes per run: timed once, compilation included
+    return cfg, prm, None, False  # minutes per run: timed once, compilation included

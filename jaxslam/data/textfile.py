@@ -266,10 +266,11 @@ def int_column(tab: Table, col: int, name: str, lo: Optional[int] = None,
 
 
 def resolve_dataset_dir(path: PathLike, subdir: str, required: Sequence[str], what: str) -> Path:
-    """Find the folder holding ``required`` files: ``path`` itself or ``path/subdir``.
+    """Find the folder holding ``required`` files: ``path`` itself, ``path/subdir``, or else
+    the one subfolder of ``path`` that holds them all (e.g. an unpacked ``MRCLAM_Dataset9/``).
 
     Raises :class:`MissingDataError` listing the folders looked in and the
-    files missing from the best candidate.
+    files missing from the best candidate (or naming the subfolders when several qualify).
     """
     base = Path(path)
     cands = [base, base / subdir] if base.name != subdir else [base]
@@ -280,6 +281,13 @@ def resolve_dataset_dir(path: PathLike, subdir: str, required: Sequence[str], wh
             best, best_n = c, n
     if best is not None and best_n == len(required):
         return best
+    if base.is_dir():
+        subs = sorted(c for c in base.iterdir() if c.is_dir() and all((c / f).is_file() for f in required))
+        if len(subs) == 1:
+            return subs[0]
+        if len(subs) > 1:
+            raise MissingDataError(base, None, f"{what}: several folders in {base} hold the files "
+                                               f"({', '.join(c.name for c in subs)}); name one with --data")
     looked = " or ".join(str(c) for c in cands)
     if best_n <= 0:
         raise MissingDataError(base, None, f"{what}: no dataset files found; looked in {looked} "
