@@ -70,10 +70,12 @@ def test_planar_fastslam_compiles_once_for_new_noise_and_key():
     from jaxslam.data import runners
     from jaxslam.systems import planar_fastslam as pf
 
+    from jaxslam.data import presets
+
     log, pose0 = _mrclam_log()
-    cfg, prm, id_offset, _ = runners._mrclam_fastslam(1, 16, "known")
-    if id_offset:
-        log = log._replace(ids=np.where(log.mask, log.ids - id_offset, -1).astype(np.int32))
+    subjects = presets.mrclam_subjects(load_mrclam(DATA, 1))
+    cfg, prm, id_map, _ = runners._mrclam_fastslam(1, 16, "known", subjects, 8)
+    log = log._replace(ids=runners._known_slots(log.ids, log.mask, id_map))
     prm = jax.tree_util.tree_map(lambda v: jnp.asarray(v, jnp.float64), prm)
     n0 = pf._run._cache_size()
     pf.run(pf.log_from_events(log, pose0), cfg, prm, key=jax.random.PRNGKey(0))

@@ -371,7 +371,7 @@ def check_leading(tree, T: int, name: str):
 def init_carry(x0, P0):
     """The scan carry of :func:`make_step` at the start of a run."""
     init = Gaussian(x0, P0)
-    return (init, init, jnp.zeros(P0.shape, P0.dtype))
+    return (init, init, jnp.zeros(P0.shape, P0.dtype), jnp.zeros((), jnp.int32))
 
 
 def make_step(flt: GaussianFilter, Q, R, q_step: bool, r_step: bool, predict_first: bool):
@@ -380,31 +380,34 @@ def make_step(flt: GaussianFilter, Q, R, q_step: bool, r_step: bool, predict_fir
     ``inp = (u, z, mask, Q_t, R_t, c)`` (``Q_t``/``R_t`` used when ``q_step``/``r_step``,
     else the shared ``Q``/``R``); ``prior`` is the belief that was updated and
     ``cross`` the cross-covariance of the prediction that produced it.  Shared by
-    :func:`run` and the fixed-lag smoother so that both filter identically.
+    :func:`run` and the fixed-lag smoother so that both filter identically.  A predict's
+    status (the protocol's optional third output) goes to the step whose prior it made: the
+    same step with ``predict_first``, else the next one (the carry's last slot holds it).
     """
+    zero = jnp.zeros((), jnp.int32)
 
     def predict(state, u, Qt):
         out = flt.predict(state, u, Qt)
-        return out if len(out) == 3 else (*out, None)
+        return (*out[:2], jnp.asarray(out[2], jnp.int32)) if len(out) == 3 else (*out, zero)
 
     def step(carry, inp):
-        state, _, cross_in = carry
+        state, _, cross_in, pending = carry
         u, z, mk, Qt, Rt, c = inp
         Qt = Qt if q_step else Q
         Rt = Rt if r_step else R
         if predict_first:
             prior, cross, p_status = predict(state, u, Qt)
             post, info = flt.update(prior, z, mk, Rt, c)
-            nxt, cross_next = post, cross_in
+            nxt, cross_next, pending_next = post, cross_in, zero
         else:
-            prior, cross = state, cross_in
+            prior, cross, p_status = state, cross_in, pending
             post, info = flt.update(state, z, mk, Rt, c)
-            nxt, cross_next, p_status = predict(post, u, Qt)
-        if p_status is not None:  # the step's predict failed and kept its prior: say so
-            info = info._replace(status=info.status | jnp.asarray(p_status, jnp.int32))
+            nxt, cross_next, pending_next = predict(post, u, Qt)
+        # a predict that failed kept its prior: the step it fed says so
+        info = info._replace(status=info.status | p_status)
         # The second carry slot holds the last filtered estimate, which with
         # predict_first=False differs from the (predicted) first slot.
-        return (nxt, post, cross_next), (post, prior, cross, info)
+        return (nxt, post, cross_next, pending_next), (post, prior, cross, info)
 
     return step
 
@@ -484,6 +487,6 @@ def run(
         return carry, out
 
     xs = (us, zs, masks, Q if q_step else None, R if r_step else None, h_inputs)
-    (_, final, _), outs = jax.lax.scan(step, init_carry(x0, P0), xs, length=T)
+    (_, final, _, _), outs = jax.lax.scan(step, init_carry(x0, P0), xs, length=T)
     means, diags, covs, nis, dof, status, ll, pm, pc, cc = outs
     return Posterior(means, diags, covs, nis, dof, status, final, ll, pm, pc, cc)

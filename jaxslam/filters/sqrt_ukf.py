@@ -185,22 +185,27 @@ def filter_scan(f: Optional[Callable], h: Callable, x0, P0, us, zs, masks, Q, R,
     r_step = Ra.ndim == 3
 
     def step(carry, inp):
-        state, _ = carry
+        # a failed predict keeps its prior and flags the step whose prior it made: this one
+        # with predict_first, else the next (``pending``)
+        state, _, pending = carry
         u, z, mk, cq, rt = inp
         cq = cq if q_step else CQ
         rt = rt if r_step else Ra
         if predict_first:
             state, p_status = predict(state, f, u, None, *args, points=rule, Q_chol=cq, return_status=True)
+        else:
+            p_status = pending
         post, info = update(state, z, h, rt, *args, residual=residual, mask=mk, gate=gate, points=rule)
         if predict_first:
-            nxt = post
+            nxt, pending = post, pending
         else:
-            nxt, p_status = predict(post, f, u, None, *args, points=rule, Q_chol=cq, return_status=True)
+            nxt, pending = predict(post, f, u, None, *args, points=rule, Q_chol=cq, return_status=True)
         out = (post.mean, jnp.sum(post.chol**2, axis=1), post.chol if save_chol else None,
                info.nis, info.dof, info.status | p_status)
-        return (nxt, post), out
+        return (nxt, post, pending), out
 
     xs = (us, zs, masks, CQ if q_step else None, Ra if r_step else None)
     init = SqrtGaussian(x0, L0)
-    (_, final), (means, diags, chols, nis, dof, status) = jax.lax.scan(step, (init, init), xs, length=T)
+    (_, final, _), (means, diags, chols, nis, dof, status) = jax.lax.scan(
+        step, (init, init, jnp.zeros((), jnp.int32)), xs, length=T)
     return SqrtPosterior(means, diags, chols, nis, dof, status, final)

@@ -171,7 +171,8 @@ class Params(NamedTuple):
     prune_window_s: () "ml" only: optional tentative-landmark pruning window [s] (default None:
         off; the planar EKF's rule, per particle).  A landmark of a particle's map that this
         particle has not matched (used in an update) at least ``prune_min_obs`` times within
-        ``prune_window_s`` seconds of registering it is removed from that particle's map
+        ``prune_window_s`` seconds of registering it (matches at events where its age is at
+        most the window) is removed from that particle's map at the next event with rows
         (slot freed for a later landmark) and counted in ``Result.pruned``; one that has is
         confirmed and never removed.
     prune_min_obs: () matches a tentative landmark needs within the window (default 2).
@@ -270,9 +271,6 @@ def _validate_params(params: Params, config: Config):
     if params.robust_nu is not None:
         check_scalar(params.robust_nu, "params.robust_nu", lower=0, strict=True)
     if params.prune_window_s is not None:
-        if config.association != "ml":
-            raise InputError("params.prune_window_s: tentative-landmark pruning needs association='ml' "
-                             f"(got {config.association!r}: known ids need no pruning)")
         if not thr["prune_window_s"] > 0:
             raise InputError(f"params.prune_window_s: need > 0, got {thr['prune_window_s']}")
         m = thr.get("prune_min_obs")
@@ -282,6 +280,14 @@ def _validate_params(params: Params, config: Config):
         g = thr.get("gate", 9.21)
         if thr["new_threshold"] < g:
             raise InputError(f"params.new_threshold ({thr['new_threshold']}) must be >= gate ({g})")
+
+
+def _check_prune(config: Config, params: Params):
+    """Pruning is for "ml" association (static: checked under ``jit`` too, by :func:`run` and
+    :func:`init`; with known ids the rows' ids are not slots of a particle's own map)."""
+    if params.prune_window_s is not None and config.association != "ml":
+        raise InputError("params.prune_window_s: tentative-landmark pruning needs association='ml' "
+                         f"(got {config.association!r}: known ids need no pruning)")
 
 
 def _validate(config: Config):
@@ -473,6 +479,7 @@ def _validate_log(log: Log, config: Config):
 
 def init(log: Log, config: Config, params: Params, *, key) -> State:
     """N particles drawn around ``log.pose0`` with covariance ``params.P0`` (``key``), empty maps."""
+    _check_prune(config, params)
     dtype = jnp.asarray(log.pose0).dtype
     N, cap = int(config.n_particles), int(config.capacity)
     L_P0 = jnp.linalg.cholesky(params.P0 + 1e-15 * jnp.eye(3, dtype=dtype))
@@ -644,6 +651,7 @@ def run(log: Log, config: Config, params: Params, *, key) -> Result:
     if key is None:
         raise InputError("key: planar FastSLAM draws particles; give a PRNG key")
     _validate(config)
+    _check_prune(config, params)
     if is_concrete(params):
         _validate_params(params, config)
     _validate_log(log, config)

@@ -295,3 +295,20 @@ def test_psd_factor_of_a_non_finite_matrix_is_nan_under_jit():
     # a finite singular PSD matrix still factors (the eigen branch)
     L = np.asarray(jax.jit(sqrt_ekf.psd_factor)(jnp.diag(jnp.array([1.0, 0.0]))))
     np.testing.assert_allclose(L @ L.T, np.diag([1.0, 0.0]), atol=1e-12)
+
+
+@pytest.mark.parametrize("mod", [ukf, sqrt_ukf], ids=["ukf", "sqrt_ukf"])
+def test_with_update_first_a_failed_predict_is_the_next_steps(mod):
+    # predict_first=False: step t updates, then predicts the prior of step t + 1 with Q_t, so a
+    # NaN in Q_7 belongs to step 8 (whose prior it failed to make), and the last step's
+    # prediction, which no step uses, flags nothing
+    Qs = np.tile(Q2, (12, 1, 1))
+    Qs[7, 0, 0] = np.nan
+    Qs[11, 0, 0] = np.nan
+    post = jax.jit(lambda q: mod.filter_scan(f, h, jnp.zeros(2), jnp.eye(2), None, ZS, None, q, R1,
+                                             predict_first=False))(jnp.asarray(Qs))
+    status = np.asarray(post.status)
+    assert status[8] & errors.NON_FINITE and not np.any(np.delete(status, 8)), status
+    if hasattr(post, "log_likelihood"):
+        ll = np.asarray(post.log_likelihood)
+        assert np.isnan(ll[8]) and np.all(np.isfinite(np.delete(ll, 8)))

@@ -414,7 +414,8 @@ def test_prune_bookkeeping_by_hand():
     np.testing.assert_array_equal(np.asarray(q.aux[1])[0], [0, 3, 1, 1])  # the removed slot's count cleared
 
 
-def test_ml_pruning_removes_clutter_and_frees_slots(sim):
+@pytest.mark.parametrize("proposal", ["optimal", "motion"])
+def test_ml_pruning_removes_clutter_and_frees_slots(sim, proposal):
     """Ids unknown with clutter: one spurious detection in 30 % of the scans (seen once each).
     Without pruning every clutter row takes a slot and the map overflows; with the planar EKF's
     pruning rule (2 matches within 2 s) each particle removes the clutter landmarks, reuses
@@ -432,11 +433,14 @@ def test_ml_pruning_removes_clutter_and_frees_slots(sim):
             mask[t, free[0]] = True
             n_clutter += 1
     L = L._replace(z=jnp.asarray(z), mask=jnp.asarray(mask))
-    cfg = pf.Config(motion="unicycle", n_particles=10, capacity=24, K=12, association="ml", proposal="optimal")
+    cfg = pf.Config(motion="unicycle", n_particles=10 if proposal == "optimal" else 40, capacity=24, K=12,
+                    association="ml", proposal=proposal)
     prm = _params()._replace(gate=9.21, new_threshold=30.0)
     run = jax.jit(pf.run, static_argnames="config")
-    plain = run(L, config=cfg, params=prm, key=jax.random.PRNGKey(1))
-    assert int(plain.overflow) > 0 and int(plain.status) & errors.CAPACITY_OVERFLOW
+    if proposal == "optimal":  # (the motion proposal's run without pruning: the same overflow)
+        plain = run(L, config=cfg, params=prm, key=jax.random.PRNGKey(1))
+        assert int(plain.overflow) > 0 and int(plain.status) & errors.CAPACITY_OVERFLOW
+        assert float(plain.pruned) == 0.0
     res = run(L, config=cfg, params=prm._replace(prune_window_s=2.0, prune_min_obs=2.0), key=jax.random.PRNGKey(1))
     assert int(res.overflow) == 0
     act = np.asarray(res.map.active)
@@ -444,7 +448,25 @@ def test_ml_pruning_removes_clutter_and_frees_slots(sim):
     assert act.sum() == len(seen) and np.max(np.min(d, axis=1)) < 0.2 and len(set(np.argmin(d, axis=1))) == act.sum()
     assert 0.9 * n_clutter <= float(res.pruned) <= n_clutter, (float(res.pruned), n_clutter)
     assert _err(res, log, gt_t, gt) < 0.1
-    assert float(plain.pruned) == 0.0
+
+
+def test_ml_new_landmarks_take_free_slots_in_order():
+    """``associate_ml(free_slots=True)``: the k-th new detection of an event takes the particle's
+    k-th free slot (slots freed by pruning reused), one beyond the free slots gets id ``cap``
+    (the core's capacity overflow); without it, the ids counter, counter + 1, …"""
+    cap = 5
+    mean = np.zeros((cap, 2)); mean[1] = (3.0, 0.0); mean[3] = (0.0, 3.0)
+    active = np.array([False, True, False, True, False])
+    cov = np.tile(0.01 * np.eye(2), (cap, 1, 1))
+    z = np.array([[5.0, 1.0], [3.0, 0.0], [6.0, -1.0], [7.0, 2.0], [8.0, -2.0]])  # row 1 sees slot 1
+    R = np.diag([0.05**2, 0.01**2])
+    args = (jnp.zeros(3), jnp.asarray(mean), jnp.asarray(cov), jnp.asarray(active), jnp.asarray(7, jnp.int32),
+            jnp.asarray(z), jnp.ones(5, bool), jnp.asarray(R), 9.21, 30.0)
+    ids, counter, new, _ = pf.associate_ml(*args, free_slots=True)
+    np.testing.assert_array_equal(np.asarray(ids), [0, 1, 2, 4, cap])
+    assert int(counter) == 11 and np.asarray(new).tolist() == [True, False, True, True, True]
+    ids_c, _, _, _ = pf.associate_ml(*args)
+    np.testing.assert_array_equal(np.asarray(ids_c), [7, 1, 8, 9, 10])
 
 
 def test_pruning_needs_ml_and_sane_numbers(sim):
@@ -452,6 +474,9 @@ def test_pruning_needs_ml_and_sane_numbers(sim):
     prm = _params()._replace(prune_window_s=2.0)
     with pytest.raises(InputError, match="prune_window_s.*ml"):
         pf.run(log, pf.Config(K=12, association="known"), prm, key=jax.random.PRNGKey(0))
+    with pytest.raises(InputError, match="prune_window_s.*ml"):  # under jit too (a static choice)
+        jax.jit(pf.run, static_argnames="config")(log, config=pf.Config(K=12, association="known"), params=prm,
+                                                  key=jax.random.PRNGKey(0))
     cfg = pf.Config(K=12, association="ml")
     with pytest.raises(InputError, match="prune_window_s"):
         pf.run(log, cfg, prm._replace(prune_window_s=-1.0), key=jax.random.PRNGKey(0))

@@ -42,7 +42,7 @@ from ...errors import InputError
 from . import Target, register_target, heldout_nll, metrics_entry, window_nll
 
 __all__ = ["mrclam_logs", "planar_theta0", "planar_physical", "planar_nll",
-           "mrclam_noise", "mrclam_train_config", "select_odometry_delay", "DELAY_GRID"]
+           "mrclam_noise", "mrclam_train_config", "mrclam_layout", "select_odometry_delay", "DELAY_GRID"]
 
 
 def _stack(logs, poses, dtype, T: int | None = None):
@@ -68,13 +68,14 @@ def _stack(logs, poses, dtype, T: int | None = None):
 
 
 def mrclam_logs(data_dir, robots, dtype=np.float64, t_max: float | None = None, odometry_delay: float = 0.0,
-                T: int | None = None):
+                T: int | None = None, K: int = 8):
     """The raw MRCLAM logs of ``robots`` (as ``jaxslam dataset mrclam`` builds them), padded.
 
     Returns ``(Log batch, [(EventLog, data), ...])``.  The start pose is the ground truth at the
     first event (the dataset runner's start, not a fit).  ``t_max``: keep the first seconds.
     ``odometry_delay``: the odometry stamps' lag [s] (``presets.mrclam_raw_log``).
-    ``T``: pad to this many events (default: the longest log).
+    ``T``: pad to this many events (default: the longest log).  ``K``: rows per event
+    (:func:`mrclam_layout` gives the runner's for a set of robots).
     """
     from ...data import presets
     from ...data.mrclam import load_mrclam
@@ -86,7 +87,7 @@ def mrclam_logs(data_dir, robots, dtype=np.float64, t_max: float | None = None, 
         if t_max is not None and t_max > span:
             raise InputError(f"--window: robot {r}'s log covers {span:.1f} s of ground-truth time, shorter "
                              f"than the {t_max:g} s fit window; give --window {int(span)} or less")
-        log, pose0 = presets.mrclam_raw_log(d, K=8, t_end=None if t_max is None else float(d.gt_t[0]) + t_max,
+        log, pose0 = presets.mrclam_raw_log(d, K=K, t_end=None if t_max is None else float(d.gt_t[0]) + t_max,
                                             odometry_delay=odometry_delay)
         logs.append(log)
         poses.append(pose0)
@@ -107,9 +108,10 @@ def select_odometry_delay(data_dir, robots, params, config, dtype=np.float64, t_
     ground truth) at the fit's starting point on the training logs; every delay's logs are
     padded to one length, so this compiles one program.  Returns ``(delay, {delay: nll})``.
     """
-    built = [mrclam_logs(data_dir, robots, dtype, t_max, odometry_delay=d)[0] for d in grid]
+    K = int(config.K)
+    built = [mrclam_logs(data_dir, robots, dtype, t_max, odometry_delay=d, K=K)[0] for d in grid]
     T = max(b.dt.shape[1] for b in built)
-    built = [b if b.dt.shape[1] == T else mrclam_logs(data_dir, robots, dtype, t_max, odometry_delay=d, T=T)[0]
+    built = [b if b.dt.shape[1] == T else mrclam_logs(data_dir, robots, dtype, t_max, odometry_delay=d, T=T, K=K)[0]
              for b, d in zip(built, grid)]
     cfg = config._replace(block=0)
     def terms(p, it):
@@ -159,14 +161,28 @@ def planar_nll(params, config, item):
     return window_nll(_run(params, config, item))
 
 
-def mrclam_train_config():
+def mrclam_layout(data_dir, robots):
+    """``(K, capacity)`` of the known-id filter for ``robots``' logs, as ``jaxslam dataset
+    mrclam`` sizes them (:func:`jaxslam.data.presets.mrclam_rows`, one slot per landmark subject,
+    at least 16): the most rows in one camera frame and the landmark table's size over them all
+    (dataset 6: 8 and 16)."""
+    from ...data import presets
+    from ...data.mrclam import load_mrclam
+
+    datas = [load_mrclam(data_dir, int(r)) for r in robots]
+    K = max(presets.mrclam_rows(d) for d in datas)
+    subjects = np.unique(np.concatenate([presets.mrclam_subjects(d) for d in datas]))
+    return K, max(16, int(subjects.size))
+
+
+def mrclam_train_config(K: int = 8, capacity: int = 16):
     """The filter ``jaxslam dataset mrclam`` runs, with checkpoint blocks of 128 events for the
     gradient (the blocks change the numbers only by rounding; value and gradient of robot 1's first 150 s,
     8801 events: 2.0 s unblocked, 0.69 s with blocks of 1024, 0.38 s with 128, 0.46 s with 32)."""
     from ...data import presets
 
     # active_only off for the gradient (see targets.ekfslam3d; capacity 15 gains nothing anyway)
-    return presets.mrclam_config()._replace(block=128, active_only=False)
+    return presets.mrclam_config(K=K, capacity=capacity)._replace(block=128, active_only=False)
 
 
 def mrclam_noise(loss: str = "nll", data=None, robots=(1, 2, 3, 4), test_robots=(5,), dtype=jnp.float64,
@@ -189,7 +205,8 @@ def mrclam_noise(loss: str = "nll", data=None, robots=(1, 2, 3, 4), test_robots=
     if set(robots) & set(test_robots):
         raise InputError(f"--test-robots: {sorted(set(robots) & set(test_robots))} also in --robots; "
                          "a held-out robot must not be trained on")
-    cfg = mrclam_train_config()
+    K, capacity = mrclam_layout(data, robots + test_robots)  # as the runner sizes them
+    cfg = mrclam_train_config(K, capacity)
     base = presets.mrclam_params(1, dtype=dtype, preset="hand")  # the start: the hand-set preset
     theta0 = planar_theta0(base)
 
@@ -206,12 +223,13 @@ def mrclam_noise(loss: str = "nll", data=None, robots=(1, 2, 3, 4), test_robots=
             raise InputError(f"--odometry-delay: expected seconds or 'auto', got {odometry_delay!r}") from None
         if not (math.isfinite(odometry_delay) and 0.0 <= odometry_delay <= 2.0):
             raise InputError(f"--odometry-delay: expected 0 to 2 s, got {odometry_delay}")
-    train, _ = mrclam_logs(data, robots, dtype, t_max, odometry_delay)
-    test, test_raw = mrclam_logs(data, test_robots, dtype, odometry_delay=odometry_delay) if test_robots else (None, [])
+    train, _ = mrclam_logs(data, robots, dtype, t_max, odometry_delay, K=K)
+    test, test_raw = (mrclam_logs(data, test_robots, dtype, odometry_delay=odometry_delay, K=K) if test_robots
+                      else (None, []))
     # without a held-out robot the table is measured on the training robots' whole logs
     eval_robots = test_robots or robots
     ev_logs, ev_raw = (test, test_raw) if test_robots else mrclam_logs(data, robots, dtype,
-                                                                        odometry_delay=odometry_delay)
+                                                                        odometry_delay=odometry_delay, K=K)
 
     def loss_fn(th, item):
         return planar_nll(physical(th), cfg, item)
@@ -221,7 +239,8 @@ def mrclam_noise(loss: str = "nll", data=None, robots=(1, 2, 3, 4), test_robots=
         for label, prm in labelled.items():
             m = {"ate_m": [], "nll": [], "outlier_fraction": [], "inflations": []}
             for i, (log, d) in enumerate(ev_raw):
-                res = pe.run(pe.log_from_events(log, jnp.asarray(ev_logs.pose0[i])), presets.mrclam_config(), prm)
+                res = pe.run(pe.log_from_events(log, jnp.asarray(ev_logs.pose0[i])),
+                             presets.mrclam_config(K=K, capacity=capacity), prm)
                 mm, _ = runners.evaluate_planar(log.t, np.asarray(res.pose, np.float64), d.gt_t, d.gt)
                 m["ate_m"].append(mm["ate_m"])
                 m["nll"].append(heldout_nll(res))
