@@ -168,6 +168,45 @@ def test_fastslam_known_ids_slots_follow_the_landmark_table():
     np.testing.assert_array_equal(runners._known_slots(ids, mask, subjects), [[0, 3, 4, 4], [2, 1, 4, 0]])
 
 
+def test_util_ground_truth_is_never_extrapolated(tmp_path, capsys):
+    """UTIL with motion capture that ends early (a cut file): the ranges after it are not
+    evaluated against a held pose (they were, silently: a full-flight variant gave 0.905 m
+    against 0.213 m) but counted in a note; motion capture that misses the ranges entirely is
+    an exit-2 error, as for the other datasets."""
+    src = DATA / "util_uwb"
+    dst = tmp_path / "util_uwb"
+    for f in src.rglob("*"):
+        if f.is_file():
+            (dst / f.relative_to(src)).parent.mkdir(parents=True, exist_ok=True)
+            (dst / f.relative_to(src)).write_bytes(f.read_bytes())
+    gt = dst / "twr_obs_log1" / "groundtruth.csv"
+    lines = gt.read_text().splitlines()
+    keep = [lines[0]] + [ln for ln in lines[1:] if float(ln.split(",")[0]) <= 20.6]
+    gt.write_text("\n".join(keep) + "\n")
+    js = tmp_path / "out.json"
+    rc, out, err = _run(["dataset", "util-uwb", "--data", str(tmp_path), "--json", str(js)], capsys)
+    assert rc == 0, err
+    doc = json.loads(js.read_text())
+    note = [n for n in doc["notes"] if "outside the motion capture's span" in n]
+    assert len(note) == 1 and int(note[0].split()[0]) > 0
+    shifted = [lines[0]] + [",".join([f"{float(ln.split(',')[0]) + 100:.6f}"] + ln.split(",")[1:]) for ln in lines[1:]]
+    gt.write_text("\n".join(shifted) + "\n")
+    rc, _, err = _run(["dataset", "util-uwb", "--data", str(tmp_path)], capsys)
+    assert rc == 2 and "inside the motion capture's span" in err
+
+
+def test_stream_span_notes():
+    from jaxslam.data import runners
+
+    assert runners._span_notes(np.array([0.0, 100.0]), np.array([1.0, 101.0])) == []
+    end, = runners._span_notes(np.array([0.0, 5.0]), np.array([1.0, 21.0]), "odometry inputs", "laser scans")
+    assert end.startswith("the odometry inputs end 16.0 s before the last of the laser scans") and "held" in end
+    start, = runners._span_notes(np.array([15.0, 30.0]), np.array([0.0, 30.0]))
+    assert "start 15.0 s after the first" in start
+    inc, = runners._span_notes(np.array([0.0, 5.0]), np.array([0.0, 1005.0]), held=False)
+    assert "no motion is applied" in inc
+
+
 @pytest.mark.slow
 def test_dataset_victoria_park_excerpt(tmp_path, capsys):
     rc, out, err = _run(["dataset", "victoria-park", "--data", str(DATA), "--float32",

@@ -401,35 +401,56 @@ def run_util_uwb(data_dir, robot=1, filter="ekf", ids="known", anchors=None, par
         notes = []
     else:
         t_all = np.asarray(d.twr_t)
-        if not (d.gt_t[0] + 0.2 < t_window < min(d.gt_t[-1], t_all[-1]) - 1.0):
-            raise InputError(f"util-uwb --anchors unknown: the {t_window:g} s start-up window needs "
-                             f"motion capture around {t_window:g} s and ranges after it; this flight "
-                             f"has motion capture over [{d.gt_t[0]:.1f}, {d.gt_t[-1]:.1f}] s")
+        # the window is measured from the flight's first whole second (of ranges or motion
+        # capture; the shipped flight starts at 0.002 s: [0, 30] s), so a clock that starts
+        # elsewhere is not refused
+        w0 = float(np.floor(min(t_all[0], d.gt_t[0]))) if t_all.size else float(np.floor(d.gt_t[0]))
+        t_end = w0 + t_window
+        if not (d.gt_t[0] + 0.2 < t_end < min(d.gt_t[-1], t_all[-1]) - 1.0):
+            raise InputError(f"util-uwb --anchors unknown: the {t_window:g} s start-up window [{w0:g}, {t_end:g}] s "
+                             f"needs motion capture around its end and ranges after it; this flight has motion "
+                             f"capture over [{d.gt_t[0]:.1f}, {d.gt_t[-1]:.1f}] s and ranges over "
+                             f"[{t_all[0]:.1f}, {t_all[-1]:.1f}] s")
+        in_win = (t_all <= t_end) & (t_all >= d.gt_t[0]) & (t_all <= d.gt_t[-1])
+        per = {int(a): int(np.sum(np.asarray(d.twr_anchor)[in_win] == a)) for a in aid}
+        few = sorted(a for a, n in per.items() if n < 10)
+        if few:  # the start-up fits each anchor from its ranges in the window
+            raise InputError(f"util-uwb --anchors unknown: anchors {few} have fewer than 10 ranges with motion "
+                             f"capture in the start-up window [{w0:g}, {t_end:g}] s ({ {a: per[a] for a in few} }); "
+                             "their positions cannot be fitted")
         tag_at = np.stack([np.interp(t_all, d.gt_t, tag[:, j]) for j in range(3)], 1)
         # start velocity: central difference of the motion-capture tag over ±0.1 s
-        v0 = np.array([(np.interp(t_window + 0.1, d.gt_t, tag[:, j]) - np.interp(t_window - 0.1, d.gt_t, tag[:, j]))
+        v0 = np.array([(np.interp(t_end + 0.1, d.gt_t, tag[:, j]) - np.interp(t_end - 0.1, d.gt_t, tag[:, j]))
                        / 0.2 for j in range(3)])
         su = ur.startup(jnp.asarray(t_all, dtype), np.asarray(d.twr_anchor).astype(int),
-                             jnp.asarray(d.twr_range, dtype), jnp.asarray(tag_at, dtype), aid, t_window,
-                             v0=jnp.asarray(v0, dtype))
-        log = ur.util_events(d.twr_t, d.twr_anchor, d.twr_range, t_start=t_window + 1e-9, **hk)
+                        jnp.asarray(d.twr_range, dtype), jnp.asarray(tag_at, dtype), aid, t_end,
+                        v0=jnp.asarray(v0, dtype))
+        log = ur.util_events(d.twr_t, d.twr_anchor, d.twr_range, t_start=t_end + 1e-9, **hk)
         rlog = ur.log_from_events(log, aid, startup=su, dtype=dtype)
         res, comp_s, run_s = timed_run(lambda: ur.run(rlog, ur.Config(smooth=smooth), prm))
         setting = (f"anchors unknown (SLAM); start-up: anchors + bias fitted to the ranges of "
-                   f"[0, {t_window:g}] s with motion-capture positions, then no motion capture "
+                   f"[{w0:g}, {t_end:g}] s with motion-capture positions, then no motion capture "
                    f"({sensors})")
-        notes = [f"motion capture is used in the start-up window [0, {t_window:g}] s only; metrics cover "
-                 f"t > {t_window:g} s"]
+        notes = [f"motion capture is used in the start-up window [{w0:g}, {t_end:g}] s only; metrics cover "
+                 f"t > {t_end:g} s"]
     t = np.asarray(log.t)
     true = np.stack([np.interp(t, d.gt_t, tag[:, j]) for j in range(3)], 1)
     est = np.asarray(res.pos, np.float64)
-    # evaluate at range events (height-only events carry the same estimate, denser in z)
+    # evaluate at range events (height-only events carry the same estimate, denser in z) inside
+    # the motion capture's span: it is interpolated, never extrapolated
     rng_ev = np.any(log.mask & (log.ids >= 0), axis=1)
+    in_gt = (t >= d.gt_t[0]) & (t <= d.gt_t[-1])
+    n_out = int(np.sum(rng_ev & ~in_gt))
+    rng_ev = rng_ev & in_gt
     t, true, est = t[rng_ev], true[rng_ev], est[rng_ev]
     air = (true[:, 2] > 0.3)
     if air.sum() < 3:
-        raise InputError("util-uwb: fewer than 3 range events while airborne (z > 0.3 m); "
-                         "nothing to evaluate")
+        raise InputError("util-uwb: fewer than 3 range events inside the motion capture's span while airborne "
+                         f"(z > 0.3 m): nothing to evaluate (motion capture over [{d.gt_t[0]:.1f}, "
+                         f"{d.gt_t[-1]:.1f}] s, ranges over [{log.t[0]:.1f}, {log.t[-1]:.1f}] s)")
+    if n_out:
+        notes.append(f"{n_out} range events lie outside the motion capture's span and are not evaluated "
+                     "(check the files' clocks)")
 
     def position_metrics(est):
         err = np.linalg.norm(est - true, axis=1)
@@ -557,6 +578,7 @@ def run_plaza_dataset(data_dir, robot=1, filter="ekf", ids="known", anchors=None
     what = "surveyed beacons (localisation)" if anchors == "known" else "unknown beacons (SLAM)"
     if anchors == "known":
         notes = ["pos_rmse_m: no alignment (the survey defines the frame)"]
+    notes += _span_notes(d.dr_t, d.td_t, "odometry increments", "ranges", held=False)
     _range_outliers(res, counts, m, notes)
     if smooth:
         counts["smoother_failed_steps"] = int(np.sum(np.asarray(res.smooth_status) != 0))
@@ -723,6 +745,25 @@ def run_mrclam(data_dir, robot=1, filter="ekf", ids="known", anchors=None, parti
                       dict(d.report), ev, (log.t, pose[:, :2], pose[:, 2]), notes)
 
 
+def _span_notes(input_t, meas_t, inputs: str = "inputs", meas: str = "measurements", held: bool = True) -> list:
+    """Notes when two streams' time spans disagree by more than 2 s (a cut file or a clock
+    offset): inputs that end before the measurements (the last rate is held, or no increment
+    arrives, for the rest) or start after them (the vehicle is taken as still until then)."""
+    notes = []
+    if np.size(input_t) == 0 or np.size(meas_t) == 0:
+        return notes
+    late_end = float(meas_t[-1]) - float(input_t[-1])
+    if late_end > 2.0:
+        notes.append(f"the {inputs} end {late_end:.1f} s before the last of the {meas}: "
+                     + ("the last input is held" if held else "no motion is applied") + " for that long; "
+                     "check the files' clocks or a cut file")
+    late_start = float(input_t[0]) - float(meas_t[0])
+    if late_start > 2.0:
+        notes.append(f"the {inputs} start {late_start:.1f} s after the first of the {meas}: the vehicle is "
+                     "taken as still until then; check the files' clocks or a cut file")
+    return notes
+
+
 def _mrclam_notes(d, log, pose0) -> list:
     """What a MRCLAM log from another dataset could hide, said: sightings beyond the rows per
     event (none with the runner's K), unknown barcodes, no landmark sighting at all, odometry
@@ -859,8 +900,10 @@ def run_victoria_park(data_dir, robot=1, filter="ekf", ids="known", anchors=None
     cfg["thresholds"] = _planar_thresholds(filter, prm, _vp_fastslam, particles)
     if filter == "ekf":
         cfg["noise"] = "--params file" if params is not None else "hand-set preset (chosen on t < 500 s; docs/datasets.md)"
-    notes = [f"ATE against the {m['eval_samples']} GPS fixes (SE(2)-aligned); GPS has no heading, so "
-             "rpe_m is translational, over pairs of fixes 1 ± 0.1 s apart"] + _divergence_notes(status)
+    notes = ([f"ATE against the {m['eval_samples']} GPS fixes (SE(2)-aligned); GPS has no heading, so "
+              "rpe_m is translational, over pairs of fixes 1 ± 0.1 s apart"]
+             + _span_notes(d.input_t, d.det_t, "odometry inputs", "laser scans")
+             + _capacity_notes(status, counts) + _divergence_notes(status))
     if filter == "fastslam" and np.dtype(dtype) == np.float32:
         notes.append("FastSLAM on this log is less accurate in float32 when measured (ATE 5.52 m against 3.83 m "
                      "in float64; FastSLAM 1.0 diverged, 10.7 m with the map overflowing): prefer float64")

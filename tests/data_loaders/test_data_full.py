@@ -167,3 +167,25 @@ def test_util_reference_facts():
     assert v.tdoa.size == 29349 and v.gt_t.size == 13645 and v.imu_t.size == 68483
     assert v.report["tdoa_pairs"][(4, 6)] == 1 and v.report["tdoa_pairs"][(7, 1)] == 2
     assert np.sum(np.linalg.norm(np.diff(v.gt_p, axis=0), axis=1)) == pytest.approx(33.7, abs=0.05)
+
+
+@needs_full("util_uwb")
+def test_util_anchors_unknown_needs_ranges_of_every_anchor_in_its_start_up_window(tmp_path):
+    """The full TWR flight without its ranges before 35 s: the start-up window [0, 30] s holds
+    none, so there is nothing to fit the anchors to (it used to run and report anchors 4.35 m
+    off with a confident bias)."""
+    from jaxslam.data import runners
+    from jaxslam.errors import InputError
+
+    src = FULL / "util_uwb"
+    dst = tmp_path / "util_uwb"
+    (dst / "twr_obs_log1").mkdir(parents=True)
+    (dst / "anchors_const3.csv").write_bytes((src / "anchors_const3.csv").read_bytes())
+    for f in (src / "twr_obs_log1").iterdir():
+        (dst / "twr_obs_log1" / f.name).symlink_to(f)
+    twr = dst / "twr_obs_log1" / "uwb_twr.csv"
+    lines = (src / "twr_obs_log1" / "uwb_twr.csv").read_text().splitlines()
+    twr.unlink()
+    twr.write_text("\n".join([lines[0]] + [ln for ln in lines[1:] if float(ln.split(",")[0]) >= 35.0]) + "\n")
+    with pytest.raises(InputError, match=r"anchors \[0, 1, 2, 3, 4, 5, 6, 7\] have fewer than 10 ranges"):
+        runners.run_util_uwb(tmp_path, anchors="unknown")
