@@ -54,6 +54,9 @@ import time
 import numpy as np
 from timing import int_list
 
+from jaxslam.cli.common import nonnegative_float
+from jaxslam.errors import InputError
+
 import numpy_flight
 
 DESCRIPTION = ("Closed-loop DF-LQR flight (track-figure8, 50 s): jitted simulate scan vs a "
@@ -76,7 +79,7 @@ def add_arguments(parser):
                         help="timed NumPy runs of the single case (median; default 3)")
     parser.add_argument("--numpy-batch-max", type=int, default=3,
                         help="NumPy runs actually timed per batch case, scaled to M (default 3)")
-    parser.add_argument("--x0-spread", type=float, default=0.5,
+    parser.add_argument("--x0-spread", type=nonnegative_float, default=0.5,
                         help="half width of the initial position offsets of batch runs [m]")
     parser.add_argument("--seed", type=int, default=0, help="seed of keys and offsets")
     parser.add_argument("--no-feedforward", action="store_true",
@@ -300,7 +303,7 @@ def run(args) -> dict:
     dt = float(setup.dt)
     n_frame = n_frames(duration, dt, LIDAR_EVERY)
     if n_frame < 1:
-        raise ValueError(f"--duration: at least {dt * LIDAR_EVERY} s, got {duration}")
+        raise InputError(f"--duration: at least {dt * LIDAR_EVERY} s, got {duration}")
     n_steps = n_frame * LIDAR_EVERY
     ff = not args.no_feedforward
     batches = int_list(args.batches, "--batches", allow_empty=True)  # "": no vmapped batches

@@ -104,6 +104,10 @@ def distinct_outputs(**paths) -> None:
 def atomic_write(path, write: Callable, mode: str = "w") -> pathlib.Path:
     """Write ``path`` atomically: ``write(f)`` fills a temporary file that is renamed over it.
 
+    A symbolic link is followed (its target is replaced, the link kept); an existing path that
+    is not a regular file (``/dev/null``, a FIFO, a terminal) is written into directly — a
+    rename would replace the device with a file.
+
     Args:
       path: the target; its folder is created.
       write: called with the open temporary file (text mode with ``mode="w"``, binary with
@@ -113,6 +117,12 @@ def atomic_write(path, write: Callable, mode: str = "w") -> pathlib.Path:
       left as it was.
     """
     path = pathlib.Path(path)
+    if path.is_symlink():
+        path = path.resolve()
+    if path.exists() and not path.is_file() and not path.is_dir():
+        with open(path, mode, **({"encoding": "utf-8"} if "b" not in mode else {})) as f:
+            write(f)
+        return path
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:

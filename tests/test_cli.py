@@ -395,6 +395,7 @@ DESCRIPTION = "Fake benchmark for the CLI tests."
 
 def add_arguments(parser):
     parser.add_argument("--size", type=int, default=3)
+    parser.add_argument("--scale", type=float, default=1.0)
 
 
 def run(args):
@@ -442,6 +443,11 @@ def test_bench_errors_exit_2(bench_dir, tmp_path, capsys):
     assert "nosuch" in line and "fake" in line
     assert cli.main(["bench", "fake", "--dir", str(tmp_path / "absent")]) == 2
     assert "not a folder" in _stderr_line(capsys.readouterr().err)
+    # a benchmark's plain int / float options are checked for it: a count >= 1, a finite number
+    # (they used to reach the benchmark and come back as internal errors, exit 1)
+    for opt, val in (("--size", "0"), ("--scale", "nan"), ("--scale", "inf")):
+        assert cli.main(["bench", "fake", "--dir", str(bench_dir), opt, val]) == 2
+        assert opt in capsys.readouterr().err
     (bench_dir / "bench_broken.py").write_text("DESCRIPTION = 'x'\n")
     assert cli.main(["bench", "broken", "--dir", str(bench_dir)]) == 2
     assert "add_arguments" in _stderr_line(capsys.readouterr().err)
@@ -637,3 +643,21 @@ def test_list_shows_datasets_and_survives_a_stale_data_variable(capsys, monkeypa
     out = capsys.readouterr().out
     assert "$JAXSLAM_DATA_DIR: '/no/such/folder' is not a folder" in out and "plaza" in out
     assert cli.main(["list", "--data", "/no/such/folder"]) == 2  # an explicit --data must be usable
+
+
+def test_metrics_that_are_not_finite_are_said_in_the_notes():
+    # a flight shorter than the settling window has no *_settled value in any run; the JSON
+    # summary is null there, and the notes (console and JSON) say which and why
+    from types import SimpleNamespace
+
+    from jaxslam.cli.run import _run_notes
+
+    nan = float("nan")
+    res = SimpleNamespace(metrics={"pos_rmse_m": np.array([0.1, 0.2, 0.3]),
+                                   "pos_rmse_settled_m": np.array([nan, nan, nan]),
+                                   "anees": np.array([3.0, nan, 2.0])})
+    notes = _run_notes(res, 3)
+    assert notes[0].startswith("not finite in any run (null in the summary): pos_rmse_settled_m")
+    assert "settling time" in notes[0]
+    assert notes[1] == "not finite in some runs (left out of the summary): anees (1 of 3)"
+    assert _run_notes(SimpleNamespace(metrics={"a": np.array([1.0, 2.0])}), 2) == []

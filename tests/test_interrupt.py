@@ -187,3 +187,21 @@ def test_atomic_write_leaves_the_old_file_when_the_writer_fails(tmp_path):
     files.atomic_write(target, lambda f: f.write("new\n"))
     assert target.read_text() == "new\n"
     assert oct(target.stat().st_mode & 0o777) != oct(0o600)  # not mkstemp's private mode
+
+
+def test_atomic_write_follows_links_and_never_replaces_a_device(tmp_path):
+    # a rename over the path used to replace a symlink with a file (its target untouched) and,
+    # run as root, /dev/null itself with a regular file
+    import os
+    import stat
+
+    (tmp_path / "real").mkdir()
+    target = tmp_path / "real" / "t.json"
+    target.write_text("old\n")
+    link = tmp_path / "link.json"
+    link.symlink_to(target)
+    files.atomic_write(link, lambda f: f.write("new\n"))
+    assert link.is_symlink() and target.read_text() == "new\n"
+    assert stat.S_ISCHR(os.stat(os.devnull).st_mode)
+    files.atomic_write(os.devnull, lambda f: f.write("discarded\n"))
+    assert stat.S_ISCHR(os.stat(os.devnull).st_mode)  # still the device

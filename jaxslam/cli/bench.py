@@ -20,7 +20,7 @@ import sys
 from jaxslam import files
 from jaxslam.errors import InputError
 
-from .common import PROG, Parser, UsageError, echo
+from .common import PROG, Parser, UsageError, echo, finite_float, int_at_least
 
 __all__ = ["command", "find_benchmarks_dir", "list_benchmarks"]
 
@@ -93,6 +93,26 @@ def _load_bench_module(path: pathlib.Path):
     return module
 
 
+class _CheckedOptions:
+    """The parser a benchmark's ``add_arguments`` fills, with its plain number types checked: a
+    ``float`` option must be finite, an ``int`` one a count >= 1 (``--seed`` and ``--warmup``
+    >= 0), so that a bad value is a usage error naming the option (exit 2), not an internal
+    error from inside the benchmark."""
+
+    def __init__(self, parser):
+        self._p = parser
+
+    def add_argument(self, *names, **kw):
+        if kw.get("type") is float:
+            kw["type"] = finite_float
+        elif kw.get("type") is int:
+            kw["type"] = int_at_least(0 if any(n in ("--seed", "--warmup") for n in names) else 1)
+        return self._p.add_argument(*names, **kw)
+
+    def __getattr__(self, attr):
+        return getattr(self._p, attr)
+
+
 def _bench_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dir", metavar="DIR",
                    help="benchmarks folder (default: ./benchmarks, else the one beside the "
@@ -155,7 +175,7 @@ def command(rest: list[str]) -> int:
         p = Parser(prog=f"{PROG} bench {name}", description=str(module.DESCRIPTION))
         p.add_argument("name", metavar="NAME", help="benchmark name")
         _bench_common(p)
-        module.add_arguments(p)
+        module.add_arguments(_CheckedOptions(p))
         args = p.parse_args(rest)
         result = module.run(args)
     finally:

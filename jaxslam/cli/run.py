@@ -304,7 +304,27 @@ def _launch_local(rest, processes: int) -> int:
 
 
 def _run_notes(result, runs: int) -> list:
-    """Notes for the run report: runs that are identical (the scenario draws no noise)."""
+    """Notes for the run report: metrics that are not finite in some or all runs (their summary
+    is null or leaves those runs out), and runs that are identical (the scenario draws no noise)."""
+    import numpy as np
+
+    notes = []
+    if result.metrics:
+        bad = {k: int(np.sum(~np.isfinite(np.asarray(v, float).reshape(runs, -1)).any(axis=1)))
+               for k, v in result.metrics.items() if np.size(v) and np.shape(v)[:1] == (runs,)}
+        none = sorted(k for k, n in bad.items() if n == runs)
+        some = sorted(f"{k} ({n} of {runs})" for k, n in bad.items() if 0 < n < runs)
+        if none:
+            notes.append(f"not finite in any run (null in the summary): {', '.join(none)}"
+                         + ("; the *_settled metrics cover the flight after its settling time, which this "
+                            "flight may not reach (a longer --duration)" if any("settled" in k for k in none)
+                            else ""))
+        if some:
+            notes.append(f"not finite in some runs (left out of the summary): {', '.join(some)}")
+    return notes + _identical_runs_note(result, runs)
+
+
+def _identical_runs_note(result, runs: int) -> list:
     import numpy as np
 
     if runs < 2 or not result.metrics:

@@ -295,7 +295,8 @@ _OPTIONS = (
            ("3axis", "az")),
     Option("altitude", float, 3.0, "figure-8 altitude above the start point [m]; landmarks centred on it"),
     Option("no_feedforward", bool, False, "paper's eq. 19 attitude references instead of the flatness feedforward"),
-    Option("chunk", int, None, "Monte Carlo runs per compiled call (default: all, max 256)", lower=1),
+    Option("chunk", int, None, "Monte Carlo runs per compiled call on a GPU/TPU (default: all, max 256); "
+           "on the CPU the runs go one compiled run at a time and it has no effect", lower=1),
 )
 
 _DESCRIPTIONS = {

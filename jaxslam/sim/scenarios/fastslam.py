@@ -374,7 +374,8 @@ OPTIONS = (
     Option("accel", str, "specific_force", "accelerometer model of truth and filter: "
            "'specific_force' (real IMU) or 'kinematic' (paper eq. 7)",
            ("specific_force", "kinematic")),
-    Option("chunk", int, None, "Monte Carlo runs per compiled call (default: all, max 256)", lower=1),
+    Option("chunk", int, None, "Monte Carlo runs per compiled call on a GPU/TPU (default: all, max 256); "
+           "on the CPU the runs go one compiled run at a time and it has no effect", lower=1),
 )
 
 register(Scenario(
