@@ -668,8 +668,11 @@ def run_mrclam(data_dir, robot=1, filter="ekf", ids="known", anchors=None, parti
     for every robot); ``params``: a ``--params`` object (``jaxslam tune mrclam``) replacing it.
     ``calibrated``: apply the camera range model and odometry delay fitted on the first half
     of robot 1 (``presets.mrclam_log``) with the matching tight noise (EKF preset;
-    FastSLAM keeps its own setting, ``presets.mrclam_fastslam_setup``).  The EKF with ids hidden prunes tentative landmarks
-    (``presets.MRCLAM_NN_PRUNING``) unless ``params`` sets ``prune_window_s``.
+    FastSLAM keeps its own setting, ``presets.mrclam_fastslam_setup``).  The EKF with ids
+    hidden prunes tentative landmarks (``presets.MRCLAM_NN_PRUNING``) unless ``params`` sets
+    ``prune_window_s``.  What depends on the files is read from them (rows per event,
+    landmark subjects and capacity: ``presets.mrclam_rows`` / ``mrclam_subjects``), so the
+    command also runs on MRCLAM datasets laid out differently from dataset 6.
     """
     from ..dynamics import planar
     from ..systems import planar_ekf_slam as pe
