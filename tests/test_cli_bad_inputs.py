@@ -145,6 +145,10 @@ def _cases(t: pathlib.Path) -> list:
         (["tune", "no-such-scenario"], "no-such-scenario", None),
         (["tune", "track-figure8", "--steps", "0"], "--steps", None),
         (["tune", "track-figure8", "--lr", "-1"], "--lr", None),
+        (["tune", "track-figure8", "--b2", "2"], "--b2", None),  # before the build, not after compiling
+        (["tune", "track-figure8", "--batch-size", "5", "--train-runs", "2"], "--batch-size", None),
+        (["bench", "sim", "--dir", str(BENCH), "--duration", "nan"], "--duration", None),
+        (["bench", "sim", "--dir", str(BENCH), "--x0-spread", "-5"], "--x0-spread", None),
         (["tune", "track-figure8", "--json", str(t / "afile" / "y.json")], "--json", None),
         (["tune", "track-figure8", "--params-out", str(t / "folder")], "--params-out", None),
         (["tune", "track-figure8", "--data", d], "--data", None),

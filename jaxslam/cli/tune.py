@@ -33,7 +33,7 @@ import time
 
 from jaxslam.errors import InputError
 
-from .common import Parser, UsageError, compile_timing, int_at_least, nonnegative_float, positive_float
+from .common import Parser, UsageError, compile_timing, finite_float, int_at_least, nonnegative_float, positive_float
 
 __all__ = ["main", "build_parser", "DEFAULTS"]
 
@@ -103,7 +103,7 @@ def build_parser(with_targets: bool = True) -> Parser:
     p.add_argument("--batch-size", type=int_at_least(1), default=None,
                    help="minibatch of training runs per step (default: all)")
     p.add_argument("--clip", type=positive_float, default=1.0, help="gradient clipping, global norm (default 1)")
-    p.add_argument("--b2", type=float, default=0.9,
+    p.add_argument("--b2", type=finite_float, default=0.9,
                    help="Adam's second-moment decay (default 0.9; see jaxslam.tuning.optimize)")
     p.add_argument("--eval-every", type=int_at_least(0), default=10,
                    help="held-out loss every N steps for the loss curve (0: only at the end; default 10)")
@@ -246,6 +246,11 @@ def run_tuning(args, progress_stream=None) -> dict:
 
         loop_target.controller_file(args.compare, dflqr.paper000_params())
     real = args.scenario in targets.REAL_LOG_SCENARIOS
+    if not 0 < args.b2 < 1:  # before the build (it used to fail after compiling the step)
+        raise InputError(f"--b2: Adam's second-moment decay must be in (0, 1), got {args.b2}")
+    if not real and args.batch_size is not None and args.batch_size > args.train_runs:
+        raise InputError(f"--batch-size: {args.batch_size} is more than the {args.train_runs} training runs "
+                         "(--train-runs)")
     if not real:
         for flag, used in (("--data", args.data), ("--robots", args.robots), ("--test-robots", args.test_robots),
                            ("--window", args.window), ("--odometry-delay", args.odometry_delay),
