@@ -233,7 +233,9 @@ def part_ekf(a, loss, out_dir, structure="qc"):
         "held_out_pos_rmse_m": pos,
         "pos_rmse_ratio_after_over_q_imu": ratio,
         "acceptance": None if limit is None else f"after <= {limit:.2f} x q_imu and ANEES moves into its bounds",
-        "met": None if limit is None else bool(ratio <= limit),
+        # both halves of the acceptance: the RMSE ratio and the ANEES moving into its bounds
+        "met": None if limit is None else bool(ratio <= limit and lo <= anees["after"] <= hi),
+        "rmse_met": None if limit is None else bool(ratio <= limit),
         "anees": anees, "anees_bounds": [lo, hi],
         "anees_after_inside": bool(lo <= anees["after"] <= hi),
         "anees_moved_toward_bounds": bool(abs(math.log(anees["after"] / 9)) <= abs(math.log(anees["before"] / 9))
