@@ -54,6 +54,8 @@ def test_dataset_runs_on_excerpts_and_writes_outputs(tmp_path, capsys, argv):
     assert len(pngs) == 2
     which = {"mrclam": "mrclam_robot1", "plaza": "plaza2", "util-uwb": "util_uwb"}[argv[0]]
     assert all(f.startswith(which + "_") for f in pngs), pngs  # robots can share a folder
+    if "fastslam" in argv:  # and filters: the FastSLAM run does not overwrite the EKF's figures
+        assert all(f.startswith(which + "_fastslam_") for f in pngs), pngs
     assert "ate_m" in out
     if "--smooth" in argv:  # the smoother's figures beside the filter's
         assert doc["config"]["smooth"] is True and "RTS" in doc["config"]["smoother"]

@@ -24,7 +24,8 @@ def plot_run(run, directory, name=None):
     """Write the figures of a :class:`jaxslam.data.runners.DatasetRun`; returns their paths.
 
     ``name`` (default: the dataset, with the robot or sequence of a dataset that has several,
-    e.g. ``mrclam_robot3``, so runs of different robots can share a folder) prefixes the files.
+    e.g. ``mrclam_robot3``, and ``_fastslam`` / ``_hidden`` for those runs, so runs of
+    different robots, filters and modes can share a folder) prefixes the files.
     """
     p = plt()
     if name is None:
@@ -32,6 +33,12 @@ def plot_run(run, directory, name=None):
         which = run.config.get("robot", run.config.get("sequence"))
         if run.dataset in ("mrclam", "plaza") and which is not None:
             name += f"_robot{which}" if run.dataset == "mrclam" else f"{which}"
+        # runs of other filters or modes of one log can share a folder too (the EKF's default
+        # run keeps the plain name)
+        if run.config.get("filter", "ekf") != "ekf":
+            name += f"_{run.config['filter']}"
+        if run.config.get("ids") == "hidden":
+            name += "_hidden"
     ev = run.evaluation
     paths = []
     fig, ax = p.subplots(figsize=(8, 7))
@@ -56,9 +63,9 @@ def plot_run(run, directory, name=None):
         ax.plot(lm[:, 0], lm[:, 1], "C3+", ms=7, mew=1.2, label=f"estimated map ({lm.shape[0]})")
         covs = ev.get("lm_cov")
         if covs is not None and len(lm) <= 400:
-            for m, c in zip(lm, np.asarray(covs)):
+            for i, (m, c) in enumerate(zip(lm, np.asarray(covs))):
                 e = ellipse_points(m, c)
-                ax.plot(e[:, 0], e[:, 1], "C3-", lw=0.5, alpha=0.6)
+                ax.plot(e[:, 0], e[:, 1], "C3-", lw=0.5, alpha=0.6, label="3σ ellipses" if i == 0 else None)
     lt = ev.get("lm_true_xy")
     if lt is not None and len(lt):
         lt = np.asarray(lt)
@@ -85,8 +92,11 @@ def plot_run(run, directory, name=None):
                 label="dead reckoning")
         ax.set_yscale("log")
     ax.set_xlabel("time [s]")
-    ax.set_ylabel("position error [m]")
-    ax.set_title(f"{run.dataset}: error against {ev['ref_label']} (after alignment)")
+    horizontal = run.dataset == "util-uwb"  # the plotted error is x-y; its ATE is 3-D (SE(3))
+    ax.set_ylabel("horizontal (x-y) position error [m]" if horizontal else "position error [m]")
+    ax.set_title(f"{name}, {run.config.get('filter', 'ekf')}: error against {ev['ref_label']} (after alignment)"
+                 + ("\nthe dashed ATE lines are the 3-D error (SE(3) alignment)" if horizontal else ""),
+                 fontsize=10)
     ax.grid(alpha=0.3, which="both")
     ax.legend(loc="best", fontsize=8)
     paths.append(save(fig, directory, f"{name}_errors"))

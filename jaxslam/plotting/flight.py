@@ -30,14 +30,19 @@ def save(fig, directory, name) -> pathlib.Path:
 
     The figure is drawn once: ``bbox_inches="tight"`` (and the layout engines) draw it
     twice to measure it, which was 0.45 s of every figure here; margins are set instead
-    (``subplots_adjust`` with room for a suptitle, unless a layout engine is already set).
+    (``subplots_adjust``, fixed in inches with room for a suptitle, unless a layout engine is
+    already set).
     """
     d = pathlib.Path(directory)
     d.mkdir(parents=True, exist_ok=True)
     path = d / f"{name}.png"
     if fig.get_layout_engine() is None:
-        top = 0.90 if fig.get_suptitle() else 0.94
-        fig.subplots_adjust(left=0.08, right=0.97, bottom=0.08, top=top, hspace=0.32, wspace=0.25)
+        # margins in inches (tick labels, axis label, titles), as fractions of this figure: a
+        # fixed fraction clipped the axis labels and titles of the smaller figures
+        w, h = fig.get_size_inches()
+        top_in = 0.75 if fig.get_suptitle() else 0.4
+        fig.subplots_adjust(left=min(0.8 / w, 0.2), right=1.0 - min(0.25 / w, 0.05), bottom=min(0.6 / h, 0.2),
+                            top=1.0 - min(top_in / h, 0.2), hspace=0.4, wspace=0.3)
     try:  # atomically: an interrupted plot never leaves a truncated PNG
         atomic_write(path, lambda f: fig.savefig(f, dpi=110, format="png"), mode="wb")
     finally:
