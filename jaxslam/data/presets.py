@@ -213,6 +213,15 @@ def mrclam_rows(data, K: int = 8) -> int:
     return max(int(K), most)
 
 
+def mrclam_layout(datas) -> tuple:
+    """``(K, capacity)`` of a known-id MRCLAM filter over one or more robots' logs
+    (:class:`jaxslam.data.mrclam.MrclamData`): the most rows in one camera frame
+    (:func:`mrclam_rows`) and one slot per landmark subject, at least 16 (dataset 6: 8 and 16)."""
+    K = max(mrclam_rows(d) for d in datas)
+    subjects = np.unique(np.concatenate([mrclam_subjects(d) for d in datas]))
+    return K, max(16, int(subjects.size))
+
+
 def mrclam_raw_log(data, K: int = 8, t_end=None, odometry_delay: float = 0.0):
     """Event log and start pose of one MRCLAM robot's raw log (:func:`mrclam_log` without the
     ground-truth-fitted range correction), as ``jaxslam dataset mrclam`` and ``jaxslam tune

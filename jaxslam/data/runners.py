@@ -691,8 +691,10 @@ def run_mrclam(data_dir, robot=1, filter="ekf", ids="known", anchors=None, parti
     d = load_mrclam(data_dir, robot)
     # Run (and evaluate) where ground truth exists: robot 1's GT stops at +771.9 s.
     fs_learned = filter == "fastslam" and ids == "known"  # FastSLAM's default: the EKF's learned model
-    K = presets.mrclam_rows(d)  # 8, or more for a log with more sightings in one frame: none dropped
-    subjects = presets.mrclam_subjects(d)  # the landmark table's subjects (dataset 6: 6–20)
+    # 8 rows per event (more for a log with more sightings in one frame: none dropped) and one
+    # known-id slot per landmark subject (dataset 6: 6–20), read from the files
+    K, capacity = presets.mrclam_layout([d])
+    subjects = presets.mrclam_subjects(d)
     if calibrated:
         log, pose0 = presets.mrclam_log(d, K=K)
     elif fs_learned:  # the range model on the host (the EKF applies it inside the filter)
@@ -707,9 +709,7 @@ def run_mrclam(data_dir, robot=1, filter="ekf", ids="known", anchors=None, parti
         prm = prm._replace(prune_window_s=presets.MRCLAM_NN_PRUNING[0], prune_min_obs=presets.MRCLAM_NN_PRUNING[1])
     if params is not None:
         prm = pe.params_from_dict(noise, prm, dtype=dtype, where="--params: noise")
-    # known ids: one slot per landmark subject (16 for dataset 6's 15; more for a larger table)
-    config = presets.mrclam_config(association=assoc, K=K,
-                                   capacity=max(16, int(subjects.size)) if assoc == "known" else None)
+    config = presets.mrclam_config(association=assoc, K=K, capacity=capacity if assoc == "known" else None)
     fs_kind = functools.partial(_mrclam_fastslam, robot, assoc=assoc, subjects=subjects, K=K)
     pose, lm, counts, comp_s, run_s, status, smoothed = _planar_run(
         log, pose0, filter, config, prm, fs_kind, particles, seed, dtype, smooth=smooth)

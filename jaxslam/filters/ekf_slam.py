@@ -64,8 +64,8 @@ from jax.custom_batching import custom_vmap
 
 from .. import errors
 from ..errors import InputError
-from ..linalg import (check_int, check_psd, check_whole_ids, cholesky_small, is_concrete, put_blocks, small_matmul, symmetrize, take,
-                      take_blocks, value_and_jacfwd)
+from ..linalg import (check_int, check_psd, check_whole_ids, cholesky_small, is_concrete, put_blocks, small_matmul,
+                      symmetrize, take, take_blocks, value_and_jacfwd)
 from ..stats import student_t_nll
 
 __all__ = [

@@ -299,7 +299,7 @@ def _slot(active, ids, id_k, cap: int, slot_by_id: bool):
 
 def _check_robust(robust):
     """A concrete Student-t ν must be a finite number > 0 (None: Gaussian)."""
-    if robust is not None and not isinstance(robust, jax.core.Tracer):
+    if robust is not None and is_concrete(robust):
         v = np.asarray(robust)
         if v.shape != () or not np.isfinite(v) or not v > 0:
             raise InputError(f"robust: expected a finite Student-t ν > 0 (None for the Gaussian), got {robust!r}")

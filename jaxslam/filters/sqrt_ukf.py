@@ -197,7 +197,7 @@ def filter_scan(f: Optional[Callable], h: Callable, x0, P0, us, zs, masks, Q, R,
             p_status = pending
         post, info = update(state, z, h, rt, *args, residual=residual, mask=mk, gate=gate, points=rule)
         if predict_first:
-            nxt, pending = post, pending
+            nxt = post
         else:
             nxt, pending = predict(post, f, u, None, *args, points=rule, Q_chol=cq, return_status=True)
         out = (post.mean, jnp.sum(post.chol**2, axis=1), post.chol if save_chol else None,

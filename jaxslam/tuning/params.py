@@ -102,7 +102,7 @@ def log_diag_from_cov(M, floor: float | None = None, dtype=None, name: str = "M"
     ``UserWarning`` naming ``name`` when one is not negligible (above 1e-12 of the largest
     diagonal entry); entries ≤ 0 raise :class:`InputError` naming ``name`` unless ``floor`` > 0
     is given, which replaces every diagonal entry below it.  Host-side (NumPy in, ``dtype``
-    out; default JAX's default float, float64 with ``jax_enable_x64``).
+    out; default: JAX's default float dtype, as ``jnp.asarray`` gives it).
     """
     a = _as_matrix(M, name)
     off = np.abs(a - np.diag(np.diag(a)))

@@ -163,16 +163,11 @@ def planar_nll(params, config, item):
 
 def mrclam_layout(data_dir, robots):
     """``(K, capacity)`` of the known-id filter for ``robots``' logs, as ``jaxslam dataset
-    mrclam`` sizes them (:func:`jaxslam.data.presets.mrclam_rows`, one slot per landmark subject,
-    at least 16): the most rows in one camera frame and the landmark table's size over them all
-    (dataset 6: 8 and 16)."""
+    mrclam`` sizes them (:func:`jaxslam.data.presets.mrclam_layout`)."""
     from ...data import presets
     from ...data.mrclam import load_mrclam
 
-    datas = [load_mrclam(data_dir, int(r)) for r in robots]
-    K = max(presets.mrclam_rows(d) for d in datas)
-    subjects = np.unique(np.concatenate([presets.mrclam_subjects(d) for d in datas]))
-    return K, max(16, int(subjects.size))
+    return presets.mrclam_layout([load_mrclam(data_dir, int(r)) for r in robots])
 
 
 def mrclam_train_config(K: int = 8, capacity: int = 16):
