@@ -8,6 +8,7 @@ logs (docs/datasets.md, protocol there); the excerpts in tests/data check the pl
 
 import json
 import pathlib
+import shlex
 
 import jax
 import jax.numpy as jnp
@@ -83,9 +84,13 @@ def test_tune_mrclam_writes_a_params_file_that_dataset_reads(tmp_path, run_cli):
     assert set(rep["after"]["metrics"]) >= {"ate_m", "nll"}
     p = json.loads(po.read_text())
     assert p["dataset"] == "mrclam" and {"M_c", "R", "Q_floor", "range_model"} <= set(p["noise"])
-    for f in (po, js):  # the params file alone, and the whole report
-        rc, out, err = run_cli(["dataset", "mrclam", "--data", str(DATA), "--robot", "2", "--params", str(f),
-                             "--json", str(tmp_path / "ds.json")])
+    # the printed command names the file written and the folder given: run as printed
+    line = next(ln for ln in out.splitlines() if ln.startswith("run the tuned parameters: "))
+    printed = shlex.split(line.split(": ", 1)[1])
+    assert printed[0] == "jaxslam" and printed[printed.index("--params") + 1] == str(po)
+    assert printed[printed.index("--data") + 1] == str(DATA)
+    for argv in (printed[1:], ["dataset", "mrclam", "--data", str(DATA), "--robot", "2", "--params", str(js)]):
+        rc, out, err = run_cli([*argv, "--json", str(tmp_path / "ds.json")])  # the params file, the whole report
         assert rc == 0, err
         ds = json.loads((tmp_path / "ds.json").read_text())
         assert ds["config"]["noise"] == "--params file"

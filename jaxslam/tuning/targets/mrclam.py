@@ -270,7 +270,7 @@ def mrclam_noise(loss: str = "nll", data=None, robots=(1, 2, 3, 4), test_robots=
                 "parametrisation": "log sigma_v, sigma_w, sigma_r, sigma_b; log floor_xy, floor_phi; "
                                    "camera range model k2 (k0 = 1)",
                 "loss": "Student-t innovation NLL per scalar measurement over the training logs"},
-        eval_command=f"jaxslam dataset mrclam --data DIR --robot {eval_robots[0]} --params FILE",
+        eval_command=f"jaxslam dataset mrclam --data DIR --robot {eval_robots[0]} --params TUNED.json",
         sequential=True,
     )
 

@@ -149,7 +149,7 @@ def plaza_noise(loss: str = "nll", data=None, robots=(1,), test_robots=(2,), dty
                                                       "ranges (nu fixed), no gate",
                 "parametrisation": "log " + ", ".join(NOISE_FIELDS),
                 "loss": "Student-t innovation NLL per range over the training logs"},
-        eval_command=f"jaxslam dataset plaza --data DIR --robot {eval_seq[0]} --params FILE",
+        eval_command=f"jaxslam dataset plaza --data DIR --robot {eval_seq[0]} --params TUNED.json",
         sequential=True,
     )
 

@@ -135,7 +135,7 @@ def victoria_park_noise(loss: str = "nll", data=None, dtype=jnp.float64, t_max: 
                 "filter": "the shipped EKF-SLAM (Ackermann, nn association, Gaussian update, range limits, pruning)",
                 "parametrisation": "log sigma_v, sigma_a (input noise densities), sigma_r, sigma_b (laser)",
                 "loss": "Gaussian innovation NLL per scalar over the fit window's associated rows"},
-        eval_command="jaxslam dataset victoria-park --data DIR --params FILE",
+        eval_command="jaxslam dataset victoria-park --data DIR --params TUNED.json",
         sequential=True,
     )
 
