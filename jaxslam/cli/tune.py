@@ -130,12 +130,6 @@ def build_parser(with_targets: bool = True) -> Parser:
                       help="weight of the estimator's position MSE in the objective (default 0)")
     loop.add_argument("--w-nees", type=nonnegative_float, default=None, metavar="W",
                       help="weight of the NEES consistency term (log(ANEES/9))^2 (default 0)")
-    loop.add_argument("--mse-cap", type=positive_float, default=None, metavar="C",
-                      help="per-flight constraint on the estimator: penalise a flight whose position MSE "
-                           "exceeds C times the same flight's MSE from the start (Table 2 weights, --q imu "
-                           "filter); squared hinge weighted by --w-cap (default: off)")
-    loop.add_argument("--w-cap", type=nonnegative_float, default=None, metavar="W",
-                      help="weight of the --mse-cap hinge (default 1000)")
     loop.add_argument("--w-u", type=nonnegative_float, default=None, metavar="W",
                       help="weight of the control effort mean|u~|^2 in the objective (default 0.1)")
     loop.add_argument("--w-tilt", type=nonnegative_float, default=None, metavar="W",
@@ -241,13 +235,10 @@ def run_tuning(args, progress_stream=None) -> dict:
                 raise InputError(f"{flag}: only the ekfslam3d-* noise targets take it, not {args.scenario}")
     if target_name != "loop":
         for flag, used in (("--tune", args.tune), ("--w-mse", args.w_mse), ("--w-nees", args.w_nees),
-                           ("--mse-cap", args.mse_cap), ("--w-cap", args.w_cap),
                            ("--w-u", args.w_u), ("--w-tilt", args.w_tilt), ("--tilt-max", args.tilt_max),
                            ("--compare", args.compare)):
             if used is not None:
                 raise InputError(f"{flag}: only the loop target (ekfslam3d-* --target loop) takes it")
-    elif args.w_cap is not None and args.mse_cap is None:
-        raise InputError("--w-cap: weights the --mse-cap constraint, which is off; give --mse-cap C too")
     elif args.tilt_max is not None and not args.tilt_max < 90:  # before the build: the only line
         raise InputError(f"--tilt-max: expected (0, 90) degrees, got {args.tilt_max}")
     elif args.compare is not None:  # read before the (slow) build: a bad file is the only line
@@ -298,8 +289,7 @@ def run_tuning(args, progress_stream=None) -> dict:
     if target_name == "loop":
         kw.update(tune=args.tune or "lqr", w_mse=args.w_mse or 0.0, w_nees=args.w_nees or 0.0,
                   compare=args.compare)
-        kw.update({k: v for k, v in (("w_u", args.w_u), ("w_tilt", args.w_tilt), ("tilt_max_deg", args.tilt_max),
-                                     ("mse_cap", args.mse_cap), ("w_cap", args.w_cap))
+        kw.update({k: v for k, v in (("w_u", args.w_u), ("w_tilt", args.w_tilt), ("tilt_max_deg", args.tilt_max))
                    if v is not None})  # the target's defaults otherwise
     if args.duration is not None:
         kw["train_duration"] = args.duration

@@ -17,21 +17,12 @@ Decisions (no paper covers this):
   discrete choices, held fixed at their values on the flight.
 * **Objective per run**, all terms with fixed weights (not tuned):
   J = mean_t ‖ρ − ρ_d‖² + w_u mean_t ‖ũ‖² + w_tilt mean_t max(0, tilt − tilt_max)²
-  + w_mse mean_t ‖ρ̂ − ρ‖² + w_nees (log(ANEES / 9))² + w_cap max(0, MSE / MSE_ref − c)².
+  + w_mse mean_t ‖ρ̂ − ρ‖² + w_nees (log(ANEES / 9))².
   ũ is the LQR correction recomputed from the flown true states (the yardstick of
   ``track-figure8 --target lqr``, so both sets of weights are scored alike); the tilt term is a
   soft constraint (default: above 12°, w_tilt = 10 per rad²); the MSE and NEES terms are off by
   default (``--w-mse``, ``--w-nees``): the NEES term keeps a tuning of the noise from buying
   accuracy with over-confidence.
-* **The estimator's error as a constraint** (``--mse-cap c``, off by default): MSE = mean_t
-  ‖ρ̂ − ρ‖² of the flight, MSE_ref the same quantity on the *same* flight (same key, same
-  duration) flown from the start θ₀ — with ``tune="both"`` or ``"lqr"`` Table 2's weights and the
-  ``--q imu`` filter, the yardstick of the joint acceptance.  A soft per-flight constraint
-  (squared hinge, ``--w-cap``, default 1000): the weights may buy tracking only where the
-  estimator stays within c of where it started, flight by flight.  A linear ``w_mse`` term
-  instead prices the estimator's error against tracking at a fixed rate, and lets one flight's
-  gain pay for another's loss.  MSE_ref is computed once per training and held-out flight, before
-  the first step (one forward flight each, outside the gradient).
 * **What is tuned** (``tune``): ``"lqr"`` (Q̃ 7, R̃ 4 log-diagonal from Table 2), ``"noise"``
   (Q_imu 6 log-diagonal from the ``--q imu`` densities; P0, R and Q_c = 0 held), ``"both"``.
 * **Runs.**  Training flights use ``keys_for(seed, M)``, held-out flights ``keys_for(seed + 1,
@@ -76,13 +67,11 @@ def tilt_angle(phi, theta):
     return jnp.arctan2(s_t, jnp.cos(phi) * jnp.cos(theta))
 
 
-def closed_loop_objective(fl, ctrl, traj, K, feedforward: bool, w: dict, refs=None, mse_ref=None):
+def closed_loop_objective(fl, ctrl, traj, K, feedforward: bool, w: dict, refs=None):
     """The terms of the per-run objective (module docstring) of one flight ``fl`` flown with
     the estimator in the loop.  ``w``: weights ``w_u``, ``w_tilt``, ``tilt_max_rad``, ``w_mse``,
-    ``w_nees`` and optionally ``mse_cap`` (> 0: on) with ``w_cap``; ``refs``: the flight's
-    reference grid, if at hand; ``mse_ref``: the estimator's position MSE on the same flight from
-    the start θ₀ (the cap's yardstick; the cap term is left out without it).  Returns a dict of
-    scalars with ``objective`` (J) and its terms."""
+    ``w_nees``; ``refs``: the flight's reference grid, if at hand.  Returns a dict of scalars with
+    ``objective`` (J) and its terms."""
     from ...systems import ekf_slam_3d as sys3d
     from .figure8 import tracking_and_effort
 
@@ -97,14 +86,9 @@ def closed_loop_objective(fl, ctrl, traj, K, feedforward: bool, w: dict, refs=No
     nees_term = L.nees_loss(fl.est_frames.nees, sys3d.NX)
     J = (track + jnp.asarray(w["w_u"], dtype) * effort + jnp.asarray(w["w_tilt"], dtype) * tilt_pen
          + jnp.asarray(w["w_mse"], dtype) * mse + jnp.asarray(w["w_nees"], dtype) * nees_term)
-    out = {"closed_loop_cost": track + jnp.asarray(w["w_u"], dtype) * effort,
-           "tracking_ms_m2": track, "effort_ms": effort, "tilt_penalty": tilt_pen,
-           "est_pos_ms_m2": mse, "nees_term": nees_term}
-    if mse_ref is not None and w.get("mse_cap", 0.0) > 0:
-        excess = jnp.maximum(mse / mse_ref - jnp.asarray(w["mse_cap"], dtype), 0.0)
-        out["mse_cap_penalty"] = excess * excess
-        J = J + jnp.asarray(w["w_cap"], dtype) * out["mse_cap_penalty"]
-    return {"objective": J, **out}
+    return {"objective": J, "closed_loop_cost": track + jnp.asarray(w["w_u"], dtype) * effort,
+            "tracking_ms_m2": track, "effort_ms": effort, "tilt_penalty": tilt_pen,
+            "est_pos_ms_m2": mse, "nees_term": nees_term}
 
 
 def controller_file(path, default):
@@ -128,13 +112,12 @@ def ekfslam3d_loop(loss: str = "cost", train_runs: int = 4, test_runs: int = 16,
                    dtype=jnp.float64, mode: str = "unknown", train_duration: float = 10.0,
                    eval_duration: float = 50.0, tune: str = "lqr", w_u: float = 0.1,
                    w_tilt: float = 10.0, tilt_max_deg: float = 12.0, w_mse: float = 0.0,
-                   w_nees: float = 0.0, mse_cap: float = 0.0, w_cap: float = 1000.0, compare=None,
-                   checkpoint: bool = True, feedforward: bool = True, **_ignored) -> Target:
+                   w_nees: float = 0.0, compare=None, checkpoint: bool = True,
+                   feedforward: bool = True, **_ignored) -> Target:
     """Target: DF-LQR weights and/or the filter's Q_imu through the closed loop with the
     EKF-SLAM estimator in it (module docstring).  ``loss`` is ``"cost"`` (the objective J with
     the given weights); ``tune`` one of :data:`TUNE`; ``compare``: a file whose controller is
-    evaluated beside the start and the result; ``mse_cap`` > 0 adds the per-flight constraint on
-    the estimator's MSE relative to the start (module docstring) with weight ``w_cap``."""
+    evaluated beside the start and the result."""
     from ...control import dflqr
     from ...sensors import imu as imu_mod
     from ...sensors import landmarks as lm_mod
@@ -151,8 +134,7 @@ def ekfslam3d_loop(loss: str = "cost", train_runs: int = 4, test_runs: int = 16,
         raise InputError(f"mode: expected 'unknown' or 'known', got {mode!r}")
     if tune not in TUNE:
         raise InputError(f"--tune: expected one of {', '.join(TUNE)}, got {tune!r}")
-    for name, v in (("--w-u", w_u), ("--w-tilt", w_tilt), ("--w-mse", w_mse), ("--w-nees", w_nees),
-                    ("--mse-cap", mse_cap), ("--w-cap", w_cap)):
+    for name, v in (("--w-u", w_u), ("--w-tilt", w_tilt), ("--w-mse", w_mse), ("--w-nees", w_nees)):
         check_scalar(v, name, lower=0)
     if not (0 < tilt_max_deg < 90):
         raise InputError(f"--tilt-max: expected (0, 90) degrees, got {tilt_max_deg}")
@@ -176,8 +158,6 @@ def ekfslam3d_loop(loss: str = "cost", train_runs: int = 4, test_runs: int = 16,
     nf_eval = n_frames(eval_duration, DT, FRAME_STEPS)
     w = {"w_u": float(w_u), "w_tilt": float(w_tilt), "tilt_max_rad": math.radians(tilt_max_deg),
          "w_mse": float(w_mse), "w_nees": float(w_nees)}
-    if mse_cap > 0:
-        w.update(mse_cap=float(mse_cap), w_cap=float(w_cap))
 
     specs, mats = {}, {}
     if tune in ("lqr", "both"):
@@ -210,55 +190,35 @@ def ekfslam3d_loop(loss: str = "cost", train_runs: int = 4, test_runs: int = 16,
                       feedforward=feedforward, refs=refs_for[nf], checkpoint=ck)
         return fl, lms, K
 
-    def loss_fn(theta, item):  # item: a run's key, or with --mse-cap {"key", "mse_ref"}
-        key, mse_ref = (item["key"], item["mse_ref"]) if isinstance(item, dict) else (item, None)
+    def loss_fn(theta, key):
         ctrl, noise = physical(theta)
         fl, _, K = fly(ctrl, noise, key, nf_train, checkpoint)
-        return closed_loop_objective(fl, ctrl, traj, K, feedforward, w, refs_for[nf_train], mse_ref)["objective"]
-
-    def start_mse(ks, nf):  # the estimator's position MSE per flight from θ₀ (the cap's yardstick)
-        ctrl, noise = physical(theta0)
-
-        def one(k):
-            fl, _, K = fly(ctrl, noise, k, nf, False)
-            return closed_loop_objective(fl, ctrl, traj, K, feedforward, w, refs_for[nf])["est_pos_ms_m2"]
-
-        return jax.jit(lambda ks: jax.lax.map(one, ks), compiler_options=runtime.compiler_options() or None)(ks)
+        return closed_loop_objective(fl, ctrl, traj, K, feedforward, w, refs_for[nf_train])["objective"]
 
     train = keys(seed, train_runs)
     test = keys(seed + 1, test_runs)
-    mse_ref_eval = {}
-    if mse_cap > 0:
-        train = {"key": train, "mse_ref": start_mse(train, nf_train)}
-        test = {"key": test, "mse_ref": start_mse(test, nf_train)}
 
     @jax.jit
-    def _eval(ctrl, noise, ks, mse_ref):
-        def one(k, m):
+    def _eval(ctrl, noise, ks):
+        def one(k):
             fl, lms, K = fly(ctrl, noise, k, nf_eval, False)
             out = scen.evaluate(fl, lms, cfg)
-            terms = closed_loop_objective(fl, ctrl, traj, K, feedforward, w, refs_for[nf_eval], m)
+            terms = closed_loop_objective(fl, ctrl, traj, K, feedforward, w, refs_for[nf_eval])
             return {"metrics": {**out["metrics"], **terms}, "series": out["series"],
                     "non_finite": out["counts"]["non_finite"]}
 
-        return jax.vmap(one)(ks, mse_ref)
-
-    eval_keys = test["key"] if isinstance(test, dict) else test
+        return jax.vmap(one)(ks)
 
     t_frames = (np.arange(nf_eval) + 1) * DT * FRAME_STEPS
 
-    def as_arrays(ctrl, noise):  # Q̃, R̃ as arrays first (Table 2's are nested tuples): one program per row
-        ctrl = ctrl._replace(Q=jnp.asarray(ctrl.Q, dtype), R=jnp.asarray(ctrl.R, dtype))
-        return jax.tree.map(lambda a: jnp.asarray(a, dtype), ctrl), jax.tree.map(lambda a: jnp.asarray(a, dtype), noise)
-
     def evaluate(physicals: dict) -> dict:
-        ones = jnp.ones(test_runs, dtype)
-        if mse_cap > 0 and "ref" not in mse_ref_eval:  # the held-out flights' yardstick, from θ₀, once
-            start = _eval(*as_arrays(*physical(theta0)), eval_keys, ones)
-            mse_ref_eval["ref"] = start["metrics"]["est_pos_ms_m2"]
         res = {}
         for label, (ctrl, noise) in physicals.items():
-            out = jax.tree.map(np.asarray, _eval(*as_arrays(ctrl, noise), eval_keys, mse_ref_eval.get("ref", ones)))
+            # Q̃, R̃ as arrays first (Table 2's are nested tuples): one program for every row
+            ctrl = ctrl._replace(Q=jnp.asarray(ctrl.Q, dtype), R=jnp.asarray(ctrl.R, dtype))
+            ctrl = jax.tree.map(lambda a: jnp.asarray(a, dtype), ctrl)
+            noise = jax.tree.map(lambda a: jnp.asarray(a, dtype), noise)
+            out = jax.tree.map(np.asarray, _eval(ctrl, noise, test))
             cons, _ = scen.consistency(out["series"], t_frames, test_runs)
             metrics = dict(out["metrics"])
             metrics["diverged_flights"] = np.asarray(out["non_finite"], float)
@@ -288,9 +248,7 @@ def ekfslam3d_loop(loss: str = "cost", train_runs: int = 4, test_runs: int = 16,
               "checkpoint": bool(checkpoint), "feedforward": bool(feedforward), "dtype": dtype.name,
               "compare": None if compare is None else pathlib.Path(compare).name,  # no machine path
               "objective": "mean|rho - rho_d|^2 + w_u mean|u_tilde|^2 + w_tilt mean max(0, tilt - tilt_max)^2 "
-                           "+ w_mse mean|rho_hat - rho|^2 + w_nees log(ANEES/9)^2"
-                           + (" + w_cap max(0, MSE/MSE_start - mse_cap)^2 (MSE_start: the same flight from the "
-                              "start)" if mse_cap > 0 else ""),
+                           "+ w_mse mean|rho_hat - rho|^2 + w_nees log(ANEES/9)^2",
               "fixed": {"P0": "--q imu P0", "R": "Table 4", "Qc": "0",
                         **({} if tune != "noise" else {"controller": "Table 2"}),
                         **({} if tune != "lqr" else {"Qimu": "--q imu (Table 5 densities)"})},
