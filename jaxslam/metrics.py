@@ -53,6 +53,9 @@ __all__ = [
     "chi2_ppf_np",
     "mean_chi2_bounds",
     "anees_bounds",
+    "STEPS_INSIDE_MIN",
+    "steps_inside_text",
+    "consistency_verdict",
     "WindowedMean",
     "windowed_mean",
     "summarize",
@@ -124,6 +127,26 @@ _OUTSIDE_MEANS = {
     "nis": ("below: innovations smaller than predicted (R or P too large)",
             "above: innovations larger than predicted (R or P too small, or outliers)"),
 }
+
+
+# The per-step check (Bar-Shalom et al., ch. 5.4): a consistent filter's ANEES over the runs lies
+# inside its per-step 95 % bounds at about 95 % of the steps.  The steps of one flight are
+# correlated, so the count is not binomial; below this fraction the report says LOW (a rule of
+# thumb with room for that correlation, not a test).
+STEPS_INSIDE_MIN = 0.90
+
+
+def steps_inside_text(fraction) -> str:
+    """The per-step check in words: ``"96.2 % of steps inside (95 % expected): ok"``, ``... LOW``
+    below :data:`STEPS_INSIDE_MIN`, or ``"undefined"`` without a finite fraction.  A time
+    average inside the per-step bounds can hide steps far outside on both sides; this says so."""
+    try:
+        f = float(fraction)
+    except (TypeError, ValueError):
+        return "undefined"
+    if not math.isfinite(f):
+        return "undefined"
+    return f"{100 * f:.1f} % of steps inside (95 % expected): " + ("ok" if f >= STEPS_INSIDE_MIN else "LOW")
 
 
 def consistency_verdict(value, bounds, kind: str | None = "nees") -> str:

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from jaxslam.cli.run import format_run_report as _format_run_report
-from jaxslam.metrics import consistency_verdict
+from jaxslam.metrics import STEPS_INSIDE_MIN, consistency_verdict, steps_inside_text
 from jaxslam.plotting import flight, slam3d, tuning, uwb
 from jaxslam.plotting.flight import plt  # pyplot on the Agg backend
 
@@ -66,6 +66,44 @@ def test_uwb_consistency_summary_names_both_blocks():
     assert (c["anees_robot"], c["anees_robot_dim"]) == (cons["robot"]["anees"], 10)
     assert c["anees_bounds"] == cons["pos"]["bounds"] and c["nis_dim"] == 1
     assert "position" in c["anees_block"] and "robot" in c["anees_robot_block"]
+
+
+def test_console_adds_the_per_step_check_to_a_time_averaged_anees():
+    # lineslam-room's stored report: the time average sits inside the per-step bounds while only
+    # 6 % of the steps do (docs/results/paper004/lineslam-room.json), so the line must say LOW.
+    cons = {"anees": 3.41, "anees_bounds": [2.54, 3.50], "anees_block": "robot pose (x, y, yaw)", "anees_dim": 3,
+            "anees_steps_inside": 0.06, "nis_mean": 0.48, "nis_bounds": [0.995, 1.005]}
+    text = _format_run_report(_report(cons))
+    line = next(ln for ln in text.splitlines() if "[anees]" in ln)
+    assert line.endswith("3.4100 (time average) in [2.5400, 3.5000] ok; per step: 6.0 % of steps inside "
+                         "(95 % expected): LOW"), line
+    assert "steps_inside" not in text  # a companion, not a statistic of its own
+    ok = _format_run_report(_report({**cons, "anees_steps_inside": 0.962}))
+    assert "per step: 96.2 % of steps inside (95 % expected): ok" in ok
+    assert steps_inside_text(STEPS_INSIDE_MIN).endswith(": ok")
+    assert steps_inside_text(np.nextafter(STEPS_INSIDE_MIN, 0)).endswith(": LOW")
+    assert steps_inside_text(float("nan")) == steps_inside_text(None) == "undefined"
+
+
+def test_uwb_summary_carries_the_per_step_fraction_of_both_blocks():
+    from jaxslam.sim.scenarios import uwb as S
+
+    rng = np.random.default_rng(1)
+    t = np.arange(1.0, 201.0)
+    # position NEES 0.4x on the first half, 1.6x on the second: the time average (about 2 = n)
+    # passes, the steps do not
+    pos = rng.chisquare(2, (50, 200)) * np.where(t > 100, 1.6, 0.4)
+    series = {"nees_robot": rng.chisquare(10, (50, 200)), "nees_pos": pos,
+              "nis": rng.chisquare(6, (50, 200)), "nis_dof": np.full((50, 200), 6.0)}
+    cons, per_step = S.consistency(series, t, 50)
+    c = S.consistency_summary(cons)
+    lo, hi = c["anees_bounds"]
+    want = np.mean((np.nanmean(pos, axis=0) >= lo) & (np.nanmean(pos, axis=0) <= hi))
+    assert c["anees_steps_inside"] == pytest.approx(want) and want < 0.2
+    assert lo <= c["anees"] <= hi
+    assert c["anees_robot_steps_inside"] > 0.85  # χ²(10) draws: about 95 % inside
+    line = next(ln for ln in _format_run_report(_report(c)).splitlines() if "[anees]" in ln)
+    assert f"(time average) in [{lo:.4f}, {hi:.4f}] ok; per step: {100 * want:.1f} % of steps inside (95 % expected): LOW" in line
 
 
 def test_verdict_words():

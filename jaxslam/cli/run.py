@@ -357,14 +357,16 @@ def _consistency_lines(cons: dict) -> list:
     ``S_dim``; docs/cli.md), its value against its bounds, and what an OUTSIDE verdict means.
 
     A statistic ``key`` (a number) finds its companions as ``key_bounds`` / ``key_block`` /
-    ``key_dim`` or under its stem (``nis_mean`` -> ``nis_bounds``); reports written before the
-    ``_block`` entries existed print without them.
+    ``key_dim`` / ``key_steps_inside`` or under its stem (``nis_mean`` -> ``nis_bounds``);
+    reports written before the ``_block`` entries existed print without them.  A time-averaged
+    ANEES is judged against the per-step bounds, so its line adds the per-step check
+    (``key_steps_inside``: the fraction of steps inside) where the report has it.
     """
-    from jaxslam.metrics import consistency_verdict
+    from jaxslam.metrics import consistency_verdict, steps_inside_text
 
     out = []
     for key, value in cons.items():
-        if key.endswith(("_bounds", "_block", "_dim")) or isinstance(value, (str, bool, list, dict)):
+        if key.endswith(("_bounds", "_block", "_dim", "_steps_inside")) or isinstance(value, (str, bool, list, dict)):
             continue
         stem = key.removesuffix("_mean")
 
@@ -383,12 +385,17 @@ def _consistency_lines(cons: dict) -> list:
             text = f"{label} [{key}]: {fmt(value)}"
         else:
             text = f"{key} {fmt(value)}"
+        steps = part("_steps_inside")
+        if steps is not None:
+            text += " (time average)"
         if bounds is not None and len(bounds) == 2:
             lo, hi = (float("nan") if b is None else float(b) for b in bounds)
             v = float("nan") if value is None else float(value)
             text += f" in [{fmt(lo)}, {fmt(hi)}] "
             word = consistency_verdict(v, (lo, hi), kind)
             text += "undefined (no value or no bounds)" if word == "undefined" else word
+        if steps is not None:
+            text += f"; per step: {steps_inside_text(steps)}"
         out.append(text)
     return out
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..metrics import consistency_verdict, steps_inside_text
 from .flight import plt, save
 
 __all__ = ["clip_line", "plot_all"]
@@ -133,6 +134,11 @@ def plot_all(name, setup, cfg, log, res, per_step, bounds, directory, scan_index
     ax.set_yscale("log")
     ax.set_xlabel("t [s]")
     ax.set_ylabel("ANEES")
+    per_step = np.asarray(per_step, float)
+    avg, inside = float(np.mean(per_step)), np.mean((per_step >= bounds[0]) & (per_step <= bounds[1]))
+    ax.axhline(3, color="g", ls=":", lw=0.8, label="expected (3)")
+    ax.set_title(f"{name}: pose NEES over the runs; time average {avg:.2f}: "
+                 f"{consistency_verdict(avg, bounds)}\nper step: {steps_inside_text(inside)}", fontsize=9)
     ax.legend(fontsize=7)
     ax.grid(True, alpha=0.3)
     paths.append(save(fig, directory, f"{name}_nees"))

@@ -23,6 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..metrics import consistency_verdict as verdict
+from ..metrics import steps_inside_text as steps_inside
 from .flight import _ned_to_enu_up, keep_margins, plt, save
 
 __all__ = ["landmark_errors", "magnification", "plot_all"]
@@ -249,7 +250,8 @@ def plot_all(name, fl, lms, t, t_frames, anees_per_frame, cons, runs, directory,
     ax.set_ylabel(f"NEES ({CONSISTENCY_BLOCKS['anees_dim']} states)")
     ax.set_title(f"{name}: NEES of the {CONSISTENCY_BLOCKS['anees_block']}, {CONSISTENCY_BLOCKS['anees_dim']} "
                  f"states (black bars: 10 s window averages)\nflight average {cons['anees']:.2f} "
-                 f"(consistency.anees): {verdict(cons['anees'], (lo, hi))}", fontsize=9)
+                 f"(consistency.anees): {verdict(cons['anees'], (lo, hi))}; per step: "
+                 f"{steps_inside(cons.get('anees_fraction_in_bounds'))}", fontsize=9)
     ax.legend(fontsize=7)
     keep_margins(fig, left=0.09, right=0.98, bottom=0.12, top=0.86)
     paths.append(save(fig, directory, f"{name}_nees"))

@@ -128,7 +128,7 @@ def choose_panels(report, max_panels=MAX_PANELS):
         cands.append(metric(head))
     cb, ca = before.get("consistency") or {}, after.get("consistency") or {}
     stats = [k for k, v in cb.items() if k in ca and isinstance(v, (int, float)) and not isinstance(v, bool)
-             and not k.endswith(("_bounds", "_block", "_dim"))]
+             and not k.endswith(("_bounds", "_block", "_dim", "_steps_inside"))]
     stats.sort(key=lambda k: (CONSISTENCY_PRIORITY.index(k) if k in CONSISTENCY_PRIORITY
                               else len(CONSISTENCY_PRIORITY), k))
     for k in stats:

@@ -24,6 +24,7 @@ import textwrap
 import numpy as np
 
 from ..metrics import consistency_verdict as verdict
+from ..metrics import steps_inside_text as steps_inside
 from .flight import keep_margins, plt, save
 
 __all__ = ["STATE_NAMES", "band", "ellipse_points", "plot_all", "state_panels"]
@@ -253,7 +254,7 @@ def plot_all(name, sim, res, ev, setup, cfg, per_step, cons, runs, directory):
         ax.set_xlabel("t [s]")
         ax.set_ylabel(f"NEES, {c['dof']} states")
         text = (f"time average {c['anees']:.2f} ({block[1]}): "
-                f"{verdict(c['anees'], c['bounds'])}")
+                f"{verdict(c['anees'], c['bounds'])}; per step: {steps_inside(c['fraction_steps_in_bounds'])}")
         ax.set_title(f"{block[0]}, {c['dof']} states\n" + "\n".join(textwrap.wrap(text, 70)), fontsize=8.5)
         ax.legend(fontsize=7, loc="lower right")
     fig.suptitle(f"{name}: Monte Carlo NEES by state block")

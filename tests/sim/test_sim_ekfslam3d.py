@@ -22,6 +22,7 @@ def test_cli_reports_capacity_overflow_with_hidden_ids(tmp_path, capsys):
     for k in ("pos_rmse_settled_m", "vel_rmse_settled_mps", "att_rmse_settled_deg", "track_pos_rmse_settled_m"):
         assert res["metrics"][k]["per_run"] == [None, None], (k, res["metrics"][k])
     # STYLE.md's four keys, plus what each covers (docs/cli.md, "consistency")
-    assert set(res["consistency"]) == {"anees", "anees_bounds", "nis_mean", "nis_bounds",
+    assert set(res["consistency"]) == {"anees", "anees_bounds", "nis_mean", "nis_bounds", "anees_steps_inside",
                                        "anees_block", "anees_dim", "nis_block", "nis_dim"}
+    assert res["consistency"]["anees_steps_inside"] == res["consistency_detail"]["anees_fraction_in_bounds"]
     assert res["consistency"]["anees_dim"] == 9 and "robot block" in res["consistency"]["anees_block"]

@@ -49,6 +49,8 @@ def test_metrics_consistency_and_plots(result, tmp_path):
     # Pose NEES (3 dof) averaged over runs and time: not over-confident (measured 1-3).
     assert 0.3 < r.consistency["anees"] < 6.0
     assert r.consistency["anees_dim"] == 3 and "pose" in r.consistency["anees_block"]
+    assert r.consistency["anees_steps_inside"] == r.extra["consistency_detail"]["fraction_steps_in_bounds"]
+    assert 0 <= r.consistency["anees_steps_inside"] <= 1
     assert r.flags["non_finite"] == 0 and r.flags["capacity_overflow"] == 0 and r.flags["diverged_runs"] == 0
     paths = r.plot(tmp_path)
     assert [p.name for p in paths] == [f"lineslam-room_{s}.png" for s in ("scan", "map", "errors", "nees")]

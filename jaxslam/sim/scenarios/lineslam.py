@@ -284,6 +284,7 @@ def run_scenario(runs, seed, dtype, options, progress, params=None, plots=False)
         consistency={"anees": float(np.mean(per_step)), "anees_bounds": [float(lo), float(hi)],
                      "nis_mean": float(nis.sum() / tot) if tot > 0 else math.nan,
                      "nis_bounds": [float(nlo), float(nhi)],
+                     "anees_steps_inside": float(np.mean((per_step >= lo) & (per_step <= hi))),
                      # what each statistic covers (docs/cli.md, "consistency")
                      "anees_block": "robot pose (x, y, yaw)", "anees_dim": 3,
                      "nis_block": "matched wall lines (rho, theta), per degree of freedom", "nis_dim": 1},

@@ -101,7 +101,9 @@ class ScenarioResult:
       consistency: ``{"anees", "anees_bounds": [lo, hi], "nis_mean", "nis_bounds": [lo, hi]}``
         plus, per statistic ``S`` (stem without ``_mean``), ``S_block`` (the state block or
         measurement rows it covers, text) and ``S_dim`` (the block's dimension = the value
-        expected of a consistent filter; 1 for the NIS normalised per degree of freedom);
+        expected of a consistent filter; 1 for the NIS normalised per degree of freedom) and,
+        for a time-averaged ANEES, ``S_steps_inside`` (the fraction of steps inside the per-step
+        bounds);
         further statistics (e.g. ``anees_robot``) follow the same pattern (docs/cli.md);
         or ``None`` for a scenario without a filter (the JSON then omits the key).
       flags: counts summed over runs, e.g. ``{"capacity_overflow", "masked_measurements",

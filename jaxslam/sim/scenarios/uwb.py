@@ -355,8 +355,10 @@ def consistency_summary(cons):
     each with its bounds, ``_block`` and ``_dim`` (docs/cli.md, "consistency")."""
     return {"anees": cons["pos"]["anees"], "anees_bounds": cons["pos"]["bounds"],
             "anees_block": POS_BLOCK, "anees_dim": cons["pos"]["dof"],
+            "anees_steps_inside": cons["pos"]["fraction_steps_in_bounds"],
             "anees_robot": cons["robot"]["anees"], "anees_robot_bounds": cons["robot"]["bounds"],
             "anees_robot_block": ROBOT_BLOCK, "anees_robot_dim": cons["robot"]["dof"],
+            "anees_robot_steps_inside": cons["robot"]["fraction_steps_in_bounds"],
             "nis_mean": cons["nis_mean"], "nis_bounds": cons["nis_bounds"],
             "nis_block": NIS_BLOCK, "nis_dim": 1}
 
