@@ -35,7 +35,8 @@ datasets (see docs/datasets.md for downloads, formats and measured figures):
 
 DIR is the dataset's folder or a parent holding it (e.g. the folder with mrclam6/,
 victoria_park/, util_uwb/ and gtsam/, or the one with an unpacked MRCLAM_Dataset9/: a
-single subfolder holding the files is found); without --data, $JAXSLAM_DATA_DIR names it.
+single subfolder holding the files is found; for util-uwb also the flight folder itself,
+util_uwb/twr_obs_log1); without --data, $JAXSLAM_DATA_DIR names it.
 'jaxslam list' shows which datasets that folder holds.
 
 Ctrl-C: the log is filtered by one compiled scan, so an interrupted run has nothing

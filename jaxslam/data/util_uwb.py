@@ -132,6 +132,8 @@ def tag_positions(p, q_xyzw, offset=TAG_OFFSET) -> np.ndarray:
 
 def _flight_dir(path, flight: str) -> tuple:
     base = Path(path)
+    if base.name == flight and base.is_dir():  # the flight folder itself: its parent holds the anchors
+        return base.parent, base
     cands = [base, base / "util_uwb"]
     for c in cands:
         if (c / flight).is_dir():
@@ -147,7 +149,7 @@ def load_util(path, flight: str = "twr_obs_log1") -> UtilData:
     """Load one UTIL UWB flight.
 
     Args:
-      path: the ``util_uwb`` folder or a parent that contains it.
+      path: the ``util_uwb`` folder, a parent that contains it, or the flight folder itself.
       flight: the flight folder (``"twr_obs_log1"`` or ``"tdoa2_obs_log1"``).
         It must hold ``groundtruth.csv``, ``imu.csv.gz`` and at least one of
         ``uwb_twr.csv`` / ``uwb_tdoa.csv``; ``anchors_const3.csv`` lies in the

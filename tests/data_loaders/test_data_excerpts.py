@@ -241,6 +241,14 @@ def test_util_tdoa_excerpt():
     assert sum(u.report["tdoa_pairs"].values()) == 426
 
 
+def test_util_flight_folder_itself_is_accepted():
+    # --data pointing at the flight: the same data as through util_uwb/, the anchors from its parent
+    a = load_util(EXCERPTS / "util_uwb" / "tdoa2_obs_log1", flight="tdoa2_obs_log1")
+    b = load_util(EXCERPTS / "util_uwb", flight="tdoa2_obs_log1")
+    np.testing.assert_array_equal(a.tdoa, b.tdoa)
+    np.testing.assert_array_equal(a.anchor_p, b.anchor_p)
+
+
 def test_util_missing_flight_lists_found_flights():
     with pytest.raises(MissingDataError, match=r"flight 'nope' not found.*tdoa2_obs_log1.*twr_obs_log1"):
         load_util(EXCERPTS, "nope")
