@@ -214,3 +214,26 @@ def test_landmark_band_quantiles_match_numpy():
         ref = np.nanquantile(x, [0.05, 0.5, 0.95], axis=1)
     for got, want in zip(slam3d._nanquantiles(x, (0.05, 0.5, 0.95)), ref):
         np.testing.assert_allclose(got, want, equal_nan=True)
+
+
+def test_param_figure_shows_a_symmetric_matrix_once_and_the_truth_dotted():
+    R = np.array([[0.05, 0.02, 0.0], [0.02, 0.04, 0.01], [0.0, 0.01, 0.1]])
+    hist = [{"step": s, "params": {"Q": [0.1 * (s + 1), 0.2, 0.3, 0.4], "R": (R * (1 + s)).ravel().tolist()}}
+            for s in range(3)]
+    report = {"history": hist, "references": {
+        "true": {"params": {"noise": {"Q": np.diag([0.06, 0.08, 0.1, 0.2]).tolist(), "R": R.tolist()}}},
+        "other": {"params": {"noise": {"Q": np.eye(4).tolist()}}}}}
+    ref = tuning.reference_values(report)
+    assert ref["true"]["Q"] == [0.06, 0.08, 0.1, 0.2]  # the history holds Q's diagonal
+    assert ref["true"]["R"] == R.ravel().tolist()  # and R whole
+    fig = tuning.param_trajectories(hist, ref, title="t")
+    q_ax, r_ax = fig.axes
+    # Q: 4 entries (four values are not a symmetric 2×2 here); R: the 6 upper-triangle entries
+    assert [ln.get_label() for ln in q_ax.get_lines() if not ln.get_label().startswith("_")] == [
+        f"Q[{i}]" for i in range(4)]
+    labels = [ln.get_label() for ln in r_ax.get_lines() if not ln.get_label().startswith("_")]
+    assert labels == ["R[0,0]", "R[0,1]", "R[0,2]", "R[1,1]", "R[1,2]", "R[2,2]"]
+    # the first reference only, dotted at the true values, named in the title
+    dotted = sorted(round(float(ln.get_ydata()[0]), 6) for ln in q_ax.get_lines() if ln.get_linestyle() == ":")
+    assert dotted == [0.06, 0.08, 0.1, 0.2] and "dotted: true" in q_ax.get_title()
+    plt().close(fig)

@@ -38,32 +38,93 @@ def loss_curves(history, title="Tuning loss"):
     return fig
 
 
-def param_trajectories(history, reference=None, title="Parameter trajectories"):
-    """One panel per tuned matrix: its diagonal entries (log scale) against the step.
+def _symmetric_side(vals) -> int:
+    """k when every row of ``vals`` (steps, k²) is a flattened symmetric k×k matrix (k > 1), else 0."""
+    k = int(round(np.sqrt(vals.shape[1])))
+    if k < 2 or k * k != vals.shape[1]:
+        return 0
+    m = vals.reshape(len(vals), k, k)
+    return k if np.array_equal(m, np.swapaxes(m, 1, 2)) else 0
 
-    ``reference``: optional {name: [values]} drawn as dotted lines (e.g. the IMU-derived Q).
+
+def reference_values(report: dict) -> dict:
+    """The report's references with parameters (e.g. the linear-Gaussian target's ``true`` Q, R)
+    in the history's layout: ``{label: {name: [values]}}`` — a matrix's diagonal where the history
+    holds a diagonal, the whole matrix row-major where it holds the whole matrix."""
+    hist = [h for h in report.get("history", []) if "params" in h]
+    if not hist:
+        return {}
+    lengths = {k: len(v) for k, v in hist[0]["params"].items()}
+
+    def find(tree, name):
+        if isinstance(tree, dict):
+            if name in tree and not isinstance(tree[name], dict):
+                return tree[name]
+            for v in tree.values():
+                got = find(v, name)
+                if got is not None:
+                    return got
+        return None
+
+    out = {}
+    for label, ref in (report.get("references") or {}).items():
+        vals = {}
+        for name, n in lengths.items():
+            m = find((ref or {}).get("params"), name)
+            try:
+                a = np.asarray(m, float)
+            except (TypeError, ValueError):
+                continue
+            if a.ndim == 2 and a.shape[0] == a.shape[1] and a.shape[0] == n:
+                vals[name] = np.diag(a).tolist()
+            elif a.size == n:
+                vals[name] = a.ravel().tolist()
+        if vals:
+            out[label] = vals
+    return out
+
+
+def param_trajectories(history, reference=None, title="Parameter trajectories"):
+    """One panel per tuned matrix: its entries against the step (log scale when all positive).
+
+    A whole symmetric matrix (k² entries) shows its upper triangle only, labelled ``[i,j]``;
+    entries beyond ten colours change line style.  ``reference``: optional ``{label: {name:
+    [values]}}`` (or one ``{name: [values]}``); the first is drawn as dotted lines in each
+    entry's colour and named in the title (e.g. the truth of the linear-Gaussian target, or the
+    IMU-derived Q).
     """
     recs = [h for h in history if "params" in h]
     if not recs:
         raise ValueError("history holds no 'params' records")
     names = list(recs[0]["params"])
+    if reference and all(isinstance(v, (list, tuple, np.ndarray)) for v in reference.values()):
+        reference = {"reference": reference}
+    # one reference drawn (dotted in each entry's colour): more would not be told apart
+    reference = dict(list((reference or {}).items())[:1])
     p = plt()
-    fig, axes = p.subplots(len(names), 1, figsize=(7, 3.2 * len(names)), squeeze=False)
+    fig, axes = p.subplots(len(names), 1, figsize=(8.5, 3.2 * len(names)), squeeze=False)
     steps = [h["step"] for h in recs]
+    styles = ("-", "--", "-.", ":")
     for ax, name in zip(axes[:, 0], names):
         vals = np.array([h["params"][name] for h in recs], float)
-        positive = np.all(vals > 0)
-        for i in range(vals.shape[1]):
-            ax.plot(steps, vals[:, i], lw=1.2, color=f"C{i % 10}", label=f"{name}[{i}]")
-            if reference and name in reference and i < len(reference[name]):
-                ax.axhline(reference[name][i], color=f"C{i % 10}", ls=":", lw=1)
+        k = _symmetric_side(vals)
+        idx = [i * k + j for i in range(k) for j in range(i, k)] if k else list(range(vals.shape[1]))
+        positive = np.all(vals[:, idx] > 0)
+        for c, i in enumerate(idx):
+            colour, label = f"C{c % 10}", (f"{name}[{i // k},{i % k}]" if k else f"{name}[{i}]")
+            ax.plot(steps, vals[:, i], lw=1.2, color=colour, ls=styles[(c // 10) % 3], label=label)
+            for ref in reference.values():
+                r = ref.get(name)
+                if r is not None and i < len(r) and (not positive or r[i] > 0):
+                    ax.axhline(r[i], color=colour, ls=":", lw=1)
         if positive:
             ax.set_yscale("log")
-        ax.set_ylabel(name)
+        ax.set_ylabel(name + (" (upper triangle)" if k else ""))
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=7, ncol=3)
+        ax.legend(fontsize=7, ncol=1 + len(idx) // 12, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     axes[-1, 0].set_xlabel("step")
-    axes[0, 0].set_title(title)
+    refs = [lbl for lbl, ref in reference.items() if any(n in ref for n in names)]
+    axes[0, 0].set_title(title + (f"\ndotted: {', '.join(refs)}" if refs else ""))
     fig.tight_layout()
     return fig
 
@@ -214,8 +275,8 @@ def plot_all(report, directory):
     name = f"{report['scenario']}_{report['target']}_{report['loss']}"
     out = [save(loss_curves(report["history"], title=f"{name}: loss"), directory, f"{name}_loss")]
     try:
-        out.append(save(param_trajectories(report["history"], title=f"{name}: parameters"),
-                        directory, f"{name}_params"))
+        out.append(save(param_trajectories(report["history"], reference_values(report),
+                                           title=f"{name}: parameters"), directory, f"{name}_params"))
     except ValueError:
         pass
     out.append(save(before_after(report, title=f"{name}: held-out before/after"), directory,
