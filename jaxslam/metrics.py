@@ -146,7 +146,8 @@ def steps_inside_text(fraction) -> str:
         return "undefined"
     if not math.isfinite(f):
         return "undefined"
-    return f"{100 * f:.1f} % of steps inside (95 % expected): " + ("ok" if f >= STEPS_INSIDE_MIN else "LOW")
+    shown = math.floor(1000 * f + 1e-9) / 10  # rounded down: 0.8996 reads 89.9 %, not a LOW 90.0 %
+    return f"{shown:.1f} % of steps inside (95 % expected): " + ("ok" if f >= STEPS_INSIDE_MIN else "LOW")
 
 
 def consistency_verdict(value, bounds, kind: str | None = "nees") -> str:

@@ -68,7 +68,13 @@ def main(argv=None):
             rc = cli.main(argv_run)
             if rc != 0:
                 raise SystemExit(rc)
-        return json.loads(path.read_text())
+        elif not path.is_file():
+            raise SystemExit(f"--table-only: {path} is missing (run without --table-only first)")
+        res = json.loads(path.read_text())
+        if (res.get("runs"), res.get("seed")) != (runs, args.seed):
+            raise SystemExit(f"{path}: holds {res.get('runs')} runs with seed {res.get('seed')}, not {runs} with "
+                             f"seed {args.seed}; give the matching --runs/--att-runs and --seed")
+        return res
 
     lines = [f"Paper 004 reproduction, seed {args.seed}; cells are mean / p95 over the runs.", ""]
     if "attitude" in parts:
@@ -93,9 +99,10 @@ def main(argv=None):
             s = m[k]
             lines.append(f"| {k} | {_num(s['mean'])} | {_num(s['median'])} | {_num(s['p95'])} | {_num(s['max'])} |")
         inside = c.get("anees_steps_inside", res.get("consistency_detail", {}).get("fraction_steps_in_bounds"))
+        inside = "undefined" if inside is None else f"{100 * inside:.1f} %"
         lines += ["", f"ANEES over runs {c['anees']:.3f} in [{lo:.3f}, {hi:.3f}]"
                   f"{'' if lo <= c['anees'] <= hi else ' (outside)'} as a time average; per step inside at "
-                  f"{100 * inside:.1f} % of the steps (a consistent filter: about 95 %); mean NIS {c['nis_mean']:.3f} "
+                  f"{inside} of the steps (a consistent filter: about 95 %); mean NIS {c['nis_mean']:.3f} "
                   f"(bounds [{c['nis_bounds'][0]:.3f}, {c['nis_bounds'][1]:.3f}]); flags {res['flags']}; "
                   f"timing {res['timing']}"]
     table = "\n".join(lines)

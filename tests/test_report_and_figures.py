@@ -83,6 +83,7 @@ def test_console_adds_the_per_step_check_to_a_time_averaged_anees():
     assert steps_inside_text(STEPS_INSIDE_MIN).endswith(": ok")
     assert steps_inside_text(np.nextafter(STEPS_INSIDE_MIN, 0)).endswith(": LOW")
     assert steps_inside_text(float("nan")) == steps_inside_text(None) == "undefined"
+    assert steps_inside_text(0.8996) == "89.9 % of steps inside (95 % expected): LOW"  # never "90.0 %, LOW"
 
 
 def test_uwb_summary_carries_the_per_step_fraction_of_both_blocks():
@@ -221,9 +222,11 @@ def test_param_figure_shows_a_symmetric_matrix_once_and_the_truth_dotted():
     hist = [{"step": s, "params": {"Q": [0.1 * (s + 1), 0.2, 0.3, 0.4], "R": (R * (1 + s)).ravel().tolist()}}
             for s in range(3)]
     report = {"history": hist, "references": {
+        "no_params": {"metrics": {}}, "nan": {"params": {"noise": {"Q": [float("nan")] * 4}}}, "odd": None,
         "true": {"params": {"noise": {"Q": np.diag([0.06, 0.08, 0.1, 0.2]).tolist(), "R": R.tolist()}}},
         "other": {"params": {"noise": {"Q": np.eye(4).tolist()}}}}}
     ref = tuning.reference_values(report)
+    assert list(ref) == ["true", "other"]  # a reference without finite parameters is no reference
     assert ref["true"]["Q"] == [0.06, 0.08, 0.1, 0.2]  # the history holds Q's diagonal
     assert ref["true"]["R"] == R.ravel().tolist()  # and R whole
     fig = tuning.param_trajectories(hist, ref, title="t")
@@ -236,4 +239,9 @@ def test_param_figure_shows_a_symmetric_matrix_once_and_the_truth_dotted():
     # the first reference only, dotted at the true values, named in the title
     dotted = sorted(round(float(ln.get_ydata()[0]), 6) for ln in q_ax.get_lines() if ln.get_linestyle() == ":")
     assert dotted == [0.06, 0.08, 0.1, 0.2] and "dotted: true" in q_ax.get_title()
+    plt().close(fig)
+    # a reference with nothing drawable on a log axis (zeros) is not named in the title
+    fig = tuning.param_trajectories(hist, {"zeros": {"Q": [0.0] * 4}}, title="t")
+    assert "dotted" not in fig.axes[0].get_title()
+    assert not [ln for ln in fig.axes[0].get_lines() if ln.get_linestyle() == ":"]
     plt().close(fig)

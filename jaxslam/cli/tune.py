@@ -12,7 +12,7 @@ parameters, and writes:
 
 * ``--json PATH``: the ``tune`` JSON of docs/cli.md (``scenario, target, loss, before, after,
   params_before, params_after, history``, plus ``references, config, timing, memory,
-  stopped, eval_command, versions``).  Its top level also holds the tuned parameters
+  stopped, eval_command, eval_note where the target has one, versions``).  Its top level also holds the tuned parameters
   themselves (``"noise"`` or ``"controller"``), so the same file works as
   ``jaxslam run SCENARIO --params PATH``;
 * ``--params-out FILE``: only the tuned parameters (the ``--params`` file);
@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import shlex
 import sys
 import time
@@ -382,6 +383,7 @@ def run_tuning(args, progress_stream=None) -> dict:
             "timing": {"build_s": t_build, "compile_s": res.compile_s, "step_s": res.step_s,
                        "total_s": time.perf_counter() - t_all},
             "memory": res.memory, "eval_command": tg.eval_command,
+            **({"eval_note": tg.eval_note} if tg.eval_note else {}),
             "versions": {"jaxslam": jaxslam.__version__, "jax": jax.__version__},
             **params_after,
         }
@@ -425,6 +427,7 @@ def run_tuning(args, progress_stream=None) -> dict:
                    "eval_s": t_eval, "total_s": time.perf_counter() - t_all},
         "memory": res.memory,
         "eval_command": tg.eval_command,
+        **({"eval_note": tg.eval_note} if tg.eval_note else {}),
         "versions": {"jaxslam": jaxslam.__version__, "jax": jax.__version__},
         **params_after,
     }
@@ -440,7 +443,7 @@ def _params_file(tg, params: dict) -> dict:
     return params if "dataset" in params else {"scenario": tg.scenario, **params}
 
 
-def _print_report(rep, params_out=None, data=None):
+def _print_report(rep, params_file=None, data=None):
     print(f"scenario {rep['scenario']}: tuned {rep['target']} by {rep['loss']} "
           f"({rep['steps']} steps, lr {rep['lr']:g}); held-out evaluation:")
     print()
@@ -451,13 +454,19 @@ def _print_report(rep, params_out=None, data=None):
         print(f"  {k}: [" + ", ".join(f"{x:.4g}" for x in v) + "]")
     if rep.get("stopped"):
         print(f"stopped early: {rep['stopped']}")
-    if rep.get("eval_command"):  # the --params-out file and --data folder given, else placeholders
+    if rep.get("eval_command"):
+        # the file written (--params-out, else the tune JSON, itself a --params file) and the --data
+        # folder given; without --data the dataset command reads $JAXSLAM_DATA_DIR as tune did
         cmd = rep["eval_command"]
-        if params_out is not None:
-            cmd = cmd.replace("TUNED.json", shlex.quote(str(params_out)))
-        if data is not None:
+        if params_file is not None:
+            cmd = cmd.replace("TUNED.json", shlex.quote(str(params_file)))
+        if data:
             cmd = cmd.replace("--data DIR", f"--data {shlex.quote(str(data))}")
+        elif os.environ.get("JAXSLAM_DATA_DIR"):
+            cmd = cmd.replace(" --data DIR", "")
         print(f"run the tuned parameters: {cmd}")
+        if rep.get("eval_note"):
+            print(f"  ({rep['eval_note']})")
 
 
 def main(argv=None) -> int:
@@ -493,7 +502,7 @@ def main(argv=None) -> int:
 
     interrupted = bool(rep.get("interrupted"))
     if not args.quiet and not interrupted:
-        _print_report(rep, params_out, getattr(args, "data", None))
+        _print_report(rep, params_out if params_out is not None else json_path, getattr(args, "data", None))
     written = []
     clean = {k: v for k, v in rep.items() if not k.startswith("_")}
     if json_path is not None:

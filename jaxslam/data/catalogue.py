@@ -123,8 +123,9 @@ def _holds(d: Dataset, folder: pathlib.Path) -> bool:
         return bool(_robots_in(d, folder))
     if d.name == "victoria-park":
         return (folder / "measurements.dat").is_file()
-    if d.name == "util-uwb":
-        return any(folder.glob("*_obs_log*"))
+    if d.name == "util-uwb":  # the folder of the flights, or one flight's folder itself
+        return any(folder.glob("*_obs_log*")) or ("_obs_log" in folder.name
+                                                   and (folder / "groundtruth.csv").is_file())
     return False
 
 

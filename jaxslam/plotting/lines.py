@@ -13,6 +13,8 @@ NumPy inputs; matplotlib is imported lazily (Agg).
 
 from __future__ import annotations
 
+import textwrap
+
 import numpy as np
 
 from ..metrics import consistency_verdict, steps_inside_text
@@ -137,8 +139,9 @@ def plot_all(name, setup, cfg, log, res, per_step, bounds, directory, scan_index
     per_step = np.asarray(per_step, float)
     avg, inside = float(np.mean(per_step)), np.mean((per_step >= bounds[0]) & (per_step <= bounds[1]))
     ax.axhline(3, color="g", ls=":", lw=0.8, label="expected (3)")
-    ax.set_title(f"{name}: pose NEES over the runs; time average {avg:.2f}: "
-                 f"{consistency_verdict(avg, bounds)}\nper step: {steps_inside_text(inside)}", fontsize=9)
+    ax.set_title("\n".join(textwrap.wrap(f"{name}: pose ANEES over the runs; time average {avg:.2f}: "
+                                         f"{consistency_verdict(avg, bounds)}; per step: "
+                                         f"{steps_inside_text(inside)}", 95)), fontsize=9)
     ax.legend(fontsize=7)
     ax.grid(True, alpha=0.3)
     paths.append(save(fig, directory, f"{name}_nees"))

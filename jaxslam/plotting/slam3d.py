@@ -20,6 +20,8 @@
 
 from __future__ import annotations
 
+import textwrap
+
 import numpy as np
 
 from ..metrics import consistency_verdict as verdict
@@ -248,10 +250,10 @@ def plot_all(name, fl, lms, t, t_frames, anees_per_frame, cons, runs, directory,
                label=f"expected ({CONSISTENCY_BLOCKS['anees_dim']})")
     ax.set_xlabel("time [s]")
     ax.set_ylabel(f"NEES ({CONSISTENCY_BLOCKS['anees_dim']} states)")
+    detail = (f"flight average {cons['anees']:.2f} (consistency.anees): {verdict(cons['anees'], (lo, hi))}; "
+              f"per step: {steps_inside(cons.get('anees_fraction_in_bounds'))}")
     ax.set_title(f"{name}: NEES of the {CONSISTENCY_BLOCKS['anees_block']}, {CONSISTENCY_BLOCKS['anees_dim']} "
-                 f"states (black bars: 10 s window averages)\nflight average {cons['anees']:.2f} "
-                 f"(consistency.anees): {verdict(cons['anees'], (lo, hi))}; per step: "
-                 f"{steps_inside(cons.get('anees_fraction_in_bounds'))}", fontsize=9)
+                 "states (black bars: 10 s window averages)\n" + "\n".join(textwrap.wrap(detail, 120)), fontsize=9)
     ax.legend(fontsize=7)
     keep_margins(fig, left=0.09, right=0.98, bottom=0.12, top=0.86)
     paths.append(save(fig, directory, f"{name}_nees"))

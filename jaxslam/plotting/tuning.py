@@ -13,7 +13,7 @@ import numpy as np
 
 from .flight import keep_margins, plt, save
 
-__all__ = ["before_after", "choose_panels", "loss_curves", "param_trajectories", "plot_all"]
+__all__ = ["before_after", "choose_panels", "loss_curves", "param_trajectories", "plot_all", "reference_values"]
 
 
 def loss_curves(history, title="Tuning loss"):
@@ -70,10 +70,14 @@ def reference_values(report: dict) -> dict:
     for label, ref in (report.get("references") or {}).items():
         vals = {}
         for name, n in lengths.items():
-            m = find((ref or {}).get("params"), name)
+            m = find(ref.get("params") if isinstance(ref, dict) else None, name)
+            if m is None:
+                continue
             try:
                 a = np.asarray(m, float)
             except (TypeError, ValueError):
+                continue
+            if not np.all(np.isfinite(a)):
                 continue
             if a.ndim == 2 and a.shape[0] == a.shape[1] and a.shape[0] == n:
                 vals[name] = np.diag(a).tolist()
@@ -97,14 +101,15 @@ def param_trajectories(history, reference=None, title="Parameter trajectories"):
     if not recs:
         raise ValueError("history holds no 'params' records")
     names = list(recs[0]["params"])
-    if reference and all(isinstance(v, (list, tuple, np.ndarray)) for v in reference.values()):
+    if reference and not any(isinstance(v, dict) for v in reference.values()):
         reference = {"reference": reference}
     # one reference drawn (dotted in each entry's colour): more would not be told apart
     reference = dict(list((reference or {}).items())[:1])
     p = plt()
     fig, axes = p.subplots(len(names), 1, figsize=(8.5, 3.2 * len(names)), squeeze=False)
     steps = [h["step"] for h in recs]
-    styles = ("-", "--", "-.", ":")
+    drawn = set()
+    styles = ("-", "--", "-.")  # dotted is the reference's
     for ax, name in zip(axes[:, 0], names):
         vals = np.array([h["params"][name] for h in recs], float)
         k = _symmetric_side(vals)
@@ -112,19 +117,19 @@ def param_trajectories(history, reference=None, title="Parameter trajectories"):
         positive = np.all(vals[:, idx] > 0)
         for c, i in enumerate(idx):
             colour, label = f"C{c % 10}", (f"{name}[{i // k},{i % k}]" if k else f"{name}[{i}]")
-            ax.plot(steps, vals[:, i], lw=1.2, color=colour, ls=styles[(c // 10) % 3], label=label)
-            for ref in reference.values():
+            ax.plot(steps, vals[:, i], lw=1.2, color=colour, ls=styles[(c // 10) % len(styles)], label=label)
+            for ref_label, ref in reference.items():
                 r = ref.get(name)
-                if r is not None and i < len(r) and (not positive or r[i] > 0):
+                if r is not None and i < len(r) and np.isfinite(r[i]) and (not positive or r[i] > 0):
                     ax.axhline(r[i], color=colour, ls=":", lw=1)
+                    drawn.add(ref_label)
         if positive:
             ax.set_yscale("log")
         ax.set_ylabel(name + (" (upper triangle)" if k else ""))
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7, ncol=1 + len(idx) // 12, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     axes[-1, 0].set_xlabel("step")
-    refs = [lbl for lbl, ref in reference.items() if any(n in ref for n in names)]
-    axes[0, 0].set_title(title + (f"\ndotted: {', '.join(refs)}" if refs else ""))
+    axes[0, 0].set_title(title + (f"\ndotted: {', '.join(sorted(drawn))}" if drawn else ""))
     fig.tight_layout()
     return fig
 

@@ -247,6 +247,12 @@ def test_util_flight_folder_itself_is_accepted():
     b = load_util(EXCERPTS / "util_uwb", flight="tdoa2_obs_log1")
     np.testing.assert_array_equal(a.tdoa, b.tdoa)
     np.testing.assert_array_equal(a.anchor_p, b.anchor_p)
+    from jaxslam.data import catalogue  # `jaxslam list --data FLIGHT` finds it too
+
+    flight = EXCERPTS / "util_uwb" / "twr_obs_log1"
+    assert catalogue.find("util-uwb", flight) == flight
+    assert catalogue.find("util-uwb", EXCERPTS) == EXCERPTS / "util_uwb"  # the usual forms unchanged
+    assert catalogue.find("util-uwb", EXCERPTS / "mrclam6") is None
 
 
 def test_util_missing_flight_lists_found_flights():

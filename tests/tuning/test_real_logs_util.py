@@ -13,6 +13,7 @@ and the shipped fit is re-checked on the full flight when ``../shared/data`` is 
 import json
 import pathlib
 import re
+import shlex
 
 import jax
 import jax.numpy as jnp
@@ -126,6 +127,13 @@ def test_tune_util_writes_a_params_file_that_dataset_reads(tmp_path, run_cli):
     assert len(rep["history"]) == 4 and all(np.isfinite(h["loss"]) for h in rep["history"])
     assert set(rep["after"]["metrics"]) >= {"pos_rmse_m", "nll"}
     assert "hand_gaussian_gated" in rep["references"]
+    # the printed command is a command (its note on the next line), with the files filled in
+    lines = out.splitlines()
+    i = next(k for k, ln in enumerate(lines) if ln.startswith("run the tuned parameters: "))
+    argv = shlex.split(lines[i].split(": ", 1)[1])
+    assert argv[:3] == ["jaxslam", "dataset", "util-uwb"] and argv[-2:] == ["--params", str(po)]
+    assert argv[argv.index("--data") + 1] == str(DATA)
+    assert lines[i + 1].strip() == f"({rep['eval_note']})" and "held-out" in rep["eval_note"]
     p = json.loads(po.read_text())
     assert p["dataset"] == "util-uwb" and p["noise"]["nu"] == UT.NU and p["noise"]["gate"] is None
     ds = tmp_path / "ds.json"

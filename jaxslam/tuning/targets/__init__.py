@@ -87,7 +87,9 @@ class Target(NamedTuple):
     to_params: ``to_params(physical) -> dict`` loadable by ``jaxslam run --params``.
     describe: ``describe(theta) -> {name: [floats]}`` physical values tracked in the history.
     config: every setting used (JSON-ready).
-    eval_command: the ``jaxslam run`` command that reproduces the held-out "after" row.
+    eval_command: the command (``jaxslam run`` or ``jaxslam dataset``) that runs the tuned
+      parameters, ``TUNED.json`` standing for the parameter file and ``DIR`` for the data folder.
+    eval_note: what that command's figures cover when they differ from the table's (optional).
     log_objective: optimise log(mean loss) (positive losses; see :func:`~jaxslam.tuning.optimize.fit`).
     sequential: the loss and gradient of each training item run after the other (``lax.map``),
       not vmapped: the compiled step is smaller (one log's program, not a batched one) and, for
@@ -115,6 +117,7 @@ class Target(NamedTuple):
     log_objective: bool = False
     sequential: bool = False  # evaluate the training items one after another (lax.map)
     after_references: Optional[Callable] = None
+    eval_note: str = ""
 
     def references_for(self, physical_after) -> dict:
         """Every reference row of the evaluation of ``physical_after``: :attr:`references` and

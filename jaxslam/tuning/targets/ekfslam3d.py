@@ -15,7 +15,7 @@ Decisions (no paper covers tuning):
   the scenario draws each run's initial estimate from P0, so changing P0 would change the
   flights themselves, and the comparison with the ``--q imu`` reference would no longer be
   on equal flights.  The saved ``--params`` file holds P0, Q_c, Q_imu and R, so
-  ``jaxslam run ekfslam3d-unknown --params FILE`` reproduces the evaluation whatever ``--q``.
+  ``jaxslam run ekfslam3d-unknown --params TUNED.json`` reproduces the evaluation whatever ``--q``.
 * Training logs are flown with the controller on the truth (a log does not depend on the
   filter being tuned) and may be shorter than the 50 s scenario; the first IMU sample of a
   log is the noise-free reading at the initial hover (what :func:`simulate` uses), and the

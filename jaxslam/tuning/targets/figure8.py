@@ -147,7 +147,8 @@ def figure8_lqr(loss: str = "cost", train_runs: int = 4, test_runs: int = 8, see
                   references={}, to_params=lambda c: {"controller": {k: v for k, v in controller_to_dict(c).items()
                                                                      if k in ("Q", "R")}},
                   describe=describe, config=config,
-                  eval_command="jaxslam run track-figure8 --params TUNED.json  (nominal start)",
+                  eval_command="jaxslam run track-figure8 --params TUNED.json",
+                  eval_note="flies from the nominal start",
                   log_objective=True)
 
 

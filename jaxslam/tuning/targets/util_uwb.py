@@ -147,8 +147,8 @@ def util_noise(loss: str = "nll", data=None, dtype=jnp.float64, t_max: float | N
                 "parametrisation": "log sigma_r, q_acc, q_bias" + ("; per-anchor range offsets (mean removed)"
                                                                   if anchor_offsets else ""),
                 "loss": "Student-t innovation NLL per range over the fit window"},
-        eval_command=("jaxslam dataset util-uwb --data DIR --params TUNED.json (its pos_rmse_m covers the whole "
-                      "airborne flight; this table's, the held-out part only)"),
+        eval_command="jaxslam dataset util-uwb --data DIR --params TUNED.json",
+        eval_note="its pos_rmse_m covers the whole airborne flight; this table's, the held-out part only",
         sequential=True,
     )
 
