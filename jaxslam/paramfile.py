@@ -43,7 +43,7 @@ __all__ = ["load", "check", "describe", "TUNE_REPORT_KEYS"]
 TUNE_REPORT_KEYS = frozenset({
     "scenario", "dataset", "target", "loss", "before", "after", "params_before", "params_after",
     "history", "references", "stopped", "n_skipped", "n_dropped_runs", "steps", "lr", "config", "timing", "memory",
-    "eval_command", "versions", "interrupted", "steps_done",
+    "eval_command", "eval_note", "versions", "interrupted", "steps_done",
 })
 
 # Symmetry and PSD tolerances relative to the matrix's largest magnitude (JSON round trips of
