@@ -54,6 +54,7 @@ __all__ = [
     "mean_chi2_bounds",
     "anees_bounds",
     "STEPS_INSIDE_MIN",
+    "steps_inside",
     "steps_inside_text",
     "consistency_verdict",
     "WindowedMean",
@@ -134,6 +135,13 @@ _OUTSIDE_MEANS = {
 # correlated, so the count is not binomial; below this fraction the report says LOW (a rule of
 # thumb with room for that correlation, not a test).
 STEPS_INSIDE_MIN = 0.90
+
+
+def steps_inside(per_step, bounds) -> float:
+    """Fraction of steps whose per-step ANEES lies inside ``bounds`` = (lo, hi) (a NaN step counts
+    as outside): the per-step check that :func:`steps_inside_text` puts in words."""
+    a = np.asarray(per_step, float)
+    return float(np.mean((a >= bounds[0]) & (a <= bounds[1])))
 
 
 def steps_inside_text(fraction) -> str:

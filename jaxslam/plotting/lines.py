@@ -17,7 +17,7 @@ import textwrap
 
 import numpy as np
 
-from ..metrics import consistency_verdict, steps_inside_text
+from ..metrics import consistency_verdict, steps_inside, steps_inside_text
 from .flight import plt, save
 
 __all__ = ["clip_line", "plot_all"]
@@ -137,7 +137,7 @@ def plot_all(name, setup, cfg, log, res, per_step, bounds, directory, scan_index
     ax.set_xlabel("t [s]")
     ax.set_ylabel("ANEES")
     per_step = np.asarray(per_step, float)
-    avg, inside = float(np.mean(per_step)), np.mean((per_step >= bounds[0]) & (per_step <= bounds[1]))
+    avg, inside = float(np.mean(per_step)), steps_inside(per_step, bounds)
     ax.axhline(3, color="g", ls=":", lw=0.8, label="expected (3)")
     ax.set_title("\n".join(textwrap.wrap(f"{name}: pose ANEES over the runs; time average {avg:.2f}: "
                                          f"{consistency_verdict(avg, bounds)}; per step: "

@@ -214,7 +214,7 @@ def consistency(series, t, runs, n=sys3d.NX):
         "anees_bounds": [lo, hi],
         "nis_mean": nis_mean,
         "nis_bounds": [float(nlo), float(nhi)],
-        "anees_fraction_in_bounds": float(np.mean((per_step >= lo) & (per_step <= hi))),
+        "anees_fraction_in_bounds": mx.steps_inside(per_step, (lo, hi)),
         "anees_windows": windows,
         "anees_settled": float(np.mean(per_step[t > SETTLED_AFTER_S])) if np.any(t > SETTLED_AFTER_S) else float("nan"),
     }, per_step

@@ -278,7 +278,7 @@ def run_scenario(runs, seed, dtype, options, progress, params=None, plots=False)
         "filter_params": {k: np.asarray(getattr(fp, k), float).tolist() for k in LS.NOISE_FIELDS},
         **options,
     }
-    inside = float(np.mean((per_step >= lo) & (per_step <= hi)))  # per-step ANEES inside its bounds
+    inside = mx.steps_inside(per_step, (lo, hi))
     return ScenarioResult(
         config=config,
         metrics=dict(out["metrics"]),

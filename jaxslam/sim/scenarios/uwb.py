@@ -329,7 +329,7 @@ def consistency(series, t, runs):
                 wins.append({"t0_s": float(w0), "t1_s": float(min(w0 + WINDOW_S, t[-1])), "anees": a,
                              "per_step_bounds_inside": bool(lo <= a <= hi)})
         out[name] = {"anees": float(np.mean(per_step)), "bounds": [float(lo), float(hi)], "dof": n,
-                     "fraction_steps_in_bounds": float(np.mean((per_step >= lo) & (per_step <= hi))),
+                     "fraction_steps_in_bounds": mx.steps_inside(per_step, (lo, hi)),
                      "windows": wins,
                      # NEES spread: a χ²(n) has variance 2n; uniform noise gives a narrower one.
                      "nees_var_over_2n": float(np.nanvar(nees) / (2 * n)),
