@@ -78,4 +78,7 @@ def test_vmapped_filter_program_runs_without_configure_process():
         "res = monte_carlo.run(one_run, seed=0, runs=4, chunk=4)\n"
         "m = res.out['metrics']['pos_rmse_m']\n"
         "print(m.shape[0], bool(np.all(np.isfinite(m))), res.chunk)\n")
-    assert _fresh(code) == "4 True 4"
+    # The suite's compile-time flag (LLVM optimisation off, conftest.py) is kept: it is not one of
+    # the library's settings, and without it this one compile took 25-30 s of the suite's budget.
+    speed = [f for f in os.environ.get("XLA_FLAGS", "").split() if f.startswith("--xla_backend_optimization_level")]
+    assert _fresh(code, XLA_FLAGS=" ".join(speed)) == "4 True 4"

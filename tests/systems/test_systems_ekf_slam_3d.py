@@ -283,25 +283,28 @@ def test_closed_form_jacobians_match_hand_twin_and_autodiff(accel_mode):
 @pytest.mark.parametrize("accel_mode", ["3axis", "az"])
 def test_motion_and_jacobian_is_the_rk4_steps_derivative(accel_mode):
     p = (0.01, 9.81, accel_mode)
-    W = np.random.default_rng(7).normal(size=(9, 9))
+    W = jnp.asarray(np.random.default_rng(7).normal(size=(9, 9)))
+    # Each side jitted once (eager op-by-op dispatch of the second derivatives compiled
+    # hundreds of one-operation programs: 12-17 s per mode on a cold cache).
+    closed = jax.jit(lambda x, u: s3.motion_and_jacobian(x, u, p))
+    auto = jax.jit(lambda x, u: value_and_jacfwd(lambda y: s3.motion(y, u, p))(x))
+    # second derivatives (what a gradient through the filter differentiates): the closed
+    # form's against autodiff of autodiff, and against central differences of F
+    d_closed = jax.jit(jax.grad(lambda x, u: jnp.sum(W * closed(x, u)[1])))
+    d_auto = jax.jit(jax.grad(lambda x, u: jnp.sum(W * auto(x, u)[1])))
     for s, u in _cases():
         sj, uj = jnp.asarray(s), jnp.asarray(u)
-        x1, F1 = s3.motion_and_jacobian(sj, uj, p)
-        x0, F0 = value_and_jacfwd(lambda x: s3.motion(x, uj, p))(sj)
+        x1, F1 = closed(sj, uj)
+        x0, F0 = auto(sj, uj)
         np.testing.assert_array_equal(np.asarray(x1), np.asarray(x0))
         np.testing.assert_allclose(np.asarray(F1), np.asarray(F0), rtol=1e-12, atol=1e-13)
         xt, Ft = np3d.rk4_step(s.copy(), u[:6], u[6:], 0.01, 9.81, accel_mode)
         np.testing.assert_allclose(np.asarray(F1), Ft, rtol=1e-11, atol=1e-13)
-        # second derivatives (what a gradient through the filter differentiates): the closed
-        # form's against autodiff of autodiff, and against central differences of F
-        def g_of(fn):
-            return jax.grad(lambda x: jnp.sum(jnp.asarray(W) * fn(x)))(sj)
-        d1 = g_of(lambda x: s3.motion_and_jacobian(x, uj, p)[1])
-        d0 = g_of(lambda x: value_and_jacfwd(lambda y: s3.motion(y, uj, p))(x)[1])
+        d1, d0 = d_closed(sj, uj), d_auto(sj, uj)
         np.testing.assert_allclose(np.asarray(d1), np.asarray(d0), rtol=1e-10, atol=1e-12)
         h = 1e-6
-        fd = np.array([np.sum(W * (np3d.rk4_step(s + h * e, u[:6], u[6:], 0.01, 9.81, accel_mode)[1]
-                                   - np3d.rk4_step(s - h * e, u[:6], u[6:], 0.01, 9.81, accel_mode)[1])) / (2 * h)
+        fd = np.array([np.sum(np.asarray(W) * (np3d.rk4_step(s + h * e, u[:6], u[6:], 0.01, 9.81, accel_mode)[1]
+                                               - np3d.rk4_step(s - h * e, u[:6], u[6:], 0.01, 9.81, accel_mode)[1])) / (2 * h)
                        for e in np.eye(9)])
         np.testing.assert_allclose(np.asarray(d1), fd, rtol=1e-6, atol=1e-8)
 
