@@ -88,6 +88,24 @@ def test_measurements_outside_the_run_are_counted_and_said(tmp_path, capsys):
     assert f"{doc['counts']['outside_window']} of" in out and "outside the run's time span" in out
 
 
+def test_a_log_cut_inside_its_last_number_runs_with_a_warning_naming_the_line(tmp_path, capsys):
+    data = tmp_path / "mrclam6"
+    data.mkdir()
+    for f in (DATA / "mrclam6").iterdir():
+        (data / f.name).write_bytes(f.read_bytes())
+    odo = data / "Robot1_Odometry.dat"
+    text = odo.read_text()
+    assert text.endswith(" 0.000\n")
+    odo.write_text(text[:-3])  # "... 0.000" cut to "... 0.0": still a number
+    n = text.count("\n")
+    js = tmp_path / "out.json"
+    rc, out, err = _run(["dataset", "mrclam", "--robot", "1", "--data", str(data), "--json", str(js)], capsys)
+    assert rc == 0, err
+    lines = [ln for ln in err.splitlines() if "no line end" in ln]
+    assert lines == [f"jaxslam: warning: {odo}:{n}: the last line has no line end (file cut short?); read as it "
+                     "stands, its last number may be incomplete"], err
+
+
 def _mrclam_other_dataset(root: pathlib.Path) -> pathlib.Path:
     """Robot 1's excerpt laid out as another MRCLAM dataset might be: unpacked as
     ``root/MRCLAM_Dataset9/``, landmark subjects renumbered 6–20 → 31–45 and five more (46–50,

@@ -245,3 +245,58 @@ def test_param_figure_shows_a_symmetric_matrix_once_and_the_truth_dotted():
     assert "dotted" not in fig.axes[0].get_title()
     assert not [ln for ln in fig.axes[0].get_lines() if ln.get_linestyle() == ":"]
     plt().close(fig)
+
+
+@pytest.mark.parametrize("scenario", ["ekfslam3d", "lineslam"])
+def test_per_step_share_is_recomputed_from_the_series(scenario):
+    # An independent oracle for the reports' per-step check: the run-averaged NEES of each step
+    # against SciPy's χ²(n·runs)/runs quantiles, counted in NumPy.  NEES 0.5x its dof on the
+    # first half and 1.5x on the second: the time average passes, few steps do.
+    from scipy.stats import chi2
+
+    from jaxslam.sim.scenarios import ekfslam3d, lineslam
+
+    n, runs, T = (9, 20, 120) if scenario == "ekfslam3d" else (3, 20, 120)
+    rng = np.random.default_rng(5)
+    t = np.arange(1, T + 1) * 0.1
+    nees = rng.chisquare(n, (runs, T)) * np.where(np.arange(T) >= T // 2, 1.5, 0.5)
+    nees[3, 7] = np.nan  # a run without a figure at one step: averaged over the others
+    series = {"nees": nees, "nis": rng.chisquare(2, (runs, T)), "nis_dof": np.full((runs, T), 2.0),
+              "dof": np.full((runs, T), 2.0)}
+    if scenario == "ekfslam3d":
+        cons, per_step = ekfslam3d.consistency(series, t, runs)
+        share = cons["anees_fraction_in_bounds"]
+    else:
+        cons, per_step = lineslam.consistency(series, runs)
+        share = cons["anees_steps_inside"]
+    lo, hi = chi2.ppf([0.025, 0.975], n * runs) / runs
+    np.testing.assert_allclose(cons["anees_bounds"], [lo, hi], rtol=1e-10)
+    avg = np.array([np.mean(nees[~np.isnan(nees[:, k]), k]) for k in range(T)])
+    np.testing.assert_allclose(per_step, avg, rtol=1e-12)
+    want = np.count_nonzero((avg >= lo) & (avg <= hi)) / T
+    assert share == pytest.approx(want, abs=1e-15) and want < 0.2
+    assert lo <= cons["anees"] <= hi
+    nis_lo, nis_hi = chi2.ppf([0.025, 0.975], 2 * runs * T) / (2 * runs * T)
+    assert cons["nis_mean"] == pytest.approx(series["nis"].sum() / (2 * runs * T), rel=1e-12)
+    np.testing.assert_allclose(cons["nis_bounds"], [nis_lo, nis_hi], rtol=1e-10)
+
+
+def test_tune_table_shows_the_per_step_share_beside_the_time_average():
+    from jaxslam.cli.tune import format_comparison
+
+    def res(rmse, anees, share, key):
+        cons = {"anees": anees, "anees_bounds": [7.04, 11.19], "nis_mean": 1.0, "nis_bounds": [0.9, 1.1]}
+        return {"metrics": {"pos_rmse_m": {"mean": rmse}}, "consistency": {**cons, key: share}}
+
+    # the loop / ekfslam3d targets name it anees_fraction_in_bounds, the uwb target anees_steps_inside
+    for key in ("anees_fraction_in_bounds", "anees_steps_inside"):
+        text = format_comparison(res(0.05, 10.4, 0.52, key), res(0.045, 9.4, 0.8996, key),
+                                 {"ref": {"metrics": {"pos_rmse_m": {"mean": 0.046}},
+                                          "consistency": {"anees": 9.0, "nis_mean": 1.0}}})
+        rows = text.splitlines()
+        i = next(k for k, r in enumerate(rows) if r.startswith("anees ["))
+        assert rows[i + 1].split() == ["steps", "inside", "(95", "%", "expected,", "90.0", "%", "ok)",
+                                       "52.0", "%", "89.9", "%", "-", "-"], rows[i + 1]
+    # without a per-step share (figure-8, linear-Gaussian targets have no consistency block; an old report) no row
+    old = res(0.05, 10.4, None, "anees_steps_inside")
+    assert "steps inside" not in format_comparison(old, old)

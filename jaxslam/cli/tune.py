@@ -143,7 +143,7 @@ def build_parser(with_targets: bool = True) -> Parser:
     real = p.add_argument_group("real logs (jaxslam tune mrclam | util-uwb | plaza | victoria-park)")
     real.add_argument("--data", metavar="DIR", default=None,
                       help="dataset folder (the one with mrclam6/, util_uwb/, gtsam/ or victoria_park/, or a "
-                           "parent of it; default: $JAXSLAM_DATA_DIR)")
+                           "parent of it; for util-uwb also the flight folder itself; default: $JAXSLAM_DATA_DIR)")
     real.add_argument("--robots", type=_robot_list, default=None, metavar="LIST",
                       help="training robots, e.g. 1,2,3,4 (mrclam, default 1,2,3,4; plaza: sequences, default 1)")
     real.add_argument("--test-robots", type=_robot_list, default=None, metavar="LIST",
@@ -188,10 +188,17 @@ def format_comparison(before: dict, after: dict, refs: dict | None = None) -> st
         rows.append([name, _fmt(b), _fmt(a), ch] + [_fmt(r["metrics"][name]["mean"]) for r in refs.values()])
     cb, ca = before.get("consistency"), after.get("consistency")
     if cb and ca:
+        from jaxslam.metrics import STEPS_INSIDE_MIN
+
         for key in ("anees", "nis_mean"):
             lo, hi = ca.get(f"{key}_bounds", ca.get(f"{key.split('_')[0]}_bounds", [None, None]))
             rows.append([f"{key} [{_fmt(lo)}, {_fmt(hi)}]", _fmt(cb[key]), _fmt(ca[key]), "-"]
                         + [_fmt(r["consistency"][key]) for r in refs.values()])
+            if key == "anees" and _steps_inside(ca) is not None:
+                # the time average can sit inside its bounds while most steps do not (metrics.steps_inside)
+                rows.append([f"  steps inside (95 % expected, {_pct(STEPS_INSIDE_MIN)} ok)", _pct(_steps_inside(cb)),
+                             _pct(_steps_inside(ca)), "-"]
+                            + [_pct(_steps_inside(r.get("consistency"))) for r in refs.values()])
     w = [max(len(r[i]) for r in rows) for i in range(len(header))]
     lines = []
     for j, r in enumerate(rows):
@@ -199,6 +206,18 @@ def format_comparison(before: dict, after: dict, refs: dict | None = None) -> st
         if j == 0:
             lines.append("  ".join("-" * x for x in w))
     return "\n".join(lines)
+
+
+def _steps_inside(cons):
+    """The per-step share of a consistency block (its name differs by target), or None."""
+    for key in ("anees_steps_inside", "anees_fraction_in_bounds"):
+        if cons and cons.get(key) is not None:
+            return cons[key]
+    return None
+
+
+def _pct(f):
+    return "-" if f is None or not math.isfinite(float(f)) else f"{math.floor(1000 * float(f) + 1e-9) / 10:.1f} %"
 
 
 def _summ(res):

@@ -28,7 +28,7 @@ from .catalogue import DATASETS as _CATALOGUE
 from .events import EventLog, merge_events
 from .mrclam import MrclamData, load_mrclam
 from .plaza import PlazaData, load_plaza
-from .textfile import DataFormatError, MissingDataError, read_table
+from .textfile import DataFormatError, MissingDataError, TruncatedLineWarning, read_table
 from .util_uwb import TAG_OFFSET, UtilData, load_util, tag_positions
 
 DATASETS = tuple(d.name for d in _CATALOGUE)
@@ -49,6 +49,7 @@ def __getattr__(name):
 __all__ = [
     "DATASETS",
     "DataFormatError",
+    "TruncatedLineWarning",
     "MissingDataError",
     "read_table",
     "EventLog",

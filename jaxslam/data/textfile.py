@@ -13,6 +13,11 @@ and gzip-compressed files, and it refuses bad input with a
 * a non-finite value (``nan``/``inf``) where it is not allowed,
 * time going backwards in a time column (equal times are allowed).
 
+A last line without a line end that still parses (a file cut inside its last number reads as
+a shorter, valid number) is read, with a :class:`TruncatedLineWarning` naming ``path:line``:
+every file of the supported datasets ends with a line end, so its absence says the file may
+have been cut short.
+
 Speed: the whole file is parsed by ``np.loadtxt`` (a C parser) in one call;
 only when that fails, or when a check on the parsed array fails, is the
 offending line located (by a Python scan, or from the row index), so a
@@ -25,6 +30,7 @@ from __future__ import annotations
 
 import gzip as _gzip
 import os
+import warnings
 import zlib
 from pathlib import Path
 from typing import NamedTuple, Optional, Sequence, Union
@@ -36,6 +42,7 @@ from ..errors import InputError
 __all__ = [
     "DataFormatError",
     "MissingDataError",
+    "TruncatedLineWarning",
     "Table",
     "read_table",
     "int_column",
@@ -83,6 +90,11 @@ class MissingDataError(DataFormatError, FileNotFoundError):
 
     Also a ``FileNotFoundError``, so ``except FileNotFoundError`` catches it.
     """
+
+
+class TruncatedLineWarning(UserWarning):
+    """The last line of a data file has no line end: the file may have been cut short, and the
+    line's last number may be incomplete.  The line is read as it stands (module docstring)."""
 
 
 def location(path: PathLike, line: int) -> str:
@@ -226,6 +238,9 @@ def read_table(path: PathLike, ncols: int, *, delimiter: Optional[str] = None,
         # loadtxt refused something the scan accepts (should not happen): parse by hand
         data = np.array([[float(f) for f in _split(s, delimiter)] for _, s in rows], dtype=np.float64)
     tab = Table(data, lines, spath)
+    if truncated_last and rows[-1][0] == len(all_lines):
+        warnings.warn(f"jaxslam: {spath}:{rows[-1][0]}: the last line has no line end (file cut short?); "
+                      "read as it stands, its last number may be incomplete", TruncatedLineWarning, stacklevel=2)
     if finite is not False:
         cols = list(range(ncols)) if finite is True else [int(c) for c in finite]
         sub = data[:, cols]

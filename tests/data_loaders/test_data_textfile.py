@@ -6,8 +6,8 @@ import pickle
 import numpy as np
 import pytest
 
-from jaxslam.data.textfile import (DataFormatError, MissingDataError, int_column, read_table,
-                                   resolve_dataset_dir)
+from jaxslam.data.textfile import (DataFormatError, MissingDataError, TruncatedLineWarning, int_column,
+                                   read_table, resolve_dataset_dir)
 from jaxslam.errors import InputError
 
 
@@ -57,6 +57,23 @@ def test_errors_name_file_and_line(tmp_path, text, line, pattern):
     assert e.line == line and e.path == str(p)
     assert str(e).startswith(f"{p}:{line}: ")
     assert isinstance(e, InputError) and isinstance(e, ValueError)
+
+
+@pytest.mark.parametrize("gz", [False, True])
+def test_a_last_line_without_line_end_is_read_with_a_warning(tmp_path, gz):
+    # "7 8 9.25" cut to "7 8 9.2": still three numbers, so only the missing line end can tell
+    p = _write(tmp_path / ("cut.dat.gz" if gz else "cut.dat"), "# t a b\n1 2 3\n4 5 6\n7 8 9.2", gz=gz)
+    with pytest.warns(TruncatedLineWarning) as rec:
+        t = read_table(p, 3, time_cols=0)
+    assert len(rec) == 1 and str(rec[0].message).startswith(f"jaxslam: {p}:4: the last line has no line end")
+    np.testing.assert_array_equal(t.data[-1], [7, 8, 9.2])  # read as it stands, nothing dropped
+    # a file that ends with its line end, or whose unterminated last line is a comment: no warning
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        read_table(_write(tmp_path / "ok.dat", "1 2 3\n4 5 6\r\n"), 3)
+        read_table(_write(tmp_path / "c.dat", "1 2 3\n4 5 6\n# end"), 3)
 
 
 def test_non_finite_allowed_where_asked(tmp_path):

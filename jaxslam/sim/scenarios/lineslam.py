@@ -49,7 +49,7 @@ from ...systems import line_slam_004 as LS
 from .. import monte_carlo
 from .registry import Option, Scenario, ScenarioResult, program_key, register
 
-__all__ = ["ROOM", "PILLAR", "Setup", "room_walls", "make_setup", "simulate", "evaluate", "build",
+__all__ = ["ROOM", "PILLAR", "Setup", "room_walls", "make_setup", "simulate", "evaluate", "build", "consistency",
            "run_scenario", "true_lines"]
 
 ROOM = ((-2.0, -2.0), (6.0, -2.0), (6.0, 1.0), (2.0, 1.0), (2.0, 4.0), (-2.0, 4.0))
@@ -240,13 +240,8 @@ def run_scenario(runs, seed, dtype, options, progress, params=None, plots=False)
                          program_key=program_key("lineslam-room", options, params, dtype))
     runs = mc.runs  # the finished runs: fewer than asked when interrupted (Ctrl-C)
     out = mc.out
-    nees = np.asarray(out["series"]["nees"], float)  # (runs, T)
-    lo, hi = mx.anees_bounds(3, runs)
-    per_step = np.nanmean(nees, axis=0)
-    nis = np.asarray(out["series"]["nis"], float)
-    dof = np.asarray(out["series"]["dof"], float)
-    tot = float(dof.sum())
-    nlo, nhi = mx.mean_chi2_bounds(tot, tot) if tot > 0 else (math.nan, math.nan)
+    cons, per_step = consistency(out["series"], runs)
+    lo, hi = cons["anees_bounds"]
     counts = out["counts"]
     status_any = int(np.bitwise_or.reduce(np.asarray(counts["status"]).ravel()))
     flags = {
@@ -278,14 +273,10 @@ def run_scenario(runs, seed, dtype, options, progress, params=None, plots=False)
         "filter_params": {k: np.asarray(getattr(fp, k), float).tolist() for k in LS.NOISE_FIELDS},
         **options,
     }
-    inside = mx.steps_inside(per_step, (lo, hi))
     return ScenarioResult(
         config=config,
         metrics=dict(out["metrics"]),
-        consistency={"anees": float(np.mean(per_step)), "anees_bounds": [float(lo), float(hi)],
-                     "nis_mean": float(nis.sum() / tot) if tot > 0 else math.nan,
-                     "nis_bounds": [float(nlo), float(nhi)],
-                     "anees_steps_inside": inside,
+        consistency={**cons,
                      # what each statistic covers (docs/cli.md, "consistency")
                      "anees_block": "robot pose (x, y, yaw)", "anees_dim": 3,
                      "nis_block": "matched wall lines (rho, theta), per degree of freedom", "nis_dim": 1},
@@ -294,8 +285,23 @@ def run_scenario(runs, seed, dtype, options, progress, params=None, plots=False)
         interrupted=mc.interrupted,
         plot=plot if plots else None,
         extra={"status_flags": decode(status_any),
-               "consistency_detail": {"pose_dof": 3, "fraction_steps_in_bounds": inside}},
+               "consistency_detail": {"pose_dof": 3, "fraction_steps_in_bounds": cons["anees_steps_inside"]}},
     )
+
+
+def consistency(series, runs):
+    """Pose ANEES over ``runs`` Monte Carlo runs: its time average and the fraction of steps
+    whose run average is inside the per-step χ²(3) bounds; the mean NIS per degree of freedom
+    with its bounds.  ``series``: ``nees`` (runs, T), ``nis`` and ``dof`` (runs, T).  Returns
+    the report's statistics and the per-step ANEES."""
+    per_step = np.nanmean(np.asarray(series["nees"], float), axis=0)
+    lo, hi = (float(b) for b in mx.anees_bounds(3, runs))
+    tot = float(np.asarray(series["dof"], float).sum())
+    nlo, nhi = mx.mean_chi2_bounds(tot, tot) if tot > 0 else (math.nan, math.nan)
+    return {"anees": float(np.mean(per_step)), "anees_bounds": [lo, hi],
+            "nis_mean": float(np.asarray(series["nis"], float).sum() / tot) if tot > 0 else math.nan,
+            "nis_bounds": [float(nlo), float(nhi)],
+            "anees_steps_inside": mx.steps_inside(per_step, (lo, hi))}, per_step
 
 
 register(Scenario(
