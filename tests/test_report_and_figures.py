@@ -300,3 +300,34 @@ def test_tune_table_shows_the_per_step_share_beside_the_time_average():
     # without a per-step share (figure-8, linear-Gaussian targets have no consistency block; an old report) no row
     old = res(0.05, 10.4, None, "anees_steps_inside")
     assert "steps inside" not in format_comparison(old, old)
+
+
+def test_nees_figure_titles_give_the_verdict_and_the_per_step_share():
+    # The same synthetic series as the per-step test above: a time average inside, few steps inside.
+    from jaxslam.sim.scenarios import ekfslam3d
+    from jaxslam.sim.scenarios import uwb as U
+
+    rng = np.random.default_rng(5)
+    runs, T = 20, 120
+    t = np.arange(1, T + 1) * 0.1
+    half = np.where(np.arange(T) >= T // 2, 1.5, 0.5)
+    nees9 = rng.chisquare(9, (runs, T)) * half
+    cons, per_step = ekfslam3d.consistency({"nees": nees9, "nis": rng.chisquare(2, (runs, T)),
+                                           "nis_dof": np.full((runs, T), 2.0)}, t, runs)
+    fig = slam3d.nees_figure("ekfslam3d-known", t, nees9[0], per_step, cons, runs)
+    title = fig.axes[0].get_title().replace("\n", " ")
+    assert f"flight average {cons['anees']:.2f} (consistency.anees): ok;" in title, title
+    assert f"per step: {steps_inside_text(cons['anees_fraction_in_bounds'])}" in title and "LOW" in title, title
+    plt().close(fig)
+
+    series = {"nees_pos": rng.chisquare(2, (runs, T)) * half, "nees_robot": rng.chisquare(10, (runs, T)),
+              "nis": rng.chisquare(6, (runs, T)), "nis_dof": np.full((runs, T), 6.0)}
+    cons, per_step = U.consistency(series, t, runs)
+    fig = uwb.nees_figure("uwb-circle", t, per_step, cons, runs)
+    titles = [a.get_title().replace("\n", " ") for a in fig.axes]
+    for title, key in zip(titles, ("pos", "robot")):
+        c = cons[key]
+        assert f"time average {c['anees']:.2f}" in title, title
+        assert f"per step: {steps_inside_text(c['fraction_steps_in_bounds'])}" in title, title
+    assert "LOW" in titles[0] and "LOW" not in titles[1]  # only the position block was made inconsistent
+    plt().close(fig)

@@ -28,7 +28,7 @@ from ..metrics import consistency_verdict as verdict
 from ..metrics import steps_inside_text as steps_inside
 from .flight import _ned_to_enu_up, keep_margins, plt, save
 
-__all__ = ["landmark_errors", "magnification", "plot_all"]
+__all__ = ["landmark_errors", "magnification", "nees_figure", "plot_all"]
 
 ROBOT_ELLIPSE_EVERY_S = 5.0
 
@@ -104,8 +104,6 @@ def landmark_errors(fl, lms, cfg):
 
 def plot_all(name, fl, lms, t, t_frames, anees_per_frame, cons, runs, directory, cfg):
     """Write the figures for one flight ``fl`` (NumPy) and the MC NEES; returns paths."""
-    from ..systems.ekf_slam_3d import CONSISTENCY_BLOCKS
-
     p = plt()
     paths = []
     st = fl.est_steps
@@ -238,9 +236,21 @@ def plot_all(name, fl, lms, t, t_frames, anees_per_frame, cons, runs, directory,
         keep_margins(fig, left=0.07, right=0.98, bottom=0.08, top=0.90, hspace=0.45, wspace=0.25)
         paths.append(save(fig, directory, f"{name}_landmarks"))
 
+    paths.append(save(nees_figure(name, t_frames, fr.nees, anees_per_frame, cons, runs), directory, f"{name}_nees"))
+    return paths
+
+
+def nees_figure(name, t_frames, nees_one_run, anees_per_frame, cons, runs):
+    """The Monte Carlo NEES figure: one run's NEES, the ANEES over ``runs`` runs against its
+    per-step bounds, the 10 s window averages; the title gives the flight average's verdict and
+    the share of steps inside.  Returns the (unsaved) figure."""
+    from ..systems.ekf_slam_3d import CONSISTENCY_BLOCKS
+
+    p = plt()
     lo, hi = cons["anees_bounds"]
     fig, ax = p.subplots(figsize=(10, 4))
-    ax.semilogy(t_frames, np.maximum(fr.nees, 1e-6), color="0.7", lw=0.5, label="NEES, one run")
+    ax.semilogy(t_frames, np.maximum(np.asarray(nees_one_run, float), 1e-6), color="0.7", lw=0.5,
+                label="NEES, one run")
     ax.semilogy(t_frames, anees_per_frame, "C0-", lw=1.0, label=f"ANEES over {runs} runs")
     ax.axhline(lo, color="C3", ls="--", lw=1, label="95 % bounds")
     ax.axhline(hi, color="C3", ls="--", lw=1)
@@ -256,5 +266,5 @@ def plot_all(name, fl, lms, t, t_frames, anees_per_frame, cons, runs, directory,
                  "states (black bars: 10 s window averages)\n" + "\n".join(textwrap.wrap(detail, 120)), fontsize=9)
     ax.legend(fontsize=7)
     keep_margins(fig, left=0.09, right=0.98, bottom=0.12, top=0.86)
-    paths.append(save(fig, directory, f"{name}_nees"))
-    return paths
+    return fig
+

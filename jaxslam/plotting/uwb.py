@@ -27,7 +27,7 @@ from ..metrics import consistency_verdict as verdict
 from ..metrics import steps_inside_text as steps_inside
 from .flight import keep_margins, plt, save
 
-__all__ = ["STATE_NAMES", "band", "ellipse_points", "plot_all", "state_panels"]
+__all__ = ["STATE_NAMES", "band", "ellipse_points", "nees_figure", "plot_all", "state_panels"]
 
 
 def ellipse_points(mean, cov, k=3.0, n=64):
@@ -242,6 +242,16 @@ def plot_all(name, sim, res, ev, setup, cfg, per_step, cons, runs, directory):
     paths.append(save(fig, directory, f"{name}_errors"))
 
     # --- Monte Carlo NEES: both blocks, named; the position block is the headline
+    paths.append(save(nees_figure(name, t, per_step, cons, runs), directory, f"{name}_nees"))
+    return paths
+
+
+def nees_figure(name, t, per_step, cons, runs):
+    """The Monte Carlo NEES figure, both state blocks (position, the headline, and the robot
+    block): the per-step ANEES against its bounds; each title gives the time average's verdict
+    and the share of steps inside.  ``per_step``/``cons``: the scenario's ``consistency``
+    outputs.  Returns the (unsaved) figure."""
+    p = plt()
     fig, axs = p.subplots(1, 2, figsize=(11, 4.2), sharex=True)
     for ax, key in zip(axs, ("pos", "robot")):
         c = cons[key]
@@ -259,5 +269,4 @@ def plot_all(name, sim, res, ev, setup, cfg, per_step, cons, runs, directory):
         ax.legend(fontsize=7, loc="lower right")
     fig.suptitle(f"{name}: Monte Carlo NEES by state block")
     keep_margins(fig, left=0.08, right=0.98, bottom=0.12, top=0.74, wspace=0.22)
-    paths.append(save(fig, directory, f"{name}_nees"))
-    return paths
+    return fig

@@ -36,7 +36,7 @@ def test_map_and_truth_lines():
     assert lines.shape == (10, 2) and np.all(lines[:, 0] > 0.25)  # 10 distinct lines, none through the origin
 
 
-def test_metrics_consistency_and_plots(result, tmp_path):
+def test_metrics_consistency_and_plots(result, tmp_path, monkeypatch):
     r = result
     for k in METRICS:
         assert np.shape(r.metrics[k]) == (2,), k
@@ -52,8 +52,17 @@ def test_metrics_consistency_and_plots(result, tmp_path):
     assert r.consistency["anees_steps_inside"] == r.extra["consistency_detail"]["fraction_steps_in_bounds"]
     assert 0 <= r.consistency["anees_steps_inside"] <= 1
     assert r.flags["non_finite"] == 0 and r.flags["capacity_overflow"] == 0 and r.flags["diverged_runs"] == 0
+    from jaxslam.metrics import steps_inside_text
+    from jaxslam.plotting import lines as lplot
+
+    titles, save = {}, lplot.save
+    monkeypatch.setattr(lplot, "save", lambda fig, d, name: (titles.setdefault(name, [a.get_title() for a in fig.axes]),
+                                                             save(fig, d, name))[1])
     paths = r.plot(tmp_path)
     assert [p.name for p in paths] == [f"lineslam-room_{s}.png" for s in ("scan", "map", "errors", "nees")]
+    nees_title = titles["lineslam-room_nees"][0].replace("\n", " ")
+    assert f"time average {r.consistency['anees']:.2f}" in nees_title, nees_title
+    assert f"per step: {steps_inside_text(r.consistency['anees_steps_inside'])}" in nees_title, nees_title
     assert all(p.stat().st_size > 10_000 for p in paths)
 
 
