@@ -238,6 +238,40 @@ def test_dataset_victoria_park_excerpt(tmp_path, capsys):
     assert doc["counts"]["measurements"] >= doc["counts"]["used"]
 
 
+def test_victoria_park_error_figure_marks_gps_jumps(tmp_path, capsys, monkeypatch):
+    # The excerpt holds one GPS jump already (line 44: 9.4 m/s); one more fix is moved 5 m here
+    # (25 m/s to both neighbours at 0.2 s spacing).  The fixes of a jump (both ends of a step
+    # faster than 8 m/s), counted in NumPy from the file, are what the JSON counts and the
+    # error figure marks.
+    from jaxslam.plotting import dataset as dplot
+
+    def jumps(path):
+        g = np.loadtxt(path)
+        fast = np.hypot(*np.diff(g[:, 1:], axis=0).T) / np.diff(g[:, 0]) > 8.0
+        return int(np.count_nonzero(np.r_[fast, False] | np.r_[False, fast]))
+
+    data = tmp_path / "victoria_park"
+    data.mkdir()
+    for f in (DATA / "victoria_park").iterdir():
+        (data / f.name).write_bytes(f.read_bytes())
+    rows = (data / "gps.dat").read_text().splitlines()
+    t, x, y = (float(v) for v in rows[60].split())
+    rows[60] = f"{t:10.3f} {x + 5.0:10.3f} {y:10.3f}"
+    (data / "gps.dat").write_text("\n".join(rows) + "\n")
+    labels, save = {}, dplot.save
+    monkeypatch.setattr(dplot, "save", lambda fig, d, name: (
+        labels.setdefault(name, [ln.get_label() for a in fig.axes for ln in a.get_lines()]), save(fig, d, name))[1])
+    for folder, n in ((DATA, jumps(DATA / "victoria_park" / "gps.dat")), (tmp_path, jumps(data / "gps.dat"))):
+        labels.clear()
+        js = tmp_path / "vp.json"
+        rc, _, err = _run(["dataset", "victoria-park", "--data", str(folder), "--json", str(js),
+                           "--plots", str(tmp_path / "plots")], capsys)
+        assert rc == 0, err
+        assert json.loads(js.read_text())["metrics"]["gps_fixes_removed"] == n
+        assert f"{n} × GPS jump (> 8 m/s to a neighbouring fix)" in labels["victoria_park_errors"], labels
+    assert n == 5  # 2 + 3: the moved fix and its two neighbours
+
+
 @pytest.mark.parametrize("case, needle", [
     ("mrclam_truncated", "Robot1_"),
     ("victoria_park_columns", ".dat:"),

@@ -89,6 +89,11 @@ def plot_run(run, directory, name=None):
         return (np.insert(t, cut, np.nan), np.insert(np.asarray(y, float), cut, np.nan)) if cut.size else (t, y)
 
     ax.plot(*broken(err), "C1-", lw=0.8, label="estimate")
+    suspect = ev.get("ref_suspect")
+    if suspect is not None and np.any(suspect):  # reference fixes that are themselves wrong (GPS jumps)
+        s = np.asarray(suspect, bool)
+        ax.plot(t[s], err[s], "x", color="C3", ms=4, mew=0.8,
+                label=f"{int(s.sum())} × {ev.get('ref_suspect_label', 'suspect reference')}")
     ax.axhline(run.metrics["ate_m"], color="C1", ls="--", lw=0.8, label=f"ATE {run.metrics['ate_m']:.3f} m")
     if ev.get("smooth_xy") is not None:
         ax.plot(*broken(np.linalg.norm(np.asarray(ev["smooth_xy"]) - ref, axis=1)), "C0-", lw=0.8, label="smoothed")
