@@ -842,6 +842,13 @@ def _holey_state(seed, cap=24, spread=False):
     return st
 
 
+@functools.partial(jax.jit, static_argnums=(4, 5))
+def _update_jit(st, z, slots, mask, active_only, kw):
+    """es.update jitted once for the cases below (kw: its (name, value) pairs): one program per
+    kw and mode, shared by the cases, instead of one per operation."""
+    return es.update(st, MODEL, z, slots, mask, jnp.asarray(R), active_only=active_only, **dict(kw))
+
+
 @pytest.mark.parametrize("spread", [False, True], ids=["leading", "spread"])
 @pytest.mark.parametrize("kw,n_rows", [({}, 7), ({}, 3), ({"gate": 5.99}, 7), ({"robust": 4.0}, 7),
                                        ({"num_iter": 3}, 7)],
@@ -866,8 +873,9 @@ def test_active_only_update_equals_whole_state_update(kw, n_rows, spread):
     masked = int(np.flatnonzero(np.isin(rows, act))[1])
     mask = jnp.ones(K, bool).at[masked].set(False)
     assert int(np.sum(np.isin(rows, act))) - 1 == n_rows
-    a, ia = es.update(st, MODEL, z, slots, mask, jnp.asarray(R), **kw)
-    b, ib = es.update(st, MODEL, z, slots, mask, jnp.asarray(R), active_only=True, **kw)
+    kw = tuple(sorted(kw.items()))
+    a, ia = _update_jit(st, z, slots, mask, False, kw)
+    b, ib = _update_jit(st, z, slots, mask, True, kw)
     np.testing.assert_allclose(np.asarray(b.x), np.asarray(a.x), atol=1e-12)
     np.testing.assert_allclose(np.asarray(b.P), np.asarray(a.P), atol=1e-12)
     np.testing.assert_array_equal(np.asarray(b.P), np.asarray(b.P).T)
@@ -901,6 +909,14 @@ def test_active_only_update_derivatives_and_vmap():
     np.testing.assert_allclose(vP(S, True), vP(S, False), atol=1e-12)
 
 
+# jitted once for both cases below: one program each, shared by the cases, not one per operation
+_assoc_jit = jax.jit(lambda st, z, mask, ao: es.associate_nn(st, MODEL, z, mask, jnp.asarray(R), active_only=ao),
+                     static_argnums=3)
+_vassoc_jit = jax.jit(jax.vmap(_assoc_jit, in_axes=(0, 0, None, None)), static_argnums=3)
+_marginal_d2_jit = jax.jit(lambda st, z, mask, ao: es.marginal_d2(st, MODEL, z, mask, jnp.asarray(R), active_only=ao),
+                           static_argnums=3)
+
+
 @pytest.mark.parametrize("spread", [False, True], ids=["leading", "spread"])
 def test_active_only_association_equals_the_whole_table(spread):
     """Nearest-neighbour association on the leading block of slots (capacity 100: blocks of 32,
@@ -919,24 +935,21 @@ def test_active_only_association_equals_the_whole_table(spread):
 
     zs = [rows_of(st) for st in sts]
     mask = jnp.ones(K, bool).at[2].set(False)
-    assoc = jax.jit(lambda st, z, ao: es.associate_nn(st, MODEL, z, mask, jnp.asarray(R), active_only=ao),
-                    static_argnums=2)  # one program each, not one per operation
     for st, z in zip(sts, zs):
-        a = assoc(st, z, False)
-        b = assoc(st, z, True)
+        a = _assoc_jit(st, z, mask, False)
+        b = _assoc_jit(st, z, mask, True)
         for x, y in zip(a[:3], b[:3]):
             np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
         np.testing.assert_allclose(np.asarray(b[3]), np.asarray(a[3]), rtol=1e-12)
         assert bool(np.asarray(a[2])[-1])  # the far rows are new landmarks
     S = jax.tree.map(lambda a, b: jnp.stack([a, b]), *sts)
     Z = jnp.stack(zs)
-    vassoc = jax.jit(jax.vmap(assoc, in_axes=(0, 0, None)), static_argnums=2)
-    va, vb = vassoc(S, Z, False), vassoc(S, Z, True)
+    va, vb = _vassoc_jit(S, Z, mask, False), _vassoc_jit(S, Z, mask, True)
     for x, y in zip(va[:3], vb[:3]):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
     np.testing.assert_allclose(np.asarray(vb[3]), np.asarray(va[3]), rtol=1e-12)
-    d2a, _ = es.marginal_d2(sts[0], MODEL, zs[0], mask, jnp.asarray(R))
-    d2b, (zh, _, _, _) = es.marginal_d2(sts[0], MODEL, zs[0], mask, jnp.asarray(R), active_only=True)
+    d2a, _ = _marginal_d2_jit(sts[0], zs[0], mask, False)
+    d2b, (zh, _, _, _) = _marginal_d2_jit(sts[0], zs[0], mask, True)
     np.testing.assert_allclose(np.asarray(d2b), np.asarray(d2a), rtol=1e-12)  # inf where inf
     assert zh.shape == (100, 2)
 
@@ -992,13 +1005,15 @@ def test_robot_cross_update_derivatives_and_vmap():
 def test_active_only_predict_equals_whole_state_predict():
     st = _holey_state(5, cap=100)
     u, Qm = jnp.array([1.0, 0.3]), jnp.asarray(Q)
-    a = es.predict(st, MODEL, u, Qm)
-    b = es.predict(st, MODEL, u, Qm, active_only=True)
+    pred = jax.jit(lambda st, u, ao: es.predict(st, MODEL, u, Qm, active_only=ao),
+                   static_argnums=2)  # one program each, not one per operation
+    a = pred(st, u, False)
+    b = pred(st, u, True)
     np.testing.assert_allclose(np.asarray(b.x), np.asarray(a.x), atol=0)
     np.testing.assert_allclose(np.asarray(b.P), np.asarray(a.P), atol=1e-14)
     np.testing.assert_array_equal(np.asarray(b.P), np.asarray(b.P).T)
     # a non-finite prediction is rejected block-wise in both
     bad = jnp.array([jnp.nan, 0.0])
-    a, b = es.predict(st, MODEL, bad, Qm), es.predict(st, MODEL, bad, Qm, active_only=True)
+    a, b = pred(st, bad, False), pred(st, bad, True)
     np.testing.assert_array_equal(np.asarray(b.P), np.asarray(st.P))
     assert int(a.status) == int(b.status) != 0

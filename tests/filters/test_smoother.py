@@ -351,9 +351,10 @@ def test_smoothed_loss_gradient_matches_finite_differences():
         return jnp.mean(jnp.sum((sm.means[:, :2] - xs[:, :2]) ** 2, 1))
 
     th = jnp.array([0.0, np.log(0.05**2), np.log(0.02**2)])
-    g = jax.grad(loss)(th)
+    loss_j = jax.jit(loss)  # one program each, not one per operation
+    g = jax.jit(jax.grad(loss))(th)
     eps = 1e-5
-    fd = np.array([(loss(th.at[i].add(eps)) - loss(th.at[i].add(-eps))) / (2 * eps)
+    fd = np.array([(loss_j(th.at[i].add(eps)) - loss_j(th.at[i].add(-eps))) / (2 * eps)
                    for i in range(3)])
     np.testing.assert_allclose(np.asarray(g), fd, rtol=1e-4)
 
@@ -369,7 +370,8 @@ def test_masks_vmapped_equal_one_by_one(linear_run):
                                save_smoother=True)
         return smoother.rts(post).means
 
-    batch = jax.vmap(one)(jnp.asarray(M))
+    batch = jax.jit(jax.vmap(one))(jnp.asarray(M))
+    one = jax.jit(one)  # one program for the four runs, not one per operation
     for i in range(4):
         np.testing.assert_allclose(np.asarray(batch[i]), np.asarray(one(M[i])), atol=1e-12)
 

@@ -278,24 +278,30 @@ def _states(n, seed):
 
 
 def test_measure_state_and_jacobians_match_twin_and_autodiff():
-    W = np.random.default_rng(1).normal(size=(3, 9))
+    W = jnp.asarray(np.random.default_rng(1).normal(size=(3, 9)))
+    # Each function jitted once (eager op-by-op dispatch, second derivatives included, compiled
+    # hundreds of one-operation programs)
+    closed = jax.jit(lidar3d.measure_state_and_jacobians)
+    value = jax.jit(lidar3d.measure_state)
+    auto = jax.jit(jax.jacfwd(lidar3d.measure_state, argnums=(0, 1)))
+    # second derivatives, as a gradient through the filter takes them
+    d_closed = jax.jit(jax.grad(lambda x, l: jnp.sum(W * lidar3d.measure_state_and_jacobians(x, l)[1])))
+    d_auto = jax.jit(jax.grad(lambda x, l: jnp.sum(W * jax.jacfwd(lidar3d.measure_state)(x, l))))
     for s, l in _states(5, 0):
         sj, lj = jnp.asarray(s), jnp.asarray(l)
-        y, Hs, Hl = lidar3d.measure_state_and_jacobians(sj, lj)
-        np.testing.assert_array_equal(np.asarray(y), np.asarray(lidar3d.measure_state(sj, lj)))
+        y, Hs, Hl = closed(sj, lj)
+        np.testing.assert_array_equal(np.asarray(y), np.asarray(value(sj, lj)))
         yo, Hso, Hlo = np3d.observe(s, l[None])
         np.testing.assert_allclose(np.asarray(Hs), Hso[0], rtol=1e-11, atol=1e-13)
         np.testing.assert_allclose(np.asarray(Hl), Hlo[0], rtol=1e-11, atol=1e-13)
-        Hs0, Hl0 = jax.jacfwd(lidar3d.measure_state, argnums=(0, 1))(sj, lj)
+        Hs0, Hl0 = auto(sj, lj)
         np.testing.assert_allclose(np.asarray(Hs), np.asarray(Hs0), rtol=1e-11, atol=1e-13)
-        # second derivatives, as a gradient through the filter takes them
-        g1 = jax.grad(lambda x: jnp.sum(jnp.asarray(W) * lidar3d.measure_state_and_jacobians(x, lj)[1]))(sj)
-        g0 = jax.grad(lambda x: jnp.sum(jnp.asarray(W) * jax.jacfwd(lidar3d.measure_state)(x, lj)))(sj)
+        g1, g0 = d_closed(sj, lj), d_auto(sj, lj)
         np.testing.assert_allclose(np.asarray(g1), np.asarray(g0), rtol=1e-10, atol=1e-12)
     # (12,) states: ω does not enter
     s12 = jnp.concatenate([jnp.asarray(s), jnp.ones(3)])
-    _, H12, _ = lidar3d.measure_state_and_jacobians(s12, jnp.asarray(l))
-    np.testing.assert_allclose(np.asarray(H12), np.asarray(jax.jacfwd(lidar3d.measure_state)(s12, jnp.asarray(l))),
+    _, H12, _ = closed(s12, jnp.asarray(l))
+    np.testing.assert_allclose(np.asarray(H12), np.asarray(auto(s12, jnp.asarray(l))[0]),
                                rtol=1e-11, atol=1e-13)
 
 
@@ -303,28 +309,34 @@ def test_measurement_jacobians_where_angles_are_undefined():
     # landmark at the sensor (r = 0) and straight above it (h = 0): rows of undefined angles are
     # zero, as autodiff of the guarded model gives, never NaN (also in their derivatives)
     s = jnp.zeros(9)
+    closed = jax.jit(lidar3d.measure_state_and_jacobians)  # jitted once: one program, not one per operation
+    auto = jax.jit(jax.jacfwd(lidar3d.measure_state, argnums=(0, 1)))
+    grad = jax.jit(jax.grad(lambda x, l: jnp.sum(lidar3d.measure_state_and_jacobians(x, l)[1])))
     for l in (jnp.zeros(3), jnp.asarray([0.0, 0.0, 2.0])):
-        y, Hs, Hl = lidar3d.measure_state_and_jacobians(s, l)
-        Hs0, Hl0 = jax.jacfwd(lidar3d.measure_state, argnums=(0, 1))(s, l)
+        y, Hs, Hl = closed(s, l)
+        Hs0, Hl0 = auto(s, l)
         np.testing.assert_allclose(np.asarray(Hs), np.asarray(Hs0), atol=1e-15)
         np.testing.assert_allclose(np.asarray(Hl), np.asarray(Hl0), atol=1e-15)
-        g = jax.grad(lambda x: jnp.sum(lidar3d.measure_state_and_jacobians(x, l)[1]))(s)
+        g = grad(s, l)
         assert np.all(np.isfinite(np.asarray(g)))
 
 
 def test_inverse_state_and_jacobians_match_twin_and_autodiff():
     rng = np.random.default_rng(4)
+    closed = jax.jit(lidar3d.inverse_state_and_jacobians)  # jitted once: one program, not one per operation
+    value = jax.jit(lidar3d.inverse_state)
+    auto = jax.jit(jax.jacfwd(lidar3d.inverse_state, argnums=(0, 1)))
     for s, _ in _states(4, 2):
         y = rng.normal(size=3) * np.array([1.0, 0.4, 8.0])
         sj, yj = jnp.asarray(s), jnp.asarray(y)
-        l, Gs, Gy = lidar3d.inverse_state_and_jacobians(sj, yj)
-        np.testing.assert_array_equal(np.asarray(l), np.asarray(lidar3d.inverse_state(sj, yj)))
+        l, Gs, Gy = closed(sj, yj)
+        np.testing.assert_array_equal(np.asarray(l), np.asarray(value(sj, yj)))
         lo, Gso, Gyo = np3d.inverse(s, y)
         np.testing.assert_allclose(np.asarray(Gs), Gso, rtol=1e-11, atol=1e-13)
         np.testing.assert_allclose(np.asarray(Gy), Gyo, rtol=1e-11, atol=1e-13)
-        Gs0, Gy0 = jax.jacfwd(lidar3d.inverse_state, argnums=(0, 1))(sj, yj)
+        Gs0, Gy0 = auto(sj, yj)
         np.testing.assert_allclose(np.asarray(Gs), np.asarray(Gs0), rtol=1e-11, atol=1e-13)
         np.testing.assert_allclose(np.asarray(Gy), np.asarray(Gy0), rtol=1e-11, atol=1e-13)
-    l32, Gs32, Gy32 = lidar3d.inverse_state_and_jacobians(jnp.asarray(s, jnp.float32), jnp.asarray(y, jnp.float32))
+    l32, Gs32, Gy32 = closed(jnp.asarray(s, jnp.float32), jnp.asarray(y, jnp.float32))
     assert l32.dtype == Gs32.dtype == Gy32.dtype == jnp.float32
     np.testing.assert_allclose(np.asarray(Gy32), Gyo, rtol=1e-4, atol=1e-4)

@@ -298,14 +298,20 @@ def test_optimal_moments_match_the_motion_samplers_spread(motion):
     L_M = jnp.linalg.cholesky(jnp.diag(jnp.asarray([0.04, 0.01])))
     floor = jnp.asarray([1e-4, 1e-4, 1e-5])
     S0 = jnp.diag(jnp.asarray([1e-4, 2e-4, 1e-5]))
-    mean, aux = moments(s, ((), (), S0), None, u, dt, True, L_M, floor)
+    # each piece jitted: one program each, not one per operation
+    mean, aux = jax.jit(lambda s, S0: moments(s, ((), (), S0), None, u, dt, True, L_M, floor))(s, S0)
     n = 40000
-    k0, k1 = jax.random.split(jax.random.PRNGKey(0))
-    starts = s + jax.random.normal(k0, (n, 3)) @ jnp.linalg.cholesky(S0).T
-    draws = jax.vmap(lambda p, k: sample(p, (), k, u, dt, True, L_M, floor)[0])(starts, jax.random.split(k1, n))
+
+    @jax.jit
+    def draw(key):
+        k0, k1 = jax.random.split(key)
+        starts = s + jax.random.normal(k0, (n, 3)) @ jnp.linalg.cholesky(S0).T
+        return jax.vmap(lambda p, k: sample(p, (), k, u, dt, True, L_M, floor)[0])(starts, jax.random.split(k1, n))
+
+    draws = draw(jax.random.PRNGKey(0))
     emp = np.cov(np.asarray(draws).T)
     cov = np.asarray(aux[2])
-    np.testing.assert_allclose(np.asarray(mean), np.asarray(f(s, u, dt)), rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(mean), np.asarray(jax.jit(f)(s, u, dt)), rtol=1e-12)
     np.testing.assert_allclose(np.diag(emp), np.diag(cov), rtol=0.05)
     corr = lambda c: c / np.sqrt(np.outer(np.diag(c), np.diag(c)))  # noqa: E731
     np.testing.assert_allclose(corr(emp), corr(cov), atol=0.03)
@@ -462,10 +468,11 @@ def test_ml_new_landmarks_take_free_slots_in_order():
     R = np.diag([0.05**2, 0.01**2])
     args = (jnp.zeros(3), jnp.asarray(mean), jnp.asarray(cov), jnp.asarray(active), jnp.asarray(7, jnp.int32),
             jnp.asarray(z), jnp.ones(5, bool), jnp.asarray(R), 9.21, 30.0)
-    ids, counter, new, _ = pf.associate_ml(*args, free_slots=True)
+    assoc = jax.jit(pf.associate_ml, static_argnames="free_slots")  # one program each, not one per operation
+    ids, counter, new, _ = assoc(*args, free_slots=True)
     np.testing.assert_array_equal(np.asarray(ids), [0, 1, 2, 4, cap])
     assert int(counter) == 11 and np.asarray(new).tolist() == [True, False, True, True, True]
-    ids_c, _, _, _ = pf.associate_ml(*args)
+    ids_c, _, _, _ = assoc(*args)
     np.testing.assert_array_equal(np.asarray(ids_c), [7, 1, 8, 9, 10])
 
 

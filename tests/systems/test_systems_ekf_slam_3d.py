@@ -326,13 +326,17 @@ def test_engine_prediction_uses_the_models_jacobian():
     u = jnp.asarray(next(_cases(1, seed=5))[1])
     p = (0.01, 9.81, "3axis")
     Q = jnp.eye(9) * 1e-3
-    auto = es_engine.predict(st, model._replace(motion_jacobian=None), u, Q, p)
-    hand = es_engine.predict(st, model, u, Q, p)
+
+    def pred(m):  # jitted per model: one program each, not one per operation
+        return jax.jit(lambda st, u: es_engine.predict(st, m, u, Q, p))
+
+    auto = pred(model._replace(motion_jacobian=None))(st, u)
+    hand = pred(model)(st, u)
     np.testing.assert_allclose(np.asarray(hand.P), np.asarray(auto.P), rtol=1e-12, atol=1e-14)
     # the hook is what the prediction reads: a doubled F gives P_rr = 4 F P Fᵀ + Q
     doubled = model._replace(motion_jacobian=lambda s, u_, q: (lambda r: (r[0], 2.0 * r[1]))(s3.motion_and_jacobian(s, u_, q)))
-    P2 = es_engine.predict(st, doubled, u, Q, p).P[:9, :9]
-    _, F = s3.motion_and_jacobian(st.x[:9], u, p)
+    P2 = pred(doubled)(st, u).P[:9, :9]
+    _, F = jax.jit(lambda x, u: s3.motion_and_jacobian(x, u, p))(st.x[:9], u)
     np.testing.assert_allclose(np.asarray(P2), np.asarray(4 * F @ st.P[:9, :9] @ F.T + Q), rtol=1e-10)
 
 
@@ -351,11 +355,19 @@ def test_engine_update_and_registration_use_the_models_jacobians():
     ids = jnp.arange(4, dtype=jnp.int32)
     new = jnp.asarray([True, True, True, False])
     p = (0.01, 9.81, "3axis")
-    regs = [es_engine.register(st, m, y, ids, new, R, p) for m in (model, plain)]
+
+    def reg(m):  # jitted per model: one program each, not one per operation
+        return jax.jit(lambda st, y: es_engine.register(st, m, y, ids, new, R, p))
+
+    regs = [reg(m)(st, y) for m in (model, plain)]
     np.testing.assert_allclose(np.asarray(regs[0].x), np.asarray(regs[1].x), rtol=1e-12, atol=1e-13)
     np.testing.assert_allclose(np.asarray(regs[0].P), np.asarray(regs[1].P), rtol=1e-10, atol=1e-14)
     slots = jnp.asarray([0, 1, 2, 0], jnp.int32)
     mask = jnp.asarray([True, True, True, False])
-    ups = [es_engine.update(regs[1], m, y, slots, mask, R, p)[0] for m in (model, plain)]
+
+    def upd(m):  # jitted per model, as reg
+        return jax.jit(lambda st, y: es_engine.update(st, m, y, slots, mask, R, p)[0])
+
+    ups = [upd(m)(regs[1], y) for m in (model, plain)]
     np.testing.assert_allclose(np.asarray(ups[0].x), np.asarray(ups[1].x), rtol=1e-11, atol=1e-13)
     np.testing.assert_allclose(np.asarray(ups[0].P), np.asarray(ups[1].P), rtol=1e-9, atol=1e-14)
