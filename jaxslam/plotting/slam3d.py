@@ -267,4 +267,3 @@ def nees_figure(name, t_frames, nees_one_run, anees_per_frame, cons, runs):
     ax.legend(fontsize=7)
     keep_margins(fig, left=0.09, right=0.98, bottom=0.12, top=0.86)
     return fig
-
