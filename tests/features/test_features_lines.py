@@ -253,8 +253,9 @@ def test_acceptance_reduced_250_scans():
 
 
 def test_largest_run_and_trim():
-    from jaxslam.features.lines import largest_run, trim_run
-
+    # jitted for speed only (eager, one program per operation and shape); gap and k are static
+    largest_run = jax.jit(F.largest_run, static_argnums=1)
+    trim_run = jax.jit(F.trim_run, static_argnums=1)
     m = np.zeros(40, bool)
     m[[1, 2, 3]] = True  # run of 3
     m[10:20] = True  # run of 10 (with a 1-beam hole below)

@@ -714,12 +714,13 @@ def test_iterated_update_is_map_of_one_update():
         res = z - np.array([np.sqrt(r2), np.arctan2(d[1], d[0])])
         g = -H.T @ Ri @ res + Pi @ (x - m)
         x = x - np.linalg.solve(H.T @ Ri @ H + Pi, g)
-    post, info = ekf.update(ekf.Gaussian(jnp.asarray(m), jnp.asarray(P)), z, h, R, num_iter=12)
+    upd = jax.jit(ekf.update, static_argnames=("h", "num_iter"))  # jitted for speed only
+    post, info = upd(ekf.Gaussian(jnp.asarray(m), jnp.asarray(P)), z, h, R, num_iter=12)
     np.testing.assert_allclose(np.asarray(post.mean), x, atol=1e-10)
     assert int(info.status) == 0
-    plain, _ = ekf.update(ekf.Gaussian(jnp.asarray(m), jnp.asarray(P)), z, h, R)
+    plain, _ = upd(ekf.Gaussian(jnp.asarray(m), jnp.asarray(P)), z, h, R)
     assert np.max(np.abs(np.asarray(plain.mean) - x)) > 1e-3  # one linearisation is not the MAP
-    few, info2 = ekf.update(ekf.Gaussian(jnp.asarray(m), jnp.asarray(P)), z, h, R, num_iter=2)
+    few, info2 = upd(ekf.Gaussian(jnp.asarray(m), jnp.asarray(P)), z, h, R, num_iter=2)
     assert int(info2.status) & errors.NOT_CONVERGED
     with pytest.raises(InputError, match="num_iter"):
         ekf.update(ekf.Gaussian(jnp.asarray(m), jnp.asarray(P)), z, h, R, num_iter=0)
@@ -759,6 +760,6 @@ def test_linear_update_shared_equals_separate_numpy_kalman_updates(dtype):
     np.testing.assert_allclose(logdet, np.log(np.linalg.det(S_ref)), rtol=tol, atol=tol)
     assert np.all(num[:, 1] == 0)
     # B = 1 is linear_update (the EKF's own correction)
-    one = ekf.linear_update(*(jnp.asarray(a, dtype) for a in (xs[0], P, nus[0], H, R)),
-                            jnp.asarray(mask))
+    one = jax.jit(ekf.linear_update)(*(jnp.asarray(a, dtype) for a in (xs[0], P, nus[0], H, R)),
+                                     jnp.asarray(mask))  # jitted for speed only
     np.testing.assert_allclose(np.asarray(one[0]), xs_post[0], rtol=tol, atol=tol)

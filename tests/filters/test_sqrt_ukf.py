@@ -19,6 +19,15 @@ from jaxslam.filters import ukf
 from test_sqrt_ekf import H_LR, P0_LR, Q_LR, R_LR, T_LR, f_rw, h_lr
 
 from cv_model import DT, F_CV, G_CV, H_CV, P0_CV, Q_CV, R_CV, X0_CV, f_cv, h_pos  # noqa: F401
+
+# One-update tests call these, jitted once for speed only (run eagerly, each update compiled
+# dozens of one-operation programs); the functions and options are static.
+_STATIC = ("h", "residual", "gate", "points")
+su_update = jax.jit(su.update, static_argnames=_STATIC)
+ukf_update = jax.jit(ukf.update, static_argnames=_STATIC)
+se_update = jax.jit(se.update, static_argnames=_STATIC[:3])
+
+
 def np_kf(us, zs, masks, predict_first=True):
     x, P = X0_CV.copy(), P0_CV.copy()
     out = []
@@ -101,12 +110,12 @@ def test_update_masks_gate_and_logdet():
     g = ukf.Gaussian(jnp.asarray(X0_CV), jnp.asarray(P0_CV))
     z = np.array([0.3, np.nan])
     mk = np.array([True, False])
-    a, ia = su.update(st, z, h_pos, R_CV, mask=mk)
-    b, ib = ukf.update(g, z, h_pos, R_CV, mask=mk)
+    a, ia = su_update(st, z, h_pos, R_CV, mask=mk)
+    b, ib = ukf_update(g, z, h_pos, R_CV, mask=mk)
     np.testing.assert_allclose(np.asarray(a.mean), np.asarray(b.mean), atol=1e-12)
     np.testing.assert_allclose(np.asarray(se.to_gaussian(a).cov), np.asarray(b.cov), atol=1e-12)
     np.testing.assert_allclose(float(ia.logdet), float(ib.logdet), atol=1e-12)
-    _, ig = su.update(st, np.array([50.0, 50.0]), h_pos, R_CV, gate=9.21)
+    _, ig = su_update(st, np.array([50.0, 50.0]), h_pos, R_CV, gate=9.21)
     assert int(ig.status) & errors.GATED and not bool(ig.accepted)
     with pytest.raises(InputError, match="W\\^c_0"):
         su.update(st, z, h_pos, R_CV, points=ukf.unscented(alpha=1e-3))  # W^c_0 < 0
@@ -150,15 +159,15 @@ def test_bearing_near_pi_and_failed_factor_flag():
     P = np.diag([0.01, 0.01])
     z = np.array([np.pi - 0.005])
     res = ekf.angle_residual([True])
-    a, ia = su.update(se.from_gaussian(ukf.Gaussian(jnp.asarray(x), jnp.asarray(P))), z, h_bearing,
+    a, ia = su_update(se.from_gaussian(ukf.Gaussian(jnp.asarray(x), jnp.asarray(P))), z, h_bearing,
                       np.array([[1e-4]]), residual=res)
-    b, ib = ukf.update(ukf.Gaussian(jnp.asarray(x), jnp.asarray(P)), z, h_bearing, np.array([[1e-4]]),
+    b, ib = ukf_update(ukf.Gaussian(jnp.asarray(x), jnp.asarray(P)), z, h_bearing, np.array([[1e-4]]),
                        residual=res)
     np.testing.assert_allclose(np.asarray(a.mean), np.asarray(b.mean), atol=1e-10)
     np.testing.assert_allclose(float(ia.nis), float(ib.nis), rtol=1e-8)
     st = se.from_gaussian(ukf.Gaussian(jnp.asarray(X0_CV), jnp.asarray(P0_CV)))
-    for upd in (lambda: se.update(st, np.array([5.0]), lambda v: v[:1], np.array([[-1.0]]), gate=3.84),
-                lambda: su.update(st, np.array([5.0]), lambda v: v[:1], np.array([[-1.0]]), gate=3.84)):
+    for upd in (lambda: se_update(st, np.array([5.0]), lambda v: v[:1], np.array([[-1.0]]), gate=3.84),
+                lambda: su_update(st, np.array([5.0]), lambda v: v[:1], np.array([[-1.0]]), gate=3.84)):
         _, info = upd()
         assert int(info.status) & errors.NOT_PSD and not int(info.status) & errors.GATED
         assert float(info.nis) == 0.0

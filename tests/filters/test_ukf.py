@@ -19,6 +19,12 @@ from jaxslam.filters import ekf, smoother, ukf
 
 from cv_model import DT, F_CV, G_CV, H_CV, P0_CV, Q_CV, R_CV, X0_CV, f_cv, h_pos  # noqa: F401
 
+# One-step tests call these, jitted once for speed only (run eagerly, each update or predict
+# compiled dozens of one-operation programs); the model functions and options are static.
+ukf_update = jax.jit(ukf.update, static_argnames=("h", "residual", "gate", "points"))
+ukf_predict = jax.jit(ukf.predict, static_argnames=("f", "points", "noise_jac", "return_status"))
+ukf_predict_with_cross = jax.jit(ukf.predict_with_cross, static_argnames=("f", "points", "return_status"))
+
 RULES = {"unscented": ukf.unscented(), "unscented_a05": ukf.unscented(0.5, 2.0, 1.0),
          "cubature": ukf.cubature()}
 
@@ -146,26 +152,26 @@ def test_predict_cross_covariance_noise_jacobian_and_failures():
     st = ekf.Gaussian(jnp.asarray(X0_CV), jnp.asarray(P0_CV))
     u = jnp.asarray([0.3, -0.2])
     Qu = np.diag([0.5, 0.2])
-    g, C, status = ukf.predict_with_cross(st, f_cv, u, Qu, noise_jac=G_CV, return_status=True)
+    g, C, status = ukf_predict_with_cross(st, f_cv, u, Qu, noise_jac=G_CV, return_status=True)
     np.testing.assert_allclose(np.asarray(g.mean), F_CV @ X0_CV + G_CV @ np.asarray(u), atol=1e-12)
     np.testing.assert_allclose(np.asarray(g.cov), F_CV @ P0_CV @ F_CV.T + G_CV @ Qu @ G_CV.T,
                                atol=1e-12)
     np.testing.assert_allclose(np.asarray(C), P0_CV @ F_CV.T, atol=1e-12)
     assert int(status) == 0
-    g2 = ukf.predict(st, f_cv, u, Qu, noise_jac=lambda x, u: jnp.asarray(G_CV), points=ukf.cubature())
+    g2 = ukf_predict(st, f_cv, u, Qu, noise_jac=lambda x, u: jnp.asarray(G_CV), points=ukf.cubature())
     np.testing.assert_allclose(np.asarray(g2.cov), np.asarray(g.cov), atol=1e-12)
     # f=None: identity
-    g3, C3 = ukf.predict_with_cross(st, None, None, Q_CV)
+    g3, C3 = ukf_predict_with_cross(st, None, None, Q_CV)
     np.testing.assert_allclose(np.asarray(g3.cov), P0_CV + Q_CV, atol=0)
     np.testing.assert_allclose(np.asarray(C3), P0_CV, atol=0)
     # non-PD prior: NOT_PSD, prior kept, no NaN
     bad = ekf.Gaussian(jnp.asarray(X0_CV), -jnp.eye(4))
-    g4, C4, s4 = ukf.predict_with_cross(bad, f_cv, u, Q_CV, return_status=True)
+    g4, C4, s4 = ukf_predict_with_cross(bad, f_cv, u, Q_CV, return_status=True)
     assert int(s4) & errors.NOT_PSD
     np.testing.assert_array_equal(np.asarray(g4.mean), X0_CV)
     assert np.all(np.isfinite(np.asarray(g4.cov))) and np.all(np.isfinite(np.asarray(C4)))
     # a model that returns NaN: NON_FINITE, prior kept
-    g5, s5 = ukf.predict(st, lambda x, u: x * jnp.nan, u, Q_CV, return_status=True)
+    g5, s5 = ukf_predict(st, lambda x, u: x * jnp.nan, u, Q_CV, return_status=True)
     assert int(s5) == errors.NON_FINITE
     np.testing.assert_array_equal(np.asarray(g5.cov), P0_CV)
 
@@ -326,7 +332,7 @@ def test_masks_vmapped_equal_one_by_one(lin_data):
 def test_masked_component_has_zero_gain_and_full_mask_keeps_prior():
     st = ekf.Gaussian(jnp.asarray(X0_CV), jnp.asarray(P0_CV))
     z = np.array([0.3, np.inf])
-    post, info = ukf.update(st, z, h_pos, R_CV, mask=np.array([True, False]))
+    post, info = ukf_update(st, z, h_pos, R_CV, mask=np.array([True, False]))
     # equals the update with the valid row only (NumPy)
     H, Rm = H_CV[:1], R_CV[:1, :1]
     S = H @ P0_CV @ H.T + Rm
@@ -335,7 +341,7 @@ def test_masked_component_has_zero_gain_and_full_mask_keeps_prior():
     np.testing.assert_allclose(np.asarray(post.cov), P0_CV - K @ S @ K.T, atol=1e-12)
     np.testing.assert_allclose(np.asarray(info.S), np.array([[S[0, 0], 0], [0, 1]]), atol=1e-12)
     assert float(info.innovation[1]) == 0.0 and int(info.dof) == 1
-    post, info = ukf.update(st, np.array([np.nan, np.inf]), h_pos, R_CV, mask=np.array([False, False]))
+    post, info = ukf_update(st, np.array([np.nan, np.inf]), h_pos, R_CV, mask=np.array([False, False]))
     np.testing.assert_array_equal(np.asarray(post.mean), X0_CV)
     np.testing.assert_array_equal(np.asarray(post.cov), P0_CV)
     assert int(info.dof) == 0 and float(info.logdet) == 0.0 and float(info.nis) == 0.0
@@ -345,16 +351,16 @@ def test_masked_component_has_zero_gain_and_full_mask_keeps_prior():
 def test_gate_and_not_psd_keep_the_prior():
     st = ekf.Gaussian(jnp.asarray(X0_CV), jnp.asarray(P0_CV))
     for gate in (9.21, ekf.chi2_gate(0.99, 2)):
-        post, info = ukf.update(st, np.array([50.0, 50.0]), h_pos, R_CV, gate=gate)
+        post, info = ukf_update(st, np.array([50.0, 50.0]), h_pos, R_CV, gate=gate)
         assert int(info.status) == errors.GATED and not bool(info.accepted)
         np.testing.assert_array_equal(np.asarray(post.mean), X0_CV)
         np.testing.assert_array_equal(np.asarray(post.cov), P0_CV)
         # a consistent measurement passes the same gate
-        post, info = ukf.update(st, np.array([0.1, -0.2]), h_pos, R_CV, gate=gate)
+        post, info = ukf_update(st, np.array([0.1, -0.2]), h_pos, R_CV, gate=gate)
         assert int(info.status) == 0 and bool(info.accepted)
     for P in (-np.eye(4), np.diag([1.0, 1.0, np.nan, 1.0])):
         bad = ekf.Gaussian(jnp.asarray(X0_CV), jnp.asarray(P))
-        post, info = ukf.update(bad, np.array([0.1, 0.2]), h_pos, R_CV, gate=9.21)
+        post, info = ukf_update(bad, np.array([0.1, 0.2]), h_pos, R_CV, gate=9.21)
         assert int(info.status) & errors.NOT_PSD and not bool(info.accepted)
         assert not int(info.status) & errors.GATED  # the NIS of a failed factorisation is 0
         np.testing.assert_array_equal(np.asarray(post.mean), X0_CV)
@@ -382,14 +388,14 @@ def test_bearing_near_pi_equals_rotated_problem(rule):
     P = np.array([[0.3, 0.05], [0.05, 0.4]])
     x = np.array([-2.0, 0.05])  # bearing ≈ π − 0.025; the points straddle ±π
     z = np.array([2.1, -np.pi + 0.01])
-    a, ia = ukf.update(ekf.Gaussian(jnp.asarray(x), jnp.asarray(P)), z, h_rb, R, residual=res, points=pts)
-    b, ib = ukf.update(ekf.Gaussian(jnp.asarray(-x), jnp.asarray(P)), np.array([2.1, 0.01]), h_rb, R,
+    a, ia = ukf_update(ekf.Gaussian(jnp.asarray(x), jnp.asarray(P)), z, h_rb, R, residual=res, points=pts)
+    b, ib = ukf_update(ekf.Gaussian(jnp.asarray(-x), jnp.asarray(P)), np.array([2.1, 0.01]), h_rb, R,
                        residual=res, points=pts)
     np.testing.assert_allclose(np.asarray(a.mean), -np.asarray(b.mean), atol=1e-12)
     np.testing.assert_allclose(np.asarray(a.cov), np.asarray(b.cov), atol=1e-12)
     np.testing.assert_allclose(float(ia.nis), float(ib.nis), rtol=1e-10)
     # without the wrapping the bearing spread spans ±π: S is inflated and the update is wrong
-    c, ic = ukf.update(ekf.Gaussian(jnp.asarray(x), jnp.asarray(P)), z, h_rb, R, points=pts)
+    c, ic = ukf_update(ekf.Gaussian(jnp.asarray(x), jnp.asarray(P)), z, h_rb, R, points=pts)
     assert float(ic.S[1, 1]) > 50 * float(ia.S[1, 1])
     assert np.max(np.abs(np.asarray(c.mean) + np.asarray(b.mean))) > 0.05
 
