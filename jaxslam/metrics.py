@@ -56,6 +56,7 @@ __all__ = [
     "STEPS_INSIDE_MIN",
     "steps_inside",
     "steps_inside_text",
+    "percent_text",
     "consistency_verdict",
     "WindowedMean",
     "windowed_mean",
@@ -154,8 +155,17 @@ def steps_inside_text(fraction) -> str:
         return "undefined"
     if not math.isfinite(f):
         return "undefined"
-    shown = math.floor(1000 * f + 1e-9) / 10  # rounded down: 0.8996 reads 89.9 %, not a LOW 90.0 %
-    return f"{shown:.1f} % of steps inside (95 % expected): " + ("ok" if f >= STEPS_INSIDE_MIN else "LOW")
+    return f"{percent_text(f)} of steps inside (95 % expected): " + ("ok" if f >= STEPS_INSIDE_MIN else "LOW")
+
+
+def percent_text(fraction) -> str:
+    """A fraction as ``"89.9 %"``, rounded down (0.8996 reads 89.9 %, never a LOW-looking 90.0 %);
+    ``"-"`` without a finite value."""
+    try:
+        f = float(fraction)
+    except (TypeError, ValueError):
+        return "-"
+    return f"{math.floor(1000 * f + 1e-9) / 10:.1f} %" if math.isfinite(f) else "-"
 
 
 def consistency_verdict(value, bounds, kind: str | None = "nees") -> str:

@@ -189,6 +189,7 @@ def format_comparison(before: dict, after: dict, refs: dict | None = None) -> st
     cb, ca = before.get("consistency"), after.get("consistency")
     if cb and ca:
         from jaxslam.metrics import STEPS_INSIDE_MIN
+        from jaxslam.metrics import percent_text as _pct
 
         for key in ("anees", "nis_mean"):
             lo, hi = ca.get(f"{key}_bounds", ca.get(f"{key.split('_')[0]}_bounds", [None, None]))
@@ -214,10 +215,6 @@ def _steps_inside(cons):
         if cons and cons.get(key) is not None:
             return cons[key]
     return None
-
-
-def _pct(f):
-    return "-" if f is None or not math.isfinite(float(f)) else f"{math.floor(1000 * float(f) + 1e-9) / 10:.1f} %"
 
 
 def _summ(res):
