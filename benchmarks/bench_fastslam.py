@@ -35,7 +35,10 @@ Parts (``--parts``):
    ``--mc-particles`` over ``--mc-duration`` s windows of the flight, one
    window and one key per run) as ``jax.jit(jax.vmap(run))`` calls on chunks of
    ``--mc-chunk`` runs vs sequential calls of the jitted single run (the
-   batch-of-1 program), timed over ``--mc-seq-max`` runs and scaled to M.
+   batch-of-1 program), timed over ``--mc-seq-max`` runs and scaled to M; and
+   the batch-of-1 program called from ``monte_carlo.default_threads()`` host
+   threads at once, as the runner's ``"loop"`` batching does for ``jaxslam run
+   fastslam-helix`` (all M runs timed, once).
 ``profile`` (opt-in) the step's cost broken into pieces at
    ``--profile-particles`` (the IMU and LiDAR stages, proposal RK4 and random
    draws, bias KF update, step output, landmark updates, position
@@ -486,6 +489,8 @@ def _mc_jobs(args, cfg, prm, fl, ids):
 def run_mc(args, compiled, data, N, F, results, out):
     import jax
 
+    from jaxslam.sim import monte_carlo
+
     keys, win = data
     single = compiled["mc batch=1"][0]
     rows = []
@@ -515,15 +520,28 @@ def run_mc(args, compiled, data, N, F, results, out):
                     jax.block_until_ready(single(keys[m:m + 1], *(a[m:m + 1] for a in win)))
             tsq.append((c.wall / n_seq * M, c.cpu / n_seq * M))
         (t_vmap, c_vmap), (t_seq, c_seq) = _med(tv), _med(tsq)
+        # what `jaxslam run fastslam-helix` does on a CPU: the single run called from the
+        # runner's threads at once (monte_carlo's "loop" batching), all M runs timed
+        threads = monte_carlo.default_threads()
+        with _Clock() as c:
+            monte_carlo._loop_runs(lambda m: single(keys[m:m + 1], *(a[m:m + 1] for a in win)),
+                                   np.arange(M), threads, False, None)
+        t_thr = c.wall
         rows.append({"runs": M, "chunk": B, "vmap_s": t_vmap, "vmap_runs_per_s": M / t_vmap,
                      "vmap_compile_s": comp, "sequential_s": t_seq,
                      "sequential_runs_per_s": M / t_seq, "sequential_timed_calls": n_seq,
                      "speedup": t_seq / t_vmap, "speedup_cpu_time": c_seq / c_vmap,
-                     "vmap_per_particle_step_ns": t_vmap / (M * N * F * LIDAR_EVERY) * 1e9})
+                     "vmap_per_particle_step_ns": t_vmap / (M * N * F * LIDAR_EVERY) * 1e9,
+                     "loop_threads": threads, "loop_threads_s": t_thr, "loop_threads_speedup": t_seq / t_thr})
         results.append(_row(f"monte carlo M={M}", {"runs": M, "chunk": B, "particles": N,
                                                    "duration_s": F * LIDAR_EVERY * 0.01},
                             t_vmap, "M sequential calls of the jitted single run", t_seq,
                             runs_per_s=M / t_vmap))
+        results.append(_row(f"monte carlo M={M}, runner's loop on {threads} threads",
+                            {"runs": M, "threads": threads, "particles": N,
+                             "duration_s": F * LIDAR_EVERY * 0.01},
+                            t_thr, "M sequential calls of the jitted single run", t_seq,
+                            runs_per_s=M / t_thr))
     out["monte_carlo"] = {
         "particles": N, "frames": F, "steps_per_run": F * LIDAR_EVERY,
         "compile_single_s": compiled["mc batch=1"][1], "rows": rows,

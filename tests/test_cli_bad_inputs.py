@@ -81,6 +81,7 @@ def _cases(t: pathlib.Path) -> list:
         (run8 + ["--runs", "0"], "--runs", None),
         (run8 + ["--runs", "x"], "--runs", None),
         (run8 + ["--seed", "-1"], "--seed", None),
+        (["run", "ekfslam3d-known", "--threads", "0"], "--threads", None),
         (run8 + ["--bogus"], "--bogus", None),
         (run8 + ["--duration", "-1"], "--duration", None),
         (run8 + ["--duration", "nan"], "--duration", None),

@@ -51,13 +51,20 @@ class _StopAt:
             raise KeyboardInterrupt
 
 
-@pytest.mark.parametrize("batching", ["vmap", "loop"])
-def test_monte_carlo_keeps_finished_chunks(batching):
-    full = monte_carlo.run(_fn, seed=5, runs=10, chunk=2, cpu_batching=batching)
+@pytest.mark.parametrize("batching,threads", [("vmap", None), ("loop", 1), ("loop", 2)])
+def test_monte_carlo_keeps_finished_chunks(batching, threads):
+    full = monte_carlo.run(_fn, seed=5, runs=10, chunk=2, cpu_batching=batching, threads=threads)
     assert full.runs == 10 and not full.interrupted
-    part = monte_carlo.run(_fn, seed=5, runs=10, chunk=2, cpu_batching=batching, progress=_StopAt(3))
-    done = 6 if batching == "vmap" else 3  # update() runs after each chunk (vmap) or run (loop)
-    assert part.interrupted and part.runs == done
+    part = monte_carlo.run(_fn, seed=5, runs=10, chunk=2, cpu_batching=batching, progress=_StopAt(3),
+                           threads=threads)
+    if threads == 2:
+        # update() runs after each finished run; the runs in flight then finish, and the longest
+        # finished prefix is kept (how many got done meanwhile depends on the scheduler)
+        assert 3 <= part.runs <= 10 and part.interrupted == (part.runs < 10) and part.threads == 2
+    else:
+        done = 6 if batching == "vmap" else 3  # update() runs after each chunk (vmap) or run (loop)
+        assert part.interrupted and part.runs == done
+    done = part.runs
     assert part.out["x"].shape == (done, 3)
     np.testing.assert_array_equal(part.out["x"], full.out["x"][:done])
     np.testing.assert_array_equal(part.out["n"], full.out["n"][:done])
@@ -75,10 +82,11 @@ class _StopWhileCompiling:
         raise KeyboardInterrupt
 
 
-@pytest.mark.parametrize("batching", ["vmap", "loop"])
-def test_monte_carlo_interrupt_before_any_chunk_propagates(batching):
+@pytest.mark.parametrize("batching,threads", [("vmap", None), ("loop", 1), ("loop", 2)])
+def test_monte_carlo_interrupt_before_any_chunk_propagates(batching, threads):
     with pytest.raises(KeyboardInterrupt):
-        monte_carlo.run(_fn, seed=0, runs=4, chunk=2, progress=_StopWhileCompiling(), cpu_batching=batching)
+        monte_carlo.run(_fn, seed=0, runs=4, chunk=2, progress=_StopWhileCompiling(), cpu_batching=batching,
+                        threads=threads)
 
 
 _SLOW_SCENARIO = textwrap.dedent("""

@@ -9,6 +9,7 @@ module-level constants get the right dtype; each scenario gets its own parser bu
 from __future__ import annotations
 
 import argparse
+import os
 import pathlib
 import sys
 
@@ -36,6 +37,10 @@ def _add_run_common(p: argparse.ArgumentParser) -> None:
                         "are checked before the run and listed by 'jaxslam run SCENARIO --help'")
     p.add_argument("--debug", action="store_true",
                    help="print the traceback of an internal failure (also JAXSLAM_DEBUG=1)")
+    p.add_argument("--threads", type=positive_int, default=None, metavar="T",
+                   help="host threads running flights at once where a scenario loops over its runs on "
+                        "a CPU (ekfslam3d-*, fastslam-helix); results do not depend on it (default: "
+                        "$JAXSLAM_MC_THREADS, else the cores, at most 8; 1 per process in a group)")
     g = p.add_argument_group("several processes (jax.distributed; the runs split in blocks, results "
                              "gathered; process 0 prints and writes)")
     g.add_argument("--processes", type=positive_int, default=None, metavar="P",
@@ -177,7 +182,11 @@ def command(rest: list[str]) -> int:
     params = registry.check_params(scenario, raw_params, options, dtype) if raw_params is not None else None
 
     from jaxslam import compilation
+    from jaxslam.sim import monte_carlo
 
+    if args.threads is not None:
+        os.environ["JAXSLAM_MC_THREADS"] = str(args.threads)  # read by monte_carlo.run's default
+    threads = monte_carlo.default_threads()  # also checks a user-set $JAXSLAM_MC_THREADS
     progress = Progress(args.runs, label=scenario.name, enabled=not args.quiet)
     with compilation.account() as acct:
         try:
@@ -191,6 +200,7 @@ def command(rest: list[str]) -> int:
                         "expected ScenarioResult")
 
     report = io.run_json(scenario.name, args.runs, args.seed, dtype, result)
+    report["config"]["threads"] = threads
     if group is not None:
         report["config"]["processes"] = group[1]  # the runs were split over this many processes
     report["timing"]["main_program_compile_s"] = report["timing"]["compile_s"]

@@ -9,10 +9,17 @@ from jaxslam import cli
 
 def test_cli_reports_capacity_overflow_with_hidden_ids(tmp_path, capsys):
     out = tmp_path / "run.json"
-    rc = cli.main(["run", "ekfslam3d-unknown", "--runs", "2", "--duration", "6", "--capacity", "8",
-                   "--association", "nn", "--json", str(out)])
+    argv = ["run", "ekfslam3d-unknown", "--runs", "2", "--duration", "6", "--capacity", "8", "--association", "nn"]
+    rc = cli.main(argv + ["--threads", "2", "--json", str(out)])
     assert rc == 0
     res = json.loads(out.read_text())
+    assert res["config"]["threads"] == 2
+    # the two flights ran at once on two threads; one thread gives the same runs, bit for bit
+    one = tmp_path / "one.json"
+    assert cli.main(argv + ["--threads", "1", "--quiet", "--json", str(one)]) == 0
+    seq = json.loads(one.read_text())
+    assert seq["config"]["threads"] == 1
+    assert seq["metrics"] == res["metrics"] and seq["consistency"] == res["consistency"]
     assert res["flags"]["capacity_overflow"] > 0
     assert "capacity_overflow" in capsys.readouterr().out
     assert res["metrics"]["landmarks_mapped"]["max"] == 8

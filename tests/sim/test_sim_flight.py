@@ -78,6 +78,35 @@ def test_monte_carlo_is_independent_of_chunking():
     np.testing.assert_allclose(a.out["v"][3], np.asarray(jax.random.normal(k3, (3,))), rtol=ulp, atol=0)
 
 
+def test_monte_carlo_loop_threads_give_the_same_runs_in_order():
+    # each run is the same compiled program on its own key, whichever thread calls it
+    def fn(key):
+        x = jax.random.normal(key, (8,))
+        return {"s": jnp.sum(jnp.sin(x) ** 2), "v": x}
+
+    one = monte_carlo.run(fn, seed=4, runs=9, cpu_batching="loop", threads=1)
+    three = monte_carlo.run(fn, seed=4, runs=9, cpu_batching="loop", threads=3)
+    assert (one.threads, three.threads, three.runs, three.interrupted) == (1, 3, 9, False)
+    np.testing.assert_array_equal(one.out["v"], three.out["v"])
+    np.testing.assert_array_equal(one.out["s"], three.out["s"])
+    vm = monte_carlo.run(fn, seed=4, runs=9, threads=3)  # threads only serve "loop" batching
+    assert vm.threads == 1
+
+
+def test_monte_carlo_thread_errors_reach_the_caller(monkeypatch):
+    # run 0's output is checked inside a worker thread; the error is raised by run() itself
+    with pytest.raises(InputError, match="detail=True"):
+        monte_carlo.run(lambda k: {"x": jax.random.normal(k, (2,))}, seed=0, runs=4, cpu_batching="loop",
+                        detail=True, threads=2)
+    with pytest.raises(InputError, match="threads"):
+        monte_carlo.run(lambda k: k, seed=0, runs=2, cpu_batching="loop", threads=0)
+    monkeypatch.setenv("JAXSLAM_MC_THREADS", "two")
+    with pytest.raises(InputError, match="JAXSLAM_MC_THREADS"):
+        monte_carlo.run(lambda k: k, seed=0, runs=2, cpu_batching="loop")
+    monkeypatch.setenv("JAXSLAM_MC_THREADS", "3")
+    assert monte_carlo.default_threads() == 3
+
+
 @pytest.mark.parametrize("batching", ["vmap", "loop"])
 def test_monte_carlo_compiles_a_function_once(batching):
     # a second run() of the same fn (new seed, the same chunk) neither traces nor compiles
