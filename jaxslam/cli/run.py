@@ -186,7 +186,7 @@ def command(rest: list[str]) -> int:
 
     if args.threads is not None:
         os.environ["JAXSLAM_MC_THREADS"] = str(args.threads)  # read by monte_carlo.run's default
-    threads = monte_carlo.default_threads()  # also checks a user-set $JAXSLAM_MC_THREADS
+    monte_carlo.default_threads()  # a bad $JAXSLAM_MC_THREADS fails here, before anything compiles
     progress = Progress(args.runs, label=scenario.name, enabled=not args.quiet)
     with compilation.account() as acct:
         try:
@@ -200,7 +200,6 @@ def command(rest: list[str]) -> int:
                         "expected ScenarioResult")
 
     report = io.run_json(scenario.name, args.runs, args.seed, dtype, result)
-    report["config"]["threads"] = threads
     if group is not None:
         report["config"]["processes"] = group[1]  # the runs were split over this many processes
     report["timing"]["main_program_compile_s"] = report["timing"]["compile_s"]

@@ -262,6 +262,7 @@ def run_scenario(name, mode, runs, seed, dtype, options, progress, params=None, 
                       **{f: None if getattr(noise, f) is None else float(getattr(noise, f))
                          for f in ("gate", "nn_gate", "nn_new")}},
         "anees_window_s": WINDOW_S,
+        "threads": mc.threads,  # host threads that ran the flights (monte_carlo "loop")
         **options,
     }
     return ScenarioResult(

@@ -338,6 +338,7 @@ def run_scenario(runs, seed, dtype, options, progress, params=None, plots=False)
         "filter_params": {k: np.asarray(v, float).tolist() for k, v in prm._asdict().items()
                           if k != "quad"},
         "filter_quad": {k: np.asarray(v, float).tolist() for k, v in prm.quad._asdict().items()},
+        "threads": mc.threads,  # host threads that ran the flights (monte_carlo "loop")
         **options,
     }
     return ScenarioResult(
