@@ -74,10 +74,8 @@ def test_threaded_loop_interrupt_lets_the_runs_in_flight_finish():
     # A fake compiled run: run 1 is slow (0.3 s), the others take 5 ms.  Two threads: the Ctrl-C
     # (at the second finished run) comes while run 1 is still in flight; it finishes and is kept,
     # with the prefix before it, and no new run starts after the interrupt.
-    import time as _time
-
     def compiled(i):
-        _time.sleep(0.3 if int(i) == 1 else 0.005)
+        time.sleep(0.3 if int(i) == 1 else 0.005)
         return {"i": np.asarray(int(i))}
 
     outs = monte_carlo._loop_runs(compiled, np.arange(200), 2, False, _StopAt(2))
