@@ -141,8 +141,11 @@ STEPS_INSIDE_MIN = 0.90
 def steps_inside(per_step, bounds) -> float:
     """Fraction of steps whose per-step ANEES lies inside ``bounds`` = (lo, hi) (a NaN step counts
     as outside): the per-step check that :func:`steps_inside_text` puts in words."""
+    lo, hi = (float(b) for b in bounds)
+    if not lo <= hi:
+        raise InputError(f"bounds: expected (lo, hi) with lo <= hi, got ({lo}, {hi})")
     a = np.asarray(per_step, float)
-    return float(np.mean((a >= bounds[0]) & (a <= bounds[1])))
+    return float(np.mean((a >= lo) & (a <= hi)))
 
 
 def steps_inside_text(fraction) -> str:
@@ -175,6 +178,8 @@ def consistency_verdict(value, bounds, kind: str | None = "nees") -> str:
     (what the side means for ``kind`` ``"nees"`` or ``"nis"``; bare ``"OUTSIDE"`` for
     ``kind=None``), or ``"undefined"`` when the value or a bound is missing or non-finite.
     """
+    if kind is not None and kind not in _OUTSIDE_MEANS:
+        raise InputError(f"kind: expected one of {sorted(_OUTSIDE_MEANS)} or None, got {kind!r}")
     try:
         v = float(value)
         lo, hi = (float(b) for b in bounds)
@@ -318,6 +323,27 @@ def umeyama(src, dst, with_scale: bool = False):
     return R, t, s
 
 
+def _trajectories(est_pos, true_pos):
+    """Two (T, d) position arrays of one trajectory, d in 1..3 (static checks):
+    :class:`InputError` naming the argument (an off-by-one length or a transposed (d, T) array
+    would otherwise broadcast into a wrong number)."""
+    est, tru = jnp.asarray(est_pos), jnp.asarray(true_pos)
+    for name, a in (("est_pos", est), ("true_pos", tru)):
+        if a.ndim != 2 or not 1 <= a.shape[1] <= 3 or a.shape[0] < 1:
+            raise InputError(f"{name}: expected shape (T, d) with d in 1..3 (one position per row), "
+                             f"got {tuple(a.shape)}")
+    if est.shape != tru.shape:
+        raise InputError(f"est_pos and true_pos: the same (T, d) shape expected (one estimate per "
+                         f"true position), got {tuple(est.shape)} and {tuple(tru.shape)}")
+    return est, tru
+
+
+def _lag(lag) -> int:
+    if isinstance(lag, bool) or not isinstance(lag, (int, np.integer)):
+        raise InputError(f"lag: must be an int (a number of steps), got {lag!r}")
+    return int(lag)
+
+
 def ate(est_pos, true_pos, align: str = "rigid"):
     """Absolute trajectory error: position RMSE after alignment.
 
@@ -332,8 +358,7 @@ def ate(est_pos, true_pos, align: str = "rigid"):
     """
     if align not in ("rigid", "sim", "none"):
         raise InputError(f"align: expected 'rigid', 'sim' or 'none', got {align!r}")
-    est = jnp.asarray(est_pos)
-    tru = jnp.asarray(true_pos)
+    est, tru = _trajectories(est_pos, true_pos)
     if align != "none":
         R, t, s = umeyama(est, tru, with_scale=(align == "sim"))
         est = s * est @ R.T + t
@@ -350,9 +375,8 @@ def rpe(est_pos, true_pos, lag: int = 1):
         est_pos, true_pos: (T, d) positions [m].
         lag: static step lag ≥ 1, < T.
     """
-    lag = int(lag)
-    est = jnp.asarray(est_pos)
-    tru = jnp.asarray(true_pos)
+    lag = _lag(lag)
+    est, tru = _trajectories(est_pos, true_pos)
     if lag < 1 or lag >= est.shape[0]:
         raise InputError(f"lag: must be in [1, {est.shape[0] - 1}], got {lag}")
     de = est[lag:] - est[:-lag]
@@ -370,7 +394,7 @@ def rpe_se2(est_pose, true_pose, lag: int = 1):
     Returns:
         ``(trans_rmse [m], rot_rmse [rad])`` of ``E_i = (Q_i⁻¹ Q_{i+lag})⁻¹ (P_i⁻¹ P_{i+lag})``.
     """
-    lag = int(lag)
+    lag = _lag(lag)
     est = jnp.asarray(est_pose)
     tru = jnp.asarray(true_pose)
     if est.ndim != 2 or est.shape[1] != 3 or est.shape != tru.shape:

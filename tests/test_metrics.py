@@ -282,3 +282,27 @@ def test_tum_round_trip(tmp_path):
     np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, atol=1e-8)
     with pytest.raises(InputError, match="positions"):
         metrics.write_tum(tmp_path / "x.txt", t, xy[:2])
+
+
+def test_trajectory_metrics_name_mismatched_or_transposed_inputs():
+    rng = np.random.default_rng(3)
+    tru = rng.normal(size=(10, 3))
+    est = tru + 0.01 * rng.normal(size=(10, 3))
+    ok = float(metrics.ate(est, tru))
+    assert 0 < ok < 0.05
+    cases = [
+        (lambda: metrics.ate(est[:9], tru), r"^est_pos and true_pos: the same \(T, d\) shape expected"),
+        (lambda: metrics.rpe(est, tru[:8]), r"^est_pos and true_pos: the same \(T, d\) shape expected"),
+        (lambda: metrics.ate(est[:, :2], tru), r"^est_pos and true_pos: the same"),
+        # a transposed (3, T) pair used to return a plausible number
+        (lambda: metrics.ate(est.T, tru.T), r"^est_pos: expected shape \(T, d\) with d in 1..3"),
+        (lambda: metrics.ate(est[:1], tru, align="none"), r"^est_pos and true_pos: the same"),
+        (lambda: metrics.ate(est[:, 0], tru[:, 0]), r"^est_pos: expected shape \(T, d\)"),
+        (lambda: metrics.rpe(est, tru, lag=1.7), r"^lag: must be an int"),
+        (lambda: metrics.steps_inside([1.0, 2.0], (3.0, 1.0)), r"^bounds: expected \(lo, hi\) with lo <= hi"),
+        (lambda: metrics.consistency_verdict(1.0, (0.5, 2.0), kind="foo"), r"^kind: expected one of"),
+    ]
+    for call, msg in cases:
+        with pytest.raises(InputError, match=msg):
+            call()
+    assert metrics.consistency_verdict(1.0, (0.5, 2.0), kind=None) == "ok"

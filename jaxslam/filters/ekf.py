@@ -77,7 +77,7 @@ import numpy as np
 
 from .. import errors
 from ..errors import InputError
-from ..linalg import check_psd, symmetrize, value_and_jacfwd, wrap_angle
+from ..linalg import check_psd, is_concrete, symmetrize, value_and_jacfwd, wrap_angle
 from ..stats import chi2_ppf_np
 from . import gaussian as _g
 from .gaussian import (
@@ -86,7 +86,10 @@ from .gaussian import (
     GaussianFilter,
     Posterior,
     UpdateInfo,
+    check_gate,
     check_measurement,
+    check_noise_values,
+    check_state,
     finalize as _finalize,
     innovation_solve,
     masked_innovation,
@@ -169,6 +172,11 @@ def chi2_gate(prob: float, max_dof: int) -> Callable[[Array], Array]:
         return jnp.asarray(table)[jnp.clip(dof, 0, int(max_dof))]
 
     return gate
+
+
+def _check_num_iter(num_iter):
+    if isinstance(num_iter, bool) or not isinstance(num_iter, (int, np.integer)) or num_iter < 1:
+        raise InputError(f"num_iter: must be an int >= 1 (1 = plain EKF), got {num_iter!r}")
 
 
 def _default_residual(z, zhat):
@@ -258,7 +266,7 @@ def predict(state: Gaussian, f: Callable, u, Q, *args, noise_jac=None) -> Gaussi
     Returns:
         Predicted :class:`Gaussian` in the dtype of ``state.mean``.
     """
-    x, P = state
+    x, P = check_state(state)
     dtype = x.dtype
     xn, F = value_and_jacfwd(lambda v: f(v, u, *args))(x)
     xn = xn.astype(dtype)
@@ -334,10 +342,12 @@ def update(
         (``NOT_PSD``) or a non-finite posterior (``NON_FINITE``) the prior is
         returned unchanged.
     """
-    if int(num_iter) < 1:
-        raise InputError(f"num_iter: must be >= 1 (1 = plain EKF), got {num_iter}")
+    _check_num_iter(num_iter)
+    check_gate(gate)
+    state = check_state(state)
     x, P = state
     dtype = x.dtype
+    check_noise_values(R, "R", strict=True)
     z = jnp.asarray(z, dtype=dtype)
     R = jnp.asarray(R, dtype=dtype)
     m = z.shape[-1]
@@ -428,19 +438,39 @@ def update_batch(
         numerical failure of the joint update (``NOT_PSD``/``NON_FINITE``) is
         reported on every valid measurement and the prior is kept.
     """
+    check_gate(gate)
+    state = check_state(state)
     x, P = state
     dtype = x.dtype
     zs = jnp.asarray(zs, dtype=dtype)
+    if zs.ndim != 2:
+        raise InputError(f"zs: expected shape (M, m) (M measurements of size m), got {zs.shape}")
     M, m = zs.shape
     n = x.shape[0]
+    rs = tuple(np.shape(R))
+    if rs not in ((m, m), (M, m, m)):
+        raise InputError(f"R: expected shape ({m}, {m}) (shared) or ({M}, {m}, {m}) (per measurement), got {rs}")
+    if is_concrete(R):
+        check_psd(R, "R", strict=True, stack=len(rs) == 3)
     R = jnp.asarray(R, dtype=dtype)
     Rs = jnp.broadcast_to(R, (M, m, m))
     if masks is None:
         masks = jnp.ones((M, m), bool)
     else:
         masks = jnp.asarray(masks, bool)
+        if masks.shape not in ((M,), (M, m)):
+            raise InputError(f"masks: expected shape ({M},) or ({M}, {m}), got {masks.shape}")
         if masks.ndim == 1:
             masks = jnp.broadcast_to(masks[:, None], (M, m))
+    for i, a in enumerate(args):
+        for leaf in jax.tree_util.tree_leaves(a):
+            if np.ndim(leaf) < 1 or np.shape(leaf)[0] != M:
+                raise InputError(f"args[{i}]: every per-measurement argument needs a leading axis of "
+                                 f"size M = {M} (zs' rows), got shape {np.shape(leaf)}")
+    if M:
+        zh = jax.eval_shape(lambda v, *a: h(v, *a), x, *(jax.tree_util.tree_map(lambda t: t[0], a) for a in args))
+        if tuple(zh.shape) != (m,):
+            raise InputError(f"h: the measurement model returned shape {tuple(zh.shape)}, but each row of zs has ({m},)")
     res = _default_residual if residual is None else residual
 
     if sequential:

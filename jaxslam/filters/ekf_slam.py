@@ -67,6 +67,7 @@ from ..errors import InputError
 from ..linalg import (check_int, check_psd, check_whole_ids, cholesky_small, is_concrete, put_blocks, small_matmul,
                       symmetrize, take, take_blocks, value_and_jacfwd)
 from ..stats import student_t_nll
+from .gaussian import check_gate
 
 __all__ = [
     "SlamModel",
@@ -220,7 +221,12 @@ def preload(state: SlamState, model: SlamModel, means, covs=None, ids=None, mask
     Static slices only (no scatter); N ≤ capacity is checked at trace time.
     """
     nr, dl, cap = _sizes(state, model)
+    _check_sizes(state, model)
+    if is_concrete(means) and not np.all(np.isfinite(np.asarray(means, np.float64))):
+        raise InputError("means: contains NaN or Inf")
     means = jnp.asarray(means, state.x.dtype)
+    if means.ndim != 2 or means.shape[1] != dl:
+        raise InputError(f"means: expected shape (N, {dl}) (the model's lm_dim), got {tuple(means.shape)}")
     N = means.shape[0]
     if N > cap:
         raise InputError(f"means: {N} landmarks do not fit the map's {cap} slots")
@@ -248,6 +254,51 @@ def _sizes(state: SlamState, model: SlamModel):
     nr, dl = model.robot_dim, model.lm_dim
     cap = state.active.shape[0]
     return nr, dl, cap
+
+
+def _check_sizes(state: SlamState, model: SlamModel, name: str = "state"):
+    """The state's arrays against the model (static shapes: free under ``jit``): ``x`` of size
+    robot_dim + capacity·lm_dim, ``P`` square of that size.  Raises :class:`InputError`
+    (a state built with another model's sizes would otherwise write landmarks into the wrong
+    slots)."""
+    nr, dl, cap = _sizes(state, model)
+    n = nr + cap * dl
+    xs, ps = tuple(np.shape(state.x)), tuple(np.shape(state.P))
+    if xs != (n,) or ps != (n, n):
+        raise InputError(f"{name}: x {xs} and P {ps} do not fit the model: robot_dim {nr} + capacity "
+                         f"{cap} × lm_dim {dl} = {n} (was the state made by init with this model's "
+                         f"lm_dim?)")
+
+
+def _rows(z, ids, mask, dz: int, ids_name: str):
+    """``(z (K, d_z), ids (K,) int32, mask (K,) bool)`` as arrays, shapes checked (static):
+    :class:`InputError` naming the argument (a (K,) z with K = d_z would otherwise be read
+    as K rows of one component each, and lists have no ``.shape``)."""
+    z = jnp.asarray(z)
+    if z.ndim != 2 or z.shape[1] != dz or z.shape[0] < 1:
+        raise InputError(f"z: expected shape (K, {dz}) (K ≥ 1 rows of the model's meas_dim), got "
+                         f"{tuple(z.shape)}")
+    K = z.shape[0]
+    ids = jnp.asarray(ids)
+    if tuple(ids.shape) != (K,):
+        raise InputError(f"{ids_name}: expected shape ({K},) (one per row of z), got {tuple(ids.shape)}")
+    if not jnp.issubdtype(ids.dtype, jnp.integer):
+        raise InputError(f"{ids_name}: expected integers, got dtype {ids.dtype}")
+    mask = jnp.asarray(mask)
+    if tuple(mask.shape) != (K,):
+        raise InputError(f"mask: expected shape ({K},) (one per row of z), got {tuple(mask.shape)}")
+    return z, ids.astype(jnp.int32), mask.astype(bool)
+
+
+def _check_options(gate=None, robust=None, num_iter: int = 1):
+    """Static checks of an update's options: :class:`InputError` naming the option."""
+    if isinstance(num_iter, bool) or not isinstance(num_iter, (int, np.integer)) or num_iter < 1:
+        raise InputError(f"num_iter: must be an int >= 1 (1 = plain EKF), got {num_iter!r}")
+    check_gate(gate)
+    if robust is not None and is_concrete(robust) and np.ndim(robust) == 0:
+        nu = float(np.asarray(robust))
+        if not (nu > 0):  # NaN included
+            raise InputError(f"robust: the Student-t degrees of freedom must be > 0 (or None), got {nu}")
 
 
 def robot(state: SlamState, model: SlamModel):
@@ -308,8 +359,11 @@ def _predict(state: SlamState, model: SlamModel, u, Q, params, active_only: bool
     """:func:`predict` and whether this prediction was finite (the state's status is sticky,
     so a run needs the step's own verdict)."""
     nr = model.robot_dim
+    _check_sizes(state, model)
     if jnp.shape(Q) != (nr, nr):
         raise InputError(f"Q: expected shape ({nr}, {nr}) (the model's robot_dim), got {tuple(jnp.shape(Q))}")
+    if is_concrete(Q):
+        check_psd(np.asarray(Q), "Q")
     s = state.x[:nr]
     s_new, F = motion_and_jacobian(model, s, u, params)
     Prr = state.P[:nr, :nr]
@@ -530,11 +584,13 @@ def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
     Cost O(n²·K·d_z) through gathered columns (with ``active_only``, n of the leading block
     that holds the map for the correction of P, and O(n·(K·d_z)²) for the gain).
     """
+    _check_sizes(state, model)
+    _check_options(gate, robust, num_iter)
     nr, dl, cap = _sizes(state, model)
     dz = model.meas_dim
+    z, slots, mask = _rows(z, slots, mask, dz, "slots")
     K = z.shape[0]
     dtype = state.x.dtype
-    slots = slots.astype(jnp.int32)
     in_range = (slots >= 0) & (slots < cap)  # −1 (or any slot outside the map): no landmark
     slots = jnp.clip(slots, 0, cap - 1)
     R = _rows_R(R, mask, K, dz, dtype)
@@ -1012,7 +1068,8 @@ def register(state: SlamState, model: SlamModel, z, lm_ids, mask, R, params=None
     """
     if model.inverse is None:
         raise ValueError("register: this model has no inverse observation; use add_landmark")
-    mask = jnp.asarray(mask, bool)
+    _check_sizes(state, model)
+    z, lm_ids, mask = _rows(z, lm_ids, mask, model.meas_dim, "lm_ids")
     R = _rows_R(R, mask, z.shape[0], model.meas_dim, state.x.dtype)
     any_cand = _batch_max(jnp.any(mask).astype(jnp.int32)) > 0
     any_free = _batch_max(jnp.any(~state.active).astype(jnp.int32)) > 0

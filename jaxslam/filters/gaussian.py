@@ -50,7 +50,7 @@ import numpy as np
 
 from .. import errors
 from ..errors import InputError
-from ..linalg import check_psd, is_concrete, symmetrize
+from ..linalg import check_psd, host_array, is_concrete, symmetrize
 
 __all__ = [
     "Gaussian",
@@ -62,6 +62,9 @@ __all__ = [
     "finalize",
     "masked_innovation",
     "threshold",
+    "check_state",
+    "check_gate",
+    "check_noise_values",
     "check_process_noise",
     "process_noise",
     "check_measurement",
@@ -170,6 +173,51 @@ class GaussianFilter(NamedTuple):
 # ---------------------------------------------------------------------------
 # The shared correction
 # ---------------------------------------------------------------------------
+
+def check_state(state, name: str = "state") -> Gaussian:
+    """A belief as one step of a filter reads it: ``mean`` (n,) and ``cov`` (n, n) (shapes are
+    static, so this is free under ``jit``), and, when the covariance is known now (an eager
+    call), its values: finite, symmetric, positive semi-definite.  Raises :class:`InputError`
+    naming ``name.mean`` / ``name.cov``.  An integer mean is promoted to the covariance's
+    floating dtype (JAX's default float when that is an integer too), and the covariance is
+    returned in the mean's dtype, so a step computes in one dtype whatever the caller mixed.
+    """
+    x, P = state
+    xs, ps = tuple(np.shape(x)), tuple(np.shape(P))
+    if len(xs) != 1:
+        raise InputError(f"{name}.mean: expected shape (n,), got {xs}")
+    n = xs[0]
+    if ps != (n, n):
+        raise InputError(f"{name}.cov: expected shape ({n}, {n}) (the mean's size), got {ps}")
+    x_dt, p_dt = jnp.result_type(x), jnp.result_type(P)
+    if not jnp.issubdtype(x_dt, jnp.inexact):
+        x_dt = p_dt if jnp.issubdtype(p_dt, jnp.floating) else jnp.result_type(float)
+    if jnp.issubdtype(x_dt, jnp.complexfloating):
+        raise InputError(f"{name}.mean: expected a real array, got dtype {x_dt}")
+    if is_concrete(P):
+        check_psd(P, f"{name}.cov")
+    x = host_array(x, x_dt) if is_concrete(x) and jnp.result_type(x) != x_dt else jnp.asarray(x)
+    P = host_array(P, x_dt) if is_concrete(P) and p_dt != x_dt else jnp.asarray(P, x_dt)
+    return Gaussian(x, P)
+
+
+def check_noise_values(M, name: str, strict: bool = False):
+    """When ``M`` (a square noise covariance) is known now, check its values (finite,
+    symmetric, PSD; PD with ``strict``) and raise :class:`InputError` naming ``name``; traced:
+    nothing (a failure then shows in the status flags)."""
+    if is_concrete(M) and np.ndim(M) == 2:
+        check_psd(M, name, strict=strict)
+
+
+def check_gate(gate: Gate):
+    """A gate given as a number must be a positive χ² threshold (a NaN would switch gating off
+    without a word: ``x > nan`` is False); callables and traced values pass."""
+    if gate is None or callable(gate) or not is_concrete(gate) or np.ndim(gate) != 0:
+        return
+    g = float(np.asarray(gate))
+    if not (np.isfinite(g) and g > 0):
+        raise InputError(f"gate: must be a positive χ² threshold (or None), got {g}")
+
 
 def threshold(gate: Gate, dof, dtype):
     """The gate's χ² threshold for ``dof`` valid components (number or callable)."""

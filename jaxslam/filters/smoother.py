@@ -166,6 +166,8 @@ def rts(post: Posterior, *, difference: Optional[Callable] = None,
     if post.pred_covs is None or post.cross_covs is None or post.covs is None:
         raise InputError("post: the filter run must save what the smoother needs "
                          "(run it with save_smoother=True)")
+    if jnp.shape(post.means)[0] == 0:
+        raise InputError("post: the filter run has no steps (T = 0): nothing to smooth")
     diff = _sub if difference is None else difference
     ms, Ps, st = _backward_pass(post.means, post.covs, post.pred_means, post.pred_covs,
                                 post.cross_covs, diff)
@@ -208,6 +210,8 @@ def fixed_lag(
     lag = check_int(lag, "lag", lower=0, what="a whole number of steps")  # 2.5 or True is not a lag
     diff = _sub if difference is None else difference
     x0, P0, zs, masks, Q, R, q_step, r_step, T = _g.prepare_run(x0, P0, zs, masks, Q, R)
+    if T == 0:
+        raise InputError("zs: the run has no steps (T = 0): nothing to smooth")
     _g.check_leading(us, T, "us")
     _g.check_leading(h_inputs, T, "h_inputs")
     L = min(lag, T - 1)
@@ -357,6 +361,8 @@ def iterated(
     if num_iter < 1:
         raise InputError(f"num_iter: must be >= 1, got {num_iter}")
     x0, P0, zs, masks, Q, R, q_step, r_step, T = _g.prepare_run(x0, P0, zs, masks, Q, R)
+    if T == 0:
+        raise InputError("zs: the run has no steps (T = 0): nothing to smooth")
     _g.check_leading(us, T, "us")
     dtype = x0.dtype
     n = x0.shape[0]

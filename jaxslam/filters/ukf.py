@@ -106,7 +106,7 @@ import numpy as np
 
 from .. import errors
 from ..errors import InputError
-from ..linalg import symmetrize
+from ..linalg import check_psd, is_concrete, symmetrize
 from . import gaussian as _g
 from .gaussian import (
     Gate,
@@ -114,7 +114,10 @@ from .gaussian import (
     GaussianFilter,
     Posterior,
     UpdateInfo,
+    check_gate,
     check_measurement,
+    check_noise_values,
+    check_state,
     finalize,
     innovation_solve,
     masked_innovation,
@@ -276,9 +279,8 @@ def sigma_points(mean, cov, points: Optional[SigmaPoints] = None) -> SigmaSet:
 
 def _predict(state: Gaussian, f: Optional[Callable], u, Q, args, rule: SigmaPoints, noise_jac):
     """``(Gaussian, cross, status)`` of one sigma-point time update."""
-    x, P = state
+    x, P = check_state(state)
     dtype = x.dtype
-    P = jnp.asarray(P, dtype)
     Qd = process_noise(Q, x, u, args, noise_jac)
     if f is None:
         Pn = symmetrize(P + Qd)
@@ -413,9 +415,10 @@ def update(
         (``NON_FINITE``), the prior is returned unchanged.
     """
     rule = _rule(points)
-    x, P = state
+    check_gate(gate)
+    x, P = check_state(state)
     dtype = x.dtype
-    P = jnp.asarray(P, dtype)
+    check_noise_values(R, "R", strict=True)
     z = jnp.asarray(z, dtype)
     R = jnp.asarray(R, dtype)
     m = z.shape[-1]
@@ -545,6 +548,11 @@ def filter_scan(
     Returns:
         :class:`Posterior` in the dtype of ``x0`` (``log_likelihood`` per step included).
     """
+    if is_concrete(P0) and np.ndim(P0) == 2:
+        # the sigma points factor P: a singular P0 (a zero variance) would fail every step's
+        # factorisation and keep the prior for the whole run
+        check_psd(P0, "P0", strict=True, tol=0.0)
+    check_gate(gate)
     flt = make_filter(f, h, *args, residual=residual, gate=gate, noise_jac=noise_jac,
                       points=points, h_takes_input=h_inputs is not None)
     return _g.run(flt, x0, P0, us, zs, masks, Q, R, h_inputs=h_inputs,

@@ -161,6 +161,9 @@ def run(fn: Callable, seed: int, runs: int, chunk: Optional[int] = None,
     chunk = None if chunk is None else check_int(chunk, "chunk", what="None or an int")
     if cpu_batching not in ("vmap", "loop"):
         raise ValueError(f"cpu_batching: expected 'vmap' or 'loop', got {cpu_batching!r}")
+    seed = check_int(seed, "seed", lower=-2**63, what="an int")
+    if devices is not None and len(list(devices)) == 0:
+        raise InputError("devices: an empty list (None: every local device)")
     if devices is None and jax.process_count() > 1:  # a group of processes: one block each
         from . import distributed
 

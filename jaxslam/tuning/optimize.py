@@ -64,6 +64,7 @@ import optax
 
 from .. import runtime
 from ..errors import InputError
+from ..linalg import is_concrete
 
 __all__ = ["FitResult", "make_optimizer", "batch_loss", "fit", "memory_report", "peak_rss_mb", "FAST_COMPILE"]
 
@@ -108,6 +109,9 @@ def make_optimizer(lr: float, steps: int, schedule: str = "cosine", warmup: Opti
         raise InputError(f"lr (--lr): must be a positive number, got {lr}")
     if steps < 1:
         raise InputError(f"steps (--steps): must be >= 1, got {steps}")
+    if warmup is not None and (isinstance(warmup, bool) or not isinstance(warmup, (int, np.integer))
+                               or warmup < 0):
+        raise InputError(f"warmup: must be an int >= 0 (or None), got {warmup!r}")
     warmup = max(1, int(round(0.05 * steps))) if warmup is None else int(warmup)
     if schedule == "cosine":
         sched = optax.warmup_cosine_decay_schedule(
@@ -214,7 +218,23 @@ def fit(loss_fn: Callable, theta0, train, steps: int, lr: float = 0.1, *, test=N
     leaves = jax.tree.leaves(train)
     if not leaves:
         raise InputError("train: empty batch")
+    if any(np.ndim(x) < 1 for x in leaves):
+        raise InputError("train: every array needs a leading axis of runs")
     runs = int(leaves[0].shape[0])
+    if runs < 1 or any(int(np.shape(x)[0]) != runs for x in leaves):
+        raise InputError(f"train: every array needs the same leading axis of runs (≥ 1), got "
+                         f"{sorted({int(np.shape(x)[0]) for x in leaves})}")
+    th_leaves = jax.tree.leaves(theta0)
+    if not th_leaves:
+        raise InputError("theta0: no parameters")
+    for x in th_leaves:
+        if not jnp.issubdtype(jnp.result_type(x), jnp.floating):
+            raise InputError(f"theta0: parameters must be floating-point arrays (a gradient needs "
+                             f"them), got dtype {jnp.result_type(x)}")
+        if is_concrete(x) and not np.all(np.isfinite(np.asarray(x))):
+            raise InputError("theta0: contains NaN or Inf")
+    if isinstance(max_skips, bool) or not isinstance(max_skips, (int, np.integer)) or max_skips < 0:
+        raise InputError(f"max_skips: must be an int >= 0, got {max_skips!r}")
     if batch_size is not None and not (1 <= batch_size <= runs):
         raise InputError(f"batch_size: must be in [1, {runs}], got {batch_size}")
     if batch_size is not None and batch_size < runs and key is None:

@@ -169,7 +169,12 @@ def theta_from_cov(spec: CovSpec, M, floor: float | None = None, dtype=None, nam
 
 
 def cov_from_theta(spec: CovSpec, theta):
-    """The matrix of θ under ``spec`` (jit/vmap/grad-safe; dtype of θ)."""
+    """The matrix of θ under ``spec`` (jit/vmap/grad-safe; dtype of θ).  θ must hold
+    :func:`n_params` entries (a static check: :class:`InputError` naming ``theta``)."""
+    k = n_params(spec)
+    if tuple(np.shape(theta)) != (k,):
+        raise InputError(f"theta: CovSpec({spec.kind!r}, {spec.n}) needs shape ({k},), got "
+                         f"{tuple(np.shape(theta))}")
     if spec.kind == "diag":
         return cov_from_log_diag(theta)
     return cov_from_log_chol(theta, spec.n)
@@ -186,4 +191,7 @@ def pack(specs: dict, mats: dict, floors: dict | None = None, dtype=None) -> dic
 
 def unpack(specs: dict, thetas: dict) -> dict:
     """{name: matrix} for {name: CovSpec} and {name: θ} (jit/grad-safe)."""
+    missing = set(specs) - set(thetas)
+    if missing:
+        raise InputError(f"thetas: no parameters for {sorted(missing)}")
     return {k: cov_from_theta(s, thetas[k]) for k, s in specs.items()}

@@ -312,3 +312,191 @@ def test_with_update_first_a_failed_predict_is_the_next_steps(mod):
     if hasattr(post, "log_likelihood"):
         ll = np.asarray(post.log_likelihood)
         assert np.isnan(ll[8]) and np.all(np.isfinite(np.delete(ll, 8)))
+
+
+# ---------------------------------------------------------------------------
+# One step called by hand (a user's own loop): the same rules as a whole run
+# ---------------------------------------------------------------------------
+
+X3, P3, Q3, R2 = np.zeros(3), np.eye(3), 0.1 * np.eye(3), 0.1 * np.eye(2)
+
+
+def f3(x, u):
+    return x + u
+
+
+def h3(x):
+    return x[:2]
+
+
+@pytest.mark.parametrize("mod", [ekf, ukf], ids=["ekf", "ukf"])
+def test_an_integer_mean_is_promoted_not_truncated(mod):
+    # jnp.array([0, 0, 0]) is an easy slip: the step must compute in floating point, as the
+    # float mean does (the UKF used to return [0, 0, 0] as int64 for x + 1)
+    u = np.ones(3)
+    good = mod.predict(ekf.Gaussian(jnp.asarray(X3), jnp.asarray(P3)), f3, u, Q3)
+    got = mod.predict(ekf.Gaussian(jnp.array([0, 0, 0]), jnp.asarray(P3)), f3, u, Q3)
+    assert jnp.issubdtype(got.mean.dtype, jnp.floating)
+    np.testing.assert_allclose(np.asarray(got.mean), [1.0, 1.0, 1.0], rtol=0, atol=1e-15)  # UKF: weighted sum
+    np.testing.assert_allclose(np.asarray(got.cov), np.asarray(good.cov), rtol=0, atol=1e-15)
+    post, info = mod.update(ekf.Gaussian(jnp.array([0, 0, 0]), jnp.asarray(P3)), np.array([0.5, -0.5]), h3, R2)
+    ref, _ = mod.update(ekf.Gaussian(jnp.asarray(X3), jnp.asarray(P3)), np.array([0.5, -0.5]), h3, R2)
+    assert int(info.status) == 0
+    np.testing.assert_allclose(np.asarray(post.mean), np.asarray(ref.mean), rtol=0, atol=1e-15)
+
+
+@pytest.mark.parametrize("mod", [ekf, ukf], ids=["ekf", "ukf"])
+def test_one_step_names_a_bad_state_r_or_gate(mod):
+    st = ekf.Gaussian(jnp.asarray(X3), jnp.asarray(P3))
+    z = np.array([0.5, -0.5])
+    with pytest.raises(InputError, match=r"^state\.cov: expected shape \(3, 3\) \(the mean's size\)"):
+        mod.predict(ekf.Gaussian(jnp.asarray(X3), jnp.eye(2)), f3, np.ones(3), Q3)
+    with pytest.raises(InputError, match=r"^state\.mean: expected shape \(n,\)"):
+        mod.update(ekf.Gaussian(jnp.zeros((3, 1)), jnp.asarray(P3)), z, h3, R2)
+    with pytest.raises(InputError, match=r"^state\.cov: not positive semi-definite"):
+        mod.update(ekf.Gaussian(jnp.asarray(X3), -0.01 * jnp.asarray(P3)), z, h3, R2)
+    with pytest.raises(InputError, match=r"^R: not positive definite"):
+        mod.update(st, z, h3, -R2)  # used to be accepted: a posterior variance of -0.11
+    with pytest.raises(InputError, match=r"^R: not symmetric"):
+        mod.update(st, z, h3, np.array([[0.1, 0.5], [0.0, 0.1]]))
+    for gate in (float("nan"), -1.0, 0.0):  # NaN used to switch gating off (x > nan is False)
+        with pytest.raises(InputError, match=r"^gate: must be a positive"):
+            mod.update(st, z, h3, R2, gate=gate)
+    # inside jit the values are unknown: nothing is raised, the flags speak (as before)
+    post, info = jax.jit(lambda P: mod.update(ekf.Gaussian(jnp.asarray(X3), P), z, h3, R2))(-jnp.eye(3))
+    assert int(info.status) & (errors.NOT_PSD | errors.NON_FINITE) or not bool(info.accepted)
+
+
+def test_a_float32_mean_keeps_its_dtype_with_a_float64_covariance():
+    # x64 on: a float32 mean with a float64 covariance used to give a float64 mean from the
+    # update and a float32 mean with a float64 covariance from the predict
+    st = ekf.Gaussian(jnp.zeros(3, jnp.float32), jnp.eye(3, dtype=jnp.float64))
+    for g in (ekf.predict(st, f3, np.ones(3), Q3), ekf.update(st, np.array([0.5, -0.5]), h3, R2)[0],
+              ukf.predict(st, f3, np.ones(3), Q3), ukf.update(st, np.array([0.5, -0.5]), h3, R2)[0]):
+        assert g.mean.dtype == jnp.float32 and g.cov.dtype == jnp.float32
+
+
+def test_num_iter_must_be_a_whole_count():
+    st = ekf.Gaussian(jnp.asarray(X3), jnp.asarray(P3))
+    for bad in (0, 2.5, True):
+        with pytest.raises(InputError, match=r"^num_iter: must be an int >= 1"):
+            ekf.update(st, np.array([0.5, -0.5]), h3, R2, num_iter=bad)
+
+
+def test_update_batch_names_each_argument():
+    st = ekf.Gaussian(jnp.zeros(2), jnp.eye(2))
+    lms = np.array([[1.0, 0.0], [0.0, 2.0], [3.0, 3.0]])  # M = 3
+
+    def rng(x, lm):
+        return jnp.reshape(jnp.linalg.norm(x - lm), (1,))
+
+    zs = np.array([[1.0], [2.0], [4.2]])
+    R = 0.01 * np.eye(1)
+    post, info = ekf.update_batch(st, zs, rng, R, lms)  # well formed
+    assert info.nis.shape == (3,)
+    cases = [
+        (dict(zs=zs[:, 0]), r"^zs: expected shape \(M, m\)"),
+        (dict(R=0.01 * np.eye(2)), r"^R: expected shape \(1, 1\) \(shared\) or \(3, 1, 1\)"),
+        (dict(R=np.stack([R, -R, R])), r"^R\[1\]: not positive definite"),
+        (dict(masks=np.ones(2, bool)), r"^masks: expected shape \(3,\) or \(3, 1\)"),
+        (dict(lms=lms[:2]), r"^args\[0\]: every per-measurement argument needs a leading axis of size M = 3"),
+        (dict(h=lambda x, lm: jnp.stack([jnp.linalg.norm(x - lm)] * 2)),
+         r"^h: the measurement model returned shape \(2,\), but each row of zs has \(1,\)"),
+        (dict(gate=float("nan")), r"^gate: must be a positive"),
+    ]
+    for change, msg in cases:
+        a = dict(zs=zs, R=R, lms=lms, masks=None, h=rng, gate=None)
+        a.update(change)
+        with pytest.raises(InputError, match=msg):
+            ekf.update_batch(st, a["zs"], a["h"], a["R"], a["lms"], masks=a["masks"], gate=a["gate"])
+
+
+def test_ukf_run_refuses_a_singular_p0_an_ekf_run_takes_it():
+    # the sigma points factor P: a zero initial variance would fail every step (the means
+    # frozen, the likelihood NaN); the EKF needs no factor of P and runs
+    P0 = np.diag([1.0, 0.0])
+    ekf.filter_scan(f, h, np.zeros(2), P0, None, ZS, None, Q2, R1)
+    with pytest.raises(InputError, match=r"^P0: not positive definite \(smallest eigenvalue 0"):
+        ukf.filter_scan(f, h, np.zeros(2), P0, None, ZS, None, Q2, R1)
+
+
+def _model2():
+    # 2-D robot, 2-D landmarks, relative position: d_z = 2
+    return es.SlamModel(2, 2, 2, lambda s, u, p=None: s + u, lambda s, l, p=None: l - s,
+                        lambda s, z, p=None: s + z)
+
+
+def test_engine_step_names_rows_options_and_sizes():
+    m = _model2()
+    st = es.preload(es.init(jnp.zeros(2), 0.01 * jnp.eye(2), 4, 2), m, jnp.array([[2.0, 0.0], [0.0, 3.0]]),
+                    0.1 * jnp.stack([jnp.eye(2)] * 2))
+    z = jnp.array([[2.1, 0.1], [0.1, 2.9]])
+    R = 0.01 * jnp.eye(2)
+    slots, on = jnp.array([0, 1]), jnp.array([True, True])
+    ref, ref_info = es.update(st, m, z, slots, on, R)
+    # lists are arrays (they used to fail on .shape / .astype)
+    post, _ = es.update(st, m, z.tolist(), [0, 1], [True, True], R)
+    np.testing.assert_array_equal(np.asarray(post.x), np.asarray(ref.x))
+    cases = [
+        # one measurement given as (d_z,) with K = d_z: used to be read as two 1-D rows and give
+        # a wrong landmark estimate with a clean status
+        (dict(z=z[0]), r"^z: expected shape \(K, 2\)"),
+        (dict(z=jnp.zeros((2, 3))), r"^z: expected shape \(K, 2\)"),
+        (dict(z=jnp.zeros((0, 2)), slots=jnp.zeros(0, jnp.int32), mask=jnp.zeros(0, bool)), r"^z: expected shape \(K, 2\) \(K ≥ 1"),
+        (dict(slots=jnp.array([0, 1, 2])), r"^slots: expected shape \(2,\)"),
+        (dict(slots=jnp.array([0.0, 1.0])), r"^slots: expected integers"),
+        (dict(mask=jnp.array([True])), r"^mask: expected shape \(2,\)"),
+        (dict(num_iter=0), r"^num_iter: must be an int >= 1"),
+        (dict(robust=-1.0), r"^robust: the Student-t degrees of freedom must be > 0"),
+        (dict(gate=float("nan")), r"^gate: must be a positive"),
+    ]
+    for change, msg in cases:
+        a = dict(z=z, slots=slots, mask=on, num_iter=1, robust=None, gate=None)
+        a.update(change)
+        with pytest.raises(InputError, match=msg):
+            es.update(st, m, a["z"], a["slots"], a["mask"], R, num_iter=a["num_iter"], robust=a["robust"],
+                      gate=a["gate"])
+    with pytest.raises(InputError, match=r"^lm_ids: expected shape \(2,\)"):
+        es.register(st, m, z, jnp.array([7]), on, R)
+    with pytest.raises(InputError, match=r"^z: expected shape \(K, 2\)"):
+        es.register(st, m, jnp.zeros((2, 1)), jnp.array([7, 8]), on, R)
+    # a negative Q given as a value (it used to drive the robot variance to 0, status clean)
+    with pytest.raises(InputError, match=r"^Q: not positive semi-definite"):
+        es.predict(st, m, jnp.zeros(2), -0.04 * jnp.eye(2))
+
+
+def test_engine_state_must_fit_the_model():
+    m = _model2()
+    wrong_lm = es.init(jnp.zeros(2), jnp.eye(2), 4, 3)  # lm_dim 3 for a model with lm_dim 2
+    wrong_robot = es.init(jnp.zeros(3), jnp.eye(3), 4, 2)
+    for st in (wrong_lm, wrong_robot):
+        with pytest.raises(InputError, match=r"^state: x \(\d+,\) and P \(\d+, \d+\) do not fit the model"):
+            es.predict(st, m, jnp.zeros(2), 0.01 * jnp.eye(2))
+        with pytest.raises(InputError, match=r"^state: x .* do not fit the model"):
+            es.register(st, m, jnp.ones((1, 2)), jnp.array([3]), jnp.array([True]), 0.01 * jnp.eye(2))
+    with pytest.raises(InputError, match=r"^means: contains NaN or Inf"):
+        es.preload(es.init(jnp.zeros(2), jnp.eye(2), 4, 2), m, jnp.array([[np.nan, 0.0]]))
+    with pytest.raises(InputError, match=r"^means: expected shape \(N, 2\)"):
+        es.preload(es.init(jnp.zeros(2), jnp.eye(2), 4, 2), m, jnp.array([1.0, 2.0]))
+
+
+def test_smoothers_refuse_a_run_with_no_steps():
+    from jaxslam.filters import smoother
+
+    zs0 = np.zeros((0, 1))
+    post = ekf.filter_scan(f, h, np.zeros(2), np.eye(2), None, zs0, None, Q2, R1, save_smoother=True)
+    assert post.means.shape == (0, 2)  # the filter itself runs zero steps
+    with pytest.raises(InputError, match=r"^post: the filter run has no steps"):
+        smoother.rts(post)
+    with pytest.raises(InputError, match=r"^zs: the run has no steps"):
+        smoother.fixed_lag(ekf.make_filter(f, h), np.zeros(2), np.eye(2), None, zs0, None, Q2, R1, lag=2)
+    with pytest.raises(InputError, match=r"^zs: the run has no steps"):
+        smoother.iterated(f, h, np.zeros(2), np.eye(2), None, zs0, None, Q2, R1)
+
+
+def test_monte_carlo_names_an_empty_device_list_and_a_float_seed():
+    fn = lambda k: {"x": jax.random.normal(k)}  # noqa: E731
+    with pytest.raises(InputError, match=r"^devices: an empty list"):
+        monte_carlo.run(fn, 0, 2, devices=[])
+    with pytest.raises(InputError, match=r"^seed: expected an int"):
+        monte_carlo.run(fn, 1.5, 2)

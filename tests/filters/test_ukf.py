@@ -6,6 +6,8 @@ textbook equations (pendulum), filterpy when importable, a rotation symmetry (be
 ±π), central finite differences, and chi-square Monte Carlo bounds (SciPy).
 """
 
+import functools
+
 import chex
 import jax
 import jax.numpy as jnp
@@ -366,11 +368,17 @@ def test_gate_and_not_psd_keep_the_prior():
         np.testing.assert_array_equal(np.asarray(post.mean), X0_CV)
         for leaf in (post.mean, info.nis, info.logdet, info.S, info.innovation):
             assert np.all(np.isfinite(np.asarray(leaf)))
-    # inside a run, from a singular P0 (PSD, which the run accepts, but not PD): the flag is
-    # reported at every step, the means stay finite, and the likelihood of those failed
-    # updates is undefined: NaN, never a finite number a sum would hide
-    p = ukf.filter_scan(f_cv, h_pos, X0_CV, np.zeros((4, 4)), np.zeros((3, 2)), np.zeros((3, 2)),
-                        None, np.zeros((4, 4)), R_CV)
+    # a singular P0 given as a value is refused before anything runs (the sigma points factor
+    # P, so every step would fail) ...
+    run = functools.partial(ukf.filter_scan, f_cv, h_pos, X0_CV)
+    args = (np.zeros((3, 2)), np.zeros((3, 2)), None, np.zeros((4, 4)), R_CV)
+    for P0 in (np.zeros((4, 4)), np.diag([1.0, 1.0, 0.0, 1.0])):
+        with pytest.raises(InputError, match=r"P0: not positive definite"):
+            run(P0, *args)
+    # ... and inside a jitted run (P0 traced, unknown until it runs) the flag is reported at
+    # every step, the means stay finite, and the likelihood of those failed updates is
+    # undefined: NaN, never a finite number a sum would hide
+    p = jax.jit(lambda P0: run(P0, *args))(np.zeros((4, 4)))
     assert np.all(np.asarray(p.status) & errors.NOT_PSD)
     assert np.all(np.isfinite(np.asarray(p.means))) and np.all(np.isnan(np.asarray(p.log_likelihood)))
 

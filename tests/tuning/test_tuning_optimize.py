@@ -130,3 +130,22 @@ def test_log_objective_descends_log_of_mean_and_records_plain_loss():
     assert res.history[0]["loss"] == pytest.approx(7.5)
     with pytest.raises(InputError, match="b2"):
         O.make_optimizer(0.1, 10, b2=1.0)
+
+
+def test_fit_names_bad_parameters_and_batches_before_compiling():
+    items = jnp.asarray([[1.0, -2.0], [3.0, 0.0]])
+    cases = [
+        (dict(theta0={"a": jnp.zeros(2, jnp.int32)}), r"^theta0: parameters must be floating-point"),
+        (dict(theta0={"a": jnp.array([0.0, jnp.nan])}), r"^theta0: contains NaN or Inf"),
+        (dict(theta0={}), r"^theta0: no parameters"),
+        (dict(train=jnp.zeros((0, 2))), r"^train: every array needs the same leading axis of runs \(≥ 1\)"),
+        (dict(train=(items, jnp.zeros((3, 2)))), r"^train: every array needs the same leading axis"),
+        (dict(max_skips=-1), r"^max_skips: must be an int >= 0"),
+        (dict(warmup=-2), r"^warmup: must be an int >= 0"),
+    ]
+    for change, msg in cases:
+        a = dict(theta0={"a": jnp.zeros(2)}, train=items, max_skips=3, warmup=None)
+        a.update(change)
+        loss = _quad if not isinstance(a["train"], tuple) else (lambda th, it: _quad(th, it[0]))
+        with pytest.raises(InputError, match=msg):
+            O.fit(loss, a["theta0"], a["train"], steps=2, max_skips=a["max_skips"], warmup=a["warmup"])

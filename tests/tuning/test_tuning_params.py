@@ -100,3 +100,17 @@ def test_floor_lifts_zero_entries():
     np.testing.assert_allclose(np.asarray(P.cov_from_log_chol(th, 2)), 1e-6 * np.eye(2), rtol=1e-12)
     with pytest.raises(InputError, match="floor"):
         P.log_diag_from_cov(np.eye(2), floor=-1.0)
+
+
+def test_theta_of_the_wrong_size_and_missing_names_are_named():
+    # a (4,) θ for a 3×3 log-Cholesky spec (6 parameters) used to broadcast one off-diagonal
+    # value onto all three entries; a (4,) θ for a 3×3 diagonal gave a 4×4 matrix
+    with pytest.raises(InputError, match=r"^theta: CovSpec\('chol', 3\) needs shape \(6,\), got \(4,\)"):
+        P.cov_from_theta(P.CovSpec("chol", 3), jnp.zeros(4))
+    with pytest.raises(InputError, match=r"^theta: CovSpec\('diag', 3\) needs shape \(3,\), got \(4,\)"):
+        P.cov_from_theta(P.CovSpec("diag", 3), jnp.zeros(4))
+    with pytest.raises(InputError, match=r"^kind: expected one of"):
+        P.cov_from_theta(P.CovSpec("cholesky", 3), jnp.zeros(6))
+    with pytest.raises(InputError, match=r"^thetas: no parameters for \['R'\]"):
+        P.unpack({"Q": P.CovSpec("diag", 2), "R": P.CovSpec("diag", 1)}, {"Q": jnp.zeros(2)})
+    np.testing.assert_allclose(np.asarray(P.cov_from_theta(P.CovSpec("chol", 2), jnp.zeros(3))), np.eye(2))
