@@ -140,9 +140,12 @@ STEPS_INSIDE_MIN = 0.90
 
 def steps_inside(per_step, bounds) -> float:
     """Fraction of steps whose per-step ANEES lies inside ``bounds`` = (lo, hi) (a NaN step counts
-    as outside): the per-step check that :func:`steps_inside_text` puts in words."""
+    as outside): the per-step check that :func:`steps_inside_text` puts in words.  NaN when a
+    bound is not finite (no check possible); reversed bounds are an :class:`InputError`."""
     lo, hi = (float(b) for b in bounds)
-    if not lo <= hi:
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        return float("nan")
+    if lo > hi:
         raise InputError(f"bounds: expected (lo, hi) with lo <= hi, got ({lo}, {hi})")
     a = np.asarray(per_step, float)
     return float(np.mean((a >= lo) & (a <= hi)))

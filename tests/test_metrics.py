@@ -306,3 +306,5 @@ def test_trajectory_metrics_name_mismatched_or_transposed_inputs():
         with pytest.raises(InputError, match=msg):
             call()
     assert metrics.consistency_verdict(1.0, (0.5, 2.0), kind=None) == "ok"
+    assert np.isnan(metrics.steps_inside([1.0, 2.0], (np.nan, 3.0)))  # no bounds: no verdict, no error
+    assert metrics.steps_inside_text(metrics.steps_inside([1.0], (np.nan, 3.0))) == "undefined"
