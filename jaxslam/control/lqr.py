@@ -41,7 +41,7 @@ import jax.scipy.linalg as jsl
 import numpy as np
 
 from ..errors import InputError
-from ..linalg import check_psd, check_shape, symmetrize
+from ..linalg import check_psd, check_shape, is_concrete, symmetrize
 
 __all__ = ["care", "lqr_gain", "lyapunov", "validate_weights"]
 
@@ -55,6 +55,9 @@ def lyapunov(A, C):
     ``A``: (n, n), ``C``: (n, n).  Unique when no two eigenvalues of A sum to zero (true for
     Hurwitz A).  Linear in C (transposable), used for the CARE refinement and its derivative.
     """
+    sa = tuple(np.shape(A))
+    if len(sa) != 2 or sa[0] != sa[1] or tuple(np.shape(C)) != sa:
+        raise InputError(f"A, C: expected two square matrices of one size, got {sa} and {tuple(np.shape(C))}")
     n = A.shape[-1]
     eye = jnp.eye(n, dtype=A.dtype)
     # Row-major vec: vec(AᵀX) = (Aᵀ ⊗ I) vec X, vec(XA) = (I ⊗ Aᵀ) vec X.
@@ -152,6 +155,21 @@ def _status(A, B, Q, R, P):
 _care_jit = jax.jit(_care)
 
 
+def _check_shapes(A, B, Q, R):
+    """Static shapes of a CARE: A (n, n), B (n, m), Q (n, n), R (m, m) (free under ``jit``);
+    :class:`InputError` naming the argument."""
+    sa, sb = tuple(np.shape(A)), tuple(np.shape(B))
+    if len(sa) != 2 or sa[0] != sa[1]:
+        raise InputError(f"A: expected a square (n, n) matrix, got shape {sa}")
+    n = sa[0]
+    if len(sb) != 2 or sb[0] != n:
+        raise InputError(f"B: expected shape ({n}, m) (A's rows), got {sb}")
+    m = sb[1]
+    for M, nm, k in ((Q, "Q", n), (R, "R", m)):
+        if tuple(np.shape(M)) != (k, k):
+            raise InputError(f"{nm}: expected shape ({k}, {k}), got {tuple(np.shape(M))}")
+
+
 def care(A, B, Q, R, *, return_status: bool = False):
     """Stabilising solution P of AᵀP + PA − PBR⁻¹BᵀP + Q = 0; paper 000 eq. 13.
 
@@ -162,6 +180,9 @@ def care(A, B, Q, R, *, return_status: bool = False):
     and reverse mode, by implicit differentiation.  Jit/vmap-safe; validate weights on the host
     with :func:`validate_weights`.
     """
+    _check_shapes(A, B, Q, R)
+    if is_concrete(Q, R):  # values known now (an eager call): a NaN Q used to give K = 0, P = 0
+        validate_weights(Q, R)
     dtype = jnp.result_type(A, B, Q, R)
     if not jnp.issubdtype(dtype, jnp.floating):
         dtype = jnp.result_type(float)

@@ -246,8 +246,15 @@ def control(q, omega, q_d, gains, inertia, omega_d=None, *, eps=1.0, switching="
     Composition of :func:`state_error`, :func:`law` and :func:`torque`; see those for
     the arguments.  Continuous in q across q0 = 0 and identical for q and −q.
     """
+    _validate_known(eps=eps, tau_max=tau_max, switching=switching, model=model)
     x = state_error(q, omega, q_d, omega_d)
     return torque(law(x, gains, eps, switching), omega, inertia, model, tau_max)
+
+
+def _validate_known(**kw):
+    """:func:`validate` on the arguments whose values are known now (an eager call; traced
+    ones pass, and the strings are always known): a zero ``eps`` used to give a NaN torque."""
+    validate(**{k: v for k, v in kw.items() if v is not None and (isinstance(v, str) or is_concrete(v))})
 
 
 # ---------------------------------------------------------------------------
@@ -540,6 +547,8 @@ def closed_loop(xa0, q_d, gains, inertia, dt, steps, key, bounds, *, perturbatio
     :func:`jaxslam.dynamics.quaternion_quad.step` (RK4 + renormalisation), all in one
     ``lax.scan``.  Returns :class:`Rollout`.  Validate on the host with :func:`validate`.
     """
+    _validate_known(inertia=inertia, dt=dt, eps=eps, tau_max=tau_max, switching=switching, model=model,
+                    perturbation_name=perturbation_name)
     xa0 = jnp.asarray(xa0)
     dtp = xa0.dtype
     q_d = jnp.asarray(q_d, dtp)

@@ -118,6 +118,10 @@ def merge_events(input_t, inputs, meas_t, meas, meas_ids=None, K: Optional[int] 
     if t_start is not None or t_end is not None:
         lo = -np.inf if t_start is None else float(t_start)
         hi = np.inf if t_end is None else float(t_end)
+        if np.isnan(lo) or np.isnan(hi):
+            # a NaN bound kept no event: the run then returned zeros flagged degenerate (an empty
+            # window stays allowed: a dataset runner reports it in its notes)
+            raise InputError(f"t_start, t_end: expected numbers (or None), got {t_start}, {t_end}")
         keep_z = (zt >= lo) & (zt <= hi)
         outside = int(np.sum(~keep_z))
         zt, Z, ids = zt[keep_z], Z[keep_z], ids[keep_z]

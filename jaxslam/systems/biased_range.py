@@ -17,11 +17,12 @@ from typing import NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ..filters import consistency as cons
 from ..filters import ekf_slam as es
 from ..errors import InputError
-from ..linalg import is_concrete, safe_norm
+from ..linalg import check_scalar, is_concrete, safe_norm
 from ..stats import chi2_ppf_np, student_t_d2_ppf_np
 
 __all__ = ["range_observe", "update_ranges", "resolve_outlier_gate", "Result", "OUTLIER_P"]
@@ -29,6 +30,38 @@ __all__ = ["range_observe", "update_ranges", "resolve_outlier_gate", "Result", "
 
 #: probability of the range model's own d² distribution below the outlier gate
 OUTLIER_P = 0.99
+
+
+def check_params(params, positive=(), nonneg=(), finite=(), where: str = "params") -> None:
+    """The scalar noise fields of a range-only system's ``params`` that are known now (traced
+    ones pass: a fit differentiates through them): ``positive`` ones finite and > 0 (standard
+    deviations), ``nonneg`` finite and >= 0 (densities), ``finite`` finite; ``gate`` None or
+    > 0.  Raises :class:`InputError` naming ``where.field`` (a negative σ used to run as its
+    absolute value, a NaN density to end in a NON_FINITE flag)."""
+    for names, lower, strict in ((positive, 0, True), (nonneg, 0, False), (finite, None, False)):
+        for f in names:
+            v = getattr(params, f)
+            if v is not None and is_concrete(v):
+                check_scalar(v, f"{where}.{f}", lower=lower, strict=strict)
+    g = getattr(params, "gate", None)
+    if g is not None and is_concrete(g):
+        check_scalar(g, f"{where}.gate", lower=0, strict=True)
+
+
+def check_positions(a, name: str) -> None:
+    """Known positions (anchors, beacons, a start pose) must be finite when given as values."""
+    if a is not None and is_concrete(a) and not np.all(np.isfinite(np.asarray(a, np.float64))):
+        raise InputError(f"{name}: contains NaN or Inf")
+
+
+def check_unique_ids(ids, name: str) -> None:
+    """Anchor/beacon ids must be distinct (a repeated id made every range of the second one
+    vanish, uncounted)."""
+    if is_concrete(ids):
+        a = np.asarray(ids)
+        u, c = np.unique(a, return_counts=True)
+        if np.any(c > 1):
+            raise InputError(f"{name}: repeated id(s) {u[c > 1].tolist()}")
 
 
 def resolve_outlier_gate(params):

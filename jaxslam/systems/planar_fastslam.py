@@ -76,7 +76,7 @@ from ..filters import consistency as cons
 from ..filters import fastslam as fs
 from ..linalg import check_scalar, inv_small, is_concrete, symmetrize, value_and_jacfwd, wrap_angle
 from ..sensors import range_bearing2d as rb
-from .planar_ekf_slam import Log, log_from_events
+from .planar_ekf_slam import Log, check_matrices, log_from_events
 
 __all__ = [
     "ANGLE_MASK",
@@ -263,7 +263,13 @@ def motion_fn(config: Config):
 
 
 def _validate_params(params: Params, config: Config):
-    """Concrete thresholds: numbers (not NaN), new_threshold ≥ the gate ("ml")."""
+    """Concrete matrices as the planar EKF's (M_c, R, P0 shape and PSD, R positive definite; a
+    negative P0 used to make every pose NaN), pose_floor finite and >= 0, thresholds numbers
+    (not NaN), new_threshold ≥ the gate ("ml")."""
+    check_matrices({"M_c": params.M_c, "R": params.R, "P0": params.P0}, "params", diagonal_ok=False)
+    pf = np.asarray(params.pose_floor, np.float64)
+    if pf.shape != (3,) or not np.all(np.isfinite(pf)) or np.any(pf < 0):
+        raise InputError(f"params.pose_floor: expected 3 finite densities >= 0, got {pf.tolist()}")
     thr = {f: check_scalar(getattr(params, f), f"params.{f}", finite=False)
            for f in THRESHOLDS if getattr(params, f) is not None}
     if "new_threshold" not in thr:
@@ -475,6 +481,12 @@ def _validate_log(log: Log, config: Config):
         # as the planar EKF's run (the jitted scan itself keeps a particle whose proposal is
         # not finite and flags NON_FINITE)
         raise InputError("log.u: contains NaN or Inf")
+    if is_concrete(log.dt):  # as the planar EKF's run (a negative dt ran backwards, unflagged)
+        dt = np.asarray(log.dt)
+        if not np.all(np.isfinite(dt)) or np.any(dt < 0):
+            raise InputError("log.dt: must be finite and >= 0")
+    if is_concrete(log.pose0) and not np.all(np.isfinite(np.asarray(log.pose0))):
+        raise InputError("log.pose0: contains NaN or Inf")
 
 
 def init(log: Log, config: Config, params: Params, *, key) -> State:
@@ -650,6 +662,8 @@ def run(log: Log, config: Config, params: Params, *, key) -> Result:
     """
     if key is None:
         raise InputError("key: planar FastSLAM draws particles; give a PRNG key")
+    if isinstance(key, (int, np.integer)) or np.ndim(key) == 0 and not jnp.issubdtype(jnp.result_type(key), jax.dtypes.prng_key):
+        raise InputError(f"key: expected a PRNG key (jax.random.PRNGKey(seed) or jax.random.key(seed)), got {key!r}")
     _validate(config)
     _check_prune(config, params)
     if is_concrete(params):

@@ -73,8 +73,9 @@ from ..errors import InputError
 from ..filters import consistency as cons
 from ..filters import ekf_slam as es
 from ..filters import delayed_init
-from ..linalg import symmetrize, wrap_angle
-from .biased_range import Result, _cast_params, _result, range_observe, resolve_outlier_gate, update_ranges
+from ..linalg import check_int, check_scalar, is_concrete, symmetrize, wrap_angle
+from .biased_range import (Result, _cast_params, _result, check_params, check_positions, check_unique_ids,
+                           range_observe, resolve_outlier_gate, update_ranges)
 
 __all__ = [
     "Config", "Params", "PARAMS", "Log", "Event", "State", "StepOut", "Result", "init", "step", "run",
@@ -380,6 +381,15 @@ def run(log: Log, config: Config = Config(), params: Params = PARAMS, *, key=Non
         raise InputError(f"log.z: expected shape (T, K, 1), got {np.shape(log.z)}")
     if log.beacons is not None and np.shape(log.beacons) != (N, 2):
         raise InputError(f"log.beacons: expected shape ({N}, 2), got {np.shape(log.beacons)}")
+    check_unique_ids(log.beacon_ids, "log.beacon_ids")
+    for a, name in ((log.beacons, "log.beacons"), (log.pose0, "log.pose0"), (log.u, "log.u")):
+        check_positions(a, name)
+    check_params(params, positive=("sigma_r", "sigma_bias0", "p0_pos", "p0_th"),
+                 nonneg=("alpha_d", "alpha_th", "beta_th", "sigma_d0", "sigma_th0", "q_bias", "min_spread"),
+                 finite=("bias0",))
+    if params.min_points is not None and is_concrete(params.min_points):
+        check_scalar(params.min_points, "params.min_points", lower=1)
+    check_int(config.window, "config.window", what="an int (ranges kept per beacon for its start)")
     dtype = jnp.asarray(log.z).dtype
     params = resolve_outlier_gate(params)
     config = config._replace(capacity=cap, window=int(config.window), smooth=bool(config.smooth),

@@ -105,8 +105,9 @@ from ..errors import InputError
 from ..filters import consistency as cons
 from ..filters import ekf_slam as es
 from ..filters import trilateration as tri
-from ..linalg import is_concrete, symmetrize
-from .biased_range import Result, _cast_params, _result, range_observe, resolve_outlier_gate, update_ranges
+from ..linalg import check_int, is_concrete, symmetrize
+from .biased_range import (Result, _cast_params, _result, check_params, check_positions, check_unique_ids,
+                           range_observe, resolve_outlier_gate, update_ranges)
 
 __all__ = [
     "Config", "Params", "PARAMS", "Log", "Event", "State", "StepOut", "Result", "Startup",
@@ -298,6 +299,9 @@ def util_events(t, anchor_id, ranges, t_start=None, t_end=None, tof_t=None,
         raise InputError("util_events: no ranges")
     z = np.asarray(ranges, np.float64).reshape(-1, 1)
     ids = np.asarray(anchor_id).astype(np.int32).reshape(-1)
+    if not (np.size(anchor_id) == t.size == z.shape[0]):
+        raise InputError(f"util_events: t, anchor_id and ranges need one entry per range, got "
+                         f"{t.size}, {np.size(anchor_id)} and {z.shape[0]}")
     if (tof_t is None) != (tof is None):
         raise InputError("util_events: give both tof_t and tof, or neither")
     if tof_t is None:
@@ -535,6 +539,12 @@ def run(log: Log, config: Config = Config(), params: Params = PARAMS, *, key=Non
         raise InputError(f"log.z: expected shape (T, K, 1), got {np.shape(log.z)}")
     if log.anchors is not None and np.shape(log.anchors) != (N, 3):
         raise InputError(f"log.anchors: expected shape ({N}, 3), got {np.shape(log.anchors)}")
+    check_unique_ids(log.anchor_ids, "log.anchor_ids")
+    check_positions(log.anchors, "log.anchors")
+    check_params(params, positive=("sigma_r", "p0_pos", "p0_vel", "p0_bias", "sigma_h"),
+                 nonneg=("q_acc", "q_bias"), finite=("tof_offset",))
+    if log.anchors is not None:
+        check_int(config.n_fix, "config.n_fix", what="an int (range rows of the start fix)")
     if params.anchor_offset is not None and np.shape(params.anchor_offset) != (N,):
         raise InputError(f"params.anchor_offset: expected shape ({N},) (one offset per anchor), "
                          f"got {np.shape(params.anchor_offset)}")
@@ -559,5 +569,7 @@ def _run(log: Log, config: Config, params: Params) -> Result:
     fields = (outs.pos, outs.pos_var, outs.heading, outs.bias, outs.bias_var, outs.nis, outs.dof, outs.used,
               outs.gated, outs.height_used, outs.height_gated)
     st = st._replace(status=st.status | cons.status_bits(jnp.sum(outs.outliers), jnp.sum(outs.monitored)))
-    return _result(log.t, fields, st, MODEL, log.anchor_ids.shape[0], 0, rs, sst, outs.nll, outs.nll_dof,
+    # range rows whose id is no anchor of the log: never used, counted (not silently lost)
+    n_unm = jnp.sum(log.mask & (log.ids != HEIGHT_ID) & ~jnp.isin(log.ids, log.anchor_ids)).astype(jnp.int32)
+    return _result(log.t, fields, st, MODEL, log.anchor_ids.shape[0], n_unm, rs, sst, outs.nll, outs.nll_dof,
                    outs.outliers, outs.monitored)

@@ -77,8 +77,9 @@ Array-level faults on the same real logs (``test_array_fault_on_real_log``; the 
 these in files, a caller of the systems can pass them): non-finite measurement rows →
 ``masked_input`` and an estimate equal to the run without those rows (planar EKF and planar
 FastSLAM on MRCLAM, ``util_range`` on UTIL, ``plaza_range`` on Plaza); NaN odometry → InputError from the
-planar ``run`` s, ``non_finite`` with a finite estimate inside jit (``run`` under ``jit``, the FastSLAM
-scan — its proposal keeps a particle whose new pose is not finite — and Plaza's run).
+planar ``run`` s and Plaza's, ``non_finite`` with a finite estimate inside jit (``run`` under ``jit``, the
+FastSLAM scan — its proposal keeps a particle whose new pose is not finite — and Plaza's run under
+``jit``).
 """
 
 import gzip
@@ -667,6 +668,8 @@ def _util_system(folder):
 
 
 def _plaza_system(folder):
+    import jax
+
     from jaxslam.data.plaza import load_plaza
     from jaxslam.systems import plaza_range as pr
 
@@ -674,8 +677,10 @@ def _plaza_system(folder):
     log = pr.plaza_events(d.dr_t, d.dr, d.td_t, d.td_node, d.td_range)
 
     def run(lg, validate=True):
-        return pr.run(pr.log_from_events(lg, np.asarray(d.start_pose(), np.float64), np.asarray(d.node_id),
-                                         beacons=np.asarray(d.node_xy, np.float64), dtype=np.float64))
+        log = pr.log_from_events(lg, np.asarray(d.start_pose(), np.float64), np.asarray(d.node_id),
+                                 beacons=np.asarray(d.node_xy, np.float64), dtype=np.float64)
+        # validate=False: the log traced (under jit), so run's value checks cannot see it
+        return pr.run(log) if validate else jax.jit(pr.run)(log)
 
     return log, run, lambda res: np.asarray(res.pos), lambda res: res.status
 
@@ -716,8 +721,8 @@ ARRAY_CELLS = [pytest.param(f, n, id=f"{f}-{n}-{SYSTEMS[n][0]}")
 def test_array_fault_on_real_log(fault, name, bases):
     """nan_rows / inf_rows: 6 present rows of the middle of the log non-finite → ``masked_input``,
     the estimate equal (1e-12) to the run without those rows; nan_input: 5 odometry samples NaN →
-    the planar ``run`` s refuse them (InputError naming log.u), inside jit (``run`` under ``jit``, the
-    FastSLAM scan, Plaza) each such prediction is refused → ``non_finite``, every estimate
+    the planar ``run`` s and Plaza's refuse them (InputError naming log.u), inside jit (``run`` under
+    ``jit``, the FastSLAM scan) each such prediction is refused → ``non_finite``, every estimate
     finite.  FastSLAM: the same key, so the masked run draws the same particles."""
     log, run, pos, status = SYSTEMS[name][1](bases[name.removesuffix("-fastslam")])
     assert "masked_input" not in errors.decode(status(run(log)))
@@ -726,7 +731,7 @@ def test_array_fault_on_real_log(fault, name, bases):
         moving = np.flatnonzero(np.any(u != 0, axis=1))
         u[moving[len(moving) // 2:][:5]] = np.nan
         bad = log._replace(u=u)
-        if name.startswith("mrclam"):
+        if name.startswith("mrclam") or name == "plaza":
             with pytest.raises(InputError, match="log.u"):
                 run(bad)
         res = run(bad, validate=False)

@@ -1,0 +1,144 @@
+"""Bad input to the systems' run functions and the controllers, named before anything compiles.
+
+Each case was found by a probe of the public API (2026-12-06): before, it ran silently
+(a negative σ as its absolute value, a repeated anchor id losing that anchor's ranges
+uncounted, a negative dt running backwards) or failed deep inside JAX.  The expected messages
+are written by hand; the well-formed call beside each shows the check does not refuse it.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxslam.control import lqr, smc
+from jaxslam.data import presets
+from jaxslam.errors import InputError
+from jaxslam.systems import planar_fastslam as pf
+from jaxslam.systems import plaza_range as pr
+from jaxslam.systems import util_range as ur
+
+ANCHORS = np.array([[-3.0, -4.0, 0.2], [-3.2, 3.8, 2.9], [3.7, 3.7, 0.2], [4.1, -4.3, 3.2]])
+T = 40
+
+
+def _util_log(aid=np.arange(4), ids=None):
+    t = np.arange(T) * 0.01
+    ids = np.arange(T) % 4 if ids is None else ids
+    r = np.linalg.norm(ANCHORS[np.arange(T) % 4], axis=1)
+    return ur.log_from_events(ur.util_events(t, ids, r), aid, anchors=ANCHORS, dtype=jnp.float64)
+
+
+def test_util_range_names_bad_params_ids_and_anchors():
+    cfg = ur.Config(height=False, n_fix=4)
+    ref = ur.run(_util_log(), cfg, ur.PARAMS)
+    assert int(ref.n_unmapped) == 0
+    for change, msg in [(dict(sigma_r=-1.0), r"^params\.sigma_r: expected a positive finite scalar"),
+                        (dict(sigma_r=0.0), r"^params\.sigma_r: expected a positive"),
+                        (dict(q_acc=float("nan")), r"^params\.q_acc: expected a non-negative finite scalar"),
+                        (dict(gate=-1.0), r"^params\.gate: expected a positive")]:
+        with pytest.raises(InputError, match=msg):
+            ur.run(_util_log(), cfg, ur.PARAMS._replace(**change))
+    with pytest.raises(InputError, match=r"^log\.anchor_ids: repeated id\(s\) \[0\]"):
+        ur.run(_util_log(aid=np.array([0, 1, 2, 0])), cfg, ur.PARAMS)
+    bad = _util_log()
+    with pytest.raises(InputError, match=r"^log\.anchors: contains NaN or Inf"):
+        ur.run(bad._replace(anchors=jnp.asarray(ANCHORS).at[1, 0].set(jnp.nan)), cfg, ur.PARAMS)
+    with pytest.raises(InputError, match=r"^config\.n_fix: expected an int"):
+        ur.run(_util_log(), cfg._replace(n_fix=0), ur.PARAMS)
+    # a range to an id that is no anchor of the log is never used, and now counted
+    ids = np.arange(T) % 4
+    ids[7] = 99
+    res = ur.run(_util_log(ids=ids), cfg, ur.PARAMS)
+    assert int(res.n_unmapped) == 1 and int(res.n_used) == int(ref.n_used) - 1
+
+
+def test_plaza_range_names_bad_params_positions_and_ids():
+    t = np.arange(1, 31) * 0.2
+    u = np.tile([0.2, 0.01], (30, 1))
+    beacons = np.array([[5.0, 0.0], [0.0, 5.0], [-5.0, 0.0]])
+    t_r, node = t[::3], np.array([10, 11, 12] * 4)[:10]
+    rr = np.linalg.norm(beacons[np.arange(10) % 3], axis=1)
+    ev = pr.plaza_events(t, u, t_r, node, rr)
+    bids = np.array([10, 11, 12])
+
+    def log(pose0=np.zeros(3), bids=bids, **kw):
+        return pr.log_from_events(ev, pose0, bids, beacons=kw.get("beacons", beacons), dtype=jnp.float64)
+
+    pr.run(log(), pr.Config(), pr.PARAMS)
+    with pytest.raises(InputError, match=r"^params\.sigma_r: expected a positive"):
+        pr.run(log(), pr.Config(), pr.PARAMS._replace(sigma_r=-1.2))  # ran as +1.2 before
+    with pytest.raises(InputError, match=r"^params\.alpha_d: expected a non-negative finite"):
+        pr.run(log(), pr.Config(), pr.PARAMS._replace(alpha_d=float("nan")))
+    with pytest.raises(InputError, match=r"^log\.pose0: contains NaN or Inf"):
+        pr.run(log(pose0=np.array([np.nan, 0.0, 0.0])), pr.Config(), pr.PARAMS)
+    with pytest.raises(InputError, match=r"^log\.beacons: contains NaN or Inf"):
+        pr.run(log(beacons=np.array([[np.nan, 0.0], [0.0, 5.0], [-5.0, 0.0]])), pr.Config(), pr.PARAMS)
+    with pytest.raises(InputError, match=r"^log\.beacon_ids: repeated id\(s\) \[10\]"):
+        pr.run(log(bids=np.array([10, 11, 10])), pr.Config(), pr.PARAMS)
+    with pytest.raises(InputError, match=r"^config\.window: expected an int"):
+        pr.run(log(), pr.Config(window=0), pr.PARAMS)
+
+
+def test_planar_fastslam_checks_what_the_planar_ekf_checks():
+    cfg, prm = presets.mrclam_fastslam_setup(n_particles=4)
+    K = int(cfg.K)
+    n = 6
+    log = pf.Log(dt=np.full(n, 0.1), u=np.tile([0.1, 0.0], (n, 1)), z=np.full((n, K, 2), np.nan),
+                 ids=np.zeros((n, K), np.int32), mask=np.zeros((n, K), bool), pose0=np.zeros(3),
+                 is_input=None)
+    key = jax.random.PRNGKey(0)
+    pf.run(log, cfg, prm, key=key)
+    dt = log.dt.copy()
+    dt[3] = -1.0  # ran backwards, unflagged
+    with pytest.raises(InputError, match=r"^log\.dt: must be finite and >= 0"):
+        pf.run(log._replace(dt=dt), cfg, prm, key=key)
+    with pytest.raises(InputError, match=r"^log\.pose0: contains NaN or Inf"):
+        pf.run(log._replace(pose0=np.array([np.nan, 0.0, 0.0])), cfg, prm, key=key)
+    with pytest.raises(InputError, match=r"^params\.P0: not positive semi-definite"):
+        pf.run(log, cfg, prm._replace(P0=-np.eye(3)), key=key)  # every pose NaN before
+    with pytest.raises(InputError, match=r"^params\.R: not positive definite"):
+        pf.run(log, cfg, prm._replace(R=np.zeros((2, 2))), key=key)
+    with pytest.raises(InputError, match=r"^key: expected a PRNG key"):
+        pf.run(log, cfg, prm, key=0)
+
+
+def test_lqr_and_smc_name_bad_weights_shapes_and_eps():
+    A = np.array([[0.0, 1.0], [0.0, 0.0]])
+    B = np.array([[0.0], [1.0]])
+    K, P = lqr.lqr_gain(A, B, np.eye(2), np.eye(1))
+    assert np.all(np.isfinite(np.asarray(K)))
+    with pytest.raises(InputError, match=r"^Q: contains NaN or Inf"):
+        lqr.lqr_gain(A, B, np.full((2, 2), np.nan), np.eye(1))  # gave K = 0, P = 0 before
+    with pytest.raises(InputError, match=r"^R: not positive definite"):
+        lqr.lqr_gain(A, B, np.eye(2), -np.eye(1))
+    with pytest.raises(InputError, match=r"^Q: expected shape \(2, 2\)"):
+        lqr.care(A, B, np.eye(3), np.eye(1))
+    with pytest.raises(InputError, match=r"^B: expected shape \(2, m\)"):
+        lqr.care(A, B.T, np.eye(2), np.eye(1))
+    with pytest.raises(InputError, match=r"^A, C: expected two square matrices of one size"):
+        lqr.lyapunov(np.zeros((2, 3)), np.eye(2))
+    # under jit the weights are traced: only shapes are checked, the status speaks
+    K_j, _, ok = jax.jit(lambda Q: lqr.lqr_gain(A, B, Q, np.eye(1), return_status=True))(jnp.eye(2))
+    np.testing.assert_allclose(np.asarray(K_j), np.asarray(K), rtol=1e-12)
+    gains = smc.SMCGains(jnp.ones((3, 6)), jnp.ones((3, 6)))
+    q = jnp.array([1.0, 0.0, 0.0, 0.0])
+    args = (q, jnp.zeros(3), q, gains, jnp.array([0.01, 0.01, 0.02]))
+    smc.control(*args, eps=0.5)
+    with pytest.raises(InputError, match=r"^eps: expected a finite positive scalar"):
+        smc.control(*args, eps=0.0)  # a NaN torque before
+    # closed_loop is jitted (its numbers are traced): its static options are named (a KeyError before)
+    with pytest.raises(InputError, match=r"^perturbation: expected one of"):
+        smc.closed_loop(jnp.concatenate([q, jnp.zeros(3)]), q, gains, jnp.array([0.01, 0.01, 0.02]), 0.01, 3,
+                        jax.random.PRNGKey(0), (0.1, 0.1), perturbation_name="gusts")
+
+
+def test_event_builders_name_a_nan_window_and_ragged_rows():
+    t = np.arange(10) * 0.1
+    r = np.ones(10)
+    ur.util_events(t, np.arange(10) % 4, r, t_start=0.2, t_end=0.7)
+    for lo, hi in ((float("nan"), 0.5), (0.2, float("nan"))):  # kept no event before: zeros, degenerate
+        with pytest.raises(InputError, match=r"^t_start, t_end: expected numbers"):
+            ur.util_events(t, np.arange(10) % 4, r, t_start=lo, t_end=hi)
+    with pytest.raises(InputError, match=r"^util_events: t, anchor_id and ranges need one entry per range"):
+        ur.util_events(t, np.arange(10) % 4, r[:-1], tof_t=t, tof=r)  # an IndexError before
