@@ -53,6 +53,27 @@ __all__ = [
 ]
 
 
+def _last_axis(x, n: int, name: str, fn: str):
+    """``x`` as an array whose last axis has ``n`` entries (static: free under ``jit``); else
+    :class:`~jaxslam.errors.InputError` naming ``fn``'s argument (a (3,) quaternion used to
+    be read as q0..q2 with q3 taken from a wrapped index, and return a plausible answer)."""
+    x = jnp.asarray(x)
+    if x.ndim < 1 or x.shape[-1] != n:
+        from ..errors import InputError
+
+        raise InputError(f"{fn}: {name} expected shape (..., {n}), got {tuple(x.shape)}")
+    return x
+
+
+def _matrix33(C, name: str, fn: str):
+    C = jnp.asarray(C)
+    if C.ndim < 2 or C.shape[-2:] != (3, 3):
+        from ..errors import InputError
+
+        raise InputError(f"{fn}: {name} expected shape (..., 3, 3), got {tuple(C.shape)}")
+    return C
+
+
 def _mat(rows):
     """Stack a nested 3×3 list of (...) arrays into (..., 3, 3)."""
     return jnp.stack([jnp.stack(r, axis=-1) for r in rows], axis=-2)
@@ -125,7 +146,7 @@ def dcm_from_euler(euler):
     ``euler``: (..., 3) = [φ, θ, ψ] in radians.  Returns (..., 3, 3) with
     v_N = C_NB @ v_B.
     """
-    euler = jnp.asarray(euler)
+    euler = _last_axis(euler, 3, "euler", "dcm_from_euler")
     ang = euler[..., :3]
     # Each factor of each entry's terms is a cos + b sin + c of one angle; elementwise on
     # (..., term, angle, 3, 3) arrays: a few wide operations in place of ~35 scalar ones, which
@@ -148,7 +169,7 @@ def euler_from_dcm(C):
     separable and φ = 0 is returned (the rotation about the vertical goes
     into ψ).  Gradients are finite everywhere (double-``where`` guards).
     """
-    C = jnp.asarray(C)
+    C = _matrix33(C, "C", "euler_from_dcm")
     eps = jnp.finfo(C.dtype).eps
     c21, c22 = C[..., 2, 1], C[..., 2, 2]
     n2 = c21 * c21 + c22 * c22  # cos²θ
@@ -178,7 +199,7 @@ def euler_rate_matrix(euler):
 
     (eq. 3 written with 1/cos θ factored out).  Singular at θ = ±90°.
     """
-    euler = jnp.asarray(euler)
+    euler = _last_axis(euler, 3, "euler", "euler_rate_matrix")
     c, s = jnp.cos(euler[..., :2]), jnp.sin(euler[..., :2])  # one kernel each (see dcm_from_euler)
     cf, ct = c[..., 0], c[..., 1]
     sf = s[..., 0]
@@ -194,7 +215,7 @@ def euler_rates(euler, omega):
     velocity [p, q, r] in rad/s (body axes).  Returns (..., 3) rad/s.
     """
     D = euler_rate_matrix(euler)
-    return jnp.einsum("...ij,...j->...i", D, jnp.asarray(omega))
+    return jnp.einsum("...ij,...j->...i", D, _last_axis(omega, 3, "omega", "euler_rates"))
 
 
 def rotate_jacobian(euler, v, C=None):

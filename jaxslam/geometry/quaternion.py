@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from .euler import euler_from_dcm
+from .euler import _last_axis, _matrix33, euler_from_dcm
 
 __all__ = [
     "qmul",
@@ -71,8 +71,8 @@ def qmul(p, q):
     Returns (..., 4) = [p0 q0 − p_v·q_v, p0 q_v + q0 p_v + p_v × q_v].
     The rotation of p ⊗ q is C(p) C(q) (apply q first).
     """
-    p = jnp.asarray(p)
-    q = jnp.asarray(q)
+    p = _last_axis(p, 4, "p", "qmul")
+    q = _last_axis(q, 4, "q", "qmul")
     p0, p1, p2, p3 = p[..., 0], p[..., 1], p[..., 2], p[..., 3]
     q0, q1, q2, q3 = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
     return jnp.stack(
@@ -88,7 +88,7 @@ def qmul(p, q):
 
 def qconj(q):
     """Conjugate [q0, −q_v] (the inverse for a unit quaternion).  (..., 4)."""
-    q = jnp.asarray(q)
+    q = _last_axis(q, 4, "q", "qconj")
     return q * jnp.asarray([1.0, -1.0, -1.0, -1.0], dtype=q.dtype)
 
 
@@ -114,8 +114,8 @@ def qrotate(q, v):
     (..., 3) = q ⊗ [0, v] ⊗ q*, computed as v + q0 t + q_v × t with
     t = 2 q_v × v (no 3×3 matrix is formed).
     """
-    q = jnp.asarray(q)
-    v = jnp.asarray(v)
+    q = _last_axis(q, 4, "q", "qrotate")
+    v = _last_axis(v, 3, "v", "qrotate")
     qv = q[..., 1:]
     qv, v = jnp.broadcast_arrays(qv, v)
     t = 2.0 * jnp.cross(qv, v)
@@ -128,7 +128,7 @@ def dcm_from_quat(q):
     ``q``: (..., 4).  Returns (..., 3, 3) =
     (q0² − |q_v|²) I + 2 q_v q_vᵀ + 2 q0 [q_v]×.
     """
-    q = jnp.asarray(q)
+    q = _last_axis(q, 4, "q", "dcm_from_quat")
     w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
     ww, xx, yy, zz = w * w, x * x, y * y, z * z
     xy, xz, yz = x * y, x * z, y * z
@@ -151,7 +151,7 @@ def quat_from_dcm(C):
     small number; branches are selected with ``jnp.where`` (jit/vmap-safe,
     finite gradients).
     """
-    C = jnp.asarray(C)
+    C = _matrix33(C, "C", "quat_from_dcm")
     c00, c01, c02 = C[..., 0, 0], C[..., 0, 1], C[..., 0, 2]
     c10, c11, c12 = C[..., 1, 0], C[..., 1, 1], C[..., 1, 2]
     c20, c21, c22 = C[..., 2, 0], C[..., 2, 1], C[..., 2, 2]
@@ -187,7 +187,7 @@ def quat_from_euler(euler):
     ``euler``: (..., 3) [φ, θ, ψ] radians.  Returns (..., 4) unit quaternion
     (smooth closed form, sign not canonicalised).
     """
-    euler = jnp.asarray(euler)
+    euler = _last_axis(euler, 3, "euler", "quat_from_euler")
     h = 0.5 * euler
     cf, sf = jnp.cos(h[..., 0]), jnp.sin(h[..., 0])
     ct, st = jnp.cos(h[..., 1]), jnp.sin(h[..., 1])
@@ -219,7 +219,7 @@ def qexp(rotvec):
     = [cos(θ/2), sin(θ/2) u].  Near θ = 0 a Taylor branch keeps the value and
     the gradient (dq/dr = [0; I/2] at 0) exact and finite.
     """
-    r = jnp.asarray(rotvec)
+    r = _last_axis(rotvec, 3, "rotvec", "qexp")
     t2 = jnp.sum(r * r, axis=-1)
     small = t2 < _small_threshold(r.dtype)
     t2s = jnp.where(small, 1.0, t2)
@@ -243,7 +243,7 @@ def qlog(q):
     q0 = 0 (θ ≈ π) the atan2 form is smooth.  At q0 = 0 exactly the result
     jumps between ±π u (inherent to the double cover).
     """
-    q = qcanonical(q)
+    q = qcanonical(_last_axis(q, 4, "q", "qlog"))
     w = q[..., 0]
     v = q[..., 1:]
     n2 = jnp.sum(v * v, axis=-1)

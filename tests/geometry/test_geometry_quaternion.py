@@ -237,3 +237,29 @@ def test_vmap_and_canonical():
     np.testing.assert_allclose(np.abs(c), np.abs(q))
     np.testing.assert_allclose(c * np.sign(q[:, :1]), q)
     np.testing.assert_allclose(nq, q, atol=1e-15)
+
+
+def test_wrongly_shaped_rotations_are_named_not_answered():
+    # each used to return a plausible answer (qmul of a (3,) quaternion gave [1, 1, 1, 1],
+    # euler_from_dcm of a 2×2 matrix three angles) or fail in a broadcast
+    from jaxslam.errors import InputError
+
+    q = np.array([1.0, 0.0, 0.0, 0.0])
+    cases = [
+        (lambda: qu.qmul(np.ones(3), q), r"^qmul: p expected shape \(\.\.\., 4\), got \(3,\)"),
+        (lambda: qu.qmul(q, np.ones(5)), r"^qmul: q expected shape \(\.\.\., 4\), got \(5,\)"),
+        (lambda: qu.dcm_from_quat(np.ones(3)), r"^dcm_from_quat: q expected shape"),
+        (lambda: qu.euler_from_quat(np.ones(3)), r"^dcm_from_quat: q expected shape"),
+        (lambda: qu.qrotate(q, np.ones(2)), r"^qrotate: v expected shape \(\.\.\., 3\)"),
+        (lambda: qu.quat_from_dcm(np.eye(2)), r"^quat_from_dcm: C expected shape \(\.\.\., 3, 3\)"),
+        (lambda: qu.qexp(np.ones(4)), r"^qexp: rotvec expected shape \(\.\.\., 3\)"),
+        (lambda: qu.qlog(np.ones(3)), r"^qlog: q expected shape"),
+        (lambda: eu.euler_from_dcm(np.eye(2)), r"^euler_from_dcm: C expected shape \(\.\.\., 3, 3\)"),
+        (lambda: eu.dcm_from_euler(np.zeros(2)), r"^dcm_from_euler: euler expected shape \(\.\.\., 3\)"),
+        (lambda: eu.euler_rates(np.zeros(3), np.zeros(2)), r"^euler_rates: omega expected shape"),
+    ]
+    for call, msg in cases:
+        with pytest.raises(InputError, match=msg):
+            call()
+    # batches keep working, and under jit the check is a trace-time shape test
+    np.testing.assert_allclose(np.asarray(jax.jit(qu.qmul)(np.tile(q, (5, 1)), q)), np.tile(q, (5, 1)))
