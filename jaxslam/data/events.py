@@ -103,6 +103,11 @@ def merge_events(input_t, inputs, meas_t, meas, meas_ids=None, K: Optional[int] 
         raise InputError(f"inputs: {U.shape[0]} rows but input_t has {ut.shape[0]}")
     if Z.shape[0] != zt.shape[0]:
         raise InputError(f"meas: {Z.shape[0]} rows but meas_t has {zt.shape[0]}")
+    if meas_ids is not None and np.issubdtype(np.asarray(meas_ids).dtype, np.floating):
+        a = np.asarray(meas_ids)  # 2.5 would be truncated onto id 2
+        if not np.all(np.isfinite(a)) or np.any(a != np.round(a)):
+            raise InputError("meas_ids: expected whole-number ids (a fractional or non-finite id would be "
+                             "truncated onto another landmark)")
     ids = (np.full(zt.shape, -1, np.int32) if meas_ids is None
            else np.asarray(meas_ids).astype(np.int32).reshape(-1))
     if ids.shape != zt.shape:

@@ -120,7 +120,7 @@ from .. import errors
 from ..errors import InputError
 from ..filters import ekf_slam as es
 from ..filters import trilateration as tri
-from ..linalg import check_psd, check_scalar, host_array, is_concrete, wrap_angle
+from ..linalg import check_int, check_psd, check_scalar, host_array, is_concrete, wrap_angle
 from ..sensors import uwb
 
 __all__ = [
@@ -808,6 +808,10 @@ def _check(log: Log, config: Config, params: Params) -> None:
         raise InputError(f"config.mode: expected 'slam' or 'localization', got {config.mode!r}")
     if config.model not in uwb.MODELS:
         raise InputError(f"config.model: expected one of {uwb.MODELS}, got {config.model!r}")
+    check_int(config.buffer_size, "config.buffer_size", what="an int (delayed-initialisation samples)")
+    check_int(config.buffer_stride, "config.buffer_stride", what="an int (steps between buffer samples)")
+    if is_concrete(config.dt):  # a NaN dt froze the positions (NON_FINITE), 0 silently stopped time
+        check_scalar(config.dt, "config.dt", lower=0, strict=True)
     shp = np.shape(log.startup_ranges)
     if len(shp) != 2 or shp[0] < 1:
         raise InputError(f"log.startup_ranges: expected shape (Ts, N), got {shp}")

@@ -142,3 +142,19 @@ def test_event_builders_name_a_nan_window_and_ragged_rows():
             ur.util_events(t, np.arange(10) % 4, r, t_start=lo, t_end=hi)
     with pytest.raises(InputError, match=r"^util_events: t, anchor_id and ranges need one entry per range"):
         ur.util_events(t, np.arange(10) % 4, r[:-1], tof_t=t, tof=r)  # an IndexError before
+
+
+def test_event_ids_must_be_whole_numbers_and_uwb_config_sizes_positive():
+    from jaxslam.data.events import merge_events
+    from jaxslam.systems import uwb_slam_2d as U
+
+    t = np.arange(4) * 0.1
+    merge_events(t, np.zeros((4, 1)), t, np.ones((4, 1)), meas_ids=np.array([1.0, 2.0, 3.0, 1.0]))
+    with pytest.raises(InputError, match=r"^meas_ids: expected whole-number ids"):
+        merge_events(t, np.zeros((4, 1)), t, np.ones((4, 1)), meas_ids=np.array([1.0, 2.5, 3.0, 1.0]))
+    for change, msg in [(dict(buffer_size=0), r"^config\.buffer_size: expected an int"),
+                        (dict(buffer_stride=0), r"^config\.buffer_stride: expected an int"),
+                        (dict(dt=float("nan")), r"^config\.dt: expected a positive"),
+                        (dict(dt=0.0), r"^config\.dt: expected a positive")]:
+        with pytest.raises(InputError, match=msg):
+            U._check(None, U.Config()._replace(**change), None)  # config is checked first
