@@ -89,6 +89,7 @@ from .gaussian import (
     check_gate,
     check_measurement,
     check_noise_values,
+    check_num_iter,
     check_state,
     finalize as _finalize,
     innovation_solve,
@@ -172,11 +173,6 @@ def chi2_gate(prob: float, max_dof: int) -> Callable[[Array], Array]:
         return jnp.asarray(table)[jnp.clip(dof, 0, int(max_dof))]
 
     return gate
-
-
-def _check_num_iter(num_iter):
-    if isinstance(num_iter, bool) or not isinstance(num_iter, (int, np.integer)) or num_iter < 1:
-        raise InputError(f"num_iter: must be an int >= 1 (1 = plain EKF), got {num_iter!r}")
 
 
 def _default_residual(z, zhat):
@@ -342,7 +338,7 @@ def update(
         (``NOT_PSD``) or a non-finite posterior (``NON_FINITE``) the prior is
         returned unchanged.
     """
-    _check_num_iter(num_iter)
+    check_num_iter(num_iter)
     check_gate(gate)
     state = check_state(state)
     x, P = state
@@ -467,10 +463,6 @@ def update_batch(
             if np.ndim(leaf) < 1 or np.shape(leaf)[0] != M:
                 raise InputError(f"args[{i}]: every per-measurement argument needs a leading axis of "
                                  f"size M = {M} (zs' rows), got shape {np.shape(leaf)}")
-    if M:
-        zh = jax.eval_shape(lambda v, *a: h(v, *a), x, *(jax.tree_util.tree_map(lambda t: t[0], a) for a in args))
-        if tuple(zh.shape) != (m,):
-            raise InputError(f"h: the measurement model returned shape {tuple(zh.shape)}, but each row of zs has ({m},)")
     res = _default_residual if residual is None else residual
 
     if sequential:
@@ -487,6 +479,9 @@ def update_batch(
         return value_and_jacfwd(lambda v: h(v, *a))(x)
 
     zhat, H = jax.vmap(lin)(tuple(args))  # (M, m), (M, m, n)
+    if tuple(zhat.shape[1:]) != (m,):
+        raise InputError(f"h: the measurement model returned shape {tuple(zhat.shape[1:])}, but each row of "
+                         f"zs has ({m},)")
     zhat = zhat.astype(dtype)
     H = H.astype(dtype)
     zhat_safe = jnp.where(masks, zhat, jnp.zeros((), dtype))

@@ -67,7 +67,7 @@ from ..errors import InputError
 from ..linalg import (check_int, check_psd, check_whole_ids, cholesky_small, is_concrete, put_blocks, small_matmul,
                       symmetrize, take, take_blocks, value_and_jacfwd)
 from ..stats import student_t_nll
-from .gaussian import check_gate
+from .gaussian import check_gate, check_num_iter
 
 __all__ = [
     "SlamModel",
@@ -292,8 +292,7 @@ def _rows(z, ids, mask, dz: int, ids_name: str):
 
 def _check_options(gate=None, robust=None, num_iter: int = 1):
     """Static checks of an update's options: :class:`InputError` naming the option."""
-    if isinstance(num_iter, bool) or not isinstance(num_iter, (int, np.integer)) or num_iter < 1:
-        raise InputError(f"num_iter: must be an int >= 1 (1 = plain EKF), got {num_iter!r}")
+    check_num_iter(num_iter)
     check_gate(gate)
     if robust is not None and is_concrete(robust) and np.ndim(robust) == 0:
         nu = float(np.asarray(robust))

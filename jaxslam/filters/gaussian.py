@@ -64,6 +64,7 @@ __all__ = [
     "threshold",
     "check_state",
     "check_gate",
+    "check_num_iter",
     "check_noise_values",
     "check_process_noise",
     "process_noise",
@@ -207,6 +208,13 @@ def check_noise_values(M, name: str, strict: bool = False):
     nothing (a failure then shows in the status flags)."""
     if is_concrete(M) and np.ndim(M) == 2:
         check_psd(M, name, strict=strict)
+
+
+def check_num_iter(num_iter):
+    """The static number of linearisations of an update: an int >= 1 (1 = the plain EKF);
+    :class:`InputError` naming ``num_iter`` (2.5 used to be truncated, 0 accepted)."""
+    if isinstance(num_iter, bool) or not isinstance(num_iter, (int, np.integer)) or num_iter < 1:
+        raise InputError(f"num_iter: must be an int >= 1 (1 = plain EKF), got {num_iter!r}")
 
 
 def check_gate(gate: Gate):

@@ -552,7 +552,6 @@ def filter_scan(
         # the sigma points factor P: a singular P0 (a zero variance) would fail every step's
         # factorisation and keep the prior for the whole run
         check_psd(P0, "P0", strict=True, tol=0.0)
-    check_gate(gate)
     flt = make_filter(f, h, *args, residual=residual, gate=gate, noise_jac=noise_jac,
                       points=points, h_takes_input=h_inputs is not None)
     return _g.run(flt, x0, P0, us, zs, masks, Q, R, h_inputs=h_inputs,

@@ -40,6 +40,8 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
+from ..errors import InputError
+
 __all__ = [
     "C1",
     "C2",
@@ -59,8 +61,6 @@ def _last_axis(x, n: int, name: str, fn: str):
     be read as q0..q2 with q3 taken from a wrapped index, and return a plausible answer)."""
     x = jnp.asarray(x)
     if x.ndim < 1 or x.shape[-1] != n:
-        from ..errors import InputError
-
         raise InputError(f"{fn}: {name} expected shape (..., {n}), got {tuple(x.shape)}")
     return x
 
@@ -68,8 +68,6 @@ def _last_axis(x, n: int, name: str, fn: str):
 def _matrix33(C, name: str, fn: str):
     C = jnp.asarray(C)
     if C.ndim < 2 or C.shape[-2:] != (3, 3):
-        from ..errors import InputError
-
         raise InputError(f"{fn}: {name} expected shape (..., 3, 3), got {tuple(C.shape)}")
     return C
 

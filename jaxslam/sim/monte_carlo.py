@@ -156,8 +156,6 @@ def run(fn: Callable, seed: int, runs: int, chunk: Optional[int] = None,
     """
     runs = check_int(runs, "runs")
     threads = default_threads() if threads is None else check_int(threads, "threads", what="None or an int")
-    if threads < 1:
-        raise InputError(f"threads: expected at least 1, got {threads}")
     chunk = None if chunk is None else check_int(chunk, "chunk", what="None or an int")
     if cpu_batching not in ("vmap", "loop"):
         raise ValueError(f"cpu_batching: expected 'vmap' or 'loop', got {cpu_batching!r}")

@@ -76,7 +76,7 @@ from ..filters import consistency as cons
 from ..filters import fastslam as fs
 from ..linalg import check_scalar, inv_small, is_concrete, symmetrize, value_and_jacfwd, wrap_angle
 from ..sensors import range_bearing2d as rb
-from .planar_ekf_slam import Log, check_matrices, log_from_events
+from .planar_ekf_slam import Log, check_matrices, log_from_events, validate_log
 
 __all__ = [
     "ANGLE_MASK",
@@ -477,16 +477,11 @@ def _validate_log(log: Log, config: Config):
         raise InputError(f"log.z: expected shape ({T}, {config.K}, 2), got {np.shape(log.z)}")
     if np.shape(log.pose0) != (3,):
         raise InputError(f"log.pose0: expected shape (3,), got {np.shape(log.pose0)}")
-    if is_concrete(log.u) and not np.all(np.isfinite(np.asarray(log.u))):
-        # as the planar EKF's run (the jitted scan itself keeps a particle whose proposal is
+    if is_concrete(log.dt, log.u, log.pose0):
+        # the planar EKF's checks of the same Log: dt finite >= 0 (a negative dt ran backwards,
+        # unflagged), u and pose0 finite (inside jit the scan keeps a particle whose proposal is
         # not finite and flags NON_FINITE)
-        raise InputError("log.u: contains NaN or Inf")
-    if is_concrete(log.dt):  # as the planar EKF's run (a negative dt ran backwards, unflagged)
-        dt = np.asarray(log.dt)
-        if not np.all(np.isfinite(dt)) or np.any(dt < 0):
-            raise InputError("log.dt: must be finite and >= 0")
-    if is_concrete(log.pose0) and not np.all(np.isfinite(np.asarray(log.pose0))):
-        raise InputError("log.pose0: contains NaN or Inf")
+        validate_log(log)
 
 
 def init(log: Log, config: Config, params: Params, *, key) -> State:
