@@ -319,7 +319,9 @@ def umeyama(src, dst, with_scale: bool = False):
     R = (U * e) @ Vt
     if with_scale:
         var_s = jnp.mean(jnp.sum(xs * xs, axis=1))
-        s = jnp.sum(D * e) / var_s
+        # A source without spread (every point equal) has no scale: any s maps it onto mu_d,
+        # so s = 1 there instead of 0/0 (a NaN ATE for an estimate that never moved).
+        s = jnp.where(var_s > 0, jnp.sum(D * e) / jnp.where(var_s > 0, var_s, 1), 1).astype(dtype)
     else:
         s = jnp.ones((), dtype)
     t = mu_d - s * R @ mu_s
@@ -447,7 +449,7 @@ def map_error(est_lm, est_ids, true_lm, true_ids, transform=None) -> MapError:
             landmarks themselves by :func:`umeyama` (needs ≥ d of them).
 
     Raises:
-        InputError: shapes disagree, or no estimated id is in ``true_ids``.
+        InputError: shapes disagree, an id repeats in ``true_ids``, or no estimated id is in ``true_ids``.
     """
     est = np.asarray(est_lm, np.float64)
     tru = np.asarray(true_lm, np.float64)
@@ -457,6 +459,10 @@ def map_error(est_lm, est_ids, true_lm, true_ids, transform=None) -> MapError:
         raise InputError(f"map_error: expected (M, d) and (L, d) landmarks, got {est.shape} and {tru.shape}")
     if eid.shape[0] != est.shape[0] or tid.shape[0] != tru.shape[0]:
         raise InputError("map_error: one id per landmark row expected")
+    uniq, counts = np.unique(tid, return_counts=True)
+    if np.any(counts > 1):
+        raise InputError(f"true_ids: each true landmark id must appear once, repeated: "
+                         f"{[int(i) for i in uniq[counts > 1]][:10]}")
     lookup = {int(i): k for k, i in enumerate(tid)}
     pairs = [(k, lookup[int(i)]) for k, i in enumerate(eid)
              if int(i) >= 0 and int(i) in lookup and np.all(np.isfinite(est[k]))]
@@ -486,6 +492,13 @@ def interp_poses(t_query, t, poses):
     tq = np.asarray(t_query, np.float64)
     t = np.asarray(t, np.float64)
     P = np.asarray(poses, np.float64)
+    if tq.ndim != 1 or t.ndim != 1:
+        raise InputError(f"t_query and t: 1-D arrays of times expected, got shapes {tq.shape} and {t.shape}")
+    if P.ndim != 2 or P.shape[0] != t.shape[0] or t.shape[0] < 1:
+        raise InputError(f"poses: expected one (d,) row per time of t ({t.shape[0]}), got shape {P.shape}")
+    if not np.all(np.isfinite(t)) or np.any(np.diff(t) < 0):
+        raise InputError("t: the pose times must be finite and non-decreasing (np.interp would "
+                         "return wrong poses otherwise)")
     out = np.empty((tq.shape[0], P.shape[1]))
     for j in range(P.shape[1]):
         col = np.unwrap(P[:, j]) if j == 2 and P.shape[1] == 3 else P[:, j]

@@ -259,6 +259,20 @@ def test_map_error_by_id_with_both_alignments():
     np.testing.assert_allclose(me2.errors, np.linalg.norm(est - true_lm[[2, 0, 1]], axis=1))
     with pytest.raises(InputError, match="no estimated landmark"):
         metrics.map_error(est, np.array([1, 2, 3]), true_lm, true_ids)
+    # A true id listed twice has no single truth: named, not resolved to the last row.
+    with pytest.raises(InputError, match=r"true_ids: .*repeated: \[11\]"):
+        metrics.map_error(est, est_ids, true_lm, np.array([10, 11, 12, 11]))
+
+
+def test_sim_alignment_of_an_estimate_without_spread_is_finite():
+    """An estimate that never moved has no scale; the similarity alignment maps it onto the
+    truth's mean (any scale does), so its ATE is the truth's spread about its mean, not NaN."""
+    truth = np.array([[0.0, 0.0], [2.0, 0.0], [2.0, 2.0], [0.0, 2.0]])
+    est = np.ones((4, 2))
+    R, t, s = metrics.umeyama(est, truth, with_scale=True)
+    assert np.isfinite(float(s)) and np.all(np.isfinite(np.asarray(t)))
+    spread = np.sqrt(np.mean(np.sum((truth - truth.mean(0)) ** 2, axis=1)))
+    assert float(metrics.ate(est, truth, align="sim")) == pytest.approx(spread, rel=1e-12)
 
 
 def test_interp_poses_wraps_heading_and_refuses_extrapolation():
@@ -268,6 +282,14 @@ def test_interp_poses_wraps_heading_and_refuses_extrapolation():
     np.testing.assert_allclose(out[0, :2], [1.0, 2.0])
     assert abs(abs(out[0, 2]) - np.pi) < 1e-12  # through ±π, not through 0
     assert np.all(np.isnan(out[1:]))
+    # times that go backwards would make np.interp return wrong poses: refused, as are shapes
+    # that do not pair one pose with one time
+    with pytest.raises(InputError, match="t: the pose times must be finite and non-decreasing"):
+        metrics.interp_poses(np.array([0.5]), np.array([1.0, 0.0]), P)
+    with pytest.raises(InputError, match="poses: expected one"):
+        metrics.interp_poses(np.array([0.5]), t, P[:1])
+    with pytest.raises(InputError, match="t_query and t"):
+        metrics.interp_poses(np.array([[0.5]]), t, P)
 
 
 def test_tum_round_trip(tmp_path):

@@ -50,6 +50,10 @@ from typing import NamedTuple, Tuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
+
+from ..errors import InputError
+from ..linalg import is_concrete
 
 __all__ = [
     "Figure8",
@@ -215,6 +219,30 @@ class Square(NamedTuple):
 
 
 _TRAJECTORIES = (Figure8, Helix, Circle, Square)
+_POSITIVE = ("period", "sharpness")  # fields that divide: must be > 0 (radius etc. may be 0)
+
+
+def _check_fields(traj) -> None:
+    """A container's concrete numeric fields: finite, and ``period`` / ``sharpness`` > 0
+    (:class:`InputError` naming the field; a zero period made every reference NaN).  Traced
+    fields (a tuned radius under ``jit``) are not checked."""
+    if not hasattr(traj, "_position_yaw"):
+        raise TypeError(f"traj: expected one of {[c.__name__ for c in _TRAJECTORIES]}, "
+                        f"got {type(traj).__name__}")
+    if not isinstance(traj, _TRAJECTORIES):
+        return
+    name = type(traj).__name__
+    for field, v in zip(traj._fields, traj):
+        if not is_concrete(v):
+            continue
+        a = np.asarray(v, dtype=float)
+        if a.shape not in ((), (3,)):
+            raise InputError(f"{name}.{field}: expected a number{' or 3 numbers' if field in ('center', 'start') else ''}, "
+                             f"got shape {a.shape}")
+        if not np.all(np.isfinite(a)):
+            raise InputError(f"{name}.{field}: must be finite, got {v!r}")
+        if field in _POSITIVE and not np.all(a > 0):
+            raise InputError(f"{name}.{field}: must be > 0, got {v!r}")
 
 
 def flat_output(traj, t):
@@ -226,9 +254,11 @@ def flat_output(traj, t):
     of ``t`` and the container's array fields (Python floats follow ``t``).
     Jit-able in ``t`` and in the container's numeric fields.
     """
-    if not hasattr(traj, "_position_yaw"):
-        raise TypeError(f"traj: expected one of {[c.__name__ for c in _TRAJECTORIES]}, "
-                        f"got {type(traj).__name__}")
+    _check_fields(traj)
+    return _flat_output(traj, t)
+
+
+def _flat_output(traj, t):
     dtype = _float_dtype(traj, t)
     t = jnp.asarray(t, dtype)
     p, psi = traj._position_yaw(t, dtype)
@@ -244,16 +274,17 @@ def flat_derivatives(traj, t, order: int):
     2^order evaluations of the flat output; jit the caller (eager nesting is slow).
     Returns (order + 1, 4): row k is d^k/dt^k [x, y, z, ψ] (units m/s^k and rad/s^k).
     """
+    if isinstance(order, bool) or not isinstance(order, (int, np.integer)) or order < 0:
+        raise InputError(f"order: must be an int >= 0 (static), got {order!r}")
     order = int(order)
-    if order < 0:
-        raise ValueError(f"order: must be >= 0, got {order}")
+    _check_fields(traj)
     dtype = _float_dtype(traj, t)
     t = jnp.asarray(t, dtype)
     # Cast the (t-independent) fields once, so the 2^order nested evaluations do not repeat it.
     traj = jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype), traj)
 
-    def f(tt):
-        return flat_output(traj, tt)[None]
+    def f(tt):  # fields checked above
+        return _flat_output(traj, tt)[None]
 
     # D_k(t) = [y, y', ..., y^(k)] = [y, jacfwd(D_{k-1})(t)]; the primal of the forward-mode
     # pass already holds y, so each level is one jvp of the previous one.

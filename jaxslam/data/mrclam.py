@@ -123,7 +123,8 @@ def load_mrclam(path, robot: int, strict: bool = False) -> MrclamData:
       :class:`MrclamData`.  ``report`` holds: ``dir``; ``rows`` (data rows read
       per file); ``landmark_rows``; ``robot_rows`` (rows of other robots,
       removed); ``unknown_barcode_rows`` with ``unknown_barcodes`` (values) and
-      ``unknown_barcode_lines`` (``"file:line"``); ``duplicate_rows`` (rows
+      ``unknown_barcode_lines`` (``"file:line"``); ``nonpositive_range_rows`` with
+      ``nonpositive_range_lines`` (rows with range ≤ 0, dropped); ``duplicate_rows`` (rows
       identical to an earlier row with the same time); ``repeated_readings``
       (a barcode's range and bearing identical to its previous reading);
       ``distinct_measurement_times``; ``landmarks_seen``;
@@ -136,7 +137,8 @@ def load_mrclam(path, robot: int, strict: bool = False) -> MrclamData:
       MissingDataError: a file is missing (the message lists the folders
         looked in and the missing files).
       DataFormatError: a malformed file (``file:line`` in the message), an
-        inconsistent barcode table, or (``strict``) an unknown barcode.
+        inconsistent barcode table, a landmark subject listed twice in
+        ``Landmark_Groundtruth.dat``, or (``strict``) an unknown barcode.
     """
     if isinstance(robot, bool) or not isinstance(robot, (int, np.integer)) or not 1 <= int(robot) <= 5:
         raise InputError(f"robot: expected an integer 1–5, got {robot!r}")
@@ -163,6 +165,11 @@ def load_mrclam(path, robot: int, strict: bool = False) -> MrclamData:
     b2s = dict(zip(bcode.tolist(), subj.tolist()))
 
     lm_id = int_column(lmt, 0, "subject", lo=1)
+    _, first, inv = np.unique(lm_id, return_index=True, return_inverse=True)
+    dup = np.nonzero(first[inv] != np.arange(lm_id.size))[0]
+    if dup.size:  # two surveyed positions for one landmark: which one is the truth?
+        i = int(dup[0])
+        raise lmt.error(i, f"landmark subject {int(lm_id[i])} listed twice (first at {lmt.where(int(first[inv[i]]))})")
     robot_in_lm = np.isin(lm_id, ROBOT_SUBJECTS)
     if robot_in_lm.any():
         i = int(np.argmax(robot_in_lm))
@@ -176,7 +183,10 @@ def load_mrclam(path, robot: int, strict: bool = False) -> MrclamData:
         i = int(np.argmax(unknown))
         raise mea.error(i, f"unknown barcode {int(mb[i])} (not in {f['barcodes'].name})")
     is_robot = np.isin(ms, ROBOT_SUBJECTS)
-    is_lm = ~unknown & ~is_robot
+    # A range that is not positive cannot come from the camera: the row is dropped and named
+    # (a whole log is not refused for one such row; NaN and Inf are refused by the reader).
+    bad_range = mea.data[:, 2] <= 0
+    is_lm = ~unknown & ~is_robot & ~bad_range
 
     # Duplicates and repeats (counted on all rows, in file order).
     m = mea.data
@@ -215,6 +225,8 @@ def load_mrclam(path, robot: int, strict: bool = False) -> MrclamData:
         "unknown_barcode_rows": int(unknown.sum()),
         "unknown_barcodes": [int(b) for b in mb[unknown]],
         "unknown_barcode_lines": [mea.where(int(i)) for i in np.nonzero(unknown)[0]],
+        "nonpositive_range_rows": int(bad_range.sum()),
+        "nonpositive_range_lines": [mea.where(int(i)) for i in np.nonzero(bad_range)[0]],
         "duplicate_rows": int(dup_rows),
         "repeated_readings": int(repeats),
         "distinct_measurement_times": int(np.unique(m[:, 0]).size),

@@ -780,6 +780,10 @@ def _mrclam_notes(d, log, pose0) -> list:
     if n:
         notes.append(f"{n} measurement rows name barcodes that Barcodes.dat does not list; they were not used "
                      "(loader_report.unknown_barcode_lines)")
+    n = int(d.report.get("nonpositive_range_rows", 0))
+    if n:
+        notes.append(f"{n} measurement rows have a range <= 0; they were not used "
+                     "(loader_report.nonpositive_range_lines)")
     if not np.any(log.mask):
         notes.append("no landmark sighting in the run: its estimate is dead reckoning")
     t_in = np.asarray(log.t)[np.asarray(log.is_input, bool)]

@@ -58,6 +58,20 @@ STATE_DIM = 12
 INPUT_DIM = 4
 
 
+def _state_and_input(x, u, nx: int, nu: int, names=("x", "u")):
+    """``x`` (nx,) and ``u`` (nu,) as arrays of one float dtype (``x``'s; an integer state is
+    promoted to JAX's default float): a wrong shape is an :class:`InputError` naming the
+    argument (checked at trace time, free under ``jit``; a (13,) state was sliced silently and an
+    integer state truncated the thrust).  Batches go through ``jax.vmap``."""
+    x = jnp.asarray(x)
+    if not jnp.issubdtype(x.dtype, jnp.floating):
+        x = x.astype(jnp.result_type(float))
+    check_shape(x, (nx,), names[0])
+    u = jnp.asarray(u)
+    check_shape(u, (nu,), names[1])
+    return x, u.astype(x.dtype)
+
+
 def f(x, u, params):
     """Continuous-time dynamics ẋ = f(x, u), paper 000 eq. 2 (D of eq. 3).
 
@@ -66,9 +80,8 @@ def f(x, u, params):
     arrays).  Returns ẋ (12,) in the dtype of ``x``.  Gravity is +g n̂3 (NED
     down) and thrust −f_T b̂3.  Use ``jax.vmap`` for batches.
     """
-    x = jnp.asarray(x)
+    x, u = _state_and_input(x, u, STATE_DIM, INPUT_DIM)
     dt = x.dtype
-    u = jnp.asarray(u, dtype=dt)
     p = _cast(params, dt)
     v, lam, w = x[VEL], x[ATT], x[RATE]
     C = dcm_from_euler(lam)

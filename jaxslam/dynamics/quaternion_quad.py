@@ -131,12 +131,16 @@ def f_att(xa, tau, J, xi=None):
     diagonal inertia, kg m²; ``xi``: optional (3,) additive angular acceleration,
     rad/s² (ω̇ = J⁻¹(τ − ω×Jω) + ξ).  Returns (7,) in the dtype of ``xa``.
     """
-    xa = jnp.asarray(xa)
+    xa, tau = euler_ned._state_and_input(xa, tau, 7, 3, ("xa", "tau"))
     dt = xa.dtype
     q, w = xa[:4], xa[4:]
-    q_dot, w_dot = _rigid_body(q, w, jnp.asarray(tau, dt), jnp.asarray(J, dt))
+    J = jnp.asarray(J, dt)
+    check_shape(J, (3,), "J")
+    q_dot, w_dot = _rigid_body(q, w, tau, J)
     if xi is not None:
-        w_dot = w_dot + jnp.asarray(xi, dt)
+        xi = jnp.asarray(xi, dt)
+        check_shape(xi, (3,), "xi")
+        w_dot = w_dot + xi
     return jnp.concatenate([q_dot, w_dot])
 
 
@@ -148,9 +152,8 @@ def f(x, u, params):
     :class:`~jaxslam.dynamics.params.QuadParams` (mass, inertia (3,), g).  Returns
     ẋ (13,) in the dtype of ``x``.  Thrust −f_T b̂3, gravity +g n̂3.
     """
-    x = jnp.asarray(x)
+    x, u = euler_ned._state_and_input(x, u, STATE_DIM, INPUT_DIM)
     dt = x.dtype
-    u = jnp.asarray(u, dtype=dt)
     p = _cast(params, dt)
     v, q, w = x[VEL], x[QUAT], x[RATE]
     f_T, tau = u[0], u[1:]

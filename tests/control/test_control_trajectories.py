@@ -7,6 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from jaxslam.errors import InputError
 from jaxslam.control.trajectories import (
     Circle,
     Figure8,
@@ -198,6 +199,21 @@ def test_jit_and_grad_in_container_fields():
 def test_bad_arguments():
     with pytest.raises(TypeError, match="traj"):
         flat_output((1.0, 2.0), 0.0)
-    with pytest.raises(ValueError, match="order"):
+    with pytest.raises(TypeError, match="traj"):
+        flat_derivatives((1.0, 2.0), 0.0, 1)
+    with pytest.raises(InputError, match="order"):
         flat_derivatives(Figure8(), 0.0, -1)
+    with pytest.raises(InputError, match="order"):
+        flat_derivatives(Figure8(), 0.0, 2.5)  # a float order used to be truncated to 2
     assert flat_derivatives(Figure8(), 1.0, 0).shape == (1, 4)
+    # concrete fields are checked: a zero period made every reference NaN, a NaN centre too
+    with pytest.raises(InputError, match=r"Figure8\.period: must be > 0"):
+        flat_output(Figure8(period=0.0), 1.0)
+    with pytest.raises(InputError, match=r"Square\.sharpness: must be > 0"):
+        flat_derivatives(Square(sharpness=-1.0), 1.0, 2)
+    with pytest.raises(InputError, match=r"Helix\.center: must be finite"):
+        flat_output(Helix(center=(0.0, float("nan"), -1.0)), 1.0)
+    with pytest.raises(InputError, match=r"Circle\.radius: expected a number"):
+        flat_output(Circle(radius=(1.0, 2.0)), 1.0)
+    # traced fields are not checked (a tuned period under jit stays differentiable)
+    assert jnp.isfinite(jax.jit(lambda p: flat_output(Figure8(period=p), 1.0))(25.0)).all()

@@ -1,5 +1,6 @@
 """Every file of tests/data/bad/ makes its loader raise DataFormatError at the right file:line."""
 
+import numpy as np
 import pytest
 from data_loader_paths import BAD, EXCERPTS
 
@@ -75,3 +76,48 @@ def test_unknown_barcode_is_dropped_when_not_strict():
     assert d.report["unknown_barcodes"] == [99, 43]
     assert d.report["unknown_barcode_lines"] == [f"{f}:9", f"{f}:33"]
     assert d.report["landmark_rows"] + d.report["robot_rows"] + 2 == d.report["rows"]["measurement"] == 30
+
+
+def _mrclam_copy(tmp_path):
+    import shutil
+    d = tmp_path / "mrclam6"
+    shutil.copytree(EXCERPTS / "mrclam6", d)
+    return d
+
+
+def test_landmark_subject_listed_twice_raises_at_its_line(tmp_path):
+    """Two surveyed positions for one landmark: refused at the second row's file:line."""
+    d = _mrclam_copy(tmp_path)
+    f = d / "Landmark_Groundtruth.dat"
+    lines = f.read_text().splitlines()
+    lines.append(" 6 \t 9.0 \t 9.0 \t 0.0001 \t 0.0001")  # subject 6 again (first at line 5)
+    f.write_text("\n".join(lines) + "\n")
+    with pytest.raises(DataFormatError, match=r"landmark subject 6 listed twice \(first at .*:5\)") as ei:
+        load_mrclam(tmp_path, 1)
+    assert ei.value.line == len(lines)
+
+
+def test_nonpositive_range_rows_are_dropped_and_named(tmp_path):
+    """A landmark sighting with range <= 0 is no camera measurement: dropped, counted, its line
+    named in the report (a whole log is not refused for one row)."""
+    d = _mrclam_copy(tmp_path)
+    f = d / "Robot1_Measurement.dat"
+    clean = load_mrclam(tmp_path, 1)
+    lines = f.read_text().splitlines()
+    changed = []
+    for i, ln in enumerate(lines):
+        fields = ln.split()
+        if ln.startswith("#") or int(fields[1]) not in clean.landmark_id:
+            continue
+        fields[2] = "-0.5" if not changed else "0.0"
+        lines[i] = " \t ".join(fields)
+        changed.append(i + 1)
+        if len(changed) == 2:
+            break
+    f.write_text("\n".join(lines) + "\n")
+    got = load_mrclam(tmp_path, 1)
+    assert got.report["nonpositive_range_rows"] == 2
+    assert got.report["nonpositive_range_lines"] == [f"{f}:{n}" for n in changed]
+    assert got.report["landmark_rows"] == clean.report["landmark_rows"] - 2
+    assert got.meas.shape[0] == clean.meas.shape[0] - 2 and np.all(got.meas[:, 0] > 0)
+    assert clean.report["nonpositive_range_rows"] == 0

@@ -118,3 +118,16 @@ def test_bad_inputs_raise():
         en.check_input(np.array(["a"] * 4))
     assert en.check_state(np.zeros(12)).shape == (12,)
     assert en.check_input(np.zeros(4)).shape == (4,)
+
+
+def test_f_checks_shapes_and_promotes_an_integer_state():
+    """A (13,) state used to be sliced silently and a (3,) input gave a deep index error; an
+    integer state truncated the thrust to an integer.  Shapes are static: checked under jit too."""
+    with pytest.raises(InputError, match=r"^x: expected shape \(12\)"):
+        en.f(np.zeros(13), np.zeros(4), PAPER000)
+    with pytest.raises(InputError, match=r"^u: expected shape \(4\)"):
+        jax.jit(lambda x, u: en.f(x, u, PAPER000))(jnp.zeros(12), jnp.zeros(3))
+    u = np.array([1.5, 0.0, 0.0, 0.0])
+    xdot = en.f(np.zeros(12, dtype=int), u, PAPER000)
+    assert jnp.issubdtype(xdot.dtype, jnp.floating)
+    np.testing.assert_allclose(np.asarray(xdot), np.asarray(en.f(np.zeros(12), u, PAPER000)), rtol=1e-6)

@@ -168,3 +168,10 @@ def test_bad_inputs_raise():
     with pytest.raises(InputError, match="quaternion"):
         qq.step(qq.f_att, jnp.zeros(5), jnp.zeros(3), 1e-3, jnp.ones(3))
     qq.check_state(np.asarray(qq.hover_state()))
+    # the dynamics themselves name a wrong shape (a (12,) Euler state was sliced silently)
+    with pytest.raises(InputError, match=r"^x: expected shape \(13\)"):
+        qq.f(jnp.zeros(12), jnp.zeros(4), QuadParams(1.0, (0.01, 0.01, 0.02), 9.81))
+    with pytest.raises(InputError, match=r"^tau: expected shape \(3\)"):
+        qq.f_att(jnp.r_[1.0, jnp.zeros(6)], jnp.zeros(4), jnp.ones(3))
+    with pytest.raises(InputError, match=r"^xi: expected shape \(3\)"):
+        qq.f_att(jnp.r_[1.0, jnp.zeros(6)], jnp.zeros(3), jnp.ones(3), xi=jnp.zeros(2))
