@@ -9,6 +9,7 @@ dtype.
 from __future__ import annotations
 
 import functools
+import operator
 
 import jax
 import jax.numpy as jnp
@@ -307,11 +308,13 @@ def cholesky_small(S):
 
 
 def safe_norm(x, axis=-1, keepdims=False):
-    """Euclidean norm with a finite gradient at 0 (the gradient there is 0)."""
+    """Euclidean norm with a finite gradient at 0 (the gradient there is 0).  A NaN or Inf
+    entry gives NaN or Inf, never 0 (``NaN > 0`` is false: a test on positivity turned a NaN
+    point into a zero range that a sensor model reported as a visible return)."""
     sq = jnp.sum(x * x, axis=axis, keepdims=keepdims)
-    nonzero = sq > 0
-    safe_sq = jnp.where(nonzero, sq, 1.0)
-    return jnp.where(nonzero, jnp.sqrt(safe_sq), 0.0)
+    zero = sq == 0
+    safe_sq = jnp.where(zero, 1.0, sq)
+    return jnp.where(zero, 0.0, jnp.sqrt(safe_sq))
 
 
 # ---------------------------------------------------------------------------
@@ -345,9 +348,13 @@ def check_int(value, name: str, lower: int = 1, what: str = "an int") -> int:
     """``value`` as an int when it is a Python or NumPy integer ≥ ``lower`` (a bool is not a
     count); else :class:`InputError` naming ``name`` ("expected {what} >= {lower}").  Host-side,
     for sizes and counts."""
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < lower:
+    try:  # ints, NumPy integers and 0-d integer arrays; a float, a string or a bool is not a count
+        v = None if isinstance(value, (bool, np.bool_)) else operator.index(value)
+    except TypeError:
+        v = None
+    if v is None or v < lower:
         raise InputError(f"{name}: expected {what} >= {lower}, got {value!r}")
-    return int(value)
+    return int(v)
 
 
 def check_whole_ids(ids, name: str, used=None):

@@ -77,7 +77,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import InputError
-from ..linalg import wrap_angle
+from ..linalg import check_int, is_concrete, wrap_angle
 
 __all__ = [
     "Lines",
@@ -175,11 +175,18 @@ def check_ransac_config(cfg):
                              "(static_argnames='cfg') or close over it")
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < (2 if name == "min_inliers" else 1):
             raise InputError(f"cfg.{name}: expected an integer ≥ {2 if name == 'min_inliers' else 1}, got {v!r}")
+    for name in ("max_gap", "trim_ends"):  # 0 switches the run finder / the trimming off
+        v = getattr(cfg, name)
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 0:
+            raise InputError(f"cfg.{name}: expected an integer ≥ 0, got {v!r}")
+    if not isinstance(cfg.stop_on_fail, (bool, np.bool_)):
+        raise InputError(f"cfg.stop_on_fail: expected True or False, got {cfg.stop_on_fail!r}")
     for name in ("threshold", "point_sigma"):
         v = getattr(cfg, name)
         if isinstance(v, jax.core.Tracer):
             raise InputError(f"cfg.{name} is traced: pass the RansacConfig as a static argument")
-        if not isinstance(v, (int, float, np.integer, np.floating)) or not (float(v) > 0 and math.isfinite(v)):
+        if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) or not (
+                float(v) > 0 and math.isfinite(v)):
             raise InputError(f"cfg.{name}: expected a positive finite number, got {v!r}")
     return cfg
 
@@ -225,13 +232,38 @@ def _moments(points, weights):
     return w, W, c, sxx, syy, sxy
 
 
+def _fit_inputs(points, weights, sigma=None):
+    """Points ``(N, 2)`` as a float array; weights ``(N,)`` (≥ 0 when concrete); σ a scalar (> 0
+    when concrete): :class:`InputError` naming the argument.  Shapes are static (free under
+    ``jit``): a (1,) weight broadcast over every point, an (N, 3) scan lost its third column."""
+    points = jnp.asarray(points)
+    if points.ndim != 2 or points.shape[1] != 2:
+        raise InputError(f"points: expected shape (N, 2), got {tuple(points.shape)}")
+    if not jnp.issubdtype(points.dtype, jnp.floating):
+        points = points.astype(jnp.result_type(float))
+    if np.shape(weights) != points.shape[:1]:
+        raise InputError(f"weights: expected shape ({points.shape[0]},) (one per point), got {np.shape(weights)}")
+    if is_concrete(weights) and np.any(np.asarray(weights) < 0):
+        raise InputError("weights: must be >= 0")
+    if sigma is not None:
+        if np.shape(sigma) != ():
+            raise InputError(f"sigma: expected a scalar point noise σ [m], got shape {np.shape(sigma)}")
+        if is_concrete(sigma) and not float(np.asarray(sigma)) > 0:
+            raise InputError(f"sigma: expected a point noise σ > 0 [m], got {sigma!r}")
+    return points
+
+
 def fit_line(points, weights):
     """Weighted total-least-squares line ``(ρ, θ)`` of points ``(N, 2)`` with weights ``(N,)`` ≥ 0.
 
     Closed form (module docstring).  Zero total weight gives a finite, meaningless line; callers
     mask it.  Points with zero weight must be finite (NaN · 0 = NaN).
     """
-    points = jnp.asarray(points)
+    points = _fit_inputs(points, weights)
+    return _fit_line(points, weights)
+
+
+def _fit_line(points, weights):
     _, _, c, sxx, syy, sxy = _moments(points, weights)
     phi = 0.5 * jnp.arctan2(2.0 * sxy, sxx - syy)  # direction of largest spread
     theta = phi + 0.5 * jnp.pi
@@ -262,8 +294,8 @@ def fit_line_cov(points, weights, sigma):
     ``σ² A⁻¹ B A⁻¹`` (module docstring).  Fewer than two distinct weighted points give a huge
     but finite covariance.
     """
-    points = jnp.asarray(points)
-    rho, theta = fit_line(points, weights)
+    points = _fit_inputs(points, weights, sigma)
+    rho, theta = _fit_line(points, weights)
     w, W, c, _, _, _ = _moments(points, weights)
     return _cov_about(points, w, W, c, rho, theta, jnp.asarray(sigma, points.dtype))
 
@@ -309,6 +341,7 @@ def largest_run(mask, max_gap):
     within the inlier threshold of a line's infinite extension is not part of that run.
     Ties go to the first run.  An all-False mask returns all False.
     """
+    max_gap = check_int(max_gap, "max_gap", lower=0)
     mask = jnp.asarray(mask, bool)
     n = mask.shape[0]
     idx = jnp.arange(n)
@@ -322,6 +355,7 @@ def largest_run(mask, max_gap):
 
 def trim_run(mask, k):
     """``mask`` without its first and last ``k`` True entries (all False if ≤ 2k are True)."""
+    k = check_int(k, "k", lower=0)
     mask = jnp.asarray(mask, bool)
     rank = jnp.cumsum(mask)
     return mask & (rank > k) & (rank <= rank[-1] - k)
@@ -454,6 +488,8 @@ def match_predicted(points, valid, pred_rho, pred_theta, pred_mask, cfg=DEFAULT_
         raise InputError(f"pred_rho, pred_theta, pred_mask: expected equal shapes (M,), got "
                          f"{pred_rho.shape}, {pred_theta.shape}, {pred_mask.shape}")
     thr = jnp.asarray(cfg.threshold, dt)
+    if np.ndim(gate) != 0 or (is_concrete(gate) and not float(np.asarray(gate)) > 0):
+        raise InputError(f"gate: expected a distance > 0 [m] (a scalar), got {gate!r}")
     gate = jnp.asarray(gate, dt)
 
     def match(remaining, pred):

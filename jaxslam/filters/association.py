@@ -36,8 +36,10 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from ..linalg import symmetrize
-from .ekf_slam import SlamModel, SlamState, marginal_d2, slot_indices
+from ..errors import InputError
+from ..linalg import check_int, symmetrize
+from .ekf_slam import (SlamModel, SlamState, _check_options, _check_sizes, _rows, _rows_R, marginal_d2,
+                       slot_indices)
 
 __all__ = ["JCBBResult", "jcbb", "individual_compatibility"]
 
@@ -76,11 +78,22 @@ def jcbb(state: SlamState, model: SlamModel, z, mask, R, params=None, *, gate, t
       n_cand, budget: static sizes (candidates kept per measurement, search nodes).
     """
     nr, dl, dz = model.robot_dim, model.lm_dim, model.meas_dim
+    # the engine's own checks (shapes static, values when concrete): a short `thresholds` was
+    # index-clamped, a scalar R broadcast to a full matrix, a state of another lm_dim paired nothing
+    _check_sizes(state, model)
+    z, _, mask = _rows(z, None, mask, dz, "")
     K = z.shape[0]
-    C = int(n_cand)
+    C = check_int(n_cand, "n_cand")
+    check_int(budget, "budget")
+    _check_options(gate=gate)
+    if gate is None or callable(gate):
+        raise InputError(f"gate: expected the individual-compatibility χ² threshold (a number), got {gate!r}")
     dtype = state.x.dtype
-    R = jnp.broadcast_to(jnp.asarray(R, dtype), (K, dz, dz))
+    R = _rows_R(R, mask, K, dz, dtype)
     thr = jnp.asarray(thresholds, dtype)
+    if thr.shape != (K,):
+        raise InputError(f"thresholds: expected ({K},) joint χ² thresholds, one per number of pairings, "
+                         f"got shape {thr.shape}")
     d2, (zh, Hs, Hl, nu) = individual_compatibility(state, model, z, mask, R, params)
     cap = d2.shape[1]
     C = min(C, cap)

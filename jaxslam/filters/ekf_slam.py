@@ -279,15 +279,17 @@ def _rows(z, ids, mask, dz: int, ids_name: str):
         raise InputError(f"z: expected shape (K, {dz}) (K ≥ 1 rows of the model's meas_dim), got "
                          f"{tuple(z.shape)}")
     K = z.shape[0]
-    ids = jnp.asarray(ids)
-    if tuple(ids.shape) != (K,):
-        raise InputError(f"{ids_name}: expected shape ({K},) (one per row of z), got {tuple(ids.shape)}")
-    if not jnp.issubdtype(ids.dtype, jnp.integer):
-        raise InputError(f"{ids_name}: expected integers, got dtype {ids.dtype}")
+    if ids is not None:  # None: rows without ids (an association's input)
+        ids = jnp.asarray(ids)
+        if tuple(ids.shape) != (K,):
+            raise InputError(f"{ids_name}: expected shape ({K},) (one per row of z), got {tuple(ids.shape)}")
+        if not jnp.issubdtype(ids.dtype, jnp.integer):
+            raise InputError(f"{ids_name}: expected integers, got dtype {ids.dtype}")
+        ids = ids.astype(jnp.int32)
     mask = jnp.asarray(mask)
     if tuple(mask.shape) != (K,):
         raise InputError(f"mask: expected shape ({K},) (one per row of z), got {tuple(mask.shape)}")
-    return z, ids.astype(jnp.int32), mask.astype(bool)
+    return z, ids, mask.astype(bool)
 
 
 def _check_options(gate=None, robust=None, num_iter: int = 1):

@@ -106,8 +106,9 @@ import numpy as np
 
 from .. import errors
 from ..errors import InputError
-from ..linalg import (check_psd, check_whole_ids, cholesky_small, inv_small, is_concrete, symmetrize,
-                      value_and_jacfwd, wrap_angle)
+from ..linalg import (check_int, check_psd, check_whole_ids, cholesky_small, inv_small, is_concrete,
+                      symmetrize, value_and_jacfwd, wrap_angle)
+from .gaussian import check_gate
 from ..stats import student_t_nll
 from . import ekf as _ekf
 from . import resampling as _rs
@@ -305,6 +306,29 @@ def _check_robust(robust):
             raise InputError(f"robust: expected a finite Student-t ν > 0 (None for the Gaussian), got {robust!r}")
 
 
+def _check_rows(R, lm_ids, mask, gate):
+    """Values a single step can check when they are concrete (under jit only shapes are known):
+    R positive definite (a negative R registered landmarks with a negative covariance), whole
+    landmark ids on the rows in use (2.7 was truncated onto landmark 2), a positive gate (a NaN
+    switched gating off)."""
+    if is_concrete(R):
+        R = np.asarray(R)
+        check_psd(R, "R", strict=True, stack=R.ndim == 3)
+    check_whole_ids(lm_ids, "lm_ids", mask if is_concrete(mask) else None)
+    check_gate(gate)
+
+
+def _check_angle_mask(angle_mask, n_r: int):
+    """``angle_mask`` as (n_r,) bools (static), or None; :class:`InputError` otherwise (a mask
+    of another length wrapped the wrong pose component, and index lists were read as flags)."""
+    if angle_mask is None:
+        return None
+    wrap = np.asarray(angle_mask)
+    if wrap.shape != (n_r,) or wrap.dtype != np.bool_:
+        raise InputError(f"angle_mask: expected {n_r} bools (one per pose component), got {angle_mask!r}")
+    return wrap
+
+
 def _threshold(gate, dof, dtype):
     if callable(gate):
         return jnp.asarray(gate(dof), dtype=dtype)
@@ -340,17 +364,10 @@ def init(pose0, n_particles: int, capacity: int, lm_dim: int, aux=None,
         InputError: n_particles, capacity or lm_dim < 1; pose0 not (n_r,) or
             (N, n_r), or non-finite; aux leaves of the wrong leading size.
     """
-    try:
-        N = int(n_particles)
-    except (TypeError, ValueError):
-        raise InputError(f"n_particles: expected an int, got {n_particles!r}") from None
-    if N <= 0:
-        raise InputError(f"n_particles: must be >= 1, got {n_particles}")
-    if int(capacity) <= 0:
-        raise InputError(f"capacity: must be >= 1, got {capacity}")
-    if int(lm_dim) <= 0:
-        raise InputError(f"lm_dim: must be >= 1, got {lm_dim}")
-    cap, d = int(capacity), int(lm_dim)
+    # counts, not numbers: 2.7 particles used to make 2, True made 1
+    N = check_int(n_particles, "n_particles")
+    cap = check_int(capacity, "capacity")
+    d = check_int(lm_dim, "lm_dim")
     shape = tuple(np.shape(pose0))
     if len(shape) not in (1, 2) or (len(shape) == 2 and shape[0] != N) or shape[-1] == 0:
         raise InputError(f"pose0: expected shape (n_r,) or ({N}, n_r), got {shape}")
@@ -442,8 +459,16 @@ def propagate_additive(p: Particles, key, mean_fn: Callable, std, *args) -> Part
     if std.shape not in ((n,), (n, n)):
         raise InputError(f"std: expected shape ({n},) (a diagonal noise) or ({n}, {n}) (a "
                          f"lower-triangular factor), got {std.shape}")
+    if is_concrete(std):  # a negative σ drew the mirror image of the positive one's noise
+        a = np.asarray(std)
+        if not np.all(np.isfinite(a)) or (a.ndim == 1 and np.any(a < 0)) or (
+                a.ndim == 2 and (np.any(np.triu(a, 1) != 0) or np.any(np.diag(a) < 0))):
+            raise InputError("std: expected finite σ >= 0, or a lower-triangular factor with a "
+                             "non-negative diagonal")
     in_axes = (0, 0) + (None,) * len(args)
     mean, aux = jax.vmap(mean_fn, in_axes=in_axes)(p.pose, p.aux, *args)
+    if np.shape(mean) != (N, n):
+        raise InputError(f"mean_fn: must return a ({n},) pose mean per particle, got {np.shape(mean)[1:]}")
     eps = jax.random.normal(key, (N, n), dtype)
     pose = jnp.asarray(mean, dtype) + (eps * std if std.ndim == 1 else eps @ std.T)
     return _moved(p, pose, aux)
@@ -632,6 +657,9 @@ def observe_update(
     R = jnp.asarray(R, dtype)
     if R.shape not in ((dz, dz), (K, dz, dz)):
         raise InputError(f"R: expected shape ({dz}, {dz}) or ({K}, {dz}, {dz}), got {R.shape}")
+    _check_rows(R, lm_ids, mask, gate)
+    if chunk is not None:
+        chunk = check_int(chunk, "chunk")
     z = z.astype(dtype)
     lm_ids = lm_ids.astype(jnp.int32)
     Rs = jnp.broadcast_to(R, (K, dz, dz))
@@ -811,13 +839,14 @@ def propose_optimal(p: Particles, model: LandmarkModel, z, lm_ids, mask, R, pose
     R = jnp.asarray(R, dtype)
     if R.shape not in ((dz, dz), (K_rows, dz, dz)):
         raise InputError(f"R: expected shape ({dz}, {dz}) or ({K_rows}, {dz}, {dz}), got {R.shape}")
-    wrap = None if angle_mask is None else np.asarray(angle_mask, bool)
-    if wrap is not None and wrap.shape != (n_r,):
-        raise InputError(f"angle_mask: expected {n_r} flags, got {len(wrap)}")
+    wrap = _check_angle_mask(angle_mask, n_r)
     Rs = jnp.broadcast_to(R, (K_rows, dz, dz))
+    if np.shape(mask) != (K_rows,):
+        raise InputError(f"mask: expected shape ({K_rows},), got {np.shape(mask)}")
+    if np.shape(lm_ids) not in ((K_rows,), (N, K_rows)):
+        raise InputError(f"lm_ids: expected shape ({K_rows},) or ({N}, {K_rows}), got {np.shape(lm_ids)}")
+    _check_rows(R, lm_ids, mask, gate)
     lm_ids = jnp.asarray(lm_ids).astype(jnp.int32)
-    if lm_ids.shape not in ((K_rows,), (N, K_rows)):
-        raise InputError(f"lm_ids: expected shape ({K_rows},) or ({N}, {K_rows}), got {lm_ids.shape}")
     lm_ids = jnp.broadcast_to(lm_ids, (N, K_rows))
     finite = jnp.asarray(mask).astype(bool) & jnp.all(jnp.isfinite(z), axis=1)
     z = jnp.where(finite[:, None], z.astype(dtype), jnp.zeros((), dtype))
@@ -910,6 +939,9 @@ def reweight(p: Particles, loglik) -> Particles:
 
 
 def _reweight(p: Particles, loglik):
+    if np.shape(loglik) != p.log_w.shape:
+        raise InputError(f"loglik: expected one log-likelihood per particle, shape {p.log_w.shape}, "
+                         f"got {np.shape(loglik)}")
     dtype = p.log_w.dtype
     lw = p.log_w + jnp.asarray(loglik, dtype)
     lw_n, ok = _rs.normalize(lw)
@@ -939,6 +971,13 @@ def resample_indices(p: Particles, idx, log_w=None) -> Particles:
     The new log-weights are ``log_w`` (normalised) or uniform when None.
     """
     N = p.pose.shape[0]
+    idx = jnp.asarray(idx)
+    if idx.shape != (N,) or not jnp.issubdtype(idx.dtype, jnp.integer):
+        raise InputError(f"idx: expected ({N},) integer ancestor indices, got {idx.dtype} {idx.shape}")
+    if is_concrete(idx) and not bool(np.all((np.asarray(idx) >= 0) & (np.asarray(idx) < N))):
+        raise InputError(f"idx: ancestor indices must lie in [0, {N}) (out of range gave NaN poses)")
+    if log_w is not None and np.shape(log_w) != (N,):
+        raise InputError(f"log_w: expected shape ({N},), got {np.shape(log_w)}")
     leaves = jax.tree_util.tree_map(lambda x: jnp.take(x, idx, axis=0), _per_particle(p))
     pose, aux, mean, cov, active, ids = leaves
     if log_w is None:
@@ -972,8 +1011,18 @@ def maybe_resample(p: Particles, key, threshold: Optional[float] = 0.5,
 
     if threshold is None:
         return do(p)
+    _check_fraction(threshold, "threshold")
     thr = jnp.asarray(threshold, p.log_w.dtype) * N
     return jax.lax.cond(neff(p) < thr, do, lambda q: q, p)
+
+
+def _check_fraction(value, name: str):
+    """A concrete fraction in [0, 1] (a NaN threshold never resampled; alpha outside [0, 1] is
+    no mixture); traced values pass."""
+    if np.ndim(value) != 0:
+        raise InputError(f"{name}: expected a scalar in [0, 1], got shape {np.shape(value)}")
+    if is_concrete(value) and not 0 <= float(np.asarray(value)) <= 1:
+        raise InputError(f"{name}: expected a number in [0, 1], got {value!r}")
 
 
 def resample_soft(p: Particles, key, alpha, threshold: Optional[float] = None,
@@ -984,6 +1033,10 @@ def resample_soft(p: Particles, key, alpha, threshold: Optional[float] = None,
     ``threshold`` None (default) it resamples at every call, which keeps a
     run's loss smooth in the parameters (a threshold decision is a jump).
     """
+    _check_fraction(alpha, "alpha")
+    if threshold is not None:
+        _check_fraction(threshold, "threshold")
+
     def do(q):
         idx, lw = _rs.soft(key, q.log_w, alpha, scheme)
         q = resample_indices(q, idx, lw)
@@ -1003,12 +1056,13 @@ def resample_soft(p: Particles, key, alpha, threshold: Optional[float] = None,
 def _mean_dev(p: Particles, angle_mask):
     """Weights (N,), weighted mean (n_r,) and deviations (N, n_r) (angles: circular mean,
     wrapped deviations; sin/cos of the angle columns only)."""
+    angle_mask = _check_angle_mask(angle_mask, p.pose.shape[1])
     w = jnp.exp(p.log_w)
     x = p.pose
     mu = w @ x
     dev = x - mu
     if angle_mask is not None:
-        idx = np.flatnonzero(np.asarray(angle_mask, bool))
+        idx = np.flatnonzero(angle_mask)
         if idx.size:
             xa = x[:, idx]
             circ = jnp.arctan2(w @ jnp.sin(xa), w @ jnp.cos(xa))

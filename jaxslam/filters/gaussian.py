@@ -220,7 +220,12 @@ def check_num_iter(num_iter):
 def check_gate(gate: Gate):
     """A gate given as a number must be a positive χ² threshold (a NaN would switch gating off
     without a word: ``x > nan`` is False); callables and traced values pass."""
-    if gate is None or callable(gate) or not is_concrete(gate) or np.ndim(gate) != 0:
+    if gate is None or callable(gate):
+        return
+    if np.ndim(gate) != 0:  # static: a (2,) gate made the status and acceptance (2,) arrays
+        raise InputError(f"gate: expected one χ² threshold (a scalar), a callable gate(dof) or None, "
+                         f"got shape {np.shape(gate)}")
+    if not is_concrete(gate):
         return
     g = float(np.asarray(gate))
     if not (np.isfinite(g) and g > 0):

@@ -63,6 +63,7 @@ from typing import Any, Callable, NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .. import errors
 from ..errors import InputError
@@ -357,9 +358,15 @@ def iterated(
         ``step_sizes`` filled); ``NOT_CONVERGED`` on every step when the last
         iteration still moved the trajectory by more than ``tol``.
     """
-    num_iter = int(num_iter)
-    if num_iter < 1:
-        raise InputError(f"num_iter: must be >= 1, got {num_iter}")
+    _g.check_num_iter(num_iter)  # 2.9 used to be truncated to 2, True taken as 1
+    if robust is not None and not callable(robust):
+        raise InputError(f"robust: expected None or an IRLS weight function w(r) (e.g. huber_weight()), "
+                         f"got {robust!r}")
+    if tol is not None:
+        if np.ndim(tol) != 0:
+            raise InputError(f"tol: expected a scalar tolerance in smoothed σ, got shape {np.shape(tol)}")
+        if is_concrete(tol):  # a NaN tolerance suppressed NOT_CONVERGED
+            check_scalar(tol, "tol", lower=0, strict=True)
     x0, P0, zs, masks, Q, R, q_step, r_step, T = _g.prepare_run(x0, P0, zs, masks, Q, R)
     if T == 0:
         raise InputError("zs: the run has no steps (T = 0): nothing to smooth")

@@ -97,7 +97,7 @@ from .. import errors
 from ..errors import InputError
 from ..linalg import check_psd, is_concrete, symmetrize, value_and_jacfwd
 from .ekf import Gaussian, UpdateInfo
-from .gaussian import check_leading, check_measurement
+from .gaussian import check_gate, check_leading, check_measurement
 
 __all__ = [
     "SqrtGaussian",
@@ -397,6 +397,7 @@ def update(
 
     zhat, H = value_and_jacfwd(lambda v: h(v, *args))(x)
     check_measurement(z, zhat, R, mask)
+    check_gate(gate)
     zhat = zhat.astype(dtype)
     H = H.astype(dtype)
     # Replace invalid components by their prediction before differencing so NaN garbage

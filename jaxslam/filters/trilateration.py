@@ -65,9 +65,11 @@ from typing import NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .. import errors
-from ..linalg import safe_norm
+from ..errors import InputError
+from ..linalg import is_concrete, safe_norm
 
 __all__ = [
     "TrilaterationResult",
@@ -112,6 +114,30 @@ def _bad_input_flag(ranges, mask):
     offered = jnp.ones(ranges.shape, bool) if mask is None else mask
     bad = offered & ~_valid(ranges, None)
     return jnp.where(jnp.any(bad), errors.MASKED_INPUT, 0)
+
+
+def _check_inputs(points, ranges, mask, range_var=None, points_name: str = "points"):
+    """Shapes (static: free under ``jit`` and ``vmap``) and, when concrete, ``range_var`` ≥ 0:
+    :class:`InputError` naming the argument (a (1,) mask or range broadcast over every sample, a
+    negative σ² gave a negative covariance with ``ok``)."""
+    ps = np.shape(points)
+    want_d = points_name == "points"
+    if (len(ps) != 2 or ps[1] < 1) if want_d else len(ps) != 1:
+        raise InputError(f"{points_name}: expected shape {'(K, d)' if want_d else '(K,)'}, got {ps}")
+    K = ps[0]
+    if K < 1:
+        raise InputError(f"{points_name}: no sample (K = 0)")
+    if np.shape(ranges) != (K,):
+        raise InputError(f"ranges: expected shape ({K},) (one per point), got {np.shape(ranges)}")
+    if mask is not None and np.shape(mask) != (K,):
+        raise InputError(f"mask: expected shape ({K},) (one per point), got {np.shape(mask)}")
+    if range_var is not None:
+        if np.shape(range_var) not in ((), (K,)):
+            raise InputError(f"range_var: expected a scalar or ({K},), got shape {np.shape(range_var)}")
+        if is_concrete(range_var):
+            v = np.asarray(range_var, dtype=float)
+            if not np.all(np.isfinite(v) & (v >= 0)):
+                raise InputError(f"range_var: expected finite range variances >= 0 [m²], got {range_var!r}")
 
 
 def _dtype_of(points, ranges):
@@ -206,6 +232,7 @@ def trilaterate(points, ranges, mask=None, range_var=None, min_points: Optional[
     Returns:
       :class:`TrilaterationResult`.
     """
+    _check_inputs(points, ranges, mask, range_var)
     dtype = _dtype_of(points, ranges)
     points = jnp.asarray(points, dtype)
     ranges = jnp.asarray(ranges, dtype)
@@ -267,6 +294,9 @@ def trilaterate_line(xs, ranges, mask=None, side=1.0, min_points: int = 3,
       the standard deviation of the valid x_k; ``ok`` is False (and
       ``DEGENERATE`` set) with too few samples, no baseline, or y² ≤ 0.
     """
+    _check_inputs(xs, ranges, mask, points_name="xs")
+    if np.shape(side) != () or (is_concrete(side) and float(np.asarray(side)) not in (-1.0, 1.0)):
+        raise InputError(f"side: expected +1 or -1 (the sign of the offset from the line), got {side!r}")
     dtype = _dtype_of(xs, ranges)
     xs = jnp.asarray(xs, dtype)
     ranges = jnp.asarray(ranges, dtype)

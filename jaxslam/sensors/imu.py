@@ -50,7 +50,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..geometry.euler import dcm_from_euler
-from ..linalg import check_shape
+from ..linalg import check_int, check_shape, is_concrete
 
 __all__ = [
     "G_IMU",
@@ -246,6 +246,14 @@ def imu_ideal(x, xdot, g, mode: str = "specific_force"):
 # White noise
 # ---------------------------------------------------------------------------
 
+def _spec(spec: ImuSpec) -> ImuSpec:
+    """``spec`` checked by :func:`check_imu_spec` when its fields are concrete (a negative density
+    gave a negative σ, a negative τ an unstable drift); traced fields (a tuned density) pass."""
+    if not isinstance(spec, ImuSpec) or is_concrete(tuple(spec)):
+        check_imu_spec(spec)
+    return spec
+
+
 def white_noise_sigma(spec: ImuSpec):
     """Discrete white-noise standard deviations σ = ND·√rate (paper 000 Table 5).
 
@@ -254,6 +262,7 @@ def white_noise_sigma(spec: ImuSpec):
       σ = ND·√rate is the std of white noise of two-sided density ND² averaged over one sample
       interval 1/rate (module docstring).
     """
+    spec = _spec(spec)
     root_rate = jnp.sqrt(jnp.asarray(spec.rate))
     sa = jnp.broadcast_to(jnp.asarray(spec.accel_noise_density) * root_rate, (3,))
     sg = jnp.broadcast_to(jnp.asarray(spec.gyro_noise_density) * root_rate, (3,))
@@ -348,6 +357,9 @@ def drift_transition(spec: ImuSpec, dt, method: str = "exact", dtype=None):
     """
     if method not in ("exact", "euler"):
         raise InputError(f"method: expected 'exact' or 'euler', got {method!r}")
+    spec = _spec(spec)
+    if np.ndim(dt) != 0 or (is_concrete(dt) and not float(np.asarray(dt)) >= 0):  # NaN included
+        raise InputError(f"dt: expected a step >= 0 [s] (a scalar), got {dt!r}")
     if dtype is None:
         dtype = dt.dtype if (hasattr(dt, "dtype") and jnp.issubdtype(dt.dtype, jnp.floating)) \
             else _default_dtype(None)
@@ -423,9 +435,7 @@ def bias_drift_rollout(key, state: BiasDriftState, spec: ImuSpec, dt, n_steps: i
     Returns a :class:`BiasDriftState` of (n_steps, ..., 6) arrays whose row k is the offset
     at sample k; row 0 is ``state`` itself.
     """
-    n_steps = int(n_steps)
-    if n_steps < 1:
-        raise InputError(f"n_steps: must be >= 1, got {n_steps}")
+    n_steps = check_int(n_steps, "n_steps")  # 2.7 used to run 2 steps
     dtype = state.drift.dtype
     a, q = drift_transition(spec, dt, dtype=dtype)
     sq = jnp.sqrt(q)

@@ -124,12 +124,22 @@ def check_lidar_spec(spec: LidarSpec, name: str = "spec") -> LidarSpec:
 # Spherical <-> Cartesian (shared with range_bearing3d)
 # ---------------------------------------------------------------------------
 
+def _last3(x, name: str):
+    """``x`` with a last axis of 3 (static check): a (2,) vector read its third entry from a
+    clamped index and returned a plausible wrong point."""
+    x = jnp.asarray(x)
+    if x.ndim < 1 or x.shape[-1] != 3:
+        raise InputError(f"{name}: expected shape (..., 3), got {tuple(x.shape)}")
+    return x
+
+
 def spherical_from_cartesian(c):
     """[α, β, δ] of a vector c (paper 000 eq. 31 per errata; paper 001 eq. 13).
 
     Args: c: (..., 3) Cartesian vector [m].
     Returns: (..., 3) [atan2(c2, c1), atan2(c3, √(c1²+c2²)), ‖c‖].
     """
+    c = _last3(c, "c")
     horiz = safe_norm(c[..., :2], axis=-1)
     rng = safe_norm(c, axis=-1)
     # Double-where guards: where an angle is undefined (c1 = c2 = 0 for α, c = 0 for β) it is
@@ -146,6 +156,7 @@ def cartesian_from_spherical(y):
 
     Args: y: (..., 3) [α rad, β rad, δ m].  Returns: (..., 3) [m].
     """
+    y = _last3(y, "y")
     az, el, rng = y[..., 0], y[..., 1], y[..., 2]
     ce = jnp.cos(el)
     return jnp.stack([rng * ce * jnp.cos(az), rng * ce * jnp.sin(az), rng * jnp.sin(el)], axis=-1)
@@ -346,6 +357,7 @@ def measurement_cov(spec: LidarSpec = PAPER000_LIDAR, dtype=None):
     dtype = jnp.result_type(float) if dtype is None else jnp.dtype(dtype)
     sig = (spec.sigma_az, spec.sigma_el, spec.sigma_range)
     if is_concrete(sig):  # the usual case: built on the host, no program to compile
+        check_lidar_spec(spec)  # a negative σ gave the same R as its absolute value, NaN a NaN R
         s = np.asarray(sig, np.float64)
         return jnp.asarray(np.diag(s * s), dtype)
     s = jnp.stack([jnp.asarray(v, dtype) for v in sig])
@@ -360,6 +372,8 @@ def sample_noise(key, spec: LidarSpec = PAPER000_LIDAR, shape_prefix=(), dtype=N
     Returns: (*shape_prefix, 3) with stds (σ_α rad, σ_β rad, σ_δ m).
     """
     dtype = jnp.result_type(float) if dtype is None else jnp.dtype(dtype)
+    if is_concrete(tuple(spec)):
+        check_lidar_spec(spec)
     s = jnp.stack([jnp.asarray(spec.sigma_az, dtype), jnp.asarray(spec.sigma_el, dtype),
                    jnp.asarray(spec.sigma_range, dtype)])
     shape = tuple(int(d) for d in shape_prefix) + (3,)

@@ -18,15 +18,27 @@ measurement at +179° against a prediction at −179° is a 2° innovation, not
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
 
+from ..errors import InputError
 from ..linalg import safe_norm, wrap_angle
 
 __all__ = ["observe", "inverse", "residual"]
 
 
+def _vec(x, n: int, name: str, exact: bool = True):
+    """``x`` as a 1-D array of ``n`` entries (``exact=False``: at least ``n``), checked statically
+    (free under ``jit``): a (2,) pose used to be read with its heading from a clamped index."""
+    x = jnp.asarray(x)
+    if x.ndim != 1 or (x.shape[0] != n if exact else x.shape[0] < n):
+        raise InputError(f"{name}: expected shape ({n}{'' if exact else '+'},), got {tuple(np.shape(x))}")
+    return x
+
+
 def observe(s, l, params=None):
     """Predicted ``(r, β)`` of landmark ``l`` from pose ``s``."""
     del params
+    s, l = _vec(s, 3, "s", exact=False), _vec(l, 2, "l", exact=False)
     d = l[:2] - s[:2]
     return jnp.stack([safe_norm(d), wrap_angle(jnp.arctan2(d[1], d[0]) - s[2])])
 
@@ -34,10 +46,12 @@ def observe(s, l, params=None):
 def inverse(s, z, params=None):
     """Landmark position from pose ``s`` and measurement ``z = (r, β)``."""
     del params
+    s, z = _vec(s, 3, "s", exact=False), _vec(z, 2, "z")
     a = s[2] + z[1]
     return jnp.stack([s[0] + z[0] * jnp.cos(a), s[1] + z[0] * jnp.sin(a)])
 
 
 def residual(z, zhat):
     """``z − ẑ`` with the bearing wrapped to [−π, π)."""
+    z, zhat = _vec(z, 2, "z"), _vec(zhat, 2, "zhat")
     return jnp.stack([z[0] - zhat[0], wrap_angle(z[1] - zhat[1])])

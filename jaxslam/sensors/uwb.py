@@ -39,6 +39,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ..errors import InputError
 from ..linalg import safe_norm
@@ -85,11 +86,22 @@ def check_model(model: str) -> str:
     return model
 
 
+def _pair(p, l):
+    """Tag and anchor positions of one shape, (d,) (static check: a transposed (2, 1) anchor
+    broadcast against a (2,) tag and gave a wrong range)."""
+    p, l = jnp.asarray(p), jnp.asarray(l)
+    if p.ndim != 1 or p.shape != l.shape:
+        raise InputError(f"p and l: expected one position each, both of shape (d,), got {tuple(p.shape)} "
+                         f"and {tuple(l.shape)}")
+    return p, l
+
+
 def squared_range(p, l):
     """Squared distance d² = (l_x − x)² + (l_y − y)² (paper 003 eq. 17).
 
     p: (2,) tag position [m]; l: (2,) anchor position [m].  Returns () [m²].
     """
+    p, l = _pair(p, l)
     d = l - p
     return jnp.sum(d * d)
 
@@ -99,6 +111,7 @@ def plain_range(p, l):
 
     p: (2,) tag position [m]; l: (2,) anchor position [m].  Returns () [m].
     """
+    p, l = _pair(p, l)
     return safe_norm(l - p)
 
 
@@ -118,6 +131,8 @@ def gyro(rates):
 
 def ranges_to(p, anchors):
     """True distances from a tag at p (2,) to anchors (N, 2): (N,) [m] (eq. 16 for each)."""
+    if np.ndim(anchors) != 2:
+        raise InputError(f"anchors: expected shape (N, d), got {np.shape(anchors)}")
     return jax.vmap(lambda l: plain_range(p, l))(anchors)
 
 

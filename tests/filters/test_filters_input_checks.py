@@ -500,3 +500,146 @@ def test_monte_carlo_names_an_empty_device_list_and_a_float_seed():
         monte_carlo.run(fn, 0, 2, devices=[])
     with pytest.raises(InputError, match=r"^seed: expected an int"):
         monte_carlo.run(fn, 1.5, 2)
+
+
+# ---------------------------------------------------------------------------
+# FastSLAM steps, JCBB, trilateration, the iterated smoother (a probe of single calls)
+# ---------------------------------------------------------------------------
+
+def _fs_setup():
+    from jaxslam.filters import fastslam as fs
+    from jaxslam.sensors import range_bearing2d as rb2
+
+    model = fs.LandmarkModel(2, 2, rb2.observe, rb2.inverse, rb2.residual)
+    p = fs.init(jnp.zeros(3), 5, 4, 2)
+    z = jnp.stack([rb2.observe(jnp.zeros(3), l) for l in jnp.array([[3.0, 0.0], [0.0, 3.0]])])
+    return fs, model, p, z, jnp.diag(jnp.array([0.01, 0.001]))
+
+
+def test_fastslam_steps_check_r_ids_gate_and_counts():
+    fs, model, p, z, R = _fs_setup()
+    ids, mask = jnp.array([0, 1]), jnp.array([True, True])
+    # a negative R registered landmarks with a negative covariance; fractional ids were
+    # truncated onto other landmarks; a NaN gate switched gating off
+    with pytest.raises(InputError, match="^R: "):
+        fs.observe_update(p, model, z, ids, mask, -R)
+    with pytest.raises(InputError, match="^lm_ids: expected whole-number"):
+        fs.observe_update(p, model, z, jnp.array([0.2, 1.7]), mask, R)
+    with pytest.raises(InputError, match="^gate: "):
+        fs.observe_update(p, model, z, ids, mask, R, gate=float("nan"))
+    cov = jnp.broadcast_to(0.01 * jnp.eye(3), (5, 3, 3))
+    key = jax.random.PRNGKey(0)
+    with pytest.raises(InputError, match="^R: "):
+        fs.propose_optimal(p, model, z, ids, mask, -R, cov, key)
+    with pytest.raises(InputError, match="^lm_ids: expected whole-number"):
+        fs.propose_optimal(p, model, z, jnp.array([0.6, 1.4]), mask, R, cov, key)
+    with pytest.raises(InputError, match=r"^mask: expected shape \(2,\)"):
+        fs.propose_optimal(p, model, z, ids, jnp.array([True]), R, cov, key)
+    # counts are ints: 2.7 particles used to make 2, True made 1
+    for bad in ({"n_particles": 2.7}, {"n_particles": True}, {"capacity": 2.5}, {"lm_dim": 1.9}):
+        kw = {"n_particles": 5, "capacity": 4, "lm_dim": 2, **bad}
+        with pytest.raises(InputError, match=f"^{next(iter(bad))}: expected an int"):
+            fs.init(jnp.zeros(3), **kw)
+    assert fs.init(jnp.zeros(3), np.int64(5), jnp.asarray(4), 2).pose.shape == (5, 3)
+    # the same call with good arguments still runs
+    q, _ = fs.observe_update(p, model, z, ids, mask, R)
+    assert bool(q.active[:, :2].all())
+
+
+def test_fastslam_set_operations_check_their_arguments():
+    fs, model, p, z, R = _fs_setup()
+    p = p._replace(pose=p.pose.at[:, 2].set(jnp.array([3.1, -3.1, 3.0, -3.0, 3.1])))
+    with pytest.raises(InputError, match="^angle_mask: expected 3 bools"):
+        fs.estimate(p, angle_mask=[False, True])  # wrapped y, averaged the heading linearly
+    with pytest.raises(InputError, match="^angle_mask: expected 3 bools"):
+        fs.estimate_var(p, angle_mask=[2])  # an index list read as flags
+    mu, _ = fs.estimate(p, angle_mask=[False, False, True])
+    assert abs(abs(float(mu[2])) - np.pi) < 0.1  # the circular mean, near ±π
+    with pytest.raises(InputError, match=r"^idx: ancestor indices must lie in \[0, 5\)"):
+        fs.resample_indices(p, jnp.array([99, -7, 0, 0, 0]))  # gave NaN poses
+    with pytest.raises(InputError, match=r"^idx: expected \(5,\) integer"):
+        fs.resample_indices(p, jnp.array([0, 1]))  # a 2-particle pose with 5 weights
+    with pytest.raises(InputError, match="^loglik: expected one log-likelihood per particle"):
+        fs.reweight(p, jnp.array([3.0]))  # broadcast
+    key = jax.random.PRNGKey(1)
+    with pytest.raises(InputError, match=r"^threshold: expected a number in \[0, 1\]"):
+        fs.maybe_resample(p, key, float("nan"))  # never resampled
+    with pytest.raises(InputError, match=r"^alpha: expected a number in \[0, 1\]"):
+        fs.resample_soft(p, key, 2.0)
+    with pytest.raises(InputError, match="^std: expected finite σ >= 0"):
+        fs.propagate_additive(p, key, lambda x, a: (x, a), jnp.array([-1.0, -1.0, -1.0]))
+    with pytest.raises(InputError, match="^std: expected finite σ >= 0"):
+        fs.propagate_additive(p, key, lambda x, a: (x, a), jnp.ones((3, 3)))  # not lower-triangular
+    with pytest.raises(InputError, match=r"^mean_fn: must return a \(3,\) pose mean"):
+        fs.propagate_additive(p, key, lambda x, a: (x[:2], a), jnp.ones(3))
+
+
+def test_jcbb_uses_the_engines_checks():
+    from jaxslam.filters import association as A
+    from jaxslam.sensors import range_bearing2d as rb2
+
+    model = es.SlamModel(3, 2, 2, lambda s, u, p: s, rb2.observe, rb2.inverse, rb2.residual)
+    st = es.preload(es.init(jnp.zeros(3), 0.01 * jnp.eye(3), 4, 2), model,
+                    jnp.array([[3.0, 0.0], [0.0, 3.0], [-3.0, 0.0]]), jnp.stack([0.01 * jnp.eye(2)] * 3))
+    z = jnp.stack([rb2.observe(jnp.zeros(3), l) for l in jnp.array([[3.0, 0.0], [0.0, 3.0]])]) + jnp.array([0.05, 0.02])
+    mask, R, thr = jnp.array([True, True]), 0.01 * jnp.eye(2), jnp.array([5.99, 9.49])
+    good = A.jcbb(st, model, z, mask, R, gate=100.0, thresholds=thr)
+    # a short thresholds was index-clamped (the one-pairing threshold reused for two)
+    with pytest.raises(InputError, match=r"^thresholds: expected \(2,\)"):
+        A.jcbb(st, model, z, mask, R, gate=100.0, thresholds=thr[:1])
+    with pytest.raises(InputError, match=r"^z: expected shape \(K, 2\)"):
+        A.jcbb(st, model, jnp.pad(z, ((0, 0), (0, 1))), mask, R, gate=100.0, thresholds=thr)  # (K, 3)
+    with pytest.raises(InputError, match=r"^mask: expected shape \(2,\)"):
+        A.jcbb(st, model, z, mask[:1], R, gate=100.0, thresholds=thr)
+    with pytest.raises(InputError, match="^R: expected shape"):
+        A.jcbb(st, model, z, mask, 0.01, gate=100.0, thresholds=thr)  # was the all-0.01 matrix
+    with pytest.raises(InputError, match="^R"):
+        A.jcbb(st, model, z, mask, -R, gate=100.0, thresholds=thr)
+    with pytest.raises(InputError, match="^gate: "):
+        A.jcbb(st, model, z, mask, R, gate=float("nan"), thresholds=thr)
+    with pytest.raises(InputError, match="^n_cand: expected an int"):
+        A.jcbb(st, model, z, mask, R, gate=100.0, thresholds=thr, n_cand=2.7)
+    other = es.init(jnp.zeros(3), 0.01 * jnp.eye(3), 4, 3)  # lm_dim 3 for a lm_dim-2 model
+    with pytest.raises(InputError, match="^state: x"):
+        A.jcbb(other, model, z, mask, R, gate=100.0, thresholds=thr)
+    assert int(good.n_paired) == 2
+
+
+def test_trilateration_checks_variances_side_and_shapes():
+    from jaxslam.filters import trilateration as T
+
+    pts = jnp.array([[0.0, 0.0], [4.0, 0.0], [0.0, 4.0], [4.0, 4.0]])
+    r = jnp.linalg.norm(pts - jnp.array([1.0, 2.0]), axis=1)
+    for bad in (-0.01, float("nan")):  # a negative σ² gave a negative covariance with ok
+        with pytest.raises(InputError, match="^range_var: "):
+            T.trilaterate(pts, r, range_var=bad)
+    with pytest.raises(InputError, match=r"^ranges: expected shape \(4,\)"):
+        T.trilaterate(pts, r[:1])
+    with pytest.raises(InputError, match=r"^mask: expected shape \(4,\)"):
+        T.trilaterate(pts, r, mask=jnp.array([True]))
+    with pytest.raises(InputError, match=r"^ranges: expected shape \(2,\)"):
+        T.trilaterate(pts.T, r)  # transposed points: K = 2, named by the pairing
+    with pytest.raises(InputError, match=r"^points: expected shape \(K, d\)"):
+        T.trilaterate(pts[:, 0], r)
+    fix = T.trilaterate(pts, r, range_var=0.01)
+    np.testing.assert_allclose(np.asarray(fix.position), [1.0, 2.0], atol=1e-5)
+    xs = jnp.array([0.0, -1.0, -2.0, -3.0])
+    rl = jnp.sqrt((xs + 1.0) ** 2 + 4.0)
+    for bad in (5.0, 0.0, float("nan")):  # any side was accepted, with ok
+        with pytest.raises(InputError, match=r"^side: expected \+1 or -1"):
+            T.trilaterate_line(xs, rl, side=bad)
+    np.testing.assert_allclose(np.asarray(T.trilaterate_line(xs, rl, side=1.0).position), [-1.0, 2.0], atol=1e-4)
+
+
+def test_iterated_smoother_and_sqrt_update_check_their_options():
+    from jaxslam.filters import smoother
+
+    for kw, needle in (({"num_iter": 2.9}, "^num_iter: "), ({"num_iter": True}, "^num_iter: "),
+                       ({"tol": float("nan")}, "^tol: "), ({"robust": 1.345}, "^robust: ")):
+        with pytest.raises(InputError, match=needle):
+            smoother.iterated(f, h, np.zeros(2), np.eye(2), None, ZS, None, Q2, R1, **kw)
+    g = sqrt_ekf.from_gaussian(ekf.Gaussian(jnp.zeros(2), jnp.eye(2)))
+    with pytest.raises(InputError, match="^gate: "):
+        sqrt_ekf.update(g, jnp.zeros(1), h, R1, gate=float("nan"))  # never gated
+    with pytest.raises(InputError, match=r"^gate: expected one χ² threshold"):
+        ekf.update(ekf.Gaussian(jnp.zeros(2), jnp.eye(2)), jnp.zeros(1), h, R1, gate=jnp.array([1.0, 2.0]))

@@ -1,0 +1,94 @@
+"""Bad input to the sensor models and the line features: an early InputError naming the argument
+(shapes are static, so they are checked under jit too), never a plausible wrong reading.
+
+Each case was found by calling the function as a careless user would; the expected values are
+written by hand."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxslam.errors import InputError
+from jaxslam.features import lines as L
+from jaxslam.linalg import safe_norm
+from jaxslam.sensors import imu, lidar3d as l3, range_bearing2d as rb2, uwb
+
+
+def test_safe_norm_keeps_nan_and_inf_and_its_zero_gradient():
+    """``NaN > 0`` is false: the norm of a NaN vector used to be 0 (a plausible reading)."""
+    assert np.isnan(float(safe_norm(jnp.array([np.nan, 0.0, 0.0]))))
+    assert float(safe_norm(jnp.array([np.inf, 1.0]))) == np.inf
+    assert float(safe_norm(jnp.array([3.0, 4.0]))) == 5.0
+    np.testing.assert_array_equal(np.asarray(jax.grad(safe_norm)(jnp.zeros(3))), np.zeros(3))
+
+
+def test_a_nan_point_is_no_visible_lidar_return():
+    y, vis = l3.measure_all(jnp.array([np.nan, 0.0, 0.0]), jnp.zeros(3),
+                            jnp.array([[5.0, 1.0, 0.5], [50.0, -3.0, 2.0]]))
+    assert not bool(jnp.any(vis)) and bool(jnp.all(jnp.isnan(y[:, 2])))  # was y = 0, visible
+    assert bool(jnp.isnan(l3.spherical_from_cartesian(jnp.array([np.nan, 1.0, 2.0]))[2]))
+
+
+@pytest.mark.parametrize("call, needle", [
+    (lambda: rb2.observe(jnp.array([1.0, 2.0]), jnp.array([3.0, 4.0])), r"^s: expected shape \(3\+,\)"),
+    (lambda: rb2.observe(jnp.zeros(3), jnp.array([[3.0], [4.0]])), r"^l: expected shape \(2\+,\)"),
+    (lambda: rb2.inverse(jnp.zeros(3), jnp.array([5.0])), r"^z: expected shape \(2,\)"),
+    (lambda: rb2.residual(jnp.array([1.0, 2.0, 3.0]), jnp.array([1.0, 2.0])), r"^z: expected shape \(2,\)"),
+    (lambda: l3.cartesian_from_spherical(jnp.array([0.1, 0.2])), r"^y: expected shape \(\.\.\., 3\)"),
+    (lambda: l3.spherical_from_cartesian(jnp.array([1.0, 2.0])), r"^c: expected shape \(\.\.\., 3\)"),
+    (lambda: uwb.squared_range(jnp.zeros(2), jnp.array([[3.0], [4.0]])), "^p and l: "),
+    (lambda: uwb.plain_range(jnp.zeros(2), jnp.zeros(3)), "^p and l: "),
+    (lambda: l3.measurement_cov(l3.LidarSpec(sigma_range=-0.1)), "^spec.sigma_range: must be >= 0"),
+    (lambda: l3.sample_noise(jax.random.PRNGKey(0), l3.LidarSpec(sigma_az=float("nan"))), "^spec.sigma_az: must be finite"),
+    (lambda: imu.white_noise_sigma(imu.ImuSpec(accel_noise_density=-1.0)), "^spec.accel_noise_density: invalid"),
+    (lambda: imu.drift_transition(imu.ImuSpec(drift_tau=-5.0, drift_density=0.1), 0.01), "^spec.drift_tau: invalid"),
+    (lambda: imu.drift_transition(imu.ImuSpec(drift_tau=5.0, drift_density=0.1), -0.01), "^dt: expected a step >= 0"),
+    (lambda: imu.bias_drift_rollout(jax.random.PRNGKey(0), imu.BiasDriftState(jnp.zeros(6), jnp.zeros(6)),
+                                    imu.ImuSpec(drift_tau=5.0), 0.01, 2.7), "^n_steps: expected an int"),
+], ids=["rb2-pose", "rb2-landmark", "rb2-inverse", "rb2-residual", "lidar-cart", "lidar-sph", "uwb-transposed",
+        "uwb-dims", "lidar-cov-sigma", "lidar-noise-nan", "imu-density", "imu-tau", "imu-dt", "imu-steps"])
+def test_sensor_functions_name_a_bad_argument(call, needle):
+    with pytest.raises(InputError, match=needle):
+        call()
+
+
+def test_sensor_shape_checks_hold_under_jit_and_good_calls_are_unchanged():
+    with pytest.raises(InputError, match="^s: "):
+        jax.jit(rb2.observe)(jnp.zeros(2), jnp.ones(2))
+    z = rb2.observe(jnp.array([0.0, 0.0, 0.0]), jnp.array([3.0, 4.0]))
+    np.testing.assert_allclose(np.asarray(z), [5.0, np.arctan2(4.0, 3.0)], rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(rb2.inverse(jnp.zeros(3), z)), [3.0, 4.0], rtol=1e-6)
+    assert float(uwb.squared_range(jnp.zeros(2), jnp.array([3.0, 4.0]))) == 25.0
+
+
+XS = jnp.linspace(0.0, 2.0, 30)
+PTS = jnp.stack([XS, jnp.ones_like(XS)], 1)  # the line y = 1: ρ = 1, θ = π/2
+
+
+@pytest.mark.parametrize("call, needle", [
+    (lambda: L.fit_line(PTS, jnp.ones(1)), r"^weights: expected shape \(30,\)"),  # broadcast before
+    (lambda: L.fit_line(PTS, -jnp.ones(30)), "^weights: must be >= 0"),
+    (lambda: L.fit_line(jnp.pad(PTS, ((0, 0), (0, 1))), jnp.ones(30)), r"^points: expected shape \(N, 2\)"),
+    (lambda: L.fit_line_cov(PTS, jnp.ones(30), -0.02), "^sigma: expected a point noise σ > 0"),
+    (lambda: L.fit_line_cov(PTS, jnp.ones(30), jnp.array([0.02, 0.03])), "^sigma: expected a scalar"),
+    (lambda: L.largest_run(jnp.ones(5, bool), -1), "^max_gap: expected an int >= 0"),
+    (lambda: L.trim_run(jnp.ones(5, bool), 1.5), "^k: expected an int >= 0"),
+    (lambda: L.check_ransac_config(L.DEFAULT_RANSAC._replace(stop_on_fail="no")), "^cfg.stop_on_fail"),
+    (lambda: L.check_ransac_config(L.DEFAULT_RANSAC._replace(threshold=True)), "^cfg.threshold"),
+    (lambda: L.check_ransac_config(L.DEFAULT_RANSAC._replace(trim_ends=1.5)), "^cfg.trim_ends"),
+    (lambda: L.check_ransac_config(L.DEFAULT_RANSAC._replace(max_gap=-2)), "^cfg.max_gap"),
+    (lambda: L.match_predicted(PTS, jnp.ones(30, bool), jnp.array([1.0]), jnp.array([1.5]),
+                               jnp.array([True]), gate=-1.0), "^gate: expected a distance > 0"),
+], ids=["weights-len", "weights-neg", "points-3d", "sigma-neg", "sigma-vec", "gap", "trim", "stop",
+        "thr-bool", "trim-frac", "gap-neg", "match-gate"])
+def test_line_features_name_a_bad_argument(call, needle):
+    with pytest.raises(InputError, match=needle):
+        call()
+
+
+def test_line_fit_of_good_input_is_unchanged():
+    rho, theta = L.fit_line(PTS, jnp.ones(30))
+    assert float(rho) == pytest.approx(1.0, abs=1e-6) and float(theta) == pytest.approx(np.pi / 2, abs=1e-6)
+    rho_i, _ = L.fit_line(PTS.astype(jnp.int32), jnp.ones(30))  # integer points are promoted
+    assert np.isfinite(float(rho_i))
