@@ -268,6 +268,9 @@ def _root(A, dtype=None, triangular=True):
 def from_gaussian(g: Gaussian) -> SqrtGaussian:
     """:class:`SqrtGaussian` of a :class:`~jaxslam.filters.ekf.Gaussian` (``psd_factor`` of its cov)."""
     x = jnp.asarray(g.mean)
+    n = x.shape[0] if x.ndim == 1 else None
+    if n is None or np.shape(g.cov) != (n, n):
+        raise InputError(f"g: expected an (n,) mean and an (n, n) cov, got {tuple(x.shape)} and {np.shape(g.cov)}")
     dtype = x.dtype if jnp.issubdtype(x.dtype, jnp.floating) else jnp.result_type(float)
     return SqrtGaussian(x.astype(dtype), psd_factor(g.cov, dtype))
 

@@ -25,6 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import InputError
+from ..linalg import is_concrete
 from .lidar3d import cartesian_from_spherical
 
 __all__ = ["generate_landmarks", "pole_landmarks"]
@@ -71,6 +72,8 @@ def generate_landmarks(key, n: int = 40, center=(0.0, 0.0, 0.0),
         raise InputError(f"range_range: ranges must be >= 0, got {rg}")
     if np.shape(center) != (3,):
         raise InputError(f"center: expected shape (3,), got {np.shape(center)}")
+    if is_concrete(center) and not np.all(np.isfinite(np.asarray(center, float))):
+        raise InputError(f"center: must be finite, got {center!r}")
     dtype = jnp.result_type(float) if dtype is None else jnp.dtype(dtype)
     lo = jnp.asarray([az[0], el[0], rg[0]], dtype)
     hi = jnp.asarray([az[1], el[1], rg[1]], dtype)

@@ -109,6 +109,8 @@ def beam_angles(spec, dtype=None):
     """
     _check_spec(spec)
     dtype = jax.dtypes.canonicalize_dtype(jnp.result_type(float) if dtype is None else dtype)
+    if not jnp.issubdtype(dtype, jnp.floating):  # int32 angles were truncated to -2, -2, ...
+        raise InputError(f"dtype: beam angles need a floating dtype, got {dtype}")
     i = jnp.arange(spec.n_beams, dtype=dtype)
     return jnp.asarray(spec.angle_min, dtype) + i * jnp.asarray(spec.angle_step, dtype)
 
@@ -235,6 +237,8 @@ def scan_points(ranges, valid, spec, tilt=None):
     r = r.astype(dtype)
     if r.shape != (spec.n_beams,):
         raise InputError(f"ranges: expected shape ({spec.n_beams},), got {r.shape}")
+    if np.shape(valid) != (spec.n_beams,):  # a (1,) mask broadcast over every beam
+        raise InputError(f"valid: expected shape ({spec.n_beams},), got {np.shape(valid)}")
     mask = jnp.asarray(valid, bool) & jnp.isfinite(r)
     r = jnp.where(mask, r, 0.0)
     h = _directions(spec, dtype, tilt)

@@ -92,3 +92,28 @@ def test_line_fit_of_good_input_is_unchanged():
     assert float(rho) == pytest.approx(1.0, abs=1e-6) and float(theta) == pytest.approx(np.pi / 2, abs=1e-6)
     rho_i, _ = L.fit_line(PTS.astype(jnp.int32), jnp.ones(30))  # integer points are promoted
     assert np.isfinite(float(rho_i))
+
+
+def test_more_small_functions_name_a_bad_argument():
+    from jaxslam.filters import ekf, sqrt_ekf
+    from jaxslam.sensors import landmarks, laser2d
+    from jaxslam.sim import simulate
+    from jaxslam.sim.scenarios import registry
+
+    spec = laser2d.URG04LX
+    with pytest.raises(InputError, match=rf"^valid: expected shape \({spec.n_beams},\)"):
+        laser2d.scan_points(jnp.ones(spec.n_beams), jnp.array([True]), spec)  # all beams valid before
+    with pytest.raises(InputError, match="^dtype: beam angles need a floating dtype"):
+        laser2d.beam_angles(spec, jnp.int32)
+    for args, needle in (((-10.0, 0.01, 10), "^duration: expected a positive"), ((10.0, 0.0, 10), "^dt: "),
+                         ((0.01, 0.01, 10), "^duration: 0.01 s holds no LiDAR frame"),
+                         ((1.0, 0.01, 2.5), "^lidar_every: expected an int")):
+        with pytest.raises(InputError, match=needle):
+            simulate.n_frames(*args)
+    assert simulate.n_frames(1.0, 0.01, 10) == 10
+    with pytest.raises(InputError, match="^g: expected an"):
+        sqrt_ekf.from_gaussian(ekf.Gaussian(jnp.zeros(2), jnp.eye(3)))
+    with pytest.raises(InputError, match="^center: must be finite"):
+        landmarks.generate_landmarks(jax.random.PRNGKey(0), 2, center=(0.0, float("nan"), 0.0))
+    with pytest.raises(InputError, match="^name: expected a scenario name"):
+        registry.get(["uwb-circle"])

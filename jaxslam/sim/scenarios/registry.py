@@ -251,6 +251,8 @@ def get(name: str) -> Scenario:
       InputError: no such scenario; the message lists the valid names.
     """
     _load_builtin()
+    if not isinstance(name, str):
+        raise InputError(f"name: expected a scenario name (a string), got {type(name).__name__}")
     try:
         return _REGISTRY[name]
     except KeyError:
