@@ -27,10 +27,11 @@ Parts (each writes ``<out>/<part>.json``; ``table.md`` summarises every JSON pre
                the closed loop with the EKF-SLAM estimator in it; held-out objective against Table 2
                (acceptance: ≥ 20 % lower) and against the truth-tuned weights of ``lqr`` evaluated the
                same way (``--compare``; acceptance: lower).  Needs ``lqr`` first (its tune JSON).
-``loop_both``  ``--tune both --w-nees 10 --w-mse 300 --train-runs 16 --duration 25``: weights and Q_imu
-               jointly, with the NEES and MSE terms (acceptance: held-out ANEES inside its χ² bounds,
-               position RMSE no worse than ``--q imu``; the MSE weight and the 25 s training flights
-               were chosen on validation seeds, docs/tuning.md).
+``loop_both``  ``--tune both --structure imu_iso --w-nees 10 --w-mse 300 --train-runs 16 --duration 25``:
+               weights and Q_imu (one density per sensor) jointly, with the NEES and MSE terms
+               (acceptance: held-out ANEES inside its χ² bounds, position RMSE no worse than
+               ``--q imu``; the MSE weight, the 25 s training flights and the per-sensor Q_imu were
+               chosen on validation seeds, docs/tuning.md).
 ``uwb``        ``jaxslam tune uwb-circle --loss mse``: paper 003's hand-"fine tuned" Q (eq. 27)
                tuned on simulated logs, held-out position RMSE and ANEES before/after.
 
@@ -306,8 +307,8 @@ def part_lqr(a, out_dir):
 
 
 LOOP_ARGV = {"lqr": ["--tune", "lqr", "--steps", "60", "--lr", "0.2", "--train-runs", "4"],
-             "both": ["--tune", "both", "--w-nees", "10", "--w-mse", "300", "--steps", "60", "--lr", "0.2",
-                      "--train-runs", "16", "--duration", "25"]}
+             "both": ["--tune", "both", "--structure", "imu_iso", "--w-nees", "10", "--w-mse", "300",
+                      "--steps", "60", "--lr", "0.2", "--train-runs", "16", "--duration", "25"]}
 
 
 def part_loop(a, out_dir, tune):
@@ -322,6 +323,11 @@ def part_loop(a, out_dir, tune):
         argv += ["--compare", str(truth_tuned)]
     name = f"ekfslam3d-unknown_loop_{tune}_tune.json"
     rep = _tune(argv, out_dir / name, a.plots)
+    return loop_summary(rep, argv, name, tune)
+
+
+def loop_summary(rep, argv, name, tune):
+    """The part's figures from a loop target's tune report ``rep`` (written as ``name``)."""
     rows = ["before", "after", *rep["references"]]
     ev = {k: (rep[k] if k in ("before", "after") else rep["references"][k]) for k in rows}
     obj = {k: ev[k]["metrics"]["objective"]["mean"] for k in rows}

@@ -119,10 +119,11 @@ def build_parser(with_targets: bool = True) -> Parser:
     p.add_argument("--filter", choices=("ekf", "ukf", "cubature"), default=None,
                    help="linear-gaussian: the filter the loss runs through, the EKF (default) or the "
                         "sigma-point filter with unscented or cubature points")
-    p.add_argument("--structure", choices=("qc", "imu", "imu_iso"), default="qc",
+    p.add_argument("--structure", choices=("qc", "imu", "imu_iso"), default=None,
                    help="ekfslam3d noise: tune the 9x9 process-noise density Q_c (Table 7's form; default), "
                         "the 6x6 IMU density Q_imu entering through the filter's G Q_imu G^T (imu), or one "
-                        "density per sensor, accelerometer and gyro (imu_iso, Table 5's form)")
+                        "density per sensor, accelerometer and gyro (imu_iso, Table 5's form); the loop "
+                        "target's Q_imu: imu (default) or imu_iso")
     loop = p.add_argument_group("closed loop with the estimator in it (ekfslam3d-* --target loop)")
     loop.add_argument("--tune", choices=("lqr", "noise", "both"), default=None,
                       help="what the loop target tunes: the DF-LQR weights (default), the filter's IMU "
@@ -247,7 +248,7 @@ def run_tuning(args, progress_stream=None) -> dict:
     if args.filter is not None and args.scenario != "linear-gaussian":
         raise InputError(f"--filter: only the linear-gaussian target takes it, not {args.scenario}")
     if not args.scenario.startswith("ekfslam3d"):
-        for flag, used in (("--structure", args.structure != "qc"), ("--tune-r", args.tune_r)):
+        for flag, used in (("--structure", args.structure is not None), ("--tune-r", args.tune_r)):
             if used:
                 raise InputError(f"{flag}: only the ekfslam3d-* noise targets take it, not {args.scenario}")
     if target_name != "loop":
@@ -256,6 +257,9 @@ def run_tuning(args, progress_stream=None) -> dict:
                            ("--compare", args.compare)):
             if used is not None:
                 raise InputError(f"{flag}: only the loop target (ekfslam3d-* --target loop) takes it")
+    elif args.structure is not None and (args.structure == "qc" or (args.tune or "lqr") == "lqr"):
+        raise InputError(f"--structure {args.structure}: the loop target shapes its IMU noise Q_imu "
+                         "(imu or imu_iso) and needs --tune noise or both for it")
     elif args.tilt_max is not None and not args.tilt_max < 90:  # before the build: the only line
         raise InputError(f"--tilt-max: expected (0, 90) degrees, got {args.tilt_max}")
     elif args.compare is not None:  # read before the (slow) build: a bad file is the only line
@@ -302,10 +306,10 @@ def run_tuning(args, progress_stream=None) -> dict:
     dtype = jnp.float32 if args.float32 else jnp.float64
     kw = dict(train_runs=args.train_runs, test_runs=args.test_runs, seed=args.seed, dtype=dtype,
               eval_duration=args.eval_duration, checkpoint=not args.no_checkpoint, cov=args.cov,
-              tune_r=args.tune_r, structure=args.structure, filter=args.filter or "ekf")
+              tune_r=args.tune_r, structure=args.structure or "qc", filter=args.filter or "ekf")
     if target_name == "loop":
         kw.update(tune=args.tune or "lqr", w_mse=args.w_mse or 0.0, w_nees=args.w_nees or 0.0,
-                  compare=args.compare)
+                  compare=args.compare, structure=args.structure or "imu")
         kw.update({k: v for k, v in (("w_u", args.w_u), ("w_tilt", args.w_tilt), ("tilt_max_deg", args.tilt_max))
                    if v is not None})  # the target's defaults otherwise
     if args.duration is not None:

@@ -45,6 +45,27 @@ def test_gradient_matches_central_differences(short_target):
     assert worst <= 1e-4, worst
 
 
+def test_per_sensor_noise_is_the_per_axis_noise_tied(short_target):
+    """``structure="imu_iso"``: one accelerometer and one gyro density, each repeated on its three
+    axes.  Its loss equals the per-axis target's at the tied point, and its gradient is the sum of
+    the per-axis gradient over each sensor's axes (the chain rule through the tie; the per-axis
+    gradient is checked against finite differences above)."""
+    iso = get("ekfslam3d-unknown", "loop", "cost", structure="imu_iso", **SHORT)
+    assert set(iso.theta0) == {"Q", "R", "Qimu_sensor"} and iso.config["structure"] == "imu_iso"
+    tied = dict(iso.theta0)
+    tied["Qimu"] = jnp.repeat(tied.pop("Qimu_sensor"), 3)
+    np.testing.assert_allclose(np.asarray(tied["Qimu"]), np.asarray(short_target.theta0["Qimu"]), rtol=1e-15)
+    np.testing.assert_allclose(np.asarray(iso.physical(iso.theta0)[1].Qimu),
+                               np.asarray(short_target.physical(tied)[1].Qimu), rtol=1e-15)
+    key = iso.train[0]
+    g_iso = jax.jit(jax.grad(iso.loss_fn))(iso.theta0, key)
+    g_axis = jax.jit(jax.grad(short_target.loss_fn))(tied, key)
+    np.testing.assert_allclose(np.asarray(g_iso["Qimu_sensor"]),
+                               np.asarray(g_axis["Qimu"]).reshape(2, 3).sum(axis=1), rtol=1e-9, atol=1e-14)
+    for name in ("Q", "R"):
+        np.testing.assert_allclose(np.asarray(g_iso[name]), np.asarray(g_axis[name]), rtol=1e-9, atol=1e-14)
+
+
 def test_tilt_term_is_active_and_weights_enter(short_target):
     # With tilt_max 2 deg the figure-8 start exceeds it, so the soft constraint contributes.
     from jaxslam.tuning.targets import loop
@@ -123,6 +144,9 @@ def test_cli_loop_end_to_end_and_tuned_file_flies(tmp_path, capsys):
     (["tune", "ekfslam3d-unknown", "--target", "noise", "--w-tilt", "1"], "--w-tilt"),
     (["tune", "ekfslam3d-unknown", "--target", "loop", "--w-u", "-1"], "--w-u"),
     (["tune", "ekfslam3d-unknown", "--target", "loop", "--tilt-max", "95"], "--tilt-max"),
+    (["tune", "ekfslam3d-unknown", "--target", "loop", "--structure", "qc"], "--structure"),
+    (["tune", "ekfslam3d-unknown", "--target", "loop", "--structure", "imu_iso"], "--structure"),
+    (["tune", "track-figure8", "--target", "lqr", "--structure", "imu"], "--structure"),
 ])
 def test_cli_loop_usage_errors_exit_2_naming_the_flag(argv, needle, capsys):
     assert cli.main(argv) == 2

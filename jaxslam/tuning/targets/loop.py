@@ -25,6 +25,8 @@ Decisions (no paper covers this):
   accuracy with over-confidence.
 * **What is tuned** (``tune``): ``"lqr"`` (Q̃ 7, R̃ 4 log-diagonal from Table 2), ``"noise"``
   (Q_imu 6 log-diagonal from the ``--q imu`` densities; P0, R and Q_c = 0 held), ``"both"``.
+  ``structure`` shapes Q_imu as the noise target's does: ``"imu"`` (one density per axis, 6) or
+  ``"imu_iso"`` (one per sensor, accelerometer and gyro, Table 5's form, 2).
 * **Runs.**  Training flights use ``keys_for(seed, M)``, held-out flights ``keys_for(seed + 1,
   M)``: the flights (landmarks and noise) of ``jaxslam run ekfslam3d-{mode} --seed seed+1``.
   Training flights may be shorter than the 50 s evaluation (``--duration``, default 10 s).
@@ -55,9 +57,10 @@ from .. import params as P
 from . import Target, diag_list, keys, register_target
 from .ekfslam3d import eval_command
 
-__all__ = ["TUNE", "closed_loop_objective", "controller_file", "ekfslam3d_loop", "tilt_angle"]
+__all__ = ["STRUCTURES", "TUNE", "closed_loop_objective", "controller_file", "ekfslam3d_loop", "tilt_angle"]
 
 TUNE = ("lqr", "noise", "both")
+STRUCTURES = ("imu", "imu_iso")  # Q_imu per axis or per sensor (the noise target's names)
 
 
 def tilt_angle(phi, theta):
@@ -113,11 +116,12 @@ def ekfslam3d_loop(loss: str = "cost", train_runs: int = 4, test_runs: int = 16,
                    eval_duration: float = 50.0, tune: str = "lqr", w_u: float = 0.1,
                    w_tilt: float = 10.0, tilt_max_deg: float = 12.0, w_mse: float = 0.0,
                    w_nees: float = 0.0, compare=None, checkpoint: bool = True,
-                   feedforward: bool = True, **_ignored) -> Target:
+                   feedforward: bool = True, structure: str = "imu", **_ignored) -> Target:
     """Target: DF-LQR weights and/or the filter's Q_imu through the closed loop with the
     EKF-SLAM estimator in it (module docstring).  ``loss`` is ``"cost"`` (the objective J with
-    the given weights); ``tune`` one of :data:`TUNE`; ``compare``: a file whose controller is
-    evaluated beside the start and the result."""
+    the given weights); ``tune`` one of :data:`TUNE`; ``structure`` one of :data:`STRUCTURES`
+    (Q_imu's form); ``compare``: a file whose controller is evaluated beside the start and the
+    result."""
     from ...control import dflqr
     from ...sensors import imu as imu_mod
     from ...sensors import landmarks as lm_mod
@@ -134,6 +138,11 @@ def ekfslam3d_loop(loss: str = "cost", train_runs: int = 4, test_runs: int = 16,
         raise InputError(f"mode: expected 'unknown' or 'known', got {mode!r}")
     if tune not in TUNE:
         raise InputError(f"--tune: expected one of {', '.join(TUNE)}, got {tune!r}")
+    if structure not in STRUCTURES:
+        raise InputError(f"--structure: the loop target tunes the IMU density Q_imu, one of "
+                         f"{', '.join(STRUCTURES)}; got {structure!r}")
+    if structure != "imu" and tune == "lqr":
+        raise InputError(f"--structure {structure}: shapes the noise, so it needs --tune noise or both")
     for name, v in (("--w-u", w_u), ("--w-tilt", w_tilt), ("--w-mse", w_mse), ("--w-nees", w_nees)):
         check_scalar(v, name, lower=0)
     if not (0 < tilt_max_deg < 90):
@@ -163,13 +172,18 @@ def ekfslam3d_loop(loss: str = "cost", train_runs: int = 4, test_runs: int = 16,
     if tune in ("lqr", "both"):
         specs.update(Q=P.CovSpec("diag", 7), R=P.CovSpec("diag", 4))
         mats.update(Q=np.asarray(base.Q), R=np.asarray(base.R))
-    if tune in ("noise", "both"):
+    if tune in ("noise", "both") and structure == "imu":
         specs["Qimu"] = P.CovSpec("diag", 6)
         mats["Qimu"] = np.asarray(ref_noise.Qimu)
+    elif tune in ("noise", "both"):  # [accelerometer, gyro] densities, each shared by its 3 axes
+        specs["Qimu_sensor"] = P.CovSpec("diag", 2)
+        mats["Qimu_sensor"] = np.diag(np.diag(np.asarray(ref_noise.Qimu))[[0, 3]])
     theta0 = P.pack(specs, mats, dtype=dtype)
 
     def physical(theta):
         m = P.unpack(specs, theta)
+        if "Qimu_sensor" in m:
+            m["Qimu"] = jnp.diag(jnp.repeat(jnp.diag(m.pop("Qimu_sensor")), 3))
         ctrl = base._replace(Q=m["Q"], R=m["R"]) if "Q" in m else base
         noise = ref_noise._replace(Qimu=m["Qimu"]) if "Qimu" in m else ref_noise
         return ctrl, noise
@@ -242,7 +256,8 @@ def ekfslam3d_loop(loss: str = "cost", train_runs: int = 4, test_runs: int = 16,
     def after_references(phys):  # --tune both: the tuned weights flown with the --q imu filter
         return {"after_weights_q_imu": (phys[0], ref_noise)} if tune == "both" else {}
 
-    config = {"mode": mode, "tune": tune, "train_duration_s": float(train_duration),
+    config = {"mode": mode, "tune": tune, **({} if tune == "lqr" else {"structure": structure}),
+              "train_duration_s": float(train_duration),
               "eval_duration_s": float(eval_duration), "train_seed": int(seed), "test_seed": int(seed + 1),
               "train_runs": int(train_runs), "test_runs": int(test_runs), "weights": dict(w, tilt_max_deg=tilt_max_deg),
               "checkpoint": bool(checkpoint), "feedforward": bool(feedforward), "dtype": dtype.name,
