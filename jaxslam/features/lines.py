@@ -176,9 +176,7 @@ def check_ransac_config(cfg):
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < (2 if name == "min_inliers" else 1):
             raise InputError(f"cfg.{name}: expected an integer ≥ {2 if name == 'min_inliers' else 1}, got {v!r}")
     for name in ("max_gap", "trim_ends"):  # 0 switches the run finder / the trimming off
-        v = getattr(cfg, name)
-        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 0:
-            raise InputError(f"cfg.{name}: expected an integer ≥ 0, got {v!r}")
+        check_int(getattr(cfg, name), f"cfg.{name}", lower=0, what="an integer")
     if not isinstance(cfg.stop_on_fail, (bool, np.bool_)):
         raise InputError(f"cfg.stop_on_fail: expected True or False, got {cfg.stop_on_fail!r}")
     for name in ("threshold", "point_sigma"):

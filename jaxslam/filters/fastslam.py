@@ -108,7 +108,7 @@ from .. import errors
 from ..errors import InputError
 from ..linalg import (check_int, check_psd, check_whole_ids, cholesky_small, inv_small, is_concrete,
                       symmetrize, value_and_jacfwd, wrap_angle)
-from .gaussian import check_gate
+from .gaussian import check_gate, threshold as _threshold
 from ..stats import student_t_nll
 from . import ekf as _ekf
 from . import resampling as _rs
@@ -327,12 +327,6 @@ def _check_angle_mask(angle_mask, n_r: int):
     if wrap.shape != (n_r,) or wrap.dtype != np.bool_:
         raise InputError(f"angle_mask: expected {n_r} bools (one per pose component), got {angle_mask!r}")
     return wrap
-
-
-def _threshold(gate, dof, dtype):
-    if callable(gate):
-        return jnp.asarray(gate(dof), dtype=dtype)
-    return jnp.asarray(gate, dtype=dtype)
 
 
 # ---------------------------------------------------------------------------

@@ -97,7 +97,7 @@ from .. import errors
 from ..errors import InputError
 from ..linalg import check_psd, is_concrete, symmetrize, value_and_jacfwd
 from .ekf import Gaussian, UpdateInfo
-from .gaussian import check_gate, check_leading, check_measurement
+from .gaussian import check_gate, check_leading, check_measurement, threshold as _threshold
 
 __all__ = [
     "SqrtGaussian",
@@ -335,12 +335,6 @@ def predict(state: SqrtGaussian, f: Callable, u, Q=None, *args, noise_jac=None,
 # ---------------------------------------------------------------------------
 # Update
 # ---------------------------------------------------------------------------
-
-def _threshold(gate: Gate, dof, dtype):
-    if callable(gate):
-        return jnp.asarray(gate(dof), dtype=dtype)
-    return jnp.asarray(gate, dtype=dtype)
-
 
 def _default_residual(z, zhat):
     return z - zhat

@@ -55,13 +55,14 @@ __all__ = [
 ]
 
 
-def _last_axis(x, n: int, name: str, fn: str):
+def _last_axis(x, n: int, name: str, fn: str | None = None):
     """``x`` as an array whose last axis has ``n`` entries (static: free under ``jit``); else
     :class:`~jaxslam.errors.InputError` naming ``fn``'s argument (a (3,) quaternion used to
     be read as q0..q2 with q3 taken from a wrapped index, and return a plausible answer)."""
     x = jnp.asarray(x)
     if x.ndim < 1 or x.shape[-1] != n:
-        raise InputError(f"{fn}: {name} expected shape (..., {n}), got {tuple(x.shape)}")
+        raise InputError(f"{'' if fn is None else fn + ': '}{name}{':' if fn is None else ''} expected shape "
+                         f"(..., {n}), got {tuple(x.shape)}")
     return x
 
 

@@ -37,7 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import InputError
-from ..geometry.euler import dcm_from_euler, rotate_jacobian, unrotate_jacobian
+from ..geometry.euler import _last_axis, dcm_from_euler, rotate_jacobian, unrotate_jacobian
 from ..linalg import check_shape, is_concrete, safe_norm, wrap_angle
 
 __all__ = [
@@ -124,22 +124,13 @@ def check_lidar_spec(spec: LidarSpec, name: str = "spec") -> LidarSpec:
 # Spherical <-> Cartesian (shared with range_bearing3d)
 # ---------------------------------------------------------------------------
 
-def _last3(x, name: str):
-    """``x`` with a last axis of 3 (static check): a (2,) vector read its third entry from a
-    clamped index and returned a plausible wrong point."""
-    x = jnp.asarray(x)
-    if x.ndim < 1 or x.shape[-1] != 3:
-        raise InputError(f"{name}: expected shape (..., 3), got {tuple(x.shape)}")
-    return x
-
-
 def spherical_from_cartesian(c):
     """[α, β, δ] of a vector c (paper 000 eq. 31 per errata; paper 001 eq. 13).
 
     Args: c: (..., 3) Cartesian vector [m].
     Returns: (..., 3) [atan2(c2, c1), atan2(c3, √(c1²+c2²)), ‖c‖].
     """
-    c = _last3(c, "c")
+    c = _last_axis(c, 3, "c")  # a (2,) vector read its third entry from a clamped index
     horiz = safe_norm(c[..., :2], axis=-1)
     rng = safe_norm(c, axis=-1)
     # Double-where guards: where an angle is undefined (c1 = c2 = 0 for α, c = 0 for β) it is
@@ -156,7 +147,7 @@ def cartesian_from_spherical(y):
 
     Args: y: (..., 3) [α rad, β rad, δ m].  Returns: (..., 3) [m].
     """
-    y = _last3(y, "y")
+    y = _last_axis(y, 3, "y")
     az, el, rng = y[..., 0], y[..., 1], y[..., 2]
     ce = jnp.cos(el)
     return jnp.stack([rng * ce * jnp.cos(az), rng * ce * jnp.sin(az), rng * jnp.sin(el)], axis=-1)

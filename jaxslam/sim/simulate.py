@@ -19,16 +19,14 @@ flight; sizes (steps, landmark count, capacity) are static.
 
 from __future__ import annotations
 
-import math
 from typing import Any, NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from ..control import dflqr
 from ..errors import InputError
-from ..linalg import check_int
+from ..linalg import check_int, check_scalar
 from ..control.trajectories import flat_output
 from ..dynamics import euler_ned
 from ..dynamics.integrators import rk4_step
@@ -86,9 +84,8 @@ def n_frames(duration: float, dt: float, lidar_every: int) -> int:
     """Number of LiDAR frames in ``duration`` seconds (static): at least 1, else an
     :class:`InputError` naming the argument (a negative duration gave -100 frames, dt = 0 a
     ZeroDivisionError)."""
-    for name, v in (("duration", duration), ("dt", dt)):
-        if not (isinstance(v, (int, float, np.integer, np.floating)) and math.isfinite(v) and v > 0):
-            raise InputError(f"{name}: expected a positive finite number of seconds, got {v!r}")
+    duration = check_scalar(duration, "duration", lower=0, strict=True)
+    dt = check_scalar(dt, "dt", lower=0, strict=True)
     lidar_every = check_int(lidar_every, "lidar_every")
     n = int(round(duration / (dt * lidar_every)))
     if n < 1:

@@ -45,7 +45,7 @@ from .. import losses as L
 from .. import params as P
 from . import Target, diag_list, keys, register_target
 
-__all__ = ["STRUCTURES", "make_slam_logs", "slam_loss", "ekfslam3d_noise", "eval_command"]
+__all__ = ["STRUCTURES", "make_slam_logs", "slam_loss", "ekfslam3d_noise", "eval_command", "tie_imu_axes"]
 
 STRUCTURES = ("qc", "imu", "imu_iso")  # what is tuned (see ekfslam3d_noise)
 
@@ -143,6 +143,16 @@ def slam_loss(res, log, loss: str, weights=None):
     raise InputError(f"loss: expected 'nll', 'mse' or 'nees', got {loss!r}")
 
 
+def tie_imu_axes(m: dict) -> dict:
+    """``m`` (unpacked parameters) with a per-sensor ``Qimu_sensor`` (2, 2) — [accelerometer,
+    gyro] densities — replaced by the 6×6 ``Qimu`` that repeats each on its three axes (the
+    ``imu_iso`` structure, Table 5's form); unchanged without it.  Shared by the noise and loop
+    targets."""
+    if "Qimu_sensor" in m:
+        m["Qimu"] = jnp.diag(jnp.repeat(jnp.diag(m.pop("Qimu_sensor")), 3))
+    return m
+
+
 def ekfslam3d_noise(loss: str = "nll", train_runs: int = 4, test_runs: int = 8, seed: int = 0,
                     dtype=jnp.float64, mode: str = "unknown", train_duration: float = 10.0,
                     eval_duration: float = 50.0, capacity: int | None = None, tune_r: bool = False,
@@ -215,8 +225,7 @@ def ekfslam3d_noise(loss: str = "nll", train_runs: int = 4, test_runs: int = 8, 
 
     def physical(theta):
         m = P.unpack(specs, theta)
-        if "Qimu_sensor" in m:
-            m["Qimu"] = jnp.diag(jnp.repeat(jnp.diag(m.pop("Qimu_sensor")), 3))
+        tie_imu_axes(m)
         return sys3d.Params(P0=ref.P0.astype(dtype), Qc=m.get("Qc", jnp.zeros((sys3d.NX, sys3d.NX), dtype)),
                                  Qimu=m.get("Qimu", jnp.zeros((6, 6), dtype)), R=m.get("R", ref.R.astype(dtype)))
 

@@ -55,7 +55,7 @@ from ...linalg import check_scalar, safe_norm
 from .. import losses as L
 from .. import params as P
 from . import Target, diag_list, keys, register_target
-from .ekfslam3d import eval_command
+from .ekfslam3d import eval_command, tie_imu_axes
 
 __all__ = ["STRUCTURES", "TUNE", "closed_loop_objective", "controller_file", "ekfslam3d_loop", "tilt_angle"]
 
@@ -181,9 +181,7 @@ def ekfslam3d_loop(loss: str = "cost", train_runs: int = 4, test_runs: int = 16,
     theta0 = P.pack(specs, mats, dtype=dtype)
 
     def physical(theta):
-        m = P.unpack(specs, theta)
-        if "Qimu_sensor" in m:
-            m["Qimu"] = jnp.diag(jnp.repeat(jnp.diag(m.pop("Qimu_sensor")), 3))
+        m = tie_imu_axes(P.unpack(specs, theta))
         ctrl = base._replace(Q=m["Q"], R=m["R"]) if "Q" in m else base
         noise = ref_noise._replace(Qimu=m["Qimu"]) if "Qimu" in m else ref_noise
         return ctrl, noise
