@@ -9,6 +9,7 @@ dtype.
 from __future__ import annotations
 
 import functools
+import numbers
 import operator
 
 import jax
@@ -20,6 +21,7 @@ from .errors import InputError
 __all__ = [
     "host_array",
     "is_concrete",
+    "check_numbers",
     "value_and_jacfwd",
     "take",
     "put",
@@ -333,8 +335,8 @@ def check_scalar(value, name: str, *, finite: bool = True, lower=None, strict: b
         want = ("a finite scalar" if finite else "a scalar") + (
             "" if lower is None else f" {'>' if strict else '>='} {lower:g}")
     try:
-        a = np.asarray(value, np.float64)
-    except (TypeError, ValueError):
+        a = check_numbers(value, name)
+    except InputError:
         raise InputError(f"{name}: expected {want}, got {value!r}") from None
     ok = a.shape == () and not np.isnan(a) and (not finite or np.isfinite(a))
     if ok and lower is not None:
@@ -355,6 +357,21 @@ def check_int(value, name: str, lower: int = 1, what: str = "an int") -> int:
     if v is None or v < lower:
         raise InputError(f"{name}: expected {what} >= {lower}, got {value!r}")
     return int(v)
+
+
+def check_numbers(value, name: str) -> np.ndarray:
+    """``value`` as a float64 NumPy array, or :class:`InputError` naming ``name`` when it is not
+    numbers (a string, even "1.5"; None; a ragged list; a dict): host-side, before any check of its shape or
+    values, so such a value never reaches NumPy's bare ``could not convert`` error."""
+    try:
+        raw = np.asarray(value)
+        # NumPy would parse "1.5" (so a typo in a file could pass) and turn None into NaN
+        if raw.dtype.kind in "US" or (raw.dtype.kind == "O" and not all(
+                isinstance(e, numbers.Number) for e in raw.reshape(-1))):
+            raise TypeError
+        return np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError(f"{name}: expected numbers, got {value!r}") from None
 
 
 def check_whole_ids(ids, name: str, used=None):
@@ -392,8 +409,8 @@ def check_psd(M, name: str, strict: bool = False, tol: float = 1e-12, valid=None
     only the rows and columns in use are checked (a masked measurement's row of a per-step R
     may hold anything, NaN included).
     """
+    A = check_numbers(M, name)
     dt = np.asarray(M).dtype
-    A = np.asarray(M, dtype=np.float64)
     if A.ndim not in ((2, 3) if stack else (2,)) or A.shape[-1] != A.shape[-2]:
         raise InputError(f"{name}: expected a square matrix, got shape {A.shape}")
     # rounding room of a lower-precision input: 100 ulp of its dtype, relative to its magnitude

@@ -121,10 +121,22 @@ def test_check_scalar_accepts_and_names_the_argument():
         (0.0, {"lower": 0, "strict": True}, "p.v: expected a positive finite scalar"),
         (-1e-9, {"lower": 0}, "p.v: expected a non-negative finite scalar"),
         ("abc", {}, "p.v: expected a finite scalar"),
+        ("1.5", {}, "p.v: expected a finite scalar"),
         (0.5, {"lower": 1.0}, "p.v: expected a finite scalar >= 1"),
     ]:
         with pytest.raises(InputError, match=needle):
             check_scalar(value, "p.v", **kw)
+
+
+def test_check_numbers_refuses_strings_and_check_psd_names_them():
+    from jaxslam.linalg import check_numbers, check_psd
+
+    np.testing.assert_array_equal(check_numbers([1, 2.5], "p.v"), [1.0, 2.5])
+    for value in ("abc", "1.5", ["1", "2"], None, [1.0, None], [[1.0], [1.0, 2.0]], {"a": 1}):
+        with pytest.raises(InputError, match="^p.v: expected numbers"):
+            check_numbers(value, "p.v")
+    with pytest.raises(InputError, match="^params.R: expected numbers"):
+        check_psd([["1", "0"], ["0", "1"]], "params.R")
 
 
 # ---------------------------------------------------------------------------

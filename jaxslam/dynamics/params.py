@@ -31,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import InputError
+from ..linalg import check_numbers
 
 __all__ = [
     "QuadParams",
@@ -113,7 +114,7 @@ def validate_params(p):
     if not isinstance(p, (QuadParams, RotorQuadParams)):
         raise InputError(f"params: expected QuadParams or RotorQuadParams, got {type(p).__name__}")
     for name in p._fields:
-        val = np.asarray(getattr(p, name), dtype=np.float64)
+        val = check_numbers(getattr(p, name), f"params.{name}")
         want = (3,) if name == "inertia" else ()
         if val.shape != want:
             raise InputError(f"params.{name}: expected shape {want}, got {val.shape}")

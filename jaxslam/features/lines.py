@@ -328,6 +328,9 @@ def _prepare(points, valid):
     valid = jnp.asarray(valid)
     if valid.shape != points.shape[:1]:
         raise InputError(f"valid: expected shape ({points.shape[0]},), got {valid.shape}")
+    if points.shape[0] == 0:  # a static size: nothing to sample or search (N = 0 would index nothing)
+        raise InputError("points: expected at least one point (N >= 1; mark missing returns with valid), "
+                         "got shape (0, 2)")
     ok = valid.astype(bool) & jnp.all(jnp.isfinite(points), axis=1)
     return jnp.where(ok[:, None], points, 0.0), ok
 

@@ -167,8 +167,16 @@ def rts(post: Posterior, *, difference: Optional[Callable] = None,
     if post.pred_covs is None or post.cross_covs is None or post.covs is None:
         raise InputError("post: the filter run must save what the smoother needs "
                          "(run it with save_smoother=True)")
+    if jnp.ndim(post.means) != 2:
+        raise InputError(f"post.means: expected shape (T, n), got {jnp.shape(post.means)}")
     if jnp.shape(post.means)[0] == 0:
         raise InputError("post: the filter run has no steps (T = 0): nothing to smooth")
+    T, n = jnp.shape(post.means)
+    for f, want in (("covs", (T, n, n)), ("pred_means", (T, n)), ("pred_covs", (T, n, n)),
+                    ("cross_covs", (T, n, n))):
+        if jnp.shape(getattr(post, f)) != want:
+            raise InputError(f"post.{f}: expected shape {want} to match post.means {(T, n)}, "
+                             f"got {jnp.shape(getattr(post, f))}")
     diff = _sub if difference is None else difference
     ms, Ps, st = _backward_pass(post.means, post.covs, post.pred_means, post.pred_covs,
                                 post.cross_covs, diff)

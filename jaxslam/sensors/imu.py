@@ -50,7 +50,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..geometry.euler import dcm_from_euler
-from ..linalg import check_int, check_shape, is_concrete
+from ..linalg import check_int, check_numbers, check_scalar, check_shape, is_concrete
 
 __all__ = [
     "G_IMU",
@@ -119,15 +119,12 @@ def PAPER001_IMU(bias: float = 0.0005, *, rate: float = 100.0, drift_tau: float 
     Returns an :class:`ImuSpec`.  Raises :class:`~jaxslam.errors.InputError` on a non-finite
     bias or non-positive rate, τ, or a negative fraction.
     """
-    bias = float(bias)
-    if not math.isfinite(bias):
-        raise InputError(f"bias: must be finite, got {bias}")
-    if not (rate > 0 and math.isfinite(rate)):
-        raise InputError(f"rate: must be a positive finite number of Hz, got {rate}")
-    if not drift_tau > 0:
-        raise InputError(f"drift_tau: must be positive, got {drift_tau}")
-    if not drift_fraction >= 0:
-        raise InputError(f"drift_fraction: must be >= 0, got {drift_fraction}")
+    bias = check_scalar(bias, "bias")
+    rate = check_scalar(rate, "rate", lower=0, strict=True)
+    drift_tau = check_scalar(drift_tau, "drift_tau", finite=False, lower=0, strict=True)
+    drift_fraction = check_scalar(drift_fraction, "drift_fraction", lower=0)
+    accel_noise_density = check_scalar(accel_noise_density, "accel_noise_density", lower=0)
+    gyro_noise_density = check_scalar(gyro_noise_density, "gyro_noise_density", lower=0)
     drift_sigma = drift_fraction * abs(bias)
     density = drift_sigma * math.sqrt(2.0 / drift_tau) if math.isfinite(drift_tau) else 0.0
     return ImuSpec(accel_noise_density=float(accel_noise_density),
@@ -155,7 +152,7 @@ def check_imu_spec(spec: ImuSpec, name: str = "spec") -> ImuSpec:
         "drift_density": ((6,), "nonneg"),
     }
     for field, (shape, rule) in rules.items():
-        val = np.asarray(getattr(spec, field), dtype=np.float64)
+        val = check_numbers(getattr(spec, field), f"{name}.{field}")
         try:
             np.broadcast_to(val, shape)
         except ValueError:
@@ -460,4 +457,15 @@ def corrupt(ideal, state: BiasDriftState, white):
 
     Returns (..., 6).
     """
+    if not isinstance(state, BiasDriftState):
+        raise InputError(f"state: expected a BiasDriftState, got {type(state).__name__}")
+    if np.shape(ideal)[-1:] != (6,):
+        raise InputError(f"ideal: expected shape (..., 6), got {np.shape(ideal)}")
+    for name, v in (("state.bias", state.bias), ("state.drift", state.drift), ("white", white)):
+        try:
+            ok = np.broadcast_shapes(np.shape(v), np.shape(ideal)) == np.shape(ideal)
+        except ValueError:
+            ok = False
+        if not ok:
+            raise InputError(f"{name}: shape {np.shape(v)} does not broadcast to ideal's {np.shape(ideal)}")
     return ideal + state.bias + state.drift + white

@@ -43,6 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import InputError
+from ..linalg import check_scalar
 
 __all__ = [
     "LaserSpec",
@@ -89,6 +90,12 @@ def _check_spec(spec):
         raise InputError(f"spec: expected a LaserSpec, got {type(spec).__name__}")
     if not isinstance(spec.n_beams, (int, np.integer)) or isinstance(spec.n_beams, bool) or spec.n_beams < 1:
         raise InputError(f"spec.n_beams: expected a positive int, got {spec.n_beams!r}")
+    for f in ("angle_min", "angle_step"):
+        check_scalar(getattr(spec, f), f"spec.{f}")
+    for f in ("range_min", "sigma_near", "near", "sigma_rel"):
+        check_scalar(getattr(spec, f), f"spec.{f}", lower=0)
+    if not check_scalar(spec.range_max, "spec.range_max") > spec.range_min:
+        raise InputError(f"spec.range_max: must exceed spec.range_min = {spec.range_min:g}, got {spec.range_max:g}")
 
 
 def _fdtype(x):
@@ -98,6 +105,7 @@ def _fdtype(x):
 
 def range_sigma(ranges, spec):
     """Range-noise standard deviation [m] at the (true) range ``ranges`` (any shape)."""
+    _check_spec(spec)
     r = jnp.asarray(ranges)
     return jnp.where(r <= spec.near, jnp.asarray(spec.sigma_near, r.dtype), spec.sigma_rel * r)
 

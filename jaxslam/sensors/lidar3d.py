@@ -38,7 +38,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..geometry.euler import _last_axis, dcm_from_euler, rotate_jacobian, unrotate_jacobian
-from ..linalg import check_shape, is_concrete, safe_norm, wrap_angle
+from ..linalg import check_numbers, check_shape, is_concrete, safe_norm, wrap_angle
 
 __all__ = [
     "LidarSpec",
@@ -101,7 +101,7 @@ def check_lidar_spec(spec: LidarSpec, name: str = "spec") -> LidarSpec:
         raise InputError(f"{name}: expected a LidarSpec, got {type(spec).__name__}")
     vals = {}
     for f in LidarSpec._fields:
-        v = np.asarray(getattr(spec, f), dtype=np.float64)
+        v = check_numbers(getattr(spec, f), f"{name}.{f}")
         if v.shape != ():
             raise InputError(f"{name}.{f}: expected a scalar, got shape {v.shape}")
         if not np.isfinite(v):

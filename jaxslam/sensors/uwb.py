@@ -42,7 +42,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import InputError
-from ..linalg import safe_norm
+from ..linalg import check_numbers, is_concrete, safe_norm
 
 __all__ = [
     "UwbNoise",
@@ -136,8 +136,16 @@ def ranges_to(p, anchors):
     return jax.vmap(lambda l: plain_range(p, l))(anchors)
 
 
+def _check_nonneg(v, name):
+    """InputError naming ``name`` when a concrete (not traced) ``v`` holds a negative or NaN entry:
+    a negative variance or half-width would give a plausible-looking wrong variance or noise."""
+    if is_concrete(v) and not np.all(check_numbers(v, name) >= 0):
+        raise InputError(f"{name}: must be >= 0, got {v!r}")
+
+
 def uniform_variance(half_width):
     """Variance a²/3 of the uniform distribution on [−a, a]."""
+    _check_nonneg(half_width, "half_width")
     return half_width * half_width / 3.0
 
 
@@ -147,6 +155,7 @@ def squared_range_variance(d, range_var):
     d: distance [m] (any shape); range_var: σ² [m²].  First-order in δ plus the
     Gaussian fourth moment; see the module docstring.
     """
+    _check_nonneg(range_var, "range_var")
     return 4.0 * d * d * range_var + 2.0 * range_var * range_var
 
 
@@ -165,6 +174,7 @@ def sample_noise(key, shape, half_width, dist: str, dtype=jnp.float64):
     key: PRNG key; shape: output shape; half_width: a (scalar, traced); dist:
     ``"uniform"`` or ``"gaussian"`` (static).  Returns an array of ``dtype``.
     """
+    _check_nonneg(half_width, "half_width")
     a = jnp.asarray(half_width, dtype)
     if dist == "uniform":
         return jax.random.uniform(key, shape, dtype, minval=-1.0, maxval=1.0) * a

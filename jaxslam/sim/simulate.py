@@ -23,10 +23,11 @@ from typing import Any, NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ..control import dflqr
 from ..errors import InputError
-from ..linalg import check_int, check_scalar
+from ..linalg import check_int, check_scalar, check_shape, is_concrete
 from ..control.trajectories import flat_output
 from ..dynamics import euler_ned
 from ..dynamics.integrators import rk4_step
@@ -127,6 +128,37 @@ def controls(setup: FlightSetup, n_steps: int, feedforward: bool = True, compile
     return compilation.compile_program(f, args, key=key, compiler_options=compiler_options)(*args)
 
 
+def _check_setup(setup, n_frame, lidar_every, K, refs):
+    """Host-side checks of :func:`simulate`'s static sizes and, where they are concrete (not
+    traced), the setup's values: ``InputError`` naming the argument, before anything is traced.
+    Returns ``(n_frame, lidar_every)`` as ints."""
+    n_frame = check_int(n_frame, "n_frame")
+    lidar_every = check_int(lidar_every, "lidar_every")
+    check_shape(setup.x0, (12,), "setup.x0")
+    if not jnp.issubdtype(jnp.result_type(setup.x0), jnp.floating):
+        raise InputError(f"setup.x0: expected a floating-point state, got dtype {jnp.result_type(setup.x0)}")
+    check_shape(setup.landmarks, (None, 3), "setup.landmarks")
+    for name, a in (("setup.x0", setup.x0), ("setup.landmarks", setup.landmarks)):
+        if is_concrete(a) and not np.all(np.isfinite(np.asarray(a))):
+            raise InputError(f"{name}: holds a NaN or infinite value")
+    if is_concrete(setup.dt):
+        dt = check_scalar(setup.dt, "setup.dt", lower=0, strict=True)
+        if is_concrete(setup.imu.rate):
+            rate = check_scalar(setup.imu.rate, "setup.imu.rate", lower=0, strict=True)
+            if abs(rate * dt - 1.0) > 1e-6:  # the IMU is sampled once per control step
+                raise InputError(f"setup.imu.rate: must equal 1/setup.dt = {1.0 / dt:g} Hz (the IMU is "
+                                 f"sampled every control step), got {rate:g}")
+    if K is not None:
+        check_shape(K, (4, 7), "K")
+    if refs is not None:
+        T = n_frame * lidar_every
+        bad = [np.shape(a) for a in jax.tree.leaves(refs) if np.shape(a)[:1] != (T,)]
+        if bad:
+            raise InputError(f"refs: expected reference_grid(setup, n_frame * lidar_every = {T}) "
+                             f"(leading dimension {T}), got leaves of shapes {bad}")
+    return n_frame, lidar_every
+
+
 def simulate(setup: FlightSetup, key, n_frame: int, lidar_every: int,
              estimator: Optional[Estimator] = None, control_on: str = "truth",
              K=None, feedforward: bool = True, refs=None, checkpoint: bool = False) -> Flight:
@@ -154,6 +186,7 @@ def simulate(setup: FlightSetup, key, n_frame: int, lidar_every: int,
         raise ValueError(f"control_on: expected 'truth' or 'estimate', got {control_on!r}")
     if control_on == "estimate" and estimator is None:
         raise ValueError("control_on='estimate' needs an estimator")
+    n_frame, lidar_every = _check_setup(setup, n_frame, lidar_every, K, refs)
     dtype = setup.x0.dtype
     quad = setup.ctrl.quad
     g = quad.g

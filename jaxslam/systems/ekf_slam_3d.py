@@ -41,7 +41,7 @@ from ..dynamics.integrators import rk4_field, rk4_linearized
 from ..errors import InputError
 from ..filters import ekf_slam as es
 from ..geometry.euler import dcm_from_euler, euler_rate_matrix, rotate_jacobian
-from ..linalg import check_psd, check_scalar, host_array, is_concrete, small_matmul, wrap_angle
+from ..linalg import check_numbers, check_psd, check_scalar, host_array, is_concrete, small_matmul, wrap_angle
 from ..sensors import lidar3d
 from ..stats import nees as _nees
 
@@ -301,7 +301,7 @@ def validate_params(params: Params) -> Params:
     positive scalars (``gate`` may be None)."""
     shapes = {"P0": (NX, NX), "Qc": (NX, NX), "Qimu": (6, 6), "R": (3, 3)}
     for name, shp in shapes.items():
-        a = np.asarray(getattr(params, name))
+        a = check_numbers(getattr(params, name), f"params.{name}")
         if a.shape != shp:
             raise InputError(f"params.{name}: expected shape {shp}, got {a.shape}")
         check_psd(a, f"params.{name}", strict=(name == "R"))

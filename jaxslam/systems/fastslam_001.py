@@ -129,7 +129,7 @@ from ..errors import InputError
 from ..filters import ekf
 from ..filters import fastslam as fs
 from ..geometry.euler import dcm_from_euler, euler_rates
-from ..linalg import cholesky_small, host_array, inv_small, is_concrete, symmetrize
+from ..linalg import check_numbers, cholesky_small, host_array, inv_small, is_concrete, symmetrize
 from ..sensors import imu as imu_mod
 from ..sensors import lidar3d
 
@@ -486,7 +486,7 @@ def validate_params_001(params: Params) -> Params:
                             ("lidar_var", 3, True), ("drift_a", 6, False),
                             ("drift_q", 6, False), ("bias_p0", 12, True),
                             ("pose0_var", 12, False)):
-        v = np.asarray(getattr(params, name), dtype=np.float64)
+        v = check_numbers(getattr(params, name), f"params.{name}")
         if v.shape != (n,):
             raise InputError(f"params.{name}: expected shape ({n},), got {v.shape}")
         if not np.all(np.isfinite(v)):

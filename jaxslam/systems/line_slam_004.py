@@ -71,7 +71,7 @@ import numpy as np
 from ..errors import InputError
 from ..features import lines as fl
 from ..filters import ekf_slam as es
-from ..linalg import check_scalar, host_array, is_concrete, wrap_angle
+from ..linalg import check_numbers, check_scalar, host_array, is_concrete, wrap_angle
 from ..sensors import laser2d
 
 __all__ = [
@@ -505,7 +505,7 @@ def validate_params(params: Params) -> Params:
 
     shapes = {"Q": (NR, NR), "R_odo": (3, 3), "R_line": (2, 2), "P0": (NR, NR)}
     for name, shp in shapes.items():
-        a = np.asarray(getattr(params, name), float)
+        a = check_numbers(getattr(params, name), f"params.{name}")
         if a.shape != shp:
             raise InputError(f"params.{name}: expected shape {shp}, got {a.shape}")
         if not np.all(np.isfinite(a)):

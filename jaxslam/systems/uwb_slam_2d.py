@@ -120,7 +120,7 @@ from .. import errors
 from ..errors import InputError
 from ..filters import ekf_slam as es
 from ..filters import trilateration as tri
-from ..linalg import check_int, check_psd, check_scalar, host_array, is_concrete, wrap_angle
+from ..linalg import check_int, check_numbers, check_psd, check_scalar, host_array, is_concrete, wrap_angle
 from ..sensors import uwb
 
 __all__ = [
@@ -902,7 +902,7 @@ def validate_params(params: Params) -> Params:
     """Shapes and PSD of Q, P0; positive r_range, r_gyro, range_var; finite non-negative scalar
     thresholds (``gate`` and ``near_gate`` may be None: off)."""
     for name, shp in (("Q", (NR, NR)), ("P0", (NR, NR))):
-        a = np.asarray(getattr(params, name))
+        a = check_numbers(getattr(params, name), f"params.{name}")
         if a.shape != shp:
             raise InputError(f"params.{name}: expected shape {shp}, got {a.shape}")
         check_psd(a, f"params.{name}")

@@ -203,6 +203,12 @@ def test_rts_needs_saved_moments(linear_run):
     post = ekf.filter_scan(f_cv, h_pos, X0_CV, P0_CV, us, zs, masks, Q_CV, R_CV)
     with pytest.raises(InputError, match="save_smoother"):
         smoother.rts(post)
+    # moments of two different runs (or a cut one) mixed into one Posterior: named, not a deep error
+    full = ekf.filter_scan(f_cv, h_pos, X0_CV, P0_CV, us, zs, masks, Q_CV, R_CV, save_smoother=True)
+    with pytest.raises(InputError, match=r"^post.cross_covs: expected shape \(\d+, 4, 4\) to match post.means"):
+        smoother.rts(full._replace(cross_covs=full.cross_covs[:-1]))
+    with pytest.raises(InputError, match=r"^post.means: expected shape \(T, n\)"):
+        smoother.rts(full._replace(means=full.means[0]))
 
 
 def test_iterated_linear_is_rts(linear_run):

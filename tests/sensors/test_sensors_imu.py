@@ -154,6 +154,11 @@ def test_paper001_presets():
         PAPER001_IMU(float("nan"))
     with pytest.raises(InputError, match="drift_tau"):
         PAPER001_IMU(0.005, drift_tau=0.0)
+    with pytest.raises(InputError, match="^drift_fraction: expected a non-negative"):
+        PAPER001_IMU(0.005, drift_fraction=-0.1)
+    with pytest.raises(InputError, match="^accel_noise_density: expected a non-negative"):
+        PAPER001_IMU(0.005, accel_noise_density="3e-3")  # a string is not read as a number
+    assert PAPER001_IMU(0.005, drift_tau=float("inf")).drift_density == 0.0  # no drift
 
 
 def test_check_imu_spec_rejects_bad_fields():

@@ -46,8 +46,21 @@ def test_a_nan_point_is_no_visible_lidar_return():
     (lambda: imu.drift_transition(imu.ImuSpec(drift_tau=5.0, drift_density=0.1), -0.01), "^dt: expected a step >= 0"),
     (lambda: imu.bias_drift_rollout(jax.random.PRNGKey(0), imu.BiasDriftState(jnp.zeros(6), jnp.zeros(6)),
                                     imu.ImuSpec(drift_tau=5.0), 0.01, 2.7), "^n_steps: expected an int"),
+    (lambda: imu.check_imu_spec(imu.PAPER000_IMU._replace(rate="100")), "^spec.rate: expected numbers"),
+    (lambda: l3.check_lidar_spec(l3.PAPER000_LIDAR._replace(sigma_range="0.1")), "^spec.sigma_range: expected numbers"),
+    (lambda: imu.corrupt(jnp.zeros((6, 5)), imu.BiasDriftState(jnp.zeros(6), jnp.zeros(6)), jnp.zeros((6, 5))),
+     r"^ideal: expected shape \(\.\.\., 6\)"),  # a transposed (6, T) log
+    (lambda: imu.corrupt(jnp.zeros((5, 6)), imu.BiasDriftState(jnp.zeros(6), jnp.zeros(6)), jnp.zeros((4, 6))),
+     r"^white: shape \(4, 6\) does not broadcast"),
+    (lambda: imu.corrupt(jnp.zeros((5, 6)), (jnp.zeros(6), jnp.zeros(6)), jnp.zeros((5, 6))),
+     "^state: expected a BiasDriftState"),
+    (lambda: uwb.squared_range_variance(2.0, -0.01), "^range_var: must be >= 0"),
+    (lambda: uwb.uniform_variance(-0.3), "^half_width: must be >= 0"),
+    (lambda: uwb.sample_noise(jax.random.PRNGKey(0), (3,), -0.3, "uniform"), "^half_width: must be >= 0"),
 ], ids=["rb2-pose", "rb2-landmark", "rb2-inverse", "rb2-residual", "lidar-cart", "lidar-sph", "uwb-transposed",
-        "uwb-dims", "lidar-cov-sigma", "lidar-noise-nan", "imu-density", "imu-tau", "imu-dt", "imu-steps"])
+        "uwb-dims", "lidar-cov-sigma", "lidar-noise-nan", "imu-density", "imu-tau", "imu-dt", "imu-steps",
+        "imu-spec-str", "lidar-spec-str", "corrupt-transposed", "corrupt-white", "corrupt-state", "uwb-var-neg",
+        "uwb-halfwidth-neg", "uwb-noise-neg"])
 def test_sensor_functions_name_a_bad_argument(call, needle):
     with pytest.raises(InputError, match=needle):
         call()
@@ -80,8 +93,12 @@ PTS = jnp.stack([XS, jnp.ones_like(XS)], 1)  # the line y = 1: ρ = 1, θ = π/2
     (lambda: L.check_ransac_config(L.DEFAULT_RANSAC._replace(max_gap=-2)), "^cfg.max_gap"),
     (lambda: L.match_predicted(PTS, jnp.ones(30, bool), jnp.array([1.0]), jnp.array([1.5]),
                                jnp.array([True]), gate=-1.0), "^gate: expected a distance > 0"),
+    (lambda: L.extract_lines(jax.random.PRNGKey(0), jnp.zeros((0, 2)), jnp.zeros(0, bool)),
+     "^points: expected at least one point"),
+    (lambda: L.match_predicted(jnp.zeros((0, 2)), jnp.zeros(0, bool), jnp.array([1.0]), jnp.array([1.5]),
+                               jnp.array([True])), "^points: expected at least one point"),
 ], ids=["weights-len", "weights-neg", "points-3d", "sigma-neg", "sigma-vec", "gap", "trim", "stop",
-        "thr-bool", "trim-frac", "gap-neg", "match-gate"])
+        "thr-bool", "trim-frac", "gap-neg", "match-gate", "extract-empty", "match-empty"])
 def test_line_features_name_a_bad_argument(call, needle):
     with pytest.raises(InputError, match=needle):
         call()
@@ -117,3 +134,12 @@ def test_more_small_functions_name_a_bad_argument():
         landmarks.generate_landmarks(jax.random.PRNGKey(0), 2, center=(0.0, float("nan"), 0.0))
     with pytest.raises(InputError, match="^name: expected a scenario name"):
         registry.get(["uwb-circle"])
+    for change, needle in (({"sigma_near": -0.01}, "^spec.sigma_near: expected a non-negative"),
+                           ({"range_max": 0.01}, "^spec.range_max: must exceed spec.range_min"),
+                           ({"angle_step": float("nan")}, "^spec.angle_step: expected a finite")):
+        with pytest.raises(InputError, match=needle):
+            laser2d.range_sigma(jnp.ones(3), spec._replace(**change))
+    np.testing.assert_allclose(np.asarray(laser2d.range_sigma(jnp.array([0.5, 2.0]), spec)), [0.01, 0.02])
+    from jaxslam.dynamics import params as quad_params
+    with pytest.raises(InputError, match="^params.mass: expected numbers"):
+        quad_params.validate_params(quad_params.PAPER000._replace(mass="1.2"))

@@ -58,6 +58,31 @@ def test_bad_duration_is_an_input_error():
         _run("track-figure8", runs=1, duration=-1.0)
 
 
+@pytest.mark.parametrize("change, n_frame, lidar_every, extra, needle", [
+    ({}, 0, 10, {}, "^n_frame: expected an int >= 1"),
+    ({}, 2.0, 10, {}, "^n_frame: expected an int >= 1"),
+    ({}, 2, 0, {}, "^lidar_every: expected an int >= 1"),
+    ({"dt": 0.0}, 2, 10, {}, "^setup.dt: expected a positive"),
+    ({"dt": -0.01}, 2, 10, {}, "^setup.dt: expected a positive"),
+    ({"dt": 0.02}, 2, 10, {}, "^setup.imu.rate: must equal 1/setup.dt = 50 Hz"),
+    ({"x0": np.full(12, np.nan)}, 2, 10, {}, "^setup.x0: holds a NaN"),
+    ({"x0": np.zeros(13)}, 2, 10, {}, r"^setup.x0: expected shape \(12\)"),
+    ({"x0": np.zeros(12, np.int32)}, 2, 10, {}, "^setup.x0: expected a floating-point"),
+    ({"landmarks": np.zeros((4, 2))}, 2, 10, {}, r"^setup.landmarks: expected shape \(\*, 3\)"),
+    ({"landmarks": np.array([[0.0, np.inf, 1.0]])}, 2, 10, {}, "^setup.landmarks: holds a NaN"),
+    ({}, 2, 10, {"K": np.zeros((4, 6))}, r"^K: expected shape \(4, 7\)"),
+    ({}, 2, 10, {"refs": "short"}, "^refs: expected reference_grid"),
+])
+def test_simulate_names_a_bad_setup_before_tracing(change, n_frame, lidar_every, extra, needle):
+    from jaxslam.sim.scenarios.tracking import make_setup, paper000_figure8
+    from jaxslam.sim.simulate import reference_grid, simulate
+    setup = make_setup(paper000_figure8(2.0, 0.0), jnp.float32)._replace(**change)
+    if extra.get("refs") == "short":  # a grid for fewer steps than the flight flies
+        extra = {"refs": reference_grid(setup, 5)}
+    with pytest.raises(InputError, match=needle):
+        simulate(setup, jax.random.PRNGKey(0), n_frame, lidar_every, **extra)
+
+
 def test_monte_carlo_is_independent_of_chunking():
     def fn(key):
         x = jax.random.normal(key, (3,))
