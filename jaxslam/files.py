@@ -55,6 +55,12 @@ def _probe_folder(flag: str, folder: pathlib.Path, target: pathlib.Path) -> None
         raise InputError(f"{flag}: cannot write into {str(folder)!r} ({reason})") from None
 
 
+def _check_path(flag: str, path) -> None:
+    """InputError naming ``flag`` unless ``path`` is a str or path-like (None, a number: not a path)."""
+    if not isinstance(path, (str, os.PathLike)):
+        raise InputError(f"{flag}: expected a file or folder path, got {path!r}")
+
+
 def prepare_file(flag: str, path) -> pathlib.Path:
     """Check, before compute, that the output file ``path`` of option ``flag`` can be written.
 
@@ -62,6 +68,7 @@ def prepare_file(flag: str, path) -> pathlib.Path:
     folder, lies under a file, or its folder is not writable (an existing read-only file is
     replaced by :func:`atomic_write`, so only the folder's permission matters).
     """
+    _check_path(flag, path)
     p = pathlib.Path(path)
     if str(path) == "" or p.name in ("", ".", ".."):
         raise InputError(f"{flag}: {str(path)!r} is not a file name")
@@ -77,6 +84,7 @@ def prepare_dir(flag: str, path) -> pathlib.Path:
     Creates it (with its parents) and checks that files can be created in it; raises
     :class:`InputError` naming ``flag`` otherwise.
     """
+    _check_path(flag, path)
     p = pathlib.Path(path)
     if str(path) == "":
         raise InputError(f"{flag}: '' is not a folder name")
@@ -116,9 +124,16 @@ def atomic_write(path, write: Callable, mode: str = "w") -> pathlib.Path:
       The target path.  On any exception the temporary file is removed and the target is
       left as it was.
     """
+    _check_path("path", path)
+    if not callable(write):
+        raise InputError(f"write: expected a function write(f) that fills the file, got {type(write).__name__}")
+    if mode not in ("w", "wb"):
+        raise InputError(f"mode: expected 'w' or 'wb', got {mode!r}")
     path = pathlib.Path(path)
     if path.is_symlink():
         path = path.resolve()
+    if path.is_dir():
+        raise InputError(f"path: {str(path)!r} is a folder; give a file path")
     if path.exists() and not path.is_file() and not path.is_dir():
         with open(path, mode, **({"encoding": "utf-8"} if "b" not in mode else {})) as f:
             write(f)

@@ -47,6 +47,19 @@ RUN_JSON_KEYS = (
 )
 
 
+def _per_run(values, name) -> np.ndarray:
+    """A metric's per-run values as float64 (None: NaN, as NumPy reads it), or InputError naming
+    the metric when they are not numbers (a string, even "1.5", is refused)."""
+    try:
+        raw = np.asarray(values)
+        if raw.dtype.kind in "US" or (raw.dtype.kind == "O" and any(isinstance(v, (str, bytes))
+                                                                    for v in raw.ravel())):
+            raise TypeError
+        return np.asarray(values, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError(f"metrics[{name!r}]: expected numbers (per-run values), got {values!r}"[:300]) from None
+
+
 def summarize_metrics(metrics: Mapping[str, Any]) -> dict[str, dict]:
     """Summary statistics of per-run metrics.
 
@@ -61,15 +74,17 @@ def summarize_metrics(metrics: Mapping[str, Any]) -> dict[str, dict]:
     Raises:
       InputError: a metric is not one-dimensional or is empty.
     """
+    if not isinstance(metrics, Mapping):
+        raise InputError(f"metrics: expected a mapping of name -> per-run values, got {type(metrics).__name__}")
     out: dict[str, dict] = {}
     for name, values in metrics.items():
-        x = np.asarray(values, dtype=np.float64)
+        x = _per_run(values, name)
         if x.ndim == 0:
             x = x.reshape(1)
         if x.ndim != 1:
-            raise InputError(f"metric {name!r}: expected per-run values of shape (runs,), got {x.shape}")
+            raise InputError(f"metrics[{name!r}]: expected per-run values of shape (runs,), got {x.shape}")
         if x.size == 0:
-            raise InputError(f"metric {name!r}: no values")
+            raise InputError(f"metrics[{name!r}]: no values")
         if np.isnan(x).any():
             stats = dict(mean=math.nan, median=math.nan, p95=math.nan, max=math.nan)
         else:
@@ -201,12 +216,16 @@ def write_json(path, obj) -> pathlib.Path:
     Raises:
       InputError: the file or its folder cannot be written.
     """
+    if not isinstance(path, (str, os.PathLike)) or str(path) == "":
+        raise InputError(f"path: expected a file path, got {path!r}")
     path = pathlib.Path(path)
     text = _dumps(to_jsonable(obj)) + "\n"
     try:
         atomic_write(path, lambda f: f.write(text))  # never leave a half-written JSON behind
+    except InputError:
+        raise
     except OSError as e:
-        raise InputError(f"cannot write JSON to {str(path)!r}: {e.strerror or e}") from None
+        raise InputError(f"path: cannot write JSON to {str(path)!r}: {e.strerror or e}") from None
     return path
 
 
@@ -227,6 +246,12 @@ def format_table(summary: Mapping[str, Mapping[str, Any]]) -> str:
     non-finite runs get a note line below the table naming how many.
     """
     header = ("metric", "mean", "median", "p95", "max")
+    if not isinstance(summary, Mapping):
+        raise InputError(f"summary: expected a summarize_metrics result (mapping), got {type(summary).__name__}")
+    for name, s in summary.items():
+        missing = [k for k in header[1:] if not isinstance(s, Mapping) or k not in s]
+        if missing:
+            raise InputError(f"summary[{name!r}]: missing {', '.join(missing)} (expected a summarize_metrics result)")
     rows = [header]
     notes = []
     for name, s in summary.items():

@@ -35,6 +35,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from jaxslam.errors import InputError
+from jaxslam.linalg import check_numbers
 
 __all__ = ["load", "check", "describe", "TUNE_REPORT_KEYS"]
 
@@ -102,9 +103,9 @@ def _check_value(name: str, value: Any, default: Any) -> Any:
             raise InputError(f"{name}: expected true or false, got {value!r}")
         return value
     d = np.asarray(default, np.float64)
-    try:
-        a = np.asarray(value, np.float64)
-    except (TypeError, ValueError):
+    try:  # check_numbers refuses strings ("0.5" would pass NumPy's conversion and stay a string)
+        a = check_numbers(value, name)
+    except InputError:
         raise InputError(f"{name}: expected numbers ({_shape_text(d.shape)}), got {value!r}"[:300]) from None
     if isinstance(value, bool) or a.dtype == object:
         raise InputError(f"{name}: expected numbers ({_shape_text(d.shape)}), got {value!r}"[:300])

@@ -32,8 +32,10 @@ import statistics
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .errors import InputError
+from .linalg import check_int, check_numbers, check_scalar, is_concrete
 
 __all__ = ["nees", "nis", "student_t_nll", "student_t_d2_ppf_np", "chi2_ppf", "chi2_ppf_np", "mean_chi2_bounds",
            "anees_bounds"]
@@ -42,6 +44,39 @@ __all__ = ["nees", "nis", "student_t_nll", "student_t_d2_ppf_np", "chi2_ppf", "c
 # ---------------------------------------------------------------------------
 # NEES / NIS
 # ---------------------------------------------------------------------------
+
+def _as_array(x, name: str):
+    """``x`` as a JAX array; a concrete value that is not numbers (a string, None) is an
+    :class:`InputError` naming ``name``, and an integer or bool one becomes the default float."""
+    kind = x.dtype.kind if isinstance(x, (jax.Array, np.ndarray)) else None
+    if kind not in ("b", "i", "u", "f") and is_concrete(x):
+        check_numbers(x, name)
+    x = jnp.asarray(x)
+    return x if jnp.issubdtype(x.dtype, jnp.inexact) else x.astype(jnp.result_type(float))
+
+
+def _quadratic_form(err, cov, e_name: str, c_name: str):
+    """``eᵀ C⁻¹ e`` of (..., n) and (..., n, n), shapes checked (static: free under ``jit``)."""
+    err = _as_array(err, e_name)
+    cov = _as_array(cov, c_name)
+    if err.ndim < 1:
+        raise InputError(f"{e_name}: expected shape (..., n), got {tuple(err.shape)}")
+    n = err.shape[-1]
+    if cov.ndim < 2 or cov.shape[-2:] != (n, n):
+        raise InputError(f"{c_name}: expected shape (..., {n}, {n}) ({e_name}'s size n = {n}), "
+                         f"got {tuple(cov.shape)}")
+    try:
+        batch = jnp.broadcast_shapes(err.shape[:-1], cov.shape[:-2])
+    except ValueError:
+        raise InputError(f"{c_name}: batch shape {tuple(cov.shape[:-2])} does not broadcast against "
+                         f"{e_name}'s {tuple(err.shape[:-1])}") from None
+    dtype = jnp.result_type(err.dtype, cov.dtype)
+    err = jnp.broadcast_to(err.astype(dtype), batch + (n,))
+    cov = jnp.broadcast_to(cov.astype(dtype), batch + (n, n))
+    L = jnp.linalg.cholesky(0.5 * (cov + jnp.swapaxes(cov, -1, -2)))
+    y = jax.scipy.linalg.solve_triangular(L, err[..., None], lower=True)[..., 0]
+    return jnp.sum(y * y, axis=-1)
+
 
 def nees(err, cov):
     """Normalised estimation error squared ``eᵀ P⁻¹ e`` via Cholesky.
@@ -52,17 +87,11 @@ def nees(err, cov):
 
     Returns:
         (...) NEES values; χ²(n)-distributed for a consistent filter.  NaN
-        where ``cov`` is not positive definite.
+        where ``cov`` is not positive definite.  Shapes are checked (also under ``jit``):
+        :class:`InputError` naming ``err`` / ``cov`` (a (n,) ``cov`` used to be broadcast to
+        a matrix of equal rows, giving NaN).
     """
-    err = jnp.asarray(err)
-    cov = jnp.asarray(cov)
-    batch = jnp.broadcast_shapes(err.shape[:-1], cov.shape[:-2])
-    n = err.shape[-1]
-    err = jnp.broadcast_to(err, batch + (n,))
-    cov = jnp.broadcast_to(cov, batch + (n, n))
-    L = jnp.linalg.cholesky(0.5 * (cov + jnp.swapaxes(cov, -1, -2)))
-    y = jax.scipy.linalg.solve_triangular(L, err[..., None], lower=True)[..., 0]
-    return jnp.sum(y * y, axis=-1)
+    return _quadratic_form(err, cov, "err", "cov")
 
 
 def nis(innovation, S):
@@ -73,9 +102,10 @@ def nis(innovation, S):
         S: (..., m, m) innovation covariances.
 
     Returns:
-        (...) NIS values, χ²(m) for a consistent filter.
+        (...) NIS values, χ²(m) for a consistent filter (shapes checked as :func:`nees`'s,
+        naming ``innovation`` / ``S``).
     """
-    return nees(innovation, S)
+    return _quadratic_form(innovation, S, "innovation", "S")
 
 
 # ---------------------------------------------------------------------------
@@ -92,13 +122,27 @@ def student_t_nll(d2, logdet, nu, dim):
         ½ log det S + (ν + d)/2 · log(1 + d²/ν) + log Γ(ν/2) − log Γ((ν + d)/2) + (d/2) log(νπ)
 
     (elementwise over arrays of rows; ``dim`` = d, static).  ν → ∞ is the Gaussian's
-    ½ (d² + log det S + d log 2π).  The robust EKF updates (``robust=ν`` of
-    :func:`jaxslam.filters.ekf_slam.update`) are the EM steps of this likelihood.
+    ½ (d² + log det S + d log 2π), and ν = inf gives it exactly.  The robust EKF updates
+    (``robust=ν`` of :func:`jaxslam.filters.ekf_slam.update`) are the EM steps of this
+    likelihood.
+
+    ``dim`` must be an int ≥ 1 and, when known now, ``nu`` > 0 (NaN refused):
+    :class:`InputError` naming it (ν = 0 raised ZeroDivisionError for Python numbers, ν < 0
+    gave NaN).  A traced ν is not checked.
     """
     from jax.scipy.special import gammaln
 
-    return (0.5 * logdet + 0.5 * (nu + dim) * jnp.log1p(d2 / nu) + gammaln(0.5 * nu)
-            - gammaln(0.5 * (nu + dim)) + 0.5 * dim * jnp.log(nu * jnp.pi))
+    dim = check_int(dim, "dim")
+    if is_concrete(nu):
+        v = check_numbers(nu, "nu")
+        if not np.all(v > 0):
+            raise InputError(f"nu: the Student-t degrees of freedom must be > 0, got {nu!r}")
+    nu = jnp.asarray(nu)  # a Python number stays weakly typed: the rows' dtype decides
+    gauss = jnp.isinf(nu)
+    nu_s = jnp.where(gauss, jnp.ones_like(nu), nu)  # the inf branch never reaches the formula
+    t = (0.5 * logdet + 0.5 * (nu_s + dim) * jnp.log1p(d2 / nu_s) + gammaln(0.5 * nu_s)
+         - gammaln(0.5 * (nu_s + dim)) + 0.5 * dim * jnp.log(nu_s * jnp.pi))
+    return jnp.where(gauss, 0.5 * (d2 + logdet + dim * math.log(2.0 * math.pi)), t)
 
 
 def chi2_ppf(p, dof):
@@ -118,11 +162,9 @@ def chi2_ppf(p, dof):
         Python numbers); 0 at p = 0, inf at p = 1, NaN outside [0, 1] or for
         dof ≤ 0.  Float64: ~1e-10 relative for dof 1..10⁵.
     """
-    p = jnp.asarray(p)
-    if not jnp.issubdtype(p.dtype, jnp.floating):
-        p = p.astype(jnp.result_type(float))
+    p = _as_array(p, "p")  # a string is named; an integer p becomes the default float
     dtype = p.dtype
-    k = jnp.asarray(dof).astype(dtype)
+    k = _as_array(dof, "dof").astype(dtype)
     p, k = jnp.broadcast_arrays(p, k)
     a = 0.5 * k
     upper = p > 0.5
@@ -218,16 +260,31 @@ def _log_gammainc_np(a: float, x: float) -> tuple[float, float]:
     return logP, logQ
 
 
-def _betainc_np(a: float, b: float, x: float) -> float:
-    """Regularised incomplete beta I_x(a, b) in float64 Python (modified Lentz continued
-    fraction, on the side of x where it converges fast)."""
-    if x <= 0.0:
-        return 0.0
-    if x >= 1.0:
-        return 1.0
-    if x > (a + 1.0) / (a + b + 2.0):
-        return 1.0 - _betainc_np(b, a, 1.0 - x)
-    log_front = a * math.log(x) + b * math.log1p(-x) - (math.lgamma(a) + math.lgamma(b) - math.lgamma(a + b)) - math.log(a)
+def _lgamma_shift(b: float, a: float) -> float:
+    """``log Γ(b + a) − log Γ(b)`` for a, b > 0, to double precision also when b ≫ a: the plain
+    difference of two ``lgamma`` values of size b log b loses all of it (at b = 5·10¹¹ the
+    Student-t quantile of ν = 10¹² was 7e-5 off).  Stirling's series (terms to b⁻⁹) for b ≥ 30."""
+    if b < 30.0:
+        return math.lgamma(b + a) - math.lgamma(b)
+    w = b + a
+    out = (w - 0.5) * math.log1p(a / b) + a * math.log(b) - a
+    for c, k in ((1.0 / 12.0, 1), (-1.0 / 360.0, 3), (1.0 / 1260.0, 5), (-1.0 / 1680.0, 7), (1.0 / 1188.0, 9)):
+        out += c * (w ** -k - b ** -k)
+    return out
+
+
+def _lbeta(a: float, b: float) -> float:
+    """``log B(a, b)`` = log Γ(a) + log Γ(b) − log Γ(a + b), accurate when one argument is large."""
+    small, big = min(a, b), max(a, b)
+    return math.lgamma(small) - _lgamma_shift(big, small)
+
+
+def _betainc_cf(a: float, b: float, x: float, log_x: float, log_y: float) -> float:
+    """``I_x(a, b)`` by its continued fraction (modified Lentz), which converges fast for
+    x ≤ (a + 1)/(a + b + 2); ``log x`` and ``log y``, y = 1 − x, are passed by the caller, who
+    can form them without rounding (b log y with b = 5·10¹¹ and y = 1 − 4.5·10⁻¹³ rounded to a
+    double is off by 5·10⁻⁵)."""
+    log_front = a * log_x + b * log_y - _lbeta(a, b) - math.log(a)
     tiny, eps = 1e-300, 1e-16
     c, d = 1.0, 1.0 - (a + b) * x / (a + 1.0)
     d = 1.0 / (d if abs(d) > tiny else tiny)
@@ -245,29 +302,95 @@ def _betainc_np(a: float, b: float, x: float) -> float:
     return math.exp(log_front) * f
 
 
+def _betainc_tails(a: float, b: float, x: float, y: float, log_x=None, log_y=None) -> tuple[float, float]:
+    """``(I_x(a, b), 1 − I_x(a, b))`` in float64 Python, ``x + y = 1`` both given (and, when the
+    caller has them without rounding, their logs): the side the continued fraction converges
+    on is computed directly (full relative precision), the other as its complement."""
+    if x <= 0.0:
+        return 0.0, 1.0
+    if y <= 0.0:
+        return 1.0, 0.0
+    log_x = math.log(x) if log_x is None else log_x
+    log_y = math.log(y) if log_y is None else log_y
+    if x > (a + 1.0) / (a + b + 2.0):
+        upper = _betainc_cf(b, a, y, log_y, log_x)
+        return 1.0 - upper, upper
+    lower = _betainc_cf(a, b, x, log_x, log_y)
+    return lower, 1.0 - lower
+
+
+#: above this ν the F(1, ν) quantile equals the χ²(1) one to double precision (they differ by
+#: a relative O(x/ν), x ≤ 70 for any p < 1 in double)
+_NU_CHI2 = 1e18
+#: from this ν on, quantiles above the median come from Fisher's expansion in 1/ν
+_NU_SERIES = 1e4
+
+
+def _number(value, name: str) -> float:
+    """``value`` as a float when it is one number (±inf allowed, NaN refused), else
+    :class:`InputError` naming ``name`` (a string gave NumPy's bare ValueError)."""
+    return check_scalar(value, name, finite=False)
+
+
 def student_t_d2_ppf_np(p: float, nu: float) -> float:
     """Quantile of d² = t² for a one-dimensional Student-t with ν degrees of freedom (an F(1, ν)
     variable; χ²(1) as ν → ∞), in float64 on the host (pure Python, no SciPy).
 
-    P(t² ≤ x) = 1 − I_{ν/(ν+x)}(ν/2, ½); solved by bisection in w = ν/(ν + x) to double
-    precision.  The outlier gate of a Student-t range model at probability ``p``.
+    P(t² ≤ x) = I_{x/(ν+x)}(½, ν/2), with ``x/(ν+x)`` and its complement ``ν/(ν+x)`` both
+    formed from x (no rounding of 1 − w) and the smaller tail computed directly; solved by
+    bisection in log x to double precision (inf when the quantile is beyond the largest
+    double).  Above the median with ν ≥ 10⁴, Fisher's expansion of the t quantile in 1/ν
+    (Abramowitz & Stegun 26.7.5, four terms) instead.  ν = inf (and ν > 10¹⁸, where the two agree to
+    double precision) is the χ²(1) quantile :func:`chi2_ppf_np` ``(p, 1)``, the limit the
+    finite ν approach (ν = 10¹² used to be 7e-5 off it, inf returned inf).  The outlier gate of
+    a Student-t range model at probability ``p``.
     """
-    p, nu = float(p), float(nu)
+    p, nu = _number(p, "p"), _number(nu, "nu")
     if not (nu > 0) or not (0.0 <= p < 1.0):
         raise InputError(f"student_t_d2_ppf_np: need 0 <= p < 1 and nu > 0, got p={p}, nu={nu}")
     if p == 0.0:
         return 0.0
-    lo, hi = 0.0, 1.0  # I_w(ν/2, ½) rises with w from 0 to 1; the root: I = 1 − p
-    for _ in range(200):
-        w = 0.5 * (lo + hi)
-        if not lo < w < hi:  # lo and hi are adjacent doubles: the bracket cannot shrink further
-            break
-        if _betainc_np(0.5 * nu, 0.5, w) < 1.0 - p:
-            lo = w
+    if nu > _NU_CHI2:
+        return chi2_ppf_np(p, 1.0)
+    q = 1.0 - p  # exact for p >= 1/2, the side where it is compared
+    if p > 0.5 and nu >= _NU_SERIES:
+        # the upper tail I_{ν/(ν+x)}(ν/2, ½) by the continued fraction cancels (error ~ eps ν/2);
+        # Fisher's expansion of t_p (Abramowitz & Stegun 26.7.5) is exact to double precision here
+        z = -statistics.NormalDist().inv_cdf(0.5 * q)
+        z2 = z * z
+        g = (z * (z2 + 1.0) / 4.0,
+             z * ((5.0 * z2 + 16.0) * z2 + 3.0) / 96.0,
+             z * (((3.0 * z2 + 19.0) * z2 + 17.0) * z2 - 15.0) / 384.0,
+             z * ((((79.0 * z2 + 776.0) * z2 + 1482.0) * z2 - 1920.0) * z2 - 945.0) / 92160.0)
+        t = z + sum(gk / nu ** (k + 1) for k, gk in enumerate(g))
+        return t * t
+
+    log_nu = math.log(nu)
+
+    def below(lx):  # P(t² ≤ e^lx) < p, from the tail that is computed directly there
+        x = math.exp(lx)
+        # v = x/(ν+x), 1 − v = ν/(ν+x) and their logs, each without a rounded 1 − (·)
+        if lx < log_nu:
+            l1 = math.log1p(x / nu)  # log((ν + x)/ν)
+            log_v, log_w = lx - log_nu - l1, -l1
         else:
-            hi = w
-    w = 0.5 * (lo + hi)
-    return nu * (1.0 - w) / w
+            l1 = math.log1p(nu / x)  # log((ν + x)/x)
+            log_v, log_w = -l1, log_nu - lx - l1
+        lower, upper = _betainc_tails(0.5, 0.5 * nu, math.exp(log_v), math.exp(log_w), log_v, log_w)
+        return lower < p if p <= 0.5 else upper > q
+
+    lo, hi = -750.0, 709.0  # e^lo = 0, e^hi near the largest double: F(lo) < p <= F(hi)
+    if below(hi):  # the quantile is beyond the largest double (ν ≪ 1, p near 1)
+        return math.inf
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        if not lo < mid < hi or hi - lo <= 1e-16:  # relative 1e-16 in x
+            break
+        if below(mid):
+            lo = mid
+        else:
+            hi = mid
+    return math.exp(0.5 * (lo + hi))
 
 
 def chi2_ppf_np(p: float, dof: float) -> float:
@@ -282,8 +405,8 @@ def chi2_ppf_np(p: float, dof: float) -> float:
     Returns:
         Python float quantile (0 at p = 0, inf at p = 1).
     """
-    p = float(p)
-    k = float(dof)
+    p = _number(p, "p")
+    k = _number(dof, "dof")
     if not (k > 0) or not (0.0 <= p <= 1.0):
         raise InputError(f"chi2_ppf_np: need 0 <= p <= 1 and dof > 0, got p={p}, dof={k}")
     if p == 0.0:
@@ -320,6 +443,17 @@ def chi2_ppf_np(p: float, dof: float) -> float:
     return 2.0 * math.exp(y)
 
 
+def _alpha(alpha) -> float:
+    """A two-sided test's level: a number in (0, 1), else :class:`InputError` naming ``alpha``."""
+    try:
+        a = check_scalar(alpha, "alpha")
+    except InputError:
+        a = math.nan
+    if not 0.0 < a < 1.0:
+        raise InputError(f"alpha: must be in (0, 1), got {alpha!r}")
+    return a
+
+
 def mean_chi2_bounds(dof_total, count, alpha: float = 0.05) -> tuple[float, float]:
     """Two-sided (1 − α) bounds for a mean of χ² statistics.
 
@@ -330,15 +464,14 @@ def mean_chi2_bounds(dof_total, count, alpha: float = 0.05) -> tuple[float, floa
 
     Returns:
         ``(lo, hi)`` Python floats (float64).
+
+    ``dof_total`` and ``count`` must be positive finite numbers and ``alpha`` in (0, 1):
+    :class:`InputError` naming the argument (an infinite count gave (0, 0), a string NumPy's
+    bare ValueError).
     """
-    dof_total = float(dof_total)
-    count = float(count)
-    if not dof_total > 0:
-        raise InputError(f"dof_total: must be > 0, got {dof_total}")
-    if not count > 0:
-        raise InputError(f"count: must be > 0, got {count}")
-    if not 0.0 < alpha < 1.0:
-        raise InputError(f"alpha: must be in (0, 1), got {alpha}")
+    dof_total = check_scalar(dof_total, "dof_total", lower=0, strict=True)
+    count = check_scalar(count, "count", lower=0, strict=True)
+    alpha = _alpha(alpha)
     lo = chi2_ppf_np(0.5 * alpha, dof_total) / count
     hi = chi2_ppf_np(1.0 - 0.5 * alpha, dof_total) / count
     return lo, hi
@@ -348,10 +481,9 @@ def anees_bounds(n_state: int, n_runs: int, alpha: float = 0.05) -> tuple[float,
     """Two-sided (1 − α) bounds of the average NEES over ``n_runs`` runs.
 
     ``(χ²_{α/2}(N n)/N, χ²_{1−α/2}(N n)/N)`` with N = ``n_runs`` and n =
-    ``n_state`` (Bar-Shalom's ANEES test; per time step or per window).
+    ``n_state`` (Bar-Shalom's ANEES test; per time step or per window).  Both are counts: ints
+    ≥ 1 (:class:`InputError` naming the argument; 2.5 used to be truncated to 2).
     """
-    if int(n_state) < 1:
-        raise InputError(f"n_state: must be >= 1, got {n_state}")
-    if int(n_runs) < 1:
-        raise InputError(f"n_runs: must be >= 1, got {n_runs}")
-    return mean_chi2_bounds(int(n_state) * int(n_runs), int(n_runs), alpha)
+    n_state = check_int(n_state, "n_state")
+    n_runs = check_int(n_runs, "n_runs")
+    return mean_chi2_bounds(n_state * n_runs, n_runs, alpha)

@@ -35,9 +35,10 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ..errors import InputError
-from ..linalg import check_int, symmetrize
+from ..linalg import check_int, is_concrete, symmetrize
 from .ekf_slam import (SlamModel, SlamState, _check_options, _check_sizes, _rows, _rows_R, marginal_d2,
                        slot_indices)
 
@@ -59,12 +60,47 @@ class JCBBResult(NamedTuple):
     d2: jax.Array
 
 
+def _check_rows(state: SlamState, model: SlamModel, z, mask, R):
+    """The engine's own checks of one scan (shapes static, R's values when concrete):
+    ``(z (K, d_z), mask (K,) bool, R (K, d_z, d_z))``, or :class:`InputError` naming the
+    argument (a state of another lm_dim, a wrong z, mask or R, a non-PSD R)."""
+    _check_sizes(state, model)
+    z, _, mask = _rows(z, None, mask, model.meas_dim, "")
+    R = _rows_R(R, mask, z.shape[0], model.meas_dim, state.x.dtype)
+    return z, mask, R
+
+
+def _compatibility(state, model, z, mask, R, params):
+    d2, pred = marginal_d2(state, model, z, mask, R, params)
+    return jnp.where(jnp.isfinite(d2), d2, jnp.inf), pred
+
+
 def individual_compatibility(state: SlamState, model: SlamModel, z, mask, R, params=None):
     """Marginal d² (K, cap) of every measurement against every mapped landmark (inf elsewhere),
     and the per-pair predictions (ẑ (cap, d_z), H_s (cap, d_z, n_r), H_l (cap, d_z, d_l), ν):
-    the engine's :func:`~jaxslam.filters.ekf_slam.marginal_d2`, with non-finite d² excluded."""
-    d2, pred = marginal_d2(state, model, z, mask, R, params)
-    return jnp.where(jnp.isfinite(d2), d2, jnp.inf), pred
+    the engine's :func:`~jaxslam.filters.ekf_slam.marginal_d2`, with non-finite d² excluded.
+
+    z: (K, d_z); mask: (K,) bool; R: (d_z, d_z), (K, d_z, d_z) or, for d_z = 1, a scalar —
+    checked as :func:`jcbb` checks them (:class:`InputError` naming the argument: a wrong R,
+    z or mask was a broadcast or index error, a negative R was used)."""
+    z, mask, R = _check_rows(state, model, z, mask, R)
+    return _compatibility(state, model, z, mask, R, params)
+
+
+def _check_thresholds(thresholds, K: int, dtype):
+    """``thresholds`` (K,) joint χ² thresholds; their values when concrete: > 0, never NaN (a NaN
+    or negative threshold made every pairing incompatible, so JCBB paired nothing)."""
+    thr = jnp.asarray(thresholds, dtype)
+    if thr.shape != (K,):
+        raise InputError(f"thresholds: expected ({K},) joint χ² thresholds, one per number of pairings, "
+                         f"got shape {thr.shape}")
+    if is_concrete(thr):
+        v = np.asarray(thr)
+        bad = ~(v > 0)
+        if bad.any():
+            k = int(np.argmax(bad))
+            raise InputError(f"thresholds: expected positive joint χ² thresholds, got thresholds[{k}] = {v[k]}")
+    return thr
 
 
 def jcbb(state: SlamState, model: SlamModel, z, mask, R, params=None, *, gate, thresholds,
@@ -74,14 +110,14 @@ def jcbb(state: SlamState, model: SlamModel, z, mask, R, params=None, *, gate, t
     Args:
       z: (K, d_z) measurements; mask: (K,) bool present.  R: (d_z, d_z) or (K, d_z, d_z).
       gate: individual-compatibility threshold on the marginal d² (e.g. χ²(d_z) 99 %).
-      thresholds: (K,) joint thresholds, ``thresholds[m − 1]`` for m pairings (χ²(m·d_z)).
+      thresholds: (K,) joint thresholds, ``thresholds[m − 1]`` for m pairings (χ²(m·d_z)); > 0
+        (a concrete NaN or non-positive one is an :class:`InputError`).
       n_cand, budget: static sizes (candidates kept per measurement, search nodes).
     """
     nr, dl, dz = model.robot_dim, model.lm_dim, model.meas_dim
     # the engine's own checks (shapes static, values when concrete): a short `thresholds` was
     # index-clamped, a scalar R broadcast to a full matrix, a state of another lm_dim paired nothing
-    _check_sizes(state, model)
-    z, _, mask = _rows(z, None, mask, dz, "")
+    z, mask, R = _check_rows(state, model, z, mask, R)
     K = z.shape[0]
     C = check_int(n_cand, "n_cand")
     check_int(budget, "budget")
@@ -89,12 +125,8 @@ def jcbb(state: SlamState, model: SlamModel, z, mask, R, params=None, *, gate, t
     if gate is None or callable(gate):
         raise InputError(f"gate: expected the individual-compatibility χ² threshold (a number), got {gate!r}")
     dtype = state.x.dtype
-    R = _rows_R(R, mask, K, dz, dtype)
-    thr = jnp.asarray(thresholds, dtype)
-    if thr.shape != (K,):
-        raise InputError(f"thresholds: expected ({K},) joint χ² thresholds, one per number of pairings, "
-                         f"got shape {thr.shape}")
-    d2, (zh, Hs, Hl, nu) = individual_compatibility(state, model, z, mask, R, params)
+    thr = _check_thresholds(thresholds, K, dtype)
+    d2, (zh, Hs, Hl, nu) = _compatibility(state, model, z, mask, R, params)
     cap = d2.shape[1]
     C = min(C, cap)
     # candidates: the C smallest individually compatible distances of each measurement

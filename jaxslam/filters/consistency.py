@@ -28,8 +28,11 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .. import errors
+from ..errors import InputError
+from ..linalg import check_numbers, is_concrete
 from .ekf_slam import SlamModel, SlamState
 
 __all__ = ["MonitorParams", "Monitor", "init", "observe", "inflate_robot", "outliers", "status_bits",
@@ -51,6 +54,58 @@ class MonitorParams(NamedTuple):
     outlier_gate: jax.Array
 
 
+def _scalar(value, name: str):
+    """A monitor number's static shape: one scalar (a vector broadcast the robot rows against it)."""
+    if np.ndim(value) != 0:
+        raise InputError(f"{name}: expected a scalar, got shape {np.shape(value)}")
+
+
+def _value(value, name: str):
+    """``value`` as a float when it is concrete (an eager call), else None (traced: not checked)."""
+    _scalar(value, name)
+    return float(check_numbers(value, name)) if is_concrete(value) else None
+
+
+def check_params(params: MonitorParams, name: str = "params"):
+    """The monitor's numbers (scalars; their values when concrete, as :class:`MonitorParams`
+    documents them): 0 < alpha ≤ 1, threshold > 0, max_factor ≥ 1 (the largest inflation: a
+    max_factor below 1 deflated P_rr), outlier_gate ≥ 0; NaN never.  :class:`InputError` naming
+    ``name.field`` (alpha = −1 drove the running mean to −48 without a word)."""
+    if not isinstance(params, MonitorParams):
+        raise InputError(f"{name}: expected a MonitorParams, got {type(params).__name__}")
+    rules = (("alpha", lambda v: 0.0 < v <= 1.0, "in (0, 1]"), ("threshold", lambda v: v > 0, "> 0"),
+             ("max_factor", lambda v: v >= 1.0, ">= 1 (1: no inflation)"))
+    for field, ok, want in rules:
+        v = _value(getattr(params, field), f"{name}.{field}")
+        if v is not None and not ok(v):
+            raise InputError(f"{name}.{field}: must be {want}, got {v}")
+    _check_gate(params, name)
+
+
+def _check_gate(params, name: str = "params"):
+    """``params.outlier_gate``: a scalar d² ≥ 0 (NaN never: ``d² > nan`` counts no outlier)."""
+    v = _value(params.outlier_gate, f"{name}.outlier_gate")
+    if v is not None and not v >= 0:
+        raise InputError(f"{name}.outlier_gate: must be >= 0, got {v}")
+
+
+def _rows(d2, valid, name: str = "d2"):
+    """``(d2 (K,), valid (K,) bool)`` as arrays, shapes checked (static): :class:`InputError`
+    naming the argument (a length mismatch was a broadcast error, a list had no ``.dtype``)."""
+    kind = d2.dtype.kind if isinstance(d2, (jax.Array, np.ndarray)) else None
+    if kind not in ("b", "i", "u", "f") and is_concrete(d2):
+        check_numbers(d2, name)  # a list is taken, a string named
+    d2 = jnp.asarray(d2)
+    if not jnp.issubdtype(d2.dtype, jnp.floating):
+        d2 = d2.astype(jnp.result_type(float))
+    valid = jnp.asarray(valid)
+    if d2.ndim != 1:
+        raise InputError(f"{name}: expected shape (K,), got {tuple(d2.shape)}")
+    if valid.shape != d2.shape:
+        raise InputError(f"valid: expected shape {tuple(d2.shape)} (one per row of {name}), got {tuple(valid.shape)}")
+    return d2, valid.astype(bool)
+
+
 class Monitor(NamedTuple):
     """mean: () the running mean NIS ratio m_k; inflations: () int32 count."""
 
@@ -59,12 +114,28 @@ class Monitor(NamedTuple):
 
 
 def init(dtype) -> Monitor:
-    """A fresh monitor: running NIS ratio 1, no inflation yet."""
-    return Monitor(mean=jnp.ones((), dtype), inflations=jnp.zeros((), jnp.int32))
+    """A fresh monitor: running NIS ratio 1, no inflation yet.
+
+    ``dtype``: a floating dtype (the running mean is a ratio; an integer one truncated it)."""
+    try:
+        dt = jnp.dtype(dtype)
+    except TypeError:
+        raise InputError(f"dtype: expected a floating dtype, got {dtype!r}") from None
+    if not jnp.issubdtype(dt, jnp.floating):
+        raise InputError(f"dtype: expected a floating dtype, got {dt}")
+    return Monitor(mean=jnp.ones((), dt), inflations=jnp.zeros((), jnp.int32))
 
 
 def inflate_robot(state: SlamState, model: SlamModel, factor) -> SlamState:
-    """P ← D P D with D = diag(√f·I_{n_r}, I): P_rr ×f, P_rl ×√f, P_ll unchanged (PSD kept)."""
+    """P ← D P D with D = diag(√f·I_{n_r}, I): P_rr ×f, P_rl ×√f, P_ll unchanged (PSD kept).
+
+    ``factor`` f: a scalar inflation ≥ 1 (1: unchanged), finite; a concrete one is checked
+    (:class:`InputError` naming ``factor``: f < 0 made P all NaN, f = 0 zeroed the robot block,
+    0 < f < 1 would deflate it, the opposite of what the monitor is for).  Traced: not checked
+    (:func:`observe` passes ``clip(m_k, 1, max_factor)``)."""
+    v = _value(factor, "factor")
+    if v is not None and not (np.isfinite(v) and v >= 1.0):
+        raise InputError(f"factor: expected a finite inflation factor >= 1 (1: unchanged), got {v}")
     nr = model.robot_dim
     g = jnp.sqrt(jnp.asarray(factor, state.P.dtype))
     # only the robot rows and columns change: O(n·n_r)
@@ -79,8 +150,14 @@ def observe(mon: Monitor, state: SlamState, model: SlamModel, d2, valid, params:
     """Fold one event's rows into the monitor and inflate the robot covariance if it trips.
 
     d2: (K,) marginal NIS of the rows offered to the update; valid: (K,) bool rows that count
-    (known landmarks, mapped).  Returns (monitor, state).
+    (known landmarks, mapped).  Returns (monitor, state).  Shapes are checked (static) and, when
+    concrete, ``params`` (:func:`check_params`) and ``d2`` on the valid rows (not NaN: one NaN
+    would make the running mean NaN for the rest of the run): :class:`InputError` naming them.
     """
+    check_params(params)
+    d2, valid = _rows(d2, valid)
+    if is_concrete(d2, valid) and np.any(np.isnan(np.asarray(d2)) & np.asarray(valid)):
+        raise InputError("d2: NaN on a valid row")
     dtype = mon.mean.dtype
     dz = model.meas_dim
     n = jnp.sum(valid)
@@ -96,13 +173,24 @@ def observe(mon: Monitor, state: SlamState, model: SlamModel, d2, valid, params:
 
 def outliers(d2, valid, params: MonitorParams):
     """() int32: rows that count with d² above ``params.outlier_gate`` (the gated fraction's
-    numerator, counted whether or not the monitor acts)."""
+    numerator, counted whether or not the monitor acts).
+
+    ``d2`` (K,) (a list is taken) and ``valid`` (K,) are checked for shape; ``params`` is any
+    object with an ``outlier_gate`` (a scalar ≥ 0, checked when concrete)."""
+    _check_gate(params)
+    d2, valid = _rows(d2, valid)
     return jnp.sum(valid & (d2 > jnp.asarray(params.outlier_gate, d2.dtype))).astype(jnp.int32)
 
 
 def status_bits(n_outliers, n_rows, fraction=DIVERGED_FRACTION):
     """``errors.DIVERGED`` (int32) where more than ``fraction`` of the ``n_rows`` monitored rows
     were outliers (the run stopped being consistent with its own noise model, whatever the
-    monitor did about it), else 0."""
+    monitor did about it), else 0.
+
+    ``fraction``: a scalar in [0, 1]; a concrete one is checked (:class:`InputError` naming it:
+    −0.1 flagged DIVERGED with no outlier at all)."""
+    v = _value(fraction, "fraction")
+    if v is not None and not 0.0 <= v <= 1.0:
+        raise InputError(f"fraction: expected an outlier fraction in [0, 1], got {v}")
     div = n_outliers > jnp.asarray(fraction) * jnp.maximum(n_rows, 1)
     return jnp.where(div, jnp.int32(errors.DIVERGED), jnp.int32(0))

@@ -26,20 +26,47 @@ from typing import Optional
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
-from ..linalg import safe_norm
+from ..errors import InputError
+from ..linalg import check_numbers, is_concrete, safe_norm
 from . import trilateration as tri
 
 __all__ = ["robust_trilaterate", "from_buffer"]
+
+
+def _numbers(x, name: str):
+    """``x`` as a floating JAX array; a concrete value that is not numbers (a string, a ragged
+    list) is an :class:`InputError` naming ``name``; lists are taken (they have no dtype)."""
+    kind = x.dtype.kind if isinstance(x, (jax.Array, np.ndarray)) else None
+    if kind not in ("b", "i", "u", "f") and is_concrete(x):
+        check_numbers(x, name)
+    x = jnp.asarray(x)
+    return x if jnp.issubdtype(x.dtype, jnp.floating) else x.astype(jnp.result_type(float))
+
+
+def _rows_in(points, ranges, valid, range_var):
+    """The buffer's rows checked (trilateration's shape and ``range_var`` checks, static) and as
+    arrays: ``(points (W, d), ranges (W,), valid (W,) bool)``; a float or integer ``valid`` is
+    read as a mask (non-zero: valid), as the filters read their masks."""
+    points = _numbers(points, "points")
+    ranges = _numbers(ranges, "ranges")
+    if valid is None:
+        raise InputError("valid: expected a (W,) bool mask of the rows to fit, got None")
+    tri._check_inputs(points, ranges, valid, range_var)
+    return points, ranges, jnp.asarray(valid).astype(bool)
 
 
 def robust_trilaterate(points, ranges, valid, range_var, min_points: Optional[int] = None,
                        min_spread=0.0) -> tri.TrilaterationResult:
     """Two-pass trilateration: fit, drop |residual − median| > max(3·1.4826·MAD, 1 m), refit.
 
-    points: (W, d); ranges: (W,); valid: (W,) bool.  The row selection is held constant under
-    differentiation (``stop_gradient``).  Returns the second fit's
+    points: (W, d); ranges: (W,); valid: (W,) bool (another dtype is read as a mask, non-zero
+    valid).  Shapes and a concrete ``range_var`` are checked first (:class:`InputError` naming
+    the argument).  The row selection is held constant under differentiation
+    (``stop_gradient``).  Returns the second fit's
     :class:`~jaxslam.filters.trilateration.TrilaterationResult`."""
+    points, ranges, valid = _rows_in(points, ranges, valid, range_var)
     r1 = tri.trilaterate(points, ranges, mask=valid)
     res = safe_norm(points - r1.position, axis=1) - ranges
     resn = jnp.where(valid, res, jnp.nan)
@@ -70,9 +97,27 @@ def from_buffer(points, point_var, ranges, valid, range_var, min_points: Optiona
 
     Returns:
       ``(fit, P_ll)``: the trilateration result (``fit.ok``: ready) and the (d, d) covariance.
+
+    Shapes are checked (static; ``point_var`` may also be one scalar for every row) and, when
+    concrete, ``range_var`` and ``point_var`` on the averaged rows (finite, ≥ 0: a negative
+    variance shrank P_ll): :class:`InputError` naming the argument.  ``points`` and
+    ``point_var`` may be lists.
     """
+    points, ranges, valid = _rows_in(points, ranges, valid, range_var)
+    W = points.shape[0]
+    point_var = _numbers(point_var, "point_var")
+    if point_var.shape not in ((), (W,)):
+        raise InputError(f"point_var: expected shape ({W},) (one per row of points) or a scalar, "
+                         f"got {tuple(point_var.shape)}")
+    if var_rows is not None and np.shape(var_rows) != (W,):
+        raise InputError(f"var_rows: expected shape ({W},) (one per row of points), got {np.shape(var_rows)}")
+    rows = valid if var_rows is None else jnp.asarray(var_rows).astype(bool)
+    if is_concrete(point_var, rows):
+        v = np.broadcast_to(np.asarray(point_var), (W,))[np.asarray(rows)]
+        if not np.all(np.isfinite(v) & (v >= 0)):
+            raise InputError(f"point_var: expected finite variances >= 0 [m²] on the averaged rows, got "
+                             f"{v[~(np.isfinite(v) & (v >= 0))][0]}")
     fit = (robust_trilaterate if robust else _plain)(points, ranges, valid, range_var, min_points, min_spread)
-    rows = valid if var_rows is None else var_rows
     n = jnp.maximum(jnp.sum(rows), 1).astype(fit.cov.dtype)
     mean_var = jnp.sum(jnp.where(rows, point_var, 0.0)) / n
     d = points.shape[-1]

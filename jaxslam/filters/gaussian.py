@@ -175,6 +175,26 @@ class GaussianFilter(NamedTuple):
 # The shared correction
 # ---------------------------------------------------------------------------
 
+def moment_dtype(x, M, x_name: str, m_name: str):
+    """The dtype a step computes a belief's ``x`` (n,) and its square matrix ``M`` (n, n) (a
+    covariance or its factor) in, after checking their shapes (static: free under ``jit``;
+    :class:`InputError` naming ``x_name`` / ``m_name``): the mean's floating dtype, an integer
+    mean promoted to the matrix's (JAX's default float when that is an integer too; integer
+    weights truncated every sigma-point weight to 0); a complex mean is refused."""
+    xs, ms = tuple(np.shape(x)), tuple(np.shape(M))
+    if len(xs) != 1:
+        raise InputError(f"{x_name}: expected shape (n,), got {xs}")
+    n = xs[0]
+    if ms != (n, n):
+        raise InputError(f"{m_name}: expected shape ({n}, {n}) (the mean's size), got {ms}")
+    x_dt, m_dt = jnp.result_type(x), jnp.result_type(M)
+    if not jnp.issubdtype(x_dt, jnp.inexact):
+        x_dt = m_dt if jnp.issubdtype(m_dt, jnp.floating) else jnp.result_type(float)
+    if jnp.issubdtype(x_dt, jnp.complexfloating):
+        raise InputError(f"{x_name}: expected a real array, got dtype {x_dt}")
+    return x_dt
+
+
 def check_state(state, name: str = "state") -> Gaussian:
     """A belief as one step of a filter reads it: ``mean`` (n,) and ``cov`` (n, n) (shapes are
     static, so this is free under ``jit``), and, when the covariance is known now (an eager
@@ -184,17 +204,8 @@ def check_state(state, name: str = "state") -> Gaussian:
     returned in the mean's dtype, so a step computes in one dtype whatever the caller mixed.
     """
     x, P = state
-    xs, ps = tuple(np.shape(x)), tuple(np.shape(P))
-    if len(xs) != 1:
-        raise InputError(f"{name}.mean: expected shape (n,), got {xs}")
-    n = xs[0]
-    if ps != (n, n):
-        raise InputError(f"{name}.cov: expected shape ({n}, {n}) (the mean's size), got {ps}")
-    x_dt, p_dt = jnp.result_type(x), jnp.result_type(P)
-    if not jnp.issubdtype(x_dt, jnp.inexact):
-        x_dt = p_dt if jnp.issubdtype(p_dt, jnp.floating) else jnp.result_type(float)
-    if jnp.issubdtype(x_dt, jnp.complexfloating):
-        raise InputError(f"{name}.mean: expected a real array, got dtype {x_dt}")
+    x_dt = moment_dtype(x, P, f"{name}.mean", f"{name}.cov")
+    p_dt = jnp.result_type(P)
     if is_concrete(P):
         check_psd(P, f"{name}.cov")
     x = host_array(x, x_dt) if is_concrete(x) and jnp.result_type(x) != x_dt else jnp.asarray(x)

@@ -30,14 +30,56 @@ import numpy as np
 
 from .. import errors
 from ..errors import InputError
-from ..linalg import symmetrize
-from .gaussian import Gate, UpdateInfo, check_measurement, masked_innovation, threshold
+from ..linalg import check_numbers, is_concrete, symmetrize
+from .gaussian import (
+    Gate,
+    UpdateInfo,
+    check_gate,
+    check_measurement,
+    check_noise_values,
+    masked_innovation,
+    moment_dtype,
+    threshold,
+)
 from .sqrt_ekf import SqrtGaussian, SqrtPosterior, _mm, _root, _tria
-from .ukf import SigmaPoints, measurement_mean, unscented
+from .ukf import (
+    SigmaPoints,
+    _rule,
+    check_noise_scalar,
+    check_transition,
+    measurement_mean,
+)
 
 __all__ = ["predict", "update", "filter_scan"]
 
 Array = Any
+
+
+def check_state(state, name: str = "state") -> SqrtGaussian:
+    """A square-root belief as one step reads it: ``mean`` (n,) and ``chol`` (n, n) (shapes are
+    static, so this is free under ``jit``) and, when the factor is known now (an eager call),
+    its values: finite, lower-triangular (the update's triangular solves read only the lower
+    triangle, so an entry above the diagonal was silently dropped), diagonal ≥ 0.  Raises
+    :class:`InputError` naming ``name.mean`` / ``name.chol`` (a mismatch used to end in a
+    concatenate or broadcast error).  An integer mean is promoted to the factor's floating
+    dtype (the default float when that is an integer too), and the factor is returned in the
+    mean's dtype, as :func:`jaxslam.filters.gaussian.check_state` does for a covariance."""
+    x, L = state
+    x, L = jnp.asarray(x), jnp.asarray(L)  # lists have no dtype
+    x_dt = moment_dtype(x, L, f"{name}.mean", f"{name}.chol")
+    n = x.shape[0]
+    if is_concrete(L):
+        A = check_numbers(L, f"{name}.chol")
+        if not np.all(np.isfinite(A)):
+            raise InputError(f"{name}.chol: contains NaN or Inf")
+        scale = max(1.0, float(np.max(np.abs(A)))) if A.size else 1.0
+        if n > 1 and np.max(np.abs(np.triu(A, 1))) > 1e-12 * scale:
+            raise InputError(f"{name}.chol: expected a lower-triangular factor L (P = L Lᵀ), got non-zero "
+                             "entries above the diagonal")
+        if n and np.min(np.diagonal(A)) < 0:
+            raise InputError(f"{name}.chol: expected a factor with a non-negative diagonal, got "
+                             f"{np.min(np.diagonal(A)):.3g} on it")
+    return SqrtGaussian(jnp.asarray(x, x_dt), jnp.asarray(L, x_dt))
 
 
 def _points(state: SqrtGaussian, rule: SigmaPoints):
@@ -60,10 +102,14 @@ def predict(state: SqrtGaussian, f: Optional[Callable], u, Q, *args,
             points: Optional[SigmaPoints] = None, Q_chol=None, return_status: bool = False):
     """Square-root sigma-point time update (module docstring); ``Q`` a covariance or ``Q_chol`` a root.
 
-    A non-finite predicted mean or factor (a NaN/Inf in ``Q`` or ``f``'s output) keeps the
-    prior and, with ``return_status`` (static), returns ``NON_FINITE`` beside it:
-    ``(SqrtGaussian, status)``; :func:`filter_scan` adds it to the step's status.
+    A non-finite predicted mean or factor (a NaN/Inf in a traced ``Q`` or ``f``'s output) keeps
+    the prior and, with ``return_status`` (static), returns ``NON_FINITE`` beside it:
+    ``(SqrtGaussian, status)``; :func:`filter_scan` adds it to the step's status.  The state
+    (:func:`check_state`), the rule and, when known now, ``Q`` (symmetric PSD) or ``Q_chol``
+    (finite) are checked first: :class:`InputError` naming the argument.
     """
+    rule = _rule(points)
+    state = check_state(state)
     x = state.mean
     dtype = x.dtype
     n = x.shape[0]
@@ -72,12 +118,13 @@ def predict(state: SqrtGaussian, f: Optional[Callable], u, Q, *args,
         qs = tuple(np.shape(Q))
         if qs != (n, n):
             raise InputError(f"Q: expected shape ({n}, {n}) (the state's size), got {qs}")
+        check_noise_values(Q, "Q")  # an eager call (traced: the status speaks)
     elif np.ndim(Q_chol) != 2 or np.shape(Q_chol)[0] != n:
         raise InputError(f"Q_chol: expected shape ({n}, k), got {tuple(np.shape(Q_chol))}")
-    pts, _, wm, sw = _points(state, unscented() if points is None else points)
-    X = jax.vmap(lambda p: fm(p, u, *args))(pts).astype(dtype)
-    if X.shape != (pts.shape[0], n):
-        raise InputError(f"f: the transition returned shape {X.shape[1:]}, expected ({n},)")
+    elif is_concrete(Q_chol) and not np.all(np.isfinite(check_numbers(Q_chol, "Q_chol"))):
+        raise InputError("Q_chol: contains NaN or Inf")
+    pts, _, wm, sw = _points(state, rule)
+    X = check_transition(jax.vmap(lambda p: fm(p, u, *args))(pts), pts.shape).astype(dtype)
     xm = wm @ X
     C = jnp.asarray(Q_chol, dtype) if Q_chol is not None else _root(Q, dtype, triangular=False)
     L = _tria(jnp.concatenate([((X - xm) * sw[:, None]).T, C], axis=1))
@@ -94,11 +141,17 @@ def update(state: SqrtGaussian, z, h: Callable, R, *args, residual: Optional[Cal
 
     Returns ``(posterior SqrtGaussian, UpdateInfo)`` (``S`` formed from its factor, ``logdet``
     over the valid block).  A singular factor (``NOT_PSD``) or a non-finite posterior
-    (``NON_FINITE``) keeps the prior.
+    (``NON_FINITE``) keeps the prior.  As :func:`jaxslam.filters.ukf.update`, the state
+    (:func:`check_state`), the rule, the gate and a concrete ``R`` (positive definite, or a
+    scalar variance > 0 for one measurement) are checked first: :class:`InputError` naming the
+    argument.
     """
-    x = state.mean
+    rule = _rule(points)
+    check_gate(gate)
+    x, L = check_state(state)
     dtype = x.dtype
-    L = jnp.asarray(state.chol, dtype)
+    check_noise_values(R, "R", strict=True)
+    check_noise_scalar(R)
     z = jnp.asarray(z, dtype)
     R = jnp.asarray(R, dtype)
     m = z.shape[-1]
@@ -107,9 +160,8 @@ def update(state: SqrtGaussian, z, h: Callable, R, *args, residual: Optional[Cal
     res = (lambda a, b: a - b) if residual is None else residual
     zero = jnp.zeros((), dtype)
     eye_m = jnp.eye(m, dtype=dtype)
-    pts, dx, wm, sw = _points(SqrtGaussian(x, L), unscented() if points is None else points)
+    pts, dx, wm, sw = _points(SqrtGaussian(x, L), rule)
     Z = jax.vmap(lambda p: h(p, *args))(pts).astype(dtype)
-    rule = unscented() if points is None else points
     zref = Z[0] if rule.has_center else jnp.asarray(h(x, *args), dtype)
     check_measurement(z, zref, R, mask)
     Z, zhat = measurement_mean(Z, zref, wm, mask, res)
@@ -165,7 +217,8 @@ def filter_scan(f: Optional[Callable], h: Callable, x0, P0, us, zs, masks, Q, R,
     """
     from .gaussian import check_leading, check_run_inputs
 
-    rule = unscented() if points is None else points
+    rule = _rule(points)
+    check_gate(gate)
     x0 = jnp.asarray(x0)
     dtype = x0.dtype if jnp.issubdtype(x0.dtype, jnp.floating) else jnp.result_type(float)
     x0 = x0.astype(dtype)

@@ -106,7 +106,7 @@ import numpy as np
 
 from .. import errors
 from ..errors import InputError
-from ..linalg import check_psd, is_concrete, symmetrize
+from ..linalg import check_numbers, check_psd, is_concrete, symmetrize
 from . import gaussian as _g
 from .gaussian import (
     Gate,
@@ -121,6 +121,7 @@ from .gaussian import (
     finalize,
     innovation_solve,
     masked_innovation,
+    moment_dtype,
     process_noise,
     threshold,
 )
@@ -226,8 +227,9 @@ def unscented(alpha: float = 1.0, beta: float = 2.0, kappa: float = 0.0) -> Sigm
         :class:`SigmaPoints` (static; hashable).
     """
     for v, nm in ((alpha, "alpha"), (beta, "beta"), (kappa, "kappa")):
-        if not np.isfinite(float(v)):
-            raise InputError(f"{nm}: must be finite, got {v}")
+        a = check_numbers(v, nm)  # a string (even "1") or None is not a number
+        if a.shape != () or not np.isfinite(a):
+            raise InputError(f"{nm}: must be a finite number, got {v!r}")
     if not float(alpha) > 0:
         raise InputError(f"alpha: must be > 0, got {alpha}")
     return SigmaPoints("unscented", float(alpha), float(beta), float(kappa))
@@ -247,11 +249,22 @@ def _rule(points: Optional[SigmaPoints]) -> SigmaPoints:
     return points
 
 
+def _check_moments(mean, cov):
+    """``(mean (n,), cov (n, n))`` of :func:`sigma_points` as arrays, shapes checked (static: free
+    under ``jit``) with :class:`InputError` naming ``mean`` / ``cov``; an integer mean is
+    promoted to the covariance's floating dtype (the default float when that is an integer too):
+    integer weights truncated every weight to 0."""
+    mean, cov = jnp.asarray(mean), jnp.asarray(cov)  # lists have no dtype
+    m_dt = moment_dtype(mean, cov, "mean", "cov")
+    return jnp.asarray(mean, m_dt), jnp.asarray(cov, m_dt)
+
+
 def sigma_points(mean, cov, points: Optional[SigmaPoints] = None) -> SigmaSet:
     """Sigma points and weights of ``N(mean, cov)`` under a rule (default :func:`unscented`).
 
     Args:
-        mean: (n,) mean; its dtype is the dtype of the result.
+        mean: (n,) mean; its (floating) dtype is the dtype of the result (an integer mean is
+            promoted to the covariance's floating dtype, or the default float).
         cov: (n, n) covariance, factored as ``L Lᵀ`` (lower Cholesky, after symmetrising).
         points: the rule.
 
@@ -259,11 +272,11 @@ def sigma_points(mean, cov, points: Optional[SigmaPoints] = None) -> SigmaSet:
         :class:`SigmaSet` ``(points (N, n), wm (N,), wc (N,), ok)``.
     """
     rule = _rule(points)
-    mean = jnp.asarray(mean)
+    mean, cov = _check_moments(mean, cov)
     dtype = mean.dtype
     n = mean.shape[0]
     wm, wc, c = rule.weights(n)
-    L = jnp.linalg.cholesky(symmetrize(jnp.asarray(cov, dtype)))
+    L = jnp.linalg.cholesky(symmetrize(cov))
     ok = jnp.all(jnp.isfinite(L))
     L = jnp.where(ok, L, jnp.eye(n, dtype=dtype))
     D = jnp.asarray(c, dtype) * L.T  # row i: c L e_i
@@ -277,6 +290,26 @@ def sigma_points(mean, cov, points: Optional[SigmaPoints] = None) -> SigmaSet:
 # Predict
 # ---------------------------------------------------------------------------
 
+def check_transition(X, shape):
+    """The transition's outputs at the sigma points, ``X`` (N, n), against the points' ``shape``
+    (static: free under ``jit``): :class:`InputError` naming ``f`` (an (N, 1) output used to be
+    broadcast onto every state component without a word).  Shared with
+    :func:`jaxslam.filters.sqrt_ukf.predict`."""
+    got = tuple(np.shape(X)) if isinstance(X, (jax.Array, np.ndarray)) else None
+    if got != tuple(shape):
+        what = got[1:] if got is not None else type(X).__name__
+        raise InputError(f"f: the transition returned shape {what}, expected ({shape[1]},)")
+    return X
+
+
+def check_noise_scalar(R, name: str = "R"):
+    """When ``R`` is a concrete scalar or (1,) variance (one measurement), its value: positive
+    and finite, else :class:`InputError` naming ``name`` (the matrix check skips it: a variance
+    of −1 gave a posterior variance of −4.5e15 with status 0).  Traced: nothing."""
+    if np.ndim(R) < 2 and np.size(R) == 1 and is_concrete(R):
+        check_psd(np.reshape(check_numbers(R, name), (1, 1)), name, strict=True)
+
+
 def _predict(state: Gaussian, f: Optional[Callable], u, Q, args, rule: SigmaPoints, noise_jac):
     """``(Gaussian, cross, status)`` of one sigma-point time update."""
     x, P = check_state(state)
@@ -288,7 +321,7 @@ def _predict(state: Gaussian, f: Optional[Callable], u, Q, args, rule: SigmaPoin
         return (Gaussian(x, jnp.where(finite, Pn, P)), P,
                 jnp.where(finite, jnp.int32(errors.OK), jnp.int32(errors.NON_FINITE)))
     pts, wm, wc, ok = sigma_points(x, P, rule)
-    X = jax.vmap(lambda p: f(p, u, *args))(pts).astype(dtype)  # (N, n)
+    X = check_transition(jax.vmap(lambda p: f(p, u, *args))(pts), pts.shape).astype(dtype)  # (N, n)
     xm = wm @ X
     dX = X - xm
     dx = pts - x
@@ -397,7 +430,8 @@ def update(
         state: prior :class:`Gaussian`, mean (n,), cov (n, n) positive definite.
         z: (m,) measurement, in the units of ``h``'s output.
         h: measurement model ``h(x (n,), *args) -> (m,)``.
-        R: (m, m) measurement-noise covariance.
+        R: (m, m) measurement-noise covariance, positive definite (or, for m = 1, a scalar
+            variance > 0); a concrete one is checked (:class:`InputError` naming ``R``).
         *args: extra arguments of ``h`` (e.g. a landmark position).
         residual: ``residual(z, ẑ) -> (m,)``; default ``z − ẑ``.  Use
             :func:`jaxslam.filters.ekf.angle_residual` for components in radians (it also
@@ -419,6 +453,7 @@ def update(
     x, P = check_state(state)
     dtype = x.dtype
     check_noise_values(R, "R", strict=True)
+    check_noise_scalar(R)
     z = jnp.asarray(z, dtype)
     R = jnp.asarray(R, dtype)
     m = z.shape[-1]

@@ -73,6 +73,29 @@ def _matrix33(C, name: str, fn: str):
     return C
 
 
+def _inexact(x):
+    """``x`` promoted to JAX's default float dtype when it holds integers (or bools): the angle
+    functions need an inexact dtype (``finfo``, trig); float inputs keep their dtype."""
+    return x if jnp.issubdtype(x.dtype, jnp.inexact) else x.astype(jnp.result_type(float))
+
+
+def _vec3(x, name: str, fn: str):
+    """``x`` as a single 3-vector (shape (3,)), else InputError naming ``fn``'s argument."""
+    x = jnp.asarray(x)
+    if x.shape != (3,):
+        raise InputError(f"{fn}: {name} expected shape (3,), got {tuple(x.shape)}")
+    return x
+
+
+def _jacobian_args(euler, v, C, vname: str, fn: str):
+    euler, v = _vec3(euler, "euler", fn), _vec3(v, vname, fn)
+    if C is not None:
+        C = jnp.asarray(C)
+        if C.shape != (3, 3):
+            raise InputError(f"{fn}: C expected shape (3, 3), got {tuple(C.shape)}")
+    return euler, v, C
+
+
 def _mat(rows):
     """Stack a nested 3×3 list of (...) arrays into (..., 3, 3)."""
     return jnp.stack([jnp.stack(r, axis=-1) for r in rows], axis=-2)
@@ -168,7 +191,7 @@ def euler_from_dcm(C):
     separable and φ = 0 is returned (the rotation about the vertical goes
     into ψ).  Gradients are finite everywhere (double-``where`` guards).
     """
-    C = _matrix33(C, "C", "euler_from_dcm")
+    C = _inexact(_matrix33(C, "C", "euler_from_dcm"))
     eps = jnp.finfo(C.dtype).eps
     c21, c22 = C[..., 2, 1], C[..., 2, 2]
     n2 = c21 * c21 + c22 * c22  # cos²θ
@@ -224,6 +247,7 @@ def rotate_jacobian(euler, v, C=None):
     ∂C/∂ψ = [e₃]× C; the columns are C (e₁ × v), C (a × v), e₃ × C v.  ``C``: the DCM if the
     caller has it (else formed here).  Equal to ``jax.jacfwd`` (tests).
     """
+    euler, v, C = _jacobian_args(euler, v, C, "v", "rotate_jacobian")
     C = dcm_from_euler(euler) if C is None else C
     sf, cf = jnp.sin(euler[0]), jnp.cos(euler[0])
     z = jnp.zeros_like(sf)
@@ -237,6 +261,7 @@ def rotate_jacobian(euler, v, C=None):
 def unrotate_jacobian(euler, d, C=None):
     """∂(C_NBᵀ d)/∂(φ, θ, ψ) (3, 3) in closed form: with c = Cᵀ d the columns are c × e₁,
     c × a and Cᵀ (d × e₃) (a as in :func:`rotate_jacobian`).  Equal to ``jax.jacfwd`` (tests)."""
+    euler, d, C = _jacobian_args(euler, d, C, "d", "unrotate_jacobian")
     C = dcm_from_euler(euler) if C is None else C
     sf, cf = jnp.sin(euler[0]), jnp.cos(euler[0])
     z = jnp.zeros_like(sf)

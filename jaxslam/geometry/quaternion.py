@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from .euler import _last_axis, _matrix33, euler_from_dcm
+from .euler import _inexact, _last_axis, _matrix33, euler_from_dcm
 
 __all__ = [
     "qmul",
@@ -94,7 +94,7 @@ def qconj(q):
 
 def qnormalize(q):
     """q / ‖q‖ along the last axis.  (..., 4); undefined for q = 0."""
-    q = jnp.asarray(q)
+    q = _last_axis(q, 4, "q", "qnormalize")
     return q / jnp.linalg.norm(q, axis=-1, keepdims=True)
 
 
@@ -103,7 +103,7 @@ def qcanonical(q):
 
     At q0 = 0 the input sign is kept (both signs are the same rotation).
     """
-    q = jnp.asarray(q)
+    q = _last_axis(q, 4, "q", "qcanonical")
     return jnp.where(q[..., :1] < 0, -q, q)
 
 
@@ -151,7 +151,7 @@ def quat_from_dcm(C):
     small number; branches are selected with ``jnp.where`` (jit/vmap-safe,
     finite gradients).
     """
-    C = _matrix33(C, "C", "quat_from_dcm")
+    C = _inexact(_matrix33(C, "C", "quat_from_dcm"))
     c00, c01, c02 = C[..., 0, 0], C[..., 0, 1], C[..., 0, 2]
     c10, c11, c12 = C[..., 1, 0], C[..., 1, 1], C[..., 1, 2]
     c20, c21, c22 = C[..., 2, 0], C[..., 2, 1], C[..., 2, 2]
@@ -219,7 +219,7 @@ def qexp(rotvec):
     = [cos(θ/2), sin(θ/2) u].  Near θ = 0 a Taylor branch keeps the value and
     the gradient (dq/dr = [0; I/2] at 0) exact and finite.
     """
-    r = _last_axis(rotvec, 3, "rotvec", "qexp")
+    r = _inexact(_last_axis(rotvec, 3, "rotvec", "qexp"))
     t2 = jnp.sum(r * r, axis=-1)
     small = t2 < _small_threshold(r.dtype)
     t2s = jnp.where(small, 1.0, t2)
@@ -243,7 +243,7 @@ def qlog(q):
     q0 = 0 (θ ≈ π) the atan2 form is smooth.  At q0 = 0 exactly the result
     jumps between ±π u (inherent to the double cover).
     """
-    q = qcanonical(_last_axis(q, 4, "q", "qlog"))
+    q = qcanonical(_inexact(_last_axis(q, 4, "q", "qlog")))
     w = q[..., 0]
     v = q[..., 1:]
     n2 = jnp.sum(v * v, axis=-1)

@@ -10,9 +10,25 @@ import pathlib
 
 import numpy as np
 
+from jaxslam.errors import InputError
 from jaxslam.files import atomic_write
 
 __all__ = ["plt", "save", "keep_margins", "trajectory_3d", "states_over_time", "inputs_over_time"]
+
+
+def _columns(x, name: str, cols: int, rows=None):
+    """``x`` as a float (T, ≥ ``cols``) array (``rows``: T required), else InputError naming ``name``."""
+    if x is None:
+        raise InputError(f"{name}: expected a (T, {cols}) array, got None")
+    try:
+        a = np.asarray(x, dtype=float)
+    except (TypeError, ValueError):
+        raise InputError(f"{name}: expected numbers, got {x!r}"[:200]) from None
+    if a.ndim != 2 or a.shape[1] < cols:
+        raise InputError(f"{name}: expected shape (T, {cols}" + ("+" if cols > 1 else "") + f"), got {a.shape}")
+    if rows is not None and a.shape[0] != rows:
+        raise InputError(f"{name}: expected {rows} rows (one per time), got {a.shape[0]}")
+    return a
 
 
 def plt():
@@ -33,8 +49,19 @@ def save(fig, directory, name) -> pathlib.Path:
     (``subplots_adjust``, fixed in inches with room for a suptitle, unless a layout engine is
     already set).
     """
+    if not hasattr(fig, "savefig"):
+        raise InputError(f"fig: expected a matplotlib Figure, got {type(fig).__name__}")
+    if directory is None:
+        raise InputError("directory: expected a folder path, got None")
+    if not isinstance(name, str) or not name or pathlib.Path(name).name != name:
+        raise InputError(f"name: expected a plain file name (no folder part), got {name!r}")
     d = pathlib.Path(directory)
-    d.mkdir(parents=True, exist_ok=True)
+    if d.exists() and not d.is_dir():
+        raise InputError(f"directory: {str(d)!r} is a file, not a folder")
+    try:
+        d.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise InputError(f"directory: cannot create {str(d)!r}: {e.strerror or e}") from None
     path = d / f"{name}.png"
     if fig.get_layout_engine() is None:
         # margins in inches (tick labels, axis label, titles), as fractions of this figure: a
@@ -75,6 +102,13 @@ def _ned_to_enu_up(p):
 def trajectory_3d(truth_pos, ref_pos, est_pos=None, landmarks=None, est_landmarks=None,
                   title="Trajectory"):
     """3D path: true (solid), desired (dash-dot), estimated (dashed), landmarks."""
+    truth_pos, ref_pos = _columns(truth_pos, "truth_pos", 3), _columns(ref_pos, "ref_pos", 3)
+    if est_pos is not None:
+        est_pos = _columns(est_pos, "est_pos", 3)
+    if landmarks is not None and len(landmarks):
+        landmarks = _columns(landmarks, "landmarks", 3)
+    if est_landmarks is not None and len(est_landmarks):
+        est_landmarks = _columns(est_landmarks, "est_landmarks", 3)
     p = plt()
     fig = p.figure(figsize=(7, 6))
     ax = fig.add_subplot(projection="3d")
@@ -96,6 +130,11 @@ def trajectory_3d(truth_pos, ref_pos, est_pos=None, landmarks=None, est_landmark
 
 def states_over_time(t, truth, ref, title="Tracking"):
     """Position vs desired, tracking error, Euler angles (deg) over time."""
+    t = np.asarray(t, dtype=float)
+    if t.ndim != 1:
+        raise InputError(f"t: expected shape (T,), got {t.shape}")
+    truth = _columns(truth, "truth", 9, rows=t.shape[0])
+    ref = _columns(ref, "ref", 4, rows=t.shape[0])
     p = plt()
     fig, axs = p.subplots(3, 1, figsize=(9, 8), sharex=True)
     names = ["north", "east", "down"]
@@ -120,6 +159,10 @@ def states_over_time(t, truth, ref, title="Tracking"):
 
 def inputs_over_time(t, u, title="Inputs"):
     """Thrust [N] and torques [N m] over time."""
+    t = np.asarray(t, dtype=float)
+    if t.ndim != 1:
+        raise InputError(f"t: expected shape (T,), got {t.shape}")
+    u = _columns(u, "u", 4, rows=t.shape[0])
     p = plt()
     fig, axs = p.subplots(2, 1, figsize=(9, 5), sharex=True)
     axs[0].plot(t, u[:, 0], "k-")

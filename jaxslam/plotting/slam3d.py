@@ -24,6 +24,7 @@ import textwrap
 
 import numpy as np
 
+from ..linalg import check_scalar
 from ..metrics import consistency_verdict as verdict
 from ..metrics import steps_inside_text as steps_inside
 from .flight import _ned_to_enu_up, keep_margins, plt, save
@@ -36,6 +37,7 @@ ROBOT_ELLIPSE_EVERY_S = 5.0
 def magnification(sig3, span, fraction=0.025):
     """Factor (1, 2, 5, 10, 20, ...) that draws the median 3σ at about ``fraction`` of
     ``span``; 1 when it is visible already or no 3σ is positive (pure)."""
+    fraction = check_scalar(fraction, "fraction", lower=0, strict=True)
     s = np.asarray(sig3, float)
     s = s[np.isfinite(s) & (s > 0)]
     if s.size == 0 or not np.isfinite(span) or span <= 0:

@@ -11,13 +11,36 @@ import textwrap
 
 import numpy as np
 
+from ..errors import InputError
 from .flight import keep_margins, plt, save
 
 __all__ = ["before_after", "choose_panels", "loss_curves", "param_trajectories", "plot_all", "reference_values"]
 
 
+def _check_report(report, keys, name: str = "report") -> None:
+    """InputError unless ``report`` is a dict holding ``keys`` (a ``tune`` JSON report)."""
+    if not isinstance(report, dict):
+        raise InputError(f"{name}: expected a tune report (dict), got {type(report).__name__}")
+    missing = [k for k in keys if k not in report]
+    if missing:
+        raise InputError(f"{name}: missing key(s) {missing} (expected a 'jaxslam tune --json' report)")
+    for k in ("before", "after"):
+        if k in keys and not (isinstance(report[k], dict) and isinstance(report[k].get("metrics"), dict)):
+            raise InputError(f"{name}: '{k}' must hold a 'metrics' object")
+
+
+def _check_history(history) -> None:
+    """InputError unless ``history`` is a list of records (dicts), each with a ``step``."""
+    if not isinstance(history, (list, tuple)):
+        raise InputError(f"history: expected a list of step records, got {type(history).__name__}")
+    for i, h in enumerate(history):
+        if not isinstance(h, dict) or "step" not in h:
+            raise InputError(f"history: record {i} is not a step record with a 'step' (got {h!r})"[:300])
+
+
 def loss_curves(history, title="Tuning loss"):
     """Training loss per step (line) and held-out loss where recorded (markers)."""
+    _check_history(history)
     p = plt()
     fig, ax = p.subplots(figsize=(7, 4))
     st = [h["step"] for h in history if h.get("loss") is not None]
@@ -176,6 +199,9 @@ def choose_panels(report, max_panels=MAX_PANELS):
       "title", "values": [before, after, *references], "bounds": (lo, hi) | None}``; the
       names of the statistics that did not fit.
     """
+    _check_report(report, ("before", "after"))
+    if isinstance(max_panels, bool) or not isinstance(max_panels, (int, np.integer)) or max_panels < 1:
+        raise InputError(f"max_panels: expected an int >= 1, got {max_panels!r}")
     before, after = report["before"], report["after"]
     refs = list(report.get("references", {}).values())
     cands = []
@@ -224,7 +250,13 @@ def before_after(report, metrics=None, title="Held-out evaluation", max_panels=M
     shade their 95 % bounds; a note names what did not fit."""
     refs = report.get("references", {})
     if metrics is not None:
+        if isinstance(metrics, str) or not all(isinstance(m, str) for m in metrics):
+            raise InputError(f"metrics: expected a list of statistic names, got {metrics!r}")
         panels, left_out = choose_panels(report, max_panels=10 ** 6)
+        unknown = sorted(set(metrics) - {q["key"] for q in panels})
+        if unknown:
+            raise InputError(f"metrics: unknown statistic(s) {unknown}; the report has "
+                             f"{', '.join(q['key'] for q in panels)}")
         panels = [q for q in panels if q["key"] in metrics]
         left_out = []
     else:
@@ -277,6 +309,7 @@ def before_after(report, metrics=None, title="Held-out evaluation", max_panels=M
 
 def plot_all(report, directory):
     """Write ``<scenario>_tune_loss.png``, ``_params.png`` and ``_before_after.png``; return paths."""
+    _check_report(report, ("scenario", "target", "loss", "history", "before", "after"))
     name = f"{report['scenario']}_{report['target']}_{report['loss']}"
     out = [save(loss_curves(report["history"], title=f"{name}: loss"), directory, f"{name}_loss")]
     try:

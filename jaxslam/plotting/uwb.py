@@ -23,6 +23,8 @@ import textwrap
 
 import numpy as np
 
+from ..errors import InputError
+from ..linalg import check_int, check_numbers, check_scalar, check_shape
 from ..metrics import consistency_verdict as verdict
 from ..metrics import steps_inside_text as steps_inside
 from .flight import keep_margins, plt, save
@@ -30,8 +32,24 @@ from .flight import keep_margins, plt, save
 __all__ = ["STATE_NAMES", "band", "ellipse_points", "nees_figure", "plot_all", "state_panels"]
 
 
+def _check_gaussian2(mean, cov):
+    """InputError unless ``mean`` is (2,) and ``cov`` (2, 2) with a symmetric part that is PSD to
+    1e-6 of its largest eigenvalue (a filter's float32 rounding passes; a negative variance,
+    which would draw a zero-size ellipse, does not).  A non-finite ``cov`` (a diverged run) is
+    left to the plot, as before."""
+    check_shape(check_numbers(mean, "mean"), (2,), "mean")
+    c = check_shape(check_numbers(cov, "cov"), (2, 2), "cov")
+    if np.all(np.isfinite(c)):
+        w = np.linalg.eigvalsh(0.5 * (c + c.T))
+        if w[0] < -1e-6 * max(float(np.max(np.abs(w))), 1e-300):
+            raise InputError(f"cov: not positive semi-definite (smallest eigenvalue {w[0]:.3g})")
+
+
 def ellipse_points(mean, cov, k=3.0, n=64):
     """(n, 2) points of the k-σ ellipse of a 2D Gaussian (mean (2,), cov (2, 2))."""
+    _check_gaussian2(mean, cov)
+    k = check_scalar(k, "k", lower=0)
+    n = check_int(n, "n", lower=2)
     w, V = np.linalg.eigh(0.5 * (np.asarray(cov) + np.asarray(cov).T))
     w = np.sqrt(np.clip(w, 0.0, None))
     a = np.linspace(0, 2 * np.pi, n)

@@ -22,7 +22,7 @@ import numpy as np
 from ..filters import consistency as cons
 from ..filters import ekf_slam as es
 from ..errors import InputError
-from ..linalg import check_scalar, is_concrete, safe_norm
+from ..linalg import check_scalar, check_whole_ids, is_concrete, safe_norm
 from ..stats import chi2_ppf_np, student_t_d2_ppf_np
 
 __all__ = ["range_observe", "update_ranges", "resolve_outlier_gate", "Result", "OUTLIER_P"]
@@ -54,6 +54,45 @@ def check_positions(a, name: str) -> None:
         raise InputError(f"{name}: contains NaN or Inf")
 
 
+def check_log(log, u_width=None, name: str = "log") -> None:
+    """The per-event arrays of a range-only ``Log``: at least one event; ``t``, ``dt`` (T,);
+    ``u`` (T, ``u_width``) when given; ``z`` (T, K, 1) of a floating dtype (it is the run's
+    dtype: integer ranges made every parameter an integer); ``ids``, ``mask`` (T, K).  Shapes
+    always (also traced); when known, dt finite and >= 0 (a negative dt ran backwards) and the
+    ids of the rows in use whole numbers (a fractional id was truncated onto another anchor).
+    Raises :class:`InputError` naming ``name.field`` (a mismatch used to fail inside the scan)."""
+    zs = np.shape(log.z)
+    if len(zs) != 3 or zs[2] != 1:
+        raise InputError(f"{name}.z: expected shape (T, K, 1), got {zs}")
+    T = zs[0]
+    if np.shape(log.dt) != (T,):
+        raise InputError(f"{name}.dt: expected shape ({T},) (T = {name}.z.shape[0]), got {np.shape(log.dt)}")
+    if T == 0:
+        raise InputError(f"{name}.dt: expected at least one event, got an empty log (T = 0)")
+    if not jnp.issubdtype(jnp.result_type(log.z), jnp.floating):
+        raise InputError(f"{name}.z: expected floating ranges (their dtype is the run's), got dtype "
+                         f"{jnp.result_type(log.z)}")
+    shapes = [("t", (T,)), ("ids", zs[:2]), ("mask", zs[:2])] + ([] if u_width is None else [("u", (T, u_width))])
+    for f, shp in shapes:
+        if np.shape(getattr(log, f)) != shp:
+            hint = "T, K = " + f"{name}.z.shape[:2]" if len(shp) == 2 and f != "u" else f"T = {name}.z.shape[0]"
+            raise InputError(f"{name}.{f}: expected shape {shp} ({hint}), got {np.shape(getattr(log, f))}")
+    if is_concrete(log.dt):
+        dt = np.asarray(log.dt, np.float64)
+        if not np.all(np.isfinite(dt)) or np.any(dt < 0):
+            raise InputError(f"{name}.dt: must be finite and >= 0")
+    if is_concrete(log.ids, log.mask):
+        check_whole_ids(log.ids, f"{name}.ids", used=log.mask)
+
+
+def check_ids_vector(ids, name: str) -> int:
+    """The anchors'/beacons' ids: one whole-number id per anchor, shape (N,); returns N."""
+    if np.ndim(ids) != 1:
+        raise InputError(f"{name}: expected shape (N,) (one id per anchor), got {np.shape(ids)}")
+    check_whole_ids(ids, name)  # a fractional id matches no range: its ranges were lost
+    return int(np.shape(ids)[0])
+
+
 def check_unique_ids(ids, name: str) -> None:
     """Anchor/beacon ids must be distinct (a repeated id made every range of the second one
     vanish, uncounted)."""
@@ -68,11 +107,13 @@ def resolve_outlier_gate(params):
     """``params`` with ``outlier_gate`` filled where it is None: the 99 % quantile of the range
     model's own d² — χ²(1) (6.63) for Gaussian ranges (``nu`` None), F(1, ν) for Student-t
     ranges (16.26 at ν = 5) — computed on the host, so ``nu`` must then be a number, not traced.
-    Also checks ν > 0 when it is a number."""
+    Also checks ν > 0 and a given ``outlier_gate`` >= 0 when they are numbers."""
     nu = params.nu
     if nu is not None and is_concrete(nu) and not float(nu) > 0:
         raise InputError(f"params.nu: Student-t degrees of freedom must be > 0, got {nu}")
     if params.outlier_gate is not None:
+        if is_concrete(params.outlier_gate):  # a negative gate made every range an outlier (DIVERGED)
+            check_scalar(params.outlier_gate, "params.outlier_gate", finite=False, lower=0)
         return params
     if nu is None:
         return params._replace(outlier_gate=chi2_ppf_np(OUTLIER_P, 1))

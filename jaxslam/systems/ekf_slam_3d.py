@@ -41,7 +41,8 @@ from ..dynamics.integrators import rk4_field, rk4_linearized
 from ..errors import InputError
 from ..filters import ekf_slam as es
 from ..geometry.euler import dcm_from_euler, euler_rate_matrix, rotate_jacobian
-from ..linalg import check_numbers, check_psd, check_scalar, host_array, is_concrete, small_matmul, wrap_angle
+from ..linalg import (check_int, check_numbers, check_psd, check_scalar, host_array, is_concrete, small_matmul,
+                      wrap_angle)
 from ..sensors import lidar3d
 from ..stats import nees as _nees
 
@@ -298,7 +299,7 @@ def imu_noise(imu_spec, dtype=jnp.float64, P0=IMU_P0) -> Params:
 
 def validate_params(params: Params) -> Params:
     """Host-side checks: shapes and PSD of P0, Qc, Qimu; R positive definite; the thresholds
-    positive scalars (``gate`` may be None)."""
+    positive scalars (``gate`` may be None), nn_gate <= nn_new."""
     shapes = {"P0": (NX, NX), "Qc": (NX, NX), "Qimu": (6, 6), "R": (3, 3)}
     for name, shp in shapes.items():
         a = check_numbers(getattr(params, name), f"params.{name}")
@@ -308,6 +309,11 @@ def validate_params(params: Params) -> Params:
     for name in ("gate", "nn_gate", "nn_new"):
         if getattr(params, name) is not None or name != "gate":
             check_scalar(getattr(params, name), f"params.{name}", lower=0, strict=True)
+    # match below nn_gate, new landmark above nn_new: nn_new < nn_gate made a row both (the
+    # planar EKF's gate <= new_threshold)
+    if not float(params.nn_new) >= float(params.nn_gate):
+        raise InputError(f"params.nn_new: need nn_gate <= nn_new, got nn_gate {float(params.nn_gate)}, "
+                         f"nn_new {float(params.nn_new)}")
     return params
 
 
@@ -415,6 +421,11 @@ def _check_config(config: Config, n_known=None, name: str = "log.landmarks"):
         raise InputError(f"config.mode: expected 'known' or 'unknown', got {config.mode!r}")
     if config.association not in ("known", "nn"):
         raise InputError(f"config.association: expected 'known' or 'nn', got {config.association!r}")
+    check_int(config.capacity, "config.capacity", what="an int (landmark slots)")
+    check_int(config.max_obs, "config.max_obs", what="an int (measurements per frame)")
+    # dt <= 0 froze the estimate or ran it backwards; a NaN g made every state NaN
+    check_scalar(config.dt, "config.dt", lower=0, strict=True)
+    check_scalar(config.g, "config.g")
     if config.mode == "known":
         if n_known is None:
             raise InputError(f"{name}: required with config.mode 'known' (the known map)")
@@ -673,6 +684,8 @@ def run(log: Log, config: Config, params: Params, *, key=None) -> Result:
     """
     del key
     _check_log(log)
+    if is_concrete(log.s0) and not np.all(np.isfinite(np.asarray(log.s0, np.float64))):
+        raise InputError("log.s0: contains NaN or Inf")  # every mean came out NaN
     _check_config(config, None if log.landmarks is None else int(np.shape(log.landmarks)[0]))
     if is_concrete(params):
         validate_params(params)

@@ -76,7 +76,7 @@ from ..errors import InputError
 from ..filters import association as assoc
 from ..filters import consistency as cons
 from ..filters import ekf_slam as es
-from ..linalg import check_scalar, check_psd, is_concrete, wrap_angle
+from ..linalg import check_scalar, check_psd, check_whole_ids, is_concrete, wrap_angle
 from ..sensors import range_bearing2d as rb
 
 __all__ = [
@@ -687,8 +687,10 @@ def run(log: Log, config: Config, params: Params, *, key=None) -> Result:
     validate_config(config)
     if is_concrete(params):
         validate_params(params)
-    if is_concrete(log):
-        validate_log(log)
+    validate_log(log)  # shapes always, values when concrete
+    pose0 = jnp.asarray(log.pose0)
+    if not jnp.issubdtype(pose0.dtype, jnp.floating):  # its dtype is the run's (as log_from_events)
+        log = log._replace(pose0=pose0.astype(jnp.result_type(float)))
     return _run(log, config, _cast_thresholds(params, jnp.asarray(log.pose0).dtype))
 
 
@@ -907,7 +909,7 @@ def check_thresholds(values: dict, where: str = "params") -> dict:
     """The :data:`THRESHOLDS` among ``values`` (name -> number or None: off) as floats, checked
     alone and against each other (0 < gate <= new_threshold, range_min < range_max, bearing_min <
     bearing_max, a positive pruning window with a whole number of matches >= 1); the relations
-    are checked where both sides are given.  Host-side (a ``--params`` file is checked with it
+    are checked where both sides are given; update_gate > 0.  Host-side (a ``--params`` file is checked with it
     before any log is read); raises :class:`InputError` naming ``where.key``."""
     thr = {f: check_scalar(values[f], f"{where}.{f}", finite=False)
            for f in THRESHOLDS if values.get(f) is not None}
@@ -916,6 +918,8 @@ def check_thresholds(values: dict, where: str = "params") -> dict:
     if "gate" in thr and "new_threshold" in thr and not (0 < thr["gate"] <= thr["new_threshold"]):
         raise InputError(f"{where}.gate/new_threshold: need 0 < gate <= new_threshold, got "
                          f"{thr['gate']}, {thr['new_threshold']}")
+    if "update_gate" in thr and not thr["update_gate"] > 0:  # a gate <= 0 rejected every row (GATED)
+        raise InputError(f"{where}.update_gate: need > 0 (or None: off), got {thr['update_gate']}")
     if "prune_window_s" in thr and not thr["prune_window_s"] > 0:
         raise InputError(f"{where}.prune_window_s: need > 0, got {thr['prune_window_s']}")
     if "prune_min_obs" in thr and not (thr["prune_min_obs"] >= 1 and thr["prune_min_obs"] == np.floor(thr["prune_min_obs"])):
@@ -929,11 +933,14 @@ def check_thresholds(values: dict, where: str = "params") -> dict:
 
 
 def validate_log(log: Log) -> Log:
-    """Shapes of a :class:`Log`: u (T, 2), z (T, K, 2), ids/mask (T, K), pose0 (3,); dt ≥ 0 finite,
-    inputs and the start pose finite."""
+    """Shapes of a :class:`Log` (also when traced): T >= 1 events, u (T, 2), z (T, K, 2), ids/mask
+    (T, K), pose0 (3,); when its values are known, dt ≥ 0 finite, inputs and the start pose finite,
+    the ids of the rows in use whole numbers."""
     T = np.shape(log.dt)[0] if np.ndim(log.dt) == 1 else -1
     if T < 0:
         raise InputError(f"log.dt: expected shape (T,), got {np.shape(log.dt)}")
+    if T == 0:  # an empty log failed deep inside the run (an IndexError)
+        raise InputError("log.dt: expected at least one event, got an empty log (T = 0)")
     if np.shape(log.u) != (T, 2):
         raise InputError(f"log.u: expected shape ({T}, 2), got {np.shape(log.u)}")
     zs = np.shape(log.z)
@@ -944,6 +951,8 @@ def validate_log(log: Log) -> Log:
             raise InputError(f"log.{name}: expected shape {zs[:2]}, got {np.shape(getattr(log, name))}")
     if np.shape(log.pose0) != (3,):
         raise InputError(f"log.pose0: expected shape (3,), got {np.shape(log.pose0)}")
+    if not is_concrete(log.dt, log.u, log.pose0):
+        return log
     dt = np.asarray(log.dt)
     if not np.all(np.isfinite(dt)) or np.any(dt < 0):
         raise InputError("log.dt: must be finite and >= 0")
@@ -951,4 +960,6 @@ def validate_log(log: Log) -> Log:
         raise InputError("log.u: contains NaN or Inf")
     if not np.all(np.isfinite(np.asarray(log.pose0))):
         raise InputError("log.pose0: contains NaN or Inf")
+    if is_concrete(log.ids, log.mask):  # a fractional id was truncated onto another landmark
+        check_whole_ids(log.ids, "log.ids", used=log.mask)
     return log

@@ -265,7 +265,8 @@ def motion_fn(config: Config):
 def _validate_params(params: Params, config: Config):
     """Concrete matrices as the planar EKF's (M_c, R, P0 shape and PSD, R positive definite; a
     negative P0 used to make every pose NaN), pose_floor finite and >= 0, thresholds numbers
-    (not NaN), new_threshold ≥ the gate ("ml")."""
+    (not NaN), gate > 0, resample_threshold a fraction of N in (0, 1], new_threshold ≥ the gate
+    ("ml")."""
     check_matrices({"M_c": params.M_c, "R": params.R, "P0": params.P0}, "params", diagonal_ok=False)
     pf = np.asarray(params.pose_floor, np.float64)
     if pf.shape != (3,) or not np.all(np.isfinite(pf)) or np.any(pf < 0):
@@ -274,6 +275,11 @@ def _validate_params(params: Params, config: Config):
            for f in THRESHOLDS if getattr(params, f) is not None}
     if "new_threshold" not in thr:
         raise InputError("params.new_threshold: expected a number, got None")
+    if "gate" in thr and not thr["gate"] > 0:  # a gate <= 0 gated every row (DIVERGED)
+        raise InputError(f"params.gate: need > 0 (or None), got {thr['gate']}")
+    if "resample_threshold" in thr and not 0 < thr["resample_threshold"] <= 1:  # a fraction of N
+        raise InputError(f"params.resample_threshold: expected None or a fraction in (0, 1], got "
+                         f"{thr['resample_threshold']}")
     if params.robust_nu is not None:
         check_scalar(params.robust_nu, "params.robust_nu", lower=0, strict=True)
     if params.prune_window_s is not None:
@@ -477,11 +483,11 @@ def _validate_log(log: Log, config: Config):
         raise InputError(f"log.z: expected shape ({T}, {config.K}, 2), got {np.shape(log.z)}")
     if np.shape(log.pose0) != (3,):
         raise InputError(f"log.pose0: expected shape (3,), got {np.shape(log.pose0)}")
-    if is_concrete(log.dt, log.u, log.pose0):
-        # the planar EKF's checks of the same Log: dt finite >= 0 (a negative dt ran backwards,
-        # unflagged), u and pose0 finite (inside jit the scan keeps a particle whose proposal is
-        # not finite and flags NON_FINITE)
-        validate_log(log)
+    # the planar EKF's checks of the same Log: at least one event (an empty log failed with an
+    # IndexError); when known, dt finite >= 0 (a negative dt ran backwards, unflagged), u and pose0
+    # finite (inside jit the scan keeps a particle whose proposal is not finite and flags
+    # NON_FINITE), whole-number ids on the rows in use
+    validate_log(log)
 
 
 def init(log: Log, config: Config, params: Params, *, key) -> State:

@@ -74,8 +74,8 @@ from ..filters import consistency as cons
 from ..filters import ekf_slam as es
 from ..filters import delayed_init
 from ..linalg import check_int, check_scalar, is_concrete, symmetrize, wrap_angle
-from .biased_range import (Result, _cast_params, _result, check_params, check_positions, check_unique_ids,
-                           range_observe, resolve_outlier_gate, update_ranges)
+from .biased_range import (Result, _cast_params, _result, check_ids_vector, check_log, check_params, check_positions,
+                           check_unique_ids, range_observe, resolve_outlier_gate, update_ranges)
 
 __all__ = [
     "Config", "Params", "PARAMS", "Log", "Event", "State", "StepOut", "Result", "init", "step", "run",
@@ -369,16 +369,15 @@ def run(log: Log, config: Config = Config(), params: Params = PARAMS, *, key=Non
     ``n_registered`` = N).  ``key`` is not used (accepted as every system's ``run`` accepts it).
     """
     del key
-    N = int(np.shape(log.beacon_ids)[0])
+    N = check_ids_vector(log.beacon_ids, "log.beacon_ids")
     cap = int(config.capacity or N)
     if cap < N:
         raise InputError(f"config.capacity: {cap} < number of beacons {N}")
     if np.shape(log.pose0) != (3,):
         raise InputError(f"log.pose0: expected shape (3,), got {np.shape(log.pose0)}")
-    if np.shape(log.u)[-1] != 2:
-        raise InputError(f"log.u: expected (d, dθ) increments, got width {np.shape(log.u)[-1]}")
-    if np.ndim(log.z) != 3 or np.shape(log.z)[-1] != 1:
-        raise InputError(f"log.z: expected shape (T, K, 1), got {np.shape(log.z)}")
+    if np.ndim(log.u) < 1 or np.shape(log.u)[-1] != 2:
+        raise InputError(f"log.u: expected (d, dθ) increments, got shape {np.shape(log.u)}")
+    check_log(log, u_width=2)  # t, dt, u, z, ids, mask: one length T >= 1; dt >= 0, whole ids
     if log.beacons is not None and np.shape(log.beacons) != (N, 2):
         raise InputError(f"log.beacons: expected shape ({N}, 2), got {np.shape(log.beacons)}")
     check_unique_ids(log.beacon_ids, "log.beacon_ids")

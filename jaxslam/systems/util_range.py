@@ -106,8 +106,8 @@ from ..filters import consistency as cons
 from ..filters import ekf_slam as es
 from ..filters import trilateration as tri
 from ..linalg import check_int, is_concrete, symmetrize
-from .biased_range import (Result, _cast_params, _result, check_params, check_positions, check_unique_ids,
-                           range_observe, resolve_outlier_gate, update_ranges)
+from .biased_range import (Result, _cast_params, _result, check_ids_vector, check_log, check_params, check_positions,
+                           check_unique_ids, range_observe, resolve_outlier_gate, update_ranges)
 
 __all__ = [
     "Config", "Params", "PARAMS", "Log", "Event", "State", "StepOut", "Result", "Startup",
@@ -531,12 +531,11 @@ def run(log: Log, config: Config = Config(), params: Params = PARAMS, *, key=Non
     del key
     if (log.anchors is None) == (log.startup is None):
         raise InputError("log: give exactly one of anchors (known) or startup (SLAM)")
-    N = int(np.shape(log.anchor_ids)[0])
+    N = check_ids_vector(log.anchor_ids, "log.anchor_ids")
     cap = int(config.capacity or N)
     if cap < N:
         raise InputError(f"config.capacity: {cap} < number of anchors {N}")
-    if np.ndim(log.z) != 3 or np.shape(log.z)[-1] != 1:
-        raise InputError(f"log.z: expected shape (T, K, 1), got {np.shape(log.z)}")
+    check_log(log)  # t, dt, z, ids, mask: one length T >= 1; dt >= 0, whole ids
     if log.anchors is not None and np.shape(log.anchors) != (N, 3):
         raise InputError(f"log.anchors: expected shape ({N}, 3), got {np.shape(log.anchors)}")
     check_unique_ids(log.anchor_ids, "log.anchor_ids")
@@ -548,6 +547,7 @@ def run(log: Log, config: Config = Config(), params: Params = PARAMS, *, key=Non
     if params.anchor_offset is not None and np.shape(params.anchor_offset) != (N,):
         raise InputError(f"params.anchor_offset: expected shape ({N},) (one offset per anchor), "
                          f"got {np.shape(params.anchor_offset)}")
+    check_positions(params.anchor_offset, "params.anchor_offset")  # a NaN offset lost that anchor's ranges
     params = resolve_outlier_gate(params)
     if config.height is None:
         if not is_concrete(log.ids, log.mask):

@@ -38,9 +38,11 @@ import math
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
+from ..errors import InputError
 from ..filters import ekf_slam as es
-from ..linalg import symmetrize
+from ..linalg import check_int, check_numbers, is_concrete, symmetrize
 
 __all__ = [
     "nll_terms",
@@ -51,6 +53,29 @@ __all__ = [
 ]
 
 
+def _arr(x, name: str):
+    """``x`` as an array (a list or scalar converted; strings refused), InputError naming ``name``."""
+    if hasattr(x, "dtype") and hasattr(x, "shape"):
+        return x
+    return jnp.asarray(check_numbers(x, name))
+
+
+def _same_shape(x, shape, name: str, what: str):
+    if tuple(jnp.shape(x)) != tuple(shape):
+        raise InputError(f"{name}: expected shape {tuple(shape)} ({what}), got {tuple(jnp.shape(x))}")
+
+
+def _mask(mask, shape, name: str = "mask"):
+    """``mask`` as an array of ``shape`` (InputError naming it otherwise); a concrete mask that
+    selects nothing is refused (its loss would be 0/0)."""
+    if not (hasattr(mask, "dtype") and hasattr(mask, "shape")):
+        mask = jnp.asarray(mask)
+    _same_shape(mask, shape, name, "one entry per step")
+    if is_concrete(mask) and mask.size and not np.any(np.asarray(mask)):
+        raise InputError(f"{name}: selects no step (all False); the loss would be undefined")
+    return mask
+
+
 def nll_terms(nu, S, mask=None):
     """(NIS, log det S, dof) of one innovation; the pieces of :func:`innovation_nll`.
 
@@ -59,8 +84,15 @@ def nll_terms(nu, S, mask=None):
     log det; ``mask`` (m,) bool selects the valid components (default all).
     Returns three scalars in nu's dtype (dof as float).
     """
+    nu, S = _arr(nu, "nu"), _arr(S, "S")
+    if nu.ndim != 1:
+        raise InputError(f"nu: expected shape (m,), got {tuple(nu.shape)}")
     dtype = nu.dtype
     m = nu.shape[-1]
+    _same_shape(S, (m, m), "S", "m × m for m = len(nu)")
+    if mask is not None:
+        mask = jnp.asarray(mask) if not hasattr(mask, "shape") else mask
+        _same_shape(mask, (m,), "mask", "one entry per component of nu")
     mask = jnp.ones((m,), bool) if mask is None else mask
     nu = jnp.where(mask, nu, 0.0)
     Lc = jnp.linalg.cholesky(symmetrize(S))
@@ -117,6 +149,11 @@ def innovation_nll(nis, logdet, dof):
     :func:`slam_innovation_terms`); updates with dof = 0 add nothing.  Units: nats per
     scalar measurement.  Needs no ground truth.
     """
+    nis, logdet, dof = _arr(nis, "nis"), _arr(logdet, "logdet"), _arr(dof, "dof")
+    _same_shape(logdet, nis.shape, "logdet", "one per update, as nis")
+    _same_shape(dof, nis.shape, "dof", "one per update, as nis")
+    if is_concrete(dof) and np.any(np.asarray(dof) < 0):
+        raise InputError("dof: expected counts >= 0 (measurements per update)")
     dtype = nis.dtype
     tot = jnp.maximum(jnp.sum(dof), 1.0)
     ll = 0.5 * (nis + logdet + dof * jnp.asarray(math.log(2.0 * math.pi), dtype))
@@ -129,7 +166,21 @@ def mse(err, weights=None, mask=None):
     ``weights`` (n,) default ones (units: each component's unit squared, so choose
     weights that make them commensurate); ``mask`` (T,) bool selects the steps counted.
     """
+    err = _arr(err, "err")
+    if err.ndim < 1 or err.size == 0:
+        raise InputError(f"err: expected a non-empty (T, n) array of errors, got shape {tuple(err.shape)}")
+    if not jnp.issubdtype(err.dtype, jnp.inexact):
+        err = err.astype(jnp.result_type(float))
     dtype = err.dtype
+    if weights is not None:
+        weights = _arr(weights, "weights")
+        if weights.ndim > 1 or (weights.ndim == 1 and weights.shape[0] != err.shape[-1]):
+            raise InputError(f"weights: expected a number or shape ({err.shape[-1]},) (one per state "
+                             f"component), got {tuple(weights.shape)}")
+        if is_concrete(weights) and not np.all(np.asarray(weights) >= 0):
+            raise InputError("weights: expected non-negative weights (a negative one rewards error)")
+    if mask is not None:
+        mask = _mask(mask, err.shape[:-1])
     w = jnp.ones(err.shape[-1], dtype) if weights is None else jnp.asarray(weights, dtype)
     sq = jnp.sum(err * err * w, axis=-1)
     if mask is None:
@@ -144,6 +195,13 @@ def nees_loss(nees, n: int, mask=None):
     Zero when the time-averaged NEES equals n (a consistent filter); ``mask`` (T,) bool
     selects the steps counted (e.g. frames after a settling time).
     """
+    nees = _arr(nees, "nees")
+    if nees.size == 0:
+        raise InputError(f"nees: expected a non-empty NEES series, got shape {tuple(nees.shape)}")
+    if is_concrete(n):
+        check_int(n, "n", lower=1, what="a state dimension (int)")
+    if mask is not None:
+        mask = _mask(mask, nees.shape)
     dtype = nees.dtype
     if mask is None:
         a = jnp.mean(nees)

@@ -64,7 +64,7 @@ import optax
 
 from .. import runtime
 from ..errors import InputError
-from ..linalg import is_concrete
+from ..linalg import check_int, check_scalar, is_concrete
 
 __all__ = ["FitResult", "make_optimizer", "batch_loss", "fit", "memory_report", "peak_rss_mb", "FAST_COMPILE"]
 
@@ -105,10 +105,15 @@ class FitResult(NamedTuple):
 def make_optimizer(lr: float, steps: int, schedule: str = "cosine", warmup: Optional[int] = None,
                    clip: Optional[float] = 1.0, final_lr_frac: float = 0.05, b2: float = 0.9):
     """optax chain: clip_by_global_norm(clip) → Adam(schedule, b2).  Returns (tx, schedule_fn)."""
-    if not (lr > 0 and math.isfinite(lr)):
-        raise InputError(f"lr (--lr): must be a positive number, got {lr}")
-    if steps < 1:
-        raise InputError(f"steps (--steps): must be >= 1, got {steps}")
+    try:
+        lr = check_scalar(lr, "lr", lower=0, strict=True)
+    except InputError:
+        raise InputError(f"lr: expected a positive finite number (--lr), got {lr!r}") from None
+    steps = check_int(steps, "steps", lower=1, what="an int (--steps)")
+    frac = final_lr_frac if isinstance(final_lr_frac, (int, float, np.integer, np.floating)) else None
+    if frac is None or isinstance(frac, bool) or not 0.0 <= frac <= 1.0:  # < 0: gradient ascent; NaN: NaN lr
+        raise InputError(f"final_lr_frac: expected a number in [0, 1] (the final lr as a fraction of lr), "
+                         f"got {final_lr_frac!r}")
     if warmup is not None and (isinstance(warmup, bool) or not isinstance(warmup, (int, np.integer))
                                or warmup < 0):
         raise InputError(f"warmup: must be an int >= 0 (or None), got {warmup!r}")
@@ -187,6 +192,36 @@ def _global_norm(t):
     return jnp.sqrt(sum(jnp.sum(jnp.where(jnp.isfinite(x), x, 0.0) ** 2) for x in jax.tree.leaves(t)))
 
 
+def _check_key(key) -> None:
+    """InputError unless ``key`` is a PRNG key (a typed key or ``jax.random.PRNGKey``'s uint32 pair)."""
+    dt = getattr(key, "dtype", None)
+    if dt is not None and jax.dtypes.issubdtype(dt, jax.dtypes.prng_key):
+        if np.ndim(key) == 0:
+            return
+    elif dt is not None and np.dtype(dt) == np.uint32 and np.shape(key) == (2,):
+        return
+    raise InputError(f"key: expected a PRNG key (jax.random.PRNGKey(seed) or jax.random.key(seed)), "
+                     f"got {key!r}"[:300])
+
+
+def _check_test(test, train, loss_fn, theta0, sequential) -> None:
+    """InputError unless the held-out batch has one leading axis of runs (≥ 1) shared by its
+    arrays and the loss can be evaluated on it: a batch of another structure than ``train`` (a
+    target may add per-run weights) is traced once, abstractly (``jax.eval_shape``), here."""
+    leaves = jax.tree.leaves(test)
+    n = {int(np.shape(x)[0]) if np.ndim(x) else -1 for x in leaves}
+    if len(n) != 1 or min(n) < 1:
+        raise InputError(f"test: every array needs the same leading axis of runs (≥ 1), got {sorted(n)}")
+    if jax.tree.structure(test) == jax.tree.structure(train):
+        return
+    try:
+        jax.eval_shape(lambda th, b: batch_loss(loss_fn, th, b, sequential), theta0, test)
+    except (TypeError, ValueError, KeyError, IndexError, AttributeError) as e:
+        raise InputError(f"test: the loss cannot be evaluated on this held-out batch (structure "
+                         f"{jax.tree.structure(test)}, the training batch's is {jax.tree.structure(train)}): "
+                         f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}"[:500]) from None
+
+
 def fit(loss_fn: Callable, theta0, train, steps: int, lr: float = 0.1, *, test=None,
         eval_every: int = 0, schedule: str = "cosine", warmup: Optional[int] = None,
         clip: Optional[float] = 1.0, batch_size: Optional[int] = None, key=None,
@@ -235,12 +270,17 @@ def fit(loss_fn: Callable, theta0, train, steps: int, lr: float = 0.1, *, test=N
             raise InputError("theta0: contains NaN or Inf")
     if isinstance(max_skips, bool) or not isinstance(max_skips, (int, np.integer)) or max_skips < 0:
         raise InputError(f"max_skips: must be an int >= 0, got {max_skips!r}")
-    if batch_size is not None and not (1 <= batch_size <= runs):
-        raise InputError(f"batch_size: must be in [1, {runs}], got {batch_size}")
+    if batch_size is not None:
+        batch_size = check_int(batch_size, "batch_size", lower=1)
+        if batch_size > runs:
+            raise InputError(f"batch_size: must be in [1, {runs}], got {batch_size}")
     if batch_size is not None and batch_size < runs and key is None:
         raise InputError("key: a PRNG key is required for minibatches (batch_size < runs)")
-    if eval_every < 0:
-        raise InputError(f"eval_every: must be >= 0, got {eval_every}")
+    if key is not None:
+        _check_key(key)
+    eval_every = check_int(eval_every, "eval_every", lower=0)
+    if test is not None:
+        _check_test(test, train, loss_fn, theta0, sequential)
     if explode_ratio is not None and not (math.isfinite(explode_ratio) and explode_ratio > 1):
         raise InputError(f"explode_ratio: expected a finite number > 1 or None, got {explode_ratio}")
     tx, sched = make_optimizer(lr, steps, schedule, warmup, clip, b2=b2)

@@ -43,7 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import InputError
-from ..linalg import check_psd
+from ..linalg import check_int, check_numbers, check_psd
 
 __all__ = [
     "CovSpec",
@@ -78,14 +78,29 @@ def _check_kind(kind):
         raise InputError(f"kind: expected one of {KINDS}, got {kind!r}")
 
 
+def _check_spec(spec) -> None:
+    """InputError unless ``spec`` is a CovSpec-like (kind, n) with a known kind and an int n ≥ 1."""
+    if not isinstance(spec, CovSpec):
+        raise InputError(f"spec: expected a CovSpec(kind, n), got {spec!r}")
+    _check_kind(spec[0])
+    check_int(spec[1], "n", lower=1, what="a matrix size (int)")
+
+
+def _theta(theta, name: str = "theta"):
+    """θ as an array (a list converted; strings refused) — InputError naming ``name``."""
+    if hasattr(theta, "dtype") and hasattr(theta, "shape"):
+        return theta
+    return jnp.asarray(check_numbers(theta, name))
+
+
 def n_params(spec: CovSpec) -> int:
     """Number of unconstrained parameters of ``spec``."""
-    _check_kind(spec.kind)
+    _check_spec(spec)
     return spec.n if spec.kind == "diag" else spec.n * (spec.n + 1) // 2
 
 
 def _as_matrix(M, name):
-    a = np.asarray(M, dtype=np.float64)
+    a = check_numbers(M, name)
     if a.ndim == 1:
         a = np.diag(a)
     if a.ndim != 2 or a.shape[0] != a.shape[1]:
@@ -112,8 +127,8 @@ def log_diag_from_cov(M, floor: float | None = None, dtype=None, name: str = "M"
                       UserWarning, stacklevel=2)
     d = np.diag(a).copy()
     if floor is not None:
-        if not floor > 0:
-            raise InputError(f"floor: must be > 0, got {floor}")
+        if isinstance(floor, (str, bytes)) or not floor > 0:
+            raise InputError(f"floor: must be > 0, got {floor!r}")
         d = np.maximum(d, floor)
     if np.any(d <= 0):
         raise InputError(f"{name}: log-diagonal parametrisation needs positive diagonal entries, "
@@ -123,6 +138,9 @@ def log_diag_from_cov(M, floor: float | None = None, dtype=None, name: str = "M"
 
 def cov_from_log_diag(theta):
     """M = diag(exp θ) (n, n); positive definite for every finite θ (n,)."""
+    theta = _theta(theta)
+    if theta.ndim != 1:  # jnp.diag of a matrix would return its diagonal, not a matrix
+        raise InputError(f"theta: expected a vector (n,) of log-variances, got shape {tuple(theta.shape)}")
     return jnp.diag(jnp.exp(theta))
 
 
@@ -139,8 +157,8 @@ def log_chol_from_cov(M, floor: float | None = None, dtype=None, name: str = "M"
     a = _as_matrix(M, name)
     n = a.shape[0]
     if floor is not None:
-        if not floor > 0:
-            raise InputError(f"floor: must be > 0, got {floor}")
+        if isinstance(floor, (str, bytes)) or not floor > 0:
+            raise InputError(f"floor: must be > 0, got {floor!r}")
         a = a + floor * np.eye(n)
     check_psd(a, name, strict=True)
     L = np.linalg.cholesky(0.5 * (a + a.T))
@@ -151,6 +169,10 @@ def log_chol_from_cov(M, floor: float | None = None, dtype=None, name: str = "M"
 
 def cov_from_log_chol(theta, n: int):
     """M = L Lᵀ, L = diag(exp θ_d) C (n, n) from θ (n(n+1)/2,); PD for every finite θ."""
+    n = check_int(n, "n", lower=1, what="a matrix size (int)")
+    theta = _theta(theta)
+    if tuple(theta.shape) != (n * (n + 1) // 2,):
+        raise InputError(f"theta: expected shape ({n * (n + 1) // 2},) for n = {n}, got {tuple(theta.shape)}")
     r, c = _tril(n)
     C = jnp.eye(n, dtype=theta.dtype).at[r, c].set(theta[n:])
     L = jnp.exp(theta[:n])[:, None] * C
@@ -159,7 +181,7 @@ def cov_from_log_chol(theta, n: int):
 
 def theta_from_cov(spec: CovSpec, M, floor: float | None = None, dtype=None, name: str = "M"):
     """θ for ``spec`` from a matrix (host-side; see the two constructors)."""
-    _check_kind(spec.kind)
+    _check_spec(spec)
     a = _as_matrix(M, name)
     if a.shape != (spec.n, spec.n):
         raise InputError(f"{name}: expected shape ({spec.n}, {spec.n}), got {a.shape}")
@@ -172,6 +194,7 @@ def cov_from_theta(spec: CovSpec, theta):
     """The matrix of θ under ``spec`` (jit/vmap/grad-safe; dtype of θ).  θ must hold
     :func:`n_params` entries (a static check: :class:`InputError` naming ``theta``)."""
     k = n_params(spec)
+    theta = _theta(theta)
     if tuple(np.shape(theta)) != (k,):
         raise InputError(f"theta: CovSpec({spec.kind!r}, {spec.n}) needs shape ({k},), got "
                          f"{tuple(np.shape(theta))}")

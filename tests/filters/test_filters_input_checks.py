@@ -643,3 +643,246 @@ def test_iterated_smoother_and_sqrt_update_check_their_options():
         sqrt_ekf.update(g, jnp.zeros(1), h, R1, gate=float("nan"))  # never gated
     with pytest.raises(InputError, match=r"^gate: expected one χ² threshold"):
         ekf.update(ekf.Gaussian(jnp.zeros(2), jnp.eye(2)), jnp.zeros(1), h, R1, gate=jnp.array([1.0, 2.0]))
+
+
+# ---------------------------------------------------------------------------
+# Sigma-point filters: the transition's size, a scalar R, the square-root state and options
+# ---------------------------------------------------------------------------
+
+def test_ukf_predict_names_a_transition_of_the_wrong_size():
+    # f returned (1,) for a (2,) state: broadcast onto both components (mean [0, 0], status 0)
+    g = ekf.Gaussian(jnp.zeros(2), jnp.eye(2))
+    for mod, st in ((ukf, g), (sqrt_ukf, sqrt_ekf.SqrtGaussian(jnp.zeros(2), jnp.eye(2)))):
+        with pytest.raises(InputError, match=r"^f: the transition returned shape \(1,\), expected \(2,\)"):
+            mod.predict(st, lambda x, u: x[:1], None, Q2, return_status=True)
+    with pytest.raises(InputError, match=r"^f: the transition returned shape \(\), expected \(2,\)"):
+        ukf.predict_with_cross(g, lambda x, u: x[0], None, Q2)
+    with pytest.raises(InputError, match=r"^f: "):  # shapes are static: the same under jit
+        jax.jit(lambda m: ukf.predict(ekf.Gaussian(m, jnp.eye(2)), lambda x, u: x[:1], None, Q2))(jnp.zeros(2))
+    with pytest.raises(InputError, match=r"^f: "):
+        ukf.filter_scan(lambda x, u: x[:1], h, np.zeros(2), np.eye(2), None, ZS, None, Q2, R1)
+
+
+@pytest.mark.parametrize("mod", [ukf, sqrt_ukf], ids=["ukf", "sqrt_ukf"])
+def test_a_scalar_r_of_one_measurement_must_be_positive(mod):
+    # only a 2-D R had its values checked: R = -1 gave a mean of 4.5e15 with status 0
+    g = (sqrt_ekf.SqrtGaussian if mod is sqrt_ukf else ekf.Gaussian)(jnp.zeros(2), jnp.eye(2))
+    z = jnp.array([1.0])
+    for R in (-1.0, 0.0, np.array([-1.0]), float("nan")):
+        with pytest.raises(InputError, match=r"^R: "):
+            mod.update(g, z, h, R)
+    a, ia = mod.update(g, z, h, 0.5)
+    b, ib = mod.update(g, z, h, 0.5 * jnp.eye(1))
+    np.testing.assert_allclose(np.asarray(a.mean), np.asarray(b.mean), rtol=0, atol=1e-15)
+    np.testing.assert_allclose(np.asarray(a.mean), [2.0 / 3.0, 0.0], rtol=1e-12)  # P 1, R 0.5: K = 1/1.5
+    assert int(ia.status) == 0 == int(ib.status)
+    # traced R: not checked, the failed factorisation is flagged and the prior kept
+    post, info = jax.jit(lambda r: mod.update(g, z, h, r))(jnp.asarray(-2.0))  # S = 1 - 2
+    assert int(info.status) & errors.NOT_PSD and not bool(info.accepted)
+    np.testing.assert_array_equal(np.asarray(post.mean), [0.0, 0.0])
+
+
+def test_sqrt_ukf_checks_its_state_like_ukf():
+    S = sqrt_ekf.SqrtGaussian
+    z = jnp.array([1.0])
+    for st, needle in ((S(jnp.zeros(2), jnp.eye(3)), r"^state\.chol: expected shape \(2, 2\) \(the mean's size\)"),
+                       (S(jnp.zeros((2, 1)), jnp.eye(2)), r"^state\.mean: expected shape \(n,\)"),
+                       (S(jnp.zeros(2), jnp.full((2, 2), jnp.nan)), r"^state\.chol: contains NaN"),
+                       (S(jnp.zeros(2), jnp.array([[1.0, 0.5], [0.0, 1.0]])), r"^state\.chol: expected a lower-triangular"),
+                       (S(jnp.zeros(2), -jnp.eye(2)), r"^state\.chol: expected a factor with a non-negative diagonal")):
+        with pytest.raises(InputError, match=needle):
+            sqrt_ukf.predict(st, f, None, Q2)
+        with pytest.raises(InputError, match=needle):
+            sqrt_ukf.update(st, z, h, R1)
+    # an integer mean is promoted, as ukf's: the same step as the float mean
+    good = sqrt_ukf.update(S(jnp.zeros(2), jnp.eye(2)), z, h, R1)[0]
+    got = sqrt_ukf.update(S(jnp.array([0, 0]), jnp.eye(2)), z, h, R1)[0]
+    assert jnp.issubdtype(got.mean.dtype, jnp.floating)
+    np.testing.assert_allclose(np.asarray(got.mean), np.asarray(good.mean), rtol=0, atol=1e-15)
+    # a lower-triangular factor from Cholesky passes and matches the UKF
+    P = np.array([[2.0, 0.3], [0.3, 1.0]])
+    a = sqrt_ukf.update(S(jnp.zeros(2), jnp.linalg.cholesky(jnp.asarray(P))), z, h, R1)[0]
+    b = ukf.update(ekf.Gaussian(jnp.zeros(2), jnp.asarray(P)), z, h, R1)[0]
+    np.testing.assert_allclose(np.asarray(a.mean), np.asarray(b.mean), rtol=1e-12)
+
+
+def test_sqrt_ukf_names_a_bad_q_r_gate_or_rule():
+    st = sqrt_ekf.SqrtGaussian(jnp.zeros(2), jnp.eye(2))
+    z = jnp.array([1.0])
+    # these used to set a status only (NOT_PSD / NON_FINITE), where ukf raises
+    with pytest.raises(InputError, match=r"^Q: not positive semi-definite"):
+        sqrt_ukf.predict(st, f, None, -np.eye(2), return_status=True)
+    with pytest.raises(InputError, match=r"^Q: contains NaN"):
+        sqrt_ukf.predict(st, f, None, np.full((2, 2), np.nan), return_status=True)
+    with pytest.raises(InputError, match=r"^Q_chol: contains NaN"):
+        sqrt_ukf.predict(st, f, None, None, Q_chol=np.full((2, 1), np.nan))
+    with pytest.raises(InputError, match=r"^R: not positive definite"):
+        sqrt_ukf.update(st, z, h, -R1)
+    with pytest.raises(InputError, match=r"^R: contains NaN"):
+        sqrt_ukf.update(st, z, h, np.full((1, 1), np.nan))
+    for gate in (-1.0, float("nan"), 0.0):  # -1 gated every update, NaN switched gating off
+        with pytest.raises(InputError, match=r"^gate: must be a positive"):
+            sqrt_ukf.update(st, z, h, R1, gate=gate)
+        with pytest.raises(InputError, match=r"^gate: must be a positive"):
+            sqrt_ukf.filter_scan(f, h, np.zeros(2), np.eye(2), None, ZS, None, Q2, R1, gate=gate)
+    for call in (lambda: sqrt_ukf.update(st, z, h, R1, points="x"),
+                 lambda: sqrt_ukf.predict(st, f, None, Q2, points="x"),
+                 lambda: sqrt_ukf.filter_scan(f, h, np.zeros(2), np.eye(2), None, ZS, None, Q2, R1, points="x")):
+        with pytest.raises(InputError, match=r"^points: expected a SigmaPoints rule"):
+            call()
+    # traced Q: shapes only; the non-finite prediction keeps the prior and says so
+    out, status = jax.jit(lambda q: sqrt_ukf.predict(st, f, None, q, return_status=True))(jnp.full((2, 2), jnp.nan))
+    assert int(status) & errors.NON_FINITE
+    np.testing.assert_array_equal(np.asarray(out.chol), np.eye(2))
+    # a finite gate still gates
+    _, info = sqrt_ukf.update(st, jnp.array([10.0]), h, R1, gate=3.84)
+    assert int(info.status) & errors.GATED
+
+
+def test_sigma_points_check_and_promote_their_moments():
+    with pytest.raises(InputError, match=r"^cov: expected shape \(2, 2\) \(the mean's size\), got \(3, 3\)"):
+        ukf.sigma_points(jnp.zeros(2), jnp.eye(3))
+    with pytest.raises(InputError, match=r"^mean: expected shape \(n,\), got \(\)"):
+        ukf.sigma_points(0.0, jnp.eye(2))
+    with pytest.raises(InputError, match=r"^mean: expected shape \(n,\), got \(2, 1\)"):
+        ukf.sigma_points(jnp.zeros((2, 1)), jnp.eye(2))
+    # an integer mean made integer weights: wm [0 0 0 0 0] (every weight truncated)
+    got = ukf.sigma_points(jnp.array([0, 1]), 4.0 * jnp.eye(2))
+    ref = ukf.sigma_points(jnp.array([0.0, 1.0]), 4.0 * jnp.eye(2))
+    assert jnp.issubdtype(got.wm.dtype, jnp.floating) and jnp.issubdtype(got.points.dtype, jnp.floating)
+    np.testing.assert_allclose(np.asarray(got.wm), [0.0, 0.25, 0.25, 0.25, 0.25], rtol=0, atol=1e-15)
+    np.testing.assert_allclose(np.asarray(got.wc), [2.0, 0.25, 0.25, 0.25, 0.25], rtol=0, atol=1e-15)
+    s2 = 2.0 * np.sqrt(2.0)  # c = √n, L = 2 I
+    np.testing.assert_allclose(np.asarray(got.points),
+                               [[0, 1], [s2, 1], [0, 1 + s2], [-s2, 1], [0, 1 - s2]], rtol=0, atol=1e-15)
+    np.testing.assert_array_equal(np.asarray(got.points), np.asarray(ref.points))
+    # a float32 mean keeps its dtype (the cov follows it)
+    assert ukf.sigma_points(jnp.zeros(2, jnp.float32), jnp.eye(2)).wm.dtype == jnp.float32
+    with pytest.raises(InputError, match=r"^alpha: expected numbers"):
+        ukf.unscented(alpha="1")
+
+
+# ---------------------------------------------------------------------------
+# Consistency monitor, association and delayed initialisation
+# ---------------------------------------------------------------------------
+
+def _slam2():
+    m = _model2()
+    st = es.preload(es.init(jnp.zeros(2), 0.1 * jnp.eye(2), 3, 2), m, jnp.array([[1.0, 0.0], [0.0, 1.0]]),
+                    jnp.stack([0.1 * jnp.eye(2)] * 2), ids=jnp.array([0, 1]))
+    return m, st
+
+
+def test_inflate_robot_takes_a_finite_factor_of_at_least_one():
+    from jaxslam.filters import consistency as C
+
+    m, st = _slam2()
+    for bad in (-1.0, 0.0, 0.5, float("nan"), float("inf")):  # -1: P all NaN; 0: robot block zeroed
+        with pytest.raises(InputError, match="^factor: expected a finite inflation factor >= 1"):
+            C.inflate_robot(st, m, bad)
+    with pytest.raises(InputError, match=r"^factor: expected a scalar, got shape \(2,\)"):
+        C.inflate_robot(st, m, jnp.ones(2))
+    P = np.asarray(st.P)
+    np.testing.assert_array_equal(np.asarray(C.inflate_robot(st, m, 1.0).P), P)
+    P4 = np.asarray(C.inflate_robot(st, m, 4.0).P)
+    D = np.diag([2.0, 2.0] + [1.0] * 6)  # √4 on the robot rows
+    np.testing.assert_allclose(P4, D @ P @ D, rtol=1e-15)
+    # traced (inside observe's cond): not checked
+    jax.jit(lambda fct: C.inflate_robot(st, m, fct).P)(2.0)
+
+
+def test_monitor_checks_its_params_rows_and_dtype():
+    from jaxslam.filters import consistency as C
+
+    m, st = _slam2()
+    mon = C.init(jnp.float64)
+    ok = C.MonitorParams(alpha=0.1, threshold=1.5, max_factor=4.0, outlier_gate=9.21)
+    d2, v = jnp.array([100.0, 100.0]), jnp.array([True, True])
+    for field, bad in (("alpha", -1.0), ("alpha", 2.0), ("alpha", 0.0), ("threshold", float("nan")),
+                       ("max_factor", 0.5), ("outlier_gate", -1.0), ("outlier_gate", float("nan"))):
+        with pytest.raises(InputError, match=rf"^params\.{field}: must be"):
+            C.observe(mon, st, m, d2, v, ok._replace(**{field: bad}))
+    with pytest.raises(InputError, match=r"^valid: expected shape \(3,\)"):
+        C.observe(mon, st, m, jnp.ones(3), v, ok)
+    with pytest.raises(InputError, match="^d2: NaN on a valid row"):
+        C.observe(mon, st, m, jnp.array([jnp.nan, 1.0]), v, ok)
+    C.observe(mon, st, m, jnp.array([jnp.nan, 1.0]), jnp.array([False, True]), ok)  # an invalid row may hold it
+    mon2, st2 = C.observe(mon, st, m, d2, v, ok)  # r = 200 / 4 = 50, m = 0.9 + 5 = 5.9 > 1.5: f = 4
+    assert int(mon2.inflations) == 1 and float(mon2.mean) == 1.0
+    np.testing.assert_allclose(np.asarray(st2.P)[:2, :2], 4.0 * np.asarray(st.P)[:2, :2], rtol=1e-15)
+    for bad in ("abc", jnp.int32):  # an integer running mean truncated the ratio
+        with pytest.raises(InputError, match="^dtype: expected a floating dtype"):
+            C.init(bad)
+
+
+def test_outlier_counts_and_status_bits_check_their_inputs():
+    from jaxslam.filters import consistency as C
+
+    p = C.MonitorParams(alpha=0.1, threshold=1.5, max_factor=4.0, outlier_gate=9.21)
+    v = jnp.array([True, True, False])
+    assert int(C.outliers([1.0, 20.0, 30.0], v, p)) == 1 == int(C.outliers(jnp.array([1.0, 20.0, 30.0]), v, p))
+    with pytest.raises(InputError, match=r"^valid: expected shape \(2,\) \(one per row of d2\)"):
+        C.outliers(jnp.ones(2), v, p)
+    with pytest.raises(InputError, match=r"^d2: expected shape \(K,\)"):
+        C.outliers(jnp.ones((3, 1)), v, p)
+    for bad in (-0.1, 1.5, float("nan")):  # -0.1: DIVERGED with no outlier at all
+        with pytest.raises(InputError, match=r"^fraction: expected an outlier fraction in \[0, 1\]"):
+            C.status_bits(0, 10, bad)
+    assert int(C.status_bits(0, 10)) == 0 and int(C.status_bits(1, 10)) == 0
+    assert int(C.status_bits(2, 10)) == errors.DIVERGED
+    assert int(jax.jit(C.status_bits)(2, 10, 0.5)) == 0  # traced fraction: not checked
+
+
+def test_jcbb_thresholds_and_individual_compatibility_are_checked():
+    from jaxslam.filters import association as A
+
+    m, st = _slam2()
+    z, mask, R = jnp.array([[1.0, 0.0], [0.0, 1.0]]), jnp.array([True, True]), 0.01 * jnp.eye(2)
+    thr = jnp.array([9.21, 13.28])
+    good = A.jcbb(st, m, z, mask, R, gate=9.21, thresholds=thr)
+    assert np.asarray(good.slots).tolist() == [0, 1]
+    for bad in (jnp.array([jnp.nan, jnp.nan]), -thr, jnp.array([9.21, 0.0])):  # paired nothing, silently
+        with pytest.raises(InputError, match=r"^thresholds: expected positive joint χ² thresholds"):
+            A.jcbb(st, m, z, mask, R, gate=9.21, thresholds=bad)
+    d2, _ = A.individual_compatibility(st, m, z, mask, R)
+    assert d2.shape == (2, 3) and np.isinf(np.asarray(d2)[:, 2]).all()  # slot 2 unmapped
+    for args, needle in (((z, mask, -R), r"^R\[0\]: not positive semi-definite"),
+                         ((z, mask, jnp.eye(3)), r"^R: expected shape \(2, 2\)"),
+                         ((jnp.ones(2), mask, R), r"^z: expected shape \(K, 2\)"),
+                         ((z, jnp.array([True, True, True]), R), r"^mask: expected shape \(2,\)")):
+        with pytest.raises(InputError, match=needle):
+            A.individual_compatibility(st, m, *args)
+    other = es.init(jnp.zeros(2), 0.01 * jnp.eye(2), 3, 3)  # lm_dim 3 for a lm_dim-2 model
+    with pytest.raises(InputError, match="^state: x"):
+        A.individual_compatibility(other, m, z, mask, R)
+
+
+def test_delayed_init_checks_variances_shapes_and_takes_lists():
+    from jaxslam.filters import delayed_init as D
+
+    pts = jnp.array([[0.0, 0.0], [4.0, 0.0], [0.0, 4.0], [4.0, 4.0]])
+    rng = jnp.linalg.norm(pts - jnp.array([1.0, 2.0]), axis=1)
+    val, pv = jnp.ones(4, bool), 0.01 * jnp.ones(4)
+    fit, P = D.from_buffer(pts, pv, rng, val, 0.01)
+    for bad in (-pv, pv.at[1].set(jnp.nan)):  # a negative variance shrank P_ll
+        with pytest.raises(InputError, match=r"^point_var: expected finite variances >= 0"):
+            D.from_buffer(pts, bad, rng, val, 0.01)
+    # a row that is not averaged may hold anything
+    D.from_buffer(pts, pv.at[3].set(-1.0), rng, val, 0.01, var_rows=jnp.array([True, True, True, False]))
+    with pytest.raises(InputError, match=r"^point_var: expected shape \(4,\)"):
+        D.from_buffer(pts, jnp.ones(3), rng, val, 0.01)
+    with pytest.raises(InputError, match=r"^var_rows: expected shape \(4,\)"):
+        D.from_buffer(pts, pv, rng, val, 0.01, var_rows=jnp.ones(3, bool))
+    with pytest.raises(InputError, match=r"^points: expected numbers"):
+        D.from_buffer("abc", pv, rng, val, 0.01)
+    # lists and a float mask are read as arrays (they gave "Cannot determine dtype" / a dtype error)
+    _, P2 = D.from_buffer(pts.tolist(), pv.tolist(), rng, val, 0.01)
+    np.testing.assert_array_equal(np.asarray(P2), np.asarray(P))
+    np.testing.assert_allclose(np.asarray(fit.position), [1.0, 2.0], atol=1e-9)
+    a = D.robust_trilaterate(pts, rng, jnp.ones(4), 0.01)
+    b = D.robust_trilaterate(pts, rng, val, 0.01)
+    np.testing.assert_array_equal(np.asarray(a.position), np.asarray(b.position))
+    # a scalar point variance is every row's
+    np.testing.assert_allclose(np.asarray(D.from_buffer(pts, 0.01, rng, val, 0.01)[1]), np.asarray(P), rtol=1e-15)
+    # traced variances: shapes only
+    jax.jit(lambda v: D.from_buffer(pts, v, rng, val, 0.01)[1])(-pv)

@@ -158,3 +158,125 @@ def test_event_ids_must_be_whole_numbers_and_uwb_config_sizes_positive():
                         (dict(dt=0.0), r"^config\.dt: expected a positive")]:
         with pytest.raises(InputError, match=msg):
             U._check(None, U.Config()._replace(**change), None)  # config is checked first
+
+
+# --- a third probe (2026-12-06): logs only partly checked, empty logs, negative gates ---
+
+def _plaza_log(T_=6, **kw):
+    d = dict(t=np.arange(T_) * 0.1, dt=np.full(T_, 0.1), u=np.tile([0.1, 0.0], (T_, 1)),
+             z=np.tile([[[10.0], [14.0]]], (T_, 1, 1)), ids=np.tile([0, 1], (T_, 1)), mask=np.ones((T_, 2), bool),
+             pose0=np.zeros(3), beacon_ids=np.array([0, 1, 2]), beacons=np.array([[10.0, 0], [0, 10.0], [-10.0, 0]]))
+    d.update(kw)
+    return pr.Log(**d)
+
+
+def _range_log_cases(T_):
+    """(change, message) pairs for a range-only log of T_ events (ids one row too many, mask one too few:
+    a (T, 1) mask used to broadcast silently)."""
+    return [(lambda lg: lg._replace(dt=np.full(T_, -0.1)), r"^log\.dt: must be finite and >= 0"),
+            (lambda lg: lg._replace(dt=np.zeros(0), t=np.zeros(0), z=lg.z[:0], ids=lg.ids[:0], mask=lg.mask[:0],
+                                    **({"u": lg.u[:0]} if hasattr(lg, "u") else {})),
+             r"^log\.dt: expected at least one event"),
+            (lambda lg: lg._replace(dt=lg.dt[:-1]), rf"^log\.dt: expected shape \({T_},\)"),
+            (lambda lg: lg._replace(ids=np.zeros((T_, lg.z.shape[1] + 1), int)), rf"^log\.ids: expected shape \({T_}, "),
+            (lambda lg: lg._replace(mask=np.ones((T_, lg.z.shape[1] - 1), bool)), rf"^log\.mask: expected shape \({T_}, "),
+            (lambda lg: lg._replace(z=np.asarray(lg.z).astype(int)), r"^log\.z: expected floating ranges"),
+            (lambda lg: lg._replace(ids=np.asarray(lg.ids) + 0.5), r"^log\.ids: expected whole-number")]
+
+
+@pytest.mark.parametrize("k", range(7))
+def test_plaza_and_util_range_check_the_whole_log(k):
+    change, msg = _range_log_cases(6)[k]
+    with pytest.raises(InputError, match=msg):  # each failed inside the scan, or ran silently
+        pr.run(change(_plaza_log()))
+    change, msg = _range_log_cases(T)[k]
+    with pytest.raises(InputError, match=msg):
+        ur.run(change(_util_log()), ur.Config(height=False, n_fix=4), ur.PARAMS)
+
+
+def test_plaza_and_util_range_name_ids_u_and_a_negative_outlier_gate():
+    with pytest.raises(InputError, match=r"^log\.u: expected shape \(6, 2\)"):
+        pr.run(_plaza_log(u=np.zeros((5, 2))))
+    with pytest.raises(InputError, match=r"^log\.beacon_ids: expected shape \(N,\)"):  # named log.beacons before
+        pr.run(_plaza_log(beacon_ids=np.array([[0, 1, 2]])))
+    with pytest.raises(InputError, match=r"^log\.beacon_ids: expected whole-number"):
+        pr.run(_plaza_log(beacon_ids=np.array([0.0, 1.0, 2.5])))
+    with pytest.raises(InputError, match=r"^params\.outlier_gate: expected a scalar >= 0"):  # DIVERGED before
+        pr.run(_plaza_log(), params=pr.PARAMS._replace(outlier_gate=-1.0))
+    with pytest.raises(InputError, match=r"^params\.outlier_gate: expected a scalar >= 0"):
+        ur.run(_util_log(), ur.Config(height=False, n_fix=4), ur.PARAMS._replace(outlier_gate=-1.0))
+    with pytest.raises(InputError, match=r"^params\.anchor_offset: contains NaN or Inf"):
+        ur.run(_util_log(), ur.Config(height=False, n_fix=4),
+               ur.PARAMS._replace(anchor_offset=np.array([np.nan, 0.0, 0.0, 0.0])))
+
+
+def _planar_log(T_=6, **kw):
+    from jaxslam.systems import planar_ekf_slam as pe
+
+    d = dict(dt=np.full(T_, 0.1), u=np.tile([1.0, 0.1], (T_, 1)), z=np.tile([[5.0, 0.3], [4.0, -0.2]], (T_, 1, 1)),
+             ids=np.tile(np.array([0, 1], np.int32), (T_, 1)), mask=np.ones((T_, 2), bool), pose0=np.zeros(3))
+    d.update(kw)
+    return pe.Log(**d)
+
+
+EMPTY = dict(dt=np.zeros(0), u=np.zeros((0, 2)), z=np.zeros((0, 2, 2)), ids=np.zeros((0, 2), np.int32),
+             mask=np.zeros((0, 2), bool))
+
+
+def test_planar_ekf_slam_names_an_empty_log_a_negative_gate_and_takes_an_integer_pose0():
+    from jaxslam.systems import planar_ekf_slam as pe
+
+    cfg = pe.Config(capacity=4)
+    prm = pe.Params(M_c=0.01 * np.eye(2), Q_floor=1e-4 * np.eye(3), R=np.diag([0.1, 0.01]), P0=1e-3 * np.eye(3))
+    with pytest.raises(InputError, match=r"^log\.dt: expected at least one event"):  # an IndexError before
+        pe.run(_planar_log(**EMPTY), cfg, prm)
+    with pytest.raises(InputError, match=r"^params\.update_gate: need > 0"):  # every row GATED before
+        pe.run(_planar_log(), cfg, prm._replace(update_gate=-1.0))
+    with pytest.raises(InputError, match=r"^log\.ids: expected whole-number"):
+        pe.run(_planar_log(ids=np.tile([0.5, 1.5], (6, 1))), cfg, prm)
+    # an integer start pose runs in the default float dtype (a scan carry type error before)
+    a = pe.run(_planar_log(pose0=np.zeros(3, int)), cfg, prm)
+    b = pe.run(_planar_log(pose0=np.zeros(3)), cfg, prm)
+    np.testing.assert_array_equal(np.asarray(a.pose), np.asarray(b.pose))
+
+
+def test_planar_fastslam_names_an_empty_log_a_negative_gate_and_its_resample_fraction():
+    cfg = pf.Config(n_particles=8, capacity=4, K=2)
+    prm = pf.Params(M_c=0.01 * np.eye(2), pose_floor=1e-4 * np.ones(3), R=np.diag([0.1, 0.01]), P0=1e-3 * np.eye(3),
+                    log_p_new=0.0)
+    key = jax.random.PRNGKey(0)
+    with pytest.raises(InputError, match=r"^log\.dt: expected at least one event"):
+        pf.run(_planar_log(**EMPTY), cfg, prm, key=key)
+    with pytest.raises(InputError, match=r"^params\.gate: need > 0"):  # status 68 before
+        pf.run(_planar_log(), cfg, prm._replace(gate=-1.0), key=key)
+    for thr in (5.0, -1.0, 0.0):
+        with pytest.raises(InputError, match=r"^params\.resample_threshold: expected None or a fraction in \(0, 1\]"):
+            pf.run(_planar_log(), cfg, prm._replace(resample_threshold=thr), key=key)
+
+
+@pytest.mark.parametrize("change, msg", [
+    (dict(dt=0.0), r"^config\.dt: expected a positive finite scalar"),  # the estimate froze
+    (dict(dt=-0.01), r"^config\.dt: expected a positive finite scalar"),  # ran backwards
+    (dict(g=float("nan")), r"^config\.g: expected a finite scalar"),
+    (dict(capacity=0), r"^config\.capacity: expected an int"),
+    (dict(max_obs=0), r"^config\.max_obs: expected an int"),  # named z before
+    ("s0", r"^log\.s0: contains NaN or Inf"),  # all-NaN means before
+    ("nn", r"^params\.nn_new: need nn_gate <= nn_new"),
+])
+def test_ekf_slam_3d_names_bad_config_start_and_association_thresholds(change, msg):
+    from jaxslam.systems import ekf_slam_3d as e3
+
+    F, L = 3, 2
+    log = e3.Log(s0=np.zeros(9), imu=np.tile([0.0, 0, -9.81, 0, 0, 0], (2 * F + 1, 1)),
+                 y=np.tile([[0.1, 0.1, 5.0], [0.2, -0.1, 6.0]], (F, 1, 1)), visible=np.ones((F, L), bool),
+                 ids=np.arange(L, dtype=np.int32))
+    prm = e3.Params(P0=1e-3 * np.eye(9), Qc=1e-4 * np.eye(9), Qimu=1e-4 * np.eye(6), R=1e-4 * np.eye(3))
+    cfg = e3.Config(capacity=4, max_obs=2)
+    if change == "s0":
+        log = log._replace(s0=np.full(9, np.nan))
+    elif change == "nn":
+        cfg, prm = cfg._replace(association="nn"), prm._replace(nn_gate=30.0, nn_new=1.0)
+    else:
+        cfg = cfg._replace(**change)
+    with pytest.raises(InputError, match=msg):
+        e3.run(log, cfg, prm)

@@ -47,6 +47,14 @@ def window_nll(res, weights=None):
     ground truth), over the events with weight 1 (``weights`` None: all); traceable."""
     import jax.numpy as jnp
 
+    if weights is not None:
+        ws, ns = tuple(np.shape(weights)), tuple(np.shape(res.nll))
+        try:
+            ok = np.broadcast_shapes(ws, ns) == ns
+        except ValueError:
+            ok = False
+        if not ok:
+            raise InputError(f"weights: expected one weight per event, shape {ns}, got {ws}")
     w = 1.0 if weights is None else weights
     return jnp.sum(w * res.nll) / jnp.maximum(jnp.sum(w * res.nll_dof), 1.0)
 
@@ -56,7 +64,11 @@ def heldout_nll(res, held=None) -> float:
     mask; None: every event)."""
     nl, nd = np.asarray(res.nll, np.float64), np.asarray(res.nll_dof, np.float64)
     if held is not None:
-        nl, nd = nl[held], nd[held]
+        h = np.asarray(held)
+        if h.dtype != np.bool_ or h.shape != nl.shape:  # an int array would index, not mask
+            raise InputError(f"held: expected a bool mask of shape {nl.shape} (one per event), "
+                             f"got {h.dtype} of shape {h.shape}")
+        nl, nd = nl[h], nd[h]
     return float(nl.sum() / max(nd.sum(), 1.0))
 
 
@@ -177,11 +189,33 @@ def get(scenario: str, target: str, loss: str, **kw) -> Target:
 
 def keys(seed: int, runs: int):
     """The PRNG keys of ``runs`` runs from ``seed`` (those of ``jaxslam run --seed seed``)."""
+    from ...linalg import check_int
     from ...sim.monte_carlo import keys_for
 
-    return keys_for(int(seed), int(runs))
+    if isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer)):
+        raise InputError(f"seed: expected an int, got {seed!r}")
+    return keys_for(int(seed), check_int(runs, "runs", lower=1))
 
 
 def diag_list(M) -> list:
     """The diagonal of a matrix as floats (for a target's ``describe``)."""
-    return [float(v) for v in np.diag(np.asarray(M))]
+    from ...linalg import check_numbers
+
+    a = check_numbers(M, "M")
+    if a.ndim != 2:
+        raise InputError(f"M: expected a matrix, got shape {a.shape}")
+    return [float(v) for v in np.diag(a)]
+
+
+#: keywords the ``jaxslam tune`` CLI passes to every simulation target (a target may ignore
+#: those it does not use); any other keyword a target does not take is a typo
+_CLI_SHARED_KEYWORDS = frozenset({"train_runs", "test_runs", "seed", "dtype", "eval_duration", "checkpoint",
+                                 "cov", "tune_r", "structure", "filter", "train_duration"})
+
+
+def _check_keywords(ignored: dict, target: str) -> None:
+    """Raise InputError naming the keywords in ``ignored`` (a factory's ``**kw`` rest) that are
+    not among :data:`_CLI_SHARED_KEYWORDS`: a misspelled option never silently falls back."""
+    bad = sorted(set(ignored) - _CLI_SHARED_KEYWORDS)
+    if bad:
+        raise InputError(f"{bad[0]}: unknown keyword(s) {bad} for tuning target {target}")

@@ -43,7 +43,7 @@ from ...errors import InputError
 from ...systems import ekf_slam_3d as sys3d
 from .. import losses as L
 from .. import params as P
-from . import Target, diag_list, keys, register_target
+from . import Target, _check_keywords, diag_list, keys, register_target
 
 __all__ = ["STRUCTURES", "make_slam_logs", "slam_loss", "ekfslam3d_noise", "eval_command", "tie_imu_axes"]
 
@@ -176,6 +176,7 @@ def ekfslam3d_noise(loss: str = "nll", train_runs: int = 4, test_runs: int = 8, 
     on the capacity).  Evaluation: the ``ekfslam3d-{mode}`` scenario, ``eval_duration``
     seconds, ``test_runs`` seeds from ``seed + 1``.  See the module docstring.
     """
+    _check_keywords(_ignored, "ekfslam3d --target noise")
     from ...sensors import imu as imu_mod
     from ...sim.scenarios import ekfslam3d as scen
     from ...sim.scenarios.tracking import DT, FRAME_STEPS

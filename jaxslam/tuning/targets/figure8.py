@@ -19,7 +19,7 @@ import numpy as np
 
 from ...errors import InputError
 from .. import params as P
-from . import Target, diag_list, keys, register_target
+from . import Target, _check_keywords, diag_list, keys, register_target
 
 __all__ = ['figure8_lqr', 'tracking_and_effort']
 
@@ -76,6 +76,7 @@ def figure8_lqr(loss: str = "cost", train_runs: int = 4, test_runs: int = 8, see
     runs start from random hover offsets (``start_sigma`` m per axis, yaw σ 0.1 rad); the
     evaluation also reports the nominal start of ``jaxslam run track-figure8``.
     """
+    _check_keywords(_ignored, "track-figure8 --target lqr")
     from ...control import dflqr
     from ...dynamics import euler_ned
     from ...sim.scenarios.tracking import FRAME_STEPS, controller_to_dict, paper000_figure8

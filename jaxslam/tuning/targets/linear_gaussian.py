@@ -12,11 +12,27 @@ import numpy as np
 
 from ...errors import InputError
 from ...filters import ekf as ekf_mod
+from ...linalg import check_int, check_numbers, check_psd, check_scalar, check_shape, is_concrete
 from .. import losses as L
 from .. import params as P
-from . import Target, diag_list, keys, register_target
+from . import Target, _check_keywords, diag_list, keys, register_target
 
 __all__ = ['lg_simulate', 'lg_run', 'linear_gaussian', 'LG_DT', 'LG_Q_TRUE', 'LG_R_TRUE', 'FILTERS']
+
+
+def _check_model(dt, **mats):
+    """InputError naming the argument: ``dt`` > 0 and each matrix (4, 4) and PSD (values only
+    when concrete; traced values are checked by shape only)."""
+    if is_concrete(dt):
+        check_scalar(dt, "dt", lower=0, strict=True)
+    for name, M in mats.items():
+        if M is None:
+            continue
+        if not hasattr(M, "shape"):
+            M = check_numbers(M, name)
+        check_shape(M, (4, 4), name)
+        if is_concrete(M):
+            check_psd(M, name)
 
 
 def _lg_model(dt):
@@ -44,6 +60,8 @@ def lg_simulate(key, T: int, Q, R, dt: float = LG_DT, dtype=jnp.float64):
     velocity are measured.  Returns ``{"z": (T, 4), "x": (T, 4)}`` (state after each step;
     x_0 = 0).
     """
+    T = check_int(T, "T", lower=1)
+    _check_model(dt, Q=Q, R=R)
     A, H = (jnp.asarray(a, dtype) for a in _lg_model(dt))
     Lq = jnp.linalg.cholesky(jnp.asarray(Q, dtype))
     Lr = jnp.linalg.cholesky(jnp.asarray(R, dtype))
@@ -74,6 +92,10 @@ def lg_run(Q, R, z, dt: float = LG_DT, P0=None, filter: str = "ekf"):
 
     if filter not in FILTERS:
         raise InputError(f"--filter: expected one of {', '.join(FILTERS)}, got {filter!r}")
+    if not hasattr(z, "dtype"):  # a list: the same numbers as an array
+        z = jnp.asarray(check_numbers(z, "z"))
+    check_shape(z, (None, 4), "z")
+    _check_model(dt, Q=Q, R=R, P0=P0)
     dtype = z.dtype
     A, H = (jnp.asarray(a, dtype) for a in _lg_model(dt))
     P0 = jnp.eye(4, dtype=dtype) if P0 is None else P0
@@ -102,7 +124,19 @@ def linear_gaussian(loss: str = "nll", train_runs: int = 4, test_runs: int = 4, 
     ``filter``: one of :data:`FILTERS`; the loss and its gradient run through that filter."""
     if filter not in FILTERS:
         raise InputError(f"--filter: expected one of {', '.join(FILTERS)}, got {filter!r}")
-    dtype = jnp.dtype(dtype)
+    _check_keywords(_ignored, "linear-gaussian --target noise")
+    T = check_int(T, "T", lower=1)
+    train_runs = check_int(train_runs, "train_runs", lower=1)
+    test_runs = check_int(test_runs, "test_runs", lower=1)
+    q0_scale = check_scalar(q0_scale, "q0_scale", lower=0, strict=True)
+    r0_scale = check_scalar(r0_scale, "r0_scale", lower=0, strict=True)
+    try:
+        dt_ = jnp.dtype(dtype)
+    except TypeError:
+        dt_ = None
+    if dt_ is None or not jnp.issubdtype(dt_, jnp.floating):
+        raise InputError(f"dtype: expected a floating dtype (float32 or float64), got {dtype!r}")
+    dtype = dt_
     if loss not in ("nll", "mse", "nees"):
         raise InputError(f"--loss: expected nll, mse or nees, got {loss!r}")
     Qt, Rt = np.diag(LG_Q_TRUE), np.asarray(LG_R_TRUE)

@@ -54,7 +54,7 @@ from ...errors import InputError
 from ...linalg import check_scalar, safe_norm
 from .. import losses as L
 from .. import params as P
-from . import Target, diag_list, keys, register_target
+from . import Target, _check_keywords, diag_list, keys, register_target
 from .ekfslam3d import eval_command, tie_imu_axes
 
 __all__ = ["STRUCTURES", "TUNE", "closed_loop_objective", "controller_file", "ekfslam3d_loop", "tilt_angle"]
@@ -122,6 +122,7 @@ def ekfslam3d_loop(loss: str = "cost", train_runs: int = 4, test_runs: int = 16,
     the given weights); ``tune`` one of :data:`TUNE`; ``structure`` one of :data:`STRUCTURES`
     (Q_imu's form); ``compare``: a file whose controller is evaluated beside the start and the
     result."""
+    _check_keywords(_ignored, "ekfslam3d --target loop")
     from ...control import dflqr
     from ...sensors import imu as imu_mod
     from ...sensors import landmarks as lm_mod

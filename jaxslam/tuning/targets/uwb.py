@@ -9,7 +9,7 @@ import numpy as np
 from ...errors import InputError
 from .. import losses as L
 from .. import params as P
-from . import Target, diag_list, keys, register_target
+from . import Target, _check_keywords, diag_list, keys, register_target
 
 __all__ = ['uwb_noise']
 
@@ -27,6 +27,7 @@ def uwb_noise(loss: str = "mse", train_runs: int = 4, test_runs: int = 8, seed: 
     reports no log det S for this system's two-stage update, so the NLL is not offered here.
     Held-out evaluation: the scenario's own runs on seeds from ``seed + 1``.
     """
+    _check_keywords(_ignored, "uwb --target noise")
     from ...sim.scenarios import registry
     from ...sim.scenarios import uwb as scen
     from ...systems import uwb_slam_2d as U
