@@ -22,6 +22,7 @@ __all__ = [
     "host_array",
     "is_concrete",
     "check_numbers",
+    "float_array",
     "value_and_jacfwd",
     "take",
     "put",
@@ -372,6 +373,18 @@ def check_numbers(value, name: str) -> np.ndarray:
         return np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):
         raise InputError(f"{name}: expected numbers, got {value!r}") from None
+
+
+def float_array(x, name: str):
+    """``x`` as a JAX array of an inexact dtype: an array keeps its floating dtype (an integer or
+    bool one becomes JAX's default float), a list or a number is converted, and a concrete value
+    that is not numbers (a string, None, a ragged list) is an :class:`InputError` naming
+    ``name``.  Traced values pass through (their dtype is known, their values are not)."""
+    if not isinstance(x, (jax.Array, np.ndarray)) or x.dtype.kind not in "biuf":
+        if is_concrete(x):
+            check_numbers(x, name)
+    x = jnp.asarray(x)
+    return x if jnp.issubdtype(x.dtype, jnp.inexact) else x.astype(jnp.result_type(float))
 
 
 def check_whole_ids(ids, name: str, used=None):

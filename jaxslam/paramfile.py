@@ -107,7 +107,7 @@ def _check_value(name: str, value: Any, default: Any) -> Any:
         a = check_numbers(value, name)
     except InputError:
         raise InputError(f"{name}: expected numbers ({_shape_text(d.shape)}), got {value!r}"[:300]) from None
-    if isinstance(value, bool) or a.dtype == object:
+    if isinstance(value, bool):
         raise InputError(f"{name}: expected numbers ({_shape_text(d.shape)}), got {value!r}"[:300])
     psd = _symmetric_psd(d)  # a covariance or weight: diagonal form accepted, PSD required
     diagonal = psd and a.shape == d.shape[:1]

@@ -35,7 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .errors import InputError
-from .linalg import check_int, check_numbers, check_scalar, is_concrete
+from .linalg import check_int, check_numbers, check_scalar, float_array, is_concrete
 
 __all__ = ["nees", "nis", "student_t_nll", "student_t_d2_ppf_np", "chi2_ppf", "chi2_ppf_np", "mean_chi2_bounds",
            "anees_bounds"]
@@ -45,20 +45,10 @@ __all__ = ["nees", "nis", "student_t_nll", "student_t_d2_ppf_np", "chi2_ppf", "c
 # NEES / NIS
 # ---------------------------------------------------------------------------
 
-def _as_array(x, name: str):
-    """``x`` as a JAX array; a concrete value that is not numbers (a string, None) is an
-    :class:`InputError` naming ``name``, and an integer or bool one becomes the default float."""
-    kind = x.dtype.kind if isinstance(x, (jax.Array, np.ndarray)) else None
-    if kind not in ("b", "i", "u", "f") and is_concrete(x):
-        check_numbers(x, name)
-    x = jnp.asarray(x)
-    return x if jnp.issubdtype(x.dtype, jnp.inexact) else x.astype(jnp.result_type(float))
-
-
 def _quadratic_form(err, cov, e_name: str, c_name: str):
     """``eᵀ C⁻¹ e`` of (..., n) and (..., n, n), shapes checked (static: free under ``jit``)."""
-    err = _as_array(err, e_name)
-    cov = _as_array(cov, c_name)
+    err = float_array(err, e_name)
+    cov = float_array(cov, c_name)
     if err.ndim < 1:
         raise InputError(f"{e_name}: expected shape (..., n), got {tuple(err.shape)}")
     n = err.shape[-1]
@@ -162,9 +152,9 @@ def chi2_ppf(p, dof):
         Python numbers); 0 at p = 0, inf at p = 1, NaN outside [0, 1] or for
         dof ≤ 0.  Float64: ~1e-10 relative for dof 1..10⁵.
     """
-    p = _as_array(p, "p")  # a string is named; an integer p becomes the default float
+    p = float_array(p, "p")  # a string is named; an integer p becomes the default float
     dtype = p.dtype
-    k = _as_array(dof, "dof").astype(dtype)
+    k = float_array(dof, "dof").astype(dtype)
     p, k = jnp.broadcast_arrays(p, k)
     a = 0.5 * k
     upper = p > 0.5

@@ -32,7 +32,7 @@ import numpy as np
 
 from .. import errors
 from ..errors import InputError
-from ..linalg import check_numbers, is_concrete
+from ..linalg import check_numbers, float_array, is_concrete
 from .ekf_slam import SlamModel, SlamState
 
 __all__ = ["MonitorParams", "Monitor", "init", "observe", "inflate_robot", "outliers", "status_bits",
@@ -92,12 +92,7 @@ def _check_gate(params, name: str = "params"):
 def _rows(d2, valid, name: str = "d2"):
     """``(d2 (K,), valid (K,) bool)`` as arrays, shapes checked (static): :class:`InputError`
     naming the argument (a length mismatch was a broadcast error, a list had no ``.dtype``)."""
-    kind = d2.dtype.kind if isinstance(d2, (jax.Array, np.ndarray)) else None
-    if kind not in ("b", "i", "u", "f") and is_concrete(d2):
-        check_numbers(d2, name)  # a list is taken, a string named
-    d2 = jnp.asarray(d2)
-    if not jnp.issubdtype(d2.dtype, jnp.floating):
-        d2 = d2.astype(jnp.result_type(float))
+    d2 = float_array(d2, name)  # a list is taken, a string named
     valid = jnp.asarray(valid)
     if d2.ndim != 1:
         raise InputError(f"{name}: expected shape (K,), got {tuple(d2.shape)}")

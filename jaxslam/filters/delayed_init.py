@@ -29,31 +29,21 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import InputError
-from ..linalg import check_numbers, is_concrete, safe_norm
+from ..linalg import float_array, is_concrete, safe_norm
 from . import trilateration as tri
 
 __all__ = ["robust_trilaterate", "from_buffer"]
-
-
-def _numbers(x, name: str):
-    """``x`` as a floating JAX array; a concrete value that is not numbers (a string, a ragged
-    list) is an :class:`InputError` naming ``name``; lists are taken (they have no dtype)."""
-    kind = x.dtype.kind if isinstance(x, (jax.Array, np.ndarray)) else None
-    if kind not in ("b", "i", "u", "f") and is_concrete(x):
-        check_numbers(x, name)
-    x = jnp.asarray(x)
-    return x if jnp.issubdtype(x.dtype, jnp.floating) else x.astype(jnp.result_type(float))
 
 
 def _rows_in(points, ranges, valid, range_var):
     """The buffer's rows checked (trilateration's shape and ``range_var`` checks, static) and as
     arrays: ``(points (W, d), ranges (W,), valid (W,) bool)``; a float or integer ``valid`` is
     read as a mask (non-zero: valid), as the filters read their masks."""
-    points = _numbers(points, "points")
-    ranges = _numbers(ranges, "ranges")
+    points = float_array(points, "points")
+    ranges = float_array(ranges, "ranges")
     if valid is None:
         raise InputError("valid: expected a (W,) bool mask of the rows to fit, got None")
-    tri._check_inputs(points, ranges, valid, range_var)
+    tri._check_inputs(points, ranges, valid, range_var, mask_name="valid")
     return points, ranges, jnp.asarray(valid).astype(bool)
 
 
@@ -105,7 +95,7 @@ def from_buffer(points, point_var, ranges, valid, range_var, min_points: Optiona
     """
     points, ranges, valid = _rows_in(points, ranges, valid, range_var)
     W = points.shape[0]
-    point_var = _numbers(point_var, "point_var")
+    point_var = float_array(point_var, "point_var")
     if point_var.shape not in ((), (W,)):
         raise InputError(f"point_var: expected shape ({W},) (one per row of points) or a scalar, "
                          f"got {tuple(point_var.shape)}")

@@ -116,7 +116,7 @@ def _bad_input_flag(ranges, mask):
     return jnp.where(jnp.any(bad), errors.MASKED_INPUT, 0)
 
 
-def _check_inputs(points, ranges, mask, range_var=None, points_name: str = "points"):
+def _check_inputs(points, ranges, mask, range_var=None, points_name: str = "points", mask_name: str = "mask"):
     """Shapes (static: free under ``jit`` and ``vmap``) and, when concrete, ``range_var`` ≥ 0:
     :class:`InputError` naming the argument (a (1,) mask or range broadcast over every sample, a
     negative σ² gave a negative covariance with ``ok``)."""
@@ -130,7 +130,7 @@ def _check_inputs(points, ranges, mask, range_var=None, points_name: str = "poin
     if np.shape(ranges) != (K,):
         raise InputError(f"ranges: expected shape ({K},) (one per point), got {np.shape(ranges)}")
     if mask is not None and np.shape(mask) != (K,):
-        raise InputError(f"mask: expected shape ({K},) (one per point), got {np.shape(mask)}")
+        raise InputError(f"{mask_name}: expected shape ({K},) (one per point), got {np.shape(mask)}")
     if range_var is not None:
         if np.shape(range_var) not in ((), (K,)):
             raise InputError(f"range_var: expected a scalar or ({K},), got shape {np.shape(range_var)}")

@@ -12,6 +12,7 @@ import numpy as np
 
 from jaxslam.errors import InputError
 from jaxslam.files import atomic_write
+from jaxslam.linalg import check_numbers
 
 __all__ = ["plt", "save", "keep_margins", "trajectory_3d", "states_over_time", "inputs_over_time"]
 
@@ -20,10 +21,7 @@ def _columns(x, name: str, cols: int, rows=None):
     """``x`` as a float (T, ≥ ``cols``) array (``rows``: T required), else InputError naming ``name``."""
     if x is None:
         raise InputError(f"{name}: expected a (T, {cols}) array, got None")
-    try:
-        a = np.asarray(x, dtype=float)
-    except (TypeError, ValueError):
-        raise InputError(f"{name}: expected numbers, got {x!r}"[:200]) from None
+    a = check_numbers(x, name)
     if a.ndim != 2 or a.shape[1] < cols:
         raise InputError(f"{name}: expected shape (T, {cols}" + ("+" if cols > 1 else "") + f"), got {a.shape}")
     if rows is not None and a.shape[0] != rows:

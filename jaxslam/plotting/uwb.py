@@ -34,14 +34,15 @@ __all__ = ["STATE_NAMES", "band", "ellipse_points", "nees_figure", "plot_all", "
 
 def _check_gaussian2(mean, cov):
     """InputError unless ``mean`` is (2,) and ``cov`` (2, 2) with a symmetric part that is PSD to
-    1e-6 of its largest eigenvalue (a filter's float32 rounding passes; a negative variance,
-    which would draw a zero-size ellipse, does not).  A non-finite ``cov`` (a diverged run) is
+    1e-3 of its largest eigenvalue (a filter's rounding, float32 included, passes with a wide
+    margin, so the plots of a finished run are never lost to it; a negative variance, which
+    would draw a zero-size ellipse, does not; the rest is clipped to 0).  A non-finite ``cov`` (a diverged run) is
     left to the plot, as before."""
     check_shape(check_numbers(mean, "mean"), (2,), "mean")
     c = check_shape(check_numbers(cov, "cov"), (2, 2), "cov")
     if np.all(np.isfinite(c)):
         w = np.linalg.eigvalsh(0.5 * (c + c.T))
-        if w[0] < -1e-6 * max(float(np.max(np.abs(w))), 1e-300):
+        if w[0] < -1e-3 * max(float(np.max(np.abs(w))), 1e-300):
             raise InputError(f"cov: not positive semi-definite (smallest eigenvalue {w[0]:.3g})")
 
 

@@ -474,20 +474,14 @@ class StepOut(NamedTuple):
 
 
 def _validate_log(log: Log, config: Config):
-    T = np.shape(log.dt)[0] if np.ndim(log.dt) == 1 else -1
-    if T < 0:
-        raise InputError(f"log.dt: expected shape (T,), got {np.shape(log.dt)}")
-    if np.shape(log.u) != (T, 2):
-        raise InputError(f"log.u: expected shape ({T}, 2), got {np.shape(log.u)}")
-    if np.shape(log.z) != (T, int(config.K), 2):
-        raise InputError(f"log.z: expected shape ({T}, {config.K}, 2), got {np.shape(log.z)}")
-    if np.shape(log.pose0) != (3,):
-        raise InputError(f"log.pose0: expected shape (3,), got {np.shape(log.pose0)}")
-    # the planar EKF's checks of the same Log: at least one event (an empty log failed with an
-    # IndexError); when known, dt finite >= 0 (a negative dt ran backwards, unflagged), u and pose0
-    # finite (inside jit the scan keeps a particle whose proposal is not finite and flags
-    # NON_FINITE), whole-number ids on the rows in use
+    # the planar EKF's checks of the same Log: shapes, at least one event (an empty log failed
+    # with an IndexError); when known, dt finite >= 0 (a negative dt ran backwards, unflagged), u
+    # and pose0 finite (inside jit the scan keeps a particle whose proposal is not finite and
+    # flags NON_FINITE), whole-number ids on the rows in use
     validate_log(log)
+    T = np.shape(log.dt)[0]
+    if np.shape(log.z) != (T, int(config.K), 2):  # and the configured K rows per event
+        raise InputError(f"log.z: expected shape ({T}, {config.K}, 2), got {np.shape(log.z)}")
 
 
 def init(log: Log, config: Config, params: Params, *, key) -> State:

@@ -42,7 +42,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..filters import ekf_slam as es
-from ..linalg import check_int, check_numbers, is_concrete, symmetrize
+from ..linalg import check_int, float_array, is_concrete, symmetrize
 
 __all__ = [
     "nll_terms",
@@ -51,13 +51,6 @@ __all__ = [
     "mse",
     "nees_loss",
 ]
-
-
-def _arr(x, name: str):
-    """``x`` as an array (a list or scalar converted; strings refused), InputError naming ``name``."""
-    if hasattr(x, "dtype") and hasattr(x, "shape"):
-        return x
-    return jnp.asarray(check_numbers(x, name))
 
 
 def _same_shape(x, shape, name: str, what: str):
@@ -84,7 +77,7 @@ def nll_terms(nu, S, mask=None):
     log det; ``mask`` (m,) bool selects the valid components (default all).
     Returns three scalars in nu's dtype (dof as float).
     """
-    nu, S = _arr(nu, "nu"), _arr(S, "S")
+    nu, S = float_array(nu, "nu"), float_array(S, "S")
     if nu.ndim != 1:
         raise InputError(f"nu: expected shape (m,), got {tuple(nu.shape)}")
     dtype = nu.dtype
@@ -149,7 +142,7 @@ def innovation_nll(nis, logdet, dof):
     :func:`slam_innovation_terms`); updates with dof = 0 add nothing.  Units: nats per
     scalar measurement.  Needs no ground truth.
     """
-    nis, logdet, dof = _arr(nis, "nis"), _arr(logdet, "logdet"), _arr(dof, "dof")
+    nis, logdet, dof = float_array(nis, "nis"), float_array(logdet, "logdet"), float_array(dof, "dof")
     _same_shape(logdet, nis.shape, "logdet", "one per update, as nis")
     _same_shape(dof, nis.shape, "dof", "one per update, as nis")
     if is_concrete(dof) and np.any(np.asarray(dof) < 0):
@@ -166,14 +159,14 @@ def mse(err, weights=None, mask=None):
     ``weights`` (n,) default ones (units: each component's unit squared, so choose
     weights that make them commensurate); ``mask`` (T,) bool selects the steps counted.
     """
-    err = _arr(err, "err")
+    err = float_array(err, "err")
     if err.ndim < 1 or err.size == 0:
         raise InputError(f"err: expected a non-empty (T, n) array of errors, got shape {tuple(err.shape)}")
     if not jnp.issubdtype(err.dtype, jnp.inexact):
         err = err.astype(jnp.result_type(float))
     dtype = err.dtype
     if weights is not None:
-        weights = _arr(weights, "weights")
+        weights = float_array(weights, "weights")
         if weights.ndim > 1 or (weights.ndim == 1 and weights.shape[0] != err.shape[-1]):
             raise InputError(f"weights: expected a number or shape ({err.shape[-1]},) (one per state "
                              f"component), got {tuple(weights.shape)}")
@@ -195,7 +188,7 @@ def nees_loss(nees, n: int, mask=None):
     Zero when the time-averaged NEES equals n (a consistent filter); ``mask`` (T,) bool
     selects the steps counted (e.g. frames after a settling time).
     """
-    nees = _arr(nees, "nees")
+    nees = float_array(nees, "nees")
     if nees.size == 0:
         raise InputError(f"nees: expected a non-empty NEES series, got shape {tuple(nees.shape)}")
     if is_concrete(n):

@@ -43,7 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import InputError
-from ..linalg import check_int, check_numbers, check_psd
+from ..linalg import check_int, check_numbers, check_psd, float_array
 
 __all__ = [
     "CovSpec",
@@ -84,13 +84,6 @@ def _check_spec(spec) -> None:
         raise InputError(f"spec: expected a CovSpec(kind, n), got {spec!r}")
     _check_kind(spec[0])
     check_int(spec[1], "n", lower=1, what="a matrix size (int)")
-
-
-def _theta(theta, name: str = "theta"):
-    """θ as an array (a list converted; strings refused) — InputError naming ``name``."""
-    if hasattr(theta, "dtype") and hasattr(theta, "shape"):
-        return theta
-    return jnp.asarray(check_numbers(theta, name))
 
 
 def n_params(spec: CovSpec) -> int:
@@ -138,7 +131,7 @@ def log_diag_from_cov(M, floor: float | None = None, dtype=None, name: str = "M"
 
 def cov_from_log_diag(theta):
     """M = diag(exp θ) (n, n); positive definite for every finite θ (n,)."""
-    theta = _theta(theta)
+    theta = float_array(theta, "theta")
     if theta.ndim != 1:  # jnp.diag of a matrix would return its diagonal, not a matrix
         raise InputError(f"theta: expected a vector (n,) of log-variances, got shape {tuple(theta.shape)}")
     return jnp.diag(jnp.exp(theta))
@@ -170,7 +163,7 @@ def log_chol_from_cov(M, floor: float | None = None, dtype=None, name: str = "M"
 def cov_from_log_chol(theta, n: int):
     """M = L Lᵀ, L = diag(exp θ_d) C (n, n) from θ (n(n+1)/2,); PD for every finite θ."""
     n = check_int(n, "n", lower=1, what="a matrix size (int)")
-    theta = _theta(theta)
+    theta = float_array(theta, "theta")
     if tuple(theta.shape) != (n * (n + 1) // 2,):
         raise InputError(f"theta: expected shape ({n * (n + 1) // 2},) for n = {n}, got {tuple(theta.shape)}")
     r, c = _tril(n)
@@ -194,7 +187,7 @@ def cov_from_theta(spec: CovSpec, theta):
     """The matrix of θ under ``spec`` (jit/vmap/grad-safe; dtype of θ).  θ must hold
     :func:`n_params` entries (a static check: :class:`InputError` naming ``theta``)."""
     k = n_params(spec)
-    theta = _theta(theta)
+    theta = float_array(theta, "theta")
     if tuple(np.shape(theta)) != (k,):
         raise InputError(f"theta: CovSpec({spec.kind!r}, {spec.n}) needs shape ({k},), got "
                          f"{tuple(np.shape(theta))}")
