@@ -113,6 +113,11 @@ _R = type("R", (), {"nll": np.ones(3), "nll_dof": np.ones(3)})()
     (lambda: TG.get("ekfslam3d-unknown", "loop", "cost", w_nee=1.0), r"^w_nee: unknown keyword"),
     (lambda: TG.get("track-figure8", "lqr", "cost", start_sigm=0.1), r"^start_sigm: unknown keyword"),
     (lambda: TG.get("uwb-circle", "noise", "mse", mod="slam"), r"^mod: unknown keyword"),
+    # and so does every real-log target, before it reads a file
+    (lambda: TG.get("mrclam", "noise", "nll", test_robot=(5,)), r"^test_robot: unknown keyword"),
+    (lambda: TG.get("plaza", "noise", "nll", tmax=100.0), r"^tmax: unknown keyword"),
+    (lambda: TG.get("util-uwb", "noise", "nll", anchor_offset=True), r"^anchor_offset: unknown keyword"),
+    (lambda: TG.get("victoria-park", "noise", "nll", robots=(1,)), r"^robots: unknown keyword"),
     (lambda: TG.get("linear-gaussian", "noise", "nll", T=5, test_runs=-1), r"^test_runs: expected an int >= 1"),
     (lambda: TG.get("linear-gaussian", "noise", "nll", T=0), r"^T: expected an int >= 1"),
     (lambda: TG.get("linear-gaussian", "noise", "nll", T=-3), r"^T: expected an int >= 1"),

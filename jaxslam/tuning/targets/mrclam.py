@@ -39,7 +39,7 @@ import numpy as np
 
 from ...data import catalogue
 from ...errors import InputError
-from . import Target, register_target, heldout_nll, metrics_entry, window_nll
+from . import Target, _check_keywords, register_target, heldout_nll, metrics_entry, window_nll
 
 __all__ = ["mrclam_logs", "planar_theta0", "planar_physical", "planar_nll",
            "mrclam_noise", "mrclam_train_config", "mrclam_layout", "select_odometry_delay", "DELAY_GRID"]
@@ -190,6 +190,7 @@ def mrclam_noise(loss: str = "nll", data=None, robots=(1, 2, 3, 4), test_robots=
     :data:`DELAY_GRID` with the lowest training NLL at the starting point
     (:func:`select_odometry_delay`).  The fitted file carries it (``"log"``).
     """
+    _check_keywords(_ignored, "mrclam")
     from ...data import presets, runners
     from ...systems import planar_ekf_slam as pe
     if loss != "nll":

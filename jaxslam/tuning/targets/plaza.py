@@ -28,7 +28,7 @@ import numpy as np
 
 from ...data import catalogue
 from ...errors import InputError
-from . import Target, register_target, STUDENT_T_NU, heldout_nll, metrics_entry
+from . import Target, _check_keywords, register_target, STUDENT_T_NU, heldout_nll, metrics_entry
 
 __all__ = ["plaza_logs", "plaza_noise", "NOISE_FIELDS", "NU"]
 
@@ -72,6 +72,7 @@ def plaza_noise(loss: str = "nll", data=None, robots=(1,), test_robots=(2,), dty
     ``robots``: training sequences (1, 2); ``test_robots``: held out (their NLL is the test loss,
     their ATE against GPS the evaluation); empty: evaluate on the training sequences.
     """
+    _check_keywords(_ignored, "plaza")
     from ...data import presets, runners
     from ...systems import plaza_range as pr
 

@@ -36,7 +36,7 @@ import numpy as np
 
 from ...data import catalogue
 from ...errors import InputError
-from . import Target, register_target, STUDENT_T_NU, heldout_nll, metrics_entry, window_nll
+from . import Target, _check_keywords, register_target, STUDENT_T_NU, heldout_nll, metrics_entry, window_nll
 
 __all__ = ["util_flight", "util_noise", "NU"]
 
@@ -72,6 +72,7 @@ def util_noise(loss: str = "nll", data=None, dtype=jnp.float64, t_max: float | N
     ``t_max``: fit on the ranges before this time [s] (default: half of the log's span);
     the later ranges are held out.  ``anchor_offsets``: also learn per-anchor range offsets.
     """
+    _check_keywords(_ignored, "util-uwb")
     from ...data import presets
     from ...systems import util_range as ur
 
