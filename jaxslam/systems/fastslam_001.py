@@ -129,7 +129,8 @@ from ..errors import InputError
 from ..filters import ekf
 from ..filters import fastslam as fs
 from ..geometry.euler import dcm_from_euler, euler_rates
-from ..linalg import check_numbers, cholesky_small, host_array, inv_small, is_concrete, symmetrize
+from ..linalg import (check_int, check_numbers, check_whole_ids, cholesky_small, host_array,
+                      inv_small, is_concrete, symmetrize)
 from ..sensors import imu as imu_mod
 from ..sensors import lidar3d
 
@@ -465,13 +466,24 @@ def validate_config(cfg: Config) -> Config:
         raise InputError(f"config.n_particles: expected a positive integer, got {n!r}")
     if int(n) <= 0:
         raise InputError(f"config.n_particles: must be >= 1, got {n}")
-    if int(cfg.capacity) < 1:
-        raise InputError(f"config.capacity: must be >= 1, got {cfg.capacity}")
-    if int(cfg.lidar_every) < 1:
-        raise InputError(f"config.lidar_every: must be >= 1, got {cfg.lidar_every}")
-    if not (float(cfg.dt) > 0 and math.isfinite(float(cfg.dt))):
-        raise InputError(f"config.dt: must be a positive number of seconds, got {cfg.dt}")
+    # a float 4.5 was truncated, a string "4" accepted
+    check_int(cfg.capacity, "config.capacity")
+    check_int(cfg.lidar_every, "config.lidar_every")
+    try:  # a string dt failed with NumPy's bare "could not convert"
+        dt_ok = float(check_numbers(cfg.dt, "config.dt")) > 0 and math.isfinite(float(cfg.dt))
+    except (InputError, TypeError, ValueError):
+        dt_ok = False
+    if not dt_ok:
+        raise InputError(f"config.dt: must be a positive number of seconds, got {cfg.dt!r}")
     return cfg
+
+
+def _is_number(v) -> bool:
+    """``v`` is a scalar of numbers (not a string, None or an array)."""
+    try:
+        return np.shape(check_numbers(v, "v")) == ()
+    except InputError:
+        return False
 
 
 def validate_params_001(params: Params) -> Params:
@@ -494,9 +506,12 @@ def validate_params_001(params: Params) -> Params:
         if np.any(v < 0) or (strict and np.any(v <= 0)):
             raise InputError(f"params.{name}: must be {'> 0' if strict else '>= 0'}, got {v.tolist()}")
     thr = params.resample_threshold
-    if thr is not None and not (np.shape(thr) == () and 0.0 < float(thr) <= 1.0):
-        raise InputError(f"params.resample_threshold: expected None or a fraction in (0, 1], got {thr!r}")
-    if not (np.shape(params.soft_alpha) == () and 0.0 <= float(params.soft_alpha) <= 1.0):
+    if thr is not None:  # a string failed with NumPy's bare "could not convert"
+        t = float(check_numbers(thr, "params.resample_threshold")) if _is_number(thr) else None
+        if t is None or not 0.0 < t <= 1.0:
+            raise InputError(f"params.resample_threshold: expected None or a fraction in (0, 1], got {thr!r}")
+    a = float(check_numbers(params.soft_alpha, "params.soft_alpha")) if _is_number(params.soft_alpha) else None
+    if a is None or not 0.0 <= a <= 1.0:
         raise InputError(f"params.soft_alpha: expected a value in [0, 1], got {params.soft_alpha!r}")
     return params
 
@@ -947,8 +962,22 @@ def _check_log(log: Log, config: Config):
         raise InputError(f"log.mask: expected shape ({F}, {L}), got {np.shape(log.mask)}")
     if T != F * E:
         raise InputError(f"log.imu: {T} samples do not make {F} frames of lidar_every = {E}")
-    if is_concrete(log.x0) and not np.all(np.isfinite(np.asarray(log.x0))):
+    if F == 0:  # an empty log failed deep inside the run (an IndexError)
+        raise InputError("log.z: expected at least one LiDAR frame, got an empty log (F = 0, T = 0)")
+    for name in ("x0", "rotor_w", "imu", "z", "ids"):  # a string array failed deep in NumPy/JAX
+        x = getattr(log, name)
+        if is_concrete(x) and not (isinstance(x, (jax.Array, np.ndarray)) and x.dtype.kind in "biuf"):
+            check_numbers(x, f"log.{name}")
+    mdt = jnp.result_type(log.mask)
+    if not (mdt == bool or jnp.issubdtype(mdt, jnp.integer)):  # a float mask of 0.5 was read as True
+        raise InputError(f"log.mask: expected a bool mask (or 0/1 integers), got dtype {mdt}")
+    if is_concrete(log.x0) and not np.all(np.isfinite(np.asarray(log.x0, np.float64))):
         raise InputError("log.x0: contains NaN or Inf")
+    if is_concrete(log.rotor_w) and not np.all(np.isfinite(np.asarray(log.rotor_w, np.float64))):
+        # unlike a non-finite IMU sample (skipped and flagged) it turned every pose NaN
+        raise InputError("log.rotor_w: contains NaN or Inf")
+    if is_concrete(log.ids, log.mask):  # a fractional id was truncated onto another landmark
+        check_whole_ids(log.ids, "log.ids", used=np.any(np.asarray(log.mask), axis=0))
 
 
 def run(log: Log, config: Config, params: Params, *, key) -> Result:

@@ -71,7 +71,7 @@ import numpy as np
 from ..errors import InputError
 from ..features import lines as fl
 from ..filters import ekf_slam as es
-from ..linalg import check_numbers, check_scalar, host_array, is_concrete, wrap_angle
+from ..linalg import check_int, check_numbers, check_scalar, float_array, host_array, is_concrete, wrap_angle
 from ..sensors import laser2d
 
 __all__ = [
@@ -450,7 +450,26 @@ def _check_log(log: Log, spec: laser2d.LaserSpec) -> int:
     vdt = np.asarray(log.valid).dtype if vdt is None else vdt
     if vdt != bool:
         raise InputError(f"log.valid: expected a bool mask, got dtype {vdt}")
+    for name in ("ranges", "tilt", "flow", "gyro", "s0"):  # a string array failed deep in JAX
+        x = getattr(log, name)
+        if is_concrete(x) and not (isinstance(x, (jax.Array, np.ndarray)) and x.dtype.kind in "biuf"):
+            check_numbers(x, f"log.{name}")
     return T
+
+
+def _check_values(log: Log) -> None:
+    """Values of a concrete ``log``: a finite start state and finite IMU tilt (a NaN tilt made
+    every scan point NaN: nothing was matched or mapped, with status 0).  NaN ranges are the
+    log's "no return" and a non-finite flow/gyro is masked with ``MASKED_INPUT``."""
+    if is_concrete(log.s0) and not np.all(np.isfinite(np.asarray(log.s0, float))):
+        raise InputError("log.s0: contains non-finite values")
+    if is_concrete(log.tilt) and not np.all(np.isfinite(np.asarray(log.tilt, float))):
+        raise InputError("log.tilt: contains NaN or Inf")
+
+
+def _check_config(config: Config) -> None:
+    check_scalar(config.dt, "config.dt", lower=0, strict=True)  # a negative dt ran backwards
+    check_int(config.capacity, "config.capacity")
 
 
 def run(log: Log, config: Config = Config(), params: Optional[Params] = None, *, key) -> Result:
@@ -464,13 +483,13 @@ def run(log: Log, config: Config = Config(), params: Optional[Params] = None, *,
     """
     if key is None:
         raise InputError("key: line SLAM samples RANSAC hypotheses; give a PRNG key")
-    if int(config.capacity) < 1:
-        raise InputError(f"config.capacity: must be >= 1, got {config.capacity}")
+    _check_config(config)
     _check_log(log, config.spec)
+    # an integer s0 made the run's dtype (and the default covariances) integer
+    log = log._replace(s0=float_array(log.s0, "log.s0"))
     if params is None:
         params = default_params(config.dt, dtype=jnp.asarray(log.s0).dtype)
-    if is_concrete(log.s0) and not np.all(np.isfinite(np.asarray(log.s0, float))):
-        raise InputError("log.s0: contains non-finite values")
+    _check_values(log)
     if is_concrete(params):
         validate_params(params)
     dtype = jnp.asarray(log.s0).dtype  # thresholds as arrays: a Python number and an array share one program
@@ -518,8 +537,7 @@ def validate_params(params: Params) -> Params:
 
 def validate_log(log: Log, spec: laser2d.LaserSpec = laser2d.URG04LX) -> Log:
     """Host-side checks of a concrete log: shapes (a scan of the wrong length raises InputError
-    naming the beam count), the bool ``valid`` mask and a finite ``s0``."""
+    naming the beam count), numbers, the bool ``valid`` mask, a finite ``s0`` and ``tilt``."""
     _check_log(log, spec)
-    if not np.all(np.isfinite(np.asarray(log.s0, float))):
-        raise InputError("log.s0: contains non-finite values")
+    _check_values(log)
     return log

@@ -802,6 +802,28 @@ def init(log: Log, config: Config, params: Params, *, key=None) -> State:
     return _init(log, config, params)[0]
 
 
+def _check_log_arrays(log: Log, T: int) -> None:
+    """At least one step; numbers (a string array failed deep in JAX); bool or integer masks (a float mask
+    failed inside the scan)."""
+    if T == 0:  # an empty log failed deep inside the run (an IndexError)
+        raise InputError("log.ranges: expected at least one step, got an empty log (T = 0)")
+    for name in ("startup_ranges", "ranges", "gyro"):
+        x = getattr(log, name)
+        if is_concrete(x) and not (isinstance(x, (jax.Array, np.ndarray)) and x.dtype.kind in "biuf"):
+            check_numbers(x, f"log.{name}")
+    for name in ("startup_mask", "range_mask"):
+        dt = jnp.result_type(getattr(log, name))
+        if not (dt == bool or jnp.issubdtype(dt, jnp.integer)):  # 0/1 integers pass, as before
+            raise InputError(f"log.{name}: expected a bool mask (or 0/1 integers), got dtype {dt}")
+
+
+def _check_anchor_indices(config: Config, N: int) -> None:
+    a = check_int(config.start_anchor, "config.start_anchor", lower=0)  # a float failed as an indexer
+    b = check_int(config.end_anchor, "config.end_anchor", lower=0)
+    if not (a < N and b < N) or a == b:
+        raise InputError(f"config.start_anchor/end_anchor: need two distinct anchors in [0, {N}), got {a}, {b}")
+
+
 def _check(log: Log, config: Config, params: Params) -> None:
     """Host-side checks of :func:`run`'s inputs (shapes always; values when concrete)."""
     if config.mode not in ("slam", "localization"):
@@ -822,12 +844,11 @@ def _check(log: Log, config: Config, params: Params) -> None:
     for name, shape in (("startup_mask", (Ts, N)), ("range_mask", (T, N)), ("gyro", (T, 3))):
         if np.shape(getattr(log, name)) != shape:
             raise InputError(f"log.{name}: expected shape {shape}, got {np.shape(getattr(log, name))}")
+    _check_log_arrays(log, T)
     if config.mode == "slam":
         if log.anchors is not None:
             raise InputError("log.anchors: known anchors are for mode='localization'; give None in mode='slam'")
-        a, b = config.start_anchor, config.end_anchor
-        if not (0 <= a < N and 0 <= b < N) or a == b:
-            raise InputError(f"config.start_anchor/end_anchor: need two distinct anchors in [0, {N}), got {a}, {b}")
+        _check_anchor_indices(config, N)
     else:
         if log.anchors is None:
             raise InputError("log.anchors: required in mode='localization'")
@@ -836,6 +857,9 @@ def _check(log: Log, config: Config, params: Params) -> None:
         if is_concrete(log.anchors):
             validate_anchors(log.anchors, "log.anchors")
     for name, shape in (("Q", (NR, NR)), ("P0", (NR, NR)), ("r_range", ()), ("r_gyro", ()), ("range_var", ())):
+        v = getattr(params, name)
+        if is_concrete(v) and not isinstance(v, (jax.Array, np.ndarray)):
+            check_numbers(v, f"params.{name}")  # a string: "expected numbers", not a shape ()
         if np.shape(getattr(params, name)) != shape:
             raise InputError(f"params.{name}: expected shape {shape}, got {np.shape(getattr(params, name))}")
     for name in Params._fields:
@@ -857,6 +881,9 @@ def run(log: Log, config: Config = Config(), params: Optional[Params] = None, *,
     ``jax.jit`` / ``jax.vmap`` (traced log and params).
     """
     del key
+    x = log.ranges
+    if is_concrete(x) and not (isinstance(x, (jax.Array, np.ndarray)) and x.dtype.kind in "biuf"):
+        check_numbers(x, "log.ranges")  # before its dtype picks the default parameters'
     if params is None:
         if config.model not in uwb.MODELS:
             raise InputError(f"config.model: expected one of {uwb.MODELS}, got {config.model!r}")
@@ -917,7 +944,7 @@ def validate_params(params: Params) -> Params:
 
 def validate_anchors(anchors, name: str = "anchors", min_separation: float = 1e-6) -> np.ndarray:
     """(N, 2) finite anchors, N ≥ 3, no two closer than ``min_separation`` [m], not all collinear."""
-    A = np.asarray(anchors, dtype=np.float64)
+    A = check_numbers(anchors, name)
     if A.ndim != 2 or A.shape[1] != 2:
         raise InputError(f"{name}: expected shape (N, 2), got {A.shape}")
     if A.shape[0] < 3:
@@ -947,13 +974,13 @@ def validate_log(log: Log, config: Config, strict: bool = False, params: Optiona
     a received range that is NaN/Inf or ≤ 0, or a non-finite gyro sample, is an error;
     otherwise such samples are masked and counted by the filter.
     """
-    sr = np.asarray(log.startup_ranges, dtype=np.float64)
+    sr = check_numbers(log.startup_ranges, "log.startup_ranges")
     if sr.ndim != 2 or sr.shape[0] < 1:
         raise InputError(f"log.startup_ranges: expected shape (Ts, N), got {sr.shape}")
     Ts, N = sr.shape
     if N < 3:
         raise InputError(f"log: range-only SLAM needs at least 3 anchors, got {N}")
-    r = np.asarray(log.ranges, dtype=np.float64)
+    r = check_numbers(log.ranges, "log.ranges")
     if r.ndim != 2 or r.shape[1] != N:
         raise InputError(f"log.ranges: expected shape (T, {N}), got {r.shape}")
     T = r.shape[0]
@@ -961,6 +988,7 @@ def validate_log(log: Log, config: Config, strict: bool = False, params: Optiona
                            ("gyro", log.gyro, (T, 3))):
         if np.shape(arr) != shp:
             raise InputError(f"log.{name}: expected shape {shp}, got {np.shape(arr)}")
+    _check_log_arrays(log, T)
     sm = np.asarray(log.startup_mask, bool)
     rm = np.asarray(log.range_mask, bool)
     with np.errstate(invalid="ignore"):
@@ -980,9 +1008,8 @@ def validate_log(log: Log, config: Config, strict: bool = False, params: Optiona
     if config.mode == "slam":
         if log.anchors is not None:
             raise InputError("log.anchors: known anchors are for mode='localization'; give None in mode='slam'")
-        a, b = config.start_anchor, config.end_anchor
-        if not (0 <= a < N and 0 <= b < N) or a == b:
-            raise InputError(f"config.start_anchor/end_anchor: need two distinct anchors in [0, {N}), got {a}, {b}")
+        _check_anchor_indices(config, N)
+        a, b = int(config.start_anchor), int(config.end_anchor)
         if not s_ok[0, b]:
             raise InputError(f"log.startup_ranges: no valid range to the end anchor {b} at the start "
                              "of the forced run (the start anchor's position −D needs it)")

@@ -280,3 +280,169 @@ def test_ekf_slam_3d_names_bad_config_start_and_association_thresholds(change, m
         cfg = cfg._replace(**change)
     with pytest.raises(InputError, match=msg):
         e3.run(log, cfg, prm)
+
+
+# --- a fifth probe (2026-12-06): line SLAM 004, UWB SLAM 2D and FastSLAM 001 ---
+
+def _ls_log(T_=3, **kw):
+    from jaxslam.systems import line_slam_004 as LS
+
+    n = LS.Config().spec.n_beams
+    d = dict(ranges=np.ones((T_, n)), valid=np.ones((T_, n), bool), tilt=np.zeros((T_, 2)),
+             flow=np.zeros((T_, 2)), gyro=np.zeros(T_), s0=np.zeros(6))
+    d.update(kw)
+    return LS.Log(**d)
+
+
+@pytest.mark.parametrize("change, msg", [
+    ("empty", r"^log\.ranges: expected shape \(T, 682\)"),
+    (dict(flow=np.zeros((2, 2))), r"^log\.flow: expected shape \(3, 2\)"),  # one step short
+    (dict(tilt=np.zeros((2, 3))), r"^log\.tilt: expected shape \(3, 2\)"),  # transposed
+    (dict(s0=["a"] * 6), r"^log\.s0: expected numbers"),  # a TypeError deep in JAX before
+    (dict(tilt=np.full((3, 2), np.nan)), r"^log\.tilt: contains NaN or Inf"),  # nothing mapped, status 0
+    (dict(s0=np.full(6, np.inf)), r"^log\.s0: contains non-finite"),
+    ("dt-", r"^config\.dt: expected a positive finite scalar"),  # named params.Q before
+    ("dt0", r"^config\.dt: expected a positive finite scalar"),
+    ("cap", r"^config\.capacity: expected an int >= 1"),  # named "capacity:" before
+    ("Q", r"^params\.Q: expected shape \(6, 6\)"),
+    ("gate", r"^params\.nis_gate: expected a non-negative finite scalar"),
+])
+def test_line_slam_004_names_bad_logs_config_and_params(change, msg):
+    from jaxslam.systems import line_slam_004 as LS
+
+    log, cfg, prm = _ls_log(), LS.Config(), None
+    if change == "empty":
+        log = _ls_log(0)
+    elif change in ("dt-", "dt0"):
+        cfg = cfg._replace(dt=-0.1 if change == "dt-" else 0.0)
+    elif change == "cap":
+        cfg = cfg._replace(capacity="4")
+    elif change == "Q":
+        prm = LS.default_params()._replace(Q=jnp.eye(5))
+    elif change == "gate":
+        prm = LS.default_params()._replace(nis_gate=-1.0)
+    else:
+        log = log._replace(**change)
+    with pytest.raises(InputError, match=msg):
+        LS.run(log, cfg, prm, key=jax.random.PRNGKey(0))
+    if isinstance(change, dict) and "tilt" in change and change["tilt"].shape == (3, 2):
+        with pytest.raises(InputError, match=msg):
+            LS.validate_log(log)
+
+
+def test_line_slam_004_takes_an_integer_start_state_as_float():
+    """An integer s0 made the run's dtype integer: the default P0 and R_odo became 0 and the
+    run was refused naming params.R_odo."""
+    from jaxslam.systems import line_slam_004 as LS
+
+    out = jax.eval_shape(lambda: LS.run(_ls_log(2, s0=np.zeros(6, int)), key=jax.random.PRNGKey(0)))
+    assert out.steps.mean.dtype == jnp.float64
+
+
+_UA = np.array([[0.0, 0.0], [5.0, 0.0], [2.0, 4.0], [3.0, -4.0]])
+
+
+def _uwb_log(T_=4, **kw):
+    from jaxslam.systems import uwb_slam_2d as U
+
+    ps = np.stack([np.linspace(0.2, 5, 6), np.zeros(6)], 1)
+    pr_ = np.stack([np.linspace(5, 6, T_ + 1)[1:], np.linspace(0, 1, T_ + 1)[1:]], 1)
+    d = dict(startup_ranges=np.linalg.norm(ps[:, None] - _UA[None], axis=-1), startup_mask=np.ones((6, 4), bool),
+             ranges=np.linalg.norm(pr_[:, None] - _UA[None], axis=-1), range_mask=np.ones((T_, 4), bool),
+             gyro=np.zeros((T_, 3)))
+    d.update(kw)
+    return U.Log(**d)
+
+
+@pytest.mark.parametrize("change, msg", [
+    ("empty", r"^log\.ranges: expected at least one step, got an empty log \(T = 0\)"),  # IndexError
+    (dict(gyro=np.zeros((3, 3))), r"^log\.gyro: expected shape \(4, 3\)"),
+    (dict(range_mask=np.full((4, 4), 0.5)), r"^log\.range_mask: expected a bool mask"),  # TypeError
+    (dict(ranges=np.full((4, 4), "a")), r"^log\.ranges: expected numbers"),  # TypeError in JAX
+    ("anchors", r"^log\.anchors: expected numbers"),  # NumPy's bare ValueError
+    ("start", r"^config\.start_anchor: expected an int >= 0"),  # a float indexer failed deep
+    ("Q", r"^params\.Q: expected numbers"),  # was "expected shape (10, 10), got ()"
+    ("gate", r"^params\.gate: expected a non-negative finite scalar"),
+])
+def test_uwb_slam_2d_names_bad_logs_config_and_params(change, msg):
+    from jaxslam.systems import uwb_slam_2d as U
+
+    log, cfg, prm = _uwb_log(), U.Config(), None
+    if change == "empty":
+        log = _uwb_log(0)
+    elif change == "anchors":
+        log, cfg = log._replace(anchors=[["a", "b"]] * 4), cfg._replace(mode="localization")
+    elif change == "start":
+        cfg = cfg._replace(start_anchor=0.5)
+    elif change == "Q":
+        prm = U.paper_params()._replace(Q="x")
+    elif change == "gate":
+        prm = U.paper_params()._replace(gate=-1.0)
+    else:
+        log = log._replace(**change)
+    with pytest.raises(InputError, match=msg):
+        U.run(log, cfg, prm)
+    if prm is None:
+        with pytest.raises(InputError, match=msg):
+            U.validate_log(log, cfg)
+
+
+def test_uwb_slam_2d_validate_log_passes_the_small_valid_log():
+    from jaxslam.systems import uwb_slam_2d as U
+
+    U.validate_log(_uwb_log(), U.Config())
+    U.validate_log(_uwb_log(anchors=_UA.astype(int)), U.Config(mode="localization"))
+
+
+def _fs1_log(F=2, E=2, L=2, **kw):
+    from jaxslam.systems import fastslam_001 as fs1
+
+    T_ = F * E
+    d = dict(x0=np.zeros(12), rotor_w=np.full((T_, 4), 400.0), imu=np.tile([0, 0, 9.81, 0, 0, 0.0], (T_, 1)),
+             z=np.tile(np.array([[0.3, 0.1, 5.0], [-0.5, 0.2, 4.0]]), (F, 1, 1)), ids=np.arange(L),
+             mask=np.ones((F, L), bool))
+    d.update(kw)
+    return fs1.Log(**d)
+
+
+@pytest.mark.parametrize("change, msg", [
+    ("empty", r"^log\.z: expected at least one LiDAR frame"),  # an IndexError before
+    (dict(rotor_w=np.zeros((3, 4))), r"^log\.rotor_w: expected shape \(4, 4\)"),
+    (dict(ids=np.array([0.0, 1.5])), r"^log\.ids: expected whole-number landmark ids"),  # truncated to 1
+    (dict(mask=np.full((2, 2), 0.5)), r"^log\.mask: expected a bool mask"),  # read as True
+    (dict(rotor_w=np.full((4, 4), np.nan)), r"^log\.rotor_w: contains NaN or Inf"),  # NaN poses
+    (dict(x0=["a"] * 12), r"^log\.x0: expected numbers"),  # a TypeError in NumPy
+    (dict(rotor_w=np.full((4, 4), "a")), r"^log\.rotor_w: expected numbers"),  # a TypeError in jit
+    (dict(capacity=4.5), r"^config\.capacity: expected an int >= 1"),  # truncated to 4
+    (dict(lidar_every=2.0), r"^config\.lidar_every: expected an int >= 1"),
+    (dict(dt="x"), r"^config\.dt: must be a positive number of seconds"),  # NumPy's ValueError
+    ("soft", r"^params\.soft_alpha: expected a value in \[0, 1\]"),  # NumPy's ValueError
+    ("thr", r"^params\.resample_threshold: expected None or a fraction"),
+])
+def test_fastslam_001_names_bad_logs_config_and_params(change, msg):
+    from jaxslam.systems import fastslam_001 as fs1
+
+    log, cfg, prm = _fs1_log(), fs1.Config(n_particles=8, lidar_every=2), fs1.default_params()
+    if change == "empty":
+        log = _fs1_log(F=0)
+    elif change == "soft":
+        prm = prm._replace(soft_alpha="x")
+    elif change == "thr":
+        prm = prm._replace(resample_threshold="x")
+    elif any(k in change for k in fs1.Config._fields):
+        cfg = cfg._replace(**change)
+    else:
+        log = log._replace(**change)
+    with pytest.raises(InputError, match=msg):
+        fs1.run(log, cfg, prm, key=jax.random.PRNGKey(0))
+
+
+def test_fastslam_001_checks_pass_a_small_valid_log():
+    from jaxslam.systems import fastslam_001 as fs1
+
+    cfg = fs1.Config(n_particles=8, lidar_every=2)
+    fs1.validate_config(cfg)
+    fs1.validate_params_001(fs1.default_params())
+    for log in (_fs1_log(), _fs1_log(ids=np.array([0.0, 1.0]), x0=np.zeros(12, int)),
+                _fs1_log(ids=np.array([0.0, 1.5]), mask=np.array([[True, False]] * 2))):  # unused row
+        fs1._check_log(log, cfg)
