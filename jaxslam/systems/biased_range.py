@@ -128,7 +128,10 @@ def update_ranges(st, model, z, slots, mapped, params):
     systems run it: R = σ_r², the hard χ²(1) ``params.gate`` (None: off), Student-t rows with
     ``params.nu`` (None: Gaussian).  Returns ``(state, info, nll, nll_dof, n_outliers)``:
     :func:`jaxslam.filters.ekf_slam.update_nll`'s terms (d_z = 1) and the rows offered whose
-    marginal d² exceeds ``params.outlier_gate`` (filled by :func:`resolve_outlier_gate`)."""
+    marginal d² exceeds ``params.outlier_gate`` (filled by :func:`resolve_outlier_gate`).
+    A known ``params.sigma_r`` must be > 0 (a negative one was squared into a valid R)."""
+    if is_concrete(params.sigma_r):
+        check_scalar(params.sigma_r, "params.sigma_r", lower=0, strict=True)
     R = jnp.reshape(params.sigma_r ** 2, (1, 1))
     st, info = es.update(st, model, z, slots, mapped, R, gate=params.gate, robust=params.nu, row_stats=True)
     nll, cnt = es.update_nll(info, 1, params.nu)
@@ -137,8 +140,15 @@ def update_ranges(st, model, z, slots, mapped, params):
 
 
 def range_observe(s, l, params=None):
-    """(R1): z = ‖p − l‖ + b with p = s[:d], d = len(l), b = s[-1]; returns (1,)."""
+    """(R1): z = ‖p − l‖ + b with p = s[:d], d = len(l), b = s[-1]; returns (1,).  Shapes are
+    checked (static, also under ``jit``): ``l`` (d,) and ``s`` (n,) with n ≥ d + 1."""
+    s, l = jnp.asarray(s), jnp.asarray(l)  # lists have no .shape
+    if l.ndim != 1 or l.shape[0] < 1:
+        raise InputError(f"l: expected a landmark position of shape (d,), got {tuple(l.shape)}")
     d = l.shape[0]
+    if s.ndim != 1 or s.shape[0] < d + 1:
+        raise InputError(f"s: expected a state of shape (n,) with n >= d + 1 = {d + 1} (position, ..., "
+                         f"bias), got {tuple(s.shape)}")
     # safe norm: finite gradient at p = l (never met on real data, but jacfwd must stay finite)
     return jnp.reshape(safe_norm(s[:d] - l) + s[-1], (1,))
 

@@ -446,3 +446,18 @@ def test_fastslam_001_checks_pass_a_small_valid_log():
     for log in (_fs1_log(), _fs1_log(ids=np.array([0.0, 1.0]), x0=np.zeros(12, int)),
                 _fs1_log(ids=np.array([0.0, 1.5]), mask=np.array([[True, False]] * 2))):  # unused row
         fs1._check_log(log, cfg)
+
+
+def test_range_model_and_update_name_a_bad_argument():
+    from jaxslam.systems import biased_range as br
+
+    s = jnp.array([1.0, 2.0, 0.0, 0.0, 0.1])  # position (2), velocity (2), bias
+    np.testing.assert_allclose(np.asarray(br.range_observe(s, jnp.array([4.0, 6.0]))), [5.1])
+    np.testing.assert_allclose(np.asarray(br.range_observe(list(s), [4.0, 6.0])), [5.1])  # lists read
+    for s_bad, l_bad, needle in ((s, jnp.array(4.0), r"^l: expected a landmark position of shape \(d,\)"),
+                                 (s[:2], jnp.array([4.0, 6.0]), r"^s: expected a state of shape \(n,\) with n >= d \+ 1 = 3")):
+        with pytest.raises(InputError, match=needle):
+            br.range_observe(s_bad, l_bad)
+    params = pr.PARAMS._replace(sigma_r=-0.3)  # squared, it was a valid R
+    with pytest.raises(InputError, match=r"^params.sigma_r: expected a positive"):
+        br.update_ranges(None, None, None, None, None, params)
