@@ -316,12 +316,6 @@ _NU_CHI2 = 1e18
 _NU_SERIES = 1e4
 
 
-def _number(value, name: str) -> float:
-    """``value`` as a float when it is one number (±inf allowed, NaN refused), else
-    :class:`InputError` naming ``name`` (a string gave NumPy's bare ValueError)."""
-    return check_scalar(value, name, finite=False)
-
-
 def student_t_d2_ppf_np(p: float, nu: float) -> float:
     """Quantile of d² = t² for a one-dimensional Student-t with ν degrees of freedom (an F(1, ν)
     variable; χ²(1) as ν → ∞), in float64 on the host (pure Python, no SciPy).
@@ -335,7 +329,7 @@ def student_t_d2_ppf_np(p: float, nu: float) -> float:
     finite ν approach (ν = 10¹² used to be 7e-5 off it, inf returned inf).  The outlier gate of
     a Student-t range model at probability ``p``.
     """
-    p, nu = _number(p, "p"), _number(nu, "nu")
+    p, nu = check_scalar(p, "p", finite=False), check_scalar(nu, "nu", finite=False)
     if not (nu > 0) or not (0.0 <= p < 1.0):
         raise InputError(f"student_t_d2_ppf_np: need 0 <= p < 1 and nu > 0, got p={p}, nu={nu}")
     if p == 0.0:
@@ -395,8 +389,8 @@ def chi2_ppf_np(p: float, dof: float) -> float:
     Returns:
         Python float quantile (0 at p = 0, inf at p = 1).
     """
-    p = _number(p, "p")
-    k = _number(dof, "dof")
+    p = check_scalar(p, "p", finite=False)
+    k = check_scalar(dof, "dof", finite=False)
     if not (k > 0) or not (0.0 <= p <= 1.0):
         raise InputError(f"chi2_ppf_np: need 0 <= p <= 1 and dof > 0, got p={p}, dof={k}")
     if p == 0.0:
