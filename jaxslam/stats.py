@@ -116,9 +116,10 @@ def student_t_nll(d2, logdet, nu, dim):
     (``robust=ν`` of :func:`jaxslam.filters.ekf_slam.update`) are the EM steps of this
     likelihood.
 
-    ``dim`` must be an int ≥ 1 and, when known now, ``nu`` > 0 (NaN refused):
-    :class:`InputError` naming it (ν = 0 raised ZeroDivisionError for Python numbers, ν < 0
-    gave NaN).  A traced ν is not checked.
+    ``dim`` must be an int ≥ 1 and, when known now, ``nu`` > 0 (NaN refused) and ``d2`` ≥ 0
+    (a NaN d2 gives a NaN NLL): :class:`InputError` naming it (ν = 0 raised ZeroDivisionError
+    for Python numbers, ν < 0 gave NaN, d2 < 0 a finite wrong value).  Traced values are not
+    checked.
     """
     from jax.scipy.special import gammaln
 
@@ -127,6 +128,10 @@ def student_t_nll(d2, logdet, nu, dim):
         v = check_numbers(nu, "nu")
         if not np.all(v > 0):
             raise InputError(f"nu: the Student-t degrees of freedom must be > 0, got {nu!r}")
+    if is_concrete(d2):  # a squared distance: a negative one gave a finite, meaningless NLL
+        a = check_numbers(d2, "d2")
+        if np.any(a < 0):  # NaN is not < 0: it propagates to a NaN NLL, as before
+            raise InputError(f"d2: expected squared distances >= 0, got minimum {float(np.nanmin(a)):.6g}")
     nu = jnp.asarray(nu)  # a Python number stays weakly typed: the rows' dtype decides
     gauss = jnp.isinf(nu)
     nu_s = jnp.where(gauss, jnp.ones_like(nu), nu)  # the inf branch never reaches the formula

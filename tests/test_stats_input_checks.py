@@ -161,3 +161,22 @@ def test_anees_bounds_take_whole_counts():
             stats.anees_bounds(*args)
     lo, hi = stats.anees_bounds(np.int64(3), 4)
     np.testing.assert_allclose((lo, hi), (sps.chi2.ppf(0.025, 12) / 4, sps.chi2.ppf(0.975, 12) / 4), rtol=1e-10)
+
+
+def test_student_t_nll_refuses_a_negative_concrete_d2():
+    # a squared distance < 0 gave a finite, meaningless NLL (d2 = -1, ν = 5, d = 2: 1.0569)
+    for d2 in (-1.0, np.array([1.0, -0.5]), -math.inf):
+        with pytest.raises(InputError, match="^d2: expected squared distances >= 0"):
+            stats.student_t_nll(d2, 0.0, 5.0, 2)
+    with pytest.raises(InputError, match="^d2: expected squared distances >= 0"):
+        stats.student_t_nll(-1.0, 0.0, math.inf, 2)  # the Gaussian branch too
+    with pytest.raises(InputError, match="^d2: expected numbers"):
+        stats.student_t_nll("a", 0.0, 5.0, 2)  # was a bare TypeError
+    # zero, +inf and NaN are let through: 0 is valid, +inf gives +inf, NaN gives NaN (not silent)
+    assert np.isfinite(float(stats.student_t_nll(0.0, 0.0, 5.0, 2)))
+    assert float(stats.student_t_nll(math.inf, 0.0, 5.0, 2)) == math.inf
+    assert np.isnan(float(stats.student_t_nll(math.nan, 0.0, 5.0, 2)))
+    # traced d2: not checked (nothing raises under jit) and unchanged
+    got = jax.jit(lambda d: stats.student_t_nll(d, 0.2, 3.0, 2))(jnp.asarray([1.0, -0.5]))
+    assert got.shape == (2,)
+    np.testing.assert_allclose(float(got[0]), float(stats.student_t_nll(1.0, 0.2, 3.0, 2)), rtol=1e-6)

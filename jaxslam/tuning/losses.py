@@ -42,7 +42,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..filters import ekf_slam as es
-from ..linalg import check_int, float_array, is_concrete, symmetrize
+from ..linalg import check_int, check_psd, float_array, is_concrete, symmetrize
 
 __all__ = [
     "nll_terms",
@@ -74,8 +74,10 @@ def nll_terms(nu, S, mask=None):
 
     ``nu`` (m,), ``S`` (m, m) with invalid components already given an identity
     row/column (as :func:`jaxslam.filters.ekf.update` reports S) so they add 0 to
-    log det; ``mask`` (m,) bool selects the valid components (default all).
-    Returns three scalars in nu's dtype (dof as float).
+    log det; ``mask`` (m,) bool (or 0/1 integers) selects the valid components (default
+    all).  Returns three scalars in nu's dtype (dof as float).  Known now, a float mask or
+    other integers, and an S that is not symmetric positive definite, are :class:`InputError`
+    naming it (a non-PD S gave NaN); traced values are not checked.
     """
     nu, S = float_array(nu, "nu"), float_array(S, "S")
     if nu.ndim != 1:
@@ -83,9 +85,17 @@ def nll_terms(nu, S, mask=None):
     dtype = nu.dtype
     m = nu.shape[-1]
     _same_shape(S, (m, m), "S", "m × m for m = len(nu)")
+    if is_concrete(S):  # a non-PD S would give a silent NaN through its Cholesky factor
+        check_psd(S, "S", strict=True)
     if mask is not None:
         mask = jnp.asarray(mask) if not hasattr(mask, "shape") else mask
         _same_shape(mask, (m,), "mask", "one entry per component of nu")
+        # as the systems' masks: bool or 0/1 integers (a 2 or 0.5 entry miscounted the dof)
+        if not (mask.dtype == jnp.bool_ or jnp.issubdtype(mask.dtype, jnp.integer)):
+            raise InputError(f"mask: expected a bool mask (or 0/1 integers), got dtype {mask.dtype}")
+        if is_concrete(mask) and mask.dtype != jnp.bool_ and not np.isin(np.asarray(mask), (0, 1)).all():
+            raise InputError(f"mask: expected a bool mask (or 0/1 integers), got values {np.unique(np.asarray(mask))}")
+        mask = mask.astype(bool)
     mask = jnp.ones((m,), bool) if mask is None else mask
     nu = jnp.where(mask, nu, 0.0)
     Lc = jnp.linalg.cholesky(symmetrize(S))

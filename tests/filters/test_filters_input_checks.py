@@ -886,3 +886,26 @@ def test_delayed_init_checks_variances_shapes_and_takes_lists():
     np.testing.assert_allclose(np.asarray(D.from_buffer(pts, 0.01, rng, val, 0.01)[1]), np.asarray(P), rtol=1e-15)
     # traced variances: shapes only
     jax.jit(lambda v: D.from_buffer(pts, v, rng, val, 0.01)[1])(-pv)
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf], ids=["nan", "inf"])
+def test_a_non_finite_concrete_z_gives_the_ukf_the_ekf_answer(bad):
+    """A concrete z with a NaN/Inf: the EKF raises nothing, returns the prior and sets NON_FINITE;
+    the (square-root) UKF does the same (checked, not changed), and a mask on that entry uses the rest."""
+    z, R, P0 = np.array([1.0, bad]), np.eye(2), np.eye(2)
+
+    def hh(x):
+        return x
+
+    ref_post, ref = ekf.update(ekf.Gaussian(jnp.zeros(2), jnp.asarray(P0)), z, hh, R)
+    assert int(ref.status) == errors.NON_FINITE and not bool(ref.accepted)
+    np.testing.assert_array_equal(np.asarray(ref_post.mean), np.zeros(2))
+    for post, info in (ukf.update(ekf.Gaussian(jnp.zeros(2), jnp.asarray(P0)), z, hh, R),
+                       sqrt_ukf.update(sqrt_ekf.SqrtGaussian(jnp.zeros(2), jnp.asarray(P0)), z, hh, R)):
+        assert int(info.status) == int(ref.status) and bool(info.accepted) == bool(ref.accepted)
+        np.testing.assert_array_equal(np.asarray(post.mean), np.zeros(2))
+    m = np.array([True, False])
+    a = ekf.update(ekf.Gaussian(jnp.zeros(2), jnp.asarray(P0)), z, hh, R, mask=m)[0]
+    b = ukf.update(ekf.Gaussian(jnp.zeros(2), jnp.asarray(P0)), z, hh, R, mask=m)[0]
+    np.testing.assert_allclose(np.asarray(b.mean), np.asarray(a.mean), rtol=1e-6, atol=1e-12)
+    assert np.all(np.isfinite(np.asarray(b.cov)))

@@ -163,3 +163,26 @@ def test_fit_accepts_a_test_batch_with_extra_entries_the_loss_reads_fine():
     test = {"z": jnp.arange(2.0), "w": jnp.ones(2)}
     res = O.fit(lambda th, it: (th["a"] - it["z"]) ** 2, {"a": jnp.array(0.0)}, train, 1, test=test, eval_every=1)
     assert res.history[-1]["test_loss"] == pytest.approx(0.5, rel=0.5)
+
+
+def test_nll_terms_refuses_a_non_bool_concrete_mask_and_a_non_pd_s():
+    nu, S = jnp.array([1.0, 2.0, 3.0]), jnp.eye(3)
+    want = L.nll_terms(nu, S, jnp.array([True, False, True]))
+    assert float(want[2]) == 2.0
+    # a float mask, or integers other than 0/1, are refused (a mask [2, 0, 1] counted dof 3, not 2)
+    for bad in (np.array([2, 0, 1]), np.array([1.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.5])):
+        with pytest.raises(InputError, match="^mask: expected a bool mask"):
+            L.nll_terms(nu, S, bad)
+    # bool and 0/1 integer masks give the same answer
+    for ok in ([True, False, True], jnp.array([1, 0, 1]), [1, 0, 1]):
+        np.testing.assert_array_equal(np.asarray(L.nll_terms(nu, S, ok)), np.asarray(want))
+    # a concrete S that is not PD gave NaN NIS and log det silently
+    for bad_S in (jnp.diag(jnp.array([1.0, -1.0, 1.0])), jnp.zeros((3, 3))):
+        with pytest.raises(InputError, match="^S: not positive definite"):
+            L.nll_terms(nu, bad_S)
+    with pytest.raises(InputError, match="^S: contains NaN or Inf"):
+        L.nll_terms(nu, jnp.eye(3).at[0, 0].set(jnp.nan))
+    # traced: no value check, nothing raises, results as before
+    out = jax.jit(L.nll_terms)(nu, S, jnp.array([1, 0, 1]))
+    np.testing.assert_array_equal(np.asarray(out), np.asarray(want))
+    assert np.isnan(float(jax.jit(L.nll_terms)(nu, jnp.diag(jnp.array([1.0, -1.0, 1.0])))[0]))
