@@ -496,6 +496,46 @@ def test_register_duplicate_get_and_names():
         registry.register(Scenario("Bad Name", "d", (), _noop_run))
 
 
+def test_scenario_run_from_python_checks_and_completes_options():
+    """get(name).run(...) from a script checks ``options`` as the command line does: a misspelt
+    key was ignored silently, a partial dict failed with a bare KeyError inside the scenario."""
+    from jaxslam.progress import Progress
+
+    def call(options):
+        return DUMMY.run(runs=2, seed=0, dtype=np.dtype(np.float64), options=options,
+                         progress=Progress.null(), params=None)
+
+    res = call({"gain": 4})  # partial: the rest are the defaults; an int for a float option
+    assert res.config["gain"] == 4.0 and res.config["mode"] == "a" and res.config["noise_scale"] == 1.0
+    assert call(None).config["gain"] == 2.0
+    for bad, needle in (({"gian": 1.0}, r"^options: unknown key\(s\) \['gian'\] for scenario 'dummy'"),
+                        ({"gain": "2"}, r"^--gain \(options\['gain'\]\): expected float"),
+                        ({"gain": True}, r"^--gain \(options\['gain'\]\): expected float"),
+                        ({"gain": float("nan")}, r"^--gain \(options\['gain'\]\): expected a finite number"),
+                        ({"mode": "c"}, r"^--mode \(options\['mode'\]\): expected one of \['a', 'b'\]"),
+                        ({"nan_run": 1}, r"^--nan-run \(options\['nan_run'\]\): expected bool"),
+                        ([("gain", 1.0)], r"^options: expected a dict")):
+        with pytest.raises(InputError, match=needle):
+            call(bad)
+    # by position too (a scenario's own run may take them so), and a dataclasses.replace copy
+    # checks against its own options
+    seen = []
+    positional = Scenario("positional", "d", DUMMY.options,
+                          lambda runs, seed, dtype, options, progress: seen.append(options))
+    positional.run(1, 0, np.dtype(np.float64), {"gain": 1.0}, None)
+    assert seen[0]["gain"] == 1.0 and seen[0]["mode"] == "a"
+    with pytest.raises(InputError, match=r"^options: unknown key"):
+        positional.run(1, 0, np.dtype(np.float64), {"gian": 1.0}, None)
+    import dataclasses
+
+    fewer = dataclasses.replace(DUMMY, options=DUMMY.options[1:])
+    with pytest.raises(InputError, match=r"^options: unknown key\(s\) \['gain'\]"):
+        fewer.run(runs=1, seed=0, dtype=np.dtype(np.float64), options={"gain": 1.0}, progress=Progress.null())
+    lower = Scenario("lower", "d", (Option("n", int, 2, "x", lower=1),), _noop_run)
+    with pytest.raises(InputError, match=r"^--n \(options\['n'\]\): expected >= 1, got 0"):
+        lower.run(runs=1, seed=0, dtype=np.dtype(np.float64), options={"n": 0}, progress=None)
+
+
 # ----------------------------------------------------------------------------- io
 
 

@@ -4,7 +4,8 @@ A scenario is a named, documented entry point that simulates (or loads) data,
 runs an estimator over ``runs`` Monte Carlo runs and returns a
 :class:`ScenarioResult`: per-run metrics, consistency statistics, status-flag
 counts and timings.  The CLI turns a result into a table, the ``run`` JSON of
-``docs/cli.md`` and plots; a user's script can call ``get(name).run(...)`` directly.
+``docs/cli.md`` and plots; a user's script can call ``get(name).run(...)`` directly (a
+partial ``options`` dict is completed with the defaults and checked: :func:`check_options`).
 
 Concrete scenarios live in the modules of :mod:`jaxslam.sim.scenarios` and
 register themselves at import time with :func:`register`.  The registry loads
@@ -29,6 +30,7 @@ Decisions
 from __future__ import annotations
 
 import dataclasses
+import functools
 import importlib
 import keyword
 import pathlib
@@ -52,6 +54,7 @@ __all__ = [
     "program_key",
     "check_params",
     "default_options",
+    "check_options",
 ]
 
 # Names used by the common `jaxslam run` options; a scenario option may not reuse them.
@@ -134,7 +137,8 @@ class Scenario:
       options: scenario-specific options, shown by ``jaxslam run NAME --help``.
       run: ``run(runs=int, seed=int, dtype=np.dtype, options=dict, progress=Progress,
         params=dict | None, plots=bool) -> ScenarioResult``.  ``options`` holds every option of
-        ``options`` (defaults filled in); ``params`` is the ``--params`` file's sections,
+        ``options`` (defaults filled in: ``Scenario.run`` passes the caller's dict through
+        :func:`check_options` first, so an unknown key is an error); ``params`` is the ``--params`` file's sections,
         checked by :func:`check_params`; ``plots`` says the caller will call ``result.plot``
         (the scenario then records the first run's flight in the same compiled program,
         instead of flying it again).
@@ -149,6 +153,22 @@ class Scenario:
     options: tuple[Option, ...]
     run: Callable[..., ScenarioResult]
     params: Callable[[dict, Any], dict] | None = None
+
+    def __post_init__(self):
+        # ``run`` called from Python gets its ``options`` checked and completed like the CLI's
+        # (:func:`check_options`): an unknown or misspelt key used to be ignored silently.
+        raw = getattr(self.run, "_unchecked_run", self.run)  # dataclasses.replace: wrap anew
+        if callable(raw):
+            @functools.wraps(raw)
+            def run(*args, **kw):
+                if len(args) > 3:  # (runs, seed, dtype, options, ...) given by position
+                    args = args[:3] + (check_options(self, args[3]),) + args[4:]
+                else:
+                    kw["options"] = check_options(self, kw.get("options"))
+                return raw(*args, **kw)
+
+            run._unchecked_run = raw
+            object.__setattr__(self, "run", run)
 
 
 _REGISTRY: dict[str, Scenario] = {}
@@ -281,6 +301,46 @@ def program_key(name: str, options: dict, params, dtype) -> dict:
 def default_options(scenario: Scenario) -> dict:
     """``{option name: default}`` of a scenario (what ``run`` receives when no option is given)."""
     return {opt.name: opt.default for opt in scenario.options}
+
+
+def check_options(scenario: Scenario, options: dict | None = None) -> dict:
+    """``options`` completed with the scenario's defaults and checked as the command line
+    checks them (what a scenario's ``run`` does with the ``options`` it is given).
+
+    An unknown key, a value of the wrong type (an ``int`` for a ``float`` option is fine, a
+    ``bool`` never stands for a number), a value outside ``choices`` or below ``lower`` raise
+    :class:`InputError` naming the option (``--flag (options['key'])``); ``None`` is accepted
+    where it is the default.  The scenario's ``run`` checks the values' meaning (ranges).
+    """
+    if options is None:
+        options = {}
+    if not isinstance(options, dict):
+        raise InputError(f"options: expected a dict of scenario options, got {type(options).__name__}")
+    known = {opt.name: opt for opt in scenario.options}
+    unknown = sorted(map(str, set(options) - set(known)))
+    if unknown:
+        raise InputError(f"options: unknown key(s) {unknown} for scenario {scenario.name!r}; "
+                         f"its options: {sorted(known) or 'none'}")
+    out = default_options(scenario)
+    for key, value in options.items():
+        opt = known[key]
+        where = f"{opt.flag} (options[{key!r}])"  # as the scenarios' own messages name it
+        if value is None and opt.default is None:
+            out[key] = value
+            continue
+        ok_types = (int, float, np.integer, np.floating) if opt.type is float else (
+            (bool, np.bool_) if opt.type is bool else ((int, np.integer) if opt.type is int else (str,)))
+        if not isinstance(value, ok_types) or (opt.type is not bool and isinstance(value, (bool, np.bool_))):
+            raise InputError(f"{where}: expected {opt.type.__name__}, got {value!r}")
+        value = opt.type(value)
+        if opt.type is float and not np.isfinite(value):
+            raise InputError(f"{where}: expected a finite number, got {value!r}")
+        if opt.choices is not None and value not in opt.choices:
+            raise InputError(f"{where}: expected one of {list(opt.choices)}, got {value!r}")
+        if opt.lower is not None and value < opt.lower:
+            raise InputError(f"{where}: expected >= {opt.lower}, got {value!r}")
+        out[key] = value
+    return out
 
 
 def check_params(scenario: Scenario, obj, options: dict | None = None, dtype=np.float64) -> dict | None:
