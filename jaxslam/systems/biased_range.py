@@ -123,15 +123,38 @@ def resolve_outlier_gate(params):
     return params._replace(outlier_gate=student_t_d2_ppf_np(OUTLIER_P, float(nu)))
 
 
+def _check_slots(st, slots, mapped) -> None:
+    """``mapped`` bool or integer (dtype: also traced); with both known, the slots of the mapped
+    rows inside the state's ``[0, capacity)``.  :class:`InputError` naming the argument."""
+    mdt = getattr(mapped, "dtype", None)
+    mdt = np.asarray(mapped).dtype if mdt is None else mdt  # a list has no dtype
+    if not (mdt == bool or jnp.issubdtype(mdt, jnp.integer)):
+        raise InputError(f"mapped: expected a bool mask (or 0/1 integers), got dtype {mdt}")
+    if not is_concrete(slots, mapped):
+        return
+    cap = np.shape(st.active)[0]
+    sl, mp = np.asarray(slots), np.asarray(mapped, bool)
+    if sl.shape != mp.shape:  # the engine names the shape mismatch
+        return
+    bad = mp & ((sl < 0) | (sl >= cap))
+    if np.any(bad):
+        raise InputError(f"slots: mapped row(s) {np.flatnonzero(bad).tolist()} name slot(s) "
+                         f"{sl[bad].tolist()} outside the state's [0, {cap}) landmark slots")
+
+
 def update_ranges(st, model, z, slots, mapped, params):
     """The engine's update with the event's ranges of mapped anchors/beacons, as the range-only
     systems run it: R = σ_r², the hard χ²(1) ``params.gate`` (None: off), Student-t rows with
     ``params.nu`` (None: Gaussian).  Returns ``(state, info, nll, nll_dof, n_outliers)``:
     :func:`jaxslam.filters.ekf_slam.update_nll`'s terms (d_z = 1) and the rows offered whose
     marginal d² exceeds ``params.outlier_gate`` (filled by :func:`resolve_outlier_gate`).
-    A known ``params.sigma_r`` must be > 0 (a negative one was squared into a valid R)."""
+    A known ``params.sigma_r`` must be > 0 (a negative one was squared into a valid R).
+    ``mapped`` is a bool (or 0/1 integer) mask: a float one was read as ``!= 0`` (0.5 a mapped
+    row); when ``slots`` and ``mapped`` are known, a mapped row's slot must lie in
+    [0, capacity) (one outside was dropped by the engine and flagged ``MASKED_INPUT``)."""
     if is_concrete(params.sigma_r):
         check_scalar(params.sigma_r, "params.sigma_r", lower=0, strict=True)
+    _check_slots(st, slots, mapped)
     R = jnp.reshape(params.sigma_r ** 2, (1, 1))
     st, info = es.update(st, model, z, slots, mapped, R, gate=params.gate, robust=params.nu, row_stats=True)
     nll, cnt = es.update_nll(info, 1, params.nu)

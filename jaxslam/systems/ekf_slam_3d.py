@@ -433,6 +433,15 @@ def _check_config(config: Config, n_known=None, name: str = "log.landmarks"):
             raise InputError(f"config.capacity: {config.capacity} slots cannot hold the {n_known} known landmarks")
 
 
+def _check_known_map(landmarks, config: Config, name: str) -> None:
+    """The known map (``config.mode == "known"``), when its values are known: numbers, finite.
+    A NaN/Inf position was preloaded inside the jitted run, and every frame's update came out
+    non-finite (status NON_FINITE | NOT_PSD, the robot mean zeroed) instead of being refused."""
+    if config.mode == "known" and landmarks is not None and is_concrete(landmarks):
+        if not np.all(np.isfinite(check_numbers(landmarks, name))):
+            raise InputError(f"{name}: contains NaN or Inf")
+
+
 def initial_state(s0, config: Config, params: Params, landmarks=None) -> State:
     """The filter state at ``s0`` (9,) with covariance ``params.P0``; the known map preloaded with
     zero covariance in ``config.mode == "known"`` (``landmarks`` (L, 3))."""
@@ -516,6 +525,7 @@ def make_estimator(config: Config, params: Params, landmarks_true=None):
     from .estimator import Estimator
 
     _check_config(config, None if landmarks_true is None else landmarks_true.shape[0], "landmarks_true")
+    _check_known_map(landmarks_true, config, "landmarks_true")
 
     def init(key, x0):
         dtype = x0.dtype
@@ -687,6 +697,7 @@ def run(log: Log, config: Config, params: Params, *, key=None) -> Result:
     if is_concrete(log.s0) and not np.all(np.isfinite(np.asarray(log.s0, np.float64))):
         raise InputError("log.s0: contains NaN or Inf")  # every mean came out NaN
     _check_config(config, None if log.landmarks is None else int(np.shape(log.landmarks)[0]))
+    _check_known_map(log.landmarks, config, "log.landmarks")
     if is_concrete(params):
         validate_params(params)
     dtype = jnp.asarray(log.s0).dtype  # thresholds as arrays: a Python number and an array share one program

@@ -76,7 +76,7 @@ from ..errors import InputError
 from ..filters import association as assoc
 from ..filters import consistency as cons
 from ..filters import ekf_slam as es
-from ..linalg import check_scalar, check_psd, check_whole_ids, is_concrete, wrap_angle
+from ..linalg import check_int, check_scalar, check_psd, check_whole_ids, is_concrete, wrap_angle
 from ..sensors import range_bearing2d as rb
 
 __all__ = [
@@ -829,15 +829,16 @@ __all__ += ["params_to_dict", "params_from_dict", "config_to_dict", "MONITOR_DEF
 # ---------------------------------------------------------------------------
 
 def validate_config(config: Config) -> Config:
-    """Known motion/association/input mode; positive capacity, K and search sizes."""
+    """Known motion/association/input mode; integer capacity and K >= 1; positive search sizes."""
     if config.motion not in MOTIONS:
         raise InputError(f"config.motion: expected one of {MOTIONS}, got {config.motion!r}")
     if config.association not in ASSOCIATIONS:
         raise InputError(f"config.association: expected one of {ASSOCIATIONS}, got {config.association!r}")
     if config.input_mode not in ("rate", "increment"):
         raise InputError(f"config.input_mode: expected 'rate' or 'increment', got {config.input_mode!r}")
-    if int(config.capacity) < 1 or int(config.K) < 1:
-        raise InputError(f"config.capacity and config.K must be >= 1, got {config.capacity}, {config.K}")
+    # a float capacity/K was truncated silently (16.5 -> 16 slots, True -> 1, "4" -> 4)
+    check_int(config.capacity, "config.capacity", what="an int (landmark slots)")
+    check_int(config.K, "config.K", what="an int (rows per event)")
     if config.association == "jcbb" and not (int(config.jcbb_cand) >= 1 and int(config.jcbb_budget) >= 1):
         raise InputError(f"config.jcbb_cand/jcbb_budget: need >= 1, got {config.jcbb_cand}, {config.jcbb_budget}")
     if int(config.block) < 0:
@@ -934,8 +935,8 @@ def check_thresholds(values: dict, where: str = "params") -> dict:
 
 def validate_log(log: Log) -> Log:
     """Shapes of a :class:`Log` (also when traced): T >= 1 events, u (T, 2), z (T, K, 2), ids/mask
-    (T, K), pose0 (3,); when its values are known, dt ≥ 0 finite, inputs and the start pose finite,
-    the ids of the rows in use whole numbers."""
+    (T, K), pose0 (3,), a bool (or integer 0/1) mask; when its values are known, dt ≥ 0 finite,
+    inputs and the start pose finite, the ids of the rows in use whole numbers."""
     T = np.shape(log.dt)[0] if np.ndim(log.dt) == 1 else -1
     if T < 0:
         raise InputError(f"log.dt: expected shape (T,), got {np.shape(log.dt)}")
@@ -951,6 +952,9 @@ def validate_log(log: Log) -> Log:
             raise InputError(f"log.{name}: expected shape {zs[:2]}, got {np.shape(getattr(log, name))}")
     if np.shape(log.pose0) != (3,):
         raise InputError(f"log.pose0: expected shape (3,), got {np.shape(log.pose0)}")
+    mdt = jnp.result_type(log.mask)
+    if not (mdt == bool or jnp.issubdtype(mdt, jnp.integer)):  # a float mask of 0.5 was read as True
+        raise InputError(f"log.mask: expected a bool mask (or 0/1 integers), got dtype {mdt}")
     if not is_concrete(log.dt, log.u, log.pose0):
         return log
     dt = np.asarray(log.dt)

@@ -461,3 +461,94 @@ def test_range_model_and_update_name_a_bad_argument():
     params = pr.PARAMS._replace(sigma_r=-0.3)  # squared, it was a valid R
     with pytest.raises(InputError, match=r"^params.sigma_r: expected a positive"):
         br.update_ranges(None, None, None, None, None, params)
+
+
+# --- a sixth probe: float masks, a float capacity, a NaN known map, slots outside the map ---
+
+def test_planar_ekf_slam_refuses_a_float_mask_and_a_non_integer_capacity():
+    """A float mask of 0.5 was read as True (the row used); capacity 16.5 (or 16.0, True, "4")
+    was truncated by int() into a map of another size."""
+    from jaxslam.systems import planar_ekf_slam as pe
+
+    cfg = pe.Config(capacity=4)
+    prm = pe.Params(M_c=0.01 * np.eye(2), Q_floor=1e-4 * np.eye(3), R=np.diag([0.1, 0.01]), P0=1e-3 * np.eye(3))
+    for m in (np.ones((6, 2)), np.full((6, 2), 0.5)):
+        with pytest.raises(InputError, match=r"^log\.mask: expected a bool mask \(or 0/1 integers\)"):
+            pe.run(_planar_log(mask=m), cfg, prm)
+    for c in (16.0, 16.5, True, "4"):
+        with pytest.raises(InputError, match=r"^config\.capacity: expected an int"):
+            pe.run(_planar_log(), cfg._replace(capacity=c), prm)
+    with pytest.raises(InputError, match=r"^config\.K: expected an int"):
+        pe.run(_planar_log(), cfg._replace(K=8.0), prm)
+    # an integer 0/1 mask and a NumPy integer capacity run as before; a traced bool mask under jit too
+    ref = pe.run(_planar_log(), cfg, prm)
+    a = pe.run(_planar_log(mask=np.ones((6, 2), np.int32)), cfg._replace(capacity=np.int64(4)), prm)
+    np.testing.assert_array_equal(np.asarray(a.pose), np.asarray(ref.pose))
+    b = jax.jit(lambda mk: pe.run(_planar_log(mask=mk), cfg, prm).pose)(jnp.ones((6, 2), bool))
+    np.testing.assert_allclose(np.asarray(b), np.asarray(ref.pose), rtol=1e-6, atol=1e-9)
+
+
+def test_ekf_slam_3d_refuses_a_non_finite_known_map():
+    """A NaN/Inf in log.landmarks (mode "known") was preloaded inside the jitted run: every
+    frame's update non-finite (status NON_FINITE | NOT_PSD, the robot mean zeroed)."""
+    from jaxslam.systems import ekf_slam_3d as e3
+
+    F, L = 3, 2
+    lm = np.array([[5.0, 0.5, 0.5], [6.0, -0.6, 1.2]])
+    log = e3.Log(s0=np.zeros(9), imu=np.tile([0.0, 0, -9.81, 0, 0, 0], (2 * F + 1, 1)),
+                 y=np.tile([[0.1, 0.1, 5.0], [0.2, -0.1, 6.0]], (F, 1, 1)), visible=np.ones((F, L), bool),
+                 ids=np.arange(L, dtype=np.int32), landmarks=lm)
+    prm = e3.Params(P0=1e-3 * np.eye(9), Qc=1e-4 * np.eye(9), Qimu=1e-4 * np.eye(6), R=1e-4 * np.eye(3))
+    cfg = e3.Config(capacity=4, max_obs=2, mode="known")
+    for bad in (np.nan, np.inf):
+        lm_bad = lm.copy()
+        lm_bad[1, 2] = bad
+        with pytest.raises(InputError, match=r"^log\.landmarks: contains NaN or Inf"):
+            e3.run(log._replace(landmarks=lm_bad), cfg, prm)
+        with pytest.raises(InputError, match=r"^landmarks_true: contains NaN or Inf"):
+            e3.make_estimator(cfg, prm, lm_bad)
+    res = e3.run(log, cfg, prm)  # the finite map runs, unflagged
+    assert int(res.final.slam.status) == 0 and np.all(np.isfinite(np.asarray(res.final.slam.x)))
+
+
+def test_update_ranges_names_a_slot_outside_the_map_and_a_float_mapped_mask():
+    """A mapped row's slot outside [0, capacity) was dropped by the engine (MASKED_INPUT), the
+    caller's bug unnamed; a float ``mapped`` of 0.5 was read as True (the row used)."""
+    from jaxslam import errors
+    from jaxslam.filters import ekf_slam as es
+    from jaxslam.systems import biased_range as br
+
+    M = pr.MODEL
+    st = es.init(jnp.zeros(M.robot_dim), 0.01 * jnp.eye(M.robot_dim), 3, 2)
+    st = es.preload(st, M, jnp.array([[3.0, 4.0], [-3.0, 4.0]]))
+    p = br.resolve_outlier_gate(pr.PARAMS)
+    z = jnp.array([[5.0], [5.2]])
+    for bad in (5, 3, -1):
+        with pytest.raises(InputError, match=r"^slots: mapped row\(s\) \[1\] name slot\(s\) \[" + str(bad)):
+            br.update_ranges(st, M, z, jnp.array([0, bad]), jnp.array([True, True]), p)
+    for m in (jnp.array([1.0, 0.5]), np.array([1.0, 0.0])):
+        with pytest.raises(InputError, match=r"^mapped: expected a bool mask \(or 0/1 integers\)"):
+            br.update_ranges(st, M, z, jnp.array([0, 1]), m, p)
+    # an unmapped row may carry any slot; a 0/1 integer mask is the bool one
+    ref = br.update_ranges(st, M, z, jnp.array([0, 1]), jnp.array([True, False]), p)
+    for slots, mapped in ((jnp.array([0, 5]), jnp.array([True, False])), (jnp.array([0, 1]), jnp.array([1, 0]))):
+        out = br.update_ranges(st, M, z, slots, mapped, p)
+        np.testing.assert_array_equal(np.asarray(out[0].x), np.asarray(ref[0].x))
+        assert float(out[2]) == float(ref[2])
+    # traced slots: no check, the engine drops the row and flags it, as before
+    s2 = jax.jit(lambda sl: br.update_ranges(st, M, z, sl, jnp.array([True, True]), p)[0])(jnp.array([0, 5]))
+    assert int(s2.status) & errors.MASKED_INPUT
+
+
+def test_fastslam_001_counts_landmark_ids_beyond_capacity_as_overflow():
+    """Not a defect: an id >= config.capacity (slot = id) is counted in the particles' overflow
+    and flags CAPACITY_OVERFLOW, never clipped into the last slot."""
+    from jaxslam import errors
+    from jaxslam.systems import fastslam_001 as fs1
+
+    cfg = fs1.Config(n_particles=8, lidar_every=2)  # capacity 4
+    res = fs1.run(_fs1_log(ids=np.array([3, 9])), cfg, fs1.default_params(), key=jax.random.PRNGKey(0))
+    p = res.final.particles
+    assert int(p.overflow) == 2  # id 9 in each of the 2 frames
+    assert int(p.status) & errors.CAPACITY_OVERFLOW
+    np.testing.assert_array_equal(np.asarray(p.ids), np.tile([-1, -1, -1, 3], (8, 1)))
