@@ -1,12 +1,14 @@
 """Development: MRCLAM with ids hidden, the NN gates of the Gaussian model vs those of the
-filter's own Student-t row model (docs/datasets.md, "Association gates with ids hidden").
+filter's own Student-t row model, and the NIS monitor (docs/datasets.md, "Association gates
+with ids hidden").
 
     python scripts/study_mrclam_hidden_gates.py [DATA_DIR]
 
 DATA_DIR: the folder holding mrclam6/ (default: $JAXSLAM_DATA_DIR).  Writes
 docs/results/datasets/mrclam_hidden_gates_study.json.
 
-The rule below was written before candidate B was run; it reads counts and status flags only.
+The rules below were written before candidates B and M were run; they read counts and status
+flags only.
 Ground truth enters only the ATE printed for the report.
 """
 import json
@@ -32,6 +34,22 @@ Adopt B as the ids-hidden default iff, on MRCLAM 6 robots 1-5 (default options o
   (i) no registration refused for capacity, (ii) no run DIVERGED, and (iii) the sightings the
   filter could not use for localisation (rejected + registered) are fewer than with A on at
   least 4 of the 5 robots. ATE is read only afterwards and reported whatever it is."""
+
+RULE_M = """Written 2026-12-06, after B's runs and before any run of candidate M.
+M (candidate): ids hidden with the NIS monitor on (planar_ekf_slam.Config(monitor=True), its default
+  MonitorParams: robot covariance inflated when the running mean NIS per scalar exceeds 3), gates as A.
+Adopt M as the ids-hidden default iff on robots 1-5: (i) no registration refused for capacity,
+  (ii) no run DIVERGED, (iii) fewer registrations than A on at least 4 of 5 robots (each
+  registration beyond the landmarks really there is a duplicate). ATE read afterwards only.
+Outcome (before N existed): every count and ATE equal to A's, 0 inflations: the monitor watched the
+  matched rows only, which the 9.21 gate keeps below its trigger. Not adopted.
+
+Written 2026-12-06, after M's runs and before any run of candidate N.
+N (candidate): the monitor with ids hidden also watches the ambiguous rows (gate < d2_min <=
+  new_threshold) at their nearest landmark's d2 (mostly mapped landmarks seen through an
+  over-confident pose); outlier counting unchanged (matched rows only); monitor defaults unchanged.
+Adopt N iff on robots 1-5: (i) no registration refused for capacity, (ii) no run DIVERGED,
+  (iii) fewer registrations than A on at least 4 of 5 robots. ATE read afterwards only."""
 
 
 def t_pair_d2_sf(x: float, nu: float, n: int = 400) -> float:
@@ -62,13 +80,14 @@ def t_pair_d2_ppf(p: float, nu: float) -> float:
     return 0.5 * (lo + hi)
 
 
-def run(gate, new):
-    orig = presets.mrclam_params
+def run(gate, new, monitor=False):
+    orig, orig_cfg = presets.mrclam_params, presets.mrclam_config
 
     def patched(*a, **k):
         return orig(*a, **k)._replace(gate=gate, new_threshold=new)
 
     presets.mrclam_params = patched
+    presets.mrclam_config = lambda *a, **k: orig_cfg(*a, **{**k, "monitor": monitor})
     out = {}
     try:
         for r in range(1, 6):
@@ -76,10 +95,11 @@ def run(gate, new):
             c = j["counts"]
             out[str(r)] = {k: c[k] for k in ("measurements", "used", "rejected", "registered", "pruned",
                                              "landmarks_mapped", "overflow", "status_flags")}
+            out[str(r)]["inflations"] = c["inflations"]
             out[str(r)]["ate_m"] = j["metrics"]["ate_m"]
-            print(gate, new, r, out[str(r)], flush=True)
+            print(gate, new, monitor, r, out[str(r)], flush=True)
     finally:
-        presets.mrclam_params = orig
+        presets.mrclam_params, presets.mrclam_config = orig, orig_cfg
     return out
 
 
@@ -93,19 +113,25 @@ if __name__ == "__main__":
              "model_sf_9.21": t_pair_d2_sf(9.21, nu), "mc_sf_9.21": float(np.mean(d2 > 9.21)),
              "model_sf_30": t_pair_d2_sf(30.0, nu), "mc_sf_30": float(np.mean(d2 > 30.0))}
     print("quantiles", q, check, flush=True)
-    runs = {"A_chi2_9.21_30": run(9.21, 30.0), "B_student_t": run(q[0.99], q[0.9999])}
+    runs = {"A_chi2_9.21_30": run(9.21, 30.0), "B_student_t": run(q[0.99], q[0.9999]),
+            "N_nis_monitor_ambiguous": run(9.21, 30.0, monitor=True)}
     ok = lambda o: all(v["overflow"] == 0 for v in o.values())  # noqa: E731
     calm = lambda o: all(v["status_flags"] == "none" for v in o.values())  # noqa: E731
     lost = lambda o, r: o[r]["rejected"] + o[r]["registered"]  # noqa: E731
     fewer = sum(lost(runs["B_student_t"], r) < lost(runs["A_chi2_9.21_30"], r) for r in runs["B_student_t"])
     adopt = ok(runs["B_student_t"]) and calm(runs["B_student_t"]) and fewer >= 4
-    res = {"rule": RULE, "nu": nu, "B_gates": {"gate": q[0.99], "new_threshold": q[0.9999]},
+    m, a = runs["N_nis_monitor_ambiguous"], runs["A_chi2_9.21_30"]
+    fewer_m = sum(m[r]["registered"] < a[r]["registered"] for r in m)
+    adopt_m = ok(m) and calm(m) and fewer_m >= 4
+    res = {"rule": RULE, "rule_M_N": RULE_M, "nu": nu, "B_gates": {"gate": q[0.99], "new_threshold": q[0.9999]},
            "quantile_check": check, "runs": runs,
            "criteria_B": {"no_capacity_refusal": ok(runs["B_student_t"]), "none_diverged": calm(runs["B_student_t"]),
                           "robots_with_fewer_unused_sightings": int(fewer)},
-           "chosen": "B_student_t" if adopt else "A_chi2_9.21_30"}
+           "criteria_N": {"no_capacity_refusal": ok(m), "none_diverged": calm(m),
+                          "robots_with_fewer_registrations": int(fewer_m)},
+           "chosen": "B_student_t" if adopt else ("N_nis_monitor_ambiguous" if adopt_m else "A_chi2_9.21_30")}
     path = "docs/results/datasets/mrclam_hidden_gates_study.json"
     with open(path + ".tmp", "w") as f:
         json.dump(res, f, indent=1)
     os.replace(path + ".tmp", path)
-    print("chosen", res["chosen"], res["criteria_B"])
+    print("chosen", res["chosen"], res["criteria_B"], res["criteria_N"])

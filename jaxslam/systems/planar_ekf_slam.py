@@ -129,8 +129,12 @@ class Config(NamedTuple):
       update (:func:`~jaxslam.filters.ekf_slam.update`, ``robust``): outliers are
       down-weighted, never cut off.
     monitor: NIS monitor with covariance inflation (:mod:`jaxslam.filters.consistency`,
-      ``params.monitor``); the run carries ``DIVERGED`` when more than 10 % of the rows of
-      mapped landmarks were outliers (d² > ``params.monitor.outlier_gate``).
+      ``params.monitor``): it watches the rows matched to mapped landmarks and, with
+      association ``"nn"``, also the ambiguous rows (gate < d² ≤ new_threshold) at their
+      nearest landmark's d² (the gate keeps matched rows below the monitor's trigger, so a
+      monitor of those alone never acted with ids hidden).  Whether or not it is on, the run
+      carries ``DIVERGED`` when more than 10 % of the matched rows were outliers (d² >
+      ``params.monitor.outlier_gate``).
     jcbb_cand, jcbb_budget: association ``"jcbb"`` (:func:`jaxslam.filters.association.jcbb`):
       candidates kept per measurement and search nodes per event; the joint test is at
       ``joint_gate`` (default 0.99) and the individual gate at ``params.gate``.
@@ -399,6 +403,7 @@ def _measure(st: es.SlamState, z, ids, valid, model, config: Config, R, nu, thr:
         rejected = jnp.sum(cand & ~new).astype(jnp.int32)
         reg_ids = ids
         watched = mapped
+        mon_d2, mon_rows = None, None
     else:
         if config.association == "jcbb":
             jc = assoc.jcbb(st, model, zs, valid, R, None, gate=thr.gate,
@@ -406,8 +411,9 @@ def _measure(st: es.SlamState, z, ids, valid, model, config: Config, R, nu, thr:
                             n_cand=config.jcbb_cand, budget=config.jcbb_budget)
             slots, matched = jnp.maximum(jc.slots, 0), jc.paired
             new = valid & ~matched & (jc.d2 > thr.new_threshold)
+            d2_near = None
         else:
-            slots, matched, new, _ = es.associate_nn(st, model, zs, valid, R, None, gate=thr.gate,
+            slots, matched, new, d2_near = es.associate_nn(st, model, zs, valid, R, None, gate=thr.gate,
                                                      new_threshold=thr.new_threshold,
                                                      active_only=config.active_only)
             if config.joint_gate is not None:
@@ -416,9 +422,18 @@ def _measure(st: es.SlamState, z, ids, valid, model, config: Config, R, nu, thr:
         st, info = es.update(st, model, zs, slots, matched, R, None, gate=thr.update_gate, robust=robust,
                              row_stats=True, active_only=config.active_only, joseph=config.joseph)
         # ambiguous (between the gates) or losing a landmark to a closer measurement
-        rejected = jnp.sum(valid & ~matched & ~new).astype(jnp.int32)
+        ambiguous = valid & ~matched & ~new
+        rejected = jnp.sum(ambiguous).astype(jnp.int32)
         reg_ids = jnp.full((K,), -1, jnp.int32)
         watched = matched
+        mon_d2, mon_rows = None, None
+        if d2_near is not None:
+            # the monitor also sees the ambiguous rows at their nearest landmark (nn): with ids
+            # hidden an over-confident pose turns mapped landmarks' sightings into such rows, which
+            # the gate keeps from the matched rows' NIS
+            amb = ambiguous & jnp.isfinite(d2_near)
+            mon_d2 = jnp.where(amb, d2_near, 0.0)
+            mon_rows = amb
     n_before = jnp.sum(st.active).astype(jnp.int32)
     # (the engine's register skips its work when nothing is new, also for a vmapped batch)
     st = es.register(st, model, zs, reg_ids, new, R, None)
@@ -430,7 +445,13 @@ def _measure(st: es.SlamState, z, ids, valid, model, config: Config, R, nu, thr:
         registered,
     ])
     nll, nll_dof = es.update_nll(info, dz, nu if config.robust else None)
-    return st, counts, info.nis, info.dof.astype(jnp.int32), slots, info.used, info.d2, watched, nll, nll_dof
+    d2_out = info.d2
+    if mon_d2 is None:
+        mon_rows = jnp.zeros((K,), bool)
+        mon_d2 = jnp.zeros((K,), d2_out.dtype)
+    mon_d2 = jnp.where(mon_rows, mon_d2.astype(d2_out.dtype), d2_out)
+    return (st, counts, info.nis, info.dof.astype(jnp.int32), slots, info.used, d2_out, watched, nll, nll_dof,
+            mon_d2, watched | mon_rows)
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(2, 3))
@@ -646,10 +667,11 @@ def step(state: State, event: Event, config: Config, params: Params, *, key=None
     def without(st_):
         zi, zb = jnp.zeros((), jnp.int32), jnp.zeros((K,), bool)
         return (st_, jnp.zeros((4,), jnp.int32), jnp.zeros((), dtype), zi, jnp.zeros((K,), jnp.int32),
-                zb, jnp.zeros((K,), dtype), zb, jnp.zeros((), dtype), jnp.zeros((), dtype))
+                zb, jnp.zeros((K,), dtype), zb, jnp.zeros((), dtype), jnp.zeros((), dtype),
+                jnp.zeros((K,), dtype), zb)
 
     active_before = st.active
-    st, counts, nis, dof, slots_k, used_k, d2_k, watched, nll, nll_dof = jax.lax.cond(
+    st, counts, nis, dof, slots_k, used_k, d2_k, watched, nll, nll_dof, mon_d2, mon_rows = jax.lax.cond(
         jnp.any(vk), with_meas, without, st)
     if rm is not None:
         # The filter sees r = (r_meas − a)/g: the density of the measured range carries the
@@ -660,7 +682,7 @@ def step(state: State, event: Event, config: Config, params: Params, *, key=None
     # consistency: the rows of mapped landmarks, before any gate or weighting
     mon = state.monitor
     if config.monitor:
-        mon, st = cons.observe(mon, st, model, d2_k, watched, mon_p)
+        mon, st = cons.observe(mon, st, model, mon_d2, mon_rows, mon_p)
     n_out = cons.outliers(d2_k, watched, mon_p)
     t_k = state.t + dt_k
     aux = (t_k, state.reg_t, state.n_match, state.confirmed)
