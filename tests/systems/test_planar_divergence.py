@@ -35,18 +35,23 @@ T_STEPS = 640  # two loops of the 5 m circle
 BAD = slice(150, 155)  # the corrupted stretch (steps), after the map has been built once
 
 
-@pytest.fixture(scope="module")
-def log():
+def _corrupted_log(turn_rate_error):
+    """The two-loop log with ``turn_rate_error`` [rad/s] added over the BAD steps, and the truth."""
     traj, lms, vis = _scenario(n_steps=T_STEPS)
     rng = np.random.default_rng(3)
     u = np.tile([V, W], (T_STEPS, 1)) + rng.normal(size=(T_STEPS, 2)) * np.array([SIG_V, SIG_W]) / np.sqrt(DT)
-    u[BAD, 1] += 1.0
+    u[BAD, 1] += turn_rate_error
     z = np.array([np.asarray(rb.observe(jnp.asarray(traj[k]), jnp.asarray(lms[j]))) for k, j in vis])
     z = z + rng.normal(size=z.shape) * np.array([SIG_R, SIG_B])
     lg = merge_events(DT * np.arange(T_STEPS), u, np.array([DT * k for k, _ in vis]), z,
                       np.array([j for _, j in vis]), K=8)
     truth = traj[np.rint(lg.t / DT).astype(int)]
     return lg, truth
+
+
+@pytest.fixture(scope="module")
+def log():
+    return _corrupted_log(1.0)
 
 
 def _run(lg, truth, update_gate=None, **cfg):
@@ -93,15 +98,8 @@ def test_monitor_with_ids_hidden_watches_the_ambiguous_rows():
     matched rows alone never tripped (0 inflations on every MRCLAM robot, and here); the rows an
     over-confident pose pushes between the gates are now folded in at their nearest landmark.
     A milder corruption than the module's (0.3 rad/s for 0.5 s) puts sightings there."""
-    traj, lms, vis = _scenario(n_steps=T_STEPS)
-    rng = np.random.default_rng(3)
-    u = np.tile([V, W], (T_STEPS, 1)) + rng.normal(size=(T_STEPS, 2)) * np.array([SIG_V, SIG_W]) / np.sqrt(DT)
-    u[BAD, 1] += 0.3
-    z = np.array([np.asarray(rb.observe(jnp.asarray(traj[k]), jnp.asarray(lms[j]))) for k, j in vis])
-    z = z + rng.normal(size=z.shape) * np.array([SIG_R, SIG_B])
-    lg = merge_events(DT * np.arange(T_STEPS), u, np.array([DT * k for k, _ in vis]), z,
-                      np.array([j for _, j in vis]), K=8)
-    res = P.run(P.log_from_events(lg, jnp.asarray(traj[0])),
+    lg, truth = _corrupted_log(0.3)
+    res = P.run(P.log_from_events(lg, jnp.asarray(truth[0])),
                 P.Config(capacity=32, association="nn", monitor=True), _params())
     assert int(np.sum(res.n_rejected)) > 20, "the corruption should push sightings between the gates"
     assert int(res.inflations) >= 1
