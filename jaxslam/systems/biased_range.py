@@ -58,8 +58,8 @@ def check_log(log, u_width=None, name: str = "log") -> None:
     """The per-event arrays of a range-only ``Log``: at least one event; ``t``, ``dt`` (T,);
     ``u`` (T, ``u_width``) when given; ``z`` (T, K, 1) of a floating dtype (it is the run's
     dtype: integer ranges made every parameter an integer); ``ids``, ``mask`` (T, K).  Shapes
-    always (also traced); when known, dt finite and >= 0 (a negative dt ran backwards) and the
-    ids of the rows in use whole numbers (a fractional id was truncated onto another anchor).
+    always (also traced); when known, dt finite and >= 0 (a negative dt ran backwards), t finite
+    and non-decreasing, and the ids of the rows in use whole numbers (a fractional id was truncated onto another anchor).
     Raises :class:`InputError` naming ``name.field`` (a mismatch used to fail inside the scan)."""
     zs = np.shape(log.z)
     if len(zs) != 3 or zs[2] != 1:
@@ -81,6 +81,13 @@ def check_log(log, u_width=None, name: str = "log") -> None:
         dt = np.asarray(log.dt, np.float64)
         if not np.all(np.isfinite(dt)) or np.any(dt < 0):
             raise InputError(f"{name}.dt: must be finite and >= 0")
+    if is_concrete(log.t):  # the run reports and is scored at these times: a step back misplaced them
+        t = np.asarray(log.t, np.float64)
+        if not np.all(np.isfinite(t)):
+            raise InputError(f"{name}.t: non-finite time at index {int(np.argmin(np.isfinite(t)))}")
+        if t.size > 1 and np.any(np.diff(t) < 0):
+            i = int(np.argmax(np.diff(t) < 0)) + 1
+            raise InputError(f"{name}.t: time decreases at index {i} ({t[i - 1]!r} -> {t[i]!r})")
     if is_concrete(log.ids, log.mask):
         check_whole_ids(log.ids, f"{name}.ids", used=log.mask)
 

@@ -181,10 +181,13 @@ def _range_log_cases(T_):
             (lambda lg: lg._replace(ids=np.zeros((T_, lg.z.shape[1] + 1), int)), rf"^log\.ids: expected shape \({T_}, "),
             (lambda lg: lg._replace(mask=np.ones((T_, lg.z.shape[1] - 1), bool)), rf"^log\.mask: expected shape \({T_}, "),
             (lambda lg: lg._replace(z=np.asarray(lg.z).astype(int)), r"^log\.z: expected floating ranges"),
-            (lambda lg: lg._replace(ids=np.asarray(lg.ids) + 0.5), r"^log\.ids: expected whole-number")]
+            (lambda lg: lg._replace(ids=np.asarray(lg.ids) + 0.5), r"^log\.ids: expected whole-number"),
+            # the event times the run reports and is scored at (a step back misplaced them, silently)
+            (lambda lg: lg._replace(t=np.asarray(lg.t)[::-1].copy()), r"^log\.t: time decreases at index 1"),
+            (lambda lg: lg._replace(t=np.where(np.arange(T_) == 2, np.nan, lg.t)), r"^log\.t: non-finite time at index 2")]
 
 
-@pytest.mark.parametrize("k", range(7))
+@pytest.mark.parametrize("k", range(9))
 def test_plaza_and_util_range_check_the_whole_log(k):
     change, msg = _range_log_cases(6)[k]
     with pytest.raises(InputError, match=msg):  # each failed inside the scan, or ran silently
