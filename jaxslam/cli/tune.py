@@ -94,12 +94,14 @@ def build_parser(with_targets: bool = True) -> Parser:
                    help="nll: innovation negative log-likelihood (no truth needed); mse: squared state "
                         "error vs truth; nees: NEES consistency; cost: closed-loop cost (lqr) "
                         "(default: nll for noise where offered, else the target's first loss; cost for lqr)")
-    p.add_argument("--steps", type=int_at_least(1), default=None, help="optimisation steps (default: 100 noise, 40 lqr)")
+    p.add_argument("--steps", type=int_at_least(1), default=None,
+                   help="optimisation steps (default: 100 noise, 40 lqr, 30 loop, 25 real logs)")
     p.add_argument("--train-runs", type=int_at_least(1), default=4, metavar="M", help="training runs (default 4)")
     p.add_argument("--test-runs", type=int_at_least(1), default=8, metavar="M",
                    help="held-out runs for the before/after table (default 8)")
     p.add_argument("--lr", type=positive_float, default=None,
-                   help="peak Adam learning rate in log-parameter units (default: 0.5 noise, 0.1 lqr)")
+                   help="peak Adam learning rate in log-parameter units (default: 0.5 noise, 0.1 lqr, loop and "
+                        "real logs)")
     p.add_argument("--seed", type=int_at_least(0), default=0,
                    help="training seed S; held-out runs use seed S+1 (default 0)")
     p.add_argument("--batch-size", type=int_at_least(1), default=None,
@@ -268,6 +270,16 @@ def run_tuning(args, progress_stream=None) -> dict:
 
         loop_target.controller_file(args.compare, dflqr.paper000_params())
     real = args.scenario in targets.REAL_LOG_SCENARIOS
+    if not real:  # options a simulation target would ignore: refused by name, like the real logs'
+        defaults = build_parser(with_targets=False)
+        flights = args.scenario.startswith("ekfslam3d") or args.scenario == "track-figure8"
+        takes_cov = (args.scenario.startswith("ekfslam3d") and target_name == "noise") or args.scenario.startswith("uwb-")
+        for flag, ok in (("--duration", flights), ("--eval-duration", flights), ("--no-checkpoint", flights),
+                         ("--cov", takes_cov)):
+            dest = flag[2:].replace("-", "_")
+            if not ok and getattr(args, dest) != defaults.get_default(dest):
+                raise InputError(f"{flag}: {args.scenario} --target {target_name} does not use it (it would be "
+                                 "ignored)")
     if not 0 < args.b2 < 1:  # before the build (it used to fail after compiling the step)
         raise InputError(f"--b2: Adam's second-moment decay must be in (0, 1), got {args.b2}")
     if not real and args.batch_size is not None and args.batch_size > args.train_runs:

@@ -732,7 +732,7 @@ def run_mrclam(data_dir, robot=1, filter="ekf", ids="known", anchors=None, parti
                f"{'FastSLAM 2.0 proposal, Student-t, ' if fs_learned else ''}"
                f"{log.stats['n_events']} events")
     cfg = _config("mrclam", filter, dtype, setting, robot=robot, ids=ids, calibrated=bool(calibrated),
-                  odometry_delay_s=None if calibrated else delay,
+                  odometry_delay_s=presets.MRCLAM_ODOMETRY_DELAY if calibrated else delay,
                   particles=particles if filter == "fastslam" else None, seed=seed,
                   **_smooth_config(smooth, SMOOTHER_RTS))
     cfg["thresholds"] = _planar_thresholds(filter, prm, fs_kind, particles)

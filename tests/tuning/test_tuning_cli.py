@@ -79,6 +79,13 @@ def test_a_diverged_training_run_is_named_counted_and_left_out(tmp_path, capsys,
     (["tune", "linear-gaussian", "--steps", "0"], "--steps"),
     (["tune", "linear-gaussian", "--lr", "-1"], "--lr"),
     (["tune", "linear-gaussian", "--bogus"], "--bogus"),
+    # options a target would ignore are refused by name (uwb-* ran its full flight, exit 0)
+    (["tune", "uwb-circle", "--duration", "5"], "--duration: uwb-circle --target noise does not use it"),
+    (["tune", "uwb-circle", "--eval-duration", "5"], "--eval-duration: uwb-circle --target noise does not"),
+    (["tune", "uwb-square", "--no-checkpoint"], "--no-checkpoint: uwb-square --target noise does not"),
+    (["tune", "linear-gaussian", "--cov", "chol"], "--cov: linear-gaussian --target noise does not use it"),
+    (["tune", "ekfslam3d-unknown", "--target", "loop", "--cov", "chol"], "--cov: ekfslam3d-unknown --target loop"),
+    (["tune", "track-figure8", "--cov", "chol"], "--cov: track-figure8 --target lqr does not use it"),
 ])
 def test_usage_errors_exit_2_one_line(capsys, argv, needle):
     assert cli.main(argv) == 2
