@@ -394,6 +394,7 @@ def _measure(st: es.SlamState, z, ids, valid, model, config: Config, R, nu, thr:
     dz = model.meas_dim
     zs = jnp.where(valid[:, None], z, 0.0)
     robust = nu if config.robust else None
+    extra = None  # nn: (ambiguous rows, their nearest landmark's d²) for the NIS monitor
     if config.association == "known":
         slots, mapped = es.associate_known(st, ids, valid)
         st, info = es.update(st, model, zs, slots, mapped, R, None, gate=thr.update_gate, robust=robust,
@@ -403,7 +404,6 @@ def _measure(st: es.SlamState, z, ids, valid, model, config: Config, R, nu, thr:
         rejected = jnp.sum(cand & ~new).astype(jnp.int32)
         reg_ids = ids
         watched = mapped
-        mon_d2, mon_rows = None, None
     else:
         if config.association == "jcbb":
             jc = assoc.jcbb(st, model, zs, valid, R, None, gate=thr.gate,
@@ -411,7 +411,6 @@ def _measure(st: es.SlamState, z, ids, valid, model, config: Config, R, nu, thr:
                             n_cand=config.jcbb_cand, budget=config.jcbb_budget)
             slots, matched = jnp.maximum(jc.slots, 0), jc.paired
             new = valid & ~matched & (jc.d2 > thr.new_threshold)
-            d2_near = None
         else:
             slots, matched, new, d2_near = es.associate_nn(st, model, zs, valid, R, None, gate=thr.gate,
                                                      new_threshold=thr.new_threshold,
@@ -426,14 +425,11 @@ def _measure(st: es.SlamState, z, ids, valid, model, config: Config, R, nu, thr:
         rejected = jnp.sum(ambiguous).astype(jnp.int32)
         reg_ids = jnp.full((K,), -1, jnp.int32)
         watched = matched
-        mon_d2, mon_rows = None, None
-        if d2_near is not None:
-            # the monitor also sees the ambiguous rows at their nearest landmark (nn): with ids
-            # hidden an over-confident pose turns mapped landmarks' sightings into such rows, which
-            # the gate keeps from the matched rows' NIS
-            amb = ambiguous & jnp.isfinite(d2_near)
-            mon_d2 = jnp.where(amb, d2_near, 0.0)
-            mon_rows = amb
+        if config.association == "nn":
+            # the NIS monitor also sees the ambiguous rows at their nearest landmark: with ids
+            # hidden an over-confident pose turns mapped landmarks' sightings into such rows,
+            # which the gate keeps out of the matched rows' NIS
+            extra = (ambiguous & jnp.isfinite(d2_near), d2_near)
     n_before = jnp.sum(st.active).astype(jnp.int32)
     # (the engine's register skips its work when nothing is new, also for a vmapped batch)
     st = es.register(st, model, zs, reg_ids, new, R, None)
@@ -445,13 +441,12 @@ def _measure(st: es.SlamState, z, ids, valid, model, config: Config, R, nu, thr:
         registered,
     ])
     nll, nll_dof = es.update_nll(info, dz, nu if config.robust else None)
-    d2_out = info.d2
-    if mon_d2 is None:
-        mon_rows = jnp.zeros((K,), bool)
-        mon_d2 = jnp.zeros((K,), d2_out.dtype)
-    mon_d2 = jnp.where(mon_rows, mon_d2.astype(d2_out.dtype), d2_out)
-    return (st, counts, info.nis, info.dof.astype(jnp.int32), slots, info.used, d2_out, watched, nll, nll_dof,
-            mon_d2, watched | mon_rows)
+    mon_rows, mon_d2 = watched, info.d2
+    if extra is not None:
+        mon_rows = watched | extra[0]
+        mon_d2 = jnp.where(extra[0], extra[1].astype(info.d2.dtype), info.d2)
+    return (st, counts, info.nis, info.dof.astype(jnp.int32), slots, info.used, info.d2, watched, nll, nll_dof,
+            mon_d2, mon_rows)
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(2, 3))
