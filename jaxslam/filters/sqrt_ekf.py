@@ -58,9 +58,10 @@ Decisions
   NaN/Inf garbage there never reaches the arithmetic (nor its gradient).
 * **Noise covariances are given as covariances** (like :mod:`jaxslam.filters.ekf`) and
   factored inside: ``R`` per update (its masked version changes with the mask) by
-  Cholesky, so ``R`` must be positive definite on the valid block (otherwise the update
-  reports ``errors.NOT_PSD`` and keeps the prior; the covariance form would accept a
-  singular ``R`` when ``H P Hᵀ`` is PD); ``Q`` and covariances passed to
+  Cholesky, so ``R`` must be positive definite on the valid block (:func:`filter_scan`
+  refuses a concrete one that is not with an :class:`InputError` naming ``R``; otherwise the
+  update reports ``errors.NOT_PSD`` and keeps the prior, where the covariance form would
+  accept a singular ``R`` when ``H P Hᵀ`` is PD); ``Q`` and covariances passed to
   :func:`from_gaussian` by :func:`psd_factor` (Cholesky, with an eigen-decomposition
   fallback for singular PSD matrices such as ``Q = diag(q, q, 0)``).  A concrete (non-traced)
   covariance is factored on the host in float64 before the cast to the filter's dtype, so a

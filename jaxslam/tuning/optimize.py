@@ -26,7 +26,8 @@ one call), with the host deciding whether the update is applied:
 Decisions (no paper covers tuning):
 
 * Schedule: linear warm-up over ``warmup`` steps (default 5 % of the steps), then cosine
-  decay to ``final_lr_frac`` × lr (``schedule="cosine"``); ``"constant"`` keeps lr.
+  decay to 5 % of lr (``schedule="cosine"``; :func:`make_optimizer`'s ``final_lr_frac``,
+  fixed at its default in :func:`fit`); ``"constant"`` keeps lr.
   Gradient clipping by global norm (``clip``, default 1.0) comes before Adam, which
   matters on the first steps from a far-off start (Table 7 is 10³-10⁷ too large).
 * Adam's β2 defaults to 0.9, not optax's 0.999.  The batches are deterministic (the same
