@@ -35,7 +35,6 @@ from typing import Any, Mapping
 import numpy as np
 
 from jaxslam.errors import InputError
-from jaxslam.linalg import check_numbers
 
 __all__ = ["load", "check", "describe", "TUNE_REPORT_KEYS"]
 
@@ -102,6 +101,8 @@ def _check_value(name: str, value: Any, default: Any) -> Any:
         if not isinstance(value, bool):
             raise InputError(f"{name}: expected true or false, got {value!r}")
         return value
+    from jaxslam.linalg import check_numbers  # here: linalg imports JAX, which the CLI's quick exits never need
+
     d = np.asarray(default, np.float64)
     try:  # check_numbers refuses strings ("0.5" would pass NumPy's conversion and stay a string)
         a = check_numbers(value, name)
