@@ -74,7 +74,7 @@ from .. import errors
 from ..errors import InputError
 from ..filters import consistency as cons
 from ..filters import fastslam as fs
-from ..linalg import check_scalar, inv_small, is_concrete, symmetrize, value_and_jacfwd, wrap_angle
+from ..linalg import check_int, check_scalar, inv_small, is_concrete, symmetrize, value_and_jacfwd, wrap_angle
 from ..sensors import range_bearing2d as rb
 from .planar_ekf_slam import Log, check_matrices, log_from_events, validate_log
 
@@ -266,7 +266,7 @@ def _validate_params(params: Params, config: Config):
     """Concrete matrices as the planar EKF's (M_c, R, P0 shape and PSD, R positive definite; a
     negative P0 used to make every pose NaN), pose_floor finite and >= 0, thresholds numbers
     (not NaN), gate > 0, resample_threshold a fraction of N in (0, 1], new_threshold ≥ the gate
-    ("ml")."""
+    ("ml"), log_p_new finite."""
     check_matrices({"M_c": params.M_c, "R": params.R, "P0": params.P0}, "params", diagonal_ok=False)
     pf = np.asarray(params.pose_floor, np.float64)
     if pf.shape != (3,) or not np.all(np.isfinite(pf)) or np.any(pf < 0):
@@ -282,6 +282,9 @@ def _validate_params(params: Params, config: Config):
                          f"{thr['resample_threshold']}")
     if params.robust_nu is not None:
         check_scalar(params.robust_nu, "params.robust_nu", lower=0, strict=True)
+    # a NaN (or infinite) charge per new landmark made every weight NaN (or every particle that
+    # registers one impossible)
+    check_scalar(params.log_p_new, "params.log_p_new")
     if params.prune_window_s is not None:
         if not thr["prune_window_s"] > 0:
             raise InputError(f"params.prune_window_s: need > 0, got {thr['prune_window_s']}")
@@ -307,8 +310,10 @@ def _validate(config: Config):
         raise InputError(f"config.motion: expected one of {_MOTIONS}, got {config.motion!r}")
     if config.association not in _ASSOC:
         raise InputError(f"config.association: expected one of {_ASSOC}, got {config.association!r}")
-    if int(config.n_particles) < 1 or int(config.capacity) < 1 or int(config.K) < 1:
-        raise InputError("config: n_particles, capacity and K must be >= 1")
+    # a float size was truncated silently (16.5 -> 16, True -> 1)
+    check_int(config.n_particles, "config.n_particles", what="an int (particles)")
+    check_int(config.capacity, "config.capacity", what="an int (landmark slots)")
+    check_int(config.K, "config.K", what="an int (rows per event)")
     if config.proposal not in _PROPOSALS:
         raise InputError(f"config.proposal: expected one of {_PROPOSALS}, got {config.proposal!r}")
 

@@ -257,6 +257,21 @@ def test_planar_fastslam_names_an_empty_log_a_negative_gate_and_its_resample_fra
             pf.run(_planar_log(), cfg, prm._replace(resample_threshold=thr), key=key)
 
 
+def test_planar_fastslam_names_a_non_finite_log_p_new_and_non_integer_sizes():
+    """Left open before: a NaN log_p_new made every weight NaN; a float size was truncated
+    (capacity 16.5 -> 16, n_particles True -> 1 particle)."""
+    cfg = pf.Config(n_particles=8, capacity=4, K=2)
+    prm = pf.Params(M_c=0.01 * np.eye(2), pose_floor=1e-4 * np.ones(3), R=np.diag([0.1, 0.01]), P0=1e-3 * np.eye(3),
+                    log_p_new=0.0)
+    key = jax.random.PRNGKey(0)
+    for bad in (np.nan, np.inf, -np.inf):
+        with pytest.raises(InputError, match=r"^params\.log_p_new: expected a finite scalar"):
+            pf.run(_planar_log(), cfg, prm._replace(log_p_new=bad), key=key)
+    for field, bad in (("capacity", 4.5), ("capacity", 4.0), ("n_particles", True), ("K", 2.0), ("n_particles", 0)):
+        with pytest.raises(InputError, match=rf"^config\.{field}: expected an int"):
+            pf.run(_planar_log(), cfg._replace(**{field: bad}), prm, key=key)
+
+
 @pytest.mark.parametrize("change, msg", [
     (dict(dt=0.0), r"^config\.dt: expected a positive finite scalar"),  # the estimate froze
     (dict(dt=-0.01), r"^config\.dt: expected a positive finite scalar"),  # ran backwards
