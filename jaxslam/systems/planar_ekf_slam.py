@@ -856,10 +856,10 @@ def validate_config(config: Config) -> Config:
     # a float capacity/K was truncated silently (16.5 -> 16 slots, True -> 1, "4" -> 4)
     check_int(config.capacity, "config.capacity", what="an int (landmark slots)")
     check_int(config.K, "config.K", what="an int (rows per event)")
-    if config.association == "jcbb" and not (int(config.jcbb_cand) >= 1 and int(config.jcbb_budget) >= 1):
-        raise InputError(f"config.jcbb_cand/jcbb_budget: need >= 1, got {config.jcbb_cand}, {config.jcbb_budget}")
-    if int(config.block) < 0:
-        raise InputError(f"config.block: need >= 0, got {config.block}")
+    if config.association == "jcbb":
+        check_int(config.jcbb_cand, "config.jcbb_cand", what="an int (candidates per measurement)")
+        check_int(config.jcbb_budget, "config.jcbb_budget", what="an int (search nodes per event)")
+    check_int(config.block, "config.block", lower=0, what="an int (events per checkpointed block)")
     if config.joint_gate is not None and not (0.0 < config.joint_gate < 1.0):
         raise InputError(f"config.joint_gate: need a probability in (0, 1), got {config.joint_gate}")
     return config

@@ -498,6 +498,9 @@ def test_planar_ekf_slam_refuses_a_float_mask_and_a_non_integer_capacity():
             pe.run(_planar_log(), cfg._replace(capacity=c), prm)
     with pytest.raises(InputError, match=r"^config\.K: expected an int"):
         pe.run(_planar_log(), cfg._replace(K=8.0), prm)
+    for field, bad in (("block", 2.5), ("block", -1), ("jcbb_cand", 2.5), ("jcbb_budget", 0)):
+        with pytest.raises(InputError, match=rf"^config\.{field}: expected an int"):
+            pe.run(_planar_log(), cfg._replace(association="jcbb", **{field: bad}), prm)
     # an integer 0/1 mask and a NumPy integer capacity run as before; a traced bool mask under jit too
     ref = pe.run(_planar_log(), cfg, prm)
     a = pe.run(_planar_log(mask=np.ones((6, 2), np.int32)), cfg._replace(capacity=np.int64(4)), prm)
