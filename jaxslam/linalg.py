@@ -387,6 +387,16 @@ def float_array(x, name: str):
     return x if jnp.issubdtype(x.dtype, jnp.inexact) else x.astype(jnp.result_type(float))
 
 
+def check_mask_dtype(mask, name: str) -> None:
+    """Raise InputError naming ``name`` unless ``mask`` is bool or integer (0/1 integers act as
+    a bool mask).  A float mask of 0.5 was read as True.  Dtype only, so it also applies to
+    traced masks (their dtype is known at trace time); a list is read with NumPy."""
+    dt = getattr(mask, "dtype", None)
+    dt = np.asarray(mask).dtype if dt is None else np.dtype(dt)
+    if not (dt == np.bool_ or np.issubdtype(dt, np.integer)):
+        raise InputError(f"{name}: expected a bool mask (or 0/1 integers), got dtype {dt}")
+
+
 def check_whole_ids(ids, name: str, used=None):
     """Raise InputError when a concrete floating ``ids`` holds a non-finite or fractional value
     on the entries in ``used`` (bool, broadcast to ``ids``; default all): casting it to int would

@@ -22,7 +22,7 @@ import numpy as np
 from ..filters import consistency as cons
 from ..filters import ekf_slam as es
 from ..errors import InputError
-from ..linalg import check_scalar, check_whole_ids, is_concrete, safe_norm
+from ..linalg import check_mask_dtype, check_scalar, check_whole_ids, is_concrete, safe_norm
 from ..stats import chi2_ppf_np, student_t_d2_ppf_np
 
 __all__ = ["range_observe", "update_ranges", "resolve_outlier_gate", "Result", "OUTLIER_P"]
@@ -133,10 +133,7 @@ def resolve_outlier_gate(params):
 def _check_slots(st, slots, mapped) -> None:
     """``mapped`` bool or integer (dtype: also traced); with both known, the slots of the mapped
     rows inside the state's ``[0, capacity)``.  :class:`InputError` naming the argument."""
-    mdt = getattr(mapped, "dtype", None)
-    mdt = np.asarray(mapped).dtype if mdt is None else mdt  # a list has no dtype
-    if not (mdt == bool or jnp.issubdtype(mdt, jnp.integer)):
-        raise InputError(f"mapped: expected a bool mask (or 0/1 integers), got dtype {mdt}")
+    check_mask_dtype(mapped, "mapped")
     if not is_concrete(slots, mapped):
         return
     cap = np.shape(st.active)[0]

@@ -76,7 +76,7 @@ from ..errors import InputError
 from ..filters import association as assoc
 from ..filters import consistency as cons
 from ..filters import ekf_slam as es
-from ..linalg import check_int, check_scalar, check_psd, check_whole_ids, is_concrete, wrap_angle
+from ..linalg import check_int, check_mask_dtype, check_scalar, check_psd, check_whole_ids, is_concrete, wrap_angle
 from ..sensors import range_bearing2d as rb
 
 __all__ = [
@@ -969,9 +969,7 @@ def validate_log(log: Log) -> Log:
             raise InputError(f"log.{name}: expected shape {zs[:2]}, got {np.shape(getattr(log, name))}")
     if np.shape(log.pose0) != (3,):
         raise InputError(f"log.pose0: expected shape (3,), got {np.shape(log.pose0)}")
-    mdt = jnp.result_type(log.mask)
-    if not (mdt == bool or jnp.issubdtype(mdt, jnp.integer)):  # a float mask of 0.5 was read as True
-        raise InputError(f"log.mask: expected a bool mask (or 0/1 integers), got dtype {mdt}")
+    check_mask_dtype(log.mask, "log.mask")
     if not is_concrete(log.dt, log.u, log.pose0):
         return log
     dt = np.asarray(log.dt)
