@@ -134,7 +134,7 @@ def atomic_write(path, write: Callable, mode: str = "w") -> pathlib.Path:
         path = path.resolve()
     if path.is_dir():
         raise InputError(f"path: {str(path)!r} is a folder; give a file path")
-    if path.exists() and not path.is_file() and not path.is_dir():
+    if path.exists() and not path.is_file():  # (a folder was refused above)
         with open(path, mode, **({"encoding": "utf-8"} if "b" not in mode else {})) as f:
             write(f)
         return path

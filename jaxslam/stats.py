@@ -121,17 +121,29 @@ def student_t_nll(d2, logdet, nu, dim):
     for Python numbers, ν < 0 gave NaN, d2 < 0 a finite wrong value).  Traced values are not
     checked.
     """
-    from jax.scipy.special import gammaln
-
     dim = check_int(dim, "dim")
-    if is_concrete(nu):
-        v = check_numbers(nu, "nu")
-        if not np.all(v > 0):
-            raise InputError(f"nu: the Student-t degrees of freedom must be > 0, got {nu!r}")
+    check_student_t_nu(nu)
     if is_concrete(d2):  # a squared distance: a negative one gave a finite, meaningless NLL
         a = check_numbers(d2, "d2")
         if np.any(a < 0):  # NaN is not < 0: it propagates to a NaN NLL, as before
             raise InputError(f"d2: expected squared distances >= 0, got minimum {float(np.nanmin(a)):.6g}")
+    return _student_t_nll(d2, logdet, nu, dim)
+
+
+def check_student_t_nu(nu) -> None:
+    """A concrete ν must be numbers > 0 (NaN refused): :class:`InputError` naming ``nu``."""
+    if is_concrete(nu):
+        v = check_numbers(nu, "nu")
+        if not np.all(v > 0):
+            raise InputError(f"nu: the Student-t degrees of freedom must be > 0, got {nu!r}")
+
+
+def _student_t_nll(d2, logdet, nu, dim: int):
+    """:func:`student_t_nll` without its checks: the filters' per-update call (their d² are
+    sums of squares and ν is checked where the filter takes it), so an eager update makes no
+    host round-trip for them."""
+    from jax.scipy.special import gammaln
+
     nu = jnp.asarray(nu)  # a Python number stays weakly typed: the rows' dtype decides
     gauss = jnp.isinf(nu)
     nu_s = jnp.where(gauss, jnp.ones_like(nu), nu)  # the inf branch never reaches the formula

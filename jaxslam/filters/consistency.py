@@ -153,6 +153,13 @@ def observe(mon: Monitor, state: SlamState, model: SlamModel, d2, valid, params:
     d2, valid = _rows(d2, valid)
     if is_concrete(d2, valid) and np.any(np.isnan(np.asarray(d2)) & np.asarray(valid)):
         raise InputError("d2: NaN on a valid row")
+    return _observe(mon, state, model, d2, valid, params)
+
+
+def _observe(mon: Monitor, state: SlamState, model: SlamModel, d2, valid, params: MonitorParams):
+    """:func:`observe` without its checks: what a filter's step calls on every event (its
+    params checked once at the run's entry; a NaN row there is the run's status to report,
+    not an error)."""
     dtype = mon.mean.dtype
     dz = model.meas_dim
     n = jnp.sum(valid)
@@ -174,6 +181,11 @@ def outliers(d2, valid, params: MonitorParams):
     object with an ``outlier_gate`` (a scalar ≥ 0, checked when concrete)."""
     _check_gate(params)
     d2, valid = _rows(d2, valid)
+    return _outliers(d2, valid, params)
+
+
+def _outliers(d2, valid, params):
+    """:func:`outliers` without its checks (a filter's per-event call)."""
     return jnp.sum(valid & (d2 > jnp.asarray(params.outlier_gate, d2.dtype))).astype(jnp.int32)
 
 

@@ -66,7 +66,7 @@ from .. import errors
 from ..errors import InputError
 from ..linalg import (check_int, check_psd, check_whole_ids, cholesky_small, is_concrete, put_blocks, small_matmul,
                       symmetrize, take, take_blocks, value_and_jacfwd)
-from ..stats import student_t_nll
+from ..stats import _student_t_nll, check_student_t_nu
 from .gaussian import check_gate, check_num_iter
 
 __all__ = [
@@ -1010,7 +1010,8 @@ def update_nll(info: UpdateInfo, dz: int, nu=None):
     if nu is None:
         nll = 0.5 * (info.nis + info.logdet + info.dof.astype(dtype) * math.log(2 * math.pi))
     else:
-        nll = jnp.sum(jnp.where(info.used, student_t_nll(info.d2, info.row_logdet, nu, dz), 0.0))
+        check_student_t_nu(nu)  # the rows' d² are sums of squares: not checked per update
+        nll = jnp.sum(jnp.where(info.used, _student_t_nll(info.d2, info.row_logdet, nu, dz), 0.0))
     return nll, (jnp.sum(info.used) * dz).astype(dtype)
 
 

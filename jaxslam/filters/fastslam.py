@@ -109,7 +109,7 @@ from ..errors import InputError
 from ..linalg import (check_int, check_psd, check_whole_ids, cholesky_small, inv_small, is_concrete,
                       symmetrize, value_and_jacfwd, wrap_angle)
 from .gaussian import check_gate, threshold as _threshold
-from ..stats import student_t_nll
+from ..stats import _student_t_nll
 from . import ekf as _ekf
 from . import resampling as _rs
 
@@ -720,7 +720,7 @@ def observe_update(
             if robust is None:
                 ll = -(0.5 * (d2_w + ld_w) + half_log2pi)
             else:
-                ll = -student_t_nll(d2_w, ld_w, jnp.asarray(robust, dtype), dz)
+                ll = -_student_t_nll(d2_w, ld_w, jnp.asarray(robust, dtype), dz)
             keep = acc if weights != "none" else jnp.zeros_like(acc)  # "none": propose_optimal weighs
             ll = jnp.where(keep, ll, jnp.zeros((), dtype))
             st = (
@@ -879,7 +879,7 @@ def propose_optimal(p: Particles, model: LandmarkModel, z, lm_ids, mask, R, pose
                 Sinv_w, _, ok_w = _spd_inv_logdet(symmetrize(GP @ Gs.T + Zw))
                 Kg = GP.T @ Sinv_w
                 ok = ok & ok_w
-                ll_k = -student_t_nll(d2, logdet, nu_t, dz)
+                ll_k = -_student_t_nll(d2, logdet, nu_t, dz)
             else:
                 Zw = Z
                 Kg = GP.T @ Sinv

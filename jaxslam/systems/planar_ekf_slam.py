@@ -677,8 +677,10 @@ def step(state: State, event: Event, config: Config, params: Params, *, key=None
     # consistency: the rows of mapped landmarks, before any gate or weighting
     mon = state.monitor
     if config.monitor:
-        mon, st = cons.observe(mon, st, model, mon_d2, mon_rows, mon_p)
-    n_out = cons.outliers(d2_k, watched, mon_p)
+        # unchecked per event: params.monitor is checked at the run's entry (validate_params),
+        # and a NaN row of a diverging run is its status to report, not an error
+        mon, st = cons._observe(mon, st, model, mon_d2, mon_rows, mon_p)
+    n_out = cons._outliers(d2_k, watched, mon_p)
     t_k = state.t + dt_k
     aux = (t_k, state.reg_t, state.n_match, state.confirmed)
     if thr.prune_window_s is not None:
