@@ -173,6 +173,20 @@ def build_parser(with_targets: bool = True) -> Parser:
     return p
 
 
+def _dest(flag: str) -> str:
+    """The argparse attribute of an option: ``--eval-duration`` -> ``eval_duration``."""
+    return flag[2:].replace("-", "_")
+
+
+def _not_default(args, flags) -> list:
+    """Those of ``flags`` (e.g. ``["--cov", "--seed"]``) whose value in ``args`` is not the parser's
+    default (the user gave them), in order: a target that would ignore them refuses them by name."""
+    if not flags:
+        return []
+    defaults = build_parser(with_targets=False)
+    return [flag for flag in flags if getattr(args, _dest(flag)) != defaults.get_default(_dest(flag))]
+
+
 def _fmt(x):
     from jaxslam.io import _fmt_num
 
@@ -271,15 +285,13 @@ def run_tuning(args, progress_stream=None) -> dict:
         loop_target.controller_file(args.compare, dflqr.paper000_params())
     real = args.scenario in targets.REAL_LOG_SCENARIOS
     if not real:  # options a simulation target would ignore: refused by name, like the real logs'
-        defaults = build_parser(with_targets=False)
         flights = args.scenario.startswith("ekfslam3d") or args.scenario == "track-figure8"
         takes_cov = (args.scenario.startswith("ekfslam3d") and target_name == "noise") or args.scenario.startswith("uwb-")
-        for flag, ok in (("--duration", flights), ("--eval-duration", flights), ("--no-checkpoint", flights),
-                         ("--cov", takes_cov)):
-            dest = flag[2:].replace("-", "_")
-            if not ok and getattr(args, dest) != defaults.get_default(dest):
-                raise InputError(f"{flag}: {args.scenario} --target {target_name} does not use it (it would be "
-                                 "ignored)")
+        unused = _not_default(args, [flag for flag, ok in (("--duration", flights), ("--eval-duration", flights),
+                                                           ("--no-checkpoint", flights), ("--cov", takes_cov)) if not ok])
+        if unused:
+            raise InputError(f"{unused[0]}: {args.scenario} --target {target_name} does not use it (it would be "
+                             "ignored)")
     if not 0 < args.b2 < 1:  # before the build (it used to fail after compiling the step)
         raise InputError(f"--b2: Adam's second-moment decay must be in (0, 1), got {args.b2}")
     if not real and args.batch_size is not None and args.batch_size > args.train_runs:
@@ -293,19 +305,17 @@ def run_tuning(args, progress_stream=None) -> dict:
                 raise InputError(f"{flag}: only the real-log targets ({', '.join(targets.REAL_LOG_SCENARIOS)}) "
                                  f"take it, not {args.scenario}")
     else:  # the simulation-only options would be ignored on a real log: refused by name
-        defaults = build_parser(with_targets=False)
         sim_only = ["--train-runs", "--test-runs", "--duration", "--eval-duration", "--cov", "--no-checkpoint"]
         if args.batch_size is None:
             sim_only.append("--seed")  # it seeds the minibatches of --batch-size, nothing else here
-        for flag in sim_only:
-            dest = flag[2:].replace("-", "_")
-            if getattr(args, dest) != defaults.get_default(dest):
-                raise InputError(f"{flag}: the real-log target {args.scenario} does not use it (simulation "
-                                 "targets only)")
+        unused = _not_default(args, sim_only)
+        if unused:
+            raise InputError(f"{unused[0]}: the real-log target {args.scenario} does not use it (simulation "
+                             "targets only)")
     own = {"--robots": ("mrclam", "plaza"), "--test-robots": ("mrclam", "plaza"), "--odometry-delay": ("mrclam",),
            "--anchor-offsets": ("util-uwb",)}
     for flag, scens in own.items():
-        if args.scenario not in scens and getattr(args, flag[2:].replace("-", "_")) is not None:
+        if args.scenario not in scens and getattr(args, _dest(flag)) is not None:
             raise InputError(f"{flag}: only 'jaxslam tune {' | '.join(scens)}' takes it, not {args.scenario}")
     d = REAL_LOG_DEFAULTS if real else DEFAULTS.get(target_name, DEFAULTS["noise"])
     supported = avail[(args.scenario, target_name)]

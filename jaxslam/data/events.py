@@ -36,7 +36,7 @@ import numpy as np
 
 from ..errors import InputError
 
-__all__ = ["EventLog", "merge_events"]
+__all__ = ["EventLog", "check_times", "merge_events"]
 
 
 class EventLog(NamedTuple):
@@ -69,6 +69,18 @@ def _as_2d(a, name):
     if a.ndim != 2:
         raise InputError(f"{name}: expected a 1-D or 2-D array, got shape {a.shape}")
     return a
+
+
+def check_times(t, name: str) -> None:
+    """Raise :class:`InputError` naming ``name`` unless the (N,) times ``t`` are finite and
+    non-decreasing (equal times are allowed: one event).  The message gives the first bad index
+    (and, for a step back, the two times).  Host-side (NumPy)."""
+    t = np.asarray(t, dtype=np.float64)
+    if not np.all(np.isfinite(t)):
+        raise InputError(f"{name}: non-finite time at index {int(np.argmin(np.isfinite(t)))}")
+    if t.size > 1 and np.any(np.diff(t) < 0):
+        i = int(np.argmax(np.diff(t) < 0)) + 1
+        raise InputError(f"{name}: time decreases at index {i} ({float(t[i - 1])!r} → {float(t[i])!r})")
 
 
 def merge_events(input_t, inputs, meas_t, meas, meas_ids=None, K: Optional[int] = None,
@@ -112,12 +124,8 @@ def merge_events(input_t, inputs, meas_t, meas, meas_ids=None, K: Optional[int] 
            else np.asarray(meas_ids).astype(np.int32).reshape(-1))
     if ids.shape != zt.shape:
         raise InputError(f"meas_ids: {ids.shape[0]} rows but meas_t has {zt.shape[0]}")
-    for name, t in (("input_t", ut), ("meas_t", zt)):
-        if not np.all(np.isfinite(t)):
-            raise InputError(f"{name}: non-finite time at index {int(np.argmin(np.isfinite(t)))}")
-        if t.size > 1 and np.any(np.diff(t) < 0):
-            i = int(np.argmax(np.diff(t) < 0)) + 1
-            raise InputError(f"{name}: time decreases at index {i} ({t[i - 1]!r} → {t[i]!r})")
+    check_times(ut, "input_t")
+    check_times(zt, "meas_t")
     d_u = U.shape[1]
     outside = 0
     if t_start is not None or t_end is not None:

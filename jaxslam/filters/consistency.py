@@ -54,15 +54,13 @@ class MonitorParams(NamedTuple):
     outlier_gate: jax.Array
 
 
-def _scalar(value, name: str):
-    """A monitor number's static shape: one scalar (a vector broadcast the robot rows against it)."""
+def _value(value, name: str):
+    """A monitor number: one scalar (its shape is static, so checked traced too: a vector
+    broadcast the robot rows against it), as a float when it is concrete (an eager call), else
+    None (traced: its value not checked).  Each caller checks the range (NaN included) with its
+    own message, so :func:`jaxslam.linalg.check_scalar` (eager only) does not serve here."""
     if np.ndim(value) != 0:
         raise InputError(f"{name}: expected a scalar, got shape {np.shape(value)}")
-
-
-def _value(value, name: str):
-    """``value`` as a float when it is concrete (an eager call), else None (traced: not checked)."""
-    _scalar(value, name)
     return float(check_numbers(value, name)) if is_concrete(value) else None
 
 

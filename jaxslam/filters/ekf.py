@@ -321,7 +321,9 @@ def update(
         state: prior :class:`Gaussian`, mean (n,), cov (n, n).
         z: (m,) measurement, in the units of ``h``'s output.
         h: measurement model ``h(x (n,), *args) -> (m,)``.
-        R: (m, m) measurement-noise covariance.
+        R: (m, m) measurement-noise covariance, positive definite (or, for m = 1, a
+            scalar variance > 0); a concrete one is checked (:class:`InputError` naming
+            ``R``).
         *args: extra arguments of ``h`` (e.g. a landmark position).
         residual: ``residual(z, ẑ) -> (m,)``; default ``z − ẑ``.  Use
             :func:`angle_residual` for components in radians.

@@ -50,7 +50,7 @@ import numpy as np
 
 from .. import errors
 from ..errors import InputError
-from ..linalg import check_psd, host_array, is_concrete, symmetrize
+from ..linalg import check_numbers, check_psd, host_array, is_concrete, symmetrize
 
 __all__ = [
     "Gaussian",
@@ -214,11 +214,17 @@ def check_state(state, name: str = "state") -> Gaussian:
 
 
 def check_noise_values(M, name: str, strict: bool = False):
-    """When ``M`` (a square noise covariance) is known now, check its values (finite,
-    symmetric, PSD; PD with ``strict``) and raise :class:`InputError` naming ``name``; traced:
-    nothing (a failure then shows in the status flags)."""
-    if is_concrete(M) and np.ndim(M) == 2:
+    """When ``M`` (a square noise covariance, or the scalar or (1,) variance of one component)
+    is known now, check its values (finite, symmetric, PSD; PD with ``strict``) and raise
+    :class:`InputError` naming ``name`` (a scalar used to skip the check: a variance of −1 gave
+    a posterior variance of −4.5e15 with status 0); traced: nothing (a failure then shows in
+    the status flags).  Other shapes are left to the shape checks."""
+    if not is_concrete(M):
+        return
+    if np.ndim(M) == 2:
         check_psd(M, name, strict=strict)
+    elif np.ndim(M) < 2 and np.size(M) == 1:
+        check_psd(np.reshape(check_numbers(M, name), (1, 1)), name, strict=strict)
 
 
 def check_num_iter(num_iter):

@@ -96,9 +96,9 @@ import numpy as np
 
 from .. import errors
 from ..errors import InputError
-from ..linalg import check_psd, is_concrete, symmetrize, value_and_jacfwd
+from ..linalg import check_numbers, check_psd, is_concrete, symmetrize, value_and_jacfwd
 from .ekf import Gaussian, UpdateInfo
-from .gaussian import check_gate, check_leading, check_measurement, threshold as _threshold
+from .gaussian import check_gate, check_leading, check_measurement, moment_dtype, threshold as _threshold
 
 __all__ = [
     "SqrtGaussian",
@@ -266,6 +266,47 @@ def _root(A, dtype=None, triangular=True):
     return jax.lax.cond(ok, chol_factor, eig_factor, M)
 
 
+def _noise_root(Q, Q_chol, dtype):
+    """A square root ``C`` of the process noise, ``Q = C Cᵀ``, in ``dtype``: ``Q_chol`` as given,
+    else :func:`_root` of ``Q`` (not triangularised; a concrete one factored on the host in
+    float64 before the cast), one per matrix of a per-step (T, q, q) ``Q``.  Shared by the
+    predicts and runs of this module and :mod:`jaxslam.filters.sqrt_ukf`."""
+    if Q_chol is not None:
+        return jnp.asarray(Q_chol, dtype)
+    if Q is None:
+        raise InputError("Q: a process-noise covariance (or Q_chol=) is required")
+    if np.ndim(Q) == 3:
+        return jax.vmap(lambda q: _root(q, dtype, triangular=False))(jnp.asarray(Q, dtype))
+    return _root(Q, dtype, triangular=False)
+
+
+def check_state(state, name: str = "state") -> SqrtGaussian:
+    """A square-root belief as one step reads it: ``mean`` (n,) and ``chol`` (n, n) (shapes are
+    static, so this is free under ``jit``) and, when the factor is known now (an eager call),
+    its values: finite, lower-triangular (the update's triangular solves read only the lower
+    triangle, so an entry above the diagonal was silently dropped), diagonal ≥ 0.  Raises
+    :class:`InputError` naming ``name.mean`` / ``name.chol`` (a mismatch used to end in a
+    concatenate or broadcast error).  An integer mean is promoted to the factor's floating
+    dtype (the default float when that is an integer too), and the factor is returned in the
+    mean's dtype, as :func:`jaxslam.filters.gaussian.check_state` does for a covariance."""
+    x, L = state
+    x, L = jnp.asarray(x), jnp.asarray(L)  # lists have no dtype
+    x_dt = moment_dtype(x, L, f"{name}.mean", f"{name}.chol")
+    n = x.shape[0]
+    if is_concrete(L):
+        A = check_numbers(L, f"{name}.chol")
+        if not np.all(np.isfinite(A)):
+            raise InputError(f"{name}.chol: contains NaN or Inf")
+        scale = max(1.0, float(np.max(np.abs(A)))) if A.size else 1.0
+        if n > 1 and np.max(np.abs(np.triu(A, 1))) > 1e-12 * scale:
+            raise InputError(f"{name}.chol: expected a lower-triangular factor L (P = L Lᵀ), got non-zero "
+                             "entries above the diagonal")
+        if n and np.min(np.diagonal(A)) < 0:
+            raise InputError(f"{name}.chol: expected a factor with a non-negative diagonal, got "
+                             f"{np.min(np.diagonal(A)):.3g} on it")
+    return SqrtGaussian(jnp.asarray(x, x_dt), jnp.asarray(L, x_dt))
+
+
 def from_gaussian(g: Gaussian) -> SqrtGaussian:
     """:class:`SqrtGaussian` of a :class:`~jaxslam.filters.ekf.Gaussian` (``psd_factor`` of its cov)."""
     x = jnp.asarray(g.mean)
@@ -295,7 +336,9 @@ def predict(state: SqrtGaussian, f: Callable, u, Q=None, *args, noise_jac=None,
     pre-array ``[F L, G C]``, ``C`` a square root of ``Q``; ``P`` is never formed.
 
     Args:
-        state: prior :class:`SqrtGaussian`, mean (n,), chol (n, n).
+        state: prior :class:`SqrtGaussian`, mean (n,), chol (n, n) lower-triangular with a
+            non-negative diagonal (:func:`check_state`: :class:`InputError` naming
+            ``state.mean`` / ``state.chol``; values only when concrete).
         f: discrete transition ``f(x (n,), u, *args) -> (n,)`` over one step (it integrates
             the dynamics; a continuous model must be discretised by the caller), or None for
             a state that does not move (``L' L'ᵀ = P + G Q Gᵀ``).
@@ -312,21 +355,15 @@ def predict(state: SqrtGaussian, f: Callable, u, Q=None, *args, noise_jac=None,
     Returns:
         Predicted :class:`SqrtGaussian` in the dtype of ``state.mean``.
     """
-    x = jnp.asarray(state.mean)
+    x, L = check_state(state)
     dtype = x.dtype
-    L = jnp.asarray(state.chol, dtype)
     if f is None:  # a state that does not move: x' = x, F = I
         xn, F = x, jnp.eye(x.shape[0], dtype=dtype)
     else:
         xn, F = value_and_jacfwd(lambda v: f(v, u, *args))(x)
     xn = xn.astype(dtype)
     F = F.astype(dtype)
-    if Q_chol is not None:
-        C = jnp.asarray(Q_chol, dtype)
-    elif Q is None:
-        raise InputError("Q: a process-noise covariance (or Q_chol=) is required")
-    else:
-        C = _root(Q, dtype, triangular=False)
+    C = _noise_root(Q, Q_chol, dtype)
     if noise_jac is not None:
         G = noise_jac(x, u, *args) if callable(noise_jac) else noise_jac
         C = _mm(jnp.asarray(G, dtype), C)
@@ -360,7 +397,9 @@ def update(
     :func:`jaxslam.filters.ekf.update`.
 
     Args:
-        state: prior :class:`SqrtGaussian`, mean (n,), chol (n, n).
+        state: prior :class:`SqrtGaussian`, mean (n,), chol (n, n) lower-triangular with a
+            non-negative diagonal (:func:`check_state`: :class:`InputError` naming
+            ``state.mean`` / ``state.chol``; values only when concrete).
         z: (m,) measurement, in the units of ``h``'s output.
         h: measurement model ``h(x (n,), *args) -> (m,)``.
         R: (m, m) measurement-noise covariance, positive definite on the valid block
@@ -381,9 +420,8 @@ def update(
         non-finite ``S^½`` (``NOT_PSD``) or a non-finite posterior (``NON_FINITE``) the prior
         is returned unchanged.
     """
-    x = jnp.asarray(state.mean)
+    x, L = check_state(state)
     dtype = x.dtype
-    L = jnp.asarray(state.chol, dtype)
     z = jnp.asarray(z, dtype=dtype)
     R = jnp.asarray(R, dtype=dtype)
     m = z.shape[-1]
@@ -562,12 +600,7 @@ def filter_scan(
     x0 = x0.astype(dtype)
     L0 = psd_factor(P0, dtype)
     q_step = Q_chol is None and np.ndim(Q) == 3
-    if Q_chol is not None:
-        C = jnp.asarray(Q_chol, dtype)
-    elif q_step:
-        C = jax.vmap(lambda q: _root(q, dtype, triangular=False))(jnp.asarray(Q, dtype))
-    else:
-        C = _root(Q, dtype, triangular=False)
+    C = _noise_root(Q, Q_chol, dtype)
     zs = jnp.asarray(zs, dtype=dtype)
     R = jnp.asarray(R, dtype=dtype)
     r_step = R.ndim == 3

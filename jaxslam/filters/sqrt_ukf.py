@@ -38,14 +38,12 @@ from .gaussian import (
     check_measurement,
     check_noise_values,
     masked_innovation,
-    moment_dtype,
     threshold,
 )
-from .sqrt_ekf import SqrtGaussian, SqrtPosterior, _mm, _root, _tria
+from .sqrt_ekf import SqrtGaussian, SqrtPosterior, _mm, _noise_root, _tria, check_state, psd_factor
 from .ukf import (
     SigmaPoints,
     _rule,
-    check_noise_scalar,
     check_transition,
     measurement_mean,
 )
@@ -53,33 +51,6 @@ from .ukf import (
 __all__ = ["predict", "update", "filter_scan"]
 
 Array = Any
-
-
-def check_state(state, name: str = "state") -> SqrtGaussian:
-    """A square-root belief as one step reads it: ``mean`` (n,) and ``chol`` (n, n) (shapes are
-    static, so this is free under ``jit``) and, when the factor is known now (an eager call),
-    its values: finite, lower-triangular (the update's triangular solves read only the lower
-    triangle, so an entry above the diagonal was silently dropped), diagonal ≥ 0.  Raises
-    :class:`InputError` naming ``name.mean`` / ``name.chol`` (a mismatch used to end in a
-    concatenate or broadcast error).  An integer mean is promoted to the factor's floating
-    dtype (the default float when that is an integer too), and the factor is returned in the
-    mean's dtype, as :func:`jaxslam.filters.gaussian.check_state` does for a covariance."""
-    x, L = state
-    x, L = jnp.asarray(x), jnp.asarray(L)  # lists have no dtype
-    x_dt = moment_dtype(x, L, f"{name}.mean", f"{name}.chol")
-    n = x.shape[0]
-    if is_concrete(L):
-        A = check_numbers(L, f"{name}.chol")
-        if not np.all(np.isfinite(A)):
-            raise InputError(f"{name}.chol: contains NaN or Inf")
-        scale = max(1.0, float(np.max(np.abs(A)))) if A.size else 1.0
-        if n > 1 and np.max(np.abs(np.triu(A, 1))) > 1e-12 * scale:
-            raise InputError(f"{name}.chol: expected a lower-triangular factor L (P = L Lᵀ), got non-zero "
-                             "entries above the diagonal")
-        if n and np.min(np.diagonal(A)) < 0:
-            raise InputError(f"{name}.chol: expected a factor with a non-negative diagonal, got "
-                             f"{np.min(np.diagonal(A)):.3g} on it")
-    return SqrtGaussian(jnp.asarray(x, x_dt), jnp.asarray(L, x_dt))
 
 
 def _points(state: SqrtGaussian, rule: SigmaPoints):
@@ -126,7 +97,7 @@ def predict(state: SqrtGaussian, f: Optional[Callable], u, Q, *args,
     pts, _, wm, sw = _points(state, rule)
     X = check_transition(jax.vmap(lambda p: fm(p, u, *args))(pts), pts.shape).astype(dtype)
     xm = wm @ X
-    C = jnp.asarray(Q_chol, dtype) if Q_chol is not None else _root(Q, dtype, triangular=False)
+    C = _noise_root(Q, Q_chol, dtype)
     L = _tria(jnp.concatenate([((X - xm) * sw[:, None]).T, C], axis=1))
     good = jnp.all(jnp.isfinite(xm)) & jnp.all(jnp.isfinite(L))
     out = SqrtGaussian(jnp.where(good, xm, x), jnp.where(good, L, state.chol))
@@ -151,7 +122,6 @@ def update(state: SqrtGaussian, z, h: Callable, R, *args, residual: Optional[Cal
     x, L = check_state(state)
     dtype = x.dtype
     check_noise_values(R, "R", strict=True)
-    check_noise_scalar(R)
     z = jnp.asarray(z, dtype)
     R = jnp.asarray(R, dtype)
     m = z.shape[-1]
@@ -229,10 +199,9 @@ def filter_scan(f: Optional[Callable], h: Callable, x0, P0, us, zs, masks, Q, R,
         raise InputError(f"Q: expected shape ({n}, {n}) or ({T}, {n}, {n}), got {tuple(np.shape(Q))}")
     check_leading(us, T, "us")
     masks = jnp.ones((T, m), bool) if masks is None else jnp.asarray(masks, bool)
-    L0 = _root(jnp.asarray(P0, dtype), dtype)
-    Qa = jnp.asarray(Q, dtype)
-    q_step = Qa.ndim == 3
-    CQ = jax.vmap(lambda q: _root(q, dtype, triangular=False))(Qa) if q_step else _root(Qa, dtype, triangular=False)
+    L0 = psd_factor(jnp.asarray(P0, dtype), dtype)
+    q_step = np.ndim(Q) == 3
+    CQ = _noise_root(Q, None, dtype)
     Ra = jnp.asarray(R, dtype)
     Ra = Ra.reshape(1, 1) if Ra.ndim == 0 else Ra  # a scalar variance of one measurement
     r_step = Ra.ndim == 3

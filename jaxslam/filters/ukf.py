@@ -302,14 +302,6 @@ def check_transition(X, shape):
     return X
 
 
-def check_noise_scalar(R, name: str = "R"):
-    """When ``R`` is a concrete scalar or (1,) variance (one measurement), its value: positive
-    and finite, else :class:`InputError` naming ``name`` (the matrix check skips it: a variance
-    of −1 gave a posterior variance of −4.5e15 with status 0).  Traced: nothing."""
-    if np.ndim(R) < 2 and np.size(R) == 1 and is_concrete(R):
-        check_psd(np.reshape(check_numbers(R, name), (1, 1)), name, strict=True)
-
-
 def _predict(state: Gaussian, f: Optional[Callable], u, Q, args, rule: SigmaPoints, noise_jac):
     """``(Gaussian, cross, status)`` of one sigma-point time update."""
     x, P = check_state(state)
@@ -453,7 +445,6 @@ def update(
     x, P = check_state(state)
     dtype = x.dtype
     check_noise_values(R, "R", strict=True)
-    check_noise_scalar(R)
     z = jnp.asarray(z, dtype)
     R = jnp.asarray(R, dtype)
     m = z.shape[-1]

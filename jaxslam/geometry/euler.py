@@ -41,6 +41,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from ..errors import InputError
+from ..linalg import float_array
 
 __all__ = [
     "C1",
@@ -55,44 +56,44 @@ __all__ = [
 ]
 
 
-def _last_axis(x, n: int, name: str, fn: str | None = None):
-    """``x`` as an array whose last axis has ``n`` entries (static: free under ``jit``); else
+def _last_axis(x, n, name: str, fn: str | None = None):
+    """``x`` as an array whose trailing axes have the sizes ``n`` (an int: the last axis; a tuple:
+    e.g. (3, 3) for matrices), checked statically (free under ``jit``); else
     :class:`~jaxslam.errors.InputError` naming ``fn``'s argument (a (3,) quaternion used to
     be read as q0..q2 with q3 taken from a wrapped index, and return a plausible answer)."""
     x = jnp.asarray(x)
-    if x.ndim < 1 or x.shape[-1] != n:
+    dims = (n,) if isinstance(n, int) else tuple(n)
+    if x.ndim < len(dims) or tuple(x.shape[x.ndim - len(dims):]) != dims:
         raise InputError(f"{'' if fn is None else fn + ': '}{name}{':' if fn is None else ''} expected shape "
-                         f"(..., {n}), got {tuple(x.shape)}")
+                         f"(..., {', '.join(map(str, dims))}), got {tuple(x.shape)}")
     return x
 
 
 def _matrix33(C, name: str, fn: str):
-    C = jnp.asarray(C)
-    if C.ndim < 2 or C.shape[-2:] != (3, 3):
-        raise InputError(f"{fn}: {name} expected shape (..., 3, 3), got {tuple(C.shape)}")
-    return C
+    """``C`` as an array of (..., 3, 3) matrices, else InputError naming ``fn``'s argument."""
+    return _last_axis(C, (3, 3), name, fn)
 
 
-def _inexact(x):
+def _inexact(x, name: str = "x"):
     """``x`` promoted to JAX's default float dtype when it holds integers (or bools): the angle
-    functions need an inexact dtype (``finfo``, trig); float inputs keep their dtype."""
-    return x if jnp.issubdtype(x.dtype, jnp.inexact) else x.astype(jnp.result_type(float))
+    functions need an inexact dtype (``finfo``, trig); float inputs keep their dtype
+    (:func:`jaxslam.linalg.float_array`)."""
+    return float_array(x, name)
 
 
-def _vec3(x, name: str, fn: str):
-    """``x`` as a single 3-vector (shape (3,)), else InputError naming ``fn``'s argument."""
+def _exact_shape(x, shape: tuple, name: str, fn: str):
+    """``x`` as an array of exactly ``shape`` (e.g. a single 3-vector (3,)), else InputError
+    naming ``fn``'s argument."""
     x = jnp.asarray(x)
-    if x.shape != (3,):
-        raise InputError(f"{fn}: {name} expected shape (3,), got {tuple(x.shape)}")
+    if x.shape != shape:
+        raise InputError(f"{fn}: {name} expected shape {shape}, got {tuple(x.shape)}")
     return x
 
 
 def _jacobian_args(euler, v, C, vname: str, fn: str):
-    euler, v = _vec3(euler, "euler", fn), _vec3(v, vname, fn)
+    euler, v = _exact_shape(euler, (3,), "euler", fn), _exact_shape(v, (3,), vname, fn)
     if C is not None:
-        C = jnp.asarray(C)
-        if C.shape != (3, 3):
-            raise InputError(f"{fn}: C expected shape (3, 3), got {tuple(C.shape)}")
+        C = _exact_shape(C, (3, 3), "C", fn)
     return euler, v, C
 
 
@@ -191,7 +192,7 @@ def euler_from_dcm(C):
     separable and φ = 0 is returned (the rotation about the vertical goes
     into ψ).  Gradients are finite everywhere (double-``where`` guards).
     """
-    C = _inexact(_matrix33(C, "C", "euler_from_dcm"))
+    C = _inexact(_matrix33(C, "C", "euler_from_dcm"), "C")
     eps = jnp.finfo(C.dtype).eps
     c21, c22 = C[..., 2, 1], C[..., 2, 2]
     n2 = c21 * c21 + c22 * c22  # cos²θ

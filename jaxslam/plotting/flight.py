@@ -29,6 +29,15 @@ def _columns(x, name: str, cols: int, rows=None):
     return a
 
 
+def _times(t):
+    """``t`` as a float (T,) array of times, else InputError naming ``t`` (a string, even "1.5",
+    is not a time)."""
+    t = check_numbers(t, "t")
+    if t.ndim != 1:
+        raise InputError(f"t: expected shape (T,), got {t.shape}")
+    return t
+
+
 def plt():
     """matplotlib.pyplot with the non-interactive Agg backend."""
     import matplotlib
@@ -128,9 +137,7 @@ def trajectory_3d(truth_pos, ref_pos, est_pos=None, landmarks=None, est_landmark
 
 def states_over_time(t, truth, ref, title="Tracking"):
     """Position vs desired, tracking error, Euler angles (deg) over time."""
-    t = np.asarray(t, dtype=float)
-    if t.ndim != 1:
-        raise InputError(f"t: expected shape (T,), got {t.shape}")
+    t = _times(t)
     truth = _columns(truth, "truth", 9, rows=t.shape[0])
     ref = _columns(ref, "ref", 4, rows=t.shape[0])
     p = plt()
@@ -157,9 +164,7 @@ def states_over_time(t, truth, ref, title="Tracking"):
 
 def inputs_over_time(t, u, title="Inputs"):
     """Thrust [N] and torques [N m] over time."""
-    t = np.asarray(t, dtype=float)
-    if t.ndim != 1:
-        raise InputError(f"t: expected shape (T,), got {t.shape}")
+    t = _times(t)
     u = _columns(u, "u", 4, rows=t.shape[0])
     p = plt()
     fig, axs = p.subplots(2, 1, figsize=(9, 5), sharex=True)

@@ -12,6 +12,7 @@ import textwrap
 import numpy as np
 
 from ..errors import InputError
+from ..linalg import check_int
 from .flight import keep_margins, plt, save
 
 __all__ = ["before_after", "choose_panels", "loss_curves", "param_trajectories", "plot_all", "reference_values"]
@@ -200,8 +201,7 @@ def choose_panels(report, max_panels=MAX_PANELS):
       names of the statistics that did not fit.
     """
     _check_report(report, ("before", "after"))
-    if isinstance(max_panels, bool) or not isinstance(max_panels, (int, np.integer)) or max_panels < 1:
-        raise InputError(f"max_panels: expected an int >= 1, got {max_panels!r}")
+    max_panels = check_int(max_panels, "max_panels", lower=1)
     before, after = report["before"], report["after"]
     refs = list(report.get("references", {}).values())
     cands = []

@@ -19,6 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..data.events import check_times
 from ..filters import consistency as cons
 from ..filters import ekf_slam as es
 from ..errors import InputError
@@ -82,12 +83,7 @@ def check_log(log, u_width=None, name: str = "log") -> None:
         if not np.all(np.isfinite(dt)) or np.any(dt < 0):
             raise InputError(f"{name}.dt: must be finite and >= 0")
     if is_concrete(log.t):  # the run reports and is scored at these times: a step back misplaced them
-        t = np.asarray(log.t, np.float64)
-        if not np.all(np.isfinite(t)):
-            raise InputError(f"{name}.t: non-finite time at index {int(np.argmin(np.isfinite(t)))}")
-        if t.size > 1 and np.any(np.diff(t) < 0):
-            i = int(np.argmax(np.diff(t) < 0)) + 1
-            raise InputError(f"{name}.t: time decreases at index {i} ({t[i - 1]!r} -> {t[i]!r})")
+        check_times(log.t, f"{name}.t")
     if is_concrete(log.ids, log.mask):
         check_whole_ids(log.ids, f"{name}.ids", used=log.mask)
 

@@ -129,8 +129,8 @@ from ..errors import InputError
 from ..filters import ekf
 from ..filters import fastslam as fs
 from ..geometry.euler import dcm_from_euler, euler_rates
-from ..linalg import (check_int, check_mask_dtype, check_numbers, check_whole_ids, cholesky_small, host_array,
-                      inv_small, is_concrete, symmetrize)
+from ..linalg import (check_int, check_mask_dtype, check_numbers, check_scalar, check_whole_ids, cholesky_small,
+                      host_array, inv_small, is_concrete, symmetrize)
 from ..sensors import imu as imu_mod
 from ..sensors import lidar3d
 
@@ -469,21 +469,22 @@ def validate_config(cfg: Config) -> Config:
     # a float 4.5 was truncated, a string "4" accepted
     check_int(cfg.capacity, "config.capacity")
     check_int(cfg.lidar_every, "config.lidar_every")
-    try:  # a string dt failed with NumPy's bare "could not convert"
-        dt_ok = float(check_numbers(cfg.dt, "config.dt")) > 0 and math.isfinite(float(cfg.dt))
-    except (InputError, TypeError, ValueError):
-        dt_ok = False
-    if not dt_ok:
-        raise InputError(f"config.dt: must be a positive number of seconds, got {cfg.dt!r}")
+    # a string dt failed with NumPy's bare "could not convert"
+    _scalar_or_raise(cfg.dt, "config.dt", "must be a positive number of seconds", strict=True)
     return cfg
 
 
-def _is_number(v) -> bool:
-    """``v`` is a scalar of numbers (not a string, None or an array)."""
+def _scalar_or_raise(v, name: str, message: str, strict: bool, upper: float = math.inf) -> float:
+    """``v`` as a float when it is a finite scalar number in (0, ``upper``] (``strict``) or
+    [0, ``upper``] (:func:`~jaxslam.linalg.check_scalar`'s rule; a string, None or an array is
+    not one); else InputError "``name``: ``message``, got ``v``"."""
     try:
-        return np.shape(check_numbers(v, "v")) == ()
+        x = check_scalar(v, name, lower=0, strict=strict)
     except InputError:
-        return False
+        x = math.nan
+    if not x <= upper:  # NaN: refused above
+        raise InputError(f"{name}: {message}, got {v!r}")
+    return x
 
 
 def validate_params_001(params: Params) -> Params:
@@ -505,14 +506,10 @@ def validate_params_001(params: Params) -> Params:
             raise InputError(f"params.{name}: contains NaN or Inf")
         if np.any(v < 0) or (strict and np.any(v <= 0)):
             raise InputError(f"params.{name}: must be {'> 0' if strict else '>= 0'}, got {v.tolist()}")
-    thr = params.resample_threshold
-    if thr is not None:  # a string failed with NumPy's bare "could not convert"
-        t = float(check_numbers(thr, "params.resample_threshold")) if _is_number(thr) else None
-        if t is None or not 0.0 < t <= 1.0:
-            raise InputError(f"params.resample_threshold: expected None or a fraction in (0, 1], got {thr!r}")
-    a = float(check_numbers(params.soft_alpha, "params.soft_alpha")) if _is_number(params.soft_alpha) else None
-    if a is None or not 0.0 <= a <= 1.0:
-        raise InputError(f"params.soft_alpha: expected a value in [0, 1], got {params.soft_alpha!r}")
+    if params.resample_threshold is not None:  # a string failed with NumPy's bare "could not convert"
+        _scalar_or_raise(params.resample_threshold, "params.resample_threshold",
+                         "expected None or a fraction in (0, 1]", strict=True, upper=1.0)
+    _scalar_or_raise(params.soft_alpha, "params.soft_alpha", "expected a value in [0, 1]", strict=False, upper=1.0)
     return params
 
 

@@ -43,7 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import InputError
-from ..linalg import check_int, check_numbers, check_psd, float_array
+from ..linalg import check_int, check_numbers, check_psd, check_scalar, float_array
 
 __all__ = [
     "CovSpec",
@@ -103,6 +103,15 @@ def _as_matrix(M, name):
     return a
 
 
+def _check_floor(floor) -> float:
+    """``floor`` as a float when it is a number > 0 (:func:`~jaxslam.linalg.check_scalar`), else
+    InputError naming ``floor``."""
+    try:
+        return check_scalar(floor, "floor", finite=False, lower=0, strict=True)
+    except InputError:
+        raise InputError(f"floor: must be > 0, got {floor!r}") from None
+
+
 def log_diag_from_cov(M, floor: float | None = None, dtype=None, name: str = "M"):
     """θ (n,) = log diag(M) for a diagonal matrix (or a vector of variances).
 
@@ -120,9 +129,7 @@ def log_diag_from_cov(M, floor: float | None = None, dtype=None, name: str = "M"
                       UserWarning, stacklevel=2)
     d = np.diag(a).copy()
     if floor is not None:
-        if isinstance(floor, (str, bytes)) or not floor > 0:
-            raise InputError(f"floor: must be > 0, got {floor!r}")
-        d = np.maximum(d, floor)
+        d = np.maximum(d, _check_floor(floor))
     if np.any(d <= 0):
         raise InputError(f"{name}: log-diagonal parametrisation needs positive diagonal entries, "
                          f"got {d.tolist()} (pass floor=... to start zero entries at a small value)")
@@ -150,9 +157,7 @@ def log_chol_from_cov(M, floor: float | None = None, dtype=None, name: str = "M"
     a = _as_matrix(M, name)
     n = a.shape[0]
     if floor is not None:
-        if isinstance(floor, (str, bytes)) or not floor > 0:
-            raise InputError(f"floor: must be > 0, got {floor!r}")
-        a = a + floor * np.eye(n)
+        a = a + _check_floor(floor) * np.eye(n)
     check_psd(a, name, strict=True)
     L = np.linalg.cholesky(0.5 * (a + a.T))
     r, c = _tril(n)

@@ -663,9 +663,10 @@ def test_ukf_predict_names_a_transition_of_the_wrong_size():
         ukf.filter_scan(lambda x, u: x[:1], h, np.zeros(2), np.eye(2), None, ZS, None, Q2, R1)
 
 
-@pytest.mark.parametrize("mod", [ukf, sqrt_ukf], ids=["ukf", "sqrt_ukf"])
+@pytest.mark.parametrize("mod", [ekf, ukf, sqrt_ukf], ids=["ekf", "ukf", "sqrt_ukf"])
 def test_a_scalar_r_of_one_measurement_must_be_positive(mod):
-    # only a 2-D R had its values checked: R = -1 gave a mean of 4.5e15 with status 0
+    # only a 2-D R had its values checked: R = -1 gave a mean of 4.5e15 with status 0 (the
+    # sigma-point filters), the EKF took it without a word (the prior kept, flags set)
     g = (sqrt_ekf.SqrtGaussian if mod is sqrt_ukf else ekf.Gaussian)(jnp.zeros(2), jnp.eye(2))
     z = jnp.array([1.0])
     for R in (-1.0, 0.0, np.array([-1.0]), float("nan")):
@@ -682,7 +683,10 @@ def test_a_scalar_r_of_one_measurement_must_be_positive(mod):
     np.testing.assert_array_equal(np.asarray(post.mean), [0.0, 0.0])
 
 
-def test_sqrt_ukf_checks_its_state_like_ukf():
+@pytest.mark.parametrize("mod", [sqrt_ekf, sqrt_ukf], ids=["sqrt_ekf", "sqrt_ukf"])
+def test_square_root_filters_check_their_state_like_the_covariance_form(mod):
+    # sqrt_ekf read any (mean, chol): an upper-triangular entry was dropped without a word, an
+    # integer mean made an integer step
     S = sqrt_ekf.SqrtGaussian
     z = jnp.array([1.0])
     for st, needle in ((S(jnp.zeros(2), jnp.eye(3)), r"^state\.chol: expected shape \(2, 2\) \(the mean's size\)"),
@@ -691,14 +695,22 @@ def test_sqrt_ukf_checks_its_state_like_ukf():
                        (S(jnp.zeros(2), jnp.array([[1.0, 0.5], [0.0, 1.0]])), r"^state\.chol: expected a lower-triangular"),
                        (S(jnp.zeros(2), -jnp.eye(2)), r"^state\.chol: expected a factor with a non-negative diagonal")):
         with pytest.raises(InputError, match=needle):
-            sqrt_ukf.predict(st, f, None, Q2)
+            mod.predict(st, f, None, Q2)
         with pytest.raises(InputError, match=needle):
-            sqrt_ukf.update(st, z, h, R1)
-    # an integer mean is promoted, as ukf's: the same step as the float mean
-    good = sqrt_ukf.update(S(jnp.zeros(2), jnp.eye(2)), z, h, R1)[0]
-    got = sqrt_ukf.update(S(jnp.array([0, 0]), jnp.eye(2)), z, h, R1)[0]
+            mod.update(st, z, h, R1)
+    # an integer mean is promoted, as the covariance form's: the same step as the float mean
+    good = mod.update(S(jnp.zeros(2), jnp.eye(2)), z, h, R1)[0]
+    got = mod.update(S(jnp.array([0, 0]), jnp.eye(2)), z, h, R1)[0]
     assert jnp.issubdtype(got.mean.dtype, jnp.floating)
     np.testing.assert_allclose(np.asarray(got.mean), np.asarray(good.mean), rtol=0, atol=1e-15)
+    # traced: shapes only (values unknown), the same step as eager
+    jitted = jax.jit(lambda L: mod.update(S(jnp.zeros(2), L), z, h, R1)[0])(jnp.eye(2))
+    np.testing.assert_allclose(np.asarray(jitted.mean), np.asarray(good.mean), rtol=1e-12, atol=1e-15)
+
+
+def test_sqrt_ukf_matches_ukf_from_a_cholesky_factor():
+    S = sqrt_ekf.SqrtGaussian
+    z = jnp.array([1.0])
     # a lower-triangular factor from Cholesky passes and matches the UKF
     P = np.array([[2.0, 0.3], [0.3, 1.0]])
     a = sqrt_ukf.update(S(jnp.zeros(2), jnp.linalg.cholesky(jnp.asarray(P))), z, h, R1)[0]
