@@ -68,6 +68,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import errors
 from ..errors import InputError
 from ..features import lines as fl
 from ..filters import ekf_slam as es
@@ -377,8 +378,13 @@ def step(state: State, event: Event, config: Config, params: Params, *, key) -> 
                             params.R_odo.astype(dtype))
 
     ranges = jnp.asarray(event.ranges, dtype)
-    pvalid = event.valid & jnp.isfinite(ranges)
-    pts, pvalid = laser2d.scan_points(ranges, pvalid, config.spec, event.tilt)
+    # a non-finite tilt (traced: the host check cannot see it) makes every point of the scan
+    # unusable: the scan is masked and flagged MASKED_INPUT, as a non-finite flow or gyro is
+    tilt = jnp.asarray(event.tilt, dtype)
+    tilt_ok = jnp.all(jnp.isfinite(tilt))
+    st = st._replace(status=st.status | jnp.where(tilt_ok, 0, errors.MASKED_INPUT).astype(st.status.dtype))
+    pvalid = event.valid & jnp.isfinite(ranges) & tilt_ok
+    pts, pvalid = laser2d.scan_points(ranges, pvalid, config.spec, jnp.where(tilt_ok, tilt, 0.0))
 
     s = st.x[:NR]
     L = es.landmarks(st, model)
@@ -458,9 +464,9 @@ def _check_log(log: Log, spec: laser2d.LaserSpec) -> int:
 
 
 def _check_values(log: Log) -> None:
-    """Values of a concrete ``log``: a finite start state and finite IMU tilt (a NaN tilt made
-    every scan point NaN: nothing was matched or mapped, with status 0).  NaN ranges are the
-    log's "no return" and a non-finite flow/gyro is masked with ``MASKED_INPUT``."""
+    """Values of a concrete ``log``: a finite start state and finite IMU tilt (a NaN tilt makes
+    its scan unusable; traced, that scan is masked and flagged ``MASKED_INPUT``).  NaN ranges
+    are the log's "no return" and a non-finite flow/gyro is masked with ``MASKED_INPUT``."""
     if is_concrete(log.s0) and not np.all(np.isfinite(np.asarray(log.s0, float))):
         raise InputError("log.s0: contains non-finite values")
     if is_concrete(log.tilt) and not np.all(np.isfinite(np.asarray(log.tilt, float))):

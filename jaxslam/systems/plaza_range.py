@@ -69,6 +69,7 @@ import numpy as np
 
 from ..data.events import EventLog, merge_events
 from ..dynamics import planar
+from .. import errors
 from ..errors import InputError
 from ..filters import consistency as cons
 from ..filters import ekf_slam as es
@@ -309,7 +310,12 @@ def step(state: State, event: Event, config: Config, params: Params, *, key=None
     # buffer ranges of unmapped beacons with the current position estimate
     s = st.x[:NR]
     pv = 0.5 * (st.P[0, 0] + st.P[1, 1])
-    new = event.mask & ~mapped & jnp.isfinite(event.z[:, 0])
+    finite = jnp.isfinite(event.z[:, 0])
+    new = event.mask & ~mapped & finite
+    # a non-finite range of an unmapped beacon is not buffered, and counted like a mapped one's
+    # (update_ranges flags those): MASKED_INPUT
+    dropped = jnp.any(event.mask & ~mapped & ~finite)
+    st = st._replace(status=st.status | jnp.where(dropped, errors.MASKED_INPUT, 0).astype(st.status.dtype))
     beq = event.ids[:, None] == beacon_ids[None, :]
     known_id = jnp.any(beq, axis=1)
     bidx = jnp.argmax(beq, axis=1)

@@ -175,6 +175,20 @@ def test_plaza_style_slam_converges_with_bias_and_outliers():
     assert not (int(res.status) & (errors.NON_FINITE | errors.NOT_PSD))
 
 
+def test_plaza_nan_range_of_an_unmapped_beacon_is_flagged():
+    # a mapped beacon's NaN range is flagged by the update; an unmapped one's used to be dropped
+    # from the initialisation buffer with no flag
+    t_dr, dr, t_r, node, rr, pose, _ = _sim_plaza()
+    rr = rr.copy()
+    rr[0] = np.nan  # the first range: no beacon is mapped yet
+    log = pr.plaza_events(t_dr, dr, t_r, node, rr)
+    params = pr.Params(sigma_r=0.4, sigma_bias0=3.0, min_points=20, min_spread=4.0)
+    res = pr.run(pr.log_from_events(log, pose[0], BIDS), pr.Config(window=60), params)
+    status = np.asarray(res.status)
+    assert int(status) & errors.MASKED_INPUT
+    assert int(res.n_registered) == 4 and np.all(np.isfinite(np.asarray(res.pos)))
+
+
 def test_float32_runs_finite():
     res, true, _ = _plaza_run(jnp.float32)
     assert res.pos.dtype == jnp.float32

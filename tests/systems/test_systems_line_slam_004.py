@@ -170,6 +170,24 @@ def test_all_invalid_scans_and_no_walls_in_view_dead_reckon_without_nan(short_fl
     assert np.trace(np.asarray(r2.steps.cov[-1])[:2, :2]) > np.trace(np.asarray(res.steps.cov[-1])[:2, :2])
 
 
+def test_nan_tilt_under_jit_masks_its_scan_and_flags_it(short_flight):
+    # The host check refuses a NaN tilt eagerly; traced, the scan is masked and flagged (it used
+    # to lose the scan's matches with status 0).
+    setup, cfg, fp, log, res = short_flight
+    tilt = np.array(log.tilt)
+    tilt[4, 0] = np.nan
+    bad = log._replace(tilt=jnp.asarray(tilt))
+    with pytest.raises(InputError, match=r"^log\.tilt: contains NaN or Inf"):
+        LS.run(bad, cfg, fp, key=jax.random.PRNGKey(5))
+    r2 = jax.jit(lambda lg: LS.run(lg, cfg, fp, key=jax.random.PRNGKey(5)))(bad)
+    status = np.asarray(r2.steps.status)
+    assert not status[:4].any() and status[4] & errors.MASKED_INPUT
+    assert int(r2.final.status) & errors.MASKED_INPUT
+    assert int(r2.steps.n_matched[4]) == 0 and int(res.steps.n_matched[4]) > 0
+    np.testing.assert_allclose(np.asarray(r2.steps.mean[:4]), np.asarray(res.steps.mean[:4]), rtol=0, atol=1e-12)
+    assert np.all(np.isfinite(np.asarray(r2.steps.mean))) and np.all(np.isfinite(np.asarray(r2.steps.cov)))
+
+
 def test_float32_run_is_finite_and_tracks():
     from jaxslam.sim.scenarios import lineslam as sc
 
