@@ -164,6 +164,61 @@ def test_sigint_mid_run_writes_the_finished_runs(tmp_path):
     assert rep["metrics"]["first"]["per_run"][0] == pytest.approx(first, rel=1e-6)
 
 
+_DROPPED_SIGINT = textwrap.dedent("""
+    import signal, sys
+    signal.signal(signal.SIGINT, signal.default_int_handler)  # as a terminal delivers it (above)
+    import numpy as np
+    from jaxslam import cli
+    from jaxslam.sim.scenarios import registry
+
+    class CtrlCInAFinaliser:
+        def __del__(self):  # Python drops an exception raised here ("Exception ignored in ...")
+            signal.raise_signal(signal.SIGINT)
+
+    def run(*, runs, seed, dtype, options, progress, params):
+        CtrlCInAFinaliser()  # collected at once: the Ctrl-C's KeyboardInterrupt is dropped
+        print("the scenario went on", file=sys.stderr)
+        return registry.ScenarioResult(
+            config={}, metrics={"val": np.zeros(runs)}, consistency=None, flags={},
+            timing={"compile_s": 0.0, "run_s": 0.0}, interrupted=False)
+
+    registry.register(registry.Scenario("dropped-sigint", "a Ctrl-C whose exception Python drops", (), run))
+    sys.exit(cli.main(sys.argv[1:]))
+""")
+
+
+def test_a_ctrl_c_python_drops_still_stops_the_command_before_it_writes(tmp_path):
+    # JAX's gc callback at start-up swallowed early Ctrl-Cs this way: the command ran on and
+    # replaced the existing --json.  The command's SIGINT handler counts them.
+    out = tmp_path / "run.json"
+    out.write_text('{"old": true}\n')
+    proc = subprocess.run([sys.executable, "-c", _DROPPED_SIGINT, "run", "dropped-sigint", "--runs", "2",
+                           "--json", str(out)], capture_output=True, text=True, timeout=300,
+                          env={**os.environ, "JAXSLAM_CACHE": "0"})
+    assert "the scenario went on" in proc.stderr  # the KeyboardInterrupt was dropped by Python
+    assert proc.returncode == 130, proc.stderr
+    assert proc.stderr.rstrip().endswith("jaxslam: interrupted")
+    assert "Traceback" not in proc.stderr and "Exception ignored" not in proc.stderr
+    assert out.read_text() == '{"old": true}\n'
+
+
+def test_counting_interrupts_restores_the_default_handler():
+    from jaxslam.cli import common
+
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    hook = sys.unraisablehook
+    with common.counting_interrupts():
+        assert signal.getsignal(signal.SIGINT) is not signal.default_int_handler
+        assert sys.unraisablehook is not hook
+        common.raise_if_interrupted()  # no Ctrl-C yet: nothing
+        with pytest.raises(KeyboardInterrupt):
+            signal.raise_signal(signal.SIGINT)
+        with pytest.raises(KeyboardInterrupt):  # counted, so raised again where it is read
+            common.raise_if_interrupted()
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler and sys.unraisablehook is hook
+    common.raise_if_interrupted()  # the count ends with the command
+
+
 def test_tune_interrupt_keeps_the_steps_done(tmp_path, capsys, monkeypatch):
     calls = {"n": 0}
     real_update = Progress.update

@@ -16,7 +16,7 @@ import sys
 
 from jaxslam.errors import InputError
 
-from .common import Parser, compile_timing, positive_int, seed_int
+from .common import Parser, compile_timing, positive_int, raise_if_interrupted, seed_int
 
 __all__ = ["main"]
 
@@ -156,6 +156,7 @@ def main(argv) -> int:
                                       particles=args.particles, seed=args.seed, dtype=dtype,
                                       smooth=args.smooth,
                                       **({"params": params} if params is not None else {}))
+        raise_if_interrupted()  # a Ctrl-C whose exception was dropped (cli.common)
     except KeyboardInterrupt:
         print("jaxslam dataset: interrupted before the run finished: nothing to keep, no file written"
               + (f" ({str(json_path)!r} left as it was)" if json_path is not None and json_path.exists() else ""),

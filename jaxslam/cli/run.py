@@ -16,7 +16,7 @@ import sys
 from jaxslam import files
 
 from .common import (PROG, Parser, UsageError, compile_timing, echo, finite_float, fmt, int_at_least, positive_int,
-                     seed_int, silence_stdout)
+                     raise_if_interrupted, seed_int, silence_stdout)
 
 __all__ = ["command", "format_run_report"]
 
@@ -198,6 +198,8 @@ def command(rest: list[str]) -> int:
     if not isinstance(result, registry.ScenarioResult):
         raise TypeError(f"scenario {scenario.name!r} returned {type(result).__name__}, "
                         "expected ScenarioResult")
+    if not result.interrupted:
+        raise_if_interrupted()  # a Ctrl-C whose exception was dropped: exit 130, nothing written
 
     report = io.run_json(scenario.name, args.runs, args.seed, dtype, result)
     if group is not None:

@@ -35,7 +35,8 @@ import time
 
 from jaxslam.errors import InputError
 
-from .common import Parser, UsageError, compile_timing, finite_float, int_at_least, nonnegative_float, positive_float
+from .common import (Parser, UsageError, compile_timing, finite_float, int_at_least, nonnegative_float, positive_float,
+                     raise_if_interrupted)
 
 __all__ = ["main", "build_parser", "DEFAULTS"]
 
@@ -543,6 +544,8 @@ def main(argv=None) -> int:
     from jaxslam import io
 
     interrupted = bool(rep.get("interrupted"))
+    if not interrupted:
+        raise_if_interrupted()  # a Ctrl-C whose exception was dropped: exit 130, nothing written
     if not args.quiet and not interrupted:
         _print_report(rep, params_out if params_out is not None else json_path, getattr(args, "data", None))
     written = []
