@@ -387,14 +387,21 @@ def float_array(x, name: str):
     return x if jnp.issubdtype(x.dtype, jnp.inexact) else x.astype(jnp.result_type(float))
 
 
-def check_mask_dtype(mask, name: str) -> None:
-    """Raise InputError naming ``name`` unless ``mask`` is bool or integer (0/1 integers act as
-    a bool mask).  A float mask of 0.5 was read as True.  Dtype only, so it also applies to
-    traced masks (their dtype is known at trace time); a list is read with NumPy."""
+def check_mask(mask, name: str) -> None:
+    """Raise InputError naming ``name`` unless ``mask`` is bool or 0/1 integers (a float 0.5 or
+    an integer 2 was read as True).  The dtype is checked always (it is known under ``jit``),
+    an integer mask's values when it is concrete; None passes; a list is read with NumPy."""
+    if mask is None:
+        return
     dt = getattr(mask, "dtype", None)
     dt = np.asarray(mask).dtype if dt is None else np.dtype(dt)
     if not (dt == np.bool_ or np.issubdtype(dt, np.integer)):
         raise InputError(f"{name}: expected a bool mask (or 0/1 integers), got dtype {dt}")
+    if dt != np.bool_ and is_concrete(mask):
+        a = np.asarray(mask)
+        bad = a[(a != 0) & (a != 1)]
+        if bad.size:
+            raise InputError(f"{name}: expected a bool mask (or 0/1 integers), got the value {bad.flat[0]}")
 
 
 def check_whole_ids(ids, name: str, used=None):

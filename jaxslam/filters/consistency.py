@@ -32,7 +32,7 @@ import numpy as np
 
 from .. import errors
 from ..errors import InputError
-from ..linalg import check_numbers, float_array, is_concrete
+from ..linalg import check_mask, check_numbers, float_array, is_concrete
 from .ekf_slam import SlamModel, SlamState
 
 __all__ = ["MonitorParams", "Monitor", "init", "observe", "inflate_robot", "outliers", "status_bits",
@@ -96,6 +96,7 @@ def _rows(d2, valid, name: str = "d2"):
         raise InputError(f"{name}: expected shape (K,), got {tuple(d2.shape)}")
     if valid.shape != d2.shape:
         raise InputError(f"valid: expected shape {tuple(d2.shape)} (one per row of {name}), got {tuple(valid.shape)}")
+    check_mask(valid, "valid")
     return d2, valid.astype(bool)
 
 

@@ -37,8 +37,8 @@ __all__ = ["robust_trilaterate", "from_buffer"]
 
 def _rows_in(points, ranges, valid, range_var):
     """The buffer's rows checked (trilateration's shape and ``range_var`` checks, static) and as
-    arrays: ``(points (W, d), ranges (W,), valid (W,) bool)``; a float or integer ``valid`` is
-    read as a mask (non-zero: valid), as the filters read their masks."""
+    arrays: ``(points (W, d), ranges (W,), valid (W,) bool)``; ``valid`` may also hold 0/1
+    integers (a concrete float or another integer is an :class:`InputError` naming it)."""
     points = float_array(points, "points")
     ranges = float_array(ranges, "ranges")
     if valid is None:
@@ -51,9 +51,9 @@ def robust_trilaterate(points, ranges, valid, range_var, min_points: Optional[in
                        min_spread=0.0) -> tri.TrilaterationResult:
     """Two-pass trilateration: fit, drop |residual − median| > max(3·1.4826·MAD, 1 m), refit.
 
-    points: (W, d); ranges: (W,); valid: (W,) bool (another dtype is read as a mask, non-zero
-    valid).  Shapes and a concrete ``range_var`` are checked first (:class:`InputError` naming
-    the argument).  The row selection is held constant under differentiation
+    points: (W, d); ranges: (W,); valid: (W,) bool (or 0/1 integers).  Shapes, a concrete
+    ``valid``'s values and a concrete ``range_var`` are checked first (:class:`InputError`
+    naming the argument).  The row selection is held constant under differentiation
     (``stop_gradient``).  Returns the second fit's
     :class:`~jaxslam.filters.trilateration.TrilaterationResult`."""
     points, ranges, valid = _rows_in(points, ranges, valid, range_var)
@@ -76,7 +76,7 @@ def from_buffer(points, point_var, ranges, valid, range_var, min_points: Optiona
       points: (W, d) robot positions at the buffered ranges [m].
       point_var: (W,) their variances [m²] (per axis).
       ranges: (W,) ranges [m] (bias already removed by the caller).
-      valid: (W,) bool rows to fit.
+      valid: (W,) bool rows to fit (or 0/1 integers; checked when concrete).
       range_var: σ_r² [m²] of one range.
       min_points, min_spread: :func:`~jaxslam.filters.trilateration.trilaterate`'s
         readiness conditions (count, spread [m]); numbers or traced scalars (both are only

@@ -77,7 +77,7 @@ import numpy as np
 
 from .. import errors
 from ..errors import InputError
-from ..linalg import check_psd, is_concrete, symmetrize, value_and_jacfwd, wrap_angle
+from ..linalg import check_mask, check_psd, is_concrete, symmetrize, value_and_jacfwd, wrap_angle
 from ..stats import chi2_ppf_np
 from . import gaussian as _g
 from .gaussian import (
@@ -89,6 +89,7 @@ from .gaussian import (
     check_gate,
     check_measurement,
     check_noise_values,
+    check_real,
     check_num_iter,
     check_state,
     finalize as _finalize,
@@ -346,6 +347,8 @@ def update(
     x, P = state
     dtype = x.dtype
     check_noise_values(R, "R", strict=True)
+    check_real(z, "z")
+    check_mask(mask, "mask")
     z = jnp.asarray(z, dtype=dtype)
     R = jnp.asarray(R, dtype=dtype)
     m = z.shape[-1]
@@ -440,6 +443,7 @@ def update_batch(
     state = check_state(state)
     x, P = state
     dtype = x.dtype
+    check_real(zs, "zs")
     zs = jnp.asarray(zs, dtype=dtype)
     if zs.ndim != 2:
         raise InputError(f"zs: expected shape (M, m) (M measurements of size m), got {zs.shape}")
@@ -455,6 +459,7 @@ def update_batch(
     if masks is None:
         masks = jnp.ones((M, m), bool)
     else:
+        check_mask(masks, "masks")
         masks = jnp.asarray(masks, bool)
         if masks.shape not in ((M,), (M, m)):
             raise InputError(f"masks: expected shape ({M},) or ({M}, {m}), got {masks.shape}")
@@ -480,7 +485,12 @@ def update_batch(
     def lin(a):
         return value_and_jacfwd(lambda v: h(v, *a))(x)
 
-    zhat, H = jax.vmap(lin)(tuple(args))  # (M, m), (M, m, n)
+    if args:
+        zhat, H = jax.vmap(lin)(tuple(args))  # (M, m), (M, m, n)
+    else:  # nothing per measurement: one linearisation serves every row (vmap needs an axis)
+        zhat, H = lin(())
+        zhat = jnp.broadcast_to(zhat, (M,) + tuple(np.shape(zhat)))
+        H = jnp.broadcast_to(H, (M,) + tuple(np.shape(H)))
     if tuple(zhat.shape[1:]) != (m,):
         raise InputError(f"h: the measurement model returned shape {tuple(zhat.shape[1:])}, but each row of "
                          f"zs has ({m},)")

@@ -64,8 +64,8 @@ from jax.custom_batching import custom_vmap
 
 from .. import errors
 from ..errors import InputError
-from ..linalg import (check_int, check_psd, check_whole_ids, cholesky_small, is_concrete, put_blocks, small_matmul,
-                      symmetrize, take, take_blocks, value_and_jacfwd)
+from ..linalg import (check_int, check_mask, check_psd, check_whole_ids, cholesky_small, is_concrete,
+                      put_blocks, small_matmul, symmetrize, take, take_blocks, value_and_jacfwd)
 from ..stats import _student_t_nll, check_student_t_nu
 from .gaussian import check_gate, check_num_iter
 
@@ -270,6 +270,18 @@ def _check_sizes(state: SlamState, model: SlamModel, name: str = "state"):
                          f"lm_dim?)")
 
 
+def _cast_u(u, dtype):
+    """``u`` (an array, a pytree or None) with its floating leaves in ``dtype`` (the state's), as
+    z, Q and R are cast: a float64 control must not promote (or, under ``lax``, break) a float32
+    prediction.  Integer and bool leaves are left as they are."""
+    def one(a):
+        dt = getattr(a, "dtype", None)
+        if dt is None:
+            dt = np.asarray(a).dtype
+        return jnp.asarray(a, dtype) if jnp.issubdtype(dt, jnp.floating) and dt != dtype else a
+    return jax.tree_util.tree_map(one, u)
+
+
 def _rows(z, ids, mask, dz: int, ids_name: str):
     """``(z (K, d_z), ids (K,) int32, mask (K,) bool)`` as arrays, shapes checked (static):
     :class:`InputError` naming the argument (a (K,) z with K = d_z would otherwise be read
@@ -289,6 +301,7 @@ def _rows(z, ids, mask, dz: int, ids_name: str):
     mask = jnp.asarray(mask)
     if tuple(mask.shape) != (K,):
         raise InputError(f"mask: expected shape ({K},) (one per row of z), got {tuple(mask.shape)}")
+    check_mask(mask, "mask")
     return z, ids, mask.astype(bool)
 
 
@@ -366,7 +379,7 @@ def _predict(state: SlamState, model: SlamModel, u, Q, params, active_only: bool
     if is_concrete(Q):
         check_psd(np.asarray(Q), "Q")
     s = state.x[:nr]
-    s_new, F = motion_and_jacobian(model, s, u, params)
+    s_new, F = motion_and_jacobian(model, s, _cast_u(u, state.x.dtype), params)
     Prr = state.P[:nr, :nr]
     Prl = state.P[:nr, nr:]
     Prr_new = symmetrize(small_matmul(small_matmul(F, Prr), F.T) + Q)
@@ -937,6 +950,8 @@ def update_robot(state: SlamState, model: SlamModel, observe, z, mask, R, params
     P[:, :n_r] Hᵀ and the factored Joseph form (cost O(n²·d_z)), as
     :func:`update`.  A failed factorisation or non-finite gain keeps the prior
     and sets ``NON_FINITE`` / ``NOT_PSD``; non-finite inputs set ``MASKED_INPUT``.
+    Called eagerly, a mask that is not bool (or 0/1 integers) or an ``R`` that is not symmetric
+    PSD on the masked-in components is an :class:`InputError` naming it.
     Works on any map (also an empty one).  Returns (state, UpdateInfo) with
     ``used``/``gated`` of shape (d_z,).
     """
@@ -944,6 +959,9 @@ def update_robot(state: SlamState, model: SlamModel, observe, z, mask, R, params
     dtype = state.x.dtype
     z = jnp.asarray(z, dtype)
     dz = z.shape[0]
+    check_mask(mask, "mask")
+    if is_concrete(R, mask) and np.shape(R) == (dz, dz):  # as update's: a used component's R PSD
+        check_psd(R, "R", valid=np.broadcast_to(np.asarray(mask, bool), (dz,)))
     mask = jnp.broadcast_to(jnp.asarray(mask, bool), (dz,))
     finite = jnp.isfinite(z)
     valid = mask & finite
@@ -1030,21 +1048,50 @@ def add_landmark(state: SlamState, model: SlamModel, slot, mean, cov_ll, cov_lx,
     overwritten by ``cov_ll``).  Nothing is written where ``ok`` is False.
     Used by :func:`register` and by systems with their own initialisers
     (e.g. trilateration for range-only SLAM).
+
+    Shapes are checked (static), and when concrete, ``slot`` (an int in [0, capacity)) and
+    ``cov_ll`` (symmetric PSD): :class:`InputError` naming the argument.  A traced ``slot``
+    outside the map is never clamped: nothing is written and ``MASKED_INPUT`` is set.
     """
+    _check_sizes(state, model)
     nr, dl, cap = _sizes(state, model)
     n = state.x.shape[0]
+    if is_concrete(slot):
+        if np.ndim(slot) != 0 or not np.issubdtype(np.asarray(slot).dtype, np.integer):
+            raise InputError(f"slot: expected an integer slot, got {slot!r}")
+        if not 0 <= int(slot) < cap:
+            raise InputError(f"slot: {int(slot)} is outside the map's slots [0, {cap})")
+    elif jnp.ndim(slot) != 0 or not jnp.issubdtype(jnp.result_type(slot), jnp.integer):
+        raise InputError(f"slot: expected an integer slot, got shape {jnp.shape(slot)} dtype "
+                         f"{jnp.result_type(slot)}")
+    for nm, a, want in (("mean", mean, (dl,)), ("cov_ll", cov_ll, (dl, dl)), ("cov_lx", cov_lx, (dl, n))):
+        if tuple(jnp.shape(a)) != want:
+            raise InputError(f"{nm}: expected shape {want} (lm_dim {dl}, state size {n}), got "
+                             f"{tuple(jnp.shape(a))}")
+    if is_concrete(cov_ll) and not (is_concrete(ok) and not np.any(np.asarray(ok))):
+        check_psd(cov_ll, "cov_ll")
+    dtype = state.x.dtype
+    slot = jnp.asarray(slot, jnp.int32)
+    in_map = (slot >= 0) & (slot < cap)
+    status = state.status | _flag_if(jnp.asarray(ok, bool) & ~in_map, errors.MASKED_INPUT)
+    ok = jnp.asarray(ok, bool) & in_map
+    slot = jnp.clip(slot, 0, cap - 1)  # only read or written where ok (in the map)
+    mean = jnp.asarray(mean, dtype)
+    cov_ll = jnp.asarray(cov_ll, dtype)
+    cov_lx = jnp.asarray(cov_lx, dtype)
     start = nr + slot * dl
-    row = jax.lax.dynamic_update_slice(cov_lx, cov_ll, (0, start))  # (dl, n)
+    zero = jnp.zeros((), start.dtype)  # lax wants index arguments of one integer type
+    row = jax.lax.dynamic_update_slice(cov_lx, cov_ll, (zero, start))  # (dl, n)
     P = state.P
     # Guard on the written rows/columns only (O(n)); a select over P would be O(n²).
-    row = jnp.where(ok, row, jax.lax.dynamic_slice(P, (start, 0), (dl, n)))
+    row = jnp.where(ok, row, jax.lax.dynamic_slice(P, (start, zero), (dl, n)))
     mean = jnp.where(ok, mean, jax.lax.dynamic_slice(state.x, (start,), (dl,)))
-    P = jax.lax.dynamic_update_slice(P, row, (start, 0))
-    P = jax.lax.dynamic_update_slice(P, row.T, (0, start))
+    P = jax.lax.dynamic_update_slice(P, row, (start, zero))
+    P = jax.lax.dynamic_update_slice(P, row.T, (zero, start))
     x = jax.lax.dynamic_update_slice(state.x, mean, (start,))
     active = state.active.at[slot].set(jnp.where(ok, True, state.active[slot]))
     ids = state.ids.at[slot].set(jnp.where(ok, jnp.int32(lm_id), state.ids[slot]))
-    return state._replace(x=x, P=P, active=active, ids=ids)
+    return state._replace(x=x, P=P, active=active, ids=ids, status=status)
 
 
 def register(state: SlamState, model: SlamModel, z, lm_ids, mask, R, params=None) -> SlamState:
@@ -1198,8 +1245,19 @@ def associate_known(state: SlamState, lm_ids, mask):
     """Known correspondences: slot of each id and whether it is mapped.
 
     Returns (slots (K,), mapped (K,) bool).  Unmapped valid ids are the
-    candidates for registration (``mask & ~mapped``).
+    candidates for registration (``mask & ~mapped``).  ``lm_ids`` (K,) and ``mask`` (K,) are
+    checked for shape (static) and, when concrete, ``mask`` for a bool (or 0/1) dtype and
+    ``lm_ids`` for whole numbers: :class:`InputError` naming the argument.
     """
+    lm_ids = jnp.asarray(lm_ids)
+    if lm_ids.ndim != 1:
+        raise InputError(f"lm_ids: expected shape (K,), got {tuple(lm_ids.shape)}")
+    K = lm_ids.shape[0]
+    if tuple(jnp.shape(mask)) != (K,):
+        raise InputError(f"mask: expected shape ({K},) (one per row of lm_ids), got {tuple(jnp.shape(mask))}")
+    check_mask(mask, "mask")
+    check_whole_ids(lm_ids, "lm_ids", mask if is_concrete(mask) else None)
+    mask = jnp.asarray(mask, bool)
     eq = (state.ids[None, :] == lm_ids[:, None]) & state.active[None, :]
     mapped = jnp.any(eq, axis=1) & mask
     slots = jnp.argmax(eq, axis=1).astype(jnp.int32)
@@ -1282,8 +1340,14 @@ def associate_nn(state: SlamState, model: SlamModel, z, mask, R, params=None,
     (static): the d² table on the leading block of slots that holds the map
     (:func:`marginal_d2`); the same association (d² to rounding).
 
+    Shapes (static) and, when concrete, ``mask`` (bool or 0/1) and ``R`` (symmetric PSD on the
+    masked-in rows) are checked as :func:`update`'s: :class:`InputError` naming the argument.
+
     Returns (slots (K,), matched (K,) bool, new (K,) bool, d2_min (K,)).
     """
+    _check_sizes(state, model)
+    z, _, mask = _rows(z, None, mask, model.meas_dim, "")
+    R = _rows_R(R, mask, z.shape[0], model.meas_dim, state.x.dtype)
     cap = state.active.shape[0]
     dtype = state.x.dtype
     K = z.shape[0]
@@ -1607,6 +1671,7 @@ def run(model: SlamModel, state: SlamState, log: SlamLog, Q, R, *, association: 
     ``static_argnames=("model", "association", "register_new", "save_cov", "save_map")``).
     """
     _check_run(state, model, log, Q, R, association)
+    check_mask(log.mask, "log.mask")
     dtype = state.x.dtype
     nr = model.robot_dim
     z = jnp.asarray(log.z, dtype)
@@ -1637,6 +1702,10 @@ def run(model: SlamModel, state: SlamState, log: SlamLog, Q, R, *, association: 
         else:
             slots, mapped, new, _ = associate_nn(st, model, z_t, m_t, R_t, p_t, gate=nn_gate,
                                                  new_threshold=nn_new)
+            # a present row with a non-finite entry is no candidate of the association: flag it
+            # as update does for the rows it is handed (``MASKED_INPUT``), not drop it silently
+            bad = jnp.any(m_t & ~jnp.all(jnp.isfinite(z_t), axis=-1))
+            st = st._replace(status=st.status | _flag_if(bad, errors.MASKED_INPUT))
         st, info = update(st, model, z_t, slots, mapped, R_t, p_t, gate=gate)
         if can_register:
             n_before = jnp.sum(st.active)
@@ -1655,7 +1724,7 @@ def run(model: SlamModel, state: SlamState, log: SlamLog, Q, R, *, association: 
                jnp.sum(info.used).astype(jnp.int32), jnp.sum(info.gated).astype(jnp.int32), n_new)
         return st, out
 
-    xs = (log.u, z, ids, mask, log.params, Qa if q_step else None, Ra if r_step else None)
+    xs = (_cast_u(log.u, dtype), z, ids, mask, log.params, Qa if q_step else None, Ra if r_step else None)
     final, outs = jax.lax.scan(body, state, xs, length=T)
     return SlamRun(*outs, final=final)
 

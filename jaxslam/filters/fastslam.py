@@ -106,7 +106,7 @@ import numpy as np
 
 from .. import errors
 from ..errors import InputError
-from ..linalg import (check_int, check_psd, check_whole_ids, cholesky_small, inv_small, is_concrete,
+from ..linalg import (check_int, check_mask, check_psd, check_whole_ids, cholesky_small, inv_small, is_concrete,
                       symmetrize, value_and_jacfwd, wrap_angle)
 from .gaussian import check_gate, threshold as _threshold
 from ..stats import _student_t_nll
@@ -648,6 +648,7 @@ def observe_update(
         raise InputError(f"lm_ids: expected shape ({K},), got {lm_ids.shape}")
     if mask.shape != (K,):
         raise InputError(f"mask: expected shape ({K},), got {mask.shape}")
+    check_mask(mask, "mask")
     R = jnp.asarray(R, dtype)
     if R.shape not in ((dz, dz), (K, dz, dz)):
         raise InputError(f"R: expected shape ({dz}, {dz}) or ({K}, {dz}, {dz}), got {R.shape}")

@@ -50,7 +50,7 @@ import numpy as np
 
 from .. import errors
 from ..errors import InputError
-from ..linalg import check_numbers, check_psd, host_array, is_concrete, symmetrize
+from ..linalg import check_mask, check_numbers, check_psd, host_array, is_concrete, symmetrize
 
 __all__ = [
     "Gaussian",
@@ -69,6 +69,7 @@ __all__ = [
     "check_process_noise",
     "process_noise",
     "check_measurement",
+    "check_real",
     "LOG_2PI",
 ]
 
@@ -225,6 +226,15 @@ def check_noise_values(M, name: str, strict: bool = False):
         check_psd(M, name, strict=strict)
     elif np.ndim(M) < 2 and np.size(M) == 1:
         check_psd(np.reshape(check_numbers(M, name), (1, 1)), name, strict=strict)
+
+
+def check_real(z, name: str):
+    """Refuse a complex array (casting it to the filter's real dtype dropped the imaginary part
+    with only a warning), as a complex mean is: :class:`InputError` naming ``name``."""
+    dt = getattr(z, "dtype", None)
+    dt = np.asarray(z).dtype if dt is None else np.dtype(dt)
+    if np.issubdtype(dt, np.complexfloating):
+        raise InputError(f"{name}: expected a real array, got dtype {dt}")
 
 
 def check_num_iter(num_iter):
@@ -413,9 +423,11 @@ def check_run_inputs(x0, P0, zs, masks, Q, R, name_prefix=""):
     if len(zsh) != 2:
         raise InputError(f"{pre}zs: expected shape (T, m), got {tuple(zsh)}")
     T, m = zsh
+    check_real(zs, f"{pre}zs")
     if masks is not None and np.shape(masks) != (T, m):
         raise InputError(f"{pre}masks: expected shape ({T}, {m}) like zs, got "
                          f"{tuple(np.shape(masks))}")
+    check_mask(masks, f"{pre}masks")
     rs = np.shape(R)
     if m == 1 and len(rs) == 0:
         R = np.reshape(R, (1, 1)) if is_concrete(R) else R  # a scalar variance of one measurement
@@ -424,6 +436,10 @@ def check_run_inputs(x0, P0, zs, masks, Q, R, name_prefix=""):
     qs = np.shape(Q)
     if len(qs) not in (2, 3) or qs[-1] != qs[-2]:
         raise InputError(f"{pre}Q: expected a square matrix or one per step, got shape {tuple(qs)}")
+    if len(rs) == 3 and rs[0] != T:
+        # before the values: the masks of a per-step R's check must match its length
+        raise InputError(f"{pre}R: per-step noise must have {T} matrices (one per step), "
+                         f"got {rs[0]}")
     for M, nm, strict in ((P0, "P0", False), (Q, "Q", False), (R, "R", True)):
         if not is_concrete(M):
             continue
@@ -492,6 +508,7 @@ def make_step(flt: GaussianFilter, Q, R, q_step: bool, r_step: bool, predict_fir
 
 def prepare_run(x0, P0, zs, masks, Q, R):
     """Cast and check a run's arrays; ``(x0, P0, zs, masks, Q, R, q_step, r_step, T)``."""
+    check_real(zs, "zs")  # before the cast to x0's dtype
     x0 = jnp.asarray(x0)
     dtype = x0.dtype if jnp.issubdtype(x0.dtype, jnp.floating) else jnp.result_type(float)
     x0 = x0.astype(dtype)

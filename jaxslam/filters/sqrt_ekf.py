@@ -96,9 +96,10 @@ import numpy as np
 
 from .. import errors
 from ..errors import InputError
-from ..linalg import check_numbers, check_psd, is_concrete, symmetrize, value_and_jacfwd
+from ..linalg import check_mask, check_numbers, check_psd, is_concrete, symmetrize, value_and_jacfwd
 from .ekf import Gaussian, UpdateInfo
-from .gaussian import check_gate, check_leading, check_measurement, moment_dtype, threshold as _threshold
+from .gaussian import (check_gate, check_leading, check_measurement, check_noise_values, check_real,
+                       moment_dtype, threshold as _threshold)
 
 __all__ = [
     "SqrtGaussian",
@@ -344,8 +345,9 @@ def predict(state: SqrtGaussian, f: Callable, u, Q=None, *args, noise_jac=None,
             a state that does not move (``L' L'ᵀ = P + G Q Gᵀ``).
         u: control/input of the step (any pytree).
         Q: (n, n) discrete process-noise covariance, or (q, q) with ``noise_jac``; factored
-            here by :func:`psd_factor` (Cholesky; singular PSD allowed).  Ignored when
-            ``Q_chol`` is given (pass None).
+            here by :func:`psd_factor` (Cholesky; singular PSD allowed); a concrete one is
+            checked (:class:`InputError` naming ``Q``).  Ignored when ``Q_chol`` is given
+            (pass None).
         *args: extra arguments of ``f`` (and of a callable ``noise_jac``).
         noise_jac: None, an (n, q) matrix ``G``, or a callable ``G(x, u, *args) -> (n, q)``
             evaluated at the prior mean.
@@ -357,6 +359,8 @@ def predict(state: SqrtGaussian, f: Callable, u, Q=None, *args, noise_jac=None,
     """
     x, L = check_state(state)
     dtype = x.dtype
+    if Q_chol is None and Q is not None:
+        check_noise_values(Q, "Q")  # an eager call, as sqrt_ukf.predict (traced: shapes only)
     if f is None:  # a state that does not move: x' = x, F = I
         xn, F = x, jnp.eye(x.shape[0], dtype=dtype)
     else:
@@ -402,8 +406,10 @@ def update(
             ``state.mean`` / ``state.chol``; values only when concrete).
         z: (m,) measurement, in the units of ``h``'s output.
         h: measurement model ``h(x (n,), *args) -> (m,)``.
-        R: (m, m) measurement-noise covariance, positive definite on the valid block
-            (factored here by Cholesky; a failure is reported as ``errors.NOT_PSD``).
+        R: (m, m) measurement-noise covariance, positive definite (factored here by
+            Cholesky); a concrete one is checked (:class:`InputError` naming ``R``, as
+            :func:`jaxslam.filters.sqrt_ukf.update`), a traced one that fails to factor on
+            the valid block is reported as ``errors.NOT_PSD``.
         *args: extra arguments of ``h``.
         residual: ``residual(z, ẑ) -> (m,)``; default ``z − ẑ``
             (:func:`jaxslam.filters.ekf.angle_residual` for angles).
@@ -422,6 +428,9 @@ def update(
     """
     x, L = check_state(state)
     dtype = x.dtype
+    check_noise_values(R, "R", strict=True)  # an eager call, as sqrt_ukf.update
+    check_real(z, "z")
+    check_mask(mask, "mask")
     z = jnp.asarray(z, dtype=dtype)
     R = jnp.asarray(R, dtype=dtype)
     m = z.shape[-1]
@@ -504,8 +513,10 @@ def _validate_scan(x0, P0, us, zs, masks, Q, R, noise_jac, Q_chol):
     if len(zsh) != 2:
         raise InputError(f"zs: expected shape (T, m), got {tuple(zsh)}")
     T, m = zsh
+    check_real(zs, "zs")
     if masks is not None and np.shape(masks) != (T, m):
         raise InputError(f"masks: expected shape ({T}, {m}), got {tuple(np.shape(masks))}")
+    check_mask(masks, "masks")
     if np.shape(R) not in ((m, m), (T, m, m)):
         raise InputError(f"R: expected shape ({m}, {m}) or ({T}, {m}, {m}), got {tuple(np.shape(R))}")
     if is_concrete(R):

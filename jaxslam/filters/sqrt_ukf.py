@@ -30,13 +30,14 @@ import numpy as np
 
 from .. import errors
 from ..errors import InputError
-from ..linalg import check_numbers, is_concrete, symmetrize
+from ..linalg import check_mask, check_numbers, is_concrete, symmetrize
 from .gaussian import (
     Gate,
     UpdateInfo,
     check_gate,
     check_measurement,
     check_noise_values,
+    check_real,
     masked_innovation,
     threshold,
 )
@@ -122,6 +123,8 @@ def update(state: SqrtGaussian, z, h: Callable, R, *args, residual: Optional[Cal
     x, L = check_state(state)
     dtype = x.dtype
     check_noise_values(R, "R", strict=True)
+    check_real(z, "z")
+    check_mask(mask, "mask")
     z = jnp.asarray(z, dtype)
     R = jnp.asarray(R, dtype)
     m = z.shape[-1]
@@ -192,6 +195,7 @@ def filter_scan(f: Optional[Callable], h: Callable, x0, P0, us, zs, masks, Q, R,
     x0 = jnp.asarray(x0)
     dtype = x0.dtype if jnp.issubdtype(x0.dtype, jnp.floating) else jnp.result_type(float)
     x0 = x0.astype(dtype)
+    check_real(zs, "zs")  # before the cast to x0's dtype
     zs = jnp.asarray(zs, dtype)
     T, m = check_run_inputs(x0, P0, zs, masks, Q, R)
     n = x0.shape[0]

@@ -69,7 +69,7 @@ import numpy as np
 
 from .. import errors
 from ..errors import InputError
-from ..linalg import is_concrete, safe_norm
+from ..linalg import check_mask, is_concrete, safe_norm
 
 __all__ = [
     "TrilaterationResult",
@@ -131,6 +131,7 @@ def _check_inputs(points, ranges, mask, range_var=None, points_name: str = "poin
         raise InputError(f"ranges: expected shape ({K},) (one per point), got {np.shape(ranges)}")
     if mask is not None and np.shape(mask) != (K,):
         raise InputError(f"{mask_name}: expected shape ({K},) (one per point), got {np.shape(mask)}")
+    check_mask(mask, mask_name)  # concrete: bool or 0/1 integers (0.5 or 2 is no mask)
     if range_var is not None:
         if np.shape(range_var) not in ((), (K,)):
             raise InputError(f"range_var: expected a scalar or ({K},), got shape {np.shape(range_var)}")

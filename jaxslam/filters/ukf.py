@@ -106,7 +106,7 @@ import numpy as np
 
 from .. import errors
 from ..errors import InputError
-from ..linalg import check_numbers, check_psd, is_concrete, symmetrize
+from ..linalg import check_mask, check_numbers, check_psd, is_concrete, symmetrize
 from . import gaussian as _g
 from .gaussian import (
     Gate,
@@ -117,6 +117,7 @@ from .gaussian import (
     check_gate,
     check_measurement,
     check_noise_values,
+    check_real,
     check_state,
     finalize,
     innovation_solve,
@@ -445,6 +446,8 @@ def update(
     x, P = check_state(state)
     dtype = x.dtype
     check_noise_values(R, "R", strict=True)
+    check_real(z, "z")
+    check_mask(mask, "mask")
     z = jnp.asarray(z, dtype)
     R = jnp.asarray(R, dtype)
     m = z.shape[-1]

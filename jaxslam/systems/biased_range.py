@@ -23,7 +23,7 @@ from ..data.events import check_times
 from ..filters import consistency as cons
 from ..filters import ekf_slam as es
 from ..errors import InputError
-from ..linalg import check_mask_dtype, check_scalar, check_whole_ids, is_concrete, safe_norm
+from ..linalg import check_mask, check_scalar, check_whole_ids, is_concrete, safe_norm
 from ..stats import chi2_ppf_np, student_t_d2_ppf_np
 
 __all__ = ["range_observe", "update_ranges", "resolve_outlier_gate", "Result", "OUTLIER_P"]
@@ -129,7 +129,7 @@ def resolve_outlier_gate(params):
 def _check_slots(st, slots, mapped) -> None:
     """``mapped`` bool or integer (dtype: also traced); with both known, the slots of the mapped
     rows inside the state's ``[0, capacity)``.  :class:`InputError` naming the argument."""
-    check_mask_dtype(mapped, "mapped")
+    check_mask(mapped, "mapped")
     if not is_concrete(slots, mapped):
         return
     cap = np.shape(st.active)[0]

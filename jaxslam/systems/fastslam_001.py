@@ -129,7 +129,7 @@ from ..errors import InputError
 from ..filters import ekf
 from ..filters import fastslam as fs
 from ..geometry.euler import dcm_from_euler, euler_rates
-from ..linalg import (check_int, check_mask_dtype, check_numbers, check_scalar, check_whole_ids, cholesky_small,
+from ..linalg import (check_int, check_mask, check_numbers, check_scalar, check_whole_ids, cholesky_small,
                       host_array, inv_small, is_concrete, symmetrize)
 from ..sensors import imu as imu_mod
 from ..sensors import lidar3d
@@ -965,7 +965,7 @@ def _check_log(log: Log, config: Config):
         x = getattr(log, name)
         if is_concrete(x) and not (isinstance(x, (jax.Array, np.ndarray)) and x.dtype.kind in "biuf"):
             check_numbers(x, f"log.{name}")
-    check_mask_dtype(log.mask, "log.mask")
+    check_mask(log.mask, "log.mask")
     if is_concrete(log.x0) and not np.all(np.isfinite(np.asarray(log.x0, np.float64))):
         raise InputError("log.x0: contains NaN or Inf")
     if is_concrete(log.rotor_w) and not np.all(np.isfinite(np.asarray(log.rotor_w, np.float64))):

@@ -76,7 +76,7 @@ from ..errors import InputError
 from ..filters import association as assoc
 from ..filters import consistency as cons
 from ..filters import ekf_slam as es
-from ..linalg import check_int, check_mask_dtype, check_scalar, check_psd, check_whole_ids, is_concrete, wrap_angle
+from ..linalg import check_int, check_mask, check_scalar, check_psd, check_whole_ids, is_concrete, wrap_angle
 from ..sensors import range_bearing2d as rb
 
 __all__ = [
@@ -971,7 +971,7 @@ def validate_log(log: Log) -> Log:
             raise InputError(f"log.{name}: expected shape {zs[:2]}, got {np.shape(getattr(log, name))}")
     if np.shape(log.pose0) != (3,):
         raise InputError(f"log.pose0: expected shape (3,), got {np.shape(log.pose0)}")
-    check_mask_dtype(log.mask, "log.mask")
+    check_mask(log.mask, "log.mask")
     if not is_concrete(log.dt, log.u, log.pose0):
         return log
     dt = np.asarray(log.dt)

@@ -120,7 +120,7 @@ from .. import errors
 from ..errors import InputError
 from ..filters import ekf_slam as es
 from ..filters import trilateration as tri
-from ..linalg import check_int, check_mask_dtype, check_numbers, check_psd, check_scalar, host_array, is_concrete, wrap_angle
+from ..linalg import check_int, check_mask, check_numbers, check_psd, check_scalar, host_array, is_concrete, wrap_angle
 from ..sensors import uwb
 
 __all__ = [
@@ -812,7 +812,7 @@ def _check_log_arrays(log: Log, T: int) -> None:
         if is_concrete(x) and not (isinstance(x, (jax.Array, np.ndarray)) and x.dtype.kind in "biuf"):
             check_numbers(x, f"log.{name}")
     for name in ("startup_mask", "range_mask"):
-        check_mask_dtype(getattr(log, name), f"log.{name}")
+        check_mask(getattr(log, name), f"log.{name}")
 
 
 def _check_anchor_indices(config: Config, N: int) -> None:

@@ -42,7 +42,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..filters import ekf_slam as es
-from ..linalg import check_int, check_mask_dtype, check_psd, float_array, is_concrete, symmetrize
+from ..linalg import check_int, check_mask, check_psd, float_array, is_concrete, symmetrize
 
 __all__ = [
     "nll_terms",
@@ -91,9 +91,7 @@ def nll_terms(nu, S, mask=None):
         mask = jnp.asarray(mask) if not hasattr(mask, "shape") else mask
         _same_shape(mask, (m,), "mask", "one entry per component of nu")
         # as the systems' masks: bool or 0/1 integers (a 2 or 0.5 entry miscounted the dof)
-        check_mask_dtype(mask, "mask")
-        if is_concrete(mask) and mask.dtype != jnp.bool_ and not np.isin(np.asarray(mask), (0, 1)).all():
-            raise InputError(f"mask: expected a bool mask (or 0/1 integers), got values {np.unique(np.asarray(mask))}")
+        check_mask(mask, "mask")
         mask = mask.astype(bool)
     mask = jnp.ones((m,), bool) if mask is None else mask
     nu = jnp.where(mask, nu, 0.0)

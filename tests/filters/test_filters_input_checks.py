@@ -887,11 +887,14 @@ def test_delayed_init_checks_variances_shapes_and_takes_lists():
         D.from_buffer(pts, pv, rng, val, 0.01, var_rows=jnp.ones(3, bool))
     with pytest.raises(InputError, match=r"^points: expected numbers"):
         D.from_buffer("abc", pv, rng, val, 0.01)
-    # lists and a float mask are read as arrays (they gave "Cannot determine dtype" / a dtype error)
+    # lists and a 0/1 integer mask are read as arrays (they gave "Cannot determine dtype" / a
+    # dtype error); a float mask is refused since 2026-12-06, as every mask of the library is
     _, P2 = D.from_buffer(pts.tolist(), pv.tolist(), rng, val, 0.01)
     np.testing.assert_array_equal(np.asarray(P2), np.asarray(P))
     np.testing.assert_allclose(np.asarray(fit.position), [1.0, 2.0], atol=1e-9)
-    a = D.robust_trilaterate(pts, rng, jnp.ones(4), 0.01)
+    with pytest.raises(InputError, match=r"^valid: expected a bool mask \(or 0/1 integers\), got dtype float"):
+        D.robust_trilaterate(pts, rng, jnp.ones(4), 0.01)
+    a = D.robust_trilaterate(pts, rng, jnp.ones(4, jnp.int32), 0.01)
     b = D.robust_trilaterate(pts, rng, val, 0.01)
     np.testing.assert_array_equal(np.asarray(a.position), np.asarray(b.position))
     # a scalar point variance is every row's
@@ -921,3 +924,105 @@ def test_a_non_finite_concrete_z_gives_the_ukf_the_ekf_answer(bad):
     b = ukf.update(ekf.Gaussian(jnp.zeros(2), jnp.asarray(P0)), z, hh, R, mask=m)[0]
     np.testing.assert_allclose(np.asarray(b.mean), np.asarray(a.mean), rtol=1e-6, atol=1e-12)
     assert np.all(np.isfinite(np.asarray(b.cov)))
+
+
+def _runners():
+    from jaxslam.filters import gaussian, smoother
+    return {
+        "ekf": ekf.filter_scan, "ukf": ukf.filter_scan, "sqrt_ekf": sqrt_ekf.filter_scan,
+        "sqrt_ukf": sqrt_ukf.filter_scan,
+        "gaussian.run": lambda f_, h_, *a: gaussian.run(ekf.make_filter(f_, h_), *a),
+        "fixed_lag": lambda f_, h_, *a: smoother.fixed_lag(ekf.make_filter(f_, h_), *a, lag=2),
+        "iterated": lambda f_, h_, *a: smoother.iterated(f_, h_, *a, num_iter=2),
+    }
+
+
+_RUNS = ["ekf", "ukf", "sqrt_ekf", "sqrt_ukf", "gaussian.run", "fixed_lag", "iterated"]
+
+
+def test_update_batch_joint_takes_an_h_without_per_measurement_args():
+    # the joint mode vmapped h over its (empty) per-measurement args: a bare JAX ValueError
+    st = ekf.Gaussian(jnp.zeros(2), jnp.eye(2))
+    zs = np.array([[0.1], [0.2]])
+    seq, info_s = ekf.update_batch(st, zs, h, R1, sequential=True)
+    joint, info_j = ekf.update_batch(st, zs, h, R1)
+    np.testing.assert_allclose(np.asarray(joint.mean), np.asarray(seq.mean), atol=1e-12)
+    np.testing.assert_allclose(np.asarray(joint.cov), np.asarray(seq.cov), atol=1e-12)
+    # by hand: two scalar updates of a unit prior with variance 0.1 -> mean 0.3/2.1
+    np.testing.assert_allclose(float(joint.mean[0]), 0.3 / 2.1, rtol=1e-12)
+    assert np.asarray(info_j.status).tolist() == [0, 0]
+
+
+@pytest.mark.parametrize("run", _RUNS)
+@pytest.mark.parametrize("bad", ["int2", "float05"])
+def test_run_masks_must_be_bool_or_0_1(run, bad):
+    # a 2 or a 0.5 in a mask was read as True, status 0
+    m = np.ones(ZS.shape, int)
+    m[3, 0] = 0
+    masks = m.copy() if bad == "int2" else m.astype(float)
+    masks[0, 0] = 2 if bad == "int2" else 0.5
+    with pytest.raises(InputError, match=r"^masks: expected a bool mask \(or 0/1 integers\)"):
+        _runners()[run](f, h, np.zeros(2), np.eye(2), None, ZS, masks, Q2, R1)
+
+
+def test_run_takes_0_1_integer_masks_as_bool():
+    m = np.ones(ZS.shape, int)
+    m[3, 0] = 0
+    a = ekf.filter_scan(f, h, np.zeros(2), np.eye(2), None, ZS, m, Q2, R1)
+    b = ekf.filter_scan(f, h, np.zeros(2), np.eye(2), None, ZS, m.astype(bool), Q2, R1)
+    np.testing.assert_array_equal(np.asarray(a.means), np.asarray(b.means))
+    assert int(a.nis[3]) == 0 and int(b.nis[3]) == 0
+
+
+@pytest.mark.parametrize("mod", [ekf, ukf, sqrt_ekf, sqrt_ukf], ids=["ekf", "ukf", "sqrt_ekf", "sqrt_ukf"])
+def test_update_mask_must_be_bool_or_0_1(mod):
+    g = (sqrt_ekf.SqrtGaussian if mod in (sqrt_ekf, sqrt_ukf) else ekf.Gaussian)(jnp.zeros(2), jnp.eye(2))
+    for bad in (np.array([2, 0]), np.array([0.5, 1.0])):
+        with pytest.raises(InputError, match=r"^mask: expected a bool mask \(or 0/1 integers\)"):
+            mod.update(g, np.zeros(2), lambda x: x, 0.1 * np.eye(2), mask=bad)
+    if mod is ekf:
+        for bad in (np.array([2, 0]), np.array([[1, 0], [0.5, 1]])):
+            with pytest.raises(InputError, match=r"^masks: expected a bool mask \(or 0/1 integers\)"):
+                ekf.update_batch(g, np.zeros((2, 1)), h, R1, masks=bad)
+
+
+@pytest.mark.parametrize("run", _RUNS)
+def test_per_step_r_of_the_wrong_length_with_masks_is_named(run):
+    # the PSD check of a per-step R on the masks' rows ran before its length check: a bare
+    # NumPy broadcast error
+    T = ZS.shape[0]
+    R = np.stack([R1] * (T + 1))
+    masks = np.ones(ZS.shape, bool)
+    with pytest.raises(InputError, match=rf"^R: (per-step noise must have {T} matrices|expected shape)"):
+        _runners()[run](f, h, np.zeros(2), np.eye(2), None, ZS, masks, Q2, R)
+
+
+@pytest.mark.parametrize("run", _RUNS)
+def test_run_refuses_complex_measurements(run):
+    # cast to real with only a ComplexWarning, status 0
+    with pytest.raises(InputError, match=r"^zs: expected a real array"):
+        _runners()[run](f, h, np.zeros(2), np.eye(2), None, ZS + 1j, None, Q2, R1)
+
+
+@pytest.mark.parametrize("mod", [ekf, ukf, sqrt_ekf, sqrt_ukf], ids=["ekf", "ukf", "sqrt_ekf", "sqrt_ukf"])
+def test_update_refuses_a_complex_measurement(mod):
+    g = (sqrt_ekf.SqrtGaussian if mod in (sqrt_ekf, sqrt_ukf) else ekf.Gaussian)(jnp.zeros(2), jnp.eye(2))
+    with pytest.raises(InputError, match=r"^z: expected a real array"):
+        mod.update(g, np.zeros(1) + 1j, h, R1)
+    if mod is ekf:
+        with pytest.raises(InputError, match=r"^zs: expected a real array"):
+            ekf.update_batch(g, np.zeros((2, 1)) + 1j, h, R1)
+
+
+def test_sqrt_ekf_checks_a_concrete_q_and_r_like_sqrt_ukf():
+    # sqrt_ekf.predict gave a NaN factor for Q = -0.01 I; update kept the prior with NOT_PSD
+    st = sqrt_ekf.SqrtGaussian(jnp.zeros(2), jnp.eye(2))
+    R_bad = np.array([[0.05, 0.1], [0.1, 0.05]])
+    for mod in (sqrt_ekf, sqrt_ukf):
+        with pytest.raises(InputError, match=r"^Q: not positive semi-definite"):
+            mod.predict(st, f, None, -0.01 * np.eye(2))
+        with pytest.raises(InputError, match=r"^R: not positive definite"):
+            mod.update(st, np.zeros(2), lambda x: x, R_bad)
+    # a PSD (singular) Q is still taken
+    out = sqrt_ekf.predict(st, f, None, np.diag([0.0, 0.01]))
+    assert np.all(np.isfinite(np.asarray(out.chol)))

@@ -150,7 +150,7 @@ def test_localization_consistent_with_gaussian_noise():
 
 
 def test_smoothing_leaves_the_filter_alone_and_lowers_its_error():
-    """``smooth``: the filter's outputs are bit for bit those of the unsmoothed run, the smoothed
+    """``smooth``: the filter's outputs are those of the unsmoothed run to rounding, the smoothed
     trajectory ends at the filter's last estimate (an RTS pass starts there), no gain failed, and
     on 8 Monte Carlo runs of the circle the smoothed position error is below the filter's in every
     run (the smoother's RMSE below the filter's, issue 20)."""
@@ -164,8 +164,12 @@ def test_smoothing_leaves_the_filter_alone_and_lowers_its_error():
     (_, plain), m_plain = outs[False]
     (_, res), m = outs[True]
     assert plain.smoothed is None and "smoothed_pos_rmse_m" not in m_plain
-    np.testing.assert_array_equal(np.asarray(res.steps.mean), np.asarray(plain.steps.mean))
-    np.testing.assert_array_equal(np.asarray(res.steps.cov), np.asarray(plain.steps.cov))
+    # Two programs compiled apart: XLA may fuse the filter's arithmetic differently in each, so
+    # "leaves the filter alone" is equality to rounding (bit for bit until 2026-12-06, when
+    # add_landmark's out-of-map guard changed the fusion: 1.9e-15 absolute apart at most).  A
+    # smoother that fed back into the filter would move it by orders of magnitude more.
+    np.testing.assert_allclose(np.asarray(res.steps.mean), np.asarray(plain.steps.mean), rtol=1e-11, atol=1e-14)
+    np.testing.assert_allclose(np.asarray(res.steps.cov), np.asarray(plain.steps.cov), rtol=1e-11, atol=1e-16)
     np.testing.assert_array_equal(np.asarray(res.smoothed[:, -1]), np.asarray(res.steps.mean[:, -1]))
     assert not np.any(np.asarray(res.smooth_status))
     assert np.all(np.asarray(m["smoothed_pos_rmse_m"]) < np.asarray(m["pos_rmse_m"]))
