@@ -94,6 +94,8 @@ def test_tune_mrclam_writes_a_params_file_that_dataset_reads(tmp_path, run_cli):
         assert rc == 0, err
         ds = json.loads((tmp_path / "ds.json").read_text())
         assert ds["config"]["noise"] == "--params file"
+        # the tune table's "after" ATE is the dataset command's (scored at the ground-truth samples)
+        assert ds["metrics"]["ate_m"] == pytest.approx(rep["after"]["metrics"]["ate_m"]["per_run"][0], rel=1e-9)
     R = np.asarray(p["noise"]["R"])
     assert np.all(np.linalg.eigvalsh(R) > 0)
 
