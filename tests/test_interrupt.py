@@ -205,7 +205,22 @@ def test_a_ctrl_c_python_drops_still_stops_the_command_before_it_writes(tmp_path
 def test_counting_interrupts_restores_the_default_handler():
     from jaxslam.cli import common
 
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    # Ctrl-C as a terminal delivers it (a suite started in the background has SIGINT ignored,
+    # and then the command leaves the handler alone: checked last)
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        _counting_interrupts_round_trip(common)
+    finally:
+        signal.signal(signal.SIGINT, before)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        with common.counting_interrupts():
+            assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGINT, before)
+
+
+def _counting_interrupts_round_trip(common):
     hook = sys.unraisablehook
     with common.counting_interrupts():
         assert signal.getsignal(signal.SIGINT) is not signal.default_int_handler
