@@ -508,7 +508,8 @@ def make_step(flt: GaussianFilter, Q, R, q_step: bool, r_step: bool, predict_fir
 
 def prepare_run(x0, P0, zs, masks, Q, R):
     """Cast and check a run's arrays; ``(x0, P0, zs, masks, Q, R, q_step, r_step, T)``."""
-    check_real(zs, "zs")  # before the cast to x0's dtype
+    check_real(zs, "zs")  # before the casts to x0's (real) dtype
+    check_real(x0, "x0")
     x0 = jnp.asarray(x0)
     dtype = x0.dtype if jnp.issubdtype(x0.dtype, jnp.floating) else jnp.result_type(float)
     x0 = x0.astype(dtype)

@@ -503,6 +503,7 @@ def _validate_scan(x0, P0, us, zs, masks, Q, R, noise_jac, Q_chol):
     if len(xs) != 1:
         raise InputError(f"x0: expected shape (n,), got {tuple(xs)}")
     n = xs[0]
+    check_real(x0, "x0")
     if is_concrete(x0) and not np.all(np.isfinite(np.asarray(x0, dtype=np.float64))):
         raise InputError("x0: contains NaN or Inf")
     if np.shape(P0) != (n, n):

@@ -192,6 +192,7 @@ def filter_scan(f: Optional[Callable], h: Callable, x0, P0, us, zs, masks, Q, R,
 
     rule = _rule(points)
     check_gate(gate)
+    check_real(x0, "x0")  # before the cast to a real dtype
     x0 = jnp.asarray(x0)
     dtype = x0.dtype if jnp.issubdtype(x0.dtype, jnp.floating) else jnp.result_type(float)
     x0 = x0.astype(dtype)

@@ -1002,6 +1002,9 @@ def test_run_refuses_complex_measurements(run):
     # cast to real with only a ComplexWarning, status 0
     with pytest.raises(InputError, match=r"^zs: expected a real array"):
         _runners()[run](f, h, np.zeros(2), np.eye(2), None, ZS + 1j, None, Q2, R1)
+    # a complex start was cast to real before any check (ekf.filter_scan gave a ComplexWarning)
+    with pytest.raises(InputError, match=r"^x0: "):
+        _runners()[run](f, h, np.zeros(2) + 1j, np.eye(2), None, ZS, None, Q2, R1)
 
 
 @pytest.mark.parametrize("mod", [ekf, ukf, sqrt_ekf, sqrt_ukf], ids=["ekf", "ukf", "sqrt_ekf", "sqrt_ukf"])
