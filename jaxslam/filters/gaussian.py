@@ -191,8 +191,7 @@ def moment_dtype(x, M, x_name: str, m_name: str):
     x_dt, m_dt = jnp.result_type(x), jnp.result_type(M)
     if not jnp.issubdtype(x_dt, jnp.inexact):
         x_dt = m_dt if jnp.issubdtype(m_dt, jnp.floating) else jnp.result_type(float)
-    if jnp.issubdtype(x_dt, jnp.complexfloating):
-        raise InputError(f"{x_name}: expected a real array, got dtype {x_dt}")
+    check_real(x, x_name)
     return x_dt
 
 
