@@ -40,6 +40,7 @@ __all__ = [
     "check_scalar",
     "check_int",
     "check_shape",
+    "reworded",
 ]
 
 
@@ -345,6 +346,19 @@ def check_scalar(value, name: str, *, finite: bool = True, lower=None, strict: b
     if not ok:
         raise InputError(f"{name}: expected {want}, got {value!r}")
     return float(a)
+
+
+def reworded(check, message: str, upper: float = float("inf")):
+    """``check()`` (one of this module's checks: the rule lives there) with its
+    :class:`InputError` replaced by ``message`` (a caller's wording, e.g. naming its CLI flag);
+    a result above ``upper`` raises ``message`` too.  Host-side."""
+    try:
+        value = check()
+    except InputError:
+        raise InputError(message) from None
+    if not value <= upper:
+        raise InputError(message)
+    return value
 
 
 def check_int(value, name: str, lower: int = 1, what: str = "an int") -> int:

@@ -337,9 +337,10 @@ def update(
         tol: convergence tolerance of the iterations, in prior σ (traced).
 
     Returns:
-        ``(posterior Gaussian, UpdateInfo)``.  On a failed Cholesky
-        (``NOT_PSD``) or a non-finite posterior (``NON_FINITE``) the prior is
-        returned unchanged.
+        ``(posterior Gaussian, UpdateInfo)``.  On a failed Cholesky or a negative
+        posterior variance (``NOT_PSD``: e.g. an indefinite prior under ``jit``, where it is
+        not checked) or a non-finite posterior (``NON_FINITE``) the prior is returned
+        unchanged.
     """
     check_num_iter(num_iter)
     check_gate(gate)

@@ -67,7 +67,7 @@ from ..errors import InputError
 from ..linalg import (check_int, check_mask, check_psd, check_whole_ids, cholesky_small, is_concrete,
                       put_blocks, small_matmul, symmetrize, take, take_blocks, value_and_jacfwd)
 from ..stats import _student_t_nll, check_student_t_nu
-from .gaussian import check_gate, check_num_iter
+from .gaussian import check_gate, check_num_iter, check_real
 
 __all__ = [
     "SlamModel",
@@ -285,7 +285,9 @@ def _cast_u(u, dtype):
 def _rows(z, ids, mask, dz: int, ids_name: str):
     """``(z (K, d_z), ids (K,) int32, mask (K,) bool)`` as arrays, shapes checked (static):
     :class:`InputError` naming the argument (a (K,) z with K = d_z would otherwise be read
-    as K rows of one component each, and lists have no ``.shape``)."""
+    as K rows of one component each, and lists have no ``.shape``; a complex z lost its imaginary
+    part with only a warning)."""
+    check_real(z, "z")
     z = jnp.asarray(z)
     if z.ndim != 2 or z.shape[1] != dz or z.shape[0] < 1:
         raise InputError(f"z: expected shape (K, {dz}) (K ≥ 1 rows of the model's meas_dim), got "
@@ -380,6 +382,12 @@ def _predict(state: SlamState, model: SlamModel, u, Q, params, active_only: bool
         check_psd(np.asarray(Q), "Q")
     s = state.x[:nr]
     s_new, F = motion_and_jacobian(model, s, _cast_u(u, state.x.dtype), params)
+    if jnp.shape(s_new) != (nr,) or jnp.shape(F) != (nr, nr):
+        # (static shapes: a u of the wrong size broadcast by the model shows here, not as an
+        # XLA broadcasting error inside the update)
+        raise InputError(f"model.motion: returned shape {tuple(jnp.shape(s_new))} (Jacobian "
+                         f"{tuple(jnp.shape(F))}) for robot_dim {nr}; check u's shape "
+                         f"{tuple(jnp.shape(u)) if not isinstance(u, (tuple, list, dict)) else '(a pytree)'}")
     Prr = state.P[:nr, :nr]
     Prl = state.P[:nr, nr:]
     Prr_new = symmetrize(small_matmul(small_matmul(F, Prr), F.T) + Q)
@@ -1609,6 +1617,7 @@ def _check_run(state: SlamState, model: SlamModel, log: SlamLog, Q, R, associati
         raise InputError(f"state: its size {jnp.shape(state.x)[0]} is not robot_dim {nr} + capacity "
                          f"{state.active.shape[0]} × lm_dim {model.lm_dim}")
     zs = jnp.shape(log.z)
+    check_real(log.z, "log.z")
     if len(zs) != 3 or zs[2] != dz:
         raise InputError(f"log.z: expected shape (T, K, {dz}), got {tuple(zs)}")
     T, K = zs[0], zs[1]

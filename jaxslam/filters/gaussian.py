@@ -348,11 +348,17 @@ def finalize(prior: Gaussian, x_post, P_post, ok, gated, dof, extra_status=None)
     """Select posterior or prior and assemble the status bits.
 
     Returns ``(Gaussian, accepted, status)``: the posterior only when at least
-    one component was valid, the gate passed, the factorisation held and the
-    result is finite; else the prior, with ``GATED`` / ``NOT_PSD`` /
-    ``NON_FINITE`` set.  ``extra_status`` (int32) is OR-ed in (e.g.
-    ``NOT_CONVERGED`` from an iterated update).
+    one component was valid, the gate passed, the factorisation held, no posterior variance is
+    negative (beyond rounding: 64 ε times the prior's largest variance) and the result is
+    finite; else the prior, with ``GATED`` / ``NOT_PSD`` / ``NON_FINITE`` set.  The variance
+    check is O(n) and catches an indefinite prior that a traced call could not refuse (its
+    ``S`` may still factor).  ``extra_status`` (int32) is OR-ed in (e.g. ``NOT_CONVERGED``
+    from an iterated update).
     """
+    var = jnp.diagonal(P_post)
+    scale = jnp.max(jnp.abs(jnp.diagonal(prior.cov)))
+    # (NaN compares False here: a non-finite posterior is NON_FINITE, not also NOT_PSD)
+    ok = ok & ~jnp.any(var < -64.0 * jnp.finfo(var.dtype).eps * scale)
     finite = jnp.all(jnp.isfinite(x_post)) & jnp.all(jnp.isfinite(P_post))
     has = dof > 0
     accepted = has & ~gated & ok & finite

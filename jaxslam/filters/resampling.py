@@ -59,6 +59,7 @@ import jax.numpy as jnp
 from jax.scipy.special import logsumexp
 
 from ..errors import InputError
+from ..linalg import check_scalar, is_concrete
 
 __all__ = [
     "normalize",
@@ -262,14 +263,19 @@ def soft(key, log_w, alpha, scheme="multinomial"):
 
     Args:
         key: PRNG key.  log_w: (N,) log-weights.
-        alpha: () mixture weight in [0, 1] (traced; 1 = standard resampling,
-            0 = uniform draw keeping the old weights).
+        alpha: () mixture weight in [0, 1] (1 = standard resampling, 0 = uniform draw
+            keeping the old weights).  A concrete value outside [0, 1] (or not finite) is an
+            :class:`InputError`; a traced one is used as if clipped to [0, 1].
         scheme: scheme used to draw from ``q`` (default multinomial, as in
             Karkus et al.; "systematic" lowers the variance).
 
     Returns:
         ``(indices (N,) int32, new_log_w (N,) normalised)``.
     """
+    if jnp.ndim(alpha) != 0:
+        raise InputError(f"alpha: expected a scalar mixture weight in [0, 1], got shape {jnp.shape(alpha)}")
+    if is_concrete(alpha) and check_scalar(alpha, "alpha", lower=0) > 1.0:
+        raise InputError(f"alpha: expected a mixture weight in [0, 1], got {alpha!r}")
     lw, _ = normalize(log_w)
     n = lw.shape[-1]
     a = jnp.asarray(alpha, lw.dtype)

@@ -102,17 +102,20 @@ class TrilaterationResult(NamedTuple):
     residual_max: jax.Array
 
 
-def _valid(ranges, mask):
+def _valid(points, ranges, mask):
+    """Rows that can enter a fit: a finite range > 0 from a finite point (and ``mask``)."""
     ok = jnp.isfinite(ranges) & (jnp.where(jnp.isfinite(ranges), ranges, 0.0) > 0)
+    ok = ok & jnp.all(jnp.isfinite(points), axis=-1)
     if mask is not None:
         ok = ok & mask
     return ok
 
 
-def _bad_input_flag(ranges, mask):
-    # A sample offered (mask True) whose range is NaN/Inf or <= 0 is bad input, not a choice.
+def _bad_input_flag(points, ranges, mask):
+    # A sample offered (mask True) whose range is NaN/Inf or <= 0, or whose point is not finite,
+    # is bad input, not a choice.
     offered = jnp.ones(ranges.shape, bool) if mask is None else mask
-    bad = offered & ~_valid(ranges, None)
+    bad = offered & ~_valid(points, ranges, None)
     return jnp.where(jnp.any(bad), errors.MASKED_INPUT, 0)
 
 
@@ -151,14 +154,15 @@ def linear_system(points, ranges, mask=None):
 
     Paper 003, eq. 25-26 (sign of A corrected: rows 2 (a_k − a_1)ᵀ, b_k = d_1² − d_k² +
     ‖a_k‖² − ‖a_1‖²).  points: (K, d) known positions a_k [m]; ranges: (K,)
-    measured distances d_k [m]; mask: optional (K,) bool.  Returns
+    measured distances d_k [m]; mask: optional (K,) bool (a row with a non-finite point or
+    range, or a range ≤ 0, is invalid whatever the mask says).  Returns
     ``(A (K, d), b (K,), valid (K,) bool, ref ())`` where the reference row and
     the invalid rows are zero (they do not change the least-squares solution).
     """
     dtype = _dtype_of(points, ranges)
     points = jnp.asarray(points, dtype)
     ranges = jnp.asarray(ranges, dtype)
-    valid = _valid(ranges, mask)
+    valid = _valid(points, ranges, mask)
     d = jnp.where(valid, ranges, 0.0)
     p = jnp.where(valid[:, None], points, 0.0)
     ref = jnp.argmax(valid)
@@ -218,7 +222,8 @@ def trilaterate(points, ranges, mask=None, range_var=None, min_points: Optional[
 
     Args:
       points: (K, d) known positions a_k [m] (d = 2 in paper 003; 3 works too).
-      ranges: (K,) measured distances d_k [m]; non-finite or ≤ 0 entries are dropped.
+      ranges: (K,) measured distances d_k [m]; non-finite or ≤ 0 entries are dropped, as are
+        rows whose point is not finite (both set ``MASKED_INPUT`` when offered by ``mask``).
       mask: optional (K,) bool, False drops a sample.
       range_var: optional σ² [m²] of each range, for the covariance (module docstring).
       min_points: minimum of valid samples for ``ok`` (default d + 1; may be traced: only compared).
@@ -267,7 +272,7 @@ def trilaterate(points, ranges, mask=None, range_var=None, min_points: Optional[
         g = pinv @ u  # A⁺ 𝟙
         cov = v[ref] * jnp.outer(g, g) + (pinv * (v * u)[None, :]) @ pinv.T
         cov = 0.5 * (cov + cov.T)
-    status = jnp.where(ok, 0, errors.DEGENERATE) | _bad_input_flag(ranges, mask)
+    status = jnp.where(ok, 0, errors.DEGENERATE) | _bad_input_flag(points, ranges, mask)
     return TrilaterationResult(position=x, cov=cov, ok=ok, status=jnp.asarray(status, jnp.int32),
                                n_used=n_used, spread=spread, residual_max=residual_max)
 
@@ -319,7 +324,7 @@ def trilaterate_line(xs, ranges, mask=None, side=1.0, min_points: int = 3,
     pos = jnp.where(jnp.isfinite(pos), pos, 0.0)
     dist = jnp.sqrt((pos[0] - xs) ** 2 + pos[1] ** 2)
     residual_max = jnp.max(jnp.where(valid, jnp.abs(dist - d), 0.0))
-    status = jnp.where(ok, 0, errors.DEGENERATE) | _bad_input_flag(ranges, mask)
+    status = jnp.where(ok, 0, errors.DEGENERATE) | _bad_input_flag(pts, ranges, mask)
     return TrilaterationResult(position=pos, cov=jnp.zeros((2, 2), dtype), ok=ok,
                                status=jnp.asarray(status, jnp.int32), n_used=n_used,
                                spread=spread, residual_max=residual_max)

@@ -130,7 +130,7 @@ from ..filters import ekf
 from ..filters import fastslam as fs
 from ..geometry.euler import dcm_from_euler, euler_rates
 from ..linalg import (check_int, check_mask, check_numbers, check_scalar, check_whole_ids, cholesky_small,
-                      host_array, inv_small, is_concrete, symmetrize)
+                      host_array, inv_small, is_concrete, reworded, symmetrize)
 from ..sensors import imu as imu_mod
 from ..sensors import lidar3d
 
@@ -470,21 +470,9 @@ def validate_config(cfg: Config) -> Config:
     check_int(cfg.capacity, "config.capacity")
     check_int(cfg.lidar_every, "config.lidar_every")
     # a string dt failed with NumPy's bare "could not convert"
-    _scalar_or_raise(cfg.dt, "config.dt", "must be a positive number of seconds", strict=True)
+    reworded(lambda: check_scalar(cfg.dt, "config.dt", lower=0, strict=True),
+             f"config.dt: must be a positive number of seconds, got {cfg.dt!r}")
     return cfg
-
-
-def _scalar_or_raise(v, name: str, message: str, strict: bool, upper: float = math.inf) -> float:
-    """``v`` as a float when it is a finite scalar number in (0, ``upper``] (``strict``) or
-    [0, ``upper``] (:func:`~jaxslam.linalg.check_scalar`'s rule; a string, None or an array is
-    not one); else InputError "``name``: ``message``, got ``v``"."""
-    try:
-        x = check_scalar(v, name, lower=0, strict=strict)
-    except InputError:
-        x = math.nan
-    if not x <= upper:  # NaN: refused above
-        raise InputError(f"{name}: {message}, got {v!r}")
-    return x
 
 
 def validate_params_001(params: Params) -> Params:
@@ -507,9 +495,11 @@ def validate_params_001(params: Params) -> Params:
         if np.any(v < 0) or (strict and np.any(v <= 0)):
             raise InputError(f"params.{name}: must be {'> 0' if strict else '>= 0'}, got {v.tolist()}")
     if params.resample_threshold is not None:  # a string failed with NumPy's bare "could not convert"
-        _scalar_or_raise(params.resample_threshold, "params.resample_threshold",
-                         "expected None or a fraction in (0, 1]", strict=True, upper=1.0)
-    _scalar_or_raise(params.soft_alpha, "params.soft_alpha", "expected a value in [0, 1]", strict=False, upper=1.0)
+        reworded(lambda: check_scalar(params.resample_threshold, "params.resample_threshold", lower=0, strict=True),
+                 f"params.resample_threshold: expected None or a fraction in (0, 1], got "
+                 f"{params.resample_threshold!r}", upper=1.0)
+    reworded(lambda: check_scalar(params.soft_alpha, "params.soft_alpha", lower=0),
+             f"params.soft_alpha: expected a value in [0, 1], got {params.soft_alpha!r}", upper=1.0)
     return params
 
 

@@ -65,7 +65,7 @@ import optax
 
 from .. import runtime
 from ..errors import InputError
-from ..linalg import check_int, check_scalar, is_concrete
+from ..linalg import check_int, check_scalar, is_concrete, reworded
 
 __all__ = ["FitResult", "make_optimizer", "batch_loss", "fit", "memory_report", "peak_rss_mb", "FAST_COMPILE"]
 
@@ -103,31 +103,19 @@ class FitResult(NamedTuple):
     n_dropped: int = 0
 
 
-def _or_raise(check, message: str, upper: float = math.inf):
-    """``check()`` (a :mod:`jaxslam.linalg` check: the rule lives there), its InputError replaced by
-    ``message`` (this module's wording); a result above ``upper`` raises it too."""
-    try:
-        value = check()
-    except InputError:
-        raise InputError(message) from None
-    if not value <= upper:
-        raise InputError(message)
-    return value
-
-
 def make_optimizer(lr: float, steps: int, schedule: str = "cosine", warmup: Optional[int] = None,
                    clip: Optional[float] = 1.0, final_lr_frac: float = 0.05, b2: float = 0.9):
     """optax chain: clip_by_global_norm(clip) → Adam(schedule, b2).  Returns (tx, schedule_fn)."""
-    lr = _or_raise(lambda: check_scalar(lr, "lr", lower=0, strict=True),
+    lr = reworded(lambda: check_scalar(lr, "lr", lower=0, strict=True),
                    f"lr: expected a positive finite number (--lr), got {lr!r}")
     steps = check_int(steps, "steps", lower=1, what="an int (--steps)")
     # < 0: gradient ascent; NaN: NaN lr; a bool is not a fraction
-    frac = _or_raise(lambda: check_scalar(None if isinstance(final_lr_frac, bool) else final_lr_frac,
+    frac = reworded(lambda: check_scalar(None if isinstance(final_lr_frac, bool) else final_lr_frac,
                                           "final_lr_frac", lower=0),
                      f"final_lr_frac: expected a number in [0, 1] (the final lr as a fraction of lr), "
                      f"got {final_lr_frac!r}", upper=1.0)
     if warmup is not None:
-        _or_raise(lambda: check_int(warmup, "warmup", lower=0), f"warmup: must be an int >= 0 (or None), got {warmup!r}")
+        reworded(lambda: check_int(warmup, "warmup", lower=0), f"warmup: must be an int >= 0 (or None), got {warmup!r}")
     warmup = max(1, int(round(0.05 * steps))) if warmup is None else int(warmup)
     if schedule == "cosine":
         sched = optax.warmup_cosine_decay_schedule(
@@ -139,7 +127,7 @@ def make_optimizer(lr: float, steps: int, schedule: str = "cosine", warmup: Opti
         raise InputError(f"schedule: expected 'cosine' or 'constant', got {schedule!r}")
     parts = []
     if clip is not None:
-        _or_raise(lambda: check_scalar(clip, "clip", finite=False, lower=0, strict=True), f"clip: must be > 0, got {clip}")
+        reworded(lambda: check_scalar(clip, "clip", finite=False, lower=0, strict=True), f"clip: must be > 0, got {clip}")
         parts.append(optax.clip_by_global_norm(clip))
     if not 0.0 < b2 < 1.0:
         raise InputError(f"b2: must be in (0, 1), got {b2}")
@@ -278,7 +266,7 @@ def fit(loss_fn: Callable, theta0, train, steps: int, lr: float = 0.1, *, test=N
                              f"them), got dtype {jnp.result_type(x)}")
         if is_concrete(x) and not np.all(np.isfinite(np.asarray(x))):
             raise InputError("theta0: contains NaN or Inf")
-    _or_raise(lambda: check_int(max_skips, "max_skips", lower=0), f"max_skips: must be an int >= 0, got {max_skips!r}")
+    reworded(lambda: check_int(max_skips, "max_skips", lower=0), f"max_skips: must be an int >= 0, got {max_skips!r}")
     if batch_size is not None:
         batch_size = check_int(batch_size, "batch_size", lower=1)
         if batch_size > runs:

@@ -43,7 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import InputError
-from ..linalg import check_int, check_numbers, check_psd, check_scalar, float_array
+from ..linalg import check_int, check_numbers, check_psd, check_scalar, float_array, reworded
 
 __all__ = [
     "CovSpec",
@@ -104,12 +104,9 @@ def _as_matrix(M, name):
 
 
 def _check_floor(floor) -> float:
-    """``floor`` as a float when it is a number > 0 (:func:`~jaxslam.linalg.check_scalar`), else
-    InputError naming ``floor``."""
-    try:
-        return check_scalar(floor, "floor", finite=False, lower=0, strict=True)
-    except InputError:
-        raise InputError(f"floor: must be > 0, got {floor!r}") from None
+    """``floor`` as a float when it is a number > 0, else InputError naming ``floor``."""
+    return reworded(lambda: check_scalar(floor, "floor", finite=False, lower=0, strict=True),
+                    f"floor: must be > 0, got {floor!r}")
 
 
 def log_diag_from_cov(M, floor: float | None = None, dtype=None, name: str = "M"):

@@ -167,3 +167,45 @@ def test_associate_known_and_nn_shapes_are_input_errors():
         es.associate_known(st, np.array([0, 1, 2]), np.ones(2, bool))
     with pytest.raises(InputError, match=r"^z: "):
         es.associate_nn(st, M, np.array([2.2, 0.45]), np.ones(2, bool), R)
+
+
+# --- leftovers of the 2026-12-06 filters probe ---------------------------------------------------
+
+def test_complex_measurements_are_refused_by_the_engine():
+    # run and update cast a complex z to real with only a ComplexWarning
+    st = _state()
+    log = es.SlamLog(u=np.tile([1.0, 0.2], (3, 1)), z=np.ones((3, 1, 2)) + 1j, ids=np.zeros((3, 1), np.int32),
+                     mask=np.ones((3, 1), bool))
+    with pytest.raises(InputError, match=r"^log\.z: expected a real array"):
+        es.run(M, st, log, Q, R)
+    with pytest.raises(InputError, match=r"^z: expected a real array"):
+        es.update(st, M, np.ones((1, 2)) + 1j, np.array([0]), np.array([True]), R)
+
+
+def test_predict_names_the_motion_when_its_output_has_the_wrong_shape():
+    # a (2, 2) control broadcast by the model into a (2, 3) "robot state": an XLA error before
+    m = es.SlamModel(3, 2, 2, lambda s, u, p: s + u[:, :1], _observe, _inverse)
+    with pytest.raises(InputError, match=r"^model\.motion: returned shape \(2, 3\)"):
+        es.predict(_state(), m, np.ones((2, 2)), Q)
+
+
+def test_trilateration_drops_a_non_finite_point_like_a_bad_range():
+    # a NaN or Inf point made the fit DEGENERATE (ok False) with four good rows left, and
+    # from_buffer returned a NaN covariance
+    pts = np.array([[0.0, 0.0], [4.0, 0.0], [0.0, 4.0], [4.0, 4.0], [2.0, 5.0]])
+    target = np.array([1.0, 2.0])
+    r = np.sqrt(np.sum((pts - target) ** 2, axis=1))  # exact ranges: the fit is the target
+    tri_j = jax.jit(tri.trilaterate)
+    buf = jax.jit(lambda p, rr: delayed_init.from_buffer(p, 0.01, rr, jnp.ones(5, bool), 0.01))
+    for bad in (np.nan, np.inf):
+        p_bad = pts.copy()
+        p_bad[1, 0] = bad
+        fit = tri_j(p_bad, r)
+        assert bool(fit.ok) and int(fit.n_used) == 4
+        assert int(fit.status) == errors.MASKED_INPUT
+        np.testing.assert_allclose(fit.position, target, atol=1e-9)
+        fit_b, P_ll = buf(p_bad, r)
+        assert bool(fit_b.ok) and np.all(np.isfinite(np.asarray(P_ll)))
+        assert np.isfinite(float(fit_b.spread)) and np.isfinite(float(fit_b.residual_max))
+    # the same point masked out by the caller: no flag
+    assert int(tri_j(pts, r, np.array([True, False, True, True, True])).status) == 0

@@ -1029,3 +1029,32 @@ def test_sqrt_ekf_checks_a_concrete_q_and_r_like_sqrt_ukf():
     # a PSD (singular) Q is still taken
     out = sqrt_ekf.predict(st, f, None, np.diag([0.0, 0.01]))
     assert np.all(np.isfinite(np.asarray(out.chol)))
+
+
+def test_ekf_update_under_jit_flags_an_indefinite_prior():
+    # eagerly an InputError; traced, S = H P H^T + R still factored and the posterior kept a
+    # negative variance with status 0
+    P = jnp.array([[1.0, 0.0], [0.0, -0.5]])
+    upd = jax.jit(lambda m, P, z: ekf.update(ekf.Gaussian(m, P), z, lambda x: x, jnp.eye(2)))
+    post, info = upd(jnp.zeros(2), P, jnp.ones(2))
+    assert int(info.status) & errors.NOT_PSD and not bool(info.accepted)
+    np.testing.assert_array_equal(post.cov, P)  # the prior, unchanged
+    # a PSD prior with a zero variance still updates (rounding is not a negative variance)
+    post, info = upd(jnp.zeros(2), jnp.diag(jnp.array([1.0, 0.0])), jnp.ones(2))
+    assert int(info.status) == 0 and bool(info.accepted)
+
+
+def test_soft_resampling_refuses_a_mixture_weight_outside_0_1():
+    from jaxslam.filters import resampling
+
+    key, lw = jax.random.PRNGKey(0), jnp.log(jnp.array([0.1, 0.2, 0.3, 0.4]))
+    for a in (2.0, -0.1, np.nan):
+        with pytest.raises(InputError, match=r"^alpha: "):
+            resampling.soft(key, lw, a)
+    with pytest.raises(InputError, match=r"^alpha: "):
+        resampling.soft(key, lw, np.array([0.5, 0.5]))
+    # traced: used as if clipped to [0, 1]
+    soft = jax.jit(resampling.soft)
+    for a_out, a_in in ((2.0, 1.0), (-1.0, 0.0)):
+        for got, want in zip(soft(key, lw, a_out), resampling.soft(key, lw, a_in)):
+            np.testing.assert_allclose(got, want, rtol=1e-12)
