@@ -396,8 +396,25 @@ def _program_digest(key, args, compiler_options) -> str:
         "platform": devices[0].platform,
         "device_kind": devices[0].device_kind,
     }
-    text = json.dumps(material, sort_keys=True, default=repr)
+    text = json.dumps(material, sort_keys=True, default=_key_default)
     return hashlib.sha256(text.encode()).hexdigest()[:40]
+
+
+def _key_default(obj):
+    """JSON stand-in for what ``json`` cannot write in a program key: an array (or NumPy
+    scalar) by its dtype, shape and a digest of its bytes — its ``repr`` rounds to 8 digits
+    and elides arrays over 1000 elements, so two different keys shared a program — anything
+    else by its ``repr``."""
+    import hashlib
+
+    import numpy as np
+
+    if hasattr(obj, "__array__") or isinstance(obj, np.generic):
+        a = np.asarray(obj)
+        if a.dtype != object:
+            return {"array": str(a.dtype), "shape": list(a.shape),
+                    "sha256": hashlib.sha256(np.ascontiguousarray(a).tobytes()).hexdigest()}
+    return repr(obj)
 
 
 def _specs(args):
@@ -428,8 +445,9 @@ def compile_program(fn, args, *, key=None, compiler_options=None):
     With a ``key`` and the persistent cache on, the *traced* program is kept too (jax.export,
     StableHLO, in ``<cache folder>/programs``), so a later process skips tracing and lowering
     — on the main job those took 3-4 s, more than loading the compiled program.  ``key``
-    (JSON-able) must name everything ``fn`` closes over that is not an argument: a scenario's
-    name, options, parameters, dtype.  The stored program is further keyed by the argument
+    (JSON-able; NumPy arrays and scalars in it are keyed by their exact bytes, anything else
+    that JSON cannot write by its ``repr``) must name everything ``fn`` closes over that is not
+    an argument: a scenario's name, options, parameters, dtype.  The stored program is further keyed by the argument
     shapes and dtypes, the compiler options, a digest of jaxslam's source files, the JAX and
     jaxlib versions, x64 and the device kind, so an edit of the code or an upgrade never
     serves a stale program.  A stored program that cannot be read is ignored and replaced

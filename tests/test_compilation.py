@@ -147,6 +147,25 @@ def test_compile_program_stores_memoises_and_rebuilds(tmp_path, monkeypatch):
     compilation.clear_programs()
 
 
+def test_keys_holding_arrays_that_differ_get_different_programs(tmp_path, monkeypatch):
+    # the key was written with repr: arrays over 1000 elements elided, others rounded to 8
+    # digits, so a second key served the first key's program (a closed-over weight ignored)
+    monkeypatch.setattr(compilation, "_enabled_dir", None)
+    compilation.clear_programs()
+    w1 = np.zeros(2000)
+    w2 = w1.copy()
+    w2[1000] = 5.0
+    x = jnp.float32(0)
+    assert float(compilation.compile_program(lambda v: v + jnp.asarray(w1).sum(), (x,), key={"w": w1})(x)) == 0.0
+    assert float(compilation.compile_program(lambda v: v + jnp.asarray(w2).sum(), (x,), key={"w": w2})(x)) == 5.0
+    digest = compilation._program_digest
+    a = np.array([0.1])
+    assert digest({"w": a}, (x,), None) != digest({"w": a + 1e-12}, (x,), None)
+    assert digest({"w": np.float32(0.1)}, (x,), None) != digest({"w": np.float64(0.1)}, (x,), None)
+    assert digest({"w": a}, (x,), None) == digest({"w": a.copy()}, (x,), None)  # equal keys still meet
+    compilation.clear_programs()
+
+
 def test_account_splits_trace_lower_compile():
     with compilation.account() as acc:
         jax.jit(lambda x: jnp.cos(x) * 3.0 + 1.0).lower(jnp.ones(7)).compile()
