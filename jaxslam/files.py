@@ -21,6 +21,7 @@ from __future__ import annotations
 import contextlib
 import os
 import pathlib
+import stat
 import tempfile
 from typing import Callable, Optional
 
@@ -40,11 +41,17 @@ def _blocking_ancestor(path: pathlib.Path) -> Optional[pathlib.Path]:
     return None
 
 
-def _probe_folder(flag: str, folder: pathlib.Path, target: pathlib.Path) -> None:
-    """Create ``folder`` (and its parents) and check that a file can be created in it."""
-    blocker = _blocking_ancestor(folder / "x")
+def _check_no_file_above(flag: str, path: pathlib.Path, target: pathlib.Path) -> None:
+    """InputError naming ``flag`` when an existing ancestor of ``path`` is a file (so
+    ``target`` cannot be created): the words, not a bare ``File exists``."""
+    blocker = _blocking_ancestor(path)
     if blocker is not None:
         raise InputError(f"{flag}: {str(blocker)!r} is a file, so {str(target)!r} cannot be created")
+
+
+def _probe_folder(flag: str, folder: pathlib.Path, target: pathlib.Path) -> None:
+    """Create ``folder`` (and its parents) and check that a file can be created in it."""
+    _check_no_file_above(flag, folder / "x", target)
     try:
         folder.mkdir(parents=True, exist_ok=True)
         fd, probe = tempfile.mkstemp(dir=folder, prefix=".jaxslam-probe-")
@@ -112,7 +119,8 @@ def distinct_outputs(**paths) -> None:
 def atomic_write(path, write: Callable, mode: str = "w") -> pathlib.Path:
     """Write ``path`` atomically: ``write(f)`` fills a temporary file that is renamed over it.
 
-    A symbolic link is followed (its target is replaced, the link kept); an existing path that
+    A replaced file keeps its permission bits (a new one gets ``0666`` less the umask).  A
+    symbolic link is followed (its target is replaced, the link kept); an existing path that
     is not a regular file (``/dev/null``, a FIFO, a terminal) is written into directly — a
     rename would replace the device with a file.
 
@@ -138,12 +146,18 @@ def atomic_write(path, write: Callable, mode: str = "w") -> pathlib.Path:
         with open(path, mode, **({"encoding": "utf-8"} if "b" not in mode else {})) as f:
             write(f)
         return path
+    _check_no_file_above("path", path, path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        keep_mode = stat.S_IMODE(os.stat(path).st_mode)
+    except FileNotFoundError:
+        keep_mode = None
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
         with os.fdopen(fd, mode, **({"encoding": "utf-8"} if "b" not in mode else {})) as f:
             write(f)
-        os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp makes 0600; give the usual mode
+        # mkstemp makes 0600: keep the replaced file's permission bits, else give the usual mode
+        os.chmod(tmp, keep_mode if keep_mode is not None else 0o666 & ~_UMASK)
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(OSError):

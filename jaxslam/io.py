@@ -10,7 +10,8 @@ Decisions
 - JSON has no NaN or infinity, so :func:`write_json` writes every non-finite
   float as ``null`` (strict JSON that every parser reads).  ``per_run`` keeps its
   length, so the position of a ``null`` tells which run failed.
-- ``p95`` is ``numpy.percentile(x, 95)`` with linear interpolation between runs.
+- ``p95`` is ``numpy.percentile(x, 95)`` with linear interpolation between runs (towards an
+  infinite run the interpolation is infinite, where NumPy's ``inf - inf`` would give NaN).
 - ``runs_per_s`` is ``runs / run_s`` (``null`` if ``run_s`` is not positive);
   ``run_s`` excludes compilation, which ``compile_s`` reports.
 """
@@ -60,6 +61,23 @@ def _per_run(values, name) -> np.ndarray:
         raise InputError(f"metrics[{name!r}]: expected numbers (per-run values), got {values!r}"[:300]) from None
 
 
+def _p95(x: np.ndarray) -> float:
+    """``numpy.percentile(x, 95)`` (linear) of NaN-free values; with an infinity among the two
+    runs it interpolates between, the limit of the interpolation (NumPy's ``inf - inf`` gives
+    NaN): towards ``inf`` it is ``inf``, from ``-inf`` it is ``-inf`` (``-inf`` to ``inf``: NaN)."""
+    if np.isfinite(x).all():
+        return float(np.percentile(x, 95))
+    lo = float(np.percentile(x, 95, method="lower"))
+    hi = float(np.percentile(x, 95, method="higher"))
+    if lo == hi:
+        return lo
+    if math.isinf(lo) and math.isinf(hi):
+        return math.nan
+    if math.isinf(lo) or math.isinf(hi):
+        return lo if math.isinf(lo) else hi
+    return float(np.percentile(x, 95))  # the infinities lie outside the pair
+
+
 def summarize_metrics(metrics: Mapping[str, Any]) -> dict[str, dict]:
     """Summary statistics of per-run metrics.
 
@@ -91,7 +109,7 @@ def summarize_metrics(metrics: Mapping[str, Any]) -> dict[str, dict]:
             stats = dict(
                 mean=float(np.mean(x)),
                 median=float(np.median(x)),
-                p95=float(np.percentile(x, 95)),
+                p95=_p95(x),
                 max=float(np.max(x)),
             )
         out[str(name)] = {**stats, "per_run": [float(v) for v in x]}
@@ -154,8 +172,12 @@ def to_jsonable(obj: Any, nonfinite_to_none: bool = True) -> Any:
     become dicts, and (if ``nonfinite_to_none``) non-finite floats become ``None``
     (JSON ``null``).
 
+    Mapping keys become ``str(key)``; two keys of one mapping that would become the same
+    string (``1`` and ``"1"``) are refused rather than one of them being lost.
+
     Raises:
       TypeError: an object with no JSON form (complex numbers, arbitrary classes).
+      InputError: two keys of a mapping have the same string form.
     """
     rec = lambda v: to_jsonable(v, nonfinite_to_none)  # noqa: E731
     if obj is None or isinstance(obj, (bool, str)):
@@ -179,7 +201,15 @@ def to_jsonable(obj: Any, nonfinite_to_none: bool = True) -> Any:
     if isinstance(obj, pathlib.PurePath):
         return str(obj)
     if isinstance(obj, Mapping):
-        return {str(k): rec(v) for k, v in obj.items()}
+        out, first = {}, {}
+        for k, v in obj.items():
+            name = str(k)
+            if name in first:
+                raise InputError(f"obj: keys {first[name]!r} and {k!r} of one mapping are both written as "
+                                 f"the JSON key {name!r} (one would be lost)")
+            first[name] = k
+            out[name] = rec(v)
+        return out
     if hasattr(obj, "_asdict"):  # NamedTuple
         return {k: rec(v) for k, v in obj._asdict().items()}
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):

@@ -1,8 +1,8 @@
 """A one-line progress bar for long host-side loops (Monte Carlo chunks, tuning steps).
 
-Standard library only.  The bar stays silent for jobs that finish within about a
-second (its first line is printed at the first update after ``delay_s``), so
-quick runs and tests print nothing.  On a terminal the line is redrawn in place
+The standard library, and :func:`jaxslam.linalg.check_int` for its arguments.  The bar stays
+silent for jobs that finish within about a second (its first line is printed at the first
+update after ``delay_s``), so quick runs and tests print nothing.  On a terminal the line is redrawn in place
 (at most ``min_interval_s`` apart); on a pipe or file, whole lines are written
 at most every ``log_interval_s`` so logs stay readable.
 
@@ -19,12 +19,32 @@ last one written is not written again.
 from __future__ import annotations
 
 import contextlib
+import operator
 import sys
 import threading
 import time
 from typing import TextIO
 
+from .errors import InputError
+from .linalg import check_int
+
 __all__ = ["Progress"]
+
+
+def _count(value, name: str) -> int:
+    """``value`` as an int (a Python or NumPy integer, of any sign), else :class:`InputError`
+    naming ``name``: a float, a string or a bool is not a count."""
+    if not isinstance(value, bool):
+        try:
+            v = operator.index(value)
+        except TypeError:
+            v = None
+        if v is not None and v < 0:  # a negative count is clipped by the caller
+            return v
+    try:
+        return check_int(value, name, lower=0)
+    except InputError:
+        raise InputError(f"{name}: expected an int, got {value!r}") from None
 
 
 def _fmt_time(seconds: float) -> str:
@@ -38,7 +58,7 @@ class Progress:
     """Progress of a job of ``total`` units, shown as ``label [####....] done/total``.
 
     Args:
-      total: number of units (runs, steps); ``>= 0``.
+      total: number of units (runs, steps), an int ``>= 0`` (0: an open-ended count).
       label: short text in front of the bar.
       enabled: ``False`` makes every method a no-op.
       stream: where to print (default ``sys.stderr``).
@@ -62,7 +82,7 @@ class Progress:
         log_interval_s: float = 5.0,
         clock=time.monotonic,
     ):
-        self.total = max(0, int(total))
+        self.total = check_int(total, "total", lower=0)
         self.label = label
         self.enabled = bool(enabled)
         self.stream = sys.stderr if stream is None else stream
@@ -99,13 +119,14 @@ class Progress:
         self.close()
 
     def update(self, n_done: int) -> None:
-        """Set the number of finished units (clipped to ``[0, total]``)."""
-        self._done = min(max(0, int(n_done)), self.total) if self.total else max(0, int(n_done))
+        """Set the number of finished units, an int (clipped to ``[0, total]``)."""
+        n = _count(n_done, "n_done")
+        self._done = min(max(0, n), self.total) if self.total else max(0, n)
         self._maybe_print()
 
     def advance(self, k: int = 1) -> None:
-        """Add ``k`` finished units."""
-        self.update(self._done + int(k))
+        """Add ``k`` finished units (an int)."""
+        self.update(self._done + _count(k, "k"))
 
     def note(self, text: str) -> None:
         """Print a line of its own; on a terminal the bar is cleared first (redrawn at the next

@@ -3,8 +3,9 @@
 ``jax.distributed.initialize`` joins this process to a group (one coordinator address, the
 group size, this process's index); :func:`jaxslam.sim.monte_carlo.run` then gives each process
 a contiguous block of the runs, runs it on its own devices exactly as a single process would
-(run i still uses ``fold_in(PRNGKey(seed), i)``, so a run's result does not depend on how many
-processes share the batch) and gathers every block to every process with
+(run i still uses ``fold_in(PRNGKey(seed), i)``, so it is the same flight however many
+processes share the batch; vmapped, a block's batch shape differs from one process's chunk, so
+the figures agree to rounding, as between chunk sizes in ``monte_carlo.run``) and gathers every block to every process with
 ``multihost_utils.process_allgather``.  Nothing is scheduled by hand: JAX's coordination service
 starts the group and its collectives move the results (on CPUs the ``gloo`` collectives,
 selected by :func:`initialize` before the backend starts).
@@ -23,7 +24,6 @@ group would wait on the interrupted process): the distributed run is all or noth
 
 from __future__ import annotations
 
-import math
 import socket
 from typing import Optional
 
@@ -31,6 +31,7 @@ import jax
 import numpy as np
 
 from ..errors import InputError
+from ..linalg import check_int
 
 __all__ = ["initialize", "active", "is_leader", "block", "gather", "free_port"]
 
@@ -41,10 +42,14 @@ def initialize(coordinator: str, num_processes: int, process_id: int) -> None:
     ``coordinator`` "HOST:PORT" (process 0 listens there); ``num_processes`` ≥ 1;
     ``process_id`` in [0, num_processes).  Selects the gloo CPU collectives first, so CPU-only
     machines can gather results."""
-    if not isinstance(num_processes, int) or num_processes < 1:
-        raise InputError(f"--num-processes: expected an integer >= 1, got {num_processes!r}")
-    if not isinstance(process_id, int) or not 0 <= process_id < num_processes:
+    num_processes = check_int(num_processes, "--num-processes", lower=1, what="an integer")
+    try:
+        pid = check_int(process_id, "--process-id", lower=0)
+    except InputError:
+        pid = -1
+    if not 0 <= pid < num_processes:
         raise InputError(f"--process-id: expected 0 to {num_processes - 1}, got {process_id!r}")
+    process_id = pid
     host, _, port = str(coordinator).rpartition(":")
     if not host or not port.isdigit() or not 0 < int(port) < 65536:
         raise InputError(f"--coordinator: expected HOST:PORT, got {coordinator!r}")
@@ -66,10 +71,15 @@ def is_leader() -> bool:
 def block(runs: int, num_processes: Optional[int] = None, index: Optional[int] = None) -> tuple:
     """``(start, size)``: this process's contiguous block of ``runs`` run indices, ``size`` the
     common (padded) block length ``ceil(runs / P)``; ``start`` may pass ``runs`` for the last
-    processes of a small batch (their block is all padding)."""
-    P = jax.process_count() if num_processes is None else int(num_processes)
-    i = jax.process_index() if index is None else int(index)
-    size = int(math.ceil(runs / P))
+    processes of a small batch (their block is all padding).  ``runs`` ≥ 0, ``num_processes``
+    ≥ 1 and ``index`` in [0, num_processes) are ints (NumPy's too; not bools), else an
+    :class:`InputError` naming the argument."""
+    runs = check_int(runs, "runs", lower=0)
+    P = jax.process_count() if num_processes is None else check_int(num_processes, "num_processes")
+    i = jax.process_index() if index is None else check_int(index, "index", lower=0)
+    if i >= P:
+        raise InputError(f"index: expected 0 to {P - 1} (a process of {P}), got {index!r}")
+    size = -(-runs // P)  # ceil(runs / P), exact for any int
     return i * size, size
 
 

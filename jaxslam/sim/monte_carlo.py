@@ -121,13 +121,46 @@ def _fold_in_all(base, idx):
     return jax.vmap(lambda i: jax.random.fold_in(base, i))(idx)
 
 
+def _check_seed(seed) -> int:
+    """``seed`` as an int in [-2**63, 2**63) (a signed 64-bit integer, what ``PRNGKey`` takes
+    with x64 on), else :class:`InputError` naming ``seed``."""
+    try:
+        v = check_int(seed, "seed", lower=-2**63)
+    except InputError:
+        v = None
+    if v is None or v >= 2**63:
+        raise InputError(f"seed: expected an int in [-2**63, 2**63), got {seed!r}")
+    return v
+
+
+def _seed_key(seed: int) -> np.ndarray:
+    """The raw key of ``jax.random.PRNGKey(seed)`` as JAX makes it with ``jax_enable_x64`` on
+    (the seed's 64 bits, two's complement), whatever the x64 setting: with x64 off
+    ``PRNGKey`` truncates the seed to 32 bits (seeds 2**32 apart share a key, a negative seed
+    gets another key).  The default threefry2x32 key is ``[high word, low word]``, rbg's that
+    pair twice; other implementations hash the seed, so their seeding runs with x64 on."""
+    bits = seed & (2**64 - 1)
+    hi, lo = bits >> 32, bits & 0xFFFFFFFF
+    impl = str(jax.config.jax_default_prng_impl)
+    if impl == "threefry2x32":
+        return np.array([hi, lo], dtype=np.uint32)
+    if impl in ("rbg", "unsafe_rbg"):
+        return np.array([hi, lo, hi, lo], dtype=np.uint32)
+    with jax.enable_x64(True):
+        return np.asarray(jax.random.PRNGKey(np.int64(seed)))
+
+
 def keys_for(seed: int, runs: int):
     """The ``runs`` PRNG keys of a Monte Carlo batch (run i uses fold_in(seed key, i)).
 
-    Returned as a NumPy array (indexing it per run compiles nothing); the folds are one
-    compiled program, not a chain of eager operations.
+    The seed key is ``jax.random.PRNGKey(seed)`` as made with ``jax_enable_x64`` on, whether
+    or not x64 is on (every seed in [-2**63, 2**63) has its own key; other seeds are an
+    :class:`InputError`).  Returned as a NumPy array (indexing it per run compiles nothing);
+    the folds are one compiled program, not a chain of eager operations.
     """
-    return np.asarray(_fold_in_all(jax.random.PRNGKey(seed), np.arange(runs)))
+    seed = _check_seed(seed)
+    runs = check_int(runs, "runs", lower=0)
+    return np.asarray(_fold_in_all(_seed_key(seed), np.arange(runs)))
 
 
 def run(fn: Callable, seed: int, runs: int, chunk: Optional[int] = None,
@@ -138,8 +171,16 @@ def run(fn: Callable, seed: int, runs: int, chunk: Optional[int] = None,
     Args:
       fn: key -> pytree of arrays (pure, jit-able); with ``detail`` a dict holding
         ``"detail"``, which is kept for the first run only.
-      seed, runs: the batch (run i gets ``fold_in(PRNGKey(seed), i)``, so a run's
-        result does not depend on the chunk size, the batching or the device count).
+      seed, runs: the batch: run i gets ``fold_in(PRNGKey(seed), i)`` (the key ``PRNGKey``
+        makes with ``jax_enable_x64`` on, whatever the setting; ``seed`` in [-2**63, 2**63)),
+        so run i is the same flight whatever the chunk size, the batching, the device count
+        or ``runs``.  Bit for bit: a call repeated gives the same results, and with
+        ``"loop"`` batching run i's result does not depend on ``threads`` or ``runs``.  A
+        vmapped program is compiled for its batch shape (the chunk, each device's share of
+        it), and XLA may round differently for another shape, so other chunk sizes (the
+        default chunk follows ``runs``) or device counts, and ``"loop"`` against
+        ``"vmap"``, agree to rounding only (``uwb-circle``, 20 s, float32: about 1e-7
+        relative between chunk 3 and chunk 1).
       chunk: runs per compiled call (default: all runs, capped at 256; ``DETAIL_CHUNK``
         with a ``"detail"`` output).  Ignored by ``"loop"`` batching.
       progress: optional object with ``update(n_done)`` (jaxslam.progress.Progress; its
@@ -157,11 +198,16 @@ def run(fn: Callable, seed: int, runs: int, chunk: Optional[int] = None,
     runs = check_int(runs, "runs")
     threads = default_threads() if threads is None else check_int(threads, "threads", what="None or an int")
     chunk = None if chunk is None else check_int(chunk, "chunk", what="None or an int")
-    if cpu_batching not in ("vmap", "loop"):
-        raise ValueError(f"cpu_batching: expected 'vmap' or 'loop', got {cpu_batching!r}")
-    seed = check_int(seed, "seed", lower=-2**63, what="an int")
-    if devices is not None and len(list(devices)) == 0:
-        raise InputError("devices: an empty list (None: every local device)")
+    if not isinstance(cpu_batching, str) or cpu_batching not in ("vmap", "loop"):
+        raise InputError(f"cpu_batching: expected 'vmap' or 'loop', got {cpu_batching!r}")
+    seed = _check_seed(seed)
+    if devices is not None:
+        try:  # an iterator is read once, here
+            devices = list(devices)
+        except TypeError:
+            raise InputError(f"devices: expected a sequence of devices, got {type(devices).__name__}") from None
+        if not devices:
+            raise InputError("devices: an empty list (None: every local device)")
     if devices is None and jax.process_count() > 1:  # a group of processes: one block each
         from . import distributed
 
@@ -177,7 +223,7 @@ def run(fn: Callable, seed: int, runs: int, chunk: Optional[int] = None,
         if detail:
             out["detail"] = det  # run 0's record: process 0's (the one that plots)
         return res._replace(out=out, runs=runs, interrupted=False)
-    devices = list(devices) if devices is not None else jax.local_devices()
+    devices = devices if devices is not None else jax.local_devices()
     return _run_keys(fn, keys_for(seed, runs), chunk, progress, devices, cpu_batching, detail, program_key,
                      threads)
 

@@ -182,10 +182,13 @@ def simulate(setup: FlightSetup, key, n_frame: int, lidar_every: int,
         flight stores one carry per frame and recomputes the frame's steps (memory grows with
         the frames, not the control steps).  The values are unchanged.
     """
-    if control_on not in ("truth", "estimate"):
-        raise ValueError(f"control_on: expected 'truth' or 'estimate', got {control_on!r}")
+    if not (isinstance(control_on, str) and control_on in ("truth", "estimate")):
+        raise InputError(f"control_on: expected 'truth' or 'estimate', got {control_on!r}")
     if control_on == "estimate" and estimator is None:
-        raise ValueError("control_on='estimate' needs an estimator")
+        raise InputError("control_on: 'estimate' needs an estimator (estimator=None)")
+    for name, flag in (("feedforward", feedforward), ("checkpoint", checkpoint)):  # static switches:
+        if not isinstance(flag, (bool, np.bool_)):  # "no" was truthy and flew with feedforward on
+            raise InputError(f"{name}: expected True or False, got {flag!r}"[:300])
     n_frame, lidar_every = _check_setup(setup, n_frame, lidar_every, K, refs)
     dtype = setup.x0.dtype
     quad = setup.ctrl.quad
@@ -233,7 +236,7 @@ def simulate(setup: FlightSetup, key, n_frame: int, lidar_every: int,
         x, est, imu_prev = carry
         y, vis = lidar3d.measure_all(x[0:3], x[6:9], setup.landmarks, setup.lidar) if L else (
             jnp.zeros((0, 3), dtype), jnp.zeros((0,), bool))
-        y = y + R_lidar_sqrt * lidar_std
+        y = (y + R_lidar_sqrt * lidar_std).astype(dtype)  # float64 landmarks: still the flight's dtype
         y = y.at[:, 0].set(jnp.mod(y[:, 0] + jnp.pi, 2 * jnp.pi) - jnp.pi)
         out_frame = None
         if estimator is not None:

@@ -35,7 +35,7 @@ import numpy as np
 from ...control import smc
 from ...errors import InputError
 from .. import monte_carlo
-from .registry import Option, Scenario, ScenarioResult, program_key, register
+from .registry import Option, Scenario, ScenarioResult, _checked_args, _duration_flown, program_key, register
 
 __all__ = ["SETTLE_DEG", "FINAL_WINDOW_S", "resolve_gains", "build", "run_scenario", "metrics"]
 
@@ -94,7 +94,10 @@ def build(options, dtype):
 
     ``one_run(key)`` -> metrics dict of one run (jit/vmap-safe); ``rollout(key, record)``
     -> :class:`smc.Rollout`; ``setup`` holds the resolved configuration (host side).
+    ``options`` is completed and checked like the command line's options, ``dtype`` must be
+    float32 or float64 (:func:`jaxslam.sim.scenarios.registry.check_options`).
     """
+    options = _checked_args(SCENARIO, options, dtype)[0]
     _check_options(options)
     dtype = jnp.dtype(dtype)
     gains, P = resolve_gains(options["gains"])
@@ -132,6 +135,7 @@ def build(options, dtype):
     setup = {
         "gain_matrices": {"K1": np.asarray(gains.K1, float).tolist(), "K2": np.asarray(gains.K2, float).tolist()},
         "L1": L1, "L2": L2, "steps": steps, "tau_max_Nm": tau_max,
+        "duration_flown_s": _duration_flown(steps, dt),  # whole steps of dt
         "inertia_kgm2": list(inertia), "mass_kg": smc.PAPER004_APPB.mass,
         "q0": list(smc.Q0_CH34), "q_d": list(smc.QD_CH34),
         "theorem31": {k: float(getattr(rep, k)) for k in
@@ -143,6 +147,7 @@ def build(options, dtype):
 
 def run_scenario(runs, seed, dtype, options, progress, params=None, plots=False):
     """Monte Carlo over ``runs`` seeds; see the module docstring."""
+    options, params = _checked_args(SCENARIO, options, dtype, params, plots)
     if params:
         raise InputError("attitude-smc takes no --params file (use the scenario options)")
     one_run, rollout, setup = build(options, dtype)

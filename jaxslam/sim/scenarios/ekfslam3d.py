@@ -41,7 +41,8 @@ from ...sensors import landmarks as lm_mod
 from ...systems import ekf_slam_3d as sys3d
 from .. import monte_carlo
 from ..simulate import controls, n_frames, simulate
-from .registry import Option, Scenario, ScenarioResult, program_key, register
+from .registry import (Option, Scenario, ScenarioResult, _checked_args, _duration_flown, program_key,
+                       register)
 from .tracking import (DT, FRAME_STEPS, SETTLED_AFTER_S, controller_from_dict, controller_to_dict,
                        make_setup, paper000_figure8, tracking_metrics)
 
@@ -66,8 +67,24 @@ def _noise(q: str, mode: str, dtype, params=None):
     return sys3d.validate_params(noise)
 
 
+def _checked(options, mode, dtype, params=None, plots=False):
+    # The options completed and checked as ``jaxslam run ekfslam3d-MODE`` checks them
+    # (registry.check_options: a misspelt key, "False" for a flag, 64.9 slots or True landmarks
+    # were taken as given), the dtype, ``params`` and ``plots`` as ``Scenario.run`` checks them.
+    if mode not in _SCENARIOS:
+        raise InputError(f"mode: expected one of {sorted(_SCENARIOS)}, got {mode!r}")
+    return _checked_args(_SCENARIOS[mode], options, dtype, params, plots)
+
+
 def build(options: dict, mode: str, dtype, params=None):
-    """(one_run(key) -> outputs, cfg, noise, setup factory) for the given options."""
+    """(one_run(key) -> outputs, cfg, noise, setup factory) for the given options.
+
+    ``options`` is completed with the defaults and checked like the scenario's command-line
+    options (:func:`jaxslam.sim.scenarios.registry.check_options`); ``dtype`` must be float32
+    or float64 (float64 with JAX's x64 on) and ``params`` is checked against the scenario's
+    ``--params`` schema: an :class:`InputError` names the offending option or key.
+    """
+    options, params = _checked(options, mode, dtype, params)
     dtype = jnp.dtype(dtype)
     duration = float(options["duration"])
     if not (duration >= DT * FRAME_STEPS and math.isfinite(duration)):
@@ -223,6 +240,7 @@ def consistency(series, t, runs, n=sys3d.NX):
 def run_scenario(name, mode, runs, seed, dtype, options, progress, params=None, plots=False):
     """``jaxslam run ekfslam3d-*``: build the flight, run ``runs`` vmapped Monte Carlo seeds
     (chunked, with progress) and return the scenario result (metrics, consistency, flags)."""
+    options, params = _checked(options, mode, dtype, params, plots)
     one_run, flight, cfg, noise, nf = build(options, mode, dtype, params)
     mc = monte_carlo.run(lambda k: one_run(k, detail=plots), seed, runs, chunk=options.get("chunk"),
                          progress=progress, cpu_batching="loop", detail=plots,
@@ -253,6 +271,7 @@ def run_scenario(name, mode, runs, seed, dtype, options, progress, params=None, 
     config = {
         "mode": mode,
         "duration_s": float(options["duration"]),
+        "duration_flown_s": _duration_flown(nf * FRAME_STEPS, DT),  # whole LiDAR frames
         "dt_s": DT,
         "imu_rate_hz": 1.0 / DT,
         "lidar_rate_hz": 1.0 / (DT * FRAME_STEPS),
@@ -287,8 +306,8 @@ _OPTIONS = (
            ("imu", "paper")),
     Option("association", str, "known", "data association: 'known' ids (paper) or 'nn' (ids hidden)",
            ("known", "nn")),
-    Option("capacity", int, 64, "landmark slots in the padded map"),
-    Option("landmarks", int, N_LANDMARKS, "number of true landmarks (Table 3: 40)"),
+    Option("capacity", int, 64, "landmark slots in the padded map", lower=1),
+    Option("landmarks", int, N_LANDMARKS, "number of true landmarks (Table 3: 40)", lower=1),
     Option("max_obs", int, 16, "LiDAR measurements processed per frame (extras counted as dropped)", lower=1),
     Option("control_on", str, "estimate", "what the DF-LQR acts on: 'estimate' (paper) or 'truth'",
            ("estimate", "truth")),
@@ -313,9 +332,12 @@ def params_schema(mode: str, options: dict, dtype) -> dict:
             "controller": controller_to_dict(dflqr.paper000_params())}
 
 
+_SCENARIOS: dict = {}  # mode -> its registered Scenario (the options build checks against)
+
+
 def _register(mode):
     name = f"ekfslam3d-{mode}"
-    register(Scenario(
+    _SCENARIOS[mode] = register(Scenario(
         name=name,
         description=_DESCRIPTIONS[mode],
         options=_OPTIONS,

@@ -60,7 +60,7 @@ from ...sensors import lidar3d
 from ...sensors import range_bearing3d as rb
 from ...systems import fastslam_001 as fs1
 from .. import monte_carlo
-from .registry import Option, Scenario, ScenarioResult, program_key, register
+from .registry import Option, Scenario, ScenarioResult, _checked_args, _duration_flown, program_key, register
 
 DT = 0.01
 LIDAR_EVERY = 10
@@ -271,7 +271,12 @@ def _check_options(options):
 
 
 def build(options: dict, dtype):
-    """(one_run(key) -> (metrics, counts), flight(key) -> (Flight001, Result), cfg, prm, nf)."""
+    """(one_run(key) -> (metrics, counts), flight(key) -> (Flight001, Result), cfg, prm, nf).
+
+    ``options`` is completed and checked like the command line's options, ``dtype`` must be
+    float32 or float64 (:func:`jaxslam.sim.scenarios.registry.check_options`).
+    """
+    options = _checked_args(SCENARIO, options, dtype)[0]
     _check_options(options)
     dtype = jnp.dtype(dtype)
     opts = dict(options)
@@ -304,6 +309,7 @@ def run_scenario(runs, seed, dtype, options, progress, params=None, plots=False)
     """``jaxslam run fastslam-helix`` (registry entry point)."""
     from ...errors import decode
 
+    options, params = _checked_args(SCENARIO, options, dtype, params, plots)
     if params:
         raise InputError("fastslam-helix takes no --params file (use the scenario options)")
     one_run, flight, cfg, prm, nf, setup = build(options, dtype)
@@ -330,6 +336,7 @@ def run_scenario(runs, seed, dtype, options, progress, params=None, plots=False)
 
     config = {
         "duration_s": float(options["duration"]),
+        "duration_flown_s": _duration_flown(nf * LIDAR_EVERY, DT),  # whole LiDAR frames
         "dt_s": DT,
         "imu_rate_hz": 1.0 / DT,
         "lidar_rate_hz": 1.0 / (DT * LIDAR_EVERY),
@@ -357,7 +364,7 @@ OPTIONS = (
     Option("model", str, "dynamics", "proposal: 'dynamics' (paper 001, rotor inputs + bias KF) "
            "or 'kinematics' (IMU-driven FastSLAM baseline)", ("dynamics", "kinematics")),
     Option("bias", float, 0.0005, "IMU bias on every axis [m/s², rad/s] (paper: 0.0005 or 0.005)"),
-    Option("particles", int, 500, "number of particles N (paper: 500)"),
+    Option("particles", int, 500, "number of particles N (paper: 500)", lower=1),
     Option("inertia_mismatch", bool, False,
            "filter uses Ixx = Iyy = 0.0288, Izz = 0.0545 kg m² (+150 %), truth unchanged"),
     Option("weights", str, "exact", "particle weights: 'exact' (innovation covariance) or "
@@ -379,7 +386,7 @@ OPTIONS = (
            "on the CPU the runs go one compiled run at a time and it has no effect", lower=1),
 )
 
-register(Scenario(
+SCENARIO = register(Scenario(
     name="fastslam-helix",
     description="Paper 001: dynamics-based two-stage FastSLAM with IMU bias/drift KF on the helix",
     options=OPTIONS,

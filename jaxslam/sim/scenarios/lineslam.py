@@ -47,7 +47,7 @@ from ...linalg import wrap_angle
 from ...sensors import laser2d
 from ...systems import line_slam_004 as LS
 from .. import monte_carlo
-from .registry import Option, Scenario, ScenarioResult, program_key, register
+from .registry import Option, Scenario, ScenarioResult, _checked_args, _duration_flown, program_key, register
 
 __all__ = ["ROOM", "PILLAR", "Setup", "room_walls", "make_setup", "simulate", "evaluate", "build", "consistency",
            "run_scenario", "true_lines"]
@@ -193,7 +193,13 @@ def evaluate(setup: Setup, res: LS.Result):
 
 
 def build(options: dict, dtype, params=None):
-    """Scenario pieces ``(one_run, flight, cfg, fp, setup)``; ``one_run(key)`` is jit/vmap-safe."""
+    """Scenario pieces ``(one_run, flight, cfg, fp, setup)``; ``one_run(key)`` is jit/vmap-safe.
+
+    ``options`` is completed and checked like the command line's options, ``dtype`` must be
+    float32 or float64 and ``params`` is checked against the scenario's ``--params`` schema
+    (:func:`jaxslam.sim.scenarios.registry.check_options`).
+    """
+    options, params = _checked_args(SCENARIO, options, dtype, params)
     cap = int(options["capacity"])
     if cap < 1:  # before the set-up, which computes
         raise InputError(f"--capacity: must be >= 1, got {cap}")
@@ -234,6 +240,7 @@ def params_schema(options, dtype) -> dict:
 
 def run_scenario(runs, seed, dtype, options, progress, params=None, plots=False):
     """Monte Carlo over ``runs`` seeded flights (see the module docstring)."""
+    options, params = _checked_args(SCENARIO, options, dtype, params, plots)
     one_run, flight, cfg, fp, setup = build(options, dtype, params)
     mc = monte_carlo.run(lambda k: one_run(k, detail=plots), seed, runs, chunk=options.get("chunk"),
                          progress=progress, detail=plots,
@@ -262,6 +269,7 @@ def run_scenario(runs, seed, dtype, options, progress, params=None, plots=False)
         "walls": setup.walls.tolist(),
         "true_lines_rho_theta": setup.lines.tolist(),
         "steps": int(setup.ts.shape[0]),
+        "duration_flown_s": _duration_flown(setup.ts.shape[0], setup.ts[0]),  # whole scans
         "dt_s": cfg.dt,
         "laser": cfg.spec._asdict(),
         "ransac": cfg.ransac._asdict(),
@@ -304,7 +312,7 @@ def consistency(series, runs):
             "anees_steps_inside": mx.steps_inside(per_step, (lo, hi))}, per_step
 
 
-register(Scenario(
+SCENARIO = register(Scenario(
     name="lineslam-room",
     description="Paper 004: line-feature EKF-SLAM (RANSAC walls, optical flow, gyro) in a 10-wall L-shaped room",
     options=(

@@ -77,8 +77,8 @@ class Option:
       default: value used when the option is not given; state units in ``help``.
       help: one line for ``jaxslam run SCENARIO --help``, with units.
       choices: allowed values, or ``None`` for any value of ``type``.
-      lower: smallest allowed value of an ``int`` option (the command line refuses less), or
-        ``None``.
+      lower: smallest allowed value of an ``int`` or ``float`` option, or ``None``
+        (:func:`check_options`, so ``Scenario.run`` and the command line, refuse less).
     """
 
     name: str
@@ -139,7 +139,9 @@ class Scenario:
         params=dict | None, plots=bool) -> ScenarioResult``.  ``options`` holds every option of
         ``options`` (defaults filled in: ``Scenario.run`` passes the caller's dict through
         :func:`check_options` first, so an unknown key is an error); ``params`` is the ``--params`` file's sections,
-        checked by :func:`check_params`; ``plots`` says the caller will call ``result.plot``
+        checked by :func:`check_params` (``Scenario.run`` checks a Python caller's too, the
+        messages starting ``params: ``); ``dtype`` is float32 or float64 (float64 only with
+        JAX's x64 on; else ``InputError("dtype: ...")``); ``plots`` (a bool) says the caller will call ``result.plot``
         (the scenario then records the first run's flight in the same compiled program,
         instead of flying it again).
       params: ``params(options, dtype) -> {section: {key: default}}``, the scenario's default
@@ -155,20 +157,96 @@ class Scenario:
     params: Callable[[dict, Any], dict] | None = None
 
     def __post_init__(self):
-        # ``run`` called from Python gets its ``options`` checked and completed like the CLI's
-        # (:func:`check_options`): an unknown or misspelt key used to be ignored silently.
+        # ``run`` called from Python gets its arguments checked like the CLI's: ``options``
+        # checked and completed (:func:`check_options`: an unknown or misspelt key used to be
+        # ignored silently), ``dtype`` float32 or float64 (float64 only with JAX's x64 on: it
+        # computed in float32 while the JSON said float64), ``params`` checked against the
+        # scenario's schema as the CLI's ``--params`` (:func:`check_params`: a misspelt section
+        # ran with the defaults) and ``plots`` a bool.
         raw = getattr(self.run, "_unchecked_run", self.run)  # dataclasses.replace: wrap anew
         if callable(raw):
             @functools.wraps(raw)
             def run(*args, **kw):
-                if len(args) > 3:  # (runs, seed, dtype, options, ...) given by position
-                    args = args[:3] + (check_options(self, args[3]),) + args[4:]
-                else:
-                    kw["options"] = check_options(self, kw.get("options"))
+                args = list(args)
+
+                def given(name):
+                    i = _RUN_ARGS.index(name)
+                    if i < len(args):
+                        return True, args[i]
+                    return (name in kw), kw.get(name)
+
+                def put(name, value):
+                    i = _RUN_ARGS.index(name)
+                    if i < len(args):
+                        args[i] = value
+                    else:
+                        kw[name] = value
+
+                has_dtype, dtype = given("dtype")
+                if has_dtype:
+                    _check_dtype(dtype)
+                put("options", check_options(self, given("options")[1]))
+                has_params, params = given("params")
+                if has_params and params is not None:
+                    put("params", _check_params(self, params, given("options")[1],
+                                                dtype if has_dtype else np.float64, where="params"))
+                has_plots, plots = given("plots")
+                if has_plots:
+                    _check_flag(plots, "plots")
                 return raw(*args, **kw)
 
             run._unchecked_run = raw
             object.__setattr__(self, "run", run)
+
+
+# The positional order of a scenario's ``run`` arguments (``Scenario.run``'s docstring).
+_RUN_ARGS = ("runs", "seed", "dtype", "options", "progress", "params", "plots")
+
+
+def _check_dtype(dtype, where: str = "dtype"):
+    """``dtype`` as a NumPy dtype, float32 or float64 (float64 only with JAX's x64 on), else an
+    :class:`InputError` naming ``where``."""
+    want = "float32 or float64"
+    try:
+        dt = None if dtype is None or isinstance(dtype, bool) else np.dtype(dtype)
+    except (TypeError, ValueError):
+        dt = None
+    if dt is None or dt not in (np.dtype(np.float32), np.dtype(np.float64)):
+        raise InputError(f"{where}: expected {want}, got {dtype!r}"[:300])
+    if dt == np.float64:
+        import jax
+
+        if jax.dtypes.canonicalize_dtype(np.float64) != np.float64:
+            raise InputError(f"{where}: float64 needs JAX's 64-bit mode, which is off (it would compute "
+                             "in float32): call jax.config.update('jax_enable_x64', True) (or set "
+                             "JAX_ENABLE_X64=1) before any JAX computation, or pass float32")
+    return dt
+
+
+def _checked_args(scenario: "Scenario", options, dtype, params=None, plots=False):
+    """``(options, params)`` of a scenario module's public ``build`` / ``run_scenario`` checked
+    as ``Scenario.run`` checks them: options completed and checked (:func:`check_options`),
+    ``dtype`` float32 / float64, ``params`` against the scenario's schema, ``plots`` a bool."""
+    options = check_options(scenario, options)
+    _check_dtype(dtype)
+    _check_flag(plots, "plots")
+    if params is not None:
+        params = _check_params(scenario, params, options, dtype, where="params")
+    return options, params
+
+
+def _duration_flown(steps: int, dt: float) -> float:
+    """Seconds flown by ``steps`` steps of ``dt`` (a scenario's ``config["duration_flown_s"]``:
+    its duration rounded to whole steps or sensor frames), without the float noise of the
+    product (0.30000000000000004)."""
+    return float(round(int(steps) * float(dt), 9))
+
+
+def _check_flag(value, where: str) -> bool:
+    """``value`` as a bool: ``True``/``False`` (NumPy's too), else an :class:`InputError`."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise InputError(f"{where}: expected True or False, got {value!r}"[:300])
+    return bool(value)
 
 
 _REGISTRY: dict[str, Scenario] = {}
@@ -201,6 +279,11 @@ def _check_option(scenario_name: str, opt: Any) -> None:
         raise InputError(
             f"{where} {opt.name!r}: default {opt.default!r} is not of type {opt.type.__name__}"
         )
+    if opt.lower is not None:
+        if opt.type not in (int, float) or not isinstance(opt.lower, ok_types) or isinstance(opt.lower, bool):
+            raise InputError(f"{where} {opt.name!r}: lower must be a number of an int or float option")
+        if opt.default is not None and opt.default < opt.lower:
+            raise InputError(f"{where} {opt.name!r}: default {opt.default!r} is below lower {opt.lower!r}")
     if opt.choices is not None:
         if not isinstance(opt.choices, tuple) or not opt.choices:
             raise InputError(f"{where} {opt.name!r}: choices must be a non-empty tuple")
@@ -332,7 +415,11 @@ def check_options(scenario: Scenario, options: dict | None = None) -> dict:
             (bool, np.bool_) if opt.type is bool else ((int, np.integer) if opt.type is int else (str,)))
         if not isinstance(value, ok_types) or (opt.type is not bool and isinstance(value, (bool, np.bool_))):
             raise InputError(f"{where}: expected {opt.type.__name__}, got {value!r}")
-        value = opt.type(value)
+        try:
+            value = opt.type(value)
+        except OverflowError:  # float(10**400)
+            raise InputError(f"{where}: expected a finite number, got an integer too large for a "
+                             f"float ({len(str(abs(value)))} digits)") from None
         if opt.type is float and not np.isfinite(value):
             raise InputError(f"{where}: expected a finite number, got {value!r}")
         if opt.choices is not None and value not in opt.choices:
@@ -350,8 +437,14 @@ def check_params(scenario: Scenario, obj, options: dict | None = None, dtype=np.
     raise :class:`InputError` naming the key (:func:`jaxslam.paramfile.check`).  Returns
     ``None`` when the file sets nothing.
     """
+    return _check_params(scenario, obj, options, dtype, where="--params")
+
+
+def _check_params(scenario: Scenario, obj, options: dict | None, dtype, where: str) -> dict | None:
+    # check_params with the messages' prefix: "--params" (the CLI's file), "params" (the
+    # argument of ``Scenario.run``).
     if obj is None:
         return None
     options = default_options(scenario) if options is None else options
     schema = None if scenario.params is None else scenario.params(options, np.dtype(dtype))
-    return paramfile.check(obj, schema, target=scenario.name) or None
+    return paramfile.check(obj, schema, target=scenario.name, where=where) or None

@@ -22,12 +22,12 @@ from ... import metrics
 from ...control import dflqr, trajectories
 from ...dynamics import euler_ned
 from ...errors import InputError
-from ...linalg import wrap_angle
+from ...linalg import check_numbers, check_scalar, wrap_angle
 from ...sensors import imu as imu_mod
 from ...sensors import lidar3d
 from .. import monte_carlo
 from ..simulate import FlightSetup, n_frames, simulate
-from .registry import Option, Scenario, ScenarioResult, program_key, register
+from .registry import Option, Scenario, ScenarioResult, _duration_flown, program_key, register
 
 SETTLE_TOL_M = 0.1
 SETTLED_AFTER_S = 10.0
@@ -47,6 +47,8 @@ def paper000_figure8(altitude: float = 3.0, ramp: float = 0.0):
     the north), centre above the origin at ``altitude`` metres (NED z = −altitude).  With ``ramp = 0`` the reference starts on the figure-8
     while the vehicle starts at rest at the origin, as in the paper.
     """
+    altitude = check_scalar(altitude, "altitude")  # NaN failed only when traced ("center: ...")
+    ramp = check_scalar(ramp, "ramp", lower=0)  # a negative blend was flown as 0
     return trajectories.Figure8(center=(0.0, 0.0, -float(altitude)), ramp_time=float(ramp),
                                 heading_along_path=1.0)
 
@@ -69,12 +71,12 @@ def controller_from_dict(d: dict, default):
     out = default
     for k in ("Q", "R"):
         if k in d:
-            a = np.asarray(d[k], float)
+            a = check_numbers(d[k], f"params.controller.{k}")  # "1.5" was parsed as a number
             out = out._replace(**{k: np.diag(a) if a.ndim == 1 else a})
     pd = out.pd
     for k in ("kp", "kd"):
         if k in d:
-            pd = pd._replace(**{k: tuple(np.asarray(d[k], float).tolist())})
+            pd = pd._replace(**{k: tuple(check_numbers(d[k], f"params.controller.{k}").tolist())})
     out = out._replace(pd=pd)
     return dflqr.validate(out)
 
@@ -162,6 +164,7 @@ def _run_tracking(name, traj_factory, runs, seed, dtype, options, progress, para
 
     config = {
         "duration_s": duration,
+        "duration_flown_s": _duration_flown(nf * FRAME_STEPS, DT),  # whole LiDAR frames
         "dt_s": DT,
         "imu_rate_hz": 1.0 / DT,
         "trajectory": {k: _jsonable(v) for k, v in traj._asdict().items()},
@@ -218,7 +221,7 @@ register(Scenario(
         Option("altitude", float, 3.0, "figure-8 altitude above the start point [m]"),
         Option("ramp", float, 0.0,
                "take-off blend of the reference from the origin [s]; 0 = the paper's start "
-               "(reference starts on the figure-8, the vehicle at the origin)"),
+               "(reference starts on the figure-8, the vehicle at the origin)", lower=0.0),
     ),
     run=lambda runs, seed, dtype, options, progress, params=None, plots=False: _run_tracking(
         "track-figure8", _figure8, runs, seed, dtype, options, progress, params, plots),

@@ -78,7 +78,7 @@ from ...sensors import uwb
 from ...stats import nees as _nees
 from ...systems import uwb_slam_2d as U
 from .. import monte_carlo
-from .registry import Option, Scenario, ScenarioResult, program_key, register
+from .registry import Option, Scenario, ScenarioResult, _checked_args, _duration_flown, program_key, register
 
 __all__ = ["ANCHORS", "SCENARIOS", "Setup", "SimOut", "make_setup", "simulate",
            "evaluate", "build", "run_scenario", "consistency", "consistency_summary"]
@@ -409,13 +409,24 @@ def params_schema(options, dtype) -> dict:
     return {"filter": {**{k: np.asarray(getattr(fp, k)) for k in U.NOISE_FIELDS}, "r_scaled": bool(r_scaled)}}
 
 
+def _checked(scenario, options, dtype, params=None, plots=False):
+    # The arguments of build / run_scenario checked as ``Scenario.run`` checks them.
+    if scenario not in _SCENARIOS:
+        raise InputError(f"scenario: expected one of {SCENARIOS}, got {scenario!r}")
+    return _checked_args(_SCENARIOS[scenario], options, dtype, params, plots)
+
+
 def build(scenario: str, options: dict, dtype, params=None):
     """Scenario pieces: ``(one_run, flight, cfg, filter_params, setup)``.
 
     ``one_run(key, fp=default, truth=None)`` -> metrics/series/counts of one flight
     (jit/vmap-safe); ``flight(key, fp, truth)`` -> (SimOut, Result).  ``fp`` (the
-    filter parameters) and ``truth`` are traced, so neither recompiles.
+    filter parameters) and ``truth`` are traced, so neither recompiles.  ``options`` is
+    completed and checked like the command line's options, ``dtype`` must be float32 or float64
+    and ``params`` is checked against the scenario's ``--params`` schema
+    (:func:`jaxslam.sim.scenarios.registry.check_options`).
     """
+    options, params = _checked(scenario, options, dtype, params)
     dtype = jnp.dtype(dtype)
     mode = options["mode"]
     if mode not in ("slam", "localization"):
@@ -462,6 +473,7 @@ def build(scenario: str, options: dict, dtype, params=None):
 
 def run_scenario(scenario, runs, seed, dtype, options, progress, params=None, plots=False):
     """Monte Carlo over ``runs`` seeded flights; see the module docstring."""
+    options, params = _checked(scenario, options, dtype, params, plots)
     one_run, flight, cfg, fp, setup = build(scenario, options, dtype, params)
     mc = monte_carlo.run(lambda k: one_run(k, detail=plots), seed, runs, chunk=options.get("chunk"),
                          progress=progress, detail=plots,
@@ -501,6 +513,7 @@ def run_scenario(scenario, runs, seed, dtype, options, progress, params=None, pl
         "end_anchor": END,
         "startup_samples": int(setup.startup_pos.shape[0]),
         "steps": int(setup.ts.shape[0]),
+        "duration_flown_s": _duration_flown(setup.ts.shape[0], setup.ts[0]),  # whole steps of dt
         "frame": ("start-up frame (origin end anchor, +x start->end, +y towards the trilaterated "
                   "anchor)" if cfg.mode == "slam" else "anchors' (world) frame"),
         "noise_half_widths": {"range_m": setup.noise.range_half_width,
@@ -538,7 +551,7 @@ _OPTIONS = (
     Option("dt", float, 1.0, "filter and sensor step [s] (paper: one iteration = 1)"),
     Option("anchors", int, 3, "number of anchors, 3 (paper) to 6; beyond 3 mapped by delayed init"),
     Option("startup_speed", float, 0.15, "speed of the forced straight-line start-up [m/s]"),
-    Option("max_range", float, 0.0, "UWB range limit [m] (0: unlimited)"),
+    Option("max_range", float, 0.0, "UWB range limit [m] (0: unlimited)", lower=0.0),
     Option("chunk", int, None, "Monte Carlo runs per compiled call (default: all, max 256)", lower=1),
     Option("smooth", bool, False, "also RTS-smooth each run's robot trajectory (backward pass, the map "
            "held static) and report smoothed_* metrics beside the filter's"),
@@ -551,8 +564,11 @@ _DESC = {
 }
 
 
+_SCENARIOS: dict = {}  # "circle" -> its registered Scenario (the options build checks against)
+
+
 def _register(sc):
-    register(Scenario(
+    _SCENARIOS[sc] = register(Scenario(
         name=f"uwb-{sc}",
         description=_DESC[sc],
         options=_OPTIONS,
