@@ -41,6 +41,7 @@ __all__ = [
     "check_int",
     "check_shape",
     "reworded",
+    "check_real",
 ]
 
 
@@ -346,6 +347,32 @@ def check_scalar(value, name: str, *, finite: bool = True, lower=None, strict: b
     if not ok:
         raise InputError(f"{name}: expected {want}, got {value!r}")
     return float(a)
+
+
+def _dtype_of(x):
+    """``x``'s dtype without converting an array; None for a list of tracers or non-numbers."""
+    dt = getattr(x, "dtype", None)
+    if dt is not None:
+        return np.dtype(dt)
+    if not is_concrete(x):
+        return None
+    try:
+        return np.asarray(x).dtype
+    except (TypeError, ValueError):
+        return None
+
+
+def check_real(x, name: str, *, allow_bool: bool = True) -> None:
+    """:class:`InputError` naming ``name`` when ``x`` is complex (casting it to a real dtype
+    dropped the imaginary part with only a warning), or bool unless ``allow_bool``.  The dtype
+    is static: checked under ``jit`` too."""
+    dt = _dtype_of(x)
+    if dt is None:
+        return
+    if dt.kind == "c":
+        raise InputError(f"{name}: expected a real array, got dtype {dt}")
+    if dt.kind == "b" and not allow_bool:
+        raise InputError(f"{name}: expected numbers, got dtype bool")
 
 
 def reworded(check, message: str, upper: float = float("inf")):

@@ -26,8 +26,11 @@ from __future__ import annotations
 from typing import NamedTuple, Tuple
 
 import jax.numpy as jnp
+import numpy as np
 
-from ..linalg import wrap_angle
+from ..dynamics._checks import real_float, real_numbers
+from ..linalg import check_real, check_shape, is_concrete, wrap_angle
+from ..errors import InputError
 
 __all__ = ["PDGains", "gains_from_bandwidth", "pd_torque"]
 
@@ -52,9 +55,16 @@ def gains_from_bandwidth(inertia, omega_n, zeta) -> PDGains:
     ``inertia``: (3,) diagonal of J in kg·m²; ``omega_n``, ``zeta``: scalars or (3,).
     Returns :class:`PDGains` with k_p = J ω_n², k_d = 2 ζ ω_n J (arrays, (3,)).
     """
-    J = jnp.asarray(inertia)
-    wn = jnp.asarray(omega_n)
-    return PDGains(kp=J * wn ** 2, kd=2.0 * jnp.asarray(zeta) * wn * J)
+    for v, nm in ((inertia, "inertia"), (omega_n, "omega_n"), (zeta, "zeta")):
+        check_real(v, nm, allow_bool=False)
+        if is_concrete(v):  # a negative bandwidth or damping gave negative (destabilising) gains
+            a = real_numbers(v, nm)
+            if a.ndim > 1 or not np.all(np.isfinite(a)) or np.any(a <= 0 if nm != "zeta" else a < 0):
+                want = "finite and >= 0" if nm == "zeta" else "finite and > 0"
+                raise InputError(f"{nm}: expected {want} (a scalar or (3,)), got {v!r}")
+    J = real_float(inertia, "inertia")
+    wn = real_float(omega_n, "omega_n")
+    return PDGains(kp=J * wn ** 2, kd=2.0 * real_float(zeta, "zeta") * wn * J)
 
 
 def pd_torque(euler, omega, euler_d, omega_d, gains, tau_ff=None):
@@ -64,8 +74,11 @@ def pd_torque(euler, omega, euler_d, omega_d, gains, tau_ff=None):
     ``gains``: :class:`PDGains`; ``tau_ff``: optional (3,) feedforward torque N·m added to the
     PD output (not in the paper).  Returns τ (3,) in N·m, body axes, dtype of ``euler``.
     """
-    euler = jnp.asarray(euler)
+    euler = real_float(euler, "euler", (3,))  # an integer attitude truncated the gains
     dtype = euler.dtype
+    for v, nm in ((omega, "omega"), (euler_d, "euler_d"), (omega_d, "omega_d")):
+        check_real(v, nm)
+        check_shape(v, (3,), nm)
     e = euler - jnp.asarray(euler_d, dtype)
     e = e.at[2].set(wrap_angle(e[2]))
     kp = jnp.asarray(gains.kp, dtype)

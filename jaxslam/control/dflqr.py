@@ -29,10 +29,11 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
+from ..dynamics._checks import as_scalar, real_float
+from ..linalg import check_real, check_scalar, check_shape, wrap_angle
 from ..dynamics.params import PAPER000, QuadParams, validate_params
 from ..errors import InputError
 from ..geometry.euler import dcm_from_euler
-from ..linalg import wrap_angle
 from .attitude_pd import PDGains, pd_torque
 from .flatness import feedforward as _feedforward
 from .flatness import inverse_map, linear_model, reference
@@ -112,6 +113,7 @@ def validate(params: DFLQRParams) -> DFLQRParams:
         validate_params(params.quad)
     except InputError as e:
         raise InputError(f"params.quad: {e}") from None
+    check_scalar(params.min_accel, "params.min_accel", lower=0)  # -1 or NaN was accepted
     return params
 
 
@@ -157,7 +159,7 @@ def reference_at(t, traj, params: DFLQRParams, *, feedforward: bool = False, dty
     nested forward-mode derivatives of the trajectory then run vectorised.
     """
     dtype = jnp.result_type(float) if dtype is None else dtype
-    t = jnp.asarray(t, dtype)
+    t = as_scalar(t, dtype, "t")  # "1.0" was parsed
     g = jnp.asarray(params.quad.g, dtype)
     r_d, u_d = reference(traj, t, g)
     if feedforward:
@@ -170,9 +172,11 @@ def reference_at(t, traj, params: DFLQRParams, *, feedforward: bool = False, dty
 
 def control_ref(x_est, ref: Reference, K, params: DFLQRParams, *, feedforward: bool = False):
     """The state-feedback part of :func:`control` given a precomputed :class:`Reference`."""
-    x = jnp.asarray(x_est)
+    x = real_float(x_est, "x_est", (12,))  # an integer state truncated the gains; (13,) was sliced
     dtype = x.dtype
+    check_real(K, "K")
     K = jnp.asarray(K, dtype)
+    check_shape(K, (4, 7), "K")  # Kᵀ (7, 4) gave a bare matmul error
     mass = jnp.asarray(params.quad.mass, dtype)
     lam = x[6:9]
     C = dcm_from_euler(lam)
@@ -209,6 +213,6 @@ def control(x_est, t, traj, K, params: DFLQRParams, *, feedforward: bool = False
     Pure and jit-able (``feedforward`` static); dtype of ``x_est``.  Equals
     ``control_ref(x_est, reference_at(t, ...), ...)``.
     """
-    x = jnp.asarray(x_est)
+    x = real_float(x_est, "x_est", (12,))
     ref = reference_at(t, traj, params, feedforward=feedforward, dtype=x.dtype)
     return control_ref(x, ref, K, params, feedforward=feedforward)

@@ -36,6 +36,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from ..dynamics._checks import real_float
 from ..geometry.euler import C3, dcm_from_euler
 from ..linalg import safe_norm
 from .trajectories import _float_dtype, flat_derivatives
@@ -88,7 +89,7 @@ def inverse_map(u, psi_d, mass, min_accel=1e-3):
     pitch in rad (eq. 16-17, atan2 form), desired body yaw rate in rad/s (eq. 19, with the
     eq. 18 erratum).  All scalars.
     """
-    u = jnp.asarray(u)
+    u = real_float(u, "u", (4,))  # an integer u truncated the mass; a (3,) u read u[3] clamped
     dtype = u.dtype
     up = u[0:3]
     acc = safe_norm(up)

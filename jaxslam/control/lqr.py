@@ -40,8 +40,9 @@ import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 import numpy as np
 
+from ..dynamics._checks import real_numbers
 from ..errors import InputError
-from ..linalg import check_psd, check_shape, is_concrete, symmetrize
+from ..linalg import check_psd, check_real, check_shape, is_concrete, symmetrize
 
 __all__ = ["care", "lqr_gain", "lyapunov", "validate_weights"]
 
@@ -58,6 +59,9 @@ def lyapunov(A, C):
     sa = tuple(np.shape(A))
     if len(sa) != 2 or sa[0] != sa[1] or tuple(np.shape(C)) != sa:
         raise InputError(f"A, C: expected two square matrices of one size, got {sa} and {tuple(np.shape(C))}")
+    check_real(A, "A")
+    check_real(C, "C")
+    A, C = jnp.asarray(A), jnp.asarray(C)  # nested lists had no .shape / .T
     n = A.shape[-1]
     eye = jnp.eye(n, dtype=A.dtype)
     # Row-major vec: vec(AᵀX) = (Aᵀ ⊗ I) vec X, vec(XA) = (I ⊗ Aᵀ) vec X.
@@ -146,7 +150,14 @@ def _status(A, B, Q, R, P):
     Ps = jnp.where(finite, P, 0.0)
     lam_min = jnp.linalg.eigvalsh(Ps)[0]
     psd = lam_min >= -jnp.sqrt(eps) * jnp.maximum(jnp.max(jnp.abs(Ps)), 1.0)
-    return finite & (rel <= jnp.sqrt(eps)) & psd
+    # The closed loop A − GP must be Hurwitz (the *stabilising* solution): with Q = 0 and an
+    # unstable A, P = 0 solves the CARE with no residual but stabilises nothing.  A is Hurwitz
+    # iff the Lyapunov solution X of A_clᵀX + X A_cl = −I is positive definite (no eig, which
+    # has no GPU kernel; one n²×n² solve, n = 7 here, once per gain).
+    X = symmetrize(lyapunov(A - G @ Ps, jnp.eye(P.shape[0], dtype=dtype)))
+    Xf = jnp.all(jnp.isfinite(X))
+    stable = Xf & (jnp.linalg.eigvalsh(jnp.where(Xf, X, 0.0))[0] > 0)
+    return finite & (rel <= jnp.sqrt(eps)) & psd & stable
 
 
 # Called on concrete matrices (a scenario's gains, computed on the host) the solver's while
@@ -181,6 +192,12 @@ def care(A, B, Q, R, *, return_status: bool = False):
     with :func:`validate_weights`.
     """
     _check_shapes(A, B, Q, R)
+    for M, nm in ((A, "A"), (B, "B"), (Q, "Q"), (R, "R")):
+        check_real(M, nm, allow_bool=False)  # static dtype: complex lost its imaginary part
+    if is_concrete(A, B):  # a NaN or Inf in A or B used to give P = K = 0 silently
+        for M, nm in ((A, "A"), (B, "B")):
+            if not np.all(np.isfinite(real_numbers(M, nm))):
+                raise InputError(f"{nm}: contains NaN or Inf")
     if is_concrete(Q, R):  # values known now (an eager call): a NaN Q used to give K = 0, P = 0
         validate_weights(Q, R)
     dtype = jnp.result_type(A, B, Q, R)
@@ -222,6 +239,7 @@ def validate_weights(Q, R, n=None, m=None, names=("Q", "R")):
     """
     qn, rn = names
     for M, nm, size in ((Q, qn, n), (R, rn, m)):
+        check_real(M, nm, allow_bool=False)
         if np.ndim(M) != 2:
             raise InputError(f"{nm}: expected a square matrix, got shape {np.shape(M)}")
         if size is not None:

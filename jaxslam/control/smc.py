@@ -61,10 +61,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..dynamics import quaternion_quad as qq
+from ..dynamics._checks import real_float, real_numbers
 from ..dynamics.params import QuadParams
 from ..errors import InputError
 from ..geometry.quaternion import qconj, qlog, qmul, qnormalize
-from ..linalg import check_shape, is_concrete
+from ..linalg import check_real, check_shape, is_concrete, safe_norm
 from .lqr import lqr_gain, lyapunov, validate_weights
 
 __all__ = [
@@ -187,8 +188,17 @@ def state_error(q, omega, q_d, omega_d=None):
     rad/s (``omega_d`` defaults to 0).  Returns (6,) in the dtype of ``q``; identical
     for ±q and ±q_d.
     """
-    q = jnp.asarray(q)
+    q = real_float(q, "q", (4,))  # an integer q truncated q_d to integers (NaN error)
     dt = q.dtype
+    for v, nm, n in ((q_d, "q_d", 4), (omega, "omega", 3), (omega_d, "omega_d", 3)):
+        if v is not None:
+            check_real(v, nm)
+            check_shape(v, (n,), nm)
+    for v, nm in ((q, "q"), (q_d, "q_d")):
+        if is_concrete(v):  # a zero quaternion has no log: NaN torque
+            a = real_numbers(v, nm)
+            if not (np.all(np.isfinite(a)) and np.linalg.norm(a) > 0):
+                raise InputError(f"{nm}: expected a finite nonzero quaternion, got {a.tolist()}")
     theta = qlog(qmul(q, qconj(jnp.asarray(q_d, dt))))
     w_err = jnp.asarray(omega, dt)
     if omega_d is not None:
@@ -203,7 +213,8 @@ def law(x, gains, eps=1.0, switching="tanh"):
     the tanh (1 = the thesis' TANH, same units as x); ``switching``: ``"tanh"`` or
     ``"sign"`` (Python string, static).  Returns u (3,).
     """
-    x = jnp.asarray(x)
+    x = real_float(x, "x", (6,))  # an integer x truncated the gains to 0
+    _validate_known(eps=eps)  # eps = 0 gave NaN
     dt = x.dtype
     K1 = jnp.asarray(gains.K1, dt)
     K2 = jnp.asarray(gains.K2, dt)
@@ -223,7 +234,9 @@ def torque(u, omega, inertia, model="exact", tau_max=None):
     ``model``: ``"exact"`` τ = J u + ω × J ω (eq. 3.15) or ``"direct"`` τ = u (app. B);
     ``tau_max``: per-axis limit in N m (scalar, may be traced) or None.  Returns τ (3,).
     """
-    u = jnp.asarray(u)
+    u = real_float(u, "u", (3,))
+    _validate_known(tau_max=tau_max, model=model,  # a negative limit flipped the clip
+                    inertia=inertia if model == "exact" else None)
     dt = u.dtype
     if model == "exact":
         w = jnp.asarray(omega, dt)
@@ -246,7 +259,8 @@ def control(q, omega, q_d, gains, inertia, omega_d=None, *, eps=1.0, switching="
     Composition of :func:`state_error`, :func:`law` and :func:`torque`; see those for
     the arguments.  Continuous in q across q0 = 0 and identical for q and −q.
     """
-    _validate_known(eps=eps, tau_max=tau_max, switching=switching, model=model)
+    _validate_known(eps=eps, tau_max=tau_max, switching=switching, model=model,
+                    inertia=inertia if model == "exact" else None)
     x = state_error(q, omega, q_d, omega_d)
     return torque(law(x, gains, eps, switching), omega, inertia, model, tau_max)
 
@@ -387,8 +401,18 @@ def theorem31(K1, K2, L1, L2, P=None, *, key=None, n_samples=4096, r_min=1e-3, r
     L2 = jnp.asarray(L2, dtype)
     A, B = att_matrices(dtype)
     Acl = A - B @ K1
+    hurwitz = jnp.asarray(True)
     if P is None:
+        if is_concrete(K1):  # a destabilising K1 has no PD Lyapunov P: the bounds meant nothing
+            ev = np.linalg.eigvals(np.asarray(Acl, np.float64))
+            if not np.max(ev.real) < 0:
+                raise InputError(f"K1: A − B K1 is not Hurwitz (largest eigenvalue real part "
+                                 f"{np.max(ev.real):.3g}); Theorem 3.1 needs a stabilising K1")
         P = lyapunov(Acl, jnp.eye(6, dtype=dtype))
+        # traced: A − B K1 is Hurwitz iff this P is positive definite (Lyapunov)
+        Pc = jax.lax.stop_gradient(0.5 * (P + P.T))
+        Pf = jnp.all(jnp.isfinite(Pc))
+        hurwitz = Pf & (jnp.linalg.eigvalsh(jnp.where(Pf, Pc, 0.0))[0] > 0)
     P = 0.5 * (jnp.asarray(P, dtype) + jnp.asarray(P, dtype).T)
     Q = -(Acl.T @ P + P @ Acl)
     Q = 0.5 * (Q + Q.T)
@@ -429,7 +453,7 @@ def theorem31(K1, K2, L1, L2, P=None, *, key=None, n_samples=4096, r_min=1e-3, r
         worst = jnp.max(jnp.where(bad, r, 0.0))
     return Theorem31(
         L1_max=L1_max, L2_max=L2_max, cond1=L1_max > L1, cond2=L2_max > L2,
-        holds=(L1_max > L1) & (L2_max > L2), L1_max_rigorous=L1_rig,
+        holds=(L1_max > L1) & (L2_max > L2) & hurwitz, L1_max_rigorous=L1_rig,
         L1_max_conservative=L1_cons, ball_radius=radius, lambda_min_Q=lam_min, norm2_P=n2P,
         norm2_PB=n2PB, norm2_K2=n2K2, frac_negative=frac, max_norm_violating=worst,
         r_min=jnp.asarray(r_min, dtype), r_max=jnp.asarray(r_max, dtype), Q=Q, P=P)
@@ -441,11 +465,12 @@ def theorem31(K1, K2, L1, L2, P=None, *, key=None, n_samples=4096, r_min=1e-3, r
 
 def _magnitude(x_err, bounds):
     L1, L2 = bounds
-    return (L2 + L1 * jnp.linalg.norm(x_err)) * (1.0 - 1e-10)
+    # safe_norm: a finite gradient at x_err = 0 (jnp.linalg.norm's is NaN there)
+    return (L2 + L1 * safe_norm(x_err)) * (1.0 - 1e-10)
 
 
 def _unit(v):
-    return v / jnp.linalg.norm(v)
+    return v / safe_norm(v)
 
 
 def perturbation_constant(key, t, x_err, bounds):
@@ -501,8 +526,12 @@ def perturbation_bounds(gains, P=None, scale=1.0):
     ``P``: Riccati/Lyapunov matrix for K1 (None: Lyapunov with Q = I, see
     :func:`theorem31`).  Returns two Python floats (host side).
     """
-    rep = theorem31(np.asarray(gains.K1, np.float64), np.asarray(gains.K2, np.float64), 0.0, 0.0,
-                    None if P is None else np.asarray(P, np.float64))
+    try:
+        rep = theorem31(real_numbers(gains.K1, "gains.K1"), real_numbers(gains.K2, "gains.K2"), 0.0, 0.0,
+                        None if P is None else real_numbers(P, "P"))
+    except InputError as e:
+        msg = str(e)
+        raise InputError("gains." + msg if msg.startswith(("K1:", "K2:")) else msg) from None
     return float(scale) * float(rep.L1_max), float(scale) * float(rep.L2_max)
 
 
@@ -530,8 +559,6 @@ class Rollout(NamedTuple):
     xi: Optional[jax.Array] = None
 
 
-@functools.partial(jax.jit, static_argnames=("steps", "perturbation_name", "switching", "model",
-                                             "record"))
 def closed_loop(xa0, q_d, gains, inertia, dt, steps, key, bounds, *, perturbation_name="constant",
                 eps=1.0, switching="tanh", model="exact", tau_max=None, omega_d=None,
                 record=False):
@@ -545,11 +572,28 @@ def closed_loop(xa0, q_d, gains, inertia, dt, steps, key, bounds, *, perturbatio
     ``model``, ``tau_max``: as in :func:`control` (``tau_max`` None: no limit; traced
     otherwise).  The control and ξ are held over each step; each step is
     :func:`jaxslam.dynamics.quaternion_quad.step` (RK4 + renormalisation), all in one
-    ``lax.scan``.  Returns :class:`Rollout`.  Validate on the host with :func:`validate`.
+    ``lax.scan``.  Returns :class:`Rollout`.  The arguments whose values are known now (an
+    eager call) are validated here, before the jitted core (inside it every value was a tracer:
+    eps = 0 ran to NaN, a negative dt or inertia ran silently); traced ones pass.
     """
     _validate_known(inertia=inertia, dt=dt, eps=eps, tau_max=tau_max, switching=switching, model=model,
                     perturbation_name=perturbation_name)
-    xa0 = jnp.asarray(xa0)
+    check_real(xa0, "xa0")
+    check_shape(xa0, (7,), "xa0")
+    if not isinstance(steps, (int, np.integer)) or isinstance(steps, bool) or steps < 0:
+        raise InputError(f"steps: expected an int >= 0 (static), got {steps!r}")
+    return _closed_loop(xa0, q_d, gains, inertia, dt, steps, key, bounds,
+                        perturbation_name=perturbation_name, eps=eps, switching=switching, model=model,
+                        tau_max=tau_max, omega_d=omega_d, record=record)
+
+
+@functools.partial(jax.jit, static_argnames=("steps", "perturbation_name", "switching", "model",
+                                             "record"))
+def _closed_loop(xa0, q_d, gains, inertia, dt, steps, key, bounds, *, perturbation_name="constant",
+                 eps=1.0, switching="tanh", model="exact", tau_max=None, omega_d=None,
+                 record=False):
+    """The jitted core of :func:`closed_loop` (compiled once per static options, shapes, dtypes)."""
+    xa0 = real_float(xa0, "xa0")
     dtp = xa0.dtype
     q_d = jnp.asarray(q_d, dtp)
     J = jnp.asarray(inertia, dtp)
@@ -565,7 +609,7 @@ def closed_loop(xa0, q_d, gains, inertia, dt, steps, key, bounds, *, perturbatio
         tau = torque(law(x, gains, eps, switching), xa[4:], J, model, lim)
         xi = pert(jax.random.fold_in(key, k), t, x, bounds)
         xn = qq.step(qq.f_att, xa, tau, h, J, xi)
-        norms = jnp.stack([jnp.linalg.norm(x[:3]), jnp.linalg.norm(x[3:]), jnp.max(jnp.abs(tau))])
+        norms = jnp.stack([safe_norm(x[:3]), safe_norm(x[3:]), jnp.max(jnp.abs(tau))])
         out = (norms, xn, x, tau, xi) if record else (norms,)
         return xn, out
 
@@ -574,6 +618,11 @@ def closed_loop(xa0, q_d, gains, inertia, dt, steps, key, bounds, *, perturbatio
         norms, xs, xe, taus, xis = outs
         return Rollout(xa_f, norms, jnp.concatenate([xa0[None], xs]), xe, taus, xis)
     return Rollout(xa_f, outs[0])
+
+
+# the compiled core's cache, seen through the wrapper (a new value must reuse the program)
+closed_loop._cache_size = _closed_loop._cache_size
+closed_loop.clear_cache = _closed_loop.clear_cache
 
 
 def validate(gains=None, inertia=None, *, xa0=None, q_d=None, dt=None, eps=None, tau_max=None,

@@ -124,7 +124,11 @@ class Figure8(NamedTuple):
                                   jnp.zeros_like(tt)])
 
         p, v = jax.jvp(path, (t,), (jnp.ones_like(t),))
-        tangent = jnp.arctan2(v[1], v[0])
+        # double where: at zero speed (a_x = a_y = 0) arctan2's derivative is NaN, and
+        # 0 × NaN = NaN even with heading_along_path = 0; there the tangent is 0
+        moving = (v[0] != 0) | (v[1] != 0)
+        tangent = jnp.where(moving, jnp.arctan2(jnp.where(moving, v[1], 0.0),
+                                                jnp.where(moving, v[0], 1.0)), 0.0)
         psi = jnp.asarray(self.psi0, dtype) + jnp.asarray(self.heading_along_path, dtype) * tangent
         p = _blend(_vec(self.start, dtype), jnp.asarray(self.ramp_time, dtype), t, p)
         return p, psi

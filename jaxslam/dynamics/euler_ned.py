@@ -33,7 +33,8 @@ import numpy as np
 
 from ..errors import InputError
 from ..geometry.euler import dcm_from_euler, euler_rates
-from ..linalg import check_shape, is_concrete
+from ..linalg import check_numbers, check_real, check_scalar, check_shape, is_concrete
+from ._checks import real_float
 from .params import _cast
 
 __all__ = [
@@ -63,12 +64,8 @@ def _state_and_input(x, u, nx: int, nu: int, names=("x", "u")):
     promoted to JAX's default float): a wrong shape is an :class:`InputError` naming the
     argument (checked at trace time, free under ``jit``; a (13,) state was sliced silently and an
     integer state truncated the thrust).  Batches go through ``jax.vmap``."""
-    x = jnp.asarray(x)
-    if not jnp.issubdtype(x.dtype, jnp.floating):
-        x = x.astype(jnp.result_type(float))
-    check_shape(x, (nx,), names[0])
-    u = jnp.asarray(u)
-    check_shape(u, (nu,), names[1])
+    x = real_float(x, names[0], (nx,))
+    u = real_float(u, names[1], (nu,))
     return x, u.astype(x.dtype)
 
 
@@ -119,9 +116,11 @@ def hover_state(position=(0.0, 0.0, 0.0), yaw=0.0, dtype=None):
     if dtype is None:
         dtype = jnp.result_type(float)
     if is_concrete(position, yaw):  # the usual case: built on the host, no program to compile
+        check_real(position, "position")
+        check_numbers(position, "position")
         x = np.zeros(STATE_DIM)
-        x[POS] = np.asarray(position, np.float64)
-        x[8] = float(yaw)
+        x[POS] = np.asarray(_check_vector(position, 3, "position"), np.float64)
+        x[8] = check_scalar(yaw, "yaw")
         return jnp.asarray(x, dtype)
     x = jnp.zeros(STATE_DIM, dtype)
     x = x.at[POS].set(jnp.asarray(position, dtype=dtype))

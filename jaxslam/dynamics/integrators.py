@@ -26,7 +26,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import InputError
-from ..linalg import small_matmul
+from ..linalg import check_int, check_real, small_matmul
+from ._checks import as_scalar, real_float
 
 __all__ = ["rk4_step", "rk4_field", "rk4_linearized", "rollout", "linearize", "check_dt"]
 
@@ -44,10 +45,11 @@ def rk4_field(field, x, dt):
     """One classical RK4 step of ẋ = field(x, c), c ∈ {0, ½, 1} the stage's fraction of the
     step (an input held or interpolated over the step closes over c).
 
-    ``x``: (n,); ``dt``: scalar step, s.  Returns x(t + dt) (n,) in the dtype of ``x``.
+    ``x``: (n,); ``dt``: scalar step, s.  Returns x(t + dt) (n,) in the dtype of ``x`` (an
+    integer state is promoted to JAX's default float: ``dt`` cast to an integer dtype was 0).
     """
-    x = jnp.asarray(x)
-    h = jnp.asarray(dt, dtype=x.dtype)
+    x = real_float(x, "x")
+    h = as_scalar(dt, x.dtype, "dt")
     k1 = field(x, 0.0)
     k2 = field(x + 0.5 * h * k1, 0.5)
     k3 = field(x + 0.5 * h * k2, 0.5)
@@ -72,12 +74,12 @@ def rk4_linearized(field, x, dt, *, jacobian=None, skip: int = 0):
     same F with far fewer kernels in its second derivatives (a gradient through a filter
     differentiates F).  Returns ``(x(t + dt) (n,), F (n, n))``.
     """
-    x = jnp.asarray(x)
+    x = real_float(x, "x")
     n = x.shape[0]
-    skip = int(skip)
+    skip = check_int(skip, "skip", lower=0)  # 1.5 was truncated to 1
     if not 0 <= skip < n:
         raise InputError(f"skip: expected 0 <= skip < {n} (the state's size), got {skip}")
-    h = jnp.asarray(dt, dtype=x.dtype)
+    h = as_scalar(dt, x.dtype, "dt")
     if jacobian is None:
         def jacobian(y, c):
             def g(q):
@@ -102,7 +104,8 @@ def rollout(f, x0, us, dt, *args):
     ``x0``: (n,) initial state; ``us``: (T, m) inputs, ``us[k]`` held over
     step k; ``dt``: scalar step, s.  Returns xs (T + 1, n) with xs[0] = x0.
     """
-    x0 = jnp.asarray(x0)
+    x0 = real_float(x0, "x0")  # an integer x0 made the scan's carry change dtype (a TypeError)
+    check_real(us, "us")
 
     def body(x, u):
         xn = rk4_step(f, x, u, dt, *args)

@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import InputError
-from ..linalg import check_numbers
+from ._checks import real_numbers
 
 __all__ = [
     "QuadParams",
@@ -114,7 +114,7 @@ def validate_params(p):
     if not isinstance(p, (QuadParams, RotorQuadParams)):
         raise InputError(f"params: expected QuadParams or RotorQuadParams, got {type(p).__name__}")
     for name in p._fields:
-        val = check_numbers(getattr(p, name), f"params.{name}")
+        val = real_numbers(getattr(p, name), f"params.{name}")  # a bool or complex field too
         want = (3,) if name == "inertia" else ()
         if val.shape != want:
             raise InputError(f"params.{name}: expected shape {want}, got {val.shape}")

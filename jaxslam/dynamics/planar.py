@@ -40,8 +40,11 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
-from ..linalg import wrap_angle
+from ..errors import InputError
+from ..linalg import is_concrete, wrap_angle
+from ._checks import real_numbers
 
 __all__ = [
     "AckermannGeometry",
@@ -71,12 +74,17 @@ VICTORIA_PARK = AckermannGeometry()
 
 
 def _sinc_terms(w):
-    """(sin w / w, (1 − cos w) / w), smooth through w = 0 (Taylor branch)."""
+    """(sin w / w, (1 − cos w) / w), smooth through w = 0 (Taylor branch).
+
+    (1 − cos w)/w is evaluated as 2 sin²(w/2)/w, which has no cancellation: in float32 the
+    direct form lost every digit just above the Taylor branch (0 at w = 2e-4, 4.6 % off at 1e-3).
+    """
     small = jnp.abs(w) < 1e-4
     ws = jnp.where(small, 1.0, w)
     w2 = w * w
     s = jnp.where(small, 1.0 - w2 / 6.0 + w2 * w2 / 120.0, jnp.sin(ws) / ws)
-    c = jnp.where(small, w / 2.0 - w * w2 / 24.0, (1.0 - jnp.cos(ws)) / ws)
+    sh = jnp.sin(0.5 * ws)
+    c = jnp.where(small, w / 2.0 - w * w2 / 24.0, 2.0 * sh * sh / ws)
     return s, c
 
 
@@ -126,22 +134,36 @@ def input_noise_cov(f, s, u, dt, M):
     """Discrete process noise ``J_u M J_uᵀ`` of motion ``f(s, u, dt)`` (J_u by ``jacfwd``).
 
     ``M`` (d_u, d_u) is the input covariance of this step (for held rates pass
-    ``M_c / Δt``, see the module docstring).
+    ``M_c / Δt``, see the module docstring).  A concrete negative ``dt`` is an
+    :class:`~jaxslam.errors.InputError`.
     """
+    _check_dt(dt)
     Ju = jax.jacfwd(lambda u_: f(s, u_, dt))(u)
     return Ju @ M @ Ju.T
+
+
+def _check_dt(dt):
+    """A concrete step ``dt`` must be finite and >= 0 (0 is an empty step); traced values pass."""
+    if dt is None or not is_concrete(dt):
+        return
+    a = real_numbers(dt, "dt")
+    if not np.all(np.isfinite(a)) or np.any(a < 0):
+        raise InputError(f"dt: expected a finite step >= 0 s, got {dt!r}")
 
 
 def step_input_cov(M, dt, input_mode: str = "rate"):
     """Input covariance of one step: ``M / Δt`` for held rates (M a density), ``M`` for increments.
 
-    ``Δt`` is floored at 1e-9 s; with Δt = 0 the rate Jacobian is 0, so Q = 0.
+    ``Δt`` is floored at 1e-9 s; with Δt = 0 the rate Jacobian is 0, so Q = 0.  A concrete
+    negative or non-finite ``dt`` (held rates) is an :class:`~jaxslam.errors.InputError` (it was floored to
+    1e-9 s: Q ~ 1e9 M).
     """
+    if input_mode not in ("rate", "increment"):
+        raise InputError(f"input_mode: expected 'rate' or 'increment', got {input_mode!r}")
     if input_mode == "rate":
+        _check_dt(dt)
         return M / jnp.maximum(dt, 1e-9)
-    if input_mode == "increment":
-        return M
-    raise ValueError(f"input_mode: expected 'rate' or 'increment', got {input_mode!r}")
+    return M
 
 
 #: Names accepted by :func:`motion_model` (and the systems' ``config.motion``).
@@ -156,4 +178,4 @@ def motion_model(name: str, geometry: AckermannGeometry = VICTORIA_PARK):
         return lambda s, u, dt: ackermann(s, u, dt, geometry)
     if name == "increment":
         return odometry_increment
-    raise ValueError(f"motion: expected one of {MOTIONS}, got {name!r}")
+    raise InputError(f"name: expected a motion model, one of {MOTIONS}, got {name!r}")

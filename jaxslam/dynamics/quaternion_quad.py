@@ -65,8 +65,9 @@ from ..geometry.quaternion import (
     qrotate,
     quat_from_euler,
 )
-from ..linalg import check_shape
+from ..linalg import check_real, check_shape, is_concrete
 from . import euler_ned
+from ._checks import real_float, real_numbers
 from .integrators import rk4_step
 from .params import _cast
 
@@ -173,7 +174,7 @@ def step(fn, x, u, dt, *args, quat=None):
     ``slice(0, 4)`` for 7).  The renormalisation is what keeps ‖q‖ = 1 to within
     1e-12 over 1e5 steps (RK4 alone drifts); the sign of q is kept.  Returns (n,).
     """
-    x = jnp.asarray(x)
+    x = real_float(x, "x")
     if quat is None:
         n = x.shape[-1]
         if n == STATE_DIM:
@@ -192,7 +193,7 @@ def to_euler_ned(x):
     v_B = C_NBᵀ ṗ, Λ = 3-2-1 Euler angles of q (gimbal-lock convention of
     :func:`~jaxslam.geometry.quaternion.euler_from_quat`).  ``x``: (13,) -> (12,).
     """
-    x = jnp.asarray(x)
+    x = real_float(x, "x", (STATE_DIM,))
     q = qnormalize(x[QUAT])
     C = dcm_from_quat(q)
     return jnp.concatenate([x[POS], C.T @ x[VEL], euler_from_quat(q), x[RATE]])
@@ -204,7 +205,7 @@ def from_euler_ned(x):
     q = quat_from_euler(Λ) (smooth closed form, sign not canonicalised),
     ṗ = C_NB v_B.  ``x``: (12,) -> (13,).
     """
-    x = jnp.asarray(x)
+    x = real_float(x, "x", (euler_ned.STATE_DIM,))
     q = quat_from_euler(x[euler_ned.ATT])
     return jnp.concatenate([x[euler_ned.POS], qrotate(q, x[euler_ned.VEL]), q, x[euler_ned.RATE]])
 
@@ -213,6 +214,14 @@ def hover_state(position=(0.0, 0.0, 0.0), q=(1.0, 0.0, 0.0, 0.0), dtype=None):
     """State at rest at ``position`` (NED, m) with attitude ``q`` (normalised).  (13,)."""
     if dtype is None:
         dtype = jnp.result_type(float)
+    check_real(position, "position")
+    check_real(q, "q")
+    if is_concrete(position):
+        euler_ned._check_vector(real_numbers(position, "position"), 3, "position")
+    if is_concrete(q):  # a zero quaternion normalised to NaN
+        qa = euler_ned._check_vector(real_numbers(q, "q"), 4, "q")
+        if not np.linalg.norm(qa) > 0:
+            raise InputError(f"q: expected a nonzero quaternion, got {qa.tolist()}")
     x = jnp.zeros(STATE_DIM, dtype)
     x = x.at[POS].set(jnp.asarray(position, dtype))
     return x.at[QUAT].set(qnormalize(jnp.asarray(q, dtype)))

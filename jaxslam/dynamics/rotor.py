@@ -55,6 +55,8 @@ import numpy as np
 from ..errors import InputError
 from ..geometry.euler import dcm_from_euler, euler_rates
 from ..linalg import check_shape
+from ._checks import check_last_dim, real_float
+from .euler_ned import _state_and_input
 from .params import _cast
 
 __all__ = [
@@ -117,7 +119,7 @@ def mixer(rotor_speeds, params):
     ``rotor_speeds``: (4,) ω_i in rad/s (rotors 1-4, plus layout).
     Returns (4,) [u1 (N), u2, u3, u4 (N m)] in the dtype of the speeds.
     """
-    w = jnp.asarray(rotor_speeds)
+    w = check_last_dim(real_float(rotor_speeds, "rotor_speeds"), 4, "rotor_speeds")
     p = _cast(params, w.dtype)
     s = w * w
     lk = p.arm_length * p.k_thrust
@@ -143,7 +145,7 @@ def rotor_speeds_from_input(u, params):
     ω1² = (a − e − 2c)/4, ω2² = (a + e + 2b)/4, ω3² = (a − e + 2c)/4,
     ω4² = (a + e − 2b)/4.
     """
-    u = jnp.asarray(u)
+    u = check_last_dim(real_float(u, "u"), 4, "u")
     p = _cast(params, u.dtype)
     a = u[..., 0] / p.k_thrust
     b = u[..., 1] / (p.arm_length * p.k_thrust)
@@ -156,7 +158,7 @@ def rotor_speeds_from_input(u, params):
 
 def net_rotor_speed(rotor_speeds):
     """Ω_r = ω1 − ω2 + ω3 − ω4 (rad/s), paper 001 eq. 1."""
-    w = jnp.asarray(rotor_speeds)
+    w = check_last_dim(real_float(rotor_speeds, "rotor_speeds"), 4, "rotor_speeds")
     return w[..., 0] - w[..., 1] + w[..., 2] - w[..., 3]
 
 
@@ -167,10 +169,9 @@ def f_wrench(x, u, omega_r, params):
     :class:`~jaxslam.dynamics.params.RotorQuadParams`.  Returns ẋ (12,) in
     the dtype of ``x``.
     """
-    x = jnp.asarray(x)
+    x, u = _state_and_input(x, u, 12, 4)
     dt = x.dtype
-    u = jnp.asarray(u, dtype=dt)
-    omega_r = jnp.asarray(omega_r, dtype=dt)
+    omega_r = real_float(omega_r, "omega_r", ()).astype(dt)
     p = _cast(params, dt)
     vel, lam, w = x[VEL], x[ATT], x[RATE]
     R = dcm_from_euler(lam)
@@ -190,8 +191,7 @@ def f(x, rotor_speeds, params):
     u = :func:`mixer` (ω) and Ω_r = ω1 − ω2 + ω3 − ω4 enter
     :func:`f_wrench`.  ``x``: (12,) paper-001 state.  Returns ẋ (12,).
     """
-    x = jnp.asarray(x)
-    w = jnp.asarray(rotor_speeds, dtype=x.dtype)
+    x, w = _state_and_input(x, rotor_speeds, 12, 4, ("x", "rotor_speeds"))
     return f_wrench(x, mixer(w, params), net_rotor_speed(w), params)
 
 
@@ -202,7 +202,8 @@ def specific_force(rotor_speeds, params, dtype=None):
     Equal to R_b^wᵀ(ẍ + g e3) for :func:`f` (the model has no drag), without the rotation:
     it does not depend on the state.
     """
-    w = jnp.asarray(rotor_speeds) if dtype is None else jnp.asarray(rotor_speeds, dtype)
+    w = check_last_dim(real_float(rotor_speeds, "rotor_speeds"), 4, "rotor_speeds")
+    w = w if dtype is None else w.astype(dtype)
     p = _cast(params, w.dtype)
     zero = jnp.zeros((), w.dtype)
     return jnp.stack([zero, zero, mixer(w, params)[0] / p.mass])
@@ -214,8 +215,7 @@ def f_input(x, u, params):
     Ω_r for the gyroscopic term comes from :func:`rotor_speeds_from_input`
     (exact while no squared speed is clipped).  Returns ẋ (12,).
     """
-    x = jnp.asarray(x)
-    u = jnp.asarray(u, dtype=x.dtype)
+    x, u = _state_and_input(x, u, 12, 4)
     return f_wrench(x, u, net_rotor_speed(rotor_speeds_from_input(u, params)), params)
 
 
@@ -244,7 +244,7 @@ def state_to_ned(x):
     docstring: ρ_N = T p, Λ = (φ, −θ, −ψ), ω = T ω, v_B = C_NBᵀ T v_W).
     Batched inputs: use ``jax.vmap``.
     """
-    x = jnp.asarray(x)
+    x = real_float(x, "x", (12,))
     T = _tdiag(x.dtype)
     lam = x[ATT] * T
     C = dcm_from_euler(lam)
@@ -254,7 +254,7 @@ def state_to_ned(x):
 
 def state_from_ned(x_ned):
     """Inverse of :func:`state_to_ned`: paper-000 layout -> paper-001 state."""
-    x = jnp.asarray(x_ned)
+    x = real_float(x_ned, "x_ned", (12,))
     T = _tdiag(x.dtype)
     lam = x[6:9]
     C = dcm_from_euler(lam)
@@ -268,7 +268,7 @@ def input_to_ned(u):
     Thrust magnitude is unchanged; torques are relabelled FLU -> FRD
     ([u2, −u3, −u4]).
     """
-    u = jnp.asarray(u)
+    u = check_last_dim(real_float(u, "u"), 4, "u")
     return u * jnp.asarray((1.0, *_T), dtype=u.dtype)
 
 

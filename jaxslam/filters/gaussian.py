@@ -50,7 +50,7 @@ import numpy as np
 
 from .. import errors
 from ..errors import InputError
-from ..linalg import check_mask, check_numbers, check_psd, host_array, is_concrete, symmetrize
+from ..linalg import check_mask, check_numbers, check_psd, check_real, host_array, is_concrete, symmetrize
 
 __all__ = [
     "Gaussian",
@@ -225,15 +225,6 @@ def check_noise_values(M, name: str, strict: bool = False):
         check_psd(M, name, strict=strict)
     elif np.ndim(M) < 2 and np.size(M) == 1:
         check_psd(np.reshape(check_numbers(M, name), (1, 1)), name, strict=strict)
-
-
-def check_real(z, name: str):
-    """Refuse a complex array (casting it to the filter's real dtype dropped the imaginary part
-    with only a warning), as a complex mean is: :class:`InputError` naming ``name``."""
-    dt = getattr(z, "dtype", None)
-    dt = np.asarray(z).dtype if dt is None else np.dtype(dt)
-    if np.issubdtype(dt, np.complexfloating):
-        raise InputError(f"{name}: expected a real array, got dtype {dt}")
 
 
 def check_num_iter(num_iter):
