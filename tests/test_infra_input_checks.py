@@ -98,7 +98,9 @@ def test_write_json_under_a_file_says_so_like_prepare_file(tmp_path):
         files.prepare_file("path", target)
     with pytest.raises(InputError) as got:
         io.write_json(target, {"a": 1})
-    assert str(got.value) == str(want.value)
+    # (was a bare "File exists"): write_json's own words, then prepare_file's explanation
+    assert str(got.value).startswith("path: cannot write JSON to ")
+    assert str(got.value).endswith(str(want.value).removeprefix("path: "))
     assert "is a file, so" in str(got.value)
 
 

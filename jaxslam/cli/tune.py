@@ -251,7 +251,7 @@ def run_tuning(args, progress_stream=None) -> dict:
 
     import jaxslam
     from jaxslam.progress import Progress
-
+    from jaxslam.sim import monte_carlo
     from jaxslam.tuning import optimize, targets
 
     avail = targets.available()
@@ -404,7 +404,8 @@ def run_tuning(args, progress_stream=None) -> dict:
             f"  lr {rec['lr']:.3g}{extra}{flag}")
 
     say(f"{PROG}: compiling the training step (value and gradient) ...")
-    key = jax.random.PRNGKey(args.seed) if args.batch_size else None
+    # (the x64-on key of the seed whatever the dtype: with x64 off PRNGKey kept 32 bits)
+    key = jnp.asarray(monte_carlo.seed_key(args.seed)) if args.batch_size else None
     try:
         res = optimize.fit(tg.loss_fn, tg.theta0, tg.train, steps, lr, test=tg.test,
                            eval_every=args.eval_every, clip=args.clip, batch_size=args.batch_size,

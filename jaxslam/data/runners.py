@@ -629,11 +629,12 @@ def _planar_run(log, pose0, filter, cfg_ekf, prm_ekf, fs_kind, particles, seed, 
         if sm is not None:
             counts["smoother_failed_steps"] = int(np.sum(np.asarray(res.smooth_status) != 0))
         return np.asarray(res.pose, np.float64), lm, counts, comp_s, run_s, res.status, sm
+    from ..sim import monte_carlo
     from ..systems import planar_fastslam as pf
 
     cfg, prm, id_map, twice = fs_kind(particles)
     prm = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), prm)
-    key = jax.random.PRNGKey(seed)
+    key = jnp.asarray(monte_carlo.seed_key(seed))  # the x64-on key of the seed whatever the dtype
     p0 = jnp.asarray(pose0, dtype)
     if id_map is not None:  # known ids: subject id_map[j] lives in slot j (the core's slot_by_id)
         log = log._replace(ids=_known_slots(log.ids, log.mask, id_map))

@@ -75,7 +75,7 @@ from .. import compilation, runtime
 from ..errors import InputError
 from ..linalg import check_int
 
-__all__ = ["MCResult", "run", "keys_for", "clear_programs", "default_threads", "DETAIL_CHUNK", "MAX_DEFAULT_THREADS"]
+__all__ = ["MCResult", "run", "keys_for", "seed_key", "clear_programs", "default_threads", "DETAIL_CHUNK", "MAX_DEFAULT_THREADS"]
 
 DETAIL_CHUNK = 16  # runs per vmapped chunk when fn returns a "detail" output
 MAX_DEFAULT_THREADS = 8  # "loop" batching's default thread count: the cores, at most this many
@@ -133,12 +133,14 @@ def _check_seed(seed) -> int:
     return v
 
 
-def _seed_key(seed: int) -> np.ndarray:
-    """The raw key of ``jax.random.PRNGKey(seed)`` as JAX makes it with ``jax_enable_x64`` on
-    (the seed's 64 bits, two's complement), whatever the x64 setting: with x64 off
-    ``PRNGKey`` truncates the seed to 32 bits (seeds 2**32 apart share a key, a negative seed
-    gets another key).  The default threefry2x32 key is ``[high word, low word]``, rbg's that
+def seed_key(seed: int) -> np.ndarray:
+    """The raw key (uint32) of ``jax.random.PRNGKey(seed)`` as JAX makes it with
+    ``jax_enable_x64`` on (the seed's 64 bits, two's complement), whatever the x64 setting:
+    with x64 off ``PRNGKey`` truncates the seed to 32 bits (seeds 2**32 apart share a key, a
+    negative seed gets another key).  ``seed``: an int in [-2**63, 2**63), else an
+    :class:`InputError`.  The default threefry2x32 key is ``[high word, low word]``, rbg's that
     pair twice; other implementations hash the seed, so their seeding runs with x64 on."""
+    seed = _check_seed(seed)
     bits = seed & (2**64 - 1)
     hi, lo = bits >> 32, bits & 0xFFFFFFFF
     impl = str(jax.config.jax_default_prng_impl)
@@ -158,9 +160,8 @@ def keys_for(seed: int, runs: int):
     :class:`InputError`).  Returned as a NumPy array (indexing it per run compiles nothing);
     the folds are one compiled program, not a chain of eager operations.
     """
-    seed = _check_seed(seed)
     runs = check_int(runs, "runs", lower=0)
-    return np.asarray(_fold_in_all(_seed_key(seed), np.arange(runs)))
+    return np.asarray(_fold_in_all(seed_key(seed), np.arange(runs)))
 
 
 def run(fn: Callable, seed: int, runs: int, chunk: Optional[int] = None,
