@@ -59,8 +59,8 @@ def gains_from_bandwidth(inertia, omega_n, zeta) -> PDGains:
         check_real(v, nm, allow_bool=False)
         if is_concrete(v):  # a negative bandwidth or damping gave negative (destabilising) gains
             a = real_numbers(v, nm)
-            if a.ndim > 1 or not np.all(np.isfinite(a)) or np.any(a <= 0 if nm != "zeta" else a < 0):
-                want = "finite and >= 0" if nm == "zeta" else "finite and > 0"
+            if a.ndim > 1 or not np.all(np.isfinite(a)) or np.any(a <= 0 if nm == "inertia" else a < 0):
+                want = "finite and > 0" if nm == "inertia" else "finite and >= 0"
                 raise InputError(f"{nm}: expected {want} (a scalar or (3,)), got {v!r}")
     J = real_float(inertia, "inertia")
     wn = real_float(omega_n, "omega_n")

@@ -28,9 +28,10 @@ Decisions:
   derivatives with respect to a non-symmetric perturbation are therefore well defined (they are
   those of the symmetric part), which makes finite-difference checks meaningful.
 * Failure is reported, not hidden: with ``return_status=True`` a boolean ``ok`` is returned,
-  False when P is non-finite, the relative CARE residual exceeds √eps, or P is not positive
+  False when P is non-finite, the relative CARE residual exceeds √eps, P is not positive
   semi-definite (the stabilising solution is the unique PSD one for stabilisable (A, B) and
-  detectable (A, Q)).  A non-finite P is replaced by zeros so no NaN propagates.
+  detectable (A, Q)), or the closed loop A − B K is not Hurwitz (:func:`is_hurwitz`; with
+  Q = 0 and an unstable A, P = 0 solves the CARE but stabilises nothing).  A non-finite P is replaced by zeros so no NaN propagates.
 """
 
 from __future__ import annotations
@@ -44,7 +45,7 @@ from ..dynamics._checks import real_numbers
 from ..errors import InputError
 from ..linalg import check_psd, check_real, check_shape, is_concrete, symmetrize
 
-__all__ = ["care", "lqr_gain", "lyapunov", "validate_weights"]
+__all__ = ["care", "lqr_gain", "lyapunov", "is_hurwitz", "validate_weights"]
 
 _MAX_SIGN_ITER = 100
 _NEWTON_STEPS = 2
@@ -135,7 +136,7 @@ def _care_jvp(primals, tangents):
 
 
 def _status(A, B, Q, R, P):
-    """ok flag: finite, small relative residual, PSD (see module docstring)."""
+    """ok flag: finite, small relative residual, PSD, stabilising (see module docstring)."""
     A, B, Q, R, P = (jax.lax.stop_gradient(x) for x in (A, B, Q, R, P))
     dtype = P.dtype
     eps = jnp.finfo(dtype).eps
@@ -151,13 +152,18 @@ def _status(A, B, Q, R, P):
     lam_min = jnp.linalg.eigvalsh(Ps)[0]
     psd = lam_min >= -jnp.sqrt(eps) * jnp.maximum(jnp.max(jnp.abs(Ps)), 1.0)
     # The closed loop A − GP must be Hurwitz (the *stabilising* solution): with Q = 0 and an
-    # unstable A, P = 0 solves the CARE with no residual but stabilises nothing.  A is Hurwitz
-    # iff the Lyapunov solution X of A_clᵀX + X A_cl = −I is positive definite (no eig, which
-    # has no GPU kernel; one n²×n² solve, n = 7 here, once per gain).
-    X = symmetrize(lyapunov(A - G @ Ps, jnp.eye(P.shape[0], dtype=dtype)))
-    Xf = jnp.all(jnp.isfinite(X))
-    stable = Xf & (jnp.linalg.eigvalsh(jnp.where(Xf, X, 0.0))[0] > 0)
-    return finite & (rel <= jnp.sqrt(eps)) & psd & stable
+    # unstable A, P = 0 solves the CARE with no residual but stabilises nothing.
+    return finite & (rel <= jnp.sqrt(eps)) & psd & is_hurwitz(A - G @ Ps)
+
+
+def is_hurwitz(A):
+    """() bool: every eigenvalue of the square ``A`` has a negative real part.  Lyapunov's test:
+    the solution X of AᵀX + XA = −I is finite and positive definite (no ``eig``, which has no
+    GPU kernel; one n²×n² solve).  Held constant under differentiation; jit- and vmap-safe."""
+    A = jax.lax.stop_gradient(jnp.asarray(A))
+    X = symmetrize(lyapunov(A, jnp.eye(A.shape[-1], dtype=A.dtype)))
+    ok = jnp.all(jnp.isfinite(X))
+    return ok & (jnp.linalg.eigvalsh(jnp.where(ok, X, 0.0))[0] > 0)
 
 
 # Called on concrete matrices (a scenario's gains, computed on the host) the solver's while

@@ -66,7 +66,7 @@ from ..dynamics.params import QuadParams
 from ..errors import InputError
 from ..geometry.quaternion import qconj, qlog, qmul, qnormalize
 from ..linalg import check_real, check_shape, is_concrete, safe_norm
-from .lqr import lqr_gain, lyapunov, validate_weights
+from .lqr import is_hurwitz, lqr_gain, lyapunov, validate_weights
 
 __all__ = [
     "SMCGains",
@@ -214,7 +214,7 @@ def law(x, gains, eps=1.0, switching="tanh"):
     ``"sign"`` (Python string, static).  Returns u (3,).
     """
     x = real_float(x, "x", (6,))  # an integer x truncated the gains to 0
-    _validate_known(eps=eps)  # eps = 0 gave NaN
+    _validate_known(eps=eps if switching == "tanh" else None)  # eps = 0 gave NaN (tanh only)
     dt = x.dtype
     K1 = jnp.asarray(gains.K1, dt)
     K2 = jnp.asarray(gains.K2, dt)
@@ -321,7 +321,8 @@ class Theorem31(NamedTuple):
     As printed (app. B lines 38-40, NumPy's default Frobenius norms ‖·‖_F):
       L1_max:  ‖Q‖_F / (2 ‖P‖_F ‖B‖_F)
       L2_max:  ‖K2‖_F
-      cond1 / cond2 / holds: L1_max > L1, L2_max > L2, both.
+      cond1 / cond2 / holds: L1_max > L1, L2_max > L2, both (holds also needs A − B K1
+        Hurwitz and Q positive definite; a concrete non-Hurwitz K1 is an InputError).
     Rigorous form (spectral norms ‖·‖₂, λ_min):
       L1_max_rigorous:     λ_min(Q) / (2 ‖P B‖₂) — with L1 below it, V̇ < 0 for every
                            ‖x‖ > ball_radius (uniform ultimate boundedness); no
@@ -401,18 +402,13 @@ def theorem31(K1, K2, L1, L2, P=None, *, key=None, n_samples=4096, r_min=1e-3, r
     L2 = jnp.asarray(L2, dtype)
     A, B = att_matrices(dtype)
     Acl = A - B @ K1
-    hurwitz = jnp.asarray(True)
+    hurwitz = is_hurwitz(Acl)  # traced: holds is False for a destabilising K1
+    if is_concrete(hurwitz) and not bool(hurwitz):  # the bounds would mean nothing
+        ev = np.linalg.eigvals(np.asarray(Acl, np.float64))
+        raise InputError(f"K1: A − B K1 is not Hurwitz (largest eigenvalue real part "
+                         f"{np.max(ev.real):.3g}); Theorem 3.1 needs a stabilising K1")
     if P is None:
-        if is_concrete(K1):  # a destabilising K1 has no PD Lyapunov P: the bounds meant nothing
-            ev = np.linalg.eigvals(np.asarray(Acl, np.float64))
-            if not np.max(ev.real) < 0:
-                raise InputError(f"K1: A − B K1 is not Hurwitz (largest eigenvalue real part "
-                                 f"{np.max(ev.real):.3g}); Theorem 3.1 needs a stabilising K1")
         P = lyapunov(Acl, jnp.eye(6, dtype=dtype))
-        # traced: A − B K1 is Hurwitz iff this P is positive definite (Lyapunov)
-        Pc = jax.lax.stop_gradient(0.5 * (P + P.T))
-        Pf = jnp.all(jnp.isfinite(Pc))
-        hurwitz = Pf & (jnp.linalg.eigvalsh(jnp.where(Pf, Pc, 0.0))[0] > 0)
     P = 0.5 * (jnp.asarray(P, dtype) + jnp.asarray(P, dtype).T)
     Q = -(Acl.T @ P + P @ Acl)
     Q = 0.5 * (Q + Q.T)
@@ -453,7 +449,7 @@ def theorem31(K1, K2, L1, L2, P=None, *, key=None, n_samples=4096, r_min=1e-3, r
         worst = jnp.max(jnp.where(bad, r, 0.0))
     return Theorem31(
         L1_max=L1_max, L2_max=L2_max, cond1=L1_max > L1, cond2=L2_max > L2,
-        holds=(L1_max > L1) & (L2_max > L2) & hurwitz, L1_max_rigorous=L1_rig,
+        holds=(L1_max > L1) & (L2_max > L2) & hurwitz & (lam_min > 0), L1_max_rigorous=L1_rig,
         L1_max_conservative=L1_cons, ball_radius=radius, lambda_min_Q=lam_min, norm2_P=n2P,
         norm2_PB=n2PB, norm2_K2=n2K2, frac_negative=frac, max_norm_violating=worst,
         r_min=jnp.asarray(r_min, dtype), r_max=jnp.asarray(r_max, dtype), Q=Q, P=P)
@@ -470,7 +466,7 @@ def _magnitude(x_err, bounds):
 
 
 def _unit(v):
-    return v / safe_norm(v)
+    return v / jnp.linalg.norm(v)  # (v never depends on the error: no gradient at 0 to guard)
 
 
 def perturbation_constant(key, t, x_err, bounds):
@@ -576,7 +572,8 @@ def closed_loop(xa0, q_d, gains, inertia, dt, steps, key, bounds, *, perturbatio
     eager call) are validated here, before the jitted core (inside it every value was a tracer:
     eps = 0 ran to NaN, a negative dt or inertia ran silently); traced ones pass.
     """
-    _validate_known(inertia=inertia, dt=dt, eps=eps, tau_max=tau_max, switching=switching, model=model,
+    _validate_known(inertia=inertia, dt=dt, eps=eps if switching == "tanh" else None, tau_max=tau_max,
+                    switching=switching, model=model,
                     perturbation_name=perturbation_name)
     check_real(xa0, "xa0")
     check_shape(xa0, (7,), "xa0")

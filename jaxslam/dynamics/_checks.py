@@ -53,9 +53,17 @@ def real_numbers(value, name: str) -> np.ndarray:
 
 
 def as_scalar(v, dtype, name: str):
-    """Scalar argument ``v`` (a time step, a time) as a JAX array of ``dtype``; a concrete string or
-    complex value is an :class:`InputError` naming ``name`` (JAX parsed "0.1")."""
-    check_real(v, name)
-    if is_concrete(v) and not isinstance(v, (int, float, np.ndarray, np.generic)) and not hasattr(v, "dtype"):
+    """Scalar argument ``v`` (a time step, a time) as a JAX array of ``dtype``; anything but one
+    real number (a string — JAX parsed "0.1" —, a bool, a complex value, an array) is an
+    :class:`InputError` naming ``name``.  Static dtype and shape checks; only a concrete
+    non-array is converted on the host."""
+    check_real(v, name, allow_bool=False)
+    dt = getattr(v, "dtype", None)
+    if dt is not None:
+        if np.dtype(dt).kind not in "iuf":  # a NumPy string array skipped the check
+            raise InputError(f"{name}: expected a number, got dtype {np.dtype(dt)}")
+    elif is_concrete(v):
         check_numbers(v, name)
+    if np.ndim(v) != 0:
+        raise InputError(f"{name}: expected a scalar, got shape {np.shape(v)}")
     return jnp.asarray(v, dtype=dtype)

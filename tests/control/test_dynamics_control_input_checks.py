@@ -251,3 +251,28 @@ def test_lower_priority_checks(call, name):
 def test_lyapunov_accepts_lists():
     X = lqr.lyapunov([[-1.0, 0.0], [0.0, -2.0]], [[1.0, 0.0], [0.0, 1.0]])
     np.testing.assert_allclose(X, np.diag([0.5, 0.25]))
+
+
+def test_review_mends_theorem31_with_p_given_sign_switching_and_scalar_dt():
+    # theorem31 checked Hurwitz only when it solved P itself: a given P kept holds True
+    K1_bad = -np.asarray(smc.THESIS_SIM.K1)
+    with pytest.raises(InputError, match="^K1: A − B K1 is not Hurwitz"):
+        smc.theorem31(K1_bad, smc.THESIS_SIM.K2, 0.1, 0.1, P=np.asarray(smc.lqr_gains().P1))
+    assert not bool(jax.jit(lambda k: smc.theorem31(k, smc.THESIS_SIM.K2, 0.1, 0.1).holds)(K1_bad))
+    # eps is the tanh's width: with sign switching it is unused, so 0 is no error
+    assert np.all(np.isfinite(np.asarray(smc.law(jnp.ones(6), smc.PROTOTYPE, eps=0.0, switching="sign"))))
+    # a zero bandwidth is zero gains (only a negative one is refused)
+    assert np.all(np.asarray(attitude_pd.gains_from_bandwidth((0.1, 0.1, 0.1), 0.0, 0.8).kp) == 0)
+    # dt: one real number (a NumPy string array and a bool were taken)
+    for bad in (np.array("0.1"), True, np.array([0.1, 0.2])):
+        with pytest.raises(InputError, match="^dt: "):
+            integrators.rk4_step(lambda y, c, p: -y, jnp.ones(2), None, bad, None)
+
+
+def test_is_hurwitz_against_eigenvalues():
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        A = rng.normal(size=(4, 4))
+        want = bool(np.max(np.linalg.eigvals(A).real) < 0)
+        assert bool(lqr.is_hurwitz(A)) == want
+        assert bool(lqr.is_hurwitz(A - 5.0 * np.eye(4))) == bool(np.max(np.linalg.eigvals(A).real) < 5.0)
