@@ -149,7 +149,7 @@ def atomic_write(path, write: Callable, mode: str = "w") -> pathlib.Path:
     _check_no_file_above("path", path, path)
     path.parent.mkdir(parents=True, exist_ok=True)
     try:
-        keep_mode = stat.S_IMODE(os.stat(path).st_mode)
+        keep_mode = stat.S_IMODE(os.stat(path).st_mode) & 0o777  # not setuid/setgid/sticky
     except FileNotFoundError:
         keep_mode = None
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")

@@ -42,6 +42,7 @@ __all__ = [
     "check_shape",
     "reworded",
     "check_real",
+    "check_flag",
 ]
 
 
@@ -373,6 +374,14 @@ def check_real(x, name: str, *, allow_bool: bool = True) -> None:
         raise InputError(f"{name}: expected a real array, got dtype {dt}")
     if dt.kind == "b" and not allow_bool:
         raise InputError(f"{name}: expected numbers, got dtype bool")
+
+
+def check_flag(value, name: str) -> bool:
+    """``value`` as a bool when it is ``True`` / ``False`` (NumPy's too), else :class:`InputError`
+    naming ``name`` (a string "no" is truthy: a static switch given one silently stayed on)."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise InputError(f"{name}: expected True or False, got {value!r}"[:300])
+    return bool(value)
 
 
 def reworded(check, message: str, upper: float = float("inf")):

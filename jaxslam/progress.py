@@ -1,10 +1,10 @@
 """A one-line progress bar for long host-side loops (Monte Carlo chunks, tuning steps).
 
-The standard library, and :func:`jaxslam.linalg.check_int` for its arguments.  The bar stays
-silent for jobs that finish within about a second (its first line is printed at the first
-update after ``delay_s``), so quick runs and tests print nothing.  On a terminal the line is redrawn in place
-(at most ``min_interval_s`` apart); on a pipe or file, whole lines are written
-at most every ``log_interval_s`` so logs stay readable.
+No JAX: the standard library and :mod:`jaxslam.errors`.  The bar stays silent for jobs that
+finish within about a second (its first line is printed at the first update after ``delay_s``),
+so quick runs and tests print nothing.  On a terminal the line is redrawn in place (at most
+``min_interval_s`` apart); on a pipe or file, whole lines are written at most every
+``log_interval_s`` so logs stay readable.
 
 Updates come from the host between jitted chunks; nothing here is traced.
 
@@ -26,25 +26,20 @@ import time
 from typing import TextIO
 
 from .errors import InputError
-from .linalg import check_int
 
 __all__ = ["Progress"]
 
 
-def _count(value, name: str) -> int:
-    """``value`` as an int (a Python or NumPy integer, of any sign), else :class:`InputError`
-    naming ``name``: a float, a string or a bool is not a count."""
-    if not isinstance(value, bool):
-        try:
-            v = operator.index(value)
-        except TypeError:
-            v = None
-        if v is not None and v < 0:  # a negative count is clipped by the caller
-            return v
+def _count(value, name: str, lower=None) -> int:
+    """``value`` as an int (a Python or NumPy integer, not a bool; at least ``lower`` when given),
+    else :class:`InputError` naming ``name`` (kept free of JAX: the standard library only)."""
     try:
-        return check_int(value, name, lower=0)
-    except InputError:
-        raise InputError(f"{name}: expected an int, got {value!r}") from None
+        v = None if isinstance(value, bool) else operator.index(value)
+    except TypeError:
+        v = None
+    if v is None or (lower is not None and v < lower):
+        raise InputError(f"{name}: expected an int{'' if lower is None else f' >= {lower}'}, got {value!r}")
+    return v
 
 
 def _fmt_time(seconds: float) -> str:
@@ -82,7 +77,7 @@ class Progress:
         log_interval_s: float = 5.0,
         clock=time.monotonic,
     ):
-        self.total = check_int(total, "total", lower=0)
+        self.total = _count(total, "total", lower=0)
         self.label = label
         self.enabled = bool(enabled)
         self.stream = sys.stderr if stream is None else stream

@@ -62,12 +62,6 @@ def test_run_arguments_cpu_batching_and_an_iterator_of_devices():
         monte_carlo.run(_fn, 0, 2, devices=iter([]))
 
 
-def test_run_docstring_states_what_is_bit_equal():
-    doc = " ".join(monte_carlo.run.__doc__.split())
-    assert "result does not depend on the chunk size" not in doc
-    assert "rounding" in doc and "threads" in doc
-
-
 def test_atomic_write_keeps_the_permission_bits_of_the_file_it_replaces(tmp_path):
     p = tmp_path / "keep.json"
     io.write_json(p, {"a": 1})

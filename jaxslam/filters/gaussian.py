@@ -340,16 +340,18 @@ def finalize(prior: Gaussian, x_post, P_post, ok, gated, dof, extra_status=None)
 
     Returns ``(Gaussian, accepted, status)``: the posterior only when at least
     one component was valid, the gate passed, the factorisation held, no posterior variance is
-    negative (beyond rounding: 64 ε times the prior's largest variance) and the result is
-    finite; else the prior, with ``GATED`` / ``NOT_PSD`` / ``NON_FINITE`` set.  The variance
-    check is O(n) and catches an indefinite prior that a traced call could not refuse (its
-    ``S`` may still factor).  ``extra_status`` (int32) is OR-ed in (e.g. ``NOT_CONVERGED``
+    negative beyond √ε times the prior's largest variance (a float32 sigma-point update with a
+    precise R and an ill-conditioned S rounds to a few 64 ε below zero: that is not a failure)
+    and the result is finite; else the prior, with ``GATED`` / ``NOT_PSD`` / ``NON_FINITE``
+    set.  The variance check is O(n) and catches an indefinite prior, whose negative variances
+    are of the order of the prior's, that a traced call could not refuse (its ``S`` may still
+    factor).  ``extra_status`` (int32) is OR-ed in (e.g. ``NOT_CONVERGED``
     from an iterated update).
     """
     var = jnp.diagonal(P_post)
     scale = jnp.max(jnp.abs(jnp.diagonal(prior.cov)))
     # (NaN compares False here: a non-finite posterior is NON_FINITE, not also NOT_PSD)
-    ok = ok & ~jnp.any(var < -64.0 * jnp.finfo(var.dtype).eps * scale)
+    ok = ok & ~jnp.any(var < -jnp.sqrt(jnp.finfo(var.dtype).eps) * scale)
     finite = jnp.all(jnp.isfinite(x_post)) & jnp.all(jnp.isfinite(P_post))
     has = dof > 0
     accepted = has & ~gated & ok & finite
@@ -368,8 +370,8 @@ def finalize(prior: Gaussian, x_post, P_post, ok, gated, dof, extra_status=None)
 
 def step_log_likelihood(info: UpdateInfo):
     """``−½ (NIS + log det S + dof log 2π)`` of one update: 0 with no valid component, NaN where
-    the step failed (``NOT_PSD`` / ``NON_FINITE`` in ``info.status``: S did not factor, the
-    result was not finite, or the step's predict failed — also with no valid component — so
+    the step failed (``NOT_PSD`` / ``NON_FINITE`` in ``info.status``: S did not factor, a
+    posterior variance came out negative (:func:`finalize`), the result was not finite, or the step's predict failed — also with no valid component — so
     the likelihood is undefined and a run's sum must not hide it).
     An ``UpdateInfo`` without ``logdet`` (a user-written filter) gets it from ``info.S``."""
     dtype = info.nis.dtype

@@ -438,8 +438,9 @@ def update(
 
     Returns:
         ``(posterior Gaussian, UpdateInfo)``.  If the factor of ``P`` or of ``S`` is not
-        finite (``NOT_PSD``; NIS and ``logdet`` then 0) or the posterior is not finite
-        (``NON_FINITE``), the prior is returned unchanged.
+        finite or a posterior variance is negative (``NOT_PSD``; NIS and ``logdet`` then 0 for
+        a failed factor) or the posterior is not finite (``NON_FINITE``), the prior is
+        returned unchanged.
     """
     rule = _rule(points)
     check_gate(gate)

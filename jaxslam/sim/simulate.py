@@ -27,7 +27,7 @@ import numpy as np
 
 from ..control import dflqr
 from ..errors import InputError
-from ..linalg import check_int, check_scalar, check_shape, is_concrete
+from ..linalg import check_flag, check_int, check_scalar, check_shape, is_concrete
 from ..control.trajectories import flat_output
 from ..dynamics import euler_ned
 from ..dynamics.integrators import rk4_step
@@ -186,9 +186,8 @@ def simulate(setup: FlightSetup, key, n_frame: int, lidar_every: int,
         raise InputError(f"control_on: expected 'truth' or 'estimate', got {control_on!r}")
     if control_on == "estimate" and estimator is None:
         raise InputError("control_on: 'estimate' needs an estimator (estimator=None)")
-    for name, flag in (("feedforward", feedforward), ("checkpoint", checkpoint)):  # static switches:
-        if not isinstance(flag, (bool, np.bool_)):  # "no" was truthy and flew with feedforward on
-            raise InputError(f"{name}: expected True or False, got {flag!r}"[:300])
+    check_flag(feedforward, "feedforward")  # static switches: "no" was truthy (feedforward on)
+    check_flag(checkpoint, "checkpoint")
     n_frame, lidar_every = _check_setup(setup, n_frame, lidar_every, K, refs)
     dtype = setup.x0.dtype
     quad = setup.ctrl.quad

@@ -147,9 +147,7 @@ def build(options, dtype):
 
 def run_scenario(runs, seed, dtype, options, progress, params=None, plots=False):
     """Monte Carlo over ``runs`` seeds; see the module docstring."""
-    options, params = _checked_args(SCENARIO, options, dtype, params, plots)
-    if params:
-        raise InputError("attitude-smc takes no --params file (use the scenario options)")
+    options, params = _checked_args(SCENARIO, options, dtype, params, plots)  # no --params schema: refused there
     one_run, rollout, setup = build(options, dtype)
     mc = monte_carlo.run(lambda k: one_run(k, detail=plots), seed, runs, progress=progress, detail=plots,
                          program_key=program_key("attitude-smc", options, params, dtype))

@@ -309,9 +309,7 @@ def run_scenario(runs, seed, dtype, options, progress, params=None, plots=False)
     """``jaxslam run fastslam-helix`` (registry entry point)."""
     from ...errors import decode
 
-    options, params = _checked_args(SCENARIO, options, dtype, params, plots)
-    if params:
-        raise InputError("fastslam-helix takes no --params file (use the scenario options)")
+    options, params = _checked_args(SCENARIO, options, dtype, params, plots)  # no --params schema: refused there
     one_run, flight, cfg, prm, nf, setup = build(options, dtype)
     # The particle set is vmapped inside a run; on a CPU a second vmap over runs gains nothing.
     mc = monte_carlo.run(lambda k: one_run(k, detail=plots), seed, runs, chunk=options.get("chunk"),

@@ -269,7 +269,7 @@ def run_scenario(runs, seed, dtype, options, progress, params=None, plots=False)
         "walls": setup.walls.tolist(),
         "true_lines_rho_theta": setup.lines.tolist(),
         "steps": int(setup.ts.shape[0]),
-        "duration_flown_s": _duration_flown(setup.ts.shape[0], setup.ts[0]),  # whole scans
+        "duration_flown_s": _duration_flown(setup.ts.shape[0], cfg.dt),  # whole scans
         "dt_s": cfg.dt,
         "laser": cfg.spec._asdict(),
         "ransac": cfg.ransac._asdict(),

@@ -192,7 +192,9 @@ class Scenario:
                                                 dtype if has_dtype else np.float64, where="params"))
                 has_plots, plots = given("plots")
                 if has_plots:
-                    _check_flag(plots, "plots")
+                    from jaxslam.linalg import check_flag  # (JAX: not at the CLI's import)
+
+                    check_flag(plots, "plots")
                 return raw(*args, **kw)
 
             run._unchecked_run = raw
@@ -227,9 +229,11 @@ def _checked_args(scenario: "Scenario", options, dtype, params=None, plots=False
     """``(options, params)`` of a scenario module's public ``build`` / ``run_scenario`` checked
     as ``Scenario.run`` checks them: options completed and checked (:func:`check_options`),
     ``dtype`` float32 / float64, ``params`` against the scenario's schema, ``plots`` a bool."""
+    from jaxslam.linalg import check_flag  # (JAX: not at the CLI's import)
+
     options = check_options(scenario, options)
     _check_dtype(dtype)
-    _check_flag(plots, "plots")
+    check_flag(plots, "plots")
     if params is not None:
         params = _check_params(scenario, params, options, dtype, where="params")
     return options, params
@@ -240,13 +244,6 @@ def _duration_flown(steps: int, dt: float) -> float:
     its duration rounded to whole steps or sensor frames), without the float noise of the
     product (0.30000000000000004)."""
     return float(round(int(steps) * float(dt), 9))
-
-
-def _check_flag(value, where: str) -> bool:
-    """``value`` as a bool: ``True``/``False`` (NumPy's too), else an :class:`InputError`."""
-    if not isinstance(value, (bool, np.bool_)):
-        raise InputError(f"{where}: expected True or False, got {value!r}"[:300])
-    return bool(value)
 
 
 _REGISTRY: dict[str, Scenario] = {}

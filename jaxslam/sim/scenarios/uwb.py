@@ -513,7 +513,7 @@ def run_scenario(scenario, runs, seed, dtype, options, progress, params=None, pl
         "end_anchor": END,
         "startup_samples": int(setup.startup_pos.shape[0]),
         "steps": int(setup.ts.shape[0]),
-        "duration_flown_s": _duration_flown(setup.ts.shape[0], setup.ts[0]),  # whole steps of dt
+        "duration_flown_s": _duration_flown(setup.ts.shape[0], float(options["dt"])),  # whole steps of dt
         "frame": ("start-up frame (origin end anchor, +x start->end, +y towards the trilaterated "
                   "anchor)" if cfg.mode == "slam" else "anchors' (world) frame"),
         "noise_half_widths": {"range_m": setup.noise.range_half_width,
