@@ -56,8 +56,7 @@ def gains_from_bandwidth(inertia, omega_n, zeta) -> PDGains:
     Returns :class:`PDGains` with k_p = J ω_n², k_d = 2 ζ ω_n J (arrays, (3,)).
     """
     for v, nm in ((inertia, "inertia"), (omega_n, "omega_n"), (zeta, "zeta")):
-        check_real(v, nm, allow_bool=False)
-        if is_concrete(v):  # a negative bandwidth or damping gave negative (destabilising) gains
+        if is_concrete(v):  # (traced: real_float below checks the dtype)  # a negative bandwidth or damping gave negative (destabilising) gains
             a = real_numbers(v, nm)
             if a.ndim > 1 or not np.all(np.isfinite(a)) or np.any(a <= 0 if nm == "inertia" else a < 0):
                 want = "finite and > 0" if nm == "inertia" else "finite and >= 0"

@@ -33,8 +33,8 @@ import numpy as np
 
 from ..errors import InputError
 from ..geometry.euler import dcm_from_euler, euler_rates
-from ..linalg import check_numbers, check_real, check_scalar, check_shape, is_concrete
-from ._checks import real_float
+from ..linalg import check_scalar, check_shape, is_concrete
+from ._checks import real_float, real_numbers
 from .params import _cast
 
 __all__ = [
@@ -116,10 +116,8 @@ def hover_state(position=(0.0, 0.0, 0.0), yaw=0.0, dtype=None):
     if dtype is None:
         dtype = jnp.result_type(float)
     if is_concrete(position, yaw):  # the usual case: built on the host, no program to compile
-        check_real(position, "position")
-        check_numbers(position, "position")
         x = np.zeros(STATE_DIM)
-        x[POS] = np.asarray(_check_vector(position, 3, "position"), np.float64)
+        x[POS] = _check_vector(real_numbers(position, "position"), 3, "position")
         x[8] = check_scalar(yaw, "yaw")
         return jnp.asarray(x, dtype)
     x = jnp.zeros(STATE_DIM, dtype)

@@ -88,10 +88,10 @@ from .gaussian import (
     UpdateInfo,
     check_gate,
     check_measurement,
-    check_noise_values,
     check_real,
     check_num_iter,
     check_state,
+    check_update_args,
     finalize as _finalize,
     innovation_solve,
     masked_innovation,
@@ -347,9 +347,7 @@ def update(
     state = check_state(state)
     x, P = state
     dtype = x.dtype
-    check_noise_values(R, "R", strict=True)
-    check_real(z, "z")
-    check_mask(mask, "mask")
+    check_update_args(z, R, mask)
     z = jnp.asarray(z, dtype=dtype)
     R = jnp.asarray(R, dtype=dtype)
     m = z.shape[-1]
@@ -486,12 +484,8 @@ def update_batch(
     def lin(a):
         return value_and_jacfwd(lambda v: h(v, *a))(x)
 
-    if args:
-        zhat, H = jax.vmap(lin)(tuple(args))  # (M, m), (M, m, n)
-    else:  # nothing per measurement: one linearisation serves every row (vmap needs an axis)
-        zhat, H = lin(())
-        zhat = jnp.broadcast_to(zhat, (M,) + tuple(np.shape(zhat)))
-        H = jnp.broadcast_to(H, (M,) + tuple(np.shape(H)))
+    # (M, m), (M, m, n); axis_size: with nothing per measurement one linearisation is broadcast
+    zhat, H = jax.vmap(lin, axis_size=M)(tuple(args))
     if tuple(zhat.shape[1:]) != (m,):
         raise InputError(f"h: the measurement model returned shape {tuple(zhat.shape[1:])}, but each row of "
                          f"zs has ({m},)")

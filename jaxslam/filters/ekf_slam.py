@@ -1621,13 +1621,14 @@ def _check_run(state: SlamState, model: SlamModel, log: SlamLog, Q, R, associati
     if len(zs) != 3 or zs[2] != dz:
         raise InputError(f"log.z: expected shape (T, K, {dz}), got {tuple(zs)}")
     T, K = zs[0], zs[1]
+    if log.mask is not None and jnp.shape(log.mask) != (T, K):
+        raise InputError(f"log.mask: expected shape ({T}, {K}) like log.z, got {tuple(jnp.shape(log.mask))}")
+    check_mask(log.mask, "log.mask")  # before the ids check and R's rows read it as bool
     if association == "known":
         if log.ids is None or jnp.shape(log.ids) != (T, K):
             raise InputError(f"log.ids: expected shape ({T}, {K}) with association 'known', got "
                              f"{None if log.ids is None else tuple(jnp.shape(log.ids))}")
         check_whole_ids(log.ids, "log.ids", None if log.mask is None or not is_concrete(log.mask) else log.mask)
-    if log.mask is not None and jnp.shape(log.mask) != (T, K):
-        raise InputError(f"log.mask: expected shape ({T}, {K}) like log.z, got {tuple(jnp.shape(log.mask))}")
     for nm, tree in (("log.u", log.u), ("log.params", log.params)):
         for a in jax.tree_util.tree_leaves(tree):
             if jnp.ndim(a) == 0 or jnp.shape(a)[0] != T:
@@ -1680,7 +1681,6 @@ def run(model: SlamModel, state: SlamState, log: SlamLog, Q, R, *, association: 
     ``static_argnames=("model", "association", "register_new", "save_cov", "save_map")``).
     """
     _check_run(state, model, log, Q, R, association)
-    check_mask(log.mask, "log.mask")
     dtype = state.x.dtype
     nr = model.robot_dim
     z = jnp.asarray(log.z, dtype)

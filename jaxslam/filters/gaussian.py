@@ -66,6 +66,7 @@ __all__ = [
     "check_gate",
     "check_num_iter",
     "check_noise_values",
+    "check_update_args",
     "check_process_noise",
     "process_noise",
     "check_measurement",
@@ -225,6 +226,16 @@ def check_noise_values(M, name: str, strict: bool = False):
         check_psd(M, name, strict=strict)
     elif np.ndim(M) < 2 and np.size(M) == 1:
         check_psd(np.reshape(check_numbers(M, name), (1, 1)), name, strict=strict)
+
+
+def check_update_args(z, R, mask):
+    """The arguments one measurement update of every Gaussian filter checks first, in this order:
+    ``R``'s values when known (:func:`check_noise_values`, positive definite), ``z`` real (a
+    complex one lost its imaginary part), ``mask`` bool or 0/1 (:func:`jaxslam.linalg.check_mask`);
+    :class:`InputError` naming the argument."""
+    check_noise_values(R, "R", strict=True)
+    check_real(z, "z")
+    check_mask(mask, "mask")
 
 
 def check_num_iter(num_iter):
@@ -421,7 +432,6 @@ def check_run_inputs(x0, P0, zs, masks, Q, R, name_prefix=""):
     if len(zsh) != 2:
         raise InputError(f"{pre}zs: expected shape (T, m), got {tuple(zsh)}")
     T, m = zsh
-    check_real(zs, f"{pre}zs")
     if masks is not None and np.shape(masks) != (T, m):
         raise InputError(f"{pre}masks: expected shape ({T}, {m}) like zs, got "
                          f"{tuple(np.shape(masks))}")

@@ -99,7 +99,7 @@ from ..errors import InputError
 from ..linalg import check_mask, check_numbers, check_psd, is_concrete, symmetrize, value_and_jacfwd
 from .ekf import Gaussian, UpdateInfo
 from .gaussian import (check_gate, check_leading, check_measurement, check_noise_values, check_real,
-                       moment_dtype, threshold as _threshold)
+                       check_update_args, moment_dtype, threshold as _threshold)
 
 __all__ = [
     "SqrtGaussian",
@@ -428,9 +428,7 @@ def update(
     """
     x, L = check_state(state)
     dtype = x.dtype
-    check_noise_values(R, "R", strict=True)  # an eager call, as sqrt_ukf.update
-    check_real(z, "z")
-    check_mask(mask, "mask")
+    check_update_args(z, R, mask)
     z = jnp.asarray(z, dtype=dtype)
     R = jnp.asarray(R, dtype=dtype)
     m = z.shape[-1]

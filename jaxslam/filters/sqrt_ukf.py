@@ -30,7 +30,7 @@ import numpy as np
 
 from .. import errors
 from ..errors import InputError
-from ..linalg import check_mask, check_numbers, is_concrete, symmetrize
+from ..linalg import check_numbers, is_concrete, symmetrize
 from .gaussian import (
     Gate,
     UpdateInfo,
@@ -38,6 +38,7 @@ from .gaussian import (
     check_measurement,
     check_noise_values,
     check_real,
+    check_update_args,
     masked_innovation,
     threshold,
 )
@@ -122,9 +123,7 @@ def update(state: SqrtGaussian, z, h: Callable, R, *args, residual: Optional[Cal
     check_gate(gate)
     x, L = check_state(state)
     dtype = x.dtype
-    check_noise_values(R, "R", strict=True)
-    check_real(z, "z")
-    check_mask(mask, "mask")
+    check_update_args(z, R, mask)
     z = jnp.asarray(z, dtype)
     R = jnp.asarray(R, dtype)
     m = z.shape[-1]

@@ -106,7 +106,7 @@ import numpy as np
 
 from .. import errors
 from ..errors import InputError
-from ..linalg import check_mask, check_numbers, check_psd, is_concrete, symmetrize
+from ..linalg import check_numbers, check_psd, is_concrete, symmetrize
 from . import gaussian as _g
 from .gaussian import (
     Gate,
@@ -116,9 +116,8 @@ from .gaussian import (
     UpdateInfo,
     check_gate,
     check_measurement,
-    check_noise_values,
-    check_real,
     check_state,
+    check_update_args,
     finalize,
     innovation_solve,
     masked_innovation,
@@ -446,9 +445,7 @@ def update(
     check_gate(gate)
     x, P = check_state(state)
     dtype = x.dtype
-    check_noise_values(R, "R", strict=True)
-    check_real(z, "z")
-    check_mask(mask, "mask")
+    check_update_args(z, R, mask)
     z = jnp.asarray(z, dtype)
     R = jnp.asarray(R, dtype)
     m = z.shape[-1]

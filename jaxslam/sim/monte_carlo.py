@@ -139,7 +139,9 @@ def seed_key(seed: int) -> np.ndarray:
     with x64 off ``PRNGKey`` truncates the seed to 32 bits (seeds 2**32 apart share a key, a
     negative seed gets another key).  ``seed``: an int in [-2**63, 2**63), else an
     :class:`InputError`.  The default threefry2x32 key is ``[high word, low word]``, rbg's that
-    pair twice; other implementations hash the seed, so their seeding runs with x64 on."""
+    pair twice.  Other implementations hash the seed inside ``PRNGKey``: they take seeds in
+    [0, 2**31), where the key is the same with x64 on or off (the x64 switch is the entry
+    point's, never flipped here)."""
     seed = _check_seed(seed)
     bits = seed & (2**64 - 1)
     hi, lo = bits >> 32, bits & 0xFFFFFFFF
@@ -148,8 +150,9 @@ def seed_key(seed: int) -> np.ndarray:
         return np.array([hi, lo], dtype=np.uint32)
     if impl in ("rbg", "unsafe_rbg"):
         return np.array([hi, lo, hi, lo], dtype=np.uint32)
-    with jax.enable_x64(True):
-        return np.asarray(jax.random.PRNGKey(np.int64(seed)))
+    if not 0 <= seed < 2**31:
+        raise InputError(f"seed: expected an int in [0, 2**31) with the {impl} PRNG, got {seed}")
+    return np.asarray(jax.random.PRNGKey(seed))
 
 
 def keys_for(seed: int, runs: int):
