@@ -1676,7 +1676,8 @@ def run(model: SlamModel, state: SlamState, log: SlamLog, Q, R, *, association: 
             recompiles.
         save_cov, save_map: static; also stack the robot covariances / the map means.
 
-    Shapes and (when concrete) Q, R are checked here: a bad argument is an
+    A present row with a non-finite entry is not used (neither registered nor associated) and
+    sets ``MASKED_INPUT``.  Shapes and (when concrete) Q, R are checked here: a bad argument is an
     :class:`~jaxslam.errors.InputError` naming it.  Jit-, vmap- and grad-safe (jit it with
     ``static_argnames=("model", "association", "register_new", "save_cov", "save_map")``).
     """
@@ -1711,10 +1712,11 @@ def run(model: SlamModel, state: SlamState, log: SlamLog, Q, R, *, association: 
         else:
             slots, mapped, new, _ = associate_nn(st, model, z_t, m_t, R_t, p_t, gate=nn_gate,
                                                  new_threshold=nn_new)
-            # a present row with a non-finite entry is no candidate of the association: flag it
-            # as update does for the rows it is handed (``MASKED_INPUT``), not drop it silently
-            bad = jnp.any(m_t & ~jnp.all(jnp.isfinite(z_t), axis=-1))
-            st = st._replace(status=st.status | _flag_if(bad, errors.MASKED_INPUT))
+        # a present row with a non-finite entry is neither registered nor (nn) a candidate of the
+        # association: flag it as update does for the rows it is handed (``MASKED_INPUT``), not
+        # drop it silently (known ids: the row of a landmark not yet mapped)
+        bad = jnp.any(m_t & ~jnp.all(jnp.isfinite(z_t), axis=-1))
+        st = st._replace(status=st.status | _flag_if(bad, errors.MASKED_INPUT))
         st, info = update(st, model, z_t, slots, mapped, R_t, p_t, gate=gate)
         if can_register:
             n_before = jnp.sum(st.active)

@@ -100,6 +100,22 @@ def test_run_nn_flags_a_nan_measurement_row():
     assert not int(o.final.status) & errors.MASKED_INPUT
 
 
+
+def test_run_known_flags_a_nan_row_of_a_landmark_not_yet_mapped():
+    # Known ids: the NaN row of a mapped landmark reaches update, which flags it; the NaN row of
+    # a landmark not yet mapped registers nothing and used to vanish without a flag.
+    z = np.array([[[2.0, 0.3], [1.5, -1.0]]] * 3)
+    z[0, 1, 0] = np.nan  # id 1's first sighting, before it is mapped
+    ids = np.tile([0, 1], (3, 1))
+    log = es.SlamLog(u=np.tile([1.0, 0.2], (3, 1)), z=z, mask=np.ones((3, 2), bool), ids=ids)
+    st0 = es.init(jnp.zeros(3), 1e-3 * jnp.eye(3), 4, 2)
+    run = jax.jit(lambda lg: es.run(M, st0, lg, Q, R))
+    o = run(log)
+    assert int(o.final.status) & errors.MASKED_INPUT
+    assert int(jnp.sum(o.final.active)) == 2  # id 1 registered from its next, finite row
+    z[0, 1, 0] = 1.5
+    assert not int(run(log._replace(z=z)).final.status) & errors.MASKED_INPUT
+
 # --- F: masks that are not bool or 0/1 ---------------------------------------------------------
 
 def _mask_calls(bad):
