@@ -5,7 +5,7 @@ checks of ``jaxslam dataset`` / ``jaxslam tune``: the data root is ``--data DIR`
 environment variable ``JAXSLAM_DATA_DIR``; a ``--robot`` the folder does not hold is refused
 with the robots it does hold, before any file is parsed or anything is compiled.
 
-Standard library only (file names, no parsing); the loaders read the files.
+Standard library and NumPy only (file names, no parsing, no JAX); the loaders read the files.
 """
 
 from __future__ import annotations
@@ -15,7 +15,10 @@ import pathlib
 import re
 from typing import NamedTuple, Optional
 
+import numpy as np
+
 from ..errors import InputError
+from .textfile import _int_arg
 
 __all__ = ["DATA_ENV", "Dataset", "DATASETS", "OPTION_DEFAULTS", "APPLIES", "data_root", "find",
            "robots_found", "check_robot", "check_robots", "check_options"]
@@ -62,16 +65,53 @@ APPLIES = {
 }
 
 
+#: The values of the choice options (``anchors`` None: the dataset's default).
+_CHOICES = {"filter": ("ekf", "fastslam"), "ids": ("known", "hidden"), "anchors": (None, "known", "unknown")}
+_FLAGS = ("tof", "calibrated", "smooth")
+
+
+def _dataset(name) -> Dataset:
+    if not isinstance(name, str) or name not in _BY_NAME:
+        raise InputError(f"dataset: unknown name {name!r} (choose from {', '.join(sorted(_BY_NAME))})"[:300])
+    return _BY_NAME[name]
+
+
+def _given(key, value) -> bool:
+    """``value`` differs from the option's default (an array, whose ``!=`` has no single truth
+    value, counts as given)."""
+    default = OPTION_DEFAULTS[key]
+    if value is default:
+        return False
+    try:
+        return not bool(value == default)
+    except (TypeError, ValueError):
+        return True
+
+
 def check_options(name: str, options: dict) -> None:
     """Refuse an option set away from its default for a dataset it does not apply to (never
     silently ignored), ``--particles`` / ``--seed`` without ``--filter fastslam``, and
-    ``--params`` with it.  Raises :class:`InputError` naming the options."""
+    ``--params`` with it; and a value an option does not take: ``filter`` "ekf" | "fastslam",
+    ``ids`` "known" | "hidden", ``anchors`` None | "known" | "unknown", ``robot`` an int >= 1,
+    ``tof`` / ``calibrated`` / ``smooth`` True | False (a misspelt choice used to run another
+    method).  Raises :class:`InputError` naming the dataset and the options."""
+    _dataset(name)
     unknown = set(options) - set(OPTION_DEFAULTS)
     if unknown:
-        raise InputError(f"dataset: unknown option(s) {sorted(unknown)}")
-    misplaced = [k for k, v in options.items() if v != OPTION_DEFAULTS[k] and k not in APPLIES[name]]
+        raise InputError(f"dataset: unknown option(s) {sorted(unknown, key=str)}")
+    for k, allowed in _CHOICES.items():
+        v = options.get(k, OPTION_DEFAULTS[k])
+        if not (v is None or isinstance(v, str)) or v not in allowed:
+            raise InputError(f"{name}: --{k}: expected one of {', '.join(map(repr, allowed))}, got {v!r}"[:300])
+    if "robot" in options:
+        _int_arg(options["robot"], f"{name}: --robot", 1)
+    for k in _FLAGS:
+        v = options.get(k, OPTION_DEFAULTS[k])
+        if not isinstance(v, (bool, np.bool_)):  # a string "no" is truthy
+            raise InputError(f"{name}: --{k}: expected True or False, got {v!r}"[:300])
+    misplaced = [k for k, v in options.items() if _given(k, v) and k not in APPLIES[name]]
     if options.get("filter", "ekf") != "fastslam":
-        misplaced += [k for k in ("particles", "seed") if options.get(k, OPTION_DEFAULTS[k]) != OPTION_DEFAULTS[k]]
+        misplaced += [k for k in ("particles", "seed") if _given(k, options.get(k, OPTION_DEFAULTS[k]))]
     elif options.get("params") is not None:
         raise InputError(f"{name}: --params sets the EKF's noise; it does not apply to --filter fastslam")
     elif options.get("smooth"):
@@ -109,8 +149,12 @@ def data_root(value, flag: str = "--data") -> pathlib.Path:
 
 
 def find(name: str, root) -> Optional[pathlib.Path]:
-    """The folder of dataset ``name`` under ``root`` (``root`` itself or ``root/subdir``), or None."""
-    d = _BY_NAME[name]
+    """The folder of dataset ``name`` under ``root`` (``root`` itself or ``root/subdir``), or None.
+
+    Raises :class:`InputError` for an unknown ``name`` or a ``root`` that is not a path."""
+    d = _dataset(name)
+    if not isinstance(root, (str, os.PathLike)):
+        raise InputError(f"root: expected a folder path (str or os.PathLike), got {root!r}"[:300])
     root = pathlib.Path(root)
     for cand in ((root,) if root.name == d.subdir else (root / d.subdir, root)):
         if cand.is_dir() and _holds(d, cand):
@@ -144,13 +188,15 @@ def _robots_in(d: Dataset, folder: pathlib.Path) -> list:
 
 def robots_found(name: str, root) -> list:
     """The ``--robot`` numbers dataset ``name`` has under ``root`` ([] if none or not applicable)."""
-    d = _BY_NAME[name]
+    d = _dataset(name)
     folder = find(name, root)
     return [] if folder is None or d.robot_pattern is None else _robots_in(d, folder)
 
 
 def check_robots(name: str, root, robots, flag: str = "--robots") -> None:
-    """:func:`check_robot` for each of ``robots`` (a training / held-out list)."""
+    """:func:`check_robot` for each of ``robots`` (a training / held-out list, or tuple, of ints)."""
+    if isinstance(robots, (str, bytes)) or not hasattr(robots, "__iter__"):  # "13" was checked digit by digit
+        raise InputError(f"{flag}: expected a list of robot numbers, got {robots!r}"[:300])
     for r in robots:
         check_robot(name, root, r, flag=flag)
 
@@ -161,7 +207,8 @@ def check_robot(name: str, root, robot: int, flag: str = "--robot") -> None:
     A dataset without robots, or a folder where the dataset is not found at all (the loader
     then says which files it looked for), is left to the loader.
     """
-    d = _BY_NAME[name]
+    d = _dataset(name)
+    robot = _int_arg(robot, flag, 1)  # "1" was "not in the folder (found: 1, 2)"
     if d.robot_pattern is None or find(name, root) is None:
         return
     have = robots_found(name, root)

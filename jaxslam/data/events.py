@@ -35,6 +35,7 @@ from typing import NamedTuple, Optional
 import numpy as np
 
 from ..errors import InputError
+from .textfile import _int_arg
 
 __all__ = ["EventLog", "check_times", "merge_events"]
 
@@ -62,8 +63,27 @@ class EventLog(NamedTuple):
     stats: dict
 
 
+_TIME_HINT = (" (times are seconds as numbers: convert datetime64 stamps with "
+              "(t - t[0]) / np.timedelta64(1, 's'))")
+
+
+def _numbers(a, name, hint=""):
+    """``a`` as float64 when it holds real numbers (integer or floating dtype); a string, bool,
+    complex, datetime/timedelta, object or ragged value is an :class:`InputError` naming
+    ``name`` (NumPy parsed "1.5", turned a datetime64 into epoch seconds and complex into its
+    real part)."""
+    try:
+        raw = np.asarray(a)
+    except ValueError:  # a ragged list
+        raw = None
+    if raw is None or raw.dtype.kind not in "iuf":
+        what = "a ragged sequence" if raw is None else f"dtype {raw.dtype}"
+        raise InputError(f"{name}: expected real numbers, got {what}{hint}")
+    return raw.astype(np.float64)
+
+
 def _as_2d(a, name):
-    a = np.asarray(a, dtype=np.float64)
+    a = _numbers(a, name)
     if a.ndim == 1:
         a = a[:, None]
     if a.ndim != 2:
@@ -71,11 +91,60 @@ def _as_2d(a, name):
     return a
 
 
+def _finite(a, name, why):
+    bad = ~np.isfinite(a)
+    if bad.any():
+        i = [int(j) for j in np.argwhere(bad)[0]]
+        where = f"row {i[0]}, column {i[1]}" if len(i) == 2 else f"index {i[0]}"
+        raise InputError(f"{name}: non-finite value {float(a[tuple(i)])!r} at {where} ({why})")
+
+
+def _bound(v, name):
+    """A window bound: None, or one real number (finite: checked by the caller)."""
+    if v is None:
+        return None
+    a = _numbers(v, name)
+    if a.shape != ():
+        raise InputError(f"{name}: expected one time [s] (or None), got shape {a.shape}")
+    return float(a)
+
+
+_INT32 = np.iinfo(np.int32)
+
+
+def _ids(meas_ids, n):
+    """``meas_ids`` as (n,) int32: whole numbers that fit int32 (the cast wrapped 2**32 - 1 onto
+    -1, "no id"); a bool, complex, string or object array is refused."""
+    if meas_ids is None:
+        return np.full((n,), -1, np.int32)
+    try:
+        a = np.asarray(meas_ids)
+    except ValueError:
+        a = None
+    if a is None or a.dtype.kind not in "iuf":
+        raise InputError("meas_ids: expected integer ids (-1 for none), got "
+                         + ("a ragged sequence" if a is None else f"dtype {a.dtype}"))
+    a = a.reshape(-1)
+    if a.dtype.kind == "f" and (not np.all(np.isfinite(a)) or np.any(a != np.round(a))):
+        # 2.5 would be truncated onto id 2
+        raise InputError("meas_ids: expected whole-number ids (a fractional or non-finite id would be "
+                         "truncated onto another landmark)")
+    out = (a < _INT32.min) | (a > _INT32.max)
+    if out.any():
+        i = int(np.argmax(out))
+        raise InputError(f"meas_ids: id {a[i].item()!r} at index {i} does not fit int32 "
+                         f"([{_INT32.min}, {_INT32.max}]: the ids are stored as int32)")
+    if a.shape != (n,):
+        raise InputError(f"meas_ids: {a.shape[0]} rows but meas_t has {n}")
+    return a.astype(np.int32)
+
+
 def check_times(t, name: str) -> None:
-    """Raise :class:`InputError` naming ``name`` unless the (N,) times ``t`` are finite and
-    non-decreasing (equal times are allowed: one event).  The message gives the first bad index
+    """Raise :class:`InputError` naming ``name`` unless the (N,) times ``t`` are real numbers
+    (not datetime64, strings or bools), finite and non-decreasing (equal times are allowed:
+    one event).  The message gives the first bad index
     (and, for a step back, the two times).  Host-side (NumPy)."""
-    t = np.asarray(t, dtype=np.float64)
+    t = _numbers(t, name, _TIME_HINT)
     if not np.all(np.isfinite(t)):
         raise InputError(f"{name}: non-finite time at index {int(np.argmin(np.isfinite(t)))}")
     if t.size > 1 and np.any(np.diff(t) < 0):
@@ -89,52 +158,73 @@ def merge_events(input_t, inputs, meas_t, meas, meas_ids=None, K: Optional[int] 
 
     Args:
       input_t: (N_u,) input times [s], non-decreasing.
-      inputs: (N_u, d_u) input samples.
+      inputs: (N_u, d_u) input samples, finite (an input drives every later
+        prediction: a NaN would poison the rest of the run).
       meas_t: (N_z,) measurement times [s], non-decreasing; rows with equal
         times form one event.
       meas: (N_z, d_z) measurement rows.
-      meas_ids: (N_z,) int labels (−1 when unknown); default −1.
-      K: static rows per event; default the largest group.  Extra rows are
-        counted in ``stats["dropped_overflow"]``.
+      meas_ids: (N_z,) int labels (−1 when unknown), whole numbers that fit
+        int32; default −1.
+      K: static rows per event, an int >= 1; default the largest group.  Extra
+        rows are counted in ``stats["dropped_overflow"]``.
       input_mode: ``"rate"`` (zero-order hold) or ``"increment"``.
-      u_before: (d_u,) input before the first sample ("rate"); default zeros.
-      t_start, t_end: optional time window; events outside are discarded
-        (measurements counted in ``stats["outside_window"]``).
+      u_before: (d_u,) finite input before the first sample ("rate" only);
+        default zeros.
+      t_start, t_end: optional time window [s], finite, ``t_start <= t_end``;
+        events outside are discarded (measurements counted in
+        ``stats["outside_window"]``).
+
+    Times, samples and ids are real numbers: a string, bool, complex,
+    ``datetime64``/``timedelta64`` or object array is refused (convert
+    datetimes to seconds first).
 
     Raises:
-      InputError: shapes disagree, times are not finite or decrease, or
-        ``input_mode`` is unknown.
+      InputError: an argument is not real numbers, shapes disagree, times are
+        not finite or decrease, an input is not finite, an id is fractional or
+        does not fit int32, ``K`` is not an int >= 1, the window is reversed or
+        has a non-finite bound, or ``input_mode`` is unknown.
     """
-    if input_mode not in ("rate", "increment"):
+    if not isinstance(input_mode, str) or input_mode not in ("rate", "increment"):
         raise InputError(f"input_mode: expected 'rate' or 'increment', got {input_mode!r}")
-    ut = np.asarray(input_t, dtype=np.float64).reshape(-1)
+    ut = _numbers(input_t, "input_t", _TIME_HINT).reshape(-1)
     U = _as_2d(inputs, "inputs")
-    zt = np.asarray(meas_t, dtype=np.float64).reshape(-1)
+    zt = _numbers(meas_t, "meas_t", _TIME_HINT).reshape(-1)
     Z = _as_2d(meas, "meas")
     if U.shape[0] != ut.shape[0]:
         raise InputError(f"inputs: {U.shape[0]} rows but input_t has {ut.shape[0]}")
     if Z.shape[0] != zt.shape[0]:
         raise InputError(f"meas: {Z.shape[0]} rows but meas_t has {zt.shape[0]}")
-    if meas_ids is not None and np.issubdtype(np.asarray(meas_ids).dtype, np.floating):
-        a = np.asarray(meas_ids)  # 2.5 would be truncated onto id 2
-        if not np.all(np.isfinite(a)) or np.any(a != np.round(a)):
-            raise InputError("meas_ids: expected whole-number ids (a fractional or non-finite id would be "
-                             "truncated onto another landmark)")
-    ids = (np.full(zt.shape, -1, np.int32) if meas_ids is None
-           else np.asarray(meas_ids).astype(np.int32).reshape(-1))
-    if ids.shape != zt.shape:
-        raise InputError(f"meas_ids: {ids.shape[0]} rows but meas_t has {zt.shape[0]}")
+    # an input drives every prediction after it: a NaN would make the rest of the run NaN
+    _finite(U, "inputs", "an input drives every later prediction")
+    ids = _ids(meas_ids, zt.shape[0])
     check_times(ut, "input_t")
     check_times(zt, "meas_t")
     d_u = U.shape[1]
+    ub = np.zeros(d_u)
+    if u_before is not None:
+        if input_mode != "rate":
+            raise InputError("u_before: applies to input_mode='rate' only (an increment is applied at its "
+                             "own event; nothing holds before the first one)")
+        ub = _numbers(u_before, "u_before")
+        if ub.size != d_u:
+            raise InputError(f"u_before: expected {d_u} value(s) (one per input column), got shape {ub.shape}")
+        ub = ub.reshape(d_u)
+        _finite(ub, "u_before", "it drives the predictions before the first input")
+    K = None if K is None else _int_arg(K, "K", 1)  # 1.5 or True was truncated to 1 row
     outside = 0
     if t_start is not None or t_end is not None:
-        lo = -np.inf if t_start is None else float(t_start)
-        hi = np.inf if t_end is None else float(t_end)
-        if np.isnan(lo) or np.isnan(hi):
+        lo, hi = _bound(t_start, "t_start"), _bound(t_end, "t_end")
+        if (lo is not None and np.isnan(lo)) or (hi is not None and np.isnan(hi)):
             # a NaN bound kept no event: the run then returned zeros flagged degenerate (an empty
             # window stays allowed: a dataset runner reports it in its notes)
             raise InputError(f"t_start, t_end: expected numbers (or None), got {t_start}, {t_end}")
+        for nm, b in (("t_start", lo), ("t_end", hi)):
+            if b is not None and not np.isfinite(b):  # t_start=inf gave one event at t = inf
+                raise InputError(f"{nm}: expected a finite time [s] (or None for an open end), got {b!r}")
+        lo = -np.inf if lo is None else lo
+        hi = np.inf if hi is None else hi
+        if lo > hi:  # a reversed window kept an event at t_start, after t_end
+            raise InputError(f"t_start, t_end: t_start {lo!r} is after t_end {hi!r} (a reversed window)")
         keep_z = (zt >= lo) & (zt <= hi)
         outside = int(np.sum(~keep_z))
         zt, Z, ids = zt[keep_z], Z[keep_z], ids[keep_z]
@@ -151,9 +241,6 @@ def merge_events(input_t, inputs, meas_t, meas, meas_ids=None, K: Optional[int] 
     z_times, z_first, z_count = np.unique(zt, return_index=True, return_counts=True)
     if K is None:
         K = int(z_count.max()) if z_count.size else 1
-    K = int(K)
-    if K < 1:
-        raise InputError(f"K: must be >= 1, got {K}")
     t = np.union1d(ut, z_times)
     T = t.size
     if T == 0:
@@ -164,7 +251,6 @@ def merge_events(input_t, inputs, meas_t, meas, meas_ids=None, K: Optional[int] 
         u = np.empty((T, d_u))
         prev = np.concatenate([[t[0]], t[:-1]])
         j = np.searchsorted(ut, prev, side="right") - 1
-        ub = np.zeros(d_u) if u_before is None else np.asarray(u_before, np.float64).reshape(d_u)
         u[:] = ub
         has = j >= 0
         u[has] = U[j[has]]

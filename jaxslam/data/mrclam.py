@@ -61,6 +61,7 @@ __all__ = ["MrclamData", "load_mrclam", "ROBOT_SUBJECTS"]
 
 ROBOT_SUBJECTS = (1, 2, 3, 4, 5)
 _TIME_DECIMALS = 6  # relative times rounded to 1 µs
+_ID_MAX = int(np.iinfo(np.int32).max)  # subjects and barcodes are stored as int32
 
 
 class MrclamData(NamedTuple):
@@ -154,8 +155,8 @@ def load_mrclam(path, robot: int, strict: bool = False) -> MrclamData:
     bct = read_table(f["barcodes"], 2)
 
     # Barcode table: subject -> barcode, both unique.
-    subj = int_column(bct, 0, "subject", lo=1)
-    bcode = int_column(bct, 1, "barcode", lo=0)
+    subj = int_column(bct, 0, "subject", lo=1, hi=_ID_MAX)
+    bcode = int_column(bct, 1, "barcode", lo=0, hi=_ID_MAX)
     for arr, what in ((subj, "subject"), (bcode, "barcode")):
         _, first, inv = np.unique(arr, return_index=True, return_inverse=True)
         dup = np.nonzero(first[inv] != np.arange(arr.size))[0]
@@ -164,7 +165,7 @@ def load_mrclam(path, robot: int, strict: bool = False) -> MrclamData:
             raise bct.error(i, f"{what} {int(arr[i])} listed twice (first at {bct.where(int(first[inv[i]]))})")
     b2s = dict(zip(bcode.tolist(), subj.tolist()))
 
-    lm_id = int_column(lmt, 0, "subject", lo=1)
+    lm_id = int_column(lmt, 0, "subject", lo=1, hi=_ID_MAX)
     _, first, inv = np.unique(lm_id, return_index=True, return_inverse=True)
     dup = np.nonzero(first[inv] != np.arange(lm_id.size))[0]
     if dup.size:  # two surveyed positions for one landmark: which one is the truth?

@@ -49,7 +49,9 @@ from typing import NamedTuple
 import numpy as np
 
 from ..errors import InputError
-from .textfile import int_column, read_table, resolve_dataset_dir
+from .textfile import _int_arg, int_column, read_table, resolve_dataset_dir
+
+_ID_MAX = int(np.iinfo(np.int32).max)  # node ids become int32 event labels
 
 __all__ = ["PlazaData", "load_plaza", "HEADING_OFFSET"]
 
@@ -110,15 +112,19 @@ def load_plaza(path, which: int) -> PlazaData:
       ``t_end``.
 
     Raises:
-      InputError: ``which`` is not 1 or 2.
+      InputError: ``which`` is not the int 1 or 2, or ``path`` is not a path.
       MissingDataError: a file is missing.
       DataFormatError: a malformed file (``file:line``), time going backwards
-        in DR/GT/DRp, a repeated DR time, non-integer ids, or a range to a node
-        absent from TL.
+        in DR/GT/DRp, a repeated DR time, non-integer ids, a node listed twice in
+        TL, or a range to a node absent from TL.
     """
-    if isinstance(which, bool) or which not in (1, 2):
-        raise InputError(f"which: expected 1 or 2 (Plaza 1 or Plaza 2), got {which!r}")
-    which = int(which)
+    which_arg = which
+    try:  # an int: np.True_ == 1 loaded Plaza 1, 2.0 passed as 2
+        which = _int_arg(which, "which", 1)
+    except InputError:
+        which = None
+    if which not in (1, 2):
+        raise InputError(f"which: expected 1 or 2 (Plaza 1 or Plaza 2), got {which_arg!r}"[:300])
     names = {k: f"Plaza{which}_{k}.txt" for k in ("DR", "TD", "GT", "DRp", "TL")}
     d = resolve_dataset_dir(path, "gtsam", list(names.values()), f"CMU Plaza {which}")
     dr = read_table(d / names["DR"], 3, time_cols=0)
@@ -132,9 +138,9 @@ def load_plaza(path, which: int) -> PlazaData:
         raise dr.error(i, f"time {float(dr.data[i, 0])!r} repeats (line {int(dr.lines[i - 1])}): DR rows "
                           "are odometry increments, so a repeated row would apply its motion twice")
 
-    node_id = int_column(tl, 0, "node id", lo=0)
-    sender = int_column(td, 1, "sender id", lo=0)
-    node = int_column(td, 2, "node id", lo=0)
+    node_id = int_column(tl, 0, "node id", lo=0, hi=_ID_MAX, unique=True)  # one surveyed position each
+    sender = int_column(td, 1, "sender id", lo=0, hi=_ID_MAX)
+    node = int_column(td, 2, "node id", lo=0, hi=_ID_MAX)
     known = np.isin(node, node_id)
     if not known.all():
         i = int(np.argmax(~known))

@@ -25,12 +25,15 @@ noise, and the gates, limits and pruning thresholds — into each ``Params``.
 from __future__ import annotations
 
 import math
+import numbers
 from typing import Optional
 
 import jax.numpy as jnp
 import numpy as np
 
+from ..dynamics._checks import real_numbers
 from ..errors import InputError
+from ..linalg import check_int, check_scalar
 from ..systems import planar_ekf_slam as pe
 from ..systems import planar_fastslam as pf
 from ..systems import plaza_range as pr
@@ -91,8 +94,10 @@ def mrclam_raw_sigma(robot: int):
 
     Robots 1 and 2: 1.4826·MAD of their dataset-6 residuals (data README §5).  Other robots
     (other datasets) have no measured figure here: robot 2's, the larger range spread, is used.
+    ``robot``: an int >= 1 (else :class:`InputError`).
     """
-    r = int(robot) if int(robot) in MRCLAM_RANGE_SIGMA else 2
+    robot = check_int(robot, "robot")
+    r = robot if robot in MRCLAM_RANGE_SIGMA else 2
     return MRCLAM_RANGE_SIGMA[r], MRCLAM_BEARING_SIGMA[r]
 
 
@@ -140,6 +145,7 @@ def mrclam_params(robot: int = 1, sigma_v: float = 0.01, sigma_w: float = 0.02,
     """
     if preset not in ("fitted", "hand"):
         raise InputError(f"preset: expected 'fitted' or 'hand', got {preset!r}")
+    check_int(robot, "robot")
     common = dict(P0=jnp.diag(jnp.asarray(p0, dtype)), calib0=jnp.asarray([1.0, 1.0, 0.0], dtype),
                   calib_P0=jnp.diag(jnp.asarray(calib_sigma, dtype) ** 2),
                   calib_Q=jnp.diag(jnp.asarray(calib_rw, dtype) ** 2))
@@ -210,13 +216,16 @@ def mrclam_rows(data, K: int = 8) -> int:
     time), or more when another log has more, so that no sighting is dropped."""
     t = np.asarray(data.meas_t)
     most = int(np.max(np.unique(t, return_counts=True)[1])) if t.size else 0
-    return max(int(K), most)
+    return max(check_int(K, "K"), most)
 
 
 def mrclam_layout(datas) -> tuple:
     """``(K, capacity)`` of a known-id MRCLAM filter over one or more robots' logs
     (:class:`jaxslam.data.mrclam.MrclamData`): the most rows in one camera frame
     (:func:`mrclam_rows`) and one slot per landmark subject, at least 16 (dataset 6: 8 and 16)."""
+    datas = list(datas)
+    if not datas:
+        raise InputError("datas: expected one or more MRCLAM logs, got none")
     K = max(mrclam_rows(d) for d in datas)
     subjects = np.unique(np.concatenate([mrclam_subjects(d) for d in datas]))
     return K, max(16, int(subjects.size))
@@ -227,7 +236,7 @@ def mrclam_raw_log(data, K: int = 8, t_end=None, odometry_delay: float = 0.0):
     ground-truth-fitted range correction), as ``jaxslam dataset mrclam`` and ``jaxslam tune
     mrclam`` run it.  ``odometry_delay`` [s]: the odometry stamps' lag (``MRCLAM_FITTED`` holds
     the value chosen by the innovation likelihood; 0 = the stamps as logged)."""
-    return mrclam_log(data, K=K, t_end=t_end, range_model=None, odometry_delay=float(odometry_delay))
+    return mrclam_log(data, K=K, t_end=t_end, range_model=None, odometry_delay=odometry_delay)
 
 
 def mrclam_start_pose(data, log: EventLog):
@@ -242,8 +251,9 @@ def mrclam_log(data, K: int = 8, t_end=None, range_model=MRCLAM_RANGE_MODEL,
     """Event log and start pose of one MRCLAM robot (:class:`jaxslam.data.mrclam.MrclamData`).
 
     Corrections (host side; ``None``/0 turns one off): ranges divided by ``k0 + k2 β²``
-    (``range_model``, see ``MRCLAM_RANGE_MODEL``); odometry stamps shifted by
-    ``odometry_delay`` [s] (``MRCLAM_ODOMETRY_DELAY``).  The run spans the first (shifted)
+    (``range_model``, see ``MRCLAM_RANGE_MODEL``: two finite numbers, the divisor positive at
+    every measured bearing, else :class:`InputError`); odometry stamps shifted by
+    ``odometry_delay`` [s] (``MRCLAM_ODOMETRY_DELAY``, finite).  The run spans the first (shifted)
     odometry sample to ``t_end`` (default the last ground-truth time: robot 1 stops there);
     measurements outside it are dropped and counted in ``log.stats["outside_window"]`` (a
     sighting before any odometry would be taken from a robot that has not started moving).
@@ -252,12 +262,27 @@ def mrclam_log(data, K: int = 8, t_end=None, range_model=MRCLAM_RANGE_MODEL,
     """
     from .events import merge_events
 
+    K = check_int(K, "K")
+    odometry_delay = check_scalar(odometry_delay, "odometry_delay")
+    if t_end is not None:
+        t_end = check_scalar(t_end, "t_end")
     z = np.array(data.meas, np.float64)
     if range_model is not None:
-        k0, k2 = (float(c) for c in range_model)
-        z[:, 0] = z[:, 0] / (k0 + k2 * z[:, 1] ** 2)
+        try:
+            rm = real_numbers(range_model, "range_model")
+        except InputError:
+            rm = None
+        if rm is None or rm.shape != (2,) or not np.all(np.isfinite(rm)):
+            raise InputError(f"range_model: expected two finite numbers (k0, k2) or None, got {range_model!r}"[:300])
+        k0, k2 = (float(c) for c in rm)
+        div = k0 + k2 * z[:, 1] ** 2
+        if div.size and not np.all(div > 0):  # a divisor <= 0 made negative or infinite ranges
+            i = int(np.argmin(div))
+            raise InputError(f"range_model: k0 + k2·β² must be positive at every measured bearing, got "
+                             f"{div[i]:g} at β = {z[i, 1]:g} rad with (k0, k2) = ({k0:g}, {k2:g})")
+        z[:, 0] = z[:, 0] / div
     t_end = float(data.gt_t[-1]) if t_end is None else t_end
-    odom_t = np.asarray(data.odom_t, np.float64) + float(odometry_delay)
+    odom_t = np.asarray(data.odom_t, np.float64) + odometry_delay
     log = merge_events(odom_t, data.odom, data.meas_t, z, data.meas_id, K=K, input_mode="rate",
                        t_start=float(odom_t[0]), t_end=t_end)
     return log, mrclam_start_pose(data, log)
@@ -358,16 +383,17 @@ def mrclam_fastslam_setup(robot: int = 1, n_particles: int = 100, association: s
     if preset not in ("fitted", "hand"):
         raise InputError(f"preset: expected 'fitted' or 'hand', got {preset!r}")
     del robot  # one setting for every robot
-    cap = (15 if association == "known" else 32) if capacity is None else int(capacity)
+    n_particles, K = check_int(n_particles, "n_particles"), check_int(K, "K")
+    cap = (15 if association == "known" else 32) if capacity is None else check_int(capacity, "capacity")
     if association == "known" and preset == "fitted":
         f = MRCLAM_FITTED
-        cfg = pf.Config(motion="unicycle", n_particles=int(n_particles), capacity=cap, K=int(K),
+        cfg = pf.Config(motion="unicycle", n_particles=n_particles, capacity=cap, K=K,
                         association=association, proposal="optimal", robust=True)
         prm = pf.default_params(sigma_r=f["sigma_r"], sigma_b=f["sigma_b"], sigma_v=f["sigma_v"],
                                 sigma_w=f["sigma_w"], floor=(f["floor_xy"], f["floor_xy"], f["floor_phi"]),
                                 pose0_sigma=(1e-3, 1e-3, 1e-3), dtype=dtype)
         return cfg, prm
-    cfg = pf.Config(motion="unicycle", n_particles=int(n_particles), capacity=cap, K=int(K),
+    cfg = pf.Config(motion="unicycle", n_particles=n_particles, capacity=cap, K=K,
                     association=association)
     sr, sb = mrclam_raw_sigma(2)
     prm = pf.default_params(sigma_r=sr, sigma_b=sb,
@@ -389,8 +415,9 @@ def victoria_park_fastslam_setup(n_particles: int = 50, capacity: int = 768, K: 
     FastSLAM 1.0's 1.508 m on t < 500 s, by a rule set before the run,
     ``scripts/study_victoria_park_fastslam.py``) or "motion" (FastSLAM 1.0).
     """
-    cfg = pf.Config(motion="ackermann", n_particles=int(n_particles), capacity=int(capacity), K=int(K),
-                    association="ml", proposal=proposal)
+    cfg = pf.Config(motion="ackermann", n_particles=check_int(n_particles, "n_particles"),
+                    capacity=check_int(capacity, "capacity"), K=check_int(K, "K"), association="ml",
+                    proposal=proposal)
     prm = pf.default_params(sigma_r=1.0, sigma_b=math.radians(1.5), sigma_v=0.7, sigma_w=0.06,
                             floor=(0.0, 0.0, 0.0), pose0_sigma=(1e-3, 1e-3, 1e-3), dtype=dtype)
     return cfg, prm._replace(gate=9.21, new_threshold=13.8)
@@ -428,6 +455,9 @@ UTIL_NOISE_KEYS = ("sigma_r", "q_acc", "q_bias", "nu", "gate", "anchor_offset", 
 _NULLABLE = ("nu", "gate", "anchor_offset", "outlier_gate")
 #: fields that may be zero or negative (offsets, means)
 _SIGNED = ("tof_offset", "bias0")
+#: fields that may be zero (densities and spreads: the runs' ``nonneg``, util_range.run and
+#: plaza_range.run), so that a ``Params`` written by ``*_params_to_dict`` reads back
+_NONNEG = ("q_acc", "q_bias", "alpha_d", "alpha_th", "beta_th", "sigma_d0", "sigma_th0", "min_spread")
 
 
 def _range_params_to_dict(p, keys) -> dict:
@@ -441,7 +471,7 @@ def _range_params_to_dict(p, keys) -> dict:
 def _range_params_from_dict(noise, base, keys, name: str):
     if not isinstance(noise, dict):
         raise InputError(f"--params: noise must be an object, got {type(noise).__name__}")
-    unknown = sorted(set(noise) - set(keys))
+    unknown = sorted(set(noise) - set(keys), key=str)
     if unknown:
         raise InputError(f"--params: noise: unknown key(s) {unknown}; {name} takes {list(keys)}")
     kw = {}
@@ -450,14 +480,21 @@ def _range_params_from_dict(noise, base, keys, name: str):
             kw[k] = None
             continue
         if k == "anchor_offset":
-            a = np.asarray(v, np.float64) if isinstance(v, list) else None
+            try:  # numbers only: a string or a bool (read as 1.0 / 0.0) is not an offset
+                a = (real_numbers(v, k) if isinstance(v, list)
+                     and not any(isinstance(x, (bool, np.bool_)) for x in v) else None)
+            except InputError:
+                a = None
             if a is None or a.ndim != 1 or not np.all(np.isfinite(a)):
                 raise InputError(f"--params: noise.anchor_offset: expected a list of finite offsets [m], got {v!r}")
             kw[k] = a
             continue
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        # any real number, NumPy's too (np.float32(0.1), np.int64(1)); not a bool
+        if isinstance(v, (bool, np.bool_)) or not isinstance(v, numbers.Real) or not math.isfinite(v):
             raise InputError(f"--params: noise.{k}: expected a finite number, got {v!r}")
-        if k not in _SIGNED and not v > 0:
+        if k in _NONNEG and not v >= 0:
+            raise InputError(f"--params: noise.{k}: expected a non-negative number, got {v!r}")
+        if k not in _SIGNED and k not in _NONNEG and not v > 0:
             raise InputError(f"--params: noise.{k}: expected a positive number, got {v!r}")
         kw[k] = float(v)
     return base._replace(**kw)
@@ -470,7 +507,7 @@ def util_params_to_dict(p: ur.Params) -> dict:
 
 def util_params_from_dict(noise: dict) -> ur.Params:
     """``util_range.Params`` from a ``--params`` file's ``noise`` (the fitted preset for keys
-    left out).  Unknown keys, non-finite or non-positive σ/densities, a malformed
+    left out).  Unknown keys, non-finite values, non-positive σ, negative densities, a malformed
     ``anchor_offset`` are :class:`InputError` naming the key (its length is checked by the run)."""
     return _range_params_from_dict(noise, util_params("fitted"), UTIL_NOISE_KEYS, "util-uwb")
 

@@ -35,7 +35,9 @@ import numpy as np
 from .. import metrics
 from . import catalogue
 from .events import merge_events
+from ..dynamics._checks import real_numbers
 from ..errors import InputError
+from ..linalg import check_flag, check_int, check_scalar, reworded
 from ..paramfile import TUNE_REPORT_KEYS
 
 __all__ = ["DatasetRun", "run_dataset", "to_json", "timed_run", "dead_reckoning", "evaluate_planar"]
@@ -71,6 +73,9 @@ def timed_run(fn: Callable, twice: bool = True):
     ``twice=False`` (runs of minutes) the single call's time is ``run_s`` and
     ``compile_s`` is NaN (not separated).
     """
+    if not callable(fn):
+        raise InputError(f"fn: expected a callable (a jitted run taking no arguments), got {fn!r}"[:300])
+    twice = check_flag(twice, "twice")
     t0 = time.perf_counter()
     if not twice:
         out = jax.block_until_ready(fn())
@@ -96,38 +101,103 @@ def dead_reckoning(motion, pose0, u, dt):
 def rpe_pairs(t, est, ref, lag_s: float = 1.0, tol_s: float = 0.1):
     """Translational RPE over pairs of samples ``lag_s ± tol_s`` apart (no interpolation).
 
-    For references sampled with gaps (GPS, a subset of a flight): a pair never spans a gap.
-    Returns ``(rpe [m], number of pairs)``; (NaN, 0) without any pair.
+    Each sample i is paired with the sample j nearest to ``t[i] + lag_s`` (the later one on a
+    tie), kept when ``|t[j] - t[i] - lag_s| <= tol_s``.  For references sampled with gaps (GPS,
+    a subset of a flight): a pair never spans a gap.  ``t``: (N,) finite, non-decreasing times
+    [s]; ``est``, ``ref``: (N, d) positions; ``lag_s`` > 0 and 0 <= ``tol_s`` < ``lag_s`` (so a
+    sample is never its own partner).  Returns ``(rpe [m], number of pairs)``; (NaN, 0) without
+    any pair.  Bad arguments are an :class:`InputError` naming them.
     """
-    t = np.asarray(t, np.float64)
-    j = np.searchsorted(t, t + lag_s)
-    i = np.nonzero(j < t.size)[0]
+    lag = check_scalar(lag_s, "lag_s", lower=0, strict=True)
+    tol = check_scalar(tol_s, "tol_s", lower=0)
+    if not tol < lag:
+        raise InputError(f"tol_s: expected less than lag_s ({lag:g}: a sample would pair with itself), got {tol_s!r}")
+    t = _times(t, "t")
+    est = _rows(est, "est", t.size)
+    ref = _rows(ref, "ref", t.size, est.shape[1])
+    if t.size == 0:
+        return float("nan"), 0
+    target = t + lag
+    after = np.minimum(np.searchsorted(t, target), t.size - 1)  # first sample at/after t + lag (or the last)
+    before = np.maximum(after - 1, 0)
+    j = np.where(np.abs(t[after] - target) <= np.abs(t[before] - target), after, before)
+    i = np.nonzero(np.abs(t[j] - target) <= tol)[0]
     j = j[i]
-    ok = np.abs(t[j] - t[i] - lag_s) <= tol_s
-    i, j = i[ok], j[ok]
     if i.size == 0:
         return float("nan"), 0
     de = (est[j] - est[i]) - (ref[j] - ref[i])
     return float(np.sqrt(np.mean(np.sum(de ** 2, 1)))), int(i.size)
 
 
+def _times(t, name: str) -> np.ndarray:
+    """``t`` as a 1-D float64 array of finite, non-decreasing times, else :class:`InputError`
+    naming ``name``."""
+    t = real_numbers(t, name)
+    if t.ndim != 1:
+        raise InputError(f"{name}: expected a 1-D array of times, got shape {t.shape}")
+    if not np.all(np.isfinite(t)):
+        raise InputError(f"{name}: expected finite times, got NaN or Inf")
+    if np.any(np.diff(t) < 0):
+        raise InputError(f"{name}: expected non-decreasing times (sorted), got a step back at index "
+                         f"{int(np.argmax(np.diff(t) < 0)) + 1}")
+    return t
+
+
+def _rows(a, name: str, n=None, width=None, widths=None) -> np.ndarray:
+    """``a`` as a 2-D float64 array of ``n`` rows (None: any) of ``width`` columns (or one of
+    ``widths``; None: any), else :class:`InputError` naming ``name``."""
+    a = real_numbers(a, name)
+    ok = a.ndim == 2 and (n is None or a.shape[0] == n)
+    if ok and width is not None:
+        ok = a.shape[1] == width
+    if ok and widths is not None:
+        ok = a.shape[1] in widths
+    if not ok:
+        cols = (str(width) if width is not None else " or ".join(map(str, widths)) if widths is not None else "d")
+        raise InputError(f"{name}: expected shape ({'N' if n is None else n}, {cols}), got {a.shape}")
+    return a
+
+
 def evaluate_planar(t_est, est_pose, t_ref, ref, dr_pose=None, lm=None, lm_ids=None, lm_cov=None,
                     lm_true=None, lm_true_ids=None, ref_label="ground truth", at_ref_times=False):
     """ATE/RPE/map error of a planar estimate against a reference (host side).
 
-    ``ref`` is (N, 3) poses or (N, 2) positions (GPS).  With ``at_ref_times``
-    the estimate is interpolated at the reference times (sparse GPS fixes);
+    ``t_est`` (T,) and ``t_ref`` (N,): finite, non-decreasing times; ``est_pose`` (and
+    ``dr_pose``) (T, 3) poses or (T, 2) positions; ``ref`` is (N, 3) poses or (N, 2) positions
+    (GPS).  With ``at_ref_times`` the estimate is interpolated at the reference times (sparse
+    GPS fixes; reference rows holding NaN or Inf are left out);
     otherwise the reference is interpolated at the estimate times inside its
     span.  Returns ``(metrics dict, evaluation dict)`` with everything moved
-    into the reference frame by the estimate's alignment.
+    into the reference frame by the estimate's alignment.  An estimate that is NaN or Inf at
+    some of the evaluated samples (a filter that lost finiteness) leaves the figures NaN and
+    is counted in ``nonfinite_estimate_samples`` (absent when there is none).  Arrays of the
+    wrong shape are an :class:`InputError` naming them.
     """
-    t_est = np.asarray(t_est, np.float64)
-    est_pose = np.asarray(est_pose, np.float64)
-    t_ref = np.asarray(t_ref, np.float64)
-    ref = np.asarray(ref, np.float64)
+    t_est = _times(t_est, "t_est")
+    if t_est.size == 0:
+        raise InputError("t_est: expected at least one estimate time, got none")
+    est_pose = _rows(est_pose, "est_pose", t_est.size, widths=(2, 3))
+    t_ref = _times(t_ref, "t_ref")
+    ref = _rows(ref, "ref", t_ref.size, widths=(2, 3))
+    if dr_pose is not None:
+        dr_pose = _rows(dr_pose, "dr_pose", t_est.size, widths=(2, 3))
+    at_ref_times = check_flag(at_ref_times, "at_ref_times")
+    if lm is not None:
+        lm = _rows(lm, "lm", width=2) if np.size(lm) else None
+    if lm is not None:
+        if lm_ids is not None and np.shape(lm_ids) != (lm.shape[0],):
+            raise InputError(f"lm_ids: expected one id per row of lm ({lm.shape[0]},), got shape {np.shape(lm_ids)}")
+        if lm_cov is not None and np.shape(lm_cov) != (lm.shape[0], 2, 2):
+            raise InputError(f"lm_cov: expected shape ({lm.shape[0]}, 2, 2) (one per row of lm), got "
+                             f"{np.shape(lm_cov)}")
+    if lm_true is not None:
+        lm_true = _rows(lm_true, "lm_true", width=2)
+        if lm_true_ids is not None and np.shape(lm_true_ids) != (lm_true.shape[0],):
+            raise InputError(f"lm_true_ids: expected one id per row of lm_true ({lm_true.shape[0]},), got "
+                             f"shape {np.shape(lm_true_ids)}")
     has_heading = ref.shape[1] == 3
     if at_ref_times:
-        keep = (t_ref >= t_est[0]) & (t_ref <= t_est[-1])
+        keep = (t_ref >= t_est[0]) & (t_ref <= t_est[-1]) & np.all(np.isfinite(ref), axis=1)
         t = t_ref[keep]
         r = ref[keep]
         e = metrics.interp_poses(t, t_est, est_pose)
@@ -145,6 +215,9 @@ def evaluate_planar(t_est, est_pose, t_ref, ref, dr_pose=None, lm=None, lm_ids=N
     e_al = e[:, :2] @ R.T + tr
     out = {"ate_m": float(np.sqrt(np.mean(np.sum((e_al - r[:, :2]) ** 2, 1)))),
            "eval_samples": int(t.size)}
+    n_bad = int(np.sum(~np.all(np.isfinite(e[:, :2]), axis=1)))
+    if n_bad:  # said, not only a NaN ATE: the caller's notes name it (_nonfinite_notes)
+        out["nonfinite_estimate_samples"] = n_bad
     # RPE over 1 s: poses on a 10 Hz grid; positions-only references (GPS, with gaps) over
     # pairs of samples 1 ± 0.1 s apart, never across an interpolated gap.
     if has_heading:
@@ -165,8 +238,7 @@ def evaluate_planar(t_est, est_pose, t_ref, ref, dr_pose=None, lm=None, lm_ids=N
     ev = {"t": t, "est_xy": e_al, "ref_xy": r[:, :2], "ref_label": ref_label, "dr_xy": dr_al,
           "est_path_xy": est_pose[:, :2] @ R.T + tr,
           "frame_note": f"estimate aligned to {ref_label} (SE(2) least squares)"}
-    if lm is not None and len(lm):
-        lm = np.asarray(lm, np.float64)
+    if lm is not None:
         ev["lm_xy"] = lm @ R.T + tr
         if lm_cov is not None:
             ev["lm_cov"] = np.einsum("ij,njk,lk->nil", R, np.asarray(lm_cov, np.float64), R)
@@ -198,9 +270,11 @@ def run_dataset(name: str, data_dir, **options) -> DatasetRun:
     Options (:data:`jaxslam.data.catalogue.OPTION_DEFAULTS`): robot, filter ("ekf" |
     "fastslam"), ids, anchors, tof, calibrated, particles, seed, params, and dtype.  An option
     set away from its default for a dataset it does not apply to is an :class:`InputError`
-    (never silently ignored; :func:`jaxslam.data.catalogue.check_options`).
+    (never silently ignored; :func:`jaxslam.data.catalogue.check_options`).  ``dtype``: float32
+    or float64 (float64 only with JAX's x64 mode on, else an :class:`InputError`: it would
+    compute in float32); left out, the dtype JAX computes in (float64 with x64 on, else float32).
     """
-    if name not in _RUNNERS:
+    if not isinstance(name, str) or name not in _RUNNERS:
         raise InputError(f"dataset: unknown name {name!r} (choose from {', '.join(sorted(_RUNNERS))})")
     catalogue.check_options(name, {k: v for k, v in options.items() if k != "dtype"})
     kw = {**catalogue.OPTION_DEFAULTS, **options}
@@ -219,7 +293,7 @@ def dataset_params(obj, name: str) -> dict:
     """
     if not isinstance(obj, dict):
         raise InputError(f"--params: expected a JSON object, got {type(obj).__name__}")
-    unknown = sorted(set(obj) - {"dataset", "noise", "log"} - TUNE_REPORT_KEYS)
+    unknown = sorted(set(obj) - {"dataset", "noise", "log"} - TUNE_REPORT_KEYS, key=str)
     if unknown:
         raise InputError(f"--params: unknown key(s) {unknown}; a dataset --params file holds "
                          "'dataset', 'noise' and optionally 'log' (written by 'jaxslam tune')")
@@ -237,13 +311,18 @@ def dataset_params(obj, name: str) -> dict:
 
         (presets.util_params_from_dict if name == "util-uwb" else presets.plaza_params_from_dict)(obj["noise"])
         return obj["noise"]
-    from ..systems.planar_ekf_slam import Params, check_matrices, check_thresholds
+    from ..systems.planar_ekf_slam import Params, check_matrices, check_thresholds, params_from_dict
+    from . import presets
 
-    unknown = sorted(set(obj["noise"]) - set(Params._fields))
+    unknown = sorted(set(obj["noise"]) - set(Params._fields), key=str)
     if unknown:
         raise InputError(f"--params: noise: unknown key(s) {unknown}; expected some of {list(Params._fields)}")
     check_thresholds(obj["noise"])  # gates, limits, pruning: before any log is read or compiled
     check_matrices(obj["noise"], "--params: noise")  # shapes and definiteness, likewise
+    # every value (range_model, robust_nu, calib0, ...) against the run's preset, likewise
+    dtype = _run_dtype(None)
+    base = (presets.mrclam_params(dtype=dtype) if name == "mrclam" else presets.victoria_park_params(dtype=dtype))
+    params_from_dict(obj["noise"], base, dtype=dtype, where="--params: noise")
     return obj["noise"]
 
 
@@ -257,11 +336,13 @@ def dataset_log_options(obj, name: str) -> dict:
     A file without them was fitted on the log as stamped: ``{}``.  An entry the dataset does not
     have, or a value outside its range, is an :class:`InputError` naming it.
     """
+    if not isinstance(obj, dict):
+        raise InputError(f"--params: expected a JSON object, got {type(obj).__name__}")
     opts = obj.get("log", {})
     if not isinstance(opts, dict):
         raise InputError(f"--params: key 'log' must be an object, got {type(opts).__name__}")
     allowed = LOG_OPTIONS.get(name, {})
-    unknown = sorted(set(opts) - set(allowed))
+    unknown = sorted(set(opts) - set(allowed), key=str)
     if unknown:
         raise InputError(f"--params: log: unknown key(s) {unknown}; {name} takes "
                          f"{sorted(allowed) or 'none'}")
@@ -339,6 +420,28 @@ def _range_outliers(res, counts: dict, m: dict, notes: list) -> None:
                                    "the range model's own 99 % quantile"))
 
 
+def _run_dtype(dtype):
+    """The run's dtype: ``None`` gives what JAX computes in (float64 with its x64 mode on, else
+    float32); otherwise float32 or float64, float64 only with x64 on (it computed in float32
+    while the report said float64): else :class:`InputError` naming ``dtype`` (the scenario
+    registry's rule, :func:`jaxslam.sim.scenarios.registry._check_dtype`)."""
+    if dtype is None:
+        return np.dtype(jax.dtypes.canonicalize_dtype(np.float64))
+    from ..sim.scenarios.registry import _check_dtype
+
+    return _check_dtype(dtype)
+
+
+def _nonfinite_notes(m: dict, what: str = "estimate") -> list:
+    """A note when the evaluated estimate holds NaN or Inf (``nonfinite_estimate_samples`` of
+    :func:`evaluate_planar`): its figures are then NaN, said rather than left to read as a number."""
+    n = int(m.get("nonfinite_estimate_samples", 0))
+    if not n:
+        return []
+    return [f"the {what} is NaN or Inf at {n} of the {m.get('eval_samples', '?')} evaluated samples: its error "
+            "figures are NaN (status_flags says whether the filter flagged it)"]
+
+
 def _config(name, filter, dtype, setting, **kw):
     return {"dataset": name, "filter": filter, "dtype": np.dtype(dtype).name, "setting": setting, **kw}
 
@@ -367,7 +470,7 @@ def _add_smoothed(m, ev, ms, evs):
 
 @_register("util-uwb")
 def run_util_uwb(data_dir, robot=1, filter="ekf", ids="known", anchors=None, particles=None,
-                 seed=0, dtype=np.float64, tof=False, t_window=30.0, calibrated=False, smooth=False,
+                 seed=0, dtype=None, tof=False, t_window=30.0, calibrated=False, smooth=False,
                  params=None):
     """UTIL TWR flight: constant-velocity range-only EKF with a bias state (``systems.util_range``).
 
@@ -376,6 +479,7 @@ def run_util_uwb(data_dir, robot=1, filter="ekf", ids="known", anchors=None, par
     fitted preset (``presets.UTIL_FITTED``, ``jaxslam tune util-uwb``); ``params``: a
     ``--params`` object replacing it.
     """
+    dtype = _run_dtype(dtype)
     anchors = anchors or "known"
     from ..systems import util_range as ur
     from . import presets
@@ -460,12 +564,16 @@ def run_util_uwb(data_dir, robot=1, filter="ekf", ids="known", anchors=None, par
         out = {"pos_rmse_m": float(np.sqrt(np.mean(err[air] ** 2))),
                "pos_rmse_whole_m": float(np.sqrt(np.mean(err ** 2))),
                "ate_m": float(np.sqrt(np.mean(np.sum((est_al[air] - true[air]) ** 2, 1))))}
+        n_bad = int(np.sum(~np.all(np.isfinite(est[air]), axis=1)))
+        if n_bad:  # the figures are NaN: said (_nonfinite_notes), as evaluate_planar
+            out["nonfinite_estimate_samples"] = n_bad
         rpe, n_pairs = rpe_pairs(t[air], est[air], true[air])
         if n_pairs:  # absent (not NaN) without a pair of samples 1 ± 0.1 s apart, as evaluate_planar
             out["rpe_m"], out["rpe_pairs"] = rpe, n_pairs
         return out, R, tr, est_al
 
     m, R, tr, est_al = position_metrics(est)
+    notes += _nonfinite_notes({**m, "eval_samples": int(air.sum())})
     rp = {k: m.pop(k) for k in ("rpe_m", "rpe_pairs") if k in m}
     m.update(range_bias_m=float(res.bias_final), range_bias_sigma_m=float(res.bias_sigma), **rp)
     A = np.asarray(res.landmarks, np.float64)
@@ -514,13 +622,14 @@ def run_util_uwb(data_dir, robot=1, filter="ekf", ids="known", anchors=None, par
 
 @_register("plaza")
 def run_plaza_dataset(data_dir, robot=1, filter="ekf", ids="known", anchors=None, particles=None,
-                      seed=0, dtype=np.float64, tof=False, calibrated=False, smooth=False, params=None):
+                      seed=0, dtype=None, tof=False, calibrated=False, smooth=False, params=None):
     """CMU Plaza 1/2 (``--robot`` picks the sequence): odometry + range-only SLAM with a bias state.
 
     ``anchors``: "unknown" (default: SLAM, beacons initialised by delayed
     trilateration) or "known" (localisation against the surveyed beacons).  Noise:
     ``presets.plaza_params()``; ``params``: a ``--params`` object (``jaxslam tune plaza``) replacing it.
     """
+    dtype = _run_dtype(dtype)
     anchors = anchors or "unknown"
     from ..dynamics import planar
     from ..systems import plaza_range as pr
@@ -530,8 +639,8 @@ def run_plaza_dataset(data_dir, robot=1, filter="ekf", ids="known", anchors=None
     prm = (presets.plaza_params() if params is None else
            presets.plaza_params_from_dict(dataset_params(params, "plaza")))
 
-    if robot not in (1, 2):
-        raise InputError(f"plaza: --robot selects the sequence, 1 or 2 (got {robot})")
+    robot = reworded(lambda: check_int(robot, "robot"),
+                     f"plaza: --robot selects the sequence, 1 or 2 (got {robot!r})", upper=2)
     t0 = time.perf_counter()
     d = load_plaza(data_dir, robot)
     log = pr.plaza_events(d.dr_t, d.dr, d.td_t, d.td_node, d.td_range)
@@ -578,7 +687,7 @@ def run_plaza_dataset(data_dir, robot=1, filter="ekf", ids="known", anchors=None
     what = "surveyed beacons (localisation)" if anchors == "known" else "unknown beacons (SLAM)"
     if anchors == "known":
         notes = ["pos_rmse_m: no alignment (the survey defines the frame)"]
-    notes += _span_notes(d.dr_t, d.td_t, "odometry increments", "ranges", held=False)
+    notes += _span_notes(d.dr_t, d.td_t, "odometry increments", "ranges", held=False) + _nonfinite_notes(m)
     _range_outliers(res, counts, m, notes)
     if smooth:
         counts["smoother_failed_steps"] = int(np.sum(np.asarray(res.smooth_status) != 0))
@@ -662,7 +771,7 @@ def _planar_run(log, pose0, filter, cfg_ekf, prm_ekf, fs_kind, particles, seed, 
 
 @_register("mrclam")
 def run_mrclam(data_dir, robot=1, filter="ekf", ids="known", anchors=None, particles=None, seed=0,
-               dtype=np.float64, tof=False, calibrated=False, params=None, smooth=False):
+               dtype=None, tof=False, calibrated=False, params=None, smooth=False):
     """UTIAS MRCLAM (as shipped: dataset 6): unicycle odometry + range-bearing to barcoded landmarks.
 
     The EKF's noise is the one learned from the logs (``presets.MRCLAM_FITTED``, the same
@@ -680,11 +789,16 @@ def run_mrclam(data_dir, robot=1, filter="ekf", ids="known", anchors=None, parti
     from . import presets
     from .mrclam import load_mrclam
 
-    if not 1 <= robot <= 5:
-        raise InputError(f"mrclam: --robot must be 1..5 (MRCLAM has five robots), got {robot}")
+    dtype = _run_dtype(dtype)
+    robot = reworded(lambda: check_int(robot, "robot"),
+                     f"mrclam: --robot must be 1..5 (MRCLAM has five robots), got {robot!r}", upper=5)
+    if particles is not None:
+        particles = check_int(particles, "particles")
     if params is not None and calibrated:
         raise InputError("mrclam: --params and --calibrated do not combine (the calibrated log has "
                          "its own noise preset)")
+    # the --params object checked (a JSON object, its keys and values) before its log entries are read
+    noise = {} if params is None else dataset_params(params, "mrclam")
     # the log the noise was learned on: the shipped noise's, or the --params file's
     delay = (presets.MRCLAM_FITTED["odometry_delay"] if params is None
              else dataset_log_options(params, "mrclam").get("odometry_delay", 0.0))
@@ -705,7 +819,6 @@ def run_mrclam(data_dir, robot=1, filter="ekf", ids="known", anchors=None, parti
     load_s = time.perf_counter() - t0
     assoc = "known" if ids == "known" else "nn"
     prm = presets.mrclam_params(robot, dtype=dtype, corrected=calibrated)
-    noise = {} if params is None else dataset_params(params, "mrclam")
     if assoc != "known" and "prune_window_s" not in noise:  # ids hidden: spurious landmarks pruned
         prm = prm._replace(prune_window_s=presets.MRCLAM_NN_PRUNING[0], prune_min_obs=presets.MRCLAM_NN_PRUNING[1])
     if params is not None:
@@ -738,7 +851,8 @@ def run_mrclam(data_dir, robot=1, filter="ekf", ids="known", anchors=None, parti
                   **_smooth_config(smooth, SMOOTHER_RTS))
     cfg["thresholds"] = _planar_thresholds(filter, prm, fs_kind, particles)
     notes = ([f"evaluated at the {m['eval_samples']} ground-truth samples inside the run"]
-             + _window_notes(log) + _mrclam_notes(d, log, pose0) + _capacity_notes(status, counts)
+             + _window_notes(log) + _mrclam_notes(d, log, pose0) + _nonfinite_notes(m)
+             + _capacity_notes(status, counts)
              + _divergence_notes(status, gate=(
                  "the chi2(2) 99 % gate" if filter == "ekf" else "the particles' Student-t model's own 99 % quantile")))
     if filter == "ekf":
@@ -845,7 +959,7 @@ def _mrclam_fastslam(robot, n, assoc, subjects, K):
     from .presets import mrclam_fastslam_setup
 
     known = assoc == "known"
-    cfg, prm = mrclam_fastslam_setup(robot, n_particles=n or 100, association="known" if known else "ml",
+    cfg, prm = mrclam_fastslam_setup(robot, n_particles=100 if n is None else n, association="known" if known else "ml",
                                      K=K, capacity=int(subjects.size) if known else None)
     # known ids: subject subjects[j] lives in slot j (dataset 6: subjects 6–20 → 0–14)
     return cfg, prm, subjects if known else None, True
@@ -853,7 +967,7 @@ def _mrclam_fastslam(robot, n, assoc, subjects, K):
 
 @_register("victoria-park")
 def run_victoria_park(data_dir, robot=1, filter="ekf", ids="known", anchors=None, particles=None, seed=0,
-                      dtype=np.float64, tof=False, calibrated=False, smooth=False, params=None):
+                      dtype=None, tof=False, calibrated=False, smooth=False, params=None):
     """ACFR Victoria Park: Ackermann car, laser tree detections, unknown association, GPS reference.
 
     ``params``: a ``--params`` object (``jaxslam tune victoria-park``) replacing the preset's noise."""
@@ -861,6 +975,10 @@ def run_victoria_park(data_dir, robot=1, filter="ekf", ids="known", anchors=None
     from . import presets
     from .victoria_park import load_victoria_park
 
+    dtype = _run_dtype(dtype)
+    if particles is not None:
+        particles = check_int(particles, "particles")
+    noise = None if params is None else dataset_params(params, "victoria-park")  # before the log is read
     t0 = time.perf_counter()
     d = load_victoria_park(data_dir)
     det_t, det = d.det_t, d.det
@@ -877,7 +995,7 @@ def run_victoria_park(data_dir, robot=1, filter="ekf", ids="known", anchors=None
     if params is not None:
         from ..systems import planar_ekf_slam as pe
 
-        prm = pe.params_from_dict(dataset_params(params, "victoria-park"), prm, dtype=dtype, where="--params: noise")
+        prm = pe.params_from_dict(noise, prm, dtype=dtype, where="--params: noise")
     pose, lm, counts, comp_s, run_s, status, _ = _planar_run(
         log, pose0, filter, presets.victoria_park_config(), prm, lambda n: _vp_fastslam(n), particles, seed, dtype)
     geom = d.geometry
@@ -912,7 +1030,7 @@ def run_victoria_park(data_dir, robot=1, filter="ekf", ids="known", anchors=None
         cfg["noise"] = "--params file" if params is not None else "hand-set preset (chosen on t < 500 s; docs/datasets.md)"
     notes = ([f"ATE against the {m['eval_samples']} GPS fixes (SE(2)-aligned); GPS has no heading, so "
               "rpe_m is translational, over pairs of fixes 1 ± 0.1 s apart"]
-             + _span_notes(d.input_t, d.det_t, "odometry inputs", "laser scans")
+             + _span_notes(d.input_t, d.det_t, "odometry inputs", "laser scans") + _nonfinite_notes(m)
              + _capacity_notes(status, counts) + _divergence_notes(status))
     if filter == "fastslam" and np.dtype(dtype) == np.float32:
         notes.append("FastSLAM on this log is less accurate in float32 when measured (ATE 5.52 m against 3.83 m "
@@ -924,11 +1042,21 @@ def run_victoria_park(data_dir, robot=1, filter="ekf", ids="known", anchors=None
 
 def split_ate(ev, t_cut: float, label: str) -> dict:
     """The position error of a run's reference fixes before and from ``t_cut`` [s, the log's
-    clock], under the whole run's alignment (``ev``: :func:`evaluate_planar`'s arrays):
-    ``{"ate_t_lt_<label>s_m": ..., "ate_t_ge_<label>s_m": ...}``; a side without a fix (a short
-    log, an excerpt) is left out."""
-    tg = np.asarray(ev["t"])
-    e2 = np.sum((np.asarray(ev["est_xy"]) - np.asarray(ev["ref_xy"])) ** 2, 1)
+    clock, finite], under the whole run's alignment (``ev``: :func:`evaluate_planar`'s arrays
+    ``t`` (N,), ``est_xy`` and ``ref_xy`` (N, 2)): ``{"ate_t_lt_<label>s_m": ...,
+    "ate_t_ge_<label>s_m": ...}``; a side without a fix (a short log, an excerpt) is left out.
+    Bad arguments are an :class:`InputError` naming them."""
+    t_cut = check_scalar(t_cut, "t_cut")
+    if not isinstance(label, str):
+        raise InputError(f"label: expected a str (the keys' time label), got {label!r}"[:300])
+    if not isinstance(ev, dict) or not {"t", "est_xy", "ref_xy"} <= set(ev):
+        raise InputError("ev: expected evaluate_planar's evaluation dict (keys 't', 'est_xy', 'ref_xy')")
+    tg = real_numbers(ev["t"], "ev['t']")
+    if tg.ndim != 1:
+        raise InputError(f"ev['t']: expected a 1-D array of times, got shape {tg.shape}")
+    est = _rows(ev["est_xy"], "ev['est_xy']", tg.size, 2)
+    ref = _rows(ev["ref_xy"], "ev['ref_xy']", tg.size, 2)
+    e2 = np.sum((est - ref) ** 2, 1)
     return {key: float(np.sqrt(np.mean(e2[part])))
             for key, part in ((f"ate_t_lt_{label}s_m", tg < t_cut), (f"ate_t_ge_{label}s_m", tg >= t_cut))
             if part.any()}
@@ -937,5 +1065,5 @@ def split_ate(ev, t_cut: float, label: str) -> dict:
 def _vp_fastslam(n):
     from .presets import victoria_park_fastslam_setup
 
-    cfg, prm = victoria_park_fastslam_setup(n_particles=n or 50)
+    cfg, prm = victoria_park_fastslam_setup(n_particles=50 if n is None else n)
     return cfg, prm, None, False  # minutes per run: timed once, compilation included

@@ -29,6 +29,7 @@ Everything here is host-side NumPy; nothing needs JAX.
 from __future__ import annotations
 
 import gzip as _gzip
+import operator
 import os
 import warnings
 import zlib
@@ -95,6 +96,44 @@ class MissingDataError(DataFormatError, FileNotFoundError):
 class TruncatedLineWarning(UserWarning):
     """The last line of a data file has no line end: the file may have been cut short, and the
     line's last number may be incomplete.  The line is read as it stands (module docstring)."""
+
+
+def _int_arg(value, name: str, lower: int = 0) -> int:
+    """``value`` as an int when it is a Python or NumPy integer >= ``lower`` (not a bool, a float
+    or a string), else :class:`InputError` naming ``name``: the rule and wording of
+    :func:`jaxslam.linalg.check_int`, kept free of JAX for the loaders and the CLI's early
+    checks (:mod:`jaxslam.data.catalogue`, :mod:`jaxslam.data.events` use it too)."""
+    try:
+        v = None if isinstance(value, (bool, np.bool_)) else operator.index(value)
+    except TypeError:
+        v = None
+    if v is None or v < lower:
+        raise InputError(f"{name}: expected an int >= {lower}, got {value!r}"[:300])
+    return int(v)
+
+
+def _path_arg(path, name: str = "path") -> Path:
+    """``path`` as a :class:`~pathlib.Path` when it is a ``str`` or ``os.PathLike``, else
+    :class:`InputError` naming ``name`` (``Path(None)`` was a bare ``TypeError``)."""
+    if not isinstance(path, (str, os.PathLike)):
+        raise InputError(f"{name}: expected a file or folder path (str or os.PathLike), got {path!r}"[:300])
+    return Path(path)
+
+
+def _columns_arg(value, name: str, ncols: int) -> list:
+    """Column indices (an int or a sequence of ints) in [0, ncols), else :class:`InputError`."""
+    many = not isinstance(value, (int, np.integer)) or isinstance(value, (bool, np.bool_))
+    try:
+        cols = [_int_arg(c, name) for c in (value if many else [value])]
+    except TypeError:  # not iterable
+        cols = None
+    if cols is None or (many and isinstance(value, (str, bytes))):
+        raise InputError(f"{name}: expected a column index or a sequence of them, got {value!r}"[:300])
+    bad = [c for c in cols if c >= ncols]
+    if bad:
+        raise InputError(f"{name}: column index {bad[0]} is out of range for {ncols} column(s) "
+                         f"(indices are 0-based)")
+    return cols
 
 
 def location(path: PathLike, line: int) -> str:
@@ -172,31 +211,46 @@ def read_table(path: PathLike, ncols: int, *, delimiter: Optional[str] = None,
 
     Args:
       path: the file.
-      ncols: the exact number of columns every data line must have.
+      ncols: the exact number of columns every data line must have (an int >= 1).
       delimiter: ``None`` for any run of whitespace (tabs/spaces mixed), or a
         single character such as ``","``.  A trailing delimiter is ignored.
       header_rows: lines skipped at the top before comment handling (e.g. a
-        CSV header row).
+        CSV header row); an int >= 0.
       header: if given (with ``header_rows == 1``), the expected column names
         of the header row; a mismatch raises at line 1.
       comments: lines whose first non-blank characters are this prefix are
         skipped (anywhere in the file); ``None`` to disable.  Blank lines are
         always skipped.
       gz: read through gzip; default: when the name ends in ``.gz``.
-      time_cols: column index (or indices) holding times that must not
-        decrease (equal consecutive times are allowed).
-      finite: ``True``: every value must be finite; a sequence: only those
-        columns; ``False``: no check.
+      time_cols: column index (or indices; 0-based, below ``ncols``) holding
+        times that must not decrease (equal consecutive times are allowed).
+      finite: ``True``: every value must be finite; a sequence of column
+        indices: only those columns; ``False``: no check.
       allow_empty: accept a file without data rows (returns a (0, ncols) table).
 
     Returns:
       :class:`Table` ``(data, lines, path)``.
 
     Raises:
+      InputError: an argument is not of the kind described above (named in the message).
       MissingDataError: the file does not exist.
       DataFormatError: see the module docstring.
     """
-    p = Path(path)
+    p = _path_arg(path)
+    ncols = _int_arg(ncols, "ncols", 1)
+    header_rows = _int_arg(header_rows, "header_rows", 0)  # -1 read the last line as a data row
+    if delimiter is not None and not (isinstance(delimiter, str) and len(delimiter) == 1):
+        raise InputError(f"delimiter: expected None (whitespace) or one character, got {delimiter!r}"[:300])
+    if comments is not None and not (isinstance(comments, str) and comments):
+        raise InputError(f"comments: expected None or a non-empty prefix string, got {comments!r}"[:300])
+    if header is not None and header_rows < 1:
+        raise InputError("header: the expected column names are checked against the first header row; "
+                         "give header_rows >= 1")
+    for flag, v in (("gz", gz), ("allow_empty", allow_empty)):
+        if not (isinstance(v, (bool, np.bool_)) or (flag == "gz" and v is None)):
+            raise InputError(f"{flag}: expected True or False{' (or None)' if flag == 'gz' else ''}, got {v!r}"[:300])
+    tcs = None if time_cols is None else _columns_arg(time_cols, "time_cols", ncols)
+    finite = bool(finite) if isinstance(finite, (bool, np.bool_)) else _columns_arg(finite, "finite", ncols)
     spath = str(p)
     if gz is None:
         gz = p.name.endswith(".gz")
@@ -242,14 +296,13 @@ def read_table(path: PathLike, ncols: int, *, delimiter: Optional[str] = None,
         warnings.warn(f"jaxslam: {spath}:{rows[-1][0]}: the last line has no line end (file cut short?); "
                       "read as it stands, its last number may be incomplete", TruncatedLineWarning, stacklevel=2)
     if finite is not False:
-        cols = list(range(ncols)) if finite is True else [int(c) for c in finite]
+        cols = list(range(ncols)) if finite is True else finite
         sub = data[:, cols]
         bad = ~np.isfinite(sub)
         if bad.any():
             r, c = np.argwhere(bad)[0]
             raise tab.error(int(r), f"non-finite value {float(sub[r, c])!r} in column {cols[c] + 1}")
-    if time_cols is not None:
-        tcs = [time_cols] if isinstance(time_cols, (int, np.integer)) else list(time_cols)
+    if tcs is not None:
         for c in tcs:
             d = np.diff(data[:, c])
             if d.size and np.any(d < 0):
@@ -260,24 +313,38 @@ def read_table(path: PathLike, ncols: int, *, delimiter: Optional[str] = None,
 
 
 def int_column(tab: Table, col: int, name: str, lo: Optional[int] = None,
-               hi: Optional[int] = None) -> np.ndarray:
-    """Column ``col`` of ``tab`` as int64, checked integral (and in [lo, hi]).
+               hi: Optional[int] = None, unique: bool = False) -> np.ndarray:
+    """Column ``col`` of ``tab`` as int64, checked integral (and in [lo, hi], and, with
+    ``unique``, listed once).
 
-    Integer fields may be written as floats (``2.0000000000000000e+000``).
-    Raises :class:`DataFormatError` at the first offending line.
+    Integer fields may be written as floats (``2.0000000000000000e+000``).  A value beyond the
+    int64 range is refused too (it used to wrap around).  Raises :class:`DataFormatError` at the
+    first offending line (for a repeated value: the second line, naming the first).
     """
+    col = _int_arg(col, "col")
+    if col >= tab.data.shape[1]:
+        raise InputError(f"col: column index {col} is out of range for {tab.data.shape[1]} column(s)")
     v = tab.data[:, col]
     r = np.rint(v)
-    bad = r != v
+    wide = ~((r >= -(2.0 ** 63)) & (r < 2.0 ** 63))  # 1e30 wrapped to -2**63
+    bad = (r != v) | wide
     if lo is not None:
         bad |= r < lo
     if hi is not None:
         bad |= r > hi
     if bad.any():
         i = int(np.argmax(bad))
-        rng = "" if lo is None and hi is None else f" in [{lo}, {hi}]"
+        rng = {(False, False): f" in [{lo}, {hi}]", (False, True): f" >= {lo}", (True, False): f" <= {hi}",
+               (True, True): " in the int64 range" if wide[i] else ""}[(lo is None, hi is None)]
         raise tab.error(i, f"{name} (column {col + 1}): expected an integer{rng}, got {float(v[i])!r}")
-    return r.astype(np.int64)
+    out = r.astype(np.int64)
+    if unique:
+        _, first, inv = np.unique(out, return_index=True, return_inverse=True)
+        dup = np.nonzero(first[inv] != np.arange(out.size))[0]
+        if dup.size:  # e.g. two surveyed positions for one anchor: which one is the truth?
+            i = int(dup[0])
+            raise tab.error(i, f"{name} {int(out[i])} listed twice (first at {tab.where(int(first[inv[i]]))})")
+    return out
 
 
 def resolve_dataset_dir(path: PathLike, subdir: str, required: Sequence[str], what: str) -> Path:
@@ -287,7 +354,7 @@ def resolve_dataset_dir(path: PathLike, subdir: str, required: Sequence[str], wh
     Raises :class:`MissingDataError` listing the folders looked in and the
     files missing from the best candidate (or naming the subfolders when several qualify).
     """
-    base = Path(path)
+    base = _path_arg(path)
     cands = [base, base / subdir] if base.name != subdir else [base]
     best, best_n = None, -1
     for c in cands:

@@ -43,7 +43,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .textfile import MissingDataError, int_column, read_table, resolve_dataset_dir
+from ..errors import InputError
+from .textfile import MissingDataError, _path_arg, int_column, read_table, resolve_dataset_dir
 
 __all__ = ["UtilData", "load_util", "tag_positions", "TAG_OFFSET", "G"]
 
@@ -118,20 +119,38 @@ def tag_positions(p, q_xyzw, offset=TAG_OFFSET) -> np.ndarray:
       q_xyzw: (..., 4) body → world quaternions in (qx, qy, qz, qw) order
         (normalised here).
       offset: (3,) or (..., 3) point in the body frame; default the UWB tag.
+
+    Raises:
+      InputError: an argument is not real numbers, its last axis is not 3 (``p``, ``offset``)
+        or 4 (``q_xyzw``), the leading shapes do not broadcast, or a quaternion is zero or
+        not finite (it has no rotation: the result was NaN).
     """
+    from ..dynamics._checks import check_last_dim, real_numbers
     from ..geometry.quaternion import qrotate
 
-    p = np.asarray(p, dtype=np.float64)
-    q = np.asarray(q_xyzw, dtype=np.float64)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    p = check_last_dim(real_numbers(p, "p"), 3, "p")
+    q = check_last_dim(real_numbers(q_xyzw, "q_xyzw"), 4, "q_xyzw")
+    off = check_last_dim(real_numbers(offset, "offset"), 3, "offset")
+    try:
+        np.broadcast_shapes(p.shape[:-1], q.shape[:-1], off.shape[:-1])
+    except ValueError:
+        raise InputError(f"p, q_xyzw, offset: leading shapes {p.shape[:-1]}, {q.shape[:-1]}, {off.shape[:-1]} "
+                         "do not broadcast") from None
+    n = np.linalg.norm(q, axis=-1, keepdims=True)
+    bad = ~(np.isfinite(n) & (n > 0))
+    if bad.any():
+        i = tuple(int(j) for j in np.argwhere(bad)[0][:-1])
+        raise InputError(f"q_xyzw: quaternion {q[i].tolist()}{f' at index {i}' if i else ''} is zero or not finite "
+                         "(no rotation: the position would be NaN)")
+    q = q / n
     # qrotate takes scalar-first quaternions.  Without x64 it rotates in float32: the offset
     # is ~0.1 m, so that costs ~1e-8 m; the positions themselves are added in float64.
-    r = np.asarray(qrotate(q[..., [3, 0, 1, 2]], np.asarray(offset, dtype=np.float64)), np.float64)
+    r = np.asarray(qrotate(q[..., [3, 0, 1, 2]], off), np.float64)
     return p + r
 
 
 def _flight_dir(path, flight: str) -> tuple:
-    base = Path(path)
+    base = _path_arg(path)
     if base.resolve().name == flight and base.is_dir():  # the flight folder itself: its parent holds the anchors
         return base.parent, base
     cands = [base, base / "util_uwb"]
@@ -165,10 +184,13 @@ def load_util(path, flight: str = "twr_obs_log1") -> UtilData:
       MissingDataError: the flight folder or a file is missing (the message
         lists what was looked for and the flights found).
       DataFormatError: a malformed file (``file:line``), a header that does not
-        match the expected columns, time going backwards, or an anchor id that
-        is not in the anchors file.
+        match the expected columns, time going backwards, an anchor listed twice
+        in the anchors file, or an anchor id that is not in it.
+      InputError: ``path`` is not a path or ``flight`` not a folder name.
     """
-    root, fd = _flight_dir(path, str(flight))
+    if not isinstance(flight, str) or not flight or Path(flight).name != flight:
+        raise InputError(f"flight: expected a flight folder name such as 'twr_obs_log1', got {flight!r}"[:300])
+    root, fd = _flight_dir(path, flight)
     afile = fd / ANCHORS_FILE if (fd / ANCHORS_FILE).is_file() else root / ANCHORS_FILE
     if not afile.is_file():
         raise MissingDataError(afile, None, f"UTIL anchors file not found (looked in {root} and {fd})")
@@ -183,7 +205,8 @@ def load_util(path, flight: str = "twr_obs_log1") -> UtilData:
                           header_rows=1, header=_HEADERS[name], **kw)
 
     anc = csv(ANCHORS_FILE, 8)
-    anchor_id = int_column(anc, 0, "anchor_id", lo=0)
+    # one surveyed position per anchor; ids are stored as int32
+    anchor_id = int_column(anc, 0, "anchor_id", lo=0, hi=int(np.iinfo(np.int32).max), unique=True)
     gt = csv("groundtruth.csv", 8, time_cols=0)
     imu = csv("imu.csv.gz", 8, time_cols=(0, 4))
     rows = {"anchors": int(anc.data.shape[0]), "groundtruth": int(gt.data.shape[0]),

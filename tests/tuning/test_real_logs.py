@@ -60,6 +60,10 @@ def test_checkpoint_blocks_change_no_number(excerpt):
 def test_fit_window_longer_than_the_log_is_a_clear_error():
     with pytest.raises(InputError, match=r"--window: robot 1's log covers .* shorter than the 900 s"):
         RL.mrclam_logs(DATA, [1], np.float64, t_max=900.0)
+    # the excerpt's odometry starts 0.5 s into its ground truth: a shorter window holds no step
+    # (it used to surface as merge_events' "reversed window" of t_start and t_end)
+    with pytest.raises(InputError, match=r"--window: robot 1's odometry starts 0.5 s .* above 0.5"):
+        RL.mrclam_logs(DATA, [1], np.float64, t_max=0.4)
 
 
 def test_mrclam_target_rejects_overlapping_and_bad_robots(monkeypatch):

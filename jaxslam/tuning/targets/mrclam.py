@@ -87,6 +87,10 @@ def mrclam_logs(data_dir, robots, dtype=np.float64, t_max: float | None = None, 
         if t_max is not None and t_max > span:
             raise InputError(f"--window: robot {r}'s log covers {span:.1f} s of ground-truth time, shorter "
                              f"than the {t_max:g} s fit window; give --window {int(span)} or less")
+        start = float(d.odom_t[0] - d.gt_t[0])  # the log starts at the first odometry row
+        if t_max is not None and t_max <= start:
+            raise InputError(f"--window: robot {r}'s odometry starts {start:.1f} s into its ground truth, so a "
+                             f"{t_max:g} s fit window holds no step; give --window above {start:.1f}")
         log, pose0 = presets.mrclam_raw_log(d, K=K, t_end=None if t_max is None else float(d.gt_t[0]) + t_max,
                                             odometry_delay=odometry_delay)
         logs.append(log)
