@@ -13,6 +13,10 @@ Decisions
   ACLs and read-only mounts.
 - The error names the option and says what is wrong in words (``'out/x' is a file, so
   'out/x/run.json' cannot be created``), never a bare ``File exists``.
+- A write that fails in the file system (a folder that cannot be made or written, a full
+  disk) raises an :class:`InputError` naming the path and the reason, which is also the
+  ``OSError`` it came from (``errno``, ``strerror``), so a caller that catches ``OSError`` to
+  name its own option still does.
 - Standard library only; nothing here is traced.
 """
 
@@ -60,6 +64,39 @@ def _probe_folder(flag: str, folder: pathlib.Path, target: pathlib.Path) -> None
     except OSError as e:
         reason = e.strerror or str(e)
         raise InputError(f"{flag}: cannot write into {str(folder)!r} ({reason})") from None
+
+
+class _WriteError(InputError, OSError):
+    """:func:`atomic_write`'s error for a failed write: an :class:`InputError` whose message
+    names the target, that is also the ``OSError`` it came from (``errno``, ``strerror``;
+    ``filename``: the target), so a caller's ``except OSError`` still handles it."""
+
+    def __init__(self, message, errno=None, strerror=None, filename=None):
+        super().__init__(message)
+        self.errno, self.strerror, self.filename = errno, strerror, filename
+
+    def __str__(self):  # the message, not OSError's "[Errno n] ..."
+        return str(self.args[0])
+
+    def __reduce__(self):  # (OSError's would rebuild it from errno, strerror, filename)
+        return type(self), (self.args[0], self.errno, self.strerror, self.filename)
+
+
+def _write_error(path, err: OSError) -> _WriteError:
+    """The :class:`_WriteError` of ``err``, raised while ``path`` was written."""
+    reason = err.strerror or str(err)
+    return _WriteError(f"path: cannot write {str(path)!r} ({reason})", err.errno, err.strerror, str(path))
+
+
+def _about_this_file(err: BaseException, *paths) -> bool:
+    """Whether ``err`` (raised while the file was written) is a file-system refusal of the file
+    being written: an ``OSError`` naming one of ``paths`` or no file (``write`` / ``close`` on a
+    full disk).  An ``OSError`` about another file (one the ``write`` function read), a pipe
+    whose reader left (``BrokenPipeError``: the CLI's quiet exit) or an error of this module is
+    raised as is."""
+    if not isinstance(err, OSError) or isinstance(err, (InputError, ConnectionError)):
+        return False
+    return err.filename is None or str(err.filename) in {str(p) for p in paths}
 
 
 def _check_path(flag: str, path) -> None:
@@ -131,6 +168,10 @@ def atomic_write(path, write: Callable, mode: str = "w") -> pathlib.Path:
     Returns:
       The target path.  On any exception the temporary file is removed and the target is
       left as it was.
+    Raises:
+      InputError: ``path`` is a folder or lies under a file, or the file system refused the
+        write (the folder cannot be made or written, the disk is full): the message names
+        ``path`` and the reason; the latter is also an ``OSError`` (``errno``, ``strerror``).
     """
     _check_path("path", path)
     if not callable(write):
@@ -138,29 +179,44 @@ def atomic_write(path, write: Callable, mode: str = "w") -> pathlib.Path:
     if mode not in ("w", "wb"):
         raise InputError(f"mode: expected 'w' or 'wb', got {mode!r}")
     path = pathlib.Path(path)
-    if path.is_symlink():
-        path = path.resolve()
-    if path.is_dir():
+    opts = {"encoding": "utf-8"} if "b" not in mode else {}
+    try:
+        if path.is_symlink():
+            path = path.resolve()
+        is_dir, special = path.is_dir(), path.exists() and not path.is_file()
+    except OSError as e:  # (e.g. a folder on the way that cannot be searched)
+        raise _write_error(path, e) from None
+    if is_dir:
         raise InputError(f"path: {str(path)!r} is a folder; give a file path")
-    if path.exists() and not path.is_file():  # (a folder was refused above)
-        with open(path, mode, **({"encoding": "utf-8"} if "b" not in mode else {})) as f:
-            write(f)
+    if special:  # (a folder was refused above)
+        try:
+            with open(path, mode, **opts) as f:
+                write(f)
+        except OSError as e:
+            if not _about_this_file(e, path):
+                raise
+            raise _write_error(path, e) from None
         return path
-    _check_no_file_above("path", path, path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     try:
-        keep_mode = stat.S_IMODE(os.stat(path).st_mode) & 0o777  # not setuid/setgid/sticky
-    except FileNotFoundError:
-        keep_mode = None
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+        _check_no_file_above("path", path, path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            keep_mode = stat.S_IMODE(os.stat(path).st_mode) & 0o777  # not setuid/setgid/sticky
+        except FileNotFoundError:
+            keep_mode = None
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    except OSError as e:
+        raise _write_error(path, e) from None
     try:
-        with os.fdopen(fd, mode, **({"encoding": "utf-8"} if "b" not in mode else {})) as f:
+        with os.fdopen(fd, mode, **opts) as f:
             write(f)
         # mkstemp makes 0600: keep the replaced file's permission bits, else give the usual mode
         os.chmod(tmp, keep_mode if keep_mode is not None else 0o666 & ~_UMASK)
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as e:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
+        if _about_this_file(e, tmp, path):
+            raise _write_error(path, e) from None
         raise
     return path

@@ -252,10 +252,10 @@ def write_json(path, obj) -> pathlib.Path:
     text = _dumps(to_jsonable(obj)) + "\n"
     try:
         atomic_write(path, lambda f: f.write(text))  # never leave a half-written JSON behind
+    except OSError as e:  # (first: atomic_write's failed write is an InputError and an OSError)
+        raise InputError(f"path: cannot write JSON to {str(path)!r}: {e.strerror or e}") from None
     except InputError as e:  # a file where a folder is due (files.atomic_write says which)
         raise InputError(f"path: cannot write JSON to {str(path)!r}: {str(e).removeprefix('path: ')}") from None
-    except OSError as e:
-        raise InputError(f"path: cannot write JSON to {str(path)!r}: {e.strerror or e}") from None
     return path
 
 

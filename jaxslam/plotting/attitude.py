@@ -16,7 +16,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .flight import plt, save
+from ..errors import InputError
+from ..linalg import check_int, check_numbers, check_scalar
+from .flight import _output_dir, plt, save
 
 __all__ = ["plot_all", "db"]
 
@@ -30,18 +32,54 @@ def db(a):
         return np.maximum(10.0 * np.log10(a), _FLOOR_DB)
 
 
+def _recorded(rollout):
+    """``(xa[:-1], x_err, tau)`` of a recorded rollout as arrays of T rows (T ≥ 1), else
+    InputError naming the field."""
+    arrays = {}
+    for field, cols in (("xa", 7), ("x_err", 6), ("tau", 3)):
+        if not hasattr(rollout, field):
+            raise InputError(f"rollout: expected a jaxslam.control.smc.Rollout, got {type(rollout).__name__}")
+        v = getattr(rollout, field)
+        if v is None:
+            raise InputError(f"rollout.{field}: None; record the run (closed_loop(..., record=True))")
+        check_numbers(v, f"rollout.{field}")
+        a = np.asarray(v)  # its own dtype (a float32 run is drawn from float32, as before)
+        if a.ndim != 2 or a.shape[1] != cols:
+            raise InputError(f"rollout.{field}: expected shape (T{' + 1' if field == 'xa' else ''}, {cols}), "
+                             f"got {a.shape}")
+        arrays[field] = a
+    T = arrays["x_err"].shape[0]
+    if T < 1:
+        raise InputError("rollout.x_err: no steps recorded (T = 0)")
+    if arrays["xa"].shape[0] != T + 1:
+        raise InputError(f"rollout.xa: expected T + 1 = {T + 1} rows (x_err has T = {T}), "
+                         f"got {arrays['xa'].shape[0]}")
+    if arrays["tau"].shape[0] != T:
+        raise InputError(f"rollout.tau: expected T = {T} rows (one per step of x_err), got {arrays['tau'].shape[0]}")
+    return arrays["xa"][:-1], arrays["x_err"], arrays["tau"]
+
+
 def plot_all(name, dt, rollout, q_d, directory, tau_max=None, max_points=5000):
     """Write the three figures for one recorded run; returns their paths.
 
     ``rollout``: :class:`jaxslam.control.smc.Rollout` recorded (``record=True``), NumPy;
-    ``dt``: step, s; ``q_d``: (4,) desired attitude; ``tau_max``: limit to draw (N m).
+    ``dt``: step, s; ``q_d``: (4,) desired attitude (finite, unit); ``tau_max``: limit to draw
+    (N m); ``max_points``: most samples per line (an int >= 1).  All are checked (an
+    :class:`~jaxslam.errors.InputError` naming the argument) and ``directory`` is made and
+    checked writable before any figure is drawn.
     """
+    from ..control.smc import validate
     from ..geometry.quaternion import euler_from_quat, qcanonical, qconj, qmul
 
+    dt = check_scalar(dt, "dt", lower=0, strict=True)
+    xa, x_err, tau = _recorded(rollout)
+    q_d = check_numbers(q_d, "q_d")
+    validate(q_d=q_d)  # (4,), finite, unit: the desired angles are read off it
+    if tau_max is not None:
+        tau_max = check_scalar(tau_max, "tau_max", lower=0, strict=True)
+    max_points = check_int(max_points, "max_points", lower=1)
+    _output_dir(directory, probe=True)
     p = plt()
-    xa = np.asarray(rollout.xa)[:-1]
-    x_err = np.asarray(rollout.x_err)
-    tau = np.asarray(rollout.tau)
     T = x_err.shape[0]
     stride = max(1, int(np.ceil(T / max_points)))
     sel = slice(None, None, stride)
@@ -49,7 +87,7 @@ def plot_all(name, dt, rollout, q_d, directory, tau_max=None, max_points=5000):
     q = xa[sel, :4]
     w = xa[sel, 4:]
     eul = np.degrees(np.asarray(euler_from_quat(q)))
-    eul_d = np.degrees(np.asarray(euler_from_quat(np.asarray(q_d, float))))
+    eul_d = np.degrees(np.asarray(euler_from_quat(q_d)))
     labels = ("roll", "pitch", "yaw")
     paths = []
 
@@ -90,7 +128,7 @@ def plot_all(name, dt, rollout, q_d, directory, tau_max=None, max_points=5000):
     paths.append(save(fig, directory, f"{name}_state_error"))
 
     # Figs 6.7-6.9: error quaternion, axis-angle error, axis-angle error in dB.
-    qe = np.asarray(qcanonical(qmul(q, qconj(np.asarray(q_d, float)))))
+    qe = np.asarray(qcanonical(qmul(q, qconj(q_d))))
     th = np.degrees(x_err[sel, :3])
     fig, axs = p.subplots(3, 1, figsize=(9, 10), sharex=True)
     for i in range(4):

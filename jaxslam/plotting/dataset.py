@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .flight import plt, save
+from .flight import _output_dir, plt, save
 from .uwb import ellipse_points
 
 __all__ = ["plot_run"]
@@ -25,8 +25,10 @@ def plot_run(run, directory, name=None):
 
     ``name`` (default: the dataset, with the robot or sequence of a dataset that has several,
     e.g. ``mrclam_robot3``, and ``_fastslam`` / ``_hidden`` for those runs, so runs of
-    different robots, filters and modes can share a folder) prefixes the files.
+    different robots, filters and modes can share a folder) prefixes the files.  ``directory``
+    is made and checked writable before any figure is drawn.
     """
+    _output_dir(directory, probe=True)
     p = plt()
     if name is None:
         name = run.dataset.replace("-", "_")

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .flight import plt, save
+from .flight import _output_dir, plt, save
 
 __all__ = ["particle_clouds", "path", "bias", "neff", "plot_all"]
 
@@ -148,7 +148,9 @@ def neff(fl, res, n_particles, title="effective sample size"):
 
 
 def plot_all(name, fl, res, landmarks, directory):
-    """Write the four figures for one flight (NumPy pytrees); returns the PNG paths."""
+    """Write the four figures for one flight (NumPy pytrees); returns the PNG paths
+    (``directory`` is made and checked writable first)."""
+    _output_dir(directory, probe=True)
     N = res.final.particles.pose.shape[0]
     paths = []
     if res.frames.particles is not None:

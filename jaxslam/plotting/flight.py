@@ -6,12 +6,13 @@ Every function takes NumPy arrays, returns the Figure, and ``save`` writes PNGs.
 
 from __future__ import annotations
 
+import os
 import pathlib
 
 import numpy as np
 
 from jaxslam.errors import InputError
-from jaxslam.files import atomic_write
+from jaxslam.files import atomic_write, prepare_dir
 from jaxslam.linalg import check_numbers
 
 __all__ = ["plt", "save", "keep_margins", "trajectory_3d", "states_over_time", "inputs_over_time"]
@@ -48,13 +49,35 @@ def plt():
     return _plt
 
 
+def _output_dir(directory, probe: bool = False) -> pathlib.Path:
+    """``directory`` as the Path of a folder, made (with its parents) when missing; with
+    ``probe`` also checked writable by creating and removing a file in it
+    (:func:`jaxslam.files.prepare_dir`), as every ``plot_all`` does before it draws anything.
+    Else :class:`InputError` naming ``directory``."""
+    if directory is None:
+        raise InputError("directory: expected a folder path, got None")
+    if not isinstance(directory, (str, os.PathLike)):
+        raise InputError(f"directory: expected a folder path, got {directory!r}"[:300])
+    d = pathlib.Path(directory)
+    try:
+        if d.exists() and not d.is_dir():
+            raise InputError(f"directory: {str(d)!r} is a file, not a folder")
+        d.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise InputError(f"directory: cannot create {str(d)!r}: {e.strerror or e}") from None
+    if probe:
+        prepare_dir("directory", d)
+    return d
+
+
 def save(fig, directory, name) -> pathlib.Path:
     """Save ``fig`` as ``directory/name.png`` (directory created, written atomically), close it.
 
     The figure is drawn once: ``bbox_inches="tight"`` (and the layout engines) draw it
     twice to measure it, which was 0.45 s of every figure here; margins are set instead
     (``subplots_adjust``, fixed in inches with room for a suptitle, unless a layout engine is
-    already set).
+    already set).  A folder that cannot be written (or a full disk) is an :class:`InputError`
+    naming ``directory`` and the file.
     """
     if not hasattr(fig, "savefig"):
         raise InputError(f"fig: expected a matplotlib Figure, got {type(fig).__name__}")
@@ -62,13 +85,7 @@ def save(fig, directory, name) -> pathlib.Path:
         raise InputError("directory: expected a folder path, got None")
     if not isinstance(name, str) or not name or pathlib.Path(name).name != name:
         raise InputError(f"name: expected a plain file name (no folder part), got {name!r}")
-    d = pathlib.Path(directory)
-    if d.exists() and not d.is_dir():
-        raise InputError(f"directory: {str(d)!r} is a file, not a folder")
-    try:
-        d.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise InputError(f"directory: cannot create {str(d)!r}: {e.strerror or e}") from None
+    d = _output_dir(directory)
     path = d / f"{name}.png"
     if fig.get_layout_engine() is None:
         # margins in inches (tick labels, axis label, titles), as fractions of this figure: a
@@ -79,6 +96,8 @@ def save(fig, directory, name) -> pathlib.Path:
                             top=1.0 - min(top_in / h, 0.2), hspace=0.4, wspace=0.3)
     try:  # atomically: an interrupted plot never leaves a truncated PNG
         atomic_write(path, lambda f: fig.savefig(f, dpi=110, format="png"), mode="wb")
+    except InputError as e:  # (files.atomic_write names its argument "path")
+        raise InputError("directory: " + str(e).removeprefix("path: ")) from None
     finally:
         plt().close(fig)
     return path

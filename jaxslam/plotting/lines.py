@@ -18,7 +18,7 @@ import textwrap
 import numpy as np
 
 from ..metrics import consistency_verdict, steps_inside, steps_inside_text
-from .flight import plt, save
+from .flight import _output_dir, plt, save
 
 __all__ = ["clip_line", "plot_all"]
 
@@ -64,9 +64,11 @@ def _lines_and_frame(ax, lines, active, box, label, lw, title):
 
 
 def plot_all(name, setup, cfg, log, res, per_step, bounds, directory, scan_index=None):
-    """Write the four figures; returns their paths."""
+    """Write the four figures; returns their paths (``directory`` is made and checked writable
+    first)."""
     from ..sensors import laser2d
 
+    _output_dir(directory, probe=True)
     p = plt()
     paths = []
     st = res.steps

@@ -27,7 +27,7 @@ import numpy as np
 from ..linalg import check_scalar
 from ..metrics import consistency_verdict as verdict
 from ..metrics import steps_inside_text as steps_inside
-from .flight import _ned_to_enu_up, keep_margins, plt, save
+from .flight import _ned_to_enu_up, _output_dir, keep_margins, plt, save
 
 __all__ = ["landmark_errors", "magnification", "nees_figure", "plot_all"]
 
@@ -105,7 +105,9 @@ def landmark_errors(fl, lms, cfg):
 
 
 def plot_all(name, fl, lms, t, t_frames, anees_per_frame, cons, runs, directory, cfg):
-    """Write the figures for one flight ``fl`` (NumPy) and the MC NEES; returns paths."""
+    """Write the figures for one flight ``fl`` (NumPy) and the MC NEES; returns paths
+    (``directory`` is made and checked writable first)."""
+    _output_dir(directory, probe=True)
     p = plt()
     paths = []
     st = fl.est_steps

@@ -7,19 +7,26 @@ is imported lazily (Agg).  Every function returns the Figure; :func:`plot_all` w
 from __future__ import annotations
 
 import math
+import numbers
 import textwrap
 
 import numpy as np
 
 from ..errors import InputError
 from ..linalg import check_int
-from .flight import keep_margins, plt, save
+from .flight import _output_dir, keep_margins, plt, save
 
 __all__ = ["before_after", "choose_panels", "loss_curves", "param_trajectories", "plot_all", "reference_values"]
 
 
+def _is_number(v) -> bool:
+    """A real number (an int, a float, a NumPy scalar; not a bool, not a numeric string)."""
+    return isinstance(v, numbers.Real) and not isinstance(v, (bool, np.bool_))
+
+
 def _check_report(report, keys, name: str = "report") -> None:
-    """InputError unless ``report`` is a dict holding ``keys`` (a ``tune`` JSON report)."""
+    """InputError unless ``report`` is a dict holding ``keys`` (a ``tune`` JSON report); with
+    ``before`` and ``after`` among them, their statistics are checked too (:func:`_check_sides`)."""
     if not isinstance(report, dict):
         raise InputError(f"{name}: expected a tune report (dict), got {type(report).__name__}")
     missing = [k for k in keys if k not in report]
@@ -28,15 +35,109 @@ def _check_report(report, keys, name: str = "report") -> None:
     for k in ("before", "after"):
         if k in keys and not (isinstance(report[k], dict) and isinstance(report[k].get("metrics"), dict)):
             raise InputError(f"{name}: '{k}' must hold a 'metrics' object")
+    if "before" in keys and "after" in keys:
+        _check_sides(report, name)
 
 
-def _check_history(history) -> None:
-    """InputError unless ``history`` is a list of records (dicts), each with a ``step``."""
+def _check_mean(entry, where: str) -> None:
+    """InputError naming ``where`` unless ``entry`` is a metric summary whose ``mean`` is a number
+    or None (JSON's null for NaN)."""
+    if not isinstance(entry, dict) or "mean" not in entry:
+        raise InputError(f"{where}: expected a summary {{'mean': number, ...}}, got {entry!r}"[:300])
+    if not (entry["mean"] is None or _is_number(entry["mean"])):
+        raise InputError(f"{where}['mean']: expected a number or null, got {entry['mean']!r}"[:300])
+
+
+def _check_sides(report, name: str = "report") -> None:
+    """What :func:`choose_panels` reads of a report, checked up front (InputError naming the key):
+    every metric of ``before`` is a summary with a numeric ``mean`` (or null) and is in ``after``
+    too; a numeric consistency statistic of ``before`` is a number or null in ``after``, its
+    bounds two numbers; the references (``{label: {"metrics": {...}}}``) hold numeric means;
+    ``history`` (when present) is a list of step records."""
+    before, after = report["before"], report["after"]
+    for side in ("before", "after"):
+        for m, entry in report[side]["metrics"].items():
+            _check_mean(entry, f"{name}['{side}']['metrics'][{m!r}]")
+    gone = [m for m in before["metrics"] if m not in after["metrics"]]
+    if gone:
+        raise InputError(f"{name}['after']['metrics']: missing {gone} (in 'before'; both sides are "
+                         "evaluated on the same held-out runs)")
+    for side in ("before", "after"):
+        cons = report[side].get("consistency")
+        if cons is not None and not isinstance(cons, dict):
+            raise InputError(f"{name}['{side}']['consistency']: expected an object or null, got {cons!r}"[:300])
+    cb, ca = before.get("consistency") or {}, after.get("consistency") or {}
+    for k, v in cb.items():
+        if not _is_number(v) or k not in ca:
+            continue
+        if not (ca[k] is None or _is_number(ca[k])):
+            raise InputError(f"{name}['after']['consistency'][{k!r}]: expected a number or null, got {ca[k]!r}"[:300])
+    for k, b in ca.items():
+        if k.endswith("_bounds") and b is not None and not (
+                isinstance(b, (list, tuple)) and len(b) == 2 and all(v is None or _is_number(v) for v in b)):
+            raise InputError(f"{name}['after']['consistency'][{k!r}]: expected [low, high] numbers, got {b!r}"[:300])
+    refs = report.get("references")
+    if refs is not None and not isinstance(refs, dict):
+        raise InputError(f"{name}['references']: expected an object {{label: report}}, got {type(refs).__name__}")
+    for label, r in (refs or {}).items():
+        if not (isinstance(r, dict) and isinstance(r.get("metrics"), dict)):
+            raise InputError(f"{name}['references'][{label!r}]: must hold a 'metrics' object")
+        for m in before["metrics"]:
+            if m in r["metrics"]:
+                _check_mean(r["metrics"][m], f"{name}['references'][{label!r}]['metrics'][{m!r}]")
+        rc = r.get("consistency")
+        if rc is not None and not isinstance(rc, dict):
+            raise InputError(f"{name}['references'][{label!r}]['consistency']: expected an object or null, "
+                             f"got {rc!r}"[:300])
+        for k, v in (rc or {}).items():
+            if _is_number(cb.get(k)) and k in ca and not (v is None or _is_number(v)):
+                raise InputError(f"{name}['references'][{label!r}]['consistency'][{k!r}]: expected a number "
+                                 f"or null, got {v!r}"[:300])
+    if "history" in report:
+        _check_history(report["history"], f"{name}['history']")
+
+
+def _check_history(history, name: str = "history") -> None:
+    """InputError unless ``history`` is a list of records (dicts), each with a ``step``, whose
+    ``loss`` / ``test_loss`` are numbers or null where given."""
     if not isinstance(history, (list, tuple)):
-        raise InputError(f"history: expected a list of step records, got {type(history).__name__}")
+        raise InputError(f"{name}: expected a list of step records, got {type(history).__name__}")
     for i, h in enumerate(history):
         if not isinstance(h, dict) or "step" not in h:
-            raise InputError(f"history: record {i} is not a step record with a 'step' (got {h!r})"[:300])
+            raise InputError(f"{name}: record {i} is not a step record with a 'step' (got {h!r})"[:300])
+        for k in ("step", "loss", "test_loss"):
+            v = h.get(k)
+            if not (v is None and k != "step" or _is_number(v)):
+                raise InputError(f"{name}: record {i}'s {k!r} is not a number (got {v!r})"[:300])
+
+
+def _check_params(history, name: str = "history") -> list:
+    """The records of ``history`` that hold ``params``, checked: each ``params`` is an object
+    with the names of the first, each entry a flat list of numbers (null: NaN) as long as the
+    first record's; else InputError naming ``name`` and the record."""
+    recs = [(i, h) for i, h in enumerate(history) if "params" in h]
+    if not recs:
+        return []
+    first = recs[0][1]["params"]
+    if not isinstance(first, dict) or not first:
+        raise InputError(f"{name}: record {recs[0][0]}'s 'params' must be an object {{name: [values]}}, "
+                         f"got {first!r}"[:300])
+    lengths = {}
+    for i, h in recs:
+        params = h["params"]
+        if not isinstance(params, dict) or set(params) != set(first):
+            got = list(params) if isinstance(params, dict) else params
+            raise InputError(f"{name}: record {i}'s 'params' names {got!r}, expected {list(first)} "
+                             f"(record {recs[0][0]}'s)"[:300])
+        for k, v in params.items():
+            flat = isinstance(v, (list, tuple)) or (isinstance(v, np.ndarray) and v.ndim == 1)
+            if not (flat and len(v) and all(e is None or _is_number(e) for e in v)):
+                raise InputError(f"{name}: record {i}'s params[{k!r}] must be a non-empty list of numbers, "
+                                 f"got {v!r}"[:300])
+            if lengths.setdefault(k, len(v)) != len(v):
+                raise InputError(f"{name}: record {i}'s params[{k!r}] has {len(v)} values, record "
+                                 f"{recs[0][0]}'s {lengths[k]}")
+    return [h for _, h in recs]
 
 
 def loss_curves(history, title="Tuning loss"):
@@ -121,7 +222,8 @@ def param_trajectories(history, reference=None, title="Parameter trajectories"):
     entry's colour and named in the title (e.g. the truth of the linear-Gaussian target, or the
     IMU-derived Q).
     """
-    recs = [h for h in history if "params" in h]
+    _check_history(history)
+    recs = _check_params(history)
     if not recs:
         raise ValueError("history holds no 'params' records")
     names = list(recs[0]["params"])
@@ -166,6 +268,8 @@ CONSISTENCY_PRIORITY = ("anees", "nis_mean", "anees_robot")
 METRIC_PRIORITY = ("nll", "nominal_closed_loop_cost", "closed_loop_cost", "pos_rmse_settled_m",
                    "landmark_rmse_m", "vel_rmse_mps", "att_rmse_deg", "yaw_rmse_deg", "outlier_fraction")
 MAX_PANELS = 8
+_NOTHING = ("report: nothing to compare before/after: no loss in 'history', no metrics and no consistency "
+            "statistics")
 
 
 def _loss_panel(report):
@@ -203,7 +307,7 @@ def choose_panels(report, max_panels=MAX_PANELS):
     _check_report(report, ("before", "after"))
     max_panels = check_int(max_panels, "max_panels", lower=1)
     before, after = report["before"], report["after"]
-    refs = list(report.get("references", {}).values())
+    refs = list((report.get("references") or {}).values())
     cands = []
     lp = _loss_panel(report)
     if lp is not None:
@@ -248,10 +352,14 @@ def before_after(report, metrics=None, title="Held-out evaluation", max_panels=M
     """Bars of held-out means (before, after, references): the panels of :func:`choose_panels`
     (or exactly ``metrics``), each titled with the change after vs before; consistency panels
     shade their 95 % bounds; a note names what did not fit."""
-    refs = report.get("references", {})
+    _check_report(report, ("before", "after"))
+    refs = report.get("references") or {}
     if metrics is not None:
-        if isinstance(metrics, str) or not all(isinstance(m, str) for m in metrics):
+        if (isinstance(metrics, str) or not isinstance(metrics, (list, tuple, set, frozenset))
+                or not all(isinstance(m, str) for m in metrics)):
             raise InputError(f"metrics: expected a list of statistic names, got {metrics!r}")
+        if not metrics:
+            raise InputError("metrics: expected at least one statistic name, got an empty list")
         panels, left_out = choose_panels(report, max_panels=10 ** 6)
         unknown = sorted(set(metrics) - {q["key"] for q in panels})
         if unknown:
@@ -261,6 +369,8 @@ def before_after(report, metrics=None, title="Held-out evaluation", max_panels=M
         left_out = []
     else:
         panels, left_out = choose_panels(report, max_panels)
+        if not panels:
+            raise InputError(_NOTHING)
     p = plt()
     ncol = min(4, max(1, len(panels)))
     nrow = -(-len(panels) // ncol)
@@ -308,15 +418,25 @@ def before_after(report, metrics=None, title="Held-out evaluation", max_panels=M
 
 
 def plot_all(report, directory):
-    """Write ``<scenario>_tune_loss.png``, ``_params.png`` and ``_before_after.png``; return paths."""
+    """Write ``<scenario>_tune_loss.png``, ``_params.png`` and ``_before_after.png``; return paths.
+
+    The report is checked and ``directory`` made and checked writable before any figure is drawn
+    (an :class:`~jaxslam.errors.InputError` naming the report key or ``directory``).  The
+    parameter figure is left out (only) when the history records no parameters (a target
+    without ``describe``).
+    """
     _check_report(report, ("scenario", "target", "loss", "history", "before", "after"))
+    history = report["history"]
+    has_params = bool(_check_params(history, "report['history']"))
+    panels, _ = choose_panels(report)
+    if not panels:
+        raise InputError(_NOTHING)
+    _output_dir(directory, probe=True)
     name = f"{report['scenario']}_{report['target']}_{report['loss']}"
-    out = [save(loss_curves(report["history"], title=f"{name}: loss"), directory, f"{name}_loss")]
-    try:
-        out.append(save(param_trajectories(report["history"], reference_values(report),
-                                           title=f"{name}: parameters"), directory, f"{name}_params"))
-    except ValueError:
-        pass
+    out = [save(loss_curves(history, title=f"{name}: loss"), directory, f"{name}_loss")]
+    if has_params:
+        out.append(save(param_trajectories(history, reference_values(report), title=f"{name}: parameters"),
+                        directory, f"{name}_params"))
     out.append(save(before_after(report, title=f"{name}: held-out before/after"), directory,
                     f"{name}_before_after"))
     return out

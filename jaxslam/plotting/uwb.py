@@ -27,7 +27,7 @@ from ..errors import InputError
 from ..linalg import check_int, check_numbers, check_scalar, check_shape
 from ..metrics import consistency_verdict as verdict
 from ..metrics import steps_inside_text as steps_inside
-from .flight import keep_margins, plt, save
+from .flight import _output_dir, keep_margins, plt, save
 
 __all__ = ["STATE_NAMES", "band", "ellipse_points", "nees_figure", "plot_all", "state_panels"]
 
@@ -127,7 +127,9 @@ def _frame(sim, res, cfg):
 
 
 def plot_all(name, sim, res, ev, setup, cfg, per_step, cons, runs, directory):
-    """Write the four figures; returns their paths."""
+    """Write the four figures; returns their paths (``directory`` is made and checked writable
+    first)."""
+    _output_dir(directory, probe=True)
     p = plt()
     paths = []
     M, o = _frame(sim, res, cfg)
