@@ -119,8 +119,22 @@ def pin_lapack_threads(n: int | None = None) -> int | None:
     Called on ``import jaxslam`` (module docstring).  Does nothing when the user set
     ``OPENBLAS_NUM_THREADS`` (their choice stands), when ``$JAXSLAM_LAPACK_THREADS`` is 0, or
     when SciPy's OpenBLAS cannot be found (then nothing is slow either: another LAPACK is in
-    use).  Returns the limit set, or None.
+    use).  Returns the limit set, or None.  An explicit ``n`` must be an int >= 1, else
+    :class:`~jaxslam.errors.InputError` naming ``n`` (OpenBLAS reads 0 or less as "all cores",
+    and a float was truncated, while the call returned it as if applied).
     """
+    if n is not None:
+        import operator
+
+        from .errors import InputError
+
+        try:
+            v = None if isinstance(n, bool) else operator.index(n)
+        except TypeError:
+            v = None
+        if v is None or v < 1:
+            raise InputError(f"n: expected an int >= 1 (OpenBLAS threads), got {n!r}"[:200])
+        n = int(v)
     if n is None:
         if "OPENBLAS_NUM_THREADS" in os.environ:
             return None

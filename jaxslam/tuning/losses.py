@@ -59,14 +59,16 @@ def _same_shape(x, shape, name: str, what: str):
 
 
 def _mask(mask, shape, name: str = "mask"):
-    """``mask`` as an array of ``shape`` (InputError naming it otherwise); a concrete mask that
-    selects nothing is refused (its loss would be 0/0)."""
+    """``mask`` as a bool array of ``shape`` (InputError naming it otherwise): bool or 0/1
+    integers, as :func:`nll_terms`'s (a float or a 2 entry was counted by its value); a concrete
+    mask that selects nothing is refused (its loss would be 0/0)."""
     if not (hasattr(mask, "dtype") and hasattr(mask, "shape")):
         mask = jnp.asarray(mask)
     _same_shape(mask, shape, name, "one entry per step")
+    check_mask(mask, name)
     if is_concrete(mask) and mask.size and not np.any(np.asarray(mask)):
         raise InputError(f"{name}: selects no step (all False); the loss would be undefined")
-    return mask
+    return mask.astype(bool)
 
 
 def nll_terms(nu, S, mask=None):
@@ -163,12 +165,16 @@ def innovation_nll(nis, logdet, dof):
 def mse(err, weights=None, mask=None):
     """Mean over time of Σ_i w_i e_i² for errors ``err`` (T, n) against the truth.
 
-    ``weights`` (n,) default ones (units: each component's unit squared, so choose
-    weights that make them commensurate); ``mask`` (T,) bool selects the steps counted.
+    ``weights`` (n,) or a number, default ones (units: each component's unit squared, so choose
+    weights that make them commensurate); ``mask`` (T,) bool (or 0/1 integers) selects the
+    steps counted: the others never enter, not even a NaN error there (nor its gradient).
+    A 1-D ``err`` is an :class:`InputError` (is it T steps of one component or one step of n?
+    Give (T, 1) or (1, n)).
     """
     err = float_array(err, "err")
-    if err.ndim < 1 or err.size == 0:
-        raise InputError(f"err: expected a non-empty (T, n) array of errors, got shape {tuple(err.shape)}")
+    if err.ndim < 2 or err.size == 0:
+        raise InputError(f"err: expected a non-empty (T, n) array of errors (one row per step; (T, 1) for "
+                         f"one component), got shape {tuple(err.shape)}")
     if not jnp.issubdtype(err.dtype, jnp.inexact):
         err = err.astype(jnp.result_type(float))
     dtype = err.dtype
@@ -182,18 +188,21 @@ def mse(err, weights=None, mask=None):
     if mask is not None:
         mask = _mask(mask, err.shape[:-1])
     w = jnp.ones(err.shape[-1], dtype) if weights is None else jnp.asarray(weights, dtype)
-    sq = jnp.sum(err * err * w, axis=-1)
     if mask is None:
-        return jnp.mean(sq)
+        return jnp.mean(jnp.sum(err * err * w, axis=-1))
+    # where, not a product with the mask: NaN · 0 is NaN (a masked-out diverged step leaked in),
+    # and the error is zeroed before squaring so its gradient there is 0 too
+    e = jnp.where(mask[..., None], err, 0.0)
+    sq = jnp.sum(e * e * w, axis=-1)
     m = mask.astype(dtype)
-    return jnp.sum(sq * m) / jnp.maximum(jnp.sum(m), 1.0)
+    return jnp.sum(jnp.where(mask, sq, 0.0)) / jnp.maximum(jnp.sum(m), 1.0)
 
 
 def nees_loss(nees, n: int, mask=None):
     """(log(mean_t NEES_t / n))² for one run's NEES series (T,) of an n-dimensional state.
 
-    Zero when the time-averaged NEES equals n (a consistent filter); ``mask`` (T,) bool
-    selects the steps counted (e.g. frames after a settling time).
+    Zero when the time-averaged NEES equals n (a consistent filter); ``mask`` (T,) bool (or
+    0/1 integers) selects the steps counted (e.g. frames after a settling time).
     """
     nees = float_array(nees, "nees")
     if nees.size == 0:

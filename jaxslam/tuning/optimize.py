@@ -17,8 +17,14 @@ one call), with the host deciding whether the update is applied:
   the history and *skipped*: the candidate update is discarded, parameters and optimiser
   state stay as they were.  With the full batch every step sees the same data, so the same
   gradient would recur: after ``max_skips`` consecutive skips the loop stops (last good
-  parameters kept).  With ``batch_size`` < runs each step draws a new minibatch (from
-  ``key``) and a skip only loses one step.
+  parameters kept; ``max_skips=0``: at the first skip).  With ``batch_size`` < runs each step
+  draws a new minibatch (from ``key``) and a skip only loses one step (the loop stops after
+  10 × ``max_skips`` consecutive ones).  The last record (``steps``: no update follows) is
+  never a skip: a non-finite gradient there shows only in its ``grad_norm`` (NaN).
+* a skipped step applies no update, so it does not advance the optimiser's step count nor the
+  learning-rate schedule, which is laid out over ``steps`` updates: after skips the cosine
+  ends short of its final value (each record's ``lr`` is the one its update applies, read at
+  the optimiser's count).
 * every ``eval_every`` steps the mean loss on the held-out batch ``test`` is recorded
   (value only, a separately compiled function) — the test-loss curve.
 * ``callback(record)`` receives each history record (progress bars, logging).
@@ -41,10 +47,18 @@ Decisions (no paper covers tuning):
   losses whose optimum is not 0: MSE, closed-loop costs; not the NEES loss, whose optimum
   is 0, nor the NLL, which may be negative): a relative decrease then counts the same at every
   scale, which keeps the steps large when the loss falls by decades.  The history records
-  the plain mean loss either way.
+  the plain mean loss either way.  A step whose mean loss is ≤ 0 has no log: its update is
+  skipped and counted as a non-finite gradient's is (its record says ``nonpositive_loss``;
+  the stop message names ``log_objective``), never taken uphill; the one exception is a
+  mean loss of exactly 0 with a zero gradient (the optimum of a non-negative loss), whose
+  gradient is 0 (not 0/0) and whose step goes on as any zero-gradient step.
 * The returned ``theta`` is the last good iterate (not the best training loss seen): the
   training loss is noisy with minibatches, and a held-out evaluation decides anyway.
-  ``best_theta`` (lowest training loss seen) is returned as well.
+  ``best_theta`` (lowest training loss seen) is returned as well, among the steps whose loss
+  covers the same runs: a step that dropped a run (``dropped_runs``) is compared only with
+  steps that dropped the same ones, and one that keeps a strict superset of the current
+  best's runs replaces it whatever its loss (a mean over fewer runs is not comparable: the
+  rest of a diverged run's batch looks better exactly where that run fails).
 * Memory: ``memory`` reports the compiled step's XLA memory analysis (temporary,
   argument and output bytes — what the backward pass holds) and the process's peak
   resident memory (``resource.getrusage``, monotone over the process lifetime).
@@ -77,15 +91,22 @@ FAST_COMPILE = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive
 class FitResult(NamedTuple):
     """Result of :func:`fit`.
 
-    theta: last good parameters (finite loss); best_theta: lowest training loss seen.
+    theta: last good parameters (finite loss); best_theta: lowest training loss seen among
+      the steps over the same runs (module docstring).
     history: list of records ``{"step", "loss", "grad_norm", "lr", "skipped", "time_s",
-      ["dropped_runs"], ["test_loss"], ["params"]}``: record k holds the loss at θ_k (mean over
-      the runs kept; before update k); there are ``steps + 1`` records, the last one (no
-      update) checks the final iterate.  ``dropped_runs``: training-run indices left out.
+      ["dropped_runs"], ["nonpositive_loss"], ["test_loss"], ["params"]}``: record k holds the
+      loss at θ_k (mean over the runs kept; before update k); there are ``steps + 1`` records,
+      the last one (no update) checks the final iterate.  ``dropped_runs``: training-run
+      indices left out.  ``grad_norm``: global norm of the step's gradient, NaN when it is
+      non-finite.  ``lr``: the schedule at the optimiser's step count (updates applied so
+      far), i.e. the learning rate of this record's update; a skipped step does not advance
+      it.  ``nonpositive_loss``: the step was skipped because ``log_objective`` met a mean
+      loss ≤ 0.
     stopped: None, or a message saying why the loop stopped early.
     compile_s: compilation time of the training step [s]; step_s: median step time [s].
     memory: see :func:`memory_report`.
-    n_skipped: number of skipped (non-finite gradient) steps.
+    n_skipped: number of skipped updates (non-finite gradient, or a loss ≤ 0 under
+      ``log_objective``); the last record, which has no update, is never counted.
     n_dropped: number of (step, run) pairs left out of a step's mean (``dropped_runs``).
     interrupted: a Ctrl-C stopped the loop after at least one step (``stopped`` says when);
       ``theta`` / ``best_theta`` are those reached so far.
@@ -202,15 +223,24 @@ def _check_key(key) -> None:
                      f"got {key!r}"[:300])
 
 
+def _per_run_avals(batch):
+    """(structure, [(shape without the runs axis, dtype)]) of a batch: what a trace of the loss sees."""
+    return jax.tree.structure(batch), [(tuple(np.shape(x))[1:], jnp.result_type(x)) for x in jax.tree.leaves(batch)]
+
+
 def _check_test(test, train, loss_fn, theta0, sequential) -> None:
     """InputError unless the held-out batch has one leading axis of runs (≥ 1) shared by its
-    arrays and the loss can be evaluated on it: a batch of another structure than ``train`` (a
-    target may add per-run weights) is traced once, abstractly (``jax.eval_shape``), here."""
+    arrays and the loss can be evaluated on it: a batch whose items differ from ``train``'s (in
+    structure — a target may add per-run weights —, shape or dtype) is traced once, abstractly
+    (``jax.eval_shape``), here, so a mismatch is named before the training step compiles,
+    not after the last step."""
     leaves = jax.tree.leaves(test)
+    if not leaves:
+        raise InputError("test: empty batch (no arrays)")
     n = {int(np.shape(x)[0]) if np.ndim(x) else -1 for x in leaves}
     if len(n) != 1 or min(n) < 1:
         raise InputError(f"test: every array needs the same leading axis of runs (≥ 1), got {sorted(n)}")
-    if jax.tree.structure(test) == jax.tree.structure(train):
+    if _per_run_avals(test) == _per_run_avals(train):  # the items the step is compiled for
         return
     try:
         jax.eval_shape(lambda th, b: batch_loss(loss_fn, th, b, sequential), theta0, test)
@@ -239,7 +269,7 @@ def fit(loss_fn: Callable, theta0, train, steps: int, lr: float = 0.1, *, test=N
       schedule, warmup, clip, b2: see :func:`make_optimizer`.
       log_objective: differentiate log(mean loss) (positive losses; module docstring).
       batch_size, key: minibatches of the training runs drawn per step (key required).
-      max_skips: consecutive non-finite gradients tolerated before stopping.
+      max_skips: consecutive skipped updates tolerated before stopping (0: stop at the first).
       callback: called with each history record.
       describe: ``describe(theta) -> dict`` stored in each record (parameter trajectories).
       sequential: evaluate the batch's items one after another (:func:`batch_loss`).
@@ -299,8 +329,12 @@ def fit(loss_fn: Callable, theta0, train, steps: int, lr: float = 0.1, *, test=N
         g = jax.tree.map(lambda a: jnp.sum(jnp.where(keep.reshape((-1,) + (1,) * (a.ndim - 1)), a, 0.0),
                                            axis=0) / denom, gs)
         g = jax.tree.map(lambda a: jnp.where(n_keep > 0, a, jnp.nan), g)
-        if log_objective:  # d log(mean L) = d(mean L) / mean L
-            g = jax.tree.map(lambda a: a / loss, g)
+        if log_objective:  # d log(mean L) = d(mean L) / mean L, defined for mean L > 0 only
+            pos = loss > 0
+            # mean L = 0 with a zero gradient: the optimum of a non-negative loss, gradient 0 (not
+            # 0/0); any other mean L <= 0 has no log: NaN, so the step is skipped (module docstring)
+            flat = jnp.all(jnp.stack([jnp.all(a == 0) for a in jax.tree.leaves(g)])) & (loss == 0)
+            g = jax.tree.map(lambda a: jnp.where(pos, a / loss, jnp.where(flat, 0.0, jnp.nan)), g)
         return loss, g, keep
 
     def step(theta, opt_state, batch):
@@ -323,8 +357,11 @@ def fit(loss_fn: Callable, theta0, train, steps: int, lr: float = 0.1, *, test=N
     if test is not None:
         test_c = jax.jit(lambda th, b: batch_loss(loss_fn, th, b, sequential), compiler_options=opts or None)
 
-    theta, good, best, best_loss = theta0, theta0, theta0, math.inf
+    theta, good, best, best_loss, best_dropped = theta0, theta0, theta0, math.inf, None
     history, stopped, skips, n_skipped, n_dropped, times = [], None, 0, 0, 0, []
+    applied = 0  # updates applied so far: the optimiser's step count, which its schedule reads
+    limit = max_skips if not mini else 10 * max_skips
+    log_skip = False  # the last skip was a loss <= 0 under log_objective
     rng = np.random.default_rng(None if key is None else np.asarray(jax.random.key_data(key)).ravel().tolist())
     # Iterate k = 0..steps: step k evaluates the loss (and gradient) at θ_k and, for k < steps,
     # proposes θ_{k+1}; the last pass only checks that the final iterate has a finite loss.
@@ -340,11 +377,15 @@ def fit(loss_fn: Callable, theta0, train, steps: int, lr: float = 0.1, *, test=N
             g_ok = bool(g_ok)
             keep = np.asarray(keep)
             times.append(time.perf_counter() - ts)
-            rec = {"step": k, "loss": loss, "grad_norm": float(gnorm), "lr": float(sched(k)),
-                   "skipped": False, "time_s": times[-1]}
+            # the lr this step's update applies: optax reads the schedule at its own count, which
+            # only an applied update advances (equal to k in a run without skips)
+            rec = {"step": k, "loss": loss, "grad_norm": float(gnorm) if g_ok else math.nan,
+                   "lr": float(sched(applied)), "skipped": False, "time_s": times[-1]}
+            dropped = frozenset()
             if keep.any() and not keep.all():  # some runs left out, the rest applied
                 rec["dropped_runs"] = [int(i) for i in idx[~keep]]
                 n_dropped += int((~keep).sum())
+                dropped = frozenset(rec["dropped_runs"])
             if describe is not None:
                 rec["params"] = describe(theta)
             if not math.isfinite(loss):
@@ -358,22 +399,35 @@ def fit(loss_fn: Callable, theta0, train, steps: int, lr: float = 0.1, *, test=N
                     callback(rec)
                 break
             good = theta
-            if loss < best_loss:
-                best, best_loss = theta, loss
-            if not g_ok:
+            # best: only among losses over the same runs; covering more runs takes over
+            if best_dropped is None or dropped < best_dropped or (dropped == best_dropped and loss < best_loss):
+                best, best_loss, best_dropped = theta, loss, dropped
+            if last:
+                pass  # the final check: no update to apply or skip
+            elif not g_ok:
                 rec["skipped"] = True
                 skips += 1
                 n_skipped += 1
-            elif not last:
+                log_skip = bool(log_objective and loss <= 0)
+                if log_skip:
+                    rec["nonpositive_loss"] = True
+            else:
                 theta, opt_state, skips = cand, cand_state, 0
+                applied += 1
             if test_c is not None and ((eval_every and k % eval_every == 0) or last):
                 rec["test_loss"] = float(test_c(good, test))
             history.append(rec)
             if callback is not None:
                 callback(rec)
-            if not last and skips >= (max_skips if not mini else 10 * max_skips):
-                stopped = (f"gradient non-finite at {skips} consecutive steps (last: step {k}); "
-                           "those updates were skipped, never applied; stopped with the last good parameters")
+            if not last and skips > 0 and skips >= limit:
+                if log_skip:
+                    stopped = (f"log_objective: the mean loss was <= 0 ({loss:.6g}) at step {k} ({skips} consecutive "
+                               "skipped steps); log(mean loss) is undefined there, so those updates were skipped, "
+                               "never applied; stopped with the last good parameters (log_objective=False fits a "
+                               "loss that can be <= 0)")
+                else:
+                    stopped = (f"gradient non-finite at {skips} consecutive steps (last: step {k}); "
+                               "those updates were skipped, never applied; stopped with the last good parameters")
                 break
     except KeyboardInterrupt:  # Ctrl-C: keep what is done (the caller writes it, marked)
         if not history:

@@ -17,9 +17,18 @@ projection or clipping of eigenvalues is ever needed.
 Decisions (no paper covers tuning):
 
 * A zero variance (Table 7's P0, an IMU density of 0) has no logarithm.  The
-  constructors raise :class:`~jaxslam.errors.InputError` on a non-positive entry unless a
-  ``floor`` is given, which replaces entries below it (documented in the result); the
-  optimiser may drive an entry back down as far as it likes.
+  constructors raise :class:`~jaxslam.errors.InputError` on a matrix they cannot represent
+  (a non-positive diagonal entry; a matrix that is not positive definite) unless a finite
+  ``floor`` > 0 is given, which the two forms apply differently: the log-diagonal form raises
+  only the entries below ``floor`` to it (the others are kept exactly), the log-Cholesky form
+  adds ``floor``·I to the whole matrix, a positive-definite one included (every eigenvalue
+  moves up by ``floor``).  The shift is intended: a matrix has no "entries below the floor"
+  that could be raised alone without breaking its positive definiteness or changing its
+  eigenvectors, and M + floor·I is the nearest lift that keeps them.  It is harmless for a
+  *starting point* (the optimiser may drive the matrix back down as far as it likes, and no
+  target of this package passes a floor), but it changes a PD M by floor relative to its
+  smallest eigenvalue: give the log-Cholesky form a floor only for a semi-definite M, well
+  below the eigenvalues that matter.
 * The off-diagonal parameters are those of the *unit* factor C (L_ij = exp(θ_ii) θ_ij),
   not the raw entries of L: they are dimensionless, so one Adam step changes a correlation
   by the same relative amount whatever the units of M.  With raw entries (the textbook
@@ -37,7 +46,7 @@ from __future__ import annotations
 
 import warnings
 
-from typing import NamedTuple
+from typing import Mapping, NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
@@ -104,9 +113,35 @@ def _as_matrix(M, name):
 
 
 def _check_floor(floor) -> float:
-    """``floor`` as a float when it is a number > 0, else InputError naming ``floor``."""
-    return reworded(lambda: check_scalar(floor, "floor", finite=False, lower=0, strict=True),
-                    f"floor: must be > 0, got {floor!r}")
+    """``floor`` as a float when it is a finite number > 0, else InputError naming ``floor``
+    (an infinite floor made θ infinite)."""
+    return reworded(lambda: check_scalar(floor, "floor", lower=0, strict=True),
+                    f"floor: must be > 0 and finite, got {floor!r}")
+
+
+def _check_dtype(dtype):
+    """``dtype`` (None: JAX's default float) when it names a floating dtype, else InputError
+    naming ``dtype``: an integer dtype truncated θ (log 3 became 1), a bogus name gave a bare
+    TypeError."""
+    if dtype is None:
+        return None
+    try:
+        dt = jnp.dtype(dtype)
+    except TypeError:
+        dt = None
+    if dt is None or not jnp.issubdtype(dt, jnp.floating):
+        raise InputError(f"dtype: expected a floating dtype (float32 or float64), got {dtype!r}")
+    return dt
+
+
+def _check_names(arg: str, given, specs, what: str) -> None:
+    """InputError naming ``arg`` unless ``given`` is a dict whose names are ``specs``' (a list
+    gave a bare TypeError; a misspelt or extra name was silently ignored)."""
+    if not isinstance(given, Mapping):
+        raise InputError(f"{arg}: expected a dict {{name: {what}}}, got {type(given).__name__}")
+    extra = sorted(set(given) - set(specs), key=str)
+    if extra:
+        raise InputError(f"{arg}: unknown name(s) {extra}; the specs name {sorted(specs, key=str)}")
 
 
 def log_diag_from_cov(M, floor: float | None = None, dtype=None, name: str = "M"):
@@ -115,9 +150,11 @@ def log_diag_from_cov(M, floor: float | None = None, dtype=None, name: str = "M"
     Off-diagonal entries of ``M`` are dropped (the parametrisation has none), with a
     ``UserWarning`` naming ``name`` when one is not negligible (above 1e-12 of the largest
     diagonal entry); entries ≤ 0 raise :class:`InputError` naming ``name`` unless ``floor`` > 0
-    is given, which replaces every diagonal entry below it.  Host-side (NumPy in, ``dtype``
-    out; default: JAX's default float dtype, as ``jnp.asarray`` gives it).
+    is given, which replaces every diagonal entry below it (the others are kept).  Host-side
+    (NumPy in, ``dtype`` out: a floating dtype — an integer one would truncate θ —; default:
+    JAX's default float dtype, as ``jnp.asarray`` gives it).
     """
+    dtype = _check_dtype(dtype)
     a = _as_matrix(M, name)
     off = np.abs(a - np.diag(np.diag(a)))
     if off.size and off.max() > 1e-12 * max(np.abs(np.diag(a)).max(), np.finfo(float).tiny):
@@ -148,9 +185,13 @@ def _tril(n):
 def log_chol_from_cov(M, floor: float | None = None, dtype=None, name: str = "M"):
     """θ (n(n+1)/2,) = [log diag L, strictly-lower C] of M's Cholesky factor L = diag(L) C.
 
-    ``M`` must be symmetric positive definite; with ``floor`` > 0 a semi-definite M
-    is first lifted to M + floor·I.  Raises :class:`InputError` naming ``name``.
+    ``M`` must be symmetric positive definite.  With ``floor`` > 0 the factor is that of
+    M + floor·I — *always*, a positive-definite M included (every eigenvalue moves up by
+    ``floor``; module docstring): it lets a semi-definite M (a zero variance) start, and should
+    be small against the eigenvalues that matter.  ``dtype``: a floating dtype, as
+    :func:`log_diag_from_cov`.  Raises :class:`InputError` naming ``name``.
     """
+    dtype = _check_dtype(dtype)
     a = _as_matrix(M, name)
     n = a.shape[0]
     if floor is not None:
@@ -199,8 +240,18 @@ def cov_from_theta(spec: CovSpec, theta):
 
 
 def pack(specs: dict, mats: dict, floors: dict | None = None, dtype=None) -> dict:
-    """{name: θ} for {name: CovSpec} and {name: matrix} (host-side)."""
-    floors = floors or {}
+    """{name: θ} for {name: CovSpec} and {name: matrix} (host-side).
+
+    ``specs``, ``mats`` and ``floors`` (optional, {name: floor} for some of the names) are
+    dicts over the same names: a missing matrix, or a name of ``mats`` / ``floors`` that no
+    spec has (a typo), is an :class:`InputError` naming the argument.
+    """
+    if not isinstance(specs, Mapping):
+        raise InputError(f"specs: expected a dict {{name: CovSpec}}, got {type(specs).__name__}")
+    _check_names("mats", mats, specs, "matrix")
+    floors = {} if floors is None else floors
+    _check_names("floors", floors, specs, "floor")
+    dtype = _check_dtype(dtype)
     missing = set(specs) - set(mats)
     if missing:
         raise InputError(f"mats: no matrix for {sorted(missing)}")
@@ -208,7 +259,11 @@ def pack(specs: dict, mats: dict, floors: dict | None = None, dtype=None) -> dic
 
 
 def unpack(specs: dict, thetas: dict) -> dict:
-    """{name: matrix} for {name: CovSpec} and {name: θ} (jit/grad-safe)."""
+    """{name: matrix} for {name: CovSpec} and {name: θ} (jit/grad-safe).  ``thetas`` must be a
+    dict over exactly ``specs``' names (a missing or an unknown name: :class:`InputError`)."""
+    if not isinstance(specs, Mapping):
+        raise InputError(f"specs: expected a dict {{name: CovSpec}}, got {type(specs).__name__}")
+    _check_names("thetas", thetas, specs, "θ vector")
     missing = set(specs) - set(thetas)
     if missing:
         raise InputError(f"thetas: no parameters for {sorted(missing)}")

@@ -176,7 +176,18 @@ def default_target(scenario: str):
 
 
 def get(scenario: str, target: str, loss: str, **kw) -> Target:
-    """Build the target ``(scenario, target)`` with ``loss``; raises InputError naming the valid ones."""
+    """Build the target ``(scenario, target)`` with ``loss``; raises InputError naming the valid ones.
+
+    ``kw`` goes to the target's factory.  A keyword no target takes is an :class:`InputError`
+    naming it; so is one of the options ``jaxslam tune`` shares between targets
+    (``train_runs``, ``seed``, ``cov``, ``tune_r``, ``structure``, ``eval_duration``, ...)
+    given to a target that does not use it — except None, or the value the CLI passes when
+    its flag is not given (``cov="diag"``, ``tune_r=False``, ``structure="qc"``,
+    ``filter="ekf"``, ``checkpoint=True``, ``eval_duration=50.0``), which change nothing.
+    """
+    for name, value in (("scenario", scenario), ("target", target), ("loss", loss)):
+        if not isinstance(value, str):  # a list was a bare "unhashable type" TypeError
+            raise InputError(f"{name}: expected a name (str), got {value!r}"[:300])
     _load()
     if (scenario, target) not in _FACTORIES:
         valid = ", ".join(f"{s} --target {t}" for s, t in sorted(_FACTORIES))
@@ -212,10 +223,72 @@ def diag_list(M) -> list:
 _CLI_SHARED_KEYWORDS = frozenset({"train_runs", "test_runs", "seed", "dtype", "eval_duration", "checkpoint",
                                  "cov", "tune_r", "structure", "filter", "train_duration"})
 
+#: the values the CLI passes for the shared keywords when their flag is not given: a target that
+#: does not use the keyword accepts it with this value (it changes nothing); the others (and any
+#: other value) are refused by name.  ``train_runs``, ``test_runs``, ``seed`` and ``train_duration``
+#: have none: every simulation target uses the first three, and the CLI passes ``train_duration``
+#: (``--duration``) only to the targets that fly; it passes none of them to a real-log target.
+_CLI_NEUTRAL = {"eval_duration": 50.0, "checkpoint": True, "cov": "diag", "tune_r": False, "structure": "qc",
+                "filter": "ekf"}
+
+
+def _is_neutral(key: str, value) -> bool:
+    """``value`` of the shared keyword ``key`` changes nothing: None (not given) or the CLI's default."""
+    if value is None:
+        return True
+    if key not in _CLI_NEUTRAL:
+        return False
+    n = _CLI_NEUTRAL[key]
+    if isinstance(n, bool):
+        return isinstance(value, (bool, np.bool_)) and bool(value) == n
+    if isinstance(n, str):
+        return isinstance(value, str) and value == n
+    return (isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
+            and float(value) == n)
+
 
 def _check_keywords(ignored: dict, target: str) -> None:
-    """Raise InputError naming the keywords in ``ignored`` (a factory's ``**kw`` rest) that are
-    not among :data:`_CLI_SHARED_KEYWORDS`: a misspelled option never silently falls back."""
+    """Raise InputError naming the keywords in ``ignored`` (a factory's ``**kw`` rest): one not
+    among :data:`_CLI_SHARED_KEYWORDS` is a typo (a misspelled option never silently falls
+    back); a shared one is an option this target does not use, refused unless it is None or
+    holds the value the CLI passes by default (:data:`_CLI_NEUTRAL`), so that ``seed=7`` or
+    ``tune_r=True`` never silently does nothing."""
     bad = sorted(set(ignored) - _CLI_SHARED_KEYWORDS)
     if bad:
         raise InputError(f"{bad[0]}: unknown keyword(s) {bad} for tuning target {target}")
+    unused = sorted(k for k, v in ignored.items() if not _is_neutral(k, v))
+    if unused:
+        raise InputError(f"{unused[0]}: tuning target {target} does not use {', '.join(unused)} (it would be "
+                         f"ignored); got {', '.join(f'{k}={ignored[k]!r}' for k in unused)}"[:400])
+
+
+def _check_window(t_max):
+    """``t_max`` (a fit window [s], ``--window``) as a float: None, or a finite number > 0; else
+    InputError naming ``t_max`` (a string was a bare TypeError, NaN an error about another name)."""
+    if t_max is None:
+        return None
+    from ...linalg import check_scalar, reworded
+
+    return reworded(lambda: check_scalar(None if isinstance(t_max, (bool, np.bool_)) else t_max, "t_max",
+                                         lower=0, strict=True),
+                    f"t_max: expected the fit window in seconds (--window), a finite number > 0 or None, "
+                    f"got {t_max!r}"[:300])
+
+
+def _check_robots(value, name: str, flag: str, allow_empty: bool) -> tuple:
+    """``value`` (a list or tuple of robot / sequence numbers) as a tuple of ints, else InputError
+    naming ``name``: a string ("12" read as robots 1 and 2), a fractional number (1.7 truncated
+    to robot 1), a repeated robot (trained on twice) or, unless ``allow_empty``, no robot."""
+    from ...linalg import check_int
+
+    if isinstance(value, np.ndarray) and value.ndim == 1:
+        value = value.tolist()
+    if not isinstance(value, (list, tuple)):
+        raise InputError(f"{name}: expected a list of robot numbers ({flag}), got {value!r}"[:300])
+    out = tuple(check_int(r, name, lower=1, what=f"robot numbers ({flag}): ints") for r in value)
+    dup = sorted({r for r in out if out.count(r) > 1})
+    if dup:
+        raise InputError(f"{name}: robot(s) {dup} listed more than once ({flag})")
+    if not out and not allow_empty:
+        raise InputError(f"{name}: give at least one robot ({flag})")
+    return out

@@ -171,12 +171,15 @@ def ekfslam3d_noise(loss: str = "nll", train_runs: int = 4, test_runs: int = 8, 
     three axes of a sensor share it), started from the means of those Table 7 entries.
     ``start``: ``"paper"`` (Table 6/7, as above) or ``"imu"`` (the IMU-derived Q, projected
     on Q_c's diagonal for ``structure="qc"``).  ``cov``: ``"diag"`` (log-diagonal) or ``"chol"``
-    (log-Cholesky, full matrix).  ``capacity``: landmark slots of the training filter
-    (default: the number of landmarks, 40, which cannot overflow; estimates do not depend
-    on the capacity).  Evaluation: the ``ekfslam3d-{mode}`` scenario, ``eval_duration``
+    (log-Cholesky, full matrix).  ``capacity``: landmark slots of the training filter, an int
+    >= 1 (default: the number of landmarks, 40, which cannot overflow; estimates do not depend
+    on the capacity).  ``mse_weights``: the ``mse`` loss's weights of the 9 state components
+    (a number or 9 non-negative numbers; default ones); with another loss they would be
+    ignored and are refused.  Evaluation: the ``ekfslam3d-{mode}`` scenario, ``eval_duration``
     seconds, ``test_runs`` seeds from ``seed + 1``.  See the module docstring.
     """
     _check_keywords(_ignored, "ekfslam3d --target noise")
+    from ...linalg import check_int, check_numbers
     from ...sensors import imu as imu_mod
     from ...sim.scenarios import ekfslam3d as scen
     from ...sim.scenarios.tracking import DT, FRAME_STEPS
@@ -194,6 +197,15 @@ def ekfslam3d_noise(loss: str = "nll", train_runs: int = 4, test_runs: int = 8, 
         raise InputError(f"--structure: expected one of {STRUCTURES}, got {structure!r}")
     if structure == "imu_iso" and cov != "diag":
         raise InputError("--structure imu_iso: two densities (accelerometer, gyro); use --cov diag")
+    if capacity is not None:  # 0 built and failed only when traced, naming config.capacity
+        capacity = check_int(capacity, "capacity", lower=1, what="a number of landmark slots (int)")
+    if mse_weights is not None:  # checked before the simulation, not at the first trace
+        if loss != "mse":
+            raise InputError(f"mse_weights: only the mse loss reads them (it would be ignored), got loss {loss!r}")
+        mw = check_numbers(mse_weights, "mse_weights")
+        if mw.shape not in ((), (sys3d.NX,)) or not np.all(np.isfinite(mw)) or np.any(mw < 0):
+            raise InputError(f"mse_weights: expected a number or {sys3d.NX} finite non-negative numbers (one per "
+                             f"state component), got {mse_weights!r}"[:300])
     ref = sys3d.imu_noise(imu_mod.PAPER000_IMU, dtype)
     nda2 = float(imu_mod.PAPER000_IMU.accel_noise_density) ** 2
     ndg2 = float(imu_mod.PAPER000_IMU.gyro_noise_density) ** 2
@@ -280,7 +292,7 @@ def ekfslam3d_noise(loss: str = "nll", train_runs: int = 4, test_runs: int = 8, 
               "train_seed": int(seed), "test_seed": int(test_seed), "train_runs": int(train_runs),
               "test_runs": int(test_runs), "capacity_train": cap, "cov": cov, "tune_r": bool(tune_r),
               "start": start, "structure": structure, "checkpoint": bool(checkpoint), "dtype": dtype.name,
-              "mse_weights": None if mse_weights is None else [float(v) for v in mse_weights],
+              "mse_weights": None if mse_weights is None else (float(mw) if mw.ndim == 0 else [float(v) for v in mw]),
               "fixed": {"P0": "--q imu P0 (diag 1e-4 x6, (0.1 deg)^2 x3)",
                         **({"Qimu": "0"} if structure == "qc" else {"Qc": "0"}),
                         **({} if tune_r else {"R": "Table 4"})},

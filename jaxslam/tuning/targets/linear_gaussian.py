@@ -58,10 +58,15 @@ def lg_simulate(key, T: int, Q, R, dt: float = LG_DT, dtype=jnp.float64):
 
     x = [p_x, p_y, v_x, v_y]: 2D constant velocity with step ``dt``; the position and the
     velocity are measured.  Returns ``{"z": (T, 4), "x": (T, 4)}`` (state after each step;
-    x_0 = 0).
+    x_0 = 0) in ``dtype``.  The noise is drawn and the model simulated in the wider of
+    ``dtype`` and JAX's default float (float64 with x64 on) and the result cast to ``dtype``,
+    so one key gives the same data in every precision, rounded: a float32 log is the float64
+    log rounded to float32 (drawn in float32, its samples were unrelated to float64's).
     """
     T = check_int(T, "T", lower=1)
     _check_model(dt, Q=Q, R=R)
+    out_dtype = jnp.dtype(dtype)
+    dtype = jnp.promote_types(out_dtype, jnp.result_type(float))  # float64 with x64 on: one stream
     A, H = (jnp.asarray(a, dtype) for a in _lg_model(dt))
     Lq = jnp.linalg.cholesky(jnp.asarray(Q, dtype))
     Lr = jnp.linalg.cholesky(jnp.asarray(R, dtype))
@@ -74,7 +79,7 @@ def lg_simulate(key, T: int, Q, R, dt: float = LG_DT, dtype=jnp.float64):
         return x, (H @ x + wv[1], x)
 
     _, (z, x) = jax.lax.scan(step, jnp.zeros(4, dtype), (w, v))
-    return {"z": z, "x": x}
+    return {"z": z.astype(out_dtype), "x": x.astype(out_dtype)}
 
 
 #: the filters the oracle target runs (``--filter``); on this linear model each is the KF

@@ -39,7 +39,8 @@ import numpy as np
 
 from ...data import catalogue
 from ...errors import InputError
-from . import Target, _check_keywords, register_target, heldout_nll, metrics_entry, window_nll
+from . import (Target, _check_keywords, _check_robots, _check_window, register_target, heldout_nll, metrics_entry,
+               window_nll)
 
 __all__ = ["mrclam_logs", "planar_theta0", "planar_physical", "planar_nll",
            "mrclam_noise", "mrclam_train_config", "mrclam_layout", "select_odometry_delay", "DELAY_GRID"]
@@ -189,7 +190,9 @@ def mrclam_noise(loss: str = "nll", data=None, robots=(1, 2, 3, 4), test_robots=
     """Target ``jaxslam tune mrclam``: the noise of the planar EKF-SLAM from MRCLAM logs.
 
     ``robots``: training robots; ``test_robots``: held out (their NLL is the test loss, their
-    ATE the evaluation).  ``data``: the folder with ``mrclam6/`` (or the dataset folder).
+    ATE the evaluation); lists of distinct robot numbers.  ``data``: the folder with ``mrclam6/``
+    (or the dataset folder).  ``t_max``: fit on the first seconds of each training log (None:
+    whole logs).
     ``odometry_delay``: the odometry stamps' lag [s], or ``"auto"``: the delay of
     :data:`DELAY_GRID` with the lowest training NLL at the starting point
     (:func:`select_odometry_delay`).  The fitted file carries it (``"log"``).
@@ -199,8 +202,10 @@ def mrclam_noise(loss: str = "nll", data=None, robots=(1, 2, 3, 4), test_robots=
     from ...systems import planar_ekf_slam as pe
     if loss != "nll":
         raise InputError(f"--loss: the real-log targets learn by innovation likelihood only (nll); got {loss!r}")
+    robots = _check_robots(robots, "robots", "--robots", allow_empty=False)
+    test_robots = _check_robots(test_robots, "test_robots", "--test-robots", allow_empty=True)
+    t_max = _check_window(t_max)
     data = catalogue.data_root(data)  # --data, else $JAXSLAM_DATA_DIR
-    robots, test_robots = tuple(int(r) for r in robots), tuple(int(r) for r in test_robots)
     catalogue.check_robots("mrclam", data, robots + test_robots, flag="--robots/--test-robots")
     if set(robots) & set(test_robots):
         raise InputError(f"--test-robots: {sorted(set(robots) & set(test_robots))} also in --robots; "

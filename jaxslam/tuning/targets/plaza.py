@@ -28,7 +28,7 @@ import numpy as np
 
 from ...data import catalogue
 from ...errors import InputError
-from . import Target, _check_keywords, register_target, STUDENT_T_NU, heldout_nll, metrics_entry
+from . import Target, _check_keywords, _check_robots, _check_window, register_target, STUDENT_T_NU, heldout_nll, metrics_entry
 
 __all__ = ["plaza_logs", "plaza_noise", "NOISE_FIELDS", "NU"]
 
@@ -78,8 +78,10 @@ def plaza_noise(loss: str = "nll", data=None, robots=(1,), test_robots=(2,), dty
 
     if loss != "nll":
         raise InputError(f"--loss: the real-log targets learn by innovation likelihood only (nll); got {loss!r}")
+    robots = _check_robots(robots, "robots", "--robots", allow_empty=True)  # empty: said below
+    test_robots = _check_robots(test_robots, "test_robots", "--test-robots", allow_empty=True)
+    t_max = _check_window(t_max)
     data = catalogue.data_root(data)
-    robots, test_robots = tuple(int(r) for r in robots), tuple(int(r) for r in test_robots)
     bad = [r for r in robots + test_robots if r not in (1, 2)]
     if bad:
         raise InputError(f"--robots/--test-robots: Plaza has sequences 1 and 2, got {bad}")

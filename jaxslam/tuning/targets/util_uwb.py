@@ -22,10 +22,11 @@ learned: freed, it fell to 1.7 with σ_r 0.04 m — a better held-out NLL and a 
 trajectory, docs/datasets.md), and no hard gate: a gate would drop the rows that disagree with
 the current noise from the likelihood, so a smaller σ_r would always look better.
 
-Protocol (docs/datasets.md): the only TWR flight is split in time — fit on the ranges with
-t < ``t_max`` (default: the first half of the log's span), evaluate on the rest (held-out NLL of
-the later ranges, and the position RMSE of the airborne samples after ``t_max``, the filter
-running over the whole flight as ``jaxslam dataset util-uwb`` does).
+Protocol (docs/datasets.md): the only TWR flight is split in time — fit on the ranges of its
+first ``t_max`` seconds (counted from the first range, as every target's ``--window``; default:
+the first half of the log's span), evaluate on the rest (held-out NLL of the later ranges, and
+the position RMSE of the airborne samples after the split, the filter running over the whole
+flight as ``jaxslam dataset util-uwb`` does).
 """
 
 from __future__ import annotations
@@ -36,7 +37,8 @@ import numpy as np
 
 from ...data import catalogue
 from ...errors import InputError
-from . import Target, _check_keywords, register_target, STUDENT_T_NU, heldout_nll, metrics_entry, window_nll
+from . import (Target, _check_keywords, _check_window, register_target, STUDENT_T_NU, heldout_nll, metrics_entry,
+               window_nll)
 
 __all__ = ["util_flight", "util_noise", "NU"]
 
@@ -69,10 +71,13 @@ def util_noise(loss: str = "nll", data=None, dtype=jnp.float64, t_max: float | N
                anchor_offsets: bool = False, **_ignored):
     """Target ``jaxslam tune util-uwb``: the range-only UTIL filter's noise from its flight.
 
-    ``t_max``: fit on the ranges before this time [s] (default: half of the log's span);
-    the later ranges are held out.  ``anchor_offsets``: also learn per-anchor range offsets.
+    ``t_max``: fit on the ranges of the first ``t_max`` seconds of the flight, counted from its
+    first range (as ``--window`` and the other real-log targets; default: half of the log's
+    span); the later ranges are held out.  ``anchor_offsets``: also learn per-anchor range
+    offsets.
     """
     _check_keywords(_ignored, "util-uwb")
+    t_max = _check_window(t_max)
     from ...data import presets
     from ...systems import util_range as ur
 
@@ -81,12 +86,13 @@ def util_noise(loss: str = "nll", data=None, dtype=jnp.float64, t_max: float | N
     data = catalogue.data_root(data)
     log, t, true, air = util_flight(data, dtype)
     span = float(t[-1] - t[0])
-    t_split = float(t[0] + 0.5 * span) if t_max is None else float(t_max)
+    window = 0.5 * span if t_max is None else t_max  # seconds from the first range
+    t_split = float(t[0] + window)
     held = t >= t_split
     if not (np.sum(~held & air) >= MIN_RANGES and np.sum(held & air) >= MIN_RANGES):
-        raise InputError(f"--window: a fit window of {t_split:g} s leaves {int(np.sum(~held & air))} airborne "
+        raise InputError(f"--window: a fit window of {window:g} s leaves {int(np.sum(~held & air))} airborne "
                          f"ranges to fit and {int(np.sum(held & air))} to hold out ({MIN_RANGES} each needed); the "
-                         f"flight spans {t[0]:.1f}-{t[-1]:.1f} s")
+                         f"flight spans {t[0]:.1f}-{t[-1]:.1f} s ({span:.1f} s; the window counts from its first range)")
     N = int(log.anchor_ids.shape[0])
     base = presets.util_params(preset="hand")  # the start: the hand-set values (util_range.PARAMS)
     theta0 = {"log_noise": jnp.log(jnp.asarray([base.sigma_r, base.q_acc, base.q_bias], dtype))}

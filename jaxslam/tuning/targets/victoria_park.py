@@ -33,7 +33,7 @@ import numpy as np
 
 from ...data import catalogue
 from ...errors import InputError
-from . import Target, _check_keywords, register_target, heldout_nll, metrics_entry, window_nll
+from . import Target, _check_keywords, _check_window, register_target, heldout_nll, metrics_entry, window_nll
 
 __all__ = ["victoria_park_noise"]
 
@@ -62,6 +62,7 @@ def victoria_park_noise(loss: str = "nll", data=None, dtype=jnp.float64, t_max: 
     ``t_max``: the fit window [s] (default 500); the events after it are held out.
     """
     _check_keywords(_ignored, "victoria-park")
+    t_max = _check_window(t_max)
     from ...data import presets, runners
     from ...systems import planar_ekf_slam as pe
 
