@@ -77,7 +77,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import InputError
-from ..linalg import check_int, is_concrete, wrap_angle
+from ..geometry.euler import _as_real_array, _exact_shape, _last_axis
+from ..linalg import check_int, check_mask, check_real, float_array, is_concrete, wrap_angle
 
 __all__ = [
     "Lines",
@@ -122,6 +123,8 @@ def n_hypotheses(p, outlier_ratio, m=2):
     if isinstance(m, bool) or not isinstance(m, (int, np.integer)) or m < 2:
         raise InputError(f"m: expected an integer ≥ 2 (points per sample), got {m!r}")
     good = (1.0 - float(outlier_ratio)) ** int(m)
+    if good >= 1.0:  # ε so small that (1 − ε)^m rounds to 1: the count is < 1 (log1p(−1) raised)
+        return 1
     den = math.log1p(-good)
     if den == 0.0:
         raise InputError(f"n_hypotheses: (1 − ε)^m = {good:.3g} is too small; the count overflows "
@@ -199,14 +202,20 @@ def _wrap_pi(a):
 
 def hesse_normalize(rho, theta):
     """Hesse normal form: if ρ < 0 then ρ → −ρ, θ → θ + π; θ wrapped to (−π, π]."""
-    rho, theta = jnp.asarray(rho), jnp.asarray(theta)
+    rho, theta = _as_real_array(rho, "rho"), _as_real_array(theta, "theta")
     flip = rho < 0
     return jnp.where(flip, -rho, rho), _wrap_pi(jnp.where(flip, theta + jnp.pi, theta))
 
 
 def line_through(p1, p2):
-    """Line ``(ρ, θ)`` through two points ``(2,)``.  Coincident points give a finite, arbitrary line."""
-    p1, p2 = jnp.asarray(p1), jnp.asarray(p2)
+    """Line ``(ρ, θ)`` through two points ``(2,)``.  Coincident points give a finite, arbitrary line.
+
+    Another shape (a (1,) or (3,) point: JAX clamps out-of-range indices, so the missing
+    coordinate was read from a wrong entry) or a complex point is an
+    :class:`~jaxslam.errors.InputError` naming it (static: under ``jit`` too).
+    """
+    p1 = _exact_shape(p1, (2,), "p1", "line_through")
+    p2 = _exact_shape(p2, (2,), "p2", "line_through")
     e = p2 - p1
     theta = jnp.arctan2(e[0], -e[1])  # normal [−e_y, e_x]
     rho = p1[0] * jnp.cos(theta) + p1[1] * jnp.sin(theta)
@@ -214,8 +223,14 @@ def line_through(p1, p2):
 
 
 def point_line_distance(points, rho, theta):
-    """Unsigned distances ``(N,)`` [m] of points ``(N, 2)`` from the line ``p·[cos θ, sin θ] = ρ``."""
-    points = jnp.asarray(points)
+    """Unsigned distances ``(N,)`` [m] of points ``(N, 2)`` from the line ``p·[cos θ, sin θ] = ρ``.
+
+    ``points`` may be any ``(..., 2)`` (one point ``(2,)`` gives a scalar); a last axis of
+    another size (an ``(N, 1)`` array was read as x with y from a clamped index) or a complex
+    argument is an :class:`~jaxslam.errors.InputError` naming it (static).
+    """
+    points = _last_axis(points, 2, "points", "point_line_distance")
+    rho, theta = _as_real_array(rho, "rho"), _as_real_array(theta, "theta")
     return jnp.abs(points[..., 0] * jnp.cos(theta) + points[..., 1] * jnp.sin(theta) - rho)
 
 
@@ -230,24 +245,38 @@ def _moments(points, weights):
     return w, W, c, sxx, syy, sxy
 
 
-def _fit_inputs(points, weights, sigma=None):
-    """Points ``(N, 2)`` as a float array; weights ``(N,)`` (≥ 0 when concrete); σ a scalar (> 0
-    when concrete): :class:`InputError` naming the argument.  Shapes are static (free under
-    ``jit``): a (1,) weight broadcast over every point, an (N, 3) scan lost its third column."""
-    points = jnp.asarray(points)
+def _points_weights(points, weights):
+    """Points ``(N, 2)`` as a float array and weights of shape ``(N,)``, both real, else
+    :class:`InputError` naming the argument.  Static checks (free under ``jit``): a (1,) weight
+    broadcast over every point, an (N, 3) scan lost its third column, a complex array dropped
+    its imaginary part with only a warning."""
+    check_real(points, "points")
+    points = float_array(points, "points")
     if points.ndim != 2 or points.shape[1] != 2:
         raise InputError(f"points: expected shape (N, 2), got {tuple(points.shape)}")
-    if not jnp.issubdtype(points.dtype, jnp.floating):
-        points = points.astype(jnp.result_type(float))
+    check_real(weights, "weights")
     if np.shape(weights) != points.shape[:1]:
         raise InputError(f"weights: expected shape ({points.shape[0]},) (one per point), got {np.shape(weights)}")
-    if is_concrete(weights) and np.any(np.asarray(weights) < 0):
-        raise InputError("weights: must be >= 0")
+    return points
+
+
+def _fit_inputs(points, weights, sigma=None):
+    """Points ``(N, 2)`` as a float array; weights ``(N,)`` (finite and ≥ 0 when concrete); σ a
+    scalar (finite and > 0 when concrete): :class:`InputError` naming the argument
+    (:func:`_points_weights` for the static checks)."""
+    points = _points_weights(points, weights)
+    if is_concrete(weights):
+        w = np.asarray(weights)
+        if np.any(w < 0):
+            raise InputError("weights: must be >= 0")
+        if not np.all(np.isfinite(w)):  # NaN passed the test above, and NaN or inf made the fit NaN
+            raise InputError("weights: must be finite (got NaN or inf)")
     if sigma is not None:
+        check_real(sigma, "sigma")
         if np.shape(sigma) != ():
             raise InputError(f"sigma: expected a scalar point noise σ [m], got shape {np.shape(sigma)}")
-        if is_concrete(sigma) and not float(np.asarray(sigma)) > 0:
-            raise InputError(f"sigma: expected a point noise σ > 0 [m], got {sigma!r}")
+        if is_concrete(sigma) and not 0 < float(np.asarray(sigma)) < np.inf:
+            raise InputError(f"sigma: expected a point noise σ > 0 [m] (finite), got {sigma!r}")
     return points
 
 
@@ -274,23 +303,42 @@ def _cov_about(points, w, W, c, rho, theta, sigma):
     sbar = c @ d
     u = (points - c) @ d
     suu = jnp.sum(w * u * u)
-    tiny = jnp.finfo(points.dtype).tiny
+    finfo = jnp.finfo(points.dtype)
+    # Fewer than two distinct weighted points (to working precision): the weighted spread
+    # along the line is within a few ulp of the centroid's coordinates (h [m²]), or W = 0.
+    # A⁻¹ then overflowed (one point: [[-inf, inf], [inf, 0]]; two identical points: NaN).
+    h = (4 * finfo.eps) ** 2 * jnp.maximum(c @ c, 1.0)
+    deg = suu <= W * h
     # A = [[W, −W s̄], [−W s̄, W s̄² + Σwu²]] (ρ, θ order), det A = W Σwu².
-    det = jnp.maximum(W * suu, tiny)
+    det = jnp.where(deg, 1.0, jnp.maximum(W * suu, finfo.tiny))  # double where: finite gradients
     Ainv = jnp.stack([jnp.stack([W * sbar**2 + suu, W * sbar]), jnp.stack([W * sbar, W])]) / det
     s = sbar + u
     w2 = w * w
     B = jnp.stack([jnp.stack([jnp.sum(w2), -jnp.sum(w2 * s)]),
                    jnp.stack([-jnp.sum(w2 * s), jnp.sum(w2 * s * s)])])
     cov = (sigma**2) * (Ainv @ B @ Ainv)
-    return 0.5 * (cov + cov.T)
+    cov = 0.5 * (cov + cov.T)
+    # Degenerate: the unit-weight variances about the centroid (module docstring) with Σu² := h and
+    # s̄² := max(|c̄|², 1), scaled by Σw²/W² (1 for W = 0), without the correlation: huge but
+    # finite (≤ σ²/(16 eps²)) and positive definite in every dtype (the correlated form's
+    # condition number, ~1/(16 eps²), rounded it indefinite in float32).
+    Wd = jnp.where(W > 0, W, 1.0)
+    r = jnp.where(W > 0, jnp.sum(w2) / (Wd * Wd), 1.0)
+    z = jnp.zeros_like(h)
+    var_rho = 1.0 + 1.0 / (4 * finfo.eps) ** 2  # 1 + max(|c̄|², 1)/h
+    cov_deg = (sigma**2) * r * jnp.stack([jnp.stack([var_rho, z]), jnp.stack([z, 1.0 / h])])
+    return jnp.where(deg, cov_deg, cov)
 
 
 def fit_line_cov(points, weights, sigma):
     """First-order covariance ``(2, 2)`` of :func:`fit_line`'s ``(ρ, θ)`` under isotropic point noise σ [m].
 
-    ``σ² A⁻¹ B A⁻¹`` (module docstring).  Fewer than two distinct weighted points give a huge
-    but finite covariance.
+    ``σ² A⁻¹ B A⁻¹`` (module docstring).  Fewer than two distinct weighted points (a spread along
+    the line within a few ulp of the centroid's coordinates, or zero total weight) give a huge but
+    finite covariance, ``σ² (Σw²/W²) diag(1 + 1/(16 eps²), 1/h)`` with ``h = (4 eps)² max(|c̄|², 1 m²)``
+    (``c̄`` the weighted centroid, ``eps`` of the dtype; ``Σw²/W²`` read as 1 for W = 0): positive
+    definite, ``var θ`` ≈ ``σ²/(16 eps² |c̄|²)``.  Concrete weights must be finite and ≥ 0, σ finite
+    and > 0 (:class:`~jaxslam.errors.InputError`).
     """
     points = _fit_inputs(points, weights, sigma)
     rho, theta = _fit_line(points, weights)
@@ -302,9 +350,11 @@ def segment_endpoints(points, weights, rho, theta):
     """Endpoints ``(2, 2)`` [m] of the segment spanned by the points with weight > 0 on the line.
 
     The extreme projections of those points onto the line, ordered along ``[−sin θ, cos θ]``.
-    No such point → zeros.
+    No such point → zeros.  ``points`` ``(N, 2)`` and ``weights`` ``(N,)`` real (static checks,
+    as :func:`fit_line`: a (1,) weight broadcast over every point).
     """
-    points = jnp.asarray(points)
+    points = _points_weights(points, weights)
+    rho, theta = _as_real_array(rho, "rho"), _as_real_array(theta, "theta")
     m = jnp.asarray(weights) > 0
     n = jnp.stack([jnp.cos(theta), jnp.sin(theta)])
     d = jnp.stack([-jnp.sin(theta), jnp.cos(theta)])
@@ -320,14 +370,14 @@ def segment_endpoints(points, weights, rho, theta):
 
 
 def _prepare(points, valid):
-    points = jnp.asarray(points)
-    if not jnp.issubdtype(points.dtype, jnp.floating):
-        points = points.astype(jnp.result_type(float))
+    check_real(points, "points")  # a complex scan dropped its imaginary part with only a warning
+    points = float_array(points, "points")
     if points.ndim != 2 or points.shape[1] != 2:
         raise InputError(f"points: expected shape (N, 2), got {points.shape}")
+    if np.shape(valid) != points.shape[:1]:
+        raise InputError(f"valid: expected shape ({points.shape[0]},), got {np.shape(valid)}")
+    check_mask(valid, "valid")  # a float 0.3 or NaN, an integer 2, counted as a valid point
     valid = jnp.asarray(valid)
-    if valid.shape != points.shape[:1]:
-        raise InputError(f"valid: expected shape ({points.shape[0]},), got {valid.shape}")
     if points.shape[0] == 0:  # a static size: nothing to sample or search (N = 0 would index nothing)
         raise InputError("points: expected at least one point (N >= 1; mark missing returns with valid), "
                          "got shape (0, 2)")
@@ -340,11 +390,14 @@ def largest_run(mask, max_gap):
 
     A wall is seen as one run of consecutive beams; scattered clutter that happens to lie
     within the inlier threshold of a line's infinite extension is not part of that run.
-    Ties go to the first run.  An all-False mask returns all False.
+    Ties go to the first run.  An all-False mask returns all False, an empty one an empty mask.
+    ``mask``: bool (or 0/1 integers), one axis (:class:`~jaxslam.errors.InputError` otherwise).
     """
     max_gap = check_int(max_gap, "max_gap", lower=0)
-    mask = jnp.asarray(mask, bool)
+    mask = _run_mask(mask)
     n = mask.shape[0]
+    if n == 0:  # nothing to search (argmax of an empty array raised a bare ValueError)
+        return mask
     idx = jnp.arange(n)
     last = jax.lax.cummax(jnp.where(mask, idx, -1))
     prev = jnp.concatenate([jnp.full((1,), -1, last.dtype), last[:-1]])
@@ -355,11 +408,39 @@ def largest_run(mask, max_gap):
 
 
 def trim_run(mask, k):
-    """``mask`` without its first and last ``k`` True entries (all False if ≤ 2k are True)."""
+    """``mask`` without its first and last ``k`` True entries (all False if ≤ 2k are True).
+
+    ``mask`` as :func:`largest_run` (an empty one comes back empty).
+    """
     k = check_int(k, "k", lower=0)
-    mask = jnp.asarray(mask, bool)
+    mask = _run_mask(mask)
+    if mask.shape[0] == 0:  # rank[-1] of nothing raised a bare IndexError
+        return mask
     rank = jnp.cumsum(mask)
     return mask & (rank > k) & (rank <= rank[-1] - k)
+
+
+def _run_mask(mask):
+    """``mask`` (N,) as a bool array; another rank or a non-mask dtype or value is an
+    :class:`InputError` (a 2-D mask was flattened by ``cumsum``; a float 0.5 read as True)."""
+    if np.ndim(mask) != 1:
+        raise InputError(f"mask: expected shape (N,), got {np.shape(mask)}")
+    check_mask(mask, "mask")
+    return jnp.asarray(mask, bool)
+
+
+def _check_key(key):
+    """:class:`InputError` unless ``key`` is a PRNG key: a typed key (``jax.random.key``) or the
+    raw uint32 key data of ``jax.random.PRNGKey`` (static: dtype and rank; an int seed raised
+    JAX's bare ``TypeError`` from inside the sampler)."""
+    dt = getattr(key, "dtype", None)
+    if dt is not None and jax.dtypes.issubdtype(dt, jax.dtypes.prng_key):
+        if np.ndim(key) == 0:
+            return
+    elif dt is not None and np.dtype(dt) == np.uint32 and np.ndim(key) == 1:
+        return
+    raise InputError(f"key: expected a PRNG key (jax.random.PRNGKey(seed) or jax.random.key(seed)), "
+                     f"got {key!r}"[:300])
 
 
 def _in_run(mask, cfg):
@@ -434,8 +515,13 @@ def extract_lines(key, points, valid, cfg=DEFAULT_RANSAC):
     Returns:
       ``(lines, remaining)``: :class:`Lines` with ``L = cfg.max_lines`` slots in extraction order,
       and the ``(N,)`` mask of valid points no line took.
+
+    Raises:
+      InputError: a bad ``cfg``, ``key`` (not a PRNG key), ``points`` (not real ``(N, 2)``,
+        N ≥ 1) or ``valid`` (not a bool / 0-1 mask of shape ``(N,)``).
     """
     check_ransac_config(cfg)
+    _check_key(key)
     pts, remaining = _prepare(points, valid)
 
     def dead(remaining, k):
@@ -472,7 +558,7 @@ def match_predicted(points, valid, pred_rho, pred_theta, pred_mask, cfg=DEFAULT_
     Args:
       points, valid: as :func:`extract_lines`.
       pred_rho, pred_theta: ``(M,)`` predicted lines in the scan frame (Hesse form).
-      pred_mask: ``(M,)`` bool, False for unused prediction slots.
+      pred_mask: ``(M,)`` bool (or 0/1 integers), False for unused prediction slots.
       cfg: :class:`RansacConfig` (static).  gate: [m], traced.
 
     Returns:
@@ -482,6 +568,9 @@ def match_predicted(points, valid, pred_rho, pred_theta, pred_mask, cfg=DEFAULT_
     check_ransac_config(cfg)
     pts, remaining = _prepare(points, valid)
     dt = pts.dtype
+    check_real(pred_rho, "pred_rho")
+    check_real(pred_theta, "pred_theta")
+    check_mask(pred_mask, "pred_mask")  # a float 0.2 counted as a prediction in use
     pred_rho = jnp.asarray(pred_rho, dt)
     pred_theta = jnp.asarray(pred_theta, dt)
     pred_mask = jnp.asarray(pred_mask, bool)
@@ -523,6 +612,7 @@ def extract_guided(key, points, valid, pred_rho, pred_theta, pred_mask, cfg=DEFA
     Returns ``(matched, new, remaining)``: Lines (M) aligned with the predictions, Lines
     (``cfg.max_lines``) of new features, and the ``(N,)`` mask of points neither took.
     """
+    _check_key(key)  # before the matching runs
     matched, remaining = match_predicted(points, valid, pred_rho, pred_theta, pred_mask, cfg, gate)
     new, remaining = extract_lines(key, points, remaining, cfg)
     return matched, new, remaining

@@ -38,10 +38,12 @@ matrices (..., 3, 3)), are jit/vmap/grad-safe and follow the input dtype.
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ..errors import InputError
-from ..linalg import float_array
+from ..linalg import check_numbers, check_real, float_array, is_concrete
 
 __all__ = [
     "C1",
@@ -56,12 +58,24 @@ __all__ = [
 ]
 
 
+def _as_real_array(x, label: str):
+    """``x`` as a JAX array of real numbers: a complex dtype (static, refused under ``jit`` too:
+    the result came back complex, or a cast dropped the imaginary part with only a warning) or a
+    concrete non-number (a string, None: a bare JAX ``TypeError`` before) is an
+    :class:`~jaxslam.errors.InputError` naming ``label``.  The dtype is kept."""
+    check_real(x, label)
+    if not isinstance(x, (jax.Array, np.ndarray)) and is_concrete(x):
+        check_numbers(x, label)
+    return jnp.asarray(x)
+
+
 def _last_axis(x, n, name: str, fn: str | None = None):
-    """``x`` as an array whose trailing axes have the sizes ``n`` (an int: the last axis; a tuple:
-    e.g. (3, 3) for matrices), checked statically (free under ``jit``); else
+    """``x`` as a real array whose trailing axes have the sizes ``n`` (an int: the last axis; a
+    tuple: e.g. (3, 3) for matrices), checked statically (free under ``jit``); else
     :class:`~jaxslam.errors.InputError` naming ``fn``'s argument (a (3,) quaternion used to
-    be read as q0..q2 with q3 taken from a wrapped index, and return a plausible answer)."""
-    x = jnp.asarray(x)
+    be read as q0..q2 with q3 taken from a wrapped index, and return a plausible answer; a
+    complex array came back complex)."""
+    x = _as_real_array(x, name if fn is None else f"{fn}: {name}")
     dims = (n,) if isinstance(n, int) else tuple(n)
     if x.ndim < len(dims) or tuple(x.shape[x.ndim - len(dims):]) != dims:
         raise InputError(f"{'' if fn is None else fn + ': '}{name}{':' if fn is None else ''} expected shape "
@@ -83,8 +97,8 @@ def _inexact(x, name: str = "x"):
 
 def _exact_shape(x, shape: tuple, name: str, fn: str):
     """``x`` as an array of exactly ``shape`` (e.g. a single 3-vector (3,)), else InputError
-    naming ``fn``'s argument."""
-    x = jnp.asarray(x)
+    naming ``fn``'s argument (a complex one too)."""
+    x = _as_real_array(x, f"{fn}: {name}")
     if x.shape != shape:
         raise InputError(f"{fn}: {name} expected shape {shape}, got {tuple(x.shape)}")
     return x
@@ -108,7 +122,7 @@ def C1(phi):
     ``phi``: (...) radians.  Returns (..., 3, 3)
     [[1, 0, 0], [0, cφ, −sφ], [0, sφ, cφ]].
     """
-    phi = jnp.asarray(phi)
+    phi = _as_real_array(phi, "C1: phi")
     c, s = jnp.cos(phi), jnp.sin(phi)
     o, z = jnp.ones_like(c), jnp.zeros_like(c)
     return _mat([[o, z, z], [z, c, -s], [z, s, c]])
@@ -120,7 +134,7 @@ def C2(theta):
     ``theta``: (...) radians.  Returns (..., 3, 3)
     [[cθ, 0, sθ], [0, 1, 0], [−sθ, 0, cθ]].
     """
-    theta = jnp.asarray(theta)
+    theta = _as_real_array(theta, "C2: theta")
     c, s = jnp.cos(theta), jnp.sin(theta)
     o, z = jnp.ones_like(c), jnp.zeros_like(c)
     return _mat([[c, z, s], [z, o, z], [-s, z, c]])
@@ -132,7 +146,7 @@ def C3(psi):
     ``psi``: (...) radians.  Returns (..., 3, 3)
     [[cψ, −sψ, 0], [sψ, cψ, 0], [0, 0, 1]].
     """
-    psi = jnp.asarray(psi)
+    psi = _as_real_array(psi, "C3: psi")
     c, s = jnp.cos(psi), jnp.sin(psi)
     o, z = jnp.ones_like(c), jnp.zeros_like(c)
     return _mat([[c, -s, z], [s, c, z], [z, z, o]])

@@ -28,6 +28,18 @@ Decisions (where the sources are silent or inconsistent):
   θ = ±90°).
 * ``qlog`` accepts non-unit quaternions (the angle is atan2-based, so the
   norm drops out); ``qrotate`` and ``dcm_from_quat`` assume unit norm.
+  ``qnormalize`` and ``qlog`` first divide q by the power of two at or below
+  max|q_k| (exact: the result for an ordinary q is unchanged to the last bit),
+  so a finite non-zero q of any magnitude works (float32 at 1e±20 used to
+  overflow or underflow the squared norm: zeros, NaN or a zero log).
+* A zero quaternion has no rotation: given a concrete one (all four entries
+  0), ``qnormalize``, ``qrotate``, ``dcm_from_quat``, ``euler_from_quat`` and
+  ``qlog`` raise :class:`~jaxslam.errors.InputError` naming the argument, and
+  ``quat_from_dcm`` refuses an all-zero matrix (they returned NaN, v itself, a
+  zero matrix, zero angles or the identity).  Under ``jit`` / ``vmap`` /
+  ``grad`` the values are not known and nothing is checked.
+* A complex input is refused everywhere (:func:`jaxslam.linalg.check_real`;
+  the dtype is static, so under ``jit`` too).
 
 All functions accept leading batch dimensions (quaternions (..., 4), vectors
 (..., 3), matrices (..., 3, 3)); binary operations broadcast their batch
@@ -36,8 +48,12 @@ dimensions.  Everything is jit/vmap/grad-safe and follows the input dtype.
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
+import numpy as np
 
+from ..errors import InputError
+from ..linalg import is_concrete
 from .euler import _inexact, _last_axis, _matrix33, euler_from_dcm
 
 __all__ = [
@@ -62,6 +78,71 @@ def _small_threshold(dtype):
     closed form away from the cancellation that spoils its gradient near 0.
     """
     return jnp.sqrt(jnp.finfo(dtype).eps)
+
+
+_INT_OF_SIZE = {2: jnp.int16, 4: jnp.int32, 8: jnp.int64}
+
+
+@jax.jit
+def _pow2_scaled(q):
+    """``q`` (..., 4) times 2^−e, 2^e the power of two at or below max_k |q_k| (unscaled where that
+    is 0, subnormal or not finite).  Scaling by a power of two is exact, so every later step
+    (squares, sums, square roots, quotients, atan2) sees the same mantissas and the result of an
+    ordinary quaternion is unchanged to the last bit, while the squared norm of a finite q of
+    any magnitude neither overflows nor underflows.  2^−e is applied as two normal factors
+    (2^−127 alone is subnormal in float32, and XLA flushes subnormals to zero).  The scale
+    carries no derivative (it is piecewise constant): d(q 2^−e)/dq = 2^−e exactly."""
+    m = jax.lax.stop_gradient(jnp.max(jnp.abs(q), axis=-1, keepdims=True))
+    info = jnp.finfo(q.dtype)
+    itype = _INT_OF_SIZE[np.dtype(q.dtype).itemsize]
+    emask, bias = (1 << info.nexp) - 1, int(info.maxexp) - 1
+    E = (jax.lax.bitcast_convert_type(m, itype) >> info.nmant) & emask  # biased exponent of m
+    e = jnp.where((E > 0) & (E < emask), E - bias, 0)  # zero, subnormal, inf, NaN: no scaling
+
+    def pow2(k):  # 2^k for |k| <= bias / 2 + 1 (always a normal number)
+        return jax.lax.bitcast_convert_type(((k + bias) << info.nmant).astype(itype), q.dtype)
+
+    a = (-e) // 2
+    return q * pow2(a) * pow2(-e - a)
+
+
+_SAFE_RANGE = {}  # dtype -> (2^−e, 2^e), e = maxexp / 4: no squared norm over- or underflows
+
+
+def _safe_range(dtype):
+    r = _SAFE_RANGE.get(dtype)
+    if r is None:
+        e = float(jnp.finfo(dtype).maxexp // 4) if jnp.issubdtype(dtype, jnp.floating) else np.inf
+        r = _SAFE_RANGE[dtype] = (2.0 ** -e, 2.0 ** e)
+    return r
+
+
+def _checked(q, name: str, fn: str):
+    """``(q, rescale)``: :class:`InputError` when the concrete (..., 4) ``q`` holds a zero
+    quaternion (all four entries 0: no rotation).  ``rescale`` is False when q is concrete and
+    every max_k |q_k| lies in [2^−e, 2^e], e = maxexp/4 of its dtype (any non-zero value for an
+    integer dtype), where the squared norm can neither overflow nor underflow:
+    :func:`_pow2_scaled` would change nothing there, and an eager call saves its dispatch.  A
+    traced ``q`` passes (its values are not known) and is always rescaled (exactly).  A few
+    NumPy operations on the host: no JAX dispatch."""
+    if not is_concrete(q):
+        return q, True
+    a = np.asarray(q)
+    m = np.abs(a).max(axis=-1)
+    lo, hi = _safe_range(a.dtype)
+    if lo <= m <= hi if a.ndim == 1 else (m >= lo).all() and (m <= hi).all():
+        return q, False  # the usual case: no zero, nothing to rescale
+    zero = m == 0  # NaN is not zero (it stays NaN)
+    if zero.any():
+        i = tuple(int(j) for j in np.argwhere(zero)[0]) if zero.ndim else ()
+        raise InputError(f"{fn}: {name} is a zero quaternion{f' (at index {i})' if i else ''}: "
+                         "it has no rotation")
+    return q, True
+
+
+def _nonzero(q, name: str, fn: str):
+    """``q``; :class:`InputError` when it is a concrete zero quaternion (:func:`_checked`)."""
+    return _checked(q, name, fn)[0]
 
 
 def qmul(p, q):
@@ -93,8 +174,18 @@ def qconj(q):
 
 
 def qnormalize(q):
-    """q / ‖q‖ along the last axis.  (..., 4); undefined for q = 0."""
-    q = _last_axis(q, 4, "q", "qnormalize")
+    """q / ‖q‖ along the last axis.  (..., 4); undefined for q = 0.
+
+    Any finite non-zero magnitude (q is first divided by a power of two near max|q_k|, exactly).
+    A concrete zero quaternion is an :class:`~jaxslam.errors.InputError`.
+    """
+    q, rescale = _checked(_last_axis(q, 4, "q", "qnormalize"), "q", "qnormalize")
+    return _normalize(q, rescale)
+
+
+def _normalize(q, rescale: bool = True):
+    if rescale and jnp.issubdtype(q.dtype, jnp.floating):
+        q = _pow2_scaled(q)
     return q / jnp.linalg.norm(q, axis=-1, keepdims=True)
 
 
@@ -112,9 +203,10 @@ def qrotate(q, v):
 
     ``q``: (..., 4) unit quaternion; ``v``: (..., 3) (broadcast).  Returns
     (..., 3) = q ⊗ [0, v] ⊗ q*, computed as v + q0 t + q_v × t with
-    t = 2 q_v × v (no 3×3 matrix is formed).
+    t = 2 q_v × v (no 3×3 matrix is formed).  A concrete zero ``q`` is an
+    :class:`~jaxslam.errors.InputError` (it returned v unrotated).
     """
-    q = _last_axis(q, 4, "q", "qrotate")
+    q = _nonzero(_last_axis(q, 4, "q", "qrotate"), "q", "qrotate")
     v = _last_axis(v, 3, "v", "qrotate")
     qv = q[..., 1:]
     qv, v = jnp.broadcast_arrays(qv, v)
@@ -126,9 +218,14 @@ def dcm_from_quat(q):
     """Rotation matrix C_NB of a unit quaternion (Hamilton, scalar first).
 
     ``q``: (..., 4).  Returns (..., 3, 3) =
-    (q0² − |q_v|²) I + 2 q_v q_vᵀ + 2 q0 [q_v]×.
+    (q0² − |q_v|²) I + 2 q_v q_vᵀ + 2 q0 [q_v]×.  A concrete zero ``q`` is an
+    :class:`~jaxslam.errors.InputError` (it returned the zero matrix).
     """
-    q = _last_axis(q, 4, "q", "dcm_from_quat")
+    q = _nonzero(_last_axis(q, 4, "q", "dcm_from_quat"), "q", "dcm_from_quat")
+    return _dcm(q)
+
+
+def _dcm(q):
     w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
     ww, xx, yy, zz = w * w, x * x, y * y, z * z
     xy, xz, yz = x * y, x * z, y * z
@@ -149,9 +246,16 @@ def quat_from_dcm(C):
     the diagonal) is taken from a square root and the other three from
     off-diagonal sums/differences divided by it, so no branch divides by a
     small number; branches are selected with ``jnp.where`` (jit/vmap-safe,
-    finite gradients).
+    finite gradients).  A concrete all-zero matrix (no rotation: it returned the identity) is an
+    :class:`~jaxslam.errors.InputError`.
     """
     C = _inexact(_matrix33(C, "C", "quat_from_dcm"))
+    if is_concrete(C):
+        zero = ~np.any(np.asarray(C) != 0, axis=(-2, -1))
+        if zero.any():
+            i = tuple(int(j) for j in np.argwhere(zero)[0])
+            raise InputError(f"quat_from_dcm: C is a zero matrix{f' (at index {i})' if i else ''}, "
+                             "not a rotation")
     c00, c01, c02 = C[..., 0, 0], C[..., 0, 1], C[..., 0, 2]
     c10, c11, c12 = C[..., 1, 0], C[..., 1, 1], C[..., 1, 2]
     c20, c21, c22 = C[..., 2, 0], C[..., 2, 1], C[..., 2, 2]
@@ -177,7 +281,7 @@ def quat_from_dcm(C):
         comps = [r * 0.5 if d is None else d / (2.0 * r) for d in rows]
         cands.append(jnp.where(chosen[..., None], jnp.stack(comps, axis=-1), 0.0))
     q = cands[0] + cands[1] + cands[2] + cands[3]
-    return qcanonical(qnormalize(q))
+    return qcanonical(_normalize(q))
 
 
 def quat_from_euler(euler):
@@ -207,9 +311,11 @@ def euler_from_quat(q):
     """3-2-1 Euler angles [φ, θ, ψ] of a unit quaternion.  (..., 4) -> (..., 3).
 
     Through :func:`dcm_from_quat` and :func:`euler_from_dcm` (same ranges and
-    gimbal-lock convention: φ = 0 at θ = ±90°).
+    gimbal-lock convention: φ = 0 at θ = ±90°).  A concrete zero ``q`` is an
+    :class:`~jaxslam.errors.InputError` (it returned zero angles).
     """
-    return euler_from_dcm(dcm_from_quat(q))
+    q = _last_axis(q, 4, "q", "dcm_from_quat")  # the wording tests/geometry asserts on
+    return euler_from_dcm(_dcm(_nonzero(q, "q", "euler_from_quat")))
 
 
 def qexp(rotvec):
@@ -237,13 +343,17 @@ def qexp(rotvec):
 def qlog(q):
     """Logarithm map: quaternion -> shortest rotation vector.  Paper 004 app. A.
 
-    ``q``: (..., 4), any non-zero norm.  Returns (..., 3) = θ u with
+    ``q``: (..., 4), any finite non-zero norm (q is first divided by a power of two near
+    max|q_k|, exactly).  Returns (..., 3) = θ u with
     θ = 2 atan2(|q_v|, |q0|) ∈ [0, π] (q and −q give the same result).  A
     Taylor branch near the identity keeps values and gradients finite; near
     q0 = 0 (θ ≈ π) the atan2 form is smooth.  At q0 = 0 exactly the result
-    jumps between ±π u (inherent to the double cover).
+    jumps between ±π u (inherent to the double cover).  A concrete zero ``q``
+    is an :class:`~jaxslam.errors.InputError` (it returned NaN).
     """
-    q = qcanonical(_inexact(_last_axis(q, 4, "q", "qlog")))
+    q, rescale = _checked(_last_axis(q, 4, "q", "qlog"), "q", "qlog")
+    q = _inexact(q)
+    q = qcanonical(_pow2_scaled(q) if rescale else q)
     w = q[..., 0]
     v = q[..., 1:]
     n2 = jnp.sum(v * v, axis=-1)
