@@ -48,9 +48,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..dynamics._checks import as_scalar, check_last_dim, real_float
 from ..errors import InputError
 from ..geometry.euler import dcm_from_euler
-from ..linalg import check_int, check_numbers, check_scalar, check_shape, is_concrete
+from ..linalg import check_int, check_numbers, check_real, check_scalar, is_concrete
 
 __all__ = [
     "G_IMU",
@@ -175,8 +176,10 @@ def check_imu_spec(spec: ImuSpec, name: str = "spec") -> ImuSpec:
 # ---------------------------------------------------------------------------
 
 def _check_x_xdot(x, xdot):
-    check_shape(x, (12,), "x")
-    check_shape(xdot, (12,), "xdot")
+    """``x`` and ``xdot`` as real floating (12,) arrays: an integer state becomes JAX's default
+    float (it used to cast g to int: 9.81 read as 9), a complex one is refused, a list is
+    converted; a float dtype is kept."""
+    return real_float(x, "x", (12,)), real_float(xdot, "xdot", (12,))
 
 
 def kinematic_accel(x, xdot):
@@ -190,7 +193,7 @@ def kinematic_accel(x, xdot):
       (3,) a_B = v̇_B + ω_B × v_B [m/s²] (equal to C_NBᵀ ρ̈_N because ρ̇ = C_NB v_B).
       Zero in hover: paper 001's accelerometer form, kept for reproduction.
     """
-    _check_x_xdot(x, xdot)
+    x, xdot = _check_x_xdot(x, xdot)
     v = x[3:6]
     w = x[9:12]
     return xdot[3:6] + jnp.cross(w, v)
@@ -207,12 +210,27 @@ def specific_force(x, xdot, g):
     Returns:
       (3,) f_B [m/s²].  Hover gives [0, 0, −g]; under eq. 2 without drag it equals
       [0, 0, −f_T/m], whose third entry is eq. 25's ã_z.
+
+    Raises :class:`~jaxslam.errors.InputError` when ``g`` is not one real number (a (3,) gravity
+    vector was applied elementwise to the third row of C_NB) or, when known, not finite.
     """
+    x, xdot = _check_x_xdot(x, xdot)
     a_b = kinematic_accel(x, xdot)
     C = dcm_from_euler(x[6:9])
-    g = jnp.asarray(g, dtype=a_b.dtype)
+    g = _gravity(g, a_b.dtype)
     # C_NBᵀ n̂3 is the third row of C_NB.
     return a_b - g * C[2, :]
+
+
+def _gravity(g, dtype):
+    """Scalar gravity ``g`` as an array of ``dtype`` (:func:`~jaxslam.dynamics._checks.as_scalar`:
+    one real number); a concrete non-finite value is an InputError naming ``g``."""
+    if np.ndim(g) != 0:
+        raise InputError(f"g: expected a scalar gravity [m/s²] along +n3, got shape {np.shape(g)}")
+    g = as_scalar(g, dtype, "g")
+    if is_concrete(g) and not np.isfinite(np.asarray(g)):
+        raise InputError(f"g: expected a finite gravity [m/s²], got {g}")
+    return g
 
 
 def imu_ideal(x, xdot, g, mode: str = "specific_force"):
@@ -232,6 +250,7 @@ def imu_ideal(x, xdot, g, mode: str = "specific_force"):
     """
     if mode not in _MODES:
         raise InputError(f"mode: expected one of {_MODES}, got {mode!r}")
+    x, xdot = _check_x_xdot(x, xdot)
     if mode == "specific_force":
         acc = specific_force(x, xdot, g)
     else:
@@ -272,7 +291,17 @@ def _sigma6(spec: ImuSpec, dtype):
 
 
 def _default_dtype(dtype):
-    return jnp.result_type(float) if dtype is None else jnp.dtype(dtype)
+    """``dtype`` (default: JAX's default float); a non-floating one is an InputError naming
+    ``dtype`` (an int32 covariance of σ² ≈ 1e-5 read as all zeros)."""
+    if dtype is None:
+        return jnp.result_type(float)
+    try:
+        dt = jnp.dtype(dtype)
+    except TypeError:
+        raise InputError(f"dtype: expected a floating dtype, got {dtype!r}") from None
+    if not jnp.issubdtype(dt, jnp.floating):
+        raise InputError(f"dtype: expected a floating dtype, got {dt}")
+    return dt
 
 
 def _std_normal(key, shape, dtype):
@@ -331,6 +360,7 @@ def _b6(v, dtype):
 
 def drift_stationary_sigma(spec: ImuSpec, dtype=None):
     """(6,) stationary std of b1: σ_w·√(τ/2) (paper 001 eq. 8, 10); ∞ where τ = ∞ and σ_w > 0."""
+    spec = _spec(spec)  # a negative τ gave NaN, which bias_drift_init read as no drift
     dtype = _default_dtype(dtype)
     tau = _b6(spec.drift_tau, dtype)
     dens = _b6(spec.drift_density, dtype)
@@ -354,24 +384,54 @@ def drift_transition(spec: ImuSpec, dt, method: str = "exact", dtype=None):
     """
     if method not in ("exact", "euler"):
         raise InputError(f"method: expected 'exact' or 'euler', got {method!r}")
+    a, q, _ = _drift(spec, dt, method, dtype)
+    return a, q
+
+
+def _drift(spec: ImuSpec, dt, method: str, dtype):
+    """:func:`drift_transition`'s ``(a, q)`` and the driving-noise std ``√q``.
+
+    ``√q`` is ``jnp.sqrt(q)`` wherever q > 0; where q = 0 (no drift noise: σ_w = 0, the
+    default) it is |σ_w|·√(Δt·ratio), the same value, whose derivative in σ_w is finite
+    (``sqrt``'s is infinite at 0, so ``grad`` w.r.t. ``drift_density`` at 0 was NaN).
+    """
     spec = _spec(spec)
+    check_real(dt, "dt")
     if np.ndim(dt) != 0 or (is_concrete(dt) and not float(np.asarray(dt)) >= 0):  # NaN included
         raise InputError(f"dt: expected a step >= 0 [s] (a scalar), got {dt!r}")
     if dtype is None:
         dtype = dt.dtype if (hasattr(dt, "dtype") and jnp.issubdtype(dt.dtype, jnp.floating)) \
             else _default_dtype(None)
+    else:
+        dtype = _default_dtype(dtype)  # an int dtype truncated dt, τ and σ_w
     dt = jnp.asarray(dt, dtype=dtype)
     tau = _b6(spec.drift_tau, dtype)
     dens = _b6(spec.drift_density, dtype)
     x = dt / tau  # 0 where τ = ∞
     if method == "euler":
-        return 1.0 - x, dens * dens * dt
-    a = jnp.exp(-x)
-    # (1 − e^{−2x})/(2x) → 1 as x → 0; expm1 keeps it accurate for Δt ≪ τ.
-    two_x = 2.0 * x
-    safe = jnp.where(two_x > 0, two_x, 1.0)
-    ratio = jnp.where(two_x > 0, -jnp.expm1(-safe) / safe, 1.0)
-    return a, dens * dens * dt * ratio
+        q = dens * dens * dt
+        ratio = jnp.ones_like(x)
+        a = 1.0 - x
+    else:
+        a = jnp.exp(-x)
+        # (1 − e^{−2x})/(2x) → 1 as x → 0; expm1 keeps it accurate for Δt ≪ τ.
+        two_x = 2.0 * x
+        safe = jnp.where(two_x > 0, two_x, 1.0)
+        ratio = jnp.where(two_x > 0, -jnp.expm1(-safe) / safe, 1.0)
+        q = dens * dens * dt * ratio
+    pos = q > 0
+    root = jnp.where(pos, jnp.sqrt(jnp.where(pos, q, 1.0)), jnp.abs(dens) * jnp.sqrt(dt * ratio))
+    return a, q, root
+
+
+def _drift_state(state) -> BiasDriftState:
+    """``state`` with real floating (..., 6) fields (a list or an int state is converted; a
+    complex or a (5,) one is an InputError naming the field)."""
+    if not isinstance(state, BiasDriftState):
+        raise InputError(f"state: expected a BiasDriftState, got {type(state).__name__}")
+    bias = check_last_dim(real_float(state.bias, "state.bias"), 6, "state.bias")
+    drift = check_last_dim(real_float(state.drift, "state.drift"), 6, "state.drift")
+    return BiasDriftState(bias=bias, drift=drift)
 
 
 def bias_drift_init(key, spec: ImuSpec, dtype=None, stationary: bool = True, shape_prefix=()):
@@ -388,6 +448,7 @@ def bias_drift_init(key, spec: ImuSpec, dtype=None, stationary: bool = True, sha
 
     Returns a :class:`BiasDriftState` of (*shape_prefix, 6) arrays of ``dtype``.
     """
+    spec = _spec(spec)  # a NaN bias or a (7,) one passed (or failed with a bare broadcast error)
     dtype = _default_dtype(dtype)
     shape = tuple(shape_prefix) + (6,)
     kb, kd = jax.random.split(key)
@@ -412,9 +473,10 @@ def bias_drift_step(key, state: BiasDriftState, spec: ImuSpec, dt):
 
     Returns the new :class:`BiasDriftState` (same shape and dtype as ``state.drift``).
     """
+    state = _drift_state(state)
     dtype = state.drift.dtype
-    a, q = drift_transition(spec, dt, dtype=dtype)
-    drift = a * state.drift + jnp.sqrt(q) * _std_normal(key, state.drift.shape, dtype)
+    a, _, sq = _drift(spec, dt, "exact", dtype)
+    drift = a * state.drift + sq * _std_normal(key, state.drift.shape, dtype)
     return BiasDriftState(bias=state.bias, drift=drift)
 
 
@@ -433,9 +495,9 @@ def bias_drift_rollout(key, state: BiasDriftState, spec: ImuSpec, dt, n_steps: i
     at sample k; row 0 is ``state`` itself.
     """
     n_steps = check_int(n_steps, "n_steps")  # 2.7 used to run 2 steps
+    state = _drift_state(state)
     dtype = state.drift.dtype
-    a, q = drift_transition(spec, dt, dtype=dtype)
-    sq = jnp.sqrt(q)
+    a, _, sq = _drift(spec, dt, "exact", dtype)
     xi = _std_normal(key, (n_steps - 1,) + tuple(state.drift.shape), dtype)
 
     def body(d, x):
@@ -459,6 +521,8 @@ def corrupt(ideal, state: BiasDriftState, white):
     """
     if not isinstance(state, BiasDriftState):
         raise InputError(f"state: expected a BiasDriftState, got {type(state).__name__}")
+    for name, v in (("ideal", ideal), ("state.bias", state.bias), ("state.drift", state.drift), ("white", white)):
+        check_real(v, name)  # a complex reading kept its imaginary part
     if np.shape(ideal)[-1:] != (6,):
         raise InputError(f"ideal: expected shape (..., 6), got {np.shape(ideal)}")
     for name, v in (("state.bias", state.bias), ("state.drift", state.drift), ("white", white)):

@@ -42,8 +42,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..dynamics._checks import real_float
 from ..errors import InputError
-from ..linalg import check_scalar
+from ..linalg import check_mask, check_real, check_scalar
 
 __all__ = [
     "LaserSpec",
@@ -106,7 +107,7 @@ def _fdtype(x):
 def range_sigma(ranges, spec):
     """Range-noise standard deviation [m] at the (true) range ``ranges`` (any shape)."""
     _check_spec(spec)
-    r = jnp.asarray(ranges)
+    r = real_float(ranges, "ranges")  # integer ranges cast sigma_near to int: 0.01 read as 0
     return jnp.where(r <= spec.near, jnp.asarray(spec.sigma_near, r.dtype), spec.sigma_rel * r)
 
 
@@ -161,6 +162,7 @@ def _directions(spec, dtype, tilt):
     ca, sa = jnp.cos(a), jnp.sin(a)
     if tilt is None:
         return jnp.stack([ca, sa], axis=-1)
+    check_real(tilt, "tilt")
     tilt = jnp.asarray(tilt, dtype)
     if tilt.shape != (2,):
         raise InputError(f"tilt: expected shape (2,) = (roll, pitch), got {tilt.shape}")
@@ -196,12 +198,20 @@ def cast(pose, walls, wall_mask, spec, tilt=None):
       (−1 where invalid).
     """
     _check_spec(spec)
+    check_real(pose, "pose")  # complex inputs lost their imaginary part with only a warning
+    check_real(walls, "walls")
+    check_mask(wall_mask, "wall_mask")  # a float 0.1 or NaN counted as a used wall
     pose = jnp.asarray(pose)
     dtype = _fdtype(pose)
     pose = pose.astype(dtype)
     walls = jnp.asarray(walls, dtype)
     wall_mask = jnp.asarray(wall_mask, bool)
     _check_geometry(pose, walls, wall_mask)
+    if walls.shape[0] == 0:  # no wall: no beam returns (argmin over no wall used to fail)
+        n = spec.n_beams
+        if tilt is not None:
+            _directions(spec, dtype, tilt)  # the same checks of tilt as with walls
+        return jnp.full((n,), jnp.nan, dtype), jnp.zeros((n,), bool), jnp.full((n,), -1, jnp.int32)
     h = _directions(spec, dtype, tilt)  # (n, 2) yaw frame
     hn = jnp.sqrt(jnp.sum(h * h, axis=-1))  # ‖h‖ ≤ 1 (cos of the beam's elevation)
     c, s = jnp.cos(pose[2]), jnp.sin(pose[2])
@@ -240,6 +250,7 @@ def scan_points(ranges, valid, spec, tilt=None):
     ``(n,)`` is ``valid & isfinite(ranges)``.
     """
     _check_spec(spec)
+    check_real(ranges, "ranges")
     r = jnp.asarray(ranges)
     dtype = _fdtype(r)
     r = r.astype(dtype)
@@ -247,6 +258,7 @@ def scan_points(ranges, valid, spec, tilt=None):
         raise InputError(f"ranges: expected shape ({spec.n_beams},), got {r.shape}")
     if np.shape(valid) != (spec.n_beams,):  # a (1,) mask broadcast over every beam
         raise InputError(f"valid: expected shape ({spec.n_beams},), got {np.shape(valid)}")
+    check_mask(valid, "valid")  # a float 0.5 counted as a valid return
     mask = jnp.asarray(valid, bool) & jnp.isfinite(r)
     r = jnp.where(mask, r, 0.0)
     h = _directions(spec, dtype, tilt)

@@ -17,7 +17,8 @@ Decisions where the paper is silent or wrong (also in docs/papers.md):
   the three rows above, in the order y = [α, β, δ] of Sec. 2.3.3.
 * atan2 (not atan) keeps the azimuth right in all four quadrants; the elevation uses atan2 of
   the horizontal range so its derivative stays finite up to ±90°.
-* Norms use ``jaxslam.linalg.safe_norm`` and the angles double-``where`` guards: the model is
+* Norms are ``jaxslam.linalg.safe_norm``'s (scaled by the largest entry where the squares
+  would overflow or underflow) and the angles use double-``where`` guards: the model is
   smooth wherever δ > 0 and the landmark is not straight above/below the sensor (c1 = c2 = 0,
   where the azimuth is undefined).  At those degenerate points the undefined angle reads 0 with
   zero partials, so values and Jacobians stay finite (the range keeps its true gradient
@@ -36,9 +37,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..dynamics._checks import check_last_dim, real_float
 from ..errors import InputError
 from ..geometry.euler import _last_axis, dcm_from_euler, rotate_jacobian, unrotate_jacobian
-from ..linalg import check_numbers, check_shape, is_concrete, safe_norm, wrap_angle
+from ..linalg import check_numbers, check_real, check_shape, is_concrete, wrap_angle
 
 __all__ = [
     "LidarSpec",
@@ -124,21 +126,63 @@ def check_lidar_spec(spec: LidarSpec, name: str = "spec") -> LidarSpec:
 # Spherical <-> Cartesian (shared with range_bearing3d)
 # ---------------------------------------------------------------------------
 
+def _norm(x):
+    """``(‖x‖, s, scaled)`` over the last axis.
+
+    Where the sum of squares is accurate (it neither overflows nor falls below ``tiny/eps``),
+    and for zero, NaN or Inf entries, the norm is :func:`jaxslam.linalg.safe_norm`'s (same value,
+    zero gradient at 0) and ``s = 1``.  Elsewhere (``scaled``) it is s·‖x/s‖ with s = max|xᵢ|
+    clipped to [16·tiny, 1/(16·tiny)], whose squares cannot overflow or underflow: in float32 a
+    1e20 m vector read an infinite range, a 1e-25 m one a zero range.  (The clip keeps 1/s a
+    normal number: XLA divides by multiplying with the reciprocal and flushes subnormals to
+    zero, so 1/1e38 read 0.)  ``s`` carries no derivative (the norm does not depend on it), so
+    every partial is formed from x/s and 1/s and stays finite (the derivative of x/m through
+    m = max|xᵢ| needs m², which overflows or underflows itself).  Callers divide by ``s`` to
+    evaluate scale-free functions (the angles)."""
+    fi = jnp.finfo(x.dtype)
+    sq = jnp.sum(x * x, axis=-1)
+    zero = sq == 0
+    plain = jnp.where(zero, 0.0, jnp.sqrt(jnp.where(zero, 1.0, sq)))
+    m = jnp.max(jnp.abs(x), axis=-1)
+    ok = (sq >= fi.tiny / fi.eps) & (sq < jnp.inf)
+    scaled = (m > 0) & (m < jnp.inf) & ~ok  # NaN, Inf and 0 stay on the plain path
+    lo = _FLOOR * fi.tiny  # a power of two
+    s = jax.lax.stop_gradient(jnp.where(scaled, jnp.clip(m, lo, 1.0 / lo), 1.0))
+    u = x / s[..., None]
+    su = jnp.sum(u * u, axis=-1)  # in [1, n·64²] where scaled, unless max|xᵢ| < lo
+    big = s * jnp.sqrt(jnp.where(scaled, su, 1.0))
+    return jnp.where(scaled, big, plain), s, scaled
+
+
+_FLOOR = 16.0
+"""Smallest scale of :func:`_norm`, in units of ``finfo.tiny`` (its reciprocal is the largest):
+1/s times a few constants stays finite.  A scaled vector shorter than it leaves its angle
+undefined (read 0, zero partials), as an underflowing one did before: the angle's derivative
+(~1/length) would overflow."""
+
+
 def spherical_from_cartesian(c):
     """[α, β, δ] of a vector c (paper 000 eq. 31 per errata; paper 001 eq. 13).
 
-    Args: c: (..., 3) Cartesian vector [m].
-    Returns: (..., 3) [atan2(c2, c1), atan2(c3, √(c1²+c2²)), ‖c‖].
+    Args: c: (..., 3) Cartesian vector [m] (an integer one is read as JAX's default float).
+    Returns: (..., 3) [atan2(c2, c1), atan2(c3, √(c1²+c2²)), ‖c‖].  Where the squares of c would
+    overflow or underflow (float32 beyond ~1e19 m or below ~1e-16 m) the norms and angles are
+    evaluated on c scaled by its largest entry, so they stay right from the smallest normal
+    number to the largest finite one.
     """
+    c = real_float(c, "c")
     c = _last_axis(c, 3, "c")  # a (2,) vector read its third entry from a clamped index
-    horiz = safe_norm(c[..., :2], axis=-1)
-    rng = safe_norm(c, axis=-1)
+    floor = _FLOOR * jnp.finfo(c.dtype).tiny
+    horiz, s_h, sc_h = _norm(c[..., :2])
+    rng, s_r, sc_r = _norm(c)
     # Double-where guards: where an angle is undefined (c1 = c2 = 0 for α, c = 0 for β) it is
-    # evaluated as atan2(0, 1) = 0, so no NaN partials leak into the range's gradient.
-    has_h = horiz > 0
-    has_r = rng > 0
-    az = jnp.arctan2(jnp.where(has_h, c[..., 1], 0.0), jnp.where(has_h, c[..., 0], 1.0))
-    el = jnp.arctan2(jnp.where(has_r, c[..., 2], 0.0), jnp.where(has_r, horiz, 1.0))
+    # evaluated as atan2(0, 1) = 0, so no NaN partials leak into the range's gradient.  The
+    # angles are scale-free: atan2 of the scaled vector (s = 1, an exact no-op, unless scaled).
+    has_h = jnp.where(sc_h, horiz >= floor, horiz > 0)
+    has_r = jnp.where(sc_r, rng >= floor, rng > 0)
+    c1, c2 = c[..., 0] / s_h, c[..., 1] / s_h
+    az = jnp.arctan2(jnp.where(has_h, c2, 0.0), jnp.where(has_h, c1, 1.0))
+    el = jnp.arctan2(jnp.where(has_r, c[..., 2] / s_r, 0.0), jnp.where(has_r, horiz / s_r, 1.0))
     return jnp.stack([az, el, rng], axis=-1)
 
 
@@ -147,6 +191,7 @@ def cartesian_from_spherical(y):
 
     Args: y: (..., 3) [α rad, β rad, δ m].  Returns: (..., 3) [m].
     """
+    check_real(y, "y")
     y = _last_axis(y, 3, "y")
     az, el, rng = y[..., 0], y[..., 1], y[..., 2]
     ce = jnp.cos(el)
@@ -168,19 +213,26 @@ def measure(pos, euler, landmark):
     Returns:
       (3,) or (L, 3) y = [α, β, δ] [rad, rad, m] with c = C_NBᵀ(l − ρ) (module docstring).
     """
-    check_shape(pos, (3,), "pos")
-    check_shape(euler, (3,), "euler")
+    pos = real_float(pos, "pos", (3,))  # lists are converted (``list - list`` was a TypeError)
+    euler = real_float(euler, "euler", (3,))
     if np.ndim(landmark) not in (1, 2) or np.shape(landmark)[-1] != 3:
         raise InputError(f"landmark: expected shape (3,) or (L, 3), got {np.shape(landmark)}")
+    landmark = real_float(landmark, "landmark")
     C = dcm_from_euler(euler)
     # Row-vector form d @ C equals (C_NBᵀ d)ᵀ for every landmark at once.
     c = (landmark - pos) @ C
     return spherical_from_cartesian(c)
 
 
-def _split_state(s, name="s"):
+def _state(s, name="s"):
+    """``s`` as a real floating (9,) or (12,) array (a list is converted, a complex one refused)."""
     if np.ndim(s) != 1 or np.shape(s)[0] not in (9, 12):
         raise InputError(f"{name}: expected shape (9,) or (12,), got {np.shape(s)}")
+    return real_float(s, name)
+
+
+def _split_state(s, name="s"):
+    s = _state(s, name)
     return s[0:3], s[6:9]
 
 
@@ -213,8 +265,9 @@ def measure_state_and_jacobians(s, landmark):
     through the filter differentiates H, and the closed form's derivatives take far fewer
     kernels than autodiff's.  s: (9,) (or (12,)); landmark: (3,).  Returns (y, H_s, H_l).
     """
+    s = _state(s)
     pos, euler = _split_state(s)
-    check_shape(landmark, (3,), "landmark")
+    landmark = real_float(landmark, "landmark", (3,))
     C = dcm_from_euler(euler)
     d = landmark - pos
     c = d @ C  # Cᵀ d, as measure() forms it
@@ -246,10 +299,11 @@ def inverse(pos, euler, y):
 
     Returns: (3,) or (L, 3) landmark position(s) in N [m].
     """
-    check_shape(pos, (3,), "pos")
-    check_shape(euler, (3,), "euler")
+    pos = real_float(pos, "pos", (3,))
+    euler = real_float(euler, "euler", (3,))
     if np.ndim(y) not in (1, 2) or np.shape(y)[-1] != 3:
         raise InputError(f"y: expected shape (3,) or (L, 3), got {np.shape(y)}")
+    y = real_float(y, "y")
     C = dcm_from_euler(euler)
     return cartesian_from_spherical(y) @ C.T + pos
 
@@ -264,8 +318,9 @@ def inverse_state_and_jacobians(s, y):
     Equal to ``jax.jacfwd`` of :func:`inverse_state` (tests); the engine's registration uses it
     (``SlamModel.inverse_jacobian``).  s: (9,) (or (12,)); y: (3,).  Returns (l, G_s, G_y).
     """
+    s = _state(s)
     pos, euler = _split_state(s)
-    check_shape(y, (3,), "y")
+    y = real_float(y, "y", (3,))
     C = dcm_from_euler(euler)
     rho = cartesian_from_spherical(y)
     l = rho @ C.T + pos
@@ -307,6 +362,7 @@ def in_fov(y, spec: LidarSpec = PAPER000_LIDAR):
     """
     if np.shape(y)[-1:] != (3,):
         raise InputError(f"y: expected shape (..., 3), got {np.shape(y)}")
+    check_real(y, "y")
     y = jnp.asarray(y)
     dt = y.dtype
 
@@ -339,6 +395,8 @@ def innovation(y, y_pred):
     Args: y, y_pred: (..., 3) [α, β, δ].  Returns (..., 3).  Elevation lies in [−π/2, π/2]
     and range is not periodic, so only α is wrapped.
     """
+    y = check_last_dim(real_float(y, "y"), 3, "y")  # lists are converted; a (2,) residual refused
+    y_pred = check_last_dim(real_float(y_pred, "y_pred"), 3, "y_pred")
     r = y - y_pred
     return jnp.concatenate([wrap_angle(r[..., :1]), r[..., 1:]], axis=-1)  # no scatter (vmapped)
 

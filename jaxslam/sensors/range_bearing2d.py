@@ -21,14 +21,16 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import InputError
-from ..linalg import safe_norm, wrap_angle
+from ..linalg import check_real, safe_norm, wrap_angle
 
 __all__ = ["observe", "inverse", "residual"]
 
 
 def _vec(x, n: int, name: str, exact: bool = True):
     """``x`` as a 1-D array of ``n`` entries (``exact=False``: at least ``n``), checked statically
-    (free under ``jit``): a (2,) pose used to be read with its heading from a clamped index."""
+    (free under ``jit``): a (2,) pose used to be read with its heading from a clamped index.
+    A complex ``x`` is refused (its imaginary part was dropped or leaked into the bearing)."""
+    check_real(x, name)
     x = jnp.asarray(x)
     if x.ndim != 1 or (x.shape[0] != n if exact else x.shape[0] < n):
         raise InputError(f"{name}: expected shape ({n}{'' if exact else '+'},), got {tuple(np.shape(x))}")
@@ -40,7 +42,11 @@ def observe(s, l, params=None):
     del params
     s, l = _vec(s, 3, "s", exact=False), _vec(l, 2, "l", exact=False)
     d = l[:2] - s[:2]
-    return jnp.stack([safe_norm(d), wrap_angle(jnp.arctan2(d[1], d[0]) - s[2])])
+    # Double-where guard: at l = p the bearing is undefined; it is evaluated as atan2(0, 1) = 0
+    # (atan2(0, 0) = 0 too) with zero partials, so jacfwd's bearing row is finite, not NaN.
+    has = (d[0] != 0) | (d[1] != 0)
+    bearing = jnp.arctan2(jnp.where(has, d[1], 0.0), jnp.where(has, d[0], 1.0))
+    return jnp.stack([safe_norm(d), wrap_angle(bearing - s[2])])
 
 
 def inverse(s, z, params=None):

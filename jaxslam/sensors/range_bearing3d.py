@@ -34,8 +34,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..dynamics._checks import real_float
 from ..errors import InputError
-from ..linalg import check_shape
+from ..linalg import check_numbers, is_concrete
 from .lidar3d import cartesian_from_spherical, innovation, spherical_from_cartesian
 
 __all__ = [
@@ -74,10 +75,18 @@ def check_range_bearing_spec(spec: RangeBearingSpec, name: str = "spec") -> Rang
     if not isinstance(spec, RangeBearingSpec):
         raise InputError(f"{name}: expected a RangeBearingSpec, got {type(spec).__name__}")
     for f in RangeBearingSpec._fields:
-        v = np.asarray(getattr(spec, f), dtype=np.float64)
+        v = check_numbers(getattr(spec, f), f"{name}.{f}")  # a string was a bare ValueError
         if v.shape != () or not np.isfinite(v) or v < 0:
             raise InputError(f"{name}.{f}: expected a finite scalar >= 0, got {v}")
     return spec
+
+
+def _check(spec) -> None:
+    """:func:`check_range_bearing_spec` when the σ's are concrete, as
+    :func:`jaxslam.sensors.lidar3d.measurement_cov` does (a negative σ gave the covariance of
+    its absolute value, a NaN one a NaN R); traced σ's (a tuned noise) pass."""
+    if not isinstance(spec, RangeBearingSpec) or is_concrete(tuple(spec)):
+        check_range_bearing_spec(spec)
 
 
 def measure(pos, landmark):
@@ -89,10 +98,10 @@ def measure(pos, landmark):
 
     Returns: (3,) or (L, 3) [α rad, β rad, r m] (module docstring for conventions).
     """
-    check_shape(pos, (3,), "pos")
+    pos = real_float(pos, "pos", (3,))  # lists are converted (``list - list`` was a TypeError)
     if np.ndim(landmark) not in (1, 2) or np.shape(landmark)[-1] != 3:
         raise InputError(f"landmark: expected shape (3,) or (L, 3), got {np.shape(landmark)}")
-    return spherical_from_cartesian(landmark - pos)
+    return spherical_from_cartesian(real_float(landmark, "landmark") - pos)
 
 
 def inverse(pos, y):
@@ -101,14 +110,15 @@ def inverse(pos, y):
     Args: pos: (3,) [m].  y: (3,) or (L, 3) [α, β, r] (jaxslam order).
     Returns: (3,) or (L, 3) landmark position(s) [m].
     """
-    check_shape(pos, (3,), "pos")
+    pos = real_float(pos, "pos", (3,))
     if np.ndim(y) not in (1, 2) or np.shape(y)[-1] != 3:
         raise InputError(f"y: expected shape (3,) or (L, 3), got {np.shape(y)}")
-    return pos + cartesian_from_spherical(y)
+    return pos + cartesian_from_spherical(real_float(y, "y"))
 
 
 def measurement_cov(spec: RangeBearingSpec = PAPER001_RANGE_BEARING, dtype=None):
     """R^S = diag(σ_α², σ_β², σ_r²) of paper 001 eq. 14 (jaxslam order), shape (3, 3)."""
+    _check(spec)
     dtype = jnp.result_type(float) if dtype is None else jnp.dtype(dtype)
     s = jnp.stack([jnp.asarray(spec.sigma_az, dtype), jnp.asarray(spec.sigma_el, dtype),
                    jnp.asarray(spec.sigma_range, dtype)])
@@ -121,6 +131,7 @@ def sample_noise(key, spec: RangeBearingSpec = PAPER001_RANGE_BEARING, shape_pre
 
     Returns (*shape_prefix, 3) with stds (σ_α rad, σ_β rad, σ_r m); ``shape_prefix`` static.
     """
+    _check(spec)
     dtype = jnp.result_type(float) if dtype is None else jnp.dtype(dtype)
     s = jnp.stack([jnp.asarray(spec.sigma_az, dtype), jnp.asarray(spec.sigma_el, dtype),
                    jnp.asarray(spec.sigma_range, dtype)])

@@ -41,8 +41,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..dynamics._checks import real_float
 from ..errors import InputError
-from ..linalg import check_numbers, is_concrete, safe_norm
+from ..linalg import check_numbers, check_real, is_concrete, safe_norm
 
 __all__ = [
     "UwbNoise",
@@ -88,12 +89,17 @@ def check_model(model: str) -> str:
 
 def _pair(p, l):
     """Tag and anchor positions of one shape, (d,) (static check: a transposed (2, 1) anchor
-    broadcast against a (2,) tag and gave a wrong range)."""
-    p, l = jnp.asarray(p), jnp.asarray(l)
-    if p.ndim != 1 or p.shape != l.shape:
-        raise InputError(f"p and l: expected one position each, both of shape (d,), got {tuple(p.shape)} "
-                         f"and {tuple(l.shape)}")
-    return p, l
+    broadcast against a (2,) tag and gave a wrong range), as real arrays of their common
+    floating dtype: integers become JAX's default float (an int32 squared range overflowed:
+    40000² + 40000² read −1094967296), complex or non-numbers are an InputError naming the
+    argument."""
+    ps, ls = np.shape(p), np.shape(l)
+    if len(ps) != 1 or ps != ls:
+        raise InputError(f"p and l: expected one position each, both of shape (d,), got {tuple(ps)} "
+                         f"and {tuple(ls)}")
+    p, l = real_float(p, "p"), real_float(l, "l")
+    dt = jnp.result_type(p, l)
+    return p.astype(dt), l.astype(dt)
 
 
 def squared_range(p, l):
@@ -133,6 +139,7 @@ def ranges_to(p, anchors):
     """True distances from a tag at p (2,) to anchors (N, 2): (N,) [m] (eq. 16 for each)."""
     if np.ndim(anchors) != 2:
         raise InputError(f"anchors: expected shape (N, d), got {np.shape(anchors)}")
+    anchors = real_float(anchors, "anchors")  # a list of anchors failed inside vmap
     return jax.vmap(lambda l: plain_range(p, l))(anchors)
 
 
@@ -164,7 +171,12 @@ def measurement_variance(d, range_var, model: str):
     if model == "squared":
         return squared_range_variance(d, range_var)
     if model == "range":
-        return jnp.broadcast_to(jnp.asarray(range_var, jnp.result_type(d)), jnp.shape(d))
+        # as "squared" does: a negative or NaN variance is refused when known
+        _check_nonneg(range_var, "range_var")
+        check_real(d, "d")
+        dt = jnp.result_type(d)  # an integer distance used to cast the variance to int (0.04 -> 0)
+        dt = dt if jnp.issubdtype(dt, jnp.floating) else jnp.result_type(float)
+        return jnp.broadcast_to(jnp.asarray(range_var, dt), jnp.shape(d))
     raise InputError(f"model: expected one of {MODELS}, got {model!r}")
 
 
@@ -185,5 +197,6 @@ def sample_noise(key, shape, half_width, dist: str, dtype=jnp.float64):
 
 def valid_ranges(z):
     """Which ranges are measurements: finite and > 0 (any shape, bool)."""
+    check_real(z, "z")
     zs = jnp.where(jnp.isfinite(z), z, 0.0)
     return jnp.isfinite(z) & (zs > 0)
