@@ -34,13 +34,14 @@ Decisions (the papers report RMSE and plots but define neither precisely)
 from __future__ import annotations
 
 import math
+import warnings
 from typing import NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
 
 from .errors import InputError
-from .linalg import wrap_angle
+from .linalg import check_mask, check_numbers, check_real, check_scalar, check_whole_ids, float_array, wrap_angle
 from .stats import anees_bounds, chi2_ppf, chi2_ppf_np, mean_chi2_bounds, nees, nis  # noqa: F401 (re-exported)
 
 __all__ = [
@@ -77,6 +78,20 @@ __all__ = [
 # RMSE
 # ---------------------------------------------------------------------------
 
+def _errors(err, name: str = "err"):
+    """``err`` as a real floating JAX array (an integer one becomes the default float; complex or
+    a concrete non-number is an :class:`InputError` naming ``name``).  Dtype checks are static."""
+    check_real(err, name)
+    return float_array(err, name)
+
+
+def _sqrt0(ms):
+    """``sqrt(ms)`` of a mean square, with the gradient 0 (a subgradient) instead of NaN where
+    ``ms`` is 0: an exact estimate's RMSE stays differentiable.  Same values (NaN stays NaN)."""
+    zero = ms == 0
+    return jnp.where(zero, 0.0, jnp.sqrt(jnp.where(zero, 1.0, ms)))
+
+
 def rmse(err, axis=0):
     """Per-component root-mean-square error.
 
@@ -86,10 +101,13 @@ def rmse(err, axis=0):
         axis: axis (or tuple of axes) averaged over; default the time axis 0.
 
     Returns:
-        ``sqrt(mean(err², axis))``, e.g. (d,) per-axis RMSE for (T, d) input.
+        ``sqrt(mean(err², axis))``, e.g. (d,) per-axis RMSE for (T, d) input; its gradient
+        at zero error is 0 (was NaN), as for :func:`rmse_norm`, :func:`rmse_norm_where`,
+        :func:`ate`, :func:`rpe` and :func:`rpe_se2`.  An integer ``err`` is read as floats;
+        a complex one is an :class:`InputError`.
     """
-    err = jnp.asarray(err)
-    return jnp.sqrt(jnp.mean(err * err, axis=axis))
+    err = _errors(err)
+    return _sqrt0(jnp.mean(err * err, axis=axis))
 
 
 def rmse_norm(err, axis=0):
@@ -106,8 +124,8 @@ def rmse_norm(err, axis=0):
     Returns:
         Scalar for (T, d) input; (R,) for (R, T, d) with ``axis=1``.
     """
-    err = jnp.asarray(err)
-    return jnp.sqrt(jnp.mean(jnp.sum(err * err, axis=-1), axis=axis))
+    err = _errors(err)
+    return _sqrt0(jnp.mean(jnp.sum(err * err, axis=-1), axis=axis))
 
 
 def rmse_norm_where(err, where):
@@ -115,11 +133,21 @@ def rmse_norm_where(err, where):
 
     ``err`` (T, d), ``where`` (T,) bool (e.g. a settled window).  NaN when no step is selected
     (a flight shorter than its window has no figure there, not 0).  jit/vmap-safe.
+
+    ``where`` must be a mask (bool, or 0/1 integers) of ``err``'s shape without its last axis:
+    :class:`InputError` naming it (a (1,) or (T, 1) mask was broadcast to a wrong figure, a float
+    one was read as weights).
     """
-    err = jnp.asarray(err)
+    err = _errors(err)
+    if err.ndim < 1:
+        raise InputError(f"err: expected shape (T, d), got {tuple(err.shape)}")
+    check_mask(where, "where")
+    if np.shape(where) != err.shape[:-1]:
+        raise InputError(f"where: expected shape {tuple(err.shape[:-1])} (one flag per row of err), "
+                         f"got {tuple(np.shape(where))}")
     w = jnp.asarray(where, err.dtype)
     n = jnp.sum(w)
-    return jnp.where(n > 0, jnp.sqrt(jnp.sum(jnp.sum(err * err, axis=-1) * w) / jnp.maximum(n, 1)), jnp.nan)
+    return jnp.where(n > 0, _sqrt0(jnp.sum(jnp.sum(err * err, axis=-1) * w) / jnp.maximum(n, 1)), jnp.nan)
 
 
 # What a value outside its χ² bounds means, by kind of statistic: (below, above).
@@ -215,6 +243,19 @@ class WindowedMean(NamedTuple):
     count: np.ndarray
 
 
+#: most windows :func:`windowed_mean` makes (unless ``t`` has more steps): 4 arrays of 10⁷
+#: windows are 320 MB; a window of 1 µs over a 10⁶ s span asked for 7 TiB
+_WINDOWS_MAX = 10_000_000
+
+
+def _host_numbers(x, name: str) -> np.ndarray:
+    """A host-side input as float64 NumPy: complex or non-numbers are an :class:`InputError`
+    naming ``name`` (NumPy dropped the imaginary part with only a warning, or raised a bare
+    ValueError)."""
+    check_real(x, name)
+    return check_numbers(x, name)
+
+
 def windowed_mean(x, t, window_s: float) -> WindowedMean:
     """Average a per-step statistic (e.g. NEES) over time windows (host side).
 
@@ -225,29 +266,44 @@ def windowed_mean(x, t, window_s: float) -> WindowedMean:
 
     Args:
         x: (T,) or (R, T) values; NaN marks a missing value.
-        t: (T,) nondecreasing times [s].
-        window_s: window length [s] > 0.
+        t: (T,) finite nondecreasing times [s].
+        window_s: finite window length [s] > 0, giving at most 10⁷ windows (or T, if
+            more) over the span of ``t``.
 
     Returns:
         :class:`WindowedMean`.
+
+    Raises:
+        InputError: naming ``x``, ``t`` or ``window_s`` (a NaN or infinite time, an infinite
+        window or one so short that the windows would not fit in memory used to fail inside
+        NumPy or return NaN window starts).
     """
-    x = np.asarray(x, dtype=np.float64)
-    t = np.asarray(t, dtype=np.float64)
+    x = _host_numbers(x, "x")
+    t = _host_numbers(t, "t")
     if x.ndim == 1:
         x = x[None, :]
     if x.ndim != 2:
         raise InputError(f"x: expected shape (T,) or (R, T), got {np.shape(x)}")
     if t.ndim != 1 or t.shape[0] != x.shape[1]:
         raise InputError(f"t: expected shape ({x.shape[1]},), got {t.shape}")
-    if not window_s > 0:
-        raise InputError(f"window_s: must be > 0, got {window_s}")
+    try:
+        check_real(window_s, "window_s", allow_bool=False)
+        window_s = check_scalar(window_s, "window_s", lower=0, strict=True)
+    except InputError:
+        raise InputError(f"window_s: must be a finite number > 0, got {window_s!r}") from None
     if t.size == 0:
         e = np.zeros(0)
         return WindowedMean(e, e, e, np.zeros(0, dtype=np.int64))
+    if not np.all(np.isfinite(t)):
+        raise InputError("t: the times must be finite (NaN or inf found)")
     if np.any(np.diff(t) < 0):
         raise InputError("t: must be nondecreasing")
     t0 = t[0]
-    n_win = max(1, int(math.ceil((t[-1] - t0) / window_s - 1e-9)))
+    n_float = float(np.ceil((t[-1] - t0) / window_s - 1e-9))  # inf for a tiny window: no OverflowError
+    if n_float > max(_WINDOWS_MAX, t.size):
+        raise InputError(f"window_s: {window_s:g} s splits the {t[-1] - t0:g} s span of t into {n_float:g} "
+                         f"windows (at most {max(_WINDOWS_MAX, t.size)}): use a longer window")
+    n_win = max(1, int(n_float))
     idx = np.minimum(np.floor((t - t0) / window_s + 1e-12).astype(np.int64), n_win - 1)
     finite = np.isfinite(x)
     vals = np.where(finite, x, 0.0)
@@ -270,18 +326,37 @@ def summarize(per_run) -> dict:
 
     Returns:
         ``{"mean", "median", "p95", "max", "per_run"}`` as Python floats (p95
-        with linear interpolation); NaN propagates to mean/median/p95/max.
+        with linear interpolation); NaN propagates to mean/median/p95/max.  An infinite run
+        (a diverged one) is kept: a p95 between a finite value and +inf is +inf (NumPy's
+        interpolation gave NaN).
     """
-    v = np.asarray(per_run, dtype=np.float64).reshape(-1)
+    v = _host_numbers(per_run, "per_run").reshape(-1)
     if v.size == 0:
         raise InputError("per_run: empty")
-    return {
-        "mean": float(np.mean(v)),
-        "median": float(np.median(v)),
-        "p95": float(np.percentile(v, 95.0)),
-        "max": float(np.max(v)),
-        "per_run": [float(a) for a in v],
-    }
+    with np.errstate(invalid="ignore"):
+        return {
+            "mean": float(np.mean(v)),
+            "median": float(np.median(v)),
+            "p95": _percentile(v, 95.0),
+            "max": float(np.max(v)),
+            "per_run": [float(a) for a in v],
+        }
+
+
+def _percentile(v: np.ndarray, q: float) -> float:
+    """``np.percentile(v, q)`` (linear interpolation), except where NumPy forms ``inf − inf``
+    between an infinite and a finite neighbour: there the infinite end is the answer (both
+    infinite, of opposite signs: NaN).  NaN in ``v`` gives NaN."""
+    p = float(np.percentile(v, q))
+    if not np.isnan(p) or np.isnan(v).any():
+        return p
+    lo = float(np.percentile(v, q, method="lower"))
+    hi = float(np.percentile(v, q, method="higher"))
+    if lo == hi:
+        return lo
+    if math.isinf(lo) and math.isinf(hi):
+        return math.nan
+    return lo if math.isinf(lo) else hi
 
 
 # ---------------------------------------------------------------------------
@@ -299,9 +374,19 @@ def umeyama(src, dst, with_scale: bool = False):
     Returns:
         ``(R (d, d) proper rotation, t (d,), s ())``; ``s`` is 1 unless
         ``with_scale``.
+
+    Integer points are read as floats (they were kept as integers and the scale truncated:
+    1 for 1.5).  Two (N, d) arrays of one shape, N ≥ 1, and real dtypes are expected:
+    :class:`InputError` naming ``src`` / ``dst`` otherwise (static checks).
     """
-    src = jnp.asarray(src)
-    dst = jnp.asarray(dst)
+    src = _errors(src, "src")
+    dst = _errors(dst, "dst")
+    for name, a in (("src", src), ("dst", dst)):
+        if a.ndim != 2 or a.shape[0] < 1:
+            raise InputError(f"{name}: expected shape (N, d), one point per row, got {tuple(a.shape)}")
+    if src.shape != dst.shape:
+        raise InputError(f"src and dst: the same (N, d) shape expected (corresponding points), got "
+                         f"{tuple(src.shape)} and {tuple(dst.shape)}")
     dtype = jnp.result_type(src, dst)
     src = src.astype(dtype)
     dst = dst.astype(dtype)
@@ -332,7 +417,7 @@ def _trajectories(est_pos, true_pos):
     """Two (T, d) position arrays of one trajectory, d in 1..3 (static checks):
     :class:`InputError` naming the argument (an off-by-one length or a transposed (d, T) array
     would otherwise broadcast into a wrong number)."""
-    est, tru = jnp.asarray(est_pos), jnp.asarray(true_pos)
+    est, tru = _errors(est_pos, "est_pos"), _errors(true_pos, "true_pos")
     for name, a in (("est_pos", est), ("true_pos", tru)):
         if a.ndim != 2 or not 1 <= a.shape[1] <= 3 or a.shape[0] < 1:
             raise InputError(f"{name}: expected shape (T, d) with d in 1..3 (one position per row), "
@@ -400,8 +485,8 @@ def rpe_se2(est_pose, true_pose, lag: int = 1):
         ``(trans_rmse [m], rot_rmse [rad])`` of ``E_i = (Q_i⁻¹ Q_{i+lag})⁻¹ (P_i⁻¹ P_{i+lag})``.
     """
     lag = _lag(lag)
-    est = jnp.asarray(est_pose)
-    tru = jnp.asarray(true_pose)
+    est = _errors(est_pose, "est_pose")
+    tru = _errors(true_pose, "true_pose")
     if est.ndim != 2 or est.shape[1] != 3 or est.shape != tru.shape:
         raise InputError(f"rpe_se2: expected two (T, 3) pose arrays, got {est.shape} and {tru.shape}")
     if lag < 1 or lag >= est.shape[0]:
@@ -420,7 +505,7 @@ def rpe_se2(est_pose, true_pose, lag: int = 1):
     dx, dy = ex - tx, ey - ty
     etx, ety = c * dx + s * dy, -s * dx + c * dy
     eang = wrap_angle(eth - tth)
-    return jnp.sqrt(jnp.mean(etx ** 2 + ety ** 2)), jnp.sqrt(jnp.mean(eang ** 2))
+    return _sqrt0(jnp.mean(etx ** 2 + ety ** 2)), _sqrt0(jnp.mean(eang ** 2))
 
 
 def apply_transform(points, R, t, s=1.0):
@@ -437,6 +522,18 @@ class MapError(NamedTuple):
     ids: np.ndarray
 
 
+def _ids(ids, name: str) -> np.ndarray:
+    """Landmark ids as a flat NumPy array of numbers (an integer dtype kept: large ids stay
+    exact); strings, complex, bool or ragged ids are an :class:`InputError` naming ``name``."""
+    try:
+        a = np.asarray(ids)
+    except (TypeError, ValueError):  # a ragged list
+        a = None
+    if a is None or a.dtype.kind not in "iuf":
+        raise InputError(f"{name}: expected numeric landmark ids, got {ids!r}"[:300])
+    return a.reshape(-1)
+
+
 def map_error(est_lm, est_ids, true_lm, true_ids, transform=None) -> MapError:
     """Map error of landmarks matched by id, after a rigid alignment.
 
@@ -449,23 +546,28 @@ def map_error(est_lm, est_ids, true_lm, true_ids, transform=None) -> MapError:
             landmarks themselves by :func:`umeyama` (needs ≥ d of them).
 
     Raises:
-        InputError: shapes disagree, an id repeats in ``true_ids``, or no estimated id is in ``true_ids``.
+        InputError: shapes disagree, an id repeats in ``true_ids``, no estimated id is in
+        ``true_ids``, or an id is not a whole number (a fractional or non-finite one in
+        ``true_ids``, or in ``est_ids`` on a row in use: it was truncated onto another id).
     """
-    est = np.asarray(est_lm, np.float64)
-    tru = np.asarray(true_lm, np.float64)
-    eid = np.asarray(est_ids).reshape(-1)
-    tid = np.asarray(true_ids).reshape(-1)
+    est = _host_numbers(est_lm, "est_lm")
+    tru = _host_numbers(true_lm, "true_lm")
+    eid = _ids(est_ids, "est_ids")
+    tid = _ids(true_ids, "true_ids")
     if est.ndim != 2 or tru.ndim != 2 or est.shape[1] != tru.shape[1]:
         raise InputError(f"map_error: expected (M, d) and (L, d) landmarks, got {est.shape} and {tru.shape}")
     if eid.shape[0] != est.shape[0] or tid.shape[0] != tru.shape[0]:
         raise InputError("map_error: one id per landmark row expected")
+    check_whole_ids(tid, "true_ids")
+    # rows ignored (id < 0, or a position not finite) may hold any id; NaN is not < 0: checked
+    check_whole_ids(eid, "est_ids", used=~(eid < 0) & np.all(np.isfinite(est), axis=1))
     uniq, counts = np.unique(tid, return_counts=True)
     if np.any(counts > 1):
         raise InputError(f"true_ids: each true landmark id must appear once, repeated: "
                          f"{[int(i) for i in uniq[counts > 1]][:10]}")
     lookup = {int(i): k for k, i in enumerate(tid)}
     pairs = [(k, lookup[int(i)]) for k, i in enumerate(eid)
-             if int(i) >= 0 and int(i) in lookup and np.all(np.isfinite(est[k]))]
+             if i >= 0 and np.all(np.isfinite(est[k])) and int(i) in lookup]
     if not pairs:
         raise InputError("map_error: no estimated landmark id matches a true id")
     a = est[[k for k, _ in pairs]]
@@ -516,11 +618,12 @@ def write_tum(path, t, positions, yaw=None, quat_xyzw=None):
         path: output file (parent folders are created; written atomically).
         t: (T,) times [s].
         positions: (T, 2) or (T, 3) [m]; planar positions get z = 0.
-        yaw: optional (T,) heading [rad] (planar); quat_xyzw: optional (T, 4).
+        yaw: optional (T,) heading [rad] (planar); quat_xyzw: optional (T, 4), one
+            quaternion per row (a (4, T) array is an :class:`InputError`, not reshaped).
             With neither, the identity orientation is written.
     """
-    t = np.asarray(t, np.float64).reshape(-1)
-    p = np.asarray(positions, np.float64)
+    t = _host_numbers(t, "t").reshape(-1)
+    p = _host_numbers(positions, "positions")
     if p.ndim != 2 or p.shape[0] != t.shape[0] or p.shape[1] not in (2, 3):
         raise InputError(f"write_tum: positions must be (T, 2|3) with T = {t.shape[0]}, got {p.shape}")
     if p.shape[1] == 2:
@@ -528,9 +631,12 @@ def write_tum(path, t, positions, yaw=None, quat_xyzw=None):
     if quat_xyzw is not None and yaw is not None:
         raise InputError("write_tum: give yaw or quat_xyzw, not both")
     if quat_xyzw is not None:
-        q = np.asarray(quat_xyzw, np.float64).reshape(t.shape[0], 4)
+        q = _host_numbers(quat_xyzw, "quat_xyzw")
+        if q.shape != (t.shape[0], 4):  # a (4, T) array was reshaped into scrambled quaternions
+            raise InputError(f"quat_xyzw: expected shape ({t.shape[0]}, 4), one (x, y, z, w) per time, "
+                             f"got {q.shape}")
     else:
-        h = np.zeros_like(t) if yaw is None else np.asarray(yaw, np.float64).reshape(-1)
+        h = np.zeros_like(t) if yaw is None else _host_numbers(yaw, "yaw").reshape(-1)
         if h.shape != t.shape:
             raise InputError(f"write_tum: yaw must be (T,) with T = {t.shape[0]}, got {h.shape}")
         q = np.stack([np.zeros_like(h), np.zeros_like(h), np.sin(h / 2), np.cos(h / 2)], axis=1)
@@ -542,8 +648,25 @@ def write_tum(path, t, positions, yaw=None, quat_xyzw=None):
 
 
 def read_tum(path):
-    """Read a TUM trajectory: ``(t (T,), positions (T, 3), quat_xyzw (T, 4))``."""
-    a = np.loadtxt(path, comments="#", ndmin=2)
+    """Read a TUM trajectory: ``(t (T,), positions (T, 3), quat_xyzw (T, 4))``.
+
+    A missing file, a folder, an unreadable file or lines that are not 8 numbers each are an
+    :class:`InputError` naming ``path`` (NumPy's bare errors before).
+    """
+    try:
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", "loadtxt: input contained no data", UserWarning)
+            a = np.loadtxt(path, comments="#", ndmin=2)
+    except FileNotFoundError:
+        raise InputError(f"{path}: TUM file not found") from None
+    except IsADirectoryError:
+        raise InputError(f"{path}: is a folder, not a TUM file") from None
+    except OSError as e:
+        raise InputError(f"{path}: cannot read the TUM file: {e.strerror or e}") from None
+    except ValueError as e:  # a ragged line or a word where a number belongs
+        raise InputError(f"{path}: not a TUM trajectory (8 numbers per line): {e}"[:400]) from None
+    if a.size == 0:
+        raise InputError(f"{path}: no trajectory lines (only comments or nothing)")
     if a.shape[1] != 8:
         raise InputError(f"{path}: TUM lines have 8 columns, found {a.shape[1]}")
     return a[:, 0], a[:, 1:4], a[:, 4:8]

@@ -35,7 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .errors import InputError
-from .linalg import check_int, check_numbers, check_scalar, float_array, is_concrete
+from .linalg import check_int, check_numbers, check_real, check_scalar, float_array, is_concrete
 
 __all__ = ["nees", "nis", "student_t_nll", "student_t_d2_ppf_np", "chi2_ppf", "chi2_ppf_np", "mean_chi2_bounds",
            "anees_bounds"]
@@ -46,7 +46,10 @@ __all__ = ["nees", "nis", "student_t_nll", "student_t_d2_ppf_np", "chi2_ppf", "c
 # ---------------------------------------------------------------------------
 
 def _quadratic_form(err, cov, e_name: str, c_name: str):
-    """``eᵀ C⁻¹ e`` of (..., n) and (..., n, n), shapes checked (static: free under ``jit``)."""
+    """``eᵀ C⁻¹ e`` of (..., n) and (..., n, n), shapes and dtypes checked (static: free under
+    ``jit``; a complex array is refused, its imaginary part is not dropped)."""
+    check_real(err, e_name)
+    check_real(cov, c_name)
     err = float_array(err, e_name)
     cov = float_array(cov, c_name)
     if err.ndim < 1:
@@ -79,7 +82,7 @@ def nees(err, cov):
         (...) NEES values; χ²(n)-distributed for a consistent filter.  NaN
         where ``cov`` is not positive definite.  Shapes are checked (also under ``jit``):
         :class:`InputError` naming ``err`` / ``cov`` (a (n,) ``cov`` used to be broadcast to
-        a matrix of equal rows, giving NaN).
+        a matrix of equal rows, giving NaN); so is a complex dtype (``1j`` gave a NEES of −1).
     """
     return _quadratic_form(err, cov, "err", "cov")
 
@@ -116,26 +119,47 @@ def student_t_nll(d2, logdet, nu, dim):
     (``robust=ν`` of :func:`jaxslam.filters.ekf_slam.update`) are the EM steps of this
     likelihood.
 
+    From ν/2 = 30 on, ``log Γ((ν + d)/2) − log Γ(ν/2)`` comes from Stirling's series (as in
+    :func:`student_t_d2_ppf_np`), not from the difference of two ``gammaln`` values of size
+    ν/2 · log(ν/2), which cancelled (float32 ν = 10⁶, d² = 1, d = 2 gave 2.46 for 2.338; float64
+    ν = 10¹⁷ gave 40.3): the NLL approaches the Gaussian smoothly, with finite gradients in ν
+    and d².
+
     ``dim`` must be an int ≥ 1 and, when known now, ``nu`` > 0 (NaN refused) and ``d2`` ≥ 0
     (a NaN d2 gives a NaN NLL): :class:`InputError` naming it (ν = 0 raised ZeroDivisionError
     for Python numbers, ν < 0 gave NaN, d2 < 0 a finite wrong value).  Traced values are not
-    checked.
+    checked; a complex ``d2``, ``logdet`` or ``nu`` is refused always (its dtype is known).
     """
     dim = check_int(dim, "dim")
+    check_real(d2, "d2")
+    check_real(logdet, "logdet")
     check_student_t_nu(nu)
     if is_concrete(d2):  # a squared distance: a negative one gave a finite, meaningless NLL
         a = check_numbers(d2, "d2")
         if np.any(a < 0):  # NaN is not < 0: it propagates to a NaN NLL, as before
             raise InputError(f"d2: expected squared distances >= 0, got minimum {float(np.nanmin(a)):.6g}")
+    # a list (of rows) as an array (JAX's operators refused it with a bare TypeError); a Python
+    # number stays as it is (weakly typed: the other arguments' dtype decides)
+    d2, logdet = (float_array(x, name) if isinstance(x, (list, tuple)) else x
+                  for x, name in ((d2, "d2"), (logdet, "logdet")))
     return _student_t_nll(d2, logdet, nu, dim)
 
 
 def check_student_t_nu(nu) -> None:
-    """A concrete ν must be numbers > 0 (NaN refused): :class:`InputError` naming ``nu``."""
+    """A concrete ν must be numbers > 0 (NaN refused), and no ν complex: :class:`InputError`
+    naming ``nu``."""
+    check_real(nu, "nu")
     if is_concrete(nu):
         v = check_numbers(nu, "nu")
         if not np.all(v > 0):
             raise InputError(f"nu: the Student-t degrees of freedom must be > 0, got {nu!r}")
+
+
+#: from this ν/2 on, log Γ((ν + d)/2) − log Γ(ν/2) is Stirling's series (:func:`_lgamma_shift`'s
+#: threshold; its truncation error there is ~1e-20, the gammaln difference's ~1e-14)
+_STIRLING_HALF_NU = 30.0
+#: Stirling's series of log Γ: coefficient and power of 1/x of each term (to x⁻⁹)
+_STIRLING_TERMS = ((1.0 / 12.0, 1), (-1.0 / 360.0, 3), (1.0 / 1260.0, 5), (-1.0 / 1680.0, 7), (1.0 / 1188.0, 9))
 
 
 def _student_t_nll(d2, logdet, nu, dim: int):
@@ -145,10 +169,27 @@ def _student_t_nll(d2, logdet, nu, dim: int):
     from jax.scipy.special import gammaln
 
     nu = jnp.asarray(nu)  # a Python number stays weakly typed: the rows' dtype decides
-    gauss = jnp.isinf(nu)
-    nu_s = jnp.where(gauss, jnp.ones_like(nu), nu)  # the inf branch never reaches the formula
+    # ν = inf, or a ν beyond the rows' float range (1e300 with float32 rows gave NaN): the Gaussian
+    gauss = jnp.isinf(nu.astype(jnp.result_type(d2, logdet, nu)))
+    big = 0.5 * nu >= _STIRLING_HALF_NU  # inf included; NaN is not: it stays NaN below
+    # each branch sees only its own ν (the other gets a harmless stand-in), so neither can put a
+    # NaN into the value or the gradient of the one selected
+    nu_s = jnp.where(big, jnp.ones_like(nu), nu)
     t = (0.5 * logdet + 0.5 * (nu_s + dim) * jnp.log1p(d2 / nu_s) + gammaln(0.5 * nu_s)
          - gammaln(0.5 * (nu_s + dim)) + 0.5 * dim * jnp.log(nu_s * jnp.pi))
+    # large ν: with b = ν/2, a = d/2, w = b + a, Stirling's series gives
+    # log Γ(w) − log Γ(b) = (w − ½) log1p(a/b) + a log b − a + Σ c_k (w⁻ᵏ − b⁻ᵏ), and
+    # a log(νπ) − a log b = a log 2π, so nothing of size ν log ν is formed (as _lgamma_shift)
+    nu_b = jnp.where(big & ~gauss, nu, jnp.full_like(nu, 2.0 * _STIRLING_HALF_NU))
+    a = 0.5 * dim
+    b = 0.5 * nu_b
+    w = b + a
+    shift = (w - 0.5) * jnp.log1p(a / b) - a
+    for c, k in _STIRLING_TERMS:
+        shift = shift + c * (w ** -k - b ** -k)
+    t_big = (0.5 * logdet + 0.5 * (nu_b + dim) * jnp.log1p(d2 / nu_b) - shift
+             + a * math.log(2.0 * math.pi))
+    t = jnp.where(big, t_big, t)
     return jnp.where(gauss, 0.5 * (d2 + logdet + dim * math.log(2.0 * math.pi)), t)
 
 
@@ -167,8 +208,11 @@ def chi2_ppf(p, dof):
     Returns:
         Quantile(s) in the floating dtype of ``p`` (default float dtype for
         Python numbers); 0 at p = 0, inf at p = 1, NaN outside [0, 1] or for
-        dof ≤ 0.  Float64: ~1e-10 relative for dof 1..10⁵.
+        dof ≤ 0.  Float64: ~1e-10 relative for dof 1..10⁵.  A complex ``p`` or ``dof`` is an
+        :class:`InputError` (its dtype is known, also under ``jit``).
     """
+    check_real(p, "p")
+    check_real(dof, "dof")
     p = float_array(p, "p")  # a string is named; an integer p becomes the default float
     dtype = p.dtype
     k = float_array(dof, "dof").astype(dtype)
@@ -346,6 +390,8 @@ def student_t_d2_ppf_np(p: float, nu: float) -> float:
     finite ν approach (ν = 10¹² used to be 7e-5 off it, inf returned inf).  The outlier gate of
     a Student-t range model at probability ``p``.
     """
+    check_real(p, "p")
+    check_real(nu, "nu")
     p, nu = check_scalar(p, "p", finite=False), check_scalar(nu, "nu", finite=False)
     if not (nu > 0) or not (0.0 <= p < 1.0):
         raise InputError(f"student_t_d2_ppf_np: need 0 <= p < 1 and nu > 0, got p={p}, nu={nu}")
@@ -406,6 +452,8 @@ def chi2_ppf_np(p: float, dof: float) -> float:
     Returns:
         Python float quantile (0 at p = 0, inf at p = 1).
     """
+    check_real(p, "p")
+    check_real(dof, "dof")
     p = check_scalar(p, "p", finite=False)
     k = check_scalar(dof, "dof", finite=False)
     if not (k > 0) or not (0.0 <= p <= 1.0):
@@ -447,6 +495,7 @@ def chi2_ppf_np(p: float, dof: float) -> float:
 def _alpha(alpha) -> float:
     """A two-sided test's level: a number in (0, 1), else :class:`InputError` naming ``alpha``."""
     try:
+        check_real(alpha, "alpha")
         a = check_scalar(alpha, "alpha")
     except InputError:
         a = math.nan
@@ -470,6 +519,8 @@ def mean_chi2_bounds(dof_total, count, alpha: float = 0.05) -> tuple[float, floa
     :class:`InputError` naming the argument (an infinite count gave (0, 0), a string NumPy's
     bare ValueError).
     """
+    check_real(dof_total, "dof_total")
+    check_real(count, "count")
     dof_total = check_scalar(dof_total, "dof_total", lower=0, strict=True)
     count = check_scalar(count, "count", lower=0, strict=True)
     alpha = _alpha(alpha)
