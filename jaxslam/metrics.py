@@ -169,14 +169,25 @@ STEPS_INSIDE_MIN = 0.90
 def steps_inside(per_step, bounds) -> float:
     """Fraction of steps whose per-step ANEES lies inside ``bounds`` = (lo, hi) (a NaN step counts
     as outside): the per-step check that :func:`steps_inside_text` puts in words.  NaN when a
-    bound is not finite (no check possible); reversed bounds are an :class:`InputError`."""
-    lo, hi = (float(b) for b in bounds)
+    bound is not finite (no check possible); reversed bounds, or ``bounds`` that are not two
+    numbers, are an :class:`InputError`."""
+    lo, hi = _two_bounds(bounds)
     if not (math.isfinite(lo) and math.isfinite(hi)):
         return float("nan")
     if lo > hi:
         raise InputError(f"bounds: expected (lo, hi) with lo <= hi, got ({lo}, {hi})")
     a = np.asarray(per_step, float)
     return float(np.mean((a >= lo) & (a <= hi)))
+
+
+def _two_bounds(bounds) -> tuple:
+    """``bounds`` as the floats (lo, hi), else :class:`InputError` naming ``bounds`` (three
+    values were a bare unpacking error)."""
+    try:
+        lo, hi = (float(b) for b in bounds)
+    except (TypeError, ValueError):
+        raise InputError(f"bounds: expected two numbers (lo, hi), got {bounds!r}"[:300]) from None
+    return lo, hi
 
 
 def steps_inside_text(fraction) -> str:
@@ -208,6 +219,8 @@ def consistency_verdict(value, bounds, kind: str | None = "nees") -> str:
     Returns ``"ok"``, ``"OUTSIDE, below: conservative (covariance larger than the errors)"``
     (what the side means for ``kind`` ``"nees"`` or ``"nis"``; bare ``"OUTSIDE"`` for
     ``kind=None``), or ``"undefined"`` when the value or a bound is missing or non-finite.
+    Reversed finite bounds are an :class:`InputError`, as in :func:`steps_inside` (a value
+    between them read "OUTSIDE").
     """
     if kind is not None and kind not in _OUTSIDE_MEANS:
         raise InputError(f"kind: expected one of {sorted(_OUTSIDE_MEANS)} or None, got {kind!r}")
@@ -218,6 +231,8 @@ def consistency_verdict(value, bounds, kind: str | None = "nees") -> str:
         return "undefined"
     if not all(math.isfinite(x) for x in (v, lo, hi)):
         return "undefined"
+    if lo > hi:
+        raise InputError(f"bounds: expected (lo, hi) with lo <= hi, got ({lo}, {hi})")
     if lo <= v <= hi:
         return "ok"
     return "OUTSIDE" + ("" if kind is None else ", " + _OUTSIDE_MEANS[kind][0 if v < lo else 1])
@@ -546,7 +561,8 @@ def map_error(est_lm, est_ids, true_lm, true_ids, transform=None) -> MapError:
             landmarks themselves by :func:`umeyama` (needs ≥ d of them).
 
     Raises:
-        InputError: shapes disagree, an id repeats in ``true_ids``, no estimated id is in
+        InputError: shapes disagree, an id repeats in ``true_ids`` (or among the rows of
+        ``est_ids`` in use), ``transform`` is not (R, t[, s]) of the landmarks' size, no estimated id is in
         ``true_ids``, or an id is not a whole number (a fractional or non-finite one in
         ``true_ids``, or in ``est_ids`` on a row in use: it was truncated onto another id).
     """
@@ -565,9 +581,15 @@ def map_error(est_lm, est_ids, true_lm, true_ids, transform=None) -> MapError:
     if np.any(counts > 1):
         raise InputError(f"true_ids: each true landmark id must appear once, repeated: "
                          f"{[int(i) for i in uniq[counts > 1]][:10]}")
+    used = (eid >= 0) & np.all(np.isfinite(est), axis=1)
+    uniq, counts = np.unique(eid[used], return_counts=True)
+    if np.any(counts > 1):  # one true landmark's error would count twice
+        raise InputError(f"est_ids: each id may appear once among the rows in use, repeated: "
+                         f"{[int(i) for i in uniq[counts > 1]][:10]}")
+    if transform is not None:
+        transform = _check_transform(transform, est.shape[1])
     lookup = {int(i): k for k, i in enumerate(tid)}
-    pairs = [(k, lookup[int(i)]) for k, i in enumerate(eid)
-             if i >= 0 and np.all(np.isfinite(est[k])) and int(i) in lookup]
+    pairs = [(k, lookup[int(i)]) for k, i in enumerate(eid) if used[k] and int(i) in lookup]
     if not pairs:
         raise InputError("map_error: no estimated landmark id matches a true id")
     a = est[[k for k, _ in pairs]]
@@ -577,11 +599,30 @@ def map_error(est_lm, est_ids, true_lm, true_ids, transform=None) -> MapError:
             raise InputError(f"map_error: {len(pairs)} matched landmarks cannot fix a {a.shape[1]}-D alignment")
         R, t, s = umeyama(a, b)
     else:
-        R, t = transform[0], transform[1]
-        s = transform[2] if len(transform) > 2 else 1.0
+        R, t, s = transform
     e = np.linalg.norm(np.asarray(apply_transform(a, R, t, s)) - b, axis=1)
     return MapError(e, float(np.sqrt(np.mean(e ** 2))), float(np.max(e)),
                     np.asarray([int(eid[k]) for k, _ in pairs]))
+
+
+def _check_transform(transform, d: int) -> tuple:
+    """``transform`` = (R, t) or (R, t, s) for d-dimensional points: R (d, d), t (d,), s a
+    finite scalar; else :class:`InputError` naming ``transform``."""
+    if not isinstance(transform, (tuple, list)) or len(transform) not in (2, 3):
+        raise InputError(f"transform: expected (R, t) or (R, t, s), got {type(transform).__name__}"
+                         + (f" of {len(transform)}" if isinstance(transform, (tuple, list)) else ""))
+    R = _host_numbers(transform[0], "transform R")
+    t = _host_numbers(transform[1], "transform t")
+    if R.shape != (d, d) or t.shape != (d,):
+        raise InputError(f"transform: expected R ({d}, {d}) and t ({d},) for {d}-D landmarks, got "
+                         f"{R.shape} and {t.shape}")
+    s = 1.0
+    if len(transform) == 3:
+        s = _host_numbers(transform[2], "transform s")
+        if s.shape != () or not np.isfinite(s):
+            raise InputError(f"transform: expected a finite scalar scale s, got {transform[2]!r}"[:300])
+        s = float(s)
+    return R, t, s
 
 
 def interp_poses(t_query, t, poses):
@@ -623,6 +664,8 @@ def write_tum(path, t, positions, yaw=None, quat_xyzw=None):
             With neither, the identity orientation is written.
     """
     t = _host_numbers(t, "t").reshape(-1)
+    if t.size == 0:  # a header alone, which read_tum (and evo) refuse
+        raise InputError("t: no poses to write (T = 0)")
     p = _host_numbers(positions, "positions")
     if p.ndim != 2 or p.shape[0] != t.shape[0] or p.shape[1] not in (2, 3):
         raise InputError(f"write_tum: positions must be (T, 2|3) with T = {t.shape[0]}, got {p.shape}")

@@ -320,3 +320,39 @@ def test_complex_inputs_are_refused():
     for call, needle in cases:
         with pytest.raises(InputError, match=needle):
             call()
+
+
+def test_bounds_must_be_two_numbers_in_order():
+    with pytest.raises(InputError, match=r"^bounds: expected two numbers"):
+        metrics.steps_inside([1.0, 2.0], (0.5, 1.5, 2.5))  # was a bare unpacking ValueError
+    with pytest.raises(InputError, match=r"^bounds: expected \(lo, hi\) with lo <= hi"):
+        metrics.consistency_verdict(1.0, (2.0, 0.5))  # a value between them read "OUTSIDE"
+    assert metrics.consistency_verdict(1.0, (0.5, 2.0)) == "ok"
+    assert metrics.consistency_verdict(1.0, (np.nan, 2.0)) == "undefined"
+
+
+def test_map_error_refuses_a_repeated_estimated_id_and_a_bad_transform():
+    true_lm, true_ids = np.array([[0.0, 0.0], [4.0, 0.0], [0.0, 3.0]]), np.array([1, 2, 3])
+    est = np.array([[0.0, 0.0], [4.0, 0.0], [0.0, 3.0], [9.0, 9.0]])
+    I2, z2 = np.eye(2), np.zeros(2)
+    with pytest.raises(InputError, match=r"^est_ids: each id may appear once .* \[2\]"):
+        metrics.map_error(est, np.array([1, 2, 3, 2]), true_lm, true_ids, transform=(I2, z2))
+    # a repeated id on an unused row (negative id, or a NaN position) is no repeat
+    est_nan = est.copy()
+    est_nan[3] = np.nan
+    me = metrics.map_error(est_nan, np.array([1, 2, 3, 2]), true_lm, true_ids, transform=(I2, z2))
+    assert me.rmse == 0.0 and sorted(me.ids.tolist()) == [1, 2, 3]
+    for bad, needle in (((I2,), r"^transform: expected \(R, t\)"), ((np.eye(3), z2), r"^transform: expected R \(2, 2\)"),
+                        ((I2, z2, np.array([1.0, 2.0])), r"^transform: expected a finite scalar")):
+        with pytest.raises(InputError, match=needle):
+            metrics.map_error(est[:3], np.array([1, 2, 3]), true_lm, true_ids, transform=bad)
+    me = metrics.map_error(est[:3], np.array([1, 2, 3]), true_lm, true_ids, transform=(I2, z2 + 1.0, 2.0))
+    # estimates doubled and shifted by 1: errors |x + 1| per landmark, by hand
+    want = np.linalg.norm(2 * est[:3] + 1.0 - true_lm, axis=1)
+    np.testing.assert_allclose(me.errors, want, rtol=1e-15)
+
+
+def test_write_tum_refuses_an_empty_trajectory(tmp_path):
+    with pytest.raises(InputError, match=r"^t: no poses to write"):
+        metrics.write_tum(tmp_path / "e.txt", np.zeros(0), np.zeros((0, 3)))
+    assert not (tmp_path / "e.txt").exists()
