@@ -307,7 +307,7 @@ def _cov_about(points, w, W, c, rho, theta, sigma):
     # Fewer than two distinct weighted points (to working precision): the weighted spread
     # along the line is within a few ulp of the centroid's coordinates (h [m²]), or W = 0.
     # A⁻¹ then overflowed (one point: [[-inf, inf], [inf, 0]]; two identical points: NaN).
-    h = (4 * finfo.eps) ** 2 * jnp.maximum(c @ c, 1.0)
+    h = float(4 * finfo.eps) ** 2 * jnp.maximum(c @ c, 1.0)
     deg = suu <= W * h
     # A = [[W, −W s̄], [−W s̄, W s̄² + Σwu²]] (ρ, θ order), det A = W Σwu².
     det = jnp.where(deg, 1.0, jnp.maximum(W * suu, finfo.tiny))  # double where: finite gradients
@@ -320,12 +320,12 @@ def _cov_about(points, w, W, c, rho, theta, sigma):
     cov = 0.5 * (cov + cov.T)
     # Degenerate: the unit-weight variances about the centroid (module docstring) with Σu² := h and
     # s̄² := max(|c̄|², 1), scaled by Σw²/W² (1 for W = 0), without the correlation: huge but
-    # finite (≤ σ²/(16 eps²)) and positive definite in every dtype (the correlated form's
-    # condition number, ~1/(16 eps²), rounded it indefinite in float32).
+    # finite (var ρ = σ² r (1 + 1/(16 eps²))) and positive definite in float32 and float64 (the
+    # correlated form's condition number, ~1/(16 eps²), rounded it indefinite in float32).
     Wd = jnp.where(W > 0, W, 1.0)
     r = jnp.where(W > 0, jnp.sum(w2) / (Wd * Wd), 1.0)
     z = jnp.zeros_like(h)
-    var_rho = 1.0 + 1.0 / (4 * finfo.eps) ** 2  # 1 + max(|c̄|², 1)/h
+    var_rho = 1.0 + 1.0 / float(4 * finfo.eps) ** 2  # 1 + max(|c̄|², 1)/h
     cov_deg = (sigma**2) * r * jnp.stack([jnp.stack([var_rho, z]), jnp.stack([z, 1.0 / h])])
     return jnp.where(deg, cov_deg, cov)
 
@@ -337,7 +337,7 @@ def fit_line_cov(points, weights, sigma):
     the line within a few ulp of the centroid's coordinates, or zero total weight) give a huge but
     finite covariance, ``σ² (Σw²/W²) diag(1 + 1/(16 eps²), 1/h)`` with ``h = (4 eps)² max(|c̄|², 1 m²)``
     (``c̄`` the weighted centroid, ``eps`` of the dtype; ``Σw²/W²`` read as 1 for W = 0): positive
-    definite, ``var θ`` ≈ ``σ²/(16 eps² |c̄|²)``.  Concrete weights must be finite and ≥ 0, σ finite
+    definite, ``var θ`` ≈ ``σ²/(16 eps² max(|c̄|², 1 m²))``.  Concrete weights must be finite and ≥ 0, σ finite
     and > 0 (:class:`~jaxslam.errors.InputError`).
     """
     points = _fit_inputs(points, weights, sigma)

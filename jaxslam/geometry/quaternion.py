@@ -112,8 +112,12 @@ _SAFE_RANGE = {}  # dtype -> (2^−e, 2^e), e = maxexp / 4: no squared norm over
 def _safe_range(dtype):
     r = _SAFE_RANGE.get(dtype)
     if r is None:
-        e = float(jnp.finfo(dtype).maxexp // 4) if jnp.issubdtype(dtype, jnp.floating) else np.inf
-        r = _SAFE_RANGE[dtype] = (2.0 ** -e, 2.0 ** e)
+        if jnp.issubdtype(dtype, jnp.floating):
+            e = float(jnp.finfo(dtype).maxexp // 4)
+            r = (2.0 ** -e, 2.0 ** e)
+        else:  # an integer quaternion: any non-zero max |q_k| (>= 1); a zero one is refused
+            r = (1.0, np.inf)
+        _SAFE_RANGE[dtype] = r
     return r
 
 

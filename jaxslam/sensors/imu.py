@@ -227,10 +227,10 @@ def _gravity(g, dtype):
     one real number); a concrete non-finite value is an InputError naming ``g``."""
     if np.ndim(g) != 0:
         raise InputError(f"g: expected a scalar gravity [m/s²] along +n3, got shape {np.shape(g)}")
-    g = as_scalar(g, dtype, "g")
-    if is_concrete(g) and not np.isfinite(np.asarray(g)):
-        raise InputError(f"g: expected a finite gravity [m/s²], got {g}")
-    return g
+    out = as_scalar(g, dtype, "g")
+    if is_concrete(g) and not np.isfinite(np.asarray(g, float)):  # (the value as given: no device copy back)
+        raise InputError(f"g: expected a finite gravity [m/s²], got {g!r}")
+    return out
 
 
 def imu_ideal(x, xdot, g, mode: str = "specific_force"):

@@ -146,7 +146,7 @@ def _norm(x):
     m = jnp.max(jnp.abs(x), axis=-1)
     ok = (sq >= fi.tiny / fi.eps) & (sq < jnp.inf)
     scaled = (m > 0) & (m < jnp.inf) & ~ok  # NaN, Inf and 0 stay on the plain path
-    lo = _FLOOR * fi.tiny  # a power of two
+    lo = float(_FLOOR * fi.tiny)  # a power of two (a Python float: weakly typed, float32 stays float32)
     s = jax.lax.stop_gradient(jnp.where(scaled, jnp.clip(m, lo, 1.0 / lo), 1.0))
     u = x / s[..., None]
     su = jnp.sum(u * u, axis=-1)  # in [1, n·64²] where scaled, unless max|xᵢ| < lo
@@ -167,8 +167,8 @@ def spherical_from_cartesian(c):
     Args: c: (..., 3) Cartesian vector [m] (an integer one is read as JAX's default float).
     Returns: (..., 3) [atan2(c2, c1), atan2(c3, √(c1²+c2²)), ‖c‖].  Where the squares of c would
     overflow or underflow (float32 beyond ~1e19 m or below ~1e-16 m) the norms and angles are
-    evaluated on c scaled by its largest entry, so they stay right from the smallest normal
-    number to the largest finite one.
+    evaluated on c scaled by its largest entry, so they stay right from 16 times the smallest
+    normal number to the largest finite one (below that the angles read 0).
     """
     c = real_float(c, "c")
     c = _last_axis(c, 3, "c")  # a (2,) vector read its third entry from a clamped index

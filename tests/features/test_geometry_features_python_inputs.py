@@ -119,6 +119,16 @@ def test_concrete_zero_quaternion_is_refused(call, needle):
         call(jnp.zeros(4))
 
 
+def test_integer_zero_quaternion_is_refused_and_integer_ones_are_read():
+    # an integer dtype's safe range was (0, inf): a zero quaternion of ints slipped through the
+    # fast path (NaN from qnormalize, a zero DCM); a review found it
+    for fn in (qu.qnormalize, qu.dcm_from_quat, qu.qlog):
+        with pytest.raises(InputError, match=r"is a zero quaternion"):
+            fn(np.zeros(4, int))
+    np.testing.assert_array_equal(np.asarray(qu.qnormalize(np.array([[2, 0, 0, 0], [0, 3, 0, 0]]))),
+                                  [[1.0, 0, 0, 0], [0, 1.0, 0, 0]])
+
+
 def test_zero_quaternion_under_jit_is_unchanged():
     assert np.all(np.isnan(np.asarray(jax.jit(qu.qlog)(jnp.zeros(4)))))  # traced: no value check
     np.testing.assert_array_equal(np.asarray(jax.jit(qu.dcm_from_quat)(jnp.zeros(4))), np.zeros((3, 3)))
