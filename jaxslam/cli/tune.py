@@ -155,9 +155,9 @@ def build_parser(with_targets: bool = True) -> Parser:
                            "default 2; 'none': no held-out)")
     real.add_argument("--window", type=positive_float, default=None, metavar="S",
                       help="fit on the first S seconds of each training log (mrclam: default 500 s, the "
-                           "held-out robots are evaluated whole; util-uwb: default half the flight, the rest "
-                           "is held out; plaza: default the whole log; victoria-park: default 500 s, the rest "
-                           "is held out)")
+                           "held-out robots are evaluated whole; util-uwb: the first S seconds of the flight, "
+                           "counted from its first range, default half the flight, the rest is held out; "
+                           "plaza: default the whole log; victoria-park: default 500 s, the rest is held out)")
     real.add_argument("--anchor-offsets", action="store_true", default=None,
                       help="util-uwb: also learn a range offset per anchor (mean removed)")
     real.add_argument("--odometry-delay", default=None, metavar="S|auto",

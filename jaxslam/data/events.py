@@ -100,7 +100,7 @@ def _finite(a, name, why):
 
 
 def _bound(v, name):
-    """A window bound: None, or one real number (finite: checked by the caller)."""
+    """A window bound: None, or one real number (NaN and inf: handled by the caller)."""
     if v is None:
         return None
     a = _numbers(v, name)
@@ -158,8 +158,10 @@ def merge_events(input_t, inputs, meas_t, meas, meas_ids=None, K: Optional[int] 
 
     Args:
       input_t: (N_u,) input times [s], non-decreasing.
-      inputs: (N_u, d_u) input samples, finite (an input drives every later
-        prediction: a NaN would poison the rest of the run).
+      inputs: (N_u, d_u) input samples, finite where used (an input drives
+        every later prediction: a NaN would poison the rest of the run); with
+        a window only the samples in it, and for ``"rate"`` the last one
+        before ``t_start`` (held into the window), are used and checked.
       meas_t: (N_z,) measurement times [s], non-decreasing; rows with equal
         times form one event.
       meas: (N_z, d_z) measurement rows.
@@ -170,9 +172,10 @@ def merge_events(input_t, inputs, meas_t, meas, meas_ids=None, K: Optional[int] 
       input_mode: ``"rate"`` (zero-order hold) or ``"increment"``.
       u_before: (d_u,) finite input before the first sample ("rate" only);
         default zeros.
-      t_start, t_end: optional time window [s], finite, ``t_start <= t_end``;
+      t_start, t_end: optional time window [s], ``t_start <= t_end``;
         events outside are discarded (measurements counted in
-        ``stats["outside_window"]``).
+        ``stats["outside_window"]``).  None, ``t_start=-inf`` or
+        ``t_end=+inf`` leave that end open.
 
     Times, samples and ids are real numbers: a string, bool, complex,
     ``datetime64``/``timedelta64`` or object array is refused (convert
@@ -182,7 +185,8 @@ def merge_events(input_t, inputs, meas_t, meas, meas_ids=None, K: Optional[int] 
       InputError: an argument is not real numbers, shapes disagree, times are
         not finite or decrease, an input is not finite, an id is fractional or
         does not fit int32, ``K`` is not an int >= 1, the window is reversed or
-        has a non-finite bound, or ``input_mode`` is unknown.
+        has a NaN bound, ``t_start`` is +inf or ``t_end`` is −inf, or
+        ``input_mode`` is unknown.
     """
     if not isinstance(input_mode, str) or input_mode not in ("rate", "increment"):
         raise InputError(f"input_mode: expected 'rate' or 'increment', got {input_mode!r}")
@@ -194,8 +198,6 @@ def merge_events(input_t, inputs, meas_t, meas, meas_ids=None, K: Optional[int] 
         raise InputError(f"inputs: {U.shape[0]} rows but input_t has {ut.shape[0]}")
     if Z.shape[0] != zt.shape[0]:
         raise InputError(f"meas: {Z.shape[0]} rows but meas_t has {zt.shape[0]}")
-    # an input drives every prediction after it: a NaN would make the rest of the run NaN
-    _finite(U, "inputs", "an input drives every later prediction")
     ids = _ids(meas_ids, zt.shape[0])
     check_times(ut, "input_t")
     check_times(zt, "meas_t")
@@ -218,9 +220,16 @@ def merge_events(input_t, inputs, meas_t, meas, meas_ids=None, K: Optional[int] 
             # a NaN bound kept no event: the run then returned zeros flagged degenerate (an empty
             # window stays allowed: a dataset runner reports it in its notes)
             raise InputError(f"t_start, t_end: expected numbers (or None), got {t_start}, {t_end}")
-        for nm, b in (("t_start", lo), ("t_end", hi)):
-            if b is not None and not np.isfinite(b):  # t_start=inf gave one event at t = inf
-                raise InputError(f"{nm}: expected a finite time [s] (or None for an open end), got {b!r}")
+        # -inf for t_start and +inf for t_end are open ends, as None (t_start=inf gave one event at
+        # t = inf; t_end=-inf kept nothing)
+        if lo is not None and np.isinf(lo):
+            if lo > 0:
+                raise InputError(f"t_start: expected a time [s] (None or -inf for an open start), got {lo!r}")
+            lo = None
+        if hi is not None and np.isinf(hi):
+            if hi < 0:
+                raise InputError(f"t_end: expected a time [s] (None or +inf for an open end), got {hi!r}")
+            hi = None
         lo = -np.inf if lo is None else lo
         hi = np.inf if hi is None else hi
         if lo > hi:  # a reversed window kept an event at t_start, after t_end
@@ -238,6 +247,16 @@ def merge_events(input_t, inputs, meas_t, meas, meas_ids=None, K: Optional[int] 
         if input_mode == "rate" and ut.size and ut[0] < lo:
             ut = ut.copy()
             ut[0] = lo
+        row0 = int(np.argmax(keep_u)) if keep_u.any() else 0  # index in the caller's rows
+    else:
+        row0 = 0
+    # an input drives every prediction after it: a NaN would make the rest of the run NaN (only the
+    # samples in use are checked: those in the window and, for "rate", the one held into it)
+    bad = ~np.isfinite(U)
+    if bad.any():
+        i, c = (int(j) for j in np.argwhere(bad)[0])
+        raise InputError(f"inputs: non-finite value {float(U[i, c])!r} at row {row0 + i}, column {c} "
+                         "(an input drives every later prediction)")
     z_times, z_first, z_count = np.unique(zt, return_index=True, return_counts=True)
     if K is None:
         K = int(z_count.max()) if z_count.size else 1

@@ -145,7 +145,6 @@ def mrclam_params(robot: int = 1, sigma_v: float = 0.01, sigma_w: float = 0.02,
     """
     if preset not in ("fitted", "hand"):
         raise InputError(f"preset: expected 'fitted' or 'hand', got {preset!r}")
-    check_int(robot, "robot")
     common = dict(P0=jnp.diag(jnp.asarray(p0, dtype)), calib0=jnp.asarray([1.0, 1.0, 0.0], dtype),
                   calib_P0=jnp.diag(jnp.asarray(calib_sigma, dtype) ** 2),
                   calib_Q=jnp.diag(jnp.asarray(calib_rw, dtype) ** 2))
@@ -254,7 +253,8 @@ def mrclam_log(data, K: int = 8, t_end=None, range_model=MRCLAM_RANGE_MODEL,
     (``range_model``, see ``MRCLAM_RANGE_MODEL``: two finite numbers, the divisor positive at
     every measured bearing, else :class:`InputError`); odometry stamps shifted by
     ``odometry_delay`` [s] (``MRCLAM_ODOMETRY_DELAY``, finite).  The run spans the first (shifted)
-    odometry sample to ``t_end`` (default the last ground-truth time: robot 1 stops there);
+    odometry sample to ``t_end`` (default the last ground-truth time: robot 1 stops there;
+    ``+inf``: no end);
     measurements outside it are dropped and counted in ``log.stats["outside_window"]`` (a
     sighting before any odometry would be taken from a robot that has not started moving).
     The start pose is ground truth at the first event (:func:`mrclam_start_pose`).
@@ -264,8 +264,8 @@ def mrclam_log(data, K: int = 8, t_end=None, range_model=MRCLAM_RANGE_MODEL,
 
     K = check_int(K, "K")
     odometry_delay = check_scalar(odometry_delay, "odometry_delay")
-    if t_end is not None:
-        t_end = check_scalar(t_end, "t_end")
+    if t_end is not None:  # +inf: an open end, as before (merge_events refuses -inf, naming t_end)
+        t_end = check_scalar(t_end, "t_end", finite=False)
     z = np.array(data.meas, np.float64)
     if range_model is not None:
         try:

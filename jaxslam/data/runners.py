@@ -164,7 +164,8 @@ def evaluate_planar(t_est, est_pose, t_ref, ref, dr_pose=None, lm=None, lm_ids=N
 
     ``t_est`` (T,) and ``t_ref`` (N,): finite, non-decreasing times; ``est_pose`` (and
     ``dr_pose``) (T, 3) poses or (T, 2) positions; ``ref`` is (N, 3) poses or (N, 2) positions
-    (GPS).  With ``at_ref_times`` the estimate is interpolated at the reference times (sparse
+    (GPS).  Against poses (``ref`` (N, 3)) ``est_pose`` must be poses too: the RPE compares
+    headings.  With ``at_ref_times`` the estimate is interpolated at the reference times (sparse
     GPS fixes; reference rows holding NaN or Inf are left out);
     otherwise the reference is interpolated at the estimate times inside its
     span.  Returns ``(metrics dict, evaluation dict)`` with everything moved
@@ -179,6 +180,9 @@ def evaluate_planar(t_est, est_pose, t_ref, ref, dr_pose=None, lm=None, lm_ids=N
     est_pose = _rows(est_pose, "est_pose", t_est.size, widths=(2, 3))
     t_ref = _times(t_ref, "t_ref")
     ref = _rows(ref, "ref", t_ref.size, widths=(2, 3))
+    if ref.shape[1] == 3 and est_pose.shape[1] != 3:  # (the RPE's error named no argument)
+        raise InputError(f"est_pose: expected shape ({t_est.size}, 3) (poses: ref holds poses, (N, 3), and "
+                         f"the RPE compares headings), got {est_pose.shape}")
     if dr_pose is not None:
         dr_pose = _rows(dr_pose, "dr_pose", t_est.size, widths=(2, 3))
     at_ref_times = check_flag(at_ref_times, "at_ref_times")

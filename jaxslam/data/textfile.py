@@ -120,20 +120,32 @@ def _path_arg(path, name: str = "path") -> Path:
     return Path(path)
 
 
+def _column_index(value, name: str, ncols: int) -> int:
+    """One column index, an int in [-ncols, ncols) as NumPy indexes (-1: the last column),
+    returned in [0, ncols); else :class:`InputError` naming ``name``."""
+    try:
+        c = None if isinstance(value, (bool, np.bool_)) else operator.index(value)
+    except TypeError:
+        c = None
+    if c is None:
+        raise InputError(f"{name}: expected an int column index, got {value!r}"[:300])
+    if not -ncols <= c < ncols:
+        raise InputError(f"{name}: column index {c} is out of range for {ncols} column(s) "
+                         f"(indices are 0-based; -1 is the last)")
+    return int(c) % ncols
+
+
 def _columns_arg(value, name: str, ncols: int) -> list:
-    """Column indices (an int or a sequence of ints) in [0, ncols), else :class:`InputError`."""
+    """Column indices (an int or a sequence of ints) in [-ncols, ncols), as indices in
+    [0, ncols); else :class:`InputError`."""
     many = not isinstance(value, (int, np.integer)) or isinstance(value, (bool, np.bool_))
     try:
-        cols = [_int_arg(c, name) for c in (value if many else [value])]
+        items = list(value) if many else [value]
     except TypeError:  # not iterable
-        cols = None
-    if cols is None or (many and isinstance(value, (str, bytes))):
+        items = None
+    if items is None or (many and isinstance(value, (str, bytes))):
         raise InputError(f"{name}: expected a column index or a sequence of them, got {value!r}"[:300])
-    bad = [c for c in cols if c >= ncols]
-    if bad:
-        raise InputError(f"{name}: column index {bad[0]} is out of range for {ncols} column(s) "
-                         f"(indices are 0-based)")
-    return cols
+    return [_column_index(c, name, ncols) for c in items]
 
 
 def location(path: PathLike, line: int) -> str:
@@ -216,17 +228,20 @@ def read_table(path: PathLike, ncols: int, *, delimiter: Optional[str] = None,
         single character such as ``","``.  A trailing delimiter is ignored.
       header_rows: lines skipped at the top before comment handling (e.g. a
         CSV header row); an int >= 0.
-      header: if given (with ``header_rows == 1``), the expected column names
-        of the header row; a mismatch raises at line 1.
+      header: if given (with ``header_rows >= 1``), the expected column names
+        of the first header row; a mismatch raises at line 1.
       comments: lines whose first non-blank characters are this prefix are
         skipped (anywhere in the file); ``None`` to disable.  Blank lines are
         always skipped.
-      gz: read through gzip; default: when the name ends in ``.gz``.
-      time_cols: column index (or indices; 0-based, below ``ncols``) holding
-        times that must not decrease (equal consecutive times are allowed).
+      gz: read through gzip (True/False, or 1/0); default: when the name ends
+        in ``.gz``.
+      time_cols: column index (or indices; 0-based, in ``[-ncols, ncols)``,
+        -1 the last as in NumPy) holding times that must not decrease (equal
+        consecutive times are allowed).
       finite: ``True``: every value must be finite; a sequence of column
-        indices: only those columns; ``False``: no check.
-      allow_empty: accept a file without data rows (returns a (0, ncols) table).
+        indices (as ``time_cols``): only those columns; ``False``: no check.
+      allow_empty: accept a file without data rows (returns a (0, ncols)
+        table); True/False, or 1/0.
 
     Returns:
       :class:`Table` ``(data, lines, path)``.
@@ -246,9 +261,17 @@ def read_table(path: PathLike, ncols: int, *, delimiter: Optional[str] = None,
     if header is not None and header_rows < 1:
         raise InputError("header: the expected column names are checked against the first header row; "
                          "give header_rows >= 1")
+    flags = {}
     for flag, v in (("gz", gz), ("allow_empty", allow_empty)):
-        if not (isinstance(v, (bool, np.bool_)) or (flag == "gz" and v is None)):
+        if flag == "gz" and v is None:
+            flags[flag] = None
+            continue
+        # True/False, or the ints 0 and 1 (read as truth values before)
+        is_int = isinstance(v, (int, np.integer)) and not isinstance(v, (bool, np.bool_))
+        if not (isinstance(v, (bool, np.bool_)) or (is_int and v in (0, 1))):
             raise InputError(f"{flag}: expected True or False{' (or None)' if flag == 'gz' else ''}, got {v!r}"[:300])
+        flags[flag] = bool(v)
+    gz, allow_empty = flags["gz"], flags["allow_empty"]
     tcs = None if time_cols is None else _columns_arg(time_cols, "time_cols", ncols)
     finite = bool(finite) if isinstance(finite, (bool, np.bool_)) else _columns_arg(finite, "finite", ncols)
     spath = str(p)
@@ -314,16 +337,14 @@ def read_table(path: PathLike, ncols: int, *, delimiter: Optional[str] = None,
 
 def int_column(tab: Table, col: int, name: str, lo: Optional[int] = None,
                hi: Optional[int] = None, unique: bool = False) -> np.ndarray:
-    """Column ``col`` of ``tab`` as int64, checked integral (and in [lo, hi], and, with
-    ``unique``, listed once).
+    """Column ``col`` of ``tab`` (0-based; -1 the last) as int64, checked integral (and in
+    [lo, hi], and, with ``unique``, listed once).
 
     Integer fields may be written as floats (``2.0000000000000000e+000``).  A value beyond the
     int64 range is refused too (it used to wrap around).  Raises :class:`DataFormatError` at the
     first offending line (for a repeated value: the second line, naming the first).
     """
-    col = _int_arg(col, "col")
-    if col >= tab.data.shape[1]:
-        raise InputError(f"col: column index {col} is out of range for {tab.data.shape[1]} column(s)")
+    col = _column_index(col, "col", tab.data.shape[1])  # -1: the last column, as NumPy indexed it before
     v = tab.data[:, col]
     r = np.rint(v)
     wide = ~((r >= -(2.0 ** 63)) & (r < 2.0 ** 63))  # 1e30 wrapped to -2**63
@@ -334,8 +355,11 @@ def int_column(tab: Table, col: int, name: str, lo: Optional[int] = None,
         bad |= r > hi
     if bad.any():
         i = int(np.argmax(bad))
-        rng = {(False, False): f" in [{lo}, {hi}]", (False, True): f" >= {lo}", (True, False): f" <= {hi}",
-               (True, True): " in the int64 range" if wide[i] else ""}[(lo is None, hi is None)]
+        if wide[i]:  # checked first: 1e30 with lo=0 is not "expected an integer >= 0"
+            rng = " in the int64 range"
+        else:
+            rng = {(False, False): f" in [{lo}, {hi}]", (False, True): f" >= {lo}", (True, False): f" <= {hi}",
+                   (True, True): ""}[(lo is None, hi is None)]
         raise tab.error(i, f"{name} (column {col + 1}): expected an integer{rng}, got {float(v[i])!r}")
     out = r.astype(np.int64)
     if unique:

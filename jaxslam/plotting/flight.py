@@ -77,7 +77,8 @@ def save(fig, directory, name) -> pathlib.Path:
     twice to measure it, which was 0.45 s of every figure here; margins are set instead
     (``subplots_adjust``, fixed in inches with room for a suptitle, unless a layout engine is
     already set).  A folder that cannot be written (or a full disk) is an :class:`InputError`
-    naming ``directory`` and the file.
+    naming ``directory`` and the file; a folder already at ``directory/name.png`` one naming
+    ``name``.
     """
     if not hasattr(fig, "savefig"):
         raise InputError(f"fig: expected a matplotlib Figure, got {type(fig).__name__}")
@@ -87,6 +88,12 @@ def save(fig, directory, name) -> pathlib.Path:
         raise InputError(f"name: expected a plain file name (no folder part), got {name!r}")
     d = _output_dir(directory)
     path = d / f"{name}.png"
+    try:
+        taken = path.is_dir()  # a folder already named name.png: the name is at fault, not directory
+    except OSError:
+        taken = False  # (atomic_write names the folder that cannot be searched)
+    if taken:  # (refused as the name checks above: the figure stays open for another name)
+        raise InputError(f"name: {str(path)!r} is a folder; give another file name")
     if fig.get_layout_engine() is None:
         # margins in inches (tick labels, axis label, titles), as fractions of this figure: a
         # fixed fraction clipped the axis labels and titles of the smaller figures

@@ -355,9 +355,16 @@ def before_after(report, metrics=None, title="Held-out evaluation", max_panels=M
     _check_report(report, ("before", "after"))
     refs = report.get("references") or {}
     if metrics is not None:
-        if (isinstance(metrics, str) or not isinstance(metrics, (list, tuple, set, frozenset))
-                or not all(isinstance(m, str) for m in metrics)):
-            raise InputError(f"metrics: expected a list of statistic names, got {metrics!r}")
+        # any iterable of names but a string (a list, dict_keys, a NumPy array of str, a generator)
+        names = None
+        if not isinstance(metrics, (str, bytes)):
+            try:
+                names = list(metrics)
+            except TypeError:  # not iterable
+                names = None
+        if names is None or not all(isinstance(m, str) for m in names):
+            raise InputError(f"metrics: expected a list of statistic names, got {metrics!r}"[:300])
+        metrics = [str(m) for m in names]
         if not metrics:
             raise InputError("metrics: expected at least one statistic name, got an empty list")
         panels, left_out = choose_panels(report, max_panels=10 ** 6)

@@ -269,7 +269,8 @@ def fit(loss_fn: Callable, theta0, train, steps: int, lr: float = 0.1, *, test=N
       schedule, warmup, clip, b2: see :func:`make_optimizer`.
       log_objective: differentiate log(mean loss) (positive losses; module docstring).
       batch_size, key: minibatches of the training runs drawn per step (key required).
-      max_skips: consecutive skipped updates tolerated before stopping (0: stop at the first).
+      max_skips: the loop stops at the ``max_skips``-th consecutive skipped update (the
+        ``10 × max_skips``-th with minibatches); 0 and 1 both stop at the first skip.
       callback: called with each history record.
       describe: ``describe(theta) -> dict`` stored in each record (parameter trajectories).
       sequential: evaluate the batch's items one after another (:func:`batch_loss`).

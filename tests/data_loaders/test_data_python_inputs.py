@@ -105,10 +105,10 @@ def test_merge_events_ids_must_fit_int32():
 def test_merge_events_window_must_be_finite_and_in_order():
     with pytest.raises(InputError, match=r"^t_start, t_end: t_start 1\.5 is after t_end 1\.2"):
         _merge(t_start=1.5, t_end=1.2)  # returned an event at 1.5
-    for kw, name in ((dict(t_start=np.inf), "t_start"), (dict(t_end=-np.inf), "t_end"),
-                     (dict(t_start=-np.inf, t_end=1.0), "t_start")):
-        with pytest.raises(InputError, match=rf"^{name}: expected a finite time \[s\]"):
-            _merge(**kw)
+    with pytest.raises(InputError, match=r"^t_start: expected a time \[s\] \(None or -inf for an open start\), got inf"):
+        _merge(t_start=np.inf)  # gave one event at t = inf
+    with pytest.raises(InputError, match=r"^t_end: expected a time \[s\] \(None or \+inf for an open end\), got -inf"):
+        _merge(t_end=-np.inf)
     with pytest.raises(InputError, match=r"^t_start, t_end: expected numbers \(or None\), got nan, 0.5"):
         _merge(t_start=float("nan"), t_end=0.5)  # the existing message
     with pytest.raises(InputError, match=r"^t_start: expected real numbers, got dtype <U1"):
@@ -119,6 +119,40 @@ def test_merge_events_window_must_be_finite_and_in_order():
         _merge(t_start=True)
     log = _merge(t_start=0.5, t_end=0.5)  # one instant is a window
     assert log.t.tolist() == [0.5] and log.stats["n_meas"] == 2
+
+
+def test_merge_events_infinite_open_ends_are_none():
+    # -inf for t_start and +inf for t_end are open ends, as None (refused by this session's first check)
+    ref = _merge(t_start=0.2)
+    for kw in (dict(t_start=-np.inf, t_end=np.inf), dict(t_start=-np.inf), dict(t_end=np.inf),
+               dict(t_start=-np.inf, t_end=1.0)):
+        log = _merge(**kw)
+        assert log.t.tolist() == [0.0, 0.5, 1.0] and log.stats["outside_window"] == 0
+    log = _merge(t_start=0.2, t_end=np.inf)
+    assert log.t.tolist() == ref.t.tolist() == [0.2, 0.5, 1.0]
+    assert np.array_equal(log.u, ref.u)
+
+
+def test_merge_events_checks_only_the_inputs_in_use():
+    # a NaN input sample outside the window is never used: it no longer fails the call
+    U = np.array([[np.nan, 0.0], [1.0, 2.0], [3.0, 4.0], [np.inf, 0.0]])
+    t = [0.0, 1.0, 2.0, 3.0]
+    kw = dict(input_t=t, inputs=U, meas_t=[1.5, 2.5], meas=np.ones((2, 2)))
+    for mode in ("rate", "increment"):
+        log = merge_events(**kw, input_mode=mode, t_start=1.0, t_end=2.5)
+        assert np.all(np.isfinite(log.u)) and log.t.tolist() == [1.0, 1.5, 2.0, 2.5]
+    # "rate" holds the last sample before t_start into the window: u over (1.0, 1.5] is row 1
+    log = merge_events(**kw, t_start=1.2, t_end=2.5)
+    assert log.t.tolist() == [1.2, 1.5, 2.0, 2.5] and log.u[1].tolist() == [1.0, 2.0]
+    # that held sample must be finite (named by its row in the caller's array); "increment" does not use it
+    with pytest.raises(InputError, match=r"^inputs: non-finite value nan at row 0, column 0"):
+        merge_events(**kw, t_start=0.5, t_end=2.5)
+    log = merge_events(**kw, input_mode="increment", t_start=0.5, t_end=2.5)
+    assert np.all(np.isfinite(log.u))
+    with pytest.raises(InputError, match=r"^inputs: non-finite value inf at row 3, column 0"):
+        merge_events(**kw, t_start=1.0, t_end=3.0)
+    with pytest.raises(InputError, match=r"^inputs: non-finite value nan at row 0, column 0"):
+        merge_events(**kw)  # no window: every sample is used
 
 
 @pytest.mark.parametrize("K", [1.5, True, "2", float("nan"), float("inf"), 0, np.float64(2.0)])
@@ -176,15 +210,17 @@ def test_read_table_checks_its_arguments(tmp_path):
         (dict(ncols="3"), r"^ncols: expected an int >= 1, got '3'"),  # "expected 3 columns, got 3"
         (dict(ncols=0), r"^ncols: expected an int >= 1, got 0"),
         (dict(finite=[10]), r"^finite: column index 10 is out of range for 3 column\(s\)"),  # IndexError
-        (dict(finite=[-1]), r"^finite: expected an int >= 0, got -1"),
+        (dict(finite=[-4]), r"^finite: column index -4 is out of range for 3 column\(s\)"),
         (dict(time_cols=10), r"^time_cols: column index 10 is out of range"),  # IndexError
         (dict(time_cols=True), r"^time_cols: expected a column index or a sequence of them, got True"),
-        (dict(time_cols=[0, 1.0]), r"^time_cols: expected an int >= 0, got 1.0"),
+        (dict(time_cols=[0, 1.0]), r"^time_cols: expected an int column index, got 1.0"),
         (dict(delimiter="ab"), r"^delimiter: expected None \(whitespace\) or one character, got 'ab'"),
         (dict(comments=""), r"^comments: expected None or a non-empty prefix string"),
         (dict(header=("a", "b", "c")), r"^header: .* give header_rows >= 1"),  # silently unchecked
         (dict(gz="no"), r"^gz: expected True or False \(or None\), got 'no'"),
         (dict(allow_empty=None), r"^allow_empty: expected True or False, got None"),
+        (dict(gz=2), r"^gz: expected True or False \(or None\), got 2"),
+        (dict(allow_empty=-1), r"^allow_empty: expected True or False, got -1"),
     ]:
         with pytest.raises(InputError, match=match):
             read_table(p, **{"ncols": 3, **kw})
@@ -195,14 +231,50 @@ def test_read_table_checks_its_arguments(tmp_path):
     assert read_table(p, 3, finite=(0, 2)).data.shape == (2, 3)
 
 
+def test_read_table_takes_negative_column_indices_and_0_1_flags(tmp_path):
+    # NumPy indexing took -1 (the last column) before this session's check refused it; gz and
+    # allow_empty were read as truth values, so 0 and 1 worked
+    p = tmp_path / "t.dat"
+    p.write_text("1 2 9\n4 nan 6\n")
+    assert read_table(p, 3, finite=[-1, 0]).data.shape == (2, 3)  # column 2 (the NaN) unchecked
+    with pytest.raises(DataFormatError, match=r"t\.dat:2: non-finite value nan in column 2$"):
+        read_table(p, 3, finite=[-2])
+    with pytest.raises(DataFormatError, match=r"t\.dat:2: time goes backwards in column 3: 6\.0 after 9\.0"):
+        read_table(p, 3, finite=False, time_cols=-1)
+    assert read_table(p, 3, finite=False, time_cols=[-3]).data[1, 0] == 4.0
+    assert read_table(p, 3, finite=False, gz=0, allow_empty=1).data.shape == (2, 3)
+    e = tmp_path / "e.dat"
+    e.write_text("# nothing\n")
+    assert read_table(e, 2, allow_empty=np.int64(1)).data.shape == (0, 2)
+    with pytest.raises(DataFormatError, match=r"no data rows"):
+        read_table(e, 2, allow_empty=0)
+    t = read_table(p, 3, finite=False)
+    assert int_column(t, -1, "id").tolist() == [9, 6] == int_column(t, 2, "id").tolist()
+    with pytest.raises(InputError, match=r"^col: column index -4 is out of range for 3 column\(s\)"):
+        int_column(t, -4, "id")
+
+
+def test_int_column_names_the_int64_range_before_the_bounds(tmp_path):
+    # with lo given, 1e30 was "expected an integer >= 0" (it is >= 0: the int64 range is what fails)
+    p = tmp_path / "i.dat"
+    p.write_text("1 2\n1e30 3\n-1e19 4\n")
+    t = read_table(p, 2)
+    for kw in (dict(lo=0), dict(hi=10**6), dict(lo=0, hi=10**6)):
+        with pytest.raises(DataFormatError, match=r"i\.dat:2: id \(column 1\): expected an integer in the "
+                                                  r"int64 range, got 1e\+30"):
+            int_column(t, 0, "id", **kw)
+    q = tmp_path / "j.dat"
+    q.write_text("1 2\n-3 3\n")
+    with pytest.raises(DataFormatError, match=r"j\.dat:2: id \(column 1\): expected an integer >= 0, got -3\.0"):
+        int_column(read_table(q, 2), 0, "id", lo=0)
+
+
 def test_int_column_refuses_values_beyond_int64(tmp_path):
     p = tmp_path / "i.dat"
     p.write_text("1 2\n1e30 3\n-1e19 4\n")
     t = read_table(p, 2)
     with pytest.raises(DataFormatError, match=r"i\.dat:2: id \(column 1\): expected an integer in the int64 range, got 1e\+30"):
         int_column(t, 0, "id")  # -9223372036854775808 with a RuntimeWarning before
-    with pytest.raises(DataFormatError, match=r"i\.dat:2: id \(column 1\): expected an integer >= 0, got 1e\+30"):
-        int_column(t, 0, "id", lo=0)
     with pytest.raises(InputError, match=r"^col: column index 2 is out of range for 2 column\(s\)"):
         int_column(t, 2, "id")
     q = tmp_path / "u.dat"

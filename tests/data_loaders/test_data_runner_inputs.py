@@ -148,6 +148,22 @@ def test_evaluate_planar_refuses_bad_shapes(change, match):
         R.evaluate_planar(**args)
 
 
+def test_evaluate_planar_wants_poses_against_a_pose_reference():
+    # 2-column positions against (N, 3) poses reached metrics.rpe_se2, whose error named no argument
+    t, pose = _track()
+    for kw in (dict(), dict(at_ref_times=True)):
+        with pytest.raises(InputError, match=r"^est_pose: expected shape \(101, 3\) \(poses: ref holds poses"):
+            R.evaluate_planar(t, pose[:, :2], t, pose, **kw)
+    # positions against positions, and poses against positions, as before; a 2-column dead
+    # reckoning only enters the ATE (its x, y)
+    m, _ = R.evaluate_planar(t, pose[:, :2], t, pose[:, :2])
+    assert m["ate_m"] < 1e-9
+    m, _ = R.evaluate_planar(t, pose, t, pose[:, :2])
+    assert m["ate_m"] < 1e-9
+    m, _ = R.evaluate_planar(t, pose, t, pose, dr_pose=pose[:, :2])
+    assert m["ate_m"] < 1e-9 and m["dead_reckoning_ate_m"] < 1e-9 and m["rpe_m"] < 1e-9
+
+
 # ---------------------------------------------------------------------------------- items 12, 22: split_ate
 @pytest.mark.parametrize("args, match", [
     ((np.nan, "x"), r"^t_cut: expected a finite scalar"),
@@ -191,6 +207,16 @@ def test_mrclam_log_checks_its_numbers(mrclam1):
         P.mrclam_log(mrclam1, K=2.5)
     log, pose0 = P.mrclam_log(mrclam1)  # the shipped model passes
     assert np.all(log.z[..., 0][log.mask] > 0) and pose0.shape == (3,)
+
+
+def test_mrclam_log_takes_an_infinite_end(mrclam1):
+    # t_end=+inf is an open end, as before this session (refused by its first check_scalar)
+    log, _ = P.mrclam_raw_log(mrclam1, t_end=np.inf)
+    assert log.t[-1] == max(mrclam1.odom_t[-1], mrclam1.meas_t[-1]) and log.stats["outside_window"] == 0
+    with pytest.raises(InputError, match=r"^t_end: expected a time \[s\] \(None or \+inf"):
+        P.mrclam_raw_log(mrclam1, t_end=-np.inf)
+    with pytest.raises(InputError, match=r"^t_end: expected a number, got nan"):
+        P.mrclam_raw_log(mrclam1, t_end=np.nan)
 
 
 # ---------------------------------------------------------------------------------- items 15-18: --params objects, robot
@@ -261,6 +287,16 @@ def test_numpy_numbers_and_zero_densities_read_back():
 
 
 # ---------------------------------------------------------------------------------- item 25: presets, timed_run
+def test_fitted_mrclam_params_do_not_read_robot():
+    # the docstring: with preset="fitted" ``robot`` is not read (robot=None was refused this session)
+    ref = P.mrclam_params(1)
+    for robot in (None, "x"):
+        got = P.mrclam_params(robot)
+        assert all(np.array_equal(a, b) for a, b in zip(got, ref))
+    got = P.mrclam_params(None, corrected=True)
+    assert np.allclose(np.diag(got.R), np.square(P.MRCLAM_CORRECTED_SIGMA) * 4.0)
+
+
 def test_preset_arguments_are_checked():
     with pytest.raises(InputError, match=r"^robot: expected an int >= 1, got 'x'"):
         P.mrclam_params("x", preset="hand")

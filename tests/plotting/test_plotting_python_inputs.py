@@ -119,6 +119,33 @@ def test_save_names_directory(tmp_path):
     assert flight.plt().get_fignums() == []  # closed all the same
 
 
+def test_save_names_name_when_a_folder_has_its_file_name(tmp_path):
+    # directory/x.png a folder: the name is at fault (was "directory: '.../x.png' is a folder")
+    (tmp_path / "x.png").mkdir()
+    fig = flight.plt().figure()
+    with pytest.raises(InputError, match=rf"^name: '{tmp_path}/x\.png' is a folder; give another file name$"):
+        flight.save(fig, tmp_path, "x")
+    assert (tmp_path / "x.png").is_dir() and flight.plt().get_fignums() == [fig.number]  # left open
+    assert flight.save(fig, tmp_path, "y") == tmp_path / "y.png" and (tmp_path / "y.png").stat().st_size > 0
+    assert flight.plt().get_fignums() == []
+
+
+def test_before_after_takes_any_iterable_of_metric_names():
+    # dict_keys and NumPy arrays of names worked before this session's list/tuple/set check
+    rep = _report()
+    keys = {"nll": 1, "pos_rmse_m": 2}.keys()
+    for metrics in (keys, np.array(["nll", "pos_rmse_m"]), (m for m in ("nll", "pos_rmse_m")), ["nll", "pos_rmse_m"]):
+        fig = pt.before_after(rep, metrics=metrics)
+        titles = sorted(ax.get_title().split("\n")[0] for ax in fig.axes if ax.get_title())
+        assert titles == ["nll", "pos_rmse_m"], titles
+        flight.plt().close(fig)
+    for bad in ("nll", 5, [1, 2], np.array([1.0])):
+        with pytest.raises(InputError, match=r"^metrics: expected a list of statistic names"):
+            pt.before_after(rep, metrics=bad)
+    with pytest.raises(InputError, match=r"^metrics: expected at least one statistic name"):
+        pt.before_after(rep, metrics=np.array([], dtype=str))
+
+
 def _history(params=True, steps=3):
     h = []
     for s in range(steps):

@@ -70,6 +70,16 @@ def test_max_skips_zero_runs_every_step_when_nothing_is_skipped():
     assert len(res.history) == 1 and res.n_skipped == 1 and "never applied" in res.stopped
 
 
+@pytest.mark.parametrize("max_skips, n", [(0, 1), (1, 1), (2, 2), (3, 3)])
+def test_max_skips_stops_at_that_many_consecutive_skips(max_skips, n):
+    """The count the docstring states (fixed to match the code, on which
+    test_non_finite_gradient_is_skipped_never_applied and docs/tuning.md's "after 3
+    consecutive skips" rely): the loop stops at the max_skips-th skip, 0 and 1 at the first."""
+    res = O.fit(lambda th, it: jnp.sqrt(jnp.abs(th["a"][0])) + 0.0 * it, {"a": jnp.zeros(1)}, jnp.zeros(2), 8,
+                0.1, max_skips=max_skips)
+    assert res.n_skipped == n == len(res.history) and f"non-finite at {n} consecutive steps" in res.stopped
+
+
 def test_best_theta_compares_only_losses_over_the_same_runs():
     """Item 3: run 1 diverges (NaN) for a >= 0.5; once it is dropped the mean of run 0 alone is
     lower, and best_theta landed where the full batch's loss is NaN.  Oracle: the lowest loss
@@ -264,6 +274,43 @@ def test_robot_lists_must_be_distinct_whole_numbers(robots, msg):
         plaza.plaza_noise(data=DATA, robots=(1,), test_robots=[2, 2])
 
 
+def test_robot_lists_take_any_iterable_of_robot_numbers():
+    """A range or a generator of robots worked before this session's list/tuple check refused it."""
+    from collections import OrderedDict
+
+    from jaxslam.tuning.targets import _check_robots
+
+    for value in (range(1, 5), (r for r in (1, 2, 3, 4)), np.arange(1, 5), [1, 2, 3, np.int64(4)],
+                  iter([1, 2, 3, 4])):
+        assert _check_robots(value, "robots", "--robots", allow_empty=False) == (1, 2, 3, 4)
+    assert _check_robots(range(0), "test_robots", "--test-robots", allow_empty=True) == ()
+    for bad in ("12", b"12", {1: 1}, OrderedDict([(1, 2)]), 3, None, np.int64(2), np.array(2)):
+        with pytest.raises(InputError, match=r"^robots: expected a list of robot numbers \(--robots\)"):
+            _check_robots(bad, "robots", "--robots", allow_empty=False)
+    with pytest.raises(InputError, match=r"^robots: robot\(s\) \[2\] listed more than once"):
+        _check_robots((r for r in (2, 1, 2)), "robots", "--robots", allow_empty=False)
+    with pytest.raises(InputError, match=r"^robots: expected robot numbers \(--robots\): ints >= 1, got 0"):
+        _check_robots(range(3), "robots", "--robots", allow_empty=False)
+
+
+def test_mrclam_fit_window_counts_the_odometry_delay():
+    """The log starts at the first odometry stamp + odometry_delay (presets.mrclam_log): the
+    excerpt's odometry starts 0.5 s into its ground truth, so with a 0.25 s delay a 0.6 s window
+    holds no step (it surfaced as merge_events' "reversed window" of t_start and t_end)."""
+    from jaxslam.tuning.targets import mrclam
+
+    with pytest.raises(InputError, match=r"^--window: robot 1's odometry \(stamps \+ 0\.25 s delay\) starts "
+                                         r"0\.75 s into its ground truth, so a 0\.6 s fit window holds no step; "
+                                         r"give --window above 0\.75$"):
+        mrclam.mrclam_logs(DATA, [1], np.float64, t_max=0.6, odometry_delay=0.25)
+    batch, raw = mrclam.mrclam_logs(DATA, [1], np.float64, t_max=0.8, odometry_delay=0.25)
+    (log, d), = raw
+    assert log.t[0] == pytest.approx(d.odom_t[0] + 0.25) and d.odom_t[0] + 0.25 < log.t[-1] <= d.gt_t[0] + 0.8
+    assert batch.dt.shape[1] == log.t.size > 1
+    with pytest.raises(InputError, match=r"^odometry_delay: expected a finite scalar"):
+        mrclam.mrclam_logs(DATA, [1], np.float64, t_max=0.8, odometry_delay="x")
+
+
 @pytest.mark.parametrize("t_max", ["10", math.nan, -1.0, True])
 def test_real_log_fit_window_is_a_positive_number_of_seconds(t_max):
     """Item 18: mrclam's t_max "10" was a bare TypeError, NaN an error naming t_end."""
@@ -280,6 +327,24 @@ def test_util_uwb_window_counts_seconds_from_the_first_range():
     t0, split = tg.config["fit_window_s"]
     assert t0 == pytest.approx(20.007191) and split == pytest.approx(t0 + 0.5, abs=1e-12)
     assert tg.config["n_fit_ranges"] == 42 and tg.config["n_held_out_ranges"] == 42
+
+
+def test_util_uwb_window_is_described_as_the_first_seconds_of_the_flight():
+    """docs/cli.md described util-uwb's --window as "the ranges before S seconds" (an absolute
+    time); it is the first S seconds of the flight, counted from its first range, as the CLI's
+    help says."""
+    import pathlib
+    import re
+
+    from jaxslam.cli import tune as cli_tune
+
+    row = next(line for line in pathlib.Path("docs/cli.md").read_text().splitlines()
+               if line.startswith("| `jaxslam tune util-uwb"))
+    assert "before S seconds" not in row and "the first S seconds of the flight" in row
+    assert "counted from its first range" in row
+    act = next(a for a in cli_tune.build_parser()._actions if "--window" in a.option_strings)
+    text = re.sub(r"\s+", " ", act.help)
+    assert "util-uwb: the first S seconds of the flight, counted from its first range" in text
 
 
 def test_linear_gaussian_float32_log_is_the_float64_log_rounded():

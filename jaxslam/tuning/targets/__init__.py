@@ -276,16 +276,23 @@ def _check_window(t_max):
 
 
 def _check_robots(value, name: str, flag: str, allow_empty: bool) -> tuple:
-    """``value`` (a list or tuple of robot / sequence numbers) as a tuple of ints, else InputError
-    naming ``name``: a string ("12" read as robots 1 and 2), a fractional number (1.7 truncated
-    to robot 1), a repeated robot (trained on twice) or, unless ``allow_empty``, no robot."""
+    """``value`` (robot / sequence numbers: a list, tuple, range, generator or any other iterable
+    but a string, bytes or a mapping) as a tuple of ints, else InputError naming ``name``: a
+    string ("12" read as robots 1 and 2), a fractional number (1.7 truncated to robot 1), a
+    repeated robot (trained on twice) or, unless ``allow_empty``, no robot."""
+    from collections.abc import Mapping
+
     from ...linalg import check_int
 
-    if isinstance(value, np.ndarray) and value.ndim == 1:
-        value = value.tolist()
-    if not isinstance(value, (list, tuple)):
+    items = None
+    if not isinstance(value, (str, bytes, Mapping)):
+        try:
+            items = tuple(value)
+        except TypeError:  # not iterable (a number, None, a 0-d array)
+            items = None
+    if items is None:
         raise InputError(f"{name}: expected a list of robot numbers ({flag}), got {value!r}"[:300])
-    out = tuple(check_int(r, name, lower=1, what=f"robot numbers ({flag}): ints") for r in value)
+    out = tuple(check_int(r, name, lower=1, what=f"robot numbers ({flag}): ints") for r in items)
     dup = sorted({r for r in out if out.count(r) > 1})
     if dup:
         raise InputError(f"{name}: robot(s) {dup} listed more than once ({flag})")

@@ -80,7 +80,9 @@ def mrclam_logs(data_dir, robots, dtype=np.float64, t_max: float | None = None, 
     """
     from ...data import presets
     from ...data.mrclam import load_mrclam
+    from ...linalg import check_scalar
 
+    odometry_delay = check_scalar(odometry_delay, "odometry_delay")  # (mrclam_log's own check and message)
     logs, poses, raw = [], [], []
     for r in robots:
         d = load_mrclam(data_dir, int(r))
@@ -88,10 +90,12 @@ def mrclam_logs(data_dir, robots, dtype=np.float64, t_max: float | None = None, 
         if t_max is not None and t_max > span:
             raise InputError(f"--window: robot {r}'s log covers {span:.1f} s of ground-truth time, shorter "
                              f"than the {t_max:g} s fit window; give --window {int(span)} or less")
-        start = float(d.odom_t[0] - d.gt_t[0])  # the log starts at the first odometry row
+        # the log starts at the first odometry row, shifted by the delay (presets.mrclam_log: odom_t + delay)
+        start = float(d.odom_t[0] + odometry_delay - d.gt_t[0])
         if t_max is not None and t_max <= start:
-            raise InputError(f"--window: robot {r}'s odometry starts {start:.1f} s into its ground truth, so a "
-                             f"{t_max:g} s fit window holds no step; give --window above {start:.1f}")
+            lag = f" (stamps + {odometry_delay:g} s delay)" if odometry_delay else ""
+            raise InputError(f"--window: robot {r}'s odometry{lag} starts {start:g} s into its ground truth, so a "
+                             f"{t_max:g} s fit window holds no step; give --window above {start:g}")
         log, pose0 = presets.mrclam_raw_log(d, K=K, t_end=None if t_max is None else float(d.gt_t[0]) + t_max,
                                             odometry_delay=odometry_delay)
         logs.append(log)
