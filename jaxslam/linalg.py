@@ -43,6 +43,7 @@ __all__ = [
     "reworded",
     "check_real",
     "check_flag",
+    "check_float_dtype",
 ]
 
 
@@ -395,6 +396,19 @@ def reworded(check, message: str, upper: float = float("inf")):
     if not value <= upper:
         raise InputError(message)
     return value
+
+
+def check_float_dtype(dtype, name: str = "dtype"):
+    """``dtype`` as a ``jnp.dtype`` when it names a floating dtype, else :class:`InputError`
+    naming ``name`` (an integer dtype truncated what it held, a bogus name was a bare
+    TypeError).  Whether float64 is usable (x64) is the caller's rule."""
+    try:
+        dt = jnp.dtype(dtype)
+    except TypeError:
+        dt = None
+    if dt is None or not jnp.issubdtype(dt, jnp.floating):
+        raise InputError(f"{name}: expected a floating dtype (float32 or float64), got {dtype!r}")
+    return dt
 
 
 def check_int(value, name: str, lower: int = 1, what: str = "an int") -> int:

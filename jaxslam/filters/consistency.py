@@ -32,7 +32,7 @@ import numpy as np
 
 from .. import errors
 from ..errors import InputError
-from ..linalg import check_mask, check_numbers, float_array, is_concrete
+from ..linalg import check_float_dtype, check_mask, check_numbers, float_array, is_concrete
 from .ekf_slam import SlamModel, SlamState
 
 __all__ = ["MonitorParams", "Monitor", "init", "observe", "inflate_robot", "outliers", "status_bits",
@@ -111,12 +111,7 @@ def init(dtype) -> Monitor:
     """A fresh monitor: running NIS ratio 1, no inflation yet.
 
     ``dtype``: a floating dtype (the running mean is a ratio; an integer one truncated it)."""
-    try:
-        dt = jnp.dtype(dtype)
-    except TypeError:
-        raise InputError(f"dtype: expected a floating dtype, got {dtype!r}") from None
-    if not jnp.issubdtype(dt, jnp.floating):
-        raise InputError(f"dtype: expected a floating dtype, got {dt}")
+    dt = check_float_dtype(dtype)
     return Monitor(mean=jnp.ones((), dt), inflations=jnp.zeros((), jnp.int32))
 
 

@@ -51,7 +51,7 @@ import numpy as np
 from ..dynamics._checks import as_scalar, check_last_dim, real_float
 from ..errors import InputError
 from ..geometry.euler import dcm_from_euler
-from ..linalg import check_int, check_numbers, check_real, check_scalar, is_concrete
+from ..linalg import check_float_dtype, check_int, check_numbers, check_real, check_scalar, is_concrete
 
 __all__ = [
     "G_IMU",
@@ -293,15 +293,7 @@ def _sigma6(spec: ImuSpec, dtype):
 def _default_dtype(dtype):
     """``dtype`` (default: JAX's default float); a non-floating one is an InputError naming
     ``dtype`` (an int32 covariance of σ² ≈ 1e-5 read as all zeros)."""
-    if dtype is None:
-        return jnp.result_type(float)
-    try:
-        dt = jnp.dtype(dtype)
-    except TypeError:
-        raise InputError(f"dtype: expected a floating dtype, got {dtype!r}") from None
-    if not jnp.issubdtype(dt, jnp.floating):
-        raise InputError(f"dtype: expected a floating dtype, got {dt}")
-    return dt
+    return jnp.result_type(float) if dtype is None else check_float_dtype(dtype)
 
 
 def _std_normal(key, shape, dtype):

@@ -52,7 +52,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import InputError
-from ..linalg import check_int, check_numbers, check_psd, check_scalar, float_array, reworded
+from ..linalg import check_float_dtype, check_int, check_numbers, check_psd, check_scalar, float_array, reworded
 
 __all__ = [
     "CovSpec",
@@ -123,15 +123,7 @@ def _check_dtype(dtype):
     """``dtype`` (None: JAX's default float) when it names a floating dtype, else InputError
     naming ``dtype``: an integer dtype truncated θ (log 3 became 1), a bogus name gave a bare
     TypeError."""
-    if dtype is None:
-        return None
-    try:
-        dt = jnp.dtype(dtype)
-    except TypeError:
-        dt = None
-    if dt is None or not jnp.issubdtype(dt, jnp.floating):
-        raise InputError(f"dtype: expected a floating dtype (float32 or float64), got {dtype!r}")
-    return dt
+    return None if dtype is None else check_float_dtype(dtype)
 
 
 def _check_names(arg: str, given, specs, what: str) -> None:

@@ -12,7 +12,7 @@ import numpy as np
 
 from ...errors import InputError
 from ...filters import ekf as ekf_mod
-from ...linalg import check_int, check_numbers, check_psd, check_scalar, check_shape, is_concrete
+from ...linalg import check_float_dtype, check_int, check_numbers, check_psd, check_scalar, check_shape, is_concrete
 from .. import losses as L
 from .. import params as P
 from . import Target, _check_keywords, diag_list, keys, register_target
@@ -135,13 +135,7 @@ def linear_gaussian(loss: str = "nll", train_runs: int = 4, test_runs: int = 4, 
     test_runs = check_int(test_runs, "test_runs", lower=1)
     q0_scale = check_scalar(q0_scale, "q0_scale", lower=0, strict=True)
     r0_scale = check_scalar(r0_scale, "r0_scale", lower=0, strict=True)
-    try:
-        dt_ = jnp.dtype(dtype)
-    except TypeError:
-        dt_ = None
-    if dt_ is None or not jnp.issubdtype(dt_, jnp.floating):
-        raise InputError(f"dtype: expected a floating dtype (float32 or float64), got {dtype!r}")
-    dtype = dt_
+    dtype = check_float_dtype(dtype)
     if loss not in ("nll", "mse", "nees"):
         raise InputError(f"--loss: expected nll, mse or nees, got {loss!r}")
     Qt, Rt = np.diag(LG_Q_TRUE), np.asarray(LG_R_TRUE)
