@@ -10,6 +10,8 @@ Input validation at the public Python boundary (before ``jit``) raises
 
 from __future__ import annotations
 
+import operator
+
 import numpy as np
 
 __all__ = [
@@ -24,6 +26,8 @@ __all__ = [
     "NOT_CONVERGED",
     "FLAG_NAMES",
     "InputError",
+    "check_int",
+    "check_flag",
     "decode",
     "check",
 ]
@@ -52,6 +56,30 @@ FLAG_NAMES = {
 
 class InputError(ValueError):
     """Bad input detected at a public boundary (shape, dtype, PSD, range)."""
+
+
+# The two argument checks the JAX-free layers need (the loaders, the catalogue, the runtime
+# settings read before JAX starts); :mod:`jaxslam.linalg` exports them with the others.
+
+def check_int(value, name: str, lower: int = 1, what: str = "an int") -> int:
+    """``value`` as an int when it is a Python or NumPy integer ≥ ``lower`` (a bool is not a
+    count); else :class:`InputError` naming ``name`` ("expected {what} >= {lower}").  Host-side,
+    for sizes and counts."""
+    try:  # ints, NumPy integers and 0-d integer arrays; a float, a string or a bool is not a count
+        v = None if isinstance(value, (bool, np.bool_)) else operator.index(value)
+    except TypeError:
+        v = None
+    if v is None or v < lower:
+        raise InputError(f"{name}: expected {what} >= {lower}, got {value!r}"[:300])
+    return int(v)
+
+
+def check_flag(value, name: str) -> bool:
+    """``value`` as a bool when it is ``True`` / ``False`` (NumPy's too), else :class:`InputError`
+    naming ``name`` (a string "no" is truthy: a static switch given one silently stayed on)."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise InputError(f"{name}: expected True or False, got {value!r}"[:300])
+    return bool(value)
 
 
 def decode(status) -> list[str]:

@@ -10,13 +10,12 @@ from __future__ import annotations
 
 import functools
 import numbers
-import operator
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, check_flag, check_int  # (re-exported: JAX-free, in errors)
 
 __all__ = [
     "host_array",
@@ -377,14 +376,6 @@ def check_real(x, name: str, *, allow_bool: bool = True) -> None:
         raise InputError(f"{name}: expected numbers, got dtype bool")
 
 
-def check_flag(value, name: str) -> bool:
-    """``value`` as a bool when it is ``True`` / ``False`` (NumPy's too), else :class:`InputError`
-    naming ``name`` (a string "no" is truthy: a static switch given one silently stayed on)."""
-    if not isinstance(value, (bool, np.bool_)):
-        raise InputError(f"{name}: expected True or False, got {value!r}"[:300])
-    return bool(value)
-
-
 def reworded(check, message: str, upper: float = float("inf")):
     """``check()`` (one of this module's checks: the rule lives there) with its
     :class:`InputError` replaced by ``message`` (a caller's wording, e.g. naming its CLI flag);
@@ -409,19 +400,6 @@ def check_float_dtype(dtype, name: str = "dtype"):
     if dt is None or not jnp.issubdtype(dt, jnp.floating):
         raise InputError(f"{name}: expected a floating dtype (float32 or float64), got {dtype!r}")
     return dt
-
-
-def check_int(value, name: str, lower: int = 1, what: str = "an int") -> int:
-    """``value`` as an int when it is a Python or NumPy integer ≥ ``lower`` (a bool is not a
-    count); else :class:`InputError` naming ``name`` ("expected {what} >= {lower}").  Host-side,
-    for sizes and counts."""
-    try:  # ints, NumPy integers and 0-d integer arrays; a float, a string or a bool is not a count
-        v = None if isinstance(value, (bool, np.bool_)) else operator.index(value)
-    except TypeError:
-        v = None
-    if v is None or v < lower:
-        raise InputError(f"{name}: expected {what} >= {lower}, got {value!r}")
-    return int(v)
 
 
 def check_numbers(value, name: str) -> np.ndarray:

@@ -124,17 +124,9 @@ def pin_lapack_threads(n: int | None = None) -> int | None:
     and a float was truncated, while the call returned it as if applied).
     """
     if n is not None:
-        import operator
+        from .errors import check_int
 
-        from .errors import InputError
-
-        try:
-            v = None if isinstance(n, bool) else operator.index(n)
-        except TypeError:
-            v = None
-        if v is None or v < 1:
-            raise InputError(f"n: expected an int >= 1 (OpenBLAS threads), got {n!r}"[:200])
-        n = int(v)
+        n = check_int(n, "n")  # (the OpenBLAS pool size)
     if n is None:
         if "OPENBLAS_NUM_THREADS" in os.environ:
             return None

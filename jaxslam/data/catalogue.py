@@ -5,7 +5,7 @@ checks of ``jaxslam dataset`` / ``jaxslam tune``: the data root is ``--data DIR`
 environment variable ``JAXSLAM_DATA_DIR``; a ``--robot`` the folder does not hold is refused
 with the robots it does hold, before any file is parsed or anything is compiled.
 
-Standard library and NumPy only (file names, no parsing, no JAX); the loaders read the files.
+Standard library only (file names, no parsing, no JAX); the loaders read the files.
 """
 
 from __future__ import annotations
@@ -15,10 +15,8 @@ import pathlib
 import re
 from typing import NamedTuple, Optional
 
-import numpy as np
 
-from ..errors import InputError
-from .textfile import _int_arg
+from ..errors import InputError, check_flag, check_int
 
 __all__ = ["DATA_ENV", "Dataset", "DATASETS", "OPTION_DEFAULTS", "APPLIES", "data_root", "find",
            "robots_found", "check_robot", "check_robots", "check_options"]
@@ -104,11 +102,9 @@ def check_options(name: str, options: dict) -> None:
         if not (v is None or isinstance(v, str)) or v not in allowed:
             raise InputError(f"{name}: --{k}: expected one of {', '.join(map(repr, allowed))}, got {v!r}"[:300])
     if "robot" in options:
-        _int_arg(options["robot"], f"{name}: --robot", 1)
-    for k in _FLAGS:
-        v = options.get(k, OPTION_DEFAULTS[k])
-        if not isinstance(v, (bool, np.bool_)):  # a string "no" is truthy
-            raise InputError(f"{name}: --{k}: expected True or False, got {v!r}"[:300])
+        check_int(options["robot"], f"{name}: --robot", 1)
+    for k in _FLAGS:  # (a string "no" is truthy)
+        check_flag(options.get(k, OPTION_DEFAULTS[k]), f"{name}: --{k}")
     misplaced = [k for k, v in options.items() if _given(k, v) and k not in APPLIES[name]]
     if options.get("filter", "ekf") != "fastslam":
         misplaced += [k for k in ("particles", "seed") if _given(k, options.get(k, OPTION_DEFAULTS[k]))]
@@ -208,7 +204,7 @@ def check_robot(name: str, root, robot: int, flag: str = "--robot") -> None:
     then says which files it looked for), is left to the loader.
     """
     d = _dataset(name)
-    robot = _int_arg(robot, flag, 1)  # "1" was "not in the folder (found: 1, 2)"
+    robot = check_int(robot, flag, 1)  # "1" was "not in the folder (found: 1, 2)"
     if d.robot_pattern is None or find(name, root) is None:
         return
     have = robots_found(name, root)

@@ -34,8 +34,7 @@ from typing import NamedTuple, Optional
 
 import numpy as np
 
-from ..errors import InputError
-from .textfile import _int_arg
+from ..errors import InputError, check_int
 
 __all__ = ["EventLog", "check_times", "merge_events"]
 
@@ -212,7 +211,7 @@ def merge_events(input_t, inputs, meas_t, meas, meas_ids=None, K: Optional[int] 
             raise InputError(f"u_before: expected {d_u} value(s) (one per input column), got shape {ub.shape}")
         ub = ub.reshape(d_u)
         _finite(ub, "u_before", "it drives the predictions before the first input")
-    K = None if K is None else _int_arg(K, "K", 1)  # 1.5 or True was truncated to 1 row
+    K = None if K is None else check_int(K, "K", 1)  # 1.5 or True was truncated to 1 row
     outside = 0
     if t_start is not None or t_end is not None:
         lo, hi = _bound(t_start, "t_start"), _bound(t_end, "t_end")

@@ -48,8 +48,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ..errors import InputError
-from .textfile import _int_arg, int_column, read_table, resolve_dataset_dir
+from ..errors import InputError, check_int
+from .textfile import int_column, read_table, resolve_dataset_dir
 
 _ID_MAX = int(np.iinfo(np.int32).max)  # node ids become int32 event labels
 
@@ -120,7 +120,7 @@ def load_plaza(path, which: int) -> PlazaData:
     """
     which_arg = which
     try:  # an int: np.True_ == 1 loaded Plaza 1, 2.0 passed as 2
-        which = _int_arg(which, "which", 1)
+        which = check_int(which, "which", 1)
     except InputError:
         which = None
     if which not in (1, 2):

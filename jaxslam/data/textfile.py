@@ -38,7 +38,7 @@ from typing import NamedTuple, Optional, Sequence, Union
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, check_int
 
 __all__ = [
     "DataFormatError",
@@ -96,20 +96,6 @@ class MissingDataError(DataFormatError, FileNotFoundError):
 class TruncatedLineWarning(UserWarning):
     """The last line of a data file has no line end: the file may have been cut short, and the
     line's last number may be incomplete.  The line is read as it stands (module docstring)."""
-
-
-def _int_arg(value, name: str, lower: int = 0) -> int:
-    """``value`` as an int when it is a Python or NumPy integer >= ``lower`` (not a bool, a float
-    or a string), else :class:`InputError` naming ``name``: the rule and wording of
-    :func:`jaxslam.linalg.check_int`, kept free of JAX for the loaders and the CLI's early
-    checks (:mod:`jaxslam.data.catalogue`, :mod:`jaxslam.data.events` use it too)."""
-    try:
-        v = None if isinstance(value, (bool, np.bool_)) else operator.index(value)
-    except TypeError:
-        v = None
-    if v is None or v < lower:
-        raise InputError(f"{name}: expected an int >= {lower}, got {value!r}"[:300])
-    return int(v)
 
 
 def _path_arg(path, name: str = "path") -> Path:
@@ -252,8 +238,8 @@ def read_table(path: PathLike, ncols: int, *, delimiter: Optional[str] = None,
       DataFormatError: see the module docstring.
     """
     p = _path_arg(path)
-    ncols = _int_arg(ncols, "ncols", 1)
-    header_rows = _int_arg(header_rows, "header_rows", 0)  # -1 read the last line as a data row
+    ncols = check_int(ncols, "ncols", 1)
+    header_rows = check_int(header_rows, "header_rows", 0)  # -1 read the last line as a data row
     if delimiter is not None and not (isinstance(delimiter, str) and len(delimiter) == 1):
         raise InputError(f"delimiter: expected None (whitespace) or one character, got {delimiter!r}"[:300])
     if comments is not None and not (isinstance(comments, str) and comments):
