@@ -28,6 +28,7 @@ __all__ = [
     "InputError",
     "check_int",
     "check_flag",
+    "check_run_dtype",
     "decode",
     "check",
 ]
@@ -94,3 +95,24 @@ def check(status, allow: int = GATED | MASKED_INPUT) -> None:
     bad = s & ~allow
     if bad:
         raise RuntimeError(f"jaxslam status flags set: {', '.join(decode(bad))}")
+
+
+def check_run_dtype(dtype, where: str = "dtype"):
+    """``dtype`` as a NumPy dtype, float32 or float64 (float64 only with JAX's x64 on: it would
+    compute in float32 while a report said float64), else an :class:`InputError` naming
+    ``where``.  The rule of a scenario's and a dataset's run; JAX is imported only for float64."""
+    want = "float32 or float64"
+    try:
+        dt = None if dtype is None or isinstance(dtype, bool) else np.dtype(dtype)
+    except (TypeError, ValueError):
+        dt = None
+    if dt is None or dt not in (np.dtype(np.float32), np.dtype(np.float64)):
+        raise InputError(f"{where}: expected {want}, got {dtype!r}"[:300])
+    if dt == np.float64:
+        import jax
+
+        if jax.dtypes.canonicalize_dtype(np.float64) != np.float64:
+            raise InputError(f"{where}: float64 needs JAX's 64-bit mode, which is off (it would compute "
+                             "in float32): call jax.config.update('jax_enable_x64', True) (or set "
+                             "JAX_ENABLE_X64=1) before any JAX computation, or pass float32")
+    return dt

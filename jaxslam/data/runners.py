@@ -36,7 +36,7 @@ from .. import metrics
 from . import catalogue
 from .events import merge_events
 from ..dynamics._checks import real_numbers
-from ..errors import InputError
+from ..errors import InputError, check_run_dtype
 from ..linalg import check_flag, check_int, check_scalar, reworded
 from ..paramfile import TUNE_REPORT_KEYS
 
@@ -427,13 +427,11 @@ def _range_outliers(res, counts: dict, m: dict, notes: list) -> None:
 def _run_dtype(dtype):
     """The run's dtype: ``None`` gives what JAX computes in (float64 with its x64 mode on, else
     float32); otherwise float32 or float64, float64 only with x64 on (it computed in float32
-    while the report said float64): else :class:`InputError` naming ``dtype`` (the scenario
-    registry's rule, :func:`jaxslam.sim.scenarios.registry._check_dtype`)."""
+    while the report said float64): else :class:`InputError` naming ``dtype`` (the
+    scenarios' rule, :func:`jaxslam.errors.check_run_dtype`)."""
     if dtype is None:
         return np.dtype(jax.dtypes.canonicalize_dtype(np.float64))
-    from ..sim.scenarios.registry import _check_dtype
-
-    return _check_dtype(dtype)
+    return check_run_dtype(dtype)
 
 
 def _nonfinite_notes(m: dict, what: str = "estimate") -> list:

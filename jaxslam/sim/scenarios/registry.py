@@ -39,7 +39,7 @@ from typing import Any, Callable
 import numpy as np
 
 from jaxslam import paramfile
-from jaxslam.errors import InputError
+from jaxslam.errors import InputError, check_run_dtype
 
 __all__ = [
     "Option",
@@ -184,7 +184,7 @@ class Scenario:
 
                 has_dtype, dtype = given("dtype")
                 if has_dtype:
-                    _check_dtype(dtype)
+                    check_run_dtype(dtype)
                 put("options", check_options(self, given("options")[1]))
                 has_params, params = given("params")
                 if has_params and params is not None:
@@ -205,26 +205,6 @@ class Scenario:
 _RUN_ARGS = ("runs", "seed", "dtype", "options", "progress", "params", "plots")
 
 
-def _check_dtype(dtype, where: str = "dtype"):
-    """``dtype`` as a NumPy dtype, float32 or float64 (float64 only with JAX's x64 on), else an
-    :class:`InputError` naming ``where``."""
-    want = "float32 or float64"
-    try:
-        dt = None if dtype is None or isinstance(dtype, bool) else np.dtype(dtype)
-    except (TypeError, ValueError):
-        dt = None
-    if dt is None or dt not in (np.dtype(np.float32), np.dtype(np.float64)):
-        raise InputError(f"{where}: expected {want}, got {dtype!r}"[:300])
-    if dt == np.float64:
-        import jax
-
-        if jax.dtypes.canonicalize_dtype(np.float64) != np.float64:
-            raise InputError(f"{where}: float64 needs JAX's 64-bit mode, which is off (it would compute "
-                             "in float32): call jax.config.update('jax_enable_x64', True) (or set "
-                             "JAX_ENABLE_X64=1) before any JAX computation, or pass float32")
-    return dt
-
-
 def _checked_args(scenario: "Scenario", options, dtype, params=None, plots=False):
     """``(options, params)`` of a scenario module's public ``build`` / ``run_scenario`` checked
     as ``Scenario.run`` checks them: options completed and checked (:func:`check_options`),
@@ -232,7 +212,7 @@ def _checked_args(scenario: "Scenario", options, dtype, params=None, plots=False
     from jaxslam.linalg import check_flag  # (JAX: not at the CLI's import)
 
     options = check_options(scenario, options)
-    _check_dtype(dtype)
+    check_run_dtype(dtype)
     check_flag(plots, "plots")
     if params is not None:
         params = _check_params(scenario, params, options, dtype, where="params")
