@@ -30,6 +30,9 @@ import sys
 import tempfile
 import time
 
+from jaxslam.cli.common import positive_float
+from jaxslam.errors import InputError
+
 DESCRIPTION = ("Compile time (trace / lower / XLA compile) of every public runner: each run scenario, "
                "each dataset runner, the tuning steps; cold (empty cache) and warm, in fresh processes")
 
@@ -53,7 +56,9 @@ def add_arguments(parser):
                         help="run only the cases whose name contains TEXT")
     parser.add_argument("--data", metavar="DIR", default=None,
                         help="dataset folder for the dataset cases (default: the excerpts in tests/data)")
-    parser.add_argument("--timeout", type=float, default=900.0, help="seconds per command (default 900)")
+    parser.add_argument("--timeout", type=positive_float, default=900.0,
+                        help="seconds per command, > 0 (default 900); a command that runs longer is "
+                             "stopped and its row records the timeout as its error")
 
 
 def _cases(data: pathlib.Path):
@@ -101,7 +106,10 @@ def _one(argv, cache: pathlib.Path, out: pathlib.Path, timeout: float) -> dict:
     env = {**os.environ, "JAXSLAM_CACHE_DIR": str(cache)}
     env.pop("JAXSLAM_CACHE", None)
     t0 = time.perf_counter()
-    p = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=timeout)
+    try:
+        p = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=timeout)
+    except subprocess.TimeoutExpired:
+        return {"error": f"timed out after {timeout:g} s (--timeout)", "wall_s": time.perf_counter() - t0}
     wall = time.perf_counter() - t0
     if p.returncode != 0:
         return {"error": (p.stderr.strip().splitlines() or ["?"])[-1], "wall_s": wall}
@@ -110,6 +118,11 @@ def _one(argv, cache: pathlib.Path, out: pathlib.Path, timeout: float) -> dict:
 
 def run(args):
     data = pathlib.Path(args.data) if args.data else _HERE.parent / "tests" / "data"
+    if args.data is not None and not data.is_dir():
+        raise InputError(f"--data: {str(data)!r} is not a folder")
+    names = [name for name, _ in _cases(data)]
+    if args.only is not None and not any(args.only in name for name in names):
+        raise InputError(f"--only: no case name contains {args.only!r}; cases: {', '.join(names)}")
     results, targets = [], []
     load0 = list(os.getloadavg())
     for name, argv in _cases(data):

@@ -134,10 +134,12 @@ def add_arguments(parser):
     parser.add_argument("--duration", type=float, default=50.0,
                         help="flight duration of the full-run comparison [s] (default 50)")
     parser.add_argument("--repeats", type=int, default=5,
-                        help="timed repeats of each full run, the methods interleaved (median; default 5)")
+                        help="timed repeats of each full run, the methods interleaved (median; "
+                             "default 5); the mc part uses min(REPEATS, 3)")
     parser.add_argument("--pairs", type=int, default=15,
                         help="alternating calls of the capacity 64 and 256 runs for their time "
-                             "ratio (median of each; default 15)")
+                             "ratio (median of each; default 15); used only when --capacities "
+                             "includes both 64 and 256, else ignored")
     parser.add_argument("--log", choices=("sim", "synthetic"), default="sim",
                         help="log of the full run: closed-loop simulation of the ekfslam3d "
                              "scenario (default; falls back to synthetic if it fails) or a "
@@ -154,7 +156,8 @@ def add_arguments(parser):
                         help="sequential single-run calls actually timed per M (default 100: the "
                              "target's M = 100 is timed whole, not scaled)")
     parser.add_argument("--plots", metavar="DIR", default=None,
-                        help="write bench_ekfslam_fig12.png into DIR")
+                        help="write bench_ekfslam_fig12.png into DIR (the study part's figure: "
+                             "needs study in --parts)")
 
 
 # ---------------------------------------------------------------------------
@@ -536,7 +539,7 @@ def run_study(args, noise, results, out):
                            "value_ms": t_call_jos * 1e3,
                            "met": bool(t_call_jos <= TARGETS["frame_step_call_s"])})
 
-    if args.plots:
+    if args.plots is not None:
         out["plots"] = [_plot_study(study, args.plots)]
 
 
@@ -573,9 +576,13 @@ def _plot_study(study, directory):
                      f"jaxslam {fr['jax_call_s'] * 1e3:.3g} ms/call, {fr['jax_scan_s'] * 1e3:.3g} ms in scan; "
                      f"NumPy {fr['numpy_s'] * 1e3:.3g} ms", fontsize=9)
     fig.tight_layout()
-    path = d / "bench_ekfslam_fig12.png"
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    from jaxslam.files import atomic_write
+
+    try:  # atomic: an interrupted run leaves the previous figure, not half a PNG
+        path = atomic_write(d / "bench_ekfslam_fig12.png", lambda f: fig.savefig(f, dpi=120, format="png"),
+                            mode="wb")
+    finally:
+        plt.close(fig)
     return str(path)
 
 
@@ -638,6 +645,7 @@ def run_full(args, noise, results, out, threads_label):
         ts = {name: [] for name in runners}
         tt = {j: [] for j in (False, True)}  # the twin in each covariance form
         ta = []
+        _run_twin(tw, log, noise, cap)  # one untimed warm-up call of the twin, as the jitted runs had theirs
         for _ in range(args.repeats):
             for name, fn in runners.items():
                 t0 = time.perf_counter()
@@ -877,6 +885,8 @@ def _spawn(args, parts, threads, label):
         a_path, o_path = os.path.join(td, "args.json"), os.path.join(td, "out.json")
         opts = {k: getattr(args, k) for k in _OPTION_DESTS}
         opts.update(parts=",".join(sorted(parts)), _label=label)
+        if "study" not in parts:
+            opts["plots"] = None  # the figure is the study's (the default-threads rerun is full only)
         with open(a_path, "w") as fh:
             json.dump(opts, fh)
         env = dict(os.environ)
@@ -886,10 +896,18 @@ def _spawn(args, parts, threads, label):
                 env[var] = str(threads)
         env["PYTHONPATH"] = os.pathsep.join([root, str(HERE), str(HERE.parent / "tests" / "oracles")] + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
         _progress(f"running {', '.join(sorted(parts))} in a fresh process ({label})")
-        subprocess.run([sys.executable, str(HERE / "bench_ekfslam.py"), "--child", a_path, o_path],
-                       env=env, check=True, stdout=sys.stderr)
-        with open(o_path) as fh:
-            res = json.load(fh)
+        cmd = [sys.executable, str(HERE / "bench_ekfslam.py"), "--child", a_path, o_path]
+        proc = subprocess.run(cmd, env=env, stdout=sys.stderr)
+        res = None
+        if os.path.exists(o_path):
+            with open(o_path) as fh:
+                res = json.load(fh)
+        if isinstance(res, dict) and "input_error" in res:  # the child's bad input: the CLI's exit 2
+            from jaxslam.errors import InputError
+
+            raise InputError(res["input_error"])
+        if proc.returncode != 0 or res is None:
+            raise subprocess.CalledProcessError(proc.returncode, cmd)
     return res["results"], res["out"]
 
 
@@ -907,15 +925,23 @@ def run(args):
 
     if not jax.config.jax_enable_x64:
         jax.config.update("jax_enable_x64", True)  # standalone use; the CLI has set it already
+    from jaxslam import files
+    from jaxslam.errors import InputError
+
     parts = {p.strip() for p in args.parts.split(",") if p.strip()}
+    if not parts:
+        raise InputError(f"--parts: no part given (got {args.parts!r}); choose from study, full, mc")
     unknown = parts - {"study", "full", "mc"}
     if unknown:
-        from jaxslam.errors import InputError
-
         raise InputError(f"--parts: unknown part(s) {sorted(unknown)}; choose from study, full, mc")
     for flag, text in (("--study-maps", args.study_maps), ("--study-obs", args.study_obs),
                        ("--capacities", args.capacities), ("--mc-runs", args.mc_runs)):
         int_list(text, flag)  # every list checked before anything runs (the mc part records its errors)
+    if args.plots is not None:  # checked (and created) before anything runs, not after the study
+        if "study" not in parts:
+            raise InputError(f"--plots: the figure is the study part's; add study to --parts "
+                             f"(got {args.parts!r}) or drop --plots")
+        files.prepare_dir("--plots", args.plots)
     if getattr(args, "_label", None):  # a child started by _spawn
         results, out = _run_parts(args, parts, args._label)
         return {"results": results, **out}
@@ -965,9 +991,16 @@ def _child_main(a_path, o_path):
 
     jax.config.update("jax_enable_x64", True)
     sys.path.insert(0, str(HERE))
+    from jaxslam.errors import InputError
+
     with open(a_path) as fh:
         args = argparse.Namespace(**json.load(fh))
-    res = run(args)
+    try:
+        res = run(args)
+    except InputError as e:  # handed to the parent, which raises it (the CLI's exit 2, one line)
+        with open(o_path, "w") as fh:
+            json.dump({"input_error": str(e)}, fh)
+        sys.exit(2)
     with open(o_path, "w") as fh:
         json.dump({"results": res["results"], "out": {k: v for k, v in res.items() if k != "results"}}, fh)
 

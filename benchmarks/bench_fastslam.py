@@ -100,7 +100,7 @@ def add_arguments(parser):
                              "breakdown of the step's cost)")
     parser.add_argument("--quick", action="store_true",
                         help="smaller run: N = 500, 2000; fewer steps and repeats; M = 1, 8 "
-                             "over 1 s (explicit options still win)")
+                             "over 0.5 s windows (explicit options still win)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the flight and the filters")
     parser.add_argument("--particles", default=None,
                         help="particle counts N of the step part (default 100,500,2000,10000)")
@@ -114,7 +114,9 @@ def add_arguments(parser):
                         help="steps of the NumPy twin per repeat (multiple of 10; default 20)")
     parser.add_argument("--loop-particles", type=int, default=20,
                         help="N at which the per-particle Python loop is measured (default 20)")
-    parser.add_argument("--repeats", type=int, default=None, help="timed repeats (median; default 3)")
+    parser.add_argument("--repeats", type=int, default=None,
+                        help="timed repeats (median; default 3); the mc part uses min(REPEATS, 2), "
+                             "the profile part max(5, 3 * REPEATS)")
     parser.add_argument("--mc-runs", default=None, help="Monte Carlo batch sizes M (default 1,8,32)")
     parser.add_argument("--mc-particles", type=int, default=100, help="N of each MC run (default 100)")
     parser.add_argument("--mc-duration", type=float, default=None,
@@ -777,10 +779,18 @@ def _spawn(args, parts):
         env["PYTHONPATH"] = os.pathsep.join([root, str(HERE), str(HERE.parent / "tests" / "oracles")] + ([env["PYTHONPATH"]]
                                                                    if env.get("PYTHONPATH") else []))
         _progress("OPENBLAS_NUM_THREADS is not 1 here: running in a fresh process with it set")
-        subprocess.run([sys.executable, str(HERE / "bench_fastslam.py"), "--child", a_path, o_path],
-                       env=env, check=True, stdout=sys.stderr)
-        with open(o_path) as fh:
-            res = json.load(fh)
+        proc = subprocess.run([sys.executable, str(HERE / "bench_fastslam.py"), "--child", a_path, o_path],
+                              env=env, stdout=sys.stderr)
+        res = None
+        if os.path.exists(o_path):
+            with open(o_path) as fh:
+                res = json.load(fh)
+        if res is not None and "input_error" in res:  # the child's bad input: exit 2, its message
+            from jaxslam.errors import InputError
+
+            raise InputError(res["input_error"])
+        if proc.returncode != 0 or res is None:
+            raise subprocess.CalledProcessError(proc.returncode, proc.args)
     return res["results"], res["out"]
 
 
@@ -790,14 +800,22 @@ def run(args):
 
     if not jax.config.jax_enable_x64:
         jax.config.update("jax_enable_x64", True)  # standalone use; the CLI has set it already
+    from jaxslam.errors import InputError
+
     args = _fill_defaults(args)
     parts = {p.strip() for p in str(args.parts).split(",") if p.strip()}
+    if not parts:
+        raise InputError(f"--parts: no part given, got {args.parts!r}; choose from step, mc, profile")
     unknown = parts - {"step", "mc", "profile"}
     if unknown:
-        from jaxslam.errors import InputError
-
         raise InputError(f"--parts: unknown part(s) {sorted(unknown)}; choose from step, mc, "
                          "profile")
+    # The lists are read deep inside the run (after the flight is simulated, or in the child
+    # process): check them here, before any work.
+    if "step" in parts:
+        int_list(args.particles, "--particles")
+    if "mc" in parts:
+        int_list(args.mc_runs, "--mc-runs")
     if os.environ.get("OPENBLAS_NUM_THREADS") == "1":
         results, out = _run_here(args, parts)
         out["openblas_pinning"] = "OPENBLAS_NUM_THREADS=1 in this process"
@@ -834,8 +852,15 @@ def _child_main(a_path, o_path):
     sys.path.insert(0, str(HERE))
     with open(a_path) as fh:
         args = argparse.Namespace(**json.load(fh))
+    from jaxslam.errors import InputError
+
     parts = {p.strip() for p in str(args.parts).split(",") if p.strip()}
-    results, out = _run_here(_fill_defaults(args), parts)
+    try:
+        results, out = _run_here(_fill_defaults(args), parts)
+    except InputError as e:  # handed to the parent, which raises it (exit 2)
+        with open(o_path, "w") as fh:
+            json.dump({"input_error": str(e)}, fh)
+        sys.exit(2)
     with open(o_path, "w") as fh:
         json.dump({"results": results, "out": out}, fh)
 

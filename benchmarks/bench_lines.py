@@ -33,7 +33,7 @@ import sys
 import time
 
 import numpy as np
-from timing import median_s
+from timing import int_list, median_s
 
 DESCRIPTION = ("Paper 004 RANSAC line extraction (Alg. 1, eq. 4.1): per-scan time of jitted single and "
                "vmapped extraction vs a NumPy twin; line-feature SLAM runs/s vmapped vs sequential")
@@ -140,6 +140,7 @@ def _ransac_part(args, out, results):
     P_np, V_np = np.asarray(pts), np.asarray(valid)
     rng = np.random.default_rng(args.seed + 2)
     kw = dict(n_hyp=cfg.n_hyp, max_lines=cfg.max_lines, threshold=cfg.threshold, min_inliers=cfg.min_inliers)
+    tw.extract_lines(np.random.default_rng(args.seed + 4), P_np[0], V_np[0], **kw)  # untimed warm-up call
     t_twin = median_s(lambda: [tw.extract_lines(rng, P_np[i], V_np[i], **kw) for i in range(n_tw)],
                      max(1, min(args.repeats, 3))) / n_tw
 
@@ -203,11 +204,7 @@ def _slam_part(args, out, results):
     opts = {"duration": args.slam_duration, "capacity": 16, "outlier_prob": 0.05, "tilt_deg": 2.0,
             "chunk": None}
     _, _, cfg, fp, setup = sc.build(opts, jnp.float64)
-    Ms = sorted({int(v) for v in str(args.slam_runs).split(",") if v.strip()})
-    if not Ms or Ms[0] < 1:
-        from jaxslam.errors import InputError
-
-        raise InputError(f"--slam-runs: expected positive integers, got {args.slam_runs!r}")
+    Ms = sorted(set(int_list(args.slam_runs, "--slam-runs")))
     M_max = Ms[-1]
     keys = jax.random.split(jax.random.PRNGKey(args.seed), M_max)
     sim = jax.jit(jax.vmap(lambda k: sc.simulate(k, setup, cfg.spec, jnp.float64)))
@@ -256,6 +253,8 @@ def run(args):
     from jaxslam.errors import InputError
 
     parts = [p.strip() for p in args.parts.split(",") if p.strip()]
+    if not parts:
+        raise InputError(f"--parts: no part given (got {args.parts!r}); choose from {', '.join(PARTS)}")
     unknown = sorted(set(parts) - set(PARTS))
     if unknown:
         raise InputError(f"--parts: unknown part(s) {unknown}; choose from {', '.join(PARTS)}")
@@ -263,6 +262,7 @@ def run(args):
         raise InputError("--scans, --twin-max and --repeats must be positive")
     if not 0.0 <= args.outlier_prob < 1.0:
         raise InputError(f"--outlier-prob: expected a probability in [0, 1), got {args.outlier_prob}")
+    int_list(args.slam_runs, "--slam-runs")  # checked before anything runs, not after the ransac part
     load = {"before": list(os.getloadavg())}
     results, out = [], {"targets": []}
     if "ransac" in parts:

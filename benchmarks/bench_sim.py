@@ -54,7 +54,7 @@ import time
 import numpy as np
 from timing import int_list
 
-from jaxslam.cli.common import nonnegative_float
+from jaxslam.cli.common import nonnegative_float, positive_float
 from jaxslam.errors import InputError
 
 import numpy_flight
@@ -65,12 +65,28 @@ DESCRIPTION = ("Closed-loop DF-LQR flight (track-figure8, 50 s): jitted simulate
 HERE = pathlib.Path(__file__).resolve().parent
 LIDAR_EVERY = 10
 TARGET_SINGLE_SPEEDUP = 30.0
+MAX_DURATION_S = 3600.0  # 360 000 steps: ~40 s of NumPy loop per run; far above the 50 s default
+MAX_RUN_SECONDS = 50_000.0  # M x duration of a batch case: 10x the default 100 x 50 s (~3 GB)
+
+
+def _duration(text: str) -> float:
+    """argparse type of ``--duration``: a float in [0.1, MAX_DURATION_S] s (one LiDAR period at
+    least; the upper bound keeps a typo such as 1e12 from running for ever)."""
+    import argparse
+
+    value = positive_float(text)
+    lo = LIDAR_EVERY * 0.01
+    if not lo <= value <= MAX_DURATION_S:
+        raise argparse.ArgumentTypeError(f"must be in [{lo:g}, {MAX_DURATION_S:g}] s, got {text}")
+    return value
 
 
 def add_arguments(parser):
     """Benchmark options (defaults take a few minutes on 2 CPU cores)."""
-    parser.add_argument("--duration", type=float, default=50.0,
-                        help="flight duration [s] (default 50 = 5000 steps)")
+    parser.add_argument("--duration", type=_duration, default=50.0,
+                        help=f"flight duration [s], in [{LIDAR_EVERY * 0.01:g}, {MAX_DURATION_S:g}] "
+                             f"(default 50 = 5000 steps); a batch case also needs M x DURATION <= "
+                             f"{MAX_RUN_SECONDS:g} (the flights of a batch are held in memory at once)")
     parser.add_argument("--batches", default="10,100",
                         help="comma list of vmapped batch sizes M ('' for none; default 10,100)")
     parser.add_argument("--repeats", type=int, default=5,
@@ -299,6 +315,10 @@ def run(args) -> dict:
     if not jax.config.jax_enable_x64:
         raise RuntimeError("bench sim needs float64 (run it through 'python -m jaxslam bench')")
     duration = float(args.duration)
+    batches = int_list(args.batches, "--batches", allow_empty=True)  # "": no vmapped batches
+    if batches and max(batches) * duration > MAX_RUN_SECONDS:
+        raise InputError(f"--batches: M x --duration must be <= {MAX_RUN_SECONDS:g} run-seconds "
+                         f"(all M flights are held in memory), got {max(batches)} x {duration:g}")
     setup = make_setup(jnp.float64)
     dt = float(setup.dt)
     n_frame = n_frames(duration, dt, LIDAR_EVERY)
@@ -306,7 +326,6 @@ def run(args) -> dict:
         raise InputError(f"--duration: at least {dt * LIDAR_EVERY} s, got {duration}")
     n_steps = n_frame * LIDAR_EVERY
     ff = not args.no_feedforward
-    batches = int_list(args.batches, "--batches", allow_empty=True)  # "": no vmapped batches
     traj_np, ctrl_np, sigma, _ = numpy_inputs(setup)
     fn = jax_runner(setup, n_frame, LIDAR_EVERY, ff)
     base_key = jax.random.PRNGKey(args.seed)

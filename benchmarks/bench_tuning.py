@@ -33,6 +33,8 @@ import time
 
 import numpy as np
 
+from jaxslam.cli.common import int_at_least
+
 DESCRIPTION = ("Tuning: value vs value+grad of a 500-step filter loss (target <= 5x), compile time "
                "of the tuning step (target <= 10 s), jax.checkpoint memory, LQR closed-loop cost")
 
@@ -40,14 +42,16 @@ TARGETS = {"grad_over_value": 5.0, "compile_s": 10.0}
 
 
 def add_arguments(parser):
-    parser.add_argument("--steps", type=int, default=500, help="IMU steps of the filter loss (default 500)")
+    parser.add_argument("--steps", type=int_at_least(10), default=500,
+                        help="IMU steps of the filter loss, >= 10 (default 500)")
     parser.add_argument("--runs", type=int, default=2, help="logs in the tuning step's batch (default 2)")
     parser.add_argument("--repeats", type=int, default=5, help="timed calls (median; default 5)")
     parser.add_argument("--ratio-blocks", type=int, default=7,
                         help="alternating blocks of value and value+grad calls for the ratio (3 timed calls "
                              "each per block; medians; default 7)")
-    parser.add_argument("--memory-steps", type=int, default=2000,
-                        help="IMU steps of the checkpoint memory comparison (default 2000; 0 skips it)")
+    parser.add_argument("--memory-steps", type=int_at_least(0), default=2000,
+                        help="IMU steps of the checkpoint memory comparison, 0 or >= 10 (default 2000; "
+                             "0 skips it)")
     parser.add_argument("--no-lqr", action="store_true", help="skip the LQR cost case")
     parser.add_argument("--seed", type=int, default=0)
 
@@ -152,6 +156,10 @@ def _numpy_fd_row(args, loss_fn, theta, log, ref, cfg):
 
 
 def run(args):
+    if 0 < args.memory_steps < 10:  # the log must hold one LiDAR frame (0.1 s); 0 skips the case
+        from jaxslam.errors import InputError
+
+        raise InputError(f"--memory-steps: 0 (skip) or >= 10, got {args.memory_steps}")
     import jax
     import jax.numpy as jnp
 

@@ -122,6 +122,34 @@ def _bench_common(p: argparse.ArgumentParser) -> None:
                    help="print the traceback of an internal failure (also JAXSLAM_DEBUG=1)")
 
 
+def _check_json_path(path) -> pathlib.Path:
+    """``--json PATH`` checked before anything runs, creating nothing: not a folder, no file
+    above it, and a file can be created in its nearest existing folder (tested with a
+    temporary file there, removed at once).  Its missing folders are made by
+    :func:`jaxslam.files.prepare_file` once the benchmark has run, so a run that stops at its
+    options (a usage error, ``--help``) leaves no folder behind."""
+    import os
+    import tempfile
+
+    files._check_path("--json", path)
+    p = pathlib.Path(path)
+    if str(path) == "" or p.name in ("", ".", ".."):
+        raise InputError(f"--json: {str(path)!r} is not a file name")
+    if p.is_dir():
+        raise InputError(f"--json: {str(p)!r} is a folder; give a file path")
+    files._check_no_file_above("--json", p, p)
+    folder = p.parent
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    try:
+        fd, probe = tempfile.mkstemp(dir=folder, prefix=".jaxslam-probe-")
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as e:
+        raise InputError(f"--json: cannot write into {str(folder)!r} ({e.strerror or e})") from None
+    return p
+
+
 def command(rest: list[str]) -> int:
     """``jaxslam bench NAME [--dir DIR] [--json PATH] [benchmark options]``."""
     base = Parser(prog=f"{PROG} bench", add_help=False)
@@ -158,7 +186,7 @@ def command(rest: list[str]) -> int:
         raise InputError(f"unknown benchmark {pre.name!r} in {str(bench_dir)!r}; available: "
                          f"{', '.join(available) or '(none)'}")
 
-    json_path = files.prepare_file("--json", pre.json) if pre.json is not None else None  # before anything runs
+    json_path = _check_json_path(pre.json) if pre.json is not None else None  # before anything runs
     import jax
 
     jax.config.update("jax_enable_x64", True)  # benchmarks choose float32 by passing float32 arrays
@@ -189,6 +217,8 @@ def command(rest: list[str]) -> int:
     result = {"benchmark": name, **result}
     result.setdefault("machine", io.machine_info())
 
+    if json_path is not None:  # the run is done: now its folders may be created
+        json_path = files.prepare_file("--json", json_path)
     echo(_format_bench_table(result))
     if json_path is not None:
         path = io.write_json(json_path, result)
@@ -211,16 +241,24 @@ def _format_bench_table(result: dict) -> str:
             return str(v)
         return f"{v:.2f}x" if key == "speedup" else f"{v:.4g}"
 
+    refs = sorted({str(r["reference"]) for r in result["results"] if isinstance(r, dict) and r.get("reference")})
     rows = [header] + [tuple(cell(r, k) for k in header) for r in result["results"] if isinstance(r, dict)]
-    widths = [max(len(r[i]) for r in rows) for i in range(len(header))]
+    if len(refs) > 1:  # rows against different references: say which on each row
+        rows = [rows[0] + ("vs",)] + [row + (f"[{refs.index(str(r['reference'])) + 1}]"
+                                             if r.get("reference") else "-",)
+                                      for row, r in zip(rows[1:], (r for r in result["results"]
+                                                                   if isinstance(r, dict)))]
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
     lines = [f"benchmark {result.get('benchmark')}"]
     for j, r in enumerate(rows):
         lines.append("  ".join([r[0].ljust(widths[0])] + [c.rjust(w) for c, w in zip(r[1:], widths[1:])]))
         if j == 0:
             lines.append("  ".join("-" * w for w in widths))
-    refs = sorted({str(r["reference"]) for r in result["results"] if isinstance(r, dict) and r.get("reference")})
-    if refs:
-        lines.append("reference: " + ", ".join(refs))
+    if len(refs) == 1:
+        lines.append("reference: " + refs[0])
+    elif refs:
+        lines.append("speedup = reference_s / jaxslam_s, against the row's reference (vs):")
+        lines += [f"  [{i}] {ref}" for i, ref in enumerate(refs, 1)]
     return "\n".join(lines)
 
 
