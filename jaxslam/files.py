@@ -53,11 +53,17 @@ def _check_no_file_above(flag: str, path: pathlib.Path, target: pathlib.Path) ->
         raise InputError(f"{flag}: {str(blocker)!r} is a file, so {str(target)!r} cannot be created")
 
 
-def _probe_folder(flag: str, folder: pathlib.Path, target: pathlib.Path) -> None:
-    """Create ``folder`` (and its parents) and check that a file can be created in it."""
+def _probe_folder(flag: str, folder: pathlib.Path, target: pathlib.Path, create: bool = True) -> None:
+    """Create ``folder`` (and its parents) and check that a file can be created in it; with
+    ``create=False`` nothing is made: the nearest existing folder on its way is probed instead
+    (the missing ones would be made there)."""
     _check_no_file_above(flag, folder / "x", target)
+    if not create:
+        while not folder.exists() and folder != folder.parent:
+            folder = folder.parent
     try:
-        folder.mkdir(parents=True, exist_ok=True)
+        if create:
+            folder.mkdir(parents=True, exist_ok=True)
         fd, probe = tempfile.mkstemp(dir=folder, prefix=".jaxslam-probe-")
         os.close(fd)
         os.unlink(probe)
@@ -105,12 +111,15 @@ def _check_path(flag: str, path) -> None:
         raise InputError(f"{flag}: expected a file or folder path, got {path!r}")
 
 
-def prepare_file(flag: str, path) -> pathlib.Path:
+def prepare_file(flag: str, path, create: bool = True) -> pathlib.Path:
     """Check, before compute, that the output file ``path`` of option ``flag`` can be written.
 
-    Creates the parent folders.  Raises :class:`InputError` naming ``flag`` when ``path`` is a
-    folder, lies under a file, or its folder is not writable (an existing read-only file is
-    replaced by :func:`atomic_write`, so only the folder's permission matters).
+    Creates the parent folders (``create=False``: creates nothing and probes the nearest
+    existing folder on the way, for a command that may still stop at its own options; the
+    folders are then made by a later call or by :func:`atomic_write`).  Raises
+    :class:`InputError` naming ``flag`` when ``path`` is a folder, lies under a file, or its
+    folder is not writable (an existing read-only file is replaced by :func:`atomic_write`, so
+    only the folder's permission matters).
     """
     _check_path(flag, path)
     p = pathlib.Path(path)
@@ -118,7 +127,7 @@ def prepare_file(flag: str, path) -> pathlib.Path:
         raise InputError(f"{flag}: {str(path)!r} is not a file name")
     if p.is_dir():
         raise InputError(f"{flag}: {str(p)!r} is a folder; give a file path")
-    _probe_folder(flag, p.parent, p)
+    _probe_folder(flag, p.parent, p, create=create)
     return p
 
 

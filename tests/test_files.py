@@ -94,3 +94,15 @@ def test_provenance_and_no_schema():
     text = " ".join(paramfile.describe(SCHEMA).split())
     assert "Q (2×2 symmetric PSD or 2 diagonal values)" in text and "flag (true/false)" in text
     assert "A (2×2)" in text and "r (a number)" in text
+
+
+def test_prepare_file_without_create_makes_nothing_and_still_refuses(tmp_path):
+    # (jaxslam bench checks --json this way before its own options are parsed)
+    target = tmp_path / "a" / "b" / "x.json"
+    assert files.prepare_file("--json", target, create=False) == target
+    assert not (tmp_path / "a").exists() and list(tmp_path.iterdir()) == []
+    (tmp_path / "f").write_text("")
+    with pytest.raises(InputError, match=r"^--json: '.*/f' is a file, so"):
+        files.prepare_file("--json", tmp_path / "f" / "x.json", create=False)
+    files.prepare_file("--json", target)  # the default makes the folders
+    assert (tmp_path / "a" / "b").is_dir()

@@ -122,34 +122,6 @@ def _bench_common(p: argparse.ArgumentParser) -> None:
                    help="print the traceback of an internal failure (also JAXSLAM_DEBUG=1)")
 
 
-def _check_json_path(path) -> pathlib.Path:
-    """``--json PATH`` checked before anything runs, creating nothing: not a folder, no file
-    above it, and a file can be created in its nearest existing folder (tested with a
-    temporary file there, removed at once).  Its missing folders are made by
-    :func:`jaxslam.files.prepare_file` once the benchmark has run, so a run that stops at its
-    options (a usage error, ``--help``) leaves no folder behind."""
-    import os
-    import tempfile
-
-    files._check_path("--json", path)
-    p = pathlib.Path(path)
-    if str(path) == "" or p.name in ("", ".", ".."):
-        raise InputError(f"--json: {str(path)!r} is not a file name")
-    if p.is_dir():
-        raise InputError(f"--json: {str(p)!r} is a folder; give a file path")
-    files._check_no_file_above("--json", p, p)
-    folder = p.parent
-    while not folder.exists() and folder != folder.parent:
-        folder = folder.parent
-    try:
-        fd, probe = tempfile.mkstemp(dir=folder, prefix=".jaxslam-probe-")
-        os.close(fd)
-        os.unlink(probe)
-    except OSError as e:
-        raise InputError(f"--json: cannot write into {str(folder)!r} ({e.strerror or e})") from None
-    return p
-
-
 def command(rest: list[str]) -> int:
     """``jaxslam bench NAME [--dir DIR] [--json PATH] [benchmark options]``."""
     base = Parser(prog=f"{PROG} bench", add_help=False)
@@ -186,7 +158,8 @@ def command(rest: list[str]) -> int:
         raise InputError(f"unknown benchmark {pre.name!r} in {str(bench_dir)!r}; available: "
                          f"{', '.join(available) or '(none)'}")
 
-    json_path = _check_json_path(pre.json) if pre.json is not None else None  # before anything runs
+    # before anything runs, creating nothing: a run that stops at its options leaves no folder
+    json_path = files.prepare_file("--json", pre.json, create=False) if pre.json is not None else None
     import jax
 
     jax.config.update("jax_enable_x64", True)  # benchmarks choose float32 by passing float32 arrays
