@@ -29,6 +29,7 @@ __all__ = [
     "put_blocks",
     "symmetrize",
     "wrap_angle",
+    "pow2_factors",
     "chol_solve",
     "det_small",
     "inv_small",
@@ -311,6 +312,30 @@ def cholesky_small(S):
         for i in range(j + 1, d):
             L[i][j] = (S[..., i, j] - sum(L[i][k] * L[j][k] for k in range(j))) / L[j][j]
     return jnp.stack([jnp.stack(row, -1) for row in L], -2)
+
+
+_INT_OF_SIZE = {2: jnp.int16, 4: jnp.int32, 8: jnp.int64}
+
+
+def pow2_factors(m):
+    """``(down1, down2, up)`` for magnitudes ``m`` ≥ 0 (any shape, float): up = 2^e, the power of
+    two at or below m, and down1·down2 = 2^−e, both factors normal numbers (2^−127 alone is
+    subnormal in float32, and XLA flushes subnormals to zero); all three are 1 where m is 0,
+    subnormal or not finite.  Multiplying by a power of two is exact, so x·down1·down2 has the
+    mantissas of x (a computation on it gives the same bits, scaled) while its squares neither
+    overflow nor underflow.  The factors carry no derivative (they are piecewise constant)."""
+    m = jax.lax.stop_gradient(m)
+    info = jnp.finfo(m.dtype)
+    itype = _INT_OF_SIZE[np.dtype(m.dtype).itemsize]
+    emask, bias = (1 << info.nexp) - 1, int(info.maxexp) - 1
+    E = (jax.lax.bitcast_convert_type(m, itype) >> info.nmant) & emask  # biased exponent of m
+    e = jnp.where((E > 0) & (E < emask), E - bias, 0)  # zero, subnormal, inf, NaN: no scaling
+
+    def pow2(k):  # 2^k for -bias < k <= bias (a normal number)
+        return jax.lax.bitcast_convert_type(((k + bias) << info.nmant).astype(itype), m.dtype)
+
+    a = (-e) // 2
+    return pow2(a), pow2(-e - a), pow2(e)
 
 
 def safe_norm(x, axis=-1, keepdims=False):

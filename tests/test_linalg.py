@@ -299,3 +299,27 @@ def test_block_form_derivatives_hold_no_scatter():
     _, f_lin = jax.linearize(f, a)
     for prims in (_prims(jax.make_jaxpr(f_lin)(a)), _prims(jax.make_jaxpr(jax.linear_transpose(f_lin, a))(a))):
         assert not [p for p in prims if "scatter" in p or p == "gather"], prims
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_pow2_factors_are_the_power_of_two_below_m_and_its_normal_reciprocal_factors(dtype):
+    """Oracle: NumPy's frexp (m = f·2^k, f in [0.5, 1), so the power of two at or below m is
+    2^(k−1)); 1s for 0, subnormal, Inf and NaN magnitudes."""
+    from jaxslam.linalg import pow2_factors
+
+    fi = np.finfo(dtype)
+    rng = np.random.default_rng(5)
+    exps = rng.uniform(np.log2(fi.tiny), np.log2(fi.max), 400)
+    m = np.concatenate([np.exp2(exps), [fi.tiny, fi.max, 1.0, 0.75, 2.0, 3.0]]).astype(dtype)
+    d1, d2, up = (np.asarray(a) for a in jax.jit(pow2_factors)(jnp.asarray(m)))
+    _, k = np.frexp(m)
+    np.testing.assert_array_equal(up, np.ldexp(np.ones_like(m), k - 1))
+    for d in (d1, d2):
+        assert np.all(np.abs(d) >= fi.tiny) and np.all(np.isfinite(d)), "a factor is not a normal number"
+    np.testing.assert_array_equal(d1.astype(np.float64) * d2.astype(np.float64), np.ldexp(1.0, 1 - k))
+    assert np.all((m * d1 * d2 >= 1) & (m * d1 * d2 < 2))
+    odd = np.array([0.0, fi.smallest_subnormal, np.inf, np.nan], dtype)
+    for a in jax.jit(pow2_factors)(jnp.asarray(odd)):
+        np.testing.assert_array_equal(np.asarray(a), np.ones(4, dtype))
+    g = jax.grad(lambda x: jnp.sum(x * pow2_factors(x)[0]))(jnp.asarray([3.0, 5e-3], dtype))
+    np.testing.assert_array_equal(np.asarray(g), np.asarray(pow2_factors(jnp.asarray([3.0, 5e-3], dtype))[0]))

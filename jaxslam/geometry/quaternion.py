@@ -53,7 +53,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import InputError
-from ..linalg import is_concrete
+from ..linalg import is_concrete, pow2_factors
 from .euler import _inexact, _last_axis, _matrix33, euler_from_dcm
 
 __all__ = [
@@ -80,30 +80,16 @@ def _small_threshold(dtype):
     return jnp.sqrt(jnp.finfo(dtype).eps)
 
 
-_INT_OF_SIZE = {2: jnp.int16, 4: jnp.int32, 8: jnp.int64}
-
-
 @jax.jit
 def _pow2_scaled(q):
     """``q`` (..., 4) times 2^−e, 2^e the power of two at or below max_k |q_k| (unscaled where that
-    is 0, subnormal or not finite).  Scaling by a power of two is exact, so every later step
-    (squares, sums, square roots, quotients, atan2) sees the same mantissas and the result of an
-    ordinary quaternion is unchanged to the last bit, while the squared norm of a finite q of
-    any magnitude neither overflows nor underflows.  2^−e is applied as two normal factors
-    (2^−127 alone is subnormal in float32, and XLA flushes subnormals to zero).  The scale
+    is 0, subnormal or not finite; :func:`jaxslam.linalg.pow2_factors`).  Scaling by a power of
+    two is exact, so every later step (squares, sums, square roots, quotients, atan2) sees the
+    same mantissas and the result of an ordinary quaternion is unchanged to the last bit, while
+    the squared norm of a finite q of any magnitude neither overflows nor underflows.  The scale
     carries no derivative (it is piecewise constant): d(q 2^−e)/dq = 2^−e exactly."""
-    m = jax.lax.stop_gradient(jnp.max(jnp.abs(q), axis=-1, keepdims=True))
-    info = jnp.finfo(q.dtype)
-    itype = _INT_OF_SIZE[np.dtype(q.dtype).itemsize]
-    emask, bias = (1 << info.nexp) - 1, int(info.maxexp) - 1
-    E = (jax.lax.bitcast_convert_type(m, itype) >> info.nmant) & emask  # biased exponent of m
-    e = jnp.where((E > 0) & (E < emask), E - bias, 0)  # zero, subnormal, inf, NaN: no scaling
-
-    def pow2(k):  # 2^k for |k| <= bias / 2 + 1 (always a normal number)
-        return jax.lax.bitcast_convert_type(((k + bias) << info.nmant).astype(itype), q.dtype)
-
-    a = (-e) // 2
-    return q * pow2(a) * pow2(-e - a)
+    d1, d2, _ = pow2_factors(jnp.max(jnp.abs(q), axis=-1, keepdims=True))
+    return q * d1 * d2
 
 
 _SAFE_RANGE = {}  # dtype -> (2^−e, 2^e), e = maxexp / 4: no squared norm over- or underflows

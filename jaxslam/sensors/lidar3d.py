@@ -17,8 +17,8 @@ Decisions where the paper is silent or wrong (also in docs/papers.md):
   the three rows above, in the order y = [α, β, δ] of Sec. 2.3.3.
 * atan2 (not atan) keeps the azimuth right in all four quadrants; the elevation uses atan2 of
   the horizontal range so its derivative stays finite up to ±90°.
-* Norms are ``jaxslam.linalg.safe_norm``'s (scaled by the largest entry where the squares
-  would overflow or underflow) and the angles use double-``where`` guards: the model is
+* Norms are ``jaxslam.linalg.safe_norm``'s, of the vector scaled by the power of two at or
+  below its largest entry (exact; the squares then never overflow or underflow), and the angles use double-``where`` guards: the model is
   smooth wherever δ > 0 and the landmark is not straight above/below the sensor (c1 = c2 = 0,
   where the azimuth is undefined).  At those degenerate points the undefined angle reads 0 with
   zero partials, so values and Jacobians stay finite (the range keeps its true gradient
@@ -40,7 +40,7 @@ import numpy as np
 from ..dynamics._checks import check_last_dim, real_float
 from ..errors import InputError
 from ..geometry.euler import _last_axis, dcm_from_euler, rotate_jacobian, unrotate_jacobian
-from ..linalg import check_numbers, check_real, check_shape, is_concrete, wrap_angle
+from ..linalg import check_numbers, check_real, check_shape, is_concrete, pow2_factors, safe_norm, wrap_angle
 
 __all__ = [
     "LidarSpec",
@@ -126,38 +126,23 @@ def check_lidar_spec(spec: LidarSpec, name: str = "spec") -> LidarSpec:
 # Spherical <-> Cartesian (shared with range_bearing3d)
 # ---------------------------------------------------------------------------
 
-def _norm(x):
-    """``(‖x‖, s, scaled)`` over the last axis.
-
-    Where the sum of squares is accurate (it neither overflows nor falls below ``tiny/eps``),
-    and for zero, NaN or Inf entries, the norm is :func:`jaxslam.linalg.safe_norm`'s (same value,
-    zero gradient at 0) and ``s = 1``.  Elsewhere (``scaled``) it is s·‖x/s‖ with s = max|xᵢ|
-    clipped to [16·tiny, 1/(16·tiny)], whose squares cannot overflow or underflow: in float32 a
-    1e20 m vector read an infinite range, a 1e-25 m one a zero range.  (The clip keeps 1/s a
-    normal number: XLA divides by multiplying with the reciprocal and flushes subnormals to
-    zero, so 1/1e38 read 0.)  ``s`` carries no derivative (the norm does not depend on it), so
-    every partial is formed from x/s and 1/s and stays finite (the derivative of x/m through
-    m = max|xᵢ| needs m², which overflows or underflows itself).  Callers divide by ``s`` to
-    evaluate scale-free functions (the angles)."""
-    fi = jnp.finfo(x.dtype)
-    sq = jnp.sum(x * x, axis=-1)
-    zero = sq == 0
-    plain = jnp.where(zero, 0.0, jnp.sqrt(jnp.where(zero, 1.0, sq)))
-    m = jnp.max(jnp.abs(x), axis=-1)
-    ok = (sq >= fi.tiny / fi.eps) & (sq < jnp.inf)
-    scaled = (m > 0) & (m < jnp.inf) & ~ok  # NaN, Inf and 0 stay on the plain path
-    lo = float(_FLOOR * fi.tiny)  # a power of two (a Python float: weakly typed, float32 stays float32)
-    s = jax.lax.stop_gradient(jnp.where(scaled, jnp.clip(m, lo, 1.0 / lo), 1.0))
-    u = x / s[..., None]
-    su = jnp.sum(u * u, axis=-1)  # in [1, n·64²] where scaled, unless max|xᵢ| < lo
-    big = s * jnp.sqrt(jnp.where(scaled, su, 1.0))
-    return jnp.where(scaled, big, plain), s, scaled
+def _scaled_norm(x):
+    """``(‖x‖, x·2^−e, 2^−e)`` over the last axis, 2^e the power of two at or below max|xᵢ|
+    (:func:`jaxslam.linalg.pow2_factors`).  The sum of squares is taken on the scaled vector,
+    whose largest entry lies in [1, 2), so it neither overflows nor underflows for any finite x
+    (in float32 a 1e20 m vector read an infinite range, a 1e-25 m one a zero range); scaling by
+    a power of two is exact, so ordinary vectors give the bits of the plain form.  Zero (and
+    subnormal: XLA flushes them) gives 0 with zero partials, NaN or Inf entries NaN or Inf, as
+    :func:`jaxslam.linalg.safe_norm`.  The scale carries no derivative, so every partial is
+    formed from x·2^−e and stays finite."""
+    d1, d2, up = pow2_factors(jnp.max(jnp.abs(x), axis=-1))
+    u = x * d1[..., None] * d2[..., None]
+    return safe_norm(u) * up, u, (d1, d2)
 
 
 _FLOOR = 16.0
-"""Smallest scale of :func:`_norm`, in units of ``finfo.tiny`` (its reciprocal is the largest):
-1/s times a few constants stays finite.  A scaled vector shorter than it leaves its angle
-undefined (read 0, zero partials), as an underflowing one did before: the angle's derivative
+"""Shortest vector whose angles :func:`spherical_from_cartesian` evaluates, in units of
+``finfo.tiny``; a shorter one leaves them undefined (read 0, zero partials): their derivatives
 (~1/length) would overflow."""
 
 
@@ -165,24 +150,26 @@ def spherical_from_cartesian(c):
     """[α, β, δ] of a vector c (paper 000 eq. 31 per errata; paper 001 eq. 13).
 
     Args: c: (..., 3) Cartesian vector [m] (an integer one is read as JAX's default float).
-    Returns: (..., 3) [atan2(c2, c1), atan2(c3, √(c1²+c2²)), ‖c‖].  Where the squares of c would
-    overflow or underflow (float32 beyond ~1e19 m or below ~1e-16 m) the norms and angles are
-    evaluated on c scaled by its largest entry, so they stay right from 16 times the smallest
-    normal number to the largest finite one (below that the angles read 0).
+    Returns: (..., 3) [atan2(c2, c1), atan2(c3, √(c1²+c2²)), ‖c‖].  The norms and angles are
+    evaluated on c scaled by a power of two (exact: an ordinary vector gives the plain form's
+    bits), so they stay right from 16 times the smallest normal number to the largest finite
+    one, also where the squares of c would overflow or underflow (float32 beyond ~1e19 m or
+    below ~1e-19 m); below 16 times the smallest normal number the angles read 0.
     """
     c = real_float(c, "c")
     c = _last_axis(c, 3, "c")  # a (2,) vector read its third entry from a clamped index
     floor = _FLOOR * jnp.finfo(c.dtype).tiny
-    horiz, s_h, sc_h = _norm(c[..., :2])
-    rng, s_r, sc_r = _norm(c)
+    horiz, uh, _ = _scaled_norm(c[..., :2])
+    rng, ur, (d1, d2) = _scaled_norm(c)
     # Double-where guards: where an angle is undefined (c1 = c2 = 0 for α, c = 0 for β) it is
     # evaluated as atan2(0, 1) = 0, so no NaN partials leak into the range's gradient.  The
-    # angles are scale-free: atan2 of the scaled vector (s = 1, an exact no-op, unless scaled).
-    has_h = jnp.where(sc_h, horiz >= floor, horiz > 0)
-    has_r = jnp.where(sc_r, rng >= floor, rng > 0)
-    c1, c2 = c[..., 0] / s_h, c[..., 1] / s_h
-    az = jnp.arctan2(jnp.where(has_h, c2, 0.0), jnp.where(has_h, c1, 1.0))
-    el = jnp.arctan2(jnp.where(has_r, c[..., 2] / s_r, 0.0), jnp.where(has_r, horiz / s_r, 1.0))
+    # angles are scale-free: atan2 of the scaled vector (ur's scale also applied to the
+    # horizontal norm, which it cannot overflow).
+    has_h = horiz >= floor
+    has_r = rng >= floor
+    az = jnp.arctan2(jnp.where(has_h, uh[..., 1], 0.0), jnp.where(has_h, uh[..., 0], 1.0))
+    hr = horiz * d1 * d2
+    el = jnp.arctan2(jnp.where(has_r, ur[..., 2], 0.0), jnp.where(has_r, hr, 1.0))
     return jnp.stack([az, el, rng], axis=-1)
 
 
