@@ -13,13 +13,14 @@ from __future__ import annotations
 import os
 import pathlib
 import re
+from collections.abc import Mapping
 from typing import NamedTuple, Optional
 
 
 from ..errors import InputError, check_flag, check_int
 
 __all__ = ["DATA_ENV", "Dataset", "DATASETS", "OPTION_DEFAULTS", "APPLIES", "data_root", "find",
-           "robots_found", "check_robot", "check_robots", "check_options"]
+           "robots_found", "robot_list", "check_robot", "check_robots", "check_options"]
 
 #: environment variable naming the data root (the folder with mrclam6/, victoria_park/, ...)
 DATA_ENV = "JAXSLAM_DATA_DIR"
@@ -189,11 +190,36 @@ def robots_found(name: str, root) -> list:
     return [] if folder is None or d.robot_pattern is None else _robots_in(d, folder)
 
 
+def robot_list(value, name: str, flag: str = "", *, allow_empty: bool = True, unique: bool = True) -> tuple:
+    """``value`` (robot / sequence numbers: a list, tuple, range, generator or any other iterable
+    but a string, bytes or a mapping) as a tuple of ints >= 1, else :class:`InputError` naming
+    ``name`` (and, when given, the CLI ``flag``): a string ("12" read as robots 1 and 2), a
+    mapping, a fractional number (1.7 truncated to robot 1), with ``unique`` a repeated robot
+    (trained on twice) or, unless ``allow_empty``, no robot.  Whether the robots are in a
+    folder is :func:`check_robots`'s question."""
+    hint = f" ({flag})" if flag else ""
+    items = None
+    if not isinstance(value, (str, bytes, Mapping)):
+        try:
+            items = tuple(value)
+        except TypeError:  # not iterable (a number, None, a 0-d array)
+            items = None
+    if items is None:
+        raise InputError(f"{name}: expected a list of robot numbers{hint}, got {value!r}"[:300])
+    what = f"robot numbers{hint}: ints" if flag else "an int"
+    out = tuple(check_int(r, name, 1, what=what) for r in items)
+    dup = sorted({r for r in out if out.count(r) > 1}) if unique else []
+    if dup:
+        raise InputError(f"{name}: robot(s) {dup} listed more than once{hint}")
+    if not out and not allow_empty:
+        raise InputError(f"{name}: give at least one robot{hint}")
+    return out
+
+
 def check_robots(name: str, root, robots, flag: str = "--robots") -> None:
-    """:func:`check_robot` for each of ``robots`` (a training / held-out list, or tuple, of ints)."""
-    if isinstance(robots, (str, bytes)) or not hasattr(robots, "__iter__"):  # "13" was checked digit by digit
-        raise InputError(f"{flag}: expected a list of robot numbers, got {robots!r}"[:300])
-    for r in robots:
+    """:func:`check_robot` for each of ``robots`` (a :func:`robot_list`, repeats allowed: a
+    training and a held-out list together)."""
+    for r in robot_list(robots, flag, unique=False):  # "13" was checked digit by digit
         check_robot(name, root, r, flag=flag)
 
 

@@ -276,26 +276,8 @@ def _check_window(t_max):
 
 
 def _check_robots(value, name: str, flag: str, allow_empty: bool) -> tuple:
-    """``value`` (robot / sequence numbers: a list, tuple, range, generator or any other iterable
-    but a string, bytes or a mapping) as a tuple of ints, else InputError naming ``name``: a
-    string ("12" read as robots 1 and 2), a fractional number (1.7 truncated to robot 1), a
-    repeated robot (trained on twice) or, unless ``allow_empty``, no robot."""
-    from collections.abc import Mapping
+    """``value`` as a tuple of robot numbers listed once each, else InputError naming ``name``
+    and ``flag``: :func:`jaxslam.data.catalogue.robot_list`."""
+    from ...data.catalogue import robot_list
 
-    from ...linalg import check_int
-
-    items = None
-    if not isinstance(value, (str, bytes, Mapping)):
-        try:
-            items = tuple(value)
-        except TypeError:  # not iterable (a number, None, a 0-d array)
-            items = None
-    if items is None:
-        raise InputError(f"{name}: expected a list of robot numbers ({flag}), got {value!r}"[:300])
-    out = tuple(check_int(r, name, lower=1, what=f"robot numbers ({flag}): ints") for r in items)
-    dup = sorted({r for r in out if out.count(r) > 1})
-    if dup:
-        raise InputError(f"{name}: robot(s) {dup} listed more than once ({flag})")
-    if not out and not allow_empty:
-        raise InputError(f"{name}: give at least one robot ({flag})")
-    return out
+    return robot_list(value, name, flag, allow_empty=allow_empty)
