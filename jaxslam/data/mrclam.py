@@ -55,13 +55,12 @@ from typing import NamedTuple
 import numpy as np
 
 from ..errors import InputError
-from .textfile import int_column, read_table, resolve_dataset_dir
+from .textfile import _ID_MAX, int_column, read_table, resolve_dataset_dir
 
 __all__ = ["MrclamData", "load_mrclam", "ROBOT_SUBJECTS"]
 
 ROBOT_SUBJECTS = (1, 2, 3, 4, 5)
 _TIME_DECIMALS = 6  # relative times rounded to 1 µs
-_ID_MAX = int(np.iinfo(np.int32).max)  # subjects and barcodes are stored as int32
 
 
 class MrclamData(NamedTuple):
@@ -155,14 +154,8 @@ def load_mrclam(path, robot: int, strict: bool = False) -> MrclamData:
     bct = read_table(f["barcodes"], 2)
 
     # Barcode table: subject -> barcode, both unique.
-    subj = int_column(bct, 0, "subject", lo=1, hi=_ID_MAX)
-    bcode = int_column(bct, 1, "barcode", lo=0, hi=_ID_MAX)
-    for arr, what in ((subj, "subject"), (bcode, "barcode")):
-        _, first, inv = np.unique(arr, return_index=True, return_inverse=True)
-        dup = np.nonzero(first[inv] != np.arange(arr.size))[0]
-        if dup.size:
-            i = int(dup[0])
-            raise bct.error(i, f"{what} {int(arr[i])} listed twice (first at {bct.where(int(first[inv[i]]))})")
+    subj = int_column(bct, 0, "subject", lo=1, hi=_ID_MAX, unique=True)
+    bcode = int_column(bct, 1, "barcode", lo=0, hi=_ID_MAX, unique=True)
     b2s = dict(zip(bcode.tolist(), subj.tolist()))
 
     lm_id = int_column(lmt, 0, "subject", lo=1, hi=_ID_MAX)

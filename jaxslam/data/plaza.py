@@ -49,9 +49,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ..errors import InputError, check_int
-from .textfile import int_column, read_table, resolve_dataset_dir
-
-_ID_MAX = int(np.iinfo(np.int32).max)  # node ids become int32 event labels
+from .textfile import _ID_MAX, int_column, read_table, resolve_dataset_dir
 
 __all__ = ["PlazaData", "load_plaza", "HEADING_OFFSET"]
 

@@ -53,6 +53,9 @@ __all__ = [
 
 PathLike = Union[str, os.PathLike]
 
+#: the largest id a loader keeps (ids become int32 event labels): :func:`int_column`'s ``hi``
+_ID_MAX = int(np.iinfo(np.int32).max)
+
 
 class DataFormatError(InputError):
     """A data file is malformed (or missing); the message names ``path:line``.

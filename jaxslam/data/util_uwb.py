@@ -44,7 +44,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ..errors import InputError
-from .textfile import MissingDataError, _path_arg, int_column, read_table, resolve_dataset_dir
+from .textfile import _ID_MAX, MissingDataError, _path_arg, int_column, read_table, resolve_dataset_dir
 
 __all__ = ["UtilData", "load_util", "tag_positions", "TAG_OFFSET", "G"]
 
@@ -206,7 +206,7 @@ def load_util(path, flight: str = "twr_obs_log1") -> UtilData:
 
     anc = csv(ANCHORS_FILE, 8)
     # one surveyed position per anchor; ids are stored as int32
-    anchor_id = int_column(anc, 0, "anchor_id", lo=0, hi=int(np.iinfo(np.int32).max), unique=True)
+    anchor_id = int_column(anc, 0, "anchor_id", lo=0, hi=_ID_MAX, unique=True)
     gt = csv("groundtruth.csv", 8, time_cols=0)
     imu = csv("imu.csv.gz", 8, time_cols=(0, 4))
     rows = {"anchors": int(anc.data.shape[0]), "groundtruth": int(gt.data.shape[0]),
