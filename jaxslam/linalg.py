@@ -44,6 +44,7 @@ __all__ = [
     "check_real",
     "check_flag",
     "check_float_dtype",
+    "check_key",
 ]
 
 
@@ -412,6 +413,22 @@ def reworded(check, message: str, upper: float = float("inf")):
     if not value <= upper:
         raise InputError(message)
     return value
+
+
+def check_key(key, name: str = "key", raw_shape=None) -> None:
+    """:class:`InputError` naming ``name`` unless ``key`` is a PRNG key: a typed key
+    (``jax.random.key``, 0-d) or the raw uint32 key data of ``jax.random.PRNGKey`` (1-D; of
+    shape ``raw_shape`` when given).  Static (dtype and shape): an int seed raised JAX's bare
+    ``TypeError`` from inside the sampler."""
+    dt = getattr(key, "dtype", None)
+    if dt is not None and jax.dtypes.issubdtype(dt, jax.dtypes.prng_key):
+        if np.ndim(key) == 0:
+            return
+    elif (dt is not None and np.dtype(dt) == np.uint32 and np.ndim(key) == 1
+          and (raw_shape is None or np.shape(key) == tuple(raw_shape))):
+        return
+    raise InputError(f"{name}: expected a PRNG key (jax.random.PRNGKey(seed) or jax.random.key(seed)), "
+                     f"got {key!r}"[:300])
 
 
 def check_float_dtype(dtype, name: str = "dtype"):

@@ -78,7 +78,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..geometry.euler import _as_real_array, _exact_shape, _last_axis
-from ..linalg import check_int, check_mask, check_real, float_array, is_concrete, wrap_angle
+from ..linalg import check_int, check_key, check_mask, check_real, float_array, is_concrete, wrap_angle
 
 __all__ = [
     "Lines",
@@ -429,20 +429,6 @@ def _run_mask(mask):
     return jnp.asarray(mask, bool)
 
 
-def _check_key(key):
-    """:class:`InputError` unless ``key`` is a PRNG key: a typed key (``jax.random.key``) or the
-    raw uint32 key data of ``jax.random.PRNGKey`` (static: dtype and rank; an int seed raised
-    JAX's bare ``TypeError`` from inside the sampler)."""
-    dt = getattr(key, "dtype", None)
-    if dt is not None and jax.dtypes.issubdtype(dt, jax.dtypes.prng_key):
-        if np.ndim(key) == 0:
-            return
-    elif dt is not None and np.dtype(dt) == np.uint32 and np.ndim(key) == 1:
-        return
-    raise InputError(f"key: expected a PRNG key (jax.random.PRNGKey(seed) or jax.random.key(seed)), "
-                     f"got {key!r}"[:300])
-
-
 def _in_run(mask, cfg):
     if cfg.max_gap <= 0:
         return mask
@@ -521,7 +507,7 @@ def extract_lines(key, points, valid, cfg=DEFAULT_RANSAC):
         N ≥ 1) or ``valid`` (not a bool / 0-1 mask of shape ``(N,)``).
     """
     check_ransac_config(cfg)
-    _check_key(key)
+    check_key(key)
     pts, remaining = _prepare(points, valid)
 
     def dead(remaining, k):
@@ -612,7 +598,7 @@ def extract_guided(key, points, valid, pred_rho, pred_theta, pred_mask, cfg=DEFA
     Returns ``(matched, new, remaining)``: Lines (M) aligned with the predictions, Lines
     (``cfg.max_lines``) of new features, and the ``(N,)`` mask of points neither took.
     """
-    _check_key(key)  # before the matching runs
+    check_key(key)  # before the matching runs
     matched, remaining = match_predicted(points, valid, pred_rho, pred_theta, pred_mask, cfg, gate)
     new, remaining = extract_lines(key, points, remaining, cfg)
     return matched, new, remaining

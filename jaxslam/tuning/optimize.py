@@ -79,7 +79,7 @@ import optax
 
 from .. import runtime
 from ..errors import InputError
-from ..linalg import check_int, check_scalar, is_concrete, reworded
+from ..linalg import check_int, check_key, check_scalar, is_concrete, reworded
 
 __all__ = ["FitResult", "make_optimizer", "batch_loss", "fit", "memory_report", "peak_rss_mb", "FAST_COMPILE"]
 
@@ -211,18 +211,6 @@ def _global_norm(t):
     return jnp.sqrt(sum(jnp.sum(jnp.where(jnp.isfinite(x), x, 0.0) ** 2) for x in jax.tree.leaves(t)))
 
 
-def _check_key(key) -> None:
-    """InputError unless ``key`` is a PRNG key (a typed key or ``jax.random.PRNGKey``'s uint32 pair)."""
-    dt = getattr(key, "dtype", None)
-    if dt is not None and jax.dtypes.issubdtype(dt, jax.dtypes.prng_key):
-        if np.ndim(key) == 0:
-            return
-    elif dt is not None and np.dtype(dt) == np.uint32 and np.shape(key) == (2,):
-        return
-    raise InputError(f"key: expected a PRNG key (jax.random.PRNGKey(seed) or jax.random.key(seed)), "
-                     f"got {key!r}"[:300])
-
-
 def _per_run_avals(batch):
     """(structure, [(shape without the runs axis, dtype)]) of a batch: what a trace of the loss sees."""
     return jax.tree.structure(batch), [(tuple(np.shape(x))[1:], jnp.result_type(x)) for x in jax.tree.leaves(batch)]
@@ -305,7 +293,7 @@ def fit(loss_fn: Callable, theta0, train, steps: int, lr: float = 0.1, *, test=N
     if batch_size is not None and batch_size < runs and key is None:
         raise InputError("key: a PRNG key is required for minibatches (batch_size < runs)")
     if key is not None:
-        _check_key(key)
+        check_key(key, raw_shape=(2,))  # PRNGKey data: the pair of the default (threefry) key
     eval_every = check_int(eval_every, "eval_every", lower=0)
     if test is not None:
         _check_test(test, train, loss_fn, theta0, sequential)
