@@ -70,11 +70,17 @@ def value_and_jacfwd(fun, argnums=0):
             jac, val = jax.jacfwd(both, argnums=argnums, has_aux=True)(*full)
             return val, jac
 
+        diff = [args[i] for i in nums]
+        if is_concrete(args):
+            # An eager call (no transformation above it): no reverse mode to serve, and a
+            # checkpoint of this per-call closure was traced, lowered and compiled (or read
+            # from the persistent cache) anew on every call.
+            return lin(*diff)
         # Rematerialised under reverse mode: the backward pass recomputes the linearisation
         # from its inputs instead of the forward pass storing every intermediate of the
         # forward-mode Jacobian (hundreds of small arrays per call, each a kernel per step of a
         # scan); without autodiff it costs nothing.
-        return jax.checkpoint(lin)(*[args[i] for i in nums])
+        return jax.checkpoint(lin)(*diff)
 
     return wrapped
 

@@ -196,6 +196,17 @@ def moment_dtype(x, M, x_name: str, m_name: str):
     return x_dt
 
 
+def _from_list(v, name: str):
+    """A Python list or tuple as an array (JAX's default float for numbers); jnp.result_type
+    of a list raised a bare TypeError.  Anything else is returned as it is."""
+    if not isinstance(v, (list, tuple)):
+        return v
+    try:
+        return jnp.asarray(v)
+    except (TypeError, ValueError) as e:
+        raise InputError(f"{name}: expected an array of numbers ({e})"[:300]) from None
+
+
 def check_state(state, name: str = "state") -> Gaussian:
     """A belief as one step of a filter reads it: ``mean`` (n,) and ``cov`` (n, n) (shapes are
     static, so this is free under ``jit``), and, when the covariance is known now (an eager
@@ -204,7 +215,13 @@ def check_state(state, name: str = "state") -> Gaussian:
     floating dtype (JAX's default float when that is an integer too), and the covariance is
     returned in the mean's dtype, so a step computes in one dtype whatever the caller mixed.
     """
+    if not isinstance(state, tuple) or len(state) != 2:  # None, an array: a bare TypeError
+        raise InputError(f"{name}: expected a Gaussian (mean, cov), got {type(state).__name__}"[:300])
     x, P = state
+    if isinstance(x, Gaussian):  # (Gaussian, info), as an update returns it: NumPy's ValueError
+        raise InputError(f"{name}: expected a Gaussian (mean, cov), got a pair whose first item is a "
+                         "Gaussian (an update returns (Gaussian, info): pass its first item)")
+    x, P = (_from_list(v, f"{name}.{part}") for v, part in ((x, "mean"), (P, "cov")))
     x_dt = moment_dtype(x, P, f"{name}.mean", f"{name}.cov")
     p_dt = jnp.result_type(P)
     if is_concrete(P):

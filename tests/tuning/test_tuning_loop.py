@@ -26,11 +26,18 @@ def short_target():
     return get("ekfslam3d-unknown", "loop", "cost", **SHORT)
 
 
-def test_gradient_matches_central_differences(short_target):
+@pytest.fixture(scope="module")
+def short_grad(short_target):
+    """The per-axis target's jitted gradient, one program for the tests below (tracing it again
+    costs ~4 s, compiling it ~10 s)."""
+    return jax.jit(jax.grad(short_target.loss_fn))
+
+
+def test_gradient_matches_central_differences(short_target, short_grad):
     tg = short_target
     key = tg.train[0]
     f = jax.jit(tg.loss_fn)
-    g = jax.jit(jax.grad(tg.loss_fn))(tg.theta0, key)
+    g = short_grad(tg.theta0, key)
     J0 = float(f(tg.theta0, key))
     assert np.isfinite(J0) and J0 > 0
     h = 1e-5
@@ -45,7 +52,7 @@ def test_gradient_matches_central_differences(short_target):
     assert worst <= 1e-4, worst
 
 
-def test_per_sensor_noise_is_the_per_axis_noise_tied(short_target):
+def test_per_sensor_noise_is_the_per_axis_noise_tied(short_target, short_grad):
     """``structure="imu_iso"``: one accelerometer and one gyro density, each repeated on its three
     axes.  Its loss equals the per-axis target's at the tied point, and its gradient is the sum of
     the per-axis gradient over each sensor's axes (the chain rule through the tie; the per-axis
@@ -59,7 +66,7 @@ def test_per_sensor_noise_is_the_per_axis_noise_tied(short_target):
                                np.asarray(short_target.physical(tied)[1].Qimu), rtol=1e-15)
     key = iso.train[0]
     g_iso = jax.jit(jax.grad(iso.loss_fn))(iso.theta0, key)
-    g_axis = jax.jit(jax.grad(short_target.loss_fn))(tied, key)
+    g_axis = short_grad(tied, key)
     np.testing.assert_allclose(np.asarray(g_iso["Qimu_sensor"]),
                                np.asarray(g_axis["Qimu"]).reshape(2, 3).sum(axis=1), rtol=1e-9, atol=1e-14)
     for name in ("Q", "R"):

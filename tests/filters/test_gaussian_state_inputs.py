@@ -1,0 +1,44 @@
+"""A belief passed to a Gaussian filter's step that is not a (mean, cov) pair of arrays: an
+InputError naming ``state``, where None gave a bare TypeError ("cannot unpack") and the
+(Gaussian, info) pair an update returns gave NumPy's "inhomogeneous shape" ValueError; lists
+are read as arrays (jnp.result_type of a list raised a bare TypeError)."""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxslam.errors import InputError
+from jaxslam.filters import ekf, ukf
+from jaxslam.filters.gaussian import Gaussian
+
+
+def _f(x, u):
+    return jnp.array([x[0] + 0.1 * x[1], x[1]])
+
+
+def _h(x):
+    return x[:1]
+
+
+G = Gaussian(jnp.array([0.5, 0.1]), jnp.array([[1.0, 0.2], [0.2, 2.0]]))
+
+
+@pytest.mark.parametrize("step", ["ekf.predict", "ekf.update", "ukf.predict"])
+def test_a_state_that_is_not_a_mean_cov_pair_is_named(step):
+    call = {"ekf.predict": lambda s: ekf.predict(s, _f, None, jnp.eye(2)),
+            "ekf.update": lambda s: ekf.update(s, jnp.array([0.3]), _h, jnp.eye(1)),
+            "ukf.predict": lambda s: ukf.predict(s, _f, None, jnp.eye(2))}[step]
+    with pytest.raises(InputError, match=r"^state: expected a Gaussian \(mean, cov\), got NoneType"):
+        call(None)
+    with pytest.raises(InputError, match=r"^state: expected a Gaussian \(mean, cov\), got ArrayImpl"):
+        call(jnp.zeros(2))
+    pair = ekf.update(G, jnp.array([0.3]), _h, jnp.eye(1))  # (Gaussian, UpdateInfo)
+    with pytest.raises(InputError, match=r"^state: .*first item is a Gaussian .*pass its first item"):
+        call(pair)
+    with pytest.raises(InputError, match=r"^state\.mean: expected an array of numbers"):
+        call(([0.5, [0.1]], G.cov))
+    # lists are the arrays they hold
+    want, got = call(G), call(([0.5, 0.1], [[1.0, 0.2], [0.2, 2.0]]))
+    want, got = (r if isinstance(r, Gaussian) else r[0] for r in (want, got))
+    np.testing.assert_array_equal(np.asarray(got.mean), np.asarray(want.mean))
+    np.testing.assert_array_equal(np.asarray(got.cov), np.asarray(want.cov))
