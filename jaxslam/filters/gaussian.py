@@ -63,6 +63,7 @@ __all__ = [
     "masked_innovation",
     "threshold",
     "check_state",
+    "state_pair",
     "check_gate",
     "check_num_iter",
     "check_noise_values",
@@ -196,15 +197,27 @@ def moment_dtype(x, M, x_name: str, m_name: str):
     return x_dt
 
 
-def _from_list(v, name: str):
-    """A Python list or tuple as an array (JAX's default float for numbers); jnp.result_type
-    of a list raised a bare TypeError.  Anything else is returned as it is."""
-    if not isinstance(v, (list, tuple)):
-        return v
-    try:
-        return jnp.asarray(v)
-    except (TypeError, ValueError) as e:
-        raise InputError(f"{name}: expected an array of numbers ({e})"[:300]) from None
+def state_pair(state, name: str = "state", second: str = "cov"):
+    """``(mean, second)`` of a belief (a :class:`Gaussian`, a square-root one, or a plain pair),
+    Python lists and tuples read as arrays (JAX's default float for numbers); else
+    :class:`InputError` naming ``name``: None and bare arrays (a bare "cannot unpack"
+    TypeError), the ``(belief, info)`` pair an update returns (NumPy's "inhomogeneous shape"
+    ValueError), ragged lists (jnp.result_type of a list raised a bare TypeError).  Shapes,
+    dtypes and values are left to the caller's checks."""
+    if not isinstance(state, tuple) or len(state) != 2:
+        raise InputError(f"{name}: expected a Gaussian (mean, {second}), got {type(state).__name__}"[:300])
+    out = []
+    for v, part in zip(state, ("mean", second)):
+        if isinstance(v, tuple) and hasattr(v, "_fields"):  # a NamedTuple: a belief, not an array
+            raise InputError(f"{name}: expected a Gaussian (mean, {second}), got a pair whose {part} is a "
+                             f"{type(v).__name__} (an update returns (belief, info): pass its first item)")
+        if isinstance(v, (list, tuple)):
+            try:
+                v = jnp.asarray(v)
+            except (TypeError, ValueError) as e:
+                raise InputError(f"{name}.{part}: expected an array of numbers ({e})"[:300]) from None
+        out.append(v)
+    return tuple(out)
 
 
 def check_state(state, name: str = "state") -> Gaussian:
@@ -215,13 +228,7 @@ def check_state(state, name: str = "state") -> Gaussian:
     floating dtype (JAX's default float when that is an integer too), and the covariance is
     returned in the mean's dtype, so a step computes in one dtype whatever the caller mixed.
     """
-    if not isinstance(state, tuple) or len(state) != 2:  # None, an array: a bare TypeError
-        raise InputError(f"{name}: expected a Gaussian (mean, cov), got {type(state).__name__}"[:300])
-    x, P = state
-    if isinstance(x, Gaussian):  # (Gaussian, info), as an update returns it: NumPy's ValueError
-        raise InputError(f"{name}: expected a Gaussian (mean, cov), got a pair whose first item is a "
-                         "Gaussian (an update returns (Gaussian, info): pass its first item)")
-    x, P = (_from_list(v, f"{name}.{part}") for v, part in ((x, "mean"), (P, "cov")))
+    x, P = state_pair(state, name)
     x_dt = moment_dtype(x, P, f"{name}.mean", f"{name}.cov")
     p_dt = jnp.result_type(P)
     if is_concrete(P):

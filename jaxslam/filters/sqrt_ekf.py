@@ -98,7 +98,7 @@ from .. import errors
 from ..errors import InputError
 from ..linalg import check_mask, check_numbers, check_psd, is_concrete, symmetrize, value_and_jacfwd
 from .ekf import Gaussian, UpdateInfo
-from .gaussian import (check_gate, check_leading, check_measurement, check_noise_values, check_real,
+from .gaussian import (check_gate, check_leading, check_measurement, check_noise_values, check_real, state_pair,
                        check_update_args, moment_dtype, threshold as _threshold)
 
 __all__ = [
@@ -290,8 +290,8 @@ def check_state(state, name: str = "state") -> SqrtGaussian:
     concatenate or broadcast error).  An integer mean is promoted to the factor's floating
     dtype (the default float when that is an integer too), and the factor is returned in the
     mean's dtype, as :func:`jaxslam.filters.gaussian.check_state` does for a covariance."""
-    x, L = state
-    x, L = jnp.asarray(x), jnp.asarray(L)  # lists have no dtype
+    x, L = state_pair(state, name, "chol")
+    x, L = jnp.asarray(x), jnp.asarray(L)
     x_dt = moment_dtype(x, L, f"{name}.mean", f"{name}.chol")
     n = x.shape[0]
     if is_concrete(L):

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from jaxslam.errors import InputError
-from jaxslam.filters import ekf, ukf
+from jaxslam.filters import ekf, sqrt_ekf, sqrt_ukf, ukf
 from jaxslam.filters.gaussian import Gaussian
 
 
@@ -23,22 +23,26 @@ def _h(x):
 G = Gaussian(jnp.array([0.5, 0.1]), jnp.array([[1.0, 0.2], [0.2, 2.0]]))
 
 
-@pytest.mark.parametrize("step", ["ekf.predict", "ekf.update", "ukf.predict"])
+@pytest.mark.parametrize("step", ["ekf.predict", "ekf.update", "ukf.predict", "sqrt_ekf.predict", "sqrt_ukf.predict"])
 def test_a_state_that_is_not_a_mean_cov_pair_is_named(step):
     call = {"ekf.predict": lambda s: ekf.predict(s, _f, None, jnp.eye(2)),
             "ekf.update": lambda s: ekf.update(s, jnp.array([0.3]), _h, jnp.eye(1)),
-            "ukf.predict": lambda s: ukf.predict(s, _f, None, jnp.eye(2))}[step]
-    with pytest.raises(InputError, match=r"^state: expected a Gaussian \(mean, cov\), got NoneType"):
+            "ukf.predict": lambda s: ukf.predict(s, _f, None, jnp.eye(2)),
+            "sqrt_ekf.predict": lambda s: sqrt_ekf.predict(s, _f, None, jnp.eye(2)),
+            "sqrt_ukf.predict": lambda s: sqrt_ukf.predict(s, _f, None, jnp.eye(2))}[step]
+    second = "chol" if step.startswith("sqrt") else "cov"
+    moments = (G.mean, jnp.linalg.cholesky(G.cov)) if second == "chol" else G
+    with pytest.raises(InputError, match=rf"^state: expected a Gaussian \(mean, {second}\), got NoneType"):
         call(None)
-    with pytest.raises(InputError, match=r"^state: expected a Gaussian \(mean, cov\), got ArrayImpl"):
+    with pytest.raises(InputError, match=rf"^state: expected a Gaussian \(mean, {second}\), got ArrayImpl"):
         call(jnp.zeros(2))
     pair = ekf.update(G, jnp.array([0.3]), _h, jnp.eye(1))  # (Gaussian, UpdateInfo)
-    with pytest.raises(InputError, match=r"^state: .*first item is a Gaussian .*pass its first item"):
+    with pytest.raises(InputError, match=r"^state: .*whose mean is a Gaussian .*pass its first item"):
         call(pair)
     with pytest.raises(InputError, match=r"^state\.mean: expected an array of numbers"):
-        call(([0.5, [0.1]], G.cov))
+        call(([0.5, [0.1]], moments[1]))
     # lists are the arrays they hold
-    want, got = call(G), call(([0.5, 0.1], [[1.0, 0.2], [0.2, 2.0]]))
-    want, got = (r if isinstance(r, Gaussian) else r[0] for r in (want, got))
-    np.testing.assert_array_equal(np.asarray(got.mean), np.asarray(want.mean))
-    np.testing.assert_array_equal(np.asarray(got.cov), np.asarray(want.cov))
+    want, got = call(moments), call(tuple(np.asarray(m).tolist() for m in moments))
+    want, got = (r if hasattr(r, "_fields") and r._fields[0] == "mean" else r[0] for r in (want, got))
+    for a, b in zip(got, want):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
