@@ -14,7 +14,9 @@ Decisions (the paper is silent)
   which would underflow to 0 in linear space) cancels exactly.  When nothing
   can be normalised (every entry −inf or NaN; NaN entries are treated as −inf)
   the weights are reset to uniform and ``ok`` is False, so a filter never
-  propagates NaN weights; callers count and flag the event.
+  propagates NaN weights; callers count and flag the event.  The schemes (which
+  return indices only) then draw from uniform weights; :func:`resample_ok`
+  returns the indices with that ``ok`` flag.
 * Every scheme maps ``n`` (static, default N) ordered uniforms ``u_1 ≤ … ≤
   u_n`` through the inverse CDF of the normalised weights (``searchsorted`` on
   the cumulative sum, last entry forced to exactly 1), so the returned
@@ -58,8 +60,8 @@ import jax
 import jax.numpy as jnp
 from jax.scipy.special import logsumexp
 
-from ..errors import InputError
-from ..linalg import check_scalar, is_concrete
+from ..errors import InputError, check_int
+from ..linalg import check_key, check_scalar, is_concrete
 
 __all__ = [
     "normalize",
@@ -71,6 +73,7 @@ __all__ = [
     "residual",
     "SCHEMES",
     "resample",
+    "resample_ok",
     "soft",
 ]
 
@@ -145,10 +148,18 @@ def _invert(log_w, u):
 def _n(log_w, n):
     if n is None:
         return int(jnp.shape(log_w)[-1])
-    n = int(n)
-    if n <= 0:
-        raise InputError(f"n: number of draws must be >= 1, got {n}")
-    return n
+    return check_int(n, "n", what="a number of draws (an int)")
+
+
+def _prep(key, log_w, n):
+    """Static checks shared by the schemes: ``key`` a PRNG key, ``log_w`` a non-empty (N,)
+    vector (under ``vmap`` a scheme sees one row), ``n`` an int >= 1.  Returns (log_w, n)."""
+    check_key(key)
+    if jnp.ndim(log_w) != 1 or jnp.shape(log_w)[0] == 0:
+        raise InputError(f"log_w: expected shape (N,) with N >= 1 (vmap a scheme over a batch), "
+                         f"got {jnp.shape(log_w)}")
+    lw = _float(log_w)
+    return lw, _n(lw, n)
 
 
 def _sorted_uniforms(key, n, dtype):
@@ -168,8 +179,7 @@ def multinomial(key, log_w, n: Optional[int] = None):
     Returns:
         (n,) int32 ancestor indices, ascending.
     """
-    lw = _float(log_w)
-    n = _n(lw, n)
+    lw, n = _prep(key, log_w, n)
     return _invert(lw, _sorted_uniforms(key, n, lw.dtype))
 
 
@@ -178,8 +188,7 @@ def stratified(key, log_w, n: Optional[int] = None):
 
     ``U = jax.random.uniform(key, (n,), dtype)`` (dtype of ``log_w``).
     """
-    lw = _float(log_w)
-    n = _n(lw, n)
+    lw, n = _prep(key, log_w, n)
     U = jax.random.uniform(key, (n,), dtype=lw.dtype)
     u = (jnp.arange(n, dtype=lw.dtype) + U) / n
     return _invert(lw, u)
@@ -192,8 +201,7 @@ def systematic(key, log_w, n: Optional[int] = None):
     reference implementation given the same ``U`` reproduces the indices.
     Ancestor of draw i: the smallest j with ``u_i < Σ_{k≤j} w̄_k``.
     """
-    lw = _float(log_w)
-    n = _n(lw, n)
+    lw, n = _prep(key, log_w, n)
     U = jax.random.uniform(key, (), dtype=lw.dtype)
     u = (jnp.arange(n, dtype=lw.dtype) + U) / n
     return _invert(lw, u)
@@ -209,8 +217,7 @@ def residual(key, log_w, n: Optional[int] = None):
     Returns:
         (n,) int32 ancestor indices, ascending.
     """
-    lw_in = _float(log_w)
-    n = _n(lw_in, n)
+    lw_in, n = _prep(key, log_w, n)
     lw, _ = normalize(jax.lax.stop_gradient(lw_in))
     nw = n * jnp.exp(lw)
     # A few ulps of slack so that n·(1/n) rounding to 0.999… still gives one
@@ -250,8 +257,27 @@ def _scheme(scheme):
 
 
 def resample(key, log_w, scheme="systematic", n: Optional[int] = None):
-    """Ancestor indices (n,) int32 by a named scheme (see :data:`SCHEMES`) or a callable."""
+    """Ancestor indices (n,) int32 by a named scheme (see :data:`SCHEMES`) or a callable.
+
+    When the weights cannot be normalised (every entry −inf or NaN, or a +inf entry) every
+    scheme draws from uniform weights; :func:`resample_ok` also returns the ``ok`` flag that
+    tells this fallback apart.
+    """
     return _scheme(scheme)(key, log_w, n)
+
+
+def resample_ok(key, log_w, scheme="systematic", n: Optional[int] = None):
+    """:func:`resample` plus the ``ok`` flag of :func:`normalize`.
+
+    Returns:
+        ``(indices (n,) int32, ok ())``: ``ok`` is False when the weights could not be
+        normalised (every entry −inf or NaN, or a +inf entry); the indices were then drawn
+        from uniform weights.  Costs one more reduction over ``log_w``.
+    """
+    fn = _scheme(scheme)
+    idx = fn(key, log_w, n)
+    _, ok = normalize(jax.lax.stop_gradient(_float(log_w)))
+    return idx, ok
 
 
 def soft(key, log_w, alpha, scheme="multinomial"):
@@ -272,6 +298,9 @@ def soft(key, log_w, alpha, scheme="multinomial"):
     Returns:
         ``(indices (N,) int32, new_log_w (N,) normalised)``.
     """
+    check_key(key)
+    if jnp.ndim(log_w) != 1 or jnp.shape(log_w)[0] == 0:
+        raise InputError(f"log_w: expected shape (N,) with N >= 1, got {jnp.shape(log_w)}")
     if jnp.ndim(alpha) != 0:
         raise InputError(f"alpha: expected a scalar mixture weight in [0, 1], got shape {jnp.shape(alpha)}")
     if is_concrete(alpha) and check_scalar(alpha, "alpha", lower=0) > 1.0:
