@@ -355,9 +355,11 @@ def iterated(
         difference: ``difference(a, b)`` of states, as in :func:`rts`.
         robust: None (least squares) or an IRLS weight ``w(r)`` of the whitened
             residual (:func:`huber_weight`, :func:`cauchy_weight`, :func:`tukey_weight`).
+            A non-finite weight of a valid component masks it and sets ``NON_FINITE``.
         damping: None (Gauss–Newton) or λ > 0 (traced): Levenberg–Marquardt
             pseudo-measurements ``s_t = x̄_t`` with covariance ``I/λ``.
-        tol: convergence tolerance in smoothed σ (default 1e-6 float64, 1e-3 float32).
+        tol: convergence tolerance in smoothed σ (default 1e-6 float64, 1e-3 float32); a
+            traced NaN ``tol`` sets ``NOT_CONVERGED``.
         noise_jac: as in ``ekf.predict``.
         save_cov: static; also return the smoothed covariances.
 
@@ -420,11 +422,15 @@ def iterated(
         m_, P = state
         fx, F = value_and_jacfwd(lambda v: fm(v, u, *args))(xb)
         F = F.astype(dtype)
-        Qd = Qt
+        Lm = None
         if noise_jac is not None:
             Lm = noise_jac(xb, u, *args) if callable(noise_jac) else noise_jac
             Lm = jnp.asarray(Lm, dtype)
-            Qd = Lm @ Qt @ Lm.T
+        # The shape checks of ekf.predict (static): with ``init`` given no EKF pass runs, and a
+        # (1, 1) or (T, 1, 1) Q broadcast onto every entry of the (n, n) covariance.
+        Qd = _g.check_process_noise(Qt, n, Lm)
+        if Lm is not None:
+            Qd = Lm @ Qd @ Lm.T
         PFt = P @ F.T
         mean = fx.astype(dtype) + F @ diff(m_, xb)
         return Gaussian(mean, symmetrize(F @ PFt + Qd)), PFt
@@ -441,8 +447,10 @@ def iterated(
         zb, H = value_and_jacfwd(lambda v: hh(v, c, *args))(xb)
         zb = zb.astype(dtype)
         H = H.astype(dtype)
+        w_bad = jnp.asarray(False)
         if robust is not None:
             w = weights_at(xb, z, mk, Rt, c)
+            w_bad = jnp.any(mk & ~jnp.isfinite(w))  # a NaN weight masked the component unflagged
             mk = mk & (w > 1e-12)
             sw = jnp.sqrt(jnp.maximum(w, 1e-12))
             Rt = Rt / (sw[:, None] * sw[None, :])
@@ -457,6 +465,7 @@ def iterated(
                 post.mean, post.cov, dm, eye_n, eye_n / lam, jnp.ones((n,), bool))
             post2, _, st2 = _g.finalize(post, xq, Pq, okq, jnp.asarray(False), jnp.int32(n))
             post, status = post2, status | st2
+        status = status | jnp.where(w_bad, jnp.int32(errors.NON_FINITE), jnp.int32(0))
         info = _g.UpdateInfo(nis, dof, num, S, acc, status, logdet)
         return post, info
 
@@ -489,7 +498,8 @@ def iterated(
     zP = jnp.zeros((K, n, n), dtype)
     init_c = (nominal0, zP, jnp.zeros((K,), jnp.int32), jnp.asarray(jnp.inf, dtype))
     (ms, Ps, st, moved), sizes = jax.lax.scan(it, init_c, None, length=num_iter)
-    st = st | jnp.where(moved > tol_v, jnp.int32(errors.NOT_CONVERGED), jnp.int32(0))
+    # not (moved <= tol): a NaN tolerance (traced) or a NaN step counts as not converged
+    st = st | jnp.where(moved <= tol_v, jnp.int32(0), jnp.int32(errors.NOT_CONVERGED))
     initial = None
     if predict_first:
         initial = Gaussian(ms[0], Ps[0])

@@ -61,3 +61,45 @@ def test_resample_ok_flags_unnormalisable_weights(scheme):
     idx, ok = f(KEY, lw, scheme, 6)
     assert bool(ok)
     np.testing.assert_array_equal(idx, rs.resample(KEY, lw, scheme, 6))
+
+
+# ---------------------------------------------------------------------------
+# 3-4. smoother.iterated: Q checked on the init path; NaN robust weight and NaN tol flagged
+# ---------------------------------------------------------------------------
+
+from jaxslam import errors  # noqa: E402
+from jaxslam.filters import smoother as sm  # noqa: E402
+
+
+def _cv(x, u):
+    return jnp.array([x[0] + 0.1 * x[1], x[1]])
+
+
+def _h(x):
+    return x[:1]
+
+
+def _zs():
+    return (jnp.arange(6.0) * 0.1)[:, None]
+
+
+@pytest.mark.parametrize("init", [None, "zeros"])
+@pytest.mark.parametrize("Q", [0.01 * np.eye(1), 0.01 * np.ones((6, 1, 1))])
+def test_iterated_checks_q_shape_with_init(init, Q):
+    init = None if init is None else jnp.zeros((6, 2))
+    with pytest.raises(InputError, match=r"^Q: expected shape \(2, 2\)"):
+        sm.iterated(_cv, _h, jnp.array([0.0, 1.0]), jnp.eye(2), None, _zs(), None,
+                    jnp.asarray(Q), 0.1 * jnp.eye(1), num_iter=3, init=init)
+
+
+def test_iterated_flags_nan_robust_weight_and_nan_tol():
+    args = (_cv, _h, jnp.array([0.0, 1.0]), jnp.eye(2), None, _zs(), None,
+            0.01 * jnp.eye(2), 0.1 * jnp.eye(1))
+    out = sm.iterated(*args, num_iter=3, robust=lambda r: r * jnp.nan)
+    assert np.all(np.asarray(out.status) & errors.NON_FINITE)
+    good = sm.iterated(*args, num_iter=3, robust=sm.huber_weight())
+    assert not np.any(np.asarray(good.status) & errors.NON_FINITE)
+
+    run = jax.jit(lambda tol: sm.iterated(*args, num_iter=3, tol=tol).status)
+    assert np.all(np.asarray(run(jnp.nan)) & errors.NOT_CONVERGED)
+    assert not np.any(np.asarray(run(1e-3)) & errors.NOT_CONVERGED)
