@@ -119,6 +119,31 @@ def _bad_input_flag(points, ranges, mask):
     return jnp.where(jnp.any(bad), errors.MASKED_INPUT, 0)
 
 
+def _as_array(x, name: str):
+    """A list or tuple of numbers as an array (``jnp.result_type`` of a nested list raised
+    "Cannot determine dtype"); else ``x`` unchanged.  :class:`InputError` naming ``name`` when
+    it holds no numbers."""
+    if isinstance(x, (list, tuple)):
+        try:
+            x = jnp.asarray(x)
+        except (TypeError, ValueError):
+            raise InputError(f"{name}: expected an array of numbers, got {x!r}"[:300]) from None
+    return x
+
+
+def _check_number(value, name: str, what: str, shapes=((),)):
+    """Static: ``value`` numeric (int or float; a bool or a string is no number) of one of
+    ``shapes``; else :class:`InputError` naming ``name``."""
+    dt = getattr(value, "dtype", None)
+    if dt is None:
+        try:
+            dt = np.asarray(value).dtype
+        except (TypeError, ValueError):
+            dt = None
+    if dt is None or np.dtype(dt).kind not in "iuf" or np.shape(value) not in shapes:
+        raise InputError(f"{name}: expected {what}, got {value!r}"[:300])
+
+
 def _check_inputs(points, ranges, mask, range_var=None, points_name: str = "points", mask_name: str = "mask"):
     """Shapes (static: free under ``jit`` and ``vmap``) and, when concrete, ``range_var`` ≥ 0:
     :class:`InputError` naming the argument (a (1,) mask or range broadcast over every sample, a
@@ -138,6 +163,8 @@ def _check_inputs(points, ranges, mask, range_var=None, points_name: str = "poin
     if range_var is not None:
         if np.shape(range_var) not in ((), (K,)):
             raise InputError(f"range_var: expected a scalar or ({K},), got shape {np.shape(range_var)}")
+        _check_number(range_var, "range_var", f"range variances [m²] (a number or ({K},) numbers)",
+                      ((), (K,)))
         if is_concrete(range_var):
             v = np.asarray(range_var, dtype=float)
             if not np.all(np.isfinite(v) & (v >= 0)):
@@ -225,7 +252,9 @@ def trilaterate(points, ranges, mask=None, range_var=None, min_points: Optional[
       ranges: (K,) measured distances d_k [m]; non-finite or ≤ 0 entries are dropped, as are
         rows whose point is not finite (both set ``MASKED_INPUT`` when offered by ``mask``).
       mask: optional (K,) bool, False drops a sample.
-      range_var: optional σ² [m²] of each range, for the covariance (module docstring).
+      range_var: optional σ² [m²] of each range, for the covariance (module docstring); a
+        concrete negative or non-finite one is an :class:`InputError`, a traced one makes ``ok``
+        False.
       min_points: minimum of valid samples for ``ok`` (default d + 1; may be traced: only compared).
       min_spread: smallest principal standard deviation of the valid points
         required for ``ok`` [m] (0: only rank is checked).
@@ -238,7 +267,13 @@ def trilaterate(points, ranges, mask=None, range_var=None, min_points: Optional[
     Returns:
       :class:`TrilaterationResult`.
     """
+    points = _as_array(points, "points")
+    ranges = _as_array(ranges, "ranges")
+    range_var = _as_array(range_var, "range_var")
     _check_inputs(points, ranges, mask, range_var)
+    if min_points is not None:
+        _check_number(min_points, "min_points", "a number of valid samples (an int)")
+    _check_number(min_spread, "min_spread", "a spread [m] (a number)")
     dtype = _dtype_of(points, ranges)
     points = jnp.asarray(points, dtype)
     ranges = jnp.asarray(ranges, dtype)
@@ -257,6 +292,10 @@ def trilaterate(points, ranges, mask=None, range_var=None, min_points: Optional[
     spread = point_spread(jax.lax.stop_gradient(jnp.where(valid[:, None], points, 0.0)), valid)
     ok = (n_used >= min_points) & full_rank & (spread >= jnp.asarray(min_spread, dtype))
     ok = ok & jnp.all(jnp.isfinite(x))
+    if range_var is not None and not is_concrete(range_var):
+        # a traced negative or NaN σ² (a concrete one is refused) gave a negative or NaN cov with ok
+        rv = jnp.asarray(range_var)
+        ok = ok & jnp.all(jnp.isfinite(rv) & (rv >= 0))
     x = jnp.where(jnp.isfinite(x), x, 0.0)
     rng = jnp.where(valid, ranges, 0.0)
     dist = safe_norm(x[None, :] - points, axis=1)
@@ -289,7 +328,8 @@ def trilaterate_line(xs, ranges, mask=None, side=1.0, min_points: int = 3,
       xs: (K,) positions along the line [m] (the paper's −d(k)).
       ranges: (K,) measured distances to the unknown point [m].
       mask: optional (K,) bool.
-      side: ±1, sign of the returned y (the reflection gauge of the map).
+      side: ±1, sign of the returned y (the reflection gauge of the map); a concrete other
+        value is an :class:`InputError`, a traced one makes ``ok`` False.
       min_points: minimum of valid samples (two unknowns u, y²: ≥ 2; default 3; may be traced).
       min_baseline: minimum standard deviation of the valid x_k [m] (0: only
         distinct points are required).
@@ -300,7 +340,12 @@ def trilaterate_line(xs, ranges, mask=None, side=1.0, min_points: int = 3,
       the standard deviation of the valid x_k; ``ok`` is False (and
       ``DEGENERATE`` set) with too few samples, no baseline, or y² ≤ 0.
     """
+    xs = _as_array(xs, "xs")
+    ranges = _as_array(ranges, "ranges")
     _check_inputs(xs, ranges, mask, points_name="xs")
+    _check_number(min_points, "min_points", "a number of valid samples (an int)")
+    _check_number(min_baseline, "min_baseline", "a baseline [m] (a number)")
+    _check_number(side, "side", "+1 or -1 (the sign of the offset from the line)")
     if np.shape(side) != () or (is_concrete(side) and float(np.asarray(side)) not in (-1.0, 1.0)):
         raise InputError(f"side: expected +1 or -1 (the sign of the offset from the line), got {side!r}")
     dtype = _dtype_of(xs, ranges)
@@ -320,6 +365,8 @@ def trilaterate_line(xs, ranges, mask=None, side=1.0, min_points: int = 3,
     off_line = y2 > 0
     y = jnp.asarray(side, dtype) * jnp.sqrt(jnp.where(off_line, y2, 0.0))
     ok = (n_used >= min_points) & has_base & off_line
+    if not is_concrete(side):  # a traced side other than ±1 scaled y (a concrete one is refused)
+        ok = ok & (jnp.abs(jnp.asarray(side, dtype)) == 1)
     pos = jnp.stack([u, y])
     pos = jnp.where(jnp.isfinite(pos), pos, 0.0)
     dist = jnp.sqrt((pos[0] - xs) ** 2 + pos[1] ** 2)

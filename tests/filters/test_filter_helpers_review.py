@@ -103,3 +103,54 @@ def test_iterated_flags_nan_robust_weight_and_nan_tol():
     run = jax.jit(lambda tol: sm.iterated(*args, num_iter=3, tol=tol).status)
     assert np.all(np.asarray(run(jnp.nan)) & errors.NOT_CONVERGED)
     assert not np.any(np.asarray(run(1e-3)) & errors.NOT_CONVERGED)
+
+
+# ---------------------------------------------------------------------------
+# 5. trilateration: traced bad variance / side -> ok False; lists; named errors
+# ---------------------------------------------------------------------------
+
+from jaxslam.filters import trilateration as tr  # noqa: E402
+
+PTS = np.array([[0.0, 0.0], [4.0, 0.0], [0.0, 3.0], [4.0, 3.0]])
+RNG = np.linalg.norm(PTS - np.array([1.0, 1.0]), axis=1)
+XS = np.array([0.0, -1.0, -2.0, -3.0])
+RNG_LINE = np.hypot(1.0 - XS, 2.0)
+
+
+def test_trilaterate_traced_bad_range_var_is_not_ok():
+    run = jax.jit(lambda v: tr.trilaterate(PTS, RNG, range_var=v))
+    for bad in (-1.0, np.nan):
+        res = run(bad)
+        assert not bool(res.ok) and int(res.status) & errors.DEGENERATE
+    good = run(0.1)
+    assert bool(good.ok) and int(good.status) == 0
+    np.testing.assert_allclose(good.cov, tr.trilaterate(PTS, RNG, range_var=0.1).cov, rtol=1e-12)
+
+
+def test_trilaterate_line_traced_bad_side_is_not_ok():
+    run = jax.jit(lambda s: tr.trilaterate_line(XS, RNG_LINE, side=s))
+    res = run(5.0)
+    assert not bool(res.ok) and int(res.status) & errors.DEGENERATE
+    for s in (1.0, -1.0):
+        res = run(s)
+        assert bool(res.ok)
+        np.testing.assert_allclose(res.position, [1.0, 2.0 * s], atol=1e-9)
+    with pytest.raises(InputError, match=r"^side: "):
+        tr.trilaterate_line(XS, RNG_LINE, side=5.0)
+
+
+def test_trilaterate_accepts_lists_and_names_bad_numbers():
+    res = tr.trilaterate(PTS.tolist(), RNG.tolist())
+    np.testing.assert_allclose(res.position, tr.trilaterate(PTS, RNG).position)
+    np.testing.assert_allclose(tr.trilaterate_line(XS.tolist(), RNG_LINE.tolist()).position,
+                               tr.trilaterate_line(XS, RNG_LINE).position)
+    with pytest.raises(InputError, match=r"^min_points: "):
+        tr.trilaterate(PTS, RNG, min_points="3")
+    with pytest.raises(InputError, match=r"^range_var: "):
+        tr.trilaterate(PTS, RNG, range_var="a")
+    with pytest.raises(InputError, match=r"^min_spread: "):
+        tr.trilaterate(PTS, RNG, min_spread="x")
+    with pytest.raises(InputError, match=r"^min_points: "):
+        tr.trilaterate_line(XS, RNG_LINE, min_points="3")
+    with pytest.raises(InputError, match=r"^min_baseline: "):
+        tr.trilaterate_line(XS, RNG_LINE, min_baseline="x")
