@@ -76,7 +76,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import errors
-from ..errors import InputError
+from ..errors import InputError, check_flag, check_int
 from ..linalg import check_mask, check_psd, is_concrete, symmetrize, value_and_jacfwd, wrap_angle
 from ..stats import chi2_ppf_np
 from . import gaussian as _g
@@ -86,13 +86,16 @@ from .gaussian import (
     GaussianFilter,
     Posterior,
     UpdateInfo,
+    call_residual,
     check_gate,
+    check_gate_size,
     check_measurement,
     check_real,
     check_num_iter,
     check_state,
     check_update_args,
     finalize as _finalize,
+    scalar_measurement,
     innovation_solve,
     masked_innovation,
     process_noise,
@@ -136,12 +139,21 @@ def angle_residual(angle_mask) -> Callable[[Array, Array], Array]:
         ``residual(z, zhat) -> (m,)`` = ``z − ẑ`` with the angle components
         passed through :func:`jaxslam.linalg.wrap_angle` (derivative 1 away
         from ±π, so it is safe under ``grad``).  Works on any leading batch
-        axes of ``z``/``zhat``.
+        axes of ``z``/``zhat``.  A mask that is not bool (or 0/1 integers) or not
+        1-D is an :class:`InputError` naming ``angle_mask``, and so is a residual
+        whose last axis differs from the mask's length (a length-1 mask was
+        broadcast onto every component).
     """
+    check_mask(angle_mask, "angle_mask")
     am = np.asarray(angle_mask, dtype=bool)
+    if am.ndim != 1:
+        raise InputError(f"angle_mask: expected shape (m,) (one flag per component), got {am.shape}")
 
     def residual(z, zhat):
         d = z - zhat
+        if np.shape(d)[-1:] != am.shape:
+            raise InputError(f"angle_mask: has {am.shape[0]} entries, but the residual has shape "
+                             f"{tuple(np.shape(d))}")
         return jnp.where(am, wrap_angle(d), d)
 
     return residual
@@ -162,22 +174,33 @@ def chi2_gate(prob: float, max_dof: int) -> Callable[[Array], Array]:
 
     Returns:
         ``gate(dof)`` giving the threshold for ``dof`` in 1..max_dof (+inf for
-        dof 0, where nothing is updated anyway).
+        dof 0, where nothing is updated anyway); its ``max_dof`` attribute lets
+        the updates refuse a measurement with more components
+        (:class:`InputError` naming ``gate``: the table would be clipped).
+        ``max_dof`` must be an int >= 1 (:class:`InputError` naming it; 1.5, True
+        and "2" were truncated or parsed).
     """
-    if not 0.0 < float(prob) < 1.0:
-        raise InputError(f"prob: must be in (0, 1), got {prob}")
-    if int(max_dof) < 1:
-        raise InputError(f"max_dof: must be >= 1, got {max_dof}")
-    table = np.array([np.inf] + [chi2_ppf_np(prob, d) for d in range(1, int(max_dof) + 1)])
+    if isinstance(prob, (bool, np.bool_, str, bytes)) or not 0.0 < float(prob) < 1.0:
+        raise InputError(f"prob: must be in (0, 1), got {prob!r}")
+    max_dof = check_int(max_dof, "max_dof")
+    table = np.array([np.inf] + [chi2_ppf_np(prob, d) for d in range(1, max_dof + 1)])
 
     def gate(dof):
-        return jnp.asarray(table)[jnp.clip(dof, 0, int(max_dof))]
+        return jnp.asarray(table)[jnp.clip(dof, 0, max_dof)]
 
+    gate.max_dof = max_dof
     return gate
 
 
 def _default_residual(z, zhat):
     return z - zhat
+
+
+def check_transition_out(xn, n: int):
+    """The transition's output at the mean must be (n,) (static); else :class:`InputError`
+    naming ``f`` (a scalar output gave a () mean beside an (n, n) covariance)."""
+    if tuple(np.shape(xn)) != (n,):
+        raise InputError(f"f: the transition returned shape {tuple(np.shape(xn))}, expected ({n},)")
 
 
 def linear_update(x, P, nu, H, R, mask):
@@ -265,7 +288,8 @@ def predict(state: Gaussian, f: Callable, u, Q, *args, noise_jac=None) -> Gaussi
     """
     x, P = check_state(state)
     dtype = x.dtype
-    xn, F = value_and_jacfwd(lambda v: f(v, u, *args))(x)
+    xn, F = value_and_jacfwd(lambda v: jnp.asarray(f(v, u, *args)))(x)
+    check_transition_out(xn, x.shape[0])
     xn = xn.astype(dtype)
     F = F.astype(dtype)
     Q = process_noise(Q, x, u, args, noise_jac)
@@ -348,6 +372,7 @@ def update(
     x, P = state
     dtype = x.dtype
     check_update_args(z, R, mask)
+    z, h = scalar_measurement(z, h)
     z = jnp.asarray(z, dtype=dtype)
     R = jnp.asarray(R, dtype=dtype)
     m = z.shape[-1]
@@ -355,11 +380,12 @@ def update(
     res = _default_residual if residual is None else residual
 
     def linearise(v):
-        zhat, H = value_and_jacfwd(lambda w: h(w, *args))(v)
+        zhat, H = value_and_jacfwd(lambda w: jnp.asarray(h(w, *args)))(v)
         return zhat.astype(dtype), H.astype(dtype)
 
     zhat, H = linearise(x)
     check_measurement(z, zhat, R, mask)
+    check_gate_size(gate, m)
     nu = masked_innovation(z, zhat, mask, res)
     dof = jnp.sum(mask).astype(jnp.int32)
     # The NIS (hence the gate) does not depend on whether the update is
@@ -439,6 +465,7 @@ def update_batch(
         reported on every valid measurement and the prior is kept.
     """
     check_gate(gate)
+    sequential = check_flag(sequential, "sequential")
     state = check_state(state)
     x, P = state
     dtype = x.dtype
@@ -448,6 +475,7 @@ def update_batch(
         raise InputError(f"zs: expected shape (M, m) (M measurements of size m), got {zs.shape}")
     M, m = zs.shape
     n = x.shape[0]
+    check_gate_size(gate, m)
     rs = tuple(np.shape(R))
     if rs not in ((m, m), (M, m, m)):
         raise InputError(f"R: expected shape ({m}, {m}) (shared) or ({M}, {m}, {m}) (per measurement), got {rs}")
@@ -482,7 +510,7 @@ def update_batch(
         return jax.lax.scan(body, state, (zs, Rs, masks, tuple(args)))
 
     def lin(a):
-        return value_and_jacfwd(lambda v: h(v, *a))(x)
+        return value_and_jacfwd(lambda v: jnp.asarray(h(v, *a)))(x)
 
     # (M, m), (M, m, n); axis_size: with nothing per measurement one linearisation is broadcast
     zhat, H = jax.vmap(lin, axis_size=M)(tuple(args))
@@ -493,7 +521,7 @@ def update_batch(
     H = H.astype(dtype)
     zhat_safe = jnp.where(masks, zhat, jnp.zeros((), dtype))
     z_safe = jnp.where(masks, zs, zhat_safe)
-    nu = jax.vmap(res)(z_safe, zhat_safe)
+    nu = jax.vmap(lambda a, b: call_residual(res, a, b))(z_safe, zhat_safe)
     zero = jnp.zeros((), dtype)
     nu = jnp.where(masks, nu, zero)
     Hm = jnp.where(masks[:, :, None], H, zero)
@@ -565,12 +593,16 @@ def make_filter(
         ``GaussianFilter(predict, update)``; ``predict`` returns the cross-covariance
         ``P Fᵀ`` beside the predicted belief (what the RTS smoother needs).
     """
+    check_num_iter(num_iter)
+    check_gate(gate)
+    h_takes_input = check_flag(h_takes_input, "h_takes_input")
     fm = (lambda x, u, *a: x) if f is None else f
 
     def pred(state, u, Q):
         x, P = state
         dtype = x.dtype
-        xn, F = value_and_jacfwd(lambda v: fm(v, u, *args))(x)
+        xn, F = value_and_jacfwd(lambda v: jnp.asarray(fm(v, u, *args)))(x)
+        check_transition_out(xn, x.shape[0])
         F = F.astype(dtype)
         Qd = process_noise(Q, x, u, args, noise_jac)
         PFt = P @ F.T

@@ -49,7 +49,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import errors
-from ..errors import InputError
+from ..errors import InputError, check_flag
 from ..linalg import check_mask, check_numbers, check_psd, check_real, host_array, is_concrete, symmetrize
 
 __all__ = [
@@ -65,9 +65,13 @@ __all__ = [
     "check_state",
     "state_pair",
     "check_gate",
+    "check_gate_size",
+    "call_residual",
     "check_num_iter",
+    "predicted_status",
     "check_noise_values",
     "check_update_args",
+    "scalar_measurement",
     "check_process_noise",
     "process_noise",
     "check_measurement",
@@ -223,7 +227,8 @@ def state_pair(state, name: str = "state", second: str = "cov"):
 def check_state(state, name: str = "state") -> Gaussian:
     """A belief as one step of a filter reads it: ``mean`` (n,) and ``cov`` (n, n) (shapes are
     static, so this is free under ``jit``), and, when the covariance is known now (an eager
-    call), its values: finite, symmetric, positive semi-definite.  Raises :class:`InputError`
+    call), its values: finite, symmetric, positive semi-definite; a mean known now must be
+    finite (a NaN mean was accepted and came back as a NaN posterior).  Raises :class:`InputError`
     naming ``name.mean`` / ``name.cov``.  An integer mean is promoted to the covariance's
     floating dtype (JAX's default float when that is an integer too), and the covariance is
     returned in the mean's dtype, so a step computes in one dtype whatever the caller mixed.
@@ -231,6 +236,8 @@ def check_state(state, name: str = "state") -> Gaussian:
     x, P = state_pair(state, name)
     x_dt = moment_dtype(x, P, f"{name}.mean", f"{name}.cov")
     p_dt = jnp.result_type(P)
+    if is_concrete(x) and not np.all(np.isfinite(np.asarray(x))):
+        raise InputError(f"{name}.mean: contains NaN or Inf")
     if is_concrete(P):
         check_psd(P, f"{name}.cov")
     x = host_array(x, x_dt) if is_concrete(x) and jnp.result_type(x) != x_dt else jnp.asarray(x)
@@ -256,10 +263,28 @@ def check_update_args(z, R, mask):
     """The arguments one measurement update of every Gaussian filter checks first, in this order:
     ``R``'s values when known (:func:`check_noise_values`, positive definite), ``z`` real (a
     complex one lost its imaginary part), ``mask`` bool or 0/1 (:func:`jaxslam.linalg.check_mask`);
-    :class:`InputError` naming the argument."""
+    :class:`InputError` naming the argument.  An empty ``z`` (m = 0) is refused first, naming
+    ``z`` (it ended in NumPy's "cannot reshape array of size 0"): skip the update instead."""
+    if np.ndim(z) >= 1 and np.shape(z)[-1] == 0:
+        raise InputError(f"z: expected at least one measurement component, got shape {tuple(np.shape(z))} "
+                         "(with nothing measured, skip the update)")
     check_noise_values(R, "R", strict=True)
     check_real(z, "z")
     check_mask(mask, "mask")
+
+
+def scalar_measurement(z, h: Callable):
+    """``(z, h)`` of one update with a scalar ``z`` read as the (1,) measurement of one
+    component and a scalar output of ``h`` read as (1,) (``z.shape[-1]`` raised a bare
+    IndexError); a non-scalar ``z`` is returned as it is."""
+    if np.ndim(z) != 0:
+        return z, h
+
+    def h1(x, *a):
+        out = jnp.asarray(h(x, *a))
+        return jnp.reshape(out, (1,)) if out.ndim == 0 else out
+
+    return jnp.reshape(jnp.asarray(z), (1,)), h1
 
 
 def check_num_iter(num_iter):
@@ -271,9 +296,13 @@ def check_num_iter(num_iter):
 
 def check_gate(gate: Gate):
     """A gate given as a number must be a positive χ² threshold (a NaN would switch gating off
-    without a word: ``x > nan`` is False); callables and traced values pass."""
+    without a word: ``x > nan`` is False); callables and traced values pass.  A bool or a
+    string is refused (``gate=True`` was read as the threshold 1.0)."""
     if gate is None or callable(gate):
         return
+    if isinstance(gate, (bool, np.bool_, str, bytes)):
+        raise InputError(f"gate: expected a χ² threshold (a number), a callable gate(dof) or None, "
+                         f"got {gate!r}"[:300])
     if np.ndim(gate) != 0:  # static: a (2,) gate made the status and acceptance (2,) arrays
         raise InputError(f"gate: expected one χ² threshold (a scalar), a callable gate(dof) or None, "
                          f"got shape {np.shape(gate)}")
@@ -282,6 +311,28 @@ def check_gate(gate: Gate):
     g = float(np.asarray(gate))
     if not (np.isfinite(g) and g > 0):
         raise InputError(f"gate: must be a positive χ² threshold (or None), got {g}")
+
+
+def check_gate_size(gate: Gate, m: int):
+    """A gate built for at most ``max_dof`` components (``ekf.chi2_gate``, which marks its
+    callable with that size) must cover the measurement's ``m`` components (static): else
+    :class:`InputError` naming ``gate`` (its table was clipped to ``max_dof`` and gated an m-dof
+    NIS with the ``max_dof`` threshold, without a word)."""
+    k = getattr(gate, "max_dof", None) if callable(gate) else None
+    if k is not None and int(m) > int(k):
+        raise InputError(f"gate: built for at most {k} valid components (chi2_gate's max_dof), but "
+                         f"the measurement has {int(m)}")
+
+
+def call_residual(residual: Callable, z, zhat):
+    """``residual(z, ẑ)`` read as an array and checked to have ``ẑ``'s shape (static: free under
+    ``jit``); else :class:`InputError` naming ``residual`` (a scalar residual was broadcast
+    onto every component without a word)."""
+    out = jnp.asarray(residual(z, zhat))
+    exp = tuple(np.shape(zhat))
+    if tuple(out.shape) != exp:
+        raise InputError(f"residual: returned shape {tuple(out.shape)}, expected {exp}")
+    return out
 
 
 def threshold(gate: Gate, dof, dtype):
@@ -300,7 +351,7 @@ def masked_innovation(z, zhat, mask, residual):
     zero = jnp.zeros((), zhat.dtype)
     zhat_safe = jnp.where(mask, zhat, zero)
     z_safe = jnp.where(mask, z, zhat_safe)
-    return jnp.where(mask, residual(z_safe, zhat_safe), zero)
+    return jnp.where(mask, call_residual(residual, z_safe, zhat_safe), zero)
 
 
 def check_process_noise(Q, n: int, L=None):
@@ -514,7 +565,9 @@ def make_step(flt: GaussianFilter, Q, R, q_step: bool, r_step: bool, predict_fir
 
     def predict(state, u, Qt):
         out = flt.predict(state, u, Qt)
-        return (*out[:2], jnp.asarray(out[2], jnp.int32)) if len(out) == 3 else (*out, zero)
+        g, cross = out[:2]
+        st = jnp.asarray(out[2], jnp.int32) if len(out) == 3 else zero
+        return g, cross, st | predicted_status(g.cov)
 
     def step(carry, inp):
         state, _, cross_in, pending = carry
@@ -536,6 +589,18 @@ def make_step(flt: GaussianFilter, Q, R, q_step: bool, r_step: bool, predict_fir
         return (nxt, post, cross_next, pending_next), (post, prior, cross, info)
 
     return step
+
+
+def predicted_status(P):
+    """Status bits of a predicted covariance, from its diagonal (O(n)): ``NON_FINITE`` when a
+    variance is NaN/Inf, ``NOT_PSD`` when one is negative beyond √ε times the largest (a traced
+    negative ``Q`` shrank the covariance and the step reported status 0)."""
+    var = jnp.diagonal(P)
+    scale = jnp.max(jnp.abs(var)) if var.size else jnp.zeros((), var.dtype)
+    finite = jnp.all(jnp.isfinite(var))
+    neg = jnp.any(var < -jnp.sqrt(jnp.finfo(var.dtype).eps) * scale)
+    i32 = jnp.int32
+    return jnp.where(~finite, i32(errors.NON_FINITE), jnp.where(neg, i32(errors.NOT_PSD), i32(0)))
 
 
 def prepare_run(x0, P0, zs, masks, Q, R):
@@ -592,6 +657,9 @@ def run(
     Returns:
         :class:`Posterior` in the dtype of ``x0``.
     """
+    predict_first = check_flag(predict_first, "predict_first")
+    save_cov = check_flag(save_cov, "save_cov")
+    save_smoother = check_flag(save_smoother, "save_smoother")
     x0, P0, zs, masks, Q, R, q_step, r_step, T = prepare_run(x0, P0, zs, masks, Q, R)
     check_leading(us, T, "us")
     check_leading(h_inputs, T, "h_inputs")

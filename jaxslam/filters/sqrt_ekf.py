@@ -95,11 +95,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import errors
-from ..errors import InputError
+from ..errors import InputError, check_flag
 from ..linalg import check_mask, check_numbers, check_psd, is_concrete, symmetrize, value_and_jacfwd
 from .ekf import Gaussian, UpdateInfo
-from .gaussian import (check_gate, check_leading, check_measurement, check_noise_values, check_real, state_pair,
-                       check_update_args, moment_dtype, threshold as _threshold)
+from .gaussian import (call_residual, check_gate, check_gate_size, check_leading, check_measurement, check_noise_values, check_real, state_pair,
+                       check_update_args, moment_dtype, scalar_measurement, threshold as _threshold)
 
 __all__ = [
     "SqrtGaussian",
@@ -284,8 +284,9 @@ def _noise_root(Q, Q_chol, dtype):
 def check_state(state, name: str = "state") -> SqrtGaussian:
     """A square-root belief as one step reads it: ``mean`` (n,) and ``chol`` (n, n) (shapes are
     static, so this is free under ``jit``) and, when the factor is known now (an eager call),
-    its values: finite, lower-triangular (the update's triangular solves read only the lower
-    triangle, so an entry above the diagonal was silently dropped), diagonal ≥ 0.  Raises
+    its values: finite (the mean too, when known now), lower-triangular (the update's
+    triangular solves read only the lower triangle, so an entry above the diagonal was
+    silently dropped), diagonal ≥ 0.  Raises
     :class:`InputError` naming ``name.mean`` / ``name.chol`` (a mismatch used to end in a
     concatenate or broadcast error).  An integer mean is promoted to the factor's floating
     dtype (the default float when that is an integer too), and the factor is returned in the
@@ -294,6 +295,8 @@ def check_state(state, name: str = "state") -> SqrtGaussian:
     x, L = jnp.asarray(x), jnp.asarray(L)
     x_dt = moment_dtype(x, L, f"{name}.mean", f"{name}.chol")
     n = x.shape[0]
+    if is_concrete(x) and not np.all(np.isfinite(np.asarray(x))):
+        raise InputError(f"{name}.mean: contains NaN or Inf")
     if is_concrete(L):
         A = check_numbers(L, f"{name}.chol")
         if not np.all(np.isfinite(A)):
@@ -315,6 +318,10 @@ def from_gaussian(g: Gaussian) -> SqrtGaussian:
     if n is None or np.shape(g.cov) != (n, n):
         raise InputError(f"g: expected an (n,) mean and an (n, n) cov, got {tuple(x.shape)} and {np.shape(g.cov)}")
     dtype = x.dtype if jnp.issubdtype(x.dtype, jnp.floating) else jnp.result_type(float)
+    if is_concrete(x) and not np.all(np.isfinite(check_numbers(x, "g.mean"))):
+        raise InputError("g.mean: contains NaN or Inf")
+    if is_concrete(g.cov):  # known now: refuse what would factor to an all-NaN L
+        check_psd(g.cov, "g.cov")
     return SqrtGaussian(x.astype(dtype), psd_factor(g.cov, dtype))
 
 
@@ -359,18 +366,32 @@ def predict(state: SqrtGaussian, f: Callable, u, Q=None, *args, noise_jac=None,
     """
     x, L = check_state(state)
     dtype = x.dtype
+    n = x.shape[0]
     if Q_chol is None and Q is not None:
         check_noise_values(Q, "Q")  # an eager call, as sqrt_ukf.predict (traced: shapes only)
+    G = None
+    if noise_jac is not None:
+        G = jnp.asarray(noise_jac(x, u, *args) if callable(noise_jac) else noise_jac, dtype)
+        if G.ndim != 2 or G.shape[0] != n:
+            raise InputError(f"noise_jac: expected shape ({n}, q) (the state's size rows), got {tuple(G.shape)}")
+    q = n if G is None else G.shape[1]
+    rows = "the state's size" if G is None else "noise_jac's columns"
+    if Q_chol is not None:
+        if np.ndim(Q_chol) != 2 or np.shape(Q_chol)[0] != q:
+            raise InputError(f"Q_chol: expected shape ({q}, k) ({rows}), got {tuple(np.shape(Q_chol))}")
+    elif Q is not None and tuple(np.shape(Q)) != (q, q):
+        raise InputError(f"Q: expected shape ({q}, {q}) ({rows}), got {tuple(np.shape(Q))}")
     if f is None:  # a state that does not move: x' = x, F = I
         xn, F = x, jnp.eye(x.shape[0], dtype=dtype)
     else:
-        xn, F = value_and_jacfwd(lambda v: f(v, u, *args))(x)
+        xn, F = value_and_jacfwd(lambda v: jnp.asarray(f(v, u, *args)))(x)
+        if tuple(xn.shape) != (n,):
+            raise InputError(f"f: the transition returned shape {tuple(xn.shape)}, expected ({n},)")
     xn = xn.astype(dtype)
     F = F.astype(dtype)
     C = _noise_root(Q, Q_chol, dtype)
-    if noise_jac is not None:
-        G = noise_jac(x, u, *args) if callable(noise_jac) else noise_jac
-        C = _mm(jnp.asarray(G, dtype), C)
+    if G is not None:
+        C = _mm(G, C)
     return SqrtGaussian(xn, _tria(jnp.concatenate([_mm(F, L), C], axis=1)))
 
 
@@ -429,6 +450,7 @@ def update(
     x, L = check_state(state)
     dtype = x.dtype
     check_update_args(z, R, mask)
+    z, h = scalar_measurement(z, h)
     z = jnp.asarray(z, dtype=dtype)
     R = jnp.asarray(R, dtype=dtype)
     m = z.shape[-1]
@@ -438,16 +460,17 @@ def update(
     zero = jnp.zeros((), dtype)
     eye_m = jnp.eye(m, dtype=dtype)
 
-    zhat, H = value_and_jacfwd(lambda v: h(v, *args))(x)
+    zhat, H = value_and_jacfwd(lambda v: jnp.asarray(h(v, *args)))(x)
     check_measurement(z, zhat, R, mask)
     check_gate(gate)
+    check_gate_size(gate, m)
     zhat = zhat.astype(dtype)
     H = H.astype(dtype)
     # Replace invalid components by their prediction before differencing so NaN garbage
     # never enters the arithmetic (nor its gradient).
     zhat_safe = jnp.where(mask, zhat, zero)
     z_safe = jnp.where(mask, z, zhat_safe)
-    nu = jnp.where(mask, res(z_safe, zhat_safe), zero)
+    nu = jnp.where(mask, call_residual(res, z_safe, zhat_safe), zero)
     Hm = jnp.where(mask[:, None], H, zero)
     mm = mask[:, None] & mask[None, :]
     L_R = jnp.linalg.cholesky(symmetrize(jnp.where(mm, R, eye_m)))
@@ -602,6 +625,8 @@ def filter_scan(
     Returns:
         :class:`SqrtPosterior` in the dtype of ``x0``.
     """
+    predict_first = check_flag(predict_first, "predict_first")
+    save_chol = check_flag(save_chol, "save_chol")
     if np.ndim(R) == 0 and np.shape(zs)[-1:] == (1,):
         R = jnp.reshape(jnp.asarray(R), (1, 1))  # a scalar: the variance of one measurement
     _validate_scan(x0, P0, us, zs, masks, Q, R, noise_jac, Q_chol)

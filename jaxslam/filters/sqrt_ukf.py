@@ -29,16 +29,19 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import errors
-from ..errors import InputError
+from ..errors import InputError, check_flag
 from ..linalg import check_numbers, is_concrete, symmetrize
 from .gaussian import (
     Gate,
     UpdateInfo,
+    call_residual,
     check_gate,
+    check_gate_size,
     check_measurement,
     check_noise_values,
     check_real,
     check_update_args,
+    scalar_measurement,
     masked_innovation,
     threshold,
 )
@@ -82,6 +85,7 @@ def predict(state: SqrtGaussian, f: Optional[Callable], u, Q, *args,
     (finite) are checked first: :class:`InputError` naming the argument.
     """
     rule = _rule(points)
+    return_status = check_flag(return_status, "return_status")
     state = check_state(state)
     x = state.mean
     dtype = x.dtype
@@ -97,7 +101,7 @@ def predict(state: SqrtGaussian, f: Optional[Callable], u, Q, *args,
     elif is_concrete(Q_chol) and not np.all(np.isfinite(check_numbers(Q_chol, "Q_chol"))):
         raise InputError("Q_chol: contains NaN or Inf")
     pts, _, wm, sw = _points(state, rule)
-    X = check_transition(jax.vmap(lambda p: fm(p, u, *args))(pts), pts.shape).astype(dtype)
+    X = check_transition(jax.vmap(lambda p: jnp.asarray(fm(p, u, *args)))(pts), pts.shape).astype(dtype)
     xm = wm @ X
     C = _noise_root(Q, Q_chol, dtype)
     L = _tria(jnp.concatenate([((X - xm) * sw[:, None]).T, C], axis=1))
@@ -124,6 +128,7 @@ def update(state: SqrtGaussian, z, h: Callable, R, *args, residual: Optional[Cal
     x, L = check_state(state)
     dtype = x.dtype
     check_update_args(z, R, mask)
+    z, h = scalar_measurement(z, h)
     z = jnp.asarray(z, dtype)
     R = jnp.asarray(R, dtype)
     m = z.shape[-1]
@@ -133,11 +138,12 @@ def update(state: SqrtGaussian, z, h: Callable, R, *args, residual: Optional[Cal
     zero = jnp.zeros((), dtype)
     eye_m = jnp.eye(m, dtype=dtype)
     pts, dx, wm, sw = _points(SqrtGaussian(x, L), rule)
-    Z = jax.vmap(lambda p: h(p, *args))(pts).astype(dtype)
+    Z = jax.vmap(lambda p: jnp.asarray(h(p, *args)))(pts).astype(dtype)
     zref = Z[0] if rule.has_center else jnp.asarray(h(x, *args), dtype)
     check_measurement(z, zref, R, mask)
+    check_gate_size(gate, m)
     Z, zhat = measurement_mean(Z, zref, wm, mask, res)
-    dZ = jnp.where(mask[None, :], jax.vmap(lambda zi: res(zi, zhat))(Z), zero)
+    dZ = jnp.where(mask[None, :], jax.vmap(lambda zi: call_residual(res, zi, zhat))(Z), zero)
     Xs = (dx * sw[:, None]).T  # (n, N)
     Ys = (dZ * sw[:, None]).T  # (m, N)
     # A = Y Xᵀ P⁻¹ by two triangular solves with L (P = L Lᵀ = X Xᵀ)
@@ -191,6 +197,8 @@ def filter_scan(f: Optional[Callable], h: Callable, x0, P0, us, zs, masks, Q, R,
 
     rule = _rule(points)
     check_gate(gate)
+    predict_first = check_flag(predict_first, "predict_first")
+    save_chol = check_flag(save_chol, "save_chol")
     check_real(x0, "x0")  # before the cast to a real dtype
     x0 = jnp.asarray(x0)
     dtype = x0.dtype if jnp.issubdtype(x0.dtype, jnp.floating) else jnp.result_type(float)

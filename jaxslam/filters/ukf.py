@@ -105,7 +105,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import errors
-from ..errors import InputError
+from ..errors import InputError, check_flag
 from ..linalg import check_numbers, check_psd, is_concrete, symmetrize
 from . import gaussian as _g
 from .gaussian import (
@@ -114,10 +114,13 @@ from .gaussian import (
     GaussianFilter,
     Posterior,
     UpdateInfo,
+    call_residual,
     check_gate,
+    check_gate_size,
     check_measurement,
     check_state,
     check_update_args,
+    scalar_measurement,
     finalize,
     innovation_solve,
     masked_innovation,
@@ -310,19 +313,21 @@ def _predict(state: Gaussian, f: Optional[Callable], u, Q, args, rule: SigmaPoin
     if f is None:
         Pn = symmetrize(P + Qd)
         finite = jnp.all(jnp.isfinite(Pn))
-        return (Gaussian(x, jnp.where(finite, Pn, P)), P,
-                jnp.where(finite, jnp.int32(errors.OK), jnp.int32(errors.NON_FINITE)))
+        p_status = jnp.where(finite, _g.predicted_status(Pn), jnp.int32(errors.NON_FINITE))
+        return (Gaussian(x, jnp.where(p_status == 0, Pn, P)), P, p_status)
     pts, wm, wc, ok = sigma_points(x, P, rule)
-    X = check_transition(jax.vmap(lambda p: f(p, u, *args))(pts), pts.shape).astype(dtype)  # (N, n)
+    X = check_transition(jax.vmap(lambda p: jnp.asarray(f(p, u, *args)))(pts), pts.shape).astype(dtype)  # (N, n)
     xm = wm @ X
     dX = X - xm
     dx = pts - x
     Pn = symmetrize((dX * wc[:, None]).T @ dX + Qd)
     C = (dx * wc[:, None]).T @ dX  # Cov(x, x')
     finite = jnp.all(jnp.isfinite(xm)) & jnp.all(jnp.isfinite(Pn)) & jnp.all(jnp.isfinite(C))
-    good = ok & finite
+    # a negative predicted variance (a traced negative Q) is NOT_PSD: the prior is kept
+    neg = _g.predicted_status(Pn) == errors.NOT_PSD
+    good = ok & finite & ~neg
     i32 = jnp.int32
-    status = jnp.where(~ok, i32(errors.NOT_PSD), i32(0)) | jnp.where(
+    status = jnp.where(~ok | (finite & neg), i32(errors.NOT_PSD), i32(0)) | jnp.where(
         ok & ~finite, i32(errors.NON_FINITE), i32(0))
     out = Gaussian(jnp.where(good, xm, x), jnp.where(good, Pn, P))
     return out, jnp.where(good, C, P), status
@@ -346,6 +351,7 @@ def predict_with_cross(state: Gaussian, f: Optional[Callable], u, Q, *args,
         ``(Gaussian, C (n, n))`` or ``(Gaussian, C, status)``.  On failure the prior moments
         and ``C = P`` (no NaN).
     """
+    return_status = check_flag(return_status, "return_status")
     g, C, status = _predict(state, f, u, Q, args, _rule(points), noise_jac)
     return (g, C, status) if return_status else (g, C)
 
@@ -375,6 +381,7 @@ def predict(state: Gaussian, f: Optional[Callable], u, Q, *args,
         factor of ``P`` is not finite (``NOT_PSD``) or the prediction is not finite
         (``NON_FINITE``) the prior is returned unchanged.
     """
+    return_status = check_flag(return_status, "return_status")
     g, _, status = _predict(state, f, u, Q, args, _rule(points), noise_jac)
     return (g, status) if return_status else g
 
@@ -393,7 +400,7 @@ def measurement_mean(Z, zref, wm, mask, residual):
     zero = jnp.zeros((), Z.dtype)
     Z = jnp.where(mask[None, :], Z, zero)
     zref = jnp.where(mask, zref, zero)
-    return Z, zref + wm @ jax.vmap(lambda zi: residual(zi, zref))(Z)
+    return Z, zref + wm @ jax.vmap(lambda zi: call_residual(residual, zi, zref))(Z)
 
 
 def _default_residual(z, zhat):
@@ -446,6 +453,7 @@ def update(
     x, P = check_state(state)
     dtype = x.dtype
     check_update_args(z, R, mask)
+    z, h = scalar_measurement(z, h)
     z = jnp.asarray(z, dtype)
     R = jnp.asarray(R, dtype)
     m = z.shape[-1]
@@ -455,11 +463,12 @@ def update(
     zero = jnp.zeros((), dtype)
 
     pts, wm, wc, ok_pts = sigma_points(x, P, rule)
-    Z = jax.vmap(lambda p: h(p, *args))(pts).astype(dtype)  # (N, m)
+    Z = jax.vmap(lambda p: jnp.asarray(h(p, *args)))(pts).astype(dtype)  # (N, m)
     zref = Z[0] if rule.has_center else jnp.asarray(h(x, *args), dtype)
     check_measurement(z, zref, R, mask)
+    check_gate_size(gate, m)
     Z, zhat = measurement_mean(Z, zref, wm, mask, res)
-    dZ = jnp.where(mask[None, :], jax.vmap(lambda zi: res(zi, zhat))(Z), zero)  # (N, m)
+    dZ = jnp.where(mask[None, :], jax.vmap(lambda zi: call_residual(res, zi, zhat))(Z), zero)  # (N, m)
     dx = pts - x  # (N, n)
     mm = mask[:, None] & mask[None, :]
     S = symmetrize(jnp.where(mm, (dZ * wc[:, None]).T @ dZ + R, jnp.eye(m, dtype=dtype)))
@@ -513,6 +522,8 @@ def make_filter(
         needs) and the predict's status bits.
     """
     rule = _rule(points)
+    check_gate(gate)
+    h_takes_input = check_flag(h_takes_input, "h_takes_input")
 
     def pred(state, u, Q):
         return _predict(state, f, u, Q, args, rule, noise_jac)  # (Gaussian, cross, status)
