@@ -121,7 +121,11 @@ def _backward(nxt, filt, pred, cross, difference):
     pm, pc = pred
     X, ok, _ = innovation_solve(pc, cross.T)  # (P⁻)⁻¹ Cᵀ
     G = X.T
-    ms = m + G @ difference(ms1, pm)
+    dx = difference(ms1, pm)
+    if np.shape(dx) != np.shape(ms1):  # static; a scalar was a bare ValueError from the matmul
+        raise InputError(f"difference: must return a state difference of shape {np.shape(ms1)}, "
+                         f"got shape {np.shape(dx)}")
+    ms = m + G @ dx
     Ps = symmetrize(P + G @ (Ps1 - pc) @ G.T)
     good = ok & jnp.all(jnp.isfinite(ms)) & jnp.all(jnp.isfinite(Ps))
     ms = jnp.where(good, ms, m)
@@ -164,6 +168,11 @@ def rts(post: Posterior, *, difference: Optional[Callable] = None,
     Returns:
         :class:`Smoothed` with ``status`` flagging failed backward steps.
     """
+    if not all(hasattr(post, f) for f in ("means", "covs", "pred_means", "pred_covs", "cross_covs")):
+        raise InputError(f"post: expected a Posterior of a filter run (ekf.filter_scan, ukf.filter_scan "
+                         f"or gaussian.run with save_smoother=True), got {type(post).__name__}")
+    if difference is not None and not callable(difference):
+        raise InputError(f"difference: expected None or a function difference(a, b), got {difference!r}"[:300])
     if post.pred_covs is None or post.cross_covs is None or post.covs is None:
         raise InputError("post: the filter run must save what the smoother needs "
                          "(run it with save_smoother=True)")

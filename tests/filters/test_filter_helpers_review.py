@@ -154,3 +154,23 @@ def test_trilaterate_accepts_lists_and_names_bad_numbers():
         tr.trilaterate_line(XS, RNG_LINE, min_points="3")
     with pytest.raises(InputError, match=r"^min_baseline: "):
         tr.trilaterate_line(XS, RNG_LINE, min_baseline="x")
+
+
+# ---------------------------------------------------------------------------
+# 6. smoother.rts: post and difference named
+# ---------------------------------------------------------------------------
+
+from jaxslam.filters import ekf  # noqa: E402
+
+
+def test_rts_names_bad_post_and_difference():
+    with pytest.raises(InputError, match=r"^post: "):
+        sm.rts(None)
+    post = ekf.filter_scan(_cv, _h, jnp.array([0.0, 1.0]), jnp.eye(2), None, _zs(), None,
+                           0.01 * jnp.eye(2), 0.1 * jnp.eye(1), save_smoother=True)
+    with pytest.raises(InputError, match=r"^difference: "):
+        sm.rts(post, difference=lambda a, b: jnp.sum(a - b))
+    with pytest.raises(InputError, match=r"^difference: "):
+        sm.rts(post, difference="sub")
+    np.testing.assert_array_equal(sm.rts(post, difference=lambda a, b: a - b).means,
+                                  sm.rts(post).means)
