@@ -79,7 +79,8 @@ def predict(state: SqrtGaussian, f: Optional[Callable], u, Q, *args,
     """Square-root sigma-point time update (module docstring); ``Q`` a covariance or ``Q_chol`` a root.
 
     A non-finite predicted mean or factor (a NaN/Inf in a traced ``Q`` or ``f``'s output) keeps
-    the prior and, with ``return_status`` (static), returns ``NON_FINITE`` beside it:
+    the prior and, with ``return_status`` (static), returns ``NON_FINITE`` beside it
+    (``NOT_PSD`` when a finite traced ``Q`` has no real root: indefinite):
     ``(SqrtGaussian, status)``; :func:`filter_scan` adds it to the step's status.  The state
     (:func:`check_state`), the rule and, when known now, ``Q`` (symmetric PSD) or ``Q_chol``
     (finite) are checked first: :class:`InputError` naming the argument.
@@ -108,7 +109,11 @@ def predict(state: SqrtGaussian, f: Optional[Callable], u, Q, *args,
     good = jnp.all(jnp.isfinite(xm)) & jnp.all(jnp.isfinite(L))
     out = SqrtGaussian(jnp.where(good, xm, x), jnp.where(good, L, state.chol))
     if return_status:
-        return out, jnp.where(good, jnp.int32(0), jnp.int32(errors.NON_FINITE))
+        i32 = jnp.int32
+        # a finite Q whose root is NaN is indefinite (a traced negative Q): NOT_PSD
+        indef = (jnp.all(jnp.isfinite(jnp.asarray(Q, dtype))) & ~jnp.all(jnp.isfinite(C))
+                 if Q_chol is None else jnp.asarray(False))
+        return out, jnp.where(good, i32(0), jnp.where(indef, i32(errors.NOT_PSD), i32(errors.NON_FINITE)))
     return out
 
 

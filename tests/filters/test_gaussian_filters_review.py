@@ -195,7 +195,10 @@ def test_traced_negative_q_flags_not_psd():
         np.testing.assert_array_equal(np.asarray(out.cov), np.eye(2))  # the prior is kept
     _, st = jax.jit(lambda q: su.predict(se.from_gaussian(s), lambda x, u: x + u, jnp.ones(2), q,
                                          return_status=True))(-3 * jnp.eye(2))
-    assert int(st) & (errors.NOT_PSD | errors.NON_FINITE)
+    assert int(st) == errors.NOT_PSD
+    _, st = jax.jit(lambda q: su.predict(se.from_gaussian(s), lambda x, u: x + u, jnp.ones(2), q,
+                                         return_status=True))(jnp.full((2, 2), np.nan))
+    assert int(st) == errors.NON_FINITE
     flt = ekf.make_filter(lambda x, u: x, lambda x: x)
     st = jax.jit(lambda q: g.run(flt, s.mean, s.cov, jnp.zeros((1, 2)), Z[None], None, q, R).status)(
         -3 * jnp.eye(2))
