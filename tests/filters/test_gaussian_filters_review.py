@@ -228,3 +228,11 @@ def test_scalar_measurement_is_one_component():
     for upd, st in ((ukf.update, s), (se.update, se.from_gaussian(s)), (su.update, se.from_gaussian(s))):
         b, _ = upd(st, 1.5, lambda x: x[0], 0.1)
         np.testing.assert_allclose(np.asarray(b.mean), np.asarray(ref.mean), rtol=1e-10)
+
+
+def test_sqrt_filter_scan_flags():
+    s = _s()
+    for scan in (se.filter_scan, su.filter_scan):
+        for kw in ("predict_first", "save_chol"):
+            with pytest.raises(InputError, match=kw):
+                scan(None, lambda x: x, s.mean, s.cov, None, Z[None], None, Q, R, **{kw: "no"})
