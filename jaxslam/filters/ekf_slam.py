@@ -67,7 +67,7 @@ from ..errors import InputError
 from ..linalg import (check_int, check_mask, check_psd, check_whole_ids, cholesky_small, is_concrete,
                       put_blocks, small_matmul, symmetrize, take, take_blocks, value_and_jacfwd)
 from ..stats import _student_t_nll, check_student_t_nu
-from .gaussian import check_gate, check_num_iter, check_real
+from .gaussian import check_gate, check_gate_size, check_num_iter, check_real, threshold as _threshold
 
 __all__ = [
     "SlamModel",
@@ -550,7 +550,7 @@ def _observe_batch(model, s, L, params, valid=None):
 
 
 def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
-           gate: Optional[float] = None, robust=None, row_stats: bool = False,
+           gate=None, robust=None, row_stats: bool = False,
            num_iter: int = 1, tol=None, active_only: bool = False, joseph: bool = True):
     """Joint EKF update with K measurements of mapped landmarks.
 
@@ -565,7 +565,9 @@ def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
         read, NaN included); called eagerly, a wrong shape or a selected row's R that is not
         symmetric PSD is an :class:`InputError` naming ``R[k]``.
       gate: optional chi-square threshold on each measurement's own NIS
-        (d_z dof); gated measurements are dropped and flagged ``GATED``.
+        (d_z dof), or a callable ``gate(dof)`` such as :func:`jaxslam.filters.ekf.chi2_gate`
+        (called with d_z; a callable raised a bare TypeError); gated measurements are dropped
+        and flagged ``GATED``.
       robust: optional degrees of freedom ν (scalar, traced) of a Student-t measurement
         model: each row's R is divided by its EM weight w = (ν + d_z)/(ν + d²) ≤ 1 (d² its
         marginal NIS), so an outlier pulls the estimate less and less the further out it is,
@@ -610,6 +612,7 @@ def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
     _check_options(gate, robust, num_iter)
     nr, dl, cap = _sizes(state, model)
     dz = model.meas_dim
+    check_gate_size(gate, dz)
     z, slots, mask = _rows(z, slots, mask, dz, "slots")
     K = z.shape[0]
     dtype = state.x.dtype
@@ -666,7 +669,7 @@ def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
         else:
             d2_each = logdet_each = jnp.zeros(valid_.shape, dtype)
         if gate is not None:
-            gated = valid_ & (d2_each > gate)
+            gated = valid_ & (d2_each > _threshold(gate, jnp.int32(dz), dtype))
             valid_ = valid_ & ~gated
         else:
             gated = jnp.zeros_like(valid_)

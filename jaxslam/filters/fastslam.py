@@ -108,7 +108,7 @@ from .. import errors
 from ..errors import InputError
 from ..linalg import (check_int, check_mask, check_psd, check_whole_ids, cholesky_small, inv_small, is_concrete,
                       symmetrize, value_and_jacfwd, wrap_angle)
-from .gaussian import check_gate, threshold as _threshold
+from .gaussian import check_gate, check_gate_size, threshold as _threshold
 from ..stats import _student_t_nll
 from . import ekf as _ekf
 from . import resampling as _rs
@@ -316,6 +316,7 @@ def _check_rows(R, lm_ids, mask, gate):
         check_psd(R, "R", strict=True, stack=R.ndim == 3)
     check_whole_ids(lm_ids, "lm_ids", mask if is_concrete(mask) else None)
     check_gate(gate)
+    check_gate_size(gate, np.shape(R)[-1])  # each row's NIS has d_z dof
 
 
 def _check_angle_mask(angle_mask, n_r: int):
