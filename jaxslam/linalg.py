@@ -72,9 +72,11 @@ def value_and_jacfwd(fun, argnums=0):
 
         diff = [args[i] for i in nums]
         if is_concrete(args):
-            # An eager call (no transformation above it): no reverse mode to serve, and a
-            # checkpoint of this per-call closure was traced, lowered and compiled (or read
-            # from the persistent cache) anew on every call.
+            # No argument is traced: an eager call, where a checkpoint of this per-call closure
+            # was traced, lowered and compiled (or read from the persistent cache) anew on
+            # every call.  (Under a transformation of a value ``fun`` closes over, with concrete
+            # arguments, the remat is skipped too: the same values and derivatives, without
+            # the memory saving under reverse mode.)
             return lin(*diff)
         # Rematerialised under reverse mode: the backward pass recomputes the linearisation
         # from its inputs instead of the forward pass storing every intermediate of the

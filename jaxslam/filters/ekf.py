@@ -385,7 +385,7 @@ def update(
 
     zhat, H = linearise(x)
     check_measurement(z, zhat, R, mask)
-    check_gate_size(gate, m)
+    check_gate_size(gate, m, mask)
     nu = masked_innovation(z, zhat, mask, res)
     dof = jnp.sum(mask).astype(jnp.int32)
     # The NIS (hence the gate) does not depend on whether the update is
@@ -475,7 +475,6 @@ def update_batch(
         raise InputError(f"zs: expected shape (M, m) (M measurements of size m), got {zs.shape}")
     M, m = zs.shape
     n = x.shape[0]
-    check_gate_size(gate, m)
     rs = tuple(np.shape(R))
     if rs not in ((m, m), (M, m, m)):
         raise InputError(f"R: expected shape ({m}, {m}) (shared) or ({M}, {m}, {m}) (per measurement), got {rs}")
@@ -492,6 +491,7 @@ def update_batch(
             raise InputError(f"masks: expected shape ({M},) or ({M}, {m}), got {masks.shape}")
         if masks.ndim == 1:
             masks = jnp.broadcast_to(masks[:, None], (M, m))
+    check_gate_size(gate, m, masks)
     for i, a in enumerate(args):
         for leaf in jax.tree_util.tree_leaves(a):
             if np.ndim(leaf) < 1 or np.shape(leaf)[0] != M:

@@ -208,7 +208,7 @@ def state_pair(state, name: str = "state", second: str = "cov"):
     TypeError), the ``(belief, info)`` pair an update returns (NumPy's "inhomogeneous shape"
     ValueError), ragged lists (jnp.result_type of a list raised a bare TypeError).  Shapes,
     dtypes and values are left to the caller's checks."""
-    if not isinstance(state, tuple) or len(state) != 2:
+    if not isinstance(state, (tuple, list)) or len(state) != 2:
         raise InputError(f"{name}: expected a Gaussian (mean, {second}), got {type(state).__name__}"[:300])
     out = []
     for v, part in zip(state, ("mean", second)):
@@ -313,15 +313,28 @@ def check_gate(gate: Gate):
         raise InputError(f"gate: must be a positive χ² threshold (or None), got {g}")
 
 
-def check_gate_size(gate: Gate, m: int):
+def check_gate_size(gate: Gate, m: int, mask=None):
     """A gate built for at most ``max_dof`` components (``ekf.chi2_gate``, which marks its
-    callable with that size) must cover the measurement's ``m`` components (static): else
-    :class:`InputError` naming ``gate`` (its table was clipped to ``max_dof`` and gated an m-dof
-    NIS with the ``max_dof`` threshold, without a word)."""
+    callable with that size) must cover the components that can be valid (static): the
+    measurement's ``m``, or the True entries of a ``mask`` known now (per row of a (M, m) mask);
+    else :class:`InputError`
+    naming ``gate`` (its table was clipped to ``max_dof`` and gated an m-dof NIS with the
+    ``max_dof`` threshold, without a word).  A traced mask is not known: build the gate for
+    ``m`` then (a step with more than ``max_dof`` valid components reads the table's last
+    threshold)."""
     k = getattr(gate, "max_dof", None) if callable(gate) else None
-    if k is not None and int(m) > int(k):
+    if k is None or int(m) <= int(k):
+        return
+    if mask is not None:
+        if not is_concrete(mask):
+            return
+        valid = int(np.max(np.count_nonzero(np.atleast_2d(np.asarray(mask)), axis=-1), initial=0))
+        if valid <= int(k):
+            return
         raise InputError(f"gate: built for at most {k} valid components (chi2_gate's max_dof), but "
-                         f"the measurement has {int(m)}")
+                         f"the mask lets {valid} through")
+    raise InputError(f"gate: built for at most {k} valid components (chi2_gate's max_dof), but "
+                     f"the measurement has {int(m)}")
 
 
 def call_residual(residual: Callable, z, zhat):

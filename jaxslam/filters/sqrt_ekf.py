@@ -320,8 +320,8 @@ def from_gaussian(g: Gaussian) -> SqrtGaussian:
     dtype = x.dtype if jnp.issubdtype(x.dtype, jnp.floating) else jnp.result_type(float)
     if is_concrete(x) and not np.all(np.isfinite(check_numbers(x, "g.mean"))):
         raise InputError("g.mean: contains NaN or Inf")
-    if is_concrete(g.cov):  # known now: refuse what would factor to an all-NaN L
-        check_psd(g.cov, "g.cov")
+    if is_concrete(g.cov):  # known now: refuse a NaN, asymmetric or indefinite cov (beyond
+        check_psd(g.cov, "g.cov")  # check_psd's tolerance; a float32 cov just inside it may still factor to NaN)
     return SqrtGaussian(x.astype(dtype), psd_factor(g.cov, dtype))
 
 
@@ -463,7 +463,7 @@ def update(
     zhat, H = value_and_jacfwd(lambda v: jnp.asarray(h(v, *args)))(x)
     check_measurement(z, zhat, R, mask)
     check_gate(gate)
-    check_gate_size(gate, m)
+    check_gate_size(gate, m, mask)
     zhat = zhat.astype(dtype)
     H = H.astype(dtype)
     # Replace invalid components by their prediction before differencing so NaN garbage

@@ -466,7 +466,7 @@ def update(
     Z = jax.vmap(lambda p: jnp.asarray(h(p, *args)))(pts).astype(dtype)  # (N, m)
     zref = Z[0] if rule.has_center else jnp.asarray(h(x, *args), dtype)
     check_measurement(z, zref, R, mask)
-    check_gate_size(gate, m)
+    check_gate_size(gate, m, mask)
     Z, zhat = measurement_mean(Z, zref, wm, mask, res)
     dZ = jnp.where(mask[None, :], jax.vmap(lambda zi: call_residual(res, zi, zhat))(Z), zero)  # (N, m)
     dx = pts - x  # (N, n)

@@ -127,7 +127,7 @@ def check_lidar_spec(spec: LidarSpec, name: str = "spec") -> LidarSpec:
 # ---------------------------------------------------------------------------
 
 def _scaled_norm(x):
-    """``(‖x‖, x·2^−e, 2^−e)`` over the last axis, 2^e the power of two at or below max|xᵢ|
+    """``(‖x‖, x·2^−e, (2^−e as two factors, 2^e))`` over the last axis, 2^e the power of two at or below max|xᵢ|
     (:func:`jaxslam.linalg.pow2_factors`).  The sum of squares is taken on the scaled vector,
     whose largest entry lies in [1, 2), so it neither overflows nor underflows for any finite x
     (in float32 a 1e20 m vector read an infinite range, a 1e-25 m one a zero range); scaling by
@@ -137,7 +137,7 @@ def _scaled_norm(x):
     formed from x·2^−e and stays finite."""
     d1, d2, up = pow2_factors(jnp.max(jnp.abs(x), axis=-1))
     u = x * d1[..., None] * d2[..., None]
-    return safe_norm(u) * up, u, (d1, d2)
+    return safe_norm(u) * up, u, (d1, d2, up)
 
 
 _FLOOR = 16.0
@@ -159,16 +159,16 @@ def spherical_from_cartesian(c):
     c = real_float(c, "c")
     c = _last_axis(c, 3, "c")  # a (2,) vector read its third entry from a clamped index
     floor = _FLOOR * jnp.finfo(c.dtype).tiny
-    horiz, uh, _ = _scaled_norm(c[..., :2])
-    rng, ur, (d1, d2) = _scaled_norm(c)
+    horiz, uh, (_, _, up_h) = _scaled_norm(c[..., :2])
+    rng, ur, (d1, d2, _) = _scaled_norm(c)
     # Double-where guards: where an angle is undefined (c1 = c2 = 0 for α, c = 0 for β) it is
     # evaluated as atan2(0, 1) = 0, so no NaN partials leak into the range's gradient.  The
     # angles are scale-free: atan2 of the scaled vector (ur's scale also applied to the
-    # horizontal norm, which it cannot overflow).
+    # horizontal norm, taken from its own scaled form so that it cannot overflow).
     has_h = horiz >= floor
     has_r = rng >= floor
     az = jnp.arctan2(jnp.where(has_h, uh[..., 1], 0.0), jnp.where(has_h, uh[..., 0], 1.0))
-    hr = horiz * d1 * d2
+    hr = safe_norm(uh) * (up_h * d1 * d2)  # 2^(e_h − e) ≤ 1: exact, and no overflowed horiz
     el = jnp.arctan2(jnp.where(has_r, ur[..., 2], 0.0), jnp.where(has_r, hr, 1.0))
     return jnp.stack([az, el, rng], axis=-1)
 

@@ -46,3 +46,17 @@ def test_a_state_that_is_not_a_mean_cov_pair_is_named(step):
     want, got = (r if hasattr(r, "_fields") and r._fields[0] == "mean" else r[0] for r in (want, got))
     for a, b in zip(got, want):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_a_list_pair_is_a_state_and_a_gate_covers_the_components_the_mask_lets_through():
+    post = ekf.predict([G.mean, G.cov], _f, None, jnp.eye(2))
+    np.testing.assert_array_equal(np.asarray(post.cov), np.asarray(ekf.predict(G, _f, None, jnp.eye(2)).cov))
+    # chi2_gate(p, 2) on a 3-component measurement whose mask keeps 2: the gate's own size
+    s3 = Gaussian(jnp.zeros(3), jnp.eye(3))
+    keep2 = jnp.array([True, True, False])
+    got = ekf.update(s3, jnp.ones(3), lambda x: x, jnp.eye(3), mask=keep2, gate=ekf.chi2_gate(0.99, 2))
+    want = ekf.update(s3, jnp.ones(3), lambda x: x, jnp.eye(3), mask=keep2, gate=ekf.chi2_gate(0.99, 3))
+    np.testing.assert_array_equal(np.asarray(got[0].mean), np.asarray(want[0].mean))
+    assert int(got[1].status) == 0
+    with pytest.raises(InputError, match=r"^gate: built for at most 2 valid components .*the mask lets 3 through"):
+        ekf.update(s3, jnp.ones(3), lambda x: x, jnp.eye(3), mask=jnp.ones(3, bool), gate=ekf.chi2_gate(0.99, 2))

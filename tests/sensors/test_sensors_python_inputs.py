@@ -273,3 +273,14 @@ def test_spherical_keeps_ordinary_values_and_degenerate_gradients():
         np.testing.assert_array_equal(np.asarray(Jz), [[0, 0, 0], [0, 0, 0], [0, 0, -1]])
     assert math.isnan(float(lidar3d.spherical_from_cartesian(jnp.array([np.nan, 1.0, 2.0]))[2]))
     assert float(lidar3d.spherical_from_cartesian(jnp.array([np.inf, 1.0, 2.0]))[2]) == math.inf
+
+
+def test_spherical_angles_stay_right_where_the_float32_range_overflows():
+    """‖c‖ beyond float32's largest number reads inf, but the angles are scale-free: the
+    elevation was atan2 of an overflowed horizontal norm (0 against 35.26°)."""
+    for c in ([3e38, 3e38, 3e38], [-3e38, 1e38, -2e38]):
+        c32 = np.asarray(c, np.float32)
+        y = np.asarray(lidar3d.spherical_from_cartesian(jnp.asarray(c32)), np.float64)
+        want = _sph_oracle(c32)  # float64: finite
+        assert y[2] == math.inf
+        np.testing.assert_allclose(y[:2], want[:2], rtol=0, atol=4e-7)
