@@ -93,6 +93,7 @@ from .gaussian import (
     check_real,
     check_num_iter,
     check_state,
+    check_transition_out,
     check_update_args,
     finalize as _finalize,
     scalar_measurement,
@@ -194,13 +195,6 @@ def chi2_gate(prob: float, max_dof: int) -> Callable[[Array], Array]:
 
 def _default_residual(z, zhat):
     return z - zhat
-
-
-def check_transition_out(xn, n: int):
-    """The transition's output at the mean must be (n,) (static); else :class:`InputError`
-    naming ``f`` (a scalar output gave a () mean beside an (n, n) covariance)."""
-    if tuple(np.shape(xn)) != (n,):
-        raise InputError(f"f: the transition returned shape {tuple(np.shape(xn))}, expected ({n},)")
 
 
 def linear_update(x, P, nu, H, R, mask):

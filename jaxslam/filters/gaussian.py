@@ -73,6 +73,7 @@ __all__ = [
     "check_update_args",
     "scalar_measurement",
     "check_process_noise",
+    "check_transition_out",
     "process_noise",
     "check_measurement",
     "check_real",
@@ -365,6 +366,13 @@ def masked_innovation(z, zhat, mask, residual):
     zhat_safe = jnp.where(mask, zhat, zero)
     z_safe = jnp.where(mask, z, zhat_safe)
     return jnp.where(mask, call_residual(residual, z_safe, zhat_safe), zero)
+
+
+def check_transition_out(xn, n: int):
+    """The transition's output at the mean must be (n,) (static); else :class:`InputError`
+    naming ``f`` (a scalar output gave a () mean beside an (n, n) covariance)."""
+    if tuple(np.shape(xn)) != (n,):
+        raise InputError(f"f: the transition returned shape {tuple(np.shape(xn))}, expected ({n},)")
 
 
 def check_process_noise(Q, n: int, L=None):

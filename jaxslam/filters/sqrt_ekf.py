@@ -98,8 +98,9 @@ from .. import errors
 from ..errors import InputError, check_flag
 from ..linalg import check_mask, check_numbers, check_psd, is_concrete, symmetrize, value_and_jacfwd
 from .ekf import Gaussian, UpdateInfo
-from .gaussian import (call_residual, check_gate, check_gate_size, check_leading, check_measurement, check_noise_values, check_real, state_pair,
-                       check_update_args, moment_dtype, scalar_measurement, threshold as _threshold)
+from .gaussian import (call_residual, check_gate, check_gate_size, check_leading, check_measurement,
+                       check_process_noise, check_real, check_transition_out, check_update_args, moment_dtype,
+                       scalar_measurement, state_pair, threshold as _threshold)
 
 __all__ = [
     "SqrtGaussian",
@@ -367,26 +368,23 @@ def predict(state: SqrtGaussian, f: Callable, u, Q=None, *args, noise_jac=None,
     x, L = check_state(state)
     dtype = x.dtype
     n = x.shape[0]
-    if Q_chol is None and Q is not None:
-        check_noise_values(Q, "Q")  # an eager call, as sqrt_ukf.predict (traced: shapes only)
     G = None
     if noise_jac is not None:
         G = jnp.asarray(noise_jac(x, u, *args) if callable(noise_jac) else noise_jac, dtype)
-        if G.ndim != 2 or G.shape[0] != n:
-            raise InputError(f"noise_jac: expected shape ({n}, q) (the state's size rows), got {tuple(G.shape)}")
+    if Q_chol is None and Q is not None:
+        # the shapes (noise_jac's too) and, in an eager call, the values, as ekf.predict
+        Q = check_process_noise(Q, n, G)
+    if G is not None and (G.ndim != 2 or G.shape[0] != n):
+        raise InputError(f"noise_jac: expected shape ({n}, q) (the state's size rows), got {tuple(G.shape)}")
     q = n if G is None else G.shape[1]
-    rows = "the state's size" if G is None else "noise_jac's columns"
-    if Q_chol is not None:
-        if np.ndim(Q_chol) != 2 or np.shape(Q_chol)[0] != q:
-            raise InputError(f"Q_chol: expected shape ({q}, k) ({rows}), got {tuple(np.shape(Q_chol))}")
-    elif Q is not None and tuple(np.shape(Q)) != (q, q):
-        raise InputError(f"Q: expected shape ({q}, {q}) ({rows}), got {tuple(np.shape(Q))}")
+    if Q_chol is not None and (np.ndim(Q_chol) != 2 or np.shape(Q_chol)[0] != q):
+        rows = "the state's size" if G is None else "noise_jac's columns"
+        raise InputError(f"Q_chol: expected shape ({q}, k) ({rows}), got {tuple(np.shape(Q_chol))}")
     if f is None:  # a state that does not move: x' = x, F = I
         xn, F = x, jnp.eye(x.shape[0], dtype=dtype)
     else:
         xn, F = value_and_jacfwd(lambda v: jnp.asarray(f(v, u, *args)))(x)
-        if tuple(xn.shape) != (n,):
-            raise InputError(f"f: the transition returned shape {tuple(xn.shape)}, expected ({n},)")
+        check_transition_out(xn, n)
     xn = xn.astype(dtype)
     F = F.astype(dtype)
     C = _noise_root(Q, Q_chol, dtype)

@@ -236,3 +236,12 @@ def test_sqrt_filter_scan_flags():
         for kw in ("predict_first", "save_chol"):
             with pytest.raises(InputError, match=kw):
                 scan(None, lambda x: x, s.mean, s.cov, None, Z[None], None, Q, R, **{kw: "no"})
+
+
+def test_sqrt_ekf_predict_reads_a_scalar_q_of_one_state_as_ekf_predict_does():
+    """sqrt_ekf.predict now checks Q with gaussian.check_process_noise, as ekf.predict does: a
+    scalar Q is the variance of a one-component state (it was refused, "expected shape (1, 1)")."""
+    from jaxslam.filters import sqrt_ekf as se_
+
+    out = se_.predict(se_.SqrtGaussian(jnp.array([1.0]), jnp.eye(1)), lambda x, u: 2.0 * x, None, 0.1)
+    np.testing.assert_allclose(np.asarray(out.chol) ** 2, [[4.1]], rtol=1e-14)  # F P Fᵀ + Q, F = 2
