@@ -22,6 +22,7 @@ __all__ = [
     "is_concrete",
     "check_numbers",
     "float_array",
+    "list_array",
     "value_and_jacfwd",
     "take",
     "put",
@@ -465,6 +466,19 @@ def check_numbers(value, name: str) -> np.ndarray:
         return np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):
         raise InputError(f"{name}: expected numbers, got {value!r}") from None
+
+
+def list_array(x, name: str):
+    """A Python list or tuple of numbers as a JAX array (its dtype as ``jnp.asarray`` gives it:
+    ``jnp.result_type`` of a list raised a bare "Cannot determine dtype"); anything else is
+    returned unchanged.  A list that is not numbers (ragged, strings) is an :class:`InputError`
+    naming ``name``."""
+    if not isinstance(x, (list, tuple)):
+        return x
+    try:
+        return jnp.asarray(x)
+    except (TypeError, ValueError):
+        raise InputError(f"{name}: expected an array of numbers, got {x!r}"[:300]) from None
 
 
 def float_array(x, name: str):

@@ -50,7 +50,7 @@ import numpy as np
 
 from .. import errors
 from ..errors import InputError, check_flag
-from ..linalg import check_mask, check_numbers, check_psd, check_real, host_array, is_concrete, symmetrize
+from ..linalg import check_mask, check_numbers, check_psd, check_real, host_array, is_concrete, list_array, symmetrize
 
 __all__ = [
     "Gaussian",
@@ -216,12 +216,7 @@ def state_pair(state, name: str = "state", second: str = "cov"):
         if isinstance(v, tuple) and hasattr(v, "_fields"):  # a NamedTuple: a belief, not an array
             raise InputError(f"{name}: expected a Gaussian (mean, {second}), got a pair whose {part} is a "
                              f"{type(v).__name__} (an update returns (belief, info): pass its first item)")
-        if isinstance(v, (list, tuple)):
-            try:
-                v = jnp.asarray(v)
-            except (TypeError, ValueError) as e:
-                raise InputError(f"{name}.{part}: expected an array of numbers ({e})"[:300]) from None
-        out.append(v)
+        out.append(list_array(v, f"{name}.{part}"))
     return tuple(out)
 
 

@@ -69,7 +69,7 @@ import numpy as np
 
 from .. import errors
 from ..errors import InputError
-from ..linalg import check_mask, is_concrete, safe_norm
+from ..linalg import check_mask, is_concrete, list_array, safe_norm
 
 __all__ = [
     "TrilaterationResult",
@@ -117,18 +117,6 @@ def _bad_input_flag(points, ranges, mask):
     offered = jnp.ones(ranges.shape, bool) if mask is None else mask
     bad = offered & ~_valid(points, ranges, None)
     return jnp.where(jnp.any(bad), errors.MASKED_INPUT, 0)
-
-
-def _as_array(x, name: str):
-    """A list or tuple of numbers as an array (``jnp.result_type`` of a nested list raised
-    "Cannot determine dtype"); else ``x`` unchanged.  :class:`InputError` naming ``name`` when
-    it holds no numbers."""
-    if isinstance(x, (list, tuple)):
-        try:
-            x = jnp.asarray(x)
-        except (TypeError, ValueError):
-            raise InputError(f"{name}: expected an array of numbers, got {x!r}"[:300]) from None
-    return x
 
 
 def _check_number(value, name: str, what: str, shapes=((),)):
@@ -267,9 +255,9 @@ def trilaterate(points, ranges, mask=None, range_var=None, min_points: Optional[
     Returns:
       :class:`TrilaterationResult`.
     """
-    points = _as_array(points, "points")
-    ranges = _as_array(ranges, "ranges")
-    range_var = _as_array(range_var, "range_var")
+    points = list_array(points, "points")
+    ranges = list_array(ranges, "ranges")
+    range_var = list_array(range_var, "range_var")
     _check_inputs(points, ranges, mask, range_var)
     if min_points is not None:
         _check_number(min_points, "min_points", "a number of valid samples (an int)")
@@ -340,8 +328,8 @@ def trilaterate_line(xs, ranges, mask=None, side=1.0, min_points: int = 3,
       the standard deviation of the valid x_k; ``ok`` is False (and
       ``DEGENERATE`` set) with too few samples, no baseline, or y² ≤ 0.
     """
-    xs = _as_array(xs, "xs")
-    ranges = _as_array(ranges, "ranges")
+    xs = list_array(xs, "xs")
+    ranges = list_array(ranges, "ranges")
     _check_inputs(xs, ranges, mask, points_name="xs")
     _check_number(min_points, "min_points", "a number of valid samples (an int)")
     _check_number(min_baseline, "min_baseline", "a baseline [m] (a number)")
