@@ -459,6 +459,11 @@ def check_numbers(value, name: str) -> np.ndarray:
     values, so such a value never reaches NumPy's bare ``could not convert`` error."""
     try:
         raw = np.asarray(value)
+    except (TypeError, ValueError):
+        raise InputError(f"{name}: expected numbers, got {value!r}") from None
+    if raw.dtype.kind == "c":  # float64 of it dropped the imaginary part with only a warning
+        raise InputError(f"{name}: expected a real array, got dtype {raw.dtype}")
+    try:
         # NumPy would parse "1.5" (so a typo in a file could pass) and turn None into NaN
         if raw.dtype.kind in "US" or (raw.dtype.kind == "O" and not all(
                 isinstance(e, numbers.Number) for e in raw.reshape(-1))):
@@ -484,8 +489,9 @@ def list_array(x, name: str):
 def float_array(x, name: str):
     """``x`` as a JAX array of an inexact dtype: an array keeps its floating dtype (an integer or
     bool one becomes JAX's default float), a list or a number is converted, and a concrete value
-    that is not numbers (a string, None, a ragged list) is an :class:`InputError` naming
-    ``name``.  Traced values pass through (their dtype is known, their values are not)."""
+    that is not numbers (a string, None, a ragged list) or complex is an :class:`InputError`
+    naming ``name``.  Traced values pass through (their dtype is known, their values are not)."""
+    check_real(x, name)
     if not isinstance(x, (jax.Array, np.ndarray)) or x.dtype.kind not in "biuf":
         if is_concrete(x):
             check_numbers(x, name)

@@ -78,13 +78,6 @@ __all__ = [
 # RMSE
 # ---------------------------------------------------------------------------
 
-def _errors(err, name: str = "err"):
-    """``err`` as a real floating JAX array (an integer one becomes the default float; complex or
-    a concrete non-number is an :class:`InputError` naming ``name``).  Dtype checks are static."""
-    check_real(err, name)
-    return float_array(err, name)
-
-
 def _sqrt0(ms):
     """``sqrt(ms)`` of a mean square, with the gradient 0 (a subgradient) instead of NaN where
     ``ms`` is 0: an exact estimate's RMSE stays differentiable.  Same values (NaN stays NaN)."""
@@ -106,7 +99,7 @@ def rmse(err, axis=0):
         :func:`ate`, :func:`rpe` and :func:`rpe_se2`.  An integer ``err`` is read as floats;
         a complex one is an :class:`InputError`.
     """
-    err = _errors(err)
+    err = float_array(err, "err")
     return _sqrt0(jnp.mean(err * err, axis=axis))
 
 
@@ -124,7 +117,7 @@ def rmse_norm(err, axis=0):
     Returns:
         Scalar for (T, d) input; (R,) for (R, T, d) with ``axis=1``.
     """
-    err = _errors(err)
+    err = float_array(err, "err")
     return _sqrt0(jnp.mean(jnp.sum(err * err, axis=-1), axis=axis))
 
 
@@ -138,7 +131,7 @@ def rmse_norm_where(err, where):
     :class:`InputError` naming it (a (1,) or (T, 1) mask was broadcast to a wrong figure, a float
     one was read as weights).
     """
-    err = _errors(err)
+    err = float_array(err, "err")
     if err.ndim < 1:
         raise InputError(f"err: expected shape (T, d), got {tuple(err.shape)}")
     check_mask(where, "where")
@@ -394,8 +387,8 @@ def umeyama(src, dst, with_scale: bool = False):
     1 for 1.5).  Two (N, d) arrays of one shape, N ≥ 1, and real dtypes are expected:
     :class:`InputError` naming ``src`` / ``dst`` otherwise (static checks).
     """
-    src = _errors(src, "src")
-    dst = _errors(dst, "dst")
+    src = float_array(src, "src")
+    dst = float_array(dst, "dst")
     for name, a in (("src", src), ("dst", dst)):
         if a.ndim != 2 or a.shape[0] < 1:
             raise InputError(f"{name}: expected shape (N, d), one point per row, got {tuple(a.shape)}")
@@ -432,7 +425,7 @@ def _trajectories(est_pos, true_pos):
     """Two (T, d) position arrays of one trajectory, d in 1..3 (static checks):
     :class:`InputError` naming the argument (an off-by-one length or a transposed (d, T) array
     would otherwise broadcast into a wrong number)."""
-    est, tru = _errors(est_pos, "est_pos"), _errors(true_pos, "true_pos")
+    est, tru = float_array(est_pos, "est_pos"), float_array(true_pos, "true_pos")
     for name, a in (("est_pos", est), ("true_pos", tru)):
         if a.ndim != 2 or not 1 <= a.shape[1] <= 3 or a.shape[0] < 1:
             raise InputError(f"{name}: expected shape (T, d) with d in 1..3 (one position per row), "
@@ -500,8 +493,8 @@ def rpe_se2(est_pose, true_pose, lag: int = 1):
         ``(trans_rmse [m], rot_rmse [rad])`` of ``E_i = (Q_i⁻¹ Q_{i+lag})⁻¹ (P_i⁻¹ P_{i+lag})``.
     """
     lag = _lag(lag)
-    est = _errors(est_pose, "est_pose")
-    tru = _errors(true_pose, "true_pose")
+    est = float_array(est_pose, "est_pose")
+    tru = float_array(true_pose, "true_pose")
     if est.ndim != 2 or est.shape[1] != 3 or est.shape != tru.shape:
         raise InputError(f"rpe_se2: expected two (T, 3) pose arrays, got {est.shape} and {tru.shape}")
     if lag < 1 or lag >= est.shape[0]:

@@ -323,3 +323,18 @@ def test_pow2_factors_are_the_power_of_two_below_m_and_its_normal_reciprocal_fac
         np.testing.assert_array_equal(np.asarray(a), np.ones(4, dtype))
     g = jax.grad(lambda x: jnp.sum(x * pow2_factors(x)[0]))(jnp.asarray([3.0, 5e-3], dtype))
     np.testing.assert_array_equal(np.asarray(g), np.asarray(pow2_factors(jnp.asarray([3.0, 5e-3], dtype))[0]))
+
+
+def test_complex_is_refused_by_the_shared_number_checks_themselves():
+    """check_numbers (behind check_scalar) and float_array refuse complex input themselves (it
+    was refused only where a caller added check_real: check_numbers dropped the imaginary
+    part with a ComplexWarning, so a complex σ passed range_bearing3d's spec check)."""
+    from jaxslam.linalg import check_numbers, float_array
+    from jaxslam.sensors import range_bearing3d as rb
+
+    with pytest.raises(InputError, match=r"^x: expected a real array, got dtype complex128"):
+        check_numbers(np.array([1 + 2j]), "x")
+    with pytest.raises(InputError, match=r"^x: expected a real array, got dtype complex64"):
+        float_array(jnp.zeros(2, jnp.complex64), "x")
+    with pytest.raises(InputError, match=r"sigma_az"):
+        rb.check_range_bearing_spec(rb.RangeBearingSpec(np.complex128(0.1 + 1j), 0.1, 0.1))

@@ -90,11 +90,13 @@ def _as_2d(a, name):
     return a
 
 
-def _finite(a, name, why):
+def _finite(a, name, why, offset: int = 0):
+    """InputError at the first non-finite entry of ``a``, its row counted from ``offset`` (the
+    caller's row of ``a``'s first)."""
     bad = ~np.isfinite(a)
     if bad.any():
         i = [int(j) for j in np.argwhere(bad)[0]]
-        where = f"row {i[0]}, column {i[1]}" if len(i) == 2 else f"index {i[0]}"
+        where = f"row {offset + i[0]}, column {i[1]}" if len(i) == 2 else f"index {offset + i[0]}"
         raise InputError(f"{name}: non-finite value {float(a[tuple(i)])!r} at {where} ({why})")
 
 
@@ -251,11 +253,7 @@ def merge_events(input_t, inputs, meas_t, meas, meas_ids=None, K: Optional[int] 
         row0 = 0
     # an input drives every prediction after it: a NaN would make the rest of the run NaN (only the
     # samples in use are checked: those in the window and, for "rate", the one held into it)
-    bad = ~np.isfinite(U)
-    if bad.any():
-        i, c = (int(j) for j in np.argwhere(bad)[0])
-        raise InputError(f"inputs: non-finite value {float(U[i, c])!r} at row {row0 + i}, column {c} "
-                         "(an input drives every later prediction)")
+    _finite(U, "inputs", "an input drives every later prediction", offset=row0)
     z_times, z_first, z_count = np.unique(zt, return_index=True, return_counts=True)
     if K is None:
         K = int(z_count.max()) if z_count.size else 1

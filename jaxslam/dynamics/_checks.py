@@ -30,8 +30,7 @@ def real_float(x, name: str, shape=None):
     """``x`` as a real floating JAX array (integer/bool -> JAX's default float, a float dtype
     kept), optionally of static ``shape`` (``None`` entries match any size); complex, a concrete
     non-number or a wrong shape is an :class:`InputError` naming ``name``."""
-    check_real(x, name)
-    x = float_array(x, name)
+    x = float_array(x, name)  # complex refused there
     if shape is not None:
         check_shape(x, shape, name)
     return x

@@ -298,9 +298,7 @@ def soft(key, log_w, alpha, scheme="multinomial"):
     Returns:
         ``(indices (N,) int32, new_log_w (N,) normalised)``.
     """
-    check_key(key)
-    if jnp.ndim(log_w) != 1 or jnp.shape(log_w)[0] == 0:
-        raise InputError(f"log_w: expected shape (N,) with N >= 1, got {jnp.shape(log_w)}")
+    log_w, _ = _prep(key, log_w, None)
     if jnp.ndim(alpha) != 0:
         raise InputError(f"alpha: expected a scalar mixture weight in [0, 1], got shape {jnp.shape(alpha)}")
     if is_concrete(alpha) and check_scalar(alpha, "alpha", lower=0) > 1.0:

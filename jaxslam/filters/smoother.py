@@ -431,15 +431,9 @@ def iterated(
         m_, P = state
         fx, F = value_and_jacfwd(lambda v: fm(v, u, *args))(xb)
         F = F.astype(dtype)
-        Lm = None
-        if noise_jac is not None:
-            Lm = noise_jac(xb, u, *args) if callable(noise_jac) else noise_jac
-            Lm = jnp.asarray(Lm, dtype)
-        # The shape checks of ekf.predict (static): with ``init`` given no EKF pass runs, and a
-        # (1, 1) or (T, 1, 1) Q broadcast onto every entry of the (n, n) covariance.
-        Qd = _g.check_process_noise(Qt, n, Lm)
-        if Lm is not None:
-            Qd = Lm @ Qd @ Lm.T
+        # The noise and shape checks of ekf.predict (static): with ``init`` given no EKF pass
+        # runs, and a (1, 1) or (T, 1, 1) Q broadcast onto every entry of the (n, n) covariance.
+        Qd = _g.process_noise(Qt, xb.astype(dtype), u, args, noise_jac)
         PFt = P @ F.T
         mean = fx.astype(dtype) + F @ diff(m_, xb)
         return Gaussian(mean, symmetrize(F @ PFt + Qd)), PFt

@@ -39,7 +39,7 @@ from typing import Any, Callable
 import numpy as np
 
 from jaxslam import paramfile
-from jaxslam.errors import InputError, check_run_dtype
+from jaxslam.errors import InputError, check_flag, check_run_dtype
 
 __all__ = [
     "Option",
@@ -192,8 +192,6 @@ class Scenario:
                                                 dtype if has_dtype else np.float64, where="params"))
                 has_plots, plots = given("plots")
                 if has_plots:
-                    from jaxslam.linalg import check_flag  # (JAX: not at the CLI's import)
-
                     check_flag(plots, "plots")
                 return raw(*args, **kw)
 
@@ -209,8 +207,6 @@ def _checked_args(scenario: "Scenario", options, dtype, params=None, plots=False
     """``(options, params)`` of a scenario module's public ``build`` / ``run_scenario`` checked
     as ``Scenario.run`` checks them: options completed and checked (:func:`check_options`),
     ``dtype`` float32 / float64, ``params`` against the scenario's schema, ``plots`` a bool."""
-    from jaxslam.linalg import check_flag  # (JAX: not at the CLI's import)
-
     options = check_options(scenario, options)
     check_run_dtype(dtype)
     check_flag(plots, "plots")
