@@ -37,6 +37,7 @@ import math
 import warnings
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -453,12 +454,18 @@ def ate(est_pos, true_pos, align: str = "rigid"):
 
     Returns:
         Scalar ``sqrt(mean_t ‖s R p̂_t + t − p_t‖²)`` [m].
+
+    Gradient: the alignment is held fixed (``stop_gradient``).  It minimises this same error, so
+    at its optimum the error's derivative with respect to (R, t, s) is zero and the gradient is
+    the partial one (envelope theorem): the same values as differentiating through the SVD
+    (checked against finite differences), and finite where that is NaN — a trajectory with no
+    spread (an estimate that never moved), whose optimal rotation is not unique.
     """
     if align not in ("rigid", "sim", "none"):
         raise InputError(f"align: expected 'rigid', 'sim' or 'none', got {align!r}")
     est, tru = _trajectories(est_pos, true_pos)
     if align != "none":
-        R, t, s = umeyama(est, tru, with_scale=(align == "sim"))
+        R, t, s = jax.lax.stop_gradient(umeyama(est, tru, with_scale=(align == "sim")))
         est = s * est @ R.T + t
     return rmse_norm(est - tru)
 
