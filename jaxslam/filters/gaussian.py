@@ -316,8 +316,8 @@ def check_gate_size(gate: Gate, m: int, mask=None):
     else :class:`InputError`
     naming ``gate`` (its table was clipped to ``max_dof`` and gated an m-dof NIS with the
     ``max_dof`` threshold, without a word).  A traced mask is not known: build the gate for
-    ``m`` then (a step with more than ``max_dof`` valid components reads the table's last
-    threshold)."""
+    ``m`` then (a step with more than ``max_dof`` valid components gets the gate's
+    Wilson–Hilferty approximation of its quantile, :func:`jaxslam.filters.ekf.chi2_gate`)."""
     k = getattr(gate, "max_dof", None) if callable(gate) else None
     if k is None or int(m) <= int(k):
         return

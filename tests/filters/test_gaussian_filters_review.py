@@ -119,6 +119,28 @@ def test_chi2_gate_smaller_than_measurement_is_refused():
     np.testing.assert_allclose(float(info.nis), 8.8, rtol=1e-12)
 
 
+def test_chi2_gate_beyond_its_table_under_a_traced_mask_uses_the_quantile_not_its_last_value():
+    """A traced mask cannot be checked before running: a step with more valid components than
+    the gate's ``max_dof`` read the table's last threshold (χ²₁ for a 3-dof NIS).  Now the
+    Wilson–Hilferty quantile (exact for 2 dof), against SciPy's χ² quantile."""
+    from scipy.stats import chi2
+
+    for p, tol in ((0.9, 0.007), (0.99, 0.007), (0.9999, 0.035)):
+        gate = ekf.chi2_gate(p, 1)
+        got = np.asarray(jax.jit(gate)(jnp.arange(1, 40)))
+        want = chi2.ppf(p, np.arange(1, 40))
+        assert got[0] == pytest.approx(want[0], rel=1e-12)  # the table itself is unchanged
+        assert got[1] == pytest.approx(want[1], rel=1e-6)  # 2 dof: closed form, float32 table
+        np.testing.assert_allclose(got[2:], want[2:], rtol=tol)
+    # a 3-component measurement, NIS 10: inside χ²₃(0.99) = 11.34, outside χ²₁(0.99) = 6.63
+    s3 = G(jnp.zeros(3), jnp.eye(3))
+    z = jnp.array([np.sqrt(20.0), 0.0, 0.0])
+    run = jax.jit(lambda m: ekf.update(s3, z, lambda x: x, jnp.eye(3), mask=m, gate=ekf.chi2_gate(0.99, 1)))
+    _, info = run(jnp.ones(3, bool))
+    np.testing.assert_allclose(float(info.nis), 10.0, rtol=1e-12)
+    assert bool(info.accepted) and int(info.status) == 0
+
+
 @pytest.mark.parametrize("max_dof", [1.5, True, "2", 0])
 def test_chi2_gate_max_dof_must_be_int(max_dof):
     with pytest.raises(InputError, match="max_dof"):
