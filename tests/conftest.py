@@ -21,9 +21,9 @@ one-core profile), so:
   unless set; JAX's defaults are on and 100 frames, and under pytest every operation's stack
   is deep): whole suite, empty cache, same machine, 2026-12-07: 602.9 s (1112 s user) → 578.9
   s (1061 s user); two filter test files without the cache, one worker: lowering 21.1 → 19.4 s,
-  XLA compile 41.6 → 38.6 s (smaller modules).  Python's own tracebacks are unchanged.  Tried and not kept the same day:
-  ``--xla_cpu_parallel_codegen_split_count=1`` (six mid-size files 93-99 → 84-89 s, the whole
-  suite 602.9 → 671.6 s).
+  XLA compile 41.6 → 38.6 s (smaller modules).  Python's own tracebacks are unchanged.  Tried
+  and not kept the same day: ``--xla_cpu_parallel_codegen_split_count=1`` (six mid-size files
+  93-99 → 84-89 s, the whole suite 602.9 → 671.6 s).
 """
 
 import collections
