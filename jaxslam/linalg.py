@@ -46,6 +46,7 @@ __all__ = [
     "check_flag",
     "check_float_dtype",
     "check_key",
+    "check_finite",
 ]
 
 
@@ -589,6 +590,13 @@ def is_concrete(*xs) -> bool:
     """True when no leaf of ``xs`` is a tracer: the values are known now, so a helper can build
     its result on the host (NumPy) instead of compiling a tiny program op by op."""
     return not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(xs))
+
+
+def check_finite(x, name: str) -> None:
+    """When ``x`` is known now (no tracer), :class:`InputError` "``name``: contains NaN or Inf"
+    unless every entry is finite; a traced ``x`` passes (its values are not known)."""
+    if is_concrete(x) and not np.all(np.isfinite(np.asarray(x))):
+        raise InputError(f"{name}: contains NaN or Inf")
 
 
 def host_array(x, dtype):

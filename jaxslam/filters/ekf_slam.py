@@ -64,7 +64,7 @@ from jax.custom_batching import custom_vmap
 
 from .. import errors
 from ..errors import InputError
-from ..linalg import (check_int, check_mask, check_psd, check_whole_ids, cholesky_small, is_concrete,
+from ..linalg import (check_finite, check_int, check_mask, check_psd, check_whole_ids, cholesky_small, is_concrete,
                       put_blocks, small_matmul, symmetrize, take, take_blocks, value_and_jacfwd)
 from ..stats import _student_t_nll, check_student_t_nu
 from .gaussian import check_gate, check_gate_size, check_num_iter, check_real, threshold as _threshold
@@ -193,8 +193,7 @@ def init(robot_mean, robot_cov, capacity: int, lm_dim: int) -> SlamState:
         raise InputError(f"robot_cov: expected shape ({nr}, {nr}) (robot_mean's size), got "
                          f"{tuple(jnp.shape(robot_cov))}")
     capacity, lm_dim = check_int(capacity, "capacity"), check_int(lm_dim, "lm_dim")
-    if is_concrete(robot_mean) and not np.all(np.isfinite(np.asarray(robot_mean))):
-        raise InputError("robot_mean: contains NaN or Inf")
+    check_finite(robot_mean, "robot_mean")
     if is_concrete(robot_cov):
         check_psd(robot_cov, "robot_cov")
     robot_cov = jnp.asarray(robot_cov, dtype=robot_mean.dtype)
@@ -1651,8 +1650,7 @@ def _check_run(state: SlamState, model: SlamModel, log: SlamLog, Q, R, associati
             # a step with every row masked uses no R: its matrix may hold anything
             valid = np.broadcast_to(np.any(np.asarray(log.mask, bool), axis=1)[:, None], (T, dz))
         check_psd(M, nm, strict=strict, valid=valid, stack=True)
-    if is_concrete(state.x) and not np.all(np.isfinite(np.asarray(state.x))):
-        raise InputError("state.x: contains NaN or Inf")
+    check_finite(state.x, "state.x")
     if is_concrete(state.P):
         # (sliced on the host: under a trace even a concrete array's slice would be traced)
         check_psd(np.asarray(state.P)[:nr, :nr], "state.P (robot block)")

@@ -106,7 +106,7 @@ import numpy as np
 
 from .. import errors
 from ..errors import InputError
-from ..linalg import (check_int, check_mask, check_psd, check_whole_ids, cholesky_small, inv_small, is_concrete,
+from ..linalg import (check_finite, check_int, check_mask, check_psd, check_whole_ids, cholesky_small, inv_small, is_concrete,
                       symmetrize, value_and_jacfwd, wrap_angle)
 from .gaussian import check_gate, check_gate_size, threshold as _threshold
 from ..stats import _student_t_nll
@@ -371,8 +371,7 @@ def init(pose0, n_particles: int, capacity: int, lm_dim: int, aux=None,
         raise InputError(f"pose0: not numeric (dtype {pose0.dtype})")
     # Value checks only on concrete input: init may also be called under jit/vmap
     # (e.g. one filter per Monte Carlo run), where shapes are still checked.
-    if not isinstance(pose0, jax.core.Tracer) and not bool(np.all(np.isfinite(np.asarray(pose0)))):
-        raise InputError("pose0: contains NaN or Inf")
+    check_finite(pose0, "pose0")
     dtype = pose0.dtype if jnp.issubdtype(pose0.dtype, jnp.floating) else jnp.result_type(float)
     pose = jnp.broadcast_to(pose0.astype(dtype), (N, shape[-1]))
 

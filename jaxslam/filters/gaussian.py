@@ -50,7 +50,7 @@ import numpy as np
 
 from .. import errors
 from ..errors import InputError, check_flag
-from ..linalg import check_mask, check_numbers, check_psd, check_real, host_array, is_concrete, list_array, symmetrize
+from ..linalg import check_finite, check_mask, check_numbers, check_psd, check_real, host_array, is_concrete, list_array, symmetrize
 
 __all__ = [
     "Gaussian",
@@ -232,8 +232,7 @@ def check_state(state, name: str = "state") -> Gaussian:
     x, P = state_pair(state, name)
     x_dt = moment_dtype(x, P, f"{name}.mean", f"{name}.cov")
     p_dt = jnp.result_type(P)
-    if is_concrete(x) and not np.all(np.isfinite(np.asarray(x))):
-        raise InputError(f"{name}.mean: contains NaN or Inf")
+    check_finite(x, f"{name}.mean")
     if is_concrete(P):
         check_psd(P, f"{name}.cov")
     x = host_array(x, x_dt) if is_concrete(x) and jnp.result_type(x) != x_dt else jnp.asarray(x)
@@ -515,8 +514,7 @@ def check_run_inputs(x0, P0, zs, masks, Q, R, name_prefix=""):
     if len(xs) != 1:
         raise InputError(f"{pre}x0: expected shape (n,), got {tuple(xs)}")
     n = xs[0]
-    if is_concrete(x0) and not np.all(np.isfinite(np.asarray(x0))):
-        raise InputError(f"{pre}x0: contains NaN or Inf")
+    check_finite(x0, f"{pre}x0")
     if np.shape(P0) != (n, n):
         raise InputError(f"{pre}P0: expected shape ({n}, {n}), got {tuple(np.shape(P0))}")
     zsh = np.shape(zs)

@@ -96,7 +96,7 @@ import numpy as np
 
 from .. import errors
 from ..errors import InputError, check_flag
-from ..linalg import check_mask, check_numbers, check_psd, is_concrete, symmetrize, value_and_jacfwd
+from ..linalg import check_finite, check_mask, check_numbers, check_psd, is_concrete, symmetrize, value_and_jacfwd
 from .ekf import Gaussian, UpdateInfo
 from .gaussian import (call_residual, check_gate, check_gate_size, check_leading, check_measurement,
                        check_process_noise, check_real, check_transition_out, check_update_args, moment_dtype,
@@ -296,8 +296,7 @@ def check_state(state, name: str = "state") -> SqrtGaussian:
     x, L = jnp.asarray(x), jnp.asarray(L)
     x_dt = moment_dtype(x, L, f"{name}.mean", f"{name}.chol")
     n = x.shape[0]
-    if is_concrete(x) and not np.all(np.isfinite(np.asarray(x))):
-        raise InputError(f"{name}.mean: contains NaN or Inf")
+    check_finite(x, f"{name}.mean")
     if is_concrete(L):
         A = check_numbers(L, f"{name}.chol")
         if not np.all(np.isfinite(A)):
@@ -319,8 +318,7 @@ def from_gaussian(g: Gaussian) -> SqrtGaussian:
     if n is None or np.shape(g.cov) != (n, n):
         raise InputError(f"g: expected an (n,) mean and an (n, n) cov, got {tuple(x.shape)} and {np.shape(g.cov)}")
     dtype = x.dtype if jnp.issubdtype(x.dtype, jnp.floating) else jnp.result_type(float)
-    if is_concrete(x) and not np.all(np.isfinite(check_numbers(x, "g.mean"))):
-        raise InputError("g.mean: contains NaN or Inf")
+    check_finite(x, "g.mean")
     if is_concrete(g.cov):  # known now: refuse a NaN, asymmetric or indefinite cov (beyond
         check_psd(g.cov, "g.cov")  # check_psd's tolerance; a float32 cov just inside it may still factor to NaN)
     return SqrtGaussian(x.astype(dtype), psd_factor(g.cov, dtype))

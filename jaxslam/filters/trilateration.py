@@ -334,7 +334,7 @@ def trilaterate_line(xs, ranges, mask=None, side=1.0, min_points: int = 3,
     _check_number(min_points, "min_points", "a number of valid samples (an int)")
     _check_number(min_baseline, "min_baseline", "a baseline [m] (a number)")
     _check_number(side, "side", "+1 or -1 (the sign of the offset from the line)")
-    if np.shape(side) != () or (is_concrete(side) and float(np.asarray(side)) not in (-1.0, 1.0)):
+    if is_concrete(side) and float(np.asarray(side)) not in (-1.0, 1.0):
         raise InputError(f"side: expected +1 or -1 (the sign of the offset from the line), got {side!r}")
     dtype = _dtype_of(xs, ranges)
     xs = jnp.asarray(xs, dtype)
