@@ -11,6 +11,9 @@ apart.  Ratios are against the EKF run (``filter_scan``) in the same process:
 ``rts_pass`` is the backward pass alone over a saved run, ``filter+rts`` the run that saves
 what the smoother needs plus the pass.  The issue's target: RTS pass ≤ 2× the filter's run.
 ``numpy_ekf`` is a plain NumPy loop of the same EKF (hand Jacobians) as the outside reference.
+``eager_calls``: five of the runs called without the caller's ``jit`` — first call, repeated
+call, and the repeated call with the kept program bypassed (what every eager call cost before
+``jaxslam.compilation.call_compiled``).
 
 Which reference a row's ``reference_s`` / ``speedup`` is against: every row's ``reference`` says
 it, and ``speedup_vs`` names it in one word — ``"ekf"`` (jaxslam's own EKF run: the speedup is
@@ -83,6 +86,45 @@ def _numpy_ekf(us, zs):
     return out
 
 
+def _eager_calls(cases, repeats):
+    """The same runs called eagerly (no jit of the caller's): the first call (trace + compile),
+    a repeated call (the program :func:`jaxslam.compilation.call_compiled` kept) and, as the
+    same-process reference, a repeated call with that program bypassed — the uncompiled scan
+    that every eager call paid before (JAX re-traces and re-compiles a scan it is handed
+    afresh).  Twice: with the persistent compilation cache as this process has it (the CLI
+    switches it on: the uncompiled call then loads its scan from disk) and with it off (a
+    script that imports the library without ``configure_process``)."""
+    from unittest import mock
+
+    import jax
+
+    from jaxslam import compilation
+
+    rows = []
+    folder = compilation.enabled_dir()
+    modes = ([True] if folder is not None else []) + [False]
+    try:
+        for cache_on in modes:
+            if not cache_on:
+                compilation.disable_cache()
+            for name, fn in cases.items():
+                compilation.clear_programs()
+                t0 = time.perf_counter()
+                jax.block_until_ready(fn())
+                first = time.perf_counter() - t0
+                rep = median_s(lambda: jax.block_until_ready(fn()), repeats)
+                with mock.patch.object(compilation, "at_top_level", lambda: False):
+                    jax.block_until_ready(fn())
+                    unc = median_s(lambda: jax.block_until_ready(fn()), max(1, repeats // 2))
+                rows.append({"case": name, "persistent_cache": cache_on, "first_call_s": first, "repeat_s": rep,
+                             "repeat_uncompiled_s": unc, "speedup": unc / rep,
+                             "reference": "the same eager call with the kept program bypassed"})
+    finally:
+        if folder is not None:
+            compilation.enable_cache(folder)
+    return rows
+
+
 def run(args):
     import jax
     import jax.numpy as jnp
@@ -147,6 +189,8 @@ def run(args):
     times["rts_pass"] = median_s(lambda: jax.block_until_ready(rts_pass(saved)), args.repeats)
     results.append({"case": "rts_pass", "params": {"T": T, "what": "backward pass over a saved run"},
                     "jaxslam_s": times["rts_pass"]})
+    eager = _eager_calls({k: cases[k] for k in ("ekf", "ukf", "ekf+rts", f"fixed_lag_{args.lag}",
+                                                f"iterated_smoother_{args.iters}")}, args.repeats)
     np_means = _numpy_ekf(us_np, zs_np)  # the untimed warm-up call, as every JAX case has one
     t_np = median_s(lambda: _numpy_ekf(us_np, zs_np), max(1, args.repeats // 2))
     ekf_means = np.asarray(jax.jit(cases["ekf"])())
@@ -164,6 +208,6 @@ def run(args):
                     "speedup": t_np / base, "speedup_vs": "numpy", "max_abs_diff_means": agree})
     ratio = times["rts_pass"] / base
     load["after"] = list(os.getloadavg())
-    return {"results": results, "load_average": load,
+    return {"results": results, "eager_calls": eager, "load_average": load,
             "targets": [{"name": "rts_pass_vs_filter", "value": ratio, "target_max": 2.0,
                          "met": ratio <= 2.0}]}

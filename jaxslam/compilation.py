@@ -55,6 +55,8 @@ __all__ = [
     "clear_cache",
     "compile_program",
     "clear_programs",
+    "call_compiled",
+    "at_top_level",
     "CACHE_ENV",
     "CACHE_DIR_ENV",
 ]
@@ -476,8 +478,11 @@ _MEMO_MAX = 32
 
 
 def clear_programs() -> None:
-    """Forget the programs :func:`compile_program` keeps in this process (the disk copies stay)."""
+    """Forget the programs :func:`compile_program` and :func:`call_compiled` keep in this
+    process (the disk copies stay)."""
     _memo.clear()
+    with _eager_lock:
+        _eager.clear()
 
 
 def _compile_keyed(fn, jitted, args, digest, compiler_options):
@@ -542,3 +547,74 @@ class _Flat:
         if tree != self._in_tree:
             raise TypeError(f"compiled program: arguments of structure {tree}, expected {self._in_tree}")
         return jax.tree.unflatten(self._out_tree, self._compiled(*leaves))
+
+
+# ---------------------------------------------------------------------------
+# Eager calls of a whole run: one compiled program per model, reused
+# ---------------------------------------------------------------------------
+
+_EAGER_MAX = 16
+_eager: dict = {}
+_eager_lock = threading.Lock()
+
+
+def at_top_level() -> bool:
+    """True when no JAX transformation (``jit``, ``grad``, ``vmap``, a ``scan`` body) is tracing
+    the caller, i.e. the arrays a function receives are concrete.  Reads JAX's trace state
+    (not public API); on a JAX without it, False (the caller then stays eager: correct,
+    only slower)."""
+    try:
+        from jax._src import core
+        return bool(core.trace_state_clean())
+    except Exception:  # noqa: BLE001 - an unknown JAX: never fail, just do not compile
+        return False
+
+
+def call_compiled(key, fn, args, static=None):
+    """``fn(*args, **static)``; called eagerly, through a program compiled once per ``key``.
+
+    A whole run (a ``lax.scan`` over a log) called outside any transformation re-traces and
+    re-compiles its scan on every call: 0.43-0.56 s for a two-state EKF over 200 steps on
+    this project's machine, where the compiled program takes 1.5 ms.  Here the first eager
+    call with a given ``key`` compiles ``jax.jit(fn)`` (``static``'s names static) and later
+    calls with the same key and argument shapes and dtypes run the compiled program.  ``key``
+    (hashable) must name everything ``fn`` closes over that is not in ``args`` or ``static``
+    (the model's functions, static options): a later call with an equal key runs the *first*
+    call's ``fn``, retraced when the shapes differ, so ``fn`` takes every size from its
+    arguments, never from its closure.  The 16 most recent keys are kept (their programs with
+    them).
+
+    Called under a transformation (the caller's own ``jit``, ``grad``, ``vmap``), with an
+    unhashable key, or with a key whose ``fn`` needed concrete values in its closure's
+    arithmetic (a user's model branching in Python on an argument: JAX's concretization
+    errors), ``fn`` runs as it always did, uncompiled.
+    """
+    static = {} if static is None else dict(static)
+    if not at_top_level():
+        return fn(*args, **static)
+    try:
+        hash(key)
+        hash(tuple(sorted(static.items())))
+    except TypeError:
+        return fn(*args, **static)
+    import jax
+
+    with _eager_lock:
+        jitted = _eager.pop(key, None)
+        if jitted is None:
+            jitted = jax.jit(fn, static_argnames=tuple(static))
+        _eager[key] = jitted  # most recent last
+        while len(_eager) > _EAGER_MAX:
+            _eager.pop(next(iter(_eager)))
+    if jitted is _EAGER_ONLY:
+        return fn(*args, **static)
+    try:
+        return jitted(*args, **static)
+    except (jax.errors.ConcretizationTypeError, jax.errors.TracerIntegerConversionError,
+            jax.errors.TracerArrayConversionError):
+        with _eager_lock:
+            _eager[key] = _EAGER_ONLY
+        return fn(*args, **static)
+
+
+_EAGER_ONLY = object()  # a key whose fn needs concrete closure values: always eager

@@ -620,7 +620,12 @@ def make_filter(
         return update(state, z, hh, R, *args, residual=residual, mask=mask, gate=gate,
                       num_iter=num_iter)
 
-    return GaussianFilter(pred, upd)
+    # a run of it compiles once per model, however often the filter is made again
+    return _g.keyed_filter(
+        GaussianFilter(pred, upd),
+        lambda a, g, nj: make_filter(f, h, *a, residual=residual, gate=g, noise_jac=nj, num_iter=num_iter,
+                                     h_takes_input=h_takes_input),
+        (args, gate, noise_jac), ("ekf.make_filter", f, h, residual, num_iter, h_takes_input))
 
 
 def filter_scan(
@@ -649,6 +654,8 @@ def filter_scan(
     then update with ``z_t`` under ``masks[t]`` (:func:`update`).  Jit it with
     ``f``, ``h``, ``residual``, a callable ``gate``, ``save_cov``,
     ``predict_first``, ``num_iter`` and ``save_smoother`` static; vmap it over runs.
+    Called eagerly it is compiled once per model (:func:`jaxslam.compilation.call_compiled`):
+    a second call with new numbers neither traces nor compiles.
     The same run as ``gaussian.run(make_filter(f, h, ...), ...)``.
 
     Args:

@@ -63,11 +63,12 @@ import numpy as np
 from jax.custom_batching import custom_vmap
 
 from .. import errors
+from ..compilation import call_compiled
 from ..errors import InputError
 from ..linalg import (check_finite, check_int, check_mask, check_psd, check_whole_ids, cholesky_small, is_concrete,
                       put_blocks, small_matmul, symmetrize, take, take_blocks, value_and_jacfwd)
 from ..stats import _student_t_nll, check_student_t_nu
-from .gaussian import check_gate, check_gate_size, check_num_iter, check_real, threshold as _threshold
+from .gaussian import check_gate, check_gate_size, check_num_iter, check_real, split_arrays, threshold as _threshold
 
 __all__ = [
     "SlamModel",
@@ -1681,6 +1682,8 @@ def run(model: SlamModel, state: SlamState, log: SlamLog, Q, R, *, association: 
     sets ``MASKED_INPUT``.  Shapes and (when concrete) Q, R are checked here: a bad argument is an
     :class:`~jaxslam.errors.InputError` naming it.  Jit-, vmap- and grad-safe (jit it with
     ``static_argnames=("model", "association", "register_new", "save_cov", "save_map")``).
+    Called eagerly it is compiled once per model and options
+    (:func:`jaxslam.compilation.call_compiled`).
     """
     _check_run(state, model, log, Q, R, association)
     dtype = state.x.dtype
@@ -1698,47 +1701,58 @@ def run(model: SlamModel, state: SlamState, log: SlamLog, Q, R, *, association: 
     q_step, r_step = Qa is not None and Qa.ndim == 3, Ra.ndim == 3
     can_register = register_new and model.inverse is not None
 
-    def body(st, inp):
-        u, z_t, id_t, m_t, p_t, Q_t, R_t = inp
-        if q_fn is not None:
-            Q_t = q_fn(st.x[:nr], u, p_t)
-        elif not q_step:
-            Q_t = Qa
-        R_t = R_t if r_step else Ra
-        st, pred_ok = _predict(st, model, u, jnp.asarray(Q_t, dtype), p_t, False)
-        if association == "known":
-            slots, mapped = associate_known(st, id_t, m_t)
-            # (a non-finite row registers nothing: it must not hide a good row of its id)
-            new = first_of_each_id(id_t, m_t & ~mapped & (id_t >= 0) & jnp.all(jnp.isfinite(z_t), axis=-1))
-        else:
-            slots, mapped, new, _ = associate_nn(st, model, z_t, m_t, R_t, p_t, gate=nn_gate,
-                                                 new_threshold=nn_new)
-        # a present row with a non-finite entry is neither registered nor (nn) a candidate of the
-        # association: flag it as update does for the rows it is handed (``MASKED_INPUT``), not
-        # drop it silently (known ids: the row of a landmark not yet mapped)
-        bad = jnp.any(m_t & ~jnp.all(jnp.isfinite(z_t), axis=-1))
-        st = st._replace(status=st.status | _flag_if(bad, errors.MASKED_INPUT))
-        st, info = update(st, model, z_t, slots, mapped, R_t, p_t, gate=gate)
-        if can_register:
-            n_before = jnp.sum(st.active)
-            st = register(st, model, z_t, id_t, new, R_t, p_t)
-            n_new = (jnp.sum(st.active) - n_before).astype(jnp.int32)
-        else:
-            n_new = jnp.zeros((), jnp.int32)
-        logdet = jnp.asarray(info.logdet, dtype)
-        ll = -0.5 * (info.nis + logdet + info.dof * jnp.log(2.0 * jnp.pi).astype(dtype))
-        # a rejected update (NON_FINITE / NOT_PSD in the status) or prediction has no
-        # likelihood: NaN, as in the generic filters, so that a sum over the run (an NLL
-        # loss) cannot hide it
-        ll = jnp.where(info.rejected | ~pred_ok, jnp.asarray(jnp.nan, dtype), ll)
-        out = (st.x[:nr], st.P[:nr, :nr] if save_cov else None,
-               landmarks(st, model) if save_map else None, info.nis, logdet, info.dof, ll,
-               jnp.sum(info.used).astype(jnp.int32), jnp.sum(info.gated).astype(jnp.int32), n_new)
-        return st, out
+    arrays, rebuild, key = split_arrays((gate, nn_gate, nn_new))
 
-    xs = (_cast_u(log.u, dtype), z, ids, mask, log.params, Qa if q_step else None, Ra if r_step else None)
-    final, outs = jax.lax.scan(body, state, xs, length=T)
-    return SlamRun(*outs, final=final)
+    def scan(arrs, state, u, z, ids, mask, params, Qa, Ra):
+        gate, nn_gate, nn_new = rebuild(*arrs)
+        dtype = state.x.dtype
+        log = SlamLog(u, z, ids, mask, params)
+
+        def body(st, inp):
+            u, z_t, id_t, m_t, p_t, Q_t, R_t = inp
+            if q_fn is not None:
+                Q_t = q_fn(st.x[:nr], u, p_t)
+            elif not q_step:
+                Q_t = Qa
+            R_t = R_t if r_step else Ra
+            st, pred_ok = _predict(st, model, u, jnp.asarray(Q_t, dtype), p_t, False)
+            if association == "known":
+                slots, mapped = associate_known(st, id_t, m_t)
+                # (a non-finite row registers nothing: it must not hide a good row of its id)
+                new = first_of_each_id(id_t, m_t & ~mapped & (id_t >= 0) & jnp.all(jnp.isfinite(z_t), axis=-1))
+            else:
+                slots, mapped, new, _ = associate_nn(st, model, z_t, m_t, R_t, p_t, gate=nn_gate,
+                                                     new_threshold=nn_new)
+            # a present row with a non-finite entry is neither registered nor (nn) a candidate of the
+            # association: flag it as update does for the rows it is handed (``MASKED_INPUT``), not
+            # drop it silently (known ids: the row of a landmark not yet mapped)
+            bad = jnp.any(m_t & ~jnp.all(jnp.isfinite(z_t), axis=-1))
+            st = st._replace(status=st.status | _flag_if(bad, errors.MASKED_INPUT))
+            st, info = update(st, model, z_t, slots, mapped, R_t, p_t, gate=gate)
+            if can_register:
+                n_before = jnp.sum(st.active)
+                st = register(st, model, z_t, id_t, new, R_t, p_t)
+                n_new = (jnp.sum(st.active) - n_before).astype(jnp.int32)
+            else:
+                n_new = jnp.zeros((), jnp.int32)
+            logdet = jnp.asarray(info.logdet, dtype)
+            ll = -0.5 * (info.nis + logdet + info.dof * jnp.log(2.0 * jnp.pi).astype(dtype))
+            # a rejected update (NON_FINITE / NOT_PSD in the status) or prediction has no
+            # likelihood: NaN, as in the generic filters, so that a sum over the run (an NLL
+            # loss) cannot hide it
+            ll = jnp.where(info.rejected | ~pred_ok, jnp.asarray(jnp.nan, dtype), ll)
+            out = (st.x[:nr], st.P[:nr, :nr] if save_cov else None,
+                   landmarks(st, model) if save_map else None, info.nis, logdet, info.dof, ll,
+                   jnp.sum(info.used).astype(jnp.int32), jnp.sum(info.gated).astype(jnp.int32), n_new)
+            return st, out
+
+        xs = (_cast_u(log.u, dtype), z, ids, mask, log.params, Qa if q_step else None, Ra if r_step else None)
+        final, outs = jax.lax.scan(body, state, xs, length=z.shape[0])
+        return SlamRun(*outs, final=final)
+
+    # called eagerly: compiled once per model, options and shapes
+    return call_compiled(("ekf_slam.run", model, association, q_fn, q_step, r_step, can_register, save_cov,
+                          save_map, key), scan, (arrays, state, log.u, z, ids, mask, log.params, Qa, Ra))
 
 
 __all__ += ["SlamLog", "SlamRun", "run"]

@@ -105,10 +105,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import errors
+from ..compilation import call_compiled
 from ..errors import InputError
 from ..linalg import (check_finite, check_int, check_mask, check_psd, check_whole_ids, cholesky_small, inv_small, is_concrete,
                       symmetrize, value_and_jacfwd, wrap_angle)
-from .gaussian import check_gate, check_gate_size, threshold as _threshold
+from .gaussian import check_gate, check_gate_size, split_arrays, threshold as _threshold
 from ..stats import _student_t_nll
 from . import ekf as _ekf
 from . import resampling as _rs
@@ -1185,7 +1186,8 @@ def run(p0: Particles, key, sample_fn: Optional[Callable], inputs, model: Landma
       The rest as :func:`step`; ``angle_mask`` as :func:`estimate` (and the wrapped pose
       components of the optimal proposal).
     Returns :class:`FastSlamRun`.  Shapes are checked here (InputError naming the argument);
-    works under ``jit`` / ``vmap`` / ``grad`` (the caller jits).
+    works under ``jit`` / ``vmap`` / ``grad``; called eagerly it is compiled once per model and
+    options (:func:`jaxslam.compilation.call_compiled`).
     """
     if proposal not in ("motion", "optimal"):
         raise InputError(f"proposal: expected 'motion' or 'optimal', got {proposal!r}")
@@ -1219,44 +1221,58 @@ def run(p0: Particles, key, sample_fn: Optional[Callable], inputs, model: Landma
         check_psd(np.asarray(R), "R", strict=True, stack=R.ndim == 3)
     R_t = jnp.broadcast_to(R, (T,) + (zs.shape[2],) * 2)
 
-    if proposal == "optimal":
-        # the pose covariances ride in aux, so that resampling moves them with their particles
-        n_r = p0.pose.shape[1]
-        p0 = p0._replace(aux=(p0.aux, jnp.zeros((p0.pose.shape[0], n_r, n_r), p0.pose.dtype)))
+    try:  # the key of a static mask (its checks run in the scan, as before)
+        wrap = None if angle_mask is None else np.asarray(angle_mask)
+        mask_key = None if wrap is None else (wrap.shape, wrap.dtype.str, tuple(wrap.ravel().tolist()))
+    except (TypeError, ValueError):
+        mask_key = []  # unhashable: an uncompiled run, which reports the mask
+    arrays, rebuild, opts_key = split_arrays((params, gate, threshold, robust))
 
-    def body(p, x):  # step(), with N_eff read between the update and the resampling
-        k, u, z, ids, mask, R_k = x
-        k_prop, k_res = jax.random.split(k)
-        if proposal == "motion":
-            p, info = _propagate_update(p, k_prop, sample_fn, u, model, z, ids, mask, R_k, params, weights,
-                                        gate, slot_by_id, solver, None, robust)
-            log_marg = info.log_marginal
-        else:
-            aux, cov = p.aux
-            pose_in = p.pose
-            pose, aux, cov = jax.vmap(moment_fn, in_axes=(0, 0, 0) + (None,) * len(u))(p.pose, aux, cov, *u)
-            if pose.shape != pose_in.shape or cov.shape != pose_in.shape + pose_in.shape[1:]:
-                n_r = pose_in.shape[1]
-                raise InputError(f"moment_fn: expected (mean ({n_r},), aux, cov ({n_r}, {n_r})) per particle, got "
-                                 f"mean {pose.shape[1:]} and cov {cov.shape[1:]}")
-            p = _moved(p, pose, (aux, cov))
-            q, ll, log_marg, _ = propose_optimal(p, model, z, ids, mask, R_k, p.aux[1], k_prop, params=params,
-                                                 slot_by_id=slot_by_id, angle_mask=angle_mask, gate=gate,
-                                                 robust=robust)
-            # an event without rows keeps the Gaussian (no draw); one with rows restarts it at 0
-            rows = jnp.any(jnp.asarray(mask, bool) & (ids >= 0) & jnp.all(jnp.isfinite(z), axis=1))
-            p = jax.tree_util.tree_map(lambda a, b: jnp.where(rows, a, b), q, p)
-            p = p._replace(aux=(p.aux[0], jnp.where(rows, jnp.zeros_like(p.aux[1]), p.aux[1])))
-            log_marg = jnp.where(rows, log_marg, jnp.zeros_like(log_marg))
-            p, info = observe_update(p, model, z, ids, mask, R_k, params, weights="none", gate=gate,
-                                     slot_by_id=slot_by_id, solver=solver, robust=robust)
-            p = reweight(p, jnp.where(rows, ll, jnp.zeros_like(ll)))
-        ne = neff(p)
-        p = maybe_resample(p, k_res, threshold, scheme)
-        return p, (estimate(p, angle_mask)[0], ne, log_marg, info.n_used, info.n_registered,
-                   jnp.sum(info.gated).astype(jnp.int32))
+    def scan(arrs, p0, key, inputs, zs, lm_ids, masks, R_t):
+        params, gate, threshold, robust = rebuild(*arrs)
 
-    p, outs = jax.lax.scan(body, p0, (jax.random.split(key, T), inputs, zs, lm_ids, masks, R_t))
-    if proposal == "optimal":
-        p = p._replace(aux=p.aux[0])
-    return FastSlamRun(p, *outs)
+        if proposal == "optimal":
+            # the pose covariances ride in aux, so that resampling moves them with their particles
+            n_r = p0.pose.shape[1]
+            p0 = p0._replace(aux=(p0.aux, jnp.zeros((p0.pose.shape[0], n_r, n_r), p0.pose.dtype)))
+
+        def body(p, x):  # step(), with N_eff read between the update and the resampling
+            k, u, z, ids, mask, R_k = x
+            k_prop, k_res = jax.random.split(k)
+            if proposal == "motion":
+                p, info = _propagate_update(p, k_prop, sample_fn, u, model, z, ids, mask, R_k, params, weights,
+                                            gate, slot_by_id, solver, None, robust)
+                log_marg = info.log_marginal
+            else:
+                aux, cov = p.aux
+                pose_in = p.pose
+                pose, aux, cov = jax.vmap(moment_fn, in_axes=(0, 0, 0) + (None,) * len(u))(p.pose, aux, cov, *u)
+                if pose.shape != pose_in.shape or cov.shape != pose_in.shape + pose_in.shape[1:]:
+                    n_r = pose_in.shape[1]
+                    raise InputError(f"moment_fn: expected (mean ({n_r},), aux, cov ({n_r}, {n_r})) per particle, got "
+                                     f"mean {pose.shape[1:]} and cov {cov.shape[1:]}")
+                p = _moved(p, pose, (aux, cov))
+                q, ll, log_marg, _ = propose_optimal(p, model, z, ids, mask, R_k, p.aux[1], k_prop, params=params,
+                                                     slot_by_id=slot_by_id, angle_mask=angle_mask, gate=gate,
+                                                     robust=robust)
+                # an event without rows keeps the Gaussian (no draw); one with rows restarts it at 0
+                rows = jnp.any(jnp.asarray(mask, bool) & (ids >= 0) & jnp.all(jnp.isfinite(z), axis=1))
+                p = jax.tree_util.tree_map(lambda a, b: jnp.where(rows, a, b), q, p)
+                p = p._replace(aux=(p.aux[0], jnp.where(rows, jnp.zeros_like(p.aux[1]), p.aux[1])))
+                log_marg = jnp.where(rows, log_marg, jnp.zeros_like(log_marg))
+                p, info = observe_update(p, model, z, ids, mask, R_k, params, weights="none", gate=gate,
+                                         slot_by_id=slot_by_id, solver=solver, robust=robust)
+                p = reweight(p, jnp.where(rows, ll, jnp.zeros_like(ll)))
+            ne = neff(p)
+            p = maybe_resample(p, k_res, threshold, scheme)
+            return p, (estimate(p, angle_mask)[0], ne, log_marg, info.n_used, info.n_registered,
+                       jnp.sum(info.gated).astype(jnp.int32))
+
+        p, outs = jax.lax.scan(body, p0, (jax.random.split(key, zs.shape[0]), inputs, zs, lm_ids, masks, R_t))
+        if proposal == "optimal":
+            p = p._replace(aux=p.aux[0])
+        return FastSlamRun(p, *outs)
+
+    # called eagerly: compiled once per model, options and shapes
+    return call_compiled(("fastslam.run", sample_fn, moment_fn, model, proposal, mask_key, weights, scheme,
+                          slot_by_id, solver, opts_key), scan, (arrays, p0, key, inputs, zs, lm_ids, masks, R_t))

@@ -42,6 +42,7 @@ Decisions
 
 from __future__ import annotations
 
+import weakref
 from typing import Any, Callable, NamedTuple, Optional, Union
 
 import jax
@@ -49,6 +50,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import errors
+from ..compilation import at_top_level, call_compiled
 from ..errors import InputError, check_flag
 from ..linalg import check_finite, check_mask, check_numbers, check_psd, check_real, host_array, is_concrete, list_array, symmetrize
 
@@ -58,6 +60,7 @@ __all__ = [
     "Posterior",
     "GaussianFilter",
     "run",
+    "keyed_filter",
     "innovation_solve",
     "finalize",
     "masked_innovation",
@@ -651,6 +654,11 @@ def run(
 ) -> Posterior:
     """Run a :class:`GaussianFilter` over a whole sequence as one ``lax.scan``.
 
+    Called eagerly the run is compiled once per filter (``flt``, hashable: two functions) and
+    argument shapes (:func:`jaxslam.compilation.call_compiled`): a second call with new
+    numbers neither traces nor compiles.  Under the caller's ``jit`` / ``vmap`` / ``grad`` it
+    is the plain scan.
+
     Args:
         flt: the filter (``ekf.make_filter`` / ``ukf.make_filter``).
         x0: (n,) initial mean.  P0: (n, n) initial covariance.
@@ -677,7 +685,68 @@ def run(
     x0, P0, zs, masks, Q, R, q_step, r_step, T = prepare_run(x0, P0, zs, masks, Q, R)
     check_leading(us, T, "us")
     check_leading(h_inputs, T, "h_inputs")
-    keep_cov = save_cov or save_smoother
+    build, arrays, key = filter_recipe(flt)
+
+    def scan(arrays, x0, P0, us, zs, masks, Q, R, h_inputs):
+        return _scan(build(*arrays), x0, P0, us, zs, masks, Q, R, h_inputs, q_step, r_step,
+                     predict_first, save_cov or save_smoother, save_smoother)
+
+    # called eagerly: compiled once per filter, options and shapes
+    return call_compiled(("gaussian.run", key, q_step, r_step, predict_first, save_cov, save_smoother), scan,
+                         (arrays, x0, P0, us, zs, masks, Q, R, h_inputs))
+
+
+_RECIPES: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
+def keyed_filter(flt: GaussianFilter, make: Callable, inputs, key) -> GaussianFilter:
+    """Register how ``flt`` was made, so that a run of it compiles once per *model*.
+
+    ``make(*inputs)`` must build the same filter (``flt`` is ``make(*inputs)``), and ``key``
+    (hashable) must name everything ``make`` closes over.  The array leaves of ``inputs``
+    become arguments of the compiled run (:func:`split_arrays`); the rest joins the key.
+    Without this a run is keyed by ``flt``'s two functions, new with every ``make_filter``
+    call: ``run(ekf.make_filter(f, h), ...)`` written inline compiled on every call.  Only
+    eager calls register (under a transformation nothing is compiled apart).
+    """
+    if at_top_level():
+        arrays, rebuild, skey = split_arrays(inputs)
+        _RECIPES[flt.predict] = (flt.update, lambda *a: make(*rebuild(*a)), arrays, (key, skey))
+    return flt
+
+
+def filter_recipe(flt: GaussianFilter):
+    """``(build, arrays, key)`` with ``build(*arrays)`` equal to ``flt``: the registered recipe
+    of :func:`keyed_filter`, else ``flt`` itself, keyed by its two functions."""
+    try:
+        rec = _RECIPES.get(flt.predict)
+    except TypeError:  # not weak-referenceable: no recipe
+        rec = None
+    if rec is not None and rec[0] is flt.update:
+        return rec[1], rec[2], rec[3]
+    return (lambda: flt), (), ("filter", flt)
+
+
+def split_arrays(tree):
+    """``(arrays, rebuild, key)``: the array leaves of ``tree`` (the arguments of a compiled
+    run), ``rebuild(*arrays)`` putting them back, and a hashable ``key`` of the rest (the
+    structure and the other leaves by type and value: numbers, callables, None stay static, as
+    in an uncompiled call).  An unhashable leaf makes ``key`` unhashable, and the run eager."""
+    leaves, treedef = jax.tree_util.tree_flatten(tree)
+    is_array = tuple(isinstance(v, (jax.Array, np.ndarray, np.generic)) for v in leaves)
+    static = tuple(None if a else (type(v), v) for v, a in zip(leaves, is_array))
+    arrays = tuple(v for v, a in zip(leaves, is_array) if a)
+
+    def rebuild(*arrs):
+        it = iter(arrs)
+        return jax.tree_util.tree_unflatten(
+            treedef, [next(it) if a else st[1] for st, a in zip(static, is_array)])
+
+    return arrays, rebuild, (treedef, is_array, static)
+
+
+def _scan(flt, x0, P0, us, zs, masks, Q, R, h_inputs, q_step, r_step, predict_first, keep_cov,
+          save_smoother):
     step_fn = make_step(flt, Q, R, q_step, r_step, predict_first)
 
     def step(carry, inp):
@@ -697,6 +766,6 @@ def run(
         return carry, out
 
     xs = (us, zs, masks, Q if q_step else None, R if r_step else None, h_inputs)
-    (_, final, _, _), outs = jax.lax.scan(step, init_carry(x0, P0), xs, length=T)
+    (_, final, _, _), outs = jax.lax.scan(step, init_carry(x0, P0), xs, length=zs.shape[0])
     means, diags, covs, nis, dof, status, ll, pm, pc, cc = outs
     return Posterior(means, diags, covs, nis, dof, status, final, ll, pm, pc, cc)

@@ -2,7 +2,9 @@
 iterated (Gauss–Newton) smoother of a whole trajectory.
 
 Generic: the model enters only through a :class:`jaxslam.filters.gaussian.GaussianFilter`
-(EKF or sigma-point) or, for the iterated smoother, through ``f`` and ``h``.
+(EKF or sigma-point) or, for the iterated smoother, through ``f`` and ``h``.  Called eagerly,
+each smoother is compiled once per model and options
+(:func:`jaxslam.compilation.call_compiled`).
 
 Equations
 ---------
@@ -66,6 +68,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import errors
+from ..compilation import call_compiled
 from ..errors import InputError
 from ..linalg import check_int, check_scalar, is_concrete, symmetrize, value_and_jacfwd
 from . import ekf as _ekf
@@ -187,9 +190,14 @@ def rts(post: Posterior, *, difference: Optional[Callable] = None,
             raise InputError(f"post.{f}: expected shape {want} to match post.means {(T, n)}, "
                              f"got {jnp.shape(getattr(post, f))}")
     diff = _sub if difference is None else difference
-    ms, Ps, st = _backward_pass(post.means, post.covs, post.pred_means, post.pred_covs,
-                                post.cross_covs, diff)
-    return Smoothed(ms, jnp.diagonal(Ps, axis1=1, axis2=2), Ps if save_cov else None, st)
+
+    def backward(means, covs, pred_means, pred_covs, cross_covs):
+        ms, Ps, st = _backward_pass(means, covs, pred_means, pred_covs, cross_covs, diff)
+        return Smoothed(ms, jnp.diagonal(Ps, axis1=1, axis2=2), Ps if save_cov else None, st)
+
+    # called eagerly: compiled once per difference function and shapes
+    return call_compiled(("smoother.rts", diff, bool(save_cov)), backward,
+                         (post.means, post.covs, post.pred_means, post.pred_covs, post.cross_covs))
 
 
 def fixed_lag(
@@ -233,41 +241,50 @@ def fixed_lag(
     _g.check_leading(us, T, "us")
     _g.check_leading(h_inputs, T, "h_inputs")
     L = min(lag, T - 1)
-    n = x0.shape[0]
-    dtype = x0.dtype
-    step_fn = _g.make_step(flt, Q, R, q_step, r_step, predict_first)
-    eye = jnp.eye(n, dtype=dtype)
-    W = L + 1
-    buf0 = (jnp.zeros((W, n), dtype), jnp.broadcast_to(eye, (W, n, n)),
-            jnp.zeros((W, n), dtype), jnp.broadcast_to(eye, (W, n, n)),
-            jnp.zeros((W, n, n), dtype), jnp.zeros((W,), jnp.int32))
 
-    def smooth_window(buf):
-        bm, bP, bpm, bpc, bcc, bst = buf
-        return _backward_pass(bm, bP, bpm, bpc, bcc, diff)
+    build, arrays, key = _g.filter_recipe(flt)
 
-    def step(carry, inp):
-        fc, buf = carry
-        fc, (post, prior, cross, info) = step_fn(fc, inp)
-        new = (post.mean, post.cov, prior.mean, prior.cov, cross, info.status)
-        buf = tuple(jnp.concatenate([b[1:], v[None]], 0) for b, v in zip(buf, new))
+    def smooth(arrays, x0, P0, us, zs, masks, Q, R, h_inputs):
+        flt = build(*arrays)
+        n = x0.shape[0]
+        dtype = x0.dtype
+        step_fn = _g.make_step(flt, Q, R, q_step, r_step, predict_first)
+        eye = jnp.eye(n, dtype=dtype)
+        W = L + 1
+        buf0 = (jnp.zeros((W, n), dtype), jnp.broadcast_to(eye, (W, n, n)),
+                jnp.zeros((W, n), dtype), jnp.broadcast_to(eye, (W, n, n)),
+                jnp.zeros((W, n, n), dtype), jnp.zeros((W,), jnp.int32))
+
+        def smooth_window(buf):
+            bm, bP, bpm, bpc, bcc, bst = buf
+            return _backward_pass(bm, bP, bpm, bpc, bcc, diff)
+
+        def step(carry, inp):
+            fc, buf = carry
+            fc, (post, prior, cross, info) = step_fn(fc, inp)
+            new = (post.mean, post.cov, prior.mean, prior.cov, cross, info.status)
+            buf = tuple(jnp.concatenate([b[1:], v[None]], 0) for b, v in zip(buf, new))
+            if L == 0:
+                out = (post.mean, jnp.diagonal(post.cov), info.status)
+            else:
+                ms, Ps, st = smooth_window(buf)
+                out = (ms[0], jnp.diagonal(Ps[0]), st[0] | buf[5][0])
+            return (fc, buf), out
+
+        xs = (us, zs, masks, Q if q_step else None, R if r_step else None, h_inputs)
+        (_, buf), (m_out, d_out, s_out) = jax.lax.scan(step, (_g.init_carry(x0, P0), buf0), xs,
+                                                       length=zs.shape[0])
         if L == 0:
-            out = (post.mean, jnp.diagonal(post.cov), info.status)
-        else:
-            ms, Ps, st = smooth_window(buf)
-            out = (ms[0], jnp.diagonal(Ps[0]), st[0] | buf[5][0])
-        return (fc, buf), out
+            return Smoothed(m_out, d_out, None, s_out)
+        ms, Ps, st = smooth_window(buf)
+        means = jnp.concatenate([m_out[L:], ms[1:]], 0)
+        diags = jnp.concatenate([d_out[L:], jnp.diagonal(Ps[1:], axis1=1, axis2=2)], 0)
+        status = jnp.concatenate([s_out[L:], st[1:] | buf[5][1:]], 0)
+        return Smoothed(means, diags, None, status)
 
-    xs = (us, zs, masks, Q if q_step else None, R if r_step else None, h_inputs)
-    (_, buf), (m_out, d_out, s_out) = jax.lax.scan(step, (_g.init_carry(x0, P0), buf0), xs,
-                                                   length=T)
-    if L == 0:
-        return Smoothed(m_out, d_out, None, s_out)
-    ms, Ps, st = smooth_window(buf)
-    means = jnp.concatenate([m_out[L:], ms[1:]], 0)
-    diags = jnp.concatenate([d_out[L:], jnp.diagonal(Ps[1:], axis1=1, axis2=2)], 0)
-    status = jnp.concatenate([s_out[L:], st[1:] | buf[5][1:]], 0)
-    return Smoothed(means, diags, None, status)
+    # called eagerly: compiled once per filter, lag and shapes
+    return call_compiled(("smoother.fixed_lag", key, diff, L, q_step, r_step, predict_first), smooth,
+                         (arrays, x0, P0, us, zs, masks, Q, R, h_inputs))
 
 
 # ---------------------------------------------------------------------------
@@ -392,13 +409,11 @@ def iterated(
     _g.check_leading(us, T, "us")
     dtype = x0.dtype
     n = x0.shape[0]
-    m = zs.shape[1]
     fm = (lambda x, u, *a: x) if f is None else f
     hh = (lambda x, c, *a: h(x, c, *a)) if h_inputs is not None else (lambda x, c, *a: h(x, *a))
     res = _sub if residual is None else residual
     diff = _sub if difference is None else difference
     tol_v = jnp.asarray((1e-6 if dtype == jnp.float64 else 1e-3) if tol is None else tol, dtype)
-    eye_n = jnp.eye(n, dtype=dtype)
 
     if init is None:
         post = _ekf.filter_scan(f, h, x0, P0, us, zs, masks, Q, R, *args, residual=residual,
@@ -409,103 +424,117 @@ def iterated(
     if init.shape != (T, n):
         raise InputError(f"init: expected shape ({T}, {n}), got {init.shape}")
 
-    # Update-first form over states s_0..s_{K-1}: with predict_first the extra
-    # s_0 is the state before the first input (no measurement).
-    if predict_first:
-        zs_a = jnp.concatenate([jnp.zeros((1, m), dtype), zs], 0)
-        masks_a = jnp.concatenate([jnp.zeros((1, m), bool), masks], 0)
-        us_a = None if us is None else jax.tree_util.tree_map(
-            lambda a: jnp.concatenate([a, a[-1:]], 0), us)
-        c_a = None if h_inputs is None else _prepend(
-            h_inputs, jax.tree_util.tree_map(lambda a: a[0], h_inputs))
-        Q_a = jnp.concatenate([Q, Q[-1:]], 0) if q_step else Q
-        R_a = jnp.concatenate([R[:1], R], 0) if r_step else R
-        nominal0 = jnp.concatenate([x0[None], init], 0)
-    else:
-        zs_a, masks_a, us_a, c_a, Q_a, R_a = zs, masks, us, h_inputs, Q, R
-        nominal0 = init
-    K = nominal0.shape[0]
-
-    def lin_predict(state, inp, Qt):
-        u, xb = inp
-        m_, P = state
-        fx, F = value_and_jacfwd(lambda v: fm(v, u, *args))(xb)
-        F = F.astype(dtype)
-        # The noise and shape checks of ekf.predict (static): with ``init`` given no EKF pass
-        # runs, and a (1, 1) or (T, 1, 1) Q broadcast onto every entry of the (n, n) covariance.
-        Qd = _g.process_noise(Qt, xb.astype(dtype), u, args, noise_jac)
-        PFt = P @ F.T
-        mean = fx.astype(dtype) + F @ diff(m_, xb)
-        return Gaussian(mean, symmetrize(F @ PFt + Qd)), PFt
-
-    def weights_at(xb, z, mk, Rt, c):
-        zb = hh(xb, c, *args).astype(dtype)
-        r = _g.masked_innovation(z, zb, mk, res) / jnp.sqrt(jnp.diagonal(Rt))
-        w = robust(r)
-        return jnp.where(mk, w, jnp.ones((), dtype))
-
-    def lin_update(state, z, mk, Rt, inp):
-        c, xb, lam = inp
-        m_, P = state
-        zb, H = value_and_jacfwd(lambda v: hh(v, c, *args))(xb)
-        zb = zb.astype(dtype)
-        H = H.astype(dtype)
-        w_bad = jnp.asarray(False)
-        if robust is not None:
-            w = weights_at(xb, z, mk, Rt, c)
-            w_bad = jnp.any(mk & ~jnp.isfinite(w))  # a NaN weight masked the component unflagged
-            mk = mk & (w > 1e-12)
-            sw = jnp.sqrt(jnp.maximum(w, 1e-12))
-            Rt = Rt / (sw[:, None] * sw[None, :])
-        nu = _g.masked_innovation(z, zb, mk, res) - jnp.where(
-            mk, H @ diff(m_, xb), jnp.zeros((), dtype))
-        xp, Pp, S, num, nis, ok, logdet = _ekf.linear_update(m_, P, nu, H, Rt, mk)
-        dof = jnp.sum(mk).astype(jnp.int32)
-        post, acc, status = _g.finalize(state, xp, Pp, ok, jnp.asarray(False), dof)
-        if damping is not None:
-            dm = diff(xb, post.mean)
-            xq, Pq, _, _, _, okq, _ = _ekf.linear_update(
-                post.mean, post.cov, dm, eye_n, eye_n / lam, jnp.ones((n,), bool))
-            post2, _, st2 = _g.finalize(post, xq, Pq, okq, jnp.asarray(False), jnp.int32(n))
-            post, status = post2, status | st2
-        status = status | jnp.where(w_bad, jnp.int32(errors.NON_FINITE), jnp.int32(0))
-        info = _g.UpdateInfo(nis, dof, num, S, acc, status, logdet)
-        return post, info
-
     if damping is not None and is_concrete(damping):
         check_scalar(damping, "damping", lower=0, strict=True)  # λ > 0 (a negative one fails later, NOT_PSD)
     lam = None if damping is None else jnp.asarray(damping, dtype)
-    flt = GaussianFilter(lin_predict, lin_update)
+    arrays, rebuild, key = _g.split_arrays((args, noise_jac))
 
-    def one_pass(nominal):
-        step_fn = _g.make_step(flt, Q_a, R_a, q_step, r_step, False)
-        u_in = (us_a, nominal)
-        c_in = (c_a, nominal, jnp.broadcast_to(lam, (K,)) if lam is not None else None)
-        xs = (u_in, zs_a, masks_a, Q_a if q_step else None, R_a if r_step else None, c_in)
+    def solve(arrs, x0, P0, us, zs, masks, Q, R, h_inputs, init, tol_v, lam):
+        args, noise_jac = rebuild(*arrs)
+        dtype = x0.dtype
+        n = x0.shape[0]
+        m = zs.shape[1]
+        eye_n = jnp.eye(n, dtype=dtype)
 
-        def body(carry, inp):
-            carry, (post, prior, cross, info) = step_fn(carry, inp)
-            return carry, (post.mean, post.cov, prior.mean, prior.cov, cross, info.status)
+        # Update-first form over states s_0..s_{K-1}: with predict_first the extra
+        # s_0 is the state before the first input (no measurement).
+        if predict_first:
+            zs_a = jnp.concatenate([jnp.zeros((1, m), dtype), zs], 0)
+            masks_a = jnp.concatenate([jnp.zeros((1, m), bool), masks], 0)
+            us_a = None if us is None else jax.tree_util.tree_map(
+                lambda a: jnp.concatenate([a, a[-1:]], 0), us)
+            c_a = None if h_inputs is None else _prepend(
+                h_inputs, jax.tree_util.tree_map(lambda a: a[0], h_inputs))
+            Q_a = jnp.concatenate([Q, Q[-1:]], 0) if q_step else Q
+            R_a = jnp.concatenate([R[:1], R], 0) if r_step else R
+            nominal0 = jnp.concatenate([x0[None], init], 0)
+        else:
+            zs_a, masks_a, us_a, c_a, Q_a, R_a = zs, masks, us, h_inputs, Q, R
+            nominal0 = init
+        K = nominal0.shape[0]
 
-        _, (fm_, fP, pm, pc, cc, fst) = jax.lax.scan(body, _g.init_carry(x0, P0), xs, length=K)
-        ms, Ps, bst = _backward_pass(fm_, fP, pm, pc, cc, diff)
-        return ms, Ps, fst | bst
+        def lin_predict(state, inp, Qt):
+            u, xb = inp
+            m_, P = state
+            fx, F = value_and_jacfwd(lambda v: fm(v, u, *args))(xb)
+            F = F.astype(dtype)
+            # The noise and shape checks of ekf.predict (static): with ``init`` given no EKF pass
+            # runs, and a (1, 1) or (T, 1, 1) Q broadcast onto every entry of the (n, n) covariance.
+            Qd = _g.process_noise(Qt, xb.astype(dtype), u, args, noise_jac)
+            PFt = P @ F.T
+            mean = fx.astype(dtype) + F @ diff(m_, xb)
+            return Gaussian(mean, symmetrize(F @ PFt + Qd)), PFt
 
-    def it(carry, _):
-        nominal, _, _, _ = carry
-        ms, Ps, st = one_pass(nominal)
-        sig = jnp.sqrt(jnp.maximum(jnp.diagonal(Ps, axis1=1, axis2=2), jnp.finfo(dtype).tiny))
-        moved = jnp.max(jnp.abs(jax.vmap(diff)(ms, nominal)) / sig)
-        return (ms, Ps, st, moved), moved
+        def weights_at(xb, z, mk, Rt, c):
+            zb = hh(xb, c, *args).astype(dtype)
+            r = _g.masked_innovation(z, zb, mk, res) / jnp.sqrt(jnp.diagonal(Rt))
+            w = robust(r)
+            return jnp.where(mk, w, jnp.ones((), dtype))
 
-    zP = jnp.zeros((K, n, n), dtype)
-    init_c = (nominal0, zP, jnp.zeros((K,), jnp.int32), jnp.asarray(jnp.inf, dtype))
-    (ms, Ps, st, moved), sizes = jax.lax.scan(it, init_c, None, length=num_iter)
-    # not (moved <= tol): a NaN tolerance (traced) or a NaN step counts as not converged
-    st = st | jnp.where(moved <= tol_v, jnp.int32(0), jnp.int32(errors.NOT_CONVERGED))
-    initial = None
-    if predict_first:
-        initial = Gaussian(ms[0], Ps[0])
-        ms, Ps, st = ms[1:], Ps[1:], st[1:]
-    return Smoothed(ms, jnp.diagonal(Ps, axis1=1, axis2=2), Ps if save_cov else None, st,
-                    initial, jnp.asarray(num_iter, jnp.int32), sizes)
+        def lin_update(state, z, mk, Rt, inp):
+            c, xb, lam = inp
+            m_, P = state
+            zb, H = value_and_jacfwd(lambda v: hh(v, c, *args))(xb)
+            zb = zb.astype(dtype)
+            H = H.astype(dtype)
+            w_bad = jnp.asarray(False)
+            if robust is not None:
+                w = weights_at(xb, z, mk, Rt, c)
+                w_bad = jnp.any(mk & ~jnp.isfinite(w))  # a NaN weight masked the component unflagged
+                mk = mk & (w > 1e-12)
+                sw = jnp.sqrt(jnp.maximum(w, 1e-12))
+                Rt = Rt / (sw[:, None] * sw[None, :])
+            nu = _g.masked_innovation(z, zb, mk, res) - jnp.where(
+                mk, H @ diff(m_, xb), jnp.zeros((), dtype))
+            xp, Pp, S, num, nis, ok, logdet = _ekf.linear_update(m_, P, nu, H, Rt, mk)
+            dof = jnp.sum(mk).astype(jnp.int32)
+            post, acc, status = _g.finalize(state, xp, Pp, ok, jnp.asarray(False), dof)
+            if damping is not None:
+                dm = diff(xb, post.mean)
+                xq, Pq, _, _, _, okq, _ = _ekf.linear_update(
+                    post.mean, post.cov, dm, eye_n, eye_n / lam, jnp.ones((n,), bool))
+                post2, _, st2 = _g.finalize(post, xq, Pq, okq, jnp.asarray(False), jnp.int32(n))
+                post, status = post2, status | st2
+            status = status | jnp.where(w_bad, jnp.int32(errors.NON_FINITE), jnp.int32(0))
+            info = _g.UpdateInfo(nis, dof, num, S, acc, status, logdet)
+            return post, info
+
+        flt = GaussianFilter(lin_predict, lin_update)
+
+        def one_pass(nominal):
+            step_fn = _g.make_step(flt, Q_a, R_a, q_step, r_step, False)
+            u_in = (us_a, nominal)
+            c_in = (c_a, nominal, jnp.broadcast_to(lam, (K,)) if lam is not None else None)
+            xs = (u_in, zs_a, masks_a, Q_a if q_step else None, R_a if r_step else None, c_in)
+
+            def body(carry, inp):
+                carry, (post, prior, cross, info) = step_fn(carry, inp)
+                return carry, (post.mean, post.cov, prior.mean, prior.cov, cross, info.status)
+
+            _, (fm_, fP, pm, pc, cc, fst) = jax.lax.scan(body, _g.init_carry(x0, P0), xs, length=K)
+            ms, Ps, bst = _backward_pass(fm_, fP, pm, pc, cc, diff)
+            return ms, Ps, fst | bst
+
+        def it(carry, _):
+            nominal, _, _, _ = carry
+            ms, Ps, st = one_pass(nominal)
+            sig = jnp.sqrt(jnp.maximum(jnp.diagonal(Ps, axis1=1, axis2=2), jnp.finfo(dtype).tiny))
+            moved = jnp.max(jnp.abs(jax.vmap(diff)(ms, nominal)) / sig)
+            return (ms, Ps, st, moved), moved
+
+        zP = jnp.zeros((K, n, n), dtype)
+        init_c = (nominal0, zP, jnp.zeros((K,), jnp.int32), jnp.asarray(jnp.inf, dtype))
+        (ms, Ps, st, moved), sizes = jax.lax.scan(it, init_c, None, length=num_iter)
+        # not (moved <= tol): a NaN tolerance (traced) or a NaN step counts as not converged
+        st = st | jnp.where(moved <= tol_v, jnp.int32(0), jnp.int32(errors.NOT_CONVERGED))
+        initial = None
+        if predict_first:
+            initial = Gaussian(ms[0], Ps[0])
+            ms, Ps, st = ms[1:], Ps[1:], st[1:]
+        return Smoothed(ms, jnp.diagonal(Ps, axis1=1, axis2=2), Ps if save_cov else None, st,
+                        initial, jnp.asarray(num_iter, jnp.int32), sizes)
+
+    # called eagerly: compiled once per model, options and shapes
+    return call_compiled(("smoother.iterated", f, h, residual, diff, robust, num_iter, predict_first, save_cov,
+                          q_step, r_step, h_inputs is None, key), solve,
+                         (arrays, x0, P0, us, zs, masks, Q, R, h_inputs, init, tol_v, lam))

@@ -96,11 +96,12 @@ import numpy as np
 
 from .. import errors
 from ..errors import InputError, check_flag
+from ..compilation import call_compiled
 from ..linalg import check_finite, check_mask, check_numbers, check_psd, is_concrete, symmetrize, value_and_jacfwd
 from .ekf import Gaussian, UpdateInfo
 from .gaussian import (call_residual, check_gate, check_gate_size, check_leading, check_measurement,
                        check_process_noise, check_real, check_transition_out, check_update_args, moment_dtype,
-                       scalar_measurement, state_pair, threshold as _threshold)
+                       scalar_measurement, split_arrays, state_pair, threshold as _threshold)
 
 __all__ = [
     "SqrtGaussian",
@@ -595,7 +596,8 @@ def filter_scan(
     prior at the time of ``z_0``), stores the filtered estimate, then predicts with ``u_t``.
     ``P0`` and ``Q`` are factored once, before the scan (:func:`psd_factor`).  Jit it with
     ``f``, ``h``, ``residual``, a callable ``gate``, ``noise_jac`` if callable,
-    ``predict_first`` and ``save_chol`` static; vmap it over runs.
+    ``predict_first`` and ``save_chol`` static; vmap it over runs.  Called eagerly it is
+    compiled once per model (:func:`jaxslam.compilation.call_compiled`).
 
     Inputs are checked at this boundary (``InputError`` naming the argument): shapes
     always, finiteness and definiteness (``P0``, ``Q`` PSD, ``R`` PD) when the values are
@@ -638,35 +640,44 @@ def filter_scan(
     T, m = zs.shape
     masks = jnp.ones((T, m), bool) if masks is None else jnp.asarray(masks, bool)
 
-    def pred(s, u, c):
-        return predict(s, f, u, None, *args, noise_jac=noise_jac, Q_chol=c)
+    arrays, rebuild, key = split_arrays((args, gate, noise_jac))
 
-    def upd(s, z, mk, r):
-        return update(s, z, h, r, *args, residual=residual, mask=mk, gate=gate)
+    def scan(arrs, x0, L0, C, us, zs, masks, R):
+        args, gate, noise_jac = rebuild(*arrs)
 
-    def step(carry, inp):
-        state, _ = carry
-        u, z, mk, c, r = inp
-        c = c if q_step else C
-        r = r if r_step else R
-        if predict_first:
-            post, info = upd(pred(state, u, c), z, mk, r)
-            nxt = post
-        else:
-            post, info = upd(state, z, mk, r)
-            nxt = pred(post, u, c)
-        out = (
-            post.mean,
-            jnp.sum(post.chol * post.chol, axis=1),
-            post.chol if save_chol else None,
-            info.nis,
-            info.dof,
-            info.status,
+        def pred(s, u, c):
+            return predict(s, f, u, None, *args, noise_jac=noise_jac, Q_chol=c)
+
+        def upd(s, z, mk, r):
+            return update(s, z, h, r, *args, residual=residual, mask=mk, gate=gate)
+
+        def step(carry, inp):
+            state, _ = carry
+            u, z, mk, c, r = inp
+            c = c if q_step else C
+            r = r if r_step else R
+            if predict_first:
+                post, info = upd(pred(state, u, c), z, mk, r)
+                nxt = post
+            else:
+                post, info = upd(state, z, mk, r)
+                nxt = pred(post, u, c)
+            out = (
+                post.mean,
+                jnp.sum(post.chol * post.chol, axis=1),
+                post.chol if save_chol else None,
+                info.nis,
+                info.dof,
+                info.status,
+            )
+            return (nxt, post), out
+
+        init = SqrtGaussian(x0, L0)
+        (_, final), (means, diags, chols, nis, dof, status) = jax.lax.scan(
+            step, (init, init), (us, zs, masks, C if q_step else None, R if r_step else None)
         )
-        return (nxt, post), out
+        return SqrtPosterior(means, diags, chols, nis, dof, status, final)
 
-    init = SqrtGaussian(x0, L0)
-    (_, final), (means, diags, chols, nis, dof, status) = jax.lax.scan(
-        step, (init, init), (us, zs, masks, C if q_step else None, R if r_step else None)
-    )
-    return SqrtPosterior(means, diags, chols, nis, dof, status, final)
+    # called eagerly: compiled once per model, options and shapes
+    return call_compiled(("sqrt_ekf.filter_scan", f, h, residual, predict_first, save_chol, q_step, r_step,
+                          key), scan, (arrays, x0, L0, C, us, zs, masks, R))

@@ -29,6 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import errors
+from ..compilation import call_compiled
 from ..errors import InputError, check_flag
 from ..linalg import check_numbers, is_concrete, symmetrize
 from .gaussian import (
@@ -43,6 +44,7 @@ from .gaussian import (
     check_update_args,
     scalar_measurement,
     masked_innovation,
+    split_arrays,
     threshold,
 )
 from .sqrt_ekf import SqrtGaussian, SqrtPosterior, _mm, _noise_root, _tria, check_state, psd_factor
@@ -223,28 +225,37 @@ def filter_scan(f: Optional[Callable], h: Callable, x0, P0, us, zs, masks, Q, R,
     Ra = Ra.reshape(1, 1) if Ra.ndim == 0 else Ra  # a scalar variance of one measurement
     r_step = Ra.ndim == 3
 
-    def step(carry, inp):
-        # a failed predict keeps its prior and flags the step whose prior it made: this one
-        # with predict_first, else the next (``pending``)
-        state, _, pending = carry
-        u, z, mk, cq, rt = inp
-        cq = cq if q_step else CQ
-        rt = rt if r_step else Ra
-        if predict_first:
-            state, p_status = predict(state, f, u, None, *args, points=rule, Q_chol=cq, return_status=True)
-        else:
-            p_status = pending
-        post, info = update(state, z, h, rt, *args, residual=residual, mask=mk, gate=gate, points=rule)
-        if predict_first:
-            nxt = post
-        else:
-            nxt, pending = predict(post, f, u, None, *args, points=rule, Q_chol=cq, return_status=True)
-        out = (post.mean, jnp.sum(post.chol**2, axis=1), post.chol if save_chol else None,
-               info.nis, info.dof, info.status | p_status)
-        return (nxt, post, pending), out
+    arrays, rebuild, key = split_arrays((args, gate))
 
-    xs = (us, zs, masks, CQ if q_step else None, Ra if r_step else None)
-    init = SqrtGaussian(x0, L0)
-    (_, final, _), (means, diags, chols, nis, dof, status) = jax.lax.scan(
-        step, (init, init, jnp.zeros((), jnp.int32)), xs, length=T)
-    return SqrtPosterior(means, diags, chols, nis, dof, status, final)
+    def scan(arrs, x0, L0, CQ, us, zs, masks, Ra):
+        args, gate = rebuild(*arrs)
+
+        def step(carry, inp):
+            # a failed predict keeps its prior and flags the step whose prior it made: this one
+            # with predict_first, else the next (``pending``)
+            state, _, pending = carry
+            u, z, mk, cq, rt = inp
+            cq = cq if q_step else CQ
+            rt = rt if r_step else Ra
+            if predict_first:
+                state, p_status = predict(state, f, u, None, *args, points=rule, Q_chol=cq, return_status=True)
+            else:
+                p_status = pending
+            post, info = update(state, z, h, rt, *args, residual=residual, mask=mk, gate=gate, points=rule)
+            if predict_first:
+                nxt = post
+            else:
+                nxt, pending = predict(post, f, u, None, *args, points=rule, Q_chol=cq, return_status=True)
+            out = (post.mean, jnp.sum(post.chol**2, axis=1), post.chol if save_chol else None,
+                   info.nis, info.dof, info.status | p_status)
+            return (nxt, post, pending), out
+
+        xs = (us, zs, masks, CQ if q_step else None, Ra if r_step else None)
+        init = SqrtGaussian(x0, L0)
+        (_, final, _), (means, diags, chols, nis, dof, status) = jax.lax.scan(
+            step, (init, init, jnp.zeros((), jnp.int32)), xs, length=zs.shape[0])
+        return SqrtPosterior(means, diags, chols, nis, dof, status, final)
+
+    # called eagerly: compiled once per model, options and shapes
+    return call_compiled(("sqrt_ukf.filter_scan", f, h, residual, rule, predict_first, save_chol, q_step,
+                          r_step, key), scan, (arrays, x0, L0, CQ, us, zs, masks, Ra))

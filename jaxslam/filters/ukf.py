@@ -533,7 +533,12 @@ def make_filter(
         return update(state, z, hh, R, *args, residual=residual, mask=mask, gate=gate,
                       points=rule)
 
-    return GaussianFilter(pred, upd)
+    # a run of it compiles once per model, however often the filter is made again
+    return _g.keyed_filter(
+        GaussianFilter(pred, upd),
+        lambda a, g, nj: make_filter(f, h, *a, residual=residual, gate=g, noise_jac=nj, points=rule,
+                                     h_takes_input=h_takes_input),
+        (args, gate, noise_jac), ("ukf.make_filter", f, h, residual, rule, h_takes_input))
 
 
 def filter_scan(
@@ -561,7 +566,9 @@ def filter_scan(
     Step t (``predict_first=True``): predict with ``u_t`` (:func:`predict`), then update with
     ``z_t`` under ``masks[t]`` (:func:`update`).  Jit it with ``f``, ``h``, ``residual``, a
     callable ``gate``, ``save_cov``, ``predict_first``, ``points`` and ``save_smoother``
-    static; vmap it over runs.  The same run as ``gaussian.run(make_filter(f, h, ...), ...)``.
+    static; vmap it over runs.  Called eagerly it is compiled once per model
+    (:func:`jaxslam.compilation.call_compiled`).  The same run as
+    ``gaussian.run(make_filter(f, h, ...), ...)``.
 
     Args:
         f: transition ``f(x, u, *args) -> (n,)`` (None: the state does not move).

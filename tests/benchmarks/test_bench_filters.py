@@ -1,5 +1,5 @@
 """benchmarks/bench_filters.py: its NumPy EKF reference is the same filter, and the run returns
-the bench JSON shape (a tiny run: ten small programs, ~3 s)."""
+the bench JSON shape (a tiny run: ten small programs and the eager calls, ~10 s)."""
 
 import argparse
 import pathlib
@@ -8,6 +8,8 @@ import sys
 import jax
 import numpy as np
 import pytest
+
+from jaxslam import compilation
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[2] / "benchmarks"))
 
@@ -40,3 +42,8 @@ def test_bench_run_shape():
     assert cases[0] == "ekf" and "rts_pass" in cases and "numpy_ekf_loop" in cases
     assert out["results"][-1]["max_abs_diff_means"] < 1e-10
     assert out["targets"][0]["name"] == "rts_pass_vs_filter"
+    eager = {(r["case"], r["persistent_cache"]): r for r in out["eager_calls"]}
+    assert {c for c, _ in eager} == {"ekf", "ukf", "ekf+rts", "fixed_lag_5", "iterated_smoother_2"}
+    assert (("ekf", False) in eager) and (("ekf", True) in eager) == (compilation.enabled_dir() is not None)
+    assert all(r["first_call_s"] > 0 and r["repeat_s"] > 0 and r["repeat_uncompiled_s"] > 0
+               for r in eager.values())
