@@ -81,6 +81,7 @@ from .. import errors
 from ..errors import InputError, check_flag, check_int
 from ..linalg import check_mask, check_psd, is_concrete, symmetrize, value_and_jacfwd, wrap_angle
 from ..stats import chi2_ppf_np
+from ..compilation import call_compiled
 from . import gaussian as _g
 from .gaussian import (
     Gate,
@@ -291,8 +292,23 @@ def predict(state: Gaussian, f: Callable, u, Q, *args, noise_jac=None) -> Gaussi
             ``L(x, u, *args) -> (n, q)`` evaluated at the prior mean.
 
     Returns:
-        Predicted :class:`Gaussian` in the dtype of ``state.mean``.
+        Predicted :class:`Gaussian` in the dtype of ``state.mean``.  Called eagerly it is
+        compiled once per model (:func:`jaxslam.compilation.call_compiled`): a loop of eager
+        steps runs compiled programs.
     """
+    state = check_state(state)
+    _g.check_noise_values(Q, "Q")  # (traced in the compiled step: checked here, while it is known)
+    arrays, rebuild, key = _g.split_arrays((u, args, noise_jac))
+
+    def step(state, Q, arrays):
+        u, a, nj = rebuild(*arrays)
+        return _predict(state, f, u, Q, *a, noise_jac=nj)
+
+    return call_compiled(("ekf.predict", f, key), step, (state, Q, arrays))
+
+
+def _predict(state: Gaussian, f: Callable, u, Q, *args, noise_jac=None) -> Gaussian:
+    """:func:`predict`'s computation (its checks of shapes; values are checked by the caller)."""
     x, P = check_state(state)
     dtype = x.dtype
     xn, F = value_and_jacfwd(lambda v: jnp.asarray(f(v, u, *args)))(x)
@@ -371,10 +387,26 @@ def update(
         ``(posterior Gaussian, UpdateInfo)``.  On a failed Cholesky or a negative
         posterior variance (``NOT_PSD``: e.g. an indefinite prior under ``jit``, where it is
         not checked) or a non-finite posterior (``NON_FINITE``) the prior is returned
-        unchanged.
+        unchanged.  Called eagerly it is compiled once per model
+        (:func:`jaxslam.compilation.call_compiled`).
     """
     check_num_iter(num_iter)
     check_gate(gate)
+    state = check_state(state)
+    check_update_args(z, R, mask)
+    check_gate_size(gate, np.shape(z)[-1] if np.ndim(z) else 1, mask)  # while the mask is known
+    arrays, rebuild, key = _g.split_arrays((args, gate, tol))
+
+    def step(state, z, R, mask, arrays):
+        a, g, t = rebuild(*arrays)
+        return _update(state, z, h, R, *a, residual=residual, mask=mask, gate=g, num_iter=num_iter, tol=t)
+
+    return call_compiled(("ekf.update", h, residual, num_iter, key), step, (state, z, R, mask, arrays))
+
+
+def _update(state: Gaussian, z, h: Callable, R, *args, residual=None, mask=None, gate: Gate = None,
+            num_iter: int = 1, tol=None):
+    """:func:`update`'s computation (shape checks; values are checked by the caller)."""
     state = check_state(state)
     x, P = state
     dtype = x.dtype
@@ -509,7 +541,7 @@ def update_batch(
     if sequential:
         def body(carry, inp):
             z_i, R_i, mask_i, a_i = inp
-            post, info = update(
+            post, info = _update(
                 carry, z_i, h, R_i, *a_i, residual=res, mask=mask_i, gate=gate
             )
             return post, info
@@ -617,8 +649,8 @@ def make_filter(
 
     def upd(state, z, mask, R, c):
         hh = (lambda x, *a: h(x, c, *a)) if h_takes_input else h
-        return update(state, z, hh, R, *args, residual=residual, mask=mask, gate=gate,
-                      num_iter=num_iter)
+        return _update(state, z, hh, R, *args, residual=residual, mask=mask, gate=gate,
+                       num_iter=num_iter)
 
     # a run of it compiles once per model, however often the filter is made again
     return _g.keyed_filter(

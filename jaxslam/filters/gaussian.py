@@ -728,12 +728,14 @@ def filter_recipe(flt: GaussianFilter):
 
 
 def split_arrays(tree):
-    """``(arrays, rebuild, key)``: the array leaves of ``tree`` (the arguments of a compiled
-    run), ``rebuild(*arrays)`` putting them back, and a hashable ``key`` of the rest (the
-    structure and the other leaves by type and value: numbers, callables, None stay static, as
-    in an uncompiled call).  An unhashable leaf makes ``key`` unhashable, and the run eager."""
+    """``(arrays, rebuild, key)``: the array and number leaves of ``tree`` (the arguments of a
+    compiled run: a new value never recompiles), ``rebuild(*arrays)`` putting them back, and a
+    hashable ``key`` of the rest (the structure and the other leaves by type and value:
+    callables, strings, bools, None stay static, as in an uncompiled call).  An unhashable leaf
+    makes ``key`` unhashable, and the run eager."""
     leaves, treedef = jax.tree_util.tree_flatten(tree)
-    is_array = tuple(isinstance(v, (jax.Array, np.ndarray, np.generic)) for v in leaves)
+    is_array = tuple(isinstance(v, (jax.Array, np.ndarray, np.generic, int, float, complex))
+                     and not isinstance(v, bool) for v in leaves)
     static = tuple(None if a else (type(v), v) for v, a in zip(leaves, is_array))
     arrays = tuple(v for v, a in zip(leaves, is_array) if a)
 

@@ -105,6 +105,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import errors
+from ..compilation import call_compiled
 from ..errors import InputError, check_flag
 from ..linalg import check_numbers, check_psd, is_concrete, symmetrize
 from . import gaussian as _g
@@ -352,7 +353,7 @@ def predict_with_cross(state: Gaussian, f: Optional[Callable], u, Q, *args,
         and ``C = P`` (no NaN).
     """
     return_status = check_flag(return_status, "return_status")
-    g, C, status = _predict(state, f, u, Q, args, _rule(points), noise_jac)
+    g, C, status = _predict_step(state, f, u, Q, args, _rule(points), noise_jac)
     return (g, C, status) if return_status else (g, C)
 
 
@@ -382,8 +383,22 @@ def predict(state: Gaussian, f: Optional[Callable], u, Q, *args,
         (``NON_FINITE``) the prior is returned unchanged.
     """
     return_status = check_flag(return_status, "return_status")
-    g, _, status = _predict(state, f, u, Q, args, _rule(points), noise_jac)
+    g, _, status = _predict_step(state, f, u, Q, args, _rule(points), noise_jac)
     return (g, status) if return_status else g
+
+
+def _predict_step(state: Gaussian, f: Optional[Callable], u, Q, args, rule: SigmaPoints, noise_jac):
+    """:func:`_predict` after the checks of values known now; called eagerly, compiled once per
+    model (:func:`jaxslam.compilation.call_compiled`)."""
+    state = check_state(state)
+    _g.check_noise_values(Q, "Q")  # (traced in the compiled step: checked here, while it is known)
+    arrays, rebuild, key = _g.split_arrays((u, args, noise_jac))
+
+    def step(state, Q, arrays):
+        u, a, nj = rebuild(*arrays)
+        return _predict(state, f, u, Q, a, rule, nj)
+
+    return call_compiled(("ukf.predict", f, rule, key), step, (state, Q, arrays))
 
 
 # ---------------------------------------------------------------------------
@@ -446,10 +461,26 @@ def update(
         ``(posterior Gaussian, UpdateInfo)``.  If the factor of ``P`` or of ``S`` is not
         finite or a posterior variance is negative (``NOT_PSD``; NIS and ``logdet`` then 0 for
         a failed factor) or the posterior is not finite (``NON_FINITE``), the prior is
-        returned unchanged.
+        returned unchanged.  Called eagerly it is compiled once per model
+        (:func:`jaxslam.compilation.call_compiled`).
     """
     rule = _rule(points)
     check_gate(gate)
+    state = check_state(state)
+    check_update_args(z, R, mask)
+    check_gate_size(gate, np.shape(z)[-1] if np.ndim(z) else 1, mask)  # while the mask is known
+    arrays, rebuild, key = _g.split_arrays((args, gate))
+
+    def step(state, z, R, mask, arrays):
+        a, g = rebuild(*arrays)
+        return _update(state, z, h, R, *a, residual=residual, mask=mask, gate=g, rule=rule)
+
+    return call_compiled(("ukf.update", h, residual, rule, key), step, (state, z, R, mask, arrays))
+
+
+def _update(state: Gaussian, z, h: Callable, R, *args, residual=None, mask=None, gate: Gate = None,
+            rule: SigmaPoints):
+    """:func:`update`'s computation (shape checks; values are checked by the caller)."""
     x, P = check_state(state)
     dtype = x.dtype
     check_update_args(z, R, mask)
@@ -530,8 +561,7 @@ def make_filter(
 
     def upd(state, z, mask, R, c):
         hh = (lambda x, *a: h(x, c, *a)) if h_takes_input else h
-        return update(state, z, hh, R, *args, residual=residual, mask=mask, gate=gate,
-                      points=rule)
+        return _update(state, z, hh, R, *args, residual=residual, mask=mask, gate=gate, rule=rule)
 
     # a run of it compiles once per model, however often the filter is made again
     return _g.keyed_filter(

@@ -43,7 +43,8 @@ def test_bench_run_shape():
     assert out["results"][-1]["max_abs_diff_means"] < 1e-10
     assert out["targets"][0]["name"] == "rts_pass_vs_filter"
     eager = {(r["case"], r["persistent_cache"]): r for r in out["eager_calls"]}
-    assert {c for c, _ in eager} == {"ekf", "ukf", "ekf+rts", "fixed_lag_5", "iterated_smoother_2"}
+    assert {c for c, _ in eager} == {"ekf", "ukf", "ekf+rts", "fixed_lag_5", "iterated_smoother_2",
+                                     "ekf_step_loop_50", "ukf_step_loop_50"}
     assert (("ekf", False) in eager) and (("ekf", True) in eager) == (compilation.enabled_dir() is not None)
     assert all(r["first_call_s"] > 0 and r["repeat_s"] > 0 and r["repeat_uncompiled_s"] > 0
                for r in eager.values())
