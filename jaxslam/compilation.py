@@ -570,17 +570,20 @@ def at_top_level() -> bool:
         return False
 
 
-def call_compiled(key, fn, args, static=None):
-    """``fn(*args, **static)``; called eagerly, through a program compiled once per ``key``.
+def call_compiled(key, fn, args, *, after: int = 1):
+    """``fn(*args)``; called eagerly, through a program compiled once per ``key``.
 
     A whole run (a ``lax.scan`` over a log) called outside any transformation re-traces and
     re-compiles its scan on every call: 0.43-0.56 s for a two-state EKF over 200 steps on
-    this project's machine, where the compiled program takes 1.5 ms.  Here the first eager
-    call with a given ``key`` compiles ``jax.jit(fn)`` (``static``'s names static) and later
-    calls with the same key and argument shapes and dtypes run the compiled program.  ``key``
-    (hashable) must name everything ``fn`` closes over that is not in ``args`` or ``static``
+    this project's machine, where the compiled program takes 1.5 ms.  Here the ``after``-th
+    eager call with a given ``key`` compiles ``jax.jit(fn)`` and later calls with the same key
+    and argument shapes and dtypes run the compiled program; the calls before it run ``fn``
+    as it is.  ``after=1`` suits a run, whose uncompiled call compiles its scan anyway;
+    ``after=2`` a single step, which runs op by op in a few ms uncompiled: a model made anew
+    for every call (a lambda written inside the caller's loop) is then never compiled in
+    vain.  ``key`` (hashable) must name everything ``fn`` closes over that is not in ``args``
     (the model's functions, static options): a later call with an equal key runs the *first*
-    call's ``fn``, retraced when the shapes differ, so ``fn`` takes every size from its
+    compiled ``fn``, retraced when the shapes differ, so ``fn`` takes every size from its
     arguments, never from its closure.  The 16 most recent keys are kept (their programs with
     them).
 
@@ -589,32 +592,30 @@ def call_compiled(key, fn, args, static=None):
     arithmetic (a user's model branching in Python on an argument: JAX's concretization
     errors), ``fn`` runs as it always did, uncompiled.
     """
-    static = {} if static is None else dict(static)
     if not at_top_level():
-        return fn(*args, **static)
+        return fn(*args)
     try:
         hash(key)
-        hash(tuple(sorted(static.items())))
     except TypeError:
-        return fn(*args, **static)
+        return fn(*args)
     import jax
 
     with _eager_lock:
-        jitted = _eager.pop(key, None)
-        if jitted is None:
-            jitted = jax.jit(fn, static_argnames=tuple(static))
-        _eager[key] = jitted  # most recent last
+        entry = _eager.pop(key, 0)
+        if isinstance(entry, int):  # calls so far, none compiled
+            entry = jax.jit(fn) if entry + 1 >= after else entry + 1
+        _eager[key] = entry  # most recent last
         while len(_eager) > _EAGER_MAX:
             _eager.pop(next(iter(_eager)))
-    if jitted is _EAGER_ONLY:
-        return fn(*args, **static)
+    if isinstance(entry, int) or entry is _EAGER_ONLY:
+        return fn(*args)
     try:
-        return jitted(*args, **static)
+        return entry(*args)
     except (jax.errors.ConcretizationTypeError, jax.errors.TracerIntegerConversionError,
             jax.errors.TracerArrayConversionError):
         with _eager_lock:
             _eager[key] = _EAGER_ONLY
-        return fn(*args, **static)
+        return fn(*args)
 
 
 _EAGER_ONLY = object()  # a key whose fn needs concrete closure values: always eager

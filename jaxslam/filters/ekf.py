@@ -304,7 +304,7 @@ def predict(state: Gaussian, f: Callable, u, Q, *args, noise_jac=None) -> Gaussi
         u, a, nj = rebuild(*arrays)
         return _predict(state, f, u, Q, *a, noise_jac=nj)
 
-    return call_compiled(("ekf.predict", f, key), step, (state, Q, arrays))
+    return call_compiled(("ekf.predict", f, key), step, (state, Q, arrays), after=2)
 
 
 def _predict(state: Gaussian, f: Callable, u, Q, *args, noise_jac=None) -> Gaussian:
@@ -401,7 +401,8 @@ def update(
         a, g, t = rebuild(*arrays)
         return _update(state, z, h, R, *a, residual=residual, mask=mask, gate=g, num_iter=num_iter, tol=t)
 
-    return call_compiled(("ekf.update", h, residual, num_iter, key), step, (state, z, R, mask, arrays))
+    return call_compiled(("ekf.update", h, residual, num_iter, key), step, (state, z, R, mask, arrays),
+                         after=2)
 
 
 def _update(state: Gaussian, z, h: Callable, R, *args, residual=None, mask=None, gate: Gate = None,

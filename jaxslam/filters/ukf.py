@@ -398,7 +398,7 @@ def _predict_step(state: Gaussian, f: Optional[Callable], u, Q, args, rule: Sigm
         u, a, nj = rebuild(*arrays)
         return _predict(state, f, u, Q, a, rule, nj)
 
-    return call_compiled(("ukf.predict", f, rule, key), step, (state, Q, arrays))
+    return call_compiled(("ukf.predict", f, rule, key), step, (state, Q, arrays), after=2)
 
 
 # ---------------------------------------------------------------------------
@@ -475,7 +475,8 @@ def update(
         a, g = rebuild(*arrays)
         return _update(state, z, h, R, *a, residual=residual, mask=mask, gate=g, rule=rule)
 
-    return call_compiled(("ukf.update", h, residual, rule, key), step, (state, z, R, mask, arrays))
+    return call_compiled(("ukf.update", h, residual, rule, key), step, (state, z, R, mask, arrays),
+                         after=2)
 
 
 def _update(state: Gaussian, z, h: Callable, R, *args, residual=None, mask=None, gate: Gate = None,
