@@ -588,9 +588,10 @@ def call_compiled(key, fn, args, *, after: int = 1):
     them).
 
     Called under a transformation (the caller's own ``jit``, ``grad``, ``vmap``), with an
-    unhashable key, or with a key whose ``fn`` needed concrete values in its closure's
-    arithmetic (a user's model branching in Python on an argument: JAX's concretization
-    errors), ``fn`` runs as it always did, uncompiled.
+    unhashable key, or with a key whose compiled call raised a ``TypeError`` or
+    ``OverflowError`` (a user's model branching in Python on an argument: JAX's concretization
+    errors; an argument JAX cannot take), ``fn`` runs as it always did, uncompiled — and so
+    raises the caller's own error, if it was one.
     """
     if not at_top_level():
         return fn(*args)
@@ -611,8 +612,10 @@ def call_compiled(key, fn, args, *, after: int = 1):
         return fn(*args)
     try:
         return entry(*args)
-    except (jax.errors.ConcretizationTypeError, jax.errors.TracerIntegerConversionError,
-            jax.errors.TracerArrayConversionError):
+    except (TypeError, OverflowError):
+        # JAX's concretization errors (TypeErrors), an argument JAX cannot take (a string
+        # array, an int beyond int32 without x64): the uncompiled call, which raises the
+        # same error again if it was the caller's own
         with _eager_lock:
             _eager[key] = _EAGER_ONLY
         return fn(*args)

@@ -273,7 +273,7 @@ def linear_update_shared(xs, P, nus, H, R, mask):
 # Predict
 # ---------------------------------------------------------------------------
 
-def predict(state: Gaussian, f: Callable, u, Q, *args, noise_jac=None) -> Gaussian:
+def predict(state: Gaussian, f: Callable, u, Q, *args, noise_jac=None, return_status: bool = False):
     """EKF time update (paper 003 eq. 4-5; discrete form of paper 000 eq. 26-28).
 
     ``x' = f(x, u, *args)``, ``F = ∂f/∂x`` at the prior mean (``jax.jacfwd``),
@@ -290,21 +290,32 @@ def predict(state: Gaussian, f: Callable, u, Q, *args, noise_jac=None) -> Gaussi
         *args: extra arguments passed to ``f`` (and ``noise_jac``).
         noise_jac: None, an (n, q) matrix ``L``, or a callable
             ``L(x, u, *args) -> (n, q)`` evaluated at the prior mean.
+        return_status: static; also return the int32 status word of the prediction:
+            ``NON_FINITE`` when the predicted mean or a variance is not finite, ``NOT_PSD``
+            when a variance is negative (a traced negative ``Q``; a concrete one is an
+            :class:`InputError`).  The moments are returned as computed, as a run keeps them
+            (its step reports the same covariance bits in its status).
 
     Returns:
-        Predicted :class:`Gaussian` in the dtype of ``state.mean``.  Called eagerly it is
-        compiled once per model (:func:`jaxslam.compilation.call_compiled`): a loop of eager
-        steps runs compiled programs.
+        Predicted :class:`Gaussian` in the dtype of ``state.mean`` (and the status).  Called
+        eagerly it is compiled once per model (:func:`jaxslam.compilation.call_compiled`): a
+        loop of eager steps runs compiled programs.
     """
+    return_status = check_flag(return_status, "return_status")
     state = check_state(state)
     _g.check_noise_values(Q, "Q")  # (traced in the compiled step: checked here, while it is known)
     arrays, rebuild, key = _g.split_arrays((u, args, noise_jac))
 
     def step(state, Q, arrays):
         u, a, nj = rebuild(*arrays)
-        return _predict(state, f, u, Q, *a, noise_jac=nj)
+        g = _predict(state, f, u, Q, *a, noise_jac=nj)
+        if not return_status:
+            return g
+        i32 = jnp.int32
+        bad_mean = jnp.where(jnp.all(jnp.isfinite(g.mean)), i32(0), i32(errors.NON_FINITE))
+        return g, _g.predicted_status(g.cov) | bad_mean
 
-    return call_compiled(("ekf.predict", f, key), step, (state, Q, arrays), after=2)
+    return call_compiled(("ekf.predict", f, return_status, key), step, (state, Q, arrays), after=2)
 
 
 def _predict(state: Gaussian, f: Callable, u, Q, *args, noise_jac=None) -> Gaussian:

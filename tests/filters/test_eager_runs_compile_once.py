@@ -135,6 +135,19 @@ def test_a_model_that_branches_in_python_on_an_argument_still_runs():
         np.testing.assert_allclose(np.asarray(out.means), np.asarray(ref.means), rtol=1e-12)
 
 
+def test_an_argument_jax_cannot_take_runs_uncompiled():
+    """A string array among ``*args`` cannot be an argument of a compiled program (JAX raises a
+    TypeError): the run goes back to the uncompiled scan, where the model reads it as before."""
+    def hs(x, names):
+        return jnp.sin(x[:1]) * (2.0 if names[0] == "double" else 1.0)
+
+    x0, P0, zs, mk = _data()
+    for names, scale in ((np.asarray(["double"]), 2.0), (np.asarray(["single"]), 1.0)):
+        out = ekf.filter_scan(lambda x, u, n: f(x, u), hs, x0, P0, None, zs, mk, Q, R, names)
+        ref = ekf.filter_scan(f, lambda x: scale * jnp.sin(x[:1]), x0, P0, None, zs, mk, Q, R)
+        np.testing.assert_allclose(np.asarray(out.means), np.asarray(ref.means), rtol=1e-12)
+
+
 def test_an_unhashable_model_runs_uncompiled():
     class H:  # __eq__ without __hash__: unhashable, so it cannot key a compiled program
         def __eq__(self, other):

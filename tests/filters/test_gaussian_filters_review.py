@@ -267,3 +267,22 @@ def test_sqrt_ekf_predict_reads_a_scalar_q_of_one_state_as_ekf_predict_does():
 
     out = se_.predict(se_.SqrtGaussian(jnp.array([1.0]), jnp.eye(1)), lambda x, u: 2.0 * x, None, 0.1)
     np.testing.assert_allclose(np.asarray(out.chol) ** 2, [[4.1]], rtol=1e-14)  # F P Fᵀ + Q, F = 2
+
+
+def test_ekf_predict_reports_its_status_like_the_sigma_point_predict():
+    """``ekf.predict(..., return_status=True)``: 0 for a good step; ``NOT_PSD`` for a traced
+    negative Q (a concrete one is refused before); ``NON_FINITE`` for a transition that returns
+    NaN — the bits a run puts in its step's status, now visible from a single step (it had no
+    status at all).  The moments are as computed."""
+    s = _s()
+    out, st = ekf.predict(s, lambda x, u: x + u, jnp.ones(2), Q, return_status=True)
+    assert int(st) == 0
+    np.testing.assert_allclose(np.asarray(out.mean), np.asarray(s.mean) + 1.0)
+    np.testing.assert_allclose(np.asarray(out.cov), np.asarray(s.cov + Q), rtol=1e-12)
+    neg = jax.jit(lambda q: ekf.predict(s, lambda x, u: x, None, q, return_status=True))(-100.0 * jnp.eye(2))
+    assert int(neg[1]) == errors.NOT_PSD
+    nan = ekf.predict(s, lambda x, u: x * jnp.nan, None, Q, return_status=True)
+    assert int(nan[1]) & errors.NON_FINITE
+    with pytest.raises(InputError, match="return_status"):
+        ekf.predict(s, lambda x, u: x, None, Q, return_status="no")
+    assert isinstance(ekf.predict(s, lambda x, u: x, None, Q), ekf.Gaussian)  # the default: moments only
