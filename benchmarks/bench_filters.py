@@ -42,6 +42,9 @@ def add_arguments(parser):
     parser.add_argument("--repeats", type=int, default=7, help="timed repeats (median; default 7)")
     parser.add_argument("--lag", type=int, default=20, help="fixed-lag smoother lag (default 20)")
     parser.add_argument("--iters", type=int, default=5, help="iterated smoother iterations (default 5)")
+    parser.add_argument("--eager", choices=("both", "off", "none"), default="both",
+                        help="eager-call measurements: with the persistent cache as this process has it "
+                             "and off (both, default), off only, or none")
 
 
 DT = 0.1
@@ -87,7 +90,7 @@ def _numpy_ekf(us, zs):
     return out
 
 
-def _eager_calls(cases, repeats):
+def _eager_calls(cases, repeats, which="both"):
     """The same runs called eagerly (no jit of the caller's): the first call (trace + compile),
     a repeated call (the program :func:`jaxslam.compilation.call_compiled` kept) and, as the
     same-process reference, a repeated call with that program bypassed — the uncompiled scan
@@ -103,7 +106,7 @@ def _eager_calls(cases, repeats):
 
     rows = []
     folder = compilation.enabled_dir()
-    modes = ([True] if folder is not None else []) + [False]
+    modes = ([True] if folder is not None and which == "both" else []) + ([False] if which != "none" else [])
     try:
         for cache_on in modes:
             if not cache_on:
@@ -200,7 +203,7 @@ def run(args):
                                          f"iterated_smoother_{args.iters}")}
     eager_cases["ekf_step_loop_50"] = lambda: step_loop(ekf)
     eager_cases["ukf_step_loop_50"] = lambda: step_loop(ukf)
-    eager = _eager_calls(eager_cases, args.repeats)
+    eager = _eager_calls(eager_cases, args.repeats, getattr(args, "eager", "both"))
     np_means = _numpy_ekf(us_np, zs_np)  # the untimed warm-up call, as every JAX case has one
     t_np = median_s(lambda: _numpy_ekf(us_np, zs_np), max(1, args.repeats // 2))
     ekf_means = np.asarray(jax.jit(cases["ekf"])())
