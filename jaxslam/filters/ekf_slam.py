@@ -1701,6 +1701,7 @@ def run(model: SlamModel, state: SlamState, log: SlamLog, Q, R, *, association: 
     q_step, r_step = Qa is not None and Qa.ndim == 3, Ra.ndim == 3
     can_register = register_new and model.inverse is not None
 
+    _check_options(gate=gate)  # the value known now, checked now: the compiled run sees it traced
     arrays, rebuild, key = split_arrays((gate, nn_gate, nn_new))
 
     def scan(arrs, state, u, z, ids, mask, params, Qa, Ra):

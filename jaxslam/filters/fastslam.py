@@ -1226,6 +1226,11 @@ def run(p0: Particles, key, sample_fn: Optional[Callable], inputs, model: Landma
         mask_key = None if wrap is None else (wrap.shape, wrap.dtype.str, tuple(wrap.ravel().tolist()))
     except (TypeError, ValueError):
         mask_key = []  # unhashable: an uncompiled run, which reports the mask
+    # the values known now, checked now: the compiled run sees them traced
+    check_gate(gate)
+    _check_robust(robust)
+    if threshold is not None:
+        _check_fraction(threshold, "threshold")
     arrays, rebuild, opts_key = split_arrays((params, gate, threshold, robust))
 
     def scan(arrs, p0, key, inputs, zs, lm_ids, masks, R_t):

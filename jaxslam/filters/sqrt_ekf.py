@@ -640,6 +640,7 @@ def filter_scan(
     T, m = zs.shape
     masks = jnp.ones((T, m), bool) if masks is None else jnp.asarray(masks, bool)
 
+    check_gate(gate)  # the value known now, checked now: the compiled run sees it traced
     arrays, rebuild, key = split_arrays((args, gate, noise_jac))
 
     def scan(arrs, x0, L0, C, us, zs, masks, R):

@@ -312,3 +312,31 @@ def test_a_model_made_anew_at_every_step_is_not_compiled_in_vain():
         if t > 0:
             assert acc.result.programs == 0 and acc.result.trace_s < 0.05, (t, acc.result)
     assert bool(jnp.all(jnp.isfinite(st.mean)))
+
+
+def test_option_values_known_at_the_call_are_still_checked_by_the_compiled_runs():
+    """Numbers among a run's options are arguments of its compiled program (a new gate never
+    recompiles), so the program sees them traced; the runs check them before, as they did when
+    each eager call was traced with the values in hand (a negative or NaN gate, a resampling
+    threshold outside [0, 1], a Student-t ν ≤ 0)."""
+    from jaxslam.errors import InputError
+
+    model, log = _slam_case(T=5, K=2)
+    st = es.init(jnp.zeros(2), jnp.eye(2), 4, 2)
+    es.run(model, st, log, 0.01 * np.eye(2), 0.1 * np.eye(2), gate=9.21)  # compiled and kept
+    for bad in (-1.0, float("nan")):
+        with pytest.raises(InputError, match=r"^gate: "):
+            es.run(model, st, log, 0.01 * np.eye(2), 0.1 * np.eye(2), gate=bad)
+    fmodel = fs.LandmarkModel(2, 2, lambda pose, lm, p=None: lm - pose[:2], lambda pose, z, p=None: pose[:2] + z)
+    u = np.zeros((5, 3))
+    p0 = fs.init(np.zeros(3), 8, 4, 2)
+    args = (p0, jax.random.PRNGKey(0), _sample, (u,), fmodel, log.z, np.arange(2), log.mask, 0.01 * np.eye(2))
+    fs.run(*args, threshold=0.5, gate=9.21, robust=4.0)  # compiled and kept
+    for kw, name in ((dict(threshold=1.5), "threshold"), (dict(robust=-1.0), "robust"),
+                     (dict(gate=float("nan")), "gate")):
+        with pytest.raises(InputError, match=rf"^{name}: "):
+            fs.run(*args, **{**dict(threshold=0.5, gate=9.21, robust=4.0), **kw})
+    x0, P0, zs, mk = _data()
+    sqrt_ekf.filter_scan(f, h, x0, P0, None, zs, mk, Q, R, gate=9.0)
+    with pytest.raises(InputError, match=r"^gate: "):
+        sqrt_ekf.filter_scan(f, h, x0, P0, None, zs, mk, Q, R, gate=-9.0)
