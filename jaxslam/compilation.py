@@ -56,6 +56,7 @@ __all__ = [
     "compile_program",
     "clear_programs",
     "call_compiled",
+    "split_arrays",
     "at_top_level",
     "CACHE_ENV",
     "CACHE_DIR_ENV",
@@ -570,8 +571,9 @@ def at_top_level() -> bool:
         return False
 
 
-def call_compiled(key, fn, args, *, after: int = 1):
-    """``fn(*args)``; called eagerly, through a program compiled once per ``key``.
+def call_compiled(key, fn, args, options=None, *, after: int = 1):
+    """``fn(*args)``, or ``fn(options, *args)``; called eagerly, through a program compiled once
+    per ``key``.
 
     A whole run (a ``lax.scan`` over a log) called outside any transformation re-traces and
     re-compiles its scan on every call: 0.43-0.56 s for a two-state EKF over 200 steps on
@@ -587,12 +589,22 @@ def call_compiled(key, fn, args, *, after: int = 1):
     arguments, never from its closure.  The 16 most recent keys are kept (their programs with
     them).
 
+    ``options`` (a pytree, or None: not passed): the arrays and numbers in it are arguments of
+    the compiled program (a new value never recompiles), the rest — its structure, callables,
+    strings, bools — joins the key (:func:`split_arrays`).
+
     Called under a transformation (the caller's own ``jit``, ``grad``, ``vmap``), with an
     unhashable key, or with a key whose compiled call raised a ``TypeError`` or
     ``OverflowError`` (a user's model branching in Python on an argument: JAX's concretization
     errors; an argument JAX cannot take), ``fn`` runs as it always did, uncompiled — and so
     raises the caller's own error, if it was one.
     """
+    if options is not None:
+        if not at_top_level():
+            return fn(options, *args)
+        arrays, rebuild, okey = split_arrays(options)
+        return call_compiled((key, okey), lambda arrs, *a: fn(rebuild(*arrs), *a), (arrays, *args),
+                             after=after)
     if not at_top_level():
         return fn(*args)
     try:
@@ -622,3 +634,26 @@ def call_compiled(key, fn, args, *, after: int = 1):
 
 
 _EAGER_ONLY = object()  # a key whose fn needs concrete closure values: always eager
+
+
+def split_arrays(tree):
+    """``(arrays, rebuild, key)``: the array and number leaves of ``tree`` (the arguments of a
+    compiled program: a new value never recompiles), ``rebuild(*arrays)`` putting them back, and
+    a hashable ``key`` of the rest (the structure and the other leaves by type and value:
+    callables, strings, bools, None stay static, as in an uncompiled call).  An unhashable leaf
+    makes ``key`` unhashable, and the call uncompiled."""
+    import jax
+    import numpy as np
+
+    leaves, treedef = jax.tree_util.tree_flatten(tree)
+    is_array = tuple(isinstance(v, (jax.Array, np.ndarray, np.generic, int, float, complex))
+                     and not isinstance(v, bool) for v in leaves)
+    static = tuple(None if a else (type(v), v) for v, a in zip(leaves, is_array))
+    arrays = tuple(v for v, a in zip(leaves, is_array) if a)
+
+    def rebuild(*arrs):
+        it = iter(arrs)
+        return jax.tree_util.tree_unflatten(
+            treedef, [next(it) if a else st[1] for st, a in zip(static, is_array)])
+
+    return arrays, rebuild, (treedef, is_array, static)

@@ -304,10 +304,8 @@ def predict(state: Gaussian, f: Callable, u, Q, *args, noise_jac=None, return_st
     return_status = check_flag(return_status, "return_status")
     state = check_state(state)
     _g.check_noise_values(Q, "Q")  # (traced in the compiled step: checked here, while it is known)
-    arrays, rebuild, key = _g.split_arrays((u, args, noise_jac))
-
-    def step(state, Q, arrays):
-        u, a, nj = rebuild(*arrays)
+    def step(opts, state, Q):
+        u, a, nj = opts
         g = _predict(state, f, u, Q, *a, noise_jac=nj)
         if not return_status:
             return g
@@ -315,7 +313,7 @@ def predict(state: Gaussian, f: Callable, u, Q, *args, noise_jac=None, return_st
         bad_mean = jnp.where(jnp.all(jnp.isfinite(g.mean)), i32(0), i32(errors.NON_FINITE))
         return g, _g.predicted_status(g.cov) | bad_mean
 
-    return call_compiled(("ekf.predict", f, return_status, key), step, (state, Q, arrays), after=2)
+    return call_compiled(("ekf.predict", f, return_status), step, (state, Q), (u, args, noise_jac), after=2)
 
 
 def _predict(state: Gaussian, f: Callable, u, Q, *args, noise_jac=None) -> Gaussian:
@@ -406,13 +404,11 @@ def update(
     state = check_state(state)
     check_update_args(z, R, mask)
     check_gate_size(gate, np.shape(z)[-1] if np.ndim(z) else 1, mask)  # while the mask is known
-    arrays, rebuild, key = _g.split_arrays((args, gate, tol))
-
-    def step(state, z, R, mask, arrays):
-        a, g, t = rebuild(*arrays)
+    def step(opts, state, z, R, mask):
+        a, g, t = opts
         return _update(state, z, h, R, *a, residual=residual, mask=mask, gate=g, num_iter=num_iter, tol=t)
 
-    return call_compiled(("ekf.update", h, residual, num_iter, key), step, (state, z, R, mask, arrays),
+    return call_compiled(("ekf.update", h, residual, num_iter), step, (state, z, R, mask), (args, gate, tol),
                          after=2)
 
 

@@ -68,7 +68,7 @@ from ..errors import InputError
 from ..linalg import (check_finite, check_int, check_mask, check_psd, check_whole_ids, cholesky_small, is_concrete,
                       put_blocks, small_matmul, symmetrize, take, take_blocks, value_and_jacfwd)
 from ..stats import _student_t_nll, check_student_t_nu
-from .gaussian import check_gate, check_gate_size, check_num_iter, check_real, split_arrays, threshold as _threshold
+from .gaussian import check_gate, check_gate_size, check_num_iter, check_real, threshold as _threshold
 
 __all__ = [
     "SlamModel",
@@ -1702,10 +1702,8 @@ def run(model: SlamModel, state: SlamState, log: SlamLog, Q, R, *, association: 
     can_register = register_new and model.inverse is not None
 
     _check_options(gate=gate)  # the value known now, checked now: the compiled run sees it traced
-    arrays, rebuild, key = split_arrays((gate, nn_gate, nn_new))
-
-    def scan(arrs, state, u, z, ids, mask, params, Qa, Ra):
-        gate, nn_gate, nn_new = rebuild(*arrs)
+    def scan(opts, state, u, z, ids, mask, params, Qa, Ra):
+        gate, nn_gate, nn_new = opts
         dtype = state.x.dtype
         log = SlamLog(u, z, ids, mask, params)
 
@@ -1753,7 +1751,7 @@ def run(model: SlamModel, state: SlamState, log: SlamLog, Q, R, *, association: 
 
     # called eagerly: compiled once per model, options and shapes
     return call_compiled(("ekf_slam.run", model, association, q_fn, q_step, r_step, can_register, save_cov,
-                          save_map, key), scan, (arrays, state, log.u, z, ids, mask, log.params, Qa, Ra))
+                          save_map), scan, (state, log.u, z, ids, mask, log.params, Qa, Ra), (gate, nn_gate, nn_new))
 
 
 __all__ += ["SlamLog", "SlamRun", "run"]

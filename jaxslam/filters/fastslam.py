@@ -109,7 +109,7 @@ from ..compilation import call_compiled
 from ..errors import InputError
 from ..linalg import (check_finite, check_int, check_mask, check_psd, check_whole_ids, cholesky_small, inv_small, is_concrete,
                       symmetrize, value_and_jacfwd, wrap_angle)
-from .gaussian import check_gate, check_gate_size, split_arrays, threshold as _threshold
+from .gaussian import check_gate, check_gate_size, threshold as _threshold
 from ..stats import _student_t_nll
 from . import ekf as _ekf
 from . import resampling as _rs
@@ -1231,10 +1231,8 @@ def run(p0: Particles, key, sample_fn: Optional[Callable], inputs, model: Landma
     _check_robust(robust)
     if threshold is not None:
         _check_fraction(threshold, "threshold")
-    arrays, rebuild, opts_key = split_arrays((params, gate, threshold, robust))
-
-    def scan(arrs, p0, key, inputs, zs, lm_ids, masks, R_t):
-        params, gate, threshold, robust = rebuild(*arrs)
+    def scan(opts, p0, key, inputs, zs, lm_ids, masks, R_t):
+        params, gate, threshold, robust = opts
 
         if proposal == "optimal":
             # the pose covariances ride in aux, so that resampling moves them with their particles
@@ -1280,4 +1278,5 @@ def run(p0: Particles, key, sample_fn: Optional[Callable], inputs, model: Landma
 
     # called eagerly: compiled once per model, options and shapes
     return call_compiled(("fastslam.run", sample_fn, moment_fn, model, proposal, mask_key, weights, scheme,
-                          slot_by_id, solver, opts_key), scan, (arrays, p0, key, inputs, zs, lm_ids, masks, R_t))
+                          slot_by_id, solver), scan, (p0, key, inputs, zs, lm_ids, masks, R_t),
+                         (params, gate, threshold, robust))

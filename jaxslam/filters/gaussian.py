@@ -50,7 +50,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import errors
-from ..compilation import at_top_level, call_compiled
+from ..compilation import at_top_level, call_compiled, split_arrays
 from ..errors import InputError, check_flag
 from ..linalg import check_finite, check_mask, check_numbers, check_psd, check_real, host_array, is_concrete, list_array, symmetrize
 
@@ -704,7 +704,7 @@ def keyed_filter(flt: GaussianFilter, make: Callable, inputs, key) -> GaussianFi
 
     ``make(*inputs)`` must build the same filter (``flt`` is ``make(*inputs)``), and ``key``
     (hashable) must name everything ``make`` closes over.  The array leaves of ``inputs``
-    become arguments of the compiled run (:func:`split_arrays`); the rest joins the key.
+    become arguments of the compiled run (:func:`jaxslam.compilation.split_arrays`); the rest joins the key.
     Without this a run is keyed by ``flt``'s two functions, new with every ``make_filter``
     call: ``run(ekf.make_filter(f, h), ...)`` written inline compiled on every call.  Only
     eager calls register (under a transformation nothing is compiled apart).
@@ -725,26 +725,6 @@ def filter_recipe(flt: GaussianFilter):
     if rec is not None and rec[0] is flt.update:
         return rec[1], rec[2], rec[3]
     return (lambda: flt), (), ("filter", flt)
-
-
-def split_arrays(tree):
-    """``(arrays, rebuild, key)``: the array and number leaves of ``tree`` (the arguments of a
-    compiled run: a new value never recompiles), ``rebuild(*arrays)`` putting them back, and a
-    hashable ``key`` of the rest (the structure and the other leaves by type and value:
-    callables, strings, bools, None stay static, as in an uncompiled call).  An unhashable leaf
-    makes ``key`` unhashable, and the run eager."""
-    leaves, treedef = jax.tree_util.tree_flatten(tree)
-    is_array = tuple(isinstance(v, (jax.Array, np.ndarray, np.generic, int, float, complex))
-                     and not isinstance(v, bool) for v in leaves)
-    static = tuple(None if a else (type(v), v) for v, a in zip(leaves, is_array))
-    arrays = tuple(v for v, a in zip(leaves, is_array) if a)
-
-    def rebuild(*arrs):
-        it = iter(arrs)
-        return jax.tree_util.tree_unflatten(
-            treedef, [next(it) if a else st[1] for st, a in zip(static, is_array)])
-
-    return arrays, rebuild, (treedef, is_array, static)
 
 
 def _scan(flt, x0, P0, us, zs, masks, Q, R, h_inputs, q_step, r_step, predict_first, keep_cov,

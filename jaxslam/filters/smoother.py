@@ -427,10 +427,8 @@ def iterated(
     if damping is not None and is_concrete(damping):
         check_scalar(damping, "damping", lower=0, strict=True)  # λ > 0 (a negative one fails later, NOT_PSD)
     lam = None if damping is None else jnp.asarray(damping, dtype)
-    arrays, rebuild, key = _g.split_arrays((args, noise_jac))
-
-    def solve(arrs, x0, P0, us, zs, masks, Q, R, h_inputs, init, tol_v, lam):
-        args, noise_jac = rebuild(*arrs)
+    def solve(opts, x0, P0, us, zs, masks, Q, R, h_inputs, init, tol_v, lam):
+        args, noise_jac = opts
         dtype = x0.dtype
         n = x0.shape[0]
         m = zs.shape[1]
@@ -536,5 +534,5 @@ def iterated(
 
     # called eagerly: compiled once per model, options and shapes
     return call_compiled(("smoother.iterated", f, h, residual, diff, robust, num_iter, predict_first, save_cov,
-                          q_step, r_step, h_inputs is None, key), solve,
-                         (arrays, x0, P0, us, zs, masks, Q, R, h_inputs, init, tol_v, lam))
+                          q_step, r_step, h_inputs is None), solve,
+                         (x0, P0, us, zs, masks, Q, R, h_inputs, init, tol_v, lam), (args, noise_jac))

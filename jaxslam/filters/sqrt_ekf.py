@@ -101,7 +101,7 @@ from ..linalg import check_finite, check_mask, check_numbers, check_psd, is_conc
 from .ekf import Gaussian, UpdateInfo
 from .gaussian import (call_residual, check_gate, check_gate_size, check_leading, check_measurement,
                        check_process_noise, check_real, check_transition_out, check_update_args, moment_dtype,
-                       scalar_measurement, split_arrays, state_pair, threshold as _threshold)
+                       scalar_measurement, state_pair, threshold as _threshold)
 
 __all__ = [
     "SqrtGaussian",
@@ -641,10 +641,8 @@ def filter_scan(
     masks = jnp.ones((T, m), bool) if masks is None else jnp.asarray(masks, bool)
 
     check_gate(gate)  # the value known now, checked now: the compiled run sees it traced
-    arrays, rebuild, key = split_arrays((args, gate, noise_jac))
-
-    def scan(arrs, x0, L0, C, us, zs, masks, R):
-        args, gate, noise_jac = rebuild(*arrs)
+    def scan(opts, x0, L0, C, us, zs, masks, R):
+        args, gate, noise_jac = opts
 
         def pred(s, u, c):
             return predict(s, f, u, None, *args, noise_jac=noise_jac, Q_chol=c)
@@ -680,5 +678,5 @@ def filter_scan(
         return SqrtPosterior(means, diags, chols, nis, dof, status, final)
 
     # called eagerly: compiled once per model, options and shapes
-    return call_compiled(("sqrt_ekf.filter_scan", f, h, residual, predict_first, save_chol, q_step, r_step,
-                          key), scan, (arrays, x0, L0, C, us, zs, masks, R))
+    return call_compiled(("sqrt_ekf.filter_scan", f, h, residual, predict_first, save_chol, q_step, r_step),
+                         scan, (x0, L0, C, us, zs, masks, R), (args, gate, noise_jac))

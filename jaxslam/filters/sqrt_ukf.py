@@ -44,7 +44,6 @@ from .gaussian import (
     check_update_args,
     scalar_measurement,
     masked_innovation,
-    split_arrays,
     threshold,
 )
 from .sqrt_ekf import SqrtGaussian, SqrtPosterior, _mm, _noise_root, _tria, check_state, psd_factor
@@ -225,10 +224,8 @@ def filter_scan(f: Optional[Callable], h: Callable, x0, P0, us, zs, masks, Q, R,
     Ra = Ra.reshape(1, 1) if Ra.ndim == 0 else Ra  # a scalar variance of one measurement
     r_step = Ra.ndim == 3
 
-    arrays, rebuild, key = split_arrays((args, gate))
-
-    def scan(arrs, x0, L0, CQ, us, zs, masks, Ra):
-        args, gate = rebuild(*arrs)
+    def scan(opts, x0, L0, CQ, us, zs, masks, Ra):
+        args, gate = opts
 
         def step(carry, inp):
             # a failed predict keeps its prior and flags the step whose prior it made: this one
@@ -258,4 +255,4 @@ def filter_scan(f: Optional[Callable], h: Callable, x0, P0, us, zs, masks, Q, R,
 
     # called eagerly: compiled once per model, options and shapes
     return call_compiled(("sqrt_ukf.filter_scan", f, h, residual, rule, predict_first, save_chol, q_step,
-                          r_step, key), scan, (arrays, x0, L0, CQ, us, zs, masks, Ra))
+                          r_step), scan, (x0, L0, CQ, us, zs, masks, Ra), (args, gate))

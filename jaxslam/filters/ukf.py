@@ -392,13 +392,11 @@ def _predict_step(state: Gaussian, f: Optional[Callable], u, Q, args, rule: Sigm
     model (:func:`jaxslam.compilation.call_compiled`)."""
     state = check_state(state)
     _g.check_noise_values(Q, "Q")  # (traced in the compiled step: checked here, while it is known)
-    arrays, rebuild, key = _g.split_arrays((u, args, noise_jac))
-
-    def step(state, Q, arrays):
-        u, a, nj = rebuild(*arrays)
+    def step(opts, state, Q):
+        u, a, nj = opts
         return _predict(state, f, u, Q, a, rule, nj)
 
-    return call_compiled(("ukf.predict", f, rule, key), step, (state, Q, arrays), after=2)
+    return call_compiled(("ukf.predict", f, rule), step, (state, Q), (u, args, noise_jac), after=2)
 
 
 # ---------------------------------------------------------------------------
@@ -469,14 +467,11 @@ def update(
     state = check_state(state)
     check_update_args(z, R, mask)
     check_gate_size(gate, np.shape(z)[-1] if np.ndim(z) else 1, mask)  # while the mask is known
-    arrays, rebuild, key = _g.split_arrays((args, gate))
-
-    def step(state, z, R, mask, arrays):
-        a, g = rebuild(*arrays)
+    def step(opts, state, z, R, mask):
+        a, g = opts
         return _update(state, z, h, R, *a, residual=residual, mask=mask, gate=g, rule=rule)
 
-    return call_compiled(("ukf.update", h, residual, rule, key), step, (state, z, R, mask, arrays),
-                         after=2)
+    return call_compiled(("ukf.update", h, residual, rule), step, (state, z, R, mask), (args, gate), after=2)
 
 
 def _update(state: Gaussian, z, h: Callable, R, *args, residual=None, mask=None, gate: Gate = None,
