@@ -14,7 +14,8 @@ what the smoother needs plus the pass.  The issue's target: RTS pass ≤ 2× the
 ``eager_calls``: five of the runs called without the caller's ``jit`` — first call, repeated
 call, and the repeated call with the kept program bypassed (what every eager call cost before
 ``jaxslam.compilation.call_compiled``) — and a Python loop of 50 eager ``predict`` + ``update``
-steps (EKF, UKF; times are per 50-step loop).
+steps (EKF, UKF, and the EKF-SLAM engine's ``predict`` + ``update`` with the beacon as the one
+landmark of an 8-slot map; times are per 50-step loop).
 
 Which reference a row's ``reference_s`` / ``speedup`` is against: every row's ``reference`` says
 it, and ``speedup_vs`` names it in one word — ``"ekf"`` (jaxslam's own EKF run: the speedup is
@@ -136,7 +137,7 @@ def run(args):
     if not jax.config.jax_enable_x64:
         jax.config.update("jax_enable_x64", True)
     from jaxslam.errors import InputError
-    from jaxslam.filters import ekf, gaussian, smoother, ukf
+    from jaxslam.filters import ekf, ekf_slam, gaussian, smoother, ukf
 
     if args.steps < 2:
         raise InputError(f"--steps: must be >= 2, got {args.steps}")
@@ -199,10 +200,29 @@ def run(args):
             st, _ = mod.update(st, zs[t], h, R, residual=res)
         return st.mean
 
+    # the same loop on the EKF-SLAM engine: the beacon as the one landmark of an 8-slot map,
+    # preloaded at its position with a small covariance
+    def h_lm(x, lm, p=None):  # h with the beacon as a landmark of the map
+        d = x[:2] - lm
+        return jnp.stack([jnp.sqrt(d @ d), jnp.arctan2(d[1], d[0])])
+
+    slam_model = ekf_slam.SlamModel(robot_dim=4, lm_dim=2, meas_dim=2, motion=lambda s, u, p=None: f(s, u),
+                                    observe=h_lm, residual=res)
+
+    def slam_step_loop(steps=50):
+        st = ekf_slam.init(jnp.asarray(X0), jnp.asarray(P0), 8, 2)
+        st = ekf_slam.preload(st, slam_model, Bj[None], 1e-4 * jnp.eye(2)[None], ids=jnp.zeros(1, jnp.int32))
+        one, seen = jnp.zeros(1, jnp.int32), jnp.ones(1, bool)
+        for t in range(min(steps, T)):
+            st = ekf_slam.predict(st, slam_model, us[t], Q)
+            st, _ = ekf_slam.update(st, slam_model, zs[t][None], one, seen, R)
+        return st.x
+
     eager_cases = {k: cases[k] for k in ("ekf", "ukf", "ekf+rts", f"fixed_lag_{args.lag}",
                                          f"iterated_smoother_{args.iters}")}
     eager_cases["ekf_step_loop_50"] = lambda: step_loop(ekf)
     eager_cases["ukf_step_loop_50"] = lambda: step_loop(ukf)
+    eager_cases["ekf_slam_step_loop_50"] = slam_step_loop
     eager = _eager_calls(eager_cases, args.repeats, getattr(args, "eager", "both"))
     np_means = _numpy_ekf(us_np, zs_np)  # the untimed warm-up call, as every JAX case has one
     t_np = median_s(lambda: _numpy_ekf(us_np, zs_np), max(1, args.repeats // 2))

@@ -340,3 +340,107 @@ def test_option_values_known_at_the_call_are_still_checked_by_the_compiled_runs(
     sqrt_ekf.filter_scan(f, h, x0, P0, None, zs, mk, Q, R, gate=9.0)
     with pytest.raises(InputError, match=r"^gate: "):
         sqrt_ekf.filter_scan(f, h, x0, P0, None, zs, mk, Q, R, gate=-9.0)
+
+
+# --- the EKF-SLAM engine's steps called one at a time ------------------------------------------
+
+def _gps(s, p=None):
+    return s
+
+
+def _engine_step(model, st, u, z, ids, mask, R, Qs):
+    """One step of a user's loop: predict, known-id association, update, registration of the
+    unmapped ids, a position fix, and nearest-neighbour association (its table only)."""
+    st = es.predict(st, model, u, Qs)
+    slots, mapped = es.associate_known(st, ids, mask)
+    st, _ = es.update(st, model, z, slots, mapped, R, gate=9.21)
+    st = es.register(st, model, z, ids, mask & ~mapped, R)
+    st, _ = es.update_robot(st, model, _gps, st.x[:2] + 0.01, np.ones(2, bool), 0.5 * np.eye(2))
+    nn = es.associate_nn(st, model, z, mask, R, gate=9.21, new_threshold=20.0)
+    return st, nn
+
+
+def test_a_python_loop_of_eager_engine_steps_compiles_once_and_equals_the_jitted_steps():
+    """The engine's predict / update / register / update_robot / associate_nn called eagerly in
+    a Python loop compile on their first call (``after="auto"``: uncompiled, the first step ran
+    op by op for seconds) and run the kept programs from the second step on; every step equals
+    the same step under the caller's ``jit`` (the traced path), float64 and float32."""
+    model, log = _slam_case(T=8, K=3)
+    for dt, tol in ((np.float64, 1e-12), (np.float32, 1e-5)):
+        Qs, Rm = (0.01 * np.eye(2)).astype(dt), (0.1 * np.eye(2)).astype(dt)
+        st = st_ref = es.init(jnp.zeros(2, dt), jnp.eye(2, dtype=dt), 4, 2)
+        jstep = jax.jit(lambda st, u, z, ids, mask: _engine_step(model, st, u, z, ids, mask, Rm, Qs))
+        for t in range(len(log.u)):
+            u, z = log.u[t].astype(dt), log.z[t].astype(dt)
+            with compilation.account() as acc:
+                st, nn = _engine_step(model, st, u, z, log.ids[t], log.mask[t], Rm, Qs)
+            if t > 0:
+                assert acc.result.trace_s == 0.0 and acc.result.programs == 0, (t, acc.result)
+            st_ref, nn_ref = jstep(st_ref, u, z, log.ids[t], log.mask[t])
+            np.testing.assert_allclose(np.asarray(st.x), np.asarray(st_ref.x), rtol=tol, atol=tol)
+            np.testing.assert_allclose(np.asarray(st.P), np.asarray(st_ref.P), rtol=tol, atol=tol)
+            np.testing.assert_array_equal(np.asarray(nn[1]), np.asarray(nn_ref[1]))
+        assert st.x.dtype == dt and int(jnp.sum(st.active)) == 3 and int(st.status) == int(st_ref.status)
+
+
+def test_eager_engine_steps_still_check_the_values_known_at_the_call():
+    """As the Gaussian filters' steps: the values a caller passed are checked before the kept
+    program runs (a non-PSD Q or R, a mask that is not bool, a Student-t ν ≤ 0)."""
+    from jaxslam.errors import InputError
+
+    model, log = _slam_case(T=2, K=3)
+    st = es.init(jnp.zeros(2), jnp.eye(2), 4, 2)
+    z, ids, mask, R = log.z[0], log.ids[0], log.mask[0], 0.1 * np.eye(2)
+    for _ in range(2):  # compiled and kept
+        st2 = es.predict(st, model, log.u[0], 0.01 * np.eye(2))
+        st2 = es.register(st2, model, z, ids, mask, R)
+        es.update(st2, model, z, np.arange(3), mask, R, robust=4.0)
+        es.update_robot(st2, model, _gps, np.zeros(2), np.ones(2, bool), np.eye(2))
+        es.associate_nn(st2, model, z, mask, R)
+    with pytest.raises(InputError, match=r"^Q: "):
+        es.predict(st, model, log.u[0], -0.01 * np.eye(2))
+    for call in (lambda R: es.update(st2, model, z, np.arange(3), mask, R, robust=4.0),
+                 lambda R: es.register(st2, model, z, ids, mask, R),
+                 lambda R: es.associate_nn(st2, model, z, mask, R),
+                 lambda R: es.update_robot(st2, model, _gps, np.zeros(2), np.ones(2, bool), R[0])):
+        with pytest.raises(InputError, match=r"^R"):
+            call(np.broadcast_to(-np.eye(2), (3, 2, 2)))
+    with pytest.raises(InputError, match=r"^mask: "):
+        es.update(st2, model, z, np.arange(3), np.asarray([0.5, 1.0, 1.0]), R)
+    with pytest.raises(InputError, match=r"^robust: "):
+        es.update(st2, model, z, np.arange(3), mask, R, robust=-1.0)
+
+
+def test_auto_compiles_on_first_sight_until_a_site_meets_models_made_anew():
+    """``call_compiled(after="auto")``: a key compiles on its first call; once its site has
+    compiled two keys in a row that served one call each (a model made anew for every call),
+    the site compiles on a key's second call, so a lambda written inside the loop costs two
+    compiles, not one per step.  Another site is not affected."""
+    compilation.clear_programs()
+    traced = []
+
+    def make():
+        def fn(x):
+            traced.append(isinstance(x, jax.core.Tracer))
+            return x + 1.0
+        return fn
+
+    stable = make()
+    for _ in range(3):
+        compilation.call_compiled(("test.stable", stable), stable, (jnp.ones(2),), after="auto")
+    assert traced == [True]  # compiled on the first call, then served
+    traced.clear()
+    for _ in range(5):
+        fresh = make()
+        compilation.call_compiled(("test.fresh", fresh), fresh, (jnp.ones(2),), after="auto")
+    assert traced == [True, True, False, False, False]
+    traced.clear()
+    again = make()
+    for _ in range(3):  # a model kept at that site now compiles on its second call
+        compilation.call_compiled(("test.fresh", again), again, (jnp.ones(2),), after="auto")
+    assert traced == [False, True]
+    traced.clear()
+    other = make()
+    compilation.call_compiled(("test.other", other), other, (jnp.ones(2),), after="auto")
+    assert traced == [True]
+    compilation.clear_programs()
