@@ -163,7 +163,8 @@ def test_filters_numpy_warmup_and_reference_named(monkeypatch):
 
     monkeypatch.setattr(bench_filters, "_numpy_ekf", counted)
     monkeypatch.setattr(bench_filters, "median_s", median)
-    out = bench_filters.run(argparse.Namespace(steps=20, repeats=1, lag=3, iters=2, eager="none"))
+    # the sizes of test_bench_filters.py's run, so its programs come from the suite's cache
+    out = bench_filters.run(argparse.Namespace(steps=30, repeats=1, lag=5, iters=2, eager="none"))
     assert calls["numpy_before_its_timing"] == 1  # one untimed warm-up call
     rows = {r["case"]: r for r in out["results"]}
     assert rows["numpy_ekf_loop"]["speedup_vs"] == "numpy" and "NumPy" in rows["numpy_ekf_loop"]["reference"]
