@@ -629,7 +629,7 @@ def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
     that holds the map for the correction of P, and O(n·(K·d_z)²) for the gain).
     Called eagerly it is compiled once per model and static options (:func:`_eager_step`).
     """
-    _check_update(state, model, z, slots, mask, R, gate, robust, num_iter)
+    z, slots, mask, R = _check_update(state, model, z, slots, mask, R, gate, robust, num_iter)
 
     def step(opts, st, z, slots, mask, R):
         params, gate, robust, tol = opts
@@ -1185,7 +1185,7 @@ def register(state: SlamState, model: SlamModel, z, lm_ids, mask, R, params=None
     """
     if model.inverse is None:
         raise ValueError("register: this model has no inverse observation; use add_landmark")
-    _check_register(state, model, z, lm_ids, mask, R)
+    z, lm_ids, mask, R = _check_register(state, model, z, lm_ids, mask, R)
     return _eager_step(("ekf_slam.register", model),
                        lambda opts, st, z, lm_ids, mask, R: _register_joint(st, model, z, lm_ids, mask, R, opts[0]),
                        (state, z, lm_ids, mask, R), (params,))
@@ -1429,7 +1429,7 @@ def associate_nn(state: SlamState, model: SlamModel, z, mask, R, params=None,
     Returns (slots (K,), matched (K,) bool, new (K,) bool, d2_min (K,)).  Called eagerly it is
     compiled once per model (:func:`_eager_step`).
     """
-    _check_associate(state, model, z, mask, R)
+    z, mask, R = _check_associate(state, model, z, mask, R)
     return _eager_step(("ekf_slam.associate_nn", model, active_only),
                        lambda opts, st, z, mask, R: _associate_nn(st, model, z, mask, R, *opts, active_only),
                        (state, z, mask, R), (params, gate, new_threshold))
