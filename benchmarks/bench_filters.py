@@ -15,7 +15,11 @@ what the smoother needs plus the pass.  The issue's target: RTS pass ≤ 2× the
 call, and the repeated call with the kept program bypassed (what every eager call cost before
 ``jaxslam.compilation.call_compiled``) — and a Python loop of 50 eager ``predict`` + ``update``
 steps (EKF, UKF, and the EKF-SLAM engine's ``predict`` + ``update`` with the beacon as the one
-landmark of an 8-slot map; times are per 50-step loop).
+landmark of an 8-slot map), and of 10 ``fastslam.step`` calls (100 particles, the beacon
+registered at its first sighting; 10, since uncompiled each call took ~1 s and kept its
+compiled programs: ~280 memory mappings a step, so a few hundred steps reached the system's
+65530 and XLA failed with "Cannot allocate memory"); times are per loop.  Each case starts
+from empty in-memory caches (``jax.clear_caches``).
 
 Which reference a row's ``reference_s`` / ``speedup`` is against: every row's ``reference`` says
 it, and ``speedup_vs`` names it in one word — ``"ekf"`` (jaxslam's own EKF run: the speedup is
@@ -114,6 +118,7 @@ def _eager_calls(cases, repeats, which="both"):
                 compilation.disable_cache()
             for name, fn in cases.items():
                 compilation.clear_programs()
+                jax.clear_caches()
                 t0 = time.perf_counter()
                 jax.block_until_ready(fn())
                 first = time.perf_counter() - t0
@@ -137,7 +142,7 @@ def run(args):
     if not jax.config.jax_enable_x64:
         jax.config.update("jax_enable_x64", True)
     from jaxslam.errors import InputError
-    from jaxslam.filters import ekf, ekf_slam, gaussian, smoother, ukf
+    from jaxslam.filters import ekf, ekf_slam, fastslam, gaussian, smoother, ukf
 
     if args.steps < 2:
         raise InputError(f"--steps: must be >= 2, got {args.steps}")
@@ -218,11 +223,30 @@ def run(args):
             st, _ = ekf_slam.update(st, slam_model, zs[t][None], one, seen, R)
         return st.x
 
+    # and on the FastSLAM core: 100 particles, the target's position drawn around the motion
+    # model, the beacon registered from its first sighting (slot 0)
+    def sample(pose, aux, key, u):
+        return f(pose, u) + jnp.concatenate([0.05 * jax.random.normal(key, (2,), pose.dtype), jnp.zeros(2)]), aux
+
+    fmodel = fastslam.LandmarkModel(2, 2, h_lm, lambda x, z, p=None: x[:2] - z[0] * jnp.stack(
+        [jnp.cos(z[1]), jnp.sin(z[1])]), residual=res)
+
+    def fastslam_step_loop(steps=10):  # 10: uncompiled, each step took ~1 s and kept its programs
+        p = fastslam.init(jnp.asarray(X0), 100, 8, 2)
+        key = jax.random.PRNGKey(0)
+        zero = jnp.zeros(1, jnp.int32)
+        for t in range(min(steps, T)):
+            key, k = jax.random.split(key)
+            p, _ = fastslam.step(p, k, sample, (us[t],), fmodel, zs[t][None], zero, jnp.ones(1, bool), R,
+                                 slot_by_id=True)
+        return p.pose
+
     eager_cases = {k: cases[k] for k in ("ekf", "ukf", "ekf+rts", f"fixed_lag_{args.lag}",
                                          f"iterated_smoother_{args.iters}")}
     eager_cases["ekf_step_loop_50"] = lambda: step_loop(ekf)
     eager_cases["ukf_step_loop_50"] = lambda: step_loop(ukf)
     eager_cases["ekf_slam_step_loop_50"] = slam_step_loop
+    eager_cases["fastslam_step_loop_10"] = fastslam_step_loop
     eager = _eager_calls(eager_cases, args.repeats, getattr(args, "eager", "both"))
     np_means = _numpy_ekf(us_np, zs_np)  # the untimed warm-up call, as every JAX case has one
     t_np = median_s(lambda: _numpy_ekf(us_np, zs_np), max(1, args.repeats // 2))

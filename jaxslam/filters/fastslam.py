@@ -569,6 +569,48 @@ def _register_cov(model: LandmarkModel, pose, z, R, params, l, G):
     return cov, ok
 
 
+def _check_observe(p: Particles, model: LandmarkModel, z, lm_ids, mask, R, weights, gate, solver, chunk, robust):
+    """:func:`observe_update`'s checks, in order (the options, shapes, and the values known now):
+    ``(weights, z, lm_ids (int32), mask, R, chunk)``, z and R in the particles' dtype."""
+    if weights == "paper":
+        weights = "mean"
+    if weights not in ("exact", "mean", "none"):
+        raise InputError(f"weights: expected 'exact', 'mean' or 'none', got {weights!r}")
+    if solver not in _SOLVERS:
+        raise InputError(f"solver: expected one of {_SOLVERS}, got {solver!r}")
+    _check_robust(robust)
+    if robust is not None and solver != "closed":
+        raise InputError(f"robust: the Student-t update needs solver='closed', got solver={solver!r}")
+    dtype = p.lm_mean.dtype
+    N, cap, d = p.lm_mean.shape
+    dz = int(model.meas_dim)
+    if int(model.lm_dim) != d:
+        raise InputError(f"model.lm_dim: {model.lm_dim} does not match the particles' d = {d}")
+    if model.init_cov is None and d != dz:
+        raise InputError(
+            f"model: registration by G⁻¹ R G⁻ᵀ needs lm_dim == meas_dim (got {d}, {dz}); "
+            "give LandmarkModel.init_cov"
+        )
+    z = jnp.asarray(z)
+    if z.ndim != 2 or z.shape[1] != dz:
+        raise InputError(f"z: expected shape (K, {dz}), got {z.shape}")
+    K = z.shape[0]
+    lm_ids = jnp.asarray(lm_ids)
+    mask = jnp.asarray(mask)
+    if lm_ids.shape != (K,):
+        raise InputError(f"lm_ids: expected shape ({K},), got {lm_ids.shape}")
+    if mask.shape != (K,):
+        raise InputError(f"mask: expected shape ({K},), got {mask.shape}")
+    check_mask(mask, "mask")
+    R = jnp.asarray(R, dtype)
+    if R.shape not in ((dz, dz), (K, dz, dz)):
+        raise InputError(f"R: expected shape ({dz}, {dz}) or ({K}, {dz}, {dz}), got {R.shape}")
+    _check_rows(R, lm_ids, mask, gate)
+    if chunk is not None:
+        chunk = check_int(chunk, "chunk")
+    return weights, z.astype(dtype), lm_ids.astype(jnp.int32), mask, R, chunk
+
+
 def observe_update(
     p: Particles,
     model: LandmarkModel,
@@ -618,46 +660,28 @@ def observe_update(
             gate).  ν → ∞ is the Gaussian.  ``solver="closed"`` only.
 
     Returns:
-        ``(Particles, ObserveInfo)``.
+        ``(Particles, ObserveInfo)``.  Called eagerly it is compiled once per model and
+        options (:func:`jaxslam.compilation.call_compiled`, ``after="auto"``; uncompiled, each
+        call re-traced and re-compiled its scan over the rows).
     """
-    if weights == "paper":
-        weights = "mean"
-    if weights not in ("exact", "mean", "none"):
-        raise InputError(f"weights: expected 'exact', 'mean' or 'none', got {weights!r}")
-    if solver not in _SOLVERS:
-        raise InputError(f"solver: expected one of {_SOLVERS}, got {solver!r}")
-    _check_robust(robust)
-    if robust is not None and solver != "closed":
-        raise InputError(f"robust: the Student-t update needs solver='closed', got solver={solver!r}")
+    weights, z, lm_ids, mask, R, chunk = _check_observe(p, model, z, lm_ids, mask, R, weights, gate, solver,
+                                                        chunk, robust)  # the values known now
+    return call_compiled(
+        ("fastslam.observe_update", model, weights, slot_by_id, solver, chunk),
+        lambda opts, p, z, lm_ids, mask, R: _observe_update(p, model, z, lm_ids, mask, R, opts[0], weights,
+                                                            opts[1], slot_by_id, solver, chunk, opts[2]),
+        (p, z, lm_ids, mask, R), (params, gate, robust), after="auto")
+
+
+def _observe_update(p: Particles, model: LandmarkModel, z, lm_ids, mask, R, params, weights, gate,
+                    slot_by_id: bool, solver: str, chunk, robust):
+    """:func:`observe_update`'s computation."""
+    weights, z, lm_ids, mask, R, chunk = _check_observe(p, model, z, lm_ids, mask, R, weights, gate, solver,
+                                                        chunk, robust)
     dtype = p.lm_mean.dtype
     N, cap, d = p.lm_mean.shape
     dz = int(model.meas_dim)
-    if int(model.lm_dim) != d:
-        raise InputError(f"model.lm_dim: {model.lm_dim} does not match the particles' d = {d}")
-    if model.init_cov is None and d != dz:
-        raise InputError(
-            f"model: registration by G⁻¹ R G⁻ᵀ needs lm_dim == meas_dim (got {d}, {dz}); "
-            "give LandmarkModel.init_cov"
-        )
-    z = jnp.asarray(z)
-    if z.ndim != 2 or z.shape[1] != dz:
-        raise InputError(f"z: expected shape (K, {dz}), got {z.shape}")
     K = z.shape[0]
-    lm_ids = jnp.asarray(lm_ids)
-    mask = jnp.asarray(mask)
-    if lm_ids.shape != (K,):
-        raise InputError(f"lm_ids: expected shape ({K},), got {lm_ids.shape}")
-    if mask.shape != (K,):
-        raise InputError(f"mask: expected shape ({K},), got {mask.shape}")
-    check_mask(mask, "mask")
-    R = jnp.asarray(R, dtype)
-    if R.shape not in ((dz, dz), (K, dz, dz)):
-        raise InputError(f"R: expected shape ({dz}, {dz}) or ({K}, {dz}, {dz}), got {R.shape}")
-    _check_rows(R, lm_ids, mask, gate)
-    if chunk is not None:
-        chunk = check_int(chunk, "chunk")
-    z = z.astype(dtype)
-    lm_ids = lm_ids.astype(jnp.int32)
     Rs = jnp.broadcast_to(R, (K, dz, dz))
     res = model.residual if model.residual is not None else (lambda a, b: a - b)
 
@@ -819,12 +843,24 @@ def propose_optimal(p: Particles, model: LandmarkModel, z, lm_ids, mask, R, pose
     Returns:
         ``(Particles with the drawn poses, loglik (N,), log_marginal (), status ())``; the
         particles' weights are not touched.  A particle whose proposal is not finite keeps
-        its prior mean as the draw and the status gets ``NON_FINITE``.
+        its prior mean as the draw and the status gets ``NON_FINITE``.  Called eagerly it is
+        compiled once per model and options (:func:`jaxslam.compilation.call_compiled`,
+        ``after="auto"``).
     """
+    z, lm_ids, R, wrap = _check_propose(p, model, z, lm_ids, mask, R, pose_cov, angle_mask, gate, robust)
+    mask_key = None if wrap is None else tuple(wrap.tolist())
+    return call_compiled(
+        ("fastslam.propose_optimal", model, slot_by_id, mask_key),
+        lambda opts, p, z, lm_ids, mask, R, pose_cov, key: _propose_optimal(
+            p, model, z, lm_ids, mask, R, pose_cov, key, opts[0], slot_by_id, angle_mask, opts[1], opts[2]),
+        (p, z, lm_ids, mask, R, pose_cov, key), (params, gate, robust), after="auto")
+
+
+def _check_propose(p: Particles, model: LandmarkModel, z, lm_ids, mask, R, pose_cov, angle_mask, gate, robust):
+    """:func:`propose_optimal`'s checks, in order (shapes, and the values known now):
+    ``(z, lm_ids (N, K) int32, R in the particles' dtype, the angle mask or None)``."""
     _check_robust(robust)
-    dtype = p.pose.dtype
     N, n_r = p.pose.shape
-    cap = p.lm_mean.shape[1]
     dz = int(model.meas_dim)
     z = jnp.asarray(z)
     K_rows = z.shape[0]
@@ -832,18 +868,29 @@ def propose_optimal(p: Particles, model: LandmarkModel, z, lm_ids, mask, R, pose
         raise InputError(f"z: expected shape (K, {dz}), got {z.shape}")
     if np.shape(pose_cov) != (N, n_r, n_r):
         raise InputError(f"pose_cov: expected shape ({N}, {n_r}, {n_r}), got {np.shape(pose_cov)}")
-    R = jnp.asarray(R, dtype)
+    R = jnp.asarray(R, p.pose.dtype)
     if R.shape not in ((dz, dz), (K_rows, dz, dz)):
         raise InputError(f"R: expected shape ({dz}, {dz}) or ({K_rows}, {dz}, {dz}), got {R.shape}")
     wrap = _check_angle_mask(angle_mask, n_r)
-    Rs = jnp.broadcast_to(R, (K_rows, dz, dz))
     if np.shape(mask) != (K_rows,):
         raise InputError(f"mask: expected shape ({K_rows},), got {np.shape(mask)}")
     if np.shape(lm_ids) not in ((K_rows,), (N, K_rows)):
         raise InputError(f"lm_ids: expected shape ({K_rows},) or ({N}, {K_rows}), got {np.shape(lm_ids)}")
     _check_rows(R, lm_ids, mask, gate)
-    lm_ids = jnp.asarray(lm_ids).astype(jnp.int32)
-    lm_ids = jnp.broadcast_to(lm_ids, (N, K_rows))
+    lm_ids = jnp.broadcast_to(jnp.asarray(lm_ids).astype(jnp.int32), (N, K_rows))
+    return z, lm_ids, R, wrap
+
+
+def _propose_optimal(p: Particles, model: LandmarkModel, z, lm_ids, mask, R, pose_cov, key, params,
+                     slot_by_id: bool, angle_mask, gate, robust):
+    """:func:`propose_optimal`'s computation."""
+    z, lm_ids, R, wrap = _check_propose(p, model, z, lm_ids, mask, R, pose_cov, angle_mask, gate, robust)
+    dtype = p.pose.dtype
+    N, n_r = p.pose.shape
+    cap = p.lm_mean.shape[1]
+    dz = int(model.meas_dim)
+    K_rows = z.shape[0]
+    Rs = jnp.broadcast_to(R, (K_rows, dz, dz))
     finite = jnp.asarray(mask).astype(bool) & jnp.all(jnp.isfinite(z), axis=1)
     z = jnp.where(finite[:, None], z.astype(dtype), jnp.zeros((), dtype))
     res = model.residual if model.residual is not None else (lambda a, b: a - b)
@@ -1126,13 +1173,26 @@ def step(p: Particles, key, sample_fn: Callable, sample_args: tuple, model: Land
 
     ``key`` is split into a proposal key and a resampling key.  Returns
     ``(Particles, ObserveInfo)``; scan it over a run.  (FastSLAM 2.0: :func:`run` with
-    ``proposal="optimal"``, or :func:`propose_optimal` in a loop of your own.)
+    ``proposal="optimal"``, or :func:`propose_optimal` in a loop of your own.)  Called eagerly
+    it is compiled once per model and options (:func:`jaxslam.compilation.call_compiled`,
+    ``after="auto"``): uncompiled, every call re-traced and re-compiled the update's scan over
+    the rows (0.9 s a step for 100 particles, 3.6 s the first).
     """
-    k_prop, k_res = jax.random.split(key)
-    p, info = _propagate_update(p, k_prop, sample_fn, sample_args, model, z, lm_ids, mask, R, params,
-                                weights, gate, slot_by_id, solver, chunk, robust)
-    p = maybe_resample(p, k_res, threshold, scheme)
-    return p, info
+    # the values known now, checked now (the compiled step sees them traced)
+    _, z, lm_ids, mask, R, chunk = _check_observe(p, model, z, lm_ids, mask, R, weights, gate, solver, chunk,
+                                                  robust)
+    if threshold is not None:
+        _check_fraction(threshold, "threshold")
+
+    def one(opts, p, key, sample_args, z, lm_ids, mask, R):
+        params, gate, threshold, robust = opts
+        k_prop, k_res = jax.random.split(key)
+        p, info = _propagate_update(p, k_prop, sample_fn, sample_args, model, z, lm_ids, mask, R, params,
+                                    weights, gate, slot_by_id, solver, chunk, robust)
+        return maybe_resample(p, k_res, threshold, scheme), info
+
+    return call_compiled(("fastslam.step", sample_fn, model, weights, scheme, slot_by_id, solver, chunk), one,
+                         (p, key, sample_args, z, lm_ids, mask, R), (params, gate, threshold, robust), after="auto")
 
 
 def _propagate_update(p, k_prop, sample_fn, sample_args, model, z, lm_ids, mask, R, params, weights,

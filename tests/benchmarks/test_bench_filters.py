@@ -43,7 +43,8 @@ def test_bench_run_shape():
     assert out["targets"][0]["name"] == "rts_pass_vs_filter"
     eager = {(r["case"], r["persistent_cache"]): r for r in out["eager_calls"]}
     assert {c for c, _ in eager} == {"ekf", "ukf", "ekf+rts", "fixed_lag_5", "iterated_smoother_2",
-                                     "ekf_step_loop_50", "ukf_step_loop_50", "ekf_slam_step_loop_50"}
+                                     "ekf_step_loop_50", "ukf_step_loop_50", "ekf_slam_step_loop_50",
+                                     "fastslam_step_loop_10"}
     assert ("ekf", False) in eager and ("ekf", True) not in eager  # --eager off: the cache-off rows only
     assert bench_filters._eager_calls({}, 1, "none") == []
     assert all(r["first_call_s"] > 0 and r["repeat_s"] > 0 and r["repeat_uncompiled_s"] > 0
