@@ -1043,7 +1043,21 @@ def maybe_resample(p: Particles, key, threshold: Optional[float] = 0.5,
             (the paper's choice).
         scheme: name in :data:`jaxslam.filters.resampling.SCHEMES` or a
             callable ``(key, log_w, n) -> indices`` (static).
+
+    Called eagerly with a threshold it is compiled once per scheme
+    (:func:`jaxslam.compilation.call_compiled`): uncompiled, each call traced and compiled its
+    ``lax.cond`` again (0.4 s a call for 100 particles, the programs kept).
     """
+    _rs._scheme(scheme)
+    if threshold is None:
+        return _maybe_resample(p, key, None, scheme)
+    _check_fraction(threshold, "threshold")  # known now: checked now
+    return call_compiled(("fastslam.maybe_resample", scheme),
+                         lambda thr, p, key: _maybe_resample(p, key, thr, scheme), (p, key), threshold, after="auto")
+
+
+def _maybe_resample(p: Particles, key, threshold, scheme) -> Particles:
+    """:func:`maybe_resample`'s computation."""
     fn = _rs._scheme(scheme)
     N = p.pose.shape[0]
 
