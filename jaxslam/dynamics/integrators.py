@@ -25,6 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..compilation import call_compiled
 from ..errors import InputError
 from ..linalg import check_int, check_real, small_matmul
 from ._checks import as_scalar, real_float
@@ -102,16 +103,23 @@ def rollout(f, x0, us, dt, *args):
     """Integrate an input sequence with RK4 in one ``lax.scan``.
 
     ``x0``: (n,) initial state; ``us``: (T, m) inputs, ``us[k]`` held over
-    step k; ``dt``: scalar step, s.  Returns xs (T + 1, n) with xs[0] = x0.
+    step k; ``dt``: scalar step, s.  Returns xs (T + 1, n) with xs[0] = x0.  Called eagerly it
+    is compiled once per ``f`` (:func:`jaxslam.compilation.call_compiled`; uncompiled, each
+    call traced and compiled its scan again).
     """
     x0 = real_float(x0, "x0")  # an integer x0 made the scan's carry change dtype (a TypeError)
     check_real(us, "us")
+    return call_compiled(("integrators.rollout", f), lambda *a: _rollout(f, *a), (x0, jnp.asarray(us), dt, *args),
+                         after="auto")
 
+
+def _rollout(f, x0, us, dt, *args):
+    """:func:`rollout`'s scan."""
     def body(x, u):
         xn = rk4_step(f, x, u, dt, *args)
         return xn, xn
 
-    _, xs = jax.lax.scan(body, x0, jnp.asarray(us))
+    _, xs = jax.lax.scan(body, x0, us)
     return jnp.concatenate([x0[None], xs], axis=0)
 
 

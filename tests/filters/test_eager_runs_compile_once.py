@@ -570,17 +570,29 @@ def _other_calls():
             0.9),
     }
     calls.update({f"lines.{k}": v for k, v in _lines_calls().items()})
+    from jaxslam.dynamics import integrators
+    from jaxslam.sensors import imu
+    from jaxslam.stats import chi2_ppf
+
+    calls["stats.chi2_ppf"] = lambda seed: chi2_ppf(np.asarray([0.9, 0.99]), 2.0 + seed)
+    calls["integrators.rollout"] = lambda seed: integrators.rollout(f, np.asarray([0.3, 0.0]),
+                                                                    np.full((20, 1), 0.1 * seed), 0.05)
+    calls["imu.bias_drift_rollout"] = lambda seed: imu.bias_drift_rollout(
+        jax.random.PRNGKey(seed), imu.BiasDriftState(jnp.zeros(6), jnp.full(6, 0.01 * seed)),
+        imu.ImuSpec(drift_tau=10.0, drift_density=0.1), 0.01, 30)
     return calls
 
 
 @pytest.mark.parametrize("name", ["lines.extract_lines", "lines.extract_guided", "association.jcbb",
-                                  "fastslam.maybe_resample"])
+                                  "fastslam.maybe_resample", "stats.chi2_ppf", "integrators.rollout",
+                                  "imu.bias_drift_rollout"])
 def test_other_looping_functions_called_eagerly_compile_once_and_keep_nothing_more(name):
-    """RANSAC line extraction (``extract_lines``, ``extract_guided``), JCBB and
-    ``fastslam.maybe_resample`` hold a ``lax.scan`` / ``while_loop`` / ``cond``: uncompiled, each
-    eager call traced and compiled it again and kept the program (0.3-1.9 s a call; 68-508 memory
-    mappings a call).  A second call with new numbers now traces and compiles nothing, and
-    equals the same call under the caller's ``jit``."""
+    """RANSAC line extraction (``extract_lines``, ``extract_guided``), JCBB,
+    ``fastslam.maybe_resample``, ``chi2_ppf``, the RK4 ``rollout`` and the IMU drift rollout hold
+    a ``lax.scan`` / ``while_loop`` / ``fori_loop`` / ``cond``: uncompiled, each eager call traced
+    and compiled it again and kept the program (40 ms to 1.9 s a call; 6-508 memory mappings a
+    call).  A second call with new numbers now traces and compiles nothing, and equals the same
+    call under the caller's ``jit``."""
     call = _other_calls()[name]
     call(0)
     with compilation.account() as acc:
