@@ -557,7 +557,7 @@ class _Flat:
 # Eager calls of a whole run: one compiled program per model, reused
 # ---------------------------------------------------------------------------
 
-_EAGER_MAX = 16
+_EAGER_MAX = 64  # keys (models × options × sites): a loop over the engine, FastSLAM and filter steps holds ~20
 _eager: dict = {}
 _eager_lock = threading.Lock()
 # after="auto": calls served by each kept program, and per site (a key's first element) the
@@ -616,11 +616,13 @@ def call_compiled(key, fn, args, options=None, *, after=1):
     engine's: ~5 s op by op against ~0.8 s to compile the step): a key compiles on its first
     call, until its site (the key's first element, e.g. ``"ekf_slam.update"``) has compiled two
     keys in a row whose programs served one call each (a model made anew for every call); from
-    then on the site compiles on a key's second call, as ``after=2``.
+    then on the site compiles on a key's second call, as ``after=2``.  (A loop that calls one
+    site with three or more keys before it reuses any — e.g. three option sets of one update —
+    looks the same at its third key, so from there its keys compile at their second call.)
     ``key`` (hashable) must name everything ``fn`` closes over that is not in ``args``
     (the model's functions, static options): a later call with an equal key runs the *first*
     compiled ``fn``, retraced when the shapes differ, so ``fn`` takes every size from its
-    arguments, never from its closure.  The 16 most recent keys are kept (their programs with
+    arguments, never from its closure.  The 64 most recent keys are kept (their programs with
     them).
 
     ``options`` (a pytree, or None: not passed): the arrays and numbers in it are arguments of

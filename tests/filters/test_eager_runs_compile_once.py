@@ -601,3 +601,22 @@ def test_other_looping_functions_called_eagerly_compile_once_and_keep_nothing_mo
     ref = jax.jit(lambda: call(1))()
     for a, b in zip(jax.tree_util.tree_leaves(out), jax.tree_util.tree_leaves(ref)):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12, atol=1e-12)
+
+
+def test_a_loop_over_twenty_kept_programs_compiles_nothing_on_its_second_pass():
+    """The kept programs are bounded (least recently used first out), and the bound holds a
+    loop that mixes the engine's, FastSLAM's and the filters' steps (~20 keys, one site each):
+    with 16 such a loop evicted each program before its next use and compiled at every call."""
+    compilation.clear_programs()
+    fns = []
+    for i in range(20):
+        def fn(x, i=i):
+            return x * (i + 1.0)
+        fns.append(fn)
+    for _ in range(2):
+        with compilation.account() as acc:
+            for i, fn in enumerate(fns):
+                # a closure made at each call, as the library's steps make theirs
+                compilation.call_compiled((f"test.site{i}",), lambda x, fn=fn: fn(x), (jnp.ones(3),), after="auto")
+    assert acc.result.programs == 0 and acc.result.trace_s == 0.0, acc.result
+    compilation.clear_programs()
