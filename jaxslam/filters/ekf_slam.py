@@ -1361,8 +1361,18 @@ def marginal_d2(state: SlamState, model: SlamModel, z, mask, R, params=None, act
     same (to rounding: another program), at a cost set by the mapped landmarks instead of the
     capacity.
     Returns ``(d2, (zh (cap, d_z), Hs (cap, d_z, n_r), Hl (cap, d_z, d_l), nu (K, cap, d_z)))``
-    (the slots beyond the evaluated block: ẑ = 0, H = 0, ν = 0).
+    (the slots beyond the evaluated block: ẑ = 0, H = 0, ν = 0).  ``z``, ``mask`` and ``R`` are
+    checked as :func:`associate_nn` checks them.  Called eagerly it is compiled once per model
+    (:func:`_eager_step`).
     """
+    z, mask, R = _check_associate(state, model, z, mask, R)
+    return _eager_step(("ekf_slam.marginal_d2", model, active_only),
+                       lambda opts, st, z, mask, R: _marginal_d2(st, model, z, mask, R, opts[0], active_only),
+                       (state, z, mask, R), (params,))
+
+
+def _marginal_d2(state: SlamState, model: SlamModel, z, mask, R, params, active_only: bool):
+    """:func:`marginal_d2`'s computation (``z``, ``mask``, ``R`` checked by the caller)."""
     cap = state.active.shape[0]
     sizes = _block_sizes(cap) if active_only else [cap]
     blocks = [functools.partial(_marginal_d2_block, state, model, z, mask, R, params, c) for c in sizes]
@@ -1451,7 +1461,7 @@ def _associate_nn(state: SlamState, model: SlamModel, z, mask, R, params, gate, 
     dtype = state.x.dtype
     K = z.shape[0]
     finite = jnp.all(jnp.isfinite(z), axis=-1)
-    d2, _ = marginal_d2(state, model, z, mask, R, params, active_only=active_only)
+    d2, _ = _marginal_d2(state, model, z, mask, R, params, active_only)
     big = jnp.asarray(jnp.inf, dtype)
     slots = jnp.argmin(d2, axis=1).astype(jnp.int32)
     d2_min = jnp.min(d2, axis=1)

@@ -574,6 +574,8 @@ def _other_calls():
     from jaxslam.sensors import imu
     from jaxslam.stats import chi2_ppf
 
+    calls["ekf_slam.marginal_d2"] = lambda seed: es.marginal_d2(
+        st, model, np.array([[1.0, 0.0], [0.0, 1.0]]) + 0.01 * seed, np.ones(2, bool), 0.01 * np.eye(2))
     calls["stats.chi2_ppf"] = lambda seed: chi2_ppf(np.asarray([0.9, 0.99]), 2.0 + seed)
     calls["integrators.rollout"] = lambda seed: integrators.rollout(f, np.asarray([0.3, 0.0]),
                                                                     np.full((20, 1), 0.1 * seed), 0.05)
@@ -585,7 +587,7 @@ def _other_calls():
 
 @pytest.mark.parametrize("name", ["lines.extract_lines", "lines.extract_guided", "association.jcbb",
                                   "fastslam.maybe_resample", "stats.chi2_ppf", "integrators.rollout",
-                                  "imu.bias_drift_rollout"])
+                                  "imu.bias_drift_rollout", "ekf_slam.marginal_d2"])
 def test_other_looping_functions_called_eagerly_compile_once_and_keep_nothing_more(name):
     """RANSAC line extraction (``extract_lines``, ``extract_guided``), JCBB,
     ``fastslam.maybe_resample``, ``chi2_ppf``, the RK4 ``rollout`` and the IMU drift rollout hold
