@@ -321,10 +321,24 @@ def make_model(config: Config) -> es.SlamModel:
 
     With ``config.calibrate`` the robot block is s = (x, y, φ, c_0, c_1, c_2); the pose moves
     with the calibrated input and c is constant (its random walk enters through Q).
-    The range-bearing functions read only s[:3].
+    The range-bearing functions read only s[:3].  Equal configurations give the same model
+    object (one built per motion, geometry and calibration), so the engine's steps called
+    eagerly from :func:`step` find their compiled programs again.
     """
-    f = motion_fn(config)
-    if config.calibrate:
+    f = motion_fn(config)  # (checks config.motion)
+    try:
+        return _cached_model(config.motion, config.geometry, bool(config.calibrate))
+    except TypeError:  # an unhashable geometry: built afresh
+        return _build_model(f, config.calibrate)
+
+
+@functools.lru_cache(maxsize=32)
+def _cached_model(motion: str, geometry, calibrate: bool) -> es.SlamModel:
+    return _build_model(planar.motion_model(motion, geometry), calibrate)
+
+
+def _build_model(f, calibrate: bool) -> es.SlamModel:
+    if calibrate:
         def motion(s, u, dt):
             return jnp.concatenate([f(s[:3], calibrated_input(s[3:6], u), dt), s[3:6]])
         nr = 6

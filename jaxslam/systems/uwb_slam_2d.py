@@ -471,9 +471,15 @@ def matched_params(model: str = "squared", dt: float = 1.0, noise: uwb.UwbNoise 
 
 
 def make_model(model: str = "squared") -> es.SlamModel:
-    """The UWB range model for the engine: robot 10, landmark 2, one row per anchor (eq. 16/17)."""
+    """The UWB range model for the engine: robot 10, landmark 2, one row per anchor (eq. 16/17).
+    One model object per range model, so the engine's steps called eagerly find their compiled
+    programs again."""
     uwb.check_model(model)
+    return _range_model(model)
 
+
+@functools.lru_cache(maxsize=None)
+def _range_model(model: str) -> es.SlamModel:
     def observe(s, l, params):
         return uwb.observe_range(s[POS], l, model)
 

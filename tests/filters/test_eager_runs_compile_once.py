@@ -622,3 +622,17 @@ def test_a_loop_over_twenty_kept_programs_compiles_nothing_on_its_second_pass():
                 compilation.call_compiled((f"test.site{i}",), lambda x, fn=fn: fn(x), (jnp.ones(3),), after="auto")
     assert acc.result.programs == 0 and acc.result.trace_s == 0.0, acc.result
     compilation.clear_programs()
+
+
+def test_system_models_built_per_call_are_one_object_per_configuration():
+    """The planar and UWB systems build their engine model inside ``step`` (``make_model``):
+    equal configurations now give the same object, so the engine's steps called eagerly from a
+    system's ``step`` find their kept programs (a new closure at every call made every key new:
+    two compiles in vain, then op by op)."""
+    from jaxslam.systems import planar_ekf_slam as pe, uwb_slam_2d as uw
+
+    a, b = pe.make_model(pe.Config()), pe.make_model(pe.Config())
+    assert a is b and hash(("ekf_slam.update", a)) == hash(("ekf_slam.update", b))
+    calibrated = pe.make_model(pe.Config(calibrate=True))
+    assert calibrated is not a and calibrated.robot_dim == 6
+    assert uw.make_model("squared") is uw.make_model("squared") is not uw.make_model("range")
