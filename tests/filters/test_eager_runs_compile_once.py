@@ -577,6 +577,12 @@ def _other_calls():
     calls["ekf_slam.marginal_d2"] = lambda seed: es.marginal_d2(
         st, model, np.array([[1.0, 0.0], [0.0, 1.0]]) + 0.01 * seed, np.ones(2, bool), 0.01 * np.eye(2))
     calls["stats.chi2_ppf"] = lambda seed: chi2_ppf(np.asarray([0.9, 0.99]), 2.0 + seed)
+    from jaxslam.sim.scenarios.tracking import make_setup, paper000_figure8
+    from jaxslam.sim.simulate import simulate
+
+    setup = make_setup(paper000_figure8(2.0, 0.0), jnp.float64)
+    calls["sim.simulate"] = lambda seed: simulate(setup._replace(x0=setup.x0 + 0.01 * seed), jax.random.PRNGKey(seed),
+                                                  1, 3)
     calls["integrators.rollout"] = lambda seed: integrators.rollout(f, np.asarray([0.3, 0.0]),
                                                                     np.full((20, 1), 0.1 * seed), 0.05)
     calls["imu.bias_drift_rollout"] = lambda seed: imu.bias_drift_rollout(
@@ -587,13 +593,13 @@ def _other_calls():
 
 @pytest.mark.parametrize("name", ["lines.extract_lines", "lines.extract_guided", "association.jcbb",
                                   "fastslam.maybe_resample", "stats.chi2_ppf", "integrators.rollout",
-                                  "imu.bias_drift_rollout", "ekf_slam.marginal_d2"])
+                                  "imu.bias_drift_rollout", "ekf_slam.marginal_d2", "sim.simulate"])
 def test_other_looping_functions_called_eagerly_compile_once_and_keep_nothing_more(name):
     """RANSAC line extraction (``extract_lines``, ``extract_guided``), JCBB,
-    ``fastslam.maybe_resample``, ``chi2_ppf``, the RK4 ``rollout`` and the IMU drift rollout hold
-    a ``lax.scan`` / ``while_loop`` / ``fori_loop`` / ``cond``: uncompiled, each eager call traced
-    and compiled it again and kept the program (40 ms to 1.9 s a call; 6-508 memory mappings a
-    call).  A second call with new numbers now traces and compiles nothing, and equals the same
+    ``fastslam.maybe_resample``, ``chi2_ppf``, the RK4 ``rollout``, the IMU drift rollout and the
+    flight simulation hold a ``lax.scan`` / ``while_loop`` / ``fori_loop`` / ``cond``: uncompiled,
+    each eager call traced and compiled it again and kept the program (40 ms to 1.9 s a call;
+    6-508 memory mappings a call; ``marginal_d2`` ran op by op, 17-29 ms a call).  A second call with new numbers now traces and compiles nothing, and equals the same
     call under the caller's ``jit``."""
     call = _other_calls()[name]
     call(0)
