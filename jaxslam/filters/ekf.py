@@ -509,26 +509,39 @@ def update_batch(
         nis (M,), dof (M,), innovation (M, m), S (M, m, m) (the diagonal
         blocks ``S_ii``), accepted (M,), status (M,).  In joint mode a
         numerical failure of the joint update (``NOT_PSD``/``NON_FINITE``) is
-        reported on every valid measurement and the prior is kept.
+        reported on every valid measurement and the prior is kept.  Called eagerly it is
+        compiled once per model (:func:`jaxslam.compilation.call_compiled`, at the model's
+        second call as :func:`update`).
     """
+    state, zs, R, masks, sequential = _check_batch(state, zs, R, args, masks, gate, sequential)
+
+    def step(opts, state, zs, R, masks, args):
+        return _update_batch(state, zs, h, R, *args, masks=masks, residual=residual, gate=opts[0],
+                             sequential=sequential)
+
+    return call_compiled(("ekf.update_batch", h, residual, sequential), step, (state, zs, R, masks, args), (gate,),
+                         after=2)
+
+
+def _check_batch(state, zs, R, args, masks, gate, sequential):
+    """:func:`update_batch`'s checks (shapes, and the values known now): ``(state, zs, R,
+    masks (M, m) bool, sequential)`` in the state's dtype."""
     check_gate(gate)
     sequential = check_flag(sequential, "sequential")
     state = check_state(state)
-    x, P = state
+    x = state.mean
     dtype = x.dtype
     check_real(zs, "zs")
     zs = jnp.asarray(zs, dtype=dtype)
     if zs.ndim != 2:
         raise InputError(f"zs: expected shape (M, m) (M measurements of size m), got {zs.shape}")
     M, m = zs.shape
-    n = x.shape[0]
     rs = tuple(np.shape(R))
     if rs not in ((m, m), (M, m, m)):
         raise InputError(f"R: expected shape ({m}, {m}) (shared) or ({M}, {m}, {m}) (per measurement), got {rs}")
     if is_concrete(R):
         check_psd(R, "R", strict=True, stack=len(rs) == 3)
     R = jnp.asarray(R, dtype=dtype)
-    Rs = jnp.broadcast_to(R, (M, m, m))
     if masks is None:
         masks = jnp.ones((M, m), bool)
     else:
@@ -544,6 +557,18 @@ def update_batch(
             if np.ndim(leaf) < 1 or np.shape(leaf)[0] != M:
                 raise InputError(f"args[{i}]: every per-measurement argument needs a leading axis of "
                                  f"size M = {M} (zs' rows), got shape {np.shape(leaf)}")
+    return state, zs, R, masks, sequential
+
+
+def _update_batch(state: Gaussian, zs, h: Callable, R, *args, masks=None, residual=None, gate: Gate = None,
+                  sequential: bool = False):
+    """:func:`update_batch`'s computation."""
+    state, zs, R, masks, sequential = _check_batch(state, zs, R, args, masks, gate, sequential)
+    x, P = state
+    dtype = x.dtype
+    M, m = zs.shape
+    n = x.shape[0]
+    Rs = jnp.broadcast_to(R, (M, m, m))
     res = _default_residual if residual is None else residual
 
     if sequential:

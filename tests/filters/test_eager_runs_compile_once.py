@@ -642,3 +642,30 @@ def test_system_models_built_per_call_are_one_object_per_configuration():
     calibrated = pe.make_model(pe.Config(calibrate=True))
     assert calibrated is not a and calibrated.robot_dim == 6
     assert uw.make_model("squared") is uw.make_model("squared") is not uw.make_model("range")
+
+
+@pytest.mark.parametrize("sequential", [False, True])
+def test_eager_update_batch_compiles_at_its_second_call_and_equals_the_jitted_update(sequential):
+    """``ekf.update_batch`` called eagerly runs a kept program from its model's second call, as
+    ``update`` does (10 ms a call op by op; the sequential form traced its scan at every call,
+    which this test catches; the joint form's gain is its speed alone), and equals the same
+    update under the caller's ``jit``."""
+    st = ekf.Gaussian(jnp.asarray([0.3, 0.0]), 0.1 * jnp.eye(2))
+    lm = np.asarray([[0.5], [-0.2], [0.1]])
+
+    def hb(x, l):
+        return jnp.sin(x[:1]) + l
+
+    def call(k):
+        return ekf.update_batch(st, 0.1 * k + np.zeros((3, 1)), hb, R, lm, masks=np.asarray([True, k % 2 == 0, True]),
+                                gate=9.0, sequential=sequential)
+
+    call(0)
+    call(1)
+    with compilation.account() as acc:
+        post, info = call(2)
+    assert acc.result.trace_s == 0.0 and acc.result.programs == 0, acc.result
+    ref, ref_info = jax.jit(lambda: call(2))()
+    np.testing.assert_allclose(np.asarray(post.mean), np.asarray(ref.mean), rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(np.asarray(post.cov), np.asarray(ref.cov), rtol=1e-12, atol=1e-14)
+    np.testing.assert_array_equal(np.asarray(info.status), np.asarray(ref_info.status))
