@@ -40,8 +40,7 @@ import numpy as np
 from ..compilation import call_compiled
 from ..errors import InputError
 from ..linalg import check_int, is_concrete, symmetrize
-from .ekf_slam import (SlamModel, SlamState, _check_options, _check_sizes, _rows, _rows_R, marginal_d2,
-                       slot_indices)
+from .ekf_slam import SlamModel, SlamState, _check_associate, _check_options, marginal_d2, slot_indices
 
 __all__ = ["JCBBResult", "jcbb", "individual_compatibility"]
 
@@ -65,10 +64,7 @@ def _check_rows(state: SlamState, model: SlamModel, z, mask, R):
     """The engine's own checks of one scan (shapes static, R's values when concrete):
     ``(z (K, d_z), mask (K,) bool, R (K, d_z, d_z))``, or :class:`InputError` naming the
     argument (a state of another lm_dim, a wrong z, mask or R, a non-PSD R)."""
-    _check_sizes(state, model)
-    z, _, mask = _rows(z, None, mask, model.meas_dim, "")
-    R = _rows_R(R, mask, z.shape[0], model.meas_dim, state.x.dtype)
-    return z, mask, R
+    return _check_associate(state, model, z, mask, R)
 
 
 def _compatibility(state, model, z, mask, R, params):
