@@ -302,8 +302,8 @@ def predict(state: Gaussian, f: Callable, u, Q, *args, noise_jac=None, return_st
         loop of eager steps runs compiled programs.
     """
     return_status = check_flag(return_status, "return_status")
-    state = check_state(state)
-    _g.check_noise_values(Q, "Q")  # (traced in the compiled step: checked here, while it is known)
+    state = _g.check_predict_call(state, Q)  # the values known now (the compiled step sees them traced)
+
     def step(opts, state, Q):
         u, a, nj = opts
         g = _predict(state, f, u, Q, *a, noise_jac=nj)
@@ -400,10 +400,8 @@ def update(
         (:func:`jaxslam.compilation.call_compiled`).
     """
     check_num_iter(num_iter)
-    check_gate(gate)
-    state = check_state(state)
-    check_update_args(z, R, mask)
-    check_gate_size(gate, np.shape(z)[-1] if np.ndim(z) else 1, mask)  # while the mask is known
+    state = _g.check_update_call(state, z, R, mask, gate)  # the values known now
+
     def step(opts, state, z, R, mask):
         a, g, t = opts
         return _update(state, z, h, R, *a, residual=residual, mask=mask, gate=g, num_iter=num_iter, tol=t)

@@ -367,22 +367,12 @@ def predict(state: SlamState, model: SlamModel, u, Q, params=None, *,
     O(n_r²·n), independent of the map block; with ``active_only`` (static) O(n_r²·n_a), n_a
     the columns up to the highest active slot (:func:`robot_cross_update`).  A non-finite
     prediction keeps the prior and sets ``NON_FINITE`` in ``state.status``.
-    Called eagerly it is compiled once per model (:func:`_eager_step`).
+    Called eagerly it is compiled once per model (:func:`jaxslam.compilation.call_compiled`, ``after="auto"``).
     """
     _check_predict(state, model, Q)
-    return _eager_step(("ekf_slam.predict", model, active_only),
-                       lambda opts, st, Q: _predict(st, model, opts[0], Q, opts[1], active_only)[0],
-                       (state, Q), (u, params))
-
-
-def _eager_step(key, step, args, options):
-    """One engine step called eagerly: through a program compiled once per ``key`` (the model
-    and the static options; :func:`jaxslam.compilation.call_compiled` with ``after="auto"``).
-    Uncompiled, a step runs op by op: the bearing-only example's predict + update took 5.2 s
-    on its first call and 28 ms on each later one, against 0.77 s to compile both and 0.3 ms
-    a step compiled.  The caller checks the values it was given first (the program sees them
-    traced); under the caller's own ``jit`` / ``vmap`` / ``grad`` the step is traced as it is."""
-    return call_compiled(key, step, args, options, after="auto")
+    return call_compiled(("ekf_slam.predict", model, active_only),
+                         lambda opts, st, Q: _predict(st, model, opts[0], Q, opts[1], active_only)[0],
+                         (state, Q), (u, params), after="auto")
 
 
 def _check_predict(state: SlamState, model: SlamModel, Q):
@@ -627,7 +617,8 @@ def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
     ``row_stats`` asked for them.
     Cost O(n²·K·d_z) through gathered columns (with ``active_only``, n of the leading block
     that holds the map for the correction of P, and O(n·(K·d_z)²) for the gain).
-    Called eagerly it is compiled once per model and static options (:func:`_eager_step`).
+    Called eagerly it is compiled once per model and static options
+    (:func:`jaxslam.compilation.call_compiled`, ``after="auto"``).
     """
     z, slots, mask, R = _check_update(state, model, z, slots, mask, R, gate, robust, num_iter)
 
@@ -636,8 +627,8 @@ def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
         return _update(st, model, z, slots, mask, R, params, gate, robust, row_stats, num_iter, tol,
                        active_only, joseph)
 
-    return _eager_step(("ekf_slam.update", model, row_stats, num_iter, active_only, joseph), step,
-                       (state, z, slots, mask, R), (params, gate, robust, tol))
+    return call_compiled(("ekf_slam.update", model, row_stats, num_iter, active_only, joseph), step,
+                         (state, z, slots, mask, R), (params, gate, robust, tol), after="auto")
 
 
 def _check_update(state: SlamState, model: SlamModel, z, slots, mask, R, gate, robust, num_iter: int):
@@ -1006,12 +997,12 @@ def update_robot(state: SlamState, model: SlamModel, observe, z, mask, R, params
     PSD on the masked-in components is an :class:`InputError` naming it.
     Works on any map (also an empty one).  Returns (state, UpdateInfo) with
     ``used``/``gated`` of shape (d_z,).  Called eagerly it is compiled once per model and
-    ``observe`` (:func:`_eager_step`).
+    ``observe`` (:func:`jaxslam.compilation.call_compiled`, ``after="auto"``).
     """
     _check_update_robot(np.shape(z), mask, R)
-    return _eager_step(("ekf_slam.update_robot", model, observe, residual),
-                       lambda opts, st, z, mask, R: _update_robot(st, model, observe, z, mask, R, opts[0], residual),
-                       (state, z, mask, R), (params,))
+    return call_compiled(("ekf_slam.update_robot", model, observe, residual),
+                         lambda opts, st, z, mask, R: _update_robot(st, model, observe, z, mask, R, opts[0], residual),
+                         (state, z, mask, R), (params,), after="auto")
 
 
 def _check_update_robot(z_shape, mask, R):
@@ -1186,9 +1177,9 @@ def register(state: SlamState, model: SlamModel, z, lm_ids, mask, R, params=None
     if model.inverse is None:
         raise ValueError("register: this model has no inverse observation; use add_landmark")
     z, lm_ids, mask, R = _check_register(state, model, z, lm_ids, mask, R)
-    return _eager_step(("ekf_slam.register", model),
-                       lambda opts, st, z, lm_ids, mask, R: _register_joint(st, model, z, lm_ids, mask, R, opts[0]),
-                       (state, z, lm_ids, mask, R), (params,))
+    return call_compiled(("ekf_slam.register", model),
+                         lambda opts, st, z, lm_ids, mask, R: _register_joint(st, model, z, lm_ids, mask, R, opts[0]),
+                         (state, z, lm_ids, mask, R), (params,), after="auto")
 
 
 def _check_register(state: SlamState, model: SlamModel, z, lm_ids, mask, R):
@@ -1363,12 +1354,12 @@ def marginal_d2(state: SlamState, model: SlamModel, z, mask, R, params=None, act
     Returns ``(d2, (zh (cap, d_z), Hs (cap, d_z, n_r), Hl (cap, d_z, d_l), nu (K, cap, d_z)))``
     (the slots beyond the evaluated block: ẑ = 0, H = 0, ν = 0).  ``z``, ``mask`` and ``R`` are
     checked as :func:`associate_nn` checks them.  Called eagerly it is compiled once per model
-    (:func:`_eager_step`).
+    (:func:`jaxslam.compilation.call_compiled`, ``after="auto"``).
     """
     z, mask, R = _check_associate(state, model, z, mask, R)
-    return _eager_step(("ekf_slam.marginal_d2", model, active_only),
-                       lambda opts, st, z, mask, R: _marginal_d2(st, model, z, mask, R, opts[0], active_only),
-                       (state, z, mask, R), (params,))
+    return call_compiled(("ekf_slam.marginal_d2", model, active_only),
+                         lambda opts, st, z, mask, R: _marginal_d2(st, model, z, mask, R, opts[0], active_only),
+                         (state, z, mask, R), (params,), after="auto")
 
 
 def _marginal_d2(state: SlamState, model: SlamModel, z, mask, R, params, active_only: bool):
@@ -1437,12 +1428,12 @@ def associate_nn(state: SlamState, model: SlamModel, z, mask, R, params=None,
     masked-in rows) are checked as :func:`update`'s: :class:`InputError` naming the argument.
 
     Returns (slots (K,), matched (K,) bool, new (K,) bool, d2_min (K,)).  Called eagerly it is
-    compiled once per model (:func:`_eager_step`).
+    compiled once per model (:func:`jaxslam.compilation.call_compiled`, ``after="auto"``).
     """
     z, mask, R = _check_associate(state, model, z, mask, R)
-    return _eager_step(("ekf_slam.associate_nn", model, active_only),
-                       lambda opts, st, z, mask, R: _associate_nn(st, model, z, mask, R, *opts, active_only),
-                       (state, z, mask, R), (params, gate, new_threshold))
+    return call_compiled(("ekf_slam.associate_nn", model, active_only),
+                         lambda opts, st, z, mask, R: _associate_nn(st, model, z, mask, R, *opts, active_only),
+                         (state, z, mask, R), (params, gate, new_threshold), after="auto")
 
 
 def _check_associate(state: SlamState, model: SlamModel, z, mask, R):

@@ -74,6 +74,8 @@ __all__ = [
     "predicted_status",
     "check_noise_values",
     "check_update_args",
+    "check_predict_call",
+    "check_update_call",
     "scalar_measurement",
     "check_process_noise",
     "check_transition_out",
@@ -255,6 +257,26 @@ def check_noise_values(M, name: str, strict: bool = False):
         check_psd(M, name, strict=strict)
     elif np.ndim(M) < 2 and np.size(M) == 1:
         check_psd(np.reshape(check_numbers(M, name), (1, 1)), name, strict=strict)
+
+
+def check_predict_call(state, Q) -> Gaussian:
+    """What an eager ``predict`` of a Gaussian filter checks before its compiled step (which sees
+    the values traced): the belief (:func:`check_state`) and a known ``Q``'s values
+    (:func:`check_noise_values`).  Returns the checked belief."""
+    state = check_state(state)
+    check_noise_values(Q, "Q")
+    return state
+
+
+def check_update_call(state, z, R, mask, gate) -> Gaussian:
+    """What an eager ``update`` of a Gaussian filter checks before its compiled step: the gate,
+    the belief, ``z``/``R``/``mask`` (:func:`check_update_args`) and, while the mask is known,
+    that the gate's table covers the components it lets through.  Returns the checked belief."""
+    check_gate(gate)
+    state = check_state(state)
+    check_update_args(z, R, mask)
+    check_gate_size(gate, np.shape(z)[-1] if np.ndim(z) else 1, mask)
+    return state
 
 
 def check_update_args(z, R, mask):

@@ -390,8 +390,8 @@ def predict(state: Gaussian, f: Optional[Callable], u, Q, *args,
 def _predict_step(state: Gaussian, f: Optional[Callable], u, Q, args, rule: SigmaPoints, noise_jac):
     """:func:`_predict` after the checks of values known now; called eagerly, compiled once per
     model (:func:`jaxslam.compilation.call_compiled`)."""
-    state = check_state(state)
-    _g.check_noise_values(Q, "Q")  # (traced in the compiled step: checked here, while it is known)
+    state = _g.check_predict_call(state, Q)  # the values known now (the compiled step sees them traced)
+
     def step(opts, state, Q):
         u, a, nj = opts
         return _predict(state, f, u, Q, a, rule, nj)
@@ -463,10 +463,8 @@ def update(
         (:func:`jaxslam.compilation.call_compiled`).
     """
     rule = _rule(points)
-    check_gate(gate)
-    state = check_state(state)
-    check_update_args(z, R, mask)
-    check_gate_size(gate, np.shape(z)[-1] if np.ndim(z) else 1, mask)  # while the mask is known
+    state = _g.check_update_call(state, z, R, mask, gate)  # the values known now
+
     def step(opts, state, z, R, mask):
         a, g = opts
         return _update(state, z, h, R, *a, residual=residual, mask=mask, gate=g, rule=rule)
