@@ -13,12 +13,13 @@ what the smoother needs plus the pass.  The issue's target: RTS pass ≤ 2× the
 ``numpy_ekf`` is a plain NumPy loop of the same EKF (hand Jacobians) as the outside reference.
 ``eager_calls``: five of the runs called without the caller's ``jit`` — first call, repeated
 call, and the repeated call with the kept program bypassed (what every eager call cost before
-``jaxslam.compilation.call_compiled``) — and a Python loop of 50 eager ``predict`` + ``update``
-steps (EKF, UKF, and the EKF-SLAM engine's ``predict`` + ``update`` with the beacon as the one
-landmark of an 8-slot map), and of 10 ``fastslam.step`` calls (100 particles, the beacon
-registered at its first sighting; 10, since uncompiled each call took ~1 s and kept its
-compiled programs: ~280 memory mappings a step, so a few hundred steps reached the system's
-65530 and XLA failed with "Cannot allocate memory"); times are per loop.  Each case starts
+``jaxslam.compilation.call_compiled``) — and a Python loop of ``--loop-steps`` (default 50)
+eager ``predict`` + ``update`` steps (EKF, UKF, and the EKF-SLAM engine's ``predict`` +
+``update`` with the beacon as the one landmark of an 8-slot map), and of a fifth as many
+``fastslam.step`` calls (100 particles, the beacon registered at its first sighting; a fifth,
+since uncompiled each call took ~1 s and kept its compiled programs: ~280 memory mappings a
+step, so a few hundred steps reached the system's 65530 and XLA failed with "Cannot allocate
+memory"); times are per loop.  Each case starts
 from empty in-memory caches (``jax.clear_caches``).
 
 Which reference a row's ``reference_s`` / ``speedup`` is against: every row's ``reference`` says
@@ -50,6 +51,10 @@ def add_arguments(parser):
     parser.add_argument("--eager", choices=("both", "off", "none"), default="both",
                         help="eager-call measurements: with the persistent cache as this process has it "
                              "and off (both, default), off only, or none")
+    parser.add_argument("--loop-steps", type=int, default=50,
+                        help="steps of the eager step loops: the EKF, UKF and EKF-SLAM loops run this "
+                             "many (at most --steps), the FastSLAM loop a fifth of it, at least 1 "
+                             "(default 50)")
 
 
 DT = 0.1
@@ -148,7 +153,11 @@ def run(args):
         raise InputError(f"--steps: must be >= 2, got {args.steps}")
     if args.repeats < 1:
         raise InputError(f"--repeats: must be >= 1, got {args.repeats}")
+    loop_steps = getattr(args, "loop_steps", 50)
+    if loop_steps < 1:
+        raise InputError(f"--loop-steps: must be >= 1, got {loop_steps}")
     T = int(args.steps)
+    n_loop, n_fs = min(loop_steps, T), max(1, min(loop_steps, T) // 5)
     us_np, zs_np = _simulate(T)
     us, zs = jnp.asarray(us_np), jnp.asarray(zs_np)
     Fj, Gj, Bj = jnp.asarray(F), jnp.asarray(G), jnp.asarray(BEACON)
@@ -198,9 +207,9 @@ def run(args):
     times["rts_pass"] = median_s(lambda: jax.block_until_ready(rts_pass(saved)), args.repeats)
     results.append({"case": "rts_pass", "params": {"T": T, "what": "backward pass over a saved run"},
                     "jaxslam_s": times["rts_pass"]})
-    def step_loop(mod, steps=50):  # the filterpy-style loop: one eager predict and update per step
+    def step_loop(mod):  # the filterpy-style loop: one eager predict and update per step
         st = gaussian.Gaussian(jnp.asarray(X0), jnp.asarray(P0))
-        for t in range(min(steps, T)):
+        for t in range(n_loop):
             st = mod.predict(st, f, us[t], Q)
             st, _ = mod.update(st, zs[t], h, R, residual=res)
         return st.mean
@@ -214,11 +223,11 @@ def run(args):
     slam_model = ekf_slam.SlamModel(robot_dim=4, lm_dim=2, meas_dim=2, motion=lambda s, u, p=None: f(s, u),
                                     observe=h_lm, residual=res)
 
-    def slam_step_loop(steps=50):
+    def slam_step_loop():
         st = ekf_slam.init(jnp.asarray(X0), jnp.asarray(P0), 8, 2)
         st = ekf_slam.preload(st, slam_model, Bj[None], 1e-4 * jnp.eye(2)[None], ids=jnp.zeros(1, jnp.int32))
         one, seen = jnp.zeros(1, jnp.int32), jnp.ones(1, bool)
-        for t in range(min(steps, T)):
+        for t in range(n_loop):
             st = ekf_slam.predict(st, slam_model, us[t], Q)
             st, _ = ekf_slam.update(st, slam_model, zs[t][None], one, seen, R)
         return st.x
@@ -231,11 +240,11 @@ def run(args):
     fmodel = fastslam.LandmarkModel(2, 2, h_lm, lambda x, z, p=None: x[:2] - z[0] * jnp.stack(
         [jnp.cos(z[1]), jnp.sin(z[1])]), residual=res)
 
-    def fastslam_step_loop(steps=10):  # 10: uncompiled, each step took ~1 s and kept its programs
+    def fastslam_step_loop():  # a fifth: uncompiled, each step took ~1 s and kept its programs
         p = fastslam.init(jnp.asarray(X0), 100, 8, 2)
         key = jax.random.PRNGKey(0)
         zero = jnp.zeros(1, jnp.int32)
-        for t in range(min(steps, T)):
+        for t in range(n_fs):
             key, k = jax.random.split(key)
             p, _ = fastslam.step(p, k, sample, (us[t],), fmodel, zs[t][None], zero, jnp.ones(1, bool), R,
                                  slot_by_id=True)
@@ -243,10 +252,10 @@ def run(args):
 
     eager_cases = {k: cases[k] for k in ("ekf", "ukf", "ekf+rts", f"fixed_lag_{args.lag}",
                                          f"iterated_smoother_{args.iters}")}
-    eager_cases["ekf_step_loop_50"] = lambda: step_loop(ekf)
-    eager_cases["ukf_step_loop_50"] = lambda: step_loop(ukf)
-    eager_cases["ekf_slam_step_loop_50"] = slam_step_loop
-    eager_cases["fastslam_step_loop_10"] = fastslam_step_loop
+    eager_cases[f"ekf_step_loop_{n_loop}"] = lambda: step_loop(ekf)
+    eager_cases[f"ukf_step_loop_{n_loop}"] = lambda: step_loop(ukf)
+    eager_cases[f"ekf_slam_step_loop_{n_loop}"] = slam_step_loop
+    eager_cases[f"fastslam_step_loop_{n_fs}"] = fastslam_step_loop
     eager = _eager_calls(eager_cases, args.repeats, getattr(args, "eager", "both"))
     np_means = _numpy_ekf(us_np, zs_np)  # the untimed warm-up call, as every JAX case has one
     t_np = median_s(lambda: _numpy_ekf(us_np, zs_np), max(1, args.repeats // 2))

@@ -99,7 +99,7 @@ from ..errors import InputError, check_flag
 from ..compilation import call_compiled
 from ..linalg import check_finite, check_mask, check_numbers, check_psd, is_concrete, symmetrize, value_and_jacfwd
 from .ekf import Gaussian, UpdateInfo
-from .gaussian import (call_residual, check_gate, check_gate_size, check_leading, check_measurement,
+from .gaussian import (call_residual, check_gate, check_gate_size, check_leading, check_measurement, check_noise_values,
                        check_process_noise, check_real, check_transition_out, check_update_args, moment_dtype,
                        scalar_measurement, state_pair, threshold as _threshold)
 
@@ -362,8 +362,32 @@ def predict(state: SqrtGaussian, f: Callable, u, Q=None, *args, noise_jac=None,
             process noise, ``Q = C Cᵀ``; need not be triangular.
 
     Returns:
-        Predicted :class:`SqrtGaussian` in the dtype of ``state.mean``.
+        Predicted :class:`SqrtGaussian` in the dtype of ``state.mean``.  Called eagerly it is
+        compiled once per model (:func:`jaxslam.compilation.call_compiled`; a concrete ``Q`` is
+        still factored on the host in float64 first).
     """
+    state = check_state(state)  # the values known now (the compiled step sees them traced)
+    C = None
+    if Q_chol is None and Q is not None:
+        check_noise_values(Q, "Q")
+        C = _host_root(Q, state.mean.dtype)
+
+    def step(opts, state, Q, Q_chol, C):
+        u, a, nj = opts
+        return _predict(state, f, u, Q, a, nj, Q_chol, C)
+
+    return call_compiled(("sqrt_ekf.predict", f), step, (state, Q, Q_chol, C), (u, args, noise_jac), after=2)
+
+
+def _host_root(Q, dtype):
+    """:func:`_noise_root` of a concrete square ``Q`` (factored on the host in float64), else None."""
+    if not is_concrete(Q) or np.ndim(Q) != 2 or np.shape(Q)[0] != np.shape(Q)[1]:
+        return None
+    return _root(Q, dtype, triangular=False)
+
+
+def _predict(state, f, u, Q, args, noise_jac, Q_chol, C):
+    """:func:`predict`'s computation (its checks of shapes; ``C``: the root of ``Q`` when known)."""
     x, L = check_state(state)
     dtype = x.dtype
     n = x.shape[0]
@@ -386,7 +410,7 @@ def predict(state: SqrtGaussian, f: Callable, u, Q=None, *args, noise_jac=None,
         check_transition_out(xn, n)
     xn = xn.astype(dtype)
     F = F.astype(dtype)
-    C = _noise_root(Q, Q_chol, dtype)
+    C = _noise_root(Q, Q_chol, dtype) if C is None else jnp.asarray(C, dtype)
     if G is not None:
         C = _mm(G, C)
     return SqrtGaussian(xn, _tria(jnp.concatenate([_mm(F, L), C], axis=1)))
@@ -442,8 +466,23 @@ def update(
         on invalid rows/columns) and, where the field exists, ``logdet`` is
         ``log det S`` over the valid block (``2 Σ log diag S^½``).  On a singular or
         non-finite ``S^½`` (``NOT_PSD``) or a non-finite posterior (``NON_FINITE``) the prior
-        is returned unchanged.
+        is returned unchanged.  Called eagerly it is compiled once per model
+        (:func:`jaxslam.compilation.call_compiled`).
     """
+    check_gate(gate)  # the values known now (the compiled step sees them traced)
+    state = check_state(state)
+    check_update_args(z, R, mask)
+    check_gate_size(gate, np.shape(z)[-1] if np.ndim(z) else 1, mask)
+
+    def step(opts, state, z, R, mask):
+        a, g = opts
+        return _update(state, z, h, R, *a, residual=residual, mask=mask, gate=g)
+
+    return call_compiled(("sqrt_ekf.update", h, residual), step, (state, z, R, mask), (args, gate), after=2)
+
+
+def _update(state, z, h, R, *args, residual=None, mask=None, gate: Gate = None):
+    """:func:`update`'s computation (shape checks; values are checked by the caller)."""
     x, L = check_state(state)
     dtype = x.dtype
     check_update_args(z, R, mask)

@@ -46,7 +46,7 @@ from .gaussian import (
     masked_innovation,
     threshold,
 )
-from .sqrt_ekf import SqrtGaussian, SqrtPosterior, _mm, _noise_root, _tria, check_state, psd_factor
+from .sqrt_ekf import SqrtGaussian, SqrtPosterior, _host_root, _mm, _noise_root, _tria, check_state, psd_factor
 from .ukf import (
     SigmaPoints,
     _rule,
@@ -84,15 +84,27 @@ def predict(state: SqrtGaussian, f: Optional[Callable], u, Q, *args,
     (``NOT_PSD`` when a finite traced ``Q`` has no real root: indefinite):
     ``(SqrtGaussian, status)``; :func:`filter_scan` adds it to the step's status.  The state
     (:func:`check_state`), the rule and, when known now, ``Q`` (symmetric PSD) or ``Q_chol``
-    (finite) are checked first: :class:`InputError` naming the argument.
+    (finite) are checked first: :class:`InputError` naming the argument.  Called eagerly it is
+    compiled once per model (:func:`jaxslam.compilation.call_compiled`; a concrete ``Q`` is
+    still factored on the host in float64 first).
     """
     rule = _rule(points)
     return_status = check_flag(return_status, "return_status")
+    state = _check_predict(state, Q, Q_chol)  # the values known now (the compiled step sees them traced)
+    C = _host_root(Q, state.mean.dtype) if Q_chol is None else None
+
+    def step(opts, state, Q, Q_chol, C):
+        u, a = opts
+        return _predict(state, f, u, Q, a, rule, Q_chol, C, return_status)
+
+    return call_compiled(("sqrt_ukf.predict", f, rule, return_status), step, (state, Q, Q_chol, C), (u, args),
+                         after=2)
+
+
+def _check_predict(state, Q, Q_chol) -> SqrtGaussian:
+    """The belief and the process noise of a predict: shapes, and the values known now."""
     state = check_state(state)
-    x = state.mean
-    dtype = x.dtype
-    n = x.shape[0]
-    fm = (lambda v, u_, *a: v) if f is None else f
+    n = state.mean.shape[0]
     if Q_chol is None:
         qs = tuple(np.shape(Q))
         if qs != (n, n):
@@ -102,10 +114,19 @@ def predict(state: SqrtGaussian, f: Optional[Callable], u, Q, *args,
         raise InputError(f"Q_chol: expected shape ({n}, k), got {tuple(np.shape(Q_chol))}")
     elif is_concrete(Q_chol) and not np.all(np.isfinite(check_numbers(Q_chol, "Q_chol"))):
         raise InputError("Q_chol: contains NaN or Inf")
+    return state
+
+
+def _predict(state, f, u, Q, args, rule, Q_chol, C, return_status):
+    """:func:`predict`'s computation (its checks of shapes; ``C``: the root of ``Q`` when known)."""
+    state = _check_predict(state, Q, Q_chol)
+    x = state.mean
+    dtype = x.dtype
+    fm = (lambda v, u_, *a: v) if f is None else f
     pts, _, wm, sw = _points(state, rule)
     X = check_transition(jax.vmap(lambda p: jnp.asarray(fm(p, u, *args)))(pts), pts.shape).astype(dtype)
     xm = wm @ X
-    C = _noise_root(Q, Q_chol, dtype)
+    C = _noise_root(Q, Q_chol, dtype) if C is None else jnp.asarray(C, dtype)
     L = _tria(jnp.concatenate([((X - xm) * sw[:, None]).T, C], axis=1))
     good = jnp.all(jnp.isfinite(xm)) & jnp.all(jnp.isfinite(L))
     out = SqrtGaussian(jnp.where(good, xm, x), jnp.where(good, L, state.chol))
@@ -127,10 +148,24 @@ def update(state: SqrtGaussian, z, h: Callable, R, *args, residual: Optional[Cal
     (``NON_FINITE``) keeps the prior.  As :func:`jaxslam.filters.ukf.update`, the state
     (:func:`check_state`), the rule, the gate and a concrete ``R`` (positive definite, or a
     scalar variance > 0 for one measurement) are checked first: :class:`InputError` naming the
-    argument.
+    argument.  Called eagerly it is compiled once per model
+    (:func:`jaxslam.compilation.call_compiled`).
     """
     rule = _rule(points)
-    check_gate(gate)
+    check_gate(gate)  # the values known now (the compiled step sees them traced)
+    state = check_state(state)
+    check_update_args(z, R, mask)
+    check_gate_size(gate, np.shape(z)[-1] if np.ndim(z) else 1, mask)
+
+    def step(opts, state, z, R, mask):
+        a, g = opts
+        return _update(state, z, h, R, *a, residual=residual, mask=mask, gate=g, rule=rule)
+
+    return call_compiled(("sqrt_ukf.update", h, residual, rule), step, (state, z, R, mask), (args, gate), after=2)
+
+
+def _update(state, z, h, R, *args, residual=None, mask=None, gate: Gate = None, rule: SigmaPoints = None):
+    """:func:`update`'s computation (shape checks; values are checked by the caller)."""
     x, L = check_state(state)
     dtype = x.dtype
     check_update_args(z, R, mask)

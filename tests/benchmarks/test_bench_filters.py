@@ -36,15 +36,16 @@ def test_numpy_reference_equals_ekf_filter_scan():
 def test_bench_run_shape():
     if not jax.config.jax_enable_x64:
         pytest.skip("needs x64")
-    out = bench_filters.run(argparse.Namespace(steps=30, repeats=1, lag=5, iters=2, eager="off"))
+    # 5 loop steps (1 FastSLAM step): the uncompiled references run op by op, ~1 s a FastSLAM step
+    out = bench_filters.run(argparse.Namespace(steps=30, repeats=1, lag=5, iters=2, eager="off", loop_steps=5))
     cases = [r["case"] for r in out["results"]]
     assert cases[0] == "ekf" and "rts_pass" in cases and "numpy_ekf_loop" in cases
     assert out["results"][-1]["max_abs_diff_means"] < 1e-10
     assert out["targets"][0]["name"] == "rts_pass_vs_filter"
     eager = {(r["case"], r["persistent_cache"]): r for r in out["eager_calls"]}
     assert {c for c, _ in eager} == {"ekf", "ukf", "ekf+rts", "fixed_lag_5", "iterated_smoother_2",
-                                     "ekf_step_loop_50", "ukf_step_loop_50", "ekf_slam_step_loop_50",
-                                     "fastslam_step_loop_10"}
+                                     "ekf_step_loop_5", "ukf_step_loop_5", "ekf_slam_step_loop_5",
+                                     "fastslam_step_loop_1"}
     assert ("ekf", False) in eager and ("ekf", True) not in eager  # --eager off: the cache-off rows only
     assert bench_filters._eager_calls({}, 1, "none") == []
     assert all(r["first_call_s"] > 0 and r["repeat_s"] > 0 and r["repeat_uncompiled_s"] > 0

@@ -240,22 +240,40 @@ def test_fastslam_run_second_eager_call_traces_nothing():
 
 # --- one step at a time: a Python loop of eager predict / update calls ------------------------
 
-@pytest.mark.parametrize("mod", [ekf, ukf], ids=["ekf", "ukf"])
+def _belief(mod, x0, P0):
+    if mod in (sqrt_ekf, sqrt_ukf):
+        return sqrt_ekf.SqrtGaussian(jnp.asarray(x0), jnp.asarray(np.linalg.cholesky(P0)))
+    return ekf.Gaussian(jnp.asarray(x0), jnp.asarray(P0))
+
+
+@pytest.mark.parametrize("mod", [ekf, ukf, sqrt_ekf, sqrt_ukf], ids=["ekf", "ukf", "sqrt_ekf", "sqrt_ukf"])
 def test_a_python_loop_of_eager_steps_compiles_once_and_equals_the_scan(mod):
     """The filterpy-style loop: the second pair of eager ``predict`` / ``update`` calls compiles
     (the first runs op by op), every later one runs the kept programs (9-11 ms a step before,
-    each op dispatched on its own), and the loop's means equal the whole run under jit
-    (``filter_scan``), float64 and float32."""
+    each op dispatched on its own; 11 ms for the square-root filters), and the loop's means
+    equal the whole run under jit (``filter_scan``), float64 and float32."""
+    calls = {"f": 0, "h": 0}  # the models run in Python only while a step is traced
+
+    def fc(x, u):
+        calls["f"] += 1
+        return f(x, u)
+
+    def hc(x):
+        calls["h"] += 1
+        return h(x)
+
     for dt, tol in ((np.float64, 1e-10), (np.float32, 2e-5)):
         x0, P0, zs, mk = _data(T=25, dtype=dt)
-        st = ekf.Gaussian(jnp.asarray(x0), jnp.asarray(P0))
+        st = _belief(mod, x0, P0)
         means = []
         for t in range(len(zs)):
+            before = dict(calls)
             with compilation.account() as acc:
-                st = mod.predict(st, f, None, Q.astype(dt))
-                st, info = mod.update(st, zs[t], h, R.astype(dt), mask=mk[t], gate=9.0)
-            if t > 1:
+                st = mod.predict(st, fc, None, Q.astype(dt))
+                st, info = mod.update(st, zs[t], hc, R.astype(dt), mask=mk[t], gate=9.0)
+            if t > 1:  # op by op, each step ran f and h again (and traced nothing new)
                 assert acc.result.trace_s == 0.0 and acc.result.programs == 0, (t, acc.result)
+                assert calls == before, (t, before, calls)
             means.append(np.asarray(st.mean))
         assert st.mean.dtype == dt
         ref = jax.jit(lambda x0, P0, zs, mk: mod.filter_scan(f, h, x0, P0, None, zs, mk, Q.astype(dt),
@@ -265,11 +283,9 @@ def test_a_python_loop_of_eager_steps_compiles_once_and_equals_the_scan(mod):
 
 def test_eager_steps_still_check_the_values_known_at_the_call():
     """The compiled step sees traced values; the checks of the values a caller passed run
-    before it, as they always did (a negative scalar Q, a non-PD R, a NaN mean, a mask wider
-    than the gate's table)."""
+    before it, as they always did (a negative Q, a non-PD R, a NaN mean, a mask wider than the
+    gate's table; a square-root factor with a negative diagonal)."""
     from jaxslam.errors import InputError
-
-    st = ekf.Gaussian(jnp.asarray([0.1]), jnp.eye(1))
 
     def fi(x, u):
         return x
@@ -281,20 +297,26 @@ def test_eager_steps_still_check_the_values_known_at_the_call():
         return jnp.stack([x[0], x[0]])
 
     gate = ekf.chi2_gate(0.99, max_dof=1)
-    for mod in (ekf, ukf):
+    for mod in (ekf, ukf, sqrt_ekf, sqrt_ukf):
+        st = _belief(mod, np.asarray([0.1]), np.eye(1))
+        Q1 = 1.0 if mod in (ekf, sqrt_ekf) else np.eye(1)  # the sigma-point predicts take (n, n) only
         # good calls first, twice: the programs are compiled and kept, so the bad calls hit them
         for _ in range(2):
-            mod.predict(st, fi, None, 1.0)
+            mod.predict(st, fi, None, Q1)
             mod.update(st, 0.1, hi, 1.0)
             mod.update(st, jnp.asarray([0.1, 0.2]), h2, jnp.eye(2), gate=gate, mask=np.asarray([True, False]))
         with pytest.raises(InputError, match=r"^Q: "):
-            mod.predict(st, fi, None, -1.0)
+            mod.predict(st, fi, None, -1.0 * np.asarray(Q1))
         with pytest.raises(InputError, match=r"^R: "):
             mod.update(st, 0.1, hi, -1.0)
         with pytest.raises(InputError, match=r"^state.mean: "):
-            mod.update(ekf.Gaussian(jnp.asarray([np.nan]), jnp.eye(1)), 0.1, hi, 1.0)
+            mod.update(st._replace(mean=jnp.asarray([np.nan])), 0.1, hi, 1.0)
         with pytest.raises(InputError, match=r"^gate: "):
             mod.update(st, jnp.asarray([0.1, 0.2]), h2, jnp.eye(2), gate=gate, mask=np.asarray([True, True]))
+        if mod in (sqrt_ekf, sqrt_ukf):  # a factor with a negative diagonal, predict and update
+            for call in (lambda s: mod.predict(s, fi, None, Q1), lambda s: mod.update(s, 0.1, hi, 1.0)):
+                with pytest.raises(InputError, match=r"^state.chol: .*non-negative diagonal"):
+                    call(st._replace(chol=-jnp.eye(1)))
 
 
 def test_a_model_made_anew_at_every_step_is_not_compiled_in_vain():
