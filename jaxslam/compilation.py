@@ -30,6 +30,7 @@ for 2.6 s of running before this module existed).  Two tools:
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import dataclasses
 import os
@@ -56,6 +57,7 @@ __all__ = [
     "compile_program",
     "clear_programs",
     "call_compiled",
+    "kept_programs",
     "split_arrays",
     "at_top_level",
     "CACHE_ENV",
@@ -487,6 +489,16 @@ def clear_programs() -> None:
         _served.clear()
         _site_recent.clear()
         _site_second.clear()
+
+
+def kept_programs() -> dict:
+    """``{site: count}``: how many keys of each call site (a key's first element, e.g.
+    ``"ekf.update"``) hold a compiled program that :func:`call_compiled` keeps now.  A site
+    missing here runs its eager calls uncompiled (op by op, or re-traced) — a way to check that
+    a loop of eager calls runs kept programs."""
+    with _eager_lock:
+        sites = [_site(k) for k, v in _eager.items() if not isinstance(v, int) and v is not _EAGER_ONLY]
+    return dict(collections.Counter(sites))
 
 
 def _compile_keyed(fn, jitted, args, digest, compiler_options):

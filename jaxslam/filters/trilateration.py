@@ -68,6 +68,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import errors
+from ..compilation import call_compiled
 from ..errors import InputError
 from ..linalg import check_mask, is_concrete, list_array, safe_norm
 
@@ -253,7 +254,8 @@ def trilaterate(points, ranges, mask=None, range_var=None, min_points: Optional[
         float64, 3.5e-4 in float32); such a solve is still returned, with ok False.
 
     Returns:
-      :class:`TrilaterationResult`.
+      :class:`TrilaterationResult`.  Called eagerly it is compiled once per shape
+      (:func:`jaxslam.compilation.call_compiled`; op by op the first call took 3 s).
     """
     points = list_array(points, "points")
     ranges = list_array(ranges, "ranges")
@@ -262,6 +264,17 @@ def trilaterate(points, ranges, mask=None, range_var=None, min_points: Optional[
     if min_points is not None:
         _check_number(min_points, "min_points", "a number of valid samples (an int)")
     _check_number(min_spread, "min_spread", "a spread [m] (a number)")
+    mask = list_array(mask, "mask")  # an array: a list of bools would join the program's key
+
+    def solve(opts, points, ranges):
+        return _trilaterate(points, ranges, *opts)
+
+    return call_compiled(("trilateration.trilaterate",), solve, (points, ranges),
+                         (mask, range_var, min_points, min_spread, rcond, cond_tol), after="auto")
+
+
+def _trilaterate(points, ranges, mask, range_var, min_points, min_spread, rcond, cond_tol):
+    """:func:`trilaterate`'s computation (the values were checked by the caller)."""
     dtype = _dtype_of(points, ranges)
     points = jnp.asarray(points, dtype)
     ranges = jnp.asarray(ranges, dtype)
@@ -326,7 +339,8 @@ def trilaterate_line(xs, ranges, mask=None, side=1.0, min_points: int = 3,
       :class:`TrilaterationResult` with ``position`` (2,) = (u, y); ``cov`` is
       zero (the paper sets this variance from ``residual_max``); ``spread`` is
       the standard deviation of the valid x_k; ``ok`` is False (and
-      ``DEGENERATE`` set) with too few samples, no baseline, or y² ≤ 0.
+      ``DEGENERATE`` set) with too few samples, no baseline, or y² ≤ 0.  Called eagerly it
+      is compiled once per shape (:func:`jaxslam.compilation.call_compiled`).
     """
     xs = list_array(xs, "xs")
     ranges = list_array(ranges, "ranges")
@@ -336,6 +350,18 @@ def trilaterate_line(xs, ranges, mask=None, side=1.0, min_points: int = 3,
     _check_number(side, "side", "+1 or -1 (the sign of the offset from the line)")
     if is_concrete(side) and float(np.asarray(side)) not in (-1.0, 1.0):
         raise InputError(f"side: expected +1 or -1 (the sign of the offset from the line), got {side!r}")
+    mask = list_array(mask, "mask")
+
+    def solve(opts, xs, ranges):
+        return _trilaterate_line(xs, ranges, *opts, side_known=is_concrete(side))
+
+    return call_compiled(("trilateration.trilaterate_line", is_concrete(side)), solve, (xs, ranges),
+                         (mask, side, min_points, min_baseline), after="auto")
+
+
+def _trilaterate_line(xs, ranges, mask, side, min_points, min_baseline, side_known):
+    """:func:`trilaterate_line`'s computation (the values were checked by the caller; with
+    ``side_known`` False a traced ``side`` other than ±1 makes ``ok`` False)."""
     dtype = _dtype_of(xs, ranges)
     xs = jnp.asarray(xs, dtype)
     ranges = jnp.asarray(ranges, dtype)
@@ -353,7 +379,7 @@ def trilaterate_line(xs, ranges, mask=None, side=1.0, min_points: int = 3,
     off_line = y2 > 0
     y = jnp.asarray(side, dtype) * jnp.sqrt(jnp.where(off_line, y2, 0.0))
     ok = (n_used >= min_points) & has_base & off_line
-    if not is_concrete(side):  # a traced side other than ±1 scaled y (a concrete one is refused)
+    if not side_known:  # a traced side other than ±1 scaled y (a concrete one is refused)
         ok = ok & (jnp.abs(jnp.asarray(side, dtype)) == 1)
     pos = jnp.stack([u, y])
     pos = jnp.where(jnp.isfinite(pos), pos, 0.0)

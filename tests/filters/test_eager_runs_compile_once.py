@@ -451,11 +451,13 @@ def test_auto_compiles_on_first_sight_until_a_site_meets_models_made_anew():
     for _ in range(3):
         compilation.call_compiled(("test.stable", stable), stable, (jnp.ones(2),), after="auto")
     assert traced == [True]  # compiled on the first call, then served
+    assert compilation.kept_programs() == {"test.stable": 1}
     traced.clear()
     for _ in range(5):
         fresh = make()
         compilation.call_compiled(("test.fresh", fresh), fresh, (jnp.ones(2),), after="auto")
     assert traced == [True, True, False, False, False]
+    assert compilation.kept_programs() == {"test.stable": 1, "test.fresh": 2}  # the three uncompiled keep none
     traced.clear()
     again = make()
     for _ in range(3):  # a model kept at that site now compiles on its second call
@@ -466,6 +468,7 @@ def test_auto_compiles_on_first_sight_until_a_site_meets_models_made_anew():
     compilation.call_compiled(("test.other", other), other, (jnp.ones(2),), after="auto")
     assert traced == [True]
     compilation.clear_programs()
+    assert compilation.kept_programs() == {}
 
 
 # --- the FastSLAM core's steps called one at a time --------------------------------------------
@@ -610,24 +613,48 @@ def _other_calls():
     calls["imu.bias_drift_rollout"] = lambda seed: imu.bias_drift_rollout(
         jax.random.PRNGKey(seed), imu.BiasDriftState(jnp.zeros(6), jnp.full(6, 0.01 * seed)),
         imu.ImuSpec(drift_tau=10.0, drift_density=0.1), 0.01, 30)
+    from jaxslam.filters import resampling, trilateration
+
+    calls["ekf_slam.preload"] = lambda seed: es.preload(st, model, np.array([[1.0, 0.0]]) + 0.01 * seed,
+                                                        1e-4 * np.eye(2)[None] * (1 + seed), ids=[7])
+    anchors = np.array([[0.0, 0.0], [5.0, 0.0], [0.0, 5.0], [5.0, 5.0]])
+    calls["trilateration.trilaterate"] = lambda seed: trilateration.trilaterate(
+        anchors, np.linalg.norm(anchors - [1.0 + 0.1 * seed, 2.0], axis=1), mask=[True, True, True, seed == 0],
+        range_var=0.01)
+    xs = np.arange(5.0)
+    calls["trilateration.trilaterate_line"] = lambda seed: trilateration.trilaterate_line(
+        xs, np.hypot(xs - 1.5 - 0.1 * seed, 2.0), side=-1.0)
+    log_w = np.log(np.linspace(0.1, 1.0, 40))
+    for scheme in ("systematic", "residual"):
+        calls[f"resampling.{scheme}"] = lambda seed, fn=getattr(resampling, scheme): fn(
+            jax.random.PRNGKey(seed), log_w + 0.1 * seed)
+    calls["resampling.soft"] = lambda seed: resampling.soft(jax.random.PRNGKey(seed), log_w, 0.3 + 0.1 * seed)
     return calls
 
 
 @pytest.mark.parametrize("name", ["lines.extract_lines", "lines.extract_guided", "association.jcbb",
                                   "fastslam.maybe_resample", "stats.chi2_ppf", "integrators.rollout",
-                                  "imu.bias_drift_rollout", "ekf_slam.marginal_d2", "sim.simulate"])
+                                  "imu.bias_drift_rollout", "ekf_slam.marginal_d2", "sim.simulate",
+                                  "ekf_slam.preload", "trilateration.trilaterate", "trilateration.trilaterate_line",
+                                  "resampling.systematic", "resampling.residual", "resampling.soft"])
 def test_other_looping_functions_called_eagerly_compile_once_and_keep_nothing_more(name):
     """RANSAC line extraction (``extract_lines``, ``extract_guided``), JCBB,
     ``fastslam.maybe_resample``, ``chi2_ppf``, the RK4 ``rollout``, the IMU drift rollout and the
     flight simulation hold a ``lax.scan`` / ``while_loop`` / ``fori_loop`` / ``cond``: uncompiled,
     each eager call traced and compiled it again and kept the program (40 ms to 1.9 s a call;
-    6-508 memory mappings a call; ``marginal_d2`` ran op by op, 17-29 ms a call).  A second call with new numbers now traces and compiles nothing, and equals the same
-    call under the caller's ``jit``."""
+    6-508 memory mappings a call).  ``marginal_d2`` (17-29 ms a call), ``preload``, the
+    trilaterations and the resampling schemes ran op by op (2-7 ms a call, and 0.2-3 s for the
+    first).  A second call with new numbers now traces and compiles nothing, runs a kept program
+    (:func:`jaxslam.compilation.kept_programs`: op by op, none is kept), and equals the same call
+    under the caller's ``jit``."""
+    compilation.clear_programs()
     call = _other_calls()[name]
     call(0)
     with compilation.account() as acc:
         out = call(1)
     assert acc.result.trace_s == 0.0 and acc.result.programs == 0, acc.result
+    site = "lines.extract_lines" if name == "lines.extract_guided" else name
+    assert compilation.kept_programs().get(site, 0) >= 1, compilation.kept_programs()
     ref = jax.jit(lambda: call(1))()
     for a, b in zip(jax.tree_util.tree_leaves(out), jax.tree_util.tree_leaves(ref)):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12, atol=1e-12)
