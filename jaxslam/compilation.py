@@ -628,9 +628,11 @@ def call_compiled(key, fn, args, options=None, *, after=1):
     engine's: ~5 s op by op against ~0.8 s to compile the step): a key compiles on its first
     call, until its site (the key's first element, e.g. ``"ekf_slam.update"``) has compiled two
     keys in a row whose programs served one call each (a model made anew for every call); from
-    then on the site compiles on a key's second call, as ``after=2``.  (A loop that calls one
-    site with three or more keys before it reuses any — e.g. three option sets of one update —
-    looks the same at its third key, so from there its keys compile at their second call.)
+    then on the site compiles on a key's second call, as ``after=2``, until one of its kept
+    programs serves a second call (the models are kept after all): then on first sight again.
+    (A loop that calls one site with three or more keys before it reuses any — e.g. three
+    option sets of one update — looks the same at its third key, which compiles at its second
+    call; the reuse that follows puts the site back.)
     ``key`` (hashable) must name everything ``fn`` closes over that is not in ``args``
     (the model's functions, static options): a later call with an equal key runs the *first*
     compiled ``fn``, retraced when the shapes differ, so ``fn`` takes every size from its
@@ -678,6 +680,8 @@ def call_compiled(key, fn, args, options=None, *, after=1):
             _served.pop(oldest, None)
         if after == "auto" and not isinstance(entry, int) and entry is not _EAGER_ONLY:
             _served[key] = _served.get(key, 0) + 1
+            if _served[key] == 2:  # a kept model reused: the site's models are not made anew
+                _site_second.discard(_site(key))
     if isinstance(entry, int) or entry is _EAGER_ONLY:
         return fn(*args)
     try:

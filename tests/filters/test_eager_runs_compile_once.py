@@ -437,7 +437,8 @@ def test_auto_compiles_on_first_sight_until_a_site_meets_models_made_anew():
     """``call_compiled(after="auto")``: a key compiles on its first call; once its site has
     compiled two keys in a row that served one call each (a model made anew for every call),
     the site compiles on a key's second call, so a lambda written inside the loop costs two
-    compiles, not one per step.  Another site is not affected."""
+    compiles, not one per step; a kept program that serves a second call puts the site back to
+    compiling on first sight.  Another site is not affected."""
     compilation.clear_programs()
     traced = []
 
@@ -463,6 +464,11 @@ def test_auto_compiles_on_first_sight_until_a_site_meets_models_made_anew():
     for _ in range(3):  # a model kept at that site now compiles on its second call
         compilation.call_compiled(("test.fresh", again), again, (jnp.ones(2),), after="auto")
     assert traced == [False, True]
+    traced.clear()
+    later = make()  # its third call was served by the kept program: the site compiles on first sight again
+    for _ in range(2):
+        compilation.call_compiled(("test.fresh", later), later, (jnp.ones(2),), after="auto")
+    assert traced == [True]
     traced.clear()
     other = make()
     compilation.call_compiled(("test.other", other), other, (jnp.ones(2),), after="auto")
