@@ -469,16 +469,24 @@ def update(
         is returned unchanged.  Called eagerly it is compiled once per model
         (:func:`jaxslam.compilation.call_compiled`).
     """
-    check_gate(gate)  # the values known now (the compiled step sees them traced)
-    state = check_state(state)
-    check_update_args(z, R, mask)
-    check_gate_size(gate, np.shape(z)[-1] if np.ndim(z) else 1, mask)
+    state = _check_update_call(state, z, R, mask, gate)  # the values known now
 
     def step(opts, state, z, R, mask):
         a, g = opts
         return _update(state, z, h, R, *a, residual=residual, mask=mask, gate=g)
 
     return call_compiled(("sqrt_ekf.update", h, residual), step, (state, z, R, mask), (args, gate), after=2)
+
+
+def _check_update_call(state, z, R, mask, gate) -> SqrtGaussian:
+    """What an eager square-root update checks before its compiled step (which sees the values
+    traced), as :func:`jaxslam.filters.gaussian.check_update_call` for a covariance: the gate,
+    the belief (:func:`check_state`), ``z``/``R``/``mask`` and the gate's size."""
+    check_gate(gate)
+    state = check_state(state)
+    check_update_args(z, R, mask)
+    check_gate_size(gate, np.shape(z)[-1] if np.ndim(z) else 1, mask)
+    return state
 
 
 def _update(state, z, h, R, *args, residual=None, mask=None, gate: Gate = None):

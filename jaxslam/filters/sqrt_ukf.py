@@ -46,7 +46,8 @@ from .gaussian import (
     masked_innovation,
     threshold,
 )
-from .sqrt_ekf import SqrtGaussian, SqrtPosterior, _host_root, _mm, _noise_root, _tria, check_state, psd_factor
+from .sqrt_ekf import (SqrtGaussian, SqrtPosterior, _check_update_call, _host_root, _mm, _noise_root, _tria,
+                       check_state, psd_factor)
 from .ukf import (
     SigmaPoints,
     _rule,
@@ -152,10 +153,7 @@ def update(state: SqrtGaussian, z, h: Callable, R, *args, residual: Optional[Cal
     (:func:`jaxslam.compilation.call_compiled`).
     """
     rule = _rule(points)
-    check_gate(gate)  # the values known now (the compiled step sees them traced)
-    state = check_state(state)
-    check_update_args(z, R, mask)
-    check_gate_size(gate, np.shape(z)[-1] if np.ndim(z) else 1, mask)
+    state = _check_update_call(state, z, R, mask, gate)  # the values known now
 
     def step(opts, state, z, R, mask):
         a, g = opts
