@@ -14,13 +14,13 @@ what the smoother needs plus the pass.  The issue's target: RTS pass ≤ 2× the
 ``eager_calls``: five of the runs called without the caller's ``jit`` — first call, repeated
 call, and the repeated call with the kept program bypassed (what every eager call cost before
 ``jaxslam.compilation.call_compiled``) — and a Python loop of ``--loop-steps`` (default 50)
-eager ``predict`` + ``update`` steps (EKF, UKF, and the EKF-SLAM engine's ``predict`` +
-``update`` with the beacon as the one landmark of an 8-slot map), and of a fifth as many
-``fastslam.step`` calls (100 particles, the beacon registered at its first sighting; a fifth,
-since uncompiled each call took ~1 s and kept its compiled programs: ~280 memory mappings a
-step, so a few hundred steps reached the system's 65530 and XLA failed with "Cannot allocate
-memory"); times are per loop.  Each case starts
-from empty in-memory caches (``jax.clear_caches``).
+eager ``predict`` + ``update`` steps (EKF, UKF, their square-root forms, and the EKF-SLAM
+engine's ``predict`` + ``update`` with the beacon as the one landmark of an 8-slot map), and of
+a fifth as many ``fastslam.step`` calls (100 particles, the beacon registered at its first
+sighting; a fifth, since uncompiled each call took ~1 s and kept its compiled programs: ~280
+memory mappings a step, so a few hundred steps reached the system's 65530 and XLA failed with
+"Cannot allocate memory"); times are per loop.  Each case starts from empty in-memory caches
+(``jax.clear_caches``).
 
 Which reference a row's ``reference_s`` / ``speedup`` is against: every row's ``reference`` says
 it, and ``speedup_vs`` names it in one word — ``"ekf"`` (jaxslam's own EKF run: the speedup is
@@ -147,7 +147,7 @@ def run(args):
     if not jax.config.jax_enable_x64:
         jax.config.update("jax_enable_x64", True)
     from jaxslam.errors import InputError
-    from jaxslam.filters import ekf, ekf_slam, fastslam, gaussian, smoother, ukf
+    from jaxslam.filters import ekf, ekf_slam, fastslam, gaussian, smoother, sqrt_ekf, sqrt_ukf, ukf
 
     if args.steps < 2:
         raise InputError(f"--steps: must be >= 2, got {args.steps}")
@@ -208,7 +208,10 @@ def run(args):
     results.append({"case": "rts_pass", "params": {"T": T, "what": "backward pass over a saved run"},
                     "jaxslam_s": times["rts_pass"]})
     def step_loop(mod):  # the filterpy-style loop: one eager predict and update per step
-        st = gaussian.Gaussian(jnp.asarray(X0), jnp.asarray(P0))
+        if mod in (sqrt_ekf, sqrt_ukf):
+            st = sqrt_ekf.SqrtGaussian(jnp.asarray(X0), jnp.asarray(np.linalg.cholesky(P0)))
+        else:
+            st = gaussian.Gaussian(jnp.asarray(X0), jnp.asarray(P0))
         for t in range(n_loop):
             st = mod.predict(st, f, us[t], Q)
             st, _ = mod.update(st, zs[t], h, R, residual=res)
@@ -254,6 +257,8 @@ def run(args):
                                          f"iterated_smoother_{args.iters}")}
     eager_cases[f"ekf_step_loop_{n_loop}"] = lambda: step_loop(ekf)
     eager_cases[f"ukf_step_loop_{n_loop}"] = lambda: step_loop(ukf)
+    eager_cases[f"sqrt_ekf_step_loop_{n_loop}"] = lambda: step_loop(sqrt_ekf)
+    eager_cases[f"sqrt_ukf_step_loop_{n_loop}"] = lambda: step_loop(sqrt_ukf)
     eager_cases[f"ekf_slam_step_loop_{n_loop}"] = slam_step_loop
     eager_cases[f"fastslam_step_loop_{n_fs}"] = fastslam_step_loop
     eager = _eager_calls(eager_cases, args.repeats, getattr(args, "eager", "both"))

@@ -44,7 +44,8 @@ def test_bench_run_shape():
     assert out["targets"][0]["name"] == "rts_pass_vs_filter"
     eager = {(r["case"], r["persistent_cache"]): r for r in out["eager_calls"]}
     assert {c for c, _ in eager} == {"ekf", "ukf", "ekf+rts", "fixed_lag_5", "iterated_smoother_2",
-                                     "ekf_step_loop_5", "ukf_step_loop_5", "ekf_slam_step_loop_5",
+                                     "ekf_step_loop_5", "ukf_step_loop_5", "sqrt_ekf_step_loop_5",
+                                     "sqrt_ukf_step_loop_5", "ekf_slam_step_loop_5",
                                      "fastslam_step_loop_1"}
     assert ("ekf", False) in eager and ("ekf", True) not in eager  # --eager off: the cache-off rows only
     assert bench_filters._eager_calls({}, 1, "none") == []

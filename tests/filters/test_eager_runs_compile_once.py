@@ -635,6 +635,13 @@ def _other_calls():
         calls[f"resampling.{scheme}"] = lambda seed, fn=getattr(resampling, scheme): fn(
             jax.random.PRNGKey(seed), log_w + 0.1 * seed)
     calls["resampling.soft"] = lambda seed: resampling.soft(jax.random.PRNGKey(seed), log_w, 0.3 + 0.1 * seed)
+    from jaxslam import metrics
+
+    path = np.c_[np.cos(np.linspace(0, 3, 30)), np.sin(np.linspace(0, 3, 30)), np.linspace(0, 1, 30)]
+    calls["metrics.ate"] = lambda seed: metrics.ate(path + 0.01 * seed * path[::-1], path)
+    calls["metrics.umeyama"] = lambda seed: metrics.umeyama(path + 0.01 * seed, path, with_scale=True)
+    calls["metrics.rpe"] = lambda seed: metrics.rpe(path + 0.01 * seed * path[::-1], path, lag=2)
+    calls["metrics.rpe_se2"] = lambda seed: metrics.rpe_se2(path + 0.01 * seed * path[::-1], path)
     return calls
 
 
@@ -642,15 +649,16 @@ def _other_calls():
                                   "fastslam.maybe_resample", "stats.chi2_ppf", "integrators.rollout",
                                   "imu.bias_drift_rollout", "ekf_slam.marginal_d2", "sim.simulate",
                                   "ekf_slam.preload", "trilateration.trilaterate", "trilateration.trilaterate_line",
-                                  "resampling.systematic", "resampling.residual", "resampling.soft"])
+                                  "resampling.systematic", "resampling.residual", "resampling.soft",
+                                  "metrics.ate", "metrics.umeyama", "metrics.rpe", "metrics.rpe_se2"])
 def test_other_looping_functions_called_eagerly_compile_once_and_keep_nothing_more(name):
     """RANSAC line extraction (``extract_lines``, ``extract_guided``), JCBB,
     ``fastslam.maybe_resample``, ``chi2_ppf``, the RK4 ``rollout``, the IMU drift rollout and the
     flight simulation hold a ``lax.scan`` / ``while_loop`` / ``fori_loop`` / ``cond``: uncompiled,
     each eager call traced and compiled it again and kept the program (40 ms to 1.9 s a call;
     6-508 memory mappings a call).  ``marginal_d2`` (17-29 ms a call), ``preload``, the
-    trilaterations and the resampling schemes ran op by op (2-7 ms a call, and 0.2-3 s for the
-    first).  A second call with new numbers now traces and compiles nothing, runs a kept program
+    trilaterations, the resampling schemes and the trajectory metrics ran op by op (1-7 ms a
+    call, and 0.4-3 s for the first).  A second call with new numbers now traces and compiles nothing, runs a kept program
     (:func:`jaxslam.compilation.kept_programs`: op by op, none is kept), and equals the same call
     under the caller's ``jit``."""
     compilation.clear_programs()
