@@ -41,6 +41,7 @@ import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 import numpy as np
 
+from ..compilation import call_compiled
 from ..dynamics._checks import real_numbers
 from ..errors import InputError
 from ..linalg import check_psd, check_real, check_shape, is_concrete, symmetrize
@@ -195,8 +196,18 @@ def care(A, B, Q, R, *, return_status: bool = False):
     with ``return_status=True`` returns ``(P, ok)`` where ``ok`` is a boolean scalar (False on
     non-convergence, P then zeroed if non-finite).  Differentiable in A, B, Q and R, forward
     and reverse mode, by implicit differentiation.  Jit/vmap-safe; validate weights on the host
-    with :func:`validate_weights`.
+    with :func:`validate_weights`.  Called eagerly it is compiled once per shape and dtype
+    (:func:`jaxslam.compilation.call_compiled`; the status and the gain op by op made a first
+    ``dflqr.gain`` take 2.3 s).
     """
+    A, B, Q, R = _checked(A, B, Q, R)
+    return call_compiled(("lqr.care", bool(return_status)), lambda *m: _care_full(*m, return_status),
+                         (A, B, Q, R), after="auto")
+
+
+def _checked(A, B, Q, R):
+    """:func:`care`'s checks (shapes; values when known now) and the four matrices in their
+    common floating dtype."""
     _check_shapes(A, B, Q, R)
     for M, nm in ((A, "A"), (B, "B"), (Q, "Q"), (R, "R")):
         check_real(M, nm, allow_bool=False)  # static dtype: complex lost its imaginary part
@@ -209,7 +220,10 @@ def care(A, B, Q, R, *, return_status: bool = False):
     dtype = jnp.result_type(A, B, Q, R)
     if not jnp.issubdtype(dtype, jnp.floating):
         dtype = jnp.result_type(float)
-    A, B, Q, R = (jnp.asarray(x, dtype) for x in (A, B, Q, R))
+    return tuple(jnp.asarray(x, dtype) for x in (A, B, Q, R))
+
+
+def _care_full(A, B, Q, R, return_status: bool):
     Q = symmetrize(Q)
     R = symmetrize(R)
     P = _care_jit(A, B, Q, R)
@@ -225,8 +239,15 @@ def lqr_gain(A, B, Q, R, *, return_status: bool = False):
 
     Shapes as in :func:`care`; returns ``(K (m, n), P (n, n))`` (plus ``ok`` with
     ``return_status=True``).  The optimal feedback is ũ = −K r̃.  Differentiable in A, B, Q, R.
+    Called eagerly it is compiled once per shape and dtype, as :func:`care`.
     """
-    out = care(A, B, Q, R, return_status=return_status)
+    A, B, Q, R = _checked(A, B, Q, R)
+    return call_compiled(("lqr.lqr_gain", bool(return_status)), lambda *m: _lqr_gain(*m, return_status),
+                         (A, B, Q, R), after="auto")
+
+
+def _lqr_gain(A, B, Q, R, return_status: bool):
+    out = _care_full(A, B, Q, R, return_status)
     P = out[0] if return_status else out
     dtype = P.dtype
     R = symmetrize(jnp.asarray(R, dtype))

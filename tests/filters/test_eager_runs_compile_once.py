@@ -642,6 +642,11 @@ def _other_calls():
     calls["metrics.umeyama"] = lambda seed: metrics.umeyama(path + 0.01 * seed, path, with_scale=True)
     calls["metrics.rpe"] = lambda seed: metrics.rpe(path + 0.01 * seed * path[::-1], path, lag=2)
     calls["metrics.rpe_se2"] = lambda seed: metrics.rpe_se2(path + 0.01 * seed * path[::-1], path)
+    from jaxslam.control import lqr
+
+    A, B = np.array([[0.0, 1.0], [0.0, 0.0]]), np.array([[0.0], [1.0]])
+    calls["lqr.care"] = lambda seed: lqr.care(A, B, np.diag([1.0 + seed, 2.0]), np.eye(1), return_status=True)
+    calls["lqr.lqr_gain"] = lambda seed: lqr.lqr_gain(A, B, np.diag([1.0 + seed, 2.0]), np.eye(1))
     return calls
 
 
@@ -650,15 +655,16 @@ def _other_calls():
                                   "imu.bias_drift_rollout", "ekf_slam.marginal_d2", "sim.simulate",
                                   "ekf_slam.preload", "trilateration.trilaterate", "trilateration.trilaterate_line",
                                   "resampling.systematic", "resampling.residual", "resampling.soft",
-                                  "metrics.ate", "metrics.umeyama", "metrics.rpe", "metrics.rpe_se2"])
+                                  "metrics.ate", "metrics.umeyama", "metrics.rpe", "metrics.rpe_se2", "lqr.care",
+                                  "lqr.lqr_gain"])
 def test_other_looping_functions_called_eagerly_compile_once_and_keep_nothing_more(name):
     """RANSAC line extraction (``extract_lines``, ``extract_guided``), JCBB,
     ``fastslam.maybe_resample``, ``chi2_ppf``, the RK4 ``rollout``, the IMU drift rollout and the
     flight simulation hold a ``lax.scan`` / ``while_loop`` / ``fori_loop`` / ``cond``: uncompiled,
     each eager call traced and compiled it again and kept the program (40 ms to 1.9 s a call;
     6-508 memory mappings a call).  ``marginal_d2`` (17-29 ms a call), ``preload``, the
-    trilaterations, the resampling schemes and the trajectory metrics ran op by op (1-7 ms a
-    call, and 0.4-3 s for the first).  A second call with new numbers now traces and compiles nothing, runs a kept program
+    trilaterations, the resampling schemes, the trajectory metrics and the CARE's status and gain
+    ran op by op (1-7 ms a call, and 0.4-3 s for the first).  A second call with new numbers now traces and compiles nothing, runs a kept program
     (:func:`jaxslam.compilation.kept_programs`: op by op, none is kept), and equals the same call
     under the caller's ``jit``."""
     compilation.clear_programs()
