@@ -55,7 +55,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ..errors import InputError
-from .textfile import _ID_MAX, int_column, read_table, resolve_dataset_dir
+from .textfile import ID_MAX, int_column, read_table, resolve_dataset_dir
 
 __all__ = ["MrclamData", "load_mrclam", "ROBOT_SUBJECTS"]
 
@@ -154,11 +154,11 @@ def load_mrclam(path, robot: int, strict: bool = False) -> MrclamData:
     bct = read_table(f["barcodes"], 2)
 
     # Barcode table: subject -> barcode, both unique.
-    subj = int_column(bct, 0, "subject", lo=1, hi=_ID_MAX, unique=True)
-    bcode = int_column(bct, 1, "barcode", lo=0, hi=_ID_MAX, unique=True)
+    subj = int_column(bct, 0, "subject", lo=1, hi=ID_MAX, unique=True)
+    bcode = int_column(bct, 1, "barcode", lo=0, hi=ID_MAX, unique=True)
     b2s = dict(zip(bcode.tolist(), subj.tolist()))
 
-    lm_id = int_column(lmt, 0, "subject", lo=1, hi=_ID_MAX)
+    lm_id = int_column(lmt, 0, "subject", lo=1, hi=ID_MAX)
     _, first, inv = np.unique(lm_id, return_index=True, return_inverse=True)
     dup = np.nonzero(first[inv] != np.arange(lm_id.size))[0]
     if dup.size:  # two surveyed positions for one landmark: which one is the truth?

@@ -49,7 +49,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ..errors import InputError, check_int
-from .textfile import _ID_MAX, int_column, read_table, resolve_dataset_dir
+from .textfile import ID_MAX, int_column, read_table, resolve_dataset_dir
 
 __all__ = ["PlazaData", "load_plaza", "HEADING_OFFSET"]
 
@@ -136,9 +136,9 @@ def load_plaza(path, which: int) -> PlazaData:
         raise dr.error(i, f"time {float(dr.data[i, 0])!r} repeats (line {int(dr.lines[i - 1])}): DR rows "
                           "are odometry increments, so a repeated row would apply its motion twice")
 
-    node_id = int_column(tl, 0, "node id", lo=0, hi=_ID_MAX, unique=True)  # one surveyed position each
-    sender = int_column(td, 1, "sender id", lo=0, hi=_ID_MAX)
-    node = int_column(td, 2, "node id", lo=0, hi=_ID_MAX)
+    node_id = int_column(tl, 0, "node id", lo=0, hi=ID_MAX, unique=True)  # one surveyed position each
+    sender = int_column(td, 1, "sender id", lo=0, hi=ID_MAX)
+    node = int_column(td, 2, "node id", lo=0, hi=ID_MAX)
     known = np.isin(node, node_id)
     if not known.all():
         i = int(np.argmax(~known))

@@ -49,12 +49,14 @@ __all__ = [
     "int_column",
     "resolve_dataset_dir",
     "location",
+    "path_arg",
+    "ID_MAX",
 ]
 
 PathLike = Union[str, os.PathLike]
 
 #: the largest id a loader keeps (ids become int32 event labels): :func:`int_column`'s ``hi``
-_ID_MAX = int(np.iinfo(np.int32).max)
+ID_MAX = int(np.iinfo(np.int32).max)
 
 
 class DataFormatError(InputError):
@@ -101,7 +103,7 @@ class TruncatedLineWarning(UserWarning):
     line's last number may be incomplete.  The line is read as it stands (module docstring)."""
 
 
-def _path_arg(path, name: str = "path") -> Path:
+def path_arg(path, name: str = "path") -> Path:
     """``path`` as a :class:`~pathlib.Path` when it is a ``str`` or ``os.PathLike``, else
     :class:`InputError` naming ``name`` (``Path(None)`` was a bare ``TypeError``)."""
     if not isinstance(path, (str, os.PathLike)):
@@ -240,7 +242,7 @@ def read_table(path: PathLike, ncols: int, *, delimiter: Optional[str] = None,
       MissingDataError: the file does not exist.
       DataFormatError: see the module docstring.
     """
-    p = _path_arg(path)
+    p = path_arg(path)
     ncols = check_int(ncols, "ncols", 1)
     header_rows = check_int(header_rows, "header_rows", 0)  # -1 read the last line as a data row
     if delimiter is not None and not (isinstance(delimiter, str) and len(delimiter) == 1):
@@ -367,7 +369,7 @@ def resolve_dataset_dir(path: PathLike, subdir: str, required: Sequence[str], wh
     Raises :class:`MissingDataError` listing the folders looked in and the
     files missing from the best candidate (or naming the subfolders when several qualify).
     """
-    base = _path_arg(path)
+    base = path_arg(path)
     cands = [base, base / subdir] if base.name != subdir else [base]
     best, best_n = None, -1
     for c in cands:

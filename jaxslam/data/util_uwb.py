@@ -44,7 +44,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ..errors import InputError
-from .textfile import _ID_MAX, MissingDataError, _path_arg, int_column, read_table, resolve_dataset_dir
+from .textfile import ID_MAX, MissingDataError, int_column, path_arg, read_table, resolve_dataset_dir
 
 __all__ = ["UtilData", "load_util", "tag_positions", "TAG_OFFSET", "G"]
 
@@ -150,7 +150,7 @@ def tag_positions(p, q_xyzw, offset=TAG_OFFSET) -> np.ndarray:
 
 
 def _flight_dir(path, flight: str) -> tuple:
-    base = _path_arg(path)
+    base = path_arg(path)
     if base.resolve().name == flight and base.is_dir():  # the flight folder itself: its parent holds the anchors
         return base.parent, base
     cands = [base, base / "util_uwb"]
@@ -206,7 +206,7 @@ def load_util(path, flight: str = "twr_obs_log1") -> UtilData:
 
     anc = csv(ANCHORS_FILE, 8)
     # one surveyed position per anchor; ids are stored as int32
-    anchor_id = int_column(anc, 0, "anchor_id", lo=0, hi=_ID_MAX, unique=True)
+    anchor_id = int_column(anc, 0, "anchor_id", lo=0, hi=ID_MAX, unique=True)
     gt = csv("groundtruth.csv", 8, time_cols=0)
     imu = csv("imu.csv.gz", 8, time_cols=(0, 4))
     rows = {"anchors": int(anc.data.shape[0]), "groundtruth": int(gt.data.shape[0]),
