@@ -401,9 +401,9 @@ def umeyama(src, dst, with_scale: bool = False):
         raise InputError(f"src and dst: the same (N, d) shape expected (corresponding points), got "
                          f"{tuple(src.shape)} and {tuple(dst.shape)}")
     dtype = jnp.result_type(src, dst)
-    return call_compiled(("metrics.umeyama", bool(with_scale)),
-                         lambda a, b: _umeyama(a.astype(dtype), b.astype(dtype), bool(with_scale)), (src, dst),
-                         after="auto")
+    ws = bool(with_scale)  # the key names all the program closes over: the dtype comes with the arguments
+    return call_compiled(("metrics.umeyama", ws), lambda a, b: _umeyama(a, b, ws),
+                         (src.astype(dtype), dst.astype(dtype)), after="auto")
 
 
 def _umeyama(src, dst, with_scale: bool):

@@ -738,3 +738,28 @@ def test_eager_update_batch_compiles_at_its_second_call_and_equals_the_jitted_up
     np.testing.assert_allclose(np.asarray(post.mean), np.asarray(ref.mean), rtol=1e-12, atol=1e-14)
     np.testing.assert_allclose(np.asarray(post.cov), np.asarray(ref.cov), rtol=1e-12, atol=1e-14)
     np.testing.assert_array_equal(np.asarray(info.status), np.asarray(ref_info.status))
+
+
+def test_kept_programs_follow_the_dtype_of_each_call():
+    """A kept program is keyed by what it closes over and retraced for new argument dtypes, so
+    a float32 call after a float64 one returns float32 (``metrics.umeyama`` closed over the
+    first call's dtype and returned float64 for float32 points until this test)."""
+    from jaxslam import metrics
+    from jaxslam.control import lqr
+    from jaxslam.filters import resampling, trilateration
+
+    path = np.c_[np.cos(np.linspace(0, 3, 30)), np.sin(np.linspace(0, 3, 30)), np.linspace(0, 1, 30)]
+    anchors = np.array([[0.0, 0.0], [5.0, 0.0], [0.0, 5.0], [5.0, 5.0]])
+    A, B = np.array([[0.0, 1.0], [0.0, 0.0]]), np.array([[0.0], [1.0]])
+    calls = {
+        "umeyama": lambda dt: metrics.umeyama(path.astype(dt) + 0.1, path.astype(dt), with_scale=True)[0],
+        "ate": lambda dt: metrics.ate(path.astype(dt) + 0.1, path.astype(dt)),
+        "rpe_se2": lambda dt: metrics.rpe_se2(path.astype(dt) + 0.1, path.astype(dt))[0],
+        "trilaterate": lambda dt: trilateration.trilaterate(
+            anchors.astype(dt), np.linalg.norm(anchors - [1.0, 2.0], axis=1).astype(dt)).position,
+        "care": lambda dt: lqr.care(A.astype(dt), B.astype(dt), np.eye(2, dtype=dt), np.eye(1, dtype=dt)),
+        "soft": lambda dt: resampling.soft(jax.random.PRNGKey(0), np.log(np.linspace(0.1, 1.0, 8)).astype(dt), 0.5)[1],
+    }
+    for name, call in calls.items():
+        for dt in (np.float64, np.float32, np.float64):
+            assert call(dt).dtype == dt, (name, dt)
