@@ -59,7 +59,8 @@ def test_cache_folder_precedence_and_switch(keep_cache, monkeypatch, tmp_path):
     assert not (tmp_path / "never").exists()
 
 
-def test_unwritable_folder_warns_once_and_runs_uncached(tmp_path, keep_cache):
+def test_unwritable_folder_warns_once_and_runs_uncached(tmp_path, keep_cache, monkeypatch):
+    monkeypatch.delenv(compilation.CACHE_ENV, raising=False)  # the suite run uncached sets it (JAXSLAM_TEST_NO_CACHE)
     blocker = tmp_path / "a_file"
     blocker.write_text("not a folder")
     with warnings.catch_warnings(record=True) as w:
