@@ -647,6 +647,9 @@ def _other_calls():
     A, B = np.array([[0.0, 1.0], [0.0, 0.0]]), np.array([[0.0], [1.0]])
     calls["lqr.care"] = lambda seed: lqr.care(A, B, np.diag([1.0 + seed, 2.0]), np.eye(1), return_status=True)
     calls["lqr.lqr_gain"] = lambda seed: lqr.lqr_gain(A, B, np.diag([1.0 + seed, 2.0]), np.eye(1))
+    from jaxslam import stats
+
+    calls["stats.quadratic_form"] = lambda seed: stats.nees(path + 0.1 * seed, np.tile(np.eye(3), (30, 1, 1)))
     return calls
 
 
@@ -656,15 +659,15 @@ def _other_calls():
                                   "ekf_slam.preload", "trilateration.trilaterate", "trilateration.trilaterate_line",
                                   "resampling.systematic", "resampling.residual", "resampling.soft",
                                   "metrics.ate", "metrics.umeyama", "metrics.rpe", "metrics.rpe_se2", "lqr.care",
-                                  "lqr.lqr_gain"])
+                                  "lqr.lqr_gain", "stats.quadratic_form"])
 def test_other_looping_functions_called_eagerly_compile_once_and_keep_nothing_more(name):
     """RANSAC line extraction (``extract_lines``, ``extract_guided``), JCBB,
     ``fastslam.maybe_resample``, ``chi2_ppf``, the RK4 ``rollout``, the IMU drift rollout and the
     flight simulation hold a ``lax.scan`` / ``while_loop`` / ``fori_loop`` / ``cond``: uncompiled,
     each eager call traced and compiled it again and kept the program (40 ms to 1.9 s a call;
     6-508 memory mappings a call).  ``marginal_d2`` (17-29 ms a call), ``preload``, the
-    trilaterations, the resampling schemes, the trajectory metrics and the CARE's status and gain
-    ran op by op (1-7 ms a call, and 0.4-3 s for the first).  A second call with new numbers now traces and compiles nothing, runs a kept program
+    trilaterations, the resampling schemes, the trajectory metrics, NEES / NIS and the CARE's
+    status and gain ran op by op (0.4-7 ms a call, and 0.4-3 s for the first).  A second call with new numbers now traces and compiles nothing, runs a kept program
     (:func:`jaxslam.compilation.kept_programs`: op by op, none is kept), and equals the same call
     under the caller's ``jit``."""
     compilation.clear_programs()
@@ -744,7 +747,7 @@ def test_kept_programs_follow_the_dtype_of_each_call():
     """A kept program is keyed by what it closes over and retraced for new argument dtypes, so
     a float32 call after a float64 one returns float32 (``metrics.umeyama`` closed over the
     first call's dtype and returned float64 for float32 points until this test)."""
-    from jaxslam import metrics
+    from jaxslam import metrics, stats
     from jaxslam.control import lqr
     from jaxslam.filters import resampling, trilateration
 
@@ -759,6 +762,7 @@ def test_kept_programs_follow_the_dtype_of_each_call():
             anchors.astype(dt), np.linalg.norm(anchors - [1.0, 2.0], axis=1).astype(dt)).position,
         "care": lambda dt: lqr.care(A.astype(dt), B.astype(dt), np.eye(2, dtype=dt), np.eye(1, dtype=dt)),
         "soft": lambda dt: resampling.soft(jax.random.PRNGKey(0), np.log(np.linspace(0.1, 1.0, 8)).astype(dt), 0.5)[1],
+        "nees": lambda dt: stats.nees(path.astype(dt), np.eye(3, dtype=dt)),
     }
     for name, call in calls.items():
         for dt in (np.float64, np.float32, np.float64):
