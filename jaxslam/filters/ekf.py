@@ -79,7 +79,7 @@ import numpy as np
 
 from .. import errors
 from ..errors import InputError, check_flag, check_int
-from ..linalg import check_mask, check_psd, is_concrete, symmetrize, value_and_jacfwd, wrap_angle
+from ..linalg import check_mask, check_psd, is_concrete, list_array, symmetrize, value_and_jacfwd, wrap_angle
 from ..stats import chi2_ppf_np
 from ..compilation import call_compiled
 from . import gaussian as _g
@@ -303,6 +303,7 @@ def predict(state: Gaussian, f: Callable, u, Q, *args, noise_jac=None, return_st
     """
     return_status = check_flag(return_status, "return_status")
     state = _g.check_predict_call(state, Q)  # the values known now (the compiled step sees them traced)
+    Q = list_array(Q, "Q")  # a list would reach the program as tracers, which np.shape cannot read
 
     def step(opts, state, Q):
         u, a, nj = opts
@@ -401,6 +402,7 @@ def update(
     """
     check_num_iter(num_iter)
     state = _g.check_update_call(state, z, R, mask, gate)  # the values known now
+    z, R, mask = map(list_array, (z, R, mask), ("z", "R", "mask"))  # a list would reach the program as tracers
 
     def step(opts, state, z, R, mask):
         a, g, t = opts

@@ -66,7 +66,7 @@ from .. import errors
 from ..compilation import call_compiled
 from ..errors import InputError
 from ..linalg import (check_finite, check_int, check_mask, check_psd, check_whole_ids, cholesky_small, is_concrete,
-                      put_blocks, small_matmul, symmetrize, take, take_blocks, value_and_jacfwd)
+                      list_array, put_blocks, small_matmul, symmetrize, take, take_blocks, value_and_jacfwd)
 from ..stats import _student_t_nll, check_student_t_nu
 from .gaussian import check_gate, check_gate_size, check_num_iter, check_real, threshold as _threshold
 
@@ -386,6 +386,7 @@ def predict(state: SlamState, model: SlamModel, u, Q, params=None, *,
     Called eagerly it is compiled once per model (:func:`jaxslam.compilation.call_compiled`, ``after="auto"``).
     """
     _check_predict(state, model, Q)
+    Q = list_array(Q, "Q")  # a list would reach the program as tracers
     return call_compiled(("ekf_slam.predict", model, active_only),
                          lambda opts, st, Q: _predict(st, model, opts[0], Q, opts[1], active_only)[0],
                          (state, Q), (u, params), after="auto")
@@ -395,8 +396,8 @@ def _check_predict(state: SlamState, model: SlamModel, Q):
     """:func:`predict`'s checks: the state's sizes, ``Q``'s shape and, when known, its values."""
     nr = model.robot_dim
     _check_sizes(state, model)
-    if jnp.shape(Q) != (nr, nr):
-        raise InputError(f"Q: expected shape ({nr}, {nr}) (the model's robot_dim), got {tuple(jnp.shape(Q))}")
+    if np.shape(Q) != (nr, nr):
+        raise InputError(f"Q: expected shape ({nr}, {nr}) (the model's robot_dim), got {tuple(np.shape(Q))}")
     if is_concrete(Q):
         check_psd(np.asarray(Q), "Q")
 

@@ -97,7 +97,8 @@ import numpy as np
 from .. import errors
 from ..errors import InputError, check_flag
 from ..compilation import call_compiled
-from ..linalg import check_finite, check_mask, check_numbers, check_psd, is_concrete, symmetrize, value_and_jacfwd
+from ..linalg import (check_finite, check_mask, check_numbers, check_psd, is_concrete, list_array, symmetrize,
+                      value_and_jacfwd)
 from .ekf import Gaussian, UpdateInfo
 from .gaussian import (call_residual, check_gate, check_gate_size, check_leading, check_measurement, check_noise_values,
                        check_process_noise, check_real, check_transition_out, check_update_args, moment_dtype,
@@ -371,6 +372,7 @@ def predict(state: SqrtGaussian, f: Callable, u, Q=None, *args, noise_jac=None,
     if Q_chol is None and Q is not None:
         check_noise_values(Q, "Q")
         C = _host_root(Q, state.mean.dtype)
+    Q, Q_chol = list_array(Q, "Q"), list_array(Q_chol, "Q_chol")  # lists would reach the program as tracers
 
     def step(opts, state, Q, Q_chol, C):
         u, a, nj = opts
@@ -381,7 +383,11 @@ def predict(state: SqrtGaussian, f: Callable, u, Q=None, *args, noise_jac=None,
 
 def _host_root(Q, dtype):
     """:func:`_noise_root` of a concrete square ``Q`` (factored on the host in float64), else None."""
-    if not is_concrete(Q) or np.ndim(Q) != 2 or np.shape(Q)[0] != np.shape(Q)[1]:
+    if not is_concrete(Q):
+        return None
+    if np.ndim(Q) < 2 and np.size(Q) == 1:  # the variance of a single noise input (check_process_noise)
+        Q = np.reshape(check_numbers(Q, "Q"), (1, 1))
+    if np.ndim(Q) != 2 or np.shape(Q)[0] != np.shape(Q)[1]:
         return None
     return _root(Q, dtype, triangular=False)
 
@@ -470,6 +476,7 @@ def update(
         (:func:`jaxslam.compilation.call_compiled`).
     """
     state = _check_update_call(state, z, R, mask, gate)  # the values known now
+    z, R, mask = map(list_array, (z, R, mask), ("z", "R", "mask"))  # a list would reach the program as tracers
 
     def step(opts, state, z, R, mask):
         a, g = opts

@@ -31,7 +31,7 @@ import numpy as np
 from .. import errors
 from ..compilation import call_compiled
 from ..errors import InputError, check_flag
-from ..linalg import check_numbers, is_concrete, symmetrize
+from ..linalg import check_numbers, is_concrete, list_array, symmetrize
 from .gaussian import (
     Gate,
     UpdateInfo,
@@ -93,6 +93,7 @@ def predict(state: SqrtGaussian, f: Optional[Callable], u, Q, *args,
     return_status = check_flag(return_status, "return_status")
     state = _check_predict(state, Q, Q_chol)  # the values known now (the compiled step sees them traced)
     C = _host_root(Q, state.mean.dtype) if Q_chol is None else None
+    Q, Q_chol = list_array(Q, "Q"), list_array(Q_chol, "Q_chol")  # lists would reach the program as tracers
 
     def step(opts, state, Q, Q_chol, C):
         u, a = opts
@@ -154,6 +155,7 @@ def update(state: SqrtGaussian, z, h: Callable, R, *args, residual: Optional[Cal
     """
     rule = _rule(points)
     state = _check_update_call(state, z, R, mask, gate)  # the values known now
+    z, R, mask = map(list_array, (z, R, mask), ("z", "R", "mask"))  # a list would reach the program as tracers
 
     def step(opts, state, z, R, mask):
         a, g = opts

@@ -107,7 +107,7 @@ import numpy as np
 from .. import errors
 from ..compilation import call_compiled
 from ..errors import InputError, check_flag
-from ..linalg import check_numbers, check_psd, is_concrete, symmetrize
+from ..linalg import check_numbers, check_psd, is_concrete, list_array, symmetrize
 from . import gaussian as _g
 from .gaussian import (
     Gate,
@@ -391,6 +391,7 @@ def _predict_step(state: Gaussian, f: Optional[Callable], u, Q, args, rule: Sigm
     """:func:`_predict` after the checks of values known now; called eagerly, compiled once per
     model (:func:`jaxslam.compilation.call_compiled`)."""
     state = _g.check_predict_call(state, Q)  # the values known now (the compiled step sees them traced)
+    Q = list_array(Q, "Q")  # a list would reach the program as tracers, which np.shape cannot read
 
     def step(opts, state, Q):
         u, a, nj = opts
@@ -464,6 +465,7 @@ def update(
     """
     rule = _rule(points)
     state = _g.check_update_call(state, z, R, mask, gate)  # the values known now
+    z, R, mask = map(list_array, (z, R, mask), ("z", "R", "mask"))  # a list would reach the program as tracers
 
     def step(opts, state, z, R, mask):
         a, g = opts

@@ -767,3 +767,48 @@ def test_kept_programs_follow_the_dtype_of_each_call():
     for name, call in calls.items():
         for dt in (np.float64, np.float32, np.float64):
             assert call(dt).dtype == dt, (name, dt)
+
+
+def test_eager_steps_given_lists_still_run_kept_programs():
+    """Lists for Q, z, R and the mask are arrays before the compiled step: as lists they reached
+    it as lists of tracers, which the shape checks' NumPy calls cannot read; the TypeError made
+    ``call_compiled`` run that model uncompiled for good, arrays passed later included."""
+    def fi(x, u):
+        return x
+
+    def h2(x):
+        return x[:2]
+
+    Q2, R2 = [[1e-2, 0.0], [0.0, 1e-2]], [[1.0, 0.0], [0.0, 1.0]]
+    for mod in (ekf, ukf, sqrt_ekf, sqrt_ukf):
+        compilation.clear_programs()
+        st = _belief(mod, np.asarray([0.1, 0.2]), np.eye(2))
+        for _ in range(3):
+            out = mod.predict(st, fi, None, Q2)
+            post, _ = mod.update(out, [0.1, 0.2], h2, R2, mask=[True, False])
+        name = mod.__name__.rsplit(".", 1)[-1]
+        kept = compilation.kept_programs()
+        assert kept.get(f"{name}.predict") == 1 and kept.get(f"{name}.update") == 1, (name, kept)
+        ref = jax.jit(lambda s: mod.update(mod.predict(s, fi, None, jnp.asarray(Q2)), jnp.asarray([0.1, 0.2]), h2,
+                                           jnp.asarray(R2), mask=jnp.asarray([True, False]))[0])(st)
+        np.testing.assert_allclose(np.asarray(post.mean), np.asarray(ref.mean), rtol=1e-12)
+    model, _ = _slam_case(T=2, K=1)
+    compilation.clear_programs()
+    st = es.init(jnp.zeros(2), jnp.eye(2), 4, 2)
+    for _ in range(2):
+        es.predict(st, model, jnp.zeros(2), [[0.01, 0.0], [0.0, 0.01]])
+    assert compilation.kept_programs().get("ekf_slam.predict") == 1
+
+
+def test_a_scalar_q_is_still_factored_on_the_host_in_float64():
+    """A one-noise-input predict takes a scalar ``Q``; as a matrix one, it is factored on the host
+    in float64 and then cast (``sqrt_ekf.predict``), so a float32 factor is the float64 root
+    rounded once: ``float32(sqrt(q))`` (the oracle), whatever the compiled step does."""
+    st = sqrt_ekf.SqrtGaussian(jnp.zeros(1, jnp.float32), jnp.zeros((1, 1), jnp.float32))
+    # the last three give another float32 when the root is taken of float32(q) in float32 (what the
+    # compiled step alone did with a scalar Q: this test failed on 4ee65c6)
+    for q in (0.1, 0.3, 1e-7, 9.486494471372438, 8.277025938204417, 7.535131086748066):
+        for _ in range(2):  # the first call and the kept program
+            out = sqrt_ekf.predict(st, None, None, q)
+            assert out.chol.dtype == jnp.float32
+            assert float(out.chol[0, 0]) == float(np.float32(np.sqrt(np.float64(q)))), q
