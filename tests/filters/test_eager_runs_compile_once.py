@@ -650,6 +650,14 @@ def _other_calls():
     from jaxslam import stats
 
     calls["stats.quadratic_form"] = lambda seed: stats.nees(path + 0.1 * seed, np.tile(np.eye(3), (30, 1, 1)))
+    from jaxslam.filters import delayed_init
+
+    pts = np.array([[0.0, 0.0], [5.0, 0.0], [0.0, 5.0], [5.0, 5.0], [2.0, 7.0], [6.0, 2.0]])
+    rng_ = np.linalg.norm(pts - [1.0, 2.0], axis=1) + np.array([0, 0, 0, 0, 0, 3.0])  # one outlier
+    calls["delayed_init.robust_trilaterate"] = lambda seed: delayed_init.robust_trilaterate(
+        pts, rng_ + 0.01 * seed, np.ones(6, bool), 0.01)
+    calls["delayed_init.from_buffer"] = lambda seed: delayed_init.from_buffer(
+        pts, 0.001 * (1 + seed), rng_, np.ones(6, bool), 0.01, robust=True)
     return calls
 
 
@@ -659,7 +667,8 @@ def _other_calls():
                                   "ekf_slam.preload", "trilateration.trilaterate", "trilateration.trilaterate_line",
                                   "resampling.systematic", "resampling.residual", "resampling.soft",
                                   "metrics.ate", "metrics.umeyama", "metrics.rpe", "metrics.rpe_se2", "lqr.care",
-                                  "lqr.lqr_gain", "stats.quadratic_form"])
+                                  "lqr.lqr_gain", "stats.quadratic_form", "delayed_init.robust_trilaterate",
+                                  "delayed_init.from_buffer"])
 def test_other_looping_functions_called_eagerly_compile_once_and_keep_nothing_more(name):
     """RANSAC line extraction (``extract_lines``, ``extract_guided``), JCBB,
     ``fastslam.maybe_resample``, ``chi2_ppf``, the RK4 ``rollout``, the IMU drift rollout and the
