@@ -79,7 +79,7 @@ import numpy as np
 
 from .. import errors
 from ..errors import InputError, check_flag, check_int
-from ..linalg import check_mask, check_psd, is_concrete, list_array, symmetrize, value_and_jacfwd, wrap_angle
+from ..linalg import check_mask, check_psd, is_concrete, symmetrize, value_and_jacfwd, wrap_angle
 from ..stats import chi2_ppf_np
 from ..compilation import call_compiled
 from . import gaussian as _g
@@ -302,8 +302,7 @@ def predict(state: Gaussian, f: Callable, u, Q, *args, noise_jac=None, return_st
         loop of eager steps runs compiled programs.
     """
     return_status = check_flag(return_status, "return_status")
-    state = _g.check_predict_call(state, Q)  # the values known now (the compiled step sees them traced)
-    Q = list_array(Q, "Q")  # a list would reach the program as tracers, which np.shape cannot read
+    state, Q = _g.check_predict_call(state, Q)  # the values known now (the compiled step sees them traced)
 
     def step(opts, state, Q):
         u, a, nj = opts
@@ -401,8 +400,7 @@ def update(
         (:func:`jaxslam.compilation.call_compiled`).
     """
     check_num_iter(num_iter)
-    state = _g.check_update_call(state, z, R, mask, gate)  # the values known now
-    z, R, mask = map(list_array, (z, R, mask), ("z", "R", "mask"))  # a list would reach the program as tracers
+    state, z, R, mask = _g.check_update_call(state, z, R, mask, gate)  # the values known now
 
     def step(opts, state, z, R, mask):
         a, g, t = opts

@@ -259,24 +259,29 @@ def check_noise_values(M, name: str, strict: bool = False):
         check_psd(np.reshape(check_numbers(M, name), (1, 1)), name, strict=strict)
 
 
-def check_predict_call(state, Q) -> Gaussian:
+def check_predict_call(state, Q):
     """What an eager ``predict`` of a Gaussian filter checks before its compiled step (which sees
     the values traced): the belief (:func:`check_state`) and a known ``Q``'s values
-    (:func:`check_noise_values`).  Returns the checked belief."""
+    (:func:`check_noise_values`).  Returns ``(state, Q)``: the checked belief, and ``Q`` as an
+    array when it is a list (as a list it would reach the program as tracers, which the shape
+    checks' NumPy calls cannot read)."""
     state = check_state(state)
     check_noise_values(Q, "Q")
-    return state
+    return state, list_array(Q, "Q")
 
 
-def check_update_call(state, z, R, mask, gate) -> Gaussian:
+def check_update_call(state, z, R, mask, gate, check_state=check_state):
     """What an eager ``update`` of a Gaussian filter checks before its compiled step: the gate,
     the belief, ``z``/``R``/``mask`` (:func:`check_update_args`) and, while the mask is known,
-    that the gate's table covers the components it lets through.  Returns the checked belief."""
+    that the gate's table covers the components it lets through.  ``check_state`` checks the
+    belief (:func:`check_state` by default; the square-root filters pass theirs).  Returns
+    ``(state, z, R, mask)``: the checked belief, and the lists among ``z``, ``R``, ``mask`` as
+    arrays (as lists they would reach the program as tracers)."""
     check_gate(gate)
     state = check_state(state)
     check_update_args(z, R, mask)
     check_gate_size(gate, np.shape(z)[-1] if np.ndim(z) else 1, mask)
-    return state
+    return (state,) + tuple(map(list_array, (z, R, mask), ("z", "R", "mask")))
 
 
 def check_update_args(z, R, mask):

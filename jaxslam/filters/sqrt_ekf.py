@@ -101,6 +101,7 @@ from ..linalg import (check_finite, check_mask, check_numbers, check_psd, is_con
                       value_and_jacfwd)
 from .ekf import Gaussian, UpdateInfo
 from .gaussian import (call_residual, check_gate, check_gate_size, check_leading, check_measurement, check_noise_values,
+                       check_update_call,
                        check_process_noise, check_real, check_transition_out, check_update_args, moment_dtype,
                        scalar_measurement, state_pair, threshold as _threshold)
 
@@ -475,25 +476,13 @@ def update(
         is returned unchanged.  Called eagerly it is compiled once per model
         (:func:`jaxslam.compilation.call_compiled`).
     """
-    state = _check_update_call(state, z, R, mask, gate)  # the values known now
-    z, R, mask = map(list_array, (z, R, mask), ("z", "R", "mask"))  # a list would reach the program as tracers
+    state, z, R, mask = check_update_call(state, z, R, mask, gate, check_state)  # the values known now
 
     def step(opts, state, z, R, mask):
         a, g = opts
         return _update(state, z, h, R, *a, residual=residual, mask=mask, gate=g)
 
     return call_compiled(("sqrt_ekf.update", h, residual), step, (state, z, R, mask), (args, gate), after=2)
-
-
-def _check_update_call(state, z, R, mask, gate) -> SqrtGaussian:
-    """What an eager square-root update checks before its compiled step (which sees the values
-    traced), as :func:`jaxslam.filters.gaussian.check_update_call` for a covariance: the gate,
-    the belief (:func:`check_state`), ``z``/``R``/``mask`` and the gate's size."""
-    check_gate(gate)
-    state = check_state(state)
-    check_update_args(z, R, mask)
-    check_gate_size(gate, np.shape(z)[-1] if np.ndim(z) else 1, mask)
-    return state
 
 
 def _update(state, z, h, R, *args, residual=None, mask=None, gate: Gate = None):

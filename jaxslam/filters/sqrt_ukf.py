@@ -42,12 +42,12 @@ from .gaussian import (
     check_noise_values,
     check_real,
     check_update_args,
+    check_update_call,
     scalar_measurement,
     masked_innovation,
     threshold,
 )
-from .sqrt_ekf import (SqrtGaussian, SqrtPosterior, _check_update_call, _host_root, _mm, _noise_root, _tria,
-                       check_state, psd_factor)
+from .sqrt_ekf import SqrtGaussian, SqrtPosterior, _host_root, _mm, _noise_root, _tria, check_state, psd_factor
 from .ukf import (
     SigmaPoints,
     _rule,
@@ -154,8 +154,7 @@ def update(state: SqrtGaussian, z, h: Callable, R, *args, residual: Optional[Cal
     (:func:`jaxslam.compilation.call_compiled`).
     """
     rule = _rule(points)
-    state = _check_update_call(state, z, R, mask, gate)  # the values known now
-    z, R, mask = map(list_array, (z, R, mask), ("z", "R", "mask"))  # a list would reach the program as tracers
+    state, z, R, mask = check_update_call(state, z, R, mask, gate, check_state)  # the values known now
 
     def step(opts, state, z, R, mask):
         a, g = opts

@@ -107,7 +107,7 @@ import numpy as np
 from .. import errors
 from ..compilation import call_compiled
 from ..errors import InputError, check_flag
-from ..linalg import check_numbers, check_psd, is_concrete, list_array, symmetrize
+from ..linalg import check_numbers, check_psd, is_concrete, symmetrize
 from . import gaussian as _g
 from .gaussian import (
     Gate,
@@ -390,8 +390,7 @@ def predict(state: Gaussian, f: Optional[Callable], u, Q, *args,
 def _predict_step(state: Gaussian, f: Optional[Callable], u, Q, args, rule: SigmaPoints, noise_jac):
     """:func:`_predict` after the checks of values known now; called eagerly, compiled once per
     model (:func:`jaxslam.compilation.call_compiled`)."""
-    state = _g.check_predict_call(state, Q)  # the values known now (the compiled step sees them traced)
-    Q = list_array(Q, "Q")  # a list would reach the program as tracers, which np.shape cannot read
+    state, Q = _g.check_predict_call(state, Q)  # the values known now (the compiled step sees them traced)
 
     def step(opts, state, Q):
         u, a, nj = opts
@@ -464,8 +463,7 @@ def update(
         (:func:`jaxslam.compilation.call_compiled`).
     """
     rule = _rule(points)
-    state = _g.check_update_call(state, z, R, mask, gate)  # the values known now
-    z, R, mask = map(list_array, (z, R, mask), ("z", "R", "mask"))  # a list would reach the program as tracers
+    state, z, R, mask = _g.check_update_call(state, z, R, mask, gate)  # the values known now
 
     def step(opts, state, z, R, mask):
         a, g = opts

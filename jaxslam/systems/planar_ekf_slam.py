@@ -325,16 +325,16 @@ def make_model(config: Config) -> es.SlamModel:
     object (one built per motion, geometry and calibration), so the engine's steps called
     eagerly from :func:`step` find their compiled programs again.
     """
-    f = motion_fn(config)  # (checks config.motion)
     try:
         return _cached_model(config.motion, config.geometry, bool(config.calibrate))
     except TypeError:  # an unhashable geometry: built afresh
-        return _build_model(f, config.calibrate)
+        return _build_model(motion_fn(config), config.calibrate)
 
 
 @functools.lru_cache(maxsize=32)
 def _cached_model(motion: str, geometry, calibrate: bool) -> es.SlamModel:
-    return _build_model(planar.motion_model(motion, geometry), calibrate)
+    # motion_fn checks the motion's name (an InputError is not cached)
+    return _build_model(motion_fn(Config(motion=motion, geometry=geometry)), calibrate)
 
 
 def _build_model(f, calibrate: bool) -> es.SlamModel:
