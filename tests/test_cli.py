@@ -392,7 +392,18 @@ def test_quick_bad_input_exits_do_not_import_jax(tmp_path):
     (tmp_path / "afile").write_text("not a folder")
     cases = [["dataset", "x", "--data", "."], ["dataset", "mrclam", "--data", str(tmp_path / "absent")],
              ["run", "track-figure8", "--json", str(tmp_path / "afile" / "x.json")],
-             ["run", "track-figure8", "--params", str(tmp_path / "absent.json")]]
+             ["run", "track-figure8", "--params", str(tmp_path / "absent.json")],
+             # the scenario's name and options come from its declaration (sim/scenarios/builtin.py):
+             # 1.4-2.8 s each before, every one of them importing JAX
+             ["run"], ["run", "no-such-scenario"], ["run", "track-figure8", "--bogus"],
+             ["run", "track-figure8", "--duration", "nan"], ["run", "uwb-circle", "--model", "cubic"],
+             ["run", "uwb-circle", "--max-range", "-1"], ["run", "lineslam-room", "--capacity", "0"],
+             ["run", "ekfslam3d-unknown", "--max-obs", "0"],
+             ["run", "attitude-smc", "--json", str(tmp_path / "made" / "x.json"), "--gains", "none"],
+             # tune's arguments against the declared targets (tuning/targets/__init__.py: DECLARED)
+             ["tune", "no-such-scenario"], ["tune", "track-figure8", "--b2", "2"],
+             ["tune", "track-figure8", "--data", "."], ["tune", "mrclam", "--data", str(tmp_path / "absent")],
+             ["tune", "track-figure8", "--batch-size", "5", "--train-runs", "2"]]
     code = ("import sys, contextlib, io; from jaxslam.cli import main\n"
             f"for argv in {cases!r}:\n"
             "    with contextlib.redirect_stderr(io.StringIO()):\n"
@@ -401,6 +412,16 @@ def test_quick_bad_input_exits_do_not_import_jax(tmp_path):
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
                           cwd=tmp_path, timeout=60)
     assert proc.stdout.split() == ["2", "False"] * len(cases), (proc.stdout, proc.stderr)
+    assert not (tmp_path / "made").exists()  # a bad option exits before any output folder is made
+    # listing the scenarios and the run's own help need no scenario module either
+    code = ("import sys, contextlib, io; from jaxslam.cli import main\n"
+            "out = io.StringIO()\n"
+            "with contextlib.redirect_stdout(out):\n"
+            "    rcs = [main(['list', '--dir', '.']), main(['run', '--help'])]\n"
+            "print(rcs, 'jax' in sys.modules, 'uwb-rough' in out.getvalue())")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
+                          cwd=tmp_path, timeout=60)
+    assert proc.stdout.split() == ["[0,", "0]", "False", "True"], (proc.stdout, proc.stderr)
 
 
 # ----------------------------------------------------------------------------- bench

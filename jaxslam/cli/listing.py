@@ -34,7 +34,8 @@ def command(rest: list[str]) -> int:
 
     from jaxslam.sim.scenarios import registry
 
-    scenarios = registry.all_scenarios()
+    # declared, not loaded: the built-in scenarios' modules (and JAX) are not imported to list them
+    scenarios = [registry.declared(n) for n in registry.names()]
     echo(f"Scenarios ({PROG} run NAME):")
     if scenarios:
         w = max(len(s.name) for s in scenarios)

@@ -244,15 +244,12 @@ def _summ(res):
     return out
 
 
-def run_tuning(args, progress_stream=None) -> dict:
-    """Build, fit, evaluate; returns the tune JSON dict (host-side, JSON-ready)."""
-    import jax
-    import jax.numpy as jnp
-
-    import jaxslam
-    from jaxslam.progress import Progress
-    from jaxslam.sim import monte_carlo
-    from jaxslam.tuning import optimize, targets
+def _plan(args) -> tuple:
+    """``(target_name, loss, steps, lr, real, kw)`` of ``args``, checked before JAX or any
+    target module is imported (the targets' names and losses are declared,
+    ``targets.DECLARED``): every argument error of ``jaxslam tune`` but a bad ``--compare``
+    file and a target's own checks.  ``kw`` goes to ``targets.get`` (without its dtype)."""
+    from jaxslam.tuning import targets
 
     avail = targets.available()
     scen_targets = [t for (s, t) in avail if s == args.scenario]
@@ -279,11 +276,6 @@ def run_tuning(args, progress_stream=None) -> dict:
                          "(imu or imu_iso) and needs --tune noise or both for it")
     elif args.tilt_max is not None and not args.tilt_max < 90:  # before the build: the only line
         raise InputError(f"--tilt-max: expected (0, 90) degrees, got {args.tilt_max}")
-    elif args.compare is not None:  # read before the (slow) build: a bad file is the only line
-        from jaxslam.tuning.targets import loop as loop_target
-        from jaxslam.control import dflqr
-
-        loop_target.controller_file(args.compare, dflqr.paper000_params())
     real = args.scenario in targets.REAL_LOG_SCENARIOS
     if not real:  # options a simulation target would ignore: refused by name, like the real logs'
         flights = args.scenario.startswith("ekfslam3d") or args.scenario == "track-figure8"
@@ -326,8 +318,7 @@ def run_tuning(args, progress_stream=None) -> dict:
                          f"got {loss!r}")
     steps = args.steps or d["steps"]
     lr = args.lr or d["lr"]
-    dtype = jnp.float32 if args.float32 else jnp.float64
-    kw = dict(train_runs=args.train_runs, test_runs=args.test_runs, seed=args.seed, dtype=dtype,
+    kw = dict(train_runs=args.train_runs, test_runs=args.test_runs, seed=args.seed,
               eval_duration=args.eval_duration, checkpoint=not args.no_checkpoint, cov=args.cov,
               tune_r=args.tune_r, structure=args.structure or "qc", filter=args.filter or "ekf")
     if target_name == "loop":
@@ -340,7 +331,7 @@ def run_tuning(args, progress_stream=None) -> dict:
     if args.scenario in ("util-uwb", "plaza", "victoria-park"):
         from jaxslam.data import catalogue
 
-        kw = dict(dtype=dtype, data=catalogue.data_root(args.data), t_max=args.window)
+        kw = dict(data=catalogue.data_root(args.data), t_max=args.window)
         if args.scenario == "util-uwb":
             kw["anchor_offsets"] = bool(args.anchor_offsets)
         else:
@@ -359,11 +350,32 @@ def run_tuning(args, progress_stream=None) -> dict:
                 raise InputError(f"--odometry-delay: expected seconds or 'auto', got {delay!r}") from None
             if not (math.isfinite(delay) and 0.0 <= delay <= 2.0):
                 raise InputError(f"--odometry-delay: expected 0 to 2 s, got {delay:g}")
-        kw = dict(dtype=dtype, data=data, t_max=args.window or REAL_LOG_DEFAULTS["window"], odometry_delay=delay)
+        kw = dict(data=data, t_max=args.window or REAL_LOG_DEFAULTS["window"], odometry_delay=delay)
         if args.robots is not None:
             kw["robots"] = args.robots
         if args.test_robots is not None:
             kw["test_robots"] = args.test_robots
+    return target_name, loss, steps, lr, real, kw
+
+
+def run_tuning(args, progress_stream=None, plan=None) -> dict:
+    """Build, fit, evaluate; returns the tune JSON dict (host-side, JSON-ready).  ``plan``: what
+    :func:`_plan` returned for ``args`` (checked again when not given)."""
+    target_name, loss, steps, lr, real, kw = _plan(args) if plan is None else plan
+    import jax
+    import jax.numpy as jnp
+
+    import jaxslam
+    from jaxslam.progress import Progress
+    from jaxslam.sim import monte_carlo
+    from jaxslam.tuning import optimize, targets
+
+    kw = dict(kw, dtype=jnp.float32 if args.float32 else jnp.float64)
+    if target_name == "loop" and args.compare is not None:  # read before the (slow) build: a bad
+        from jaxslam.control import dflqr  # file is the only line (and needs JAX, x64 set first)
+        from jaxslam.tuning.targets import loop as loop_target
+
+        loop_target.controller_file(args.compare, dflqr.paper000_params())
     quiet = args.quiet
     stream = progress_stream or sys.stderr
     try:
@@ -528,6 +540,7 @@ def main(argv=None) -> int:
         params_out = files.prepare_file("--params-out", args.params_out) if args.params_out is not None else None
         files.distinct_outputs(json=json_path, params_out=params_out)
         plots = files.prepare_dir("--plots", args.plots) if args.plots is not None else None
+        plan = _plan(args)  # the arguments against the declared targets, still without JAX
         import jax  # x64 before any target module is imported (module constants take its dtype)
 
         if not args.float32:
@@ -535,7 +548,7 @@ def main(argv=None) -> int:
         from jaxslam import compilation
 
         with compilation.account() as acct:
-            rep = run_tuning(args)
+            rep = run_tuning(args, plan=plan)
         rep["timing"]["step_compile_s"] = rep["timing"].pop("compile_s")
         rep["timing"].update(compile_timing(acct.result))
     except (InputError, UsageError) as e:

@@ -40,7 +40,7 @@ def test_a_diverged_training_run_is_named_counted_and_left_out(tmp_path, capsys,
 
     from jaxslam.tuning import targets
 
-    targets.available()  # the built-in targets registered
+    targets._load()  # the built-in targets registered (available() answers from DECLARED)
     base, losses = targets._FACTORIES[("linear-gaussian", "noise")]
 
     def poisoned(**kw):
@@ -182,3 +182,15 @@ def test_float32_tuning_follows_float64(tmp_path, capsys):
     assert all(a.dtype == jnp.float32 for a in jax.tree.leaves(r32.theta))
     for k in ("Q", "R"):
         np.testing.assert_allclose(np.asarray(r32.theta[k]), np.asarray(r64.theta[k]), rtol=0, atol=2e-3)
+
+
+def test_declared_targets_are_what_the_modules_register():
+    """``targets.DECLARED`` (read by ``jaxslam tune`` before JAX is imported) against the
+    registrations of the target modules themselves."""
+    from jaxslam.tuning import targets
+
+    targets._load()
+    registered = {k: v[1] for k, v in targets._FACTORIES.items()}
+    assert {k: registered[k] for k in targets.DECLARED} == targets.DECLARED
+    assert set(registered) == set(targets.DECLARED)  # no built-in target left undeclared
+    assert targets.available() == dict(sorted(registered.items()))

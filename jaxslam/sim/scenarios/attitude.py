@@ -35,7 +35,8 @@ import numpy as np
 from ...control import smc
 from ...errors import InputError
 from .. import monte_carlo
-from .registry import Option, Scenario, ScenarioResult, _checked_args, _duration_flown, program_key, register
+from .builtin import DECLARED
+from .registry import Scenario, ScenarioResult, _checked_args, _duration_flown, program_key, register
 
 __all__ = ["SETTLE_DEG", "FINAL_WINDOW_S", "resolve_gains", "build", "run_scenario", "metrics"]
 
@@ -177,24 +178,11 @@ def run_scenario(runs, seed, dtype, options, progress, params=None, plots=False)
     )
 
 
-OPTIONS = (
-    Option("perturbation", str, "constant", "app. B perturbation ξ: constant, sinusoidal, random "
-           "(bounded) or none", ("constant", "sinusoidal", "random", "none")),
-    Option("gains", str, "thesis", "K1, K2: 'thesis' (ch. 3.4), 'prototype' (eq. 6.1) or 'lqr' "
-           "(app. B weights)", ("thesis", "prototype", "lqr")),
-    Option("duration", float, smc.DURATION_S, "simulated time [s] (app. B: 25)"),
-    Option("dt", float, smc.DT_S, "integration and control step [s] (app. B: 0.001)"),
-    Option("torque", str, "direct", "torque model: 'direct' τ = u (app. B, the code behind Figs "
-           "3.2-3.7) or 'exact' τ = J u + ω×Jω (eq. 3.15)", ("direct", "exact")),
-    Option("tau_max", float, smc.TAU_MAX_APPB, "torque limit per axis [N m] (app. B: 0.18; <= 0: none)"),
-    Option("perturbation_scale", float, 1.0, "L1, L2 as a multiple of Theorem 3.1's admissible maxima"),
-    Option("switching", str, "tanh", "switching term: 'tanh' (thesis) or 'sign'", ("tanh", "sign")),
-    Option("eps", float, 1.0, "tanh smoothing width (1 = the thesis' TANH) [rad, rad/s]"),
-)
+OPTIONS = DECLARED["attitude-smc"].options  # declared in builtin.py (read there without JAX)
 
 SCENARIO = register(Scenario(
     name="attitude-smc",
-    description="Paper 004 ch. 3.4: quaternion sliding-mode attitude control under bounded perturbations",
+    description=DECLARED["attitude-smc"].description,
     options=OPTIONS,
     run=run_scenario,
 ))

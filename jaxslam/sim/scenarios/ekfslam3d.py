@@ -41,12 +41,13 @@ from ...sensors import landmarks as lm_mod
 from ...systems import ekf_slam_3d as sys3d
 from .. import monte_carlo
 from ..simulate import controls, n_frames, simulate
-from .registry import (Option, Scenario, ScenarioResult, _checked_args, _duration_flown, program_key,
+from .builtin import DECLARED
+from .registry import (Scenario, ScenarioResult, _checked_args, _duration_flown, program_key,
                        register)
 from .tracking import (DT, FRAME_STEPS, SETTLED_AFTER_S, controller_from_dict, controller_to_dict,
                        make_setup, paper000_figure8, tracking_metrics)
 
-N_LANDMARKS = 40
+N_LANDMARKS = 40  # Table 3 (the default of --landmarks, builtin.py)
 WINDOW_S = 10.0
 # What each statistic of ``consistency`` covers (docs/cli.md, "consistency"): the NEES is of the
 # 9-state robot block, the NIS of every LiDAR row, normalised per degree of freedom.
@@ -300,31 +301,6 @@ def run_scenario(name, mode, runs, seed, dtype, options, progress, params=None, 
     )
 
 
-_OPTIONS = (
-    Option("duration", float, 50.0, "flight duration [s]"),
-    Option("q", str, "imu", "filter noise: 'imu' (Q from Table 5 densities) or 'paper' (Tables 6-7 P0/Q)",
-           ("imu", "paper")),
-    Option("association", str, "known", "data association: 'known' ids (paper) or 'nn' (ids hidden)",
-           ("known", "nn")),
-    Option("capacity", int, 64, "landmark slots in the padded map", lower=1),
-    Option("landmarks", int, N_LANDMARKS, "number of true landmarks (Table 3: 40)", lower=1),
-    Option("max_obs", int, 16, "LiDAR measurements processed per frame (extras counted as dropped)", lower=1),
-    Option("control_on", str, "estimate", "what the DF-LQR acts on: 'estimate' (paper) or 'truth'",
-           ("estimate", "truth")),
-    Option("accel", str, "3axis", "IMU input: '3axis' specific force or 'az' (paper eq. 25)",
-           ("3axis", "az")),
-    Option("altitude", float, 3.0, "figure-8 altitude above the start point [m]; landmarks centred on it"),
-    Option("no_feedforward", bool, False, "paper's eq. 19 attitude references instead of the flatness feedforward"),
-    Option("chunk", int, None, "Monte Carlo runs per compiled call on a GPU/TPU (default: all, max 256); "
-           "on the CPU the runs go one compiled run at a time and it has no effect", lower=1),
-)
-
-_DESCRIPTIONS = {
-    "unknown": "Paper 000: 3D EKF-SLAM (landmarks unknown) with DF-LQR on the estimate, 50 s figure-8",
-    "known": "Paper 000: EKF localisation against the known 40-landmark map, DF-LQR on the estimate",
-}
-
-
 def params_schema(mode: str, options: dict, dtype) -> dict:
     """What a ``--params`` file may set (:mod:`jaxslam.paramfile`): the filter's noise for
     ``--q`` and the DF-LQR weights and PD gains, with their defaults."""
@@ -339,8 +315,8 @@ def _register(mode):
     name = f"ekfslam3d-{mode}"
     _SCENARIOS[mode] = register(Scenario(
         name=name,
-        description=_DESCRIPTIONS[mode],
-        options=_OPTIONS,
+        description=DECLARED[name].description,
+        options=DECLARED[name].options,
         run=lambda runs, seed, dtype, options, progress, params=None, plots=False: run_scenario(
             name, mode, runs, seed, dtype, options, progress, params, plots),
         params=lambda options, dtype: params_schema(mode, options, dtype),

@@ -60,7 +60,8 @@ from ...sensors import lidar3d
 from ...sensors import range_bearing3d as rb
 from ...systems import fastslam_001 as fs1
 from .. import monte_carlo
-from .registry import Option, Scenario, ScenarioResult, _checked_args, _duration_flown, program_key, register
+from .builtin import DECLARED
+from .registry import Scenario, ScenarioResult, _checked_args, _duration_flown, program_key, register
 
 DT = 0.01
 LIDAR_EVERY = 10
@@ -358,35 +359,11 @@ def run_scenario(runs, seed, dtype, options, progress, params=None, plots=False)
     )
 
 
-OPTIONS = (
-    Option("model", str, "dynamics", "proposal: 'dynamics' (paper 001, rotor inputs + bias KF) "
-           "or 'kinematics' (IMU-driven FastSLAM baseline)", ("dynamics", "kinematics")),
-    Option("bias", float, 0.0005, "IMU bias on every axis [m/s², rad/s] (paper: 0.0005 or 0.005)"),
-    Option("particles", int, 500, "number of particles N (paper: 500)", lower=1),
-    Option("inertia_mismatch", bool, False,
-           "filter uses Ixx = Iyy = 0.0288, Izz = 0.0545 kg m² (+150 %), truth unchanged"),
-    Option("weights", str, "exact", "particle weights: 'exact' (innovation covariance) or "
-           "'paper' (eq. 26-28 mean approximations)", ("exact", "paper")),
-    Option("resampling", str, "systematic", "resampling scheme",
-           ("systematic", "stratified", "multinomial", "residual", "soft")),
-    Option("resample_threshold", float, 0.5,
-           "resample when N_eff < threshold·N; 1 = at every weight update (paper's Step 6)"),
-    Option("soft_alpha", float, 0.5, "mixture weight of soft resampling (with --resampling soft)"),
-    Option("duration", float, 50.0, "flight duration [s]"),
-    Option("lidar", str, "world", "LiDAR model: 'world' (eq. 13-15) or 'body' (paper 000)",
-           ("world", "body")),
-    Option("stage2", str, "paper", "stage 2 (Step 8): 'paper' (position + rates), 'rates', 'none'",
-           ("paper", "rates", "none")),
-    Option("accel", str, "specific_force", "accelerometer model of truth and filter: "
-           "'specific_force' (real IMU) or 'kinematic' (paper eq. 7)",
-           ("specific_force", "kinematic")),
-    Option("chunk", int, None, "Monte Carlo runs per compiled call on a GPU/TPU (default: all, max 256); "
-           "on the CPU the runs go one compiled run at a time and it has no effect", lower=1),
-)
+OPTIONS = DECLARED["fastslam-helix"].options  # declared in builtin.py (read there without JAX)
 
 SCENARIO = register(Scenario(
     name="fastslam-helix",
-    description="Paper 001: dynamics-based two-stage FastSLAM with IMU bias/drift KF on the helix",
+    description=DECLARED["fastslam-helix"].description,
     options=OPTIONS,
     run=lambda runs, seed, dtype, options, progress, params=None, plots=False: run_scenario(
         runs, seed, dtype, options, progress, params, plots),

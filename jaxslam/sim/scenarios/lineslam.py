@@ -47,7 +47,8 @@ from ...linalg import wrap_angle
 from ...sensors import laser2d
 from ...systems import line_slam_004 as LS
 from .. import monte_carlo
-from .registry import Option, Scenario, ScenarioResult, _checked_args, _duration_flown, program_key, register
+from .builtin import DECLARED
+from .registry import Scenario, ScenarioResult, _checked_args, _duration_flown, program_key, register
 
 __all__ = ["ROOM", "PILLAR", "Setup", "room_walls", "make_setup", "simulate", "evaluate", "build", "consistency",
            "run_scenario", "true_lines"]
@@ -200,9 +201,7 @@ def build(options: dict, dtype, params=None):
     (:func:`jaxslam.sim.scenarios.registry.check_options`).
     """
     options, params = _checked_args(SCENARIO, options, dtype, params)
-    cap = int(options["capacity"])
-    if cap < 1:  # before the set-up, which computes
-        raise InputError(f"--capacity: must be >= 1, got {cap}")
+    cap = int(options["capacity"])  # >= 1: its Option's lower bound, checked above
     setup = make_setup(float(options["duration"]), 0.1, tilt_deg=float(options["tilt_deg"]),
                        outlier_prob=float(options["outlier_prob"]))
     cfg = LS.Config(capacity=cap)
@@ -314,14 +313,8 @@ def consistency(series, runs):
 
 SCENARIO = register(Scenario(
     name="lineslam-room",
-    description="Paper 004: line-feature EKF-SLAM (RANSAC walls, optical flow, gyro) in a 10-wall L-shaped room",
-    options=(
-        Option("duration", float, 60.0, "flight duration [s] (10 Hz scans; 60 s = two laps)"),
-        Option("capacity", int, 16, "line slots of the map"),
-        Option("outlier_prob", float, 0.05, "fraction of laser returns replaced by clutter"),
-        Option("tilt_deg", float, 2.0, "roll/pitch amplitude [deg] (known to the filter)"),
-        Option("chunk", int, None, "Monte Carlo runs per compiled call (default: all, max 256)", lower=1),
-    ),
+    description=DECLARED["lineslam-room"].description,
+    options=DECLARED["lineslam-room"].options,
     run=run_scenario,
     params=params_schema,
 ))

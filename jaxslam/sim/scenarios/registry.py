@@ -9,8 +9,11 @@ partial ``options`` dict is completed with the defaults and checked: :func:`chec
 
 Concrete scenarios live in the modules of :mod:`jaxslam.sim.scenarios` and
 register themselves at import time with :func:`register`.  The registry loads
-them lazily (on the first :func:`get`, :func:`names` or :func:`all_scenarios`),
-so ``jaxslam --help`` never pays for importing JAX or the filters.
+them lazily (on the first :func:`get` or :func:`all_scenarios`), so ``jaxslam --help``
+never pays for importing JAX or the filters; the built-in scenarios' names, descriptions
+and options are declared in :mod:`jaxslam.sim.scenarios.builtin`, so :func:`names`,
+:func:`declared` and :func:`check_options` on a declaration import neither (``jaxslam
+list`` and a mistyped scenario option exit before JAX is imported).
 
 Decisions
 - Option names are Python identifiers; ``Option("noise_scale", ...)`` becomes
@@ -41,6 +44,9 @@ import numpy as np
 from jaxslam import paramfile
 from jaxslam.errors import InputError, check_flag, check_run_dtype
 
+from .builtin import DECLARED
+from .option import Option
+
 __all__ = [
     "Option",
     "ScenarioResult",
@@ -49,6 +55,7 @@ __all__ = [
     "register",
     "unregister",
     "get",
+    "declared",
     "names",
     "all_scenarios",
     "program_key",
@@ -64,34 +71,6 @@ RESERVED_OPTION_NAMES = frozenset(
 )
 
 _OPTION_TYPES = (float, int, str, bool)
-
-
-@dataclasses.dataclass(frozen=True)
-class Option:
-    """A scenario-specific command-line option (e.g. ``--duration``, ``--capacity``).
-
-    Attributes:
-      name: Python identifier; ``"duration"`` -> ``--duration``, ``"noise_scale"``
-        -> ``--noise-scale``.  The key in the ``options`` dict passed to ``run``.
-      type: one of ``float``, ``int``, ``str``, ``bool`` (``bool`` is a flag).
-      default: value used when the option is not given; state units in ``help``.
-      help: one line for ``jaxslam run SCENARIO --help``, with units.
-      choices: allowed values, or ``None`` for any value of ``type``.
-      lower: smallest allowed value of an ``int`` or ``float`` option, or ``None``
-        (:func:`check_options`, so ``Scenario.run`` and the command line, refuse less).
-    """
-
-    name: str
-    type: type
-    default: object
-    help: str
-    choices: tuple | None = None
-    lower: int | None = None
-
-    @property
-    def flag(self) -> str:
-        """The primary command-line spelling, e.g. ``--noise-scale``."""
-        return "--" + self.name.replace("_", "-")
 
 
 @dataclasses.dataclass
@@ -332,14 +311,40 @@ def get(name: str) -> Scenario:
     try:
         return _REGISTRY[name]
     except KeyError:
-        valid = ", ".join(sorted(_REGISTRY)) or "(none registered)"
-        raise InputError(f"unknown scenario {name!r}; valid scenarios: {valid}") from None
+        raise _unknown(name) from None
+
+
+def declared(name: str):
+    """What the command line needs of scenario ``name`` before its module is imported: the
+    registered :class:`Scenario`, else the built-in scenario's declaration
+    (:class:`~jaxslam.sim.scenarios.builtin.Declared`: ``name``, ``description``,
+    ``options``), with no scenario module and no JAX imported.  :func:`check_options` takes
+    either.
+
+    Raises:
+      InputError: no such scenario, with the message of :func:`get`.
+    """
+    if not isinstance(name, str):
+        raise InputError(f"name: expected a scenario name (a string), got {type(name).__name__}")
+    if name in _REGISTRY:
+        return _REGISTRY[name]
+    if not _BUILTIN_LOADED and name in DECLARED:
+        return DECLARED[name]
+    raise _unknown(name)
+
+
+def _unknown(name: str) -> InputError:
+    valid = ", ".join(names()) or "(none registered)"
+    return InputError(f"unknown scenario {name!r}; valid scenarios: {valid}")
 
 
 def names() -> list[str]:
-    """Sorted names of all registered scenarios."""
-    _load_builtin()
-    return sorted(_REGISTRY)
+    """Sorted names of all scenarios: those registered and the built-in ones.  The built-in
+    names come from their declarations (:mod:`jaxslam.sim.scenarios.builtin`), so this imports
+    no scenario module and no JAX."""
+    if _BUILTIN_LOADED:
+        return sorted(_REGISTRY)
+    return sorted(set(_REGISTRY) | set(DECLARED))
 
 
 def all_scenarios() -> list[Scenario]:
@@ -361,7 +366,8 @@ def default_options(scenario: Scenario) -> dict:
 
 def check_options(scenario: Scenario, options: dict | None = None) -> dict:
     """``options`` completed with the scenario's defaults and checked as the command line
-    checks them (what a scenario's ``run`` does with the ``options`` it is given).
+    checks them (what a scenario's ``run`` does with the ``options`` it is given);
+    ``scenario`` is a :class:`Scenario` or what :func:`declared` returns.
 
     An unknown key, a value of the wrong type (an ``int`` for a ``float`` option is fine, a
     ``bool`` never stands for a number), a value outside ``choices`` or below ``lower`` raise

@@ -27,7 +27,8 @@ from ...sensors import imu as imu_mod
 from ...sensors import lidar3d
 from .. import monte_carlo
 from ..simulate import FlightSetup, n_frames, simulate
-from .registry import Option, Scenario, ScenarioResult, _duration_flown, program_key, register
+from .builtin import DECLARED
+from .registry import Scenario, ScenarioResult, _duration_flown, program_key, register
 
 SETTLE_TOL_M = 0.1
 SETTLED_AFTER_S = 10.0
@@ -192,13 +193,6 @@ def _jsonable(v):
     return a.tolist() if a.ndim else float(a)
 
 
-_COMMON = (
-    Option("duration", float, 50.0, "flight duration [s]"),
-    Option("no_feedforward", bool, False,
-           "paper's eq. 19 attitude references (p_d = q_d = 0, no torque feedforward) instead of "
-           "jaxslam's full flatness feedforward"),
-    Option("chunk", int, None, "Monte Carlo runs per compiled call (default: all, max 256)", lower=1),
-)
 
 
 def _figure8(options):
@@ -216,13 +210,8 @@ def _helix(options):
 
 register(Scenario(
     name="track-figure8",
-    description="Paper 000: DF-LQR tracks the 50 s figure-8 from the origin (true state, no estimator)",
-    options=_COMMON + (
-        Option("altitude", float, 3.0, "figure-8 altitude above the start point [m]"),
-        Option("ramp", float, 0.0,
-               "take-off blend of the reference from the origin [s]; 0 = the paper's start "
-               "(reference starts on the figure-8, the vehicle at the origin)", lower=0.0),
-    ),
+    description=DECLARED["track-figure8"].description,
+    options=DECLARED["track-figure8"].options,
     run=lambda runs, seed, dtype, options, progress, params=None, plots=False: _run_tracking(
         "track-figure8", _figure8, runs, seed, dtype, options, progress, params, plots),
     params=params_schema,
@@ -230,8 +219,8 @@ register(Scenario(
 
 register(Scenario(
     name="track-helix",
-    description="Paper 001: DF-LQR tracks the climbing helix from the origin (true state, no estimator)",
-    options=_COMMON,
+    description=DECLARED["track-helix"].description,
+    options=DECLARED["track-helix"].options,
     run=lambda runs, seed, dtype, options, progress, params=None, plots=False: _run_tracking(
         "track-helix", _helix, runs, seed, dtype, options, progress, params, plots),
     params=params_schema,

@@ -78,7 +78,8 @@ from ...sensors import uwb
 from ...stats import nees as _nees
 from ...systems import uwb_slam_2d as U
 from .. import monte_carlo
-from .registry import Option, Scenario, ScenarioResult, _checked_args, _duration_flown, program_key, register
+from .builtin import DECLARED
+from .registry import Scenario, ScenarioResult, _checked_args, _duration_flown, program_key, register
 
 __all__ = ["ANCHORS", "SCENARIOS", "Setup", "SimOut", "make_setup", "simulate",
            "evaluate", "build", "run_scenario", "consistency", "consistency_summary"]
@@ -537,41 +538,14 @@ def run_scenario(scenario, runs, seed, dtype, options, progress, params=None, pl
     )
 
 
-_OPTIONS = (
-    Option("mode", str, "slam", "'slam' (anchors unknown, trilateration start-up) or 'localization' "
-           "(known anchors)", ("slam", "localization")),
-    Option("model", str, "squared", "UWB observation: 'squared' range (eq. 17, paper) or plain 'range' "
-           "(eq. 16)", ("squared", "range")),
-    Option("noise", str, "uniform", "simulated noise: 'uniform' (paper: ±0.2 m, ±0.002 rad/s) or "
-           "'gaussian' of the same variance", ("uniform", "gaussian")),
-    Option("filter", str, "paper", "filter noise: 'paper' (Q eq. 27, R 0.2/0.01) or 'matched' (R from "
-           "the simulated variance, scaled with distance; white-noise-acceleration Q)", ("paper", "matched")),
-    Option("duration", float, None, "flight after the start-up [s] (default: circle 126, square 160, "
-           "rough 150)"),
-    Option("dt", float, 1.0, "filter and sensor step [s] (paper: one iteration = 1)"),
-    Option("anchors", int, 3, "number of anchors, 3 (paper) to 6; beyond 3 mapped by delayed init"),
-    Option("startup_speed", float, 0.15, "speed of the forced straight-line start-up [m/s]"),
-    Option("max_range", float, 0.0, "UWB range limit [m] (0: unlimited)", lower=0.0),
-    Option("chunk", int, None, "Monte Carlo runs per compiled call (default: all, max 256)", lower=1),
-    Option("smooth", bool, False, "also RTS-smooth each run's robot trajectory (backward pass, the map "
-           "held static) and report smoothed_* metrics beside the filter's"),
-)
-
-_DESC = {
-    "circle": "Paper 003 I: range-only UWB EKF-SLAM, circle r 1.5 m, yaw rate 0.2 sin(0.1t), LS start-up",
-    "square": "Paper 003 II: range-only UWB EKF-SLAM, 3 m square with sharp corners, staged angular motion",
-    "rough": "Paper 003 III: range-only UWB EKF-SLAM, rough path (sudden turns, wiggle, switching rates)",
-}
-
-
 _SCENARIOS: dict = {}  # "circle" -> its registered Scenario (the options build checks against)
 
 
 def _register(sc):
     _SCENARIOS[sc] = register(Scenario(
         name=f"uwb-{sc}",
-        description=_DESC[sc],
-        options=_OPTIONS,
+        description=DECLARED[f"uwb-{sc}"].description,
+        options=DECLARED[f"uwb-{sc}"].options,
         run=lambda runs, seed, dtype, options, progress, params=None, plots=False: run_scenario(
             sc, runs, seed, dtype, options, progress, params, plots),
         params=params_schema,

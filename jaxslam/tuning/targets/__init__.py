@@ -79,6 +79,25 @@ def metrics_entry(m: dict) -> dict:
 #: the target modules the registry imports on first use
 BUILTIN_MODULES = ("ekfslam3d", "figure8", "linear_gaussian", "uwb", "mrclam", "util_uwb", "plaza", "victoria_park", "loop")
 
+#: the built-in targets as their modules register them, ``{(scenario, target): losses}``: what
+#: ``jaxslam tune`` checks its arguments against before JAX or any target module is imported
+#: (each module registers with its entry here; ``tests/tuning/test_tuning_cli.py`` checks both agree)
+DECLARED = {
+    ("ekfslam3d-known", "loop"): ("cost",),
+    ("ekfslam3d-known", "noise"): ("nll", "mse", "nees"),
+    ("ekfslam3d-unknown", "loop"): ("cost",),
+    ("ekfslam3d-unknown", "noise"): ("nll", "mse", "nees"),
+    ("linear-gaussian", "noise"): ("nll", "mse", "nees"),
+    ("mrclam", "noise"): ("nll",),
+    ("plaza", "noise"): ("nll",),
+    ("track-figure8", "lqr"): ("cost",),
+    ("util-uwb", "noise"): ("nll",),
+    ("uwb-circle", "noise"): ("mse", "nees"),
+    ("uwb-rough", "noise"): ("mse", "nees"),
+    ("uwb-square", "noise"): ("mse", "nees"),
+    ("victoria-park", "noise"): ("nll",),
+}
+
 #: scenarios whose targets learn from real logs (``--data``, ``--window``; MRCLAM and Plaza also ``--robots``)
 REAL_LOG_SCENARIOS = ("mrclam", "util-uwb", "plaza", "victoria-park")
 
@@ -162,16 +181,18 @@ def _load() -> None:
 
 
 def available() -> dict:
-    """{(scenario, target): losses} of every registered target."""
-    _load()
-    return {k: v[1] for k, v in sorted(_FACTORIES.items())}
+    """{(scenario, target): losses} of every target: those registered and the built-in ones
+    (from :data:`DECLARED`, so this imports no target module and no JAX)."""
+    found = {k: v[1] for k, v in _FACTORIES.items()}
+    if not _LOADED:
+        found = {**DECLARED, **found}
+    return dict(sorted(found.items()))
 
 
 def default_target(scenario: str):
     """The target ``jaxslam tune SCENARIO`` builds without ``--target``: ``"noise"`` where the
-    scenario has it, else its first registered one; None for a scenario with no target."""
-    _load()
-    names = [t for (s, t) in _FACTORIES if s == scenario]
+    scenario has it, else its first one; None for a scenario with no target."""
+    names = [t for (s, t) in available() if s == scenario]
     return "noise" if "noise" in names else (names[0] if names else None)
 
 

@@ -43,7 +43,7 @@ from ...errors import InputError
 from ...systems import ekf_slam_3d as sys3d
 from .. import losses as L
 from .. import params as P
-from . import Target, _check_keywords, diag_list, keys, register_target
+from . import Target, DECLARED, _check_keywords, diag_list, keys, register_target
 
 __all__ = ["STRUCTURES", "make_slam_logs", "slam_loss", "ekfslam3d_noise", "eval_command", "tie_imu_axes"]
 
@@ -308,4 +308,5 @@ def ekfslam3d_noise(loss: str = "nll", train_runs: int = 4, test_runs: int = 8, 
 
 for _m in ("unknown", "known"):
     register_target(f"ekfslam3d-{_m}", "noise",
-                    lambda _mode=_m, **kw: ekfslam3d_noise(mode=_mode, **kw), ("nll", "mse", "nees"))
+                    lambda _mode=_m, **kw: ekfslam3d_noise(mode=_mode, **kw),
+                    DECLARED[(f"ekfslam3d-{_m}", "noise")])

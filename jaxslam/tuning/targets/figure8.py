@@ -19,7 +19,7 @@ import numpy as np
 
 from ...errors import InputError
 from .. import params as P
-from . import Target, _check_keywords, diag_list, keys, register_target
+from . import Target, DECLARED, _check_keywords, diag_list, keys, register_target
 
 __all__ = ['figure8_lqr', 'tracking_and_effort']
 
@@ -153,4 +153,4 @@ def figure8_lqr(loss: str = "cost", train_runs: int = 4, test_runs: int = 8, see
                   log_objective=True)
 
 
-register_target("track-figure8", "lqr", figure8_lqr, ("cost",))
+register_target("track-figure8", "lqr", figure8_lqr, DECLARED[("track-figure8", "lqr")])

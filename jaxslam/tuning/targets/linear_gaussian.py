@@ -15,7 +15,7 @@ from ...filters import ekf as ekf_mod
 from ...linalg import check_float_dtype, check_int, check_numbers, check_psd, check_scalar, check_shape, is_concrete
 from .. import losses as L
 from .. import params as P
-from . import Target, _check_keywords, diag_list, keys, register_target
+from . import Target, DECLARED, _check_keywords, diag_list, keys, register_target
 
 __all__ = ['lg_simulate', 'lg_run', 'linear_gaussian', 'LG_DT', 'LG_Q_TRUE', 'LG_R_TRUE', 'FILTERS']
 
@@ -190,4 +190,4 @@ def linear_gaussian(loss: str = "nll", train_runs: int = 4, test_runs: int = 4, 
                   describe=describe, config=config, log_objective=loss == "mse")
 
 
-register_target("linear-gaussian", "noise", linear_gaussian, ("nll", "mse", "nees"))
+register_target("linear-gaussian", "noise", linear_gaussian, DECLARED[("linear-gaussian", "noise")])

@@ -54,7 +54,7 @@ from ...errors import InputError
 from ...linalg import check_scalar, safe_norm
 from .. import losses as L
 from .. import params as P
-from . import Target, _check_keywords, diag_list, keys, register_target
+from . import Target, DECLARED, _check_keywords, diag_list, keys, register_target
 from .ekfslam3d import eval_command, tie_imu_axes
 
 __all__ = ["STRUCTURES", "TUNE", "closed_loop_objective", "controller_file", "ekfslam3d_loop", "tilt_angle"]
@@ -276,4 +276,5 @@ def ekfslam3d_loop(loss: str = "cost", train_runs: int = 4, test_runs: int = 16,
 
 
 for _m in ("unknown", "known"):
-    register_target(f"ekfslam3d-{_m}", "loop", lambda _mode=_m, **kw: ekfslam3d_loop(mode=_mode, **kw), ("cost",))
+    register_target(f"ekfslam3d-{_m}", "loop", lambda _mode=_m, **kw: ekfslam3d_loop(mode=_mode, **kw),
+                    DECLARED[(f"ekfslam3d-{_m}", "loop")])

@@ -39,7 +39,7 @@ import numpy as np
 
 from ...data import catalogue
 from ...errors import InputError
-from . import (Target, _check_keywords, _check_robots, _check_window, register_target, heldout_nll, metrics_entry,
+from . import (Target, DECLARED, _check_keywords, _check_robots, _check_window, register_target, heldout_nll, metrics_entry,
                window_nll)
 
 __all__ = ["mrclam_logs", "planar_theta0", "planar_physical", "planar_nll",
@@ -291,4 +291,4 @@ def mrclam_noise(loss: str = "nll", data=None, robots=(1, 2, 3, 4), test_robots=
     )
 
 
-register_target("mrclam", "noise", mrclam_noise, ("nll",))
+register_target("mrclam", "noise", mrclam_noise, DECLARED[("mrclam", "noise")])

@@ -28,7 +28,8 @@ import numpy as np
 
 from ...data import catalogue
 from ...errors import InputError
-from . import Target, _check_keywords, _check_robots, _check_window, register_target, STUDENT_T_NU, heldout_nll, metrics_entry
+from . import (DECLARED, STUDENT_T_NU, Target, _check_keywords, _check_robots, _check_window, heldout_nll,
+               metrics_entry, register_target)
 
 __all__ = ["plaza_logs", "plaza_noise", "NOISE_FIELDS", "NU"]
 
@@ -157,4 +158,4 @@ def plaza_noise(loss: str = "nll", data=None, robots=(1,), test_robots=(2,), dty
     )
 
 
-register_target("plaza", "noise", plaza_noise, ("nll",))
+register_target("plaza", "noise", plaza_noise, DECLARED[("plaza", "noise")])

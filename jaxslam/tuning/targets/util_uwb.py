@@ -37,7 +37,7 @@ import numpy as np
 
 from ...data import catalogue
 from ...errors import InputError
-from . import (Target, _check_keywords, _check_window, register_target, STUDENT_T_NU, heldout_nll, metrics_entry,
+from . import (Target, DECLARED, _check_keywords, _check_window, register_target, STUDENT_T_NU, heldout_nll, metrics_entry,
                window_nll)
 
 __all__ = ["util_flight", "util_noise", "NU"]
@@ -160,4 +160,4 @@ def util_noise(loss: str = "nll", data=None, dtype=jnp.float64, t_max: float | N
     )
 
 
-register_target("util-uwb", "noise", util_noise, ("nll",))
+register_target("util-uwb", "noise", util_noise, DECLARED[("util-uwb", "noise")])

@@ -9,7 +9,7 @@ import numpy as np
 from ...errors import InputError
 from .. import losses as L
 from .. import params as P
-from . import Target, _check_keywords, diag_list, keys, register_target
+from . import Target, DECLARED, _check_keywords, diag_list, keys, register_target
 
 __all__ = ['uwb_noise']
 
@@ -89,4 +89,5 @@ def uwb_noise(loss: str = "mse", train_runs: int = 4, test_runs: int = 8, seed: 
 
 
 for _sc in ("circle", "square", "rough"):
-    register_target(f"uwb-{_sc}", "noise", lambda _sc=_sc, **kw: uwb_noise(scenario=_sc, **kw), ("mse", "nees"))
+    register_target(f"uwb-{_sc}", "noise", lambda _sc=_sc, **kw: uwb_noise(scenario=_sc, **kw),
+                    DECLARED[(f"uwb-{_sc}", "noise")])

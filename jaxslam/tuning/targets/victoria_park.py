@@ -33,7 +33,7 @@ import numpy as np
 
 from ...data import catalogue
 from ...errors import InputError
-from . import Target, _check_keywords, _check_window, register_target, heldout_nll, metrics_entry, window_nll
+from . import Target, DECLARED, _check_keywords, _check_window, register_target, heldout_nll, metrics_entry, window_nll
 
 __all__ = ["victoria_park_noise"]
 
@@ -142,4 +142,4 @@ def victoria_park_noise(loss: str = "nll", data=None, dtype=jnp.float64, t_max: 
     )
 
 
-register_target("victoria-park", "noise", victoria_park_noise, ("nll",))
+register_target("victoria-park", "noise", victoria_park_noise, DECLARED[("victoria-park", "noise")])
