@@ -403,7 +403,8 @@ def test_quick_bad_input_exits_do_not_import_jax(tmp_path):
              # tune's arguments against the declared targets (tuning/targets/__init__.py: DECLARED)
              ["tune", "no-such-scenario"], ["tune", "track-figure8", "--b2", "2"],
              ["tune", "track-figure8", "--data", "."], ["tune", "mrclam", "--data", str(tmp_path / "absent")],
-             ["tune", "track-figure8", "--batch-size", "5", "--train-runs", "2"]]
+             ["tune", "track-figure8", "--batch-size", "5", "--train-runs", "2"],
+             ["tune", "no-such-scenario", "--json", str(tmp_path / "made" / "t.json")]]
     code = ("import sys, contextlib, io; from jaxslam.cli import main\n"
             f"for argv in {cases!r}:\n"
             "    with contextlib.redirect_stderr(io.StringIO()):\n"

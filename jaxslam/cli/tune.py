@@ -535,12 +535,12 @@ def main(argv=None) -> int:
         args = build_parser(with_targets="-h" in argv or "--help" in argv).parse_args(argv)
         from jaxslam import files
 
+        plan = _plan(args)  # the arguments against the declared targets, before any folder is made
         # Every output path checked (and its folder created) before JAX is even imported.
         json_path = files.prepare_file("--json", args.json) if args.json is not None else None
         params_out = files.prepare_file("--params-out", args.params_out) if args.params_out is not None else None
         files.distinct_outputs(json=json_path, params_out=params_out)
         plots = files.prepare_dir("--plots", args.plots) if args.plots is not None else None
-        plan = _plan(args)  # the arguments against the declared targets, still without JAX
         import jax  # x64 before any target module is imported (module constants take its dtype)
 
         if not args.float32:

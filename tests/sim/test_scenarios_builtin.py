@@ -24,6 +24,9 @@ def test_every_module_registers_exactly_what_is_declared():
         assert s.run.__module__ == decl.module, name  # the module named registers it
         assert decl.module in scenarios.BUILTIN_MODULES, name
     assert {d.module for d in builtin.DECLARED.values()} == set(scenarios.BUILTIN_MODULES)
+    # and no built-in module registers a scenario that is not declared
+    by_modules = {n for n, s in registered.items() if s.run.__module__ in scenarios.BUILTIN_MODULES}
+    assert by_modules == set(builtin.DECLARED)
 
 
 def test_declared_defaults_written_out_equal_the_constants_they_stand_for():
@@ -37,8 +40,8 @@ def test_declared_defaults_written_out_equal_the_constants_they_stand_for():
         assert lm == ekfslam3d.N_LANDMARKS
 
 
-def test_declared_answers_like_get_and_check_options_takes_a_declaration():
-    decl = registry.declared("uwb-circle")
+def test_check_options_takes_a_declaration_and_declared_fails_like_get():
+    decl = builtin.DECLARED["uwb-circle"]
     assert registry.check_options(decl) == registry.default_options(registry.get("uwb-circle"))
     with pytest.raises(InputError, match=r"--max-range \(options\['max_range'\]\): expected >= 0.0"):
         registry.check_options(decl, {"max_range": -1.0})
@@ -62,15 +65,47 @@ def test_registered_scenarios_are_declared_and_named_too():
     assert "declared-test" not in registry.names()
 
 
-def test_names_and_declarations_import_no_scenario_module_and_no_jax(tmp_path):
+def _fresh(code, tmp_path):
     env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
+                          cwd=tmp_path, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    return proc.stdout.split()
+
+
+def test_names_and_declarations_import_no_scenario_module_and_no_jax(tmp_path):
     code = ("import sys\n"
             "from jaxslam.sim.scenarios import registry\n"
             "names = registry.names()\n"
-            "opts = registry.check_options(registry.declared('fastslam-helix'), {'particles': 7})\n"
+            "decl = registry.declared('fastslam-helix')\n"
+            "opts = registry.check_options(decl, {'particles': 7})\n"
+            "try:\n"
+            "    registry.declared('no-such-scenario')\n"
+            "except registry.InputError as e:\n"
+            "    before = str(e)\n"
             "loaded = [m for m in sys.modules if m.startswith('jaxslam.sim.scenarios.') and\n"
             "          m.rsplit('.', 1)[1] not in ('registry', 'builtin', 'option')]\n"
-            "print(len(names), opts['particles'], loaded, 'jax' in sys.modules)")
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
-                          cwd=tmp_path, timeout=60)
-    assert proc.stdout.split() == [str(len(builtin.DECLARED)), "7", "[]", "False"], (proc.stdout, proc.stderr)
+            "print(len(names), type(decl).__name__, opts['particles'], loaded, 'jax' in sys.modules)\n"
+            "try:\n"
+            "    registry.get('no-such-scenario')  # imports the modules\n"
+            "except registry.InputError as e:\n"
+            "    print(str(e) == before, registry.names() == names)")
+    assert _fresh(code, tmp_path) == [str(len(builtin.DECLARED)), "Declared", "7", "[]", "False", "True", "True"]
+
+
+def test_a_builtin_scenario_unregistered_is_gone_from_names_and_declared_too(tmp_path):
+    # a scenario module imported directly (not through the registry's loader) registers its
+    # scenarios; one of them unregistered must not come back from the declarations
+    code = ("from jaxslam.sim.scenarios import registry, uwb\n"
+            "registry.unregister('uwb-circle')\n"
+            "def fails(f):\n"
+            "    try:\n"
+            "        f('uwb-circle')\n"
+            "    except registry.InputError:\n"
+            "        return True\n"
+            "    return False\n"
+            "print('uwb-circle' in registry.names(), fails(registry.declared), fails(registry.get),\n"
+            "      'uwb-circle' in registry.names(), 'uwb-square' in registry.names())\n"
+            "registry.register(uwb._SCENARIOS['circle'])\n"
+            "print('uwb-circle' in registry.names(), fails(registry.declared))")
+    assert _fresh(code, tmp_path) == ["False", "True", "True", "False", "True", "True", "False"]

@@ -194,3 +194,13 @@ def test_declared_targets_are_what_the_modules_register():
     assert {k: registered[k] for k in targets.DECLARED} == targets.DECLARED
     assert set(registered) == set(targets.DECLARED)  # no built-in target left undeclared
     assert targets.available() == dict(sorted(registered.items()))
+
+
+def test_default_target_is_noise_else_the_first_registered(monkeypatch):
+    from jaxslam.tuning import targets
+
+    assert targets.default_target("track-figure8") == "lqr" and targets.default_target("mrclam") == "noise"
+    assert targets.default_target("ekfslam3d-unknown") == "noise" and targets.default_target("nope") is None
+    monkeypatch.setitem(targets._FACTORIES, ("myscen", "zeta"), (None, ("cost",)))
+    monkeypatch.setitem(targets._FACTORIES, ("myscen", "alpha"), (None, ("cost",)))
+    assert targets.default_target("myscen") == "zeta"  # registration order, not the sorted one

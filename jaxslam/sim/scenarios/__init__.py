@@ -1,8 +1,9 @@
 """Built-in scenarios.
 
 The registry (registry.py) imports the modules named in ``BUILTIN_MODULES``
-lazily, on the first ``get()``/``names()``, so ``jaxslam --help`` stays fast and a
-broken scenario module cannot break the registry import itself.
+lazily, on the first ``get()``/``all_scenarios()``, so ``jaxslam --help`` stays fast and a
+broken scenario module cannot break the registry import itself; their names, descriptions and
+options are declared in builtin.py (``names()`` and ``declared()`` import no module).
 """
 
 BUILTIN_MODULES = (

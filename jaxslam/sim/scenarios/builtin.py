@@ -6,7 +6,7 @@ name, description and options declared here, and nowhere else.  What only needs 
 scenario names (``jaxslam run``, ``jaxslam run no-such-name``), ``jaxslam list``, and a
 mistyped or out-of-range scenario option (``jaxslam run track-figure8 --bogus``) — is answered
 from this module before JAX is imported (importing JAX alone takes 1.2-2.3 s on the 2-core
-development machines; such an exit now takes ~0.25 s).  A scenario's own checks of its values'
+development machines; such an exit now takes ~0.15 s).  A scenario's own checks of its values'
 meaning (``--duration -1``) and its ``--params`` schema still need the scenario module.
 ``tests/sim/test_scenarios_builtin.py`` checks that every module registers exactly what is
 declared here.

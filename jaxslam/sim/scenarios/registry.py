@@ -202,6 +202,7 @@ def _duration_flown(steps: int, dt: float) -> float:
 
 
 _REGISTRY: dict[str, Scenario] = {}
+_REMOVED: set[str] = set()  # names unregistered since they were registered (see names())
 _BUILTIN_LOADED = False
 
 
@@ -271,12 +272,14 @@ def register(scenario: Scenario, *, replace: bool = False) -> Scenario:
     if name in _REGISTRY and not replace and _REGISTRY[name] is not scenario:
         raise InputError(f"register: a scenario named {name!r} is already registered")
     _REGISTRY[name] = scenario
+    _REMOVED.discard(name)
     return scenario
 
 
 def unregister(name: str) -> None:
     """Remove a scenario (no error if absent); meant for tests and notebooks."""
-    _REGISTRY.pop(name, None)
+    if _REGISTRY.pop(name, None) is not None:
+        _REMOVED.add(name)  # a built-in one removed stays out of names() and declared() too
 
 
 def _load_builtin() -> None:
@@ -328,7 +331,7 @@ def declared(name: str):
         raise InputError(f"name: expected a scenario name (a string), got {type(name).__name__}")
     if name in _REGISTRY:
         return _REGISTRY[name]
-    if not _BUILTIN_LOADED and name in DECLARED:
+    if not _BUILTIN_LOADED and name in DECLARED and name not in _REMOVED:
         return DECLARED[name]
     raise _unknown(name)
 
@@ -344,7 +347,9 @@ def names() -> list[str]:
     no scenario module and no JAX."""
     if _BUILTIN_LOADED:
         return sorted(_REGISTRY)
-    return sorted(set(_REGISTRY) | set(DECLARED))
+    # (a built-in module imported directly registers its scenarios without _load_builtin: one
+    # of them unregistered since is in _REMOVED, and get() would not find it either)
+    return sorted(set(_REGISTRY) | (set(DECLARED) - _REMOVED))
 
 
 def all_scenarios() -> list[Scenario]:

@@ -191,8 +191,9 @@ def available() -> dict:
 
 def default_target(scenario: str):
     """The target ``jaxslam tune SCENARIO`` builds without ``--target``: ``"noise"`` where the
-    scenario has it, else its first one; None for a scenario with no target."""
-    names = [t for (s, t) in available() if s == scenario]
+    scenario has it, else its first registered one; None for a scenario with no target."""
+    found = list(_FACTORIES) + ([k for k in DECLARED if k not in _FACTORIES] if not _LOADED else [])
+    names = [t for (s, t) in found if s == scenario]
     return "noise" if "noise" in names else (names[0] if names else None)
 
 
