@@ -36,7 +36,7 @@ import numpy as np
 
 from jaxslam.errors import InputError
 
-__all__ = ["load", "check", "describe", "TUNE_REPORT_KEYS"]
+__all__ = ["load", "check", "check_sections", "describe", "TUNE_REPORT_KEYS"]
 
 #: Top-level keys of a ``jaxslam tune --json`` report besides its parameter sections (the report
 #: is itself a ``--params`` file; these keys are read by nothing that takes ``--params``).
@@ -139,18 +139,14 @@ def _check_value(name: str, value: Any, default: Any) -> Any:
     return value
 
 
-def check(obj: Mapping, schema: Mapping[str, Mapping[str, Any]] | None, *, target: str,
-          where: str = "--params") -> dict:
-    """The parameter sections of ``obj``, checked against ``schema``.
+def check_sections(obj: Mapping, sections: tuple | None, *, target: str, where: str = "--params") -> None:
+    """The first part of :func:`check`, which needs only the names of the schema's sections
+    (``None``: the target takes no file): ``obj`` is a JSON object, written for no dataset and
+    for no other scenario, with no key but those sections (and the provenance and ``jaxslam
+    tune`` report keys).  Needs no JAX, so ``jaxslam run`` calls it before importing it.
 
-    Args:
-      obj: the parsed file (:func:`load`).
-      schema: ``{section: {key: default}}`` of the target, or ``None`` when it takes no file.
-      target: the scenario's name, for provenance (the file's ``"scenario"`` key) and messages.
-    Returns:
-      ``{section: {key: value}}`` with the sections ``obj`` sets (values as read).
     Raises:
-      InputError: naming the offending key (module docstring).
+      InputError: naming the offending key (the messages of :func:`check`).
     """
     if not isinstance(obj, Mapping):
         raise InputError(f"{where}: expected a JSON object, got {type(obj).__name__}")
@@ -164,17 +160,35 @@ def check(obj: Mapping, schema: Mapping[str, Mapping[str, Any]] | None, *, targe
                          f"made for another {kind} (delete its '{kind}' key to apply it anyway)")
     report = "params_after" in obj  # a whole `jaxslam tune --json` report
     extra = TUNE_REPORT_KEYS if report else {kind, "interrupted"}
-    sections = {} if schema is None else dict(schema)
-    unknown = sorted(set(obj) - set(sections) - set(extra))
-    if schema is None:
+    unknown = sorted(set(obj) - set(sections or ()) - set(extra))
+    if sections is None:
         if unknown:
             raise InputError(f"{where}: {kind} {target!r} takes no --params file (it has no tunable "
                              f"parameters; the file sets {unknown})")
-        return {}
+        return
     if unknown:
         raise InputError(f"{where}: unknown key(s) {unknown}; {kind} {target!r} reads "
                          f"{', '.join(repr(s) for s in sections)}"
                          + (f" (and '{kind}')" if kind not in sections else ""))
+
+
+def check(obj: Mapping, schema: Mapping[str, Mapping[str, Any]] | None, *, target: str,
+          where: str = "--params") -> dict:
+    """The parameter sections of ``obj``, checked against ``schema``.
+
+    Args:
+      obj: the parsed file (:func:`load`).
+      schema: ``{section: {key: default}}`` of the target, or ``None`` when it takes no file.
+      target: the scenario's name, for provenance (the file's ``"scenario"`` key) and messages.
+    Returns:
+      ``{section: {key: value}}`` with the sections ``obj`` sets (values as read).
+    Raises:
+      InputError: naming the offending key (module docstring).
+    """
+    check_sections(obj, None if schema is None else tuple(schema), target=target, where=where)
+    if schema is None:
+        return {}
+    sections = dict(schema)
     out = {}
     for section, defaults in sections.items():
         if section not in obj:

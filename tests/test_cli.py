@@ -390,6 +390,9 @@ def test_quick_bad_input_exits_do_not_import_jax(tmp_path):
     `dataset` exit import it (bench bad_inputs: median 0.19 -> 2.48 s)."""
     env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     (tmp_path / "afile").write_text("not a folder")
+    for stem, text in (("section", '{"noise": {}}'), ("other", '{"scenario": "uwb-circle", "controller": {}}'),
+                       ("dsfile", '{"dataset": "mrclam", "noise": {}}'), ("ctrl", '{"controller": {}}')):
+        (tmp_path / f"{stem}.json").write_text(text)
     cases = [["dataset", "x", "--data", "."], ["dataset", "mrclam", "--data", str(tmp_path / "absent")],
              ["run", "track-figure8", "--json", str(tmp_path / "afile" / "x.json")],
              ["run", "track-figure8", "--params", str(tmp_path / "absent.json")],
@@ -404,7 +407,11 @@ def test_quick_bad_input_exits_do_not_import_jax(tmp_path):
              ["tune", "no-such-scenario"], ["tune", "track-figure8", "--b2", "2"],
              ["tune", "track-figure8", "--data", "."], ["tune", "mrclam", "--data", str(tmp_path / "absent")],
              ["tune", "track-figure8", "--batch-size", "5", "--train-runs", "2"],
-             ["tune", "no-such-scenario", "--json", str(tmp_path / "made" / "t.json")]]
+             ["tune", "no-such-scenario", "--json", str(tmp_path / "made" / "t.json")],
+             # a --params file's top level against the declared sections (paramfile.check_sections)
+             *(["run", sc, "--params", str(tmp_path / f"{stem}.json")]
+               for sc, stem in (("track-figure8", "section"), ("track-figure8", "other"), ("uwb-circle", "dsfile"),
+                                ("attitude-smc", "ctrl"), ("fastslam-helix", "ctrl")))]
     code = ("import sys, contextlib, io; from jaxslam.cli import main\n"
             f"for argv in {cases!r}:\n"
             "    with contextlib.redirect_stderr(io.StringIO()):\n"

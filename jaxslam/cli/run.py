@@ -136,6 +136,7 @@ def command(rest: list[str]) -> int:
     pre, _ = base.parse_known_args(rest)
     from jaxslam import paramfile
     from jaxslam.sim.scenarios import registry
+    from jaxslam.sim.scenarios.builtin import Declared
 
     if pre.scenario is None:
         if pre.help:
@@ -157,6 +158,8 @@ def command(rest: list[str]) -> int:
     raw_params = json_path = plots_dir = None
     if not pre.help:
         raw_params = paramfile.load(pre.params) if pre.params else None
+        if raw_params is not None and isinstance(declared, Declared):  # its top level, still without JAX
+            paramfile.check_sections(raw_params, declared.params_sections, target=declared.name)
         json_path = files.prepare_file("--json", pre.json) if pre.json is not None and leader else None
         plots_dir = files.prepare_dir("--plots", pre.plots) if pre.plots is not None and leader else None
     if group == "launch":  # after those checks: a bad path fails here, not in one of the group

@@ -6,6 +6,7 @@ import pathlib
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from jaxslam.errors import InputError
@@ -22,6 +23,8 @@ def test_every_module_registers_exactly_what_is_declared():
         s = registered[name]
         assert (s.name, s.description, s.options) == (decl.name, decl.description, decl.options), name
         assert s.run.__module__ == decl.module, name  # the module named registers it
+        schema = None if s.params is None else s.params(registry.default_options(s), np.dtype(np.float64))
+        assert decl.params_sections == (None if schema is None else tuple(schema)), name
         assert decl.module in scenarios.BUILTIN_MODULES, name
     assert {d.module for d in builtin.DECLARED.values()} == set(scenarios.BUILTIN_MODULES)
     # and no built-in module registers a scenario that is not declared

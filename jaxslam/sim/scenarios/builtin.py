@@ -6,8 +6,10 @@ name, description and options declared here, and nowhere else.  What only needs 
 scenario names (``jaxslam run``, ``jaxslam run no-such-name``), ``jaxslam list``, and a
 mistyped or out-of-range scenario option (``jaxslam run track-figure8 --bogus``) — is answered
 from this module before JAX is imported (importing JAX alone takes 1.2-2.3 s on the 2-core
-development machines; such an exit now takes ~0.15 s).  A scenario's own checks of its values'
-meaning (``--duration -1``) and its ``--params`` schema still need the scenario module.
+development machines; such an exit now takes ~0.15 s), and so is a ``--params`` file's top
+level (its sections, :func:`jaxslam.paramfile.check_sections`).  A scenario's own checks of its
+values' meaning (``--duration -1``) and the values in a ``--params`` file still need the
+scenario module.
 ``tests/sim/test_scenarios_builtin.py`` checks that every module registers exactly what is
 declared here.
 """
@@ -30,12 +32,16 @@ class Declared:
       description: the one line of ``jaxslam list``.
       options: its :class:`~.option.Option` tuple (the registered scenario's own).
       module: the module that registers it.
+      params_sections: the sections of its ``--params`` file (the keys of its
+        ``Scenario.params`` schema), or ``None`` when it takes no file: what
+        :func:`jaxslam.paramfile.check_sections` checks a file's top level against.
     """
 
     name: str
     description: str
     options: tuple
     module: str
+    params_sections: tuple | None
 
 
 _TRACKING = (
@@ -146,32 +152,32 @@ DECLARED: dict[str, Declared] = {d.name: d for d in (
                  Option("ramp", float, 0.0,
                         "take-off blend of the reference from the origin [s]; 0 = the paper's start "
                         "(reference starts on the figure-8, the vehicle at the origin)", lower=0.0),
-             ), _PKG + "tracking"),
+             ), _PKG + "tracking", ("controller",)),
     Declared("track-helix",
              "Paper 001: DF-LQR tracks the climbing helix from the origin (true state, no estimator)",
-             _TRACKING, _PKG + "tracking"),
+             _TRACKING, _PKG + "tracking", ("controller",)),
     Declared("ekfslam3d-unknown",
              "Paper 000: 3D EKF-SLAM (landmarks unknown) with DF-LQR on the estimate, 50 s figure-8",
-             _EKFSLAM3D, _PKG + "ekfslam3d"),
+             _EKFSLAM3D, _PKG + "ekfslam3d", ("noise", "controller")),
     Declared("ekfslam3d-known",
              "Paper 000: EKF localisation against the known 40-landmark map, DF-LQR on the estimate",
-             _EKFSLAM3D, _PKG + "ekfslam3d"),
+             _EKFSLAM3D, _PKG + "ekfslam3d", ("noise", "controller")),
     Declared("uwb-circle",
              "Paper 003 I: range-only UWB EKF-SLAM, circle r 1.5 m, yaw rate 0.2 sin(0.1t), LS start-up",
-             _UWB, _PKG + "uwb"),
+             _UWB, _PKG + "uwb", ("filter",)),
     Declared("uwb-square",
              "Paper 003 II: range-only UWB EKF-SLAM, 3 m square with sharp corners, staged angular motion",
-             _UWB, _PKG + "uwb"),
+             _UWB, _PKG + "uwb", ("filter",)),
     Declared("uwb-rough",
              "Paper 003 III: range-only UWB EKF-SLAM, rough path (sudden turns, wiggle, switching rates)",
-             _UWB, _PKG + "uwb"),
+             _UWB, _PKG + "uwb", ("filter",)),
     Declared("fastslam-helix",
              "Paper 001: dynamics-based two-stage FastSLAM with IMU bias/drift KF on the helix",
-             _FASTSLAM, _PKG + "fastslam"),
+             _FASTSLAM, _PKG + "fastslam", None),
     Declared("attitude-smc",
              "Paper 004 ch. 3.4: quaternion sliding-mode attitude control under bounded perturbations",
-             _ATTITUDE, _PKG + "attitude"),
+             _ATTITUDE, _PKG + "attitude", None),
     Declared("lineslam-room",
              "Paper 004: line-feature EKF-SLAM (RANSAC walls, optical flow, gyro) in a 10-wall L-shaped room",
-             _LINESLAM, _PKG + "lineslam"),
+             _LINESLAM, _PKG + "lineslam", ("filter",)),
 )}
