@@ -36,7 +36,7 @@ import numpy as np
 
 from jaxslam.errors import InputError
 
-__all__ = ["load", "check", "check_sections", "describe", "TUNE_REPORT_KEYS"]
+__all__ = ["load", "check", "check_sections", "check_dataset_sections", "describe", "TUNE_REPORT_KEYS"]
 
 #: Top-level keys of a ``jaxslam tune --json`` report besides its parameter sections (the report
 #: is itself a ``--params`` file; these keys are read by nothing that takes ``--params``).
@@ -170,6 +170,33 @@ def check_sections(obj: Mapping, sections: tuple | None, *, target: str, where: 
         raise InputError(f"{where}: unknown key(s) {unknown}; {kind} {target!r} reads "
                          f"{', '.join(repr(s) for s in sections)}"
                          + (f" (and '{kind}')" if kind not in sections else ""))
+
+
+def check_dataset_sections(obj, name: str) -> None:
+    """The top level of a ``jaxslam dataset NAME --params`` object (``{"dataset": NAME, "noise":
+    {...}}``, optionally ``"log"``, or a whole ``jaxslam tune`` report): a JSON object, made
+    for dataset ``name``, with a ``noise`` object.  Needs no JAX (``jaxslam dataset`` calls it
+    before importing it); the ``noise`` keys are the runner's to check
+    (:func:`jaxslam.data.runners.dataset_params`).
+
+    Raises:
+      InputError: naming the offending key.
+    """
+    if not isinstance(obj, dict):
+        raise InputError(f"--params: expected a JSON object, got {type(obj).__name__}")
+    unknown = sorted(set(obj) - {"dataset", "noise", "log"} - TUNE_REPORT_KEYS, key=str)
+    if unknown:
+        raise InputError(f"--params: unknown key(s) {unknown}; a dataset --params file holds "
+                         "'dataset', 'noise' and optionally 'log' (written by 'jaxslam tune')")
+    if "dataset" not in obj or "noise" not in obj:
+        missing = [k for k in ("dataset", "noise") if k not in obj]
+        raise InputError(f"--params: missing key(s) {missing}; a dataset --params file holds "
+                         "'dataset' and 'noise' (written by 'jaxslam tune')")
+    if obj["dataset"] != name:
+        raise InputError(f"--params: key 'dataset' is {obj['dataset']!r}, this run is {name!r}: "
+                         "the file's noise was fitted for another dataset")
+    if not isinstance(obj["noise"], dict):
+        raise InputError(f"--params: key 'noise' must be an object, got {type(obj['noise']).__name__}")
 
 
 def check(obj: Mapping, schema: Mapping[str, Mapping[str, Any]] | None, *, target: str,

@@ -391,7 +391,8 @@ def test_quick_bad_input_exits_do_not_import_jax(tmp_path):
     env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     (tmp_path / "afile").write_text("not a folder")
     for stem, text in (("section", '{"noise": {}}'), ("other", '{"scenario": "uwb-circle", "controller": {}}'),
-                       ("dsfile", '{"dataset": "mrclam", "noise": {}}'), ("ctrl", '{"controller": {}}')):
+                       ("dsfile", '{"dataset": "mrclam", "noise": {}}'), ("ctrl", '{"controller": {}}'),
+                       ("dsother", '{"dataset": "plaza", "noise": {}}')):
         (tmp_path / f"{stem}.json").write_text(text)
     cases = [["dataset", "x", "--data", "."], ["dataset", "mrclam", "--data", str(tmp_path / "absent")],
              ["run", "track-figure8", "--json", str(tmp_path / "afile" / "x.json")],
@@ -411,7 +412,10 @@ def test_quick_bad_input_exits_do_not_import_jax(tmp_path):
              # a --params file's top level against the declared sections (paramfile.check_sections)
              *(["run", sc, "--params", str(tmp_path / f"{stem}.json")]
                for sc, stem in (("track-figure8", "section"), ("track-figure8", "other"), ("uwb-circle", "dsfile"),
-                                ("attitude-smc", "ctrl"), ("fastslam-helix", "ctrl")))]
+                                ("attitude-smc", "ctrl"), ("fastslam-helix", "ctrl"))),
+             # a dataset --params file's top level (paramfile.check_dataset_sections)
+             *(["dataset", "mrclam", "--data", str(REPO / "tests" / "data"), "--params", str(tmp_path / f"{stem}.json")]
+               for stem in ("dsother", "ctrl"))]
     code = ("import sys, contextlib, io; from jaxslam.cli import main\n"
             f"for argv in {cases!r}:\n"
             "    with contextlib.redirect_stderr(io.StringIO()):\n"

@@ -136,6 +136,8 @@ def main(argv) -> int:
     tum_path = files.prepare_file("--tum", args.tum) if args.tum is not None else None
     files.distinct_outputs(json=json_path, tum=tum_path)
     plots = files.prepare_dir("--plots", args.plots) if args.plots is not None else None
+    if params is not None:
+        paramfile.check_dataset_sections(params, args.name)  # its top level, still without JAX
 
     import jax
     import numpy as np

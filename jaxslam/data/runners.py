@@ -38,7 +38,7 @@ from .events import merge_events
 from ..dynamics._checks import real_numbers
 from ..errors import InputError, check_run_dtype
 from ..linalg import check_flag, check_int, check_scalar, reworded
-from ..paramfile import TUNE_REPORT_KEYS
+from ..paramfile import check_dataset_sections
 
 __all__ = ["DatasetRun", "run_dataset", "to_json", "timed_run", "dead_reckoning", "evaluate_planar"]
 
@@ -295,21 +295,7 @@ def dataset_params(obj, name: str) -> dict:
     missing ``dataset``/``noise`` entry or an unknown top-level key is an :class:`InputError`
     naming it; the ``noise`` keys are checked by the system's ``params_from_dict``.
     """
-    if not isinstance(obj, dict):
-        raise InputError(f"--params: expected a JSON object, got {type(obj).__name__}")
-    unknown = sorted(set(obj) - {"dataset", "noise", "log"} - TUNE_REPORT_KEYS, key=str)
-    if unknown:
-        raise InputError(f"--params: unknown key(s) {unknown}; a dataset --params file holds "
-                         "'dataset', 'noise' and optionally 'log' (written by 'jaxslam tune')")
-    if "dataset" not in obj or "noise" not in obj:
-        missing = [k for k in ("dataset", "noise") if k not in obj]
-        raise InputError(f"--params: missing key(s) {missing}; a dataset --params file holds "
-                         "'dataset' and 'noise' (written by 'jaxslam tune')")
-    if obj["dataset"] != name:
-        raise InputError(f"--params: key 'dataset' is {obj['dataset']!r}, this run is {name!r}: "
-                         "the file's noise was fitted for another dataset")
-    if not isinstance(obj["noise"], dict):
-        raise InputError(f"--params: key 'noise' must be an object, got {type(obj['noise']).__name__}")
+    check_dataset_sections(obj, name)
     if name in ("util-uwb", "plaza"):  # every key and value checked before any log is read
         from . import presets
 
