@@ -415,7 +415,10 @@ def test_quick_bad_input_exits_do_not_import_jax(tmp_path):
                                 ("attitude-smc", "ctrl"), ("fastslam-helix", "ctrl"))),
              # a dataset --params file's top level (paramfile.check_dataset_sections)
              *(["dataset", "mrclam", "--data", str(REPO / "tests" / "data"), "--params", str(tmp_path / f"{stem}.json")]
-               for stem in ("dsother", "ctrl"))]
+               for stem in ("dsother", "ctrl")),
+             # a benchmark's own options, parsed before JAX when its module does not import it
+             ["bench", "sim", "--dir", str(REPO / "benchmarks"), "--duration", "nan"],
+             ["bench", "filters", "--dir", str(REPO / "benchmarks"), "--steps", "0"]]
     code = ("import sys, contextlib, io; from jaxslam.cli import main\n"
             f"for argv in {cases!r}:\n"
             "    with contextlib.redirect_stderr(io.StringIO()):\n"
@@ -478,6 +481,27 @@ def test_bench_with_dir(bench_dir, tmp_path, capsys):
                                "reference_s": 1.5, "speedup": 3.0}]
     assert "n=7" in out and "3.00x" in out and "reference_s" in out
     assert str(bench_dir.resolve()) not in sys.path  # the folder is put on sys.path only while running
+
+
+def test_a_benchmark_importing_jax_at_its_top_gets_float64_arrays(tmp_path):
+    """The CLI parses a benchmark's options before importing JAX; a benchmark module that imports
+    JAX itself is loaded again once x64 is on, so its module-level arrays are float64 (in a fresh
+    process, where nothing imported JAX before)."""
+    d = tmp_path / "benchmarks"
+    d.mkdir()
+    (d / "bench_topjax.py").write_text(
+        '"""Imports JAX at its top."""\nimport jax.numpy as jnp\n\nX = jnp.ones(2)\n'
+        'DESCRIPTION = "x"\n\n\ndef add_arguments(parser):\n    parser.add_argument("--n", type=int, default=1)\n\n\n'
+        'def run(args):\n    return {"results": [{"case": str(X.dtype), "jaxslam_s": 1.0}]}\n')
+    env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    out = tmp_path / "b.json"
+    proc = subprocess.run([sys.executable, "-m", "jaxslam", "bench", "topjax", "--dir", str(d), "--json", str(out)],
+                          capture_output=True, text=True, env=env, cwd=tmp_path, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert _strict_json(out)["results"][0]["case"] == "float64"
+    proc = subprocess.run([sys.executable, "-m", "jaxslam", "bench", "topjax", "--dir", str(d), "--n", "x"],
+                          capture_output=True, text=True, env=env, cwd=tmp_path, timeout=120)
+    assert proc.returncode == 2 and "--n" in proc.stderr
 
 
 def test_bench_found_in_cwd_and_help(bench_dir, monkeypatch, capsys):
