@@ -5,8 +5,9 @@ A ``--params`` file is a JSON object of *sections* (``"noise"``, ``"controller"`
 writes them (``--params-out``, or its whole ``--json`` report, which holds the sections at
 its top level); ``jaxslam run SCENARIO --params`` reads them, checked here against the
 scenario's schema.  (A ``jaxslam dataset NAME --params`` file, ``{"dataset": NAME, "noise":
-{...}}``, is read with :func:`load`; its keys are checked by
-:func:`jaxslam.data.runners.dataset_params` and its values by the system's ``params_from_dict``.)
+{...}}``, is read with :func:`load`; its top level is checked by :func:`check_dataset_sections`,
+its ``noise`` keys by :func:`jaxslam.data.runners.dataset_params` and its values by the system's
+``params_from_dict``.)
 
 A *schema* is ``{section: {key: default}}`` built from the target's own default parameters,
 so it cannot drift from what the target reads: a value is valid when it has the default's

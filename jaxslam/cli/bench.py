@@ -160,11 +160,10 @@ def command(rest: list[str]) -> int:
 
     # before anything runs, creating nothing: a run that stops at its options leaves no folder
     json_path = files.prepare_file("--json", pre.json, create=False) if pre.json is not None else None
+    import jax
 
-    def x64():  # benchmarks choose float32 by passing float32 arrays
-        import jax
-
-        jax.config.update("jax_enable_x64", True)
+    jax.config.update("jax_enable_x64", True)  # benchmarks choose float32 by passing float32 arrays
+    from jaxslam import io
 
     path = bench_dir / f"bench_{name}.py"
     added = [str(bench_dir.resolve())]
@@ -173,24 +172,12 @@ def command(rest: list[str]) -> int:
         added.append(str(oracles))
     sys.path[:0] = added
     try:
-        # x64 before the module's own arrays exist: first if JAX is here already; else the
-        # module is loaded and its options parsed without JAX (a bad option exits in ~0.2 s,
-        # not after the 1-2 s import), and loaded again after x64 if it imported JAX itself.
-        had_jax = "jax" in sys.modules
-        if had_jax:
-            x64()
         module = _load_bench_module(path)
-        if not had_jax and "jax" in sys.modules:
-            x64()
-            module = _load_bench_module(path)
         p = Parser(prog=f"{PROG} bench {name}", description=str(module.DESCRIPTION))
         p.add_argument("name", metavar="NAME", help="benchmark name")
         _bench_common(p)
         module.add_arguments(_CheckedOptions(p))
         args = p.parse_args(rest)
-        x64()
-        from jaxslam import io
-
         result = module.run(args)
     finally:
         for a in added:
