@@ -41,6 +41,15 @@ def test_declared_defaults_written_out_equal_the_constants_they_stand_for():
     for mode in ("unknown", "known"):
         lm = {o.name: o.default for o in builtin.DECLARED[f"ekfslam3d-{mode}"].options}["landmarks"]
         assert lm == ekfslam3d.N_LANDMARKS
+    # the flights' shortest --duration is one sensor frame of their own module
+    from jaxslam.sim.scenarios import fastslam, tracking
+
+    frame = {"track-figure8": tracking.DT * tracking.FRAME_STEPS, "track-helix": tracking.DT * tracking.FRAME_STEPS,
+             "ekfslam3d-unknown": tracking.DT * tracking.FRAME_STEPS, "ekfslam3d-known": ekfslam3d.DT * ekfslam3d.FRAME_STEPS,
+             "fastslam-helix": fastslam.DT * fastslam.LIDAR_EVERY}
+    for name, shortest in frame.items():
+        lower = {o.name: o.lower for o in builtin.DECLARED[name].options}["duration"]
+        assert lower == shortest, name
 
 
 def test_check_options_takes_a_declaration_and_declared_fails_like_get():

@@ -44,8 +44,12 @@ class Declared:
     params_sections: tuple | None
 
 
+# The flights' shortest duration: one sensor frame, 10 steps of 0.01 s (tracking.DT * FRAME_STEPS,
+# fastslam.DT * LIDAR_EVERY; the test checks they agree).
+_ONE_FRAME_S = 0.1
+
 _TRACKING = (
-    Option("duration", float, 50.0, "flight duration [s]"),
+    Option("duration", float, 50.0, "flight duration [s]", lower=_ONE_FRAME_S),
     Option("no_feedforward", bool, False,
            "paper's eq. 19 attitude references (p_d = q_d = 0, no torque feedforward) instead of "
            "jaxslam's full flatness feedforward"),
@@ -53,7 +57,7 @@ _TRACKING = (
 )
 
 _EKFSLAM3D = (
-    Option("duration", float, 50.0, "flight duration [s]"),
+    Option("duration", float, 50.0, "flight duration [s]", lower=_ONE_FRAME_S),
     Option("q", str, "imu", "filter noise: 'imu' (Q from Table 5 densities) or 'paper' (Tables 6-7 P0/Q)",
            ("imu", "paper")),
     Option("association", str, "known", "data association: 'known' ids (paper) or 'nn' (ids hidden)",
@@ -105,7 +109,7 @@ _FASTSLAM = (
     Option("resample_threshold", float, 0.5,
            "resample when N_eff < threshold·N; 1 = at every weight update (paper's Step 6)"),
     Option("soft_alpha", float, 0.5, "mixture weight of soft resampling (with --resampling soft)"),
-    Option("duration", float, 50.0, "flight duration [s]"),
+    Option("duration", float, 50.0, "flight duration [s]", lower=_ONE_FRAME_S),
     Option("lidar", str, "world", "LiDAR model: 'world' (eq. 13-15) or 'body' (paper 000)",
            ("world", "body")),
     Option("stage2", str, "paper", "stage 2 (Step 8): 'paper' (position + rates), 'rates', 'none'",

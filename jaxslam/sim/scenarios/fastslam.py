@@ -257,9 +257,6 @@ def _check_options(options):
     n = options["particles"]
     if isinstance(n, bool) or int(n) != n or int(n) <= 0:
         raise InputError(f"--particles: must be a positive integer, got {n!r}")
-    d = float(options["duration"])
-    if not (math.isfinite(d) and d >= DT * LIDAR_EVERY):
-        raise InputError(f"--duration: must be at least {DT * LIDAR_EVERY} s, got {d}")
     b = float(options["bias"])
     if not (math.isfinite(b) and b >= 0):
         raise InputError(f"--bias: must be a finite value >= 0, got {b}")
