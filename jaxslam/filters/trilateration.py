@@ -348,14 +348,15 @@ def trilaterate_line(xs, ranges, mask=None, side=1.0, min_points: int = 3,
     _check_number(min_points, "min_points", "a number of valid samples (an int)")
     _check_number(min_baseline, "min_baseline", "a baseline [m] (a number)")
     _check_number(side, "side", "+1 or -1 (the sign of the offset from the line)")
-    if is_concrete(side) and float(np.asarray(side)) not in (-1.0, 1.0):
+    side_known = is_concrete(side)
+    if side_known and float(np.asarray(side)) not in (-1.0, 1.0):
         raise InputError(f"side: expected +1 or -1 (the sign of the offset from the line), got {side!r}")
     mask = list_array(mask, "mask")
 
     def solve(opts, xs, ranges):
-        return _trilaterate_line(xs, ranges, *opts, side_known=is_concrete(side))
+        return _trilaterate_line(xs, ranges, *opts, side_known=side_known)
 
-    return call_compiled(("trilateration.trilaterate_line", is_concrete(side)), solve, (xs, ranges),
+    return call_compiled(("trilateration.trilaterate_line", side_known), solve, (xs, ranges),
                          (mask, side, min_points, min_baseline), after="auto")
 
 

@@ -87,14 +87,8 @@ def build(options: dict, mode: str, dtype, params=None):
     options, params = _checked(options, mode, dtype, params)
     dtype = jnp.dtype(dtype)
     duration = float(options["duration"])  # >= one frame: its Option's lower bound (check_options)
-    cap = int(options["capacity"])
-    if cap < 1:
-        raise InputError(f"--capacity: must be >= 1, got {cap}")
+    cap = int(options["capacity"])  # capacity, landmarks, max_obs >= 1: their Options' lower bounds
     n_lm = int(options["landmarks"])
-    if n_lm < 1:
-        raise InputError(f"--landmarks: must be >= 1, got {n_lm}")
-    if int(options["max_obs"]) < 1:
-        raise InputError(f"--max-obs: must be >= 1, got {options['max_obs']}")
     if mode == "known" and cap < n_lm:
         raise InputError(f"--capacity: {cap} slots cannot hold the {n_lm} known landmarks")
     noise = _noise(options["q"], mode, dtype, params)
