@@ -46,7 +46,7 @@ import numpy as np
 
 from .compilation import call_compiled
 from .errors import InputError
-from .linalg import check_mask, check_numbers, check_real, check_scalar, check_whole_ids, float_array, wrap_angle
+from .linalg import check_mask, check_numbers, check_real, check_scalar, check_whole_ids, float_array, to_jax, wrap_angle
 from .stats import anees_bounds, chi2_ppf, chi2_ppf_np, mean_chi2_bounds, nees, nis  # noqa: F401 (re-exported)
 
 __all__ = [
@@ -546,7 +546,7 @@ def _rpe_se2(est, tru, lag: int):
 
 def apply_transform(points, R, t, s=1.0):
     """``s R p + t`` for each row of ``points`` (N, d) — e.g. the ATE alignment of :func:`umeyama`."""
-    return s * jnp.asarray(points) @ jnp.asarray(R).T + jnp.asarray(t)
+    return s * to_jax(points) @ to_jax(R).T + to_jax(t)
 
 
 class MapError(NamedTuple):

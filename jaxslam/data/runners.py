@@ -37,7 +37,7 @@ from . import catalogue
 from .events import merge_events
 from ..dynamics._checks import real_numbers
 from ..errors import InputError, check_run_dtype
-from ..linalg import check_flag, check_int, check_scalar, reworded
+from ..linalg import check_flag, check_int, check_scalar, reworded, to_jax
 from ..paramfile import check_dataset_sections
 
 __all__ = ["DatasetRun", "run_dataset", "to_json", "timed_run", "dead_reckoning", "evaluate_planar"]
@@ -94,7 +94,7 @@ def dead_reckoning(motion, pose0, u, dt):
         s = motion(s, inp[0], inp[1])
         return s, s
 
-    _, poses = jax.lax.scan(body, jnp.asarray(pose0), (jnp.asarray(u), jnp.asarray(dt)))
+    _, poses = jax.lax.scan(body, to_jax(pose0), (to_jax(u), to_jax(dt)))
     return poses
 
 

@@ -97,6 +97,7 @@ Decisions (where paper 001 is silent, or where jaxslam departs from it)
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Any, Callable, NamedTuple, Optional, Sequence
 
@@ -108,7 +109,7 @@ from .. import errors
 from ..compilation import call_compiled
 from ..errors import InputError
 from ..linalg import (check_finite, check_int, check_mask, check_psd, check_whole_ids, cholesky_small, inv_small, is_concrete,
-                      symmetrize, value_and_jacfwd, wrap_angle)
+                      symmetrize, to_jax, value_and_jacfwd, wrap_angle)
 from .gaussian import check_gate, check_gate_size, threshold as _threshold
 from ..stats import _student_t_nll
 from . import ekf as _ekf
@@ -367,14 +368,13 @@ def init(pose0, n_particles: int, capacity: int, lm_dim: int, aux=None,
     shape = tuple(np.shape(pose0))
     if len(shape) not in (1, 2) or (len(shape) == 2 and shape[0] != N) or shape[-1] == 0:
         raise InputError(f"pose0: expected shape (n_r,) or ({N}, n_r), got {shape}")
-    pose0 = jnp.asarray(pose0)
+    pose0 = to_jax(pose0)
     if not jnp.issubdtype(pose0.dtype, jnp.number):
         raise InputError(f"pose0: not numeric (dtype {pose0.dtype})")
     # Value checks only on concrete input: init may also be called under jit/vmap
     # (e.g. one filter per Monte Carlo run), where shapes are still checked.
     check_finite(pose0, "pose0")
     dtype = pose0.dtype if jnp.issubdtype(pose0.dtype, jnp.floating) else jnp.result_type(float)
-    pose = jnp.broadcast_to(pose0.astype(dtype), (N, shape[-1]))
 
     if aux is None:
         aux = ()
@@ -389,14 +389,21 @@ def init(pose0, n_particles: int, capacity: int, lm_dim: int, aux=None,
                 raise InputError(
                     f"aux: every leaf must have leading axis {N}, got shape {np.shape(x)}"
                 )
-        aux = jax.tree_util.tree_map(jnp.asarray, aux)
+        aux = jax.tree_util.tree_map(to_jax, aux)
     else:
-        aux = jax.tree_util.tree_map(
-            lambda x: jnp.broadcast_to(jnp.asarray(x), (N,) + tuple(np.shape(x))), aux
-        )
+        aux = jax.tree_util.tree_map(to_jax, aux)
+    return _empty_particles(pose0, aux, N, cap, d, np.dtype(dtype), bool(aux_per_particle))
+
+
+@functools.partial(jax.jit, static_argnums=(2, 3, 4, 5, 6))
+def _empty_particles(pose0, aux, N: int, cap: int, d: int, dtype, aux_per_particle: bool) -> Particles:
+    """:func:`init`'s particle set, one program per sizes and dtype (called eagerly, its arrays
+    were a dozen one-operation programs)."""
+    if not aux_per_particle:
+        aux = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (N,) + x.shape), aux)
     i32 = jnp.int32
     return Particles(
-        pose=pose,
+        pose=jnp.broadcast_to(pose0.astype(dtype), (N, pose0.shape[-1])),
         aux=aux,
         lm_mean=jnp.zeros((N, cap, d), dtype),
         lm_cov=jnp.zeros((N, cap, d, d), dtype),

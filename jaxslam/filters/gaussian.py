@@ -52,7 +52,8 @@ import numpy as np
 from .. import errors
 from ..compilation import at_top_level, call_compiled, split_arrays
 from ..errors import InputError, check_flag
-from ..linalg import check_finite, check_mask, check_numbers, check_psd, check_real, host_array, is_concrete, list_array, symmetrize
+from ..linalg import (check_finite, check_mask, check_numbers, check_psd, check_real, host_array, is_concrete, list_array,
+                      symmetrize, to_jax)
 
 __all__ = [
     "Gaussian",
@@ -651,16 +652,15 @@ def prepare_run(x0, P0, zs, masks, Q, R):
     """Cast and check a run's arrays; ``(x0, P0, zs, masks, Q, R, q_step, r_step, T)``."""
     check_real(zs, "zs")  # before the casts to x0's (real) dtype
     check_real(x0, "x0")
-    x0 = jnp.asarray(x0)
+    # made on the host when known now (host_array): eagerly, each jnp conversion was a program
+    x0 = to_jax(x0)
     dtype = x0.dtype if jnp.issubdtype(x0.dtype, jnp.floating) else jnp.result_type(float)
-    x0 = x0.astype(dtype)
-    P0 = jnp.asarray(P0, dtype=dtype)
-    zs = jnp.asarray(zs, dtype=dtype)
+    x0, P0, zs = (host_array(v, dtype) for v in (x0, P0, zs))
     T, m = check_run_inputs(x0, P0, zs, masks, Q, R)
-    Q, q_step = _per_step(jnp.asarray(Q, dtype=dtype), T, "Q", 2)
-    R = jnp.asarray(R, dtype=dtype)
+    Q, q_step = _per_step(host_array(Q, dtype), T, "Q", 2)
+    R = host_array(R, dtype)
     R, r_step = _per_step(R.reshape(1, 1) if R.ndim == 0 else R, T, "R", 2)
-    masks = jnp.ones((T, m), bool) if masks is None else jnp.asarray(masks, bool)
+    masks = host_array(np.ones((T, m), bool) if masks is None else masks, bool)
     return x0, P0, zs, masks, Q, R, q_step, r_step, T
 
 

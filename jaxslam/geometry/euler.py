@@ -43,7 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import InputError
-from ..linalg import check_numbers, check_real, float_array, is_concrete
+from ..linalg import check_numbers, check_real, float_array, is_concrete, to_jax
 
 __all__ = [
     "C1",
@@ -66,7 +66,7 @@ def _as_real_array(x, label: str):
     check_real(x, label)
     if not isinstance(x, (jax.Array, np.ndarray)) and is_concrete(x):
         check_numbers(x, label)
-    return jnp.asarray(x)
+    return to_jax(x)
 
 
 def _last_axis(x, n, name: str, fn: str | None = None):

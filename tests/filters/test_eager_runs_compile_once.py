@@ -821,3 +821,57 @@ def test_a_scalar_q_is_still_factored_on_the_host_in_float64():
             out = sqrt_ekf.predict(st, None, None, q)
             assert out.chol.dtype == jnp.float32
             assert float(out.chol[0, 0]) == float(np.float32(np.sqrt(np.float64(q)))), q
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32, np.int64])
+def test_eager_inits_are_one_program_and_numpy_inputs_compile_nothing(dtype):
+    """``ekf_slam.init`` / ``fastslam.init`` called eagerly build their state in one program
+    per sizes and dtype (a dozen one-operation programs each before: 345-355 ms and 180 ms for
+    a first call in a fresh process); a NumPy array enters through ``device_put`` (JAX 0.10's
+    ``jnp.asarray`` of one compiles an identity program per shape).  The oracle is NumPy."""
+    from jaxslam.linalg import float_array, to_jax
+
+    want = np.float32 if dtype == np.float32 else np.float64
+    m0 = np.array([1, 2, 3]).astype(dtype)
+    c0 = (np.eye(3) * 2).astype(dtype)
+    cap = {np.float64: 37, np.float32: 38, np.int64: 39}[dtype]  # sizes no other test uses
+    with compilation.account() as acc:
+        s = es.init(m0, c0, cap, 2)
+    assert acc.result.programs == 1, acc.result
+    n = 3 + 2 * cap
+    x_ref, P_ref = np.zeros(n, want), np.zeros((n, n), want)
+    x_ref[:3], P_ref[:3, :3] = m0, c0
+    assert s.x.dtype == want and s.P.dtype == want
+    np.testing.assert_array_equal(np.asarray(s.x), x_ref)
+    np.testing.assert_array_equal(np.asarray(s.P), P_ref)
+    np.testing.assert_array_equal(np.asarray(s.ids), -np.ones(cap, np.int32))
+    assert not np.asarray(s.active).any() and int(s.status) == 0 and int(s.overflow) == 0
+
+    aux = {"b": np.array([0.5, -0.5]).astype(want)}
+    with compilation.account() as acc:
+        p = fs.init(m0, cap + 5, cap, 2, aux=aux)
+    assert acc.result.programs == 1, acc.result
+    assert p.pose.dtype == want and p.lm_mean.shape == (cap + 5, cap, 2)
+    np.testing.assert_array_equal(np.asarray(p.pose), np.broadcast_to(m0.astype(want), (cap + 5, 3)))
+    np.testing.assert_array_equal(np.asarray(p.aux["b"]), np.broadcast_to(aux["b"], (cap + 5, 2)))
+    np.testing.assert_allclose(np.asarray(p.log_w), np.full(cap + 5, -np.log(cap + 5)), rtol=1e-6)
+
+    z = np.arange(cap * 3.0).reshape(cap, 3).astype(dtype)
+    with compilation.account() as acc:
+        a, b = to_jax(z), float_array(z, "z")
+    assert acc.result.programs == 0, acc.result
+    ja = jnp.asarray(z)
+    assert a.dtype == ja.dtype and not a.weak_type and b.dtype == want
+    np.testing.assert_array_equal(np.asarray(a), z)
+    np.testing.assert_array_equal(np.asarray(b), z.astype(want))
+
+
+def test_inits_under_jit_and_vmap_equal_the_eager_ones():
+    m0, c0 = np.array([0.1, -0.2, 0.3]), 0.5 * np.eye(3)
+    eager = es.init(m0, c0, 5, 2)
+    traced = jax.jit(lambda m, c: es.init(m, c, 5, 2))(m0, c0)
+    for a, b in zip(eager, traced):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    batch = jax.vmap(lambda m: fs.init(m, 4, 3, 2))(np.stack([m0, 2 * m0]))
+    np.testing.assert_array_equal(np.asarray(batch.pose[1]), np.broadcast_to(2 * m0, (4, 3)))
+    assert batch.lm_cov.shape == (2, 4, 3, 2, 2)
