@@ -224,9 +224,12 @@ def consistency_verdict(value, bounds, kind: str | None = "nees") -> str:
         raise InputError(f"kind: expected one of {sorted(_OUTSIDE_MEANS)} or None, got {kind!r}")
     try:
         v = float(value)
-        lo, hi = (float(b) for b in bounds)
+        bl = [float(b) for b in bounds]
     except (TypeError, ValueError):
         return "undefined"
+    if len(bl) != 2:
+        raise InputError(f"bounds: expected two numbers (lo, hi), got {bounds!r}"[:300])
+    lo, hi = bl
     if not all(math.isfinite(x) for x in (v, lo, hi)):
         return "undefined"
     if lo > hi:
@@ -246,8 +249,9 @@ class WindowedMean(NamedTuple):
     Fields:
         t_start: (W,) window start times [s].
         t_end: (W,) window end times [s] (exclusive, except the last).
-        mean: (W,) mean of the finite values in the window (NaN if none).
-        count: (W,) int number of finite values averaged (runs × steps).
+        mean: (W,) mean of the values present (not NaN) in the window (NaN if none; an
+            infinite value, a diverged run, makes it infinite, as in :func:`summarize`).
+        count: (W,) int number of values averaged (runs × steps).
     """
 
     t_start: np.ndarray
@@ -318,12 +322,12 @@ def windowed_mean(x, t, window_s: float) -> WindowedMean:
                          f"windows (at most {max(_WINDOWS_MAX, t.size)}): use a longer window")
     n_win = max(1, int(n_float))
     idx = np.minimum(np.floor((t - t0) / window_s + 1e-12).astype(np.int64), n_win - 1)
-    finite = np.isfinite(x)
-    vals = np.where(finite, x, 0.0)
+    present = ~np.isnan(x)  # NaN marks a missing value; an inf (a diverged run) stays in
+    vals = np.where(present, x, 0.0)
     sums = np.zeros(n_win)
     counts = np.zeros(n_win, dtype=np.int64)
     np.add.at(sums, idx, vals.sum(axis=0))
-    np.add.at(counts, idx, finite.sum(axis=0))
+    np.add.at(counts, idx, present.sum(axis=0))
     with np.errstate(invalid="ignore", divide="ignore"):
         mean = np.where(counts > 0, sums / np.maximum(counts, 1), np.nan)
     starts = t0 + window_s * np.arange(n_win)
@@ -425,7 +429,9 @@ def _umeyama(src, dst, with_scale: bool):
         var_s = jnp.mean(jnp.sum(xs * xs, axis=1))
         # A source without spread (every point equal) has no scale: any s maps it onto mu_d,
         # so s = 1 there instead of 0/0 (a NaN ATE for an estimate that never moved).
-        s = jnp.where(var_s > 0, jnp.sum(D * e) / jnp.where(var_s > 0, var_s, 1), 1).astype(dtype)
+        # (In 1-D the reflection guard makes sum(D e) = -D: a mirrored estimate.  A similarity
+        # has s >= 0, and the best s >= 0 is then 0.)
+        s = jnp.where(var_s > 0, jnp.maximum(jnp.sum(D * e), 0) / jnp.where(var_s > 0, var_s, 1), 1).astype(dtype)
     else:
         s = jnp.ones((), dtype)
     t = mu_d - s * R @ mu_s

@@ -475,8 +475,8 @@ def chi2_ppf_np(p: float, dof: float) -> float:
     check_real(dof, "dof")
     p = check_scalar(p, "p", finite=False)
     k = check_scalar(dof, "dof", finite=False)
-    if not (k > 0) or not (0.0 <= p <= 1.0):
-        raise InputError(f"chi2_ppf_np: need 0 <= p <= 1 and dof > 0, got p={p}, dof={k}")
+    if not (0 < k < math.inf) or not (0.0 <= p <= 1.0):
+        raise InputError(f"chi2_ppf_np: need 0 <= p <= 1 and a finite dof > 0, got p={p}, dof={k}")
     if p == 0.0:
         return 0.0
     if p == 1.0:

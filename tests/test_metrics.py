@@ -363,3 +363,29 @@ def test_trajectory_metrics_name_mismatched_or_transposed_inputs():
     assert metrics.consistency_verdict(1.0, (0.5, 2.0), kind=None) == "ok"
     assert np.isnan(metrics.steps_inside([1.0, 2.0], (np.nan, 3.0)))  # no bounds: no verdict, no error
     assert metrics.steps_inside_text(metrics.steps_inside([1.0], (np.nan, 3.0))) == "undefined"
+
+
+def test_review_fixes_of_2026_12_07():
+    """Four defects a review reproduced, each against a closed form."""
+    # 1-D similarity alignment of a mirrored estimate: the best s >= 0 is 0 (the quadratic in s
+    # has its minimum below 0), so the ATE is the spread of the truth, not 0 (s = -1 mirrored it).
+    tru = np.array([[0.0], [1.0], [3.0], [7.0], [2.0]])
+    est = -tru + 4.0
+    R, t, s = metrics.umeyama(est, tru, with_scale=True)
+    assert float(s) == 0.0
+    assert float(metrics.ate(est, tru, align="sim")) == pytest.approx(np.std(tru), rel=1e-12)
+    # windowed_mean: NaN is a missing value, an inf (a diverged run) is kept, as summarize keeps it
+    x = np.array([[1.0, np.nan, np.inf, 3.0]])
+    w = metrics.windowed_mean(x, np.array([0.0, 0.1, 0.2, 0.3]), 1.0)
+    assert np.isinf(w.mean[0]) and int(w.count[0]) == 3
+    w = metrics.windowed_mean(np.array([[1.0, np.nan, 2.0, 3.0]]), np.array([0.0, 0.1, 0.2, 0.3]), 1.0)
+    assert w.mean[0] == 2.0 and int(w.count[0]) == 3
+    # three bounds are a bad input, as in steps_inside, not a missing value
+    with pytest.raises(InputError, match="bounds: expected two numbers"):
+        metrics.consistency_verdict(1.0, (0.0, 2.0, 5.0))
+    with pytest.raises(InputError, match="bounds: expected two numbers"):
+        metrics.steps_inside(np.ones(3), (0.0, 2.0, 5.0))
+    assert metrics.consistency_verdict(1.0, (0.0, np.nan)) == "undefined"
+    # an infinite dof has no quantile (chi2_ppf gives NaN there)
+    with pytest.raises(InputError, match="finite dof"):
+        metrics.chi2_ppf_np(0.5, np.inf)

@@ -65,8 +65,9 @@ from jax.custom_batching import custom_vmap
 from .. import errors
 from ..compilation import call_compiled
 from ..errors import InputError
-from ..linalg import (check_finite, check_int, check_mask, check_psd, check_whole_ids, cholesky_small, is_concrete,
-                      list_array, put_blocks, small_matmul, symmetrize, take, take_blocks, to_jax, value_and_jacfwd)
+from ..linalg import (check_finite, check_int, check_mask, check_psd, check_scalar, check_whole_ids, cholesky_small,
+                      is_concrete, list_array, put_blocks, small_matmul, symmetrize, take, take_blocks, to_jax,
+                      value_and_jacfwd)
 from ..stats import _student_t_nll, check_student_t_nu
 from .gaussian import check_gate, check_gate_size, check_num_iter, check_real, threshold as _threshold
 
@@ -1454,9 +1455,19 @@ def associate_nn(state: SlamState, model: SlamModel, z, mask, R, params=None,
     compiled once per model (:func:`jaxslam.compilation.call_compiled`, ``after="auto"``).
     """
     z, mask, R = _check_associate(state, model, z, mask, R)
+    _check_nn_thresholds(gate, new_threshold)
     return call_compiled(("ekf_slam.associate_nn", model, active_only),
                          lambda opts, st, z, mask, R: _associate_nn(st, model, z, mask, R, *opts, active_only),
                          (state, z, mask, R), (params, gate, new_threshold), after="auto")
+
+
+def _check_nn_thresholds(gate, new_threshold, names=("gate", "new_threshold")):
+    """The nearest-neighbour gate and new-landmark threshold, when known now: numbers > 0 (inf
+    allowed: match all / register none; a NaN or a negative one matched nothing and registered
+    nothing, without a word).  Traced values pass (their values are not known)."""
+    for name, v in zip(names, (gate, new_threshold)):
+        if is_concrete(v):
+            check_scalar(v, name, finite=False, lower=0, strict=True)
 
 
 def _check_associate(state: SlamState, model: SlamModel, z, mask, R):
@@ -1814,6 +1825,8 @@ def run(model: SlamModel, state: SlamState, log: SlamLog, Q, R, *, association: 
     can_register = register_new and model.inverse is not None
 
     _check_options(gate=gate)  # the value known now, checked now: the compiled run sees it traced
+    if association != "known":
+        _check_nn_thresholds(nn_gate, nn_new, ("nn_gate", "nn_new"))
     def scan(opts, state, u, z, ids, mask, params, Qa, Ra):
         gate, nn_gate, nn_new = opts
         dtype = state.x.dtype

@@ -21,7 +21,8 @@ Decisions (the paper is silent)
   u_n`` through the inverse CDF of the normalised weights (``searchsorted`` on
   the cumulative sum, last entry forced to exactly 1), so the returned
   ancestor indices are sorted ascending for multinomial, stratified and
-  systematic resampling.  A zero-weight particle is never selected.
+  systematic resampling.  A zero-weight particle is never selected (a draw
+  that rounds to 1 in float32 is held at the last particle with weight).
 
   - multinomial: ordered i.i.d. uniforms from normalised cumulative sums of
     n + 1 exponentials (O(n), no sort);
@@ -41,9 +42,10 @@ Decisions (the paper is silent)
   differentiable option.
 * Soft resampling (Karkus, Hsu & Lee, "Particle filter networks", CoRL 2018):
   draw ancestors from ``q = α w + (1 − α)/N`` and give particle j the weight
-  ``w_{a_j} / q_{a_j}`` (normalised).  For any α ∈ [0, 1] the resampled set is
-  properly weighted (an importance-sampling step), so the forward estimate is
-  unbiased; ``α = 1`` is standard resampling (uniform new weights, hence zero
+  ``w_{a_j} / q_{a_j}`` (normalised).  For any α ∈ [0, 1] the set weighted by
+  ``w/q`` before normalisation is properly weighted (an importance-sampling step);
+  the normalised weights returned give the self-normalised estimate, consistent
+  with an O(1/n) bias (exact for α = 1); ``α = 1`` is standard resampling (uniform new weights, hence zero
   gradient through them); ``α = 0`` draws uniformly and keeps the old weights
   (no degeneracy relief, full gradient).  Gradients flow through the new
   weights ``w/q`` (both ``w`` and ``q`` depend on the parameters) but not
@@ -135,18 +137,23 @@ def ess(log_w):
 
 
 def _cdf(log_w):
+    """``(c, w)``: the normalised weights and their cumulative sum, forced to an exact 1 at the
+    end so that u < 1 never falls off the table."""
     lw, _ = normalize(jax.lax.stop_gradient(_float(log_w)))
     w = jnp.exp(lw)
     c = jnp.cumsum(w)
-    # Force an exact 1 at the end so that u < 1 never falls off the table.
-    return c.at[-1].set(jnp.ones((), c.dtype))
+    return c.at[-1].set(jnp.ones((), c.dtype)), w
 
 
 def _invert(log_w, u):
-    c = _cdf(log_w)
+    c, w = _cdf(log_w)
     n_in = c.shape[0]
     idx = jnp.searchsorted(c, u.astype(c.dtype), side="right")
-    return jnp.clip(idx, 0, n_in - 1).astype(jnp.int32)
+    # A u that rounds to 1 (float32: (i + U)/n with i = n - 1, or a ratio of sums) or that falls
+    # above a rounded cumulative sum would pick a trailing particle of zero weight: the last
+    # particle with weight is the largest index any u may take.
+    last = n_in - 1 - jnp.argmax(w[::-1] > 0)
+    return jnp.minimum(jnp.clip(idx, 0, n_in - 1), last).astype(jnp.int32)
 
 
 def _n(log_w, n):

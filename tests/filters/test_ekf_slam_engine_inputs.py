@@ -225,3 +225,32 @@ def test_trilateration_drops_a_non_finite_point_like_a_bad_range():
         assert np.isfinite(float(fit_b.spread)) and np.isfinite(float(fit_b.residual_max))
     # the same point masked out by the caller: no flag
     assert int(tri_j(pts, r, np.array([True, False, True, True, True])).status) == 0
+
+
+@pytest.mark.parametrize("bad", [np.nan, -1.0, 0.0, None, "9"])
+def test_nearest_neighbour_thresholds_known_now_must_be_positive(bad):
+    """A NaN or negative gate / new-landmark threshold matched nothing and registered nothing,
+    without an error or a flag (a review reproduced it, eagerly and in ``run``)."""
+    st = _state()
+    z = np.array([[2.2, 0.45], [2.2, -1.1]])
+    m2 = np.ones(2, bool)
+    with pytest.raises(InputError, match=r"^gate: expected a scalar > 0"):
+        es.associate_nn(st, M, z, m2, R, gate=bad)
+    with pytest.raises(InputError, match=r"^new_threshold: expected a scalar > 0"):
+        es.associate_nn(st, M, z, m2, R, new_threshold=bad)
+    log = es.SlamLog(u=np.tile([1.0, 0.2], (2, 1)), z=np.tile(z, (2, 1, 1)), mask=np.ones((2, 2), bool))
+    for kw in ("nn_gate", "nn_new"):
+        with pytest.raises(InputError, match=rf"^{kw}: expected a scalar > 0"):
+            es.run(M, st, log, Q, R, association="nn", **{kw: bad})
+    es.run(M, st, log._replace(ids=np.zeros((2, 2), np.int32)), Q, R, association="known", nn_gate=bad)  # unused
+
+
+def test_nearest_neighbour_thresholds_inf_and_traced_still_pass():
+    st = _state()
+    z = np.array([[2.2, 0.45], [2.2, -1.1]])
+    m2 = np.ones(2, bool)
+    a = es.associate_nn(st, M, z, m2, R, gate=9.21, new_threshold=np.inf)
+    assert not np.asarray(a[2]).any()  # nothing is beyond an infinite threshold: nothing new
+    b = jax.jit(lambda g: es.associate_nn(st, M, z, m2, R, gate=g))(9.21)
+    for x, y in zip(a[:2], b[:2]):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
