@@ -127,8 +127,18 @@ def prepare_file(flag: str, path, create: bool = True) -> pathlib.Path:
         raise InputError(f"{flag}: {str(path)!r} is not a file name")
     if p.is_dir():
         raise InputError(f"{flag}: {str(p)!r} is a folder; give a file path")
-    _probe_folder(flag, p.parent, p, create=create)
+    target = _link_target(flag, p) if p.is_symlink() else p  # written there (atomic_write): probe it
+    _probe_folder(flag, target.parent, target, create=create)
     return p
+
+
+def _link_target(flag: str, p: pathlib.Path) -> pathlib.Path:
+    """The file a symbolic link ``p`` names (followed as :func:`atomic_write` follows it), or an
+    :class:`InputError` naming ``flag`` for a link that cannot be followed (a loop)."""
+    try:
+        return p.resolve()
+    except (RuntimeError, OSError) as e:  # (a loop: RuntimeError before Python 3.13, OSError after)
+        raise InputError(f"{flag}: {str(p)!r} is a symbolic link that cannot be followed ({e})") from None
 
 
 def prepare_dir(flag: str, path) -> pathlib.Path:
@@ -156,7 +166,7 @@ def distinct_outputs(**paths) -> None:
         if path is None:
             continue
         flag = "--" + name.replace("_", "-")
-        key = pathlib.Path(path).resolve()
+        key = _link_target(flag, pathlib.Path(path))
         if key in seen:
             raise InputError(f"{flag}: {str(path)!r} is also {seen[key]}'s file; give each output its own path")
         seen[key] = flag
@@ -191,7 +201,7 @@ def atomic_write(path, write: Callable, mode: str = "w") -> pathlib.Path:
     opts = {"encoding": "utf-8"} if "b" not in mode else {}
     try:
         if path.is_symlink():
-            path = path.resolve()
+            path = _link_target("path", path)
         is_dir, special = path.is_dir(), path.exists() and not path.is_file()
     except OSError as e:  # (e.g. a folder on the way that cannot be searched)
         raise _write_error(path, e) from None

@@ -24,6 +24,15 @@ one-core profile), so:
   XLA compile 41.6 → 38.6 s (smaller modules).  Python's own tracebacks are unchanged.  Tried
   and not kept the same day: ``--xla_cpu_parallel_codegen_split_count=1`` (six mid-size files
   93-99 → 84-89 s, the whole suite 602.9 → 671.6 s).
+
+Where the time goes (whole suite, empty cache, ``JAX_LOG_COMPILES`` read by a logging
+plugin, 2026-12-07, 605 s wall, 1180 s in the two workers): XLA compilation 546 s, lowering
+(jaxpr → MLIR) 198 s, tracing 196 s — 80 % of the workers' time.  14 439 programs compiled;
+13 176 of them one-operation programs of eager code (test bodies and the library's eager
+paths; 100 s of XLA time and 97 s of lowering, ~15-18 ms each in all, of which ~3.4 ms is
+JAX making a new MLIR context per program); 232 programs over 0.5 s take 284 s.  JAX 0.10
+compiles an identity program (``jit(stage)``) for every ``jnp.asarray`` of a NumPy array of a
+new shape (776 in the suite): the library converts NumPy inputs with ``linalg.to_jax``.
 """
 
 import collections

@@ -106,3 +106,26 @@ def test_prepare_file_without_create_makes_nothing_and_still_refuses(tmp_path):
         files.prepare_file("--json", tmp_path / "f" / "x.json", create=False)
     files.prepare_file("--json", target)  # the default makes the folders
     assert (tmp_path / "a" / "b").is_dir()
+
+
+def test_symbolic_links_are_checked_where_they_lead(tmp_path):
+    """prepare_file probes the folder a link leads to (atomic_write writes there), and a link
+    that cannot be followed (a loop) is an InputError naming the flag in prepare_file,
+    distinct_outputs and atomic_write (a bare RuntimeError reached the end of a run before)."""
+    loop = tmp_path / "loop.json"
+    loop.symlink_to(loop)
+    for call in (lambda: files.prepare_file("--json", loop), lambda: files.distinct_outputs(json=loop)):
+        with pytest.raises(InputError, match=r"^--json: .*loop\.json' is a symbolic link that cannot be followed"):
+            call()
+    with pytest.raises(InputError, match=r"^path: .*symbolic link that cannot be followed"):
+        files.atomic_write(loop, lambda f: f.write("x"))
+    (tmp_path / "afile").write_text("")
+    link = tmp_path / "out.json"
+    link.symlink_to(tmp_path / "afile" / "run.json")  # leads under a file: nothing can be written there
+    with pytest.raises(InputError, match=r"^--json: "):
+        files.prepare_file("--json", link)
+    ok = tmp_path / "ok.json"
+    ok.symlink_to(tmp_path / "real" / "run.json")
+    assert files.prepare_file("--json", ok) == ok and (tmp_path / "real").is_dir()
+    files.atomic_write(ok, lambda f: f.write("{}"))
+    assert ok.is_symlink() and (tmp_path / "real" / "run.json").read_text() == "{}"

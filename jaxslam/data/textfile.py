@@ -318,11 +318,13 @@ def read_table(path: PathLike, ncols: int, *, delimiter: Optional[str] = None,
             raise tab.error(int(r), f"non-finite value {float(sub[r, c])!r} in column {cols[c] + 1}")
     if tcs is not None:
         for c in tcs:
-            d = np.diff(data[:, c])
+            rows = np.flatnonzero(~np.isnan(data[:, c]))  # (a NaN time, kept by finite=False, must
+            d = np.diff(data[rows, c])                    # not hide a step back across it)
             if d.size and np.any(d < 0):
-                r = int(np.argmax(d < 0)) + 1
+                k = int(np.argmax(d < 0))
+                r, r0 = int(rows[k + 1]), int(rows[k])
                 raise tab.error(r, f"time goes backwards in column {c + 1}: {float(data[r, c])!r} after "
-                                   f"{float(data[r - 1, c])!r} (line {int(lines[r - 1])})")
+                                   f"{float(data[r0, c])!r} (line {int(lines[r0])})")
     return tab
 
 

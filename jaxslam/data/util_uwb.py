@@ -152,6 +152,7 @@ def tag_positions(p, q_xyzw, offset=TAG_OFFSET) -> np.ndarray:
 def _flight_dir(path, flight: str) -> tuple:
     base = path_arg(path)
     if base.resolve().name == flight and base.is_dir():  # the flight folder itself: its parent holds the anchors
+        base = base.resolve()  # ("." has "." for its parent)
         return base.parent, base
     cands = [base, base / "util_uwb"]
     for c in cands:

@@ -307,3 +307,13 @@ def test_util_tof_excerpt_optional():
     assert abs(np.median(u.tof - zb)) < 0.05
     v = load_util(EXCERPTS / "util_uwb", flight="tdoa2_obs_log1")  # no tof.csv: empty
     assert v.tof.shape == v.tof_t.shape == (0,) and v.report["tof_rows"] == 0
+
+
+def test_util_flight_folder_given_as_dot(monkeypatch):
+    """``load_util(".")`` from inside the flight folder: the anchors are in its parent ("."'s
+    unresolved parent is "." again: the loader looked for them in the flight folder)."""
+    monkeypatch.chdir(EXCERPTS / "util_uwb" / "tdoa2_obs_log1")
+    a = load_util(".", flight="tdoa2_obs_log1")
+    b = load_util(EXCERPTS / "util_uwb", flight="tdoa2_obs_log1")
+    np.testing.assert_array_equal(a.tdoa, b.tdoa)
+    np.testing.assert_array_equal(a.anchor_p, b.anchor_p)

@@ -141,3 +141,13 @@ def test_large_file_is_fast(tmp_path):
     dt = time.perf_counter() - t0
     assert t.data.shape == (70000, 4)
     assert dt < 3.0, dt  # ~0.1 s on one core; generous for a loaded CI machine
+
+
+def test_a_nan_time_does_not_hide_a_step_back(tmp_path):
+    """finite=False on the time column keeps a NaN time; the step back across it (1, nan, 0.5)
+    must still be refused, as (1, 0.5) is (NaN < 0 is False: it passed)."""
+    p = _write(tmp_path / "t.txt", "1.0 2 3\nnan 2 3\n0.5 2 3\n")
+    with pytest.raises(DataFormatError, match=r"t\.txt:3: time goes backwards in column 1: 0\.5 after 1\.0 \(line 1\)"):
+        read_table(p, 3, time_cols=0, finite=[1, 2])
+    tab = read_table(_write(tmp_path / "u.txt", "1.0 2 3\nnan 2 3\n1.5 2 3\n"), 3, time_cols=0, finite=[1, 2])
+    assert np.isnan(tab.data[1, 0]) and tab.data[2, 0] == 1.5
