@@ -43,7 +43,10 @@ is why dynamax removed its iterated EKS (its issue #398).  Options:
   below 1e-12 masks the component.  The fixed point minimises the robust cost.
 * ``damping`` (Levenberg–Marquardt): a pseudo-measurement ``s_t = x̄_t`` with
   covariance ``I / λ`` at every step, which shortens the Gauss–Newton step
-  (λ → 0: Gauss–Newton).  It changes the iterates, not the fixed point.
+  (λ → 0: Gauss–Newton).  It changes the iterates, not the fixed point; the covariances
+  returned come from one more pass without it, linearised at the last iterate (the damped
+  pass's hold the pseudo-measurements' information: too small).  The convergence test
+  reads the damped pass's σ (stricter).
 * Convergence: ``NOT_CONVERGED`` is set when the last iteration moved a state
   component by more than ``tol`` smoothed standard deviations.
 
@@ -69,7 +72,7 @@ import numpy as np
 
 from .. import errors
 from ..compilation import call_compiled
-from ..errors import InputError
+from ..errors import InputError, check_flag
 from ..linalg import check_int, check_scalar, is_concrete, symmetrize, value_and_jacfwd
 from . import ekf as _ekf
 from . import gaussian as _g
@@ -174,8 +177,8 @@ def rts(post: Posterior, *, difference: Optional[Callable] = None,
     if not all(hasattr(post, f) for f in ("means", "covs", "pred_means", "pred_covs", "cross_covs")):
         raise InputError(f"post: expected a Posterior of a filter run (ekf.filter_scan, ukf.filter_scan "
                          f"or gaussian.run with save_smoother=True), got {type(post).__name__}")
-    if difference is not None and not callable(difference):
-        raise InputError(f"difference: expected None or a function difference(a, b), got {difference!r}"[:300])
+    _check_function(difference, "difference", "a function difference(a, b)")
+    save_cov = check_flag(save_cov, "save_cov")  # static: a string "no" read as True
     if post.pred_covs is None or post.cross_covs is None or post.covs is None:
         raise InputError("post: the filter run must save what the smoother needs "
                          "(run it with save_smoother=True)")
@@ -234,6 +237,10 @@ def fixed_lag(
         :class:`Smoothed` (``covs`` None: only the diagonals are kept, to bound memory).
     """
     lag = check_int(lag, "lag", lower=0, what="a whole number of steps")  # 2.5 or True is not a lag
+    if not (callable(getattr(flt, "predict", None)) and callable(getattr(flt, "update", None))):
+        raise InputError(f"flt: expected a GaussianFilter (ekf.make_filter, ukf.make_filter, ...), got {flt!r}"[:300])
+    _check_function(difference, "difference", "a function difference(a, b)")
+    predict_first = check_flag(predict_first, "predict_first")
     diff = _sub if difference is None else difference
     x0, P0, zs, masks, Q, R, q_step, r_step, T = _g.prepare_run(x0, P0, zs, masks, Q, R)
     if T == 0:
@@ -342,6 +349,13 @@ def _prepend(tree, first):
     return jax.tree_util.tree_map(lambda a, b: jnp.concatenate([b[None], a], 0), tree, first)
 
 
+def _check_function(value, name: str, what: str) -> None:
+    """None or a callable, else an :class:`InputError` naming ``name`` (a number made a bare
+    ``TypeError`` deep in the trace)."""
+    if value is not None and not callable(value):
+        raise InputError(f"{name}: expected None or {what}, got {value!r}"[:300])
+
+
 def iterated(
     f: Optional[Callable],
     h: Callable,
@@ -395,6 +409,9 @@ def iterated(
         iteration still moved the trajectory by more than ``tol``.
     """
     _g.check_num_iter(num_iter)  # 2.9 used to be truncated to 2, True taken as 1
+    _check_function(residual, "residual", "a function residual(z, z_hat)")
+    _check_function(difference, "difference", "a function difference(a, b)")
+    predict_first, save_cov = check_flag(predict_first, "predict_first"), check_flag(save_cov, "save_cov")
     if robust is not None and not callable(robust):
         raise InputError(f"robust: expected None or an IRLS weight function w(r) (e.g. huber_weight()), "
                          f"got {robust!r}")
@@ -487,7 +504,7 @@ def iterated(
             xp, Pp, S, num, nis, ok, logdet = _ekf.linear_update(m_, P, nu, H, Rt, mk)
             dof = jnp.sum(mk).astype(jnp.int32)
             post, acc, status = _g.finalize(state, xp, Pp, ok, jnp.asarray(False), dof)
-            if damping is not None:
+            if lam is not None:  # (traced: the key says whether there is one)
                 dm = diff(xb, post.mean)
                 xq, Pq, _, _, _, okq, _ = _ekf.linear_update(
                     post.mean, post.cov, dm, eye_n, eye_n / lam, jnp.ones((n,), bool))
@@ -499,7 +516,7 @@ def iterated(
 
         flt = GaussianFilter(lin_predict, lin_update)
 
-        def one_pass(nominal):
+        def one_pass(nominal, lam):
             step_fn = _g.make_step(flt, Q_a, R_a, q_step, r_step, False)
             u_in = (us_a, nominal)
             c_in = (c_a, nominal, jnp.broadcast_to(lam, (K,)) if lam is not None else None)
@@ -515,7 +532,7 @@ def iterated(
 
         def it(carry, _):
             nominal, _, _, _ = carry
-            ms, Ps, st = one_pass(nominal)
+            ms, Ps, st = one_pass(nominal, lam)
             sig = jnp.sqrt(jnp.maximum(jnp.diagonal(Ps, axis1=1, axis2=2), jnp.finfo(dtype).tiny))
             moved = jnp.max(jnp.abs(jax.vmap(diff)(ms, nominal)) / sig)
             return (ms, Ps, st, moved), moved
@@ -523,6 +540,9 @@ def iterated(
         zP = jnp.zeros((K, n, n), dtype)
         init_c = (nominal0, zP, jnp.zeros((K,), jnp.int32), jnp.asarray(jnp.inf, dtype))
         (ms, Ps, st, moved), sizes = jax.lax.scan(it, init_c, None, length=num_iter)
+        if lam is not None:  # the covariances without the pseudo-measurements, at the last iterate
+            _, Ps, st_cov = one_pass(ms, None)
+            st = st | st_cov
         # not (moved <= tol): a NaN tolerance (traced) or a NaN step counts as not converged
         st = st | jnp.where(moved <= tol_v, jnp.int32(0), jnp.int32(errors.NOT_CONVERGED))
         initial = None
@@ -534,5 +554,5 @@ def iterated(
 
     # called eagerly: compiled once per model, options and shapes
     return call_compiled(("smoother.iterated", f, h, residual, diff, robust, num_iter, predict_first, save_cov,
-                          q_step, r_step, h_inputs is None), solve,
+                          q_step, r_step, h_inputs is None, damping is None), solve,
                          (x0, P0, us, zs, masks, Q, R, h_inputs, init, tol_v, lam), (args, noise_jac))
