@@ -31,7 +31,9 @@ Decisions:
   False when P is non-finite, the relative CARE residual exceeds √eps, P is not positive
   semi-definite (the stabilising solution is the unique PSD one for stabilisable (A, B) and
   detectable (A, Q)), or the closed loop A − B K is not Hurwitz (:func:`is_hurwitz`; with
-  Q = 0 and an unstable A, P = 0 solves the CARE but stabilises nothing).  A non-finite P is replaced by zeros so no NaN propagates.
+  Q = 0 and an unstable A, P = 0 solves the CARE but stabilises nothing).  A non-finite P (and
+  a non-finite gain K, from a singular traced R) is replaced by zeros so no NaN propagates; a
+  Newton–Kleinman refinement step is kept only while P stays positive semi-definite.
 """
 
 from __future__ import annotations
@@ -114,7 +116,14 @@ def _care_solve(A, B, Q, R):
     P = _sign_solve(A, G, Q)
     for _ in range(_NEWTON_STEPS):
         Acl = A - G @ P
-        P = symmetrize(lyapunov(Acl, Q + P @ G @ P))
+        Pn = symmetrize(lyapunov(Acl, Q + P @ G @ P))
+        # A Newton-Kleinman step from a P whose closed loop is not stable converges to another,
+        # indefinite solution of the CARE (float32, a weight near zero: the sign iteration's P
+        # inaccurate in one block, and the steps turned a decoupled gain destabilising); the
+        # stabilising solution is the PSD one, so a step is kept only while it stays PSD.
+        e = jnp.linalg.eigvalsh(jnp.where(jnp.all(jnp.isfinite(Pn)), Pn, 0.0))
+        keep = jnp.all(jnp.isfinite(Pn)) & (e[0] >= -jnp.sqrt(jnp.finfo(P.dtype).eps) * jnp.abs(e[-1]))
+        P = jnp.where(keep, Pn, P)
     return P
 
 
@@ -252,8 +261,12 @@ def _lqr_gain(A, B, Q, R, return_status: bool):
     dtype = P.dtype
     R = symmetrize(jnp.asarray(R, dtype))
     K = _gain_matrix(jnp.asarray(B, dtype), R) @ P
+    # a traced R that is singular or indefinite: its Cholesky factor is NaN, so K is too, while P
+    # was zeroed — zeros, as P, and ok False (no NaN reaches the controller)
+    K_ok = jnp.all(jnp.isfinite(K))
+    K = jnp.where(K_ok, K, jnp.zeros_like(K))
     if return_status:
-        return K, P, out[1]
+        return K, P, out[1] & K_ok
     return K, P
 
 

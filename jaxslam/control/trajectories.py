@@ -18,7 +18,7 @@ Decisions (papers silent or incomplete):
 * **Figure-8** (paper 000 gives no size, period or altitude): a Gerono-type lemniscate
   x = x_c + a_x sin(ωt), y = y_c + a_y sin(2ωt), z = z_c, ω = 2π/period, with a_x = 5 m,
   a_y = 2.5 m, altitude 5 m (z_c = −5), period 25 s (the paper's 50 s flight = two loops).
-  Peak speed 1.8 m/s, peak horizontal acceleration 0.64 m/s² (tilt ≈ 3.7°).
+  Peak speed 1.8 m/s, peak horizontal acceleration 0.67 m/s² (tilt ≈ 3.9°).
   Heading is fixed at ψ0 = 0 by default; ``heading_along_path = 1`` adds the tangent angle
   atan2(ẏ, ẋ) of the (un-blended) lemniscate, which never has zero speed.  That heading is
   wrapped to (−π, π] by atan2 and therefore jumps by 2π where the tangent points south; the

@@ -173,3 +173,31 @@ def test_validate_weights():
         validate_weights(np.ones(7), R000)
     with pytest.raises(InputError, match="R"):
         validate_weights(Q000, np.full((4, 4), np.nan))
+
+
+def test_review_2026_12_07_no_nan_gain_and_no_indefinite_newton_step():
+    """(1) A traced singular R: P was zeroed but K = R⁻¹BᵀP came back NaN (ok False, yet the NaN
+    reached the controller); now zeros.  (2) float32, the paper's flat model with a yaw weight of
+    1e-12: the sign iteration's P is off in the decoupled altitude block and the Newton steps
+    from it, whose closed loop is not stable, reached an indefinite CARE solution (P[5,5] = -90
+    where SciPy gives 0.199) and a destabilising altitude gain (K[2,5] = -282 against 0.620).
+    A step is now kept only while P stays PSD (the sign iteration's P, still off, stays); the
+    failure is still reported (ok False)."""
+    A, B, _ = linear_model(jnp.float64)
+    Q = jnp.eye(7)
+    Rs = jnp.diag(jnp.array([0.2, 0.0, 0.32, 0.1]))
+    K, P, ok = jax.jit(lambda R: lqr_gain(A, B, Q, R, return_status=True))(Rs)
+    assert not bool(ok) and np.all(np.asarray(K) == 0) and np.all(np.isfinite(np.asarray(P)))
+    A32, B32, _ = linear_model(jnp.float32)
+    R32 = jnp.diag(jnp.array([0.2, 0.2, 0.32, 0.1], jnp.float32))
+    Q32 = jnp.diag(jnp.array([0.01] * 6 + [1e-12], jnp.float32))
+    K, P, ok = lqr_gain(A32, B32, Q32, R32, return_status=True)
+    Ps = sl.solve_continuous_are(np.asarray(A32, float), np.asarray(B32, float), np.asarray(Q32, float),
+                                 np.asarray(R32, float))
+    Ks = np.linalg.solve(np.asarray(R32, float), np.asarray(B32, float).T @ Ps)
+    assert np.abs(np.asarray(P, float)).max() <= 2 * np.abs(Ps).max()  # (was P[5,5] = -90)
+    assert np.abs(np.asarray(K, float)).max() <= 2 * np.abs(Ks).max()  # no gain blown up
+    assert not bool(ok)  # the altitude block is still off: reported
+    K64, _, ok64 = lqr_gain(A, B, Q32.astype(jnp.float64), R32.astype(jnp.float64), return_status=True)
+    assert bool(ok64)
+    np.testing.assert_allclose(np.asarray(K64), Ks, rtol=1e-6, atol=1e-9)  # float64: the right gain
