@@ -549,7 +549,8 @@ def check_psd(M, name: str, strict: bool = False, tol: float = 1e-12, valid=None
     ``name[k]``, all checked at once).
 
     Tolerances, relative to the largest magnitude (at least 1): symmetry 1e-9, eigenvalues
-    ``tol``; a lower-precision input (float32) may also be off by 100 ulp of its own dtype
+    ``tol`` (with ``strict``, relative to the largest magnitude itself: the smallest eigenvalue
+    must exceed ``tol`` times it); a lower-precision input (float32) may also be off by 100 ulp of its own dtype
     (relative to its largest entry) in symmetry and below zero, so a matrix that is symmetric
     and PSD to its working precision passes.  ``valid`` (``(..., n)`` bool):
     only the rows and columns in use are checked (a masked measurement's row of a per-step R
@@ -581,7 +582,9 @@ def check_psd(M, name: str, strict: bool = False, tol: float = 1e-12, valid=None
     if bad.any():
         raise InputError(f"{where(bad)}: not symmetric")
     lo = np.linalg.eigvalsh(0.5 * (S + S.transpose(0, 2, 1))).min(axis=1)
-    bad = lo <= tol * scale if strict else lo < -np.maximum(tol * scale, ulp * mag)
+    # strict: relative to the largest entry only (a well-conditioned matrix of small entries,
+    # e.g. an IMU bias density of 1e-14, is positive definite: a floor of 1e-12 refused it)
+    bad = lo <= tol * mag if strict else lo < -np.maximum(tol * scale, ulp * mag)
     if bad.any():
         k = int(np.argmax(bad))
         what = "positive definite" if strict else "positive semi-definite"

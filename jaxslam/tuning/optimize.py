@@ -58,7 +58,10 @@ Decisions (no paper covers tuning):
   covers the same runs: a step that dropped a run (``dropped_runs``) is compared only with
   steps that dropped the same ones, and one that keeps a strict superset of the current
   best's runs replaces it whatever its loss (a mean over fewer runs is not comparable: the
-  rest of a diverged run's batch looks better exactly where that run fails).
+  rest of a diverged run's batch looks better exactly where that run fails).  With minibatches
+  (``batch_size`` < runs) "the same runs" means the same dropped runs only: each step's loss
+  is over its own minibatch, so ``best_theta`` compares losses over different runs there and
+  is a noisy choice (a step that drew easy runs wins); ``theta`` is the one to use.
 * Memory: ``memory`` reports the compiled step's XLA memory analysis (temporary,
   argument and output bytes — what the backward pass holds) and the process's peak
   resident memory (``resource.getrusage``, monotone over the process lifetime).
@@ -150,6 +153,7 @@ def make_optimizer(lr: float, steps: int, schedule: str = "cosine", warmup: Opti
     if clip is not None:
         reworded(lambda: check_scalar(clip, "clip", finite=False, lower=0, strict=True), f"clip: must be > 0, got {clip}")
         parts.append(optax.clip_by_global_norm(clip))
+    b2 = reworded(lambda: check_scalar(b2, "b2"), f"b2: must be in (0, 1), got {b2!r}")
     if not 0.0 < b2 < 1.0:
         raise InputError(f"b2: must be in (0, 1), got {b2}")
     parts.append(optax.adam(sched, b2=b2))
@@ -297,8 +301,9 @@ def fit(loss_fn: Callable, theta0, train, steps: int, lr: float = 0.1, *, test=N
     eval_every = check_int(eval_every, "eval_every", lower=0)
     if test is not None:
         _check_test(test, train, loss_fn, theta0, sequential)
-    if explode_ratio is not None and not (math.isfinite(explode_ratio) and explode_ratio > 1):
-        raise InputError(f"explode_ratio: expected a finite number > 1 or None, got {explode_ratio}")
+    if explode_ratio is not None:
+        explode_ratio = reworded(lambda: check_scalar(explode_ratio, "explode_ratio", lower=1, strict=True),
+                                 f"explode_ratio: expected a finite number > 1 or None, got {explode_ratio!r}")
     tx, sched = make_optimizer(lr, steps, schedule, warmup, clip, b2=b2)
     opt_state = tx.init(theta0)
     mini = batch_size is not None and batch_size < runs

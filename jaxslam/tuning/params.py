@@ -159,11 +159,25 @@ def log_diag_from_cov(M, floor: float | None = None, dtype=None, name: str = "M"
     if np.any(d <= 0):
         raise InputError(f"{name}: log-diagonal parametrisation needs positive diagonal entries, "
                          f"got {d.tolist()} (pass floor=... to start zero entries at a small value)")
+    _check_exp_range(np.log(d), dtype, name)
     return jnp.asarray(np.log(d), dtype)
 
 
+def _check_exp_range(log_values, dtype, name: str) -> None:
+    """:class:`InputError` naming ``name`` when a log-variance's exp is 0 or inf in ``dtype``
+    (its matrix would be singular or infinite: float32 holds ~1e-38 to ~3e38)."""
+    ft = np.finfo(np.dtype(dtype))
+    lo, hi = np.log(ft.tiny), np.log(ft.max)
+    bad = (log_values < lo) | (log_values > hi)
+    if np.any(bad):
+        v = float(np.exp(log_values[np.argmax(bad)]))
+        raise InputError(f"{name}: a variance of {v:.3g} is outside {np.dtype(dtype).name}'s range "
+                         f"({ft.tiny:.3g} to {ft.max:.3g}): its matrix would be singular or infinite")
+
+
 def cov_from_log_diag(theta):
-    """M = diag(exp θ) (n, n); positive definite for every finite θ (n,)."""
+    """M = diag(exp θ) (n, n); positive definite for every θ (n,) whose exp neither underflows
+    nor overflows in its dtype (|θ| below ~87 in float32, ~708 in float64)."""
     theta = float_array(theta, "theta")
     if theta.ndim != 1:  # jnp.diag of a matrix would return its diagonal, not a matrix
         raise InputError(f"theta: expected a vector (n,) of log-variances, got shape {tuple(theta.shape)}")
@@ -192,11 +206,13 @@ def log_chol_from_cov(M, floor: float | None = None, dtype=None, name: str = "M"
     L = np.linalg.cholesky(0.5 * (a + a.T))
     r, c = _tril(n)
     C = L / np.diag(L)[:, None]
+    _check_exp_range(2 * np.log(np.diag(L)), dtype, name)  # (the variances of the factor's diagonal)
     return jnp.asarray(np.concatenate([np.log(np.diag(L)), C[r, c]]), dtype)
 
 
 def cov_from_log_chol(theta, n: int):
-    """M = L Lᵀ, L = diag(exp θ_d) C (n, n) from θ (n(n+1)/2,); PD for every finite θ."""
+    """M = L Lᵀ, L = diag(exp θ_d) C (n, n) from θ (n(n+1)/2,); PD for every θ whose exp
+    neither underflows nor overflows in its dtype (|θ_d| below ~43 in float32, ~354 in float64)."""
     n = check_int(n, "n", lower=1, what="a matrix size (int)")
     theta = float_array(theta, "theta")
     if tuple(theta.shape) != (n * (n + 1) // 2,):

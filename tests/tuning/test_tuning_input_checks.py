@@ -90,6 +90,10 @@ def test_make_optimizer_refuses_bad_input(kw, msg):
     (dict(eval_every=1.5, test=jnp.arange(2.0)), r"^eval_every: expected an int >= 0"),
     (dict(eval_every=1, test={"x": jnp.arange(2.0)}), r"^test: the loss cannot be evaluated on this held-out batch"),
     (dict(eval_every=1, test=jnp.zeros(())), r"^test: every array needs the same leading axis"),
+    (dict(b2="0.9"), r"^b2: must be in \(0, 1\), got '0.9'"),  # (a bare TypeError before)
+    (dict(b2=None), r"^b2: must be in \(0, 1\), got None"),
+    (dict(explode_ratio="5"), r"^explode_ratio: expected a finite number > 1 or None, got '5'"),
+    (dict(explode_ratio=1.0), r"^explode_ratio: expected a finite number > 1 or None"),
 ])
 def test_fit_refuses_bad_input(kw, msg):
     with pytest.raises(InputError, match=msg):
@@ -186,3 +190,27 @@ def test_nll_terms_refuses_a_non_bool_concrete_mask_and_a_non_pd_s():
     out = jax.jit(L.nll_terms)(nu, S, jnp.array([1, 0, 1]))
     np.testing.assert_array_equal(np.asarray(out), np.asarray(want))
     assert np.isnan(float(jax.jit(L.nll_terms)(nu, jnp.diag(jnp.array([1.0, -1.0, 1.0])))[0]))
+
+
+def test_small_well_conditioned_covariances_and_the_exp_range():
+    """Review of 2026-12-07: a strict PSD check with an absolute floor of 1e-12 refused a
+    well-conditioned matrix of small entries (an IMU bias density: NumPy's Cholesky takes it);
+    a variance outside the dtype's range made a singular or infinite matrix without a word."""
+    for s in (1e-14, 1e-12, 1e-10, 1.0, 1e10):
+        M = s * np.array([[2.0, 0.5], [0.5, 1.0]])
+        th = P.log_chol_from_cov(M, dtype=jnp.float64)
+        np.testing.assert_allclose(np.asarray(P.cov_from_log_chol(th, 2)), M, rtol=1e-12)
+        np.testing.assert_allclose(np.linalg.cholesky(M) @ np.linalg.cholesky(M).T, M, rtol=1e-14)  # the oracle
+    nis, logdet, dof = L.nll_terms(np.array([1e-7, -2e-7]), 1e-13 * np.array([[2.0, 0.5], [0.5, 1.0]]))
+    S = 1e-13 * np.array([[2.0, 0.5], [0.5, 1.0]])
+    nu = np.array([1e-7, -2e-7])
+    assert float(nis) == pytest.approx(nu @ np.linalg.solve(S, nu), rel=1e-10)
+    assert float(logdet) == pytest.approx(np.linalg.slogdet(S)[1], rel=1e-12)
+    with pytest.raises(InputError, match=r"^M: not positive definite"):
+        P.log_chol_from_cov(np.array([[1.0, 1.0], [1.0, 1.0]]))  # singular: still refused
+    for M, dt in ((np.diag([1e-50, 1.0]), jnp.float32), (np.diag([1e40, 1.0]), jnp.float32)):
+        with pytest.raises(InputError, match=r"^M: a variance of .* is outside float32's range"):
+            P.log_diag_from_cov(M, dtype=dt)
+    with pytest.raises(InputError, match=r"^M: a variance of .* is outside float32's range"):
+        P.log_chol_from_cov(np.diag([1e40, 1e39]), dtype=jnp.float32)
+    assert np.isfinite(np.asarray(P.log_diag_from_cov(np.diag([1e-50, 1.0]), dtype=jnp.float64))).all()
