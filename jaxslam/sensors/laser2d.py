@@ -44,7 +44,7 @@ import numpy as np
 
 from ..dynamics._checks import real_float
 from ..errors import InputError
-from ..linalg import check_mask, check_real, check_scalar
+from ..linalg import check_mask, check_real, check_scalar, is_concrete, reworded
 
 __all__ = [
     "LaserSpec",
@@ -276,6 +276,9 @@ def scan(key, pose, walls, wall_mask, spec, tilt=None, outlier_prob=0.0):
       (a wall or clutter return whose *measured* range lies in [range_min, range_max]),
       ``wall (n,)`` int32 index of the wall the return lies on (−1 for clutter and invalid).
     """
+    if is_concrete(outlier_prob):  # 2.0 made every return clutter, -1 or NaN none, without a word
+        reworded(lambda: check_scalar(outlier_prob, "outlier_prob", lower=0),
+                 f"outlier_prob: expected a probability in [0, 1], got {outlier_prob!r}", upper=1.0)
     t, valid, wall = cast(pose, walls, wall_mask, spec, tilt)
     dtype = t.dtype
     k_noise, k_out, k_u = jax.random.split(key, 3)

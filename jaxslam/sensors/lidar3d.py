@@ -40,7 +40,8 @@ import numpy as np
 from ..dynamics._checks import check_last_dim, real_float
 from ..errors import InputError
 from ..geometry.euler import _last_axis, dcm_from_euler, rotate_jacobian, unrotate_jacobian
-from ..linalg import check_numbers, check_real, check_shape, is_concrete, pow2_factors, safe_norm, wrap_angle
+from ..linalg import (check_float_dtype, check_numbers, check_real, check_shape, is_concrete, pow2_factors, safe_norm,
+                      wrap_angle)
 
 __all__ = [
     "LidarSpec",
@@ -350,6 +351,8 @@ def in_fov(y, spec: LidarSpec = PAPER000_LIDAR):
     if np.shape(y)[-1:] != (3,):
         raise InputError(f"y: expected shape (..., 3), got {np.shape(y)}")
     check_real(y, "y")
+    if is_concrete(tuple(spec)):
+        check_lidar_spec(spec)  # an inverted spec (az_min > az_max) hid every landmark
     y = jnp.asarray(y)
     dt = y.dtype
 
@@ -390,7 +393,7 @@ def innovation(y, y_pred):
 
 def measurement_cov(spec: LidarSpec = PAPER000_LIDAR, dtype=None):
     """R_ζ = diag(σ_α², σ_β², σ_δ²) (paper 000 eq. 30, Table 4), shape (3, 3)."""
-    dtype = jnp.result_type(float) if dtype is None else jnp.dtype(dtype)
+    dtype = jnp.result_type(float) if dtype is None else check_float_dtype(dtype)  # an int dtype made zeros
     sig = (spec.sigma_az, spec.sigma_el, spec.sigma_range)
     if is_concrete(sig):  # the usual case: built on the host, no program to compile
         check_lidar_spec(spec)  # a negative σ gave the same R as its absolute value, NaN a NaN R
@@ -407,7 +410,7 @@ def sample_noise(key, spec: LidarSpec = PAPER000_LIDAR, shape_prefix=(), dtype=N
     JAX's default float).
     Returns: (*shape_prefix, 3) with stds (σ_α rad, σ_β rad, σ_δ m).
     """
-    dtype = jnp.result_type(float) if dtype is None else jnp.dtype(dtype)
+    dtype = jnp.result_type(float) if dtype is None else check_float_dtype(dtype)  # an int dtype made zeros
     if is_concrete(tuple(spec)):
         check_lidar_spec(spec)
     s = jnp.stack([jnp.asarray(spec.sigma_az, dtype), jnp.asarray(spec.sigma_el, dtype),

@@ -36,7 +36,7 @@ import numpy as np
 
 from ..dynamics._checks import real_float
 from ..errors import InputError
-from ..linalg import check_numbers, is_concrete
+from ..linalg import check_float_dtype, check_numbers, is_concrete
 from .lidar3d import cartesian_from_spherical, innovation, spherical_from_cartesian
 
 __all__ = [
@@ -119,7 +119,7 @@ def inverse(pos, y):
 def measurement_cov(spec: RangeBearingSpec = PAPER001_RANGE_BEARING, dtype=None):
     """R^S = diag(σ_α², σ_β², σ_r²) of paper 001 eq. 14 (jaxslam order), shape (3, 3)."""
     _check(spec)
-    dtype = jnp.result_type(float) if dtype is None else jnp.dtype(dtype)
+    dtype = jnp.result_type(float) if dtype is None else check_float_dtype(dtype)  # an int dtype made zeros
     s = jnp.stack([jnp.asarray(spec.sigma_az, dtype), jnp.asarray(spec.sigma_el, dtype),
                    jnp.asarray(spec.sigma_range, dtype)])
     return jnp.diag(s * s)
@@ -132,7 +132,7 @@ def sample_noise(key, spec: RangeBearingSpec = PAPER001_RANGE_BEARING, shape_pre
     Returns (*shape_prefix, 3) with stds (σ_α rad, σ_β rad, σ_r m); ``shape_prefix`` static.
     """
     _check(spec)
-    dtype = jnp.result_type(float) if dtype is None else jnp.dtype(dtype)
+    dtype = jnp.result_type(float) if dtype is None else check_float_dtype(dtype)  # an int dtype made zeros
     s = jnp.stack([jnp.asarray(spec.sigma_az, dtype), jnp.asarray(spec.sigma_el, dtype),
                    jnp.asarray(spec.sigma_range, dtype)])
     shape = tuple(int(d) for d in shape_prefix) + (3,)

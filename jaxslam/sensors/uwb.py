@@ -43,7 +43,7 @@ import numpy as np
 
 from ..dynamics._checks import real_float
 from ..errors import InputError
-from ..linalg import check_numbers, check_real, is_concrete, safe_norm
+from ..linalg import check_float_dtype, check_numbers, check_real, is_concrete, safe_norm
 
 __all__ = [
     "UwbNoise",
@@ -180,12 +180,15 @@ def measurement_variance(d, range_var, model: str):
     raise InputError(f"model: expected one of {MODELS}, got {model!r}")
 
 
-def sample_noise(key, shape, half_width, dist: str, dtype=jnp.float64):
+def sample_noise(key, shape, half_width, dist: str, dtype=None):
     """Zero-mean noise of variance a²/3: uniform on [−a, a] (paper 003 Sec. IV) or Gaussian.
 
     key: PRNG key; shape: output shape; half_width: a (scalar, traced); dist:
-    ``"uniform"`` or ``"gaussian"`` (static).  Returns an array of ``dtype``.
+    ``"uniform"`` or ``"gaussian"`` (static).  Returns an array of ``dtype`` (a floating dtype;
+    default JAX's default float: float64 was asked for, and truncated with a warning, without
+    x64).
     """
+    dtype = jnp.result_type(float) if dtype is None else check_float_dtype(dtype)
     _check_nonneg(half_width, "half_width")
     a = jnp.asarray(half_width, dtype)
     if dist == "uniform":

@@ -143,3 +143,30 @@ def test_more_small_functions_name_a_bad_argument():
     from jaxslam.dynamics import params as quad_params
     with pytest.raises(InputError, match="^params.mass: expected numbers"):
         quad_params.validate_params(quad_params.PAPER000._replace(mass="1.2"))
+
+
+def test_review_2026_12_07_sensor_dtypes_fov_spec_and_outlier_probability():
+    """A review reproduced: an integer dtype made an all-zero R (lidar3d, range_bearing3d) or a bare
+    JAX error (sample_noise); uwb's default dtype was float64 (truncated with a warning without
+    x64); an inverted FOV spec hid every landmark; laser2d.scan took outlier_prob 2.0, -1, NaN."""
+    from jaxslam.sensors import laser2d, range_bearing3d as rb3
+
+    for fn in (lambda: l3.measurement_cov(dtype=jnp.int32), lambda: rb3.measurement_cov(dtype=jnp.int32),
+               lambda: l3.sample_noise(jax.random.PRNGKey(0), dtype=jnp.int32),
+               lambda: rb3.sample_noise(jax.random.PRNGKey(0), dtype=jnp.int32),
+               lambda: uwb.sample_noise(jax.random.PRNGKey(0), (3,), 0.1, "uniform", jnp.int32)):
+        with pytest.raises(InputError, match=r"^dtype: expected a floating dtype"):
+            fn()
+    assert uwb.sample_noise(jax.random.PRNGKey(0), (3,), 0.1, "uniform").dtype == jnp.result_type(float)
+    bad = l3.PAPER000_LIDAR._replace(az_min=1.0, az_max=-1.0)
+    with pytest.raises(InputError, match=r"az_min"):
+        l3.in_fov(np.array([0.0, 0.0, 5.0]), bad)
+    assert bool(l3.in_fov(np.array([0.0, 0.0, 5.0])))
+    room = laser2d.walls_from_polygon([[0.0, 0.0], [4.0, 0.0], [4.0, 3.0], [0.0, 3.0]])
+    args = (jax.random.PRNGKey(0), jnp.array([1.0, 1.0, 0.0]), jnp.asarray(room), jnp.ones(len(room), bool),
+            laser2d.URG04LX)
+    for q in (2.0, -1.0, float("nan"), "0.1"):
+        with pytest.raises(InputError, match=r"^outlier_prob: expected a probability in \[0, 1\]"):
+            laser2d.scan(*args, outlier_prob=q)
+    r, v, _ = laser2d.scan(*args, outlier_prob=0.5)
+    assert np.isfinite(np.asarray(r)[np.asarray(v)]).all()
