@@ -260,7 +260,11 @@ def measure_state_and_jacobians(s, landmark):
     d = landmark - pos
     c = d @ C  # Cᵀ d, as measure() forms it
     y = spherical_from_cartesian(c)
-    c1, c2, c3 = c[0], c[1], c[2]
+    # J from c scaled by a power of two, u = c·2^−e (as spherical_from_cartesian's values: the
+    # squares of c overflow or underflow beyond ~1e19 m or below ~1e-19 m in float32); the angle
+    # rows scale back by 2^−e (degree −1 in c), the range row is u/‖u‖.  Exact for ordinary c.
+    _, u, (d1, d2, _) = _scaled_norm(c)
+    c1, c2, c3 = u[0], u[1], u[2]
     h2 = c1 * c1 + c2 * c2
     r2 = h2 + c3 * c3
     h2s = jnp.where(h2 > 0, h2, 1.0)
@@ -268,9 +272,9 @@ def measure_state_and_jacobians(s, landmark):
     hs, rs = jnp.sqrt(h2s), jnp.sqrt(r2s)
     t = c3 / (hs * r2s)
     z = jnp.zeros_like(c1)
-    J = jnp.stack([jnp.stack([-c2 / h2s, c1 / h2s, z]),
-                   jnp.stack([-c1 * t, -c2 * t, jnp.where(h2 > 0, hs, 0.0) / r2s]),
-                   c / rs])
+    J = jnp.stack([jnp.stack([-c2 / h2s, c1 / h2s, z]) * d1 * d2,
+                   jnp.stack([-c1 * t, -c2 * t, jnp.where(h2 > 0, hs, 0.0) / r2s]) * d1 * d2,
+                   u / rs])
     Hl = jnp.sum(J[:, None, :] * C[None, :, :], axis=-1)  # J Cᵀ
     dc = unrotate_jacobian(euler, d, C)
     Ha = jnp.sum(J[:, :, None] * dc[None, :, :], axis=1)

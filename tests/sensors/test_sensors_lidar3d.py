@@ -340,3 +340,20 @@ def test_inverse_state_and_jacobians_match_twin_and_autodiff():
     l32, Gs32, Gy32 = closed(jnp.asarray(s, jnp.float32), jnp.asarray(y, jnp.float32))
     assert l32.dtype == Gs32.dtype == Gy32.dtype == jnp.float32
     np.testing.assert_allclose(np.asarray(Gy32), Gyo, rtol=1e-4, atol=1e-4)
+
+
+@pytest.mark.parametrize("scale", [1e-20, 1e-18, 1.0, 1e18, 1e20])
+def test_closed_form_jacobians_hold_at_any_magnitude_in_float32(scale):
+    """The closed-form J was built from the raw squares of c: in float32 at |c| ~ 1e20 the range
+    row read [0 0 0], at 1e-20 it read 1e-21 (review 2026-12-07).  J from c scaled by a power of
+    two: the range row is the unit vector at every magnitude (oracle: c/|c| in float64), the
+    angle rows scale as 1/|c|, and autodiff agrees."""
+    s = jnp.zeros(9, jnp.float32)
+    c = np.array([0.6, 0.3, -0.2]) * scale
+    y, Hs, Hl = lidar3d.measure_state_and_jacobians(s, jnp.asarray(c, jnp.float32))
+    np.testing.assert_allclose(np.asarray(Hl[2], np.float64), c / np.linalg.norm(c), rtol=1e-5)
+    h2 = c[0] ** 2 + c[1] ** 2
+    np.testing.assert_allclose(np.asarray(Hl[0, :2], np.float64) * scale, np.array([-c[1], c[0]]) / h2 * scale,
+                               rtol=1e-5)
+    Hs0, Hl0 = jax.jacfwd(lidar3d.measure_state, argnums=(0, 1))(s, jnp.asarray(c, jnp.float32))
+    np.testing.assert_allclose(np.asarray(Hl) * scale, np.asarray(Hl0) * scale, rtol=1e-5, atol=1e-6)
