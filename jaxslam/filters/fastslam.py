@@ -389,9 +389,7 @@ def init(pose0, n_particles: int, capacity: int, lm_dim: int, aux=None,
                 raise InputError(
                     f"aux: every leaf must have leading axis {N}, got shape {np.shape(x)}"
                 )
-        aux = jax.tree_util.tree_map(to_jax, aux)
-    else:
-        aux = jax.tree_util.tree_map(to_jax, aux)
+    aux = jax.tree_util.tree_map(to_jax, aux)
     return _empty_particles(pose0, aux, N, cap, d, np.dtype(dtype), bool(aux_per_particle))
 
 
