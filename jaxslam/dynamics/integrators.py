@@ -109,6 +109,8 @@ def rollout(f, x0, us, dt, *args):
     """
     x0 = real_float(x0, "x0")  # an integer x0 made the scan's carry change dtype (a TypeError)
     check_real(us, "us")
+    if np.ndim(us) != 2:  # (f's own check named its argument u)
+        raise InputError(f"us: expected shape (T, m) (one input per step), got {np.shape(us)}")
     return call_compiled(("integrators.rollout", f), lambda *a: _rollout(f, *a), (x0, jnp.asarray(us), dt, *args),
                          after="auto")
 

@@ -40,8 +40,9 @@ Decisions:
   is never changed (q and −q are the same attitude; the controller must not care,
   see :mod:`jaxslam.control.smc`).
 * The model functions accept slightly non-unit q inside an RK4 step (the rotation of
-  the thrust uses ``qrotate``, exact for unit q; the error is second order in the
-  norm drift).
+  the thrust uses ``qrotate``, exact for unit q; for q scaled by 1 + ε it rotates by
+  v + (1 + ε)²(Rv − v), an error first order in the norm drift — ~1e-12 relative in
+  float64 with the renormalisation after every step).
 
 Converters :func:`to_euler_ned` / :func:`from_euler_ned` map to and from the
 12-state layout of :mod:`jaxslam.dynamics.euler_ned` (v_B = C_NBᵀ ṗ).

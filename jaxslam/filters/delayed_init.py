@@ -30,7 +30,7 @@ import numpy as np
 
 from ..compilation import call_compiled
 from ..errors import InputError
-from ..linalg import float_array, is_concrete, safe_norm
+from ..linalg import check_mask, float_array, is_concrete, safe_norm
 from . import trilateration as tri
 
 __all__ = ["robust_trilaterate", "from_buffer"]
@@ -110,6 +110,7 @@ def from_buffer(points, point_var, ranges, valid, range_var, min_points: Optiona
                          f"got {tuple(point_var.shape)}")
     if var_rows is not None and np.shape(var_rows) != (W,):
         raise InputError(f"var_rows: expected shape ({W},) (one per row of points), got {np.shape(var_rows)}")
+    check_mask(var_rows, "var_rows")  # a 0.5 or a 2 was read as True
     rows = valid if var_rows is None else jnp.asarray(var_rows).astype(bool)
     if is_concrete(point_var, rows):
         v = np.broadcast_to(np.asarray(point_var), (W,))[np.asarray(rows)]

@@ -218,6 +218,12 @@ def _lstsq(A, b, rcond, cond_tol):
     place of a degenerate A, so neither branch's derivative is ever NaN.
     """
     K, d = A.shape
+    if K < d:  # fewer rows than unknowns (static): zero rows change no solution, and the QR's R is
+        # square (a K×d R made solve_triangular raise inside jit); the fit is then rank-deficient
+        A = jnp.concatenate([A, jnp.zeros((d - K, d), A.dtype)], axis=0)
+        x, pinv, good = _lstsq(A, jnp.concatenate([b, jnp.zeros((d - K,) + b.shape[1:], b.dtype)]), rcond,
+                               cond_tol)
+        return x, pinv[:, :K], good
     U, sv, Vt = jnp.linalg.svd(jax.lax.stop_gradient(A), full_matrices=False)
     smax = sv[0]
     good = (sv[-1] > cond_tol * smax) & (smax > 0)
@@ -371,7 +377,7 @@ def _trilaterate_line(xs, ranges, mask, side, min_points, min_baseline, side_kno
     a = A[:, 0]
     aa = jnp.sum(a * a)
     n_used = jnp.sum(valid).astype(jnp.int32)
-    spread = point_spread(pts[:, :1], valid)
+    spread = point_spread(jnp.where(valid[:, None], pts[:, :1], 0.0), valid)  # (a dropped NaN row: no NaN)
     has_base = (aa > 0) & (spread > jnp.asarray(min_baseline, dtype))
     u = jnp.where(has_base, jnp.sum(a * b) / jnp.where(aa > 0, aa, 1.0), 0.0)
     d = jnp.where(valid, ranges, 0.0)

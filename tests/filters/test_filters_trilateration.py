@@ -223,3 +223,37 @@ def test_gradient_matches_numpy_finite_differences_and_is_finite_when_degenerate
                                   jnp.ones(6, bool))):  # collinear
         g = jax.jit(jax.grad(loss, argnums=(0, 1)))(points, ranges, mask)
         assert all(np.all(np.isfinite(np.asarray(a))) for a in g)
+
+
+def test_fewer_points_than_dimensions_and_a_dropped_nan_row():
+    """Review of 2026-12-07: K < d (two anchors in 3D, one in 2D) made solve_triangular raise inside
+    the fit (ok False with DEGENERATE is what the docstring promises); a masked-off row with a NaN
+    position made trilaterate_line's spread NaN, so a good fit came back DEGENERATE.  Oracle for the
+    latter: the same fit with the row removed."""
+    for pts, r in ((np.array([[0.0, 0, 0], [1, 0, 0]]), np.array([1.0, 1.0])), (np.array([[0.0, 0]]), np.array([1.0]))):
+        res = tri.trilaterate(pts, r)
+        assert not bool(res.ok) and int(res.status) & errors.DEGENERATE
+        assert np.isfinite(np.asarray(res.position)).all()
+        jax.jit(tri.trilaterate)(pts, r)  # under jit too
+    xs = np.array([0.0, -1, -2, -3, -4])
+    r = np.hypot(xs + 1.5, 2.0)
+    xs_nan = xs.copy()
+    xs_nan[4] = np.nan
+    got = tri.trilaterate_line(xs_nan, r, mask=np.array([1, 1, 1, 1, 0], bool))
+    want = tri.trilaterate_line(xs[:4], r[:4])
+    assert bool(got.ok) and int(got.status) == 0
+    np.testing.assert_allclose(np.asarray(got.position), np.asarray(want.position), rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(got.position), [-1.5, 2.0], rtol=1e-9)
+
+
+def test_from_buffer_checks_var_rows_as_a_mask():
+    from jaxslam.errors import InputError
+    from jaxslam.filters import delayed_init as di
+
+    pts = np.stack([np.linspace(0, 5, 6), np.array([0, 3, 0, 3, 0, 3.0])], 1)
+    r = np.linalg.norm(pts - np.array([2.0, 8.0]), axis=1)
+    for bad, msg in ((np.full(6, 0.5), "got dtype float64"), (np.full(6, 2), "got the value 2")):
+        with pytest.raises(InputError, match=rf"^var_rows: expected a bool mask .*{msg}"):
+            di.from_buffer(pts, np.zeros(6), r, np.ones(6, bool), 0.01, var_rows=bad)
+    fit, P = di.from_buffer(pts, np.zeros(6), r, np.ones(6, bool), 0.01, var_rows=np.ones(6, int))
+    np.testing.assert_allclose(np.asarray(fit.position), [2.0, 8.0], atol=1e-9)
