@@ -262,7 +262,8 @@ def measure_state_and_jacobians(s, landmark):
     y = spherical_from_cartesian(c)
     # J from c scaled by a power of two, u = c·2^−e (as spherical_from_cartesian's values: the
     # squares of c overflow or underflow beyond ~1e19 m or below ~1e-19 m in float32); the angle
-    # rows scale back by 2^−e (degree −1 in c), the range row is u/‖u‖.  Exact for ordinary c.
+    # rows scale back by 2^−e (degree −1 in c), the range row is u/‖u‖.  For ordinary c equal to
+    # the unscaled form to rounding (~1 ulp: XLA fuses the two differently), not bit for bit.
     _, u, (d1, d2, _) = _scaled_norm(c)
     c1, c2, c3 = u[0], u[1], u[2]
     h2 = c1 * c1 + c2 * c2
