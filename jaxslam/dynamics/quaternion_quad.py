@@ -183,7 +183,7 @@ def step(fn, x, u, dt, *args, quat=None):
         elif n == ATT_DIM:
             quat = slice(0, 4)
         else:
-            raise InputError(f"step: cannot locate the quaternion in a state of size {n}; pass quat=")
+            raise InputError(f"x: step cannot locate the quaternion in a state of size {n}; pass quat=")
     xn = rk4_step(fn, x, u, dt, *args)
     return xn.at[quat].set(qnormalize(xn[quat]))
 

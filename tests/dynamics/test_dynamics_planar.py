@@ -47,3 +47,4 @@ def test_planar_steps_refuse_wrong_shapes(fn):
 def test_rollout_names_its_own_argument():
     with pytest.raises(InputError, match=r"^us: expected shape \(T, m\)"):
         integrators.rollout(lambda x, u: -x + u, jnp.zeros(2), jnp.zeros(4), 0.1)
+

@@ -175,3 +175,11 @@ def test_bad_inputs_raise():
         qq.f_att(jnp.r_[1.0, jnp.zeros(6)], jnp.zeros(4), jnp.ones(3))
     with pytest.raises(InputError, match=r"^xi: expected shape \(3\)"):
         qq.f_att(jnp.r_[1.0, jnp.zeros(6)], jnp.zeros(3), jnp.ones(3), xi=jnp.zeros(2))
+
+
+def test_quaternion_step_names_the_state():
+    from jaxslam.dynamics import quaternion_quad as qq
+    from jaxslam.errors import InputError
+
+    with pytest.raises(InputError, match=r"^x: step cannot locate the quaternion in a state of size 5"):
+        qq.step(lambda x, u: x, jnp.zeros(5), jnp.zeros(4), 0.1)
