@@ -307,7 +307,7 @@ def dataset_params(obj, name: str) -> dict:
     unknown = sorted(set(obj["noise"]) - set(Params._fields), key=str)
     if unknown:
         raise InputError(f"--params: noise: unknown key(s) {unknown}; expected some of {list(Params._fields)}")
-    check_thresholds(obj["noise"])  # gates, limits, pruning: before any log is read or compiled
+    check_thresholds(obj["noise"], "--params: noise")  # gates, limits, pruning: before any log is read or compiled
     check_matrices(obj["noise"], "--params: noise")  # shapes and definiteness, likewise
     # every value (range_model, robust_nu, calib0, ...) against the run's preset, likewise
     dtype = _run_dtype(None)

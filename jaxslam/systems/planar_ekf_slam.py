@@ -831,7 +831,8 @@ def params_from_dict(d: dict, base: Params, dtype=np.float64, where: str = "para
                 raise InputError(f"{where}.monitor: expected an object with keys "
                                  f"{list(cons.MonitorParams._fields)}, got {v!r}")
             cur = (MONITOR_DEFAULT if vals["monitor"] is None else vals["monitor"])._asdict()
-            cur.update({f: float(x) for f, x in v.items()})
+            for f, x in v.items():  # (a string or a list was a bare ValueError / TypeError)
+                cur[f] = check_scalar(x, f"{where}.monitor.{f}", finite=False)
             vals[k] = cons.MonitorParams(**cur)
             continue
         if v is None and k in THRESHOLDS:  # an optional threshold switched off (JSON null)

@@ -246,6 +246,9 @@ def test_plaza_robot_must_be_1_or_2(robot):
     ({"robust_nu": -1}, r"noise\.robust_nu"),
     ({"calib0": "abc"}, r"noise\.calib0"),
     ({"calib0": [1.0, 2.0]}, r"noise\.calib0"),
+    ({"gate": "abc"}, r"noise\.gate: expected a number"),  # (named params.gate before)
+    ({"monitor": {"alpha": "abc"}}, r"noise\.monitor\.alpha: expected a number"),  # (a bare ValueError)
+    ({"monitor": {"alpha": [0.1, 0.2]}}, r"noise\.monitor\.alpha: expected a number"),  # (a TypeError)
 ])
 def test_ekf_params_values_checked_before_the_log(name, noise, match):
     with pytest.raises(InputError, match=r"^--params: " + match):
