@@ -79,7 +79,7 @@ import numpy as np
 
 from .. import errors
 from ..errors import InputError, check_flag, check_int
-from ..linalg import check_mask, check_psd, is_concrete, symmetrize, value_and_jacfwd, wrap_angle
+from ..linalg import check_mask, check_psd, check_scalar, is_concrete, symmetrize, value_and_jacfwd, wrap_angle
 from ..stats import chi2_ppf_np
 from ..compilation import call_compiled
 from . import gaussian as _g
@@ -390,7 +390,8 @@ def update(
             ``gate(dof) -> threshold``.  When the NIS exceeds it the state is
             returned unchanged and ``errors.GATED`` is set.
         num_iter: static int ≥ 1, linearisations (iterated EKF when > 1).
-        tol: convergence tolerance of the iterations, in prior σ (traced).
+        tol: convergence tolerance of the iterations, in prior σ (traced; a finite number > 0 when
+            known now: InputError otherwise; a traced NaN sets NOT_CONVERGED).
 
     Returns:
         ``(posterior Gaussian, UpdateInfo)``.  On a failed Cholesky or a negative
@@ -401,6 +402,8 @@ def update(
     """
     check_num_iter(num_iter)
     state, z, R, mask = _g.check_update_call(state, z, R, mask, gate)  # the values known now
+    if tol is not None and is_concrete(tol):  # NaN or inf never flagged NOT_CONVERGED, -1 always
+        check_scalar(tol, "tol", lower=0, strict=True)
 
     def step(opts, state, z, R, mask):
         a, g, t = opts
@@ -452,7 +455,8 @@ def _update(state: Gaussian, z, h: Callable, R, *args, residual=None, mask=None,
         tol_v = jnp.asarray((1e-6 if dtype == jnp.float64 else 1e-3) if tol is None else tol, dtype)
         sig = jnp.sqrt(jnp.maximum(jnp.diagonal(P), jnp.finfo(dtype).tiny))
         moved = jnp.max(jnp.abs(x_post - x_prev) / sig)
-        extra = jnp.where(moved > tol_v, jnp.int32(errors.NOT_CONVERGED), jnp.int32(0))
+        # not (moved <= tol): a traced NaN tolerance (or a NaN step) counts as not converged
+        extra = jnp.where(moved <= tol_v, jnp.int32(0), jnp.int32(errors.NOT_CONVERGED))
     if gate is None:
         gated = jnp.asarray(False)
     else:

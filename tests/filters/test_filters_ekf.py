@@ -763,3 +763,23 @@ def test_linear_update_shared_equals_separate_numpy_kalman_updates(dtype):
     one = jax.jit(ekf.linear_update)(*(jnp.asarray(a, dtype) for a in (xs[0], P, nus[0], H, R)),
                                      jnp.asarray(mask))  # jitted for speed only
     np.testing.assert_allclose(np.asarray(one[0]), xs_post[0], rtol=tol, atol=tol)
+
+
+def test_iterated_update_tolerance_is_checked():
+    """Review of 2026-12-07: a concrete tol was never checked (NaN or inf never flagged
+    NOT_CONVERGED, -1 always); a traced NaN now counts as not converged."""
+    from jaxslam import errors
+    from jaxslam.errors import InputError
+
+    G = ekf.Gaussian(np.array([1.0, 2.0]), 4 * np.eye(2))
+    h = lambda v: jnp.array([v[0] ** 3 + v[1] ** 2])  # noqa: E731 (far from converged in 2 steps)
+    z, R = np.array([40.0]), np.array([[0.01]])
+    for bad in (-1.0, 0.0, np.nan, np.inf, "1e-3"):
+        with pytest.raises(InputError, match=r"^tol: expected a positive finite scalar"):
+            ekf.update(G, z, h, R, num_iter=2, tol=bad)
+    _, info = ekf.update(G, z, h, R, num_iter=2)
+    assert int(info.status) & errors.NOT_CONVERGED
+    _, info = jax.jit(lambda t: ekf.update(G, z, h, R, num_iter=2, tol=t))(jnp.nan)
+    assert int(info.status) & errors.NOT_CONVERGED
+    _, info = ekf.update(G, z, h, R, num_iter=2, tol=1e6)  # a loose tolerance: converged
+    assert not int(info.status) & errors.NOT_CONVERGED
