@@ -254,7 +254,8 @@ def write_json(path, obj) -> pathlib.Path:
         atomic_write(path, lambda f: f.write(text))  # never leave a half-written JSON behind
     except OSError as e:  # (first: atomic_write's failed write is an InputError and an OSError)
         raise InputError(f"path: cannot write JSON to {str(path)!r}: {e.strerror or e}") from None
-    except InputError as e:  # a file where a folder is due (files.atomic_write says which)
+    except ValueError as e:  # an InputError (a file where a folder is due: files.atomic_write says
+        # which), or Python's own for a NUL byte in the path ("embedded null byte")
         raise InputError(f"path: cannot write JSON to {str(path)!r}: {str(e).removeprefix('path: ')}") from None
     return path
 

@@ -84,3 +84,11 @@ def test_plotting_refuses_bad_input(tmp_path):
         flight.plt().close("all")
     assert uwb.ellipse_points(np.zeros(2), np.eye(2), n=8).shape == (8, 2)
     assert pt.choose_panels(report, max_panels=1)[0][0]["key"] == "a"
+
+
+def test_write_json_refuses_a_nul_byte_in_the_path(tmp_path):
+    """Review of 2026-12-07: Python's own ValueError ("embedded null byte") escaped."""
+    from jaxslam.errors import InputError
+
+    with pytest.raises(InputError, match=r"^path: cannot write JSON to .*embedded null byte"):
+        io.write_json(str(tmp_path / "a\0b.json"), {"x": 1})

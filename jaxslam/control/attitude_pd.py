@@ -58,7 +58,7 @@ def gains_from_bandwidth(inertia, omega_n, zeta) -> PDGains:
     for v, nm in ((inertia, "inertia"), (omega_n, "omega_n"), (zeta, "zeta")):
         if is_concrete(v):  # (traced: real_float below checks the dtype)  # a negative bandwidth or damping gave negative (destabilising) gains
             a = real_numbers(v, nm)
-            if a.ndim > 1 or not np.all(np.isfinite(a)) or np.any(a <= 0 if nm == "inertia" else a < 0):
+            if a.shape not in ((), (3,)) or not np.all(np.isfinite(a)) or np.any(a <= 0 if nm == "inertia" else a < 0):
                 want = "finite and > 0" if nm == "inertia" else "finite and >= 0"
                 raise InputError(f"{nm}: expected {want} (a scalar or (3,)), got {v!r}")
     J = real_float(inertia, "inertia")
@@ -78,6 +78,12 @@ def pd_torque(euler, omega, euler_d, omega_d, gains, tau_ff=None):
     for v, nm in ((omega, "omega"), (euler_d, "euler_d"), (omega_d, "omega_d")):
         check_real(v, nm)
         check_shape(v, (3,), nm)
+    for v, nm in ((gains.kp, "gains.kp"), (gains.kd, "gains.kd"), (tau_ff, "tau_ff")):
+        if v is not None and is_concrete(v):  # (NaN gains gave a NaN torque, a (2,) tau_ff a TypeError)
+            check_real(v, nm)
+            check_shape(v, (3,), nm)
+            if not np.all(np.isfinite(np.asarray(v, np.float64))):
+                raise InputError(f"{nm}: expected finite numbers, got {v!r}"[:300])
     e = euler - jnp.asarray(euler_d, dtype)
     e = e.at[2].set(wrap_angle(e[2]))
     kp = jnp.asarray(gains.kp, dtype)

@@ -214,7 +214,8 @@ def law(x, gains, eps=1.0, switching="tanh"):
     ``"sign"`` (Python string, static).  Returns u (3,).
     """
     x = real_float(x, "x", (6,))  # an integer x truncated the gains to 0
-    _validate_known(eps=eps if switching == "tanh" else None)  # eps = 0 gave NaN (tanh only)
+    # eps = 0 gave NaN (tanh only); NaN gains a NaN torque, (3, 3) ones a bare TypeError
+    _validate_known(eps=eps if switching == "tanh" else None, gains=gains)
     dt = x.dtype
     K1 = jnp.asarray(gains.K1, dt)
     K2 = jnp.asarray(gains.K2, dt)
@@ -574,9 +575,18 @@ def closed_loop(xa0, q_d, gains, inertia, dt, steps, key, bounds, *, perturbatio
     """
     _validate_known(inertia=inertia, dt=dt, eps=eps if switching == "tanh" else None, tau_max=tau_max,
                     switching=switching, model=model,
-                    perturbation_name=perturbation_name)
+                    perturbation_name=perturbation_name, gains=gains, xa0=xa0, q_d=q_d)
     check_real(xa0, "xa0")
     check_shape(xa0, (7,), "xa0")
+    # (a zero q_d or xa0 quaternion, NaN gains, bounds or omega_d ran to an all-NaN rollout)
+    if is_concrete(bounds):
+        b = np.asarray([np.asarray(v, np.float64) for v in bounds]) if len(bounds) == 2 else None
+        if b is None or b.shape != (2,) or not np.all(np.isfinite(b) & (b >= 0)):
+            raise InputError(f"bounds: expected (L1, L2), two finite numbers >= 0, got {bounds!r}"[:300])
+    if omega_d is not None and is_concrete(omega_d):
+        check_shape(omega_d, (3,), "omega_d")
+        if not np.all(np.isfinite(np.asarray(omega_d, np.float64))):
+            raise InputError(f"omega_d: expected finite rates, got {omega_d!r}"[:300])
     if not isinstance(steps, (int, np.integer)) or isinstance(steps, bool) or steps < 0:
         raise InputError(f"steps: expected an int >= 0 (static), got {steps!r}")
     return _closed_loop(xa0, q_d, gains, inertia, dt, steps, key, bounds,

@@ -879,6 +879,9 @@ def _check_propose(p: Particles, model: LandmarkModel, z, lm_ids, mask, R, pose_
     wrap = _check_angle_mask(angle_mask, n_r)
     if np.shape(mask) != (K_rows,):
         raise InputError(f"mask: expected shape ({K_rows},), got {np.shape(mask)}")
+    check_mask(mask, "mask")  # a 0.5 counted as True (observe_update refuses it)
+    if is_concrete(pose_cov):  # a negative or NaN one kept every prior pose, flagged only NON_FINITE
+        check_psd(np.asarray(pose_cov), "pose_cov", stack=True)
     if np.shape(lm_ids) not in ((K_rows,), (N, K_rows)):
         raise InputError(f"lm_ids: expected shape ({K_rows},) or ({N}, {K_rows}), got {np.shape(lm_ids)}")
     _check_rows(R, lm_ids, mask, gate)
@@ -896,6 +899,7 @@ def _propose_optimal(p: Particles, model: LandmarkModel, z, lm_ids, mask, R, pos
     dz = int(model.meas_dim)
     K_rows = z.shape[0]
     Rs = jnp.broadcast_to(R, (K_rows, dz, dz))
+    z_in = z
     finite = jnp.asarray(mask).astype(bool) & jnp.all(jnp.isfinite(z), axis=1)
     z = jnp.where(finite[:, None], z.astype(dtype), jnp.zeros((), dtype))
     res = model.residual if model.residual is not None else (lambda a, b: a - b)
@@ -965,6 +969,9 @@ def _propose_optimal(p: Particles, model: LandmarkModel, z, lm_ids, mask, R, pos
     loglik = jnp.where(ok, loglik, jnp.zeros((), dtype))
     log_marg = jax.scipy.special.logsumexp(p.log_w + loglik)
     status = _flag(~jnp.all(ok), errors.NON_FINITE)
+    # a present row with a non-finite entry is dropped: flagged, as observe_update flags it
+    status = status | _flag(jnp.any(jnp.asarray(mask).astype(bool) & ~jnp.all(jnp.isfinite(z_in), axis=1)),
+                            errors.MASKED_INPUT)
     return p._replace(pose=draw, status=p.status | status), loglik, log_marg, status
 
 

@@ -52,3 +52,22 @@ def test_yaw_error_is_wrapped():
     # Roll is not wrapped (documented).
     tau = pd_torque(jnp.array([0.2, 0.0, 0.0]), jnp.zeros(3), jnp.zeros(3), jnp.zeros(3), g)
     np.testing.assert_allclose(tau[0], -0.2)
+
+
+def test_pd_shapes_and_values_are_checked():
+    """Review of 2026-12-07: a (2,) inertia gave (2,) gains; NaN gains a NaN torque; a (2,)
+    tau_ff a bare TypeError."""
+    from jaxslam.errors import InputError
+
+    with pytest.raises(InputError, match=r"^inertia: expected finite and > 0 \(a scalar or \(3,\)\)"):
+        gains_from_bandwidth([0.1, 0.2], 10.0, 0.7)
+    with pytest.raises(InputError, match=r"^omega_n: expected finite and >= 0"):
+        gains_from_bandwidth([0.1, 0.2, 0.3], np.ones(5), 0.7)
+    z = np.zeros(3)
+    with pytest.raises(InputError, match=r"^gains\.kp: expected finite numbers"):
+        pd_torque(z, z, z, z, PDGains(kp=(np.nan, 1.0, 1.0), kd=(1.0, 1.0, 1.0)))
+    with pytest.raises(InputError, match=r"^tau_ff: expected shape \(3\), got \(2,\)"):
+        pd_torque(z, z, z, z, PDGains(), tau_ff=np.zeros(2))
+    tau = pd_torque(np.array([0.1, 0.0, 0.0]), z, z, z, PDGains(kp=(2.0, 1.0, 1.0), kd=(1.0, 1.0, 1.0)),
+                    tau_ff=np.ones(3))
+    np.testing.assert_allclose(np.asarray(tau), [-0.2 + 1.0, 1.0, 1.0])

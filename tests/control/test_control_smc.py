@@ -270,3 +270,31 @@ def test_app_b_torque_model_converges_below_the_exact_offset(design, name):
     err = np.degrees(np.asarray(r.norms)[:, 0])
     assert err[0] > 80.0
     assert np.max(err[-5000:]) < 0.3, np.max(err[-5000:])
+
+
+def test_closed_loop_and_law_refuse_known_bad_values():
+    """Review of 2026-12-07: a zero q_d or xa0 quaternion, NaN gains, bounds or omega_d ran to an
+    all-NaN rollout; negative bounds ran silently; a plain tuple of gains was an AttributeError;
+    law took NaN gains (a NaN torque) and (3, 3) ones (a bare TypeError)."""
+    g = _arr(smc.THESIS_SIM)
+    x0, qd = smc.initial_state(), jnp.asarray(smc.QD_CH34)
+    args = (jnp.asarray(J), 1e-3, 5, jax.random.PRNGKey(0))
+    cases = [
+        ((x0, jnp.zeros(4), g, *args, (0.1, 0.2)), r"^q_d: expected a finite unit quaternion"),
+        ((x0.at[:4].set(0.0), qd, g, *args, (0.1, 0.2)), r"^xa0: quaternion block must have unit norm"),
+        ((x0, qd, smc.SMCGains(g.K1 * np.nan, g.K2), *args, (0.1, 0.2)), r"^gains\.K1: contains NaN"),
+        ((x0, qd, (np.asarray(g.K1), np.asarray(g.K2)), *args, (0.1, 0.2)), r"^gains: expected SMCGains"),
+        ((x0, qd, g, *args, (np.nan, 0.1)), r"^bounds: expected \(L1, L2\)"),
+        ((x0, qd, g, *args, (-5.0, -1.0)), r"^bounds: expected \(L1, L2\)"),
+    ]
+    for a, msg in cases:
+        with pytest.raises(InputError, match=msg):
+            smc.closed_loop(*a, perturbation_name="none")
+    with pytest.raises(InputError, match=r"^omega_d: expected finite rates"):
+        smc.closed_loop(x0, qd, g, *args, (0.1, 0.2), perturbation_name="none", omega_d=jnp.array([np.nan, 0, 0]))
+    with pytest.raises(InputError, match=r"^gains\.K1: contains NaN"):
+        smc.law(jnp.zeros(6), smc.SMCGains(g.K1 * np.nan, g.K2))
+    with pytest.raises(InputError, match=r"^gains\.K1: expected shape \(3, 6\)"):
+        smc.law(jnp.zeros(6), smc.SMCGains(jnp.eye(3), g.K2))
+    r = smc.closed_loop(x0, qd, g, *args, (0.1, 0.2), perturbation_name="none")
+    assert np.isfinite(np.asarray(r.xa_final)).all()

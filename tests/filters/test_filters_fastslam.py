@@ -1028,3 +1028,28 @@ def test_optimal_proposal_gradient_finite_with_a_free_slot_at_the_pose():
                                jax.random.PRNGKey(0), robust=bad)
         with pytest.raises(InputError, match="robust"):
             fs.observe_update(p, MODEL, z, np.array([0, 1]), np.ones(2, bool), R_NP, robust=bad)
+
+
+def test_propose_optimal_checks_mask_and_pose_cov_and_flags_a_nan_row():
+    """Review of 2026-12-07: propose_optimal read a 0.5 mask as True and took a negative or NaN
+    pose_cov (every particle then kept its prior, only NON_FINITE said so), and a present NaN
+    row was dropped without the MASKED_INPUT that observe_update sets."""
+    from jaxslam.errors import InputError
+
+    N = 3
+    p = fs.init(np.zeros(3), N, 4, 2)
+    z = np.array([[1.0, 0.2]])
+    P0 = np.broadcast_to(0.01 * np.eye(3), (N, 3, 3))
+    key = jax.random.PRNGKey(0)
+    with pytest.raises(InputError, match=r"^mask: expected a bool mask"):
+        fs.propose_optimal(p, MODEL, z, np.array([0]), np.array([0.5]), R_NP, P0, key)
+    with pytest.raises(InputError, match=r"^pose_cov\[0\]: not positive semi-definite"):
+        fs.propose_optimal(p, MODEL, z, np.array([0]), np.array([True]), R_NP, -P0, key)
+    with pytest.raises(InputError, match=r"^pose_cov\[0\]: contains NaN"):
+        fs.propose_optimal(p, MODEL, z, np.array([0]), np.array([True]), R_NP, np.full((N, 3, 3), np.nan), key)
+    _, _, _, st = fs.propose_optimal(p, MODEL, np.array([[np.nan, 0.2]]), np.array([0]), np.array([True]), R_NP,
+                                     P0, key)
+    assert int(st) & errors.MASKED_INPUT
+    _, _, _, st = fs.propose_optimal(p, MODEL, np.array([[np.nan, 0.2]]), np.array([0]), np.array([False]), R_NP,
+                                     P0, key)
+    assert not int(st) & errors.MASKED_INPUT  # a masked-off NaN row is nobody's business
