@@ -222,6 +222,9 @@ def euler_from_dcm(C):
     m01 = cf * C[..., 0, 1] - sf * C[..., 0, 2]
     m11 = cf * C[..., 1, 1] - sf * C[..., 1, 2]
     psi = jnp.arctan2(-m01, m11)
+    # arctan2(−0, −1) is −π: the documented range is (−π, π]
+    phi = jnp.where(phi <= -jnp.pi, jnp.asarray(jnp.pi, phi.dtype), phi)
+    psi = jnp.where(psi <= -jnp.pi, jnp.asarray(jnp.pi, psi.dtype), psi)
     return jnp.stack([phi, theta, psi], axis=-1)
 
 

@@ -28,7 +28,7 @@ import numpy as np
 from ..compilation import call_compiled
 from ..control import dflqr
 from ..errors import InputError
-from ..linalg import check_flag, check_int, check_scalar, check_shape, is_concrete
+from ..linalg import check_flag, check_int, check_key, check_scalar, check_shape, is_concrete
 from ..control.trajectories import flat_output
 from ..dynamics import euler_ned
 from ..dynamics.integrators import rk4_step
@@ -159,6 +159,8 @@ def _check_setup(setup, n_frame, lidar_every, K, refs):
                                  f"sampled every control step), got {rate:g}")
     if K is not None:
         check_shape(K, (4, 7), "K")
+        if is_concrete(K) and not np.all(np.isfinite(np.asarray(K))):  # a NaN gain made every state NaN
+            raise InputError("K: contains NaN or Inf")
     if refs is not None:
         T = n_frame * lidar_every
         bad = [np.shape(a) for a in jax.tree.leaves(refs) if np.shape(a)[:1] != (T,)]
@@ -196,6 +198,7 @@ def simulate(setup: FlightSetup, key, n_frame: int, lidar_every: int,
     its nested scan again (0.76 s a call for a 2-frame flight) and kept the programs (~180
     memory mappings a call).
     """
+    check_key(key)  # (an int was JAX's bare "invalid PRNG key data" TypeError)
     n_frame, lidar_every = _check_simulate(setup, n_frame, lidar_every, estimator, control_on, K, feedforward,
                                            refs, checkpoint)
     return call_compiled(

@@ -469,6 +469,8 @@ def validate_config(cfg: Config) -> Config:
     # a float 4.5 was truncated, a string "4" accepted
     check_int(cfg.capacity, "config.capacity")
     check_int(cfg.lidar_every, "config.lidar_every")
+    for name in ("save_particles", "regen_noise"):  # a string "no" read as True
+        errors.check_flag(getattr(cfg, name), f"config.{name}")
     # a string dt failed with NumPy's bare "could not convert"
     reworded(lambda: check_scalar(cfg.dt, "config.dt", lower=0, strict=True),
              f"config.dt: must be a positive number of seconds, got {cfg.dt!r}")

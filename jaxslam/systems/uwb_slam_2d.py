@@ -834,6 +834,8 @@ def _check(log: Log, config: Config, params: Params) -> None:
         raise InputError(f"config.mode: expected 'slam' or 'localization', got {config.mode!r}")
     if config.model not in uwb.MODELS:
         raise InputError(f"config.model: expected one of {uwb.MODELS}, got {config.model!r}")
+    for name in ("debias", "r_scaled", "smooth", "delayed_init"):  # a string "no" read as True
+        errors.check_flag(getattr(config, name), f"config.{name}")
     check_int(config.buffer_size, "config.buffer_size", what="an int (delayed-initialisation samples)")
     check_int(config.buffer_stride, "config.buffer_stride", what="an int (steps between buffer samples)")
     if is_concrete(config.dt):  # a NaN dt froze the positions (NON_FINITE), 0 silently stopped time
@@ -891,6 +893,8 @@ def run(log: Log, config: Config = Config(), params: Optional[Params] = None, *,
     if params is None:
         if config.model not in uwb.MODELS:
             raise InputError(f"config.model: expected one of {uwb.MODELS}, got {config.model!r}")
+        if is_concrete(config.dt):  # (the defaults are built from it: a string was NumPy's own error)
+            check_scalar(config.dt, "config.dt", lower=0, strict=True)
         params = paper_params(config.model, config.dt, dtype=jnp.result_type(log.ranges, float))
     _check(log, config, params)
     return _run(log, config, _thresholds_as_arrays(params))

@@ -181,3 +181,15 @@ def test_rotate_and_unrotate_jacobians_match_central_differences_and_autodiff():
         assert Jf.dtype == jnp.float32
         np.testing.assert_allclose(np.asarray(Jf), np.asarray(eu.unrotate_jacobian(jnp.asarray(e), jnp.asarray(v))),
                                    rtol=1e-4, atol=1e-4)
+
+
+def test_euler_from_dcm_stays_in_its_half_open_range():
+    """arctan2(−0, −1) is −π: diag(−1, −1, 1) (ψ = π) and diag(1, −1, −1) (φ = π) read −π, outside
+    the documented (−π, π] (review of 2026-12-07)."""
+    from jaxslam.geometry.euler import euler_from_dcm
+
+    for C, want in ((np.diag([-1.0, -1.0, 1.0]), [0.0, 0.0, np.pi]),
+                    (np.array([[1.0, 0, 0], [0, -1.0, 0], [-0.0, -0.0, -1.0]]), [np.pi, 0.0, 0.0])):
+        e = np.asarray(euler_from_dcm(jax.numpy.asarray(C)))
+        np.testing.assert_allclose(e, want, atol=1e-15)
+        assert np.all(e > -np.pi) and np.all(e <= np.pi)

@@ -217,3 +217,17 @@ def test_sharded_monte_carlo_sends_nothing_between_devices():
     assert res["n"] == 2 and res["coll"] == [], res
     # Per-device bound vs one device's bound over all 8: the loop extent differs, the values not.
     np.testing.assert_allclose(res["two"], res["one"], rtol=0, atol=0)
+
+
+def test_simulate_refuses_a_nan_gain_and_a_bad_key():
+    """Review of 2026-12-07: a NaN gain K made every state of the flight NaN without a word, and
+    an int key was JAX's bare 'invalid PRNG key data' TypeError."""
+    from jaxslam.errors import InputError
+    from jaxslam.sim import simulate as S
+    from jaxslam.sim.scenarios import tracking as T
+
+    setup = T.make_setup(T.paper000_figure8(), jnp.float64, landmarks=jnp.array([[5.0, 0, -1]]))
+    with pytest.raises(InputError, match=r"^K: contains NaN or Inf"):
+        S.simulate(setup, jax.random.PRNGKey(3), 2, 4, K=jnp.full((4, 7), jnp.nan))
+    with pytest.raises(InputError, match=r"^key: expected a PRNG key"):
+        S.simulate(setup, 3, 2, 4)

@@ -573,3 +573,27 @@ def test_fastslam_001_counts_landmark_ids_beyond_capacity_as_overflow():
     assert int(p.overflow) == 2  # id 9 in each of the 2 frames
     assert int(p.status) & errors.CAPACITY_OVERFLOW
     np.testing.assert_array_equal(np.asarray(p.ids), np.tile([-1, -1, -1, 3], (8, 1)))
+
+
+def test_review_2026_12_07_config_switches_and_a_text_dt():
+    """A string "no" for a switch read as True (uwb_slam_2d: debias, r_scaled, smooth,
+    delayed_init; fastslam_001: save_particles, regen_noise); a text dt with params=None was
+    NumPy's own error, raised while the default parameters were built."""
+    import numpy as np
+
+    from jaxslam.errors import InputError
+    from jaxslam.systems import fastslam_001 as f001, uwb_slam_2d as u
+
+    A = np.array([[0, 0], [10, 0], [5, 8.0], [2, 6]])
+    pos = np.array([[3.0, 3.0]] * 5)
+    r = np.linalg.norm(pos[:, None] - A[None], axis=-1)
+    log = u.Log(r[:1], np.ones_like(r[:1], bool), r, np.ones_like(r, bool), np.zeros((5, 3)), A)
+    for name in ("debias", "r_scaled", "smooth", "delayed_init"):
+        with pytest.raises(InputError, match=rf"^config\.{name}: expected True or False, got 'no'"):
+            u.run(log, u.Config(mode="localization", **{name: "no"}))
+    with pytest.raises(InputError, match=r"^config\.dt: expected a positive finite scalar, got 'a'"):
+        u.run(log, u.Config(mode="localization", dt="a"))
+    for name in ("save_particles", "regen_noise"):
+        with pytest.raises(InputError, match=rf"^config\.{name}: expected True or False, got 'no'"):
+            f001.validate_config(f001.Config(**{name: "no"}))
+    f001.validate_config(f001.Config())
