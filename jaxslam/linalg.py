@@ -497,8 +497,8 @@ def float_array(x, name: str):
     if not isinstance(x, (jax.Array, np.ndarray)) or x.dtype.kind not in "biuf":
         if is_concrete(x):
             check_numbers(x, name)
-    if type(x) is np.ndarray:  # converted on the host: no eager program (:func:`to_jax`)
-        return jax.device_put(x if x.dtype.kind in "fc" else x.astype(jnp.result_type(float)))
+    if type(x) is np.ndarray:  # converted on the host: no eager program
+        return to_jax(x if x.dtype.kind in "fc" else x.astype(jnp.result_type(float)))
     x = jnp.asarray(x)
     return x if jnp.issubdtype(x.dtype, jnp.inexact) else x.astype(jnp.result_type(float))
 

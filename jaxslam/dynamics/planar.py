@@ -87,16 +87,13 @@ def _sinc_terms(w):
     small = jnp.abs(w) < (0.1 if f32 else 1e-4)
     ws = jnp.where(small, 1.0, w)
     w2 = w * w
-    if f32:
-        s = jnp.where(small, 1.0 - w2 / 6.0 + w2 * w2 / 120.0 - w2 * w2 * w2 / 5040.0, jnp.sin(ws) / ws)
-    else:  # (the float64 form as it was: its runs keep their bits)
-        s = jnp.where(small, 1.0 - w2 / 6.0 + w2 * w2 / 120.0, jnp.sin(ws) / ws)
+    s_taylor = 1.0 - w2 / 6.0 + w2 * w2 / 120.0
+    c_taylor = w / 2.0 - w * w2 / 24.0
+    if f32:  # (float64 keeps its form, and its runs their bits)
+        s_taylor = s_taylor - w2 * w2 * w2 / 5040.0
+        c_taylor = c_taylor + w * w2 * w2 / 720.0
     sh = jnp.sin(0.5 * ws)
-    if f32:
-        c = jnp.where(small, w / 2.0 - w * w2 / 24.0 + w * w2 * w2 / 720.0, 2.0 * sh * sh / ws)
-    else:
-        c = jnp.where(small, w / 2.0 - w * w2 / 24.0, 2.0 * sh * sh / ws)
-    return s, c
+    return jnp.where(small, s_taylor, jnp.sin(ws) / ws), jnp.where(small, c_taylor, 2.0 * sh * sh / ws)
 
 
 def _check_step(s, u, fn: str):

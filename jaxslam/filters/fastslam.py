@@ -899,7 +899,6 @@ def _propose_optimal(p: Particles, model: LandmarkModel, z, lm_ids, mask, R, pos
     dz = int(model.meas_dim)
     K_rows = z.shape[0]
     Rs = jnp.broadcast_to(R, (K_rows, dz, dz))
-    z_in = z
     finite = jnp.asarray(mask).astype(bool) & jnp.all(jnp.isfinite(z), axis=1)
     z = jnp.where(finite[:, None], z.astype(dtype), jnp.zeros((), dtype))
     res = model.residual if model.residual is not None else (lambda a, b: a - b)
@@ -970,8 +969,7 @@ def _propose_optimal(p: Particles, model: LandmarkModel, z, lm_ids, mask, R, pos
     log_marg = jax.scipy.special.logsumexp(p.log_w + loglik)
     status = _flag(~jnp.all(ok), errors.NON_FINITE)
     # a present row with a non-finite entry is dropped: flagged, as observe_update flags it
-    status = status | _flag(jnp.any(jnp.asarray(mask).astype(bool) & ~jnp.all(jnp.isfinite(z_in), axis=1)),
-                            errors.MASKED_INPUT)
+    status = status | _flag(jnp.any(jnp.asarray(mask).astype(bool) & ~finite), errors.MASKED_INPUT)
     return p._replace(pose=draw, status=p.status | status), loglik, log_marg, status
 
 

@@ -412,9 +412,7 @@ def iterated(
     _check_function(residual, "residual", "a function residual(z, z_hat)")
     _check_function(difference, "difference", "a function difference(a, b)")
     predict_first, save_cov = check_flag(predict_first, "predict_first"), check_flag(save_cov, "save_cov")
-    if robust is not None and not callable(robust):
-        raise InputError(f"robust: expected None or an IRLS weight function w(r) (e.g. huber_weight()), "
-                         f"got {robust!r}")
+    _check_function(robust, "robust", "an IRLS weight function w(r) (e.g. huber_weight())")
     if tol is not None:
         if np.ndim(tol) != 0:
             raise InputError(f"tol: expected a scalar tolerance in smoothed σ, got shape {np.shape(tol)}")

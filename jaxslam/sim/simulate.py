@@ -28,7 +28,7 @@ import numpy as np
 from ..compilation import call_compiled
 from ..control import dflqr
 from ..errors import InputError
-from ..linalg import check_flag, check_int, check_key, check_scalar, check_shape, is_concrete
+from ..linalg import check_finite, check_flag, check_int, check_key, check_scalar, check_shape, is_concrete
 from ..control.trajectories import flat_output
 from ..dynamics import euler_ned
 from ..dynamics.integrators import rk4_step
@@ -159,8 +159,7 @@ def _check_setup(setup, n_frame, lidar_every, K, refs):
                                  f"sampled every control step), got {rate:g}")
     if K is not None:
         check_shape(K, (4, 7), "K")
-        if is_concrete(K) and not np.all(np.isfinite(np.asarray(K))):  # a NaN gain made every state NaN
-            raise InputError("K: contains NaN or Inf")
+        check_finite(K, "K")  # a NaN gain made every state NaN
     if refs is not None:
         T = n_frame * lidar_every
         bad = [np.shape(a) for a in jax.tree.leaves(refs) if np.shape(a)[:1] != (T,)]
