@@ -57,8 +57,9 @@ def load(path) -> dict:
     """Read a ``--params`` JSON file whose top level is an object.
 
     Raises:
-      InputError: the file is missing or unreadable, is not valid JSON, or its top level
-        is not an object.
+      InputError: the file is missing or unreadable, is not valid JSON, repeats a key within
+        one object (JSON parsers keep only the last, so a hand-edited value would be silently
+        dropped), or its top level is not an object.
     """
     path = pathlib.Path(path)
     try:
@@ -69,8 +70,17 @@ def load(path) -> dict:
         raise InputError(f"--params: {str(path)!r} is a folder, not a JSON file") from None
     except (OSError, UnicodeDecodeError) as e:
         raise InputError(f"--params: cannot read {str(path)!r}: {getattr(e, 'strerror', None) or e}") from None
+    def unique_keys(pairs):
+        obj = {}
+        for key, value in pairs:
+            if key in obj:
+                raise InputError(f"--params: {str(path)!r} gives the key {key!r} twice in one object "
+                                 "(only one value can hold; remove the other)")
+            obj[key] = value
+        return obj
+
     try:
-        obj = json.loads(text)
+        obj = json.loads(text, object_pairs_hook=unique_keys)
     except json.JSONDecodeError as e:
         raise InputError(
             f"--params: {str(path)!r} is not valid JSON (line {e.lineno}, column {e.colno}: {e.msg})"

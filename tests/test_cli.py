@@ -671,6 +671,18 @@ def test_load_params_ok(tmp_path):
     assert paramfile.load(f) == {"a": 1}
 
 
+def test_load_params_refuses_a_key_given_twice(tmp_path):
+    from jaxslam import paramfile
+    from jaxslam.errors import InputError
+
+    f = tmp_path / "p.json"
+    f.write_text('{"a": {"b": 1, "b": 2}, "c": [{"d": 1}, {"d": 2}]}')
+    with pytest.raises(InputError, match="gives the key 'b' twice"):
+        paramfile.load(f)
+    f.write_text('{"a": {"b": 1}, "c": [{"d": 1}, {"d": 2}]}')  # equal keys in two objects are fine
+    assert paramfile.load(f) == {"a": {"b": 1}, "c": [{"d": 1}, {"d": 2}]}
+
+
 # ----------------------------------------------------------------------------- progress
 
 

@@ -64,6 +64,9 @@ def _files(tmp: pathlib.Path) -> None:
     for name, doc in docs.items():
         (tmp / f"{name}.json").write_text(doc if isinstance(doc, str) else json.dumps(doc))
     (tmp / "nan.json").write_text('{"controller": {"kp": [NaN, 1, 1]}}')  # Python's json reads NaN
+    # A key given twice: JSON parsers keep the last value, so an edit above it would be lost
+    (tmp / "dupkey.json").write_text('{"controller": {"kp": [1, 1, 1], "kp": [2, 2, 2]}}')
+    (tmp / "dsdupkey.json").write_text('{"dataset": "mrclam", "noise": {}, "noise": {"R": [1, 1]}}')
 
 
 def _cases(t: pathlib.Path) -> list:
@@ -109,6 +112,7 @@ def _cases(t: pathlib.Path) -> list:
         (run8 + ["--params", p("asym")], "controller.R", None),
         (run8 + ["--params", p("nan")], "controller.kp", None),
         (run8 + ["--params", p("strings")], "controller.kp", None),
+        (run8 + ["--params", p("dupkey")], "'kp' twice", None),
         (run8 + ["--params", p("other")], "'scenario'", None),
         (run8 + ["--params", p("dsfile")], "dataset", None),
         (["run", "attitude-smc", "--params", p("key")], "--params", None),
@@ -132,6 +136,7 @@ def _cases(t: pathlib.Path) -> list:
         (["dataset", "mrclam", "--data", d, "--params", p("dsother")], "dataset", None),
         (["dataset", "mrclam", "--data", d, "--params", p("scenfile")], "--params", None),
         (["dataset", "mrclam", "--data", d, "--params", p("dskey")], "sigma_nope", None),
+        (["dataset", "mrclam", "--data", d, "--params", p("dsdupkey")], "'noise' twice", None),
         (["dataset", "mrclam", "--data", d, "--params", p("inverted")], "range_min", None),
         (["dataset", "mrclam", "--data", d, "--params", p("prunefrac")], "prune_min_obs", None),
         (["dataset", "mrclam", "--data", d, "--params", p("dsnotpd")], "--params: noise.R", None),
