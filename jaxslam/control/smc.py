@@ -240,7 +240,7 @@ def torque(u, omega, inertia, model="exact", tau_max=None):
                     inertia=inertia if model == "exact" else None)
     dt = u.dtype
     if model == "exact":
-        w = jnp.asarray(omega, dt)
+        w = real_float(omega, "omega", (3,)).astype(dt)  # a (3, 3) ω broadcast to a (3, 3) τ
         J = jnp.asarray(inertia, dt)
         tau = J * u + jnp.cross(w, J * w)
     elif model == "direct":

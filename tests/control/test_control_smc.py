@@ -105,6 +105,9 @@ def test_law_and_torque_oracles():
     np.testing.assert_allclose(np.asarray(smc.torque(jnp.asarray(u), jnp.asarray(w), J)), tau,
                                rtol=1e-13)
     np.testing.assert_allclose(np.asarray(smc.torque(jnp.asarray(u), w, J, "direct")), u)
+    for bad in (np.ones((3, 3)), np.ones(2), "abc"):  # a (3, 3) ω used to broadcast to a (3, 3) τ
+        with pytest.raises(InputError, match="omega"):
+            smc.torque(jnp.asarray(u), bad, J)
     np.testing.assert_allclose(np.asarray(smc.torque(jnp.asarray(u), w, J, "direct", 0.18)),
                                np.clip(u, -0.18, 0.18))
     # state error: 2 ln(q ⊗ q_d*) and ω − ω_d
