@@ -46,7 +46,8 @@ from .registry import (Scenario, ScenarioResult, _checked_args, _duration_flown,
 from .tracking import (DT, FRAME_STEPS, SETTLED_AFTER_S, controller_from_dict, controller_to_dict,
                        make_setup, paper000_figure8, tracking_metrics)
 
-N_LANDMARKS = 40  # Table 3 (the default of --landmarks, builtin.py)
+# Table 3: 40, the default of --landmarks (read from the declaration, so the two cannot drift)
+N_LANDMARKS = next(o.default for o in DECLARED["ekfslam3d-known"].options if o.name == "landmarks")
 WINDOW_S = 10.0
 # What each statistic of ``consistency`` covers (docs/cli.md, "consistency"): the NEES is of the
 # 9-state robot block, the NIS of every LiDAR row, normalised per degree of freedom.
