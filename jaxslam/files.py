@@ -157,19 +157,44 @@ def prepare_dir(flag: str, path) -> pathlib.Path:
     return p
 
 
-def distinct_outputs(**paths) -> None:
-    """No two output options name the same file (``flag=path``, underscores for dashes, None:
-    not asked for); else an :class:`InputError` naming both (the later write would replace the
-    earlier's)."""
+def distinct_outputs(*, folders=None, inputs=None, **paths) -> None:
+    """No output overwrites another output or an input; else an :class:`InputError` naming the
+    option (the later write would replace the earlier's, or the input the command reads).
+
+    ``paths``: the output files (``flag=path``, underscores for dashes, None: not asked for),
+    pairwise distinct.  ``folders``: the output folders (``{flag: path}``), none of which may be
+    an output file or lie under one (the folder could not be made, or the file not written,
+    after the compute).  ``inputs``: the files the command reads (``{flag: path}``), none of
+    which may be an output file.
+    """
+    def key(name, path):
+        flag = "--" + name.replace("_", "-")
+        return flag, _link_target(flag, pathlib.Path(path))
+
     seen = {}
     for name, path in paths.items():
         if path is None:
             continue
-        flag = "--" + name.replace("_", "-")
-        key = _link_target(flag, pathlib.Path(path))
-        if key in seen:
-            raise InputError(f"{flag}: {str(path)!r} is also {seen[key]}'s file; give each output its own path")
-        seen[key] = flag
+        flag, k = key(name, path)
+        if k in seen:
+            raise InputError(f"{flag}: {str(path)!r} is also {seen[k]}'s file; give each output its own path")
+        seen[k] = flag
+    for name, path in (inputs or {}).items():
+        if path is None:
+            continue
+        flag, k = key(name, path)
+        if k in seen:
+            raise InputError(f"{seen[k]}: {str(path)!r} is the {flag} file this command reads; writing it "
+                             "would replace it, so give the output another path")
+    for name, path in (folders or {}).items():
+        if path is None:
+            continue
+        flag, k = key(name, path)
+        for f, out in seen.items():
+            if k == f or f in k.parents:
+                where = "is" if k == f else "lies under"
+                raise InputError(f"{flag}: {str(path)!r} {where} {out}'s file {str(f)!r}; give the folder "
+                                 "another path")
 
 
 def atomic_write(path, write: Callable, mode: str = "w") -> pathlib.Path:

@@ -182,6 +182,53 @@ def test_run_json_plots_and_summary_stats(tmp_path, capsys):
     assert "pos_rmse_m" in captured.out and "anees" in captured.out and "runs/s" in captured.out
 
 
+class _ReaderLeaves:
+    """A stdout whose pipe reader left after the first line (``jaxslam run ... | head -1``)."""
+
+    def __init__(self):
+        self.lines = 0
+
+    def write(self, text):
+        self.lines += 1
+        if self.lines > 1:
+            raise BrokenPipeError(32, "Broken pipe")
+        return len(text)
+
+    def flush(self):
+        if self.lines > 1:
+            raise BrokenPipeError(32, "Broken pipe")
+
+    def fileno(self):
+        raise ValueError("no descriptor")  # a capture, not a terminal: nothing to redirect
+
+
+def test_run_writes_its_files_when_the_stdout_reader_leaves(tmp_path, monkeypatch):
+    # The first table line used to end the command (BrokenPipeError -> exit 0) before --json
+    # and --plots were written.
+    out_json, plots = tmp_path / "r.json", tmp_path / "plots"
+    gone = _ReaderLeaves()
+    monkeypatch.setattr(sys, "stdout", gone)
+    assert cli.main(["run", "dummy", "--runs", "2", "--json", str(out_json), "--plots", str(plots)]) == 0
+    assert sys.stdout is gone and gone.lines > 1
+    assert _strict_json(out_json)["runs"] == 2 and (plots / "dummy_pos.png").read_bytes()[:8] == PNG_MAGIC
+
+
+@pytest.mark.parametrize("case", ["plots_is_json", "plots_under_json", "json_is_params"])
+def test_run_refuses_an_output_on_another_output_or_its_input(tmp_path, capsys, case):
+    # Each used to pass the early checks: the first two failed after the compute with nothing
+    # written ('path: cannot write JSON'), the third replaced the --params file with the report.
+    f = tmp_path / "p.json"
+    f.write_text("{}")
+    argv, flag = {"plots_is_json": (["--json", str(tmp_path / "o"), "--plots", str(tmp_path / "o")], "--plots"),
+                  "plots_under_json": (["--json", str(tmp_path / "o"), "--plots", str(tmp_path / "o" / "s")],
+                                       "--plots"),
+                  "json_is_params": (["--params", str(f), "--json", str(f)], "--json")}[case]
+    assert cli.main(["run", "dummy", *argv]) == 2
+    line = _stderr_line(capsys.readouterr().err)
+    assert line.startswith(f"jaxslam: error: {flag}:"), line
+    assert CALLS == [] and f.read_text() == "{}" and not (tmp_path / "o").exists()
+
+
 def test_run_float32_passes_float32(tmp_path, capsys):
     out_json = tmp_path / "o.json"
     assert cli.main(["run", "dummy", "--runs", "2", "--float32", "--json", str(out_json), "--quiet"]) == 0

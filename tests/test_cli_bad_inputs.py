@@ -60,6 +60,7 @@ def _files(tmp: pathlib.Path) -> None:
         "inverted": {"dataset": "mrclam", "noise": {"range_min": 5, "range_max": 1}},
         "prunefrac": {"dataset": "mrclam", "noise": {"prune_window_s": 2, "prune_min_obs": 2.5}},
         "dsnotpd": {"dataset": "mrclam", "noise": {"R": [-1, 1]}},
+        "dsread": {"dataset": "mrclam", "noise": {}},
     }
     for name, doc in docs.items():
         (tmp / f"{name}.json").write_text(doc if isinstance(doc, str) else json.dumps(doc))
@@ -137,6 +138,10 @@ def _cases(t: pathlib.Path) -> list:
         (["dataset", "mrclam", "--data", d, "--params", p("scenfile")], "--params", None),
         (["dataset", "mrclam", "--data", d, "--params", p("dskey")], "sigma_nope", None),
         (["dataset", "mrclam", "--data", d, "--params", p("dsdupkey")], "'noise' twice", None),
+        # an output on another output's path or on the file the command reads
+        (["dataset", "mrclam", "--data", d, "--json", str(t / "o1"), "--plots", str(t / "o1")], "--plots", None),
+        (["dataset", "mrclam", "--data", d, "--params", p("dsread"), "--tum", p("dsread")], "--tum", None),
+        (["tune", "track-figure8", "--json", str(t / "o2"), "--plots", str(t / "o2" / "s")], "--plots", None),
         (["dataset", "mrclam", "--data", d, "--params", p("inverted")], "range_min", None),
         (["dataset", "mrclam", "--data", d, "--params", p("prunefrac")], "prune_min_obs", None),
         (["dataset", "mrclam", "--data", d, "--params", p("dsnotpd")], "--params: noise.R", None),

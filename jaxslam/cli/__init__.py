@@ -50,7 +50,8 @@ import sys
 from jaxslam import __version__, runtime
 from jaxslam.errors import InputError
 
-from .common import DEBUG_ENV, PROG, Parser, UsageError, counting_interrupts, one_line, silence_stdout
+from .common import (DEBUG_ENV, PROG, Parser, UsageError, counting_interrupts, one_line, reader_gone_safe_stdout,
+                     silence_stdout)
 
 __all__ = ["main", "find_benchmarks_dir", "list_benchmarks"]
 
@@ -155,7 +156,7 @@ def main(argv: list[str] | None = None) -> int:
     Returns:
       The exit code: 0 success, 2 usage or input error, 1 internal failure, 130 interrupted.
     """
-    with _one_line_warnings(), counting_interrupts():
+    with _one_line_warnings(), counting_interrupts(), reader_gone_safe_stdout():
         return _main(argv)
 
 

@@ -144,6 +144,50 @@ def silence_stdout(fd: int = 1) -> None:
         os.close(null)
 
 
+class _ReaderGoneSafe:
+    """``sys.stdout`` while a command runs: when the reader of a pipe leaves (``jaxslam run ...
+    | head -1``), stdout is pointed at the null device and the command goes on, so that the
+    files it was asked for are still written (a ``BrokenPipeError`` at the first table line
+    used to end the command there, with exit 0 and no ``--json``)."""
+
+    def __init__(self, stream):
+        self._stream = stream
+
+    def _gone(self):
+        try:
+            silence_stdout(self._stream.fileno())
+        except (OSError, ValueError, AttributeError):  # no descriptor (a test's capture)
+            pass
+
+    def write(self, text):
+        try:
+            return self._stream.write(text)
+        except BrokenPipeError:
+            self._gone()
+            return len(text)
+
+    def flush(self):
+        try:
+            self._stream.flush()
+        except BrokenPipeError:
+            self._gone()
+
+    def __getattr__(self, name):
+        return getattr(self._stream, name)
+
+
+@contextlib.contextmanager
+def reader_gone_safe_stdout():
+    """Within: ``sys.stdout`` survives its pipe's reader leaving (:class:`_ReaderGoneSafe`)."""
+    stream = sys.stdout
+    sys.stdout = _ReaderGoneSafe(stream)
+    try:
+        yield
+    finally:
+        if isinstance(sys.stdout, _ReaderGoneSafe) and sys.stdout._stream is stream:
+            sys.stdout = stream
+
+
 # Ctrl-C while a command runs.  Python drops an exception raised where it cannot propagate -- a
 # gc callback (JAX runs one while it starts), a __del__, a weakref callback -- and prints only
 # "Exception ignored in ...".  Measured: a Ctrl-C in the first ~5 s of `jaxslam run` / `jaxslam

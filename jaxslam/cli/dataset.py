@@ -134,7 +134,8 @@ def main(argv) -> int:
     catalogue.check_robot(args.name, data, args.robot)
     json_path = files.prepare_file("--json", args.json) if args.json is not None else None
     tum_path = files.prepare_file("--tum", args.tum) if args.tum is not None else None
-    files.distinct_outputs(json=json_path, tum=tum_path)
+    files.distinct_outputs(json=json_path, tum=tum_path, folders={"plots": args.plots},
+                           inputs={"params": args.params})
     plots = files.prepare_dir("--plots", args.plots) if args.plots is not None else None
     if params is not None:
         paramfile.check_dataset_sections(params, args.name)  # its top level, still without JAX

@@ -161,6 +161,7 @@ def command(rest: list[str]) -> int:
         if raw_params is not None and isinstance(declared, Declared):  # its top level, still without JAX
             paramfile.check_sections(raw_params, declared.params_sections, target=declared.name)
         json_path = files.prepare_file("--json", pre.json) if pre.json is not None and leader else None
+        files.distinct_outputs(json=json_path, folders={"plots": pre.plots}, inputs={"params": pre.params})
         plots_dir = files.prepare_dir("--plots", pre.plots) if pre.plots is not None and leader else None
     if group == "launch":  # after those checks: a bad path fails here, not in one of the group
         return _launch_local(rest, pre.processes)

@@ -539,7 +539,8 @@ def main(argv=None) -> int:
         # Every output path checked (and its folder created) before JAX is even imported.
         json_path = files.prepare_file("--json", args.json) if args.json is not None else None
         params_out = files.prepare_file("--params-out", args.params_out) if args.params_out is not None else None
-        files.distinct_outputs(json=json_path, params_out=params_out)
+        files.distinct_outputs(json=json_path, params_out=params_out, folders={"plots": args.plots},
+                               inputs={"compare": getattr(args, "compare", None)})
         plots = files.prepare_dir("--plots", args.plots) if args.plots is not None else None
         import jax  # x64 before any target module is imported (module constants take its dtype)
 
