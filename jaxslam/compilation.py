@@ -644,9 +644,10 @@ def call_compiled(key, fn, args, options=None, *, after=1):
     strings, bools — joins the key (:func:`split_arrays`).
 
     Called under a transformation (the caller's own ``jit``, ``grad``, ``vmap``), with an
-    unhashable key, or with a key whose compiled call raised a ``TypeError`` or
-    ``OverflowError`` (a user's model branching in Python on an argument: JAX's concretization
-    errors; an argument JAX cannot take), ``fn`` runs as it always did, uncompiled — and so
+    unhashable key, or with a key whose compiled call raised a ``TypeError``, ``IndexError`` or
+    ``OverflowError`` (a user's model branching in Python on an argument, slicing with it or
+    indexing with a boolean mask: JAX's concretization errors; an argument JAX cannot take),
+    ``fn`` runs as it always did, uncompiled — and so
     raises the caller's own error, if it was one.
     """
     if options is not None:
@@ -686,8 +687,9 @@ def call_compiled(key, fn, args, options=None, *, after=1):
         return fn(*args)
     try:
         return entry(*args)
-    except (TypeError, OverflowError):
-        # JAX's concretization errors (TypeErrors), an argument JAX cannot take (a string
+    except (TypeError, IndexError, OverflowError):
+        # JAX's concretization errors (TypeErrors; IndexErrors for a slice bound or a boolean
+        # mask that is an argument), an argument JAX cannot take (a string
         # array, an int beyond int32 without x64): the uncompiled call, which raises the
         # same error again if it was the caller's own
         with _eager_lock:

@@ -135,6 +135,24 @@ def test_a_model_that_branches_in_python_on_an_argument_still_runs():
         np.testing.assert_allclose(np.asarray(out.means), np.asarray(ref.means), rtol=1e-12)
 
 
+def test_a_model_that_slices_with_an_argument_still_runs():
+    """A model slicing with an extra argument (``x[:n]``) or indexing with a boolean mask needs it
+    concrete; compiled, JAX raises an IndexError (not a TypeError), and the run goes back to the
+    uncompiled scan as for a Python branch (it raised 'Slice entries must be static integers')."""
+    def hn(x, n):
+        return jnp.sin(x[:n])[:1]
+
+    def hm(x, keep):
+        return jnp.sin(x[keep])[:1]
+
+    x0, P0, zs, mk = _data()
+    ref = ekf.filter_scan(f, lambda x: jnp.sin(x[:1]), x0, P0, None, zs, mk, Q, R)
+    for _ in range(3):
+        for hx, arg in ((hn, 1), (hm, np.asarray([True, False]))):
+            out = ekf.filter_scan(lambda x, u, a: f(x, u), hx, x0, P0, None, zs, mk, Q, R, arg)
+            np.testing.assert_allclose(np.asarray(out.means), np.asarray(ref.means), rtol=1e-12)
+
+
 def test_an_argument_jax_cannot_take_runs_uncompiled():
     """A string array among ``*args`` cannot be an argument of a compiled program (JAX raises a
     TypeError): the run goes back to the uncompiled scan, where the model reads it as before."""
