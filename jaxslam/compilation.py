@@ -79,14 +79,25 @@ def cache_disabled() -> bool:
 
 
 def cache_dir(path=None) -> pathlib.Path:
-    """The cache folder (see the module docstring for the order of precedence)."""
+    """The cache folder (see the module docstring for the order of precedence).
+
+    Raises:
+      InputError: a ``~`` that cannot be expanded (an unknown user, no home folder), naming
+        where the path came from.
+    """
+    def expand(p, source):
+        try:
+            return pathlib.Path(p).expanduser() if source != "home" else pathlib.Path.home() / ".cache"
+        except (RuntimeError, KeyError, OSError) as e:
+            raise InputError(f"compilation cache folder: cannot expand {str(p)!r} (from {source}): {str(e).rstrip('.')}") from None
+
     if path is not None:
-        return pathlib.Path(path).expanduser()
+        return expand(path, "the path given")
     env = os.environ.get(CACHE_DIR_ENV, "").strip()
     if env:
-        return pathlib.Path(env).expanduser()
+        return expand(env, f"${CACHE_DIR_ENV}")
     xdg = os.environ.get("XDG_CACHE_HOME", "").strip()
-    base = pathlib.Path(xdg).expanduser() if xdg else pathlib.Path.home() / ".cache"
+    base = expand(xdg, "$XDG_CACHE_HOME") if xdg else expand("~", "home")
     return base / "jaxslam" / "xla"
 
 
@@ -124,7 +135,13 @@ def enable_cache(path=None) -> pathlib.Path | None:
     if cache_disabled():
         disable_cache()
         return None
-    folder = cache_dir(path)
+    try:
+        folder = cache_dir(path)
+    except InputError as e:  # bad input never stops a run: one warning, then uncached
+        _warn_once(str(e), f"jaxslam: {e}; running without the persistent cache (set {CACHE_DIR_ENV} "
+                           f"to another folder, or {CACHE_ENV}=0 to silence this)")
+        disable_cache()
+        return None
     if _enabled_dir is not None and folder == _enabled_dir:
         return folder
     reason = _writable(folder)

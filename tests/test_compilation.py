@@ -79,6 +79,30 @@ def test_unwritable_folder_warns_once_and_runs_uncached(tmp_path, keep_cache, mo
     assert rep["timing"]["cache"]["dir"] is None and rep["timing"]["cache"]["hits"] == 0
 
 
+def test_a_cache_path_whose_home_cannot_be_found_warns_and_runs_uncached(keep_cache, monkeypatch, capsys):
+    # '~nosuchuser' raised RuntimeError from expanduser: every command, --version included,
+    # ended in a traceback
+    monkeypatch.delenv(compilation.CACHE_ENV, raising=False)
+    bad = "~no_such_user_of_jaxslam/x"
+    with pytest.raises(InputError, match=r"cannot expand '~no_such_user_of_jaxslam/x' \(from the path given\)"):
+        compilation.cache_dir(bad)
+    with warnings.catch_warnings(record=True) as w:
+        warnings.simplefilter("always")
+        assert compilation.enable_cache(bad) is None
+    assert [str(x.message) for x in w if issubclass(x.category, compilation.CacheWarning)]
+    monkeypatch.setenv(compilation.CACHE_DIR_ENV, bad)
+    with pytest.raises(InputError, match=r"\$JAXSLAM_CACHE_DIR"):
+        compilation.cache_dir()
+    monkeypatch.delenv(compilation.CACHE_DIR_ENV)
+    monkeypatch.setenv("XDG_CACHE_HOME", "~no_such_user_of_jaxslam")
+    with pytest.raises(InputError, match=r"\$XDG_CACHE_HOME"):
+        compilation.cache_dir()
+    monkeypatch.setenv(compilation.CACHE_DIR_ENV, bad)
+    assert cli.main(["cache", "info"]) == 2  # an exit-2 error naming the variable, no traceback
+    err = capsys.readouterr().err
+    assert "JAXSLAM_CACHE_DIR" in err and "Traceback" not in err
+
+
 def test_second_call_is_served_and_corrupt_entries_are_ignored(tmp_path):
     cache = tmp_path / "cache"
     p1, cold = _cli(RUN, cache, tmp_path)
