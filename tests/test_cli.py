@@ -8,6 +8,8 @@ Cases that depend on the process-wide x64 switch run the CLI in a subprocess.
 
 from __future__ import annotations
 
+import dataclasses
+import inspect
 import io as _io
 import json
 import math
@@ -180,6 +182,32 @@ def test_run_json_plots_and_summary_stats(tmp_path, capsys):
     assert png.read_bytes()[:8] == PNG_MAGIC
     assert f"wrote {out_json}" in captured.out and f"wrote {png}" in captured.out
     assert "pos_rmse_m" in captured.out and "anees" in captured.out and "runs/s" in captured.out
+
+
+def test_run_threads_applies_to_its_own_run_only(monkeypatch):
+    # --threads set $JAXSLAM_MC_THREADS for the rest of the process: a later in-process run
+    # without it ran on one thread too
+    from jaxslam.sim import monte_carlo
+
+    seen = []
+    registry.register(dataclasses.replace(DUMMY, run=_recording_threads(DUMMY.run, seen, monte_carlo)),
+                      replace=True)
+    monkeypatch.delenv("JAXSLAM_MC_THREADS", raising=False)
+    assert cli.main(["run", "dummy", "--threads", "1", "--quiet"]) == 0
+    assert "JAXSLAM_MC_THREADS" not in os.environ
+    monkeypatch.setenv("JAXSLAM_MC_THREADS", "3")
+    assert cli.main(["run", "dummy", "--threads", "2", "--quiet"]) == 0
+    assert os.environ["JAXSLAM_MC_THREADS"] == "3"
+    assert seen == [1, 2]
+
+
+def _recording_threads(run, seen, monte_carlo):
+    def wrapped(*a, **kw):
+        seen.append(monte_carlo.default_threads())
+        return run(*a, **kw)
+
+    wrapped.__signature__ = inspect.signature(run)  # the CLI passes plots= only to a run that takes it
+    return wrapped
 
 
 class _ReaderLeaves:

@@ -9,6 +9,7 @@ module-level constants get the right dtype; each scenario gets its own parser bu
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import pathlib
 import sys
@@ -196,17 +197,18 @@ def command(rest: list[str]) -> int:
     from jaxslam import compilation
     from jaxslam.sim import monte_carlo
 
-    if args.threads is not None:
-        os.environ["JAXSLAM_MC_THREADS"] = str(args.threads)  # read by monte_carlo.run's default
-    monte_carlo.default_threads()  # a bad $JAXSLAM_MC_THREADS fails here, before anything compiles
-    progress = Progress(args.runs, label=scenario.name, enabled=not args.quiet)
-    with compilation.account() as acct:
-        try:
-            kw = {"plots": plots_dir is not None} if _accepts(scenario.run, "plots") else {}
-            result = scenario.run(runs=args.runs, seed=args.seed, dtype=dtype, options=options,
-                                  progress=progress, params=params, **kw)
-        finally:
-            progress.close()
+    # --threads reaches monte_carlo.run's default through its variable, for this run only (an
+    # in-process caller's later runs keep their own)
+    with _environment("JAXSLAM_MC_THREADS", None if args.threads is None else str(args.threads)):
+        monte_carlo.default_threads()  # a bad $JAXSLAM_MC_THREADS fails here, before anything compiles
+        progress = Progress(args.runs, label=scenario.name, enabled=not args.quiet)
+        with compilation.account() as acct:
+            try:
+                kw = {"plots": plots_dir is not None} if _accepts(scenario.run, "plots") else {}
+                result = scenario.run(runs=args.runs, seed=args.seed, dtype=dtype, options=options,
+                                      progress=progress, params=params, **kw)
+            finally:
+                progress.close()
     if not isinstance(result, registry.ScenarioResult):
         raise TypeError(f"scenario {scenario.name!r} returned {type(result).__name__}, "
                         "expected ScenarioResult")
@@ -255,6 +257,23 @@ def command(rest: list[str]) -> int:
         for path in written:
             echo(f"wrote {path}")
     return 0
+
+
+@contextlib.contextmanager
+def _environment(name: str, value):
+    """Within: ``$name`` set to ``value`` (None: left as it is); restored after."""
+    if value is None:
+        yield
+        return
+    before = os.environ.get(name)
+    os.environ[name] = value
+    try:
+        yield
+    finally:
+        if before is None:
+            os.environ.pop(name, None)
+        else:
+            os.environ[name] = before
 
 
 def _process_group(pre):
