@@ -95,6 +95,12 @@ def _cases(t: pathlib.Path) -> list:
         (["run", "ekfslam3d-unknown", "--max-obs", "0"], "--max-obs", None),
         (["run", "uwb-circle", "--chunk", "0"], "--chunk", None),
         (run8 + ["--json", ""], "--json", None),  # an empty path is not "no file"
+        (["cache", "clear", "--dir", ""], "--dir", None),  # it cleared the current folder
+        (["list", "--data", ""], "--data", None),  # '' fell back to $JAXSLAM_DATA_DIR
+        (["list", "--dir", ""], "--dir", None),
+        (["dataset", "mrclam", "--data", ""], "--data", None),
+        (["bench", "filters", "--dir", ""], "--dir", None),
+        (run8 + ["--processe", "2"], "--processe", None),  # abbreviations: read by one parser only
         # output paths, checked before the run
         (run8 + ["--json", str(t / "afile" / "x.json")], "--json", None),
         (run8 + ["--json", str(t / "folder")], "--json", None),

@@ -20,7 +20,7 @@ import sys
 from jaxslam import files
 from jaxslam.errors import InputError
 
-from .common import PROG, Parser, UsageError, echo, finite_float, int_at_least
+from .common import PROG, Parser, UsageError, echo, finite_float, int_at_least, path_arg
 
 __all__ = ["command", "find_benchmarks_dir", "list_benchmarks"]
 
@@ -114,7 +114,7 @@ class _CheckedOptions:
 
 
 def _bench_common(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--dir", metavar="DIR",
+    p.add_argument("--dir", metavar="DIR", type=path_arg,
                    help="benchmarks folder (default: ./benchmarks, else the one beside the "
                         "jaxslam source)")
     p.add_argument("--json", metavar="PATH", help="write the bench JSON here")

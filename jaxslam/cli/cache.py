@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from .common import PROG, Parser, echo
+from .common import PROG, Parser, echo, path_arg
 
 __all__ = ["command"]
 
@@ -18,7 +18,7 @@ def command(rest: list[str]) -> int:
                             f"(folder: ${compilation.CACHE_DIR_ENV}, else $XDG_CACHE_HOME/jaxslam/xla, "
                             f"else ~/.cache/jaxslam/xla; {compilation.CACHE_ENV}=0 switches it off).")
     p.add_argument("action", choices=("info", "clear"), help="info: folder, entries, size; clear: delete the cache's own entries (other files in the folder are left alone)")
-    p.add_argument("--dir", metavar="DIR", help="the cache folder (default: as above)")
+    p.add_argument("--dir", metavar="DIR", type=path_arg, help="the cache folder (default: as above)")
     p.add_argument("--json", action="store_true", help="print the information as JSON")
     p.add_argument("--debug", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args(rest)

@@ -26,10 +26,24 @@ class UsageError(Exception):
 
 
 class Parser(argparse.ArgumentParser):
-    """An ArgumentParser whose errors become one-line :class:`UsageError` s."""
+    """An ArgumentParser whose errors become one-line :class:`UsageError` s, and which takes
+    options only by their whole names (an abbreviation such as ``--processe`` would be read
+    by one parser and passed on, unrecognised, by another)."""
+
+    def __init__(self, *args, **kwargs):
+        kwargs.setdefault("allow_abbrev", False)
+        super().__init__(*args, **kwargs)
 
     def error(self, message):  # noqa: D401 - argparse API
         raise UsageError(f"{self.prog}: {message} (see '{self.prog} --help')")
+
+
+def path_arg(text: str) -> str:
+    """argparse type: a file or folder path, not empty ('' used to mean "not given" and fell back
+    to the default folder, or acted on the current one)."""
+    if text.strip() == "":
+        raise argparse.ArgumentTypeError("'' is not a path (leave the option out for its default)")
+    return text
 
 
 def int_at_least(lo: int):

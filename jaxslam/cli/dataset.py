@@ -16,7 +16,7 @@ import sys
 
 from jaxslam.errors import InputError
 
-from .common import Parser, compile_timing, positive_int, raise_if_interrupted, seed_int
+from .common import Parser, compile_timing, path_arg, positive_int, raise_if_interrupted, seed_int
 
 __all__ = ["main"]
 
@@ -72,7 +72,7 @@ def _parser(help_params: bool = False):
                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("name", metavar="NAME", choices=("mrclam", "victoria-park", "util-uwb", "plaza"),
                    help="mrclam | victoria-park | util-uwb | plaza")
-    p.add_argument("--data", metavar="DIR", default=None,
+    p.add_argument("--data", metavar="DIR", type=path_arg, default=None,
                    help="folder holding the dataset files, or a parent of it (default: $JAXSLAM_DATA_DIR)")
     p.add_argument("--robot", type=positive_int, default=1, metavar="N",
                    help="MRCLAM robot number, or Plaza sequence 1|2 (default: 1)")

@@ -8,7 +8,7 @@ import os
 from jaxslam.errors import InputError
 
 from .bench import find_benchmarks_dir, list_benchmarks
-from .common import PROG, Parser, echo
+from .common import PROG, Parser, echo, path_arg
 
 __all__ = ["command"]
 
@@ -16,8 +16,8 @@ __all__ = ["command"]
 def command(rest: list[str]) -> int:
     """``jaxslam list``: scenarios, benchmarks and datasets (found or not)."""
     p = Parser(prog=f"{PROG} list", description="List scenarios, benchmarks and datasets.")
-    p.add_argument("--dir", metavar="DIR", help="benchmarks folder (default: see 'jaxslam bench --help')")
-    p.add_argument("--data", metavar="DIR",
+    p.add_argument("--dir", metavar="DIR", type=path_arg, help="benchmarks folder (default: see 'jaxslam bench --help')")
+    p.add_argument("--data", metavar="DIR", type=path_arg,
                    help="data folder whose datasets to show as found / not found (default: $JAXSLAM_DATA_DIR)")
     p.add_argument("--debug", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args(rest)

@@ -35,8 +35,8 @@ import time
 
 from jaxslam.errors import InputError
 
-from .common import (Parser, UsageError, compile_timing, finite_float, int_at_least, nonnegative_float, positive_float,
-                     raise_if_interrupted)
+from .common import (Parser, UsageError, compile_timing, finite_float, int_at_least, nonnegative_float, path_arg,
+                     positive_float, raise_if_interrupted)
 
 __all__ = ["main", "build_parser", "DEFAULTS"]
 
@@ -145,7 +145,7 @@ def build_parser(with_targets: bool = True) -> Parser:
                       help="also evaluate the controller of FILE (a --params file or a 'jaxslam tune "
                            "track-figure8 --target lqr' report) with the estimator in the loop")
     real = p.add_argument_group("real logs (jaxslam tune mrclam | util-uwb | plaza | victoria-park)")
-    real.add_argument("--data", metavar="DIR", default=None,
+    real.add_argument("--data", metavar="DIR", type=path_arg, default=None,
                       help="dataset folder (the one with mrclam6/, util_uwb/, gtsam/ or victoria_park/, or a "
                            "parent of it; for util-uwb also the flight folder itself; default: $JAXSLAM_DATA_DIR)")
     real.add_argument("--robots", type=_robot_list, default=None, metavar="LIST",
