@@ -121,3 +121,37 @@ def test_a_builtin_scenario_unregistered_is_gone_from_names_and_declared_too(tmp
             "registry.register(uwb._SCENARIOS['circle'])\n"
             "print('uwb-circle' in registry.names(), fails(registry.declared))")
     assert _fresh(code, tmp_path) == ["False", "True", "True", "False", "True", "True", "False"]
+
+
+def test_a_builtin_name_registered_or_unregistered_before_the_builtins_load(tmp_path):
+    # Before the built-ins loaded (lazily, on the first get), register() of a built-in's name
+    # succeeded and the next get() then failed for every scenario (the module's own register
+    # refused the taken name, again at each retry); unregister() did nothing.
+    code = ("import dataclasses\n"
+            "from jaxslam.sim.scenarios import registry\n"
+            "from jaxslam.sim.scenarios.builtin import DECLARED\n"
+            "def mine(**kw):\n"
+            "    raise RuntimeError('not run here')\n"
+            "try:\n"
+            "    registry.register(registry.Scenario('uwb-circle', 'mine', (), mine))\n"
+            "except registry.InputError as e:\n"
+            "    print('refused', 'already registered' in str(e))\n"
+            "s = registry.register(registry.Scenario('uwb-circle', 'mine', (), mine), replace=True)\n"
+            "print(registry.get('uwb-circle').description, registry.get('uwb-square').name)\n"
+            "registry.unregister('track-helix')\n"
+            "print('track-helix' in registry.names(), 'track-figure8' in registry.names())")
+    assert _fresh(code, tmp_path) == ["refused", "True", "mine", "uwb-square", "False", "True"]
+
+
+def test_scenario_options_may_not_take_the_names_of_the_run_command_s_own_options():
+    # --threads, --processes, --coordinator, --num-processes, --process-id were missing: a
+    # scenario option of that name registered, and 'jaxslam run' then failed with an internal
+    # argparse conflict when a user ran it
+    from jaxslam.cli import run as cli_run
+
+    own = {a.dest for a in cli_run._run_parser()._actions} - {"scenario"}
+    assert own <= registry.RESERVED_OPTION_NAMES, own - registry.RESERVED_OPTION_NAMES
+    for name in sorted(own):
+        opt = registry.Option(name, int, 1, "x")
+        with pytest.raises(InputError, match=name):
+            registry.register(registry.Scenario("reserved-test", "x", (opt,), lambda **kw: None))

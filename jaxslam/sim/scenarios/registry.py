@@ -64,10 +64,11 @@ __all__ = [
     "check_options",
 ]
 
-# Names used by the common `jaxslam run` options; a scenario option may not reuse them.
+# Names used by the common `jaxslam run` options; a scenario option may not reuse them (the
+# CLI's parser would refuse the second --NAME when a user runs it).
 RESERVED_OPTION_NAMES = frozenset(
     {"runs", "seed", "float32", "json", "plots", "quiet", "params", "debug", "help", "h", "version",
-     "scenario"}
+     "scenario", "threads", "processes", "coordinator", "num_processes", "process_id"}
 )
 
 _OPTION_TYPES = (float, int, str, bool)
@@ -269,6 +270,10 @@ def register(scenario: Scenario, *, replace: bool = False) -> Scenario:
         if opt.name in seen:
             raise InputError(f"scenario {name!r}: option {opt.name!r} given twice")
         seen.add(opt.name)
+    if name in DECLARED and name not in _REMOVED:
+        # a built-in's name: its module registers first, so that this entry replaces it (or is
+        # refused) now, not when the module loads on a later get()
+        _load_builtin()
     if name in _REGISTRY and not replace and _REGISTRY[name] is not scenario:
         raise InputError(f"register: a scenario named {name!r} is already registered")
     _REGISTRY[name] = scenario
@@ -278,6 +283,8 @@ def register(scenario: Scenario, *, replace: bool = False) -> Scenario:
 
 def unregister(name: str) -> None:
     """Remove a scenario (no error if absent); meant for tests and notebooks."""
+    if name in DECLARED and name not in _REMOVED:
+        _load_builtin()  # a built-in not loaded yet: removed now, not registered by a later load
     if _REGISTRY.pop(name, None) is not None:
         _REMOVED.add(name)  # a built-in one removed stays out of names() and declared() too
 
