@@ -175,7 +175,7 @@ def _read_text(path: Path, gz: bool) -> str:
             raw = path.read_bytes()
     except (EOFError, zlib.error, _gzip.BadGzipFile) as e:
         raise DataFormatError(path, None, f"corrupt or truncated gzip stream ({e})") from None
-    return raw.decode("utf-8", errors="replace")
+    return raw.decode("utf-8-sig", errors="replace")  # a byte-order mark (spreadsheet CSV) is not data
 
 
 def _split(s: str, delimiter: Optional[str]) -> list:
@@ -197,6 +197,8 @@ def _scan(path, rows, ncols, delimiter, truncated_last):
             raise DataFormatError(path, lineno, f"expected {ncols} columns, got {len(fields)}{cut}")
         for j, f in enumerate(fields):
             try:
+                if not f.isascii() or "_" in f:  # Python's float() reads '1_000' and other scripts' digits
+                    raise ValueError(f)
                 float(f)
             except ValueError:
                 raise DataFormatError(

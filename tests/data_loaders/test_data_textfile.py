@@ -151,3 +151,18 @@ def test_a_nan_time_does_not_hide_a_step_back(tmp_path):
         read_table(p, 3, time_cols=0, finite=[1, 2])
     tab = read_table(_write(tmp_path / "u.txt", "1.0 2 3\nnan 2 3\n1.5 2 3\n"), 3, time_cols=0, finite=[1, 2])
     assert np.isnan(tab.data[1, 0]) and tab.data[2, 0] == 1.5
+
+
+def test_byte_order_mark_is_not_data_and_only_ascii_numbers_are_numbers(tmp_path):
+    # A spreadsheet's UTF-8 CSV starts with a byte-order mark: it was read as part of the first
+    # field ("non-numeric field '\ufeff1'", or a header mismatch).  Python's float() also reads
+    # '1_000' and other scripts' digits, which the fallback parser then accepted as numbers.
+    p = _write(tmp_path / "bom.csv", "\ufeff1,2\n3,4\n")
+    np.testing.assert_array_equal(read_table(p, 2, delimiter=",").data, [[1.0, 2.0], [3.0, 4.0]])
+    p = _write(tmp_path / "bomh.csv", "\ufefft,x\n1,2\n")
+    np.testing.assert_array_equal(read_table(p, 2, delimiter=",", header_rows=1, header=["t", "x"]).data,
+                                  [[1.0, 2.0]])
+    for name, field in (("us.txt", "1_000"), ("ar.txt", "\u0661\u0662")):
+        p = _write(tmp_path / name, f"5 6\n{field} 2\n")
+        with pytest.raises(DataFormatError, match=r":2: non-numeric field .* in column 1"):
+            read_table(p, 2)
