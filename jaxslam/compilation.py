@@ -396,7 +396,52 @@ def _package_digest() -> str:
     return _source_digest["d"]
 
 
-def _program_digest(key, args, compiler_options) -> str:
+def _code_digest(fn, depth: int = 3) -> str:
+    """sha256 of ``fn``'s own code (its code object with the nested ones: a lambda's body, a
+    nested function) and of the code of the functions its closure holds, ``depth`` levels
+    down; '' for a callable without code (a C function, a ``functools.partial`` of one)."""
+    import hashlib
+    import types
+
+    h = hashlib.sha256()
+    seen = set()
+
+    def code_text(code) -> str:  # the same in every process (marshal's bytes are not)
+        consts = []
+        for c in code.co_consts:
+            if isinstance(c, types.CodeType):
+                consts.append(code_text(c))
+            elif isinstance(c, frozenset):
+                consts.append(repr(sorted(map(repr, c))))
+            else:
+                consts.append(repr(c))
+        return repr((code.co_name, code.co_code.hex(), code.co_names, code.co_varnames, code.co_freevars,
+                     consts))
+
+    def visit(f, d):
+        f = getattr(f, "func", f)  # functools.partial
+        code = getattr(f, "__code__", None)
+        if code is None or id(code) in seen:
+            return
+        seen.add(id(code))
+        h.update(code_text(code).encode())
+        if d > 0:
+            for cell in getattr(f, "__closure__", None) or ():
+                try:
+                    v = cell.cell_contents
+                except ValueError:  # an empty cell
+                    continue
+                if callable(v):
+                    visit(v, d - 1)
+
+    try:
+        visit(fn, depth)
+    except Exception:  # noqa: BLE001 - an object marshal cannot write: the key alone decides
+        return ""
+    return h.hexdigest()
+
+
+def _program_digest(key, args, compiler_options, fn=None) -> str:
     import hashlib
     import json
 
@@ -415,6 +460,11 @@ def _program_digest(key, args, compiler_options) -> str:
         "jaxlib": jaxlib.__version__,
         "x64": bool(jax.config.jax_enable_x64),
         "matmul_precision": str(jax.config.jax_default_matmul_precision),
+        # settings that change the traced program itself (random draws, type promotion)
+        "threefry_partitionable": str(getattr(jax.config, "jax_threefry_partitionable", None)),
+        "prng_impl": str(getattr(jax.config, "jax_default_prng_impl", None)),
+        "dtype_promotion": str(getattr(jax.config, "jax_numpy_dtype_promotion", None)),
+        "code": _code_digest(fn) if fn is not None else "",
         "platform": devices[0].platform,
         "device_kind": devices[0].device_kind,
     }
@@ -470,9 +520,12 @@ def compile_program(fn, args, *, key=None, compiler_options=None):
     (JSON-able; NumPy arrays and scalars in it are keyed by their exact bytes, anything else
     that JSON cannot write by its ``repr``) must name everything ``fn`` closes over that is not
     an argument: a scenario's name, options, parameters, dtype.  The stored program is further keyed by the argument
-    shapes and dtypes, the compiler options, a digest of jaxslam's source files, the JAX and
-    jaxlib versions, x64 and the device kind, so an edit of the code or an upgrade never
-    serves a stale program.  A stored program that cannot be read is ignored and replaced
+    shapes and dtypes, the compiler options, a digest of jaxslam's source files and of ``fn``'s
+    own code (with the functions its closure holds, three levels down; not the functions it
+    reaches through globals — name those in the key), the JAX and jaxlib versions, x64, the
+    settings that change a traced program (``jax_threefry_partitionable``, the PRNG
+    implementation, dtype promotion) and the device kind, so an edit of the code or an upgrade
+    never serves a stale program.  A stored program that cannot be read is ignored and replaced
     (never a crash).  The compiled program is also kept in this process (the 32 most recent),
     so a second call with the same key — new numbers in the arguments — neither traces nor
     compiles.  Without a key (or without the ``flatbuffers`` package that ``jax.export``
@@ -483,7 +536,7 @@ def compile_program(fn, args, *, key=None, compiler_options=None):
     jitted = jax.jit(fn, compiler_options=compiler_options)
     if key is None:
         return jitted.lower(*args).compile()
-    digest = _program_digest(key, args, compiler_options)
+    digest = _program_digest(key, args, compiler_options, fn)
     if digest in _memo:  # the same program again in this process: no trace at all
         return _memo[digest]
     compiled = _compile_keyed(fn, jitted, args, digest, compiler_options)
@@ -553,12 +606,10 @@ def _compile_keyed(fn, jitted, args, digest, compiler_options):
     except Exception:  # noqa: BLE001 - not exportable (e.g. a host callback): plain compile
         return jitted.lower(*args).compile()
     compiled = jax.jit(exp.call, compiler_options=compiler_options).lower(*leaves).compile()
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=".tmp-", dir=path.parent)
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
+    try:  # atomically, readable as JAX's own entries are (0666 less the umask: a shared folder)
+        from .files import atomic_write
+
+        atomic_write(path, lambda f: f.write(data), mode="wb")
     except OSError as e:
         _warn_once(f"progw:{folder}", f"jaxslam: cannot store a program in {str(path.parent)!r} "
                                       f"({e.strerror or e}); later calls will trace it again")

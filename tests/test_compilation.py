@@ -191,6 +191,43 @@ def test_keys_holding_arrays_that_differ_get_different_programs(tmp_path, monkey
     compilation.clear_programs()
 
 
+def test_a_function_edited_under_the_same_key_gets_its_own_program(tmp_path, monkeypatch):
+    # The digest held the key but not fn: another function under one key got the first one's
+    # program, from memory and from disk (a user's edited scenario kept its old program).
+    monkeypatch.setattr(compilation, "_enabled_dir", tmp_path)
+    compilation.clear_programs()
+    x = jnp.ones(3)
+    np.testing.assert_array_equal(compilation.compile_program(lambda v: v + 1.0, (x,), key={"s": "mine"})(x), 2.0)
+    np.testing.assert_array_equal(compilation.compile_program(lambda v: v * 10.0, (x,), key={"s": "mine"})(x), 10.0)
+    compilation.clear_programs()  # a new process: from disk
+    np.testing.assert_array_equal(compilation.compile_program(lambda v: v * 10.0, (x,), key={"s": "mine"})(x), 10.0)
+    np.testing.assert_array_equal(compilation.compile_program(lambda v: v - 1.0, (x,), key={"s": "mine"})(x), 0.0)
+    # a function the closure holds counts too
+    inner_a, inner_b = (lambda v: v * 3.0), (lambda v: v * 4.0)
+    assert compilation._code_digest(lambda v: inner_a(v)) != compilation._code_digest(lambda v: inner_b(v))
+    assert len(list((tmp_path / "programs").glob("*.jaxprog"))) == 3
+    # written readable to others, as JAX's own entries (0666 less the umask), not 0600
+    umask = os.umask(0)
+    os.umask(umask)
+    for f in (tmp_path / "programs").glob("*.jaxprog"):
+        assert f.stat().st_mode & 0o777 == 0o666 & ~umask
+    compilation.clear_programs()
+
+
+def test_the_random_bits_setting_is_part_of_a_stored_program_s_key():
+    # jax_threefry_partitionable changes the draws a traced program makes; a program stored
+    # under the other setting was served
+    x = jnp.float32(0)
+    before = compilation._program_digest({"k": 1}, (x,), None)
+    flag = jax.config.jax_threefry_partitionable
+    try:
+        jax.config.update("jax_threefry_partitionable", not flag)
+        assert compilation._program_digest({"k": 1}, (x,), None) != before
+    finally:
+        jax.config.update("jax_threefry_partitionable", flag)
+    assert compilation._program_digest({"k": 1}, (x,), None) == before
+
+
 def test_account_splits_trace_lower_compile():
     with compilation.account() as acc:
         jax.jit(lambda x: jnp.cos(x) * 3.0 + 1.0).lower(jnp.ones(7)).compile()
