@@ -210,6 +210,16 @@ def _recording_threads(run, seen, monte_carlo):
     return wrapped
 
 
+def test_run_help_starts_no_process_group(monkeypatch, capsys):
+    # with --processes P, --help started P processes, each importing JAX, to print the help
+    from jaxslam.cli import run as cli_run
+
+    started = []
+    monkeypatch.setattr(cli_run, "_launch_local", lambda *a: started.append(a) or 0)
+    assert cli.main(["run", "dummy", "--processes", "3", "--help"]) == 0
+    assert started == [] and "--processes" in capsys.readouterr().out
+
+
 class _ReaderLeaves:
     """A stdout whose pipe reader left after the first line (``jaxslam run ... | head -1``)."""
 

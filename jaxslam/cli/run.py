@@ -152,7 +152,7 @@ def command(rest: list[str]) -> int:
         early = _run_parser(declared).parse_args(rest)
         registry.check_options(declared, {opt.name: getattr(early, opt.name) for opt in declared.options})
 
-    group = _process_group(pre)
+    group = None if pre.help else _process_group(pre)  # --help prints; it starts or joins no group
     leader = group in (None, "launch") or group[2] == 0
     # What needs no scenario is checked before JAX is imported (a second, not three): the
     # --params file's JSON, then every output path (its folder created, a probe written).
@@ -357,9 +357,11 @@ def _run_notes(result, runs: int) -> list:
         none = sorted(k for k, n in bad.items() if n == runs)
         some = sorted(f"{k} ({n} of {runs})" for k, n in bad.items() if 0 < n < runs)
         if none:
+            from jaxslam.sim.scenarios.tracking import SETTLED_AFTER_S
+
             notes.append(f"not finite in any run (null in the summary): {', '.join(none)}"
-                         + ("; the *_settled metrics cover the flight after its settling time, which this "
-                            "flight may not reach (a longer --duration)" if any("settled" in k for k in none)
+                         + (f"; the *_settled metrics cover the flight after t = {SETTLED_AFTER_S:g} s, which "
+                            "this flight does not reach (a longer --duration)" if any("settled" in k for k in none)
                             else ""))
         if some:
             notes.append(f"not finite in some runs (left out of the summary): {', '.join(some)}")

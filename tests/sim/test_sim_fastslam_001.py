@@ -219,3 +219,17 @@ def test_whole_run_gradient_wrt_log_q_and_log_r(flight):
     h = 1e-5
     fd = (f(x0 + h * d) - f(x0 - h * d)) / (2 * h)
     np.testing.assert_allclose(float(jnp.dot(g, d)), float(fd), rtol=1e-3, atol=1e-12)
+
+
+def test_run_json_keeps_a_threshold_of_none_as_none():
+    # --resample-threshold 1 (resample at every update) is resample_threshold None; the run
+    # JSON's config wrote it as NaN (null), which reads as "no threshold given"
+    import json
+
+    _, prm = sc.make_filter(_opts(resample_threshold=1.0), jnp.float64)
+    assert prm.resample_threshold is None
+    doc = json.loads(json.dumps(sc._params_json(prm)))
+    assert doc["resample_threshold"] is None and "quad" not in doc
+    np.testing.assert_allclose(doc["lidar_var"], np.asarray(prm.lidar_var))
+    _, prm = sc.make_filter(_opts(resample_threshold=0.5), jnp.float64)
+    assert sc._params_json(prm)["resample_threshold"] == 0.5

@@ -188,6 +188,13 @@ def bias_prior_sigma(bias: float) -> float:
     return max(10.0 * abs(float(bias)), 1e-3)
 
 
+def _params_json(prm) -> dict:
+    """The filter parameters of the run JSON's config (the quadcopter's apart); None stays None
+    (``resample_threshold`` None: resample at every update; it used to be written as NaN)."""
+    return {k: None if v is None else np.asarray(v, float).tolist() for k, v in prm._asdict().items()
+            if k != "quad"}
+
+
 def make_filter(options: dict, dtype):
     """(Config, Params) of the scenario options."""
     model = options["model"]
@@ -338,8 +345,7 @@ def run_scenario(runs, seed, dtype, options, progress, params=None, plots=False)
         "lidar_rate_hz": 1.0 / (DT * LIDAR_EVERY),
         "landmarks_zup_m": np.asarray(setup.landmarks, float).tolist(),
         "filter": {k: v for k, v in cfg._asdict().items()},
-        "filter_params": {k: np.asarray(v, float).tolist() for k, v in prm._asdict().items()
-                          if k != "quad"},
+        "filter_params": _params_json(prm),
         "filter_quad": {k: np.asarray(v, float).tolist() for k, v in prm.quad._asdict().items()},
         "threads": mc.threads,  # host threads that ran the flights (monte_carlo "loop")
         **options,

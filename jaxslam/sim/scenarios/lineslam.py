@@ -8,7 +8,7 @@ so jaxslam states its own:
 
 * map: an L-shaped room — main hall x ∈ [−2, 6], y ∈ [−2, 1] m and an arm
   x ∈ [−2, 2], y ∈ [1, 4] m (6 walls) — and a 0.6 × 0.4 m pillar centred at
-  (2, −0.5) m (4 walls): 10 walls on 10 distinct lines, none through the map
+  (3.5, −0.5) m (4 walls): 10 walls on 10 distinct lines, none through the map
   origin;
 * path: the ellipse p(t) = (2 + 3 cos ωt, −0.5 + 1.1 sin ωt) m around the
   pillar with a 30 s period (speed ≤ 0.63 m/s), yaw along the velocity plus
