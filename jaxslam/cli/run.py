@@ -360,8 +360,8 @@ def _run_notes(result, runs: int) -> list:
             from jaxslam.sim.scenarios.tracking import SETTLED_AFTER_S
 
             notes.append(f"not finite in any run (null in the summary): {', '.join(none)}"
-                         + (f"; the *_settled metrics cover the flight after t = {SETTLED_AFTER_S:g} s, which "
-                            "this flight does not reach (a longer --duration)" if any("settled" in k for k in none)
+                         + (f"; the *_settled metrics cover the flight after its settling time (t > "
+                            f"{SETTLED_AFTER_S:g} s), which this flight does not reach (a longer --duration)" if any("settled" in k for k in none)
                             else ""))
         if some:
             notes.append(f"not finite in some runs (left out of the summary): {', '.join(some)}")
