@@ -72,7 +72,8 @@ from .. import errors
 from ..errors import InputError
 from ..features import lines as fl
 from ..filters import ekf_slam as es
-from ..linalg import check_int, check_numbers, check_scalar, float_array, host_array, is_concrete, wrap_angle
+from ..linalg import (check_int, check_key, check_numbers, check_scalar, float_array, host_array, is_concrete,
+                      wrap_angle)
 from ..sensors import laser2d
 
 __all__ = [
@@ -169,7 +170,8 @@ THRESHOLDS = ("match_gate", "nis_gate", "new_threshold", "min_line_rho", "min_up
 
 
 class Log(NamedTuple):
-    """One flight's sensor log (T scans; ranges NaN where invalid; a batch adds a leading axis).
+    """One flight's sensor log (T scans; ranges NaN where invalid; a batch adds a leading axis;
+    a valid range outside [spec.range_min, spec.range_max] is masked with ``MASKED_INPUT``).
 
     ranges: (T, n_beams) [m]; valid: (T, n_beams) bool; tilt: (T, 2) IMU roll
     and pitch [rad] (for the ground projection); flow: (T, 2) body velocity
@@ -365,7 +367,8 @@ def init(log: Log, config: Config, params: Params, *, key=None) -> State:
 
 def step(state: State, event: Event, config: Config, params: Params, *, key) -> tuple[State, StepOut]:
     """One scan of Algorithm 2.  ``key`` (required) drives the scan's RANSAC sampling.
-    Returns ``(state, StepOut)``."""
+    Returns ``(state, StepOut)``.  Returns marked valid but finite and outside
+    [``config.spec.range_min``, ``range_max``] are not used, and set ``MASKED_INPUT``."""
     if key is None:
         raise InputError("key: line SLAM samples RANSAC hypotheses; give a PRNG key")
     st = state
@@ -382,8 +385,14 @@ def step(state: State, event: Event, config: Config, params: Params, *, key) -> 
     # unusable: the scan is masked and flagged MASKED_INPUT, as a non-finite flow or gyro is
     tilt = jnp.asarray(event.tilt, dtype)
     tilt_ok = jnp.all(jnp.isfinite(tilt))
-    st = st._replace(status=st.status | jnp.where(tilt_ok, 0, errors.MASKED_INPUT).astype(st.status.dtype))
-    pvalid = event.valid & jnp.isfinite(ranges) & tilt_ok
+    # a finite range outside [spec.range_min, spec.range_max] marked valid (a negative range
+    # mirrored its wall through the sensor, 1e6 m mapped a line far away) is masked and flagged
+    # MASKED_INPUT; a non-finite range stays the log's "no return"
+    in_range = (ranges >= config.spec.range_min) & (ranges <= config.spec.range_max)
+    bad_range = jnp.any(event.valid & jnp.isfinite(ranges) & ~in_range)
+    st = st._replace(status=st.status | jnp.where(tilt_ok & ~bad_range, 0,
+                                                  errors.MASKED_INPUT).astype(st.status.dtype))
+    pvalid = event.valid & jnp.isfinite(ranges) & in_range & tilt_ok
     pts, pvalid = laser2d.scan_points(ranges, pvalid, config.spec, jnp.where(tilt_ok, tilt, 0.0))
 
     s = st.x[:NR]
@@ -481,14 +490,17 @@ def _check_config(config: Config) -> None:
 def run(log: Log, config: Config = Config(), params: Optional[Params] = None, *, key) -> Result:
     """Algorithm 2 over a whole log: one jitted ``lax.scan`` of :func:`step` (``config`` static).
 
-    ``key`` (required) drives the RANSAC sampling: it is split into one key per scan
-    (deterministic given the key).  ``params`` None: :func:`default_params` for ``config.dt``
+    ``key`` (required; a PRNG key, else :class:`InputError` naming ``key``) drives the RANSAC
+    sampling: it is split into one key per scan (deterministic given the key).  ``params`` None: :func:`default_params` for ``config.dt``
     in the dtype of ``log.s0``.  Shapes are checked here, also under tracing; values
     (finite ``log.s0``, PSD covariances) when they are concrete, else check a log from outside
-    with :func:`validate_log` first.  Composes under ``jit`` / ``vmap``.
+    with :func:`validate_log` first.  A range marked valid outside the laser's
+    [``range_min``, ``range_max``] is masked and flags its scan ``MASKED_INPUT`` (:func:`step`).
+    Composes under ``jit`` / ``vmap``.
     """
     if key is None:
         raise InputError("key: line SLAM samples RANSAC hypotheses; give a PRNG key")
+    check_key(key)  # an int seed, a batch of keys or a string failed deep in JAX
     _check_config(config)
     _check_log(log, config.spec)
     # an integer s0 made the run's dtype (and the default covariances) integer

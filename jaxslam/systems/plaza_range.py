@@ -74,7 +74,7 @@ from ..errors import InputError
 from ..filters import consistency as cons
 from ..filters import ekf_slam as es
 from ..filters import delayed_init
-from ..linalg import check_int, check_scalar, is_concrete, symmetrize, wrap_angle
+from ..linalg import check_int, check_scalar, check_whole_ids, is_concrete, symmetrize, wrap_angle
 from .biased_range import (Result, _cast_params, _result, check_ids_vector, check_log, check_params, check_positions,
                            check_unique_ids, range_observe, resolve_outlier_gate, update_ranges)
 
@@ -242,8 +242,21 @@ def plaza_events(dr_t, dr, td_t, td_node, td_range, K: Optional[int] = None, t_e
 
     Range rows are sorted by time first (stable): Plaza 1's TD file is not in time order
     (row 1988 jumps back from 5103.6 s to 5039.3 s).
+
+    Shapes: ``dr`` (len(dr_t), 2); ``td_node`` and ``td_range`` one entry per ``td_t`` ((M,) or
+    (M, 1)); ``td_node`` whole numbers.  Anything else is an :class:`InputError` naming the
+    argument (a transposed ``dr`` or a two-column ``td_range`` was reshaped into wrong pairs, a
+    fractional or NaN node id cast onto another id).
     """
+    n_dr = int(np.size(dr_t))
+    if np.shape(dr) != (n_dr, 2):
+        raise InputError(f"dr: expected shape ({n_dr}, 2) (one (d, dθ) increment per dr_t), got {np.shape(dr)}")
     td_t = np.asarray(td_t, np.float64).reshape(-1)
+    M = td_t.shape[0]
+    for a, name in ((td_node, "td_node"), (td_range, "td_range")):
+        if np.shape(a) not in ((M,), (M, 1)):
+            raise InputError(f"{name}: expected shape ({M},) (one entry per td_t), got {np.shape(a)}")
+    check_whole_ids(td_node, "td_node")  # 10.7 was cast to 10, NaN to -2147483648
     o = np.argsort(td_t, kind="stable")
     return merge_events(np.asarray(dr_t, np.float64), np.asarray(dr, np.float64).reshape(-1, 2),
                         td_t[o], np.asarray(td_range, np.float64).reshape(-1, 1)[o],
@@ -253,9 +266,11 @@ def plaza_events(dr_t, dr, td_t, td_node, td_range, K: Optional[int] = None, t_e
 
 def log_from_events(events: EventLog, pose0, beacon_ids, beacons=None, dtype=None) -> Log:
     """The :class:`Log` of a :func:`plaza_events` log, the start pose, the beacons' ids and (for
-    localisation) their surveyed positions.  dtype: of the run (default: JAX's default float)."""
+    localisation) their surveyed positions.  dtype: of the run (default: JAX's default float).
+    ``beacon_ids`` must be whole numbers (:class:`InputError` naming it: a cast truncated 12.9 to 12)."""
     if not isinstance(events, EventLog):
         raise InputError("events: expected a jaxslam.data.events.EventLog")
+    check_whole_ids(beacon_ids, "beacon_ids")
     if events.z.shape[-1] != 1:
         raise InputError(f"events.z: expected one range per row (d_z = 1), got {events.z.shape[-1]}")
     dtype = dtype or jnp.result_type(float)
@@ -296,9 +311,11 @@ def init(log: Log, config: Config, params: Params, *, key=None) -> State:
 def step(state: State, event: Event, config: Config, params: Params, *, key=None):
     """One event: the DR increment's prediction, the ranges' update (each gated), the buffering
     of ranges to unmapped beacons and their delayed initialisation (module docstring; skipped
-    when ``config.delayed`` is False).  Returns ``(state, StepOut)``."""
+    when ``config.delayed`` is False).  Returns ``(state, StepOut)``.  ``params.outlier_gate``
+    None is resolved here as :func:`run` resolves it (:func:`biased_range.resolve_outlier_gate`,
+    host side), so the module's own ``PARAMS`` work."""
     del key
-    p = params
+    p = params if params.outlier_gate is not None else resolve_outlier_gate(params)
     st, buf, n_reg, n_unm, beacon_ids = state
     N, W = buf.rng.shape
     K = event.z.shape[0]
@@ -373,10 +390,14 @@ def run(log: Log, config: Config = Config(), params: Params = PARAMS, *, key=Non
     odometry increments and a common range bias, as one jitted ``lax.scan`` of :func:`step`.
     Returns :class:`Result` (landmarks = beacons, heading filled; with surveyed beacons
     ``n_registered`` = N).  ``key`` is not used (accepted as every system's ``run`` accepts it).
+    ``config.capacity`` must be an int >= N (or None: N); with delayed initialisation
+    ``params.min_points`` must not exceed ``config.window`` (:class:`InputError` naming each).
     """
     del key
     N = check_ids_vector(log.beacon_ids, "log.beacon_ids")
-    cap = int(config.capacity or N)
+    # 3.7 ran as 3, 0 as N, "5" as 5: a count or None (N)
+    cap = N if config.capacity is None else check_int(config.capacity, "config.capacity",
+                                                       what="an int (beacon slots)")
     if cap < N:
         raise InputError(f"config.capacity: {cap} < number of beacons {N}")
     if np.shape(log.pose0) != (3,):
@@ -399,6 +420,11 @@ def run(log: Log, config: Config = Config(), params: Params = PARAMS, *, key=Non
     params = resolve_outlier_gate(params)
     config = config._replace(capacity=cap, window=int(config.window), smooth=bool(config.smooth),
                              delayed=log.beacons is None if config.delayed is None else bool(config.delayed))
+    # a buffer holds at most config.window rows: no beacon could ever be mapped, silently
+    if (config.delayed and params.min_points is not None and is_concrete(params.min_points)
+            and float(params.min_points) > config.window):
+        raise InputError(f"params.min_points: {params.min_points!r} exceeds config.window = {config.window} "
+                         "(the rows a beacon's buffer holds), so no beacon could ever be mapped")
     return _run(log, config, _cast_params(params, dtype))
 
 

@@ -99,13 +99,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import errors
-from ..data.events import EventLog, merge_events
+from ..compilation import call_compiled
+from ..data.events import EventLog, _ids, check_times, merge_events
 from ..data.util_uwb import TAG_OFFSET
 from ..errors import InputError
 from ..filters import consistency as cons
 from ..filters import ekf_slam as es
 from ..filters import trilateration as tri
-from ..linalg import check_int, is_concrete, symmetrize
+from ..linalg import check_flag, check_int, check_scalar, is_concrete, symmetrize
 from .biased_range import (Result, _cast_params, _result, check_ids_vector, check_log, check_params, check_positions,
                            check_unique_ids, range_observe, resolve_outlier_gate, update_ranges)
 
@@ -286,33 +287,43 @@ class StepOut(NamedTuple):
 
 def util_events(t, anchor_id, ranges, t_start=None, t_end=None, tof_t=None,
                 tof=None) -> EventLog:
-    """TWR rows (t [s], anchor id, range [m]) → an :class:`EventLog` with K = 1, no input.
+    """TWR rows (t [s], anchor id, range [m]) → an :class:`EventLog`, no input.
+
+    ``anchor_id``: whole numbers that fit int32, never :data:`HEIGHT_ID` (reserved);
+    ``t``: finite, non-decreasing (:class:`InputError` naming the argument otherwise).
 
     Optional ToF rows (``tof_t`` [s], ``tof`` [m], e.g. ``UtilData.tof_t/tof``) are merged
     in as rows with id :data:`HEIGHT_ID` (z = the laser height); :func:`run` then adds
     the height update (H1) (:func:`run`).  Rows are sorted by time (stable, ranges first at equal
-    times); K is the largest number of rows sharing a time (1 on the UTIL flight).
+    times).  Without ToF rows K = 1: a second range at the time of another (none on the UTIL
+    flight; a line repeated by a logging fault) is dropped and counted
+    (``EventLog.stats["dropped_overflow"]``, the dataset runner's ``dropped_beyond_K``); with
+    them, K is the largest number of rows sharing a time.
     Without ToF rows the log is exactly the range-only one.
     """
     t = np.asarray(t, np.float64).reshape(-1)
     if t.size == 0:
         raise InputError("util_events: no ranges")
     z = np.asarray(ranges, np.float64).reshape(-1, 1)
-    ids = np.asarray(anchor_id).astype(np.int32).reshape(-1)
     if not (np.size(anchor_id) == t.size == z.shape[0]):
         raise InputError(f"util_events: t, anchor_id and ranges need one entry per range, got "
                          f"{t.size}, {np.size(anchor_id)} and {z.shape[0]}")
+    try:  # whole numbers that fit int32 (a bare cast made 1.5 → 1, 2**32 − 1 → −1, NaN → int32 min)
+        ids = _ids(anchor_id, t.size)
+    except InputError as e:
+        raise InputError(str(e).replace("meas_ids", "anchor_id", 1)) from None
+    if np.any(ids == HEIGHT_ID):  # with or without ToF rows: run would fuse the row as a height
+        raise InputError(f"util_events: anchor id {HEIGHT_ID} is reserved for height rows")
     if (tof_t is None) != (tof is None):
         raise InputError("util_events: give both tof_t and tof, or neither")
     if tof_t is None:
+        check_times(t, "t")  # merge_events would name its own argument, meas_t
         return merge_events(t[:1], np.zeros((1, 1)), t, z, meas_ids=ids, K=1,
                             input_mode="rate", t_start=t_start, t_end=t_end)
     ht = np.asarray(tof_t, np.float64).reshape(-1)
     hz = np.asarray(tof, np.float64).reshape(-1, 1)
     if ht.shape[0] != hz.shape[0]:
         raise InputError(f"util_events: tof has {hz.shape[0]} rows but tof_t {ht.shape[0]}")
-    if np.any(ids == HEIGHT_ID):
-        raise InputError(f"util_events: anchor id {HEIGHT_ID} is reserved for height rows")
     if t.size > 1 and np.any(np.diff(t) < 0):
         raise InputError("util_events: range times decrease")
     if ht.size > 1 and np.any(np.diff(ht) < 0):
@@ -381,7 +392,52 @@ def startup(t, anchor_id, ranges, tag_pos, anchor_ids, t_window, v0=None,
     away): measured on this flight, the unregularised fit put the bias at −3.2 m and every
     anchor 3 m off.  The prior 0 ± 0.3 m states only that a TWR bias is decimetres (the
     sign and size are left to the data).  Pure and jit-safe (dtype follows ``ranges``).
+
+    Checked first (:class:`InputError` naming the argument): shapes (M,), (M, 3), (N,), (3,);
+    ``iters`` an int >= 1; ``sigma_r``, ``bias_prior_sigma`` positive and ``t_window`` finite
+    when concrete; with concrete values, at least one range of every anchor in the window (an
+    anchor without one came back at (0, 0, 0) with a 2e10 variance, unflagged — under ``jit``
+    it still does).  Called eagerly it is compiled once per shape and ``iters``
+    (:func:`jaxslam.compilation.call_compiled`; op by op every call re-compiled its two scans).
     """
+    iters = check_int(iters, "iters", 1, what="an int (Gauss–Newton iterations)")
+    M = int(np.size(t))
+    if np.ndim(t) != 1:
+        raise InputError(f"t: expected shape (M,) (one time per range), got {np.shape(t)}")
+    for a, name in ((anchor_id, "anchor_id"), (ranges, "ranges")):
+        if np.shape(a) != (M,):
+            raise InputError(f"{name}: expected shape ({M},) (one per range, as t), got {np.shape(a)}")
+    if np.shape(tag_pos) != (M, 3):
+        raise InputError(f"tag_pos: expected shape ({M}, 3) (one tag position per range), got {np.shape(tag_pos)}")
+    if np.ndim(anchor_ids) != 1 or np.shape(anchor_ids)[0] == 0:
+        raise InputError(f"anchor_ids: expected shape (N,), N >= 1, got {np.shape(anchor_ids)}")
+    if v0 is not None and np.shape(v0) != (3,):
+        raise InputError(f"v0: expected shape (3,), got {np.shape(v0)}")
+    for a, name in ((sigma_r, "sigma_r"), (bias_prior_sigma, "bias_prior_sigma")):
+        if is_concrete(a):
+            check_scalar(a, name, lower=0, strict=True)
+    if is_concrete(t_window):
+        check_scalar(t_window, "t_window")
+    if is_concrete(t, anchor_id, ranges, tag_pos, anchor_ids, t_window):
+        tn = np.asarray(t, np.float64)
+        win = ((tn <= float(t_window)) & np.isfinite(np.asarray(ranges, np.float64))
+               & np.all(np.isfinite(np.asarray(tag_pos, np.float64)), axis=1))
+        seen = np.isin(np.asarray(anchor_ids), np.asarray(anchor_id)[win])
+        if not np.any(win):
+            raise InputError(f"t_window: no finite range (with a finite tag_pos) at t <= {float(t_window)!r}: "
+                             "the start-up window is empty")
+        if not np.all(seen):
+            raise InputError(f"anchor_ids: anchor {np.asarray(anchor_ids)[np.argmin(seen)].item()!r} has no range in "
+                             f"the start-up window t <= {float(t_window)!r} (it cannot be fitted)")
+    return call_compiled(("util_range.startup", iters),
+                         lambda opts, *a: _startup(*a, *opts, iters),
+                         (t, anchor_id, ranges, tag_pos, anchor_ids), (t_window, v0, sigma_r, bias_prior_sigma),
+                         after=1)
+
+
+def _startup(t, anchor_id, ranges, tag_pos, anchor_ids, t_window, v0, sigma_r, bias_prior_sigma,
+             iters: int) -> Startup:
+    """:func:`startup` of checked arguments."""
     ranges = jnp.asarray(ranges)
     dtype = ranges.dtype if jnp.issubdtype(ranges.dtype, jnp.floating) else jnp.result_type(float)
     t = jnp.asarray(t, dtype)
@@ -427,7 +483,8 @@ def _height_update(st, z_k, id_k, m_k, params, gate):
     """(H1) for each of the event's K rows that is a height row (static loop over K).
 
     Gated like a range: NIS ν²/S > gate, S = P_zz + σ_h² (H = e_z, so H P Hᵀ = P_zz).
-    Returns (state, nis, dof, used (), gated ()) summed over the rows.
+    Returns (state, nis, dof, used (), gated ()) summed over the rows.  A non-finite height
+    row is neither used nor gated: it sets ``MASKED_INPUT`` (as a non-finite range does).
     """
     model = MODEL
     R = jnp.reshape(params.sigma_h**2, (1, 1))
@@ -445,6 +502,8 @@ def _height_update(st, z_k, id_k, m_k, params, gate):
         dof = dof + info.dof.astype(jnp.int32)
         used = used + jnp.sum(info.used).astype(jnp.int32)
         gated = gated + g.astype(jnp.int32)
+        bad = m_k[k] & (id_k[k] == HEIGHT_ID) & ~jnp.isfinite(z_k[k, 0])
+        st = st._replace(status=st.status | jnp.where(bad, jnp.int32(errors.MASKED_INPUT), jnp.int32(0)))
     return st, nis, dof, used, gated
 
 
@@ -460,7 +519,9 @@ def init(log: Log, config: Config, params: Params, *, key=None) -> State:
     """The state before the first event.  Known anchors: the tag fixed by trilateration of the
     first ``config.n_fix`` range rows (the drone at rest), v = 0, b = 0, covariance from
     ``params.p0_*``, the anchors in the map with zero covariance.  SLAM: the start-up's tag
-    position and velocity (σ 0.02 m, 0.1 m/s), its anchors and bias with their joint covariance."""
+    position and velocity (σ 0.02 m, 0.1 m/s), its anchors and bias with their joint covariance
+    — the state at ``startup.t0``, which :func:`run` predicts to the first event (its Δt is
+    ``t[0] − t0``)."""
     del key
     dtype = log.z.dtype
     N = log.anchor_ids.shape[0]
@@ -526,13 +587,17 @@ def run(log: Log, config: Config = Config(), params: Params = PARAMS, *, key=Non
     """Range-only CV tracking (``log.anchors``) or SLAM (``log.startup``) over a UTIL TWR log, as
     one jitted ``lax.scan`` of :func:`step`.  Returns :class:`Result` (heading zeros).  ``key`` is
     not used (accepted as every system's ``run`` accepts it).  ``config.height`` None is read
-    from the log (height rows present).
+    from the log (height rows present).  SLAM: the start-up state holds at ``startup.t0`` and the
+    first event's Δt is ``t[0] − t0`` (``log.dt[0]`` is replaced: the state is predicted across the
+    gap); the log must not start before t0.  A start-up of another number of anchors than
+    ``log.anchor_ids``, non-finite start-up values or t[0] < t0 (when concrete) raise
+    :class:`InputError`.
     """
     del key
     if (log.anchors is None) == (log.startup is None):
         raise InputError("log: give exactly one of anchors (known) or startup (SLAM)")
     N = check_ids_vector(log.anchor_ids, "log.anchor_ids")
-    cap = int(config.capacity or N)
+    cap = N if config.capacity is None else check_int(config.capacity, "config.capacity")
     if cap < N:
         raise InputError(f"config.capacity: {cap} < number of anchors {N}")
     check_log(log)  # t, dt, z, ids, mask: one length T >= 1; dt >= 0, whole ids
@@ -540,6 +605,8 @@ def run(log: Log, config: Config = Config(), params: Params = PARAMS, *, key=Non
         raise InputError(f"log.anchors: expected shape ({N}, 3), got {np.shape(log.anchors)}")
     check_unique_ids(log.anchor_ids, "log.anchor_ids")
     check_positions(log.anchors, "log.anchors")
+    if log.startup is not None:
+        _check_startup(log, N)
     check_params(params, positive=("sigma_r", "p0_pos", "p0_vel", "p0_bias", "sigma_h"),
                  nonneg=("q_acc", "q_bias"), finite=("tof_offset",))
     if log.anchors is not None:
@@ -549,6 +616,9 @@ def run(log: Log, config: Config = Config(), params: Params = PARAMS, *, key=Non
                          f"got {np.shape(params.anchor_offset)}")
     check_positions(params.anchor_offset, "params.anchor_offset")  # a NaN offset lost that anchor's ranges
     params = resolve_outlier_gate(params)
+    if config.height is not None:
+        check_flag(config.height, "config.height")
+    check_flag(config.smooth, "config.smooth")
     if config.height is None:
         if not is_concrete(log.ids, log.mask):
             raise InputError("config.height: give True or False when the log is traced")
@@ -557,9 +627,32 @@ def run(log: Log, config: Config = Config(), params: Params = PARAMS, *, key=Non
     return _run(log, config._replace(capacity=cap, smooth=bool(config.smooth)), _cast_params(params, dtype))
 
 
+def _check_startup(log: Log, N: int) -> None:
+    """``log.startup``: shapes for N anchors; finite values and t0 <= t[0] when concrete."""
+    su = log.startup
+    if not isinstance(su, Startup):
+        raise InputError("log.startup: expected a util_range.Startup")
+    want = {"anchors": (N, 3), "bias": (), "cov": (3 * N + 1, 3 * N + 1), "p0": (3,), "v0": (3,), "t0": ()}
+    for f, shp in want.items():
+        if np.shape(getattr(su, f)) != shp:
+            raise InputError(f"log.startup.{f}: expected shape {shp} (the start-up of the log's {N} anchors), "
+                             f"got {np.shape(getattr(su, f))}")
+        check_positions(getattr(su, f), f"log.startup.{f}")
+    if is_concrete(log.t, su.t0):
+        tt = np.asarray(log.t)
+        t0 = np.asarray(su.t0).astype(tt.dtype)
+        if tt[0] < t0:
+            raise InputError(f"log.startup.t0: the start-up state holds at t0 = {float(t0)!r} s, after the "
+                             f"log's first event t[0] = {float(tt[0])!r} s (the window must precede the log)")
+
+
 @functools.partial(jax.jit, static_argnums=1)
 def _run(log: Log, config: Config, params: Params) -> Result:
     st0 = init(log, config, params)
+    dt = log.dt
+    if log.startup is not None:  # the start-up state holds at t0: predict it across the gap to t[0]
+        dt = dt.at[0].set(log.t[0] - jnp.asarray(log.startup.t0).astype(dt.dtype))
+        log = log._replace(dt=dt)
     events = Event(dt=log.dt, z=log.z, ids=log.ids, mask=log.mask)
     st, outs = jax.lax.scan(lambda s, ev: step(s, ev, config, params), st0, events)
     rs = sst = None

@@ -221,3 +221,50 @@ def test_run_and_step_require_a_key_and_check_the_log():
         LS.run(log._replace(s0=np.full(6, np.nan)), key=key)
     with pytest.raises(InputError, match=r"params\.R_odo"):
         LS.run(log, params=LS.default_params()._replace(R_odo=jnp.zeros((3, 3))), key=key)
+
+
+# --------------------------------------------------------------------------- review 2026-12-07
+def test_run_names_a_key_that_is_not_a_prng_key():
+    # each failed with a bare JAX error; step and the other systems name it
+    T, n = 3, LS.Config().spec.n_beams
+    log = LS.Log(ranges=np.ones((T, n)), valid=np.ones((T, n), bool), tilt=np.zeros((T, 2)),
+                 flow=np.zeros((T, 2)), gyro=np.zeros(T), s0=np.zeros(6))
+    for key in (0, np.int64(7), jax.random.split(jax.random.PRNGKey(0), 2), "seed"):
+        with pytest.raises(InputError, match=r"^key: expected a PRNG key"):
+            LS.run(log, key=key)
+
+
+def _wall_log(T=2):
+    """A wall at x = 2 m ahead of a still robot: beams within ±50° return 2 / cos(a) (1.999-3.11 m,
+    inside the URG-04LX's [0.02, 4] m), the rest no return."""
+    spec = LS.Config().spec
+    a = spec.angle_min + spec.angle_step * np.arange(spec.n_beams)
+    valid = np.abs(a) < np.deg2rad(50.0)
+    r = np.where(valid, 2.0 / np.cos(a), np.nan)
+    return LS.Log(ranges=np.tile(r, (T, 1)), valid=np.tile(valid, (T, 1)), tilt=np.zeros((T, 2)),
+                  flow=np.zeros((T, 2)), gyro=np.zeros(T), s0=np.zeros(6)), valid
+
+
+def test_ranges_outside_the_laser_limits_are_masked_and_flagged():
+    """Negated ranges (the wall mirrored to x = -2 m) and 1e6 m returns, marked valid, were mapped
+    as lines with status 0.  Now they are not used: no line, the still robot stays at 0, and
+    MASKED_INPUT is set; the well-formed log maps the wall (ρ, θ) = (2, 0) with status 0."""
+    log, valid = _wall_log()
+    fp, key = LS.default_params(), jax.random.PRNGKey(1)
+    good = LS.run(log, LS.Config(), fp, key=key)
+    act = np.asarray(good.final.active)
+    assert act.sum() == 1 and int(good.final.status) == 0
+    np.testing.assert_allclose(np.asarray(good.steps.lines[-1])[act][0], [2.0, 0.0], atol=1e-3)
+    big = np.array(log.ranges)
+    big[:, valid] = 1e6
+    for bad in (log._replace(ranges=-np.asarray(log.ranges)), log._replace(ranges=big)):
+        r = LS.run(bad, LS.Config(), fp, key=key)
+        assert not np.asarray(r.steps.active).any()
+        assert np.all(np.asarray(r.steps.status) & errors.MASKED_INPUT)
+        np.testing.assert_array_equal(np.asarray(r.steps.mean), 0.0)
+    # one beam out of range marks its scan only; the others are used as before
+    one = np.array(log.ranges)
+    one[1, np.flatnonzero(valid)[0]] = 5.0
+    r = LS.run(log._replace(ranges=one), LS.Config(), fp, key=key)
+    assert np.asarray(r.steps.status).tolist() == [0, errors.MASKED_INPUT]
+    assert int(np.asarray(r.final.active).sum()) == 1
