@@ -61,6 +61,7 @@ def _files(tmp: pathlib.Path) -> None:
         "prunefrac": {"dataset": "mrclam", "noise": {"prune_window_s": 2, "prune_min_obs": 2.5}},
         "dsnotpd": {"dataset": "mrclam", "noise": {"R": [-1, 1]}},
         "dsread": {"dataset": "mrclam", "noise": {}},
+        "uwbok": {"filter": {"r_scaled": True}},
     }
     for name, doc in docs.items():
         (tmp / f"{name}.json").write_text(doc if isinstance(doc, str) else json.dumps(doc))
@@ -125,6 +126,7 @@ def _cases(t: pathlib.Path) -> list:
         (["run", "attitude-smc", "--params", p("key")], "--params", None),
         (["run", "fastslam-helix", "--params", p("key")], "--params", None),
         (["run", "uwb-circle", "--params", p("rscaled")], "filter.r_scaled", None),
+        (["run", "uwb-circle", "--dt", "-1", "--params", p("uwbok")], "--dt", None),  # it named params.Q
         (["run", "ekfslam3d-known", "--params", p("qc")], "noise.Qc", None),
         # dataset
         (["dataset", "x", "--data", d], "NAME", None),

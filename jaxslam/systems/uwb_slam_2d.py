@@ -789,15 +789,20 @@ def step(state: State, event: Event, config: Config, params: Params, *, key=None
 
 
 def _init(log: Log, config: Config, params: Params):
-    """(State, StartupResult) before the first step (:func:`init`; :func:`run` keeps both)."""
+    """(State, StartupResult) before the first step (:func:`init`; :func:`run` keeps both).
+    ``State.masked`` starts at the start-up's received ranges masked as invalid (the status
+    already said ``MASKED_INPUT`` for them; the count said 0)."""
     if config.mode == "slam":
         start = startup(log.startup_ranges, log.startup_mask, config, params)
-        return init_slam(start, config, params), start
-    if config.mode == "localization":
+        st = init_slam(start, config, params)
+    elif config.mode == "localization":
         if log.anchors is None:
             raise InputError("log.anchors: required in mode='localization'")
-        return init_localization(log.anchors, log.startup_ranges, log.startup_mask, config, params)
-    raise InputError(f"config.mode: expected 'slam' or 'localization', got {config.mode!r}")
+        st, start = init_localization(log.anchors, log.startup_ranges, log.startup_mask, config, params)
+    else:
+        raise InputError(f"config.mode: expected 'slam' or 'localization', got {config.mode!r}")
+    bad = jnp.sum(jnp.asarray(log.startup_mask, bool) & ~uwb.valid_ranges(jnp.asarray(log.startup_ranges)))
+    return st._replace(masked=st.masked + bad.astype(jnp.int32)), start
 
 
 def init(log: Log, config: Config, params: Params, *, key=None) -> State:

@@ -170,8 +170,7 @@ def make_setup(scenario: str, duration=None, dt: float = 1.0, n_anchors: int = 3
         raise InputError(f"scenario: expected one of {SCENARIOS}, got {scenario!r}")
     path, att, dur0 = _PATHS[scenario]()
     duration = dur0 if duration is None else float(duration)
-    if not (math.isfinite(dt) and dt > 0):
-        raise InputError(f"--dt: must be a positive number of seconds, got {dt}")
+    _check_dt(dt)
     if not (math.isfinite(duration) and duration >= 2 * dt):
         raise InputError(f"--duration: must be at least 2 Δt = {2 * dt} s, got {duration}")
     if not (math.isfinite(startup_speed) and startup_speed > 0):
@@ -375,7 +374,13 @@ def _json_threshold(name, v):
     return int(np.asarray(v)) if name.endswith("_points") else float(np.asarray(v))
 
 
+def _check_dt(dt) -> None:
+    if not (math.isfinite(dt) and dt > 0):
+        raise InputError(f"--dt: must be a positive number of seconds, got {dt}")
+
+
 def _filter_params(options, dtype, params=None):
+    _check_dt(float(options["dt"]))  # before the filter's Q is built from it (a --params run named Q)
     model = options["model"]
     noise = uwb.PAPER003_NOISE
     if options["filter"] == "paper":
