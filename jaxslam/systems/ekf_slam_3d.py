@@ -23,7 +23,8 @@ Equations (paper 000; errata in docs/papers.md):
   noise on the accelerometer (enters v̇) and gyro (enters v̇ through −ω×v and
   Λ̇ through D); see docs/papers.md for the derivation.
 * LiDAR update: eq. 30-43 with the corrected eq. 31 (errata), registration
-  eq. 44-53 — both through the engine with autodiff Jacobians.
+  eq. 44-53 — both through the engine with closed-form Jacobians
+  (``sensors.lidar3d.measure_state_and_jacobians``, ``inverse_state_and_jacobians``).
 """
 
 from __future__ import annotations
@@ -41,8 +42,8 @@ from ..dynamics.integrators import rk4_field, rk4_linearized
 from ..errors import InputError
 from ..filters import ekf_slam as es
 from ..geometry.euler import dcm_from_euler, euler_rate_matrix, rotate_jacobian
-from ..linalg import (check_int, check_numbers, check_psd, check_scalar, host_array, is_concrete, small_matmul,
-                      wrap_angle)
+from ..linalg import (check_int, check_mask, check_numbers, check_psd, check_scalar, host_array, is_concrete,
+                      small_matmul, wrap_angle)
 from ..sensors import lidar3d
 from ..stats import nees as _nees
 
@@ -213,10 +214,12 @@ def motion_and_jacobian(s, u, params):
 
 def process_noise(s, imu, noise: Params, dt, g, accel_mode: str = "3axis"):
     """Q_d = (Q_c + G Q_imu Gᵀ) Δt, G = ∂f_s/∂λ at (s, λ) (first-order; see module doc;
-    G in closed form, :func:`input_jacobian`)."""
+    G in closed form, :func:`input_jacobian`), in ``s``'s dtype (Q_c, Q_imu are cast to it, as
+    P0 and R are)."""
     del imu, g  # G does not depend on the IMU reading or on gravity
     G = input_jacobian(s, accel_mode)
-    return (noise.Qc + small_matmul(small_matmul(G, noise.Qimu), G.T)) * jnp.asarray(dt, s.dtype)
+    Qc, Qimu = jnp.asarray(noise.Qc, s.dtype), jnp.asarray(noise.Qimu, s.dtype)
+    return (Qc + small_matmul(small_matmul(G, Qimu), G.T)) * jnp.asarray(dt, s.dtype)
 
 
 def _observe(s, l, params):
@@ -328,8 +331,8 @@ class Config(NamedTuple):
       (localisation against the true map, held in the padded map with zero covariance).
     association: "known" (landmark ids, as in the paper) or "nn" (ids hidden,
       nearest-neighbour Mahalanobis with a new-landmark threshold).
-    capacity: landmark slots.  max_obs: measurements processed per frame (the
-      visible ones are compacted into this many; extras are counted as dropped).
+    capacity: landmark slots.  max_obs: measurements processed per frame (the visible, usable
+      ones, i.e. not masked, are compacted into this many; extras are counted as dropped).
     accel_mode: "3axis" or "az" (paper eq. 25).  dt: IMU step [s].  g: gravity.
     (The update gate and the association thresholds are numbers: :class:`Params`.)
     save_map: store the landmark means at every frame (for plots; memory F·cap·3).
@@ -365,11 +368,12 @@ class Config(NamedTuple):
 
 class State(NamedTuple):
     """The filter between events: the engine's posterior and the running counts of measurements
-    dropped (beyond ``max_obs``) and masked (non-finite or outside the field of view)."""
+    dropped (beyond ``max_obs``) and masked (non-finite, outside the field of view, or in
+    ``mode == association == "known"`` an id not in the known map)."""
 
     slam: es.SlamState
-    dropped: jax.Array  # () int32 visible measurements beyond max_obs, summed
-    masked: jax.Array  # () int32 measurements masked (non-finite or outside the FOV), summed
+    dropped: jax.Array  # () int32 visible usable measurements beyond max_obs, summed
+    masked: jax.Array  # () int32 visible measurements masked (see above), summed
 
 
 class StepOut(NamedTuple):
@@ -421,6 +425,8 @@ def _check_config(config: Config, n_known=None, name: str = "log.landmarks"):
         raise InputError(f"config.mode: expected 'known' or 'unknown', got {config.mode!r}")
     if config.association not in ("known", "nn"):
         raise InputError(f"config.association: expected 'known' or 'nn', got {config.association!r}")
+    if config.accel_mode not in ("3axis", "az"):  # any other string ran the 3-axis model
+        raise InputError(f"config.accel_mode: expected '3axis' or 'az', got {config.accel_mode!r}")
     check_int(config.capacity, "config.capacity", what="an int (landmark slots)")
     check_int(config.max_obs, "config.max_obs", what="an int (measurements per frame)")
     # dt <= 0 froze the estimate or ran it backwards; a NaN g made every state NaN
@@ -442,10 +448,19 @@ def _check_known_map(landmarks, config: Config, name: str) -> None:
             raise InputError(f"{name}: contains NaN or Inf")
 
 
+def _float_dtype(s0):
+    """The filter's dtype for the start ``s0``: its own if floating, else JAX's default float (as
+    :func:`jaxslam.filters.ekf_slam.init` casts an integer mean; an integer dtype had cast P0 and
+    the thresholds to integers: P0 0, gate 0.9 → 0)."""
+    dt = jnp.result_type(s0)
+    return dt if jnp.issubdtype(dt, jnp.floating) else jnp.result_type(float)
+
+
 def initial_state(s0, config: Config, params: Params, landmarks=None) -> State:
     """The filter state at ``s0`` (9,) with covariance ``params.P0``; the known map preloaded with
-    zero covariance in ``config.mode == "known"`` (``landmarks`` (L, 3))."""
-    dtype = s0.dtype
+    zero covariance in ``config.mode == "known"`` (``landmarks`` (L, 3)).  An integer ``s0`` runs
+    in JAX's default float."""
+    dtype = _float_dtype(s0)
     st = es.init(s0, params.P0.astype(dtype), config.capacity, 3)
     if config.mode == "known":
         st = es.preload(st, make_model(), landmarks)
@@ -454,7 +469,8 @@ def initial_state(s0, config: Config, params: Params, landmarks=None) -> State:
 
 
 def propagate(state: State, imu_prev, imu_now, config: Config, params: Params) -> State:
-    """One IMU interval (eq. 24-29): RK4 prediction with the interpolated IMU, Q_d by autodiff."""
+    """One IMU interval (eq. 24-29): RK4 prediction with the interpolated IMU, Q_d with the
+    closed-form G (:func:`process_noise`)."""
     st = state.slam
     s = st.x[:NX]
     Qd = process_noise(s, 0.5 * (imu_prev + imu_now), params, config.dt, config.g, config.accel_mode)
@@ -464,24 +480,32 @@ def propagate(state: State, imu_prev, imu_now, config: Config, params: Params) -
 
 
 def correct(state: State, y, ids, visible, config: Config, params: Params, x_true=None):
-    """One LiDAR frame (eq. 30-53): the visible rows compacted to ``config.max_obs``, non-finite
-    and out-of-FOV rows masked and counted, association, update, registration (``"unknown"``).
-    ``x_true`` (12,): for the frame's NEES only (None: NaN).  Returns ``(state, FrameOut)``."""
+    """One LiDAR frame (eq. 30-53): non-finite and out-of-FOV visible rows masked and counted
+    (with ``config.mode == config.association == "known"`` also a row whose id is not in the
+    known map; the status gets MASKED_INPUT), the remaining visible rows compacted to
+    ``config.max_obs`` (extras counted as dropped), association, update, registration
+    (``"unknown"``).  ``x_true`` (12,): for the frame's NEES only (None: NaN).  Returns
+    ``(state, FrameOut)``."""
     cfg = config
     model = make_model()
     mparams = (cfg.dt, cfg.g, cfg.accel_mode)
     st = state.slam
+    visible = jnp.asarray(visible, bool)
     L = y.shape[0]
     M = min(cfg.max_obs, L)
-    order = jnp.argsort(~visible, stable=True)[:M]
-    y_s, id_s, vis_s = y[order], ids[order], visible[order]
-    dropped = jnp.sum(visible) - jnp.sum(vis_s)
-    # Non-finite or out-of-FOV measurements are masked and counted, never used.
-    usable = jnp.all(jnp.isfinite(y_s), axis=-1)
+    # Non-finite or out-of-FOV measurements are masked and counted, never used; masked before
+    # the compaction, so they take none of the max_obs slots.
+    usable = jnp.all(jnp.isfinite(y), axis=-1)
     if cfg.fov_check:
-        usable = usable & lidar3d.in_fov(jnp.where(jnp.isfinite(y_s), y_s, 0.0), _fov_tolerance(cfg.lidar))
-    masked = jnp.sum(vis_s & ~usable)
-    vis_s = vis_s & usable
+        usable = usable & lidar3d.in_fov(jnp.where(jnp.isfinite(y), y, 0.0), _fov_tolerance(cfg.lidar))
+    if cfg.mode == "known" and cfg.association == "known":
+        # an id outside the known map is neither updated nor registered (run refuses a concrete one)
+        usable = usable & es.associate_known(st, ids, visible)[1]
+    masked = jnp.sum(visible & ~usable)
+    good = visible & usable
+    order = jnp.argsort(~good, stable=True)[:M]
+    y_s, id_s, vis_s = y[order], ids[order], good[order]
+    dropped = jnp.sum(good) - jnp.sum(vis_s)
     R = params.R.astype(st.x.dtype)
     if cfg.association == "known":
         slots, mapped = es.associate_known(st, id_s, vis_s)
@@ -631,11 +655,27 @@ def _check_log(log: Log) -> int:
                          f"got {np.shape(log.imu)}")
     if np.shape(log.s0) != (NX,):
         raise InputError(f"log.s0: expected shape ({NX},), got {np.shape(log.s0)}")
-    if np.ndim(log.ids) not in (1, 2) or np.shape(log.ids)[-1] != L:
+    check_mask(log.visible, "log.visible")
+    if np.ndim(log.ids) not in (1, 2) or np.shape(log.ids)[-1] != L or np.shape(log.ids)[:-1] not in ((), (F,)):
         raise InputError(f"log.ids: expected shape ({L},) or ({F}, {L}), got {np.shape(log.ids)}")
     if log.truth is not None and np.shape(log.truth) != (T1, 12):
         raise InputError(f"log.truth: expected shape ({T1}, 12), got {np.shape(log.truth)}")
     return (T1 - 1) // F
+
+
+def _check_known_ids(log: Log, config: Config) -> None:
+    """With ``config.mode == config.association == "known"`` and concrete ``log.ids``: every
+    visible row's id is one of the known map's 0 … L_map − 1 (an id outside it was neither used
+    nor registered; traced, :func:`correct` masks and counts it)."""
+    if config.mode != "known" or config.association != "known" or not is_concrete(log.ids):
+        return
+    n_known = int(np.shape(log.landmarks)[0])
+    ids = np.broadcast_to(np.asarray(log.ids), np.shape(log.visible))
+    used = np.asarray(log.visible, bool) if is_concrete(log.visible) else np.ones(ids.shape, bool)
+    bad = ids[used & ((ids < 0) | (ids >= n_known))]
+    if bad.size:
+        raise InputError(f"log.ids: visible rows must name a landmark of the known map (0 … {n_known - 1}), "
+                         f"got the id {bad.flat[0]}")
 
 
 class Event(NamedTuple):
@@ -698,9 +738,10 @@ def run(log: Log, config: Config, params: Params, *, key=None) -> Result:
         raise InputError("log.s0: contains NaN or Inf")  # every mean came out NaN
     _check_config(config, None if log.landmarks is None else int(np.shape(log.landmarks)[0]))
     _check_known_map(log.landmarks, config, "log.landmarks")
+    _check_known_ids(log, config)
     if is_concrete(params):
         validate_params(params)
-    dtype = jnp.asarray(log.s0).dtype  # thresholds as arrays: a Python number and an array share one program
+    dtype = _float_dtype(log.s0)  # thresholds as arrays: a Python number and an array share one program
     params = params._replace(**{f: None if getattr(params, f) is None else host_array(getattr(params, f), dtype)
                                 for f in ("gate", "nn_gate", "nn_new")})
     return _run(log, config, params)

@@ -22,14 +22,14 @@ Model (paper 000 eq. 1-3, 24-53, errata of docs/papers.md):
 * prediction touches only P_rr and P_rl (P_ll untouched);
 * LiDAR y = [α, β, δ] of c = C_NBᵀ (l − ρ) (α = atan2(c₂, c₁),
   β = atan2(c₃, √(c₁² + c₂²)), δ = ‖c‖), residual with α wrapped;
-* per LiDAR frame: the first ``max_obs`` visible measurements (in landmark
+* per LiDAR frame: the first ``max_obs`` visible, usable measurements (in landmark
   order — the stable compaction of the JAX ``correct``), known-id association,
   ONE joint update of the mapped ones from the gathered columns of P with
   paper 000's eq. 43, P − K S Kᵀ = P − (K L)(K L)ᵀ (S = L Lᵀ; the system's default), or with
   ``joseph=True`` the factored Joseph form A − (A Hᵀ) Kᵀ + K R Kᵀ, A = P − K (P Hᵀ)ᵀ, symmetrised,
   then sequential registration (eq. 44-53) of the unmapped ones into the first
   free slot: l = C ϱ(y) + ρ, P_ll = G_s P_ss G_sᵀ + G_y R G_yᵀ, P_lx = G_s P_s,: ;
-  measurements outside the Table 4 FOV widened by 5σ (after the compaction)
+  measurements outside the Table 4 FOV widened by 5σ (before the compaction)
   are dropped, as the estimator's ``fov_check`` does (``fov=None`` turns it off).
 
 The padded layout is the JAX one (n = 9 + 3·capacity, inactive slots zero), so
@@ -443,15 +443,15 @@ class NumpyEkfSlam3D:
 
     # -- one LiDAR frame -----------------------------------------------------
     def correct(self, y, ids, visible):
-        """Compact to max_obs visible, associate by id, update mapped, register new."""
-        sel = np.flatnonzero(visible)[: self.max_obs]
-        ys, idsel = y[sel], ids[sel]
-        usable = np.all(np.isfinite(ys), axis=1)
+        """Mask non-finite/out-of-FOV rows, compact the visible rest to max_obs, associate by id,
+        update mapped, register new."""
+        usable = np.all(np.isfinite(y), axis=1)
         if self.fov is not None:
-            # after the compaction, as the JAX correct(): a measurement beyond the FOV
-            # (widened by 5σ) is impossible and is neither used nor registered
-            usable &= _within_fov(np.where(np.isfinite(ys), ys, 0.0), self.fov)
-        ys, idsel = ys[usable], idsel[usable]
+            # before the compaction, as the JAX correct(): a measurement beyond the FOV
+            # (widened by 5σ) is impossible and is neither used nor registered, nor takes a slot
+            usable &= _within_fov(np.where(np.isfinite(y), y, 0.0), self.fov)
+        sel = np.flatnonzero(np.asarray(visible, bool) & usable)[: self.max_obs]
+        ys, idsel = y[sel], ids[sel]
         slots = np.array([self._slot_of.get(int(i), -1) for i in idsel], dtype=np.int64)
         mapped = slots >= 0
         self.update(ys[mapped], slots[mapped])

@@ -371,3 +371,115 @@ def test_engine_update_and_registration_use_the_models_jacobians():
     ups = [upd(m)(regs[1], y) for m in (model, plain)]
     np.testing.assert_allclose(np.asarray(ups[0].x), np.asarray(ups[1].x), rtol=1e-11, atol=1e-13)
     np.testing.assert_allclose(np.asarray(ups[0].P), np.asarray(ups[1].P), rtol=1e-9, atol=1e-14)
+
+
+# ------------------------------------------------------- small hand-built logs (review fixes)
+def _hand_lidar(l):
+    """[α, β, δ] of landmark l seen from the origin at zero attitude (c = l), by hand."""
+    return np.array([np.arctan2(l[1], l[0]), np.arctan2(l[2], np.hypot(l[0], l[1])), np.linalg.norm(l)])
+
+
+def _small_log(F=1, k=1, L=5, dtype=np.float64):
+    """A hovering robot at the origin (f_B = −g e₃ cancels gravity: it stays put) seeing L
+    landmarks ahead (|α| < 15°, |β| < 15°, range ≈ 5 m) with exact measurements."""
+    lms = np.array([[5.0, 0.5 * i - 0.7, -0.3 * i] for i in range(L)])
+    y = np.tile(np.stack([_hand_lidar(l) for l in lms]), (F, 1, 1))
+    log = s3.Log(s0=np.zeros(9, dtype), imu=np.tile([0.0, 0, -9.81, 0, 0, 0], (F * k + 1, 1)).astype(dtype),
+                 y=y.astype(dtype), visible=np.ones((F, L), bool), ids=np.arange(L, dtype=np.int32))
+    return log, lms
+
+
+def _small_params(dtype=np.float64):
+    return s3.Params(P0=(1e-3 * np.eye(9)).astype(dtype), Qc=(1e-4 * np.eye(9)).astype(dtype),
+                     Qimu=(1e-4 * np.eye(6)).astype(dtype), R=(1e-4 * np.eye(3)).astype(dtype))
+
+
+def test_masked_rows_take_no_max_obs_slot():
+    """Non-finite and out-of-FOV rows are masked before the compaction to max_obs: they used to
+    take the slots, and the good rows behind them were dropped (nothing registered)."""
+    log, lms = _small_log(L=5)
+    y = np.array(log.y)
+    y[0, 0] = np.nan  # row 0 non-finite
+    y[0, 1, 0] = np.radians(120.0)  # row 1 far outside the ±45° azimuth
+    res = s3.run(log._replace(y=y), s3.Config(capacity=8, max_obs=2), _small_params())
+    est = res.final
+    # rows 2, 3 (the first two good ones) registered, row 4 beyond max_obs
+    assert int(est.masked) == 2 and int(est.dropped) == 1
+    assert int(res.frames.n_active[0]) == 2
+    reg = _landmark_dict(est)
+    assert sorted(reg) == [2, 3]
+    for i in (2, 3):
+        np.testing.assert_allclose(reg[i], lms[i], atol=1e-9)  # registered from the exact y
+    assert "masked_input" in errors.decode(est.slam.status)
+
+
+def test_integer_start_runs_in_float():
+    """An integer log.s0 cast P0 (init) and the thresholds (run) to an integer dtype: P0 became 0
+    and gate 0.9 became 0 (every row gated off)."""
+    log, _ = _small_log(F=2, L=4)
+    rng = np.random.default_rng(0)
+    log = log._replace(y=log.y + rng.normal(size=log.y.shape) * 0.003)
+    cfg = s3.Config(capacity=8, max_obs=4)
+    prm = _small_params()._replace(gate=0.9)
+    st = s3.init(log._replace(s0=np.zeros(9, np.int64)), cfg, prm)
+    assert jnp.issubdtype(st.slam.P.dtype, jnp.floating)
+    np.testing.assert_array_equal(np.asarray(st.slam.P[:9, :9]), 1e-3 * np.eye(9))
+    ref = s3.run(log, cfg, prm)
+    assert int(ref.frames.dof[1]) == 12  # float s0: frame 2 updates all 4 rows with gate 0.9
+    got = s3.run(log._replace(s0=np.zeros(9, np.int64)), cfg, prm)
+    np.testing.assert_array_equal(np.asarray(got.frames.dof), np.asarray(ref.frames.dof))
+    np.testing.assert_allclose(np.asarray(got.means), np.asarray(ref.means), rtol=1e-12, atol=1e-15)
+
+
+def test_float64_noise_with_a_float32_state():
+    """Q_c and Q_imu are cast to the state's dtype, as P0 and R are (imu_noise/paper_noise default
+    to float64; a float32 log raised a raw TypeError in the prediction)."""
+    rng = np.random.default_rng(1)
+    s = rng.normal(size=9) * 0.3
+    noise = s3.imu_noise(imu_mod.PAPER000_IMU)._replace(Qc=jnp.asarray(np.diag(np.arange(1.0, 10.0)) * 1e-4))
+    Qd = s3.process_noise(jnp.asarray(s, jnp.float32), None, noise, 0.01, 9.81)
+    assert Qd.dtype == jnp.float32
+    G = _hand_G(s, None)
+    nd_a, nd_g = 300e-6 * 9.81, np.radians(0.01)
+    want = (np.diag(np.arange(1.0, 10.0)) * 1e-4 + G @ np.diag([nd_a**2] * 3 + [nd_g**2] * 3) @ G.T) * 0.01
+    np.testing.assert_allclose(np.asarray(Qd, np.float64), want, rtol=1e-5, atol=1e-12)
+    log32, lms = _small_log(F=2, k=2, L=4, dtype=np.float32)
+    for p64 in (s3.imu_noise(imu_mod.PAPER000_IMU), s3.paper_noise("unknown")):
+        res = s3.run(log32, s3.Config(capacity=8, max_obs=4), p64)
+        assert res.means.dtype == jnp.float32 and res.final.slam.P.dtype == jnp.float32
+        # exact hover and measurements: the robot stays at the origin, the landmarks where they are
+        np.testing.assert_allclose(np.asarray(res.means), 0.0, atol=1e-4)
+        reg = _landmark_dict(res.final)
+        for i in range(4):
+            np.testing.assert_allclose(reg[i], lms[i], atol=1e-4)
+
+
+def test_known_map_ids_outside_the_map_are_refused_or_masked():
+    """mode = association = "known": a visible id that is not a landmark of the known map was
+    neither used nor registered, silently.  Concrete ids: InputError naming log.ids; traced ids:
+    masked, counted and flagged, and they take no max_obs slot."""
+    F = 2
+    log, lms = _small_log(F=F, L=4)
+    log = log._replace(landmarks=lms)
+    cfg = s3.Config(mode="known", capacity=8, max_obs=2)
+    prm = _small_params()
+    for bad in (10, -1, 4):
+        with pytest.raises(InputError, match=r"^log\.ids: visible rows must name a landmark of the known map"):
+            s3.run(log._replace(ids=np.array([0, bad, 2, 3], np.int32)), cfg, prm)
+    # an invisible row may carry any id
+    vis = np.ones((F, 4), bool)
+    vis[:, 1] = False
+    s3.run(log._replace(ids=np.array([0, 10, 2, 3], np.int32), visible=vis), cfg, prm)
+    # traced: rows 0, 1 name no known landmark, rows 2, 3 are used (2 rows × 3 dof per frame)
+    res = jax.jit(lambda ids: s3.run(log._replace(ids=ids), cfg, prm))(jnp.array([10, -1, 2, 3], jnp.int32))
+    assert int(res.final.masked) == 2 * F and int(res.final.dropped) == 0
+    np.testing.assert_array_equal(np.asarray(res.frames.dof), [6] * F)
+    assert "masked_input" in errors.decode(res.final.slam.status)
+    ok = jax.jit(lambda ids: s3.run(log._replace(ids=ids), cfg, prm))(jnp.arange(4, dtype=jnp.int32))
+    assert int(ok.final.masked) == 0 and int(ok.final.dropped) == 2 * F
+    assert "masked_input" not in errors.decode(ok.final.slam.status)
+
+
+def test_module_doc_names_closed_form_jacobians():
+    assert "autodiff Jacobians" not in s3.__doc__
+    assert "by autodiff" not in s3.propagate.__doc__

@@ -278,6 +278,7 @@ def test_planar_fastslam_names_a_non_finite_log_p_new_and_non_integer_sizes():
     (dict(g=float("nan")), r"^config\.g: expected a finite scalar"),
     (dict(capacity=0), r"^config\.capacity: expected an int"),
     (dict(max_obs=0), r"^config\.max_obs: expected an int"),  # named z before
+    (dict(accel_mode="AZ"), r"^config\.accel_mode: expected '3axis' or 'az', got 'AZ'"),  # ran "3axis"
     ("s0", r"^log\.s0: contains NaN or Inf"),  # all-NaN means before
     ("nn", r"^params\.nn_new: need nn_gate <= nn_new"),
 ])
@@ -507,6 +508,28 @@ def test_planar_ekf_slam_refuses_a_float_mask_and_a_non_integer_capacity():
     np.testing.assert_array_equal(np.asarray(a.pose), np.asarray(ref.pose))
     b = jax.jit(lambda mk: pe.run(_planar_log(mask=mk), cfg, prm).pose)(jnp.ones((6, 2), bool))
     np.testing.assert_allclose(np.asarray(b), np.asarray(ref.pose), rtol=1e-6, atol=1e-9)
+
+
+def test_ekf_slam_3d_names_bad_log_ids_and_visible():
+    """log.ids of shape (F', L), F' != F, and a float log.visible passed the checks and failed
+    inside the jitted run (raw ValueError / TypeError)."""
+    from jaxslam.systems import ekf_slam_3d as e3
+
+    F, L = 3, 2
+    log = e3.Log(s0=np.zeros(9), imu=np.tile([0.0, 0, -9.81, 0, 0, 0], (2 * F + 1, 1)),
+                 y=np.tile([[0.1, 0.1, 5.0], [0.2, -0.1, 6.0]], (F, 1, 1)), visible=np.ones((F, L), bool),
+                 ids=np.arange(L, dtype=np.int32))
+    prm = e3.Params(P0=1e-3 * np.eye(9), Qc=1e-4 * np.eye(9), Qimu=1e-4 * np.eye(6), R=1e-4 * np.eye(3))
+    cfg = e3.Config(capacity=4, max_obs=2)
+    with pytest.raises(InputError, match=r"^log\.ids: expected shape \(2,\) or \(3, 2\), got \(4, 2\)"):
+        e3.run(log._replace(ids=np.tile(np.arange(L, dtype=np.int32), (F + 1, 1))), cfg, prm)
+    with pytest.raises(InputError, match=r"^log\.visible: expected a bool mask"):
+        e3.run(log._replace(visible=np.ones((F, L))), cfg, prm)
+    ref = e3.run(log, cfg, prm)
+    # 0/1 integers read as the bool mask they spell
+    a = e3.run(log._replace(visible=np.ones((F, L), np.int32)), cfg, prm)
+    np.testing.assert_array_equal(np.asarray(a.means), np.asarray(ref.means))
+    np.testing.assert_array_equal(np.asarray(a.frames.dof), np.asarray(ref.frames.dof))
 
 
 def test_ekf_slam_3d_refuses_a_non_finite_known_map():
