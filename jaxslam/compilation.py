@@ -102,6 +102,7 @@ def cache_dir(path=None) -> pathlib.Path:
 
 
 _warned: set = set()
+_unusable: dict = {}  # folder -> why this process could not use it (cache_info reports it)
 _enabled_dir: pathlib.Path | None = None
 
 
@@ -146,6 +147,7 @@ def enable_cache(path=None) -> pathlib.Path | None:
         return folder
     reason = _writable(folder)
     if reason is not None:
+        _unusable[str(folder)] = reason
         _warn_once(str(folder), f"jaxslam: compilation cache folder {str(folder)!r} cannot be written "
                                 f"({reason}); running without the persistent cache (set "
                                 f"{CACHE_DIR_ENV} to another folder, or {CACHE_ENV}=0 to silence this)")
@@ -226,9 +228,11 @@ def _cache_files(folder: pathlib.Path):
 
 
 def cache_info(path=None) -> dict:
-    """``{"dir", "enabled", "exists", "entries", "bytes", "other"}`` of the cache folder (no JAX
-    import); ``other``: entries of the folder that are not this cache's (never counted or
-    removed)."""
+    """``{"dir", "enabled", "usable", "reason", "exists", "entries", "bytes", "other"}`` of the
+    cache folder (no JAX import).  ``enabled``: not switched off by ``$JAXSLAM_CACHE``;
+    ``usable``: this process did not fail to write it (:func:`enable_cache`'s warning) and its
+    nearest existing folder is writable, else ``reason`` says why; ``other``: entries of the
+    folder that are not this cache's (never counted or removed)."""
     folder = cache_dir(path)
     if folder.exists() and not folder.is_dir():
         raise InputError(f"cache folder {folder}: exists and is not a folder")
@@ -249,8 +253,17 @@ def cache_info(path=None) -> dict:
         prog = folder / _PROGRAMS
         if prog.is_dir() and not prog.is_symlink():
             other += sum(1 for p in prog.iterdir() if p not in ours)
-    return {"dir": str(folder), "enabled": not cache_disabled(), "exists": folder.is_dir(),
-            "entries": entries, "bytes": size, "other": other}
+    reason = _unusable.get(str(folder))
+    if reason is None:  # without creating anything: the nearest existing folder on the way
+        near = folder
+        while not near.exists() and near != near.parent:
+            near = near.parent
+        if not near.is_dir():
+            reason = f"{str(near)!r} is not a folder"
+        elif not os.access(near, os.W_OK | os.X_OK):
+            reason = f"{str(near)!r} is not writable"
+    return {"dir": str(folder), "enabled": not cache_disabled(), "usable": reason is None, "reason": reason,
+            "exists": folder.is_dir(), "entries": entries, "bytes": size, "other": other}
 
 
 def clear_cache(path=None) -> dict:

@@ -103,6 +103,22 @@ def test_a_cache_path_whose_home_cannot_be_found_warns_and_runs_uncached(keep_ca
     assert "JAXSLAM_CACHE_DIR" in err and "Traceback" not in err
 
 
+def test_cache_info_says_when_the_folder_cannot_be_used(tmp_path, keep_cache, monkeypatch, capsys):
+    # 'cache info' printed '(on)' right after the warning that the folder cannot be written
+    monkeypatch.delenv(compilation.CACHE_ENV, raising=False)
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a folder")
+    info = compilation.cache_info(blocker / "cache")
+    assert info["enabled"] and not info["usable"] and "is not a folder" in info["reason"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", compilation.CacheWarning)
+        assert compilation.enable_cache(blocker / "cache") is None
+    assert compilation.cache_info(blocker / "cache")["usable"] is False
+    assert compilation.cache_info(tmp_path / "fine")["usable"] is True
+    assert cli.main(["cache", "info", "--dir", str(blocker / "cache")]) == 0
+    assert "on but unusable" in capsys.readouterr().out
+
+
 def test_second_call_is_served_and_corrupt_entries_are_ignored(tmp_path):
     cache = tmp_path / "cache"
     p1, cold = _cli(RUN, cache, tmp_path)

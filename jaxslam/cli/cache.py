@@ -32,7 +32,8 @@ def command(rest: list[str]) -> int:
 
         echo(json.dumps(info, indent=2))
         return 0
-    state = "on" if info["enabled"] else f"off ({compilation.CACHE_ENV}=0)"
+    state = ("on" if info["usable"] else f"on but unusable: {info['reason']}; commands run uncached") \
+        if info["enabled"] else f"off ({compilation.CACHE_ENV}=0)"
     if args.action == "info":
         echo(f"compilation cache: {info['dir']} ({state})")
         echo(f"  {info['entries']} entries, {info['bytes'] / 2**20:.1f} MiB"
