@@ -29,6 +29,7 @@ Seeds: training runs use ``keys_for(seed, M)``, the held-out test runs ``keys_fo
 from __future__ import annotations
 
 import importlib
+import math
 from typing import Any, Callable, NamedTuple, Optional
 
 import numpy as np
@@ -44,7 +45,9 @@ STUDENT_T_NU = 5.0
 
 def window_nll(res, weights=None):
     """Innovation NLL per scalar of a run's per-event ``res.nll`` / ``res.nll_dof`` (nats; no
-    ground truth), over the events with weight 1 (``weights`` None: all); traceable."""
+    ground truth), over the events with weight 1 (``weights`` None: all; a list is read as an
+    array); traceable.  An event of weight 0 adds nothing, even a NaN or Inf ``nll`` (0·NaN made
+    the result NaN), as :func:`heldout_nll` ignores it; so does its gradient."""
     import jax.numpy as jnp
 
     if weights is not None:
@@ -55,8 +58,10 @@ def window_nll(res, weights=None):
             ok = False
         if not ok:
             raise InputError(f"weights: expected one weight per event, shape {ns}, got {ws}")
-    w = 1.0 if weights is None else weights
-    return jnp.sum(w * res.nll) / jnp.maximum(jnp.sum(w * res.nll_dof), 1.0)
+    w = jnp.asarray(1.0 if weights is None else weights)  # a list was a bare TypeError
+    num = jnp.sum(jnp.where(w > 0, w * res.nll, 0.0))
+    den = jnp.sum(jnp.where(w > 0, w * res.nll_dof, 0.0))
+    return num / jnp.maximum(den, 1.0)
 
 
 def heldout_nll(res, held=None) -> float:
@@ -282,6 +287,28 @@ def _check_keywords(ignored: dict, target: str) -> None:
     if unused:
         raise InputError(f"{unused[0]}: tuning target {target} does not use {', '.join(unused)} (it would be "
                          f"ignored); got {', '.join(f'{k}={ignored[k]!r}' for k in unused)}"[:400])
+
+
+def _check_duration(value, name: str, lower: float) -> float:
+    """``value`` (seconds) as a float: a finite real number (not a bool) >= ``lower``; else
+    InputError "``name``: must be at least ``lower`` s" (a string or None was a bare TypeError)."""
+    ok = (isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
+          and math.isfinite(value) and value >= lower)
+    if not ok:
+        raise InputError(f"{name}: must be at least {lower:g} s, got {value}"[:300])
+    return float(value)
+
+
+def _fixed_mode(factory: Callable, mode: str, target: str) -> Callable:
+    """``factory`` with ``mode`` set by the scenario's name (``ekfslam3d-{mode}``): a ``mode``
+    keyword is an InputError naming it (it was a bare "multiple values" TypeError)."""
+    def build(**kw):
+        if "mode" in kw:
+            raise InputError(f"mode: unknown keyword for tuning target ekfslam3d-{mode} --target {target} "
+                             f"(the scenario name sets it); got mode={kw['mode']!r}"[:300])
+        return factory(mode=mode, **kw)
+
+    return build
 
 
 def _check_window(t_max):

@@ -43,7 +43,7 @@ from ...errors import InputError
 from ...systems import ekf_slam_3d as sys3d
 from .. import losses as L
 from .. import params as P
-from . import Target, DECLARED, _check_keywords, diag_list, keys, register_target
+from . import Target, DECLARED, _check_duration, _check_keywords, _fixed_mode, diag_list, keys, register_target
 
 __all__ = ["STRUCTURES", "make_slam_logs", "slam_loss", "ekfslam3d_noise", "eval_command", "tie_imu_axes"]
 
@@ -99,8 +99,9 @@ def make_slam_logs(seed: int, runs: int, duration: float, n_landmarks: int = 40,
     Flights as in the ``ekfslam3d`` scenarios (40 Table 3 landmarks per run, Table 4/5
     sensors, 100 Hz IMU, 10 Hz LiDAR) with the DF-LQR on the truth.  Run i uses
     ``keys_for(seed, runs)[i]`` split into (landmarks, flight, initial error); the initial
-    estimate is the true start plus an error drawn from ``P0`` (9, 9) (default: the
-    ``--q imu`` P0).  Returns a :class:`jaxslam.systems.ekf_slam_3d.Log` batch (leading axis
+    estimate is the true start plus an error drawn from ``P0`` (9, 9), finite symmetric PSD
+    (default: the ``--q imu`` P0); ``duration`` a number of seconds >= 0.1 (else InputError
+    naming ``P0`` / ``duration``).  Returns a :class:`jaxslam.systems.ekf_slam_3d.Log` batch (leading axis
     runs, with the true states and landmarks) in ``dtype``.
     """
     if int(runs) < 1:
@@ -110,13 +111,20 @@ def make_slam_logs(seed: int, runs: int, duration: float, n_landmarks: int = 40,
 
 def _logs(ks, duration, n_landmarks, P0, dtype, altitude):
     """The logs of the runs keyed by ``ks`` (runs, ...) in one call of the vmapped recorder."""
+    from ...linalg import check_numbers, check_psd, check_shape
     from ...sim.scenarios.tracking import FRAME_STEPS
     from ...sim.simulate import n_frames
 
+    if isinstance(duration, (bool, np.bool_)) or not isinstance(duration, (int, float, np.integer, np.floating)):
+        raise InputError(f"duration: expected a number of seconds, got {duration!r}"[:300])  # was a bare TypeError
     if not (duration >= 0.1 and math.isfinite(duration)):
         raise InputError(f"duration: must be at least 0.1 s, got {duration}")
 
-    P0 = np.diag(sys3d.IMU_P0) if P0 is None else np.asarray(P0, float)
+    if P0 is None:
+        P0 = np.diag(sys3d.IMU_P0)
+    else:  # a negative-definite P0 was clipped to 0 (the start was the truth), a (3, 3) a bare TypeError
+        P0 = check_shape(check_numbers(P0, "P0"), (sys3d.NX, sys3d.NX), "P0")
+        check_psd(P0, "P0")
     w, V = np.linalg.eigh(0.5 * (P0 + P0.T))
     sqrtP0 = jnp.asarray(V * np.sqrt(np.clip(w, 0, None)), dtype)
     nf = n_frames(duration, 0.01, FRAME_STEPS)
@@ -176,17 +184,23 @@ def ekfslam3d_noise(loss: str = "nll", train_runs: int = 4, test_runs: int = 8, 
     on the capacity).  ``mse_weights``: the ``mse`` loss's weights of the 9 state components
     (a number or 9 non-negative numbers; default ones); with another loss they would be
     ignored and are refused.  Evaluation: the ``ekfslam3d-{mode}`` scenario, ``eval_duration``
-    seconds, ``test_runs`` seeds from ``seed + 1``.  See the module docstring.
+    seconds (checked before the training logs are simulated), ``test_runs`` seeds from
+    ``seed + 1``, ``eval_chunk`` (an int >= 1, default all) of them per call.  See the module docstring.
     """
     _check_keywords(_ignored, "ekfslam3d --target noise")
-    from ...linalg import check_int, check_numbers
+    from ...linalg import check_float_dtype, check_int, check_numbers
     from ...sensors import imu as imu_mod
     from ...sim.scenarios import ekfslam3d as scen
     from ...sim.scenarios.tracking import DT, FRAME_STEPS
 
-    dtype = jnp.dtype(dtype)
+    dtype = check_float_dtype(dtype)
     if mode not in ("unknown", "known"):
         raise InputError(f"mode: expected 'unknown' or 'known', got {mode!r}")
+    # checked before the training logs are simulated (it was caught only after, naming --duration);
+    # train_duration is checked by _logs before anything is simulated
+    _check_duration(eval_duration, "--eval-duration", DT * FRAME_STEPS)
+    if eval_chunk is not None:  # 'x' failed only at evaluate, after the fit; 2.5 ran as 2
+        eval_chunk = check_int(eval_chunk, "eval_chunk", lower=1, what="a number of runs per evaluation call (int)")
     if cov not in P.KINDS:
         raise InputError(f"--cov: expected one of {P.KINDS}, got {cov!r}")
     if loss not in ("nll", "mse", "nees"):
@@ -307,6 +321,5 @@ def ekfslam3d_noise(loss: str = "nll", train_runs: int = 4, test_runs: int = 8, 
 
 
 for _m in ("unknown", "known"):
-    register_target(f"ekfslam3d-{_m}", "noise",
-                    lambda _mode=_m, **kw: ekfslam3d_noise(mode=_mode, **kw),
+    register_target(f"ekfslam3d-{_m}", "noise", _fixed_mode(ekfslam3d_noise, _m, "noise"),
                     DECLARED[(f"ekfslam3d-{_m}", "noise")])

@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ...errors import InputError
+from ...errors import InputError, check_flag
 from .. import params as P
 from . import Target, DECLARED, _check_keywords, diag_list, keys, register_target
 
@@ -73,16 +73,25 @@ def figure8_lqr(loss: str = "cost", train_runs: int = 4, test_runs: int = 8, see
     Cost per run J = mean ‖ρ − ρ_d‖² + ``w_u`` · mean ‖ũ‖² (module docstring) through the
     differentiable CARE (:func:`jaxslam.control.lqr.care`) and the closed-loop scan.
     Log-diagonal parametrisation started from Table 2 (R̃ per errata).  Training and test
-    runs start from random hover offsets (``start_sigma`` m per axis, yaw σ 0.1 rad); the
-    evaluation also reports the nominal start of ``jaxslam run track-figure8``.
+    runs start from random hover offsets (``start_sigma`` m per axis, yaw σ 0.1 rad; drawn in
+    float64 when x64 is on, whatever ``dtype``, so one seed gives the same starts rounded); the
+    evaluation also reports the nominal start of ``jaxslam run track-figure8``.  ``w_u`` and
+    ``start_sigma`` are finite numbers >= 0, ``feedforward`` and ``checkpoint`` True or False
+    (else InputError naming each).
     """
     _check_keywords(_ignored, "track-figure8 --target lqr")
     from ...control import dflqr
     from ...dynamics import euler_ned
     from ...sim.scenarios.tracking import FRAME_STEPS, controller_to_dict, paper000_figure8
+    from ...linalg import check_float_dtype, check_scalar
     from ...sim.simulate import n_frames
 
-    dtype = jnp.dtype(dtype)
+    dtype = check_float_dtype(dtype)
+    # NaN or negative gave a NaN or negative cost (whose log the fit takes); "no" was a truthy flag
+    w_u = check_scalar(w_u, "w_u", lower=0)
+    start_sigma = check_scalar(start_sigma, "start_sigma", lower=0)
+    feedforward = check_flag(feedforward, "feedforward")
+    checkpoint = check_flag(checkpoint, "checkpoint")
     if loss != "cost":
         raise InputError(f"--loss: the lqr target uses the closed-loop cost ('cost'), got {loss!r}")
     base = dflqr.paper000_params()
@@ -96,13 +105,17 @@ def figure8_lqr(loss: str = "cost", train_runs: int = 4, test_runs: int = 8, see
         m = P.unpack(specs, theta)
         return base._replace(Q=m["Q"], R=m["R"])
 
+    # drawn in the wider of dtype and JAX's default float, then cast (as linear_gaussian does): a
+    # float32 target starts from the float64 target's states, rounded (drawn in float32 they were unrelated)
+    wide = jnp.promote_types(dtype, jnp.result_type(float))
+
     def starts(s, runs):
         ks = keys(s, runs)
 
         def one(k):
             k1, k2, k3 = jax.random.split(k, 3)
-            pos = start_sigma * jax.random.normal(k1, (3,), dtype)
-            yaw = 0.1 * jax.random.normal(k2, (), dtype)
+            pos = (start_sigma * jax.random.normal(k1, (3,), wide)).astype(dtype)
+            yaw = (0.1 * jax.random.normal(k2, (), wide)).astype(dtype)
             return {"x0": euler_ned.hover_state(pos, yaw, dtype=dtype), "key": k3}
 
         return jax.vmap(one)(ks)

@@ -12,7 +12,8 @@ import numpy as np
 
 from ...errors import InputError
 from ...filters import ekf as ekf_mod
-from ...linalg import check_float_dtype, check_int, check_numbers, check_psd, check_scalar, check_shape, is_concrete
+from ...linalg import (check_finite, check_float_dtype, check_int, check_numbers, check_psd, check_scalar, check_shape,
+                       is_concrete)
 from .. import losses as L
 from .. import params as P
 from . import Target, DECLARED, _check_keywords, diag_list, keys, register_target
@@ -33,6 +34,14 @@ def _check_model(dt, **mats):
         check_shape(M, (4, 4), name)
         if is_concrete(M):
             check_psd(M, name)
+
+
+def _sqrt_psd(M):
+    """A square root L (L Lᵀ = M) of a PSD matrix: the Cholesky factor when it exists (finite),
+    else the symmetric root with eigenvalues clipped at zero (a singular M); traceable."""
+    C = jnp.linalg.cholesky(M)
+    w, V = jnp.linalg.eigh(0.5 * (M + M.T))
+    return jnp.where(jnp.all(jnp.isfinite(C)), C, V * jnp.sqrt(jnp.clip(w, 0, None)))
 
 
 def _lg_model(dt):
@@ -62,14 +71,16 @@ def lg_simulate(key, T: int, Q, R, dt: float = LG_DT, dtype=jnp.float64):
     ``dtype`` and JAX's default float (float64 with x64 on) and the result cast to ``dtype``,
     so one key gives the same data in every precision, rounded: a float32 log is the float64
     log rounded to float32 (drawn in float32, its samples were unrelated to float64's).
+    A PSD but singular Q or R (Q = 0: a noise-free motion model) is drawn with its symmetric
+    square root (eigenvalues clipped at zero) where its Cholesky factor does not exist (it was
+    NaN, and so was every sample); a positive-definite one keeps its Cholesky draws.
     """
     T = check_int(T, "T", lower=1)
     _check_model(dt, Q=Q, R=R)
     out_dtype = jnp.dtype(dtype)
     dtype = jnp.promote_types(out_dtype, jnp.result_type(float))  # float64 with x64 on: one stream
     A, H = (jnp.asarray(a, dtype) for a in _lg_model(dt))
-    Lq = jnp.linalg.cholesky(jnp.asarray(Q, dtype))
-    Lr = jnp.linalg.cholesky(jnp.asarray(R, dtype))
+    Lq, Lr = _sqrt_psd(jnp.asarray(Q, dtype)), _sqrt_psd(jnp.asarray(R, dtype))
     kw, kv = jax.random.split(key)
     w = jax.random.normal(kw, (T, 4), dtype) @ Lq.T
     v = jax.random.normal(kv, (T, 4), dtype) @ Lr.T
@@ -92,6 +103,7 @@ def lg_run(Q, R, z, dt: float = LG_DT, P0=None, filter: str = "ekf"):
     "cubature"), which on this linear model is the same Kalman filter.
 
     Returns (means (T, 4), nis (T,), logdet (T,), dof (T,), nees-ready covs (T, 4, 4)).
+    Known now, a z with NaN or Inf is an InputError naming ``z``; ``P0`` (default I) may be a list.
     """
     from ...filters import ukf as ukf_mod
 
@@ -100,10 +112,11 @@ def lg_run(Q, R, z, dt: float = LG_DT, P0=None, filter: str = "ekf"):
     if not hasattr(z, "dtype"):  # a list: the same numbers as an array
         z = jnp.asarray(check_numbers(z, "z"))
     check_shape(z, (None, 4), "z")
+    check_finite(z, "z")  # a NaN measurement made the loss NaN silently
     _check_model(dt, Q=Q, R=R, P0=P0)
     dtype = z.dtype
     A, H = (jnp.asarray(a, dtype) for a in _lg_model(dt))
-    P0 = jnp.eye(4, dtype=dtype) if P0 is None else P0
+    P0 = jnp.eye(4, dtype=dtype) if P0 is None else jnp.asarray(P0, dtype)  # a list broke the scan's carry
     pts = None if filter == "ekf" else (ukf_mod.unscented() if filter == "ukf" else ukf_mod.cubature())
 
     def step(g, zk):
@@ -162,18 +175,23 @@ def linear_gaussian(loss: str = "nll", train_runs: int = 4, test_runs: int = 4, 
 
     train, test = data(seed, train_runs), data(seed + 1, test_runs)
 
+    @jax.jit
+    def _eval(Q, R, items):  # Q, R are arguments: one program for every label and call
+        Q, R = jnp.asarray(Q, dtype), jnp.asarray(R, dtype)
+
+        def per(item):
+            means, nis, logdet, dof, covs = lg_run(Q, R, item["z"], filter=filter)
+            err = means - item["x"]
+            return {"nll": L.innovation_nll(nis, logdet, dof),
+                    "pos_rmse_m": jnp.sqrt(jnp.mean(jnp.sum(err[:, :2] ** 2, 1))),
+                    "vel_rmse_mps": jnp.sqrt(jnp.mean(jnp.sum(err[:, 2:] ** 2, 1)))}
+        return jax.vmap(per)(items)
+
     def evaluate(physicals):
         res = {}
         for label, m in physicals.items():
-            def per(item, m=m):
-                means, nis, logdet, dof, covs = lg_run(jnp.asarray(m["Q"], dtype), jnp.asarray(m["R"], dtype),
-                                                       item["z"], filter=filter)
-                err = means - item["x"]
-                return {"nll": L.innovation_nll(nis, logdet, dof),
-                        "pos_rmse_m": jnp.sqrt(jnp.mean(jnp.sum(err[:, :2] ** 2, 1))),
-                        "vel_rmse_mps": jnp.sqrt(jnp.mean(jnp.sum(err[:, 2:] ** 2, 1)))}
-            res[label] = {"metrics": jax.tree.map(np.asarray, jax.jit(jax.vmap(per))(test)),
-                          "consistency": None}
+            Q, R = (v if hasattr(v, "dtype") else np.asarray(v, float) for v in (m["Q"], m["R"]))
+            res[label] = {"metrics": jax.tree.map(np.asarray, _eval(Q, R, test)), "consistency": None}
         return res
 
     def describe(theta):

@@ -51,10 +51,10 @@ import numpy as np
 
 from ... import runtime
 from ...errors import InputError
-from ...linalg import check_scalar, safe_norm
+from ...linalg import check_float_dtype, check_scalar, safe_norm
 from .. import losses as L
 from .. import params as P
-from . import Target, DECLARED, _check_keywords, diag_list, keys, register_target
+from . import Target, DECLARED, _check_duration, _check_keywords, _fixed_mode, diag_list, keys, register_target
 from .ekfslam3d import eval_command, tie_imu_axes
 
 __all__ = ["STRUCTURES", "TUNE", "closed_loop_objective", "controller_file", "ekfslam3d_loop", "tilt_angle"]
@@ -121,7 +121,8 @@ def ekfslam3d_loop(loss: str = "cost", train_runs: int = 4, test_runs: int = 16,
     EKF-SLAM estimator in it (module docstring).  ``loss`` is ``"cost"`` (the objective J with
     the given weights); ``tune`` one of :data:`TUNE`; ``structure`` one of :data:`STRUCTURES`
     (Q_imu's form); ``compare``: a file whose controller is evaluated beside the start and the
-    result."""
+    result.  ``dtype``, the durations, ``tilt_max_deg`` and ``seed`` are checked before anything
+    is compiled (InputError naming each)."""
     _check_keywords(_ignored, "ekfslam3d --target loop")
     from ...control import dflqr
     from ...sensors import imu as imu_mod
@@ -132,7 +133,7 @@ def ekfslam3d_loop(loss: str = "cost", train_runs: int = 4, test_runs: int = 16,
     from ...sim.simulate import controls, n_frames, simulate
     from ...systems import ekf_slam_3d as sys3d
 
-    dtype = jnp.dtype(dtype)
+    dtype = check_float_dtype(dtype)
     if loss != "cost":
         raise InputError(f"--loss: the loop target uses the closed-loop objective ('cost'), got {loss!r}")
     if mode not in ("unknown", "known"):
@@ -146,13 +147,15 @@ def ekfslam3d_loop(loss: str = "cost", train_runs: int = 4, test_runs: int = 16,
         raise InputError(f"--structure {structure}: shapes the noise, so it needs --tune noise or both")
     for name, v in (("--w-u", w_u), ("--w-tilt", w_tilt), ("--w-mse", w_mse), ("--w-nees", w_nees)):
         check_scalar(v, name, lower=0)
-    if not (0 < tilt_max_deg < 90):
+    real = isinstance(tilt_max_deg, (int, float, np.integer, np.floating)) and not isinstance(tilt_max_deg, bool)
+    if not (real and 0 < tilt_max_deg < 90):  # a string was a bare TypeError
         raise InputError(f"--tilt-max: expected (0, 90) degrees, got {tilt_max_deg}")
     for name, v in (("--duration", train_duration), ("--eval-duration", eval_duration)):
-        if not (math.isfinite(v) and v >= DT * FRAME_STEPS):
-            raise InputError(f"{name}: must be at least {DT * FRAME_STEPS:g} s, got {v}")
+        _check_duration(v, name, DT * FRAME_STEPS)  # a string or None was a bare TypeError
     if int(train_runs) < 1 or int(test_runs) < 1:
         raise InputError(f"runs: --train-runs and --test-runs must be >= 1, got {train_runs}, {test_runs}")
+    train = keys(seed, train_runs)  # a bad seed is refused here, not after the references compile
+    test = keys(seed + 1, test_runs)
 
     base = dflqr.paper000_params()
     cmp_ctrl = None if compare is None else controller_file(compare, base)
@@ -207,9 +210,6 @@ def ekfslam3d_loop(loss: str = "cost", train_runs: int = 4, test_runs: int = 16,
         ctrl, noise = physical(theta)
         fl, _, K = fly(ctrl, noise, key, nf_train, checkpoint)
         return closed_loop_objective(fl, ctrl, traj, K, feedforward, w, refs_for[nf_train])["objective"]
-
-    train = keys(seed, train_runs)
-    test = keys(seed + 1, test_runs)
 
     @jax.jit
     def _eval(ctrl, noise, ks):
@@ -276,5 +276,5 @@ def ekfslam3d_loop(loss: str = "cost", train_runs: int = 4, test_runs: int = 16,
 
 
 for _m in ("unknown", "known"):
-    register_target(f"ekfslam3d-{_m}", "loop", lambda _mode=_m, **kw: ekfslam3d_loop(mode=_mode, **kw),
+    register_target(f"ekfslam3d-{_m}", "loop", _fixed_mode(ekfslam3d_loop, _m, "loop"),
                     DECLARED[(f"ekfslam3d-{_m}", "loop")])
