@@ -272,6 +272,15 @@ def test_planar_fastslam_names_a_non_finite_log_p_new_and_non_integer_sizes():
             pf.run(_planar_log(), cfg._replace(**{field: bad}), prm, key=key)
 
 
+def _e3_case(e3, F, L):
+    """A tiny valid ekf_slam_3d (log, params, config): F frames of L landmarks, still and level."""
+    log = e3.Log(s0=np.zeros(9), imu=np.tile([0.0, 0, -9.81, 0, 0, 0], (2 * F + 1, 1)),
+                 y=np.tile([[0.1, 0.1, 5.0], [0.2, -0.1, 6.0]], (F, 1, 1)), visible=np.ones((F, L), bool),
+                 ids=np.arange(L, dtype=np.int32))
+    prm = e3.Params(P0=1e-3 * np.eye(9), Qc=1e-4 * np.eye(9), Qimu=1e-4 * np.eye(6), R=1e-4 * np.eye(3))
+    return log, prm, e3.Config(capacity=4, max_obs=2)
+
+
 @pytest.mark.parametrize("change, msg", [
     (dict(dt=0.0), r"^config\.dt: expected a positive finite scalar"),  # the estimate froze
     (dict(dt=-0.01), r"^config\.dt: expected a positive finite scalar"),  # ran backwards
@@ -286,11 +295,7 @@ def test_ekf_slam_3d_names_bad_config_start_and_association_thresholds(change, m
     from jaxslam.systems import ekf_slam_3d as e3
 
     F, L = 3, 2
-    log = e3.Log(s0=np.zeros(9), imu=np.tile([0.0, 0, -9.81, 0, 0, 0], (2 * F + 1, 1)),
-                 y=np.tile([[0.1, 0.1, 5.0], [0.2, -0.1, 6.0]], (F, 1, 1)), visible=np.ones((F, L), bool),
-                 ids=np.arange(L, dtype=np.int32))
-    prm = e3.Params(P0=1e-3 * np.eye(9), Qc=1e-4 * np.eye(9), Qimu=1e-4 * np.eye(6), R=1e-4 * np.eye(3))
-    cfg = e3.Config(capacity=4, max_obs=2)
+    log, prm, cfg = _e3_case(e3, F, L)
     if change == "s0":
         log = log._replace(s0=np.full(9, np.nan))
     elif change == "nn":
@@ -516,11 +521,7 @@ def test_ekf_slam_3d_names_bad_log_ids_and_visible():
     from jaxslam.systems import ekf_slam_3d as e3
 
     F, L = 3, 2
-    log = e3.Log(s0=np.zeros(9), imu=np.tile([0.0, 0, -9.81, 0, 0, 0], (2 * F + 1, 1)),
-                 y=np.tile([[0.1, 0.1, 5.0], [0.2, -0.1, 6.0]], (F, 1, 1)), visible=np.ones((F, L), bool),
-                 ids=np.arange(L, dtype=np.int32))
-    prm = e3.Params(P0=1e-3 * np.eye(9), Qc=1e-4 * np.eye(9), Qimu=1e-4 * np.eye(6), R=1e-4 * np.eye(3))
-    cfg = e3.Config(capacity=4, max_obs=2)
+    log, prm, cfg = _e3_case(e3, F, L)
     with pytest.raises(InputError, match=r"^log\.ids: expected shape \(2,\) or \(3, 2\), got \(4, 2\)"):
         e3.run(log._replace(ids=np.tile(np.arange(L, dtype=np.int32), (F + 1, 1))), cfg, prm)
     with pytest.raises(InputError, match=r"^log\.visible: expected a bool mask"):
