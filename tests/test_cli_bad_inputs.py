@@ -83,6 +83,7 @@ def _cases(t: pathlib.Path) -> list:
         (["--nope", "list"], "--nope", None),
         (["run"], "SCENARIO", None),
         (["run", "no-such-scenario"], "no-such-scenario", None),
+        (["run", "--anchors", "4", "uwb-circle"], "SCENARIO comes first", None),  # it said: unknown scenario '4'
         (run8 + ["--runs", "0"], "--runs", None),
         (run8 + ["--runs", "x"], "--runs", None),
         (run8 + ["--seed", "-1"], "--seed", None),

@@ -147,7 +147,15 @@ def command(rest: list[str]) -> int:
     # The scenario's name and options from its declaration (sim/scenarios/builtin.py): an
     # unknown name, a mistyped option or a value the option refuses exits here, before JAX
     # is imported (1.2-2.3 s) and before any output folder is made.
-    declared = registry.declared(pre.scenario)
+    try:
+        declared = registry.declared(pre.scenario)
+    except registry.InputError:
+        i = rest.index(pre.scenario) if pre.scenario in rest else 0
+        if i > 0 and rest[i - 1].startswith("-") and rest[i - 1] not in base._option_string_actions:
+            # `run --anchors 4 uwb-circle`: a scenario's option before the name, whose value was read as it
+            raise UsageError(f"{PROG} run: SCENARIO comes first, then its options ('{PROG} run SCENARIO "
+                             f"[options]'); got {' '.join(rest[:i + 1])!r} before a scenario name") from None
+        raise
     if pre.help and isinstance(declared, Declared) and declared.params_sections is None:
         # a built-in without a --params file: its declaration is its whole help (no JAX, no
         # scenario module: 1.4 s, against 8 s through the module)
