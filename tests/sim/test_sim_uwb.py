@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from jaxslam import metrics as mx
+from jaxslam.errors import InputError
 from jaxslam.sim import monte_carlo
 from jaxslam.sim.scenarios import registry
 from jaxslam.sim.scenarios import uwb as S
@@ -208,3 +209,12 @@ def test_full_reproduction_figures(tmp_path):
             assert np.max(r.metrics["pos_err_max_m"]) < 1.0
     paths = r.plot(tmp_path)
     assert len(paths) == 4 and all(p.exists() for p in paths)
+
+
+def test_localization_refuses_a_max_range_that_leaves_no_three_anchor_fix():
+    # SLAM refused a --max-range that hides the start-up's anchors; localisation ran every run
+    # from the anchors' centroid, flagged DEGENERATE only.
+    opts = {o.name: o.default for o in registry.get("uwb-circle").options}
+    with pytest.raises(InputError, match=r"^--max-range: fewer than three anchors in range at every start-up"):
+        S.build("circle", {**opts, "mode": "localization", "max_range": 1.0}, jnp.float64)
+    S.build("circle", {**opts, "mode": "localization", "max_range": 50.0}, jnp.float64)  # all in range: runs

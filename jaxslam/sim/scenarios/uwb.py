@@ -455,6 +455,14 @@ def build(scenario: str, options: dict, dtype, params=None):
                                    and n_pts[i] >= fp.startup_min_points) < 1:
             raise InputError(f"--max-range: fewer than three anchors in range during the start-up "
                              f"(samples in range per anchor: {n_pts.tolist()})")
+    if mode == "localization" and math.isfinite(setup.max_range):
+        # the t = 0 fix (or a later start-up sample's) needs three anchors in range; without one
+        # every run started from the anchors' centroid, flagged DEGENERATE only
+        d = np.linalg.norm(setup.startup_pos[:, None, :] - setup.anchors[None], axis=-1)
+        in_range = (d <= setup.max_range).sum(axis=1)
+        if in_range.max() < 3:
+            raise InputError(f"--max-range: fewer than three anchors in range at every start-up sample "
+                             f"(at most {int(in_range.max())}): the position fix at t = 0 cannot be made")
 
     anchors_known = jnp.asarray(setup.anchors, dtype)
 
