@@ -107,16 +107,11 @@ def check_options(name: str, options: dict) -> None:
     for k in _FLAGS:  # (a string "no" is truthy)
         check_flag(options.get(k, OPTION_DEFAULTS[k]), f"{name}: --{k}")
     misplaced = [k for k, v in options.items() if _given(k, v) and k not in APPLIES[name]]
-    if options.get("filter", "ekf") != "fastslam":
+    fastslam = options.get("filter", "ekf") == "fastslam"
+    if not fastslam:
         misplaced += [k for k in ("particles", "seed") if _given(k, options.get(k, OPTION_DEFAULTS[k]))]
-    elif options.get("params") is not None:
-        raise InputError(f"{name}: --params sets the EKF's noise; it does not apply to --filter fastslam")
-    elif options.get("smooth"):
-        raise InputError(f"{name}: --smooth smooths the EKF's run; it does not apply to --filter fastslam")
-    if options.get("smooth") and options.get("ids") == "hidden":
-        # nearest-neighbour registrations carry no landmark id, which the map-static smoother
-        # needs to pair a step's map with the final one
-        raise InputError(f"{name}: --smooth needs known landmark ids; it does not combine with --ids hidden")
+    # An option the dataset does not take is named first: util-uwb --filter fastslam --params
+    # was told "--params ... does not apply to --filter fastslam" (util-uwb has no such filter).
     if misplaced:
         flags = ", ".join("--" + k for k in sorted(set(misplaced)))
         hint = (" (range-only logs run the EKF only: the particle core registers range-bearing "
@@ -125,6 +120,14 @@ def check_options(name: str, options: dict) -> None:
                          f"{', '.join('--' + k for k in sorted(APPLIES[name]))}"
                          + (" (--particles/--seed with --filter fastslam)" if "particles" in APPLIES[name] else "")
                          + hint)
+    if fastslam and options.get("params") is not None:
+        raise InputError(f"{name}: --params sets the EKF's noise; it does not apply to --filter fastslam")
+    if fastslam and options.get("smooth"):
+        raise InputError(f"{name}: --smooth smooths the EKF's run; it does not apply to --filter fastslam")
+    if options.get("smooth") and options.get("ids") == "hidden":
+        # nearest-neighbour registrations carry no landmark id, which the map-static smoother
+        # needs to pair a step's map with the final one
+        raise InputError(f"{name}: --smooth needs known landmark ids; it does not combine with --ids hidden")
 
 
 def data_root(value, flag: str = "--data") -> pathlib.Path:
@@ -176,7 +179,8 @@ def _robots_in(d: Dataset, folder: pathlib.Path) -> list:
     try:
         for entry in folder.iterdir():
             m = pat.fullmatch(entry.name)
-            if m:
+            # only the names the loaders open: Robot1_…, not Robot01_… (read as 1) or Robot0_…
+            if m and m.group(1) == str(int(m.group(1))) and int(m.group(1)) >= 1:
                 found.add(int(m.group(1)))
     except OSError:
         return []

@@ -54,7 +54,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, check_flag
 from .textfile import ID_MAX, int_column, read_table, resolve_dataset_dir
 
 __all__ = ["MrclamData", "load_mrclam", "ROBOT_SUBJECTS"]
@@ -116,8 +116,8 @@ def load_mrclam(path, robot: int, strict: bool = False) -> MrclamData:
       path: the dataset folder (e.g. ``…/mrclam6``) or a parent folder that
         contains ``mrclam6/``.
       robot: robot number 1–5 (its ``RobotN_*.dat`` files must exist).
-      strict: raise :class:`DataFormatError` at the first measurement row
-        whose barcode is in no table (default: drop it and report it).
+      strict: ``True``: raise :class:`DataFormatError` at the first measurement row
+        whose barcode is in no table; ``False`` (default): drop it and report it.
 
     Returns:
       :class:`MrclamData`.  ``report`` holds: ``dir``; ``rows`` (data rows read
@@ -133,16 +133,18 @@ def load_mrclam(path, robot: int, strict: bool = False) -> MrclamData:
       relative).
 
     Raises:
-      InputError: ``robot`` is not an integer in 1–5.
+      InputError: ``robot`` is not an integer in 1–5, or ``strict`` is not True / False.
       MissingDataError: a file is missing (the message lists the folders
         looked in and the missing files).
       DataFormatError: a malformed file (``file:line`` in the message), an
         inconsistent barcode table, a landmark subject listed twice in
-        ``Landmark_Groundtruth.dat``, or (``strict``) an unknown barcode.
+        ``Landmark_Groundtruth.dat`` or with a negative σx / σy, or (``strict``) an
+        unknown barcode.
     """
     if isinstance(robot, bool) or not isinstance(robot, (int, np.integer)) or not 1 <= int(robot) <= 5:
         raise InputError(f"robot: expected an integer 1–5, got {robot!r}")
     robot = int(robot)
+    strict = check_flag(strict, "strict")  # (a string "no" was truthy: strict mode silently on)
     names = _files(robot)
     d = resolve_dataset_dir(path, "mrclam6", list(names.values()), f"MRCLAM robot {robot}")
     f = {k: d / v for k, v in names.items()}
@@ -164,6 +166,11 @@ def load_mrclam(path, robot: int, strict: bool = False) -> MrclamData:
     if dup.size:  # two surveyed positions for one landmark: which one is the truth?
         i = int(dup[0])
         raise lmt.error(i, f"landmark subject {int(lm_id[i])} listed twice (first at {lmt.where(int(first[inv[i]]))})")
+    neg_std = np.nonzero(np.any(lmt.data[:, 3:5] < 0, axis=1))[0]
+    if neg_std.size:  # a standard deviation is never negative (a sign lost in a conversion?)
+        i = int(neg_std[0])
+        raise lmt.error(i, f"landmark subject {int(lm_id[i])}: negative standard deviation "
+                           f"(σx, σy) = {lmt.data[i, 3:5].tolist()}")
     robot_in_lm = np.isin(lm_id, ROBOT_SUBJECTS)
     if robot_in_lm.any():
         i = int(np.argmax(robot_in_lm))

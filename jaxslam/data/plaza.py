@@ -92,6 +92,8 @@ class PlazaData(NamedTuple):
         x, y, th = self.gt[0]
         th = th + self.heading_offset
         th = float(np.arctan2(np.sin(th), np.cos(th)))
+        if th <= -np.pi:  # arctan2 gives −π for a heading of −π (sin −0): the range is (−π, π]
+            th = float(np.pi)
         return np.array([x, y, th])
 
 

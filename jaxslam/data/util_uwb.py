@@ -186,10 +186,11 @@ def load_util(path, flight: str = "twr_obs_log1") -> UtilData:
         lists what was looked for and the flights found).
       DataFormatError: a malformed file (``file:line``), a header that does not
         match the expected columns, time going backwards, an anchor listed twice
-        in the anchors file, or an anchor id that is not in it.
+        in the anchors file, an anchor id that is not in it, or a zero quaternion
+        (no rotation) in ``groundtruth.csv`` or the anchors file.
       InputError: ``path`` is not a path or ``flight`` not a folder name.
     """
-    if not isinstance(flight, str) or not flight or Path(flight).name != flight:
+    if not isinstance(flight, str) or not flight or Path(flight).name != flight or flight == "..":
         raise InputError(f"flight: expected a flight folder name such as 'twr_obs_log1', got {flight!r}"[:300])
     root, fd = _flight_dir(path, flight)
     afile = fd / ANCHORS_FILE if (fd / ANCHORS_FILE).is_file() else root / ANCHORS_FILE
@@ -209,6 +210,11 @@ def load_util(path, flight: str = "twr_obs_log1") -> UtilData:
     # one surveyed position per anchor; ids are stored as int32
     anchor_id = int_column(anc, 0, "anchor_id", lo=0, hi=ID_MAX, unique=True)
     gt = csv("groundtruth.csv", 8, time_cols=0)
+    for tab in (anc, gt):  # a zero quaternion has no rotation: tag_positions would refuse it later
+        zero = np.nonzero(~(np.linalg.norm(tab.data[:, 4:8], axis=1) > 0))[0]  # without the file:line
+        if zero.size:
+            raise tab.error(int(zero[0]), f"zero quaternion (qx, qy, qz, qw) = {tab.data[zero[0], 4:8].tolist()} "
+                                          "(no rotation)")
     imu = csv("imu.csv.gz", 8, time_cols=(0, 4))
     rows = {"anchors": int(anc.data.shape[0]), "groundtruth": int(gt.data.shape[0]),
             "imu": int(imu.data.shape[0])}
