@@ -88,7 +88,16 @@ def timed_run(fn: Callable, twice: bool = True):
 
 
 def dead_reckoning(motion, pose0, u, dt):
-    """Noise-free integration of ``motion(s, u_k, dt_k)`` over an event log; (T, n) poses."""
+    """Noise-free integration of ``motion(s, u_k, dt_k)`` over an event log; (T, n) poses.
+
+    ``u``: (T, m) inputs and ``dt``: (T,) steps, one per event (other shapes are an
+    :class:`InputError` naming them)."""
+    if not callable(motion):
+        raise InputError(f"motion: expected a callable motion(s, u, dt), got {motion!r}"[:300])
+    if np.ndim(u) != 2:
+        raise InputError(f"u: expected shape (T, m) (one input row per event), got {np.shape(u)}")
+    if np.shape(dt) != (np.shape(u)[0],):
+        raise InputError(f"dt: expected shape ({np.shape(u)[0]},) (one step per row of u), got {np.shape(dt)}")
 
     def body(s, inp):
         s = motion(s, inp[0], inp[1])
@@ -166,9 +175,9 @@ def evaluate_planar(t_est, est_pose, t_ref, ref, dr_pose=None, lm=None, lm_ids=N
     ``dr_pose``) (T, 3) poses or (T, 2) positions; ``ref`` is (N, 3) poses or (N, 2) positions
     (GPS).  Against poses (``ref`` (N, 3)) ``est_pose`` must be poses too: the RPE compares
     headings.  With ``at_ref_times`` the estimate is interpolated at the reference times (sparse
-    GPS fixes; reference rows holding NaN or Inf are left out);
-    otherwise the reference is interpolated at the estimate times inside its
-    span.  Returns ``(metrics dict, evaluation dict)`` with everything moved
+    GPS fixes); otherwise the reference is interpolated at the estimate times inside its
+    span.  Either way, reference rows holding NaN or Inf are left out (one NaN heading no
+    longer cuts the evaluation at that row).  Returns ``(metrics dict, evaluation dict)`` with everything moved
     into the reference frame by the estimate's alignment.  An estimate that is NaN or Inf at
     some of the evaluated samples (a filter that lost finiteness) leaves the figures NaN and
     is counted in ``nonfinite_estimate_samples`` (absent when there is none).  Arrays of the
@@ -191,6 +200,8 @@ def evaluate_planar(t_est, est_pose, t_ref, ref, dr_pose=None, lm=None, lm_ids=N
     if lm is not None:
         if lm_ids is not None and np.shape(lm_ids) != (lm.shape[0],):
             raise InputError(f"lm_ids: expected one id per row of lm ({lm.shape[0]},), got shape {np.shape(lm_ids)}")
+        if lm_cov is not None:
+            lm_cov = real_numbers(lm_cov, "lm_cov")
         if lm_cov is not None and np.shape(lm_cov) != (lm.shape[0], 2, 2):
             raise InputError(f"lm_cov: expected shape ({lm.shape[0]}, 2, 2) (one per row of lm), got "
                              f"{np.shape(lm_cov)}")
@@ -207,6 +218,11 @@ def evaluate_planar(t_est, est_pose, t_ref, ref, dr_pose=None, lm=None, lm_ids=N
         e = metrics.interp_poses(t, t_est, est_pose)
         d = metrics.interp_poses(t, t_est, dr_pose) if dr_pose is not None else None
     else:
+        fin = np.all(np.isfinite(ref), axis=1)
+        if not fin.all():  # (an all-finite reference is used as it is)
+            t_ref, ref = t_ref[fin], ref[fin]
+        if t_ref.size == 0:
+            raise InputError("evaluation: fewer than 3 samples where estimate and reference overlap")
         r = metrics.interp_poses(t_est, t_ref, ref) if has_heading else np.stack(
             [np.interp(t_est, t_ref, ref[:, j], left=np.nan, right=np.nan) for j in range(2)], 1)
         keep = np.all(np.isfinite(r), axis=1)
@@ -285,6 +301,13 @@ def run_dataset(name: str, data_dir, **options) -> DatasetRun:
     if kw["params"] is None:  # only the runners that read a --params file take the argument
         del kw["params"]
     return _RUNNERS[name](data_dir, **kw)
+
+
+def _check_runner_options(name: str, **options) -> None:
+    """A runner called directly (not through :func:`run_dataset`) checks its options as
+    :func:`run_dataset` does (:func:`jaxslam.data.catalogue.check_options`): a misspelt choice
+    or an option the dataset does not take was silently run as another method or ignored."""
+    catalogue.check_options(name, options)
 
 
 def dataset_params(obj, name: str) -> dict:
@@ -467,6 +490,7 @@ def run_util_uwb(data_dir, robot=1, filter="ekf", ids="known", anchors=None, par
     fitted preset (``presets.UTIL_FITTED``, ``jaxslam tune util-uwb``); ``params``: a
     ``--params`` object replacing it.
     """
+    _check_runner_options("util-uwb", robot=robot, filter=filter, ids=ids, anchors=anchors, particles=particles, seed=seed, tof=tof, calibrated=calibrated, smooth=smooth, params=params)
     dtype = _run_dtype(dtype)
     anchors = anchors or "known"
     from ..systems import util_range as ur
@@ -510,12 +534,18 @@ def run_util_uwb(data_dir, robot=1, filter="ekf", ids="known", anchors=None, par
             raise InputError(f"util-uwb --anchors unknown: anchors {few} have fewer than 10 ranges with motion "
                              f"capture in the start-up window [{w0:g}, {t_end:g}] s ({ {a: per[a] for a in few} }); "
                              "their positions cannot be fitted")
+        # the start-up fits only ranges with motion capture (np.interp would hold the first
+        # motion-capture position for ranges before it, as the window's count above leaves out)
+        with_gt = t_all >= d.gt_t[0]
+        t_all = t_all[with_gt]
+        su_anchor = np.asarray(d.twr_anchor)[with_gt]
+        su_range = np.asarray(d.twr_range)[with_gt]
         tag_at = np.stack([np.interp(t_all, d.gt_t, tag[:, j]) for j in range(3)], 1)
         # start velocity: central difference of the motion-capture tag over ±0.1 s
         v0 = np.array([(np.interp(t_end + 0.1, d.gt_t, tag[:, j]) - np.interp(t_end - 0.1, d.gt_t, tag[:, j]))
                        / 0.2 for j in range(3)])
-        su = ur.startup(jnp.asarray(t_all, dtype), np.asarray(d.twr_anchor).astype(int),
-                        jnp.asarray(d.twr_range, dtype), jnp.asarray(tag_at, dtype), aid, t_end,
+        su = ur.startup(jnp.asarray(t_all, dtype), su_anchor.astype(int),
+                        jnp.asarray(su_range, dtype), jnp.asarray(tag_at, dtype), aid, t_end,
                         v0=jnp.asarray(v0, dtype))
         log = ur.util_events(d.twr_t, d.twr_anchor, d.twr_range, t_start=t_end + 1e-9, **hk)
         rlog = ur.log_from_events(log, aid, startup=su, dtype=dtype)
@@ -617,6 +647,7 @@ def run_plaza_dataset(data_dir, robot=1, filter="ekf", ids="known", anchors=None
     trilateration) or "known" (localisation against the surveyed beacons).  Noise:
     ``presets.plaza_params()``; ``params``: a ``--params`` object (``jaxslam tune plaza``) replacing it.
     """
+    _check_runner_options("plaza", filter=filter, ids=ids, anchors=anchors, particles=particles, seed=seed, tof=tof, calibrated=calibrated, smooth=smooth, params=params)  # (robot: checked below)
     dtype = _run_dtype(dtype)
     anchors = anchors or "unknown"
     from ..dynamics import planar
@@ -653,12 +684,10 @@ def run_plaza_dataset(data_dir, robot=1, filter="ekf", ids="known", anchors=None
         sm = np.asarray(res.smoothed, np.float64)[:, :3]
         ms, evs = evaluate_planar(log.t, sm, d.gt_t, gt, ref_label="ground truth (GPS)")
         if anchors == "known":
-            raw_s = np.linalg.norm(sm[:, :2] - metrics.interp_poses(log.t, d.gt_t, gt)[:, :2], axis=1)
-            ms["pos_rmse_m"] = float(np.sqrt(np.nanmean(raw_s ** 2)))
+            ms["pos_rmse_m"] = _pos_rmse_in_span(sm, metrics.interp_poses(log.t, d.gt_t, gt))
         _add_smoothed(m, ev, ms, evs)
     if anchors == "known":
-        raw = np.linalg.norm(est[:, :2] - metrics.interp_poses(log.t, d.gt_t, gt)[:, :2], axis=1)
-        m["pos_rmse_m"] = float(np.sqrt(np.nanmean(raw ** 2)))
+        m["pos_rmse_m"] = _pos_rmse_in_span(est, metrics.interp_poses(log.t, d.gt_t, gt))
         for k in ("map_err_m", "map_err_max_m", "landmarks_compared"):
             m.pop(k, None)
     elif act.sum() >= 2:
@@ -688,6 +717,18 @@ def run_plaza_dataset(data_dir, robot=1, filter="ekf", ids="known", anchors=None
     return DatasetRun("plaza", cfg,
                       m, counts, {"load_s": load_s, "compile_s": comp_s, "run_s": run_s},
                       dict(d.report), ev, (log.t, est[:, :2], est[:, 2]), notes)
+
+
+def _pos_rmse_in_span(est, ref) -> float:
+    """Unaligned position RMSE [m] of ``est`` (T, >=2) against ``ref`` (T, >=2; NaN outside the
+    reference's span) over the samples where the reference exists.  An estimate that is NaN or
+    Inf at one of them gives NaN (as ``ate_m``; ``nanmean`` hid it behind a finite figure)."""
+    ref_xy = np.asarray(ref, np.float64)[:, :2]
+    err = np.linalg.norm(np.asarray(est, np.float64)[:, :2] - ref_xy, axis=1)
+    inside = np.all(np.isfinite(ref_xy), axis=1)
+    if not np.all(np.isfinite(err[inside])):
+        return float("nan")
+    return float(np.sqrt(np.nanmean(err ** 2)))  # (the figure as before for a finite estimate)
 
 
 # ---------------------------------------------------------------------------
@@ -777,6 +818,7 @@ def run_mrclam(data_dir, robot=1, filter="ekf", ids="known", anchors=None, parti
     from . import presets
     from .mrclam import load_mrclam
 
+    _check_runner_options("mrclam", filter=filter, ids=ids, anchors=anchors, particles=particles, seed=seed, tof=tof, calibrated=calibrated, smooth=smooth, params=params)  # (robot: checked below)
     dtype = _run_dtype(dtype)
     robot = reworded(lambda: check_int(robot, "robot"),
                      f"mrclam: --robot must be 1..5 (MRCLAM has five robots), got {robot!r}", upper=5)
@@ -963,6 +1005,7 @@ def run_victoria_park(data_dir, robot=1, filter="ekf", ids="known", anchors=None
     from . import presets
     from .victoria_park import load_victoria_park
 
+    _check_runner_options("victoria-park", robot=robot, filter=filter, ids=ids, anchors=anchors, particles=particles, seed=seed, tof=tof, calibrated=calibrated, smooth=smooth, params=params)
     dtype = _run_dtype(dtype)
     if particles is not None:
         particles = check_int(particles, "particles")
@@ -1042,6 +1085,8 @@ def split_ate(ev, t_cut: float, label: str) -> dict:
     tg = real_numbers(ev["t"], "ev['t']")
     if tg.ndim != 1:
         raise InputError(f"ev['t']: expected a 1-D array of times, got shape {tg.shape}")
+    if not np.all(np.isfinite(tg)):  # a NaN time fell on neither side of the cut
+        raise InputError("ev['t']: expected finite times, got NaN or Inf")
     est = _rows(ev["est_xy"], "ev['est_xy']", tg.size, 2)
     ref = _rows(ev["ref_xy"], "ev['ref_xy']", tg.size, 2)
     e2 = np.sum((est - ref) ** 2, 1)
