@@ -20,7 +20,7 @@ import sys
 from jaxslam import files
 from jaxslam.errors import InputError
 
-from .common import PROG, Parser, UsageError, echo, finite_float, int_at_least, path_arg
+from .common import PROG, Parser, UsageError, echo, finite_float, int_at_least, path_arg, seed_int
 
 __all__ = ["command", "find_benchmarks_dir", "list_benchmarks"]
 
@@ -83,6 +83,9 @@ def _load_bench_module(path: pathlib.Path):
     sys.modules[mod_name] = module  # dataclasses and pickling look modules up here
     try:
         spec.loader.exec_module(module)
+    except SyntaxError as e:  # the file itself is malformed: an input error naming file:line (exit 2)
+        sys.modules.pop(mod_name, None)
+        raise InputError(f"benchmark {str(path)!r}: line {e.lineno}: {type(e).__name__}: {e.msg}") from None
     except BaseException:
         sys.modules.pop(mod_name, None)
         raise
@@ -95,9 +98,9 @@ def _load_bench_module(path: pathlib.Path):
 
 class _CheckedOptions:
     """The parser a benchmark's ``add_arguments`` fills, with its plain number types checked: a
-    ``float`` option must be finite, an ``int`` one a count >= 1 (``--seed`` and ``--warmup``
-    >= 0), so that a bad value is a usage error naming the option (exit 2), not an internal
-    error from inside the benchmark."""
+    ``float`` option must be finite, an ``int`` one a count >= 1 (``--warmup`` >= 0, ``--seed``
+    a PRNG seed in [0, 2**63), as ``jaxslam run --seed``), so that a bad value is a usage error
+    naming the option (exit 2), not an internal error from inside the benchmark."""
 
     def __init__(self, parser):
         self._p = parser
@@ -106,7 +109,8 @@ class _CheckedOptions:
         if kw.get("type") is float:
             kw["type"] = finite_float
         elif kw.get("type") is int:
-            kw["type"] = int_at_least(0 if any(n in ("--seed", "--warmup") for n in names) else 1)
+            kw["type"] = (seed_int if "--seed" in names
+                          else int_at_least(0 if "--warmup" in names else 1))
         return self._p.add_argument(*names, **kw)
 
     def __getattr__(self, attr):
@@ -160,6 +164,11 @@ def command(rest: list[str]) -> int:
 
     # before anything runs, creating nothing: a run that stops at its options leaves no folder
     json_path = files.prepare_file("--json", pre.json, create=False) if pre.json is not None else None
+    source = bench_dir / f"bench_{name}.py"
+    if json_path is not None and files._link_target("--json", json_path) == source.resolve():
+        # (the JSON replaced the benchmark's own source file, which the command reads)
+        raise InputError(f"--json: {str(pre.json)!r} is the benchmark file {str(source)!r} this command runs; "
+                         "writing it would replace it, so give the output another path")
     import jax
 
     jax.config.update("jax_enable_x64", True)  # benchmarks choose float32 by passing float32 arrays

@@ -5,8 +5,8 @@ counts (used, gated, rejected, registered) and the run time after
 compilation; writes the ``dataset`` JSON of docs/cli.md (``--json``), the
 figures (``--plots``) and the estimated trajectory in TUM format (``--tum``,
 for ``evo``).  Exit code 2 with a one-line message on a usage or input error
-(missing folder, malformed file with its line number), 1 on an internal
-failure.
+(missing folder, malformed file with its line number, a --json or --tum path that is one of
+the dataset's own files), 1 on an internal failure.
 """
 
 from __future__ import annotations
@@ -119,6 +119,39 @@ def _fmt(v):
     return str(v)
 
 
+_DATA_SUFFIXES = (".dat", ".txt", ".csv", ".gz")
+_TUM_HEADER = "# timestamp tx ty tz qx qy qz qw"  # what metrics.write_tum writes first
+
+
+def _not_a_data_file(name, data, **outputs) -> None:
+    """No output file (``flag=path``) replaces one of the dataset's own files: an existing
+    ``.dat`` / ``.txt`` / ``.csv`` / ``.gz`` file inside its folder, unless it is a TUM file an
+    earlier ``--tum`` wrote (else an :class:`InputError` naming the option, before the run:
+    the JSON or TUM file replaced the log it was computed from)."""
+    import pathlib
+
+    from jaxslam.data import catalogue
+
+    folder = catalogue.find(name, data)
+    if folder is None:
+        return
+    folder = folder.resolve()
+    for flag, path in outputs.items():
+        if path is None:
+            continue
+        try:
+            target = pathlib.Path(path).resolve()
+            inside = target.is_file() and target.is_relative_to(folder) and target.suffix.lower() in _DATA_SUFFIXES
+            if inside:
+                with open(target, "rb") as f:
+                    inside = not f.readline().decode("utf-8", "replace").startswith(_TUM_HEADER)
+        except (OSError, RuntimeError):
+            continue  # (an unreadable or looping path: prepare_file and the write say so)
+        if inside:
+            raise InputError(f"--{flag}: {str(path)!r} is a file of the {name} dataset in {str(folder)!r}, which "
+                             "this command reads; writing it would replace it, so give the output another path")
+
+
 def main(argv) -> int:
     from jaxslam import files, paramfile
     from jaxslam.data import catalogue
@@ -136,6 +169,7 @@ def main(argv) -> int:
     tum_path = files.prepare_file("--tum", args.tum) if args.tum is not None else None
     files.distinct_outputs(json=json_path, tum=tum_path, folders={"plots": args.plots},
                            inputs={"params": args.params})
+    _not_a_data_file(args.name, data, json=json_path, tum=tum_path)
     plots = files.prepare_dir("--plots", args.plots) if args.plots is not None else None
     if params is not None:
         paramfile.check_dataset_sections(params, args.name)  # its top level, still without JAX

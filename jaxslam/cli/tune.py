@@ -20,7 +20,9 @@ parameters, and writes:
 
 Exit codes as ``jaxslam``: 0 success (also when the optimisation stopped early on a
 non-finite loss: the message is printed and recorded, the last good parameters are
-evaluated and saved), 2 usage or input error (one line), 1 internal failure.
+evaluated and saved), 2 usage or input error (one line; also no SCENARIO at all), 1 internal
+failure, 130 interrupted (the best parameters the finished steps reached are saved, marked
+``"interrupted": true``).
 x64 is switched on here (before any target module is imported) unless ``--float32``.
 """
 
@@ -56,6 +58,12 @@ REAL_LOG_DEFAULTS = {"steps": 25, "lr": 0.1, "loss": "nll", "window": 500.0}
 EXPLODE_RATIO = 1e3
 
 
+def _available():
+    from jaxslam.tuning import targets
+
+    return targets.available()
+
+
 def _targets_text():
     from jaxslam.tuning import targets
 
@@ -72,6 +80,18 @@ def _robot_list(text: str) -> tuple:
     if not out:
         raise argparse.ArgumentTypeError(f"expected at least one robot, got {text!r}")
     return out
+
+
+def _tune_seed(text: str) -> int:
+    """argparse type: a training seed S with S + 1 (the held-out runs' seed) still a PRNG seed
+    (< 2**63): a larger one failed only after the target was built, as ``seed: ...``."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid int value: {text!r}") from None
+    if not 0 <= value < 2**63 - 1:
+        raise argparse.ArgumentTypeError(f"must be in [0, 2**63 - 1) (the held-out runs use S+1), got {value}")
+    return value
 
 
 def build_parser(with_targets: bool = True) -> Parser:
@@ -103,8 +123,8 @@ def build_parser(with_targets: bool = True) -> Parser:
     p.add_argument("--lr", type=positive_float, default=None,
                    help="peak Adam learning rate in log-parameter units (default: 0.5 noise, 0.1 lqr, loop and "
                         "real logs)")
-    p.add_argument("--seed", type=int_at_least(0), default=0,
-                   help="training seed S; held-out runs use seed S+1 (default 0)")
+    p.add_argument("--seed", type=_tune_seed, default=0,
+                   help="training seed S in [0, 2**63 - 1); held-out runs use seed S+1 (default 0)")
     p.add_argument("--batch-size", type=int_at_least(1), default=None,
                    help="minibatch of training runs per step (default: all)")
     p.add_argument("--clip", type=positive_float, default=1.0, help="gradient clipping, global norm (default 1)")
@@ -195,14 +215,16 @@ def _fmt(x):
 
 
 def format_comparison(before: dict, after: dict, refs: dict | None = None) -> str:
-    """Text table: metric, before, after, change %, and reference columns (means over runs)."""
+    """Text table: metric, before, after, change %, and reference columns (means over runs).
+    The change is ``-`` where either mean is missing, non-finite or the start's is 0."""
     refs = refs or {}
     header = ["metric (held-out mean)", "before", "after", "change"] + list(refs)
     rows = [header]
     for name in before["metrics"]:
         b = before["metrics"][name]["mean"]
         a = after["metrics"][name]["mean"]
-        ch = "-" if not b else f"{100.0 * (a - b) / abs(b):+.1f}%"
+        ch = (f"{100.0 * (a - b) / abs(b):+.1f}%" if _finite(a) and _finite(b) and b != 0
+              else "-")  # (a missing or non-finite mean has no change: it printed +nan% or failed)
         rows.append([name, _fmt(b), _fmt(a), ch] + [_fmt(r["metrics"][name]["mean"]) for r in refs.values()])
     cb, ca = before.get("consistency"), after.get("consistency")
     if cb and ca:
@@ -225,6 +247,14 @@ def format_comparison(before: dict, after: dict, refs: dict | None = None) -> st
         if j == 0:
             lines.append("  ".join("-" * x for x in w))
     return "\n".join(lines)
+
+
+def _finite(x) -> bool:
+    """``x`` is a finite number (None, NaN and inf are not)."""
+    try:
+        return x is not None and math.isfinite(float(x))
+    except (TypeError, ValueError):
+        return False
 
 
 def _steps_inside(cons):
@@ -505,7 +535,9 @@ def _print_report(rep, params_file=None, data=None):
     print()
     print(rep["_tables"])
     print()
-    print("tuned parameters (diagonals):")
+    # covariances and weights by their diagonals, sigma_* as standard deviations, and a full
+    # matrix (linear-gaussian's R) row by row, as each target's describe() gives them
+    print("tuned parameters:")
     for k, v in rep["_physical_after"].items():
         print(f"  {k}: [" + ", ".join(f"{x:.4g}" for x in v) + "]")
     if rep.get("stopped"):
@@ -529,9 +561,12 @@ def main(argv=None) -> int:
     """Entry point of ``jaxslam tune`` (also callable directly).  Returns the exit code."""
     argv = list(sys.argv[1:] if argv is None else argv)
     try:
-        if not argv or argv[0] in ("-h", "--help"):
+        if not argv:  # a usage error: one line (it printed the whole help on stdout, exit 2)
+            raise UsageError(f"{PROG}: missing SCENARIO (see '{PROG} --help'); tunable scenarios: "
+                             f"{', '.join(sorted({s for s, _ in _available()}))}")
+        if argv[0] in ("-h", "--help"):
             build_parser().print_help()
-            return 0 if argv else 2
+            return 0
         args = build_parser(with_targets="-h" in argv or "--help" in argv).parse_args(argv)
         from jaxslam import files
 
