@@ -21,7 +21,8 @@ differs between runs; constant and sinusoidal runs are identical.
 Metrics per run: ``att_err_rms_deg`` (RMS over the run of ‖θ_e‖, θ_e = qlog(q ⊗ q_d*)),
 ``att_err_final_deg`` (mean ‖θ_e‖ over the last 1 s), ``rate_err_rms_dps`` (RMS of
 ‖ω − ω_d‖), ``max_torque`` (largest |τ_i| applied, N m), ``settle_time_s`` (first time
-after which ‖θ_e‖ stays below 1°; 0 if it always is, NaN if it never settles).  No filter,
+after which ‖θ_e‖ stays below 1°; 0 if it always is, NaN if it never settles; a non-finite
+‖θ_e‖ is not below).  No filter,
 so ``consistency`` is None.
 """
 
@@ -57,13 +58,21 @@ def resolve_gains(name):
 
 
 def metrics(norms, dt):
-    """Per-run metrics from :attr:`smc.Rollout.norms` (T, 3); see the module docstring."""
+    """Per-run metrics from :attr:`smc.Rollout.norms` (T, 3), T >= 1, at steps of ``dt`` s
+    (finite, > 0); see the module docstring.  Other shapes or steps are an :class:`InputError`
+    (a (T, 2) array read its rates as torques, dt = 0 was a ZeroDivisionError).  A non-finite
+    ‖θ_e‖ counts as above the settling threshold (it was counted as settled)."""
+    if np.ndim(norms) != 2 or np.shape(norms)[1] != 3 or np.shape(norms)[0] < 1:
+        raise InputError(f"norms: expected shape (T, 3) with T >= 1, got {tuple(np.shape(norms))}")
+    if isinstance(dt, bool) or not isinstance(dt, (int, float)) or not (math.isfinite(dt) and dt > 0):
+        raise InputError(f"dt: expected a finite number > 0, got {dt!r}")
+    norms = jnp.asarray(norms)
     dtp = norms.dtype
     T = norms.shape[0]
     deg = jnp.asarray(180.0 / math.pi, dtp)
     e, w, tq = norms[:, 0], norms[:, 1], norms[:, 2]
     n_final = max(1, min(T, int(round(FINAL_WINDOW_S / dt))))
-    above = e * deg >= SETTLE_DEG
+    above = ~(e * deg < SETTLE_DEG)  # NaN is above, not settled
     idx = jnp.arange(T)
     last = jnp.max(jnp.where(above, idx, -1))
     settle = jnp.where(last < 0, 0.0, jnp.where(last >= T - 1, jnp.nan, (last + 1) * dt))

@@ -8,7 +8,8 @@ simulated on the way.  Metrics:
 * ``track_yaw_rmse_deg``: RMS of the wrapped ψ − ψ_d;
 * ``max_tilt_deg``: max over the flight of acos(cos φ cos θ) (angle of b̂3 from n̂3);
 * ``settle_time_s``: the first time after which ‖ρ − ρ_d‖ stays below 0.1 m
-  (``SETTLE_TOL_M``) for the rest of the flight (the duration if it never does).
+  (``SETTLE_TOL_M``) for the rest of the flight (the duration if it never does; a
+  non-finite error counts as outside).
 """
 
 from __future__ import annotations
@@ -47,6 +48,9 @@ def paper000_figure8(altitude: float = 3.0, ramp: float = 0.0):
     the north), centre above the origin at ``altitude`` metres (NED z = −altitude).  With ``ramp = 0`` the reference starts on the figure-8
     while the vehicle starts at rest at the origin, as in the paper.
     """
+    for v, nm in ((altitude, "altitude"), (ramp, "ramp")):
+        if isinstance(v, (bool, np.bool_)):  # check_scalar took True as 1 m / 1 s
+            raise InputError(f"{nm}: expected a finite scalar, got {v!r}")
     altitude = check_scalar(altitude, "altitude")  # NaN failed only when traced ("center: ...")
     ramp = check_scalar(ramp, "ramp", lower=0)  # a negative blend was flown as 0
     return trajectories.Figure8(center=(0.0, 0.0, -float(altitude)), ramp_time=float(ramp),
@@ -82,13 +86,25 @@ def controller_from_dict(d: dict, default):
 
 
 def tracking_metrics(t, truth, ref):
-    """Tracking metrics (module docstring) of one flight; jit/vmap-safe, scalars out."""
+    """Tracking metrics (module docstring) of one flight; jit/vmap-safe, scalars out.
+
+    ``t`` (T,), ``truth`` (T, 12) and ``ref`` (T, 4) (:class:`jaxslam.sim.simulate.Flight`'s),
+    T >= 1; other shapes are an :class:`InputError` naming the argument (a (1, 4) ``ref`` was
+    broadcast against the whole flight).  A non-finite position error counts as outside the
+    settling tolerance (it was counted as settled).
+    """
+    T = np.shape(t)[0] if np.ndim(t) == 1 else None
+    if T is None or T < 1:
+        raise InputError(f"t: expected shape (T,) with T >= 1, got {tuple(np.shape(t))}")
+    for a, nm, d in ((truth, "truth", 12), (ref, "ref", 4)):
+        if np.ndim(a) != 2 or np.shape(a)[0] != T or np.shape(a)[1] < d:
+            raise InputError(f"{nm}: expected shape ({T}, {d}) to match t, got {tuple(np.shape(a))}")
     e = truth[:, :3] - ref[:, :3]
     e2 = jnp.sum(e * e, axis=1)
     settled = t > SETTLED_AFTER_S
     yaw = wrap_angle(truth[:, 8] - ref[:, 3])
     tilt = jnp.arccos(jnp.clip(jnp.cos(truth[:, 6]) * jnp.cos(truth[:, 7]), -1.0, 1.0))
-    outside = jnp.sqrt(e2) >= SETTLE_TOL_M
+    outside = ~(jnp.sqrt(e2) < SETTLE_TOL_M)  # NaN is outside, not settled
     last_out = jnp.max(jnp.where(outside, jnp.arange(t.shape[0]), -1))
     settle = jnp.where(last_out < 0, t[0], t[jnp.minimum(last_out + 1, t.shape[0] - 1)])
     settle = jnp.where(last_out == t.shape[0] - 1, t[-1], settle)
