@@ -51,7 +51,12 @@ def _stack(logs, poses, dtype, T: int | None = None):
     padded to T events: padding events have dt = 0, no input and no rows (they change nothing)."""
     from ...systems.planar_ekf_slam import Log
 
-    T = max(lg.dt.shape[0] for lg in logs) if T is None else T
+    longest = max(lg.dt.shape[0] for lg in logs)
+    if T is None:
+        T = longest
+    elif isinstance(T, (bool, np.bool_)) or not isinstance(T, (int, np.integer)) or T < longest:
+        # a shorter T was a bare "negative dimensions" ValueError of np.full
+        raise InputError(f"T: expected an int >= {longest} (the longest log's events), got {T!r}")
     K = logs[0].z.shape[1]
 
     def pad(a, fill):
@@ -83,6 +88,10 @@ def mrclam_logs(data_dir, robots, dtype=np.float64, t_max: float | None = None, 
     from ...linalg import check_scalar
 
     odometry_delay = check_scalar(odometry_delay, "odometry_delay")  # (mrclam_log's own check and message)
+    t_max = _check_window(t_max)  # a string was a bare TypeError, a negative window a misleading message
+    robots = list(robots)
+    if not robots:
+        raise InputError("robots: expected at least one robot number, got none")
     logs, poses, raw = [], [], []
     for r in robots:
         d = load_mrclam(data_dir, int(r))
@@ -118,6 +127,9 @@ def select_odometry_delay(data_dir, robots, params, config, dtype=np.float64, t_
     padded to one length, so this compiles one program.  Returns ``(delay, {delay: nll})``.
     """
     K = int(config.K)
+    grid = tuple(grid)
+    if not grid:
+        raise InputError("grid: expected at least one odometry delay [s], got none")
     built = [mrclam_logs(data_dir, robots, dtype, t_max, odometry_delay=d, K=K)[0] for d in grid]
     T = max(b.dt.shape[1] for b in built)
     built = [b if b.dt.shape[1] == T else mrclam_logs(data_dir, robots, dtype, t_max, odometry_delay=d, T=T, K=K)[0]
@@ -143,14 +155,33 @@ def _run(params, config, item):
 
 
 def planar_theta0(params) -> dict:
-    """θ of :func:`planar_physical` at ``params`` (a ``planar_ekf_slam.Params`` with diagonal M_c, R, floor)."""
-    M = np.diag(np.asarray(params.M_c, np.float64))
-    R = np.diag(np.asarray(params.R, np.float64))
-    F = np.diag(np.asarray(params.Q_floor, np.float64))
+    """θ of :func:`planar_physical` at ``params`` (a ``planar_ekf_slam.Params`` with diagonal M_c, R, floor),
+    in ``params.R``'s dtype.
+
+    ``planar_physical(planar_theta0(params), params)`` gives back ``params``: what θ cannot hold is
+    refused (InputError naming the field) — an off-diagonal or non-positive variance, a floor
+    with different x and y densities, a range model with k0 != 1 (these were silently dropped).
+    """
+    dtype = jnp.asarray(params.R).dtype
+    mats = {}
+    for name in ("M_c", "R", "Q_floor"):
+        A = np.asarray(getattr(params, name), np.float64)
+        d = np.diag(A) if A.ndim == 2 else np.full(1, np.nan)
+        if A.ndim != 2 or np.any(A != np.diag(d)) or not np.all(np.isfinite(d) & (d > 0)):
+            raise InputError(f"params.{name}: expected a diagonal matrix of positive finite variances "
+                             f"(θ is their log), got {A.tolist()}"[:300])
+        mats[name] = d
+    M, R, F = mats["M_c"], mats["R"], mats["Q_floor"]
+    if F.size != 3 or F[0] != F[1]:
+        raise InputError(f"params.Q_floor: expected diag(q_xy, q_xy, q_phi) (θ holds one xy density), got "
+                         f"diag{tuple(F.tolist())}")
     rm = np.asarray((1.0, 0.0) if params.range_model is None else params.range_model, np.float64)
-    return {"log_sigma": jnp.asarray(0.5 * np.log(np.concatenate([M, R]))),
-            "log_floor": jnp.asarray(np.log([F[0], F[2]])),
-            "range_k2": jnp.asarray([rm[1]])}
+    if rm.shape != (2,) or rm[0] != 1.0 or not np.isfinite(rm[1]):
+        raise InputError(f"params.range_model: expected (1, k2) (k0 is fixed at 1, module docstring), got "
+                         f"{rm.tolist()}")
+    return {"log_sigma": jnp.asarray(0.5 * np.log(np.concatenate([M, R])), dtype),
+            "log_floor": jnp.asarray(np.log([F[0], F[2]]), dtype),
+            "range_k2": jnp.asarray([rm[1]], dtype)}
 
 
 def planar_physical(theta, base):
@@ -223,7 +254,9 @@ def mrclam_noise(loss: str = "nll", data=None, robots=(1, 2, 3, 4), test_robots=
         return planar_physical(th, base)
 
     delay_table = None
-    if odometry_delay == "auto":
+    if isinstance(odometry_delay, (bool, np.bool_)):  # True was taken as a 1 s delay
+        raise InputError(f"--odometry-delay: expected seconds or 'auto', got {odometry_delay!r}")
+    if isinstance(odometry_delay, str) and odometry_delay == "auto":
         odometry_delay, delay_table = select_odometry_delay(data, robots, physical(theta0), cfg, dtype, t_max)
     else:
         try:

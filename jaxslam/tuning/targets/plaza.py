@@ -49,6 +49,7 @@ def plaza_logs(data, sequences, dtype=jnp.float64, t_max: float | None = None):
     from ...data.plaza import load_plaza
     from ...systems import plaza_range as pr
 
+    t_max = _check_window(t_max)  # a string was a bare TypeError, NaN or a negative window a message naming t_end
     out = []
     for r in sequences:
         d = load_plaza(data, int(r))

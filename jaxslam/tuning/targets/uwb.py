@@ -35,6 +35,8 @@ def uwb_noise(loss: str = "mse", train_runs: int = 4, test_runs: int = 8, seed: 
     dtype = jnp.dtype(dtype)
     if loss not in ("mse", "nees"):
         raise InputError(f"--loss: uwb targets support mse, nees; got {loss!r}")
+    if cov not in ("diag", "chol"):  # was refused after the scenario was built, naming "kind"
+        raise InputError(f"cov: expected 'diag' or 'chol', got {cov!r}")
     opts = {o.name: o.default for o in registry.get(f"uwb-{scenario}").options}
     opts["mode"] = mode
     one_run, _, cfg, fp0, setup = scen.build(scenario, opts, dtype)

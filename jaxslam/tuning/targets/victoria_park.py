@@ -40,7 +40,8 @@ __all__ = ["victoria_park_noise"]
 
 def _logs(data, t_split: float):
     """The whole Victoria Park event log (as the EKF runner builds it) and its first
-    ``t_split`` seconds (its start + t_split; checked against the log's span), from one load."""
+    ``t_split`` seconds (the events before its start + t_split, that instant excluded: it is
+    held out; checked against the log's span), from one load."""
     from ...data.events import merge_events
     from ...data.victoria_park import load_victoria_park
 
@@ -53,7 +54,9 @@ def _logs(data, t_split: float):
     span = float(whole.t[-1] - whole.t[0])
     if not 0.0 < t_split < span:
         raise InputError(f"--window: the fit window must end inside the log (0 - {span:.0f} s), got {t_split:g} s")
-    return whole, build(float(whole.t[0]) + t_split)
+    # the fit window is t < start + t_split (the held-out events are t >= it): merge_events keeps
+    # t <= t_end, so an event exactly at the split was both fitted and held out
+    return whole, build(float(np.nextafter(float(whole.t[0]) + t_split, -np.inf)))
 
 
 def victoria_park_noise(loss: str = "nll", data=None, dtype=jnp.float64, t_max: float | None = None, **_ignored):
