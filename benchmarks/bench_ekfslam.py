@@ -937,6 +937,13 @@ def run(args):
     for flag, text in (("--study-maps", args.study_maps), ("--study-obs", args.study_obs),
                        ("--capacities", args.capacities), ("--mc-runs", args.mc_runs)):
         int_list(text, flag)  # every list checked before anything runs (the mc part records its errors)
+    for flag, part, value in (("--duration", "full", args.duration),
+                              ("--mc-duration", "mc", args.mc_duration)):
+        # at least one LiDAR frame (a negative or zero duration crashed the full run with an
+        # internal error, and the mc part recorded the scenario's refusal as its result)
+        if part in parts and not round(float(value) / (DT * LIDAR_EVERY)) >= 1:
+            raise InputError(f"{flag}: must hold at least one LiDAR frame ({DT * LIDAR_EVERY:g} s), "
+                             f"got {value!r}")
     if args.plots is not None:  # checked (and created) before anything runs, not after the study
         if "study" not in parts:
             raise InputError(f"--plots: the figure is the study part's; add study to --parts "

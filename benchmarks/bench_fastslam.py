@@ -145,6 +145,15 @@ def _fill_defaults(args):
     return args
 
 
+def _key(seed, offset=0):
+    """``PRNGKey(seed + offset)`` wrapped into [0, 2**63): ``--seed`` accepts up to 2**63 − 1, and
+    the offsets (+1, +2, +3, +7) made such a seed overflow int64 (an internal error after the
+    flight was simulated).  Unchanged for every seed + offset < 2**63."""
+    import jax
+
+    return jax.random.PRNGKey((int(seed) + offset) % 2**63)
+
+
 def _progress(msg):
     print(f"[bench fastslam] {msg}", file=sys.stderr, flush=True)
 
@@ -177,7 +186,7 @@ def _setup(args, n_frames):
         raise RuntimeError(f"fastslam-helix defaults changed ({diff}); update numpy_fastslam.py")
     setup = sc.truth_setup(float(opts["bias"]), jnp.float64)
     fl = jax.jit(lambda k: sc.fly(setup, k, n_frames, LIDAR_EVERY, cfg.lidar, cfg.accel_mode))(
-        jax.random.PRNGKey(args.seed))
+        _key(args.seed))
     fl = jax.tree_util.tree_map(np.asarray, fl)
     ids = np.arange(np.asarray(setup.landmarks).shape[0], dtype=np.int32)
     return cfg, prm, fl, ids
@@ -271,7 +280,7 @@ def _step_jobs(args, cfg, prm, inputs_dev, ids_dev, keys_dev, x0, T):
         def job(N=N):
             adv = _advance_fn(cfg, prm)
             st = fs1.init(_log0(jnp.asarray(x0)), cfg._replace(n_particles=N), prm,
-                          key=jax.random.PRNGKey(args.seed + 1))
+                          key=_key(args.seed, 1))
             ob = _outbuf(T, jnp.float64)
             st, ob = adv(st, ob, inputs_dev, ids_dev, keys_dev, jnp.int32(0),
                          jnp.int32(args.warmup))
@@ -475,7 +484,7 @@ def _mc_jobs(args, cfg, prm, fl, ids):
         return fs1.run(log, cfg_n, prm, key=key)
 
     win = tuple(jnp.asarray(a) for a in _mc_windows(fl, M_max, F))
-    keys = jax.random.split(jax.random.PRNGKey(args.seed + 7), M_max)
+    keys = jax.random.split(_key(args.seed, 7), M_max)
     sizes = sorted({1} | {min(M, int(args.mc_chunk)) for M in Ms})
     jobs = []
     for B in sizes:
@@ -616,7 +625,7 @@ def _profile_jobs(args, cfg, prm, compiled_state_fn, inputs_np):
         def job(fn=fn):
             st = compiled_state_fn()
             f = jax.jit(fn)
-            key = jax.random.PRNGKey(args.seed + 3)
+            key = _key(args.seed, 3)
             jax.block_until_ready(f(st, key))
             return f, (st, key)
 
@@ -723,7 +732,7 @@ def _run_here(args, parts):
     T = inputs_np[0].shape[0]
     inputs_dev = tuple(jnp.asarray(a) for a in inputs_np)
     ids_dev = jnp.asarray(ids)
-    keys_dev = jax.random.split(jax.random.PRNGKey(args.seed + 2), T)
+    keys_dev = jax.random.split(_key(args.seed, 2), T)
 
     jobs = []
     if "step" in parts:
@@ -736,7 +745,7 @@ def _run_here(args, parts):
         Np = int(args.profile_particles)
         P = tw.params_from(prm, cfg.dt, prm.resample_threshold)
         ts = tw.state_from(fs1.init(_log0(jnp.asarray(fl.truth[0])), cfg._replace(n_particles=Np),
-                                    prm, key=jax.random.PRNGKey(args.seed + 1)))
+                                    prm, key=_key(args.seed, 1)))
         rng = np.random.default_rng(args.seed)
         for i in range(args.warmup):
             ts, _ = tw.step(ts, inputs_np[0][i], inputs_np[1][i], inputs_np[2][i], ids,
@@ -816,6 +825,11 @@ def run(args):
         int_list(args.particles, "--particles")
     if "mc" in parts:
         int_list(args.mc_runs, "--mc-runs")
+        # the window holds whole LiDAR frames: a value under one frame (0, negative) was silently
+        # run as one frame while the JSON's options recorded the value given
+        if not round(float(args.mc_duration) / (0.01 * LIDAR_EVERY)) >= 1:
+            raise InputError(f"--mc-duration: must hold at least one LiDAR frame "
+                             f"({0.01 * LIDAR_EVERY:g} s), got {args.mc_duration!r}")
     if os.environ.get("OPENBLAS_NUM_THREADS") == "1":
         results, out = _run_here(args, parts)
         out["openblas_pinning"] = "OPENBLAS_NUM_THREADS=1 in this process"

@@ -193,11 +193,18 @@ def _time_numpy(fn, repeats):
     return float(np.median(times)), times, fn_out
 
 
-def _openblas1_numpy(n_steps, repeats):
-    """Median seconds of the NumPy loop in a fresh process with OPENBLAS_NUM_THREADS=1."""
+def _openblas1_numpy(n_steps, repeats, feedforward=True):
+    """Median seconds of the NumPy loop in a fresh process with OPENBLAS_NUM_THREADS=1, with the
+    flatness feedforward on or off as in the timed case (``--no-feedforward``; the script's own
+    entry point always flies with it on)."""
     env = dict(os.environ, OPENBLAS_NUM_THREADS="1")
-    res = subprocess.run([sys.executable, str(numpy_flight.__file__), str(n_steps),
-                          str(repeats)], env=env, capture_output=True, text=True, timeout=3600)
+    code = ("import functools, sys; sys.path.insert(0, sys.argv[1]); import numpy_flight as nf; "
+            "nf.simulate = functools.partial(nf.simulate, feedforward_on=sys.argv[4] == '1'); "
+            "nf._main(sys.argv[2:4])")
+    res = subprocess.run([sys.executable, "-c", code,
+                          str(pathlib.Path(numpy_flight.__file__).resolve().parent), str(n_steps),
+                          str(repeats), "1" if feedforward else "0"],
+                         env=env, capture_output=True, text=True, timeout=3600)
     if res.returncode != 0:
         return {"error": res.stderr.strip().splitlines()[-1:]}
     return json.loads(res.stdout.strip().splitlines()[-1])
@@ -366,7 +373,7 @@ def run(args) -> dict:
         "target_met": bool(np_s / jax_s >= TARGET_SINGLE_SPEEDUP),
     }
     if args.openblas_check:
-        single["reference_openblas1"] = _openblas1_numpy(n_steps, args.numpy_repeats)
+        single["reference_openblas1"] = _openblas1_numpy(n_steps, args.numpy_repeats, ff)
     results.append(single)
 
     # --- vmapped batches -------------------------------------------------------------
