@@ -2,8 +2,8 @@
 
 * ``*_attitude``: Euler angles (eq. 3.4, deg), angular velocity (rad/s) and torques
   (N m) over time, with the desired angles and the torque limit (Figs 3.2-3.4);
-* ``*_state_error``: 10 log10 of |Euler-angle error| (deg) and |ω error| (rad/s), as
-  app. B plots them (Figs 3.5-3.7);
+* ``*_state_error``: 10 log10 of |Euler-angle error| (deg; roll and yaw errors wrapped into
+  ±180°) and |ω error| (rad/s), as app. B plots them (Figs 3.5-3.7);
 * ``*_error``: error quaternion q_e = q ⊗ q_d* (canonical sign, Fig. 6.7), axis-angle
   error θ_e = 2 ln q_e in degrees (Fig. 6.8) and 10 log10(|θ_e,i| in degrees), the
   "decibel" view (Fig. 6.9).
@@ -114,6 +114,9 @@ def plot_all(name, dt, rollout, q_d, directory, tau_max=None, max_points=5000):
     # Figs 3.5-3.7: state errors in dB (app. B lines 159-183).
     e_eul = eul - eul_d
     e_eul[:, 2] = (e_eul[:, 2] + 180.0) % 360.0 - 180.0
+    # roll is in (−180°, 180°] too: a roll of −179° against a desired 179° is 2° off, not 358°
+    # (pitch, ±90°, never wraps); rolls within 180° of the desired one are left as they were
+    e_eul[:, 0] = np.where(np.abs(e_eul[:, 0]) > 180.0, (e_eul[:, 0] + 180.0) % 360.0 - 180.0, e_eul[:, 0])
     fig, axs = p.subplots(1, 2, figsize=(12, 4.2))
     for i in range(3):
         axs[0].plot(t, db(e_eul[:, i]), f"C{i}-", lw=0.8, label=f"{labels[i]} error")

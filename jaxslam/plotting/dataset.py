@@ -12,10 +12,13 @@ NumPy inputs; matplotlib is imported lazily (Agg).
 
 from __future__ import annotations
 
+import pathlib
+
 import numpy as np
 
+from ..errors import InputError
 from .flight import _output_dir, plt, save
-from .uwb import ellipse_points
+from .uwb import closing_on_error, ellipse_points
 
 __all__ = ["plot_run"]
 
@@ -26,9 +29,18 @@ def plot_run(run, directory, name=None):
     ``name`` (default: the dataset, with the robot or sequence of a dataset that has several,
     e.g. ``mrclam_robot3``, and ``_fastslam`` / ``_hidden`` for those runs, so runs of
     different robots, filters and modes can share a folder) prefixes the files.  ``directory``
-    is made and checked writable before any figure is drawn.
+    is made and checked writable before any figure is drawn; a figure that fails (e.g. a
+    landmark covariance that is not PSD: InputError) is closed, not left open in pyplot.
+    Landmark 3σ ellipses are drawn for up to 400 landmarks (more would hide the map).
     """
     _output_dir(directory, probe=True)
+    if name is not None and not (isinstance(name, str) and name and pathlib.PurePath(name).name == name):
+        raise InputError(f"name: expected a plain file name (no folder part), got {name!r}"[:300])
+    with closing_on_error():
+        return _plot_run(run, directory, name)
+
+
+def _plot_run(run, directory, name):
     p = plt()
     if name is None:
         name = run.dataset.replace("-", "_")

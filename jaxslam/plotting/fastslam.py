@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..errors import InputError, check_int
 from .flight import _output_dir, plt, save
 
 __all__ = ["particle_clouds", "path", "bias", "neff", "plot_all"]
@@ -27,15 +28,27 @@ def _frame_times(n_frames, k=4):
 def particle_clouds(fl, res, landmarks, frames=None, title="particle cloud and map"):
     """Particle positions and map at chosen LiDAR frames (x-y plane).
 
-    ``res.frames.particles`` (F, N, 3) must have been saved (``save_particles=True``).
-    ``frames``: frame indices (default: four spread over the flight).
+    ``res.frames.particles`` (F, N, 3) must have been saved (``save_particles=True``; else an
+    :class:`~jaxslam.errors.InputError`, a ValueError).  ``frames``: frame indices, ints in
+    [0, F) (default: four spread over the flight); a negative or too large index is an
+    InputError naming ``frames`` (−1 drew the last frame's cloud beside the truth at t = 0).
+    Panel titles give the frame's time ``fl.t`` (it assumed 0.01 s steps).
     """
-    p = plt()
     fr = res.frames
     if fr.particles is None:
-        raise ValueError("particle positions were not saved (Config.save_particles=False)")
+        raise InputError("particle positions were not saved (Config.save_particles=False)")
     F = fr.particles.shape[0]
-    frames = _frame_times(F) if frames is None else list(frames)
+    if frames is None:
+        frames = _frame_times(F)
+    else:
+        try:
+            frames = list(frames)
+        except TypeError:
+            raise InputError(f"frames: expected a list of frame indices, got {frames!r}"[:300]) from None
+        frames = [check_int(f, "frames", lower=0, what="frame indices, ints") for f in frames]
+        if not frames or max(frames) >= F:
+            raise InputError(f"frames: expected indices in [0, {F}) (F = {F} frames saved), got {frames}"[:300])
+    p = plt()
     every = (fl.truth.shape[0] - 1) // F
     fig, axs = p.subplots(2, len(frames), figsize=(4.2 * len(frames), 8.4), squeeze=False)
     for j, f in enumerate(frames):
@@ -64,7 +77,7 @@ def particle_clouds(fl, res, landmarks, frames=None, title="particle cloud and m
         for m, v in zip(mu, var):
             s = 3 * np.sqrt(np.maximum(v[:2], 0))
             ax.plot(m[0] + s[0] * np.cos(tt), m[1] + s[1] * np.sin(tt), "r-", lw=0.6)
-        ax.set_title(f"t = {k * 0.01:.1f} s" if every else f"frame {f}")
+        ax.set_title(f"t = {float(fl.t[k]):.1f} s" if every else f"frame {f}")
         ax.set_xlabel("x [m]")
         ax.set_ylabel("y [m]")
         ax.set_aspect("equal", adjustable="datalim")
@@ -119,7 +132,8 @@ def bias(fl, res, title="IMU offset estimates (b0 + b1) vs truth, ±3σ"):
         ax.fill_between(t, tot[:, i] - 3 * sd[:, i], tot[:, i] + 3 * sd[:, i], color="C1",
                         alpha=0.2, lw=0, label="±3σ")
         ax.set_title(names[i], fontsize=9)
-        scale = max(5 * float(np.max(np.abs(true[:, i]))), 1e-4)
+        # finite samples only: one NaN made the limits NaN (matplotlib's bare ValueError)
+        scale = max(5 * float(np.max(np.abs(true[:, i]), initial=0.0, where=np.isfinite(true[:, i]))), 1e-4)
         ax.set_ylim(-scale, scale)
     axs[0, 0].legend(fontsize=7)
     for ax in axs[1]:

@@ -30,6 +30,19 @@ def _columns(x, name: str, cols: int, rows=None):
     return a
 
 
+def _points(x, name: str):
+    """Optional (n, 3) points: None or an empty sequence as None, else :func:`_columns` (a
+    scalar or a string is an InputError naming ``name``; ``len`` failed on it with a TypeError)."""
+    if x is None:
+        return None
+    try:
+        if not len(x):
+            return None
+    except TypeError:  # no length (a scalar): _columns names it
+        pass
+    return _columns(x, name, 3)
+
+
 def _times(t):
     """``t`` as a float (T,) array of times, else InputError naming ``t`` (a string, even "1.5",
     is not a time)."""
@@ -134,14 +147,14 @@ def _ned_to_enu_up(p):
 
 def trajectory_3d(truth_pos, ref_pos, est_pos=None, landmarks=None, est_landmarks=None,
                   title="Trajectory"):
-    """3D path: true (solid), desired (dash-dot), estimated (dashed), landmarks."""
+    """3D path: true (solid), desired (dash-dot), estimated (dashed), landmarks.
+
+    ``landmarks`` / ``est_landmarks``: (n, 3+) points, or None / empty to leave them out."""
     truth_pos, ref_pos = _columns(truth_pos, "truth_pos", 3), _columns(ref_pos, "ref_pos", 3)
     if est_pos is not None:
         est_pos = _columns(est_pos, "est_pos", 3)
-    if landmarks is not None and len(landmarks):
-        landmarks = _columns(landmarks, "landmarks", 3)
-    if est_landmarks is not None and len(est_landmarks):
-        est_landmarks = _columns(est_landmarks, "est_landmarks", 3)
+    landmarks = _points(landmarks, "landmarks")
+    est_landmarks = _points(est_landmarks, "est_landmarks")
     p = plt()
     fig = p.figure(figsize=(7, 6))
     ax = fig.add_subplot(projection="3d")

@@ -18,7 +18,10 @@ import textwrap
 import numpy as np
 
 from ..metrics import consistency_verdict, steps_inside, steps_inside_text
+from ..errors import InputError
+from ..linalg import check_int
 from .flight import _output_dir, plt, save
+from .uwb import closing_on_error
 
 __all__ = ["clip_line", "plot_all"]
 
@@ -65,14 +68,24 @@ def _lines_and_frame(ax, lines, active, box, label, lw, title):
 
 def plot_all(name, setup, cfg, log, res, per_step, bounds, directory, scan_index=None):
     """Write the four figures; returns their paths (``directory`` is made and checked writable
-    first)."""
+    first; a figure that fails is closed).  ``scan_index``: the scan of the ``*_scan`` figure,
+    an int in [0, number of steps) (default: a third of the way), else InputError."""
+    _output_dir(directory, probe=True)
+    with closing_on_error():
+        return _plot_all(name, setup, cfg, log, res, per_step, bounds, directory, scan_index)
+
+
+def _plot_all(name, setup, cfg, log, res, per_step, bounds, directory, scan_index):
     from ..sensors import laser2d
 
-    _output_dir(directory, probe=True)
     p = plt()
     paths = []
     st = res.steps
     t = np.asarray(setup.ts)
+    if scan_index is not None:  # (a JAX array clamps an index past the end: another scan drawn)
+        scan_index = check_int(scan_index, "scan_index", lower=0)
+        if scan_index >= len(t):
+            raise InputError(f"scan_index: expected an int < {len(t)} (the number of scans), got {scan_index}")
     tr = np.asarray(setup.truth)
     walls = np.asarray(setup.walls)
     box = (walls[..., 0].min() - 0.5, walls[..., 0].max() + 0.5, walls[..., 1].min() - 0.5,

@@ -24,7 +24,8 @@ import textwrap
 
 import numpy as np
 
-from ..linalg import check_scalar
+from ..errors import InputError
+from ..linalg import check_numbers, check_scalar
 from ..metrics import consistency_verdict as verdict
 from ..metrics import steps_inside_text as steps_inside
 from .flight import _ned_to_enu_up, _output_dir, keep_margins, plt, save
@@ -36,9 +37,15 @@ ROBOT_ELLIPSE_EVERY_S = 5.0
 
 def magnification(sig3, span, fraction=0.025):
     """Factor (1, 2, 5, 10, 20, ...) that draws the median 3σ at about ``fraction`` of
-    ``span``; 1 when it is visible already or no 3σ is positive (pure)."""
+    ``span``; 1 when it is visible already, no 3σ is positive or ``span`` is not a positive
+    finite number (pure).  ``sig3`` and ``span`` (a scalar) that are not numbers are an
+    :class:`~jaxslam.errors.InputError` naming them (they were NumPy's bare errors)."""
     fraction = check_scalar(fraction, "fraction", lower=0, strict=True)
-    s = np.asarray(sig3, float)
+    s = check_numbers(sig3, "sig3")
+    span = check_numbers(span, "span")
+    if span.ndim != 0:
+        raise InputError(f"span: expected a scalar, got shape {span.shape}")
+    span = float(span)
     s = s[np.isfinite(s) & (s > 0)]
     if s.size == 0 or not np.isfinite(span) or span <= 0:
         return 1

@@ -220,12 +220,12 @@ def param_trajectories(history, reference=None, title="Parameter trajectories"):
     entries beyond ten colours change line style.  ``reference``: optional ``{label: {name:
     [values]}}`` (or one ``{name: [values]}``); the first is drawn as dotted lines in each
     entry's colour and named in the title (e.g. the truth of the linear-Gaussian target, or the
-    IMU-derived Q).
+    IMU-derived Q); a reference entry that is null or not a finite number is not drawn.
     """
     _check_history(history)
     recs = _check_params(history)
     if not recs:
-        raise ValueError("history holds no 'params' records")
+        raise InputError("history holds no 'params' records")  # (a ValueError, as before)
     names = list(recs[0]["params"])
     if reference and not any(isinstance(v, dict) for v in reference.values()):
         reference = {"reference": reference}
@@ -246,8 +246,10 @@ def param_trajectories(history, reference=None, title="Parameter trajectories"):
             ax.plot(steps, vals[:, i], lw=1.2, color=colour, ls=styles[(c // 10) % len(styles)], label=label)
             for ref_label, ref in reference.items():
                 r = ref.get(name)
-                if r is not None and i < len(r) and np.isfinite(r[i]) and (not positive or r[i] > 0):
-                    ax.axhline(r[i], color=colour, ls=":", lw=1)
+                ri = _num(r[i]) if r is not None and i < len(r) and (r[i] is None or _is_number(r[i])) \
+                    else float("nan")  # (null, JSON's NaN, or not a number: nothing drawn)
+                if np.isfinite(ri) and (not positive or ri > 0):
+                    ax.axhline(ri, color=colour, ls=":", lw=1)
                     drawn.add(ref_label)
         if positive:
             ax.set_yscale("log")
@@ -323,7 +325,7 @@ def choose_panels(report, max_panels=MAX_PANELS):
     if head is not None:
         cands.append(metric(head))
     cb, ca = before.get("consistency") or {}, after.get("consistency") or {}
-    stats = [k for k, v in cb.items() if k in ca and isinstance(v, (int, float)) and not isinstance(v, bool)
+    stats = [k for k, v in cb.items() if k in ca and _is_number(v)  # (NumPy scalars too, as _check_sides)
              and not k.endswith(("_bounds", "_block", "_dim", "_steps_inside"))]
     stats.sort(key=lambda k: (CONSISTENCY_PRIORITY.index(k) if k in CONSISTENCY_PRIORITY
                               else len(CONSISTENCY_PRIORITY), k))

@@ -19,6 +19,7 @@ NumPy inputs; matplotlib is imported lazily (Agg).
 
 from __future__ import annotations
 
+import contextlib
 import textwrap
 
 import numpy as np
@@ -126,10 +127,29 @@ def _frame(sim, res, cfg):
     return np.eye(2), np.zeros(2)
 
 
+@contextlib.contextmanager
+def closing_on_error():
+    """Close the figures opened inside the block when it raises (a check that fails halfway
+    through a ``plot_all``, e.g. a covariance that is not PSD, left its figure open in pyplot)."""
+    p = plt()
+    before = set(p.get_fignums())
+    try:
+        yield p
+    except BaseException:
+        for n in set(p.get_fignums()) - before:
+            p.close(n)
+        raise
+
+
 def plot_all(name, sim, res, ev, setup, cfg, per_step, cons, runs, directory):
     """Write the four figures; returns their paths (``directory`` is made and checked writable
-    first)."""
+    first; a figure that fails is closed, not left open in pyplot)."""
     _output_dir(directory, probe=True)
+    with closing_on_error():
+        return _plot_all(name, sim, res, ev, setup, cfg, per_step, cons, runs, directory)
+
+
+def _plot_all(name, sim, res, ev, setup, cfg, per_step, cons, runs, directory):
     p = plt()
     paths = []
     M, o = _frame(sim, res, cfg)
@@ -208,20 +228,29 @@ def plot_all(name, sim, res, ev, setup, cfg, per_step, cons, runs, directory):
     axs = axs.ravel()
     for a, (lab, idx, scale, limit) in zip(axs, panels):
         omitted = False
+        why = set()  # why parts of the band were left out: "wide" (> limit), "undefined" (not finite)
         for j, i in enumerate(idx):
             a.plot(t, err[:, i] * scale, f"C{1 + j}-", lw=1, label=STATE_NAMES[i] if len(idx) > 1 else "error")
-            b, note = band(3 * sig[:, i] * scale, t, limit, STATE_NAMES[i])
+            raw = 3 * sig[:, i] * scale
+            b, note = band(raw, t, limit, STATE_NAMES[i])
             if np.any(np.isfinite(b)):
                 a.fill_between(t, -b, b, color=f"C{0 if j == 0 else 4}", alpha=0.2 if j == 0 else 0.12,
                                label="±3σ" if len(idx) == 1 else f"±3σ {STATE_NAMES[i]}")
             if note:
                 notes.append(note)
                 omitted = True
+                if limit is not None and np.any(np.isfinite(raw) & (raw > limit)):
+                    why.add("wide")
+                if not np.all(np.isfinite(raw)):
+                    why.add("undefined")
         if omitted:  # the y-range fits the errors, not what is left of the band
             e = np.abs(err[:, list(idx)] * scale)
             top = 1.3 * float(np.nanmax(e)) if np.any(np.isfinite(e)) else 1.0
             a.set_ylim(-max(top, 1e-3), max(top, 1e-3))
-            a.text(0.01, 0.97, f"3σ band omitted where wider than ±{limit:g}° (see note)",
+            # (a position or velocity panel has no limit: only an undefined band is left out there)
+            where = " or ".join(([f"wider than ±{limit:g}°"] if "wide" in why else [])
+                                + (["undefined"] if "undefined" in why else []))
+            a.text(0.01, 0.97, f"3σ band omitted where {where} (see note)",
                    transform=a.transAxes, fontsize=6.5, va="top", color="0.3")
         a.set_ylabel(lab)
         a.legend(fontsize=6, loc="lower right", ncol=len(idx))
