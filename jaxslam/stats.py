@@ -65,6 +65,8 @@ def _quadratic_form(err, cov, e_name: str, c_name: str):
         raise InputError(f"{c_name}: batch shape {tuple(cov.shape[:-2])} does not broadcast against "
                          f"{e_name}'s {tuple(err.shape[:-1])}") from None
     dtype = jnp.result_type(err.dtype, cov.dtype)
+    if jnp.finfo(dtype).bits < 32:  # float16 / bfloat16: no Cholesky for them (a bare NotImplementedError)
+        dtype = jnp.dtype(jnp.float32)
     # called eagerly: one kept program per shape and dtype (op by op, a first NEES took 0.6 s)
     return call_compiled(("stats.quadratic_form",), _solve_form, (err.astype(dtype), cov.astype(dtype)),
                          after="auto")
@@ -78,7 +80,12 @@ def _solve_form(err, cov):
     cov = jnp.broadcast_to(cov, batch + (n, n))
     L = jnp.linalg.cholesky(0.5 * (cov + jnp.swapaxes(cov, -1, -2)))
     y = jax.scipy.linalg.solve_triangular(L, err[..., None], lower=True)[..., 0]
-    return jnp.sum(y * y, axis=-1)
+    q = jnp.sum(y * y, axis=-1)
+    # an infinite (not NaN) error with a PD covariance: eᵀ C⁻¹ e ≥ λ_min |e|² = inf (the solve's
+    # 0 · inf gave NaN, as for a non-PD covariance)
+    inf_err = (jnp.any(jnp.isinf(err), axis=-1) & ~jnp.any(jnp.isnan(err), axis=-1)
+               & jnp.all(jnp.isfinite(L), axis=(-2, -1)))
+    return jnp.where(inf_err, jnp.inf, q)
 
 
 def nees(err, cov):
@@ -90,10 +97,12 @@ def nees(err, cov):
 
     Returns:
         (...) NEES values; χ²(n)-distributed for a consistent filter.  NaN
-        where ``cov`` is not positive definite.  Shapes are checked (also under ``jit``):
+        where ``cov`` is not positive definite (or ``err`` has a NaN); inf where ``err`` has an
+        infinite entry and ``cov`` is PD (it was NaN).  Shapes are checked (also under ``jit``):
         :class:`InputError` naming ``err`` / ``cov`` (a (n,) ``cov`` used to be broadcast to
         a matrix of equal rows, giving NaN); so is a complex dtype (``1j`` gave a NEES of −1).
-        Called eagerly it is compiled once per shape and dtype
+        A float16 / bfloat16 pair is computed, and returned, in float32 (it raised a bare
+        NotImplementedError).  Called eagerly it is compiled once per shape and dtype
         (:func:`jaxslam.compilation.call_compiled`), as :func:`nis`.
     """
     return _quadratic_form(err, cov, "err", "cov")
@@ -219,15 +228,19 @@ def chi2_ppf(p, dof):
 
     Returns:
         Quantile(s) in the floating dtype of ``p`` (default float dtype for
-        Python numbers); 0 at p = 0, inf at p = 1, NaN outside [0, 1] or for
-        dof ≤ 0.  Float64: ~1e-10 relative for dof 1..10⁵.  A complex ``p`` or ``dof`` is an
-        :class:`InputError` (its dtype is known, also under ``jit``).  Called eagerly it runs a
+        Python numbers; float32 for a float16 / bfloat16 ``p``, which raised a bare TypeError); 0 at p = 0, inf at p = 1, NaN outside [0, 1] or for
+        dof ≤ 0.  Float64: ~1e-10 relative for dof 1..10⁵, also for p down to 1e-300 (a lower
+        tail that underflows is replaced by its leading term; p = 1e-300, dof = 1000 gave 93.2
+        for 103.3).  A complex or bool ``p`` or ``dof`` is an :class:`InputError` (its dtype is
+        known, also under ``jit``; ``True`` was read as p = 1, a quantile of inf).  Called eagerly it runs a
         program compiled once (:func:`jaxslam.compilation.call_compiled`): uncompiled, every
         call traced and compiled its Newton loop again (0.28 s a call) and kept it.
     """
-    check_real(p, "p")
-    check_real(dof, "dof")
+    check_real(p, "p", allow_bool=False)
+    check_real(dof, "dof", allow_bool=False)
     p = float_array(p, "p")  # a string is named; an integer p becomes the default float
+    if jnp.finfo(p.dtype).bits < 32:  # float16 / bfloat16: JAX's gammainc refuses them (a bare TypeError)
+        p = p.astype(jnp.float32)
     k = float_array(dof, "dof").astype(p.dtype)
     return call_compiled(("stats.chi2_ppf",), _chi2_ppf, (p, k), after="auto")
 
@@ -260,9 +273,15 @@ def _chi2_ppf(p, k):
         x = jnp.exp(y)
         P = jax.scipy.special.gammainc(a_s, x)
         Q = jax.scipy.special.gammaincc(a_s, x)
-        logF = jnp.where(upper, jnp.log(Q), jnp.log(P))
         # d log P / d log x = x f(x) / P, f the gamma(a) density.
         log_xf = a_s * y - x - lga
+        # A lower tail that underflowed (far below a root with p ~ 1e-300) gave log P = -inf, a
+        # blind +1 step, a clipped Newton step back to the floor, and so a 2-cycle that never
+        # left it (p = 1e-300, dof = 1000 gave 93.2 for 103.3): there use the leading term
+        # log P ≈ log(x f(x)/a) − log(1 − x/(a+1)) (P's series, x < a + 1 where P underflows).
+        r = jnp.clip(x / (a_s + 1.0), 0.0, jnp.asarray(0.99, dtype))
+        logP = jnp.where(P >= tiny, jnp.log(jnp.maximum(P, tiny)), log_xf - jnp.log(a_s) - jnp.log1p(-r))
+        logF = jnp.where(upper, jnp.log(Q), logP)
         slope = jnp.exp(log_xf - logF)
         slope = jnp.where(upper, -slope, slope)
         diff = logF - log_target
@@ -407,10 +426,11 @@ def student_t_d2_ppf_np(p: float, nu: float) -> float:
     (Abramowitz & Stegun 26.7.5, four terms) instead.  ν = inf (and ν > 10¹⁸, where the two agree to
     double precision) is the χ²(1) quantile :func:`chi2_ppf_np` ``(p, 1)``, the limit the
     finite ν approach (ν = 10¹² used to be 7e-5 off it, inf returned inf).  The outlier gate of
-    a Student-t range model at probability ``p``.
+    a Student-t range model at probability ``p``.  A bool ``p`` or ``nu`` is an
+    :class:`InputError` naming it.
     """
-    check_real(p, "p")
-    check_real(nu, "nu")
+    check_real(p, "p", allow_bool=False)
+    check_real(nu, "nu", allow_bool=False)
     p, nu = check_scalar(p, "p", finite=False), check_scalar(nu, "nu", finite=False)
     if not (nu > 0) or not (0.0 <= p < 1.0):
         raise InputError(f"student_t_d2_ppf_np: need 0 <= p < 1 and nu > 0, got p={p}, nu={nu}")
@@ -469,10 +489,11 @@ def chi2_ppf_np(p: float, dof: float) -> float:
         p: probability in [0, 1].  dof: degrees of freedom > 0.
 
     Returns:
-        Python float quantile (0 at p = 0, inf at p = 1).
+        Python float quantile (0 at p = 0, inf at p = 1).  A bool ``p`` or ``dof`` is an
+        :class:`InputError` naming it (``True`` was read as 1).
     """
-    check_real(p, "p")
-    check_real(dof, "dof")
+    check_real(p, "p", allow_bool=False)
+    check_real(dof, "dof", allow_bool=False)
     p = check_scalar(p, "p", finite=False)
     k = check_scalar(dof, "dof", finite=False)
     if not (0 < k < math.inf) or not (0.0 <= p <= 1.0):
@@ -536,10 +557,10 @@ def mean_chi2_bounds(dof_total, count, alpha: float = 0.05) -> tuple[float, floa
 
     ``dof_total`` and ``count`` must be positive finite numbers and ``alpha`` in (0, 1):
     :class:`InputError` naming the argument (an infinite count gave (0, 0), a string NumPy's
-    bare ValueError).
+    bare ValueError; a bool is refused, as ``alpha``'s).
     """
-    check_real(dof_total, "dof_total")
-    check_real(count, "count")
+    check_real(dof_total, "dof_total", allow_bool=False)
+    check_real(count, "count", allow_bool=False)
     dof_total = check_scalar(dof_total, "dof_total", lower=0, strict=True)
     count = check_scalar(count, "count", lower=0, strict=True)
     alpha = _alpha(alpha)
