@@ -164,11 +164,8 @@ def command(rest: list[str]) -> int:
 
     # before anything runs, creating nothing: a run that stops at its options leaves no folder
     json_path = files.prepare_file("--json", pre.json, create=False) if pre.json is not None else None
-    source = bench_dir / f"bench_{name}.py"
-    if json_path is not None and files._link_target("--json", json_path) == source.resolve():
-        # (the JSON replaced the benchmark's own source file, which the command reads)
-        raise InputError(f"--json: {str(pre.json)!r} is the benchmark file {str(source)!r} this command runs; "
-                         "writing it would replace it, so give the output another path")
+    # (the JSON replaced the benchmark's own source file, which the command reads)
+    files.distinct_outputs(json=json_path, inputs={"benchmark": bench_dir / f"bench_{name}.py"})
     import jax
 
     jax.config.update("jax_enable_x64", True)  # benchmarks choose float32 by passing float32 arrays

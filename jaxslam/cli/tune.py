@@ -38,7 +38,7 @@ import time
 from jaxslam.errors import InputError
 
 from .common import (Parser, UsageError, compile_timing, finite_float, int_at_least, nonnegative_float, path_arg,
-                     positive_float, raise_if_interrupted)
+                     positive_float, raise_if_interrupted, seed_int)
 
 __all__ = ["main", "build_parser", "DEFAULTS"]
 
@@ -56,12 +56,6 @@ REAL_LOG_DEFAULTS = {"steps": 25, "lr": 0.1, "loss": "nll", "window": 500.0}
 # A training run whose (positive) loss exceeds this many times the batch's lower median is an
 # exploding flight, left out of that step like a non-finite one (optimize.fit, explode_ratio).
 EXPLODE_RATIO = 1e3
-
-
-def _available():
-    from jaxslam.tuning import targets
-
-    return targets.available()
 
 
 def _targets_text():
@@ -83,13 +77,10 @@ def _robot_list(text: str) -> tuple:
 
 
 def _tune_seed(text: str) -> int:
-    """argparse type: a training seed S with S + 1 (the held-out runs' seed) still a PRNG seed
-    (< 2**63): a larger one failed only after the target was built, as ``seed: ...``."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"invalid int value: {text!r}") from None
-    if not 0 <= value < 2**63 - 1:
+    """argparse type: a training seed S (:func:`seed_int`) with S + 1 (the held-out runs' seed)
+    still a PRNG seed: a larger one failed only after the target was built, as ``seed: ...``."""
+    value = seed_int(text)
+    if value + 1 >= 2**63:
         raise argparse.ArgumentTypeError(f"must be in [0, 2**63 - 1) (the held-out runs use S+1), got {value}")
     return value
 
@@ -562,8 +553,10 @@ def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     try:
         if not argv:  # a usage error: one line (it printed the whole help on stdout, exit 2)
+            from jaxslam.tuning import targets
+
             raise UsageError(f"{PROG}: missing SCENARIO (see '{PROG} --help'); tunable scenarios: "
-                             f"{', '.join(sorted({s for s, _ in _available()}))}")
+                             f"{', '.join(sorted({s for s, _ in targets.available()}))}")
         if argv[0] in ("-h", "--help"):
             build_parser().print_help()
             return 0

@@ -303,13 +303,6 @@ def run_dataset(name: str, data_dir, **options) -> DatasetRun:
     return _RUNNERS[name](data_dir, **kw)
 
 
-def _check_runner_options(name: str, **options) -> None:
-    """A runner called directly (not through :func:`run_dataset`) checks its options as
-    :func:`run_dataset` does (:func:`jaxslam.data.catalogue.check_options`): a misspelt choice
-    or an option the dataset does not take was silently run as another method or ignored."""
-    catalogue.check_options(name, options)
-
-
 def dataset_params(obj, name: str) -> dict:
     """The ``noise`` entries of a ``--params`` object for dataset ``name`` (validated keys).
 
@@ -490,7 +483,10 @@ def run_util_uwb(data_dir, robot=1, filter="ekf", ids="known", anchors=None, par
     fitted preset (``presets.UTIL_FITTED``, ``jaxslam tune util-uwb``); ``params``: a
     ``--params`` object replacing it.
     """
-    _check_runner_options("util-uwb", robot=robot, filter=filter, ids=ids, anchors=anchors, particles=particles, seed=seed, tof=tof, calibrated=calibrated, smooth=smooth, params=params)
+    # (as run_dataset does: called directly, a misspelt choice ran as another method or was ignored)
+    catalogue.check_options("util-uwb", dict(robot=robot, filter=filter, ids=ids, anchors=anchors,
+                                             particles=particles, seed=seed, tof=tof, calibrated=calibrated,
+                                             smooth=smooth, params=params))
     dtype = _run_dtype(dtype)
     anchors = anchors or "known"
     from ..systems import util_range as ur
@@ -647,7 +643,9 @@ def run_plaza_dataset(data_dir, robot=1, filter="ekf", ids="known", anchors=None
     trilateration) or "known" (localisation against the surveyed beacons).  Noise:
     ``presets.plaza_params()``; ``params``: a ``--params`` object (``jaxslam tune plaza``) replacing it.
     """
-    _check_runner_options("plaza", filter=filter, ids=ids, anchors=anchors, particles=particles, seed=seed, tof=tof, calibrated=calibrated, smooth=smooth, params=params)  # (robot: checked below)
+    catalogue.check_options("plaza", dict(filter=filter, ids=ids, anchors=anchors, particles=particles,
+                                          seed=seed, tof=tof, calibrated=calibrated, smooth=smooth,
+                                          params=params))  # (robot: checked below)
     dtype = _run_dtype(dtype)
     anchors = anchors or "unknown"
     from ..dynamics import planar
@@ -818,7 +816,9 @@ def run_mrclam(data_dir, robot=1, filter="ekf", ids="known", anchors=None, parti
     from . import presets
     from .mrclam import load_mrclam
 
-    _check_runner_options("mrclam", filter=filter, ids=ids, anchors=anchors, particles=particles, seed=seed, tof=tof, calibrated=calibrated, smooth=smooth, params=params)  # (robot: checked below)
+    catalogue.check_options("mrclam", dict(filter=filter, ids=ids, anchors=anchors, particles=particles,
+                                           seed=seed, tof=tof, calibrated=calibrated, smooth=smooth,
+                                           params=params))  # (robot: checked below)
     dtype = _run_dtype(dtype)
     robot = reworded(lambda: check_int(robot, "robot"),
                      f"mrclam: --robot must be 1..5 (MRCLAM has five robots), got {robot!r}", upper=5)
@@ -1005,7 +1005,9 @@ def run_victoria_park(data_dir, robot=1, filter="ekf", ids="known", anchors=None
     from . import presets
     from .victoria_park import load_victoria_park
 
-    _check_runner_options("victoria-park", robot=robot, filter=filter, ids=ids, anchors=anchors, particles=particles, seed=seed, tof=tof, calibrated=calibrated, smooth=smooth, params=params)
+    catalogue.check_options("victoria-park", dict(robot=robot, filter=filter, ids=ids, anchors=anchors,
+                                                  particles=particles, seed=seed, tof=tof,
+                                                  calibrated=calibrated, smooth=smooth, params=params))
     dtype = _run_dtype(dtype)
     if particles is not None:
         particles = check_int(particles, "particles")

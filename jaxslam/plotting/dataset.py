@@ -17,8 +17,8 @@ import pathlib
 import numpy as np
 
 from ..errors import InputError
-from .flight import _output_dir, plt, save
-from .uwb import closing_on_error, ellipse_points
+from .flight import _output_dir, closing_on_error, plt, save
+from .uwb import ellipse_points
 
 __all__ = ["plot_run"]
 

@@ -6,6 +6,7 @@ Every function takes NumPy arrays, returns the Figure, and ``save`` writes PNGs.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import pathlib
 
@@ -81,6 +82,20 @@ def _output_dir(directory, probe: bool = False) -> pathlib.Path:
     if probe:
         prepare_dir("directory", d)
     return d
+
+
+@contextlib.contextmanager
+def closing_on_error():
+    """Close the figures opened inside the block when it raises (a check that fails halfway
+    through a ``plot_all``, e.g. a covariance that is not PSD, left its figure open in pyplot)."""
+    p = plt()
+    before = set(p.get_fignums())
+    try:
+        yield p
+    except BaseException:
+        for n in set(p.get_fignums()) - before:
+            p.close(n)
+        raise
 
 
 def save(fig, directory, name) -> pathlib.Path:

@@ -20,8 +20,7 @@ import numpy as np
 from ..metrics import consistency_verdict, steps_inside, steps_inside_text
 from ..errors import InputError
 from ..linalg import check_int
-from .flight import _output_dir, plt, save
-from .uwb import closing_on_error
+from .flight import _output_dir, closing_on_error, plt, save
 
 __all__ = ["clip_line", "plot_all"]
 

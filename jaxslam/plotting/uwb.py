@@ -19,7 +19,6 @@ NumPy inputs; matplotlib is imported lazily (Agg).
 
 from __future__ import annotations
 
-import contextlib
 import textwrap
 
 import numpy as np
@@ -28,7 +27,7 @@ from ..errors import InputError
 from ..linalg import check_int, check_numbers, check_scalar, check_shape
 from ..metrics import consistency_verdict as verdict
 from ..metrics import steps_inside_text as steps_inside
-from .flight import _output_dir, keep_margins, plt, save
+from .flight import _output_dir, closing_on_error, keep_margins, plt, save
 
 __all__ = ["STATE_NAMES", "band", "ellipse_points", "nees_figure", "plot_all", "state_panels"]
 
@@ -125,20 +124,6 @@ def _frame(sim, res, cfg):
         M, o = startup_frame(sim.anchors, res.startup.ref_anchor, cfg.start_anchor, cfg.end_anchor)
         return np.asarray(M), np.asarray(o)
     return np.eye(2), np.zeros(2)
-
-
-@contextlib.contextmanager
-def closing_on_error():
-    """Close the figures opened inside the block when it raises (a check that fails halfway
-    through a ``plot_all``, e.g. a covariance that is not PSD, left its figure open in pyplot)."""
-    p = plt()
-    before = set(p.get_fignums())
-    try:
-        yield p
-    except BaseException:
-        for n in set(p.get_fignums()) - before:
-            p.close(n)
-        raise
 
 
 def plot_all(name, sim, res, ev, setup, cfg, per_step, cons, runs, directory):

@@ -4,29 +4,19 @@ plotting.flight.save and metrics.write_tum), every plot_all checks its folder be
 tuning.plot_all drops the parameter figure only when there are no parameters, before_after and
 attitude.plot_all check what they read."""
 
+import errno
 import os
+import pathlib
+import pickle
 
-os.environ.setdefault("MPLBACKEND", "Agg")
+import numpy as np
+import pytest
 
-import errno  # noqa: E402
-import pathlib  # noqa: E402
-import pickle  # noqa: E402
-
-import numpy as np  # noqa: E402
-import pytest  # noqa: E402
-
-from jaxslam import files  # noqa: E402
-from jaxslam.errors import InputError  # noqa: E402
-from jaxslam.metrics import write_tum  # noqa: E402
-from jaxslam.plotting import attitude, dataset, fastslam, flight, lines, slam3d, uwb  # noqa: E402
-from jaxslam.plotting import tuning as pt  # noqa: E402
-
-
-@pytest.fixture(autouse=True)
-def _no_figures_left():
-    flight.plt().close("all")
-    yield
-    flight.plt().close("all")
+from jaxslam import files
+from jaxslam.errors import InputError
+from jaxslam.metrics import write_tum
+from jaxslam.plotting import attitude, dataset, fastslam, flight, lines, slam3d, uwb
+from jaxslam.plotting import tuning as pt
 
 
 def _unwritable_folder(tmp_path) -> pathlib.Path:

@@ -5,24 +5,13 @@ particles are InputErrors before any figure opens, one NaN in the true IMU offse
 breaks the bias figure's limits, and trajectory_3d names a landmark argument without a length.
 Every expectation is computed by hand here."""
 
-import os
+import types
 
-os.environ.setdefault("MPLBACKEND", "Agg")
+import numpy as np
+import pytest
 
-import types  # noqa: E402
-
-import numpy as np  # noqa: E402
-import pytest  # noqa: E402
-
-from jaxslam.errors import InputError  # noqa: E402
-from jaxslam.plotting import attitude, fastslam, flight  # noqa: E402
-
-
-@pytest.fixture(autouse=True)
-def _no_figures_left():
-    flight.plt().close("all")
-    yield
-    flight.plt().close("all")
+from jaxslam.errors import InputError
+from jaxslam.plotting import attitude, fastslam, flight
 
 
 def _q_roll(deg):

@@ -2,25 +2,14 @@
 error figure, figures left open when a plot fails, scan_index and name checks, NumPy-scalar
 consistency statistics and null reference entries in the tuning figures."""
 
-import os
+from types import SimpleNamespace as NS
 
-os.environ.setdefault("MPLBACKEND", "Agg")
+import numpy as np
+import pytest
 
-from types import SimpleNamespace as NS  # noqa: E402
-
-import numpy as np  # noqa: E402
-import pytest  # noqa: E402
-
-from jaxslam.errors import InputError  # noqa: E402
-from jaxslam.plotting import dataset, flight, lines, uwb  # noqa: E402
-from jaxslam.plotting import tuning as pt  # noqa: E402
-
-
-@pytest.fixture(autouse=True)
-def _no_figures_left():
-    flight.plt().close("all")
-    yield
-    flight.plt().close("all")
+from jaxslam.errors import InputError
+from jaxslam.plotting import dataset, flight, lines, uwb
+from jaxslam.plotting import tuning as pt
 
 
 def _uwb_args(T=6, N=3, x_var_nan_from=None, robot_cov=None):
