@@ -76,7 +76,9 @@ Decisions
   finite, ``errors.NON_FINITE``.  ``UpdateInfo.accepted`` is True exactly when the state
   changed.
 * ``filter_scan`` ordering and outputs follow :func:`jaxslam.filters.ekf.filter_scan`
-  (``predict_first``); the variances ``cov_diags`` are the squared row norms of ``L``.
+  (``predict_first``); the variances ``cov_diags`` are the squared row norms of ``L``.  A
+  non-finite prediction adds ``errors.NON_FINITE`` to the status of the step whose prior it
+  is (as the EKF's run does; its update then also reports ``NOT_PSD``).
 * dtype: every function computes in the dtype of the mean; ``Q``, ``R``, ``z`` and the
   factor are cast to it.
 
@@ -361,7 +363,8 @@ def predict(state: SqrtGaussian, f: Callable, u, Q=None, *args, noise_jac=None,
         noise_jac: None, an (n, q) matrix ``G``, or a callable ``G(x, u, *args) -> (n, q)``
             evaluated at the prior mean.
         Q_chol: optional (n, k) (or (q, k) with ``noise_jac``) square root ``C`` of the
-            process noise, ``Q = C Cᵀ``; need not be triangular.
+            process noise, ``Q = C Cᵀ``; need not be triangular.  A concrete one must be
+            finite (:class:`InputError` naming ``Q_chol``).
 
     Returns:
         Predicted :class:`SqrtGaussian` in the dtype of ``state.mean``.  Called eagerly it is
@@ -373,6 +376,9 @@ def predict(state: SqrtGaussian, f: Callable, u, Q=None, *args, noise_jac=None,
     if Q_chol is None and Q is not None:
         check_noise_values(Q, "Q")
         C = _host_root(Q, state.mean.dtype)
+    elif Q_chol is not None and is_concrete(Q_chol) and not np.all(np.isfinite(check_numbers(Q_chol, "Q_chol"))):
+        # as filter_scan and sqrt_ukf.predict: a NaN root used to give a silent NaN factor
+        raise InputError("Q_chol: contains NaN or Inf")
     Q, Q_chol = list_array(Q, "Q"), list_array(Q_chol, "Q_chol")  # lists would reach the program as tracers
 
     def step(opts, state, Q, Q_chol, C):
@@ -693,30 +699,43 @@ def filter_scan(
         def upd(s, z, mk, r):
             return update(s, z, h, r, *args, residual=residual, mask=mk, gate=gate)
 
+        def pred_status(s):
+            # a non-finite prediction (NaN/Inf from f or a traced noise) is NON_FINITE, as in
+            # ekf.filter_scan: the step's update alone would only report NOT_PSD
+            finite = jnp.all(jnp.isfinite(s.mean)) & jnp.all(jnp.isfinite(s.chol))
+            return jnp.where(finite, jnp.int32(0), jnp.int32(errors.NON_FINITE))
+
         def step(carry, inp):
-            state, _ = carry
+            # the flag goes to the step whose prior the predict made: this one with
+            # predict_first, else the next (``pending``)
+            state, _, pending = carry
             u, z, mk, c, r = inp
             c = c if q_step else C
             r = r if r_step else R
             if predict_first:
-                post, info = upd(pred(state, u, c), z, mk, r)
+                prior = pred(state, u, c)
+                p_status = pred_status(prior)
+                post, info = upd(prior, z, mk, r)
                 nxt = post
             else:
+                p_status = pending
                 post, info = upd(state, z, mk, r)
                 nxt = pred(post, u, c)
+                pending = pred_status(nxt)
             out = (
                 post.mean,
                 jnp.sum(post.chol * post.chol, axis=1),
                 post.chol if save_chol else None,
                 info.nis,
                 info.dof,
-                info.status,
+                info.status | p_status,
             )
-            return (nxt, post), out
+            return (nxt, post, pending), out
 
         init = SqrtGaussian(x0, L0)
-        (_, final), (means, diags, chols, nis, dof, status) = jax.lax.scan(
-            step, (init, init), (us, zs, masks, C if q_step else None, R if r_step else None)
+        (_, final, _), (means, diags, chols, nis, dof, status) = jax.lax.scan(
+            step, (init, init, jnp.zeros((), jnp.int32)),
+            (us, zs, masks, C if q_step else None, R if r_step else None)
         )
         return SqrtPosterior(means, diags, chols, nis, dof, status, final)
 

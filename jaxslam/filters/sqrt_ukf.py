@@ -31,7 +31,7 @@ import numpy as np
 from .. import errors
 from ..compilation import call_compiled
 from ..errors import InputError, check_flag
-from ..linalg import check_numbers, is_concrete, list_array, symmetrize
+from ..linalg import check_numbers, check_psd, is_concrete, list_array, symmetrize
 from .gaussian import (
     Gate,
     UpdateInfo,
@@ -84,14 +84,15 @@ def predict(state: SqrtGaussian, f: Optional[Callable], u, Q, *args,
     the prior and, with ``return_status`` (static), returns ``NON_FINITE`` beside it
     (``NOT_PSD`` when a finite traced ``Q`` has no real root: indefinite):
     ``(SqrtGaussian, status)``; :func:`filter_scan` adds it to the step's status.  The state
-    (:func:`check_state`), the rule and, when known now, ``Q`` (symmetric PSD) or ``Q_chol``
-    (finite) are checked first: :class:`InputError` naming the argument.  Called eagerly it is
+    (:func:`check_state`), the rule and, when known now, ``Q`` (symmetric PSD; for a
+    one-component state a scalar is its variance, as in :func:`jaxslam.filters.ukf.predict`) or
+    ``Q_chol`` (finite) are checked first: :class:`InputError` naming the argument.  Called eagerly it is
     compiled once per model (:func:`jaxslam.compilation.call_compiled`; a concrete ``Q`` is
     still factored on the host in float64 first).
     """
     rule = _rule(points)
     return_status = check_flag(return_status, "return_status")
-    state = _check_predict(state, Q, Q_chol)  # the values known now (the compiled step sees them traced)
+    state, Q = _check_predict(state, Q, Q_chol)  # the values known now (the compiled step sees them traced)
     C = _host_root(Q, state.mean.dtype) if Q_chol is None else None
     Q, Q_chol = list_array(Q, "Q"), list_array(Q_chol, "Q_chol")  # lists would reach the program as tracers
 
@@ -103,10 +104,14 @@ def predict(state: SqrtGaussian, f: Optional[Callable], u, Q, *args,
                          after=2)
 
 
-def _check_predict(state, Q, Q_chol) -> SqrtGaussian:
-    """The belief and the process noise of a predict: shapes, and the values known now."""
+def _check_predict(state, Q, Q_chol):
+    """The belief and the process noise of a predict: shapes, and the values known now.
+    Returns ``(state, Q)``; a scalar (or (1,)) ``Q`` of a one-component state is the variance of
+    its single noise input, as in :func:`jaxslam.filters.ukf.predict`, and becomes (1, 1)."""
     state = check_state(state)
     n = state.mean.shape[0]
+    if Q_chol is None and Q is not None and n == 1 and np.shape(Q) in ((), (1,)):
+        Q = jnp.reshape(check_numbers(Q, "Q") if is_concrete(Q) else Q, (1, 1))
     if Q_chol is None:
         qs = tuple(np.shape(Q))
         if qs != (n, n):
@@ -116,12 +121,12 @@ def _check_predict(state, Q, Q_chol) -> SqrtGaussian:
         raise InputError(f"Q_chol: expected shape ({n}, k), got {tuple(np.shape(Q_chol))}")
     elif is_concrete(Q_chol) and not np.all(np.isfinite(check_numbers(Q_chol, "Q_chol"))):
         raise InputError("Q_chol: contains NaN or Inf")
-    return state
+    return state, Q
 
 
 def _predict(state, f, u, Q, args, rule, Q_chol, C, return_status):
     """:func:`predict`'s computation (its checks of shapes; ``C``: the root of ``Q`` when known)."""
-    state = _check_predict(state, Q, Q_chol)
+    state, Q = _check_predict(state, Q, Q_chol)
     x = state.mean
     dtype = x.dtype
     fm = (lambda v, u_, *a: v) if f is None else f
@@ -230,8 +235,12 @@ def filter_scan(f: Optional[Callable], h: Callable, x0, P0, us, zs, masks, Q, R,
 
     Arguments as :func:`jaxslam.filters.sqrt_ekf.filter_scan` (``Q`` (n, n) or (T, n, n) is
     factored once per matrix before the scan; ``R`` (m, m) or (T, m, m)) plus ``points``
-    (static).  A predict that fails (non-finite) keeps its prior and sets ``NON_FINITE`` in
-    the step's status.  Returns :class:`~jaxslam.filters.sqrt_ekf.SqrtPosterior`.
+    (static), without ``noise_jac`` and ``Q_chol``.  A predict that fails (non-finite) keeps
+    its prior and sets ``NON_FINITE`` in the step's status.  With ``predict_first=False`` the
+    first update factors ``P0`` itself, so a concrete ``P0`` must then be positive definite,
+    as in :func:`jaxslam.filters.ukf.filter_scan` (:class:`InputError` naming ``P0``; a
+    singular one used to fail that update with ``NOT_PSD``).  Returns
+    :class:`~jaxslam.filters.sqrt_ekf.SqrtPosterior`.
     """
     from .gaussian import check_leading, check_run_inputs
 
@@ -247,6 +256,9 @@ def filter_scan(f: Optional[Callable], h: Callable, x0, P0, us, zs, masks, Q, R,
     zs = jnp.asarray(zs, dtype)
     T, m = check_run_inputs(x0, P0, zs, masks, Q, R)
     n = x0.shape[0]
+    if not predict_first and is_concrete(P0):
+        # the first update's statistical linearisation needs P0⁻¹ (a zero variance: NOT_PSD)
+        check_psd(P0, "P0", strict=True, tol=0.0)
     if np.shape(Q)[-2:] != (n, n) or (np.ndim(Q) == 3 and np.shape(Q)[0] != T):
         raise InputError(f"Q: expected shape ({n}, {n}) or ({T}, {n}, {n}), got {tuple(np.shape(Q))}")
     check_leading(us, T, "us")

@@ -194,8 +194,13 @@ class SigmaPoints(NamedTuple):
     def weights(self, n: int):
         """Host-side float64 ``(wm (N,), wc (N,), c)`` with ``c`` the spread in σ units.
 
-        Raises :class:`InputError` for an unknown rule or for ``n + λ ≤ 0``.
+        Raises :class:`InputError` for an unknown rule, for n < 1 (no points), for a
+        non-finite α, β or κ (a rule built as ``SigmaPoints(...)`` directly skips the checks of
+        :func:`unscented`) or for ``n + λ ≤ 0``.
         """
+        if self.kind in ("cubature", "unscented") and not n >= 1:
+            raise InputError(f"points: a sigma-point rule needs a state of at least one component, "
+                             f"got n = {n}")
         if self.kind == "cubature":
             w = np.full((2 * n,), 1.0 / (2 * n))
             return w, w.copy(), float(np.sqrt(n))
@@ -203,6 +208,9 @@ class SigmaPoints(NamedTuple):
             raise InputError(f"points: unknown sigma-point rule {self.kind!r} "
                              "(unscented or cubature)")
         a, b, k = float(self.alpha), float(self.beta), float(self.kappa)
+        for v, nm in ((a, "alpha"), (b, "beta"), (k, "kappa")):
+            if not np.isfinite(v):
+                raise InputError(f"points: {nm} must be a finite number, got {v!r}")
         lam = a * a * (n + k) - n
         if not n + lam > 0:
             raise InputError(f"points: n + λ = α²(n + κ) = {n + lam:g} must be > 0 for n = {n} "
