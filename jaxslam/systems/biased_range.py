@@ -60,7 +60,8 @@ def check_log(log, u_width=None, name: str = "log") -> None:
     ``u`` (T, ``u_width``) when given; ``z`` (T, K, 1) of a floating dtype (it is the run's
     dtype: integer ranges made every parameter an integer); ``ids``, ``mask`` (T, K).  Shapes
     always (also traced); when known, dt finite and >= 0 (a negative dt ran backwards), t finite
-    and non-decreasing, and the ids of the rows in use whole numbers (a fractional id was truncated onto another anchor).
+    and non-decreasing, and the ids of the rows in use whole numbers (a fractional id was truncated onto another anchor);
+    ``mask`` bool or 0/1 integers (also traced: a float mask failed inside with a TypeError, a 2 was read as True).
     Raises :class:`InputError` naming ``name.field`` (a mismatch used to fail inside the scan)."""
     zs = np.shape(log.z)
     if len(zs) != 3 or zs[2] != 1:
@@ -78,6 +79,7 @@ def check_log(log, u_width=None, name: str = "log") -> None:
         if np.shape(getattr(log, f)) != shp:
             hint = "T, K = " + f"{name}.z.shape[:2]" if len(shp) == 2 and f != "u" else f"T = {name}.z.shape[0]"
             raise InputError(f"{name}.{f}: expected shape {shp} ({hint}), got {np.shape(getattr(log, f))}")
+    check_mask(log.mask, f"{name}.mask")
     if is_concrete(log.dt):
         dt = np.asarray(log.dt, np.float64)
         if not np.all(np.isfinite(dt)) or np.any(dt < 0):

@@ -71,10 +71,10 @@ import numpy as np
 
 from ..dynamics import planar
 from .. import errors
-from ..errors import InputError
+from ..errors import InputError, check_flag
 from ..filters import consistency as cons
 from ..filters import fastslam as fs
-from ..linalg import check_int, check_scalar, inv_small, is_concrete, symmetrize, value_and_jacfwd, wrap_angle
+from ..linalg import check_int, check_key, check_mask, check_scalar, inv_small, is_concrete, symmetrize, value_and_jacfwd, wrap_angle
 from ..sensors import range_bearing2d as rb
 from .planar_ekf_slam import Log, check_matrices, log_from_events, validate_log
 
@@ -244,7 +244,17 @@ def default_params(sigma_r: float = 0.1, sigma_b: float = 0.01, sigma_v: float =
                    pose0_sigma: tuple = (0.01, 0.01, 0.005), log_p_new: float = 0.0,
                    dtype=None) -> Params:
     """Params from standard deviations (``sigma_v``/``sigma_w`` are input-noise *density*
-    roots, e.g. m/s·√s; defaults are placeholders, the dev script states its sources)."""
+    roots, e.g. m/s·√s; defaults are placeholders, the dev script states its sources).  Known
+    numbers are checked: the standard deviations finite and >= 0 (a negative one was squared
+    into a valid variance), ``floor`` 3 finite densities >= 0; :class:`InputError` naming it."""
+    for name, v in (("sigma_r", sigma_r), ("sigma_b", sigma_b), ("sigma_v", sigma_v), ("sigma_w", sigma_w)):
+        if is_concrete(v):
+            check_scalar(v, name, lower=0)
+    for name, v in (("floor", floor), ("pose0_sigma", pose0_sigma)):
+        if is_concrete(v):
+            a = np.asarray(v, np.float64)
+            if a.shape != (3,) or not np.all(np.isfinite(a)) or np.any(a < 0):
+                raise InputError(f"{name}: expected 3 finite numbers >= 0, got {a.tolist()}")
     f = (lambda x: jnp.asarray(x, dtype)) if dtype is not None else jnp.asarray
     return Params(
         M_c=f(np.diag([sigma_v ** 2, sigma_w ** 2])),
@@ -314,6 +324,9 @@ def _validate(config: Config):
     check_int(config.n_particles, "config.n_particles", what="an int (particles)")
     check_int(config.capacity, "config.capacity", what="an int (landmark slots)")
     check_int(config.K, "config.K", what="an int (rows per event)")
+    # static switches: a string "no" (or any other non-bool) is truthy and silently turned them on
+    check_flag(config.robust, "config.robust")
+    check_flag(config.slot_by_id, "config.slot_by_id")
     if config.proposal not in _PROPOSALS:
         raise InputError(f"config.proposal: expected one of {_PROPOSALS}, got {config.proposal!r}")
 
@@ -487,6 +500,10 @@ def _validate_log(log: Log, config: Config):
     T = np.shape(log.dt)[0]
     if np.shape(log.z) != (T, int(config.K), 2):  # and the configured K rows per event
         raise InputError(f"log.z: expected shape ({T}, {config.K}, 2), got {np.shape(log.z)}")
+    if log.is_input is not None:  # one flag per event (a wrong length failed inside the scan; 0.5 was True)
+        if np.shape(log.is_input) != (T,):
+            raise InputError(f"log.is_input: expected shape ({T},) (one flag per event), got {np.shape(log.is_input)}")
+        check_mask(log.is_input, "log.is_input")
 
 
 def init(log: Log, config: Config, params: Params, *, key) -> State:
@@ -662,8 +679,8 @@ def run(log: Log, config: Config, params: Params, *, key) -> Result:
     """
     if key is None:
         raise InputError("key: planar FastSLAM draws particles; give a PRNG key")
-    if isinstance(key, (int, np.integer)) or np.ndim(key) == 0 and not jnp.issubdtype(jnp.result_type(key), jax.dtypes.prng_key):
-        raise InputError(f"key: expected a PRNG key (jax.random.PRNGKey(seed) or jax.random.key(seed)), got {key!r}")
+    # one key: an int seed, float key data or a batch of keys failed inside the sampler
+    check_key(key, "key")
     _validate(config)
     _check_prune(config, params)
     if is_concrete(params):

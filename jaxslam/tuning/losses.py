@@ -77,7 +77,9 @@ def nll_terms(nu, S, mask=None):
     ``nu`` (m,), ``S`` (m, m) with invalid components already given an identity
     row/column (as :func:`jaxslam.filters.ekf.update` reports S) so they add 0 to
     log det; ``mask`` (m,) bool (or 0/1 integers) selects the valid components (default
-    all).  Returns three scalars in nu's dtype (dof as float).  Known now, a float mask or
+    all).  Returns three scalars in nu's dtype (dof as float; a float64 S with a float32 ``nu``
+    no longer promotes the NIS and log det to float64).  An empty innovation (m = 0) gives
+    (0, 0, 0).  Known now, a float mask or
     other integers, and an S that is not symmetric positive definite, are :class:`InputError`
     naming it (a non-PD S gave NaN); traced values are not checked.
     """
@@ -87,7 +89,7 @@ def nll_terms(nu, S, mask=None):
     dtype = nu.dtype
     m = nu.shape[-1]
     _same_shape(S, (m, m), "S", "m × m for m = len(nu)")
-    if is_concrete(S):  # a non-PD S would give a silent NaN through its Cholesky factor
+    if is_concrete(S) and m:  # a non-PD S would give a silent NaN through its Cholesky factor
         check_psd(S, "S", strict=True)
     if mask is not None:
         mask = jnp.asarray(mask) if not hasattr(mask, "shape") else mask
@@ -101,7 +103,7 @@ def nll_terms(nu, S, mask=None):
     w = jax.scipy.linalg.solve_triangular(Lc, nu, lower=True)
     nis = jnp.sum(w * w)
     logdet = 2.0 * jnp.sum(jnp.log(jnp.diagonal(Lc)))
-    return nis, logdet, jnp.sum(mask).astype(dtype)
+    return nis.astype(dtype), logdet.astype(dtype), jnp.sum(mask).astype(dtype)
 
 
 def slam_innovation_terms(state: es.SlamState, model: es.SlamModel, z, slots, valid, R, params=None):
@@ -113,9 +115,17 @@ def slam_innovation_terms(state: es.SlamState, model: es.SlamModel, z, slots, va
     (robot block and one landmark block per measurement), so S is formed from the gathered
     (n_r + K·d_l)² block of P, never from the full covariance.  ``R`` (d_z, d_z) or
     (K, d_z, d_z).  Invalid rows get identity in S (adding 0 to log det) and zero innovation.
+    Shapes (static) and ``valid``'s dtype (bool or 0/1 integers) are checked: :class:`InputError`
+    naming the argument (a float ``valid`` failed inside with a TypeError).
     """
     nr, dl, dz = model.robot_dim, model.lm_dim, model.meas_dim
+    if jnp.ndim(z) != 2 or jnp.shape(z)[1] != dz:
+        raise InputError(f"z: expected shape (K, {dz}) (one measurement per row), got {tuple(jnp.shape(z))}")
     K = z.shape[0]
+    _same_shape(slots, (K,), "slots", "one slot per row of z")
+    _same_shape(valid, (K,), "valid", "one entry per row of z")
+    check_mask(valid, "valid")
+    valid = jnp.asarray(valid).astype(bool)
     cap = state.active.shape[0]
     dtype = state.x.dtype
     slots = jnp.clip(slots.astype(jnp.int32), 0, cap - 1)
@@ -154,7 +164,7 @@ def innovation_nll(nis, logdet, dof):
     nis, logdet, dof = float_array(nis, "nis"), float_array(logdet, "logdet"), float_array(dof, "dof")
     _same_shape(logdet, nis.shape, "logdet", "one per update, as nis")
     _same_shape(dof, nis.shape, "dof", "one per update, as nis")
-    if is_concrete(dof) and np.any(np.asarray(dof) < 0):
+    if is_concrete(dof) and not np.all(np.asarray(dof) >= 0):  # a NaN count made the loss NaN
         raise InputError("dof: expected counts >= 0 (measurements per update)")
     dtype = nis.dtype
     tot = jnp.maximum(jnp.sum(dof), 1.0)
@@ -202,11 +212,14 @@ def nees_loss(nees, n: int, mask=None):
     """(log(mean_t NEES_t / n))² for one run's NEES series (T,) of an n-dimensional state.
 
     Zero when the time-averaged NEES equals n (a consistent filter); ``mask`` (T,) bool (or
-    0/1 integers) selects the steps counted (e.g. frames after a settling time).
+    0/1 integers) selects the steps counted (e.g. frames after a settling time).  A known
+    negative NEES (a quadratic form is >= 0) is an :class:`InputError` (its log was a silent NaN).
     """
     nees = float_array(nees, "nees")
     if nees.size == 0:
         raise InputError(f"nees: expected a non-empty NEES series, got shape {tuple(nees.shape)}")
+    if is_concrete(nees) and np.any(np.asarray(nees) < 0):
+        raise InputError(f"nees: expected values >= 0 (NEES is a quadratic form), got min {float(np.nanmin(np.asarray(nees)))}")
     if is_concrete(n):
         check_int(n, "n", lower=1, what="a state dimension (int)")
     if mask is not None:
