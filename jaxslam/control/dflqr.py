@@ -29,7 +29,7 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
-from ..dynamics._checks import as_scalar, real_float
+from ..dynamics._checks import as_scalar, real_float, real_numbers
 from ..linalg import check_real, check_scalar, check_shape, wrap_angle
 from ..dynamics.params import PAPER000, QuadParams, validate_params
 from ..errors import InputError
@@ -103,8 +103,10 @@ def validate(params: DFLQRParams) -> DFLQRParams:
     if not isinstance(params, DFLQRParams):
         raise InputError(f"params: expected DFLQRParams, got {type(params).__name__}")
     validate_weights(params.Q, params.R, n=7, m=4, names=("params.Q", "params.R"))
+    if not isinstance(params.pd, PDGains):  # None or a tuple raised a bare AttributeError
+        raise InputError(f"params.pd: expected PDGains, got {type(params.pd).__name__}")
     for name in ("kp", "kd"):
-        v = np.asarray(getattr(params.pd, name), dtype=np.float64)
+        v = real_numbers(getattr(params.pd, name), f"params.pd.{name}")  # a string: ValueError
         if v.shape != (3,):
             raise InputError(f"params.pd.{name}: expected shape (3,), got {v.shape}")
         if not np.all(np.isfinite(v)) or np.any(v < 0):
@@ -120,14 +122,19 @@ def validate(params: DFLQRParams) -> DFLQRParams:
 def gain(params: DFLQRParams, dtype=None, *, return_status: bool = False):
     """LQR gain K (4, 7) of paper 000 eq. 12-13 on the flat model of eq. 6.
 
-    ``dtype`` defaults to the dtype of ``params.Q`` (JAX's default float for Python floats).
-    Differentiable in ``params.Q`` and ``params.R``.  With ``return_status=True`` returns
+    ``dtype`` defaults to the promoted dtype of ``params.Q`` and ``params.R`` (JAX's default float
+    for Python floats and integers: a float32 Q with the default tuple R gives that default).
+    Differentiable in ``params.Q`` and ``params.R``.  An integer ``dtype`` is an
+    :class:`InputError` (it truncated the weights).  With ``return_status=True`` returns
     ``(K, ok)`` (``ok`` False if the Riccati solver failed).  Call once per run, outside scans.
     """
     if dtype is None:
         dtype = jnp.result_type(jnp.asarray(params.Q), jnp.asarray(params.R))
         if not jnp.issubdtype(dtype, jnp.floating):
             dtype = jnp.result_type(float)
+    elif not jnp.issubdtype(jnp.dtype(dtype), jnp.floating):
+        # an integer dtype truncated Q̃ = 0.01 I to 0 and R̃ to 0: "R: not positive definite"
+        raise InputError(f"dtype: expected a floating dtype, got {jnp.dtype(dtype)}")
     A, B, _ = linear_model(dtype)
     Q = jnp.asarray(params.Q, dtype)
     R = jnp.asarray(params.R, dtype)
@@ -177,6 +184,8 @@ def control_ref(x_est, ref: Reference, K, params: DFLQRParams, *, feedforward: b
     check_real(K, "K")
     K = jnp.asarray(K, dtype)
     check_shape(K, (4, 7), "K")  # Kᵀ (7, 4) gave a bare matmul error
+    for name, n in (("r_d", 7), ("u_d", 4), ("omega_ff", 3), ("tau_ff", 3)):
+        check_shape(getattr(ref, name), (n,), f"ref.{name}")  # (6,) r_d: a bare broadcast error
     mass = jnp.asarray(params.quad.mass, dtype)
     lam = x[6:9]
     C = dcm_from_euler(lam)

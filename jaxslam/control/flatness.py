@@ -36,7 +36,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from ..dynamics._checks import real_float
+from ..dynamics._checks import as_scalar, real_float
 from ..geometry.euler import C3, dcm_from_euler
 from ..linalg import safe_norm
 from .trajectories import _float_dtype, flat_derivatives
@@ -91,13 +91,17 @@ def inverse_map(u, psi_d, mass, min_accel=1e-3):
     """
     u = real_float(u, "u", (4,))  # an integer u truncated the mass; a (3,) u read u[3] clamped
     dtype = u.dtype
+    # A string mass ("1.56") was parsed by JAX; an array psi_d broadcast the angles.
+    psi_d = as_scalar(psi_d, dtype, "psi_d")
+    mass = as_scalar(mass, dtype, "mass")
+    min_accel = as_scalar(min_accel, dtype, "min_accel")
     up = u[0:3]
     acc = safe_norm(up)
-    f_T = jnp.asarray(mass, dtype) * acc
+    f_T = mass * acc
     # z ∝ −(m/f_T) C3(ψ_d)ᵀ u_p (eq. 16); the angles below are scale invariant, so no division.
     # Below min_accel the direction is blended continuously toward level (z = b̂3).
-    lift = jnp.maximum(jnp.asarray(min_accel, dtype) - acc, 0.0)
-    z = -(C3(jnp.asarray(psi_d, dtype)).T @ up) + jnp.stack([0.0 * lift, 0.0 * lift, lift])
+    lift = jnp.maximum(min_accel - acc, 0.0)
+    z = -(C3(psi_d).T @ up) + jnp.stack([0.0 * lift, 0.0 * lift, lift])
     cphi = safe_norm(z[jnp.array([0, 2])])
     phi_d = jnp.arctan2(-z[1], cphi)
     theta_d = jnp.arctan2(z[0], z[2])
@@ -111,7 +115,11 @@ def body_rates_from_euler_rates(euler, euler_dot):
 
     ``euler``: (3,) [φ, θ, ψ] rad; ``euler_dot``: (3,) rad/s.  Returns (3,) [p, q, r] rad/s:
     p = φ̇ − ψ̇ sθ, q = θ̇ cφ + ψ̇ cθ sφ, r = −θ̇ sφ + ψ̇ cθ cφ (no division: valid at any pitch).
+    A shape other than (3,) is an :class:`InputError` naming the argument (JAX clamped
+    ``euler_dot[2]`` of a (2,) array to its last entry).
     """
+    euler = real_float(euler, "euler", (3,))
+    euler_dot = real_float(euler_dot, "euler_dot", (3,))
     phi, theta = euler[0], euler[1]
     dphi, dtheta, dpsi = euler_dot[0], euler_dot[1], euler_dot[2]
     cf, sf = jnp.cos(phi), jnp.sin(phi)
@@ -138,6 +146,7 @@ def feedforward(traj, t, params):
     τ = J ω̇_d + ω_d × J ω_d.  Λ̇_d and ω̇_d come from forward-mode autodiff in t, so the
     trajectory must be C⁴ (all containers are).  Fed open loop through eq. 2 it reproduces ρ_d(t).
     """
+    as_scalar(t, None, "t")  # check only: "1.0" gave "data type '.0' not understood"
     dtype = _float_dtype(traj, t)
     t = jnp.asarray(t, dtype)
     mass = jnp.asarray(params.mass, dtype)

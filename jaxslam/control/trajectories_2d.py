@@ -34,10 +34,67 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
+from ..dynamics._checks import real_numbers
+from ..errors import InputError
+from ..linalg import is_concrete
 from .trajectories import Circle, flat_output
 
 __all__ = ["CirclePath", "PolylinePath", "RateProfile", "planar_state", "planar_states"]
+
+
+def _concrete_fields(obj):
+    """Host NumPy float64 copies of a container's fields, or None when any field is traced
+    (under ``jit`` the values are unknown: nothing is checked then)."""
+    if not is_concrete(tuple(obj)):
+        return None
+    return {name: real_numbers(v, f"{type(obj).__name__}.{name}") for name, v in zip(obj._fields, obj)}
+
+
+def _check_polyline(path) -> None:
+    """:class:`InputError` naming the field of a :class:`PolylinePath` with concrete fields:
+    times (K,) K >= 1 finite and strictly increasing (``jnp.interp`` read unsorted times
+    silently wrong), points (K, 2) finite, wiggle fields finite and wiggle_period > 0 (0 gave
+    NaN positions inside the window even with wiggle_amp = 0)."""
+    v = _concrete_fields(path)
+    if v is None:
+        return
+    times, points = v["times"], v["points"]
+    if times.ndim != 1 or times.shape[0] < 1:
+        raise InputError(f"PolylinePath.times: expected shape (K,) with K >= 1, got {times.shape}")
+    if points.shape != (times.shape[0], 2):
+        raise InputError(f"PolylinePath.points: expected shape ({times.shape[0]}, 2), got {points.shape}")
+    for name, a in v.items():
+        if not np.all(np.isfinite(a)):
+            raise InputError(f"PolylinePath.{name}: contains NaN or Inf")
+        if name.startswith("wiggle") and a.shape != ():
+            raise InputError(f"PolylinePath.{name}: expected a scalar, got shape {a.shape}")
+    if np.any(np.diff(times) <= 0):
+        raise InputError(f"PolylinePath.times: must be strictly increasing, got {times.tolist()}")
+    if v["wiggle_period"] <= 0:
+        raise InputError(f"PolylinePath.wiggle_period: must be > 0, got {float(v['wiggle_period'])}")
+
+
+def _check_rates(prof) -> None:
+    """:class:`InputError` naming the field of a :class:`RateProfile` with concrete fields:
+    t0, t1 (S,), r (S, 3), sin_amp, sin_omega (3,), all finite, and t1 >= t0 (t1 < t0 gave
+    angles that are not the integral of the rates: a negative duration)."""
+    v = _concrete_fields(prof)
+    if v is None:
+        return
+    t0 = v["t0"]
+    if t0.ndim != 1:
+        raise InputError(f"RateProfile.t0: expected shape (S,), got {t0.shape}")
+    want = {"t1": t0.shape, "r": (t0.shape[0], 3), "sin_amp": (3,), "sin_omega": (3,)}
+    for name, shape in want.items():
+        if v[name].shape != shape:
+            raise InputError(f"RateProfile.{name}: expected shape {shape}, got {v[name].shape}")
+    for name, a in v.items():
+        if not np.all(np.isfinite(a)):
+            raise InputError(f"RateProfile.{name}: contains NaN or Inf")
+    if np.any(v["t1"] < t0):
+        raise InputError(f"RateProfile.t1: must be >= t0, got t0={t0.tolist()}, t1={v['t1'].tolist()}")
 
 
 def _dt(t, *trees):
@@ -56,6 +113,7 @@ class CirclePath(NamedTuple):
 
     def rates(self, t):
         """(3,) angular rates [rad/s]: roll and pitch 0, yaw a sin(ω_ψ t) (paper 003 Sec. IV-A)."""
+        t = jnp.asarray(t, _dt(t, self))  # an integer t failed inside jax.jvp
         psi_dot = jax.jvp(lambda tt: flat_output(self.circle, tt)[3], (t,), (jnp.ones_like(t),))[1]
         z = jnp.zeros_like(psi_dot)
         return jnp.stack([z, z, psi_dot])
@@ -89,7 +147,13 @@ class PolylinePath(NamedTuple):
         return jnp.stack([jnp.interp(t, ts, pts[:, 0]), jnp.interp(t, ts, pts[:, 1])])
 
     def position(self, t):
-        """(2,) position [m] at time t [s]."""
+        """(2,) position [m] at time t [s] (an integer t is promoted to a float).
+
+        Concrete fields are checked first (:class:`InputError` naming the field: times (K,)
+        strictly increasing, points (K, 2), finite values, wiggle_period > 0).
+        """
+        _check_polyline(self)
+        t = jnp.asarray(t, _dt(t))  # an integer t failed inside jax.jvp; a float t keeps its dtype
         p, v = jax.jvp(self._base, (t,), (jnp.ones_like(t),))
         speed = jnp.sqrt(jnp.sum(v * v))
         n = jnp.where(speed > 0, jnp.stack([-v[1], v[0]]) / jnp.where(speed > 0, speed, 1.0), 0.0)
@@ -116,16 +180,19 @@ class RateProfile(NamedTuple):
     sin_omega: jax.Array
 
     def rates(self, t):
-        """(3,) rates [rad/s] at time t [s]."""
-        dt = jnp.result_type(t)
+        """(3,) rates [rad/s] at time t [s].  Concrete fields are checked (:class:`InputError`
+        naming the field: shapes, finite values, t1 >= t0)."""
+        _check_rates(self)
+        dt = _dt(t)
         t0, t1 = jnp.asarray(self.t0, dt), jnp.asarray(self.t1, dt)
         on = ((t >= t0) & (t < t1)).astype(dt)
         w = jnp.asarray(self.sin_omega, dt)
         return on @ jnp.asarray(self.r, dt) + jnp.asarray(self.sin_amp, dt) * jnp.sin(w * t)
 
     def angles(self, t):
-        """(3,) angles [rad] = ∫_0^t rates (exact)."""
-        dt = jnp.result_type(t)
+        """(3,) angles [rad] = ∫_0^t rates (exact).  Fields checked as in :meth:`rates`."""
+        _check_rates(self)
+        dt = _dt(t)
         t0, t1 = jnp.asarray(self.t0, dt), jnp.asarray(self.t1, dt)
         dur = jnp.clip(t - t0, 0.0, t1 - t0)
         w = jnp.asarray(self.sin_omega, dt)

@@ -96,11 +96,14 @@ def f(x, u, params):
 def hover_input(params, dtype=None):
     """Input that holds a level hover: u = [m g, 0, 0, 0], shape (4,).
 
-    ``dtype`` defaults to the dtype of ``params.mass`` if it is an array,
-    else JAX's default float.  With :func:`hover_state`, f(x, u) = 0.
+    ``dtype`` defaults to the dtype of ``params.mass`` if it is a floating array,
+    else JAX's default float (an integer mass array no longer truncates g to an integer).
+    With :func:`hover_state`, f(x, u) = 0.
     """
     if dtype is None:
         dtype = getattr(params.mass, "dtype", None)
+        if dtype is not None and not jnp.issubdtype(dtype, jnp.floating):
+            dtype = None
     if dtype is None:
         dtype = jnp.result_type(float)
     m = jnp.asarray(params.mass, dtype=dtype)

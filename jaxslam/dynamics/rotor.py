@@ -93,6 +93,17 @@ ROTOR_SPIN = (1.0, -1.0, 1.0, -1.0)
 _T = (1.0, -1.0, -1.0)  # diag of the z-up (NWU/FLU) <-> NED/FRD relabelling
 
 
+def _rotor_params(params):
+    """``params`` unchanged, or :class:`InputError` when it lacks the rotor fields (a paper-000
+    :class:`~jaxslam.dynamics.params.QuadParams` gave a bare ``AttributeError: k_thrust``).
+    Static (attribute names only): free under ``jit``."""
+    missing = [n for n in ("arm_length", "k_thrust", "k_drag", "rotor_inertia") if not hasattr(params, n)]
+    if missing:
+        raise InputError(f"params: expected RotorQuadParams (rotor fields {missing} missing), "
+                         f"got {type(params).__name__}")
+    return params
+
+
 def mixer_matrix(params, dtype=None):
     """(4, 4) matrix M with u = M [ω1², ω2², ω3², ω4²] (see module docstring).
 
@@ -100,7 +111,7 @@ def mixer_matrix(params, dtype=None):
     """
     if dtype is None:
         dtype = jnp.result_type(float)
-    p = _cast(params, dtype)
+    p = _cast(_rotor_params(params), dtype)
     k, lk, d = p.k_thrust, p.arm_length * p.k_thrust, p.k_drag
     z = jnp.zeros((), dtype)
     return jnp.stack(
@@ -120,7 +131,7 @@ def mixer(rotor_speeds, params):
     Returns (4,) [u1 (N), u2, u3, u4 (N m)] in the dtype of the speeds.
     """
     w = check_last_dim(real_float(rotor_speeds, "rotor_speeds"), 4, "rotor_speeds")
-    p = _cast(params, w.dtype)
+    p = _cast(_rotor_params(params), w.dtype)
     s = w * w
     lk = p.arm_length * p.k_thrust
     # Differences before scaling, so symmetric speeds give exactly zero torque
@@ -146,7 +157,7 @@ def rotor_speeds_from_input(u, params):
     ω4² = (a + e − 2b)/4.
     """
     u = check_last_dim(real_float(u, "u"), 4, "u")
-    p = _cast(params, u.dtype)
+    p = _cast(_rotor_params(params), u.dtype)
     a = u[..., 0] / p.k_thrust
     b = u[..., 1] / (p.arm_length * p.k_thrust)
     c = u[..., 2] / (p.arm_length * p.k_thrust)
@@ -172,7 +183,7 @@ def f_wrench(x, u, omega_r, params):
     x, u = _state_and_input(x, u, 12, 4)
     dt = x.dtype
     omega_r = real_float(omega_r, "omega_r", ()).astype(dt)
-    p = _cast(params, dt)
+    p = _cast(_rotor_params(params), dt)
     vel, lam, w = x[VEL], x[ATT], x[RATE]
     R = dcm_from_euler(lam)
     J = p.inertia
@@ -200,13 +211,15 @@ def specific_force(rotor_speeds, params, dtype=None):
     of eq. 3, [0, 0, u1/m] (3,) m/s² with u1 = :func:`mixer` (ω)[0] (z up).
 
     Equal to R_b^wᵀ(ẍ + g e3) for :func:`f` (the model has no drag), without the rotation:
-    it does not depend on the state.
+    it does not depend on the state.  Batched speeds (..., 4) give (..., 3), like :func:`mixer`
+    (they raised a bare stacking error: the first row was taken for the thrust).
     """
     w = check_last_dim(real_float(rotor_speeds, "rotor_speeds"), 4, "rotor_speeds")
     w = w if dtype is None else w.astype(dtype)
     p = _cast(params, w.dtype)
-    zero = jnp.zeros((), w.dtype)
-    return jnp.stack([zero, zero, mixer(w, params)[0] / p.mass])
+    a = mixer(w, params)[..., 0] / p.mass
+    zero = jnp.zeros_like(a)
+    return jnp.stack([zero, zero, a], axis=-1)
 
 
 def f_input(x, u, params):
