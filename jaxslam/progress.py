@@ -19,6 +19,7 @@ last one written is not written again.
 from __future__ import annotations
 
 import contextlib
+import numbers
 import operator
 import sys
 import threading
@@ -42,6 +43,15 @@ def _count(value, name: str, lower=None) -> int:
     return v
 
 
+def _seconds(value, name: str) -> float:
+    """``value`` as a finite float ``>= 0`` (an int or a float, not a bool), else
+    :class:`InputError` naming ``name`` (a NaN delay printed at once, a NaN interval never)."""
+    v = float(value) if isinstance(value, numbers.Real) and not isinstance(value, bool) else None
+    if v is None or not 0.0 <= v < float("inf"):
+        raise InputError(f"{name}: expected a finite number of seconds >= 0, got {value!r}")
+    return v
+
+
 def _fmt_time(seconds: float) -> str:
     seconds = max(0, int(round(seconds)))
     h, rem = divmod(seconds, 3600)
@@ -58,7 +68,11 @@ class Progress:
       enabled: ``False`` makes every method a no-op.
       stream: where to print (default ``sys.stderr``).
       delay_s: print nothing until this much time has passed (s).
-      width: bar width in characters.
+      width: bar width in characters, an int ``>= 1``.
+      min_interval_s, log_interval_s: least time between two lines on a terminal / a pipe (s).
+
+    ``delay_s`` and the intervals are finite numbers ``>= 0`` (Python or NumPy floats or ints),
+    else :class:`~jaxslam.errors.InputError` naming them.
 
     Use ``update(n_done)`` with an absolute count or ``advance(k)`` with an
     increment, then ``close()`` (or use it as a context manager).
@@ -81,21 +95,24 @@ class Progress:
         self.label = label
         self.enabled = bool(enabled)
         self.stream = sys.stderr if stream is None else stream
-        self.delay_s = float(delay_s)
-        self.width = int(width)
+        self.delay_s = _seconds(delay_s, "delay_s")
+        self.width = _count(width, "width", lower=1)
         self._clock = clock
         self._start = clock()
         self._run_start = None  # end of compilation (``compiling``), else the start
         self._done = 0
         self._last_text = None
         self._lock = threading.Lock()
-        self._last_print = None  # time of the last line written, None if nothing yet
+        self._last_print = None  # time of the last bar line written (None: redraw at the next update)
+        self._shown = False  # a bar line has been written (close then finishes it)
         self._closed = False
         try:
             self._tty = bool(self.stream.isatty())
         except (AttributeError, ValueError):
             self._tty = False
-        self._interval = float(min_interval_s) if self._tty else float(log_interval_s)
+        min_interval_s = _seconds(min_interval_s, "min_interval_s")
+        log_interval_s = _seconds(log_interval_s, "log_interval_s")
+        self._interval = min_interval_s if self._tty else log_interval_s
 
     @classmethod
     def null(cls) -> "Progress":
@@ -141,7 +158,7 @@ class Progress:
         if self._closed:
             return
         self._closed = True
-        if self.enabled and self._last_print is not None:
+        if self.enabled and self._shown:
             text = self._line(self._clock() - self._start)
             if self._tty:
                 self._write(text, final=True)
@@ -158,6 +175,7 @@ class Progress:
         if self._last_print is not None and now - self._last_print < self._interval:
             return
         self._last_print = now
+        self._shown = True
         self._write(self._line(elapsed), final=False)
 
     def _line(self, elapsed: float) -> str:

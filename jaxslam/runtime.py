@@ -176,8 +176,13 @@ def configure_process(cache: bool = True) -> dict:
     Leaves a user's own choices alone (an existing ``OPENBLAS_NUM_THREADS``, or a flag given
     with another value in ``XLA_FLAGS``).  Warns when JAX's backend has already started, since
     XLA then ignores new flags.  ``cache=False`` skips the persistent cache.  Returns the
-    settings made: ``{"OPENBLAS_NUM_THREADS", "XLA_FLAGS", "cache_dir"}``.
+    settings made: ``{"OPENBLAS_NUM_THREADS", "XLA_FLAGS", "cache_dir"}``.  ``cache`` is True or
+    False (NumPy's too), else :class:`~jaxslam.errors.InputError` naming ``cache``, before any
+    setting is made (a string "no" is truthy and switched the cache on).
     """
+    from .errors import check_flag
+
+    cache = check_flag(cache, "cache")
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     flags = os.environ.get("XLA_FLAGS", "")
     missing = [f for f in XLA_WORKAROUND_FLAGS if f.split("=")[0] not in flags]

@@ -17,8 +17,8 @@ JSON and plots; the others only compute).  From Python, call :func:`initialize` 
 process, then ``monte_carlo.run`` with the same arguments in each.
 
 Decisions: blocks, not strides (the first run, whose record feeds the plots, is process 0's);
-each block is padded to the same length with repeats of its last key (the collective needs
-equal shapes; the padding is computed and dropped); a Ctrl-C is not handled per block (the
+each block is padded to the same length with the keys of the next run indices (the collective
+needs equal shapes; the padding is computed and dropped); a Ctrl-C is not handled per block (the
 group would wait on the interrupted process): the distributed run is all or nothing.
 """
 

@@ -73,7 +73,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from .. import compilation, runtime
 from ..errors import InputError
-from ..linalg import check_int
+from ..linalg import check_flag, check_int
 
 __all__ = ["MCResult", "run", "keys_for", "seed_key", "clear_programs", "default_threads", "DETAIL_CHUNK", "MAX_DEFAULT_THREADS"]
 
@@ -161,10 +161,15 @@ def keys_for(seed: int, runs: int):
     The seed key is ``jax.random.PRNGKey(seed)`` as made with ``jax_enable_x64`` on, whether
     or not x64 is on (every seed in [-2**63, 2**63) has its own key; other seeds are an
     :class:`InputError`).  Returned as a NumPy array (indexing it per run compiles nothing);
-    the folds are one compiled program, not a chain of eager operations.
+    the folds are one compiled program (one per power-of-two count of runs, so a new
+    ``runs`` rarely compiles), not a chain of eager operations.
     """
     runs = check_int(runs, "runs", lower=0)
-    return np.asarray(_fold_in_all(seed_key(seed), np.arange(runs)))
+    # the folds run over a power-of-two count (at least 8), so new run counts reuse one of a
+    # few compiled programs instead of compiling one per count; each key depends on its index
+    # only, so the extra keys are dropped unchanged
+    size = max(8, 1 << max(0, runs - 1).bit_length())
+    return np.asarray(_fold_in_all(seed_key(seed), np.arange(size)))[:runs]
 
 
 def run(fn: Callable, seed: int, runs: int, chunk: Optional[int] = None,
@@ -185,13 +190,16 @@ def run(fn: Callable, seed: int, runs: int, chunk: Optional[int] = None,
         default chunk follows ``runs``) or device counts, and ``"loop"`` against
         ``"vmap"``, agree to rounding only (``uwb-circle``, 20 s, float32: about 1e-7
         relative between chunk 3 and chunk 1).
-      chunk: runs per compiled call (default: all runs, capped at 256; ``DETAIL_CHUNK``
-        with a ``"detail"`` output).  Ignored by ``"loop"`` batching.
-      progress: optional object with ``update(n_done)`` (jaxslam.progress.Progress; its
-        ``compiling()`` block, when it has one, shows the compilation).
+      chunk: runs per compiled call (default: all runs; capped at 256, or ``DETAIL_CHUNK``
+        with a ``"detail"`` output, whether given or not; rounded up to a multiple of the
+        device count).  Ignored by ``"loop"`` batching.
+      progress: None or an object with ``update(n_done)`` (jaxslam.progress.Progress; its
+        ``compiling()`` block, when it has one, shows the compilation), else an
+        :class:`InputError` naming ``progress``.
       devices: devices to shard over (default: ``jax.local_devices()``).
       cpu_batching: ``"vmap"`` or ``"loop"``, used when the devices are CPUs.
-      detail: ``fn`` returns a ``"detail"`` entry (module docstring).
+      detail: ``fn`` returns a ``"detail"`` entry (module docstring); True or False (NumPy's
+        too), else an :class:`InputError` naming ``detail``.
       program_key: JSON-able description of everything ``fn`` depends on besides its key
         (scenario, options, parameters, dtype): the traced program is then kept in the
         persistent cache and a later process skips tracing
@@ -200,6 +208,9 @@ def run(fn: Callable, seed: int, runs: int, chunk: Optional[int] = None,
         (default :func:`default_threads`); ignored otherwise.  Results do not depend on it.
     """
     runs = check_int(runs, "runs")
+    detail = check_flag(detail, "detail")
+    if progress is not None and not callable(getattr(progress, "update", None)):
+        raise InputError(f"progress: expected None or an object with update(n_done), got {type(progress).__name__}")
     threads = default_threads() if threads is None else check_int(threads, "threads", what="None or an int")
     chunk = None if chunk is None else check_int(chunk, "chunk", what="None or an int")
     if not isinstance(cpu_batching, str) or cpu_batching not in ("vmap", "loop"):
@@ -234,14 +245,12 @@ def run(fn: Callable, seed: int, runs: int, chunk: Optional[int] = None,
 
 def default_threads() -> int:
     """Host threads of ``"loop"`` batching when :func:`run` is not told: ``$JAXSLAM_MC_THREADS``
-    when set, else 1 in a group of processes (each process already has its cores), else the
+    when set (a positive integer in decimal digits, else an :class:`InputError`), else 1 in a group of processes (each process already has its cores), else the
     cores this process may use, at most :data:`MAX_DEFAULT_THREADS`."""
     env = os.environ.get("JAXSLAM_MC_THREADS", "").strip()
     if env:
-        try:
-            n = int(env)
-        except ValueError:
-            n = 0
+        # digits only: int() would also read "2_0" as 20 and "٣" as 3
+        n = int(env) if env.isascii() and env.isdigit() else 0
         if n < 1:
             raise InputError(f"JAXSLAM_MC_THREADS: expected a positive integer, got {env!r}")
         return n
@@ -306,13 +315,13 @@ def _loop_runs(compiled, keys, threads, has_detail, progress):
     next run index; XLA runs without the GIL).  Returns the outputs in run order: all of them,
     or after a Ctrl-C the longest finished prefix (runs finished beyond a gap are dropped, at
     most ``threads`` - 1 of them).  A Ctrl-C before any run has finished propagates, as does
-    the first error of a run."""
+    the first error of a run (once the runs in flight have finished)."""
     runs = int(keys.shape[0])
     outs = [None] * runs
 
     def one(i):
         res = jax.block_until_ready(compiled(keys[i]))
-        if has_detail and i == 0:
+        if has_detail:  # every run: with threads, a later run may finish before run 0
             _with_detail(res)
         if has_detail and i > 0:  # only run 0's detail is kept: never copied to the host
             res = {k: v for k, v in res.items() if k != "detail"}
@@ -378,9 +387,11 @@ def _loop_runs(compiled, keys, threads, has_detail, progress):
             raise
         return finished()
     finally:
+        # also before an error of a run propagates: the runs in flight finish first (no worker
+        # thread outlives the call, still inside XLA when the interpreter exits)
         stop.set()
-    for t in pool:
-        t.join()
+        for t in pool:
+            t.join()
     return finished()
 
 
@@ -401,7 +412,7 @@ def _run_keys(fn, keys, chunk, progress, devices, cpu_batching, detail, program_
             return compilation.compile_program(f, (arg,), key=key, compiler_options=opts)
 
         def remembered():
-            if program_key is not None:  # compile_program keeps it
+            if program_key is not None and jitted is None:  # compile_program keeps it
                 return build()
             sig = (loop, has_detail, tuple(d.id for d in devices), tuple(np.shape(arg)), str(np.asarray(arg).dtype),
                    tuple(sorted((opts or {}).items())), bool(jax.config.jax_enable_x64))
