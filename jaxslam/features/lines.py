@@ -21,8 +21,8 @@ derivation (Fischler & Bolles; Zuliani 2009, cited by the thesis) ``m`` is the s
 *minimal sample* that defines a hypothesis — 2 points for a line — and ``(1 − ε)^m`` is the
 probability that a sample is outlier-free; that is what Algorithm 1 draws ("two random points are
 selected").  With the thesis' reading (m = min_inliers ≈ 20) the count is astronomically large
-(ε = 0.5 → 7·10⁶).  jaxslam's default uses the minimal-sample reading, m = 2; ``m`` stays a
-parameter.  Default: p = 0.99, ε = 0.9 (a line may hold only 10 % of the points still
+(p = 0.99, ε = 0.5 → 4.8·10⁶).  jaxslam's default uses the minimal-sample reading, m = 2;
+``m`` stays a parameter.  Default: p = 0.99, ε = 0.9 (a line may hold only 10 % of the points still
 unexplained: the last walls of a room scan among 30 % clutter), m = 2 → **n_hyp = 459**.
 Other defaults: ``threshold`` = 5 cm (2.5 σ for the URG-04LX's σ ≈ 2 cm at 2 m, ``point_sigma``):
 with 3σ = 6 cm the clutter that grazing beams leave just in front of a wall tilted the side walls
@@ -79,7 +79,8 @@ import numpy as np
 from ..errors import InputError
 from ..geometry.euler import _as_real_array, _exact_shape, _last_axis
 from ..compilation import call_compiled
-from ..linalg import check_int, check_key, check_mask, check_real, float_array, is_concrete, wrap_angle
+from ..linalg import (check_int, check_key, check_mask, check_numbers, check_real, float_array, is_concrete,
+                      wrap_angle)
 
 __all__ = [
     "Lines",
@@ -133,8 +134,10 @@ def n_hypotheses(p, outlier_ratio, m=2):
     n = math.log1p(-float(p)) / den
     if not math.isfinite(n) or n > 2**62:
         raise InputError(f"n_hypotheses: count {n:.3g} too large (outlier_ratio={outlier_ratio}, m={m})")
-    # Guard against 48.000000001 style round-off before the ceiling.
-    return max(1, int(math.ceil(n - 1e-9 * max(1.0, n))))
+    # Guard against 48.000000001 style round-off before the ceiling.  The guard is capped at
+    # 1e-6: n itself is good to a few ulp, and an uncapped 1e-9·n took up to ~200 hypotheses off
+    # a count of 2·10¹¹ (p = 0.999, ε = 0.7, m = 20), below the bound the formula guarantees.
+    return max(1, int(math.ceil(n - min(1e-9 * max(1.0, n), 1e-6))))
 
 
 # ----------------------------------------------------------------------------- containers
@@ -276,8 +279,16 @@ def _fit_inputs(points, weights, sigma=None):
         check_real(sigma, "sigma")
         if np.shape(sigma) != ():
             raise InputError(f"sigma: expected a scalar point noise σ [m], got shape {np.shape(sigma)}")
-        if is_concrete(sigma) and not 0 < float(np.asarray(sigma)) < np.inf:
-            raise InputError(f"sigma: expected a point noise σ > 0 [m] (finite), got {sigma!r}")
+        bad_sigma = InputError(f"sigma: expected a point noise σ > 0 [m] (finite), got {sigma!r}")
+        if isinstance(sigma, (bool, np.bool_, str, bytes)):  # "0.1" was parsed, True read as 1 m
+            raise bad_sigma
+        if is_concrete(sigma):
+            try:
+                v = float(check_numbers(sigma, "sigma"))
+            except InputError:
+                raise bad_sigma from None
+            if not 0 < v < np.inf or np.asarray(sigma).dtype.kind == "b":
+                raise bad_sigma
     return points
 
 
@@ -352,10 +363,14 @@ def segment_endpoints(points, weights, rho, theta):
 
     The extreme projections of those points onto the line, ordered along ``[−sin θ, cos θ]``.
     No such point → zeros.  ``points`` ``(N, 2)`` and ``weights`` ``(N,)`` real (static checks,
-    as :func:`fit_line`: a (1,) weight broadcast over every point).
+    as :func:`fit_line`: a (1,) weight broadcast over every point); ``rho``, ``theta`` scalars
+    (static check: a (1,) pair gave ``(1, 2, 1)`` endpoints).
     """
     points = _points_weights(points, weights)
     rho, theta = _as_real_array(rho, "rho"), _as_real_array(theta, "theta")
+    for name, v in (("rho", rho), ("theta", theta)):  # (1,) gave (1, 2, 1) ends, (2,) a bare ValueError
+        if v.ndim != 0:
+            raise InputError(f"{name}: expected a scalar (one line), got shape {tuple(v.shape)}")
     m = jnp.asarray(weights) > 0
     n = jnp.stack([jnp.cos(theta), jnp.sin(theta)])
     d = jnp.stack([-jnp.sin(theta), jnp.cos(theta)])
@@ -558,7 +573,8 @@ def match_predicted(points, valid, pred_rho, pred_theta, pred_mask, cfg=DEFAULT_
       points, valid: as :func:`extract_lines`.
       pred_rho, pred_theta: ``(M,)`` predicted lines in the scan frame (Hesse form).
       pred_mask: ``(M,)`` bool (or 0/1 integers), False for unused prediction slots.
-      cfg: :class:`RansacConfig` (static).  gate: [m], traced.
+      cfg: :class:`RansacConfig` (static).  gate: [m], traced; a real scalar > 0 (a string,
+        a bool or a complex number is an :class:`~jaxslam.errors.InputError` naming ``gate``).
 
     Returns:
       ``(lines, remaining)``: :class:`Lines` of length M aligned with the predictions
@@ -584,8 +600,20 @@ def _check_match(points, valid, pred_rho, pred_theta, pred_mask, cfg, gate):
     if pred_rho.ndim != 1 or pred_theta.shape != pred_rho.shape or pred_mask.shape != pred_rho.shape:
         raise InputError(f"pred_rho, pred_theta, pred_mask: expected equal shapes (M,), got "
                          f"{pred_rho.shape}, {pred_theta.shape}, {pred_mask.shape}")
-    if np.ndim(gate) != 0 or (is_concrete(gate) and not float(np.asarray(gate)) > 0):
-        raise InputError(f"gate: expected a distance > 0 [m] (a scalar), got {gate!r}")
+    bad_gate = InputError(f"gate: expected a distance > 0 [m] (a scalar), got {gate!r}")
+    # A string ("0.2") was parsed as a number, True read as 1 m, a complex gate raised a bare
+    # TypeError from float(): all the same error now (check_numbers: real numbers only).
+    if np.ndim(gate) != 0 or isinstance(gate, (bool, np.bool_, str, bytes)):
+        raise bad_gate
+    if is_concrete(gate):
+        try:
+            g = float(check_numbers(gate, "gate"))
+        except InputError:
+            raise bad_gate from None
+        if not g > 0 or np.asarray(gate).dtype.kind == "b":
+            raise bad_gate
+    else:
+        check_real(gate, "gate")  # a traced complex gate (static dtype)
     return pts, remaining, pred_rho, pred_theta, pred_mask, jnp.asarray(gate, dt)
 
 

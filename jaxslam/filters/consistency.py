@@ -12,10 +12,10 @@ robust weighting):
     m_k = (1 − α) m_{k−1} + α r_k           (exponential average over events with rows)
 
 and when ``m_k`` exceeds ``threshold`` it scales the robot block of the covariance by
-``f = min(m_k, max_factor)`` — rows and columns of the robot block by √f, so P stays
-positive semi-definite and the robot–landmark correlation is kept (P_rr ← f P_rr,
-P_rl ← √f P_rl) — and restarts the average at 1.  The next sightings then pull the robot back
-instead of being rejected.  Each inflation is counted.
+``f = clip(m_k, 1, max_factor)`` (never a deflation, also for a threshold below 1) — rows
+and columns of the robot block by √f, so P stays positive semi-definite and the
+robot–landmark correlation is kept (P_rr ← f P_rr, P_rl ← √f P_rl) — and restarts the
+average at 1.  The next sightings then pull the robot back instead of being rejected.  Each inflation is counted.
 
 All numbers (α, threshold, max_factor) are traced; the monitor never names a model.
 ``DIVERGED`` (:mod:`jaxslam.errors`) is raised by the system from the counts of
@@ -67,7 +67,8 @@ def _value(value, name: str):
 def check_params(params: MonitorParams, name: str = "params"):
     """The monitor's numbers (scalars; their values when concrete, as :class:`MonitorParams`
     documents them): 0 < alpha ≤ 1, threshold > 0, max_factor ≥ 1 (the largest inflation: a
-    max_factor below 1 deflated P_rr), outlier_gate ≥ 0; NaN never.  :class:`InputError` naming
+    max_factor below 1 deflated P_rr; finite: an inf d² made an infinite inflation, P NaN),
+    outlier_gate ≥ 0; NaN never.  :class:`InputError` naming
     ``name.field`` (alpha = −1 drove the running mean to −48 without a word)."""
     if not isinstance(params, MonitorParams):
         raise InputError(f"{name}: expected a MonitorParams, got {type(params).__name__}")
@@ -77,6 +78,9 @@ def check_params(params: MonitorParams, name: str = "params"):
         v = _value(getattr(params, field), f"{name}.{field}")
         if v is not None and not ok(v):
             raise InputError(f"{name}.{field}: must be {want}, got {v}")
+    v = _value(params.max_factor, f"{name}.max_factor")
+    if v is not None and not np.isfinite(v):  # inf: an inf d² made f = inf and P NaN under jit
+        raise InputError(f"{name}.max_factor: must be finite (the largest inflation at once), got {v}")
     _check_gate(params, name)
 
 
@@ -141,12 +145,16 @@ def observe(mon: Monitor, state: SlamState, model: SlamModel, d2, valid, params:
     d2: (K,) marginal NIS of the rows offered to the update; valid: (K,) bool rows that count
     (known landmarks, mapped).  Returns (monitor, state).  Shapes are checked (static) and, when
     concrete, ``params`` (:func:`check_params`) and ``d2`` on the valid rows (not NaN: one NaN
-    would make the running mean NaN for the rest of the run): :class:`InputError` naming them.
+    would make the running mean NaN for the rest of the run; not negative: a −inf held it at
+    −inf): :class:`InputError` naming them.
     """
     check_params(params)
     d2, valid = _rows(d2, valid)
     if is_concrete(d2, valid) and np.any(np.isnan(np.asarray(d2)) & np.asarray(valid)):
         raise InputError("d2: NaN on a valid row")
+    if is_concrete(d2, valid) and np.any((np.asarray(d2) < 0) & np.asarray(valid)):
+        # a d² of −inf held the running mean at −inf (the monitor never tripped again)
+        raise InputError("d2: negative on a valid row (a squared Mahalanobis distance is >= 0)")
     return _observe(mon, state, model, d2, valid, params)
 
 
@@ -189,9 +197,23 @@ def status_bits(n_outliers, n_rows, fraction=DIVERGED_FRACTION):
     monitor did about it), else 0.
 
     ``fraction``: a scalar in [0, 1]; a concrete one is checked (:class:`InputError` naming it:
-    −0.1 flagged DIVERGED with no outlier at all)."""
+    −0.1 flagged DIVERGED with no outlier at all); concrete counts must be >= 0 (NaN neither).
+    Compared as the ratio
+    ``n_outliers / max(n_rows, 1) > fraction`` (29 of 100 is not more than 0.29)."""
     v = _value(fraction, "fraction")
     if v is not None and not 0.0 <= v <= 1.0:
         raise InputError(f"fraction: expected an outlier fraction in [0, 1], got {v}")
-    div = n_outliers > jnp.asarray(fraction) * jnp.maximum(n_rows, 1)
+    for name, count in (("n_outliers", n_outliers), ("n_rows", n_rows)):  # counts known now
+        if is_concrete(count):
+            c = check_numbers(count, name)
+            if not np.all(c >= 0):  # n_rows = −3 read as 1 row: 5 "outliers" of it flagged DIVERGED
+                raise InputError(f"{name}: expected a count >= 0, got {count!r}")
+    # As a ratio: n_outliers > fraction·n_rows rounded 0.29·100 to 28.999999999999996, so 29
+    # outliers of 100 were "more than 29 %"; n/N, rounded to the fraction's precision (a float32
+    # 0.29 too), and the fraction are then the same number.
+    frac = jnp.asarray(fraction)
+    ratio = n_outliers / jnp.maximum(n_rows, 1)
+    if jnp.issubdtype(frac.dtype, jnp.floating):
+        ratio = ratio.astype(frac.dtype)
+    div = ratio > frac
     return jnp.where(div, jnp.int32(errors.DIVERGED), jnp.int32(0))
