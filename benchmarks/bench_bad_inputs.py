@@ -43,6 +43,11 @@ def add_arguments(parser):
 
 def _catalogue():
     path = _HERE.parent / "tests" / "test_cli_bad_inputs.py"
+    if not path.is_file():  # a benchmarks folder without the tests beside it: not an internal error
+        from jaxslam.errors import InputError
+
+        raise InputError(f"bench bad_inputs: the case catalogue {str(path)!r} is missing (it reads the cases "
+                         "of tests/test_cli_bad_inputs.py beside the benchmarks folder)")
     spec = importlib.util.spec_from_file_location("_bad_inputs_cases", path)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)

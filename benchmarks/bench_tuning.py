@@ -3,8 +3,8 @@
 Run with ``python -m jaxslam bench tuning [--json PATH] [options]`` (float64: the CLI enables
 x64).  Cases (one recorded log of paper 000's ``ekfslam3d-unknown`` flight, Q_c log-diagonal):
 
-* ``value``: the innovation-NLL loss of a ``--steps``-step filter run (default 500 IMU steps =
-  50 LiDAR frames, capacity 40), jitted, one run; ``value+grad``: ``jax.value_and_grad`` of the
+* ``value``: the innovation-NLL loss of a ``--steps``-step filter run (a multiple of 10: whole
+  LiDAR frames; default 500 IMU steps = 50 LiDAR frames, capacity 40), jitted, one run; ``value+grad``: ``jax.value_and_grad`` of the
   same, timed in alternating blocks (``--ratio-blocks``; the first call of each block not
   counted) so a change of the host's load does not bias one side.  Target: value+grad ≤ 5× value (``ratio``, of the medians; the
   ratio of the minima beside it).
@@ -43,17 +43,20 @@ TARGETS = {"grad_over_value": 5.0, "compile_s": 10.0}
 
 def add_arguments(parser):
     parser.add_argument("--steps", type=int_at_least(10), default=500,
-                        help="IMU steps of the filter loss, >= 10 (default 500)")
+                        help="IMU steps of the filter loss, >= 10 and a multiple of 10 (whole LiDAR "
+                             "frames; default 500)")
     parser.add_argument("--runs", type=int, default=2, help="logs in the tuning step's batch (default 2)")
     parser.add_argument("--repeats", type=int, default=5, help="timed calls (median; default 5)")
     parser.add_argument("--ratio-blocks", type=int, default=7,
                         help="alternating blocks of value and value+grad calls for the ratio (3 timed calls "
                              "each per block; medians; default 7)")
     parser.add_argument("--memory-steps", type=int_at_least(0), default=2000,
-                        help="IMU steps of the checkpoint memory comparison, 0 or >= 10 (default 2000; "
-                             "0 skips it)")
+                        help="IMU steps of the checkpoint memory comparison, 0 or >= 10 and a multiple "
+                             "of 10 (default 2000; 0 skips it)")
     parser.add_argument("--no-lqr", action="store_true", help="skip the LQR cost case")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0,
+                        help="seed of the logs, in [0, 2**63); the memory case's log uses SEED + 1, so "
+                             "SEED < 2**63 - 1 unless --memory-steps 0 (default 0)")
 
 
 def _median(fn, args, repeats):
@@ -113,7 +116,8 @@ def _mse_loss(T, ref, cfg):
 
 def _numpy_fd_row(args, loss_fn, theta, log, ref, cfg):
     """Autodiff value+grad of the MSE loss vs what a NumPy user does: central differences on
-    the vectorised NumPy twin (tests/oracles/numpy_ekfslam3d.py, hand Jacobians), 2p + 1 runs."""
+    the vectorised NumPy twin (tests/oracles/numpy_ekfslam3d.py, hand Jacobians), 2p + 1 runs,
+    timed after one untimed twin run (median of max(1, repeats // 2))."""
     import jax
 
     import numpy_ekfslam3d as tw
@@ -143,6 +147,7 @@ def _numpy_fd_row(args, loss_fn, theta, log, ref, cfg):
     v_j, g_j = vg(theta, log)
     g_j = np.asarray(g_j["Qc"])
     reps = max(1, args.repeats // 2)
+    np_loss(th0)  # one untimed twin run: the NumPy side is timed after a warm-up as the JAX side is
     ts = []
     for _ in range(reps):
         t0 = time.perf_counter()
@@ -160,6 +165,17 @@ def run(args):
         from jaxslam.errors import InputError
 
         raise InputError(f"--memory-steps: 0 (skip) or >= 10, got {args.memory_steps}")
+    # The logs hold whole LiDAR frames (10 IMU steps each): another count was rounded to a whole
+    # number of frames (25 ran 20 steps, 57 ran 60) while the JSON recorded the count asked for.
+    for flag, n in (("--steps", args.steps), ("--memory-steps", args.memory_steps)):
+        if n % 10:
+            from jaxslam.errors import InputError
+
+            raise InputError(f"{flag}: must be a multiple of 10 (whole 10-step LiDAR frames), got {n}")
+    if args.memory_steps and args.seed + 1 >= 2**63:  # else the memory case failed at its end
+        from jaxslam.errors import InputError
+
+        raise InputError(f"--seed: must be < 2**63 - 1 (the memory case's log uses SEED + 1), got {args.seed}")
     import jax
     import jax.numpy as jnp
 
