@@ -142,6 +142,9 @@ def mrclam_params(robot: int = 1, sigma_v: float = 0.01, sigma_w: float = 0.02,
     values (read only with ``config.calibrate``) are not recommended for MRCLAM: online input
     calibration converges near the GT-fitted turn scale/bias but raised the ATE
     (scripts/study_mrclam_diagnostics.py).
+
+    Where they are read, ``sigma_v`` and ``sigma_w`` must be finite and >= 0 and ``r_scale``
+    finite and > 0 (else :class:`InputError` naming the argument).
     """
     if preset not in ("fitted", "hand"):
         raise InputError(f"preset: expected 'fitted' or 'hand', got {preset!r}")
@@ -155,6 +158,8 @@ def mrclam_params(robot: int = 1, sigma_v: float = 0.01, sigma_w: float = 0.02,
             Q_floor=jnp.diag(jnp.asarray([f["floor_xy"], f["floor_xy"], f["floor_phi"]], dtype)),
             R=jnp.diag(jnp.asarray([f["sigma_r"] ** 2, f["sigma_b"] ** 2], dtype)),
             range_model=jnp.asarray(f["range_model"], dtype), **common)
+    sigma_v, sigma_w = (check_scalar(v, n, lower=0) for v, n in ((sigma_v, "sigma_v"), (sigma_w, "sigma_w")))
+    r_scale = check_scalar(r_scale, "r_scale", lower=0, strict=True)
     if corrected:
         sr, sb = MRCLAM_CORRECTED_SIGMA
     else:
@@ -270,7 +275,7 @@ def mrclam_log(data, K: int = 8, t_end=None, range_model=MRCLAM_RANGE_MODEL,
     if range_model is not None:
         try:
             rm = real_numbers(range_model, "range_model")
-        except InputError:
+        except (InputError, OverflowError):  # OverflowError: an int beyond float's range
             rm = None
         if rm is None or rm.shape != (2,) or not np.all(np.isfinite(rm)):
             raise InputError(f"range_model: expected two finite numbers (k0, k2) or None, got {range_model!r}"[:300])
@@ -315,14 +320,22 @@ def victoria_park_params(sigma_v: float = 0.7, sigma_a: float = 0.06, floor=(0.0
     outside ``range_min`` – ``range_max`` [m] are masked; tentative landmarks not matched
     ``prune_min_obs`` times within ``prune_window_s`` s of registration are removed (None: no
     pruning).  The nn gates are the defaults (``Params.gate`` 9.21, ``new_threshold`` 30).
+
+    ``sigma_v``, ``sigma_a`` must be finite and >= 0, ``sigma_r``, ``sigma_b`` finite and > 0,
+    ``prune_min_obs`` a finite number (else :class:`InputError` naming the argument; the limits
+    and the pruning against each other are checked by the run).
     """
+    sigma_v, sigma_a = (check_scalar(v, n, lower=0) for v, n in ((sigma_v, "sigma_v"), (sigma_a, "sigma_a")))
+    sigma_r, sigma_b = (check_scalar(v, n, lower=0, strict=True) for v, n in ((sigma_r, "sigma_r"),
+                                                                               (sigma_b, "sigma_b")))
+    prune_min_obs = check_scalar(prune_min_obs, "prune_min_obs")
     return pe.Params(
         M_c=jnp.diag(jnp.asarray([sigma_v**2, sigma_a**2], dtype)),
         Q_floor=jnp.diag(jnp.asarray(floor, dtype)),
         R=jnp.diag(jnp.asarray([sigma_r**2, sigma_b**2], dtype)),
         P0=jnp.diag(jnp.asarray(p0, dtype)),
         range_min=range_min, range_max=range_max, prune_window_s=prune_window_s,
-        prune_min_obs=float(prune_min_obs),
+        prune_min_obs=prune_min_obs,
     )
 
 
@@ -483,15 +496,19 @@ def _range_params_from_dict(noise, base, keys, name: str):
             try:  # numbers only: a string or a bool (read as 1.0 / 0.0) is not an offset
                 a = (real_numbers(v, k) if isinstance(v, list)
                      and not any(isinstance(x, (bool, np.bool_)) for x in v) else None)
-            except InputError:
+            except (InputError, OverflowError):  # OverflowError: an int beyond float's range
                 a = None
             if a is None or a.ndim != 1 or not np.all(np.isfinite(a)):
                 raise InputError(f"--params: noise.anchor_offset: expected a list of finite offsets [m], got {v!r}")
             kw[k] = a
             continue
         # any real number, NumPy's too (np.float32(0.1), np.int64(1)); not a bool
-        if isinstance(v, (bool, np.bool_)) or not isinstance(v, numbers.Real) or not math.isfinite(v):
-            raise InputError(f"--params: noise.{k}: expected a finite number, got {v!r}")
+        try:  # an int beyond float's range (JSON's 1000…0) made math.isfinite raise OverflowError
+            ok = not isinstance(v, (bool, np.bool_)) and isinstance(v, numbers.Real) and math.isfinite(v)
+        except OverflowError:
+            ok = False
+        if not ok:
+            raise InputError(f"--params: noise.{k}: expected a finite number, got {v!r}"[:300])
         if k in _NONNEG and not v >= 0:
             raise InputError(f"--params: noise.{k}: expected a non-negative number, got {v!r}")
         if k not in _SIGNED and k not in _NONNEG and not v > 0:

@@ -26,6 +26,8 @@ Quirks handled / documented:
 * Bearings are returned both raw (``det_bearing_laser``, 0…π) and relative to
   the vehicle heading: ``bearing − π/2`` (in ``det[:, 1]``), as RFS-SLAM's
   ``MeasurementModel_VictoriaPark`` does.
+* A detection with a range <= 0 m or a laser bearing outside 0…π contradicts
+  the format above: :class:`DataFormatError` at its ``file:line``.
 * Scans without any detected tree leave no row, so ``report["scans"]``
   counts the scans *with* detections (distinct times): 7230 in the full file.
 * The vehicle model's geometry (RFS-SLAM ``cfg`` files, ACFR Ute notes) is in
@@ -81,6 +83,22 @@ class VictoriaParkData(NamedTuple):
     report: dict
 
 
+def _check_detections(mea) -> None:
+    """The documented format of ``measurements.dat``: a range is a distance (> 0 m) and the laser
+    bearing lies in 0…π (the shipped log: 1.48–75.3 m, 0.113–3.089 rad).  A row outside that —
+    a sign lost, a bearing in degrees or already relative to the heading — is a malformed file:
+    :class:`DataFormatError` at its ``file:line`` (it was read silently before)."""
+    r, b = mea.data[:, 1], mea.data[:, 2]
+    bad_r = ~(r > 0)
+    if bad_r.any():
+        i = int(np.argmax(bad_r))
+        raise mea.error(i, f"range (column 2): expected a positive distance [m], got {float(r[i])!r}")
+    bad_b = ~((b >= 0) & (b <= np.pi))
+    if bad_b.any():
+        i = int(np.argmax(bad_b))
+        raise mea.error(i, f"bearing (column 3): expected a laser-frame angle in [0, pi] rad, got {float(b[i])!r}")
+
+
 def load_victoria_park(path) -> VictoriaParkData:
     """Load Victoria Park from ``inputs.dat``, ``measurements.dat``, ``gps.dat``.
 
@@ -95,12 +113,15 @@ def load_victoria_park(path) -> VictoriaParkData:
     Raises:
       MissingDataError: a file is missing (the folders looked in are listed).
       DataFormatError: a malformed file (``file:line`` in the message),
-        including time going backwards in any file.
+        including time going backwards in any file, and a detection whose range
+        is not positive or whose laser bearing lies outside 0…π (the documented
+        format of ``measurements.dat``).
     """
     d = resolve_dataset_dir(path, "victoria_park", list(FILES.values()), "Victoria Park")
     inp = read_table(d / FILES["inputs"], 3, time_cols=0)
     mea = read_table(d / FILES["measurements"], 4, time_cols=0)
     gps = read_table(d / FILES["gps"], 3, time_cols=0)
+    _check_detections(mea)
     det_t = mea.data[:, 0].copy()
     _, counts = np.unique(det_t, return_counts=True)
     bearing_laser = mea.data[:, 2].copy()
