@@ -13,8 +13,8 @@ Parts (``--parts``, default ``ransac,slam``):
    (``jax.jit(..., static_argnames="cfg")``), the jitted ``vmap`` over all scans (one call;
    per-scan time = call / scans), and the NumPy twin (``numpy_lines.extract_lines``, vectorised
    over hypotheses, stops at the first failed round) looped over min(scans, ``--twin-max``)
-   scans.  Medians over ``--repeats`` after a warm-up call, ``block_until_ready`` on every
-   JAX result.  Target: single jitted ≥ 5× faster than the twin per scan.  Agreement: for every
+   scans.  Medians over ``--repeats`` after a warm-up call (the twin: over min(``--repeats``, 3)),
+   ``block_until_ready`` on every JAX result.  Target: single jitted ≥ 5× faster than the twin per scan.  Agreement: for every
    line with ≥ ``--agree-min`` inliers found by either implementation, the other finds one
    within 2 cm / 0.5° (different RNGs, so the small clutter lines may differ); and the share
    of true walls (≥ 20 true points) each recovers within 2 cm / 0.5°.
@@ -23,7 +23,12 @@ Parts (``--parts``, default ``ransac,slam``):
    matching + RANSAC for new lines + EKF, on ``--slam-duration`` s logs simulated beforehand):
    runs/second of ``jax.jit(jax.vmap(run))`` over M logs vs M sequential calls of the jitted
    single-log ``run`` (timed on min(M, ``--slam-seq-max``) logs and scaled), for every M in
-   ``--slam-runs``.
+   ``--slam-runs``.  ``--slam-duration`` must exceed one scan period (0.1 s); it is checked
+   before any part runs.
+
+``--seed`` takes any seed the CLI accepts, [0, 2**63): the keys derived from it (seed + 1)
+are ``jax.random.PRNGKey`` of the seed's 64 bits (two's complement), so 2**63 - 1 + 1 wraps
+to -2**63 instead of overflowing; every smaller seed keeps its key.
 """
 
 from __future__ import annotations
@@ -51,12 +56,23 @@ def add_arguments(parser):
     parser.add_argument("--agree-min", type=int, default=40,
                         help="lines with at least this many inliers must agree (default 40)")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--repeats", type=int, default=5, help="timed repeats (median; default 5)")
+    parser.add_argument("--repeats", type=int, default=5,
+                        help="timed repeats (median; default 5; the NumPy twin uses min(REPEATS, 3))")
     parser.add_argument("--slam-runs", default="1,10,100", help="slam: batch sizes M (default 1,10,100)")
     parser.add_argument("--slam-duration", type=float, default=20.0,
-                        help="slam: simulated flight per log [s] (10 Hz scans; default 20)")
+                        help="slam: simulated flight per log [s], > 0.1 (10 Hz scans; default 20)")
     parser.add_argument("--slam-seq-max", type=int, default=10,
                         help="slam: sequential runs actually timed per M (default 10)")
+
+
+def _prng_key(seed):
+    """``jax.random.PRNGKey`` of ``seed`` read as 64 bits (two's complement): ``--seed`` 2**63 - 1
+    plus an offset overflowed ``PRNGKey`` (OverflowError: an internal error after the scans were
+    simulated); any seed in [-2**63, 2**63) gets its usual key."""
+    import jax
+
+    bits = int(seed) & (2**64 - 1)
+    return jax.random.PRNGKey(bits - 2**64 if bits >= 2**63 else bits)
 
 
 def _progress(msg):
@@ -81,7 +97,7 @@ def room_scans(seed, n, outlier_prob, dtype=None):
     wmask = jnp.ones(walls.shape[0], bool)
     rng = np.random.default_rng(seed)
     poses = np.column_stack([rng.uniform(0.6, 2.8, n), rng.uniform(0.6, 2.9, n), rng.uniform(-np.pi, np.pi, n)])
-    keys = jax.random.split(jax.random.PRNGKey(seed), n)
+    keys = jax.random.split(_prng_key(seed), n)
     spec = L.URG04LX
 
     def one(k, pose):
@@ -118,7 +134,7 @@ def _ransac_part(args, out, results):
     _progress(f"simulating {S} scans")
     pts, valid, wall, true = room_scans(args.seed, S, args.outlier_prob)
     pts, valid = jax.block_until_ready((pts, valid))
-    keys = jax.random.split(jax.random.PRNGKey(args.seed + 1), S)
+    keys = jax.random.split(_prng_key(args.seed + 1), S)
     single = jax.jit(F.extract_lines, static_argnames="cfg")
     batched = jax.jit(jax.vmap(lambda k, p, v: F.extract_lines(k, p, v, cfg)))
 
@@ -206,10 +222,10 @@ def _slam_part(args, out, results):
     _, _, cfg, fp, setup = sc.build(opts, jnp.float64)
     Ms = sorted(set(int_list(args.slam_runs, "--slam-runs")))
     M_max = Ms[-1]
-    keys = jax.random.split(jax.random.PRNGKey(args.seed), M_max)
+    keys = jax.random.split(_prng_key(args.seed), M_max)
     sim = jax.jit(jax.vmap(lambda k: sc.simulate(k, setup, cfg.spec, jnp.float64)))
     logs = jax.block_until_ready(sim(keys))
-    fkeys = jax.random.split(jax.random.PRNGKey(args.seed + 1), M_max)
+    fkeys = jax.random.split(_prng_key(args.seed + 1), M_max)
     single = jax.jit(lambda k, log: LS.run(log, cfg, fp, key=k))
     batch = jax.jit(jax.vmap(lambda k, log: LS.run(log, cfg, fp, key=k)))
     first = jax.tree.map(lambda a: a[0], logs)
@@ -263,6 +279,10 @@ def run(args):
     if not 0.0 <= args.outlier_prob < 1.0:
         raise InputError(f"--outlier-prob: expected a probability in [0, 1), got {args.outlier_prob}")
     int_list(args.slam_runs, "--slam-runs")  # checked before anything runs, not after the ransac part
+    if "slam" in parts:  # lineslam's own check named "--duration" (no option here), after the ransac part
+        d = float(args.slam_duration)
+        if not (np.isfinite(d) and d > 0.1):
+            raise InputError(f"--slam-duration: must be a finite number > 0.1 (one scan period), got {d:g}")
     load = {"before": list(os.getloadavg())}
     results, out = [], {"targets": []}
     if "ransac" in parts:

@@ -22,8 +22,11 @@ Two parts, for every batch size M in ``--runs``:
    program hung inside XLA's CPU runtime twice on the shared 2-core machine: all threads
    idle in futex waits, no CPU time used.)
 
-Medians over ``--repeats`` after one warm-up call; ``block_until_ready`` on every
-JAX result; compile times reported apart.  ``load_average`` records how busy the
+Medians over ``--repeats`` after one warm-up call (the NumPy twin: over min(``--repeats``, 2));
+``block_until_ready`` on every JAX result; compile times reported apart (``vmap_compile_s``:
+the first call of the program for that batch shape; a batch size that reuses an earlier
+one's program, e.g. ``--runs 250,1000`` with ``--mc-chunk 250``, reports that compile time).
+A batch size given twice in ``--runs`` is run once.  ``load_average`` records how busy the
 machine was (shared 2-core machines make timings noisy).
 """
 
@@ -50,7 +53,8 @@ def add_arguments(parser):
     parser.add_argument("--model", default="squared", choices=("squared", "range"))
     parser.add_argument("--filter", default="paper", choices=("paper", "matched"))
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--repeats", type=int, default=3, help="timed repeats (median; default 3)")
+    parser.add_argument("--repeats", type=int, default=3,
+                        help="timed repeats (median; default 3; the NumPy twin uses min(REPEATS, 2))")
     parser.add_argument("--seq-max", type=int, default=50,
                         help="sequential jitted calls actually timed per M (default 50)")
     parser.add_argument("--twin-max", type=int, default=10,
@@ -83,7 +87,7 @@ def run(args):
         raise InputError(f"--parts: no part given (got {args.parts!r}); choose filter, mc")
     if parts - {"filter", "mc"}:
         raise InputError(f"--parts: unknown part(s) {sorted(parts - {'filter', 'mc'})}; choose filter, mc")
-    Ms = int_list(args.runs, "--runs")
+    Ms = list(dict.fromkeys(int_list(args.runs, "--runs")))  # a repeated size: one row, not two
     for flag, v in (("--repeats", args.repeats), ("--seq-max", args.seq_max), ("--twin-max", args.twin_max)):
         if v < 1:
             raise InputError(f"{flag}: must be >= 1, got {v}")
@@ -161,6 +165,7 @@ def run(args):
         compile_single = time.perf_counter() - t0
         batched = jax.jit(jax.vmap(one_run))
         rows = []
+        compiled = {}  # chunk size -> compile time of its program (a later M with that chunk reuses it)
         for M in Ms:
             # Chunks of at most --mc-chunk runs, as jaxslam.sim.monte_carlo.run does (one
             # 1000-run call of this program hung inside XLA's CPU runtime on the 2-core machine).
@@ -170,10 +175,12 @@ def run(args):
             if n_chunks * chunk > M:  # pad the last chunk (its extra runs are timed too, as in monte_carlo)
                 km = jnp.concatenate([km, jnp.repeat(keys[M - 1:M], n_chunks * chunk - M, axis=0)])
             parts_k = [km[c * chunk:(c + 1) * chunk] for c in range(n_chunks)]
-            _progress(f"monte carlo: M = {M} (compiling {chunk} runs)")
-            t0 = time.perf_counter()
-            jax.block_until_ready(batched(parts_k[0]))
-            comp = time.perf_counter() - t0
+            if chunk not in compiled:
+                _progress(f"monte carlo: M = {M} (compiling {chunk} runs)")
+                t0 = time.perf_counter()
+                jax.block_until_ready(batched(parts_k[0]))
+                compiled[chunk] = time.perf_counter() - t0
+            comp = compiled[chunk]
             _progress(f"monte carlo: M = {M}")
             t_vmap = median_s(lambda: [jax.block_until_ready(batched(k_)) for k_ in parts_k], args.repeats)
             n_seq = min(M, args.seq_max)
