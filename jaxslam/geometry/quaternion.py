@@ -31,7 +31,10 @@ Decisions (where the sources are silent or inconsistent):
   ``qnormalize`` and ``qlog`` first divide q by the power of two at or below
   max|q_k| (exact: the result for an ordinary q is unchanged to the last bit),
   so a finite non-zero q of any magnitude works (float32 at 1e±20 used to
-  overflow or underflow the squared norm: zeros, NaN or a zero log).
+  overflow or underflow the squared norm: zeros, NaN or a zero log).  A concrete
+  q whose largest entry is subnormal (float32 1e-40, float64 1e-310) is first
+  scaled up exactly on the host (XLA flushes subnormals to zero: it returned
+  NaN); under ``jit`` such a q is still read as zero.
 * A zero quaternion has no rotation: given a concrete one (all four entries
   0), ``qnormalize``, ``qrotate``, ``dcm_from_quat``, ``euler_from_quat`` and
   ``qlog`` raise :class:`~jaxslam.errors.InputError` naming the argument, and
@@ -130,20 +133,53 @@ def _checked(q, name: str, fn: str):
     return q, True
 
 
+def _unsubnormal(q, rescale: bool):
+    """``q`` with each concrete quaternion whose max_k |q_k| is subnormal (non-zero, below the
+    dtype's smallest normal number) multiplied by 2^(nmant+1) on the host, in NumPy (exact: every
+    entry becomes a normal number with the same mantissa bits).  XLA flushes subnormal inputs to
+    zero, so :func:`_pow2_scaled` cannot rescale them and qnormalize / qlog of such a finite
+    non-zero q returned NaN.  A traced q, or one with nothing subnormal, is returned as it is."""
+    if not rescale or not is_concrete(q):
+        return q
+    a = np.asarray(q)
+    if not jnp.issubdtype(a.dtype, jnp.floating):  # an integer q has no subnormal
+        return q
+    info = jnp.finfo(a.dtype)
+    m = np.abs(a).max(axis=-1, keepdims=True)
+    sub = (m > 0) & (m < info.tiny)
+    if not sub.any():
+        return q
+    up = np.asarray(2.0 ** (int(info.nmant) + 1), dtype=a.dtype)
+    return jnp.asarray(np.where(sub, a * up, a), dtype=a.dtype)
+
+
 def _nonzero(q, name: str, fn: str):
     """``q``; :class:`InputError` when it is a concrete zero quaternion (:func:`_checked`)."""
     return _checked(q, name, fn)[0]
 
 
+def _batch_shape(fn: str, a, aname: str, b, bname: str) -> None:
+    """:class:`InputError` naming both arguments when the batch shapes of ``a`` and ``b`` (all
+    but the last axis) do not broadcast (shapes are static: free under ``jit``); it was a bare
+    TypeError / ValueError from inside the arithmetic."""
+    try:
+        np.broadcast_shapes(a.shape[:-1], b.shape[:-1])
+    except ValueError:
+        raise InputError(f"{fn}: {aname} and {bname} batch shapes {tuple(a.shape[:-1])} and "
+                         f"{tuple(b.shape[:-1])} do not broadcast") from None
+
+
 def qmul(p, q):
     """Hamilton product p ⊗ q, paper 004 app. A.
 
-    ``p``, ``q``: (..., 4) scalar-first, broadcast against each other.
+    ``p``, ``q``: (..., 4) scalar-first, broadcast against each other (batch shapes that do
+    not broadcast are an :class:`~jaxslam.errors.InputError` naming both).
     Returns (..., 4) = [p0 q0 − p_v·q_v, p0 q_v + q0 p_v + p_v × q_v].
     The rotation of p ⊗ q is C(p) C(q) (apply q first).
     """
     p = _last_axis(p, 4, "p", "qmul")
     q = _last_axis(q, 4, "q", "qmul")
+    _batch_shape("qmul", p, "p", q, "q")
     p0, p1, p2, p3 = p[..., 0], p[..., 1], p[..., 2], p[..., 3]
     q0, q1, q2, q3 = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
     return jnp.stack(
@@ -170,7 +206,7 @@ def qnormalize(q):
     A concrete zero quaternion is an :class:`~jaxslam.errors.InputError`.
     """
     q, rescale = _checked(_last_axis(q, 4, "q", "qnormalize"), "q", "qnormalize")
-    return _normalize(q, rescale)
+    return _normalize(_unsubnormal(q, rescale), rescale)
 
 
 def _normalize(q, rescale: bool = True):
@@ -191,13 +227,15 @@ def qcanonical(q):
 def qrotate(q, v):
     """Rotate body vectors into the reference frame: C_NB(q) v.
 
-    ``q``: (..., 4) unit quaternion; ``v``: (..., 3) (broadcast).  Returns
+    ``q``: (..., 4) unit quaternion; ``v``: (..., 3) (broadcast; batch shapes that do not
+    broadcast are an :class:`~jaxslam.errors.InputError`).  Returns
     (..., 3) = q ⊗ [0, v] ⊗ q*, computed as v + q0 t + q_v × t with
     t = 2 q_v × v (no 3×3 matrix is formed).  A concrete zero ``q`` is an
     :class:`~jaxslam.errors.InputError` (it returned v unrotated).
     """
     q = _nonzero(_last_axis(q, 4, "q", "qrotate"), "q", "qrotate")
     v = _last_axis(v, 3, "v", "qrotate")
+    _batch_shape("qrotate", q, "q", v, "v")
     qv = q[..., 1:]
     qv, v = jnp.broadcast_arrays(qv, v)
     t = 2.0 * jnp.cross(qv, v)
@@ -342,7 +380,7 @@ def qlog(q):
     is an :class:`~jaxslam.errors.InputError` (it returned NaN).
     """
     q, rescale = _checked(_last_axis(q, 4, "q", "qlog"), "q", "qlog")
-    q = _inexact(q)
+    q = _unsubnormal(_inexact(q), rescale)
     q = qcanonical(_pow2_scaled(q) if rescale else q)
     w = q[..., 0]
     v = q[..., 1:]

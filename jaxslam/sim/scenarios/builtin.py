@@ -48,12 +48,21 @@ class Declared:
 # fastslam.DT * LIDAR_EVERY; the test checks they agree).
 _ONE_FRAME_S = 0.1
 
+# jaxslam.sim.monte_carlo caps a vmapped chunk at 256 runs, and at DETAIL_CHUNK = 16 when the
+# flights also return the figures' data (--plots); the test checks both numbers against it.
+_CHUNK_CAP, _DETAIL_CHUNK_CAP = 256, 16
+_CHUNK_HELP = (f"Monte Carlo runs per compiled call (default: all, max {_CHUNK_CAP}; "
+               f"max {_DETAIL_CHUNK_CAP} with --plots)")
+_CHUNK_HELP_LOOP = (f"Monte Carlo runs per compiled call on a GPU/TPU (default: all, max {_CHUNK_CAP}; "
+                    f"max {_DETAIL_CHUNK_CAP} with --plots); on the CPU the runs go one compiled run "
+                    "at a time and it has no effect")
+
 _TRACKING = (
     Option("duration", float, 50.0, "flight duration [s]", lower=_ONE_FRAME_S),
     Option("no_feedforward", bool, False,
            "paper's eq. 19 attitude references (p_d = q_d = 0, no torque feedforward) instead of "
            "jaxslam's full flatness feedforward"),
-    Option("chunk", int, None, "Monte Carlo runs per compiled call (default: all, max 256)", lower=1),
+    Option("chunk", int, None, _CHUNK_HELP, lower=1),
 )
 
 _EKFSLAM3D = (
@@ -71,8 +80,7 @@ _EKFSLAM3D = (
            ("3axis", "az")),
     Option("altitude", float, 3.0, "figure-8 altitude above the start point [m]; landmarks centred on it"),
     Option("no_feedforward", bool, False, "paper's eq. 19 attitude references instead of the flatness feedforward"),
-    Option("chunk", int, None, "Monte Carlo runs per compiled call on a GPU/TPU (default: all, max 256); "
-           "on the CPU the runs go one compiled run at a time and it has no effect", lower=1),
+    Option("chunk", int, None, _CHUNK_HELP_LOOP, lower=1),
 )
 
 _UWB = (
@@ -90,7 +98,7 @@ _UWB = (
     Option("anchors", int, 3, "number of anchors, 3 (paper) to 6; beyond 3 mapped by delayed init"),
     Option("startup_speed", float, 0.15, "speed of the forced straight-line start-up [m/s]"),
     Option("max_range", float, 0.0, "UWB range limit [m] (0: unlimited)", lower=0.0),
-    Option("chunk", int, None, "Monte Carlo runs per compiled call (default: all, max 256)", lower=1),
+    Option("chunk", int, None, _CHUNK_HELP, lower=1),
     Option("smooth", bool, False, "also RTS-smooth each run's robot trajectory (backward pass, the map "
            "held static) and report smoothed_* metrics beside the filter's"),
 )
@@ -117,8 +125,7 @@ _FASTSLAM = (
     Option("accel", str, "specific_force", "accelerometer model of truth and filter: "
            "'specific_force' (real IMU) or 'kinematic' (paper eq. 7)",
            ("specific_force", "kinematic")),
-    Option("chunk", int, None, "Monte Carlo runs per compiled call on a GPU/TPU (default: all, max 256); "
-           "on the CPU the runs go one compiled run at a time and it has no effect", lower=1),
+    Option("chunk", int, None, _CHUNK_HELP_LOOP, lower=1),
 )
 
 # attitude-smc's defaults are jaxslam.control.smc's DURATION_S, DT_S and TAU_MAX_APPB (app. B),
@@ -143,7 +150,7 @@ _LINESLAM = (
     Option("capacity", int, 16, "line slots of the map", lower=1),
     Option("outlier_prob", float, 0.05, "fraction of laser returns replaced by clutter"),
     Option("tilt_deg", float, 2.0, "roll/pitch amplitude [deg] (known to the filter)"),
-    Option("chunk", int, None, "Monte Carlo runs per compiled call (default: all, max 256)", lower=1),
+    Option("chunk", int, None, _CHUNK_HELP, lower=1),
 )
 
 _PKG = "jaxslam.sim.scenarios."
