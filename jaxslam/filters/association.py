@@ -42,6 +42,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import errors
 from ..compilation import call_compiled
 from ..errors import InputError
 from ..linalg import check_int, is_concrete, symmetrize
@@ -54,7 +55,10 @@ class JCBBResult(NamedTuple):
     """slots (K,) int32 landmark slot paired with each measurement (−1: unpaired);
     paired (K,) bool; nis: () joint NIS of the chosen pairings; n_paired: () int32;
     nodes: () int32 search nodes visited; exhausted: () bool the budget ran out first;
-    d2: (K,) smallest marginal Mahalanobis distance of each measurement (inf: none mapped)."""
+    d2: (K,) smallest marginal Mahalanobis distance of each measurement (inf: none mapped);
+    status: () int32 :mod:`jaxslam.errors` flags — ``NON_FINITE`` when a traced ``gate`` is not a
+    finite number > 0 or a traced threshold is not > 0 (NaN included): such a value pairs
+    nothing, and under ``jit`` it cannot be refused as a concrete one is (:class:`InputError`)."""
 
     slots: jax.Array
     paired: jax.Array
@@ -63,6 +67,7 @@ class JCBBResult(NamedTuple):
     nodes: jax.Array
     exhausted: jax.Array
     d2: jax.Array
+    status: jax.Array
 
 
 def _check_rows(state: SlamState, model: SlamModel, z, mask, R):
@@ -113,7 +118,8 @@ def jcbb(state: SlamState, model: SlamModel, z, mask, R, params=None, *, gate, t
       z: (K, d_z) measurements; mask: (K,) bool present.  R: (d_z, d_z) or (K, d_z, d_z).
       gate: individual-compatibility threshold on the marginal d² (e.g. χ²(d_z) 99 %).
       thresholds: (K,) joint thresholds, ``thresholds[m − 1]`` for m pairings (χ²(m·d_z)); > 0
-        (a concrete NaN or non-positive one is an :class:`InputError`).
+        (a concrete NaN or non-positive one is an :class:`InputError`; a traced one, like a
+        traced bad ``gate``, sets ``NON_FINITE`` in ``status``).
       n_cand, budget: static sizes (candidates kept per measurement, search nodes).
 
     Called eagerly it is compiled once per model and sizes
@@ -265,5 +271,8 @@ def _jcbb(state: SlamState, model: SlamModel, z, mask, R, params, gate, threshol
     best = s.best
     paired = best < C
     slots = jnp.where(paired, cand[ar, jnp.clip(best, 0, C - 1)], -1).astype(jnp.int32)
+    g = jnp.asarray(gate, dtype)
+    bad_opt = ~(jnp.isfinite(g) & (g > 0)) | jnp.any(~(thr > 0))
+    status = jnp.where(bad_opt, jnp.int32(errors.NON_FINITE), jnp.int32(0))
     return JCBBResult(slots=slots, paired=paired, nis=s.best_nis, n_paired=s.best_m, nodes=s.nodes,
-                      exhausted=exhausted, d2=jnp.min(d2, axis=1))
+                      exhausted=exhausted, d2=jnp.min(d2, axis=1), status=status)

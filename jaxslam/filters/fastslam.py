@@ -983,7 +983,8 @@ def reweight(p: Particles, loglik) -> Particles:
     Use it for likelihood terms outside the landmark model (e.g. paper 001's
     IMU term ``p(z^I | x^D, x̂^B)``).  Underflow is counted and recovered (see
     the module docstring); an all −inf/NaN result resets to uniform and sets
-    ``DEGENERATE``.
+    ``DEGENERATE``.  A NaN log-likelihood gives that particle weight 0 (as −inf would) and
+    sets ``NON_FINITE`` (it used to drop the particle without a flag).
 
     Args:
         p: Particles.  loglik: (N,) log-likelihood per particle.
@@ -1001,7 +1002,7 @@ def _reweight(p: Particles, loglik):
     log_tiny = jnp.log(jnp.asarray(jnp.finfo(dtype).tiny, dtype))
     top = jnp.max(jnp.where(jnp.isnan(lw), -jnp.inf, lw))
     under = ~ok | (top < log_tiny)
-    bits = _flag(~ok, errors.DEGENERATE)
+    bits = _flag(~ok, errors.DEGENERATE) | _flag(jnp.any(jnp.isnan(lw)), errors.NON_FINITE)
     return p._replace(
         log_w=lw_n,
         underflow=p.underflow + under.astype(jnp.int32),
@@ -1021,8 +1022,28 @@ def _per_particle(p: Particles):
 def resample_indices(p: Particles, idx, log_w=None) -> Particles:
     """Gather every per-particle leaf by ancestor indices ``idx`` (N,).
 
-    The new log-weights are ``log_w`` (normalised) or uniform when None.
+    The new log-weights are ``log_w`` normalised here (any offset; −inf allowed), in the
+    particles' dtype, or uniform when None.  (An unnormalised ``log_w`` used to be stored as
+    given, so :func:`estimate` scaled the mean by ``Σ exp(log_w)``.)  A concrete ``log_w`` with a
+    NaN or +inf, or with no finite entry, is an :class:`InputError`; a traced one is reset to
+    uniform with ``DEGENERATE`` (NaN entries: weight 0, ``NON_FINITE``), as :func:`reweight`.
     """
+    p = _gather(p, idx, log_w)
+    if log_w is None:
+        return p
+    if is_concrete(log_w):
+        v = np.asarray(log_w, float)
+        if np.isnan(v).any() or np.isposinf(v).any() or not np.isfinite(v).any():
+            raise InputError("log_w: expected log-weights with a finite entry, no NaN and no +inf, "
+                             f"got {v.tolist()}"[:300])
+    lw, ok = _rs.normalize(p.log_w)
+    bits = _flag(~ok, errors.DEGENERATE) | _flag(jnp.any(jnp.isnan(p.log_w)), errors.NON_FINITE)
+    return p._replace(log_w=lw, status=p.status | bits)
+
+
+def _gather(p: Particles, idx, log_w=None) -> Particles:
+    """:func:`resample_indices` with ``log_w`` stored as given (already normalised: the callers
+    here), in the particles' dtype."""
     N = p.pose.shape[0]
     idx = jnp.asarray(idx)
     if idx.shape != (N,) or not jnp.issubdtype(idx.dtype, jnp.integer):
@@ -1035,6 +1056,7 @@ def resample_indices(p: Particles, idx, log_w=None) -> Particles:
     pose, aux, mean, cov, active, ids = leaves
     if log_w is None:
         log_w = jnp.full((N,), -jnp.log(jnp.asarray(N, p.log_w.dtype)), p.log_w.dtype)
+    log_w = jnp.asarray(log_w, p.log_w.dtype)
     return p._replace(pose=pose, aux=aux, lm_mean=mean, lm_cov=cov, active=active, ids=ids,
                       log_w=log_w)
 
@@ -1073,7 +1095,7 @@ def _maybe_resample(p: Particles, key, threshold, scheme) -> Particles:
 
     def do(q):
         idx = fn(key, q.log_w, N)
-        q = resample_indices(q, idx)
+        q = _gather(q, idx)
         return q._replace(resamples=q.resamples + 1)
 
     if threshold is None:
@@ -1099,14 +1121,25 @@ def resample_soft(p: Particles, key, alpha, threshold: Optional[float] = None,
     Ancestors from ``q = α w̄ + (1 − α)/N``, new weights ``w̄/q``.  With
     ``threshold`` None (default) it resamples at every call, which keeps a
     run's loss smooth in the parameters (a threshold decision is a jump).
+
+    Called eagerly it is compiled once per scheme (:func:`jaxslam.compilation.call_compiled`):
+    uncompiled, each call with a ``threshold`` traced and compiled its ``lax.cond`` again (2-3 s
+    a call for 100 particles).
     """
     _check_fraction(alpha, "alpha")
     if threshold is not None:
         _check_fraction(threshold, "threshold")
+    return call_compiled(("fastslam.resample_soft", scheme),
+                         lambda opts, p, key: _resample_soft(p, key, opts[0], opts[1], scheme), (p, key),
+                         (alpha, threshold), after="auto")
+
+
+def _resample_soft(p: Particles, key, alpha, threshold, scheme) -> Particles:
+    """:func:`resample_soft`'s computation."""
 
     def do(q):
         idx, lw = _rs.soft(key, q.log_w, alpha, scheme)
-        q = resample_indices(q, idx, lw)
+        q = _gather(q, idx, lw)  # soft's weights are normalised already
         return q._replace(resamples=q.resamples + 1)
 
     if threshold is None:
