@@ -134,9 +134,12 @@ def data_root(value, flag: str = "--data") -> pathlib.Path:
     """The data root: ``value`` (the ``--data`` argument), else ``$JAXSLAM_DATA_DIR``.
 
     Raises:
-      InputError: neither is given, or the folder does not exist.
+      InputError: neither is given, ``value`` is not a path (str or os.PathLike), or the folder
+        does not exist.
     """
     source = flag
+    if value is not None and not isinstance(value, (str, os.PathLike)):  # (5 raised a bare TypeError)
+        raise InputError(f"{flag}: expected a folder path (str or os.PathLike), got {value!r}"[:300])
     if not value:
         value, source = os.environ.get(DATA_ENV, "").strip(), f"${DATA_ENV}"
         if not value:
@@ -168,9 +171,17 @@ def _holds(d: Dataset, folder: pathlib.Path) -> bool:
     if d.name == "victoria-park":
         return (folder / "measurements.dat").is_file()
     if d.name == "util-uwb":  # the folder of the flights, or one flight's folder itself
-        return any(folder.glob("*_obs_log*")) or ("_obs_log" in folder.name
-                                                   and (folder / "groundtruth.csv").is_file())
+        # a flight is a folder named *_obs_log* holding groundtruth.csv (what the loader lists as
+        # the flights found); a file, or an empty folder, of such a name is not one
+        try:
+            return _util_flight(folder) or any(_util_flight(c) for c in folder.glob("*_obs_log*"))
+        except OSError:
+            return False
     return False
+
+
+def _util_flight(folder: pathlib.Path) -> bool:
+    return "_obs_log" in folder.name and folder.is_dir() and (folder / "groundtruth.csv").is_file()
 
 
 def _robots_in(d: Dataset, folder: pathlib.Path) -> list:

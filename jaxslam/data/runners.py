@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import functools
 import time
+import types
 from typing import Callable, NamedTuple
 
 import jax
@@ -91,7 +92,9 @@ def dead_reckoning(motion, pose0, u, dt):
     """Noise-free integration of ``motion(s, u_k, dt_k)`` over an event log; (T, n) poses.
 
     ``u``: (T, m) inputs and ``dt``: (T,) steps, one per event (other shapes are an
-    :class:`InputError` naming them)."""
+    :class:`InputError` naming them).  One jitted program per ``motion`` (a function or a
+    ``functools.partial``; another callable runs eagerly) and shape: a second call with the same
+    ``motion`` object compiles nothing."""
     if not callable(motion):
         raise InputError(f"motion: expected a callable motion(s, u, dt), got {motion!r}"[:300])
     if np.ndim(u) != 2:
@@ -99,12 +102,31 @@ def dead_reckoning(motion, pose0, u, dt):
     if np.shape(dt) != (np.shape(u)[0],):
         raise InputError(f"dt: expected shape ({np.shape(u)[0]},) (one step per row of u), got {np.shape(dt)}")
 
+    args = (to_jax(pose0), to_jax(u), to_jax(dt))
+    if not (isinstance(motion, (types.FunctionType, functools.partial))):  # (a callable object's state
+        return _dead_reckoning_scan(motion, *args)  # could change under the same hash: run eagerly)
+    return _dead_reckoning_jit(motion, *args)  # (the eager scan compiled again at every call)
+
+
+def _dead_reckoning_scan(motion, pose0, u, dt):
     def body(s, inp):
         s = motion(s, inp[0], inp[1])
         return s, s
 
-    _, poses = jax.lax.scan(body, to_jax(pose0), (to_jax(u), to_jax(dt)))
+    _, poses = jax.lax.scan(body, pose0, (u, dt))
     return poses
+
+
+_dead_reckoning_jit = jax.jit(_dead_reckoning_scan, static_argnums=0)
+
+
+@functools.lru_cache(maxsize=8)
+def _ackermann_motion(geom):
+    """``planar.ackermann`` with the car's ``geom`` (one callable per geometry: the jitted dead
+    reckoning is compiled once per geometry, not per run)."""
+    from ..dynamics import planar
+
+    return functools.partial(planar.ackermann, geom=geom)
 
 
 def rpe_pairs(t, est, ref, lag_s: float = 1.0, tol_s: float = 0.1):
@@ -181,7 +203,9 @@ def evaluate_planar(t_est, est_pose, t_ref, ref, dr_pose=None, lm=None, lm_ids=N
     into the reference frame by the estimate's alignment.  An estimate that is NaN or Inf at
     some of the evaluated samples (a filter that lost finiteness) leaves the figures NaN and
     is counted in ``nonfinite_estimate_samples`` (absent when there is none).  Arrays of the
-    wrong shape are an :class:`InputError` naming them.
+    wrong shape, and landmark ids the map error cannot pair (missing with ``lm`` and ``lm_true``
+    both given, fractional, repeated), are an :class:`InputError` naming them (``lm_ids``,
+    ``lm_true_ids``).
     """
     t_est = _times(t_est, "t_est")
     if t_est.size == 0:
@@ -263,7 +287,14 @@ def evaluate_planar(t_est, est_pose, t_ref, ref, dr_pose=None, lm=None, lm_ids=N
         if lm_cov is not None:
             ev["lm_cov"] = np.einsum("ij,njk,lk->nil", R, np.asarray(lm_cov, np.float64), R)
         if lm_true is not None:
-            me = metrics.map_error(lm, lm_ids, lm_true, lm_true_ids, transform=(R, tr))
+            try:
+                me = metrics.map_error(lm, lm_ids, lm_true, lm_true_ids, transform=(R, tr))
+            except InputError as e:  # map_error's names (est_ids, true_ids) are not this function's
+                msg = str(e)
+                for theirs, ours in (("est_ids:", "lm_ids:"), ("true_ids:", "lm_true_ids:")):
+                    if msg.startswith(theirs):
+                        raise InputError(ours + msg[len(theirs):]) from None
+                raise
             out["map_err_m"] = me.rmse
             out["map_err_max_m"] = me.max
             out["landmarks_compared"] = int(me.ids.size)
@@ -363,7 +394,12 @@ def dataset_log_options(obj, name: str) -> dict:
 
 
 def to_json(run: DatasetRun) -> dict:
-    """The ``dataset`` JSON (docs/cli.md)."""
+    """The ``dataset`` JSON (docs/cli.md).
+
+    A dict whose non-finite figures stay floats (NaN, e.g. ``timing.compile_s`` of a run timed
+    once): write it with :func:`jaxslam.io.write_json`, which writes them as ``null``
+    (``json.dumps`` would write the non-JSON token ``NaN``).
+    """
     from .. import __version__
 
     return {
@@ -481,13 +517,17 @@ def run_util_uwb(data_dir, robot=1, filter="ekf", ids="known", anchors=None, par
     ``anchors``: "known" (default, surveyed) or "unknown" (SLAM after a start-up
     window); ``tof``: also use the downward laser height (then not range-only).  Noise: the
     fitted preset (``presets.UTIL_FITTED``, ``jaxslam tune util-uwb``); ``params``: a
-    ``--params`` object replacing it.
+    ``--params`` object replacing it.  ``t_window``: the start-up window of ``anchors="unknown"``
+    [s], a positive finite number (else an :class:`InputError` naming it, before any file is read).
     """
     # (as run_dataset does: called directly, a misspelt choice ran as another method or was ignored)
     catalogue.check_options("util-uwb", dict(robot=robot, filter=filter, ids=ids, anchors=anchors,
                                              particles=particles, seed=seed, tof=tof, calibrated=calibrated,
                                              smooth=smooth, params=params))
     dtype = _run_dtype(dtype)
+    if isinstance(t_window, (bool, np.bool_)):  # (True ran a 1 s window)
+        raise InputError(f"t_window: expected a positive finite scalar, got {t_window!r}")
+    t_window = check_scalar(t_window, "t_window", lower=0, strict=True)
     anchors = anchors or "known"
     from ..systems import util_range as ur
     from . import presets
@@ -498,6 +538,11 @@ def run_util_uwb(data_dir, robot=1, filter="ekf", ids="known", anchors=None, par
 
     t0 = time.perf_counter()
     d = load_util(data_dir, "twr_obs_log1")
+    if np.size(d.twr_t) == 0:  # (--anchors unknown raised a bare IndexError; known named util_events)
+        from .textfile import DataFormatError
+
+        raise DataFormatError(f"{d.report['dir']}/uwb_twr.csv", None, "util-uwb: the flight has no two-way "
+                              "ranges (uwb_twr.csv missing or without data rows): nothing to run")
     tag = tag_positions(d.gt_p, d.gt_q, d.tag_offset)
     load_s = time.perf_counter() - t0
     aid = np.asarray(d.anchor_id)
@@ -1032,8 +1077,11 @@ def run_victoria_park(data_dir, robot=1, filter="ekf", ids="known", anchors=None
     pose, lm, counts, comp_s, run_s, status, _ = _planar_run(
         log, pose0, filter, presets.victoria_park_config(), prm, lambda n: _vp_fastslam(n), particles, seed, dtype)
     geom = d.geometry
-    dr = np.asarray(dead_reckoning(lambda s, u, dt: planar.ackermann(s, u, dt, geom), jnp.asarray(pose0),
-                                   log.u, log.dt))
+    try:
+        motion = _ackermann_motion(geom)
+    except TypeError:  # (an unhashable geometry)
+        motion = lambda s, u, dt: planar.ackermann(s, u, dt, geom)  # noqa: E731
+    dr = np.asarray(dead_reckoning(motion, jnp.asarray(pose0), log.u, log.dt))
     m, ev = evaluate_planar(log.t, pose, d.gps_t, d.gps, dr_pose=dr, lm=lm["xy"], lm_cov=lm["cov"],
                             ref_label="GPS", at_ref_times=True)
     # GPS quality: a fix that implies a speed above 8 m/s from either neighbour (the car's top
