@@ -83,18 +83,39 @@ def check_flag(value, name: str) -> bool:
     return bool(value)
 
 
+_KNOWN = sum(FLAG_NAMES)
+
+
+def _word(status) -> int:
+    """``status`` (a status word, or an array of them: OR-ed together; empty: ``OK``) as an int;
+    a non-integer one (a float 2.5 was truncated to ``non_finite``) is an :class:`InputError`."""
+    if isinstance(status, (int, np.integer)):
+        return int(status)
+    a = np.asarray(status)
+    if a.size == 0:
+        return OK
+    if a.dtype.kind not in "iu":
+        raise InputError(f"status: expected an integer status word, got dtype {a.dtype}")
+    return int(np.bitwise_or.reduce(a.ravel().astype(np.int64)))
+
+
 def decode(status) -> list[str]:
-    """Names of the flags set in a status word (host side)."""
-    s = int(np.asarray(status))
+    """Names of the flags set in a status word (host side); an array of words (a batch of
+    runs) is OR-ed first, as :func:`check` does."""
+    s = _word(status)
     return [name for bit, name in FLAG_NAMES.items() if s & bit]
 
 
 def check(status, allow: int = GATED | MASKED_INPUT) -> None:
-    """Raise ``RuntimeError`` if a status word has a flag outside ``allow``."""
-    s = int(np.bitwise_or.reduce(np.asarray(status).ravel())) if np.ndim(status) else int(status)
-    bad = s & ~allow
+    """Raise ``RuntimeError`` if a status word (or any of an array of them) has a flag outside
+    ``allow``; bits no flag names are reported as ``unknown bits 0x…``."""
+    bad = _word(status) & ~allow
     if bad:
-        raise RuntimeError(f"jaxslam status flags set: {', '.join(decode(bad))}")
+        names = decode(bad)
+        unknown = bad & ~_KNOWN & 0xFFFFFFFF
+        if unknown:
+            names.append(f"unknown bits {unknown:#x}")
+        raise RuntimeError(f"jaxslam status flags set: {', '.join(names)}")
 
 
 def check_run_dtype(dtype, where: str = "dtype"):

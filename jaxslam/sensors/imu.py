@@ -42,6 +42,7 @@ Decisions where the papers are silent or wrong (also in docs/papers.md):
 from __future__ import annotations
 
 import math
+import numbers
 from typing import Any, NamedTuple
 
 import jax
@@ -52,7 +53,7 @@ from ..dynamics._checks import as_scalar, check_last_dim, real_float
 from ..compilation import call_compiled
 from ..errors import InputError
 from ..geometry.euler import dcm_from_euler
-from ..linalg import check_float_dtype, check_int, check_numbers, check_real, check_scalar, is_concrete
+from ..linalg import check_float_dtype, check_int, check_key, check_numbers, check_real, check_scalar, is_concrete, list_array
 
 __all__ = [
     "G_IMU",
@@ -119,8 +120,11 @@ def PAPER001_IMU(bias: float = 0.0005, *, rate: float = 100.0, drift_tau: float 
     drift with stationary standard deviation ``drift_fraction``·|bias|.
 
     Returns an :class:`ImuSpec`.  Raises :class:`~jaxslam.errors.InputError` on a non-finite
-    bias or non-positive rate, τ, or a negative fraction.
+    bias or non-positive rate, τ, or a negative fraction, and on a bool argument.
     """
+    for name, v in (("bias", bias), ("rate", rate), ("drift_tau", drift_tau), ("drift_fraction", drift_fraction),
+                    ("accel_noise_density", accel_noise_density), ("gyro_noise_density", gyro_noise_density)):
+        check_real(v, name, allow_bool=False)  # True was read as 1
     bias = check_scalar(bias, "bias")
     rate = check_scalar(rate, "rate", lower=0, strict=True)
     drift_tau = check_scalar(drift_tau, "drift_tau", finite=False, lower=0, strict=True)
@@ -140,7 +144,8 @@ def check_imu_spec(spec: ImuSpec, name: str = "spec") -> ImuSpec:
 
     Raises :class:`~jaxslam.errors.InputError` naming the field when a density, σ or τ is
     negative / non-positive, the rate is not positive, or a field does not broadcast to its
-    shape ((3,) for densities, (6,) for bias/drift fields).
+    shape ((3,) for densities, (6,) for bias/drift fields), or is a bool (``rate=True`` was
+    read as 1 Hz).
     """
     if not isinstance(spec, ImuSpec):
         raise InputError(f"{name}: expected an ImuSpec, got {type(spec).__name__}")
@@ -154,6 +159,7 @@ def check_imu_spec(spec: ImuSpec, name: str = "spec") -> ImuSpec:
         "drift_density": ((6,), "nonneg"),
     }
     for field, (shape, rule) in rules.items():
+        check_real(getattr(spec, field), f"{name}.{field}", allow_bool=False)
         val = check_numbers(getattr(spec, field), f"{name}.{field}")
         try:
             np.broadcast_to(val, shape)
@@ -297,6 +303,14 @@ def _default_dtype(dtype):
     return jnp.result_type(float) if dtype is None else check_float_dtype(dtype)
 
 
+def _shape_prefix(shape_prefix) -> tuple:
+    """``shape_prefix`` as a tuple of ints >= 0; anything else is an :class:`InputError` naming
+    ``shape_prefix`` (a 2.7 used to be truncated to 2, a -1 failed inside XLA)."""
+    if not isinstance(shape_prefix, (tuple, list)):
+        raise InputError(f"shape_prefix: expected a tuple of ints, got {shape_prefix!r}"[:300])
+    return tuple(check_int(d, "shape_prefix", lower=0, what="ints") for d in shape_prefix)
+
+
 def _std_normal(key, shape, dtype):
     """N(0, 1) of ``shape`` drawn flat and reshaped.
 
@@ -323,14 +337,15 @@ def sample_white_noise(key, spec: ImuSpec, shape_prefix=(), dtype=None):
 
     Args:
       key: PRNG key.  spec: :class:`ImuSpec`.
-      shape_prefix: leading shape (static tuple), e.g. ``(T,)`` for a whole run.
+      shape_prefix: leading shape (static tuple of ints >= 0), e.g. ``(T,)`` for a whole run.
       dtype: floating dtype (default: JAX's default float).
 
     Returns:
       (*shape_prefix, 6) zero-mean Gaussian, std :func:`white_noise_sigma` per axis.
     """
+    check_key(key)  # an int seed was JAX's bare "invalid PRNG key data" TypeError
     dtype = _default_dtype(dtype)
-    shape = tuple(shape_prefix) + (6,)
+    shape = _shape_prefix(shape_prefix) + (6,)
     return _std_normal(key, shape, dtype) * _sigma6(spec, dtype)
 
 
@@ -364,7 +379,7 @@ def drift_transition(spec: ImuSpec, dt, method: str = "exact", dtype=None):
     """Per-axis discrete drift model b1[k+1] = a·b1[k] + w_k, Var w_k = q (paper 001 eq. 11).
 
     Args:
-      spec: :class:`ImuSpec`.  dt: step [s].
+      spec: :class:`ImuSpec`.  dt: step [s], one finite real number >= 0.
       method: ``"exact"`` (default): a = e^{−Δt/τ}, q = σ_w² τ/2 (1 − e^{−2Δt/τ}), exact for
         any Δt (→ random walk a = 1, q = σ_w² Δt as τ → ∞).  ``"euler"``: paper 001 eq. 11,
         a = 1 − Δt/τ, q = σ_w² Δt (= T² σ_b1² with σ_b1² = σ_w²/T).  Static argument.
@@ -389,8 +404,12 @@ def _drift(spec: ImuSpec, dt, method: str, dtype):
     (``sqrt``'s is infinite at 0, so ``grad`` w.r.t. ``drift_density`` at 0 was NaN).
     """
     spec = _spec(spec)
-    check_real(dt, "dt")
-    if np.ndim(dt) != 0 or (is_concrete(dt) and not float(np.asarray(dt)) >= 0):  # NaN included
+    check_real(dt, "dt", allow_bool=False)  # True was read as a 1 s step
+    kind = np.dtype(dt.dtype).kind if hasattr(dt, "dtype") else None
+    bad = np.ndim(dt) != 0 or (kind is not None and kind not in "iuf") or (
+        kind is None and not isinstance(dt, numbers.Real))  # a string "0.01" was parsed
+    # NaN included; an infinite step gave q = ∞·0 = NaN
+    if bad or (is_concrete(dt) and not 0 <= float(np.asarray(dt)) < math.inf):
         raise InputError(f"dt: expected a step >= 0 [s] (a scalar), got {dt!r}")
     if dtype is None:
         dtype = dt.dtype if (hasattr(dt, "dtype") and jnp.issubdtype(dt.dtype, jnp.floating)) \
@@ -437,13 +456,14 @@ def bias_drift_init(key, spec: ImuSpec, dtype=None, stationary: bool = True, sha
     Args:
       key: PRNG key.  spec: :class:`ImuSpec`.  dtype: float dtype (default JAX's default).
       stationary: draw b1 from its stationary law (static).
-      shape_prefix: static leading shape, e.g. ``(runs,)`` for independent Monte Carlo runs.
+      shape_prefix: static leading shape (tuple of ints >= 0), e.g. ``(runs,)`` for independent Monte Carlo runs.
 
     Returns a :class:`BiasDriftState` of (*shape_prefix, 6) arrays of ``dtype``.
     """
     spec = _spec(spec)  # a NaN bias or a (7,) one passed (or failed with a bare broadcast error)
+    check_key(key)
     dtype = _default_dtype(dtype)
-    shape = tuple(shape_prefix) + (6,)
+    shape = _shape_prefix(shape_prefix) + (6,)
     kb, kd = jax.random.split(key)
     bias = _b6(spec.bias, dtype) + _b6(spec.bias_sigma, dtype) * _std_normal(kb, shape, dtype)
     if stationary:
@@ -466,6 +486,7 @@ def bias_drift_step(key, state: BiasDriftState, spec: ImuSpec, dt):
 
     Returns the new :class:`BiasDriftState` (same shape and dtype as ``state.drift``).
     """
+    check_key(key)
     state = _drift_state(state)
     dtype = state.drift.dtype
     a, _, sq = _drift(spec, dt, "exact", dtype)
@@ -490,6 +511,7 @@ def bias_drift_rollout(key, state: BiasDriftState, spec: ImuSpec, dt, n_steps: i
     compiled its scan again: 40 ms a call, the program kept).
     """
     n_steps = check_int(n_steps, "n_steps")  # 2.7 used to run 2 steps
+    check_key(key)
     state = _drift_state(state)
     a, _, sq = _drift(spec, dt, "exact", state.drift.dtype)
     return call_compiled(("imu.bias_drift_rollout", n_steps),
@@ -518,11 +540,15 @@ def corrupt(ideal, state: BiasDriftState, white):
     Args:
       ideal: (..., 6) :func:`imu_ideal` output.  state: :class:`BiasDriftState` with fields
         broadcastable to ``ideal``.  white: (..., 6) :func:`sample_white_noise` output.
+      Lists are read as arrays.
 
     Returns (..., 6).
     """
     if not isinstance(state, BiasDriftState):
         raise InputError(f"state: expected a BiasDriftState, got {type(state).__name__}")
+    # lists become arrays (four 6-lists used to be concatenated into a 24-list)
+    ideal, white = list_array(ideal, "ideal"), list_array(white, "white")
+    state = BiasDriftState(bias=list_array(state.bias, "state.bias"), drift=list_array(state.drift, "state.drift"))
     for name, v in (("ideal", ideal), ("state.bias", state.bias), ("state.drift", state.drift), ("white", white)):
         check_real(v, name)  # a complex reading kept its imaginary part
     if np.shape(ideal)[-1:] != (6,):

@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import InputError
-from ..linalg import is_concrete
+from ..linalg import check_float_dtype, check_key, check_numbers, check_real, is_concrete
 from .lidar3d import cartesian_from_spherical
 
 __all__ = ["generate_landmarks", "pole_landmarks"]
@@ -33,6 +33,8 @@ __all__ = ["generate_landmarks", "pole_landmarks"]
 
 def _interval(v, name):
     try:
+        if isinstance(v, (str, bytes)):  # "12" was read as the pair (1, 2)
+            raise TypeError
         lo, hi = (float(t) for t in v)
     except (TypeError, ValueError):
         raise InputError(f"{name}: expected a (low, high) pair, got {v!r}")
@@ -54,15 +56,20 @@ def generate_landmarks(key, n: int = 40, center=(0.0, 0.0, 0.0),
       az_range: (lo, hi) azimuth [rad]; Table 3: [−180°, 180°].
       el_range: (lo, hi) elevation [rad], positive below the horizontal; Table 3: [−50°, 50°].
       range_range: (lo, hi) distance from the centre [m]; Table 3: [8, 20] m.
-      dtype: float dtype (default: JAX's default float).
+      dtype: float dtype (default: JAX's default float); another is an InputError.
 
     Returns:
       (n, 3) landmark positions in N [m]; azimuth, elevation and range are independent and
       uniform in their intervals.
     """
-    if isinstance(n, bool) or int(n) != n or n < 1:
+    try:  # a NaN, an inf or None raised a bare ValueError / OverflowError / TypeError
+        bad = isinstance(n, bool) or int(n) != n or n < 1
+    except (TypeError, ValueError, OverflowError):
+        bad = True
+    if bad:
         raise InputError(f"n: expected a positive integer, got {n!r}")
     n = int(n)
+    check_key(key)  # an int seed was JAX's bare TypeError from inside the sampler
     az = _interval(az_range, "az_range")
     el = _interval(el_range, "el_range")
     if el[0] < -math.pi / 2 or el[1] > math.pi / 2:
@@ -70,11 +77,12 @@ def generate_landmarks(key, n: int = 40, center=(0.0, 0.0, 0.0),
     rg = _interval(range_range, "range_range")
     if rg[0] < 0:
         raise InputError(f"range_range: ranges must be >= 0, got {rg}")
+    check_real(center, "center")  # a complex centre lost its imaginary part silently
     if np.shape(center) != (3,):
         raise InputError(f"center: expected shape (3,), got {np.shape(center)}")
-    if is_concrete(center) and not np.all(np.isfinite(np.asarray(center, float))):
+    if is_concrete(center) and not np.all(np.isfinite(check_numbers(center, "center"))):
         raise InputError(f"center: must be finite, got {center!r}")
-    dtype = jnp.result_type(float) if dtype is None else jnp.dtype(dtype)
+    dtype = jnp.result_type(float) if dtype is None else check_float_dtype(dtype)
     lo = jnp.asarray([az[0], el[0], rg[0]], dtype)
     hi = jnp.asarray([az[1], el[1], rg[1]], dtype)
     u = jax.random.uniform(key, (3 * n,), dtype).reshape(n, 3)

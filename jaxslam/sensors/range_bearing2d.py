@@ -21,7 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import InputError
-from ..linalg import check_real, safe_norm, wrap_angle
+from ..linalg import check_numbers, check_real, is_concrete, safe_norm, wrap_angle
 
 __all__ = ["observe", "inverse", "residual"]
 
@@ -29,8 +29,14 @@ __all__ = ["observe", "inverse", "residual"]
 def _vec(x, n: int, name: str, exact: bool = True):
     """``x`` as a 1-D array of ``n`` entries (``exact=False``: at least ``n``), checked statically
     (free under ``jit``): a (2,) pose used to be read with its heading from a clamped index.
-    A complex ``x`` is refused (its imaginary part was dropped or leaked into the bearing)."""
-    check_real(x, name)
+    A complex ``x`` is refused (its imaginary part was dropped or leaked into the bearing), and so
+    are a bool one (True read as 1 m / 1 rad) and non-numbers (a string was JAX's bare TypeError)."""
+    check_real(x, name, allow_bool=False)
+    dt = getattr(x, "dtype", None)
+    if dt is None and is_concrete(x):
+        check_numbers(x, name)
+    elif dt is not None and np.dtype(dt).kind not in "iuf":
+        raise InputError(f"{name}: expected numbers, got dtype {np.dtype(dt)}")
     x = jnp.asarray(x)
     if x.ndim != 1 or (x.shape[0] != n if exact else x.shape[0] < n):
         raise InputError(f"{name}: expected shape ({n}{'' if exact else '+'},), got {tuple(np.shape(x))}")
