@@ -302,7 +302,7 @@ def imu_noise(imu_spec, dtype=jnp.float64, P0=IMU_P0) -> Params:
 
 def validate_params(params: Params) -> Params:
     """Host-side checks: shapes and PSD of P0, Qc, Qimu; R positive definite; the thresholds
-    positive scalars (``gate`` may be None), nn_gate <= nn_new."""
+    positive scalars, not booleans (``gate`` may be None; ``True`` is not "on"), nn_gate <= nn_new."""
     shapes = {"P0": (NX, NX), "Qc": (NX, NX), "Qimu": (6, 6), "R": (3, 3)}
     for name, shp in shapes.items():
         a = check_numbers(getattr(params, name), f"params.{name}")
@@ -310,6 +310,8 @@ def validate_params(params: Params) -> Params:
             raise InputError(f"params.{name}: expected shape {shp}, got {a.shape}")
         check_psd(a, f"params.{name}", strict=(name == "R"))
     for name in ("gate", "nn_gate", "nn_new"):
+        if _has_bool(getattr(params, name)):  # gate=True ("on") was read as a χ² gate of 1
+            raise InputError(f"params.{name}: expected a positive finite scalar, got {getattr(params, name)!r}")
         if getattr(params, name) is not None or name != "gate":
             check_scalar(getattr(params, name), f"params.{name}", lower=0, strict=True)
     # match below nn_gate, new landmark above nn_new: nn_new < nn_gate made a row both (the
@@ -544,12 +546,16 @@ def make_estimator(config: Config, params: Params, landmarks_true=None):
     from ``params.P0``).
 
     ``params`` is traced (differentiable); ``config`` static.  In ``mode="known"``
-    ``landmarks_true`` (L, 3) must be given and ``config.capacity`` ≥ L.
+    ``landmarks_true`` (L, 3) must be given and ``config.capacity`` ≥ L.  ``config`` and, when
+    its values are concrete, ``params`` are checked as :func:`run` checks them
+    (:func:`validate_params`): an :class:`InputError` naming the field.
     """
     from .estimator import Estimator
 
-    _check_config(config, None if landmarks_true is None else landmarks_true.shape[0], "landmarks_true")
+    _check_config(config, None if landmarks_true is None else int(np.shape(landmarks_true)[0]), "landmarks_true")
     _check_known_map(landmarks_true, config, "landmarks_true")
+    if is_concrete(params):  # as run() checks them (a non-PSD R or a (8, 8) P0 was taken as given)
+        validate_params(params)
 
     def init(key, x0):
         dtype = x0.dtype
@@ -586,18 +592,44 @@ def params_from_dict(d: dict, default: Params, dtype) -> Params:
     """Read a (partial) noise dict, e.g. from ``jaxslam tune`` / ``--params``.
 
     Each entry is a full matrix or a list of diagonal values; missing entries keep
-    ``default``.  Unknown keys are an error naming them.
+    ``default``.  Unknown keys are an error naming them; so is an entry that is not numbers
+    (a string, a ragged list, true/false), of the wrong shape, non-finite, or not symmetric
+    positive semi-definite: an :class:`InputError` naming ``params.noise.KEY`` (they were a
+    bare ``ValueError`` or accepted).  That ``R`` is strictly positive definite is
+    :func:`validate_params`'s check.
     """
+    if not isinstance(d, dict):
+        raise InputError(f"params.noise: expected a dict of {list(NOISE_FIELDS)}, got {type(d).__name__}")
     unknown = set(d) - set(NOISE_FIELDS)
     if unknown:
         raise InputError(f"params.noise: unknown entries {sorted(unknown)}; expected {list(NOISE_FIELDS)}")
+    shapes = {"P0": (NX, NX), "Qc": (NX, NX), "Qimu": (6, 6), "R": (3, 3)}
     vals = default._asdict()
     for k, v in d.items():
-        a = np.asarray(v, float)
-        if a.ndim == 1:
+        name = f"params.noise.{k}"
+        try:
+            a = check_numbers(v, name)  # a string, None, a ragged list: InputError naming it
+        except OverflowError:  # an integer beyond float range
+            raise InputError(f"{name}: holds a number too large for a float") from None
+        if _has_bool(v):  # true/false are not numbers (paramfile refuses them too)
+            raise InputError(f"{name}: expected numbers, got {v!r}"[:300])
+        n = shapes[k][0]
+        if a.shape == (n,):
             a = np.diag(a)
+        if a.shape != shapes[k]:
+            raise InputError(f"{name}: expected shape {shapes[k]} (or its {n} diagonal values), got {a.shape}")
+        src = np.asarray(v).dtype  # a float32 array keeps its rounding room in check_psd
+        check_psd(a.astype(src) if src.kind == "f" else a, name)  # finite, symmetric, PSD
         vals[k] = jnp.asarray(a, dtype)
     return Params(**vals)
+
+
+def _has_bool(v) -> bool:
+    if isinstance(v, (bool, np.bool_)):
+        return True
+    if isinstance(v, (list, tuple)):
+        return any(_has_bool(x) for x in v)
+    return getattr(v, "dtype", None) == np.bool_
 
 
 __all__ += ["params_to_dict", "params_from_dict", "NOISE_FIELDS"]

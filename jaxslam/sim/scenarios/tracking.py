@@ -22,7 +22,7 @@ from ... import metrics
 from ...control import dflqr, trajectories
 from ...dynamics import euler_ned
 from ...errors import InputError
-from ...linalg import check_numbers, check_scalar, wrap_angle
+from ...linalg import check_numbers, check_scalar, list_array, wrap_angle
 from ...sensors import imu as imu_mod
 from ...sensors import lidar3d
 from .. import monte_carlo
@@ -68,7 +68,13 @@ def controller_to_dict(ctrl) -> dict:
 
 
 def controller_from_dict(d: dict, default):
-    """DF-LQR parameters from a (partial) dict of ``--params``: Q, R (matrices or diagonals), kp, kd."""
+    """DF-LQR parameters from a (partial) dict of ``--params``: Q, R (matrices or diagonals), kp, kd.
+
+    A bad entry is an :class:`InputError` naming the key as written, ``params.controller.KEY``
+    (the checks of :func:`jaxslam.control.dflqr.validate` named ``params.Q`` / ``params.pd.kp``).
+    """
+    if not isinstance(d, dict):  # a string was read as its letters: "unknown entries ['a', ...]"
+        raise InputError(f"params.controller: expected a dict of Q, R, kp, kd, got {type(d).__name__}")
     unknown = set(d) - {"Q", "R", "kp", "kd"}
     if unknown:
         raise InputError(f"params.controller: unknown entries {sorted(unknown)}; expected Q, R, kp, kd")
@@ -76,13 +82,36 @@ def controller_from_dict(d: dict, default):
     for k in ("Q", "R"):
         if k in d:
             a = check_numbers(d[k], f"params.controller.{k}")  # "1.5" was parsed as a number
+            _refuse_bools(d[k], f"params.controller.{k}")
             out = out._replace(**{k: np.diag(a) if a.ndim == 1 else a})
     pd = out.pd
     for k in ("kp", "kd"):
         if k in d:
-            pd = pd._replace(**{k: tuple(check_numbers(d[k], f"params.controller.{k}").tolist())})
+            v = check_numbers(d[k], f"params.controller.{k}")
+            _refuse_bools(d[k], f"params.controller.{k}")
+            pd = pd._replace(**{k: tuple(v.tolist())})
     out = out._replace(pd=pd)
-    return dflqr.validate(out)
+    try:
+        return dflqr.validate(out)
+    except InputError as e:  # name the --params key (params.Q -> params.controller.Q)
+        msg = str(e)
+        for key, old_name in (("kp", "params.pd.kp:"), ("kd", "params.pd.kd:"), ("Q", "params.Q:"),
+                              ("R", "params.R:")):
+            if msg.startswith(old_name) and key in d:
+                raise InputError(f"params.controller.{key}:" + msg[len(old_name):]) from None
+        raise
+
+
+def _refuse_bools(v, name: str) -> None:
+    """true/false are not weights or gains (check_numbers read True as 1; paramfile refuses them)."""
+    def has(x):
+        if isinstance(x, (bool, np.bool_)):
+            return True
+        if isinstance(x, (list, tuple)):
+            return any(has(e) for e in x)
+        return getattr(x, "dtype", None) == np.bool_
+    if has(v):
+        raise InputError(f"{name}: expected numbers, got {v!r}"[:300])
 
 
 def tracking_metrics(t, truth, ref):
@@ -91,8 +120,10 @@ def tracking_metrics(t, truth, ref):
     ``t`` (T,), ``truth`` (T, 12) and ``ref`` (T, 4) (:class:`jaxslam.sim.simulate.Flight`'s),
     T >= 1; other shapes are an :class:`InputError` naming the argument (a (1, 4) ``ref`` was
     broadcast against the whole flight).  A non-finite position error counts as outside the
-    settling tolerance (it was counted as settled).
+    settling tolerance (it was counted as settled).  Nested lists are read as arrays (they
+    raised a bare ``TypeError``).
     """
+    t, truth, ref = (list_array(a, nm) for a, nm in ((t, "t"), (truth, "truth"), (ref, "ref")))
     T = np.shape(t)[0] if np.ndim(t) == 1 else None
     if T is None or T < 1:
         raise InputError(f"t: expected shape (T,) with T >= 1, got {tuple(np.shape(t))}")
