@@ -17,11 +17,15 @@ The script:
 
 Run it:  python examples/bearing_only_slam.py [--quick] [--plot FILE.png]
 (``--quick``: fewer steps, tuning iterations and tuning runs; the tests run it that way.)
+The ``--plot`` path is checked before anything is computed: one that cannot be written (its
+folder lies under a file, or cannot be made or written) is an ``InputError`` naming ``plot``
+(from the command line: one line naming ``--plot``, exit code 2).
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 
 import jax
@@ -29,6 +33,8 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from jaxslam.errors import InputError
+from jaxslam.files import prepare_file
 from jaxslam.filters import ekf
 from jaxslam.filters import ekf_slam as es
 from jaxslam.linalg import wrap_angle
@@ -97,6 +103,8 @@ def localise(start, log, landmarks, sigma_b):
 
 
 def main(quick: bool = False, plot: str | None = None) -> dict:
+    if plot:
+        prepare_file("plot", plot)  # an unusable path fails now, not after the whole run
     T = 150 if quick else 600
     runs, n_train, iters = 100, (8 if quick else 20), (80 if quick else 150)
     keys = jax.random.split(jax.random.PRNGKey(0), runs + 2 * n_train)
@@ -193,5 +201,11 @@ if __name__ == "__main__":
     ap.add_argument("--quick", action="store_true", help="fewer steps, tuning iterations and tuning runs")
     ap.add_argument("--plot", default=None, help="write a figure of one run to this PNG")
     a = ap.parse_args()
+    if a.plot:
+        try:
+            prepare_file("--plot", a.plot)
+        except InputError as e:
+            print(f"bearing_only_slam.py: error: {e}", file=sys.stderr)
+            raise SystemExit(2) from None
     jax.config.update("jax_enable_x64", True)  # the script's choice (the library never sets it)
     main(a.quick, a.plot)

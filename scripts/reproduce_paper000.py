@@ -2,8 +2,9 @@
 
 Runs ``ekfslam3d-known`` and ``ekfslam3d-unknown`` with both noise settings (``--q imu``, the
 Q derived from the IMU densities of Table 5, and ``--q paper``, Tables 6-7) over N seeded
-Monte Carlo runs, writes one run JSON per case and a markdown table beside the paper's
-single-run figures.
+Monte Carlo runs, writes one run JSON per case and a markdown table (``table.md``;
+``table_f32.md`` with ``--float32``, beside the ``_f32`` JSONs) beside the paper's single-run
+figures.
 
     python scripts/reproduce_paper000.py --runs 100 --out out/paper000
 
@@ -20,6 +21,8 @@ import argparse
 import json
 import pathlib
 import sys
+
+from jaxslam.files import atomic_write
 
 
 PAPER = {  # paper 000, Sec. 3 (one run): average RMSE
@@ -71,7 +74,7 @@ def main(argv=None):
         lines.append(f"| {mode} | paper (1 run) | " + " | ".join(
             f"{figs[k]:.3f}" if k in figs else "—" for k in SHOW) + " | — | — |")
     table = "\n".join(lines)
-    (out / "table.md").write_text(table + "\n")
+    atomic_write(out / ("table_f32.md" if args.float32 else "table.md"), lambda f: f.write(table + "\n"))
     print(table)
     return 0
 

@@ -12,14 +12,17 @@ seeded flights of ``fastslam-helix`` once (vmapped) and runs every filter config
 * ``dynamics_mismatch``    — ``dynamics`` with the filter's inertia +150 % (truth unchanged);
 * ``dynamics_stage1_mismatch`` — ``dynamics_stage1`` with the mismatch.
 
-Writes ``OUT/bias<b>_<config>.json`` (run-JSON layout: config, metrics with mean / median /
-p95 / max / per_run, flags, timing) and ``OUT/table.md``.
+Writes ``OUT/bias<b>_<config>.json`` (``bias<b>_<config>_f32.json`` with ``--float32``, so a
+float32 run never replaces the float64 results; run-JSON layout: config, metrics with mean /
+median / p95 / max / per_run, flags, timing) and ``OUT/table.md`` (``table_f32.md``).
 
     python scripts/reproduce_paper001.py --runs 20 --particles 200 --duration 20 \
         --out docs/results/paper001
 
 ``--measure`` times one run of one configuration and exits (choose N and duration with it);
-``--table-only`` rebuilds ``table.md`` from the JSON files already in ``--out``.
+``--table-only`` rebuilds ``table.md`` from the JSON files already in ``--out`` (the float32
+ones with ``--float32``).  A malformed option (``--biases``, a count below 1, a duration not
+above 0) exits with code 2 and one line, before anything is computed.
 Every figure comes from the public API (:mod:`jaxslam.sim.scenarios.fastslam`,
 :mod:`jaxslam.systems.fastslam_001`).
 """
@@ -38,6 +41,8 @@ import time
 
 import numpy as np
 
+from jaxslam.files import atomic_write
+
 CONFIGS = {
     "kinematics": dict(model="kinematics"),
     "dynamics": dict(model="dynamics"),
@@ -48,6 +53,20 @@ CONFIGS = {
 }
 SHOW = ["pos_rmse_m", "att_rmse_deg", "vel_rmse_mps", "landmark_rmse_m", "accel_bias_err_frac",
         "gyro_bias_err_frac", "neff_min", "resamples"]
+
+
+def _usage(message: str):
+    """A usage error: one line on stderr, exit code 2."""
+    print(f"reproduce_paper001.py: error: {message}", file=sys.stderr)
+    raise SystemExit(2)
+
+
+def _json_name(bias, name, float32=False):
+    return f"bias{bias:g}_{name}{'_f32' if float32 else ''}.json"
+
+
+def _table_name(float32=False):
+    return "table_f32.md" if float32 else "table.md"
 
 
 def _options(sc, bias, particles, duration, extra):
@@ -72,17 +91,39 @@ def main(argv=None):
     ap.add_argument("--table-only", action="store_true",
                     help="rebuild OUT/table.md from the JSON files already in OUT (no runs)")
     args = ap.parse_args(argv)
+    try:
+        biases = [float(b) for b in args.biases.split(",")]
+    except ValueError:
+        biases = []
+    if not biases or not all(np.isfinite(b) and b >= 0 for b in biases):
+        _usage(f"--biases: expected comma-separated finite numbers >= 0, got {args.biases!r}")
+    for opt, v in (("--runs", args.runs), ("--particles", args.particles), ("--chunk", args.chunk)):
+        if v is not None and v < 1:
+            _usage(f"{opt}: expected an int >= 1, got {v}")
+    if not (np.isfinite(args.duration) and args.duration > 0):
+        _usage(f"--duration: expected a number > 0, got {args.duration}")
+    names = [c for c in args.configs.split(",") if c]
+    for c in names:
+        if c not in CONFIGS:
+            ap.error(f"--configs: unknown configuration {c!r}; choose from {sorted(CONFIGS)}")
     if args.table_only:
         out = pathlib.Path(args.out)
-        biases = [float(b) for b in args.biases.split(",")]
-        names = [c for c in args.configs.split(",") if c]
-        rows = rows_from_dir(out, biases, names)
+        rows = rows_from_dir(out, biases, names, args.float32)
         if not rows:
             ap.error(f"--table-only: no result JSON in {out}")
         r0 = rows[0][2]
+
+        def setting(r):
+            return r["runs"], r["config"]["particles"], r["config"]["duration"], r["dtype"]
+
+        for bias, name, r in rows[1:]:  # one header describes every row
+            if setting(r) != setting(r0):
+                _usage(f"--table-only: {_json_name(bias, name, args.float32)} holds (runs, particles, duration, "
+                       f"dtype) {setting(r)}, {_json_name(rows[0][0], rows[0][1], args.float32)} {setting(r0)}; "
+                       "rerun one of them or tabulate them apart (--configs, --biases)")
         table = make_table(rows, biases, names, r0["runs"], r0["config"]["particles"],
                            r0["config"]["duration"], r0["dtype"] == "float32")
-        (out / "table.md").write_text(table + "\n")
+        atomic_write(out / _table_name(args.float32), lambda f: f.write(table + "\n"))
         print(table)
         return 0
 
@@ -99,11 +140,6 @@ def main(argv=None):
     dtype = jnp.float32 if args.float32 else jnp.float64
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    biases = [float(b) for b in args.biases.split(",")]
-    names = [c for c in args.configs.split(",") if c]
-    for c in names:
-        if c not in CONFIGS:
-            ap.error(f"--configs: unknown configuration {c!r}; choose from {sorted(CONFIGS)}")
 
     if args.measure:
         opts = _options(sc, biases[0], args.particles, args.duration, CONFIGS["dynamics"])
@@ -179,15 +215,15 @@ def main(argv=None):
                            "runs_per_s": args.runs / run_s, "truth_s": truth_s},
                 "versions": {"jax": jax.__version__},
             }
-            path = out / f"bias{bias:g}_{name}.json"
-            path.write_text(json.dumps(report, indent=1))
+            path = out / _json_name(bias, name, args.float32)
+            atomic_write(path, lambda f, report=report: f.write(json.dumps(report, indent=1)))
             print(f"  {name}: compile {compile_s:.0f} s, run {run_s:.0f} s; pos "
                   f"{report['metrics']['pos_rmse_m']['mean']:.4f} m", file=sys.stderr)
             rows.append((bias, name, report))
 
     table = make_table(rows, biases, names, args.runs, args.particles, args.duration,
                        args.float32)
-    (out / "table.md").write_text(table + "\n")
+    atomic_write(out / _table_name(args.float32), lambda f: f.write(table + "\n"))
     print(table)
     return 0
 
@@ -227,12 +263,13 @@ def make_table(rows, biases, names, runs, particles, duration, float32=False):
     return "\n".join(lines)
 
 
-def rows_from_dir(out, biases, names):
-    """(bias, name, report) rows from the JSON files an earlier run wrote in ``out``."""
+def rows_from_dir(out, biases, names, float32=False):
+    """(bias, name, report) rows from the JSON files an earlier run wrote in ``out`` (the
+    ``_f32`` ones with ``float32``)."""
     rows = []
     for bias in biases:
         for name in names:
-            path = pathlib.Path(out) / f"bias{bias:g}_{name}.json"
+            path = pathlib.Path(out) / _json_name(bias, name, float32)
             if path.exists():
                 rows.append((bias, name, json.loads(path.read_text())))
     return rows

@@ -11,7 +11,7 @@ vmapped Monte Carlo runs in these cases:
   the consistency check and the effect of the uniform noise on it.
 
 Writes one run JSON per case to ``--out`` (default ``docs/results/paper003``) and
-``table.md`` with the mean and p95 of every metric, the largest position error of
+``table.md`` (``table_f32.md`` and ``_f32`` JSONs with ``--float32``) with the mean and p95 of every metric, the largest position error of
 any run, and the ANEES (position, 2 states; robot block, 10 states) against their
 95 % bounds with the share of steps inside them.  Every figure comes from the public API
 (``jaxslam run``)::
@@ -30,6 +30,8 @@ import argparse
 import json
 import pathlib
 import sys
+
+from jaxslam.files import atomic_write
 
 CASES = [  # (mode, model, noise, filter)
     ("slam", "squared", "uniform", "paper"),
@@ -61,12 +63,17 @@ def main(argv=None):
     ap.add_argument("--table-only", action="store_true",
                     help="rebuild table.md from the JSONs already in --out (no run)")
     args = ap.parse_args(argv)
+    scenarios = [s.strip() for s in args.scenarios.split(",") if s.strip()]
+    if not scenarios:  # an empty table would replace table.md
+        print(f"reproduce_paper003.py: error: --scenarios: expected a comma-separated list of circle, square, "
+              f"rough, got {args.scenarios!r}", file=sys.stderr)
+        return 2
     from jaxslam import cli
 
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     rows = []
-    for sc in [s.strip() for s in args.scenarios.split(",") if s.strip()]:
+    for sc in scenarios:
         for mode, model, noise, filt in CASES:
             tag = f"uwb-{sc}_{mode}_{model}_{noise}_{filt}{'_f32' if args.float32 else ''}"
             path = out / f"{tag}.json"
@@ -120,7 +127,7 @@ def main(argv=None):
             lines.append(f"| {sc} | {model} | {noise} | {d['anees']:.2f} | {d['nees_var_over_2n']:.2f} | "
                          f"{d['fraction_nees_above_chi2_95']:.3f} |")
     table = "\n".join(lines)
-    (out / "table.md").write_text(table + "\n")
+    atomic_write(out / ("table_f32.md" if args.float32 else "table.md"), lambda f: f.write(table + "\n"))
     print(table)
     return 0
 

@@ -7,7 +7,10 @@
 * ``lineslam-room`` (ch. 4, Algorithm 2): ``--runs`` vmapped Monte Carlo runs (default 100).
 
 Writes one run JSON per case to ``--out`` (default ``docs/results/paper004``) and
-``table.md`` with the mean and p95 of every metric.  Every figure comes from the public
+``table.md`` with the mean and p95 of every metric.  ``--parts`` (``attitude``, ``lineslam``
+or both) picks what is run; ``table.md`` still holds a part that was not run when its JSONs
+are already in ``--out`` with the same runs and seed (so ``--parts attitude`` followed by
+``--parts lineslam`` leaves both in the table).  Every figure comes from the public
 CLI (``jaxslam run``)::
 
     python scripts/reproduce_paper004.py --runs 100 --plots docs/results/paper004/plots
@@ -25,6 +28,8 @@ import json
 import pathlib
 import sys
 
+from jaxslam.files import atomic_write
+
 ATT_CASES = [(g, t, p) for g in ("thesis", "prototype") for t in ("direct", "exact")
              for p in ("constant", "sinusoidal", "random")]
 ATT_SHOW = ["att_err_rms_deg", "att_err_final_deg", "rate_err_rms_dps", "max_torque", "settle_time_s"]
@@ -40,6 +45,21 @@ def _cell(m):
     return "—" if m is None else f"{_num(m['mean'])} / {_num(m['p95'])}"
 
 
+PARTS = ("attitude", "lineslam")
+
+
+def _usage(message: str) -> int:
+    """A usage error: one line on stderr, exit code 2."""
+    print(f"reproduce_paper004.py: error: {message}", file=sys.stderr)
+    return 2
+
+
+def _tags(args):
+    """(part, scenario, tag, runs) of every case, in table order."""
+    return ([("attitude", "attitude-smc", f"attitude-smc_{g}_{t}_{p}", args.att_runs) for g, t, p in ATT_CASES]
+            + [("lineslam", "lineslam-room", "lineslam-room", args.runs)])
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=100, help="lineslam-room Monte Carlo runs (default 100)")
@@ -47,23 +67,45 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default="docs/results/paper004")
     ap.add_argument("--plots", default=None, help="also write the figures of each case here")
-    ap.add_argument("--parts", default="attitude,lineslam")
+    ap.add_argument("--parts", default="attitude,lineslam",
+                    help="comma-separated parts to run: attitude, lineslam (default both)")
     ap.add_argument("--table-only", action="store_true",
                     help="rebuild table.md from the JSONs already in --out (no run)")
     args = ap.parse_args(argv)
     from jaxslam import cli
 
     parts = {p.strip() for p in args.parts.split(",") if p.strip()}
+    if not parts or parts - set(PARTS):
+        return _usage(f"--parts: expected a comma-separated subset of {', '.join(PARTS)}, got {args.parts!r}")
+    for name in ("runs", "att_runs"):
+        if getattr(args, name) < 1:
+            return _usage(f"--{name.replace('_', '-')}: expected an int >= 1, got {getattr(args, name)}")
     out = pathlib.Path(args.out)
+
+    def stored(part):
+        """A part that is not run is tabulated when every JSON of it is in --out, same runs and seed."""
+        for p, _, tag, runs in _tags(args):
+            path = out / f"{tag}.json"
+            if p != part:
+                continue
+            try:
+                res = json.loads(path.read_text())
+            except (OSError, ValueError):
+                return False
+            if (res.get("runs"), res.get("seed")) != (runs, args.seed):
+                return False
+        return True
+
+    shown = [p for p in PARTS if p in parts or stored(p)]
     out.mkdir(parents=True, exist_ok=True)
 
-    def run(scenario, tag, extra, runs):
+    def run(scenario, tag, extra, runs, part):
         path = out / f"{tag}.json"
         argv_run = ["run", scenario, "--runs", str(runs), "--seed", str(args.seed), "--json", str(path),
                     "--quiet", *extra]
         if args.plots:
             argv_run += ["--plots", str(pathlib.Path(args.plots) / tag)]
-        if not args.table_only:
+        if not args.table_only and part in parts:
             print("jaxslam " + " ".join(argv_run), file=sys.stderr, flush=True)
             rc = cli.main(argv_run)
             if rc != 0:
@@ -77,19 +119,19 @@ def main(argv=None):
         return res
 
     lines = [f"Paper 004 reproduction, seed {args.seed}; cells are mean / p95 over the runs.", ""]
-    if "attitude" in parts:
+    if "attitude" in shown:
         lines += [f"attitude-smc: 25 s at 1 ms, τ_max 0.18 N m, tanh ε = 1, perturbation bound at Theorem "
                   f"3.1's admissible L1, L2; {args.att_runs} runs per case (constant and sinusoidal runs are "
                   "identical).", "",
                   "| gains | torque | perturbation | " + " | ".join(ATT_SHOW) + " |", "|---" * (len(ATT_SHOW) + 3) + "|"]
         for g, t, p in ATT_CASES:
             res = run("attitude-smc", f"attitude-smc_{g}_{t}_{p}",
-                      ["--gains", g, "--torque", t, "--perturbation", p], args.att_runs)
+                      ["--gains", g, "--torque", t, "--perturbation", p], args.att_runs, "attitude")
             m = res["metrics"]
             lines.append(f"| {g} | {t} | {p} | " + " | ".join(_cell(m.get(k)) for k in ATT_SHOW) + " |")
         lines.append("")
-    if "lineslam" in parts:
-        res = run("lineslam-room", "lineslam-room", [], args.runs)
+    if "lineslam" in shown:
+        res = run("lineslam-room", "lineslam-room", [], args.runs, "lineslam")
         m, c = res["metrics"], res["consistency"]
         lo, hi = c["anees_bounds"]
         lines += [f"lineslam-room: {args.runs} runs of 60 s (600 scans); ANEES = pose NEES (3 dof) averaged "
@@ -106,7 +148,7 @@ def main(argv=None):
                   f"(bounds [{c['nis_bounds'][0]:.3f}, {c['nis_bounds'][1]:.3f}]); flags {res['flags']}; "
                   f"timing {res['timing']}"]
     table = "\n".join(lines)
-    (out / "table.md").write_text(table + "\n")
+    atomic_write(out / "table.md", lambda f: f.write(table + "\n"))
     print(table)
     return 0
 

@@ -8,15 +8,19 @@ process.  For each cell the executor records, in the nbformat-4 cell outputs:
 
 * what the cell printed on stdout / stderr (``stream`` outputs);
 * the value of a last bare expression (``execute_result``, ``text/plain`` repr), as
-  Jupyter shows it;
+  Jupyter shows it (not when it is None or the cell ends with ``;``);
 * every matplotlib figure left open at the end of the cell (``display_data`` with a PNG);
   figures are closed afterwards, and ``plt.show()`` is a no-op (Agg backend);
 * an exception as an ``error`` output (name, value, traceback); execution stops there,
   the partially executed notebook is still written, and the exit code is 1.
 
 Line magics and shell escapes (lines starting with ``%`` or ``!``) are not supported and
-are skipped with a note on stderr.  Only the standard library and (if the notebook uses
-it) matplotlib are needed; no jupyter, nbformat or nbconvert.
+are skipped with a note on stderr (replaced by ``pass`` at their indentation, so a block
+that holds one still parses).  A notebook that cannot be read (missing, not JSON, not
+nbformat 4), ``--inplace`` with ``--out``, an ``--out`` whose folder does not exist or a
+``--cwd`` that is not a folder is a usage error: one line on stderr, exit code 2, nothing
+run.  Only the standard library and (if the notebook uses it) matplotlib are needed; no
+jupyter, nbformat or nbconvert.
 
 Library use: ``execute(path, out_path=None, cwd=None) -> (notebook dict, error or None)``.
 """
@@ -32,7 +36,9 @@ import json
 import os
 import pathlib
 import sys
+import tempfile
 import time
+import tokenize
 import traceback
 
 __all__ = ["execute", "main"]
@@ -52,7 +58,8 @@ def _strip_magics(src: str, where: str) -> str:
     for ln in src.splitlines():
         if ln.lstrip().startswith(("%", "!")):
             print(f"run_notebook: {where}: skipped unsupported line {ln.strip()!r}", file=sys.stderr)
-            out.append("pass  # " + ln.strip())
+            indent = ln[:len(ln) - len(ln.lstrip())]  # kept: the line may sit in a block
+            out.append(indent + "pass  # " + ln.strip())
         else:
             out.append(ln)
     return "\n".join(out)
@@ -86,6 +93,19 @@ def _prepare_matplotlib():
         pass
 
 
+def _ends_with_semicolon(code: str) -> bool:
+    """Whether the cell's last token (comments aside) is ``;``: Jupyter then shows no value."""
+    last = None
+    try:
+        for tok in tokenize.generate_tokens(io.StringIO(code).readline):
+            if tok.type not in (tokenize.COMMENT, tokenize.NL, tokenize.NEWLINE, tokenize.INDENT,
+                                tokenize.DEDENT, tokenize.ENDMARKER):
+                last = tok
+    except (tokenize.TokenError, SyntaxError):
+        return False
+    return last is not None and last.type == tokenize.OP and last.string == ";"
+
+
 def _run_cell(code: str, ns: dict, name: str):
     """Execute ``code``; returns (value of a last bare expression or None)."""
     tree = ast.parse(code, filename=name, mode="exec")
@@ -93,7 +113,7 @@ def _run_cell(code: str, ns: dict, name: str):
     if tree.body and isinstance(tree.body[-1], ast.Expr):
         last = ast.Expression(tree.body.pop().value)
     exec(compile(tree, name, "exec"), ns)  # noqa: S102 - executing the notebook is the point
-    if last is not None:
+    if last is not None and not _ends_with_semicolon(code):
         return eval(compile(last, name, "eval"), ns)  # noqa: S307
     return None
 
@@ -102,12 +122,19 @@ def execute(path, out_path=None, cwd=None):
     """Execute the notebook at ``path``; write it (with outputs) to ``out_path`` if given.
 
     Returns ``(notebook dict, error)`` where ``error`` is None or a dict
-    ``{"cell": index, "ename", "evalue"}`` of the first failing cell.
+    ``{"cell": index, "ename", "evalue"}`` of the first failing cell.  Every code cell's
+    outputs and execution count are cleared first (as Jupyter's "restart and run all"), so
+    cells after a failing one hold no outputs of an earlier execution.  The output file is
+    written atomically (a temporary file renamed over it): an interrupted or failed write
+    never leaves a truncated notebook, which matters with ``--inplace``.
     """
     path = pathlib.Path(path)
     nb = json.loads(path.read_text(encoding="utf-8"))
     if nb.get("nbformat") != 4:
         raise ValueError(f"{path}: only nbformat 4 notebooks are supported")
+    for cell in nb.get("cells", []):
+        if cell.get("cell_type") == "code":
+            cell["outputs"], cell["execution_count"] = [], None
     _prepare_matplotlib()
     ns = {"__name__": "__main__", "__file__": str(path.resolve())}
     old_cwd = os.getcwd()
@@ -154,8 +181,40 @@ def execute(path, out_path=None, cwd=None):
     finally:
         os.chdir(old_cwd)
     if out_path is not None:
-        pathlib.Path(out_path).write_text(json.dumps(nb, indent=1, ensure_ascii=False) + "\n", encoding="utf-8")
+        _write_atomic(pathlib.Path(out_path), nb)
     return nb, error
+
+
+def _write_atomic(path: pathlib.Path, nb: dict) -> None:
+    """``nb`` as JSON in ``path``: a temporary file in its folder, renamed over it."""
+    text = json.dumps(nb, indent=1, ensure_ascii=False) + "\n"
+    try:
+        data = text.encode("utf-8")
+    except UnicodeEncodeError:  # e.g. a lone surrogate printed by a cell: ASCII JSON (\u escapes)
+        data = (json.dumps(nb, indent=1) + "\n").encode("ascii")
+    if path.is_symlink():  # the link's target is replaced, the link kept
+        path = path.resolve()
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        if path.exists():
+            os.chmod(tmp, path.stat().st_mode & 0o7777)
+        else:
+            umask = os.umask(0)
+            os.umask(umask)
+            os.chmod(tmp, 0o666 & ~umask)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+
+
+def _usage(message: str) -> int:
+    """A usage error: one line on stderr, exit code 2 (no usage block, no traceback)."""
+    print(f"run_notebook.py: error: {message}", file=sys.stderr)
+    return 2
 
 
 def main(argv=None) -> int:
@@ -165,8 +224,24 @@ def main(argv=None) -> int:
     p.add_argument("--inplace", action="store_true", help="overwrite the input notebook with the outputs")
     p.add_argument("--cwd", help="working directory of the cells (default: the notebook's folder)")
     a = p.parse_args(argv)
+    if a.inplace and a.out:
+        return _usage("--inplace and --out exclude each other")
     src = pathlib.Path(a.notebook)
     out = src if a.inplace else pathlib.Path(a.out) if a.out else src.with_suffix(".executed.ipynb")
+    try:  # a notebook that cannot be read: one line and exit 2, before anything runs
+        nb = json.loads(src.read_text(encoding="utf-8"))
+    except OSError as e:
+        return _usage(f"{src}: cannot read the notebook: {e.strerror or e}")
+    except UnicodeDecodeError as e:
+        return _usage(f"{src}: not UTF-8 text ({e.reason} at byte {e.start})")
+    except json.JSONDecodeError as e:
+        return _usage(f"{src}:{e.lineno}: not a JSON notebook: {e.msg} (column {e.colno})")
+    if not isinstance(nb, dict) or nb.get("nbformat") != 4:
+        return _usage(f"{src}: only nbformat 4 notebooks are supported")
+    if not out.resolve().parent.is_dir():  # checked now: the executed notebook must not be lost
+        return _usage(f"--out: the folder of {str(out)!r} does not exist")
+    if a.cwd is not None and not pathlib.Path(a.cwd).is_dir():
+        return _usage(f"--cwd: {a.cwd!r} is not a folder")
     t0 = time.perf_counter()
     _, error = execute(src, out, a.cwd)
     dt = time.perf_counter() - t0
