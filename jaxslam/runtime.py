@@ -180,9 +180,14 @@ def configure_process(cache: bool = True) -> dict:
     False (NumPy's too), else :class:`~jaxslam.errors.InputError` naming ``cache``, before any
     setting is made (a string "no" is truthy and switched the cache on).
     """
-    from .errors import check_flag
+    # (checked without importing jaxslam.errors, which imports NumPy: NumPy's OpenBLAS must start
+    # after OPENBLAS_NUM_THREADS is set; NumPy's bool is recognised by its type's module and name)
+    if not (cache is True or cache is False
+            or (type(cache).__module__ == "numpy" and type(cache).__name__ in ("bool", "bool_"))):
+        from .errors import InputError
 
-    cache = check_flag(cache, "cache")
+        raise InputError(f"cache: expected True or False, got {cache!r}"[:300])
+    cache = bool(cache)
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     flags = os.environ.get("XLA_FLAGS", "")
     missing = [f for f in XLA_WORKAROUND_FLAGS if f.split("=")[0] not in flags]

@@ -181,7 +181,13 @@ def _holds(d: Dataset, folder: pathlib.Path) -> bool:
 
 
 def _util_flight(folder: pathlib.Path) -> bool:
-    return "_obs_log" in folder.name and folder.is_dir() and (folder / "groundtruth.csv").is_file()
+    """A flight folder as the loader resolves it (``textfile.resolve_dataset_dir``): named
+    ``*_obs_log*``, holding ``groundtruth.csv`` itself or in a subfolder (a twice-nested unzip,
+    ``twr_obs_log1/twr_obs_log1/``)."""
+    if "_obs_log" not in folder.name or not folder.is_dir():
+        return False
+    return (folder / "groundtruth.csv").is_file() or any(
+        c.is_dir() and (c / "groundtruth.csv").is_file() for c in folder.iterdir())
 
 
 def _robots_in(d: Dataset, folder: pathlib.Path) -> list:

@@ -92,9 +92,11 @@ def dead_reckoning(motion, pose0, u, dt):
     """Noise-free integration of ``motion(s, u_k, dt_k)`` over an event log; (T, n) poses.
 
     ``u``: (T, m) inputs and ``dt``: (T,) steps, one per event (other shapes are an
-    :class:`InputError` naming them).  One jitted program per ``motion`` (a function or a
-    ``functools.partial``; another callable runs eagerly) and shape: a second call with the same
-    ``motion`` object compiles nothing."""
+    :class:`InputError` naming them).  jaxslam's own motion models (a module-level function
+    of the package, or a ``functools.partial`` of one) run as one jitted program per model and
+    shape: a second call compiles nothing.  Any other ``motion`` (a user's function, a lambda,
+    a callable object) is traced at every call, so a change of what it reads (a global, a
+    closure, its state) is always seen and nothing is kept for it."""
     if not callable(motion):
         raise InputError(f"motion: expected a callable motion(s, u, dt), got {motion!r}"[:300])
     if np.ndim(u) != 2:
@@ -103,9 +105,20 @@ def dead_reckoning(motion, pose0, u, dt):
         raise InputError(f"dt: expected shape ({np.shape(u)[0]},) (one step per row of u), got {np.shape(dt)}")
 
     args = (to_jax(pose0), to_jax(u), to_jax(dt))
-    if not (isinstance(motion, (types.FunctionType, functools.partial))):  # (a callable object's state
-        return _dead_reckoning_scan(motion, *args)  # could change under the same hash: run eagerly)
-    return _dead_reckoning_jit(motion, *args)  # (the eager scan compiled again at every call)
+    if _own_motion(motion):  # (the eager scan compiled again at every call)
+        return _dead_reckoning_jit(motion, *args)
+    # a jit keyed on a user's function would serve a stale program when what it reads changes,
+    # and keep one program (with the function) per fresh lambda: traced every call instead
+    return _dead_reckoning_scan(motion, *args)
+
+
+def _own_motion(motion) -> bool:
+    """True for a pure motion model of this package: a module-level ``jaxslam`` function without
+    a closure, or a ``functools.partial`` of one (the jit's key is the object itself)."""
+    f = motion.func if isinstance(motion, functools.partial) else motion
+    return (isinstance(f, types.FunctionType) and f.__closure__ is None
+            and (f.__module__ or "").startswith("jaxslam.") and "<locals>" not in f.__qualname__
+            and f.__name__ != "<lambda>")
 
 
 def _dead_reckoning_scan(motion, pose0, u, dt):

@@ -145,15 +145,16 @@ def observe(mon: Monitor, state: SlamState, model: SlamModel, d2, valid, params:
     d2: (K,) marginal NIS of the rows offered to the update; valid: (K,) bool rows that count
     (known landmarks, mapped).  Returns (monitor, state).  Shapes are checked (static) and, when
     concrete, ``params`` (:func:`check_params`) and ``d2`` on the valid rows (not NaN: one NaN
-    would make the running mean NaN for the rest of the run; not negative: a −inf held it at
-    −inf): :class:`InputError` naming them.
+    would make the running mean NaN for the rest of the run; not negative beyond round-off,
+    −1e-6: a −inf held it at −inf): :class:`InputError` naming them.
     """
     check_params(params)
     d2, valid = _rows(d2, valid)
     if is_concrete(d2, valid) and np.any(np.isnan(np.asarray(d2)) & np.asarray(valid)):
         raise InputError("d2: NaN on a valid row")
-    if is_concrete(d2, valid) and np.any((np.asarray(d2) < 0) & np.asarray(valid)):
-        # a d² of −inf held the running mean at −inf (the monitor never tripped again)
+    if is_concrete(d2, valid) and np.any((np.asarray(d2) < -1e-6) & np.asarray(valid)):
+        # a d² of −inf held the running mean at −inf (the monitor never tripped again); a
+        # round-off −1e-17 of a d² near 0 is not refused
         raise InputError("d2: negative on a valid row (a squared Mahalanobis distance is >= 0)")
     return _observe(mon, state, model, d2, valid, params)
 

@@ -306,7 +306,8 @@ def _default_dtype(dtype):
 def _shape_prefix(shape_prefix) -> tuple:
     """``shape_prefix`` as a tuple of ints >= 0; anything else is an :class:`InputError` naming
     ``shape_prefix`` (a 2.7 used to be truncated to 2, a -1 failed inside XLA)."""
-    if not isinstance(shape_prefix, (tuple, list)):
+    if not (isinstance(shape_prefix, (tuple, list))
+            or (isinstance(shape_prefix, np.ndarray) and shape_prefix.ndim == 1)):  # np.array([3]) too
         raise InputError(f"shape_prefix: expected a tuple of ints, got {shape_prefix!r}"[:300])
     return tuple(check_int(d, "shape_prefix", lower=0, what="ints") for d in shape_prefix)
 

@@ -246,7 +246,8 @@ def default_params(sigma_r: float = 0.1, sigma_b: float = 0.01, sigma_v: float =
     """Params from standard deviations (``sigma_v``/``sigma_w`` are input-noise *density*
     roots, e.g. m/s·√s; defaults are placeholders, the dev script states its sources).  Known
     numbers are checked: the standard deviations finite and >= 0 (a negative one was squared
-    into a valid variance), ``floor`` 3 finite densities >= 0; :class:`InputError` naming it."""
+    into a valid variance), ``floor`` 3 finite densities >= 0, ``pose0_sigma`` 3 finite standard
+    deviations >= 0; :class:`InputError` naming it."""
     for name, v in (("sigma_r", sigma_r), ("sigma_b", sigma_b), ("sigma_v", sigma_v), ("sigma_w", sigma_w)):
         if is_concrete(v):
             check_scalar(v, name, lower=0)

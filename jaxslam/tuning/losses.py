@@ -213,17 +213,21 @@ def nees_loss(nees, n: int, mask=None):
 
     Zero when the time-averaged NEES equals n (a consistent filter); ``mask`` (T,) bool (or
     0/1 integers) selects the steps counted (e.g. frames after a settling time).  A known
-    negative NEES (a quadratic form is >= 0) is an :class:`InputError` (its log was a silent NaN).
+    negative NEES on a counted step (a quadratic form is >= 0) is an :class:`InputError` (its log
+    was a silent NaN).
     """
     nees = float_array(nees, "nees")
     if nees.size == 0:
         raise InputError(f"nees: expected a non-empty NEES series, got shape {tuple(nees.shape)}")
-    if is_concrete(nees) and np.any(np.asarray(nees) < 0):
-        raise InputError(f"nees: expected values >= 0 (NEES is a quadratic form), got min {float(np.nanmin(np.asarray(nees)))}")
     if is_concrete(n):
         check_int(n, "n", lower=1, what="a state dimension (int)")
     if mask is not None:
         mask = _mask(mask, nees.shape)
+    if is_concrete(nees) and (mask is None or is_concrete(mask)):
+        counted = np.asarray(nees) if mask is None else np.asarray(nees)[np.asarray(mask, bool)]
+        if np.any(counted < 0):  # (a step the mask leaves out is not read)
+            raise InputError(f"nees: expected values >= 0 (NEES is a quadratic form), got min "
+                             f"{float(np.nanmin(counted))}")
     dtype = nees.dtype
     if mask is None:
         a = jnp.mean(nees)
