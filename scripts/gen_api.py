@@ -8,6 +8,8 @@ documented in docs/cli.md and left out), and in each module the functions and cl
 defines whose names do not start with ``_`` (or its ``__all__`` where it has one).  Each entry
 shows the signature and the docstring's first paragraph; tests/test_api_docs.py checks that
 every public name has a docstring and that the committed file is what this script writes.
+The package documented is the one of this checkout (the folder above ``scripts/``), whatever
+``jaxslam`` the environment has installed.
 """
 
 from __future__ import annotations
@@ -22,6 +24,9 @@ import sys
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 OUT = ROOT / "docs" / "api.md"
+# document this checkout's package (not another one installed in the environment): the
+# script's own folder, scripts/, is what Python puts first on the path
+sys.path.insert(0, str(ROOT))
 
 # Layers, lowest first (the order tests/test_imports.py enforces); a module's section order.
 LAYERS = (
@@ -116,9 +121,16 @@ def render() -> str:
     return "\n".join(lines).rstrip() + "\n"
 
 
+def _usage(message: str):
+    """A usage error: one line on stderr, exit code 2."""
+    print(f"gen_api.py: error: {message}", file=sys.stderr)
+    raise SystemExit(2)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--check", action="store_true", help="exit 1 if docs/api.md is out of date")
+    ap.error = _usage  # argparse's own errors: one line (not usage + error), before the import of the package
     a = ap.parse_args(argv)
     text = render()
     if a.check:

@@ -6,7 +6,11 @@ Runs every case below with the public CLI, writes one ``dataset`` JSON per case 
 
     python scripts/reproduce_datasets.py --data ../shared/data --plots docs/results/datasets/plots
 
-The full datasets are not in the repository (see docs/datasets.md for downloads).
+The full datasets are not in the repository (see docs/datasets.md for downloads).  Usage
+errors (``--data`` not a folder, ``--only`` naming no known case) exit 2 with one line before
+any case runs; the exit code is 1 when a case failed (its row says so in ``table.md``).  Every
+path under ``--data`` in the JSONs is written ``$DATA`` (a relative ``--data`` too), and one under
+the home folder (the XLA cache's) ``~/``.
 """
 
 from __future__ import annotations
@@ -66,6 +70,28 @@ SHOW = ["ate_m", "smoothed_ate_m", "pos_rmse_m", "smoothed_pos_rmse_m", "dead_re
         "map_err_m", "range_bias_m"]
 
 
+def _usage(message: str):
+    """A usage error: one line on stderr, exit code 2."""
+    print(f"reproduce_datasets.py: error: {message}", file=sys.stderr)
+    raise SystemExit(2)
+
+
+def _data_as_placeholder(js: pathlib.Path, root: str) -> None:
+    """Rewrite ``js`` with every occurrence of the folder ``root`` as ``$DATA`` and then of the
+    home folder as ``~`` (the compilation cache's folder), atomically."""
+    from jaxslam import files
+
+    text = js.read_text(encoding="utf-8")
+    subs = [(root, "$DATA")]
+    home = str(pathlib.Path.home())
+    if home not in ("", "/"):
+        subs.append((home + "/", "~/"))
+    for folder, placeholder in subs:
+        for form in (json.dumps(folder)[1:-1], json.dumps(folder, ensure_ascii=False)[1:-1]):  # as JSON writes it
+            text = text.replace(form, placeholder)
+    files.atomic_write(js, lambda f: f.write(text))
+
+
 def _cell(v):
     return "—" if v is None else f"{v:.3g}"
 
@@ -76,16 +102,29 @@ def main(argv=None):
     ap.add_argument("--out", default="docs/results/datasets")
     ap.add_argument("--plots", default=None, help="also write each case's figures here")
     ap.add_argument("--only", default=None, help="comma-separated case names (default: all)")
+    ap.error = _usage  # argparse's own errors: one line too (not usage + error)
     args = ap.parse_args(argv)
+    data = pathlib.Path(args.data)
+    if not data.is_dir():
+        _usage(f"--data: {args.data!r} is not a folder")
+    only = None
+    if args.only is not None:
+        only = {n.strip() for n in args.only.split(",") if n.strip()}
+        unknown = sorted(only - {name for name, _ in CASES})
+        if not only or unknown:
+            _usage(f"--only: unknown case(s) {', '.join(unknown) or repr(args.only)} "
+                   f"(the case names are the CASES of this script, e.g. {CASES[0][0]})")
+    # the data folder as "$DATA": the shipped results name no folder of the machine they ran on
+    # (the CLI gets the absolute folder, so that a relative --data is replaced too)
+    root = str(data.resolve())
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    only = set(args.only.split(",")) if args.only else None
     rows = []
     for name, cli_args in CASES:
         if only and name not in only:
             continue
         js = out / f"{name}.json"
-        cmd = [sys.executable, "-m", "jaxslam", "dataset", *cli_args, "--data", args.data, "--json", str(js),
+        cmd = [sys.executable, "-m", "jaxslam", "dataset", *cli_args, "--data", root, "--json", str(js),
                "--quiet"]
         if args.plots:
             cmd += ["--plots", str(pathlib.Path(args.plots) / name)]
@@ -95,16 +134,14 @@ def main(argv=None):
             print(f"  failed with exit code {r.returncode}", flush=True)
             rows.append((name, cli_args, None))
             continue
-        # the data folder as "$DATA": the shipped results name no folder of the machine they ran on
-        root = str(pathlib.Path(args.data).resolve())
-        js.write_text(js.read_text().replace(root, "$DATA"))
-        rows.append((name, cli_args, json.loads(js.read_text())))
+        _data_as_placeholder(js, root)
+        rows.append((name, cli_args, json.loads(js.read_text(encoding="utf-8"))))
     # The table covers every case with a JSON in --out (cases not rerun keep their last figures).
     done = {name for name, _, _ in rows}
     for name, cli_args in CASES:
         js = out / f"{name}.json"
         if name not in done and js.exists():
-            rows.append((name, cli_args, json.loads(js.read_text())))
+            rows.append((name, cli_args, json.loads(js.read_text(encoding="utf-8"))))
     order = {name: i for i, (name, _) in enumerate(CASES)}
     rows.sort(key=lambda r: order[r[0]])
     lines = ["| case | command | " + " | ".join(SHOW) + " | used / gated / rejected | run_s |",
@@ -116,9 +153,12 @@ def main(argv=None):
         m, c = doc["metrics"], doc["counts"]
         lines.append(f"| {name} | `{' '.join(cli_args)}` | " + " | ".join(_cell(m.get(k)) for k in SHOW)
                      + f" | {c['used']} / {c['gated']} / {c['rejected']} | {doc['timing']['run_s']:.2f} |")
-    (out / "table.md").write_text("\n".join(lines) + "\n")
+    from jaxslam import files
+
+    table = "\n".join(lines) + "\n"
+    files.atomic_write(out / "table.md", lambda f: f.write(table))
     print("\n".join(lines))
-    return 0
+    return 1 if any(doc is None for _, _, doc in rows) else 0
 
 
 if __name__ == "__main__":

@@ -25,13 +25,20 @@ Protocol — ground truth is used only to score finished estimates:
 * every range of a listed beacon is used (the ranges the filter buffered before a beacon's
   initialisation too); σ_r = 1.2 m as the filter.
 Nothing here was chosen by looking at a ground-truth error.
+
+Usage errors (a robot other than 1 or 2, ``--iters`` < 1, ``--damping`` not > 0, missing data
+files, a ``--json`` that is a folder) exit 2 with one line before any compute; ``--json`` is
+written atomically once every log is done.  A log on which the EKF never initialised a beacon
+(a short excerpt) stops with one line naming the beacons, exit code 1.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import pathlib
+import sys
 import time
 
 from jaxslam import runtime
@@ -84,6 +91,12 @@ def smooth_log(d, iters, damping, start_from):
     act = np.asarray(res.active)
     lm = np.asarray(res.landmarks)
     ids = np.asarray(res.landmark_ids)
+    missing = [int(b) for b in bid if not np.any((ids == b) & act)]
+    if missing:  # the beacon prior's mean is the EKF's final estimate: there is none
+        from jaxslam.errors import InputError
+
+        raise InputError(f"Plaza {d.which}: the EKF never initialised beacon(s) {', '.join(map(str, missing))} "
+                         f"(too few ranges in this log): the smoother's beacon prior has no mean")
     beacons = np.stack([lm[(ids == b) & act][0] for b in bid])
     # inputs, measurements, masks (rows of listed beacons with a finite range)
     u = np.asarray(log.u, np.float64)
@@ -137,7 +150,13 @@ def smooth_log(d, iters, damping, start_from):
     return out
 
 
-def main():
+def _usage(message):
+    """A usage error: one line on stderr, exit code 2."""
+    print(f"reproduce_plaza_smoothing.py: error: {message}", file=sys.stderr)
+    raise SystemExit(2)
+
+
+def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", required=True, help="data root holding gtsam/")
     ap.add_argument("--robot", type=int, nargs="+", default=[1, 2])
@@ -147,12 +166,32 @@ def main():
     ap.add_argument("--start", choices=("rts", "ekf"), default="rts",
                     help="starting trajectory of the iterations (default: the RTS smoother's)")
     ap.add_argument("--json", default=None)
-    a = ap.parse_args()
+    ap.error = _usage  # argparse's own errors: one line too (not usage + error)
+    a = ap.parse_args(argv)
+    bad = [r for r in a.robot if r not in (1, 2)]
+    if bad or len(set(a.robot)) != len(a.robot):
+        _usage(f"--robot: expected 1 and/or 2 (Plaza 1, Plaza 2), each once, got {' '.join(map(str, a.robot))}")
+    if a.iters < 1:
+        _usage(f"--iters: expected a positive integer, got {a.iters}")
+    if a.damping is not None and not (math.isfinite(a.damping) and a.damping > 0):
+        _usage(f"--damping: expected a finite λ > 0 (or no --damping), got {a.damping}")
+    if a.json is not None and (a.json == "" or pathlib.Path(a.json).is_dir()):
+        _usage(f"--json: {a.json!r} is not a file path")
     root = pathlib.Path(a.data)
     root = root / "gtsam" if (root / "gtsam").is_dir() else root
+    from jaxslam.errors import InputError
+
+    try:  # every log read before any compute: a missing file is said at once
+        logs = {r: load_plaza(root, r) for r in a.robot}
+    except InputError as e:
+        _usage(f"--data: {str(e).splitlines()[0] if str(e) else type(e).__name__}")
     res = {}
     for r in a.robot:
-        res[f"plaza{r}"] = o = smooth_log(load_plaza(root, r), a.iters, a.damping, a.start)
+        try:
+            res[f"plaza{r}"] = o = smooth_log(logs[r], a.iters, a.damping, a.start)
+        except InputError as e:  # (a beacon the EKF never initialised)
+            print(f"reproduce_plaza_smoothing.py: error: --robot {r}: {e}", file=sys.stderr)
+            return 1
         print(f"Plaza {r}: " + "  ".join(
             f"{k} ATE {o[k]['ate_m']:.3f} m (beacons {o[k]['map_err_m']:.2f} m)"
             for k in ("ekf", "rts", "iterated_huber"))
@@ -160,8 +199,12 @@ def main():
               f"converged {o['iterated_huber']['converged']}, bias {o['iterated_huber']['bias_m']:+.2f} m, "
               f"{o['iterated_huber']['run_s']:.1f} s")
     if a.json:
-        pathlib.Path(a.json).write_text(json.dumps(res, indent=1))
+        from jaxslam import files
+
+        text = json.dumps(res, indent=1)
+        files.atomic_write(pathlib.Path(a.json), lambda f: f.write(text))
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())
