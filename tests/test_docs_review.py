@@ -111,9 +111,8 @@ def test_per_step_r_with_nan_on_masked_rows_is_accepted(name):
     np.testing.assert_allclose(np.asarray(post.means), ref, atol=1e-10)
 
 
-@pytest.mark.xfail(strict=True, reason="known defect (docs/filters.md, 'Per-step noise'): "
-                   "sqrt_ekf._validate_scan checks every row of a concrete per-step R, masked or not")
 def test_sqrt_ekf_per_step_r_with_nan_on_masked_rows_is_accepted():
+    # sqrt_ekf checked every row of a concrete per-step R, masked or not (the others did not)
     from jaxslam.filters import sqrt_ekf
 
     f, h, x0, P0, us, zs, masks, Q, Rs, ref = _masked_nan_problem()

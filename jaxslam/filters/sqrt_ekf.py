@@ -588,7 +588,11 @@ def _validate_scan(x0, P0, us, zs, masks, Q, R, noise_jac, Q_chol):
     if np.shape(R) not in ((m, m), (T, m, m)):
         raise InputError(f"R: expected shape ({m}, {m}) or ({T}, {m}, {m}), got {tuple(np.shape(R))}")
     if is_concrete(R):
-        check_psd(R, "R", strict=True, stack=np.ndim(R) == 3)
+        # per-step R: only the rows in use at that step (a masked row may hold anything, as in
+        # the EKF, UKF and square-root UKF; a NaN there was refused)
+        valid = (np.asarray(masks, bool) if np.ndim(R) == 3 and masks is not None and is_concrete(masks)
+                 else None)
+        check_psd(R, "R", strict=True, valid=valid, stack=np.ndim(R) == 3)
     check_leading(us, T, "us")
     q = n
     if noise_jac is not None and not callable(noise_jac):
