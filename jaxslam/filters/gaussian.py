@@ -66,6 +66,7 @@ __all__ = [
     "finalize",
     "masked_innovation",
     "threshold",
+    "gate_test",
     "check_state",
     "state_pair",
     "check_gate",
@@ -189,16 +190,20 @@ class GaussianFilter(NamedTuple):
 # The shared correction
 # ---------------------------------------------------------------------------
 
-def moment_dtype(x, M, x_name: str, m_name: str):
+def moment_dtype(x, M, x_name: str, m_name: str, empty_ok: bool = False):
     """The dtype a step computes a belief's ``x`` (n,) and its square matrix ``M`` (n, n) (a
     covariance or its factor) in, after checking their shapes (static: free under ``jit``;
     :class:`InputError` naming ``x_name`` / ``m_name``): the mean's floating dtype, an integer
     mean promoted to the matrix's (JAX's default float when that is an integer too; integer
-    weights truncated every sigma-point weight to 0); a complex mean is refused."""
+    weights truncated every sigma-point weight to 0); a complex mean is refused.  An empty
+    state (n = 0) is refused naming ``x_name`` (it ended in NumPy's "cannot reshape array of
+    size 0") unless ``empty_ok`` (the caller then names its own error)."""
     xs, ms = tuple(np.shape(x)), tuple(np.shape(M))
     if len(xs) != 1:
         raise InputError(f"{x_name}: expected shape (n,), got {xs}")
     n = xs[0]
+    if n == 0 and not empty_ok:
+        raise InputError(f"{x_name}: expected a state of at least one component, got shape (0,)")
     if ms != (n, n):
         raise InputError(f"{m_name}: expected shape ({n}, {n}) (the mean's size), got {ms}")
     x_dt, m_dt = jnp.result_type(x), jnp.result_type(M)
@@ -381,6 +386,19 @@ def threshold(gate: Gate, dof, dtype):
     return jnp.asarray(gate, dtype=dtype)
 
 
+def gate_test(gate: Gate, nis, dof, dtype):
+    """``(gated, status)`` of an update's NIS against a (not None) gate: ``gated`` when some
+    component is valid and the NIS exceeds :func:`threshold`, or the threshold is not > 0 (NaN
+    included: ``nis > nan`` is False, so a traced NaN gate switched gating off with status 0);
+    ``status`` (int32) is ``NON_FINITE`` for such a threshold (a concrete one is refused by
+    :func:`check_gate`; a traced one cannot be), else 0."""
+    thr = threshold(gate, dof, dtype)
+    bad = ~(thr > 0)
+    has = dof > 0
+    gated = has & ((nis > thr) | bad)
+    return gated, jnp.where(has & bad, jnp.int32(errors.NON_FINITE), jnp.int32(0))
+
+
 def masked_innovation(z, zhat, mask, residual):
     """``ν = residual(z, ẑ)`` with invalid components replaced *before* differencing.
 
@@ -545,6 +563,8 @@ def check_run_inputs(x0, P0, zs, masks, Q, R, name_prefix=""):
     if len(xs) != 1:
         raise InputError(f"{pre}x0: expected shape (n,), got {tuple(xs)}")
     n = xs[0]
+    if n == 0:  # an empty state ended in NumPy's "cannot reshape array of size 0" (check_psd)
+        raise InputError(f"{pre}x0: expected a state of at least one component, got shape (0,)")
     check_finite(x0, f"{pre}x0")
     if np.shape(P0) != (n, n):
         raise InputError(f"{pre}P0: expected shape ({n}, {n}), got {tuple(np.shape(P0))}")

@@ -127,7 +127,6 @@ from .gaussian import (
     masked_innovation,
     moment_dtype,
     process_noise,
-    threshold,
 )
 
 __all__ = [
@@ -195,7 +194,7 @@ class SigmaPoints(NamedTuple):
         """Host-side float64 ``(wm (N,), wc (N,), c)`` with ``c`` the spread in σ units.
 
         Raises :class:`InputError` for an unknown rule, for n < 1 (no points), for a
-        non-finite α, β or κ (a rule built as ``SigmaPoints(...)`` directly skips the checks of
+        non-finite (or bool) α, β or κ (a rule built as ``SigmaPoints(...)`` directly skips the checks of
         :func:`unscented`) or for ``n + λ ≤ 0``.
         """
         if self.kind in ("cubature", "unscented") and not n >= 1:
@@ -207,6 +206,9 @@ class SigmaPoints(NamedTuple):
         if self.kind != "unscented":
             raise InputError(f"points: unknown sigma-point rule {self.kind!r} "
                              "(unscented or cubature)")
+        for v, nm in ((self.alpha, "alpha"), (self.beta, "beta"), (self.kappa, "kappa")):
+            if isinstance(v, (bool, np.bool_)):  # SigmaPoints("unscented", True) read as alpha = 1
+                raise InputError(f"points: {nm} must be a finite number, got {v!r}")
         a, b, k = float(self.alpha), float(self.beta), float(self.kappa)
         for v, nm in ((a, "alpha"), (b, "beta"), (k, "kappa")):
             if not np.isfinite(v):
@@ -239,6 +241,8 @@ def unscented(alpha: float = 1.0, beta: float = 2.0, kappa: float = 0.0) -> Sigm
         :class:`SigmaPoints` (static; hashable).
     """
     for v, nm in ((alpha, "alpha"), (beta, "beta"), (kappa, "kappa")):
+        if isinstance(v, (bool, np.bool_)):  # True was read as 1.0
+            raise InputError(f"{nm}: must be a finite number, got {v!r}")
         a = check_numbers(v, nm)  # a string (even "1") or None is not a number
         if a.shape != () or not np.isfinite(a):
             raise InputError(f"{nm}: must be a finite number, got {v!r}")
@@ -267,7 +271,7 @@ def _check_moments(mean, cov):
     promoted to the covariance's floating dtype (the default float when that is an integer too):
     integer weights truncated every weight to 0."""
     mean, cov = jnp.asarray(mean), jnp.asarray(cov)  # lists have no dtype
-    m_dt = moment_dtype(mean, cov, "mean", "cov")
+    m_dt = moment_dtype(mean, cov, "mean", "cov", empty_ok=True)  # n = 0: the rule's own error
     return jnp.asarray(mean, m_dt), jnp.asarray(cov, m_dt)
 
 
@@ -460,7 +464,9 @@ def update(
             components contribute nothing, whatever ``z`` (or ``h``) holds there.
         gate: None (no gate), a chi-square threshold on the NIS, or a callable
             ``gate(dof) -> threshold``.  When the NIS exceeds it the state is returned
-            unchanged and ``errors.GATED`` is set.
+            unchanged and ``errors.GATED`` is set.  A concrete gate must be a positive number
+            (:class:`InputError`); a traced one that is not > 0 (NaN included) gates the
+            update and also sets ``errors.NON_FINITE``.
         points: the rule (default :func:`unscented`), static.
 
     Returns:
@@ -515,10 +521,10 @@ def _update(state: Gaussian, z, h: Callable, R, *args, residual=None, mask=None,
     P_post = symmetrize(P - K @ S @ K.T)
     dof = jnp.sum(mask).astype(jnp.int32)
     if gate is None:
-        gated = jnp.asarray(False)
-    else:
-        gated = (dof > 0) & (nis > threshold(gate, dof, dtype))
-    post, accepted, status = finalize(Gaussian(x, P), x_post, P_post, ok, gated, dof)
+        gated, g_status = jnp.asarray(False), None
+    else:  # a traced threshold that is not > 0 (NaN) gates the update and flags NON_FINITE
+        gated, g_status = _g.gate_test(gate, nis, dof, dtype)
+    post, accepted, status = finalize(Gaussian(x, P), x_post, P_post, ok, gated, dof, g_status)
     logdet = jnp.where(ok & (dof > 0), logdet, zero)
     return post, UpdateInfo(nis, dof, nu, S, accepted, status, logdet)
 
@@ -625,7 +631,7 @@ def filter_scan(
     Returns:
         :class:`Posterior` in the dtype of ``x0`` (``log_likelihood`` per step included).
     """
-    if is_concrete(P0) and np.ndim(P0) == 2:
+    if is_concrete(P0) and np.ndim(P0) == 2 and np.size(P0):  # empty: gaussian.run names x0
         # the sigma points factor P: a singular P0 (a zero variance) would fail every step's
         # factorisation and keep the prior for the whole run
         check_psd(P0, "P0", strict=True, tol=0.0)

@@ -72,7 +72,7 @@ import numpy as np
 from .. import errors
 from ..data.events import EventLog
 from ..dynamics import planar
-from ..errors import InputError
+from ..errors import InputError, check_flag
 from ..filters import association as assoc
 from ..filters import consistency as cons
 from ..filters import ekf_slam as es
@@ -137,7 +137,8 @@ class Config(NamedTuple):
       ``params.monitor.outlier_gate``).
     jcbb_cand, jcbb_budget: association ``"jcbb"`` (:func:`jaxslam.filters.association.jcbb`):
       candidates kept per measurement and search nodes per event; the joint test is at
-      ``joint_gate`` (default 0.99) and the individual gate at ``params.gate``.
+      ``joint_gate`` (default 0.99) and the individual gate at ``params.gate`` (a traced gate
+      that is not a finite number > 0 pairs nothing and sets ``NON_FINITE`` in ``Result.status``).
     block: events per checkpointed block of the scan (0: none).  With a block, the reverse
       pass stores one state per block and recomputes the block's events: memory of a
       gradient over a whole log grows with the number of blocks, not of events.
@@ -434,6 +435,10 @@ def _measure(st: es.SlamState, z, ids, valid, model, config: Config, R, nu, thr:
                                                        _chi2_table(config.joint_gate, K, 2))
         st, info = es.update(st, model, zs, slots, matched, R, None, gate=thr.update_gate, robust=robust,
                              row_stats=True, active_only=config.active_only, joseph=config.joseph)
+        if config.association == "jcbb":
+            # a traced bad gate / threshold pairs nothing: jcbb says so in its status (NON_FINITE),
+            # which the run's status carries like the engine's own flags (0 for a valid gate)
+            st = st._replace(status=st.status | jc.status)
         # ambiguous (between the gates) or losing a landmark to a closer measurement
         ambiguous = valid & ~matched & ~new
         rejected = jnp.sum(ambiguous).astype(jnp.int32)
@@ -832,20 +837,47 @@ def params_from_dict(d: dict, base: Params, dtype=np.float64, where: str = "para
                                  f"{list(cons.MonitorParams._fields)}, got {v!r}")
             cur = (MONITOR_DEFAULT if vals["monitor"] is None else vals["monitor"])._asdict()
             for f, x in v.items():  # (a string or a list was a bare ValueError / TypeError)
-                cur[f] = check_scalar(x, f"{where}.monitor.{f}", finite=False)
+                if isinstance(x, (bool, np.bool_)):  # JSON true was read as 1.0
+                    raise InputError(f"{where}.monitor.{f}: expected a number, got {x!r}")
+                try:
+                    cur[f] = check_scalar(x, f"{where}.monitor.{f}", finite=False)
+                except OverflowError:  # a JSON integer beyond float range
+                    raise InputError(f"{where}.monitor.{f}: expected a number, got {str(x)[:40]}...") from None
             vals[k] = cons.MonitorParams(**cur)
             continue
         if v is None and k in THRESHOLDS:  # an optional threshold switched off (JSON null)
             vals[k] = None
             continue
         try:
+            if not _all_numbers(v):  # JSON true / "12.5" were read as 1.0 / 12.5 by the cast
+                raise TypeError
             a = np.asarray(v, np.float64)
-        except (TypeError, ValueError):
-            raise InputError(f"{where}.{k}: expected numbers, got {v!r}") from None
+        except (TypeError, ValueError, OverflowError):  # (overflow: a JSON integer beyond float range)
+            raise InputError(f"{where}.{k}: expected numbers, got {v!r}"[:300]) from None
         if k in _MATRIX_SHAPES and a.ndim == 1:
             a = np.diag(a)
         vals[k] = jnp.asarray(a, dtype)
     return validate_params(Params(**vals), where)  # errors name the entry, e.g. "--params: noise.R"
+
+
+def _has_bool(v) -> bool:
+    """Whether ``v`` (a number, an array or nested lists) holds a bool (a bool dtype included)."""
+    if isinstance(v, (list, tuple)):
+        return any(_has_bool(x) for x in v)
+    if isinstance(v, (bool, np.bool_)):
+        return True
+    return getattr(v, "dtype", None) is not None and np.dtype(v.dtype) == np.bool_
+
+
+def _all_numbers(v) -> bool:
+    """Whether ``v`` (a number, an array or nested lists) holds numbers only: no bool, no string."""
+    if isinstance(v, (list, tuple)):
+        return all(_all_numbers(x) for x in v)
+    if isinstance(v, (bool, np.bool_, str, bytes)):
+        return False
+    if isinstance(v, np.ndarray) or hasattr(v, "dtype"):
+        return np.issubdtype(np.asarray(v).dtype, np.number)
+    return isinstance(v, (int, float, np.number))
 
 
 def config_to_dict(config: Config) -> dict:
@@ -863,7 +895,9 @@ __all__ += ["params_to_dict", "params_from_dict", "config_to_dict", "MONITOR_DEF
 # ---------------------------------------------------------------------------
 
 def validate_config(config: Config) -> Config:
-    """Known motion/association/input mode; integer capacity and K >= 1; positive search sizes."""
+    """Known motion/association/input mode; integer capacity and K >= 1; positive search sizes;
+    the switches (``calibrate``, ``robust``, ``monitor``, ``smooth``, ``active_only``, ``joseph``)
+    True or False; ``joint_gate`` None or a number in (0, 1)."""
     if config.motion not in MOTIONS:
         raise InputError(f"config.motion: expected one of {MOTIONS}, got {config.motion!r}")
     if config.association not in ASSOCIATIONS:
@@ -877,9 +911,18 @@ def validate_config(config: Config) -> Config:
         check_int(config.jcbb_cand, "config.jcbb_cand", what="an int (candidates per measurement)")
         check_int(config.jcbb_budget, "config.jcbb_budget", what="an int (search nodes per event)")
     check_int(config.block, "config.block", lower=0, what="an int (events per checkpointed block)")
-    if config.joint_gate is not None and not (0.0 < config.joint_gate < 1.0):
+    for name in _SWITCHES:  # a string "no" is truthy: the switch silently stayed on
+        check_flag(getattr(config, name), f"config.{name}")
+    jg = config.joint_gate
+    # (a string was a bare TypeError from the comparison; a bool is not a probability)
+    if jg is not None and (isinstance(jg, (bool, np.bool_)) or not isinstance(jg, (int, float, np.integer, np.floating))
+                           or not (0.0 < jg < 1.0)):
         raise InputError(f"config.joint_gate: need a probability in (0, 1), got {config.joint_gate}")
     return config
+
+
+#: the on/off switches of :class:`Config` (True or False; :func:`validate_config`)
+_SWITCHES = ("calibrate", "robust", "monitor", "smooth", "active_only", "joseph")
 
 
 #: shapes of the matrix fields of :class:`Params` (R positive definite, the rest PSD)
@@ -909,12 +952,20 @@ def check_matrices(values: dict, where: str = "params", diagonal_ok: bool = True
 
 
 def validate_params(params: Params, where: str = "params") -> Params:
-    """Shapes (M_c (2,2), Q_floor (3,3), R (2,2), P0 (3,3)); PSD, R positive definite; the
+    """Numbers, not bools; shapes (M_c (2,2), Q_floor (3,3), R (2,2), P0 (3,3)); PSD, R positive definite; the
     thresholds as :func:`check_thresholds` (scalars, not NaN; 0 < gate ≤ new_threshold,
     range_min < range_max, bearing_min < bearing_max; with pruning a positive window and a whole
     prune_min_obs ≥ 1).  Errors name ``where.field`` (e.g. ``--params: noise.R``)."""
+    for k, v in params._asdict().items():  # True was read as 1.0 (update_gate=True gated at NIS 1)
+        if any(_has_bool(x) for x in (v if k == "monitor" and v is not None else (v,))):
+            raise InputError(f"{where}.{k}: expected numbers, got {v!r}"[:300])
     a = params.calib0
-    if a is not None and (np.shape(a) != (3,) or not np.all(np.isfinite(np.asarray(a)))):
+    try:  # (a string entry was a bare TypeError from isfinite)
+        a_ok = (_all_numbers(a) and np.shape(a) == (3,)
+                and bool(np.all(np.isfinite(np.asarray(a, np.float64)))))
+    except (TypeError, ValueError):
+        a_ok = False
+    if a is not None and not a_ok:
         raise InputError(f"{where}.calib0: expected a finite shape (3,), got {np.asarray(a)!r}")
     check_matrices({k: getattr(params, k) for k in _MATRIX_SHAPES}, where, diagonal_ok=False)
     if params.range_model is not None:
