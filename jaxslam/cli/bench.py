@@ -100,18 +100,37 @@ class _CheckedOptions:
     """The parser a benchmark's ``add_arguments`` fills, with its plain number types checked: a
     ``float`` option must be finite, an ``int`` one a count >= 1 (``--warmup`` >= 0, ``--seed``
     a PRNG seed in [0, 2**63), as ``jaxslam run --seed``), so that a bad value is a usage error
-    naming the option (exit 2), not an internal error from inside the benchmark."""
+    naming the option (exit 2), not an internal error from inside the benchmark.  The groups it
+    makes (``add_argument_group``, ``add_mutually_exclusive_group``) check theirs the same way.
 
-    def __init__(self, parser):
+    An option string that ``jaxslam bench`` itself takes (``--dir``, ``--json``, ``--debug``,
+    ``-h``/``--help``) is refused with a usage error naming the benchmark and the option (it was
+    argparse's "conflicting option string", an internal error)."""
+
+    def __init__(self, parser, bench: str = "", reserved=()):
         self._p = parser
+        self._bench = bench
+        self._reserved = frozenset(reserved)
 
     def add_argument(self, *names, **kw):
+        clash = [n for n in names if isinstance(n, str) and n in self._reserved]
+        if clash:
+            raise UsageError(f"{PROG} bench: benchmark {self._bench!r} defines {', '.join(clash)}, "
+                             f"an option of '{PROG} bench' itself (--dir, --json, --debug, -h/--help); "
+                             "rename it in the benchmark's add_arguments")
         if kw.get("type") is float:
             kw["type"] = finite_float
         elif kw.get("type") is int:
             kw["type"] = (seed_int if "--seed" in names
                           else int_at_least(0 if "--warmup" in names else 1))
         return self._p.add_argument(*names, **kw)
+
+    def add_argument_group(self, *args, **kw):
+        return _CheckedOptions(self._p.add_argument_group(*args, **kw), self._bench, self._reserved)
+
+    def add_mutually_exclusive_group(self, *args, **kw):
+        return _CheckedOptions(self._p.add_mutually_exclusive_group(*args, **kw), self._bench,
+                               self._reserved)
 
     def __getattr__(self, attr):
         return getattr(self._p, attr)
@@ -182,7 +201,7 @@ def command(rest: list[str]) -> int:
         p = Parser(prog=f"{PROG} bench {name}", description=str(module.DESCRIPTION))
         p.add_argument("name", metavar="NAME", help="benchmark name")
         _bench_common(p)
-        module.add_arguments(_CheckedOptions(p))
+        module.add_arguments(_CheckedOptions(p, str(path), p._option_string_actions))
         args = p.parse_args(rest)
         result = module.run(args)
     finally:

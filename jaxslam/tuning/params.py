@@ -107,6 +107,8 @@ def _as_matrix(M, name):
         a = np.diag(a)
     if a.ndim != 2 or a.shape[0] != a.shape[1]:
         raise InputError(f"{name}: expected a square matrix or a vector of diagonal values, got shape {a.shape}")
+    if a.size == 0:  # (log-Cholesky failed with a bare ValueError; no CovSpec has n = 0)
+        raise InputError(f"{name}: expected a matrix of size n >= 1, got shape {a.shape}")
     if not np.all(np.isfinite(a)):
         raise InputError(f"{name}: contains NaN or Inf")
     return a
@@ -120,10 +122,11 @@ def _check_floor(floor) -> float:
 
 
 def _check_dtype(dtype):
-    """``dtype`` (None: JAX's default float) when it names a floating dtype, else InputError
-    naming ``dtype``: an integer dtype truncated θ (log 3 became 1), a bogus name gave a bare
-    TypeError."""
-    return None if dtype is None else check_float_dtype(dtype)
+    """``dtype`` (None: JAX's default float, resolved now — float32 without x64 — so that the
+    range check of :func:`_check_exp_range` is that of the dtype θ gets) when it names a floating
+    dtype, else InputError naming ``dtype``: an integer dtype truncated θ (log 3 became 1), a
+    bogus name gave a bare TypeError."""
+    return jnp.dtype(jnp.result_type(float)) if dtype is None else check_float_dtype(dtype)
 
 
 def _check_names(arg: str, given, specs, what: str) -> None:
@@ -191,7 +194,8 @@ def _tril(n):
 def log_chol_from_cov(M, floor: float | None = None, dtype=None, name: str = "M"):
     """θ (n(n+1)/2,) = [log diag L, strictly-lower C] of M's Cholesky factor L = diag(L) C.
 
-    ``M`` must be symmetric positive definite.  With ``floor`` > 0 the factor is that of
+    ``M`` must be symmetric positive definite (a float32 ``M`` symmetric to 100 ulp of float32,
+    as :func:`~jaxslam.linalg.check_psd` allows, is symmetrised first).  With ``floor`` > 0 the factor is that of
     M + floor·I — *always*, a positive-definite M included (every eigenvalue moves up by
     ``floor``; module docstring): it lets a semi-definite M (a zero variance) start, and should
     be small against the eigenvalues that matter.  ``dtype``: a floating dtype, as
@@ -200,6 +204,13 @@ def log_chol_from_cov(M, floor: float | None = None, dtype=None, name: str = "M"
     dtype = _check_dtype(dtype)
     a = _as_matrix(M, name)
     n = a.shape[0]
+    src = np.asarray(M).dtype
+    if src.kind == "f" and src.itemsize < 8:
+        # a float32 M symmetric to its own precision (100 ulp, as linalg.check_psd allows a
+        # float32 input) is symmetrised: its float64 copy failed check_psd's 1e-9 as "not symmetric"
+        mag = np.abs(a).max()
+        if np.abs(a - a.T).max() <= 100 * np.finfo(src).eps * mag:
+            a = 0.5 * (a + a.T)
     if floor is not None:
         a = a + _check_floor(floor) * np.eye(n)
     check_psd(a, name, strict=True)
@@ -231,7 +242,7 @@ def theta_from_cov(spec: CovSpec, M, floor: float | None = None, dtype=None, nam
         raise InputError(f"{name}: expected shape ({spec.n}, {spec.n}), got {a.shape}")
     if spec.kind == "diag":
         return log_diag_from_cov(a, floor, dtype, name)
-    return log_chol_from_cov(a, floor, dtype, name)
+    return log_chol_from_cov(M, floor, dtype, name)  # M itself: its float32 dtype has a say
 
 
 def cov_from_theta(spec: CovSpec, theta):
