@@ -103,7 +103,6 @@ from .gaussian import (
     innovation_solve,
     masked_innovation,
     process_noise,
-    threshold as _threshold,
 )
 
 __all__ = [
@@ -183,8 +182,10 @@ def chi2_gate(prob: float, max_dof: int) -> Callable[[Array], Array]:
         (:class:`InputError` naming ``gate``).  Beyond the table — a traced mask
         letting more than ``max_dof`` components through, which the updates cannot
         see before running — the threshold is the Wilson–Hilferty approximation of
-        the quantile (exact for dof 2; within 0.7 % of it for prob ≤ 0.99 and 3.5 %
-        up to 0.9999); it was the table's last value (χ²(2) for a 5-component NIS).
+        the quantile (exact for dof 2; from dof 3 on within 0.7 % of it for
+        0.5 ≤ prob ≤ 0.995 and 3.5 % up to 0.9999, but poor for small prob: 1.2 % at 0.3,
+        7 % at 0.05, 34 % at 0.01, so build a gate of prob < 0.5 for m); it was the table's
+        last value (χ²(2) for a 5-component NIS).
         ``max_dof`` must be an int >= 1 (:class:`InputError` naming it; 1.5, True
         and "2" were truncated or parsed).
     """
@@ -388,7 +389,9 @@ def update(
             Invalid components contribute nothing, whatever ``z`` holds there.
         gate: None (no gate), a chi-square threshold on the NIS, or a callable
             ``gate(dof) -> threshold``.  When the NIS exceeds it the state is
-            returned unchanged and ``errors.GATED`` is set.
+            returned unchanged and ``errors.GATED`` is set.  A concrete gate must be a positive
+            number (:class:`InputError`); a traced one that is not > 0 (NaN included) gates the
+            update and also sets ``errors.NON_FINITE``.
         num_iter: static int ≥ 1, linearisations (iterated EKF when > 1).
         tol: convergence tolerance of the iterations, in prior σ (traced; a finite number > 0 when
             known now: InputError otherwise; a traced NaN sets NOT_CONVERGED).
@@ -459,8 +462,9 @@ def _update(state: Gaussian, z, h: Callable, R, *args, residual=None, mask=None,
         extra = jnp.where(moved <= tol_v, jnp.int32(0), jnp.int32(errors.NOT_CONVERGED))
     if gate is None:
         gated = jnp.asarray(False)
-    else:
-        gated = (dof > 0) & (nis > _threshold(gate, dof, dtype))
+    else:  # a traced threshold that is not > 0 (NaN) gates the update and flags NON_FINITE
+        gated, g_status = _g.gate_test(gate, nis, dof, dtype)
+        extra = g_status if extra is None else extra | g_status
     post, accepted, status = _finalize(state, x_post, P_post, ok, gated, dof, extra)
     # a failed factorisation reports NIS 0 (not NaN); its step's log-likelihood is NaN, with
     # the status saying why (gaussian.step_log_likelihood)
@@ -611,11 +615,11 @@ def _update_batch(state: Gaussian, zs, h: Callable, R, *args, masks=None, residu
     w, ok_i, logdet_i = jax.vmap(innovation_solve)(S_ii, nu)
     nis = jnp.sum(nu * w, axis=1)
     valid = dof > 0
+    g_status = jnp.zeros((M,), jnp.int32)
     if gate is None:
         gated = jnp.zeros((M,), bool)
-    else:
-        thr = jax.vmap(lambda d: _threshold(gate, d, dtype))(dof)
-        gated = valid & (nis > thr)
+    else:  # a traced threshold that is not > 0 (NaN) gates the measurement and flags NON_FINITE
+        gated, g_status = jax.vmap(lambda d, v: _g.gate_test(gate, v, d, dtype))(dof, nis)
 
     keep = masks & ~gated[:, None]
     R_blk = jnp.einsum("ab,aij->aibj", jnp.eye(M, dtype=dtype), Rs).reshape(M * m, M * m)
@@ -631,7 +635,7 @@ def _update_batch(state: Gaussian, zs, h: Callable, R, *args, masks=None, residu
     accepted = used & any_acc
     status = jnp.where(gated, jnp.int32(errors.GATED), jnp.int32(0)) | jnp.where(
         used, status_joint, jnp.int32(0)
-    )
+    ) | g_status
     # A failed marginal factorisation is a symptom of the same problem.
     status = status | jnp.where(valid & ~ok_i, jnp.int32(errors.NOT_PSD), jnp.int32(0))
     logdet_i = jnp.where(valid & ok_i, logdet_i, jnp.zeros((), dtype))

@@ -105,7 +105,7 @@ from .ekf import Gaussian, UpdateInfo
 from .gaussian import (call_residual, check_gate, check_gate_size, check_leading, check_measurement, check_noise_values,
                        check_update_call,
                        check_process_noise, check_real, check_transition_out, check_update_args, moment_dtype,
-                       scalar_measurement, state_pair, threshold as _threshold)
+                       scalar_measurement, state_pair, gate_test)
 
 __all__ = [
     "SqrtGaussian",
@@ -317,11 +317,16 @@ def check_state(state, name: str = "state") -> SqrtGaussian:
 
 
 def from_gaussian(g: Gaussian) -> SqrtGaussian:
-    """:class:`SqrtGaussian` of a :class:`~jaxslam.filters.ekf.Gaussian` (``psd_factor`` of its cov)."""
+    """:class:`SqrtGaussian` of a :class:`~jaxslam.filters.ekf.Gaussian` (``psd_factor`` of its cov).
+
+    An empty state (n = 0) is refused (:class:`InputError` naming ``g.mean``).
+    """
     x = jnp.asarray(g.mean)
     n = x.shape[0] if x.ndim == 1 else None
     if n is None or np.shape(g.cov) != (n, n):
         raise InputError(f"g: expected an (n,) mean and an (n, n) cov, got {tuple(x.shape)} and {np.shape(g.cov)}")
+    if n == 0:  # ended in NumPy's "cannot reshape array of size 0" (check_psd)
+        raise InputError("g.mean: expected a state of at least one component, got shape (0,)")
     dtype = x.dtype if jnp.issubdtype(x.dtype, jnp.floating) else jnp.result_type(float)
     check_finite(x, "g.mean")
     if is_concrete(g.cov):  # known now: refuse a NaN, asymmetric or indefinite cov (beyond
@@ -472,7 +477,9 @@ def update(
             components contribute nothing, whatever ``z`` holds there.
         gate: None, a chi-square threshold on the NIS, or a callable
             ``gate(dof) -> threshold`` (:func:`jaxslam.filters.ekf.chi2_gate`).  When the
-            NIS exceeds it the prior is kept and ``errors.GATED`` is set.
+            NIS exceeds it the prior is kept and ``errors.GATED`` is set.  A concrete gate must
+            be a positive number (:class:`InputError`); a traced one that is not > 0 (NaN
+            included) gates the update and also sets ``errors.NON_FINITE``.
 
     Returns:
         ``(posterior SqrtGaussian, UpdateInfo)``; ``UpdateInfo.S`` is ``S^½ S^½ᵀ`` (identity
@@ -536,10 +543,11 @@ def _update(state, z, h, R, *args, residual=None, mask=None, gate: Gate = None):
     x_post = x + _mm(Kbar, w)
     S = symmetrize(_mm(S_half, S_half.T))
 
+    g_status = jnp.int32(0)
     if gate is None:
         gated = jnp.asarray(False)
-    else:
-        gated = (dof > 0) & (nis > _threshold(gate, dof, dtype))
+    else:  # a traced threshold that is not > 0 (NaN) gates the update and flags NON_FINITE
+        gated, g_status = gate_test(gate, nis, dof, dtype)
     finite = jnp.all(jnp.isfinite(x_post)) & jnp.all(jnp.isfinite(L_post))
     has = dof > 0
     accepted = has & ~gated & ok & finite
@@ -548,6 +556,7 @@ def _update(state, z, h, R, *args, residual=None, mask=None, gate: Gate = None):
         jnp.where(gated, i32(errors.GATED), i32(0))
         | jnp.where(has & ~gated & ~ok, i32(errors.NOT_PSD), i32(0))
         | jnp.where(has & ~gated & ok & ~finite, i32(errors.NON_FINITE), i32(0))
+        | g_status
     )
     post = SqrtGaussian(jnp.where(accepted, x_post, x), jnp.where(accepted, L_post, L))
     extra = {}
@@ -570,6 +579,8 @@ def _validate_scan(x0, P0, us, zs, masks, Q, R, noise_jac, Q_chol):
     if len(xs) != 1:
         raise InputError(f"x0: expected shape (n,), got {tuple(xs)}")
     n = xs[0]
+    if n == 0:  # an empty state ended in NumPy's "cannot reshape array of size 0" (check_psd)
+        raise InputError("x0: expected a state of at least one component, got shape (0,)")
     check_real(x0, "x0")
     if is_concrete(x0) and not np.all(np.isfinite(np.asarray(x0, dtype=np.float64))):
         raise InputError("x0: contains NaN or Inf")
@@ -581,6 +592,8 @@ def _validate_scan(x0, P0, us, zs, masks, Q, R, noise_jac, Q_chol):
     if len(zsh) != 2:
         raise InputError(f"zs: expected shape (T, m), got {tuple(zsh)}")
     T, m = zsh
+    if m == 0:  # ended in NumPy's "cannot reshape array of size 0" (R's check)
+        raise InputError(f"zs: expected at least one measurement component, got shape {tuple(zsh)}")
     check_real(zs, "zs")
     if masks is not None and np.shape(masks) != (T, m):
         raise InputError(f"masks: expected shape ({T}, {m}), got {tuple(np.shape(masks))}")
@@ -659,9 +672,9 @@ def filter_scan(
     Args:
         f: transition ``f(x, u, *args) -> (n,)``, or None (the state does not move).
         h: measurement model ``h(x, *args) -> (m,)``.
-        x0: (n,) initial mean.  P0: (n, n) initial covariance (PSD).
+        x0: (n,) initial mean, n >= 1.  P0: (n, n) initial covariance (PSD).
         us: controls with leading axis T (array or pytree; None if unused).
-        zs: (T, m) measurements.
+        zs: (T, m) measurements, m >= 1.
         masks: (T, m) bool validity (None: all valid).
         Q: (n, n) (or (q, q) with ``noise_jac``) process-noise covariance (PSD), one per
             step (T, n, n) (each factored before the scan), or None with ``Q_chol``.

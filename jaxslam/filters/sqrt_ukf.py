@@ -45,7 +45,7 @@ from .gaussian import (
     check_update_call,
     scalar_measurement,
     masked_innovation,
-    threshold,
+    gate_test,
 )
 from .sqrt_ekf import SqrtGaussian, SqrtPosterior, _host_root, _mm, _noise_root, _tria, check_state, psd_factor
 from .ukf import (
@@ -152,7 +152,8 @@ def update(state: SqrtGaussian, z, h: Callable, R, *args, residual: Optional[Cal
 
     Returns ``(posterior SqrtGaussian, UpdateInfo)`` (``S`` formed from its factor, ``logdet``
     over the valid block).  A singular factor (``NOT_PSD``) or a non-finite posterior
-    (``NON_FINITE``) keeps the prior.  As :func:`jaxslam.filters.ukf.update`, the state
+    (``NON_FINITE``) keeps the prior, and so does a traced gate that is not > 0 (NaN included:
+    ``GATED | NON_FINITE``).  As :func:`jaxslam.filters.ukf.update`, the state
     (:func:`check_state`), the rule, the gate and a concrete ``R`` (positive definite, or a
     scalar variance > 0 for one measurement) are checked first: :class:`InputError` naming the
     argument.  Called eagerly it is compiled once per model
@@ -214,14 +215,19 @@ def _update(state, z, h, R, *args, residual=None, mask=None, gate: Gate = None, 
     nis = jnp.where(ok, jnp.dot(w, w), zero)  # a failed factor is NOT_PSD, never GATED
     x_post = x + _mm(Kbar, w)
     dof = jnp.sum(mask).astype(jnp.int32)
-    gated = ((dof > 0) & (nis > threshold(gate, dof, dtype))) if gate is not None else jnp.asarray(False)
+    g_status = jnp.int32(0)
+    if gate is None:
+        gated = jnp.asarray(False)
+    else:  # a traced threshold that is not > 0 (NaN) gates the update and flags NON_FINITE
+        gated, g_status = gate_test(gate, nis, dof, dtype)
     finite = jnp.all(jnp.isfinite(x_post)) & jnp.all(jnp.isfinite(L_post))
     has = dof > 0
     accepted = has & ~gated & ok & finite
     i32 = jnp.int32
     status = (jnp.where(gated, i32(errors.GATED), i32(0))
               | jnp.where(has & ~gated & ~ok, i32(errors.NOT_PSD), i32(0))
-              | jnp.where(has & ~gated & ok & ~finite, i32(errors.NON_FINITE), i32(0)))
+              | jnp.where(has & ~gated & ok & ~finite, i32(errors.NON_FINITE), i32(0))
+              | g_status)
     post = SqrtGaussian(jnp.where(accepted, x_post, x), jnp.where(accepted, L_post, L))
     logdet = jnp.where(ok & has, 2.0 * jnp.sum(jnp.log(jnp.where(mask, jnp.abs(jnp.diagonal(S_safe)), 1.0))),
                        zero)
@@ -254,6 +260,9 @@ def filter_scan(f: Optional[Callable], h: Callable, x0, P0, us, zs, masks, Q, R,
     x0 = x0.astype(dtype)
     check_real(zs, "zs")  # before the cast to x0's dtype
     zs = jnp.asarray(zs, dtype)
+    if zs.ndim == 2 and zs.shape[1] == 0 and x0.ndim == 1 and x0.shape[0] > 0:
+        # (m = 0 ended in NumPy's "cannot reshape array of size 0" at R's check)
+        raise InputError(f"zs: expected at least one measurement component, got shape {tuple(zs.shape)}")
     T, m = check_run_inputs(x0, P0, zs, masks, Q, R)
     n = x0.shape[0]
     if not predict_first and is_concrete(P0):
