@@ -89,3 +89,18 @@ def test_monitor_takes_a_round_off_negative_d2():
     # m = 0.9·1 + 0.1·0.5 = 0.95 (hand values), no inflation
     mon2, _ = C.observe(mon, st, m, jnp.array([-1e-17, 2.0]), jnp.array([True, True]), _OK)
     assert float(mon2.mean) == pytest.approx(0.95, abs=1e-12) and int(mon2.inflations) == 0
+
+
+def test_planar_params_round_trip_keeps_a_threshold_off_against_a_base_with_it_on():
+    # params_to_dict left an off (None) threshold out; read against a base with it on, the
+    # file switched it back on (the run then gated at the base's value)
+    from jaxslam.data import presets
+    from jaxslam.systems import planar_ekf_slam as pe
+
+    base = presets.mrclam_params()
+    on = base._replace(update_gate=9.21)
+    off = base._replace(update_gate=None)
+    d = pe.params_to_dict(off)
+    assert "update_gate" in d and d["update_gate"] is None
+    assert pe.params_from_dict(d, on).update_gate is None
+    assert pe.params_from_dict(pe.params_to_dict(on), off).update_gate == pytest.approx(9.21)

@@ -803,10 +803,14 @@ def _pose_difference(a, b):
 
 
 def params_to_dict(params: Params) -> dict:
-    """JSON-ready ``{field: value}`` of the set fields (matrices as nested lists)."""
+    """JSON-ready ``{field: value}`` of the set fields (matrices as nested lists); an optional
+    threshold that is off is written as null, so :func:`params_from_dict` reads it back off
+    whatever its base (left out, a base with the threshold on switched it back on)."""
     out = {}
     for k, v in params._asdict().items():
         if v is None:
+            if k in THRESHOLDS:
+                out[k] = None
             continue
         if k == "monitor":
             out[k] = {f: float(np.asarray(x)) for f, x in v._asdict().items()}
