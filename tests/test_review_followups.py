@@ -104,3 +104,16 @@ def test_planar_params_round_trip_keeps_a_threshold_off_against_a_base_with_it_o
     assert "update_gate" in d and d["update_gate"] is None
     assert pe.params_from_dict(d, on).update_gate is None
     assert pe.params_from_dict(pe.params_to_dict(on), off).update_gate == pytest.approx(9.21)
+
+
+@pytest.mark.parametrize("which", ["ekf", "ukf"])
+def test_filter_scan_names_an_empty_measurement(which):
+    # zs of shape (T, 0) ended in a bare "cannot reshape array of size 0" from the R check
+    import importlib
+
+    from jaxslam.errors import InputError
+
+    mod = importlib.import_module(f"jaxslam.filters.{which}")
+    with pytest.raises(InputError, match=r"^zs: expected at least one measurement component, got shape \(3, 0\)"):
+        mod.filter_scan(lambda x, u: x, lambda x: x[:0], np.zeros(2), np.eye(2), np.zeros((3, 1)),
+                        np.zeros((3, 0)), None, np.eye(2), np.zeros((0, 0)))

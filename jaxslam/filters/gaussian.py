@@ -572,6 +572,8 @@ def check_run_inputs(x0, P0, zs, masks, Q, R, name_prefix=""):
     if len(zsh) != 2:
         raise InputError(f"{pre}zs: expected shape (T, m), got {tuple(zsh)}")
     T, m = zsh
+    if m == 0:  # (a bare "cannot reshape array of size 0" from the R check, as for an empty state)
+        raise InputError(f"{pre}zs: expected at least one measurement component, got shape {tuple(zsh)}")
     if masks is not None and np.shape(masks) != (T, m):
         raise InputError(f"{pre}masks: expected shape ({T}, {m}) like zs, got "
                          f"{tuple(np.shape(masks))}")
