@@ -279,17 +279,24 @@ def _fit_inputs(points, weights, sigma=None):
         check_real(sigma, "sigma")
         if np.shape(sigma) != ():
             raise InputError(f"sigma: expected a scalar point noise σ [m], got shape {np.shape(sigma)}")
-        bad_sigma = InputError(f"sigma: expected a point noise σ > 0 [m] (finite), got {sigma!r}")
-        if isinstance(sigma, (bool, np.bool_, str, bytes)):  # "0.1" was parsed, True read as 1 m
-            raise bad_sigma
-        if is_concrete(sigma):
-            try:
-                v = float(check_numbers(sigma, "sigma"))
-            except InputError:
-                raise bad_sigma from None
-            if not 0 < v < np.inf or np.asarray(sigma).dtype.kind == "b":
-                raise bad_sigma
+        _positive_number(sigma, "sigma", InputError(f"sigma: expected a point noise σ > 0 [m] (finite), got {sigma!r}"),
+                         finite=True)
     return points
+
+
+def _positive_number(value, name: str, bad: InputError, finite: bool) -> None:
+    """Raise ``bad`` unless ``value`` is a real number > 0 (finite when ``finite``) when known: a
+    string ("0.1") was parsed as a number, True read as 1 m, and a complex value raised a bare
+    TypeError from float() (``check_numbers``: real numbers only).  A traced value passes."""
+    if isinstance(value, (bool, np.bool_, str, bytes)):
+        raise bad
+    if is_concrete(value):
+        try:
+            v = float(check_numbers(value, name))
+        except InputError:
+            raise bad from None
+        if not (v > 0 and (v < np.inf or not finite)) or np.asarray(value).dtype.kind == "b":
+            raise bad
 
 
 def fit_line(points, weights):
@@ -601,18 +608,10 @@ def _check_match(points, valid, pred_rho, pred_theta, pred_mask, cfg, gate):
         raise InputError(f"pred_rho, pred_theta, pred_mask: expected equal shapes (M,), got "
                          f"{pred_rho.shape}, {pred_theta.shape}, {pred_mask.shape}")
     bad_gate = InputError(f"gate: expected a distance > 0 [m] (a scalar), got {gate!r}")
-    # A string ("0.2") was parsed as a number, True read as 1 m, a complex gate raised a bare
-    # TypeError from float(): all the same error now (check_numbers: real numbers only).
-    if np.ndim(gate) != 0 or isinstance(gate, (bool, np.bool_, str, bytes)):
+    if not isinstance(gate, (str, bytes)) and np.ndim(gate) != 0:
         raise bad_gate
-    if is_concrete(gate):
-        try:
-            g = float(check_numbers(gate, "gate"))
-        except InputError:
-            raise bad_gate from None
-        if not g > 0 or np.asarray(gate).dtype.kind == "b":
-            raise bad_gate
-    else:
+    _positive_number(gate, "gate", bad_gate, finite=False)
+    if not is_concrete(gate):
         check_real(gate, "gate")  # a traced complex gate (static dtype)
     return pts, remaining, pred_rho, pred_theta, pred_mask, jnp.asarray(gate, dt)
 
