@@ -601,7 +601,9 @@ def update(state: SlamState, model: SlamModel, z, slots, mask, R, params=None,
       gate: optional chi-square threshold on each measurement's own NIS
         (d_z dof), or a callable ``gate(dof)`` such as :func:`jaxslam.filters.ekf.chi2_gate`
         (called with d_z; a callable raised a bare TypeError); gated measurements are dropped
-        and flagged ``GATED``.
+        and flagged ``GATED``.  A concrete threshold must be > 0 (:class:`InputError`); a
+        traced one that is not (NaN included) gates every row and sets ``NON_FINITE``
+        (``UpdateInfo.rejected``) — a NaN gate used to switch gating off without a flag.
       robust: optional degrees of freedom ν (scalar, traced) of a Student-t measurement
         model: each row's R is divided by its EM weight w = (ν + d_z)/(ν + d²) ≤ 1 (d² its
         marginal NIS), so an outlier pulls the estimate less and less the further out it is,
@@ -725,7 +727,10 @@ def _update(state: SlamState, model: SlamModel, z, slots, mask, R, params, gate,
         else:
             d2_each = logdet_each = jnp.zeros(valid_.shape, dtype)
         if gate is not None:
-            gated = valid_ & (d2_each > _threshold(gate, jnp.int32(dz), dtype))
+            # a threshold that is not > 0 (a traced NaN: d² > NaN is False, gating was off
+            # without a word) gates every row; the status says NON_FINITE (below)
+            thr = _threshold(gate, jnp.int32(dz), dtype)
+            gated = valid_ & ((d2_each > thr) | ~(thr > 0))
             valid_ = valid_ & ~gated
         else:
             gated = jnp.zeros_like(valid_)
@@ -848,6 +853,10 @@ def _update(state: SlamState, model: SlamModel, z, slots, mask, R, params, gate,
             out = out[:9] + tuple(take(a, inv, 0) for a in out[9:])
     else:
         out = factors(n, K_all, rows_in)
+    # a traced gate that is not > 0 (NaN included) with rows to use: every row gated, flagged
+    # NON_FINITE and counted as rejected (one scalar test per update)
+    gate_bad = (jnp.any(valid) & ~(_threshold(gate, jnp.int32(dz), dtype) > 0)) if gate is not None \
+        else jnp.asarray(False)
     x_new, Kg, G, nu, Lc, Sinv, chol_ok, ok, not_conv, valid, gated, d2_each, logdet_each = out
     if active_only:
         # nothing to correct (no row used, or the update rejected): no tile is visited
@@ -862,7 +871,7 @@ def _update(state: SlamState, model: SlamModel, z, slots, mask, R, params, gate,
     logdet = 2.0 * jnp.sum(jnp.log(jnp.where(ok, jnp.diagonal(Lc), 1.0)))
     status = (
         state.status
-        | _flag_if(~ok, errors.NON_FINITE)
+        | _flag_if(~ok | gate_bad, errors.NON_FINITE)
         | _flag_if(~chol_ok, errors.NOT_PSD)
         | _flag_if(jnp.any(gated), errors.GATED)
         | _flag_if(jnp.any(bad_input), errors.MASKED_INPUT)
@@ -876,7 +885,7 @@ def _update(state: SlamState, model: SlamModel, z, slots, mask, R, params, gate,
         logdet=jnp.where(ok, logdet, 0.0),
         d2=d2_each,
         row_logdet=logdet_each,
-        rejected=~ok & jnp.any(valid),
+        rejected=(~ok & jnp.any(valid)) | gate_bad,
     )
     return state._replace(x=x_new, P=P_new, status=status), info
 
@@ -1133,8 +1142,10 @@ def add_landmark(state: SlamState, model: SlamModel, slot, mean, cov_ll, cov_lx,
     (e.g. trilateration for range-only SLAM).
 
     Shapes are checked (static), and when concrete, ``slot`` (an int in [0, capacity)) and
-    ``cov_ll`` (symmetric PSD): :class:`InputError` naming the argument.  A traced ``slot``
-    outside the map is never clamped: nothing is written and ``MASKED_INPUT`` is set.
+    ``cov_ll`` (symmetric PSD), ``mean`` and ``cov_lx`` (finite): :class:`InputError` naming the
+    argument.  A traced ``slot`` outside the map is never clamped: nothing is written and
+    ``MASKED_INPUT`` is set; a traced non-finite ``mean`` / ``cov_ll`` / ``cov_lx`` writes nothing
+    and sets ``NON_FINITE`` (a NaN was written into the state, active, with status 0).
     """
     _check_sizes(state, model)
     nr, dl, cap = _sizes(state, model)
@@ -1151,8 +1162,11 @@ def add_landmark(state: SlamState, model: SlamModel, slot, mean, cov_ll, cov_lx,
         if tuple(jnp.shape(a)) != want:
             raise InputError(f"{nm}: expected shape {want} (lm_dim {dl}, state size {n}), got "
                              f"{tuple(jnp.shape(a))}")
-    if is_concrete(cov_ll) and not (is_concrete(ok) and not np.any(np.asarray(ok))):
-        check_psd(cov_ll, "cov_ll")
+    if not (is_concrete(ok) and not np.any(np.asarray(ok))):
+        if is_concrete(cov_ll):
+            check_psd(cov_ll, "cov_ll")
+        check_finite(mean, "mean")
+        check_finite(cov_lx, "cov_lx")
     dtype = state.x.dtype
     slot = jnp.asarray(slot, jnp.int32)
     in_map = (slot >= 0) & (slot < cap)
@@ -1162,6 +1176,9 @@ def add_landmark(state: SlamState, model: SlamModel, slot, mean, cov_ll, cov_lx,
     mean = jnp.asarray(mean, dtype)
     cov_ll = jnp.asarray(cov_ll, dtype)
     cov_lx = jnp.asarray(cov_lx, dtype)
+    finite = jnp.all(jnp.isfinite(mean)) & jnp.all(jnp.isfinite(cov_ll)) & jnp.all(jnp.isfinite(cov_lx))
+    status = status | _flag_if(ok & ~finite, errors.NON_FINITE)
+    ok = ok & finite
     start = nr + slot * dl
     zero = jnp.zeros((), start.dtype)  # lax wants index arguments of one integer type
     row = jax.lax.dynamic_update_slice(cov_lx, cov_ll, (zero, start))  # (dl, n)
@@ -1450,6 +1467,9 @@ def associate_nn(state: SlamState, model: SlamModel, z, mask, R, params=None,
 
     Shapes (static) and, when concrete, ``mask`` (bool or 0/1) and ``R`` (symmetric PSD on the
     masked-in rows) are checked as :func:`update`'s: :class:`InputError` naming the argument.
+    So are ``gate`` and ``new_threshold`` known now (numbers > 0, inf allowed).  A traced one
+    that is not > 0 (NaN included) matches / registers nothing, and this function has no
+    status to say so: check it, or use :func:`run`, which flags it ``NON_FINITE``.
 
     Returns (slots (K,), matched (K,) bool, new (K,) bool, d2_min (K,)).  Called eagerly it is
     compiled once per model (:func:`jaxslam.compilation.call_compiled`, ``after="auto"``).
@@ -1514,11 +1534,24 @@ def joint_compatibility(state: SlamState, model: SlamModel, z, slots, matched, R
     iterations (fixed, jit-friendly).  Unlike full JCBB (Neira & Tardós 2001) no
     alternative pairings are searched: rows are only dropped, never re-assigned.
 
+    ``thresholds`` must be one-dimensional with at least K entries (a shorter table was read
+    past its end, clamped to its last entry); known now, its entries must be > 0 (a NaN dropped
+    nothing, without a word): else :class:`InputError` naming ``thresholds``.  A traced table is
+    not checked (and this function has no status).
+
     Returns (matched (K,) bool — a subset of the input, dropped (K,) bool, joint NIS).
     """
     nr, dl, cap = _sizes(state, model)
     dtype = state.x.dtype
     K, dz = z.shape[0], model.meas_dim
+    if np.ndim(thresholds) != 1 or np.shape(thresholds)[0] < K:
+        raise InputError(f"thresholds: expected shape ({K},) (one per number of matched rows), "
+                         f"got {tuple(np.shape(thresholds))}")
+    if is_concrete(thresholds):
+        t = np.asarray(thresholds, dtype=float)[:K]
+        if not np.all(t > 0):  # NaN included
+            raise InputError(f"thresholds: expected χ² thresholds > 0, got {t[~(t > 0)][0]} "
+                             f"at index {int(np.flatnonzero(~(t > 0))[0])}")
     R = jnp.broadcast_to(jnp.asarray(R, dtype), (K, dz, dz))
     s = state.x[:nr]
     L = state.x[nr:].reshape(cap, dl)[slots]
@@ -1796,8 +1829,11 @@ def run(model: SlamModel, state: SlamState, log: SlamLog, Q, R, *, association: 
             robot mean before the prediction (input-dependent noise).
         R: (d_z, d_z) or (T, d_z, d_z).
         association: static, "known" (``log.ids``) or "nn" (nearest neighbour, ids hidden,
-            ``nn_gate`` / ``nn_new`` on the 3-σ scale of :func:`associate_nn`).
-        gate: χ²(d_z) threshold on each row's NIS (None: off).  Traced: changing it never
+            ``nn_gate`` / ``nn_new`` on the 3-σ scale of :func:`associate_nn`; a traced one that
+            is not > 0, NaN included, sets ``NON_FINITE`` and a NaN log-likelihood at each step
+            with a present row).
+        gate: χ²(d_z) threshold on each row's NIS (None: off; a traced one that is not > 0
+            gates every row, as :func:`update`'s).  Traced: changing it never
             recompiles.
         save_cov, save_map: static; also stack the robot covariances / the map means.
 
@@ -1852,6 +1888,13 @@ def run(model: SlamModel, state: SlamState, log: SlamLog, Q, R, *, association: 
             # drop it silently (known ids: the row of a landmark not yet mapped)
             bad = jnp.any(m_t & ~jnp.all(jnp.isfinite(z_t), axis=-1))
             st = st._replace(status=st.status | _flag_if(bad, errors.MASKED_INPUT))
+            if association != "known":
+                # a traced nn_gate / nn_new that is not > 0 (NaN included) matched and registered
+                # nothing without a word: NON_FINITE, and the step's likelihood NaN (below)
+                nn_bad = jnp.any(m_t) & ~((jnp.asarray(nn_gate) > 0) & (jnp.asarray(nn_new) > 0))
+                st = st._replace(status=st.status | _flag_if(nn_bad, errors.NON_FINITE))
+            else:
+                nn_bad = jnp.asarray(False)
             st, info = update(st, model, z_t, slots, mapped, R_t, p_t, gate=gate)
             if can_register:
                 n_before = jnp.sum(st.active)
@@ -1864,7 +1907,7 @@ def run(model: SlamModel, state: SlamState, log: SlamLog, Q, R, *, association: 
             # a rejected update (NON_FINITE / NOT_PSD in the status) or prediction has no
             # likelihood: NaN, as in the generic filters, so that a sum over the run (an NLL
             # loss) cannot hide it
-            ll = jnp.where(info.rejected | ~pred_ok, jnp.asarray(jnp.nan, dtype), ll)
+            ll = jnp.where(info.rejected | ~pred_ok | nn_bad, jnp.asarray(jnp.nan, dtype), ll)
             out = (st.x[:nr], st.P[:nr, :nr] if save_cov else None,
                    landmarks(st, model) if save_map else None, info.nis, logdet, info.dof, ll,
                    jnp.sum(info.used).astype(jnp.int32), jnp.sum(info.gated).astype(jnp.int32), n_new)

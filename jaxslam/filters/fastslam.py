@@ -530,9 +530,9 @@ def _update_closed(m, P, z, zhat, H, R, res, valid, gate, robust=None):
     A = P - K @ HP
     P_post = symmetrize(A - (A @ Hm.T) @ K.T + K @ Rm @ K.T)
     if gate is None:
-        gated = jnp.asarray(False)
+        gated = bad_gate = jnp.asarray(False)
     else:
-        gated = valid & (nis > _threshold(gate, jnp.int32(dz), dtype))
+        gated, bad_gate = _gate(gate, nis, dz, dtype, valid)
     finite = jnp.all(jnp.isfinite(x_post)) & jnp.all(jnp.isfinite(P_post))
     accepted = valid & ~gated & ok & finite
     mean = jnp.where(accepted, x_post, m)
@@ -540,11 +540,20 @@ def _update_closed(m, P, z, zhat, H, R, res, valid, gate, robust=None):
     status = (
         _flag(gated, errors.GATED)
         | _flag(valid & ~gated & ~ok, errors.NOT_PSD)
-        | _flag(valid & ~gated & ok & ~finite, errors.NON_FINITE)
+        | _flag((valid & ~gated & ok & ~finite) | bad_gate, errors.NON_FINITE)
     )
     nis = jnp.where(valid, nis, zero)
     logdet = jnp.where(valid, logdet, zero)
     return mean, cov, nis, logdet, nu, accepted, status
+
+
+def _gate(gate, nis, dz: int, dtype, valid):
+    """``(gated, bad)`` of a row's NIS against a (not None) gate: gated when valid and the NIS
+    exceeds the threshold or the threshold is not > 0 (a traced NaN: ``nis > nan`` is False, so
+    gating was off without a word); ``bad`` (valid and such a threshold) sets ``NON_FINITE``."""
+    thr = _threshold(gate, jnp.int32(dz), dtype)
+    bad = valid & ~(thr > 0)
+    return valid & ((nis > thr) | bad), bad
 
 
 def _update_ekf(m, P, z, h, R, res, valid, gate):
@@ -554,6 +563,7 @@ def _update_ekf(m, P, z, h, R, res, valid, gate):
         _ekf.Gaussian(m, P), z, h, R, residual=res,
         mask=jnp.broadcast_to(valid, (dz,)), gate=gate,
     )
+    # (a traced gate that is not > 0 gates the row with GATED | NON_FINITE: ekf.update's gate_test)
     logdet = jnp.where(valid, _logdet_spd(info.S), jnp.zeros((), m.dtype))
     return post.mean, post.cov, info.nis, logdet, info.innovation, info.accepted, info.status
 
@@ -652,7 +662,10 @@ def observe_update(
         weights: "exact" (default) | "mean" (alias "paper") | "none" (the landmark
             updates alone, loglik 0: the weights of :func:`propose_optimal`), static.
         gate: None, a chi-square threshold on each update's NIS (d_z dof), or
-            a callable ``gate(dof)``; gated measurements change nothing.
+            a callable ``gate(dof)``; gated measurements change nothing.  A traced
+            threshold that is not > 0 (NaN included; a concrete one is an InputError)
+            gates every row it meets and sets ``NON_FINITE`` (a NaN gate used to switch
+            gating off without a flag).
         slot_by_id: static; id j lives in slot j (see module docstring).
         solver: static; "closed" (default) or "ekf" (see module docstring).
         chunk: static; None (default) vmaps all N particles at once; an int
@@ -818,7 +831,7 @@ def propose_optimal(p: Particles, model: LandmarkModel, z, lm_ids, mask, R, pose
     given the particle's past (FastSLAM 2.0's importance weight, by the chain rule over the
     rows).  Then s ~ N(s̄, Σ_s).  Rows of unmapped landmarks (registrations) inform neither.
     ``gate``: a row whose NIS νᵀS⁻¹ν exceeds it informs nothing and adds nothing (as in
-    :func:`observe_update`); ``robust=ν``: the pose update uses Z_w = Z / w, w = min((ν + d_z)/
+    :func:`observe_update`; a traced gate that is not > 0 gates every row and sets ``NON_FINITE``); ``robust=ν``: the pose update uses Z_w = Z / w, w = min((ν + d_z)/
     (ν + d²), 1) the EM weight of the row's NIS d², and the row's weight is the Student-t
     density with scale S.  The whole Z is scaled, not R alone as in the landmark update of
     :func:`observe_update`: a surprising row is distrusted whether the sensor or the particle's
@@ -912,7 +925,7 @@ def _propose_optimal(p: Particles, model: LandmarkModel, z, lm_ids, mask, R, pos
         valid = finite & (row_ids >= 0)
 
         def body(carry, x):
-            s, P, ll = carry
+            s, P, ll, hit = carry
             z_k, id_k, v_k, R_k = x
             slot, known, _ = _slot(active, ids, id_k, cap, slot_by_id)
             do = v_k & known
@@ -926,7 +939,11 @@ def _propose_optimal(p: Particles, model: LandmarkModel, z, lm_ids, mask, R, pos
             S = symmetrize(GP @ Gs.T + Z)
             Sinv, logdet, ok = _spd_inv_logdet(S)
             d2 = nu @ (Sinv @ nu)
-            gated = do & (d2 > _threshold(gate, jnp.int32(dz), dtype)) if gate is not None else jnp.asarray(False)
+            if gate is not None:
+                gated, bad_gate = _gate(gate, d2, dz, dtype, do)
+                hit = hit | bad_gate
+            else:
+                gated = jnp.asarray(False)
             if robust is not None:
                 nu_t = jnp.asarray(robust, dtype)
                 w = jnp.minimum((nu_t + dz) / (nu_t + d2), 1.0)
@@ -948,13 +965,15 @@ def _propose_optimal(p: Particles, model: LandmarkModel, z, lm_ids, mask, R, pos
             s = jnp.where(use, s_new, s)
             P = jnp.where(use, P_new, P)
             ll = ll + jnp.where(use, ll_k, jnp.zeros((), dtype))
-            return (s, P, ll), None
+            return (s, P, ll, hit), None
 
-        (s, P, ll), _ = jax.lax.scan(body, (s0, P0, jnp.zeros((), dtype)), (z, row_ids, valid, Rs))
-        return s, P, ll
+        (s, P, ll, hit), _ = jax.lax.scan(body, (s0, P0, jnp.zeros((), dtype), jnp.asarray(False)),
+                                          (z, row_ids, valid, Rs))
+        return s, P, ll, hit
 
     pose_cov = jnp.asarray(pose_cov, dtype)
-    s_mean, s_cov, loglik = jax.vmap(one_particle)(p.pose, pose_cov, p.lm_mean, p.lm_cov, p.active, p.ids, lm_ids)
+    s_mean, s_cov, loglik, gate_hit = jax.vmap(one_particle)(p.pose, pose_cov, p.lm_mean, p.lm_cov, p.active,
+                                                             p.ids, lm_ids)
     # s ~ N(s̄, Σ_s): a closed-form factor (n_r ≤ 4) with a jitter at the dtype's resolution, so
     # that a zero covariance (no motion since the last draw) draws the mean
     jit = jnp.finfo(dtype).eps * (1.0 + jnp.trace(s_cov, axis1=1, axis2=2))
@@ -967,7 +986,8 @@ def _propose_optimal(p: Particles, model: LandmarkModel, z, lm_ids, mask, R, pos
     draw = jnp.where(ok[:, None], draw, p.pose)
     loglik = jnp.where(ok, loglik, jnp.zeros((), dtype))
     log_marg = jax.scipy.special.logsumexp(p.log_w + loglik)
-    status = _flag(~jnp.all(ok), errors.NON_FINITE)
+    # (a traced gate that is not > 0 on a row that would inform: gated, and flagged NON_FINITE)
+    status = _flag(~jnp.all(ok) | jnp.any(gate_hit), errors.NON_FINITE)
     # a present row with a non-finite entry is dropped: flagged, as observe_update flags it
     status = status | _flag(jnp.any(jnp.asarray(mask).astype(bool) & ~finite), errors.MASKED_INPUT)
     return p._replace(pose=draw, status=p.status | status), loglik, log_marg, status
@@ -1072,7 +1092,8 @@ def maybe_resample(p: Particles, key, threshold: Optional[float] = 0.5,
     Args:
         p: Particles.  key: PRNG key for the draw.
         threshold: fraction of N (traced), or None to resample at every call
-            (the paper's choice).
+            (the paper's choice).  A concrete one outside [0, 1] is an InputError; a traced
+            NaN never resamples and sets ``NON_FINITE`` in ``p.status``.
         scheme: name in :data:`jaxslam.filters.resampling.SCHEMES` or a
             callable ``(key, log_w, n) -> indices`` (static).
 
@@ -1102,6 +1123,8 @@ def _maybe_resample(p: Particles, key, threshold, scheme) -> Particles:
         return do(p)
     _check_fraction(threshold, "threshold")
     thr = jnp.asarray(threshold, p.log_w.dtype) * N
+    # a traced NaN threshold never resampled (N_eff < NaN is False) without a flag
+    p = p._replace(status=p.status | _flag(jnp.isnan(thr), errors.NON_FINITE))
     return jax.lax.cond(neff(p) < thr, do, lambda q: q, p)
 
 
@@ -1146,6 +1169,7 @@ def _resample_soft(p: Particles, key, alpha, threshold, scheme) -> Particles:
         return do(p)
     N = p.pose.shape[0]
     thr = jnp.asarray(threshold, p.log_w.dtype) * N
+    p = p._replace(status=p.status | _flag(jnp.isnan(thr), errors.NON_FINITE))  # as maybe_resample
     return jax.lax.cond(neff(p) < thr, do, lambda q: q, p)
 
 
