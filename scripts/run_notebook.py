@@ -113,9 +113,10 @@ def _run_cell(code: str, ns: dict, name: str):
     if tree.body and isinstance(tree.body[-1], ast.Expr):
         last = ast.Expression(tree.body.pop().value)
     exec(compile(tree, name, "exec"), ns)  # noqa: S102 - executing the notebook is the point
-    if last is not None and not _ends_with_semicolon(code):
-        return eval(compile(last, name, "eval"), ns)  # noqa: S307
-    return None
+    if last is None:
+        return None
+    value = eval(compile(last, name, "eval"), ns)  # noqa: S307 - always run (a ';' only hides it)
+    return None if _ends_with_semicolon(code) else value
 
 
 def execute(path, out_path=None, cwd=None):
