@@ -13,7 +13,6 @@ import json
 import pathlib
 import shlex
 
-import pytest
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 NB_DIR = ROOT / "notebooks"
