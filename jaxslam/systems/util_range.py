@@ -216,7 +216,11 @@ class Startup(NamedTuple):
     anchors: (N, 3) fitted anchors [m]; bias: () [m]; cov: (3N+1, 3N+1) joint covariance of
     [anchors (row-major), bias]; n_used: () ranges used; n_rejected: () ranges cut as
     outliers; rms: () residual RMS [m]; p0, v0: (3,) tag position / velocity at t_w from
-    motion capture; t0: () t_w [s].
+    motion capture; t0: () t_w [s].  status: () int32 :mod:`jaxslam.errors` bits of the fit —
+    ``DEGENERATE`` when an anchor kept fewer than 3 ranges in the window (its 3 coordinates are
+    not fixed: it came back at (0, 0, 0) or anywhere, with a ~1e10 variance), ``NON_FINITE`` when
+    a fitted value is NaN/Inf; :func:`run` ORs it into its status (None, as a hand-made start-up
+    may leave it: no bits).
     """
 
     anchors: jax.Array
@@ -228,6 +232,7 @@ class Startup(NamedTuple):
     p0: jax.Array
     v0: jax.Array
     t0: jax.Array
+    status: Any = None
 
 
 class Log(NamedTuple):
@@ -290,7 +295,7 @@ def util_events(t, anchor_id, ranges, t_start=None, t_end=None, tof_t=None,
     """TWR rows (t [s], anchor id, range [m]) → an :class:`EventLog`, no input.
 
     ``anchor_id``: whole numbers that fit int32, never :data:`HEIGHT_ID` (reserved);
-    ``t``: finite, non-decreasing (:class:`InputError` naming the argument otherwise).
+    ``t`` (and ``tof_t``): finite, non-decreasing (:class:`InputError` naming the argument otherwise).
 
     Optional ToF rows (``tof_t`` [s], ``tof`` [m], e.g. ``UtilData.tof_t/tof``) are merged
     in as rows with id :data:`HEIGHT_ID` (z = the laser height); :func:`run` then adds
@@ -324,6 +329,9 @@ def util_events(t, anchor_id, ranges, t_start=None, t_end=None, tof_t=None,
     hz = np.asarray(tof, np.float64).reshape(-1, 1)
     if ht.shape[0] != hz.shape[0]:
         raise InputError(f"util_events: tof has {hz.shape[0]} rows but tof_t {ht.shape[0]}")
+    for a, name in ((t, "t"), (ht, "tof_t")):  # merge_events named the merged array's meas_t and index
+        if not np.all(np.isfinite(a)):
+            raise InputError(f"{name}: non-finite time at index {int(np.argmin(np.isfinite(a)))}")
     if t.size > 1 and np.any(np.diff(t) < 0):
         raise InputError("util_events: range times decrease")
     if ht.size > 1 and np.any(np.diff(ht) < 0):
@@ -351,7 +359,7 @@ def log_from_events(events: EventLog, anchor_ids, anchors=None, startup: Optiona
                ids=jnp.asarray(events.ids, jnp.int32), mask=jnp.asarray(events.mask, bool),
                anchor_ids=jnp.asarray(anchor_ids, jnp.int32),
                anchors=None if anchors is None else jnp.asarray(anchors, dtype),
-               startup=None if startup is None else Startup(*[jnp.asarray(a) for a in startup]))
+               startup=None if startup is None else Startup(*[None if a is None else jnp.asarray(a) for a in startup]))
 
 
 def _gn_joint(P, Z, idx, w, A0, b0, iters, prior_w):
@@ -396,8 +404,8 @@ def startup(t, anchor_id, ranges, tag_pos, anchor_ids, t_window, v0=None,
     Checked first (:class:`InputError` naming the argument): shapes (M,), (M, 3), (N,), (3,);
     ``iters`` an int >= 1; ``sigma_r``, ``bias_prior_sigma`` positive and ``t_window`` finite
     when concrete; with concrete values, at least one range of every anchor in the window (an
-    anchor without one came back at (0, 0, 0) with a 2e10 variance, unflagged — under ``jit``
-    it still does).  Called eagerly it is compiled once per shape and ``iters``
+    anchor without one came back at (0, 0, 0) with a 2e10 variance, unflagged; under ``jit``, where
+    the values are not known, it still does, and ``Startup.status`` carries ``DEGENERATE``).  Called eagerly it is compiled once per shape and ``iters``
     (:func:`jaxslam.compilation.call_compiled`; op by op every call re-compiled its two scans).
     """
     iters = check_int(iters, "iters", 1, what="an int (Gauss–Newton iterations)")
@@ -471,12 +479,17 @@ def _startup(t, anchor_id, ranges, tag_pos, anchor_ids, t_window, v0, sigma_r, b
     cov = s2 * jax.scipy.linalg.cho_solve((jnp.linalg.cholesky(J.T @ J + 1e-12 * eye), True), eye)
     # motion-capture position at t_w: the last window sample's tag position
     last = jnp.argmax(jnp.where(win, t, -jnp.inf))
+    # an anchor with < 3 kept ranges is not fixed (3 unknowns): DEGENERATE, carried into the run
+    n_per = jnp.sum(keep[:, None] & (idx[:, None] == jnp.arange(N)[None, :]), axis=0)
+    finite = jnp.all(jnp.isfinite(theta)) & jnp.all(jnp.isfinite(cov)) & jnp.all(jnp.isfinite(Pm[last]))
+    status = (jnp.where(jnp.any(n_per < 3), errors.DEGENERATE, 0)
+              | jnp.where(finite, 0, errors.NON_FINITE)).astype(jnp.int32)
     return Startup(anchors=theta[:-1].reshape(N, 3), bias=theta[-1], cov=symmetrize(cov),
                        n_used=jnp.sum(keep).astype(jnp.int32),
                        n_rejected=jnp.sum(win & ~keep).astype(jnp.int32),
                        rms=jnp.sqrt(jnp.sum(r * r) / jnp.maximum(n, 1.0)), p0=Pm[last],
                        v0=jnp.zeros(3, dtype) if v0 is None else jnp.asarray(v0, dtype),
-                       t0=jnp.asarray(t_window, dtype))
+                       t0=jnp.asarray(t_window, dtype), status=status)
 
 
 def _height_update(st, z_k, id_k, m_k, params, gate):
@@ -548,8 +561,9 @@ def init(log: Log, config: Config, params: Params, *, key=None) -> State:
     sel = jnp.concatenate([jnp.arange(NR, NR + m), jnp.asarray([6])])
     P = P.at[sel[:, None], sel[None, :]].set(su.cov.astype(dtype))
     x = st.x.at[NR:NR + m].set(su.anchors.reshape(-1).astype(dtype))
+    status = st.status if su.status is None else st.status | jnp.asarray(su.status).astype(st.status.dtype)
     return st._replace(x=x, P=symmetrize(P), active=st.active.at[:N].set(True),
-                       ids=st.ids.at[:N].set(log.anchor_ids))
+                       ids=st.ids.at[:N].set(log.anchor_ids), status=status)
 
 
 def step(state: State, event: Event, config: Config, params: Params, *, key=None):
@@ -591,7 +605,8 @@ def run(log: Log, config: Config = Config(), params: Params = PARAMS, *, key=Non
     first event's Δt is ``t[0] − t0`` (``log.dt[0]`` is replaced: the state is predicted across the
     gap); the log must not start before t0.  A start-up of another number of anchors than
     ``log.anchor_ids``, non-finite start-up values or t[0] < t0 (when concrete) raise
-    :class:`InputError`.
+    :class:`InputError`; ``startup.status`` (a fit's ``DEGENERATE`` / ``NON_FINITE``) is OR-ed
+    into ``Result.status``.
     """
     del key
     if (log.anchors is None) == (log.startup is None):
@@ -633,6 +648,8 @@ def _check_startup(log: Log, N: int) -> None:
     if not isinstance(su, Startup):
         raise InputError("log.startup: expected a util_range.Startup")
     want = {"anchors": (N, 3), "bias": (), "cov": (3 * N + 1, 3 * N + 1), "p0": (3,), "v0": (3,), "t0": ()}
+    if su.status is not None:
+        want["status"] = ()
     for f, shp in want.items():
         if np.shape(getattr(su, f)) != shp:
             raise InputError(f"log.startup.{f}: expected shape {shp} (the start-up of the log's {N} anchors), "

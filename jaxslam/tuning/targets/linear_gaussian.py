@@ -67,7 +67,7 @@ def lg_simulate(key, T: int, Q, R, dt: float = LG_DT, dtype=jnp.float64):
 
     x = [p_x, p_y, v_x, v_y]: 2D constant velocity with step ``dt``; the position and the
     velocity are measured.  Returns ``{"z": (T, 4), "x": (T, 4)}`` (state after each step;
-    x_0 = 0) in ``dtype``.  The noise is drawn and the model simulated in the wider of
+    x_0 = 0) in ``dtype`` (a floating dtype, else :class:`InputError` naming ``dtype``).  The noise is drawn and the model simulated in the wider of
     ``dtype`` and JAX's default float (float64 with x64 on) and the result cast to ``dtype``,
     so one key gives the same data in every precision, rounded: a float32 log is the float64
     log rounded to float32 (drawn in float32, its samples were unrelated to float64's).
@@ -77,7 +77,7 @@ def lg_simulate(key, T: int, Q, R, dt: float = LG_DT, dtype=jnp.float64):
     """
     T = check_int(T, "T", lower=1)
     _check_model(dt, Q=Q, R=R)
-    out_dtype = jnp.dtype(dtype)
+    out_dtype = check_float_dtype(dtype)  # an integer dtype truncated the simulated log
     dtype = jnp.promote_types(out_dtype, jnp.result_type(float))  # float64 with x64 on: one stream
     A, H = (jnp.asarray(a, dtype) for a in _lg_model(dt))
     Lq, Lr = _sqrt_psd(jnp.asarray(Q, dtype)), _sqrt_psd(jnp.asarray(R, dtype))
@@ -103,7 +103,8 @@ def lg_run(Q, R, z, dt: float = LG_DT, P0=None, filter: str = "ekf"):
     "cubature"), which on this linear model is the same Kalman filter.
 
     Returns (means (T, 4), nis (T,), logdet (T,), dof (T,), nees-ready covs (T, 4, 4)).
-    Known now, a z with NaN or Inf is an InputError naming ``z``; ``P0`` (default I) may be a list.
+    Known now, a z with NaN or Inf is an InputError naming ``z``, as is an empty z; ``P0`` (default I)
+    may be a list.
     """
     from ...filters import ukf as ukf_mod
 
@@ -112,6 +113,8 @@ def lg_run(Q, R, z, dt: float = LG_DT, P0=None, filter: str = "ekf"):
     if not hasattr(z, "dtype"):  # a list: the same numbers as an array
         z = jnp.asarray(check_numbers(z, "z"))
     check_shape(z, (None, 4), "z")
+    if z.shape[0] == 0:  # a loss over no step was silently 0 (nll) or NaN (mse)
+        raise InputError("z: expected at least one measurement row, got shape (0, 4)")
     check_finite(z, "z")  # a NaN measurement made the loss NaN silently
     _check_model(dt, Q=Q, R=R, P0=P0)
     dtype = z.dtype
@@ -139,7 +142,8 @@ def linear_gaussian(loss: str = "nll", train_runs: int = 4, test_runs: int = 4, 
     """Oracle target: diag Q (log-diagonal) and full R (log-Cholesky) of a 2D constant-velocity
     Kalman filter measuring position and velocity, with known truth (:data:`LG_Q_TRUE`, :data:`LG_R_TRUE`), started at
     ``q0_scale``·Q and ``r0_scale``·diag(R) (a diagonal first guess).  Losses nll / mse / nees on the filtered state.
-    ``filter``: one of :data:`FILTERS`; the loss and its gradient run through that filter."""
+    ``filter``: one of :data:`FILTERS`; the loss and its gradient run through that filter.
+    ``dtype`` float64 with JAX's x64 off computes in float32, and ``config["dtype"]`` records float32."""
     if filter not in FILTERS:
         raise InputError(f"--filter: expected one of {', '.join(FILTERS)}, got {filter!r}")
     _check_keywords(_ignored, "linear-gaussian --target noise")
@@ -148,7 +152,8 @@ def linear_gaussian(loss: str = "nll", train_runs: int = 4, test_runs: int = 4, 
     test_runs = check_int(test_runs, "test_runs", lower=1)
     q0_scale = check_scalar(q0_scale, "q0_scale", lower=0, strict=True)
     r0_scale = check_scalar(r0_scale, "r0_scale", lower=0, strict=True)
-    dtype = check_float_dtype(dtype)
+    # the dtype computed in: float64 asked for with x64 off runs in float32, and config says so
+    dtype = jnp.dtype(jax.dtypes.canonicalize_dtype(check_float_dtype(dtype)))
     if loss not in ("nll", "mse", "nees"):
         raise InputError(f"--loss: expected nll, mse or nees, got {loss!r}")
     Qt, Rt = np.diag(LG_Q_TRUE), np.asarray(LG_R_TRUE)
