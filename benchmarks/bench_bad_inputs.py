@@ -4,7 +4,9 @@ Run with ``python -m jaxslam bench bad_inputs [--json PATH]``.  The cases are th
 ``tests/test_cli_bad_inputs.py`` (the test asserts the exit code, the one line naming the
 argument and that nothing compiles; it runs them in one interpreter, so it does not measure
 what a user waits for).  Here each case is a new ``jaxslam`` process, as a user types it:
-wall time from start to exit, the median of ``--repeats`` runs.  Target (issue 22): every
+wall time from start to exit, the median of ``--repeats`` runs.  A run still going after
+``--timeout`` seconds (default 60) is killed: its row has ``timed_out`` true, ``exit_code``
+null and ``jaxslam_s`` the timeout, and the target is not met.  Target (issue 22): every
 case within 2 s.  A case that needs a ``--params`` schema, a log's contents or a scenario's own
 check of a value imports JAX (1.1-2.3 s alone on the 2-core development machines: ``python -c
 "import jax"``), so those cases set the floor; the reference column is that import, measured the
@@ -32,6 +34,7 @@ import numpy as np
 DESCRIPTION = "Bad-input latency: each CLI bad-input case as a fresh process (target: every case within 2 s)"
 
 TARGETS = {"max_case_s": 2.0}
+DEFAULT_TIMEOUT_S = 60.0  # per run of a case: 30x the target (a hanging case must not stall the benchmark)
 _HERE = pathlib.Path(__file__).resolve().parent
 
 
@@ -39,6 +42,9 @@ def add_arguments(parser):
     parser.add_argument("--repeats", type=int, default=3,
                         help="runs per case (median; default 3); each run is a cold, fresh process, "
                              "timed with no warm-up on purpose (what a user waits for)")
+    parser.add_argument("--timeout", type=float, default=DEFAULT_TIMEOUT_S,
+                        help=f"seconds one run of a case may take before it is killed and its row "
+                             f"marked timed_out (default {DEFAULT_TIMEOUT_S:g})")
 
 
 def _catalogue():
@@ -54,29 +60,40 @@ def _catalogue():
     return mod
 
 
-def _wall(cmd, env, cwd, repeats):
+def _wall(cmd, env, cwd, repeats, timeout=None):
+    """(median wall time, last exit code, timed out).  A run past ``timeout`` seconds is killed
+    and ends the case's repeats: (``timeout``, None, True)."""
     ts, rc = [], None
     for _ in range(repeats):
         t0 = time.perf_counter()
-        rc = subprocess.run(cmd, capture_output=True, env=env, cwd=cwd).returncode
+        try:
+            rc = subprocess.run(cmd, capture_output=True, env=env, cwd=cwd, timeout=timeout).returncode
+        except subprocess.TimeoutExpired:  # subprocess.run has killed and reaped the child
+            return float(timeout), None, True
         ts.append(time.perf_counter() - t0)
-    return float(np.median(ts)), rc
+    return float(np.median(ts)), rc, False
 
 
 def run(args):
+    timeout = getattr(args, "timeout", DEFAULT_TIMEOUT_S)
+    if not timeout > 0:  # (finite: the bench CLI checks float options)
+        from jaxslam.errors import InputError
+
+        raise InputError(f"bench bad_inputs: --timeout: expected seconds > 0, got {timeout!r}")
     cat = _catalogue()
     tmp = pathlib.Path(tempfile.mkdtemp(prefix="jaxslam-bench-bad-"))
     load0 = list(os.getloadavg())
     try:
         cat._files(tmp)
         base_env = {k: v for k, v in os.environ.items() if k != "JAXSLAM_DATA_DIR"}
-        jax_s, _ = _wall([sys.executable, "-c", "import jax"], base_env, str(tmp), args.repeats)
+        jax_s, _, _ = _wall([sys.executable, "-c", "import jax"], base_env, str(tmp), args.repeats, timeout)
         results = []
         for argv, needle, env in cat._cases(tmp):
             e = {**base_env, **(env or {})}
-            s, rc = _wall([sys.executable, "-m", "jaxslam", *argv], e, str(tmp), args.repeats)
+            s, rc, hung = _wall([sys.executable, "-m", "jaxslam", *argv], e, str(tmp), args.repeats, timeout)
             results.append({"case": " ".join(argv).replace(str(tmp), "TMP").replace(str(cat.DATA), "tests/data"), "params": {"needle": needle},
-                            "jaxslam_s": s, "exit_code": rc, "reference": "python -c 'import jax'",
+                            "jaxslam_s": s, "exit_code": rc, "timed_out": hung,
+                            "reference": "python -c 'import jax'",
                             "reference_s": jax_s, "speedup": jax_s / s})
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -84,8 +101,10 @@ def run(args):
     bad_rc = [r["case"] for r in results if r["exit_code"] != 2]
     targets = [{"name": "slowest bad-input case, fresh process", "target": "<= 2 s", "value": worst,
                 "met": bool(worst <= TARGETS["max_case_s"] and not bad_rc)}]
+    hung = [r["case"] for r in results if r["timed_out"]]
     print(f"  {len(results)} cases: median {np.median([r['jaxslam_s'] for r in results]):.2f} s, "
           f"max {worst:.2f} s, over 2 s: {sum(r['jaxslam_s'] > 2 for r in results)}; import jax alone "
-          f"{jax_s:.2f} s" + (f"; exit code not 2: {bad_rc}" if bad_rc else ""))
+          f"{jax_s:.2f} s" + (f"; exit code not 2: {bad_rc}" if bad_rc else "")
+          + (f"; timed out after {timeout:g} s (killed): {hung}" if hung else ""))
     return {"results": results, "targets": targets,
             "load_average": {"before": load0, "after": list(os.getloadavg())}}

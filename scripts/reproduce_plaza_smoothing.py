@@ -26,8 +26,13 @@ Protocol — ground truth is used only to score finished estimates:
   initialisation too); σ_r = 1.2 m as the filter.
 Nothing here was chosen by looking at a ground-truth error.
 
+Per log, ``iterated_huber`` also holds ``converged`` (no ``not_converged`` flag: the last step
+was below the tolerance) and ``status``, the names of every flag the smoother set on any step
+(``[]`` when none: a ``not_psd`` factorisation failure or a ``non_finite`` value is named there
+and on the printed line).
+
 Usage errors (a robot other than 1 or 2, ``--iters`` < 1, ``--damping`` not > 0, missing data
-files, a ``--json`` that is a folder) exit 2 with one line before any compute; ``--json`` is
+files, a ``--json`` that is a folder, lies under a file or cannot be written) exit 2 with one line before any compute; ``--json`` is
 written atomically once every log is done.  A log on which the EKF never initialised a beacon
 (a short excerpt) stops with one line naming the beacons, exit code 1.
 """
@@ -52,6 +57,7 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
+from jaxslam import errors  # noqa: E402
 from jaxslam.data.plaza import load_plaza  # noqa: E402
 from jaxslam.data.runners import evaluate_planar  # noqa: E402
 from jaxslam.filters import smoother  # noqa: E402
@@ -77,6 +83,14 @@ def h_batch(x, slots):
 def difference(a, b):
     d = a - b
     return d.at[2].set(wrap_angle(d[2]))
+
+
+def status_fields(status):
+    """``converged`` (no ``not_converged`` flag) and ``status``: the names of every flag the
+    smoother set on any step (``jaxslam.errors.FLAG_NAMES``; ``[]`` when none), so that a failed
+    factorisation (``not_psd``) or a NaN (``non_finite``) is reported, not only the iteration limit."""
+    names = errors.decode(np.asarray(status))
+    return {"converged": "not_converged" not in names, "status": names}
 
 
 def smooth_log(d, iters, damping, start_from):
@@ -141,7 +155,7 @@ def smooth_log(d, iters, damping, start_from):
         out[name] = {"ate_m": m["ate_m"], "map_err_m": me.rmse}
     out["iterated_huber"].update(
         iterations=iters, last_step_sigma=float(sm.step_sizes[-1]),
-        converged=not bool(np.any(np.asarray(sm.status) & 128)),
+        **status_fields(sm.status),
         bias_m=float(np.asarray(sm.means)[-1, 3]),
         first_call_s=t_first, run_s=t_it)
     out["ekf"]["run_s"] = t_ekf
@@ -177,6 +191,14 @@ def main(argv=None):
         _usage(f"--damping: expected a finite λ > 0 (or no --damping), got {a.damping}")
     if a.json is not None and (a.json == "" or pathlib.Path(a.json).is_dir()):
         _usage(f"--json: {a.json!r} is not a file path")
+    if a.json is not None:  # under a file, a folder not writable: said now, not after the compute
+        from jaxslam import files
+        from jaxslam.errors import InputError
+
+        try:
+            files.prepare_file("--json", a.json, create=False)
+        except InputError as e:
+            _usage(str(e).splitlines()[0])
     root = pathlib.Path(a.data)
     root = root / "gtsam" if (root / "gtsam").is_dir() else root
     from jaxslam.errors import InputError
@@ -196,7 +218,8 @@ def main(argv=None):
             f"{k} ATE {o[k]['ate_m']:.3f} m (beacons {o[k]['map_err_m']:.2f} m)"
             for k in ("ekf", "rts", "iterated_huber"))
             + f"  | iterated: last step {o['iterated_huber']['last_step_sigma']:.2e} σ, "
-              f"converged {o['iterated_huber']['converged']}, bias {o['iterated_huber']['bias_m']:+.2f} m, "
+              f"converged {o['iterated_huber']['converged']}, "
+              f"flags {' '.join(o['iterated_huber']['status']) or 'none'}, bias {o['iterated_huber']['bias_m']:+.2f} m, "
               f"{o['iterated_huber']['run_s']:.1f} s")
     if a.json:
         from jaxslam import files

@@ -16,7 +16,8 @@ Files read (``N`` = 1 or 2; times in s on the vehicle's clock):
 ``PlazaN_TD.txt``   time, sender id (2, the robot), node id, range [m]
 ``PlazaN_GT.txt``   time, x [m], y [m], heading [rad] (GPS ground truth;
                     one ``#`` header line; one more row than DR)
-``PlazaN_DRp.txt``  time, x, y, heading: the dead-reckoned path
+``PlazaN_DRp.txt``  time, x, y, heading: the dead-reckoned path (as GT:
+                    one ``#`` header line; one more row than DR)
 ``PlazaN_TL.txt``   node id, x [m], y [m] (surveyed node positions)
 ==================  ====================================================
 
@@ -54,6 +55,7 @@ from .textfile import ID_MAX, int_column, read_table, resolve_dataset_dir
 __all__ = ["PlazaData", "load_plaza", "HEADING_OFFSET"]
 
 HEADING_OFFSET = {1: 0.0, 2: float(np.pi)}
+SENDER_ID = 2  # column 2 of TD: the robot's own node id (every row of both logs)
 
 
 class PlazaData(NamedTuple):
@@ -115,8 +117,9 @@ def load_plaza(path, which: int) -> PlazaData:
       InputError: ``which`` is not the int 1 or 2, or ``path`` is not a path.
       MissingDataError: a file is missing.
       DataFormatError: a malformed file (``file:line``), time going backwards
-        in DR/GT/DRp, a repeated DR time, non-integer ids, a node listed twice in
-        TL, or a range to a node absent from TL.
+        in DR/GT/DRp, a repeated DR time, GT or DRp not exactly one row longer
+        than DR, a TD sender other than the robot (2), non-integer ids, a node
+        listed twice in TL, or a range to a node absent from TL.
     """
     which_arg = which
     try:  # an int: np.True_ == 1 loaded Plaza 1, 2.0 passed as 2
@@ -138,8 +141,21 @@ def load_plaza(path, which: int) -> PlazaData:
         raise dr.error(i, f"time {float(dr.data[i, 0])!r} repeats (line {int(dr.lines[i - 1])}): DR rows "
                           "are odometry increments, so a repeated row would apply its motion twice")
 
+    n_dr = dr.data.shape[0]
+    for k, tab in (("GT", gt), ("DRp", drp)):  # the pose before the first increment, then one per DR row
+        n = tab.data.shape[0]
+        if n > n_dr + 1:
+            raise tab.error(n_dr + 1, f"{n} rows, expected {n_dr + 1} (one more than the {n_dr} rows of "
+                                      f"{names['DR']}: the start pose, then one pose per DR row)")
+        if n < n_dr + 1:
+            raise tab.error(n - 1, f"the file ends after {n} rows, expected {n_dr + 1} (one more than the "
+                                   f"{n_dr} rows of {names['DR']}: the start pose, then one pose per DR row)")
     node_id = int_column(tl, 0, "node id", lo=0, hi=ID_MAX, unique=True)  # one surveyed position each
     sender = int_column(td, 1, "sender id", lo=0, hi=ID_MAX)
+    other = np.nonzero(sender != SENDER_ID)[0]
+    if other.size:  # the format has one sender, the robot: a range between two fixed nodes is not a robot range
+        i = int(other[0])
+        raise td.error(i, f"sender id (column 2): expected {SENDER_ID} (the robot), got {int(sender[i])}")
     node = int_column(td, 2, "node id", lo=0, hi=ID_MAX)
     known = np.isin(node, node_id)
     if not known.all():
