@@ -53,6 +53,9 @@ DEFAULTS = {
 }
 # Real logs (the protocol of docs/datasets.md): 25 Adam steps at 0.1 on 500 s of each log.
 REAL_LOG_DEFAULTS = {"steps": 25, "lr": 0.1, "loss": "nll", "window": 500.0}
+# The training robots (sequences) of the real-log targets that take --robots, by default (the
+# targets' own defaults: mrclam.mrclam_noise, plaza.plaza_noise); the others train on one log.
+REAL_LOG_TRAIN_ROBOTS = {"mrclam": (1, 2, 3, 4), "plaza": (1,)}
 # A training run whose (positive) loss exceeds this many times the batch's lower median is an
 # exploding flight, left out of that step like a non-finite one (optimize.fit, explode_ratio).
 EXPLODE_RATIO = 1e3
@@ -117,7 +120,8 @@ def build_parser(with_targets: bool = True) -> Parser:
     p.add_argument("--seed", type=_tune_seed, default=0,
                    help="training seed S in [0, 2**63 - 1); held-out runs use seed S+1 (default 0)")
     p.add_argument("--batch-size", type=int_at_least(1), default=None,
-                   help="minibatch of training runs per step (default: all)")
+                   help="minibatch of training runs (real logs: training logs) per step, at most their number "
+                        "(default: all)")
     p.add_argument("--clip", type=positive_float, default=1.0, help="gradient clipping, global norm (default 1)")
     p.add_argument("--b2", type=finite_float, default=0.9,
                    help="Adam's second-moment decay (default 0.9; see jaxslam.tuning.optimize)")
@@ -319,9 +323,18 @@ def _plan(args) -> tuple:
                 raise InputError(f"{flag}: only the real-log targets ({', '.join(targets.REAL_LOG_SCENARIOS)}) "
                                  f"take it, not {args.scenario}")
     else:  # the simulation-only options would be ignored on a real log: refused by name
+        # the training logs are known from the options (mrclam: --robots, default 1,2,3,4; plaza: --robots,
+        # default 1; util-uwb, victoria-park: one log), so a larger minibatch is refused before the (slow)
+        # build, by the option's name (optimize.fit said "batch_size: ..." after it); repeated robots are
+        # left to the target's own check
+        takes_robots = args.scenario in REAL_LOG_TRAIN_ROBOTS
+        robots = args.robots if takes_robots and args.robots is not None else REAL_LOG_TRAIN_ROBOTS.get(
+            args.scenario, (None,))
+        n_logs = len(robots) if len(set(robots)) == len(robots) else None
         sim_only = ["--train-runs", "--test-runs", "--duration", "--eval-duration", "--cov", "--no-checkpoint"]
-        if args.batch_size is None:
-            sim_only.append("--seed")  # it seeds the minibatches of --batch-size, nothing else here
+        if args.batch_size is None or (n_logs is not None and args.batch_size == n_logs):
+            # it seeds the minibatches of --batch-size (fewer than the training logs), nothing else here
+            sim_only.append("--seed")
         unused = _not_default(args, sim_only)
         if unused:
             raise InputError(f"{unused[0]}: the real-log target {args.scenario} does not use it (simulation "
@@ -331,6 +344,10 @@ def _plan(args) -> tuple:
     for flag, scens in own.items():
         if args.scenario not in scens and getattr(args, _dest(flag)) is not None:
             raise InputError(f"{flag}: only 'jaxslam tune {' | '.join(scens)}' takes it, not {args.scenario}")
+    if real and args.batch_size is not None and n_logs is not None and args.batch_size > n_logs:
+        src = "--robots" if takes_robots else "one log"
+        raise InputError(f"--batch-size: {args.batch_size} is more than the {n_logs} training log"
+                         f"{'s' if n_logs != 1 else ''} of {args.scenario} ({src})")
     d = REAL_LOG_DEFAULTS if real else DEFAULTS.get(target_name, DEFAULTS["noise"])
     supported = avail[(args.scenario, target_name)]
     loss = args.loss or (d["loss"] if d["loss"] in supported else supported[0])

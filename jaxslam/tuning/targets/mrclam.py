@@ -32,7 +32,9 @@ five.  Nothing is fitted per robot or per log.
 
 from __future__ import annotations
 
+import functools
 import math
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -135,17 +137,23 @@ def select_odometry_delay(data_dir, robots, params, config, dtype=np.float64, t_
     built = [b if b.dt.shape[1] == T else mrclam_logs(data_dir, robots, dtype, t_max, odometry_delay=d, T=T, K=K)[0]
              for b, d in zip(built, grid)]
     cfg = config._replace(block=0)
-    def terms(p, it):
-        res = _run(p, cfg, it)
-        return jnp.stack([jnp.sum(res.nll), jnp.sum(res.nll_dof)])
-
-    nll_fn = jax.jit(lambda p, logs: jax.lax.map(lambda it: terms(p, it), logs))
     table = {}
     for d, b in zip(grid, built):
-        tot = np.asarray(nll_fn(params, jax.tree.map(jnp.asarray, b)))
+        tot = np.asarray(_delay_nll_terms(params, cfg, jax.tree.map(jnp.asarray, b)))
         table[float(d)] = float(tot[:, 0].sum() / max(tot[:, 1].sum(), 1.0))
     best = min(table, key=table.get)
     return best, table
+
+
+@functools.partial(jax.jit, static_argnums=1)
+def _delay_nll_terms(params, config, logs):
+    """``[sum NLL, sum dof]`` of each log of the batch ``logs`` (value only): jitted once per config
+    and log shape (a jit made inside :func:`select_odometry_delay` recompiled at every call)."""
+    def terms(it):
+        res = _run(params, config, it)
+        return jnp.stack([jnp.sum(res.nll), jnp.sum(res.nll_dof)])
+
+    return jax.lax.map(terms, logs)
 
 
 def _run(params, config, item):
@@ -220,6 +228,13 @@ def mrclam_train_config(K: int = 8, capacity: int = 16):
     return presets.mrclam_config(K=K, capacity=capacity)._replace(block=128, active_only=False)
 
 
+def _eval_command(robots) -> str:
+    """The command that runs the tuned file on each of ``robots`` (``jaxslam dataset mrclam`` takes one
+    ``--robot``): one command per robot, joined by ``&&`` (the first robot's alone before, so a second
+    held-out robot was never named)."""
+    return " && ".join(f"jaxslam dataset mrclam --data DIR --robot {int(r)} --params TUNED.json" for r in robots)
+
+
 def mrclam_noise(loss: str = "nll", data=None, robots=(1, 2, 3, 4), test_robots=(5,), dtype=jnp.float64,
                  t_max: float | None = None, odometry_delay="auto", **_ignored):
     """Target ``jaxslam tune mrclam``: the noise of the planar EKF-SLAM from MRCLAM logs.
@@ -231,6 +246,8 @@ def mrclam_noise(loss: str = "nll", data=None, robots=(1, 2, 3, 4), test_robots=
     ``odometry_delay``: the odometry stamps' lag [s], or ``"auto"``: the delay of
     :data:`DELAY_GRID` with the lowest training NLL at the starting point
     (:func:`select_odometry_delay`).  The fitted file carries it (``"log"``).
+    The target's ``eval_command`` runs the tuned file on every evaluated robot (one ``jaxslam
+    dataset mrclam --robot N`` per robot, joined by ``&&``).
     """
     _check_keywords(_ignored, "mrclam")
     from ...data import presets, runners
@@ -319,7 +336,7 @@ def mrclam_noise(loss: str = "nll", data=None, robots=(1, 2, 3, 4), test_robots=
                 "parametrisation": "log sigma_v, sigma_w, sigma_r, sigma_b; log floor_xy, floor_phi; "
                                    "camera range model k2 (k0 = 1)",
                 "loss": "Student-t innovation NLL per scalar measurement over the training logs"},
-        eval_command=f"jaxslam dataset mrclam --data DIR --robot {eval_robots[0]} --params TUNED.json",
+        eval_command=_eval_command(eval_robots),
         sequential=True,
     )
 
