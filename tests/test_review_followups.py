@@ -117,3 +117,16 @@ def test_filter_scan_names_an_empty_measurement(which):
     with pytest.raises(InputError, match=r"^zs: expected at least one measurement component, got shape \(3, 0\)"):
         mod.filter_scan(lambda x, u: x, lambda x: x[:0], np.zeros(2), np.eye(2), np.zeros((3, 1)),
                         np.zeros((3, 0)), None, np.eye(2), np.zeros((0, 0)))
+
+
+def test_plaza_eval_command_names_every_evaluated_sequence():
+    # as the MRCLAM target's: the dataset command takes one --robot, so one command per
+    # evaluated sequence joined by && (it named the first sequence only)
+    import pathlib
+
+    from jaxslam.tuning.targets import plaza as PT
+
+    data = pathlib.Path(__file__).resolve().parent / "data"
+    tg = PT.plaza_noise(data=data, robots=(1, 2), test_robots=())  # nothing held out: both evaluated
+    assert tg.eval_command == ("jaxslam dataset plaza --data DIR --robot 1 --params TUNED.json && "
+                               "jaxslam dataset plaza --data DIR --robot 2 --params TUNED.json")

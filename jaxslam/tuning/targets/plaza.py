@@ -154,7 +154,10 @@ def plaza_noise(loss: str = "nll", data=None, robots=(1,), test_robots=(2,), dty
                                                       "ranges (nu fixed), no gate",
                 "parametrisation": "log " + ", ".join(NOISE_FIELDS),
                 "loss": "Student-t innovation NLL per range over the training logs"},
-        eval_command=f"jaxslam dataset plaza --data DIR --robot {eval_seq[0]} --params TUNED.json",
+        # one dataset command per evaluated sequence (the command takes one --robot; the first
+        # sequence's alone before), joined by &&
+        eval_command=" && ".join(f"jaxslam dataset plaza --data DIR --robot {int(r)} --params TUNED.json"
+                                 for r in eval_seq),
         sequential=True,
     )
 
