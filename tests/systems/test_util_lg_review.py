@@ -11,16 +11,7 @@ from jaxslam import errors
 from jaxslam.systems import util_range as ur
 from jaxslam.tuning.targets import linear_gaussian as LG
 
-A4 = np.array([[0.0, 0.0, 0.2], [4.0, 0.0, 1.5], [0.0, 4.0, 2.5], [4.0, 4.0, 0.5]])
-
-
-def _walk(M=200, seed=3, n_anchors=4):
-    rng = np.random.default_rng(seed)
-    t = np.linspace(0, 20, M)
-    P = np.stack([1.5 + np.cos(t), 1.5 + np.sin(1.3 * t), 1.0 + 0.5 * np.sin(0.7 * t)], 1)
-    aid = rng.integers(0, n_anchors, M)
-    z = np.linalg.norm(P - A4[aid], axis=1) - 0.25 + 0.05 * rng.standard_normal(M)
-    return t, aid, z, P
+from test_util_range_review import A4, _walk  # the same anchors and walk (same folder)
 
 
 _startup_jit = jax.jit(ur.startup, static_argnames="iters")
