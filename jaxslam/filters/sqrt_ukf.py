@@ -260,9 +260,6 @@ def filter_scan(f: Optional[Callable], h: Callable, x0, P0, us, zs, masks, Q, R,
     x0 = x0.astype(dtype)
     check_real(zs, "zs")  # before the cast to x0's dtype
     zs = jnp.asarray(zs, dtype)
-    if zs.ndim == 2 and zs.shape[1] == 0 and x0.ndim == 1 and x0.shape[0] > 0:
-        # (m = 0 ended in NumPy's "cannot reshape array of size 0" at R's check)
-        raise InputError(f"zs: expected at least one measurement component, got shape {tuple(zs.shape)}")
     T, m = check_run_inputs(x0, P0, zs, masks, Q, R)
     n = x0.shape[0]
     if not predict_first and is_concrete(P0):

@@ -207,12 +207,10 @@ class SigmaPoints(NamedTuple):
             raise InputError(f"points: unknown sigma-point rule {self.kind!r} "
                              "(unscented or cubature)")
         for v, nm in ((self.alpha, "alpha"), (self.beta, "beta"), (self.kappa, "kappa")):
-            if isinstance(v, (bool, np.bool_)):  # SigmaPoints("unscented", True) read as alpha = 1
+            # (SigmaPoints("unscented", True) read as alpha = 1; a NaN beta gave NaN weights)
+            if isinstance(v, (bool, np.bool_)) or not np.isfinite(float(v)):
                 raise InputError(f"points: {nm} must be a finite number, got {v!r}")
         a, b, k = float(self.alpha), float(self.beta), float(self.kappa)
-        for v, nm in ((a, "alpha"), (b, "beta"), (k, "kappa")):
-            if not np.isfinite(v):
-                raise InputError(f"points: {nm} must be a finite number, got {v!r}")
         lam = a * a * (n + k) - n
         if not n + lam > 0:
             raise InputError(f"points: n + λ = α²(n + κ) = {n + lam:g} must be > 0 for n = {n} "
