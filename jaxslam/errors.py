@@ -28,6 +28,7 @@ __all__ = [
     "InputError",
     "check_int",
     "check_flag",
+    "has_bool",
     "check_run_dtype",
     "decode",
     "check",
@@ -81,6 +82,17 @@ def check_flag(value, name: str) -> bool:
     if not isinstance(value, (bool, np.bool_)):
         raise InputError(f"{name}: expected True or False, got {value!r}"[:300])
     return bool(value)
+
+
+def has_bool(value) -> bool:
+    """True when ``value`` is a boolean, an array of booleans (NumPy's or JAX's, traced too) or a
+    (nested) list / tuple holding one: JSON true / false is not a number (NumPy reads it as 1 / 0)."""
+    if isinstance(value, (bool, np.bool_)):
+        return True
+    if isinstance(value, (list, tuple)):
+        return any(has_bool(v) for v in value)
+    dtype = getattr(value, "dtype", None)
+    return dtype is not None and np.dtype(dtype) == np.bool_
 
 
 _KNOWN = sum(FLAG_NAMES)

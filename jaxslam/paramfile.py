@@ -35,7 +35,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from jaxslam.errors import InputError
+from jaxslam.errors import InputError, has_bool
 
 __all__ = ["load", "check", "check_sections", "check_dataset_sections", "describe", "TUNE_REPORT_KEYS"]
 
@@ -107,15 +107,6 @@ def _symmetric_psd(d: np.ndarray) -> bool:
     return float(np.min(np.linalg.eigvalsh(d))) >= -_PSD_RTOL * scale
 
 
-def _has_bool(value) -> bool:
-    """True when ``value`` is, or a (nested) list of ``value`` holds, a boolean."""
-    if isinstance(value, (bool, np.bool_)):
-        return True
-    if isinstance(value, (list, tuple)):
-        return any(_has_bool(v) for v in value)
-    return isinstance(value, np.ndarray) and value.dtype == np.bool_
-
-
 def _check_value(name: str, value: Any, default: Any) -> Any:
     if isinstance(default, (bool, np.bool_)):
         if not isinstance(value, bool):
@@ -130,7 +121,7 @@ def _check_value(name: str, value: Any, default: Any) -> Any:
         raise InputError(f"{name}: expected numbers ({_shape_text(d.shape)}), got {value!r}"[:300]) from None
     except OverflowError:  # a JSON integer beyond float range (10**400): not a finite number
         raise InputError(f"{name}: holds a number too large for a float (beyond ±1.8e308)") from None
-    if _has_bool(value):  # true/false are not numbers, inside a list neither (they were returned as bools)
+    if has_bool(value):  # true/false are not numbers, inside a list neither (they were returned as bools)
         raise InputError(f"{name}: expected numbers ({_shape_text(d.shape)}), got {value!r}"[:300])
     psd = _symmetric_psd(d)  # a covariance or weight: diagonal form accepted, PSD required
     diagonal = psd and a.shape == d.shape[:1]

@@ -116,7 +116,7 @@ class _CheckedOptions:
         clash = [n for n in names if isinstance(n, str) and n in self._reserved]
         if clash:
             raise UsageError(f"{PROG} bench: benchmark {self._bench!r} defines {', '.join(clash)}, "
-                             f"an option of '{PROG} bench' itself (--dir, --json, --debug, -h/--help); "
+                             f"an option of '{PROG} bench' itself ({', '.join(sorted(self._reserved))}); "
                              "rename it in the benchmark's add_arguments")
         if kw.get("type") is float:
             kw["type"] = finite_float
@@ -183,14 +183,13 @@ def command(rest: list[str]) -> int:
 
     # before anything runs, creating nothing: a run that stops at its options leaves no folder
     json_path = files.prepare_file("--json", pre.json, create=False) if pre.json is not None else None
-    # (the JSON replaced the benchmark's own source file, which the command reads)
-    files.distinct_outputs(json=json_path, inputs={"benchmark": bench_dir / f"bench_{name}.py"})
+    path = bench_dir / f"bench_{name}.py"
+    files.distinct_outputs(json=json_path, inputs={"benchmark": path})  # never the benchmark's own source
     import jax
 
     jax.config.update("jax_enable_x64", True)  # benchmarks choose float32 by passing float32 arrays
     from jaxslam import io
 
-    path = bench_dir / f"bench_{name}.py"
     added = [str(bench_dir.resolve())]
     oracles = bench_dir.resolve().parent / "tests" / "oracles"  # the NumPy twins
     if oracles.is_dir():

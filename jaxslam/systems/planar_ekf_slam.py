@@ -72,7 +72,7 @@ import numpy as np
 from .. import errors
 from ..data.events import EventLog
 from ..dynamics import planar
-from ..errors import InputError, check_flag
+from ..errors import InputError, check_flag, has_bool
 from ..filters import association as assoc
 from ..filters import consistency as cons
 from ..filters import ekf_slam as es
@@ -864,15 +864,6 @@ def params_from_dict(d: dict, base: Params, dtype=np.float64, where: str = "para
     return validate_params(Params(**vals), where)  # errors name the entry, e.g. "--params: noise.R"
 
 
-def _has_bool(v) -> bool:
-    """Whether ``v`` (a number, an array or nested lists) holds a bool (a bool dtype included)."""
-    if isinstance(v, (list, tuple)):
-        return any(_has_bool(x) for x in v)
-    if isinstance(v, (bool, np.bool_)):
-        return True
-    return getattr(v, "dtype", None) is not None and np.dtype(v.dtype) == np.bool_
-
-
 def _all_numbers(v) -> bool:
     """Whether ``v`` (a number, an array or nested lists) holds numbers only: no bool, no string."""
     if isinstance(v, (list, tuple)):
@@ -961,7 +952,7 @@ def validate_params(params: Params, where: str = "params") -> Params:
     range_min < range_max, bearing_min < bearing_max; with pruning a positive window and a whole
     prune_min_obs ≥ 1).  Errors name ``where.field`` (e.g. ``--params: noise.R``)."""
     for k, v in params._asdict().items():  # True was read as 1.0 (update_gate=True gated at NIS 1)
-        if any(_has_bool(x) for x in (v if k == "monitor" and v is not None else (v,))):
+        if any(has_bool(x) for x in (v if k == "monitor" and v is not None else (v,))):
             raise InputError(f"{where}.{k}: expected numbers, got {v!r}"[:300])
     a = params.calib0
     try:  # (a string entry was a bare TypeError from isfinite)

@@ -21,7 +21,7 @@ import numpy as np
 from ... import metrics
 from ...control import dflqr, trajectories
 from ...dynamics import euler_ned
-from ...errors import InputError
+from ...errors import InputError, has_bool
 from ...linalg import check_numbers, check_scalar, list_array, wrap_angle
 from ...sensors import imu as imu_mod
 from ...sensors import lidar3d
@@ -104,13 +104,7 @@ def controller_from_dict(d: dict, default):
 
 def _refuse_bools(v, name: str) -> None:
     """true/false are not weights or gains (check_numbers read True as 1; paramfile refuses them)."""
-    def has(x):
-        if isinstance(x, (bool, np.bool_)):
-            return True
-        if isinstance(x, (list, tuple)):
-            return any(has(e) for e in x)
-        return getattr(x, "dtype", None) == np.bool_
-    if has(v):
+    if has_bool(v):
         raise InputError(f"{name}: expected numbers, got {v!r}"[:300])
 
 

@@ -324,6 +324,13 @@ def _check_window(t_max):
                     f"got {t_max!r}"[:300])
 
 
+def dataset_eval_command(dataset: str, robots) -> str:
+    """The command that runs a tuned file on each of ``robots`` of ``dataset`` (``jaxslam dataset``
+    takes one ``--robot``): one command per robot, joined by ``&&`` (the real-log reports named the
+    first robot alone, so a second held-out robot was never named)."""
+    return " && ".join(f"jaxslam dataset {dataset} --data DIR --robot {int(r)} --params TUNED.json" for r in robots)
+
+
 def _check_robots(value, name: str, flag: str, allow_empty: bool) -> tuple:
     """``value`` as a tuple of robot numbers listed once each, else InputError naming ``name``
     and ``flag``: :func:`jaxslam.data.catalogue.robot_list`."""

@@ -41,7 +41,7 @@ import numpy as np
 
 from ...data import catalogue
 from ...errors import InputError
-from . import (Target, DECLARED, _check_keywords, _check_robots, _check_window, register_target, heldout_nll, metrics_entry,
+from . import (Target, DECLARED, dataset_eval_command, _check_keywords, _check_robots, _check_window, register_target, heldout_nll, metrics_entry,
                window_nll)
 
 __all__ = ["mrclam_logs", "planar_theta0", "planar_physical", "planar_nll",
@@ -229,10 +229,8 @@ def mrclam_train_config(K: int = 8, capacity: int = 16):
 
 
 def _eval_command(robots) -> str:
-    """The command that runs the tuned file on each of ``robots`` (``jaxslam dataset mrclam`` takes one
-    ``--robot``): one command per robot, joined by ``&&`` (the first robot's alone before, so a second
-    held-out robot was never named)."""
-    return " && ".join(f"jaxslam dataset mrclam --data DIR --robot {int(r)} --params TUNED.json" for r in robots)
+    """:func:`dataset_eval_command` of MRCLAM's ``robots``."""
+    return dataset_eval_command("mrclam", robots)
 
 
 def mrclam_noise(loss: str = "nll", data=None, robots=(1, 2, 3, 4), test_robots=(5,), dtype=jnp.float64,

@@ -28,7 +28,7 @@ import numpy as np
 
 from ...data import catalogue
 from ...errors import InputError
-from . import (DECLARED, STUDENT_T_NU, Target, _check_keywords, _check_robots, _check_window, heldout_nll,
+from . import (DECLARED, dataset_eval_command, STUDENT_T_NU, Target, _check_keywords, _check_robots, _check_window, heldout_nll,
                metrics_entry, register_target)
 
 __all__ = ["plaza_logs", "plaza_noise", "NOISE_FIELDS", "NU"]
@@ -154,10 +154,7 @@ def plaza_noise(loss: str = "nll", data=None, robots=(1,), test_robots=(2,), dty
                                                       "ranges (nu fixed), no gate",
                 "parametrisation": "log " + ", ".join(NOISE_FIELDS),
                 "loss": "Student-t innovation NLL per range over the training logs"},
-        # one dataset command per evaluated sequence (the command takes one --robot; the first
-        # sequence's alone before), joined by &&
-        eval_command=" && ".join(f"jaxslam dataset plaza --data DIR --robot {int(r)} --params TUNED.json"
-                                 for r in eval_seq),
+        eval_command=dataset_eval_command("plaza", eval_seq),  # one command per evaluated sequence
         sequential=True,
     )
 
