@@ -75,7 +75,7 @@ def _wall(cmd, env, cwd, repeats, timeout=None):
 
 
 def run(args):
-    timeout = getattr(args, "timeout", DEFAULT_TIMEOUT_S)
+    timeout = args.timeout
     if not timeout > 0:  # (finite: the bench CLI checks float options)
         from jaxslam.errors import InputError
 

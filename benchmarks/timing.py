@@ -15,10 +15,9 @@ __all__ = ["median_s", "int_list"]
 def median_s(fn, repeats: int) -> float:
     """Median wall time [s] of ``repeats`` calls of ``fn()`` (``fn`` blocks on its own results);
     ``repeats`` must be an int >= 1 (else an ``InputError`` naming it, not a StatisticsError)."""
-    if isinstance(repeats, bool) or not isinstance(repeats, int) or repeats < 1:
-        from jaxslam.errors import InputError
+    from jaxslam.errors import check_int
 
-        raise InputError(f"repeats: expected an int >= 1, got {repeats!r}")
+    check_int(repeats, "repeats")
     ts = []
     for _ in range(repeats):
         t0 = time.perf_counter()

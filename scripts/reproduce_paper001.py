@@ -78,6 +78,7 @@ def _options(sc, bias, particles, duration, extra):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.error = _usage  # argparse's own errors and ap.error below: one line, exit 2
     ap.add_argument("--runs", type=int, default=20)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--particles", type=int, default=200)
