@@ -457,11 +457,11 @@ def check_float_dtype(dtype, name: str = "dtype"):
 
 def check_numbers(value, name: str) -> np.ndarray:
     """``value`` as a float64 NumPy array, or :class:`InputError` naming ``name`` when it is not
-    numbers (a string, even "1.5"; None; a ragged list; a dict; an int beyond float64's range): host-side, before any check of its shape or
+    numbers (a string, even "1.5"; None; a ragged list; a dict): host-side, before any check of its shape or
     values, so such a value never reaches NumPy's bare ``could not convert`` error."""
     try:
         raw = np.asarray(value)
-    except (TypeError, ValueError, OverflowError):
+    except (TypeError, ValueError):
         raise InputError(f"{name}: expected numbers, got {value!r}") from None
     if raw.dtype.kind == "c":  # float64 of it dropped the imaginary part with only a warning
         raise InputError(f"{name}: expected a real array, got dtype {raw.dtype}")
@@ -471,7 +471,7 @@ def check_numbers(value, name: str) -> np.ndarray:
                 isinstance(e, numbers.Number) for e in raw.reshape(-1))):
             raise TypeError
         return np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError, OverflowError):  # (overflow: an int beyond float64's range)
+    except (TypeError, ValueError):
         raise InputError(f"{name}: expected numbers, got {value!r}") from None
 
 

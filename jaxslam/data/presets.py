@@ -275,7 +275,7 @@ def mrclam_log(data, K: int = 8, t_end=None, range_model=MRCLAM_RANGE_MODEL,
     if range_model is not None:
         try:
             rm = real_numbers(range_model, "range_model")
-        except InputError:  # (check_numbers: an int beyond float's range too)
+        except (InputError, OverflowError):  # OverflowError: an int beyond float's range
             rm = None
         if rm is None or rm.shape != (2,) or not np.all(np.isfinite(rm)):
             raise InputError(f"range_model: expected two finite numbers (k0, k2) or None, got {range_model!r}"[:300])
@@ -495,7 +495,7 @@ def _range_params_from_dict(noise, base, keys, name: str):
         if k == "anchor_offset":
             try:  # numbers only: a string or a bool (read as 1.0 / 0.0) is not an offset
                 a = real_numbers(v, k) if isinstance(v, list) and not has_bool(v) else None
-            except InputError:  # (check_numbers: an int beyond float's range too)
+            except (InputError, OverflowError):  # OverflowError: an int beyond float's range
                 a = None
             if a is None or a.ndim != 1 or not np.all(np.isfinite(a)):
                 raise InputError(f"--params: noise.anchor_offset: expected a list of finite offsets [m], got {v!r}")
