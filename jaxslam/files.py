@@ -88,10 +88,10 @@ class _WriteError(InputError, OSError):
         return type(self), (self.args[0], self.errno, self.strerror, self.filename)
 
 
-def _write_error(path, err: OSError) -> _WriteError:
-    """The :class:`_WriteError` of ``err``, raised while ``path`` was written."""
+def _write_error(path, err: OSError, name: str = "path") -> _WriteError:
+    """The :class:`_WriteError` of ``err``, raised while ``path`` (the argument ``name``) was written."""
     reason = err.strerror or str(err)
-    return _WriteError(f"path: cannot write {str(path)!r} ({reason})", err.errno, err.strerror, str(path))
+    return _WriteError(f"{name}: cannot write {str(path)!r} ({reason})", err.errno, err.strerror, str(path))
 
 
 def _about_this_file(err: BaseException, *paths) -> bool:
@@ -197,7 +197,7 @@ def distinct_outputs(*, folders=None, inputs=None, **paths) -> None:
                                  "another path")
 
 
-def atomic_write(path, write: Callable, mode: str = "w") -> pathlib.Path:
+def atomic_write(path, write: Callable, mode: str = "w", *, name: str = "path") -> pathlib.Path:
     """Write ``path`` atomically: ``write(f)`` fills a temporary file that is renamed over it.
 
     A replaced file keeps its permission bits (a new one gets ``0666`` less the umask).  A
@@ -209,15 +209,20 @@ def atomic_write(path, write: Callable, mode: str = "w") -> pathlib.Path:
       path: the target; its folder is created.
       write: called with the open temporary file (text mode with ``mode="w"``, binary with
         ``"wb"``).
+      name: what the messages about ``path`` call it (a caller's own argument or option, e.g.
+        ``"directory"``); ``"path"`` by default.
     Returns:
       The target path.  On any exception the temporary file is removed and the target is
       left as it was.
     Raises:
       InputError: ``path`` is a folder or lies under a file, or the file system refused the
         write (the folder cannot be made or written, the disk is full): the message names
-        ``path`` and the reason; the latter is also an ``OSError`` (``errno``, ``strerror``).
+        ``path`` (as ``name``) and the reason; the latter is also an ``OSError`` (``errno``,
+        ``strerror``).
     """
-    _check_path("path", path)
+    if not isinstance(name, str) or not name:
+        raise InputError(f"name: expected the name of the path argument, got {name!r}"[:300])
+    _check_path(name, path)
     if not callable(write):
         raise InputError(f"write: expected a function write(f) that fills the file, got {type(write).__name__}")
     if mode not in ("w", "wb"):
@@ -226,12 +231,12 @@ def atomic_write(path, write: Callable, mode: str = "w") -> pathlib.Path:
     opts = {"encoding": "utf-8"} if "b" not in mode else {}
     try:
         if path.is_symlink():
-            path = _link_target("path", path)
+            path = _link_target(name, path)
         is_dir, special = path.is_dir(), path.exists() and not path.is_file()
     except OSError as e:  # (e.g. a folder on the way that cannot be searched)
-        raise _write_error(path, e) from None
+        raise _write_error(path, e, name) from None
     if is_dir:
-        raise InputError(f"path: {str(path)!r} is a folder; give a file path")
+        raise InputError(f"{name}: {str(path)!r} is a folder; give a file path")
     if special:  # (a folder was refused above)
         try:
             with open(path, mode, **opts) as f:
@@ -239,10 +244,10 @@ def atomic_write(path, write: Callable, mode: str = "w") -> pathlib.Path:
         except OSError as e:
             if not _about_this_file(e, path):
                 raise
-            raise _write_error(path, e) from None
+            raise _write_error(path, e, name) from None
         return path
     try:
-        _check_no_file_above("path", path, path)
+        _check_no_file_above(name, path, path)
         path.parent.mkdir(parents=True, exist_ok=True)
         try:
             keep_mode = stat.S_IMODE(os.stat(path).st_mode) & 0o777  # not setuid/setgid/sticky
@@ -250,7 +255,7 @@ def atomic_write(path, write: Callable, mode: str = "w") -> pathlib.Path:
             keep_mode = None
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     except OSError as e:
-        raise _write_error(path, e) from None
+        raise _write_error(path, e, name) from None
     try:
         with os.fdopen(fd, mode, **opts) as f:
             write(f)
@@ -261,6 +266,6 @@ def atomic_write(path, write: Callable, mode: str = "w") -> pathlib.Path:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
         if _about_this_file(e, tmp, path):
-            raise _write_error(path, e) from None
+            raise _write_error(path, e, name) from None
         raise
     return path

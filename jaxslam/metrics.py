@@ -576,7 +576,8 @@ def _ids(ids, name: str) -> np.ndarray:
     return a.reshape(-1)
 
 
-def map_error(est_lm, est_ids, true_lm, true_ids, transform=None) -> MapError:
+def map_error(est_lm, est_ids, true_lm, true_ids, transform=None, *,
+              names=("est_lm", "est_ids", "true_lm", "true_ids")) -> MapError:
     """Map error of landmarks matched by id, after a rigid alignment.
 
     Args:
@@ -586,6 +587,9 @@ def map_error(est_lm, est_ids, true_lm, true_ids, transform=None) -> MapError:
         transform: ``(R, t)`` or ``(R, t, s)`` to apply to the estimates (e.g.
             the trajectory's ATE alignment), or None to align the matched
             landmarks themselves by :func:`umeyama` (needs ≥ d of them).
+        names: the names the messages give ``est_lm``, ``est_ids``, ``true_lm`` and
+            ``true_ids``, in that order (a caller passing its own arguments names them, e.g.
+            ``("lm", "lm_ids", "lm_true", "lm_true_ids")``).
 
     Raises:
         InputError: shapes disagree, an id repeats in ``true_ids`` (or among the rows of
@@ -593,25 +597,30 @@ def map_error(est_lm, est_ids, true_lm, true_ids, transform=None) -> MapError:
         ``true_ids``, or an id is not a whole number (a fractional or non-finite one in
         ``true_ids``, or in ``est_ids`` on a row in use: it was truncated onto another id).
     """
-    est = _host_numbers(est_lm, "est_lm")
-    tru = _host_numbers(true_lm, "true_lm")
-    eid = _ids(est_ids, "est_ids")
-    tid = _ids(true_ids, "true_ids")
+    if (not isinstance(names, (tuple, list)) or len(names) != 4
+            or not all(isinstance(n, str) and n for n in names)):
+        raise InputError(f"names: expected four argument names (est_lm, est_ids, true_lm, true_ids), "
+                         f"got {names!r}"[:300])
+    n_est, n_eid, n_tru, n_tid = names
+    est = _host_numbers(est_lm, n_est)
+    tru = _host_numbers(true_lm, n_tru)
+    eid = _ids(est_ids, n_eid)
+    tid = _ids(true_ids, n_tid)
     if est.ndim != 2 or tru.ndim != 2 or est.shape[1] != tru.shape[1]:
         raise InputError(f"map_error: expected (M, d) and (L, d) landmarks, got {est.shape} and {tru.shape}")
     if eid.shape[0] != est.shape[0] or tid.shape[0] != tru.shape[0]:
         raise InputError("map_error: one id per landmark row expected")
-    check_whole_ids(tid, "true_ids")
+    check_whole_ids(tid, n_tid)
     # rows ignored (id < 0, or a position not finite) may hold any id; NaN is not < 0: checked
-    check_whole_ids(eid, "est_ids", used=~(eid < 0) & np.all(np.isfinite(est), axis=1))
+    check_whole_ids(eid, n_eid, used=~(eid < 0) & np.all(np.isfinite(est), axis=1))
     uniq, counts = np.unique(tid, return_counts=True)
     if np.any(counts > 1):
-        raise InputError(f"true_ids: each true landmark id must appear once, repeated: "
+        raise InputError(f"{n_tid}: each true landmark id must appear once, repeated: "
                          f"{[int(i) for i in uniq[counts > 1]][:10]}")
     used = (eid >= 0) & np.all(np.isfinite(est), axis=1)
     uniq, counts = np.unique(eid[used], return_counts=True)
     if np.any(counts > 1):  # one true landmark's error would count twice
-        raise InputError(f"est_ids: each id may appear once among the rows in use, repeated: "
+        raise InputError(f"{n_eid}: each id may appear once among the rows in use, repeated: "
                          f"{[int(i) for i in uniq[counts > 1]][:10]}")
     if transform is not None:
         transform = _check_transform(transform, est.shape[1])

@@ -53,40 +53,60 @@ _SYM_RTOL = 1e-9
 _PSD_RTOL = 1e-12
 
 
-def load(path) -> dict:
+def load(path, *, name: str = "--params") -> dict:
     """Read a ``--params`` JSON file whose top level is an object.
+
+    ``name``: the option the messages name (a command that reads such a file through another
+    option passes it, e.g. ``"--compare"``).
+
+    ``NaN``, ``Infinity`` and a number beyond float range (``1e999``) are read, as Python's
+    ``json`` reads them, as non-finite floats: :func:`check` (and a dataset's checks) refuse
+    them naming the key.
 
     Raises:
       InputError: the file is missing or unreadable, is not valid JSON, repeats a key within
         one object (JSON parsers keep only the last, so a hand-edited value would be silently
-        dropped), or its top level is not an object.
+        dropped), holds an integer of more digits than Python converts (4300; far beyond a
+        float's range) or nests arrays and objects too deeply for the parser, or its top
+        level is not an object.
     """
     path = pathlib.Path(path)
     try:
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
-        raise InputError(f"--params: file {str(path)!r} not found") from None
+        raise InputError(f"{name}: file {str(path)!r} not found") from None
     except IsADirectoryError:
-        raise InputError(f"--params: {str(path)!r} is a folder, not a JSON file") from None
+        raise InputError(f"{name}: {str(path)!r} is a folder, not a JSON file") from None
     except (OSError, UnicodeDecodeError) as e:
-        raise InputError(f"--params: cannot read {str(path)!r}: {getattr(e, 'strerror', None) or e}") from None
+        raise InputError(f"{name}: cannot read {str(path)!r}: {getattr(e, 'strerror', None) or e}") from None
     def unique_keys(pairs):
         obj = {}
         for key, value in pairs:
             if key in obj:
-                raise InputError(f"--params: {str(path)!r} gives the key {key!r} twice in one object "
+                raise InputError(f"{name}: {str(path)!r} gives the key {key!r} twice in one object "
                                  "(only one value can hold; remove the other)")
             obj[key] = value
         return obj
 
+    def checked_int(digits):  # (int() refuses over sys.get_int_max_str_digits() digits: a bare ValueError)
+        try:
+            return int(digits)
+        except ValueError:
+            raise InputError(f"{name}: {str(path)!r} holds an integer of {len(digits.lstrip('-'))} digits, "
+                             "more than can be read (no float is that large: the largest is about "
+                             "1.8e308)") from None
+
     try:
-        obj = json.loads(text, object_pairs_hook=unique_keys)
+        obj = json.loads(text, object_pairs_hook=unique_keys, parse_int=checked_int)
     except json.JSONDecodeError as e:
         raise InputError(
-            f"--params: {str(path)!r} is not valid JSON (line {e.lineno}, column {e.colno}: {e.msg})"
+            f"{name}: {str(path)!r} is not valid JSON (line {e.lineno}, column {e.colno}: {e.msg})"
         ) from None
+    except RecursionError:  # ('[' * 100000: the parser recurses once per level)
+        raise InputError(f"{name}: {str(path)!r} nests arrays or objects too deeply to be read "
+                         "(a --params file needs a few levels)") from None
     if not isinstance(obj, dict):
-        raise InputError(f"--params: {str(path)!r} must hold a JSON object, got {type(obj).__name__}")
+        raise InputError(f"{name}: {str(path)!r} must hold a JSON object, got {type(obj).__name__}")
     return obj
 
 

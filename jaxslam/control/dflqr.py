@@ -98,19 +98,35 @@ def paper000_params() -> DFLQRParams:
     return DFLQRParams()
 
 
-def validate(params: DFLQRParams) -> DFLQRParams:
-    """Host-side check of :class:`DFLQRParams`; raises :class:`InputError` naming the field."""
+_FIELD_NAMES = {"Q": "params.Q", "R": "params.R", "kp": "params.pd.kp", "kd": "params.pd.kd"}
+
+
+def validate(params: DFLQRParams, *, names=None) -> DFLQRParams:
+    """Host-side check of :class:`DFLQRParams`; raises :class:`InputError` naming the field.
+
+    ``names``: the names the messages give the weights and gains, by field (``"Q"``, ``"R"``,
+    ``"kp"``, ``"kd"``; e.g. ``{"Q": "params.controller.Q"}`` for a value read from a file);
+    the fields left out keep ``params.Q``, ``params.R``, ``params.pd.kp``, ``params.pd.kd``.
+    """
+    if names is None:
+        names = {}
+    if not isinstance(names, dict) or not all(k in _FIELD_NAMES and isinstance(v, str) and v
+                                              for k, v in names.items()):
+        raise InputError(f"names: expected a dict of names for some of {', '.join(_FIELD_NAMES)}, "
+                         f"got {names!r}"[:300])
+    nm = {**_FIELD_NAMES, **names}
     if not isinstance(params, DFLQRParams):
         raise InputError(f"params: expected DFLQRParams, got {type(params).__name__}")
-    validate_weights(params.Q, params.R, n=7, m=4, names=("params.Q", "params.R"))
+    validate_weights(params.Q, params.R, n=7, m=4, names=(nm["Q"], nm["R"]))
     if not isinstance(params.pd, PDGains):  # None or a tuple raised a bare AttributeError
         raise InputError(f"params.pd: expected PDGains, got {type(params.pd).__name__}")
-    for name in ("kp", "kd"):
-        v = real_numbers(getattr(params.pd, name), f"params.pd.{name}")  # a string: ValueError
+    for field in ("kp", "kd"):
+        name = nm[field]
+        v = real_numbers(getattr(params.pd, field), name)  # a string: ValueError
         if v.shape != (3,):
-            raise InputError(f"params.pd.{name}: expected shape (3,), got {v.shape}")
+            raise InputError(f"{name}: expected shape (3,), got {v.shape}")
         if not np.all(np.isfinite(v)) or np.any(v < 0):
-            raise InputError(f"params.pd.{name}: must be finite and >= 0, got {v.tolist()}")
+            raise InputError(f"{name}: must be finite and >= 0, got {v.tolist()}")
     try:
         validate_params(params.quad)
     except InputError as e:

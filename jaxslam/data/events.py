@@ -113,9 +113,10 @@ def _bound(v, name):
 _INT32 = np.iinfo(np.int32)
 
 
-def _ids(meas_ids, n):
+def _ids(meas_ids, n, name: str = "meas_ids"):
     """``meas_ids`` as (n,) int32: whole numbers that fit int32 (the cast wrapped 2**32 - 1 onto
-    -1, "no id"); a bool, complex, string or object array is refused."""
+    -1, "no id"); a bool, complex, string or object array is refused.  The messages call the
+    ids ``name`` (the caller's own argument name)."""
     if meas_ids is None:
         return np.full((n,), -1, np.int32)
     try:
@@ -123,20 +124,20 @@ def _ids(meas_ids, n):
     except ValueError:
         a = None
     if a is None or a.dtype.kind not in "iuf":
-        raise InputError("meas_ids: expected integer ids (-1 for none), got "
+        raise InputError(f"{name}: expected integer ids (-1 for none), got "
                          + ("a ragged sequence" if a is None else f"dtype {a.dtype}"))
     a = a.reshape(-1)
     if a.dtype.kind == "f" and (not np.all(np.isfinite(a)) or np.any(a != np.round(a))):
         # 2.5 would be truncated onto id 2
-        raise InputError("meas_ids: expected whole-number ids (a fractional or non-finite id would be "
+        raise InputError(f"{name}: expected whole-number ids (a fractional or non-finite id would be "
                          "truncated onto another landmark)")
     out = (a < _INT32.min) | (a > _INT32.max)
     if out.any():
         i = int(np.argmax(out))
-        raise InputError(f"meas_ids: id {a[i].item()!r} at index {i} does not fit int32 "
+        raise InputError(f"{name}: id {a[i].item()!r} at index {i} does not fit int32 "
                          f"([{_INT32.min}, {_INT32.max}]: the ids are stored as int32)")
     if a.shape != (n,):
-        raise InputError(f"meas_ids: {a.shape[0]} rows but meas_t has {n}")
+        raise InputError(f"{name}: {a.shape[0]} rows but meas_t has {n}")
     return a.astype(np.int32)
 
 

@@ -133,13 +133,30 @@ def _dead_reckoning_scan(motion, pose0, u, dt):
 _dead_reckoning_jit = jax.jit(_dead_reckoning_scan, static_argnums=0)
 
 
-@functools.lru_cache(maxsize=8)
 def _ackermann_motion(geom):
-    """``planar.ackermann`` with the car's ``geom`` (one callable per geometry: the jitted dead
-    reckoning is compiled once per geometry, not per run)."""
+    """``planar.ackermann`` with the car's ``geom`` as a motion for :func:`dead_reckoning`.
+
+    An :class:`~jaxslam.dynamics.planar.AckermannGeometry` of Python floats (the loader's) gets
+    one cached ``functools.partial`` per geometry, so the jitted dead reckoning is compiled once
+    per geometry, not per run.  The cache is keyed on the floats' exact bits: keyed on the
+    geometry itself it served the partial of an *equal* geometry of other types (NumPy float64
+    fields equal Python floats, ``-0.0`` equals ``0.0``, a plain tuple equals the NamedTuple),
+    whose constants then set the dtypes of the run.  Any other geometry gets a plain function,
+    traced at each call (nothing kept for it)."""
     from ..dynamics import planar
 
-    return functools.partial(planar.ackermann, geom=geom)
+    if type(geom) is planar.AckermannGeometry and all(type(v) is float for v in geom):
+        return _ackermann_partial(tuple(v.hex() for v in geom))
+    return lambda s, u, dt: planar.ackermann(s, u, dt, geom)
+
+
+@functools.lru_cache(maxsize=8)
+def _ackermann_partial(bits: tuple):
+    """The cached partial of :func:`_ackermann_motion`, for the geometry whose fields are the
+    floats ``bits`` (``float.hex``: -0.0 and 0.0 differ)."""
+    from ..dynamics import planar
+
+    return functools.partial(planar.ackermann, geom=planar.AckermannGeometry(*map(float.fromhex, bits)))
 
 
 def rpe_pairs(t, est, ref, lag_s: float = 1.0, tol_s: float = 0.1):
@@ -300,14 +317,8 @@ def evaluate_planar(t_est, est_pose, t_ref, ref, dr_pose=None, lm=None, lm_ids=N
         if lm_cov is not None:
             ev["lm_cov"] = np.einsum("ij,njk,lk->nil", R, np.asarray(lm_cov, np.float64), R)
         if lm_true is not None:
-            try:
-                me = metrics.map_error(lm, lm_ids, lm_true, lm_true_ids, transform=(R, tr))
-            except InputError as e:  # map_error's names (est_ids, true_ids) are not this function's
-                msg = str(e)
-                for theirs, ours in (("est_ids:", "lm_ids:"), ("true_ids:", "lm_true_ids:")):
-                    if msg.startswith(theirs):
-                        raise InputError(ours + msg[len(theirs):]) from None
-                raise
+            me = metrics.map_error(lm, lm_ids, lm_true, lm_true_ids, transform=(R, tr),
+                                   names=("lm", "lm_ids", "lm_true", "lm_true_ids"))
             out["map_err_m"] = me.rmse
             out["map_err_max_m"] = me.max
             out["landmarks_compared"] = int(me.ids.size)
@@ -1059,7 +1070,6 @@ def run_victoria_park(data_dir, robot=1, filter="ekf", ids="known", anchors=None
     """ACFR Victoria Park: Ackermann car, laser tree detections, unknown association, GPS reference.
 
     ``params``: a ``--params`` object (``jaxslam tune victoria-park``) replacing the preset's noise."""
-    from ..dynamics import planar
     from . import presets
     from .victoria_park import load_victoria_park
 
@@ -1089,11 +1099,7 @@ def run_victoria_park(data_dir, robot=1, filter="ekf", ids="known", anchors=None
         prm = pe.params_from_dict(noise, prm, dtype=dtype, where="--params: noise")
     pose, lm, counts, comp_s, run_s, status, _ = _planar_run(
         log, pose0, filter, presets.victoria_park_config(), prm, lambda n: _vp_fastslam(n), particles, seed, dtype)
-    geom = d.geometry
-    try:
-        motion = _ackermann_motion(geom)
-    except TypeError:  # (an unhashable geometry)
-        motion = lambda s, u, dt: planar.ackermann(s, u, dt, geom)  # noqa: E731
+    motion = _ackermann_motion(d.geometry)
     dr = np.asarray(dead_reckoning(motion, jnp.asarray(pose0), log.u, log.dt))
     m, ev = evaluate_planar(log.t, pose, d.gps_t, d.gps, dr_pose=dr, lm=lm["xy"], lm_cov=lm["cov"],
                             ref_label="GPS", at_ref_times=True)

@@ -105,8 +105,8 @@ def save(fig, directory, name) -> pathlib.Path:
     twice to measure it, which was 0.45 s of every figure here; margins are set instead
     (``subplots_adjust``, fixed in inches with room for a suptitle, unless a layout engine is
     already set).  A folder that cannot be written (or a full disk) is an :class:`InputError`
-    naming ``directory`` and the file; a folder already at ``directory/name.png`` one naming
-    ``name``.
+    naming ``directory`` and the file (also the ``OSError`` it came from: ``errno``,
+    ``strerror``); a folder already at ``directory/name.png`` one naming ``name``.
     """
     if not hasattr(fig, "savefig"):
         raise InputError(f"fig: expected a matplotlib Figure, got {type(fig).__name__}")
@@ -130,9 +130,7 @@ def save(fig, directory, name) -> pathlib.Path:
         fig.subplots_adjust(left=min(0.8 / w, 0.2), right=1.0 - min(0.25 / w, 0.05), bottom=min(0.6 / h, 0.2),
                             top=1.0 - min(top_in / h, 0.2), hspace=0.4, wspace=0.3)
     try:  # atomically: an interrupted plot never leaves a truncated PNG
-        atomic_write(path, lambda f: fig.savefig(f, dpi=110, format="png"), mode="wb")
-    except InputError as e:  # (files.atomic_write names its argument "path")
-        raise InputError("directory: " + str(e).removeprefix("path: ")) from None
+        atomic_write(path, lambda f: fig.savefig(f, dpi=110, format="png"), mode="wb", name="directory")
     finally:
         plt().close(fig)
     return path

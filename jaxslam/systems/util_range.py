@@ -313,10 +313,8 @@ def util_events(t, anchor_id, ranges, t_start=None, t_end=None, tof_t=None,
     if not (np.size(anchor_id) == t.size == z.shape[0]):
         raise InputError(f"util_events: t, anchor_id and ranges need one entry per range, got "
                          f"{t.size}, {np.size(anchor_id)} and {z.shape[0]}")
-    try:  # whole numbers that fit int32 (a bare cast made 1.5 → 1, 2**32 − 1 → −1, NaN → int32 min)
-        ids = _ids(anchor_id, t.size)
-    except InputError as e:
-        raise InputError(str(e).replace("meas_ids", "anchor_id", 1)) from None
+    # whole numbers that fit int32 (a bare cast made 1.5 → 1, 2**32 − 1 → −1, NaN → int32 min)
+    ids = _ids(anchor_id, t.size, name="anchor_id")
     if np.any(ids == HEIGHT_ID):  # with or without ToF rows: run would fuse the row as a height
         raise InputError(f"util_events: anchor id {HEIGHT_ID} is reserved for height rows")
     if (tof_t is None) != (tof is None):

@@ -71,7 +71,8 @@ def controller_from_dict(d: dict, default):
     """DF-LQR parameters from a (partial) dict of ``--params``: Q, R (matrices or diagonals), kp, kd.
 
     A bad entry is an :class:`InputError` naming the key as written, ``params.controller.KEY``
-    (the checks of :func:`jaxslam.control.dflqr.validate` named ``params.Q`` / ``params.pd.kp``).
+    (:func:`jaxslam.control.dflqr.validate` is given these names for the keys of ``d``; a
+    field taken from ``default`` keeps its own name, ``params.Q`` / ``params.pd.kp``).
     """
     if not isinstance(d, dict):  # a string was read as its letters: "unknown entries ['a', ...]"
         raise InputError(f"params.controller: expected a dict of Q, R, kp, kd, got {type(d).__name__}")
@@ -89,17 +90,10 @@ def controller_from_dict(d: dict, default):
         if k in d:
             v = check_numbers(d[k], f"params.controller.{k}")
             _refuse_bools(d[k], f"params.controller.{k}")
-            pd = pd._replace(**{k: tuple(v.tolist())})
+            # (a single number: tuple() of it raised a bare TypeError; validate names its shape)
+            pd = pd._replace(**{k: tuple(v.tolist()) if v.ndim else v.item()})
     out = out._replace(pd=pd)
-    try:
-        return dflqr.validate(out)
-    except InputError as e:  # name the --params key (params.Q -> params.controller.Q)
-        msg = str(e)
-        for key, old_name in (("kp", "params.pd.kp:"), ("kd", "params.pd.kd:"), ("Q", "params.Q:"),
-                              ("R", "params.R:")):
-            if msg.startswith(old_name) and key in d:
-                raise InputError(f"params.controller.{key}:" + msg[len(old_name):]) from None
-        raise
+    return dflqr.validate(out, names={k: f"params.controller.{k}" for k in d})
 
 
 def _refuse_bools(v, name: str) -> None:

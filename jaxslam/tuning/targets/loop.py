@@ -99,10 +99,7 @@ def controller_file(path, default):
     from ... import paramfile
     from ...sim.scenarios.tracking import controller_from_dict
 
-    try:
-        obj = paramfile.load(path)
-    except InputError as e:  # the loader names --params; this file came in through --compare
-        raise InputError(str(e).replace("--params", "--compare", 1)) from None
+    obj = paramfile.load(path, name="--compare")
     if "params_after" in obj:
         obj = obj["params_after"]
     if not isinstance(obj, dict) or not isinstance(obj.get("controller"), dict):
