@@ -1385,8 +1385,11 @@ def marginal_d2(state: SlamState, model: SlamModel, z, mask, R, params=None, act
 
     S_kj = H_s P_ss H_sᵀ + H_s P_sl H_lᵀ + H_l P_ls H_sᵀ + H_l P_ll H_lᵀ + R_k for slot j;
     d²_kj = ν_kjᵀ S_kj⁻¹ ν_kj.  Entries of inactive slots, masked or non-finite rows are
-    +inf.  Inactive slots (zero mean) are evaluated on derivative-free inputs and replaced by
-    ẑ = 0, S = I (finite, never NaN, also under grad / jvp).
+    +inf.  An entry whose ``S_kj`` or ``ν_kj`` is not finite (a NaN or Inf in ``R_k``, or in the
+    robot's or landmark j's mean or covariance blocks) is NaN, never a finite value: an
+    infinite variance used to divide its component away and give a small d².  Inactive slots
+    (zero mean) are evaluated on derivative-free inputs and replaced by ẑ = 0, S = I (finite,
+    never NaN, also under grad / jvp).
     ``active_only`` (static): evaluate only the smallest leading block of slots (capacity/8, /2
     or all, as :func:`update`) that holds every active slot (one ``lax.switch``; under ``vmap``
     the batch's fullest map decides); the slots beyond it are inactive, so the table is the
@@ -1440,6 +1443,11 @@ def _marginal_d2_block(state: SlamState, model: SlamModel, z, mask, R, params, c
     Sx = jnp.where(act[:, None, None], Sx, jnp.eye(dz, dtype=dtype))
     nu = jax.vmap(lambda zk: jax.vmap(lambda zh_j: res_fn(zk, zh_j))(zh))(z_safe)  # (K, c, dz)
     d2 = jax.vmap(lambda nu_k, Rk: jax.vmap(lambda n, S_j: _nis_small(n, S_j + Rk))(nu_k, Sx))(nu, R)
+    # a pair whose S or ν is not finite is NaN: an infinite variance (in R, or in P) otherwise gave
+    # a small, finite d² (its component divided away) and a match
+    pair_ok = (jnp.all(jnp.isfinite(Sx), axis=(1, 2))[None, :] & jnp.all(jnp.isfinite(R), axis=(1, 2))[:, None]
+               & jnp.all(jnp.isfinite(nu), axis=-1))
+    d2 = jnp.where(pair_ok, d2, jnp.asarray(jnp.nan, dtype))
     d2 = jnp.where(act[None, :] & (mask & finite)[:, None], d2, jnp.asarray(jnp.inf, dtype))
     if c < cap:  # the slots beyond the block are inactive: +inf, and zeros in the aux arrays
         pad = cap - c
@@ -1470,6 +1478,13 @@ def associate_nn(state: SlamState, model: SlamModel, z, mask, R, params=None,
     So are ``gate`` and ``new_threshold`` known now (numbers > 0, inf allowed).  A traced one
     that is not > 0 (NaN included) matches / registers nothing, and this function has no
     status to say so: check it, or use :func:`run`, which flags it ``NON_FINITE``.
+
+    Non-finite input, under ``jit`` too (this function has no status output): a masked-in row
+    whose ``z`` is not finite is neither matched nor new (``d2_min`` +inf); a row whose d² table
+    met a NaN or Inf (its ``R``, or the robot's or a mapped landmark's mean or covariance:
+    :func:`marginal_d2` gives NaN there) is neither matched nor new, with ``d2_min`` NaN.  A
+    non-finite input can therefore never produce a match; :func:`update` then flags what it is
+    handed.
 
     Returns (slots (K,), matched (K,) bool, new (K,) bool, d2_min (K,)).  Called eagerly it is
     compiled once per model (:func:`jaxslam.compilation.call_compiled`, ``after="auto"``).
@@ -1510,7 +1525,11 @@ def _associate_nn(state: SlamState, model: SlamModel, z, mask, R, params, gate, 
     big = jnp.asarray(jnp.inf, dtype)
     slots = jnp.argmin(d2, axis=1).astype(jnp.int32)
     d2_min = jnp.min(d2, axis=1)
-    cand = mask & finite & (d2_min < gate)
+    # a non-finite input reached the row's table (a NaN entry: marginal_d2): neither matched
+    # nor new, and d2_min NaN (said explicitly: not left to how min and argmin treat a NaN)
+    usable = mask & finite & ~jnp.any(jnp.isnan(d2), axis=1)
+    d2_min = jnp.where(mask & finite & ~usable, jnp.asarray(jnp.nan, dtype), d2_min)
+    cand = usable & (d2_min < gate)
     # Mutual exclusion: a landmark keeps only its closest candidate measurement.
     d2_sel = jnp.where(cand, d2_min, big)
     best_for_slot = jnp.full((cap,), big, dtype).at[slots].min(d2_sel)
@@ -1518,7 +1537,7 @@ def _associate_nn(state: SlamState, model: SlamModel, z, mask, R, params, gate, 
     # Break exact ties deterministically (first index wins).
     first = jnp.full((cap,), K, jnp.int32).at[slots].min(jnp.where(matched, jnp.arange(K, dtype=jnp.int32), K))
     matched = matched & (first[slots] == jnp.arange(K, dtype=jnp.int32))
-    new = mask & finite & (d2_min > new_threshold)
+    new = usable & (d2_min > new_threshold)
     return slots, matched, new, d2_min
 
 
@@ -1538,6 +1557,14 @@ def joint_compatibility(state: SlamState, model: SlamModel, z, slots, matched, R
     past its end, clamped to its last entry); known now, its entries must be > 0 (a NaN dropped
     nothing, without a word): else :class:`InputError` naming ``thresholds``.  A traced table is
     not checked (and this function has no status).
+
+    Non-finite input, under ``jit`` too (no status output: the return type is what callers
+    unpack): a matched row whose innovation or own block of S is not finite (a NaN or Inf in its
+    ``z`` or ``R``, in the robot's or its landmark's mean or covariance) is dropped before the
+    test, and a joint NIS that is not a number (a NaN cross-covariance, an S that does not
+    factor, a traced NaN threshold) counts as a failed test (it kept every row): rows are
+    dropped until it is a number below the threshold.  Such rows come out in ``dropped``; a
+    non-finite input never leaves a match.
 
     Returns (matched (K,) bool — a subset of the input, dropped (K,) bool, joint NIS).
     """
@@ -1566,6 +1593,9 @@ def joint_compatibility(state: SlamState, model: SlamModel, z, slots, matched, R
     Sb = jnp.einsum("iab,ijbc,jdc->ijad", H, Pb, H)  # (K, K, dz, dz)
     eyeK = jnp.eye(K, dtype=dtype)
     Sb = Sb + eyeK[:, :, None, None] * R[:, None]
+    # a row whose own innovation or S block is not finite cannot be tested: dropped up front
+    row_ok = (jnp.all(jnp.isfinite(nu), axis=-1)
+              & jnp.all(jnp.isfinite(Sb[jnp.arange(K), jnp.arange(K)]), axis=(-2, -1)))
     thr = jnp.asarray(thresholds, dtype)
     eye_dz = jnp.eye(dz, dtype=dtype)
     eye_KD = jnp.eye(K * dz, dtype=dtype)
@@ -1586,11 +1616,12 @@ def joint_compatibility(state: SlamState, model: SlamModel, z, slots, matched, R
     def step(_, m):
         nis, gain = joint(m)
         n = jnp.sum(m)
-        bad = (n > 0) & (nis > thr[jnp.maximum(n - 1, 0)])
+        # (a NaN joint NIS fails the test: `nis > thr` kept every row)
+        bad = (n > 0) & ~(nis <= thr[jnp.maximum(n - 1, 0)])
         worst = jnp.argmax(jnp.where(m, gain, -jnp.inf))
         return jnp.where(bad, m & (jnp.arange(K) != worst), m)
 
-    m = jax.lax.fori_loop(0, K, step, matched)
+    m = jax.lax.fori_loop(0, K, step, matched & row_ok)
     nis, _ = joint(m)
     return m, matched & ~m, nis
 

@@ -552,13 +552,34 @@ def _per_step(M, T, name, dims):
                      f"got shape {M.shape}")
 
 
-def check_run_inputs(x0, P0, zs, masks, Q, R, name_prefix=""):
-    """Host-side checks of a whole run's arrays (shapes; PSD where concrete).
+def check_run_numbers(x, name: str) -> None:
+    """:class:`InputError` naming ``name`` unless a run's array ``x`` is real numbers: the dtype
+    (complex refused, :func:`jaxslam.linalg.check_real`) always, and, when ``x`` is known now and
+    is not already a numeric array (a list, a str or object array), its entries
+    (:func:`jaxslam.linalg.check_numbers`).  Runs before any cast: a str ``x0`` or ``zs`` ended in
+    a bare ``TypeError`` / ``ValueError`` there, a str ``P0`` was parsed as numbers and a complex
+    ``P0`` lost its imaginary part with only a warning (``ekf.filter_scan``)."""
+    check_real(x, name)
+    if is_concrete(x) and not (isinstance(x, (np.ndarray, jax.Array)) and np.dtype(x.dtype).kind in "biuf"):
+        check_numbers(x, name)
+
+
+def check_run_inputs(x0, P0, zs, masks, Q, R, name_prefix="", q_optional: bool = False):
+    """Host-side checks of a whole run's arrays, shared by every Gaussian filter's run
+    (:func:`run`, ``sqrt_ekf.filter_scan``, ``sqrt_ukf.filter_scan``): ``x0``, ``P0``, ``zs``
+    real numbers (:func:`check_run_numbers`); shapes; ``x0`` finite and ``P0``, ``Q`` PSD,
+    ``R`` PD (a per-step ``R`` on the rows ``masks`` uses) where concrete.  A scalar ``R`` is
+    the variance of the one measurement when m = 1.  ``Q`` is checked for squareness and, as
+    one matrix per step, for its count; its size against the state is the caller's (it
+    depends on ``noise_jac``).  With ``q_optional`` a ``Q`` of None is not checked (the caller
+    has the noise from elsewhere, e.g. a square root ``Q_chol``).
 
     Raises :class:`InputError` naming the argument.  Under ``jit`` only the
-    shapes are checked (values are abstract).
+    shapes and dtypes are checked (values are abstract).  Returns ``(T, m)``.
     """
     pre = name_prefix
+    for v, nm in ((x0, "x0"), (P0, "P0"), (zs, "zs")):
+        check_run_numbers(v, f"{pre}{nm}")
     xs = np.shape(x0)
     if len(xs) != 1:
         raise InputError(f"{pre}x0: expected shape (n,), got {tuple(xs)}")
@@ -581,16 +602,18 @@ def check_run_inputs(x0, P0, zs, masks, Q, R, name_prefix=""):
     rs = np.shape(R)
     if m == 1 and len(rs) == 0:
         R = np.reshape(R, (1, 1)) if is_concrete(R) else R  # a scalar variance of one measurement
-    elif rs[-2:] != (m, m) or len(rs) not in (2, 3):
+    elif len(rs) not in (2, 3) or rs[-2:] != (m, m) or (len(rs) == 3 and rs[0] != T):
+        # (the count before the values: the masks of a per-step R's check must match it)
         raise InputError(f"{pre}R: expected shape ({m}, {m}) or ({T}, {m}, {m}), got {tuple(rs)}")
-    qs = np.shape(Q)
-    if len(qs) not in (2, 3) or qs[-1] != qs[-2]:
-        raise InputError(f"{pre}Q: expected a square matrix or one per step, got shape {tuple(qs)}")
-    if len(rs) == 3 and rs[0] != T:
-        # before the values: the masks of a per-step R's check must match its length
-        raise InputError(f"{pre}R: per-step noise must have {T} matrices (one per step), "
-                         f"got {rs[0]}")
-    for M, nm, strict in ((P0, "P0", False), (Q, "Q", False), (R, "R", True)):
+    checks = [(P0, "P0", False), (R, "R", True)]
+    if not (q_optional and Q is None):
+        qs = tuple(np.shape(Q))
+        if len(qs) not in (2, 3) or qs[-1] != qs[-2]:
+            raise InputError(f"{pre}Q: expected a square matrix or one per step, got shape {qs}")
+        if len(qs) == 3 and qs[0] != T:
+            raise InputError(f"{pre}Q: one matrix per step needs {T} of them (zs has {T} steps), got shape {qs}")
+        checks.insert(1, (Q, "Q", False))
+    for M, nm, strict in checks:
         if not is_concrete(M):
             continue
         # per-step R: only the rows of the measurements in use at that step (masked rows may
@@ -672,8 +695,8 @@ def predicted_status(P):
 
 def prepare_run(x0, P0, zs, masks, Q, R):
     """Cast and check a run's arrays; ``(x0, P0, zs, masks, Q, R, q_step, r_step, T)``."""
-    check_real(zs, "zs")  # before the casts to x0's (real) dtype
-    check_real(x0, "x0")
+    for v, nm in ((zs, "zs"), (x0, "x0"), (P0, "P0")):
+        check_run_numbers(v, nm)  # before the casts to x0's (real) dtype
     # made on the host when known now (host_array): eagerly, each jnp conversion was a program
     x0 = to_jax(x0)
     dtype = x0.dtype if jnp.issubdtype(x0.dtype, jnp.floating) else jnp.result_type(float)

@@ -99,12 +99,12 @@ import numpy as np
 from .. import errors
 from ..errors import InputError, check_flag
 from ..compilation import call_compiled
-from ..linalg import (check_finite, check_mask, check_numbers, check_psd, is_concrete, list_array, symmetrize,
+from ..linalg import (check_finite, check_numbers, check_psd, is_concrete, list_array, symmetrize,
                       value_and_jacfwd)
 from .ekf import Gaussian, UpdateInfo
 from .gaussian import (call_residual, check_gate, check_gate_size, check_leading, check_measurement, check_noise_values,
-                       check_update_call,
-                       check_process_noise, check_real, check_transition_out, check_update_args, moment_dtype,
+                       check_update_call, check_run_inputs, check_run_numbers,
+                       check_process_noise, check_transition_out, check_update_args, moment_dtype,
                        scalar_measurement, state_pair, gate_test)
 
 __all__ = [
@@ -574,38 +574,12 @@ def _update(state, z, h, R, *args, residual=None, mask=None, gate: Gate = None):
 # ---------------------------------------------------------------------------
 
 def _validate_scan(x0, P0, us, zs, masks, Q, R, noise_jac, Q_chol):
-    """Shapes always (they are static under jit); values only when concrete."""
-    xs = np.shape(x0)
-    if len(xs) != 1:
-        raise InputError(f"x0: expected shape (n,), got {tuple(xs)}")
-    n = xs[0]
-    if n == 0:  # an empty state ended in NumPy's "cannot reshape array of size 0" (check_psd)
-        raise InputError("x0: expected a state of at least one component, got shape (0,)")
-    check_real(x0, "x0")
-    if is_concrete(x0) and not np.all(np.isfinite(np.asarray(x0, dtype=np.float64))):
-        raise InputError("x0: contains NaN or Inf")
-    if np.shape(P0) != (n, n):
-        raise InputError(f"P0: expected shape ({n}, {n}), got {tuple(np.shape(P0))}")
-    if is_concrete(P0):
-        check_psd(P0, "P0")
-    zsh = np.shape(zs)
-    if len(zsh) != 2:
-        raise InputError(f"zs: expected shape (T, m), got {tuple(zsh)}")
-    T, m = zsh
-    if m == 0:  # ended in NumPy's "cannot reshape array of size 0" (R's check)
-        raise InputError(f"zs: expected at least one measurement component, got shape {tuple(zsh)}")
-    check_real(zs, "zs")
-    if masks is not None and np.shape(masks) != (T, m):
-        raise InputError(f"masks: expected shape ({T}, {m}), got {tuple(np.shape(masks))}")
-    check_mask(masks, "masks")
-    if np.shape(R) not in ((m, m), (T, m, m)):
-        raise InputError(f"R: expected shape ({m}, {m}) or ({T}, {m}, {m}), got {tuple(np.shape(R))}")
-    if is_concrete(R):
-        # per-step R: only the rows in use at that step (a masked row may hold anything, as in
-        # the EKF, UKF and square-root UKF; a NaN there was refused)
-        valid = (np.asarray(masks, bool) if np.ndim(R) == 3 and masks is not None and is_concrete(masks)
-                 else None)
-        check_psd(R, "R", strict=True, valid=valid, stack=np.ndim(R) == 3)
+    """Shapes always (they are static under jit); values only when concrete.  What every
+    Gaussian filter's run checks (``x0``, ``P0``, ``zs``, ``masks``, ``R``, a ``Q`` given as a
+    covariance: :func:`jaxslam.filters.gaussian.check_run_inputs`), then this filter's own:
+    ``us``, ``noise_jac``, ``Q_chol`` and ``Q``'s size and presence."""
+    n = np.shape(x0)[0] if np.ndim(x0) == 1 else None
+    T, _ = check_run_inputs(x0, P0, zs, masks, Q if Q_chol is None else None, R, q_optional=True)
     check_leading(us, T, "us")
     q = n
     if noise_jac is not None and not callable(noise_jac):
@@ -619,21 +593,15 @@ def _validate_scan(x0, P0, us, zs, masks, Q, R, noise_jac, Q_chol):
                 noise_jac is not None and not callable(noise_jac) and cs[0] != q):
             raise InputError(f"Q_chol: expected shape ({'q' if noise_jac is not None else n}, k), "
                              f"got {tuple(cs)}")
-        if is_concrete(Q_chol) and not np.all(np.isfinite(np.asarray(Q_chol, dtype=np.float64))):
-            raise InputError("Q_chol: contains NaN or Inf")
+        check_run_numbers(Q_chol, "Q_chol")
+        check_finite(Q_chol, "Q_chol")
         return
     if Q is None:
         raise InputError("Q: a process-noise covariance (or Q_chol=) is required")
+    # squareness, the per-step count and the values: check_run_inputs; the size here
     qs = tuple(np.shape(Q))
-    if len(qs) == 3 and qs[0] != T:
-        raise InputError(f"Q: one matrix per step needs {T} of them (zs has {T} steps), got shape {qs}")
-    if noise_jac is not None and callable(noise_jac):
-        if len(qs) not in (2, 3) or qs[-1] != qs[-2]:
-            raise InputError(f"Q: expected a square (q, q) matrix or ({T}, q, q), got shape {qs}")
-    elif qs[-2:] != (q, q) or len(qs) not in (2, 3):
+    if not (noise_jac is not None and callable(noise_jac)) and qs[-2:] != (q, q):
         raise InputError(f"Q: expected shape ({q}, {q}) or ({T}, {q}, {q}), got {qs}")
-    if is_concrete(Q):
-        check_psd(Q, "Q", stack=len(qs) == 3)
 
 
 def filter_scan(
@@ -678,7 +646,8 @@ def filter_scan(
         masks: (T, m) bool validity (None: all valid).
         Q: (n, n) (or (q, q) with ``noise_jac``) process-noise covariance (PSD), one per
             step (T, n, n) (each factored before the scan), or None with ``Q_chol``.
-        R: (m, m) measurement-noise covariance (PD), or one per step (T, m, m).
+        R: (m, m) measurement-noise covariance (PD), or one per step (T, m, m); a scalar is the
+            variance of the one measurement when m = 1.
         *args: shared extra arguments of both ``f`` and ``h``.
         residual, gate: as in :func:`update`.
         predict_first: static; step order (above).
@@ -691,8 +660,6 @@ def filter_scan(
     """
     predict_first = check_flag(predict_first, "predict_first")
     save_chol = check_flag(save_chol, "save_chol")
-    if np.ndim(R) == 0 and np.shape(zs)[-1:] == (1,):
-        R = jnp.reshape(jnp.asarray(R), (1, 1))  # a scalar: the variance of one measurement
     _validate_scan(x0, P0, us, zs, masks, Q, R, noise_jac, Q_chol)
     x0 = jnp.asarray(x0)
     dtype = x0.dtype if jnp.issubdtype(x0.dtype, jnp.floating) else jnp.result_type(float)
@@ -702,6 +669,7 @@ def filter_scan(
     C = _noise_root(Q, Q_chol, dtype)
     zs = jnp.asarray(zs, dtype=dtype)
     R = jnp.asarray(R, dtype=dtype)
+    R = R.reshape(1, 1) if R.ndim == 0 else R  # a scalar: the variance of one measurement (m = 1)
     r_step = R.ndim == 3
     T, m = zs.shape
     masks = jnp.ones((T, m), bool) if masks is None else jnp.asarray(masks, bool)

@@ -40,7 +40,6 @@ from .gaussian import (
     check_gate_size,
     check_measurement,
     check_noise_values,
-    check_real,
     check_update_args,
     check_update_call,
     scalar_measurement,
@@ -254,18 +253,18 @@ def filter_scan(f: Optional[Callable], h: Callable, x0, P0, us, zs, masks, Q, R,
     check_gate(gate)
     predict_first = check_flag(predict_first, "predict_first")
     save_chol = check_flag(save_chol, "save_chol")
-    check_real(x0, "x0")  # before the cast to a real dtype
+    # what every Gaussian filter's run checks, before the casts (a str x0 or zs ended in a bare
+    # TypeError there); Q's squareness and per-step count included, its size below
+    T, m = check_run_inputs(x0, P0, zs, masks, Q, R)
     x0 = jnp.asarray(x0)
     dtype = x0.dtype if jnp.issubdtype(x0.dtype, jnp.floating) else jnp.result_type(float)
     x0 = x0.astype(dtype)
-    check_real(zs, "zs")  # before the cast to x0's dtype
     zs = jnp.asarray(zs, dtype)
-    T, m = check_run_inputs(x0, P0, zs, masks, Q, R)
     n = x0.shape[0]
     if not predict_first and is_concrete(P0):
         # the first update's statistical linearisation needs P0⁻¹ (a zero variance: NOT_PSD)
         check_psd(P0, "P0", strict=True, tol=0.0)
-    if np.shape(Q)[-2:] != (n, n) or (np.ndim(Q) == 3 and np.shape(Q)[0] != T):
+    if np.shape(Q)[-2:] != (n, n):
         raise InputError(f"Q: expected shape ({n}, {n}) or ({T}, {n}, {n}), got {tuple(np.shape(Q))}")
     check_leading(us, T, "us")
     masks = jnp.ones((T, m), bool) if masks is None else jnp.asarray(masks, bool)
