@@ -121,17 +121,22 @@ def render() -> str:
     return "\n".join(lines).rstrip() + "\n"
 
 
-def _usage(message: str):
-    """A usage error: one line on stderr, exit code 2."""
-    print(f"gen_api.py: error: {message}", file=sys.stderr)
-    raise SystemExit(2)
+def _parser_class():
+    """The scripts' parser, :class:`jaxslam.cli.common.ScriptParser` (one-line usage errors, exit
+    code 2), from this checkout's package; argparse's own in a checkout whose package has no CLI
+    layer (tests/test_scripts_datasets_review.py runs this script in such a stand-in checkout,
+    where an import of ``jaxslam.cli`` could reach the installed package's)."""
+    if not (ROOT / "jaxslam" / "cli" / "common.py").is_file():
+        return argparse.ArgumentParser
+    from jaxslam.cli.common import ScriptParser
+
+    return ScriptParser
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = _parser_class()(prog="gen_api.py", description=__doc__.splitlines()[0])
     ap.add_argument("--check", action="store_true", help="exit 1 if docs/api.md is out of date")
-    ap.error = _usage  # argparse's own errors: one line (not usage + error), before the import of the package
-    a = ap.parse_args(argv)
+    a = ap.parse_args(argv)  # a usage error stops here, before render() imports the modules
     text = render()
     if a.check:
         ok = OUT.exists() and OUT.read_text() == text

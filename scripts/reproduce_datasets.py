@@ -19,11 +19,14 @@ from jaxslam import runtime  # noqa: E402
 
 runtime.configure_process()  # OpenBLAS one thread, XLA workaround flags: before NumPy and JAX start
 
-import argparse
 import json
 import pathlib
 import subprocess
 import sys
+
+from jaxslam.cli.common import ScriptParser, path_arg
+from jaxslam.errors import InputError
+from jaxslam.files import prepare_dir
 
 # (case name, CLI arguments after "jaxslam dataset")
 CASES = [
@@ -70,12 +73,6 @@ SHOW = ["ate_m", "smoothed_ate_m", "pos_rmse_m", "smoothed_pos_rmse_m", "dead_re
         "map_err_m", "range_bias_m"]
 
 
-def _usage(message: str):
-    """A usage error: one line on stderr, exit code 2."""
-    print(f"reproduce_datasets.py: error: {message}", file=sys.stderr)
-    raise SystemExit(2)
-
-
 def _data_as_placeholder(js: pathlib.Path, root: str) -> None:
     """Rewrite ``js`` with every occurrence of the folder ``root`` as ``$DATA`` and then of the
     home folder as ``~`` (the compilation cache's folder), atomically."""
@@ -97,28 +94,32 @@ def _cell(v):
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--data", required=True, help="folder holding mrclam6/, victoria_park/, util_uwb/, gtsam/")
-    ap.add_argument("--out", default="docs/results/datasets")
-    ap.add_argument("--plots", default=None, help="also write each case's figures here")
+    ap = ScriptParser(prog="reproduce_datasets.py", description=__doc__.splitlines()[0])
+    ap.add_argument("--data", required=True, type=path_arg,
+                    help="folder holding mrclam6/, victoria_park/, util_uwb/, gtsam/")
+    ap.add_argument("--out", default="docs/results/datasets", type=path_arg)
+    ap.add_argument("--plots", default=None, type=path_arg, help="also write each case's figures here")
     ap.add_argument("--only", default=None, help="comma-separated case names (default: all)")
-    ap.error = _usage  # argparse's own errors: one line too (not usage + error)
     args = ap.parse_args(argv)
     data = pathlib.Path(args.data)
     if not data.is_dir():
-        _usage(f"--data: {args.data!r} is not a folder")
+        ap.error(f"--data: {args.data!r} is not a folder")
     only = None
     if args.only is not None:
         only = {n.strip() for n in args.only.split(",") if n.strip()}
         unknown = sorted(only - {name for name, _ in CASES})
         if not only or unknown:
-            _usage(f"--only: unknown case(s) {', '.join(unknown) or repr(args.only)} "
-                   f"(the case names are the CASES of this script, e.g. {CASES[0][0]})")
+            ap.error(f"--only: unknown case(s) {', '.join(unknown) or repr(args.only)} "
+                     f"(the case names are the CASES of this script, e.g. {CASES[0][0]})")
     # the data folder as "$DATA": the shipped results name no folder of the machine they ran on
     # (the CLI gets the absolute folder, so that a relative --data is replaced too)
     root = str(data.resolve())
-    out = pathlib.Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    try:  # one usage line (exit 2) for an unusable folder (an existing file), before any case runs
+        out = prepare_dir("--out", args.out)
+        if args.plots:
+            prepare_dir("--plots", args.plots)
+    except InputError as e:
+        ap.error(str(e))
     rows = []
     for name, cli_args in CASES:
         if only and name not in only:

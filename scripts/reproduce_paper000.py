@@ -17,12 +17,12 @@ from jaxslam import runtime  # noqa: E402
 
 runtime.configure_process()  # OpenBLAS one thread, XLA workaround flags: before NumPy and JAX start
 
-import argparse
 import json
-import pathlib
 import sys
 
-from jaxslam.files import atomic_write
+from jaxslam.cli.common import ScriptParser, path_arg, positive_float, positive_int, seed_int
+from jaxslam.errors import InputError
+from jaxslam.files import atomic_write, prepare_dir
 
 
 PAPER = {  # paper 000, Sec. 3 (one run): average RMSE
@@ -34,18 +34,20 @@ SHOW = ["pos_rmse_m", "pos_rmse_axis_m", "vel_rmse_mps", "vel_rmse_axis_mps", "a
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--runs", type=int, default=100)
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--duration", type=float, default=50.0)
-    ap.add_argument("--chunk", type=int, default=25)
-    ap.add_argument("--out", default="out/paper000")
+    ap = ScriptParser(prog="reproduce_paper000.py", description=__doc__.splitlines()[0])
+    ap.add_argument("--runs", type=positive_int, default=100)
+    ap.add_argument("--seed", type=seed_int, default=0)
+    ap.add_argument("--duration", type=positive_float, default=50.0)
+    ap.add_argument("--chunk", type=positive_int, default=25)
+    ap.add_argument("--out", default="out/paper000", type=path_arg)
     ap.add_argument("--float32", action="store_true")
     args = ap.parse_args(argv)
+    try:  # one usage line (exit 2) for an unusable --out (an existing file), before any run
+        out = prepare_dir("--out", args.out)
+    except InputError as e:
+        ap.error(str(e))
     from jaxslam import cli
 
-    out = pathlib.Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     rows = []
     for mode in ("unknown", "known"):
         for q in ("imu", "paper"):

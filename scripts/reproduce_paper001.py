@@ -33,7 +33,6 @@ from jaxslam import runtime  # noqa: E402
 
 runtime.configure_process()  # OpenBLAS one thread, XLA workaround flags: before NumPy and JAX start
 
-import argparse
 import json
 import pathlib
 import sys
@@ -41,7 +40,9 @@ import time
 
 import numpy as np
 
-from jaxslam.files import atomic_write
+from jaxslam.cli.common import ScriptParser, path_arg, positive_float, positive_int, seed_int
+from jaxslam.errors import InputError
+from jaxslam.files import atomic_write, prepare_dir
 
 CONFIGS = {
     "kinematics": dict(model="kinematics"),
@@ -53,12 +54,6 @@ CONFIGS = {
 }
 SHOW = ["pos_rmse_m", "att_rmse_deg", "vel_rmse_mps", "landmark_rmse_m", "accel_bias_err_frac",
         "gyro_bias_err_frac", "neff_min", "resamples"]
-
-
-def _usage(message: str):
-    """A usage error: one line on stderr, exit code 2."""
-    print(f"reproduce_paper001.py: error: {message}", file=sys.stderr)
-    raise SystemExit(2)
 
 
 def _json_name(bias, name, float32=False):
@@ -77,16 +72,15 @@ def _options(sc, bias, particles, duration, extra):
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.error = _usage  # argparse's own errors and ap.error below: one line, exit 2
-    ap.add_argument("--runs", type=int, default=20)
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--particles", type=int, default=200)
-    ap.add_argument("--duration", type=float, default=20.0)
+    ap = ScriptParser(prog="reproduce_paper001.py", description=__doc__.splitlines()[0])
+    ap.add_argument("--runs", type=positive_int, default=20)
+    ap.add_argument("--seed", type=seed_int, default=0)
+    ap.add_argument("--particles", type=positive_int, default=200)
+    ap.add_argument("--duration", type=positive_float, default=20.0)
     ap.add_argument("--biases", default="0.0005,0.005")
     ap.add_argument("--configs", default=",".join(CONFIGS))
-    ap.add_argument("--chunk", type=int, default=None, help="runs per compiled call (default all)")
-    ap.add_argument("--out", default="docs/results/paper001")
+    ap.add_argument("--chunk", type=positive_int, default=None, help="runs per compiled call (default all)")
+    ap.add_argument("--out", default="docs/results/paper001", type=path_arg)
     ap.add_argument("--float32", action="store_true")
     ap.add_argument("--measure", action="store_true", help="time one run of 'dynamics' and exit")
     ap.add_argument("--table-only", action="store_true",
@@ -97,12 +91,7 @@ def main(argv=None):
     except ValueError:
         biases = []
     if not biases or not all(np.isfinite(b) and b >= 0 for b in biases):
-        _usage(f"--biases: expected comma-separated finite numbers >= 0, got {args.biases!r}")
-    for opt, v in (("--runs", args.runs), ("--particles", args.particles), ("--chunk", args.chunk)):
-        if v is not None and v < 1:
-            _usage(f"{opt}: expected an int >= 1, got {v}")
-    if not (np.isfinite(args.duration) and args.duration > 0):
-        _usage(f"--duration: expected a number > 0, got {args.duration}")
+        ap.error(f"--biases: expected comma-separated finite numbers >= 0, got {args.biases!r}")
     names = [c for c in args.configs.split(",") if c]
     for c in names:
         if c not in CONFIGS:
@@ -119,15 +108,19 @@ def main(argv=None):
 
         for bias, name, r in rows[1:]:  # one header describes every row
             if setting(r) != setting(r0):
-                _usage(f"--table-only: {_json_name(bias, name, args.float32)} holds (runs, particles, duration, "
-                       f"dtype) {setting(r)}, {_json_name(rows[0][0], rows[0][1], args.float32)} {setting(r0)}; "
-                       "rerun one of them or tabulate them apart (--configs, --biases)")
+                ap.error(f"--table-only: {_json_name(bias, name, args.float32)} holds (runs, particles, duration, "
+                         f"dtype) {setting(r)}, {_json_name(rows[0][0], rows[0][1], args.float32)} {setting(r0)}; "
+                         "rerun one of them or tabulate them apart (--configs, --biases)")
         table = make_table(rows, biases, names, r0["runs"], r0["config"]["particles"],
                            r0["config"]["duration"], r0["dtype"] == "float32")
         atomic_write(out / _table_name(args.float32), lambda f: f.write(table + "\n"))
         print(table)
         return 0
 
+    try:  # one usage line (exit 2) for an unusable --out (an existing file), before JAX and any run
+        out = prepare_dir("--out", args.out)
+    except InputError as e:
+        ap.error(str(e))
     import jax
     import jax.numpy as jnp
 
@@ -139,8 +132,6 @@ def main(argv=None):
     from jaxslam.systems import fastslam_001 as fs1
 
     dtype = jnp.float32 if args.float32 else jnp.float64
-    out = pathlib.Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
 
     if args.measure:
         opts = _options(sc, biases[0], args.particles, args.duration, CONFIGS["dynamics"])

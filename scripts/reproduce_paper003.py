@@ -26,13 +26,15 @@ from jaxslam import runtime  # noqa: E402
 
 runtime.configure_process()  # OpenBLAS one thread, XLA workaround flags: before NumPy and JAX start
 
-import argparse
 import json
 import pathlib
 import sys
 
-from jaxslam.files import atomic_write
+from jaxslam.cli.common import ScriptParser, path_arg, positive_int, seed_int
+from jaxslam.errors import InputError
+from jaxslam.files import atomic_write, prepare_dir
 
+SCENARIOS = ("circle", "square", "rough")  # uwb-<name>
 CASES = [  # (mode, model, noise, filter)
     ("slam", "squared", "uniform", "paper"),
     ("slam", "range", "uniform", "paper"),
@@ -53,32 +55,36 @@ def _cell(m):
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--runs", type=int, default=100)
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--out", default="docs/results/paper003")
-    ap.add_argument("--plots", default=None, help="also write the figures of each case here")
-    ap.add_argument("--scenarios", default="circle,square,rough")
+    ap = ScriptParser(prog="reproduce_paper003.py", description=__doc__.splitlines()[0])
+    ap.add_argument("--runs", type=positive_int, default=100)
+    ap.add_argument("--seed", type=seed_int, default=0)
+    ap.add_argument("--out", default="docs/results/paper003", type=path_arg)
+    ap.add_argument("--plots", default=None, type=path_arg, help="also write the figures of each case here")
+    ap.add_argument("--scenarios", default=",".join(SCENARIOS))
     ap.add_argument("--float32", action="store_true")
     ap.add_argument("--table-only", action="store_true",
                     help="rebuild table.md from the JSONs already in --out (no run)")
     args = ap.parse_args(argv)
     scenarios = [s.strip() for s in args.scenarios.split(",") if s.strip()]
-    if not scenarios:  # an empty table would replace table.md
-        print(f"reproduce_paper003.py: error: --scenarios: expected a comma-separated list of circle, square, "
-              f"rough, got {args.scenarios!r}", file=sys.stderr)
-        return 2
+    # an empty list would replace table.md with an empty table; an unknown name stopped the script
+    # only when its turn came, after the scenarios before it had run
+    if not scenarios or set(scenarios) - set(SCENARIOS):
+        ap.error(f"--scenarios: expected a comma-separated list of circle, square, rough, got {args.scenarios!r}")
+    try:  # one usage line (exit 2) for an unusable folder (an existing file), before any run
+        out = prepare_dir("--out", args.out)
+        if args.plots and not args.table_only:
+            prepare_dir("--plots", args.plots)
+    except InputError as e:
+        ap.error(str(e))
     from jaxslam import cli
 
-    out = pathlib.Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     rows = []
     for sc in scenarios:
         for mode, model, noise, filt in CASES:
             tag = f"uwb-{sc}_{mode}_{model}_{noise}_{filt}{'_f32' if args.float32 else ''}"
             path = out / f"{tag}.json"
             if args.table_only and not path.is_file():
-                raise SystemExit(f"--table-only: {path} is missing (run without --table-only first)")
+                ap.error(f"--table-only: {path} is missing (run without --table-only first)")
             argv_run = ["run", f"uwb-{sc}", "--runs", str(args.runs), "--seed", str(args.seed), "--mode", mode,
                         "--model", model, "--noise", noise, "--filter", filt, "--json", str(path), "--quiet"]
             if args.plots:
@@ -92,8 +98,8 @@ def main(argv=None):
                     return rc
             res = json.loads(path.read_text())
             if args.table_only and (res.get("runs"), res.get("seed")) != (args.runs, args.seed):
-                raise SystemExit(f"{path}: holds {res.get('runs')} runs with seed {res.get('seed')}; "
-                                 f"give --runs {res.get('runs')} --seed {res.get('seed')} to tabulate it")
+                ap.error(f"{path}: holds {res.get('runs')} runs with seed {res.get('seed')}; "
+                         f"give --runs {res.get('runs')} --seed {res.get('seed')} to tabulate it")
             rows.append((sc, mode, model, noise, filt, res))
 
     lines = [f"Paper 003 reproduction: {args.runs} runs per case, seed {args.seed}; cells are mean / p95 "

@@ -23,12 +23,13 @@ from jaxslam import runtime  # noqa: E402
 
 runtime.configure_process()  # OpenBLAS one thread, XLA workaround flags: before NumPy and JAX start
 
-import argparse
 import json
 import pathlib
 import sys
 
-from jaxslam.files import atomic_write
+from jaxslam.cli.common import ScriptParser, path_arg, positive_int, seed_int
+from jaxslam.errors import InputError
+from jaxslam.files import atomic_write, prepare_dir
 
 ATT_CASES = [(g, t, p) for g in ("thesis", "prototype") for t in ("direct", "exact")
              for p in ("constant", "sinusoidal", "random")]
@@ -48,12 +49,6 @@ def _cell(m):
 PARTS = ("attitude", "lineslam")
 
 
-def _usage(message: str) -> int:
-    """A usage error: one line on stderr, exit code 2."""
-    print(f"reproduce_paper004.py: error: {message}", file=sys.stderr)
-    return 2
-
-
 def _tags(args):
     """(part, scenario, tag, runs) of every case, in table order."""
     return ([("attitude", "attitude-smc", f"attitude-smc_{g}_{t}_{p}", args.att_runs) for g, t, p in ATT_CASES]
@@ -61,12 +56,12 @@ def _tags(args):
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--runs", type=int, default=100, help="lineslam-room Monte Carlo runs (default 100)")
-    ap.add_argument("--att-runs", type=int, default=4, help="attitude-smc runs per case (default 4)")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--out", default="docs/results/paper004")
-    ap.add_argument("--plots", default=None, help="also write the figures of each case here")
+    ap = ScriptParser(prog="reproduce_paper004.py", description=__doc__.splitlines()[0])
+    ap.add_argument("--runs", type=positive_int, default=100, help="lineslam-room Monte Carlo runs (default 100)")
+    ap.add_argument("--att-runs", type=positive_int, default=4, help="attitude-smc runs per case (default 4)")
+    ap.add_argument("--seed", type=seed_int, default=0)
+    ap.add_argument("--out", default="docs/results/paper004", type=path_arg)
+    ap.add_argument("--plots", default=None, type=path_arg, help="also write the figures of each case here")
     ap.add_argument("--parts", default="attitude,lineslam",
                     help="comma-separated parts to run: attitude, lineslam (default both)")
     ap.add_argument("--table-only", action="store_true",
@@ -76,11 +71,13 @@ def main(argv=None):
 
     parts = {p.strip() for p in args.parts.split(",") if p.strip()}
     if not parts or parts - set(PARTS):
-        return _usage(f"--parts: expected a comma-separated subset of {', '.join(PARTS)}, got {args.parts!r}")
-    for name in ("runs", "att_runs"):
-        if getattr(args, name) < 1:
-            return _usage(f"--{name.replace('_', '-')}: expected an int >= 1, got {getattr(args, name)}")
-    out = pathlib.Path(args.out)
+        ap.error(f"--parts: expected a comma-separated subset of {', '.join(PARTS)}, got {args.parts!r}")
+    try:  # one usage line (exit 2) for an unusable folder (an existing file), before any run
+        out = prepare_dir("--out", args.out)
+        if args.plots and not args.table_only:
+            prepare_dir("--plots", args.plots)
+    except InputError as e:
+        ap.error(str(e))
 
     def stored(part):
         """A part that is not run is tabulated when every JSON of it is in --out, same runs and seed."""
@@ -97,7 +94,6 @@ def main(argv=None):
         return True
 
     shown = [p for p in PARTS if p in parts or stored(p)]
-    out.mkdir(parents=True, exist_ok=True)
 
     def run(scenario, tag, extra, runs, part):
         path = out / f"{tag}.json"
@@ -111,11 +107,11 @@ def main(argv=None):
             if rc != 0:
                 raise SystemExit(rc)
         elif not path.is_file():
-            raise SystemExit(f"--table-only: {path} is missing (run without --table-only first)")
+            ap.error(f"--table-only: {path} is missing (run without --table-only first)")
         res = json.loads(path.read_text())
         if (res.get("runs"), res.get("seed")) != (runs, args.seed):
-            raise SystemExit(f"{path}: holds {res.get('runs')} runs with seed {res.get('seed')}, not {runs} with "
-                             f"seed {args.seed}; give the matching --runs/--att-runs and --seed")
+            ap.error(f"{path}: holds {res.get('runs')} runs with seed {res.get('seed')}, not {runs} with "
+                     f"seed {args.seed}; give the matching --runs/--att-runs and --seed")
         return res
 
     lines = [f"Paper 004 reproduction, seed {args.seed}; cells are mean / p95 over the runs.", ""]

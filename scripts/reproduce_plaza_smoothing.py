@@ -39,9 +39,7 @@ written atomically once every log is done.  A log on which the EKF never initial
 
 from __future__ import annotations
 
-import argparse
 import json
-import math
 import pathlib
 import sys
 import time
@@ -58,6 +56,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 from jaxslam import errors  # noqa: E402
+from jaxslam.cli.common import ScriptParser, path_arg, positive_float, positive_int  # noqa: E402
 from jaxslam.data.plaza import load_plaza  # noqa: E402
 from jaxslam.data.runners import evaluate_planar  # noqa: E402
 from jaxslam.filters import smoother  # noqa: E402
@@ -164,33 +163,22 @@ def smooth_log(d, iters, damping, start_from):
     return out
 
 
-def _usage(message):
-    """A usage error: one line on stderr, exit code 2."""
-    print(f"reproduce_plaza_smoothing.py: error: {message}", file=sys.stderr)
-    raise SystemExit(2)
-
-
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--data", required=True, help="data root holding gtsam/")
+    ap = ScriptParser(prog="reproduce_plaza_smoothing.py", description=__doc__.splitlines()[0])
+    ap.add_argument("--data", required=True, type=path_arg, help="data root holding gtsam/")
     ap.add_argument("--robot", type=int, nargs="+", default=[1, 2])
-    ap.add_argument("--iters", type=int, default=30)
-    ap.add_argument("--damping", type=float, default=None,
+    ap.add_argument("--iters", type=positive_int, default=30)
+    ap.add_argument("--damping", type=positive_float, default=None,
                     help="Levenberg-Marquardt damping λ of the iterated smoother (default: none)")
     ap.add_argument("--start", choices=("rts", "ekf"), default="rts",
                     help="starting trajectory of the iterations (default: the RTS smoother's)")
-    ap.add_argument("--json", default=None)
-    ap.error = _usage  # argparse's own errors: one line too (not usage + error)
+    ap.add_argument("--json", default=None, type=path_arg)
     a = ap.parse_args(argv)
     bad = [r for r in a.robot if r not in (1, 2)]
     if bad or len(set(a.robot)) != len(a.robot):
-        _usage(f"--robot: expected 1 and/or 2 (Plaza 1, Plaza 2), each once, got {' '.join(map(str, a.robot))}")
-    if a.iters < 1:
-        _usage(f"--iters: expected a positive integer, got {a.iters}")
-    if a.damping is not None and not (math.isfinite(a.damping) and a.damping > 0):
-        _usage(f"--damping: expected a finite λ > 0 (or no --damping), got {a.damping}")
-    if a.json is not None and (a.json == "" or pathlib.Path(a.json).is_dir()):
-        _usage(f"--json: {a.json!r} is not a file path")
+        ap.error(f"--robot: expected 1 and/or 2 (Plaza 1, Plaza 2), each once, got {' '.join(map(str, a.robot))}")
+    if a.json is not None and pathlib.Path(a.json).is_dir():
+        ap.error(f"--json: {a.json!r} is not a file path")
     if a.json is not None:  # under a file, a folder not writable: said now, not after the compute
         from jaxslam import files
         from jaxslam.errors import InputError
@@ -198,7 +186,7 @@ def main(argv=None):
         try:
             files.prepare_file("--json", a.json, create=False)
         except InputError as e:
-            _usage(str(e).splitlines()[0])
+            ap.error(str(e).splitlines()[0])
     root = pathlib.Path(a.data)
     root = root / "gtsam" if (root / "gtsam").is_dir() else root
     from jaxslam.errors import InputError
@@ -206,7 +194,7 @@ def main(argv=None):
     try:  # every log read before any compute: a missing file is said at once
         logs = {r: load_plaza(root, r) for r in a.robot}
     except InputError as e:
-        _usage(f"--data: {str(e).splitlines()[0] if str(e) else type(e).__name__}")
+        ap.error(f"--data: {str(e).splitlines()[0] if str(e) else type(e).__name__}")
     res = {}
     for r in a.robot:
         try:

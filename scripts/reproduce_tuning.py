@@ -44,7 +44,6 @@ unknown part, a bad number) exit 2 with one line before any part runs.  A persis
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import os
@@ -68,6 +67,9 @@ jax.config.update("jax_enable_x64", True)
 
 from jaxslam import io  # noqa: E402
 from jaxslam.cli import tune as tcli  # noqa: E402
+from jaxslam.cli.common import ScriptParser, path_arg, positive_float, positive_int, seed_int  # noqa: E402
+from jaxslam.errors import InputError  # noqa: E402
+from jaxslam.files import prepare_dir  # noqa: E402
 from jaxslam.tuning import losses as L  # noqa: E402
 from jaxslam.tuning import optimize as O  # noqa: E402
 from jaxslam.tuning import targets as T  # noqa: E402
@@ -91,12 +93,6 @@ def _known_part(part):
         loss, _, structure = part[4:].partition("_")
         return loss in EKF_LOSSES and structure in EKF_STRUCTURES
     return False
-
-
-def _usage(message):
-    """A usage error: one line on stderr, exit code 2."""
-    print(f"reproduce_tuning.py: error: {message}", file=sys.stderr)
-    raise SystemExit(2)
 
 
 def log(msg):
@@ -558,54 +554,53 @@ def write_table(out_dir):
 
 
 def main(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p = ScriptParser(prog="reproduce_tuning.py", description=__doc__.split("\n\n")[0])
     p.add_argument("--parts", default=",".join(ALL_PARTS),
                    help=f"comma list of {', '.join(ALL_PARTS + ('ekf_nees', 'ekf_mse_imu'))} (default: {','.join(ALL_PARTS)})")
-    p.add_argument("--out", default=None, help="output folder (default: docs/results/tuning; --quick needs another)")
-    p.add_argument("--plots", default=None, help="also write the tuning plots into this folder")
+    p.add_argument("--out", default=None, type=path_arg, help="output folder (default: docs/results/tuning; --quick needs another)")
+    p.add_argument("--plots", default=None, type=path_arg, help="also write the tuning plots into this folder")
     p.add_argument("--quick", action="store_true", help="tiny sizes (smoke test; figures not meaningful)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--test-runs", type=int, default=16, help="held-out runs of the ekfslam3d parts")
-    p.add_argument("--ekf-steps", type=int, default=100)
-    p.add_argument("--ekf-lr", type=float, default=0.5)
+    p.add_argument("--seed", type=seed_int, default=0)
+    p.add_argument("--test-runs", type=positive_int, default=16, help="held-out runs of the ekfslam3d parts")
+    p.add_argument("--ekf-steps", type=positive_int, default=100)
+    p.add_argument("--ekf-lr", type=positive_float, default=0.5)
     p.add_argument("--cache-dir", default=str(pathlib.Path.home() / ".cache" / "jaxslam-xla"))
-    p.error = _usage  # argparse's own errors: one line too (not usage + error)
     a = p.parse_args(argv)
     parts = [x.strip() for x in a.parts.split(",") if x.strip()]
     if not parts:
-        _usage(f"--parts: no part named in {a.parts!r}")
+        p.error(f"--parts: no part named in {a.parts!r}")
     unknown = [x for x in parts if not _known_part(x)]
     if unknown:
-        _usage(f"--parts: unknown part(s) {', '.join(unknown)} (choose from {', '.join(ALL_PARTS)}, "
-               f"ekf_<mse|nll|nees>[_imu|_imu_iso])")
-    for flag, v in (("--test-runs", a.test_runs), ("--ekf-steps", a.ekf_steps)):
-        if v < 1:
-            _usage(f"{flag}: expected a positive integer, got {v}")
-    if not (math.isfinite(a.ekf_lr) and a.ekf_lr > 0):
-        _usage(f"--ekf-lr: expected a finite positive learning rate, got {a.ekf_lr}")
+        p.error(f"--parts: unknown part(s) {', '.join(unknown)} (choose from {', '.join(ALL_PARTS)}, "
+                f"ekf_<mse|nll|nees>[_imu|_imu_iso])")
     shipped = ROOT / "docs" / "results" / "tuning"
     if a.out is None:
         a.out = str(shipped)
     if a.quick and pathlib.Path(a.out).resolve() == shipped.resolve():
-        _usage(f"--quick: give --out another folder (quick figures are not meaningful and would replace "
-               f"the shipped results in {shipped})")
+        p.error(f"--quick: give --out another folder (quick figures are not meaningful and would replace "
+                f"the shipped results in {shipped})")
     if "nll_flat" in parts and "ekf_nll_imu" not in parts[:parts.index("nll_flat")]:
         src = pathlib.Path(a.out) / "ekf_nll_imu.json"
         if not src.is_file():
-            _usage(f"--parts: nll_flat needs ekf_nll_imu.json in {a.out} (run the part ekf_nll_imu first)")
+            p.error(f"--parts: nll_flat needs ekf_nll_imu.json in {a.out} (run the part ekf_nll_imu first)")
         try:
             src_quick = json.loads(src.read_text()).get("quick")
         except (ValueError, AttributeError):
-            _usage(f"--parts: nll_flat needs ekf_nll_imu.json: {src} is not a JSON object")
+            p.error(f"--parts: nll_flat needs ekf_nll_imu.json: {src} is not a JSON object")
         if bool(src_quick) != bool(a.quick):
-            _usage(f"--parts: nll_flat{' --quick' if a.quick else ''} would read {src}, written "
-                   f"{'with' if src_quick else 'without'} --quick (run the part ekf_nll_imu with the same options)")
+            p.error(f"--parts: nll_flat{' --quick' if a.quick else ''} would read {src}, written "
+                    f"{'with' if src_quick else 'without'} --quick (run the part ekf_nll_imu with the same options)")
+    try:  # one usage line (exit 2) for an unusable folder (an existing file), before any part runs
+        out_dir = prepare_dir("--out", a.out)
+        if a.plots:  # (its figures are drawn after each part's compute)
+            prepare_dir("--plots", a.plots)
+        if a.cache_dir:
+            prepare_dir("--cache-dir", a.cache_dir)
+    except InputError as e:
+        p.error(str(e))
     if a.cache_dir:
-        pathlib.Path(a.cache_dir).mkdir(parents=True, exist_ok=True)
         jax.config.update("jax_compilation_cache_dir", a.cache_dir)
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
-    out_dir = pathlib.Path(a.out)
-    out_dir.mkdir(parents=True, exist_ok=True)
     machine = io.machine_info()
     for part in parts:
         log(f"part {part} (load average {os.getloadavg()[0]:.1f})")

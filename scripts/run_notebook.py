@@ -19,15 +19,17 @@ are skipped with a note on stderr (replaced by ``pass`` at their indentation, so
 that holds one still parses).  A notebook that cannot be read (missing, not JSON, not
 nbformat 4), ``--inplace`` with ``--out``, an ``--out`` whose folder does not exist or a
 ``--cwd`` that is not a folder is a usage error: one line on stderr, exit code 2, nothing
-run.  Only the standard library and (if the notebook uses it) matplotlib are needed; no
-jupyter, nbformat or nbconvert.
+run (so is an ``--out`` that is a folder, lies under a file or cannot be written, and an
+empty ``--out`` or ``--cwd``).  The notebook is read once; the executed one is written
+atomically (:func:`jaxslam.files.atomic_write`).  Only the standard library, this repository's
+``jaxslam`` (its argument types and file writer; no JAX) and (if the notebook uses it)
+matplotlib are needed; no jupyter, nbformat or nbconvert.
 
 Library use: ``execute(path, out_path=None, cwd=None) -> (notebook dict, error or None)``.
 """
 
 from __future__ import annotations
 
-import argparse
 import ast
 import base64
 import contextlib
@@ -36,10 +38,13 @@ import json
 import os
 import pathlib
 import sys
-import tempfile
 import time
 import tokenize
 import traceback
+
+from jaxslam import files
+from jaxslam.cli.common import ScriptParser, path_arg
+from jaxslam.errors import InputError
 
 __all__ = ["execute", "main"]
 
@@ -130,9 +135,19 @@ def execute(path, out_path=None, cwd=None):
     never leaves a truncated notebook, which matters with ``--inplace``.
     """
     path = pathlib.Path(path)
+    return _execute(_read(path), path, out_path, cwd)
+
+
+def _read(path: pathlib.Path) -> dict:
+    """The notebook at ``path`` (``OSError``, ``ValueError`` when it is not an nbformat-4 JSON)."""
     nb = json.loads(path.read_text(encoding="utf-8"))
-    if nb.get("nbformat") != 4:
+    if not isinstance(nb, dict) or nb.get("nbformat") != 4:
         raise ValueError(f"{path}: only nbformat 4 notebooks are supported")
+    return nb
+
+
+def _execute(nb: dict, path: pathlib.Path, out_path, cwd):
+    """:func:`execute` on the notebook ``nb`` read from ``path``."""
     for cell in nb.get("cells", []):
         if cell.get("cell_type") == "code":
             cell["outputs"], cell["execution_count"] = [], None
@@ -187,64 +202,48 @@ def execute(path, out_path=None, cwd=None):
 
 
 def _write_atomic(path: pathlib.Path, nb: dict) -> None:
-    """``nb`` as JSON in ``path``: a temporary file in its folder, renamed over it."""
+    """``nb`` as JSON in ``path``, through :func:`jaxslam.files.atomic_write`."""
     text = json.dumps(nb, indent=1, ensure_ascii=False) + "\n"
     try:
         data = text.encode("utf-8")
     except UnicodeEncodeError:  # e.g. a lone surrogate printed by a cell: ASCII JSON (\u escapes)
         data = (json.dumps(nb, indent=1) + "\n").encode("ascii")
-    if path.is_symlink():  # the link's target is replaced, the link kept
-        path = path.resolve()
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        if path.exists():
-            os.chmod(tmp, path.stat().st_mode & 0o7777)
-        else:
-            umask = os.umask(0)
-            os.umask(umask)
-            os.chmod(tmp, 0o666 & ~umask)
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
-
-
-def _usage(message: str) -> int:
-    """A usage error: one line on stderr, exit code 2 (no usage block, no traceback)."""
-    print(f"run_notebook.py: error: {message}", file=sys.stderr)
-    return 2
+    files.atomic_write(path, lambda f: f.write(data), mode="wb")
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="run_notebook.py", description=__doc__.split("\n\n")[0])
-    p.add_argument("notebook")
-    p.add_argument("--out", help="where to write the executed notebook (default: NAME.executed.ipynb)")
+    p = ScriptParser(prog="run_notebook.py", description=__doc__.split("\n\n")[0])
+    p.add_argument("notebook", type=path_arg)
+    p.add_argument("--out", type=path_arg,
+                   help="where to write the executed notebook (default: NAME.executed.ipynb)")
     p.add_argument("--inplace", action="store_true", help="overwrite the input notebook with the outputs")
-    p.add_argument("--cwd", help="working directory of the cells (default: the notebook's folder)")
+    p.add_argument("--cwd", type=path_arg, help="working directory of the cells (default: the notebook's folder)")
     a = p.parse_args(argv)
-    if a.inplace and a.out:
-        return _usage("--inplace and --out exclude each other")
+    if a.inplace and a.out is not None:
+        p.error("--inplace and --out exclude each other")
     src = pathlib.Path(a.notebook)
-    out = src if a.inplace else pathlib.Path(a.out) if a.out else src.with_suffix(".executed.ipynb")
+    out = src if a.inplace else pathlib.Path(a.out) if a.out is not None else src.with_suffix(".executed.ipynb")
     try:  # a notebook that cannot be read: one line and exit 2, before anything runs
-        nb = json.loads(src.read_text(encoding="utf-8"))
+        nb = _read(src)
     except OSError as e:
-        return _usage(f"{src}: cannot read the notebook: {e.strerror or e}")
+        p.error(f"{src}: cannot read the notebook: {e.strerror or e}")
     except UnicodeDecodeError as e:
-        return _usage(f"{src}: not UTF-8 text ({e.reason} at byte {e.start})")
+        p.error(f"{src}: not UTF-8 text ({e.reason} at byte {e.start})")
     except json.JSONDecodeError as e:
-        return _usage(f"{src}:{e.lineno}: not a JSON notebook: {e.msg} (column {e.colno})")
-    if not isinstance(nb, dict) or nb.get("nbformat") != 4:
-        return _usage(f"{src}: only nbformat 4 notebooks are supported")
-    if not out.resolve().parent.is_dir():  # checked now: the executed notebook must not be lost
-        return _usage(f"--out: the folder of {str(out)!r} does not exist")
+        p.error(f"{src}:{e.lineno}: not a JSON notebook: {e.msg} (column {e.colno})")
+    except ValueError as e:  # not nbformat 4
+        p.error(str(e))
+    # the output is checked now, before any cell runs: the executed notebook must not be lost
+    if not out.resolve().parent.is_dir():
+        p.error(f"--out: the folder of {str(out)!r} does not exist")
+    try:  # a folder, a path under a file, a folder that cannot be written
+        files.prepare_file("--inplace" if a.inplace else "--out", out, create=False)
+    except InputError as e:
+        p.error(str(e).splitlines()[0])
     if a.cwd is not None and not pathlib.Path(a.cwd).is_dir():
-        return _usage(f"--cwd: {a.cwd!r} is not a folder")
+        p.error(f"--cwd: {a.cwd!r} is not a folder")
     t0 = time.perf_counter()
-    _, error = execute(src, out, a.cwd)
+    _, error = _execute(nb, src, out, a.cwd)
     dt = time.perf_counter() - t0
     if error:
         print(f"run_notebook: cell {error['cell']} failed: {error['ename']}: {error['evalue']} "

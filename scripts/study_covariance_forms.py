@@ -13,11 +13,13 @@ the per-frame NEES mean.  ``--r-scale`` shrinks the filter's LiDAR R below the s
 (an over-confident filter, the hard case for either form); 1 is the scenario as it is.
 Truth is read only for the printed errors.
 """
-import argparse
 import json
 import time
 
 from jaxslam import runtime
+from jaxslam.cli.common import ScriptParser, path_arg, positive_float, positive_int, seed_int
+from jaxslam.errors import InputError
+from jaxslam.files import prepare_file
 
 runtime.configure_process(cache=False)
 
@@ -37,13 +39,25 @@ from jaxslam.sim.simulate import controls, simulate  # noqa: E402
 from jaxslam.systems import ekf_slam_3d as sys3d  # noqa: E402
 
 
-def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--steps", type=int, default=100_000)
-    ap.add_argument("--seeds", default="0,1")
-    ap.add_argument("--r-scale", default="1,1e-4")
-    ap.add_argument("--json")
-    a = ap.parse_args()
+def _list_of(parse):
+    """argparse type: comma-separated values, each read by ``parse`` (one of the CLI's types)."""
+    return lambda text: [parse(s.strip()) for s in text.split(",")]
+
+
+def main(argv=None):
+    ap = ScriptParser(prog="study_covariance_forms.py", description=__doc__.splitlines()[0])
+    ap.add_argument("--steps", type=positive_int, default=100_000)
+    ap.add_argument("--seeds", type=_list_of(seed_int), default="0,1")
+    ap.add_argument("--r-scale", type=_list_of(positive_float), default="1,1e-4")
+    ap.add_argument("--json", type=path_arg)
+    a = ap.parse_args(argv)
+    if a.steps < FRAME_STEPS:  # (fewer flew no frame at all)
+        ap.error(f"--steps: expected at least {FRAME_STEPS} (one frame), got {a.steps}")
+    if a.json:
+        try:  # an unusable path (a folder, under a file) before the flights, not after them
+            prepare_file("--json", a.json)
+        except InputError as e:
+            ap.error(str(e))
     opts = {o.name: o.default for o in registry.get("ekfslam3d-unknown").options}
     nf = a.steps // FRAME_STEPS
     out = {"steps": nf * FRAME_STEPS, "duration_s": nf * FRAME_STEPS * DT, "capacity": int(opts["capacity"]),
@@ -54,7 +68,7 @@ def main():
         K, refs = controls(make_setup(traj, dtype, ctrl=base), nf * FRAME_STEPS, True,
                            compiler_options=runtime.compiler_options())
         noise0 = sys3d.imu_noise(imu_mod.PAPER000_IMU, dtype)
-        for r_scale in (float(s) for s in a.r_scale.split(",")):
+        for r_scale in a.r_scale:
             noise = noise0._replace(R=noise0.R * jnp.asarray(r_scale, dtype))
             for joseph in (True, False):
                 cfg = sys3d.Config(mode="unknown", association=opts["association"], capacity=int(opts["capacity"]),
@@ -79,7 +93,7 @@ def main():
                             "pos_rmse_m": jnp.sqrt(jnp.mean(jnp.sum(e ** 2, -1))),
                             "nees_mean": jnp.mean(fl.est_frames.nees)}
 
-                for seed in (int(s) for s in a.seeds.split(",")):
+                for seed in a.seeds:
                     t0 = time.perf_counter()
                     r = jax.tree.map(lambda v: np.asarray(v).item(), fly(jax.random.PRNGKey(seed)))
                     r.update(dtype=jnp.dtype(dtype).name, r_scale=r_scale, joseph=joseph, seed=seed,

@@ -23,12 +23,14 @@ leaving the field of view, a sighting's slot, an association).  Also whether two
 
 ``--out`` is updated in place: parts already there and not rerun are kept.
 """
-import argparse
 import json
 import pathlib
 import time
 
 from jaxslam import runtime
+from jaxslam.cli.common import ScriptParser, path_arg
+from jaxslam.errors import InputError
+from jaxslam.files import prepare_file
 
 runtime.configure_process(cache=False)
 import jax  # noqa: E402
@@ -104,18 +106,35 @@ def study(mode):
     return out
 
 
-def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("modes", nargs="*", default=["unknown", "known"])
-    ap.add_argument("--parts", default="line,probe")
-    ap.add_argument("--out", default="docs/results/tuning/loop_roughness.json")
-    a = ap.parse_args()
+MODES = ("unknown", "known")
+PARTS = ("line", "probe")
+
+
+def main(argv=None):
+    ap = ScriptParser(prog="study_loop_roughness.py", description=__doc__.splitlines()[0])
+    ap.add_argument("modes", nargs="*", default=list(MODES), help=f"some of {', '.join(MODES)} (default both)")
+    ap.add_argument("--parts", default=",".join(PARTS), help=f"comma-separated subset of {', '.join(PARTS)}")
+    ap.add_argument("--out", default="docs/results/tuning/loop_roughness.json", type=path_arg)
+    a = ap.parse_args(argv)
+    unknown = [m for m in a.modes if m not in MODES]
+    if unknown:
+        ap.error(f"modes: unknown {', '.join(map(repr, unknown))}; expected some of {', '.join(MODES)}")
+    parts = [s.strip() for s in a.parts.split(",") if s.strip()]
+    if not parts or set(parts) - set(PARTS):  # (an unknown part ran nothing and rewrote --out)
+        ap.error(f"--parts: expected a comma-separated subset of {', '.join(PARTS)}, got {a.parts!r}")
     p = pathlib.Path(a.out)
-    res = json.loads(p.read_text()) if p.exists() else {}
+    try:  # --out is updated in place: readable and writable before the study, not after it
+        prepare_file("--out", p)
+        res = json.loads(p.read_text()) if p.exists() else {}
+    except InputError as e:
+        ap.error(str(e))
+    except (OSError, UnicodeDecodeError, ValueError) as e:
+        ap.error(f"--out: cannot update {str(p)!r}: {getattr(e, 'strerror', None) or e}"[:300])
+    if not isinstance(res, dict):
+        ap.error(f"--out: {str(p)!r} holds no JSON object to update")
     res.update({"purpose": __doc__.split("\n\n")[0], "setting": {**COMMON, "shipped_objective": SHIPPED},
                 "steps": list(STEPS), "probe_steps": list(PROBE)})
     res.setdefault("modes", {})
-    parts = a.parts.split(",")
     for m in a.modes:
         res["modes"].setdefault(m, {})
         if "line" in parts:

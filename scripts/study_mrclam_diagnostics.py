@@ -24,7 +24,6 @@ Protocol for fitted constants: everything is fitted on the FIRST HALF of robot 1
 
 from __future__ import annotations
 
-import argparse
 import pathlib
 import sys
 import time
@@ -32,6 +31,8 @@ import time
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
 from jaxslam import runtime  # noqa: E402
+from jaxslam.cli.common import ScriptParser, one_line, path_arg  # noqa: E402
+from jaxslam.errors import InputError  # noqa: E402
 
 runtime.configure_process()
 
@@ -318,12 +319,15 @@ def part_slam(Ds):
             print(f"   robot {robot} {nm:20s} dead reckoning ATE {dr_ate(D, log, pose0):.3f} m")
 
 
-def main():
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--data", default=DATA)
-    ap.add_argument("--part", default="all")
-    a = ap.parse_args()
-    Ds = {r: load_mrclam(a.data, r) for r in (1, 2)}
+def main(argv=None):
+    ap = ScriptParser(prog="study_mrclam_diagnostics.py", description=__doc__.splitlines()[0])
+    ap.add_argument("--data", default=DATA, type=path_arg, help="folder holding mrclam6/ (default: $JAXSLAM_DATA_DIR)")
+    ap.add_argument("--part", default="all", choices=("all", "resid", "odo", "loc", "slam"))  # (another ran nothing)
+    a = ap.parse_args(argv)
+    try:  # a missing or malformed log: one usage line, not a traceback
+        Ds = {r: load_mrclam(a.data, r) for r in (1, 2)}
+    except InputError as e:
+        ap.error(f"--data: {one_line(str(e)) or type(e).__name__}")
     range_k = odo_cal = None
     if a.part in ("all", "resid", "loc"):
         range_k = part_resid(Ds)

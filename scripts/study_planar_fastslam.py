@@ -29,6 +29,8 @@ import time
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
 from jaxslam import runtime  # noqa: E402
+from jaxslam.cli.common import (ScriptParser, finite_float, nonnegative_float, path_arg, positive_float,  # noqa: E402
+                                positive_int)
 
 runtime.configure_process()
 
@@ -156,28 +158,36 @@ def victoria(root, n_particles, capacity, seeds, dtype, t_end=None, sv=0.7, sa=0
               flush=True)
 
 
-def main():
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--data", default=__import__("os").environ.get("JAXSLAM_DATA_DIR"),
+def _robots(text):
+    """argparse type: comma-separated MRCLAM robot numbers, each 1-5."""
+    robots = [positive_int(s.strip()) for s in text.split(",")]
+    if any(r > 5 for r in robots):
+        raise argparse.ArgumentTypeError(f"expected robot numbers 1-5, got {text!r}")
+    return robots
+
+
+def main(argv=None):
+    ap = ScriptParser(prog="study_planar_fastslam.py", description=__doc__.splitlines()[0])
+    ap.add_argument("--data", default=__import__("os").environ.get("JAXSLAM_DATA_DIR"), type=path_arg,
                     help="folder holding mrclam6/ and victoria_park/ (default: $JAXSLAM_DATA_DIR)")
     ap.add_argument("--only", choices=["mrclam", "vp"], default=None)
-    ap.add_argument("--particles", type=int, default=100)
-    ap.add_argument("--seeds", type=int, default=5)
-    ap.add_argument("--robots", default="1,2")
-    ap.add_argument("--floor", type=float, default=1e-4)
-    ap.add_argument("--vp-particles", type=int, default=50)
-    ap.add_argument("--vp-capacity", type=int, default=512)
-    ap.add_argument("--vp-seeds", type=int, default=1)
-    ap.add_argument("--vp-t-end", type=float, default=None)
-    ap.add_argument("--vp-sv", type=float, default=0.7)
-    ap.add_argument("--vp-sa", type=float, default=0.06)
-    ap.add_argument("--vp-range-max", type=float, default=40.0)
-    ap.add_argument("--vp-log-p-new", type=float, default=0.0)
+    ap.add_argument("--particles", type=positive_int, default=100)
+    ap.add_argument("--seeds", type=positive_int, default=5, help="number of seeds (0, 1, ...)")
+    ap.add_argument("--robots", type=_robots, default="1,2")
+    ap.add_argument("--floor", type=nonnegative_float, default=1e-4)
+    ap.add_argument("--vp-particles", type=positive_int, default=50)
+    ap.add_argument("--vp-capacity", type=positive_int, default=512)
+    ap.add_argument("--vp-seeds", type=positive_int, default=1, help="number of seeds (0, 1, ...)")
+    ap.add_argument("--vp-t-end", type=positive_float, default=None)
+    ap.add_argument("--vp-sv", type=positive_float, default=0.7)
+    ap.add_argument("--vp-sa", type=positive_float, default=0.06)
+    ap.add_argument("--vp-range-max", type=positive_float, default=40.0)
+    ap.add_argument("--vp-log-p-new", type=finite_float, default=0.0)
     ap.add_argument("--f32", action="store_true")
-    a = ap.parse_args()
+    a = ap.parse_args(argv)
     dtype = jnp.float32 if a.f32 else jnp.float64
     if a.only in (None, "mrclam"):
-        for r in [int(x) for x in a.robots.split(",")]:
+        for r in a.robots:
             mrclam(a.data, r, a.particles, list(range(a.seeds)), dtype, floor=a.floor)
     if a.only in (None, "vp"):
         victoria(a.data, a.vp_particles, a.vp_capacity, list(range(a.vp_seeds)), dtype,

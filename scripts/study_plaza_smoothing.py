@@ -129,12 +129,14 @@ Findings
 
 from __future__ import annotations
 
-import argparse
 import json
 import time
 from typing import NamedTuple
 
 from jaxslam import runtime
+from jaxslam.cli.common import ScriptParser, path_arg
+from jaxslam.errors import InputError
+from jaxslam.files import prepare_file
 
 runtime.configure_process()
 
@@ -805,17 +807,27 @@ HEADER = ("log name                ATE  beac  beacS  bias(end)±σ   s_d    s_θ
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--data", default=__import__("os").environ.get("JAXSLAM_DATA_DIR"),
+    ap = ScriptParser(prog="study_plaza_smoothing.py", description=__doc__.split("\n")[0])
+    ap.add_argument("--data", default=__import__("os").environ.get("JAXSLAM_DATA_DIR"), type=path_arg,
                     help="folder holding gtsam/ (default: $JAXSLAM_DATA_DIR)")
-    ap.add_argument("--robot", type=int, nargs="*", default=[1, 2])
+    ap.add_argument("--robot", type=int, nargs="*", default=[1, 2], help="1 and/or 2 (Plaza 1, Plaza 2)")
     ap.add_argument("--configs", nargs="*", default=None, help=f"subset of {list(CFG)}")
     ap.add_argument("--all", action="store_true", help="every configuration (default: QUICK)")
     ap.add_argument("--em", action="store_true", help="also run the EM noise fit (slow)")
     ap.add_argument("--cv", action="store_true",
                     help="also run the blocked cross-validation over the σ_d scale (slow)")
-    ap.add_argument("--json", default=None)
+    ap.add_argument("--json", default=None, type=path_arg)
     a = ap.parse_args(argv)
+    if not a.robot or set(a.robot) - {1, 2} or len(set(a.robot)) < len(a.robot):
+        ap.error(f"--robot: expected 1 and/or 2 (Plaza 1, Plaza 2), each once, got {' '.join(map(str, a.robot))}")
+    unknown = [n for n in a.configs or () if n not in CFG]
+    if unknown:  # (a KeyError traceback after the EKF runs)
+        ap.error(f"--configs: unknown configuration(s) {', '.join(unknown)}; choose from {', '.join(CFG)}")
+    if a.json:
+        try:  # an unusable path (a folder, under a file) before the smoothers, not after them
+            prepare_file("--json", a.json)
+        except InputError as e:
+            ap.error(str(e))
     names = a.configs or (list(CFG) if a.all else QUICK)
     # warm starts need their source configs
     need = []
@@ -827,7 +839,7 @@ def main(argv=None):
             if m not in need:
                 need.append(m)
     if "huber-mad" in need and len(a.robot) < 2:
-        raise SystemExit("huber-mad needs both logs (--robot 1 2)")
+        ap.error("--configs: huber-mad needs both logs (--robot 1 2)")
     preps = {w: prepare(a.data, w) for w in a.robot}
     results = {w: {} for w in a.robot}
     print(HEADER)

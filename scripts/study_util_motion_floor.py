@@ -17,13 +17,15 @@ The constant-velocity filter that ships (0.213 m airborne RMSE) averages over ab
 Output: printed table and, with ``--json``, the figures (docs/datasets.md, UTIL section).
 """
 
-import argparse
 import json
 import os
 
 import numpy as np
 
+from jaxslam.cli.common import ScriptParser, one_line, path_arg
 from jaxslam.data.util_uwb import load_util
+from jaxslam.errors import InputError
+from jaxslam.files import prepare_file
 
 WINDOWS = (0.2, 0.5, 1.0, 2.0, 5.0, 10.0)
 HUBER_K = 1.345
@@ -56,13 +58,21 @@ def window_offsets(p, a, rng, bias, W, t, fit_bias):
     return np.asarray(out)
 
 
-def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("data", nargs="?", default=os.environ.get("JAXSLAM_DATA_DIR", "../shared/data"))
-    ap.add_argument("--json", default=None)
-    args = ap.parse_args()
-    d = load_util(os.path.join(args.data, "util_uwb") if os.path.isdir(os.path.join(args.data, "util_uwb"))
-                  else args.data)
+def main(argv=None):
+    ap = ScriptParser(prog="study_util_motion_floor.py", description=__doc__.splitlines()[0])
+    ap.add_argument("data", nargs="?", default=os.environ.get("JAXSLAM_DATA_DIR", "../shared/data"), type=path_arg)
+    ap.add_argument("--json", default=None, type=path_arg)
+    args = ap.parse_args(argv)
+    try:  # an unusable path (a folder, under a file): one usage line, before the fits, not after them
+        if args.json:
+            prepare_file("--json", args.json)
+    except InputError as e:
+        ap.error(str(e))
+    try:  # a missing or malformed log: likewise
+        d = load_util(os.path.join(args.data, "util_uwb") if os.path.isdir(os.path.join(args.data, "util_uwb"))
+                      else args.data)
+    except InputError as e:
+        ap.error(f"data: {one_line(str(e)) or type(e).__name__}")
     tag = d.tag_positions()
     t = d.twr_t
     inside = (t > d.gt_t[0]) & (t < d.gt_t[-1])

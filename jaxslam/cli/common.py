@@ -13,9 +13,9 @@ import signal
 import sys
 import threading
 
-__all__ = ["PROG", "DEBUG_ENV", "UsageError", "Parser", "int_at_least", "nonnegative_float", "positive_float", "positive_int",
-           "seed_int", "echo", "compile_timing", "fmt", "one_line", "silence_stdout", "counting_interrupts",
-           "raise_if_interrupted"]
+__all__ = ["PROG", "DEBUG_ENV", "UsageError", "Parser", "ScriptParser", "path_arg", "int_at_least", "finite_float",
+           "nonnegative_float", "positive_float", "positive_int", "seed_int", "echo", "compile_timing", "fmt",
+           "one_line", "silence_stdout", "reader_gone_safe_stdout", "counting_interrupts", "raise_if_interrupted"]
 
 PROG = "jaxslam"
 DEBUG_ENV = "JAXSLAM_DEBUG"
@@ -36,6 +36,18 @@ class Parser(argparse.ArgumentParser):
 
     def error(self, message):  # noqa: D401 - argparse API
         raise UsageError(f"{self.prog}: {message} (see '{self.prog} --help')")
+
+
+class ScriptParser(argparse.ArgumentParser):
+    """The argument parser of the repository's scripts (``scripts/*.py``): every usage error,
+    argparse's own (a missing or unknown option, a value its ``type`` refuses) and the script's
+    (``parser.error(message)``), is one line ``PROG: error: MESSAGE`` on stderr and exit code 2,
+    with no usage block and no traceback.  Give ``prog`` (the script's file name): argparse's
+    default is ``sys.argv[0]``, which is not the script when its ``main`` is called in-process."""
+
+    def error(self, message):  # noqa: D401 - argparse API
+        print(f"{self.prog}: error: {message}", file=sys.stderr)
+        raise SystemExit(2)
 
 
 def path_arg(text: str) -> str:
