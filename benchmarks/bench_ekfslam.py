@@ -73,7 +73,7 @@ import tempfile
 import time
 
 import numpy as np
-from timing import int_list
+from timing import int_list, lidar_frames, prng_key
 
 DESCRIPTION = ("Paper 000 EKF-SLAM: Fig. 12 cost study (predict/update/registration), full 50 s "
                "run as one jitted scan vs a NumPy twin, vmap Monte Carlo throughput")
@@ -188,7 +188,7 @@ def synthetic_log(duration, seed, n_landmarks=40, dt=DT, lidar_every=LIDAR_EVERY
     from jaxslam.sensors import lidar3d
 
     dtype = jnp.float64
-    F = int(round(duration / (dt * lidar_every)))
+    F = lidar_frames(duration, "duration", dt, lidar_every)
     T = F * lidar_every
     center = jnp.array([0.0, 0.0, -5.0], dtype)
     w8 = 2 * math.pi / 20.0
@@ -232,7 +232,7 @@ def synthetic_log(duration, seed, n_landmarks=40, dt=DT, lidar_every=LIDAR_EVERY
         y, vis = jax.vmap(frame)(t[lidar_every::lidar_every], jax.random.split(k_y, F))
         return truth, imus, y, vis, lms
 
-    truth, imus, y, vis, lms = (np.array(a) for a in make(jax.random.PRNGKey(seed)))
+    truth, imus, y, vis, lms = (np.array(a) for a in make(prng_key(seed)))
     truth[:, 8] = np.mod(truth[:, 8] + np.pi, 2 * np.pi) - np.pi  # the filter's yaw is wrapped
     return {"truth": truth, "imu": imus, "y": y, "visible": vis,
             "ids": np.arange(n_landmarks, dtype=np.int32), "landmarks": lms,
@@ -248,7 +248,7 @@ def sim_log(duration, seed, capacity=64):
 
     opts = _scenario_options(duration, capacity)
     _, flight, _, noise, _ = ekfslam3d.build(opts, "unknown", jnp.float64)
-    fl, lms = jax.jit(lambda k: flight(k, noise))(jax.random.PRNGKey(seed))
+    fl, lms = jax.jit(lambda k: flight(k, noise))(prng_key(seed))
     imu = np.asarray(fl.imu)
     truth = np.asarray(fl.truth)
     # The sample preceding the first prediction is not part of Flight; the first
@@ -941,9 +941,8 @@ def run(args):
                               ("--mc-duration", "mc", args.mc_duration)):
         # at least one LiDAR frame (a negative or zero duration crashed the full run with an
         # internal error, and the mc part recorded the scenario's refusal as its result)
-        if part in parts and not round(float(value) / (DT * LIDAR_EVERY)) >= 1:
-            raise InputError(f"{flag}: must hold at least one LiDAR frame ({DT * LIDAR_EVERY:g} s), "
-                             f"got {value!r}")
+        if part in parts:
+            lidar_frames(value, flag, DT, LIDAR_EVERY)
     if args.plots is not None:  # checked (and created) before anything runs, not after the study
         if "study" not in parts:
             raise InputError(f"--plots: the figure is the study part's; add study to --parts "

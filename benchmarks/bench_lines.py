@@ -27,8 +27,8 @@ Parts (``--parts``, default ``ransac,slam``):
    before any part runs.
 
 ``--seed`` takes any seed the CLI accepts, [0, 2**63): the keys derived from it (seed + 1)
-are ``jax.random.PRNGKey`` of the seed's 64 bits (two's complement), so 2**63 - 1 + 1 wraps
-to -2**63 instead of overflowing; every smaller seed keeps its key.
+are ``timing.prng_key``'s, ``jax.random.PRNGKey`` of seed + 1's 64 bits (two's complement), so
+2**63 - 1 + 1 wraps to -2**63 instead of overflowing; every smaller seed keeps its key.
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ import sys
 import time
 
 import numpy as np
-from timing import int_list, median_s
+from timing import int_list, median_s, prng_key
 
 DESCRIPTION = ("Paper 004 RANSAC line extraction (Alg. 1, eq. 4.1): per-scan time of jitted single and "
                "vmapped extraction vs a NumPy twin; line-feature SLAM runs/s vmapped vs sequential")
@@ -65,14 +65,7 @@ def add_arguments(parser):
                         help="slam: sequential runs actually timed per M (default 10)")
 
 
-def _prng_key(seed):
-    """``jax.random.PRNGKey`` of ``seed`` read as 64 bits (two's complement): ``--seed`` 2**63 - 1
-    plus an offset overflowed ``PRNGKey`` (OverflowError: an internal error after the scans were
-    simulated); any seed in [-2**63, 2**63) gets its usual key."""
-    import jax
-
-    bits = int(seed) & (2**64 - 1)
-    return jax.random.PRNGKey(bits - 2**64 if bits >= 2**63 else bits)
+_prng_key = prng_key  # the shared helper (timing.py); the name tests/benchmarks call
 
 
 def _progress(msg):
@@ -97,7 +90,7 @@ def room_scans(seed, n, outlier_prob, dtype=None):
     wmask = jnp.ones(walls.shape[0], bool)
     rng = np.random.default_rng(seed)
     poses = np.column_stack([rng.uniform(0.6, 2.8, n), rng.uniform(0.6, 2.9, n), rng.uniform(-np.pi, np.pi, n)])
-    keys = jax.random.split(_prng_key(seed), n)
+    keys = jax.random.split(prng_key(seed), n)
     spec = L.URG04LX
 
     def one(k, pose):
@@ -134,7 +127,7 @@ def _ransac_part(args, out, results):
     _progress(f"simulating {S} scans")
     pts, valid, wall, true = room_scans(args.seed, S, args.outlier_prob)
     pts, valid = jax.block_until_ready((pts, valid))
-    keys = jax.random.split(_prng_key(args.seed + 1), S)
+    keys = jax.random.split(prng_key(args.seed, 1), S)
     single = jax.jit(F.extract_lines, static_argnames="cfg")
     batched = jax.jit(jax.vmap(lambda k, p, v: F.extract_lines(k, p, v, cfg)))
 
@@ -222,10 +215,10 @@ def _slam_part(args, out, results):
     _, _, cfg, fp, setup = sc.build(opts, jnp.float64)
     Ms = sorted(set(int_list(args.slam_runs, "--slam-runs")))
     M_max = Ms[-1]
-    keys = jax.random.split(_prng_key(args.seed), M_max)
+    keys = jax.random.split(prng_key(args.seed), M_max)
     sim = jax.jit(jax.vmap(lambda k: sc.simulate(k, setup, cfg.spec, jnp.float64)))
     logs = jax.block_until_ready(sim(keys))
-    fkeys = jax.random.split(_prng_key(args.seed + 1), M_max)
+    fkeys = jax.random.split(prng_key(args.seed, 1), M_max)
     single = jax.jit(lambda k, log: LS.run(log, cfg, fp, key=k))
     batch = jax.jit(jax.vmap(lambda k, log: LS.run(log, cfg, fp, key=k)))
     first = jax.tree.map(lambda a: a[0], logs)

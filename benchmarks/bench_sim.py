@@ -52,7 +52,7 @@ import sys
 import time
 
 import numpy as np
-from timing import int_list
+from timing import int_list, lidar_frames, prng_key
 
 from jaxslam.cli.common import nonnegative_float, positive_float
 from jaxslam.errors import InputError
@@ -71,9 +71,12 @@ MAX_RUN_SECONDS = 50_000.0  # M x duration of a batch case: 10x the default 100 
 
 def _duration(text: str) -> float:
     """argparse type of ``--duration``: a float in [0.1, MAX_DURATION_S] s (one LiDAR period at
-    least; the upper bound keeps a typo such as 1e12 from running for ever)."""
+    least; the upper bound keeps a typo such as 1e12 from running for ever).  :func:`run` checks
+    ``args.duration`` with it too (a namespace made without the parser)."""
     import argparse
 
+    if isinstance(text, bool):  # float(True) is 1.0 s
+        raise argparse.ArgumentTypeError(f"must be a number of seconds, got {text!r}")
     value = positive_float(text)
     lo = LIDAR_EVERY * 0.01
     if not lo <= value <= MAX_DURATION_S:
@@ -314,28 +317,30 @@ def _load():
 
 def run(args) -> dict:
     """Run the cases of the module docstring; return the bench JSON (dict)."""
+    import argparse
+
     import jax
     import jax.numpy as jnp
     from jaxslam import io
-    from jaxslam.sim.simulate import n_frames
 
     if not jax.config.jax_enable_x64:
         raise RuntimeError("bench sim needs float64 (run it through 'python -m jaxslam bench')")
-    duration = float(args.duration)
+    try:  # the option's declared bounds, also for a namespace the parser did not make
+        duration = _duration(args.duration)
+    except argparse.ArgumentTypeError as e:
+        raise InputError(f"--duration: {e}") from None
     batches = int_list(args.batches, "--batches", allow_empty=True)  # "": no vmapped batches
     if batches and max(batches) * duration > MAX_RUN_SECONDS:
         raise InputError(f"--batches: M x --duration must be <= {MAX_RUN_SECONDS:g} run-seconds "
                          f"(all M flights are held in memory), got {max(batches)} x {duration:g}")
     setup = make_setup(jnp.float64)
     dt = float(setup.dt)
-    n_frame = n_frames(duration, dt, LIDAR_EVERY)
-    if n_frame < 1:
-        raise InputError(f"--duration: at least {dt * LIDAR_EVERY} s, got {duration}")
+    n_frame = lidar_frames(duration, "--duration", dt, LIDAR_EVERY)
     n_steps = n_frame * LIDAR_EVERY
     ff = not args.no_feedforward
     traj_np, ctrl_np, sigma, _ = numpy_inputs(setup)
     fn = jax_runner(setup, n_frame, LIDAR_EVERY, ff)
-    base_key = jax.random.PRNGKey(args.seed)
+    base_key = prng_key(args.seed)
     load_before = _load()
     results = []
 

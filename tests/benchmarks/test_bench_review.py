@@ -102,8 +102,8 @@ def test_fastslam_largest_seed_does_not_overflow_the_key():
                                imu=np.zeros(((M + F) * E, 6)), z=np.zeros((M + F, 4, 3)),
                                mask=np.zeros((M + F, 4), bool))
     jobs, (keys, _), N, F_out = bench_fastslam._mc_jobs(args, cfg, prm, fl, np.arange(4))
-    # seed + 7 wrapped into [0, 2**63): 2**63 - 1 + 7 -> 6
-    expected = jax.random.split(jax.random.PRNGKey(6), M)
+    # seed + 7 as 64 bits (timing.prng_key, two's complement): 2**63 - 1 + 7 -> -2**63 + 6
+    expected = jax.random.split(jax.random.PRNGKey(-2**63 + 6), M)
     assert np.array_equal(np.asarray(keys), np.asarray(expected))
     assert (N, F_out) == (3, 1) and [name for name, _ in jobs] == ["mc batch=1", "mc batch=2"]
 
