@@ -53,9 +53,6 @@ DEFAULTS = {
 }
 # Real logs (the protocol of docs/datasets.md): 25 Adam steps at 0.1 on 500 s of each log.
 REAL_LOG_DEFAULTS = {"steps": 25, "lr": 0.1, "loss": "nll", "window": 500.0}
-# The training robots (sequences) of the real-log targets that take --robots, by default (the
-# targets' own defaults: mrclam.mrclam_noise, plaza.plaza_noise); the others train on one log.
-REAL_LOG_TRAIN_ROBOTS = {"mrclam": (1, 2, 3, 4), "plaza": (1,)}
 # A training run whose (positive) loss exceeds this many times the batch's lower median is an
 # exploding flight, left out of that step like a non-finite one (optimize.fit, explode_ratio).
 EXPLODE_RATIO = 1e3
@@ -65,6 +62,14 @@ def _targets_text():
     from jaxslam.tuning import targets
 
     return "; ".join(f"{s} --target {t} (--loss {'|'.join(ls)})" for (s, t), ls in targets.available().items())
+
+
+def _default_robots(scenario: str, key: str) -> str:
+    """The default ``key`` ("robots" / "test_robots") of ``scenario`` as the help writes it
+    (``targets.DEFAULT_ROBOTS``, the targets' own defaults)."""
+    from jaxslam.tuning.targets import DEFAULT_ROBOTS
+
+    return ",".join(map(str, DEFAULT_ROBOTS[scenario][key]))
 
 
 def _robot_list(text: str) -> tuple:
@@ -164,10 +169,12 @@ def build_parser(with_targets: bool = True) -> Parser:
                       help="dataset folder (the one with mrclam6/, util_uwb/, gtsam/ or victoria_park/, or a "
                            "parent of it; for util-uwb also the flight folder itself; default: $JAXSLAM_DATA_DIR)")
     real.add_argument("--robots", type=_robot_list, default=None, metavar="LIST",
-                      help="training robots, e.g. 1,2,3,4 (mrclam, default 1,2,3,4; plaza: sequences, default 1)")
+                      help=f"training robots, e.g. 1,2,3,4 (mrclam, default {_default_robots('mrclam', 'robots')}; "
+                           f"plaza: sequences, default {_default_robots('plaza', 'robots')})")
     real.add_argument("--test-robots", type=_robot_list, default=None, metavar="LIST",
-                      help="held-out robots for the before/after table, e.g. 5 (mrclam, default 5; plaza: "
-                           "default 2; 'none': no held-out)")
+                      help=f"held-out robots for the before/after table, e.g. 5 (mrclam, default "
+                           f"{_default_robots('mrclam', 'test_robots')}; plaza: default "
+                           f"{_default_robots('plaza', 'test_robots')}; 'none': no held-out)")
     real.add_argument("--window", type=positive_float, default=None, metavar="S",
                       help="fit on the first S seconds of each training log (mrclam: default 500 s, the "
                            "held-out robots are evaluated whole; util-uwb: the first S seconds of the flight, "
@@ -323,13 +330,13 @@ def _plan(args) -> tuple:
                 raise InputError(f"{flag}: only the real-log targets ({', '.join(targets.REAL_LOG_SCENARIOS)}) "
                                  f"take it, not {args.scenario}")
     else:  # the simulation-only options would be ignored on a real log: refused by name
-        # the training logs are known from the options (mrclam: --robots, default 1,2,3,4; plaza: --robots,
-        # default 1; util-uwb, victoria-park: one log), so a larger minibatch is refused before the (slow)
-        # build, by the option's name (optimize.fit said "batch_size: ..." after it); repeated robots are
-        # left to the target's own check
-        takes_robots = args.scenario in REAL_LOG_TRAIN_ROBOTS
-        robots = args.robots if takes_robots and args.robots is not None else REAL_LOG_TRAIN_ROBOTS.get(
-            args.scenario, (None,))
+        # the training logs are known from the options (mrclam, plaza: --robots, by default the target's own,
+        # targets.DEFAULT_ROBOTS; util-uwb, victoria-park: one log), so a larger minibatch is refused before the
+        # (slow) build, by the option's name (optimize.fit said "batch_size: ..." after it); repeated robots
+        # are left to the target's own check
+        takes_robots = args.scenario in targets.DEFAULT_ROBOTS
+        robots = (None,) if not takes_robots else (
+            args.robots if args.robots is not None else targets.DEFAULT_ROBOTS[args.scenario]["robots"])
         n_logs = len(robots) if len(set(robots)) == len(robots) else None
         sim_only = ["--train-runs", "--test-runs", "--duration", "--eval-duration", "--cov", "--no-checkpoint"]
         if args.batch_size is None or (n_logs is not None and args.batch_size == n_logs):
@@ -339,7 +346,8 @@ def _plan(args) -> tuple:
         if unused:
             raise InputError(f"{unused[0]}: the real-log target {args.scenario} does not use it (simulation "
                              "targets only)")
-    own = {"--robots": ("mrclam", "plaza"), "--test-robots": ("mrclam", "plaza"), "--odometry-delay": ("mrclam",),
+    own = {"--robots": tuple(targets.DEFAULT_ROBOTS), "--test-robots": tuple(targets.DEFAULT_ROBOTS),
+           "--odometry-delay": ("mrclam",),
            "--anchor-offsets": ("util-uwb",)}
     for flag, scens in own.items():
         if args.scenario not in scens and getattr(args, _dest(flag)) is not None:

@@ -20,7 +20,8 @@ from typing import NamedTuple, Optional
 from ..errors import InputError, check_flag, check_int
 
 __all__ = ["DATA_ENV", "Dataset", "DATASETS", "OPTION_DEFAULTS", "APPLIES", "data_root", "find",
-           "robots_found", "robot_list", "check_robot", "check_robots", "check_options"]
+           "robots_found", "robot_list", "check_robot", "check_robots", "check_options", "util_flight",
+           "util_flights"]
 
 #: environment variable naming the data root (the folder with mrclam6/, victoria_park/, ...)
 DATA_ENV = "JAXSLAM_DATA_DIR"
@@ -171,23 +172,44 @@ def _holds(d: Dataset, folder: pathlib.Path) -> bool:
     if d.name == "victoria-park":
         return (folder / "measurements.dat").is_file()
     if d.name == "util-uwb":  # the folder of the flights, or one flight's folder itself
-        # a flight is a folder named *_obs_log* holding groundtruth.csv (what the loader lists as
-        # the flights found); a file, or an empty folder, of such a name is not one
-        try:
-            return _util_flight(folder) or any(_util_flight(c) for c in folder.glob("*_obs_log*"))
-        except OSError:
-            return False
+        return util_flight(folder) or bool(util_flights(folder))
     return False
 
 
-def _util_flight(folder: pathlib.Path) -> bool:
-    """A flight folder as the loader resolves it (``textfile.resolve_dataset_dir``): named
-    ``*_obs_log*``, holding ``groundtruth.csv`` itself or in a subfolder (a twice-nested unzip,
-    ``twr_obs_log1/twr_obs_log1/``)."""
-    if "_obs_log" not in folder.name or not folder.is_dir():
+#: what a UTIL flight folder's name holds (``twr_obs_log1``, ``tdoa2_obs_log1``), and the file it holds
+UTIL_FLIGHT_NAME, UTIL_FLIGHT_FILE = "_obs_log", "groundtruth.csv"
+
+
+def util_flight(folder) -> bool:
+    """``folder`` is a UTIL flight folder: the one rule of this catalogue and of the UTIL loader's
+    list of the flights it found (:func:`jaxslam.data.util_uwb.load_util`).
+
+    A folder named ``*_obs_log*`` — as given or as it resolves to (``.`` inside a flight, a link
+    to one), as the loader takes a flight folder given itself — holding ``groundtruth.csv``
+    itself or in a subfolder (a twice-nested unzip, ``twr_obs_log1/twr_obs_log1/``: the loader
+    reads the one subfolder holding the files).  A file, or an empty folder, of such a name is
+    not one; nor is a folder that cannot be read.
+    """
+    try:
+        folder = pathlib.Path(folder)
+        if not folder.is_dir():
+            return False
+        if UTIL_FLIGHT_NAME not in folder.name:  # "." / ".." / a link: the name of the folder it is
+            elsewhere = folder.name in ("", "..") or folder.is_symlink()
+            if not (elsewhere and UTIL_FLIGHT_NAME in folder.resolve().name):
+                return False
+        return (folder / UTIL_FLIGHT_FILE).is_file() or any(
+            c.is_dir() and (c / UTIL_FLIGHT_FILE).is_file() for c in folder.iterdir())
+    except (OSError, RuntimeError, TypeError, ValueError):  # unreadable, a link loop, not a path
         return False
-    return (folder / "groundtruth.csv").is_file() or any(
-        c.is_dir() and (c / "groundtruth.csv").is_file() for c in folder.iterdir())
+
+
+def util_flights(folder) -> list:
+    """The UTIL flight folders (:func:`util_flight`) in ``folder``, by name ([] if it cannot be read)."""
+    try:
+        return sorted((c for c in pathlib.Path(folder).iterdir() if util_flight(c)), key=lambda c: c.name)
+    except (OSError, RuntimeError, TypeError, ValueError):
+        return []
 
 
 def _robots_in(d: Dataset, folder: pathlib.Path) -> list:

@@ -8,8 +8,10 @@ SD-card logs from the repository's history, decoded to one CSV per stream
 (float32 values kept exactly).  They use **anchor constellation 3**.  No
 licence is stated; cite the IJRR paper.
 
-Layout: ``util_uwb/anchors_const3.csv`` plus one folder per flight holding
-(every CSV has one header row, checked against the expected column names):
+Layout: ``util_uwb/anchors_const3.csv`` plus one folder per flight, named
+``*_obs_log*`` (:func:`jaxslam.data.catalogue.util_flight`: the rule by which
+this loader lists the flights it found and ``jaxslam list`` finds the dataset),
+holding (every CSV has one header row, checked against the expected column names):
 
 ===================  =====================================================
 ``uwb_twr.csv``      t [s], anchor_id (0–7), range [m]  (TWR flight)
@@ -44,6 +46,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ..errors import InputError
+from .catalogue import UTIL_FLIGHT_FILE, util_flight, util_flights
 from .textfile import ID_MAX, MissingDataError, int_column, path_arg, read_table, resolve_dataset_dir
 
 __all__ = ["UtilData", "load_util", "tag_positions", "TAG_OFFSET", "G"]
@@ -158,8 +161,12 @@ def _flight_dir(path, flight: str) -> tuple:
     for c in cands:
         if (c / flight).is_dir():
             return c, c / flight
-    avail = sorted({x.name for c in cands if c.is_dir() for x in c.iterdir()
-                    if x.is_dir() and (x / "groundtruth.csv").is_file()})
+    # the flights found, by the catalogue's rule (catalogue.util_flight): it listed any folder holding
+    # groundtruth.csv, and neither a twice-nested flight nor the folder given, which the catalogue finds
+    found = {x.name for c in cands for x in util_flights(c)}
+    if util_flight(base):  # a flight of another name given itself
+        found.add(base.resolve().name)
+    avail = sorted(found)
     raise MissingDataError(base / flight, None,
                            f"UTIL flight {flight!r} not found (looked in "
                            f"{' or '.join(str(c) for c in cands)}; flights found: {avail or 'none'})")
@@ -183,7 +190,8 @@ def load_util(path, flight: str = "twr_obs_log1") -> UtilData:
 
     Raises:
       MissingDataError: the flight folder or a file is missing (the message
-        lists what was looked for and the flights found).
+        lists what was looked for and the flights found:
+        :func:`jaxslam.data.catalogue.util_flight`).
       DataFormatError: a malformed file (``file:line``), a header that does not
         match the expected columns, time going backwards, an anchor listed twice
         in the anchors file, an anchor id that is not in it, or a zero quaternion
@@ -196,7 +204,7 @@ def load_util(path, flight: str = "twr_obs_log1") -> UtilData:
     afile = fd / ANCHORS_FILE if (fd / ANCHORS_FILE).is_file() else root / ANCHORS_FILE
     if not afile.is_file():
         raise MissingDataError(afile, None, f"UTIL anchors file not found (looked in {root} and {fd})")
-    fd = resolve_dataset_dir(fd, fd.name, ["groundtruth.csv", "imu.csv.gz"], f"UTIL flight {flight}")
+    fd = resolve_dataset_dir(fd, fd.name, [UTIL_FLIGHT_FILE, "imu.csv.gz"], f"UTIL flight {flight}")
     has_twr, has_tdoa = (fd / "uwb_twr.csv").is_file(), (fd / "uwb_tdoa.csv").is_file()
     if not (has_twr or has_tdoa):
         raise MissingDataError(fd, None, "UTIL flight: missing file uwb_twr.csv or uwb_tdoa.csv "

@@ -37,7 +37,7 @@ import numpy as np
 from ...errors import InputError
 
 __all__ = ["Target", "register_target", "get", "available", "default_target", "REAL_LOG_SCENARIOS", "BUILTIN_MODULES",
-           "keys", "diag_list", "STUDENT_T_NU", "window_nll", "heldout_nll", "metrics_entry"]
+           "DEFAULT_ROBOTS", "keys", "diag_list", "STUDENT_T_NU", "window_nll", "heldout_nll", "metrics_entry"]
 
 #: ν of the Student-t range likelihood the range-only real-log targets (UTIL, Plaza) fit with (fixed).
 STUDENT_T_NU = 5.0
@@ -105,6 +105,16 @@ DECLARED = {
 
 #: scenarios whose targets learn from real logs (``--data``, ``--window``; MRCLAM and Plaza also ``--robots``)
 REAL_LOG_SCENARIOS = ("mrclam", "util-uwb", "plaza", "victoria-park")
+
+#: the training and held-out robots (Plaza: sequences) of the real-log targets that take
+#: ``--robots`` / ``--test-robots``, ``{scenario: {"robots": ..., "test_robots": ...}}``: the
+#: defaults of their factories (:func:`.mrclam.mrclam_noise`, :func:`.plaza.plaza_noise`) and what
+#: ``jaxslam tune`` counts the training logs by (and its help states) before JAX or any target
+#: module is imported; the other real-log targets train on one log
+DEFAULT_ROBOTS = {
+    "mrclam": {"robots": (1, 2, 3, 4), "test_robots": (5,)},
+    "plaza": {"robots": (1,), "test_robots": (2,)},
+}
 
 
 class Target(NamedTuple):

@@ -41,8 +41,8 @@ import numpy as np
 
 from ...data import catalogue
 from ...errors import InputError
-from . import (Target, DECLARED, dataset_eval_command, _check_keywords, _check_robots, _check_window, register_target, heldout_nll, metrics_entry,
-               window_nll)
+from . import (Target, DECLARED, DEFAULT_ROBOTS, dataset_eval_command, _check_keywords, _check_robots, _check_window,
+               register_target, heldout_nll, metrics_entry, window_nll)
 
 __all__ = ["mrclam_logs", "planar_theta0", "planar_physical", "planar_nll",
            "mrclam_noise", "mrclam_train_config", "mrclam_layout", "select_odometry_delay", "DELAY_GRID"]
@@ -127,6 +127,11 @@ def select_odometry_delay(data_dir, robots, params, config, dtype=np.float64, t_
     scan, so it is chosen by the same likelihood the fit minimises, evaluated (value only, no
     ground truth) at the fit's starting point on the training logs; every delay's logs are
     padded to one length, so this compiles one program.  Returns ``(delay, {delay: nll})``.
+
+    Raises :class:`InputError` naming the window and the robots when, at some delay of ``grid``,
+    no sighting in the logs updates the filter (none in the window, or only each landmark's
+    first, which places it): that delay has no likelihood to compare (it scored 0, so a window
+    without sightings picked delay 0 silently).
     """
     K = int(config.K)
     grid = tuple(grid)
@@ -137,10 +142,18 @@ def select_odometry_delay(data_dir, robots, params, config, dtype=np.float64, t_
     built = [b if b.dt.shape[1] == T else mrclam_logs(data_dir, robots, dtype, t_max, odometry_delay=d, T=T, K=K)[0]
              for b, d in zip(built, grid)]
     cfg = config._replace(block=0)
-    table = {}
+    table, silent = {}, []
     for d, b in zip(grid, built):
         tot = np.asarray(_delay_nll_terms(params, cfg, jax.tree.map(jnp.asarray, b)))
+        if not tot[:, 1].sum() > 0:  # no innovation: the NLL below would be 0 / 1
+            silent.append(float(d))
         table[float(d)] = float(tot[:, 0].sum() / max(tot[:, 1].sum(), 1.0))
+    if silent:
+        flag, where = ("--robots", "the logs") if t_max is None else ("--window", f"the first {t_max:g} s")
+        at = "" if len(set(silent)) == len(table) else f" with the odometry delay {', '.join(f'{d:g}' for d in silent)} s"
+        raise InputError(f"{flag}: no sighting in {where} of robot(s) {', '.join(str(int(r)) for r in robots)}{at} "
+                         "updates the filter (none, or only each landmark's first), so no likelihood can choose the "
+                         "odometry delay; give a longer --window or --odometry-delay S")
     best = min(table, key=table.get)
     return best, table
 
@@ -233,7 +246,8 @@ def _eval_command(robots) -> str:
     return dataset_eval_command("mrclam", robots)
 
 
-def mrclam_noise(loss: str = "nll", data=None, robots=(1, 2, 3, 4), test_robots=(5,), dtype=jnp.float64,
+def mrclam_noise(loss: str = "nll", data=None, robots=DEFAULT_ROBOTS["mrclam"]["robots"],
+                 test_robots=DEFAULT_ROBOTS["mrclam"]["test_robots"], dtype=jnp.float64,
                  t_max: float | None = None, odometry_delay="auto", **_ignored):
     """Target ``jaxslam tune mrclam``: the noise of the planar EKF-SLAM from MRCLAM logs.
 

@@ -28,8 +28,8 @@ import numpy as np
 
 from ...data import catalogue
 from ...errors import InputError
-from . import (DECLARED, dataset_eval_command, STUDENT_T_NU, Target, _check_keywords, _check_robots, _check_window, heldout_nll,
-               metrics_entry, register_target)
+from . import (DECLARED, DEFAULT_ROBOTS, dataset_eval_command, STUDENT_T_NU, Target, _check_keywords, _check_robots,
+               _check_window, heldout_nll, metrics_entry, register_target)
 
 __all__ = ["plaza_logs", "plaza_noise", "NOISE_FIELDS", "NU"]
 
@@ -67,7 +67,8 @@ def plaza_logs(data, sequences, dtype=jnp.float64, t_max: float | None = None):
     return out
 
 
-def plaza_noise(loss: str = "nll", data=None, robots=(1,), test_robots=(2,), dtype=jnp.float64,
+def plaza_noise(loss: str = "nll", data=None, robots=DEFAULT_ROBOTS["plaza"]["robots"],
+                test_robots=DEFAULT_ROBOTS["plaza"]["test_robots"], dtype=jnp.float64,
                 t_max: float | None = None, **_ignored):
     """Target ``jaxslam tune plaza``: the Plaza SLAM's noise from its logs.
 
