@@ -550,7 +550,9 @@ def check_psd(M, name: str, strict: bool = False, tol: float = 1e-12, valid=None
 
     Tolerances, relative to the largest magnitude (at least 1): symmetry 1e-9, eigenvalues
     ``tol`` (with ``strict``, relative to the largest magnitude itself: the smallest eigenvalue
-    must exceed ``tol`` times it); a lower-precision input (float32) may also be off by 100 ulp of its own dtype
+    must exceed ``tol`` times it; a badly scaled matrix, one with a diagonal entry at most
+    ``tol`` times its largest entry such as ``diag(1e200, 1)``, also passes when the smallest
+    eigenvalue of ``D^-1/2 M D^-1/2``, ``M`` scaled to a unit diagonal, exceeds ``tol``); a lower-precision input (float32) may also be off by 100 ulp of its own dtype
     (relative to its largest entry) in symmetry and below zero, so a matrix that is symmetric
     and PSD to its working precision passes.  ``valid`` (``(..., n)`` bool):
     only the rows and columns in use are checked (a masked measurement's row of a per-step R
@@ -581,15 +583,48 @@ def check_psd(M, name: str, strict: bool = False, tol: float = 1e-12, valid=None
     bad = np.max(np.abs(S - S.transpose(0, 2, 1)), axis=(1, 2)) > np.maximum(1e-9 * scale, ulp * mag)
     if bad.any():
         raise InputError(f"{where(bad)}: not symmetric")
-    lo = np.linalg.eigvalsh(0.5 * (S + S.transpose(0, 2, 1))).min(axis=1)
+    # halves first: S + S.T overflowed for entries beyond 9e307 (NaN eigenvalues, which passed);
+    # the same bits otherwise (halving is exact, and rounding commutes with it)
+    lo = np.linalg.eigvalsh(0.5 * S + 0.5 * S.transpose(0, 2, 1)).min(axis=1)
     # strict: relative to the largest entry only (a well-conditioned matrix of small entries,
     # e.g. an IMU bias density of 1e-14, is positive definite: a floor of 1e-12 refused it)
-    bad = lo <= tol * mag if strict else lo < -np.maximum(tol * scale, ulp * mag)
+    bad = ~(lo > tol * mag) if strict else ~(lo >= -np.maximum(tol * scale, ulp * mag))
+    rel = None
+    if strict and bad.any():
+        # a badly scaled matrix (variances 1e200 and 1) is PD, but a variance below tol times
+        # the largest entry is beneath the relative floor, which cannot see it ("smallest
+        # eigenvalue 1" refused): such a matrix is judged again scaled to a unit diagonal (the
+        # scaling Cholesky's accuracy depends on), by the same tol.  Matrices whose variances
+        # all lie within 1/tol of the largest entry are judged as before.
+        spread = np.min(np.diagonal(S, axis1=1, axis2=2), axis=1) <= tol * mag
+        if (bad & spread).any():
+            rel = np.where(spread, _unit_diagonal_min_eig(S), -np.inf)
+            bad &= ~(rel > tol)
     if bad.any():
         k = int(np.argmax(bad))
         what = "positive definite" if strict else "positive semi-definite"
-        raise InputError(f"{where(bad)}: not {what} (smallest eigenvalue {lo[k]:.3g})")
+        why = ("" if rel is None or not (spread[k] and lo[k] > 0)
+               else f"; {rel[k]:.3g} scaled to a unit diagonal: numerically singular")
+        raise InputError(f"{where(bad)}: not {what} (smallest eigenvalue {lo[k]:.3g}{why})")
     return M
+
+
+def _unit_diagonal_min_eig(S):
+    """Per matrix of the stack ``S`` (finite, symmetric to check_psd's tolerance): the smallest
+    eigenvalue of ``D^-1/2 S D^-1/2``, ``D`` its diagonal (same inertia as ``S``: PD exactly
+    when ``S`` is); -inf where a diagonal entry is <= 0 or the scaled matrix is not finite
+    (an off-diagonal entry beyond the geometric mean of its diagonal pair: not PD)."""
+    d = np.diagonal(S, axis1=1, axis2=2)
+    pos = np.all(d > 0, axis=1)
+    r = 1.0 / np.sqrt(np.where(d > 0, d, 1.0))
+    with np.errstate(over="ignore", invalid="ignore"):
+        H = (S * r[:, :, None]) * r[:, None, :]
+        H = 0.5 * H + 0.5 * H.transpose(0, 2, 1)
+    ok = pos & np.all(np.isfinite(H), axis=(1, 2))
+    out = np.full(S.shape[0], -np.inf)
+    if ok.any():
+        out[ok] = np.linalg.eigvalsh(H[ok]).min(axis=1)
+    return out
 
 
 def is_concrete(*xs) -> bool:

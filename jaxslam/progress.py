@@ -64,7 +64,7 @@ class Progress:
 
     Args:
       total: number of units (runs, steps), an int ``>= 0`` (0: an open-ended count).
-      label: short text in front of the bar.
+      label: short text in front of the bar, a str (None: no label, as ``""``).
       enabled: ``False`` makes every method a no-op.
       stream: where to print (default ``sys.stderr``).
       delay_s: print nothing until this much time has passed (s).
@@ -72,7 +72,8 @@ class Progress:
       min_interval_s, log_interval_s: least time between two lines on a terminal / a pipe (s).
 
     ``delay_s`` and the intervals are finite numbers ``>= 0`` (Python or NumPy floats or ints),
-    else :class:`~jaxslam.errors.InputError` naming them.
+    else :class:`~jaxslam.errors.InputError` naming them; so is a ``label`` that is not a str
+    or None (a number or bytes was printed as its repr, ``b'mc'``).
 
     Use ``update(n_done)`` with an absolute count or ``advance(k)`` with an
     increment, then ``close()`` (or use it as a context manager).
@@ -92,7 +93,9 @@ class Progress:
         clock=time.monotonic,
     ):
         self.total = _count(total, "total", lower=0)
-        self.label = label
+        if label is not None and not isinstance(label, str):
+            raise InputError(f"label: expected a str or None, got {type(label).__name__} {label!r}")
+        self.label = "" if label is None else label
         self.enabled = bool(enabled)
         self.stream = sys.stderr if stream is None else stream
         self.delay_s = _seconds(delay_s, "delay_s")

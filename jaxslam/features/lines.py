@@ -52,7 +52,8 @@ which then leave the scan.  :func:`extract_guided` runs RANSAC on what is left t
 **Runs of beams** (jaxslam addition, off by default = the thesis): with ``max_gap > 0`` a line
 keeps only the largest run of its inliers whose consecutive beam indices differ by at most
 ``max_gap`` (:func:`largest_run`), and ``trim_ends`` drops that many inliers at each end of the
-run (:func:`trim_run`).  A wall is one run of beams; an infinite line also collects clutter and
+run (:func:`trim_run`; ``trim_ends > 0`` with ``max_gap = 0`` is an ``InputError``: there is no
+run to trim).  A wall is one run of beams; an infinite line also collects clutter and
 the faces of other objects on its extension (a pillar face nearly collinear with a wall behind
 it), and the few points of the neighbouring wall within the threshold at a corner tilt the fit
 of a short segment.  The line-feature SLAM of paper 004 (``jaxslam.systems.line_slam_004``) uses
@@ -153,7 +154,7 @@ class RansacConfig(NamedTuple):
     point_sigma: float = 0.02  # [m] isotropic point noise for fit_line_cov (URG-04LX at 2 m)
     stop_on_fail: bool = True  # Algorithm 1's break: after a failed round, no more lines
     max_gap: int = 0  # > 0: keep the largest run of inliers with beam gaps <= max_gap (one wall)
-    trim_ends: int = 0  # with max_gap: drop this many inliers at each end of the run (corners)
+    trim_ends: int = 0  # with max_gap > 0: drop this many inliers at each end of the run (corners)
 
 
 DEFAULT_RANSAC = RansacConfig()
@@ -172,7 +173,8 @@ class Lines(NamedTuple):
 
 
 def check_ransac_config(cfg):
-    """Host-side validation of a :class:`RansacConfig`; returns it.  Raises InputError."""
+    """Host-side validation of a :class:`RansacConfig`; returns it.  Raises InputError (also
+    for ``trim_ends > 0`` with ``max_gap = 0``, which trimmed nothing)."""
     if not isinstance(cfg, RansacConfig):
         raise InputError(f"cfg: expected a RansacConfig, got {type(cfg).__name__}")
     for name in ("n_hyp", "max_lines", "min_inliers"):
@@ -184,6 +186,9 @@ def check_ransac_config(cfg):
             raise InputError(f"cfg.{name}: expected an integer ≥ {2 if name == 'min_inliers' else 1}, got {v!r}")
     for name in ("max_gap", "trim_ends"):  # 0 switches the run finder / the trimming off
         check_int(getattr(cfg, name), f"cfg.{name}", lower=0, what="an integer")
+    if cfg.trim_ends > 0 and cfg.max_gap == 0:  # it trims the run max_gap keeps: none without it
+        raise InputError(f"cfg.trim_ends: trims the ends of the run of beams that max_gap > 0 keeps; "
+                         f"got trim_ends={cfg.trim_ends} with max_gap=0 (the run finder off: it did nothing)")
     if not isinstance(cfg.stop_on_fail, (bool, np.bool_)):
         raise InputError(f"cfg.stop_on_fail: expected True or False, got {cfg.stop_on_fail!r}")
     for name in ("threshold", "point_sigma"):

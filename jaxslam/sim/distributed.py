@@ -18,8 +18,13 @@ process, then ``monte_carlo.run`` with the same arguments in each.
 
 Decisions: blocks, not strides (the first run, whose record feeds the plots, is process 0's);
 each block is padded to the same length with the keys of the next run indices (the collective
-needs equal shapes; the padding is computed and dropped); a Ctrl-C is not handled per block (the
-group would wait on the interrupted process): the distributed run is all or nothing.
+needs equal shapes; the padding is computed and dropped); a Ctrl-C is not handled per block:
+the distributed run is all or nothing.  Before the gather every process says how its block ended
+(:func:`settle`, one small collective that each process reaches whatever happened), so a Ctrl-C
+in any of them ends the run with ``KeyboardInterrupt`` in all of them (an error: that error in
+its process, a ``RuntimeError`` naming it in the others) instead of a gather of blocks of
+different lengths (gloo aborted the processes) or of equal partial ones (a batch of the wrong
+runs, not marked interrupted).
 """
 
 from __future__ import annotations
@@ -33,7 +38,7 @@ import numpy as np
 from ..errors import InputError
 from ..linalg import check_int
 
-__all__ = ["initialize", "active", "is_leader", "block", "gather", "free_port"]
+__all__ = ["initialize", "active", "is_leader", "block", "settle", "gather", "free_port"]
 
 
 def initialize(coordinator: str, num_processes: int, process_id: int) -> None:
@@ -81,6 +86,32 @@ def block(runs: int, num_processes: Optional[int] = None, index: Optional[int] =
         raise InputError(f"index: expected 0 to {P - 1} (a process of {P}), got {index!r}")
     size = -(-runs // P)  # ceil(runs / P), exact for any int
     return i * size, size
+
+
+_FINISHED, _INTERRUPTED, _FAILED = 0, 1, 2
+
+
+def settle(error: Optional[BaseException] = None) -> None:
+    """Every process of the group says how its block ended, in one collective each reaches
+    (call it in every process, after the block, whatever happened; then :func:`gather`).
+
+    ``error``: None (this block finished), a ``KeyboardInterrupt`` (a Ctrl-C: its block is
+    partial) or the exception its block raised.  Returns only when every block finished;
+    else this process raises its own ``error``, or ``KeyboardInterrupt`` when another process
+    was interrupted (the run is all or nothing), or a ``RuntimeError`` naming the process that
+    failed (its own error output says why)."""
+    from jax.experimental import multihost_utils
+
+    code = (_FINISHED if error is None else _INTERRUPTED if isinstance(error, KeyboardInterrupt)
+            else _FAILED)
+    codes = np.asarray(multihost_utils.process_allgather(np.array([code], np.int32), tiled=False)).reshape(-1)
+    if error is not None:
+        raise error
+    if (codes == _INTERRUPTED).any():
+        raise KeyboardInterrupt
+    if (codes == _FAILED).any():
+        i = int(np.argmax(codes == _FAILED))
+        raise RuntimeError(f"process {i} of the group ({codes.size} processes) failed in its block of runs")
 
 
 def gather(out, runs: int):

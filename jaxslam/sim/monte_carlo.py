@@ -47,7 +47,9 @@ finished (with threads: the runs in flight finish, and the longest finished pref
 kept): the result holds their runs (``runs`` < the runs asked for, ``interrupted``
 true) and the caller reports them as such.  A Ctrl-C before the first chunk has finished
 propagates.  (The signal is handled when the host regains control, i.e. after the compiled
-call in flight returns.)
+call in flight returns.)  In a group of processes the run is all or nothing: a Ctrl-C in any
+process raises ``KeyboardInterrupt`` in every one once each has ended its block (never a gather
+of partial blocks; :func:`jaxslam.sim.distributed.settle`).
 
 Programs: the compiled batch of each ``fn`` is kept for as long as ``fn`` lives, so a second
 ``run`` of the same function (a new seed, more runs) neither traces nor compiles
@@ -227,11 +229,17 @@ def run(fn: Callable, seed: int, runs: int, chunk: Optional[int] = None,
         from . import distributed
 
         start, size = distributed.block(runs)
-        # every block has the same length (the collective needs it): the last blocks run the
-        # next indices' keys, whose results are dropped
-        keys = keys_for(seed, jax.process_count() * size)[start:start + size]
-        res = _run_keys(fn, keys, chunk, _GroupProgress(progress, jax.process_count(), runs),
-                        jax.local_devices(), cpu_batching, detail, program_key, threads)
+        try:
+            # every block has the same length (the collective needs it): the last blocks run the
+            # next indices' keys, whose results are dropped
+            keys = keys_for(seed, jax.process_count() * size)[start:start + size]
+            res = _run_keys(fn, keys, chunk, _GroupProgress(progress, jax.process_count(), runs),
+                            jax.local_devices(), cpu_batching, detail, program_key, threads)
+        except BaseException as e:  # a Ctrl-C before a chunk finished, or an error: the group hears of it
+            distributed.settle(e)  # raises e
+        # all or nothing: a partial block (Ctrl-C) ends the run in every process, before the
+        # gather (blocks of other lengths aborted gloo; equal partial ones gave the wrong runs)
+        distributed.settle(KeyboardInterrupt() if res.interrupted else None)
         out = dict(res.out) if detail else res.out
         det = out.pop("detail") if detail else None
         out = distributed.gather(out, runs)
