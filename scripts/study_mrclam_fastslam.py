@@ -23,10 +23,11 @@ variables included for the learned model) and, read only afterwards, the ATE aga
     python scripts/study_mrclam_fastslam.py robust|optimal|hidden|pruning [DATA_DIR]
 """
 import json
-import sys
+import os
 import time
 
 from jaxslam import runtime
+from jaxslam.cli.common import ScriptParser, path_arg
 
 runtime.configure_process(cache=False)
 import jax  # noqa: E402
@@ -109,11 +110,21 @@ def case(d, cand):
             "ate_m": float(m["ate_m"]), "wall_s_with_compile": wall}
 
 
-def main():
-    if len(sys.argv) < 2 or sys.argv[1] not in STUDIES:
-        sys.exit(f"usage: {sys.argv[0]} {'|'.join(STUDIES)} [DATA_DIR]")
-    cands, js, rule = STUDIES[sys.argv[1]]
-    data = sys.argv[2] if len(sys.argv) > 2 else "../shared/data"
+def parser():
+    ap = ScriptParser(prog="study_mrclam_fastslam.py", description=__doc__.splitlines()[0])
+    ap.add_argument("study", choices=tuple(STUDIES), help="which pre-registered study to run")
+    ap.add_argument("data", nargs="?", default="../shared/data", type=path_arg, metavar="DATA_DIR",
+                    help="the folder holding mrclam6/ (default: ../shared/data)")
+    return ap
+
+
+def main(argv=None):
+    ap = parser()
+    a = ap.parse_args(argv)
+    study, data = a.study, a.data
+    if not os.path.isdir(os.path.join(data, "mrclam6")):  # (a traceback after the imports, before)
+        ap.error(f"DATA_DIR: {data!r} holds no mrclam6/ folder")
+    cands, js, rule = STUDIES[study]
     rows = []
     for r in range(1, 6):
         d = load_mrclam(f"{data}/mrclam6", r)
@@ -121,19 +132,19 @@ def main():
             rows.append(case(d, cand))
             print(json.dumps(rows[-1]), flush=True)
     total = {c: sum(x["log_marginal"] for x in rows if x["candidate"] == c) for c in cands}
-    if sys.argv[1] == "hidden":
+    if study == "hidden":
         qual = [c for c in cands if not any(x["overflow"] for x in rows if x["candidate"] == c)]
         chosen = "M2" if "M2" in qual else "M1"
-    elif sys.argv[1] == "pruning":
+    elif study == "pruning":
         qual = [c for c in cands if not any(x["overflow"] for x in rows if x["candidate"] == c)]
         chosen = qual[0] if qual else "M1"
     else:
         qual = [c for c in cands if not any(x["diverged"] for x in rows if x["candidate"] == c)]
         chosen = max(qual, key=total.get) if qual else None
-    out = {"purpose": __doc__.splitlines()[0], "study": sys.argv[1], "rule": rule, "rows": rows,
+    out = {"purpose": __doc__.splitlines()[0], "study": study, "rule": rule, "rows": rows,
            "total_log_marginal": total,
            "qualifying": qual, "adopted": chosen}
-    if sys.argv[1] not in ("hidden", "pruning"):  # the FastSLAM 1.0 default of known ids before these studies
+    if study not in ("hidden", "pruning"):  # the FastSLAM 1.0 default of known ids before these studies
         out["shipped_gated_ate_m"] = [0.237, 0.226, 0.289, 0.323, 0.292]
     with open(js, "w") as f:
         json.dump(out, f, indent=1)

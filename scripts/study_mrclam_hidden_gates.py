@@ -13,9 +13,11 @@ Ground truth enters only the ATE printed for the report.
 """
 import json
 import os
-import sys
 
 from jaxslam import runtime
+from jaxslam.cli.common import ScriptParser, one_line, path_arg
+from jaxslam.data import catalogue
+from jaxslam.errors import InputError
 
 runtime.configure_process()
 import jax  # noqa: E402
@@ -80,7 +82,7 @@ def t_pair_d2_ppf(p: float, nu: float) -> float:
     return 0.5 * (lo + hi)
 
 
-def run(gate, new, monitor=False):
+def run(data, gate, new, monitor=False):
     orig, orig_cfg = presets.mrclam_params, presets.mrclam_config
 
     def patched(*a, **k):
@@ -91,7 +93,7 @@ def run(gate, new, monitor=False):
     out = {}
     try:
         for r in range(1, 6):
-            j = runners.to_json(runners.run_mrclam(DATA, robot=r, ids="hidden"))
+            j = runners.to_json(runners.run_mrclam(data, robot=r, ids="hidden"))
             c = j["counts"]
             out[str(r)] = {k: c[k] for k in ("measurements", "used", "rejected", "registered", "pruned",
                                              "landmarks_mapped", "overflow", "status_flags")}
@@ -103,8 +105,20 @@ def run(gate, new, monitor=False):
     return out
 
 
-if __name__ == "__main__":
-    DATA = sys.argv[1] if len(sys.argv) > 1 else os.environ["JAXSLAM_DATA_DIR"]
+def parser():
+    ap = ScriptParser(prog="study_mrclam_hidden_gates.py", description=__doc__.splitlines()[0])
+    ap.add_argument("data", nargs="?", default=None, type=path_arg, metavar="DATA_DIR",
+                    help="the folder holding mrclam6/ (default: $JAXSLAM_DATA_DIR)")
+    return ap
+
+
+def main(argv=None):
+    ap = parser()
+    args = ap.parse_args(argv)
+    try:  # an unset $JAXSLAM_DATA_DIR was a KeyError traceback
+        DATA = str(catalogue.data_root(args.data, flag="DATA_DIR"))
+    except InputError as e:
+        ap.error(one_line(str(e)))
     nu = 5.0
     t = np.random.default_rng(0).standard_t(nu, size=(4_000_000, 2))
     d2 = np.sum(t * t, axis=1)
@@ -113,8 +127,8 @@ if __name__ == "__main__":
              "model_sf_9.21": t_pair_d2_sf(9.21, nu), "mc_sf_9.21": float(np.mean(d2 > 9.21)),
              "model_sf_30": t_pair_d2_sf(30.0, nu), "mc_sf_30": float(np.mean(d2 > 30.0))}
     print("quantiles", q, check, flush=True)
-    runs = {"A_chi2_9.21_30": run(9.21, 30.0), "B_student_t": run(q[0.99], q[0.9999]),
-            "N_nis_monitor_ambiguous": run(9.21, 30.0, monitor=True)}
+    runs = {"A_chi2_9.21_30": run(DATA, 9.21, 30.0), "B_student_t": run(DATA, q[0.99], q[0.9999]),
+            "N_nis_monitor_ambiguous": run(DATA, 9.21, 30.0, monitor=True)}
     ok = lambda o: all(v["overflow"] == 0 for v in o.values())  # noqa: E731
     calm = lambda o: all(v["status_flags"] == "none" for v in o.values())  # noqa: E731
     lost = lambda o, r: o[r]["rejected"] + o[r]["registered"]  # noqa: E731
@@ -135,3 +149,7 @@ if __name__ == "__main__":
         json.dump(res, f, indent=1)
     os.replace(path + ".tmp", path)
     print("chosen", res["chosen"], res["criteria_B"], res["criteria_N"])
+
+
+if __name__ == "__main__":
+    main()

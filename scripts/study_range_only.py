@@ -7,10 +7,12 @@ localisation with the surveyed (TL) beacons.
 Reads the data with the jaxslam.data loaders (DIR default: $JAXSLAM_DATA_DIR).
 """
 
-import sys
 import time
 
 from jaxslam import runtime
+from jaxslam.cli.common import ScriptParser, one_line, path_arg
+from jaxslam.data import catalogue
+from jaxslam.errors import InputError
 
 runtime.configure_process()
 
@@ -28,7 +30,7 @@ from jaxslam.data import tag_positions  # noqa: E402
 from jaxslam.systems import plaza_range as pr  # noqa: E402
 from jaxslam.systems import util_range as ur  # noqa: E402
 
-DATA = sys.argv[sys.argv.index("--data") + 1] if "--data" in sys.argv else __import__("os").environ["JAXSLAM_DATA_DIR"]
+DATA = None  # the data folder (main: --data, else $JAXSLAM_DATA_DIR)
 
 
 def load_util():
@@ -220,9 +222,26 @@ def plaza(which, dtype, params=pr.PARAMS, known=False, **kw):
     return res
 
 
-if __name__ == "__main__":
-    what = sys.argv[1] if len(sys.argv) > 1 else "all"
-    dtype = jnp.float32 if "--f32" in sys.argv else jnp.float64
+def parser():
+    ap = ScriptParser(prog="study_range_only.py", description=__doc__.splitlines()[0])
+    ap.add_argument("what", nargs="?", choices=("util", "plaza", "all"), default="all",
+                    help="UTIL TWR, CMU Plaza 1/2, or both (default all)")
+    ap.add_argument("--f32", action="store_true", help="float32 (default float64)")
+    ap.add_argument("--data", default=None, type=path_arg, metavar="DIR",
+                    help="the data folder (default: $JAXSLAM_DATA_DIR)")
+    return ap
+
+
+def main(argv=None):
+    global DATA
+    ap = parser()
+    a = ap.parse_args(argv)
+    try:  # an unset $JAXSLAM_DATA_DIR was a KeyError traceback
+        DATA = str(catalogue.data_root(a.data))
+    except InputError as e:
+        ap.error(one_line(str(e)))
+    what = a.what
+    dtype = jnp.float32 if a.f32 else jnp.float64
     if what in ("util", "all"):
         util(dtype)
     if what in ("plaza", "all"):
@@ -230,3 +249,7 @@ if __name__ == "__main__":
         plaza(2, dtype)
         plaza(1, dtype, known=True)
         plaza(2, dtype, known=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -8,8 +8,14 @@ per range beats the single density's; the position RMSE is reported, not read.
 
     python scripts/study_util_anisotropic.py [DATA_DIR] [--json PATH]
 """
-import json, sys
+import json
+import os
+
 from jaxslam import runtime
+from jaxslam.cli.common import ScriptParser, path_arg
+from jaxslam.errors import InputError
+from jaxslam.files import prepare_file
+
 runtime.configure_process(cache=False)
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
@@ -22,6 +28,8 @@ from jaxslam.tuning.targets import window_nll, heldout_nll  # noqa: E402
 from jaxslam.tuning.targets.util_uwb import util_flight, NU  # noqa: E402
 
 orig = ur.cv_process_noise
+
+
 def cv_aniso(dt, q_acc, q_bias, dtype=None):  # q_acc scalar or (3,) per axis
     q = jnp.asarray(q_acc)
     if q.ndim == 0:
@@ -30,38 +38,65 @@ def cv_aniso(dt, q_acc, q_bias, dtype=None):  # q_acc scalar or (3,) per axis
     Q = orig(dt, jnp.asarray(1.0, dtype), q_bias, dtype)
     s = jnp.sqrt(jnp.concatenate([q, q, jnp.ones((1,), dtype)]).astype(dtype))
     return Q.at[:6, :6].set(Q[:6, :6] * s[:6, None] * s[None, :6])
-ur.cv_process_noise = cv_aniso
 
-args = [a for a in sys.argv[1:] if not a.startswith("--json")]
-data = args[0] if args else __import__("os").environ.get("JAXSLAM_DATA_DIR", "../shared/data")
-log, t, true, air = util_flight(data)
-t_split = float(t[0] + 0.5 * (t[-1] - t[0])); held = t >= t_split
-fit_log, t_fit, _, _ = util_flight(data, t_end=t_split)
-w = jnp.asarray(t_fit < t_split, jnp.float64)
-train = {"log": jax.tree.map(lambda a: a[None], fit_log), "w": w[None]}
-base = presets.util_params(preset="hand")
-cfg = ur.Config(height=False)
-out = {}
-for name in ("shipped_3", "aniso_4"):
-    if name == "shipped_3":
-        th0 = jnp.log(jnp.asarray([base.sigma_r, base.q_acc, base.q_bias]))
-        phys = lambda th: base._replace(sigma_r=jnp.exp(th[0]), q_acc=jnp.exp(th[1]), q_bias=jnp.exp(th[2]), gate=None, nu=NU)
-    else:
-        th0 = jnp.log(jnp.asarray([base.sigma_r, base.q_acc, base.q_acc, base.q_bias]))
-        phys = lambda th: base._replace(sigma_r=jnp.exp(th[0]), q_acc=jnp.exp(jnp.stack([th[1], th[1], th[2]])),
-                                        q_bias=jnp.exp(th[3]), gate=None, nu=NU)
-    # the fit of `jaxslam tune util-uwb` (optimize.fit with its defaults, the target's batch)
-    fit = optimize.fit(lambda t, item: window_nll(ur.run(item["log"], cfg, phys(t["th"])), item["w"]),
-                       {"th": th0}, train, steps=25, lr=0.1, sequential=True)
-    th, v = fit.theta["th"], fit.history[-1]["loss"]
-    res = ur.run(log, cfg, phys(th))
-    err = np.linalg.norm(np.asarray(res.pos) - true, axis=1)
-    ev = held & air
-    out[name] = {"theta_phys": np.exp(np.asarray(th)).tolist(), "train_nll": float(v),
-                 "heldout_nll": heldout_nll(res, held), "heldout_pos_rmse_m": float(np.sqrt(np.mean(err[ev]**2))),
-                 "heldout_vertical_m": float(np.sqrt(np.mean((np.asarray(res.pos)[ev, 2] - true[ev, 2])**2))),
-                 "whole_airborne_rmse_m": float(np.sqrt(np.mean(err[air]**2)))}
-    print(name, out[name], flush=True)
-jpath = next((a.split("=", 1)[1] for a in sys.argv[1:] if a.startswith("--json=")), None)
-if jpath:
-    json.dump(out, open(jpath, "w"), indent=1)
+
+def parser():
+    ap = ScriptParser(prog="study_util_anisotropic.py", description=__doc__.splitlines()[0])
+    ap.add_argument("data", nargs="?", default=os.environ.get("JAXSLAM_DATA_DIR", "../shared/data"), type=path_arg,
+                    metavar="DATA_DIR", help="the data folder (default: $JAXSLAM_DATA_DIR, else ../shared/data)")
+    ap.add_argument("--json", default=None, type=path_arg, metavar="PATH", help="write the results here")
+    return ap
+
+
+def main(argv=None):
+    ap = parser()
+    a = ap.parse_args(argv)
+    data, jpath = a.data, a.json
+    if jpath:
+        try:  # an unusable path (a folder, under a file) before the fits, not after them
+            prepare_file("--json", jpath)
+        except InputError as e:
+            ap.error(str(e))
+    ur.cv_process_noise = cv_aniso  # (only while the study runs: importing this file patched the library)
+    try:
+        out = _study(data)
+    finally:
+        ur.cv_process_noise = orig
+    if jpath:
+        json.dump(out, open(jpath, "w"), indent=1)
+
+
+def _study(data):
+    log, t, true, air = util_flight(data)
+    t_split = float(t[0] + 0.5 * (t[-1] - t[0])); held = t >= t_split
+    fit_log, t_fit, _, _ = util_flight(data, t_end=t_split)
+    w = jnp.asarray(t_fit < t_split, jnp.float64)
+    train = {"log": jax.tree.map(lambda a: a[None], fit_log), "w": w[None]}
+    base = presets.util_params(preset="hand")
+    cfg = ur.Config(height=False)
+    out = {}
+    for name in ("shipped_3", "aniso_4"):
+        if name == "shipped_3":
+            th0 = jnp.log(jnp.asarray([base.sigma_r, base.q_acc, base.q_bias]))
+            phys = lambda th: base._replace(sigma_r=jnp.exp(th[0]), q_acc=jnp.exp(th[1]), q_bias=jnp.exp(th[2]), gate=None, nu=NU)
+        else:
+            th0 = jnp.log(jnp.asarray([base.sigma_r, base.q_acc, base.q_acc, base.q_bias]))
+            phys = lambda th: base._replace(sigma_r=jnp.exp(th[0]), q_acc=jnp.exp(jnp.stack([th[1], th[1], th[2]])),
+                                            q_bias=jnp.exp(th[3]), gate=None, nu=NU)
+        # the fit of `jaxslam tune util-uwb` (optimize.fit with its defaults, the target's batch)
+        fit = optimize.fit(lambda t, item: window_nll(ur.run(item["log"], cfg, phys(t["th"])), item["w"]),
+                           {"th": th0}, train, steps=25, lr=0.1, sequential=True)
+        th, v = fit.theta["th"], fit.history[-1]["loss"]
+        res = ur.run(log, cfg, phys(th))
+        err = np.linalg.norm(np.asarray(res.pos) - true, axis=1)
+        ev = held & air
+        out[name] = {"theta_phys": np.exp(np.asarray(th)).tolist(), "train_nll": float(v),
+                     "heldout_nll": heldout_nll(res, held), "heldout_pos_rmse_m": float(np.sqrt(np.mean(err[ev]**2))),
+                     "heldout_vertical_m": float(np.sqrt(np.mean((np.asarray(res.pos)[ev, 2] - true[ev, 2])**2))),
+                     "whole_airborne_rmse_m": float(np.sqrt(np.mean(err[air]**2)))}
+        print(name, out[name], flush=True)
+    return out
+
+
+if __name__ == "__main__":
+    main()

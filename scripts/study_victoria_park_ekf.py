@@ -5,21 +5,38 @@
 ATE: SE(2)-aligned, estimate interpolated at GPS times; ``ate_raw`` uses every fix,
 ``ate_all``/``ate_first`` (t < 500 s)/``ate_rest`` (t ≥ 500 s) drop the GPS fixes that are
 > 15 m/s away from both neighbours (2 fixes: 270.7 s and 1223.3 s, a 141 m jump).
+
+The helpers (``make_log``, ``ate``, ``run``) serve investigations in an interpreter: call
+``load()`` first (importing this file no longer reads the data).
 """
 import sys, time, json
 import pathlib
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 from jaxslam import runtime
+from jaxslam.cli.common import ScriptParser, one_line
+from jaxslam.data import catalogue
+from jaxslam.errors import InputError
 runtime.configure_process()
-import jax
+import jax  # noqa: E402
 jax.config.update("jax_enable_x64", True)
-import jax.numpy as jnp, numpy as np
-from jaxslam import metrics
-from jaxslam.data import load_victoria_park, merge_events
-from jaxslam.data import presets
-from jaxslam.systems import planar_ekf_slam as P
+import jax.numpy as jnp, numpy as np  # noqa: E401,E402
+from jaxslam import metrics  # noqa: E402
+from jaxslam.data import load_victoria_park, merge_events  # noqa: E402
+from jaxslam.data import presets  # noqa: E402
+from jaxslam.systems import planar_ekf_slam as P  # noqa: E402
 
-D = load_victoria_park(__import__('os').environ['JAXSLAM_DATA_DIR'])
+D = GPS_OK = None  # the data and its usable GPS fixes, set by load() (main, or a helper investigation's first call)
+
+
+def load(data=None):
+    """Read Victoria Park from ``data`` (default: $JAXSLAM_DATA_DIR) into ``D`` and ``GPS_OK``."""
+    global D, GPS_OK
+    D = load_victoria_park(str(catalogue.data_root(data, flag="$JAXSLAM_DATA_DIR")))
+    _d = np.linalg.norm(np.diff(D.gps, axis=0), axis=1) / np.maximum(np.diff(D.gps_t), 1e-3)
+    _vin = np.concatenate([[0.0], _d]); _vout = np.concatenate([_d, [0.0]])  # noqa: E702
+    GPS_OK = ~((_vin > 15.0) & (_vout > 15.0))  # a fix >15 m/s away from both neighbours (car max 6.6 m/s)
+    print("GPS outliers dropped:", int((~GPS_OK).sum()), D.gps_t[~GPS_OK])
+
 
 def make_log(t_end=None, min_diam=None, max_diam=None):
     keep = np.ones(len(D.det_t), bool)
@@ -27,10 +44,6 @@ def make_log(t_end=None, min_diam=None, max_diam=None):
     if max_diam is not None: keep &= D.det_diameter <= max_diam
     return merge_events(D.input_t, D.inputs, D.det_t[keep], D.det[keep], K=None, input_mode="rate", t_end=t_end)
 
-_d = np.linalg.norm(np.diff(D.gps, axis=0), axis=1) / np.maximum(np.diff(D.gps_t), 1e-3)
-_vin = np.concatenate([[0.0], _d]); _vout = np.concatenate([_d, [0.0]])
-GPS_OK = ~((_vin > 15.0) & (_vout > 15.0))  # a fix >15 m/s away from both neighbours (car max 6.6 m/s)
-print("GPS outliers dropped:", int((~GPS_OK).sum()), D.gps_t[~GPS_OK])
 def ate(t_est, xy, t0=None, t1=None, clean=True):
     g_t, g = D.gps_t, D.gps
     m = (g_t >= t_est[0]) & (g_t <= t_est[-1])
@@ -60,6 +73,21 @@ def run(cfg, prm, log, dtype=jnp.float32, time_it=True, quiet=False):
     return out, r
 
 
-if __name__ == "__main__":
+def parser():
+    return ScriptParser(prog="study_victoria_park_ekf.py", description=__doc__.splitlines()[0],
+                        epilog="The data folder: $JAXSLAM_DATA_DIR.")
+
+
+def main(argv=None):
+    ap = parser()
+    ap.parse_args(argv)  # (no arguments: anything given was ignored)
+    try:  # an unset $JAXSLAM_DATA_DIR was a KeyError traceback, at import
+        load()
+    except InputError as e:
+        ap.error(one_line(str(e)))
     log = make_log()
     run(presets.victoria_park_config(), presets.victoria_park_params(), log, jnp.float32)
+
+
+if __name__ == "__main__":
+    main()

@@ -15,10 +15,11 @@ fastslam`` (``scripts/reproduce_datasets.py``).
     python scripts/study_victoria_park_fastslam.py [DATA_DIR] [proposal|pruning]
 """
 import json
-import sys
+import os
 import time
 
 from jaxslam import runtime
+from jaxslam.cli.common import ScriptParser, path_arg
 
 runtime.configure_process(cache=False)
 import jax  # noqa: E402
@@ -44,9 +45,21 @@ STUDIES = {"proposal": (("F1", "F2"), RULE, "docs/results/datasets/victoria_park
            "pruning": (("F2", "F2p"), RULE_PRUNING, "docs/results/datasets/victoria_park_fastslam_pruning_study.json")}
 
 
-def main():
-    data = sys.argv[1] if len(sys.argv) > 1 else "../shared/data"
-    study = sys.argv[2] if len(sys.argv) > 2 else "proposal"
+def parser():
+    ap = ScriptParser(prog="study_victoria_park_fastslam.py", description=__doc__.splitlines()[0])
+    ap.add_argument("data", nargs="?", default="../shared/data", type=path_arg, metavar="DATA_DIR",
+                    help="the folder holding victoria_park/ (default: ../shared/data)")
+    ap.add_argument("study", nargs="?", default="proposal", choices=tuple(STUDIES),
+                    help="which pre-registered study to run (default proposal)")
+    return ap
+
+
+def main(argv=None):
+    ap = parser()
+    a = ap.parse_args(argv)
+    data, study = a.data, a.study
+    if not os.path.isdir(os.path.join(data, "victoria_park")):  # (a traceback after the imports, before)
+        ap.error(f"DATA_DIR: {data!r} holds no victoria_park/ folder")
     cands, rule, js = STUDIES[study]
     d = load_victoria_park(f"{data}/victoria_park")
     keep = (d.det[:, 0] >= 5.0) & (d.det[:, 0] <= 40.0)  # the runner's limits for FastSLAM

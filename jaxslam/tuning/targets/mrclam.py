@@ -149,13 +149,32 @@ def select_odometry_delay(data_dir, robots, params, config, dtype=np.float64, t_
             silent.append(float(d))
         table[float(d)] = float(tot[:, 0].sum() / max(tot[:, 1].sum(), 1.0))
     if silent:
-        flag, where = ("--robots", "the logs") if t_max is None else ("--window", f"the first {t_max:g} s")
         at = "" if len(set(silent)) == len(table) else f" with the odometry delay {', '.join(f'{d:g}' for d in silent)} s"
-        raise InputError(f"{flag}: no sighting in {where} of robot(s) {', '.join(str(int(r)) for r in robots)}{at} "
-                         "updates the filter (none, or only each landmark's first), so no likelihood can choose the "
-                         "odometry delay; give a longer --window or --odometry-delay S")
+        raise _no_update_error(robots, t_max, at, "so no likelihood can choose the odometry delay; give a longer "
+                                                  "--window or --odometry-delay S")
     best = min(table, key=table.get)
     return best, table
+
+
+def _no_update_error(robots, t_max, at: str, tail: str) -> InputError:
+    """The one error of a window (whole logs: t_max None) in which no sighting of ``robots``
+    updates the filter; ``at``: which delay(s), ``tail``: why that matters and what to give."""
+    flag, where = ("--robots", "the logs") if t_max is None else ("--window", f"the first {t_max:g} s")
+    return InputError(f"{flag}: no sighting in {where} of robot(s) {', '.join(str(int(r)) for r in robots)}{at} "
+                      f"updates the filter (none, or only each landmark's first), {tail}")
+
+
+def _check_updates(params, config, logs, robots, t_max: float | None, odometry_delay: float) -> None:
+    """Raise :class:`InputError` naming the window and ``robots`` when no sighting of the padded
+    ``logs`` batch (:func:`mrclam_logs` of ``robots`` at ``odometry_delay``) updates the filter
+    ``config`` at ``params``: the innovation NLL of such logs is the constant 0, so a fit on them
+    learns nothing (it returned the start silently).  The value-only scan of
+    :func:`select_odometry_delay` (no gradient), so it runs before the fit compiles."""
+    tot = np.asarray(_delay_nll_terms(params, config._replace(block=0), jax.tree.map(jnp.asarray, logs)))
+    if not tot[:, 1].sum() > 0:
+        raise _no_update_error(robots, t_max, f" with the odometry delay {odometry_delay:g} s",
+                               "so the fit has no likelihood to learn from (its loss is the constant 0); "
+                               + ("give a longer --window" if t_max is not None else "give other --robots"))
 
 
 @functools.partial(jax.jit, static_argnums=1)
@@ -257,7 +276,10 @@ def mrclam_noise(loss: str = "nll", data=None, robots=DEFAULT_ROBOTS["mrclam"]["
     whole logs).
     ``odometry_delay``: the odometry stamps' lag [s], or ``"auto"``: the delay of
     :data:`DELAY_GRID` with the lowest training NLL at the starting point
-    (:func:`select_odometry_delay`).  The fitted file carries it (``"log"``).
+    (:func:`select_odometry_delay`).  The fitted file carries it (``"log"``).  With either, a
+    window in which no sighting of the training logs updates the filter (none, or only each
+    landmark's first) is an :class:`InputError` naming ``--window`` and the robots, raised before
+    the fit compiles (the loss would be the constant 0).
     The target's ``eval_command`` runs the tuned file on every evaluated robot (one ``jaxslam
     dataset mrclam --robot N`` per robot, joined by ``&&``).
     """
@@ -295,6 +317,8 @@ def mrclam_noise(loss: str = "nll", data=None, robots=DEFAULT_ROBOTS["mrclam"]["
         if not (math.isfinite(odometry_delay) and 0.0 <= odometry_delay <= 2.0):
             raise InputError(f"--odometry-delay: expected 0 to 2 s, got {odometry_delay}")
     train, _ = mrclam_logs(data, robots, dtype, t_max, odometry_delay, K=K)
+    if delay_table is None:  # (auto: select_odometry_delay checked every delay of its grid)
+        _check_updates(physical(theta0), cfg, train, robots, t_max, odometry_delay)
     test, test_raw = (mrclam_logs(data, test_robots, dtype, odometry_delay=odometry_delay, K=K) if test_robots
                       else (None, []))
     # without a held-out robot the table is measured on the training robots' whole logs
