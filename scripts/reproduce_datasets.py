@@ -25,8 +25,6 @@ import subprocess
 import sys
 
 from jaxslam.cli.common import ScriptParser, path_arg
-from jaxslam.errors import InputError
-from jaxslam.files import prepare_dir
 
 # (case name, CLI arguments after "jaxslam dataset")
 CASES = [
@@ -114,12 +112,10 @@ def main(argv=None):
     # the data folder as "$DATA": the shipped results name no folder of the machine they ran on
     # (the CLI gets the absolute folder, so that a relative --data is replaced too)
     root = str(data.resolve())
-    try:  # one usage line (exit 2) for an unusable folder (an existing file), before any case runs
-        out = prepare_dir("--out", args.out)
-        if args.plots:
-            prepare_dir("--plots", args.plots)
-    except InputError as e:
-        ap.error(str(e))
+    # one usage line (exit 2) for an unusable folder (an existing file), before any case runs
+    out = ap.output_dir("--out", args.out)
+    if args.plots:
+        ap.output_dir("--plots", args.plots)
     rows = []
     for name, cli_args in CASES:
         if only and name not in only:

@@ -21,8 +21,7 @@ import json
 import sys
 
 from jaxslam.cli.common import ScriptParser, path_arg, positive_float, positive_int, seed_int
-from jaxslam.errors import InputError
-from jaxslam.files import atomic_write, prepare_dir
+from jaxslam.files import atomic_write
 
 
 PAPER = {  # paper 000, Sec. 3 (one run): average RMSE
@@ -42,10 +41,7 @@ def main(argv=None):
     ap.add_argument("--out", default="out/paper000", type=path_arg)
     ap.add_argument("--float32", action="store_true")
     args = ap.parse_args(argv)
-    try:  # one usage line (exit 2) for an unusable --out (an existing file), before any run
-        out = prepare_dir("--out", args.out)
-    except InputError as e:
-        ap.error(str(e))
+    out = ap.output_dir("--out", args.out)  # one usage line (exit 2) for an unusable --out, before any run
     from jaxslam import cli
 
     rows = []

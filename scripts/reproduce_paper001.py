@@ -41,8 +41,7 @@ import time
 import numpy as np
 
 from jaxslam.cli.common import ScriptParser, path_arg, positive_float, positive_int, seed_int
-from jaxslam.errors import InputError
-from jaxslam.files import atomic_write, prepare_dir
+from jaxslam.files import atomic_write
 
 CONFIGS = {
     "kinematics": dict(model="kinematics"),
@@ -117,10 +116,7 @@ def main(argv=None):
         print(table)
         return 0
 
-    try:  # one usage line (exit 2) for an unusable --out (an existing file), before JAX and any run
-        out = prepare_dir("--out", args.out)
-    except InputError as e:
-        ap.error(str(e))
+    out = ap.output_dir("--out", args.out)  # one usage line (exit 2) for an unusable --out, before JAX and any run
     import jax
     import jax.numpy as jnp
 

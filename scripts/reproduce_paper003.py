@@ -31,8 +31,7 @@ import pathlib
 import sys
 
 from jaxslam.cli.common import ScriptParser, path_arg, positive_int, seed_int
-from jaxslam.errors import InputError
-from jaxslam.files import atomic_write, prepare_dir
+from jaxslam.files import atomic_write
 
 SCENARIOS = ("circle", "square", "rough")  # uwb-<name>
 CASES = [  # (mode, model, noise, filter)
@@ -70,12 +69,10 @@ def main(argv=None):
     # only when its turn came, after the scenarios before it had run
     if not scenarios or set(scenarios) - set(SCENARIOS):
         ap.error(f"--scenarios: expected a comma-separated list of circle, square, rough, got {args.scenarios!r}")
-    try:  # one usage line (exit 2) for an unusable folder (an existing file), before any run
-        out = prepare_dir("--out", args.out)
-        if args.plots and not args.table_only:
-            prepare_dir("--plots", args.plots)
-    except InputError as e:
-        ap.error(str(e))
+    # one usage line (exit 2) for an unusable folder (an existing file), before any run
+    out = ap.output_dir("--out", args.out)
+    if args.plots and not args.table_only:
+        ap.output_dir("--plots", args.plots)
     from jaxslam import cli
 
     rows = []

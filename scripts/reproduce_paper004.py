@@ -28,8 +28,7 @@ import pathlib
 import sys
 
 from jaxslam.cli.common import ScriptParser, path_arg, positive_int, seed_int
-from jaxslam.errors import InputError
-from jaxslam.files import atomic_write, prepare_dir
+from jaxslam.files import atomic_write
 
 ATT_CASES = [(g, t, p) for g in ("thesis", "prototype") for t in ("direct", "exact")
              for p in ("constant", "sinusoidal", "random")]
@@ -72,12 +71,10 @@ def main(argv=None):
     parts = {p.strip() for p in args.parts.split(",") if p.strip()}
     if not parts or parts - set(PARTS):
         ap.error(f"--parts: expected a comma-separated subset of {', '.join(PARTS)}, got {args.parts!r}")
-    try:  # one usage line (exit 2) for an unusable folder (an existing file), before any run
-        out = prepare_dir("--out", args.out)
-        if args.plots and not args.table_only:
-            prepare_dir("--plots", args.plots)
-    except InputError as e:
-        ap.error(str(e))
+    # one usage line (exit 2) for an unusable folder (an existing file), before any run
+    out = ap.output_dir("--out", args.out)
+    if args.plots and not args.table_only:
+        ap.output_dir("--plots", args.plots)
 
     def stored(part):
         """A part that is not run is tabulated when every JSON of it is in --out, same runs and seed."""

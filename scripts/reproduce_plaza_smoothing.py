@@ -180,13 +180,7 @@ def main(argv=None):
     if a.json is not None and pathlib.Path(a.json).is_dir():
         ap.error(f"--json: {a.json!r} is not a file path")
     if a.json is not None:  # under a file, a folder not writable: said now, not after the compute
-        from jaxslam import files
-        from jaxslam.errors import InputError
-
-        try:
-            files.prepare_file("--json", a.json, create=False)
-        except InputError as e:
-            ap.error(str(e).splitlines()[0])
+        ap.output_file("--json", a.json, create=False)
     root = pathlib.Path(a.data)
     root = root / "gtsam" if (root / "gtsam").is_dir() else root
     from jaxslam.errors import InputError

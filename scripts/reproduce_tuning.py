@@ -68,8 +68,6 @@ jax.config.update("jax_enable_x64", True)
 from jaxslam import io  # noqa: E402
 from jaxslam.cli import tune as tcli  # noqa: E402
 from jaxslam.cli.common import ScriptParser, path_arg, positive_float, positive_int, seed_int  # noqa: E402
-from jaxslam.errors import InputError  # noqa: E402
-from jaxslam.files import prepare_dir  # noqa: E402
 from jaxslam.tuning import losses as L  # noqa: E402
 from jaxslam.tuning import optimize as O  # noqa: E402
 from jaxslam.tuning import targets as T  # noqa: E402
@@ -590,14 +588,12 @@ def main(argv=None):
         if bool(src_quick) != bool(a.quick):
             p.error(f"--parts: nll_flat{' --quick' if a.quick else ''} would read {src}, written "
                     f"{'with' if src_quick else 'without'} --quick (run the part ekf_nll_imu with the same options)")
-    try:  # one usage line (exit 2) for an unusable folder (an existing file), before any part runs
-        out_dir = prepare_dir("--out", a.out)
-        if a.plots:  # (its figures are drawn after each part's compute)
-            prepare_dir("--plots", a.plots)
-        if a.cache_dir:
-            prepare_dir("--cache-dir", a.cache_dir)
-    except InputError as e:
-        p.error(str(e))
+    # one usage line (exit 2) for an unusable folder (an existing file), before any part runs
+    out_dir = p.output_dir("--out", a.out)
+    if a.plots:  # (its figures are drawn after each part's compute)
+        p.output_dir("--plots", a.plots)
+    if a.cache_dir:
+        p.output_dir("--cache-dir", a.cache_dir)
     if a.cache_dir:
         jax.config.update("jax_compilation_cache_dir", a.cache_dir)
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)

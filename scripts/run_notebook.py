@@ -44,7 +44,6 @@ import traceback
 
 from jaxslam import files
 from jaxslam.cli.common import ScriptParser, path_arg
-from jaxslam.errors import InputError
 
 __all__ = ["execute", "main"]
 
@@ -236,10 +235,8 @@ def main(argv=None) -> int:
     # the output is checked now, before any cell runs: the executed notebook must not be lost
     if not out.resolve().parent.is_dir():
         p.error(f"--out: the folder of {str(out)!r} does not exist")
-    try:  # a folder, a path under a file, a folder that cannot be written
-        files.prepare_file("--inplace" if a.inplace else "--out", out, create=False)
-    except InputError as e:
-        p.error(str(e).splitlines()[0])
+    # a folder, a path under a file, a folder that cannot be written
+    p.output_file("--inplace" if a.inplace else "--out", out, create=False)
     if a.cwd is not None and not pathlib.Path(a.cwd).is_dir():
         p.error(f"--cwd: {a.cwd!r} is not a folder")
     t0 = time.perf_counter()

@@ -18,8 +18,6 @@ import time
 
 from jaxslam import runtime
 from jaxslam.cli.common import ScriptParser, path_arg, positive_float, positive_int, seed_int
-from jaxslam.errors import InputError
-from jaxslam.files import prepare_file
 
 runtime.configure_process(cache=False)
 
@@ -54,10 +52,7 @@ def main(argv=None):
     if a.steps < FRAME_STEPS:  # (fewer flew no frame at all)
         ap.error(f"--steps: expected at least {FRAME_STEPS} (one frame), got {a.steps}")
     if a.json:
-        try:  # an unusable path (a folder, under a file) before the flights, not after them
-            prepare_file("--json", a.json)
-        except InputError as e:
-            ap.error(str(e))
+        ap.output_file("--json", a.json)  # an unusable path (a folder, under a file) before the flights
     opts = {o.name: o.default for o in registry.get("ekfslam3d-unknown").options}
     nf = a.steps // FRAME_STEPS
     out = {"steps": nf * FRAME_STEPS, "duration_s": nf * FRAME_STEPS * DT, "capacity": int(opts["capacity"]),

@@ -135,8 +135,6 @@ from typing import NamedTuple
 
 from jaxslam import runtime
 from jaxslam.cli.common import ScriptParser, path_arg
-from jaxslam.errors import InputError
-from jaxslam.files import prepare_file
 
 runtime.configure_process()
 
@@ -824,10 +822,7 @@ def main(argv=None):
     if unknown:  # (a KeyError traceback after the EKF runs)
         ap.error(f"--configs: unknown configuration(s) {', '.join(unknown)}; choose from {', '.join(CFG)}")
     if a.json:
-        try:  # an unusable path (a folder, under a file) before the smoothers, not after them
-            prepare_file("--json", a.json)
-        except InputError as e:
-            ap.error(str(e))
+        ap.output_file("--json", a.json)  # an unusable path (a folder, under a file) before the smoothers
     names = a.configs or (list(CFG) if a.all else QUICK)
     # warm starts need their source configs
     need = []

@@ -25,7 +25,6 @@ import numpy as np
 from jaxslam.cli.common import ScriptParser, one_line, path_arg
 from jaxslam.data.util_uwb import load_util
 from jaxslam.errors import InputError
-from jaxslam.files import prepare_file
 
 WINDOWS = (0.2, 0.5, 1.0, 2.0, 5.0, 10.0)
 HUBER_K = 1.345
@@ -63,11 +62,8 @@ def main(argv=None):
     ap.add_argument("data", nargs="?", default=os.environ.get("JAXSLAM_DATA_DIR", "../shared/data"), type=path_arg)
     ap.add_argument("--json", default=None, type=path_arg)
     args = ap.parse_args(argv)
-    try:  # an unusable path (a folder, under a file): one usage line, before the fits, not after them
-        if args.json:
-            prepare_file("--json", args.json)
-    except InputError as e:
-        ap.error(str(e))
+    if args.json:  # an unusable path (a folder, under a file): one usage line, before the fits
+        ap.output_file("--json", args.json)
     try:  # a missing or malformed log: likewise
         d = load_util(os.path.join(args.data, "util_uwb") if os.path.isdir(os.path.join(args.data, "util_uwb"))
                       else args.data)

@@ -49,6 +49,29 @@ class ScriptParser(argparse.ArgumentParser):
         print(f"{self.prog}: error: {message}", file=sys.stderr)
         raise SystemExit(2)
 
+    def output_dir(self, flag: str, path):
+        """:func:`jaxslam.files.prepare_dir` for option ``flag``, an unusable folder (an existing
+        file, one under a file, one that cannot be written) as this parser's usage error: one
+        line, exit 2, before any compute."""
+        from ..errors import InputError
+        from ..files import prepare_dir
+
+        try:
+            return prepare_dir(flag, path)
+        except InputError as e:
+            self.error(str(e))
+
+    def output_file(self, flag: str, path, create: bool = True):
+        """:func:`jaxslam.files.prepare_file` for option ``flag`` (``create=False`` creates
+        nothing), an unusable path as this parser's usage error, as :meth:`output_dir`."""
+        from ..errors import InputError
+        from ..files import prepare_file
+
+        try:
+            return prepare_file(flag, path, create=create)
+        except InputError as e:
+            self.error(str(e))
+
 
 def path_arg(text: str) -> str:
     """argparse type: a file or folder path, not empty ('' used to mean "not given" and fell back
