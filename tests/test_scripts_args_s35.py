@@ -109,6 +109,10 @@ def test_a_malformed_value_is_one_line_in_every_script(guarded, capsys, script, 
     ("reproduce_paper003", ["--seed", "-1"]),
     ("reproduce_paper004", ["--seed", "-1"]),
     ("reproduce_tuning", ["--seed", "-1", "--parts", "oracle", "--cache-dir", ""]),
+    # the tuning parts use S + 1 (held-out runs, `jaxslam tune` refuses S = 2**63 - 1) up to S + 7
+    # (the gradient check's logs): the largest seed failed with a traceback after earlier parts ran
+    ("reproduce_tuning", ["--seed", str(2**63 - 1), "--parts", "oracle", "--cache-dir", ""]),
+    ("reproduce_tuning", ["--seed", str(2**63 - 7), "--parts", "gradcheck", "--cache-dir", ""]),
 ])
 def test_values_the_cli_refuses_are_refused_by_every_script_before_any_output(guarded, tmp_path, capsys,
                                                                               script, argv):
@@ -213,3 +217,9 @@ def test_table_only_without_matching_results_is_a_usage_error_as_in_paper001(gua
     line = _usage_line(guarded(script), [*argv, "--out", str(tmp_path)], capsys)
     assert line.startswith(f"{script}.py: error: ") and needle in line
     assert not (tmp_path / "table.md").exists()
+
+
+def test_tuning_script_takes_the_largest_seed_its_parts_can_use():
+    # S + 7 must stay a PRNG seed (< 2**63): 2**63 - 8 is the largest S, and it is taken as is
+    seed = _load("reproduce_tuning")._seed
+    assert seed(str(2**63 - 8)) == 2**63 - 8 and seed("0") == 0

@@ -125,8 +125,8 @@ _TUM_HEADER = "# timestamp tx ty tz qx qy qz qw"  # what metrics.write_tum write
 
 def _not_a_data_file(name, data, **outputs) -> None:
     """No output file (``flag=path``) replaces one of the dataset's own files: an existing
-    ``.dat`` / ``.txt`` / ``.csv`` / ``.gz`` file inside its folder, unless it is a TUM file an
-    earlier ``--tum`` wrote (else an :class:`InputError` naming the option, before the run:
+    ``.dat`` / ``.txt`` / ``.csv`` / ``.gz`` file inside its folder (for a UTIL flight folder, also
+    the anchors file the loader reads beside it), unless it is a TUM file an earlier ``--tum`` wrote (else an :class:`InputError` naming the option, before the run:
     the JSON or TUM file replaced the log it was computed from)."""
     import pathlib
 
@@ -136,19 +136,28 @@ def _not_a_data_file(name, data, **outputs) -> None:
     if folder is None:
         return
     folder = folder.resolve()
+    extra = set()  # files the loader reads from outside the folder
+    if name == "util-uwb" and catalogue.util_flight(folder):
+        # a flight folder named itself: the loader reads the anchors file beside it
+        from jaxslam.data.util_uwb import ANCHORS_FILE
+
+        if not (folder / ANCHORS_FILE).is_file():
+            extra.add((folder.parent / ANCHORS_FILE).resolve())
     for flag, path in outputs.items():
         if path is None:
             continue
         try:
             target = pathlib.Path(path).resolve()
-            inside = target.is_file() and target.is_relative_to(folder) and target.suffix.lower() in _DATA_SUFFIXES
+            inside = target.is_file() and (target in extra or (target.is_relative_to(folder)
+                                                               and target.suffix.lower() in _DATA_SUFFIXES))
             if inside:
                 with open(target, "rb") as f:
                     inside = not f.readline().decode("utf-8", "replace").startswith(_TUM_HEADER)
         except (OSError, RuntimeError):
             continue  # (an unreadable or looping path: prepare_file and the write say so)
         if inside:
-            raise InputError(f"--{flag}: {str(path)!r} is a file of the {name} dataset in {str(folder)!r}, which "
+            where = target.parent if target in extra else folder
+            raise InputError(f"--{flag}: {str(path)!r} is a file of the {name} dataset in {str(where)!r}, which "
                              "this command reads; writing it would replace it, so give the output another path")
 
 

@@ -108,6 +108,21 @@ def test_dataset_cli_refuses_to_overwrite_a_file_of_the_flight_given_as_dot(tmp_
     assert (flight / "uwb_twr.csv").read_bytes() == before
 
 
+@pytest.mark.parametrize("flag", ["--json", "--tum"])
+def test_dataset_cli_refuses_to_overwrite_the_anchors_file_beside_the_flight_given(tmp_path, monkeypatch, run_cli,
+                                                                                   flag):
+    # the loader reads util_uwb/anchors_const3.csv from beside the flight folder: with --data . inside
+    # the flight, `--json ../anchors_const3.csv` replaced it (the next run failed on its header)
+    shutil.copytree(UTIL, tmp_path / "util_uwb")
+    anchors = tmp_path / "util_uwb" / "anchors_const3.csv"
+    before = anchors.read_bytes()
+    monkeypatch.chdir(tmp_path / "util_uwb" / "twr_obs_log1")
+    rc, out, err = run_cli(["dataset", "util-uwb", "--data", ".", flag, "../anchors_const3.csv", "--quiet"])
+    assert rc == 2 and err.strip().splitlines() == [err.strip()], err
+    assert f"{flag}: '../anchors_const3.csv' is a file of the util-uwb dataset in {str(anchors.parent)!r}" in err, err
+    assert anchors.read_bytes() == before
+
+
 def _twice_nested(root):
     shutil.copytree(UTIL / "tdoa2_obs_log1", root / "util_uwb" / "tdoa2_obs_log1" / "tdoa2_obs_log1")
     shutil.copy(UTIL / "anchors_const3.csv", root / "util_uwb")
