@@ -21,6 +21,7 @@ from __future__ import annotations
 import contextlib
 import numbers
 import operator
+import re
 import sys
 import threading
 import time
@@ -52,6 +53,18 @@ def _seconds(value, name: str) -> float:
     return v
 
 
+# C0 and C1 controls, DEL, and the line and paragraph separators: each would break the bar's one
+# line (a newline, a carriage return, a line feed of Unicode's) or move the cursor (an escape).
+_CONTROLS = "[\x00-\x1f\x7f-\x9f\u2028\u2029]+"
+_CONTROL = re.compile(_CONTROLS)
+_CONTROL_AT_ENDS = re.compile(f"\\A{_CONTROLS}|{_CONTROLS}\\Z")
+
+
+def _one_line(text: str) -> str:
+    """``text`` with each run of control characters as one space (none at either end)."""
+    return _CONTROL.sub(" ", _CONTROL_AT_ENDS.sub("", text))
+
+
 def _fmt_time(seconds: float) -> str:
     seconds = max(0, int(round(seconds)))
     h, rem = divmod(seconds, 3600)
@@ -73,7 +86,10 @@ class Progress:
 
     ``delay_s`` and the intervals are finite numbers ``>= 0`` (Python or NumPy floats or ints),
     else :class:`~jaxslam.errors.InputError` naming them; so is a ``label`` that is not a str
-    or None (a number or bytes was printed as its repr, ``b'mc'``).
+    or None (a number or bytes was printed as its repr, ``b'mc'``).  The bar is one line: in a
+    label (given here or set later as ``progress.label``) each run of control characters (a
+    newline, a tab, a carriage return, an escape, ...) becomes one space, and at either end
+    none.
 
     Use ``update(n_done)`` with an absolute count or ``advance(k)`` with an
     increment, then ``close()`` (or use it as a context manager).
@@ -93,9 +109,7 @@ class Progress:
         clock=time.monotonic,
     ):
         self.total = _count(total, "total", lower=0)
-        if label is not None and not isinstance(label, str):
-            raise InputError(f"label: expected a str or None, got {type(label).__name__} {label!r}")
-        self.label = "" if label is None else label
+        self.label = label
         self.enabled = bool(enabled)
         self.stream = sys.stderr if stream is None else stream
         self.delay_s = _seconds(delay_s, "delay_s")
@@ -116,6 +130,17 @@ class Progress:
         min_interval_s = _seconds(min_interval_s, "min_interval_s")
         log_interval_s = _seconds(log_interval_s, "log_interval_s")
         self._interval = min_interval_s if self._tty else log_interval_s
+
+    @property
+    def label(self) -> str:
+        """The text in front of the bar (a str; one line, see the class docstring)."""
+        return self._label
+
+    @label.setter
+    def label(self, value) -> None:
+        if value is not None and not isinstance(value, str):
+            raise InputError(f"label: expected a str or None, got {type(value).__name__} {value!r}")
+        self._label = "" if value is None else _one_line(value)
 
     @classmethod
     def null(cls) -> "Progress":
@@ -197,7 +222,10 @@ class Progress:
 
     @contextlib.contextmanager
     def compiling(self, what: str = "compiling"):
-        """Show ``label compiling… N s`` while the block runs (module docstring)."""
+        """Show ``label compiling… N s`` while the block runs (module docstring); ``what`` is
+        made one line as a label is."""
+        if isinstance(what, str):
+            what = _one_line(what)
         if not self.enabled or self._closed:
             yield
             self._run_start = self._clock()

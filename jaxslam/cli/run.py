@@ -130,6 +130,7 @@ def _run_parser(scenario=None, help_params: bool = False) -> Parser:
 
 def command(rest: list[str]) -> int:
     """``jaxslam run SCENARIO [options]``."""
+    _hear_launcher_interrupts()  # a process that --processes started tells it of a Ctrl-C
     base = Parser(prog=f"{PROG} run", add_help=False)
     base.add_argument("scenario", nargs="?")
     base.add_argument("-h", "--help", action="store_true")
@@ -186,6 +187,9 @@ def command(rest: list[str]) -> int:
     import jax
     import numpy as np
 
+    # a Ctrl-C during JAX's start-up, whose exception its gc callback dropped: stop before a group
+    # is joined (the others would wait for this process) or anything compiles
+    raise_if_interrupted()
     if not pre.float32:
         jax.config.update("jax_enable_x64", True)
     if group is not None:  # join the group before any JAX computation
@@ -217,13 +221,22 @@ def command(rest: list[str]) -> int:
     with _environment("JAXSLAM_MC_THREADS", None if args.threads is None else str(args.threads)):
         monte_carlo.default_threads()  # a bad $JAXSLAM_MC_THREADS fails here, before anything compiles
         progress = Progress(args.runs, label=scenario.name, enabled=not args.quiet)
-        with compilation.account() as acct:
-            try:
-                kw = {"plots": plots_dir is not None} if _accepts(scenario.run, "plots") else {}
-                result = scenario.run(runs=args.runs, seed=args.seed, dtype=dtype, options=options,
-                                      progress=progress, params=params, **kw)
-            finally:
-                progress.close()
+        try:
+            with compilation.account() as acct:
+                try:
+                    kw = {"plots": plots_dir is not None} if _accepts(scenario.run, "plots") else {}
+                    result = scenario.run(runs=args.runs, seed=args.seed, dtype=dtype, options=options,
+                                          progress=progress, params=params, **kw)
+                finally:
+                    progress.close()
+        except KeyboardInterrupt:
+            if group is None:
+                raise  # before the first chunk finished: "jaxslam: interrupted", exit 130
+            # every process of the group ends here (distributed.settle); process 0 says so
+            if leader:
+                print(f"{PROG} run: interrupted; the runs of a group of processes are all or nothing: "
+                      "none kept, nothing written", file=sys.stderr, flush=True)
+            return 130
     if not isinstance(result, registry.ScenarioResult):
         raise TypeError(f"scenario {scenario.name!r} returned {type(result).__name__}, "
                         "expected ScenarioResult")
@@ -310,13 +323,58 @@ def _process_group(pre):
     return cluster if pre.num_processes > 1 else None
 
 
+# The launcher of --processes P (_launch_local).  A Ctrl-C on a terminal reaches every process
+# of the foreground group: the launcher and the P processes it started.  Process 0 acts on it
+# when its compiled call in flight returns (seconds, during a compilation), and the group agrees
+# on it before any gather (distributed.settle), so the launcher waits for process 0's own report
+# (subprocess.call killed it 0.25 s after the Ctrl-C).  A Ctrl-C that reached the launcher alone
+# (kill -INT PID) is passed on, to each process that did not hear one: each tells the launcher
+# through a pipe, written by Python's C-level signal handler the moment a signal arrives
+# (signal.set_wakeup_fd; even in a compiled call), so no process gets it twice.
+_HEARD_ENV = "JAXSLAM_LAUNCHER_SIGNAL_FD"  # the pipe's descriptor in a process the launcher started
+_HEARD_WAIT_S = 0.5  # after its Ctrl-C, the launcher waits this long for the processes to say so
+_STUCK_AFTER_S = 5.0  # process 0 still running this long after a worker ended with an error is stopped
+_STOP_GRACE_S = 5.0  # SIGTERM, then SIGKILL after this long
+
+
+def _hear_launcher_interrupts() -> None:
+    """In a process started by ``--processes``: the signals this process receives are announced
+    on the launcher's pipe (``$JAXSLAM_LAUNCHER_SIGNAL_FD``); anywhere else nothing."""
+    import signal
+
+    fd = os.environ.pop(_HEARD_ENV, None)
+    if fd is None or not fd.isdigit():
+        return
+    try:
+        os.set_blocking(int(fd), False)
+        signal.set_wakeup_fd(int(fd), warn_on_full_buffer=False)
+    except (OSError, ValueError):  # not a pipe of ours, or not the main thread: nothing said
+        pass
+
+
+def _free_port() -> int:
+    """A TCP port free on the loopback interface now (the launcher imports no JAX, whose start-up
+    takes 1.5 s and whose gc callback drops a Ctrl-C; ``distributed.free_port`` does the same)."""
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
 def _launch_local(rest, processes: int) -> int:
     """``--processes P``: P copies of this command on this machine, one group on the loopback
     (process 0 in the foreground prints and writes; its exit code is returned, or the first
-    failing worker's)."""
-    import subprocess
+    failing worker's).
 
-    from jaxslam.sim import distributed
+    Ctrl-C: the launcher waits for process 0 to report it (exit 130; a group's runs are all or
+    nothing, nothing is written), passing it on to the processes it did not reach; a second
+    Ctrl-C stops them all (SIGTERM, SIGKILL after ``_STOP_GRACE_S``).  No process is left running
+    when this returns."""
+    import subprocess
+    import tempfile
+
+    from .common import raise_if_interrupted
 
     argv = []
     skip = False
@@ -327,37 +385,147 @@ def _launch_local(rest, processes: int) -> int:
             skip = True
         elif not a.startswith("--processes="):
             argv.append(a)
-    coord = f"127.0.0.1:{distributed.free_port()}"
+    coord = f"127.0.0.1:{_free_port()}"
 
     def cmd(i):
         return [sys.executable, "-m", "jaxslam", "run", *argv, "--coordinator", coord,
                 "--num-processes", str(processes), "--process-id", str(i)]
 
-    import tempfile
-
+    # A Ctrl-C so far reached this process alone (Python may have dropped its exception): no group
+    # is started (it used to start, run to its end and replace the --json).
+    raise_if_interrupted()
     # the workers' stderr is kept aside: process 0 says what they would repeat, and a worker's
     # own failure is printed after the run
     errs = [tempfile.TemporaryFile(mode="w+") for _ in range(1, processes)]
-    workers = [subprocess.Popen(cmd(i), stdout=subprocess.DEVNULL, stderr=e) for i, e in zip(range(1, processes), errs)]
-    rc = 1
+    procs, heard = [], []
     try:
-        rc = subprocess.call(cmd(0))
+        try:
+            for i in [*range(1, processes), 0]:
+                r, w = os.pipe()
+                heard.insert(0 if i == 0 else len(heard), r)
+                try:
+                    p = subprocess.Popen(cmd(i), stdout=None if i == 0 else subprocess.DEVNULL,
+                                         stderr=None if i == 0 else errs[i - 1], pass_fds=(w,),
+                                         env={**os.environ, _HEARD_ENV: str(w)})
+                finally:
+                    os.close(w)
+                procs.insert(0 if i == 0 else len(procs), p)
+            for r in heard:
+                os.set_blocking(r, False)
+        except BaseException:  # a Ctrl-C (or a failed start) before the group is complete
+            _stop(procs)
+            raise
+        return _wait_group(procs, heard, errs)
     finally:
-        if rc != 0:  # process 0 failed or was interrupted: the others would wait for it
-            for w in workers:
-                w.terminate()
-        codes = [w.wait() for w in workers]
+        if any(p.poll() is None for p in procs):  # an exception of our own: none is left running
+            _stop(procs, grace_s=0.0)
+        for fd in heard:
+            os.close(fd)
+        for e in errs:
+            e.close()
+
+
+def _exit_code(code: int) -> int:
+    """A child's exit status as a shell reports it (killed by signal N: 128 + N)."""
+    return 128 - code if code < 0 else code
+
+
+def _wait_group(procs, heard, errs) -> int:
+    """Wait for the group started by :func:`_launch_local` (``procs[0]`` is process 0; ``heard``
+    the read ends of their pipes); the command's exit code."""
+    import signal
+    import subprocess
+    import time
+
+    from .common import raise_if_interrupted
+
+    p0, workers = procs[0], procs[1:]
+    got = [False] * len(procs)  # a signal reached that process (its pipe said so)
+    interrupted_at = failed_at = None
+    passed_on = stuck = False
+    while p0.poll() is None:
+        try:
+            if interrupted_at is None:
+                raise_if_interrupted()  # one whose exception Python dropped
+            p0.wait(timeout=0.1)
+        except subprocess.TimeoutExpired:
+            pass
+        except KeyboardInterrupt:
+            if interrupted_at is not None:  # the second Ctrl-C: stop them now
+                _stop(procs)
+                return 130
+            interrupted_at = time.monotonic()
+        for k, fd in enumerate(heard):
+            with contextlib.suppress(BlockingIOError, OSError):
+                got[k] = got[k] or signal.SIGINT in os.read(fd, 64)
+        now = time.monotonic()
+        if interrupted_at is not None and not passed_on and now - interrupted_at >= _HEARD_WAIT_S:
+            passed_on = True  # to those the Ctrl-C did not reach (it was sent to the launcher alone)
+            for p, g in zip(procs, got):
+                if not g and p.poll() is None:
+                    p.send_signal(signal.SIGINT)
+        if failed_at is None and any(w.poll() not in (None, 0) for w in workers):
+            failed_at = now
+        if failed_at is not None and now - failed_at >= _STUCK_AFTER_S:
+            # a worker ended with an error (or a Ctrl-C) outside the group's collectives: process 0
+            # would wait for it in the next one (minutes, until gloo or the coordinator gives up)
+            stuck = True
+            _stop([p0])
+    rc = _exit_code(p0.returncode)
+    interrupted = interrupted_at is not None or rc == 130
+    if rc != 0:  # the workers end too (a Ctrl-C reached them as well) or would wait for process 0
+        _stop(workers, wait_s=_STOP_GRACE_S if interrupted else 0.0)
+    else:  # they end after the gather
+        for w in workers:
+            try:
+                w.wait()
+            except KeyboardInterrupt:  # the run is written; a Ctrl-C only stops them sooner
+                _stop(workers)
+                break
+    if interrupted:
+        return 130
+    codes = [_exit_code(w.returncode) for w in workers]
     bad = [(i, c) for i, c in enumerate(codes) if c != 0]
-    if rc == 0 and bad:
+    if (rc == 0 or stuck) and bad:
         i, c = bad[0]
         errs[i].seek(0)
         tail = [ln for ln in errs[i].read().splitlines() if ln.strip()][-1:]
-        print(f"{PROG} run: process {i + 1} of {processes} exited with {c}"
+        print(f"{PROG} run: process {i + 1} of {len(procs)} exited with {c}"
               + (f": {tail[0]}" if tail else ""), file=sys.stderr)
         rc = c
-    for e in errs:
-        e.close()
     return rc
+
+
+def _stop(procs, wait_s: float = 0.0, grace_s: float | None = None) -> None:
+    """End ``procs``: up to ``wait_s`` for them to end by themselves, then SIGTERM, then SIGKILL
+    after ``grace_s`` (default ``_STOP_GRACE_S``); returns when none is running (a Ctrl-C meanwhile
+    goes to SIGKILL at once)."""
+    import subprocess
+    import time
+
+    grace_s = _STOP_GRACE_S if grace_s is None else grace_s
+    for step, seconds in (("wait", wait_s), ("terminate", grace_s)):
+        if step == "terminate":
+            for p in procs:
+                if p.poll() is None:
+                    p.terminate()
+        end = time.monotonic() + seconds
+        try:
+            for p in procs:
+                with contextlib.suppress(subprocess.TimeoutExpired):
+                    p.wait(timeout=max(0.0, end - time.monotonic()))
+        except KeyboardInterrupt:
+            break
+    for p in procs:
+        if p.poll() is None:
+            p.kill()
+    for p in procs:
+        while True:
+            try:
+                p.wait()  # SIGKILL: moments
+                break
+            except KeyboardInterrupt:
+                pass
 
 
 def _run_notes(result, runs: int) -> list:
