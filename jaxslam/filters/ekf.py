@@ -41,7 +41,10 @@ Decisions (where the papers are silent or where jaxslam departs from them)
   A gated update leaves the state unchanged and sets ``errors.GATED``.
 * Failures never produce silent NaNs: if the Cholesky factor of ``S`` is not
   finite (``errors.NOT_PSD``) or the posterior is not finite
-  (``errors.NON_FINITE``), the prior is returned unchanged and flagged.
+  (``errors.NON_FINITE``), the prior is returned unchanged and flagged.  A NaN/Inf in ``S``
+  (from the prior, ``H`` or ``R``) is ``NON_FINITE`` alone, and a finite ``S`` that does not
+  factor ``NOT_PSD`` alone, in all four generic filters
+  (:func:`jaxslam.filters.gaussian.failure_status`).
 * ``UpdateInfo.accepted`` is True exactly when the state was changed: at least
   one valid component, not gated, numerically sound.
 * ``update_batch`` processes M measurements of the same model jointly (one
@@ -442,18 +445,21 @@ def _update(state: Gaussian, z, h: Callable, R, *args, residual=None, mask=None,
     # The NIS (hence the gate) does not depend on whether the update is
     # finally applied, so one correction serves both.
     x_post, P_post, S, num, nis, ok, logdet = linear_update(x, P, nu, H, R, mask)
+    # a NaN/Inf in the S factored (from P, H or R's valid block) is NON_FINITE, not NOT_PSD
+    finite_in = jnp.all(jnp.isfinite(S))
     extra = None
     if int(num_iter) > 1:
         def gn(carry, _):
-            xi, _, ok_so_far, _ = carry
+            xi, _, ok_so_far, _, fin = carry
             zi, Hi = linearise(xi)
             nui = masked_innovation(z, zi, mask, res) - jnp.where(
                 mask, Hi @ (x - xi), jnp.zeros((), dtype))
-            xn, Pn, _, _, _, oki, _ = linear_update(x, P, nui, Hi, R, mask)
-            return (xn, Pn, ok_so_far & oki, xi), None  # one failed linearisation fails the update
+            xn, Pn, Si, _, _, oki, _ = linear_update(x, P, nui, Hi, R, mask)
+            # one failed linearisation fails the update
+            return (xn, Pn, ok_so_far & oki, xi, fin & jnp.all(jnp.isfinite(Si))), None
 
-        (x_post, P_post, ok_it, x_prev), _ = jax.lax.scan(
-            gn, (x_post, P_post, ok, x), None, length=int(num_iter) - 1)
+        (x_post, P_post, ok_it, x_prev, finite_in), _ = jax.lax.scan(
+            gn, (x_post, P_post, ok, x, finite_in), None, length=int(num_iter) - 1)
         ok = ok & ok_it
         tol_v = jnp.asarray((1e-6 if dtype == jnp.float64 else 1e-3) if tol is None else tol, dtype)
         sig = jnp.sqrt(jnp.maximum(jnp.diagonal(P), jnp.finfo(dtype).tiny))
@@ -465,7 +471,7 @@ def _update(state: Gaussian, z, h: Callable, R, *args, residual=None, mask=None,
     else:  # a traced threshold that is not > 0 (NaN) gates the update and flags NON_FINITE
         gated, g_status = _g.gate_test(gate, nis, dof, dtype)
         extra = g_status if extra is None else extra | g_status
-    post, accepted, status = _finalize(state, x_post, P_post, ok, gated, dof, extra)
+    post, accepted, status = _finalize(state, x_post, P_post, ok, gated, dof, extra, finite_in=finite_in)
     # a failed factorisation reports NIS 0 (not NaN); its step's log-likelihood is NaN, with
     # the status saying why (gaussian.step_log_likelihood)
     nis = jnp.where(ok, nis, jnp.zeros((), dtype))
@@ -623,21 +629,25 @@ def _update_batch(state: Gaussian, zs, h: Callable, R, *args, masks=None, residu
 
     keep = masks & ~gated[:, None]
     R_blk = jnp.einsum("ab,aij->aibj", jnp.eye(M, dtype=dtype), Rs).reshape(M * m, M * m)
-    x_post, P_post, _, _, _, ok, _ = linear_update(
+    x_post, P_post, S_joint, _, _, ok, _ = linear_update(
         x, P, nu.reshape(M * m), Hm.reshape(M * m, n), R_blk,
         keep.reshape(M * m)
     )
     dof_total = jnp.sum(keep).astype(jnp.int32)
     post, any_acc, status_joint = _finalize(
-        state, x_post, P_post, ok, jnp.asarray(False), dof_total
+        state, x_post, P_post, ok, jnp.asarray(False), dof_total,
+        finite_in=jnp.all(jnp.isfinite(S_joint))
     )
     used = valid & ~gated
     accepted = used & any_acc
     status = jnp.where(gated, jnp.int32(errors.GATED), jnp.int32(0)) | jnp.where(
         used, status_joint, jnp.int32(0)
     ) | g_status
-    # A failed marginal factorisation is a symptom of the same problem.
-    status = status | jnp.where(valid & ~ok_i, jnp.int32(errors.NOT_PSD), jnp.int32(0))
+    # A failed marginal factorisation is a symptom of the same problem (NON_FINITE when its
+    # S_ii held a NaN/Inf: gaussian.failure_status).
+    fin_i = jnp.all(jnp.isfinite(S_ii), axis=(1, 2))
+    status = status | jnp.where(valid & ~ok_i, jnp.where(fin_i, jnp.int32(errors.NOT_PSD),
+                                                         jnp.int32(errors.NON_FINITE)), jnp.int32(0))
     logdet_i = jnp.where(valid & ok_i, logdet_i, jnp.zeros((), dtype))
     return post, UpdateInfo(nis, dof, nu, S_ii, accepted, status, logdet_i)
 
@@ -738,7 +748,9 @@ def filter_scan(
         zs: (T, m) measurements.
         masks: (T, m) bool validity (None: all valid).
         Q: (n, n) (or (q, q) with ``noise_jac``) process noise, or one per step
-            (T, n, n).  R: (m, m) or (T, m, m).
+            (T, n, n); a scalar for a single noise input (n = 1, or q = 1), as in
+            :func:`predict`.  R: (m, m) or (T, m, m) (a scalar for m = 1).  ``x0``, ``P0``,
+            ``zs``, ``Q``, ``R`` must not be booleans (:class:`InputError` naming it).
         *args: shared extra arguments of both ``f`` and ``h``.
         residual, gate, num_iter: as in :func:`update`.
         save_cov: static; also stack full covariances (T, n, n).  Off by

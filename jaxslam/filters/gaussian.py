@@ -64,6 +64,7 @@ __all__ = [
     "keyed_filter",
     "innovation_solve",
     "finalize",
+    "failure_status",
     "masked_innovation",
     "threshold",
     "gate_test",
@@ -474,18 +475,33 @@ def check_measurement(z, zhat, R, mask=None):
 def innovation_solve(S, B):
     """Solve ``S X = B`` by Cholesky; return ``(X, ok, logdet S)``.
 
-    ``ok`` is False when the factor is not finite (``S`` not PD); ``logdet`` is
-    then 0.  ``S`` must already be masked (identity on invalid rows/columns).
+    ``ok`` is False when the factor is not finite or has a zero pivot (``S`` not PD);
+    ``logdet`` is then 0.  ``S`` must already be masked (identity on invalid rows/columns).
     """
     L = jnp.linalg.cholesky(symmetrize(S))
-    ok = jnp.all(jnp.isfinite(L))
+    # a zero pivot (S singular) gives a finite factor and an Inf/NaN solve: not PD either
+    ok = jnp.all(jnp.isfinite(L)) & jnp.all(jnp.diagonal(L) > 0)
     X = jax.scipy.linalg.cho_solve((L, True), B)
     d = jnp.where(ok, jnp.diagonal(L), jnp.ones((), L.dtype))
     logdet = 2.0 * jnp.sum(jnp.log(jnp.abs(d)))
     return X, ok, logdet
 
 
-def finalize(prior: Gaussian, x_post, P_post, ok, gated, dof, extra_status=None):
+def failure_status(live, ok, finite_in, finite_out):
+    """The ``NOT_PSD`` / ``NON_FINITE`` bits of a step, one rule for the four Gaussian filters
+    (``ekf``, ``ukf``, ``sqrt_ekf``, ``sqrt_ukf``; int32): ``NON_FINITE`` when a NaN/Inf entered
+    the step (``finite_in`` False: the matrix it factored, or the moments it started from) or
+    its result is not finite although the factorisation held; ``NOT_PSD`` when a factorisation
+    failed on finite numbers (an indefinite or singular matrix).  A NaN that makes a Cholesky
+    factor NaN is the NaN's failure, not a covariance found indefinite, so ``NOT_PSD`` is not
+    added for it (nor ``NON_FINITE`` for the NaN a failed factorisation of finite numbers
+    produces).  Only where ``live`` (a valid component, not gated)."""
+    i32 = jnp.int32
+    return (jnp.where(live & ~ok & finite_in, i32(errors.NOT_PSD), i32(0))
+            | jnp.where(live & (~finite_in | (ok & ~finite_out)), i32(errors.NON_FINITE), i32(0)))
+
+
+def finalize(prior: Gaussian, x_post, P_post, ok, gated, dof, extra_status=None, finite_in=None):
     """Select posterior or prior and assemble the status bits.
 
     Returns ``(Gaussian, accepted, status)``: the posterior only when at least
@@ -496,7 +512,11 @@ def finalize(prior: Gaussian, x_post, P_post, ok, gated, dof, extra_status=None)
     set.  The variance check is O(n) and catches an indefinite prior, whose negative variances
     are of the order of the prior's, that a traced call could not refuse (its ``S`` may still
     factor).  ``extra_status`` (int32) is OR-ed in (e.g. ``NOT_CONVERGED``
-    from an iterated update).
+    from an iterated update).  ``finite_in`` (a bool, traced) is False when a NaN/Inf entered
+    the step (the ``S`` it factored, the prior); given, the bits follow :func:`failure_status`
+    (a NaN is ``NON_FINITE`` only, a finite matrix that does not factor ``NOT_PSD`` only);
+    None (the iterated smoother) sets ``NOT_PSD`` for any failed factorisation and
+    ``NON_FINITE`` for any non-finite result.
     """
     var = jnp.diagonal(P_post)
     scale = jnp.max(jnp.abs(jnp.diagonal(prior.cov)))
@@ -508,11 +528,12 @@ def finalize(prior: Gaussian, x_post, P_post, ok, gated, dof, extra_status=None)
     mean = jnp.where(accepted, x_post, prior.mean)
     cov = jnp.where(accepted, P_post, prior.cov)
     i32 = jnp.int32
-    status = (
-        jnp.where(gated, i32(errors.GATED), i32(0))
-        | jnp.where(has & ~gated & ~ok, i32(errors.NOT_PSD), i32(0))
-        | jnp.where(has & ~gated & ~finite, i32(errors.NON_FINITE), i32(0))
-    )
+    if finite_in is None:
+        fail = (jnp.where(has & ~gated & ~ok, i32(errors.NOT_PSD), i32(0))
+                | jnp.where(has & ~gated & ~finite, i32(errors.NON_FINITE), i32(0)))
+    else:
+        fail = failure_status(has & ~gated, ok, finite_in, finite)
+    status = jnp.where(gated, i32(errors.GATED), i32(0)) | fail
     if extra_status is not None:
         status = status | jnp.where(has, extra_status, i32(0))
     return Gaussian(mean, cov), accepted, status
@@ -552,13 +573,23 @@ def _per_step(M, T, name, dims):
                      f"got shape {M.shape}")
 
 
+def refuse_bool(x, name: str) -> None:
+    """:class:`InputError` naming ``name`` when ``x`` is a bool, a bool array (NumPy's or JAX's,
+    traced too: the dtype is static) or a list holding one (:func:`jaxslam.errors.has_bool`): a
+    run read ``True`` as 1 (an ``x0``, ``P0``, ``Q`` or ``R`` of bools ran as numbers)."""
+    if errors.has_bool(x):
+        raise InputError(f"{name}: expected numbers, got booleans (True / False are not numbers)")
+
+
 def check_run_numbers(x, name: str) -> None:
     """:class:`InputError` naming ``name`` unless a run's array ``x`` is real numbers: the dtype
     (complex refused, :func:`jaxslam.linalg.check_real`) always, and, when ``x`` is known now and
     is not already a numeric array (a list, a str or object array), its entries
     (:func:`jaxslam.linalg.check_numbers`).  Runs before any cast: a str ``x0`` or ``zs`` ended in
     a bare ``TypeError`` / ``ValueError`` there, a str ``P0`` was parsed as numbers and a complex
-    ``P0`` lost its imaginary part with only a warning (``ekf.filter_scan``)."""
+    ``P0`` lost its imaginary part with only a warning (``ekf.filter_scan``).  Booleans are
+    refused (:func:`refuse_bool`)."""
+    refuse_bool(x, name)
     check_real(x, name)
     if is_concrete(x) and not (isinstance(x, (np.ndarray, jax.Array)) and np.dtype(x.dtype).kind in "biuf"):
         check_numbers(x, name)
@@ -569,10 +600,13 @@ def check_run_inputs(x0, P0, zs, masks, Q, R, name_prefix="", q_optional: bool =
     (:func:`run`, ``sqrt_ekf.filter_scan``, ``sqrt_ukf.filter_scan``): ``x0``, ``P0``, ``zs``
     real numbers (:func:`check_run_numbers`); shapes; ``x0`` finite and ``P0``, ``Q`` PSD,
     ``R`` PD (a per-step ``R`` on the rows ``masks`` uses) where concrete.  A scalar ``R`` is
-    the variance of the one measurement when m = 1.  ``Q`` is checked for squareness and, as
-    one matrix per step, for its count; its size against the state is the caller's (it
-    depends on ``noise_jac``).  With ``q_optional`` a ``Q`` of None is not checked (the caller
-    has the noise from elsewhere, e.g. a square root ``Q_chol``).
+    the variance of the one measurement when m = 1 (so is a (1,) ``R``).  ``Q`` is checked for
+    squareness and, as one matrix per step, for its count; its size against the state is the
+    caller's (it depends on ``noise_jac``): a scalar or (1,) ``Q`` is the variance of a single
+    noise input, as in one step's predict (``n = 1``, or a one-column ``noise_jac``).  None of
+    ``x0``, ``P0``, ``zs``, ``Q``, ``R`` may be booleans (:func:`refuse_bool`).  With
+    ``q_optional`` a ``Q`` of None is not checked (the caller has the noise from elsewhere, e.g.
+    a square root ``Q_chol``).
 
     Raises :class:`InputError` naming the argument.  Under ``jit`` only the
     shapes and dtypes are checked (values are abstract).  Returns ``(T, m)``.
@@ -580,6 +614,8 @@ def check_run_inputs(x0, P0, zs, masks, Q, R, name_prefix="", q_optional: bool =
     pre = name_prefix
     for v, nm in ((x0, "x0"), (P0, "P0"), (zs, "zs")):
         check_run_numbers(v, f"{pre}{nm}")
+    for v, nm in ((Q, "Q"), (R, "R")):
+        refuse_bool(v, f"{pre}{nm}")
     xs = np.shape(x0)
     if len(xs) != 1:
         raise InputError(f"{pre}x0: expected shape (n,), got {tuple(xs)}")
@@ -600,13 +636,15 @@ def check_run_inputs(x0, P0, zs, masks, Q, R, name_prefix="", q_optional: bool =
                          f"{tuple(np.shape(masks))}")
     check_mask(masks, f"{pre}masks")
     rs = np.shape(R)
-    if m == 1 and len(rs) == 0:
+    if m == 1 and rs in ((), (1,)):
         R = np.reshape(R, (1, 1)) if is_concrete(R) else R  # a scalar variance of one measurement
     elif len(rs) not in (2, 3) or rs[-2:] != (m, m) or (len(rs) == 3 and rs[0] != T):
         # (the count before the values: the masks of a per-step R's check must match it)
         raise InputError(f"{pre}R: expected shape ({m}, {m}) or ({T}, {m}, {m}), got {tuple(rs)}")
     checks = [(P0, "P0", False), (R, "R", True)]
     if not (q_optional and Q is None):
+        if tuple(np.shape(Q)) in ((), (1,)):  # the variance of a single noise input (one step's rule)
+            Q = np.reshape(check_numbers(Q, f"{pre}Q"), (1, 1)) if is_concrete(Q) else jnp.reshape(Q, (1, 1))
         qs = tuple(np.shape(Q))
         if len(qs) not in (2, 3) or qs[-1] != qs[-2]:
             raise InputError(f"{pre}Q: expected a square matrix or one per step, got shape {qs}")
@@ -702,9 +740,14 @@ def prepare_run(x0, P0, zs, masks, Q, R):
     dtype = x0.dtype if jnp.issubdtype(x0.dtype, jnp.floating) else jnp.result_type(float)
     x0, P0, zs = (host_array(v, dtype) for v in (x0, P0, zs))
     T, m = check_run_inputs(x0, P0, zs, masks, Q, R)
-    Q, q_step = _per_step(host_array(Q, dtype), T, "Q", 2)
+    Q = host_array(Q, dtype)
+    if Q.ndim < 2 and x0.shape[0] == 1:  # the variance of the one state component: (1, 1) now, so
+        Q = Q.reshape(1, 1)  # the run is the one of a (1, 1) Q (same program, same numbers)
+    # any other scalar or (1,) Q goes to the filter's predict as given: it reads it as one step
+    # does (the variance of a one-column noise_jac's input, else an InputError naming Q)
+    Q, q_step = (Q, False) if Q.ndim < 2 else _per_step(Q, T, "Q", 2)
     R = host_array(R, dtype)
-    R, r_step = _per_step(R.reshape(1, 1) if R.ndim == 0 else R, T, "R", 2)
+    R, r_step = _per_step(R.reshape(1, 1) if R.ndim < 2 else R, T, "R", 2)
     masks = host_array(np.ones((T, m), bool) if masks is None else masks, bool)
     return x0, P0, zs, masks, Q, R, q_step, r_step, T
 
@@ -738,8 +781,9 @@ def run(
             without inputs.
         zs: (T, m) measurements.
         masks: (T, m) bool validity, or None (all valid).
-        Q: (q, q) process noise, or (T, q, q) one per step.
-        R: (m, m) measurement noise, or (T, m, m) one per step.
+        Q: (q, q) process noise, or (T, q, q) one per step; a scalar for a single noise
+            input (n = 1, or q = 1), as the filter's one-step predict takes it.
+        R: (m, m) measurement noise, or (T, m, m) one per step; a scalar for m = 1.
         h_inputs: None, or a pytree with leading axis T passed to the
             measurement model as its per-step input ``c_t``.
         predict_first: static; the step order (module docstring).

@@ -73,12 +73,15 @@ Decisions
   with a number or ``gate(dof)``; a gated update keeps the prior and sets
   ``errors.GATED``.  If the factor of ``S`` is not finite or has a zero diagonal (``S``
   singular) the prior is kept and ``errors.NOT_PSD`` is set; if the posterior is not
-  finite, ``errors.NON_FINITE``.  ``UpdateInfo.accepted`` is True exactly when the state
+  finite, ``errors.NON_FINITE``.  A NaN/Inf in the pre-array's inputs (the prior factor,
+  ``H``, ``R``'s valid block) is ``NON_FINITE`` only, as in the covariance forms
+  (:func:`jaxslam.filters.gaussian.failure_status`; it used to be ``NOT_PSD`` only here and
+  ``NOT_PSD | NON_FINITE`` there).  ``UpdateInfo.accepted`` is True exactly when the state
   changed.
 * ``filter_scan`` ordering and outputs follow :func:`jaxslam.filters.ekf.filter_scan`
   (``predict_first``); the variances ``cov_diags`` are the squared row norms of ``L``.  A
   non-finite prediction adds ``errors.NON_FINITE`` to the status of the step whose prior it
-  is (as the EKF's run does; its update then also reports ``NOT_PSD``).
+  is (as the EKF's run does; its update, which meets the NaN factor, reports ``NON_FINITE``).
 * dtype: every function computes in the dtype of the mean; ``Q``, ``R``, ``z`` and the
   factor are cast to it.
 
@@ -105,7 +108,7 @@ from .ekf import Gaussian, UpdateInfo
 from .gaussian import (call_residual, check_gate, check_gate_size, check_leading, check_measurement, check_noise_values,
                        check_update_call, check_run_inputs, check_run_numbers,
                        check_process_noise, check_transition_out, check_update_args, moment_dtype,
-                       scalar_measurement, state_pair, gate_test)
+                       scalar_measurement, state_pair, gate_test, failure_status)
 
 __all__ = [
     "SqrtGaussian",
@@ -207,7 +210,8 @@ def psd_factor(A, dtype=None):
     zero pivot) is factored from its eigen-decomposition ``V diag(w) Vᵀ`` as the
     triangularisation of ``V diag(√w)``; eigenvalues in ``[−10 n eps |w|_max, 0)``
     (rounding) count as 0, a more negative one (``A`` indefinite) or a NaN/Inf entry gives a
-    NaN factor, which the next update reports (``errors.NOT_PSD``) rather than hiding.
+    NaN factor, which the next update reports (``errors.NON_FINITE``: the factor it meets is
+    NaN) rather than hiding.
 
     Args:
         A: (n, n) symmetric positive semi-definite matrix (it is symmetrised first).
@@ -549,13 +553,16 @@ def _update(state, z, h, R, *args, residual=None, mask=None, gate: Gate = None):
     else:  # a traced threshold that is not > 0 (NaN) gates the update and flags NON_FINITE
         gated, g_status = gate_test(gate, nis, dof, dtype)
     finite = jnp.all(jnp.isfinite(x_post)) & jnp.all(jnp.isfinite(L_post))
+    # a NaN/Inf in the pre-array's inputs (the prior factor, H, R's valid block) is NON_FINITE,
+    # not NOT_PSD: the rule of the covariance filters (gaussian.failure_status)
+    finite_in = (jnp.all(jnp.isfinite(L)) & jnp.all(jnp.isfinite(Hm))
+                 & jnp.all(jnp.isfinite(jnp.where(mm, R, eye_m))))
     has = dof > 0
     accepted = has & ~gated & ok & finite
     i32 = jnp.int32
     status = (
         jnp.where(gated, i32(errors.GATED), i32(0))
-        | jnp.where(has & ~gated & ~ok, i32(errors.NOT_PSD), i32(0))
-        | jnp.where(has & ~gated & ok & ~finite, i32(errors.NON_FINITE), i32(0))
+        | failure_status(has & ~gated, ok, finite_in, finite)
         | g_status
     )
     post = SqrtGaussian(jnp.where(accepted, x_post, x), jnp.where(accepted, L_post, L))
@@ -598,9 +605,11 @@ def _validate_scan(x0, P0, us, zs, masks, Q, R, noise_jac, Q_chol):
         return
     if Q is None:
         raise InputError("Q: a process-noise covariance (or Q_chol=) is required")
-    # squareness, the per-step count and the values: check_run_inputs; the size here
+    # squareness, the per-step count and the values: check_run_inputs; the size here (a scalar
+    # or (1,) Q: the variance of a single noise input, as in predict)
     qs = tuple(np.shape(Q))
-    if not (noise_jac is not None and callable(noise_jac)) and qs[-2:] != (q, q):
+    if not (noise_jac is not None and callable(noise_jac)) and qs[-2:] != (q, q) and not (
+            q == 1 and qs in ((), (1,))):
         raise InputError(f"Q: expected shape ({q}, {q}) or ({T}, {q}, {q}), got {qs}")
 
 
@@ -645,7 +654,8 @@ def filter_scan(
         zs: (T, m) measurements, m >= 1.
         masks: (T, m) bool validity (None: all valid).
         Q: (n, n) (or (q, q) with ``noise_jac``) process-noise covariance (PSD), one per
-            step (T, n, n) (each factored before the scan), or None with ``Q_chol``.
+            step (T, n, n) (each factored before the scan), or None with ``Q_chol``; a scalar
+            is the variance of a single noise input (n = 1, or q = 1), as in :func:`predict`.
         R: (m, m) measurement-noise covariance (PD), or one per step (T, m, m); a scalar is the
             variance of the one measurement when m = 1.
         *args: shared extra arguments of both ``f`` and ``h``.
@@ -666,10 +676,12 @@ def filter_scan(
     x0 = x0.astype(dtype)
     L0 = psd_factor(P0, dtype)
     q_step = Q_chol is None and np.ndim(Q) == 3
+    if Q_chol is None and np.ndim(Q) < 2:  # the variance of a single noise input (_validate_scan)
+        Q = np.reshape(np.asarray(Q), (1, 1)) if is_concrete(Q) else jnp.reshape(Q, (1, 1))
     C = _noise_root(Q, Q_chol, dtype)
     zs = jnp.asarray(zs, dtype=dtype)
     R = jnp.asarray(R, dtype=dtype)
-    R = R.reshape(1, 1) if R.ndim == 0 else R  # a scalar: the variance of one measurement (m = 1)
+    R = R.reshape(1, 1) if R.ndim < 2 else R  # a scalar: the variance of one measurement (m = 1)
     r_step = R.ndim == 3
     T, m = zs.shape
     masks = jnp.ones((T, m), bool) if masks is None else jnp.asarray(masks, bool)
@@ -686,7 +698,7 @@ def filter_scan(
 
         def pred_status(s):
             # a non-finite prediction (NaN/Inf from f or a traced noise) is NON_FINITE, as in
-            # ekf.filter_scan: the step's update alone would only report NOT_PSD
+            # ekf.filter_scan (the step's update says so too: a NaN prior factor is NON_FINITE)
             finite = jnp.all(jnp.isfinite(s.mean)) & jnp.all(jnp.isfinite(s.chol))
             return jnp.where(finite, jnp.int32(0), jnp.int32(errors.NON_FINITE))
 

@@ -42,6 +42,7 @@ from .gaussian import (
     check_noise_values,
     check_update_args,
     check_update_call,
+    failure_status,
     scalar_measurement,
     masked_innovation,
     gate_test,
@@ -220,12 +221,15 @@ def _update(state, z, h, R, *args, residual=None, mask=None, gate: Gate = None, 
     else:  # a traced threshold that is not > 0 (NaN) gates the update and flags NON_FINITE
         gated, g_status = gate_test(gate, nis, dof, dtype)
     finite = jnp.all(jnp.isfinite(x_post)) & jnp.all(jnp.isfinite(L_post))
+    # a NaN/Inf in the prior factor, the spread of h's outputs (a NaN mean's points) or R's valid
+    # block is NON_FINITE, not NOT_PSD: the rule of the covariance filters (gaussian.failure_status)
+    finite_in = (jnp.all(jnp.isfinite(L)) & jnp.all(jnp.isfinite(Ys))
+                 & jnp.all(jnp.isfinite(jnp.where(mm, R, eye_m))))
     has = dof > 0
     accepted = has & ~gated & ok & finite
     i32 = jnp.int32
     status = (jnp.where(gated, i32(errors.GATED), i32(0))
-              | jnp.where(has & ~gated & ~ok, i32(errors.NOT_PSD), i32(0))
-              | jnp.where(has & ~gated & ok & ~finite, i32(errors.NON_FINITE), i32(0))
+              | failure_status(has & ~gated, ok, finite_in, finite)
               | g_status)
     post = SqrtGaussian(jnp.where(accepted, x_post, x), jnp.where(accepted, L_post, L))
     logdet = jnp.where(ok & has, 2.0 * jnp.sum(jnp.log(jnp.where(mask, jnp.abs(jnp.diagonal(S_safe)), 1.0))),
@@ -239,7 +243,8 @@ def filter_scan(f: Optional[Callable], h: Callable, x0, P0, us, zs, masks, Q, R,
     """Square-root sigma-point filter over a whole sequence (one ``lax.scan``).
 
     Arguments as :func:`jaxslam.filters.sqrt_ekf.filter_scan` (``Q`` (n, n) or (T, n, n) is
-    factored once per matrix before the scan; ``R`` (m, m) or (T, m, m)) plus ``points``
+    factored once per matrix before the scan, a scalar for n = 1 as in :func:`predict`; ``R``
+    (m, m) or (T, m, m)) plus ``points``
     (static), without ``noise_jac`` and ``Q_chol``.  A predict that fails (non-finite) keeps
     its prior and sets ``NON_FINITE`` in the step's status.  With ``predict_first=False`` the
     first update factors ``P0`` itself, so a concrete ``P0`` must then be positive definite,
@@ -264,6 +269,8 @@ def filter_scan(f: Optional[Callable], h: Callable, x0, P0, us, zs, masks, Q, R,
     if not predict_first and is_concrete(P0):
         # the first update's statistical linearisation needs P0⁻¹ (a zero variance: NOT_PSD)
         check_psd(P0, "P0", strict=True, tol=0.0)
+    if n == 1 and np.shape(Q) in ((), (1,)):  # the variance of the one noise input, as in predict
+        Q = np.reshape(np.asarray(Q), (1, 1)) if is_concrete(Q) else jnp.reshape(Q, (1, 1))
     if np.shape(Q)[-2:] != (n, n):
         raise InputError(f"Q: expected shape ({n}, {n}) or ({T}, {n}, {n}), got {tuple(np.shape(Q))}")
     check_leading(us, T, "us")
@@ -272,7 +279,7 @@ def filter_scan(f: Optional[Callable], h: Callable, x0, P0, us, zs, masks, Q, R,
     q_step = np.ndim(Q) == 3
     CQ = _noise_root(Q, None, dtype)
     Ra = jnp.asarray(R, dtype)
-    Ra = Ra.reshape(1, 1) if Ra.ndim == 0 else Ra  # a scalar variance of one measurement
+    Ra = Ra.reshape(1, 1) if Ra.ndim < 2 else Ra  # a scalar variance of one measurement
     r_step = Ra.ndim == 3
 
     def scan(opts, x0, L0, CQ, us, zs, masks, Ra):

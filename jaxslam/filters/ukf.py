@@ -81,7 +81,8 @@ Decisions
 * Covariance update ``P − K S Kᵀ`` (not the Joseph form: there is no ``H``).  It can lose
   definiteness by rounding after a very informative update; the next step's factorisation
   then flags ``NOT_PSD`` rather than proceeding with NaN.
-* **Failures of a predict**: a non-finite factor of ``P`` (``NOT_PSD``) or a non-finite
+* **Failures of a predict**: a failed factor of ``P`` (``NOT_PSD``; ``NON_FINITE`` when ``P``
+  holds a NaN/Inf: :func:`jaxslam.filters.gaussian.failure_status`) or a non-finite
   predicted moment (``NON_FINITE``) keeps the prior moments (cross-covariance ``P``).  The
   filter's predict returns that status (the ``GaussianFilter`` protocol's optional third
   output), so inside a run the step carries the flag and a NaN log-likelihood (a summed NLL
@@ -337,9 +338,8 @@ def _predict(state: Gaussian, f: Optional[Callable], u, Q, args, rule: SigmaPoin
     # a negative predicted variance (a traced negative Q) is NOT_PSD: the prior is kept
     neg = _g.predicted_status(Pn) == errors.NOT_PSD
     good = ok & finite & ~neg
-    i32 = jnp.int32
-    status = jnp.where(~ok | (finite & neg), i32(errors.NOT_PSD), i32(0)) | jnp.where(
-        ok & ~finite, i32(errors.NON_FINITE), i32(0))
+    # a prior P with a NaN/Inf fails its factor: NON_FINITE, not NOT_PSD (gaussian.failure_status)
+    status = _g.failure_status(jnp.asarray(True), ok & ~(finite & neg), jnp.all(jnp.isfinite(P)), finite)
     out = Gaussian(jnp.where(good, xm, x), jnp.where(good, Pn, P))
     return out, jnp.where(good, C, P), status
 
@@ -522,7 +522,10 @@ def _update(state: Gaussian, z, h: Callable, R, *args, residual=None, mask=None,
         gated, g_status = jnp.asarray(False), None
     else:  # a traced threshold that is not > 0 (NaN) gates the update and flags NON_FINITE
         gated, g_status = _g.gate_test(gate, nis, dof, dtype)
-    post, accepted, status = finalize(Gaussian(x, P), x_post, P_post, ok, gated, dof, g_status)
+    # a NaN/Inf in P or S (the sigma points of a NaN mean, R's valid block) is NON_FINITE only
+    finite_in = jnp.all(jnp.isfinite(P)) & jnp.all(jnp.isfinite(S))
+    post, accepted, status = finalize(Gaussian(x, P), x_post, P_post, ok, gated, dof, g_status,
+                                      finite_in=finite_in)
     logdet = jnp.where(ok & (dof > 0), logdet, zero)
     return post, UpdateInfo(nis, dof, nu, S, accepted, status, logdet)
 
@@ -614,8 +617,10 @@ def filter_scan(
         us: controls with leading axis T (array or pytree; None if unused).
         zs: (T, m) measurements.
         masks: (T, m) bool validity (None: all valid).
-        Q: (n, n) (or (q, q) with ``noise_jac``) process noise, or one per step (T, n, n).
-            R: (m, m) or (T, m, m).
+        Q: (n, n) (or (q, q) with ``noise_jac``) process noise, or one per step (T, n, n);
+            a scalar for a single noise input (n = 1, or q = 1), as in :func:`predict`.
+            R: (m, m) or (T, m, m) (a scalar for m = 1).  ``x0``, ``P0``, ``zs``, ``Q``, ``R``
+            must not be booleans (:class:`InputError` naming it).
         *args: shared extra arguments of both ``f`` and ``h``.
         residual, gate: as in :func:`update`.
         save_cov: static; also stack full covariances (T, n, n).
@@ -629,6 +634,7 @@ def filter_scan(
     Returns:
         :class:`Posterior` in the dtype of ``x0`` (``log_likelihood`` per step included).
     """
+    _g.refuse_bool(P0, "P0")  # (before the PD check below reads True as 1)
     if is_concrete(P0) and np.ndim(P0) == 2 and np.size(P0):  # empty: gaussian.run names x0
         # the sigma points factor P: a singular P0 (a zero variance) would fail every step's
         # factorisation and keep the prior for the whole run
