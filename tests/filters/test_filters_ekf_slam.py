@@ -805,10 +805,12 @@ def test_standard_form_update_equals_joseph(kw, active_only):
     z = jax.vmap(lambda l: observe(st.x[:3], l, None))(jnp.asarray(lm))
     z = z + jnp.asarray(np.random.default_rng(2).normal(size=z.shape) * np.array([0.05, 0.01]))
     mask = jnp.ones(len(act), bool)
-    upd = jax.jit(lambda st, z, joseph: es.update(st, MODEL, z, slots, mask, jnp.asarray(R), active_only=active_only,
-                                                  joseph=joseph, **kw), static_argnums=2)  # one program each
-    a, ia = upd(st, z, True)
-    b, ib = upd(st, z, False)
+    # _update_jit (below): the Joseph form (the default) is then the program of the same case of
+    # test_active_only_update_equals_whole_state_update (the same shapes: 12 rows, capacity 100),
+    # compiled once for both tests
+    kw = tuple(sorted(kw.items()))
+    a, ia = _update_jit(st, z, slots, mask, active_only, kw)
+    b, ib = _update_jit(st, z, slots, mask, active_only, tuple(sorted(kw + (("joseph", False),))))
     np.testing.assert_allclose(np.asarray(b.x), np.asarray(a.x), atol=1e-12)
     np.testing.assert_allclose(np.asarray(b.P), np.asarray(a.P), atol=1e-12)
     assert np.abs(np.asarray(b.P) - np.asarray(st.P)).max() > 1e-4  # the update did move P
