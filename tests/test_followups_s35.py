@@ -8,12 +8,12 @@ test if reached."""
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import pathlib
 import subprocess
 import sys
 
 import pytest
+from script_modules import load_script, no_compute as _no_compute
 
 from jaxslam import paramfile
 from jaxslam.errors import InputError
@@ -112,22 +112,6 @@ def test_jaxslam_run_answers_a_too_deep_params_file_with_one_line_exit_2(tmp_pat
 
 # --- 2. and 3. scripts: one usage line, exit 2, before any compute --------------------------------
 
-def _load_script(script):
-    # the scripts call runtime.configure_process() on import: not in this test process
-    from unittest import mock
-
-    from jaxslam import runtime
-
-    spec = importlib.util.spec_from_file_location(f"{script}_followups_s35", ROOT / "scripts" / f"{script}.py")
-    mod = importlib.util.module_from_spec(spec)
-    with mock.patch.object(runtime, "configure_process", lambda *a, **k: {}):
-        spec.loader.exec_module(mod)
-    return mod
-
-
-def _no_compute(*a, **k):
-    raise AssertionError("computed before the usage error")
-
 
 COMPUTE = ("part_oracle", "part_gradcheck", "part_ekf", "part_lqr", "part_loop", "part_nll_flat", "part_uwb",
            "controls", "simulate", "study", "probe", "part_resid", "part_odo", "part_loc", "part_slam", "mrclam",
@@ -143,7 +127,7 @@ def guarded(monkeypatch):
     monkeypatch.setattr(subprocess, "run", _no_compute)  # reproduce_datasets runs it in a subprocess
 
     def load(script):
-        mod = _load_script(script)
+        mod = load_script(script, "followups_s35")
         for name in COMPUTE:
             if hasattr(mod, name):
                 monkeypatch.setattr(mod, name, _no_compute)

@@ -7,36 +7,19 @@ the test if reached."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import pathlib
 import subprocess
 import sys
 
 import pytest
+from script_modules import load_script, no_compute as _no_compute
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 DATA = ROOT / "tests" / "data"
 
 SCRIPTS = ["gen_api", "reproduce_datasets", "reproduce_paper000", "reproduce_paper001", "reproduce_paper003",
            "reproduce_paper004", "reproduce_plaza_smoothing", "reproduce_tuning", "run_notebook"]
-
-
-def _load(script):
-    # the scripts call runtime.configure_process() on import: not in this test process
-    from unittest import mock
-
-    from jaxslam import runtime
-
-    spec = importlib.util.spec_from_file_location(f"{script}_s35", ROOT / "scripts" / f"{script}.py")
-    mod = importlib.util.module_from_spec(spec)
-    with mock.patch.object(runtime, "configure_process", lambda *a, **k: {}):
-        spec.loader.exec_module(mod)
-    return mod
-
-
-def _no_compute(*a, **k):
-    raise AssertionError("computed before the usage error")
 
 
 def _one_error_line(err):
@@ -54,7 +37,7 @@ def guarded(monkeypatch):
     monkeypatch.setattr(subprocess, "run", _no_compute)  # reproduce_datasets runs it in a subprocess
 
     def load(script):
-        mod = _load(script)
+        mod = load_script(script, "s35")
         for name in ("render", "smooth_log", "execute", "_execute", "part_oracle", "part_gradcheck", "part_ekf",
                      "part_lqr", "part_loop", "part_nll_flat", "part_uwb"):
             if hasattr(mod, name):
@@ -181,7 +164,7 @@ def test_notebook_unusable_output_or_empty_path_exits_2_before_any_cell(tmp_path
 
 
 def test_notebook_is_read_once_and_written_atomically(tmp_path, monkeypatch, capsys):
-    rn = _load("run_notebook")
+    rn = load_script("run_notebook", "s35")
     src = _notebook(tmp_path / "nb.ipynb", "print('hello')")
     reads = []
     loads = rn.json.loads
@@ -221,5 +204,5 @@ def test_table_only_without_matching_results_is_a_usage_error_as_in_paper001(gua
 
 def test_tuning_script_takes_the_largest_seed_its_parts_can_use():
     # S + 7 must stay a PRNG seed (< 2**63): 2**63 - 8 is the largest S, and it is taken as is
-    seed = _load("reproduce_tuning")._seed
+    seed = load_script("reproduce_tuning", "s35")._seed
     assert seed(str(2**63 - 8)) == 2**63 - 8 and seed("0") == 0

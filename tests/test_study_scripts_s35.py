@@ -14,10 +14,10 @@ Oracles, by hand from the files and the design:
 
 from __future__ import annotations
 
-import importlib.util
 import pathlib
 
 import pytest
+from script_modules import load_script
 
 from jaxslam.errors import InputError
 
@@ -63,25 +63,13 @@ def test_tune_mrclam_with_an_explicit_delay_says_so_in_one_line_before_the_fit(r
 
 # --- 2. the study scripts' arguments --------------------------------------------------------------------
 
-def _load(script):
-    # some scripts call runtime.configure_process() on import: not in this test process
-    from unittest import mock
-
-    from jaxslam import runtime
-
-    spec = importlib.util.spec_from_file_location(f"{script}_s35b", ROOT / "scripts" / f"{script}.py")
-    mod = importlib.util.module_from_spec(spec)
-    with mock.patch.object(runtime, "configure_process", lambda *a, **k: {}):
-        spec.loader.exec_module(mod)
-    return mod
-
 
 _mods = {}
 
 
 def mod(script):
     if script not in _mods:
-        _mods[script] = _load(script)
+        _mods[script] = load_script(script, "s35b")
     return _mods[script]
 
 
@@ -149,7 +137,7 @@ def test_fusion_emitters_leaves_the_process_environment_alone_on_import(monkeypa
     monkeypatch.delenv("XLA_FLAGS", raising=False)
     import os
 
-    _load("study_fastslam_fusion_emitters")
+    load_script("study_fastslam_fusion_emitters", "s35b")
     assert "XLA_FLAGS" not in os.environ
 
 
