@@ -12,11 +12,11 @@ import json
 import time
 
 from jaxslam import runtime
-from jaxslam.cli.common import ScriptParser, path_arg, one_line
-from jaxslam.data import catalogue
-from jaxslam.errors import InputError
 
 runtime.configure_process()
+from jaxslam.cli.common import ScriptParser, path_arg, one_line  # noqa: E402
+from jaxslam.data import catalogue  # noqa: E402
+from jaxslam.errors import InputError  # noqa: E402
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402

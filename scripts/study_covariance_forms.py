@@ -17,9 +17,9 @@ import json
 import time
 
 from jaxslam import runtime
-from jaxslam.cli.common import ScriptParser, path_arg, positive_float, positive_int, seed_int
 
 runtime.configure_process(cache=False)
+from jaxslam.cli.common import ScriptParser, path_arg, positive_float, positive_int, seed_int  # noqa: E402
 
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402

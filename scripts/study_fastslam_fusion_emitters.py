@@ -13,6 +13,9 @@ import sys
 import time
 import types
 
+# an entry point: OpenBLAS reads this when NumPy loads, which jaxslam.cli.common's package does
+# (a user's own setting is kept)
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 from jaxslam.cli.common import ScriptParser, positive_int
 
 

@@ -15,11 +15,11 @@ import json
 import os
 
 from jaxslam import runtime
-from jaxslam.cli.common import ScriptParser, one_line, path_arg
-from jaxslam.data import catalogue
-from jaxslam.errors import InputError
 
 runtime.configure_process()
+from jaxslam.cli.common import ScriptParser, one_line, path_arg  # noqa: E402
+from jaxslam.data import catalogue  # noqa: E402
+from jaxslam.errors import InputError  # noqa: E402
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
 

@@ -134,9 +134,9 @@ import time
 from typing import NamedTuple
 
 from jaxslam import runtime
-from jaxslam.cli.common import ScriptParser, path_arg
 
 runtime.configure_process()
+from jaxslam.cli.common import ScriptParser, path_arg  # noqa: E402
 
 import jax
 

@@ -10,11 +10,11 @@ Reads the data with the jaxslam.data loaders (DIR default: $JAXSLAM_DATA_DIR).
 import time
 
 from jaxslam import runtime
-from jaxslam.cli.common import ScriptParser, one_line, path_arg
-from jaxslam.data import catalogue
-from jaxslam.errors import InputError
 
 runtime.configure_process()
+from jaxslam.cli.common import ScriptParser, one_line, path_arg  # noqa: E402
+from jaxslam.data import catalogue  # noqa: E402
+from jaxslam.errors import InputError  # noqa: E402
 
 import jax  # noqa: E402
 

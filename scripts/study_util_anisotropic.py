@@ -12,11 +12,11 @@ import json
 import os
 
 from jaxslam import runtime
-from jaxslam.cli.common import ScriptParser, path_arg
-from jaxslam.errors import InputError
-from jaxslam.files import prepare_file
 
 runtime.configure_process(cache=False)
+from jaxslam.cli.common import ScriptParser, path_arg  # noqa: E402
+from jaxslam.errors import InputError  # noqa: E402
+from jaxslam.files import prepare_file  # noqa: E402
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402

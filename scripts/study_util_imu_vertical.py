@@ -20,6 +20,9 @@ import argparse
 import os
 import time
 
+# an entry point: OpenBLAS reads this when NumPy loads, which jaxslam.cli.common's package does
+# (a user's own setting is kept)
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 from jaxslam.cli.common import ScriptParser, nonnegative_float, positive_float, positive_int
 
 #: key -> (type, default) of the ``key=value`` settings (the docstring's keys)

@@ -13,10 +13,10 @@ import sys, time, json
 import pathlib
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 from jaxslam import runtime
-from jaxslam.cli.common import ScriptParser, one_line
-from jaxslam.data import catalogue
-from jaxslam.errors import InputError
 runtime.configure_process()
+from jaxslam.cli.common import ScriptParser, one_line  # noqa: E402
+from jaxslam.data import catalogue  # noqa: E402
+from jaxslam.errors import InputError  # noqa: E402
 import jax  # noqa: E402
 jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp, numpy as np  # noqa: E401,E402

@@ -19,9 +19,9 @@ import os
 import time
 
 from jaxslam import runtime
-from jaxslam.cli.common import ScriptParser, path_arg
 
 runtime.configure_process(cache=False)
+from jaxslam.cli.common import ScriptParser, path_arg  # noqa: E402
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402

@@ -44,6 +44,9 @@ _MEMBER = textwrap.dedent("""
     if mode == "fail":
         print("member failed", file=sys.stderr)
         sys.exit(3)
+    if mode == "finishing":  # past its gather (process 0 has written): a Ctrl-C changes nothing
+        time.sleep(1.5)
+        sys.exit(0)
     end = time.monotonic() + 60
     while (mode in ("stubborn", "hang") or not heard) and time.monotonic() < end:
         time.sleep(0.01)
@@ -276,3 +279,14 @@ def test_a_label_set_later_and_the_compiling_text_are_one_line():
     for line in s.getvalue().splitlines():
         assert "now" not in line or line.startswith("mc compiling now"), s.getvalue()
     assert "mc compiling now…" in s.getvalue()
+
+
+def test_a_ctrl_c_to_the_launcher_after_process_0_finished_its_work_keeps_exit_0(tmp_path):
+    # process 0 past its gather and its --json write exits 0: the command's code is 0, not 130
+    # ("nothing written", docs/cli.md), whatever the launcher heard meanwhile
+    proc, logdir, _ = _launch(tmp_path, ["finishing", "finishing"])
+    _wait_started(proc, logdir)
+    os.kill(proc.pid, signal.SIGINT)
+    _, err, left = _finish(proc)
+    assert proc.returncode == 0, err
+    assert left == []

@@ -312,3 +312,29 @@ def test_every_script_has_help_and_names_itself(capsys, script):
         mod(script).main(["--help"])
     assert e.value.code == 0
     assert capsys.readouterr().out.startswith(f"usage: {script}.py")
+
+
+_ORDER_PROBE = """
+import runpy, sys
+from jaxslam import runtime
+def spy(*a, **k):
+    print("numpy loaded" if "numpy" in sys.modules else "numpy not loaded")
+    raise SystemExit(0)
+runtime.configure_process = spy
+runpy.run_path(sys.argv[1], run_name="probe")
+"""
+
+
+@pytest.mark.parametrize("script", ["study_mrclam_fastslam", "study_range_only", "study_victoria_park_fastslam",
+                                    "study_victoria_park_ekf", "study_association_compare",
+                                    "study_mrclam_hidden_gates", "study_util_anisotropic",
+                                    "study_covariance_forms", "study_plaza_smoothing"])
+def test_configure_process_runs_before_numpy_loads(script):
+    # OpenBLAS reads its thread count when NumPy loads (jaxslam/runtime.py): the scripts' parser
+    # imports (jaxslam.cli.common, errors, catalogue load NumPy) came before configure_process
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-c", _ORDER_PROBE, str(ROOT / "scripts" / f"{script}.py")],
+                       capture_output=True, text=True, timeout=120)
+    assert r.stdout.strip() == "numpy not loaded", (r.stdout, r.stderr[-2000:])

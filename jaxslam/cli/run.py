@@ -472,7 +472,9 @@ def _wait_group(procs, heard, errs) -> int:
             stuck = True
             _stop([p0])
     rc = _exit_code(p0.returncode)
-    interrupted = interrupted_at is not None or rc == 130
+    # a process 0 that exits 0 has gathered and written: a Ctrl-C the launcher heard meanwhile
+    # changes nothing (130 says "nothing written")
+    interrupted = rc == 130 or (interrupted_at is not None and rc != 0)
     if rc != 0:  # the workers end too (a Ctrl-C reached them as well) or would wait for process 0
         _stop(workers, wait_s=_STOP_GRACE_S if interrupted else 0.0)
     else:  # they end after the gather
@@ -480,10 +482,13 @@ def _wait_group(procs, heard, errs) -> int:
             try:
                 w.wait()
             except KeyboardInterrupt:  # the run is written; a Ctrl-C only stops them sooner
+                interrupted_at = time.monotonic()
                 _stop(workers)
                 break
     if interrupted:
         return 130
+    if rc == 0 and interrupted_at is not None:
+        return 0  # written; the workers' codes are those of the Ctrl-C that stopped them after it
     codes = [_exit_code(w.returncode) for w in workers]
     bad = [(i, c) for i, c in enumerate(codes) if c != 0]
     if (rc == 0 or stuck) and bad:

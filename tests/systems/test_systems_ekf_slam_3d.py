@@ -214,10 +214,9 @@ def test_log_shapes_are_checked(log):
 def test_float32_filter_stays_within_ten_percent_of_float64(log):
     """Same log, same filter, float32 vs float64: no NaN, position RMSE within 10 %."""
     fl, _, imu = log
-    # capacity 40 (every landmark of the log): the float64 run is then the program of
-    # test_capacity_padding_changes_nothing (the claim, float32 against float64 on one filter,
-    # holds at any capacity)
-    cfg = s3.Config(capacity=40)
+    # capacity 32 for the 40 landmarks of the log: float32 also meets a full map (registrations
+    # refused), which no other float32 test does
+    cfg = s3.Config(capacity=32)
     truth = np.asarray(fl.truth[1:, :3])
     rmse = {}
     for dt in (jnp.float64, jnp.float32):
