@@ -560,17 +560,11 @@ def step_log_likelihood(info: UpdateInfo):
 # Whole run
 # ---------------------------------------------------------------------------
 
-def _per_step(M, T, name, dims):
-    """Broadcast a noise matrix to per-step form; ``dims`` is its trailing rank 2."""
-    if M.ndim == 2:
-        return M, False
-    if M.ndim == 3:
-        if M.shape[0] != T:
-            raise InputError(f"{name}: per-step noise must have {T} matrices (one per step), "
-                             f"got {M.shape[0]}")
-        return M, True
-    raise InputError(f"{name}: expected a matrix or one matrix per step (rank 2 or 3), "
-                     f"got shape {M.shape}")
+def _per_step(M):
+    """``(M, per_step)`` of a noise matrix whose rank and count :func:`check_run_inputs` has
+    checked (rank 2: shared; rank 3: one per step, T of them)."""
+    assert M.ndim in (2, 3), M.shape  # check_run_inputs refused every other rank and count
+    return M, M.ndim == 3
 
 
 def refuse_bool(x, name: str) -> None:
@@ -595,11 +589,81 @@ def check_run_numbers(x, name: str) -> None:
         check_numbers(x, name)
 
 
+def run_dtype(x0):
+    """The dtype a run computes in: ``x0``'s floating dtype (as JAX canonicalises it), else JAX's
+    default float (an integer ``x0``).  Static: known under ``jit`` too."""
+    dt = x0.dtype if hasattr(x0, "dtype") else np.asarray(x0).dtype
+    dt = np.dtype(jax.dtypes.canonicalize_dtype(dt))
+    return dt if np.issubdtype(dt, np.floating) else np.dtype(jnp.result_type(float))
+
+
+def check_fits_dtype(M, name: str, dtype, valid=None, variances: bool = True) -> None:
+    """When ``M`` (a covariance, or a stack of them: ``name[k]``) is known now, :class:`InputError`
+    naming ``name`` unless the run's cast to ``dtype`` keeps it: an entry finite as given that
+    overflows to inf in ``dtype``, or (``variances``) a positive diagonal entry that underflows to
+    0 in it.  The values are judged as given (float64) before the cast, so ``diag(1e200, 1)``
+    given to a float32 run passed and then failed every step (status flags, the prior kept).
+    Non-finite entries are left to :func:`jaxslam.linalg.check_psd`; ``valid`` as there (the
+    rows of masked measurements of a per-step R are not read).  A value already in ``dtype``,
+    or a run in float64, has nothing to check."""
+    dt = np.dtype(dtype)
+    if M is None or not is_concrete(M) or getattr(M, "dtype", None) == dt or np.finfo(dt).bits >= 64:
+        return
+    A = check_numbers(M, name)
+    if valid is not None and A.ndim == 3:
+        v = np.broadcast_to(np.asarray(valid, bool), A.shape[:-1])
+        A = np.where(v[:, :, None] & v[:, None, :], A, 0.0)
+    with np.errstate(over="ignore", under="ignore", invalid="ignore"):
+        C = A.astype(dt).astype(np.float64)
+    stack = A.ndim == 3
+
+    def fail(values, bad, what, how):
+        idx = np.unravel_index(int(np.argmax(bad)), bad.shape)
+        where = f"{name}[{idx[0]}]" if stack else name
+        raise InputError(f"{where}: {what} {values[idx]:.3g} does not fit {dt.name}, the run's dtype "
+                         f"(x0's): it {how}")
+
+    over = np.isfinite(A) & ~np.isfinite(C)
+    if over.any():
+        fail(A, over, "entry", "overflows to inf")
+    if variances and A.ndim >= 2:
+        d = np.diagonal(A, 0, -2, -1)
+        under = (d > 0) & (np.diagonal(C, 0, -2, -1) == 0)
+        if under.any():
+            fail(d, under, "variance", "underflows to 0")
+
+
+def noise_size(x0, noise_jac):
+    """``(q, by_jac)``: the size a run's ``Q`` must have, ``q``, (``x0``'s size, or the columns
+    of an ``(n, q)`` array ``noise_jac``), and whether ``noise_jac`` sets it; ``q`` is None when
+    only the step can tell (a callable ``noise_jac``, or a malformed ``x0`` / ``noise_jac``,
+    which their own checks name)."""
+    n = np.shape(x0)[0] if np.ndim(x0) == 1 else None
+    if noise_jac is None:
+        return n, False
+    gs = np.shape(noise_jac) if not callable(noise_jac) else None
+    return (gs[1] if gs is not None and len(gs) == 2 and gs[0] == n else None), True
+
+
+def check_run_q_size(Q, q, by_jac: bool, T: int) -> None:
+    """A run's ``Q`` against the size ``q`` of :func:`noise_size` (None: not checked here), one
+    message for every Gaussian run: ``(q, q)`` or one per step ``(T, q, q)``; a scalar or (1,)
+    ``Q`` is the variance of a single noise input (q = 1).  :class:`InputError` naming ``Q``."""
+    if q is None or Q is None:
+        return
+    qs = tuple(np.shape(Q))
+    if qs[-2:] != (q, q) and not (q == 1 and qs in ((), (1,))):
+        why = " (noise_jac's columns)" if by_jac else ""
+        raise InputError(f"Q: expected shape ({q}, {q}){why} or ({T}, {q}, {q}), got {qs}")
+
+
 def check_run_inputs(x0, P0, zs, masks, Q, R, name_prefix="", q_optional: bool = False):
     """Host-side checks of a whole run's arrays, shared by every Gaussian filter's run
     (:func:`run`, ``sqrt_ekf.filter_scan``, ``sqrt_ukf.filter_scan``): ``x0``, ``P0``, ``zs``
     real numbers (:func:`check_run_numbers`); shapes; ``x0`` finite and ``P0``, ``Q`` PSD,
-    ``R`` PD (a per-step ``R`` on the rows ``masks`` uses) where concrete.  A scalar ``R`` is
+    ``R`` PD (a per-step ``R`` on the rows ``masks`` uses) where concrete, each representable in
+    the run's dtype (:func:`check_fits_dtype`: no entry overflows, no variance underflows to 0
+    in ``x0``'s dtype).  A scalar ``R`` is
     the variance of the one measurement when m = 1 (so is a (1,) ``R``).  ``Q`` is checked for
     squareness and, as one matrix per step, for its count; its size against the state is the
     caller's (it depends on ``noise_jac``): a scalar or (1,) ``Q`` is the variance of a single
@@ -651,6 +715,7 @@ def check_run_inputs(x0, P0, zs, masks, Q, R, name_prefix="", q_optional: bool =
         if len(qs) == 3 and qs[0] != T:
             raise InputError(f"{pre}Q: one matrix per step needs {T} of them (zs has {T} steps), got shape {qs}")
         checks.insert(1, (Q, "Q", False))
+    dtype = run_dtype(x0)
     for M, nm, strict in checks:
         if not is_concrete(M):
             continue
@@ -659,6 +724,8 @@ def check_run_inputs(x0, P0, zs, masks, Q, R, name_prefix="", q_optional: bool =
         valid = np.asarray(masks, bool) if (nm == "R" and np.ndim(M) == 3 and masks is not None
                                             and is_concrete(masks)) else None
         check_psd(M, f"{pre}{nm}", strict=strict, valid=valid, stack=True)
+        # judged as given (float64): the run then casts it to x0's dtype
+        check_fits_dtype(M, f"{pre}{nm}", dtype, valid=valid)
     return T, m
 
 
@@ -731,23 +798,29 @@ def predicted_status(P):
     return jnp.where(~finite, i32(errors.NON_FINITE), jnp.where(neg, i32(errors.NOT_PSD), i32(0)))
 
 
-def prepare_run(x0, P0, zs, masks, Q, R):
-    """Cast and check a run's arrays; ``(x0, P0, zs, masks, Q, R, q_step, r_step, T)``."""
+def prepare_run(x0, P0, zs, masks, Q, R, noise=None):
+    """Cast and check a run's arrays; ``(x0, P0, zs, masks, Q, R, q_step, r_step, T)``.  ``noise``:
+    None, or :func:`noise_size`'s ``(q, by_jac)`` for :func:`check_run_q_size` (a run that knows
+    its model's noise size: ``ekf`` / ``ukf`` ``filter_scan``)."""
     for v, nm in ((zs, "zs"), (x0, "x0"), (P0, "P0")):
         check_run_numbers(v, nm)  # before the casts to x0's (real) dtype
     # made on the host when known now (host_array): eagerly, each jnp conversion was a program
     x0 = to_jax(x0)
     dtype = x0.dtype if jnp.issubdtype(x0.dtype, jnp.floating) else jnp.result_type(float)
+    if np.ndim(P0) == 2:  # (as given: the cast below would turn 1e200 into inf, 1e-50 into 0)
+        check_fits_dtype(P0, "P0", dtype)
     x0, P0, zs = (host_array(v, dtype) for v in (x0, P0, zs))
     T, m = check_run_inputs(x0, P0, zs, masks, Q, R)
+    if noise is not None:
+        check_run_q_size(Q, *noise, T)
     Q = host_array(Q, dtype)
     if Q.ndim < 2 and x0.shape[0] == 1:  # the variance of the one state component: (1, 1) now, so
         Q = Q.reshape(1, 1)  # the run is the one of a (1, 1) Q (same program, same numbers)
     # any other scalar or (1,) Q goes to the filter's predict as given: it reads it as one step
     # does (the variance of a one-column noise_jac's input, else an InputError naming Q)
-    Q, q_step = (Q, False) if Q.ndim < 2 else _per_step(Q, T, "Q", 2)
+    Q, q_step = (Q, False) if Q.ndim < 2 else _per_step(Q)
     R = host_array(R, dtype)
-    R, r_step = _per_step(R.reshape(1, 1) if R.ndim < 2 else R, T, "R", 2)
+    R, r_step = _per_step(R.reshape(1, 1) if R.ndim < 2 else R)
     masks = host_array(np.ones((T, m), bool) if masks is None else masks, bool)
     return x0, P0, zs, masks, Q, R, q_step, r_step, T
 
@@ -795,10 +868,16 @@ def run(
     Returns:
         :class:`Posterior` in the dtype of ``x0``.
     """
+    return _run(flt, x0, P0, us, zs, masks, Q, R, h_inputs, predict_first, save_cov, save_smoother)
+
+
+def _run(flt, x0, P0, us, zs, masks, Q, R, h_inputs, predict_first, save_cov, save_smoother, noise=None):
+    """:func:`run`, with ``noise`` as in :func:`prepare_run` (``ekf`` / ``ukf`` ``filter_scan``
+    pass their model's noise size, so ``Q``'s is checked with the square-root runs' message)."""
     predict_first = check_flag(predict_first, "predict_first")
     save_cov = check_flag(save_cov, "save_cov")
     save_smoother = check_flag(save_smoother, "save_smoother")
-    x0, P0, zs, masks, Q, R, q_step, r_step, T = prepare_run(x0, P0, zs, masks, Q, R)
+    x0, P0, zs, masks, Q, R, q_step, r_step, T = prepare_run(x0, P0, zs, masks, Q, R, noise)
     check_leading(us, T, "us")
     check_leading(h_inputs, T, "h_inputs")
     build, arrays, key = filter_recipe(flt)

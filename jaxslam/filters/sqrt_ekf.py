@@ -106,7 +106,8 @@ from ..linalg import (check_finite, check_numbers, check_psd, is_concrete, list_
                       value_and_jacfwd)
 from .ekf import Gaussian, UpdateInfo
 from .gaussian import (call_residual, check_gate, check_gate_size, check_leading, check_measurement, check_noise_values,
-                       check_update_call, check_run_inputs, check_run_numbers,
+                       check_update_call, check_fits_dtype, check_run_inputs, check_run_numbers, check_run_q_size,
+                       noise_size, run_dtype,
                        check_process_noise, check_transition_out, check_update_args, moment_dtype,
                        scalar_measurement, state_pair, gate_test, failure_status)
 
@@ -602,15 +603,14 @@ def _validate_scan(x0, P0, us, zs, masks, Q, R, noise_jac, Q_chol):
                              f"got {tuple(cs)}")
         check_run_numbers(Q_chol, "Q_chol")
         check_finite(Q_chol, "Q_chol")
+        # as given: the cast to x0's dtype would turn 1e200 into inf (every step then failed)
+        check_fits_dtype(Q_chol, "Q_chol", run_dtype(x0), variances=False)
         return
     if Q is None:
         raise InputError("Q: a process-noise covariance (or Q_chol=) is required")
     # squareness, the per-step count and the values: check_run_inputs; the size here (a scalar
-    # or (1,) Q: the variance of a single noise input, as in predict)
-    qs = tuple(np.shape(Q))
-    if not (noise_jac is not None and callable(noise_jac)) and qs[-2:] != (q, q) and not (
-            q == 1 and qs in ((), (1,))):
-        raise InputError(f"Q: expected shape ({q}, {q}) or ({T}, {q}, {q}), got {qs}")
+    # or (1,) Q: the variance of a single noise input, as in predict), in every run's words
+    check_run_q_size(Q, *noise_size(x0, noise_jac), T)
 
 
 def filter_scan(

@@ -252,7 +252,7 @@ def filter_scan(f: Optional[Callable], h: Callable, x0, P0, us, zs, masks, Q, R,
     singular one used to fail that update with ``NOT_PSD``).  Returns
     :class:`~jaxslam.filters.sqrt_ekf.SqrtPosterior`.
     """
-    from .gaussian import check_leading, check_run_inputs
+    from .gaussian import check_leading, check_run_inputs, check_run_q_size, noise_size
 
     rule = _rule(points)
     check_gate(gate)
@@ -269,10 +269,9 @@ def filter_scan(f: Optional[Callable], h: Callable, x0, P0, us, zs, masks, Q, R,
     if not predict_first and is_concrete(P0):
         # the first update's statistical linearisation needs P0⁻¹ (a zero variance: NOT_PSD)
         check_psd(P0, "P0", strict=True, tol=0.0)
+    check_run_q_size(Q, *noise_size(x0, None), T)  # (the message of every Gaussian run)
     if n == 1 and np.shape(Q) in ((), (1,)):  # the variance of the one noise input, as in predict
         Q = np.reshape(np.asarray(Q), (1, 1)) if is_concrete(Q) else jnp.reshape(Q, (1, 1))
-    if np.shape(Q)[-2:] != (n, n):
-        raise InputError(f"Q: expected shape ({n}, {n}) or ({T}, {n}, {n}), got {tuple(np.shape(Q))}")
     check_leading(us, T, "us")
     masks = jnp.ones((T, m), bool) if masks is None else jnp.asarray(masks, bool)
     L0 = psd_factor(jnp.asarray(P0, dtype), dtype)

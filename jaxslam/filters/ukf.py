@@ -641,5 +641,5 @@ def filter_scan(
         check_psd(P0, "P0", strict=True, tol=0.0)
     flt = make_filter(f, h, *args, residual=residual, gate=gate, noise_jac=noise_jac,
                       points=points, h_takes_input=h_inputs is not None)
-    return _g.run(flt, x0, P0, us, zs, masks, Q, R, h_inputs=h_inputs,
-                  predict_first=predict_first, save_cov=save_cov, save_smoother=save_smoother)
+    return _g._run(flt, x0, P0, us, zs, masks, Q, R, h_inputs, predict_first, save_cov, save_smoother,
+                   noise=_g.noise_size(x0, noise_jac))
