@@ -479,7 +479,8 @@ def innovation_solve(S, B):
     ``logdet`` is then 0.  ``S`` must already be masked (identity on invalid rows/columns).
     """
     L = jnp.linalg.cholesky(symmetrize(S))
-    # a zero pivot (S singular) gives a finite factor and an Inf/NaN solve: not PD either
+    # a guard: a backend whose Cholesky gives a finite factor with a zero pivot for a singular S
+    # (CPU's returns NaN) would give an Inf/NaN solve: not PD either
     ok = jnp.all(jnp.isfinite(L)) & jnp.all(jnp.diagonal(L) > 0)
     X = jax.scipy.linalg.cho_solve((L, True), B)
     d = jnp.where(ok, jnp.diagonal(L), jnp.ones((), L.dtype))

@@ -82,6 +82,9 @@ Decisions
   (``predict_first``); the variances ``cov_diags`` are the squared row norms of ``L``.  A
   non-finite prediction adds ``errors.NON_FINITE`` to the status of the step whose prior it
   is (as the EKF's run does; its update, which meets the NaN factor, reports ``NON_FINITE``).
+  A finite ``P0`` or ``Q`` that cannot be factored (indefinite; refused up front when known,
+  traced otherwise) makes a NaN factor before the scan: the steps that meet it report
+  ``NOT_PSD`` instead, as the covariance forms do for such an input.
 * dtype: every function computes in the dtype of the mean; ``Q``, ``R``, ``z`` and the
   factor are cast to it.
 
@@ -212,7 +215,7 @@ def psd_factor(A, dtype=None):
     triangularisation of ``V diag(√w)``; eigenvalues in ``[−10 n eps |w|_max, 0)``
     (rounding) count as 0, a more negative one (``A`` indefinite) or a NaN/Inf entry gives a
     NaN factor, which the next update reports (``errors.NON_FINITE``: the factor it meets is
-    NaN) rather than hiding.
+    NaN; ``NOT_PSD`` in the runs, where the factored matrix was finite) rather than hiding.
 
     Args:
         A: (n, n) symmetric positive semi-definite matrix (it is symmetrised first).
@@ -290,6 +293,33 @@ def _noise_root(Q, Q_chol, dtype):
     if np.ndim(Q) == 3:
         return jax.vmap(lambda q: _root(q, dtype, triangular=False))(jnp.asarray(Q, dtype))
     return _root(Q, dtype, triangular=False)
+
+
+def _unfactored(covs, roots):
+    """True when a finite covariance of ``covs`` got a NaN root in ``roots`` (:func:`psd_factor`
+    of an indefinite matrix, or of a traced one, before the scan): the runs then meet a NaN
+    factor at every step from the one that uses it, and :func:`_as_not_psd` says ``NOT_PSD``
+    for those steps, as the covariance filters do for such an input.  A pair with ``None`` is
+    skipped; concrete values are judged on the host (no eager JAX operation)."""
+    out = False
+    for A, L in zip(covs, roots):
+        if A is None:
+            continue
+        if is_concrete(A) and is_concrete(L):
+            out = out or bool(np.all(np.isfinite(np.asarray(A, np.float64)))
+                              and not np.all(np.isfinite(np.asarray(L, np.float64))))
+        else:
+            out = jnp.logical_or(out, jnp.all(jnp.isfinite(jnp.asarray(A))) & ~jnp.all(jnp.isfinite(L)))
+    return jnp.asarray(out)
+
+
+def _as_not_psd(status, unfactored):
+    """The steps' ``status`` with ``NON_FINITE`` read as ``NOT_PSD`` where a finite P0 or Q could
+    not be factored (:func:`_unfactored`): the NaN those steps met is the factor's, and the rule of
+    the Gaussian filters (:func:`jaxslam.filters.gaussian.failure_status`) calls a finite
+    covariance that fails to factor ``NOT_PSD``."""
+    nf = jnp.int32(errors.NON_FINITE)
+    return jnp.where(unfactored & ((status & nf) != 0), (status & ~nf) | jnp.int32(errors.NOT_PSD), status)
 
 
 def check_state(state, name: str = "state") -> SqrtGaussian:
@@ -687,7 +717,9 @@ def filter_scan(
     masks = jnp.ones((T, m), bool) if masks is None else jnp.asarray(masks, bool)
 
     check_gate(gate)  # the value known now, checked now: the compiled run sees it traced
-    def scan(opts, x0, L0, C, us, zs, masks, R):
+    unf = _unfactored((P0, None if Q_chol is not None else Q), (L0, C))
+
+    def scan(opts, x0, L0, C, us, zs, masks, R, unf):
         args, gate, noise_jac = opts
 
         def pred(s, u, c):
@@ -734,8 +766,8 @@ def filter_scan(
             step, (init, init, jnp.zeros((), jnp.int32)),
             (us, zs, masks, C if q_step else None, R if r_step else None)
         )
-        return SqrtPosterior(means, diags, chols, nis, dof, status, final)
+        return SqrtPosterior(means, diags, chols, nis, dof, _as_not_psd(status, unf), final)
 
     # called eagerly: compiled once per model, options and shapes
     return call_compiled(("sqrt_ekf.filter_scan", f, h, residual, predict_first, save_chol, q_step, r_step),
-                         scan, (x0, L0, C, us, zs, masks, R), (args, gate, noise_jac))
+                         scan, (x0, L0, C, us, zs, masks, R, unf), (args, gate, noise_jac))

@@ -47,7 +47,8 @@ from .gaussian import (
     masked_innovation,
     gate_test,
 )
-from .sqrt_ekf import SqrtGaussian, SqrtPosterior, _host_root, _mm, _noise_root, _tria, check_state, psd_factor
+from .sqrt_ekf import (SqrtGaussian, SqrtPosterior, _as_not_psd, _host_root, _mm, _noise_root, _tria, _unfactored,
+                       check_state, psd_factor)
 from .ukf import (
     SigmaPoints,
     _rule,
@@ -280,8 +281,9 @@ def filter_scan(f: Optional[Callable], h: Callable, x0, P0, us, zs, masks, Q, R,
     Ra = jnp.asarray(R, dtype)
     Ra = Ra.reshape(1, 1) if Ra.ndim < 2 else Ra  # a scalar variance of one measurement
     r_step = Ra.ndim == 3
+    unf = _unfactored((P0, Q), (L0, CQ))  # an indefinite traced P0 or Q: NOT_PSD (sqrt_ekf._as_not_psd)
 
-    def scan(opts, x0, L0, CQ, us, zs, masks, Ra):
+    def scan(opts, x0, L0, CQ, us, zs, masks, Ra, unf):
         args, gate = opts
 
         def step(carry, inp):
@@ -308,8 +310,8 @@ def filter_scan(f: Optional[Callable], h: Callable, x0, P0, us, zs, masks, Q, R,
         init = SqrtGaussian(x0, L0)
         (_, final, _), (means, diags, chols, nis, dof, status) = jax.lax.scan(
             step, (init, init, jnp.zeros((), jnp.int32)), xs, length=zs.shape[0])
-        return SqrtPosterior(means, diags, chols, nis, dof, status, final)
+        return SqrtPosterior(means, diags, chols, nis, dof, _as_not_psd(status, unf), final)
 
     # called eagerly: compiled once per model, options and shapes
     return call_compiled(("sqrt_ukf.filter_scan", f, h, residual, rule, predict_first, save_chol, q_step,
-                          r_step), scan, (x0, L0, CQ, us, zs, masks, Ra), (args, gate))
+                          r_step), scan, (x0, L0, CQ, us, zs, masks, Ra, unf), (args, gate))

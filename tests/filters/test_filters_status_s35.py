@@ -194,3 +194,23 @@ def test_sqrt_ekf_refuses_a_boolean_q_chol():
     with pytest.raises(InputError, match=r"^Q_chol: expected numbers, got booleans"):
         sqrt_ekf.filter_scan(f, h, np.zeros(2), np.eye(2), None, np.ones((T, 1)), None, None, np.eye(1),
                              Q_chol=np.eye(2, dtype=bool))
+
+
+@pytest.mark.parametrize("which", ["P0", "Q"])
+@pytest.mark.parametrize("predict_first", [True, False])
+def test_an_indefinite_traced_p0_or_q_is_not_psd_in_all_four_runs(which, predict_first):
+    # a finite covariance that fails to factor is NOT_PSD (the rule above); the square-root runs
+    # factor P0 and Q before the scan into a NaN factor, and said NON_FINITE at every step
+    F = jnp.array([[1.0, 0.1], [0.0, 1.0]])
+    us, zs = jnp.zeros((3, 1)), jnp.ones((3, 1))
+    P0 = jnp.diag(jnp.array([1.0, -1.0])) if which == "P0" else jnp.eye(2)
+    Q = jnp.diag(jnp.array([0.1, -5.0])) if which == "Q" else 0.1 * jnp.eye(2)
+    got = {}
+    for name, mod in (("ekf", ekf), ("ukf", ukf), ("sqrt_ekf", sqrt_ekf), ("sqrt_ukf", sqrt_ukf)):
+        run = jax.jit(lambda P0, Q, mod=mod: mod.filter_scan(lambda x, u: F @ x, lambda x: x[:1], jnp.zeros(2), P0,
+                                                             us, zs, None, Q, 0.1 * jnp.eye(1),
+                                                             predict_first=predict_first).status)
+        got[name] = np.asarray(run(P0, Q)).tolist()
+    # (with the update first, an indefinite Q is first used after step 0's update)
+    want = [0 if which == "Q" and not predict_first else errors.NOT_PSD] + [errors.NOT_PSD] * 2
+    assert got == {k: want for k in got}, got
