@@ -90,6 +90,9 @@ def test_progress_label_none_is_no_label_and_a_non_string_is_refused():
 
 _GROUP = textwrap.dedent("""
     import os, signal, sys
+    # Ctrl-C as a terminal delivers it: a suite started in the background without job control
+    # (nohup ... &) hands its children SIGINT ignored, and Python then keeps ignoring it
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     pid, port, who = int(sys.argv[1]), sys.argv[2], sys.argv[3]
     from jaxslam.sim import distributed, monte_carlo
     distributed.initialize(f"127.0.0.1:{port}", 2, pid)
