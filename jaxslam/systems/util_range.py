@@ -310,6 +310,8 @@ def util_events(t, anchor_id, ranges, t_start=None, t_end=None, tof_t=None,
     if t.size == 0:
         raise InputError("util_events: no ranges")
     z = np.asarray(ranges, np.float64).reshape(-1, 1)
+    if anchor_id is None:  # (np.size(None) is 1: with one range it was read as id -1, "no id")
+        raise InputError("anchor_id: expected the anchor id of each range, got None")
     if not (np.size(anchor_id) == t.size == z.shape[0]):
         raise InputError(f"util_events: t, anchor_id and ranges need one entry per range, got "
                          f"{t.size}, {np.size(anchor_id)} and {z.shape[0]}")

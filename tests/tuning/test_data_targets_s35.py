@@ -189,6 +189,16 @@ def test_the_delay_is_still_chosen_where_sightings_update_the_filter():
     best, table = RL.select_odometry_delay(DATA, [1], p, cfg, t_max=3.0, grid=(0.0, 0.2))
     assert set(table) == {0.0, 0.2} and best == min(table, key=table.get)
     assert all(v != 0.0 for v in table.values())
+    # the robots as a generator: read once (it was empty from the second delay on)
+    assert RL.select_odometry_delay(DATA, (r for r in [1]), p, cfg, t_max=3.0, grid=(0.0, 0.2)) == (best, table)
+
+
+def test_util_events_refuses_no_anchor_ids():
+    # np.size(None) is 1: with one range, anchor_id=None was read as id -1 ("no id")
+    from jaxslam.systems import util_range
+
+    with pytest.raises(InputError, match="^anchor_id: expected the anchor id of each range, got None$"):
+        util_range.util_events([0.0], None, [1.0])
 
 
 def test_tune_mrclam_says_so_in_one_line(run_cli):

@@ -137,6 +137,7 @@ def select_odometry_delay(data_dir, robots, params, config, dtype=np.float64, t_
     grid = tuple(grid)
     if not grid:
         raise InputError("grid: expected at least one odometry delay [s], got none")
+    robots = tuple(robots)  # read once per delay below (a generator was empty from the second on)
     built = [mrclam_logs(data_dir, robots, dtype, t_max, odometry_delay=d, K=K)[0] for d in grid]
     T = max(b.dt.shape[1] for b in built)
     built = [b if b.dt.shape[1] == T else mrclam_logs(data_dir, robots, dtype, t_max, odometry_delay=d, T=T, K=K)[0]
