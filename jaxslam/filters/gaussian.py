@@ -561,11 +561,10 @@ def step_log_likelihood(info: UpdateInfo):
 # Whole run
 # ---------------------------------------------------------------------------
 
-def _per_step(M):
-    """``(M, per_step)`` of a noise matrix whose rank and count :func:`check_run_inputs` has
-    checked (rank 2: shared; rank 3: one per step, T of them)."""
-    assert M.ndim in (2, 3), M.shape  # check_run_inputs refused every other rank and count
-    return M, M.ndim == 3
+def single_variance(M):
+    """A scalar or (1,) noise ``M`` as the (1, 1) matrix of the one variance it is (on the host
+    when known now, so an eager run adds no program; traced, a reshape)."""
+    return np.reshape(np.asarray(M), (1, 1)) if is_concrete(M) else jnp.reshape(M, (1, 1))
 
 
 def refuse_bool(x, name: str) -> None:
@@ -819,9 +818,10 @@ def prepare_run(x0, P0, zs, masks, Q, R, noise=None):
         Q = Q.reshape(1, 1)  # the run is the one of a (1, 1) Q (same program, same numbers)
     # any other scalar or (1,) Q goes to the filter's predict as given: it reads it as one step
     # does (the variance of a one-column noise_jac's input, else an InputError naming Q)
-    Q, q_step = (Q, False) if Q.ndim < 2 else _per_step(Q)
+    q_step = Q.ndim == 3  # (check_run_inputs refused every other rank and count)
     R = host_array(R, dtype)
-    R, r_step = _per_step(R.reshape(1, 1) if R.ndim < 2 else R)
+    R = R.reshape(1, 1) if R.ndim < 2 else R
+    r_step = R.ndim == 3
     masks = host_array(np.ones((T, m), bool) if masks is None else masks, bool)
     return x0, P0, zs, masks, Q, R, q_step, r_step, T
 

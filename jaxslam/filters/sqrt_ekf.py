@@ -112,7 +112,7 @@ from .gaussian import (call_residual, check_gate, check_gate_size, check_leading
                        check_update_call, check_fits_dtype, check_run_inputs, check_run_numbers, check_run_q_size,
                        noise_size, run_dtype,
                        check_process_noise, check_transition_out, check_update_args, moment_dtype,
-                       scalar_measurement, state_pair, gate_test, failure_status)
+                       scalar_measurement, single_variance, state_pair, gate_test, failure_status)
 
 __all__ = [
     "SqrtGaussian",
@@ -707,7 +707,7 @@ def filter_scan(
     L0 = psd_factor(P0, dtype)
     q_step = Q_chol is None and np.ndim(Q) == 3
     if Q_chol is None and np.ndim(Q) < 2:  # the variance of a single noise input (_validate_scan)
-        Q = np.reshape(np.asarray(Q), (1, 1)) if is_concrete(Q) else jnp.reshape(Q, (1, 1))
+        Q = single_variance(Q)
     C = _noise_root(Q, Q_chol, dtype)
     zs = jnp.asarray(zs, dtype=dtype)
     R = jnp.asarray(R, dtype=dtype)

@@ -44,6 +44,7 @@ from .gaussian import (
     check_update_call,
     failure_status,
     scalar_measurement,
+    single_variance,
     masked_innovation,
     gate_test,
 )
@@ -272,7 +273,7 @@ def filter_scan(f: Optional[Callable], h: Callable, x0, P0, us, zs, masks, Q, R,
         check_psd(P0, "P0", strict=True, tol=0.0)
     check_run_q_size(Q, *noise_size(x0, None), T)  # (the message of every Gaussian run)
     if n == 1 and np.shape(Q) in ((), (1,)):  # the variance of the one noise input, as in predict
-        Q = np.reshape(np.asarray(Q), (1, 1)) if is_concrete(Q) else jnp.reshape(Q, (1, 1))
+        Q = single_variance(Q)
     check_leading(us, T, "us")
     masks = jnp.ones((T, m), bool) if masks is None else jnp.asarray(masks, bool)
     L0 = psd_factor(jnp.asarray(P0, dtype), dtype)
