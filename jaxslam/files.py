@@ -213,7 +213,9 @@ def atomic_write(path, write: Callable, mode: str = "w", *, name: str = "path") 
         ``"directory"``); ``"path"`` by default.
     Returns:
       The target path.  On any exception the temporary file is removed and the target is
-      left as it was.
+      left as it was.  The temporary file is synced to the disk (``fsync``) before the
+      rename, and the folder after it where the system supports that (POSIX), so a crash
+      leaves the old file or the whole new one.
     Raises:
       InputError: ``path`` is a folder or lies under a file, or the file system refused the
         write (the folder cannot be made or written, the disk is full): the message names
@@ -259,6 +261,10 @@ def atomic_write(path, write: Callable, mode: str = "w", *, name: str = "path") 
     try:
         with os.fdopen(fd, mode, **opts) as f:
             write(f)
+            # on the disk before the rename: after a crash the target is the old file or the
+            # whole new one (without it, ext4 and others could show a renamed empty file)
+            f.flush()
+            os.fsync(f.fileno())
         # mkstemp makes 0600: keep the replaced file's permission bits, else give the usual mode
         os.chmod(tmp, keep_mode if keep_mode is not None else 0o666 & ~_UMASK)
         os.replace(tmp, path)
@@ -268,4 +274,23 @@ def atomic_write(path, write: Callable, mode: str = "w", *, name: str = "path") 
         if _about_this_file(e, tmp, path):
             raise _write_error(path, e, name) from None
         raise
+    _fsync_dir(path.parent)
     return path
+
+
+def _fsync_dir(folder) -> None:
+    """Flush ``folder``'s entries (the rename of :func:`atomic_write`) to the disk, where the
+    system supports it (POSIX; a folder cannot be opened on Windows, and some file systems
+    refuse to sync one): best effort, never an error (the file itself is already synced)."""
+    if os.name != "posix":
+        return
+    try:
+        fd = os.open(folder, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)

@@ -552,8 +552,14 @@ def check_psd(M, name: str, strict: bool = False, tol: float = 1e-12, valid=None
     ``tol`` (with ``strict``, relative to the largest magnitude itself: the smallest eigenvalue
     must exceed ``tol`` times it; a badly scaled matrix, one with a diagonal entry at most
     ``tol`` times its largest entry such as ``diag(1e200, 1)``, also passes when the smallest
-    eigenvalue of ``D^-1/2 M D^-1/2``, ``M`` scaled to a unit diagonal, exceeds ``tol``); a lower-precision input (float32) may also be off by 100 ulp of its own dtype
-    (relative to its largest entry) in symmetry and below zero, so a matrix that is symmetric
+    eigenvalue of ``D^-1/2 M D^-1/2``, ``M`` scaled to a unit diagonal, exceeds ``tol``); a
+    lower-precision input (float32) may also be off by 100 ulp of its own dtype (relative to
+    its largest entry) in symmetry and below zero.  Without ``strict``, a negative direction is
+    also judged against the entries it is made of: the eigenvector ``v`` of the smallest
+    eigenvalue is refused when ``v' M v < -max(tol max(1, w), 100 ulp w)``, ``w = |v|' |M| |v|``
+    (rounding the entries moves ``v' M v`` by at most a relative rounding times ``w``), so
+    ``diag(1e13, -1)`` is refused (``w = 1``) while a PSD matrix rounded entry by entry (to
+    float32, say) still passes.  So a matrix that is symmetric
     and PSD to its working precision passes.  ``valid`` (``(..., n)`` bool):
     only the rows and columns in use are checked (a masked measurement's row of a per-step R
     may hold anything, NaN included).
@@ -589,6 +595,8 @@ def check_psd(M, name: str, strict: bool = False, tol: float = 1e-12, valid=None
     # strict: relative to the largest entry only (a well-conditioned matrix of small entries,
     # e.g. an IMU bias density of 1e-14, is positive definite: a floor of 1e-12 refused it)
     bad = ~(lo > tol * mag) if strict else ~(lo >= -np.maximum(tol * scale, ulp * mag))
+    if not strict and (lo < 0).any():
+        bad |= _negative_beyond_rounding(S, lo < 0, tol, ulp)
     rel = None
     if strict and bad.any():
         # a badly scaled matrix (variances 1e200 and 1) is PD, but a variance below tol times
@@ -607,6 +615,27 @@ def check_psd(M, name: str, strict: bool = False, tol: float = 1e-12, valid=None
                else f"; {rel[k]:.3g} scaled to a unit diagonal: numerically singular")
         raise InputError(f"{where(bad)}: not {what} (smallest eigenvalue {lo[k]:.3g}{why})")
     return M
+
+
+def _negative_beyond_rounding(S, cand, tol: float, ulp: float):
+    """Per matrix of the stack ``S`` (finite, symmetric to check_psd's tolerance): True where
+    ``cand`` and the eigenvector ``v`` of its smallest eigenvalue witnesses a negative direction
+    beyond the rounding of the entries it is made of: ``v' S v < -room`` with ``w = |v|' |S| |v|``
+    (what rounding each entry by a relative ``e`` can move ``v' S v`` by, at most ``e w``) and
+    ``room = max(tol max(1, w), max(ulp, 4 n eps) w)``.  For any PSD matrix ``v' S v >= 0``
+    exactly, so a PSD matrix, or one rounded from it entry by entry (float32: ``ulp``), is never
+    refused here, whatever the accuracy of ``eigh``; ``diag(1e13, -1)``, which the tolerance
+    relative to the largest eigenvalue let through, is (``v = e_2``, ``w = 1``)."""
+    out = np.zeros(S.shape[0], bool)
+    idx = np.flatnonzero(cand)
+    H = 0.5 * S[idx] + 0.5 * S[idx].transpose(0, 2, 1)
+    v = np.linalg.eigh(H)[1][:, :, 0]  # (the eigenvector of the smallest eigenvalue)
+    with np.errstate(over="ignore", invalid="ignore"):  # entries near 1e308: inf or NaN, never refused
+        q = np.einsum("ki,kij,kj->k", v, H, v)
+        w = np.einsum("ki,kij,kj->k", np.abs(v), np.abs(H), np.abs(v))
+        room = np.maximum(tol * np.maximum(1.0, w), max(ulp, 4 * S.shape[-1] * np.finfo(np.float64).eps) * w)
+        out[idx] = q < -room
+    return out
 
 
 def _unit_diagonal_min_eig(S):

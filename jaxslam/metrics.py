@@ -607,9 +607,11 @@ def map_error(est_lm, est_ids, true_lm, true_ids, transform=None, *,
     eid = _ids(est_ids, n_eid)
     tid = _ids(true_ids, n_tid)
     if est.ndim != 2 or tru.ndim != 2 or est.shape[1] != tru.shape[1]:
-        raise InputError(f"map_error: expected (M, d) and (L, d) landmarks, got {est.shape} and {tru.shape}")
+        raise InputError(f"{n_est} and {n_tru}: expected (M, d) and (L, d) landmarks of one size d, got "
+                         f"{est.shape} and {tru.shape}")
     if eid.shape[0] != est.shape[0] or tid.shape[0] != tru.shape[0]:
-        raise InputError("map_error: one id per landmark row expected")
+        raise InputError(f"{n_eid} and {n_tid}: one id per landmark row expected ({est.shape[0]} rows of {n_est}, "
+                         f"{tru.shape[0]} of {n_tru}), got {eid.shape[0]} and {tid.shape[0]} ids")
     check_whole_ids(tid, n_tid)
     # rows ignored (id < 0, or a position not finite) may hold any id; NaN is not < 0: checked
     check_whole_ids(eid, n_eid, used=~(eid < 0) & np.all(np.isfinite(est), axis=1))
@@ -627,12 +629,14 @@ def map_error(est_lm, est_ids, true_lm, true_ids, transform=None, *,
     lookup = {int(i): k for k, i in enumerate(tid)}
     pairs = [(k, lookup[int(i)]) for k, i in enumerate(eid) if used[k] and int(i) in lookup]
     if not pairs:
-        raise InputError("map_error: no estimated landmark id matches a true id")
+        raise InputError(f"{n_eid}: no estimated landmark id matches an id of {n_tid} (of the {int(used.sum())} "
+                         f"rows of {n_est} in use: id >= 0 and a finite position); no landmark to compare")
     a = est[[k for k, _ in pairs]]
     b = tru[[j for _, j in pairs]]
     if transform is None:
         if len(pairs) < a.shape[1]:
-            raise InputError(f"map_error: {len(pairs)} matched landmarks cannot fix a {a.shape[1]}-D alignment")
+            raise InputError(f"{n_eid}: {len(pairs)} estimated landmark(s) match an id of {n_tid}; aligning "
+                             f"{a.shape[1]}-D landmarks needs {a.shape[1]} (or give transform)")
         R, t, s = umeyama(a, b)
     else:
         R, t, s = transform

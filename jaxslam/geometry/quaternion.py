@@ -40,7 +40,14 @@ Decisions (where the sources are silent or inconsistent):
   ``qlog`` raise :class:`~jaxslam.errors.InputError` naming the argument, and
   ``quat_from_dcm`` refuses an all-zero matrix (they returned NaN, v itself, a
   zero matrix, zero angles or the identity).  Under ``jit`` / ``vmap`` /
-  ``grad`` the values are not known and nothing is checked.
+  ``grad`` the values are not known and nothing is checked, and these functions
+  have no status output: a traced zero q gives NaN from ``qnormalize`` and
+  ``qlog``, but v unrotated from ``qrotate``, the zero matrix from
+  ``dcm_from_quat`` and zero angles from ``euler_from_quat``, all silently.  A
+  jitted caller that can meet one must check ‖q‖ > 0 itself.  The shipped one,
+  the ``attitude-smc`` scenario (``control.smc.closed_loop``: ``qlog`` of the
+  attitude error and ``qnormalize`` after each step), turns it into NaN norms,
+  which its ``non_finite`` flag counts.
 * A complex input is refused everywhere (:func:`jaxslam.linalg.check_real`;
   the dtype is static, so under ``jit`` too).
 
