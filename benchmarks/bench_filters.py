@@ -20,7 +20,8 @@ a fifth as many ``fastslam.step`` calls (100 particles, the beacon registered at
 sighting; a fifth, since uncompiled each call took ~1 s and kept its compiled programs: ~280
 memory mappings a step, so a few hundred steps reached the system's 65530 and XLA failed with
 "Cannot allocate memory"); times are per loop.  Each case starts from empty in-memory caches
-(``jax.clear_caches``).
+(``jax.clear_caches`` and jaxslam's ``compilation.clear_programs``: whatever this process had
+compiled is compiled again on its next call).
 
 Which reference a row's ``reference_s`` / ``speedup`` is against: every row's ``reference`` says
 it, and ``speedup_vs`` names it in one word — ``"ekf"`` (jaxslam's own EKF run: the speedup is
@@ -110,7 +111,16 @@ def _eager_calls(cases, repeats, which="both"):
     that every eager call paid before (JAX re-traces and re-compiles a scan it is handed
     afresh).  Twice: with the persistent compilation cache as this process has it (the CLI
     switches it on: the uncompiled call then loads its scan from disk) and with it off (a
-    script that imports the library without ``configure_process``)."""
+    script that imports the library without ``configure_process``).
+
+    Each case's first call starts from empty in-memory caches, as in a fresh process: JAX's
+    own in-memory caches (traces, lowerings, executables, the one-operation programs of eager
+    code) must be emptied with ``jax.clear_caches``, which also empties the caller's: JAX has
+    no way to set them aside, and without it a first call would reuse what the cases before it
+    (or the other pass over the cache modes) compiled, so its time would depend on their
+    order; jaxslam's kept programs are emptied too (:func:`jaxslam.compilation.clear_programs`).
+    What that costs the caller: its jitted functions and kept runs trace and compile again on
+    their next call (the same results); ``lower().compile()`` executables it holds are kept."""
     from unittest import mock
 
     import jax
@@ -120,6 +130,8 @@ def _eager_calls(cases, repeats, which="both"):
     rows = []
     folder = compilation.enabled_dir()
     modes = ([True] if folder is not None and which == "both" else []) + ([False] if which != "none" else [])
+    if not modes or not cases:
+        return rows
     try:
         for cache_on in modes:
             if not cache_on:

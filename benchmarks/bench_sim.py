@@ -14,7 +14,9 @@ process on the same inputs.
 
 Cases (``case`` in the JSON):
 
-``single``  one flight of ``--duration`` s (default 50 s = 5000 steps).  The IMU noise of
+``single``  one flight of ``--duration`` s (default 50 s = 5000 steps), rounded to whole LiDAR
+   frames of 0.1 s: ``params.duration_s`` is the time flown (``steps`` × ``dt_s``),
+   ``params.duration_asked_s`` the option as given.  The IMU noise of
    the NumPy loop is exactly jaxslam's: :func:`imu_standard_normals` reproduces the keys
    ``simulate`` splits, so both produce the same flight; the JSON records the largest
    difference of the truth and IMU arrays (``max_abs_diff_truth``, ``max_abs_diff_imu``).
@@ -38,7 +40,9 @@ alone (:func:`profile_parts`), which shows where the single-run time goes.
 Timing: ``lower().compile()`` is timed apart (``compile_s``); each timed call is followed by
 ``block_until_ready``; the figures are medians of ``--repeats`` calls after one warm-up call
 (NumPy: ``--numpy-repeats``).  ``--openblas-check`` also times the NumPy loop in a fresh
-process with ``OPENBLAS_NUM_THREADS=1`` (it must be set before NumPy loads OpenBLAS); the loop
+process with ``OPENBLAS_NUM_THREADS=1`` (it must be set before NumPy loads OpenBLAS): the single
+case's own call of ``numpy_flight.simulate`` on its own inputs (handed over by pickle), so the
+child flies the timed flight bit for bit (``reference_openblas1.same_flight_as_timed``); the loop
 is scalar-heavy (3×3 and 4×7 products), so threads matter little, and the JSON records both.
 """
 
@@ -196,21 +200,67 @@ def _time_numpy(fn, repeats):
     return float(np.median(times)), times, fn_out
 
 
-def _openblas1_numpy(n_steps, repeats, feedforward=True):
-    """Median seconds of the NumPy loop in a fresh process with OPENBLAS_NUM_THREADS=1, with the
-    flatness feedforward on or off as in the timed case (``--no-feedforward``; the script's own
-    entry point always flies with it on)."""
+# The pinned-OpenBLAS child: it calls the oracle's ``simulate`` explicitly on the inputs the
+# parent pickled (those of the timed single case), warms it up on min(steps, 50) steps (as
+# ``numpy_flight._main``, which it replaces here, does), times ``repeats`` flights and prints
+# one JSON line, with a digest of its flight's truth and IMU (:func:`flight_digest`).
+_PINNED_CHILD = """
+import hashlib, json, os, pickle, sys, time
+sys.path.insert(0, sys.argv[1])
+import numpy as np
+import numpy_flight
+a = pickle.load(sys.stdin.buffer)
+def fly(n):
+    return numpy_flight.simulate(a["traj"], a["ctrl"], a["x0"], a["dt"], n, a["sigma"], a["noise"],
+                                 feedforward_on=a["feedforward"])
+fly(min(a["n_steps"], 50))
+times = []
+for _ in range(a["repeats"]):
+    t0 = time.perf_counter()
+    out = fly(a["n_steps"])
+    times.append(time.perf_counter() - t0)
+h = hashlib.sha256()
+for k in ("truth", "imu"):
+    h.update(np.ascontiguousarray(out[k], np.float64).tobytes())
+print(json.dumps({"times_s": times, "median_s": float(np.median(times)),
+                  "openblas_num_threads": os.environ.get("OPENBLAS_NUM_THREADS"),
+                  "steps": a["n_steps"], "feedforward": a["feedforward"],
+                  "flight_sha256": h.hexdigest()}))
+"""
+
+
+def flight_digest(flight) -> str:
+    """SHA-256 of a NumPy flight's ``truth`` and ``imu`` arrays (float64 bytes, in that order):
+    what the pinned child reports, to compare with the in-process flight."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for k in ("truth", "imu"):
+        h.update(np.ascontiguousarray(flight[k], np.float64).tobytes())
+    return h.hexdigest()
+
+
+def _openblas1_numpy(traj, ctrl, x0, dt, n_steps, sigma, noise, repeats, feedforward=True):
+    """The NumPy loop timed in a fresh process with OPENBLAS_NUM_THREADS=1 (it must be set
+    before NumPy loads OpenBLAS): ``numpy_flight.simulate(traj, ctrl, x0, dt, n_steps, sigma,
+    noise, feedforward_on=feedforward)`` — the timed single case's own call, its inputs handed
+    over by pickle — after one warm-up flight of min(n_steps, 50) steps, ``repeats`` times.
+    Returns the child's JSON (``times_s``, ``median_s``, ``openblas_num_threads``, ``steps``,
+    ``feedforward``, ``flight_sha256``), or ``{"error": [last line of its stderr]}``."""
+    import pickle
+
     env = dict(os.environ, OPENBLAS_NUM_THREADS="1")
-    code = ("import functools, sys; sys.path.insert(0, sys.argv[1]); import numpy_flight as nf; "
-            "nf.simulate = functools.partial(nf.simulate, feedforward_on=sys.argv[4] == '1'); "
-            "nf._main(sys.argv[2:4])")
-    res = subprocess.run([sys.executable, "-c", code,
-                          str(pathlib.Path(numpy_flight.__file__).resolve().parent), str(n_steps),
-                          str(repeats), "1" if feedforward else "0"],
-                         env=env, capture_output=True, text=True, timeout=3600)
+    payload = pickle.dumps({"traj": traj, "ctrl": ctrl, "x0": np.asarray(x0, np.float64),
+                            "dt": float(dt), "n_steps": int(n_steps),
+                            "sigma": np.asarray(sigma, np.float64),
+                            "noise": np.asarray(noise, np.float64),
+                            "repeats": max(1, int(repeats)), "feedforward": bool(feedforward)})
+    oracle_dir = str(pathlib.Path(numpy_flight.__file__).resolve().parent)
+    res = subprocess.run([sys.executable, "-c", _PINNED_CHILD, oracle_dir], input=payload,
+                         env=env, capture_output=True, timeout=3600)
     if res.returncode != 0:
-        return {"error": res.stderr.strip().splitlines()[-1:]}
-    return json.loads(res.stdout.strip().splitlines()[-1])
+        return {"error": res.stderr.decode(errors="replace").strip().splitlines()[-1:]}
+    return json.loads(res.stdout.decode().strip().splitlines()[-1])
 
 
 def profile_parts(setup, n_steps, feedforward=True, repeats=5):
@@ -337,6 +387,7 @@ def run(args) -> dict:
     dt = float(setup.dt)
     n_frame = lidar_frames(duration, "--duration", dt, LIDAR_EVERY)
     n_steps = n_frame * LIDAR_EVERY
+    flown = round(n_steps * dt, 9)  # what ran: whole LiDAR frames (0.14 s flies 0.1 s)
     ff = not args.no_feedforward
     traj_np, ctrl_np, sigma, _ = numpy_inputs(setup)
     fn = jax_runner(setup, n_frame, LIDAR_EVERY, ff)
@@ -358,7 +409,8 @@ def run(args) -> dict:
         args.numpy_repeats)
     single = {
         "case": "single",
-        "params": {"runs": 1, "steps": n_steps, "duration_s": duration, "dt_s": dt,
+        "params": {"runs": 1, "steps": n_steps, "duration_s": flown,
+                   "duration_asked_s": duration, "dt_s": dt,
                    "feedforward": ff, "dtype": "float64", "repeats": args.repeats,
                    "numpy_repeats": args.numpy_repeats},
         "jaxslam_s": jax_s,
@@ -378,7 +430,11 @@ def run(args) -> dict:
         "target_met": bool(np_s / jax_s >= TARGET_SINGLE_SPEEDUP),
     }
     if args.openblas_check:
-        single["reference_openblas1"] = _openblas1_numpy(n_steps, args.numpy_repeats, ff)
+        pinned = _openblas1_numpy(traj_np, ctrl_np, x0_np, dt, n_steps, sigma, noise,
+                                  args.numpy_repeats, ff)
+        if "flight_sha256" in pinned:  # it flew the timed case's flight, bit for bit
+            pinned["same_flight_as_timed"] = pinned["flight_sha256"] == flight_digest(ref)
+        single["reference_openblas1"] = pinned
     results.append(single)
 
     # --- vmapped batches -------------------------------------------------------------
@@ -408,7 +464,8 @@ def run(args) -> dict:
         nb_s = per_run * M
         results.append({
             "case": f"batch-{M}",
-            "params": {"runs": M, "steps": n_steps, "duration_s": duration, "dt_s": dt,
+            "params": {"runs": M, "steps": n_steps, "duration_s": flown,
+                       "duration_asked_s": duration, "dt_s": dt,
                        "feedforward": ff, "dtype": "float64", "repeats": args.repeats,
                        "x0_spread_m": args.x0_spread, "numpy_runs_timed": n_timed},
             "jaxslam_s": jb_s,

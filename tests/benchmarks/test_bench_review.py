@@ -19,7 +19,6 @@ sys.path.insert(0, str(BENCH.parent / "tests" / "oracles"))
 
 import bench_ekfslam  # noqa: E402
 import bench_fastslam  # noqa: E402
-import bench_sim  # noqa: E402
 import timing  # noqa: E402
 
 
@@ -108,29 +107,4 @@ def test_fastslam_largest_seed_does_not_overflow_the_key():
     assert (N, F_out) == (3, 1) and [name for name, _ in jobs] == ["mc batch=1", "mc batch=2"]
 
 
-# ------------------------------------------------------------------ bench sim --openblas-check
-
-
-FAKE_FLIGHT = '''
-import json
-USED = []
-def simulate(*a, feedforward_on=True, **k):
-    USED.append(feedforward_on)
-def _main(argv=None):
-    import sys
-    argv = sys.argv[1:] if argv is None else argv
-    simulate(int(argv[0]))
-    print(json.dumps({"median_s": 0.0, "feedforward_used": USED, "argv": list(argv)}))
-if __name__ == "__main__":
-    _main()
-'''
-
-
-@pytest.mark.parametrize("ff", [False, True])
-def test_sim_openblas_check_flies_the_timed_loop(monkeypatch, tmp_path, ff):
-    fake = tmp_path / "numpy_flight.py"
-    fake.write_text(FAKE_FLIGHT)
-    monkeypatch.setattr(bench_sim, "numpy_flight", types.SimpleNamespace(__file__=str(fake)))
-    res = bench_sim._openblas1_numpy(40, 2, ff)
-    assert res["feedforward_used"] == [ff], res
-    assert res["argv"] == ["40", "2"]
+# (bench sim --openblas-check: tests/benchmarks/test_bench_s36.py, the child flies the timed flight bit for bit)
