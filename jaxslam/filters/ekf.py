@@ -296,9 +296,10 @@ def predict(state: Gaussian, f: Callable, u, Q, *args, noise_jac=None, return_st
             ``L(x, u, *args) -> (n, q)`` evaluated at the prior mean.
         return_status: static; also return the int32 status word of the prediction:
             ``NON_FINITE`` when the predicted mean or a variance is not finite, ``NOT_PSD``
-            when a variance is negative (a traced negative ``Q``; a concrete one is an
-            :class:`InputError`).  The moments are returned as computed, as a run keeps them
-            (its step reports the same covariance bits in its status).
+            when a variance is negative or ``Q`` has a negative variance (a traced negative
+            ``Q``; a concrete one is an :class:`InputError`).  The moments are returned as
+            computed; a run skips such a prediction (the step keeps the belief it started from
+            and makes no update: :mod:`jaxslam.filters.gaussian`).
 
     Returns:
         Predicted :class:`Gaussian` in the dtype of ``state.mean`` (and the status).  Called
@@ -315,7 +316,8 @@ def predict(state: Gaussian, f: Callable, u, Q, *args, noise_jac=None, return_st
             return g
         i32 = jnp.int32
         bad_mean = jnp.where(jnp.all(jnp.isfinite(g.mean)), i32(0), i32(errors.NON_FINITE))
-        return g, _g.predicted_status(g.cov) | bad_mean
+        q_neg = jnp.where(_g.negative_variance(Q), i32(errors.NOT_PSD), i32(0))
+        return g, _g.predicted_status(g.cov) | bad_mean | q_neg
 
     return call_compiled(("ekf.predict", f, return_status), step, (state, Q), (u, args, noise_jac), after=2)
 
@@ -402,7 +404,8 @@ def update(
     Returns:
         ``(posterior Gaussian, UpdateInfo)``.  On a failed Cholesky or a negative
         posterior variance (``NOT_PSD``: e.g. an indefinite prior under ``jit``, where it is
-        not checked) or a non-finite posterior (``NON_FINITE``) the prior is returned
+        not checked; also a traced ``R`` with a negative variance on a valid component, NIS 0,
+        where ``S`` still factors) or a non-finite posterior (``NON_FINITE``) the prior is returned
         unchanged.  Called eagerly it is compiled once per model
         (:func:`jaxslam.compilation.call_compiled`).
     """
@@ -445,6 +448,11 @@ def _update(state: Gaussian, z, h: Callable, R, *args, residual=None, mask=None,
     # The NIS (hence the gate) does not depend on whether the update is
     # finally applied, so one correction serves both.
     x_post, P_post, S, num, nis, ok, logdet = linear_update(x, P, nu, H, R, mask)
+    # a negative variance in R's valid block is NOT_PSD and keeps the prior, also where S still
+    # factors (as the square-root forms, which factor R); its NIS is 0, never GATED
+    r_ok = ~_g.negative_variance(R, mask)
+    ok = ok & r_ok
+    nis = jnp.where(r_ok, nis, jnp.zeros((), dtype))
     # a NaN/Inf in the S factored (from P, H or R's valid block) is NON_FINITE, not NOT_PSD
     finite_in = jnp.all(jnp.isfinite(S))
     extra = None
@@ -694,7 +702,16 @@ def make_filter(
         F = F.astype(dtype)
         Qd = process_noise(Q, x, u, args, noise_jac)
         PFt = P @ F.T
-        return Gaussian(xn.astype(dtype), symmetrize(F @ PFt + Qd)), PFt
+        xn = xn.astype(dtype)
+        Pn = symmetrize(F @ PFt + Qd)
+        # the prediction's status (the protocol's third output): NON_FINITE for a NaN/Inf, NOT_PSD
+        # for a negative predicted variance or a negative variance in Q; the run's step then
+        # keeps its belief (gaussian.make_step), as with every Gaussian filter
+        finite = jnp.all(jnp.isfinite(xn)) & jnp.all(jnp.isfinite(Pn)) & jnp.all(jnp.isfinite(PFt))
+        neg = (_g.predicted_status(Pn) == errors.NOT_PSD) | _g.negative_variance(Q)
+        i32 = jnp.int32
+        status = jnp.where(finite, jnp.where(neg, i32(errors.NOT_PSD), i32(0)), i32(errors.NON_FINITE))
+        return Gaussian(xn, Pn), PFt, status
 
     def upd(state, z, mask, R, c):
         hh = (lambda x, *a: h(x, c, *a)) if h_takes_input else h
@@ -761,7 +778,12 @@ def filter_scan(
         save_smoother: static; save what :func:`jaxslam.filters.smoother.rts` needs.
 
     Returns:
-        :class:`Posterior` in the dtype of ``x0`` (``log_likelihood`` per step included).
+        :class:`Posterior` in the dtype of ``x0`` (``log_likelihood`` per step included).  A
+        failed prediction (a NaN/Inf: ``NON_FINITE``; a negative predicted variance or a traced
+        ``Q`` with a negative variance: ``NOT_PSD``) is skipped, as in every Gaussian run: the
+        step it fed keeps the belief the predict started from, makes no update (NIS 0) and
+        carries the bits and a NaN log-likelihood; later steps go on from that belief (the
+        NaN used to be carried to the end of the run).
     """
     flt = make_filter(f, h, *args, residual=residual, gate=gate, noise_jac=noise_jac,
                       num_iter=num_iter, h_takes_input=h_inputs is not None)

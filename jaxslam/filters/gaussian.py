@@ -38,6 +38,15 @@ Decisions
   cross-covariances with ``save_smoother`` (what the RTS smoother needs).  With
   ``predict_first=False`` the entry ``t`` of the predicted moments is the prior
   that step ``t`` updated, and ``cross_covs[0]`` is zero (no prediction made it).
+* A failed prediction (``NOT_PSD`` / ``NON_FINITE`` in the predict's status: a NaN/Inf, a
+  negative predicted variance, a negative variance in a traced ``Q``) is skipped, in every
+  filter's run (:func:`make_step`; the square-root runs follow the same rule): the belief it
+  started from is handed on, and the step whose prior it was to be makes no update (its prior
+  is unknown): that step's filtered moments are the belief it started from, its saved
+  predicted moments too (cross-covariance its covariance), its NIS 0, its status the predict's
+  bits and its log-likelihood NaN; the next step goes on from there.  The EKF's run used to
+  carry the NaN (or negative variance) to every later step, and the sigma-point runs updated
+  the previous step's belief with this step's ``z``.
 """
 
 from __future__ import annotations
@@ -75,6 +84,7 @@ __all__ = [
     "call_residual",
     "check_num_iter",
     "predicted_status",
+    "negative_variance",
     "check_noise_values",
     "check_update_args",
     "check_predict_call",
@@ -173,7 +183,10 @@ class GaussianFilter(NamedTuple):
     is ``Cov(x, x')`` of the prior and the predicted state (``P Fᵀ`` for an EKF).  A
     predict that keeps its prior on a failure (the sigma-point filter) returns the
     failure's ``status`` bits: :func:`run` adds them to the step's status, and a
-    ``NOT_PSD`` / ``NON_FINITE`` predict makes the step's log-likelihood NaN.
+    ``NOT_PSD`` / ``NON_FINITE`` predict makes the step's log-likelihood NaN.  Whatever the
+    predict returns, a run skips a failed prediction (its status, or for a predict without
+    one a NaN/Inf or negative predicted variance): the step it fed keeps the belief it
+    started from and makes no update (module docstring).
 
     ``update(state, z, mask, R, c) -> (Gaussian, UpdateInfo)``: measurement
     update with validity ``mask`` (m,), noise ``R`` (m, m) and ``c`` the step's
@@ -597,15 +610,17 @@ def run_dtype(x0):
     return dt if np.issubdtype(dt, np.floating) else np.dtype(jnp.result_type(float))
 
 
-def check_fits_dtype(M, name: str, dtype, valid=None, variances: bool = True) -> None:
+def check_fits_dtype(M, name: str, dtype, valid=None, variances: bool = True, rows: bool = False) -> None:
     """When ``M`` (a covariance, or a stack of them: ``name[k]``) is known now, :class:`InputError`
     naming ``name`` unless the run's cast to ``dtype`` keeps it: an entry finite as given that
     overflows to inf in ``dtype``, or (``variances``) a positive diagonal entry that underflows to
     0 in it.  The values are judged as given (float64) before the cast, so ``diag(1e200, 1)``
     given to a float32 run passed and then failed every step (status flags, the prior kept).
     Non-finite entries are left to :func:`jaxslam.linalg.check_psd`; ``valid`` as there (the
-    rows of masked measurements of a per-step R are not read).  A value already in ``dtype``,
-    or a run in float64, has nothing to check."""
+    rows of masked measurements of a per-step R are not read).  With ``rows`` ``M`` is a run's
+    (T, m) measurements ``zs`` (no variances): an entry is named ``name[t]``, and ``valid`` is
+    the (T, m) mask (a masked entry may hold anything: it is never read).  A value already in
+    ``dtype``, or a run in float64, has nothing to check."""
     dt = np.dtype(dtype)
     if M is None or not is_concrete(M) or getattr(M, "dtype", None) == dt or np.finfo(dt).bits >= 64:
         return
@@ -613,9 +628,11 @@ def check_fits_dtype(M, name: str, dtype, valid=None, variances: bool = True) ->
     if valid is not None and A.ndim == 3:
         v = np.broadcast_to(np.asarray(valid, bool), A.shape[:-1])
         A = np.where(v[:, :, None] & v[:, None, :], A, 0.0)
+    elif valid is not None and rows:
+        A = np.where(np.broadcast_to(np.asarray(valid, bool), A.shape), A, 0.0)
     with np.errstate(over="ignore", under="ignore", invalid="ignore"):
         C = A.astype(dt).astype(np.float64)
-    stack = A.ndim == 3
+    stack = A.ndim == 3 or rows
 
     def fail(values, bad, what, how):
         idx = np.unravel_index(int(np.argmax(bad)), bad.shape)
@@ -663,7 +680,8 @@ def check_run_inputs(x0, P0, zs, masks, Q, R, name_prefix="", q_optional: bool =
     real numbers (:func:`check_run_numbers`); shapes; ``x0`` finite and ``P0``, ``Q`` PSD,
     ``R`` PD (a per-step ``R`` on the rows ``masks`` uses) where concrete, each representable in
     the run's dtype (:func:`check_fits_dtype`: no entry overflows, no variance underflows to 0
-    in ``x0``'s dtype).  A scalar ``R`` is
+    in ``x0``'s dtype), and so the entries of a concrete ``zs`` that ``masks`` uses (no
+    overflow).  A scalar ``R`` is
     the variance of the one measurement when m = 1 (so is a (1,) ``R``).  ``Q`` is checked for
     squareness and, as one matrix per step, for its count; its size against the state is the
     caller's (it depends on ``noise_jac``): a scalar or (1,) ``Q`` is the variance of a single
@@ -699,6 +717,9 @@ def check_run_inputs(x0, P0, zs, masks, Q, R, name_prefix="", q_optional: bool =
         raise InputError(f"{pre}masks: expected shape ({T}, {m}) like zs, got "
                          f"{tuple(np.shape(masks))}")
     check_mask(masks, f"{pre}masks")
+    # a measurement in use that the run's dtype cannot hold (1e300 in float32 was an Inf: the step
+    # flagged NON_FINITE); judged as given, as P0 / Q / R below
+    check_fits_dtype(zs, f"{pre}zs", run_dtype(x0), valid=_zs_valid(zs, masks), variances=False, rows=True)
     rs = np.shape(R)
     if m == 1 and rs in ((), (1,)):
         R = np.reshape(R, (1, 1)) if is_concrete(R) else R  # a scalar variance of one measurement
@@ -754,9 +775,20 @@ def make_step(flt: GaussianFilter, Q, R, q_step: bool, r_step: bool, predict_fir
     ``cross`` the cross-covariance of the prediction that produced it.  Shared by
     :func:`run` and the fixed-lag smoother so that both filter identically.  A predict's
     status (the protocol's optional third output) goes to the step whose prior it made: the
-    same step with ``predict_first``, else the next one (the carry's last slot holds it).
+    same step with ``predict_first``, else the next one (the carry's last slot holds it); that
+    step keeps the belief the failed predict started from and makes no update (module
+    docstring: selected after the update, so a step whose predict held computes exactly what
+    it did before the rule).
     """
     zero = jnp.zeros((), jnp.int32)
+    i32 = jnp.int32
+
+    def kept(status, g, cross, prev):
+        """``(g, cross)`` (a predict's, or an update's belief and None), or ``prev`` (cross-covariance
+        ``prev.cov``: no motion) where ``status`` says the predict failed."""
+        bad = (status & i32(errors.NOT_PSD | errors.NON_FINITE)) != 0
+        return (Gaussian(jnp.where(bad, prev.mean, g.mean), jnp.where(bad, prev.cov, g.cov)),
+                None if cross is None else jnp.where(bad, prev.cov, cross))
 
     def predict(state, u, Qt):
         out = flt.predict(state, u, Qt)
@@ -769,21 +801,46 @@ def make_step(flt: GaussianFilter, Q, R, q_step: bool, r_step: bool, predict_fir
         u, z, mk, Qt, Rt, c = inp
         Qt = Qt if q_step else Q
         Rt = Rt if r_step else R
+        # The step whose prior a failed predict made keeps the belief it started from and makes
+        # no update (its prior is unknown), whatever the filter: the EKF's run carried the NaN /
+        # negative-variance prediction to every later step, the sigma-point runs updated the
+        # belief of the step before with this step's z.  Selected after the update, so a
+        # successful step computes what it always did.
         if predict_first:
             prior, cross, p_status = predict(state, u, Qt)
             post, info = flt.update(prior, z, mk, Rt, c)
+            post, _ = kept(p_status, post, None, state)
+            prior, cross = kept(p_status, prior, cross, state)
             nxt, cross_next, pending_next = post, cross_in, zero
         else:
             prior, cross, p_status = state, cross_in, pending
             post, info = flt.update(state, z, mk, Rt, c)
+            post, _ = kept(p_status, post, None, state)
             nxt, cross_next, pending_next = predict(post, u, Qt)
-        # a predict that failed kept its prior: the step it fed says so
-        info = info._replace(status=info.status | p_status)
+            # a failed predict hands on the belief it started from (the next step then keeps it)
+            nxt, cross_next = kept(pending_next, nxt, cross_next, post)
+        failed = (p_status & i32(errors.NOT_PSD | errors.NON_FINITE)) != 0
+        info = info._replace(status=info.status | p_status, accepted=info.accepted & ~failed,
+                             nis=jnp.where(failed, jnp.zeros_like(info.nis), info.nis))
         # The second carry slot holds the last filtered estimate, which with
         # predict_first=False differs from the (predicted) first slot.
         return (nxt, post, cross_next, pending_next), (post, prior, cross, info)
 
     return step
+
+
+def negative_variance(M, mask=None):
+    """True (a traced bool) when a noise covariance ``M`` ((k, k); ``mask`` (k,): only its valid
+    entries) has a negative variance on its diagonal, O(k): such an ``M`` is no covariance.  A
+    traced negative ``R`` (or ``Q``) whose ``S`` (or predicted covariance) still factored was
+    used with status 0 by the covariance forms (a posterior variance of −1e-8, within
+    :func:`finalize`'s rounding tolerance), where the square-root forms, which factor the noise,
+    say ``NOT_PSD``.  An indefinite ``M`` with a non-negative diagonal is not seen here (that
+    needs a factorisation, and a singular ``Q`` such as ``diag(q, q, 0)`` is valid)."""
+    M = jnp.asarray(M)
+    d = jnp.diagonal(M.reshape(1, 1) if M.ndim < 2 else M)  # a scalar: the one variance
+    neg = d < 0  # (NaN compares False: a NaN is NON_FINITE, the step's finite_in)
+    return jnp.any(neg if mask is None else neg & mask)
 
 
 def predicted_status(P):
@@ -798,6 +855,16 @@ def predicted_status(P):
     return jnp.where(~finite, i32(errors.NON_FINITE), jnp.where(neg, i32(errors.NOT_PSD), i32(0)))
 
 
+def _zs_valid(zs, masks):
+    """The (T, m) mask a check of ``zs``'s values reads before ``masks`` is checked: ``masks`` when
+    it is a concrete bool or integer array of ``zs``'s shape, else None (every entry judged; a
+    malformed ``masks`` is named by :func:`check_run_inputs`)."""
+    if masks is None or not is_concrete(masks):
+        return None
+    a = np.asarray(masks)
+    return a if a.shape == np.shape(zs) and a.dtype.kind in "biu" else None
+
+
 def prepare_run(x0, P0, zs, masks, Q, R, noise=None):
     """Cast and check a run's arrays; ``(x0, P0, zs, masks, Q, R, q_step, r_step, T)``.  ``noise``:
     None, or :func:`noise_size`'s ``(q, by_jac)`` for :func:`check_run_q_size` (a run that knows
@@ -809,6 +876,8 @@ def prepare_run(x0, P0, zs, masks, Q, R, noise=None):
     dtype = x0.dtype if jnp.issubdtype(x0.dtype, jnp.floating) else jnp.result_type(float)
     if np.ndim(P0) == 2:  # (as given: the cast below would turn 1e200 into inf, 1e-50 into 0)
         check_fits_dtype(P0, "P0", dtype)
+    if np.ndim(zs) == 2:  # likewise a measurement (1e300 in a float32 run was an Inf: NON_FINITE)
+        check_fits_dtype(zs, "zs", dtype, valid=_zs_valid(zs, masks), variances=False, rows=True)
     x0, P0, zs = (host_array(v, dtype) for v in (x0, P0, zs))
     T, m = check_run_inputs(x0, P0, zs, masks, Q, R)
     if noise is not None:
@@ -867,7 +936,10 @@ def run(
             :func:`jaxslam.filters.smoother.rts`.
 
     Returns:
-        :class:`Posterior` in the dtype of ``x0``.
+        :class:`Posterior` in the dtype of ``x0``.  A failed prediction is skipped: the step it
+        fed keeps the belief it started from, makes no update and carries the predict's status
+        (module docstring).  A concrete ``zs`` entry in use that ``x0``'s dtype cannot hold
+        (1e300 in float32) is an :class:`InputError` naming ``zs[t]``.
     """
     return _run(flt, x0, P0, us, zs, masks, Q, R, h_inputs, predict_first, save_cov, save_smoother)
 

@@ -81,7 +81,9 @@ Decisions
 * ``filter_scan`` ordering and outputs follow :func:`jaxslam.filters.ekf.filter_scan`
   (``predict_first``); the variances ``cov_diags`` are the squared row norms of ``L``.  A
   non-finite prediction adds ``errors.NON_FINITE`` to the status of the step whose prior it
-  is (as the EKF's run does; its update, which meets the NaN factor, reports ``NON_FINITE``).
+  is, and is skipped, as in every Gaussian run (:mod:`jaxslam.filters.gaussian`): that step
+  keeps the belief the predict started from and makes no update (NIS 0); the NaN factor used
+  to be carried to the end of the run.
   A finite ``P0`` or ``Q`` that cannot be factored (indefinite; refused up front when known,
   traced otherwise) makes a NaN factor before the scan: the steps that meet it report
   ``NOT_PSD`` instead, as the covariance forms do for such an input.
@@ -233,27 +235,30 @@ def psd_factor(A, dtype=None):
     return _root(A, dtype, triangular=True)
 
 
+def _root_np(A, dtype):
+    """:func:`psd_factor` of a concrete ``A`` on the host, in float64 (NumPy; ``dtype``, the run's,
+    sets only the rounding tolerance of a singular ``A``'s eigenvalues)."""
+    M = np.asarray(A, dtype=np.float64)
+    M = 0.5 * (M + M.T)
+    n = M.shape[0]
+    if not np.all(np.isfinite(M)):
+        return np.full((n, n), np.nan)
+    try:
+        return np.linalg.cholesky(M)
+    except np.linalg.LinAlgError:
+        w, V = np.linalg.eigh(M)
+        if w.size and w.min() < -_clip_tol(n, dtype) * np.max(np.abs(w)):
+            return np.full((n, n), np.nan)
+        return _tria_np(V * np.sqrt(np.clip(w, 0.0, None)))
+
+
 def _root(A, dtype=None, triangular=True):
     """``psd_factor``; with ``triangular=False`` a singular ``A`` gives ``V diag(√w)``."""
     if dtype is None:
         dt = jnp.asarray(A).dtype
         dtype = dt if jnp.issubdtype(dt, jnp.floating) else jnp.result_type(float)
     if is_concrete(A):
-        M = np.asarray(A, dtype=np.float64)
-        M = 0.5 * (M + M.T)
-        n = M.shape[0]
-        if not np.all(np.isfinite(M)):
-            L = np.full((n, n), np.nan)
-        else:
-            try:
-                L = np.linalg.cholesky(M)
-            except np.linalg.LinAlgError:
-                w, V = np.linalg.eigh(M)
-                if w.size and w.min() < -_clip_tol(n, dtype) * np.max(np.abs(w)):
-                    L = np.full((n, n), np.nan)
-                else:
-                    L = _tria_np(V * np.sqrt(np.clip(w, 0.0, None)))
-        return jnp.asarray(L.astype(dtype))
+        return jnp.asarray(_root_np(A, dtype).astype(dtype))
 
     M = symmetrize(jnp.asarray(A, dtype))
     n = M.shape[0]
@@ -291,6 +296,11 @@ def _noise_root(Q, Q_chol, dtype):
     if Q is None:
         raise InputError("Q: a process-noise covariance (or Q_chol=) is required")
     if np.ndim(Q) == 3:
+        if is_concrete(Q) and np.finfo(dtype).bits < 64:
+            # each factored as given, then cast, as a single Q is (a float32 run factored the
+            # rounded matrices in float32: a per-step Q of T equal matrices gave other numbers
+            # than the one matrix); in float64 the cast changes nothing and the program is kept
+            return jnp.asarray(np.stack([_root_np(q, dtype) for q in np.asarray(Q, np.float64)]).astype(dtype))
         return jax.vmap(lambda q: _root(q, dtype, triangular=False))(jnp.asarray(Q, dtype))
     return _root(Q, dtype, triangular=False)
 
@@ -320,6 +330,15 @@ def _as_not_psd(status, unfactored):
     covariance that fails to factor ``NOT_PSD``."""
     nf = jnp.int32(errors.NON_FINITE)
     return jnp.where(unfactored & ((status & nf) != 0), (status & ~nf) | jnp.int32(errors.NOT_PSD), status)
+
+
+def _kept(status, pred, prior):
+    """``pred``, or ``prior`` where a run's predict failed (``status`` not 0): the belief a failed
+    predict started from is handed on, and the step it fed makes no update
+    (:func:`jaxslam.filters.gaussian.make_step`: the rule of every Gaussian run; the NaN used to
+    be carried to every later step)."""
+    ok = status == 0
+    return SqrtGaussian(jnp.where(ok, pred.mean, prior.mean), jnp.where(ok, pred.chol, prior.chol))
 
 
 def check_state(state, name: str = "state") -> SqrtGaussian:
@@ -696,7 +715,11 @@ def filter_scan(
         Q_chol: optional square root of ``Q`` (as in :func:`predict`).
 
     Returns:
-        :class:`SqrtPosterior` in the dtype of ``x0``.
+        :class:`SqrtPosterior` in the dtype of ``x0``.  A failed (non-finite) prediction is
+        skipped: the step it fed keeps the belief the predict started from and makes no update
+        (NIS 0; module docstring).  A concrete ``zs`` entry in use that ``x0``'s dtype cannot
+        hold is an :class:`InputError` naming ``zs[t]``; a concrete per-step ``Q`` is factored
+        on the host in float64 before the cast, as a single ``Q`` and ``P0`` are.
     """
     predict_first = check_flag(predict_first, "predict_first")
     save_chol = check_flag(save_chol, "save_chol")
@@ -741,16 +764,21 @@ def filter_scan(
             u, z, mk, c, r = inp
             c = c if q_step else C
             r = r if r_step else R
+            # the step whose prior a failed predict made keeps its belief and makes no update
+            # (gaussian.make_step, the rule of every Gaussian run); selected after the update
             if predict_first:
                 prior = pred(state, u, c)
                 p_status = pred_status(prior)
                 post, info = upd(prior, z, mk, r)
-                nxt = post
+                post = nxt = _kept(p_status, post, state)
             else:
                 p_status = pending
                 post, info = upd(state, z, mk, r)
+                post = _kept(p_status, post, state)
                 nxt = pred(post, u, c)
                 pending = pred_status(nxt)
+                nxt = _kept(pending, nxt, post)
+            info = info._replace(nis=jnp.where(p_status != 0, jnp.zeros_like(info.nis), info.nis))
             out = (
                 post.mean,
                 jnp.sum(post.chol * post.chol, axis=1),

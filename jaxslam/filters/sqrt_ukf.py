@@ -48,8 +48,8 @@ from .gaussian import (
     masked_innovation,
     gate_test,
 )
-from .sqrt_ekf import (SqrtGaussian, SqrtPosterior, _as_not_psd, _host_root, _mm, _noise_root, _tria, _unfactored,
-                       check_state, psd_factor)
+from .sqrt_ekf import (SqrtGaussian, SqrtPosterior, _as_not_psd, _host_root, _kept, _mm, _noise_root, _tria,
+                       _unfactored, check_state, psd_factor)
 from .ukf import (
     SigmaPoints,
     _rule,
@@ -247,9 +247,13 @@ def filter_scan(f: Optional[Callable], h: Callable, x0, P0, us, zs, masks, Q, R,
     Arguments as :func:`jaxslam.filters.sqrt_ekf.filter_scan` (``Q`` (n, n) or (T, n, n) is
     factored once per matrix before the scan, a scalar for n = 1 as in :func:`predict`; ``R``
     (m, m) or (T, m, m)) plus ``points``
-    (static), without ``noise_jac`` and ``Q_chol``.  A predict that fails (non-finite) keeps
-    its prior and sets ``NON_FINITE`` in the step's status.  With ``predict_first=False`` the
-    first update factors ``P0`` itself, so a concrete ``P0`` must then be positive definite,
+    (static), without ``noise_jac`` and ``Q_chol``.  A predict that fails (non-finite;
+    ``NOT_PSD`` for an indefinite traced ``Q``) is skipped, as in every Gaussian run: the step
+    it fed keeps the belief the predict started from, makes no update (NIS 0) and carries the
+    bits (it used to update that belief with its ``z``).  ``P0`` (and a concrete ``Q``) is
+    factored as given, then cast to ``x0``'s dtype, as in
+    :func:`jaxslam.filters.sqrt_ekf.filter_scan` (``P0`` used to be cast first).  With
+    ``predict_first=False`` the first update factors ``P0`` itself, so a concrete ``P0`` must then be positive definite,
     as in :func:`jaxslam.filters.ukf.filter_scan` (:class:`InputError` naming ``P0``; a
     singular one used to fail that update with ``NOT_PSD``).  Returns
     :class:`~jaxslam.filters.sqrt_ekf.SqrtPosterior`.
@@ -276,7 +280,10 @@ def filter_scan(f: Optional[Callable], h: Callable, x0, P0, us, zs, masks, Q, R,
         Q = single_variance(Q)
     check_leading(us, T, "us")
     masks = jnp.ones((T, m), bool) if masks is None else jnp.asarray(masks, bool)
-    L0 = psd_factor(jnp.asarray(P0, dtype), dtype)
+    # factored as given, then cast (a concrete P0 on the host in float64, as sqrt_ekf.filter_scan
+    # and the module's predicts do): it was cast first, so a float32 run started from the factor
+    # of the rounded P0, not the nearest float32 factor of P0
+    L0 = psd_factor(P0, dtype)
     q_step = np.ndim(Q) == 3
     CQ = _noise_root(Q, None, dtype)
     Ra = jnp.asarray(R, dtype)
@@ -299,6 +306,10 @@ def filter_scan(f: Optional[Callable], h: Callable, x0, P0, us, zs, masks, Q, R,
             else:
                 p_status = pending
             post, info = update(state, z, h, rt, *args, residual=residual, mask=mk, gate=gate, points=rule)
+            # the step whose prior a failed predict made keeps its belief and makes no update
+            # (gaussian.make_step, the rule of every Gaussian run); selected after the update
+            post = _kept(p_status, post, state)
+            info = info._replace(nis=jnp.where(p_status != 0, jnp.zeros_like(info.nis), info.nis))
             if predict_first:
                 nxt = post
             else:

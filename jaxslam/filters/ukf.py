@@ -82,12 +82,14 @@ Decisions
   definiteness by rounding after a very informative update; the next step's factorisation
   then flags ``NOT_PSD`` rather than proceeding with NaN.
 * **Failures of a predict**: a failed factor of ``P`` (``NOT_PSD``; ``NON_FINITE`` when ``P``
-  holds a NaN/Inf: :func:`jaxslam.filters.gaussian.failure_status`) or a non-finite
-  predicted moment (``NON_FINITE``) keeps the prior moments (cross-covariance ``P``).  The
+  holds a NaN/Inf: :func:`jaxslam.filters.gaussian.failure_status`), a negative variance in
+  ``Q`` or in the prediction (``NOT_PSD``) or a non-finite predicted moment (``NON_FINITE``)
+  keeps the prior moments (cross-covariance ``P``).  The
   filter's predict returns that status (the ``GaussianFilter`` protocol's optional third
   output), so inside a run the step carries the flag and a NaN log-likelihood (a summed NLL
   cannot hide it); :func:`predict` and :func:`predict_with_cross` return the status with
-  ``return_status``.
+  ``return_status``.  A run makes no update in that step (the rule of every Gaussian run,
+  :mod:`jaxslam.filters.gaussian`): it keeps the belief the predict started from.
 * dtype: every function computes in the dtype of ``state.mean``; weights, ``Q``, ``R``, ``z``
   and the model outputs are cast to it.
 * Cost per step: 2n + 1 (or 2n) evaluations of ``f`` and ``h`` (``vmap``-ed), one n×n and one
@@ -322,10 +324,12 @@ def _predict(state: Gaussian, f: Optional[Callable], u, Q, args, rule: SigmaPoin
     x, P = check_state(state)
     dtype = x.dtype
     Qd = process_noise(Q, x, u, args, noise_jac)
+    q_neg = _g.negative_variance(Q)  # a traced Q with a negative variance: NOT_PSD, prior kept
     if f is None:
         Pn = symmetrize(P + Qd)
         finite = jnp.all(jnp.isfinite(Pn))
-        p_status = jnp.where(finite, _g.predicted_status(Pn), jnp.int32(errors.NON_FINITE))
+        p_status = jnp.where(finite, jnp.where(q_neg, jnp.int32(errors.NOT_PSD), _g.predicted_status(Pn)),
+                             jnp.int32(errors.NON_FINITE))
         return (Gaussian(x, jnp.where(p_status == 0, Pn, P)), P, p_status)
     pts, wm, wc, ok = sigma_points(x, P, rule)
     X = check_transition(jax.vmap(lambda p: jnp.asarray(f(p, u, *args)))(pts), pts.shape).astype(dtype)  # (N, n)
@@ -336,7 +340,7 @@ def _predict(state: Gaussian, f: Optional[Callable], u, Q, args, rule: SigmaPoin
     C = (dx * wc[:, None]).T @ dX  # Cov(x, x')
     finite = jnp.all(jnp.isfinite(xm)) & jnp.all(jnp.isfinite(Pn)) & jnp.all(jnp.isfinite(C))
     # a negative predicted variance (a traced negative Q) is NOT_PSD: the prior is kept
-    neg = _g.predicted_status(Pn) == errors.NOT_PSD
+    neg = (_g.predicted_status(Pn) == errors.NOT_PSD) | q_neg
     good = ok & finite & ~neg
     # a prior P with a NaN/Inf fails its factor: NON_FINITE, not NOT_PSD (gaussian.failure_status)
     status = _g.failure_status(jnp.asarray(True), ok & ~(finite & neg), jnp.all(jnp.isfinite(P)), finite)
@@ -469,9 +473,9 @@ def update(
 
     Returns:
         ``(posterior Gaussian, UpdateInfo)``.  If the factor of ``P`` or of ``S`` is not
-        finite or a posterior variance is negative (``NOT_PSD``; NIS and ``logdet`` then 0 for
-        a failed factor) or the posterior is not finite (``NON_FINITE``), the prior is
-        returned unchanged.  Called eagerly it is compiled once per model
+        finite, a posterior variance is negative or a traced ``R`` has a negative variance on
+        a valid component (``NOT_PSD``; NIS and ``logdet`` then 0) or the posterior is not
+        finite (``NON_FINITE``), the prior is returned unchanged.  Called eagerly it is compiled once per model
         (:func:`jaxslam.compilation.call_compiled`).
     """
     rule = _rule(points)
@@ -513,7 +517,9 @@ def _update(state: Gaussian, z, h: Callable, R, *args, residual=None, mask=None,
     nu = masked_innovation(z, zhat, mask, res)
     X, ok_s, logdet = innovation_solve(S, jnp.concatenate([Cxz.T, nu[:, None]], axis=1))
     K = X[:, :n].T  # C S⁻¹
-    ok = ok_s & ok_pts
+    # a negative variance in R's valid block is NOT_PSD and keeps the prior, also where S still
+    # factors (as the square-root forms, which factor R)
+    ok = ok_s & ok_pts & ~_g.negative_variance(R, mask)
     nis = jnp.where(ok, jnp.dot(nu, X[:, n]), zero)
     x_post = x + K @ nu
     P_post = symmetrize(P - K @ S @ K.T)
@@ -632,7 +638,11 @@ def filter_scan(
             the sigma-point cross-covariances: the unscented RTS smoother).
 
     Returns:
-        :class:`Posterior` in the dtype of ``x0`` (``log_likelihood`` per step included).
+        :class:`Posterior` in the dtype of ``x0`` (``log_likelihood`` per step included).  A
+        failed prediction is skipped, as in every Gaussian run: the step it fed keeps the
+        belief the predict started from, makes no update (NIS 0) and carries the predict's
+        bits and a NaN log-likelihood (that step used to update the previous step's belief
+        with its ``z``).
     """
     _g.refuse_bool(P0, "P0")  # (before the PD check below reads True as 1)
     if is_concrete(P0) and np.ndim(P0) == 2 and np.size(P0):  # empty: gaussian.run names x0
