@@ -164,10 +164,11 @@ def _main(argv):
     # An entry point configures the process (OpenBLAS pinned, XLA workaround flags, the persistent
     # compilation cache) before NumPy/SciPy load and JAX starts its backend; importing this package
     # does nothing of the kind (see jaxslam.runtime, README "Performance").
-    runtime.configure_process()
+    # (inside the handlers below: a Ctrl-C while it runs is the one line and 130, not a traceback)
     argv = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in argv or os.environ.get(DEBUG_ENV, "").strip().lower() in ("1", "true", "yes", "on")
     try:
+        runtime.configure_process()
         return _dispatch(argv)
     except SystemExit as e:  # argparse --help / --version
         if e.code is None or isinstance(e.code, int):

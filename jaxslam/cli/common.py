@@ -15,7 +15,8 @@ import threading
 
 __all__ = ["PROG", "DEBUG_ENV", "UsageError", "Parser", "ScriptParser", "path_arg", "int_at_least", "finite_float",
            "nonnegative_float", "positive_float", "positive_int", "seed_int", "echo", "compile_timing", "fmt",
-           "one_line", "silence_stdout", "reader_gone_safe_stdout", "counting_interrupts", "raise_if_interrupted"]
+           "one_line", "silence_stdout", "native_stdout_to_stderr", "reader_gone_safe_stdout", "counting_interrupts",
+           "raise_if_interrupted"]
 
 PROG = "jaxslam"
 DEBUG_ENV = "JAXSLAM_DEBUG"
@@ -43,7 +44,12 @@ class ScriptParser(argparse.ArgumentParser):
     argparse's own (a missing or unknown option, a value its ``type`` refuses) and the script's
     (``parser.error(message)``), is one line ``PROG: error: MESSAGE`` on stderr and exit code 2,
     with no usage block and no traceback.  Give ``prog`` (the script's file name): argparse's
-    default is ``sys.argv[0]``, which is not the script when its ``main`` is called in-process."""
+    default is ``sys.argv[0]``, which is not the script when its ``main`` is called in-process.
+    Abbreviated options are refused (``--out`` is not ``--output``), as by the CLI's parser."""
+
+    def __init__(self, *args, **kwargs):
+        kwargs.setdefault("allow_abbrev", False)
+        super().__init__(*args, **kwargs)
 
     def error(self, message):  # noqa: D401 - argparse API
         print(f"{self.prog}: error: {message}", file=sys.stderr)
@@ -223,6 +229,66 @@ class _ReaderGoneSafe:
 
     def __getattr__(self, name):
         return getattr(self._stream, name)
+
+
+@contextlib.contextmanager
+def native_stdout_to_stderr():
+    """Within: what native code writes on file descriptor 1 goes to stderr (fd 2), while
+    ``sys.stdout`` still writes to the real stdout.  A process of a group (``jaxslam run ...
+    --processes P``) runs within it: gloo prints "[Gloo] Rank 0 is connected to 1 peer ranks
+    ..." on stdout at the group's first collective, which mixed into the table a user may pipe;
+    nothing is hidden, it is on stderr.  Nothing changes where ``sys.stdout`` is not descriptor
+    1 (a test's capture) or a descriptor cannot be duplicated; on exit descriptor 1 and
+    ``sys.stdout`` are as before (a reader that left meanwhile: the null device, as
+    :class:`_ReaderGoneSafe` leaves it)."""
+    import os
+
+    stream = sys.stdout
+    try:
+        if stream.fileno() != 1:
+            raise ValueError
+        stream.flush()
+        real = os.dup(1)
+    except (OSError, ValueError, AttributeError):  # (io.UnsupportedOperation is both)
+        yield
+        return
+    try:
+        inner = getattr(stream, "_stream", stream)
+        mine = open(real, "w", encoding=getattr(inner, "encoding", None) or "utf-8",  # noqa: SIM115
+                    errors=getattr(inner, "errors", None) or "strict", closefd=False)
+        mine.reconfigure(line_buffering=bool(getattr(inner, "line_buffering", False)))
+        os.dup2(2, 1)
+    except (OSError, ValueError, LookupError):
+        os.close(real)
+        yield
+        return
+    sys.stdout = _ReaderGoneSafe(mine) if isinstance(stream, _ReaderGoneSafe) else mine
+    ours = sys.stdout
+    try:
+        yield
+    finally:
+        try:
+            ours.flush()
+        except (OSError, ValueError):
+            pass
+        _flush_c_stdio()  # what native code left in C's stdout buffer goes to stderr too
+        if sys.stdout is ours:
+            sys.stdout = stream
+        os.dup2(real, 1)
+        os.close(real)
+        try:
+            mine.close()
+        except (OSError, ValueError):
+            pass
+
+
+def _flush_c_stdio() -> None:
+    try:
+        import ctypes
+
+        ctypes.CDLL(None).fflush(None)
+    except (OSError, AttributeError, TypeError):  # no C library to ask (not POSIX)
+        pass
 
 
 @contextlib.contextmanager

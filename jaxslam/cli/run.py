@@ -16,8 +16,8 @@ import sys
 
 from jaxslam import files
 
-from .common import (PROG, Parser, UsageError, compile_timing, echo, finite_float, fmt, int_at_least, positive_int,
-                     raise_if_interrupted, seed_int, silence_stdout)
+from .common import (PROG, Parser, UsageError, compile_timing, echo, finite_float, fmt, int_at_least,
+                     native_stdout_to_stderr, positive_int, raise_if_interrupted, seed_int, silence_stdout)
 
 __all__ = ["command", "format_run_report"]
 
@@ -130,6 +130,11 @@ def _run_parser(scenario=None, help_params: bool = False) -> Parser:
 
 def command(rest: list[str]) -> int:
     """``jaxslam run SCENARIO [options]``."""
+    with contextlib.ExitStack() as stack:  # what a process of a group changes, undone on return
+        return _command(rest, stack)
+
+
+def _command(rest: list[str], stack: contextlib.ExitStack) -> int:
     _hear_launcher_interrupts()  # a process that --processes started tells it of a Ctrl-C
     base = Parser(prog=f"{PROG} run", add_help=False)
     base.add_argument("scenario", nargs="?")
@@ -198,6 +203,8 @@ def command(rest: list[str]) -> int:
         if pre.quiet:  # nothing on stdout, not even what the CPU collectives (gloo) print there
             sys.stdout.flush()
             silence_stdout()
+        else:  # what they print there ("[Gloo] Rank 0 is connected ...") goes to stderr, not into the table
+            stack.enter_context(native_stdout_to_stderr())
         distributed.initialize(*group)
 
     from jaxslam import io
@@ -330,7 +337,11 @@ def _process_group(pre):
 # (subprocess.call killed it 0.25 s after the Ctrl-C).  A Ctrl-C that reached the launcher alone
 # (kill -INT PID) is passed on, to each process that did not hear one: each tells the launcher
 # through a pipe, written by Python's C-level signal handler the moment a signal arrives
-# (signal.set_wakeup_fd; even in a compiled call), so no process gets it twice.
+# (signal.set_wakeup_fd; even in a compiled call), so no process gets it twice.  The processes
+# start with SIGINT blocked and unblock it once the command's own handler is in place: a Ctrl-C
+# while Python and the command's modules start (0.3 s) printed a traceback (the first 0.05 s,
+# Python's own start-up, a "Fatal Python error"); blocked, it waits, then ends the process
+# with the command's one line and exit 130.
 _HEARD_ENV = "JAXSLAM_LAUNCHER_SIGNAL_FD"  # the pipe's descriptor in a process the launcher started
 _HEARD_WAIT_S = 0.5  # after its Ctrl-C, the launcher waits this long for the processes to say so
 _STUCK_AFTER_S = 5.0  # process 0 still running this long after a worker ended with an error is stopped
@@ -339,27 +350,22 @@ _STOP_GRACE_S = 5.0  # SIGTERM, then SIGKILL after this long
 
 def _hear_launcher_interrupts() -> None:
     """In a process started by ``--processes``: the signals this process receives are announced
-    on the launcher's pipe (``$JAXSLAM_LAUNCHER_SIGNAL_FD``); anywhere else nothing."""
+    on the launcher's pipe (``$JAXSLAM_LAUNCHER_SIGNAL_FD``), and SIGINT, which the launcher
+    blocked while this process started, is unblocked (a Ctrl-C that came meanwhile is acted on
+    here: ``KeyboardInterrupt``); anywhere else nothing."""
     import signal
 
     fd = os.environ.pop(_HEARD_ENV, None)
-    if fd is None or not fd.isdigit():
+    if fd is None:
         return
-    try:
-        os.set_blocking(int(fd), False)
-        signal.set_wakeup_fd(int(fd), warn_on_full_buffer=False)
-    except (OSError, ValueError):  # not a pipe of ours, or not the main thread: nothing said
-        pass
-
-
-def _free_port() -> int:
-    """A TCP port free on the loopback interface now (the launcher imports no JAX, whose start-up
-    takes 1.5 s and whose gc callback drops a Ctrl-C; ``distributed.free_port`` does the same)."""
-    import socket
-
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+    if fd.isdigit():
+        try:
+            os.set_blocking(int(fd), False)
+            signal.set_wakeup_fd(int(fd), warn_on_full_buffer=False)
+        except (OSError, ValueError):  # not a pipe of ours, or not the main thread: nothing said
+            pass
+    if hasattr(signal, "pthread_sigmask"):
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
 
 
 def _launch_local(rest, processes: int) -> int:
@@ -371,8 +377,11 @@ def _launch_local(rest, processes: int) -> int:
     nothing, nothing is written), passing it on to the processes it did not reach; a second
     Ctrl-C stops them all (SIGTERM, SIGKILL after ``_STOP_GRACE_S``).  No process is left running
     when this returns."""
+    import signal
     import subprocess
     import tempfile
+
+    from jaxslam.sim import distributed  # (JAX-free until a group is joined)
 
     from .common import raise_if_interrupted
 
@@ -385,7 +394,7 @@ def _launch_local(rest, processes: int) -> int:
             skip = True
         elif not a.startswith("--processes="):
             argv.append(a)
-    coord = f"127.0.0.1:{_free_port()}"
+    coord = f"127.0.0.1:{distributed.free_port()}"
 
     def cmd(i):
         return [sys.executable, "-m", "jaxslam", "run", *argv, "--coordinator", coord,
@@ -400,16 +409,25 @@ def _launch_local(rest, processes: int) -> int:
     procs, heard = [], []
     try:
         try:
-            for i in [*range(1, processes), 0]:
-                r, w = os.pipe()
-                heard.insert(0 if i == 0 else len(heard), r)
-                try:
-                    p = subprocess.Popen(cmd(i), stdout=None if i == 0 else subprocess.DEVNULL,
-                                         stderr=None if i == 0 else errs[i - 1], pass_fds=(w,),
-                                         env={**os.environ, _HEARD_ENV: str(w)})
-                finally:
-                    os.close(w)
-                procs.insert(0 if i == 0 else len(procs), p)
+            # the processes start with SIGINT blocked (they inherit the mask; _hear_launcher_interrupts
+            # unblocks it); a Ctrl-C meanwhile reaches the launcher when the mask is restored, every
+            # process it started being in procs by then
+            mask = getattr(signal, "pthread_sigmask", None)
+            before = mask(signal.SIG_BLOCK, {signal.SIGINT}) if mask else None
+            try:
+                for i in [*range(1, processes), 0]:
+                    r, w = os.pipe()
+                    heard.insert(0 if i == 0 else len(heard), r)
+                    try:
+                        p = subprocess.Popen(cmd(i), stdout=None if i == 0 else subprocess.DEVNULL,
+                                             stderr=None if i == 0 else errs[i - 1], pass_fds=(w,),
+                                             env={**os.environ, _HEARD_ENV: str(w)})
+                    finally:
+                        os.close(w)
+                    procs.insert(0 if i == 0 else len(procs), p)
+            finally:
+                if mask:
+                    mask(signal.SIG_SETMASK, before)
             for r in heard:
                 os.set_blocking(r, False)
         except BaseException:  # a Ctrl-C (or a failed start) before the group is complete

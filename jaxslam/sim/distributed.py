@@ -25,18 +25,34 @@ in any of them ends the run with ``KeyboardInterrupt`` in all of them (an error:
 its process, a ``RuntimeError`` naming it in the others) instead of a gather of blocks of
 different lengths (gloo aborted the processes) or of equal partial ones (a batch of the wrong
 runs, not marked interrupted).
+
+A Ctrl-C must not make one process leave the group's collectives while the others wait in one
+(until gloo or the coordinator gives up, or the launcher stops them): :func:`settle` and
+:func:`gather` hold a SIGINT that arrives while they run (before their collective, a
+``KeyboardInterrupt`` there skipped it) and act on it when the collective is done.  One that
+arrives before :func:`settle` chose this process's word is an interrupted block; after it, with
+every block finished, the group goes on to the gather, and the Ctrl-C is re-delivered when
+:func:`gather` has gathered (in ``jaxslam run``: exit 130, nothing written).  What is left: the
+few bytecodes of the caller between its block and :func:`settle`, and between :func:`settle`
+and :func:`gather` (:func:`jaxslam.sim.monte_carlo.run`); a Ctrl-C there, in one process only,
+leaves the others waiting (under ``--processes`` the launcher stops them 5 s after that
+process ended).
+
+Importing this module does not import JAX (the launcher of ``--processes`` uses
+:func:`free_port`).
 """
 
 from __future__ import annotations
 
+import contextlib
+import signal
 import socket
+import threading
 from typing import Optional
 
-import jax
 import numpy as np
 
-from ..errors import InputError
-from ..linalg import check_int
+from ..errors import InputError, check_int
 
 __all__ = ["initialize", "active", "is_leader", "block", "settle", "gather", "free_port"]
 
@@ -58,6 +74,8 @@ def initialize(coordinator: str, num_processes: int, process_id: int) -> None:
     host, _, port = str(coordinator).rpartition(":")
     if not host or not port.isdigit() or not 0 < int(port) < 65536:
         raise InputError(f"--coordinator: expected HOST:PORT, got {coordinator!r}")
+    import jax
+
     jax.config.update("jax_cpu_collectives_implementation", "gloo")
     jax.distributed.initialize(coordinator_address=str(coordinator), num_processes=num_processes,
                                process_id=process_id)
@@ -65,11 +83,15 @@ def initialize(coordinator: str, num_processes: int, process_id: int) -> None:
 
 def active() -> bool:
     """True when this process belongs to a group of more than one."""
+    import jax
+
     return jax.process_count() > 1
 
 
 def is_leader() -> bool:
     """Process 0 (or a single process): the one that prints and writes."""
+    import jax
+
     return jax.process_index() == 0
 
 
@@ -79,6 +101,8 @@ def block(runs: int, num_processes: Optional[int] = None, index: Optional[int] =
     processes of a small batch (their block is all padding).  ``runs`` ≥ 0, ``num_processes``
     ≥ 1 and ``index`` in [0, num_processes) are ints (NumPy's too; not bools), else an
     :class:`InputError` naming the argument."""
+    import jax
+
     runs = check_int(runs, "runs", lower=0)
     P = jax.process_count() if num_processes is None else check_int(num_processes, "num_processes")
     i = jax.process_index() if index is None else check_int(index, "index", lower=0)
@@ -89,6 +113,31 @@ def block(runs: int, num_processes: Optional[int] = None, index: Optional[int] =
 
 
 _FINISHED, _INTERRUPTED, _FAILED = 0, 1, 2
+_held_interrupt = False  # a Ctrl-C that settle held after every block finished; gather re-delivers it
+
+
+@contextlib.contextmanager
+def _sigint_held():
+    """Within: a SIGINT is noted in the list this yields, not acted on; on exit the previous
+    handler is back (the caller acts on what was noted).  Only in the main thread (where Python
+    runs its handlers, so where a ``KeyboardInterrupt`` can land) and over a handler of Python's
+    (SIGINT ignored stays ignored)."""
+    heard = []
+    previous = signal.getsignal(signal.SIGINT)
+    if threading.current_thread() is not threading.main_thread() or not callable(previous):
+        yield heard
+        return
+    signal.signal(signal.SIGINT, lambda signum, frame: heard.append(signum))
+    try:
+        yield heard
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def _redeliver_sigint() -> None:
+    """The SIGINT held meanwhile, to the handler now in place (Python's: ``KeyboardInterrupt``
+    here; ``jaxslam`` counts it too)."""
+    signal.raise_signal(signal.SIGINT)
 
 
 def settle(error: Optional[BaseException] = None) -> None:
@@ -99,12 +148,22 @@ def settle(error: Optional[BaseException] = None) -> None:
     partial) or the exception its block raised.  Returns only when every block finished;
     else this process raises its own ``error``, or ``KeyboardInterrupt`` when another process
     was interrupted (the run is all or nothing), or a ``RuntimeError`` naming the process that
-    failed (its own error output says why)."""
-    from jax.experimental import multihost_utils
+    failed (its own error output says why).
 
-    code = (_FINISHED if error is None else _INTERRUPTED if isinstance(error, KeyboardInterrupt)
-            else _FAILED)
-    codes = np.asarray(multihost_utils.process_allgather(np.array([code], np.int32), tiled=False)).reshape(-1)
+    A Ctrl-C while it runs is held until its collective is done: one before this process's
+    word is chosen makes its block interrupted; one after it, when every block finished, is
+    re-delivered by :func:`gather` once the group has gathered (module docstring)."""
+    global _held_interrupt
+    _held_interrupt = False
+    with _sigint_held() as heard:
+        from jax.experimental import multihost_utils
+
+        if error is None and heard:
+            error = KeyboardInterrupt()  # a Ctrl-C before the word was chosen
+        code = (_FINISHED if error is None else _INTERRUPTED if isinstance(error, KeyboardInterrupt)
+                else _FAILED)
+        codes = np.asarray(multihost_utils.process_allgather(np.array([code], np.int32), tiled=False)).reshape(-1)
+        late = bool(heard) and code == _FINISHED  # after the word: the others go on to the gather
     if error is not None:
         raise error
     if (codes == _INTERRUPTED).any():
@@ -112,19 +171,34 @@ def settle(error: Optional[BaseException] = None) -> None:
     if (codes == _FAILED).any():
         i = int(np.argmax(codes == _FAILED))
         raise RuntimeError(f"process {i} of the group ({codes.size} processes) failed in its block of runs")
+    _held_interrupt = late
 
 
 def gather(out, runs: int):
     """Every process's block of per-run outputs (a pytree of NumPy arrays, leading axis = the
-    block) gathered into the whole batch, in run order, trimmed to ``runs``."""
-    from jax.experimental import multihost_utils
+    block) gathered into the whole batch, in run order, trimmed to ``runs``.
 
-    g = multihost_utils.process_allgather(out, tiled=False)  # (P, size, ...) per leaf
+    A Ctrl-C while it runs, or one :func:`settle` held, is acted on when the batch is
+    gathered: ``KeyboardInterrupt`` (in every process it reached; the others have the batch)."""
+    global _held_interrupt
+    import jax
+
+    heard = []
+    try:
+        with _sigint_held() as heard:
+            from jax.experimental import multihost_utils
+
+            g = multihost_utils.process_allgather(out, tiled=False)  # (P, size, ...) per leaf
+    finally:
+        held, _held_interrupt = _held_interrupt or bool(heard), False
+        if held:
+            _redeliver_sigint()
     return jax.tree.map(lambda a: np.asarray(a).reshape((-1,) + a.shape[2:])[:runs], g)
 
 
 def free_port() -> int:
-    """A TCP port free on the loopback interface now (for a one-machine group)."""
+    """A TCP port free on the loopback interface now (for a one-machine group: the launcher of
+    ``jaxslam run ... --processes P`` takes its coordinator's port here, without importing JAX)."""
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
