@@ -79,11 +79,14 @@ def main(argv=None):
     ap.add_argument("--biases", default="0.0005,0.005")
     ap.add_argument("--configs", default=",".join(CONFIGS))
     ap.add_argument("--chunk", type=positive_int, default=None, help="runs per compiled call (default all)")
-    ap.add_argument("--out", default="docs/results/paper001", type=path_arg)
+    ap.add_argument("--out", default="docs/results/paper001", type=path_arg, metavar="DIR",
+                    help="the results folder: a run writes its JSONs and table here, --table-only reads "
+                         "them from it (default: docs/results/paper001)")
     ap.add_argument("--float32", action="store_true")
     ap.add_argument("--measure", action="store_true", help="time one run of 'dynamics' and exit")
     ap.add_argument("--table-only", action="store_true",
-                    help="rebuild OUT/table.md from the JSON files already in OUT (no runs)")
+                    help="run nothing: rebuild DIR/table.md (table_f32.md with --float32) from the result "
+                         "JSONs of --biases x --configs an earlier run wrote in the --out folder DIR")
     args = ap.parse_args(argv)
     try:
         biases = [float(b) for b in args.biases.split(",")]
@@ -97,9 +100,13 @@ def main(argv=None):
             ap.error(f"--configs: unknown configuration {c!r}; choose from {sorted(CONFIGS)}")
     if args.table_only:
         out = pathlib.Path(args.out)
+        if not out.is_dir():  # ("no result JSON in FILE" said of a file, as if it were a folder)
+            ap.error(f"--table-only: --out {str(out)!r} is not a folder (--table-only reads the result JSONs "
+                     "of an earlier run from the --out folder and writes the table there)")
         rows = rows_from_dir(out, biases, names, args.float32)
         if not rows:
-            ap.error(f"--table-only: no result JSON in {out}")
+            ap.error(f"--table-only: no result JSON of --biases {args.biases} x --configs {','.join(names)} in "
+                     f"the --out folder {str(out)!r} (bias<b>_<config>{'_f32' if args.float32 else ''}.json)")
         r0 = rows[0][2]
 
         def setting(r):

@@ -17,16 +17,23 @@ runtime.configure_process()
 from jaxslam.cli.common import ScriptParser, path_arg, one_line  # noqa: E402
 from jaxslam.data import catalogue  # noqa: E402
 from jaxslam.errors import InputError  # noqa: E402
-import jax  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-jax.config.update("jax_enable_x64", True)
-from jaxslam.data import merge_events  # noqa: E402
-from jaxslam.data.mrclam import load_mrclam  # noqa: E402
-from jaxslam.data.runners import evaluate_planar  # noqa: E402
-from jaxslam.data import presets  # noqa: E402
-from jaxslam.systems import planar_ekf_slam as pe  # noqa: E402
+
+def _import_jax():
+    """JAX and the modules that load it, imported by main once the arguments are read: --help
+    and a usage error exit before JAX loads."""
+    global jax, jnp, merge_events, load_mrclam, evaluate_planar, presets, pe
+    import jax
+    import jax.numpy as jnp
+
+    jax.config.update("jax_enable_x64", True)
+    from jaxslam.data import merge_events
+    from jaxslam.data.mrclam import load_mrclam
+    from jaxslam.data.runners import evaluate_planar
+    from jaxslam.data import presets
+    from jaxslam.systems import planar_ekf_slam as pe
+
 
 PRESETS = ("fitted", "hand")  # presets.mrclam_params(preset=...)
 
@@ -62,6 +69,7 @@ def timed(f):
 
 def main(argv=None):
     a = parse(argv)
+    _import_jax()
     which, DATA = a.which, a.data
     out = {}
     if which == "mrclam":

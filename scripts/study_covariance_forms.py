@@ -21,20 +21,25 @@ from jaxslam import runtime
 runtime.configure_process(cache=False)
 from jaxslam.cli.common import ScriptParser, path_arg, positive_float, positive_int, seed_int  # noqa: E402
 
-import jax  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-jax.config.update("jax_enable_x64", True)
 
-from jaxslam import errors  # noqa: E402
-from jaxslam.control import dflqr  # noqa: E402
-from jaxslam.sensors import imu as imu_mod  # noqa: E402
-from jaxslam.sensors import landmarks as lm_mod  # noqa: E402
-from jaxslam.sim.scenarios import registry  # noqa: E402
-from jaxslam.sim.scenarios.tracking import DT, FRAME_STEPS, make_setup, paper000_figure8  # noqa: E402
-from jaxslam.sim.simulate import controls, simulate  # noqa: E402
-from jaxslam.systems import ekf_slam_3d as sys3d  # noqa: E402
+def _import_jax():
+    """JAX and the modules that load it, imported by main once the arguments are read: --help
+    and a usage error exit before JAX loads."""
+    global jax, jnp, errors, dflqr, imu_mod, lm_mod, registry, DT, FRAME_STEPS, make_setup, paper000_figure8
+    global controls, simulate, sys3d
+    import jax
+    import jax.numpy as jnp
+    jax.config.update("jax_enable_x64", True)
+    from jaxslam import errors
+    from jaxslam.control import dflqr
+    from jaxslam.sensors import imu as imu_mod
+    from jaxslam.sensors import landmarks as lm_mod
+    from jaxslam.sim.scenarios import registry
+    from jaxslam.sim.scenarios.tracking import DT, FRAME_STEPS, make_setup, paper000_figure8
+    from jaxslam.sim.simulate import controls, simulate
+    from jaxslam.systems import ekf_slam_3d as sys3d
 
 
 def _list_of(parse):
@@ -49,10 +54,11 @@ def main(argv=None):
     ap.add_argument("--r-scale", type=_list_of(positive_float), default="1,1e-4")
     ap.add_argument("--json", type=path_arg)
     a = ap.parse_args(argv)
-    if a.steps < FRAME_STEPS:  # (fewer flew no frame at all)
-        ap.error(f"--steps: expected at least {FRAME_STEPS} (one frame), got {a.steps}")
     if a.json:
         ap.output_file("--json", a.json)  # an unusable path (a folder, under a file) before the flights
+    _import_jax()  # (FRAME_STEPS is the tracking scenario's, a module that loads JAX)
+    if a.steps < FRAME_STEPS:  # (fewer flew no frame at all)
+        ap.error(f"--steps: expected at least {FRAME_STEPS} (one frame), got {a.steps}")
     opts = {o.name: o.default for o in registry.get("ekfslam3d-unknown").options}
     nf = a.steps // FRAME_STEPS
     out = {"steps": nf * FRAME_STEPS, "duration_s": nf * FRAME_STEPS * DT, "capacity": int(opts["capacity"]),

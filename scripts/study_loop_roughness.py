@@ -33,12 +33,18 @@ from jaxslam.errors import InputError
 from jaxslam.files import prepare_file
 
 runtime.configure_process(cache=False)
-import jax  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-jax.config.update("jax_enable_x64", True)
-from jaxslam.tuning.targets import get  # noqa: E402
+
+def _import_jax():
+    """JAX and the modules that load it, imported by main once the arguments are read: --help
+    and a usage error exit before JAX loads."""
+    global jax, jnp, get
+    import jax
+    import jax.numpy as jnp
+    jax.config.update("jax_enable_x64", True)
+    from jaxslam.tuning.targets import get
+
 
 STEPS = (0.001, 0.003, 0.01, 0.03, 0.1)
 PROBE = (1e-12, 1e-9, 1e-6, 1e-3, 1e-2)
@@ -132,6 +138,7 @@ def main(argv=None):
         ap.error(f"--out: cannot update {str(p)!r}: {getattr(e, 'strerror', None) or e}"[:300])
     if not isinstance(res, dict):
         ap.error(f"--out: {str(p)!r} holds no JSON object to update")
+    _import_jax()
     res.update({"purpose": __doc__.split("\n\n")[0], "setting": {**COMMON, "shipped_objective": SHIPPED},
                 "steps": list(STEPS), "probe_steps": list(PROBE)})
     res.setdefault("modes", {})

@@ -36,20 +36,25 @@ from jaxslam.errors import InputError  # noqa: E402
 
 runtime.configure_process()
 
-import jax  # noqa: E402
-
-jax.config.update("jax_enable_x64", True)
-
-import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-
-from jaxslam.data import presets  # noqa: E402
 from jaxslam.data.events import merge_events  # noqa: E402
 from jaxslam.data.mrclam import load_mrclam  # noqa: E402
-from jaxslam.data.runners import dead_reckoning, evaluate_planar  # noqa: E402
-from jaxslam.dynamics import planar  # noqa: E402
-from jaxslam.filters import ekf_slam as es  # noqa: E402
-from jaxslam.systems import planar_ekf_slam as P  # noqa: E402
+
+
+def _import_jax():
+    """JAX and the modules that load it, imported by main once the arguments are read: --help
+    and a usage error exit before JAX loads."""
+    global jax, jnp, presets, dead_reckoning, evaluate_planar, planar, es, P, _loc_scan
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    import jax.numpy as jnp
+    from jaxslam.data import presets
+    from jaxslam.data.runners import dead_reckoning, evaluate_planar
+    from jaxslam.dynamics import planar
+    from jaxslam.filters import ekf_slam as es
+    from jaxslam.systems import planar_ekf_slam as P
+    _loc_scan = jax.jit(_loc_scan_impl, static_argnames=("config",))
+
 
 DATA = __import__("os").environ.get("JAXSLAM_DATA_DIR")
 
@@ -259,9 +264,6 @@ def _loc_scan_impl(st0, dt, u, z, ids, mask, params, config):
     return jax.lax.scan(body, st0, (dt, u, z, ids, mask))[1]
 
 
-_loc_scan = jax.jit(_loc_scan_impl, static_argnames=("config",))
-
-
 def part_loc(Ds, range_k, odo_cal, base_params=None):
     print("== localisation on the surveyed map (ATE over the whole GT span) ==")
     cfg = presets.mrclam_config()
@@ -328,6 +330,7 @@ def main(argv=None):
         Ds = {r: load_mrclam(a.data, r) for r in (1, 2)}
     except InputError as e:
         ap.error(f"--data: {one_line(str(e)) or type(e).__name__}")
+    _import_jax()
     range_k = odo_cal = None
     if a.part in ("all", "resid", "loc"):
         range_k = part_resid(Ds)

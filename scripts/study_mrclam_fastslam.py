@@ -30,16 +30,24 @@ from jaxslam import runtime
 
 runtime.configure_process(cache=False)
 from jaxslam.cli.common import ScriptParser, path_arg  # noqa: E402
-import jax  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-
-jax.config.update("jax_enable_x64", True)
-from jaxslam import errors  # noqa: E402
-from jaxslam.data import presets, runners  # noqa: E402
 from jaxslam.data.mrclam import load_mrclam  # noqa: E402
-from jaxslam.systems import planar_fastslam as pf  # noqa: E402
 
+
+def _import_jax():
+    """JAX and the modules that load it, imported by main once the arguments are read: --help
+    and a usage error exit before JAX loads."""
+    global jax, jnp, errors, presets, runners, pf, F
+    import jax
+    import jax.numpy as jnp
+    jax.config.update("jax_enable_x64", True)
+    from jaxslam import errors
+    from jaxslam.data import presets, runners
+    from jaxslam.systems import planar_fastslam as pf
+    F = presets.MRCLAM_FITTED
+
+
+DEFAULT_DATA = "../shared/data"  # DATA_DIR when not given (a checkout beside the shared data)
 STUDIES = {
     "robust": (("At", "Ct"), "docs/results/datasets/mrclam_fastslam_robust_study.json",
                "Pre-registered 2026-12-05 14:11 UTC, before any run of these candidates. Consistency per run: the "
@@ -71,7 +79,6 @@ STUDIES = {
                 "--filter fastslam --ids hidden; if neither, M1 stays. ATE read afterwards, reported whatever "
                 "it is."),
 }
-F = presets.MRCLAM_FITTED
 
 
 def case(d, cand):
@@ -113,8 +120,8 @@ def case(d, cand):
 def parser():
     ap = ScriptParser(prog="study_mrclam_fastslam.py", description=__doc__.splitlines()[0])
     ap.add_argument("study", choices=tuple(STUDIES), help="which pre-registered study to run")
-    ap.add_argument("data", nargs="?", default="../shared/data", type=path_arg, metavar="DATA_DIR",
-                    help="the folder holding mrclam6/ (default: ../shared/data)")
+    ap.add_argument("data", nargs="?", default=DEFAULT_DATA, type=path_arg, metavar="DATA_DIR",
+                    help=f"the folder holding mrclam6/ (default: {DEFAULT_DATA}, from the current folder)")
     return ap
 
 
@@ -122,8 +129,12 @@ def main(argv=None):
     ap = parser()
     a = ap.parse_args(argv)
     study, data = a.study, a.data
+    if data == DEFAULT_DATA and not os.path.isdir(data):  # (the package's own runs never need ../shared)
+        ap.error(f"DATA_DIR: {data!r} (the default when DATA_DIR is not given) is not a folder; "
+                 "give DATA_DIR, the folder holding mrclam6/")
     if not os.path.isdir(os.path.join(data, "mrclam6")):  # (a traceback after the imports, before)
         ap.error(f"DATA_DIR: {data!r} holds no mrclam6/ folder")
+    _import_jax()
     cands, js, rule = STUDIES[study]
     rows = []
     for r in range(1, 6):

@@ -20,11 +20,17 @@ runtime.configure_process()
 from jaxslam.cli.common import ScriptParser, one_line, path_arg  # noqa: E402
 from jaxslam.data import catalogue  # noqa: E402
 from jaxslam.errors import InputError  # noqa: E402
-import jax  # noqa: E402
 import numpy as np  # noqa: E402
 
-jax.config.update("jax_enable_x64", True)
-from jaxslam.data import presets, runners  # noqa: E402
+
+def _import_jax():
+    """JAX and the modules that load it, imported by main once the arguments are read: --help
+    and a usage error exit before JAX loads."""
+    global jax, presets, runners
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    from jaxslam.data import presets, runners
+
 
 RULE = """Written 2026-12-06, before any run of candidate B.
 A (shipped): NN gate 9.21, new_threshold 30 (chi2(2) quantiles at 0.99 and 1 - 3.1e-7), although the
@@ -119,6 +125,7 @@ def main(argv=None):
         DATA = str(catalogue.data_root(args.data, flag="DATA_DIR"))
     except InputError as e:
         ap.error(one_line(str(e)))
+    _import_jax()
     nu = 5.0
     t = np.random.default_rng(0).standard_t(nu, size=(4_000_000, 2))
     d2 = np.sum(t * t, axis=1)

@@ -34,18 +34,22 @@ from jaxslam.cli.common import (ScriptParser, finite_float, nonnegative_float, p
 
 runtime.configure_process()
 
-import jax  # noqa: E402
-
-jax.config.update("jax_enable_x64", True)
-
-import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-
-from jaxslam import metrics  # noqa: E402
 from jaxslam.data.events import merge_events  # noqa: E402
 from jaxslam.data.mrclam import load_mrclam  # noqa: E402
-from jaxslam.data.victoria_park import load_victoria_park  # noqa: E402
-from jaxslam.systems import planar_fastslam as PF  # noqa: E402
+
+
+def _import_jax():
+    """JAX and the modules that load it, imported by main once the arguments are read: --help
+    and a usage error exit before JAX loads."""
+    global jax, jnp, metrics, load_victoria_park, PF
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    import jax.numpy as jnp
+    from jaxslam import metrics
+    from jaxslam.data.victoria_park import load_victoria_park
+    from jaxslam.systems import planar_fastslam as PF
+
 
 MAD = 1.4826
 MRCLAM_SIGMA = {1: (0.053 * MAD, 0.0074 * MAD), 2: (0.121 * MAD, 0.0062 * MAD)}
@@ -185,6 +189,7 @@ def main(argv=None):
     ap.add_argument("--vp-log-p-new", type=finite_float, default=0.0)
     ap.add_argument("--f32", action="store_true")
     a = ap.parse_args(argv)
+    _import_jax()
     dtype = jnp.float32 if a.f32 else jnp.float64
     if a.only in (None, "mrclam"):
         for r in a.robots:

@@ -17,17 +17,25 @@ runtime.configure_process(cache=False)
 from jaxslam.cli.common import ScriptParser, path_arg  # noqa: E402
 from jaxslam.errors import InputError  # noqa: E402
 from jaxslam.files import prepare_file  # noqa: E402
-import jax  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-jax.config.update("jax_enable_x64", True)
-from jaxslam.systems import util_range as ur  # noqa: E402
-from jaxslam.data import presets  # noqa: E402
-from jaxslam.tuning import optimize  # noqa: E402
-from jaxslam.tuning.targets import window_nll, heldout_nll  # noqa: E402
-from jaxslam.tuning.targets.util_uwb import util_flight, NU  # noqa: E402
 
-orig = ur.cv_process_noise
+
+def _import_jax():
+    """JAX and the modules that load it, imported by main once the arguments are read: --help
+    and a usage error exit before JAX loads."""
+    global jax, jnp, ur, presets, optimize, window_nll, heldout_nll, util_flight, NU, orig
+    import jax
+    import jax.numpy as jnp
+    jax.config.update("jax_enable_x64", True)
+    from jaxslam.systems import util_range as ur
+    from jaxslam.data import presets
+    from jaxslam.tuning import optimize
+    from jaxslam.tuning.targets import window_nll, heldout_nll
+    from jaxslam.tuning.targets.util_uwb import util_flight, NU
+    orig = ur.cv_process_noise
+
+
+DEFAULT_DATA = "../shared/data"  # DATA_DIR when neither it nor $JAXSLAM_DATA_DIR is given
 
 
 def cv_aniso(dt, q_acc, q_bias, dtype=None):  # q_acc scalar or (3,) per axis
@@ -42,8 +50,8 @@ def cv_aniso(dt, q_acc, q_bias, dtype=None):  # q_acc scalar or (3,) per axis
 
 def parser():
     ap = ScriptParser(prog="study_util_anisotropic.py", description=__doc__.splitlines()[0])
-    ap.add_argument("data", nargs="?", default=os.environ.get("JAXSLAM_DATA_DIR", "../shared/data"), type=path_arg,
-                    metavar="DATA_DIR", help="the data folder (default: $JAXSLAM_DATA_DIR, else ../shared/data)")
+    ap.add_argument("data", nargs="?", default=os.environ.get("JAXSLAM_DATA_DIR", DEFAULT_DATA), type=path_arg,
+                    metavar="DATA_DIR", help=f"the data folder (default: $JAXSLAM_DATA_DIR, else {DEFAULT_DATA})")
     ap.add_argument("--json", default=None, type=path_arg, metavar="PATH", help="write the results here")
     return ap
 
@@ -52,11 +60,16 @@ def main(argv=None):
     ap = parser()
     a = ap.parse_args(argv)
     data, jpath = a.data, a.json
+    if not os.path.isdir(data):  # (a MissingDataError traceback after the JAX imports)
+        ap.error(f"DATA_DIR: {data!r} (the default when neither DATA_DIR nor $JAXSLAM_DATA_DIR is given) is not "
+                 "a folder; give DATA_DIR, the folder holding util_uwb/" if data == DEFAULT_DATA
+                 and not os.environ.get("JAXSLAM_DATA_DIR") else f"DATA_DIR: {data!r} is not a folder")
     if jpath:
         try:  # an unusable path (a folder, under a file) before the fits, not after them
             prepare_file("--json", jpath)
         except InputError as e:
             ap.error(str(e))
+    _import_jax()
     ur.cv_process_noise = cv_aniso  # (only while the study runs: importing this file patched the library)
     try:
         out = _study(data)

@@ -25,6 +25,8 @@ import time
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 from jaxslam.cli.common import ScriptParser, nonnegative_float, positive_float, positive_int
 
+DEFAULT_DATA = "../shared/data"  # when $JAXSLAM_DATA_DIR is not set (a checkout beside the shared data)
+
 #: key -> (type, default) of the ``key=value`` settings (the docstring's keys)
 KEYS = {"imu": (lambda t: int(_choice(t, ("0", "1"))), 1), "qh": (nonnegative_float, 0.139),
         "qz": (nonnegative_float, 0.01), "qg": (nonnegative_float, 1e-4), "qba": (nonnegative_float, 1e-4),
@@ -74,6 +76,11 @@ def parse(argv=None):
 
 def main(argv=None):
     args, v = parse(argv)
+    DATA = os.environ.get("JAXSLAM_DATA_DIR") or DEFAULT_DATA
+    if not os.path.isdir(DATA):  # (a MissingDataError traceback after the JAX imports)
+        parser().error(f"$JAXSLAM_DATA_DIR: {DATA!r} is not a folder" if DATA != DEFAULT_DATA else
+                       f"$JAXSLAM_DATA_DIR: not set, and the default data folder {DATA!r} is not a folder; set "
+                       "$JAXSLAM_DATA_DIR to the folder holding util_uwb/")
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     import numpy as np, jax, jax.numpy as jnp  # noqa: E401
     jax.config.update("jax_enable_x64", True)
@@ -85,7 +92,6 @@ def main(argv=None):
 
     q_h, q_z, q_g, q_ba, q_b = v["qh"], v["qz"], v["qg"], v["qba"], v["qb"]
     sig_ab, sigma_r, nu, ds, imu_on = v["sab"], v["sr"], v["nu"], v["ds"], v["imu"]
-    DATA = os.environ.get("JAXSLAM_DATA_DIR", "../shared/data")
     G = 9.81
     d = load_util(os.path.join(DATA, "util_uwb") if os.path.isdir(os.path.join(DATA, "util_uwb")) else DATA)
     # IMU block means (ds samples)

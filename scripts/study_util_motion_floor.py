@@ -28,6 +28,7 @@ from jaxslam.errors import InputError
 
 WINDOWS = (0.2, 0.5, 1.0, 2.0, 5.0, 10.0)
 HUBER_K = 1.345
+DEFAULT_DATA = "../shared/data"  # the data folder when not given (a checkout beside the shared data)
 
 
 def window_offsets(p, a, rng, bias, W, t, fit_bias):
@@ -59,11 +60,15 @@ def window_offsets(p, a, rng, bias, W, t, fit_bias):
 
 def main(argv=None):
     ap = ScriptParser(prog="study_util_motion_floor.py", description=__doc__.splitlines()[0])
-    ap.add_argument("data", nargs="?", default=os.environ.get("JAXSLAM_DATA_DIR", "../shared/data"), type=path_arg)
+    ap.add_argument("data", nargs="?", default=os.environ.get("JAXSLAM_DATA_DIR", DEFAULT_DATA), type=path_arg,
+                    help=f"the folder holding util_uwb/ (default: $JAXSLAM_DATA_DIR, else {DEFAULT_DATA})")
     ap.add_argument("--json", default=None, type=path_arg)
     args = ap.parse_args(argv)
     if args.json:  # an unusable path (a folder, under a file): one usage line, before the fits
         ap.output_file("--json", args.json)
+    if args.data == DEFAULT_DATA and not os.environ.get("JAXSLAM_DATA_DIR") and not os.path.isdir(args.data):
+        ap.error(f"data: {args.data!r} (the default when neither data nor $JAXSLAM_DATA_DIR is given) is not a "
+                 "folder; give the data folder (the one holding util_uwb/)")
     try:  # a missing or malformed log: likewise
         d = load_util(os.path.join(args.data, "util_uwb") if os.path.isdir(os.path.join(args.data, "util_uwb"))
                       else args.data)

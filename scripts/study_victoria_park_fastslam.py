@@ -22,15 +22,21 @@ from jaxslam import runtime
 
 runtime.configure_process(cache=False)
 from jaxslam.cli.common import ScriptParser, path_arg  # noqa: E402
-import jax  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-
-jax.config.update("jax_enable_x64", True)
-from jaxslam.data import presets, runners  # noqa: E402
 from jaxslam.data.events import merge_events  # noqa: E402
-from jaxslam.data.victoria_park import load_victoria_park  # noqa: E402
-from jaxslam.systems import planar_fastslam as pf  # noqa: E402
+
+
+def _import_jax():
+    """JAX and the modules that load it, imported by main once the arguments are read: --help
+    and a usage error exit before JAX loads."""
+    global jax, jnp, presets, runners, load_victoria_park, pf
+    import jax
+    import jax.numpy as jnp
+    jax.config.update("jax_enable_x64", True)
+    from jaxslam.data import presets, runners
+    from jaxslam.data.victoria_park import load_victoria_park
+    from jaxslam.systems import planar_fastslam as pf
+
 
 RULE = ("Pre-registered 2026-12-05 14:40 UTC, before any Victoria Park run of F2. The candidate with the lower "
         "ATE against GPS over the fixes of t < 500 s (a run over the first 500 s, seed 0) becomes the default of "
@@ -41,14 +47,15 @@ RULE_PRUNING = ("Pre-registered 2026-12-05 17:21 UTC, before any Victoria Park r
                 "over the fixes of t < 500 s (a run over the first 500 s, seed 0, same capacity 768) is lower than "
                 "F2's in the same script; the whole-run figures are reported whatever they are.")
 T_FIT = 500.0
+DEFAULT_DATA = "../shared/data"  # DATA_DIR when not given (a checkout beside the shared data)
 STUDIES = {"proposal": (("F1", "F2"), RULE, "docs/results/datasets/victoria_park_fastslam_study.json"),
            "pruning": (("F2", "F2p"), RULE_PRUNING, "docs/results/datasets/victoria_park_fastslam_pruning_study.json")}
 
 
 def parser():
     ap = ScriptParser(prog="study_victoria_park_fastslam.py", description=__doc__.splitlines()[0])
-    ap.add_argument("data", nargs="?", default="../shared/data", type=path_arg, metavar="DATA_DIR",
-                    help="the folder holding victoria_park/ (default: ../shared/data)")
+    ap.add_argument("data", nargs="?", default=DEFAULT_DATA, type=path_arg, metavar="DATA_DIR",
+                    help=f"the folder holding victoria_park/ (default: {DEFAULT_DATA}, from the current folder)")
     ap.add_argument("study", nargs="?", default="proposal", choices=tuple(STUDIES),
                     help="which pre-registered study to run (default proposal)")
     return ap
@@ -58,8 +65,12 @@ def main(argv=None):
     ap = parser()
     a = ap.parse_args(argv)
     data, study = a.data, a.study
+    if data == DEFAULT_DATA and not os.path.isdir(data):  # (the package's own runs never need ../shared)
+        ap.error(f"DATA_DIR: {data!r} (the default when DATA_DIR is not given) is not a folder; "
+                 "give DATA_DIR, the folder holding victoria_park/")
     if not os.path.isdir(os.path.join(data, "victoria_park")):  # (a traceback after the imports, before)
         ap.error(f"DATA_DIR: {data!r} holds no victoria_park/ folder")
+    _import_jax()
     cands, rule, js = STUDIES[study]
     d = load_victoria_park(f"{data}/victoria_park")
     keep = (d.det[:, 0] >= 5.0) & (d.det[:, 0] <= 40.0)  # the runner's limits for FastSLAM
