@@ -70,7 +70,9 @@ def test_imu_process_noise_matches_hand_derivation():
     s = jnp.asarray(rng.normal(size=9) * 0.3)
     imu = jnp.asarray(rng.normal(size=6))
     noise = s3.imu_noise(imu_mod.PAPER000_IMU)
-    Qd = s3.process_noise(s, imu, noise, 0.01, 9.81)
+    # one program for both calls (eager, each operation compiled a program of its own)
+    process_noise = jax.jit(lambda s, imu, noise: s3.process_noise(s, imu, noise, 0.01, 9.81))
+    Qd = process_noise(s, imu, noise)
     G = _hand_G(s, imu)
     nd_a = 300e-6 * 9.81
     nd_g = np.radians(0.01)
@@ -78,27 +80,30 @@ def test_imu_process_noise_matches_hand_derivation():
     np.testing.assert_allclose(np.asarray(Qd), G @ Qimu @ G.T * 0.01, rtol=1e-12, atol=1e-20)
     # the paper's tabled Q is a density too: Q_d = Q dt
     paper = s3.paper_noise("unknown")
-    np.testing.assert_allclose(np.asarray(s3.process_noise(s, imu, paper, 0.01, 9.81)),
+    np.testing.assert_allclose(np.asarray(process_noise(s, imu, paper)),
                                np.diag(s3.TABLE7_Q) * 0.01, rtol=1e-12)
 
 
 def test_registration_jacobians_match_finite_differences():
     rng = np.random.default_rng(1)
+    # each jitted once (eager, every operation of the loop's calls compiled a program of its own)
+    jac = jax.jit(jax.jacfwd(lidar3d.inverse_state, argnums=(0, 1)))
+    inverse_state = jax.jit(lidar3d.inverse_state)
     for _ in range(5):
         s = rng.normal(size=9) * 0.4
         y = np.array([rng.uniform(-0.7, 0.7), rng.uniform(-0.5, 0.5), rng.uniform(5, 20)])
-        Gs, Gy = jax.jacfwd(lidar3d.inverse_state, argnums=(0, 1))(jnp.asarray(s), jnp.asarray(y))
+        Gs, Gy = jac(s, y)
         for M, x0, which in ((Gs, s, 0), (Gy, y, 1)):
             fd = np.zeros(np.shape(M))
             for j in range(len(x0)):
                 e = np.zeros(len(x0))
                 e[j] = 1e-6
-                args_p = [jnp.asarray(s), jnp.asarray(y)]
-                args_m = [jnp.asarray(s), jnp.asarray(y)]
-                args_p[which] = jnp.asarray(x0 + e)
-                args_m[which] = jnp.asarray(x0 - e)
-                fd[:, j] = (np.asarray(lidar3d.inverse_state(*args_p))
-                            - np.asarray(lidar3d.inverse_state(*args_m))) / 2e-6
+                args_p = [s, y]
+                args_m = [s, y]
+                args_p[which] = x0 + e
+                args_m[which] = x0 - e
+                fd[:, j] = (np.asarray(inverse_state(*args_p))
+                            - np.asarray(inverse_state(*args_m))) / 2e-6
             np.testing.assert_allclose(np.asarray(M), fd, rtol=1e-6, atol=1e-6)
 
 
@@ -320,8 +325,9 @@ def test_motion_and_jacobian_is_the_rk4_steps_derivative(accel_mode):
 
 def test_motion_and_jacobian_float32():
     p = (0.01, 9.81, "3axis")
+    motion_and_jacobian = jax.jit(lambda x, u: s3.motion_and_jacobian(x, u, p))  # one program, not one per operation
     for s, u in _cases(2):
-        x1, F1 = s3.motion_and_jacobian(jnp.asarray(s, jnp.float32), jnp.asarray(u, jnp.float32), p)
+        x1, F1 = motion_and_jacobian(np.asarray(s, np.float32), np.asarray(u, np.float32))
         assert x1.dtype == F1.dtype == jnp.float32
         _, Ft = np3d.rk4_step(s.copy(), u[:6], u[6:], 0.01, 9.81)
         np.testing.assert_allclose(np.asarray(F1), Ft, rtol=1e-4, atol=1e-5)
@@ -360,7 +366,8 @@ def test_engine_update_and_registration_use_the_models_jacobians():
     lms = jnp.asarray(rng.normal(size=(4, 3)) * 6 + np.array([10.0, 0, 0]))
     st = es_engine.init(s, jnp.eye(9) * 0.05, 6, 3)
     R = lidar3d.measurement_cov(lidar3d.PAPER000_LIDAR, jnp.float64) * 4
-    y = jax.vmap(lambda l: lidar3d.measure_state(s, l))(lms) + jnp.asarray(rng.normal(size=(4, 3)) * 0.01)
+    # jitted: one program (the eager vmap compiled one per operation)
+    y = jax.jit(jax.vmap(lambda l: lidar3d.measure_state(s, l)))(lms) + rng.normal(size=(4, 3)) * 0.01
     ids = jnp.arange(4, dtype=jnp.int32)
     new = jnp.asarray([True, True, True, False])
     p = (0.01, 9.81, "3axis")
@@ -446,7 +453,8 @@ def test_float64_noise_with_a_float32_state():
     rng = np.random.default_rng(1)
     s = rng.normal(size=9) * 0.3
     noise = s3.imu_noise(imu_mod.PAPER000_IMU)._replace(Qc=jnp.asarray(np.diag(np.arange(1.0, 10.0)) * 1e-4))
-    Qd = s3.process_noise(jnp.asarray(s, jnp.float32), None, noise, 0.01, 9.81)
+    # jitted: one program (eager, each operation compiled its own); the dtypes are the same
+    Qd = jax.jit(lambda s, noise: s3.process_noise(s, None, noise, 0.01, 9.81))(np.asarray(s, np.float32), noise)
     assert Qd.dtype == jnp.float32
     G = _hand_G(s, None)
     nd_a, nd_g = 300e-6 * 9.81, np.radians(0.01)
@@ -480,11 +488,12 @@ def test_known_map_ids_outside_the_map_are_refused_or_masked():
     vis[:, 1] = False
     s3.run(log._replace(ids=np.array([0, 10, 2, 3], np.int32), visible=vis), cfg, prm)
     # traced: rows 0, 1 name no known landmark, rows 2, 3 are used (2 rows × 3 dof per frame)
-    res = jax.jit(lambda ids: s3.run(log._replace(ids=ids), cfg, prm))(jnp.array([10, -1, 2, 3], jnp.int32))
+    run_ids = jax.jit(lambda ids: s3.run(log._replace(ids=ids), cfg, prm))  # one program for both calls below
+    res = run_ids(jnp.array([10, -1, 2, 3], jnp.int32))
     assert int(res.final.masked) == 2 * F and int(res.final.dropped) == 0
     np.testing.assert_array_equal(np.asarray(res.frames.dof), [6] * F)
     assert "masked_input" in errors.decode(res.final.slam.status)
-    ok = jax.jit(lambda ids: s3.run(log._replace(ids=ids), cfg, prm))(jnp.arange(4, dtype=jnp.int32))
+    ok = run_ids(jnp.arange(4, dtype=jnp.int32))
     assert int(ok.final.masked) == 0 and int(ok.final.dropped) == 2 * F
     assert "masked_input" not in errors.decode(ok.final.slam.status)
 

@@ -42,10 +42,15 @@ def test_gradient_matches_central_differences(short_target, short_grad):
     assert np.isfinite(J0) and J0 > 0
     h = 1e-5
     worst = 0.0
+    g = {name: np.asarray(v) for name, v in g.items()}
     for name, v in tg.theta0.items():
+        v = np.asarray(v)
         for i in range(v.shape[0]):
+            # the steps in NumPy (eager .at[].add compiled a program per shape)
             tp, tm = dict(tg.theta0), dict(tg.theta0)
-            tp[name], tm[name] = v.at[i].add(h), v.at[i].add(-h)
+            tp[name], tm[name] = v.copy(), v.copy()
+            tp[name][i] += h
+            tm[name][i] -= h
             fd = (float(f(tp, key)) - float(f(tm, key))) / (2 * h)
             worst = max(worst, abs(float(g[name][i]) - fd) / max(abs(fd), 1e-6 * J0))
     assert set(tg.theta0) == {"Q", "R", "Qimu"}
@@ -60,7 +65,7 @@ def test_per_sensor_noise_is_the_per_axis_noise_tied(short_target, short_grad):
     iso = get("ekfslam3d-unknown", "loop", "cost", structure="imu_iso", **SHORT)
     assert set(iso.theta0) == {"Q", "R", "Qimu_sensor"} and iso.config["structure"] == "imu_iso"
     tied = dict(iso.theta0)
-    tied["Qimu"] = jnp.repeat(tied.pop("Qimu_sensor"), 3)
+    tied["Qimu"] = np.repeat(np.asarray(tied.pop("Qimu_sensor")), 3)
     np.testing.assert_allclose(np.asarray(tied["Qimu"]), np.asarray(short_target.theta0["Qimu"]), rtol=1e-15)
     np.testing.assert_allclose(np.asarray(iso.physical(iso.theta0)[1].Qimu),
                                np.asarray(short_target.physical(tied)[1].Qimu), rtol=1e-15)
@@ -96,7 +101,7 @@ def test_float32_loss_and_gradient_finite_and_close_to_float64(short_target):
     key = tg32.train[0]
     v32, g32 = jax.jit(jax.value_and_grad(tg32.loss_fn))(tg32.theta0, key)
     assert v32.dtype == jnp.float32
-    assert all(bool(jnp.all(jnp.isfinite(x))) for x in jax.tree.leaves(g32))
+    assert all(np.all(np.isfinite(np.asarray(x))) for x in jax.tree.leaves(g32))
     # The closed-loop cost (tracking + effort) agrees with float64 (measured 1.1e-3 relative: the
     # controller acts on a float32 estimate, so the flights part by its rounding).  The NEES term
     # does not: the 3D filter's covariance itself differs in float32 (jaxslam run ekfslam3d-unknown
@@ -193,14 +198,16 @@ def test_closed_loop_notebook_runs_at_reduced_size(tmp_path, monkeypatch):
 def test_tilt_angle_is_arccos_form_with_finite_gradient_at_level_flight():
     from jaxslam.tuning.targets.loop import tilt_angle
 
-    phi = jnp.asarray([0.0, 0.2, -0.7])
-    theta = jnp.asarray([0.0, -0.3, 0.4])
-    np.testing.assert_allclose(np.asarray(tilt_angle(phi, theta)),
-                               np.arccos(np.cos(np.asarray(phi)) * np.cos(np.asarray(theta))), rtol=1e-7, atol=1e-12)
+    # jitted, as the loss uses it: one program per shape (eager, every operation compiled its own)
+    tilt = jax.jit(tilt_angle)
+    phi = np.array([0.0, 0.2, -0.7])
+    theta = np.array([0.0, -0.3, 0.4])
+    np.testing.assert_allclose(np.asarray(tilt(phi, theta)), np.arccos(np.cos(phi) * np.cos(theta)),
+                               rtol=1e-7, atol=1e-12)
     # a pure roll tilts by |φ|, also where arccos(cos φ) has rounded to 0
-    assert float(tilt_angle(jnp.asarray(-1e-9), jnp.asarray(0.0))) == pytest.approx(1e-9, rel=1e-9)
-    g = jax.grad(lambda p, t: jnp.sum(tilt_angle(p, t)), argnums=(0, 1))(jnp.zeros(3), jnp.zeros(3))
-    assert all(bool(jnp.all(jnp.isfinite(x))) for x in g)
+    assert float(tilt(-1e-9, 0.0)) == pytest.approx(1e-9, rel=1e-9)
+    g = jax.jit(jax.grad(lambda p, t: jnp.sum(tilt_angle(p, t)), argnums=(0, 1)))(np.zeros(3), np.zeros(3))
+    assert all(np.all(np.isfinite(np.asarray(x))) for x in g)
     # away from level flight: the derivative of arccos(cos φ cos θ) by central differences
-    fd = (float(tilt_angle(0.2 + 1e-6, -0.3)) - float(tilt_angle(0.2 - 1e-6, -0.3))) / 2e-6
-    assert float(jax.grad(tilt_angle)(0.2, -0.3)) == pytest.approx(fd, rel=1e-6)
+    fd = (float(tilt(0.2 + 1e-6, -0.3)) - float(tilt(0.2 - 1e-6, -0.3))) / 2e-6
+    assert float(jax.jit(jax.grad(tilt_angle))(0.2, -0.3)) == pytest.approx(fd, rel=1e-6)
