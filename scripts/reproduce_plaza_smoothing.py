@@ -48,21 +48,29 @@ from jaxslam import runtime
 
 runtime.configure_process()
 
-import jax  # noqa: E402
-
-jax.config.update("jax_enable_x64", True)
-
-import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 from jaxslam import errors  # noqa: E402
 from jaxslam.cli.common import ScriptParser, path_arg, positive_float, positive_int  # noqa: E402
 from jaxslam.data.plaza import load_plaza  # noqa: E402
-from jaxslam.data.runners import evaluate_planar  # noqa: E402
-from jaxslam.filters import smoother  # noqa: E402
-from jaxslam.linalg import wrap_angle  # noqa: E402
-from jaxslam.metrics import map_error  # noqa: E402
-from jaxslam.systems import plaza_range as pr  # noqa: E402
+
+
+def _import_jax():
+    """JAX and the modules that load it, imported by main once the arguments are read and the
+    logs loaded (--help, a usage error and missing data exit before JAX loads), and by
+    smooth_log (for callers from outside main)."""
+    global jax, jnp, evaluate_planar, smoother, wrap_angle, map_error, pr
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import jax.numpy as jnp
+
+    from jaxslam.data.runners import evaluate_planar
+    from jaxslam.filters import smoother
+    from jaxslam.linalg import wrap_angle
+    from jaxslam.metrics import map_error
+    from jaxslam.systems import plaza_range as pr
+
 
 NB = 4
 N = 4 + 2 * NB
@@ -93,6 +101,7 @@ def status_fields(status):
 
 
 def smooth_log(d, iters, damping, start_from):
+    _import_jax()
     log = pr.plaza_events(d.dr_t, d.dr, d.td_t, d.td_node, d.td_range)
     pose0 = np.asarray(d.start_pose(), np.float64)
     bid = np.asarray(d.node_id)
@@ -189,6 +198,7 @@ def main(argv=None):
         logs = {r: load_plaza(root, r) for r in a.robot}
     except InputError as e:
         ap.error(f"--data: {str(e).splitlines()[0] if str(e) else type(e).__name__}")
+    _import_jax()
     res = {}
     for r in a.robot:
         try:

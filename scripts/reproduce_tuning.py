@@ -58,22 +58,29 @@ from jaxslam import runtime  # noqa: E402
 
 runtime.configure_process()  # OpenBLAS one thread, XLA workaround flags: before NumPy and JAX start
 
-import jax  # noqa: E402
-import jax.flatten_util  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-
-jax.config.update("jax_enable_x64", True)
 
 from jaxslam import io  # noqa: E402
 from jaxslam.cli import tune as tcli  # noqa: E402
 from jaxslam.cli.common import ScriptParser, path_arg, positive_float, positive_int, seed_int  # noqa: E402
-from jaxslam.tuning import losses as L  # noqa: E402
-from jaxslam.tuning import optimize as O  # noqa: E402
-from jaxslam.tuning import targets as T  # noqa: E402
-from jaxslam.tuning.targets import ekfslam3d as T3  # noqa: E402
-from jaxslam.tuning.targets import figure8 as T8  # noqa: E402
-from jaxslam.tuning.targets import linear_gaussian as TL  # noqa: E402
+
+
+def _import_jax():
+    """JAX and the modules that load it, imported by main once the arguments are read and checked:
+    --help and a usage error exit before JAX loads (the parts need it imported)."""
+    global jax, jnp, L, O, T, T3, T8, TL
+    import jax
+    import jax.flatten_util
+    import jax.numpy as jnp
+
+    jax.config.update("jax_enable_x64", True)
+
+    from jaxslam.tuning import losses as L
+    from jaxslam.tuning import optimize as O
+    from jaxslam.tuning import targets as T
+    from jaxslam.tuning.targets import ekfslam3d as T3
+    from jaxslam.tuning.targets import figure8 as T8
+    from jaxslam.tuning.targets import linear_gaussian as TL
 
 ALL_PARTS = ("oracle", "gradcheck", "ekf_mse", "ekf_nll", "ekf_nll_imu", "nll_flat", "lqr", "loop_lqr",
              "loop_both", "uwb")
@@ -607,6 +614,7 @@ def main(argv=None):
         p.output_dir("--plots", a.plots)
     if a.cache_dir:
         p.output_dir("--cache-dir", a.cache_dir)
+    _import_jax()
     if a.cache_dir:
         jax.config.update("jax_compilation_cache_dir", a.cache_dir)
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)

@@ -137,18 +137,9 @@ from jaxslam import runtime
 
 runtime.configure_process()
 from jaxslam.cli.common import ScriptParser, path_arg  # noqa: E402
+import numpy as np  # noqa: E402
 
-import jax
-
-jax.config.update("jax_enable_x64", True)
-
-import jax.numpy as jnp
-import numpy as np
-
-from jaxslam import metrics
-from jaxslam.data.plaza import load_plaza
-from jaxslam.data.runners import evaluate_planar
-from jaxslam.systems import plaza_range as pr
+from jaxslam.data.plaza import load_plaza  # noqa: E402
 
 NB = 4  # beacons
 IB, ISD, IST, IL = 3, 4, 5, 6  # bias, distance scale, heading scale, first beacon
@@ -316,7 +307,7 @@ def _ieks_pass(zbar, m0, P0, frozen, dt, u, zr, slot, use, rvar, nz, lam, qkind,
     return mss, (Pss, Pcr)
 
 
-_ieks_pass_jit = jax.jit(_ieks_pass, static_argnames=("qkind", "ekf_lin"))
+# _ieks_pass_jit: jitted by _import_jax
 
 
 def _project(z, m0, frozen, static, u, dt, nz, qkind):
@@ -351,7 +342,7 @@ def _project(z, m0, frozen, static, u, dt, nz, qkind):
     return jnp.concatenate([z[:1], rest])
 
 
-_project_jit = jax.jit(_project, static_argnames=("qkind",))
+# _project_jit: jitted by _import_jax
 
 
 def _residuals(zs, zr, slot):
@@ -360,7 +351,7 @@ def _residuals(zs, zr, slot):
     return zr - hv(zs[1:], slot)
 
 
-_residuals_jit = jax.jit(_residuals)
+# _residuals_jit: jitted by _import_jax
 
 
 def weights(a, kernel, c):
@@ -419,7 +410,7 @@ def _process_cost_impl(zs, m0, P0i, dt, u, nz, qkind):
     return c_prior + 0.5 * jnp.sum(cp) + 0.5 * jnp.sum(cb), viol
 
 
-_process_cost = jax.jit(_process_cost_impl, static_argnames=("qkind",))
+# _process_cost: jitted by _import_jax
 
 
 class Problem(NamedTuple):
@@ -535,7 +526,7 @@ def _em_stats_impl(zs, Ps, Pcr, dt, u, zr, slot, valid, w, nz):
     return kd, kt, qb, jnp.sum(ww * Er2) / jnp.sum(ww)
 
 
-_em_stats = jax.jit(_em_stats_impl)
+# _em_stats: jitted by _import_jax
 
 
 def em_fit(pb, z_start, nz0: Noise, sig0, n_em=12, verbose=False):
@@ -572,6 +563,7 @@ def em_fit(pb, z_start, nz0: Noise, sig0, n_em=12, verbose=False):
 def prepare(data_dir, which):
     """Load one log, run jaxslam's EKF SLAM (the CLI's run), build the smoother's arrays and
     the first nominal trajectory (the EKF's per-event estimate, its final beacons)."""
+    _import_jax()
     d = load_plaza(data_dir, which)
     log = pr.plaza_events(d.dr_t, d.dr, d.td_t, d.td_node, d.td_range)
     pose0 = np.asarray(d.start_pose(), np.float64)
@@ -600,13 +592,14 @@ def prepare(data_dir, which):
             "z_init": z_init, "ekf_beacons": beac}
 
 
-def problem(prep, nz: Noise, start_sig=(pr.PARAMS.p0_pos, pr.PARAMS.p0_th),
-            bias="rw", sigma_bias0=pr.PARAMS.sigma_bias0, calib=0.0, sigma_l=1000.0):
+def problem(prep, nz: Noise, start_sig=None, bias="rw", sigma_bias0=None, calib=0.0, sigma_l=1000.0):
     """Prior and bookkeeping.  Start pose GT₀ (Plaza 2 heading + π) ± start_sig; bias 0 ±
     sigma_bias0 ("rw": random walk q_b, "const": q_b = 0, "none": b ≡ 0); scales 1 ± calib
     (0: fixed at 1); beacons: mean = the EKF's final beacons, σ = sigma_l per axis (diffuse:
-    the mean only picks the basin)."""
-    sp, sth = start_sig
+    the mean only picks the basin).  start_sig, sigma_bias0: default ``pr.PARAMS``' (p0_pos,
+    p0_th) and sigma_bias0."""
+    sp, sth = (pr.PARAMS.p0_pos, pr.PARAMS.p0_th) if start_sig is None else start_sig
+    sigma_bias0 = pr.PARAMS.sigma_bias0 if sigma_bias0 is None else sigma_bias0
     var_b = 0.0 if bias == "none" else sigma_bias0 ** 2
     m0 = np.concatenate([prep["pose0"], [0.0, 1.0, 1.0], prep["ekf_beacons"].reshape(-1)])
     pv = np.concatenate([[sp ** 2, sp ** 2, sth ** 2, var_b, calib ** 2, calib ** 2],
@@ -659,64 +652,95 @@ def evaluate(prep, zs, Ps=None):
 # Configurations
 # ---------------------------------------------------------------------------
 
-P = pr.PARAMS
-NZ = noise_from(P)
 GTSAM_GSIG = (0.05, 0.01, 0.1)  # RangeISAMExample_plaza2.cpp odoSigmas (x, y, θ) per DR row
 GTSAM_SIGMA_R = 100.0  # its sigmaR
 GTSAM_TUKEY = 15.0  # its Tukey::Create(15) (in σ units: a cut at 1500 m, i.e. Gaussian here)
-
-
-class Cfg(NamedTuple):
-    name: str
-    what: str
-    kernel: str = "gauss"
-    c: float | None = None
-    sigma_r: object = P.sigma_r  # float, or "mad-other": 1.4826·MAD of the other log's residuals
-    qkind: str = "jaxslam"
-    nz: Noise = NZ
-    bias: str = "rw"
-    calib: float = 0.0
-    start: str = "eks"  # "eks", "ekf" (projected EKF estimate), or a config name (warm start)
-    start_sig: tuple = (P.p0_pos, P.p0_th)
-    damped: bool = True
-    max_iter: int = 300
-
-
-GSIG_SCALED = tuple(float(g) * P.sigma_r / GTSAM_SIGMA_R for g in GTSAM_GSIG)  # same ratios at σ_r 1.2
-GTSAM = dict(qkind="gtsam", nz=noise_from(P, gsig=GTSAM_GSIG), sigma_r=GTSAM_SIGMA_R,
-             kernel="tukey", c=GTSAM_TUKEY, bias="none", start_sig=(1.0, np.pi))
-
-CONFIGS = [
-    Cfg("gn-plain", "undamped IEKS (textbook GN) from the EKF estimate, Gaussian", start="ekf",
-        damped=False, max_iter=40),
-    Cfg("lm-gauss", "LM-IEKS from the (projected) EKF estimate, Gaussian σ_r 1.2, plaza_range.PARAMS, "
-        "bias random walk", start="ekf"),
-    Cfg("lm-gauss-eks", "as lm-gauss, started from the EKS pass instead"),
-    Cfg("huber", "Huber k 1.345σ (IRLS)", "huber", HUBER_K, start="lm-gauss"),
-    Cfg("tukey", "Tukey c 4.685σ (IRLS), warm start from huber", "tukey", TUKEY_C, start="huber"),
-    Cfg("gate", "hard 0/1 gate at the EKF's χ²(1) 6.63 (2.57σ)", "gate", GATE_K, start="huber"),
-    Cfg("huber-bconst", "Huber, bias constant (q_b = 0)", "huber", HUBER_K, bias="const",
-        start="huber"),
-    Cfg("huber-nobias", "Huber, no bias state (b ≡ 0, as GTSAM)", "huber", HUBER_K, bias="none",
-        start="huber"),
-    Cfg("huber-mad", "Huber, σ_r = 1.4826·MAD of the other log's huber residuals", "huber",
-        HUBER_K, sigma_r="mad-other", start="huber"),
-    Cfg("huber-calib", "Huber + odometry scale states s_d, s_θ (prior 1 ± 0.1)", "huber",
-        HUBER_K, calib=0.1, start="huber"),
-    Cfg("huber-kd0.01", "Huber, odometry σ_d × 0.01 (blocked-CV choice on Plaza 2; CV on "
-        "Plaza 1 picks × 1)", "huber", HUBER_K, nz=noise_from(P, kd=0.01), start="huber"),
-    Cfg("gtsam-model", "GTSAM example's model: Between σ (0.05, 0.01, 0.1)/DR row, σ_r 100, "
-        "Tukey 15, no bias, start prior (1, 1, π)", **GTSAM),
-    Cfg("gtsam-matlab", "as gtsam-model with the MATLAB example's σ_θ 0.2", **{
-        **GTSAM, "nz": noise_from(P, gsig=(0.05, 0.01, 0.2)), "start": "gtsam-model"}),
-    Cfg("gtsam+bias", "gtsam-model + jaxslam's bias random walk (0 ± 5 m, q_b 1e-4)",
-        **{**GTSAM, "bias": "rw", "start": "gtsam-model"}),
-    Cfg("gtsam-huber+bias", "GTSAM odometry σ × 1.2/100 (its ratios at σ_r 1.2), Huber 1.345σ, "
-        "bias random walk, jaxslam start prior", "huber", HUBER_K, qkind="gtsam",
-        nz=noise_from(P, gsig=GSIG_SCALED), start="gtsam+bias"),
-]
+# the names of CONFIGS (built by _import_jax from plaza_range.PARAMS), for the parser: --help
+# and an unknown --configs answer before JAX loads
+CONFIG_NAMES = ("gn-plain", "lm-gauss", "lm-gauss-eks", "huber", "tukey", "gate", "huber-bconst", "huber-nobias",
+                "huber-mad", "huber-calib", "huber-kd0.01", "gtsam-model", "gtsam-matlab", "gtsam+bias",
+                "gtsam-huber+bias")
 QUICK = ["lm-gauss", "huber", "tukey", "gtsam-model", "gtsam+bias", "gtsam-huber+bias"]
-CFG = {c.name: c for c in CONFIGS}
+
+
+def _import_jax():
+    """JAX, the modules that load it, the jitted passes and the configuration table (``P``,
+    ``NZ``, ``Cfg``, ``GSIG_SCALED``, ``GTSAM``, ``CONFIGS``, ``CFG``: they are built from
+    ``plaza_range.PARAMS``), set as module globals.  Called by main once the arguments are read
+    (--help and a usage error exit before JAX loads) and by prepare; once is enough."""
+    global jax, jnp, metrics, evaluate_planar, pr
+    global _ieks_pass_jit, _project_jit, _residuals_jit, _process_cost, _em_stats
+    global P, NZ, Cfg, GSIG_SCALED, GTSAM, CONFIGS, CFG
+    if "CFG" in globals():
+        return
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import jax.numpy as jnp
+
+    from jaxslam import metrics
+    from jaxslam.data.runners import evaluate_planar
+    from jaxslam.systems import plaza_range as pr
+
+    _ieks_pass_jit = jax.jit(_ieks_pass, static_argnames=("qkind", "ekf_lin"))
+    _project_jit = jax.jit(_project, static_argnames=("qkind",))
+    _residuals_jit = jax.jit(_residuals)
+    _process_cost = jax.jit(_process_cost_impl, static_argnames=("qkind",))
+    _em_stats = jax.jit(_em_stats_impl)
+
+    P = pr.PARAMS
+    NZ = noise_from(P)
+
+    class Cfg(NamedTuple):
+        name: str
+        what: str
+        kernel: str = "gauss"
+        c: float | None = None
+        sigma_r: object = P.sigma_r  # float, or "mad-other": 1.4826·MAD of the other log's residuals
+        qkind: str = "jaxslam"
+        nz: Noise = NZ
+        bias: str = "rw"
+        calib: float = 0.0
+        start: str = "eks"  # "eks", "ekf" (projected EKF estimate), or a config name (warm start)
+        start_sig: tuple = (P.p0_pos, P.p0_th)
+        damped: bool = True
+        max_iter: int = 300
+
+    GSIG_SCALED = tuple(float(g) * P.sigma_r / GTSAM_SIGMA_R for g in GTSAM_GSIG)  # same ratios at σ_r 1.2
+    GTSAM = dict(qkind="gtsam", nz=noise_from(P, gsig=GTSAM_GSIG), sigma_r=GTSAM_SIGMA_R,
+                 kernel="tukey", c=GTSAM_TUKEY, bias="none", start_sig=(1.0, np.pi))
+
+    CONFIGS = [
+        Cfg("gn-plain", "undamped IEKS (textbook GN) from the EKF estimate, Gaussian", start="ekf",
+            damped=False, max_iter=40),
+        Cfg("lm-gauss", "LM-IEKS from the (projected) EKF estimate, Gaussian σ_r 1.2, plaza_range.PARAMS, "
+            "bias random walk", start="ekf"),
+        Cfg("lm-gauss-eks", "as lm-gauss, started from the EKS pass instead"),
+        Cfg("huber", "Huber k 1.345σ (IRLS)", "huber", HUBER_K, start="lm-gauss"),
+        Cfg("tukey", "Tukey c 4.685σ (IRLS), warm start from huber", "tukey", TUKEY_C, start="huber"),
+        Cfg("gate", "hard 0/1 gate at the EKF's χ²(1) 6.63 (2.57σ)", "gate", GATE_K, start="huber"),
+        Cfg("huber-bconst", "Huber, bias constant (q_b = 0)", "huber", HUBER_K, bias="const",
+            start="huber"),
+        Cfg("huber-nobias", "Huber, no bias state (b ≡ 0, as GTSAM)", "huber", HUBER_K, bias="none",
+            start="huber"),
+        Cfg("huber-mad", "Huber, σ_r = 1.4826·MAD of the other log's huber residuals", "huber",
+            HUBER_K, sigma_r="mad-other", start="huber"),
+        Cfg("huber-calib", "Huber + odometry scale states s_d, s_θ (prior 1 ± 0.1)", "huber",
+            HUBER_K, calib=0.1, start="huber"),
+        Cfg("huber-kd0.01", "Huber, odometry σ_d × 0.01 (blocked-CV choice on Plaza 2; CV on "
+            "Plaza 1 picks × 1)", "huber", HUBER_K, nz=noise_from(P, kd=0.01), start="huber"),
+        Cfg("gtsam-model", "GTSAM example's model: Between σ (0.05, 0.01, 0.1)/DR row, σ_r 100, "
+            "Tukey 15, no bias, start prior (1, 1, π)", **GTSAM),
+        Cfg("gtsam-matlab", "as gtsam-model with the MATLAB example's σ_θ 0.2", **{
+            **GTSAM, "nz": noise_from(P, gsig=(0.05, 0.01, 0.2)), "start": "gtsam-model"}),
+        Cfg("gtsam+bias", "gtsam-model + jaxslam's bias random walk (0 ± 5 m, q_b 1e-4)",
+            **{**GTSAM, "bias": "rw", "start": "gtsam-model"}),
+        Cfg("gtsam-huber+bias", "GTSAM odometry σ × 1.2/100 (its ratios at σ_r 1.2), Huber 1.345σ, "
+            "bias random walk, jaxslam start prior", "huber", HUBER_K, qkind="gtsam",
+            nz=noise_from(P, gsig=GSIG_SCALED), start="gtsam+bias"),
+    ]
+    CFG = {c.name: c for c in CONFIGS}
+    assert tuple(CFG) == CONFIG_NAMES, "CONFIG_NAMES must list CONFIGS' names, in order"
 
 
 def run_config(prep, cfg: Cfg, done: dict, mad_other=None):
@@ -809,7 +833,7 @@ def main(argv=None):
     ap.add_argument("--data", default=__import__("os").environ.get("JAXSLAM_DATA_DIR"), type=path_arg,
                     help="folder holding gtsam/ (default: $JAXSLAM_DATA_DIR)")
     ap.add_argument("--robot", type=int, nargs="*", default=[1, 2], help="1 and/or 2 (Plaza 1, Plaza 2)")
-    ap.add_argument("--configs", nargs="*", default=None, help=f"subset of {list(CFG)}")
+    ap.add_argument("--configs", nargs="*", default=None, help=f"subset of {list(CONFIG_NAMES)}")
     ap.add_argument("--all", action="store_true", help="every configuration (default: QUICK)")
     ap.add_argument("--em", action="store_true", help="also run the EM noise fit (slow)")
     ap.add_argument("--cv", action="store_true",
@@ -818,11 +842,12 @@ def main(argv=None):
     a = ap.parse_args(argv)
     if not a.robot or set(a.robot) - {1, 2} or len(set(a.robot)) < len(a.robot):
         ap.error(f"--robot: expected 1 and/or 2 (Plaza 1, Plaza 2), each once, got {' '.join(map(str, a.robot))}")
-    unknown = [n for n in a.configs or () if n not in CFG]
+    unknown = [n for n in a.configs or () if n not in CONFIG_NAMES]
     if unknown:  # (a KeyError traceback after the EKF runs)
-        ap.error(f"--configs: unknown configuration(s) {', '.join(unknown)}; choose from {', '.join(CFG)}")
+        ap.error(f"--configs: unknown configuration(s) {', '.join(unknown)}; choose from {', '.join(CONFIG_NAMES)}")
     if a.json:
         ap.output_file("--json", a.json)  # an unusable path (a folder, under a file) before the smoothers
+    _import_jax()  # (CFG: the warm starts below; still before any compute)
     names = a.configs or (list(CFG) if a.all else QUICK)
     # warm starts need their source configs
     need = []

@@ -14,21 +14,29 @@ from jaxslam import runtime
 runtime.configure_process()
 from jaxslam.cli.common import ScriptParser, one_line, path_arg  # noqa: E402
 from jaxslam.data import catalogue  # noqa: E402
-from jaxslam.errors import InputError  # noqa: E402
-
-import jax  # noqa: E402
-
-jax.config.update("jax_enable_x64", True)
-
-import jax.numpy as jnp  # noqa: E402
-import numpy as np  # noqa: E402
-
-from jaxslam import errors, metrics  # noqa: E402
+from jaxslam import errors  # noqa: E402
+# (the loaders do not load JAX)
 from jaxslam.data import load_plaza as _load_plaza  # noqa: E402
 from jaxslam.data import load_util as _load_util  # noqa: E402
 from jaxslam.data import tag_positions  # noqa: E402
-from jaxslam.systems import plaza_range as pr  # noqa: E402
-from jaxslam.systems import util_range as ur  # noqa: E402
+from jaxslam.errors import InputError  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+
+def _import_jax():
+    """JAX and the modules that load it, imported by main once the arguments are read (--help
+    and a usage error exit before JAX loads), and by util()/plaza() (for callers from outside main)."""
+    global jax, jnp, metrics, pr, ur
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import jax.numpy as jnp
+
+    from jaxslam import metrics
+    from jaxslam.systems import plaza_range as pr
+    from jaxslam.systems import util_range as ur
+
 
 DATA = None  # the data folder (main: --data, else $JAXSLAM_DATA_DIR)
 
@@ -70,7 +78,10 @@ def timed(f):
     return r, t1 - t0, t2 - t1
 
 
-def util(dtype, gate=9.0, params=ur.PARAMS, t_w=30.0):
+def util(dtype, gate=9.0, params=None, t_w=30.0):
+    """params: default ur.PARAMS."""
+    _import_jax()
+    params = ur.PARAMS if params is None else params
     u, gt_t, tag, aid, anchors = load_util()
     log = ur.util_events(u[:, 0], u[:, 1], u[:, 2])
     res, tc, tr = timed(lambda: ur.run(ur.log_from_events(log, aid, anchors=anchors, dtype=dtype), ur.Config(), params._replace(gate=gate)))
@@ -158,7 +169,10 @@ def load_plaza(which):
     return DR, TD, GT, TL
 
 
-def plaza(which, dtype, params=pr.PARAMS, known=False, **kw):
+def plaza(which, dtype, params=None, known=False, **kw):
+    """params: default pr.PARAMS."""
+    _import_jax()
+    params = pr.PARAMS if params is None else params
     DR, TD, GT, TL = load_plaza(which)
     log = pr.plaza_events(DR[:, 0], DR[:, 1:3], TD[:, 0], TD[:, 2], TD[:, 3])
     pose0 = GT[0, 1:4].copy()
@@ -240,6 +254,7 @@ def main(argv=None):
         DATA = str(catalogue.data_root(a.data))
     except InputError as e:
         ap.error(one_line(str(e)))
+    _import_jax()
     what = a.what
     dtype = jnp.float32 if a.f32 else jnp.float64
     if what in ("util", "all"):

@@ -11,14 +11,22 @@ from jaxslam.cli.common import ScriptParser, nonnegative_float, one_line, path_a
 from jaxslam.data import catalogue
 from jaxslam.errors import InputError
 
-import jax, jax.numpy as jnp, numpy as np  # noqa: E401,E402
-jax.config.update("jax_enable_x64", True)
-from jaxslam.systems import util_range as ur  # noqa: E402
-from jaxslam.systems.biased_range import _cast_params  # noqa: E402
-from jaxslam.filters import ekf_slam as es  # noqa: E402
-from jaxslam.filters import trilateration as tri  # noqa: E402
-from jaxslam.data.util_uwb import load_util, tag_positions  # noqa: E402
-from jaxslam.linalg import safe_norm  # noqa: E402
+import numpy as np
+
+
+def _import_jax():
+    """JAX and the modules that load it, imported by main once the arguments are read: --help
+    and a usage error exit before JAX loads."""
+    global jax, jnp, ur, _cast_params, es, tri, load_util, tag_positions, safe_norm
+    import jax
+    import jax.numpy as jnp
+    jax.config.update("jax_enable_x64", True)
+    from jaxslam.systems import util_range as ur
+    from jaxslam.systems.biased_range import _cast_params
+    from jaxslam.filters import ekf_slam as es
+    from jaxslam.filters import trilateration as tri
+    from jaxslam.data.util_uwb import load_util, tag_positions
+    from jaxslam.linalg import safe_norm
 
 
 def _or_none(parse):
@@ -47,6 +55,7 @@ def main(argv=None):
         DATA = str(catalogue.data_root(a.data, flag="DATA_DIR"))
     except InputError as e:
         ap.error(one_line(str(e)))
+    _import_jax()
 
     def obs4(s, l, params=None):
         return jnp.reshape(safe_norm(s[:3] - l[:3]) + s[-1] + l[3], (1,))

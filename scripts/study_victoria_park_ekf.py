@@ -17,13 +17,21 @@ runtime.configure_process()
 from jaxslam.cli.common import ScriptParser, one_line  # noqa: E402
 from jaxslam.data import catalogue  # noqa: E402
 from jaxslam.errors import InputError  # noqa: E402
-import jax  # noqa: E402
-jax.config.update("jax_enable_x64", True)
-import jax.numpy as jnp, numpy as np  # noqa: E401,E402
-from jaxslam import metrics  # noqa: E402
-from jaxslam.data import load_victoria_park, merge_events  # noqa: E402
-from jaxslam.data import presets  # noqa: E402
-from jaxslam.systems import planar_ekf_slam as P  # noqa: E402
+import numpy as np  # noqa: E402
+
+
+def _import_jax():
+    """JAX and the modules that load it, imported by main once the arguments are read (--help
+    and a usage error exit before JAX loads), and by load()/run() (the helper investigations)."""
+    global jax, jnp, metrics, load_victoria_park, merge_events, presets, P
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    import jax.numpy as jnp
+    from jaxslam import metrics
+    from jaxslam.data import load_victoria_park, merge_events
+    from jaxslam.data import presets
+    from jaxslam.systems import planar_ekf_slam as P
+
 
 D = GPS_OK = None  # the data and its usable GPS fixes, set by load() (main, or a helper investigation's first call)
 
@@ -31,7 +39,9 @@ D = GPS_OK = None  # the data and its usable GPS fixes, set by load() (main, or 
 def load(data=None):
     """Read Victoria Park from ``data`` (default: $JAXSLAM_DATA_DIR) into ``D`` and ``GPS_OK``."""
     global D, GPS_OK
-    D = load_victoria_park(str(catalogue.data_root(data, flag="$JAXSLAM_DATA_DIR")))
+    root = str(catalogue.data_root(data, flag="$JAXSLAM_DATA_DIR"))  # (an unset variable: before JAX loads)
+    _import_jax()
+    D = load_victoria_park(root)
     _d = np.linalg.norm(np.diff(D.gps, axis=0), axis=1) / np.maximum(np.diff(D.gps_t), 1e-3)
     _vin = np.concatenate([[0.0], _d]); _vout = np.concatenate([_d, [0.0]])  # noqa: E702
     GPS_OK = ~((_vin > 15.0) & (_vout > 15.0))  # a fix >15 m/s away from both neighbours (car max 6.6 m/s)
@@ -53,7 +63,10 @@ def ate(t_est, xy, t0=None, t1=None, clean=True):
     e = np.stack([np.interp(g_t[m], t_est, xy[:, 0]), np.interp(g_t[m], t_est, xy[:, 1])], 1)
     return float(metrics.ate(e, g[m], align="rigid")), int(m.sum())
 
-def run(cfg, prm, log, dtype=jnp.float32, time_it=True, quiet=False):
+def run(cfg, prm, log, dtype=None, time_it=True, quiet=False):
+    """dtype: default float32."""
+    _import_jax()
+    dtype = jnp.float32 if dtype is None else dtype
     prm = jax.tree_util.tree_map(lambda a: None if a is None else jnp.asarray(a, dtype), prm)
     p0 = jnp.zeros(3, dtype)
     t0 = time.perf_counter(); r = P.run(P.log_from_events(log, p0), cfg, prm); jax.block_until_ready(r); t1 = time.perf_counter()
@@ -82,7 +95,7 @@ def main(argv=None):
     ap = parser()
     ap.parse_args(argv)  # (no arguments: anything given was ignored)
     try:  # an unset $JAXSLAM_DATA_DIR was a KeyError traceback, at import
-        load()
+        load()  # (imports JAX)
     except InputError as e:
         ap.error(one_line(str(e)))
     log = make_log()
