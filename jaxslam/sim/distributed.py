@@ -32,11 +32,15 @@ A Ctrl-C must not make one process leave the group's collectives while the other
 ``KeyboardInterrupt`` there skipped it) and act on it when the collective is done.  One that
 arrives before :func:`settle` chose this process's word is an interrupted block; after it, with
 every block finished, the group goes on to the gather, and the Ctrl-C is re-delivered when
-:func:`gather` has gathered (in ``jaxslam run``: exit 130, nothing written).  What is left: the
-few bytecodes of the caller between its block and :func:`settle`, and between :func:`settle`
-and :func:`gather` (:func:`jaxslam.sim.monte_carlo.run`); a Ctrl-C there, in one process only,
-leaves the others waiting (under ``--processes`` the launcher stops them 5 s after that
-process ended).
+:func:`gather` has gathered (in ``jaxslam run``: exit 130, nothing written).  The caller's
+bytecodes around them (after its block, before :func:`settle`; between :func:`settle` and
+:func:`gather`) are held too when it runs all three in one :func:`section`
+(:func:`jaxslam.sim.monte_carlo.run` does): the block runs in :meth:`Section.block`, where a
+Ctrl-C acts as usual, and the section holds a SIGINT from the block's end (a Ctrl-C there, or
+before the block, is an interrupted block) until the section is left, where one held after
+:func:`settle` is re-delivered.  What is left: the bytecodes of the caller before it enters the
+section (a Ctrl-C there, in one process only, leaves the others waiting in :func:`settle`;
+under ``--processes`` the launcher stops them 5 s after that process ended).
 
 Importing this module does not import JAX (the launcher of ``--processes`` uses
 :func:`free_port`).
@@ -54,7 +58,7 @@ import numpy as np
 
 from ..errors import InputError, check_int
 
-__all__ = ["initialize", "active", "is_leader", "block", "settle", "gather", "free_port"]
+__all__ = ["initialize", "active", "is_leader", "block", "section", "Section", "settle", "gather", "free_port"]
 
 
 def initialize(coordinator: str, num_processes: int, process_id: int) -> None:
@@ -114,6 +118,76 @@ def block(runs: int, num_processes: Optional[int] = None, index: Optional[int] =
 
 _FINISHED, _INTERRUPTED, _FAILED = 0, 1, 2
 _held_interrupt = False  # a Ctrl-C that settle held after every block finished; gather re-delivers it
+_section: Optional["Section"] = None  # the section holding SIGINT now (main thread), if any
+
+
+class Section:
+    """A process's block, :func:`settle` and :func:`gather` as one section that a Ctrl-C cannot
+    leave between them (module docstring); made by :func:`section`."""
+
+    def __init__(self):
+        self._heard = []  # the SIGINTs held (noted, not acted on)
+        self._holding = True
+        self._previous = None  # the handler the section replaced (None: it installed none)
+        self._outer = None
+
+    def _on_sigint(self, signum, frame):
+        if self._holding:
+            self._heard.append(signum)
+        else:  # in the block: the handler the section replaced acts (Python's: KeyboardInterrupt)
+            self._previous(signum, frame)
+
+    def block(self, fn, *args, **kwargs):
+        """``fn(*args, **kwargs)``: this process's block, where a Ctrl-C acts as without the section
+        (``KeyboardInterrupt``); one held before it raises ``KeyboardInterrupt`` here (an
+        interrupted block).  The section holds SIGINT again from the moment ``fn`` returns or
+        raises (its result or exception then goes on with no Ctrl-C in between)."""
+        try:
+            self._holding = False
+            if self._heard:  # a Ctrl-C since the section began
+                self._heard.clear()
+                raise KeyboardInterrupt
+            return fn(*args, **kwargs)
+        finally:
+            self._holding = True
+
+    def __enter__(self):
+        global _section
+        previous = signal.getsignal(signal.SIGINT)
+        if threading.current_thread() is threading.main_thread() and callable(previous):
+            # (as _sigint_held: only in the main thread, over a handler of Python's)
+            self._previous, self._outer, _section = previous, _section, self
+            signal.signal(signal.SIGINT, self._on_sigint)  # holding: a Ctrl-C now is noted
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        global _section
+        if self._previous is None:
+            return False
+        _section = self._outer
+        signal.signal(signal.SIGINT, self._previous)
+        if self._heard and exc_type is None:  # held after settle: the batch is gathered, act on it
+            self._heard.clear()
+            signal.raise_signal(signal.SIGINT)
+        return False  # (with an exception on its way the run already ends: a Ctrl-C held is dropped)
+
+
+def section() -> Section:
+    """``with distributed.section() as s:`` run the block with ``s.block(fn, ...)``, then
+    :func:`settle` and :func:`gather` within: a SIGINT is held from the block's end to the
+    section's end, so no Ctrl-C makes this process leave between the block and the collectives
+    (module docstring).  A Ctrl-C held before :func:`settle` chose this process's word makes the
+    block interrupted; one held after it is re-delivered when the section is left after the
+    gather.  Outside the main thread, or with SIGINT ignored, it holds nothing."""
+    return Section()
+
+
+def _holding_section() -> Optional[Section]:
+    """The section that holds SIGINT in this thread now, if any."""
+    sec = _section
+    if sec is not None and sec._holding and threading.current_thread() is threading.main_thread():
+        return sec
+    return None
 
 
 @contextlib.contextmanager
@@ -121,7 +195,12 @@ def _sigint_held():
     """Within: a SIGINT is noted in the list this yields, not acted on; on exit the previous
     handler is back (the caller acts on what was noted).  Only in the main thread (where Python
     runs its handlers, so where a ``KeyboardInterrupt`` can land) and over a handler of Python's
-    (SIGINT ignored stays ignored)."""
+    (SIGINT ignored stays ignored).  Within a :func:`section` holding SIGINT: the section's list
+    (held before the caller began, too), and the section goes on holding on exit."""
+    sec = _holding_section()
+    if sec is not None:
+        yield sec._heard
+        return
     heard = []
     previous = signal.getsignal(signal.SIGINT)
     if threading.current_thread() is not threading.main_thread() or not callable(previous):
@@ -136,7 +215,11 @@ def _sigint_held():
 
 def _redeliver_sigint() -> None:
     """The SIGINT held meanwhile, to the handler now in place (Python's: ``KeyboardInterrupt``
-    here; ``jaxslam`` counts it too)."""
+    here; ``jaxslam`` counts it too); within a :func:`section`, when the section is left."""
+    sec = _holding_section()
+    if sec is not None:
+        sec._heard.append(signal.SIGINT)
+        return
     signal.raise_signal(signal.SIGINT)
 
 
@@ -164,6 +247,7 @@ def settle(error: Optional[BaseException] = None) -> None:
                 else _FAILED)
         codes = np.asarray(multihost_utils.process_allgather(np.array([code], np.int32), tiled=False)).reshape(-1)
         late = bool(heard) and code == _FINISHED  # after the word: the others go on to the gather
+        heard.clear()  # (acted on here, or by gather through _held_interrupt)
     if error is not None:
         raise error
     if (codes == _INTERRUPTED).any():

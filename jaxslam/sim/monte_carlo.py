@@ -49,7 +49,9 @@ true) and the caller reports them as such.  A Ctrl-C before the first chunk has 
 propagates.  (The signal is handled when the host regains control, i.e. after the compiled
 call in flight returns.)  In a group of processes the run is all or nothing: a Ctrl-C in any
 process raises ``KeyboardInterrupt`` in every one once each has ended its block (never a gather
-of partial blocks; :func:`jaxslam.sim.distributed.settle`).
+of partial blocks; :func:`jaxslam.sim.distributed.settle`), and from the end of its block through
+the gather a process holds a Ctrl-C (:func:`jaxslam.sim.distributed.section`), so none leaves the
+others waiting in a collective.
 
 Programs: the compiled batch of each ``fn`` is kept for as long as ``fn`` lives, so a second
 ``run`` of the same function (a new seed, more runs) neither traces nor compiles
@@ -228,23 +230,27 @@ def run(fn: Callable, seed: int, runs: int, chunk: Optional[int] = None,
     if devices is None and jax.process_count() > 1:  # a group of processes: one block each
         from . import distributed
 
-        start, size = distributed.block(runs)
-        try:
-            # every block has the same length (the collective needs it): the last blocks run the
-            # next indices' keys, whose results are dropped
-            keys = keys_for(seed, jax.process_count() * size)[start:start + size]
-            res = _run_keys(fn, keys, chunk, _GroupProgress(progress, jax.process_count(), runs),
-                            jax.local_devices(), cpu_batching, detail, program_key, threads)
-        except BaseException as e:  # a Ctrl-C before a chunk finished, or an error: the group hears of it
-            distributed.settle(e)  # raises e
-        # all or nothing: a partial block (Ctrl-C) ends the run in every process, before the
-        # gather (blocks of other lengths aborted gloo; equal partial ones gave the wrong runs)
-        distributed.settle(KeyboardInterrupt() if res.interrupted else None)
-        out = dict(res.out) if detail else res.out
-        det = out.pop("detail") if detail else None
-        out = distributed.gather(out, runs)
-        if detail:
-            out["detail"] = det  # run 0's record: process 0's (the one that plots)
+        # block -> settle -> gather in one section: from the block's end a Ctrl-C is held, so this
+        # process reaches both collectives whenever it comes (distributed's module docstring)
+        with distributed.section() as group:
+            start, size = distributed.block(runs)
+            try:
+                # every block has the same length (the collective needs it): the last blocks run the
+                # next indices' keys, whose results are dropped
+                keys = keys_for(seed, jax.process_count() * size)[start:start + size]
+                res = group.block(_run_keys, fn, keys, chunk,
+                                  _GroupProgress(progress, jax.process_count(), runs),
+                                  jax.local_devices(), cpu_batching, detail, program_key, threads)
+            except BaseException as e:  # a Ctrl-C before a chunk finished, or an error: the group hears of it
+                distributed.settle(e)  # raises e
+            # all or nothing: a partial block (Ctrl-C) ends the run in every process, before the
+            # gather (blocks of other lengths aborted gloo; equal partial ones gave the wrong runs)
+            distributed.settle(KeyboardInterrupt() if res.interrupted else None)
+            out = dict(res.out) if detail else res.out
+            det = out.pop("detail") if detail else None
+            out = distributed.gather(out, runs)  # a Ctrl-C held after settle: re-delivered as the section ends
+            if detail:
+                out["detail"] = det  # run 0's record: process 0's (the one that plots)
         return res._replace(out=out, runs=runs, interrupted=False)
     devices = devices if devices is not None else jax.local_devices()
     return _run_keys(fn, keys_for(seed, runs), chunk, progress, devices, cpu_batching, detail, program_key,
