@@ -835,11 +835,21 @@ def negative_variance(M, mask=None):
     traced negative ``R`` (or ``Q``) whose ``S`` (or predicted covariance) still factored was
     used with status 0 by the covariance forms (a posterior variance of −1e-8, within
     :func:`finalize`'s rounding tolerance), where the square-root forms, which factor the noise,
-    say ``NOT_PSD``.  An indefinite ``M`` with a non-negative diagonal is not seen here (that
-    needs a factorisation, and a singular ``Q`` such as ``diag(q, q, 0)`` is valid)."""
+    say ``NOT_PSD``.  Negative beyond rounding: below −√ε times ``M``'s largest entry in
+    magnitude (as :func:`predicted_status` judges a predicted covariance), so a PSD matrix
+    built in floating point (``G Qc Gᵀ`` of a singular ``Qc``, a diagonal entry of −1e-16),
+    which :func:`jaxslam.linalg.check_psd` accepts, is not flagged.  An indefinite ``M`` with a
+    non-negative diagonal is not seen here (that needs a factorisation, and a singular ``Q``
+    such as ``diag(q, q, 0)`` is valid)."""
     M = jnp.asarray(M)
-    d = jnp.diagonal(M.reshape(1, 1) if M.ndim < 2 else M)  # a scalar: the one variance
-    neg = d < 0  # (NaN compares False: a NaN is NON_FINITE, the step's finite_in)
+    M = M.reshape(1, 1) if M.ndim < 2 else M  # a scalar: the one variance
+    dt = M.dtype if jnp.issubdtype(M.dtype, jnp.floating) else jnp.result_type(float)
+    A = jnp.abs(M)
+    if mask is not None:
+        A = jnp.where(mask[:, None] & mask[None, :], A, jnp.zeros_like(A))
+    scale = jnp.max(A) if A.size else jnp.zeros((), A.dtype)
+    # (NaN compares False: a NaN is NON_FINITE, the step's finite_in)
+    neg = jnp.diagonal(M) < -jnp.sqrt(jnp.finfo(dt).eps).astype(A.dtype) * scale
     return jnp.any(neg if mask is None else neg & mask)
 
 

@@ -111,7 +111,6 @@ def test_a_failed_prediction_is_skipped_alike(name, pf):
     if pf:  # the next step predicts from the kept belief with us[2]
         rest = _scan(name, f, means[bad], covs[bad], us[bad + 1:], zs[bad + 1:], Q, R, pf)
     else:  # the kept belief is the next step's prior... after the predict with us[bad]
-        rest = _scan(name, f, means[bad], covs[bad], us[bad + 1:], zs[bad + 1:], Q, R, True)
         rest_u = _scan(name, f, means[bad], covs[bad], us[bad:bad + 1], zs[bad + 1:bad + 2], Q, R, True)
         np.testing.assert_allclose(means[bad + 1], np.asarray(rest_u.means)[0], rtol=1e-10, atol=1e-12)
         return
@@ -198,3 +197,32 @@ def test_sqrt_runs_factor_a_per_step_Q_as_a_single_one(name):
         per = MODS[name].filter_scan(lambda x, u: x, h, x0, np.eye(3), None, zs, masks, np.stack([Q] * T),
                                      np.array([[0.1]]), save_chol=True)
         np.testing.assert_array_equal(np.asarray(per.chols), np.asarray(one.chols))
+
+
+@pytest.mark.parametrize("name", sorted(MODS))
+def test_a_psd_q_whose_diagonal_rounds_below_zero_is_not_a_failure(name):
+    """Review (s36): Q = G Qc Gᵀ of a singular (fully correlated) Qc is PSD; its third variance
+    rounds to −1.06e-16, which check_psd accepts.  negative_variance had no tolerance, so the
+    EKF and UKF runs flagged every predict NOT_PSD, skipped every step and gave NaN
+    log-likelihoods (the square-root runs ran normally)."""
+    a, b = 0.7, 2.3
+    Qc = np.array([[a, np.sqrt(a * b)], [np.sqrt(a * b), b]])
+    rng = np.random.default_rng(0)
+    for _ in range(10000):  # a pair whose exact-zero variance rounds below 0
+        a, b = rng.uniform(0.1, 3, 2)
+        Qc = np.array([[a, np.sqrt(a * b)], [np.sqrt(a * b), b]])
+        G = np.array([[1.0, 0.0], [0.0, 1.0], [1 / np.sqrt(a), -1 / np.sqrt(b)]])
+        Q = G @ Qc @ G.T
+        if Q[2, 2] < 0:
+            break
+    assert -1e-15 < Q[2, 2] < 0
+    zs = np.arange(4.0)[:, None]
+    post = jax.jit(lambda Q: MODS[name].filter_scan(lambda x, u: x, lambda x: x[:1], np.zeros(3), np.eye(3), None,
+                                                    zs, None, Q, np.array([[0.1]])))(Q)
+    assert np.asarray(post.status).tolist() == [0, 0, 0, 0]
+    assert np.asarray(post.means)[-1, 0] > 2.5  # the updates were made (0 when every step was skipped)
+    # a clearly negative variance is still NOT_PSD
+    Qn = np.diag([0.01, 0.01, -1e-3])
+    post = jax.jit(lambda Q: MODS[name].filter_scan(lambda x, u: x, lambda x: x[:1], np.zeros(3), np.eye(3), None,
+                                                    zs, None, Q, np.array([[0.1]])))(Qn)
+    assert all(int(s_) & errors.NOT_PSD for s_ in np.asarray(post.status))
