@@ -127,9 +127,22 @@ def prepare_file(flag: str, path, create: bool = True) -> pathlib.Path:
         raise InputError(f"{flag}: {str(path)!r} is not a file name")
     if p.is_dir():
         raise InputError(f"{flag}: {str(p)!r} is a folder; give a file path")
+    if _special_file(p):  # /dev/stdout, a FIFO: written into as it is (atomic_write)
+        return p
     target = _link_target(flag, p) if p.is_symlink() else p  # written there (atomic_write): probe it
     _probe_folder(flag, target.parent, target, create=create)
     return p
+
+
+def _special_file(p: pathlib.Path) -> bool:
+    """``p`` exists (its links followed by the system) and is neither a regular file nor a
+    folder: a device, a FIFO, a socket -- ``/dev/stdout`` among them, whose link into
+    ``/proc/self/fd`` names a pipe (``pipe:[N]``) that no path resolution can follow."""
+    try:
+        mode = os.stat(p).st_mode
+    except (OSError, ValueError):
+        return False
+    return not stat.S_ISREG(mode) and not stat.S_ISDIR(mode)
 
 
 def _link_target(flag: str, p: pathlib.Path) -> pathlib.Path:
@@ -232,9 +245,12 @@ def atomic_write(path, write: Callable, mode: str = "w", *, name: str = "path") 
     path = pathlib.Path(path)
     opts = {"encoding": "utf-8"} if "b" not in mode else {}
     try:
-        if path.is_symlink():
-            path = _link_target(name, path)
-        is_dir, special = path.is_dir(), path.exists() and not path.is_file()
+        if _special_file(path):  # (opened as named: /dev/stdout on a pipe cannot be resolved)
+            is_dir, special = False, True
+        else:
+            if path.is_symlink():
+                path = _link_target(name, path)
+            is_dir, special = path.is_dir(), path.exists() and not path.is_file()
     except OSError as e:  # (e.g. a folder on the way that cannot be searched)
         raise _write_error(path, e, name) from None
     if is_dir:

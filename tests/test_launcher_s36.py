@@ -7,6 +7,7 @@ job control hands them SIGINT ignored).  Each failed on the code before (see the
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -180,6 +181,27 @@ def test_a_group_run_prints_only_its_report_on_stdout(tmp_path):
     assert p.stdout.startswith("scenario uwb-circle: 2 run(s), seed 0, float64\n"), p.stdout
     assert "Gloo" not in p.stdout
     assert "[Gloo] Rank 0 is connected" in p.stderr  # routed, not hidden (jaxlib 0.10 prints it)
+
+
+def test_json_to_dev_stdout_on_a_pipe_is_written_there(tmp_path):
+    # review (s36): /dev/stdout on a pipe links to /proc/PID/fd/pipe:[N], which path resolution
+    # cannot follow: "--json: cannot write into '/proc/PID/fd'", exit 2 (`... --json /dev/stdout | jq`)
+    p = subprocess.run([sys.executable, "-m", "jaxslam", "run", "uwb-circle", "--runs", "1", "--duration", "2",
+                        "--quiet", "--json", "/dev/stdout"], capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert p.returncode == 0, p.stderr
+    assert json.loads(p.stdout)["scenario"] == "uwb-circle"
+
+
+def test_a_group_run_writes_json_to_dev_stdout_on_stdout(tmp_path):
+    # review (s36): descriptor 1 pointed at stderr for the whole command, so --json /dev/stdout
+    # (atomic_write opens the path) wrote the JSON to stderr; the group's collectives are done
+    # before the outputs are written, so descriptor 1 is stdout again by then
+    p = subprocess.run([sys.executable, "-m", "jaxslam", "run", "uwb-circle", "--runs", "2", "--duration", "2",
+                        "--processes", "2", "--quiet", "--json", "/dev/stdout"],
+                       capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert p.returncode == 0, p.stderr
+    assert json.loads(p.stdout)["scenario"] == "uwb-circle"
+    assert '"scenario"' not in p.stderr
 
 
 # ------------------------------------------------------------------ 3. one free-port helper

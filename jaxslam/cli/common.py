@@ -232,8 +232,9 @@ class _ReaderGoneSafe:
 
 
 @contextlib.contextmanager
-def native_stdout_to_stderr():
-    """Within: what native code writes on file descriptor 1 goes to stderr (fd 2), while
+def native_stdout_to_stderr(null: bool = False):
+    """Within: what native code writes on file descriptor 1 goes to stderr (fd 2; with ``null``
+    to the null device: ``--quiet``), while
     ``sys.stdout`` still writes to the real stdout.  A process of a group (``jaxslam run ...
     --processes P``) runs within it: gloo prints "[Gloo] Rank 0 is connected to 1 peer ranks
     ..." on stdout at the group's first collective, which mixed into the table a user may pipe;
@@ -257,7 +258,10 @@ def native_stdout_to_stderr():
         mine = open(real, "w", encoding=getattr(inner, "encoding", None) or "utf-8",  # noqa: SIM115
                     errors=getattr(inner, "errors", None) or "strict", closefd=False)
         mine.reconfigure(line_buffering=bool(getattr(inner, "line_buffering", False)))
-        os.dup2(2, 1)
+        if null:
+            silence_stdout(1)
+        else:
+            os.dup2(2, 1)
     except (OSError, ValueError, LookupError):
         os.close(real)
         yield

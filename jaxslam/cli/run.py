@@ -17,7 +17,7 @@ import sys
 from jaxslam import files
 
 from .common import (PROG, Parser, UsageError, compile_timing, echo, finite_float, fmt, int_at_least,
-                     native_stdout_to_stderr, positive_int, raise_if_interrupted, seed_int, silence_stdout)
+                     native_stdout_to_stderr, positive_int, raise_if_interrupted, seed_int)
 
 __all__ = ["command", "format_run_report"]
 
@@ -200,11 +200,9 @@ def _command(rest: list[str], stack: contextlib.ExitStack) -> int:
     if group is not None:  # join the group before any JAX computation
         from jaxslam.sim import distributed
 
-        if pre.quiet:  # nothing on stdout, not even what the CPU collectives (gloo) print there
-            sys.stdout.flush()
-            silence_stdout()
-        else:  # what they print there ("[Gloo] Rank 0 is connected ...") goes to stderr, not into the table
-            stack.enter_context(native_stdout_to_stderr())
+        # what the CPU collectives (gloo) print on descriptor 1 ("[Gloo] Rank 0 is connected ...") goes
+        # to stderr, not into the table, or with --quiet nowhere; until the run's collectives are over
+        stack.enter_context(native_stdout_to_stderr(null=pre.quiet))
         distributed.initialize(*group)
 
     from jaxslam import io
@@ -244,6 +242,9 @@ def _command(rest: list[str], stack: contextlib.ExitStack) -> int:
                 print(f"{PROG} run: interrupted; the runs of a group of processes are all or nothing: "
                       "none kept, nothing written", file=sys.stderr, flush=True)
             return 130
+    # the group's collectives are over: descriptor 1 is stdout again for what is written now
+    # (--json /dev/stdout opens the path, which went to stderr)
+    stack.close()
     if not isinstance(result, registry.ScenarioResult):
         raise TypeError(f"scenario {scenario.name!r} returned {type(result).__name__}, "
                         "expected ScenarioResult")
