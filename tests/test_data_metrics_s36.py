@@ -60,6 +60,17 @@ def test_a_held_out_robot_without_updating_sightings_is_named(tmp_path):
         mrclam.mrclam_noise(data=data, robots=(1,), test_robots=(2,), t_max=3.0, odometry_delay=0.0)
 
 
+def test_without_held_out_robots_a_training_robot_without_updating_sightings_is_named(tmp_path):
+    # review (s36): with --test-robots none the table is measured on the training robots' whole
+    # logs; their fit window is checked over all robots together, so robot 2's NLL was a silent 0
+    from jaxslam.tuning.targets import mrclam
+
+    data = _data_with_robot2_rows(tmp_path, 1)
+    with pytest.raises(InputError, match=r"^--robots: no sighting in the log of robot\(s\) 2 with the odometry "
+                                         r"delay 0 s updates the filter .*give other --robots$"):
+        mrclam.mrclam_noise(data=data, robots=(1, 2), test_robots=(), t_max=3.0, odometry_delay=0.0)
+
+
 def test_a_held_out_robot_with_updating_sightings_is_still_evaluated(tmp_path):
     from jaxslam.tuning.targets import mrclam
 

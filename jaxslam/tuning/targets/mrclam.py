@@ -178,19 +178,22 @@ def _check_updates(params, config, logs, robots, t_max: float | None, odometry_d
                                + ("give a longer --window" if t_max is not None else "give other --robots"))
 
 
-def _check_heldout_updates(params, config, logs, robots, odometry_delay: float) -> None:
-    """Raise :class:`InputError` naming ``--test-robots`` and each held-out robot of ``robots`` whose
-    whole log (a row of the padded ``logs`` batch, :func:`mrclam_logs` at ``odometry_delay``) has
-    no sighting that updates the filter ``config`` at ``params``: its held-out NLL (the test loss
-    and the evaluation's ``nll``) was the constant 0 / 1 = 0, reported silently as a figure.
+def _check_heldout_updates(params, config, logs, robots, odometry_delay: float, flag: str = "--test-robots") -> None:
+    """Raise :class:`InputError` naming ``flag`` and each robot of ``robots`` whose whole log (a
+    row of the padded ``logs`` batch, :func:`mrclam_logs` at ``odometry_delay``) has no sighting
+    that updates the filter ``config`` at ``params``: its NLL in the table (the test loss and the
+    evaluation's ``nll``) was the constant 0 / 1 = 0, reported silently as a figure.  The
+    evaluated robots: the held-out ones (``--test-robots``), or with none the training robots'
+    whole logs (``--robots``; their fit window is checked jointly, so one robot may have none).
     The value-only scan of :func:`_check_updates`, one row per robot."""
     tot = np.asarray(_delay_nll_terms(params, config._replace(block=0), jax.tree.map(jnp.asarray, logs)))
     silent = [int(r) for r, dof in zip(robots, tot[:, 1]) if not dof > 0]
     if silent:
-        raise InputError(f"--test-robots: no sighting in the log of held-out robot(s) {', '.join(map(str, silent))} "
+        what = "held-out robot(s)" if flag == "--test-robots" else "robot(s)"
+        raise InputError(f"{flag}: no sighting in the log of {what} {', '.join(map(str, silent))} "
                          f"with the odometry delay {odometry_delay:g} s updates the filter (none, or only each "
-                         "landmark's first), so its held-out NLL would be the constant 0; give other --test-robots "
-                         "(or none)")
+                         f"landmark's first), so its NLL in the table would be the constant 0; give other {flag}"
+                         + (" (or none)" if flag == "--test-robots" else ""))
 
 
 @functools.partial(jax.jit, static_argnums=1)
@@ -295,8 +298,9 @@ def mrclam_noise(loss: str = "nll", data=None, robots=DEFAULT_ROBOTS["mrclam"]["
     (:func:`select_odometry_delay`).  The fitted file carries it (``"log"``).  With either, a
     window in which no sighting of the training logs updates the filter (none, or only each
     landmark's first) is an :class:`InputError` naming ``--window`` and the robots, raised before
-    the fit compiles (the loss would be the constant 0); so is a held-out robot whose whole log
-    has no such sighting, naming ``--test-robots`` and the robot (its held-out NLL was a silent 0).
+    the fit compiles (the loss would be the constant 0); so is an evaluated robot whose whole log
+    has no such sighting, naming ``--test-robots`` (a held-out robot) or, with no held-out robot,
+    ``--robots``, and the robot (its NLL in the table was a silent 0).
     The target's ``eval_command`` runs the tuned file on every evaluated robot (one ``jaxslam
     dataset mrclam --robot N`` per robot, joined by ``&&``).
     """
@@ -338,12 +342,13 @@ def mrclam_noise(loss: str = "nll", data=None, robots=DEFAULT_ROBOTS["mrclam"]["
         _check_updates(physical(theta0), cfg, train, robots, t_max, odometry_delay)
     test, test_raw = (mrclam_logs(data, test_robots, dtype, odometry_delay=odometry_delay, K=K) if test_robots
                       else (None, []))
-    if test_robots:  # (the training robots are checked above, over their fit window)
-        _check_heldout_updates(physical(theta0), cfg, test, test_robots, odometry_delay)
     # without a held-out robot the table is measured on the training robots' whole logs
     eval_robots = test_robots or robots
     ev_logs, ev_raw = (test, test_raw) if test_robots else mrclam_logs(data, robots, dtype,
                                                                         odometry_delay=odometry_delay, K=K)
+    # each evaluated robot's own log (the training window is checked above over all robots together)
+    _check_heldout_updates(physical(theta0), cfg, ev_logs, eval_robots, odometry_delay,
+                           "--test-robots" if test_robots else "--robots")
 
     def loss_fn(th, item):
         return planar_nll(physical(th), cfg, item)
