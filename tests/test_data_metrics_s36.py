@@ -198,3 +198,35 @@ def test_atomic_write_fsync_failure_is_a_write_error_and_the_target_is_kept(tmp_
     with pytest.raises(InputError, match=r"^path: .*Input/output error"):
         files.atomic_write(out, lambda f: f.write("new"))
     assert out.read_text() == "old" and [p.name for p in tmp_path.iterdir()] == ["x.txt"]
+
+
+# --- review (s36): anchors unknown with fewer than three surveyed anchors mapped ---------------------
+
+def test_util_unknown_anchors_with_two_mapped_is_a_note_not_an_error(monkeypatch):
+    """The aligned anchor map error needs three matches; with fewer the whole `jaxslam dataset
+    util-uwb --anchors unknown` ended in an error naming map_error's internal arguments after the
+    run.  Now the run is kept and a note says why the map error is missing."""
+    import sys
+
+    sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent / "data_loaders"))
+    from data_loader_paths import FULL
+
+    if not (FULL / "util_uwb").exists():
+        pytest.skip(f"full dataset not available at {FULL / 'util_uwb'}")
+    from jaxslam.data import runners
+    from jaxslam.systems import util_range as ur
+
+    real = ur.run
+
+    def two_mapped(*a, **k):
+        res = real(*a, **k)
+        act = np.asarray(res.active).copy()
+        act[np.flatnonzero(act)[2:]] = False  # keep the first two mapped anchors only
+        return res._replace(active=jnp.asarray(act))
+
+    monkeypatch.setattr(ur, "run", two_mapped)  # (runners imports the module inside its function)
+    out = runners.run_util_uwb(FULL / "util_uwb", anchors="unknown")
+    m = out.metrics if hasattr(out, "metrics") else out["metrics"]
+    notes = out.notes if hasattr(out, "notes") else out["notes"]
+    assert "map_err_m" not in m and np.isfinite(m["pos_rmse_m"])
+    assert any("2 surveyed anchor(s) mapped" in n for n in notes), notes

@@ -662,9 +662,13 @@ def run_util_uwb(data_dir, robot=1, filter="ekf", ids="known", anchors=None, par
     A = np.asarray(res.landmarks, np.float64)
     lid = np.asarray(res.landmark_ids)
     act = np.asarray(res.active)
-    if anchors == "unknown":
-        me = metrics.map_error(A[act], lid[act], d.anchor_p, aid)
-        raw = metrics.map_error(A[act], lid[act], d.anchor_p, aid, transform=(np.eye(3), np.zeros(3)))
+    matched = int(np.isin(lid[act], aid).sum()) if anchors == "unknown" else 0
+    if anchors == "unknown" and matched < 3:  # a 3-D alignment needs three: said, the run kept
+        notes.append(f"{matched} surveyed anchor(s) mapped: the anchor map error (aligned) needs 3, not computed")
+    elif anchors == "unknown":
+        names = ("the mapped anchors", "their ids", "the surveyed anchors", "the surveyed ids")
+        me = metrics.map_error(A[act], lid[act], d.anchor_p, aid, names=names)
+        raw = metrics.map_error(A[act], lid[act], d.anchor_p, aid, transform=(np.eye(3), np.zeros(3)), names=names)
         m["map_err_m"] = me.rmse
         m["map_err_max_m"] = me.max
         m["map_err_raw_m"] = raw.rmse

@@ -1,7 +1,6 @@
 """benchmarks/ review (s36): bench sim's pinned-OpenBLAS child calls the NumPy oracle explicitly on
 the timed case's own inputs (no patched ``numpy_flight.simulate``) and flies that flight bit for
-bit; bench sim records the duration flown (whole LiDAR frames), not the one asked for; bench
-filters' eager-call measurement gives the caller's kept programs back."""
+bit; bench sim records the duration flown (whole LiDAR frames), not the one asked for."""
 
 import argparse
 import hashlib

@@ -34,7 +34,6 @@ the trajectory of the benchmark.
 from __future__ import annotations
 
 import math
-import time
 
 import numpy as np
 
@@ -361,40 +360,3 @@ def simulate(traj: Figure8Params, ctrl: ControllerNp, x0, dt, n_steps, imu_sigma
     P, yaw = flat_derivatives(traj, n_steps * dt)
     ref[n_steps] = (P[0, 0], P[0, 1], P[0, 2], yaw[0])
     return {"t": np.arange(n_steps + 1) * dt, "truth": truth, "ref": ref, "u": us, "imu": imus}
-
-
-def _main(argv=None):
-    """``python numpy_flight.py STEPS REPEATS``: time the paper-000 figure-8 flight, print JSON.
-
-    Used by ``bench_sim`` to time this loop in a fresh process (e.g. with
-    OPENBLAS_NUM_THREADS=1 set before NumPy loads).  Parameters are paper 000's (Table 1-2)
-    and jaxslam's scenario defaults, typed here so no JAX import is needed.
-    """
-    import json
-    import os
-    import sys
-
-    argv = sys.argv[1:] if argv is None else argv
-    n_steps = int(argv[0]) if argv else 5000
-    repeats = int(argv[1]) if len(argv) > 1 else 3
-    quad = QuadNp(1.56, (0.1147, 0.0576, 0.1712), 9.81)
-    wn, zeta = 25.0, 0.8
-    J = quad.J
-    ctrl = ControllerNp(np.diag([0.01] * 6 + [0.04]), np.diag([0.2, 0.2, 0.32, 0.1]),
-                        J * wn ** 2, 2.0 * zeta * wn * J, quad)
-    traj = Figure8Params(center=(0.0, 0.0, -3.0), heading_along_path=1.0)
-    sigma = np.array([300e-6 * 9.81 * 10.0] * 3 + [math.radians(0.01) * 10.0] * 3)
-    noise = np.random.default_rng(0).standard_normal((n_steps, 6))
-    x0 = np.zeros(12)
-    simulate(traj, ctrl, x0, 0.01, min(n_steps, 50), sigma, noise)  # warm-up
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        simulate(traj, ctrl, x0, 0.01, n_steps, sigma, noise)
-        times.append(time.perf_counter() - t0)
-    print(json.dumps({"times_s": times, "median_s": float(np.median(times)),
-                      "openblas_num_threads": os.environ.get("OPENBLAS_NUM_THREADS")}))
-
-
-if __name__ == "__main__":
-    _main()
