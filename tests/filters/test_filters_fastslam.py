@@ -637,6 +637,13 @@ def test_scanned_run_tracks_and_keeps_dtype(dtype):
 # The generic runner: fs.run is a scan of fs.step
 # ---------------------------------------------------------------------------
 
+@jax.jit
+def _pose_estimate(p):
+    """fs.estimate's mean with the yaw wrapped, one program per particle set shape (the loops
+    below called it eagerly: a program per operation)."""
+    return fs.estimate(p, angle_mask=[False, False, True])[0]
+
+
 def _run_case(T=8, N=16, seed=12):
     rng = np.random.default_rng(seed)
     truth = poses_path(T + 1)
@@ -663,7 +670,7 @@ def test_generic_run_equals_a_loop_of_step():
     for t, k in enumerate(jax.random.split(key, len(u))):
         p, info = step(p, k, u[t], zs[t], masks[t])
         np.testing.assert_allclose(np.asarray(out.pose_mean[t]),
-                                   np.asarray(fs.estimate(p, angle_mask=[False, False, True])[0]), rtol=1e-12)
+                                   np.asarray(_pose_estimate(p)), rtol=1e-12)
         assert float(out.log_marginal[t]) == pytest.approx(float(info.log_marginal), rel=1e-12)
         assert int(out.n_used[t]) == int(info.n_used) and int(out.n_gated[t]) == int(np.sum(info.gated))
     np.testing.assert_allclose(np.asarray(out.final.pose), np.asarray(p.pose), rtol=1e-12)
@@ -689,7 +696,9 @@ def test_generic_run_names_the_bad_argument():
     # covariance used to surface only as a run-time flag
     with pytest.raises(InputError, match="lm_ids: expected whole-number"):
         fs.run(p0, key, sample, (u,), MODEL, zs, np.array([0.0, 1.5, 2.0, 3.0]), masks, R)
-    fs.run(p0, key, sample, (u,), MODEL, zs, np.array([0.0, 1.0, 2.0, 3.0]), masks, R)  # whole floats: fine
+    # whole floats: fine (checked and traced through the whole run; eval_shape compiles nothing,
+    # running it compiled a run of its own for this check)
+    jax.eval_shape(lambda: fs.run(p0, key, sample, (u,), MODEL, zs, np.array([0.0, 1.0, 2.0, 3.0]), masks, R))
     with pytest.raises(InputError, match="^R"):
         fs.run(p0, key, sample, (u,), MODEL, zs, np.arange(4), masks, np.asarray(R) * np.array([[1.0, 0.0], [0.0, -1.0]]))
     with pytest.raises(InputError, match="^R"):
@@ -713,20 +722,24 @@ def test_propagate_additive_is_the_mean_plus_one_draw_and_keeps_bad_particles():
     p = p._replace(pose=jnp.asarray(np.random.default_rng(2).normal(size=(5, 3))))
     key = jax.random.PRNGKey(3)
     sig = jnp.asarray([0.05, 0.02, 0.01])
-    q = jax.jit(lambda p, k: fs.propagate_additive(p, k, mean_fn, sig, (1.0, 0.3)))(p, key)
+    # one program per std shape (called eagerly, each call compiled its operations one by one)
+    prop = jax.jit(lambda p, k, std: fs.propagate_additive(p, k, mean_fn, std, (1.0, 0.3)))
+    q = prop(p, key, sig)
     eps = np.asarray(jax.random.normal(key, (5, 3), p.pose.dtype))
+    mean_j = jax.jit(mean_fn)  # the mean function per particle, one program
+    pose_np, aux_np = np.asarray(p.pose), np.asarray(p.aux)
     for i in range(5):
-        m, a = mean_fn(p.pose[i], p.aux[i], (1.0, 0.3))
+        m, a = mean_j(pose_np[i], aux_np[i], (1.0, 0.3))
         np.testing.assert_allclose(np.asarray(q.pose[i]), np.asarray(m) + np.asarray(sig) * eps[i],
                                    rtol=1e-12)
         np.testing.assert_allclose(np.asarray(q.aux[i]), np.asarray(a), rtol=1e-12)
     L = jnp.asarray([[0.05, 0.0, 0.0], [0.01, 0.02, 0.0], [0.0, 0.005, 0.01]])
-    qL = fs.propagate_additive(p, key, mean_fn, L, (1.0, 0.3))
-    m0, _ = mean_fn(p.pose[0], p.aux[0], (1.0, 0.3))
+    qL = prop(p, key, L)
+    m0, _ = mean_j(pose_np[0], aux_np[0], (1.0, 0.3))
     np.testing.assert_allclose(np.asarray(qL.pose[0]), np.asarray(m0) + np.asarray(L) @ eps[0],
                                rtol=1e-12)
     bad = p._replace(pose=p.pose.at[2, 0].set(jnp.inf))
-    qb = fs.propagate_additive(bad, key, mean_fn, sig, (1.0, 0.3))
+    qb = prop(bad, key, sig)
     np.testing.assert_array_equal(np.asarray(qb.pose[2]), np.asarray(bad.pose[2]))
     np.testing.assert_array_equal(np.asarray(qb.aux[2]), np.asarray(bad.aux[2]))
     assert int(qb.status) & errors.NON_FINITE and not int(q.status) & errors.NON_FINITE
@@ -742,8 +755,8 @@ def test_estimate_var_is_the_diagonal_of_estimate():
     lw = jnp.asarray(np.log(special.softmax(rng.normal(size=n))))
     p = fs.init(pose, n, 3, 2)._replace(pose=jnp.asarray(np_wrap(pose)), log_w=lw)
     for am in (None, [False, False, True]):
-        mu, cov = fs.estimate(p, am)
-        mu2, var = fs.estimate_var(p, am)
+        # both in one program per mask (eagerly, every operation compiled a program of its own)
+        (mu, cov), (mu2, var) = jax.jit(lambda p: (fs.estimate(p, am), fs.estimate_var(p, am)))(p)
         np.testing.assert_allclose(np.asarray(mu2), np.asarray(mu), rtol=1e-14)
         np.testing.assert_allclose(np.asarray(var), np.diagonal(np.asarray(cov)), rtol=1e-12)
 
@@ -760,8 +773,6 @@ def test_robust_update_and_weight_match_numpy_student_t():
     obs = jax.jit(lambda p, z, R, nu, weights: fs.observe_update(
         p, MODEL, z, jnp.arange(4), jnp.ones(4, bool), R, None, weights=weights, robust=nu),
         static_argnames="weights")
-    gauss = jax.jit(lambda p, z, weights: fs.observe_update(p, MODEL, z, jnp.arange(4), jnp.ones(4, bool), R_NP, None,
-                                                            weights=weights), static_argnames="weights")
     for weights in ("exact", "mean"):
         p = fs.init(pose[0], 1, 4, 2)
         p, _ = obs(p, z0, R_NP, nu_t, weights)
@@ -792,7 +803,9 @@ def test_robust_update_and_weight_match_numpy_student_t():
         z1c = z1.copy()
         z1c[1, 0] -= 3.0
         qg, ig = obs(p, z1c, R_NP, 1e8, weights)
-        qn, in_ = gauss(p, z1c, weights)
+        # the Gaussian update (no gate: an infinite one), the program of
+        # test_exact_and_mean_weights_match_their_densities (one particle, four slots)
+        qn, in_ = obs_fn(weights)(p, z1c, np.arange(4), np.ones(4, bool), R_NP)
         np.testing.assert_allclose(np.asarray(qg.lm_mean), np.asarray(qn.lm_mean), rtol=1e-8)
         np.testing.assert_allclose(np.asarray(qg.lm_cov), np.asarray(qn.lm_cov), rtol=1e-7)
         assert float(ig.loglik[0]) == pytest.approx(float(in_.loglik[0]), rel=1e-7)
@@ -993,7 +1006,7 @@ def test_generic_run_optimal_proposal_tracks_with_four_particles():
             p = draw_update(p, cov, k_prop, zs[t], masks[t])
             cov = np.zeros_like(cov)
         p = resample(p, k_res)
-        np.testing.assert_allclose(np.asarray(out.pose_mean[t]), np.asarray(fs.estimate(p, ang)[0]),
+        np.testing.assert_allclose(np.asarray(out.pose_mean[t]), np.asarray(_pose_estimate(p)),
                                    rtol=1e-10, atol=1e-12)
     with pytest.raises(InputError, match="moment_fn"):
         fs.run(p0, key, None, (u,), MODEL, zs, np.arange(4), masks, R, proposal="optimal")

@@ -80,7 +80,8 @@ def test_sigma_points_reproduce_mean_and_covariance(rule, dtype):
     A = rng.normal(size=(3, 3))
     cov = (A @ A.T + 0.5 * np.eye(3)).astype(dtype)
     mean = rng.normal(size=3).astype(dtype)
-    pts, wm, wc, ok = RULES[rule](jnp.asarray(mean), jnp.asarray(cov))
+    # one program per rule and dtype (eagerly, a program per operation: ~40 in this test)
+    pts, wm, wc, ok = jax.jit(lambda m, c: RULES[rule](m, c))(jnp.asarray(mean), jnp.asarray(cov))
     N = 7 if rule.startswith("unscented") else 6
     assert pts.shape == (N, 3) and wm.shape == wc.shape == (N,) and bool(ok)
     assert pts.dtype == wm.dtype == dtype

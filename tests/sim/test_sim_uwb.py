@@ -66,7 +66,7 @@ def test_paths_are_the_papers():
 
 def test_startup_frame_handles_rotation_and_reflection():
     A = jnp.asarray([[1.0, 1.0], [1.0, 4.0], [3.0, 2.0]])  # start→end along +y; C to the right
-    M, o = U.startup_frame(A, jnp.asarray(2))
+    M, o = jax.jit(U.startup_frame)(A, jnp.asarray(2))  # one program (eagerly, one per operation)
     P = (np.asarray(A) - np.asarray(o)) @ np.asarray(M).T
     np.testing.assert_allclose(P[1], [0, 0], atol=1e-15)
     np.testing.assert_allclose(P[0], [-3, 0], atol=1e-15)

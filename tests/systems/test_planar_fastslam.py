@@ -182,7 +182,9 @@ def test_gated_known_sightings_raise_diverged(sim):
     fraction recomputed here from the run's own used/gated counts, and the truth of the
     simulation for which log is corrupted."""
     log, gt_t, gt, lms, seen = sim
-    cfg = pf.Config(motion="unicycle", n_particles=30, capacity=12, K=12, association="known")
+    # 50 particles: the configurations of the motion runs in test_known_ids_tracks_over_seeds
+    # (no gate) and test_optimal_proposal_tracks_with_few_particles (gate 13.82), compiled once
+    cfg = pf.Config(motion="unicycle", n_particles=50, capacity=12, K=12, association="known")
     prm = _params()._replace(gate=13.82)
     key = jax.random.PRNGKey(4)
     clean = pf.run(pf.log_from_events(log, jnp.zeros(3)), cfg, prm, key=key)
@@ -211,7 +213,8 @@ def test_robust_update_rides_out_gross_outliers_and_counts_them(sim):
     corrupted log, is thrown off (the oracle for "robust" doing something: the truth of the
     simulation)."""
     log, gt_t, gt, lms, seen = sim
-    cfg = pf.Config(motion="unicycle", n_particles=30, capacity=12, K=12, association="known", robust=True)
+    # 50 particles: the Gaussian run below is then test_known_ids_tracks_over_seeds' program
+    cfg = pf.Config(motion="unicycle", n_particles=50, capacity=12, K=12, association="known", robust=True)
     key = jax.random.PRNGKey(5)
     clean = pf.run(pf.log_from_events(log, jnp.zeros(3)), cfg, _params(), key=key)
     frac = float(clean.outliers) / float(clean.used)
@@ -444,7 +447,9 @@ def test_ml_pruning_removes_clutter_and_frees_slots(sim, proposal):
     prm = _params()._replace(gate=9.21, new_threshold=30.0)
     run = jax.jit(pf.run, static_argnames="config")
     if proposal == "optimal":  # (the motion proposal's run without pruning: the same overflow)
-        plain = run(L, config=cfg, params=prm, key=jax.random.PRNGKey(1))
+        # pf.run itself: the configuration of test_ml_association_with_the_optimal_proposal, whose
+        # compiled run serves this one (the jit above would compile it again)
+        plain = pf.run(L, cfg, prm, key=jax.random.PRNGKey(1))
         assert int(plain.overflow) > 0 and int(plain.status) & errors.CAPACITY_OVERFLOW
         assert float(plain.pruned) == 0.0
     res = run(L, config=cfg, params=prm._replace(prune_window_s=2.0, prune_min_obs=2.0), key=jax.random.PRNGKey(1))
