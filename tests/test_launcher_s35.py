@@ -21,6 +21,7 @@ import textwrap
 import time
 
 import pytest
+from processes import finish as _finish
 
 from jaxslam.errors import InputError
 from jaxslam.progress import Progress
@@ -90,22 +91,6 @@ _LAUNCHER = textwrap.dedent("""
 """)
 
 
-def _group_pids(pgid):
-    """The processes of process group ``pgid`` still alive (zombies are not)."""
-    pids = []
-    for d in os.listdir("/proc"):
-        if not d.isdigit():
-            continue
-        try:
-            with open(f"/proc/{d}/stat") as f:
-                fields = f.read().rsplit(")", 1)[1].split()
-        except OSError:
-            continue
-        if int(fields[2]) == pgid and fields[0] != "Z":
-            pids.append(int(d))
-    return pids
-
-
 def _launch(tmp_path, modes, dropped=False):
     logdir = tmp_path / "log"
     logdir.mkdir()
@@ -128,17 +113,6 @@ def _wait_started(proc, logdir, n=2):
         assert time.monotonic() - t0 < 60, "the group's processes did not start"
         time.sleep(0.02)
     time.sleep(0.3)  # each has set its SIGINT handler (written before "started")
-
-
-def _finish(proc, timeout=30):
-    try:
-        out, err = proc.communicate(timeout=timeout)
-    finally:
-        left = _group_pids(proc.pid)
-        if proc.poll() is None or left:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.communicate()
-    return out, err, left
 
 
 def _ended(logdir):

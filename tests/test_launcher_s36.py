@@ -9,12 +9,12 @@ from __future__ import annotations
 
 import json
 import os
-import signal
 import subprocess
 import sys
 import textwrap
 
 import pytest
+from processes import finish as _finish
 
 _ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -34,33 +34,6 @@ _CTRL_C_AT_IMPORT = textwrap.dedent("""
                 os.kill(os.getpid(), signal.SIGINT)
             return None
 """)
-
-
-def _group_pids(pgid):
-    """The processes of process group ``pgid`` still alive (zombies are not)."""
-    pids = []
-    for d in os.listdir("/proc"):
-        if not d.isdigit():
-            continue
-        try:
-            with open(f"/proc/{d}/stat") as f:
-                fields = f.read().rsplit(")", 1)[1].split()
-        except OSError:
-            continue
-        if int(fields[2]) == pgid and fields[0] != "Z":
-            pids.append(int(d))
-    return pids
-
-
-def _finish(proc, timeout):
-    try:
-        out, err = proc.communicate(timeout=timeout)
-    finally:
-        left = _group_pids(proc.pid)
-        if proc.poll() is None or left:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.communicate()
-    return out, err, left
 
 
 # ------------------------------------------------------------------ 1. a Ctrl-C as they start

@@ -12,19 +12,10 @@ import sys
 
 import numpy as np
 import pytest
-from script_modules import load_script
+from script_modules import JAX_PROBE as _PROBE, load_script
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 DATA = str(ROOT / "tests" / "data")
-
-_PROBE = """
-import runpy, sys
-sys.argv = [sys.argv[1], *sys.argv[2:]]
-try:
-    runpy.run_path(sys.argv[0], run_name="__main__")
-finally:
-    print("JAX LOADED" if "jax" in sys.modules else "no jax", file=sys.stderr)
-"""
 
 LATE = ["study_plaza_smoothing", "study_range_only", "study_util_anchor_bias", "study_victoria_park_ekf",
         "reproduce_plaza_smoothing", "reproduce_tuning"]

@@ -10,20 +10,10 @@ import subprocess
 import sys
 
 import pytest
-from script_modules import load_script
+from script_modules import JAX_PROBE as _PROBE, load_script, one_error_line as _one_line
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 SCRIPTS = sorted(p.stem for p in (ROOT / "scripts").glob("*.py") if p.stem not in ("gen_api", "run_notebook"))
-
-
-def _one_line(call, capsys):
-    capsys.readouterr()
-    with pytest.raises(SystemExit) as e:
-        call()
-    err = capsys.readouterr().err
-    lines = [ln for ln in err.splitlines() if ln.strip()]
-    assert e.value.code == 2 and len(lines) == 1 and "Traceback" not in err, err
-    return lines[0]
 
 
 DATA = str(ROOT / "tests" / "data")
@@ -39,15 +29,6 @@ def test_every_script_refuses_an_abbreviated_option(script, capsys):
     line = _one_line(lambda: load_script(script, "s36").main(argv), capsys)
     assert line == f"{script}.py: error: unrecognized arguments: --hel", line
 
-
-_PROBE = """
-import runpy, sys
-sys.argv = [sys.argv[1], *sys.argv[2:]]
-try:
-    runpy.run_path(sys.argv[0], run_name="__main__")
-finally:
-    print("JAX LOADED" if "jax" in sys.modules else "no jax", file=sys.stderr)
-"""
 
 LAZY = ["study_association_compare", "study_covariance_forms", "study_loop_roughness", "study_mrclam_diagnostics",
         "study_mrclam_fastslam", "study_mrclam_hidden_gates", "study_planar_fastslam", "study_util_anisotropic",

@@ -17,7 +17,7 @@ from __future__ import annotations
 import pathlib
 
 import pytest
-from script_modules import load_script
+from script_modules import load_script, one_error_line as _error_line
 
 from jaxslam.errors import InputError
 
@@ -71,16 +71,6 @@ def mod(script):
     if script not in _mods:
         _mods[script] = load_script(script, "s35b")
     return _mods[script]
-
-
-def _error_line(call, capsys):
-    capsys.readouterr()
-    with pytest.raises(SystemExit) as e:
-        call()
-    err = capsys.readouterr().err
-    lines = [ln for ln in err.splitlines() if ln.strip()]
-    assert e.value.code == 2 and len(lines) == 1 and "Traceback" not in err, err
-    return lines[0]
 
 
 @pytest.fixture

@@ -25,3 +25,29 @@ def load_script(name: str, tag: str = "test"):
 def no_compute(*a, **k):
     """Stands in for anything that computes: a usage error must come before it."""
     raise AssertionError("computed before the usage error")
+
+
+# Run a script as ``python PROBE SCRIPT ARGS...``: its stderr ends with whether JAX was imported
+# (a script must answer --help and usage errors before it imports JAX).
+JAX_PROBE = """
+import runpy, sys
+sys.argv = [sys.argv[1], *sys.argv[2:]]
+try:
+    runpy.run_path(sys.argv[0], run_name="__main__")
+finally:
+    print("JAX LOADED" if "jax" in sys.modules else "no jax", file=sys.stderr)
+"""
+
+
+def one_error_line(call, capsys):
+    """The one line a script's usage error prints on stderr (asserting exit 2, one line and no
+    traceback) when ``call()`` runs it in this process."""
+    import pytest
+
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as e:
+        call()
+    err = capsys.readouterr().err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert e.value.code == 2 and len(lines) == 1 and "Traceback" not in err, err
+    return lines[0]
