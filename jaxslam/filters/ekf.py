@@ -404,8 +404,7 @@ def update(
     Returns:
         ``(posterior Gaussian, UpdateInfo)``.  On a failed Cholesky or a negative
         posterior variance (``NOT_PSD``: e.g. an indefinite prior under ``jit``, where it is
-        not checked; also a traced ``R`` with a negative variance on a valid component, NIS 0,
-        where ``S`` still factors) or a non-finite posterior (``NON_FINITE``) the prior is returned
+        not checked) or a non-finite posterior (``NON_FINITE``) the prior is returned
         unchanged.  Called eagerly it is compiled once per model
         (:func:`jaxslam.compilation.call_compiled`).
     """
@@ -448,11 +447,6 @@ def _update(state: Gaussian, z, h: Callable, R, *args, residual=None, mask=None,
     # The NIS (hence the gate) does not depend on whether the update is
     # finally applied, so one correction serves both.
     x_post, P_post, S, num, nis, ok, logdet = linear_update(x, P, nu, H, R, mask)
-    # a negative variance in R's valid block is NOT_PSD and keeps the prior, also where S still
-    # factors (as the square-root forms, which factor R); its NIS is 0, never GATED
-    r_ok = ~_g.negative_variance(R, mask)
-    ok = ok & r_ok
-    nis = jnp.where(r_ok, nis, jnp.zeros((), dtype))
     # a NaN/Inf in the S factored (from P, H or R's valid block) is NON_FINITE, not NOT_PSD
     finite_in = jnp.all(jnp.isfinite(S))
     extra = None
@@ -529,10 +523,7 @@ def update_batch(
         nis (M,), dof (M,), innovation (M, m), S (M, m, m) (the diagonal
         blocks ``S_ii``), accepted (M,), status (M,).  In joint mode a
         numerical failure of the joint update (``NOT_PSD``/``NON_FINITE``) is
-        reported on every valid measurement and the prior is kept; a traced ``R`` with
-        a negative variance on a used measurement's valid entries is such a failure
-        (``NOT_PSD``; that measurement's NIS is 0, never gated, as in :func:`update`
-        and the sequential mode).  Called eagerly it is
+        reported on every valid measurement and the prior is kept.  Called eagerly it is
         compiled once per model (:func:`jaxslam.compilation.call_compiled`, at the model's
         second call as :func:`update`).
     """
@@ -631,10 +622,6 @@ def _update_batch(state: Gaussian, zs, h: Callable, R, *args, masks=None, residu
     )
     w, ok_i, logdet_i = jax.vmap(innovation_solve)(S_ii, nu)
     nis = jnp.sum(nu * w, axis=1)
-    # a negative variance in a measurement's valid block of R is NOT_PSD, as in _update (and the
-    # sequential mode): its NIS is 0, never GATED, and, used, it fails the joint update (prior kept)
-    r_neg = jax.vmap(_g.negative_variance)(Rs, masks)  # (M,)
-    nis = jnp.where(r_neg, zero, nis)
     valid = dof > 0
     g_status = jnp.zeros((M,), jnp.int32)
     if gate is None:
@@ -649,12 +636,11 @@ def _update_batch(state: Gaussian, zs, h: Callable, R, *args, masks=None, residu
         keep.reshape(M * m)
     )
     dof_total = jnp.sum(keep).astype(jnp.int32)
-    used = valid & ~gated
-    ok = ok & ~jnp.any(r_neg & used)
     post, any_acc, status_joint = _finalize(
         state, x_post, P_post, ok, jnp.asarray(False), dof_total,
         finite_in=jnp.all(jnp.isfinite(S_joint))
     )
+    used = valid & ~gated
     accepted = used & any_acc
     status = jnp.where(gated, jnp.int32(errors.GATED), jnp.int32(0)) | jnp.where(
         used, status_joint, jnp.int32(0)
@@ -664,7 +650,7 @@ def _update_batch(state: Gaussian, zs, h: Callable, R, *args, masks=None, residu
     fin_i = jnp.all(jnp.isfinite(S_ii), axis=(1, 2))
     status = status | jnp.where(valid & ~ok_i, jnp.where(fin_i, jnp.int32(errors.NOT_PSD),
                                                          jnp.int32(errors.NON_FINITE)), jnp.int32(0))
-    logdet_i = jnp.where(valid & ok_i & ~r_neg, logdet_i, jnp.zeros((), dtype))
+    logdet_i = jnp.where(valid & ok_i, logdet_i, jnp.zeros((), dtype))
     return post, UpdateInfo(nis, dof, nu, S_ii, accepted, status, logdet_i)
 
 

@@ -473,9 +473,9 @@ def update(
 
     Returns:
         ``(posterior Gaussian, UpdateInfo)``.  If the factor of ``P`` or of ``S`` is not
-        finite, a posterior variance is negative or a traced ``R`` has a negative variance on
-        a valid component (``NOT_PSD``; NIS and ``logdet`` then 0) or the posterior is not
-        finite (``NON_FINITE``), the prior is returned unchanged.  Called eagerly it is compiled once per model
+        finite or a posterior variance is negative (``NOT_PSD``; NIS and ``logdet`` then 0 for
+        a failed factor) or the posterior is not finite (``NON_FINITE``), the prior is
+        returned unchanged.  Called eagerly it is compiled once per model
         (:func:`jaxslam.compilation.call_compiled`).
     """
     rule = _rule(points)
@@ -517,9 +517,7 @@ def _update(state: Gaussian, z, h: Callable, R, *args, residual=None, mask=None,
     nu = masked_innovation(z, zhat, mask, res)
     X, ok_s, logdet = innovation_solve(S, jnp.concatenate([Cxz.T, nu[:, None]], axis=1))
     K = X[:, :n].T  # C S⁻¹
-    # a negative variance in R's valid block is NOT_PSD and keeps the prior, also where S still
-    # factors (as the square-root forms, which factor R)
-    ok = ok_s & ok_pts & ~_g.negative_variance(R, mask)
+    ok = ok_s & ok_pts
     nis = jnp.where(ok, jnp.dot(nu, X[:, n]), zero)
     x_post = x + K @ nu
     P_post = symmetrize(P - K @ S @ K.T)

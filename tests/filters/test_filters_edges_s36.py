@@ -1,9 +1,8 @@
 """Edge inputs of the four generic Gaussian runs (``ekf``, ``ukf``, ``sqrt_ekf``, ``sqrt_ukf``):
-one rule for a failed prediction, a traced negative noise variance flagged, measurements that do
-not fit the run's dtype refused, and the square-root runs' factors taken before the cast.
+one rule for a failed prediction, a traced negative process-noise variance flagged, measurements
+that do not fit the run's dtype refused, and the square-root runs' factors taken before the cast.
 
-Every test here fails on the code before (2026-12-08): a traced ``R`` of variance -1e-8 gave status
-0 in ekf/ukf (a posterior variance of -1e-8 kept), a traced ``Q`` with a negative variance that
+The tests here failed on the code before (2026-12-08): a traced ``Q`` with a negative variance that
 ``P + Q`` absorbed gave status 0 in ekf/ukf; a NaN prediction was carried to the end of the ekf and
 sqrt_ekf runs while the sigma-point runs updated the previous step's belief with the step's z; a
 ``zs`` of 1e300 in a float32 run became inf (status NON_FINITE, no error); sqrt_ukf factored a
@@ -52,35 +51,11 @@ def _covs(name, post):
 
 
 # ---------------------------------------------------------------------------
-# 1. a traced negative R
+# 1. a traced negative R: not checked
 # ---------------------------------------------------------------------------
 
-@pytest.mark.parametrize("pf", [True, False])
-@pytest.mark.parametrize("name", list(MODS))
-def test_traced_negative_R_variance_is_not_psd_in_every_run(name, pf):
-    # R = -1e-8 with P ~ 1: S still factors and the posterior variance (-1e-8) is within finalize's
-    # rounding tolerance, so ekf / ukf said 0 and kept a negative variance; the square-root runs,
-    # which factor R, said NOT_PSD.  Now all four say NOT_PSD and keep the prior.
-    x0, P0, Q = np.zeros(2), np.eye(2), 0.01 * np.eye(2)
-    zs = np.arange(3.0)[:, None]
-    run = jax.jit(lambda R: MODS[name].filter_scan(f, h, x0, P0, None, zs, None, Q, R, predict_first=pf))
-    post = run(np.array([[-1e-8]]))
-    assert np.asarray(post.status).tolist() == [NP, NP, NP]
-    assert np.all(np.asarray(post.cov_diags) > 0)  # no negative variance kept
-    assert np.all(np.asarray(post.nis) == 0)  # not GATED, no NIS from a failed update
-
-
-@pytest.mark.parametrize("mod", [ekf, ukf], ids=["ekf", "ukf"])
-def test_one_update_with_a_traced_negative_R_variance(mod):
-    # a negative variance on a masked component is never read; on a valid one it is NOT_PSD
-    st = ekf.Gaussian(jnp.zeros(2), jnp.eye(2))
-    R = np.diag([0.1, -1e-8])
-    upd = jax.jit(lambda R, m: mod.update(st, jnp.ones(2), lambda x: x, R, mask=m))
-    post, info = upd(R, jnp.array([True, True]))
-    assert int(info.status) == NP and not bool(info.accepted)
-    np.testing.assert_array_equal(np.asarray(post.cov), np.eye(2))
-    post, info = upd(R, jnp.array([True, False]))
-    assert int(info.status) == 0 and bool(info.accepted)
+# (a traced R with a tiny negative variance whose S still factors is not checked in the
+# covariance forms: each update's check made a small EKF run ~25 % slower; gaussian.negative_variance)
 
 
 # ---------------------------------------------------------------------------
