@@ -127,7 +127,7 @@ def prepare_file(flag: str, path, create: bool = True) -> pathlib.Path:
         raise InputError(f"{flag}: {str(path)!r} is not a file name")
     if p.is_dir():
         raise InputError(f"{flag}: {str(p)!r} is a folder; give a file path")
-    if _special_file(p):  # /dev/stdout, a FIFO: written into as it is (atomic_write)
+    if _special_file(p) or _std_descriptor(p) is not None:  # /dev/stdout, a FIFO: written into as they are
         return p
     target = _link_target(flag, p) if p.is_symlink() else p  # written there (atomic_write): probe it
     _probe_folder(flag, target.parent, target, create=create)
@@ -143,6 +143,44 @@ def _special_file(p: pathlib.Path) -> bool:
     except (OSError, ValueError):
         return False
     return not stat.S_ISREG(mode) and not stat.S_ISDIR(mode)
+
+
+def _std_descriptor(p: pathlib.Path) -> Optional[int]:
+    """1 or 2 when ``p`` is the regular file this process's stdout or stderr writes into
+    (``--json /dev/stdout >> log.txt``: ``/dev/stdout`` leads to ``log.txt``), else None."""
+    try:
+        st = os.stat(p)
+    except (OSError, ValueError):
+        return None
+    if not stat.S_ISREG(st.st_mode):
+        return None
+    for fd in (1, 2):
+        try:
+            if os.path.samestat(st, os.fstat(fd)):
+                return fd
+        except OSError:
+            pass
+    return None
+
+
+def _write_to_descriptor(fd: int, write: Callable, mode: str) -> None:
+    """``write(f)`` into a buffer, then the bytes onto descriptor ``fd`` after what Python holds
+    for it (stdout, stderr) is flushed: in order with the command's other output."""
+    import io
+    import sys
+
+    buf = io.BytesIO() if "b" in mode else io.StringIO()
+    write(buf)
+    data = buf.getvalue()
+    data = data if isinstance(data, bytes) else data.encode("utf-8")
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError, AttributeError):
+            pass
+    view = memoryview(data)
+    while view:
+        view = view[os.write(fd, view):]
 
 
 def _link_target(flag: str, p: pathlib.Path) -> pathlib.Path:
@@ -244,6 +282,13 @@ def atomic_write(path, write: Callable, mode: str = "w", *, name: str = "path") 
         raise InputError(f"mode: expected 'w' or 'wb', got {mode!r}")
     path = pathlib.Path(path)
     opts = {"encoding": "utf-8"} if "b" not in mode else {}
+    fd = _std_descriptor(path)
+    if fd is not None:  # /dev/stdout redirected into a file: written on, not replaced (its content kept)
+        try:
+            _write_to_descriptor(fd, write, mode)
+        except OSError as e:
+            raise _write_error(path, e, name) from None
+        return path
     try:
         if _special_file(path):  # (opened as named: /dev/stdout on a pipe cannot be resolved)
             is_dir, special = False, True

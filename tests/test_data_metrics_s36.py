@@ -202,7 +202,8 @@ def test_atomic_write_fsync_failure_is_a_write_error_and_the_target_is_kept(tmp_
 
 # --- review (s36): anchors unknown with fewer than three surveyed anchors mapped ---------------------
 
-def test_util_unknown_anchors_with_two_mapped_is_a_note_not_an_error(monkeypatch):
+@pytest.mark.parametrize("how", ["two active", "three active, one not finite"])
+def test_util_unknown_anchors_with_two_mapped_is_a_note_not_an_error(monkeypatch, how):
     """The aligned anchor map error needs three matches; with fewer the whole `jaxslam dataset
     util-uwb --anchors unknown` ended in an error naming map_error's internal arguments after the
     run.  Now the run is kept and a note says why the map error is missing."""
@@ -221,8 +222,15 @@ def test_util_unknown_anchors_with_two_mapped_is_a_note_not_an_error(monkeypatch
     def two_mapped(*a, **k):
         res = real(*a, **k)
         act = np.asarray(res.active).copy()
-        act[np.flatnonzero(act)[2:]] = False  # keep the first two mapped anchors only
-        return res._replace(active=jnp.asarray(act))
+        on = np.flatnonzero(act)
+        if how == "two active":
+            act[on[2:]] = False  # keep the first two mapped anchors only
+            return res._replace(active=jnp.asarray(act))
+        # (review: the count took every active row, map_error only those with a finite position)
+        act[on[3:]] = False
+        lm = np.asarray(res.landmarks).copy()
+        lm[on[2]] = np.nan
+        return res._replace(active=jnp.asarray(act), landmarks=jnp.asarray(lm))
 
     monkeypatch.setattr(ur, "run", two_mapped)  # (runners imports the module inside its function)
     out = runners.run_util_uwb(FULL / "util_uwb", anchors="unknown")

@@ -145,6 +145,23 @@ def test_native_stdout_goes_to_stderr_and_python_stdout_stays():
     assert p.stderr == "native\nc-stdio\n"
 
 
+def test_quiet_sends_native_and_python_stdout_to_the_null_device_until_the_end():
+    # review (s36): with null (--quiet) only descriptor 1 went to the null device; sys.stdout was
+    # a copy of the real stdout, so a Python print reached it (the old silence_stdout dropped it)
+    script = textwrap.dedent("""
+        import os, sys
+        from jaxslam.cli.common import native_stdout_to_stderr, reader_gone_safe_stdout
+        with reader_gone_safe_stdout():
+            with native_stdout_to_stderr(null=True):
+                os.write(1, b"native\\n")
+                print("python")
+            print("after", flush=True)
+    """)
+    p = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
+    assert p.returncode == 0, p.stderr
+    assert (p.stdout, p.stderr) == ("after\n", "")
+
+
 def test_a_group_run_prints_only_its_report_on_stdout(tmp_path):
     # before: stdout began "[Gloo] Rank 0 is connected to 1 peer ranks. Expected number of
     # connected peer ranks is : 1" (gloo, at the group's first collective)
@@ -255,3 +272,21 @@ def test_a_ctrl_c_between_the_check_and_the_collective_leaves_no_process_waiting
     said = {i: (tmp_path / f"said{i}").read_text() if (tmp_path / f"said{i}").exists() else None for i in range(2)}
     assert said == {0: "interrupted after 2 collectives", 1: "gathered [0.0, 1.0]"}, errs
     assert [p.returncode for p in procs] == [0, 0], errs
+
+
+def test_json_to_dev_stdout_redirected_into_a_file_keeps_the_file(tmp_path):
+    # review (s36): /dev/stdout leads to the file stdout is redirected into (`>> log.txt`), and
+    # atomic_write replaced that file by a rename: its earlier content, the table and the "wrote"
+    # line were lost; now the JSON is written on stdout's descriptor, after the rest
+    log = tmp_path / "log.txt"
+    log.write_text("EARLIER LOG LINE\n")
+    with open(log, "a") as out:
+        p = subprocess.run([sys.executable, "-m", "jaxslam", "run", "uwb-circle", "--runs", "1", "--duration", "2",
+                            "--json", "/dev/stdout"], stdout=out, stderr=subprocess.PIPE, text=True, timeout=300,
+                           cwd=tmp_path)
+    assert p.returncode == 0, p.stderr
+    text = log.read_text()
+    assert text.startswith("EARLIER LOG LINE\nscenario uwb-circle: 1 run(s)")
+    start = text.index("\n{") + 1
+    assert json.loads(text[start:text.index("\n}", start) + 2])["scenario"] == "uwb-circle"
+    assert "wrote /dev/stdout" in text

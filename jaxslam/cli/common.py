@@ -234,7 +234,7 @@ class _ReaderGoneSafe:
 @contextlib.contextmanager
 def native_stdout_to_stderr(null: bool = False):
     """Within: what native code writes on file descriptor 1 goes to stderr (fd 2; with ``null``
-    to the null device: ``--quiet``), while
+    everything on it, Python's prints too, goes to the null device: ``--quiet``), while
     ``sys.stdout`` still writes to the real stdout.  A process of a group (``jaxslam run ...
     --processes P``) runs within it: gloo prints "[Gloo] Rank 0 is connected to 1 peer ranks
     ..." on stdout at the group's first collective, which mixed into the table a user may pipe;
@@ -253,15 +253,25 @@ def native_stdout_to_stderr(null: bool = False):
     except (OSError, ValueError, AttributeError):  # (io.UnsupportedOperation is both)
         yield
         return
+    if null:  # everything on descriptor 1 goes, Python's prints too (sys.stdout writes there)
+        try:
+            silence_stdout(1)
+            yield
+        finally:
+            try:
+                stream.flush()
+            except (OSError, ValueError):
+                pass
+            _flush_c_stdio()
+            os.dup2(real, 1)
+            os.close(real)
+        return
     try:
         inner = getattr(stream, "_stream", stream)
         mine = open(real, "w", encoding=getattr(inner, "encoding", None) or "utf-8",  # noqa: SIM115
                     errors=getattr(inner, "errors", None) or "strict", closefd=False)
         mine.reconfigure(line_buffering=bool(getattr(inner, "line_buffering", False)))
-        if null:
-            silence_stdout(1)
-        else:
-            os.dup2(2, 1)
+        os.dup2(2, 1)
     except (OSError, ValueError, LookupError):
         os.close(real)
         yield

@@ -662,7 +662,8 @@ def run_util_uwb(data_dir, robot=1, filter="ekf", ids="known", anchors=None, par
     A = np.asarray(res.landmarks, np.float64)
     lid = np.asarray(res.landmark_ids)
     act = np.asarray(res.active)
-    matched = int(np.isin(lid[act], aid).sum()) if anchors == "unknown" else 0
+    # the rows map_error compares: an anchor id of the survey and a finite position
+    matched = int((np.isin(lid[act], aid) & np.all(np.isfinite(A[act]), axis=1)).sum()) if anchors == "unknown" else 0
     if anchors == "unknown" and matched < 3:  # a 3-D alignment needs three: said, the run kept
         notes.append(f"{matched} surveyed anchor(s) mapped: the anchor map error (aligned) needs 3, not computed")
     elif anchors == "unknown":
