@@ -130,6 +130,7 @@ Findings
 from __future__ import annotations
 
 import json
+import sys
 import time
 from typing import NamedTuple
 
@@ -140,6 +141,7 @@ from jaxslam.cli.common import ScriptParser, path_arg  # noqa: E402
 import numpy as np  # noqa: E402
 
 from jaxslam.data.plaza import load_plaza  # noqa: E402
+from jaxslam.errors import InputError  # noqa: E402
 
 NB = 4  # beacons
 IB, ISD, IST, IL = 3, 4, 5, 6  # bias, distance scale, heading scale, first beacon
@@ -579,6 +581,10 @@ def prepare(data_dir, which):
     zr = np.where(valid, np.asarray(log.z)[..., 0], 0.0)
     lid, act = np.asarray(res.landmark_ids), np.asarray(res.active)
     L = np.asarray(res.landmarks, np.float64)
+    missing = [int(b) for b in bid if not np.any((lid == b) & act)]
+    if missing:  # the smoother starts from the EKF's final beacons: there is none (an IndexError before)
+        raise InputError(f"Plaza {which}: the EKF never initialised beacon(s) {', '.join(map(str, missing))} "
+                         "(too few ranges in this log): the smoother has no starting beacons")
     beac = np.stack([L[np.nonzero((lid == b) & act)[0][0]] for b in bid])
     rob = np.concatenate([np.asarray(res.pos), np.asarray(res.heading)[:, None],
                           np.asarray(res.bias)[:, None]], 1)
@@ -860,7 +866,13 @@ def main(argv=None):
                 need.append(m)
     if "huber-mad" in need and len(a.robot) < 2:
         ap.error("--configs: huber-mad needs both logs (--robot 1 2)")
-    preps = {w: prepare(a.data, w) for w in a.robot}
+    preps = {}
+    for w in a.robot:
+        try:
+            preps[w] = prepare(a.data, w)
+        except InputError as e:  # (a beacon the EKF never initialised: one line, exit 1, nothing written)
+            print(f"study_plaza_smoothing.py: error: --robot {w}: {e}", file=sys.stderr)
+            return 1
     results = {w: {} for w in a.robot}
     print(HEADER)
     for w in a.robot:
@@ -921,4 +933,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

@@ -7,11 +7,16 @@ NU: Student-t update; GATE: χ²(1) gate.  Prints the airborne position RMSE and
 Measured (docs/datasets.md): per-anchor biases make it worse (0.23-0.34 m): with a
 constant-velocity tag they absorb position error instead of the non-line-of-sight offsets.
 """
-from jaxslam.cli.common import ScriptParser, nonnegative_float, one_line, path_arg, positive_float
-from jaxslam.data import catalogue
-from jaxslam.errors import InputError
+from jaxslam import runtime
 
-import numpy as np
+# an entry point: OpenBLAS pinned, the XLA workaround flags, the compilation cache, before NumPy
+# loads (the other scripts do the same; this one did not)
+runtime.configure_process()
+from jaxslam.cli.common import ScriptParser, nonnegative_float, one_line, path_arg, positive_float  # noqa: E402
+from jaxslam.data import catalogue  # noqa: E402
+from jaxslam.errors import InputError  # noqa: E402
+
+import numpy as np  # noqa: E402
 
 
 def _import_jax():

@@ -110,3 +110,14 @@ def test_range_only_studies_default_to_the_shipped_params(monkeypatch, study, sy
         call(m, jnp.float64)
     expected = mod.PARAMS._replace(gate=9.0) if study == "util" else mod.PARAMS
     assert seen == [expected]
+
+
+def test_plaza_smoothing_study_says_which_beacon_the_ekf_never_initialised():
+    # s36: prepare() indexed the EKF's beacons with an IndexError traceback when a beacon was never
+    # initialised (the short Plaza 1 excerpt); now one line and exit 1, as reproduce_plaza_smoothing
+    r = subprocess.run([sys.executable, str(ROOT / "scripts" / "study_plaza_smoothing.py"), "--data", DATA,
+                        "--robot", "1", "--configs", "lm-gauss"], capture_output=True, text=True, timeout=600)
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert r.returncode == 1 and len(lines) == 1, r.stderr[-2000:]
+    assert lines[0].startswith("study_plaza_smoothing.py: error: --robot 1: Plaza 1: the EKF never initialised "
+                               "beacon(s) "), lines

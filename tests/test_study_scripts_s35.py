@@ -318,7 +318,8 @@ runpy.run_path(sys.argv[1], run_name="probe")
 @pytest.mark.parametrize("script", ["study_mrclam_fastslam", "study_range_only", "study_victoria_park_fastslam",
                                     "study_victoria_park_ekf", "study_association_compare",
                                     "study_mrclam_hidden_gates", "study_util_anisotropic",
-                                    "study_covariance_forms", "study_plaza_smoothing"])
+                                    "study_covariance_forms", "study_plaza_smoothing",
+                                    "study_util_anchor_bias"])  # (s36: it never called it)
 def test_configure_process_runs_before_numpy_loads(script):
     # OpenBLAS reads its thread count when NumPy loads (jaxslam/runtime.py): the scripts' parser
     # imports (jaxslam.cli.common, errors, catalogue load NumPy) came before configure_process
