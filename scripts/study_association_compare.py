@@ -14,9 +14,7 @@ import time
 from jaxslam import runtime
 
 runtime.configure_process()
-from jaxslam.cli.common import ScriptParser, path_arg, one_line  # noqa: E402
-from jaxslam.data import catalogue  # noqa: E402
-from jaxslam.errors import InputError  # noqa: E402
+from jaxslam.cli.common import ScriptParser, path_arg  # noqa: E402
 import numpy as np  # noqa: E402
 
 
@@ -56,10 +54,7 @@ def parse(argv=None):
         ap.error(f"preset: mrclam needs one of {', '.join(PRESETS)}, got {a.preset!r}")
     if a.which == "vp" and a.preset not in (None, "-"):  # (anything there was ignored)
         ap.error(f"preset: vp has one preset, give '-' (or nothing), got {a.preset!r}")
-    try:  # an unset $JAXSLAM_DATA_DIR was a KeyError traceback
-        a.data = str(catalogue.data_root(a.data, flag="DATA_DIR"))
-    except InputError as e:
-        ap.error(one_line(str(e)))
+    a.data = ap.data_root(a.data, flag="DATA_DIR")
     return a
 
 

@@ -23,7 +23,6 @@ variables included for the learned model) and, read only afterwards, the ATE aga
     python scripts/study_mrclam_fastslam.py robust|optimal|hidden|pruning [DATA_DIR]
 """
 import json
-import os
 import time
 
 from jaxslam import runtime
@@ -129,11 +128,7 @@ def main(argv=None):
     ap = parser()
     a = ap.parse_args(argv)
     study, data = a.study, a.data
-    if data == DEFAULT_DATA and not os.path.isdir(data):  # (the package's own runs never need ../shared)
-        ap.error(f"DATA_DIR: {data!r} (the default when DATA_DIR is not given) is not a folder; "
-                 "give DATA_DIR, the folder holding mrclam6/")
-    if not os.path.isdir(os.path.join(data, "mrclam6")):  # (a traceback after the imports, before)
-        ap.error(f"DATA_DIR: {data!r} holds no mrclam6/ folder")
+    ap.data_folder("DATA_DIR", data, DEFAULT_DATA, "mrclam6")
     _import_jax()
     cands, js, rule = STUDIES[study]
     rows = []

@@ -17,9 +17,7 @@ import os
 from jaxslam import runtime
 
 runtime.configure_process()
-from jaxslam.cli.common import ScriptParser, one_line, path_arg  # noqa: E402
-from jaxslam.data import catalogue  # noqa: E402
-from jaxslam.errors import InputError  # noqa: E402
+from jaxslam.cli.common import ScriptParser, path_arg  # noqa: E402
 import numpy as np  # noqa: E402
 
 
@@ -121,10 +119,7 @@ def parser():
 def main(argv=None):
     ap = parser()
     args = ap.parse_args(argv)
-    try:  # an unset $JAXSLAM_DATA_DIR was a KeyError traceback
-        DATA = str(catalogue.data_root(args.data, flag="DATA_DIR"))
-    except InputError as e:
-        ap.error(one_line(str(e)))
+    DATA = ap.data_root(args.data, flag="DATA_DIR")
     _import_jax()
     nu = 5.0
     t = np.random.default_rng(0).standard_t(nu, size=(4_000_000, 2))

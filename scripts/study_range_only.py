@@ -12,14 +12,12 @@ import time
 from jaxslam import runtime
 
 runtime.configure_process()
-from jaxslam.cli.common import ScriptParser, one_line, path_arg  # noqa: E402
-from jaxslam.data import catalogue  # noqa: E402
+from jaxslam.cli.common import ScriptParser, path_arg  # noqa: E402
 from jaxslam import errors  # noqa: E402
 # (the loaders do not load JAX)
 from jaxslam.data import load_plaza as _load_plaza  # noqa: E402
 from jaxslam.data import load_util as _load_util  # noqa: E402
 from jaxslam.data import tag_positions  # noqa: E402
-from jaxslam.errors import InputError  # noqa: E402
 
 import numpy as np  # noqa: E402
 
@@ -250,10 +248,7 @@ def main(argv=None):
     global DATA
     ap = parser()
     a = ap.parse_args(argv)
-    try:  # an unset $JAXSLAM_DATA_DIR was a KeyError traceback
-        DATA = str(catalogue.data_root(a.data))
-    except InputError as e:
-        ap.error(one_line(str(e)))
+    DATA = ap.data_root(a.data)
     _import_jax()
     what = a.what
     dtype = jnp.float32 if a.f32 else jnp.float64

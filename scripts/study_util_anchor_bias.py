@@ -12,9 +12,7 @@ from jaxslam import runtime
 # an entry point: OpenBLAS pinned, the XLA workaround flags, the compilation cache, before NumPy
 # loads (the other scripts do the same; this one did not)
 runtime.configure_process()
-from jaxslam.cli.common import ScriptParser, nonnegative_float, one_line, path_arg, positive_float  # noqa: E402
-from jaxslam.data import catalogue  # noqa: E402
-from jaxslam.errors import InputError  # noqa: E402
+from jaxslam.cli.common import ScriptParser, nonnegative_float, path_arg, positive_float  # noqa: E402
 
 import numpy as np  # noqa: E402
 
@@ -56,10 +54,7 @@ def main(argv=None):
     ap = parser()
     a = ap.parse_args(argv)
     sig_ab, nu, gate, sigma_r = a.sig_ab, a.nu, a.gate, a.sigma_r
-    try:  # an unset $JAXSLAM_DATA_DIR was a KeyError traceback
-        DATA = str(catalogue.data_root(a.data, flag="DATA_DIR"))
-    except InputError as e:
-        ap.error(one_line(str(e)))
+    DATA = ap.data_root(a.data, flag="DATA_DIR")
     _import_jax()
 
     def obs4(s, l, params=None):

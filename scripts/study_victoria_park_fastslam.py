@@ -15,7 +15,6 @@ fastslam`` (``scripts/reproduce_datasets.py``).
     python scripts/study_victoria_park_fastslam.py [DATA_DIR] [proposal|pruning]
 """
 import json
-import os
 import time
 
 from jaxslam import runtime
@@ -65,11 +64,7 @@ def main(argv=None):
     ap = parser()
     a = ap.parse_args(argv)
     data, study = a.data, a.study
-    if data == DEFAULT_DATA and not os.path.isdir(data):  # (the package's own runs never need ../shared)
-        ap.error(f"DATA_DIR: {data!r} (the default when DATA_DIR is not given) is not a folder; "
-                 "give DATA_DIR, the folder holding victoria_park/")
-    if not os.path.isdir(os.path.join(data, "victoria_park")):  # (a traceback after the imports, before)
-        ap.error(f"DATA_DIR: {data!r} holds no victoria_park/ folder")
+    ap.data_folder("DATA_DIR", data, DEFAULT_DATA, "victoria_park")
     _import_jax()
     cands, rule, js = STUDIES[study]
     d = load_victoria_park(f"{data}/victoria_park")

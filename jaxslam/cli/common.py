@@ -67,6 +67,31 @@ class ScriptParser(argparse.ArgumentParser):
         except InputError as e:
             self.error(str(e))
 
+    def data_root(self, path, flag: str = "--data") -> str:
+        """:func:`jaxslam.data.catalogue.data_root` of option ``flag`` (``path``, else
+        ``$JAXSLAM_DATA_DIR``), a missing folder as this parser's usage error (one line, exit 2;
+        an unset variable was a KeyError traceback)."""
+        from ..data import catalogue
+        from ..errors import InputError
+
+        try:
+            return str(catalogue.data_root(path, flag=flag))
+        except InputError as e:
+            self.error(one_line(str(e)))
+
+    def data_folder(self, flag: str, path: str, default: str, holds: str) -> str:
+        """``path``, the data folder of option ``flag`` that defaults to ``default`` (a folder
+        beside the checkout: the package's own runs never need it), checked before any import of
+        JAX: the default missing, or a folder without ``holds/``, is this parser's usage error."""
+        import os
+
+        if path == default and not os.path.isdir(path):
+            self.error(f"{flag}: {path!r} (the default when {flag} is not given) is not a folder; "
+                       f"give {flag}, the folder holding {holds}/")
+        if not os.path.isdir(os.path.join(path, holds)):  # (a traceback after the imports, before)
+            self.error(f"{flag}: {path!r} holds no {holds}/ folder")
+        return path
+
     def output_file(self, flag: str, path, create: bool = True):
         """:func:`jaxslam.files.prepare_file` for option ``flag`` (``create=False`` creates
         nothing), an unusable path as this parser's usage error, as :meth:`output_dir`."""
