@@ -16,6 +16,7 @@ import re
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from folders import unwritable_folder as _unwritable_folder
 
 from jaxslam import files, metrics, paramfile
 from jaxslam.control import dflqr
@@ -208,23 +209,6 @@ def test_dflqr_validate_takes_names():
 
 
 # ------------------------------------------------------------------ files.atomic_write / plotting.flight.save / io
-
-def _unwritable_folder(tmp_path):
-    import os
-    import pathlib
-
-    if os.geteuid() != 0:
-        ro = tmp_path / "ro"
-        ro.mkdir()
-        ro.chmod(0o555)
-        return ro
-    for d in (pathlib.Path("/proc"), pathlib.Path("/sys")):
-        try:
-            (d / ".jaxslam-probe").touch()
-        except OSError:
-            return d
-    pytest.skip("no folder here that this user cannot write into")
-
 
 def test_atomic_write_takes_the_name_of_its_path(tmp_path):
     # (new: atomic_write named it "path" only)

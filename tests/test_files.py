@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
-import os
-import pathlib
 
 import numpy as np
 import pytest
+from folders import unwritable_folder as _unwritable_folder
 
 from jaxslam import files, paramfile
 from jaxslam.errors import InputError
@@ -31,20 +30,6 @@ def test_prepare_dir(tmp_path):
     (tmp_path / "f").write_text("x")
     with pytest.raises(InputError, match="--plots: .* exists and is not a folder"):
         files.prepare_dir("--plots", tmp_path / "f")
-
-
-def _unwritable_folder(tmp_path) -> pathlib.Path:
-    if os.geteuid() != 0:
-        ro = tmp_path / "ro"
-        ro.mkdir()
-        ro.chmod(0o555)
-        return ro
-    sysfs = pathlib.Path("/sys")  # root ignores permission bits; sysfs refuses new files
-    try:
-        (sysfs / ".probe").touch()
-    except OSError:
-        return sysfs
-    pytest.skip("no folder here that this user cannot write into")
 
 
 def test_unwritable_folder_is_refused_naming_the_option(tmp_path):

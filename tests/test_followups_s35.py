@@ -13,7 +13,7 @@ import subprocess
 import sys
 
 import pytest
-from script_modules import load_script, no_compute as _no_compute
+from script_modules import guarded_loader
 
 from jaxslam import paramfile
 from jaxslam.errors import InputError
@@ -121,19 +121,7 @@ COMPUTE = ("part_oracle", "part_gradcheck", "part_ekf", "part_lqr", "part_loop",
 @pytest.fixture
 def guarded(monkeypatch):
     """Loads a script with everything that computes replaced by :func:`_no_compute`."""
-    import jaxslam.cli
-
-    monkeypatch.setattr(jaxslam.cli, "main", _no_compute)  # reproduce_paper000/003/004 run the CLI
-    monkeypatch.setattr(subprocess, "run", _no_compute)  # reproduce_datasets runs it in a subprocess
-
-    def load(script):
-        mod = load_script(script, "followups_s35")
-        for name in COMPUTE:
-            if hasattr(mod, name):
-                monkeypatch.setattr(mod, name, _no_compute)
-        return mod
-
-    return load
+    return guarded_loader(monkeypatch, COMPUTE, "followups_s35")
 
 
 def _usage_line(mod, script, argv, capsys):

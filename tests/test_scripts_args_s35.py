@@ -13,7 +13,7 @@ import subprocess
 import sys
 
 import pytest
-from script_modules import load_script, no_compute as _no_compute
+from script_modules import guarded_loader, load_script
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 DATA = ROOT / "tests" / "data"
@@ -31,20 +31,8 @@ def _one_error_line(err):
 @pytest.fixture
 def guarded(monkeypatch):
     """Loads a script with everything that computes replaced by :func:`_no_compute`."""
-    import jaxslam.cli
-
-    monkeypatch.setattr(jaxslam.cli, "main", _no_compute)  # reproduce_paper000/003/004 run the CLI
-    monkeypatch.setattr(subprocess, "run", _no_compute)  # reproduce_datasets runs it in a subprocess
-
-    def load(script):
-        mod = load_script(script, "s35")
-        for name in ("render", "smooth_log", "execute", "_execute", "part_oracle", "part_gradcheck", "part_ekf",
-                     "part_lqr", "part_loop", "part_nll_flat", "part_uwb"):
-            if hasattr(mod, name):
-                monkeypatch.setattr(mod, name, _no_compute)
-        return mod
-
-    return load
+    return guarded_loader(monkeypatch, ("render", "smooth_log", "execute", "_execute", "part_oracle", "part_gradcheck",
+                                        "part_ekf", "part_lqr", "part_loop", "part_nll_flat", "part_uwb"), "s35")
 
 
 def _usage_line(mod, argv, capsys):

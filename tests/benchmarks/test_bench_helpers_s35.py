@@ -97,22 +97,11 @@ def test_wrap_seed_names_a_bad_argument(seed, offset, name):
 def test_fastslam_largest_seed_mc_keys_are_its_own():
     """bench fastslam's Monte Carlo keys at ``--seed 2**63 - 1``: ``seed + 7`` wrapped as 64 bits.
     They were PRNGKey((2**63 - 1 + 7) % 2**63) = PRNGKey(6), seed 6's stream."""
-    import types
-
     import jax.numpy as jnp
+    from bench_inputs import fastslam_mc_jobs
 
-    from jaxslam.sim.scenarios import fastslam as sc
-
-    p = argparse.ArgumentParser()
-    bench_fastslam.add_arguments(p)
-    args = p.parse_args(["--seed", str(2**63 - 1), "--mc-runs", "1,2", "--mc-duration", "0.1",
-                         "--mc-chunk", "2", "--mc-particles", "3"])
-    cfg, prm = sc.make_filter({o.name: o.default for o in sc.OPTIONS}, jnp.float64)
-    F, M, E = 1, 2, bench_fastslam.LIDAR_EVERY
-    fl = types.SimpleNamespace(truth=np.zeros(((M + F) * E, 12)), rotor=np.zeros(((M + F) * E, 4)),
-                               imu=np.zeros(((M + F) * E, 6)), z=np.zeros((M + F, 4, 3)),
-                               mask=np.zeros((M + F, 4), bool))
-    _, (keys, _), _, _ = bench_fastslam._mc_jobs(args, cfg, prm, fl, np.arange(4))
+    M = 2
+    _, (keys, _), _, _ = fastslam_mc_jobs(bench_fastslam, 2**63 - 1, M=M)
     base = _words(2**63 - 1 + 7)  # [0x80000000, 6]
     assert base.tolist() == [0x80000000, 6]
     np.testing.assert_array_equal(np.asarray(keys), np.asarray(jax.random.split(jnp.asarray(base), M)))

@@ -6,7 +6,6 @@ case (--no-feedforward)."""
 import argparse
 import pathlib
 import sys
-import types
 
 import jax
 import pytest
@@ -88,19 +87,11 @@ def test_fastslam_mc_duration_checked_before_compute(monkeypatch, value):
 
 
 def test_fastslam_largest_seed_does_not_overflow_the_key():
-    from jaxslam.sim.scenarios import fastslam as sc
-    import jax.numpy as jnp
     import numpy as np
+    from bench_inputs import fastslam_mc_jobs
 
-    seed = 2**63 - 1  # the largest --seed the CLI accepts
-    args = _args(bench_fastslam, "--seed", str(seed), "--mc-runs", "1,2", "--mc-duration", "0.1",
-                 "--mc-chunk", "2", "--mc-particles", "3")
-    cfg, prm = sc.make_filter({o.name: o.default for o in sc.OPTIONS}, jnp.float64)
-    F, M, E = 1, 2, bench_fastslam.LIDAR_EVERY
-    fl = types.SimpleNamespace(truth=np.zeros(((M + F) * E, 12)), rotor=np.zeros(((M + F) * E, 4)),
-                               imu=np.zeros(((M + F) * E, 6)), z=np.zeros((M + F, 4, 3)),
-                               mask=np.zeros((M + F, 4), bool))
-    jobs, (keys, _), N, F_out = bench_fastslam._mc_jobs(args, cfg, prm, fl, np.arange(4))
+    seed, M = 2**63 - 1, 2  # the largest --seed the CLI accepts
+    jobs, (keys, _), N, F_out = fastslam_mc_jobs(bench_fastslam, seed, M=M)
     # seed + 7 as 64 bits (timing.prng_key, two's complement): 2**63 - 1 + 7 -> -2**63 + 6
     expected = jax.random.split(jax.random.PRNGKey(-2**63 + 6), M)
     assert np.array_equal(np.asarray(keys), np.asarray(expected))

@@ -51,3 +51,24 @@ def one_error_line(call, capsys):
     lines = [ln for ln in err.splitlines() if ln.strip()]
     assert e.value.code == 2 and len(lines) == 1 and "Traceback" not in err, err
     return lines[0]
+
+
+def guarded_loader(monkeypatch, compute, tag: str):
+    """``load(script)``: the script loaded (:func:`load_script`) with the names in ``compute``, the
+    CLI's ``main`` (the reproduce scripts run it) and ``subprocess.run`` (reproduce_datasets)
+    replaced by :func:`no_compute`: a usage error must come before any of them."""
+    import subprocess
+
+    import jaxslam.cli
+
+    monkeypatch.setattr(jaxslam.cli, "main", no_compute)
+    monkeypatch.setattr(subprocess, "run", no_compute)
+
+    def load(script):
+        mod = load_script(script, tag)
+        for name in compute:
+            if hasattr(mod, name):
+                monkeypatch.setattr(mod, name, no_compute)
+        return mod
+
+    return load

@@ -11,28 +11,13 @@ import pickle
 
 import numpy as np
 import pytest
+from folders import unwritable_folder as _unwritable_folder
 
 from jaxslam import files
 from jaxslam.errors import InputError
 from jaxslam.metrics import write_tum
 from jaxslam.plotting import attitude, dataset, fastslam, flight, lines, slam3d, uwb
 from jaxslam.plotting import tuning as pt
-
-
-def _unwritable_folder(tmp_path) -> pathlib.Path:
-    """A folder in which no file can be created: a read-only one, or (root ignores permission
-    bits) /proc, where creating a file fails."""
-    if os.geteuid() != 0:
-        ro = tmp_path / "ro"
-        ro.mkdir()
-        ro.chmod(0o555)
-        return ro
-    for d in (pathlib.Path("/proc"), pathlib.Path("/sys")):
-        try:
-            (d / ".jaxslam-probe").touch()
-        except OSError:
-            return d
-    pytest.skip("no folder here that this user cannot write into")
 
 
 def _tum_args(T=3):
